@@ -1,0 +1,212 @@
+"""Pinhole cameras with OpenCV distortion, and rigs of them.
+
+Conventions (used everywhere in this project):
+- World units are metres. Extrinsics map world to camera: X_cam = R @ X_world + t.
+- Camera axes follow OpenCV: x right, y down, z forward (into the scene).
+- Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0), so pixel (u, v)
+  covers [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5].
+- Distortion coefficients are OpenCV's order: k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+_VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
+class CameraError(ValueError):
+    """A camera or rig is malformed; the message names the camera and the field."""
+
+
+def _as_array(value, shape: tuple[int, ...], what: str, camera: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(f"camera '{camera}': {what} is not numeric ({exc})") from exc
+    if arr.size == int(np.prod(shape)) and arr.shape != shape:
+        arr = arr.reshape(shape)
+    if arr.shape != shape:
+        raise CameraError(f"camera '{camera}': {what} has shape {arr.shape}, expected {shape}")
+    if not np.all(np.isfinite(arr)):
+        raise CameraError(f"camera '{camera}': {what} contains NaN or Inf: {arr.tolist()}")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """One calibrated camera. Build it with `Camera.create(...)`, which validates every field."""
+
+    name: str
+    K: np.ndarray  # (3, 3) intrinsics: [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]
+    dist: np.ndarray  # (N,) OpenCV distortion, N in {0, 4, 5, 8, 12, 14}
+    R: np.ndarray  # (3, 3) world-to-camera rotation
+    t: np.ndarray  # (3,) world-to-camera translation, metres
+    width: int
+    height: int
+    meta: dict = field(default_factory=dict)  # free-form provenance (source format, serial...)
+
+    @classmethod
+    def create(cls, name, K, dist, R, t, width, height, meta=None, orthonormal_tol=1e-6) -> Camera:
+        name = str(name)
+        K = _as_array(K, (3, 3), "K", name)
+        dist = np.asarray(dist if dist is not None else [], dtype=np.float64).ravel()
+        if dist.size not in _VALID_DIST_LENGTHS:
+            raise CameraError(
+                f"camera '{name}': distortion has {dist.size} terms, expected one of "
+                f"{_VALID_DIST_LENGTHS} (OpenCV order k1, k2, p1, p2, k3, ...)"
+            )
+        if not np.all(np.isfinite(dist)):
+            raise CameraError(f"camera '{name}': distortion contains NaN or Inf: {dist.tolist()}")
+        R = _as_array(R, (3, 3), "R", name)
+        t = _as_array(t, (3,), "t", name)
+        ortho_err = float(np.abs(R @ R.T - np.eye(3)).max())
+        if ortho_err > orthonormal_tol:
+            raise CameraError(
+                f"camera '{name}': R is not orthonormal (max |R R^T - I| = {ortho_err:.2e}, "
+                f"tolerance {orthonormal_tol:.0e})"
+            )
+        if np.linalg.det(R) < 0:
+            raise CameraError(f"camera '{name}': R is a reflection (det = -1), expected a rotation")
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CameraError(f"camera '{name}': focal lengths must be positive, got K = {K.tolist()}")
+        if abs(K[2, 2] - 1) > 1e-9 or abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
+            raise CameraError(f"camera '{name}': K must be upper triangular with K[2,2] = 1, got {K.tolist()}")
+        width, height = int(width), int(height)
+        if width <= 0 or height <= 0:
+            raise CameraError(f"camera '{name}': resolution must be positive, got {width}x{height}")
+        return cls(name, K, dist, R, t, width, height, dict(meta or {}))
+
+    # -- derived quantities -------------------------------------------------------------------
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates."""
+        return -self.R.T @ self.t
+
+    @property
+    def optical_axis(self) -> np.ndarray:
+        """Unit viewing direction (camera +z) in world coordinates."""
+        return self.R[2].copy()
+
+    @property
+    def world_to_cam(self) -> np.ndarray:
+        """4x4 world-to-camera matrix (a 'viewmat' in splatting terms)."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.R, self.t
+        return m
+
+    @property
+    def rvec(self) -> np.ndarray:
+        return cv2.Rodrigues(self.R)[0].ravel()
+
+    def replace(self, **changes) -> Camera:
+        """A validated copy with some fields changed."""
+        fields = dict(name=self.name, K=self.K, dist=self.dist, R=self.R, t=self.t,
+                      width=self.width, height=self.height, meta=self.meta)
+        fields.update(changes)
+        return Camera.create(**fields)
+
+    # -- geometry through OpenCV --------------------------------------------------------------
+    def to_camera(self, points_world: np.ndarray) -> np.ndarray:
+        pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        return pts @ self.R.T + self.t
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """Project (N, 3) world points to (N, 2) distorted pixels with cv2.projectPoints.
+
+        Points behind the camera are projected too (OpenCV does not clip); check depth with
+        `to_camera` when it matters.
+        """
+        pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            return np.zeros((0, 2))
+        uv, _ = cv2.projectPoints(pts, self.rvec, self.t, self.K, self.dist if self.dist.size else None)
+        return uv.reshape(-1, 2)
+
+    def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
+        """Distorted pixels (N, 2) to undistorted normalised coordinates (N, 2) (z = 1 plane)."""
+        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        if len(px) == 0:
+            return np.zeros((0, 2))
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        out = cv2.undistortPointsIter(px, self.K, self.dist if self.dist.size else None, None, None, crit)
+        return out.reshape(-1, 2)
+
+    def unproject(self, pixels: np.ndarray, depth: np.ndarray | float | None = None) -> np.ndarray:
+        """Pixels to world. With `depth` (camera z, metres) returns (N, 3) points; without it,
+        returns (N, 3) unit ray directions in world coordinates."""
+        xy = self.undistort_points(pixels)
+        rays_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        if depth is None:
+            d = rays_cam @ self.R  # R^T applied to row vectors
+            return d / np.linalg.norm(d, axis=1, keepdims=True)
+        pts_cam = rays_cam * np.asarray(depth, dtype=np.float64).reshape(-1, 1)
+        return (pts_cam - self.t) @ self.R
+
+    def undistort_image(self, image: np.ndarray) -> np.ndarray:
+        """Remove lens distortion from an image (same K)."""
+        if not self.dist.size or not np.any(self.dist):
+            return image
+        return cv2.undistort(image, self.K, self.dist)
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """An ordered set of cameras sharing one world frame (metres, `up` is the world up axis)."""
+
+    cameras: tuple[Camera, ...]
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    units: str = "m"
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+        names = [c.name for c in self.cameras]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise CameraError(f"rig has duplicate camera names: {dupes}")
+        if self.units != "m":
+            raise CameraError(f"rig units must be metres ('m'), got '{self.units}'; convert on import")
+        up = np.asarray(self.up, dtype=np.float64)
+        if up.shape != (3,) or not np.all(np.isfinite(up)) or abs(np.linalg.norm(up) - 1) > 1e-6:
+            raise CameraError(f"rig up axis must be a finite unit 3-vector, got {self.up}")
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __iter__(self):
+        return iter(self.cameras)
+
+    def __getitem__(self, key: int | str) -> Camera:
+        if isinstance(key, str):
+            for cam in self.cameras:
+                if cam.name == key:
+                    return cam
+            raise KeyError(f"camera '{key}' is not in the rig (cameras: {self.names})")
+        return self.cameras[key]
+
+    def subset(self, names: list[str]) -> Rig:
+        return replace(self, cameras=tuple(self[n] for n in names))
