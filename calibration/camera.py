@@ -148,7 +148,7 @@ class Camera:
         if len(px) == 0:
             return np.zeros((0, 2))
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        out = cv2.undistortPointsIter(px, self.K, self.dist if self.dist.size else None, None, None, crit)
+        out = cv2.undistortPoints(px, self.K, self.dist if self.dist.size else None, None, None, None, crit)
         return out.reshape(-1, 2)
 
     def unproject(self, pixels: np.ndarray, depth: np.ndarray | float | None = None) -> np.ndarray:
