@@ -1,0 +1,1 @@
+"""Orchestration only: CLI, config schema, DAG, fingerprints, executors and logs."""

@@ -1,0 +1,1 @@
+"""One thin module per DAG step. Each defines `STAGE = Stage(...)` (see pipeline.stage)."""

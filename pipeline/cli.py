@@ -1,0 +1,166 @@
+"""`python -m pipeline`: run stages, show their status.
+
+Exit codes: 0 ok, 1 a stage failed (the message names the stage and the cause), 2 bad
+config or arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from rich.table import Table
+
+from pipeline.config import PipelineConfig, load_config
+from pipeline.console import ProgressBars, make_console, print_error, setup_logging
+from pipeline.errors import ConfigError, PipelineError
+from pipeline.executors import make_executor
+from pipeline.registry import load_stages
+from pipeline.runner import MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
+
+EPILOG = """examples:
+  python -m pipeline run all                      run every stale stage of the default scene
+  python -m pipeline run calibrate --scene lab    calibrate the 'lab' scene (and what it needs)
+  python -m pipeline run train --set train.steps=200
+  python -m pipeline run track --video match.mp4
+  python -m pipeline status                       which stages are up to date, and why not
+"""
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default="pipeline.yaml", type=Path, help="pipeline file (default: ./pipeline.yaml)")
+    p.add_argument("--scene", action="append", help="scene name (repeatable, or 'all'; default: default_scene)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.KEY=VALUE",
+                   help="override a stage parameter (value parsed as YAML), e.g. --set train.steps=200")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or info logs")
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse exits 2 too; keep its message but use our format
+        self.print_usage(sys.stderr)
+        print(f"error: {message}", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="python -m pipeline", description=__doc__.split("\n\n")[0],
+                     epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    run = sub.add_parser("run", help="run a stage (after its stale upstream stages), or 'all'",
+                         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG)
+    run.add_argument("stage", help="stage name, or 'all'")
+    _common(run)
+    run.add_argument("--force", action="store_true", help="rerun the named stage even if it is up to date")
+    run.add_argument("--force-all", action="store_true", help="rerun every stage in the plan")
+    run.add_argument("--dry-run", action="store_true", help="print the plan and why, run nothing")
+    run.add_argument("--executor", choices=["local", "ray"], help="override executor.kind")
+    run.add_argument("--workers", type=int, help="override executor.workers")
+    run.add_argument("--ray-address", help="address of an existing Ray cluster")
+    track = run.add_argument_group("track options")
+    track.add_argument("--video", action="append", type=Path, help="video file to track (repeatable)")
+    track.add_argument("--with-gaussians", action="store_true", help="also export a splat PLY per track")
+
+    status = sub.add_parser("status", help="show which stages are up to date, stale or missing")
+    _common(status)
+
+    stages = sub.add_parser("stages", help="list the declared stages and what they do")
+    _common(stages)
+    return parser
+
+
+def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
+    if requested and "all" in requested:
+        return list(cfg.scenes)
+    if requested:
+        unknown = [s for s in requested if s not in cfg.scenes]
+        if unknown:
+            raise ConfigError(f"--scene: unknown scene(s) {unknown} (scenes: {sorted(cfg.scenes)})")
+        return requested
+    if cfg.default_scene:
+        return [cfg.default_scene]
+    if len(cfg.scenes) == 1:
+        return list(cfg.scenes)
+    raise ConfigError(f"several scenes are declared ({sorted(cfg.scenes)}): pass --scene NAME or set default_scene")
+
+
+_STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim"}
+
+
+def _status_table(title: str, statuses) -> Table:
+    table = Table(title=title, title_justify="left")
+    for col in ("stage", "state", "reason"):
+        table.add_column(col)
+    for st in statuses:
+        table.add_row(st.key, f"[{_STYLE.get(st.state, '')}]{st.state}[/]", st.reason)
+    return table
+
+
+def _print_outputs(console, runner: Runner, planned) -> None:
+    """Say where the results are: the outputs of every stage that ran or was up to date."""
+    lines = []
+    for st in planned:
+        if st.state == SKIPPED:
+            continue
+        ctx = runner.context(st.stage)
+        for rel in runner.stages[st.stage].outputs(ctx):
+            lines.append(f"  {st.key:<12} {runner.workspace / rel}")
+    if lines:
+        console.print(f"outputs of scene '{runner.scene_name}':\n" + "\n".join(lines), highlight=False)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = make_console(args.quiet)
+    try:
+        cfg = load_config(args.config, args.overrides)
+        stages = load_stages(cfg)
+        scenes = _scenes(cfg, args.scene)
+        if args.command == "stages":
+            for name, st in stages.items():
+                console.print(f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    {st.help}",
+                              highlight=False)
+            return 0
+        progress = ProgressBars(console, enabled=not args.quiet)
+        options, executor = {}, None
+        if args.command == "run":
+            if args.stage != "all" and args.stage not in cfg.stages:
+                raise ConfigError(f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')")
+            options = {"video": args.video or [], "with_gaussians": args.with_gaussians}
+            executor = make_executor(args.executor or cfg.executor.kind, args.workers or cfg.executor.workers,
+                                     progress, ray_address=args.ray_address or cfg.executor.ray_address)
+        # Build every runner first: it validates all stage params before anything is written.
+        runners = [Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
+                   for scene in scenes]
+        log_path = None
+        if args.command == "run" and not args.dry_run:
+            log_path = setup_logging(console, cfg.workspace / ".pipeline" / "logs", args.command, args.quiet)
+        else:
+            setup_logging(console, None, args.command, args.quiet)
+        for runner in runners:
+            scene = runner.scene_name
+            if args.command == "status":
+                console.quiet = False
+                console.print(_status_table(f"scene '{scene}'  ({runner.workspace})", runner.status()))
+                continue
+            targets = list(cfg.stages) if args.stage == "all" else [args.stage]
+            planned = runner.run(targets, force=args.force, force_all=args.force_all, dry_run=args.dry_run)
+            if args.dry_run:
+                console.quiet = False
+                console.print(_status_table(f"plan for scene '{scene}' (dry run)", planned))
+            else:
+                _print_outputs(console, runner, planned)
+        if log_path is not None and args.command == "run" and not args.quiet:
+            console.print(f"log: {log_path}", highlight=False)
+        return 0
+    except PipelineError as exc:
+        print_error(console, str(exc))
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print_error(console, "interrupted")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

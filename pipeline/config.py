@@ -1,0 +1,221 @@
+"""`pipeline.yaml` schema (pydantic), loading, `--set` overrides and readable errors.
+
+The file declares a workspace root, one or more scenes and the stages of the DAG:
+
+    workspace: workspace            # relative paths resolve against this file's folder
+    default_scene: demo
+    executor: {kind: local, workers: 2}
+    scenes:
+      demo: {synthetic: {preset: demo, seed: 0}}
+      lab:
+        videos: ../shared/real/pose2sim-multiperson/cam*.mp4
+        calibration: {file: ../shared/real/pose2sim-multiperson/Calib.qca.txt, format: qualisys}
+    stages:
+      calibrate: {needs: [synth], params: {...}}
+
+Stage parameters are validated by each stage's own pydantic model (see `pipeline.stage`).
+"""
+
+from __future__ import annotations
+
+import glob
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from pipeline.errors import ConfigError
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ExecutorConfig(Strict):
+    kind: Literal["local", "ray"] = "local"
+    workers: int | None = Field(default=None, ge=1, description="default: number of CPU cores")
+    ray_address: str | None = None
+
+
+class SyntheticSource(Strict):
+    preset: str = "demo"
+    seed: int = 0
+    overrides: dict[str, Any] = Field(default_factory=dict)
+
+
+class CalibrationSource(Strict):
+    file: Path
+    format: str | None = None  # auto-detected from the file when omitted
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class BoardSource(Strict):
+    videos: list[Path] | str  # one per camera, or a glob
+    kind: Literal["charuco", "checkerboard"] = "charuco"
+    squares_x: int = Field(ge=2)
+    squares_y: int = Field(ge=2)
+    square_size: float = Field(gt=0, description="metres")
+    marker_size: float | None = Field(default=None, gt=0)
+    dictionary: str = "DICT_5X5_100"
+
+
+class SceneConfig(Strict):
+    """Where a scene's footage comes from: a synthetic spec, or camera videos."""
+
+    synthetic: SyntheticSource | None = None
+    videos: list[Path] | str | None = None  # list of files, or a glob; camera name = file stem
+    calibration: CalibrationSource | None = None
+    board: BoardSource | None = None
+    masks: Path | None = None  # externally supplied masks/boxes (see docs/formats)
+    fps: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.synthetic is None) == (self.videos is None):
+            raise ValueError("a scene needs exactly one of 'synthetic' or 'videos'")
+        return self
+
+    @property
+    def is_synthetic(self) -> bool:
+        return self.synthetic is not None
+
+    def video_files(self) -> list[Path]:
+        """The scene's camera videos, sorted by name (empty for synthetic scenes)."""
+        return _expand(self.videos)
+
+
+class StageConfig(Strict):
+    needs: list[str] = Field(default_factory=list)
+    module: str | None = None  # 'module' or 'module:ATTR' defining the Stage; default `stages.<name>`
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class PipelineConfig(Strict):
+    workspace: Path = Path("workspace")
+    default_scene: str | None = None
+    executor: ExecutorConfig = Field(default_factory=ExecutorConfig)
+    scenes: dict[str, SceneConfig] = Field(min_length=1)
+    stages: dict[str, StageConfig] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _check_graph(self):
+        for name, stage in self.stages.items():
+            for dep in stage.needs:
+                if dep not in self.stages:
+                    raise ValueError(
+                        f"stages.{name}.needs: unknown stage '{dep}' (declared stages: {sorted(self.stages)})"
+                    )
+        if self.default_scene is not None and self.default_scene not in self.scenes:
+            raise ValueError(f"default_scene: '{self.default_scene}' is not a scene (scenes: {sorted(self.scenes)})")
+        return self
+
+    def scene_workspace(self, scene: str) -> Path:
+        return self.workspace / scene
+
+
+def _expand(spec: list[Path] | str | None) -> list[Path]:
+    if spec is None:
+        return []
+    if isinstance(spec, str):
+        return sorted(Path(p) for p in glob.glob(spec))
+    return list(spec)
+
+
+def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
+    """Make every path relative to the config file's folder absolute."""
+
+    def fix(p):
+        if p is None:
+            return None
+        if isinstance(p, str):  # a glob
+            return p if Path(p).is_absolute() else str(base / p)
+        return p if Path(p).is_absolute() else (base / p)
+
+    cfg.workspace = fix(cfg.workspace)
+    for scene in cfg.scenes.values():
+        scene.videos = [fix(p) for p in scene.videos] if isinstance(scene.videos, list) else fix(scene.videos)
+        scene.masks = fix(scene.masks)
+        if scene.calibration:
+            scene.calibration.file = fix(scene.calibration.file)
+        if scene.board:
+            b = scene.board
+            b.videos = [fix(p) for p in b.videos] if isinstance(b.videos, list) else fix(b.videos)
+    return cfg
+
+
+def format_validation_error(exc: ValidationError, source: str) -> str:
+    """One line per problem: file, dotted key, and what was expected."""
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        if err["type"] == "extra_forbidden":
+            lines.append(f"{source}: {loc}: unknown key")
+        elif err["type"] == "missing":
+            lines.append(f"{source}: {loc}: required key is missing")
+        else:
+            msg = err["msg"].removeprefix("Value error, ")
+            got = err.get("input")
+            shown = "" if isinstance(got, dict) else f" (got {got!r})"
+            lines.append(f"{source}: {loc}: {msg}{shown}")
+    return "\n".join(lines)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """`stage.key=value` -> (['stage', 'key'], value parsed as YAML)."""
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r}: expected KEY=VALUE, e.g. --set train.steps=200")
+    key, raw = text.split("=", 1)
+    parts = [p for p in key.strip().split(".") if p]
+    if len(parts) < 2 and parts[:1] not in (["workspace"], ["default_scene"]):
+        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE (or a top-level key like executor.workers)")
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"--set {text!r}: value is not valid YAML ({exc})") from exc
+    return parts, value
+
+
+def apply_override(raw: dict, parts: list[str], value: Any) -> None:
+    """Apply a parsed override to the raw YAML dict. `stage.k=v` sets stages.stage.params.k;
+    keys starting with a top-level section (workspace, executor, scenes, ...) are set directly."""
+    top_level = set(PipelineConfig.model_fields)
+    if parts[0] in top_level:
+        path = parts
+    else:
+        stages = raw.get("stages") or {}
+        if parts[0] not in stages:
+            raise ConfigError(
+                f"--set {'.'.join(parts)}: '{parts[0]}' is neither a stage ({sorted(stages)}) "
+                f"nor a top-level key ({sorted(top_level)})"
+            )
+        path = ["stages", parts[0], "params", *parts[1:]]
+    node = raw
+    for p in path[:-1]:
+        nxt = node.get(p)
+        if nxt is None:
+            nxt = node[p] = {}
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"--set {'.'.join(parts)}: '{p}' is not a mapping")
+        node = nxt
+    node[path[-1]] = value
+
+
+def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
+    """Read, override and validate `pipeline.yaml`. Raises ConfigError with a readable message."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path} (pass --config PATH)")
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(raw).__name__}")
+    for text in overrides:
+        apply_override(raw, *parse_override(text))
+    try:
+        cfg = PipelineConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, str(path))) from None
+    return _resolve_paths(cfg, path.resolve().parent)

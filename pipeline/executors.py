@@ -1,0 +1,66 @@
+"""Executors map a function over independent items (cameras, clips, frame chunks).
+
+`executor.map(fn, items, description=...)` returns results in item order. `fn` and the items
+must be picklable (module-level functions, plain data) because workers are processes. The
+local executor uses a spawn-based process pool sized to the cores; a Ray executor plugs in
+behind the same interface.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any, Protocol
+
+
+class Executor(Protocol):
+    workers: int
+
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], description: str = "") -> list[Any]: ...
+
+
+ProgressFactory = Callable[..., Any]
+
+
+class LocalExecutor:
+    """Runs items in a process pool (or inline for one worker or one item)."""
+
+    def __init__(self, workers: int | None = None, progress: ProgressFactory | None = None):
+        self.workers = max(1, workers or os.cpu_count() or 1)
+        self._progress = progress
+
+    def map(self, fn, items, description: str = "") -> list:
+        items = list(items)
+        if self.workers == 1 or len(items) <= 1:
+            it = items if self._progress is None else self._progress(items, description=description, total=len(items))
+            return [fn(x) for x in it]
+        results: list = [None] * len(items)
+        ctx = mp.get_context("spawn")  # fork is unsafe with torch/OpenMP threads
+        with ProcessPoolExecutor(max_workers=min(self.workers, len(items)), mp_context=ctx) as pool:
+            futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+            done_iter: Iterable = as_completed(futures)
+            if self._progress is not None:
+                done_iter = self._progress(done_iter, description=description, total=len(items))
+            for fut in done_iter:
+                results[futures[fut]] = fut.result()
+        return results
+
+
+def make_executor(kind: str, workers: int | None, progress: ProgressFactory | None = None,
+                  ray_address: str | None = None) -> Executor:
+    if kind == "local":
+        return LocalExecutor(workers, progress)
+    if kind == "ray":
+        try:
+            from pipeline.ray_executor import RayExecutor  # optional 'dist' extra
+        except ImportError as exc:
+            raise RuntimeError(f"the Ray executor is unavailable: {exc}") from exc
+        return RayExecutor(workers, progress, address=ray_address)
+    raise ValueError(f"unknown executor kind '{kind}' (expected 'local' or 'ray')")
+
+
+def chunks(seq: Sequence, size: int) -> list[Sequence]:
+    """Split a sequence into consecutive chunks of at most `size` items."""
+    return [seq[i:i + size] for i in range(0, len(seq), max(1, size))]

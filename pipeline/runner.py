@@ -1,0 +1,266 @@
+"""Decide which stages are stale and run them, atomically, recording fingerprints.
+
+A stage's fingerprint is its code version (declared version + hash of its module source),
+its validated params and the content digests of its inputs (upstream stages' outputs plus
+the external files it declares). Outputs are written to `.pipeline/staging/<key>/` and moved
+into the scene workspace only after the stage returns; the fingerprint record is deleted just
+before that move and written after it, so a run killed at any point is seen as "missing" or
+"stale" next time, never "up to date".
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import inspect
+import json
+import logging
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from pipeline.config import PipelineConfig, format_validation_error
+from pipeline.dag import topological_order, upstream_closure
+from pipeline.errors import ConfigError, PipelineError, StageFailed
+from pipeline.fingerprint import HashCache, stage_fingerprint
+from pipeline.fsutil import atomic_write_text, remove_path, replace_path
+from pipeline.stage import Stage, StageContext
+
+log = logging.getLogger("pipeline")
+
+UP_TO_DATE, STALE, MISSING, SKIPPED = "up to date", "stale", "missing", "not needed"
+
+
+@dataclass
+class StageStatus:
+    stage: str
+    key: str
+    state: str
+    reason: str
+    fingerprint: str | None = None
+
+    @property
+    def needs_run(self) -> bool:
+        return self.state in (STALE, MISSING)
+
+
+def _safe_key(key: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.@-]+", "_", key)
+
+
+def _code_version(stage: Stage) -> str:
+    src = inspect.getsourcefile(stage.run)
+    digest = hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16] if src else "unknown"
+    return f"{stage.version}:{digest}"
+
+
+def _diff_params(old: dict, new: dict, prefix: str = "") -> list[str]:
+    changes = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k, "<unset>"), new.get(k, "<unset>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            changes += _diff_params(a, b, f"{prefix}{k}.")
+        elif a != b:
+            changes.append(f"{prefix}{k}: {a!r} -> {b!r}")
+    return changes
+
+
+class Runner:
+    """Runs the stages of one scene."""
+
+    def __init__(self, cfg: PipelineConfig, scene_name: str, stages: dict[str, Stage], *,
+                 options: dict[str, Any] | None = None, executor=None, progress=None):
+        if scene_name not in cfg.scenes:
+            raise ConfigError(f"--scene: unknown scene '{scene_name}' (scenes: {sorted(cfg.scenes)})")
+        self.cfg, self.scene_name, self.scene = cfg, scene_name, cfg.scenes[scene_name]
+        self.stages = stages
+        self.options = options or {}
+        self.executor, self.progress = executor, progress
+        self.workspace = cfg.scene_workspace(scene_name)
+        self.meta = self.workspace / ".pipeline"
+        self.hashes = HashCache(cfg.workspace / ".pipeline" / "hashcache.json")
+        self.needs = {name: list(sc.needs) for name, sc in cfg.stages.items()}
+        self._params = {name: self._validate_params(name) for name in cfg.stages}
+
+    # -- context and bookkeeping -------------------------------------------------------------
+    def _validate_params(self, name: str):
+        model = self.stages[name].params_model
+        try:
+            return model.model_validate(self.cfg.stages[name].params)
+        except ValidationError as exc:
+            # Prefix locations with the YAML path of the params block.
+            msg = format_validation_error(exc, "pipeline.yaml")
+            raise ConfigError(msg.replace("pipeline.yaml: ", f"pipeline.yaml: stages.{name}.params.")) from None
+
+    def context(self, name: str) -> StageContext:
+        return StageContext(
+            stage=name, scene_name=self.scene_name, scene=self.scene, config=self.cfg,
+            workspace=self.workspace, staging=self.meta / "staging" / name,
+            params=self._params[name], options=self.options, executor=self.executor,
+            log=logging.getLogger(f"pipeline.{name}"), progress=self.progress,
+        )
+
+    def key(self, name: str, ctx: StageContext | None = None) -> str:
+        variant = self.stages[name].variant(ctx or self.context(name))
+        return name if variant is None else f"{name}@{variant}"
+
+    def _record_path(self, key: str) -> Path:
+        return self.meta / "state" / f"{_safe_key(key)}.json"
+
+    def _read_record(self, key: str) -> dict | None:
+        p = self._record_path(key)
+        try:
+            return json.loads(p.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def applies(self, name: str) -> bool:
+        return self.stages[name].applies(self.scene)
+
+    def _inputs(self, name: str, ctx: StageContext) -> dict[str, str | None]:
+        """Digests of upstream outputs and declared external inputs."""
+        digests: dict[str, str | None] = {}
+        for dep in self.needs[name]:
+            if not self.applies(dep):
+                continue
+            dep_ctx = self.context(dep)
+            for rel in self.stages[dep].outputs(dep_ctx):
+                digests[f"{dep}:{rel}"] = self.hashes.digest(self.workspace / rel)
+        for path in self.stages[name].inputs(ctx):
+            d = self.hashes.digest(Path(path))
+            if d is None:
+                raise StageFailed(name, self.scene_name, FileNotFoundError(f"input file is missing: {path}"))
+            digests[str(path)] = d
+        return digests
+
+    # -- status ------------------------------------------------------------------------------
+    def status_of(self, name: str, upstream: dict[str, StageStatus]) -> StageStatus:
+        stage = self.stages[name]
+        if not stage.applies(self.scene):
+            return StageStatus(name, name, SKIPPED, "does not apply to this scene")
+        ctx = self.context(name)
+        key = self.key(name, ctx)
+        pending = [d for d in self.needs[name] if d in upstream and upstream[d].needs_run]
+        params = ctx.params.model_dump(mode="json")
+        record = self._read_record(key)
+        if pending:
+            state = MISSING if record is None else STALE
+            return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
+        inputs = self._inputs(name, ctx)
+        code = _code_version(stage)
+        fp = stage_fingerprint(code, params, inputs)
+        if record is None:
+            interrupted = (self.meta / "staging" / name).exists()
+            why = "a previous run was interrupted" if interrupted else "never run"
+            return StageStatus(name, key, MISSING, why, fp)
+        for rel, digest in record.get("outputs", {}).items():
+            now = self.hashes.digest(self.workspace / rel)
+            if now is None:
+                return StageStatus(name, key, MISSING, f"output {rel} is absent", fp)
+            if now != digest:
+                return StageStatus(name, key, STALE, f"output {rel} was modified since the run", fp)
+        if record.get("fingerprint") == fp:
+            return StageStatus(name, key, UP_TO_DATE, f"ran {record.get('finished', '?')}", fp)
+        reasons = []
+        if record.get("code") != code:
+            reasons.append("code changed")
+        reasons += [f"param {c}" for c in _diff_params(record.get("params", {}), params)]
+        old_inputs = record.get("inputs", {})
+        changed = [k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)]
+        reasons += [f"input changed: {k}" for k in changed[:5]]
+        if len(changed) > 5:
+            reasons.append(f"... and {len(changed) - 5} more inputs")
+        return StageStatus(name, key, STALE, "; ".join(reasons) or "fingerprint changed", fp)
+
+    def status(self, targets: list[str] | None = None) -> list[StageStatus]:
+        names = upstream_closure(self.needs, targets) if targets else topological_order(self.needs)
+        result: dict[str, StageStatus] = {}
+        for name in names:
+            result[name] = self.status_of(name, result)
+        self.hashes.save()
+        return list(result.values())
+
+    # -- running -----------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def _lock(self):
+        self.meta.mkdir(parents=True, exist_ok=True)
+        with open(self.meta / "lock", "w") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise PipelineError(f"another pipeline run holds the workspace lock {self.meta / 'lock'}") from None
+            yield
+
+    def run(self, targets: list[str], *, force: bool = False, force_all: bool = False,
+            dry_run: bool = False) -> list[StageStatus]:
+        """Run the targets and their stale upstream stages. Returns the statuses as planned."""
+        names = upstream_closure(self.needs, targets)
+        planned: dict[str, StageStatus] = {}
+        for name in names:
+            st = self.status_of(name, planned)
+            if st.state != SKIPPED and (force_all or (force and name in targets)) and not st.needs_run:
+                st = StageStatus(name, st.key, STALE, "forced", st.fingerprint)
+            planned[name] = st
+        self.hashes.save()
+        if dry_run:
+            return list(planned.values())
+        with self._lock():
+            done: dict[str, StageStatus] = {}
+            for name in names:
+                st = planned[name]
+                if not st.needs_run:
+                    log.info("%s: %s (%s)", name, st.state, st.reason)
+                    done[name] = st
+                    continue
+                if st.fingerprint is None:  # upstream ran since planning: recompute the inputs
+                    st = self.status_of(name, done)
+                self._execute(name, st)
+                done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)
+        return list(planned.values())
+
+    def _execute(self, name: str, st: StageStatus) -> None:
+        stage = self.stages[name]
+        ctx = self.context(name)
+        staging = ctx.staging
+        marker = staging / ".fingerprint"
+        if staging.exists() and not (stage.resumable and marker.is_file() and marker.read_text() == st.fingerprint):
+            remove_path(staging)
+        ctx.resumed = staging.exists()
+        staging.mkdir(parents=True, exist_ok=True)
+        marker.write_text(st.fingerprint or "")
+        log.info("%s: running (%s)", name, st.reason)
+        t0 = time.perf_counter()
+        try:
+            stage.run(ctx)
+        except PipelineError:
+            raise
+        except BaseException as exc:
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            log.exception("%s failed", name)
+            raise StageFailed(name, self.scene_name, exc) from exc
+        outputs = stage.outputs(ctx)
+        absent = [rel for rel in outputs if not (staging / rel).exists()]
+        if absent:
+            raise StageFailed(name, self.scene_name, RuntimeError(f"the stage did not write its declared outputs {absent}"))
+        # Commit: forget the old record, move outputs into place, then record the new one.
+        self._record_path(st.key).unlink(missing_ok=True)
+        trash = self.meta / "trash"
+        for rel in outputs:
+            replace_path(staging / rel, self.workspace / rel, trash)
+        digests = {rel: self.hashes.digest(self.workspace / rel) for rel in outputs}
+        self.hashes.save()
+        record = {
+            "stage": name, "key": st.key, "scene": self.scene_name, "fingerprint": st.fingerprint,
+            "code": _code_version(stage), "params": ctx.params.model_dump(mode="json"),
+            "inputs": self._inputs(name, ctx), "outputs": digests,
+            "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "seconds": round(time.perf_counter() - t0, 3),
+        }
+        atomic_write_text(self._record_path(st.key), json.dumps(record, indent=2))
+        remove_path(staging)
+        log.info("%s: done in %.1f s", name, record["seconds"])

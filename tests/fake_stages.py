@@ -1,0 +1,79 @@
+"""Small real stages used by the pipeline tests: they read inputs and write files."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+from pipeline.stage import Stage, StageContext, StageParams
+
+
+class SourceParams(StageParams):
+    value: int = 1
+    input_file: str | None = None
+
+
+def _source(ctx: StageContext) -> None:
+    text = f"value={ctx.params.value}\n"
+    if ctx.params.input_file:
+        text += Path(ctx.params.input_file).read_text()
+    ctx.out("source/data.txt").write_text(text)
+    _bump_counter(ctx, "source")
+
+
+def _bump_counter(ctx: StageContext, name: str) -> None:
+    counter = os.environ.get("FAKE_STAGE_COUNTER")
+    if counter:
+        with open(counter, "a") as f:
+            f.write(name + "\n")
+
+
+SOURCE = Stage(
+    name="source", run=_source, outputs=lambda ctx: ["source"], params_model=SourceParams,
+    inputs=lambda ctx: [Path(ctx.params.input_file)] if ctx.params.input_file else [],
+    help="writes source/data.txt",
+)
+
+
+class DoubleParams(StageParams):
+    factor: int = 2
+    die_after_partial_write: bool = False
+
+
+def _double(ctx: StageContext) -> None:
+    data = ctx.path("source/data.txt").read_text()
+    out = ctx.out("double/result.txt")
+    with open(out, "w") as f:
+        f.write(data * ctx.params.factor)
+        f.flush()
+        if ctx.params.die_after_partial_write:
+            os.kill(os.getpid(), signal.SIGKILL)
+            time.sleep(10)
+    _bump_counter(ctx, "double")
+
+
+DOUBLE = Stage(name="double", run=_double, outputs=lambda ctx: ["double"], params_model=DoubleParams,
+               help="repeats the source text")
+
+
+def _report(ctx: StageContext) -> None:
+    ctx.out("reports/summary.txt").write_text(str(len(ctx.path("double/result.txt").read_text())))
+    _bump_counter(ctx, "report")
+
+
+REPORT = Stage(name="report", run=_report, outputs=lambda ctx: ["reports/summary.txt"],
+               help="counts characters")
+
+
+class FailParams(StageParams):
+    message: str = "boom"
+
+
+def _fail(ctx: StageContext) -> None:
+    ctx.out("fail/partial.txt").write_text("half")
+    raise RuntimeError(ctx.params.message)
+
+
+FAIL = Stage(name="fail", run=_fail, outputs=lambda ctx: ["fail"], params_model=FailParams)

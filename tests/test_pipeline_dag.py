@@ -1,0 +1,183 @@
+"""The DAG runner: ordering, skipping, reruns on real changes only, atomicity, errors."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.dag import topological_order, upstream_closure
+from pipeline.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write_config(tmp_path: Path, extra_params: str = "", input_file: Path | None = None) -> Path:
+    src_params = f"input_file: {input_file}" if input_file else ""
+    cfg = tmp_path / "pipeline.yaml"
+    cfg.write_text(textwrap.dedent(f"""
+        workspace: ws
+        default_scene: demo
+        executor: {{kind: local, workers: 1}}
+        scenes:
+          demo: {{synthetic: {{preset: demo}}}}
+        stages:
+          source: {{module: "tests.fake_stages:SOURCE", params: {{{src_params}}}}}
+          double: {{module: "tests.fake_stages:DOUBLE", needs: [source], params: {{{extra_params}}}}}
+          report: {{module: "tests.fake_stages:REPORT", needs: [double]}}
+    """))
+    return cfg
+
+
+@pytest.fixture
+def counter(tmp_path, monkeypatch):
+    path = tmp_path / "runs.txt"
+    monkeypatch.setenv("FAKE_STAGE_COUNTER", str(path))
+
+    def read() -> list[str]:
+        return path.read_text().split() if path.exists() else []
+
+    return read
+
+
+def run(cfg: Path, *args: str) -> int:
+    return main([*args[:2], "--config", str(cfg), "--quiet", *args[2:]])
+
+
+def test_topological_order_respects_needs_and_declaration_order():
+    needs = {"train": ["extract", "pretrain"], "pretrain": [], "extract": ["calibrate"], "calibrate": []}
+    order = topological_order(needs)
+    assert order.index("calibrate") < order.index("extract") < order.index("train")
+    assert order.index("pretrain") < order.index("train")
+    assert upstream_closure(needs, ["extract"]) == ["calibrate", "extract"]
+
+
+def test_cycle_is_a_config_error():
+    with pytest.raises(ConfigError, match="cycle"):
+        topological_order({"a": ["b"], "b": ["a"]})
+
+
+def test_runs_in_order_then_skips_when_up_to_date(tmp_path, counter):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "report") == 0
+    assert counter() == ["source", "double", "report"]
+    assert (tmp_path / "ws/demo/reports/summary.txt").read_text() == str(len("value=1\n") * 2)
+    assert run(cfg, "run", "report") == 0
+    assert counter() == ["source", "double", "report"]  # nothing reran
+
+
+def test_param_change_reruns_stage_and_downstream_only(tmp_path, counter):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "all", "--set", "double.factor=3") == 0
+    assert counter() == ["source", "double", "report", "double", "report"]
+
+
+def test_input_content_change_reruns_but_touch_does_not(tmp_path, counter):
+    data = tmp_path / "input.txt"
+    data.write_text("hello\n")
+    cfg = write_config(tmp_path, input_file=data)
+    assert run(cfg, "run", "all") == 0
+    time.sleep(0.01)
+    os.utime(data)  # a bare touch: same content, new mtime
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["source", "double", "report"]
+    data.write_text("changed\n")
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["source", "double", "report"] * 2
+
+
+def test_identical_upstream_output_does_not_rerun_downstream(tmp_path, counter):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "source", "--force") == 0  # same output content
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["source", "double", "report", "source"]
+
+
+def test_force_reruns_target_and_force_all_everything(tmp_path, counter):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "double", "--force") == 0
+    assert counter()[3:] == ["double"]
+    assert run(cfg, "run", "report", "--force-all") == 0
+    assert counter()[4:] == ["source", "double", "report"]
+
+
+def test_dry_run_runs_nothing(tmp_path, counter, capsys):
+    cfg = write_config(tmp_path)
+    assert main(["run", "all", "--config", str(cfg), "--dry-run"]) == 0
+    assert counter() == []
+    assert not (tmp_path / "ws/demo/source").exists()
+    assert "never run" in capsys.readouterr().err
+
+
+def test_status_reports_reason(tmp_path, capsys):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg), "--set", "double.factor=5"]) == 0
+    out = capsys.readouterr().err
+    assert "factor: 2 -> 5" in out
+    assert "upstream double will run first" in out
+
+
+def test_killed_stage_is_missing_and_reruns(tmp_path, counter):
+    cfg = write_config(tmp_path, extra_params="die_after_partial_write: true")
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", "double", "--config", str(cfg), "--quiet"],
+                          cwd=REPO, env=env, capture_output=True, text=True)
+    assert proc.returncode == -9, proc.stderr  # SIGKILL while writing its output
+    assert not (tmp_path / "ws/demo/double").exists()  # nothing half-written in the workspace
+    capture = subprocess.run([sys.executable, "-m", "pipeline", "status", "--config", str(cfg)],
+                             cwd=REPO, env=env, capture_output=True, text=True)
+    assert "interrupted" in capture.stdout + capture.stderr
+    assert run(cfg, "run", "all", "--set", "double.die_after_partial_write=false") == 0
+    assert (tmp_path / "ws/demo/double/result.txt").read_text() == "value=1\n" * 2
+
+
+def test_failed_stage_exit_1_keeps_previous_outputs(tmp_path, capsys):
+    cfg = write_config(tmp_path)
+    with open(cfg, "a") as f:
+        f.write('  fail: {module: "tests.fake_stages:FAIL", needs: [source]}\n')
+    assert run(cfg, "run", "fail") == 1
+    err = capsys.readouterr().err
+    assert "stage 'fail'" in err and "boom" in err
+    assert not (tmp_path / "ws/demo/fail").exists()
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("scenes: [oops", "not valid YAML"),
+    ("scenes: {demo: {synthetic: {preset: demo}}}\nstagez: {}\n", "stagez: unknown key"),
+    ("scenes: {demo: {synthetic: {preset: demo}, videos: a.mp4}}\n", "exactly one of"),
+    ("scenes: {demo: {synthetic: {preset: demo}}}\nstages: {a: {needs: [b]}}\n", "unknown stage 'b'"),
+    ("scenes: {demo: {synthetic: {sed: 1}}}\n", "scenes.demo.synthetic.sed: unknown key"),
+])
+def test_bad_config_exit_2_names_key_and_writes_nothing(tmp_path, capsys, text, expected):
+    cfg = tmp_path / "pipeline.yaml"
+    cfg.write_text(text)
+    assert main(["run", "all", "--config", str(cfg)]) == 2
+    assert expected in capsys.readouterr().err
+    assert not (tmp_path / "workspace").exists()
+
+
+def test_unknown_stage_param_exit_2(tmp_path, capsys):
+    cfg = write_config(tmp_path, extra_params="facter: 3")
+    assert run(cfg, "run", "all") == 2
+    assert "stages.double.params.facter: unknown key" in capsys.readouterr().err
+    assert not (tmp_path / "ws").exists()
+
+
+def test_bad_override_and_unknown_stage_exit_2(tmp_path, capsys):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all", "--set", "nokey") == 2
+    assert run(cfg, "run", "all", "--set", "nostage.x=1") == 2
+    assert run(cfg, "run", "nostage") == 2
+    err = capsys.readouterr().err
+    assert "expected KEY=VALUE" in err and "'nostage' is neither a stage" in err and "unknown stage 'nostage'" in err
