@@ -173,6 +173,11 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
         raise ConfigError(f"--set {text!r}: value is not valid YAML ({exc})") from exc
+    if isinstance(value, str):  # YAML 1.1 reads '1e-4' as a string; users mean a number
+        try:
+            value = float(value)
+        except ValueError:
+            pass
     return parts, value
 
 

@@ -1,0 +1,78 @@
+"""CLI entry point, executors, config overrides and the library/orchestration boundary."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline.config import apply_override, load_config, parse_override
+from pipeline.errors import ConfigError
+from pipeline.executors import LocalExecutor, chunks
+
+REPO = Path(__file__).resolve().parents[1]
+LIBRARIES = ["calibration", "gst", "synth"]
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def test_local_executor_keeps_item_order_across_processes():
+    seen = []
+
+    def progress(items, description="", total=None):
+        for item in items:
+            seen.append(description)
+            yield item
+
+    ex = LocalExecutor(workers=2, progress=progress)
+    assert ex.map(_square, range(7), description="squares") == [x * x for x in range(7)]
+    assert seen == ["squares"] * 7
+
+
+def test_chunks_cover_sequence():
+    assert chunks(list(range(5)), 2) == [[0, 1], [2, 3], [4]]
+
+
+def test_module_help_and_status_run():
+    out = subprocess.run([sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0 and "run" in out.stdout and "status" in out.stdout
+    out = subprocess.run([sys.executable, "-m", "pipeline", "status"], cwd=REPO, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+
+
+def test_override_parsing():
+    assert parse_override("train.lr=1e-4") == (["train", "lr"], 1e-4)
+    raw = {"stages": {"train": {"params": {}}}}
+    apply_override(raw, ["train", "loss", "lpips"], 0.01)
+    apply_override(raw, ["executor", "workers"], 3)
+    assert raw["stages"]["train"]["params"] == {"loss": {"lpips": 0.01}}
+    assert raw["executor"] == {"workers": 3}
+    with pytest.raises(ConfigError):
+        parse_override("train.lr")
+
+
+def test_repository_config_is_valid():
+    cfg = load_config(REPO / "pipeline.yaml")
+    assert cfg.default_scene in cfg.scenes
+    assert cfg.workspace.is_absolute()
+
+
+def test_libraries_never_import_orchestration():
+    offenders = []
+    for lib in LIBRARIES:
+        for path in (REPO / lib).rglob("*.py"):
+            tree = ast.parse(path.read_text(), filename=str(path))
+            for node in ast.walk(tree):
+                names = []
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                    names = [node.module]
+                offenders += [f"{path.relative_to(REPO)} imports {n}" for n in names
+                              if n.split(".")[0] in ("pipeline", "stages")]
+    assert offenders == []
