@@ -1,0 +1,94 @@
+"""From network outputs to a posed body and posed Gaussians, in camera and world frames.
+
+Geometry (paper Sec. 3, with the public code's defects fixed):
+- Camera: HMR2's (s, tx, ty) is read in the INPUT CROP's own camera: translation
+  t = (tx, ty, 2 fx / (S s)) with fx from that crop's intrinsics (not a fixed 5000 px).
+- Body: LBS with the predicted global orientation (camera frame) and body pose, translated by t.
+- Gaussians sit on the LBS vertices of the chosen subset. Rest-frame offsets are posed with each
+  vertex's skinning transform (mu = v + A_v delta), and each Gaussian's rotation is composed with
+  the orthonormalised skinning rotation, so clothing detail moves with the limb it belongs to.
+- World: X_world = R_in^T (X_cam - t_in) through the input camera's extrinsics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
+
+from gst.body import BodyModel
+from gst.body.rotations import rot6d_to_matrix
+from gst.model.network import GSTOutput
+
+
+@dataclass
+class PosedGaussians:
+    means: torch.Tensor  # (B, V, 3)
+    quats: torch.Tensor  # (B, V, 4) wxyz
+    scales: torch.Tensor  # (B, V, 3)
+    opacities: torch.Tensor  # (B, V)
+    colors: torch.Tensor  # (B, V, 3)
+    offsets: torch.Tensor  # (B, V, 3) rest-frame offsets (for the tightness loss)
+
+
+@dataclass
+class BodyPrediction:
+    rotmats: torch.Tensor  # (B, 24, 3, 3); [:, 0] is the global orientation in the input camera
+    betas: torch.Tensor  # (B, nb)
+    transl_cam: torch.Tensor  # (B, 3)
+    joints_cam: torch.Tensor  # (B, 24, 3) metres, input camera frame
+    vertices_cam: torch.Tensor | None  # (B, V', 3)
+    joints_world: torch.Tensor | None = None  # (B, 24, 3) when the input camera's pose is known
+    gaussians_cam: PosedGaussians | None = None
+    gaussians_world: PosedGaussians | None = None
+
+
+def camera_translation(cam: torch.Tensor, K_crop: torch.Tensor, crop_size: int) -> torch.Tensor:
+    """(s, tx, ty) -> (tx, ty, 2 fx / (S s)); s is clamped away from 0 for stability."""
+    s = cam[:, 0].clamp_min(1e-2)
+    tz = 2.0 * K_crop[:, 0, 0] / (crop_size * s)
+    return torch.stack([cam[:, 1], cam[:, 2], tz], dim=-1)
+
+
+def _orthonormalise(m: torch.Tensor) -> torch.Tensor:
+    """Nearest-rotation surrogate for blended skinning matrices: Gram-Schmidt of the first two
+    columns (the 6D map), stable and cheap; exact when the blend is already a rotation."""
+    return rot6d_to_matrix(torch.cat([m[..., :, 0], m[..., :, 1]], dim=-1))
+
+
+def to_world(points_cam: torch.Tensor, R_in: torch.Tensor, t_in: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3) camera points -> world, with world-to-camera R_in (B, 3, 3), t_in (B, 3)."""
+    return (points_cam - t_in[:, None]) @ R_in
+
+
+def _gaussians_to_world(g: PosedGaussians, R_in: torch.Tensor, t_in: torch.Tensor) -> PosedGaussians:
+    rot_cam = quaternion_to_rotation_matrix(g.quats)
+    rot_world = R_in.transpose(1, 2)[:, None] @ rot_cam
+    return PosedGaussians(to_world(g.means, R_in, t_in), rotation_matrix_to_quaternion(rot_world, eps=1e-12),
+                          g.scales, g.opacities, g.colors, g.offsets)
+
+
+def assemble(out: GSTOutput, body: BodyModel, K_crop: torch.Tensor, crop_size: int, *,
+             vertex_ids: torch.Tensor | None = None, R_in: torch.Tensor | None = None,
+             t_in: torch.Tensor | None = None, with_vertices: bool = False) -> BodyPrediction:
+    """Pose the body (and the Gaussians, when the network produced them)."""
+    transl = camera_translation(out.cam, K_crop, crop_size)
+    want_gaussians = out.gaussians is not None
+    body_out = body(out.betas, out.rotmats[:, 1:], out.rotmats[:, 0], transl,
+                    vertex_ids=vertex_ids if (want_gaussians or not with_vertices) else None,
+                    return_transforms=want_gaussians)
+    pred = BodyPrediction(rotmats=out.rotmats, betas=out.betas, transl_cam=transl, joints_cam=body_out.joints,
+                          vertices_cam=body_out.vertices if (with_vertices or want_gaussians) else None)
+    if want_gaussians:
+        g = out.gaussians
+        skin = body_out.vertex_transforms[..., :3, :3]
+        means = body_out.vertices + (skin @ g.offsets[..., None])[..., 0]
+        rot = _orthonormalise(skin) @ quaternion_to_rotation_matrix(g.quats)
+        pred.gaussians_cam = PosedGaussians(means, rotation_matrix_to_quaternion(rot, eps=1e-12), g.scales,
+                                            g.opacities, g.colors, g.offsets)
+    if R_in is not None and t_in is not None:
+        pred.joints_world = to_world(pred.joints_cam, R_in, t_in)
+        if pred.gaussians_cam is not None:
+            pred.gaussians_world = _gaussians_to_world(pred.gaussians_cam, R_in, t_in)
+    return pred

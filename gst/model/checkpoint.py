@@ -1,0 +1,81 @@
+"""GST checkpoints: plain dicts of tensors and primitives, safe to load with weights_only=True.
+
+Layout (`torch.save` of a dict):
+    format: "gst-capture/checkpoint", version: 1
+    config: GSTConfig as nested dicts
+    body_model: body spec string ("anny" or a path to the user's SMPL file)
+    vertex_ids: LongTensor (V,)   group_index: LongTensor (V,)
+    model: network state_dict
+    extra: dict of primitives/tensors (training step, optimiser state, metrics...)
+Writes go to a temporary file that is renamed, so a killed save never leaves a truncated file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from gst.model.decoder import DecoderConfig
+from gst.model.network import GSTNetwork
+from gst.model.presets import GSTConfig
+from gst.model.vit import ViTConfig
+
+FORMAT, VERSION = "gst-capture/checkpoint", 1
+
+
+def config_to_dict(cfg: GSTConfig) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def config_from_dict(d: dict) -> GSTConfig:
+    vit = dict(d["vit"])
+    vit["image_size"] = tuple(vit["image_size"])
+    return GSTConfig(**{**d, "vit": ViTConfig(**vit), "decoder": DecoderConfig(**d["decoder"])})
+
+
+def atomic_torch_save(obj: Any, path: str | Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_checkpoint(path: str | Path, network: GSTNetwork, body_spec: str, vertex_ids: np.ndarray,
+                    group_index: np.ndarray, extra: dict | None = None) -> None:
+    atomic_torch_save({
+        "format": FORMAT, "version": VERSION, "config": config_to_dict(network.cfg), "body_model": body_spec,
+        "vertex_ids": torch.as_tensor(np.asarray(vertex_ids), dtype=torch.long),
+        "group_index": torch.as_tensor(np.asarray(group_index), dtype=torch.long),
+        "model": network.state_dict(), "extra": extra or {},
+    }, path)
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """Read and check a checkpoint (weights_only=True: no code runs while loading)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a GST checkpoint (expected format '{FORMAT}')")
+    if ckpt.get("version") != VERSION:
+        raise ValueError(f"{path}: checkpoint version {ckpt.get('version')} is not supported (expected {VERSION})")
+    return ckpt
+
+
+def network_from_checkpoint(ckpt: dict) -> GSTNetwork:
+    net = GSTNetwork(config_from_dict(ckpt["config"]), ckpt["group_index"].numpy())
+    net.load_state_dict(ckpt["model"])
+    return net

@@ -1,0 +1,124 @@
+"""HMR2-style cross-attention decoder: query tokens attend to each other and to image tokens.
+
+Attribute names follow HMR2's `smpl_head.transformer.*` checkpoint keys: `to_token_embedding`,
+`pos_embedding`, and `transformer.layers.L.{0, 1, 2}` = pre-norm self-attention (`to_qkv`, no
+bias), cross-attention (`to_q`, `to_kv`, no bias) and feed-forward (`net.0`, `net.3`), each
+as `.norm` + `.fn`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    dim: int = 1024
+    depth: int = 6
+    heads: int = 8
+    dim_head: int = 64
+    mlp_dim: int = 1024
+    context_dim: int = 1280
+
+
+def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
+    b, n, _ = x.shape
+    return x.view(b, n, heads, -1).transpose(1, 2)
+
+
+def _merge_heads(x: torch.Tensor) -> torch.Tensor:
+    b, h, n, d = x.shape
+    return x.transpose(1, 2).reshape(b, n, h * d)
+
+
+class SelfAttention(nn.Module):
+    def __init__(self, cfg: DecoderConfig):
+        super().__init__()
+        inner = cfg.heads * cfg.dim_head
+        self.heads = cfg.heads
+        self.to_qkv = nn.Linear(cfg.dim, inner * 3, bias=False)
+        self.to_out = nn.Sequential(nn.Linear(inner, cfg.dim), nn.Dropout(0.0))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        q, k, v = (_split_heads(t, self.heads) for t in self.to_qkv(x).chunk(3, dim=-1))
+        return self.to_out(_merge_heads(F.scaled_dot_product_attention(q, k, v)))
+
+
+class CrossAttention(nn.Module):
+    def __init__(self, cfg: DecoderConfig):
+        super().__init__()
+        inner = cfg.heads * cfg.dim_head
+        self.heads = cfg.heads
+        self.to_q = nn.Linear(cfg.dim, inner, bias=False)
+        self.to_kv = nn.Linear(cfg.context_dim, inner * 2, bias=False)
+        self.to_out = nn.Sequential(nn.Linear(inner, cfg.dim), nn.Dropout(0.0))
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        k, v = (_split_heads(t, self.heads) for t in self.to_kv(context).chunk(2, dim=-1))
+        q = _split_heads(self.to_q(x), self.heads)
+        return self.to_out(_merge_heads(F.scaled_dot_product_attention(q, k, v)))
+
+
+class FeedForward(nn.Module):
+    def __init__(self, cfg: DecoderConfig):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(cfg.dim, cfg.mlp_dim), nn.GELU(), nn.Dropout(0.0),
+                                 nn.Linear(cfg.mlp_dim, cfg.dim), nn.Dropout(0.0))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class PreNorm(nn.Module):
+    def __init__(self, dim: int, fn: nn.Module):
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+        self.fn = fn
+
+    def forward(self, x: torch.Tensor, **kwargs) -> torch.Tensor:
+        return self.fn(self.norm(x), **kwargs)
+
+
+class CrossAttnStack(nn.Module):
+    def __init__(self, cfg: DecoderConfig):
+        super().__init__()
+        self.layers = nn.ModuleList(
+            nn.ModuleList([PreNorm(cfg.dim, SelfAttention(cfg)), PreNorm(cfg.dim, CrossAttention(cfg)),
+                           PreNorm(cfg.dim, FeedForward(cfg))])
+            for _ in range(cfg.depth)
+        )
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        for self_attn, cross_attn, ff in self.layers:
+            x = self_attn(x) + x
+            x = cross_attn(x, context=context) + x
+            x = ff(x) + x
+        return x
+
+
+class TokenDecoder(nn.Module):
+    """The SMPL token path of HMR2: one zero input token, embedded, plus a learned position.
+
+    `decode(tokens (B, T, dim), context)` runs any set of already-embedded query tokens through
+    the same stack; GST uses it for its Gaussian tokens in a separate pass, so the SMPL token
+    never attends to them and pose-only inference can skip them exactly.
+    """
+
+    def __init__(self, cfg: DecoderConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.to_token_embedding = nn.Linear(1, cfg.dim)
+        self.pos_embedding = nn.Parameter(torch.randn(1, 1, cfg.dim))
+        self.transformer = CrossAttnStack(cfg)
+
+    def smpl_token(self, context: torch.Tensor) -> torch.Tensor:
+        zero = context.new_zeros(context.shape[0], 1, 1)
+        x = self.to_token_embedding(zero) + self.pos_embedding
+        return self.transformer(x, context)[:, 0]
+
+    def decode(self, tokens: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        return self.transformer(tokens, context)
