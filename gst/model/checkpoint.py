@@ -13,14 +13,13 @@ Writes go to a temporary file that is renamed, so a killed save never leaves a t
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from gst.atomic import atomic_torch_save
 from gst.model.decoder import DecoderConfig
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
@@ -37,19 +36,6 @@ def config_from_dict(d: dict) -> GSTConfig:
     vit = dict(d["vit"])
     vit["image_size"] = tuple(vit["image_size"])
     return GSTConfig(**{**d, "vit": ViTConfig(**vit), "decoder": DecoderConfig(**d["decoder"])})
-
-
-def atomic_torch_save(obj: Any, path: str | Path) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def save_checkpoint(path: str | Path, network: GSTNetwork, body_spec: str, vertex_ids: np.ndarray,

@@ -1,0 +1,216 @@
+"""A small, exact-resume training loop: AdamW, warmup + cosine, clipping, NaN guard, DDP.
+
+The loop knows nothing about GST: it is given a `step_fn(batch) -> (loss, metrics)`, a
+`sample_fn(generator, batch_size) -> batch` and an optional `val_fn() -> metrics`. All
+randomness of sampling comes from one `torch.Generator` whose state is checkpointed with the
+model, optimiser and scheduler, so a run killed at any point and resumed from `last.pt`
+continues with the same step, the same optimiser state and the same next batch.
+
+Under `torchrun` (WORLD_SIZE > 1) the model is wrapped in DistributedDataParallel (gloo on CPU,
+nccl on CUDA); each rank draws its own batches from a rank-offset generator, rank 0 alone
+writes checkpoints and logs.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from gst.atomic import atomic_torch_save
+
+log = logging.getLogger("gst.train")
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 1000
+    batch_size: int = 8
+    lr: float = 1e-4
+    weight_decay: float = 1e-4
+    warmup_steps: int = 50
+    min_lr_ratio: float = 0.05
+    grad_clip: float = 1.0
+    val_every: int = 100
+    ckpt_every: int = 50
+    log_every: int = 10
+    max_bad_steps: int = 20  # abort after this many skipped (non-finite) steps
+    amp: bool = False  # bf16 autocast; helps on GPUs, usually not on CPU
+    seed: int = 0
+
+
+class NonFiniteLossError(RuntimeError):
+    pass
+
+
+def warmup_cosine(step: int, cfg: TrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return (step + 1) / max(1, cfg.warmup_steps)
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+
+def distributed_env() -> tuple[int, int]:
+    """(rank, world size), initialising the process group when launched by torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    if dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+class Trainer:
+    def __init__(self, model: nn.Module, step_fn: Callable[[nn.Module, Any], tuple[torch.Tensor, dict]],
+                 sample_fn: Callable[[torch.Generator, int], Any], cfg: TrainConfig, out_dir: Path, *,
+                 val_fn: Callable[[nn.Module], dict] | None = None, best_key: str | None = None,
+                 best_mode: str = "max", progress: Callable | None = None,
+                 checkpoint_extra: Callable[[], dict] | None = None):
+        self.cfg, self.out_dir = cfg, Path(out_dir)
+        self.rank, self.world = distributed_env()
+        self.model = model
+        self.train_model = model
+        if self.world > 1:
+            self.train_model = nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
+        self.step_fn, self.sample_fn, self.val_fn = step_fn, sample_fn, val_fn
+        params = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: warmup_cosine(s, cfg))
+        self.generator = torch.Generator().manual_seed(cfg.seed + 1000 * self.rank)
+        self.best_key, self.best_mode = best_key, best_mode
+        self.best_value: float | None = None
+        self.step = 0
+        self.bad_steps = 0
+        self.progress = progress
+        self.checkpoint_extra = checkpoint_extra or (lambda: {})
+        self.history: list[dict] = []
+
+    # -- checkpoints ------------------------------------------------------------------------
+    @property
+    def last_path(self) -> Path:
+        return self.out_dir / "last.pt"
+
+    @property
+    def best_path(self) -> Path:
+        return self.out_dir / "best.pt"
+
+    def state(self) -> dict:
+        return {
+            "step": self.step, "bad_steps": self.bad_steps, "best_value": self.best_value,
+            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
+            "train_config": asdict(self.cfg),
+        }
+
+    def save(self, path: Path) -> None:
+        if self.rank == 0:
+            atomic_torch_save({"model": self.model.state_dict(), "trainer": self.state(),
+                               **self.checkpoint_extra()}, path)
+
+    def resume(self, path: Path | None = None) -> bool:
+        """Continue from `last.pt` if it exists. Returns whether it resumed."""
+        path = path or self.last_path
+        if not path.is_file():
+            return False
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        self.model.load_state_dict(ckpt["model"])
+        st = ckpt["trainer"]
+        self.optimizer.load_state_dict(st["optimizer"])
+        self.scheduler.load_state_dict(st["scheduler"])
+        self.generator.set_state(st["generator"])
+        torch.set_rng_state(st["torch_rng"])
+        self.step, self.bad_steps, self.best_value = st["step"], st["bad_steps"], st["best_value"]
+        log.info("resumed from %s at step %d", path, self.step)
+        return True
+
+    # -- loop -------------------------------------------------------------------------------
+    def _log_row(self, row: dict) -> None:
+        self.history.append(row)
+        if self.rank != 0:
+            return
+        path = self.out_dir / "log.csv"
+        new = not path.exists()
+        keys = sorted(row)
+        with open(path, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+
+    def _is_better(self, value: float) -> bool:
+        if self.best_value is None:
+            return True
+        return value > self.best_value if self.best_mode == "max" else value < self.best_value
+
+    def validate(self) -> dict:
+        if self.val_fn is None:
+            return {}
+        self.model.eval()
+        with torch.no_grad():
+            metrics = self.val_fn(self.model)
+        self.model.train()
+        return metrics
+
+    def train_step(self) -> dict:
+        batch = self.sample_fn(self.generator, self.cfg.batch_size)
+        self.optimizer.zero_grad(set_to_none=True)
+        device_type = "cuda" if next(self.model.parameters()).is_cuda else "cpu"
+        with torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.amp):
+            loss, metrics = self.step_fn(self.train_model, batch)
+        finite = bool(torch.isfinite(loss))
+        if finite:
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+            finite = bool(torch.isfinite(grad_norm))
+        if not finite:
+            # NaN guard: drop this step entirely (no optimiser update), count it, maybe abort.
+            self.optimizer.zero_grad(set_to_none=True)
+            self.bad_steps += 1
+            log.warning("step %d: non-finite loss or gradient, skipped (%d so far)", self.step, self.bad_steps)
+            if self.bad_steps >= self.cfg.max_bad_steps:
+                raise NonFiniteLossError(f"{self.bad_steps} non-finite steps (limit {self.cfg.max_bad_steps}); "
+                                         "lower the learning rate or check the inputs")
+            metrics = {**metrics, "skipped": 1}
+        else:
+            self.optimizer.step()
+            metrics = {**metrics, "grad_norm": float(grad_norm)}
+        self.scheduler.step()
+        return {"loss": float(loss.detach()), **{k: float(v) for k, v in metrics.items()}}
+
+    def fit(self) -> dict:
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.model.train()
+        t0 = time.perf_counter()
+        steps = range(self.step, self.cfg.steps)
+        iterator = self.progress(steps, description="training", total=len(steps)) if self.progress else steps
+        last_val: dict = {}
+        for _ in iterator:
+            row = self.train_step()
+            self.step += 1
+            row.update(step=self.step, lr=self.scheduler.get_last_lr()[0], seconds=time.perf_counter() - t0)
+            if self.step % self.cfg.val_every == 0 or self.step == self.cfg.steps:
+                last_val = self.validate()
+                row.update({f"val_{k}": v for k, v in last_val.items()})
+                key = self.best_key
+                if key and f"val_{key}" in row and self._is_better(row[f"val_{key}"]):
+                    self.best_value = row[f"val_{key}"]
+                    self.save(self.best_path)
+            if self.step % self.cfg.log_every == 0 or self.step == self.cfg.steps or last_val:
+                self._log_row(row)
+            if self.step % self.cfg.ckpt_every == 0 or self.step == self.cfg.steps:
+                self.save(self.last_path)
+            last_val = {}
+        if self.best_key is None or not self.best_path.exists():
+            self.save(self.best_path)
+        return {"steps": self.step, "bad_steps": self.bad_steps, "best": self.best_value,
+                "seconds": time.perf_counter() - t0}
