@@ -15,7 +15,8 @@ def ring_rig(n=6, radius=4.0, height=2.5):
         a = 2 * np.pi * i / n
         c = np.array([radius * np.cos(a), radius * np.sin(a), height])
         z = -c / np.linalg.norm(c)
-        x = np.cross(z, [0, 0, 1.0]); x /= np.linalg.norm(x)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
         y = np.cross(z, x)
         R = np.stack([x, y, z])
         cams.append(Camera.create(f"c{i}", [[800, 0, 320], [0, 810, 240], [0, 0, 1]], [], R, -R @ c, 640, 480))

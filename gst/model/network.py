@@ -98,7 +98,7 @@ class GaussianHead(nn.Module):
         dim = cfg.decoder.dim
         self.tokens = nn.Parameter(torch.randn(1, len(GAUSSIAN_ATTRIBUTES) * k, dim) * 0.02)
         self.heads = nn.ModuleDict({a: nn.Linear(dim, self.group_size * _ATTR_DIMS[a]) for a in GAUSSIAN_ATTRIBUTES})
-        for a, lin in self.heads.items():
+        for lin in self.heads.values():
             nn.init.xavier_uniform_(lin.weight, gain=0.01)
             nn.init.zeros_(lin.bias)
         with torch.no_grad():
