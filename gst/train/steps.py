@@ -1,0 +1,98 @@
+"""One training step of GST: predict from the input view, render into the other views, compare.
+
+`multiview_step` is the paper's self-supervised objective (no 3D labels). `supervised_step`
+adds 3D joints / 2D joints / parameter terms for pretraining and for the paper's 2D and 3D
+fine-tuning baselines. Both return (loss, metrics) for `gst.train.trainer.Trainer`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import nn
+
+from gst.body import BodyModel
+from gst.model.assemble import BodyPrediction, assemble
+from gst.model.preprocess import network_input, to_float_images
+from gst.render import rasterize
+from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
+from gst.train.views import MultiViewBatch
+
+Supervision = Literal["multiview", "2d", "3d"]
+
+
+@dataclass
+class GSTTask:
+    body: BodyModel
+    vertex_ids: torch.Tensor
+    crop_size: int
+    image_size: tuple[int, int]
+    weights: LossWeights
+    lpips: nn.Module | None = None
+    supervision: Supervision = "multiview"
+
+
+def predict(model: nn.Module, task: GSTTask, images: torch.Tensor, K: torch.Tensor, R: torch.Tensor | None = None,
+            t: torch.Tensor | None = None, with_gaussians: bool = True, with_vertices: bool = False) -> BodyPrediction:
+    x = network_input(to_float_images(images), task.image_size)
+    out = model(x, with_gaussians=with_gaussians)
+    return assemble(out, task.body, K, task.crop_size, vertex_ids=task.vertex_ids, R_in=R, t_in=t,
+                    with_vertices=with_vertices)
+
+
+def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Pinhole projection (crops are undistorted): (B, N, 3) camera points -> (B, N, 2) px."""
+    z = points_cam[..., 2:].clamp_min(1e-6)
+    uv1 = (points_cam / z) @ K.transpose(-1, -2)
+    return uv1[..., :2]
+
+
+def render_predictions(pred: BodyPrediction, batch: MultiViewBatch, size: int):
+    g = pred.gaussians_world
+    return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, batch.viewmats, batch.K_target,
+                     size, size, backgrounds=batch.backgrounds)
+
+
+def multiview_step(model: nn.Module, batch: MultiViewBatch, task: GSTTask) -> tuple[torch.Tensor, dict]:
+    pred = predict(model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True)
+    size = batch.target_images.shape[-2]
+    out = render_predictions(pred, batch, size)
+    mask = batch.target_masks
+    target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (1 - mask[..., None])
+    parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
+                        task.weights, task.lpips)
+    terms = combine(parts, task.weights)
+    with torch.no_grad():
+        mse = ((out.rgb - target) ** 2).mean()
+        terms.parts["psnr"] = -10 * torch.log10(mse.clamp_min(1e-10))
+    return terms.total, terms.parts
+
+
+@dataclass
+class SupervisedBatch:
+    images: torch.Tensor  # (B, S, S, 3) uint8
+    K: torch.Tensor  # (B, 3, 3) crop intrinsics
+    joints_cam: torch.Tensor | None = None  # (B, 24, 3) truth in the crop's camera frame
+    joints2d: torch.Tensor | None = None  # (B, 24, 2) crop pixels
+    visible: torch.Tensor | None = None  # (B, 24)
+    rotmats: torch.Tensor | None = None  # (B, 24, 3, 3) truth, global orient in camera frame
+    betas: torch.Tensor | None = None
+
+
+def supervised_step(model: nn.Module, batch: SupervisedBatch, task: GSTTask) -> tuple[torch.Tensor, dict]:
+    """2D supervision uses only 2D joints; 3D uses 3D joints and parameters as well."""
+    pred = predict(model, task, batch.images, batch.K, with_gaussians=False)
+    joints2d = project(pred.joints_cam, batch.K)
+    use3d = task.supervision == "3d"
+    parts = supervised_terms(pred.joints_cam, joints2d, pred.rotmats, pred.betas,
+                             batch.joints_cam if use3d else None, batch.joints2d,
+                             batch.rotmats if use3d else None, batch.betas if use3d else None,
+                             task.crop_size, batch.visible)
+    terms = combine(parts, task.weights)
+    if batch.joints_cam is not None:
+        with torch.no_grad():
+            rel = (pred.joints_cam - pred.joints_cam[:, :1]) - (batch.joints_cam - batch.joints_cam[:, :1])
+            terms.parts["mpjpe_mm"] = 1000 * rel.norm(dim=-1).mean()
+    return terms.total, terms.parts

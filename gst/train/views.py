@@ -1,0 +1,121 @@
+"""Multi-view crop sets in memory, and batch sampling for GST training.
+
+A `CropSet` holds square person crops with their own intrinsics and extrinsics (crops are
+undistorted, so K_crop, R, t describe them exactly) plus optional truth. `groups` lists, per
+(frame, person), the crops of that person seen from different cameras: a training sample
+takes one as the network input (chosen at random each time: the public GST code never
+shuffled its input views) and renders into the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+
+@dataclass
+class CropSet:
+    images: torch.Tensor  # (N, S, S, 3) uint8
+    masks: torch.Tensor  # (N, S, S) float in [0, 1]
+    K: torch.Tensor  # (N, 3, 3) crop intrinsics (OpenCV pixel centres)
+    R: torch.Tensor  # (N, 3, 3) world-to-camera
+    t: torch.Tensor  # (N, 3)
+    camera: torch.Tensor  # (N,) index into camera_names
+    frame: torch.Tensor  # (N,)
+    person: torch.Tensor  # (N,)
+    camera_names: list[str]
+    truth: dict[str, torch.Tensor] = field(default_factory=dict)  # e.g. joints_world (N, 24, 3)
+
+    def __post_init__(self):
+        n = self.images.shape[0]
+        for name in ("masks", "K", "R", "t", "camera", "frame", "person"):
+            if getattr(self, name).shape[0] != n:
+                raise ValueError(f"CropSet.{name} has {getattr(self, name).shape[0]} rows, images have {n}")
+
+    @property
+    def crop_size(self) -> int:
+        return int(self.images.shape[1])
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    def groups(self, cameras: set[int] | None = None, min_views: int = 2) -> list[torch.Tensor]:
+        """Crop indices per (frame, person), restricted to `cameras`, with >= min_views views."""
+        keep = torch.ones(len(self), dtype=torch.bool)
+        if cameras is not None:
+            keep = torch.isin(self.camera, torch.tensor(sorted(cameras)))
+        idx = torch.nonzero(keep)[:, 0]
+        key = self.frame[idx] * (int(self.person.max()) + 1 if len(self) else 1) + self.person[idx]
+        order = torch.argsort(key, stable=True)
+        idx, key = idx[order], key[order]
+        _, counts = torch.unique_consecutive(key, return_counts=True)
+        return [g for g in torch.split(idx, counts.tolist()) if len(g) >= min_views]
+
+
+def scale_intrinsics(K: torch.Tensor, factor: float) -> torch.Tensor:
+    """Intrinsics of an image resized by `factor`, with pixel centres at integers:
+    u' = (u + 0.5) * factor - 0.5."""
+    K2 = K.clone()
+    K2[..., 0, :] = K[..., 0, :] * factor
+    K2[..., 1, :] = K[..., 1, :] * factor
+    K2[..., 0, 2] = (K[..., 0, 2] + 0.5) * factor - 0.5
+    K2[..., 1, 2] = (K[..., 1, 2] + 0.5) * factor - 0.5
+    return K2
+
+
+def resize_images(images: torch.Tensor, size: int) -> torch.Tensor:
+    """(..., S, S, C) float -> (..., size, size, C), area-averaged."""
+    lead = images.shape[:-3]
+    s, c = images.shape[-2], images.shape[-1]
+    x = images.reshape(-1, s, s, c).permute(0, 3, 1, 2)
+    if s != size:
+        x = F.interpolate(x, size=(size, size), mode="area")
+    return x.permute(0, 2, 3, 1).reshape(*lead, size, size, c)
+
+
+@dataclass
+class MultiViewBatch:
+    input_index: torch.Tensor  # (B,)
+    target_index: torch.Tensor  # (B, M)
+    input_images: torch.Tensor  # (B, S, S, 3) uint8
+    K_in: torch.Tensor
+    R_in: torch.Tensor
+    t_in: torch.Tensor
+    target_images: torch.Tensor  # (B, M, r, r, 3) float at render size
+    target_masks: torch.Tensor  # (B, M, r, r)
+    K_target: torch.Tensor  # (B, M, 3, 3) at render size
+    viewmats: torch.Tensor  # (B, M, 4, 4)
+    backgrounds: torch.Tensor  # (B, M, 3) random per view, so alpha must be right to match
+
+
+def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Generator, batch_size: int,
+                     num_targets: int, render_size: int, include_input_view: bool = True) -> MultiViewBatch:
+    """Random groups; random input view per group; `num_targets` views to render into (the
+    input view first when `include_input_view`, then others, with replacement if too few)."""
+    pick = torch.randint(len(groups), (batch_size,), generator=gen)
+    inputs, targets = [], []
+    for gi in pick.tolist():
+        g = groups[gi]
+        perm = g[torch.randperm(len(g), generator=gen)]
+        inp, others = perm[0], perm[1:]
+        need = num_targets - int(include_input_view)
+        if len(others) >= need:
+            chosen = others[:need]
+        else:
+            chosen = others[torch.randint(len(others), (need,), generator=gen)]
+        tgt = torch.cat([inp[None], chosen]) if include_input_view else chosen
+        inputs.append(inp)
+        targets.append(tgt)
+    inp = torch.stack(inputs)
+    tgt = torch.stack(targets)
+    factor = render_size / crops.crop_size
+    timg = resize_images(crops.images[tgt].float() / 255.0, render_size)
+    tmask = resize_images(crops.masks[tgt][..., None].float(), render_size)[..., 0]
+    view = torch.eye(4).repeat(*tgt.shape, 1, 1)
+    view[..., :3, :3] = crops.R[tgt]
+    view[..., :3, 3] = crops.t[tgt]
+    bg = torch.rand(*tgt.shape, 3, generator=gen)
+    return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask,
+                          scale_intrinsics(crops.K[tgt], factor), view, bg)
