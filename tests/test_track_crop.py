@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import Camera
-from gst.track.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
+from gst.track.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop, distortion_maps
 from gst.track.view import TrackingView, default_camera
 
 finite = st.floats(-500, 2500, allow_nan=False)
@@ -97,6 +97,16 @@ def test_undistorted_crop_equals_crop_of_undistorted_frame():
         diff = np.abs(ours - ref)[inside]
         assert inside.mean() > 0.6
         assert np.median(diff) <= 2 and np.percentile(diff, 99) <= 12
+
+
+def test_interpolated_distortion_maps_match_opencv():
+    cam = distorted_camera()
+    for win in (CropWindow(900.0, 60.0, 300.0, 256), CropWindow(-100.0, -50.0, 500.0, 192), CropWindow(600, 300, 50, 256)):
+        K_crop = crop_intrinsics(cam.K, win)
+        ref_x, ref_y = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, K_crop, (win.size, win.size), cv2.CV_32FC1)
+        mx, my = distortion_maps(cam, K_crop, win.size)
+        err_raw_px = max(np.abs(mx - ref_x).max(), np.abs(my - ref_y).max())
+        assert err_raw_px * win.scale < 0.03  # in crop pixels, what resampling accuracy is about
 
 
 def test_box_on_raw_frame_maps_to_enclosing_undistorted_box():

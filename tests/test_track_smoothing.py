@@ -7,7 +7,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from gst.track.smoothing import OneEuroConfig, OneEuroFilter, PoseSmoother, rot6d_to_rotmat, rotmat_to_6d
+from gst.track.smoothing import (
+    OneEuroConfig,
+    OneEuroFilter,
+    PoseSmoother,
+    rot6d_to_rotmat,
+    rotmat_to_6d,
+)
 
 
 def reference_one_euro(xs, ts, min_cutoff, beta, d_cutoff):

@@ -22,14 +22,22 @@ import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
 
 from calibration import Camera
-from gst.track.appearance import colour_histogram, core_mask
+from gst.track.appearance import colour_histogram, core_region
+from gst.track.background import background
 from gst.track.crop import CropWindow, cut_crop, cut_undistorted_crop
 from gst.track.detection import Detection, Detector
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
 from gst.track.schema import FORMAT_VERSION, file_metadata, tracks_schema
 from gst.track.smoothing import OneEuroConfig, PoseSmoother
 from gst.track.tracker import Observation, Tracker, TrackerConfig
-from gst.track.video import VideoInfo, VideoTruncatedError, frame_range, iter_frames, probe_video
+from gst.track.video import (
+    Frame,
+    VideoInfo,
+    VideoTruncatedError,
+    frame_range,
+    iter_frames,
+    probe_video,
+)
 from gst.track.view import TrackingView
 from gst.track.writer import TrackWriter
 
@@ -45,7 +53,7 @@ class TrackOptions:
     min_score: float = 0.0  # detections scoring below this are ignored
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     smoothing: OneEuroConfig | None = None  # None: raw per-frame values
-    prefetch: int = 4  # frames decoded ahead in a thread (0: decode inline); does not change output
+    prefetch: int = 4  # frames decoded, detected and cropped ahead in a thread (0: inline); same output
     row_group_rows: int = 65536  # row-group size of the finished file
 
     def __post_init__(self):
@@ -136,7 +144,7 @@ def _cut(view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int) -
     """(RGB crop, K_crop, appearance histogram) of one detection."""
     window: CropWindow = view.window(det.box, size)
     crop_bgr, K_crop = view.crop(frame_bgr, window)
-    crop_rgb = np.ascontiguousarray(crop_bgr[..., ::-1])
+    crop_rgb = cv2.cvtColor(crop_bgr, cv2.COLOR_BGR2RGB)
     box = view.model_box(det.box)
     box_in_crop = (box - [window.x0, window.y0, window.x0, window.y0]) * window.scale
     if det.mask is not None:
@@ -145,10 +153,12 @@ def _cut(view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int) -
             raise ValueError(f"detection mask has shape {m.shape}, expected the frame's {frame_bgr.shape[:2]}")
         mc = (cut_undistorted_crop(m, view.camera, window, cv2.INTER_NEAREST) if view.has_distortion
               else cut_crop(m, window, cv2.INTER_NEAREST))
-        mask = (mc > 0).astype(np.uint8) & core_mask(size, box_in_crop, 0.0, 0.0)
+        rows, cols = core_region(size, box_in_crop, 0.0, 0.0)
+        hist = colour_histogram(crop_rgb[rows, cols], (mc[rows, cols] > 0).astype(np.uint8))
     else:
-        mask = core_mask(size, box_in_crop)
-    return crop_rgb, K_crop, colour_histogram(crop_rgb, mask)
+        rows, cols = core_region(size, box_in_crop)
+        hist = colour_histogram(crop_rgb[rows, cols])
+    return crop_rgb, K_crop, hist
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
@@ -156,7 +166,7 @@ def _rotvec(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(*shape, 3)
 
 
-def _rows(view: TrackingView, video: str, group: list[_Pending], ids: list[list[int]], poses: PoseBatch,
+def _rows(view: TrackingView, group: list[_Pending], ids: list[list[int]], poses: PoseBatch,
           keep: np.ndarray, schema: pa.Schema) -> pa.Table:
     """The group's rows, sorted by frame then person_id; `keep` marks detections that got an id."""
     frame_of = np.concatenate([[f.index] * len(f.scores) for f in group]).astype(np.int64) if group else np.zeros(0, np.int64)
@@ -187,7 +197,7 @@ def _rows(view: TrackingView, video: str, group: list[_Pending], ids: list[list[
         return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
 
     cols = {
-        "video": pa.array([video] * n, pa.string()), "frame": pa.array(frame_of[sel]),
+        "frame": pa.array(frame_of[sel]),
         "time_s": pa.array(time_of[sel], pa.float64()), "person_id": pa.array(pid[sel]),
         "bbox": fixed(boxes[sel]), "score": pa.array(scores[sel].astype(np.float32)),
         "global_orient": fixed(go), "global_orient_cam": fixed(go_cam), "body_pose": fixed(body_pose),
@@ -258,7 +268,7 @@ class _Session:
 def track_video(video_path: str | Path, out_root: str | Path, detector: Detector, predictor: Predictor, *,
                 model: dict, camera: Camera | None = None, video_name: str | None = None,
                 options: TrackOptions | None = None, num_betas: int = 10, world_up=None, resume: bool = True,
-                on_frame: Callable[[int], None] | None = None) -> TrackResult:
+                staging_root: str | Path | None = None, on_frame: Callable[[int], None] | None = None) -> TrackResult:
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
     `model` must hold at least "name" and "version" (recorded in the file). `camera` is the
@@ -267,6 +277,8 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
     settings is returned as is; without it, earlier output for this video is replaced. Raises
     VideoError (naming the file) for unreadable video; on a truncated video the frames before the
     damage are committed first (valid Parquet in the staging folder), then the error is raised.
+    Partial work lives in `staging_root` (default: the hidden sibling .<out_root name>.inprogress),
+    never inside `out_root`, so readers of the dataset only ever see finished videos.
     """
     t0 = time.perf_counter()
     options = options or TrackOptions()
@@ -284,7 +296,7 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
     settings = {"format_version": FORMAT_VERSION, "options": options.settings(), "model": model,
                 "video": video_json, "calibration": calibration, "num_betas": num_betas,
                 "world_up": None if world_up is None else [float(v) for v in world_up]}
-    writer = TrackWriter(out_root, name, tracks_schema(num_betas), settings)
+    writer = TrackWriter(out_root, name, tracks_schema(num_betas), settings, staging_root)
     if resume and writer.finished_digest() == writer.digest:
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
         return TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None,
@@ -301,30 +313,40 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
         nonlocal group
         poses = group.predictions()
         ids, smoothed, keep = session.track_group(view, group.frames, poses)
-        table = _rows(view, name, group.frames, ids, smoothed, keep, writer.schema)
+        table = _rows(view, group.frames, ids, smoothed, keep, writer.schema)
         writer.commit(table, next_frame, session.state_dict())
         group = _Group(predictor, options.batch_size, num_betas)
 
+    def prepare(frame: Frame) -> tuple[_Pending, list[np.ndarray], list[np.ndarray]]:
+        dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
+        cut = [_cut(view, frame.image, d, options.crop_size) for d in dets]
+        pending = _Pending(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
+                           np.array([d.score for d in dets], dtype=np.float64),
+                           np.array([c[2] for c in cut]).reshape(len(dets), -1))
+        return pending, [c[0] for c in cut], [c[1] for c in cut]
+
     frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,
-                         start_frame=start_frame, prefetch=options.prefetch)
+                         start_frame=start_frame)
+    prepared = (prepare(f) for f in frames)
+    if options.prefetch > 0:
+        prepared = background(prepared, options.prefetch)
     last_index = None
     try:
-        for frame in frames:
-            dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
-            cut = [_cut(view, frame.image, d, options.crop_size) for d in dets]
-            pending = _Pending(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
-                               np.array([d.score for d in dets], dtype=np.float64),
-                               np.array([c[2] for c in cut]).reshape(len(dets), -1))
-            group.add(pending, [c[0] for c in cut], [c[1] for c in cut])
-            last_index = frame.index
+        for pending, crops, Ks in prepared:
+            group.add(pending, crops, Ks)
+            last_index = pending.index
             if on_frame is not None:
-                on_frame(frame.index)
+                on_frame(pending.index)
             if len(group.frames) == options.frames_per_group:
-                commit(frame.index + options.stride)
+                commit(pending.index + options.stride)
     except VideoTruncatedError:
         if group.frames:
             commit(last_index + options.stride)
         raise
+    finally:
+        close = getattr(prepared, "close", None)
+        if close is not None:
+            close()
     if group.frames:
         commit(last_index + options.stride)
     stats = {**session.stats, "persons": session.tracker.next_id}

@@ -18,10 +18,12 @@ from gst.track.schema import SMPL_JOINT_NAMES, parse_metadata
 
 def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
     """A tracks file, or a folder of `video=<name>/tracks.parquet` partitions (optionally only
-    `videos`), as one table sorted by video, frame and person_id."""
+    `videos`), as one table sorted by video, frame and person_id, with a `video` column either way."""
     path = Path(path)
     if path.is_file():
-        table = pq.read_table(path)
+        table = pq.read_table(path, partitioning=None)
+        name = parse_metadata(table.schema)["video"]["name"]  # in a dataset it comes from the folder
+        table = table.add_column(0, "video", pa.array([name] * table.num_rows, pa.string()))
     elif path.is_dir():
         dataset = ds.dataset(path, format="parquet", partitioning="hive")
         flt = None if videos is None else pc.field("video").isin(videos)

@@ -1,5 +1,9 @@
 """The tracks Parquet schema: columns, units, shapes and the self-describing file metadata.
 
+The video name is not a column of the file: it is the Hive partition key, the folder
+`video=<name>` the file sits in, and every dataset reader (pyarrow.dataset, pandas, polars,
+duckdb) turns it back into a `video` column. It is also in the metadata (`gst.video`).
+
 Array-valued columns are fixed-size lists of float32 holding the array in row-major (C) order;
 their logical shape is in each field's metadata and in the file's `gst.columns` entry
 (`joints3d` [24, 3] is x0, y0, z0, x1, ...). See docs/formats/tracks_parquet.md.
@@ -35,7 +39,6 @@ class ColumnSpec:
 def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
     J = len(SMPL_JOINT_NAMES)
     return [
-        ColumnSpec("video", None, "", "video name (file stem); also the Hive partition key"),
         ColumnSpec("frame", None, "", "0-based frame index in the video"),
         ColumnSpec("time_s", None, "s", "frame / fps"),
         ColumnSpec("person_id", None, "", "track id, stable across frames of one video"),
@@ -55,7 +58,7 @@ def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
     ]
 
 
-_SCALAR_TYPES = {"video": pa.string(), "frame": pa.int64(), "time_s": pa.float64(), "person_id": pa.int64(),
+_SCALAR_TYPES = {"frame": pa.int64(), "time_s": pa.float64(), "person_id": pa.int64(),
                  "score": pa.float32()}
 
 

@@ -9,14 +9,14 @@ announces is reported as truncated or corrupt, naming the file and the frame.
 from __future__ import annotations
 
 import math
-import queue
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from gst.track.background import background
 
 # A container's frame count can be an estimate; a shortfall of at most this many frames at the
 # very end is taken as the real end rather than as truncation.
@@ -127,49 +127,6 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
         cap.release()
 
 
-_DONE = object()
-
-
-def _prefetched(frames: Iterator[Frame], depth: int) -> Iterator[Frame]:
-    """Decode in a background thread (OpenCV releases the GIL while decoding)."""
-    q: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-
-    def put(item) -> bool:
-        while not stop.is_set():
-            try:
-                q.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def work():
-        try:
-            for f in frames:
-                if not put(f):
-                    return
-            put(_DONE)
-        except BaseException as exc:  # re-raised in the consumer
-            put(exc)
-        finally:
-            frames.close()  # releases the capture
-
-    t = threading.Thread(target=work, name="video-decode", daemon=True)
-    t.start()
-    try:
-        while True:
-            item = q.get()
-            if item is _DONE:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        t.join(timeout=5)
-
-
 def iter_frames(path: str | Path, *, stride: int = 1, start_s: float | None = None, end_s: float | None = None,
                 start_frame: int | None = None, prefetch: int = 0) -> Iterator[Frame]:
     """Yield frames first, first + stride, ... within [start_s, end_s).
@@ -186,4 +143,4 @@ def iter_frames(path: str | Path, *, stride: int = 1, start_s: float | None = No
             raise ValueError(f"{path}: start_frame {start_frame} is not on the grid {first} + k * {stride}")
         first = start_frame
     frames = _decode(info, first, end, stride)
-    return _prefetched(frames, prefetch) if prefetch > 0 else frames
+    return background(frames, prefetch, name="video-decode") if prefetch > 0 else frames

@@ -1,11 +1,16 @@
 """Crash-safe, resumable Parquet output for one video, in a Hive-style folder per video.
 
-Layout under the output root (a pyarrow/pandas/polars/duckdb dataset):
+Layout (the output root is a Hive-partitioned dataset that pyarrow, pandas, polars and duckdb
+read as a whole; nothing partial is ever inside it):
 
     <root>/video=<name>/tracks.parquet          the finished file (written once, atomically)
-    <root>/video=<name>/_inprogress/            while tracking (ignored by dataset readers: '_')
+    <staging>/video=<name>/                     while tracking; default <staging> is the hidden
+                                                sibling folder .<root name>.inprogress
         seg-000000.parquet, seg-000001.parquet  committed row groups, one Parquet file each
         progress.json                           settings, committed segments, next frame, state
+
+The staging folder sits outside the dataset because polars and duckdb, given a folder or a
+'**' glob, also read hidden and underscore-prefixed subfolders.
 
 A commit first makes the segment durable (temporary name, fsync, rename), then rewrites
 progress.json the same way. A kill at any moment leaves progress.json naming only complete
@@ -30,7 +35,6 @@ import pyarrow.parquet as pq
 
 PROGRESS_VERSION = 1
 FINAL_NAME = "tracks.parquet"
-STAGING_NAME = "_inprogress"
 PARQUET_OPTIONS = {"compression": "zstd", "compression_level": 3, "version": "2.6", "write_statistics": True}
 
 
@@ -40,6 +44,11 @@ class ResumeError(RuntimeError):
 
 def settings_digest(settings: dict) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
+
+
+def default_staging_root(root: str | Path) -> Path:
+    root = Path(root).absolute()
+    return root.parent / f".{root.name}.inprogress"
 
 
 def partition_dir(root: str | Path, video: str) -> Path:
@@ -82,6 +91,16 @@ def _write_json(path: Path, obj: dict) -> None:
     _durable_replace(tmp, path)
 
 
+def _changed_keys(old, new, prefix: str = "") -> list[str]:
+    """Dotted paths at which two JSON documents differ."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new)):
+            out += _changed_keys(old.get(k), new.get(k), f"{prefix}{k}.")
+        return out
+    return [] if old == new else [prefix.rstrip(".")]
+
+
 @dataclass
 class ResumePoint:
     next_frame: int
@@ -93,14 +112,15 @@ class ResumePoint:
 class TrackWriter:
     """Committed row groups for one video, resumable, finalised into one Parquet file."""
 
-    def __init__(self, root: str | Path, video: str, schema: pa.Schema, settings: dict):
+    def __init__(self, root: str | Path, video: str, schema: pa.Schema, settings: dict,
+                 staging_root: str | Path | None = None):
         self.video = video
         self.schema = schema.remove_metadata()
         self.settings = settings
         self.digest = settings_digest(settings)
         self.dir = partition_dir(root, video)
         self.final_path = self.dir / FINAL_NAME
-        self.staging = self.dir / STAGING_NAME
+        self.staging = partition_dir(staging_root or default_staging_root(root), video)
         self.progress_path = self.staging / "progress.json"
         self._progress: dict | None = None
 
@@ -125,8 +145,7 @@ class TrackWriter:
                 raise ResumeError(f"{self.progress_path}: unreadable progress record ({exc}); delete "
                                   f"{self.staging} or run without resume") from exc
             if progress.get("version") != PROGRESS_VERSION or progress.get("digest") != self.digest:
-                changed = sorted(k for k in set(self.settings) | set(progress.get("settings", {}))
-                                 if self.settings.get(k) != progress.get("settings", {}).get(k))
+                changed = _changed_keys(progress.get("settings", {}), json.loads(json.dumps(self.settings)))
                 raise ResumeError(f"{self.staging}: a partial run with different settings exists (changed: "
                                   f"{changed}); run without resume to discard it")
             self._check_segments(progress)
@@ -186,10 +205,15 @@ class TrackWriter:
         remove the staging folder."""
         table = self.committed()
         schema = self.schema.with_metadata(metadata)
+        self.dir.mkdir(parents=True, exist_ok=True)
         tmp = self.dir / f".{FINAL_NAME}.tmp"
         with pq.ParquetWriter(tmp, schema, **PARQUET_OPTIONS) as w:
             if len(table):
                 w.write_table(table.replace_schema_metadata(metadata), row_group_size=row_group_rows)
         _durable_replace(tmp, self.final_path)
         shutil.rmtree(self.staging, ignore_errors=True)
+        try:
+            self.staging.parent.rmdir()  # the staging root, once no other video is in progress
+        except OSError:
+            pass
         return self.final_path
