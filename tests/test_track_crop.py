@@ -7,7 +7,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import Camera
-from gst.track.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop, distortion_maps
+from gst.track.crop import (
+    CropWindow,
+    crop_intrinsics,
+    crop_window,
+    cut_crop,
+    cut_undistorted_crop,
+    distortion_maps,
+)
 from gst.track.view import TrackingView, default_camera
 
 finite = st.floats(-500, 2500, allow_nan=False)

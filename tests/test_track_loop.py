@@ -236,6 +236,57 @@ def test_detections_with_masks_track_the_same(scene, tmp_path):
     assert all(len(set(pid[who == w])) == 1 for w in range(3)) and res.persons == 3
 
 
+class EveryThirdFrame:
+    """Truth boxes on frames 0, 3, 6, ...; nothing on the others (detector misses)."""
+
+    def __init__(self, boxes):
+        self.boxes = boxes
+
+    def detect(self, frame_bgr, frame_index):
+        return self.boxes.detect(frame_bgr, frame_index) if frame_index % 3 == 0 else []
+
+
+def test_frames_without_detections(scene, tmp_path):
+    res = track_video(scene["video"], tmp_path, EveryThirdFrame(SuppliedBoxes.from_file(scene["csv"])),
+                      BoxDepthPredictor(), model=MODEL, options=TrackOptions(frames_per_group=4))
+    t = read_tracks(res.path)
+    assert set(t.column("frame").to_pylist()) == set(range(0, N, 3)) and res.frames == N
+    who = truth_identity(t, scene["boxes"])
+    pid = t.column("person_id").to_numpy()
+    assert all(len(set(pid[who == w])) == 1 for w in range(3))
+
+
+def test_non_finite_predictions_are_dropped_and_counted(scene, tmp_path):
+    class SometimesNaN(BoxDepthPredictor):
+        calls = 0
+
+        def __call__(self, crops, K_crop):
+            out = super().__call__(crops, K_crop)
+            SometimesNaN.calls += 1
+            if SometimesNaN.calls % 3 == 0:
+                out["joints_cam"][0, 5, 1] = np.nan
+            return out
+
+    res = track_video(scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), SometimesNaN(), model=MODEL,
+                      options=TrackOptions(batch_size=4))
+    stats = read_metadata(res.path)["stats"]
+    assert stats["dropped_nonfinite"] > 0
+    assert stats["rows"] + stats["dropped_nonfinite"] == stats["detections"] == scene["visible"].sum()
+    assert np.isfinite(column_array(read_tracks(res.path), "joints3d")).all()
+
+
+def test_video_with_nobody_gives_an_empty_valid_file(scene, tmp_path):
+    class Nobody:
+        def detect(self, frame_bgr, frame_index):
+            return []
+
+    res = track_video(scene["video"], tmp_path, Nobody(), BoxDepthPredictor(), model=MODEL,
+                      options=TrackOptions(frames_per_group=16))
+    t = read_tracks(res.path)
+    assert t.num_rows == 0 and res.frames == N and read_metadata(res.path)["stats"]["frames"] == N
+    assert column_array(t, "joints3d").shape == (0, 24, 3)
+
+
 def test_predictor_with_wrong_betas_count_is_named(scene, tmp_path):
     class Eleven(BoxDepthPredictor):
         def __init__(self):

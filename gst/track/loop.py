@@ -22,7 +22,7 @@ import pyarrow.parquet as pq
 from scipy.spatial.transform import Rotation
 
 from calibration import Camera
-from gst.track.appearance import colour_histogram, core_region
+from gst.track.appearance import DESCRIPTOR_SIZE, colour_histogram, core_region
 from gst.track.background import background
 from gst.track.crop import CropWindow, cut_crop, cut_undistorted_crop
 from gst.track.detection import Detection, Detector
@@ -192,19 +192,20 @@ def _rows(view: TrackingView, group: list[_Pending], ids: list[list[int]], poses
         joints3d, go, transl_world = joints_cam, go_cam, None
     joints2d = view.project(joints_cam)
 
-    def fixed(a: np.ndarray) -> pa.FixedSizeListArray:
-        flat = np.ascontiguousarray(a, dtype=np.float32).reshape(n, -1)
-        return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
+    def fixed(a: np.ndarray, name: str) -> pa.FixedSizeListArray:
+        width = schema.field(name).type.list_size
+        flat = np.ascontiguousarray(a, dtype=np.float32).reshape(n, width)
+        return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), width)
 
     cols = {
-        "frame": pa.array(frame_of[sel]),
-        "time_s": pa.array(time_of[sel], pa.float64()), "person_id": pa.array(pid[sel]),
-        "bbox": fixed(boxes[sel]), "score": pa.array(scores[sel].astype(np.float32)),
-        "global_orient": fixed(go), "global_orient_cam": fixed(go_cam), "body_pose": fixed(body_pose),
-        "betas": fixed(p.betas), "transl_cam": fixed(p.transl_cam),
-        "transl_world": (fixed(transl_world) if transl_world is not None
+        "frame": pa.array(frame_of[sel]), "time_s": pa.array(time_of[sel], pa.float64()),
+        "person_id": pa.array(pid[sel]), "bbox": fixed(boxes[sel], "bbox"),
+        "score": pa.array(scores[sel].astype(np.float32)), "global_orient": fixed(go, "global_orient"),
+        "global_orient_cam": fixed(go_cam, "global_orient_cam"), "body_pose": fixed(body_pose, "body_pose"),
+        "betas": fixed(p.betas, "betas"), "transl_cam": fixed(p.transl_cam, "transl_cam"),
+        "transl_world": (fixed(transl_world, "transl_world") if transl_world is not None
                          else pa.nulls(n, schema.field("transl_world").type)),
-        "joints3d": fixed(joints3d), "joints2d": fixed(joints2d),
+        "joints3d": fixed(joints3d, "joints3d"), "joints2d": fixed(joints2d, "joints2d"),
     }
     return pa.Table.from_arrays([cols[f.name].cast(f.type) for f in schema], schema=schema)
 
@@ -322,7 +323,7 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
         cut = [_cut(view, frame.image, d, options.crop_size) for d in dets]
         pending = _Pending(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
                            np.array([d.score for d in dets], dtype=np.float64),
-                           np.array([c[2] for c in cut]).reshape(len(dets), -1))
+                           np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
         return pending, [c[0] for c in cut], [c[1] for c in cut]
 
     frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,

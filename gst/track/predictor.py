@@ -43,7 +43,7 @@ class PoseBatch:
     def finite(self) -> np.ndarray:
         """(B,) True where every body value is finite."""
         parts = [self.rotmats, self.betas, self.transl_cam, self.joints_cam]
-        return np.all(np.stack([np.isfinite(p.reshape(len(p), -1)).all(1) for p in parts]), axis=0)
+        return np.all(np.stack([np.isfinite(p).all(axis=tuple(range(1, p.ndim))) for p in parts]), axis=0)
 
     @staticmethod
     def concat(batches: list[PoseBatch], num_betas: int = 10) -> PoseBatch:
