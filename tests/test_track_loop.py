@@ -275,6 +275,31 @@ def test_non_finite_predictions_are_dropped_and_counted(scene, tmp_path):
     assert np.isfinite(column_array(read_tracks(res.path), "joints3d")).all()
 
 
+def test_extra_outputs_reach_the_callback_per_row(scene, tmp_path):
+    class WithGaussians(BoxDepthPredictor):
+        def __call__(self, crops, K_crop):
+            out = super().__call__(crops, K_crop)
+            out["gaussian_means"] = out["joints_cam"][:, :1] + np.zeros((len(crops), 5, 3))  # stand-in payload
+            return out
+
+    class Shuffled:  # detection order differs from id order from frame 10 on
+        boxes = SuppliedBoxes.from_file(scene["csv"])
+
+        def detect(self, frame_bgr, frame_index):
+            d = self.boxes.detect(frame_bgr, frame_index)
+            return d[::-1] if frame_index >= 10 else d
+
+    got = []
+    res = track_video(scene["video"], tmp_path, Shuffled(), WithGaussians(), model=MODEL,
+                      options=TrackOptions(batch_size=4, frames_per_group=6),
+                      on_extra=lambda f, p, extra: got.append((f, p, extra["gaussian_means"])))
+    t = read_tracks(res.path)
+    assert [(f, p) for f, p, _ in got] == list(zip(t.column("frame").to_pylist(), t.column("person_id").to_pylist(),
+                                                   strict=True))
+    pelvis = column_array(t, "joints3d")[:, 0]
+    np.testing.assert_allclose(np.stack([g[0] for _, _, g in got]), pelvis, atol=1e-5)
+
+
 def test_video_with_nobody_gives_an_empty_valid_file(scene, tmp_path):
     class Nobody:
         def detect(self, frame_bgr, frame_index):

@@ -269,7 +269,8 @@ class _Session:
 def track_video(video_path: str | Path, out_root: str | Path, detector: Detector, predictor: Predictor, *,
                 model: dict, camera: Camera | None = None, video_name: str | None = None,
                 options: TrackOptions | None = None, num_betas: int = 10, world_up=None, resume: bool = True,
-                staging_root: str | Path | None = None, on_frame: Callable[[int], None] | None = None) -> TrackResult:
+                staging_root: str | Path | None = None, on_frame: Callable[[int], None] | None = None,
+                on_extra: Callable[[int, int, dict], None] | None = None) -> TrackResult:
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
     `model` must hold at least "name" and "version" (recorded in the file). `camera` is the
@@ -278,6 +279,10 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
     settings is returned as is; without it, earlier output for this video is replaced. Raises
     VideoError (naming the file) for unreadable video; on a truncated video the frames before the
     damage are committed first (valid Parquet in the staging folder), then the error is raised.
+    `on_frame(frame)` is called for every processed frame (progress bars). `on_extra(frame,
+    person_id, extra)` receives, for every written row, the predictor's outputs beyond the body
+    (e.g. Gaussians for a per-track splat), after the row group holding it is committed; frames
+    committed by an earlier, interrupted run are not replayed.
     Partial work lives in `staging_root` (default: the hidden sibling .<out_root name>.inprogress),
     never inside `out_root`, so readers of the dataset only ever see finished videos.
     """
@@ -316,6 +321,12 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
         ids, smoothed, keep = session.track_group(view, group.frames, poses)
         table = _rows(view, group.frames, ids, smoothed, keep, writer.schema)
         writer.commit(table, next_frame, session.state_dict())
+        if on_extra is not None and poses.extra:
+            frame_of = np.array([f.index for f in group.frames for _ in range(len(f.scores))], dtype=np.int64)
+            flat_ids = np.array([i for frame_ids in ids for i in frame_ids], dtype=np.int64)
+            kept = np.flatnonzero(keep)
+            for j in kept[np.lexsort((flat_ids[kept], frame_of[kept]))]:  # the rows' order
+                on_extra(int(frame_of[j]), int(flat_ids[j]), {k: np.asarray(v)[j] for k, v in poses.extra.items()})
         group = _Group(predictor, options.batch_size, num_betas)
 
     def prepare(frame: Frame) -> tuple[_Pending, list[np.ndarray], list[np.ndarray]]:
