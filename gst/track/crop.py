@@ -107,18 +107,21 @@ def cut_crop(image: np.ndarray, window: CropWindow, interpolation: int = cv2.INT
                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def _interpolation_matrix(size: int, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """Grid coordinates 0, step, ... (covering size - 1) and the (size, n) linear interpolation
-    matrix from grid values to every integer coordinate."""
+def _interpolation_weights(size: int, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Grid coordinates 0, step, ... (covering size - 1), and for every integer coordinate the
+    index of the grid cell it falls in and its weight towards the cell's far end."""
     n = -(-(size - 1) // step) + 1
     grid = np.arange(n, dtype=np.float64) * step
     u = np.arange(size, dtype=np.float64)
     i = np.minimum((u // step).astype(int), n - 2)
-    w = (u - grid[i]) / step
-    A = np.zeros((size, n))
-    A[np.arange(size), i] = 1 - w
-    A[np.arange(size), i + 1] = w
-    return grid, A
+    return grid, i, (u - grid[i]) / step
+
+
+def _bilinear(values: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Upsample (n, n) grid values to (size, size) by separable linear interpolation (gathers
+    and multiplies only: tiny BLAS calls stall when the machine is oversubscribed)."""
+    rows = values[i] * (1 - w)[:, None] + values[i + 1] * w[:, None]
+    return rows[:, i] * (1 - w)[None, :] + rows[:, i + 1] * w[None, :]
 
 
 def distortion_maps(camera: Camera, K_crop: np.ndarray, size: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -127,15 +130,16 @@ def distortion_maps(camera: Camera, K_crop: np.ndarray, size: int, step: int = 8
     (cv2.projectPoints) on a grid every `step` pixels and interpolated bilinearly in between,
     which is far cheaper than evaluating all size^2 pixels and, lens distortion being smooth,
     agrees with cv2.initUndistortRectifyMap to a few hundredths of a pixel."""
-    grid, A = _interpolation_matrix(size, step)
+    grid, i, w = _interpolation_weights(size, step)
     gu, gv = np.meshgrid(grid, grid)
-    pix = np.stack([gu.ravel(), gv.ravel(), np.ones(gu.size)], axis=1)
-    rays = pix @ np.linalg.inv(K_crop).T
+    fx, s, cx = K_crop[0]
+    fy, cy = K_crop[1, 1], K_crop[1, 2]
+    y = (gv - cy) / fy
+    x = (gu - cx - s * y) / fx
+    rays = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
     uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera.K, camera.dist)
     uv = uv.reshape(len(grid), len(grid), 2)
-    map_x = (A @ uv[..., 0] @ A.T).astype(np.float32)
-    map_y = (A @ uv[..., 1] @ A.T).astype(np.float32)
-    return map_x, map_y
+    return _bilinear(uv[..., 0], i, w).astype(np.float32), _bilinear(uv[..., 1], i, w).astype(np.float32)
 
 
 def cut_undistorted_crop(image: np.ndarray, camera: Camera, window: CropWindow,
