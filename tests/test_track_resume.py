@@ -144,9 +144,11 @@ def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
 def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    staging_of(tmp_path / "out").mkdir(parents=True)  # as if killed after the final rename
     never = FailingPredictor(fail_on_call=1)
     res = track_video(scene["video"], tmp_path / "out", det, never, model=MODEL, options=OPTIONS)
     assert never.calls == 0 and res.rows == 3 * N and res.path.read_bytes() == reference
+    assert not default_staging_root(tmp_path / "out").exists()
 
 
 def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):

@@ -6,6 +6,7 @@ from gst.track.detection import Detection, Detector, SuppliedBoxes, SuppliedBoxe
 from gst.track.loop import TrackOptions, TrackResult, track_video
 from gst.track.predictor import PoseBatch, Predictor, PredictorOutputError, validate_prediction
 from gst.track.read import column_array, long_format, read_metadata, read_tracks
+from gst.track.report import draw_people, joint_angles, plot_joint_angles, write_overlay
 from gst.track.schema import SMPL_JOINT_NAMES, tracks_schema
 from gst.track.smoothing import OneEuroConfig, OneEuroFilter, PoseSmoother
 from gst.track.tracker import Observation, Tracker, TrackerConfig, box_iou
@@ -18,7 +19,7 @@ __all__ = [
     "PoseBatch", "PoseSmoother", "Predictor", "PredictorOutputError", "ResumeError", "SMPL_JOINT_NAMES",
     "SuppliedBoxes", "SuppliedBoxesError", "TrackOptions", "TrackResult", "TrackWriter", "Tracker",
     "TrackerConfig", "TrackingView", "VideoError", "VideoInfo", "VideoTruncatedError", "box_iou", "column_array",
-    "crop_intrinsics", "crop_window", "cut_crop", "cut_undistorted_crop", "default_camera", "iter_frames",
-    "long_format", "probe_video", "read_metadata", "read_tracks", "track_video", "tracks_schema",
+    "crop_intrinsics", "crop_window", "cut_crop", "cut_undistorted_crop", "default_camera", "draw_people",
+    "iter_frames", "joint_angles", "long_format", "plot_joint_angles", "write_overlay", "probe_video", "read_metadata", "read_tracks", "track_video", "tracks_schema",
     "validate_prediction",
 ]

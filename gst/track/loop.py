@@ -304,6 +304,7 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
                 "world_up": None if world_up is None else [float(v) for v in world_up]}
     writer = TrackWriter(out_root, name, tracks_schema(num_betas), settings, staging_root)
     if resume and writer.finished_digest() == writer.digest:
+        writer.discard_staging()  # left behind if a run died between finishing and cleaning up
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
         return TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None,
                            time.perf_counter() - t0)

@@ -175,6 +175,14 @@ class TrackWriter:
             if p.name != "progress.json" and p.name not in named:
                 p.unlink()  # an orphan from a commit that never completed
 
+    def discard_staging(self) -> None:
+        """Remove this video's partial work, if any."""
+        shutil.rmtree(self.staging, ignore_errors=True)
+        try:
+            self.staging.parent.rmdir()
+        except OSError:
+            pass
+
     # -- writing ------------------------------------------------------------------------------
     def commit(self, table: pa.Table, next_frame: int, state: dict) -> None:
         """Durably add `table` as the next row group, with the frame and state to resume from."""
@@ -211,9 +219,5 @@ class TrackWriter:
             if len(table):
                 w.write_table(table.replace_schema_metadata(metadata), row_group_size=row_group_rows)
         _durable_replace(tmp, self.final_path)
-        shutil.rmtree(self.staging, ignore_errors=True)
-        try:
-            self.staging.parent.rmdir()  # the staging root, once no other video is in progress
-        except OSError:
-            pass
+        self.discard_staging()
         return self.final_path
