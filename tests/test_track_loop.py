@@ -128,6 +128,7 @@ class RigidBodyPredictor:
     per-crop orientation, then translated: joints = R (J - J0) + J0 + T."""
 
     J = np.random.default_rng(7).normal(0, 0.3, (24, 3)) + [0.0, 0.2, 0.0]
+    BODY_POSE = np.random.default_rng(8).uniform(-1.0, 1.0, (23, 3))  # axis-angle, |angle| < pi
 
     def __call__(self, crops, K_crop):
         base = BoxDepthPredictor()(crops, K_crop)
@@ -137,6 +138,7 @@ class RigidBodyPredictor:
         joints = np.einsum("bij,nj->bni", R, self.J - J0) + J0 + T[:, None]
         rot = base["rotmats"].copy()
         rot[:, 0] = R
+        rot[:, 1:] = Rotation.from_rotvec(self.BODY_POSE).as_matrix()
         return {"rotmats": rot, "betas": np.zeros((len(crops), 10)), "transl_cam": T, "joints_cam": joints}
 
 
@@ -162,6 +164,8 @@ def test_calibrated_camera_gives_consistent_world_values(scene, tmp_path):
     R_w = Rotation.from_rotvec(column_array(t, "global_orient")).as_matrix()
     R_c = Rotation.from_rotvec(column_array(t, "global_orient_cam")).as_matrix()
     np.testing.assert_allclose(R_w, cam.R.T @ R_c, atol=1e-5)
+    body_pose = column_array(t, "body_pose")
+    np.testing.assert_allclose(body_pose, np.broadcast_to(RigidBodyPredictor.BODY_POSE, body_pose.shape), atol=1e-6)
     J0 = RigidBodyPredictor.J[0]
     posed = np.einsum("bij,nj->bni", R_w, RigidBodyPredictor.J - J0) + J0 + column_array(t, "transl_world")[:, None]
     np.testing.assert_allclose(posed, j3, atol=1e-4)

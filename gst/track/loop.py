@@ -15,21 +15,19 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
-import pyarrow as pa
 import pyarrow.parquet as pq
-from scipy.spatial.transform import Rotation
 
 from calibration import Camera
-from gst.track.appearance import DESCRIPTOR_SIZE, colour_histogram, core_region
+from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.background import background
-from gst.track.crop import CropWindow, cut_crop, cut_undistorted_crop
-from gst.track.detection import Detection, Detector
+from gst.track.detection import Detector
+from gst.track.frames import PendingFrame, TrackingSession, prepare_detection
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
+from gst.track.rows import rows_table
 from gst.track.schema import FORMAT_VERSION, file_metadata, tracks_schema
-from gst.track.smoothing import OneEuroConfig, PoseSmoother
-from gst.track.tracker import Observation, Tracker, TrackerConfig
+from gst.track.smoothing import OneEuroConfig
+from gst.track.tracker import TrackerConfig
 from gst.track.video import (
     Frame,
     VideoInfo,
@@ -97,28 +95,17 @@ def _axes_json(calibrated: bool, world_up) -> dict:
     return axes
 
 
-@dataclass
-class _Pending:
-    """One processed frame's detections while its group is being assembled."""
-
-    index: int
-    time_s: float
-    boxes: np.ndarray  # (n, 4) raw-frame boxes
-    scores: np.ndarray  # (n,)
-    appearance: np.ndarray  # (n, D)
-
-
 class _Group:
     """Crops and predictions of one row group."""
 
     def __init__(self, predictor: Predictor, batch_size: int, num_betas: int):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
-        self.frames: list[_Pending] = []
+        self.frames: list[PendingFrame] = []
         self.crops: list[np.ndarray] = []
         self.Ks: list[np.ndarray] = []
         self.poses: list[PoseBatch] = []
 
-    def add(self, frame: _Pending, crops: list[np.ndarray], Ks: list[np.ndarray]) -> None:
+    def add(self, frame: PendingFrame, crops: list[np.ndarray], Ks: list[np.ndarray]) -> None:
         self.frames.append(frame)
         self.crops.extend(crops)
         self.Ks.extend(Ks)
@@ -138,132 +125,6 @@ class _Group:
         if self.crops:
             self._predict(len(self.crops))
         return PoseBatch.concat(self.poses, self.num_betas)
-
-
-def _cut(view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(RGB crop, K_crop, appearance histogram) of one detection."""
-    window: CropWindow = view.window(det.box, size)
-    crop_bgr, K_crop = view.crop(frame_bgr, window)
-    crop_rgb = cv2.cvtColor(crop_bgr, cv2.COLOR_BGR2RGB)
-    box = view.model_box(det.box)
-    box_in_crop = (box - [window.x0, window.y0, window.x0, window.y0]) * window.scale
-    if det.mask is not None:
-        m = np.asarray(det.mask, dtype=np.uint8)
-        if m.shape != frame_bgr.shape[:2]:
-            raise ValueError(f"detection mask has shape {m.shape}, expected the frame's {frame_bgr.shape[:2]}")
-        mc = (cut_undistorted_crop(m, view.camera, window, cv2.INTER_NEAREST) if view.has_distortion
-              else cut_crop(m, window, cv2.INTER_NEAREST))
-        rows, cols = core_region(size, box_in_crop, 0.0, 0.0)
-        hist = colour_histogram(crop_rgb[rows, cols], (mc[rows, cols] > 0).astype(np.uint8))
-    else:
-        rows, cols = core_region(size, box_in_crop)
-        hist = colour_histogram(crop_rgb[rows, cols])
-    return crop_rgb, K_crop, hist
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    shape = R.shape[:-2]
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(*shape, 3)
-
-
-def _rows(view: TrackingView, group: list[_Pending], ids: list[list[int]], poses: PoseBatch,
-          keep: np.ndarray, schema: pa.Schema) -> pa.Table:
-    """The group's rows, sorted by frame then person_id; `keep` marks detections that got an id."""
-    frame_of = np.concatenate([[f.index] * len(f.scores) for f in group]).astype(np.int64) if group else np.zeros(0, np.int64)
-    time_of = np.concatenate([[f.time_s] * len(f.scores) for f in group]) if group else np.zeros(0)
-    boxes = np.concatenate([f.boxes for f in group]) if group else np.zeros((0, 4))
-    scores = np.concatenate([f.scores for f in group]) if group else np.zeros(0)
-    pid = np.concatenate([np.asarray(i, dtype=np.int64) for i in ids]) if ids else np.zeros(0, np.int64)
-    sel = np.flatnonzero(keep)
-    sel = sel[np.lexsort((pid[sel], frame_of[sel]))]
-    p = poses.take(sel)
-    n = len(sel)
-    go_cam = _rotvec(p.rotmats[:, 0])
-    body_pose = _rotvec(p.rotmats[:, 1:])
-    joints_cam = p.joints_cam
-    if view.calibrated:
-        joints3d = view.to_world(joints_cam)
-        go = _rotvec(view.rotation_to_world(p.rotmats[:, 0]))
-        # SMPL rotates about the root joint J0: choose transl_world so that the body model with
-        # (global_orient world, transl_world) reproduces the world joints.
-        rest_root = joints_cam[:, 0] - p.transl_cam
-        transl_world = joints3d[:, 0] - rest_root
-    else:
-        joints3d, go, transl_world = joints_cam, go_cam, None
-    joints2d = view.project(joints_cam)
-
-    def fixed(a: np.ndarray, name: str) -> pa.FixedSizeListArray:
-        width = schema.field(name).type.list_size
-        flat = np.ascontiguousarray(a, dtype=np.float32).reshape(n, width)
-        return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), width)
-
-    cols = {
-        "frame": pa.array(frame_of[sel]), "time_s": pa.array(time_of[sel], pa.float64()),
-        "person_id": pa.array(pid[sel]), "bbox": fixed(boxes[sel], "bbox"),
-        "score": pa.array(scores[sel].astype(np.float32)), "global_orient": fixed(go, "global_orient"),
-        "global_orient_cam": fixed(go_cam, "global_orient_cam"), "body_pose": fixed(body_pose, "body_pose"),
-        "betas": fixed(p.betas, "betas"), "transl_cam": fixed(p.transl_cam, "transl_cam"),
-        "transl_world": (fixed(transl_world, "transl_world") if transl_world is not None
-                         else pa.nulls(n, schema.field("transl_world").type)),
-        "joints3d": fixed(joints3d, "joints3d"), "joints2d": fixed(joints2d, "joints2d"),
-    }
-    return pa.Table.from_arrays([cols[f.name].cast(f.type) for f in schema], schema=schema)
-
-
-class _Session:
-    """Tracker, smoother and counters: everything a resumed run must restore."""
-
-    def __init__(self, options: TrackOptions):
-        self.tracker = Tracker(options.tracker)
-        self.smoother = PoseSmoother(options.smoothing) if options.smoothing else None
-        self.stats = {"frames": 0, "rows": 0, "detections": 0, "dropped_nonfinite": 0, "dropped_low_score": 0}
-
-    def state_dict(self) -> dict:
-        return {"tracker": self.tracker.state_dict(), "smoother": self.smoother.state_dict() if self.smoother else {},
-                "stats": dict(self.stats)}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.tracker.load_state_dict(state["tracker"])
-        if self.smoother:
-            self.smoother.load_state_dict(state["smoother"])
-        self.stats = dict(state["stats"])
-
-    def track_group(self, view: TrackingView, group: list[_Pending], poses: PoseBatch) -> tuple[list[list[int]], PoseBatch, np.ndarray]:
-        """Ids for every detection (-1: none), smoothed poses, and which detections to keep."""
-        finite = poses.finite()
-        ids: list[list[int]] = []
-        keep = np.zeros(len(poses), bool)
-        out = PoseBatch(poses.rotmats.copy(), poses.betas.copy(), poses.transl_cam.copy(), poses.joints_cam.copy(), {})
-        k = 0
-        for f in group:
-            n = len(f.scores)
-            idx = np.arange(k, k + n)[finite[k:k + n]]
-            self.stats["dropped_nonfinite"] += int(n - len(idx))
-            pelvis = out.joints_cam[idx, 0]
-            pos = view.to_world(pelvis) if view.calibrated else pelvis
-            obs = [Observation(f.boxes[j - k], pos[i], f.appearance[j - k], float(f.scores[j - k]))
-                   for i, j in enumerate(idx)]
-            got = self.tracker.update(f.time_s, obs)
-            frame_ids = [-1] * n
-            for j, pid in zip(idx, got, strict=True):
-                frame_ids[j - k] = pid
-                if pid >= 0:
-                    keep[j] = True
-                    if self.smoother:
-                        s = self.smoother(pid, f.time_s, {q: getattr(out, q)[j] for q in
-                                                          ("rotmats", "betas", "transl_cam", "joints_cam")})
-                        for q, v in s.items():
-                            getattr(out, q)[j] = v
-                else:
-                    self.stats["dropped_low_score"] += 1
-            if self.smoother:
-                self.smoother.retain({t.id for t in self.tracker.tracks})
-            ids.append(frame_ids)
-            k += n
-        self.stats["frames"] += len(group)
-        self.stats["detections"] += len(poses)
-        self.stats["rows"] += int(keep.sum())
-        return ids, out, keep
 
 
 def track_video(video_path: str | Path, out_root: str | Path, detector: Detector, predictor: Predictor, *,
@@ -308,7 +169,7 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
         return TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None,
                            time.perf_counter() - t0)
-    session = _Session(options)
+    session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
     start_frame, resumed_from = first, None
     if point is not None:
@@ -320,7 +181,7 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
         nonlocal group
         poses = group.predictions()
         ids, smoothed, keep = session.track_group(view, group.frames, poses)
-        table = _rows(view, group.frames, ids, smoothed, keep, writer.schema)
+        table = rows_table(view, group.frames, ids, smoothed, keep, writer.schema)
         writer.commit(table, next_frame, session.state_dict())
         if on_extra is not None and poses.extra:
             frame_of = np.array([f.index for f in group.frames for _ in range(len(f.scores))], dtype=np.int64)
@@ -330,10 +191,10 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
                 on_extra(int(frame_of[j]), int(flat_ids[j]), {k: np.asarray(v)[j] for k, v in poses.extra.items()})
         group = _Group(predictor, options.batch_size, num_betas)
 
-    def prepare(frame: Frame) -> tuple[_Pending, list[np.ndarray], list[np.ndarray]]:
+    def prepare(frame: Frame) -> tuple[PendingFrame, list[np.ndarray], list[np.ndarray]]:
         dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
-        cut = [_cut(view, frame.image, d, options.crop_size) for d in dets]
-        pending = _Pending(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
+        cut = [prepare_detection(view, frame.image, d, options.crop_size) for d in dets]
+        pending = PendingFrame(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
                            np.array([d.score for d in dets], dtype=np.float64),
                            np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
         return pending, [c[0] for c in cut], [c[1] for c in cut]
