@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from gst.track.appearance import colour_histogram, core_region
-from gst.track.crop import CropWindow, cut_crop, cut_undistorted_crop
+from gst.track.crop import crop_window, cut_crop, cut_undistorted_crop
 from gst.track.detection import Detection
 from gst.track.predictor import PoseBatch
 from gst.track.smoothing import OneEuroConfig, PoseSmoother
@@ -30,10 +30,10 @@ class PendingFrame:
 
 def prepare_detection(view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(RGB crop, K_crop, appearance histogram) of one detection."""
-    window: CropWindow = view.window(det.box, size)
+    box = view.model_box(det.box)  # in the undistorted image when the lens distorts
+    window = crop_window(box, size)
     crop_bgr, K_crop = view.crop(frame_bgr, window)
     crop_rgb = cv2.cvtColor(crop_bgr, cv2.COLOR_BGR2RGB)
-    box = view.model_box(det.box)
     box_in_crop = (box - [window.x0, window.y0, window.x0, window.y0]) * window.scale
     if det.mask is not None:
         m = np.asarray(det.mask, dtype=np.uint8)

@@ -96,7 +96,8 @@ def _axes_json(calibrated: bool, world_up) -> dict:
 
 
 class _Group:
-    """Crops and predictions of one row group."""
+    """Crops and predictions of one row group: crops are pooled across frames and predicted
+    `batch_size` at a time; the last batch of a group may be smaller."""
 
     def __init__(self, predictor: Predictor, batch_size: int, num_betas: int):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
@@ -195,8 +196,8 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
         dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
         cut = [prepare_detection(view, frame.image, d, options.crop_size) for d in dets]
         pending = PendingFrame(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
-                           np.array([d.score for d in dets], dtype=np.float64),
-                           np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
+                               np.array([d.score for d in dets], dtype=np.float64),
+                               np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
         return pending, [c[0] for c in cut], [c[1] for c in cut]
 
     frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,
