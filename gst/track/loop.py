@@ -1,0 +1,235 @@
+"""Track one video end to end: decode, detect, crop, predict in batches, track, smooth, write.
+
+Work proceeds in groups of `frames_per_group` processed frames. Within a group, crops from
+consecutive frames are pooled and predicted `batch_size` at a time; then the group's frames are
+tracked in order and its rows are committed as one row group, together with the tracker and
+smoother state. A rerun resumes after the last committed group and, because batches never span
+groups, reproduces an uninterrupted run byte for byte.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from calibration import Camera
+from gst.track.appearance import DESCRIPTOR_SIZE
+from gst.track.background import background
+from gst.track.detection import Detector
+from gst.track.frames import PendingFrame, TrackingSession, prepare_detection
+from gst.track.predictor import PoseBatch, Predictor, validate_prediction
+from gst.track.rows import rows_table
+from gst.track.schema import FORMAT_VERSION, file_metadata, tracks_schema
+from gst.track.smoothing import OneEuroConfig
+from gst.track.tracker import TrackerConfig
+from gst.track.video import (
+    Frame,
+    VideoInfo,
+    VideoTruncatedError,
+    frame_range,
+    iter_frames,
+    probe_video,
+)
+from gst.track.view import TrackingView
+from gst.track.writer import TrackWriter
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    stride: int = 1  # process every stride-th frame
+    start_s: float | None = None  # time range [start_s, end_s) in seconds
+    end_s: float | None = None
+    crop_size: int = 256
+    batch_size: int = 32  # crops per predictor call, pooled across frames
+    frames_per_group: int = 100  # processed frames per committed row group (work lost on a kill)
+    min_score: float = 0.0  # detections scoring below this are ignored
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    smoothing: OneEuroConfig | None = None  # None: raw per-frame values
+    prefetch: int = 4  # frames decoded, detected and cropped ahead in a thread (0: inline); same output
+    row_group_rows: int = 65536  # row-group size of the finished file
+
+    def __post_init__(self):
+        for name in ("stride", "crop_size", "batch_size", "frames_per_group", "row_group_rows"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"TrackOptions.{name} must be >= 1, got {getattr(self, name)}")
+
+    def settings(self) -> dict:
+        """What determines the output (prefetch does not)."""
+        d = asdict(self)
+        d.pop("prefetch")
+        return d
+
+
+CROP_DESCRIPTION = "HMR2: square side 1.2 x max(w, h) of the box, centred, resized, zero padding outside the frame"
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    path: Path
+    rows: int
+    frames: int  # processed frames, this run and earlier runs it resumed
+    persons: int
+    resumed_from_frame: int | None
+    seconds: float
+
+
+def _camera_json(cam: Camera, calibrated: bool) -> dict:
+    return {"calibrated": calibrated, "name": cam.name, "width": cam.width, "height": cam.height,
+            "K": cam.K.tolist(), "dist": cam.dist.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(),
+            "meta": {k: str(v) for k, v in cam.meta.items()}}
+
+
+def _axes_json(calibrated: bool, world_up) -> dict:
+    axes = {"camera": "OpenCV: x right, y down, z forward (metres)",
+            "joints3d": "world" if calibrated else "camera",
+            "body": "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's frame"}
+    if calibrated:
+        axes["world"] = {"description": "the rig's world frame (metres), X_cam = R X_world + t",
+                         "up": None if world_up is None else [float(v) for v in world_up]}
+    return axes
+
+
+class _Group:
+    """Crops and predictions of one row group: crops are pooled across frames and predicted
+    `batch_size` at a time; the last batch of a group may be smaller."""
+
+    def __init__(self, predictor: Predictor, batch_size: int, num_betas: int):
+        self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
+        self.frames: list[PendingFrame] = []
+        self.crops: list[np.ndarray] = []
+        self.Ks: list[np.ndarray] = []
+        self.poses: list[PoseBatch] = []
+
+    def add(self, frame: PendingFrame, crops: list[np.ndarray], Ks: list[np.ndarray]) -> None:
+        self.frames.append(frame)
+        self.crops.extend(crops)
+        self.Ks.extend(Ks)
+        while len(self.crops) >= self.batch_size:
+            self._predict(self.batch_size)
+
+    def _predict(self, n: int) -> None:
+        crops, Ks = np.stack(self.crops[:n]), np.stack(self.Ks[:n])
+        del self.crops[:n], self.Ks[:n]
+        pose = validate_prediction(self.predictor(crops, Ks), n)
+        if pose.betas.shape[1] != self.num_betas:
+            raise ValueError(f"predictor returned {pose.betas.shape[1]} betas per person, expected "
+                             f"num_betas = {self.num_betas}")
+        self.poses.append(pose)
+
+    def predictions(self) -> PoseBatch:
+        if self.crops:
+            self._predict(len(self.crops))
+        return PoseBatch.concat(self.poses, self.num_betas)
+
+
+def track_video(video_path: str | Path, out_root: str | Path, detector: Detector, predictor: Predictor, *,
+                model: dict, camera: Camera | None = None, video_name: str | None = None,
+                options: TrackOptions | None = None, num_betas: int = 10, world_up=None, resume: bool = True,
+                staging_root: str | Path | None = None, on_frame: Callable[[int], None] | None = None,
+                on_extra: Callable[[int, int, dict], None] | None = None) -> TrackResult:
+    """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
+
+    `model` must hold at least "name" and "version" (recorded in the file). `camera` is the
+    video's calibrated camera, or None for the default camera (see gst.track.view). With
+    `resume`, a partial run with the same settings is continued and a finished file with the same
+    settings is returned as is; without it, earlier output for this video is replaced. Raises
+    VideoError (naming the file) for unreadable video; on a truncated video the frames before the
+    damage are committed first (valid Parquet in the staging folder), then the error is raised.
+    `on_frame(frame)` is called for every processed frame (progress bars). `on_extra(frame,
+    person_id, extra)` receives, for every written row, the predictor's outputs beyond the body
+    (e.g. Gaussians for a per-track splat), after the row group holding it is committed; frames
+    committed by an earlier, interrupted run are not replayed.
+    Partial work lives in `staging_root` (default: the hidden sibling .<out_root name>.inprogress),
+    never inside `out_root`, so readers of the dataset only ever see finished videos.
+    """
+    t0 = time.perf_counter()
+    options = options or TrackOptions()
+    for key in ("name", "version"):
+        if key not in model:
+            raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
+    info: VideoInfo = probe_video(video_path)
+    name = video_name or info.name
+    view = TrackingView.for_video(info.width, info.height, camera, video=str(video_path))
+    first, end = frame_range(info, options.start_s, options.end_s)
+    video_json = {"name": name, "file": Path(info.path).name, "width": info.width, "height": info.height,
+                  "fps": info.fps, "frame_count": info.frame_count, "size_bytes": Path(info.path).stat().st_size,
+                  "first_frame": first, "end_frame": end, "stride": options.stride}
+    calibration = _camera_json(view.camera, view.calibrated)
+    settings = {"format_version": FORMAT_VERSION, "options": options.settings(), "model": model,
+                "video": video_json, "calibration": calibration, "num_betas": num_betas,
+                "world_up": None if world_up is None else [float(v) for v in world_up]}
+    writer = TrackWriter(out_root, name, tracks_schema(num_betas), settings, staging_root)
+    if resume and writer.finished_digest() == writer.digest:
+        writer.discard_staging()  # left behind if a run died between finishing and cleaning up
+        stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
+        return TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None,
+                           time.perf_counter() - t0)
+    session = TrackingSession(options.tracker, options.smoothing)
+    point = writer.start(resume=resume)
+    start_frame, resumed_from = first, None
+    if point is not None:
+        session.load_state_dict(point.state)
+        start_frame = resumed_from = point.next_frame
+    group = _Group(predictor, options.batch_size, num_betas)
+
+    def commit(next_frame: int) -> None:
+        nonlocal group
+        poses = group.predictions()
+        ids, smoothed, keep = session.track_group(view, group.frames, poses)
+        table = rows_table(view, group.frames, ids, smoothed, keep, writer.schema)
+        writer.commit(table, next_frame, session.state_dict())
+        if on_extra is not None and poses.extra:
+            frame_of = np.array([f.index for f in group.frames for _ in range(len(f.scores))], dtype=np.int64)
+            flat_ids = np.array([i for frame_ids in ids for i in frame_ids], dtype=np.int64)
+            kept = np.flatnonzero(keep)
+            for j in kept[np.lexsort((flat_ids[kept], frame_of[kept]))]:  # the rows' order
+                on_extra(int(frame_of[j]), int(flat_ids[j]), {k: np.asarray(v)[j] for k, v in poses.extra.items()})
+        group = _Group(predictor, options.batch_size, num_betas)
+
+    def prepare(frame: Frame) -> tuple[PendingFrame, list[np.ndarray], list[np.ndarray]]:
+        dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
+        cut = [prepare_detection(view, frame.image, d, options.crop_size) for d in dets]
+        pending = PendingFrame(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
+                               np.array([d.score for d in dets], dtype=np.float64),
+                               np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
+        return pending, [c[0] for c in cut], [c[1] for c in cut]
+
+    frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,
+                         start_frame=start_frame)
+    prepared = (prepare(f) for f in frames)
+    if options.prefetch > 0:
+        prepared = background(prepared, options.prefetch)
+    last_index = None
+    try:
+        for pending, crops, Ks in prepared:
+            group.add(pending, crops, Ks)
+            last_index = pending.index
+            if on_frame is not None:
+                on_frame(pending.index)
+            if len(group.frames) == options.frames_per_group:
+                commit(pending.index + options.stride)
+    except VideoTruncatedError:
+        if group.frames:
+            commit(last_index + options.stride)
+        raise
+    finally:
+        close = getattr(prepared, "close", None)
+        if close is not None:
+            close()
+    if group.frames:
+        commit(last_index + options.stride)
+    stats = {**session.stats, "persons": session.tracker.next_id}
+    meta = file_metadata(
+        fps=info.fps, model=model, calibration=calibration, axes=_axes_json(view.calibrated, world_up),
+        video=video_json, tracking={"options": options.settings(), "crop": CROP_DESCRIPTION},
+        smoothing=asdict(options.smoothing) if options.smoothing else None, stats=stats,
+        settings_sha256=writer.digest, num_betas=num_betas)
+    path = writer.finalize(meta, options.row_group_rows)
+    return TrackResult(path, stats["rows"], stats["frames"], stats["persons"], resumed_from,
+                       time.perf_counter() - t0)

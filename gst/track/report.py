@@ -1,0 +1,136 @@
+"""Looking at tracks: an overlay video (skeletons, boxes and ids on the frames) and a summary PNG
+of joint angles over time."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow as pa
+
+from gst.track.read import column_array, read_metadata, read_tracks
+from gst.track.schema import SMPL_JOINT_NAMES
+from gst.track.video import iter_frames
+
+# SMPL kinematic tree: parent of each joint (-1 for the root).
+SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
+
+# Angle at the middle joint between the segments to the first and last joint (degrees, 180 = straight).
+_J = {n: i for i, n in enumerate(SMPL_JOINT_NAMES)}
+ANGLES = {
+    "left_knee": ("left_hip", "left_knee", "left_ankle"),
+    "right_knee": ("right_hip", "right_knee", "right_ankle"),
+    "left_elbow": ("left_shoulder", "left_elbow", "left_wrist"),
+    "right_elbow": ("right_shoulder", "right_elbow", "right_wrist"),
+    "left_hip": ("spine1", "left_hip", "left_knee"),
+    "right_hip": ("spine1", "right_hip", "right_knee"),
+}
+
+
+def joint_angles(joints3d: np.ndarray) -> dict[str, np.ndarray]:
+    """Inner angles (degrees) at knees, elbows and hips from (N, 24, 3) joints; 180 = straight."""
+    out = {}
+    for name, (a, b, c) in ANGLES.items():
+        u = joints3d[:, _J[a]] - joints3d[:, _J[b]]
+        v = joints3d[:, _J[c]] - joints3d[:, _J[b]]
+        cos = np.sum(u * v, -1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1) + 1e-12)
+        out[name] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
+def _colour(person_id: int) -> tuple[int, int, int]:
+    hue = (person_id * 47) % 180  # well-spread hues for consecutive ids
+    hsv = np.uint8([[[hue, 220, 255]]])
+    return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0])
+
+
+def draw_people(frame_bgr: np.ndarray, rows: pa.Table) -> np.ndarray:
+    """Draw each row's skeleton (joints2d), box and id on a copy of the frame."""
+    img = frame_bgr.copy()
+    if rows.num_rows == 0:
+        return img
+    j2 = column_array(rows, "joints2d")
+    boxes = column_array(rows, "bbox")
+    ids = rows.column("person_id").to_pylist()
+    thick = max(1, round(max(img.shape[:2]) / 500))
+    for pid, joints, box in zip(ids, j2, boxes, strict=True):
+        col = _colour(pid)
+        x0, y0, x1, y1 = box
+        cv2.rectangle(img, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), col, thick)
+        cv2.putText(img, str(pid), (int(x0), max(int(y0) - 4 * thick, 10)), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.5 * thick, col, thick, cv2.LINE_AA)
+        if not np.isfinite(joints).all():
+            continue
+        pts = np.round(joints * 16).astype(np.int32)  # 4 fractional bits: sub-pixel lines
+        for child, parent in enumerate(SMPL_PARENTS):
+            if parent >= 0:
+                cv2.line(img, tuple(pts[parent]), tuple(pts[child]), col, thick, cv2.LINE_AA, shift=4)
+        for p in pts:
+            cv2.circle(img, tuple(p), 2 * thick * 16, (255, 255, 255), -1, cv2.LINE_AA, shift=4)
+    return img
+
+
+def write_overlay(video_path: str | Path, tracks_path: str | Path, out_path: str | Path, fourcc: str = "mp4v") -> Path:
+    """The processed frames of `video_path` with the tracks drawn on, as a video at the processed
+    rate (fps / stride). Written to a temporary name and renamed."""
+    meta = read_metadata(tracks_path)
+    table = read_tracks(tracks_path)
+    v = meta["video"]
+    stride = int(v["stride"])
+    frames_col = table.column("frame").to_numpy()
+    out_path = Path(out_path)
+    tmp = out_path.with_name(f".{out_path.stem}.tmp{out_path.suffix}")
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), float(v["fps"]) / stride,
+                             (int(v["width"]), int(v["height"])))
+    if not writer.isOpened():
+        raise RuntimeError(f"{out_path}: cannot write video with codec '{fourcc}'")
+    try:
+        end = v["end_frame"]
+        for f in iter_frames(video_path, stride=stride, start_s=v["first_frame"] / v["fps"],
+                             end_s=None if end is None else end / v["fps"]):
+            rows = table.filter(pa.array(frames_col == f.index))
+            writer.write(draw_people(f.image, rows))
+    finally:
+        writer.release()
+    os.replace(tmp, out_path)
+    return out_path
+
+
+def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: int = 10) -> Path:
+    """A PNG with knee, hip and elbow angles over time, one panel per joint pair, a line per person
+    (people with fewer than `min_rows` rows are left out)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table = read_tracks(tracks_path)
+    meta = read_metadata(tracks_path)
+    angles = joint_angles(column_array(table, "joints3d").astype(np.float64))
+    t = table.column("time_s").to_numpy()
+    pid = table.column("person_id").to_numpy()
+    people = [p for p in np.unique(pid) if (pid == p).sum() >= min_rows]
+    fig, axes = plt.subplots(3, 2, figsize=(12, 8), sharex=True, sharey=True, constrained_layout=True)
+    for ax, name in zip(axes.ravel(), ["left_knee", "right_knee", "left_hip", "right_hip", "left_elbow",
+                                       "right_elbow"], strict=True):
+        for p in people:
+            m = pid == p
+            ax.plot(t[m], angles[name][m], ".-", ms=2, lw=1, label=f"person {p}",
+                    color=np.array(_colour(int(p))[::-1]) / 255)
+        ax.set_title(name.replace("_", " "))
+        ax.set_ylabel("angle (deg, 180 = straight)")
+        ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    if people:
+        axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{meta['video']['name']}: joint angles ({meta['model']['name']} {meta['model']['version']}, "
+                 f"joints3d in the {meta['axes']['joints3d']} frame)")
+    out_png = Path(out_png)
+    tmp = out_png.with_name(f".{out_png.stem}.tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, out_png)
+    return out_png

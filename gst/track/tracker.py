@@ -1,0 +1,180 @@
+"""Person ids across frames: Hungarian assignment on box overlap, 3D position and appearance.
+
+Each track keeps a constant-velocity model of its box (px/s) and of its 3D position (m/s), and an
+exponential average of its colour histogram. For a new frame the cost of giving detection j to
+track i is the weighted mean of three terms in [0, 1]:
+
+    1 - IoU(predicted box_i, box_j)
+    min(|predicted position_i - position_j| / gate_i, 1),  gate_i = noise + max_speed * dt_i
+    Hellinger(appearance_i, appearance_j)
+
+A pair is allowed only if its cost is at most `max_cost`, the boxes overlap (IoU >= min_iou) or
+the 3D positions are within the gate, and the positions are within `hard_gate` gates (a
+generous bound, since monocular depth is noisy). scipy's linear_sum_assignment picks the cheapest
+allowed matching. Unmatched tracks coast on their velocity for up to `max_misses` processed
+frames (short occlusions), then end; unmatched detections start new tracks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from gst.track.appearance import hellinger
+
+_INFEASIBLE = 1e6
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    w_iou: float = 1.0
+    w_position: float = 1.0
+    w_appearance: float = 1.0
+    max_cost: float = 0.75
+    min_iou: float = 0.05  # below this overlap a pair must be close in 3D to match
+    position_noise_m: float = 0.5  # 3D gate at zero elapsed time (monocular depth is noisy)
+    max_speed_mps: float = 10.0  # the 3D gate grows by this much per second unseen
+    hard_gate: float = 3.0  # pairs further apart than this many gates never match
+    max_misses: int = 15  # processed frames a track survives undetected
+    velocity_weight: float = 0.5  # weight of the newest velocity in its running average
+    appearance_weight: float = 0.2  # weight of the newest histogram in its running average
+    min_score_new: float = 0.0  # detections scoring below this never start a track
+
+    def __post_init__(self):
+        if min(self.w_iou, self.w_position, self.w_appearance) < 0 or self.w_iou + self.w_position + self.w_appearance <= 0:
+            raise ValueError(f"tracker weights must be >= 0 and not all 0, got {self.w_iou}, {self.w_position}, "
+                             f"{self.w_appearance}")
+        if self.max_misses < 0:
+            raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")
+        for name in ("velocity_weight", "appearance_weight"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+
+
+@dataclass
+class Observation:
+    """What the tracker sees of one detection."""
+
+    box: np.ndarray  # (4,) x0, y0, x1, y1 px
+    position: np.ndarray  # (3,) metres (pelvis; world frame when calibrated, else camera)
+    appearance: np.ndarray  # (D,) histogram summing to 1
+    score: float = 1.0
+
+
+@dataclass
+class Track:
+    id: int
+    box: np.ndarray
+    position: np.ndarray
+    appearance: np.ndarray
+    last_time: float
+    box_velocity: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    position_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    hits: int = 1
+    misses: int = 0
+
+    def predicted_box(self, time_s: float) -> np.ndarray:
+        return self.box + self.box_velocity * (time_s - self.last_time)
+
+    def predicted_position(self, time_s: float) -> np.ndarray:
+        return self.position + self.position_velocity * (time_s - self.last_time)
+
+    def to_dict(self) -> dict:
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Track:
+        arrays = ("box", "position", "appearance", "box_velocity", "position_velocity")
+        return cls(**{k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()})
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, 4) x (M, 4) corner-convention boxes -> (N, M) intersection over union."""
+    a, b = np.asarray(a, dtype=np.float64).reshape(-1, 4), np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
+    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
+    inter = iw * ih
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+
+
+class Tracker:
+    """Online multi-person tracker; `update` once per processed frame, in time order."""
+
+    def __init__(self, config: TrackerConfig | None = None):
+        self.config = config or TrackerConfig()
+        self.tracks: list[Track] = []
+        self.next_id = 0
+
+    def cost_matrix(self, time_s: float, observations: list[Observation]) -> tuple[np.ndarray, np.ndarray]:
+        """(cost (T, N), allowed (T, N)) between live tracks and observations."""
+        c = self.config
+        T, N = len(self.tracks), len(observations)
+        if T == 0 or N == 0:
+            return np.zeros((T, N)), np.zeros((T, N), bool)
+        pred_boxes = np.stack([t.predicted_box(time_s) for t in self.tracks])
+        pred_pos = np.stack([t.predicted_position(time_s) for t in self.tracks])
+        gates = np.array([c.position_noise_m + c.max_speed_mps * max(time_s - t.last_time, 0.0) for t in self.tracks])
+        boxes = np.stack([o.box for o in observations])
+        pos = np.stack([o.position for o in observations])
+        iou = box_iou(pred_boxes, boxes)
+        dist = np.linalg.norm(pred_pos[:, None] - pos[None], axis=-1)
+        app = hellinger(np.stack([t.appearance for t in self.tracks])[:, None], np.stack([o.appearance for o in observations])[None])
+        cost = (c.w_iou * (1 - iou) + c.w_position * np.minimum(dist / gates[:, None], 1.0)
+                + c.w_appearance * app) / (c.w_iou + c.w_position + c.w_appearance)
+        allowed = ((cost <= c.max_cost) & ((iou >= c.min_iou) | (dist <= gates[:, None]))
+                   & (dist <= c.hard_gate * gates[:, None]))
+        return cost, allowed
+
+    def update(self, time_s: float, observations: list[Observation]) -> list[int]:
+        """Assign an id to each observation (same order) and advance every track."""
+        c = self.config
+        cost, allowed = self.cost_matrix(time_s, observations)
+        ids: list[int | None] = [None] * len(observations)
+        matched_tracks: set[int] = set()
+        if cost.size:
+            rows, cols = linear_sum_assignment(np.where(allowed, cost, _INFEASIBLE))
+            for r, j in zip(rows, cols, strict=True):
+                if allowed[r, j]:
+                    self._absorb(self.tracks[r], observations[j], time_s)
+                    ids[j] = self.tracks[r].id
+                    matched_tracks.add(r)
+        survivors = []
+        for r, t in enumerate(self.tracks):
+            if r not in matched_tracks:
+                t.misses += 1
+            if t.misses <= c.max_misses:
+                survivors.append(t)
+        self.tracks = survivors
+        for j, obs in enumerate(observations):
+            if ids[j] is None and obs.score >= c.min_score_new:
+                t = Track(self.next_id, obs.box.copy(), obs.position.copy(), obs.appearance.copy(), time_s)
+                self.next_id += 1
+                self.tracks.append(t)
+                ids[j] = t.id
+        return [-1 if i is None else i for i in ids]
+
+    def _absorb(self, t: Track, obs: Observation, time_s: float) -> None:
+        c = self.config
+        dt = time_s - t.last_time
+        if dt > 0:
+            w = 1.0 if t.hits == 1 else c.velocity_weight
+            t.box_velocity = w * (obs.box - t.box) / dt + (1 - w) * t.box_velocity
+            t.position_velocity = w * (obs.position - t.position) / dt + (1 - w) * t.position_velocity
+        t.box, t.position, t.last_time = obs.box.copy(), obs.position.copy(), time_s
+        a = c.appearance_weight
+        t.appearance = a * obs.appearance + (1 - a) * t.appearance
+        t.hits += 1
+        t.misses = 0
+
+    def state_dict(self) -> dict:
+        """JSON-serialisable state (floats round-trip exactly through json)."""
+        return {"next_id": self.next_id, "tracks": [t.to_dict() for t in self.tracks]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.next_id = int(state["next_id"])
+        self.tracks = [Track.from_dict(d) for d in state["tracks"]]

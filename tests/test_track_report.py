@@ -1,0 +1,82 @@
+"""Overlay video and joint-angle summary."""
+
+import cv2
+import numpy as np
+import pytest
+
+from gst.track import (
+    BoxDepthPredictor,
+    SuppliedBoxes,
+    TrackOptions,
+    column_array,
+    read_tracks,
+    track_video,
+)
+from gst.track.baseline import REST_JOINTS
+from gst.track.report import (
+    SMPL_PARENTS,
+    draw_people,
+    joint_angles,
+    plot_joint_angles,
+    write_overlay,
+)
+from gst.track.schema import SMPL_JOINT_NAMES
+from gst.track.video import probe_video
+from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+
+N = 16
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    d = tmp_path_factory.mktemp("report")
+    walkers = crossing_scene(N, 320, 240)
+    boxes = walker_boxes(walkers, N)
+    video = write_video(d / "clip.avi", render(walkers, boxes, 320, 240), 320, 240)
+    det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
+    res = track_video(video, d / "tracks", det, BoxDepthPredictor(), model={"name": "t", "version": "0"},
+                      options=TrackOptions(stride=2))
+    return d, video, res.path
+
+
+def test_joint_angles_of_known_geometry():
+    j = np.tile(REST_JOINTS, (2, 1, 1)).astype(np.float64)
+    a = joint_angles(j)
+    hip, knee, ankle = (REST_JOINTS[SMPL_JOINT_NAMES.index(n)] for n in ("left_hip", "left_knee", "left_ankle"))
+    a_, b_, c_ = np.linalg.norm(hip - knee), np.linalg.norm(ankle - knee), np.linalg.norm(hip - ankle)
+    law_of_cosines = np.degrees(np.arccos((a_**2 + b_**2 - c_**2) / (2 * a_ * b_)))
+    assert a["left_knee"][0] == pytest.approx(law_of_cosines, abs=1e-6)
+    # bend the right knee to a right angle: ankle straight forward of the knee
+    knee = j[1, SMPL_JOINT_NAMES.index("right_knee")]
+    hip = j[1, SMPL_JOINT_NAMES.index("right_hip")]
+    thigh = knee - hip
+    fwd = np.cross(thigh, [1.0, 0, 0])
+    j[1, SMPL_JOINT_NAMES.index("right_ankle")] = knee + 0.4 * fwd / np.linalg.norm(fwd)
+    assert joint_angles(j)["right_knee"][1] == pytest.approx(90.0, abs=1e-6)
+
+
+def test_parents_form_a_tree_rooted_at_the_pelvis():
+    assert SMPL_PARENTS[0] == -1 and all(p < c for c, p in enumerate(SMPL_PARENTS) if c)
+    assert SMPL_JOINT_NAMES[SMPL_PARENTS[SMPL_JOINT_NAMES.index("left_wrist")]] == "left_elbow"
+
+
+def test_overlay_draws_skeletons_at_their_joints(tracked):
+    d, video, path = tracked
+    out = write_overlay(video, path, d / "overlay.mp4")
+    info = probe_video(out)
+    assert (info.width, info.height, info.frame_count) == (320, 240, N // 2) and info.fps == pytest.approx(15.0)
+    t = read_tracks(path)
+    first = t.filter(t.column("frame").to_numpy() == 0)
+    blank = np.zeros((240, 320, 3), np.uint8)
+    drawn = draw_people(blank, first)
+    for joints in column_array(first, "joints2d"):
+        inside = joints[(joints[:, 0] >= 0) & (joints[:, 0] < 319) & (joints[:, 1] >= 0) & (joints[:, 1] < 239)]
+        for u, v in np.round(inside).astype(int):
+            assert drawn[v, u].max() > 0  # every visible joint is marked
+
+
+def test_joint_angle_png(tracked):
+    d, _, path = tracked
+    png = plot_joint_angles(path, d / "angles.png", min_rows=2)
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[0] > 400 and img.shape[1] > 800

@@ -1,0 +1,182 @@
+"""A run killed or failing mid-way resumes from its last committed row group and writes the
+same bytes as an uninterrupted run; partial rows stay valid; bad partial state is refused."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from gst.track import (
+    BoxDepthPredictor,
+    OneEuroConfig,
+    ResumeError,
+    SuppliedBoxes,
+    TrackOptions,
+    VideoTruncatedError,
+    read_tracks,
+    track_video,
+)
+from gst.track.writer import default_staging_root
+from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+
+W, H, N = 320, 240, 40
+MODEL = {"name": "test-double", "version": "0"}
+OPTIONS = TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0))
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scene")
+    walkers = crossing_scene(N, W, H)
+    boxes = walker_boxes(walkers, N)
+    video = write_video(d / "clip.avi", render(walkers, boxes, W, H), W, H)
+    return {"video": video, "csv": write_boxes_csv(d / "boxes.csv", boxes, "clip")}
+
+
+@pytest.fixture(scope="module")
+def reference(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref")
+    res = track_video(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]), BoxDepthPredictor(), model=MODEL,
+                      options=OPTIONS)
+    return res.path.read_bytes()
+
+
+def staging_of(out):
+    return default_staging_root(out) / "video=clip"
+
+
+class FailingPredictor(BoxDepthPredictor):
+    def __init__(self, fail_on_call: int):
+        super().__init__()
+        self.calls, self.fail_on_call = 0, fail_on_call
+
+    def __call__(self, crops, K_crop):
+        self.calls += 1
+        if self.calls == self.fail_on_call:
+            raise RuntimeError("model crashed")
+        return super().__call__(crops, K_crop)
+
+
+def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
+    det = SuppliedBoxes.from_file(scene["csv"])
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError, match="model crashed"):
+        track_video(scene["video"], out, det, FailingPredictor(fail_on_call=13), model=MODEL, options=OPTIONS)
+    assert not (out / "video=clip" / "tracks.parquet").exists()  # nothing presented as complete
+    segments = sorted(staging_of(out).glob("seg-*.parquet"))
+    assert 2 <= len(segments) < 6
+    committed = pq.read_table(segments[-1])  # committed rows are valid Parquet
+    assert committed.num_rows > 0
+    res = track_video(scene["video"], out, det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    assert res.resumed_from_frame == 7 * len(segments)
+    assert res.path.read_bytes() == reference
+    assert not default_staging_root(out).exists()
+
+
+KILL_SCRIPT = textwrap.dedent("""
+    import os, signal, sys
+    sys.path.insert(0, sys.argv[1])
+    from gst.track import BoxDepthPredictor, OneEuroConfig, SuppliedBoxes, TrackOptions, track_video
+
+    class KillingPredictor(BoxDepthPredictor):
+        calls = 0
+        def __call__(self, crops, K_crop):
+            KillingPredictor.calls += 1
+            if KillingPredictor.calls == int(sys.argv[5]):
+                os.kill(os.getpid(), signal.SIGKILL)
+            return super().__call__(crops, K_crop)
+
+    track_video(sys.argv[2], sys.argv[3], SuppliedBoxes.from_file(sys.argv[4]), KillingPredictor(),
+                model={"name": "test-double", "version": "0"},
+                options=TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0)))
+""")
+
+
+def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
+    script = tmp_path / "run.py"
+    script.write_text(KILL_SCRIPT)
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(script), str(REPO), str(scene["video"]), str(out), str(scene["csv"]), "17"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    staging = staging_of(out)
+    assert (staging / "progress.json").exists() and not (out / "video=clip" / "tracks.parquet").exists()
+    res = track_video(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]), BoxDepthPredictor(), model=MODEL,
+                      options=OPTIONS)
+    assert res.resumed_from_frame is not None and res.resumed_from_frame > 0
+    assert res.path.read_bytes() == reference
+    t = read_tracks(res.path)
+    keys = list(zip(t.column("frame").to_pylist(), t.column("person_id").to_pylist(), strict=True))
+    assert len(keys) == len(set(keys)) == 3 * N  # no duplicates, nothing missing
+
+
+def test_orphan_segment_from_an_interrupted_commit_is_discarded(scene, reference, tmp_path):
+    det = SuppliedBoxes.from_file(scene["csv"])
+    with pytest.raises(RuntimeError):
+        track_video(scene["video"], tmp_path / "out", det, FailingPredictor(fail_on_call=10), model=MODEL, options=OPTIONS)
+    staging = staging_of(tmp_path / "out")
+    segs = sorted(staging.glob("seg-*.parquet"))
+    # a kill between writing a segment and recording it leaves an unrecorded segment behind
+    (staging / f"seg-{len(segs):06d}.parquet").write_bytes(segs[0].read_bytes())
+    res = track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    assert res.path.read_bytes() == reference
+
+
+def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
+    det = SuppliedBoxes.from_file(scene["csv"])
+    with pytest.raises(RuntimeError):
+        track_video(scene["video"], tmp_path / "out", det, FailingPredictor(fail_on_call=10), model=MODEL, options=OPTIONS)
+    with pytest.raises(ResumeError, match=r"different settings exists \(changed: \['options.smoothing'\]\)"):
+        track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL,
+                    options=TrackOptions(frames_per_group=7, batch_size=5))
+    res = track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL,
+                      options=TrackOptions(frames_per_group=7, batch_size=5), resume=False)
+    assert res.resumed_from_frame is None and res.rows == 3 * N
+
+
+def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
+    det = SuppliedBoxes.from_file(scene["csv"])
+    track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    staging_of(tmp_path / "out").mkdir(parents=True)  # as if killed after the final rename
+    never = FailingPredictor(fail_on_call=1)
+    res = track_video(scene["video"], tmp_path / "out", det, never, model=MODEL, options=OPTIONS)
+    assert never.calls == 0 and res.rows == 3 * N and res.path.read_bytes() == reference
+    assert not default_staging_root(tmp_path / "out").exists()
+
+
+def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
+    cut = tmp_path / "clip.avi"
+    data = scene["video"].read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    det = SuppliedBoxes.from_file(scene["csv"])
+    with pytest.raises(VideoTruncatedError, match=r"clip.avi: decoding failed at frame (\d+)") as err:
+        track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    bad = err.value.frame
+    staging = staging_of(tmp_path / "out")
+    rows = pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None).read()
+    assert sorted(set(rows.column("frame").to_pylist())) == list(range(bad))
+    assert not (tmp_path / "out" / "video=clip" / "tracks.parquet").exists()
+    # a rerun on the same damaged file resumes at the damage and stops there again
+    with pytest.raises(VideoTruncatedError):
+        track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    np.testing.assert_array_equal(
+        pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None).read().column("frame").to_numpy(),
+        rows.column("frame").to_numpy())
+
+
+def test_unreadable_progress_record_is_reported(scene, tmp_path):
+    det = SuppliedBoxes.from_file(scene["csv"])
+    with pytest.raises(RuntimeError):
+        track_video(scene["video"], tmp_path / "out", det, FailingPredictor(fail_on_call=10), model=MODEL, options=OPTIONS)
+    progress = staging_of(tmp_path / "out") / "progress.json"
+    progress.write_text("{not json")
+    with pytest.raises(ResumeError, match="progress.json: unreadable progress record"):
+        track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    os.remove(progress)
