@@ -107,15 +107,27 @@ class ViewPose:
         return T
 
 
-def board_pose(detection: FrameDetection, board: BoardSpec, K: np.ndarray, dist: np.ndarray) -> ViewPose:
-    """Board pose from one view: IPPE (both planar solutions, lowest error kept), then LM."""
-    obj = board.object_points()[detection.ids]
-    img = detection.corners
-    n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
-    if n == 0:
-        raise IntrinsicsError(f"frame {detection.frame}: solvePnP found no board pose")
-    best = int(np.argmin(np.asarray(errs).ravel()))
-    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[best].copy(), tvecs[best].copy())
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
-    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
-    return ViewPose(detection.frame, cv2.Rodrigues(rvec)[0], tvec.ravel(), rms, len(obj))
+def board_pose(detection: FrameDetection, board: BoardSpec, K: np.ndarray, dist: np.ndarray,
+               outlier_px: float = 3.0, min_corners: int = 4) -> ViewPose:
+    """Board pose from one view: IPPE (both planar solutions, lowest error kept), then LM.
+
+    Corners off by more than `outlier_px` are left out and the pose solved again (twice at
+    most), so one bad corner does not spoil the view; `rms_px` is over the corners kept."""
+    obj_all = board.object_points()[detection.ids]
+    img_all = detection.corners
+    keep = np.ones(len(obj_all), dtype=bool)
+    for _ in range(3):
+        obj, img = obj_all[keep], img_all[keep]
+        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+        if n == 0:
+            raise IntrinsicsError(f"frame {detection.frame}: solvePnP found no board pose")
+        best = int(np.argmin(np.asarray(errs).ravel()))
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvecs[best].copy(), tvecs[best].copy())
+        proj, _ = cv2.projectPoints(obj_all, rvec, tvec, K, dist)
+        err = np.linalg.norm(proj.reshape(-1, 2) - img_all, axis=1)
+        new_keep = err <= outlier_px
+        if new_keep.sum() < min_corners or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    rms = float(np.sqrt(np.mean(err[keep] ** 2)))
+    return ViewPose(detection.frame, cv2.Rodrigues(rvec)[0], tvec.ravel(), rms, int(keep.sum()))

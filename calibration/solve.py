@@ -41,7 +41,8 @@ class SolveOptions:
     lens_model: str = "opencv"  # 'pinhole', 'opencv' (k1 k2 p1 p2) or 'full_opencv' (rational)
     min_corners: int = 6  # fewer corners in a view: the view is ignored
     max_intrinsic_views: int = 40  # views per camera for the initial cv2.calibrateCamera
-    view_outlier_px: float = 3.0  # initial per-view PnP RMS above this (and 3x the camera's): drop
+    view_outlier_px: float = 3.0  # initial PnP: corners off by more (and 3x the camera's RMS) are
+    # left out of that view's pose; a view still above it after that is dropped
     min_sharpness_ratio: float = 0.2  # blurred detections (vs the camera's median) are dropped
     ba: BAOptions = field(default_factory=BAOptions)
 
@@ -54,6 +55,7 @@ class BoardCalibration:
     board: BoardSpec
     rms_px: dict[str, float]  # final per-camera reprojection RMS over inlier observations
     detections: dict[str, int]  # frames with a usable board detection, per camera
+    detected_frames: dict[str, list[int]]  # those frames' indices
     frames_searched: dict[str, int]
     image_sizes: dict[str, tuple[int, int]]
     observations: dict[str, np.ndarray]  # (N, 2) px: inlier corners in the final adjustment
@@ -132,7 +134,8 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
                                        max_views=opts.max_intrinsic_views)
         initial_rms[n] = intr[n].rms_px
         limit = max(opts.view_outlier_px, 3.0 * intr[n].rms_px)
-        poses = [board_pose(d, board, intr[n].K, intr[n].dist) for d in dets[n]]
+        poses = [board_pose(d, board, intr[n].K, intr[n].dist, outlier_px=limit,
+                            min_corners=opts.min_corners) for d in dets[n]]
         views[n] = {p.frame: p.matrix for p in poses if p.rms_px <= limit}
         weights[n] = {p.frame: float(p.n_corners) for p in poses if p.rms_px <= limit}
     timings["intrinsics"] = time.perf_counter() - t0
@@ -192,6 +195,7 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
     world_from_rig = invert(rig_from_world)
     return BoardCalibration(
         rig=rig, board=board, rms_px=ba.rms_px(), detections={n: len(dets[n]) for n in names},
+        detected_frames={n: [d.frame for d in dets[n]] for n in names},
         frames_searched={n: int(searched[n]) for n in names if n in searched},
         image_sizes={n: tuple(int(v) for v in image_sizes[n]) for n in names},
         observations=ba.observations, residuals_px=ba.residuals, outliers=ba.outliers,

@@ -72,8 +72,8 @@ def _rot(axis, angle: float) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(axis, dtype=np.float64) * angle)[0]
 
 
-def board_poses(board: BoardSpec, n_frames: int, *, floor_xy=(0.0, 0.0), volume_radius: float = 1.0,
-                heights=(0.7, 1.7), seed: int = 0) -> np.ndarray:
+def board_poses(board: BoardSpec, n_frames: int, *, floor_xy=(0.0, 0.0), volume_radius: float = 1.5,
+                heights=(0.4, 2.0), seed: int = 0) -> np.ndarray:
     """(n_frames, 4, 4) world_from_board poses: frame 0 flat on the floor (face up, centred on
     `floor_xy`), the rest at random places in a cylinder, facing a random horizontal direction,
     tilted up to 40 degrees and turned in-plane up to 30 degrees."""
@@ -237,6 +237,6 @@ def render_scene(scene: BoardScene, out_dir: str | Path, *, as_video: bool = Fal
             path = out_dir / cam.name
             path.mkdir(exist_ok=True)
             for f, img in enumerate(frames):
-                cv2.imwrite(str(path / f"{f:05d}.png"), img)
+                cv2.imwrite(str(path / f"{f:05d}.png"), img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         sources[cam.name] = path
     return sources
