@@ -40,6 +40,7 @@ class BAOptions:
     min_outlier_px: float = 1.0  # ...but never below this many pixels
     max_outlier_rounds: int = 4
     num_threads: int = -1
+    linear_solver: str | None = None  # a Ceres LinearSolverType name; None: COLMAP chooses
 
 
 @dataclass
@@ -124,6 +125,9 @@ class BoardBundleAdjuster:
         # Images: one per (camera, frame) view; a frame groups the views of one board pose.
         frame_images: dict[int, list[tuple[int, str]]] = {}
         self.image_key: dict[int, tuple[str, int]] = {}
+        self.image_obs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # corner ids, OpenCV px
+        self.alive: dict[int, np.ndarray] = {}  # observations not removed as outliers
+        self.object_points = np.asarray(object_points, dtype=np.float64)
         image_id = 0
         tracks: dict[int, list[tuple[int, int]]] = {}
         image_points: dict[int, np.ndarray] = {}
@@ -135,6 +139,9 @@ class BoardBundleAdjuster:
                 self.image_key[image_id] = (n, f)
                 frame_images.setdefault(f, []).append((image_id, n))
                 image_points[image_id] = np.asarray(px, dtype=np.float64) + 0.5
+                self.image_obs[image_id] = (np.asarray(ids, dtype=np.int64).ravel(),
+                                            np.asarray(px, dtype=np.float64).reshape(-1, 2))
+                self.alive[image_id] = np.ones(len(self.image_obs[image_id][0]), dtype=bool)
                 for k, cid in enumerate(np.asarray(ids).ravel()):
                     tracks.setdefault(int(cid), []).append((image_id, k))
         self.frame_ids = {}
@@ -178,6 +185,13 @@ class BoardBundleAdjuster:
         opts.ceres.loss_function_scale = o.loss_scale_px
         opts.ceres.solver_options.max_num_iterations = o.max_iterations
         opts.ceres.solver_options.num_threads = o.num_threads
+        if o.linear_solver is not None:
+            solver_types = type(opts.ceres.solver_options.linear_solver_type).__members__
+            if o.linear_solver not in solver_types:
+                raise BundleAdjustmentError(f"linear solver '{o.linear_solver}' is unknown, expected one "
+                                            f"of {sorted(solver_types)}")
+            opts.ceres.auto_select_solver_type = False
+            opts.ceres.solver_options.linear_solver_type = solver_types[o.linear_solver]
         return opts
 
     def _config(self) -> pycolmap.BundleAdjustmentConfig:
@@ -195,43 +209,53 @@ class BoardBundleAdjuster:
             raise BundleAdjustmentError(f"bundle adjustment failed: {summary.brief_report()}")
         return summary
 
-    def residuals(self) -> list[tuple[int, int, int, float]]:
-        """(image id, point2D index, point3D id, reprojection error px) of every observation."""
-        out = []
-        rec = self.rec
-        for pid in rec.point3D_ids():
-            p = rec.point3D(pid)
-            for el in p.track.elements:
-                img = rec.image(el.image_id)
-                uv = img.project_point(p.xyz)
-                xy = img.point2D(el.point2D_idx).xy
-                err = float("inf") if uv is None else float(np.hypot(*(np.asarray(uv) - xy)))
-                out.append((el.image_id, el.point2D_idx, pid, err))
+    def _camera_opencv(self, camera_id: int) -> tuple[np.ndarray, np.ndarray]:
+        return _opencv_intrinsics(np.asarray(self.rec.camera(camera_id).params), self.lens_model)
+
+    def residuals(self) -> dict[int, np.ndarray]:
+        """Per image: reprojection error (px) of each observation (inf behind the camera, NaN
+        where removed), computed with OpenCV from the current state (vectorised per image)."""
+        out = {}
+        intr = {cid: self._camera_opencv(cid) for cid in self.cam_id.values()}
+        for iid, (ids, px) in self.image_obs.items():
+            img = self.rec.image(iid)
+            T = img.cam_from_world().matrix()
+            K, dist = intr[img.camera_id]
+            pts = self.object_points[ids]
+            err = np.full(len(ids), np.nan)
+            alive = self.alive[iid]
+            if alive.any():
+                depth = pts[alive] @ T[2, :3] + T[2, 3]
+                proj, _ = cv2.projectPoints(pts[alive], cv2.Rodrigues(T[:, :3])[0], T[:, 3], K, dist)
+                e = np.linalg.norm(proj.reshape(-1, 2) - px[alive], axis=1)
+                err[alive] = np.where(depth > 0, e, np.inf)
+            out[iid] = err
         return out
 
     def run(self) -> list[dict]:
         """Adjust, drop outliers, repeat. Returns per-round statistics."""
         o = self.options
         rounds = []
-        self.removed: list[tuple[int, np.ndarray]] = []
         for k in range(o.max_outlier_rounds + 1):
             t0 = time.perf_counter()
             self.solve_once()
             res = self.residuals()
-            err = np.array([r[3] for r in res])
-            sigma = float(np.median(err[np.isfinite(err)])) / np.sqrt(2 * np.log(2))  # Rayleigh
-            limit = max(o.outlier_sigmas * sigma, o.min_outlier_px)
-            bad = [r for r in res if not r[3] <= limit]
+            err = np.concatenate([e[self.alive[i]] for i, e in res.items()])
             finite = err[np.isfinite(err)]
-            rounds.append({"round": k, "observations": len(res),
-                           "rms_px": float(np.sqrt(np.mean(finite ** 2))), "limit_px": limit,
-                           "removed": len(bad) if k < o.max_outlier_rounds else 0,
-                           "seconds": time.perf_counter() - t0})
-            if not bad or k == o.max_outlier_rounds:
+            sigma = float(np.median(finite)) / np.sqrt(2 * np.log(2))  # Rayleigh median -> sigma
+            limit = max(o.outlier_sigmas * sigma, o.min_outlier_px)
+            last = k == o.max_outlier_rounds
+            removed = 0
+            if not last:
+                for iid, e in res.items():
+                    for idx in np.flatnonzero(self.alive[iid] & ~(e <= limit)):
+                        self.rec.delete_observation(iid, int(idx))
+                        self.alive[iid][idx] = False
+                        removed += 1
+            rounds.append({"round": k, "observations": len(err), "rms_px": float(np.sqrt(np.mean(finite ** 2))),
+                           "limit_px": limit, "removed": removed, "seconds": time.perf_counter() - t0})
+            if not removed:
                 break
-            for iid, idx, _, _ in bad:
-                self.removed.append((iid, self.rec.image(iid).point2D(idx).xy - 0.5))
-                self.rec.delete_observation(iid, idx)
         return rounds
 
     # -- results --------------------------------------------------------------------------------
@@ -241,23 +265,28 @@ class BoardBundleAdjuster:
         rig = rec.rig(1)
         for n in self.names:
             c = rec.camera(self.cam_id[n])
-            K, dist = _opencv_intrinsics(np.asarray(c.params), self.lens_model)
+            K, dist = self._camera_opencv(self.cam_id[n])
             sensor = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.cam_id[n])
             T = np.eye(4) if n == self.reference else _matrix(rig.sensor_from_rig(sensor))
             cams[n] = CameraState(n, c.width, c.height, K, dist, T)
         frames = {f: _matrix(rec.frame(fid).rig_from_world) for f, fid in self.frame_ids.items()}
-        residuals: dict[str, list[float]] = {n: [] for n in self.names}
-        obs: dict[str, list[np.ndarray]] = {n: [] for n in self.names}
-        for iid, idx, _, err in self.residuals():
+        res = self.residuals()
+        residuals = {n: [] for n in self.names}
+        obs = {n: [] for n in self.names}
+        outliers = {n: [] for n in self.names}
+        for iid, err in res.items():
             n = self.image_key[iid][0]
-            residuals[n].append(err)
-            obs[n].append(rec.image(iid).point2D(idx).xy - 0.5)
-        outliers: dict[str, list[np.ndarray]] = {n: [] for n in self.names}
-        for iid, xy in self.removed:
-            outliers[self.image_key[iid][0]].append(xy)
-        as_pts = {n: (np.array(v).reshape(-1, 2)) for n, v in obs.items()}
-        return BAResult(cams, frames, {n: np.array(v) for n, v in residuals.items()}, as_pts,
-                        {n: np.array(v).reshape(-1, 2) for n, v in outliers.items()}, rounds)
+            px, alive = self.image_obs[iid][1], self.alive[iid]
+            residuals[n].append(err[alive])
+            obs[n].append(px[alive])
+            outliers[n].append(px[~alive])
+
+        def cat(parts, shape):
+            return np.concatenate(parts).reshape(shape) if parts else np.zeros(shape)
+
+        return BAResult(cams, frames, {n: cat(v, (-1,)) for n, v in residuals.items()},
+                        {n: cat(v, (-1, 2)) for n, v in obs.items()},
+                        {n: cat(v, (-1, 2)) for n, v in outliers.items()}, rounds)
 
 
 def bundle_adjust_board(cameras: dict[str, CameraState], reference: str,

@@ -102,15 +102,13 @@ def chain_poses(cameras: list[str], edges: list[Edge], reference: str | None = N
     poses = {reference: np.eye(4)}
     heap = [(-n, nb, reference, T) for n, nb, T in adj[reference]]
     heapq.heapify(heap)
-    tick = 0
     while heap:
-        _, cam, parent, cam_from_parent = heapq.heappop(heap)[:4]
+        _, cam, parent, cam_from_parent = heapq.heappop(heap)
         if cam in poses:
             continue
         poses[cam] = cam_from_parent @ poses[parent]
         for n, nb, T in adj[cam]:
             if nb not in poses:
-                tick += 1
                 heapq.heappush(heap, (-n, nb, cam, T))
     missing = [c for c in cameras if c not in poses]
     if missing:

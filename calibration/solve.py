@@ -18,8 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.board import BoardSpec, CameraDetections, FrameDetection, detect_in_sources, spans_plane
-from calibration.bundle import BAOptions, CameraState, bundle_adjust_board
+from calibration.board import (
+    BoardSpec,
+    CameraDetections,
+    FrameDetection,
+    detect_in_sources,
+    spans_plane,
+)
+from calibration.bundle import BAOptions, BAResult, CameraState, bundle_adjust_board
 from calibration.camera import Camera, Rig
 from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
 from calibration.posegraph import chain_poses, invert, pairwise_edges, robust_mean_pose
@@ -85,19 +91,32 @@ def _clean(det: FrameDetection, board: BoardSpec, min_corners: int) -> FrameDete
     return FrameDetection(det.frame, ids, uv, det.sharpness)
 
 
-def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
-                              image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
-                              floor_world: bool = True, floor_frame: int | None = None,
-                              frames_searched: Mapping[str, int] | None = None,
-                              options: SolveOptions | None = None,
-                              progress: Progress | None = None) -> BoardCalibration:
-    """Calibrate a rig from board corners already found in each camera's frames.
+@dataclass
+class InitialSolution:
+    """Everything bundle adjustment starts from: cleaned detections, per-camera intrinsics,
+    camera poses in the rig (relative to `reference`) and board poses in the rig."""
 
-    `detections[camera]` lists that camera's FrameDetection (frame indices shared across cameras
-    mean the same instant); `image_sizes[camera] = (width, height)`. Cameras keep the order of
-    `detections`. Raises CalibrationError naming any camera that never saw the board or that
-    shares no board frame with the others.
-    """
+    names: list[str]
+    board: BoardSpec
+    detections: dict[str, list[FrameDetection]]
+    frames_searched: dict[str, int]
+    cameras: dict[str, CameraState]
+    reference: str
+    rig_from_board: dict[int, np.ndarray]
+    observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
+    initial_rms_px: dict[str, float]
+    timings: dict[str, float]
+
+
+def initialise_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
+                               image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
+                               frames_searched: Mapping[str, int] | None = None,
+                               options: SolveOptions | None = None,
+                               progress: Progress | None = None) -> InitialSolution:
+    """Steps before bundle adjustment: per-camera intrinsics (cv2.calibrateCamera, outlier
+    views rejected), per-view board poses (robust PnP), camera poses from the pose graph and
+    board poses in the rig. Raises CalibrationError / PoseGraphError naming cameras that never
+    saw the board or share no frame with the others."""
     opts = options or SolveOptions()
     if opts.lens_model not in LENS_MODELS:
         raise CalibrationError(f"lens model '{opts.lens_model}' is unknown, expected one of {sorted(LENS_MODELS)}")
@@ -125,7 +144,6 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
 
     # 1. Intrinsics per camera, then the board pose in every view.
     t0 = time.perf_counter()
-    obj = board.object_points()
     intr, views, weights, initial_rms = {}, {}, {}, {}
     for i, n in enumerate(names):
         if progress:
@@ -150,20 +168,25 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
         est = np.stack([invert(cam_from_ref[n]) @ views[n][f] for n in seen])
         rig_from_board[f], _ = robust_mean_pose(est, np.array([weights[n][f] for n in seen]))
     timings["pose_graph"] = time.perf_counter() - t0
-
-    # 3. Joint bundle adjustment.
-    if progress:
-        progress("bundle adjustment", 0, 1)
-    t0 = time.perf_counter()
     states = {n: CameraState(n, int(image_sizes[n][0]), int(image_sizes[n][1]), intr[n].K, intr[n].dist,
                              cam_from_ref[n]) for n in names}
     observations = {n: {d.frame: (d.ids, d.corners) for d in dets[n] if d.frame in views[n]} for n in names}
-    ba = bundle_adjust_board(states, reference, rig_from_board, obj, observations, opts.lens_model, opts.ba)
-    timings["bundle_adjustment"] = time.perf_counter() - t0
-    if progress:
-        progress("bundle adjustment", 1, 1)
+    return InitialSolution(names, board, dets, searched, states, reference, rig_from_board, observations,
+                           initial_rms, timings)
 
-    # 4. World frame.
+
+def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) -> BAResult:
+    """Joint bundle adjustment (pycolmap) of an initial solution."""
+    opts = options or SolveOptions()
+    return bundle_adjust_board(init.cameras, init.reference, init.rig_from_board, init.board.object_points(),
+                               init.observations, opts.lens_model, opts.ba)
+
+
+def finish_calibration(init: InitialSolution, ba: BAResult, *, floor_world: bool = True,
+                       floor_frame: int | None = None, timings: dict[str, float] | None = None
+                       ) -> BoardCalibration:
+    """Put the adjusted rig into its world frame (see the module docstring) and collect results."""
+    names, board = init.names, init.board
     notes: list[str] = []
     cams_rig = {n: ba.cameras[n].cam_from_rig for n in names}
     if floor_world:
@@ -179,12 +202,13 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
         floor_frame = None
         rig_from_world = invert(cams_rig[names[0]])  # world = first camera
         up = tuple(float(v) for v in -np.eye(3)[1])
+    rms = ba.rms_px()
     cameras = []
     for n in names:
         s = ba.cameras[n]
         T = cams_rig[n] @ rig_from_world
         cameras.append(Camera.create(n, s.K, s.dist, T[:3, :3], T[:3, 3], s.width, s.height,
-                                     {"source": "board-calibration", "rms_px": ba.rms_px()[n]}))
+                                     {"source": "board-calibration", "rms_px": rms[n]}))
     rig = Rig(tuple(cameras), up=up, meta={"source": "board-calibration", "board": board.to_dict(),
                                            "floor_frame": floor_frame})
     if floor_world:
@@ -194,14 +218,39 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
                          "really lying flat on the floor, printed side up?")
     world_from_rig = invert(rig_from_world)
     return BoardCalibration(
-        rig=rig, board=board, rms_px=ba.rms_px(), detections={n: len(dets[n]) for n in names},
-        detected_frames={n: [d.frame for d in dets[n]] for n in names},
-        frames_searched={n: int(searched[n]) for n in names if n in searched},
-        image_sizes={n: tuple(int(v) for v in image_sizes[n]) for n in names},
+        rig=rig, board=board, rms_px=rms, detections={n: len(init.detections[n]) for n in names},
+        detected_frames={n: [d.frame for d in init.detections[n]] for n in names},
+        frames_searched={n: int(init.frames_searched[n]) for n in names if n in init.frames_searched},
+        image_sizes={n: (init.cameras[n].width, init.cameras[n].height) for n in names},
         observations=ba.observations, residuals_px=ba.residuals, outliers=ba.outliers,
-        initial_rms_px=initial_rms,
+        initial_rms_px=init.initial_rms_px,
         world_from_board={f: world_from_rig @ T for f, T in ba.rig_from_board.items()},
-        floor_frame=floor_frame, timings=timings, ba_rounds=ba.rounds, notes=notes)
+        floor_frame=floor_frame, timings=dict(timings or init.timings), ba_rounds=ba.rounds, notes=notes)
+
+
+def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
+                              image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
+                              floor_world: bool = True, floor_frame: int | None = None,
+                              frames_searched: Mapping[str, int] | None = None,
+                              options: SolveOptions | None = None,
+                              progress: Progress | None = None) -> BoardCalibration:
+    """Calibrate a rig from board corners already found in each camera's frames.
+
+    `detections[camera]` lists that camera's FrameDetection (frame indices shared across cameras
+    mean the same instant); `image_sizes[camera] = (width, height)`. Cameras keep the order of
+    `detections`. Raises CalibrationError naming any camera that never saw the board, and
+    PoseGraphError naming cameras that share no board frame with the others.
+    """
+    init = initialise_from_detections(detections, image_sizes, board, frames_searched=frames_searched,
+                                      options=options, progress=progress)
+    if progress:
+        progress("bundle adjustment", 0, 1)
+    t0 = time.perf_counter()
+    ba = bundle_adjust(init, options)
+    timings = {**init.timings, "bundle_adjustment": time.perf_counter() - t0}
+    if progress:
+        progress("bundle adjustment", 1, 1)
+    return finish_calibration(init, ba, floor_world=floor_world, floor_frame=floor_frame, timings=timings)
 
 
 def _world_from_floor_board() -> np.ndarray:

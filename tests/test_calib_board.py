@@ -33,7 +33,8 @@ def camera_facing_board(board: BoardSpec, distance=1.6, offset=(0.0, 0.0), tilt_
     return Camera.create("cam", K, [-0.08, 0.02, 0, 0, 0], R, -R @ pos, *size)
 
 
-def truth(camera, board, pose=np.eye(4)):
+def truth(camera, board, pose=None):
+    pose = np.eye(4) if pose is None else pose
     return camera.project(board.object_points() @ pose[:3, :3].T + pose[:3, 3])
 
 

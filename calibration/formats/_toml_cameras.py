@@ -8,11 +8,11 @@ Each camera table holds `name`, `size` [w, h], `matrix` 3x3, `distortions` (Open
 from __future__ import annotations
 
 import re
-import tomllib
 from pathlib import Path
 
 import cv2
 import numpy as np
+import tomllib
 
 from calibration.camera import Rig
 from calibration.formats._common import (
