@@ -27,6 +27,15 @@ def _save(fig: Figure, path: Path) -> Path:
     return path
 
 
+def _imwrite_png(path: Path, image: np.ndarray) -> None:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"cannot encode PNG for {path}")
+    path.write_bytes(buf.tobytes())
+
+
 def coverage_fraction(points: np.ndarray, width: int, height: int, grid=COVERAGE_GRID) -> float:
     """Fraction of image cells (grid across x down) holding at least one observation."""
     if len(points) == 0:
@@ -142,6 +151,44 @@ def plot_rig(rig: Rig, path: Path, volume: CaptureVolume | None = None,
     return _save(fig, path)
 
 
+def draw_world_overlay(camera: Camera, image: np.ndarray, extent: float = 3.0, step: float = 0.5,
+                       pole_height: float = 1.8) -> np.ndarray:
+    """A copy of `image` with the floor grid (z = 0, every `step` m within +-`extent` m, yellow),
+    the world axes (1 m; x red, y green, z blue) and a `pole_height` m pole at the origin
+    (magenta) drawn through the camera: a visual check that a calibration fits its footage.
+    Needs a z-up rig."""
+    import cv2
+
+    out = image.copy() if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    thick = max(1, round(max(out.shape[:2]) / 700))
+
+    # Distortion polynomials misbehave far outside the image: keep points whose normalised
+    # radius is within 1.2x that of the image corners.
+    corners = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1],
+                        [camera.width - 1, camera.height - 1]], dtype=float)
+    r_max = 1.2 * np.linalg.norm(camera.undistort_points(corners), axis=1).max()
+
+    def polyline(a, b, colour, width):
+        pts = np.linspace(a, b, 200)
+        pc = camera.to_camera(pts)
+        ok = pc[:, 2] > 0.05
+        ok[ok] = np.linalg.norm(pc[ok, :2] / pc[ok, 2:3], axis=1) < r_max
+        pts = pts[ok]
+        if len(pts) >= 2:
+            uv = np.round(camera.project(pts)).astype(np.int32)
+            cv2.polylines(out, [uv], False, colour, width, cv2.LINE_AA)
+
+    for v in np.arange(-extent, extent + 1e-9, step):
+        polyline((v, -extent, 0), (v, extent, 0), (0, 255, 255), thick)
+        polyline((-extent, v, 0), (extent, v, 0), (0, 255, 255), thick)
+    for k, colour in enumerate(((0, 0, 255), (0, 255, 0), (255, 0, 0))):
+        e = np.zeros(3)
+        e[k] = 1.0
+        polyline(np.zeros(3), e, colour, 3 * thick)
+    polyline(np.zeros(3), (0, 0, pole_height), (255, 0, 255), 2 * thick)
+    return out
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
@@ -151,9 +198,11 @@ def _fmt(v: float, nd: int = 2) -> str:
 
 
 def write_calibration_report(rig: Rig, out_dir: str | Path, calibration: BoardCalibration | None = None,
-                             volume: CaptureVolume | tuple | None = None) -> Path:
-    """Write `calibration.md`, `coverage_<camera>.png` (board calibrations only) and
-    `camera_poses.png` into `out_dir`; returns the markdown path.
+                             volume: CaptureVolume | tuple | None = None,
+                             frames: dict[str, np.ndarray] | None = None) -> Path:
+    """Write `calibration.md`, `coverage_<camera>.png` (board calibrations only),
+    `camera_poses.png` and, given `frames` (camera name -> an image from that camera, z-up
+    rigs), `overlay_<camera>.png` with the floor grid drawn in; returns the markdown path.
 
     `volume` is a CaptureVolume or (lo, hi); by default it is estimated for z-up rigs.
     """
@@ -225,6 +274,26 @@ def write_calibration_report(rig: Rig, out_dir: str | Path, calibration: BoardCa
             plot_coverage(cam, calibration.observations.get(cam.name, np.zeros((0, 2))),
                           calibration.outliers.get(cam.name, np.zeros((0, 2))), out / name)
             lines.append(f"![{cam.name}]({name})")
+        lines.append("")
+    if frames and np.allclose(rig.up, [0, 0, 1]):
+        import cv2
+
+        lines += ["## Floor grid drawn through each camera", "",
+                  "Yellow: floor grid every 0.5 m; red/green/blue: world x/y/z (1 m); magenta: 1.8 m pole at "
+                  "the origin. The grid should lie on the floor in every view.", ""]
+        for name, image in frames.items():
+            cam = rig[name]
+            if image.shape[:2] != (cam.height, cam.width):
+                lines.append(f"- {name}: frame is {image.shape[1]}x{image.shape[0]}, the calibration says "
+                             f"{cam.width}x{cam.height}; no overlay drawn")
+                continue
+            fname = f"overlay_{_safe(name)}.png"
+            overlay = draw_world_overlay(cam, image)
+            scale = 960 / max(overlay.shape[:2])
+            if scale < 1:
+                overlay = cv2.resize(overlay, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            atomic_write(out / fname, lambda p, img=overlay: _imwrite_png(p, img))
+            lines.append(f"![{name}]({fname})")
         lines.append("")
     md = out / "calibration.md"
     atomic_write_text(md, "\n".join(lines) + "\n")

@@ -70,3 +70,23 @@ def test_coverage_fraction():
     pts = np.array([[1.0, 1.0], [799.0, 599.0], [400.0, 300.0]])
     assert coverage_fraction(pts, 800, 600) == pytest.approx(3 / 48)
     assert coverage_fraction(np.zeros((0, 2)), 800, 600) == 0.0
+
+
+def test_floor_overlay_on_real_footage(tmp_path):
+    rig = read_rig(QCA)
+    cap = cv2.VideoCapture(str(QCA.parent / "cam01.mp4"))
+    ok, frame = cap.read()
+    cap.release()
+    assert ok and frame.shape[:2] == (1920, 1088)
+    frames = {"cam01": frame, "cam02": frame[:1000]}  # cam02 given a wrongly sized frame
+    md = write_calibration_report(rig, tmp_path, volume=LAB_VOLUME, frames=frames)
+    text = md.read_text()
+    assert "overlay_cam01.png" in text and "cam02: frame is 1088x1000" in text
+    overlay = cv2.imread(str(tmp_path / "overlay_cam01.png"))
+    assert overlay.shape[0] == 960
+    # The world origin is drawn where the camera projects it (axis colours differ from the frame).
+    u, v = rig["cam01"].project(np.zeros((1, 3)))[0] * 960 / 1920
+    patch = overlay[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4].reshape(-1, 3)
+    small = cv2.resize(frame, (overlay.shape[1], overlay.shape[0]), interpolation=cv2.INTER_AREA)
+    before = small[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4].reshape(-1, 3)
+    assert np.abs(patch.astype(int) - before.astype(int)).max() > 80

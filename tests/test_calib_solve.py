@@ -186,3 +186,16 @@ def test_rendered_videos_full_size(tmp_path):
     assert max_cameras_per_frame(result.detected_frames) < len(scene.rig)
     assert_acceptance(result, scene)
     assert all(result.frames_searched[n] == 100 for n in sources)
+
+
+def test_blind_camera_in_footage_is_named_with_frames_searched(tmp_path):
+    import cv2
+
+    scene = make_scene(n_cameras=2, n_frames=3, seed=1)
+    sources = render_scene(scene, tmp_path / "ok", as_video=False)
+    blind = tmp_path / "blind"
+    blind.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(blind / f"{i}.png"), np.full((600, 800), 90, np.uint8))
+    with pytest.raises(CalibrationError, match=r"camera 'wall' \(5 frames searched\) never saw the board"):
+        calibrate_from_board({**sources, "wall": blind}, scene.board)
