@@ -20,10 +20,11 @@ import cv2
 import numpy as np
 import pycolmap
 
+from calibration.errors import CalibrationError
 from calibration.intrinsics import LENS_MODELS
 
 
-class BundleAdjustmentError(RuntimeError):
+class BundleAdjustmentError(CalibrationError):
     """The bundle adjustment could not run or produced an unusable result."""
 
 

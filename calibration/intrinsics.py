@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from calibration.board import BoardSpec, FrameDetection
+from calibration.errors import CalibrationError
 
 # Lens models we solve for; each maps 1:1 to a COLMAP camera model for bundle adjustment.
 LENS_MODELS = {
@@ -18,7 +19,7 @@ LENS_MODELS = {
 }
 
 
-class IntrinsicsError(RuntimeError):
+class IntrinsicsError(CalibrationError):
     """A camera's intrinsics cannot be estimated from its board views."""
 
 

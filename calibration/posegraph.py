@@ -14,8 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration.errors import CalibrationError
 
-class PoseGraphError(RuntimeError):
+
+class PoseGraphError(CalibrationError):
     """Cameras cannot be placed in one frame (the shared-view graph is not connected)."""
 
 

@@ -27,6 +27,7 @@ from calibration.board import (
 )
 from calibration.bundle import BAOptions, BAResult, CameraState, bundle_adjust_board
 from calibration.camera import Camera, Rig
+from calibration.errors import CalibrationError
 from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
 from calibration.posegraph import chain_poses, invert, pairwise_edges, robust_mean_pose
 
@@ -35,9 +36,9 @@ WORLD_FROM_FLOOR_BOARD_AXES = np.diag([1.0, -1.0, -1.0])
 
 Progress = Callable[[str, int, int], None]
 
-
-class CalibrationError(RuntimeError):
-    """Board calibration cannot proceed; the message names the camera(s) and the reason."""
+__all__ = ["BoardCalibration", "CalibrationError", "InitialSolution", "SolveOptions", "bundle_adjust",
+           "calibrate_from_board", "calibrate_from_detections", "finish_calibration",
+           "initialise_from_detections"]
 
 
 @dataclass(frozen=True)
