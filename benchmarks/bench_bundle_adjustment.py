@@ -13,6 +13,7 @@ error (degrees) and the final RMS (px).
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -98,12 +99,15 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     init = initialise_from_detections(dets, sizes, scene.board)
     t_init = time.perf_counter() - t0
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"machine: {os.cpu_count()} CPUs, load average {load:.1f} (wall times grow with load; CPU s is "
+          "process CPU time, all threads)")
     print(f"{args.cameras} cameras x {args.frames} board poses: {views} views, {corners} corners, "
           f"noise {args.noise} px, {n_bad} gross outliers")
     print(f"initialisation (intrinsics + pose graph): {t_init:.2f} s  "
           f"({', '.join(f'{k} {v:.2f} s' for k, v in init.timings.items())})")
     print()
-    header = (f"{'variant':36s} {'BA s (median)':>13s} {'ratio':>6s} {'rounds':>6s} {'f err %':>8s} "
+    header = (f"{'variant':36s} {'BA s (median)':>13s} {'ratio':>6s} {'CPU s':>6s} {'rounds':>6s} {'f err %':>8s} "
               f"{'centre %':>8s} {'rot deg':>8s} {'RMS px':>7s} {'removed':>7s}")
     print(header)
     print("-" * len(header))
@@ -112,17 +116,18 @@ def main(argv=None) -> int:
         if args.only and args.only not in name:
             continue
         opts = replace(SolveOptions(), ba=ba_opts)
-        times, result = [], None
+        times, cpu, result = [], [], None
         for _ in range(args.repeats):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             ba = bundle_adjust(init, opts)
             times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
             result = finish_calibration(init, ba)
         med = statistics.median(times)
         base = base or med
         f_err, c_err, r_err, rms = accuracy(result, scene)
         removed = sum(r["removed"] for r in result.ba_rounds)
-        print(f"{name:36s} {med:13.2f} {med / base:6.2f} {len(result.ba_rounds):6d} {f_err:8.3f} "
+        print(f"{name:36s} {med:13.2f} {med / base:6.2f} {statistics.median(cpu):6.2f} {len(result.ba_rounds):6d} {f_err:8.3f} "
               f"{c_err:8.3f} {r_err:8.3f} {rms:7.3f} {removed:7d}")
     print()
     print("goal: BA under 10 s; acceptance: f err < 0.5 %, centre < 1 %, rotation < 0.3 deg, RMS < 0.5 px")

@@ -457,3 +457,16 @@ def test_undetectable_file(tmp_path):
     path.write_text("hello")
     with pytest.raises(RigFormatError, match="cannot tell"):
         read_rig(path)
+
+
+def test_rotations_printed_with_few_digits_are_accepted_but_bad_ones_refused(tmp_path):
+    cam = dict(PANOPTIC_CAM, R=np.round(np.array(PANOPTIC_CAM["R"]), 5).tolist())
+    path = tmp_path / "calibration_x.json"
+    path.write_text(json.dumps({"cameras": [cam]}))
+    c = read_rig(path)[0]
+    assert 1e-7 < c.meta["R_orthonormalised_from_error"] < 1e-4
+    np.testing.assert_allclose(c.R, PANOPTIC_CAM["R"], atol=1e-5)
+    cam_bad = dict(PANOPTIC_CAM, R=(np.array(PANOPTIC_CAM["R"]) * 1.01).tolist())
+    path.write_text(json.dumps({"cameras": [cam_bad]}))
+    with pytest.raises(RigFormatError, match="00_03.*orthonormal"):
+        read_rig(path)

@@ -40,8 +40,24 @@ def validate_rig(rig: Rig) -> Rig:
     return rig
 
 
+ROUNDED_R_TOL = 1e-3  # rotations printed with few digits are re-orthonormalised up to this error
+
+
 def make_camera(path: Path, name, **fields) -> Camera:
-    """Camera.create with the file named in any error."""
+    """Camera.create with the file named in any error.
+
+    Files often print rotations with 6-8 digits, which breaks orthonormality at the 1e-6 level
+    our Camera demands; such a rotation (error below 1e-3) is replaced by the nearest rotation
+    matrix and the original error is recorded in the camera's meta. Larger errors are refused."""
+    R = fields.get("R")
+    if R is not None:
+        R = np.asarray(R, dtype=np.float64)
+        if R.shape == (3, 3) and np.all(np.isfinite(R)):
+            err = float(np.abs(R @ R.T - np.eye(3)).max())
+            if 1e-9 < err <= ROUNDED_R_TOL and np.linalg.det(R) > 0:
+                U, _, Vt = np.linalg.svd(R)
+                fields["R"] = U @ Vt
+                fields["meta"] = {**(fields.get("meta") or {}), "R_orthonormalised_from_error": err}
     try:
         return Camera.create(name, **fields)
     except CameraError as exc:
