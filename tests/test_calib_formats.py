@@ -470,3 +470,13 @@ def test_rotations_printed_with_few_digits_are_accepted_but_bad_ones_refused(tmp
     path.write_text(json.dumps({"cameras": [cam_bad]}))
     with pytest.raises(RigFormatError, match="00_03.*orthonormal"):
         read_rig(path)
+
+
+def test_colmap_write_keeps_other_files_in_the_folder(tmp_path):
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "a.jpg").write_bytes(b"jpeg")
+    write_rig(ring_cameras(2), tmp_path, "colmap")
+    write_rig(ring_cameras(3), tmp_path, "colmap")  # overwrite the model
+    assert (tmp_path / "images" / "a.jpg").read_bytes() == b"jpeg"
+    assert len(read_rig(tmp_path, "colmap")) == 3
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".colmap-")]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -75,39 +74,18 @@ def make_rig(path: Path, cameras: list[Camera], **kwargs) -> Rig:
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     """Call `write(tmp_path)` on a temporary file next to `path`, then rename it into place, so
-    readers never see a half-written file. `path` may also be a directory (COLMAP)."""
+    readers never see a half-written file and a failed write leaves the old file intact."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        tmp_path.unlink()
         write(tmp_path)
-        if tmp_path.is_dir():
-            _replace_dir(tmp_path, path)
-        else:
-            os.replace(tmp_path, path)
-    except BaseException:
-        if tmp_path.is_dir():
-            shutil.rmtree(tmp_path, ignore_errors=True)
-        elif tmp_path.exists():
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
             tmp_path.unlink()
-        raise
-
-
-def _replace_dir(new: Path, target: Path) -> None:
-    if not target.exists():
-        os.replace(new, target)
-        return
-    if not target.is_dir():
-        raise RigFormatError(f"cannot write a directory over the file '{target}'")
-    backup = target.with_name(f".{target.name}.old")
-    if backup.exists():
-        shutil.rmtree(backup)
-    os.replace(target, backup)
-    os.replace(new, target)
-    shutil.rmtree(backup, ignore_errors=True)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

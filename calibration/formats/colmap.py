@@ -14,13 +14,15 @@ no 3D points. Skew and thin-prism terms have no COLMAP equivalent and are refuse
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from calibration.camera import Rig
-from calibration.formats._common import RigFormatError, atomic_write, make_camera, make_rig
+from calibration.formats._common import RigFormatError, make_camera, make_rig
 
 
 def _model_dir(path: Path) -> Path:
@@ -98,7 +100,8 @@ def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
 
 
 def write(rig: Rig, path: str | Path, metres_per_unit: float = 1.0) -> None:
-    """A binary COLMAP model in the folder `path` (replaced atomically if it exists)."""
+    """A binary COLMAP model in the folder `path` (model files replaced one by one, atomically;
+    anything else in the folder is kept)."""
     rec = pycolmap.Reconstruction()
     for i, cam in enumerate(rig):
         rec.add_camera_with_trivial_rig(_colmap_camera(cam, i + 1))
@@ -106,11 +109,16 @@ def write(rig: Rig, path: str | Path, metres_per_unit: float = 1.0) -> None:
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(cam.R), cam.t / metres_per_unit)
         rec.add_image_with_trivial_frame(img, pose)
 
-    def _write(tmp: Path) -> None:
-        tmp.mkdir()
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise RigFormatError(f"{path}: exists and is not a folder; a COLMAP model is a folder")
+    path.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=path, prefix=".colmap-") as tmp:
         rec.write(tmp)
-
-    atomic_write(path, _write)
+        # Each model file replaces its old version atomically; other files in the folder
+        # (images, a database) are left alone.
+        for f in sorted(Path(tmp).iterdir()):
+            os.replace(f, path / f.name)
 
 
 def sniff(path: Path, text: str | None) -> bool:
