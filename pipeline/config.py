@@ -19,6 +19,7 @@ Stage parameters are validated by each stage's own pydantic model (see `pipeline
 from __future__ import annotations
 
 import glob
+import os
 from pathlib import Path
 from typing import Any, Literal
 
@@ -129,8 +130,8 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
         if p is None:
             return None
         if isinstance(p, str):  # a glob
-            return p if Path(p).is_absolute() else str(base / p)
-        return p if Path(p).is_absolute() else (base / p)
+            return p if Path(p).is_absolute() else os.path.normpath(base / p)
+        return p if Path(p).is_absolute() else Path(os.path.normpath(base / p))
 
     cfg.workspace = fix(cfg.workspace)
     for scene in cfg.scenes.values():
