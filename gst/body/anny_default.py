@@ -31,6 +31,7 @@ under ``$GST_CACHE_DIR`` or ``~/.cache/gst-capture/``; later loads take well und
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import logging
 import os
@@ -116,6 +117,14 @@ def _import_anny():
     except ImportError as err:  # pragma: no cover - anny is a declared dependency
         raise ImportError("the open default body needs the 'anny' package (pip install anny==0.6.2)") from err
     return anny
+
+
+def _anny_version() -> str:
+    """Anny's installed version, without importing it (its import initialises warp, ~4 s)."""
+    try:
+        return importlib.metadata.version("anny")
+    except importlib.metadata.PackageNotFoundError as err:
+        raise ImportError("the open default body needs the 'anny' package (pip install anny==0.6.2)") from err
 
 
 # --------------------------------------------------------------------------- Anny access
@@ -422,8 +431,7 @@ def build_anny_default(cache_dir: str | Path | None = None, *, num_betas: int = 
     """
     if num_betas < 10:
         raise ValueError(f"num_betas must be at least 10, got {num_betas}")
-    anny = _import_anny()
-    key = {"converter": CONVERTER_VERSION, "anny": anny.__version__, "num_betas": num_betas,
+    key = {"converter": CONVERTER_VERSION, "anny": _anny_version(), "num_betas": num_betas,
            "age_range": [float(a) for a in age_range], "num_shape_samples": num_shape_samples,
            "support_size": support_size, "regressor_radius": regressor_radius, "seed": seed}
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]

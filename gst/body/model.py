@@ -235,7 +235,7 @@ class BodyModel(torch.nn.Module):
         # Joints are linear in betas: regress the template and each blend shape once, in float64,
         # instead of multiplying a (J, V) matrix by every rest mesh at run time.
         buf("J_template", reg @ v_template)
-        buf("J_shapedirs", np.einsum("jv,vkl->jkl", reg, shapedirs))
+        buf("J_shapedirs", (reg @ shapedirs.reshape(self.num_vertices, -1)).reshape(self.num_joints, 3, -1))
         if data.posedirs is not None:
             buf("posedirs", np.asarray(data.posedirs, dtype=np.float64))
         else:

@@ -41,11 +41,22 @@ def farthest_point_order(points: np.ndarray, count: int) -> np.ndarray:
     if not 0 < count <= len(points):
         raise ValueError(f"count must lie in [1, {len(points)}], got {count}")
     order = np.empty(count, dtype=np.int64)
-    order[0] = int(np.argmax(np.linalg.norm(points - points.mean(axis=0), axis=1)))
-    nearest = np.linalg.norm(points - points[order[0]], axis=1)
-    for i in range(1, count):
-        order[i] = int(np.argmax(nearest))
-        np.minimum(nearest, np.linalg.norm(points - points[order[i]], axis=1), out=nearest)
+    order[0] = int(np.argmax(((points - points.mean(axis=0)) ** 2).sum(axis=1)))
+    x, y, z = (np.ascontiguousarray(points[:, k]) for k in range(3))
+    nearest = np.full(len(points), np.inf)  # squared distance to the nearest chosen point
+    d = np.empty(len(points))
+    tmp = np.empty(len(points))
+    for i in range(count):
+        if i:
+            order[i] = int(np.argmax(nearest))
+        px, py, pz = points[order[i]]
+        np.subtract(x, px, out=d)
+        np.multiply(d, d, out=d)
+        np.subtract(y, py, out=tmp)
+        d += tmp * tmp
+        np.subtract(z, pz, out=tmp)
+        d += tmp * tmp
+        np.minimum(nearest, d, out=nearest)
     return order
 
 
