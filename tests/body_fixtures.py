@@ -1,8 +1,5 @@
-"""Shared helpers and session fixtures for the body-model tests (import the fixtures by name).
-
-The Anny fixtures build the open default once per session: about 30 s the first time on a
-machine (plus Anny's own first build, about 60 s), a fraction of a second once cached.
-"""
+"""Shared helpers for the body-model tests: files in the official SMPL layout, written with a
+stand-in for chumpy (no SMPL download, no chumpy install)."""
 
 from __future__ import annotations
 
@@ -13,7 +10,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
-import pytest
 import scipy.sparse
 
 from gst.body.model import BodyModelData
@@ -86,18 +82,3 @@ def write_official_npz(data: BodyModelData, path: Path) -> Path:
     raw = {k: v for k, v in raw.items() if isinstance(v, np.ndarray)}
     np.savez(path, **raw)
     return path
-
-
-@pytest.fixture(scope="session")
-def anny_data():
-    """The open default body (built once, then loaded from ~/.cache/gst-capture)."""
-    from gst.body.anny_default import build_anny_default
-
-    return build_anny_default()
-
-
-@pytest.fixture(scope="session")
-def anny_reference():
-    from gst.body.anny_default import AnnyReference
-
-    return AnnyReference()

@@ -13,7 +13,19 @@ from gst.body.rotations import axis_angle_to_matrix
 from gst.body.skeleton import INTERNAL_PART_NAMES, PART_NAMES, SMPL_JOINT_NAMES, SMPL_PARENTS
 from gst.body.subsets import partition_vertices, vertex_subset
 
-pytest_plugins = ["tests.body_fixtures"]  # the session-scoped anny_data and anny_reference fixtures
+
+# Session scope: Anny is built once per test session. The first build on a machine takes about
+# 30 s (plus Anny's own first build, about 60 s); once cached, a fraction of a second.
+@pytest.fixture(scope="session")
+def anny_data():
+    """The open default body (built once, then loaded from the cache)."""
+    return ad.build_anny_default()
+
+
+@pytest.fixture(scope="session")
+def anny_reference():
+    """Anny itself, for comparisons."""
+    return ad.AnnyReference()
 
 
 def _betas_for(body: BodyModel, rest_vertices: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
@@ -111,3 +123,14 @@ def test_subsets_and_partition_on_anny(anny_data):
     labels = partition_vertices(anny_data.v_template[ids], K=26)
     np.testing.assert_array_equal(np.bincount(labels), np.full(26, 265))
     assert len(vertex_subset(anny_data, "full")) == int((~internal).sum())
+
+
+@pytest.mark.slow
+def test_rebuild_in_another_cache_dir_is_identical(anny_data, tmp_path):
+    """A fresh build (about 30 s) into another cache folder gives the same arrays: the build is
+    deterministic, so the cache key describes the content."""
+    fresh = ad.build_anny_default(cache_dir=tmp_path)
+    assert len(list((tmp_path / "body").glob("anny-default-smpl24-*.npz"))) == 1
+    for field in ("v_template", "shapedirs", "weights", "faces", "part_labels", "shape_variance_ratio"):
+        np.testing.assert_allclose(getattr(fresh, field), getattr(anny_data, field), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fresh.dense_J_regressor(), anny_data.dense_J_regressor(), rtol=0, atol=1e-9)

@@ -45,7 +45,6 @@ import torch
 
 from gst.body.model import BodyModelData
 from gst.body.skeleton import (
-    JOINT_TO_PART,
     NUM_JOINTS,
     PART_NAMES,
     SMPL_JOINT_NAMES,
@@ -378,11 +377,11 @@ def _build(num_betas: int, age_range: tuple[float, float], num_shape_samples: in
         part = _SEGMENT_TO_PART[seg]
         if part is not None:
             part_labels[vertex_seg == i] = PART_NAMES.index(part)
+    # Anny's 'head' segment reaches down the neck: its vertices stay head or neck by joint,
+    # never torso (a few of them are dominated by the collar or spine joints).
     head_seg = vertex_seg == seg_labels.index("head")
-    # Anny's 'head' segment reaches down the neck; split it by joint like the body, but keep it
-    # on the head or neck.
     neck_or_head = np.isin(part_labels, [PART_NAMES.index("head"), PART_NAMES.index("neck")])
-    part_labels[head_seg & ~neck_or_head] = PART_NAMES.index(JOINT_TO_PART["head"])
+    part_labels[head_seg & ~neck_or_head] = PART_NAMES.index("head")
 
     ratio = variances / variances.sum()
     data = BodyModelData(

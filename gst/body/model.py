@@ -425,13 +425,21 @@ class BodyModel(torch.nn.Module):
             g_pos = g_pos + transl[:, None]
         a34 = torch.cat([g_rot, a_trans[..., None]], dim=-1)  # (B, J, 3, 4)
         w = self.weights if ids is None else self.weights[ids]
-        t34 = (w @ a34.reshape(B, self.num_joints, 12)).reshape(B, -1, 3, 4)  # (B, V', 3, 4)
+        if return_transforms:
+            # Blend full 4x4 matrices so the per-vertex transforms need no copy afterwards; the
+            # blended last row is sum_j w_vj [0 0 0 1], set exactly (before any use, for autograd).
+            a44 = _homogeneous(a34)
+            t44 = (w @ a44.reshape(B, self.num_joints, 16)).reshape(B, -1, 4, 4)
+            t44[..., 3, :] = a44[0, 0, 3, :]
+            t34 = t44[..., :3, :]
+        else:
+            t34 = (w @ a34.reshape(B, self.num_joints, 12)).reshape(B, -1, 3, 4)  # (B, V', 3, 4)
         vertices = (t34[..., :3] @ v[..., None])[..., 0] + t34[..., 3]
 
         out = BodyOutput(vertices=vertices, joints=g_pos)
         if return_transforms:
-            out.joint_transforms = _homogeneous(a34)
-            out.vertex_transforms = _homogeneous(t34)
+            out.joint_transforms = a44
+            out.vertex_transforms = t44
         return out
 
 
