@@ -134,3 +134,11 @@ def test_rebuild_in_another_cache_dir_is_identical(anny_data, tmp_path):
     for field in ("v_template", "shapedirs", "weights", "faces", "part_labels", "shape_variance_ratio"):
         np.testing.assert_allclose(getattr(fresh, field), getattr(anny_data, field), rtol=0, atol=1e-12)
     np.testing.assert_allclose(fresh.dense_J_regressor(), anny_data.dense_J_regressor(), rtol=0, atol=1e-9)
+
+
+def test_load_body_model_anny(anny_data):
+    from gst.body import load_body_model
+
+    body = load_body_model("anny")
+    assert body.num_joints == 24 and body.num_vertices == anny_data.num_vertices
+    assert body.dtype == torch.float32 and body.posedirs is None

@@ -93,3 +93,14 @@ def test_chumpy_values_become_numpy(tmp_path, data):
     assert type(raw["v_template"]) is np.ndarray
     assert raw["shapedirs"].shape == (500, 3, 10)
     assert raw["J_regressor"].format == "csc" and raw["J_regressor"].shape == (24, 500)
+
+
+def test_load_body_model_specs(tmp_path, monkeypatch, data):
+    from gst.body import load_body_model
+
+    monkeypatch.setenv("GST_BODY_DIR", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="SMPL_FEMALE"):
+        load_body_model("smpl:female")
+    write_official_pkl(data, tmp_path / "SMPL_NEUTRAL.pkl")
+    assert load_body_model("smpl").num_vertices == 500
+    assert load_body_model(str(tmp_path)).num_vertices == 500  # a folder

@@ -239,7 +239,7 @@ class BodyModel(torch.nn.Module):
         if data.posedirs is not None:
             buf("posedirs", np.asarray(data.posedirs, dtype=np.float64))
         else:
-            self.posedirs = None
+            self.register_buffer("posedirs", None)
 
         # Forward-kinematics plan: one batched product per tree level (see skeleton.kinematic_levels).
         levels = kinematic_levels(self.parents)
