@@ -1,0 +1,106 @@
+"""The SMPL file loader: where it looks, what it refuses, and that it never runs pickle code."""
+
+from __future__ import annotations
+
+import io
+import os
+import pickle
+
+import numpy as np
+import pytest
+
+from gst.body.random_model import random_body_data
+from gst.body.smpl_file import UnsafePickleError, load_smpl_file, safe_load_pickle
+from tests.body_fixtures import write_official_pkl
+
+
+@pytest.fixture(scope="module")
+def data():
+    return random_body_data(num_vertices=500, seed=1)
+
+
+def test_missing_file_says_where_and_licence(tmp_path, monkeypatch):
+    monkeypatch.setenv("GST_BODY_DIR", str(tmp_path / "nowhere"))
+    with pytest.raises(FileNotFoundError) as err:
+        load_smpl_file()
+    text = str(err.value)
+    assert str(tmp_path / "nowhere") in text and "SMPL_NEUTRAL.pkl" in text
+    assert "GST_BODY_DIR" in text and "smpl.is.tue.mpg.de" in text and "anny" in text
+    with pytest.raises(FileNotFoundError, match="SMPL_FEMALE"):
+        load_smpl_file(tmp_path, gender="female")
+
+
+def test_env_dir_and_gender(tmp_path, monkeypatch, data):
+    write_official_pkl(data, tmp_path / "SMPL_MALE.pkl")
+    monkeypatch.setenv("GST_BODY_DIR", str(tmp_path))
+    loaded = load_smpl_file(gender="male")
+    assert loaded.num_vertices == 500 and "male" in loaded.name
+    assert "smpl.is.tue.mpg.de" in loaded.licence
+    with pytest.raises(ValueError, match="gender must be one of"):
+        load_smpl_file(gender="other")
+
+
+class _Boom:
+    """Pickles to a call of os.system: a loader that executes it would create the file."""
+
+    def __init__(self, target):
+        self.target = target
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.target}",))
+
+
+def test_malicious_pickle_is_refused_without_running(tmp_path):
+    target = tmp_path / "pwned"
+    path = tmp_path / "SMPL_NEUTRAL.pkl"
+    path.write_bytes(pickle.dumps({"v_template": _Boom(target)}, protocol=2))
+    with pytest.raises(UnsafePickleError, match=r"refusing to load (posix|os|nt)\.system"):
+        load_smpl_file(path)
+    assert not target.exists()
+    # A global smuggled through copyreg's reconstructor is refused too.
+    evil = io.BytesIO()
+    evil.write(b"\x80\x02cbuiltins\neval\nX\x04\x00\x00\x001+1\x85R.")
+    path.write_bytes(evil.getvalue())
+    with pytest.raises(UnsafePickleError, match="builtins.eval"):
+        safe_load_pickle(path)
+
+
+def test_wrong_content_names_file_and_key(tmp_path, data):
+    path = write_official_pkl(data, tmp_path / "x.pkl")
+    raw = safe_load_pickle(path)
+    del raw["weights"]
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **{k: v for k, v in raw.items() if isinstance(v, np.ndarray)})
+    with pytest.raises(ValueError, match=r"bad\.npz: missing key 'weights'"):
+        load_smpl_file(bad)
+    with pytest.raises(ValueError, match="unknown SMPL file type"):
+        (tmp_path / "m.txt").write_text("x")
+        load_smpl_file(tmp_path / "m.txt")
+    with pytest.raises(ValueError, match="not a readable pickle"):
+        (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
+        load_smpl_file(tmp_path / "junk.pkl")
+
+
+def test_npz_with_pickled_objects_is_refused(tmp_path):
+    path = tmp_path / "obj.npz"
+    np.savez(path, v_template=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="pickled objects"):
+        load_smpl_file(path)
+
+
+def test_chumpy_values_become_numpy(tmp_path, data):
+    raw = safe_load_pickle(write_official_pkl(data, tmp_path / "m.pkl"))
+    assert type(raw["v_template"]) is np.ndarray
+    assert raw["shapedirs"].shape == (500, 3, 10)
+    assert raw["J_regressor"].format == "csc" and raw["J_regressor"].shape == (24, 500)
+
+
+def test_load_body_model_specs(tmp_path, monkeypatch, data):
+    from gst.body import load_body_model
+
+    monkeypatch.setenv("GST_BODY_DIR", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="SMPL_FEMALE"):
+        load_body_model("smpl:female")
+    write_official_pkl(data, tmp_path / "SMPL_NEUTRAL.pkl")
+    assert load_body_model("smpl").num_vertices == 500
+    assert load_body_model(str(tmp_path)).num_vertices == 500  # a folder
