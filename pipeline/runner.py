@@ -153,7 +153,8 @@ class Runner:
             return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
         inputs = self._inputs(name, ctx)
         code = _code_version(stage)
-        fp = stage_fingerprint(code, params, inputs)
+        scene = self.scene.model_dump(mode="json")
+        fp = stage_fingerprint(code, {"params": params, "scene": scene}, inputs)
         if record is None:
             interrupted = (self.meta / "staging" / name).exists()
             why = "a previous run was interrupted" if interrupted else "never run"
@@ -170,6 +171,7 @@ class Runner:
         if record.get("code") != code:
             reasons.append("code changed")
         reasons += [f"param {c}" for c in _diff_params(record.get("params", {}), params)]
+        reasons += [f"scene {c}" for c in _diff_params(record.get("scene", {}), scene)]
         old_inputs = record.get("inputs", {})
         changed = [k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)]
         reasons += [f"input changed: {k}" for k in changed[:5]]
@@ -258,6 +260,7 @@ class Runner:
         record = {
             "stage": name, "key": st.key, "scene": self.scene_name, "fingerprint": st.fingerprint,
             "code": _code_version(stage), "params": ctx.params.model_dump(mode="json"),
+            "scene": self.scene.model_dump(mode="json"),
             "inputs": self._inputs(name, ctx), "outputs": digests,
             "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "seconds": round(time.perf_counter() - t0, 3),
         }

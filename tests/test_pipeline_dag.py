@@ -181,3 +181,14 @@ def test_bad_override_and_unknown_stage_exit_2(tmp_path, capsys):
     assert run(cfg, "run", "nostage") == 2
     err = capsys.readouterr().err
     assert "expected KEY=VALUE" in err and "'nostage' is neither a stage" in err and "unknown stage 'nostage'" in err
+
+
+def test_scene_config_change_reruns(tmp_path, counter, capsys):
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    cfg.write_text(cfg.read_text().replace("preset: demo", "preset: demo, seed: 3"))
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    assert "scene synthetic.seed: 0 -> 3" in capsys.readouterr().err
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["source", "double", "report"] * 2
