@@ -99,6 +99,7 @@ def random_scene(seed: int, s: int, n: int, c: int, width: int, height: int, dty
     quats = g.normal(size=(s, n, 4))
     scales = np.exp(g.uniform(np.log(0.005), np.log(0.08), (s, n, 3)))
     opacities = g.uniform(0.02, 1.0, (s, n))
+    opacities[g.uniform(size=(s, n)) < 0.15] = 1.0  # exercises the 0.99 clamp
     colors = g.uniform(0.0, 1.0, (s, n, 3))
     viewmats = np.zeros((s, c, 4, 4))
     ks = np.zeros((s, c, 3, 3))
