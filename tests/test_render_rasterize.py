@@ -183,15 +183,27 @@ def test_unbatched_matches_batched():
     assert torch.equal(unbatched.depth, batched.depth[0])
 
 
-def test_tile_and_chunk_settings_do_not_change_the_image():
+def test_tile_block_and_chunk_settings_change_nothing():
+    """Images and gradients are the same for any tiling, compositing block and chunk size
+    (small blocks exercise the carried transmittance and gradient prefix sums)."""
     from gst.render.cpu_backend import rasterize_cpu
 
     scene = random_scene(7, s=2, n=70, c=2, width=45, height=31)
-    ref = rasterize_cpu(*scene, 45, 31, 0.01)
-    for tile, chunk in [(4, 1 << 10), (8, 1 << 14), (32, 1 << 22)]:
-        other = rasterize_cpu(*scene, 45, 31, 0.01, tile=tile, chunk_elements=chunk)
-        for a, b in zip(ref, other):
-            torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+    scene[3][:] = scene[3].clamp_min(0.6)  # opaque enough to stop compositing early
+    w = torch.rand(2, 2, 31, 45, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+
+    def run(**kw):
+        inputs = [t.clone().requires_grad_(True) for t in scene]
+        rgb, alpha, dsum = rasterize_cpu(*inputs, 45, 31, 0.01, **kw)
+        loss = (rgb * w[..., :3]).sum() + (alpha * w[..., 3]).sum() + (dsum * w[..., 4]).sum()
+        loss.backward()
+        return [rgb, alpha, dsum] + [t.grad for t in inputs]
+
+    ref = run(tile=16, block=256, chunk_elements=1 << 24)
+    for kw in [dict(tile=4, block=2, chunk_elements=1 << 8), dict(tile=8, block=3),
+               dict(tile=32, block=5, chunk_elements=1 << 12)]:  # fmt: skip
+        for a, b in zip(ref, run(**kw)):
+            torch.testing.assert_close(a, b, atol=1e-11, rtol=1e-9)
 
 
 def test_auto_backend_on_cpu_is_torch():

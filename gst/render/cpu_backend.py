@@ -35,10 +35,13 @@ from gst.render.conventions import (
 )
 from gst.render.projection import project_gaussians
 
-#: Tile edge in pixels. Measured (benchmarks/bench_rasterizer.py --tile): see docs/rasterizer.md.
-DEFAULT_TILE = 16
-#: Elements of one chunk's (tiles, K, pixels) tensors; bounds memory at roughly 12x this x 4 B.
-DEFAULT_CHUNK_ELEMENTS = 1 << 21
+#: Tile edge in pixels (benchmarks/bench_rasterizer.py --tiles compares sizes).
+DEFAULT_TILE = 8
+#: Entries (Gaussians per tile) composited per step; tiles whose pixels have all reached the
+#: transmittance stop are dropped between steps, so hidden Gaussians cost nothing.
+DEFAULT_BLOCK = 32
+#: Elements of one step's (tiles, block, pixels) tensors; memory is roughly 15x this x 4 B.
+DEFAULT_CHUNK_ELEMENTS = 1 << 20
 
 
 @dataclass
@@ -49,7 +52,8 @@ class TileBins:
     tile_ids: Tensor  # (A,) global id of each active tile: (image * tiles_y + ty) * tiles_x + tx
     tile_start: Tensor  # (A,) first entry of the tile
     tile_count: Tensor  # (A,) number of entries of the tile
-    chunks: list[tuple[Tensor, int]]  # (active-tile positions, padded K) per chunk
+    chunks: list[tuple[Tensor, int]]  # (active-tile positions, longest list) per chunk
+    block: int  # entries per compositing step
     num_images: int
     tiles_x: int
     tiles_y: int
@@ -86,6 +90,7 @@ def bin_splats(
     width: int,
     height: int,
     tile: int = DEFAULT_TILE,
+    block: int = DEFAULT_BLOCK,
     chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
 ) -> TileBins:
     """Assign splats (G = num_images * N flattened, image-major) to tiles, sorted by depth.
@@ -135,23 +140,18 @@ def bin_splats(
     tile_ids, tile_count = torch.unique_consecutive(tile_global[order], return_counts=True)
     tile_start = torch.cumsum(tile_count, 0) - tile_count
 
-    # Chunks: tiles sorted by entry count, so each chunk pads K to a similar count.
+    # Chunks: tiles sorted by entry count, so the tiles of a chunk run out of entries together.
     by_count = torch.argsort(tile_count, descending=True)
-    counts_sorted = tile_count[by_count].tolist()
-    pixels = tile * tile
-    chunks: list[tuple[Tensor, int]] = []
-    i = 0
-    while i < len(counts_sorted):
-        k_max = counts_sorted[i]
-        n_tiles = max(1, chunk_elements // (k_max * pixels))
-        chunks.append((by_count[i : i + n_tiles], k_max))
-        i += n_tiles
+    per_chunk = max(1, chunk_elements // (block * tile * tile))
+    longest = tile_count[by_count[::per_chunk]].tolist()
+    chunks = [(by_count[i * per_chunk : (i + 1) * per_chunk], k) for i, k in enumerate(longest)]
     return TileBins(
         entry_splat=entry_splat,
         tile_ids=tile_ids,
         tile_start=tile_start,
         tile_count=tile_count,
         chunks=chunks,
+        block=block,
         num_images=num_images,
         tiles_x=tiles_x,
         tiles_y=tiles_y,
@@ -160,63 +160,95 @@ def bin_splats(
 
 
 @dataclass
-class _ChunkState:
-    """Recomputable per-chunk tensors; (Tc, K, P) unless noted."""
+class _Block:
+    """One block of K entries for the still-active tiles of a chunk; (Ta, K, P) unless noted."""
 
-    sid: Tensor  # (Tc, K) splat per entry (0 for padding)
-    dx: Tensor  # (Tc, K, 1, T) pixel x minus mean x
-    dy: Tensor  # (Tc, K, T, 1)
-    entry: Tensor  # (Tc, K, 7) gathered splat parameters
-    feats: Tensor  # (Tc, K, D + 1)
-    alpha: Tensor  # alpha after mask and clamp
-    unclamped: Tensor  # bool: alpha follows o exp(-power) (inside footprint, below clamp)
-    log_t_incl: Tensor  # inclusive cumulative log transmittance
+    sid: Tensor  # (Ta, K) splat per entry (0 for padding)
+    entry: Tensor  # (Ta, K, 7) gathered splat parameters
+    feats: Tensor  # (Ta, K, D + 1)
+    dx: Tensor  # (Ta, K, 1, T) pixel x minus mean x
+    dy: Tensor  # (Ta, K, T, 1)
+    log_pre: Tensor  # log(o exp(-power)), before the clamp; -inf outside the footprint
+    alpha: Tensor  # alpha after footprint mask and clamp
+    log_t_incl: Tensor  # cumulative log transmittance including this entry
     t_excl: Tensor  # transmittance in front of the entry
-    weight: Tensor  # alpha * t_excl, zero after the stop
+    weight: Tensor  # alpha * t_excl, zero once compositing has stopped
 
 
-def _chunk_forward(
-    table: _SplatTable, bins: TileBins, positions: Tensor, k_max: int, alpha_max: float
-) -> _ChunkState:
+@dataclass
+class _Chunk:
+    """Tiles composited together: positions into the active-tile arrays and their geometry."""
+
+    positions: Tensor  # (Tc,) indices into TileBins.tile_ids / tile_start / tile_count
+    k_max: int
+    px: Tensor  # (Tc, 1, T) pixel x of each tile column
+    py: Tensor  # (Tc, 1, T) pixel y of each tile row
+    log_t0: Tensor  # (Tc, P) initial log transmittance: 0, or -inf for pixels off the image
+
+
+def _make_chunk(bins: TileBins, positions: Tensor, k_max: int, dtype, width, height) -> _Chunk:
     tile = bins.tile
+    tile_id = bins.tile_ids[positions]
+    within = torch.arange(tile, device=positions.device)
+    tx = tile_id % bins.tiles_x
+    ty = (tile_id // bins.tiles_x) % bins.tiles_y
+    px = (tx * tile)[:, None, None] + within  # (Tc, 1, T)
+    py = (ty * tile)[:, None, None] + within
+    on_image = (py[:, 0, :, None] < height) & (px[:, :, None, :][:, 0] < width)  # (Tc, T, T)
+    log_t0 = torch.zeros(on_image.shape, dtype=dtype, device=positions.device)
+    log_t0.masked_fill_(~on_image, -math.inf)  # treated as already stopped
+    return _Chunk(positions, k_max, px.to(dtype), py.to(dtype), log_t0.flatten(1))
+
+
+def _block_forward(
+    table: _SplatTable,
+    bins: TileBins,
+    chunk: _Chunk,
+    active: Tensor,
+    k0: int,
+    k1: int,
+    log_t_carry: Tensor,
+    alpha_max: float,
+) -> _Block:
+    """Entries k0..k1-1 of the `active` tiles (indices into the chunk), continuing from the
+    log transmittance `log_t_carry` (Ta, P) left by entries before k0."""
+    positions = chunk.positions[active]
     start = bins.tile_start[positions]
     count = bins.tile_count[positions]
-    tile_id = bins.tile_ids[positions]
-    ar = torch.arange(k_max, device=start.device)
+    ar = torch.arange(k0, k1, device=start.device)
     in_list = ar[None, :] < count[:, None]
     idx = torch.where(in_list, start[:, None] + ar[None, :], torch.zeros_like(start[:, None]))
-    sid = bins.entry_splat[idx]  # (Tc, K)
-    entry = table.params[sid]  # (Tc, K, 7)
+    sid = bins.entry_splat[idx]  # (Ta, K)
+    entry = table.params[sid]  # (Ta, K, 7), a copy
     entry[..., 6].masked_fill_(~in_list, -math.inf)  # padding never contributes
     feats = table.feats[sid]
 
-    dtype = table.params.dtype
-    within = torch.arange(tile, device=start.device, dtype=dtype)
-    tx = tile_id % bins.tiles_x
-    ty = (tile_id // bins.tiles_x) % bins.tiles_y
-    px = (tx * tile).to(dtype)[:, None, None] + within  # (Tc, 1, T)
-    py = (ty * tile).to(dtype)[:, None, None] + within
-    mx, my, ca, cb, cc, logo, thr = entry.unbind(-1)  # each (Tc, K)
-    dx = (px - mx[..., None])[..., None, :]  # (Tc, K, 1, T)
-    dy = (py - my[..., None])[..., :, None]  # (Tc, K, T, 1)
-
-    # power = 0.5 a dx^2 + b dx dy + 0.5 c dy^2, built from separable pieces.
+    mx, my, ca, cb, cc, logo, thr = entry.unbind(-1)  # each (Ta, K)
+    dx = (chunk.px[active] - mx[..., None])[..., None, :]  # (Ta, K, 1, T)
+    dy = (chunk.py[active] - my[..., None])[..., :, None]  # (Ta, K, T, 1)
+    # power = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 from separable pieces: one full-size product.
     power = (cb[..., None, None] * dx) * dy
     power += 0.5 * ca[..., None, None] * dx * dx
     power += 0.5 * cc[..., None, None] * dy * dy
-    power = power.flatten(2)  # (Tc, K, P)
+    power = power.flatten(2)  # (Ta, K, P)
 
-    inside = power <= thr[..., None]
-    log_pre = logo[..., None] - power  # log(o exp(-power))
-    unclamped = inside & (log_pre < math.log(alpha_max))
-    alpha = torch.exp(log_pre.clamp_(max=math.log(alpha_max)))
-    alpha = alpha.mul_(inside)
-    log_1m = torch.log1p(-alpha)
-    log_t_incl = torch.cumsum(log_1m, dim=1)
+    outside = power > thr[..., None]
+    log_pre = torch.sub(logo[..., None], power, out=power)  # log(o exp(-power)), in place
+    log_pre.masked_fill_(outside, -math.inf)
+    alpha = torch.exp(torch.clamp(log_pre, max=math.log(alpha_max)))
+    log_1m = torch.log1p(alpha.neg())
+    log_t_incl = torch.cumsum(log_1m, dim=1).add_(log_t_carry[:, None, :])
     t_excl = torch.exp(log_t_incl - log_1m)
     weight = alpha * t_excl
-    weight = weight.mul_(log_t_incl >= LOG_TRANSMITTANCE_MIN)
-    return _ChunkState(sid, dx, dy, entry, feats, alpha, unclamped, log_t_incl, t_excl, weight)
+    weight.masked_fill_(log_t_incl < LOG_TRANSMITTANCE_MIN, 0.0)
+    return _Block(sid, entry, feats, dx, dy, log_pre, alpha, log_t_incl, t_excl, weight)
+
+
+def _blocks(bins: TileBins, chunk: _Chunk, block: int):
+    """Yield (k0, k1, tiles of the chunk whose lists reach k0) for successive blocks."""
+    count = bins.tile_count[chunk.positions]
+    for k0 in range(0, chunk.k_max, block):
+        yield k0, min(k0 + block, chunk.k_max), count > k0
 
 
 def _to_tiles(image: Tensor, bins: TileBins) -> Tensor:
@@ -250,33 +282,64 @@ class _Composite(torch.autograd.Function):
         n_tiles = bins.num_images * bins.tiles_y * bins.tiles_x
         out = means2d.new_zeros(n_tiles, bins.tile * bins.tile, d1)
         for positions, k_max in bins.chunks:
-            st = _chunk_forward(table, bins, positions, k_max, alpha_max)
-            tiles_out = torch.bmm(st.weight.transpose(1, 2), st.feats)  # (Tc, P, D + 1)
-            out[bins.tile_ids[positions]] = tiles_out
-        ctx.save_for_backward(means2d, conics, opacities, feats, thresholds)
+            chunk = _make_chunk(bins, positions, k_max, means2d.dtype, width, height)
+            log_t = chunk.log_t0
+            acc = out.new_zeros(len(positions), bins.tile * bins.tile, d1)
+            for k0, k1, listed in _blocks(bins, chunk, bins.block):
+                active = torch.nonzero(listed & _running(log_t)).squeeze(1)
+                if active.numel() == 0:
+                    break
+                blk = _block_forward(table, bins, chunk, active, k0, k1, log_t[active], alpha_max)
+                acc[active] += torch.bmm(blk.weight.transpose(1, 2), blk.feats)
+                log_t = log_t.index_copy(0, active, blk.log_t_incl[:, -1])
+            out[bins.tile_ids[positions]] = acc
+        image = _from_tiles(out, bins, height, width)
+        ctx.save_for_backward(means2d, conics, opacities, feats, thresholds, image)
         ctx.bins = bins
         ctx.size = (width, height)
         ctx.alpha_max = alpha_max
-        return _from_tiles(out, bins, height, width)
+        return image
 
     @staticmethod
     def backward(ctx, grad_image):
-        means2d, conics, opacities, feats, thresholds = ctx.saved_tensors
+        means2d, conics, opacities, feats, thresholds, image = ctx.saved_tensors
         bins: TileBins = ctx.bins
+        width, height = ctx.size
         table = _make_table(means2d, conics, opacities, feats, thresholds)
         grad_tiles = _to_tiles(grad_image.contiguous(), bins)
+        # sum_j w_j (g . f_j) over a whole pixel equals g . output: with it, the suffix sums
+        # the alpha gradient needs become "total minus prefix", so blocks run front to back.
+        g_dot_out = (grad_tiles * _to_tiles(image, bins)).sum(-1)  # (tiles, P)
         g_params = torch.zeros_like(table.params[:, :6])  # mx, my, a, b, c, opacity
         g_feats = torch.zeros_like(table.feats)
         for positions, k_max in bins.chunks:
-            st = _chunk_forward(table, bins, positions, k_max, ctx.alpha_max)
-            gout = grad_tiles[bins.tile_ids[positions]]  # (Tc, P, D + 1)
-            ge, gf = _chunk_backward(st, gout)
-            g_params.index_add_(0, st.sid.flatten(), ge.flatten(0, 1))
-            g_feats.index_add_(0, st.sid.flatten(), gf.flatten(0, 1))
+            chunk = _make_chunk(bins, positions, k_max, means2d.dtype, width, height)
+            tiles = bins.tile_ids[positions]
+            gout_chunk = grad_tiles[tiles]
+            gdo_chunk = g_dot_out[tiles]
+            log_t = chunk.log_t0
+            h_prefix = torch.zeros_like(log_t)
+            for k0, k1, listed in _blocks(bins, chunk, bins.block):
+                active = torch.nonzero(listed & _running(log_t)).squeeze(1)
+                if active.numel() == 0:
+                    break
+                blk = _block_forward(table, bins, chunk, active, k0, k1, log_t[active], ctx.alpha_max)
+                ge, gf, h_last = _block_backward(
+                    blk, gout_chunk[active], gdo_chunk[active], h_prefix[active], ctx.alpha_max
+                )
+                g_params.index_add_(0, blk.sid.flatten(), ge.flatten(0, 1))
+                g_feats.index_add_(0, blk.sid.flatten(), gf.flatten(0, 1))
+                log_t = log_t.index_copy(0, active, blk.log_t_incl[:, -1])
+                h_prefix = h_prefix.index_copy(0, active, h_last)
         g_means2d = g_params[:, 0:2]
         g_conics = g_params[:, 2:5]
         g_opac = g_params[:, 5]
         return g_means2d, g_conics, g_opac, g_feats[:, :-1], None, None, None, None, None
+
+
+def _running(log_t: Tensor) -> Tensor:
+    """(Tc,) bool: tiles with at least one pixel still compositing."""
+    return (log_t >= LOG_TRANSMITTANCE_MIN).any(dim=1)
 
 
 def _make_table(means2d, conics, opacities, feats, thresholds) -> _SplatTable:
@@ -286,37 +349,43 @@ def _make_table(means2d, conics, opacities, feats, thresholds) -> _SplatTable:
     return _SplatTable(params=params, feats=torch.cat([feats, ones], dim=1))
 
 
-def _chunk_backward(st: _ChunkState, gout: Tensor) -> tuple[Tensor, Tensor]:
-    """Gradients of one chunk: per entry (Tc, K, 6) [mx, my, a, b, c, o] and (Tc, K, D + 1)."""
-    g_feats = torch.bmm(st.weight, gout)  # (Tc, K, D + 1)
-    gdotf = torch.bmm(st.feats, gout.transpose(1, 2))  # (Tc, K, P): g . f_k at each pixel
-    h = st.weight * gdotf
-    suffix = torch.cumsum(h, dim=1)
-    suffix = suffix[:, -1:, :] - suffix  # sum over later entries j > k
-    included = st.log_t_incl >= LOG_TRANSMITTANCE_MIN
-    g_alpha = st.t_excl * gdotf - suffix / (1.0 - st.alpha)
-    # Only entries that were composited and whose alpha is not clamped pass gradient to
-    # o exp(-power); q = dL/dalpha * alpha is dL/dlog(alpha) = dL/dlog(o) = -dL/dpower.
-    q = g_alpha.mul_(st.alpha).mul_(included & st.unclamped)
-    tc, k = q.shape[:2]
-    t = st.dx.shape[-1]
-    gpow = q.view(tc, k, t, t).neg()  # rows = y, cols = x
-    gcol = gpow.sum(dim=-2)  # (Tc, K, T) as a function of x
-    grow = gpow.sum(dim=-1)  # (Tc, K, T) as a function of y
-    dx = st.dx[..., 0, :]  # (Tc, K, T)
-    dy = st.dy[..., :, 0]
-    gxy = (gpow * st.dy).sum(dim=-2)  # (Tc, K, T): sum over y of gpow * dy, per x
-    mx_, my_, ca, cb, cc, logo, _ = st.entry.unbind(-1)
+def _block_backward(
+    blk: _Block, gout: Tensor, g_dot_out: Tensor, h_prefix: Tensor, alpha_max: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Gradients of one block.
+
+    Returns per entry (Ta, K, 6) [mx, my, a, b, c, o] and (Ta, K, D + 1), and the running sum
+    of h_j = w_j g.f_j over entries up to the block's last (Ta, P).
+    """
+    g_feats = torch.bmm(blk.weight, gout)  # (Ta, K, D + 1)
+    gdotf = torch.bmm(blk.feats, gout.transpose(1, 2))  # (Ta, K, P): g . f_k at each pixel
+    h_incl = torch.cumsum(blk.weight * gdotf, dim=1).add_(h_prefix[:, None, :])
+    later = g_dot_out[:, None, :] - h_incl  # sum of h_j over entries j behind entry k
+    # dL/dalpha_k = T_k g.f_k - (sum_{j>k} w_j g.f_j) / (1 - alpha_k)
+    g_alpha = blk.t_excl * gdotf - later / (1.0 - blk.alpha)
+    # Only composited entries whose alpha is not clamped pass gradient to o exp(-power);
+    # q = dL/dalpha * alpha is dL/dlog(o) and -dL/dpower.
+    frozen = (blk.log_t_incl < LOG_TRANSMITTANCE_MIN) | (blk.log_pre >= math.log(alpha_max))
+    q = g_alpha.mul_(blk.alpha).masked_fill_(frozen, 0.0)
+    ta, k = q.shape[:2]
+    t = blk.dx.shape[-1]
+    gpow = q.view(ta, k, t, t)  # rows = y, cols = x; dL/dpower = -gpow
+    gcol = gpow.sum(dim=-2)  # (Ta, K, T) as a function of x
+    grow = gpow.sum(dim=-1)  # (Ta, K, T) as a function of y
+    dx = blk.dx[..., 0, :]  # (Ta, K, T)
+    dy = blk.dy[..., :, 0]
+    gxy = (gpow * blk.dy).sum(dim=-2)  # (Ta, K, T): sum over y of gpow * dy, per x
+    _, _, ca, cb, cc, logo, _ = blk.entry.unbind(-1)
     s_dx = (gcol * dx).sum(-1)
     s_dy = (grow * dy).sum(-1)
-    g_a = 0.5 * (gcol * dx * dx).sum(-1)
-    g_c = 0.5 * (grow * dy * dy).sum(-1)
-    g_b = (gxy * dx).sum(-1)
-    g_mx = -(ca * s_dx + cb * s_dy)
-    g_my = -(cc * s_dy + cb * s_dx)
+    g_a = -0.5 * (gcol * dx * dx).sum(-1)
+    g_c = -0.5 * (grow * dy * dy).sum(-1)
+    g_b = -(gxy * dx).sum(-1)
+    g_mx = ca * s_dx + cb * s_dy
+    g_my = cc * s_dy + cb * s_dx
     g_o = q.sum(-1) * torch.exp(-logo)
     g_entry = torch.stack([g_mx, g_my, g_a, g_b, g_c, g_o], dim=-1)
-    return g_entry, g_feats
+    return g_entry, g_feats, h_incl[:, -1]
 
 
 def composite(
@@ -334,6 +403,7 @@ def composite(
     sigma_cutoff: float = SIGMA_CUTOFF,
     alpha_max: float = ALPHA_MAX,
     tile: int = DEFAULT_TILE,
+    block: int = DEFAULT_BLOCK,
     chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
 ) -> Tensor:
     """Composite G = num_images * N flattened splats into (num_images, H, W, D + 1).
@@ -345,7 +415,7 @@ def composite(
     thresholds = torch.where(valid, thresholds, torch.full_like(thresholds, -math.inf))
     bins = bin_splats(
         means2d.detach(), radii, depths.detach(), thresholds, num_images, width, height,
-        tile=tile, chunk_elements=chunk_elements,
+        tile=tile, block=block, chunk_elements=chunk_elements,
     )  # fmt: skip
     return _Composite.apply(
         means2d, conics, opacities, feats, thresholds, bins, width, height, alpha_max
@@ -367,6 +437,7 @@ def rasterize_cpu(
     sigma_cutoff: float = SIGMA_CUTOFF,
     alpha_max: float = ALPHA_MAX,
     tile: int = DEFAULT_TILE,
+    block: int = DEFAULT_BLOCK,
     chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Render batched, validated inputs (S, N, ...) x (S, C, ...) on any torch device.
@@ -395,6 +466,7 @@ def rasterize_cpu(
         sigma_cutoff=sigma_cutoff,
         alpha_max=alpha_max,
         tile=tile,
+        block=block,
         chunk_elements=chunk_elements,
     ).reshape(s, c, height, width, -1)
     return acc[..., :3], acc[..., 4], acc[..., 3]
