@@ -115,7 +115,7 @@ def _assert_finite_with_grads(scene, width, height):
                for v in (out.rgb, out.alpha, out.depth))  # fmt: skip
     loss.backward()
     names = ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")
-    for name, t in zip(names, inputs):
+    for name, t in zip(names, inputs, strict=True):
         assert t.grad is not None and torch.isfinite(t.grad).all(), f"grad of {name} not finite"
     return out, inputs
 

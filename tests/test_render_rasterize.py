@@ -202,7 +202,7 @@ def test_tile_block_and_chunk_settings_change_nothing():
     ref = run(tile=16, block=256, chunk_elements=1 << 24)
     for kw in [dict(tile=4, block=2, chunk_elements=1 << 8), dict(tile=8, block=3),
                dict(tile=32, block=5, chunk_elements=1 << 12)]:  # fmt: skip
-        for a, b in zip(ref, run(**kw)):
+        for a, b in zip(ref, run(**kw), strict=True):
             torch.testing.assert_close(a, b, atol=1e-11, rtol=1e-9)
 
 

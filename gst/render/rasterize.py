@@ -48,7 +48,7 @@ class RenderOutput:
 
 def _check_shape(name: str, t: Tensor, expected: tuple, batched: bool) -> None:
     exp = expected if batched else expected[1:]
-    ok = t.ndim == len(exp) and all(e is None or e == d for e, d in zip(exp, t.shape))
+    ok = t.ndim == len(exp) and all(e is None or e == d for e, d in zip(exp, t.shape, strict=True))
     if not ok:
         dims = ", ".join("?" if e is None else str(e) for e in exp)
         raise ValueError(f"rasterize: {name} has shape {tuple(t.shape)}, expected ({dims})")
