@@ -36,12 +36,12 @@ from gst.render.conventions import (
 from gst.render.projection import project_gaussians
 
 #: Tile edge in pixels (benchmarks/bench_rasterizer.py --tiles compares sizes).
-DEFAULT_TILE = 8
+DEFAULT_TILE = 4
 #: Entries (Gaussians per tile) composited per step; tiles whose pixels have all reached the
 #: transmittance stop are dropped between steps, so hidden Gaussians cost nothing.
 DEFAULT_BLOCK = 32
-#: Elements of one step's (tiles, block, pixels) tensors; memory is roughly 15x this x 4 B.
-DEFAULT_CHUNK_ELEMENTS = 1 << 20
+#: Elements of one step's (tiles, block, pixels) tensors: small enough to stay in cache.
+DEFAULT_CHUNK_ELEMENTS = 1 << 18
 
 
 @dataclass
@@ -204,15 +204,15 @@ def _block_forward(
     table: _SplatTable,
     bins: TileBins,
     chunk: _Chunk,
-    active: Tensor,
+    active: Tensor | None,
     k0: int,
     k1: int,
     log_t_carry: Tensor,
     alpha_max: float,
 ) -> _Block:
-    """Entries k0..k1-1 of the `active` tiles (indices into the chunk), continuing from the
-    log transmittance `log_t_carry` (Ta, P) left by entries before k0."""
-    positions = chunk.positions[active]
+    """Entries k0..k1-1 of the `active` tiles (indices into the chunk, None for all),
+    continuing from the log transmittance `log_t_carry` (Ta, P) left by entries before k0."""
+    positions = _take(chunk.positions, active)
     start = bins.tile_start[positions]
     count = bins.tile_count[positions]
     ar = torch.arange(k0, k1, device=start.device)
@@ -224,8 +224,8 @@ def _block_forward(
     feats = table.feats[sid]
 
     mx, my, ca, cb, cc, logo, thr = entry.unbind(-1)  # each (Ta, K)
-    dx = (chunk.px[active] - mx[..., None])[..., None, :]  # (Ta, K, 1, T)
-    dy = (chunk.py[active] - my[..., None])[..., :, None]  # (Ta, K, T, 1)
+    dx = (_take(chunk.px, active) - mx[..., None])[..., None, :]  # (Ta, K, 1, T)
+    dy = (_take(chunk.py, active) - my[..., None])[..., :, None]  # (Ta, K, T, 1)
     # power = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 from separable pieces: one full-size product.
     power = (cb[..., None, None] * dx) * dy
     power += 0.5 * ca[..., None, None] * dx * dx
@@ -286,12 +286,15 @@ class _Composite(torch.autograd.Function):
             log_t = chunk.log_t0
             acc = out.new_zeros(len(positions), bins.tile * bins.tile, d1)
             for k0, k1, listed in _blocks(bins, chunk, bins.block):
-                active = torch.nonzero(listed & _running(log_t)).squeeze(1)
-                if active.numel() == 0:
+                active = _active(listed & _running(log_t))
+                if active is not None and active.numel() == 0:
                     break
-                blk = _block_forward(table, bins, chunk, active, k0, k1, log_t[active], alpha_max)
-                acc[active] += torch.bmm(blk.weight.transpose(1, 2), blk.feats)
-                log_t = log_t.index_copy(0, active, blk.log_t_incl[:, -1])
+                blk = _block_forward(
+                    table, bins, chunk, active, k0, k1, _take(log_t, active), alpha_max
+                )
+                contrib = torch.bmm(blk.weight.transpose(1, 2), blk.feats)
+                acc = _put(acc, active, _take(acc, active) + contrib)
+                log_t = _put(log_t, active, blk.log_t_incl[:, -1])
             out[bins.tile_ids[positions]] = acc
         image = _from_tiles(out, bins, height, width)
         ctx.save_for_backward(means2d, conics, opacities, feats, thresholds, image)
@@ -320,21 +323,43 @@ class _Composite(torch.autograd.Function):
             log_t = chunk.log_t0
             h_prefix = torch.zeros_like(log_t)
             for k0, k1, listed in _blocks(bins, chunk, bins.block):
-                active = torch.nonzero(listed & _running(log_t)).squeeze(1)
-                if active.numel() == 0:
+                active = _active(listed & _running(log_t))
+                if active is not None and active.numel() == 0:
                     break
-                blk = _block_forward(table, bins, chunk, active, k0, k1, log_t[active], ctx.alpha_max)
+                blk = _block_forward(
+                    table, bins, chunk, active, k0, k1, _take(log_t, active), ctx.alpha_max
+                )
                 ge, gf, h_last = _block_backward(
-                    blk, gout_chunk[active], gdo_chunk[active], h_prefix[active], ctx.alpha_max
+                    blk,
+                    _take(gout_chunk, active),
+                    _take(gdo_chunk, active),
+                    _take(h_prefix, active),
+                    ctx.alpha_max,
                 )
                 g_params.index_add_(0, blk.sid.flatten(), ge.flatten(0, 1))
                 g_feats.index_add_(0, blk.sid.flatten(), gf.flatten(0, 1))
-                log_t = log_t.index_copy(0, active, blk.log_t_incl[:, -1])
-                h_prefix = h_prefix.index_copy(0, active, h_last)
+                log_t = _put(log_t, active, blk.log_t_incl[:, -1])
+                h_prefix = _put(h_prefix, active, h_last)
         g_means2d = g_params[:, 0:2]
         g_conics = g_params[:, 2:5]
         g_opac = g_params[:, 5]
         return g_means2d, g_conics, g_opac, g_feats[:, :-1], None, None, None, None, None
+
+
+def _active(mask: Tensor) -> Tensor | None:
+    """Indices of the True entries, or None when all are True (saves gathers and scatters)."""
+    if bool(mask.all()):
+        return None
+    return torch.nonzero(mask).squeeze(1)
+
+
+def _take(t: Tensor, idx: Tensor | None) -> Tensor:
+    return t if idx is None else t[idx]
+
+
+def _put(t: Tensor, idx: Tensor | None, values: Tensor) -> Tensor:
+    """`t` with rows `idx` replaced by `values` (all rows when idx is None)."""
+    return values if idx is None else t.index_copy(0, idx, values)
 
 
 def _running(log_t: Tensor) -> Tensor:
