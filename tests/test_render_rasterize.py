@@ -232,3 +232,14 @@ def test_bad_input_names_the_culprit(change, message):
     change(args)
     with pytest.raises(ValueError, match=message):
         rasterize(**args)
+
+
+def test_empty_and_fully_culled_scenes_render_the_background():
+    means, quats, scales, opac, colors, viewmats, ks = random_scene(4, s=1, n=6, c=2, width=9, height=7)
+    bgs = torch.rand(1, 2, 3, dtype=torch.float64)
+    empty = rasterize(means[:, :0], quats[:, :0], scales[:, :0], opac[:, :0], colors[:, :0],
+                      viewmats, ks, 9, 7, backgrounds=bgs)  # fmt: skip
+    assert torch.equal(empty.alpha, torch.zeros(1, 2, 7, 9, dtype=torch.float64))
+    assert torch.equal(empty.rgb, bgs[:, :, None, None, :].expand(1, 2, 7, 9, 3))
+    behind = rasterize(means, quats, scales, opac, colors, viewmats, ks, 9, 7, near=100.0)
+    assert behind.alpha.abs().max() == 0 and behind.depth.abs().max() == 0

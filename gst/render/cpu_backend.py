@@ -481,7 +481,7 @@ def rasterize_cpu(
         proj.means2d.reshape(g, 2),
         proj.conics.reshape(g, 3),
         opacities[:, None].expand(s, c, n).reshape(g),
-        feats.reshape(g, -1),
+        feats.reshape(g, feats.shape[-1]),
         proj.radii.reshape(g, 2),
         proj.depths.reshape(g),
         proj.valid.reshape(g),
