@@ -1,22 +1,27 @@
 """CPU rasteriser backend: tile-binned, dense-per-tile compositing in pure torch.
 
-How it works (no per-Gaussian or per-pixel Python loops; the only loop is over chunks):
+How it works (no per-Gaussian or per-pixel Python loops; Python loops run over chunks of tiles
+and blocks of entries only):
 
 1. Projection (`gst.render.projection`) is plain differentiable torch on (S, C, N) tensors.
 2. Binning (no gradient): each visible Gaussian's footprint is the ellipse where it can
    contribute, Mahalanobis radius r = min(3, sqrt(2 ln(255 o))) (beyond the second bound its
    alpha is below 1/255 anyway). Its bounding box is split into T x T pixel tiles, giving
-   (Gaussian, tile) entries; one sort by (tile, depth) of these entries -- a few per Gaussian,
+   (Gaussian, tile) entries; one sort by (tile, depth) of these entries -- tens per Gaussian,
    not one per pixel -- puts each tile's Gaussians front to back.
-3. Compositing: tiles with similar entry counts are grouped into chunks that fit a memory
-   budget; each chunk is evaluated densely as (tiles, K Gaussians, T*T pixels): the
-   Gaussian's power at each pixel, the footprint / 1/255 mask, alpha clamped at 0.99,
-   an inclusive cumulative sum of log(1 - alpha) along K (per pixel, so the sum stays short
-   and accurate), the stop before transmittance drops below 1e-4, weights, and one batched
-   matmul that composites colour, depth and alpha together.
-4. Backward is a hand-written autograd.Function that recomputes each chunk rather than storing
-   it (memory stays at one chunk) and uses the standard suffix-sum identity
-   dL/dalpha_k = T_k g.f_k - (sum_{j>k} w_j g.f_j) / (1 - alpha_k).
+3. Compositing: tiles are grouped into chunks of similar entry counts (a cache-sized budget)
+   and their entries are taken in blocks of 32, front to back. A block is evaluated densely as
+   (tiles, 32 Gaussians, T*T pixels): the Gaussian's power at each pixel, the footprint and
+   1/255 mask, alpha clamped at 0.99, the cumulative sum of log(1 - alpha) along the block,
+   continued from the previous block (per pixel, so sums stay short and float32 stays
+   accurate), the stop before transmittance drops below 1e-4, weights, and one batched matmul
+   that composites colour, depth and alpha together. A tile leaves the loop once all of its
+   pixels have stopped, so Gaussians hidden behind opaque ones cost nothing.
+4. Backward is a hand-written autograd.Function that recomputes each block rather than
+   storing it (memory stays at one block). The 3DGS gradient
+   dL/dalpha_k = T_k g.f_k - (sum_{j>k} w_j g.f_j) / (1 - alpha_k) needs a suffix sum; since
+   sum_j w_j g.f_j = g.output, it is "g.output minus a running prefix", so the backward
+   also runs front to back, block by block, with the same early exit.
 """
 
 from __future__ import annotations
@@ -114,7 +119,8 @@ def bin_splats(
     y0 = lo[:, 1].clamp_min(0)
     x1 = hi[:, 0].clamp_max(width - 1)
     y1 = hi[:, 1].clamp_max(height - 1)
-    visible = (thresholds > -math.inf) & (x0 <= x1) & (y0 <= y1)
+    finite = torch.isfinite(means2d).all(1) & torch.isfinite(ext).all(1)  # NaN input: skip
+    visible = (thresholds > -math.inf) & finite & (x0 <= x1) & (y0 <= y1)
     vis_idx = torch.nonzero(visible).squeeze(1)
 
     tx0 = x0[vis_idx] // tile

@@ -71,14 +71,16 @@ def rasterize_gsplat(
 
     rgbs, alphas, depths = [], [], []
     for s in range(means.shape[0]):
+        # gsplat's kernels index raw memory: hand them contiguous tensors (inputs may be
+        # expanded views, e.g. one camera set shared by all scenes).
         render, alpha, _meta = rasterization(
-            means=means[s],
-            quats=safe_quats[s],
-            scales=safe_scales[s],
-            opacities=opacities[s],
-            colors=colors[s],
-            viewmats=viewmats[s],
-            Ks=Ks_half[s],
+            means=means[s].contiguous(),
+            quats=safe_quats[s].contiguous(),
+            scales=safe_scales[s].contiguous(),
+            opacities=opacities[s].contiguous(),
+            colors=colors[s].contiguous(),
+            viewmats=viewmats[s].contiguous(),
+            Ks=Ks_half[s].contiguous(),
             width=width,
             height=height,
             near_plane=near,
