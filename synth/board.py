@@ -26,8 +26,8 @@ class ChArUcoSpec:
 
     squares_x: int = 5
     squares_y: int = 4
-    square_size: float = 0.25
-    marker_size: float = 0.18
+    square_size: float = 0.3
+    marker_size: float = 0.24
     dictionary: str = "DICT_4X4_50"
     margin: float = 0.06  # white border of the printed sheet, metres (not part of board.json)
 
@@ -124,26 +124,52 @@ class BoardPose:
 
 
 def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: float,
-               rng: np.random.Generator) -> list[BoardPose]:
-    """A smooth hand-held path: the board wanders through the volume at 0.7-1.9 m, turns its
-    printed side once around (so every camera of a ring sees it), tilts and rolls."""
+               rng: np.random.Generator, camera_centers: np.ndarray | None = None) -> list[BoardPose]:
+    """A smooth hand-held path: the board wanders through the volume at about 0.9-1.6 m and
+    turns its printed side once around. With `camera_centers` it faces each camera in turn
+    (sorted by azimuth), so every camera gets frontal and oblique views; without, it faces the
+    horizon tilted slightly up. Tilt and roll wobble smoothly on top."""
     if n_frames < 1:
         raise ValueError(f"board clip needs at least one frame, got {n_frames}")
     c = np.asarray(volume_center, dtype=np.float64)
-    tau = np.arange(n_frames) / max(n_frames, 1)
+    tau = np.arange(n_frames) / n_frames
     ph = rng.uniform(0, 2 * np.pi, 4)
-    r = 0.55 * volume_radius
+    r = 0.5 * volume_radius
     half_diag = 0.5 * np.hypot(*spec.size) + spec.margin
     zc = max(1.25, half_diag + 0.15)
     centre = np.stack([c[0] + r * np.sin(2 * np.pi * 1.0 * tau + ph[0]),
                        c[1] + r * np.sin(2 * np.pi * 2.0 * tau + ph[1]),
-                       zc + 0.35 * np.sin(2 * np.pi * 1.5 * tau + ph[2])], -1)
-    azimuth = ph[3] + 2 * np.pi * tau * rng.choice([-1.0, 1.0])
-    tilt = np.deg2rad(12 + 15 * np.sin(2 * np.pi * 3.0 * tau + ph[0]))  # face up toward high cameras
+                       zc + 0.3 * np.sin(2 * np.pi * 1.5 * tau + ph[2])], -1)
+    direction = rng.choice([-1.0, 1.0])
+    azimuth = ph[3] + 2 * np.pi * tau * direction
+    wobble_tilt = np.deg2rad(12 * np.sin(2 * np.pi * 3.0 * tau + ph[0]))
+    wobble_yaw = np.deg2rad(15 * np.sin(2 * np.pi * 2.0 * tau + ph[2]))
     roll = np.deg2rad(20 * np.sin(2 * np.pi * 2.5 * tau + ph[1]))
+    if camera_centers is not None and len(camera_centers):
+        cams = np.asarray(camera_centers, dtype=np.float64)
+        cam_az = np.arctan2(cams[:, 1] - c[1], cams[:, 0] - c[0])
+        order = np.argsort(cam_az)
+        cam_az, cams = cam_az[order], cams[order]
     poses = []
     for i in range(n_frames):
-        front = np.array([np.cos(tilt[i]) * np.cos(azimuth[i]), np.cos(tilt[i]) * np.sin(azimuth[i]), np.sin(tilt[i])])
+        if camera_centers is not None and len(camera_centers):
+            # Aim at the camera ring point at this azimuth (linear between neighbours).
+            a = np.mod(azimuth[i] - cam_az[0], 2 * np.pi) + cam_az[0]
+            k = np.searchsorted(cam_az, a) % len(cams)
+            j = (k - 1) % len(cams)
+            span = np.mod(cam_az[k] - cam_az[j], 2 * np.pi) or 2 * np.pi
+            w = np.mod(a - cam_az[j], 2 * np.pi) / span
+            target = (1 - w) * cams[j] + w * cams[k]
+            front = target - centre[i]
+            front /= np.linalg.norm(front)
+        else:
+            front = np.array([np.cos(azimuth[i]), np.sin(azimuth[i]), np.tan(np.deg2rad(12))])
+            front /= np.linalg.norm(front)
+        yaw_axis = np.array(WORLD_UP)
+        front = _rotate(front, yaw_axis, wobble_yaw[i])
+        side = np.cross(front, WORLD_UP)
+        side /= np.linalg.norm(side)
+        front = _rotate(front, side, wobble_tilt[i])
         z = -front  # board z points into the board, away from the viewer
         x = np.cross(z, WORLD_UP)
         x /= np.linalg.norm(x)
@@ -151,10 +177,14 @@ def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: f
         cr, sr = np.cos(roll[i]), np.sin(roll[i])
         x, y = cr * x + sr * y, -sr * x + cr * y
         R = np.stack([x, y, z], -1)
-        # Place the pattern centre on the path.
-        mid = np.array([spec.size[0] / 2, spec.size[1] / 2, 0.0])
+        mid = np.array([spec.size[0] / 2, spec.size[1] / 2, 0.0])  # pattern centre on the path
         poses.append(BoardPose(R=R, t=centre[i] - R @ mid))
     return poses
+
+
+def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues rotation of vector v about a unit axis."""
+    return v * np.cos(angle) + np.cross(axis, v) * np.sin(angle) + axis * np.dot(axis, v) * (1 - np.cos(angle))
 
 
 def visible_corners(spec: ChArUcoSpec, pose: BoardPose, camera, radius: float | None = None

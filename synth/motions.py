@@ -125,14 +125,21 @@ def _keyframed(keys: list[_Key], t: np.ndarray) -> _Segment:
     """Interpolate keyframes (looped with their period) at times t."""
     times = np.array([k.time for k in keys])
     period = times[-1]
-    arrays = np.stack([_flat_feet(_to_array(k.pose), k.planted) for k in keys])
+    arrays = np.stack([_flat_feet(_to_array(k.pose), k.planted) for k in keys]).reshape(len(keys), -1)
     fwd = np.array([k.forward for k in keys])
     trn = np.array([k.turn for k in keys])
+    if not np.allclose(arrays[0], arrays[-1]):
+        raise ValueError("keyframed motion must end in its starting pose to loop")
+    # Wrap one key around each end so the slopes at the loop seam agree (C1 when looping);
+    # displacements accumulate over cycles (a turn turns further, a step moves on).
+    ext_t = np.r_[times[-2] - period, times, period + times[1]]
+    ext_a = np.concatenate([arrays[-2:-1], arrays, arrays[1:2]])
+    ext_f = np.r_[fwd[-2] - fwd[-1], fwd, fwd[-1] + fwd[1]]
+    ext_r = np.r_[trn[-2] - trn[-1], trn, trn[-1] + trn[1]]
     cycles, tau = np.divmod(t, period)
-    ang = PchipInterpolator(times, arrays.reshape(len(keys), -1), axis=0)(tau).reshape(len(t), NUM_JOINTS, 3)
-    # Displacement accumulates over cycles (a turn turns further, a step moves on).
-    f = PchipInterpolator(times, fwd)(tau) + cycles * fwd[-1]
-    r = PchipInterpolator(times, trn)(tau) + cycles * trn[-1]
+    ang = PchipInterpolator(ext_t, ext_a, axis=0)(tau).reshape(len(t), NUM_JOINTS, 3)
+    f = PchipInterpolator(ext_t, ext_f)(tau) + cycles * fwd[-1]
+    r = PchipInterpolator(ext_t, ext_r)(tau) + cycles * trn[-1]
     return _Segment(ang, f, r, np.zeros_like(t))
 
 
@@ -146,9 +153,9 @@ def _bump(phase: np.ndarray, centre: float, power: float) -> np.ndarray:
     return ((1 + np.cos(phase - centre)) / 2) ** power
 
 
-def _gait(t: np.ndarray, cadence: np.ndarray, style: dict) -> np.ndarray:
-    """Cyclic gait angles (T, 24, 3), anatomical degrees. `cadence` is strides per second
-    (T,); the left heel strikes at phase 0 with the left thigh forward."""
+def _gait(t: np.ndarray, cadence: np.ndarray, style: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Cyclic gait angles (T, 24, 3) in anatomical degrees, and the stride phase (T,).
+    `cadence` is strides per second (T,); the left heel strikes at phase 0, left thigh forward."""
     phase = 2 * np.pi * np.concatenate([[0.0], np.cumsum((cadence[1:] + cadence[:-1]) / 2 * np.diff(t))])
     phase = phase + style.get("phase0", 0.0)
     a = np.tile(_to_array(STAND), (len(t), 1, 1))
@@ -193,8 +200,8 @@ def _run(t: np.ndarray, rng: np.random.Generator) -> _Segment:
                  arm_bias=-5, arm_abduction=-75, elbow=rng.uniform(80, 95), elbow_amp=12,
                  twist=9, lean=rng.uniform(6, 12), phase0=rng.uniform(0, 2 * np.pi))
     ang, phase = _gait(t, np.full_like(t, cad), style)
-    flight = 0.25 * GRAVITY * (0.09) ** 2 / 2  # ~0.01 m per stride half-cycle
-    lift = flight * 4 * np.clip(np.sin(2 * phase - 0.6), 0, None) ** 2
+    flight = GRAVITY * 0.1**2 / 8  # peak height of a ~0.1 s flight phase, twice per stride
+    lift = flight * np.clip(np.sin(2 * phase - 0.6), 0, None) ** 2
     return _Segment(ang, speed * t, np.zeros_like(t), lift)
 
 
@@ -232,9 +239,9 @@ def _jump(t: np.ndarray, rng: np.random.Generator) -> _Segment:
         _Key(t0, STAND),
         _Key(t1, _with(STAND, **s)),
         _Key(t2, _with(STAND, pelvis=(5, 0, 0), both_hip=(-5, 0, 3), both_knee=(5, 0, 0),
-                       both_shoulder=(-150, 0, -70), both_elbow=(0, -20, 0)), planted=()),
+                       both_shoulder=(-110, 0, -72), both_elbow=(0, -20, 0)), planted=()),
         _Key(t2 + 0.5 * flight_time, _with(STAND, both_hip=(-12, 0, 4), both_knee=(15, 0, 0),
-                                           both_ankle=(30, 0, 0), both_shoulder=(-130, 0, -70)), planted=()),
+                                           both_ankle=(30, 0, 0), both_shoulder=(-140, 0, -70)), planted=()),
         _Key(t3, _with(STAND, both_hip=(-20, 0, 4), both_knee=(20, 0, 0), both_ankle=(25, 0, 0),
                        both_shoulder=(-60, 0, -75)), planted=()),
         _Key(t3 + 0.25, _with(STAND, pelvis=(25, 0, 0), both_hip=(-60, 0, 4), both_knee=(70, 0, 0),
@@ -287,8 +294,8 @@ def _kick(t: np.ndarray, rng: np.random.Generator) -> _Segment:
         _Key(0.6, _with(STAND, left_hip=(-10, 0, 5), left_knee=(20, 0, 0), right_hip=(35 * power, 0, 5),
                         right_knee=(105, 0, 0), right_ankle=(30, 0, 0), spine2=(0, 12, 0),
                         pelvis=(0, 0, 6), **arms_out), forward=0.6, planted=("left",)),
-        _Key(0.78, _with(STAND, left_hip=(-10, 0, 5), left_knee=(25, 0, 0), right_hip=(-45 * power, 0, 5),
-                         right_knee=(35, 0, 0), right_ankle=(40, 0, 0), spine2=(-8, -10, 0),
+        _Key(0.78, _with(STAND, left_hip=(-8, 0, 5), left_knee=(12, 0, 0), right_hip=(-35 * power, 0, 5),
+                         right_knee=(65, 0, 0), right_ankle=(40, 0, 0), spine2=(-8, -10, 0),
                          pelvis=(-5, 0, 6), **arms_out), forward=0.65, planted=("left",)),
         _Key(0.98, _with(STAND, left_hip=(-5, 0, 5), left_knee=(15, 0, 0), right_hip=(-85 * power, 0, 5),
                          right_knee=(10, 0, 0), right_ankle=(30, 0, 0), spine2=(10, -18, 0),
@@ -463,17 +470,18 @@ def generate_motion(names: list[str] | tuple[str, ...] | str, n_frames: int, fps
 
 
 def random_static_poses(n_frames: int, rng: np.random.Generator, fps: float = 30.0,
-                        start: tuple[float, float] = (0.0, 0.0), spread: float = 0.6) -> MotionClip:
+                        start: tuple[float, float] = (0.0, 0.0), spread: float = 0.8) -> MotionClip:
     """Independent random poses for training diversity (no temporal coherence).
 
-    Each joint angle is drawn uniformly from the central `spread` fraction of its limits around
-    the standing posture; the heading is uniform and the root tilt stays moderate.
+    Each joint angle is drawn uniformly from a window `spread` times its range wide, centred
+    half-way between the standing posture and the middle of the range (then clipped to the
+    limits); the heading is uniform and the root tilt stays moderate.
     """
     stand = _anatomical_to_model(_to_array(STAND)[None])[0]
     lo, hi = JOINT_LIMITS[..., 0], JOINT_LIMITS[..., 1]
+    centre = 0.5 * (stand + 0.5 * (lo + hi))
     u = rng.uniform(-1, 1, (n_frames, NUM_JOINTS, 3))
-    half = spread * (hi - lo) / 2
-    angles = stand[None] + u * half[None]
+    angles = centre[None] + u * (spread * (hi - lo) / 2)[None]
     angles[:, 0] = np.deg2rad(rng.uniform(-15, 25, (n_frames, 3)) * np.array([1, 0, 0.4]))
     heading = rng.uniform(-np.pi, np.pi, n_frames)
     position = np.tile(np.asarray(start, dtype=np.float64), (n_frames, 1))

@@ -33,15 +33,15 @@ class RenderOptions:
     antialias: int = 2
     background_samples: int = 2
     shadow_samples: int = 4
-    backend: str = "embree"  # "embree" (embreex) or "trimesh" (trimesh's own intersector)
+    backend: str = "embree"  # "embree", "trimesh" or "triangle" (see RayCaster)
 
     def __post_init__(self):
         for name in ("antialias", "background_samples", "shadow_samples"):
             v = getattr(self, name)
             if not 1 <= v <= 8:
                 raise ValueError(f"RenderOptions.{name} must be in 1..8, got {v}")
-        if self.backend not in ("embree", "trimesh"):
-            raise ValueError(f"RenderOptions.backend must be 'embree' or 'trimesh', got {self.backend!r}")
+        if self.backend not in ("embree", "trimesh", "triangle"):
+            raise ValueError(f"RenderOptions.backend must be 'embree', 'trimesh' or 'triangle', got {self.backend!r}")
 
 
 @dataclass(frozen=True)
@@ -89,9 +89,17 @@ def _scatter_sum(values: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
 # Ray casting backends
 
 class RayCaster:
-    """Nearest-hit ray casting against a list of meshes (one geometry id per mesh)."""
+    """Nearest-hit ray casting against a list of meshes (one geometry id per mesh).
+
+    Backends: "embree" calls embreex directly (barycentrics and distances come back from
+    Embree); "trimesh" goes through trimesh's default intersector (Embree via
+    trimesh.ray.ray_pyembree when embreex is installed); "triangle" is trimesh's pure-numpy
+    intersector, slow but independent of Embree (a reference for tests).
+    """
 
     def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]], backend: str = "embree"):
+        if backend not in ("embree", "trimesh", "triangle"):
+            raise ValueError(f"ray casting backend must be embree, trimesh or triangle, got {backend!r}")
         self.backend = backend
         self.meshes = [(np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
                        for v, f in meshes]
@@ -102,26 +110,29 @@ class RayCaster:
             self._scene = rtcore_scene.EmbreeScene()
             for v, f in self.meshes:
                 TriangleMesh(self._scene, v, f)
-        else:
-            import trimesh
+            return
+        import trimesh
 
-            self._offsets = np.cumsum([0] + [len(f) for _, f in self.meshes])
-            verts, faces, off = [], [], 0
-            for v, f in self.meshes:
-                verts.append(v)
-                faces.append(f + off)
-                off += len(v)
-            mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
-            self._mesh = mesh
-            self._tm = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+        self._offsets = np.cumsum([0] + [len(f) for _, f in self.meshes])
+        verts, faces, off = [], [], 0
+        for v, f in self.meshes:
+            verts.append(v.astype(np.float64))
+            faces.append(f + off)
+            off += len(v)
+        self._mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+        if backend == "triangle":
+            self._tm = trimesh.ray.ray_triangle.RayMeshIntersector(self._mesh)
+        else:
+            self._tm = self._mesh.ray
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
         """Nearest hits: dict with geom (N,) (-1 = miss), prim (N,), u, v (barycentric of
-        vertices 1 and 2) and t (distance along the unit direction)."""
+        vertices 1 and 2) and t (distance along the unit direction, inf on a miss)."""
         n = len(dirs)
+        out = {"geom": np.full(n, -1, np.int32), "prim": np.full(n, -1, np.int32),
+               "u": np.zeros(n, np.float32), "v": np.zeros(n, np.float32), "t": np.full(n, np.inf, np.float32)}
         if n == 0 or not self.meshes:
-            return {"geom": np.full(n, -1, np.int32), "prim": np.full(n, -1, np.int32),
-                    "u": np.zeros(n, np.float32), "v": np.zeros(n, np.float32), "t": np.full(n, np.inf, np.float32)}
+            return out
         o = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
         d = np.ascontiguousarray(dirs, dtype=np.float32)
         if self.backend == "embree":
@@ -131,16 +142,20 @@ class RayCaster:
                     "t": np.where(geom >= 0, r["tfar"], np.inf).astype(np.float32)}
         import trimesh
 
-        loc, ray, tri = self._tm.intersects_location(o.astype(np.float64), d.astype(np.float64), multiple_hits=False)
-        out = {"geom": np.full(n, -1, np.int32), "prim": np.full(n, -1, np.int32),
-               "u": np.zeros(n, np.float32), "v": np.zeros(n, np.float32), "t": np.full(n, np.inf, np.float32)}
+        o64, d64 = o.astype(np.float64), d.astype(np.float64)
+        loc, ray, tri = self._tm.intersects_location(o64, d64, multiple_hits=False)
         if len(ray):
+            # Keep the nearest hit per ray (the pure-numpy intersector may return several).
+            dist = np.linalg.norm(loc - o64[ray], axis=1)
+            order = np.lexsort((dist, ray))
+            first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]]
+            loc, ray, tri, dist = loc[first], ray[first], tri[first], dist[first]
             g = np.searchsorted(self._offsets, tri, side="right") - 1
             bary = trimesh.triangles.points_to_barycentric(self._mesh.triangles[tri], loc)
             out["geom"][ray] = g
             out["prim"][ray] = tri - self._offsets[g]
             out["u"][ray], out["v"][ray] = bary[:, 1], bary[:, 2]
-            out["t"][ray] = np.linalg.norm(loc - o[ray], axis=1)
+            out["t"][ray] = dist
         return out
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:

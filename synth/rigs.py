@@ -74,8 +74,9 @@ def _positions(kind: str, n: int, rng: np.random.Generator) -> tuple[list[str], 
         hx, hy = 3.4, 3.0
         corners = [(hx, hy), (-hx, hy), (-hx, -hy), (hx, -hy)]
         perim = np.array(corners + [(0, hy), (-hx, 0), (0, -hy), (hx, 0)])
-        xy = np.array([perim[i % len(perim)] * (1.0 + 0.08 * (i // len(perim))) for i in range(n)])
-        z = rng.uniform(1.45, 1.85, n)
+        ring = np.arange(n) // len(perim)  # more than 8 cameras: further rings, higher and closer
+        xy = np.array([perim[i % len(perim)] * 0.93 ** ring[i] for i in range(n)])
+        z = np.minimum(rng.uniform(1.45, 1.85, n) + 0.45 * ring, 3.3)
         names = [H36M_CAMERA_IDS[i] if i < 4 else f"h36m_{i:02d}" for i in range(n)]
         return names, np.c_[xy + rng.uniform(-0.15, 0.15, (n, 2)), z]
     if kind == "hall":

@@ -75,8 +75,8 @@ class RigSpec(_Spec):
 class BoardClipSpec(_Spec):
     squares_x: int = Field(5, ge=3, le=40)
     squares_y: int = Field(4, ge=3, le=40)
-    square_size: float = Field(0.25, gt=0, le=1.0)
-    marker_size: float = Field(0.18, gt=0, le=1.0)
+    square_size: float = Field(0.3, gt=0, le=1.0)
+    marker_size: float = Field(0.24, gt=0, le=1.0)
     dictionary: str = "DICT_4X4_50"
     margin: float = Field(0.06, ge=0, le=0.5)
     n_frames: int = Field(36, ge=0, le=100_000)
@@ -95,7 +95,7 @@ class ImagingSpec(_Spec):
     exposure_jitter: float = Field(0.1, ge=0, le=0.9)
     vignetting: float = Field(0.2, ge=0, lt=1)
     write_depth: bool = True
-    backend: Literal["embree", "trimesh"] = "embree"
+    backend: Literal["embree", "trimesh", "triangle"] = "embree"
 
 
 class SceneSpec(_Spec):
@@ -275,7 +275,8 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     board_spec = spec.board.board()
     texture = board_spec.texture()
     poses = board_path(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
-                       np.random.default_rng(np.random.SeedSequence([spec.seed, 3])))
+                       np.random.default_rng(np.random.SeedSequence([spec.seed, 3])),
+                       camera_centers=np.stack([c.center for c in rig.cameras]))
     options = RenderOptions(antialias=spec.imaging.antialias, background_samples=spec.imaging.background_samples,
                             shadow_samples=spec.imaging.shadow_samples, backend=spec.imaging.backend)
     responses = _responses(spec, len(rig))
