@@ -33,15 +33,15 @@ class RenderOptions:
     antialias: int = 2
     background_samples: int = 2
     shadow_samples: int = 4
-    backend: str = "embree"  # "embree", "trimesh" or "triangle" (see RayCaster)
+    backend: str = "embree"  # "embree" or "trimesh" (see RayCaster)
 
     def __post_init__(self):
         for name in ("antialias", "background_samples", "shadow_samples"):
             v = getattr(self, name)
             if not 1 <= v <= 8:
                 raise ValueError(f"RenderOptions.{name} must be in 1..8, got {v}")
-        if self.backend not in ("embree", "trimesh", "triangle"):
-            raise ValueError(f"RenderOptions.backend must be 'embree', 'trimesh' or 'triangle', got {self.backend!r}")
+        if self.backend not in ("embree", "trimesh"):
+            raise ValueError(f"RenderOptions.backend must be 'embree' or 'trimesh', got {self.backend!r}")
 
 
 @dataclass(frozen=True)
@@ -93,13 +93,13 @@ class RayCaster:
 
     Backends: "embree" calls embreex directly (barycentrics and distances come back from
     Embree); "trimesh" goes through trimesh's default intersector (Embree via
-    trimesh.ray.ray_pyembree when embreex is installed); "triangle" is trimesh's pure-numpy
-    intersector, slow but independent of Embree (a reference for tests).
+    trimesh.ray.ray_pyembree when embreex is installed), which recomputes hit points and
+    barycentrics in numpy (slower; kept for comparison and as a fallback).
     """
 
     def __init__(self, meshes: list[tuple[np.ndarray, np.ndarray]], backend: str = "embree"):
-        if backend not in ("embree", "trimesh", "triangle"):
-            raise ValueError(f"ray casting backend must be embree, trimesh or triangle, got {backend!r}")
+        if backend not in ("embree", "trimesh"):
+            raise ValueError(f"ray casting backend must be 'embree' or 'trimesh', got {backend!r}")
         self.backend = backend
         self.meshes = [(np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
                        for v, f in meshes]
@@ -120,10 +120,7 @@ class RayCaster:
             faces.append(f + off)
             off += len(v)
         self._mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
-        if backend == "triangle":
-            self._tm = trimesh.ray.ray_triangle.RayMeshIntersector(self._mesh)
-        else:
-            self._tm = self._mesh.ray
+        self._tm = self._mesh.ray
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
         """Nearest hits: dict with geom (N,) (-1 = miss), prim (N,), u, v (barycentric of
@@ -145,7 +142,7 @@ class RayCaster:
         o64, d64 = o.astype(np.float64), d.astype(np.float64)
         loc, ray, tri = self._tm.intersects_location(o64, d64, multiple_hits=False)
         if len(ray):
-            # Keep the nearest hit per ray (the pure-numpy intersector may return several).
+            # Keep the nearest hit per ray (guards against intersectors returning several).
             dist = np.linalg.norm(loc - o64[ray], axis=1)
             order = np.lexsort((dist, ray))
             first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]]

@@ -95,7 +95,7 @@ class ImagingSpec(_Spec):
     exposure_jitter: float = Field(0.1, ge=0, le=0.9)
     vignetting: float = Field(0.2, ge=0, lt=1)
     write_depth: bool = True
-    backend: Literal["embree", "trimesh", "triangle"] = "embree"
+    backend: Literal["embree", "trimesh"] = "embree"
 
 
 class SceneSpec(_Spec):

@@ -38,7 +38,7 @@ class BodyOutput:
     joints: torch.Tensor
 
 
-def _capsule(a, b, radius, scale=(1.0, 1.0, 1.0), count=(10, 14)) -> trimesh.Trimesh:
+def _capsule_mesh(a, b, radius, scale=(1.0, 1.0, 1.0), count=(10, 14), max_edge=0.04) -> trimesh.Trimesh:
     a, b = np.asarray(a, float), np.asarray(b, float)
     length = float(np.linalg.norm(b - a))
     mesh = trimesh.creation.capsule(height=max(length, 1e-3), radius=radius, count=list(count))
@@ -51,7 +51,7 @@ def _capsule(a, b, radius, scale=(1.0, 1.0, 1.0), count=(10, 14)) -> trimesh.Tri
     y = np.cross(z, x)
     mesh.vertices = mesh.vertices @ np.stack([x, y, z]) + a
     # Capsule sides are single long triangles; split them so per-vertex attributes resolve.
-    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=0.04)
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=max_edge)
     return trimesh.Trimesh(v, f, process=False)
 
 
@@ -79,12 +79,16 @@ class CapsuleBody(torch.nn.Module):
     num_betas = 10
     joint_names = list(JOINT_NAMES)
 
-    def __init__(self, rest: str = "T", detail: int = 1):
+    def __init__(self, rest: str = "T", detail: int = 1, max_edge: float = 0.04):
         super().__init__()
         self.parents = np.array(PARENTS)
         j = {k: np.array(v) for k, v in _REST_JOINTS.items()}
         c = (10 * detail, 14 * detail)
-        parts = []  # (mesh, joint that moves it, part name)
+        parts = []
+
+        def _capsule(*args, **kw):  # this body's edge length
+            return _capsule_mesh(*args, max_edge=max_edge, **kw)
+  # (mesh, joint that moves it, part name)
 
         def add(mesh, joint, part):
             parts.append((mesh, joint, part))
