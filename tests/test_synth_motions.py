@@ -9,9 +9,17 @@ from synth_fixtures import CapsuleBody
 
 from synth.animate import FLOOR_TOLERANCE, pose_person
 from synth.motions import LOCOMOTION, MOTIONS, generate_motion, random_static_poses
-from synth.skeleton import JOINT_LIMITS, JOINT_NAMES, PARENTS, J, mirror_angles, rest_corrections, soft_clip
+from synth.skeleton import (
+    JOINT_LIMITS,
+    JOINT_NAMES,
+    PARENTS,
+    J,
+    mirror_angles,
+    rest_corrections,
+    soft_clip,
+)
 
-BODY = CapsuleBody()
+BODY = CapsuleBody(max_edge=0.12)  # coarse mesh: motion tests need joints and feet, not detail
 FOOT = np.isin(BODY.part_labels, [BODY.part_names.index("foot")])
 
 
