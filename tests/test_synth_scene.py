@@ -1,0 +1,193 @@
+"""Scene folders: layout and tables, determinism, and the acceptance check that ground-truth
+joints projected through the *written* calibration files land on the rendered people."""
+
+import hashlib
+import json
+
+import cv2
+import h5py
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+from pydantic import ValidationError
+from synth_fixtures import CapsuleBody, read_panoptic, rig_io
+
+from synth.io import read_masks
+from synth.scene import PRESETS, SceneSpec, preset, render_scene
+
+BODY = CapsuleBody()
+WRITE_RIG, READ_RIG = rig_io()
+
+
+def _tiny(**overrides) -> SceneSpec:
+    base = dict(n_frames=6, n_people=2, motions=[["run"], ["squat"]],
+                rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="mild"),
+                board=dict(n_frames=3),
+                imaging=dict(antialias=2, background_samples=1, shadow_samples=2))
+    return preset("demo", **{**base, **overrides})
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scene") / "tiny"
+    summary = render_scene(_tiny(), out, body_model=BODY, rig_writer=WRITE_RIG)
+    return out, summary
+
+
+def _digest(folder):
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_scene_layout_and_tables(tiny_scene):
+    out, summary = tiny_scene
+    scene = json.loads((out / "scene.json").read_text())
+    cams = scene["cameras"]
+    assert summary.cameras == tuple(cams) and len(cams) == 2
+    assert scene["n_frames"] == 6 and scene["fps"] == 30.0 and scene["world"]["up"] == [0.0, 0.0, 1.0]
+    assert set(json.loads((out / "board" / "board.json").read_text())) == {
+        "kind", "squares_x", "squares_y", "square_size", "marker_size", "dictionary"}
+    for rel in ("calibration/rig.json", "calibration/calibration_synth.json", "calibration/cameras.h5",
+                "preview/contact_sheet.png", "preview/truth_overlay.png", "preview/board_sheet.png",
+                "truth/board_poses.parquet", "truth/board_views.parquet"):
+        assert (out / rel).is_file(), rel
+    for cam in cams:
+        for clip, n in (("videos", 6), ("board", 3)):
+            cap = cv2.VideoCapture(str(out / clip / f"{cam}.mp4"))
+            frames = 0
+            while True:
+                ok, img = cap.read()
+                if not ok:
+                    break
+                assert img.shape == (72, 96, 3)
+                frames += 1
+            assert frames == n, f"{clip}/{cam}.mp4 has {frames} frames"
+        masks, depth = read_masks(out / "truth" / "masks" / f"{cam}.h5")
+        assert masks.shape == (6, 72, 96) and masks.dtype == np.uint8
+        assert set(np.unique(masks)) <= {0, 1, 2} and masks.max() > 0
+        assert np.all((depth > 0) == (masks > 0))
+    people = pq.read_table(out / "truth" / "people.parquet")
+    assert people.num_rows == 12
+    assert people.schema.field("joints3d").type.list_size == 72
+    meta = json.loads(people.schema.metadata[b"joint_names"])
+    assert meta[0] == "pelvis" and len(meta) == 24
+    views = pq.read_table(out / "truth" / "views.parquet").to_pydict()
+    assert len(views["frame"]) == 6 * 2 * 2
+    # A visible joint is on its own person's mask; a box encloses the mask.
+    masks = {c: read_masks(out / "truth" / "masks" / f"{c}.h5")[0] for c in cams}
+    for i in range(len(views["frame"])):
+        m = masks[views["camera"][i]][views["frame"][i]]
+        uv = np.asarray(views["joints2d"][i], float).reshape(24, 2)
+        vis = np.asarray(views["visible"][i])
+        px = np.rint(uv[vis]).astype(int)
+        assert np.all(m[px[:, 1], px[:, 0]] == views["person_id"][i])
+        own = m == views["person_id"][i]
+        assert own.sum() == views["mask_area"][i]
+        if own.any():
+            rows, cols = np.nonzero(own)
+            assert views["x0"][i] == cols.min() - 0.5 and views["y1"][i] == rows.max() + 0.5
+
+
+def test_truth_parameters_reproduce_joints_through_the_body_model(tiny_scene):
+    out, _ = tiny_scene
+    t = pq.read_table(out / "truth" / "people.parquet").to_pydict()
+    n = len(t["frame"])
+    col = {k: torch.tensor(np.asarray(t[k], np.float32)) for k in ("betas", "global_orient", "transl")}
+    pose = torch.tensor(np.asarray(t["body_pose"], np.float32).reshape(n, 23, 3))
+    joints = BODY(betas=col["betas"], body_pose=pose, global_orient=col["global_orient"], transl=col["transl"]).joints
+    assert np.abs(joints.numpy().reshape(n, -1) - np.asarray(t["joints3d"])).max() < 1e-5
+    assert np.asarray(t["joints3d"]).reshape(n, 24, 3)[..., 2].min() > -0.01  # nobody under the floor
+
+
+def test_same_seed_gives_byte_identical_files(tiny_scene, tmp_path):
+    out, _ = tiny_scene
+    again = tmp_path / "again"
+    render_scene(_tiny(), again, body_model=BODY, rig_writer=WRITE_RIG)
+    assert _digest(out) == _digest(again)
+    other = tmp_path / "other"
+    render_scene(_tiny(seed=1), other, body_model=BODY, rig_writer=WRITE_RIG)
+    changed = {k for k, v in _digest(other).items() if _digest(out).get(k) != v}
+    assert "truth/people.parquet" in changed and "videos/00_00.mp4" in changed
+
+
+def test_ground_truth_projects_onto_the_rendered_people_through_written_calibration(tmp_path):
+    """Acceptance: >= 95% of in-image GT joints, projected with the calibration read back from
+    the written files, land inside the GT mask (strong lens distortion on purpose)."""
+    spec = _tiny(n_frames=8, rig=dict(kind="dome", n_cameras=3, width=200, height=150, distortion="strong"))
+    out = tmp_path / "accept"
+    render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
+    rigs = {"panoptic": read_panoptic(out / "calibration" / "calibration_synth.json")}
+    if READ_RIG is not None:
+        for fmt, rel in (("rig", "rig.json"), ("panoptic", "calibration_synth.json"), ("h36m", "cameras.h5")):
+            rigs[f"read_rig:{fmt}"] = list(READ_RIG(out / "calibration" / rel, fmt))
+    joints = np.asarray(pq.read_table(out / "truth" / "people.parquet").column("joints3d").to_pylist()).reshape(-1, 24, 3)
+    people = pq.read_table(out / "truth" / "people.parquet").to_pydict()
+    for source, cameras in rigs.items():
+        assert len(cameras) == 3, source
+        on_person = on_own = total = 0
+        for cam in cameras:
+            masks, _ = read_masks(out / "truth" / "masks" / f"{cam.name}.h5")
+            for row in range(len(people["frame"])):
+                f, pid = people["frame"][row], people["person_id"][row]
+                uv = cam.project(joints[row])
+                z = cam.to_camera(joints[row])[:, 2]
+                inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+                px = np.rint(uv[inside]).astype(int)
+                hit = masks[f][px[:, 1], px[:, 0]]
+                total += int(inside.sum())
+                on_person += int((hit > 0).sum())
+                on_own += int((hit == pid).sum())
+        assert total > 200, source
+        assert on_person / total >= 0.95, f"{source}: only {on_person / total:.1%} of joints on a person"
+        assert on_own / total >= 0.9, f"{source}: only {on_own / total:.1%} of joints on their own person"
+
+
+def test_failed_render_leaves_previous_scene_untouched(tiny_scene, tmp_path):
+    out, _ = tiny_scene
+    target = tmp_path / "scene"
+    render_scene(_tiny(), target, body_model=BODY, rig_writer=WRITE_RIG)
+    before = _digest(target)
+
+    def broken_writer(rig, path, fmt):
+        raise OSError(f"disk full while writing {fmt}")
+
+    with pytest.raises(OSError, match="disk full"):
+        render_scene(_tiny(seed=5), target, body_model=BODY, rig_writer=broken_writer)
+    assert _digest(target) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]  # no partial folders left behind
+
+
+def test_presets_and_validation():
+    assert set(PRESETS) == {"demo", "small", "full"}
+    demo = preset("demo")
+    assert 4 <= demo.rig.n_cameras <= 6 and demo.rig.width * demo.rig.height <= 480 * 360
+    assert 1 <= demo.n_people <= 2 and 30 <= demo.n_frames <= 60
+    assert preset("demo", rig__width=320).rig.width == 320
+    assert preset("demo", rig={"n_cameras": 4}).rig.n_cameras == 4
+    assert preset("small", seed=3).seed == 3
+    with pytest.raises(KeyError, match="unknown synth preset 'huge'"):
+        preset("huge")
+    with pytest.raises(ValidationError, match="n_cameras"):
+        preset("demo", rig={"n_cameras": 0})
+    with pytest.raises(ValidationError, match="motions has 1 programmes but n_people is 2"):
+        preset("demo", motions=[["run"]])
+    with pytest.raises(ValidationError, match="extra"):
+        preset("demo", colour="red")
+    with pytest.raises(ValidationError, match="marker_size"):
+        preset("demo", board={"marker_size": 0.5})
+
+
+def test_missing_body_model_api_is_reported(tmp_path):
+    class NotABody:
+        faces = np.zeros((1, 3), int)
+
+    with pytest.raises(TypeError, match="lacks"):
+        render_scene(_tiny(), tmp_path / "x", body_model=NotABody(), rig_writer=WRITE_RIG)
+
+
+def test_masks_file_is_plain_hdf5(tiny_scene):
+    out, _ = tiny_scene
+    with h5py.File(out / "truth" / "masks" / "00_00.h5") as f:
+        assert f.attrs["camera"] == "00_00"
+        assert f["mask"].chunks == (1, 72, 96) and f["mask"].compression == "gzip"
