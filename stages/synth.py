@@ -1,0 +1,35 @@
+"""synth: render the scene's synthetic capture (videos, board clip, calibration files, truth).
+
+Only synthetic scenes need it. Output layout: docs/formats/synth_scene.md, under `synth/`.
+"""
+
+from __future__ import annotations
+
+from synth.scene import preset, render_scene
+
+from pipeline.stage import Stage, StageContext, StageParams
+
+
+class Params(StageParams):
+    pass  # everything that defines the capture lives in the scene's `synthetic` block
+
+
+def run(ctx: StageContext) -> None:
+    src = ctx.scene.synthetic
+    spec = preset(src.preset, seed=src.seed, **src.overrides)
+    last = {}
+
+    def progress(step: str, done: int, total: int) -> None:
+        if done == total or step not in last:
+            last[step] = done
+            ctx.log.info("%s: %d/%d", step, done, total)
+
+    summary = render_scene(spec, ctx.out("synth"), progress=progress)
+    ctx.log.info("rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their mask",
+                 summary.n_frames, len(summary.cameras), summary.n_people, summary.seconds,
+                 100 * summary.joints_in_mask)
+
+
+STAGE = Stage(name="synth", run=run, params_model=Params, outputs=lambda ctx: ["synth"],
+              applies=lambda scene: scene.is_synthetic,
+              help="render the synthetic capture with exact truth (synthetic scenes only)")
