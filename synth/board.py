@@ -125,13 +125,29 @@ class BoardPose:
 
 def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: float,
                rng: np.random.Generator, camera_centers: np.ndarray | None = None) -> list[BoardPose]:
-    """A smooth hand-held path: the board wanders through the volume at about 0.9-1.6 m and
+    """The calibration clip: the board flat on the floor for the first few frames (the world
+    reference), then a smooth hand-held path: the board wanders through the volume at about 0.9-1.6 m and
     turns its printed side once around. With `camera_centers` it faces each camera in turn
     (sorted by azimuth), so every camera gets frontal and oblique views; without, it faces the
     horizon tilted slightly up. Tilt and roll wobble smoothly on top."""
     if n_frames < 1:
         raise ValueError(f"board clip needs at least one frame, got {n_frames}")
     c = np.asarray(volume_center, dtype=np.float64)
+    # The clip starts as a real session does: the board lies flat on the floor, printed face up,
+    # so calibration can take that pose as the world (z up, floor z = 0). Then it is lifted.
+    n_floor = min(FLOOR_FRAMES, n_frames // 6)
+    flat_R = np.diag([1.0, -1.0, -1.0])  # board z (into the print) points down into the floor
+    mid = np.array([spec.size[0] / 2, spec.size[1] / 2, 0.0])
+    flat = BoardPose(R=flat_R, t=np.array([c[0], c[1], FLOOR_LIFT]) - flat_R @ mid)
+    return [flat] * n_floor + _handheld_path(spec, n_frames - n_floor, c, volume_radius, rng, camera_centers)
+
+
+FLOOR_FRAMES = 4  # frames with the board flat on the floor at the start of the clip
+FLOOR_LIFT = 0.003  # metres above the floor plane, so the renderer does not z-fight
+
+
+def _handheld_path(spec: ChArUcoSpec, n_frames: int, c: np.ndarray, volume_radius: float,
+                   rng: np.random.Generator, camera_centers: np.ndarray | None) -> list[BoardPose]:
     tau = np.arange(n_frames) / n_frames
     ph = rng.uniform(0, 2 * np.pi, 4)
     r = 0.5 * volume_radius
