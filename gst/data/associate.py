@@ -30,18 +30,23 @@ class AssociationConfig:
     """Visual-hull association. Lengths in metres."""
 
     voxel_size: float = 0.08
+    voxel_reach: float = 0.5  # foreground within this many voxel sizes of a voxel's centre counts
     min_views: int = 2  # a voxel must be foreground in at least this many cameras ...
     max_misses: int = 1  # ... and in all but this many of the cameras that see it
-    min_person_volume: float = 0.01  # m^3 of occupied voxels
-    min_person_height: float = 0.25  # vertical extent of a person's voxels
+    min_person_volume: float = 0.02  # m^3 of occupied voxels
+    min_person_height: float = 0.5  # vertical extent of a person's voxels
+    merge_radius: float = 0.3  # pieces whose ground positions are closer are one person
+    blob_merge_slack: int = 1  # pieces on the same blobs in all but this many shared views merge
     peak_separation: float = 0.45  # two people's ground-plane centres are at least this far apart
     peak_ratio: float = 0.35  # a second density peak counts if it is this fraction of the highest
     ground_sigma: float = 0.08  # smoothing of the ground-plane density
     min_mask_fraction: float = 0.0003  # smaller person masks (fraction of image) are not a view
     owner_ratio: float = 0.15  # a blob belongs to every person with >= this share of its top vote
     new_fraction: float = 0.3  # a person must explain this share of its footprint anew in a view
-    track_gate: float = 0.75  # max ground-plane move between processed frames for the same id
+    track_max_speed: float = 8.0  # m/s a person can move on the ground (a sprint is ~9)
+    track_slack: float = 0.3  # m of centroid jitter tolerated on top (partial silhouettes move it)
     track_max_gap: int = 15  # processed frames a lost id is kept for re-identification
+    min_track_frames: int = 5  # ids seen in fewer processed frames are dropped (flicker, fragments)
 
     def __post_init__(self):
         if self.voxel_size <= 0:
@@ -112,10 +117,12 @@ class Person3D:
 
 @dataclass
 class FrameAssociation:
-    """Who is where in one frame: per camera a label image (0 = nobody, k + 1 = persons[k])."""
+    """Who is where in one frame: per camera a label image (0 = nobody, k + 1 = persons[k])
+    and, per person, its crop box and mask support (see `VoxelGrid.person_views`)."""
 
     persons: list[Person3D]
     labels: dict[str, np.ndarray] = field(default_factory=dict)
+    views: dict[str, list[tuple[np.ndarray, float] | None]] = field(default_factory=dict)
 
 
 def project_fast(cam: Camera, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -203,6 +210,13 @@ class VoxelGrid:
         self.world = world[keep]
         self.pixel = {n: p[keep].astype(np.int32) for n, p in pix.items()}
         self.focal = focal
+        # Half the projected voxel size at the volume's middle: foreground that close to a
+        # voxel's centre counts, so a coarse voxel is not lost to a thin or ragged silhouette.
+        mid = (0.5 * (volume.lo + volume.hi)) @ volume.basis
+        self.reach_px = {}
+        for cam in cameras:
+            depth = max(float(cam.to_camera(mid)[0, 2]), 0.5)
+            self.reach_px[cam.name] = int(round(config.voxel_reach * focal[cam.name] * v / depth))
 
     def __len__(self) -> int:
         return len(self.kept)
@@ -221,8 +235,11 @@ class VoxelGrid:
         for name in names:
             p = self.pixel[name]
             vis = p >= 0
-            lab = labels[name].reshape(-1)
-            hits += vis & (lab[np.where(vis, p, 0)] > 0)
+            fg = (labels[name] > 0).astype(np.uint8)
+            r = self.reach_px[name]
+            if r > 0:
+                fg = cv2.dilate(fg, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+            hits += vis & (fg.reshape(-1)[np.where(vis, p, 0)] > 0)
             seen += vis
         enough = hits >= cfg.min_views
         return enough & (hits >= seen - cfg.max_misses), enough & (hits >= seen)
@@ -267,9 +284,11 @@ class VoxelGrid:
         return Person3D(vox, core, self.world[core].mean(axis=0), self.ground[core].mean(axis=0),
                         float(up.max() - up.min() + self.config.voxel_size))
 
-    def candidates(self, occupied: np.ndarray, strict: np.ndarray | None = None) -> list[Person3D]:
+    def candidates(self, occupied: np.ndarray, strict: np.ndarray | None = None,
+                   labels: dict[str, np.ndarray] | None = None) -> list[Person3D]:
         """Person candidates among the occupied voxels: 3D components, split where several
-        people touch, with pieces of one body (e.g. legs cut from the torso) merged back."""
+        people touch, with pieces of one body merged back (pieces standing on one spot, and,
+        given the `labels`, pieces that land on the same silhouettes in the cameras)."""
         cfg = self.config
         v = cfg.voxel_size
         strict = occupied if strict is None else strict
@@ -286,15 +305,52 @@ class VoxelGrid:
         for k in range(n):
             vox = occ_idx[order[bounds[k]:bounds[k + 1]]]
             for part in self._split_component(vox):
-                height = (self.up[part].max() - self.up[part].min()) + v
-                if len(part) * v ** 3 < cfg.min_person_volume or height < cfg.min_person_height:
-                    continue
                 out.append(self._person(part, strict))
-        return self._merge_stacked(out, strict)
+        out = self._merge_stacked(out, strict)
+        if labels is not None:
+            out = self._merge_same_blobs(out, strict, labels)
+        return [p for p in out if len(p.voxels) * v ** 3 >= cfg.min_person_volume and p.height >= cfg.min_person_height]
+
+    def _merge_same_blobs(self, cands: list[Person3D], strict: np.ndarray,
+                          labels: dict[str, np.ndarray]) -> list[Person3D]:
+        """Merge pieces that never appear apart: in (nearly) every camera that sees both, most of
+        their voxels land on the same silhouette blob. Two people stand apart in some view;
+        the pieces of one person with a ragged silhouette (a lunge, clothes matching the
+        background) do not."""
+        slack = self.config.blob_merge_slack
+        names = [n for n in self.names if n in labels]
+
+        def main_blobs(c: Person3D) -> dict[str, int]:
+            out = {}
+            for n in names:
+                p = self.pixel[n][c.core]
+                lab = labels[n].reshape(-1)[p[p >= 0]]
+                lab = lab[lab > 0]
+                if len(lab):
+                    out[n] = int(np.bincount(lab).argmax())
+            return out
+
+        blobs = [main_blobs(c) for c in cands]
+        merged = True
+        while merged and len(cands) > 1:
+            merged = False
+            for a in range(len(cands)):
+                for b in range(a + 1, len(cands)):
+                    both = [n for n in blobs[a] if n in blobs[b]]
+                    same = sum(1 for n in both if blobs[a][n] == blobs[b][n])
+                    if len(both) >= 2 and same >= max(2, len(both) - slack):
+                        cands[a] = self._person(np.concatenate([cands[a].voxels, cands[b].voxels]), strict)
+                        blobs[a] = main_blobs(cands[a])
+                        del cands[b], blobs[b]
+                        merged = True
+                        break
+                if merged:
+                    break
+        return cands
 
     def _merge_stacked(self, cands: list[Person3D], strict: np.ndarray) -> list[Person3D]:
-        """Merge candidates whose ground positions are closer than half the person separation."""
-        limit = 0.5 * self.config.peak_separation
+        """Merge candidates whose ground positions are closer than `merge_radius`."""
+        limit = self.config.merge_radius
         merged = True
         while merged and len(cands) > 1:
             merged = False
@@ -309,11 +365,11 @@ class VoxelGrid:
                     break
         return cands
 
-    def footprint(self, name: str, person: Person3D, shape: tuple[int, int]) -> np.ndarray:
-        """Where a person's voxels land in camera `name` (boolean image), each voxel drawn as a
-        disc about its projected size."""
+    def footprint(self, name: str, person: Person3D, shape: tuple[int, int], core: bool = True) -> np.ndarray:
+        """Where a person's voxels (its core, or all of them) land in camera `name` (boolean
+        image), each voxel drawn as a disc about its projected size."""
         h, w = shape
-        p = self.pixel[name][person.core]
+        p = self.pixel[name][person.core if core else person.voxels]
         p = p[p >= 0]
         img = np.zeros((h, w), dtype=np.uint8)
         if len(p) == 0:
@@ -400,6 +456,31 @@ class VoxelGrid:
                 out[out == k + 1] = 0
         return out
 
+    def person_views(self, name: str, person_labels: np.ndarray, persons: list[Person3D]
+                     ) -> list[tuple[np.ndarray, float] | None]:
+        """Per person seen in camera `name`: (box, support), else None.
+
+        box (x0, y0, x1, y1, work-image pixel edges) covers the person's mask and the footprint
+        of all its voxels, so a person whose mask is partial in this view (standing still
+        against the background model) is still cropped whole. support = the share of that
+        footprint the mask covers: low values flag partial masks.
+        """
+        out: list[tuple[np.ndarray, float] | None] = []
+        for k, person in enumerate(persons):
+            mask = person_labels == k + 1
+            if not mask.any():
+                out.append(None)
+                continue
+            foot = self.footprint(name, person, person_labels.shape, core=False)
+            both = mask | foot
+            rows = np.nonzero(both.any(axis=1))[0]
+            cols = np.nonzero(both.any(axis=0))[0]
+            box = np.array([cols[0], rows[0], cols[-1] + 1, rows[-1] + 1], dtype=np.float64)
+            n_foot = np.count_nonzero(foot)
+            support = float(np.count_nonzero(mask & foot) / n_foot) if n_foot else 0.0
+            out.append((box, support))
+        return out
+
     def _split_blob(self, out: np.ndarray, blob: np.ndarray, owners: np.ndarray, proj: list[np.ndarray],
                     depth: np.ndarray, focal: float) -> None:
         """Share one blob among several people: paint each one's projected footprint, far to
@@ -429,19 +510,27 @@ class VoxelGrid:
     def associate(self, labels: dict[str, np.ndarray], active: set[str] | None = None) -> FrameAssociation:
         """People in one frame and, per camera, which pixels belong to whom."""
         occupied, strict = self.occupancy(labels, active)
-        persons = self.select(self.candidates(occupied, strict), labels)
+        persons = self.select(self.candidates(occupied, strict, labels), labels)
         result = FrameAssociation(persons)
         for name in self.names:
             if name in labels:
                 result.labels[name] = self.person_labels(name, labels[name], persons)
+                result.views[name] = self.person_views(name, result.labels[name], persons)
         return result
 
 
 class PersonTracker:
-    """Keeps person ids stable over time by matching ground-plane positions (Hungarian)."""
+    """Keeps person ids stable over time by matching ground-plane positions (Hungarian).
 
-    def __init__(self, gate: float = 0.75, max_gap: int = 15, first_id: int = 1):
-        self.gate = gate
+    A person may move `max_speed * step_seconds` per step plus `slack` (silhouettes that are
+    partial in some frames make the centroid jitter); ids unseen for `max_gap` steps retire.
+    """
+
+    def __init__(self, max_speed: float = 8.0, step_seconds: float = 1 / 30, slack: float = 0.3,
+                 max_gap: int = 15, first_id: int = 1):
+        self.max_speed = max_speed
+        self.step_seconds = step_seconds
+        self.slack = slack
         self.max_gap = max_gap
         self.next_id = first_id
         self.tracks: dict[int, tuple[np.ndarray, int]] = {}  # id -> (ground position, last step)
@@ -458,7 +547,10 @@ class PersonTracker:
             tpos = np.array([self.tracks[i][0] for i in track_ids])
             gap = np.array([self.step - self.tracks[i][1] for i in track_ids], dtype=float)
             cost = np.linalg.norm(pos[:, None] - tpos[None], axis=-1)
-            allowed = cost <= self.gate * gap[None]
+            allowed = cost <= self.slack + self.max_speed * self.step_seconds * gap[None]
+            # Between two tracks in reach, prefer the one seen most recently, so a stale
+            # duplicate does not steal the id back and forth.
+            cost = cost + 0.1 * (gap[None] - 1)
             rows, cols = linear_sum_assignment(np.where(allowed, cost, 1e6))
             for r, c in zip(rows, cols, strict=True):
                 if allowed[r, c]:

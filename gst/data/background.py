@@ -24,7 +24,9 @@ class BackgroundConfig:
     samples: int = 60  # frames sampled evenly across the video to learn the background
     threshold: float = 35.0  # median: colour distance that certainly is foreground
     low_threshold: float = 18.0  # median: weaker distance kept when connected to a certain pixel
-    shadow_ratio: tuple[float, float] = (0.45, 0.95)  # brightness ratio I/B that may be a shadow
+    # Brightness ratio I/B range in which an unchanged colour is a lighting change, not a
+    # person: below 1 cast shadows, above 1 a shadow that the background model itself holds.
+    shadow_ratio: tuple[float, float] = (0.45, 1.5)
     shadow_chroma: float = 12.0  # median: max colour change (after brightness) for a shadow
     edge_fraction: float = 0.5  # median: a silhouette-edge pixel needs this share of the inner contrast
     edge_radius: int = 2  # median: width (px) of the silhouette edge that is refined
@@ -39,8 +41,8 @@ class BackgroundConfig:
         if not 0 < self.low_threshold <= self.threshold:
             raise ValueError(f"need 0 < low_threshold <= threshold, got {self.low_threshold}, {self.threshold}")
         lo, hi = self.shadow_ratio
-        if not 0 < lo < hi <= 1:
-            raise ValueError(f"shadow_ratio must satisfy 0 < lo < hi <= 1, got {self.shadow_ratio}")
+        if not 0 < lo < 1 <= hi:
+            raise ValueError(f"shadow_ratio must satisfy 0 < lo < 1 <= hi, got {self.shadow_ratio}")
 
 
 class BackgroundModel(Protocol):
@@ -96,22 +98,38 @@ class MedianBackground:
         if samples.ndim != 4 or samples.shape[-1] != 3:
             raise ValueError(f"background samples must be (N, H, W, 3), got {samples.shape}")
         self.config = config
-        self.background = np.median(samples, axis=0).astype(np.float32)
-        self._bg_norm2 = np.maximum((self.background ** 2).sum(-1), 1.0)
+        self.background = temporal_median(samples).astype(np.float32)
+        self._inv_bg_norm2 = 1.0 / np.maximum(_channel_sum(self.background * self.background), 1.0)
 
     def foreground(self, frame: np.ndarray) -> np.ndarray:
         cfg = self.config
         img = frame.astype(np.float32)
-        diff = img - self.background
-        dist = np.sqrt((diff ** 2).sum(-1))
+        diff = cv2.subtract(img, self.background)
+        dist = cv2.sqrt(_channel_sum(cv2.multiply(diff, diff)))
         weak = dist > cfg.low_threshold
-        alpha = (img * self.background).sum(-1) / self._bg_norm2
-        chroma = np.sqrt(((img - alpha[..., None] * self.background) ** 2).sum(-1))
-        shadow = (alpha >= cfg.shadow_ratio[0]) & (alpha <= cfg.shadow_ratio[1]) & (chroma < cfg.shadow_chroma)
-        weak &= ~shadow
+        # Brightness ratio alpha = <I, B> / |B|^2 and what is left after it, |I - alpha B|^2 =
+        # |I|^2 - <I, B>^2 / |B|^2 (colour change).
+        dot = _channel_sum(cv2.multiply(img, self.background))
+        alpha = dot * self._inv_bg_norm2
+        chroma2 = _channel_sum(cv2.multiply(img, img)) - dot * alpha
+        lo, hi = cfg.shadow_ratio
+        light = (alpha >= lo) & (alpha <= hi) & (chroma2 < cfg.shadow_chroma ** 2)
+        weak &= ~light
         strong = weak & (dist > cfg.threshold)
         fg = hysteresis(strong, weak)
         return refine_edges(fg, dist, cfg.edge_fraction, cfg.edge_radius)
+
+
+def temporal_median(samples: np.ndarray) -> np.ndarray:
+    """Per-pixel median over axis 0 (the lower middle value for an even count), computed with
+    a partial sort in the samples' own dtype: no float copy of the whole stack."""
+    k = (len(samples) - 1) // 2
+    return np.partition(samples, k, axis=0)[k]
+
+
+def _channel_sum(img: np.ndarray) -> np.ndarray:
+    """Sum over the colour channels of an (H, W, 3) float32 image, via OpenCV (fast)."""
+    return cv2.transform(img, np.ones((1, 3), np.float32))
 
 
 class OpenCVBackground:
@@ -127,6 +145,9 @@ class OpenCVBackground:
             self.sub = cv2.createBackgroundSubtractorKNN(
                 history=n, dist2Threshold=config.knn_dist2_threshold, detectShadows=True)
         self.sub.setShadowThreshold(float(config.shadow_ratio[0]))
+        # The subtractors trust their first frame most; start them from the temporal median
+        # (the best single guess of the empty scene) rather than from whoever is in frame 0.
+        self.sub.apply(np.ascontiguousarray(temporal_median(samples)), learningRate=1.0)
         for frame in samples:
             self.sub.apply(frame, learningRate=-1)
 

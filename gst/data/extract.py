@@ -98,6 +98,7 @@ class ExtractReport:
     persons: int  # distinct person ids
     multiview_groups: int  # (frame, person) with crops from >= 2 cameras
     pairs_resumed: int  # (frame, camera) pairs found already done
+    short_tracks_dropped: list[int] = field(default_factory=list)  # ids seen too briefly to crop
     mask_iou: float | None = None
     association_accuracy: float | None = None
     crops_scored: int = 0
@@ -125,6 +126,7 @@ class MaskJob:
     out: str
     external_masks: str | None = None
     external_boxes: dict | None = None  # frame -> [(person_id, box)] in full-resolution pixels
+    cache_bytes: int = 1 << 30  # decode once and keep work frames in memory up to this size
 
 
 @dataclass(frozen=True)
@@ -164,10 +166,18 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         ext.close()
     else:
         idx = sample_indices(job.n_frames, job.background.samples)
-        samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
+        wanted = sorted(set(idx) | set(job.frames))
+        cache: dict[int, np.ndarray] = {}
+        if len(wanted) * w * h * 3 <= job.cache_bytes:
+            # Short clip: decode once, keep the small work frames for the second pass.
+            cache = dict(read_frames(job.video, wanted, job.camera, sx))
+            samples = np.stack([cache[i] for i in idx])
+        else:
+            samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
         model = build_background(samples, job.background)
         del samples
-        for f, img in read_frames(job.video, job.frames, job.camera, sx):
+        frames_iter = ((f, cache.pop(f)) for f in job.frames) if cache else read_frames(job.video, job.frames, job.camera, sx)
+        for f, img in frames_iter:
             lab, _ = clean_mask(model.foreground(img), job.masks)
             if job.external_boxes is not None:
                 lab = boxes_to_labels(lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1]))
@@ -190,7 +200,7 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
 def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_sizes: dict[str, tuple[int, int]],
                     frames: list[int], out_dir: Path, config: AssociationConfig,
                     volume: CaptureVolume | None, global_ids: bool = False,
-                    progress: Callable | None = None) -> dict:
+                    progress: Callable | None = None, step_seconds: float = 1 / 30) -> dict:
     """Per-frame people and per-camera person labels, written to `out_dir/persons_<cam>.h5`.
 
     Returns a summary (people per frame, ids). With `global_ids` the label values already are
@@ -206,11 +216,12 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
         if len(grid) == 0:
             raise ExtractError(f"no voxel of the capture volume is seen by {config.min_views} of the cameras "
                                f"{names}; check the calibration or give the volume explicitly")
-    tracker = PersonTracker(config.track_gate, config.track_max_gap)
+    tracker = PersonTracker(config.track_max_speed, step_seconds, config.track_slack, config.track_max_gap)
     inputs = {n: h5py.File(label_files[n], "r") for n in names}
     tmp_files = {}
     outs = {}
     slots: dict[str, list[tuple[int, int, int]]] = {n: [] for n in names}
+    views: dict[str, list[tuple[float, ...]]] = {n: [] for n in names}  # box x0 y0 x1 y1, support
     per_frame: list[list[int]] = []
     try:
         for n in names:
@@ -233,6 +244,7 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
                     for v in np.unique(labels[n]):
                         if v > 0:
                             slots[n].append((frame, int(v), int(v)))
+                            views[n].append((np.nan, np.nan, np.nan, np.nan, np.nan))
                 continue
             assoc = grid.associate(labels)
             ids = tracker.update(assoc.persons)
@@ -241,10 +253,13 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
                 lab = assoc.labels[n]
                 outs[n]["labels"][i] = lab
                 for v in np.unique(lab):
-                    if v > 0:
+                    view = assoc.views[n][int(v) - 1] if v > 0 else None
+                    if view is not None:
                         slots[n].append((frame, int(v), ids[int(v) - 1]))
+                        views[n].append((*view[0].tolist(), view[1]))
         for n in names:
             outs[n].create_dataset("slots", data=np.asarray(slots[n], dtype=np.int64).reshape(-1, 3))
+            outs[n].create_dataset("views", data=np.asarray(views[n], dtype=np.float64).reshape(-1, 5))
             outs[n].close()
             os.replace(tmp_files[n], out_dir / f"persons_{n}.h5")
     finally:
@@ -255,7 +270,13 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
                 f.close()
             if tmp_files[n].exists():
                 tmp_files[n].unlink()
-    return {"frames": frames, "ids": per_frame, "voxels": len(grid) if grid is not None else 0}
+    counts: dict[int, int] = {}
+    for ids in per_frame:
+        for i in ids:
+            counts[i] = counts.get(i, 0) + 1
+    short = sorted(i for i, c in counts.items() if c < config.min_track_frames and not global_ids)
+    return {"frames": frames, "ids": per_frame, "voxels": len(grid) if grid is not None else 0,
+            "short_tracks": short}
 
 
 # -- per-camera phase 3: crops ----------------------------------------------------------------
@@ -276,6 +297,7 @@ class CropJob:
     commit_frames: int = 16
     truth_masks: str | None = None
     min_truth_fraction: float = 0.0003
+    drop_ids: tuple[int, ...] = ()  # person ids not to crop (tracks too short to trust)
 
 
 @dataclass
@@ -290,18 +312,30 @@ class CropJobResult:
     truth_views_missed: int = 0
 
 
-def crop_person(frame: np.ndarray, person_mask: np.ndarray, camera: Camera, crop_size: int, scale: float
+def crop_person(frame: np.ndarray, person_mask: np.ndarray, camera: Camera, crop_size: int, scale: float,
+                extra_box: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Crop one person: (image S x S x 3, mask S x S coverage 0..255, K_crop, person box, crop box).
 
     `person_mask` is boolean at work resolution (any size that is a scaling of the frame).
-    Returns None for an empty mask.
+    `extra_box` (x0, y0, x1, y1 pixel edges at work resolution) is a region the person box must
+    also cover (where the 3D hull says the person is). Returns None for an empty mask.
     """
     h, w = frame.shape[:2]
     src_scale = (person_mask.shape[1] / w, person_mask.shape[0] / h)
     pts, half = mask_outline_full_res(person_mask, src_scale)
     if len(pts) == 0:
         return None
+    if extra_box is not None and np.all(np.isfinite(extra_box)):
+        # Box edges to full-resolution pixel centres along its outline (the lens bends it).
+        ex0, ey0, ex1, ey1 = extra_box
+        t = np.linspace(0.0, 1.0, 9)
+        xs = ex0 + (ex1 - ex0) * t
+        ys = ey0 + (ey1 - ey0) * t
+        outline = np.concatenate([np.stack([xs, np.full_like(xs, ey0)], 1), np.stack([xs, np.full_like(xs, ey1)], 1),
+                                  np.stack([np.full_like(ys, ex0), ys], 1), np.stack([np.full_like(ys, ex1), ys], 1)])
+        outline = outline / np.array(src_scale) - 0.5
+        pts = np.concatenate([pts, outline])
     box = undistorted_box(camera, pts, half)
     cbox = hmr_crop_box(box, scale)
     mapx, mapy = crop_maps(camera, cbox, crop_size)
@@ -328,9 +362,13 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
         p_frames = pf["frames"][()]
         row_of = {int(f): i for i, f in enumerate(p_frames)}
         slot_rows = pf["slots"][()]
-        by_frame: dict[int, list[tuple[int, int]]] = {}
-        for f, slot, pid in slot_rows:
-            by_frame.setdefault(int(f), []).append((int(slot), int(pid)))
+        view_rows = pf["views"][()]
+        by_frame: dict[int, list[tuple[int, int, np.ndarray, float]]] = {}
+        drop = set(job.drop_ids)
+        for (f, slot, pid), view in zip(slot_rows, view_rows, strict=True):
+            if pid in drop:
+                continue
+            by_frame.setdefault(int(f), []).append((int(slot), int(pid), view[:4], float(view[4])))
         result = CropJobResult(cam.name, 0, 0, 0, 0.0)
         truth = IdMaskFile(job.truth_masks, cam.name) if job.truth_masks else None
         with CropStoreWriter(job.part, list(job.camera_names), job.crop_size, job.settings,
@@ -358,15 +396,16 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                     assert fi == f
                     next_frame = next(frames_iter, None)
                     labels = pf["labels"][row_of[f]]
-                    for slot, pid in by_frame[f]:
+                    for slot, pid, extra_box, support in by_frame[f]:
                         pmask = labels == slot
-                        got = crop_person(image, pmask, cam, job.crop_size, job.scale)
+                        got = crop_person(image, pmask, cam, job.crop_size, job.scale, extra_box)
                         if got is None:
                             continue
                         img, msk, Kc, box, cbox = got
                         rows.append(CropBatch(img[None], msk[None], Kc[None], cam.R[None], cam.t[None],
                                               box[None], cbox[None], np.array([job.camera_index], np.int32),
-                                              np.array([f], np.int64), np.array([pid], np.int64)))
+                                              np.array([f], np.int64), np.array([pid], np.int64),
+                                              np.array([support], np.float32)))
                         if gt is not None:
                             tid, iou = match_truth(_full_res_mask(pmask, (cam.width, cam.height)), gt)
                             scored.append(CropTruth(f, cam.name, pid, tid, iou))
@@ -539,11 +578,13 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
             if assoc_marker.is_file():
                 summary = json.loads(assoc_marker.read_text())
             elif active:
+                fps = infos[names[0]].fps if infos[names[0]].fps > 0 else 30.0  # unknown rate: assume 30
                 summary = associate_scene({n: work / f"labels_{n}.h5" for n in active}, [rig[n] for n in active],
-                                          work_sizes, frames, work, opts.association, opts.volume, global_ids, progress)
+                                          work_sizes, frames, work, opts.association, opts.volume, global_ids, progress,
+                                          step_seconds=frame_stride / fps)
                 assoc_marker.write_text(json.dumps({**summary, "active": active}))
             else:
-                summary = {"frames": frames, "ids": [[] for _ in frames], "voxels": 0, "active": []}
+                summary = {"frames": frames, "ids": [[] for _ in frames], "voxels": 0, "active": [], "short_tracks": []}
             timings["association"] = time.perf_counter() - t0
 
             # Phase 3: crops per camera.
@@ -555,7 +596,7 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
                 crop_jobs.append(CropJob(rig[n], ci, tuple(names), str(videos[n]), str(work / f"persons_{n}.h5"),
                                          todo, work_sizes[n], crop_size, float(scale), str(work / f"part_{n}.h5"),
                                          settings, opts.commit_frames, str(truth_files[n]) if truth_files.get(n) else None,
-                                         opts.association.min_mask_fraction))
+                                         opts.association.min_mask_fraction, tuple(summary["short_tracks"])))
             for r in _map(executor_map, extract_camera_crops, crop_jobs, "crops per camera"):
                 per_cam[r.camera].seconds_crops = r.seconds
                 truth_rows.extend(r.truth)
@@ -587,7 +628,8 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
         if rows:
             per_cam[n].mask_iou = float(np.mean([r.iou for r in rows]))
     if summary is not None:
-        with_people = sum(1 for ids in summary["ids"] if ids)
+        short = set(summary["short_tracks"])
+        with_people = sum(1 for ids in summary["ids"] if set(ids) - short)
     else:  # everything was already done: count from the store
         with_people = int(len(np.unique(frame_col)))
     acc, n_scored = association_accuracy(truth_rows)
@@ -600,6 +642,7 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
         frames_skipped_empty=len(frames) - with_people, cameras_skipped=skipped_cams, per_camera=per_cam,
         crops=len(store), persons=int(len(np.unique(store.index.column("person_id").to_numpy()))),
         multiview_groups=len(store.multiview_groups(2)), pairs_resumed=pairs_resumed,
+        short_tracks_dropped=list(summary["short_tracks"]) if summary else [],
         mask_iou=float(np.mean([r.iou for r in truth_rows])) if truth_rows else None,
         association_accuracy=acc if n_scored else None, crops_scored=n_scored,
         truth_views=truth_views, truth_views_missed=truth_missed, timings=timings,

@@ -35,6 +35,7 @@ def _row_specs(size: int) -> dict[str, tuple[tuple[int, ...], str]]:
         "camera": ((), "int32"),
         "frame": ((), "int64"),
         "person_id": ((), "int64"),
+        "mask_support": ((), "float32"),
     }
 
 
@@ -56,6 +57,7 @@ class CropBatch:
     camera: np.ndarray  # (n,) index into the store's camera names
     frame: np.ndarray  # (n,)
     person_id: np.ndarray  # (n,)
+    mask_support: np.ndarray  # (n,) share of the person's 3D-hull footprint its mask covers (NaN: unknown)
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -256,6 +258,7 @@ def _read_index_columns(f: h5py.File) -> dict[str, np.ndarray]:
         "x0": box[:, 0], "y0": box[:, 1], "x1": box[:, 2], "y1": box[:, 3],
         "crop_x0": crop[:, 0], "crop_y0": crop[:, 1], "crop_side": crop[:, 2],
         "mask_coverage": masks_area,
+        "mask_support": f["mask_support"][:n],
     }
 
 
