@@ -96,10 +96,10 @@ def _background(cam: Camera, origin: np.ndarray, d: np.ndarray, rng_seed: int = 
     return img.clip(0, 255)
 
 
-def person_pose(k: int, frame: int, n_frames: int) -> tuple[np.ndarray, float]:
-    """Position (x, y on the floor) and heading of person k at a frame: circles around the
-    middle, in opposite directions, so people cross and occlude each other in some views."""
-    s = frame / max(1, n_frames)
+def person_pose(k: int, frame: int, n_frames: int, laps: float = 1.0) -> tuple[np.ndarray, float]:
+    """Position (x, y on the floor) and heading of person k at a frame: `laps` circles around
+    the middle over the clip, in opposite directions, so people cross and occlude each other."""
+    s = laps * frame / max(1, n_frames)
     radius = (1.5, 0.9, 1.9)[k % 3]
     direction = (1, -1, 1)[k % 3]
     a = direction * 2 * np.pi * s + 2.1 * k
@@ -155,10 +155,10 @@ def _render_people(origin, d, people_ellipsoids):
     return best_t, pid, col
 
 
-def _people_at(frame: int, n_frames: int, n_people: int):
+def _people_at(frame: int, n_frames: int, n_people: int, laps: float = 1.0):
     out = []
     for k in range(n_people):
-        pos, heading = person_pose(k, frame, n_frames)
+        pos, heading = person_pose(k, frame, n_frames, laps)
         ch, sh = np.cos(heading), np.sin(heading)
         Rb = np.array([[ch, -sh, 0], [sh, ch, 0], [0, 0, 1.0]])
         swing = 0.25 * np.sin(frame * 0.6 + k)
@@ -173,16 +173,36 @@ def _people_at(frame: int, n_frames: int, n_people: int):
     return out
 
 
+def away_camera(size=(320, 240), f: float = 300.0) -> Camera:
+    """A camera near the wall looking at it, away from where people walk: it sees no one."""
+    w, h = size
+    C = np.array([7.5, 0.0, 1.5])
+    z = np.array([1.0, 0.0, 0.0])
+    x = np.cross(z, [0, 0, 1.0])
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return Camera.create("away", [[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]], [], R, -R @ C, w, h)
+
+
 def make_scene(root: Path, n_people: int = 1, n_frames: int = 30, n_cams: int = 4, size=(320, 240),
-               distort: bool = True, noise: float = 2.0, seed: int = 0, codec: str = "mp4v") -> SynthScene:
-    """Render a scene into `root` (videos, truth masks) and return its description."""
+               distort: bool = True, noise: float = 2.0, seed: int = 0, codec: str = "mp4v",
+               present: tuple[int, int] | None = None, with_away_camera: bool = False,
+               laps: float = 1.0) -> SynthScene:
+    """Render a scene into `root` (videos, truth masks) and return its description.
+
+    present: (first, last) frame in which people are in the scene (default all frames).
+    with_away_camera: add a camera that looks away from everyone.
+    """
     root = Path(root)
     (root / "videos").mkdir(parents=True, exist_ok=True)
     (root / "truth" / "masks").mkdir(parents=True, exist_ok=True)
     rig = ring_rig(n_cams, size=size, distort=distort)
+    if with_away_camera:
+        rig = Rig((*rig.cameras, away_camera(size)))
     rng = np.random.default_rng(seed)
     videos = {}
-    people = [_people_at(f, n_frames, n_people) for f in range(n_frames)]
+    first, last = present if present is not None else (0, n_frames - 1)
+    people = [_people_at(f, n_frames, n_people, laps) if first <= f <= last else [] for f in range(n_frames)]
     for cam in rig:
         origin, d = _rays(cam)
         bg = _background(cam, origin, d)

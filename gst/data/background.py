@@ -141,10 +141,17 @@ class OpenCVBackground:
         if config.method == "mog2":
             self.sub = cv2.createBackgroundSubtractorMOG2(
                 history=n, varThreshold=config.mog2_var_threshold, detectShadows=True)
+            # Colours seen in fewer than 40% of the samples are not background (OpenCV's
+            # default 0.9 lets anyone who stood somewhere 10% of the clip become background).
+            self.sub.setBackgroundRatio(0.6)
         else:
             self.sub = cv2.createBackgroundSubtractorKNN(
                 history=n, dist2Threshold=config.knn_dist2_threshold, detectShadows=True)
+            # Same idea for KNN: keep more samples per pixel and ask more of them to agree.
+            self.sub.setNSamples(20)
+            self.sub.setkNNSamples(6)
         self.sub.setShadowThreshold(float(config.shadow_ratio[0]))
+        cv2.setRNGSeed(0)  # KNN samples at random: make runs repeatable
         # The subtractors trust their first frame most; start them from the temporal median
         # (the best single guess of the empty scene) rather than from whoever is in frame 0.
         self.sub.apply(np.ascontiguousarray(temporal_median(samples)), learningRate=1.0)

@@ -33,7 +33,14 @@ import numpy as np
 from calibration import Camera, Rig
 from gst.data.associate import AssociationConfig, CaptureVolume, PersonTracker, VoxelGrid
 from gst.data.background import BackgroundConfig, build_background, sample_indices
-from gst.data.crop import crop_intrinsics, crop_maps, hmr_crop_box, mask_outline_full_res, resample, undistorted_box
+from gst.data.crop import (
+    crop_intrinsics,
+    crop_maps,
+    hmr_crop_box,
+    mask_outline_full_res,
+    resample,
+    undistorted_box,
+)
 from gst.data.evaluate import CropTruth, association_accuracy, match_truth
 from gst.data.external import (
     ExternalDetections,
