@@ -98,6 +98,15 @@ class Camera:
         return float(self.K[1, 2])
 
     @property
+    def skew(self) -> float:
+        return float(self.K[0, 1])
+
+    def _K_no_skew(self) -> np.ndarray:
+        K = self.K.copy()
+        K[0, 1] = 0.0
+        return K
+
+    @property
     def center(self) -> np.ndarray:
         """Camera centre in world coordinates."""
         return -self.R.T @ self.t
@@ -139,16 +148,24 @@ class Camera:
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
             return np.zeros((0, 2))
-        uv, _ = cv2.projectPoints(pts, self.rvec, self.t, self.K, self.dist if self.dist.size else None)
-        return uv.reshape(-1, 2)
+        # cv2.projectPoints ignores K[0, 1] (skew); project without it and add it after.
+        uv, _ = cv2.projectPoints(pts, self.rvec, self.t, self._K_no_skew(),
+                                  self.dist if self.dist.size else None)
+        uv = uv.reshape(-1, 2)
+        if self.skew:
+            uv[:, 0] += self.skew * (uv[:, 1] - self.cy) / self.fy
+        return uv
 
     def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
         """Distorted pixels (N, 2) to undistorted normalised coordinates (N, 2) (z = 1 plane)."""
-        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        px = np.array(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if len(px) == 0:
             return np.zeros((0, 2))
+        if self.skew:  # cv2.undistortPoints ignores skew too: remove it first
+            px[:, 0, 0] -= self.skew * (px[:, 0, 1] - self.cy) / self.fy
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        out = cv2.undistortPoints(px, self.K, self.dist if self.dist.size else None, None, None, None, crit)
+        out = cv2.undistortPoints(px, self._K_no_skew(), self.dist if self.dist.size else None,
+                                  None, None, None, crit)
         return out.reshape(-1, 2)
 
     def unproject(self, pixels: np.ndarray, depth: np.ndarray | float | None = None) -> np.ndarray:
@@ -166,6 +183,9 @@ class Camera:
         """Remove lens distortion from an image (same K)."""
         if not self.dist.size or not np.any(self.dist):
             return image
+        if self.skew:
+            raise CameraError(f"camera '{self.name}': undistort_image does not support skew "
+                              "(OpenCV ignores K[0, 1])")
         return cv2.undistort(image, self.K, self.dist)
 
 
@@ -210,3 +230,80 @@ class Rig:
 
     def subset(self, names: list[str]) -> Rig:
         return replace(self, cameras=tuple(self[n] for n in names))
+
+    def transformed(self, rotation: np.ndarray, translation: np.ndarray, scale: float = 1.0,
+                    up: tuple[float, float, float] | None = None) -> Rig:
+        """The same cameras in a new world frame, X_new = scale * rotation @ X_old + translation.
+
+        `up` is the new world's up axis; by default the old one carried over by `rotation`.
+        """
+        Rw = _as_array(rotation, (3, 3), "rotation", "<rig transform>")
+        tw = _as_array(translation, (3,), "translation", "<rig transform>")
+        if not (np.isfinite(scale) and scale > 0):
+            raise CameraError(f"rig transform scale must be positive, got {scale}")
+        cams = tuple(c.replace(R=c.R @ Rw.T, t=scale * c.t - c.R @ Rw.T @ tw) for c in self.cameras)
+        new_up = np.asarray(up if up is not None else Rw @ np.asarray(self.up), dtype=np.float64)
+        return replace(self, cameras=cams, up=tuple(float(v) for v in new_up / np.linalg.norm(new_up)))
+
+    def stacked(self) -> dict[str, np.ndarray]:
+        """Per-camera arrays stacked in rig order, for batched code: K (C, 3, 3), R (C, 3, 3),
+        t (C, 3), dist (C, D) zero-padded to the longest model, size (C, 2) as (width, height)."""
+        n_dist = max([5] + [c.dist.size for c in self.cameras])
+        dist = np.zeros((len(self.cameras), n_dist))
+        for i, c in enumerate(self.cameras):
+            dist[i, :c.dist.size] = c.dist
+        return {"K": np.stack([c.K for c in self.cameras]), "R": np.stack([c.R for c in self.cameras]),
+                "t": np.stack([c.t for c in self.cameras]), "dist": dist,
+                "size": np.array([[c.width, c.height] for c in self.cameras])}
+
+
+def look_at_rotation(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera rotation of an OpenCV camera at `position` looking at `target`, with the
+    image's up direction (-y) as close to the world `up` as possible."""
+    position, target, up = (np.asarray(v, dtype=np.float64) for v in (position, target, up))
+    z = target - position
+    if np.linalg.norm(z) < 1e-12:
+        raise CameraError("look_at: position and target coincide")
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:
+        raise CameraError("look_at: viewing direction is parallel to the up vector")
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def project_points_torch(points, K, R, t, dist=None):
+    """Differentiable batched projection with OpenCV's distortion model, in torch.
+
+    points (..., N, 3) world points; K (..., 3, 3) (skew honoured); R (..., 3, 3) and t (..., 3)
+    world-to-camera; dist (..., D) with D in {0, 4, 5, 8, 12}: k1, k2, p1, p2[, k3[, k4, k5,
+    k6[, s1..s4]]] (the tilted model, D = 14, is not supported). Batch dimensions broadcast.
+    Returns (..., N, 2) pixels. Points at or behind the camera give non-finite or meaningless
+    pixels, as in OpenCV; mask them by depth (`(points @ R^T + t)[..., 2] > 0`) where it matters.
+    """
+    import torch
+
+    X = points @ R.transpose(-1, -2) + t.unsqueeze(-2)
+    x, y = X[..., 0] / X[..., 2], X[..., 1] / X[..., 2]
+    if dist is not None and dist.shape[-1] > 0:
+        D = dist.shape[-1]
+        if D not in (4, 5, 8, 12):
+            raise CameraError(f"project_points_torch: {D} distortion terms, expected 0, 4, 5, 8 or 12")
+        d = dist.unsqueeze(-2)  # broadcast against N
+
+        def term(i):
+            return d[..., i] if i < D else torch.zeros((), dtype=x.dtype, device=x.device)
+
+        r2 = x * x + y * y
+        r4, r6 = r2 * r2, r2 * r2 * r2
+        radial = (1 + term(0) * r2 + term(1) * r4 + term(4) * r6) / (
+            1 + term(5) * r2 + term(6) * r4 + term(7) * r6)
+        p1, p2 = term(2), term(3)
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + term(8) * r2 + term(9) * r4
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + term(10) * r2 + term(11) * r4
+        x, y = xd, yd
+    Kb = K.unsqueeze(-3)
+    u = Kb[..., 0, 0] * x + Kb[..., 0, 1] * y + Kb[..., 0, 2]
+    v = Kb[..., 1, 1] * y + Kb[..., 1, 2]
+    return torch.stack([u, v], dim=-1)

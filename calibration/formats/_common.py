@@ -1,0 +1,163 @@
+"""Shared helpers for rig file formats: errors, validation, atomic writes, unit scales, TOML."""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Camera, CameraError, Rig
+
+UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
+
+
+class RigFormatError(ValueError):
+    """A rig file is malformed or a rig cannot be written in a format; names file and key."""
+
+
+def metres_per_unit(units: str, fmt: str) -> float:
+    if units not in UNIT_SCALE:
+        raise RigFormatError(f"{fmt}: units '{units}' unknown, expected one of {sorted(UNIT_SCALE)}")
+    return UNIT_SCALE[units]
+
+
+def validate_rig(rig: Rig) -> Rig:
+    """Re-run every camera's validation (a Camera built without `create` may be broken).
+
+    Raises CameraError naming the camera; returns the rig unchanged when valid."""
+    if not isinstance(rig, Rig):
+        raise CameraError(f"expected a Rig, got {type(rig).__name__}")
+    if len(rig) == 0:
+        raise CameraError("rig has no cameras")
+    for cam in rig:
+        Camera.create(cam.name, cam.K, cam.dist, cam.R, cam.t, cam.width, cam.height, cam.meta)
+    Rig(rig.cameras, rig.up, rig.units, rig.meta)  # rig-level checks (names, up, units)
+    return rig
+
+
+ROUNDED_R_TOL = 1e-3  # rotations printed with few digits are re-orthonormalised up to this error
+
+
+def make_camera(path: Path, name, **fields) -> Camera:
+    """Camera.create with the file named in any error.
+
+    Files often print rotations with 6-8 digits, which breaks orthonormality at the 1e-6 level
+    our Camera demands; such a rotation (error below 1e-3) is replaced by the nearest rotation
+    matrix and the original error is recorded in the camera's meta. Larger errors are refused."""
+    R = fields.get("R")
+    if R is not None:
+        R = np.asarray(R, dtype=np.float64)
+        if R.shape == (3, 3) and np.all(np.isfinite(R)):
+            err = float(np.abs(R @ R.T - np.eye(3)).max())
+            if 1e-9 < err <= ROUNDED_R_TOL and np.linalg.det(R) > 0:
+                U, _, Vt = np.linalg.svd(R)
+                fields["R"] = U @ Vt
+                fields["meta"] = {**(fields.get("meta") or {}), "R_orthonormalised_from_error": err}
+    try:
+        return Camera.create(name, **fields)
+    except CameraError as exc:
+        raise RigFormatError(f"{path}: {exc}") from exc
+
+
+def make_rig(path: Path, cameras: list[Camera], **kwargs) -> Rig:
+    if not cameras:
+        raise RigFormatError(f"{path}: no cameras found")
+    try:
+        return Rig(tuple(cameras), **kwargs)
+    except CameraError as exc:
+        raise RigFormatError(f"{path}: {exc}") from exc
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Call `write(tmp_path)` on a temporary file next to `path`, then rename it into place, so
+    readers never see a half-written file and a failed write leaves the old file intact."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        write(tmp_path)
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+
+
+def require(data: dict, key: str, path: Path, where: str = ""):
+    if not isinstance(data, dict) or key not in data:
+        raise RigFormatError(f"{path}: missing key '{key}'{' in ' + where if where else ''}")
+    return data[key]
+
+
+def as_float_array(value, shape: tuple[int, ...], path: Path, what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise RigFormatError(f"{path}: {what} is not numeric ({exc})") from exc
+    if arr.size != int(np.prod(shape)):
+        raise RigFormatError(f"{path}: {what} has shape {arr.shape}, expected {shape}")
+    return arr.reshape(shape)
+
+
+def trim_dist(dist: np.ndarray, min_len: int = 5) -> np.ndarray:
+    """Shortest valid OpenCV distortion vector (length 4, 5, 8, 12 or 14, at least `min_len`)
+    holding all non-zero terms of `dist`."""
+    d = np.asarray(dist, dtype=np.float64).ravel()
+    nz = np.flatnonzero(d)
+    need = max(min_len, int(nz[-1]) + 1 if len(nz) else 0)
+    for n in (4, 5, 8, 12, 14):
+        if n >= need:
+            out = np.zeros(n)
+            out[:min(n, len(d))] = d[:n]
+            return out
+    raise RigFormatError(f"distortion has {len(d)} terms, more than OpenCV's 14")
+
+
+# -- a small TOML writer (tomllib reads; the standard library cannot write TOML) ---------------
+def toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        if not math.isfinite(f):
+            raise RigFormatError(f"cannot write non-finite number {f} to TOML")
+        return repr(f)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    raise RigFormatError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_dumps(tables: dict[str, dict]) -> str:
+    """TOML text for {table name: {key: scalar or (nested) list}}."""
+    lines = []
+    for table, items in tables.items():
+        lines.append(f"[{table}]")
+        lines += [f"{k} = {toml_value(v)}" for k, v in items.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def json_safe(value):
+    """Meta values made JSON-serialisable (numpy scalars and arrays to Python)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

@@ -1,0 +1,99 @@
+"""The `[cam_N]` TOML layout shared by aniposelib, FreeMoCap and Pose2Sim.
+
+Each camera table holds `name`, `size` [w, h], `matrix` 3x3, `distortions` (OpenCV order),
+`rotation` (Rodrigues vector, world to camera) and `translation` (world to camera); a
+`[metadata]` table follows. The formats differ in units and distortion length only.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import tomllib
+
+from calibration.camera import Rig
+from calibration.formats._common import (
+    RigFormatError,
+    as_float_array,
+    atomic_write_text,
+    make_camera,
+    make_rig,
+    require,
+    toml_dumps,
+)
+
+_BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def load_tables(path: Path) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise RigFormatError(f"{path}: not valid TOML ({exc})") from exc
+
+
+def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
+    data = load_tables(path)
+    cameras = []
+    for key, table in data.items():
+        if key == "metadata" or not isinstance(table, dict):
+            continue
+        where = f"[{key}]"
+        if table.get("fisheye", False):
+            raise RigFormatError(f"{path}: {where} is a fisheye camera, which this project does not model")
+        w, h = as_float_array(require(table, "size", path, where), (2,), path, f"{where} size")
+        rvec = as_float_array(require(table, "rotation", path, where), (3,), path, f"{where} rotation")
+        t = as_float_array(require(table, "translation", path, where), (3,), path, f"{where} translation")
+        cameras.append(make_camera(
+            path, str(table.get("name", key)),
+            K=as_float_array(require(table, "matrix", path, where), (3, 3), path, f"{where} matrix"),
+            dist=np.asarray(table.get("distortions", []), dtype=np.float64),
+            R=cv2.Rodrigues(rvec)[0], t=t * metres_per_unit, width=int(round(w)), height=int(round(h)),
+            meta={"source": source, "section": key}))
+    meta = {"source": source}
+    if isinstance(data.get("metadata"), dict):
+        meta["metadata"] = data["metadata"]
+    return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta=meta)
+
+
+def write_cameras(rig: Rig, path: str | Path, metres_per_unit: float, dist_len: int,
+                  keys: str, extra: dict | None = None, metadata: dict | None = None) -> None:
+    """`keys`: 'index' gives [cam_0], [cam_1], ...; 'name' uses the camera name when it is a
+    bare TOML key (else cam_NN). Distortion is written with `dist_len` terms, or all of them
+    when later terms are non-zero (OpenCV reads any valid length)."""
+    tables = {}
+    for i, c in enumerate(rig):
+        d = c.dist
+        n = dist_len if not np.any(d[dist_len:]) else d.size
+        dist = np.zeros(n)
+        dist[:min(n, d.size)] = d[:n]
+        if keys == "name" and _BARE_KEY.match(c.name) and c.name != "metadata":
+            key = c.name
+        else:
+            key = f"cam_{i}" if keys == "index" else f"cam_{i + 1:02d}"
+        if key in tables:
+            raise RigFormatError(f"two cameras map to the TOML table [{key}]")
+        table = {"name": c.name, "size": [c.width, c.height], "matrix": c.K.tolist(),
+                 "distortions": dist.tolist(), "rotation": c.rvec.tolist(),
+                 "translation": (c.t / metres_per_unit).tolist()}
+        table.update(extra or {})
+        tables[key] = table
+    tables["metadata"] = metadata or {"adjusted": False, "error": 0.0}
+    atomic_write_text(path, toml_dumps(tables))
+
+
+def looks_like_pose2sim(path: Path) -> bool:
+    """Pose2Sim writes `fisheye = ...` and 4 distortion terms; aniposelib neither."""
+    data = load_tables(path)
+    cams = [t for k, t in data.items() if k != "metadata" and isinstance(t, dict)]
+    return any("fisheye" in t or len(t.get("distortions", [])) == 4 for t in cams)
+
+
+def rms_or_zero(rig: Rig) -> float:
+    """The rig's calibration RMS (px) from its meta, for the `[metadata] error` field."""
+    value = rig.meta.get("rms_px", 0.0)
+    return float(value) if isinstance(value, (int, float)) else 0.0

@@ -1,0 +1,118 @@
+"""The common JSON variant of the Human3.6M cameras.
+
+Layout: {"intrinsics": {<camera id>: {"calibration_matrix": 3x3, "distortion": [k1, k2, p1, p2,
+k3]}}, "extrinsics": {"S<n>": {<camera id>: {"R": 3x3, "t": 3x1}}}}. R, t map world to camera,
+t in millimetres; the world is H36M's (z up).
+
+Distortion: the variant lists five numbers in OpenCV's order and its users feed them to OpenCV,
+so by default (`tangential="opencv"`) they are read as OpenCV coefficients. Public copies were
+transcribed from H36M's own k and p, whose tangential model differs (see `h36m.py`); with
+`tangential="h36m"` the numbers are read as H36M's (k1, k2, p1, p2, k3) and converted exactly.
+The two readings differ only through p, which is of order 1e-3 for H36M, i.e. at most a few
+pixels at the image corners.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Rig
+from calibration.formats._common import (
+    RigFormatError,
+    as_float_array,
+    atomic_write_text,
+    make_camera,
+    make_rig,
+    require,
+    trim_dist,
+)
+from calibration.formats.h36m import KNOWN_SIZES, MM_PER_M, h36m_to_opencv, opencv_to_h36m
+
+TANGENTIAL = ("opencv", "h36m")
+
+
+def _subject_name(subject) -> str:
+    s = str(subject)
+    s = s[1:] if s[:1] in "sS" else s
+    if not s.isdigit():
+        raise RigFormatError(f"H36M subject must be a number or 'S<number>', got {subject!r}")
+    return f"S{int(s)}"
+
+
+def read(path: str | Path, subject=None, tangential: str = "opencv",
+         image_size: tuple[int, int] | None = None) -> Rig:
+    """One subject's cameras (`subject='S1'` or 1; optional when the file holds one)."""
+    path = Path(path)
+    if tangential not in TANGENTIAL:
+        raise RigFormatError(f"tangential must be one of {TANGENTIAL}, got {tangential!r}")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
+    intr = require(data, "intrinsics", path)
+    extr = require(data, "extrinsics", path)
+    if subject is None:
+        if len(extr) != 1:
+            raise RigFormatError(f"{path}: holds subjects {sorted(extr)}; choose one with subject=...")
+        subj = next(iter(extr))
+    else:
+        subj = _subject_name(subject)
+        if subj not in extr:
+            raise RigFormatError(f"{path}: no extrinsics for subject '{subj}' (subjects: {sorted(extr)})")
+    cameras = []
+    for name, e in extr[subj].items():
+        where = f"camera '{name}'"
+        i = require(intr, name, path, "intrinsics")
+        K = as_float_array(require(i, "calibration_matrix", path, f"{where} intrinsics"), (3, 3), path, f"{where} K")
+        raw = np.asarray(i.get("distortion", []), dtype=np.float64).ravel()
+        if tangential == "h36m":
+            if raw.size != 5:
+                raise RigFormatError(f"{path}: {where} distortion has {raw.size} terms, expected 5")
+            dist = h36m_to_opencv(raw[[0, 1, 4]], raw[[2, 3]])
+        else:
+            dist = raw
+        if "width" in i and "height" in i:
+            size = (int(i["width"]), int(i["height"]))
+        elif name in KNOWN_SIZES:
+            size = KNOWN_SIZES[name]
+        elif image_size is not None:
+            size = tuple(int(v) for v in image_size)
+        else:
+            raise RigFormatError(f"{path}: {where} has no known image size; pass image_size=(width, height)")
+        cameras.append(make_camera(
+            path, name, K=K, dist=dist,
+            R=as_float_array(require(e, "R", path, where), (3, 3), path, f"{where} R"),
+            t=as_float_array(require(e, "t", path, where), (3,), path, f"{where} t") / MM_PER_M,
+            width=size[0], height=size[1], meta={"source": "h36m-json", "subject": subj}))
+    return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "h36m-json", "subject": subj})
+
+
+def write(rig: Rig, path: str | Path, subject="S1", tangential: str = "opencv") -> None:
+    """One subject's cameras. Distortion is written as 5 OpenCV terms (`tangential='opencv'`) or
+    as H36M's k, p in the same slots (`'h36m'`); cameras that cannot be written exactly that way
+    are refused. Image sizes go into extra `width`/`height` keys of each intrinsics entry."""
+    if tangential not in TANGENTIAL:
+        raise RigFormatError(f"tangential must be one of {TANGENTIAL}, got {tangential!r}")
+    subj = _subject_name(subject)
+    intr, extr = {}, {}
+    for c in rig:
+        if tangential == "h36m":
+            k, p, _ = opencv_to_h36m(c)
+            dist = [k[0], k[1], p[0], p[1], k[2]]
+        else:
+            d = trim_dist(c.dist)
+            if d.size > 5:
+                raise RigFormatError(f"camera '{c.name}': distortion {c.dist.tolist()} needs more than "
+                                     "the 5 OpenCV terms this format holds")
+            dist = d.tolist()
+        intr[c.name] = {"calibration_matrix": c.K.tolist(), "distortion": [float(v) for v in dist],
+                        "width": c.width, "height": c.height}
+        extr[c.name] = {"R": c.R.tolist(), "t": (c.t * MM_PER_M).reshape(3, 1).tolist()}
+    atomic_write_text(path, json.dumps({"intrinsics": intr, "extrinsics": {subj: extr}}, indent=1) + "\n")
+
+
+def sniff(path: Path, text: str | None) -> bool:
+    return text is not None and '"calibration_matrix"' in text and '"extrinsics"' in text

@@ -1,0 +1,85 @@
+"""CMU Panoptic Studio `calibration_<seq>.json`.
+
+Layout: {"calibDataSource": str, "cameras": [{"name": "PP_NN", "type": "hd" | "vga" | "kinect",
+"resolution": [w, h], "panel": int, "node": int, "K": 3x3, "distCoef": [k1, k2, p1, p2, k3],
+"R": 3x3, "t": 3x1}]}. R, t map world to camera (OpenCV axes), t is in centimetres, and the
+world's Y axis points down (so our `Rig.up` is (0, -1, 0)). The world frame is kept; only the
+units change (cm -> m).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Rig
+from calibration.formats._common import (
+    RigFormatError,
+    as_float_array,
+    atomic_write_text,
+    make_camera,
+    make_rig,
+    require,
+    trim_dist,
+)
+
+CM_PER_M = 100.0  # multiply/divide by 100 (exact for more values than scaling by 0.01)
+
+
+def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
+    """All cameras, or only those whose `type` is in `camera_types` (e.g. ("hd",))."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
+    cams_data = require(data, "cameras", path)
+    cameras = []
+    for i, cd in enumerate(cams_data):
+        name = str(require(cd, "name", path, f"cameras[{i}]"))
+        where = f"camera '{name}'"
+        ctype = cd.get("type", "")
+        if camera_types is not None and ctype not in camera_types:
+            continue
+        w, h = as_float_array(require(cd, "resolution", path, where), (2,), path, f"{where} resolution")
+        dist = np.asarray(cd.get("distCoef", []), dtype=np.float64).ravel()
+        meta = {"source": "panoptic", "type": ctype}
+        for key in ("panel", "node"):
+            if key in cd:
+                meta[key] = cd[key]
+        cameras.append(make_camera(
+            path, name,
+            K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
+            dist=dist,
+            R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
+            t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t") / CM_PER_M,
+            width=int(w), height=int(h), meta=meta,
+        ))
+    if not cameras:
+        raise RigFormatError(f"{path}: no cameras of types {camera_types} "
+                             f"(types present: {sorted({c.get('type') for c in cams_data})})")
+    rig_meta = {"source": "panoptic"}
+    if "calibDataSource" in data:
+        rig_meta["calibDataSource"] = data["calibDataSource"]
+    return make_rig(path, cameras, up=(0.0, -1.0, 0.0), meta=rig_meta)
+
+
+def write(rig: Rig, path: str | Path) -> None:
+    """Panoptic JSON (t in cm). Camera type/panel/node come from each camera's meta when it was
+    read from Panoptic; otherwise type 'hd', panel 0 and node = index."""
+    cams = []
+    for i, c in enumerate(rig):
+        cams.append({
+            "name": c.name, "type": c.meta.get("type", "hd"), "resolution": [c.width, c.height],
+            "panel": c.meta.get("panel", 0), "node": c.meta.get("node", i), "K": c.K.tolist(),
+            "distCoef": trim_dist(c.dist).tolist(), "R": c.R.tolist(),
+            "t": (c.t * CM_PER_M).reshape(3, 1).tolist(),
+        })
+    data = {"calibDataSource": str(rig.meta.get("calibDataSource", "gst-capture")), "cameras": cams}
+    atomic_write_text(path, json.dumps(data, indent=1) + "\n")
+
+
+def sniff(path: Path, text: str | None) -> bool:
+    return text is not None and '"distCoef"' in text and '"cameras"' in text

@@ -1,0 +1,107 @@
+"""Qualisys Track Manager calibration export (`.qca.txt`, XML). Read only.
+
+Per `<camera>` (attribute `serial` is the name): `<transform x y z r11 .. r33>` gives the camera
+position in world millimetres and a rotation whose rows are the camera axes in world coordinates
+(X_q = M (P - position)); Qualisys cameras look down their -z axis with +y up, so the OpenCV
+camera is diag(1, -1, -1) X_q. `<intrinsic>` gives focalLengthU/V and centerPointU/V in sensor
+subpixels (64 per pixel), radialDistortion1..3 and tangentalDistortion1..2; `<fov_video>` gives
+the video window (left, top, right, bottom, inclusive), whose offset is removed from the
+principal point. The Qualisys world is z up, millimetres (converted to metres).
+
+Distortion: we read the coefficients as OpenCV's k1, k2, p1, p2, k3 on normalised coordinates,
+as given (values like k1 = -0.05, k2 = 0.14 are typical lens values in that convention). The
+Qualisys documentation available to us does not define the model. Pose2Sim's converter
+divides them by 64 like the pixel quantities; pass `distortion_scale=1/64` to reproduce it.
+Skew other than 0 and rotated views (`viewrotation` other than 0) are refused.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from calibration.camera import Rig
+from calibration.formats._common import RigFormatError, make_camera, make_rig
+
+SUBPIXELS_PER_PIXEL = 64.0
+MM_PER_M = 1000.0
+QUALISYS_TO_OPENCV_AXES = np.diag([1.0, -1.0, -1.0])
+
+
+def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
+    value = el.get(attr)
+    if value is None:
+        raise RigFormatError(f"{path}: {where} <{el.tag}> lacks attribute '{attr}'")
+    try:
+        return float(value)
+    except ValueError as exc:
+        raise RigFormatError(f"{path}: {where} <{el.tag}> {attr}={value!r} is not a number") from exc
+
+
+def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
+    el = cam.find(tag)
+    if el is None:
+        raise RigFormatError(f"{path}: {where} has no <{tag}> element")
+    return el
+
+
+def read(path: str | Path, include_inactive: bool = False, video_only: bool = True,
+         distortion_scale: float = 1.0) -> Rig:
+    """Active video cameras (model containing 'Video', or 'none' as in exported files)."""
+    path = Path(path)
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise RigFormatError(f"{path}: not valid XML ({exc})") from exc
+    if root.tag != "calibration":
+        raise RigFormatError(f"{path}: root element is <{root.tag}>, expected <calibration>")
+    cameras = []
+    for i, cam in enumerate(root.findall("cameras/camera")):
+        name = cam.get("serial") or f"camera{i + 1}"
+        where = f"camera '{name}'"
+        if not include_inactive and cam.get("active", "1") != "1":
+            continue
+        model = cam.get("model", "none")
+        if video_only and not ("video" in model.lower() or model == "none"):
+            continue
+        if cam.get("viewrotation", "0") not in ("0", "0.0"):
+            raise RigFormatError(f"{path}: {where} has viewrotation={cam.get('viewrotation')}; "
+                                 "rotated views are not supported")
+        fov = _child(cam, "fov_video", path, where)
+        left, top = _float(fov, "left", path, where), _float(fov, "top", path, where)
+        width = int(_float(fov, "right", path, where) - left + 1)
+        height = int(_float(fov, "bottom", path, where) - top + 1)
+        intr = _child(cam, "intrinsic", path, where)
+        if float(intr.get("skew", "0") or 0) != 0:
+            raise RigFormatError(f"{path}: {where} has skew={intr.get('skew')}; its units are not "
+                                 "documented, so it is not supported")
+        fu = _float(intr, "focalLengthU", path, where) / SUBPIXELS_PER_PIXEL
+        fv = _float(intr, "focalLengthV", path, where) / SUBPIXELS_PER_PIXEL
+        cu = _float(intr, "centerPointU", path, where) / SUBPIXELS_PER_PIXEL - left
+        cv = _float(intr, "centerPointV", path, where) / SUBPIXELS_PER_PIXEL - top
+        dist = distortion_scale * np.array([
+            _float(intr, "radialDistortion1", path, where), _float(intr, "radialDistortion2", path, where),
+            _float(intr, "tangentalDistortion1", path, where), _float(intr, "tangentalDistortion2", path, where),
+            _float(intr, "radialDistortion3", path, where)])
+        tr = _child(cam, "transform", path, where)
+        position = np.array([_float(tr, a, path, where) for a in "xyz"]) / MM_PER_M
+        M = np.array([[_float(tr, f"r{r}{c}", path, where) for c in (1, 2, 3)] for r in (1, 2, 3)])
+        ortho_err = float(np.abs(M @ M.T - np.eye(3)).max())
+        if ortho_err > 1e-5:
+            raise RigFormatError(f"{path}: {where} rotation r11..r33 is not orthonormal "
+                                 f"(max |M M^T - I| = {ortho_err:.2e})")
+        U, _, Vt = np.linalg.svd(M)  # remove the last digits' rounding
+        R = QUALISYS_TO_OPENCV_AXES @ (U @ Vt)
+        meta = {"source": "qualisys", "model": model, "avg_residual": cam.get("avg-residual")}
+        cameras.append(make_camera(path, name, K=[[fu, 0, cu], [0, fv, cv], [0, 0, 1]], dist=dist, R=R,
+                                   t=-R @ position, width=width, height=height, meta=meta))
+    return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "qualisys"})
+
+
+def sniff(path: Path, text: str | None) -> bool:
+    name = path.name.lower()
+    if name.endswith(".qca.txt") or name.endswith(".qca"):
+        return True
+    return text is not None and "<calibration" in text and "<intrinsic" in text

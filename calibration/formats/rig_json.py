@@ -1,0 +1,102 @@
+"""Our canonical rig file, `rig.json` (documented in docs/formats/rig_json.md).
+
+Metres, world to camera (X_cam = R X_world + t), OpenCV camera axes and pixel convention,
+OpenCV distortion order. Floats are written with Python's shortest round-trip repr, so a
+write/read round trip is bit-exact.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from calibration.camera import Rig
+from calibration.formats._common import (
+    RigFormatError,
+    as_float_array,
+    atomic_write_text,
+    json_safe,
+    make_camera,
+    make_rig,
+    require,
+)
+
+SCHEMA = "gst-capture/rig"
+VERSION = 1
+CAMERA_KEYS = {"name", "width", "height", "K", "dist", "R", "t", "meta"}
+
+
+def to_dict(rig: Rig) -> dict:
+    return {
+        "schema": SCHEMA,
+        "version": VERSION,
+        "units": "m",
+        "convention": "world_to_camera; OpenCV axes (x right, y down, z forward); "
+                      "pixel (0, 0) is the centre of the top-left pixel",
+        "up": [float(v) for v in rig.up],
+        "meta": json_safe(rig.meta),
+        "cameras": [
+            {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
+             "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist(), "meta": json_safe(c.meta)}
+            for c in rig
+        ],
+    }
+
+
+def from_dict(data: dict, path: Path) -> Rig:
+    if not isinstance(data, dict):
+        raise RigFormatError(f"{path}: expected a JSON object at the top level")
+    schema = require(data, "schema", path)
+    if schema != SCHEMA:
+        raise RigFormatError(f"{path}: schema is '{schema}', expected '{SCHEMA}'")
+    version = require(data, "version", path)
+    if not isinstance(version, int) or version < 1:
+        raise RigFormatError(f"{path}: version must be a positive integer, got {version!r}")
+    if version > VERSION:
+        raise RigFormatError(f"{path}: rig file version {version} is newer than this reader "
+                             f"(version {VERSION}); update gst-capture")
+    units = data.get("units", "m")
+    if units != "m":
+        raise RigFormatError(f"{path}: units must be 'm', got '{units}'")
+    cams_data = require(data, "cameras", path)
+    if not isinstance(cams_data, list):
+        raise RigFormatError(f"{path}: 'cameras' must be a list")
+    cameras = []
+    for i, cd in enumerate(cams_data):
+        where = f"cameras[{i}]"
+        if not isinstance(cd, dict):
+            raise RigFormatError(f"{path}: {where} must be an object")
+        unknown = set(cd) - CAMERA_KEYS
+        if unknown:
+            raise RigFormatError(f"{path}: {where} has unknown keys {sorted(unknown)}; "
+                                 f"expected {sorted(CAMERA_KEYS)}")
+        name = require(cd, "name", path, where)
+        where = f"camera '{name}'"
+        cameras.append(make_camera(
+            path, name,
+            K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
+            dist=require(cd, "dist", path, where),
+            R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
+            t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t"),
+            width=require(cd, "width", path, where), height=require(cd, "height", path, where),
+            meta=cd.get("meta") or {},
+        ))
+    up = data.get("up", [0.0, 0.0, 1.0])
+    return make_rig(path, cameras, up=tuple(float(v) for v in up), meta=data.get("meta") or {})
+
+
+def read(path: str | Path) -> Rig:
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
+    return from_dict(data, path)
+
+
+def write(rig: Rig, path: str | Path) -> None:
+    atomic_write_text(path, json.dumps(to_dict(rig), indent=2) + "\n")
+
+
+def sniff(path: Path, text: str | None) -> bool:
+    return text is not None and f'"{SCHEMA}"' in text

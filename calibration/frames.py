@@ -1,0 +1,119 @@
+"""Frames from a video file or an image folder, with subsampling.
+
+An image folder is read in natural filename order (`img2.png` before `img10.png`); frame `i` is
+the i-th image. Frames of different cameras are matched by index, so folders of synchronised
+cameras must hold the same instants in the same order.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+
+class FrameSourceError(ValueError):
+    """A video or image folder cannot be read."""
+
+
+def _natural_key(path: Path):
+    return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", path.name)]
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files in a folder, in natural filename order."""
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
+    if not files:
+        raise FrameSourceError(f"image folder '{folder}' holds no images ({', '.join(IMAGE_SUFFIXES)})")
+    return sorted(files, key=_natural_key)
+
+
+def _open_video(path: Path) -> cv2.VideoCapture:
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise FrameSourceError(f"cannot open video '{path}' (missing file or unsupported codec)")
+    return cap
+
+
+def _check_exists(source: Path) -> None:
+    if not source.exists():
+        raise FrameSourceError(f"frame source '{source}' does not exist (expected a video or image folder)")
+
+
+def count_frames(source: str | Path) -> int:
+    """Number of frames in a video (as the container reports it) or images in a folder."""
+    source = Path(source)
+    _check_exists(source)
+    if source.is_dir():
+        return len(list_images(source))
+    cap = _open_video(source)
+    try:
+        return int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    finally:
+        cap.release()
+
+
+def source_image_size(source: str | Path) -> tuple[int, int]:
+    """(width, height) of the frames of a video or of the first image in a folder."""
+    source = Path(source)
+    _check_exists(source)
+    if source.is_dir():
+        first = list_images(source)[0]
+        img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise FrameSourceError(f"cannot read image '{first}'")
+        return int(img.shape[1]), int(img.shape[0])
+    cap = _open_video(source)
+    try:
+        return int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    finally:
+        cap.release()
+
+
+def iter_frames(source: str | Path, frame_step: int = 1, max_frames: int | None = None,
+                grayscale: bool = True) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield (frame index, image) for every `frame_step`-th frame, at most `max_frames` of them.
+
+    Video frames that are skipped are grabbed but not decoded to images, which is cheaper.
+    """
+    source = Path(source)
+    _check_exists(source)
+    step = max(int(frame_step), 1)
+    limit = None if max_frames is None else max(int(max_frames), 0)
+    flag = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
+    yielded = 0
+    if source.is_dir():
+        for index, path in enumerate(list_images(source)):
+            if index % step:
+                continue
+            if limit is not None and yielded >= limit:
+                return
+            img = cv2.imread(str(path), flag)
+            if img is None:
+                raise FrameSourceError(f"cannot read image '{path}'")
+            yielded += 1
+            yield index, img
+        return
+    cap = _open_video(source)
+    try:
+        index = -1
+        while limit is None or yielded < limit:
+            index += 1
+            if index % step:
+                if not cap.grab():
+                    return
+                continue
+            ok, img = cap.read()
+            if not ok:
+                return
+            if grayscale and img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+            yielded += 1
+            yield index, img
+    finally:
+        cap.release()

@@ -1,0 +1,283 @@
+"""Calibrate a camera rig from board footage: detection, intrinsics, pose graph, bundle adjustment,
+world frame.
+
+World frame with `floor_world=True`: the board pose in `floor_frame` (by default the first frame
+in which any camera found the board) is taken to lie flat on the floor, printed face up. The
+world origin is that board's origin (its top-left outer corner as printed), x runs along the
+board's rows, z points up out of the floor and y completes a right-handed frame; floor z = 0,
+units are metres (scale from `BoardSpec.square_size`). With `floor_world=False` the world is the
+first camera's frame (and `Rig.up` is that camera's -y, a guess).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calibration.board import (
+    BoardSpec,
+    CameraDetections,
+    FrameDetection,
+    detect_in_sources,
+    spans_plane,
+)
+from calibration.bundle import BAOptions, BAResult, CameraState, bundle_adjust_board
+from calibration.camera import Camera, Rig
+from calibration.errors import CalibrationError
+from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
+from calibration.posegraph import chain_poses, invert, pairwise_edges, robust_mean_pose
+
+# Board axes expressed in the floor world: x stays, y and z flip (board z points into the floor).
+WORLD_FROM_FLOOR_BOARD_AXES = np.diag([1.0, -1.0, -1.0])
+
+Progress = Callable[[str, int, int], None]
+
+__all__ = ["BoardCalibration", "CalibrationError", "InitialSolution", "SolveOptions", "bundle_adjust",
+           "calibrate_from_board", "calibrate_from_detections", "finish_calibration",
+           "initialise_from_detections"]
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """Knobs of the board calibration (defaults suit ChArUco boards and ordinary lenses)."""
+
+    lens_model: str = "opencv"  # 'pinhole', 'opencv' (k1 k2 p1 p2) or 'full_opencv' (rational)
+    min_corners: int = 6  # fewer corners in a view: the view is ignored
+    max_intrinsic_views: int = 40  # views per camera for the initial cv2.calibrateCamera
+    view_outlier_px: float = 3.0  # initial PnP: corners off by more (and 3x the camera's RMS) are
+    # left out of that view's pose; a view still above it after that is dropped
+    min_sharpness_ratio: float = 0.2  # blurred detections (vs the camera's median) are dropped
+    ba: BAOptions = field(default_factory=BAOptions)
+
+
+@dataclass
+class BoardCalibration:
+    """Result of a board calibration, with everything the report shows."""
+
+    rig: Rig
+    board: BoardSpec
+    rms_px: dict[str, float]  # final per-camera reprojection RMS over inlier observations
+    detections: dict[str, int]  # frames with a usable board detection, per camera
+    detected_frames: dict[str, list[int]]  # those frames' indices
+    frames_searched: dict[str, int]
+    image_sizes: dict[str, tuple[int, int]]
+    observations: dict[str, np.ndarray]  # (N, 2) px: inlier corners in the final adjustment
+    residuals_px: dict[str, np.ndarray]  # (N,) reprojection error of those observations
+    outliers: dict[str, np.ndarray]  # (M, 2) px: corners removed as outliers
+    initial_rms_px: dict[str, float]  # per-camera RMS of the single-camera calibration
+    world_from_board: dict[int, np.ndarray]  # frame -> 4x4 board pose in the world
+    floor_frame: int | None
+    timings: dict[str, float]  # seconds per step; 'bundle_adjustment' is the whole BA
+    ba_rounds: list[dict]
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def rms_px_overall(self) -> float:
+        r = np.concatenate([v for v in self.residuals_px.values() if len(v)])
+        return float(np.sqrt(np.mean(r ** 2)))
+
+
+def _clean(det: FrameDetection, board: BoardSpec, min_corners: int) -> FrameDetection | None:
+    ids, uv = det.ids, det.corners
+    ok = (ids >= 0) & (ids < board.n_corners) & np.all(np.isfinite(uv), axis=1)
+    ids, uv = ids[ok], uv[ok]
+    ids, first = np.unique(ids, return_index=True)  # a corner reported twice: keep the first
+    uv = uv[first]
+    if len(ids) < min_corners or not spans_plane(board.object_points()[ids, :2]):
+        return None
+    return FrameDetection(det.frame, ids, uv, det.sharpness)
+
+
+@dataclass
+class InitialSolution:
+    """Everything bundle adjustment starts from: cleaned detections, per-camera intrinsics,
+    camera poses in the rig (relative to `reference`) and board poses in the rig."""
+
+    names: list[str]
+    board: BoardSpec
+    detections: dict[str, list[FrameDetection]]
+    frames_searched: dict[str, int]
+    cameras: dict[str, CameraState]
+    reference: str
+    rig_from_board: dict[int, np.ndarray]
+    observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]
+    initial_rms_px: dict[str, float]
+    timings: dict[str, float]
+
+
+def initialise_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
+                               image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
+                               frames_searched: Mapping[str, int] | None = None,
+                               options: SolveOptions | None = None,
+                               progress: Progress | None = None) -> InitialSolution:
+    """Steps before bundle adjustment: per-camera intrinsics (cv2.calibrateCamera, outlier
+    views rejected), per-view board poses (robust PnP), camera poses from the pose graph and
+    board poses in the rig. Raises CalibrationError / PoseGraphError naming cameras that never
+    saw the board or share no frame with the others."""
+    opts = options or SolveOptions()
+    if opts.lens_model not in LENS_MODELS:
+        raise CalibrationError(f"lens model '{opts.lens_model}' is unknown, expected one of {sorted(LENS_MODELS)}")
+    timings: dict[str, float] = {}
+    names = list(detections)
+    if not names:
+        raise CalibrationError("no cameras given")
+    searched = dict(frames_searched or {})
+    dets: dict[str, list[FrameDetection]] = {}
+    for n in names:
+        raw = detections[n]
+        if isinstance(raw, CameraDetections):
+            searched.setdefault(n, raw.frames_searched)
+            raw = raw.detections
+        if n not in image_sizes:
+            raise CalibrationError(f"camera '{n}': no image size given (expected (width, height))")
+        dets[n] = [d for d in (_clean(d, board, opts.min_corners) for d in raw) if d is not None]
+    blind = [n for n in names if not dets[n]]
+    if blind:
+        parts = [f"'{n}' ({searched[n]} frames searched)" if n in searched else f"'{n}'" for n in blind]
+        raise CalibrationError(
+            f"camera {', '.join(parts)} never saw the board with at least {opts.min_corners} corners; "
+            "check that the board is in view and in focus, and that the board spec matches it"
+        )
+
+    # 1. Intrinsics per camera, then the board pose in every view.
+    t0 = time.perf_counter()
+    intr, views, weights, initial_rms = {}, {}, {}, {}
+    for i, n in enumerate(names):
+        if progress:
+            progress("intrinsics", i, len(names))
+        intr[n] = calibrate_intrinsics(n, dets[n], board, tuple(image_sizes[n]), lens_model=opts.lens_model,
+                                       max_views=opts.max_intrinsic_views)
+        initial_rms[n] = intr[n].rms_px
+        limit = max(opts.view_outlier_px, 3.0 * intr[n].rms_px)
+        poses = [board_pose(d, board, intr[n].K, intr[n].dist, outlier_px=limit,
+                            min_corners=opts.min_corners) for d in dets[n]]
+        views[n] = {p.frame: p.matrix for p in poses if p.rms_px <= limit}
+        weights[n] = {p.frame: float(p.n_corners) for p in poses if p.rms_px <= limit}
+    timings["intrinsics"] = time.perf_counter() - t0
+
+    # 2. Extrinsics: pose graph over cameras, then every board pose in the rig.
+    t0 = time.perf_counter()
+    cam_from_ref, reference = chain_poses(names, pairwise_edges(views, weights))
+    frames = sorted({f for n in names for f in views[n]})
+    rig_from_board = {}
+    for f in frames:
+        seen = [n for n in names if f in views[n]]
+        est = np.stack([invert(cam_from_ref[n]) @ views[n][f] for n in seen])
+        rig_from_board[f], _ = robust_mean_pose(est, np.array([weights[n][f] for n in seen]))
+    timings["pose_graph"] = time.perf_counter() - t0
+    states = {n: CameraState(n, int(image_sizes[n][0]), int(image_sizes[n][1]), intr[n].K, intr[n].dist,
+                             cam_from_ref[n]) for n in names}
+    observations = {n: {d.frame: (d.ids, d.corners) for d in dets[n] if d.frame in views[n]} for n in names}
+    return InitialSolution(names, board, dets, searched, states, reference, rig_from_board, observations,
+                           initial_rms, timings)
+
+
+def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) -> BAResult:
+    """Joint bundle adjustment (pycolmap) of an initial solution."""
+    opts = options or SolveOptions()
+    return bundle_adjust_board(init.cameras, init.reference, init.rig_from_board, init.board.object_points(),
+                               init.observations, opts.lens_model, opts.ba)
+
+
+def finish_calibration(init: InitialSolution, ba: BAResult, *, floor_world: bool = True,
+                       floor_frame: int | None = None, timings: dict[str, float] | None = None
+                       ) -> BoardCalibration:
+    """Put the adjusted rig into its world frame (see the module docstring) and collect results."""
+    names, board = init.names, init.board
+    notes: list[str] = []
+    cams_rig = {n: ba.cameras[n].cam_from_rig for n in names}
+    if floor_world:
+        if floor_frame is None:
+            floor_frame = min(ba.rig_from_board)
+        if floor_frame not in ba.rig_from_board:
+            raise CalibrationError(f"floor frame {floor_frame} has no usable board detection; frames with "
+                                   f"board poses: {sorted(ba.rig_from_board)[:20]}...")
+        board_from_world = invert(_world_from_floor_board())
+        rig_from_world = ba.rig_from_board[floor_frame] @ board_from_world
+        up = (0.0, 0.0, 1.0)
+    else:
+        floor_frame = None
+        rig_from_world = invert(cams_rig[names[0]])  # world = first camera
+        up = tuple(float(v) for v in -np.eye(3)[1])
+    rms = ba.rms_px()
+    cameras = []
+    for n in names:
+        s = ba.cameras[n]
+        T = cams_rig[n] @ rig_from_world
+        cameras.append(Camera.create(n, s.K, s.dist, T[:3, :3], T[:3, 3], s.width, s.height,
+                                     {"source": "board-calibration", "rms_px": rms[n]}))
+    rig = Rig(tuple(cameras), up=up, meta={"source": "board-calibration", "board": board.to_dict(),
+                                           "floor_frame": floor_frame})
+    if floor_world:
+        below = [c.name for c in rig if c.center[2] <= 0]
+        if below:
+            notes.append(f"cameras {below} are below the floor: was the board in frame {floor_frame} "
+                         "really lying flat on the floor, printed side up?")
+    world_from_rig = invert(rig_from_world)
+    return BoardCalibration(
+        rig=rig, board=board, rms_px=rms, detections={n: len(init.detections[n]) for n in names},
+        detected_frames={n: [d.frame for d in init.detections[n]] for n in names},
+        frames_searched={n: int(init.frames_searched[n]) for n in names if n in init.frames_searched},
+        image_sizes={n: (init.cameras[n].width, init.cameras[n].height) for n in names},
+        observations=ba.observations, residuals_px=ba.residuals, outliers=ba.outliers,
+        initial_rms_px=init.initial_rms_px,
+        world_from_board={f: world_from_rig @ T for f, T in ba.rig_from_board.items()},
+        floor_frame=floor_frame, timings=dict(timings or init.timings), ba_rounds=ba.rounds, notes=notes)
+
+
+def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
+                              image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
+                              floor_world: bool = True, floor_frame: int | None = None,
+                              frames_searched: Mapping[str, int] | None = None,
+                              options: SolveOptions | None = None,
+                              progress: Progress | None = None) -> BoardCalibration:
+    """Calibrate a rig from board corners already found in each camera's frames.
+
+    `detections[camera]` lists that camera's FrameDetection (frame indices shared across cameras
+    mean the same instant); `image_sizes[camera] = (width, height)`. Cameras keep the order of
+    `detections`. Raises CalibrationError naming any camera that never saw the board, and
+    PoseGraphError naming cameras that share no board frame with the others.
+    """
+    init = initialise_from_detections(detections, image_sizes, board, frames_searched=frames_searched,
+                                      options=options, progress=progress)
+    if progress:
+        progress("bundle adjustment", 0, 1)
+    t0 = time.perf_counter()
+    ba = bundle_adjust(init, options)
+    timings = {**init.timings, "bundle_adjustment": time.perf_counter() - t0}
+    if progress:
+        progress("bundle adjustment", 1, 1)
+    return finish_calibration(init, ba, floor_world=floor_world, floor_frame=floor_frame, timings=timings)
+
+
+def _world_from_floor_board() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = WORLD_FROM_FLOOR_BOARD_AXES
+    return T
+
+
+def calibrate_from_board(sources: Mapping[str, str | Path], board: BoardSpec, *, frame_step: int = 1,
+                         max_frames: int | None = None, floor_world: bool = True,
+                         progress: Progress | None = None, floor_frame: int | None = None,
+                         options: SolveOptions | None = None) -> BoardCalibration:
+    """Calibrate a rig from synchronised board footage, one video file or image folder per camera.
+
+    Every `frame_step`-th frame is searched, at most `max_frames` per camera. See the module
+    docstring for the world frame. `progress(step, done, total)` reports detection per camera
+    (step 'detect <camera>') and the solver steps.
+    """
+    opts = options or SolveOptions()
+    t0 = time.perf_counter()
+    found = detect_in_sources(dict(sources), board, frame_step=frame_step, max_frames=max_frames,
+                              min_corners=opts.min_corners, min_sharpness_ratio=opts.min_sharpness_ratio,
+                              progress=(lambda cam, i, n: progress(f"detect {cam}", i, n)) if progress else None)
+    t_detect = time.perf_counter() - t0
+    result = calibrate_from_detections(found, {n: d.image_size for n, d in found.items()}, board,
+                                       floor_world=floor_world, floor_frame=floor_frame,
+                                       options=opts, progress=progress)
+    result.timings = {"detection": t_detect, **result.timings}
+    return result

@@ -1,0 +1,118 @@
+"""Triangulation of points seen by several cameras of a rig.
+
+`triangulate_dlt` is the batched linear method (numpy, any number of points at once): pixels
+are undistorted to normalised coordinates first, which keeps the DLT well conditioned, and each
+point uses only the views that see it. `triangulate_robust` adds pycolmap's LO-RANSAC
+estimator per point, for observations that may contain wrong views (e.g. a joint assigned to
+the wrong person), with a nonlinear refinement of the inliers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from calibration.camera import Rig
+
+
+@dataclass
+class Triangulation:
+    points: np.ndarray  # (N, 3) world points; NaN where fewer than 2 views saw the point
+    errors_px: np.ndarray  # (C, N) reprojection error per view; NaN where unused
+    used: np.ndarray  # (C, N) bool, views that took part (visible and, if robust, inliers)
+
+    @property
+    def n_views(self) -> np.ndarray:
+        return self.used.sum(axis=0)
+
+
+def _check(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if pixels.ndim != 3 or pixels.shape[0] != len(rig) or pixels.shape[2] != 2:
+        raise ValueError(f"pixels must have shape (cameras={len(rig)}, N, 2), got {pixels.shape}")
+    vis = np.all(np.isfinite(pixels), axis=2)
+    if visible is not None:
+        visible = np.asarray(visible, dtype=bool)
+        if visible.shape != pixels.shape[:2]:
+            raise ValueError(f"visible must have shape {pixels.shape[:2]}, got {visible.shape}")
+        vis &= visible
+    return pixels, vis
+
+
+def normalised_points(rig: Rig, pixels: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """(C, N, 2) undistorted normalised coordinates (NaN where not visible)."""
+    out = np.full(pixels.shape, np.nan)
+    for c, cam in enumerate(rig):
+        if visible[c].any():
+            out[c, visible[c]] = cam.undistort_points(pixels[c, visible[c]])
+    return out
+
+
+def reprojection_errors(rig: Rig, points: np.ndarray, pixels: np.ndarray, used: np.ndarray) -> np.ndarray:
+    err = np.full(used.shape, np.nan)
+    ok = np.all(np.isfinite(points), axis=1)
+    for c, cam in enumerate(rig):
+        m = used[c] & ok
+        if m.any():
+            err[c, m] = np.linalg.norm(cam.project(points[m]) - pixels[c, m], axis=1)
+    return err
+
+
+def triangulate_dlt(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None) -> Triangulation:
+    """Linear triangulation of N points from (C, N, 2) pixels (NaN or `visible` False = unseen).
+
+    Each view contributes two rows of the homogeneous system A X = 0 in normalised coordinates
+    (x P3 - P1, y P3 - P2 with P = [R | t]); rows of unseen views are zero. Solved for all
+    points at once with a batched SVD.
+    """
+    pixels, vis = _check(rig, pixels, visible)
+    xy = normalised_points(rig, pixels, vis)
+    P = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])  # (C, 3, 4)
+    x, y = np.nan_to_num(xy[..., 0]), np.nan_to_num(xy[..., 1])  # (C, N)
+    rows_x = x[..., None] * P[:, None, 2, :] - P[:, None, 0, :]  # (C, N, 4)
+    rows_y = y[..., None] * P[:, None, 2, :] - P[:, None, 1, :]
+    A = np.concatenate([rows_x, rows_y], axis=0) * np.concatenate([vis, vis])[..., None]  # (2C, N, 4)
+    A = np.transpose(A, (1, 0, 2))  # (N, 2C, 4)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        points = Xh[:, :3] / Xh[:, 3:4]
+    points[vis.sum(axis=0) < 2] = np.nan
+    return Triangulation(points, reprojection_errors(rig, points, pixels, vis), vis)
+
+
+def _colmap_camera(cam) -> pycolmap.Camera:
+    d = np.zeros(8)
+    d[:min(cam.dist.size, 8)] = cam.dist[:8]
+    if cam.dist.size > 8 and np.any(cam.dist[8:]):
+        raise ValueError(f"camera '{cam.name}': thin-prism distortion is not supported by pycolmap")
+    return pycolmap.Camera(model="FULL_OPENCV", width=cam.width, height=cam.height,
+                           params=[cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, *d])
+
+
+def triangulate_robust(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None,
+                       max_angle_error_deg: float = 1.0) -> Triangulation:
+    """Per point, pycolmap's LO-RANSAC triangulation: views whose ray misses the point by more
+    than `max_angle_error_deg` are outliers and left out. Slower than DLT (a Python loop)."""
+    pixels, vis = _check(rig, pixels, visible)
+    cams = [_colmap_camera(c) for c in rig]
+    poses = [pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t) for c in rig]
+    opts = pycolmap.EstimateTriangulationOptions()
+    opts.ransac.max_error = np.radians(max_angle_error_deg)
+    opts.ransac.random_seed = 0
+    n = pixels.shape[1]
+    points = np.full((n, 3), np.nan)
+    used = np.zeros_like(vis)
+    for j in range(n):
+        views = np.flatnonzero(vis[:, j])
+        if len(views) < 2:
+            continue
+        res = pycolmap.estimate_triangulation(pixels[views, j] + 0.5, [poses[v] for v in views],
+                                              [cams[v] for v in views], opts)
+        if res is None:
+            continue
+        points[j] = res["xyz"]
+        used[views[np.asarray(res["inliers"], dtype=bool)], j] = True
+    return Triangulation(points, reprojection_errors(rig, points, pixels, used), used)

@@ -1,0 +1,168 @@
+"""Boards: spec, rendering, detection (ChArUco and checkerboard, partial and blurred views),
+frame sources (image folders and videos)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.board import (
+    BoardDetector,
+    BoardError,
+    BoardSpec,
+    FrameDetection,
+    detect_in_source,
+    drop_blurred,
+)
+from calibration.camera import Camera, look_at_rotation
+from calibration.frames import FrameSourceError, count_frames, iter_frames, source_image_size
+from calibration.synthetic import BoardRenderer
+
+CHARUCO = BoardSpec("charuco", 7, 5, 0.15, 0.11, "DICT_4X4_50")
+CHECKER = BoardSpec("checkerboard", 8, 5, 0.1)
+
+
+def camera_facing_board(board: BoardSpec, distance=1.6, offset=(0.0, 0.0), tilt_deg=20.0, size=(800, 600)):
+    """A camera looking at the centre of a board lying in the world plane z = 0 (printed side
+    towards -z, so the camera sits at negative z), with some tilt."""
+    w, h = board.size_m
+    centre = np.array([w / 2 + offset[0], h / 2 + offset[1], 0.0])
+    a = np.radians(tilt_deg)
+    pos = centre + distance * np.array([np.sin(a), 0.0, -np.cos(a)])
+    R = look_at_rotation(pos, centre, up=(0.0, -1.0, 0.0))  # board y is down the printed page
+    K = [[750.0, 0, size[0] / 2 - 0.5], [0, 750.0, size[1] / 2 - 0.5], [0, 0, 1]]
+    return Camera.create("cam", K, [-0.08, 0.02, 0, 0, 0], R, -R @ pos, *size)
+
+
+def truth(camera, board, pose=None):
+    pose = np.eye(4) if pose is None else pose
+    return camera.project(board.object_points() @ pose[:3, :3].T + pose[:3, 3])
+
+
+def test_board_spec_dict_round_trip_and_validation():
+    d = CHARUCO.to_dict()
+    assert set(d) == {"kind", "squares_x", "squares_y", "square_size", "marker_size", "dictionary"}
+    assert BoardSpec.from_dict(d) == CHARUCO
+    assert BoardSpec.from_dict(CHECKER.to_dict()) == CHECKER
+    with pytest.raises(BoardError, match="unknown"):
+        BoardSpec.from_dict({**d, "colour": "red"})
+    with pytest.raises(BoardError, match="marker_size"):
+        BoardSpec("charuco", 7, 5, 0.1, 0.12)
+    with pytest.raises(BoardError, match="DICT_9X9"):
+        BoardSpec("charuco", 7, 5, 0.1, 0.07, "DICT_9X9_50")
+    with pytest.raises(BoardError, match="markers"):
+        BoardSpec("charuco", 12, 12, 0.1, 0.07, "DICT_4X4_50")
+    with pytest.raises(BoardError, match="odd"):
+        BoardSpec("checkerboard", 7, 5, 0.1)
+    assert CHARUCO.n_corners == 24 and CHARUCO.object_points()[7].tolist() == [0.3, 0.3, 0.0]
+    # Our corner ids and OpenCV's ChArUco corner ids are the same corners.
+    np.testing.assert_allclose(CHARUCO.create_cv_board().getChessboardCorners(), CHARUCO.object_points(), atol=1e-7)
+
+
+def test_render_image_marks_square_zero_black():
+    img = CHARUCO.render_image(40)
+    assert img.shape == (200, 280) and img[20, 20] == 0 and img[2, 42] == 255
+    chk = CHECKER.render_image(20)
+    assert chk.shape == (100, 160) and chk[10, 10] == 0 and chk[10, 30] == 255
+
+
+@pytest.mark.parametrize("board", [CHARUCO, CHECKER], ids=["charuco", "checkerboard"])
+def test_detection_is_subpixel_accurate(board):
+    cam = camera_facing_board(board)
+    img = BoardRenderer(cam, board).render(np.eye(4), blur_sigma=0.6, noise_std=2.0, rng=np.random.default_rng(0))
+    det = BoardDetector(board).detect(img, frame=5)
+    assert det is not None and det.frame == 5
+    assert len(det.ids) == board.n_corners
+    err = np.linalg.norm(det.corners - truth(cam, board)[det.ids], axis=1)
+    assert err.max() < 0.4, err.max()
+    assert np.sqrt(np.mean(err**2)) < 0.2
+
+
+def test_checkerboard_orientation_is_resolved_when_upside_down():
+    cam = camera_facing_board(CHECKER)
+    w, h = CHECKER.size_m
+    flip = np.eye(4)  # board turned 180 degrees in its plane about its centre
+    flip[:3, :3] = np.diag([-1.0, -1.0, 1.0])
+    flip[:3, 3] = [w, h, 0.0]
+    img = BoardRenderer(cam, CHECKER).render(flip, 0.5, 1.0, np.random.default_rng(1))
+    det = BoardDetector(CHECKER).detect(img)
+    err = np.linalg.norm(det.corners - truth(cam, CHECKER, flip)[det.ids], axis=1)
+    assert err.max() < 0.4
+
+
+def test_partial_charuco_view_keeps_visible_corners_with_their_ids():
+    cam = camera_facing_board(CHARUCO, distance=1.0, offset=(0.45, 0.0), tilt_deg=0.0)
+    img = BoardRenderer(cam, CHARUCO).render(np.eye(4), 0.6, 2.0, np.random.default_rng(2))
+    uv = truth(cam, CHARUCO)
+    inside = (uv[:, 0] > 0) & (uv[:, 0] < cam.width - 1)
+    assert 6 < inside.sum() < CHARUCO.n_corners  # a genuinely partial view
+    det = BoardDetector(CHARUCO).detect(img)
+    assert det is not None and set(det.ids) <= set(np.flatnonzero(inside))
+    # Corners whose neighbouring markers are cut off by the image edge cannot be identified.
+    assert len(det.ids) >= 0.6 * inside.sum()
+    assert np.linalg.norm(det.corners - uv[det.ids], axis=1).max() < 0.5
+
+
+def test_no_board_and_too_few_corners_give_none():
+    assert BoardDetector(CHARUCO).detect(np.full((480, 640), 128, np.uint8)) is None
+    cam = camera_facing_board(CHARUCO, distance=1.0, offset=(0.75, 0.0), tilt_deg=0.0)
+    img = BoardRenderer(cam, CHARUCO).render(np.eye(4))
+    assert BoardDetector(CHARUCO, min_corners=30).detect(img) is None
+
+
+def test_blur_lowers_sharpness_and_blurred_detections_are_dropped():
+    cam = camera_facing_board(CHARUCO)
+    r = BoardRenderer(cam, CHARUCO)
+    det = BoardDetector(CHARUCO)
+    sharp = det.detect(r.render(np.eye(4), 0.5, 1.0, np.random.default_rng(0)), 0)
+    soft = det.detect(r.render(np.eye(4), 1.8, 1.0, np.random.default_rng(0)), 1)
+    assert soft is not None and soft.sharpness < 0.5 * sharp.sharpness
+    dets = [FrameDetection(i, [0, 1, 2, 3], np.zeros((4, 2)), s) for i, s in enumerate([100, 90, 110, 95, 5])]
+    assert [d.frame for d in drop_blurred(dets, 0.2)] == [0, 1, 2, 3]
+    assert len(drop_blurred(dets, 0.0)) == 5
+
+
+@pytest.fixture
+def footage(tmp_path):
+    """Six frames of one camera as an image folder and as a lossless video; the board is
+    visible in frames 1, 2 and 4 only."""
+    cam = camera_facing_board(CHARUCO, size=(640, 480), distance=1.9)
+    r = BoardRenderer(cam, CHARUCO)
+    away = np.eye(4)
+    away[:3, 3] = [0, 0, -50]  # far behind the camera: not visible
+    frames = [r.render(np.eye(4) if i in (1, 2, 4) else away, 0.5, 1.0, np.random.default_rng(i))
+              for i in range(6)]
+    folder = tmp_path / "cam"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"img{i}.png"), f)  # natural order: img2 before img10
+    video = tmp_path / "cam.mkv"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30, (640, 480), isColor=False)
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    return folder, video, frames
+
+
+def test_frame_sources_subsample_in_order(footage, tmp_path):
+    folder, video, frames = footage
+    for src in (folder, video):
+        assert count_frames(src) == 6 and source_image_size(src) == (640, 480)
+        got = list(iter_frames(src, frame_step=2))
+        assert [i for i, _ in got] == [0, 2, 4]
+        assert all(np.array_equal(img, frames[i]) for i, img in got)  # lossless sources
+        assert [i for i, _ in iter_frames(src, frame_step=1, max_frames=4)] == [0, 1, 2, 3]
+    with pytest.raises(FrameSourceError, match="does not exist"):
+        count_frames(tmp_path / "missing.mp4")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FrameSourceError, match="no images"):
+        count_frames(tmp_path / "empty")
+
+
+def test_detect_in_source_reports_frames_searched(footage):
+    folder, video, _ = footage
+    for src in (folder, video):
+        res = detect_in_source(src, CHARUCO, camera="A")
+        assert res.camera == "A" and res.frames_searched == 6 and res.image_size == (640, 480)
+        assert [d.frame for d in res.detections] == [1, 2, 4]
+        res2 = detect_in_source(src, CHARUCO, frame_step=2)
+        assert res2.frames_searched == 3 and [d.frame for d in res2.detections] == [2, 4]

@@ -1,0 +1,131 @@
+"""Camera model: torch projection against cv2.projectPoints, skew, rig transforms, validation."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from calibration.camera import Camera, CameraError, Rig, look_at_rotation, project_points_torch
+
+finite = dict(allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def camera_and_points(draw, dist_len=None):
+    rvec = np.array(draw(st.lists(st.floats(-np.pi, np.pi, **finite), min_size=3, max_size=3)))
+    t = np.array(draw(st.lists(st.floats(-2, 2, **finite), min_size=3, max_size=3)))
+    fx, fy = draw(st.floats(200, 3000, **finite)), draw(st.floats(200, 3000, **finite))
+    cx, cy = draw(st.floats(100, 1000, **finite)), draw(st.floats(100, 1000, **finite))
+    n = dist_len if dist_len is not None else draw(st.sampled_from([0, 4, 5, 8, 12]))
+    scales = np.array([0.2, 0.05, 0.002, 0.002, 0.01, 0.05, 0.01, 0.005, 0.002, 0.001, 0.002, 0.001])[:n]
+    dist = np.array(draw(st.lists(st.floats(-1, 1, **finite), min_size=n, max_size=n))) * scales
+    # Points in front of the camera inside a moderate field of view.
+    m = draw(st.integers(1, 20))
+    xy = np.array(draw(st.lists(st.floats(-0.6, 0.6, **finite), min_size=2 * m, max_size=2 * m))).reshape(m, 2)
+    z = np.array(draw(st.lists(st.floats(0.5, 10, **finite), min_size=m, max_size=m)))
+    pts_cam = np.c_[xy * z[:, None], z]
+    R = cv2.Rodrigues(rvec)[0]
+    pts_world = (pts_cam - t) @ R  # R^T (X - t)
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return K, dist, R, t, pts_world
+
+
+@settings(max_examples=60, deadline=None)
+@given(camera_and_points())
+def test_torch_projection_matches_opencv(data):
+    K, dist, R, t, pts = data
+    ref, _ = cv2.projectPoints(pts, cv2.Rodrigues(R)[0], t, K, dist if dist.size else None)
+    T = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
+    out = project_points_torch(T(pts), T(K), T(R), T(t), T(dist) if dist.size else None)
+    np.testing.assert_allclose(out.numpy(), ref.reshape(-1, 2), rtol=0, atol=1e-6)
+
+
+def test_torch_projection_batched_and_differentiable():
+    rng = np.random.default_rng(0)
+    B, N = 3, 7
+    K = torch.tensor([[[800.0, 0, 320], [0, 780, 240], [0, 0, 1]]] * B, dtype=torch.float64)
+    R = torch.tensor(np.stack([cv2.Rodrigues(rng.normal(size=3) * 0.2)[0] for _ in range(B)]))
+    t = torch.tensor(rng.normal(size=(B, 3)) * 0.1 + [0, 0, 4])
+    dist = torch.tensor(rng.normal(size=(B, 5)) * [0.1, 0.02, 1e-3, 1e-3, 1e-3])
+    pts = torch.tensor(rng.normal(size=(B, N, 3)) * 0.5, requires_grad=True)
+    out = project_points_torch(pts, K, R, t, dist)
+    assert out.shape == (B, N, 2)
+    for b in range(B):  # each batch element equals its own OpenCV projection
+        ref, _ = cv2.projectPoints(pts[b].detach().numpy(), cv2.Rodrigues(R[b].numpy())[0], t[b].numpy(),
+                                   K[b].numpy(), dist[b].numpy())
+        np.testing.assert_allclose(out[b].detach().numpy(), ref.reshape(-1, 2), atol=1e-8)
+    # Gradients w.r.t. points and distortion agree with finite differences.
+    assert torch.autograd.gradcheck(
+        lambda p, d: project_points_torch(p, K, R, t, d), (pts, dist.clone().requires_grad_(True)))
+    # Shared camera broadcast over a batch of point sets.
+    out2 = project_points_torch(pts, K[0], R[0], t[0], dist[0])
+    assert out2.shape == (B, N, 2)
+
+
+def test_torch_projection_rejects_tilted_model():
+    with pytest.raises(CameraError, match="14"):
+        project_points_torch(torch.zeros(1, 3), torch.eye(3), torch.eye(3), torch.ones(3), torch.zeros(14))
+
+
+@settings(max_examples=40, deadline=None)
+@given(camera_and_points(dist_len=5), st.floats(-40, 40, **finite))
+def test_skew_is_honoured_by_project_and_undistort(data, skew):
+    K, dist, R, t, pts = data
+    K = K.copy()
+    K[0, 1] = skew
+    cam = Camera.create("c", K, dist, R, t, 1280, 960)
+    uv = cam.project(pts)
+    # Independent reference: OpenCV's distortion on normalised points, then the full K with skew.
+    ref, _ = cv2.projectPoints(pts, cam.rvec, t, np.eye(3), dist)
+    ref_h = np.c_[ref.reshape(-1, 2), np.ones(len(pts))] @ K.T
+    np.testing.assert_allclose(uv, ref_h[:, :2], atol=1e-6)
+    depth = cam.to_camera(pts)[:, 2]
+    np.testing.assert_allclose(cam.unproject(uv, depth), pts, atol=1e-6)
+    T = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
+    np.testing.assert_allclose(project_points_torch(T(pts), T(K), T(R), T(t), T(dist)).numpy(), uv, atol=1e-6)
+
+
+def test_rig_transformed_keeps_projections_and_stacked_arrays():
+    rng = np.random.default_rng(1)
+    cams = []
+    for i in range(3):
+        pos = rng.normal(size=3) * 3 + [0, 0, 2]
+        R = look_at_rotation(pos, [0, 0, 1])
+        cams.append(Camera.create(f"c{i}", [[700, 0, 320], [0, 700, 240], [0, 0, 1]], [0.1, -0.02, 0, 0, 0],
+                                  R, -R @ pos, 640, 480))
+    rig = Rig(tuple(cams))
+    Rw = cv2.Rodrigues(np.array([0.3, -0.2, 0.5]))[0]
+    tw, s = np.array([1.0, -2.0, 0.5]), 1.7
+    new = rig.transformed(Rw, tw, s)
+    X = rng.normal(size=(10, 3))
+    for a, b in zip(rig, new, strict=True):
+        np.testing.assert_allclose(b.project(s * X @ Rw.T + tw), a.project(X), atol=1e-9)
+        np.testing.assert_allclose(b.center, s * Rw @ a.center + tw, atol=1e-9)
+    np.testing.assert_allclose(new.up, Rw @ np.array([0, 0, 1.0]), atol=1e-12)
+    arrays = rig.stacked()
+    assert arrays["K"].shape == (3, 3, 3) and arrays["dist"].shape == (3, 5) and arrays["size"].tolist()[0] == [640, 480]
+
+
+def test_look_at_points_camera_at_target_with_image_up():
+    R = look_at_rotation([3, 0, 2], [0, 0, 1])
+    cam = Camera.create("c", np.eye(3), None, R, -R @ np.array([3, 0, 2.0]), 10, 10)
+    d = np.array([0, 0, 1.0]) - cam.center
+    np.testing.assert_allclose(cam.optical_axis, d / np.linalg.norm(d), atol=1e-12)
+    assert R[1] @ [0, 0, 1] < 0  # image y (down) points against world up
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("K", np.full((3, 3), np.nan), "NaN"),
+    ("R", np.diag([1.0, 1.0, 1.1]), "orthonormal"),
+    ("R", np.diag([1.0, 1.0, -1.0]), "reflection"),
+    ("t", np.zeros(4), "shape"),
+    ("dist", np.zeros(6), "distortion has 6 terms"),
+])
+def test_camera_validation_names_camera_and_field(field, value, match):
+    fields = dict(K=np.eye(3), dist=None, R=np.eye(3), t=np.zeros(3), width=10, height=10)
+    fields[field] = value
+    with pytest.raises(CameraError, match=match) as info:
+        Camera.create("cam-x", **fields)
+    assert "cam-x" in str(info.value)

@@ -1,0 +1,482 @@
+"""Rig file formats: sample files written from each format's documentation, projected through the
+format's own math and through our Camera; lossless round trips; detection; bad input."""
+
+import json
+import warnings
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pycolmap
+import pytest
+
+from calibration.camera import Camera, CameraError, Rig, look_at_rotation
+from calibration.formats import FORMATS, RigFormatError, detect_format, read_rig, write_rig
+from calibration.formats._common import atomic_write
+
+QCA = Path("/work/shared/real/pose2sim-multiperson/Calib.qca.txt")
+POINTS_M = np.array([[0.3, -0.2, 1.1], [-0.5, 0.4, 0.2], [0.0, 0.0, 1.7], [0.8, 0.6, 0.9]])
+
+
+def opencv_distort(x, y, d):
+    """OpenCV's distortion written out from its documentation (independent of cv2)."""
+    d = np.r_[d, np.zeros(14 - len(d))]
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d[:12]
+    r2 = x * x + y * y
+    radial = (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + s1 * r2 + s2 * r2**2
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + s3 * r2 + s4 * r2**2
+    return xd, yd
+
+
+def pinhole_project(X, K, R, t, dist):
+    Xc = X @ np.asarray(R).T + np.ravel(t)
+    xd, yd = opencv_distort(Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], np.ravel(dist))
+    K = np.asarray(K)
+    return np.stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+
+
+def ring_cameras(n=3, dist=(-0.21, 0.05, 0.0012, -0.0008, 0.011), skew=0.0):
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        pos = np.array([3.1 * np.cos(a), 3.1 * np.sin(a), 2.3 + 0.1 * i])
+        R = look_at_rotation(pos, [0.1, -0.05, 0.9])
+        K = [[1510.5 + 10 * i, skew, 962.25], [0, 1508.75, 541.5 - i], [0, 0, 1]]
+        cams.append(Camera.create(f"c{i}", K, dist, R, -R @ pos, 1920, 1080, {"note": f"cam {i}"}))
+    return Rig(tuple(cams), up=(0.0, 0.0, 1.0))
+
+
+def assert_same_rig(a: Rig, b: Rig, atol=1e-9):
+    assert a.names == b.names
+    for ca, cb in zip(a, b, strict=True):
+        assert (ca.width, ca.height) == (cb.width, cb.height)
+        np.testing.assert_allclose(cb.K, ca.K, rtol=1e-12, atol=atol)
+        da, db = np.zeros(14), np.zeros(14)
+        da[:ca.dist.size], db[:cb.dist.size] = ca.dist, cb.dist
+        np.testing.assert_allclose(db, da, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(cb.R, ca.R, atol=1e-12)
+        np.testing.assert_allclose(cb.t, ca.t, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(cb.project(POINTS_M), ca.project(POINTS_M), atol=1e-7)
+
+
+# -- sample files from the documentation --------------------------------------------------------
+PANOPTIC_CAM = {"name": "00_03", "type": "hd", "resolution": [1920, 1080], "panel": 0, "node": 3,
+                "K": [[1633.5, 0.0, 944.8], [0.0, 1628.9, 556.6], [0.0, 0.0, 1.0]],
+                "distCoef": [-0.2212, 0.1843, 0.00031, -0.00044, -0.0411],
+                "R": cv2.Rodrigues(np.array([0.2, -2.4, 0.15]))[0].tolist(),
+                "t": [[-12.6], [135.3], [282.4]]}
+
+
+def test_panoptic_projects_like_its_own_math(tmp_path):
+    path = tmp_path / "calibration_171204_pose1.json"
+    vga = dict(PANOPTIC_CAM, name="01_01", type="vga", resolution=[640, 480], panel=1, node=1)
+    path.write_text(json.dumps({"calibDataSource": "171204_calib", "cameras": [PANOPTIC_CAM, vga]}))
+    assert detect_format(path) == "panoptic"
+    rig = read_rig(path, camera_types=("hd",))
+    assert rig.names == ["00_03"] and rig.up == (0.0, -1.0, 0.0)
+    cam = rig["00_03"]
+    # Panoptic math: centimetres, world y down. A point in front of the camera:
+    X_cm = (np.linalg.inv(cam.R) @ (np.array([[10.0, -5, 300], [-40, 20, 250]]) - np.ravel(PANOPTIC_CAM["t"])).T).T
+    ref = pinhole_project(X_cm, PANOPTIC_CAM["K"], PANOPTIC_CAM["R"], PANOPTIC_CAM["t"], PANOPTIC_CAM["distCoef"])
+    np.testing.assert_allclose(cam.project(X_cm / 100), ref, atol=1e-8)
+    assert len(read_rig(path)) == 2  # all types by default
+    assert cam.meta["panel"] == 0 and cam.meta["node"] == 3
+
+
+def h36m_project(P_mm, R, T, f, c, k, p):
+    """H36M's projection as documented (3d-pose-baseline): X = R (P - T), H36M distortion."""
+    X = (R @ (P_mm - T.ravel()).T).T
+    x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
+    r2 = x**2 + y**2
+    radial = 1 + k[0] * r2 + k[1] * r2**2 + k[2] * r2**3
+    tan = p[0] * y + p[1] * x
+    xd = x * (radial + tan) + p[1] * r2
+    yd = y * (radial + tan) + p[0] * r2
+    return np.stack([f[0] * xd + c[0], f[1] * yd + c[1]], axis=1)
+
+
+H36M_CAMS = [  # (id, rvec world->cam, centre mm, f, c, k, p)
+    ("54138969", [1.84, -0.42, 0.37], [-1841.1, 4955.3, 1563.4], [1145.05, 1143.78], [512.54, 515.45],
+     [-0.2071, 0.2479, -0.0031], [-0.00097, -0.00142]),
+    ("55011271", [1.67, 0.72, -0.51], [1761.3, 4448.0, 1588.1], [1149.68, 1147.59], [508.85, 508.06],
+     [-0.1942, 0.2404, 0.0068], [-0.0016, -0.00277]),
+]
+
+
+def write_h36m_sample(path, subjects=(1,)):
+    with h5py.File(path, "w") as h5:
+        for s in subjects:
+            for i, (name, rvec, T, f, c, k, p) in enumerate(H36M_CAMS):
+                g = h5.create_group(f"subject{s}/camera{i + 1}")
+                g["R"] = cv2.Rodrigues(np.array(rvec))[0].T  # stored transposed
+                g["T"] = np.array(T).reshape(3, 1)
+                g["f"], g["c"] = np.array(f).reshape(2, 1), np.array(c).reshape(2, 1)
+                g["k"], g["p"] = np.array(k).reshape(3, 1), np.array(p).reshape(2, 1)
+                g["Name"] = np.array([ord(ch) for ch in name], dtype=np.uint8)
+
+
+def _points_in_front(R, centre_m, n=6, seed=0):
+    rng = np.random.default_rng(seed)
+    pts_cam = np.c_[rng.uniform(-0.35, 0.35, (n, 2)), np.ones(n)] * rng.uniform(2, 6, (n, 1))
+    return pts_cam @ R + centre_m  # R^T X_cam + C
+
+
+def test_h36m_h5_projects_like_its_own_math(tmp_path):
+    path = tmp_path / "cameras.h5"
+    write_h36m_sample(path, subjects=(1, 5))
+    assert detect_format(path) == "h36m"
+    with pytest.raises(RigFormatError, match="subject"):
+        read_rig(path)  # two subjects: must choose
+    rig = read_rig(path, subject="S5")
+    assert rig.names == ["54138969", "55011271"] and (rig[0].width, rig[0].height) == (1000, 1002)
+    for cam, (_, rvec, T, f, c, k, p) in zip(rig, H36M_CAMS, strict=True):
+        R = cv2.Rodrigues(np.array(rvec))[0]
+        P_m = _points_in_front(R, np.array(T) / 1000)
+        ref = h36m_project(P_m * 1000, R, np.array(T), f, c, k, p)
+        np.testing.assert_allclose(cam.project(P_m), ref, atol=1e-8)  # exact conversion
+        np.testing.assert_allclose(cam.center, np.array(T) / 1000, atol=1e-12)
+
+
+def test_h36m_export_exact_for_h36m_cameras_and_refuses_or_fits_others(tmp_path):
+    src = tmp_path / "cameras.h5"
+    write_h36m_sample(src)
+    rig = read_rig(src)
+    out = tmp_path / "out.h5"
+    write_rig(rig, out, "h36m", subject=1)
+    with h5py.File(out) as a, h5py.File(src) as b:
+        for ck in ("camera1", "camera2"):
+            for ds in ("R", "T", "f", "c", "k", "p"):
+                np.testing.assert_allclose(a[f"subject1/{ck}/{ds}"][()], b[f"subject1/{ck}/{ds}"][()],
+                                           rtol=1e-12, atol=1e-12)
+    assert_same_rig(rig, read_rig(out, "h36m"))
+    general = ring_cameras(1)
+    with pytest.raises(RigFormatError, match="approximate_distortion"):
+        write_rig(general, tmp_path / "g.h5", "h36m")
+    assert not (tmp_path / "g.h5").exists()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        write_rig(general, tmp_path / "g.h5", "h36m", approximate_distortion=True)
+    assert any("worst error" in str(w.message) for w in caught)
+    fitted = read_rig(tmp_path / "g.h5", image_size=(1920, 1080))
+    # Fitted distortion reproduces the OpenCV camera to well under a pixel inside the image.
+    cam, fit = general[0], fitted[0]
+    uv = np.stack(np.meshgrid(np.linspace(0, 1919, 9), np.linspace(0, 1079, 7)), -1).reshape(-1, 2)
+    rays = cam.unproject(uv, 3.0)
+    assert np.abs(fit.project(rays) - uv).max() < 0.5
+
+
+def test_h36m_json_variant(tmp_path):
+    name, rvec, T, f, c, k, p = H36M_CAMS[0]
+    R = cv2.Rodrigues(np.array(rvec))[0]
+    t_mm = -R @ np.array(T)
+    K = [[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1]]
+    data = {"intrinsics": {name: {"calibration_matrix": K, "distortion": [k[0], k[1], p[0], p[1], k[2]]}},
+            "extrinsics": {"S1": {name: {"R": R.tolist(), "t": t_mm.reshape(3, 1).tolist()}}}}
+    path = tmp_path / "camera-parameters.json"
+    path.write_text(json.dumps(data))
+    assert detect_format(path) == "h36m-json"
+    P_m = _points_in_front(R, np.array(T) / 1000)
+    # Default reading: OpenCV coefficients, as the variant's users feed them to OpenCV.
+    cam = read_rig(path)[name]
+    ref = pinhole_project(P_m * 1000, K, R, t_mm, [k[0], k[1], p[0], p[1], k[2]])
+    np.testing.assert_allclose(cam.project(P_m), ref, atol=1e-8)
+    # tangential='h36m': H36M's own model, converted exactly.
+    cam_h = read_rig(path, subject=1, tangential="h36m")[name]
+    np.testing.assert_allclose(cam_h.project(P_m), h36m_project(P_m * 1000, R, np.array(T), f, c, k, p), atol=1e-8)
+    out = tmp_path / "rt.json"
+    write_rig(read_rig(path), out, "h36m-json", subject="S1")
+    assert_same_rig(read_rig(path), read_rig(out))
+    write_rig(read_rig(path, tangential="h36m"), out, "h36m-json", tangential="h36m")
+    assert_same_rig(read_rig(path, tangential="h36m"), read_rig(out, tangential="h36m"))
+
+
+ANIPOSE_TOML = """\
+[cam_0]
+name = "A"
+size = [ 1280, 720,]
+matrix = [ [ 912.4, 0.0, 640.2,], [ 0.0, 911.8, 361.7,], [ 0.0, 0.0, 1.0,],]
+distortions = [ -0.102, 0.087, 0.0011, -0.0006, -0.021,]
+rotation = [ 0.12, -0.83, 0.05,]
+translation = [ 412.0, -95.5, 2210.0,]
+
+[cam_1]
+name = "B"
+size = [ 1280, 720,]
+matrix = [ [ 905.1, 0.0, 633.0,], [ 0.0, 904.9, 355.2,], [ 0.0, 0.0, 1.0,],]
+distortions = [ -0.098, 0.079, -0.0004, 0.0009, -0.015,]
+rotation = [ 0.07, 0.91, -0.02,]
+translation = [ -388.3, -101.2, 2190.5,]
+
+[metadata]
+adjusted = false
+error = 0.41
+"""
+
+
+def _toml_reference(section_rvec, section_t, K, dist, X_units):
+    uv, _ = cv2.projectPoints(X_units, np.array(section_rvec), np.array(section_t), np.array(K), np.array(dist))
+    return uv.reshape(-1, 2)
+
+
+def test_anipose_toml_units_and_projection(tmp_path):
+    path = tmp_path / "calibration.toml"
+    path.write_text(ANIPOSE_TOML)
+    assert detect_format(path) == "anipose"
+    rig = read_rig(path)  # mm by default
+    X_mm = np.array([[100.0, 200.0, 300.0], [-250.0, 50.0, 600.0]])
+    ref = _toml_reference([0.12, -0.83, 0.05], [412.0, -95.5, 2210.0],
+                          [[912.4, 0.0, 640.2], [0.0, 911.8, 361.7], [0.0, 0.0, 1.0]],
+                          [-0.102, 0.087, 0.0011, -0.0006, -0.021], X_mm)
+    np.testing.assert_allclose(rig["A"].project(X_mm / 1000), ref, atol=1e-8)
+    assert rig.names == ["A", "B"] and rig.meta["metadata"]["error"] == 0.41
+    rig_cm = read_rig(path, "anipose", units="cm")
+    np.testing.assert_allclose(rig_cm["A"].t, rig["A"].t * 10)
+    with pytest.raises(RigFormatError, match="units"):
+        read_rig(path, "anipose", units="furlong")
+
+
+POSE2SIM_TOML = """\
+[cam_01]
+name = "cam_01"
+size = [ 1088.0, 1920.0]
+matrix = [ [ 1681.2, 0.0, 533.0], [ 0.0, 1681.1, 948.1], [ 0.0, 0.0, 1.0]]
+distortions = [ -0.046, 0.14, 0.0006, 0.0007]
+rotation = [ 1.688, 1.048, -0.4196]
+translation = [ 0.3211, 0.9563, 2.8907]
+fisheye = false
+
+[metadata]
+adjusted = false
+error = 0.0
+"""
+
+
+def test_pose2sim_toml_metres_and_projection(tmp_path):
+    path = tmp_path / "Calib.toml"
+    path.write_text(POSE2SIM_TOML)
+    assert detect_format(path) == "pose2sim"
+    cam = read_rig(path)["cam_01"]
+    assert (cam.width, cam.height) == (1088, 1920) and cam.dist.size == 4
+    X = np.array([[0.2, 0.1, 1.0], [-0.4, 0.3, 0.5]])
+    ref = _toml_reference([1.688, 1.048, -0.4196], [0.3211, 0.9563, 2.8907],
+                          [[1681.2, 0.0, 533.0], [0.0, 1681.1, 948.1], [0.0, 0.0, 1.0]],
+                          [-0.046, 0.14, 0.0006, 0.0007], X)
+    np.testing.assert_allclose(cam.project(X), ref, atol=1e-8)
+    bad = tmp_path / "fish.toml"
+    bad.write_text(POSE2SIM_TOML.replace("fisheye = false", "fisheye = true"))
+    with pytest.raises(RigFormatError, match="fisheye"):
+        read_rig(bad)
+
+
+QCA_SAMPLE = """<?xml version='1.0' encoding='ASCII'?>
+<calibration type="regular">
+  <cameras>
+    <camera active="1" avg-residual="0.4" model="Miqus Video" serial="12345" viewrotation="0">
+      <fov_video bottom="1087" left="16" right="1935" top="8"/>
+      <transform x="3000.0" y="-1200.0" z="2100.0" r11="{r11}" r12="{r12}" r13="{r13}" r21="{r21}" r22="{r22}" r23="{r23}" r31="{r31}" r32="{r32}" r33="{r33}"/>
+      <intrinsic focalLengthU="89600.0" focalLengthV="89536.0" centerPointU="62464.0" centerPointV="35264.0" radialDistortion1="-0.05" radialDistortion2="0.12" radialDistortion3="0.01" tangentalDistortion1="0.0004" tangentalDistortion2="-0.0003" skew="0"/>
+    </camera>
+    <camera active="1" avg-residual="0.3" model="Miqus M3" serial="marker-only" viewrotation="0">
+      <fov_video bottom="1087" left="0" right="1919" top="0"/>
+      <transform x="0" y="0" z="3000" r11="1" r12="0" r13="0" r21="0" r22="1" r23="0" r31="0" r32="0" r33="1"/>
+      <intrinsic focalLengthU="64000" focalLengthV="64000" centerPointU="61440" centerPointV="34560" radialDistortion1="0" radialDistortion2="0" radialDistortion3="0" tangentalDistortion1="0" tangentalDistortion2="0"/>
+    </camera>
+  </cameras>
+</calibration>
+"""
+
+
+def test_qualisys_sample_projects_like_its_own_math(tmp_path):
+    # Qualisys camera looks down its -z axis, +y up; rows of M are its axes in the world.
+    pos = np.array([3000.0, -1200.0, 2100.0])
+    forward = np.array([0.0, 0.0, 1100.0]) - pos
+    forward /= np.linalg.norm(forward)
+    x_axis = np.cross(forward, [0, 0, 1.0])
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(x_axis, forward)  # up in the image
+    M = np.stack([x_axis, y_axis, -forward])
+    fields = {f"r{i + 1}{j + 1}": repr(float(M[i, j])) for i in range(3) for j in range(3)}
+    path = tmp_path / "session.qca.txt"
+    path.write_text(QCA_SAMPLE.format(**fields))
+    assert detect_format(path) == "qualisys"
+    rig = read_rig(path)
+    assert rig.names == ["12345"]  # the marker-only camera is skipped
+    cam = rig[0]
+    assert (cam.width, cam.height) == (1920, 1080)
+    # Qualisys math: X_q = M (P - pos); normalised x = X_q.x / -X_q.z, y (down) = X_q.y / X_q.z.
+    P_mm = np.array([[200.0, 300.0, 900.0], [-500.0, 100.0, 1500.0]])
+    Xq = (P_mm - pos) @ M.T
+    x, y = Xq[:, 0] / -Xq[:, 2], Xq[:, 1] / Xq[:, 2]
+    xd, yd = opencv_distort(x, y, [-0.05, 0.12, 0.0004, -0.0003, 0.01])
+    ref = np.stack([89600 / 64 * xd + 62464 / 64 - 16, 89536 / 64 * yd + 35264 / 64 - 8], axis=1)
+    np.testing.assert_allclose(cam.project(P_mm / 1000), ref, atol=1e-8)
+    assert len(read_rig(path, video_only=False)) == 2
+
+
+def test_qualisys_real_lab_file_matches_pose2sim_conversion():
+    """The real lab file, against Pose2Sim's published conversion of it (Calib_qualisys.toml in
+    the Pose2Sim demo: same cameras, rotation as Rodrigues vector, translation in metres)."""
+    rig = read_rig(QCA)
+    assert rig.names == ["cam01", "cam02", "cam03", "cam04"]
+    assert all((c.width, c.height) == (1088, 1920) for c in rig)
+    published = {"cam01": ([1.6882754799999993, 1.0483220499999997, -0.41955852000000016],
+                           [0.3211048899999996, 0.9563320600000009, 2.8907130499999996]),
+                 "cam04": ([1.4045571699999995, -1.3887412699999993, 0.42535743000000026],
+                           [0.5030217200000007, 0.04894934000000107, 4.406564460000002])}
+    for name, (rvec, t) in published.items():
+        np.testing.assert_allclose(rig[name].rvec, rvec, atol=1e-9)
+        np.testing.assert_allclose(rig[name].t, t, atol=1e-9)
+    np.testing.assert_allclose(rig["cam01"].K[0, 0], 107599.671875 / 64)
+
+
+def test_colmap_model_written_by_pycolmap(tmp_path):
+    rec = pycolmap.Reconstruction()
+    params = [1500.0, 1495.0, 960.5, 540.5, -0.11, 0.04, 0.0007, -0.0005]
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=1920, height=1080,
+                                                    params=params, camera_id=1))
+    R = cv2.Rodrigues(np.array([0.1, 2.9, -0.2]))[0]
+    pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), np.array([0.2, 0.4, 3.0]))
+    rec.add_image_with_trivial_frame(pycolmap.Image(name="left.jpg", camera_id=1, image_id=7), pose)
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    rec.write(model)
+    assert detect_format(tmp_path) == "colmap"
+    cam = read_rig(tmp_path)["left.jpg"]
+    X = _points_in_front(R, -R.T @ np.array([0.2, 0.4, 3.0]))
+    img = rec.image(7)
+    ref = np.array([img.project_point(x) for x in X]) - 0.5  # COLMAP pixel centres are at +0.5
+    np.testing.assert_allclose(cam.project(X), ref, atol=1e-7)
+
+
+# -- round trips through every exporter -----------------------------------------------------------
+ROUND_TRIP = [
+    ("rig", {}, {}),
+    ("panoptic", {}, {}),
+    ("anipose", {"units": "mm"}, {"units": "mm"}),
+    ("anipose", {"units": "m"}, {"units": "m"}),
+    ("pose2sim", {}, {}),
+    ("colmap", {}, {}),
+    ("h36m", {"subject": 9}, {"subject": 9}),
+    ("h36m-json", {"subject": "S9"}, {"subject": "S9"}),
+]
+
+
+@pytest.mark.parametrize("fmt,wopts,ropts", ROUND_TRIP)
+def test_round_trip_is_lossless(tmp_path, fmt, wopts, ropts):
+    if fmt == "h36m":  # H36M holds its own lens model: a rig read from H36M, or radial only
+        rig = ring_cameras(3, dist=(-0.2, 0.05, 0.0, 0.0, 0.01))
+    elif fmt == "pose2sim":
+        rig = ring_cameras(3, dist=(-0.2, 0.05, 0.001, -0.002))
+    else:
+        rig = ring_cameras(3)
+    suffix = {"rig": ".json", "panoptic": ".json", "anipose": ".toml", "pose2sim": ".toml",
+              "colmap": "", "h36m": ".h5", "h36m-json": ".json"}[fmt]
+    path = tmp_path / f"rig_{fmt}{suffix}"
+    write_rig(rig, path, fmt, **wopts)
+    back = read_rig(path, fmt, **ropts)
+    assert_same_rig(rig, back)
+    if fmt == "rig":  # canonical file: bit-exact, meta kept
+        for a, b in zip(rig, back, strict=True):
+            assert np.array_equal(a.K, b.K) and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+            assert b.meta == a.meta
+        assert back.up == rig.up
+    if fmt not in ("anipose", "pose2sim"):  # TOML's two layouts look alike; auto-detection elsewhere
+        assert detect_format(path) == fmt
+    # Written again from the read rig: identical file (stable writer).
+    if fmt not in ("colmap", "h36m"):
+        path2 = tmp_path / f"again{suffix}"
+        write_rig(back, path2, fmt, **wopts)
+        assert_same_rig(back, read_rig(path2, fmt, **ropts))
+
+
+def test_formats_listing_and_options():
+    assert set(FORMATS) == {"rig", "panoptic", "h36m", "h36m-json", "anipose", "pose2sim", "qualisys", "colmap"}
+    assert not FORMATS["qualisys"].can_write
+    with pytest.raises(RigFormatError, match="read only"):
+        write_rig(ring_cameras(1), "/tmp/never.qca.txt", "qualisys")
+    with pytest.raises(RigFormatError, match="unknown rig format"):
+        read_rig(QCA, "vicon")
+    with pytest.raises(RigFormatError, match="no read options"):
+        read_rig(QCA, "qualisys", subject=1)
+
+
+# -- bad input --------------------------------------------------------------------------------------
+def test_invalid_rig_is_never_written(tmp_path):
+    good = ring_cameras(2)
+    c = good[1]
+    broken = Camera(c.name, c.K, c.dist, c.R * 1.01, c.t, c.width, c.height)  # bypasses validation
+    rig = Rig((good[0], broken))
+    for fmt, suffix in (("rig", ".json"), ("panoptic", ".json"), ("colmap", ""), ("anipose", ".toml")):
+        path = tmp_path / f"out{suffix}"
+        with pytest.raises(CameraError, match="c1.*orthonormal"):
+            write_rig(rig, path, fmt)
+        assert not path.exists()
+    nan_cam = Camera("nan-cam", np.full((3, 3), np.nan), c.dist, c.R, c.t, c.width, c.height)
+    with pytest.raises(CameraError, match="nan-cam.*NaN"):
+        write_rig(Rig((nan_cam,)), tmp_path / "x.json")
+    assert list(tmp_path.iterdir()) == []  # no temporary files left behind either
+
+
+def test_failed_write_keeps_the_old_file(tmp_path):
+    path = tmp_path / "rig.json"
+    write_rig(ring_cameras(1), path)
+    before = path.read_bytes()
+
+    def crash(tmp):
+        tmp.write_text("partial")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(path, crash)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["rig.json"]
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda d: d.update(version=2), "newer"),
+    (lambda d: d.update(schema="other"), "schema"),
+    (lambda d: d["cameras"][0].pop("K"), "missing key 'K'.*camera 'c0'"),
+    (lambda d: d["cameras"][0].update(R=[[1, 0], [0, 1]]), "c0.*R has shape"),
+    (lambda d: d["cameras"][0].update(t=[0, float("nan"), 0]), "c0.*NaN"),
+    (lambda d: d["cameras"][0].update(focal=1.0), "unknown keys"),
+])
+def test_bad_rig_json_is_reported_with_file_and_key(tmp_path, mutate, match):
+    path = tmp_path / "rig.json"
+    write_rig(ring_cameras(1), path)
+    data = json.loads(path.read_text())
+    mutate(data)
+    path.write_text(json.dumps(data))
+    with pytest.raises(RigFormatError, match=match) as info:
+        read_rig(path, "rig")
+    assert str(path) in str(info.value)
+
+
+def test_undetectable_file(tmp_path):
+    path = tmp_path / "notes.txt"
+    path.write_text("hello")
+    with pytest.raises(RigFormatError, match="cannot tell"):
+        read_rig(path)
+
+
+def test_rotations_printed_with_few_digits_are_accepted_but_bad_ones_refused(tmp_path):
+    cam = dict(PANOPTIC_CAM, R=np.round(np.array(PANOPTIC_CAM["R"]), 5).tolist())
+    path = tmp_path / "calibration_x.json"
+    path.write_text(json.dumps({"cameras": [cam]}))
+    c = read_rig(path)[0]
+    assert 1e-7 < c.meta["R_orthonormalised_from_error"] < 1e-4
+    np.testing.assert_allclose(c.R, PANOPTIC_CAM["R"], atol=1e-5)
+    cam_bad = dict(PANOPTIC_CAM, R=(np.array(PANOPTIC_CAM["R"]) * 1.01).tolist())
+    path.write_text(json.dumps({"cameras": [cam_bad]}))
+    with pytest.raises(RigFormatError, match="00_03.*orthonormal"):
+        read_rig(path)
+
+
+def test_colmap_write_keeps_other_files_in_the_folder(tmp_path):
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "a.jpg").write_bytes(b"jpeg")
+    write_rig(ring_cameras(2), tmp_path, "colmap")
+    write_rig(ring_cameras(3), tmp_path, "colmap")  # overwrite the model
+    assert (tmp_path / "images" / "a.jpg").read_bytes() == b"jpeg"
+    assert len(read_rig(tmp_path, "colmap")) == 3
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".colmap-")]

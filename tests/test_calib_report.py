@@ -1,0 +1,92 @@
+"""Calibration report and rig checks, including the real Qualisys lab calibration."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from calibration.checks import CaptureVolume, check_rig, estimate_volume
+from calibration.formats import read_rig
+from calibration.report import coverage_fraction, write_calibration_report
+from calibration.solve import calibrate_from_detections
+from calibration.synthetic import make_scene, synthetic_detections
+
+QCA = Path("/work/shared/real/pose2sim-multiperson/Calib.qca.txt")
+LAB_VOLUME = CaptureVolume((-2.0, -2.0, 0.0), (2.0, 2.0, 2.0))  # the lab floor area, 2 m high
+
+
+def test_real_qualisys_cameras_look_into_the_volume(tmp_path):
+    rig = read_rig(QCA)
+    assert all(c.center[2] > 1.0 for c in rig)  # mounted well above the floor
+    for cam in rig:
+        assert cam.optical_axis[2] < 0  # tilted down
+        assert LAB_VOLUME.ray_hits(cam.center, cam.optical_axis), cam.name
+        # The volume centre lies inside the image of every camera.
+        uv = cam.project(np.array([[0.0, 0.0, 1.0]]))[0]
+        assert 0 <= uv[0] < cam.width and 0 <= uv[1] < cam.height and cam.to_camera([[0, 0, 1.0]])[0, 2] > 0
+    assert check_rig(rig, LAB_VOLUME) == [] and check_rig(rig) == []
+    md = write_calibration_report(rig, tmp_path, volume=LAB_VOLUME)
+    text = md.read_text()
+    assert "cam01" in text and "aimed into the capture volume" in text
+    img = cv2.imread(str(tmp_path / "camera_poses.png"))
+    assert img is not None and img.shape[0] > 400 and img.std() > 10
+
+
+def test_checks_flag_cameras_below_floor_or_looking_away():
+    rig = read_rig(QCA)
+    flipped = rig.transformed(np.diag([1.0, -1.0, -1.0]), np.zeros(3), up=(0.0, 0.0, 1.0))  # upside down
+    problems = check_rig(flipped, LAB_VOLUME)
+    assert any("below the floor" in p for p in problems)
+    away = CaptureVolume((10.0, 10.0, 0.0), (11.0, 11.0, 2.0))
+    assert any("miss the capture volume" in p for p in check_rig(rig, away))
+    with pytest.raises(ValueError, match="lo < hi"):
+        CaptureVolume((0, 0, 0), (0, 1, 1))
+
+
+def test_volume_estimate_contains_the_axes_meeting_point():
+    rig = make_scene(n_cameras=6, n_frames=2).rig
+    vol = estimate_volume(rig)
+    c = vol.center
+    assert np.hypot(c[0], c[1]) < 0.5 and vol.lo[2] == 0.0  # the ring looks at its centre
+
+
+def test_board_calibration_report(tmp_path):
+    scene = make_scene(n_cameras=4, n_frames=40, seed=2)
+    dets = synthetic_detections(scene, noise_px=0.3, seed=2)
+    result = calibrate_from_detections(dets, {c.name: (c.width, c.height) for c in scene.rig}, scene.board)
+    md = write_calibration_report(result.rig, tmp_path / "report", result)
+    text = md.read_text()
+    for cam in result.rig:
+        assert cam.name in text and (tmp_path / "report" / f"coverage_{cam.name}.png").exists()
+        assert f"{result.rms_px[cam.name]:.3f}" in text
+        assert f"{result.detections[cam.name]} / ?" in text  # frames searched unknown here
+    assert "BA round" in text and "bundle_adjustment" in text
+    png = cv2.imread(str(tmp_path / "report" / "coverage_cam00.png"))
+    assert png is not None and png.std() > 5
+
+
+def test_coverage_fraction():
+    pts = np.array([[1.0, 1.0], [799.0, 599.0], [400.0, 300.0]])
+    assert coverage_fraction(pts, 800, 600) == pytest.approx(3 / 48)
+    assert coverage_fraction(np.zeros((0, 2)), 800, 600) == 0.0
+
+
+def test_floor_overlay_on_real_footage(tmp_path):
+    rig = read_rig(QCA)
+    cap = cv2.VideoCapture(str(QCA.parent / "cam01.mp4"))
+    ok, frame = cap.read()
+    cap.release()
+    assert ok and frame.shape[:2] == (1920, 1088)
+    frames = {"cam01": frame, "cam02": frame[:1000]}  # cam02 given a wrongly sized frame
+    md = write_calibration_report(rig, tmp_path, volume=LAB_VOLUME, frames=frames)
+    text = md.read_text()
+    assert "overlay_cam01.png" in text and "cam02: frame is 1088x1000" in text
+    overlay = cv2.imread(str(tmp_path / "overlay_cam01.png"))
+    assert overlay.shape[0] == 960
+    # The world origin is drawn where the camera projects it (axis colours differ from the frame).
+    u, v = rig["cam01"].project(np.zeros((1, 3)))[0] * 960 / 1920
+    patch = overlay[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4].reshape(-1, 3)
+    small = cv2.resize(frame, (overlay.shape[1], overlay.shape[0]), interpolation=cv2.INTER_AREA)
+    before = small[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4].reshape(-1, 3)
+    assert np.abs(patch.astype(int) - before.astype(int)).max() > 80
