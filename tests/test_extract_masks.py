@@ -150,8 +150,10 @@ def test_external_folder_masks_boxes_and_errors(tmp_path):
     fg = np.zeros((20, 30), np.uint8)
     fg[2:9, 2:6] = 1
     lab = boxes_to_labels(fg, ext.camera_boxes("camC")[0], (30, 20), (1.0, 1.0))
-    assert set(np.unique(lab[2:9, 2:6])) == {2} or set(np.unique(lab[2:9, 2:6])) == {1}
-    assert (lab[3:11, 11:19] > 0).all()  # the second box has no foreground: filled whole
+    # Box edges are in pixel-centre coordinates: (10, 2, 20, 12) covers columns 10..20, rows 2..12.
+    assert (lab[2:13, 10:21] == 1).all() and not lab[:, 21:].any() and not lab[13:, 10:].any()
+    assert (lab[2:9, 2:6] == 2).all()  # the first box: its foreground only
+    assert np.count_nonzero(lab == 2) == 4 * 7
 
 
 def test_external_bad_files_are_named(tmp_path):
@@ -179,3 +181,21 @@ def test_external_bad_files_are_named(tmp_path):
     pq.write_table(pa.table({"frame": [0], "camera": ["cam0"]}), root / "boxes.parquet")
     with pytest.raises(ExternalError, match=r"missing columns \['x0', 'x1', 'y0', 'y1'\]"):
         read_external(root, ["cam0"])
+
+
+def test_truth_scoring_on_a_bounding_box_matches_full_resolution():
+    from gst.data.evaluate import match_truth
+    from gst.data.extract import score_against_truth
+
+    rng = np.random.default_rng(3)
+    truth = np.zeros((120, 160), np.uint8)
+    cv2.ellipse(truth, (60, 60), (20, 40), 10, 0, 360, 3, -1)
+    cv2.ellipse(truth, (110, 70), (15, 35), 0, 0, 360, 5, -1)
+    work = np.zeros((60, 80), bool)
+    cv2.ellipse(work.view(np.uint8), (31, 30), (10, 19), 12, 0, 360, 1, -1)
+    work |= rng.random(work.shape) > 0.995
+    full = cv2.resize(work.astype(np.uint8) * 255, (160, 120), interpolation=cv2.INTER_LINEAR) >= 128
+    tid_ref, iou_ref = match_truth(full, truth)
+    tid, iou = score_against_truth(work, truth, np.bincount(truth.ravel(), minlength=256))
+    assert tid == tid_ref == 3
+    assert iou == pytest.approx(iou_ref, abs=0.01)

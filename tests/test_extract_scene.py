@@ -250,3 +250,19 @@ def test_bad_parameters(short_scene, tmp_path):
         with pytest.raises(ValueError, match=msg):
             extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", options=_opts(), **kw)
     assert _nothing_written(tmp_path)
+
+
+def test_clean_plate_reveals_a_person_standing_still(tmp_path_factory, tmp_path):
+    """Someone who stays on one spot becomes part of a background learnt from the capture;
+    a short video of the empty scene per camera (`background_videos`) fixes that."""
+    still = make_scene(tmp_path_factory.mktemp("still"), n_people=1, n_frames=12, laps=0.0, seed=4)
+    empty = make_scene(tmp_path_factory.mktemp("empty"), n_people=0, n_frames=8, seed=5)
+    without = extract_scene(still.videos, still.rig, tmp_path / "a.h5", crop_size=64, truth=still.truth,
+                            options=_opts())
+    with_plate = extract_scene(still.videos, still.rig, tmp_path / "b.h5", crop_size=64, truth=still.truth,
+                               options=_opts(background_videos=empty.videos))
+    assert with_plate.mask_iou >= 0.9, with_plate.mask_iou
+    assert with_plate.crops == 4 * 12
+    assert without.crops < with_plate.crops or (without.mask_iou or 0) < 0.5
+    with pytest.raises(VideoError, match="background video .* camera 'nope'"):
+        extract_scene(still.videos, still.rig, tmp_path / "c.h5", options=_opts(background_videos={"nope": empty.videos["cam0"]}))

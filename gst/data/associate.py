@@ -43,6 +43,8 @@ class AssociationConfig:
     min_mask_fraction: float = 0.0003  # smaller person masks (fraction of image) are not a view
     owner_ratio: float = 0.15  # a blob belongs to every person with >= this share of its top vote
     new_fraction: float = 0.3  # a person must explain this share of its footprint anew in a view
+    box_radius: float = 1.0  # hull voxels this far (ground) from a person's centre are its own
+    partial_support: float = 0.6  # below this mask support, crop boxes also cover the hull footprint
     track_max_speed: float = 8.0  # m/s a person can move on the ground (a sprint is ~9)
     track_slack: float = 0.3  # m of centroid jitter tolerated on top (partial silhouettes move it)
     track_max_gap: int = 15  # processed frames a lost id is kept for re-identification
@@ -365,11 +367,12 @@ class VoxelGrid:
                     break
         return cands
 
-    def footprint(self, name: str, person: Person3D, shape: tuple[int, int], core: bool = True) -> np.ndarray:
-        """Where a person's voxels (its core, or all of them) land in camera `name` (boolean
-        image), each voxel drawn as a disc about its projected size."""
+    def footprint(self, name: str, person: Person3D, shape: tuple[int, int],
+                  voxels: np.ndarray | None = None) -> np.ndarray:
+        """Where a person's voxels (its core by default) land in camera `name` (boolean image),
+        each voxel drawn as a disc about its projected size."""
         h, w = shape
-        p = self.pixel[name][person.core if core else person.voxels]
+        p = self.pixel[name][person.core if voxels is None else voxels]
         p = p[p >= 0]
         img = np.zeros((h, w), dtype=np.uint8)
         if len(p) == 0:
@@ -460,25 +463,37 @@ class VoxelGrid:
                      ) -> list[tuple[np.ndarray, float] | None]:
         """Per person seen in camera `name`: (box, support), else None.
 
-        box (x0, y0, x1, y1, work-image pixel edges) covers the person's mask and the footprint
-        of all its voxels, so a person whose mask is partial in this view (standing still
-        against the background model) is still cropped whole. support = the share of that
-        footprint the mask covers: low values flag partial masks.
+        support = the share of the person's hull voxels (those within `box_radius` of its
+        ground position) seen by this camera that land on its mask here. Every other camera
+        agrees those voxels are occupied, so a low value means this view's mask is partial
+        (someone standing still against the background model). box (x0, y0, x1, y1:
+        work-image pixel edges counted from the image's top-left corner, i.e. pixel-centre
+        coordinate + 0.5) is the mask's box, widened to cover the voxels' projections when
+        support is below `partial_support`, so such a person is still cropped whole.
         """
+        cfg = self.config
+        h, w = person_labels.shape
+        r = self.reach_px[name]
+        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) if r > 0 else None
         out: list[tuple[np.ndarray, float] | None] = []
         for k, person in enumerate(persons):
             mask = person_labels == k + 1
             if not mask.any():
                 out.append(None)
                 continue
-            foot = self.footprint(name, person, person_labels.shape, core=False)
-            both = mask | foot
-            rows = np.nonzero(both.any(axis=1))[0]
-            cols = np.nonzero(both.any(axis=0))[0]
-            box = np.array([cols[0], rows[0], cols[-1] + 1, rows[-1] + 1], dtype=np.float64)
-            n_foot = np.count_nonzero(foot)
-            support = float(np.count_nonzero(mask & foot) / n_foot) if n_foot else 0.0
-            out.append((box, support))
+            near = np.linalg.norm(self.ground[person.voxels] - person.ground, axis=1) <= cfg.box_radius
+            p = self.pixel[name][person.voxels[near]]
+            p = p[p >= 0]
+            reach = cv2.dilate(mask.view(np.uint8), disk) if disk is not None else mask.view(np.uint8)
+            support = float(np.mean(reach.reshape(-1)[p] > 0)) if len(p) else float("nan")
+            rows = np.nonzero(mask.any(axis=1))[0]
+            cols = np.nonzero(mask.any(axis=0))[0]
+            x0, y0, x1, y1 = cols[0], rows[0], cols[-1] + 1, rows[-1] + 1
+            if len(p) and support < cfg.partial_support:
+                pr, pc = p // w, p % w
+                x0, y0 = min(x0, pc.min() - r), min(y0, pr.min() - r)
+                x1, y1 = max(x1, pc.max() + 1 + r), max(y1, pr.max() + 1 + r)
+            out.append((np.array([max(0, x0), max(0, y0), min(w, x1), min(h, y1)], dtype=np.float64), support))
         return out
 
     def _split_blob(self, out: np.ndarray, blob: np.ndarray, owners: np.ndarray, proj: list[np.ndarray],

@@ -2,7 +2,7 @@
 
 Format (docs/formats/external_masks.md), one folder:
 
-    <root>/<camera>.h5 or <camera>.npz   person-id masks: `masks` uint8 (F, H, W), 0 = nobody,
+    <root>/<camera>.h5 or <camera>.npz   person-id masks: `masks` (or `mask`) uint8 (F, H, W), 0 = nobody,
                                          1..254 = a person; optional `frames` int (F,) frame
                                          numbers (default 0..F-1)
     <root>/boxes.parquet                 optional boxes: frame, camera, x0, y0, x1, y1
@@ -31,8 +31,9 @@ class ExternalError(ValueError):
 
 
 def _pick_masks_array(keys_shapes: dict[str, tuple], path: Path) -> str:
-    if "masks" in keys_shapes:
-        return "masks"
+    for key in ("masks", "mask"):  # `mask` is what synth's truth/masks/<cam>.h5 holds
+        if key in keys_shapes:
+            return key
     three_d = [k for k, s in keys_shapes.items() if len(s) == 3]
     if len(three_d) == 1:
         return three_d[0]
@@ -207,9 +208,10 @@ def boxes_to_labels(fg: np.ndarray | None, boxes: list[tuple[int, np.ndarray]], 
     out = np.zeros((h, w), dtype=np.uint8)
     order = sorted(range(len(boxes)), key=lambda i: -(boxes[i][1][2] - boxes[i][1][0]) * (boxes[i][1][3] - boxes[i][1][1]))
     for label, i in enumerate(order[:254], start=1):
-        x0, y0, x1, y1 = boxes[i][1]
-        c0, r0 = max(0, int(np.floor(x0 * scale[0]))), max(0, int(np.floor(y0 * scale[1])))
-        c1, r1 = min(w, int(np.ceil(x1 * scale[0]))), min(h, int(np.ceil(y1 * scale[1])))
+        # Edges in pixel-centre coordinates (x = -0.5 is the image's left edge) to work columns.
+        x0, y0, x1, y1 = boxes[i][1] + 0.5
+        c0, r0 = max(0, int(np.floor(x0 * scale[0] + 1e-9))), max(0, int(np.floor(y0 * scale[1] + 1e-9)))
+        c1, r1 = min(w, int(np.ceil(x1 * scale[0] - 1e-9))), min(h, int(np.ceil(y1 * scale[1] - 1e-9)))
         if c1 <= c0 or r1 <= r0:
             continue
         region = out[r0:r1, c0:c1]

@@ -41,7 +41,7 @@ from gst.data.crop import (
     resample,
     undistorted_box,
 )
-from gst.data.evaluate import CropTruth, association_accuracy, match_truth
+from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import (
     ExternalDetections,
     IdMaskFile,
@@ -52,7 +52,7 @@ from gst.data.external import (
 )
 from gst.data.masks import MaskConfig, clean_mask
 from gst.data.store import CropBatch, CropStore, CropStoreWriter
-from gst.data.video import VideoError, check_videos, read_frames, scaled_size
+from gst.data.video import VideoError, check_videos, probe_video, read_frames, scaled_size
 
 WORK_MAX_SIDE = 960  # default work resolution: longer image side in pixels
 
@@ -74,6 +74,9 @@ class ExtractOptions:
     compression_level: int = 1
     commit_frames: int = 16  # frames per store commit (the unit of resume)
     keep_work: bool = False  # keep `<store>.work/` after success (for debugging)
+    # camera -> video of the empty scene (a "clean plate"): the background is learnt from it
+    # instead of the capture itself, which is what makes people who barely move visible.
+    background_videos: dict[str, Path] | None = None
 
 
 @dataclass
@@ -132,6 +135,7 @@ class MaskJob:
     masks: MaskConfig
     out: str
     external_masks: str | None = None
+    clean_plate: str | None = None  # video of the empty scene to learn the background from
     external_boxes: dict | None = None  # frame -> [(person_id, box)] in full-resolution pixels
     cache_bytes: int = 1 << 30  # decode once and keep work frames in memory up to this size
 
@@ -172,14 +176,24 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
                 labels[pos[f]] = resize_labels(m, (w, h))
         ext.close()
     else:
-        idx = sample_indices(job.n_frames, job.background.samples)
-        wanted = sorted(set(idx) | set(job.frames))
         cache: dict[int, np.ndarray] = {}
-        if len(wanted) * w * h * 3 <= job.cache_bytes:
+        if job.clean_plate:
+            # An empty-scene clip of this camera: learn the background from it alone.
+            plate = probe_video(job.clean_plate, job.camera)
+            if (plate.width, plate.height) != tuple(job.full_size):
+                raise VideoError(f"camera '{job.camera}' background video {job.clean_plate}: frames are "
+                                 f"{plate.width}x{plate.height}, the camera's video is "
+                                 f"{job.full_size[0]}x{job.full_size[1]}")
+            idx = sample_indices(plate.frames, job.background.samples)
+            samples = np.stack([img for _, img in read_frames(job.clean_plate, idx, job.camera, sx)])
+        elif len(set(sample_indices(job.n_frames, job.background.samples)) | set(job.frames)) * w * h * 3 \
+                <= job.cache_bytes:
             # Short clip: decode once, keep the small work frames for the second pass.
-            cache = dict(read_frames(job.video, wanted, job.camera, sx))
+            idx = sample_indices(job.n_frames, job.background.samples)
+            cache = dict(read_frames(job.video, sorted(set(idx) | set(job.frames)), job.camera, sx))
             samples = np.stack([cache[i] for i in idx])
         else:
+            idx = sample_indices(job.n_frames, job.background.samples)
             samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
         model = build_background(samples, job.background)
         del samples
@@ -189,8 +203,9 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
             if job.external_boxes is not None:
                 lab = boxes_to_labels(lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1]))
             labels[pos[f]] = lab
-    n_with = int(np.count_nonzero(labels.reshape(len(labels), -1).max(axis=1)))
-    n_blobs = int(sum(len(np.unique(x)) - 1 for x in labels))
+    per_frame_max = labels.reshape(len(labels), -1).max(axis=1)  # clean_mask labels are 1..n
+    n_with = int(np.count_nonzero(per_frame_max))
+    n_blobs = int(per_frame_max.astype(np.int64).sum()) if not job.external_masks else -1
     seconds = time.perf_counter() - t0
 
     def fill(f: h5py.File) -> None:
@@ -203,6 +218,11 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
 
 
 # -- phase 2: association --------------------------------------------------------------------
+
+def _values_present(labels: np.ndarray) -> np.ndarray:
+    """Distinct values of a uint8 label image (a histogram: much faster than np.unique)."""
+    return np.nonzero(np.bincount(labels.reshape(-1), minlength=256))[0]
+
 
 def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_sizes: dict[str, tuple[int, int]],
                     frames: list[int], out_dir: Path, config: AssociationConfig,
@@ -248,7 +268,7 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
                 per_frame.append(ids)
                 for n in names:
                     outs[n]["labels"][i] = labels[n]
-                    for v in np.unique(labels[n]):
+                    for v in _values_present(labels[n]):
                         if v > 0:
                             slots[n].append((frame, int(v), int(v)))
                             views[n].append((np.nan, np.nan, np.nan, np.nan, np.nan))
@@ -259,7 +279,7 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
             for n in names:
                 lab = assoc.labels[n]
                 outs[n]["labels"][i] = lab
-                for v in np.unique(lab):
+                for v in _values_present(lab):
                     view = assoc.views[n][int(v) - 1] if v > 0 else None
                     if view is not None:
                         slots[n].append((frame, int(v), ids[int(v) - 1]))
@@ -356,9 +376,35 @@ def crop_person(frame: np.ndarray, person_mask: np.ndarray, camera: Camera, crop
     return image, mask, crop_intrinsics(camera.K, cbox, crop_size), box, cbox.as_array()
 
 
-def _full_res_mask(work_mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    up = cv2.resize(work_mask.astype(np.uint8) * 255, size, interpolation=cv2.INTER_LINEAR)
-    return up >= 128
+def score_against_truth(work_mask: np.ndarray, truth: np.ndarray, truth_areas: np.ndarray) -> tuple[int, float]:
+    """(truth id, IoU) of a work-resolution person mask against a full-resolution truth id mask.
+
+    The mask is upsampled bilinearly (threshold 0.5, as `cv2.resize` would) only over its own
+    bounding box; `truth_areas[k]` is the pixel count of truth id k in the whole image.
+    """
+    H, W = truth.shape
+    h, w = work_mask.shape
+    sx, sy = w / W, h / H
+    rows = np.nonzero(work_mask.any(axis=1))[0]
+    cols = np.nonzero(work_mask.any(axis=0))[0]
+    if len(rows) == 0:
+        return 0, 0.0
+    x0 = max(0, int(np.floor((cols[0] - 1) / sx)))
+    x1 = min(W, int(np.ceil((cols[-1] + 2) / sx)))
+    y0 = max(0, int(np.floor((rows[0] - 1) / sy)))
+    y1 = min(H, int(np.ceil((rows[-1] + 2) / sy)))
+    mx = ((np.arange(x0, x1, dtype=np.float32) + 0.5) * sx - 0.5)[None].repeat(y1 - y0, 0)
+    my = ((np.arange(y0, y1, dtype=np.float32) + 0.5) * sy - 0.5)[:, None].repeat(x1 - x0, 1)
+    up = cv2.remap(work_mask.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) >= 0.5
+    roi = truth[y0:y1, x0:x1]
+    ids = roi[up]
+    ids = ids[ids > 0]
+    if len(ids) == 0:
+        return 0, 0.0
+    tid = int(np.bincount(ids).argmax())
+    inter = int(np.count_nonzero(ids == tid))
+    union = int(np.count_nonzero(up)) + int(truth_areas[tid]) - inter
+    return tid, inter / union if union else 0.0
 
 
 def extract_camera_crops(job: CropJob) -> CropJobResult:
@@ -378,8 +424,9 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
             by_frame.setdefault(int(f), []).append((int(slot), int(pid), view[:4], float(view[4])))
         result = CropJobResult(cam.name, 0, 0, 0, 0.0)
         truth = IdMaskFile(job.truth_masks, cam.name) if job.truth_masks else None
+        # The part store is temporary: no compression (the scene store compresses once).
         with CropStoreWriter(job.part, list(job.camera_names), job.crop_size, job.settings,
-                             compression="lzf") as part:
+                             compression="none") as part:
             done = {f for f, c in part.done_pairs() if c == job.camera_index}
             todo = [f for f in job.frames if f not in done]
             with_people = [f for f in todo if f in by_frame]
@@ -398,6 +445,7 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                 rows = []
                 scored: list[CropTruth] = []
                 gt = truth.get(f) if truth is not None else None
+                gt_areas = np.bincount(gt.reshape(-1), minlength=256) if gt is not None else None
                 if f in by_frame:
                     fi, image = next_frame
                     assert fi == f
@@ -414,11 +462,10 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                                               np.array([f], np.int64), np.array([pid], np.int64),
                                               np.array([support], np.float32)))
                         if gt is not None:
-                            tid, iou = match_truth(_full_res_mask(pmask, (cam.width, cam.height)), gt)
+                            tid, iou = score_against_truth(pmask, gt, gt_areas)
                             scored.append(CropTruth(f, cam.name, pid, tid, iou))
                 if gt is not None:
-                    ids, counts = np.unique(gt[gt > 0], return_counts=True)
-                    big = set(ids[counts >= job.min_truth_fraction * gt.size].tolist())
+                    big = set(np.nonzero(gt_areas >= job.min_truth_fraction * gt.size)[0].tolist()) - {0}
                     result.truth_views += len(big)
                     result.truth_views_missed += len(big - {r.truth_id for r in scored})
                     result.truth.extend(scored)
@@ -527,6 +574,14 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
     ext = external if isinstance(external, ExternalDetections) or external is None else read_external(external, names)
     if ext is not None:
         ext.validate(sizes, n_frames)
+    plates = {str(k): Path(v) for k, v in (opts.background_videos or {}).items()}
+    for n, p in plates.items():
+        if n not in videos:
+            raise VideoError(f"background video {p} is for camera '{n}', which has no video (cameras: {names})")
+        info = probe_video(p, n)
+        if (info.width, info.height) != sizes[n]:
+            raise VideoError(f"camera '{n}' background video {p}: frames are {info.width}x{info.height}, "
+                             f"the camera's video is {sizes[n][0]}x{sizes[n][1]}")
     truth_dir = _resolve_truth(truth)
     truth_files = {n: find_mask_file(truth_dir, n) for n in names} if truth_dir else {}
 
@@ -542,7 +597,8 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
                 "config": _fingerprint([asdict(bg_cfg), asdict(opts.masks), asdict(opts.association),
                                         opts.work_scale, None if opts.volume is None else
                                         [opts.volume.basis.tolist(), opts.volume.lo.tolist(), opts.volume.hi.tolist()],
-                                        str(getattr(ext, "root", None)), [_camera_signature(rig[n]) for n in names]])}
+                                        str(getattr(ext, "root", None)), [_camera_signature(rig[n]) for n in names],
+                                        {n: str(p) for n, p in sorted(plates.items())}])}
     work = out_h5.with_name(out_h5.name + ".work")
     work_key = _fingerprint([settings, {n: [str(p), os.path.getsize(p), os.path.getmtime(p)] for n, p in videos.items()}])
     marker = work / "settings.json"
@@ -569,8 +625,8 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
                 boxes = ext.camera_boxes(n) if ext is not None else None
                 jobs.append(MaskJob(n, str(videos[n]), tuple(frames), n_frames, sizes[n], work_sizes[n], bg_cfg,
                                     opts.masks, str(work / f"labels_{n}.h5"),
-                                    str(ext.mask_files[n]) if ext is not None and n in ext.mask_files else None,
-                                    boxes))
+                                    external_masks=str(ext.mask_files[n]) if ext is not None and n in ext.mask_files else None,
+                                    external_boxes=boxes, clean_plate=str(plates[n]) if n in plates else None))
             for r in _map(executor_map, compute_camera_masks, jobs, "foreground masks per camera"):
                 per_cam[r.camera].seconds_masks = r.seconds
                 if r.frames_with_blobs == 0:

@@ -49,16 +49,23 @@ def _disk(radius_px: int) -> np.ndarray:
 
 def fill_small_holes(mask: np.ndarray, max_area_px: int) -> np.ndarray:
     """Fill background regions enclosed by foreground that are smaller than `max_area_px`."""
-    inv = (~mask).astype(np.uint8)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
-    if n <= 1:
-        return mask
     h, w = mask.shape
-    x, y, bw, bh, area = stats[:, 0], stats[:, 1], stats[:, 2], stats[:, 3], stats[:, 4]
-    touches_border = (x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)
-    fill = (area <= max_area_px) & ~touches_border
-    fill[0] = False  # label 0 is the foreground itself
-    return mask | fill[labels]
+    # Background reachable from the border is not a hole: flood it from a padded frame.
+    padded = np.zeros((h + 2, w + 2), np.uint8)
+    padded[1:-1, 1:-1] = mask
+    cv2.floodFill(padded, None, (0, 0), 2)
+    holes = padded[1:-1, 1:-1] == 0
+    if not holes.any():
+        return mask
+    ys, xs = np.nonzero(holes)
+    y0, x0 = ys.min(), xs.min()
+    roi = holes[y0:ys.max() + 1, x0:xs.max() + 1]
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(roi.astype(np.uint8), connectivity=4)
+    small = stats[:, cv2.CC_STAT_AREA] <= max_area_px
+    small[0] = False
+    out = mask.copy()
+    out[y0:ys.max() + 1, x0:xs.max() + 1] |= small[labels]
+    return out
 
 
 def clean_mask(raw: np.ndarray, config: MaskConfig = MaskConfig()) -> tuple[np.ndarray, list[Blob]]:
