@@ -46,7 +46,7 @@ class AssociationConfig:
     box_radius: float = 1.0  # hull voxels this far (ground) from a person's centre are its own
     partial_support: float = 0.6  # below this mask support, crop boxes also cover the hull footprint
     track_max_speed: float = 8.0  # m/s a person can move on the ground (a sprint is ~9)
-    track_slack: float = 0.3  # m of centroid jitter tolerated on top (partial silhouettes move it)
+    track_slack: float = 0.5  # m of centroid jitter tolerated on top (partial silhouettes move it)
     track_max_gap: int = 15  # processed frames a lost id is kept for re-identification
     min_track_frames: int = 5  # ids seen in fewer processed frames are dropped (flicker, fragments)
 
@@ -576,4 +576,11 @@ class PersonTracker:
                 self.next_id += 1
             person.person_id = ids[k]
             self.tracks[ids[k]] = (person.ground.copy(), self.step)
+        # A track not seen this step but sitting where someone was just seen is a stale
+        # duplicate of that person (a fragment that got its own id): retire it, or the two ids
+        # would take turns on the same person.
+        fresh = [t[0] for t in self.tracks.values() if t[1] == self.step]
+        for i in [i for i, t in self.tracks.items() if t[1] < self.step]:
+            if any(np.linalg.norm(self.tracks[i][0] - f) <= self.slack for f in fresh):
+                del self.tracks[i]
         return ids

@@ -74,6 +74,8 @@ def write_extract_report(report: ExtractReport, store_path: Path | str, out_dir:
     if not cv2.imwrite(str(tmp), contact_sheet(store)):
         raise OSError(f"could not write {tmp}")
     os.replace(tmp, sheet_path)
+    support = store.index.column("mask_support").to_numpy() if len(store) else np.zeros(0)
+    support = support[np.isfinite(support)]
     store.close()
 
     r = report
@@ -87,6 +89,12 @@ def write_extract_report(report: ExtractReport, store_path: Path | str, out_dir:
         f"- cameras that saw no one (skipped): {', '.join(r.cameras_skipped) or 'none'}",
         f"- (frame, camera) pairs already done and resumed: {r.pairs_resumed}",
     ]
+    if len(support):
+        q = np.percentile(support, [10, 50, 90])
+        lines.append(f"- mask support (share of the person's 3D hull this view's mask covers; low = partial mask): "
+                     f"10% {q[0]:.2f}, median {q[1]:.2f}, 90% {q[2]:.2f}; {int((support < 0.5).sum())} crops below 0.5")
+    if r.short_tracks_dropped:
+        lines.append(f"- ids seen too briefly to crop (dropped): {r.short_tracks_dropped}")
     if r.crops_scored:
         lines += [
             f"- truth: mean mask IoU {_fmt(r.mask_iou)}, association accuracy {_fmt(r.association_accuracy)} "
