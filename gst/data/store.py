@@ -1,0 +1,401 @@
+"""The crop store: one HDF5 file per scene plus a Parquet index next to it.
+
+Layout (format: docs/formats/crops_h5.md). Every per-crop dataset has N rows and is chunked and
+compressed; rows beyond the root attribute `n_committed` are an unfinished batch and are
+ignored by readers and cut off by the writer when it resumes. The pairs (frame, camera) that
+have been fully processed, including those that produced no crop, are listed in `done`, so a
+resumed run skips them. The attribute `complete` is set only after the last batch and the
+Parquet index are written; `CropStore` refuses an incomplete store unless asked.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+FORMAT = "gst-crops"
+VERSION = 1
+
+# name -> (per-row shape given crop size S, dtype)
+def _row_specs(size: int) -> dict[str, tuple[tuple[int, ...], str]]:
+    return {
+        "images": ((size, size, 3), "uint8"),
+        "masks": ((size, size), "uint8"),
+        "K_crop": ((3, 3), "float64"),
+        "R": ((3, 3), "float64"),
+        "t": ((3,), "float64"),
+        "box": ((4,), "float64"),
+        "crop_box": ((3,), "float64"),
+        "camera": ((), "int32"),
+        "frame": ((), "int64"),
+        "person_id": ((), "int64"),
+        "mask_support": ((), "float32"),
+    }
+
+
+class StoreError(ValueError):
+    """A crop store is missing, incomplete, or was written with other settings."""
+
+
+@dataclass
+class CropBatch:
+    """Rows to append (all arrays share the first dimension) or rows read back."""
+
+    images: np.ndarray  # (n, S, S, 3) uint8, BGR as OpenCV decodes (see `rgb`)
+    masks: np.ndarray  # (n, S, S) uint8 coverage, 255 = person
+    K_crop: np.ndarray  # (n, 3, 3)
+    R: np.ndarray  # (n, 3, 3) world to camera
+    t: np.ndarray  # (n, 3) metres
+    box: np.ndarray  # (n, 4) person box x0, y0, x1, y1 (edges) in the undistorted full image
+    crop_box: np.ndarray  # (n, 3) crop square x0, y0, side (edges) in the undistorted full image
+    camera: np.ndarray  # (n,) index into the store's camera names
+    frame: np.ndarray  # (n,)
+    person_id: np.ndarray  # (n,)
+    mask_support: np.ndarray  # (n,) share of the person's 3D-hull footprint its mask covers (NaN: unknown)
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @property
+    def rgb(self) -> np.ndarray:
+        return self.images[..., ::-1]
+
+    @staticmethod
+    def concat(batches: list[CropBatch]) -> CropBatch:
+        return CropBatch(**{k: np.concatenate([getattr(b, k) for b in batches])
+                            for k in CropBatch.__dataclass_fields__})
+
+    @staticmethod
+    def empty(size: int) -> CropBatch:
+        return CropBatch(**{k: np.zeros((0, *shape), dtype=dt) for k, (shape, dt) in _row_specs(size).items()})
+
+
+class CropStoreWriter:
+    """Appends crop batches to a store, creating it or resuming it.
+
+    Use as a context manager. A store written with a different crop size, scale or camera list
+    is an error (not silently mixed). `commit(batch, done_pairs)` makes a batch and the
+    (frame, camera) pairs it finishes visible atomically with respect to readers and resumes.
+    """
+
+    def __init__(self, path: Path | str, camera_names: list[str], crop_size: int,
+                 settings: dict | None = None, compression: str = "gzip", compression_level: int = 1):
+        self.path = Path(path)
+        self.camera_names = list(camera_names)
+        self.crop_size = int(crop_size)
+        self.settings = dict(settings or {})
+        self.compression = compression
+        self.compression_level = compression_level
+        self._h5: h5py.File | None = None
+
+    def __enter__(self) -> CropStoreWriter:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def open(self) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._h5 = h5py.File(self.path, "a")
+        except OSError as exc:
+            raise StoreError(f"{self.path}: cannot open as HDF5 for appending ({exc}); "
+                             "delete it or choose another path") from exc
+        f = self._h5
+        try:
+            fmt = f.attrs.get("format")
+            if fmt is None and not len(f.keys()) and not len(f.attrs):
+                self._create()  # new (empty) file
+            elif fmt != FORMAT:
+                raise StoreError(f"{self.path}: exists and is not a crop store (format {fmt!r}); "
+                                 "refusing to overwrite it")
+            elif "n_committed" not in f.attrs:
+                self._create()  # creation was interrupted before anything was committed
+            else:
+                self._check_compatible()
+                self._truncate_to_committed()
+        except Exception:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._h5 is not None:
+            self._h5.close()
+            self._h5 = None
+
+    # -- creation and resume --------------------------------------------------------------------
+    def _create(self) -> None:
+        f = self._h5
+        for name in list(f.keys()):
+            del f[name]
+        S = self.crop_size
+        opts = {}
+        if self.compression == "gzip":
+            opts = {"compression": "gzip", "compression_opts": self.compression_level}
+        elif self.compression == "lzf":
+            opts = {"compression": "lzf"}
+        elif self.compression != "none":
+            raise StoreError(f"compression '{self.compression}' is unknown; expected gzip, lzf or none")
+        for name, (shape, dtype) in _row_specs(S).items():
+            big = name in ("images", "masks")
+            chunk_rows = 1 if big else 1024
+            f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                             chunks=(chunk_rows, *shape), shuffle=not big and bool(opts), **opts)
+        f.create_dataset("done", shape=(0, 2), maxshape=(None, 2), dtype="int64", chunks=(4096, 2))
+        f.create_dataset("camera_names", data=np.array(self.camera_names, dtype=h5py.string_dtype()))
+        f.attrs["format"] = FORMAT
+        f.attrs["version"] = VERSION
+        f.attrs["crop_size"] = S
+        for key, value in self.settings.items():
+            f.attrs[f"setting.{key}"] = value
+        f.attrs["n_done"] = 0
+        f.attrs["complete"] = False
+        f.attrs["n_committed"] = 0  # written last: its presence marks a usable store
+        f.flush()
+
+    def _check_compatible(self) -> None:
+        f = self._h5
+        if f.attrs.get("format") != FORMAT:
+            raise StoreError(f"{self.path}: not a crop store (format attribute {f.attrs.get('format')!r})")
+        if int(f.attrs["crop_size"]) != self.crop_size:
+            raise StoreError(f"{self.path}: written with crop_size={int(f.attrs['crop_size'])}, "
+                             f"asked to append crop_size={self.crop_size}; use a new path or delete it")
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["camera_names"][()]]
+        if names != self.camera_names:
+            raise StoreError(f"{self.path}: written for cameras {names}, asked to append for "
+                             f"{self.camera_names}; use a new path or delete it")
+        for key, value in self.settings.items():
+            old = f.attrs.get(f"setting.{key}")
+            if old is not None and not np.array_equal(np.asarray(old), np.asarray(value)):
+                raise StoreError(f"{self.path}: written with {key}={old!r}, asked to append with "
+                                 f"{key}={value!r}; use a new path or delete it")
+
+    def _truncate_to_committed(self) -> None:
+        f = self._h5
+        n = int(f.attrs["n_committed"])
+        for name in _row_specs(self.crop_size):
+            if f[name].shape[0] != n:
+                f[name].resize(n, axis=0)
+        n_done = int(f.attrs["n_done"])
+        if f["done"].shape[0] != n_done:
+            f["done"].resize(n_done, axis=0)
+        f.attrs["complete"] = False
+        f.flush()
+
+    # -- appending ------------------------------------------------------------------------------
+    @property
+    def n_committed(self) -> int:
+        return int(self._h5.attrs["n_committed"])
+
+    def done_pairs(self) -> set[tuple[int, int]]:
+        """(frame, camera index) pairs already processed."""
+        d = self._h5["done"][: int(self._h5.attrs["n_done"])]
+        return {(int(a), int(b)) for a, b in d}
+
+    def commit(self, batch: CropBatch, done: list[tuple[int, int]] | np.ndarray) -> None:
+        """Append `batch` and mark the (frame, camera index) pairs in `done` as processed."""
+        f = self._h5
+        n0 = self.n_committed
+        n = len(batch)
+        S = self.crop_size
+        if n:
+            if batch.images.shape[1:] != (S, S, 3) or batch.masks.shape[1:] != (S, S):
+                raise StoreError(f"{self.path}: batch crops are {batch.images.shape[1:]}, store holds {S}x{S}")
+            for name in _row_specs(S):
+                ds = f[name]
+                ds.resize(n0 + n, axis=0)
+                ds[n0:n0 + n] = getattr(batch, name)
+        done = np.asarray(done, dtype=np.int64).reshape(-1, 2)
+        d0 = int(f.attrs["n_done"])
+        if len(done):
+            f["done"].resize(d0 + len(done), axis=0)
+            f["done"][d0:] = done
+        f.flush()  # data on disk before the counters that make it visible
+        f.attrs["n_done"] = d0 + len(done)
+        f.attrs["n_committed"] = n0 + n
+        f.flush()
+
+    def finalize(self, extra_attrs: dict | None = None) -> Path:
+        """Write the Parquet index (temporary file, then rename) and mark the store complete."""
+        f = self._h5
+        for key, value in (extra_attrs or {}).items():
+            f.attrs[key] = value
+        f.flush()
+        index_path = write_index(f, self.path)
+        f.attrs["complete"] = True
+        f.flush()
+        return index_path
+
+
+def index_path_for(store_path: Path | str) -> Path:
+    p = Path(store_path)
+    return p.with_name(p.stem + ".index.parquet")
+
+
+def _read_index_columns(f: h5py.File) -> dict[str, np.ndarray]:
+    n = int(f.attrs["n_committed"])
+    names = [x.decode() if isinstance(x, bytes) else str(x) for x in f["camera_names"][()]]
+    cam = f["camera"][:n]
+    box = f["box"][:n]
+    crop = f["crop_box"][:n]
+    masks_area = np.empty(n, dtype=np.float32)
+    for i0 in range(0, n, 512):  # mask coverage, read in slabs to bound memory
+        m = f["masks"][i0:i0 + 512]
+        masks_area[i0:i0 + len(m)] = m.reshape(len(m), -1).mean(axis=1) / 255.0
+    return {
+        "row": np.arange(n, dtype=np.int64),
+        "frame": f["frame"][:n],
+        "camera": np.array(names, dtype=object)[cam] if n else np.zeros(0, dtype=object),
+        "camera_index": cam,
+        "person_id": f["person_id"][:n],
+        "x0": box[:, 0], "y0": box[:, 1], "x1": box[:, 2], "y1": box[:, 3],
+        "crop_x0": crop[:, 0], "crop_y0": crop[:, 1], "crop_side": crop[:, 2],
+        "mask_coverage": masks_area,
+        "mask_support": f["mask_support"][:n],
+    }
+
+
+def write_index(f: h5py.File, store_path: Path) -> Path:
+    """Write the Parquet index of the committed rows of an open store (atomically)."""
+    cols = _read_index_columns(f)
+    table = pa.table({k: pa.array(v.tolist() if k == "camera" else v) for k, v in cols.items()})
+    table = table.replace_schema_metadata({
+        "store": Path(store_path).name, "n_committed": str(int(f.attrs["n_committed"])),
+        "crop_size": str(int(f.attrs["crop_size"]))})
+    out = index_path_for(store_path)
+    tmp = out.with_name(out.name + ".tmp")
+    pq.write_table(table, tmp)
+    os.replace(tmp, out)
+    return out
+
+
+@dataclass(frozen=True)
+class MultiViewGroup:
+    """All crops of one person in one frame, at most one per camera."""
+
+    frame: int
+    person_id: int
+    indices: np.ndarray  # store rows
+    cameras: np.ndarray  # camera indices, same order
+
+
+class CropStore:
+    """Read-only access to a crop store. Safe to pickle (reopens the file lazily per process).
+
+    `select` and `multiview_groups` use the Parquet index; `read` loads rows.
+    """
+
+    def __init__(self, path: Path | str, allow_incomplete: bool = False):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise StoreError(f"crop store {self.path} does not exist")
+        with h5py.File(self.path, "r") as f:
+            if f.attrs.get("format") != FORMAT or "n_committed" not in f.attrs:
+                raise StoreError(f"{self.path}: not a crop store")
+            if not bool(f.attrs.get("complete")) and not allow_incomplete:
+                raise StoreError(f"{self.path}: the store is incomplete (its writer did not finish); "
+                                 "rerun the extraction to resume it, or pass allow_incomplete=True")
+            self.n = int(f.attrs["n_committed"])
+            self.crop_size = int(f.attrs["crop_size"])
+            self.camera_names = [x.decode() if isinstance(x, bytes) else str(x) for x in f["camera_names"][()]]
+            self.attrs = {k: f.attrs[k] for k in f.attrs}
+            self.index = self._load_index(f)
+        self._h5: h5py.File | None = None
+
+    def _load_index(self, f: h5py.File) -> pa.Table:
+        ip = index_path_for(self.path)
+        if ip.is_file():
+            table = pq.read_table(ip)
+            if table.num_rows == self.n:
+                return table
+        # Missing or stale index (e.g. an incomplete store): rebuild it in memory.
+        cols = _read_index_columns(f)
+        return pa.table({k: pa.array(v.tolist() if k == "camera" else v) for k, v in cols.items()})
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_h5"] = None
+        return state
+
+    def _file(self) -> h5py.File:
+        if self._h5 is None:
+            self._h5 = h5py.File(self.path, "r")
+        return self._h5
+
+    def close(self) -> None:
+        if self._h5 is not None:
+            self._h5.close()
+            self._h5 = None
+
+    def _column(self, name: str) -> np.ndarray:
+        return self.index.column(name).to_numpy()
+
+    def _camera_indices(self, cameras) -> list[int]:
+        out = []
+        for c in cameras:
+            if isinstance(c, str):
+                if c not in self.camera_names:
+                    raise KeyError(f"camera '{c}' is not in store {self.path} (cameras: {self.camera_names})")
+                out.append(self.camera_names.index(c))
+            else:
+                out.append(int(c))
+        return out
+
+    def select(self, frames=None, cameras=None, persons=None) -> np.ndarray:
+        """Rows matching all given filters (each an iterable; cameras by name or index)."""
+        keep = np.ones(self.n, dtype=bool)
+        if frames is not None:
+            keep &= np.isin(self._column("frame"), np.asarray(list(frames), dtype=np.int64))
+        if cameras is not None:
+            keep &= np.isin(self._column("camera_index"), self._camera_indices(cameras))
+        if persons is not None:
+            keep &= np.isin(self._column("person_id"), np.asarray(list(persons), dtype=np.int64))
+        return np.nonzero(keep)[0]
+
+    def multiview_groups(self, min_views: int = 2) -> list[MultiViewGroup]:
+        """Per (frame, person): the rows from different cameras, if at least `min_views`."""
+        frame = self._column("frame")
+        person = self._column("person_id")
+        cam = self._column("camera_index")
+        order = np.lexsort((cam, person, frame))
+        groups = []
+        if len(order) == 0:
+            return groups
+        key = np.stack([frame[order], person[order]], axis=1)
+        starts = np.concatenate([[0], np.nonzero(np.any(key[1:] != key[:-1], axis=1))[0] + 1, [len(order)]])
+        for a, b in zip(starts[:-1], starts[1:], strict=True):
+            rows = order[a:b]
+            # One crop per camera (the writer guarantees it; keep the first if not).
+            _, first = np.unique(cam[rows], return_index=True)
+            rows = rows[np.sort(first)]
+            if len(rows) >= min_views:
+                groups.append(MultiViewGroup(int(frame[rows[0]]), int(person[rows[0]]), rows, cam[rows]))
+        return groups
+
+    def read(self, rows) -> CropBatch:
+        """Load the given rows (any order; returned in that order)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if len(rows) and (rows.min() < 0 or rows.max() >= self.n):
+            raise IndexError(f"rows must be in [0, {self.n}), got {rows.min()}..{rows.max()}")
+        f = self._file()
+        order = np.argsort(rows, kind="stable")
+        srt = rows[order]
+        uniq, inv = np.unique(srt, return_inverse=True)
+        out = {}
+        for name in CropBatch.__dataclass_fields__:
+            data = f[name][uniq] if len(uniq) else f[name][:0]
+            vals = data[inv]
+            res = np.empty_like(vals)
+            res[order] = vals
+            out[name] = res
+        return CropBatch(**out)

@@ -1,0 +1,295 @@
+"""End to end: synthetic multi-camera scenes with exact masks and ids through `extract_scene`."""
+
+import json
+import multiprocessing as mp
+import shutil
+from concurrent.futures import ProcessPoolExecutor
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+import gst.data.extract as extract_mod
+from calibration import Rig
+from gst.data import (
+    AssociationConfig,
+    CaptureVolume,
+    CropStore,
+    ExtractOptions,
+    StoreError,
+    VideoError,
+    crop_camera,
+    extract_scene,
+    read_frames,
+    write_extract_report,
+)
+from gst.data.crop import CropBox
+from tests.extract_scenes import make_scene
+
+SMALL_VOLUME = CaptureVolume.around((0.0, 0.0, 1.0), (2.6, 2.6, 1.2))
+
+
+@pytest.fixture(scope="module")
+def one_person(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("one"), n_people=1, n_frames=30)
+
+
+@pytest.fixture(scope="module")
+def two_people(tmp_path_factory):
+    return make_scene(tmp_path_factory.mktemp("two"), n_people=2, n_frames=30, seed=1)
+
+
+@pytest.fixture(scope="module")
+def short_scene(tmp_path_factory):
+    """12 frames, people present only in frames 3..8, plus a camera that sees no one."""
+    return make_scene(tmp_path_factory.mktemp("short"), n_people=1, n_frames=12, present=(3, 8),
+                      with_away_camera=True, seed=2, laps=0.4)
+
+
+def _opts(**kw):
+    """Short scenes: a smaller capture volume (faster) and short tracks allowed."""
+    return ExtractOptions(volume=SMALL_VOLUME, **{"association": AssociationConfig(min_track_frames=2), **kw})
+
+
+@pytest.fixture(scope="module")
+def one_person_run(one_person, tmp_path_factory):
+    out = tmp_path_factory.mktemp("one_run") / "crops.h5"
+    return extract_scene(one_person.videos, one_person.rig, out, crop_size=96, truth=one_person.truth), out
+
+
+def test_single_person_masks_match_truth(one_person_run):
+    rep, out = one_person_run
+    assert rep.persons == 1
+    assert rep.crops_scored == rep.crops == 4 * 30
+    assert rep.mask_iou >= 0.90, rep.mask_iou
+    assert rep.association_accuracy == 1.0
+    assert rep.truth_views_missed == 0
+    store = CropStore(out)
+    assert len(store.multiview_groups(min_views=4)) == 30
+
+
+def test_two_people_are_associated_across_cameras(two_people, tmp_path):
+    rep = extract_scene(two_people.videos, two_people.rig, tmp_path / "crops.h5", crop_size=96,
+                        truth=two_people.truth)
+    assert rep.association_accuracy >= 0.98, rep.association_accuracy
+    assert rep.persons == 2
+    # Nearly every truth view (a person visible in a camera) produced a crop.
+    assert rep.truth_views_missed <= 0.03 * rep.truth_views
+    assert rep.mask_iou >= 0.80, rep.mask_iou  # occlusions make two-person masks harder
+
+
+def test_crop_content_and_geometry(one_person, one_person_run):
+    """Stored K_crop, R, t reproject a known 3D point (the person's head centre) onto the head."""
+    store = CropStore(one_person_run[1])
+    from tests.extract_scenes import person_pose
+
+    for row in store.select(frames=[0, 17]):
+        b = store.read([row])
+        cam = one_person.rig[store.camera_names[b.camera[0]]]
+        assert np.allclose(b.R[0], cam.R) and np.allclose(b.t[0], cam.t)
+        pos, heading = person_pose(0, int(b.frame[0]), one_person.n_frames)
+        head = np.array([pos[0], pos[1], 1.62])
+        ccam = crop_camera(cam, CropBox(*b.crop_box[0]), store.crop_size)
+        assert np.allclose(ccam.K, b.K_crop[0])
+        u, v = ccam.project(head)[0]
+        assert b.masks[0][int(round(v)), int(round(u))] > 200  # the head is inside the mask
+        # The crop shows there what the (distorted) video frame shows where the full camera
+        # projects the same point.
+        frame = dict(read_frames(one_person.videos[cam.name], [int(b.frame[0])]))[int(b.frame[0])]
+        uf, vf = cam.project(head)[0]
+        full_px = frame[int(round(vf)), int(round(uf))].astype(int)
+        assert np.abs(b.images[0][int(round(v)), int(round(u))].astype(int) - full_px).max() < 30
+
+
+def test_skips_empty_frames_idle_cameras_and_honours_stride(short_scene, tmp_path):
+    rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+                        frame_stride=2, options=_opts())
+    assert rep.frames_considered == 6  # frames 0, 2, ..., 10
+    assert rep.frames_with_people == 3  # 4, 6, 8
+    assert rep.frames_skipped_empty == 3
+    assert rep.cameras_skipped == ["away"]
+    assert rep.per_camera["away"].crops == 0
+    store = CropStore(tmp_path / "crops.h5")
+    assert sorted(set(store.index.column("frame").to_pylist())) == [4, 6, 8]
+    assert rep.crops == 3 * 4
+
+
+def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
+    out = tmp_path / "crops.h5"
+    calls = {"n": 0}
+    real_merge = extract_mod.merge_part
+
+    def merge_then_crash(writer, part, ci, commit_frames):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("simulated crash during merge")
+        return real_merge(writer, part, ci, commit_frames)
+
+    monkeypatch.setattr(extract_mod, "merge_part", merge_then_crash)
+    with pytest.raises(RuntimeError, match="simulated"):
+        extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+    with pytest.raises(StoreError, match="incomplete"):
+        CropStore(out)
+    monkeypatch.setattr(extract_mod, "merge_part", real_merge)
+    rep = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+    assert rep.pairs_resumed == 12  # the first camera's 12 (frame, camera) pairs were kept
+    store = CropStore(out)
+    keys = list(zip(store.index.column("frame").to_pylist(), store.index.column("camera").to_pylist(),
+                    store.index.column("person_id").to_pylist(), strict=True))
+    assert len(keys) == len(set(keys)) == 6 * 4  # no duplicates, nothing lost
+    assert not (tmp_path / "crops.h5.work").exists()
+    # A complete store is not redone.
+    again = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+    assert again.pairs_resumed == 12 * 5 and again.crops == 24
+
+
+def test_process_pool_executor_map(short_scene, tmp_path):
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=2, mp_context=ctx) as pool:
+        def pool_map(fn, items, description):
+            return list(pool.map(fn, items))
+        rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+                            options=_opts(), executor_map=pool_map)
+    assert rep.crops == 24
+
+
+def test_external_masks_take_precedence(short_scene, tmp_path):
+    """Truth masks supplied as external masks with global ids: exact masks, ids kept."""
+    ext = tmp_path / "external"
+    shutil.copytree(short_scene.truth / "masks", ext)
+    (ext / "meta.json").write_text(json.dumps({"global_ids": True}))
+    rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+                        external=ext, truth=short_scene.truth, options=_opts())
+    assert rep.mask_iou > 0.999
+    assert rep.association_accuracy == 1.0
+    assert set(CropStore(tmp_path / "crops.h5").index.column("person_id").to_pylist()) == {1}
+
+
+def test_report_files(short_scene, tmp_path):
+    out = tmp_path / "crops.h5"
+    rep = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, truth=short_scene.truth,
+                        options=_opts())
+    files = write_extract_report(rep, out, tmp_path / "reports")
+    text = files["markdown"].read_text()
+    assert "| away | 0 |" in text and "mask IoU" in text
+    sheet = cv2.imread(str(files["contact_sheet"]))
+    assert sheet is not None and sheet.shape[0] > 64 and sheet.shape[1] > 5 * 64
+    assert json.loads(files["json"].read_text())["crops"] == rep.crops
+
+
+# -- bad input --------------------------------------------------------------------------------
+
+def _nothing_written(tmp_path):
+    return not (tmp_path / "crops.h5").exists() and not (tmp_path / "crops.h5.work").exists()
+
+
+def test_unreadable_video_names_the_file(short_scene, tmp_path):
+    videos = dict(short_scene.videos)
+    bad = tmp_path / "cam1.mp4"
+    bad.write_bytes(b"\x00garbage" * 100)
+    videos["cam1"] = bad
+    with pytest.raises(VideoError, match=r"camera 'cam1'.*cam1\.mp4"):
+        extract_scene(videos, short_scene.rig, tmp_path / "crops.h5", options=_opts())
+    assert _nothing_written(tmp_path)
+    videos["cam1"] = tmp_path / "missing.mp4"
+    with pytest.raises(VideoError, match="missing.mp4: file not found"):
+        extract_scene(videos, short_scene.rig, tmp_path / "crops.h5", options=_opts())
+
+
+def test_camera_missing_from_rig_is_named(short_scene, tmp_path):
+    rig = Rig(tuple(c for c in short_scene.rig if c.name != "cam2"))
+    with pytest.raises(VideoError, match=r"\['cam2'\].*missing from the rig"):
+        extract_scene(short_scene.videos, rig, tmp_path / "crops.h5", options=_opts())
+    assert _nothing_written(tmp_path)
+
+
+def test_frame_count_mismatch_is_named(short_scene, tmp_path):
+    short = tmp_path / "cam3_short.mp4"
+    cap = cv2.VideoCapture(str(short_scene.videos["cam3"]))
+    writer = cv2.VideoWriter(str(short), cv2.VideoWriter_fourcc(*"mp4v"), 25, (320, 240))
+    for _ in range(9):
+        writer.write(cap.read()[1])
+    writer.release()
+    videos = dict(short_scene.videos, cam3=short)
+    with pytest.raises(VideoError, match=r"different frame counts.*cam3: 9 \(cam3_short.mp4\)"):
+        extract_scene(videos, short_scene.rig, tmp_path / "crops.h5", options=_opts())
+    assert _nothing_written(tmp_path)
+
+
+def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, monkeypatch):
+    real = extract_mod.read_frames
+
+    def failing(path, frames, camera="", scale=1.0):
+        for k, item in enumerate(real(path, frames, camera, scale)):
+            if camera == "cam2" and scale == 1.0 and k == 2:
+                raise VideoError(f"camera '{camera}' video {path}: frame {item[0]} could not be decoded")
+            yield item
+
+    monkeypatch.setattr(extract_mod, "read_frames", failing)
+    out = tmp_path / "crops.h5"
+    with pytest.raises(VideoError, match="camera 'cam2'"):
+        extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+    with h5py.File(out, "r") as f:
+        assert not f.attrs["complete"]
+    with pytest.raises(StoreError, match="incomplete"):
+        CropStore(out)
+
+
+def test_wrong_image_size_for_rig_is_named(short_scene, tmp_path):
+    cam = short_scene.rig["cam0"]
+    rig = Rig(tuple(c.replace(width=640, height=480) if c.name == "cam0" else c for c in short_scene.rig))
+    assert cam.width == 320
+    with pytest.raises(VideoError, match=r"camera 'cam0'.*320x240.*640x480"):
+        extract_scene(short_scene.videos, rig, tmp_path / "crops.h5", options=_opts())
+
+
+def test_bad_parameters(short_scene, tmp_path):
+    for kw, msg in [({"crop_size": 8}, "crop_size"), ({"scale": 0.9}, "scale"), ({"frame_stride": 0}, "frame_stride"),
+                    ({"method": "magic"}, "background method 'magic'")]:
+        with pytest.raises(ValueError, match=msg):
+            extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", options=_opts(), **kw)
+    assert _nothing_written(tmp_path)
+
+
+def test_clean_plate_reveals_a_person_standing_still(tmp_path_factory, tmp_path):
+    """Someone who stays on one spot becomes part of a background learnt from the capture;
+    a short video of the empty scene per camera (`background_videos`) fixes that."""
+    still = make_scene(tmp_path_factory.mktemp("still"), n_people=1, n_frames=12, laps=0.0, seed=4)
+    empty = make_scene(tmp_path_factory.mktemp("empty"), n_people=0, n_frames=8, seed=5)
+    without = extract_scene(still.videos, still.rig, tmp_path / "a.h5", crop_size=64, truth=still.truth,
+                            options=_opts())
+    with_plate = extract_scene(still.videos, still.rig, tmp_path / "b.h5", crop_size=64, truth=still.truth,
+                               options=_opts(background_videos=empty.videos))
+    assert with_plate.mask_iou >= 0.9, with_plate.mask_iou
+    assert with_plate.crops == 4 * 12
+    assert without.crops < with_plate.crops and (without.mask_iou or 0) < 0.5
+    with pytest.raises(VideoError, match="background video .* camera 'nope'"):
+        extract_scene(still.videos, still.rig, tmp_path / "c.h5", options=_opts(background_videos={"nope": empty.videos["cam0"]}))
+
+
+def test_external_boxes_drive_extraction(short_scene, tmp_path):
+    """Boxes from an outside detector (here: truth boxes) select who is cropped; masks come
+    from the background model inside each box."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from gst.data.external import IdMaskFile
+
+    rows = {"frame": [], "camera": [], "x0": [], "y0": [], "x1": [], "y1": []}
+    for cam in short_scene.rig.names:
+        masks = IdMaskFile(short_scene.truth / "masks" / f"{cam}.npz", cam)
+        for f in masks.frames:
+            ys, xs = np.nonzero(masks.get(f))
+            if len(xs):
+                for k, v in zip(("frame", "camera", "x0", "y0", "x1", "y1"),
+                                (f, cam, xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5), strict=True):
+                    rows[k].append(v)
+    ext = tmp_path / "ext"
+    ext.mkdir()
+    pq.write_table(pa.table(rows), ext / "boxes.parquet")
+    rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64, external=ext,
+                        truth=short_scene.truth, options=_opts())
+    assert rep.crops == 6 * 4
+    assert rep.mask_iou > 0.85
+    assert rep.association_accuracy == 1.0

@@ -1,0 +1,132 @@
+"""The HDF5 crop store: append, commit, resume, selection, multi-view groups, refusal of bad stores."""
+
+import pickle
+
+import h5py
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from gst.data.store import CropBatch, CropStore, CropStoreWriter, StoreError, index_path_for
+
+S = 16
+CAMS = ["a", "b", "c"]
+
+
+def _batch(frames, cams, persons, seed=0) -> CropBatch:
+    n = len(frames)
+    rng = np.random.default_rng(seed)
+    return CropBatch(
+        images=rng.integers(0, 255, (n, S, S, 3), dtype=np.uint8),
+        masks=rng.integers(0, 255, (n, S, S), dtype=np.uint8),
+        K_crop=np.tile(np.eye(3), (n, 1, 1)) * rng.uniform(1, 2, (n, 1, 1)),
+        R=np.tile(np.eye(3), (n, 1, 1)), t=rng.normal(size=(n, 3)),
+        box=rng.uniform(0, 100, (n, 4)), crop_box=rng.uniform(0, 100, (n, 3)),
+        camera=np.asarray(cams, np.int32), frame=np.asarray(frames, np.int64),
+        person_id=np.asarray(persons, np.int64), mask_support=rng.uniform(0, 1, n).astype(np.float32))
+
+
+def test_write_read_select_and_groups(tmp_path):
+    path = tmp_path / "crops.h5"
+    b1 = _batch([0, 0, 0, 1, 1], [0, 1, 2, 0, 2], [7, 7, 7, 7, 7], seed=1)
+    b2 = _batch([1, 2, 2], [1, 0, 1], [8, 7, 7], seed=2)
+    with CropStoreWriter(path, CAMS, S, {"scale": 1.2}) as w:
+        w.commit(b1, [(0, 0), (0, 1), (0, 2), (1, 0), (1, 2)])
+        w.commit(b2, [(1, 1), (2, 0), (2, 1), (2, 2)])
+        w.finalize()
+    store = CropStore(path)
+    assert len(store) == 8
+    assert store.camera_names == CAMS
+    got = store.read([6, 0, 3])
+    assert np.array_equal(got.images[0], b2.images[1])
+    assert np.array_equal(got.images[1], b1.images[0])
+    assert np.array_equal(got.K_crop[2], b1.K_crop[3])
+    assert np.array_equal(store.select(frames=[1], cameras=["c"]), [4])
+    assert np.array_equal(store.select(persons=[8]), [5])
+    assert np.array_equal(store.select(frames=[0], cameras=[1]), [1])
+    groups = {(g.frame, g.person_id): g for g in store.multiview_groups(min_views=2)}
+    assert set(groups) == {(0, 7), (1, 7), (2, 7)}
+    assert sorted(groups[(0, 7)].cameras.tolist()) == [0, 1, 2]
+    assert len(store.multiview_groups(min_views=3)) == 1
+    index = pq.read_table(index_path_for(path))
+    assert index.num_rows == 8 and index.column("camera").to_pylist()[5] == "b"
+    # Picklable for data-loader workers: the file handle is reopened lazily.
+    clone = pickle.loads(pickle.dumps(store))
+    assert np.array_equal(clone.read([2]).masks, store.read([2]).masks)
+    with pytest.raises(KeyError, match="camera 'z'"):
+        store.select(cameras=["z"])
+    with pytest.raises(IndexError):
+        store.read([8])
+
+
+def test_half_written_batch_is_invisible_and_cut_on_resume(tmp_path):
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0, 0], [0, 1], [1, 1]), [(0, 0), (0, 1)])
+    # Simulate a writer killed mid-batch: rows appended, counters not yet updated.
+    with h5py.File(path, "a") as f:
+        for name in ("images", "frame", "camera"):
+            f[name].resize(5, axis=0)
+        f["frame"][2:5] = 99
+        f["done"].resize(3, axis=0)
+    with pytest.raises(StoreError, match="incomplete"):
+        CropStore(path)
+    partial = CropStore(path, allow_incomplete=True)
+    assert len(partial) == 2 and 99 not in partial.index.column("frame").to_pylist()
+    with CropStoreWriter(path, CAMS, S) as w:
+        assert w.n_committed == 2
+        assert w.done_pairs() == {(0, 0), (0, 1)}
+        w.commit(_batch([0], [2], [1]), [(0, 2)])
+        w.finalize()
+    store = CropStore(path)
+    assert len(store) == 3
+    assert store.index.column("frame").to_pylist() == [0, 0, 0]
+    with h5py.File(path, "r") as f:
+        assert all(f[k].shape[0] == 3 for k in ("images", "masks", "frame", "camera", "person_id"))
+
+
+def test_reopening_marks_incomplete_until_finalized(tmp_path):
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0], [0], [1]), [(0, 0)])
+        w.finalize()
+    CropStore(path)
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([1], [0], [1]), [(1, 0)])
+    with pytest.raises(StoreError, match="incomplete"):
+        CropStore(path)
+
+
+def test_incompatible_store_is_refused(tmp_path):
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S, {"scale": 1.2}) as w:
+        w.finalize()
+    with pytest.raises(StoreError, match="crop_size=16"):
+        CropStoreWriter(path, CAMS, 32).open()
+    with pytest.raises(StoreError, match="cameras"):
+        CropStoreWriter(path, ["a", "b"], S).open()
+    with pytest.raises(StoreError, match="scale"):
+        CropStoreWriter(path, CAMS, S, {"scale": 1.5}).open()
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f["x"] = np.arange(3)
+    with pytest.raises(StoreError, match="not a crop store"):
+        CropStoreWriter(other, CAMS, S).open()
+    with h5py.File(other, "r") as f:  # untouched
+        assert f["x"].shape == (3,)
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"not hdf5 at all")
+    with pytest.raises(StoreError, match="cannot open"):
+        CropStoreWriter(junk, CAMS, S).open()
+    with pytest.raises(StoreError, match="does not exist"):
+        CropStore(tmp_path / "missing.h5")
+
+
+def test_stale_index_is_rebuilt(tmp_path):
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0, 1], [0, 1], [3, 3]), [(0, 0), (1, 1)])
+        w.finalize()
+    index_path_for(path).unlink()
+    store = CropStore(path)
+    assert store.index.column("person_id").to_pylist() == [3, 3]
