@@ -5,9 +5,8 @@ Only synthetic scenes need it. Output layout: docs/formats/synth_scene.md, under
 
 from __future__ import annotations
 
-from synth.scene import preset, render_scene
-
 from pipeline.stage import Stage, StageContext, StageParams
+from synth.scene import preset, render_scene
 
 
 class Params(StageParams):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -364,7 +365,9 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         # H36M's lens model has no exact match for arbitrary OpenCV tangential terms: its file
         # gets the least-squares fit (worst residual reported by the writer as a warning).
         opts = {"approximate_distortion": True} if fmt == "h36m" else {}
-        rig_writer(rig, out / rel, fmt, **opts)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*H36M distortion fitted.*")
+            rig_writer(rig, out / rel, fmt, **opts)
         if not (out / rel).is_file():
             raise OSError(f"rig writer did not create {rel} (format '{fmt}')")
     names = [c.name for c in rig.cameras]

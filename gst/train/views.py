@@ -119,3 +119,21 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
     bg = torch.rand(*tgt.shape, 3, generator=gen)
     return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask,
                           scale_intrinsics(crops.K[tgt], factor), view, bg)
+
+
+def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:
+    """Read a crop store (gst.data.CropStore) into memory; returns the CropSet (RGB) and the
+    person boxes (N, 4) in the undistorted full image."""
+    import numpy as np
+
+    from gst.data import CropStore
+
+    store = CropStore(store_path)
+    rows = np.arange(len(store)) if rows is None else np.asarray(rows)
+    b = store.read(rows)
+    crops = CropSet(images=torch.as_tensor(np.ascontiguousarray(b.rgb)),
+                    masks=torch.as_tensor(b.masks.astype(np.float32) / 255.0), K=torch.as_tensor(b.K_crop).float(),
+                    R=torch.as_tensor(b.R).float(), t=torch.as_tensor(b.t).float(),
+                    camera=torch.as_tensor(b.camera).long(), frame=torch.as_tensor(b.frame).long(),
+                    person=torch.as_tensor(b.person_id).long(), camera_names=list(store.camera_names))
+    return crops, b.box

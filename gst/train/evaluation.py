@@ -1,0 +1,96 @@
+"""Validation used during and after training: pose error against truth, novel-view quality.
+
+- Pose: MPJPE (pelvis-aligned) and PA-MPJPE, in millimetres, on crops with truth, comparing the
+  predicted joints taken to the world through the input camera with the true world joints.
+- Novel view: the input is a crop from a training camera; the Gaussians are rendered into the
+  same person's crop in a held-out camera and compared (PSNR, SSIM on the person composited on
+  black, and silhouette IoU against the mask).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from gst.metrics.image import psnr, ssim
+from gst.metrics.pose import mpjpe, pa_mpjpe
+from gst.train.steps import GSTTask, predict
+from gst.train.views import CropSet, MultiViewBatch, resize_images, scale_intrinsics
+
+
+@torch.no_grad()
+def pose_metrics(model, task: GSTTask, crops: CropSet, rows: torch.Tensor, batch_size: int = 32) -> dict:
+    """MPJPE and PA-MPJPE (mm) over `rows` (crops that have truth joints_world)."""
+    if len(rows) == 0:
+        return {}
+    errs, pa = [], []
+    for s in range(0, len(rows), batch_size):
+        r = rows[s:s + batch_size]
+        pred = predict(model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r], with_gaussians=False)
+        gt = crops.truth["joints_world"][r].to(pred.joints_world)
+        errs.append(mpjpe(pred.joints_world, gt, root=0))
+        pa.append(pa_mpjpe(pred.joints_world, gt))
+    return {"mpjpe_mm": 1000 * float(torch.cat(errs).mean()), "pa_mpjpe_mm": 1000 * float(torch.cat(pa).mean())}
+
+
+@dataclass
+class NovelViewSet:
+    """Fixed (input crop, held-out target crop) pairs."""
+
+    inputs: torch.Tensor  # (P,)
+    targets: torch.Tensor  # (P,)
+
+
+def novel_view_pairs(crops: CropSet, heldout: set[int], max_pairs: int = 64, seed: int = 0) -> NovelViewSet:
+    gen = torch.Generator().manual_seed(seed)
+    inputs, targets = [], []
+    for g in crops.groups(min_views=2):
+        held = [int(i) for i in g if int(crops.camera[i]) in heldout]
+        train = [int(i) for i in g if int(crops.camera[i]) not in heldout]
+        if held and train:
+            inputs.append(train[int(torch.randint(len(train), (1,), generator=gen))])
+            targets.append(held[0])
+    order = torch.randperm(len(inputs), generator=gen)[:max_pairs]
+    return NovelViewSet(torch.tensor(inputs, dtype=torch.long)[order], torch.tensor(targets, dtype=torch.long)[order])
+
+
+def _batch(crops: CropSet, inp: torch.Tensor, tgt: torch.Tensor, size: int) -> MultiViewBatch:
+    t = tgt[:, None]
+    view = torch.eye(4).repeat(len(inp), 1, 1, 1)
+    view[..., :3, :3] = crops.R[t]
+    view[..., :3, 3] = crops.t[t]
+    return MultiViewBatch(inp, t, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp],
+                          resize_images(crops.images[t].float() / 255.0, size),
+                          resize_images(crops.masks[t][..., None], size)[..., 0],
+                          scale_intrinsics(crops.K[t], size / crops.crop_size), view, torch.zeros(len(inp), 1, 3))
+
+
+@torch.no_grad()
+def novel_view_metrics(model, task: GSTTask, crops: CropSet, pairs: NovelViewSet, size: int,
+                       batch_size: int = 16, return_images: bool = False) -> dict:
+    """PSNR/SSIM of the person (composited on black) and silhouette IoU in held-out views."""
+    from gst.train.steps import render_predictions
+
+    if len(pairs.inputs) == 0:
+        return {}
+    ps, ss, ious, images = [], [], [], []
+    for s in range(0, len(pairs.inputs), batch_size):
+        b = _batch(crops, pairs.inputs[s:s + batch_size], pairs.targets[s:s + batch_size], size)
+        pred = predict(model, task, b.input_images, b.K_in, b.R_in, b.t_in, with_gaussians=True)
+        out = render_predictions(pred, b, size)
+        rgb = out.rgb[:, 0].permute(0, 3, 1, 2).clamp(0, 1)
+        target = (b.target_images[:, 0] * b.target_masks[:, 0, ..., None]).permute(0, 3, 1, 2)
+        ps.append(psnr(rgb, target))
+        ss.append(ssim(rgb, target))
+        sil, mask = out.alpha[:, 0] > 0.5, b.target_masks[:, 0] > 0.5
+        inter = (sil & mask).flatten(1).sum(1).float()
+        union = (sil | mask).flatten(1).sum(1).float().clamp_min(1)
+        ious.append(inter / union)
+        if return_images:
+            images.append((b.input_images, rgb, target))
+    result = {"psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
+              "silhouette_iou": float(torch.cat(ious).mean())}
+    if return_images:
+        result["images"] = images
+    return result

@@ -1,0 +1,169 @@
+"""Build a GST network for a body model, and train it on a CropSet.
+
+`fit_gst` is the one entry point used by supervised pretraining, multi-view (GST) training and
+the 2D / 3D fine-tuning baselines; `mode` picks the loss:
+- "multiview": render into the other views of the same person (the paper's objective);
+- "3d" / "2d": supervised on truth joints/parameters (3D) or 2D joints only (baselines);
+- "pretrain": supervised 3D plus the multi-view image terms, so the Gaussian head starts sane.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gst.body import BodyModel
+from gst.body.subsets import partition_vertices, vertex_subset
+from gst.model.checkpoint import (
+    config_to_dict,
+    load_checkpoint,
+    network_from_checkpoint,
+    save_checkpoint,
+)
+from gst.model.network import GSTNetwork
+from gst.model.presets import GSTConfig
+from gst.train.evaluation import novel_view_metrics, novel_view_pairs, pose_metrics
+from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
+from gst.train.steps import (
+    GSTTask,
+    SupervisedBatch,
+    multiview_step,
+    predict,
+    project,
+    render_predictions,
+)
+from gst.train.trainer import TrainConfig, Trainer
+from gst.train.views import CropSet, sample_multiview
+
+log = logging.getLogger("gst.train")
+
+
+def build_network(cfg: GSTConfig, body: BodyModel, seed: int = 0) -> tuple[GSTNetwork, np.ndarray, np.ndarray]:
+    """A fresh network with Gaussians on the preset's vertex subset, grouped into K tokens."""
+    torch.manual_seed(seed)
+    ids = vertex_subset(body, cfg.vertex_preset)
+    rest = body.rest_vertices(torch.zeros(1, body.num_betas), torch.as_tensor(ids))[0].detach().cpu().numpy()
+    groups = partition_vertices(rest, K=cfg.num_groups, seed=seed)
+    return GSTNetwork(cfg, groups), ids, groups
+
+
+def load_network(path: str | Path) -> tuple[GSTNetwork, dict]:
+    ckpt = load_checkpoint(path)
+    return network_from_checkpoint(ckpt), ckpt
+
+
+@dataclass
+class FitOptions:
+    mode: str = "multiview"  # multiview | pretrain | 2d | 3d
+    num_targets: int = 4  # views rendered per sample (the input view included)
+    render_size: int = 64  # target views are rendered at this resolution
+    heldout_cameras: tuple[str, ...] = ()  # never used for training; novel-view validation
+    val_pairs: int = 48
+    val_pose_crops: int = 96
+
+
+def _supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
+    t = crops.truth
+    return SupervisedBatch(images=crops.images[idx], K=crops.K[idx], joints_cam=t["joints_cam"][idx],
+                           joints2d=t["joints2d"][idx], visible=t["visible"][idx], rotmats=t["rotmats_cam"][idx],
+                           betas=t["betas"][idx][:, :10])
+
+
+def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
+    """Supervised 3D terms on the input view plus image terms on the rendered views."""
+    pred = predict(model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True)
+    sup = _supervised_batch(crops, batch.input_index)
+    size = batch.target_images.shape[-2]
+    out = render_predictions(pred, batch, size)
+    mask = batch.target_masks
+    target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (1 - mask[..., None])
+    parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
+                        task.weights, task.lpips)
+    parts.update(supervised_terms(pred.joints_cam, project(pred.joints_cam, sup.K), pred.rotmats, pred.betas,
+                                  sup.joints_cam, sup.joints2d, sup.rotmats, sup.betas, task.crop_size, sup.visible))
+    terms = combine(parts, task.weights)
+    with torch.no_grad():
+        rel = (pred.joints_cam - pred.joints_cam[:, :1]) - (sup.joints_cam - sup.joints_cam[:, :1])
+        terms.parts["mpjpe_mm"] = 1000 * rel.norm(dim=-1).mean()
+    return terms.total, terms.parts
+
+
+def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, out_dir: Path, opts: FitOptions, *,
+            body_spec: str, vertex_ids: np.ndarray, group_index: np.ndarray, progress=None,
+            resume: bool = True) -> dict:
+    """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`."""
+    names = crops.camera_names
+    unknown = [c for c in opts.heldout_cameras if c not in names]
+    if unknown:
+        raise ValueError(f"held-out cameras {unknown} are not in the crop set (cameras: {names})")
+    heldout = {names.index(c) for c in opts.heldout_cameras}
+    train_cams = set(range(len(names))) - heldout
+    groups = crops.groups(cameras=train_cams, min_views=2 if opts.mode in ("multiview", "pretrain") else 1)
+    if not groups:
+        raise ValueError(f"no training samples: no (frame, person) seen by >= 2 training cameras "
+                         f"(held out: {sorted(opts.heldout_cameras)})")
+    has_truth = "joints_world" in crops.truth
+    truth_rows = torch.nonzero(crops.truth["has_truth"])[:, 0] if "has_truth" in crops.truth else \
+        torch.arange(len(crops)) if has_truth else torch.zeros(0, dtype=torch.long)
+    if len(truth_rows):
+        gen = torch.Generator().manual_seed(1)
+        truth_rows = truth_rows[torch.randperm(len(truth_rows), generator=gen)[:opts.val_pose_crops]]
+    pairs = novel_view_pairs(crops, heldout, max_pairs=opts.val_pairs) if heldout else None
+    single = torch.cat(groups)  # rows usable as single-view supervised samples
+
+    if opts.mode in ("multiview", "pretrain"):
+        def sample(gen, bs):
+            return sample_multiview(crops, groups, gen, bs, opts.num_targets, opts.render_size)
+        step = (lambda m, b: multiview_step(m, b, task)) if opts.mode == "multiview" else \
+            (lambda m, b: _pretrain_step(m, b, task, crops))
+    else:
+        if "joints2d" not in crops.truth:
+            raise ValueError(f"mode '{opts.mode}' needs truth joints on the crops")
+
+        def sample(gen, bs):
+            return _supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
+
+        def step(m, b):
+            from gst.train.steps import supervised_step
+            return supervised_step(m, b, task)
+
+    def validate(m) -> dict:
+        metrics = pose_metrics(m, task, crops, truth_rows) if len(truth_rows) else {}
+        if pairs is not None and len(pairs.inputs):
+            metrics.update(novel_view_metrics(m, task, crops, pairs, opts.render_size))
+        return metrics
+
+    def extra() -> dict:
+        return {"format": "gst-capture/checkpoint", "version": 1, "config": config_to_dict(model.cfg),
+                "body_model": body_spec, "vertex_ids": torch.as_tensor(vertex_ids, dtype=torch.long),
+                "group_index": torch.as_tensor(group_index, dtype=torch.long), "extra": {"mode": opts.mode}}
+
+    best_key = "psnr" if pairs is not None else ("mpjpe_mm" if len(truth_rows) else None)
+    trainer = Trainer(model, step, sample, cfg, out_dir, val_fn=validate, best_key=best_key,
+                      best_mode="max" if best_key == "psnr" else "min", progress=progress, checkpoint_extra=extra)
+    model.eval()
+    before = validate(model)
+    model.train()
+    if resume:
+        trainer.resume()
+    summary = trainer.fit()
+    model.eval()
+    after = validate(model)
+    summary.update(before={k: v for k, v in before.items() if k != "images"},
+                   after={k: v for k, v in after.items() if k != "images"}, train_groups=len(groups),
+                   heldout=list(opts.heldout_cameras))
+    return summary
+
+
+def export_checkpoint(model: GSTNetwork, path: Path, body_spec: str, vertex_ids, group_index, extra=None) -> None:
+    save_checkpoint(path, model, body_spec, vertex_ids, group_index, extra)
+
+
+def make_task(body: BodyModel, vertex_ids, cfg: GSTConfig, crop_size: int, weights: LossWeights, lpips=None,
+              supervision: str = "multiview") -> GSTTask:
+    return GSTTask(body=body, vertex_ids=torch.as_tensor(vertex_ids, dtype=torch.long), crop_size=crop_size,
+                   image_size=cfg.image_size, weights=weights, lpips=lpips, supervision=supervision)
