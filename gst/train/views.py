@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -124,8 +125,6 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
 def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:
     """Read a crop store (gst.data.CropStore) into memory; returns the CropSet (RGB) and the
     person boxes (N, 4) in the undistorted full image."""
-    import numpy as np
-
     from gst.data import CropStore
 
     store = CropStore(store_path)
