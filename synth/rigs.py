@@ -90,16 +90,20 @@ def _positions(kind: str, n: int, rng: np.random.Generator) -> tuple[list[str], 
 
 def sample_distortion(spec, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 5) OpenCV distortion [k1, k2, p1, p2, k3] from a spec: None/'none', 'mild',
-    'strong', or explicit coefficients (4 or 5 numbers, used for every camera)."""
+    'strong', or explicit coefficients (4 or 5 numbers, used for every camera).
+
+    Sampled distortion is radial only (p1 = p2 = 0): every format synth writes (rig.json,
+    Panoptic, H36M's own lens model) then represents the cameras exactly."""
     if spec is None or (isinstance(spec, str) and spec == "none"):
         return np.zeros((n, 5))
     if isinstance(spec, str):
-        ranges = {"mild": ((-0.12, -0.03), (0.0, 0.05), 5e-4), "strong": ((-0.3, -0.2), (0.05, 0.12), 1e-3)}
+        ranges = {"mild": ((-0.12, -0.03), (0.0, 0.05), (-0.005, 0.005)),
+                  "strong": ((-0.3, -0.2), (0.05, 0.12), (0.0, 0.02))}
         if spec not in ranges:
             raise ValueError(f"distortion '{spec}' is not known; use 'none', 'mild', 'strong' or 4-5 coefficients")
-        (a, b), (c, d), p = ranges[spec]
-        return np.stack([rng.uniform(a, b, n), rng.uniform(c, d, n), rng.uniform(-p, p, n),
-                         rng.uniform(-p, p, n), np.zeros(n)], -1)
+        (a, b), (c, d), (e, f) = ranges[spec]
+        return np.stack([rng.uniform(a, b, n), rng.uniform(c, d, n), np.zeros(n), np.zeros(n),
+                         rng.uniform(e, f, n)], -1)
     coeffs = np.asarray(spec, dtype=np.float64).ravel()
     if coeffs.size not in (4, 5) or not np.all(np.isfinite(coeffs)):
         raise ValueError(f"distortion coefficients must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {spec!r}")

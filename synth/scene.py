@@ -168,8 +168,9 @@ def preset(name: str, **overrides) -> SceneSpec:
 
 @dataclass(frozen=True)
 class SceneSummary:
-    """What `render_scene` produced. `joints_in_mask` is the fraction of in-image GT joints whose
-    projection lands on the person's own mask (a built-in sanity check)."""
+    """What `render_scene` produced. Built-in sanity checks: `joints_in_mask` is the fraction of
+    in-image GT joints whose projection lands inside the GT mask (on a person),
+    `joints_on_own_mask` on the joint's own person (lower when people occlude each other)."""
 
     out_dir: Path
     name: str
@@ -179,6 +180,7 @@ class SceneSummary:
     cameras: tuple[str, ...]
     n_people: int
     joints_in_mask: float
+    joints_on_own_mask: float
     seconds: float
 
 
@@ -198,6 +200,25 @@ def _default_rig_writer():
         raise ImportError("synth writes calibration files with calibration.formats.write_rig "
                           "(or pass rig_writer= to render_scene)") from exc
     return write_rig
+
+
+def _write_calibration(rig, out: Path, rig_writer: Callable) -> dict:
+    """Write rig.json, Panoptic JSON and H36M cameras.h5. H36M's lens model has no exact
+    equivalent of OpenCV's tangential terms; synth's own distortion is radial only, so all three
+    files describe the same cameras exactly unless the user gave tangential coefficients (then the
+    H36M file holds a least-squares fit, noted in the return value)."""
+    notes = {}
+    tangential = any(c.dist.size >= 4 and np.any(c.dist[2:4] != 0) for c in rig.cameras)
+    for fmt, rel in CALIBRATION_FILES:
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        if fmt == "h36m" and tangential:
+            rig_writer(rig, out / rel, fmt, approximate_distortion=True)
+            notes[fmt] = "tangential distortion fitted approximately in H36M's lens model"
+        else:
+            rig_writer(rig, out / rel, fmt)
+        if not (out / rel).is_file():
+            raise OSError(f"rig writer did not create {rel} (format '{fmt}')")
+    return notes
 
 
 def _responses(spec: SceneSpec, n: int) -> list[CameraResponse]:
@@ -284,7 +305,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     preview, board_preview = {}, {}
     views = ViewRows()
     radii = {cam.name: field_radius(cam) for cam in rig.cameras}
-    on_mask = in_image = 0
+    on_mask = on_person = in_image = 0
     total = len(rig) * (spec.n_frames + spec.board.n_frames)
     done = 0
     for group in _camera_groups(rig):
@@ -309,8 +330,10 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
                     for tr in tracks:
                         uv, inside = project_in_view(rend.camera, tr.joints[f], radii[rend.camera.name])
                         px = np.rint(uv[inside]).astype(int)
+                        hit = layers.mask[px[:, 1], px[:, 0]]
                         in_image += int(inside.sum())
-                        on_mask += int((layers.mask[px[:, 1], px[:, 0]] == tr.person_id).sum())
+                        on_mask += int((hit == tr.person_id).sum())
+                        on_person += int((hit > 0).sum())
                     if f == preview_f:
                         preview[rend.camera.name] = image
                     done += 1
@@ -359,11 +382,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         write_parquet(out / "truth" / "board_poses.parquet", bp)
         write_parquet(out / "truth" / "board_views.parquet", bv)
     write_json(out / "board" / "board.json", board_json(board_spec))
-    for fmt, rel in CALIBRATION_FILES:
-        (out / rel).parent.mkdir(parents=True, exist_ok=True)
-        rig_writer(rig, out / rel, fmt)
-        if not (out / rel).is_file():
-            raise OSError(f"rig writer did not create {rel} (format '{fmt}')")
+    calibration_notes = _write_calibration(rig, out, rig_writer)
     names = [c.name for c in rig.cameras]
     write_png(out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names))
     write_png(out / "preview" / "truth_overlay.png",
@@ -379,6 +398,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         "world": WORLD_CONVENTION, "stage": stage.to_dict(), "body_model": body_meta,
         "people": [p.to_dict() for p in people], "board": board_json(board_spec),
         "board_margin_m": float(texture.margin), "preview_frame": preview_f,
+        "calibration_notes": calibration_notes,
         "files": {"videos": "videos/<camera>.mp4", "board_videos": "board/<camera>.mp4",
                   "board": "board/board.json", "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
                   "people": "truth/people.parquet", "views": "truth/views.parquet",
@@ -389,7 +409,8 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     report("write", 1, 1)
     return dict(name=spec.name, n_frames=spec.n_frames, n_board_frames=spec.board.n_frames, fps=fps,
                 cameras=tuple(names), n_people=len(people),
-                joints_in_mask=float(on_mask / in_image) if in_image else float("nan"))
+                joints_in_mask=float(on_person / in_image) if in_image else float("nan"),
+                joints_on_own_mask=float(on_mask / in_image) if in_image else float("nan"))
 
 
 def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:

@@ -178,7 +178,7 @@ class CapsuleBody(torch.nn.Module):
 # ------------------------------------------------------------------------------------------------
 # Stand-in rig writer (used only when calibration.formats is not installed)
 
-def standin_write_rig(rig, path, fmt: str) -> None:
+def standin_write_rig(rig, path, fmt: str, **_opts) -> None:
     """Minimal writer for the three formats synth emits (rig JSON, CMU Panoptic, H36M h5)."""
     import json
 
