@@ -225,7 +225,11 @@ def rig_io():
     """(writer, reader-or-None) for calibration files: the real calibration.formats when
     installed, else the stand-in above."""
     try:
-        from calibration import formats
+        from calibration import camera, formats
     except ImportError:
+        return standin_write_rig, None
+    # A checkout without calibration/formats can still import one from another install of the
+    # project (an editable install elsewhere); mixing the two packages is not a real setup.
+    if Path(formats.__file__).resolve().parents[1] != Path(camera.__file__).resolve().parent:
         return standin_write_rig, None
     return formats.write_rig, getattr(formats, "read_rig", None)
