@@ -1,7 +1,7 @@
 """Scene specs, presets and `render_scene`, which writes a complete synthetic capture folder.
 
-Layout (see docs/formats/synth_scene.md): scene.json, videos/<cam>.mp4, board/<cam>.mp4,
-board/board.json, calibration/{rig.json, calibration_synth.json, cameras.h5},
+Layout (see docs/formats/synth_scene.md): scene.json, board.json, videos/<cam>.mp4,
+board/<cam>.mp4, calibration/{rig.json, calibration_synth.json, cameras.h5},
 truth/{people,views,board_poses,board_views}.parquet, truth/masks/<cam>.h5,
 preview/{contact_sheet,truth_overlay,board_sheet}.png.
 
@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from synth.animate import check_body_model, pose_person
 from synth.appearance import BodyAtlas
-from synth.board import ChArUcoSpec, board_json, board_path
+from synth.board import ChArUcoSpec, board_clip, board_json
 from synth.imaging import CameraResponse, develop
 from synth.io import MaskStore, VideoOut, replace_dir, write_json, write_parquet, write_png
 from synth.people import sample_people
@@ -79,7 +79,7 @@ class BoardClipSpec(_Spec):
     marker_size: float = Field(0.24, gt=0, le=1.0)
     dictionary: str = "DICT_4X4_50"
     margin: float = Field(0.06, ge=0, le=0.5)
-    n_frames: int = Field(36, ge=0, le=100_000)
+    n_frames: int = Field(40, ge=0, le=100_000)
 
     def board(self) -> ChArUcoSpec:
         return ChArUcoSpec(self.squares_x, self.squares_y, self.square_size, self.marker_size, self.dictionary,
@@ -134,7 +134,7 @@ PRESETS: dict[str, dict] = {
     # Small enough to render in well under 2 minutes on 2 CPU cores, board clip included.
     "demo": dict(name="demo", n_frames=48, n_people=2, motions=[["run"], ["jump"]],
                  rig=dict(kind="dome", n_cameras=6, width=480, height=360, distortion="mild", fps=30.0),
-                 board=dict(n_frames=36)),
+                 board=dict(n_frames=40)),
     "small": dict(name="small", n_frames=120, n_people=2,
                   rig=dict(kind="dome", n_cameras=8, width=640, height=480, distortion="mild", fps=30.0),
                   board=dict(n_frames=80)),
@@ -295,7 +295,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
 
     board_spec = spec.board.board()
     texture = board_spec.texture()
-    poses = board_path(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
+    poses = board_clip(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
                        np.random.default_rng(np.random.SeedSequence([spec.seed, 3])),
                        camera_centers=np.stack([c.center for c in rig.cameras]))
     options = RenderOptions(antialias=spec.imaging.antialias, background_samples=spec.imaging.background_samples,
@@ -381,7 +381,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         bp, bv = board_tables(board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)})
         write_parquet(out / "truth" / "board_poses.parquet", bp)
         write_parquet(out / "truth" / "board_views.parquet", bv)
-    write_json(out / "board" / "board.json", board_json(board_spec))
+    write_json(out / "board.json", board_json(board_spec))
     calibration_notes = _write_calibration(rig, out, rig_writer)
     names = [c.name for c in rig.cameras]
     write_png(out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names))
@@ -400,7 +400,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         "board_margin_m": float(texture.margin), "preview_frame": preview_f,
         "calibration_notes": calibration_notes,
         "files": {"videos": "videos/<camera>.mp4", "board_videos": "board/<camera>.mp4",
-                  "board": "board/board.json", "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
+                  "board": "board.json", "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
                   "people": "truth/people.parquet", "views": "truth/views.parquet",
                   "masks": "truth/masks/<camera>.h5", "board_poses": "truth/board_poses.parquet",
                   "board_views": "truth/board_views.parquet", "contact_sheet": "preview/contact_sheet.png"},
