@@ -229,3 +229,28 @@ def test_board_calibration_recovers_the_synthetic_rig(tmp_path):
         true = truth[cam.name]
         assert np.linalg.norm(cam.center - true.center) < 0.08, cam.name
         assert abs(cam.fx / true.fx - 1) < 0.03, cam.name
+
+
+@pytest.mark.parametrize("kind", ["dome", "h36m", "hall"])
+def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
+    """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras exactly."""
+    from synth.rigs import make_rig
+
+    spec = _tiny(n_frames=2, n_people=1, motions=[["idle"]], board={"n_frames": 1},
+                 rig=dict(kind=kind, n_cameras=2, width=64, height=48, distortion="strong"))
+    out = tmp_path / kind
+    render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
+    truth = make_rig(kind, n_cameras=2, width=64, height=48, distortion="strong", seed=spec.seed)
+    readers = {"panoptic": lambda: read_panoptic(out / "calibration" / "calibration_synth.json")}
+    if READ_RIG is not None:
+        for fmt, rel in (("rig", "rig.json"), ("panoptic", "calibration_synth.json"), ("h36m", "cameras.h5")):
+            readers[f"read_rig:{fmt}"] = lambda fmt=fmt, rel=rel: list(READ_RIG(out / "calibration" / rel, fmt))
+    pts = np.random.default_rng(0).uniform([-1.5, -1.5, 0], [1.5, 1.5, 2], (50, 3))
+    for source, read in readers.items():
+        cams = {c.name: c for c in read()}
+        assert set(cams) == set(truth.names), source
+        for cam in truth.cameras:
+            got = cams[cam.name]
+            assert (got.width, got.height) == (64, 48), source
+            assert np.abs(got.project(pts) - cam.project(pts)).max() < 1e-6, f"{source}: {cam.name}"
+    assert json.loads((out / "scene.json").read_text())["calibration_notes"] == {}
