@@ -12,6 +12,7 @@ outputs are byte-identical run to run and do not change when unrelated settings 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import time
@@ -42,7 +43,7 @@ from synth.render import (
 from synth.rigs import make_rig
 from synth.skeleton import JOINT_NAMES
 from synth.stage import stage_for_rig
-from synth.truth import ViewRows, board_tables, people_table
+from synth.truth import OCCLUSION_TOLERANCE, ViewRows, board_tables, people_table
 from synth.world import WORLD_CONVENTION
 
 ProgressFn = Callable[[str, int, int], None]
@@ -273,26 +274,137 @@ def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: Progress
     return SceneSummary(out_dir=out_dir, seconds=time.perf_counter() - t0, **summary)
 
 
+@dataclass
+class _Cast:
+    """The posed people of a scene, everything the renderer needs per frame."""
+
+    people: list
+    tracks: list
+    atlases: list
+    normals: list  # (T, V, 3) per person
+    faces: np.ndarray
+
+    def posed(self, frame: int) -> list[PosedPerson]:
+        return [PosedPerson(tr.person_id, tr.vertices[frame], self.normals[k][frame], self.faces, self.atlases[k],
+                            self.people[k].outfit) for k, tr in enumerate(self.tracks)]
+
+
+@dataclass
+class _Progress:
+    report: ProgressFn
+    total: int
+    done: int = 0
+
+    def step(self, name: str, n: int = 1) -> None:
+        self.done += n
+        self.report(name, self.done, self.total)
+
+
+@dataclass
+class _JointCheck:
+    """Counts in-image GT joints landing on a person's mask and on their own person's mask."""
+
+    in_image: int = 0
+    on_person: int = 0
+    on_own: int = 0
+
+    def add(self, camera, radius: float, tracks, frame: int, mask: np.ndarray) -> None:
+        for tr in tracks:
+            uv, inside = project_in_view(camera, tr.joints[frame], radius)
+            px = np.rint(uv[inside]).astype(int)
+            hit = mask[px[:, 1], px[:, 0]]
+            self.in_image += int(inside.sum())
+            self.on_own += int((hit == tr.person_id).sum())
+            self.on_person += int((hit > 0).sum())
+
+    def fractions(self) -> tuple[float, float]:
+        if not self.in_image:
+            return float("nan"), float("nan")
+        return self.on_person / self.in_image, self.on_own / self.in_image
+
+
+def _pose_cast(spec: SceneSpec, model, rig, fps: float, report: ProgressFn) -> _Cast:
+    faces = np.asarray(model.faces, dtype=np.int32)
+    people = sample_people(spec.n_people, np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
+                           int(model.num_betas), rig.meta["volume_center"], rig.meta["volume_radius"],
+                           spec.n_frames, fps, programmes=spec.motions)
+    cast = _Cast(people, [], [], [], faces)
+    for k, person in enumerate(people):
+        report("pose", k, len(people))
+        track = pose_person(model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id)
+        cast.tracks.append(track)
+        cast.atlases.append(BodyAtlas.build(track.rest_vertices, track.rest_joints,
+                                            getattr(model, "part_labels", None), getattr(model, "part_names", None)))
+        cast.normals.append(vertex_normals(track.vertices, faces))
+    report("pose", len(people), len(people))
+    return cast
+
+
+def _render_people_clip(spec: SceneSpec, out: Path, cast: _Cast, group: list[int], renderers, responses,
+                        stage, fps: float, views: ViewRows, check: _JointCheck, radii: dict, preview: dict,
+                        progress: _Progress) -> None:
+    """videos/<cam>.mp4 and truth/masks/<cam>.h5 for a group of cameras, plus view truth."""
+    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
+    cams = [r.camera for r in renderers]
+    videos = [VideoOut(out / "videos" / f"{c.name}.mp4", fps, c.width, c.height) for c in cams]
+    masks = [MaskStore(out / "truth" / "masks" / f"{c.name}.h5", spec.n_frames, c.width, c.height, c.name,
+                       spec.imaging.write_depth) for c in cams]
+    try:
+        for f in range(spec.n_frames):
+            posed = cast.posed(f)
+            # One Embree scene and one set of floor shadows per frame, shared by all cameras.
+            caster = RayCaster([(p.vertices, p.faces) for p in posed], spec.imaging.backend)
+            shadows = floor_shadow_maps(posed, caster, stage, spec.imaging.shadow_samples)
+            for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
+                layers = rend.render_people(posed, caster, shadows)
+                rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 0]))
+                image = develop(layers.radiance, responses[cam_i], rng)
+                videos[ci].write(image)
+                masks[ci].write(f, layers.mask, layers.depth)
+                radius = radii[rend.camera.name]
+                views.add(rend.camera, radius, f, cast.tracks, layers.mask, layers.depth)
+                check.add(rend.camera, radius, cast.tracks, f, layers.mask)
+                if f == preview_f:
+                    preview[rend.camera.name] = image
+            progress.step("render", len(renderers))
+    except BaseException:
+        for sink in videos + masks:
+            sink.abort()
+        raise
+    for sink in videos + masks:
+        sink.close()
+
+
+def _render_board_clip(spec: SceneSpec, out: Path, board_spec: ChArUcoSpec, texture, poses, group: list[int],
+                       renderers, responses, fps: float, preview: dict, progress: _Progress) -> None:
+    """board/<cam>.mp4 for a group of cameras."""
+    videos = [VideoOut(out / "board" / f"{r.camera.name}.mp4", fps, r.camera.width, r.camera.height)
+              for r in renderers]
+    try:
+        for f, pose in enumerate(poses):
+            for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
+                layers = rend.render_board(board_spec, pose, texture)
+                rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 1]))
+                image = develop(layers.radiance, responses[cam_i], rng)
+                videos[ci].write(image)
+                if f == len(poses) // 2:
+                    preview[rend.camera.name] = image
+            progress.step("board", len(renderers))
+    except BaseException:
+        for v in videos:
+            v.abort()
+        raise
+    for v in videos:
+        v.close()
+
+
 def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writer) -> dict:
     r = spec.rig
     rig = make_rig(r.kind, n_cameras=r.n_cameras, width=r.width, height=r.height, fov_deg=r.fov_deg,
                    focal_mm=r.focal_mm, distortion=r.distortion, fps=r.fps, seed=spec.seed)
     fps = float(rig.meta["fps"])
     stage = stage_for_rig(r.kind, spec.seed)
-    faces = np.asarray(model.faces, dtype=np.int32)
-    people = sample_people(spec.n_people, np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
-                           int(model.num_betas), rig.meta["volume_center"], rig.meta["volume_radius"],
-                           spec.n_frames, fps, programmes=spec.motions)
-    tracks, atlases, normals = [], [], []
-    for k, person in enumerate(people):
-        report("pose", k, len(people))
-        track = pose_person(model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id)
-        tracks.append(track)
-        atlases.append(BodyAtlas.build(track.rest_vertices, track.rest_joints, getattr(model, "part_labels", None),
-                                       getattr(model, "part_names", None)))
-        normals.append(vertex_normals(track.vertices, faces))
-    report("pose", len(people), len(people))
-
+    cast = _pose_cast(spec, model, rig, fps, report)
     board_spec = spec.board.board()
     texture = board_spec.texture()
     poses = board_clip(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
@@ -301,94 +413,40 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     options = RenderOptions(antialias=spec.imaging.antialias, background_samples=spec.imaging.background_samples,
                             shadow_samples=spec.imaging.shadow_samples, backend=spec.imaging.backend)
     responses = _responses(spec, len(rig))
-    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
-    preview, board_preview = {}, {}
-    views = ViewRows()
     radii = {cam.name: field_radius(cam) for cam in rig.cameras}
-    on_mask = on_person = in_image = 0
-    total = len(rig) * (spec.n_frames + spec.board.n_frames)
-    done = 0
-    for group in _camera_groups(rig):
-        cams = [rig.cameras[i] for i in group]
-        renderers = [ViewRenderer(cam, stage, options) for cam in cams]
-        videos = [VideoOut(out / "videos" / f"{cam.name}.mp4", fps, cam.width, cam.height) for cam in cams]
-        masks = [MaskStore(out / "truth" / "masks" / f"{cam.name}.h5", spec.n_frames, cam.width, cam.height,
-                           cam.name, spec.imaging.write_depth) for cam in cams]
-        try:
-            for f in range(spec.n_frames):
-                posed = [PosedPerson(tr.person_id, tr.vertices[f], normals[k][f], faces, atlases[k], people[k].outfit)
-                         for k, tr in enumerate(tracks)]
-                caster = RayCaster([(p.vertices, p.faces) for p in posed], options.backend)
-                shadows = floor_shadow_maps(posed, caster, stage, options.shadow_samples)
-                for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
-                    layers = rend.render_people(posed, caster, shadows)
-                    rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 0]))
-                    image = develop(layers.radiance, responses[cam_i], rng)
-                    videos[ci].write(image)
-                    masks[ci].write(f, layers.mask, layers.depth)
-                    views.add(rend.camera, radii[rend.camera.name], f, tracks, layers.mask, layers.depth)
-                    for tr in tracks:
-                        uv, inside = project_in_view(rend.camera, tr.joints[f], radii[rend.camera.name])
-                        px = np.rint(uv[inside]).astype(int)
-                        hit = layers.mask[px[:, 1], px[:, 0]]
-                        in_image += int(inside.sum())
-                        on_mask += int((hit == tr.person_id).sum())
-                        on_person += int((hit > 0).sum())
-                    if f == preview_f:
-                        preview[rend.camera.name] = image
-                    done += 1
-                report("render", done, total)
-            for v in videos:
-                v.close()
-            for m in masks:
-                m.close()
-        except BaseException:
-            for v in videos:
-                v.abort()
-            for m in masks:
-                m.abort()
-            raise
-        if spec.board.n_frames:
-            bvideos = [VideoOut(out / "board" / f"{cam.name}.mp4", fps, cam.width, cam.height) for cam in cams]
-            try:
-                for f, pose in enumerate(poses):
-                    for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
-                        layers = rend.render_board(board_spec, pose, texture)
-                        rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 1]))
-                        image = develop(layers.radiance, responses[cam_i], rng)
-                        bvideos[ci].write(image)
-                        if f == len(poses) // 2:
-                            board_preview[rend.camera.name] = image
-                        done += 1
-                    report("board", done, total)
-                for v in bvideos:
-                    v.close()
-            except BaseException:
-                for v in bvideos:
-                    v.abort()
-                raise
+    preview, board_preview = {}, {}
+    views, check = ViewRows(), _JointCheck()
+    progress = _Progress(report, len(rig) * (spec.n_frames + spec.board.n_frames))
+    for group in _camera_groups(rig):  # camera caches of one group fit in memory together
+        renderers = [ViewRenderer(rig.cameras[i], stage, options) for i in group]
+        _render_people_clip(spec, out, cast, group, renderers, responses, stage, fps, views, check, radii,
+                            preview, progress)
+        if poses:
+            _render_board_clip(spec, out, board_spec, texture, poses, group, renderers, responses, fps,
+                               board_preview, progress)
         del renderers
 
     report("write", 0, 1)
-    body_meta = {"name": spec.body_model, "num_betas": int(model.num_betas), "num_vertices": int(tracks[0].vertices.shape[1]),
-                 "num_faces": int(len(faces)), "joint_names": list(JOINT_NAMES)}
+    names = [c.name for c in rig.cameras]
+    body_meta = {"name": spec.body_model, "num_betas": int(model.num_betas),
+                 "num_vertices": int(cast.tracks[0].vertices.shape[1]), "num_faces": int(len(cast.faces)),
+                 "joint_names": list(JOINT_NAMES)}
     meta = {"scene": spec.name, "fps": fps, "units": "m", "world": WORLD_CONVENTION, "joint_names": list(JOINT_NAMES),
             "body_model": body_meta, "format_version": SCENE_FORMAT_VERSION}
-    write_parquet(out / "truth" / "people.parquet", people_table(tracks, meta))
-    write_parquet(out / "truth" / "views.parquet", views.table({**meta, "occlusion_tolerance_m": 0.25,
+    write_parquet(out / "truth" / "people.parquet", people_table(cast.tracks, meta))
+    write_parquet(out / "truth" / "views.parquet", views.table({**meta, "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
                                                                  "pixel_convention": "OpenCV, pixel centres at integers"}))
-    if spec.board.n_frames:
+    if poses:
         bp, bv = board_tables(board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)})
         write_parquet(out / "truth" / "board_poses.parquet", bp)
         write_parquet(out / "truth" / "board_views.parquet", bv)
+        write_png(out / "preview" / "board_sheet.png", contact_sheet([board_preview[n] for n in names], names))
     write_json(out / "board.json", board_json(board_spec))
     calibration_notes = _write_calibration(rig, out, rig_writer)
-    names = [c.name for c in rig.cameras]
+    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
     write_png(out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names))
     write_png(out / "preview" / "truth_overlay.png",
-              truth_overlay([preview[n] for n in names], list(rig.cameras), tracks, preview_f))
-    if board_preview:
-        write_png(out / "preview" / "board_sheet.png", contact_sheet([board_preview[n] for n in names], names))
+              truth_overlay([preview[n] for n in names], list(rig.cameras), cast.tracks, preview_f))
     scene = {
         "format": "synth-scene", "format_version": SCENE_FORMAT_VERSION, "name": spec.name,
         "spec": spec.model_dump(mode="json"), "fps": fps, "n_frames": spec.n_frames,
@@ -396,7 +454,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         "image_size": {n: [c.width, c.height] for n, c in zip(names, rig.cameras, strict=True)},
         "volume": {"center": rig.meta["volume_center"], "radius": rig.meta["volume_radius"]},
         "world": WORLD_CONVENTION, "stage": stage.to_dict(), "body_model": body_meta,
-        "people": [p.to_dict() for p in people], "board": board_json(board_spec),
+        "people": [p.to_dict() for p in cast.people], "board": board_json(board_spec),
         "board_margin_m": float(texture.margin), "preview_frame": preview_f,
         "calibration_notes": calibration_notes,
         "files": {"videos": "videos/<camera>.mp4", "board_videos": "board/<camera>.mp4",
@@ -407,16 +465,13 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     }
     write_json(out / "scene.json", scene)
     report("write", 1, 1)
+    on_person, on_own = check.fractions()
     return dict(name=spec.name, n_frames=spec.n_frames, n_board_frames=spec.board.n_frames, fps=fps,
-                cameras=tuple(names), n_people=len(people),
-                joints_in_mask=float(on_person / in_image) if in_image else float("nan"),
-                joints_on_own_mask=float(on_mask / in_image) if in_image else float("nan"))
+                cameras=tuple(names), n_people=len(cast.people), joints_in_mask=on_person, joints_on_own_mask=on_own)
 
 
 def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:
     """Camera names of a rendered scene (from scene.json)."""
-    import json
-
     path = Path(scene_dir) / "scene.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: not a synth scene folder")
