@@ -145,6 +145,7 @@ class BodyAtlas:
     seg_start: np.ndarray  # (S, 3) bone segments in the rest pose
     seg_end: np.ndarray  # (S, 3)
     landmarks: dict  # named heights/positions used by the patterns
+    is_eye: np.ndarray  # (V,) vertices of the model's own eyeballs (from part labels), if any
 
     def along(self, segment: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Position of rest points along their bone segment, 0 at its start joint, 1 at its end."""
@@ -161,6 +162,7 @@ class BodyAtlas:
         seg_region = np.array([_R[_bone_region(o)] for o in owner])
         k, _ = _nearest_segment(rest, starts, ends)
         region = seg_region[k]
+        is_eye = np.zeros(len(rest), bool)
         if part_labels is not None and part_names is not None:
             labels = np.asarray(part_labels).ravel()
             if labels.shape[0] != rest.shape[0]:
@@ -171,20 +173,29 @@ class BodyAtlas:
                 if sel.any():
                     k[sel], _ = _nearest_segment(rest[sel], starts, ends, (seg_region == _R[reg])[None])
                     region[sel] = _R[reg]
+            eye_ids = [i for i, n in enumerate(part_names) if "eye" in str(n).lower() and "cavity" not in str(n).lower()]
+            is_eye = np.isin(labels, eye_ids)
         head = rest[region == _R["head"]]
         feet = rest[region == _R["foot"]]
         if len(head) < 4 or len(feet) < 4:
             raise ValueError("body model rest mesh has no recognisable head or feet near the SMPL joints")
         top = head[:, 1].max()
         chin = np.percentile(head[:, 1], 3)
+        eye_y, eye_dx, eye_front = top - 0.48 * (top - chin), 0.033, float(head[:, 2].max())
+        if is_eye.sum() >= 8:  # the model has eyeballs: put brows and mouth around them
+            eyes = rest[is_eye]
+            eye_y = float(eyes[:, 1].mean())
+            eye_dx = float(np.abs(eyes[:, 0] - joints[J["head"], 0]).mean())
+            eye_front = float(eyes[:, 2].max())
         landmarks = dict(
-            top=top, chin=chin, eye_y=top - 0.48 * (top - chin), front_z=head[:, 2].max(),
+            top=top, chin=chin, eye_y=eye_y, eye_dx=eye_dx, eye_front=eye_front, front_z=head[:, 2].max(),
             back_z=head[:, 2].min(), head_x=float(joints[J["head"], 0]),
             waist_y=joints[J["spine1"], 1] - 0.02,
             neck_y=joints[J["neck"], 1], spine2_y=joints[J["spine2"], 1], spine3_y=joints[J["spine3"], 1],
             chest_z=joints[J["spine3"], 2], sole_y=feet[:, 1].min(),
         )
-        return cls(rest=rest, region=region, segment=k, seg_start=starts, seg_end=ends, landmarks=landmarks)
+        return cls(rest=rest, region=region, segment=k, seg_start=starts, seg_end=ends, landmarks=landmarks,
+                   is_eye=is_eye)
 
 
 def _digits_bitmap(number: int) -> np.ndarray:
@@ -285,12 +296,17 @@ def albedo(outfit: Outfit, atlas: BodyAtlas, tri_vertices: np.ndarray, bary: np.
         paint((is_("neck") | trunk) & (z < L["chest_z"] - 0.04) & (y > L["neck_y"] - 0.08) & (np.abs(x) < 0.09),
               outfit.hair)
     face = head & (z > L["front_z"] - 0.05)
+    real_eyes = atlas.is_eye.any()
     for sx in (-1.0, 1.0):
-        ex = L["head_x"] + sx * 0.033
-        eye = face & (((x - ex) / 0.013) ** 2 + ((y - L["eye_y"]) / 0.007) ** 2 < 1)
-        brow = face & (((x - ex) / 0.018) ** 2 + ((y - L["eye_y"] - 0.018) / 0.004) ** 2 < 1)
-        paint(eye, (35, 30, 30))
+        ex = L["head_x"] + sx * L["eye_dx"]
+        brow = face & (((x - ex) / 0.018) ** 2 + ((y - L["eye_y"] - 0.02) / 0.004) ** 2 < 1)
         col[brow] = 0.45 * col[brow] + 0.55 * srgb_to_linear(outfit.hair)[None] * 0.6
+        if not real_eyes:  # painted eyes on bodies without eyeballs
+            paint(face & (((x - ex) / 0.013) ** 2 + ((y - L["eye_y"]) / 0.007) ** 2 < 1), (35, 30, 30))
+    if real_eyes:  # eyeballs: dark iris facing forward, white around it
+        eye = atlas.is_eye[main]
+        paint(eye, (225, 220, 210))
+        paint(eye & (z > L["eye_front"] - 0.006), (45, 35, 30))
     mouth = face & (((x - L["head_x"]) / 0.022) ** 2 + ((y - (L["eye_y"] - 0.065)) / 0.005) ** 2 < 1)
     col[mouth] = col[mouth] * np.array([0.75, 0.45, 0.45])
     return col

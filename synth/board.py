@@ -14,6 +14,7 @@ from functools import cached_property
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from synth.world import WORLD_UP
 
@@ -123,31 +124,59 @@ class BoardPose:
         return np.asarray(points_board) @ self.R.T + self.t
 
 
+# Board lying flat on the floor, printed side up, its origin at the world origin: board x is
+# world x, board y is world -y, board z (into the board) is world -z. A board calibration that
+# takes its world from this pose (calibration.solve with floor_world) recovers synth's world.
+FLOOR_BOARD_R = np.diag([1.0, -1.0, -1.0])
+FLOOR_LIFT = 0.001  # metres above the floor (keeps the board in front of the floor for rays)
+
+
+def board_clip(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: float,
+               rng: np.random.Generator, camera_centers: np.ndarray | None = None,
+               floor_frames: int = 3, lift_frames: int | None = None) -> list[BoardPose]:
+    """The calibration clip: `floor_frames` frames with the board flat on the floor (see
+    FLOOR_BOARD_R), `lift_frames` frames (default a tenth of the rest, at least 4) lifting it, up
+    first, then turning into the path, and the rest along `board_path`. Short clips are like a
+    long hand-held clip sampled sparsely: the board moves further between frames."""
+    floor_frames = min(floor_frames, n_frames)
+    rest = n_frames - floor_frames
+    lift = min(max(4, round(0.1 * rest)) if lift_frames is None else lift_frames, rest)
+    floor = BoardPose(R=FLOOR_BOARD_R.copy(), t=np.array([0.0, 0.0, FLOOR_LIFT]))
+    path = board_path(spec, rest, volume_center, volume_radius, rng, camera_centers) if rest else []
+    poses = [floor] * floor_frames
+    if lift:
+        mid = np.array([spec.size[0] / 2, spec.size[1] / 2, 0.0])
+        start_c = floor.to_world(mid)
+        end = path[lift] if lift < rest else path[-1]
+        end_c = end.to_world(mid)
+        half_diag = 0.5 * np.hypot(*spec.size) + spec.margin + 0.05
+        up_c = np.array([start_c[0], start_c[1], max(end_c[2], half_diag)])
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([floor.R, end.R])))
+        for i in range(lift):
+            s = (i + 1) / (lift + 1)
+            if s <= 0.5:  # lift flat, straight up
+                w = _ease(2 * s)
+                R, c = floor.R, (1 - w) * start_c + w * up_c
+            else:  # turn into the path pose while moving to its place
+                w = _ease(2 * s - 1)
+                R, c = slerp([w]).as_matrix()[0], (1 - w) * up_c + w * end_c
+            poses.append(BoardPose(R=R, t=c - R @ mid))
+    return poses + path[lift:]
+
+
+def _ease(x: float) -> float:
+    return x * x * (3 - 2 * x)
+
+
 def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: float,
                rng: np.random.Generator, camera_centers: np.ndarray | None = None) -> list[BoardPose]:
-    """The calibration clip: the board flat on the floor for the first few frames (the world
-    reference), then a smooth hand-held path: the board wanders through the volume at about 0.9-1.6 m and
+    """A smooth hand-held path: the board wanders through the volume at about 0.9-1.6 m and
     turns its printed side once around. With `camera_centers` it faces each camera in turn
     (sorted by azimuth), so every camera gets frontal and oblique views; without, it faces the
     horizon tilted slightly up. Tilt and roll wobble smoothly on top."""
     if n_frames < 1:
         raise ValueError(f"board clip needs at least one frame, got {n_frames}")
     c = np.asarray(volume_center, dtype=np.float64)
-    # The clip starts as a real session does: the board lies flat on the floor, printed face up,
-    # so calibration can take that pose as the world (z up, floor z = 0). Then it is lifted.
-    n_floor = min(FLOOR_FRAMES, n_frames // 6)
-    flat_R = np.diag([1.0, -1.0, -1.0])  # board z (into the print) points down into the floor
-    mid = np.array([spec.size[0] / 2, spec.size[1] / 2, 0.0])
-    flat = BoardPose(R=flat_R, t=np.array([c[0], c[1], FLOOR_LIFT]) - flat_R @ mid)
-    return [flat] * n_floor + _handheld_path(spec, n_frames - n_floor, c, volume_radius, rng, camera_centers)
-
-
-FLOOR_FRAMES = 4  # frames with the board flat on the floor at the start of the clip
-FLOOR_LIFT = 0.003  # metres above the floor plane, so the renderer does not z-fight
-
-
-def _handheld_path(spec: ChArUcoSpec, n_frames: int, c: np.ndarray, volume_radius: float,
-                   rng: np.random.Generator, camera_centers: np.ndarray | None) -> list[BoardPose]:
     tau = np.arange(n_frames) / n_frames
     ph = rng.uniform(0, 2 * np.pi, 4)
     r = 0.5 * volume_radius

@@ -195,10 +195,10 @@ def _walk(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 def _run(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     cad = rng.uniform(1.3, 1.5)
     speed = rng.uniform(2.6, 3.6)
-    style = dict(hip_bias=-18, hip_amp=rng.uniform(30, 38), knee_stance=35, knee_swing=rng.uniform(85, 105),
+    style = dict(hip_bias=-12, hip_amp=rng.uniform(30, 38), knee_stance=22, knee_swing=rng.uniform(75, 95),
                  swing_peak=4.4, ankle_push=25, ankle_dorsi=10, arm_amp=rng.uniform(35, 50),
                  arm_bias=-5, arm_abduction=-75, elbow=rng.uniform(80, 95), elbow_amp=12,
-                 twist=9, lean=rng.uniform(6, 12), phase0=rng.uniform(0, 2 * np.pi))
+                 twist=9, lean=rng.uniform(5, 10), phase0=rng.uniform(0, 2 * np.pi))
     ang, phase = _gait(t, np.full_like(t, cad), style)
     flight = GRAVITY * 0.1**2 / 8  # peak height of a ~0.1 s flight phase, twice per stride
     lift = flight * np.clip(np.sin(2 * phase - 0.6), 0, None) ** 2

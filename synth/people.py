@@ -46,9 +46,16 @@ class PersonSpec:
                                heading=self.heading, curvature=self.curvature)
 
 
+SAMPLED_BETAS = 10  # SMPL and GST use the first 10 shape coefficients
+
+
 def sample_betas(num_betas: int, rng: np.random.Generator, scale: float = 0.8) -> np.ndarray:
-    """Shape coefficients ~ N(0, scale^2), clipped to +-2.5 (the model's usual range)."""
-    return np.clip(rng.normal(0.0, scale, num_betas), -2.5, 2.5).astype(np.float32)
+    """Shape coefficients in standard deviations: the first 10 ~ N(0, scale^2) clipped to +-2.5,
+    any further ones 0 (so a 10-beta model can represent every sampled body)."""
+    betas = np.zeros(num_betas, np.float32)
+    k = min(num_betas, SAMPLED_BETAS)
+    betas[:k] = np.clip(rng.normal(0.0, scale, k), -2.5, 2.5)
+    return betas
 
 
 def _programme(rng: np.random.Generator, n_frames: int, fps: float) -> tuple[str, ...]:

@@ -34,6 +34,7 @@ class RenderOptions:
     background_samples: int = 2
     shadow_samples: int = 4
     backend: str = "embree"  # "embree" or "trimesh" (see RayCaster)
+    roi: bool = True  # cast primary rays only inside the people's bounding box (False: every pixel)
 
     def __post_init__(self):
         for name in ("antialias", "background_samples", "shadow_samples"):
@@ -306,7 +307,7 @@ class ViewRenderer:
     def _roi(self, vertices: np.ndarray) -> np.ndarray:
         """Flat pixel indices whose ray may hit the given world points' convex hull."""
         cam = self.camera.to_camera(vertices)
-        if cam[:, 2].min() < 0.05:
+        if not self.options.roi or cam[:, 2].min() < 0.05:
             return np.arange(self.h * self.w)
         xy = cam[:, :2] / cam[:, 2:3]
         margin = 2.0 / self.camera.fx
@@ -335,16 +336,22 @@ class ViewRenderer:
         points = self.origin + dirs * hits["t"][:, None].astype(np.float64)
         # Half the light samples on bodies: self-shadows are small and seen up close less often.
         lights = self._body_lights
-        vis = self._visibility(points + normal * 2e-3, caster, lights)
+        # Surfaces facing away from a light sample are unlit by it: no shadow ray needed.
+        facing = (normal[:, 0:1] * lights[:, 0] + normal[:, 1:2] * lights[:, 1] + normal[:, 2:3] * lights[:, 2]) > 0
+        vis = self._visibility(points + normal * 2e-3, caster, lights, facing)
         amb, direct = self.stage.shade(rgb, normal, lights, vis)
         return amb + direct
 
-    def _visibility(self, points: np.ndarray, caster: RayCaster, light_dirs: np.ndarray) -> np.ndarray:
-        """(N, len(light_dirs)) 1 where the light sample is not blocked by a person."""
+    def _visibility(self, points: np.ndarray, caster: RayCaster, light_dirs: np.ndarray,
+                    needed: np.ndarray | None = None) -> np.ndarray:
+        """(N, len(light_dirs)) 1 where the light sample is not blocked by a person; only the
+        (point, light) pairs in `needed` are traced, the others are reported visible."""
         k = len(light_dirs)
-        o = np.repeat(points, k, axis=0)
-        d = np.tile(light_dirs, (len(points), 1))
-        return (~caster.occluded(o, d)).reshape(len(points), k).astype(np.float64)
+        needed = np.ones((len(points), k), bool) if needed is None else needed
+        pi, li = np.nonzero(needed)
+        vis = np.ones((len(points), k))
+        vis[pi, li] = ~caster.occluded(points[pi], light_dirs[li])
+        return vis
 
     def _floor_shadows(self, shadows: list[FloorShadowMap], covered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Floor pixels (flat ids) in the people's shadows and their radiance factor."""

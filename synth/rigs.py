@@ -90,31 +90,35 @@ def _positions(kind: str, n: int, rng: np.random.Generator) -> tuple[list[str], 
 
 def sample_distortion(spec, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 5) OpenCV distortion [k1, k2, p1, p2, k3] from a spec: None/'none', 'mild',
-    'strong', or explicit coefficients (4 or 5 numbers, used for every camera)."""
+    'strong', or explicit coefficients (4 or 5 numbers, used for every camera).
+
+    Sampled distortion is radial only (p1 = p2 = 0): every format synth writes (rig.json,
+    Panoptic, H36M's own lens model) then represents the cameras exactly."""
     if spec is None or (isinstance(spec, str) and spec == "none"):
         return np.zeros((n, 5))
     if isinstance(spec, str):
-        ranges = {"mild": ((-0.12, -0.03), (0.0, 0.05), 5e-4), "strong": ((-0.3, -0.2), (0.05, 0.12), 1e-3)}
+        ranges = {"mild": ((-0.12, -0.03), (0.0, 0.05), (0.0, 0.005)),
+                  "strong": ((-0.3, -0.2), (0.05, 0.12), (0.0, 0.02))}
         if spec not in ranges:
             raise ValueError(f"distortion '{spec}' is not known; use 'none', 'mild', 'strong' or 4-5 coefficients")
-        (a, b), (c, d), p = ranges[spec]
-        return np.stack([rng.uniform(a, b, n), rng.uniform(c, d, n), rng.uniform(-p, p, n),
-                         rng.uniform(-p, p, n), np.zeros(n)], -1)
+        (a, b), (c, d), (e, f) = ranges[spec]
+        return np.stack([rng.uniform(a, b, n), rng.uniform(c, d, n), np.zeros(n), np.zeros(n),
+                         rng.uniform(e, f, n)], -1)
     coeffs = np.asarray(spec, dtype=np.float64).ravel()
     if coeffs.size not in (4, 5) or not np.all(np.isfinite(coeffs)):
         raise ValueError(f"distortion coefficients must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {spec!r}")
     return np.tile(np.pad(coeffs, (0, 5 - coeffs.size)), (n, 1))
 
 
-def _check_monotonic(name: str, K: np.ndarray, dist: np.ndarray, width: int, height: int) -> None:
-    """Radial distortion must not fold back inside the image, or pixels have two rays."""
+def _folds(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> bool:
+    """True if the radial distortion folds back within 1.25x the image's radius (pixels would
+    see two directions)."""
     k1, k2, _, _, k3 = dist
     corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], dtype=np.float64)
     r_img = np.max(np.linalg.norm((corners - K[:2, 2]) / [K[0, 0], K[1, 1]], axis=1))
-    r = np.linspace(0, 1.5 * r_img, 200)
+    r = np.linspace(0, 1.25 * r_img, 200)
     slope = 1 + 3 * k1 * r**2 + 5 * k2 * r**4 + 7 * k3 * r**6
-    if np.any(slope <= 0.05):
-        raise ValueError(f"camera '{name}': distortion {dist.tolist()} folds over within the image; reduce k1/k2")
+    return bool(np.any(slope <= 0.05))
 
 
 def make_rig(kind: str, n_cameras: int | None = None, width: int | None = None, height: int | None = None,
@@ -159,7 +163,12 @@ def make_rig(kind: str, n_cameras: int | None = None, width: int | None = None, 
         cx = width / 2 + rng.uniform(-0.01, 0.01) * width
         cy = height / 2 + rng.uniform(-0.01, 0.01) * height
         K = np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
-        _check_monotonic(name, K, dists[i], width, height)
+        if isinstance(distortion, str):
+            while _folds(K, dists[i], width, height):  # sampled: tame it for wide lenses
+                dists[i] *= 0.8
+        elif _folds(K, dists[i], width, height):
+            raise ValueError(f"camera '{name}': distortion {dists[i].tolist()} folds over within the image "
+                             f"(fov {np.degrees(2 * np.arctan(width / 2 / f)):.0f} deg); reduce k1/k2")
         target = target0 + np.r_[rng.uniform(-0.15, 0.15, 2) * d.volume_radius, rng.uniform(-0.1, 0.1)]
         roll = np.deg2rad(rng.uniform(-1.5, 1.5))
         cams.append(look_at(name, c, target, K, dists[i], width, height, roll, meta={"source": "synth"}))

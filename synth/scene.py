@@ -1,7 +1,7 @@
 """Scene specs, presets and `render_scene`, which writes a complete synthetic capture folder.
 
-Layout (see docs/formats/synth_scene.md): scene.json, videos/<cam>.mp4, board/<cam>.mp4,
-board/board.json, calibration/{rig.json, calibration_synth.json, cameras.h5},
+Layout (see docs/formats/synth_scene.md): scene.json, board.json, videos/<cam>.mp4,
+board/<cam>.mp4, calibration/{rig.json, calibration_synth.json, cameras.h5},
 truth/{people,views,board_poses,board_views}.parquet, truth/masks/<cam>.h5,
 preview/{contact_sheet,truth_overlay,board_sheet}.png.
 
@@ -12,10 +12,10 @@ outputs are byte-identical run to run and do not change when unrelated settings 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from synth.animate import check_body_model, pose_person
 from synth.appearance import BodyAtlas
-from synth.board import ChArUcoSpec, board_json, board_path
+from synth.board import ChArUcoSpec, board_clip, board_json
 from synth.imaging import CameraResponse, develop
 from synth.io import MaskStore, VideoOut, replace_dir, write_json, write_parquet, write_png
 from synth.people import sample_people
@@ -43,7 +43,7 @@ from synth.render import (
 from synth.rigs import make_rig
 from synth.skeleton import JOINT_NAMES
 from synth.stage import stage_for_rig
-from synth.truth import ViewRows, board_tables, people_table
+from synth.truth import OCCLUSION_TOLERANCE, ViewRows, board_tables, people_table
 from synth.world import WORLD_CONVENTION
 
 ProgressFn = Callable[[str, int, int], None]
@@ -80,7 +80,7 @@ class BoardClipSpec(_Spec):
     marker_size: float = Field(0.24, gt=0, le=1.0)
     dictionary: str = "DICT_4X4_50"
     margin: float = Field(0.06, ge=0, le=0.5)
-    n_frames: int = Field(36, ge=0, le=100_000)
+    n_frames: int = Field(40, ge=0, le=100_000)
 
     def board(self) -> ChArUcoSpec:
         return ChArUcoSpec(self.squares_x, self.squares_y, self.square_size, self.marker_size, self.dictionary,
@@ -135,7 +135,7 @@ PRESETS: dict[str, dict] = {
     # Small enough to render in well under 2 minutes on 2 CPU cores, board clip included.
     "demo": dict(name="demo", n_frames=48, n_people=2, motions=[["run"], ["jump"]],
                  rig=dict(kind="dome", n_cameras=6, width=480, height=360, distortion="mild", fps=30.0),
-                 board=dict(n_frames=36)),
+                 board=dict(n_frames=40)),
     "small": dict(name="small", n_frames=120, n_people=2,
                   rig=dict(kind="dome", n_cameras=8, width=640, height=480, distortion="mild", fps=30.0),
                   board=dict(n_frames=80)),
@@ -169,8 +169,9 @@ def preset(name: str, **overrides) -> SceneSpec:
 
 @dataclass(frozen=True)
 class SceneSummary:
-    """What `render_scene` produced. `joints_in_mask` is the fraction of in-image GT joints whose
-    projection lands on the person's own mask (a built-in sanity check)."""
+    """What `render_scene` produced. Built-in sanity checks: `joints_in_mask` is the fraction of
+    in-image GT joints whose projection lands inside the GT mask (on a person),
+    `joints_on_own_mask` on the joint's own person (lower when people occlude each other)."""
 
     out_dir: Path
     name: str
@@ -180,6 +181,7 @@ class SceneSummary:
     cameras: tuple[str, ...]
     n_people: int
     joints_in_mask: float
+    joints_on_own_mask: float
     seconds: float
 
 
@@ -199,6 +201,25 @@ def _default_rig_writer():
         raise ImportError("synth writes calibration files with calibration.formats.write_rig "
                           "(or pass rig_writer= to render_scene)") from exc
     return write_rig
+
+
+def _write_calibration(rig, out: Path, rig_writer: Callable) -> dict:
+    """Write rig.json, Panoptic JSON and H36M cameras.h5. H36M's lens model has no exact
+    equivalent of OpenCV's tangential terms; synth's own distortion is radial only, so all three
+    files describe the same cameras exactly unless the user gave tangential coefficients (then the
+    H36M file holds a least-squares fit, noted in the return value)."""
+    notes = {}
+    tangential = any(c.dist.size >= 4 and np.any(c.dist[2:4] != 0) for c in rig.cameras)
+    for fmt, rel in CALIBRATION_FILES:
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        if fmt == "h36m" and tangential:
+            rig_writer(rig, out / rel, fmt, approximate_distortion=True)
+            notes[fmt] = "tangential distortion fitted approximately in H36M's lens model"
+        else:
+            rig_writer(rig, out / rel, fmt)
+        if not (out / rel).is_file():
+            raise OSError(f"rig writer did not create {rel} (format '{fmt}')")
+    return notes
 
 
 def _responses(spec: SceneSpec, n: int) -> list[CameraResponse]:
@@ -253,129 +274,179 @@ def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: Progress
     return SceneSummary(out_dir=out_dir, seconds=time.perf_counter() - t0, **summary)
 
 
+@dataclass
+class _Cast:
+    """The posed people of a scene, everything the renderer needs per frame."""
+
+    people: list
+    tracks: list
+    atlases: list
+    normals: list  # (T, V, 3) per person
+    faces: np.ndarray
+
+    def posed(self, frame: int) -> list[PosedPerson]:
+        return [PosedPerson(tr.person_id, tr.vertices[frame], self.normals[k][frame], self.faces, self.atlases[k],
+                            self.people[k].outfit) for k, tr in enumerate(self.tracks)]
+
+
+@dataclass
+class _Progress:
+    report: ProgressFn
+    total: int
+    done: int = 0
+
+    def step(self, name: str, n: int = 1) -> None:
+        self.done += n
+        self.report(name, self.done, self.total)
+
+
+@dataclass
+class _JointCheck:
+    """Counts in-image GT joints landing on a person's mask and on their own person's mask."""
+
+    in_image: int = 0
+    on_person: int = 0
+    on_own: int = 0
+
+    def add(self, camera, radius: float, tracks, frame: int, mask: np.ndarray) -> None:
+        for tr in tracks:
+            uv, inside = project_in_view(camera, tr.joints[frame], radius)
+            px = np.rint(uv[inside]).astype(int)
+            hit = mask[px[:, 1], px[:, 0]]
+            self.in_image += int(inside.sum())
+            self.on_own += int((hit == tr.person_id).sum())
+            self.on_person += int((hit > 0).sum())
+
+    def fractions(self) -> tuple[float, float]:
+        if not self.in_image:
+            return float("nan"), float("nan")
+        return self.on_person / self.in_image, self.on_own / self.in_image
+
+
+def _pose_cast(spec: SceneSpec, model, rig, fps: float, report: ProgressFn) -> _Cast:
+    faces = np.asarray(model.faces, dtype=np.int32)
+    people = sample_people(spec.n_people, np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
+                           int(model.num_betas), rig.meta["volume_center"], rig.meta["volume_radius"],
+                           spec.n_frames, fps, programmes=spec.motions)
+    cast = _Cast(people, [], [], [], faces)
+    for k, person in enumerate(people):
+        report("pose", k, len(people))
+        track = pose_person(model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id)
+        cast.tracks.append(track)
+        cast.atlases.append(BodyAtlas.build(track.rest_vertices, track.rest_joints,
+                                            getattr(model, "part_labels", None), getattr(model, "part_names", None)))
+        cast.normals.append(vertex_normals(track.vertices, faces))
+    report("pose", len(people), len(people))
+    return cast
+
+
+def _render_people_clip(spec: SceneSpec, out: Path, cast: _Cast, group: list[int], renderers, responses,
+                        stage, fps: float, views: ViewRows, check: _JointCheck, radii: dict, preview: dict,
+                        progress: _Progress) -> None:
+    """videos/<cam>.mp4 and truth/masks/<cam>.h5 for a group of cameras, plus view truth."""
+    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
+    cams = [r.camera for r in renderers]
+    videos = [VideoOut(out / "videos" / f"{c.name}.mp4", fps, c.width, c.height) for c in cams]
+    masks = [MaskStore(out / "truth" / "masks" / f"{c.name}.h5", spec.n_frames, c.width, c.height, c.name,
+                       spec.imaging.write_depth) for c in cams]
+    try:
+        for f in range(spec.n_frames):
+            posed = cast.posed(f)
+            # One Embree scene and one set of floor shadows per frame, shared by all cameras.
+            caster = RayCaster([(p.vertices, p.faces) for p in posed], spec.imaging.backend)
+            shadows = floor_shadow_maps(posed, caster, stage, spec.imaging.shadow_samples)
+            for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
+                layers = rend.render_people(posed, caster, shadows)
+                rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 0]))
+                image = develop(layers.radiance, responses[cam_i], rng)
+                videos[ci].write(image)
+                masks[ci].write(f, layers.mask, layers.depth)
+                radius = radii[rend.camera.name]
+                views.add(rend.camera, radius, f, cast.tracks, layers.mask, layers.depth)
+                check.add(rend.camera, radius, cast.tracks, f, layers.mask)
+                if f == preview_f:
+                    preview[rend.camera.name] = image
+            progress.step("render", len(renderers))
+    except BaseException:
+        for sink in videos + masks:
+            sink.abort()
+        raise
+    for sink in videos + masks:
+        sink.close()
+
+
+def _render_board_clip(spec: SceneSpec, out: Path, board_spec: ChArUcoSpec, texture, poses, group: list[int],
+                       renderers, responses, fps: float, preview: dict, progress: _Progress) -> None:
+    """board/<cam>.mp4 for a group of cameras."""
+    videos = [VideoOut(out / "board" / f"{r.camera.name}.mp4", fps, r.camera.width, r.camera.height)
+              for r in renderers]
+    try:
+        for f, pose in enumerate(poses):
+            for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
+                layers = rend.render_board(board_spec, pose, texture)
+                rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 1]))
+                image = develop(layers.radiance, responses[cam_i], rng)
+                videos[ci].write(image)
+                if f == len(poses) // 2:
+                    preview[rend.camera.name] = image
+            progress.step("board", len(renderers))
+    except BaseException:
+        for v in videos:
+            v.abort()
+        raise
+    for v in videos:
+        v.close()
+
+
 def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writer) -> dict:
     r = spec.rig
     rig = make_rig(r.kind, n_cameras=r.n_cameras, width=r.width, height=r.height, fov_deg=r.fov_deg,
                    focal_mm=r.focal_mm, distortion=r.distortion, fps=r.fps, seed=spec.seed)
     fps = float(rig.meta["fps"])
     stage = stage_for_rig(r.kind, spec.seed)
-    faces = np.asarray(model.faces, dtype=np.int32)
-    people = sample_people(spec.n_people, np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
-                           int(model.num_betas), rig.meta["volume_center"], rig.meta["volume_radius"],
-                           spec.n_frames, fps, programmes=spec.motions)
-    tracks, atlases, normals = [], [], []
-    for k, person in enumerate(people):
-        report("pose", k, len(people))
-        track = pose_person(model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id)
-        tracks.append(track)
-        atlases.append(BodyAtlas.build(track.rest_vertices, track.rest_joints, getattr(model, "part_labels", None),
-                                       getattr(model, "part_names", None)))
-        normals.append(vertex_normals(track.vertices, faces))
-    report("pose", len(people), len(people))
-
+    cast = _pose_cast(spec, model, rig, fps, report)
     board_spec = spec.board.board()
     texture = board_spec.texture()
-    poses = board_path(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
+    poses = board_clip(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
                        np.random.default_rng(np.random.SeedSequence([spec.seed, 3])),
                        camera_centers=np.stack([c.center for c in rig.cameras]))
     options = RenderOptions(antialias=spec.imaging.antialias, background_samples=spec.imaging.background_samples,
                             shadow_samples=spec.imaging.shadow_samples, backend=spec.imaging.backend)
     responses = _responses(spec, len(rig))
-    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
-    preview, board_preview = {}, {}
-    views = ViewRows()
     radii = {cam.name: field_radius(cam) for cam in rig.cameras}
-    on_mask = in_image = 0
-    total = len(rig) * (spec.n_frames + spec.board.n_frames)
-    done = 0
-    for group in _camera_groups(rig):
-        cams = [rig.cameras[i] for i in group]
-        renderers = [ViewRenderer(cam, stage, options) for cam in cams]
-        videos = [VideoOut(out / "videos" / f"{cam.name}.mp4", fps, cam.width, cam.height) for cam in cams]
-        masks = [MaskStore(out / "truth" / "masks" / f"{cam.name}.h5", spec.n_frames, cam.width, cam.height,
-                           cam.name, spec.imaging.write_depth) for cam in cams]
-        try:
-            for f in range(spec.n_frames):
-                posed = [PosedPerson(tr.person_id, tr.vertices[f], normals[k][f], faces, atlases[k], people[k].outfit)
-                         for k, tr in enumerate(tracks)]
-                caster = RayCaster([(p.vertices, p.faces) for p in posed], options.backend)
-                shadows = floor_shadow_maps(posed, caster, stage, options.shadow_samples)
-                for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
-                    layers = rend.render_people(posed, caster, shadows)
-                    rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 0]))
-                    image = develop(layers.radiance, responses[cam_i], rng)
-                    videos[ci].write(image)
-                    masks[ci].write(f, layers.mask, layers.depth)
-                    views.add(rend.camera, radii[rend.camera.name], f, tracks, layers.mask, layers.depth)
-                    for tr in tracks:
-                        uv, inside = project_in_view(rend.camera, tr.joints[f], radii[rend.camera.name])
-                        px = np.rint(uv[inside]).astype(int)
-                        in_image += int(inside.sum())
-                        on_mask += int((layers.mask[px[:, 1], px[:, 0]] == tr.person_id).sum())
-                    if f == preview_f:
-                        preview[rend.camera.name] = image
-                    done += 1
-                report("render", done, total)
-            for v in videos:
-                v.close()
-            for m in masks:
-                m.close()
-        except BaseException:
-            for v in videos:
-                v.abort()
-            for m in masks:
-                m.abort()
-            raise
-        if spec.board.n_frames:
-            bvideos = [VideoOut(out / "board" / f"{cam.name}.mp4", fps, cam.width, cam.height) for cam in cams]
-            try:
-                for f, pose in enumerate(poses):
-                    for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
-                        layers = rend.render_board(board_spec, pose, texture)
-                        rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 1]))
-                        image = develop(layers.radiance, responses[cam_i], rng)
-                        bvideos[ci].write(image)
-                        if f == len(poses) // 2:
-                            board_preview[rend.camera.name] = image
-                        done += 1
-                    report("board", done, total)
-                for v in bvideos:
-                    v.close()
-            except BaseException:
-                for v in bvideos:
-                    v.abort()
-                raise
+    preview, board_preview = {}, {}
+    views, check = ViewRows(), _JointCheck()
+    progress = _Progress(report, len(rig) * (spec.n_frames + spec.board.n_frames))
+    for group in _camera_groups(rig):  # camera caches of one group fit in memory together
+        renderers = [ViewRenderer(rig.cameras[i], stage, options) for i in group]
+        _render_people_clip(spec, out, cast, group, renderers, responses, stage, fps, views, check, radii,
+                            preview, progress)
+        if poses:
+            _render_board_clip(spec, out, board_spec, texture, poses, group, renderers, responses, fps,
+                               board_preview, progress)
         del renderers
 
     report("write", 0, 1)
-    body_meta = {"name": spec.body_model, "num_betas": int(model.num_betas), "num_vertices": int(tracks[0].vertices.shape[1]),
-                 "num_faces": int(len(faces)), "joint_names": list(JOINT_NAMES)}
+    names = [c.name for c in rig.cameras]
+    body_meta = {"name": spec.body_model, "num_betas": int(model.num_betas),
+                 "num_vertices": int(cast.tracks[0].vertices.shape[1]), "num_faces": int(len(cast.faces)),
+                 "joint_names": list(JOINT_NAMES)}
     meta = {"scene": spec.name, "fps": fps, "units": "m", "world": WORLD_CONVENTION, "joint_names": list(JOINT_NAMES),
             "body_model": body_meta, "format_version": SCENE_FORMAT_VERSION}
-    write_parquet(out / "truth" / "people.parquet", people_table(tracks, meta))
-    write_parquet(out / "truth" / "views.parquet", views.table({**meta, "occlusion_tolerance_m": 0.25,
+    write_parquet(out / "truth" / "people.parquet", people_table(cast.tracks, meta))
+    write_parquet(out / "truth" / "views.parquet", views.table({**meta, "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
                                                                  "pixel_convention": "OpenCV, pixel centres at integers"}))
-    if spec.board.n_frames:
+    if poses:
         bp, bv = board_tables(board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)})
         write_parquet(out / "truth" / "board_poses.parquet", bp)
         write_parquet(out / "truth" / "board_views.parquet", bv)
-    write_json(out / "board" / "board.json", board_json(board_spec))
-    for fmt, rel in CALIBRATION_FILES:
-        (out / rel).parent.mkdir(parents=True, exist_ok=True)
-        # H36M's lens model has no exact match for arbitrary OpenCV tangential terms: its file
-        # gets the least-squares fit (worst residual reported by the writer as a warning).
-        opts = {"approximate_distortion": True} if fmt == "h36m" else {}
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*H36M distortion fitted.*")
-            rig_writer(rig, out / rel, fmt, **opts)
-        if not (out / rel).is_file():
-            raise OSError(f"rig writer did not create {rel} (format '{fmt}')")
-    names = [c.name for c in rig.cameras]
+        write_png(out / "preview" / "board_sheet.png", contact_sheet([board_preview[n] for n in names], names))
+    write_json(out / "board.json", board_json(board_spec))
+    calibration_notes = _write_calibration(rig, out, rig_writer)
+    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
     write_png(out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names))
     write_png(out / "preview" / "truth_overlay.png",
-              truth_overlay([preview[n] for n in names], list(rig.cameras), tracks, preview_f))
-    if board_preview:
-        write_png(out / "preview" / "board_sheet.png", contact_sheet([board_preview[n] for n in names], names))
+              truth_overlay([preview[n] for n in names], list(rig.cameras), cast.tracks, preview_f))
     scene = {
         "format": "synth-scene", "format_version": SCENE_FORMAT_VERSION, "name": spec.name,
         "spec": spec.model_dump(mode="json"), "fps": fps, "n_frames": spec.n_frames,
@@ -383,25 +454,24 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         "image_size": {n: [c.width, c.height] for n, c in zip(names, rig.cameras, strict=True)},
         "volume": {"center": rig.meta["volume_center"], "radius": rig.meta["volume_radius"]},
         "world": WORLD_CONVENTION, "stage": stage.to_dict(), "body_model": body_meta,
-        "people": [p.to_dict() for p in people], "board": board_json(board_spec),
+        "people": [p.to_dict() for p in cast.people], "board": board_json(board_spec),
         "board_margin_m": float(texture.margin), "preview_frame": preview_f,
+        "calibration_notes": calibration_notes,
         "files": {"videos": "videos/<camera>.mp4", "board_videos": "board/<camera>.mp4",
-                  "board": "board/board.json", "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
+                  "board": "board.json", "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
                   "people": "truth/people.parquet", "views": "truth/views.parquet",
                   "masks": "truth/masks/<camera>.h5", "board_poses": "truth/board_poses.parquet",
                   "board_views": "truth/board_views.parquet", "contact_sheet": "preview/contact_sheet.png"},
     }
     write_json(out / "scene.json", scene)
     report("write", 1, 1)
+    on_person, on_own = check.fractions()
     return dict(name=spec.name, n_frames=spec.n_frames, n_board_frames=spec.board.n_frames, fps=fps,
-                cameras=tuple(names), n_people=len(people),
-                joints_in_mask=float(on_mask / in_image) if in_image else float("nan"))
+                cameras=tuple(names), n_people=len(cast.people), joints_in_mask=on_person, joints_on_own_mask=on_own)
 
 
 def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:
     """Camera names of a rendered scene (from scene.json)."""
-    import json
-
     path = Path(scene_dir) / "scene.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: not a synth scene folder")

@@ -178,7 +178,7 @@ class CapsuleBody(torch.nn.Module):
 # ------------------------------------------------------------------------------------------------
 # Stand-in rig writer (used only when calibration.formats is not installed)
 
-def standin_write_rig(rig, path, fmt: str) -> None:
+def standin_write_rig(rig, path, fmt: str, **_opts) -> None:
     """Minimal writer for the three formats synth emits (rig JSON, CMU Panoptic, H36M h5)."""
     import json
 
@@ -225,7 +225,11 @@ def rig_io():
     """(writer, reader-or-None) for calibration files: the real calibration.formats when
     installed, else the stand-in above."""
     try:
-        from calibration import formats
+        from calibration import camera, formats
     except ImportError:
+        return standin_write_rig, None
+    # A checkout without calibration/formats can still import one from another install of the
+    # project (an editable install elsewhere); mixing the two packages is not a real setup.
+    if Path(formats.__file__).resolve().parents[1] != Path(camera.__file__).resolve().parent:
         return standin_write_rig, None
     return formats.write_rig, getattr(formats, "read_rig", None)

@@ -46,7 +46,7 @@ def test_scene_layout_and_tables(tiny_scene):
     cams = scene["cameras"]
     assert summary.cameras == tuple(cams) and len(cams) == 2
     assert scene["n_frames"] == 6 and scene["fps"] == 30.0 and scene["world"]["up"] == [0.0, 0.0, 1.0]
-    assert set(json.loads((out / "board" / "board.json").read_text())) == {
+    assert set(json.loads((out / "board.json").read_text())) == {
         "kind", "squares_x", "squares_y", "square_size", "marker_size", "dictionary"}
     for rel in ("calibration/rig.json", "calibration/calibration_synth.json", "calibration/cameras.h5",
                 "preview/contact_sheet.png", "preview/truth_overlay.png", "preview/board_sheet.png",
@@ -191,3 +191,66 @@ def test_masks_file_is_plain_hdf5(tiny_scene):
     with h5py.File(out / "truth" / "masks" / "00_00.h5") as f:
         assert f.attrs["camera"] == "00_00"
         assert f["mask"].chunks == (1, 72, 96) and f["mask"].compression == "gzip"
+
+
+def test_board_clip_starts_flat_on_the_floor_at_the_world_origin():
+    from synth.board import FLOOR_BOARD_R, ChArUcoSpec, board_clip
+
+    spec = ChArUcoSpec()
+    poses = board_clip(spec, 200, (0, 0, 1.0), 1.5, np.random.default_rng(0), floor_frames=3)
+    assert len(poses) == 200
+    for p in poses[:3]:
+        assert np.array_equal(p.R, FLOOR_BOARD_R) and np.allclose(p.t, [0, 0, 0.001])
+        assert np.allclose(p.front_normal, [0, 0, 1])  # printed side up
+    # Lifting and moving never puts a corner of the sheet under the floor, and moves smoothly.
+    W, H = spec.size
+    m = spec.margin
+    outline = np.array([[-m, -m, 0], [W + m, -m, 0], [-m, H + m, 0], [W + m, H + m, 0]])
+    assert min(p.to_world(outline)[:, 2].min() for p in poses) > 0
+    centres = np.array([p.to_world(np.array([W / 2, H / 2, 0])) for p in poses])
+    assert np.linalg.norm(np.diff(centres, axis=0), axis=1).max() < 0.25  # 200 frames: no teleporting
+
+
+@pytest.mark.slow
+def test_board_calibration_recovers_the_synthetic_rig(tmp_path):
+    """End to end: calibration.solve on the rendered board clip finds synth's cameras in synth's
+    world (the clip's first pose lies on the floor at the origin)."""
+    solve = pytest.importorskip("calibration.solve")
+    board_mod = pytest.importorskip("calibration.board")
+    if READ_RIG is None:
+        pytest.skip("needs calibration.formats from this checkout")
+    spec = preset("demo", n_frames=1, n_people=1, motions=[["idle"]])
+    out = tmp_path / "scene"
+    render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
+    board = board_mod.BoardSpec.from_dict(json.loads((out / "board.json").read_text()))
+    result = solve.calibrate_from_board({p.stem: p for p in sorted((out / "board").glob("*.mp4"))}, board)
+    truth = READ_RIG(out / "calibration" / "rig.json", "rig")
+    for cam in result.rig:
+        true = truth[cam.name]
+        assert np.linalg.norm(cam.center - true.center) < 0.08, cam.name
+        assert abs(cam.fx / true.fx - 1) < 0.03, cam.name
+
+
+@pytest.mark.parametrize("kind", ["dome", "h36m", "hall"])
+def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
+    """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras exactly."""
+    from synth.rigs import make_rig
+
+    spec = _tiny(n_frames=2, n_people=1, motions=[["idle"]], board={"n_frames": 1},
+                 rig=dict(kind=kind, n_cameras=2, width=64, height=48, distortion="strong"))
+    out = tmp_path / kind
+    render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
+    truth = make_rig(kind, n_cameras=2, width=64, height=48, distortion="strong", seed=spec.seed)
+    readers = {"panoptic": lambda: read_panoptic(out / "calibration" / "calibration_synth.json")}
+    if READ_RIG is not None:
+        for fmt, rel in (("rig", "rig.json"), ("panoptic", "calibration_synth.json"), ("h36m", "cameras.h5")):
+            readers[f"read_rig:{fmt}"] = lambda fmt=fmt, rel=rel: list(READ_RIG(out / "calibration" / rel, fmt))
+    pts = np.random.default_rng(0).uniform([-1.5, -1.5, 0], [1.5, 1.5, 2], (50, 3))
+    for source, read in readers.items():
+        cams = {c.name: c for c in read()}
+        assert set(cams) == set(truth.names), source
+        for cam in truth.cameras:
+            got = cams[cam.name]
+            assert (got.width, got.height) == (64, 48), source
+            assert np.abs(got.project(pts) - cam.project(pts)).max() < 1e-6, f"{source}: {cam.name}"
+    assert json.loads((out / "scene.json").read_text())["calibration_notes"] == {}
