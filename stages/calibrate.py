@@ -37,7 +37,7 @@ SYNTH_FILES = {"rig": "rig.json", "panoptic": "calibration_synth.json", "h36m": 
 
 def _board_sources(ctx: StageContext) -> tuple[dict[str, Path], BoardSpec]:
     if ctx.scene.is_synthetic:
-        spec = BoardSpec.from_dict(json.loads(ctx.path("synth/board/board.json").read_text()))
+        spec = BoardSpec.from_dict(json.loads(ctx.path("synth/board.json").read_text()))
         return {p.stem: p for p in sorted(ctx.path("synth/board").glob("*.mp4"))}, spec
     b = ctx.scene.board
     videos = b.videos if isinstance(b.videos, list) else sorted(Path(p) for p in __import__("glob").glob(b.videos))

@@ -18,7 +18,7 @@ import torch
 from calibration.formats import read_rig
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
-from gst.track import OneEuroConfig, TrackOptions, read_tracks, track_video
+from gst.track import OneEuroConfig, TrackOptions, track_video
 from gst.track.detection import SuppliedBoxes
 from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.static_detector import StaticCameraDetector
@@ -88,10 +88,9 @@ def run(ctx: StageContext) -> None:
                      result.frames / max(result.seconds, 1e-9))
         report = ctx.out(f"reports/track/{name}/x").parent
         report.mkdir(parents=True, exist_ok=True)
-        tracks = read_tracks(result.path)
         if p.overlay:
-            write_overlay(video, tracks, report / "overlay.mp4")
-        plot_joint_angles(tracks, report / "joint_angles.png")
+            write_overlay(video, result.path, report / "overlay.mp4")
+        plot_joint_angles(result.path, report / "joint_angles.png")
         for person, g in splats.items():
             write_gaussians_ply(ctx.out(f"models/splats/{name}/person_{person}.ply"), g["gaussian_means"],
                                 g["gaussian_quats"], g["gaussian_scales"], g["gaussian_opacities"], g["gaussian_colors"])
