@@ -89,13 +89,14 @@ def body_scene(n: int, size: int, seed: int = 0, dtype=torch.float32):
 
 
 def dense_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                    near=0.01, rows_per_chunk=4):  # fmt: skip
-    """All-pairs reference: every pixel against every Gaussian, chunked over image rows.
+                    near=0.01, pairs_per_chunk=1 << 20):  # fmt: skip
+    """All-pairs reference: every pixel against every Gaussian, chunked over pixels.
 
     Same conventions as the tile rasteriser (shared projection). Each chunk is a
     (pixels, N) problem: depth-sorted Gaussians, alpha with footprint and clamp, a float64
     cumulative sum of log(1 - alpha) along N, weights, one matmul. Chunks are checkpointed
-    so backward recomputes them instead of storing (pixels x N) intermediates.
+    so backward recomputes them instead of storing (pixels x N) intermediates (reentrant
+    checkpointing: the non-reentrant variant kept ~18 bytes per pair alive here).
     One scene and one camera (S = C = 1). Returns (colour sum, alpha, depth sum).
     """
     proj = project_gaussians(means, quats, scales, viewmats, Ks, width, height, near)
@@ -115,12 +116,13 @@ def dense_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width
     order = order[: int(keep.sum())]
     feats = torch.cat([colors[0], depth[:, None], torch.ones_like(depth[:, None])], 1)[order]
     m2, con, op, thr = m2[order], con[order], op[order], thr[order]
-    xs = torch.arange(width, dtype=means.dtype)
+    pixels = width * height
+    step = max(1, pairs_per_chunk // max(1, len(order)))  # pixels per chunk
 
-    def chunk(y0, m2, con, op, feats):
-        ys = torch.arange(y0, min(y0 + rows_per_chunk, height), dtype=means.dtype)
-        px = xs.repeat(len(ys))[:, None]
-        py = ys.repeat_interleave(width)[:, None]
+    def chunk(p0, m2, con, op, feats):
+        ids = torch.arange(p0, min(p0 + step, pixels))
+        px = (ids % width).to(means.dtype)[:, None]
+        py = (ids // width).to(means.dtype)[:, None]
         dx = px - m2[None, :, 0]
         dy = py - m2[None, :, 1]
         power = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy
@@ -132,10 +134,10 @@ def dense_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width
 
     grad = torch.is_grad_enabled()
     outs = [
-        checkpoint(chunk, y0, m2, con, op, feats, use_reentrant=False)
+        checkpoint(chunk, p0, m2, con, op, feats, use_reentrant=True)
         if grad
-        else chunk(y0, m2, con, op, feats)
-        for y0 in range(0, height, rows_per_chunk)
+        else chunk(p0, m2, con, op, feats)
+        for p0 in range(0, pixels, step)
     ]
     acc = torch.cat(outs, 0).reshape(1, 1, height, width, 5)
     return acc[..., :3], acc[..., 4], acc[..., 3]
