@@ -29,13 +29,14 @@ class Params(StageParams):
     preset: Literal[tuple(PRESETS)] = "tiny"  # type: ignore[valid-type]
     body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
     world_seed: int = 1000  # the pretraining world differs from every scene by construction
-    world_rig: Literal["dome", "h36m", "hall"] = "h36m"
+    world_rig: Literal["dome", "h36m", "hall"] = "dome"  # its own seed: other camera positions
     world_frames: int = 60
     world_people: int = 3
     crop_size: int = 256
-    steps: int = 300
+    mode: Literal["3d", "pretrain"] = "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
+    steps: int = 1000
     batch_size: int = 8
-    lr: float = 3e-4
+    lr: float = 5e-4
     num_targets: int = 3
     render_size: int = 64
     losses: LossWeights = LossWeights()
@@ -49,7 +50,7 @@ def run(ctx: StageContext) -> None:
     world = ctx.staging / "world"
     if not (world / "scene.json").is_file():
         spec = preset("demo", seed=p.world_seed, n_frames=p.world_frames, n_people=p.world_people,
-                      motions=None, rig={"kind": p.world_rig, "n_cameras": None, "width": 400, "height": 400},
+                      motions=None, rig={"kind": p.world_rig, "n_cameras": 8, "width": 480, "height": 360},
                       board={"n_frames": 1}).model_copy(update={"name": "pretrain"})
         summary = render_scene(spec, world)
         ctx.log.info("pretraining world: %d frames x %d cameras in %.0f s", summary.n_frames, len(summary.cameras),
@@ -59,12 +60,12 @@ def run(ctx: StageContext) -> None:
     body = load_body_model(p.body_model)
     cfg = get_preset(p.preset)
     net, ids, groups = build_network(cfg, body)
-    lpips = load_lpips() if p.losses.lpips > 0 else None
+    lpips = load_lpips() if p.losses.lpips > 0 and p.mode == "pretrain" else None
     task = make_task(body, ids, cfg, crops.crop_size, p.losses, lpips)
     train_cfg = TrainConfig(steps=p.steps, batch_size=p.batch_size, lr=p.lr, warmup_steps=min(30, p.steps // 10),
                             val_every=max(1, p.steps // 4), ckpt_every=25, log_every=5)
     out = ctx.out("models/pretrain_run")
-    summary = fit_gst(net, task, crops, train_cfg, out, FitOptions(mode="pretrain", num_targets=p.num_targets,
+    summary = fit_gst(net, task, crops, train_cfg, out, FitOptions(mode=p.mode, num_targets=p.num_targets,
                       render_size=p.render_size), body_spec=p.body_model, vertex_ids=ids, group_index=groups,
                       progress=ctx.progress)
     shutil.copyfile(out / "last.pt", ctx.out("models/pretrain.pt"))

@@ -25,6 +25,7 @@ class LossWeights(BaseModel):
     betas: float = Field(0.0, ge=0)
     joints3d: float = Field(1.0, ge=0)
     joints2d: float = Field(1.0, ge=0)
+    root: float = Field(0.2, ge=0)  # absolute pelvis position in the camera frame (metres)
     params: float = Field(0.5, ge=0)
 
 
@@ -62,6 +63,7 @@ def supervised_terms(joints_cam: torch.Tensor, joints2d: torch.Tensor, rotmats: 
     parts: dict[str, torch.Tensor] = {}
     if gt_joints_cam is not None:
         parts["joints3d"] = (root_relative(joints_cam) - root_relative(gt_joints_cam)).norm(dim=-1).mean()
+        parts["root"] = (joints_cam[:, 0] - gt_joints_cam[:, 0]).norm(dim=-1).mean()
     if gt_joints2d is not None:
         err = ((joints2d - gt_joints2d) / crop_size).norm(dim=-1)
         if visible is not None:

@@ -35,6 +35,7 @@ from gst.train.steps import (
     predict,
     project,
     render_predictions,
+    supervised_step,
 )
 from gst.train.trainer import TrainConfig, Trainer
 from gst.train.views import CropSet, sample_multiview
@@ -127,8 +128,9 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
         def sample(gen, bs):
             return _supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
 
+        task.supervision = opts.mode
+
         def step(m, b):
-            from gst.train.steps import supervised_step
             return supervised_step(m, b, task)
 
     def validate(m) -> dict:
