@@ -66,7 +66,6 @@ def run(ctx: StageContext) -> None:
     options = TrackOptions(stride=p.stride, start_s=p.start_s, end_s=p.end_s, batch_size=p.batch_size,
                            smoothing=OneEuroConfig(min_cutoff=p.min_cutoff, beta=p.beta) if p.smoothing else None)
     model_info = {"name": predictor.name, "version": "1", "checkpoint": "models/gst.pt"}
-    summaries = {}
     for video in ctx.track(_videos(ctx), "videos"):
         name = video.stem
         camera = rig[name] if rig is not None and name in rig.names else None
@@ -81,20 +80,20 @@ def run(ctx: StageContext) -> None:
                              video_name=name, options=options, staging_root=ctx.staging / "inprogress",
                              world_up=rig.up if (rig is not None and camera is not None) else None,
                              on_extra=keep_splat if with_gaussians else None)
-        summaries[name] = {"rows": result.rows, "frames": result.frames, "persons": result.persons,
-                           "seconds": round(result.seconds, 2), "fps": round(result.frames / max(result.seconds, 1e-9), 2),
-                           "calibrated": camera is not None}
+        summary = {"rows": result.rows, "frames": result.frames, "persons": result.persons,
+                   "seconds": round(result.seconds, 2), "fps": round(result.frames / max(result.seconds, 1e-9), 2),
+                   "calibrated": camera is not None}
         ctx.log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons,
                      result.frames / max(result.seconds, 1e-9))
         report = ctx.out(f"reports/track/{name}/x").parent
         report.mkdir(parents=True, exist_ok=True)
+        (report / "summary.json").write_text(json.dumps(summary, indent=2))
         if p.overlay:
             write_overlay(video, result.path, report / "overlay.mp4")
         plot_joint_angles(result.path, report / "joint_angles.png")
         for person, g in splats.items():
             write_gaussians_ply(ctx.out(f"models/splats/{name}/person_{person}.ply"), g["gaussian_means"],
                                 g["gaussian_quats"], g["gaussian_scales"], g["gaussian_opacities"], g["gaussian_colors"])
-    (ctx.out("reports/track/summary.json")).write_text(json.dumps(summaries, indent=2))
 
 
 def _outputs(ctx: StageContext) -> list[str]:
