@@ -27,14 +27,13 @@ from gst.model.checkpoint import (
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
 from gst.train.evaluation import novel_view_metrics, novel_view_pairs, pose_metrics
-from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
+from gst.train.losses import LossWeights, combine, supervised_terms
 from gst.train.steps import (
     GSTTask,
     SupervisedBatch,
+    multiview_image_terms,
     multiview_step,
-    predict,
     project,
-    render_predictions,
     supervised_step,
 )
 from gst.train.trainer import TrainConfig, Trainer
@@ -76,14 +75,8 @@ def _supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
 
 def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
     """Supervised 3D terms on the input view plus image terms on the rendered views."""
-    pred = predict(model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True)
+    pred, _, _, parts = multiview_image_terms(model, batch, task)
     sup = _supervised_batch(crops, batch.input_index)
-    size = batch.target_images.shape[-2]
-    out = render_predictions(pred, batch, size)
-    mask = batch.target_masks
-    target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (1 - mask[..., None])
-    parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
-                        task.weights, task.lpips)
     parts.update(supervised_terms(pred.joints_cam, project(pred.joints_cam, sup.K), pred.rotmats, pred.betas,
                                   sup.joints_cam, sup.joints2d, sup.rotmats, sup.betas, task.crop_size, sup.visible))
     terms = combine(parts, task.weights)

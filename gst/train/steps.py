@@ -55,14 +55,20 @@ def render_predictions(pred: BodyPrediction, batch: MultiViewBatch, size: int):
                      size, size, backgrounds=batch.backgrounds)
 
 
-def multiview_step(model: nn.Module, batch: MultiViewBatch, task: GSTTask) -> tuple[torch.Tensor, dict]:
+def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask):
+    """Predict from the input view, render into the target views, and compare with the targets
+    composited on the batch's random backgrounds. Returns (prediction, render, target, terms)."""
     pred = predict(model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True)
-    size = batch.target_images.shape[-2]
-    out = render_predictions(pred, batch, size)
+    out = render_predictions(pred, batch, batch.target_images.shape[-2])
     mask = batch.target_masks
     target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (1 - mask[..., None])
     parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
                         task.weights, task.lpips)
+    return pred, out, target, parts
+
+
+def multiview_step(model: nn.Module, batch: MultiViewBatch, task: GSTTask) -> tuple[torch.Tensor, dict]:
+    _, out, target, parts = multiview_image_terms(model, batch, task)
     terms = combine(parts, task.weights)
     with torch.no_grad():
         mse = ((out.rgb - target) ** 2).mean()
