@@ -1,0 +1,68 @@
+"""GST inference speed per preset: pose-only versus full Gaussian output, on this machine.
+
+Prints, per preset, the median time per batch and frames/s for the pose-only path (the
+Gaussian tokens are skipped exactly) and for full output (network + posing of the Gaussians),
+and the ratio between them, all in one run. Weights are random (speed does not depend on them);
+the body model is the open default.
+
+    python benchmarks/bench_gst_inference.py [--presets tiny small base] [--batch 8] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from gst.body import load_body_model
+from gst.model.assemble import assemble
+from gst.model.presets import get_preset
+from gst.train.recipe import build_network
+
+
+def timed(fn, repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--presets", nargs="+", default=["tiny", "small", "base"])
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    body = load_body_model("anny")
+    print(f"device cpu, threads {torch.get_num_threads()}, batch {args.batch}, median of {args.repeats}")
+    print(f"{'preset':<7} {'input':>8} {'gaussians':>9} {'pose ms':>9} {'pose fps':>9} {'full ms':>9} "
+          f"{'full fps':>9} {'full/pose':>9}")
+    for name in args.presets:
+        cfg = get_preset(name)
+        net, ids, _ = build_network(cfg, body)
+        net.eval()
+        vid = torch.as_tensor(ids)
+        x = torch.randn(args.batch, 3, *cfg.image_size)
+        K = torch.tensor([[500.0, 0, 128], [0, 500.0, 128], [0, 0, 1]]).expand(args.batch, 3, 3)
+
+        def run(with_gaussians: bool, net=net, x=x, K=K, vid=vid):
+            with torch.no_grad():
+                out = net(x, with_gaussians=with_gaussians)
+                assemble(out, body, K, 256, vertex_ids=vid)
+
+        t_pose = timed(lambda: run(False), args.repeats)
+        t_full = timed(lambda: run(True), args.repeats)
+        print(f"{name:<7} {cfg.image_size[0]}x{cfg.image_size[1]:<4} {len(ids):>9} {1000 * t_pose:>9.1f} "
+              f"{args.batch / t_pose:>9.1f} {1000 * t_full:>9.1f} {args.batch / t_full:>9.1f} {t_full / t_pose:>9.2f}")
+
+
+if __name__ == "__main__":
+    main()
