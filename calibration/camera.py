@@ -148,8 +148,11 @@ class Camera:
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
             return np.zeros((0, 2))
-        # cv2.projectPoints ignores K[0, 1] (skew); project without it and add it after.
-        uv, _ = cv2.projectPoints(pts, self.rvec, self.t, self._K_no_skew(),
+        # Points go to the camera frame here, not through an rvec: cv2.Rodrigues treats
+        # rotations below ~1e-5 rad as the identity. cv2.projectPoints also ignores K[0, 1]
+        # (skew); project without it and add it after.
+        zero = np.zeros(3)
+        uv, _ = cv2.projectPoints(self.to_camera(pts), zero, zero, self._K_no_skew(),
                                   self.dist if self.dist.size else None)
         uv = uv.reshape(-1, 2)
         if self.skew:

@@ -129,3 +129,13 @@ def test_camera_validation_names_camera_and_field(field, value, match):
     with pytest.raises(CameraError, match=match) as info:
         Camera.create("cam-x", **fields)
     assert "cam-x" in str(info.value)
+
+
+def test_tiny_rotation_is_not_rounded_to_identity():
+    # cv2.Rodrigues returns a zero vector below ~1e-5 rad; projection must not depend on it.
+    R = np.array([[1.0, 0.0, 1e-5], [0.0, 1.0, 0.0], [-1e-5, 0.0, 1.0]])
+    R, _ = np.linalg.qr(R)
+    R *= np.sign(np.diag(R))[None]
+    cam = Camera.create("c", [[200, 0, 100], [0, 200, 100], [0, 0, 1]], np.zeros(5), R, np.zeros(3), 1280, 960)
+    pts = np.array([[-1e-5, 0.0, 1.0]])
+    np.testing.assert_allclose(cam.unproject(cam.project(pts), cam.to_camera(pts)[:, 2]), pts, atol=1e-9)
