@@ -12,6 +12,8 @@ selection near a half turn); the 6D map is written here because kornia has none.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
@@ -63,6 +65,13 @@ def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     Uses a Taylor expansion below 1e-3 rad, so it is exact and differentiable at zero.
     """
     _check_last_dims(axis_angle, (3,), "axis_angle", "axis_angle_to_matrix")
+    # kornia squares the angle, which overflows float32 above ~1.8e19 rad (NaN out and in the
+    # gradient). Rotations are 2 pi periodic: wrap larger angles first, with the norm taken in
+    # float64 so that it cannot overflow. Angles up to 2 pi pass through unchanged.
+    theta = torch.linalg.vector_norm(axis_angle.double(), dim=-1, keepdim=True)
+    big = theta > 2 * math.pi
+    shrink = torch.remainder(theta, 2 * math.pi) / torch.where(big, theta, torch.ones_like(theta))
+    axis_angle = axis_angle * torch.where(big, shrink, torch.ones_like(theta)).to(axis_angle.dtype)
     return axis_angle_to_rotation_matrix(axis_angle)
 
 
