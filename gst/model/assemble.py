@@ -12,6 +12,7 @@ Geometry (paper Sec. 3, with the public code's defects fixed):
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -19,7 +20,7 @@ from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_
 
 from gst.body import BodyModel
 from gst.body.rotations import rot6d_to_matrix
-from gst.model.network import GSTOutput
+from gst.model.network import GaussianParams, GSTOutput
 
 
 @dataclass
@@ -69,10 +70,34 @@ def _gaussians_to_world(g: PosedGaussians, R_in: torch.Tensor, t_in: torch.Tenso
                           g.scales, g.opacities, g.colors, g.offsets)
 
 
+def _cast_output(out: GSTOutput, dtype: torch.dtype) -> GSTOutput:
+    """The network's outputs in `dtype` (under bf16 autocast some of them come out in bf16)."""
+    cast = {f.name: getattr(out, f.name).to(dtype) for f in dataclasses.fields(out) if f.name != "gaussians"}
+    g = out.gaussians
+    if g is not None:
+        g = GaussianParams(**{f.name: getattr(g, f.name).to(dtype) for f in dataclasses.fields(g)})
+    return GSTOutput(**cast, gaussians=g)
+
+
 def assemble(out: GSTOutput, body: BodyModel, K_crop: torch.Tensor, crop_size: int, *,
              vertex_ids: torch.Tensor | None = None, R_in: torch.Tensor | None = None,
              t_in: torch.Tensor | None = None, with_vertices: bool = False) -> BodyPrediction:
-    """Pose the body (and the Gaussians, when the network produced them)."""
+    """Pose the body (and the Gaussians, when the network produced them), in the body's dtype.
+
+    Runs with autocast disabled: under bf16 autocast (``TrainConfig.amp``) only the network runs
+    in reduced precision; skinning and posing in bf16 (about 3 significant digits, i.e.
+    centimetres a few metres from the camera) would be too coarse, and would hand the
+    rasteriser a mix of dtypes.
+    """
+    with torch.autocast(body.device.type, enabled=False):
+        return _assemble(_cast_output(out, body.dtype), body, K_crop.to(body.dtype), crop_size,
+                         vertex_ids=vertex_ids, R_in=None if R_in is None else R_in.to(body.dtype),
+                         t_in=None if t_in is None else t_in.to(body.dtype), with_vertices=with_vertices)
+
+
+def _assemble(out: GSTOutput, body: BodyModel, K_crop: torch.Tensor, crop_size: int, *,
+              vertex_ids: torch.Tensor | None, R_in: torch.Tensor | None, t_in: torch.Tensor | None,
+              with_vertices: bool) -> BodyPrediction:
     transl = camera_translation(out.cam, K_crop, crop_size)
     want_gaussians = out.gaussians is not None
     body_out = body(out.betas, out.rotmats[:, 1:], out.rotmats[:, 0], transl,

@@ -142,6 +142,15 @@ def rasterize(
     if bool((Ks[..., 0, 0] <= 0).any() or (Ks[..., 1, 1] <= 0).any()):
         raise ValueError("rasterize: Ks must have positive focal lengths fx = K[0, 0], fy = K[1, 1]")
 
+    # Rasterise in the inputs' own dtype even inside an autocast region (bf16 training): with
+    # bf16 matmuls the projection and the transmittance sums lose far more than the image is worth.
+    with torch.autocast(means.device.type, enabled=False):
+        return _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                          backgrounds, backend, near, batched)
+
+
+def _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds,
+               backend, near, batched) -> RenderOutput:
     if not batched:
         means, quats, scales, opacities, colors, viewmats, Ks = (
             t[None] for t in (means, quats, scales, opacities, colors, viewmats, Ks)
