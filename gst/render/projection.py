@@ -33,6 +33,11 @@ def quats_to_rotmats(quats: Tensor) -> Tensor:
     Unnormalised quaternions are normalised; a (near-)zero quaternion gives the identity, with
     finite gradients.
     """
+    # Divide by the largest component (when above 1) first: the squares inside the norm overflow
+    # float32 above ~1.8e19 and turned such quaternions into the identity. q / |q| does not
+    # depend on that factor, so detaching it leaves the gradient exact.
+    big = quats.detach().abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
+    quats = quats / big
     norm = torch.linalg.vector_norm(quats, dim=-1, keepdim=True)
     q = quats / norm.clamp_min(QUAT_EPS)
     # A zero quaternion maps to (0, 0, 0, 0), which the formula below turns into the identity.
