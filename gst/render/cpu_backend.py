@@ -311,6 +311,13 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_image):
+        # The forward ran with autocast off (see rasterize); a backward called inside an autocast
+        # region would otherwise run its matmuls in bf16 and mix dtypes in the index_add_ below.
+        with torch.autocast(grad_image.device.type, enabled=False):
+            return _Composite._backward(ctx, grad_image)
+
+    @staticmethod
+    def _backward(ctx, grad_image):
         means2d, conics, opacities, feats, thresholds, image = ctx.saved_tensors
         bins: TileBins = ctx.bins
         width, height = ctx.size
