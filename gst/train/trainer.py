@@ -27,7 +27,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from gst.atomic import atomic_torch_save
+from gst.atomic import atomic_torch_save, atomic_write
 
 log = logging.getLogger("gst.train")
 
@@ -139,13 +139,29 @@ class Trainer:
         if self.rank != 0:
             return
         path = self.out_dir / "log.csv"
-        new = not path.exists()
-        keys = sorted(row)
-        with open(path, "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
-            if new:
+        fields: list[str] = []
+        if path.exists():
+            with open(path, newline="") as f:
+                fields = next(csv.reader(f), [])
+        if fields and set(row) <= set(fields):
+            with open(path, "a", newline="") as f:
+                csv.DictWriter(f, fieldnames=fields).writerow(row)
+            return
+        # A column the file lacks (the first validation, the first skipped step): rewrite it with
+        # the union of columns. Appending under the old header silently dropped those values.
+        old_rows: list[dict] = []
+        if path.exists():
+            with open(path, newline="") as f:
+                old_rows = list(csv.DictReader(f))
+        fields = fields + sorted(set(row) - set(fields))
+
+        def write(tmp: str) -> None:
+            with open(tmp, "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=fields)
                 writer.writeheader()
-            writer.writerow(row)
+                writer.writerows(old_rows + [row])
+
+        atomic_write(path, write)
 
     def _is_better(self, value: float) -> bool:
         if self.best_value is None:
