@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 _VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 
@@ -125,7 +126,12 @@ class Camera:
 
     @property
     def rvec(self) -> np.ndarray:
-        return cv2.Rodrigues(self.R)[0].ravel()
+        """Rotation vector (axis times angle, radians) of R, as OpenCV's Rodrigues convention.
+
+        Not cv2.Rodrigues: it returns a zero vector for rotations below ~1e-5 rad, so files that
+        store rvecs (Anipose, Pose2Sim) lost such rotations. scipy's conversion is exact there.
+        """
+        return Rotation.from_matrix(self.R).as_rotvec()
 
     def replace(self, **changes) -> Camera:
         """A validated copy with some fields changed."""
