@@ -221,10 +221,12 @@ def test_lpips_matches_the_formula_written_out(net, layout):
     state = _weights(net)
     model = LPIPS(net)
     x, y = _pairs()
+    if net == "vgg":  # VGG16 in float64 is slow on CPU: three of the pairs are enough
+        x, y = x[[0, 2, 5]], y[[0, 2, 5]]
     ref = lpips_by_formula(state, layout, x, y)
     got = model(x, y).double()
     torch.testing.assert_close(got, ref, atol=2e-6, rtol=1e-5)
-    assert (ref[:4] > 1e-3).all() and (ref < 2.0).all()  # real distances, in LPIPS's usual range
+    assert (ref > 1e-3).all() and (ref < 2.0).all()  # real distances, in LPIPS's usual range
 
 
 @pytest.mark.parametrize("net", ["alex"])
