@@ -28,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration import Camera  # noqa: E402
+from gst.data.crop import crop_window, cut_crop  # noqa: E402
 from gst.track import (  # noqa: E402
     BoxDepthPredictor,
     OneEuroConfig,
@@ -38,7 +39,6 @@ from gst.track import (  # noqa: E402
     read_tracks,
     track_video,
 )
-from gst.track.crop import crop_window, cut_crop  # noqa: E402
 from gst.track.tracker import box_iou  # noqa: E402
 from tests.track_synthetic import Walker, render, walker_boxes, write_boxes_csv, write_video  # noqa: E402
 

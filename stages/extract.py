@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Literal
 
 from calibration.formats import read_rig
-from gst.data import ExtractOptions, extract_scene, write_extract_report
+from gst.data import AssociationConfig, ExtractOptions, extract_scene, write_extract_report
 from pipeline.stage import Stage, StageContext, StageParams
 
 
@@ -23,6 +23,9 @@ class Params(StageParams):
     method: Literal["median", "mog2", "knn"] = "median"
     background_videos: dict[str, Path] | None = None  # camera -> clip of the empty scene
     use_board_clip_as_background: bool = True  # synthetic scenes: the board clip is an empty stage
+    # Overrides of gst.data.AssociationConfig, e.g. {merge_radius: 0.6, peak_separation: 0.8}
+    # for a capture where people stay >= 0.8 m apart and lunge (the real lab scene).
+    association: dict[str, float | int] | None = None
 
 
 def _videos(ctx: StageContext) -> dict[str, Path]:
@@ -45,7 +48,9 @@ def run(ctx: StageContext) -> None:
     store = ctx.out("crops/crops.h5")
     report = extract_scene(videos, rig, store, crop_size=p.crop_size, scale=p.scale, frame_stride=p.frame_stride,
                            method=p.method, external=ctx.scene.masks, truth=truth, progress=ctx.progress,
-                           executor_map=executor_map, options=ExtractOptions(background_videos=plates))
+                           executor_map=executor_map,
+                           options=ExtractOptions(background_videos=plates,
+                                                  association=AssociationConfig(**(p.association or {}))))
     write_extract_report(report, store, ctx.out("reports/extract"))
     ctx.log.info("extract: %d crops of %d people, %d multi-view groups; mask IoU %s; association %s",
                  report.crops, report.persons, report.multiview_groups, report.mask_iou, report.association_accuracy)

@@ -22,6 +22,7 @@ from gst.track import OneEuroConfig, TrackOptions, track_video
 from gst.track.detection import SuppliedBoxes
 from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.static_detector import StaticCameraDetector
+from gst.track.tracker import TrackerConfig
 from pipeline.stage import Stage, StageContext, StageParams
 
 
@@ -36,6 +37,8 @@ class Params(StageParams):
     boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of the background detector
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     threads: int | None = None
+    min_hits: int = 3  # consecutive detections before a new person gets an id
+    max_misses: int = 30  # processed frames a person may go undetected and keep the id
 
 
 def _videos(ctx: StageContext) -> list[Path]:
@@ -63,13 +66,14 @@ def run(ctx: StageContext) -> None:
     predictor = GSTPredictor(ctx.path("models/gst.pt"), with_gaussians=with_gaussians, batch_size=p.batch_size)
     rig_path = ctx.path("calibration/rig.json")
     rig = read_rig(rig_path, "rig") if rig_path.is_file() else None
-    options = TrackOptions(stride=p.stride, start_s=p.start_s, end_s=p.end_s, batch_size=p.batch_size,
+    options = TrackOptions(stride=p.stride, tracker=TrackerConfig(min_hits=p.min_hits, max_misses=p.max_misses), start_s=p.start_s, end_s=p.end_s, batch_size=p.batch_size,
                            smoothing=OneEuroConfig(min_cutoff=p.min_cutoff, beta=p.beta) if p.smoothing else None)
     model_info = {"name": predictor.name, "version": "1", "checkpoint": "models/gst.pt"}
     for video in ctx.track(_videos(ctx), "videos"):
         name = video.stem
         camera = rig[name] if rig is not None and name in rig.names else None
-        detector = SuppliedBoxes.from_file(p.boxes, video=name) if p.boxes else StaticCameraDetector(video)
+        detector = (SuppliedBoxes.from_file(p.boxes, video=name) if p.boxes else
+                    StaticCameraDetector(video, camera=camera, up=rig.up if camera is not None else (0.0, 0.0, 1.0)))
         splats: dict[int, dict] = {}
 
         def keep_splat(frame: int, person: int, extra: dict, splats=splats) -> None:

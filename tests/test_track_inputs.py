@@ -5,8 +5,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from gst.data.crop import crop_intrinsics, crop_window
 from gst.track.baseline import BoxDepthPredictor
-from gst.track.crop import crop_intrinsics, crop_window
 from gst.track.detection import Detection, Detector, SuppliedBoxes, SuppliedBoxesError
 from gst.track.predictor import PredictorOutputError, predict_batched, validate_prediction
 from gst.track.view import default_camera

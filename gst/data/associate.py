@@ -49,6 +49,11 @@ class AssociationConfig:
     track_slack: float = 0.5  # m of centroid jitter tolerated on top (partial silhouettes move it)
     track_max_gap: int = 15  # processed frames a lost id is kept for re-identification
     min_track_frames: int = 5  # ids seen in fewer processed frames are dropped (flicker, fragments)
+    # Offline linking of id fragments (`link_tracklets`): a track that starts after another
+    # ended, where that one would have got to at `link_speed`, continues it.
+    link_max_gap: int = 60  # processed frames between the end of one piece and the next
+    link_speed: float = 2.0  # m/s: a person's typical displacement speed over a gap
+    link_slack: float = 0.5  # m: centroid jitter tolerated on top
 
     def __post_init__(self):
         if self.voxel_size <= 0:
@@ -584,3 +589,45 @@ class PersonTracker:
             if any(np.linalg.norm(self.tracks[i][0] - f) <= self.slack for f in fresh):
                 del self.tracks[i]
         return ids
+
+
+def link_tracklets(tracks: dict[int, list[tuple[int, np.ndarray]]], step_seconds: float, speed: float,
+                   slack: float, max_gap: int, agree: float = 0.8) -> dict[int, int]:
+    """Join id fragments of one person, offline: returns old id -> linked id.
+
+    `tracks` maps an id to its (step, ground position) observations. Pieces are visited in
+    order of their first step. A piece joins the earlier chain it never shares a step with and
+    agrees with: for at least `agree` of its observations, the chain's observation nearest in
+    time is at most `max_gap` steps away and within `slack + speed * gap * step_seconds` on the
+    ground. Among agreeing chains the nearest (median distance) wins. This joins a person who
+    was lost and found again, and ids that took turns on one person (interleaved pieces), but
+    never two people seen together. Chains keep the id of their first piece.
+    """
+    order = sorted(tracks, key=lambda i: (min(o[0] for o in tracks[i]), i))
+    chains: list[tuple[int, np.ndarray, np.ndarray]] = []  # (id, steps sorted, positions)
+    mapping: dict[int, int] = {}
+    for i in order:
+        obs = sorted(tracks[i], key=lambda o: o[0])
+        steps = np.array([o[0] for o in obs])
+        pos = np.stack([np.asarray(o[1], dtype=np.float64) for o in obs])
+        best, best_d = None, np.inf
+        for k, (_, c_steps, c_pos) in enumerate(chains):
+            if np.isin(steps, c_steps).any():
+                continue
+            j = np.clip(np.searchsorted(c_steps, steps), 1, len(c_steps)) - 1
+            j2 = np.minimum(j + 1, len(c_steps) - 1)
+            near = np.where(np.abs(c_steps[j2] - steps) < np.abs(c_steps[j] - steps), j2, j)
+            gap = np.abs(c_steps[near] - steps)
+            d = np.linalg.norm(pos - c_pos[near], axis=1)
+            ok = (gap <= max_gap) & (d <= slack + speed * gap * step_seconds)
+            if ok.mean() >= agree and np.median(d) < best_d:
+                best, best_d = k, float(np.median(d))
+        if best is None:
+            chains.append((i, steps, pos))
+            mapping[i] = i
+            continue
+        cid, c_steps, c_pos = chains[best]
+        merged = np.argsort(np.concatenate([c_steps, steps]), kind="stable")
+        chains[best] = (cid, np.concatenate([c_steps, steps])[merged], np.concatenate([c_pos, pos])[merged])
+        mapping[i] = cid
+    return mapping

@@ -13,6 +13,12 @@ its centre is at u = x0 + (j + 0.5)/s and
 Crops are resampled straight from the distorted frame through `cv2.initUndistortRectifyMap`
 with K_crop as the new camera matrix, so K_crop together with the camera's R, t describe every
 crop pixel exactly, with zero distortion. Parts of the box outside the image are zero.
+
+Tracking uses the same geometry through `CropWindow`, which states a crop in the detector's
+pixel-CORNER convention (pixel column i spans [i, i + 1), so a box around columns 10..19 is
+x0 = 10, x1 = 20): a window (x0, y0, side) is the `CropBox` (x0 - 0.5, y0 - 0.5, side), and a
+full-frame point u maps to the crop point u' = (u - x0 + 0.5) s - 0.5. Points (projections,
+joints2d, K's principal point) always use the pixel-centre convention.
 """
 
 from __future__ import annotations
@@ -37,14 +43,53 @@ class CropBox:
         return np.array([self.x0, self.y0, self.side], dtype=np.float64)
 
 
+CROP_ENLARGE = 1.2  # HMR2: the square side is 1.2 x the longer side of the person box
+
+
+@dataclass(frozen=True)
+class CropWindow:
+    """A square window of the frame in the pixel-corner convention, resized to `size` pixels."""
+
+    x0: float
+    y0: float
+    side: float
+    size: int
+
+    @property
+    def scale(self) -> float:
+        """Crop pixels per frame pixel."""
+        return self.size / self.side
+
+    @property
+    def box(self) -> CropBox:
+        """The same region as a `CropBox` (pixel-centre convention edges)."""
+        return CropBox(self.x0 - 0.5, self.y0 - 0.5, self.side)
+
+    def affine(self) -> np.ndarray:
+        """(2, 3) map of frame points to crop points, both in the pixel-centre convention."""
+        s = self.scale
+        return np.array([[s, 0.0, s * (0.5 - self.x0) - 0.5],
+                         [0.0, s, s * (0.5 - self.y0) - 0.5]])
+
+    def to_crop(self, uv: np.ndarray) -> np.ndarray:
+        """Frame points (N, 2) -> crop points (N, 2), pixel-centre convention."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        return (uv - [self.x0, self.y0] + 0.5) * self.scale - 0.5
+
+    def to_frame(self, uv_crop: np.ndarray) -> np.ndarray:
+        """Crop points (N, 2) -> frame points (N, 2), pixel-centre convention."""
+        uv_crop = np.asarray(uv_crop, dtype=np.float64).reshape(-1, 2)
+        return (uv_crop + 0.5) / self.scale + [self.x0, self.y0] - 0.5
+
+
 def hmr_crop_box(box_xyxy: np.ndarray | tuple, scale: float = 1.2) -> CropBox:
     """HMR2 convention: a square of side `scale * max(w, h)` centred on the person box.
 
     `box_xyxy` = (x0, y0, x1, y1) are box edges in the undistorted full image.
     """
-    x0, y0, x1, y1 = (float(v) for v in box_xyxy)
-    if not (x1 > x0 and y1 > y0):
-        raise ValueError(f"person box must have x1 > x0 and y1 > y0, got {box_xyxy}")
+    x0, y0, x1, y1 = (float(v) for v in np.asarray(box_xyxy, dtype=np.float64).reshape(4))
+    if not (np.isfinite([x0, y0, x1, y1]).all() and x1 > x0 and y1 > y0):
+        raise ValueError(f"person box must be finite with x1 > x0 and y1 > y0, got {[x0, y0, x1, y1]}")
     if scale <= 0:
         raise ValueError(f"crop scale must be positive, got {scale}")
     side = scale * max(x1 - x0, y1 - y0)
@@ -52,10 +97,26 @@ def hmr_crop_box(box_xyxy: np.ndarray | tuple, scale: float = 1.2) -> CropBox:
     return CropBox(cx - side / 2, cy - side / 2, side)
 
 
-def crop_intrinsics(K: np.ndarray, box: CropBox, size: int) -> np.ndarray:
-    """Intrinsics of the crop `box` resampled to `size` x `size` pixels (formula in module doc)."""
+def crop_window(box_xyxy, size: int = 256, enlarge: float = CROP_ENLARGE) -> CropWindow:
+    """The HMR2 window (see `hmr_crop_box`) of a corner-convention box, resized to `size`."""
+    if size <= 0:
+        raise ValueError(f"crop size must be positive, got {size}")
+    b = hmr_crop_box(np.asarray(box_xyxy, dtype=np.float64).reshape(4) - 0.5, enlarge)
+    return CropWindow(b.x0 + 0.5, b.y0 + 0.5, b.side, int(size))
+
+
+def crop_intrinsics(K: np.ndarray, box: CropBox | CropWindow, size: int | None = None) -> np.ndarray:
+    """Intrinsics of the crop `box` resampled to `size` x `size` pixels (formula in module doc).
+
+    A `CropWindow` carries its own size (pass none)."""
+    if isinstance(box, CropWindow):
+        box, size = box.box, box.size if size is None else size
+    if size is None:
+        raise ValueError("crop_intrinsics of a CropBox needs the crop size")
     s = size / box.side
     K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise ValueError(f"K must be (3, 3), got {K.shape}")
     Kc = np.array([[K[0, 0] * s, K[0, 1] * s, (K[0, 2] - box.x0) * s - 0.5],
                    [0.0, K[1, 1] * s, (K[1, 2] - box.y0) * s - 0.5],
                    [0.0, 0.0, 1.0]])
@@ -69,16 +130,56 @@ def crop_camera(camera: Camera, box: CropBox, size: int) -> Camera:
                          meta={"parent": camera.name, "crop_box": box.as_array().tolist()})
 
 
-def crop_maps(camera: Camera, box: CropBox, size: int,
-              src_scale: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+def _interpolation_weights(size: int, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Grid coordinates 0, step, ... (covering size - 1), and for every integer coordinate the
+    index of the grid cell it falls in and its weight towards the cell's far end."""
+    n = -(-(size - 1) // step) + 1
+    grid = np.arange(n, dtype=np.float64) * step
+    u = np.arange(size, dtype=np.float64)
+    i = np.minimum((u // step).astype(int), n - 2)
+    return grid, i, (u - grid[i]) / step
+
+
+def _bilinear(values: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Upsample (n, n) grid values to (size, size) by separable linear interpolation (gathers
+    and multiplies only: tiny BLAS calls stall when the machine is oversubscribed)."""
+    rows = values[i] * (1 - w)[:, None] + values[i + 1] * w[:, None]
+    return rows[:, i] * (1 - w)[None, :] + rows[:, i + 1] * w[None, :]
+
+
+def distortion_maps(camera: Camera, K_crop: np.ndarray, size: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel of an ideal size x size camera with intrinsics K_crop, the raw-frame
+    pixel it sees (float32 maps for cv2.remap). The lens model is evaluated exactly
+    (cv2.projectPoints) on a grid every `step` pixels and interpolated bilinearly in between:
+    far cheaper than all size^2 pixels and, lens distortion being smooth, within a few
+    hundredths of a pixel of cv2.initUndistortRectifyMap."""
+    grid, i, w = _interpolation_weights(size, step)
+    gu, gv = np.meshgrid(grid, grid)
+    fx, s, cx = K_crop[0]
+    fy, cy = K_crop[1, 1], K_crop[1, 2]
+    y = (gv - cy) / fy
+    x = (gu - cx - s * y) / fx
+    rays = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
+    uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera.K, camera.dist)
+    uv = uv.reshape(len(grid), len(grid), 2)
+    return _bilinear(uv[..., 0], i, w).astype(np.float32), _bilinear(uv[..., 1], i, w).astype(np.float32)
+
+
+def crop_maps(camera: Camera, box: CropBox, size: int, src_scale: tuple[float, float] = (1.0, 1.0),
+              grid_step: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sampling maps (float32, size x size) into a source image of this camera.
 
     The source may be the full frame shrunk by `src_scale` = (sx, sy) (work-resolution masks);
-    pixel centres then map as u_src = (u + 0.5) sx - 0.5.
+    pixel centres then map as u_src = (u + 0.5) sx - 0.5. With `grid_step` the lens model is
+    evaluated on that grid and interpolated (`distortion_maps`, the fast path of tracking);
+    otherwise every pixel goes through cv2.initUndistortRectifyMap.
     """
     Kc = crop_intrinsics(camera.K, box, size)
-    dist = camera.dist if camera.dist.size else None
-    mapx, mapy = cv2.initUndistortRectifyMap(camera.K, dist, None, Kc, (size, size), cv2.CV_32FC1)
+    if grid_step is not None and camera.dist.size and np.any(camera.dist):
+        mapx, mapy = distortion_maps(camera, Kc, size, grid_step)
+    else:
+        dist = camera.dist if camera.dist.size else None
+        mapx, mapy = cv2.initUndistortRectifyMap(camera.K, dist, None, Kc, (size, size), cv2.CV_32FC1)
     sx, sy = src_scale
     if (sx, sy) != (1.0, 1.0):
         mapx = (mapx + 0.5) * np.float32(sx) - 0.5
@@ -86,14 +187,22 @@ def crop_maps(camera: Camera, box: CropBox, size: int,
     return mapx, mapy
 
 
+ANTIALIAS = ("gaussian", "pyramid")
+
+
 def resample(image: np.ndarray, mapx: np.ndarray, mapy: np.ndarray, src_per_dst: float,
-             interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+             interpolation: int = cv2.INTER_LINEAR, antialias: str = "gaussian") -> np.ndarray:
     """`cv2.remap` with anti-aliasing when the crop shrinks the source.
 
-    Only the source region the maps touch is blurred (Gaussian, sigma = (k - 1) / 2 for a
-    shrink factor k, as scikit-image does), so a small crop of a 4K frame stays cheap.
-    Samples outside the source are zero.
+    Only the source region the maps touch is filtered, so a small crop of a 4K frame stays
+    cheap. "gaussian" blurs it with sigma = (k - 1) / 2 for a shrink factor k (as scikit-image
+    does; the most faithful); "pyramid" halves it with cv2.pyrDown until the shrink is at most
+    2 (several times cheaper for big shrinks; tracking uses it). Samples outside the source are zero.
     """
+    if antialias == "pyramid":
+        return _resample_pyramid(image, mapx, mapy, src_per_dst, interpolation)
+    if antialias != "gaussian":
+        raise ValueError(f"antialias must be one of {ANTIALIAS}, got '{antialias}'")
     h, w = image.shape[:2]
     sigma = 0.5 * (src_per_dst - 1.0)
     pad = int(np.ceil(3 * sigma)) + 2 if sigma > 0.25 else 2
@@ -110,6 +219,74 @@ def resample(image: np.ndarray, mapx: np.ndarray, mapy: np.ndarray, src_per_dst:
                                borderType=cv2.BORDER_REPLICATE)
     return cv2.remap(roi, mapx - np.float32(x_lo), mapy - np.float32(y_lo), interpolation,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def _pyramid_levels(src_per_dst: float) -> int:
+    levels = 0
+    while src_per_dst / (2 ** levels) > 2.0:
+        levels += 1
+    return levels
+
+
+def _pyramid_roi(image: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float, levels: int
+                 ) -> tuple[np.ndarray, float, float, float]:
+    """The part of `image` over the source-pixel range [lo, hi], halved `levels` times with
+    cv2.pyrDown. Returns (roi, offset_x, offset_y, factor): a source pixel centre u sits at
+    (u - offset_x) / factor in the roi, in the roi's corner convention (see callers)."""
+    margin = 3 * 2 ** levels  # keeps pyrDown's border reflection outside the sampled region
+    h, w = image.shape[:2]
+    rx0 = max(int(np.floor(x_lo)) - margin, 0)
+    ry0 = max(int(np.floor(y_lo)) - margin, 0)
+    rx1 = min(int(np.ceil(x_hi)) + margin, w)
+    ry1 = min(int(np.ceil(y_hi)) + margin, h)
+    if rx1 <= rx0 or ry1 <= ry0:  # entirely outside the frame
+        return image[:1, :1] * 0, 0.0, 0.0, 1.0
+    roi = image[ry0:ry1, rx0:rx1]
+    for _ in range(levels):
+        roi = cv2.pyrDown(roi)
+    return roi, float(rx0), float(ry0), float(2 ** levels)
+
+
+def _resample_pyramid(image, mapx, mapy, src_per_dst, interpolation):
+    roi, ox, oy, f = _pyramid_roi(image, float(np.nanmin(mapx)), float(np.nanmin(mapy)),
+                                  float(np.nanmax(mapx)) + 1, float(np.nanmax(mapy)) + 1,
+                                  _pyramid_levels(src_per_dst))
+    if f != 1.0 or ox or oy:
+        mapx = (mapx - np.float32(ox)) / np.float32(f)
+        mapy = (mapy - np.float32(oy)) / np.float32(f)
+    return cv2.remap(roi, mapx, mapy, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def cut_crop(image: np.ndarray, window: CropWindow, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """Resample `window` of a distortion-free `image` (H, W[, C]) to size x size: one affine
+    warp after pyramid anti-aliasing (the pinhole fast path of tracking); zero outside the frame."""
+    levels = _pyramid_levels(window.side / window.size)
+    roi, ox, oy, f = _pyramid_roi(image, window.x0, window.y0, window.x0 + window.side,
+                                  window.y0 + window.side, levels)
+    s = window.scale * f  # crop pixels per roi pixel
+    # roi point r = (u - ox) / f; crop point u' = (u - x0 + 0.5) * scale - 0.5
+    #   = (f r + ox - x0 + 0.5) * scale - 0.5 = s r + s (ox - x0 + 0.5) / f - 0.5
+    M = np.array([[s, 0.0, s * ((ox - window.x0) / f + 0.5 / f) - 0.5],
+                  [0.0, s, s * ((oy - window.y0) / f + 0.5 / f) - 0.5]])
+    return cv2.warpAffine(roi, M, (window.size, window.size), flags=interpolation,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def cut_undistorted_crop(image: np.ndarray, camera: Camera, window: CropWindow,
+                         interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """Crop `window` of the UNDISTORTED image (same K as `camera`) straight from the distorted
+    `image` in one remap, with interpolated lens maps and pyramid anti-aliasing (tracking's
+    fast path of `extract_crop`). `window` is in undistorted-image coordinates."""
+    mapx, mapy = crop_maps(camera, window.box, window.size, grid_step=8)
+    # Bound the window in the distorted frame by the maps themselves (a square of their span).
+    x_lo, y_lo = float(mapx.min()) + 0.5, float(mapy.min()) + 0.5
+    span = max(float(mapx.max() - mapx.min()), float(mapy.max() - mapy.min()), 1.0)
+    roi, ox, oy, f = _pyramid_roi(image, x_lo, y_lo, x_lo + span, y_lo + span,
+                                  _pyramid_levels(span / window.size))
+    if f != 1.0 or ox or oy:
+        mapx = (mapx - np.float32(ox)) / np.float32(f)
+        mapy = (mapy - np.float32(oy)) / np.float32(f)
+    return cv2.remap(roi, mapx, mapy, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 def extract_crop(image: np.ndarray, camera: Camera, box: CropBox, size: int,

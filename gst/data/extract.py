@@ -31,7 +31,13 @@ import h5py
 import numpy as np
 
 from calibration import Camera, Rig
-from gst.data.associate import AssociationConfig, CaptureVolume, PersonTracker, VoxelGrid
+from gst.data.associate import (
+    AssociationConfig,
+    CaptureVolume,
+    PersonTracker,
+    VoxelGrid,
+    link_tracklets,
+)
 from gst.data.background import BackgroundConfig, build_background, sample_indices
 from gst.data.crop import (
     crop_intrinsics,
@@ -250,6 +256,7 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
     slots: dict[str, list[tuple[int, int, int]]] = {n: [] for n in names}
     views: dict[str, list[tuple[float, ...]]] = {n: [] for n in names}  # box x0 y0 x1 y1, support
     per_frame: list[list[int]] = []
+    observed: dict[int, list[tuple[int, np.ndarray]]] = {}  # id -> (frame position, ground)
     try:
         for n in names:
             w, h = work_sizes[n]
@@ -276,6 +283,8 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
             assoc = grid.associate(labels)
             ids = tracker.update(assoc.persons)
             per_frame.append(ids)
+            for pid, person in zip(ids, assoc.persons, strict=True):
+                observed.setdefault(pid, []).append((i, person.ground.copy()))
             for n in names:
                 lab = assoc.labels[n]
                 outs[n]["labels"][i] = lab
@@ -284,6 +293,12 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
                     if view is not None:
                         slots[n].append((frame, int(v), ids[int(v) - 1]))
                         views[n].append((*view[0].tolist(), view[1]))
+        if not global_ids and observed:
+            # Offline: join id fragments of one person (lost for a while, then found again).
+            link = link_tracklets(observed, step_seconds, config.link_speed, config.link_slack, config.link_max_gap)
+            per_frame = [[link[i] for i in ids] for ids in per_frame]
+            for n in names:
+                slots[n] = [(f, v, link.get(pid, pid)) for f, v, pid in slots[n]]
         for n in names:
             outs[n].create_dataset("slots", data=np.asarray(slots[n], dtype=np.int64).reshape(-1, 3))
             outs[n].create_dataset("views", data=np.asarray(views[n], dtype=np.float64).reshape(-1, 5))

@@ -1,7 +1,7 @@
 """Tracking: per-frame inference on a video, written as pose time series to Parquet."""
 
+from gst.data.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 from gst.track.baseline import BoxDepthPredictor
-from gst.track.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 from gst.track.detection import Detection, Detector, SuppliedBoxes, SuppliedBoxesError
 from gst.track.loop import TrackOptions, TrackResult, track_video
 from gst.track.predictor import PoseBatch, Predictor, PredictorOutputError, validate_prediction

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gst.track.crop import CROP_ENLARGE
+from gst.data.crop import CROP_ENLARGE
 
 # Approximate SMPL-layout rest joints (T-pose, metres, body frame: x = body left, y up, z forward),
 # pelvis at the origin; rough adult anthropometry, not taken from any model file.

@@ -1,6 +1,6 @@
 """Person detections and the detector protocol; `SuppliedBoxes` reads them from a file.
 
-Boxes use the pixel-corner convention (see gst.track.crop): x0, y0, x1, y1 with x1 > x0, y1 > y0.
+Boxes use the pixel-corner convention (see gst.data.crop): x0, y0, x1, y1 with x1 > x0, y1 > y0.
 
 Supplied-box file (CSV or Parquet), one row per box:
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gst.data.crop import crop_window, cut_crop, cut_undistorted_crop
 from gst.track.appearance import colour_histogram, core_region
-from gst.track.crop import crop_window, cut_crop, cut_undistorted_crop
 from gst.track.detection import Detection
 from gst.track.predictor import PoseBatch
 from gst.track.smoothing import OneEuroConfig, PoseSmoother

@@ -12,7 +12,10 @@ A pair is allowed only if its cost is at most `max_cost`, the boxes overlap (IoU
 the 3D positions are within the gate, and the positions are within `hard_gate` gates (a
 generous bound, since monocular depth is noisy). scipy's linear_sum_assignment picks the cheapest
 allowed matching. Unmatched tracks coast on their velocity for up to `max_misses` processed
-frames (short occlusions), then end; unmatched detections start new tracks.
+frames (short occlusions), then end; unmatched detections start tentative tracks. A
+tentative track gets its id only once it has been matched in `min_hits` consecutive processed
+frames (until then its detections get id -1, and one miss ends it), so flickering fragments and
+false detections do not use up ids.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ class TrackerConfig:
     velocity_weight: float = 0.5  # weight of the newest velocity in its running average
     appearance_weight: float = 0.2  # weight of the newest histogram in its running average
     min_score_new: float = 0.0  # detections scoring below this never start a track
+    min_hits: int = 1  # consecutive matches before a new track gets an id (1: at once)
 
     def __post_init__(self):
         if min(self.w_iou, self.w_position, self.w_appearance) < 0 or self.w_iou + self.w_position + self.w_appearance <= 0:
@@ -48,6 +52,8 @@ class TrackerConfig:
                              f"{self.w_appearance}")
         if self.max_misses < 0:
             raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")
+        if self.min_hits < 1:
+            raise ValueError(f"min_hits must be >= 1, got {self.min_hits}")
         for name in ("velocity_weight", "appearance_weight"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
@@ -74,6 +80,7 @@ class Track:
     position_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     hits: int = 1
     misses: int = 0
+    confirmed: bool = True  # False while a new track has fewer than min_hits matches (id -1)
 
     def predicted_box(self, time_s: float) -> np.ndarray:
         return self.box + self.box_velocity * (time_s - self.last_time)
@@ -88,6 +95,10 @@ class Track:
     def from_dict(cls, d: dict) -> Track:
         arrays = ("box", "position", "appearance", "box_velocity", "position_velocity")
         return cls(**{k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()})
+
+
+def _publish(track: Track) -> int | None:
+    return track.id if track.confirmed else None
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -136,26 +147,37 @@ class Tracker:
         cost, allowed = self.cost_matrix(time_s, observations)
         ids: list[int | None] = [None] * len(observations)
         matched_tracks: set[int] = set()
+        matched_obs: set[int] = set()
         if cost.size:
             rows, cols = linear_sum_assignment(np.where(allowed, cost, _INFEASIBLE))
             for r, j in zip(rows, cols, strict=True):
                 if allowed[r, j]:
-                    self._absorb(self.tracks[r], observations[j], time_s)
-                    ids[j] = self.tracks[r].id
+                    t = self.tracks[r]
+                    self._absorb(t, observations[j], time_s)
+                    if not t.confirmed and t.hits >= c.min_hits:
+                        t.confirmed, t.id = True, self.next_id
+                        self.next_id += 1
+                    ids[j] = _publish(t)
                     matched_tracks.add(r)
+                    matched_obs.add(j)
         survivors = []
         for r, t in enumerate(self.tracks):
             if r not in matched_tracks:
                 t.misses += 1
-            if t.misses <= c.max_misses:
+            if t.misses <= (c.max_misses if t.confirmed else 0):
                 survivors.append(t)
         self.tracks = survivors
-        for j, obs in enumerate(observations):
-            if ids[j] is None and obs.score >= c.min_score_new:
-                t = Track(self.next_id, obs.box.copy(), obs.position.copy(), obs.appearance.copy(), time_s)
+        unmatched = [j for j, obs in enumerate(observations)
+                     if j not in matched_obs and obs.score >= c.min_score_new]
+        for j in unmatched:
+            obs = observations[j]
+            confirmed = c.min_hits <= 1
+            t = Track(self.next_id if confirmed else -1, obs.box.copy(), obs.position.copy(), obs.appearance.copy(),
+                      time_s, confirmed=confirmed)
+            if confirmed:
                 self.next_id += 1
-                self.tracks.append(t)
-                ids[j] = t.id
+            self.tracks.append(t)
+            ids[j] = _publish(t)
         return [-1 if i is None else i for i in ids]
 
     def _absorb(self, t: Track, obs: Observation, time_s: float) -> None:

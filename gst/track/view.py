@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration import Camera
-from gst.track.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
+from gst.data.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 
 
 def default_camera(width: int, height: int, name: str = "default") -> Camera:
