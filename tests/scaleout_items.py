@@ -1,0 +1,39 @@
+"""Picklable item functions for the scale-out tests (workers import them as tests.scaleout_items)."""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class MarkedItem:
+    """An item that writes one result file; `crash` items kill their worker the first time."""
+
+    value: int
+    out_dir: Path
+    crash: str = ""  # "" | "kill" (SIGKILL own process) | "raise" (an exception)
+
+
+def square_and_record(item: MarkedItem) -> int:
+    """Square the value and append a line to its log, crashing the first time if asked to."""
+    marker = item.out_dir / f"attempted-{item.value}"
+    first_attempt = not marker.exists()
+    marker.touch()
+    with open(item.out_dir / f"log-{item.value}.txt", "a") as fh:  # one line per completed attempt
+        if item.crash and first_attempt:
+            if item.crash == "kill":
+                os.kill(os.getpid(), signal.SIGKILL)
+            raise RuntimeError(f"deliberate failure of item {item.value}")
+        fh.write(f"{item.value}\n")
+    return item.value * item.value
+
+
+def always_fails(x: int) -> int:
+    raise ValueError(f"bad item {x}")
+
+
+def worker_pid(x: int) -> tuple[int, int]:
+    return x, os.getpid()
