@@ -37,3 +37,19 @@ def always_fails(x: int) -> int:
 
 def worker_pid(x: int) -> tuple[int, int]:
     return x, os.getpid()
+
+
+class KillOnceDetector:
+    """Supplied boxes that SIGKILL their own worker process at `kill_frame`, once (marker file)."""
+
+    def __init__(self, csv: Path, video: str, marker: Path, kill_frame: int):
+        from gst.track.detection import SuppliedBoxes
+
+        self.inner = SuppliedBoxes.from_file(csv, video)
+        self.marker, self.kill_frame = Path(marker), kill_frame
+
+    def detect(self, image, frame_index: int):
+        if frame_index == self.kill_frame and not self.marker.exists():
+            self.marker.touch()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return self.inner.detect(image, frame_index)
