@@ -6,6 +6,10 @@ uses that camera (world coordinates are written); any other video uses the defau
 (docs/formats/tracks_parquet.md). Output: `tracks/video=<name>/tracks.parquet` (Hive-partitioned,
 one row per frame and person), `reports/track/<name>/` (overlay video, joint-angle plot) and,
 with `--with-gaussians`, `models/splats/<name>/person_<id>.ply`.
+
+Videos are fanned out through the executor (`--executor local|ray`, `--workers`), one item per
+video; with `--set track.chunk_frames=N` a video longer than N processed frames is split into
+chunks tracked in parallel and stitched (gst/track/chunks.py). Reports are written here, after.
 """
 
 from __future__ import annotations
