@@ -7,6 +7,8 @@ config or arguments.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -14,8 +16,10 @@ from rich.table import Table
 
 from pipeline.config import PipelineConfig, load_config
 from pipeline.console import ProgressBars, make_console, print_error, setup_logging
+from pipeline.dag import upstream_closure
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.executors import make_executor
+from pipeline.fsutil import remove_path
 from pipeline.registry import load_stages
 from pipeline.runner import MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
 
@@ -25,6 +29,7 @@ EPILOG = """examples:
   python -m pipeline run train --set train.steps=200
   python -m pipeline run track --video match.mp4
   python -m pipeline status                       which stages are up to date, and why not
+  torchrun --nproc_per_node 2 -m pipeline run train   train with DDP on 2 processes (GPUs or CPU/gloo)
 """
 
 
@@ -110,8 +115,46 @@ def _print_outputs(console, runner: Runner, planned) -> None:
         console.print(f"outputs of scene '{runner.scene_name}':\n" + "\n".join(lines), highlight=False)
 
 
+def _torchrun() -> tuple[int, int]:
+    """(rank, world size) when launched by torchrun, else (0, 1)."""
+    return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def _distributed_plan(runner: Runner, targets: list[str], force: bool, force_all: bool) -> list[str]:
+    """Under torchrun every rank must take the same decision without talking first: run exactly
+    the targets that are stale (or forced), and only once their upstream stages are up to date
+    (rank 0 alone running, say, extract would leave the other ranks waiting at the rendezvous)."""
+    done: dict = {}
+    for name in upstream_closure(runner.needs, targets):
+        done[name] = runner.status_of(name, done)  # no hash-cache save: rank 0 owns that file
+    pending = [st.key for name, st in done.items() if name not in targets and st.needs_run]
+    if pending:
+        raise ConfigError(f"under torchrun the upstream stages must be up to date; run them first without "
+                          f"torchrun (python -m pipeline run {pending[-1]}); stale: {', '.join(pending)}")
+    return [name for name in targets if done[name].state != SKIPPED
+            and (done[name].needs_run or force or force_all)]
+
+
+def _run_helper_rank(runner: Runner, stages: list[str], rank: int) -> None:
+    """A non-zero torchrun rank: run the stage for its gradients only, in a private staging
+    folder that is deleted afterwards. Rank 0 alone takes the lock, commits outputs and records
+    the fingerprint (the Trainer also saves checkpoints and logs on rank 0 only)."""
+    for name in stages:
+        ctx = runner.context(name)
+        ctx = dataclasses.replace(ctx, staging=runner.meta / "staging" / f"{name}.rank{rank}")
+        remove_path(ctx.staging)
+        ctx.staging.mkdir(parents=True)
+        try:
+            runner.stages[name].run(ctx)
+        finally:
+            remove_path(ctx.staging)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    rank, world = _torchrun()
+    if rank != 0:
+        args.quiet = True  # one rank talks
     console = make_console(args.quiet)
     try:
         cfg = load_config(args.config, args.overrides)
@@ -134,6 +177,19 @@ def main(argv: list[str] | None = None) -> int:
         runners = [Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
                    for scene in scenes]
         log_path = None
+        if args.command == "run" and world > 1 and not args.dry_run:
+            if args.stage == "all":
+                raise ConfigError("under torchrun, name the stage to train (e.g. `run train`), not 'all'")
+            setup_logging(console, None, args.command, args.quiet)
+            for runner in runners:
+                todo = _distributed_plan(runner, [args.stage], args.force, args.force_all)
+                if rank != 0:
+                    _run_helper_rank(runner, todo, rank)
+                elif todo:
+                    runner.run(todo, force=True)
+                else:
+                    runner.run([args.stage])  # logs that it is up to date
+            return 0
         if args.command == "run" and not args.dry_run:
             log_path = setup_logging(console, cfg.workspace / ".pipeline" / "logs", args.command, args.quiet)
         else:

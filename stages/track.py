@@ -6,19 +6,27 @@ uses that camera (world coordinates are written); any other video uses the defau
 (docs/formats/tracks_parquet.md). Output: `tracks/video=<name>/tracks.parquet` (Hive-partitioned,
 one row per frame and person), `reports/track/<name>/` (overlay video, joint-angle plot) and,
 with `--with-gaussians`, `models/splats/<name>/person_<id>.ply`.
+
+Videos are fanned out through the executor (`--executor local|ray`, `--workers`), one item per
+video; with `--set track.chunk_frames=N` a video longer than N processed frames is split into
+chunks tracked in parallel and stitched (gst/track/chunks.py). Reports are written here, after.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
 import torch
+from pydantic import Field
 
 from calibration.formats import read_rig
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
-from gst.track import OneEuroConfig, TrackOptions, track_video
+from gst.track import OneEuroConfig, TrackOptions
+from gst.track.batch import VideoJob, VideoOutcome, track_videos
+from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
 from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.static_detector import StaticCameraDetector
@@ -39,6 +47,11 @@ class Params(StageParams):
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
     max_misses: int = 30  # processed frames a person may go undetected and keep the id
+    # Split videos longer than this many processed frames into chunks tracked in parallel and
+    # stitched (gst/track/chunks.py); off by default because ids can differ where tracking is
+    # ambiguous at a border. Not with smoothing or --with-gaussians.
+    chunk_frames: int | None = Field(default=None, ge=1)
+    chunk_overlap: int = Field(default=30, ge=1)
 
 
 def _videos(ctx: StageContext) -> list[Path]:
@@ -58,44 +71,59 @@ def _variant(ctx: StageContext) -> str | None:
     return "+".join(sorted(Path(v).stem for v in given)) or None
 
 
+def _map(ctx: StageContext):
+    return ctx.executor.map if ctx.executor is not None else None
+
+
 def run(ctx: StageContext) -> None:
     p = ctx.params
     if p.threads:
         torch.set_num_threads(p.threads)
     with_gaussians = bool(ctx.options.get("with_gaussians"))
-    predictor = GSTPredictor(ctx.path("models/gst.pt"), with_gaussians=with_gaussians, batch_size=p.batch_size)
+    checkpoint = ctx.path("models/gst.pt")
+    name = GSTPredictor(checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size).name  # fails early, here
     rig_path = ctx.path("calibration/rig.json")
     rig = read_rig(rig_path, "rig") if rig_path.is_file() else None
-    options = TrackOptions(stride=p.stride, tracker=TrackerConfig(min_hits=p.min_hits, max_misses=p.max_misses), start_s=p.start_s, end_s=p.end_s, batch_size=p.batch_size,
+    options = TrackOptions(stride=p.stride, tracker=TrackerConfig(min_hits=p.min_hits, max_misses=p.max_misses),
+                           start_s=p.start_s, end_s=p.end_s, batch_size=p.batch_size,
                            smoothing=OneEuroConfig(min_cutoff=p.min_cutoff, beta=p.beta) if p.smoothing else None)
-    model_info = {"name": predictor.name, "version": "1", "checkpoint": "models/gst.pt"}
-    for video in ctx.track(_videos(ctx), "videos"):
-        name = video.stem
-        camera = rig[name] if rig is not None and name in rig.names else None
-        detector = (SuppliedBoxes.from_file(p.boxes, video=name) if p.boxes else
-                    StaticCameraDetector(video, camera=camera, up=rig.up if camera is not None else (0.0, 0.0, 1.0)))
-        splats: dict[int, dict] = {}
+    model_info = {"name": name, "version": "1", "checkpoint": "models/gst.pt"}
+    workers = getattr(ctx.executor, "workers", 1)
+    # Parallel workers share the cores: one torch thread each unless told otherwise.
+    threads = p.threads or (1 if workers > 1 else None)
+    predictor = functools.partial(GSTPredictor, checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size)
+    jobs = []
+    for video in _videos(ctx):
+        camera = rig[video.stem] if rig is not None and video.stem in rig.names else None
+        detector = (functools.partial(SuppliedBoxes.from_file, p.boxes, video=video.stem) if p.boxes
+                    else functools.partial(StaticCameraDetector, video, camera=camera,
+                                           up=tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)))
+        jobs.append(VideoJob(video, detector, predictor, model_info, name=video.stem, camera=camera,
+                             world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
+                             options=options, threads=threads, keep_extras=with_gaussians))
+    chunking = ChunkingConfig(p.chunk_frames, p.chunk_overlap) if p.chunk_frames else None
+    outcomes = track_videos(jobs, ctx.out("tracks"), map_fn=_map(ctx), staging_root=ctx.staging / "inprogress",
+                            chunking=chunking, description="track videos" + (" (chunks)" if chunking else ""))
+    for outcome in outcomes:
+        _report(ctx, outcome)
 
-        def keep_splat(frame: int, person: int, extra: dict, splats=splats) -> None:
-            if person not in splats and "gaussian_means" in extra:
-                splats[person] = extra
 
-        result = track_video(video, ctx.out("tracks"), detector, predictor, model=model_info, camera=camera,
-                             video_name=name, options=options, staging_root=ctx.staging / "inprogress",
-                             world_up=rig.up if (rig is not None and camera is not None) else None,
-                             on_extra=keep_splat if with_gaussians else None)
-        summary = {"rows": result.rows, "frames": result.frames, "persons": result.persons,
-                   "seconds": round(result.seconds, 2), "fps": round(result.frames / max(result.seconds, 1e-9), 2),
-                   "calibrated": camera is not None}
-        ctx.log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons,
-                     result.frames / max(result.seconds, 1e-9))
-        report = ctx.out(f"reports/track/{name}/x").parent
-        report.mkdir(parents=True, exist_ok=True)
-        (report / "summary.json").write_text(json.dumps(summary, indent=2))
-        if p.overlay:
-            write_overlay(video, result.path, report / "overlay.mp4")
-        plot_joint_angles(result.path, report / "joint_angles.png")
-        for person, g in splats.items():
+def _report(ctx: StageContext, outcome: VideoOutcome) -> None:
+    """Summary, overlay video, joint-angle plot and splats of one tracked video (in the caller)."""
+    name, result = outcome.job.name, outcome.result
+    summary = {"rows": result.rows, "frames": result.frames, "persons": result.persons,
+               "seconds": round(result.seconds, 2), "fps": round(result.frames / max(result.seconds, 1e-9), 2),
+               "calibrated": outcome.job.camera is not None, "chunks": outcome.chunks}
+    ctx.log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons,
+                 result.frames / max(result.seconds, 1e-9))
+    report = ctx.out(f"reports/track/{name}/x").parent
+    report.mkdir(parents=True, exist_ok=True)
+    (report / "summary.json").write_text(json.dumps(summary, indent=2))
+    if ctx.params.overlay:
+        write_overlay(outcome.job.video, result.path, report / "overlay.mp4")
+    plot_joint_angles(result.path, report / "joint_angles.png")
+    for person, g in outcome.extras.items():
+        if "gaussian_means" in g:
             write_gaussians_ply(ctx.out(f"models/splats/{name}/person_{person}.ply"), g["gaussian_means"],
                                 g["gaussian_quats"], g["gaussian_scales"], g["gaussian_opacities"], g["gaussian_colors"])
 

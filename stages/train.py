@@ -104,6 +104,8 @@ def run(ctx: StageContext) -> None:
     summary = fit_gst(net, task, crops, cfg, run_dir, FitOptions(mode=p.supervision, num_targets=p.num_targets,
                       render_size=p.render_size, heldout_cameras=tuple(heldout)), body_spec=p.body_model,
                       vertex_ids=ids, group_index=groups, progress=ctx.progress)
+    if torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
+        return  # under torchrun the other ranks only contribute gradients; rank 0 writes everything
     best = run_dir / "best.pt"
     shutil.copyfile(best, ctx.out("models/gst.pt"))
     net = network_from_checkpoint(load_checkpoint(best)).eval()

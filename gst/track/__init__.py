@@ -2,6 +2,8 @@
 
 from gst.data.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 from gst.track.baseline import BoxDepthPredictor
+from gst.track.batch import VideoJob, VideoOutcome, track_videos
+from gst.track.chunks import ChunkingConfig
 from gst.track.detection import Detection, Detector, SuppliedBoxes, SuppliedBoxesError
 from gst.track.loop import TrackOptions, TrackResult, track_video
 from gst.track.predictor import PoseBatch, Predictor, PredictorOutputError, validate_prediction
@@ -15,11 +17,11 @@ from gst.track.view import TrackingView, default_camera
 from gst.track.writer import ResumeError, TrackWriter
 
 __all__ = [
-    "BoxDepthPredictor", "CropWindow", "Detection", "Detector", "Observation", "OneEuroConfig", "OneEuroFilter",
+    "BoxDepthPredictor", "ChunkingConfig", "CropWindow", "Detection", "Detector", "Observation", "OneEuroConfig", "OneEuroFilter",
     "PoseBatch", "PoseSmoother", "Predictor", "PredictorOutputError", "ResumeError", "SMPL_JOINT_NAMES",
     "SuppliedBoxes", "SuppliedBoxesError", "TrackOptions", "TrackResult", "TrackWriter", "Tracker",
     "TrackerConfig", "TrackingView", "VideoError", "VideoInfo", "VideoTruncatedError", "box_iou", "column_array",
     "crop_intrinsics", "crop_window", "cut_crop", "cut_undistorted_crop", "default_camera", "draw_people",
     "iter_frames", "joint_angles", "long_format", "plot_joint_angles", "write_overlay", "probe_video", "read_metadata", "read_tracks", "track_video", "tracks_schema",
-    "validate_prediction",
+    "validate_prediction", "VideoJob", "VideoOutcome", "track_videos",
 ]

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from calibration import Camera
@@ -128,6 +129,122 @@ class _Group:
         return PoseBatch.concat(self.poses, self.num_betas)
 
 
+@dataclass(frozen=True)
+class VideoRun:
+    """What a run over one video is fixed by: its probe, frame range, view and settings."""
+
+    info: VideoInfo
+    name: str
+    view: TrackingView
+    first: int  # first frame of the range; groups close on the grid first + k * frames_per_group * stride
+    end: int | None
+    video_json: dict
+    calibration: dict
+    settings: dict  # everything that determines the output (hashed into the file)
+
+
+def plan_run(video_path: str | Path, *, model: dict, camera: Camera | None, video_name: str | None,
+             options: TrackOptions, num_betas: int, world_up, extra_settings: dict | None = None) -> VideoRun:
+    """Probe the video and fix the run's settings (`extra_settings` are added, e.g. chunking)."""
+    for key in ("name", "version"):
+        if key not in model:
+            raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
+    info: VideoInfo = probe_video(video_path)
+    name = video_name or info.name
+    view = TrackingView.for_video(info.width, info.height, camera, video=str(video_path))
+    first, end = frame_range(info, options.start_s, options.end_s)
+    video_json = {"name": name, "file": Path(info.path).name, "width": info.width, "height": info.height,
+                  "fps": info.fps, "frame_count": info.frame_count, "size_bytes": Path(info.path).stat().st_size,
+                  "first_frame": first, "end_frame": end, "stride": options.stride}
+    calibration = _camera_json(view.camera, view.calibrated)
+    settings = {"format_version": FORMAT_VERSION, "options": options.settings(), "model": model,
+                "video": video_json, "calibration": calibration, "num_betas": num_betas,
+                "world_up": None if world_up is None else [float(v) for v in world_up], **(extra_settings or {})}
+    return VideoRun(info, name, view, first, end, video_json, calibration, settings)
+
+
+def run_metadata(run: VideoRun, options: TrackOptions, model: dict, world_up, stats: dict, digest: str,
+                 num_betas: int, tracking_extra: dict | None = None) -> dict[str, str]:
+    """The finished file's schema metadata."""
+    return file_metadata(
+        fps=run.info.fps, model=model, calibration=run.calibration, axes=_axes_json(run.view.calibrated, world_up),
+        video=run.video_json, tracking={"options": options.settings(), "crop": CROP_DESCRIPTION, **(tracking_extra or {})},
+        smoothing=asdict(options.smoothing) if options.smoothing else None, stats=stats,
+        settings_sha256=digest, num_betas=num_betas)
+
+
+@dataclass
+class TrackedGroup:
+    """One tracked group of frames: its rows and what produced them."""
+
+    table: pa.Table
+    next_frame: int  # the frame after the group (where a resumed run continues)
+    frames: list[PendingFrame]
+    ids: list[list[int]]
+    keep: np.ndarray
+    poses: PoseBatch
+
+
+def tracked_groups(video_path: str | Path, run: VideoRun, detector: Detector, predictor: Predictor,
+                   session: TrackingSession, schema: pa.Schema, options: TrackOptions, num_betas: int, *,
+                   start_frame: int, end_frame: int | None = None,
+                   on_frame: Callable[[int], None] | None = None) -> Iterator[TrackedGroup]:
+    """Track frames [start_frame, end_frame) of the run's range and yield each group as it closes.
+
+    Groups close on the grid `run.first + k * frames_per_group * stride`, whatever the start, so a
+    run that starts mid-video (a resume, a chunk) pools exactly the crops an uninterrupted run
+    pools for every group it shares with it; batches never span groups, so the predictions are
+    the same bytes. `session` is advanced in place; it holds the state as of the yielded group
+    until the next one is requested. On a truncated video the last partial group is yielded,
+    then VideoTruncatedError is raised.
+    """
+    group_span = options.frames_per_group * options.stride
+    group = _Group(predictor, options.batch_size, num_betas)
+
+    def close(next_frame: int) -> TrackedGroup:
+        nonlocal group
+        poses = group.predictions()
+        ids, smoothed, keep = session.track_group(run.view, group.frames, poses)
+        table = rows_table(run.view, group.frames, ids, smoothed, keep, schema)
+        done = TrackedGroup(table, next_frame, group.frames, ids, keep, poses)
+        group = _Group(predictor, options.batch_size, num_betas)
+        return done
+
+    def prepare(frame: Frame) -> tuple[PendingFrame, list[np.ndarray], list[np.ndarray]]:
+        dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
+        cut = [prepare_detection(run.view, frame.image, d, options.crop_size) for d in dets]
+        pending = PendingFrame(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
+                               np.array([d.score for d in dets], dtype=np.float64),
+                               np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
+        return pending, [c[0] for c in cut], [c[1] for c in cut]
+
+    frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,
+                         start_frame=start_frame, end_frame=end_frame)
+    prepared = (prepare(f) for f in frames)
+    if options.prefetch > 0:
+        prepared = background(prepared, options.prefetch)
+    last_index = None
+    try:
+        for pending, crops, Ks in prepared:
+            group.add(pending, crops, Ks)
+            last_index = pending.index
+            if on_frame is not None:
+                on_frame(pending.index)
+            next_frame = pending.index + options.stride
+            if (next_frame - run.first) % group_span == 0:
+                yield close(next_frame)
+    except VideoTruncatedError:
+        if group.frames:
+            yield close(last_index + options.stride)
+        raise
+    finally:
+        close_prefetch = getattr(prepared, "close", None)
+        if close_prefetch is not None:
+            close_prefetch()
+    if group.frames:
+        yield close(last_index + options.stride)
+
+
 def track_video(video_path: str | Path, out_root: str | Path, detector: Detector, predictor: Predictor, *,
                 model: dict, camera: Camera | None = None, video_name: str | None = None,
                 options: TrackOptions | None = None, num_betas: int = 10, world_up=None, resume: bool = True,
@@ -150,21 +267,9 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
     """
     t0 = time.perf_counter()
     options = options or TrackOptions()
-    for key in ("name", "version"):
-        if key not in model:
-            raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
-    info: VideoInfo = probe_video(video_path)
-    name = video_name or info.name
-    view = TrackingView.for_video(info.width, info.height, camera, video=str(video_path))
-    first, end = frame_range(info, options.start_s, options.end_s)
-    video_json = {"name": name, "file": Path(info.path).name, "width": info.width, "height": info.height,
-                  "fps": info.fps, "frame_count": info.frame_count, "size_bytes": Path(info.path).stat().st_size,
-                  "first_frame": first, "end_frame": end, "stride": options.stride}
-    calibration = _camera_json(view.camera, view.calibrated)
-    settings = {"format_version": FORMAT_VERSION, "options": options.settings(), "model": model,
-                "video": video_json, "calibration": calibration, "num_betas": num_betas,
-                "world_up": None if world_up is None else [float(v) for v in world_up]}
-    writer = TrackWriter(out_root, name, tracks_schema(num_betas), settings, staging_root)
+    run = plan_run(video_path, model=model, camera=camera, video_name=video_name, options=options,
+                   num_betas=num_betas, world_up=world_up)
+    writer = TrackWriter(out_root, run.name, tracks_schema(num_betas), run.settings, staging_root)
     if resume and writer.finished_digest() == writer.digest:
         writer.discard_staging()  # left behind if a run died between finishing and cleaning up
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
@@ -172,64 +277,25 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
                            time.perf_counter() - t0)
     session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
-    start_frame, resumed_from = first, None
+    start_frame, resumed_from = run.first, None
     if point is not None:
         session.load_state_dict(point.state)
         start_frame = resumed_from = point.next_frame
-    group = _Group(predictor, options.batch_size, num_betas)
-
-    def commit(next_frame: int) -> None:
-        nonlocal group
-        poses = group.predictions()
-        ids, smoothed, keep = session.track_group(view, group.frames, poses)
-        table = rows_table(view, group.frames, ids, smoothed, keep, writer.schema)
-        writer.commit(table, next_frame, session.state_dict())
-        if on_extra is not None and poses.extra:
-            frame_of = np.array([f.index for f in group.frames for _ in range(len(f.scores))], dtype=np.int64)
-            flat_ids = np.array([i for frame_ids in ids for i in frame_ids], dtype=np.int64)
-            kept = np.flatnonzero(keep)
-            for j in kept[np.lexsort((flat_ids[kept], frame_of[kept]))]:  # the rows' order
-                on_extra(int(frame_of[j]), int(flat_ids[j]), {k: np.asarray(v)[j] for k, v in poses.extra.items()})
-        group = _Group(predictor, options.batch_size, num_betas)
-
-    def prepare(frame: Frame) -> tuple[PendingFrame, list[np.ndarray], list[np.ndarray]]:
-        dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
-        cut = [prepare_detection(view, frame.image, d, options.crop_size) for d in dets]
-        pending = PendingFrame(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
-                               np.array([d.score for d in dets], dtype=np.float64),
-                               np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
-        return pending, [c[0] for c in cut], [c[1] for c in cut]
-
-    frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,
-                         start_frame=start_frame)
-    prepared = (prepare(f) for f in frames)
-    if options.prefetch > 0:
-        prepared = background(prepared, options.prefetch)
-    last_index = None
-    try:
-        for pending, crops, Ks in prepared:
-            group.add(pending, crops, Ks)
-            last_index = pending.index
-            if on_frame is not None:
-                on_frame(pending.index)
-            if len(group.frames) == options.frames_per_group:
-                commit(pending.index + options.stride)
-    except VideoTruncatedError:
-        if group.frames:
-            commit(last_index + options.stride)
-        raise
-    finally:
-        close = getattr(prepared, "close", None)
-        if close is not None:
-            close()
-    if group.frames:
-        commit(last_index + options.stride)
+    for g in tracked_groups(video_path, run, detector, predictor, session, writer.schema, options, num_betas,
+                            start_frame=start_frame, on_frame=on_frame):
+        writer.commit(g.table, g.next_frame, session.state_dict())
+        if on_extra is not None and g.poses.extra:
+            _replay_extras(g, on_extra)
     stats = {**session.stats, "persons": session.tracker.next_id}
-    meta = file_metadata(
-        fps=info.fps, model=model, calibration=calibration, axes=_axes_json(view.calibrated, world_up),
-        video=video_json, tracking={"options": options.settings(), "crop": CROP_DESCRIPTION},
-        smoothing=asdict(options.smoothing) if options.smoothing else None, stats=stats,
-        settings_sha256=writer.digest, num_betas=num_betas)
+    meta = run_metadata(run, options, model, world_up, stats, writer.digest, num_betas)
     path = writer.finalize(meta, options.row_group_rows)
     return TrackResult(path, stats["rows"], stats["frames"], stats["persons"], resumed_from,
                        time.perf_counter() - t0)
+
+
+def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) -> None:
+    frame_of = np.array([f.index for f in g.frames for _ in range(len(f.scores))], dtype=np.int64)
+    flat_ids = np.array([i for frame_ids in g.ids for i in frame_ids], dtype=np.int64)
+    kept = np.flatnonzero(g.keep)
+    for j in kept[np.lexsort((flat_ids[kept], frame_of[kept]))]:  # the rows' order
+        on_extra(int(frame_of[j]), int(flat_ids[j]), {k: np.asarray(v)[j] for k, v in g.poses.extra.items()})

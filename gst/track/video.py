@@ -128,10 +128,11 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
 
 
 def iter_frames(path: str | Path, *, stride: int = 1, start_s: float | None = None, end_s: float | None = None,
-                start_frame: int | None = None, prefetch: int = 0) -> Iterator[Frame]:
+                start_frame: int | None = None, end_frame: int | None = None, prefetch: int = 0) -> Iterator[Frame]:
     """Yield frames first, first + stride, ... within [start_s, end_s).
 
-    `start_frame` (used to resume) overrides the first frame; it must lie on the stride grid.
+    `start_frame` (used to resume, or to start a chunk) overrides the first frame; it must lie on
+    the stride grid. `end_frame` (exclusive) stops earlier than `end_s` (a chunk's end).
     `prefetch` > 0 decodes that many frames ahead in a thread.
     """
     if stride < 1:
@@ -142,5 +143,7 @@ def iter_frames(path: str | Path, *, stride: int = 1, start_s: float | None = No
         if start_frame < first or (start_frame - first) % stride:
             raise ValueError(f"{path}: start_frame {start_frame} is not on the grid {first} + k * {stride}")
         first = start_frame
+    if end_frame is not None:
+        end = end_frame if end is None else min(end, end_frame)
     frames = _decode(info, first, end, stride)
     return background(frames, prefetch, name="video-decode") if prefetch > 0 else frames

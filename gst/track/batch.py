@@ -1,0 +1,186 @@
+"""Track many videos through any `map(fn, items, description)` (a process pool, Ray): one work
+item per video, or per chunk of a long video when chunking is on, then stitched in the caller.
+
+Work items are plain picklable data: the detector and predictor travel as factories (e.g.
+`functools.partial(GSTPredictor, checkpoint)`), built inside the worker. Every item is
+idempotent, so an executor may retry it after a worker died: a whole-video item resumes its own
+staging folder (gst.track.writer); a chunk item rewrites its chunk file atomically. The
+finished file for a video is written once, by the caller, through the same TrackWriter as an
+unchunked run (temporary name, fsync, rename).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+
+from calibration import Camera
+from gst.track.chunks import (
+    ChunkingConfig,
+    ChunkPlan,
+    chunk_digest,
+    plan_chunks,
+    read_chunk,
+    stitch_chunks,
+    track_chunk,
+)
+from gst.track.detection import Detector
+from gst.track.loop import TrackOptions, TrackResult, plan_run, run_metadata, track_video
+from gst.track.predictor import Predictor
+from gst.track.schema import tracks_schema
+from gst.track.writer import TrackWriter, default_staging_root, partition_dir
+
+MapFn = Callable[[Callable[[Any], Any], list, str], list]
+
+
+@dataclass(frozen=True)
+class VideoJob:
+    """One video to track, with everything a worker needs to do it."""
+
+    video: Path
+    detector: Callable[[], Detector]
+    predictor: Callable[[], Predictor]
+    model: dict
+    name: str | None = None
+    camera: Camera | None = None
+    world_up: tuple[float, float, float] | None = None
+    options: TrackOptions = field(default_factory=TrackOptions)
+    num_betas: int = 10
+    threads: int | None = None  # torch threads inside the worker (None: leave as is)
+    keep_extras: bool = False  # return each person's first extra outputs (e.g. Gaussians)
+
+
+@dataclass(frozen=True)
+class _Item:
+    job: VideoJob
+    out_root: Path
+    staging_root: Path
+    chunk: ChunkPlan | None = None
+    chunking: ChunkingConfig | None = None
+
+
+@dataclass
+class VideoOutcome:
+    job: VideoJob
+    result: TrackResult
+    extras: dict[int, dict] = field(default_factory=dict)  # person id -> first row's extra outputs
+    chunks: int = 1
+
+
+def _chunk_path(staging_root: Path, name: str, index: int) -> Path:
+    return partition_dir(staging_root / "chunks", name) / f"chunk-{index:05d}.parquet"
+
+
+def _chunk_settings(job: VideoJob, chunking: ChunkingConfig) -> dict:
+    return {"chunking": chunking.settings(job.options)}
+
+
+def run_item(item: _Item) -> Any:
+    """Worker side: track one whole video (-> VideoOutcome) or one chunk (-> its record)."""
+    job = item.job
+    if job.threads:
+        import torch  # only the worker's own pool; the caller's is untouched
+
+        torch.set_num_threads(job.threads)
+    detector, predictor = job.detector(), job.predictor()
+    if item.chunk is None:
+        extras: dict[int, dict] = {}
+
+        def keep(frame: int, person: int, extra: dict) -> None:
+            extras.setdefault(person, extra)
+
+        result = track_video(job.video, item.out_root, detector, predictor, model=job.model, camera=job.camera,
+                             video_name=job.name, options=job.options, num_betas=job.num_betas,
+                             world_up=job.world_up, staging_root=item.staging_root,
+                             on_extra=keep if job.keep_extras else None)
+        return VideoOutcome(job, result, extras)
+    run = plan_run(job.video, model=job.model, camera=job.camera, video_name=job.name, options=job.options,
+                   num_betas=job.num_betas, world_up=job.world_up,
+                   extra_settings=_chunk_settings(job, item.chunking))
+    path = _chunk_path(item.staging_root, run.name, item.chunk.index)
+    done = read_chunk(path, chunk_digest(run, item.chunk))
+    if done is not None:  # a retry or a resumed stage run: the chunk is already there
+        return done[1]
+    return track_chunk(job.video, run, item.chunk, detector, predictor, tracks_schema(job.num_betas),
+                       job.options, job.num_betas, path)
+
+
+def track_videos(jobs: list[VideoJob], out_root: str | Path, *, map_fn: MapFn | None = None,
+                 staging_root: str | Path | None = None, chunking: ChunkingConfig | None = None,
+                 description: str = "track") -> list[VideoOutcome]:
+    """Track every job's video into <out_root>/video=<name>/tracks.parquet, fanned out by `map_fn`.
+
+    With `chunking`, a video longer than one chunk is split (see gst.track.chunks) and its chunks
+    are separate items; this needs smoothing off and no extra outputs. Results are in job order.
+    """
+    out_root = Path(out_root)
+    staging_root = Path(staging_root) if staging_root is not None else default_staging_root(out_root)
+    items: list[_Item] = []
+    chunked: dict[int, tuple[list[int], Any]] = {}  # job index -> (item indices, its run)
+    whole: dict[int, int] = {}  # job index -> item index
+    for j, job in enumerate(jobs):
+        plans = []
+        if chunking is not None:
+            if job.keep_extras:
+                raise ValueError(f"{job.video}: chunked tracking cannot keep per-person extras (Gaussians); "
+                                 "turn chunking off for --with-gaussians")
+            if job.options.smoothing is not None:
+                raise ValueError(f"{job.video}: chunked tracking cannot smooth; turn smoothing or chunking off")
+            run = plan_run(job.video, model=job.model, camera=job.camera, video_name=job.name, options=job.options,
+                           num_betas=job.num_betas, world_up=job.world_up,
+                           extra_settings=_chunk_settings(job, chunking))
+            if run.end is not None:
+                plans = plan_chunks(run.first, run.end, job.options, chunking)
+        if len(plans) > 1:
+            chunked[j] = (list(range(len(items), len(items) + len(plans))), run)
+            items += [_Item(job, out_root, staging_root, p, chunking) for p in plans]
+        else:
+            whole[j] = len(items)
+            items.append(_Item(job, out_root, staging_root))
+    results = map_fn(run_item, items, description) if map_fn is not None else [run_item(x) for x in items]
+    outcomes: list[VideoOutcome] = []
+    for j, job in enumerate(jobs):
+        if j in chunked:
+            idx, run = chunked[j]
+            outcomes.append(_finish_chunked(job, run, [items[i].chunk for i in idx], out_root, staging_root, chunking))
+        else:
+            outcomes.append(results[whole[j]])
+    return outcomes
+
+
+def _finish_chunked(job: VideoJob, run, plans: list[ChunkPlan], out_root: Path, staging_root: Path,
+                    chunking: ChunkingConfig) -> VideoOutcome:
+    """Stitch the chunk files into the video's single Parquet file and clean up."""
+    t0 = time.perf_counter()
+    schema = tracks_schema(job.num_betas)
+    writer = TrackWriter(out_root, run.name, schema, run.settings, staging_root)
+    if writer.finished_digest() == writer.digest:
+        stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
+        result = TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None, 0.0)
+        return VideoOutcome(job, result, chunks=len(plans))
+    chunks = []
+    for p in plans:
+        path = _chunk_path(staging_root, run.name, p.index)
+        got = read_chunk(path, chunk_digest(run, p))
+        if got is None:
+            raise RuntimeError(f"{job.video}: chunk {p.index} (frames {p.keep_from}..{p.end}) has no finished "
+                               f"file at {path}; its work item did not complete")
+        chunks.append(got)
+    stitched = stitch_chunks(chunks, chunking.min_agreement)
+    writer.start(resume=False)
+    for p, table in zip(plans, stitched.tables, strict=True):
+        writer.commit(table, p.end, {})
+    meta = run_metadata(run, job.options, job.model, job.world_up, stitched.stats, writer.digest, job.num_betas,
+                        tracking_extra=_chunk_settings(job, chunking))
+    path = writer.finalize(meta, job.options.row_group_rows)
+    shutil.rmtree(partition_dir(staging_root / "chunks", run.name), ignore_errors=True)
+    s = stitched.stats
+    return VideoOutcome(job, TrackResult(path, s["rows"], s["frames"], s["persons"], None, time.perf_counter() - t0),
+                        chunks=len(plans))

@@ -1,0 +1,190 @@
+"""Track a long video in independent chunks and stitch the person ids at the chunk borders.
+
+A chunk keeps the rows of frames [keep_from, end). It starts tracking `overlap` processed frames
+earlier (its warm-up), from a fresh tracker. Those warm-up frames are also kept by the previous
+chunk, so every person seen there has a row in both; a Hungarian matching on how often two ids
+sit on the same detection in the overlap carries the previous chunk's ids over. Ids left
+unmatched get new ids in the order the chunk created them, as one tracker over the whole video
+would have done.
+
+Exactness: the chunk size is a multiple of the loop's group size and chunks start on the group
+grid, so every kept frame's crops are batched exactly as in an unchunked run and the rows'
+numbers are the same bytes. The ids equal the unchunked ids whenever the association is
+unambiguous (the fresh tracker of the warm-up re-acquires everyone the old one was following and
+nobody is occluded across a border). Smoothing carries filter state across frames and is not
+exact under chunking, so it is refused. Chunking is therefore opt-in and recorded in the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+from scipy.optimize import linear_sum_assignment
+
+from gst.track.detection import Detector
+from gst.track.frames import TrackingSession
+from gst.track.loop import TrackOptions, VideoRun, tracked_groups
+from gst.track.predictor import Predictor
+from gst.track.writer import PARQUET_OPTIONS, settings_digest
+
+CHUNK_META_KEY = b"gst.chunk"
+STAT_KEYS = ("frames", "rows", "detections", "dropped_nonfinite", "dropped_low_score")
+
+
+@dataclass(frozen=True)
+class ChunkingConfig:
+    """Split videos longer than `chunk_frames` processed frames; `overlap` frames are tracked twice."""
+
+    chunk_frames: int = 3000
+    overlap: int = 30
+    min_agreement: float = 0.5  # share of an id's overlap rows that must sit on one earlier id to inherit it
+
+    def __post_init__(self):
+        if self.chunk_frames < 1 or self.overlap < 1:
+            raise ValueError(f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, {self.overlap}")
+        if not 0 < self.min_agreement <= 1:
+            raise ValueError(f"min_agreement must be in (0, 1], got {self.min_agreement}")
+
+    def settings(self, options: TrackOptions) -> dict:
+        return {"chunk_frames": self.effective_size(options), "overlap": self.overlap,
+                "min_agreement": self.min_agreement}
+
+    def effective_size(self, options: TrackOptions) -> int:
+        """Chunk size in processed frames, rounded up to whole groups (keeps batches exact)."""
+        return math.ceil(self.chunk_frames / options.frames_per_group) * options.frames_per_group
+
+
+@dataclass(frozen=True)
+class ChunkPlan:
+    index: int
+    start: int  # first frame tracked (warm-up starts here)
+    keep_from: int  # first frame whose rows this chunk contributes
+    end: int  # frame after the chunk (exclusive)
+
+
+def plan_chunks(first: int, end: int, options: TrackOptions, chunking: ChunkingConfig) -> list[ChunkPlan]:
+    """Chunks covering frames [first, end) on the stride grid, each keeping whole groups."""
+    span = chunking.effective_size(options) * options.stride
+    plans = []
+    for i, keep_from in enumerate(range(first, end, span)):
+        start = max(first, keep_from - chunking.overlap * options.stride)
+        plans.append(ChunkPlan(i, start, keep_from, min(end, keep_from + span)))
+    return plans
+
+
+def chunk_digest(run: VideoRun, plan: ChunkPlan) -> str:
+    return settings_digest({"run": run.settings, "chunk": [plan.start, plan.keep_from, plan.end]})
+
+
+def read_chunk(path: Path, digest: str) -> tuple[pa.Table, dict] | None:
+    """A finished chunk file's (rows, record), or None when absent or written under other settings."""
+    if not path.is_file():
+        return None
+    try:
+        meta = pq.read_schema(path).metadata or {}
+        record = json.loads(meta[CHUNK_META_KEY])
+    except (OSError, KeyError, ValueError, pa.ArrowException):
+        return None
+    if record.get("digest") != digest:
+        return None
+    return pq.read_table(path).replace_schema_metadata(None), record
+
+
+def track_chunk(video_path: str | Path, run: VideoRun, plan: ChunkPlan, detector: Detector, predictor: Predictor,
+                schema: pa.Schema, options: TrackOptions, num_betas: int, out_path: Path) -> dict:
+    """Track one chunk from a fresh tracker and write its rows (warm-up included, chunk-local
+    ids) to `out_path` atomically. Returns the record stored with it: digest, keep_from and the
+    stats of the kept frames only."""
+    if options.smoothing is not None:
+        raise ValueError("chunked tracking cannot smooth (filter state would restart at every chunk); "
+                         "turn smoothing off or do not chunk")
+    session = TrackingSession(options.tracker, None)
+    warm = {k: 0 for k in STAT_KEYS}
+    tables = []
+    for g in tracked_groups(video_path, run, detector, predictor, session, schema, options, num_betas,
+                            start_frame=plan.start, end_frame=plan.end):
+        tables.append(g.table)
+        if g.next_frame == plan.keep_from:
+            warm = {k: session.stats[k] for k in STAT_KEYS}
+    table = pa.concat_tables(tables) if tables else schema.empty_table()
+    record = {"digest": chunk_digest(run, plan), "keep_from": plan.keep_from,
+              "stats": {k: session.stats[k] - warm[k] for k in STAT_KEYS}}
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
+    pq.write_table(table.replace_schema_metadata({CHUNK_META_KEY: json.dumps(record)}), tmp,
+                   row_group_size=max(len(table), 1), **PARQUET_OPTIONS)
+    os.replace(tmp, out_path)
+    return record
+
+
+def _detection_keys(table: pa.Table) -> list[tuple]:
+    frames = table.column("frame").to_numpy()
+    boxes = np.asarray(table.column("bbox").combine_chunks().flatten().to_numpy(zero_copy_only=False)).reshape(-1, 4)
+    return [(int(f), b.tobytes()) for f, b in zip(frames, boxes, strict=True)]
+
+
+def match_ids(previous: pa.Table, warmup: pa.Table, min_agreement: float = 0.5) -> dict[int, int]:
+    """Map the warm-up's ids to the previous chunk's ids (Hungarian on co-occurrence counts).
+
+    Rows are the same detection when frame and box agree exactly (detection does not depend on
+    the tracker). A warm-up id inherits an earlier id only if more than `min_agreement` of its
+    overlap rows sit on that id's detections."""
+    prev_id = dict(zip(_detection_keys(previous), previous.column("person_id").to_pylist(), strict=True))
+    pairs: dict[tuple[int, int], int] = {}
+    seen: dict[int, int] = {}
+    for key, local in zip(_detection_keys(warmup), warmup.column("person_id").to_pylist(), strict=True):
+        seen[local] = seen.get(local, 0) + 1
+        if key in prev_id:
+            pairs[(prev_id[key], local)] = pairs.get((prev_id[key], local), 0) + 1
+    if not pairs:
+        return {}
+    olds = sorted({a for a, _ in pairs})
+    news = sorted({b for _, b in pairs})
+    votes = np.zeros((len(olds), len(news)))
+    for (a, b), n in pairs.items():
+        votes[olds.index(a), news.index(b)] = n
+    rows, cols = linear_sum_assignment(-votes)
+    return {news[c]: olds[r] for r, c in zip(rows, cols, strict=True)
+            if votes[r, c] > 0 and votes[r, c] > min_agreement * seen[news[c]]}
+
+
+@dataclass
+class Stitched:
+    tables: list[pa.Table]  # each chunk's kept rows with video-wide ids, in (frame, person_id) order
+    stats: dict
+    inherited: list[dict[int, int]]  # per chunk: local id -> earlier id carried over the border
+
+
+def stitch_chunks(chunks: list[tuple[pa.Table, dict]], min_agreement: float = 0.5) -> Stitched:
+    """Give the chunks' rows video-wide ids: carried over the borders, else new in creation order."""
+    next_id = 0
+    previous: pa.Table | None = None
+    out, inherited = [], []
+    stats = {k: 0 for k in STAT_KEYS}
+    for table, record in chunks:
+        frame = table.column("frame").to_numpy()
+        warm_mask = frame < record["keep_from"]
+        warm, kept = table.filter(pa.array(warm_mask)), table.filter(pa.array(~warm_mask))
+        carried = match_ids(previous, warm, min_agreement) if previous is not None and len(warm) else {}
+        mapping = dict(carried)
+        for local in sorted(set(kept.column("person_id").to_pylist()) - set(mapping)):
+            mapping[local] = next_id  # chunk-local ids grow in creation order, as global ids do
+            next_id += 1
+        local_ids = kept.column("person_id").to_numpy()
+        ids = np.array([mapping[i] for i in local_ids], dtype=np.int64)
+        kept = kept.set_column(kept.schema.get_field_index("person_id"), "person_id", pa.array(ids))
+        kept = kept.take(pa.array(np.lexsort((ids, kept.column("frame").to_numpy()))))
+        out.append(kept)
+        inherited.append(carried)
+        previous = kept
+        for k in STAT_KEYS:
+            stats[k] += record["stats"][k]
+    stats["persons"] = next_id
+    return Stitched(out, stats, inherited)

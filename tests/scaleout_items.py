@@ -1,0 +1,102 @@
+"""Picklable item functions for the scale-out tests (workers import them as tests.scaleout_items)."""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class MarkedItem:
+    """An item that writes one result file; `crash` items kill their worker the first time."""
+
+    value: int
+    out_dir: Path
+    crash: str = ""  # "" | "kill" (SIGKILL own process) | "raise" (an exception)
+
+
+def square_and_record(item: MarkedItem) -> int:
+    """Square the value and append a line to its log, crashing the first time if asked to."""
+    marker = item.out_dir / f"attempted-{item.value}"
+    first_attempt = not marker.exists()
+    marker.touch()
+    with open(item.out_dir / f"log-{item.value}.txt", "a") as fh:  # one line per completed attempt
+        if item.crash and first_attempt:
+            if item.crash == "kill":
+                os.kill(os.getpid(), signal.SIGKILL)
+            raise RuntimeError(f"deliberate failure of item {item.value}")
+        fh.write(f"{item.value}\n")
+    return item.value * item.value
+
+
+def always_fails(x: int) -> int:
+    raise ValueError(f"bad item {x}")
+
+
+def worker_pid(x: int) -> tuple[int, int]:
+    return x, os.getpid()
+
+
+class KillOnceDetector:
+    """Supplied boxes that SIGKILL their own worker process at `kill_frame`, once (marker file)."""
+
+    def __init__(self, csv: Path, video: str, marker: Path, kill_frame: int):
+        from gst.track.detection import SuppliedBoxes
+
+        self.inner = SuppliedBoxes.from_file(csv, video)
+        self.marker, self.kill_frame = Path(marker), kill_frame
+
+    def detect(self, image, frame_index: int):
+        if frame_index == self.kill_frame and not self.marker.exists():
+            self.marker.touch()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return self.inner.detect(image, frame_index)
+
+
+COMBINED_BATCH = 8
+
+
+def ddp_problem():
+    """A small conv + MLP regression with a fixed combined batch (same on every rank)."""
+    import torch
+    from torch import nn
+
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Conv2d(3, 4, 3, padding=1), nn.ReLU(), nn.Flatten(), nn.Linear(4 * 6 * 6, 8),
+                          nn.Tanh(), nn.Linear(8, 2))
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(COMBINED_BATCH, 3, 6, 6, generator=g)
+    y = torch.randn(COMBINED_BATCH, 2, generator=g)
+    return model, x, y
+
+
+def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
+    """One torchrun-like rank: a Trainer step on this rank's share of the combined batch."""
+    import torch
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(world), RANK=str(rank),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    from gst.train.trainer import TrainConfig, Trainer
+
+    model, x, y = ddp_problem()
+    share = COMBINED_BATCH // world
+
+    def sample(gen, bs):
+        return x[rank * share:(rank + 1) * share], y[rank * share:(rank + 1) * share]
+
+    def step(m, batch):
+        xb, yb = batch
+        loss = ((m(xb) - yb) ** 2).mean()
+        return loss, {}
+
+    cfg = TrainConfig(steps=1, batch_size=share, lr=1e-3, warmup_steps=0, grad_clip=1e9, ckpt_every=1,
+                      val_every=100, log_every=1)
+    trainer = Trainer(model, step, sample, cfg, Path(out_dir))
+    assert trainer.world == world and trainer.rank == rank
+    trainer.fit()
+    grads = {n: p.grad.detach().clone() for n, p in model.named_parameters()}
+    torch.save(grads, Path(out_dir) / f"grads-rank{rank}.pt")
+    torch.distributed.destroy_process_group()

@@ -1,0 +1,116 @@
+"""Chunked tracking: exact rows, stitched ids, resumable chunks (no Ray needed)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from gst.track import OneEuroConfig, TrackOptions
+from gst.track.batch import track_videos
+from gst.track.chunks import ChunkingConfig, match_ids, plan_chunks, stitch_chunks
+from gst.track.schema import tracks_schema
+from tests.scaleout_scenes import job, write_clip
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return write_clip(tmp_path_factory.mktemp("clip"), "clip", 60)
+
+
+def _rows(path):
+    return pq.read_table(path).replace_schema_metadata(None)
+
+
+@pytest.mark.parametrize("chunk_frames,overlap", [(12, 4), (20, 7), (5, 1)])
+def test_chunked_rows_equal_unchunked(clip, tmp_path, chunk_frames, overlap):
+    video, csv = clip
+    plain = track_videos([job(video, csv)], tmp_path / "plain")[0]
+    chunked = track_videos([job(video, csv)], tmp_path / "chunked",
+                           chunking=ChunkingConfig(chunk_frames=chunk_frames, overlap=overlap))[0]
+    assert chunked.chunks == -(-60 // ChunkingConfig(chunk_frames, overlap).effective_size(TrackOptions(frames_per_group=5)))
+    assert chunked.chunks > 1
+    assert _rows(chunked.result.path).equals(_rows(plain.result.path))
+    assert len(set(_rows(plain.result.path).column("person_id").to_pylist())) == 3
+    a, b = pq.read_schema(plain.result.path).metadata, pq.read_schema(chunked.result.path).metadata
+    assert {k for k in a if a[k] != b[k]} == {b"gst.tracking", b"gst.settings_sha256"}
+    assert json.loads(a[b"gst.stats"]) == json.loads(b[b"gst.stats"])
+    assert json.loads(b[b"gst.tracking"])["chunking"]["overlap"] == overlap
+    # Only the finished file is left: chunk files and staging are gone.
+    assert not any((tmp_path / ".chunked.inprogress").rglob("*.parquet"))
+
+
+def test_plan_chunks_cover_the_range_on_the_group_grid():
+    opts = TrackOptions(stride=2, frames_per_group=4)
+    plans = plan_chunks(3, 70, opts, ChunkingConfig(chunk_frames=6, overlap=3))
+    assert [p.keep_from for p in plans] == [3, 19, 35, 51, 67]  # 8 processed frames x stride 2
+    assert plans[0].start == 3 and all(p.start == p.keep_from - 6 for p in plans[1:])
+    assert [p.end for p in plans] == [19, 35, 51, 67, 70]
+
+
+def _table(frames, ids, boxes):
+    schema = tracks_schema(10)
+    n = len(frames)
+    cols = {f.name: pa.nulls(n, f.type) for f in schema}
+    cols["frame"] = pa.array(frames, pa.int64())
+    cols["person_id"] = pa.array(ids, pa.int64())
+    cols["bbox"] = pa.FixedSizeListArray.from_arrays(pa.array(np.asarray(boxes, np.float32).reshape(-1)), 4)
+    return pa.Table.from_arrays([cols[f.name] for f in schema], schema=schema)
+
+
+def test_match_ids_hungarian_and_agreement():
+    box = {0: [0, 0, 10, 10], 1: [50, 0, 60, 10], 2: [100, 0, 110, 10]}
+    prev = _table([8, 8, 9, 9], [5, 7, 5, 7], [box[0], box[1], box[0], box[1]])
+    # Warm-up ids 0 and 1 swap relative to the previous chunk's 7 and 5; id 2 sits on nothing old.
+    warm = _table([8, 8, 9, 9, 9], [1, 0, 1, 0, 2], [box[0], box[1], box[0], box[1], box[2]])
+    assert match_ids(prev, warm) == {1: 5, 0: 7}
+    # An id that sits on an old id in only 1 of 3 rows does not inherit it.
+    warm2 = _table([8, 9, 10], [0, 0, 0], [box[0], box[2], box[2]])
+    assert match_ids(prev, warm2) == {}
+
+
+def test_stitch_gives_new_ids_in_creation_order_after_the_carried_ones():
+    box = {0: [0, 0, 10, 10], 1: [50, 0, 60, 10]}
+    stats = {"frames": 1, "rows": 0, "detections": 0, "dropped_nonfinite": 0, "dropped_low_score": 0}
+    c0 = _table([0, 1, 1], [0, 0, 1], [box[0], box[0], box[1]])
+    c1 = _table([1, 1, 2, 2], [1, 0, 1, 0], [box[0], box[1], box[0], box[1]])  # ids swapped locally
+    s = stitch_chunks([(c0, {"keep_from": 0, "stats": stats}), (c1, {"keep_from": 2, "stats": stats})])
+    assert s.tables[1].column("person_id").to_pylist() == [0, 1]
+    assert s.inherited[1] == {1: 0, 0: 1}
+    assert s.stats["persons"] == 2 and s.stats["frames"] == 2
+
+
+def test_chunking_refuses_smoothing_and_extras(clip, tmp_path):
+    video, csv = clip
+    smooth = TrackOptions(frames_per_group=5, smoothing=OneEuroConfig())
+    with pytest.raises(ValueError, match="smooth"):
+        track_videos([job(video, csv, options=smooth)], tmp_path, chunking=ChunkingConfig(10, 2))
+    with pytest.raises(ValueError, match="extras"):
+        track_videos([job(video, csv, keep_extras=True)], tmp_path, chunking=ChunkingConfig(10, 2))
+
+
+def test_finished_chunks_are_reused_on_rerun(clip, tmp_path, monkeypatch):
+    """A chunk whose file exists (an earlier, interrupted run) is not tracked again."""
+    import gst.track.batch as batch
+
+    video, csv = clip
+    chunking = ChunkingConfig(chunk_frames=20, overlap=5)
+    calls = []
+    real = batch.track_chunk
+
+    def counting(*args, **kw):
+        calls.append(args[2].index)
+        if args[2].index == 2 and calls.count(2) == 1:
+            raise KeyboardInterrupt  # the run dies in the last chunk
+        return real(*args, **kw)
+
+    monkeypatch.setattr(batch, "track_chunk", counting)
+    with pytest.raises(KeyboardInterrupt):
+        track_videos([job(video, csv)], tmp_path / "out", chunking=chunking)
+    out = track_videos([job(video, csv)], tmp_path / "out", chunking=chunking)[0]
+    assert calls == [0, 1, 2, 2]
+    reference = track_videos([job(video, csv)], tmp_path / "ref")[0]
+    assert _rows(out.result.path).equals(_rows(reference.result.path))
