@@ -171,7 +171,7 @@ class Runner:
         if record.get("code") != code:
             reasons.append("code changed")
         reasons += [f"param {c}" for c in _diff_params(record.get("params", {}), params)]
-        reasons += [f"scene {c}" for c in _diff_params(record.get("scene", {}), scene)]
+        reasons += [f"scene {c}" for c in _diff_params(record.get("scene_config", {}), scene)]
         old_inputs = record.get("inputs", {})
         changed = [k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)]
         reasons += [f"input changed: {k}" for k in changed[:5]]
@@ -260,7 +260,7 @@ class Runner:
         record = {
             "stage": name, "key": st.key, "scene": self.scene_name, "fingerprint": st.fingerprint,
             "code": _code_version(stage), "params": ctx.params.model_dump(mode="json"),
-            "scene": self.scene.model_dump(mode="json"),
+            "scene_config": self.scene.model_dump(mode="json"),
             "inputs": self._inputs(name, ctx), "outputs": digests,
             "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "seconds": round(time.perf_counter() - t0, 3),
         }
