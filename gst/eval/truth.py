@@ -73,7 +73,7 @@ def _fixed(table, name: str, width: int, path: Path) -> np.ndarray:
     if flat.size != table.num_rows * width:
         raise ValueError(f"{path}: column '{name}' has {flat.size // max(table.num_rows, 1)} values per row, "
                          f"expected {width}")
-    return np.asarray(flat, dtype=np.float32).reshape(table.num_rows, width)
+    return np.array(flat, dtype=np.float32).reshape(table.num_rows, width)
 
 
 def read_scene_truth(scene_dir: str | Path) -> SceneTruth:
