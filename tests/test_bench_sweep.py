@@ -12,7 +12,15 @@ from test_train_recipe import crop_set
 
 from gst.body import BodyModel
 from gst.body.random_model import random_body_data
-from gst.eval.bench import BenchRow, Variant, _pareto, run_bench, time_inference, write_bench_table, write_pareto_plot
+from gst.eval.bench import (
+    BenchRow,
+    Variant,
+    _pareto,
+    run_bench,
+    time_inference,
+    write_bench_table,
+    write_pareto_plot,
+)
 from gst.eval.split import FinetuneConfig, frame_split
 from gst.train.losses import LossWeights
 

@@ -9,7 +9,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from gst.eval.evaluator import PoseRecords, ViewPairs, ViewRecords, evaluate_pose, evaluate_views, view_pairs
+from gst.eval.evaluator import (
+    PoseRecords,
+    ViewPairs,
+    ViewRecords,
+    evaluate_pose,
+    evaluate_views,
+    view_pairs,
+)
 from gst.eval.summary import pose_summary, view_summary
 from gst.train.steps import GSTTask
 from gst.train.views import CropSet
