@@ -92,7 +92,7 @@ def run(ctx: StageContext) -> None:
     seconds = time.perf_counter() - t0
     header = (f"# Run time against error (scene `{ctx.scene_name}`)\n\n"
               f"CPU, {torch.get_num_threads()} threads; time = median of {p.repeats} runs of one batch of "
-              f"{p.timing_batch} real crops after a warm-up (pose-only: Gaussian tokens skipped; full: network plus "
+              f"{p.timing_batch} real crops after a warm-up, all variants timed round-robin (pose-only: Gaussian tokens skipped; full: network plus "
               f"posed Gaussians, no rendering). Every variant except `pretrained` was trained from scratch with the "
               f"same budget: {p.steps} steps of batch {p.batch_size}, mode `{p.mode}` (3D truth + image terms, no "
               f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras other than "

@@ -15,6 +15,7 @@ from gst.body.random_model import random_body_data
 from gst.eval.bench import (
     BenchRow,
     Variant,
+    _interleaved_medians,
     _pareto,
     run_bench,
     time_inference,
@@ -35,6 +36,12 @@ def test_time_inference_counts_calls():
     calls = []
     assert time_inference(lambda: calls.append(1), repeats=3) >= 0
     assert len(calls) == 4  # one warm-up, then the repeats
+
+
+def test_interleaved_timing_is_round_robin():
+    order = []
+    medians = _interleaved_medians([lambda: order.append("a"), lambda: order.append("b")], repeats=3)
+    assert order == ["a", "b"] * 4 and len(medians) == 2  # warm-ups, then 3 rounds over both
 
 
 def test_two_variant_sweep_writes_table_and_plot(tmp_path):

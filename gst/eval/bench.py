@@ -3,7 +3,8 @@
 A variant is a backbone preset, an input size and a Gaussian count (vertex preset). Each one is
 trained with the same short budget on the scene's training split (`gst.eval.split`), or taken
 as-is from a checkpoint, then timed (median over repeats of one batch of real crops, after a
-warm-up) and scored with the evaluator on the test split: MPJPE on test frames, PSNR of the
+warm-up; all variants are timed round-robin, so load from other processes falls on each alike)
+and scored with the evaluator on the test split: MPJPE on test frames, PSNR of the
 held-out cameras. Every variant gives two rows: pose-only (the Gaussian tokens are skipped) and
 full (network plus posed Gaussians); their errors are the same model's.
 """
@@ -75,15 +76,31 @@ def time_inference(fn: Callable[[], object], repeats: int) -> float:
     return statistics.median(times)
 
 
+def _interleaved_medians(calls: list[Callable[[], object]], repeats: int) -> list[float]:
+    """Median seconds of every call, timed round-robin (one warm-up each, then `repeats` rounds
+    over all calls), so load from other processes falls on every variant alike."""
+    for fn in calls:
+        fn()
+    times: list[list[float]] = [[] for _ in calls]
+    for _ in range(repeats):
+        for i, fn in enumerate(calls):
+            t0 = time.perf_counter()
+            fn()
+            times[i].append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times]
+
+
 def run_bench(variants: list[Variant], crops: CropSet, split: Split, body, body_spec: str, train: FinetuneConfig,
               *, lpips=None, repeats: int = 5, batch: int = 8, render_size: int = 64, max_groups: int | None = 16,
               log: Callable[[str], None] = print, load_checkpoint_fn=None) -> list[BenchRow]:
-    """Train (or load), time and score every variant; returns two rows per variant."""
-    rows: list[BenchRow] = []
+    """Train (or load) and score every variant, then time them all round-robin; returns two rows
+    per variant (pose-only, full)."""
     test = torch.nonzero((crops.frame >= split.test_frames[0]) & (crops.frame < split.test_frames[1]))[:, 0]
     timing_rows = test[:batch] if len(test) >= batch else torch.arange(min(batch, len(crops)))
+    images, K = crops.images[timing_rows], crops.K[timing_rows]
     eval_cfg = EvalConfig(heldout_cameras=split.heldout_cameras, render_size=render_size, frames=split.test_frames,
                           max_groups=max_groups, side_by_side_groups=0)
+    pending, calls = [], []
     for v in variants:
         if v.checkpoint is not None:
             if load_checkpoint_fn is None:
@@ -98,25 +115,24 @@ def run_bench(variants: list[Variant], crops: CropSet, split: Split, body, body_
             secs = finetune(net, body, ids, groups, crops, split, train, body_spec=body_spec, lpips=lpips)
             how = f"{train.steps} steps {train.mode} from scratch ({secs:.0f} s)"
         net.eval()
-        cfg = net.cfg
-        task = make_task(body, ids, cfg, crops.crop_size, train.weights)
+        task = make_task(body, ids, net.cfg, crops.crop_size, train.weights)
         res = evaluate_model(net, task, crops, eval_cfg, joint_names=body.joint_names, lpips=None)
         pose, nv = res.summary["pose"]["overall"], res.summary.get("novel_view", {}).get("heldout", {})
-        images, K = crops.images[timing_rows], crops.K[timing_rows]
-
-        def call(with_gaussians: bool, net=net, task=task, images=images, K=K):
-            with torch.no_grad():
-                predict(net, task, images, K, with_gaussians=with_gaussians)
-
-        params_m = sum(p.numel() for p in net.parameters()) / 1e6
+        log(f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, held-out PSNR {nv.get('psnr')} ({how})")
+        params_m = round(sum(p.numel() for p in net.parameters()) / 1e6, 2)
         for output, with_g in (("pose-only", False), ("full", True)):
-            sec = time_inference(lambda g=with_g: call(g), repeats)
-            rows.append(BenchRow(v.name, cfg.name, f"{cfg.image_size[0]}x{cfg.image_size[1]}", len(ids), output,
-                                 round(params_m, 2), how, 1000 * sec, len(timing_rows) / sec, pose["mpjpe_mm"],
-                                 pose["pa_mpjpe_mm"], nv.get("psnr") if with_g else None))
-            log(f"bench {v.name} {output}: {1000 * sec:.1f} ms/batch of {len(timing_rows)}, "
-                f"MPJPE {pose['mpjpe_mm']:.1f} mm, PSNR {nv.get('psnr')}")
-    return rows
+            def call(net=net, task=task, with_g=with_g):
+                with torch.no_grad():
+                    predict(net, task, images, K, with_gaussians=with_g)
+
+            calls.append(call)
+            pending.append(BenchRow(v.name, net.cfg.name, f"{net.cfg.image_size[0]}x{net.cfg.image_size[1]}", len(ids),
+                                    output, params_m, how, 0.0, 0.0, pose["mpjpe_mm"], pose["pa_mpjpe_mm"],
+                                    nv.get("psnr") if with_g else None))
+    for row, sec in zip(pending, _interleaved_medians(calls, repeats), strict=True):
+        row.ms_per_batch, row.fps = 1000 * sec, len(timing_rows) / sec
+        log(f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of {len(timing_rows)}")
+    return pending
 
 
 def _fmt(v, d=1) -> str:
