@@ -184,23 +184,25 @@ def write_pareto_plot(path: Path, rows: list[BenchRow]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    fig.subplots_adjust(wspace=0.3)
+    names = list(dict.fromkeys(r.variant for r in rows))
+    colours = {n: plt.cm.tab10(i % 10) for i, n in enumerate(names)}
     for ax, key, label, lower in ((axes[0], "mpjpe_mm", "MPJPE (mm), lower is better", True),
                                   (axes[1], "psnr", "held-out PSNR (dB), higher is better", False)):
         pts = [(r, getattr(r, key)) for r in rows if getattr(r, key) is not None]
         for r, e in pts:
-            ax.scatter(r.ms_per_batch, e, marker="o" if r.output == "full" else "s")
-            ax.annotate(f"{r.variant}\n{r.output}", (r.ms_per_batch, e), fontsize=7, xytext=(3, 3),
-                        textcoords="offset points")
+            ax.scatter(r.ms_per_batch, e, color=colours[r.variant], marker="o" if r.output == "full" else "s",
+                       label=f"{r.variant} ({r.output})")
         front = _pareto([(r.ms_per_batch, e) for r, e in pts], lower)
         fr = sorted((pts[i][0].ms_per_batch, pts[i][1]) for i in front)
         if fr:
             ax.plot(*zip(*fr, strict=True), "k--", lw=1, label="Pareto front")
-            ax.legend(fontsize=8)
         ax.set_xscale("log")
         ax.set_xlabel("run time per batch (ms, median, log scale)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     plt.close(fig)
