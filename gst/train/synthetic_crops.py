@@ -130,26 +130,23 @@ def scene_fps(scene_dir: str | Path) -> float:
     return float(json.loads((Path(scene_dir) / "scene.json").read_text())["fps"])
 
 
-def attach_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3) -> int:
-    """Give extracted crops the truth of the synthetic person they show, matched per (frame,
-    camera) by the overlap of the crop's person box (undistorted image, edges) with the truth
-    box. Adds truth keys joints_world (N,24,3) and has_truth (N,); returns how many matched."""
+def match_truth_views(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3) -> np.ndarray:
+    """Row of `truth/views.parquet` showing the person of each extracted crop, or -1: matched per
+    (frame, camera) by the overlap of the crop's person box (undistorted image, edges) with the
+    truth box (IoU above `min_iou`). Returns (N,) int64."""
     scene_dir = Path(scene_dir)
+    if len(boxes) != len(crops):
+        raise ValueError(f"boxes has {len(boxes)} rows, the crop set {len(crops)}")
     rig = read_rig(scene_dir / "calibration" / "rig.json", "rig")
     views = pq.read_table(scene_dir / "truth" / "views.parquet")
-    people = pq.read_table(scene_dir / "truth" / "people.parquet")
-    p_index = {(int(f), int(i)): k for k, (f, i) in
-               enumerate(zip(people.column("frame").to_numpy(), people.column("person_id").to_numpy(), strict=True))}
-    joints = _column(people, "joints3d", 72).reshape(-1, 24, 3)
-    v_frame, v_pid = views.column("frame").to_numpy(), views.column("person_id").to_numpy()
+    v_frame = views.column("frame").to_numpy()
     v_cam = np.asarray(views.column("camera").to_pylist())
     v_box = np.stack([views.column(k).to_numpy() for k in ("full_x0", "full_y0", "full_x1", "full_y1")], 1)
-    n = len(crops)
-    out = np.full((n, 24, 3), np.nan, np.float32)
-    for i in range(n):
+    out = np.full(len(crops), -1, np.int64)
+    for i in range(len(crops)):
         cam_name = crops.camera_names[int(crops.camera[i])]
         rows = np.flatnonzero((v_frame == int(crops.frame[i])) & (v_cam == cam_name))
-        best, best_iou = None, min_iou
+        best_iou = min_iou
         cam = rig[cam_name]
         for r in rows:
             # truth boxes are in the distorted image: map their corners to the undistorted one
@@ -161,9 +158,24 @@ def attach_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_i
             tb = np.r_[xy.min(0), xy.max(0)] + 0.5
             iou = _box_iou(boxes[i], tb)
             if iou > best_iou:
-                best, best_iou = r, iou
-        if best is not None:
-            out[i] = joints[p_index[(int(v_frame[best]), int(v_pid[best]))]]
+                out[i], best_iou = r, iou
+    return out
+
+
+def attach_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3) -> int:
+    """Give extracted crops the truth of the synthetic person they show (`match_truth_views`).
+    Adds truth keys joints_world (N,24,3) and has_truth (N,); returns how many matched."""
+    scene_dir = Path(scene_dir)
+    views = pq.read_table(scene_dir / "truth" / "views.parquet")
+    people = pq.read_table(scene_dir / "truth" / "people.parquet")
+    p_index = {(int(f), int(i)): k for k, (f, i) in
+               enumerate(zip(people.column("frame").to_numpy(), people.column("person_id").to_numpy(), strict=True))}
+    joints = _column(people, "joints3d", 72).reshape(-1, 24, 3)
+    v_frame, v_pid = views.column("frame").to_numpy(), views.column("person_id").to_numpy()
+    out = np.full((len(crops), 24, 3), np.nan, np.float32)
+    for i, r in enumerate(match_truth_views(crops, boxes, scene_dir, min_iou)):
+        if r >= 0:
+            out[i] = joints[p_index[(int(v_frame[r]), int(v_pid[r]))]]
     has = np.isfinite(out).all(axis=(1, 2))
     crops.truth["joints_world"] = torch.as_tensor(np.nan_to_num(out))
     crops.truth["has_truth"] = torch.as_tensor(has)

@@ -1,0 +1,209 @@
+"""Run time against error for GST variants, in one run (docs/evaluate.md, "bench").
+
+A variant is a backbone preset, an input size and a Gaussian count (vertex preset). Each one is
+trained with the same short budget on the scene's training split (`gst.eval.split`), or taken
+as-is from a checkpoint, then timed (median over repeats of one batch of real crops, after a
+warm-up; all variants are timed round-robin, so load from other processes falls on each alike)
+and scored with the evaluator on the test split: MPJPE on test frames, PSNR of the
+held-out cameras. Every variant gives two rows: pose-only (the Gaussian tokens are skipped) and
+full (network plus posed Gaussians); their errors are the same model's.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from gst.atomic import atomic_write
+from gst.eval.evaluate import EvalConfig, evaluate_model
+from gst.eval.split import FinetuneConfig, Split, finetune
+from gst.model.presets import get_preset
+from gst.train.recipe import build_network, make_task
+from gst.train.steps import predict
+from gst.train.views import CropSet
+
+__all__ = ["Variant", "BenchRow", "time_inference", "run_bench", "write_bench_table", "write_pareto_plot"]
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    preset: str = "tiny"
+    image_size: tuple[int, int] | None = None  # ViT input (H, W); None: the preset's
+    vertex_preset: str | None = None  # Gaussian count: "1723", "3445", "6890", "full"; None: the preset's
+    checkpoint: str | None = None  # use these weights as they are (no training); must match the variant
+
+    def config(self):
+        cfg = get_preset(self.preset)
+        if self.image_size is not None:
+            cfg = replace(cfg, vit=replace(cfg.vit, image_size=tuple(self.image_size)))
+        if self.vertex_preset is not None:
+            cfg = replace(cfg, vertex_preset=self.vertex_preset)
+        return cfg
+
+
+@dataclass
+class BenchRow:
+    variant: str
+    preset: str
+    input_size: str
+    gaussians: int
+    output: str  # "pose-only" | "full"
+    params_m: float
+    training: str  # how the weights were obtained
+    ms_per_batch: float
+    fps: float
+    mpjpe_mm: float | None
+    pa_mpjpe_mm: float | None
+    psnr: float | None  # held-out cameras, test frames (full rows only)
+
+
+def time_inference(fn: Callable[[], object], repeats: int) -> float:
+    """Median seconds of `fn()` over `repeats` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def _interleaved_medians(calls: list[Callable[[], object]], repeats: int) -> list[float]:
+    """Median seconds of every call, timed round-robin (one warm-up each, then `repeats` rounds
+    over all calls), so load from other processes falls on every variant alike."""
+    for fn in calls:
+        fn()
+    times: list[list[float]] = [[] for _ in calls]
+    for _ in range(repeats):
+        for i, fn in enumerate(calls):
+            t0 = time.perf_counter()
+            fn()
+            times[i].append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times]
+
+
+def run_bench(variants: list[Variant], crops: CropSet, split: Split, body, body_spec: str, train: FinetuneConfig,
+              *, lpips=None, repeats: int = 5, batch: int = 8, render_size: int = 64, max_groups: int | None = 16,
+              log: Callable[[str], None] = print, load_checkpoint_fn=None) -> list[BenchRow]:
+    """Train (or load) and score every variant, then time them all round-robin; returns two rows
+    per variant (pose-only, full)."""
+    test = torch.nonzero((crops.frame >= split.test_frames[0]) & (crops.frame < split.test_frames[1]))[:, 0]
+    timing_rows = test[:batch] if len(test) >= batch else torch.arange(min(batch, len(crops)))
+    images, K = crops.images[timing_rows], crops.K[timing_rows]
+    eval_cfg = EvalConfig(heldout_cameras=split.heldout_cameras, render_size=render_size, frames=split.test_frames,
+                          max_groups=max_groups, side_by_side_groups=0)
+    pending, calls = [], []
+    for v in variants:
+        if v.checkpoint is not None:
+            if load_checkpoint_fn is None:
+                raise ValueError(f"variant {v.name}: a checkpoint needs load_checkpoint_fn")
+            net, ids, groups = load_checkpoint_fn(v.checkpoint)
+            if net.cfg.name != v.preset or tuple(net.cfg.image_size) != tuple(v.config().image_size):
+                raise ValueError(f"variant {v.name}: checkpoint {v.checkpoint} is preset {net.cfg.name} at "
+                                 f"{net.cfg.image_size}, the variant asks for {v.preset} at {v.config().image_size}")
+            how = "checkpoint as is"
+        else:
+            net, ids, groups = build_network(v.config(), body)
+            secs = finetune(net, body, ids, groups, crops, split, train, body_spec=body_spec, lpips=lpips)
+            how = f"{train.steps} steps {train.mode} from scratch ({secs:.0f} s)"
+        net.eval()
+        task = make_task(body, ids, net.cfg, crops.crop_size, train.weights)
+        res = evaluate_model(net, task, crops, eval_cfg, joint_names=body.joint_names, lpips=None)
+        pose, nv = res.summary["pose"]["overall"], res.summary.get("novel_view", {}).get("heldout", {})
+        log(f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, held-out PSNR {nv.get('psnr')} ({how})")
+        params_m = round(sum(p.numel() for p in net.parameters()) / 1e6, 2)
+        for output, with_g in (("pose-only", False), ("full", True)):
+            def call(net=net, task=task, with_g=with_g):
+                with torch.no_grad():
+                    predict(net, task, images, K, with_gaussians=with_g)
+
+            calls.append(call)
+            pending.append(BenchRow(v.name, net.cfg.name, f"{net.cfg.image_size[0]}x{net.cfg.image_size[1]}", len(ids),
+                                    output, params_m, how, 0.0, 0.0, pose["mpjpe_mm"], pose["pa_mpjpe_mm"],
+                                    nv.get("psnr") if with_g else None))
+    for row, sec in zip(pending, _interleaved_medians(calls, repeats), strict=True):
+        row.ms_per_batch, row.fps = 1000 * sec, len(timing_rows) / sec
+        log(f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of {len(timing_rows)}")
+    return pending
+
+
+def _fmt(v, d=1) -> str:
+    return "n/a" if v is None else f"{v:.{d}f}"
+
+
+def write_bench_table(out: Path, rows: list[BenchRow], header: str) -> None:
+    """table.csv (one row per variant and output) and table.md (the same, plus `header`)."""
+    fields = list(asdict(rows[0])) if rows else [f for f in BenchRow.__dataclass_fields__]
+
+    def write_csv(tmp: str) -> None:
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            for r in rows:
+                w.writerow(asdict(r))
+
+    atomic_write(out / "table.csv", write_csv)
+    base = {r.variant: r.ms_per_batch for r in rows if r.output == "pose-only"}
+    ref = min(base.values()) if base else None
+    lines = [header, "", "| variant | preset | input | Gaussians | output | params (M) | ms/batch | frames/s | "
+             "time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | PSNR held-out (dB) | weights |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.output} | {r.params_m:.2f} | "
+                     f"{r.ms_per_batch:.1f} | {r.fps:.1f} | {r.ms_per_batch / ref:.2f}x | {_fmt(r.mpjpe_mm)} | "
+                     f"{_fmt(r.pa_mpjpe_mm)} | {_fmt(r.psnr, 2)} | {r.training} |")
+    text = "\n".join(lines) + "\n\n![Pareto](pareto.png)\n"
+    atomic_write(out / "table.md", lambda tmp: Path(tmp).write_text(text))
+
+
+def _pareto(points: list[tuple[float, float]], lower_better: bool) -> list[int]:
+    """Indices of points not dominated in (time lower, error lower / score higher)."""
+    keep = []
+    for i, (t, e) in enumerate(points):
+        better = lambda a, b: a < b if lower_better else a > b  # noqa: E731
+        dominated = any((t2 <= t and (better(e2, e) or e2 == e)) and (t2 < t or better(e2, e))
+                        for j, (t2, e2) in enumerate(points) if j != i)
+        if not dominated:
+            keep.append(i)
+    return keep
+
+
+def write_pareto_plot(path: Path, rows: list[BenchRow]) -> None:
+    """Two panels: ms/batch against MPJPE (all rows) and against held-out PSNR (full rows);
+    the Pareto front of each is drawn as a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    fig.subplots_adjust(wspace=0.3)
+    names = list(dict.fromkeys(r.variant for r in rows))
+    colours = {n: plt.cm.tab10(i % 10) for i, n in enumerate(names)}
+    for ax, key, label, lower in ((axes[0], "mpjpe_mm", "MPJPE (mm), lower is better", True),
+                                  (axes[1], "psnr", "held-out PSNR (dB), higher is better", False)):
+        pts = [(r, getattr(r, key)) for r in rows if getattr(r, key) is not None]
+        for r, e in pts:
+            ax.scatter(r.ms_per_batch, e, color=colours[r.variant], marker="o" if r.output == "full" else "s",
+                       label=f"{r.variant} ({r.output})")
+        front = _pareto([(r.ms_per_batch, e) for r, e in pts], lower)
+        fr = sorted((pts[i][0].ms_per_batch, pts[i][1]) for i in front)
+        if fr:
+            ax.plot(*zip(*fr, strict=True), "k--", lw=1, label="Pareto front")
+        ax.set_xscale("log")
+        ax.set_xlabel("run time per batch (ms, median, log scale)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="best")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(buf.getvalue()))

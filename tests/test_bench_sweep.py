@@ -1,0 +1,89 @@
+"""The bench sweep on a 2-variant tiny run: two rows per variant, a table and a Pareto plot."""
+
+from __future__ import annotations
+
+import csv
+
+import cv2
+import pytest
+import torch
+from test_evaluate_metrics import JOINTS
+from test_train_recipe import crop_set
+
+from gst.body import BodyModel
+from gst.body.random_model import random_body_data
+from gst.eval.bench import (
+    BenchRow,
+    Variant,
+    _interleaved_medians,
+    _pareto,
+    run_bench,
+    time_inference,
+    write_bench_table,
+    write_pareto_plot,
+)
+from gst.eval.split import FinetuneConfig, frame_split
+from gst.train.losses import LossWeights
+
+
+def test_pareto_front_by_hand():
+    pts = [(1.0, 300.0), (2.0, 200.0), (3.0, 250.0), (4.0, 100.0), (2.0, 350.0)]
+    assert _pareto(pts, lower_better=True) == [0, 1, 3]
+    assert _pareto([(1.0, 20.0), (2.0, 19.0), (3.0, 25.0)], lower_better=False) == [0, 2]
+
+
+def test_time_inference_counts_calls():
+    calls = []
+    assert time_inference(lambda: calls.append(1), repeats=3) >= 0
+    assert len(calls) == 4  # one warm-up, then the repeats
+
+
+def test_interleaved_timing_is_round_robin():
+    order = []
+    medians = _interleaved_medians([lambda: order.append("a"), lambda: order.append("b")], repeats=3)
+    assert order == ["a", "b"] * 4 and len(medians) == 2  # warm-ups, then 3 rounds over both
+
+
+def test_two_variant_sweep_writes_table_and_plot(tmp_path):
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    body.joint_names = JOINTS
+    crops = crop_set(n_frames=4, n_cams=3)
+    crops.truth["has_truth"] = torch.ones(len(crops), dtype=torch.bool)
+    split = frame_split(crops, ("c2",), test_fraction=0.25)
+    variants = [Variant("a", "tiny", (64, 48), "full"), Variant("b", "tiny", (128, 96), "full")]
+    train = FinetuneConfig(mode="pretrain", steps=2, batch_size=2, num_targets=2, render_size=16,
+                           weights=LossWeights(lpips=0.0))
+    rows = run_bench(variants, crops, split, body, "random", train, repeats=2, batch=2, render_size=32,
+                     log=lambda s: None)
+    assert [(r.variant, r.output) for r in rows] == [("a", "pose-only"), ("a", "full"), ("b", "pose-only"),
+                                                      ("b", "full")]
+    assert rows[0].input_size == "64x48" and rows[2].input_size == "128x96"
+    assert rows[0].mpjpe_mm == rows[1].mpjpe_mm  # same model, two outputs
+    assert rows[0].psnr is None and rows[1].psnr is not None
+    assert all(r.fps > 0 and r.ms_per_batch > 0 for r in rows)
+    write_bench_table(tmp_path, rows, "# test")
+    write_pareto_plot(tmp_path / "pareto.png", rows)
+    with open(tmp_path / "table.csv") as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == 4 and table[1]["output"] == "full"
+    assert float(table[3]["mpjpe_mm"]) == pytest.approx(rows[3].mpjpe_mm)
+    md = (tmp_path / "table.md").read_text().splitlines()
+    assert md[0] == "# test" and sum(line.startswith("| a |") or line.startswith("| b |") for line in md) == 4
+    img = cv2.imread(str(tmp_path / "pareto.png"))
+    assert img is not None and img.shape[1] > 100
+
+
+def test_checkpoint_variant_must_match():
+    with pytest.raises(ValueError, match="load_checkpoint_fn"):
+        run_bench([Variant("x", checkpoint="m.pt")], crop_set(), frame_split_ones(), None, "random",
+                  FinetuneConfig(mode="3d", steps=1))
+
+
+def frame_split_ones():
+    crops = crop_set()
+    crops.truth["has_truth"] = torch.ones(len(crops), dtype=torch.bool)
+    return frame_split(crops, ("c2",))
+
+
+def test_bench_row_fields_are_the_csv_header():
+    assert list(BenchRow.__dataclass_fields__)[:5] == ["variant", "preset", "input_size", "gaussians", "output"]
