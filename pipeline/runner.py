@@ -171,7 +171,8 @@ class Runner:
         if record.get("code") != code:
             reasons.append("code changed")
         reasons += [f"param {c}" for c in _diff_params(record.get("params", {}), params)]
-        reasons += [f"scene {c}" for c in _diff_params(record.get("scene_config", {}), scene)]
+        old_scene = record.get("scene_config", record.get("scene"))  # records before 2026-11-21: "scene"
+        reasons += [f"scene {c}" for c in _diff_params(old_scene if isinstance(old_scene, dict) else {}, scene)]
         old_inputs = record.get("inputs", {})
         changed = [k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)]
         reasons += [f"input changed: {k}" for k in changed[:5]]

@@ -42,7 +42,8 @@ class Params(StageParams):
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
     steps: int = 300
     batch_size: int = 8
-    lr: float = 1e-4
+    lr: float = 1e-4  # Gaussian head (tokens, attribute heads)
+    body_lr: float | None = None  # backbone + SMPL head; None: `lr` for everything
     freeze_backbone: bool = False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
     num_targets: int = 4
     render_size: int = 64
@@ -102,7 +103,8 @@ def run(ctx: StageContext) -> None:
                       val_every=max(1, p.steps // 5), ckpt_every=25, log_every=5)
     run_dir = ctx.out("models/train_run")
     summary = fit_gst(net, task, crops, cfg, run_dir, FitOptions(mode=p.supervision, num_targets=p.num_targets,
-                      render_size=p.render_size, heldout_cameras=tuple(heldout)), body_spec=p.body_model,
+                      render_size=p.render_size, heldout_cameras=tuple(heldout),
+                                                                body_lr=p.body_lr), body_spec=p.body_model,
                       vertex_ids=ids, group_index=groups, progress=ctx.progress)
     if torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
         return  # under torchrun the other ranks only contribute gradients; rank 0 writes everything

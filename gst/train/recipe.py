@@ -51,6 +51,18 @@ def build_network(cfg: GSTConfig, body: BodyModel, seed: int = 0) -> tuple[GSTNe
     return GSTNetwork(cfg, groups), ids, groups
 
 
+def gaussian_parameter_groups(model: GSTNetwork, lr: float, body_lr: float) -> list[dict]:
+    """Optimizer groups: the Gaussian head (tokens and attribute heads) at `lr`, everything else
+    (backbone, SMPL head) at `body_lr`. Adam moves every parameter by about its learning rate
+    whatever the gradient's size, so one shared rate either leaves the Gaussians frozen or lets
+    the weak, noisy photometric gradient on pose and shape drag a pretrained body off the image."""
+    gaussian = {id(p) for p in model.gaussian_head.parameters()}
+    trainable = [p for p in model.parameters() if p.requires_grad]
+    groups = [{"params": [p for p in trainable if id(p) in gaussian], "lr": lr, "name": "gaussians"},
+              {"params": [p for p in trainable if id(p) not in gaussian], "lr": body_lr, "name": "body"}]
+    return [g for g in groups if g["params"]]
+
+
 def load_network(path: str | Path) -> tuple[GSTNetwork, dict]:
     ckpt = load_checkpoint(path)
     return network_from_checkpoint(ckpt), ckpt
@@ -64,6 +76,7 @@ class FitOptions:
     heldout_cameras: tuple[str, ...] = ()  # never used for training; novel-view validation
     val_pairs: int = 48
     val_pose_crops: int = 96
+    body_lr: float | None = None  # backbone + SMPL head learning rate (None: the config's lr for all)
 
 
 def _supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
@@ -139,7 +152,9 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
 
     best_key = "psnr" if pairs is not None else ("mpjpe_mm" if len(truth_rows) else None)
     trainer = Trainer(model, step, sample, cfg, out_dir, val_fn=validate, best_key=best_key,
-                      best_mode="max" if best_key == "psnr" else "min", progress=progress, checkpoint_extra=extra)
+                      best_mode="max" if best_key == "psnr" else "min", progress=progress, checkpoint_extra=extra,
+                      param_groups=None if opts.body_lr is None else gaussian_parameter_groups(model, cfg.lr,
+                                                                                              opts.body_lr))
     model.eval()
     before = validate(model)
     model.train()

@@ -75,7 +75,7 @@ class Trainer:
                  sample_fn: Callable[[torch.Generator, int], Any], cfg: TrainConfig, out_dir: Path, *,
                  val_fn: Callable[[nn.Module], dict] | None = None, best_key: str | None = None,
                  best_mode: str = "max", progress: Callable | None = None,
-                 checkpoint_extra: Callable[[], dict] | None = None):
+                 checkpoint_extra: Callable[[], dict] | None = None, param_groups: list[dict] | None = None):
         self.cfg, self.out_dir = cfg, Path(out_dir)
         self.rank, self.world = distributed_env()
         self.model = model
@@ -83,7 +83,9 @@ class Trainer:
         if self.world > 1:
             self.train_model = nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
         self.step_fn, self.sample_fn, self.val_fn = step_fn, sample_fn, val_fn
-        params = [p for p in model.parameters() if p.requires_grad]
+        # param_groups: optimizer groups with their own "lr" (e.g. Gaussian head vs body); the
+        # schedule scales every group alike.
+        params = param_groups or [{"params": [p for p in model.parameters() if p.requires_grad]}]
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: warmup_cosine(s, cfg))
         self.generator = torch.Generator().manual_seed(cfg.seed + 1000 * self.rank)
