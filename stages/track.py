@@ -7,6 +7,10 @@ uses that camera (world coordinates are written); any other video uses the defau
 one row per frame and person), `reports/track/<name>/` (overlay video, joint-angle plot) and,
 with `--with-gaussians`, `models/splats/<name>/person_<id>.ply`.
 
+On a synthetic scene, a video of one of the scene's cameras is scored against the scene's truth
+(gst/track/evaluate.py, docs/track_evaluation.md): `reports/track/<name>/evaluation.json`, and
+for a run over the scene's own videos a combined `reports/track/evaluation.md`.
+
 Videos are fanned out through the executor (`--executor local|ray`, `--workers`), one item per
 video; with `--set track.chunk_frames=N` a video longer than N processed frames is split into
 chunks tracked in parallel and stitched (gst/track/chunks.py). Reports are written here, after.
@@ -22,12 +26,15 @@ import torch
 from pydantic import Field
 
 from calibration.formats import read_rig
+from gst.eval.truth import has_scene_truth
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
 from gst.track import OneEuroConfig, TrackOptions
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
+from gst.track.evaluate import TrackEvaluation, evaluate_tracks
+from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
 from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
@@ -104,11 +111,41 @@ def run(ctx: StageContext) -> None:
     chunking = ChunkingConfig(p.chunk_frames, p.chunk_overlap) if p.chunk_frames else None
     outcomes = track_videos(jobs, ctx.out("tracks"), map_fn=_map(ctx), staging_root=ctx.staging / "inprogress",
                             chunking=chunking, description="track videos" + (" (chunks)" if chunking else ""))
-    for outcome in outcomes:
-        _report(ctx, outcome)
+    evaluations = [e for e in (_report(ctx, outcome) for outcome in outcomes) if e is not None]
+    if _writes_combined_evaluation(ctx):
+        write_evaluation_markdown(evaluations, ctx.out("reports/track/evaluation.md"))
 
 
-def _report(ctx: StageContext, outcome: VideoOutcome) -> None:
+def _truth_camera(ctx: StageContext, video: Path) -> str | None:
+    """The synthetic scene camera a video shows (its file name is a camera's video), else None."""
+    if not ctx.scene.is_synthetic or not has_scene_truth(ctx.path("synth")):
+        return None
+    return video.stem if (ctx.path("synth/videos") / f"{video.stem}.mp4").is_file() else None
+
+
+def _writes_combined_evaluation(ctx: StageContext) -> bool:
+    """A run over a synthetic scene's own videos (not --video) writes reports/track/evaluation.md."""
+    return ctx.scene.is_synthetic and not ctx.options.get("video")
+
+
+def _mm(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.1f} mm"
+
+
+def _evaluate(ctx: StageContext, outcome: VideoOutcome, report: Path) -> TrackEvaluation | None:
+    """Score a synthetic camera's tracks against the truth: evaluation.json, and a log line."""
+    camera = _truth_camera(ctx, outcome.job.video)
+    if camera is None:
+        return None
+    ev = evaluate_tracks(outcome.result.path, ctx.path("synth"), camera)
+    write_evaluation_json(ev, report / "evaluation.json")
+    ctx.log.info("%s vs truth: MPJPE %s (PA %s, root %s), %d id switches, %d fragments, recall %.3f, "
+                 "precision %.3f", ev.video, _mm(ev.mpjpe_mm), _mm(ev.pa_mpjpe_mm), _mm(ev.root_error_mm),
+                 ev.id_switches, ev.fragments, ev.recall, ev.precision)
+    return ev
+
+
+def _report(ctx: StageContext, outcome: VideoOutcome) -> TrackEvaluation | None:
     """Summary, overlay video, joint-angle plot and splats of one tracked video (in the caller)."""
     name, result = outcome.job.name, outcome.result
     summary = {"rows": result.rows, "frames": result.frames, "persons": result.persons,
@@ -122,10 +159,12 @@ def _report(ctx: StageContext, outcome: VideoOutcome) -> None:
     if ctx.params.overlay:
         write_overlay(outcome.job.video, result.path, report / "overlay.mp4")
     plot_joint_angles(result.path, report / "joint_angles.png")
+    evaluation = _evaluate(ctx, outcome, report)
     for person, g in outcome.extras.items():
         if "gaussian_means" in g:
             write_gaussians_ply(ctx.out(f"models/splats/{name}/person_{person}.ply"), g["gaussian_means"],
                                 g["gaussian_quats"], g["gaussian_scales"], g["gaussian_opacities"], g["gaussian_colors"])
+    return evaluation
 
 
 def _outputs(ctx: StageContext) -> list[str]:
@@ -133,6 +172,8 @@ def _outputs(ctx: StageContext) -> list[str]:
     outs = [f"tracks/video={n}" for n in names] + [f"reports/track/{n}" for n in names]
     if ctx.options.get("with_gaussians"):
         outs += [f"models/splats/{n}" for n in names]
+    if _writes_combined_evaluation(ctx):
+        outs.append("reports/track/evaluation.md")
     return outs
 
 

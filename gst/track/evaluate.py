@@ -1,0 +1,242 @@
+"""Tracks of a synthetic scene's camera scored against the scene's exact truth.
+
+`evaluate_tracks(tracks_parquet, scene_dir, camera_name)` reads one tracks file
+(docs/formats/tracks_parquet.md) and the scene's `truth/people.parquet` and `truth/views.parquet`
+(docs/formats/synth_scene.md), matches tracked rows to truth people frame by frame, and reports
+pose accuracy (world joints, millimetres), detection recall and precision, and identity
+consistency (id switches, fragments, ids per person). Definitions: docs/track_evaluation.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import torch
+from scipy.optimize import linear_sum_assignment
+
+from gst.eval.truth import read_scene_truth
+from gst.metrics.pose import mpjpe, pa_mpjpe
+from gst.track.read import column_array, read_metadata
+from gst.track.tracker import box_iou
+
+__all__ = ["PersonEvaluation", "TrackEvaluation", "TruthViews", "evaluate_tracks", "match_frame",
+           "read_truth_views", "identity_counts"]
+
+PELVIS = 0
+
+
+@dataclass(frozen=True)
+class TruthViews:
+    """The truth people one camera sees: one row per (frame, person) with a non-empty mask.
+    Boxes are the person's mask box in the tracks' pixel-corner convention."""
+
+    frame: np.ndarray  # (M,) int
+    person_id: np.ndarray  # (M,) int
+    box: np.ndarray  # (M, 4) x0, y0, x1, y1
+
+
+def read_truth_views(scene_dir: str | Path, camera_name: str, min_mask_area: int = 1) -> TruthViews:
+    """Mask boxes of `camera_name` from `truth/views.parquet`, rows with at least `min_mask_area`
+    mask pixels. views.parquet puts box edges at pixel-centre coordinates (`min column - 0.5`); the
+    tracks use pixel corners (`min column`), hence the + 0.5."""
+    path = Path(scene_dir) / "truth" / "views.parquet"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no truth views (only synthetic scenes carry them)")
+    table = pq.read_table(path, columns=["frame", "person_id", "camera", "x0", "y0", "x1", "y1", "mask_area"])
+    cameras = np.asarray(table.column("camera").to_pylist(), dtype=object)
+    if camera_name not in set(cameras):
+        raise KeyError(f"{path}: no camera '{camera_name}' in the truth views (cameras: {sorted(set(cameras))})")
+    box = np.stack([table.column(k).to_numpy().astype(np.float64) for k in ("x0", "y0", "x1", "y1")], 1) + 0.5
+    keep = (cameras == camera_name) & (table.column("mask_area").to_numpy() >= max(min_mask_area, 1))
+    keep &= np.isfinite(box).all(1)
+    return TruthViews(frame=table.column("frame").to_numpy()[keep].astype(np.int64),
+                      person_id=table.column("person_id").to_numpy()[keep].astype(np.int64), box=box[keep])
+
+
+def match_frame(track_boxes: np.ndarray, truth_boxes: np.ndarray, min_iou: float) -> list[tuple[int, int]]:
+    """(track index, truth index) pairs of one frame: the Hungarian assignment maximising total box
+    IoU, keeping only pairs with IoU >= `min_iou`."""
+    if len(track_boxes) == 0 or len(truth_boxes) == 0:
+        return []
+    iou = box_iou(np.asarray(track_boxes, np.float64), np.asarray(truth_boxes, np.float64))
+    rows, cols = linear_sum_assignment(iou, maximize=True)
+    return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] >= min_iou]
+
+
+def identity_counts(matched_ids: list[int | None]) -> tuple[int, int, int]:
+    """(id switches, fragments, distinct ids) of one truth person from the track id matched in each
+    processed frame where the person is visible (None: visible but unmatched), in frame order.
+
+    A switch is a change of id between consecutive *matched* frames (a gap in between is not a
+    switch by itself). A fragment is a resumption: a matched frame after one or more unmatched
+    frames that followed a matched frame."""
+    switches = fragments = 0
+    last_id: int | None = None
+    gap = False
+    for tid in matched_ids:
+        if tid is None:
+            gap = gap or last_id is not None
+            continue
+        if last_id is not None:
+            switches += tid != last_id
+            fragments += gap
+        last_id, gap = tid, False
+    return switches, fragments, len({t for t in matched_ids if t is not None})
+
+
+@dataclass(frozen=True)
+class PersonEvaluation:
+    """Per truth person: frames visible to the camera, frames matched, the track ids matched
+    (in order of first appearance), switches, fragments and mean pose errors (mm) over matches."""
+
+    truth_person_id: int
+    frames_visible: int
+    frames_matched: int
+    track_ids: tuple[int, ...]
+    id_switches: int
+    fragments: int
+    mpjpe_mm: float | None
+    pa_mpjpe_mm: float | None
+    root_error_mm: float | None
+
+
+@dataclass(frozen=True)
+class TrackEvaluation:
+    """Scores of one tracks file against a synthetic scene's truth (definitions in
+    docs/track_evaluation.md). Pose errors are None when nothing matched or the tracks are not in
+    the world frame (an uncalibrated video)."""
+
+    video: str
+    camera: str
+    min_iou: float
+    frames: int  # processed frames that have truth
+    truth_instances: int  # (frame, person) pairs visible to the camera in those frames
+    track_rows: int  # tracked rows in those frames
+    matches: int
+    recall: float
+    precision: float
+    mota: float
+    id_switches: int
+    fragments: int
+    ids_per_person: float  # mean distinct track ids per truth person that was matched at least once
+    track_ids: int  # distinct track ids in the file
+    joints_frame: str  # "world" or "camera"
+    mpjpe_mm: float | None  # pelvis-aligned, mean over matched rows
+    pa_mpjpe_mm: float | None
+    root_error_mm: float | None  # world pelvis position error, mean over matched rows
+    root_error_median_mm: float | None
+    persons: tuple[PersonEvaluation, ...]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["persons"] = [asdict(p) for p in self.persons]
+        for p in d["persons"]:
+            p["track_ids"] = list(p["track_ids"])
+        return d
+
+
+def _processed_frames(meta: dict, truth_frames: np.ndarray) -> np.ndarray:
+    video = meta.get("video") or {}
+    first, stride = int(video.get("first_frame", 0)), int(video.get("stride", 1))
+    end = video.get("end_frame")
+    end = int(truth_frames.max()) + 1 if end is None else int(end)
+    frames = np.arange(first, end, max(stride, 1))
+    return frames[np.isin(frames, truth_frames)]
+
+
+def _mean_mm(x: np.ndarray) -> float | None:
+    return float(np.mean(x) * 1000.0) if len(x) else None
+
+
+def evaluate_tracks(tracks_parquet: str | Path, scene_dir: str | Path, camera_name: str,
+                    min_iou: float = 0.3, min_mask_area: int = 1) -> TrackEvaluation:
+    """Score one tracks file of `camera_name`'s video against the synthetic scene in `scene_dir`.
+
+    Each processed frame's tracked rows are matched to the truth people visible in that camera
+    (mask area >= `min_mask_area` px) by the Hungarian assignment on box IoU (tracked bbox vs the
+    truth mask box), pairs below `min_iou` rejected. Over matched rows:
+    - mpjpe_mm: mean per-joint error of the 24 joints after moving both skeletons' pelvis to the
+      origin; pa_mpjpe_mm: after the best similarity transform (gst.metrics.pose);
+    - root_error_mm: distance between tracked and true world pelvis (absolute placement).
+    recall = matches / truth instances, precision = matches / tracked rows,
+    mota = 1 - (misses + false rows + id switches) / truth instances.
+    Per truth person, over the processed frames where the camera sees them, in frame order:
+    an id switch is a change of matched track id between consecutive matched frames (unmatched
+    frames in between are skipped: a miss is not a switch), a fragment is a match resumed after
+    unmatched frames, and track_ids lists the distinct ids matched to them.
+    """
+    tracks_parquet = Path(tracks_parquet)
+    if not tracks_parquet.is_file():
+        raise FileNotFoundError(f"{tracks_parquet}: no tracks file")
+    if not 0.0 < min_iou <= 1.0:
+        raise ValueError(f"min_iou must be in (0, 1], got {min_iou}")
+    meta = read_metadata(tracks_parquet)
+    table = pq.read_table(tracks_parquet, partitioning=None)
+    truth = read_scene_truth(scene_dir)
+    views = read_truth_views(scene_dir, camera_name, min_mask_area)
+    joints_frame = (meta.get("axes") or {}).get("joints3d", "camera")
+
+    frames = _processed_frames(meta, truth.frame)
+    t_frame = table.column("frame").to_numpy().astype(np.int64)
+    t_pid = table.column("person_id").to_numpy().astype(np.int64)
+    t_box = column_array(table, "bbox").astype(np.float64)
+    t_joints = column_array(table, "joints3d").astype(np.float64)
+    in_eval = np.isin(t_frame, frames)
+    truth_row = {(int(f), int(p)): i for i, (f, p) in enumerate(zip(truth.frame, truth.person_id, strict=True))}
+    v_in = np.isin(views.frame, frames)
+
+    pairs: list[tuple[int, int]] = []  # (tracks row, scene truth row)
+    history: dict[int, list[int | None]] = {int(p): [] for p in np.unique(views.person_id[v_in])}
+    for f in frames:
+        rows = np.flatnonzero(t_frame == f)
+        vrows = np.flatnonzero(views.frame == f)
+        matched = dict((int(vrows[c]), int(rows[r])) for r, c in match_frame(t_box[rows], views.box[vrows], min_iou))
+        for v in vrows:
+            person = int(views.person_id[v])
+            r = matched.get(int(v))
+            history[person].append(None if r is None else int(t_pid[r]))
+            if r is not None:
+                if (int(f), person) not in truth_row:
+                    raise ValueError(f"{scene_dir}: views.parquet has frame {f} person {person} but people.parquet "
+                                     "does not")
+                pairs.append((r, truth_row[(int(f), person)]))
+
+    err = {"mpjpe": np.zeros(0), "pa": np.zeros(0), "root": np.zeros(0)}
+    if pairs and joints_frame == "world":
+        pred = torch.from_numpy(t_joints[[p for p, _ in pairs]])
+        gt = torch.from_numpy(truth.joints_world[[g for _, g in pairs]].astype(np.float64))
+        err = {"mpjpe": mpjpe(pred, gt, root=PELVIS).numpy(), "pa": pa_mpjpe(pred, gt).numpy(),
+               "root": (pred[:, PELVIS] - gt[:, PELVIS]).norm(dim=-1).numpy()}
+    pair_person = np.array([truth.person_id[g] for _, g in pairs], np.int64)
+
+    persons = []
+    for person, ids in sorted(history.items()):
+        switches, fragments, _ = identity_counts(ids)
+        mine = pair_person == person
+        seen = tuple(dict.fromkeys(t for t in ids if t is not None))
+        persons.append(PersonEvaluation(
+            truth_person_id=person, frames_visible=len(ids), frames_matched=sum(t is not None for t in ids),
+            track_ids=seen, id_switches=switches, fragments=fragments,
+            mpjpe_mm=_mean_mm(err["mpjpe"][mine]) if len(err["mpjpe"]) else None,
+            pa_mpjpe_mm=_mean_mm(err["pa"][mine]) if len(err["pa"]) else None,
+            root_error_mm=_mean_mm(err["root"][mine]) if len(err["root"]) else None))
+
+    n_truth, n_rows, n_match = int(v_in.sum()), int(in_eval.sum()), len(pairs)
+    id_switches = sum(p.id_switches for p in persons)
+    matched_persons = [p for p in persons if p.track_ids]
+    return TrackEvaluation(
+        video=str((meta.get("video") or {}).get("name", tracks_parquet.parent.name)), camera=camera_name,
+        min_iou=float(min_iou), frames=len(frames), truth_instances=n_truth, track_rows=n_rows, matches=n_match,
+        recall=n_match / n_truth if n_truth else float("nan"),
+        precision=n_match / n_rows if n_rows else float("nan"),
+        mota=1.0 - ((n_truth - n_match) + (n_rows - n_match) + id_switches) / n_truth if n_truth else float("nan"),
+        id_switches=id_switches, fragments=sum(p.fragments for p in persons),
+        ids_per_person=(float(np.mean([len(p.track_ids) for p in matched_persons])) if matched_persons
+                        else float("nan")),
+        track_ids=len(np.unique(t_pid)), joints_frame=joints_frame,
+        mpjpe_mm=_mean_mm(err["mpjpe"]), pa_mpjpe_mm=_mean_mm(err["pa"]), root_error_mm=_mean_mm(err["root"]),
+        root_error_median_mm=float(np.median(err["root"]) * 1000.0) if len(err["root"]) else None,
+        persons=tuple(persons))
