@@ -19,7 +19,14 @@ import torch
 
 from gst.metrics.image import psnr
 from gst.train.recipe import gaussian_parameter_groups
-from gst.train.steps import GSTTask, SupervisedBatch, multiview_step, predict, render_predictions, supervised_step
+from gst.train.steps import (
+    GSTTask,
+    SupervisedBatch,
+    multiview_step,
+    predict,
+    render_predictions,
+    supervised_step,
+)
 from gst.train.views import CropSet, sample_multiview
 
 
@@ -84,7 +91,7 @@ def overfit_sample(model, task: GSTTask, crops: CropSet, group: torch.Tensor, *,
         warm_mpjpe = float(parts["mpjpe_mm"])
     gen = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam(gaussian_parameter_groups(model, lr, body_lr))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / steps)))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / max(1, steps))))
     history = []
     targets = num_targets or len(group)
     it = range(steps) if progress is None else progress(range(steps), description="overfit", total=steps)
