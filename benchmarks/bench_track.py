@@ -1,9 +1,10 @@
-"""End-to-end tracking throughput on a synthetic 1080p video, without the network's own cost.
+"""End-to-end tracking throughput on a synthetic 1080p video, with and without the GST network.
 
-The whole loop (decode + detect + crop + predict + track + write Parquet) runs with supplied
-boxes and the pixel-free BoxDepthPredictor, so what is measured is everything except the model.
-Add the model's per-frame time (batch time x people per frame / batch size) to the printed
-ms/frame to get the full cost. Variants run in one process on the same video; each is timed
+The whole loop (decode + detect + crop + predict + track + write Parquet) runs first with
+supplied boxes and the pixel-free BoxDepthPredictor (everything except the model), then end to
+end with the tiny GST preset (pose-only, the default; random weights unless `--checkpoint`,
+since speed does not depend on them), with supplied boxes and with the static-camera background
+detector. Variants run in one process on the same video; each is timed
 `--repeats` times and the median is reported with its ratio to the video's own frame rate.
 Error columns: id switches against the true walkers, and the median pelvis reprojection offset
 from the box centre. The baseline puts the pelvis on the ray through the centre of the box (of
@@ -24,11 +25,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration import Camera  # noqa: E402
+from gst.body import load_body_model  # noqa: E402
 from gst.data.crop import crop_window, cut_crop  # noqa: E402
+from gst.model.checkpoint import save_checkpoint  # noqa: E402
+from gst.model.inference import GSTPredictor  # noqa: E402
+from gst.model.presets import get_preset  # noqa: E402
 from gst.track import (  # noqa: E402
     BoxDepthPredictor,
     OneEuroConfig,
@@ -39,7 +45,9 @@ from gst.track import (  # noqa: E402
     read_tracks,
     track_video,
 )
+from gst.track.static_detector import StaticCameraDetector  # noqa: E402
 from gst.track.tracker import box_iou  # noqa: E402
+from gst.train.recipe import build_network  # noqa: E402
 from tests.track_synthetic import Walker, render, walker_boxes, write_boxes_csv, write_video  # noqa: E402
 
 W, H, FPS = 1920, 1080, 30.0
@@ -72,6 +80,14 @@ def errors(path: Path, boxes: np.ndarray) -> tuple[int, float]:
     return switches, float(np.median(offset))
 
 
+def tiny_checkpoint(path: Path) -> Path:
+    """A random-weight checkpoint of the tiny preset on the open body model."""
+    body = load_body_model("anny")
+    net, ids, groups = build_network(get_preset("tiny"), body)
+    save_checkpoint(path, net, "anny", ids, groups)
+    return path
+
+
 def timed(fn, repeats: int) -> tuple[float, object]:
     times, out = [], None
     for _ in range(repeats):
@@ -87,7 +103,11 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--people", type=int, default=3)
     ap.add_argument("--codec", default="mp4v", help="fourcc of the test video (mp4v: MPEG-4 part 2 in .mp4)")
+    ap.add_argument("--checkpoint", type=Path, help="a GST checkpoint (default: random-weight tiny preset)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     tmp = Path(tempfile.mkdtemp(prefix="bench_track_"))
     try:
         ws = walkers(args.people)
@@ -135,6 +155,19 @@ def main() -> None:
                 return track_video(video, out, det, BoxDepthPredictor(), model={"name": "box-depth", "version": "0"},
                                    camera=camera, options=options, resume=False)
             s, res = timed(run, args.repeats)
+            row(name, s, errors(res.path, boxes))
+
+        checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
+        gst = GSTPredictor(checkpoint)
+        for name, detector in [(f"end to end, {gst.name} pose-only, supplied boxes", lambda: det),
+                               (f"end to end, {gst.name} pose-only, background detector",
+                                lambda: StaticCameraDetector(video))]:
+            def run_gst(detector=detector):
+                out = tmp / "out"
+                shutil.rmtree(out, ignore_errors=True)
+                return track_video(video, out, detector(), gst, model={"name": gst.name, "version": "bench"},
+                                   options=TrackOptions(), resume=False)
+            s, res = timed(run_gst, args.repeats)
             row(name, s, errors(res.path, boxes))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
