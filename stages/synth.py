@@ -23,7 +23,11 @@ def run(ctx: StageContext) -> None:
             last[step] = done
             ctx.log.info("%s: %d/%d", step, done, total)
 
-    summary = render_scene(spec, ctx.out("synth"), progress=progress)
+    # Camera shares fan out through the executor (--executor local|ray), one share per worker;
+    # the files are identical to a serial render either way.
+    ex = ctx.executor
+    summary = render_scene(spec, ctx.out("synth"), progress=progress, map_fn=ex.map if ex is not None else None,
+                           shares=getattr(ex, "workers", None))
     ctx.log.info("rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their mask",
                  summary.n_frames, len(summary.cameras), summary.n_people, summary.seconds,
                  100 * summary.joints_in_mask)

@@ -242,7 +242,7 @@ def _camera_groups(rig, budget_bytes: float = 1.5e9) -> list[list[int]]:
 
 def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: ProgressFn | None = None,
                  body_model=None, rig_writer: Callable | None = None, map_fn: MapFn | None = None,
-                 cameras_per_share: int | None = None) -> SceneSummary:
+                 shares: int | None = None) -> SceneSummary:
     """Render a complete synthetic capture for `spec` into `out_dir` (replaced atomically).
 
     `body_model` defaults to `gst.body.load_body_model(spec.body_model)`; `rig_writer(rig, path,
@@ -250,8 +250,8 @@ def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: Progress
 
     Cameras are rendered in shares (see synth.shares). With `map_fn(fn, items, description=...)`
     (an executor's `map`: ordered results, picklable items) the shares run as independent items,
-    e.g. in worker processes; the files are byte-identical to a serial run. `cameras_per_share`
-    defaults to 1 with `map_fn` (most items to balance) and to whole memory groups without.
+    e.g. in worker processes; the files are byte-identical to a serial run. `shares` is how many
+    items to aim for (give the executor's worker count); default: one per memory group.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -265,7 +265,7 @@ def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: Progress
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
     try:
-        summary = _render_into(spec, staging, report, model, writer, map_fn, cameras_per_share)
+        summary = _render_into(spec, staging, report, model, writer, map_fn, shares)
         replace_dir(staging, out_dir)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -325,15 +325,14 @@ def _render_shares(spec: SceneSpec, setup: SceneSetup, cast: Cast, shares: list[
 
 
 def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writer, map_fn: MapFn | None,
-                 cameras_per_share: int | None) -> dict:
+                 n_shares: int | None) -> dict:
     setup = SceneSetup.build(spec)
     rig, fps, stage, board_spec, texture, poses = (setup.rig, setup.fps, setup.stage, setup.board, setup.texture,
                                                    setup.board_poses)
     radii = setup.radii
     people, tracks, cast = _pose_cast(spec, model, rig, fps, report)
-    per_share = cameras_per_share if cameras_per_share is not None else (1 if map_fn is not None else None)
     # Camera caches of one memory group fit in memory together; shares split groups further.
-    shares = camera_shares(_camera_groups(rig), per_share)
+    shares = camera_shares(_camera_groups(rig), n_shares)
     progress = _Progress(report, len(rig) * (spec.n_frames + spec.board.n_frames))
     preview, board_preview = {}, {}
     views, check = ViewRows(), JointCheck()

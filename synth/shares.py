@@ -181,15 +181,20 @@ class CameraShareJob:
     cast: CastFiles
 
 
-def camera_shares(groups: Sequence[Sequence[int]], cameras_per_share: int | None) -> list[tuple[int, ...]]:
-    """Split memory groups (see scene._camera_groups) into shares of at most `cameras_per_share`
-    consecutive cameras (None: one share per group)."""
-    if cameras_per_share is not None and cameras_per_share < 1:
-        raise ValueError(f"cameras_per_share must be >= 1, got {cameras_per_share}")
+def camera_shares(groups: Sequence[Sequence[int]], n_shares: int | None) -> list[tuple[int, ...]]:
+    """Split memory groups (see scene._camera_groups) into about `n_shares` shares of equal size,
+    consecutive cameras each, never across groups (None: one share per group).
+
+    Every share rebuilds the per-frame Embree scene and floor shadows (about a tenth of the demo's
+    render time), so more shares than workers only adds work."""
+    if n_shares is not None and n_shares < 1:
+        raise ValueError(f"n_shares must be >= 1, got {n_shares}")
+    total = sum(len(g) for g in groups)
+    size = None if n_shares is None else max(1, -(-total // n_shares))  # ceil
     out = []
     for g in groups:
-        size = len(g) if cameras_per_share is None else cameras_per_share
-        out.extend(tuple(g[i:i + size]) for i in range(0, len(g), size))
+        step = len(g) if size is None else size
+        out.extend(tuple(g[i:i + step]) for i in range(0, len(g), step))
     return out
 
 

@@ -54,19 +54,22 @@ def serial_scene(tmp_path_factory):
 
 def test_camera_shares_split_groups_in_order():
     assert camera_shares([[0, 1, 2], [3, 4]], None) == [(0, 1, 2), (3, 4)]
-    assert camera_shares([[0, 1, 2], [3, 4]], 2) == [(0, 1), (2,), (3, 4)]
-    assert camera_shares([[0, 1, 2]], 1) == [(0,), (1,), (2,)]
-    with pytest.raises(ValueError, match="cameras_per_share"):
+    assert camera_shares([[0, 1, 2, 3, 4, 5]], 2) == [(0, 1, 2), (3, 4, 5)]
+    assert camera_shares([[0, 1, 2, 3, 4, 5, 6]], 2) == [(0, 1, 2, 3), (4, 5, 6)]
+    assert camera_shares([[0, 1, 2], [3, 4]], 2) == [(0, 1, 2), (3, 4)]
+    assert camera_shares([[0, 1, 2], [3, 4]], 5) == [(0,), (1,), (2,), (3,), (4,)]
+    assert camera_shares([[0, 1]], 8) == [(0,), (1,)]
+    with pytest.raises(ValueError, match="n_shares"):
         camera_shares([[0]], 0)
 
 
-@pytest.mark.parametrize("per_share", [1, 2])
-def test_pickled_shares_give_identical_files(serial_scene, tmp_path, per_share):
+@pytest.mark.parametrize("n_shares", [3, 2, None])
+def test_pickled_shares_give_identical_files(serial_scene, tmp_path, n_shares):
     out, summary = serial_scene
     mapper = _RecordingMap()
     fanned = render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=mapper,
-                          cameras_per_share=per_share)
-    assert mapper.calls == [("synth.shares", "render_share_job", 3 if per_share == 1 else 2, "synth demo: render")]
+                          shares=n_shares)
+    assert mapper.calls == [("synth.shares", "render_share_job", n_shares or 1, "synth demo: render")]
     assert _digest(tmp_path / "scene") == _digest(out)
     assert not (tmp_path / "scene" / ".cast").exists()
     assert (fanned.joints_in_mask, fanned.joints_on_own_mask) == (summary.joints_in_mask, summary.joints_on_own_mask)
@@ -74,7 +77,8 @@ def test_pickled_shares_give_identical_files(serial_scene, tmp_path, per_share):
 
 def test_two_local_worker_processes_give_identical_files(serial_scene, tmp_path):
     out, _ = serial_scene
-    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=LocalExecutor(2).map)
+    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=LocalExecutor(2).map,
+                 shares=2)
     assert _digest(tmp_path / "scene") == _digest(out)
 
 
@@ -90,14 +94,14 @@ def test_failed_share_leaves_previous_scene_untouched(serial_scene, tmp_path):
     render_scene(_spec(), target, body_model=BODY, rig_writer=WRITE_RIG)
     before = _digest(target)
     with pytest.raises(RuntimeError, match="worker lost"):
-        render_scene(_spec(), target, body_model=BODY, rig_writer=WRITE_RIG, map_fn=_failing_map)
+        render_scene(_spec(), target, body_model=BODY, rig_writer=WRITE_RIG, map_fn=_failing_map, shares=3)
     assert _digest(target) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no staging folder left behind
 
 
 def test_map_fn_that_drops_a_share_is_an_error(tmp_path):
     with pytest.raises(RuntimeError, match="3 camera shares"):
-        render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG,
+        render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, shares=3,
                      map_fn=lambda fn, items, description="": [fn(x) for x in list(items)[:2]])
     assert not (tmp_path / "scene").exists()
 
@@ -108,5 +112,5 @@ def test_two_worker_ray_cluster_gives_identical_files(serial_scene, tmp_path):
 
     out, _ = serial_scene
     with RayExecutor(2) as ex:
-        render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=ex.map)
+        render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=ex.map, shares=2)
     assert _digest(tmp_path / "scene") == _digest(out)
