@@ -5,7 +5,9 @@ one share per worker, as the stage does) and `local-2 shares=N` (one camera per 
 scene and floor shadows are rebuilt for every camera and frame). The body model is loaded once
 outside the timing (workers never load it; the posed cast reaches them as .npy files). The
 spawn pool's start-up is inside the time, as in the stage. Each fanned-out folder must be
-byte-identical to the serial one ("files identical"). Times are medians over `--repeats`.
+byte-identical to the serial one ("files identical"). Times are medians over `--repeats`; "cpu s"
+is the CPU time of this process and the pool's workers together (the fan-out's overhead, which on
+a machine loaded by other users shows better than the wall time).
 
     OMP_NUM_THREADS=1 python benchmarks/bench_scaleout_synth.py [--preset demo] [--repeats 1] [--body anny|capsule]
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import os
+import resource
 import statistics
 import sys
 import tempfile
@@ -30,6 +33,12 @@ from synth.scene import preset, render_scene  # noqa: E402
 def digest(folder: Path) -> dict[str, str]:
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def cpu_seconds() -> float:
+    """User + system CPU time of this process and its finished child processes (the pool's)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def main() -> None:
@@ -59,17 +68,18 @@ def main() -> None:
         for r in range(args.repeats):
             for name, map_fn, shares in variants:
                 out = Path(tmp) / f"{name.replace(' ', '_')}-{r}"
-                t0 = time.perf_counter()
+                cpu0, t0 = cpu_seconds(), time.perf_counter()
                 render_scene(spec, out, body_model=body, map_fn=map_fn, shares=shares)
                 times.setdefault(name, []).append(time.perf_counter() - t0)
+                times.setdefault(name + ":cpu", []).append(cpu_seconds() - cpu0)
                 files = digest(out)
                 reference = reference or files
                 times.setdefault(name + ":same", []).append(files == reference)
         base = statistics.median(times["serial"])
-        print(f"{'variant':<18}{'median s':>10}{'speed-up':>10}  files identical to serial")
+        print(f"{'variant':<18}{'median s':>10}{'speed-up':>10}{'cpu s':>8}  files identical to serial")
         for name, _, _ in variants:
-            t = statistics.median(times[name])
-            print(f"{name:<18}{t:>10.1f}{base / t:>10.2f}  {all(times[name + ':same'])}")
+            t, cpu = statistics.median(times[name]), statistics.median(times[name + ":cpu"])
+            print(f"{name:<18}{t:>10.1f}{base / t:>10.2f}{cpu:>8.1f}  {all(times[name + ':same'])}")
 
 
 if __name__ == "__main__":
