@@ -106,11 +106,31 @@ def test_map_fn_that_drops_a_share_is_an_error(tmp_path):
     assert not (tmp_path / "scene").exists()
 
 
-@pytest.mark.skipif(not HAVE_RAY, reason="ray is not installed: pip install -e '.[dist]' to run the Ray synth test")
-def test_two_worker_ray_cluster_gives_identical_files(serial_scene, tmp_path):
+@pytest.fixture(scope="module")
+def ray_executor():
+    if not HAVE_RAY:
+        pytest.skip("ray is not installed: pip install -e '.[dist]' to run the Ray synth tests")
     from pipeline.ray_executor import RayExecutor
 
-    out, _ = serial_scene
     with RayExecutor(2) as ex:
-        render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=ex.map, shares=2)
+        yield ex
+
+
+def test_two_worker_ray_cluster_gives_identical_files(serial_scene, ray_executor, tmp_path):
+    out, _ = serial_scene
+    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=ray_executor.map, shares=2)
     assert _digest(tmp_path / "scene") == _digest(out)
+
+
+def test_worker_killed_mid_share_is_retried_with_identical_files(serial_scene, ray_executor, tmp_path):
+    from tests.scaleout_synth_items import DieOnceMidShare
+
+    out, _ = serial_scene
+    (tmp_path / "markers").mkdir()
+
+    def dying_map(fn, items, description=""):
+        return ray_executor.map(DieOnceMidShare(fn, tmp_path / "markers", camera=0), items, description)
+
+    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=dying_map, shares=2)
+    assert (tmp_path / "markers" / "died-0").exists()  # the worker did die once
+    assert _digest(tmp_path / "scene") == _digest(out)  # and the stale half-written video is gone
