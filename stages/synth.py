@@ -23,7 +23,12 @@ def run(ctx: StageContext) -> None:
             last[step] = done
             ctx.log.info("%s: %d/%d", step, done, total)
 
-    summary = render_scene(spec, ctx.out("synth"), progress=progress)
+    # Camera shares fan out through the executor (--executor local|ray), one share per worker;
+    # the files are identical to a serial render either way. One worker renders inline (per-frame progress).
+    workers = getattr(ctx.executor, "workers", 1)
+    fan_out = ctx.executor is not None and workers > 1
+    summary = render_scene(spec, ctx.out("synth"), progress=progress, map_fn=ctx.executor.map if fan_out else None,
+                           shares=workers if fan_out else None)
     ctx.log.info("rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their mask",
                  summary.n_frames, len(summary.cameras), summary.n_people, summary.seconds,
                  100 * summary.joints_in_mask)

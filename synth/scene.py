@@ -26,27 +26,29 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from synth.animate import check_body_model, pose_person
 from synth.appearance import BodyAtlas
-from synth.board import ChArUcoSpec, board_clip, board_json
-from synth.imaging import CameraResponse, develop
-from synth.io import MaskStore, VideoOut, replace_dir, write_json, write_parquet, write_png
+from synth.board import ChArUcoSpec, board_json
+from synth.io import replace_dir, write_json, write_parquet, write_png
 from synth.people import sample_people
 from synth.preview import contact_sheet, truth_overlay
-from synth.projection import field_radius, project_in_view
-from synth.render import (
-    PosedPerson,
-    RayCaster,
-    RenderOptions,
-    ViewRenderer,
-    floor_shadow_maps,
-    vertex_normals,
+from synth.render import vertex_normals
+from synth.shares import (
+    CameraShareJob,
+    Cast,
+    CastFiles,
+    CastMember,
+    JointCheck,
+    SceneSetup,
+    ShareResult,
+    camera_shares,
+    render_share,
+    render_share_job,
 )
-from synth.rigs import make_rig
 from synth.skeleton import JOINT_NAMES
-from synth.stage import stage_for_rig
 from synth.truth import OCCLUSION_TOLERANCE, ViewRows, board_tables, people_table
 from synth.world import WORLD_CONVENTION
 
 ProgressFn = Callable[[str, int, int], None]
+MapFn = Callable[..., Sequence]  # map_fn(fn, items, description=...) -> results in item order
 SCENE_FORMAT_VERSION = 1
 CALIBRATION_FILES = (("rig", "calibration/rig.json"), ("panoptic", "calibration/calibration_synth.json"),
                      ("h36m", "calibration/cameras.h5"))
@@ -222,16 +224,6 @@ def _write_calibration(rig, out: Path, rig_writer: Callable) -> dict:
     return notes
 
 
-def _responses(spec: SceneSpec, n: int) -> list[CameraResponse]:
-    out = []
-    for i in range(n):
-        rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 4, i]))
-        j = spec.imaging.exposure_jitter
-        out.append(CameraResponse(exposure=float(np.exp(rng.uniform(-j, j))), vignetting=spec.imaging.vignetting,
-                                  blur_sigma=spec.imaging.blur_sigma, noise_sigma=spec.imaging.noise_sigma))
-    return out
-
-
 def _camera_groups(rig, budget_bytes: float = 1.5e9) -> list[list[int]]:
     """Camera index groups whose render caches fit the memory budget together."""
     per_px = 64  # bytes of cached rays, room radiance, points and depth per pixel
@@ -249,11 +241,17 @@ def _camera_groups(rig, budget_bytes: float = 1.5e9) -> list[list[int]]:
 
 
 def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: ProgressFn | None = None,
-                 body_model=None, rig_writer: Callable | None = None) -> SceneSummary:
+                 body_model=None, rig_writer: Callable | None = None, map_fn: MapFn | None = None,
+                 shares: int | None = None) -> SceneSummary:
     """Render a complete synthetic capture for `spec` into `out_dir` (replaced atomically).
 
     `body_model` defaults to `gst.body.load_body_model(spec.body_model)`; `rig_writer(rig, path,
     fmt)` defaults to `calibration.formats.write_rig`.
+
+    Cameras are rendered in shares (see synth.shares). With `map_fn(fn, items, description=...)`
+    (an executor's `map`: ordered results, picklable items) the shares run as independent items,
+    e.g. in worker processes; the files are byte-identical to a serial run. `shares` is how many
+    items to aim for (give the executor's worker count); default: one per memory group.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -261,32 +259,18 @@ def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: Progress
     model = body_model if body_model is not None else _load_body_model(spec.body_model)
     check_body_model(model)
     writer = rig_writer or _default_rig_writer()
-    staging = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
+    # Absolute: workers (Ray's in particular) do not run in the caller's working directory.
+    staging = Path(os.path.abspath(out_dir)).with_name(f".{out_dir.name}.partial-{os.getpid()}")
     if staging.exists():
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
     try:
-        summary = _render_into(spec, staging, report, model, writer)
+        summary = _render_into(spec, staging, report, model, writer, map_fn, shares)
         replace_dir(staging, out_dir)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return SceneSummary(out_dir=out_dir, seconds=time.perf_counter() - t0, **summary)
-
-
-@dataclass
-class _Cast:
-    """The posed people of a scene, everything the renderer needs per frame."""
-
-    people: list
-    tracks: list
-    atlases: list
-    normals: list  # (T, V, 3) per person
-    faces: np.ndarray
-
-    def posed(self, frame: int) -> list[PosedPerson]:
-        return [PosedPerson(tr.person_id, tr.vertices[frame], self.normals[k][frame], self.faces, self.atlases[k],
-                            self.people[k].outfit) for k, tr in enumerate(self.tracks)]
 
 
 @dataclass
@@ -300,140 +284,75 @@ class _Progress:
         self.report(name, self.done, self.total)
 
 
-@dataclass
-class _JointCheck:
-    """Counts in-image GT joints landing on a person's mask and on their own person's mask."""
-
-    in_image: int = 0
-    on_person: int = 0
-    on_own: int = 0
-
-    def add(self, camera, radius: float, tracks, frame: int, mask: np.ndarray) -> None:
-        for tr in tracks:
-            uv, inside = project_in_view(camera, tr.joints[frame], radius)
-            px = np.rint(uv[inside]).astype(int)
-            hit = mask[px[:, 1], px[:, 0]]
-            self.in_image += int(inside.sum())
-            self.on_own += int((hit == tr.person_id).sum())
-            self.on_person += int((hit > 0).sum())
-
-    def fractions(self) -> tuple[float, float]:
-        if not self.in_image:
-            return float("nan"), float("nan")
-        return self.on_person / self.in_image, self.on_own / self.in_image
-
-
-def _pose_cast(spec: SceneSpec, model, rig, fps: float, report: ProgressFn) -> _Cast:
+def _pose_cast(spec: SceneSpec, model, rig, fps: float, report: ProgressFn) -> tuple[list, list, Cast]:
+    """(people specs, person tracks, the cast the renderer sees)."""
     faces = np.asarray(model.faces, dtype=np.int32)
     people = sample_people(spec.n_people, np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
                            int(model.num_betas), rig.meta["volume_center"], rig.meta["volume_radius"],
                            spec.n_frames, fps, programmes=spec.motions)
-    cast = _Cast(people, [], [], [], faces)
+    tracks, members = [], []
     for k, person in enumerate(people):
         report("pose", k, len(people))
         track = pose_person(model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id)
-        cast.tracks.append(track)
-        cast.atlases.append(BodyAtlas.build(track.rest_vertices, track.rest_joints,
-                                            getattr(model, "part_labels", None), getattr(model, "part_names", None)))
-        cast.normals.append(vertex_normals(track.vertices, faces))
+        tracks.append(track)
+        atlas = BodyAtlas.build(track.rest_vertices, track.rest_joints, getattr(model, "part_labels", None),
+                                getattr(model, "part_names", None))
+        members.append(CastMember(track.person_id, track.vertices, vertex_normals(track.vertices, faces), track.joints,
+                                  atlas, person.outfit))
     report("pose", len(people), len(people))
-    return cast
+    return people, tracks, Cast(members, faces)
 
 
-def _render_people_clip(spec: SceneSpec, out: Path, cast: _Cast, group: list[int], renderers, responses,
-                        stage, fps: float, views: ViewRows, check: _JointCheck, radii: dict, preview: dict,
-                        progress: _Progress) -> None:
-    """videos/<cam>.mp4 and truth/masks/<cam>.h5 for a group of cameras, plus view truth."""
-    preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
-    cams = [r.camera for r in renderers]
-    videos = [VideoOut(out / "videos" / f"{c.name}.mp4", fps, c.width, c.height) for c in cams]
-    masks = [MaskStore(out / "truth" / "masks" / f"{c.name}.h5", spec.n_frames, c.width, c.height, c.name,
-                       spec.imaging.write_depth) for c in cams]
+def _render_shares(spec: SceneSpec, setup: SceneSetup, cast: Cast, shares: list[tuple[int, ...]], out: Path,
+                   progress: _Progress, map_fn: MapFn | None) -> list[ShareResult]:
+    """Render every share, inline (with per-frame progress) or through `map_fn`."""
+    if map_fn is None:
+        return [render_share(spec, setup, cast, share, out, progress.step) for share in shares]
+    cast_files = CastFiles.save(cast, out / ".cast")
     try:
-        for f in range(spec.n_frames):
-            posed = cast.posed(f)
-            # One Embree scene and one set of floor shadows per frame, shared by all cameras.
-            caster = RayCaster([(p.vertices, p.faces) for p in posed], spec.imaging.backend)
-            shadows = floor_shadow_maps(posed, caster, stage, spec.imaging.shadow_samples)
-            for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
-                layers = rend.render_people(posed, caster, shadows)
-                rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 0]))
-                image = develop(layers.radiance, responses[cam_i], rng)
-                videos[ci].write(image)
-                masks[ci].write(f, layers.mask, layers.depth)
-                radius = radii[rend.camera.name]
-                views.add(rend.camera, radius, f, cast.tracks, layers.mask, layers.depth)
-                check.add(rend.camera, radius, cast.tracks, f, layers.mask)
-                if f == preview_f:
-                    preview[rend.camera.name] = image
-            progress.step("render", len(renderers))
-    except BaseException:
-        for sink in videos + masks:
-            sink.abort()
-        raise
-    for sink in videos + masks:
-        sink.close()
+        jobs = [CameraShareJob(spec, out, share, cast_files) for share in shares]
+        results = list(map_fn(render_share_job, jobs, description=f"synth {spec.name}: render"))
+    finally:
+        shutil.rmtree(cast_files.folder, ignore_errors=True)
+    if len(results) != len(jobs) or not all(isinstance(r, ShareResult) for r in results):
+        raise RuntimeError(f"map_fn returned {len(results)} results of types {sorted({type(r).__name__ for r in results})} "
+                           f"for {len(jobs)} camera shares; expected one ShareResult per share, in order")
+    n_cams = sum(len(s) for s in shares)
+    progress.step("render", n_cams * spec.n_frames)
+    if setup.board_poses:
+        progress.step("board", n_cams * len(setup.board_poses))
+    return results
 
 
-def _render_board_clip(spec: SceneSpec, out: Path, board_spec: ChArUcoSpec, texture, poses, group: list[int],
-                       renderers, responses, fps: float, preview: dict, progress: _Progress) -> None:
-    """board/<cam>.mp4 for a group of cameras."""
-    videos = [VideoOut(out / "board" / f"{r.camera.name}.mp4", fps, r.camera.width, r.camera.height)
-              for r in renderers]
-    try:
-        for f, pose in enumerate(poses):
-            for ci, (cam_i, rend) in enumerate(zip(group, renderers, strict=True)):
-                layers = rend.render_board(board_spec, pose, texture)
-                rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 5, cam_i, f, 1]))
-                image = develop(layers.radiance, responses[cam_i], rng)
-                videos[ci].write(image)
-                if f == len(poses) // 2:
-                    preview[rend.camera.name] = image
-            progress.step("board", len(renderers))
-    except BaseException:
-        for v in videos:
-            v.abort()
-        raise
-    for v in videos:
-        v.close()
-
-
-def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writer) -> dict:
-    r = spec.rig
-    rig = make_rig(r.kind, n_cameras=r.n_cameras, width=r.width, height=r.height, fov_deg=r.fov_deg,
-                   focal_mm=r.focal_mm, distortion=r.distortion, fps=r.fps, seed=spec.seed)
-    fps = float(rig.meta["fps"])
-    stage = stage_for_rig(r.kind, spec.seed)
-    cast = _pose_cast(spec, model, rig, fps, report)
-    board_spec = spec.board.board()
-    texture = board_spec.texture()
-    poses = board_clip(board_spec, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
-                       np.random.default_rng(np.random.SeedSequence([spec.seed, 3])),
-                       camera_centers=np.stack([c.center for c in rig.cameras]))
-    options = RenderOptions(antialias=spec.imaging.antialias, background_samples=spec.imaging.background_samples,
-                            shadow_samples=spec.imaging.shadow_samples, backend=spec.imaging.backend)
-    responses = _responses(spec, len(rig))
-    radii = {cam.name: field_radius(cam) for cam in rig.cameras}
-    preview, board_preview = {}, {}
-    views, check = ViewRows(), _JointCheck()
+def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writer, map_fn: MapFn | None,
+                 n_shares: int | None) -> dict:
+    setup = SceneSetup.build(spec)
+    rig, fps, stage, board_spec, texture, poses = (setup.rig, setup.fps, setup.stage, setup.board, setup.texture,
+                                                   setup.board_poses)
+    radii = setup.radii
+    people, tracks, cast = _pose_cast(spec, model, rig, fps, report)
+    # Camera caches of one memory group fit in memory together; shares split groups further.
+    shares = camera_shares(_camera_groups(rig), n_shares)
     progress = _Progress(report, len(rig) * (spec.n_frames + spec.board.n_frames))
-    for group in _camera_groups(rig):  # camera caches of one group fit in memory together
-        renderers = [ViewRenderer(rig.cameras[i], stage, options) for i in group]
-        _render_people_clip(spec, out, cast, group, renderers, responses, stage, fps, views, check, radii,
-                            preview, progress)
-        if poses:
-            _render_board_clip(spec, out, board_spec, texture, poses, group, renderers, responses, fps,
-                               board_preview, progress)
-        del renderers
+    preview, board_preview = {}, {}
+    views, check = ViewRows(), JointCheck()
+    for result in _render_shares(spec, setup, cast, shares, out, progress, map_fn):  # in share (camera) order
+        views.extend(result.views)
+        check.merge(result.check)
+        preview.update(result.preview)
+        board_preview.update(result.board_preview)
+    names = [c.name for c in rig.cameras]
+    missing = [n for n in names if n not in preview or (poses and n not in board_preview)]
+    if missing:
+        raise RuntimeError(f"no rendered preview frame came back for camera(s) {missing}: a share was not rendered")
 
     report("write", 0, 1)
-    names = [c.name for c in rig.cameras]
     body_meta = {"name": spec.body_model, "num_betas": int(model.num_betas),
-                 "num_vertices": int(cast.tracks[0].vertices.shape[1]), "num_faces": int(len(cast.faces)),
+                 "num_vertices": int(tracks[0].vertices.shape[1]), "num_faces": int(len(cast.faces)),
                  "joint_names": list(JOINT_NAMES)}
     meta = {"scene": spec.name, "fps": fps, "units": "m", "world": WORLD_CONVENTION, "joint_names": list(JOINT_NAMES),
             "body_model": body_meta, "format_version": SCENE_FORMAT_VERSION}
-    write_parquet(out / "truth" / "people.parquet", people_table(cast.tracks, meta))
+    write_parquet(out / "truth" / "people.parquet", people_table(tracks, meta))
     write_parquet(out / "truth" / "views.parquet", views.table({**meta, "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
                                                                  "pixel_convention": "OpenCV, pixel centres at integers"}))
     if poses:
@@ -446,7 +365,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
     write_png(out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names))
     write_png(out / "preview" / "truth_overlay.png",
-              truth_overlay([preview[n] for n in names], list(rig.cameras), cast.tracks, preview_f))
+              truth_overlay([preview[n] for n in names], list(rig.cameras), tracks, preview_f))
     scene = {
         "format": "synth-scene", "format_version": SCENE_FORMAT_VERSION, "name": spec.name,
         "spec": spec.model_dump(mode="json"), "fps": fps, "n_frames": spec.n_frames,
@@ -454,7 +373,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
         "image_size": {n: [c.width, c.height] for n, c in zip(names, rig.cameras, strict=True)},
         "volume": {"center": rig.meta["volume_center"], "radius": rig.meta["volume_radius"]},
         "world": WORLD_CONVENTION, "stage": stage.to_dict(), "body_model": body_meta,
-        "people": [p.to_dict() for p in cast.people], "board": board_json(board_spec),
+        "people": [p.to_dict() for p in people], "board": board_json(board_spec),
         "board_margin_m": float(texture.margin), "preview_frame": preview_f,
         "calibration_notes": calibration_notes,
         "files": {"videos": "videos/<camera>.mp4", "board_videos": "board/<camera>.mp4",
@@ -467,7 +386,7 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     report("write", 1, 1)
     on_person, on_own = check.fractions()
     return dict(name=spec.name, n_frames=spec.n_frames, n_board_frames=spec.board.n_frames, fps=fps,
-                cameras=tuple(names), n_people=len(cast.people), joints_in_mask=on_person, joints_on_own_mask=on_own)
+                cameras=tuple(names), n_people=len(people), joints_in_mask=on_person, joints_on_own_mask=on_own)
 
 
 def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:

@@ -99,6 +99,11 @@ class ViewRows:
             for k, v in zip(("full_x0", "full_y0", "full_x1", "full_y1"), full, strict=True):
                 c[k].append(v)
 
+    def extend(self, other: ViewRows) -> None:
+        """Append another accumulator's rows (e.g. a worker's); `table` sorts, so order is free."""
+        for k, values in other._cols.items():
+            self._cols[k].extend(values)
+
     def table(self, metadata: dict) -> pa.Table:
         c = self._cols
         n = len(c["frame"])
