@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from gst.body import load_body_model
+from gst.eval.truth import attach_scene_truth, select_rows
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
@@ -28,14 +29,15 @@ from gst.train.evaluation import novel_view_metrics, novel_view_pairs
 from gst.train.losses import LossWeights
 from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
 from gst.train.steps import predict
-from gst.train.synthetic_crops import attach_truth
 from gst.train.trainer import TrainConfig
 from gst.train.views import load_cropset
 from pipeline.stage import Stage, StageContext, StageParams
 
 
 class Params(StageParams):
-    supervision: Literal["multiview"] = "multiview"  # 2d/3d baselines need truth: see `evaluate`
+    # multiview: GST (no labels). 2d / 3d: the paper's Table 1 baselines, fine-tuned on the
+    # synthetic truth's 2D joints / 3D joints and parameters (synthetic scenes only).
+    supervision: Literal["multiview", "2d", "3d"] = "multiview"
     init: Literal["pretrain", "hmr2"] = "pretrain"
     hmr2_checkpoint: Path | None = None  # with init=hmr2 (huge preset); loaded with weights_only=True
     body_model: str = "anny"
@@ -91,8 +93,14 @@ def run(ctx: StageContext) -> None:
         torch.set_num_threads(p.threads)
     crops, boxes = load_cropset(ctx.path("crops/crops.h5"))
     if ctx.scene.is_synthetic:
-        matched = attach_truth(crops, boxes, ctx.path("synth"))
-        ctx.log.info("truth matched for %d of %d crops", matched, len(crops))
+        attach_scene_truth(crops, boxes, ctx.path("synth"))
+        has = crops.truth["has_truth"]
+        ctx.log.info("truth matched for %d of %d crops", int(has.sum()), len(crops))
+        if p.supervision != "multiview":
+            crops = select_rows(crops, torch.nonzero(has)[:, 0])  # supervised rows need their truth
+    elif p.supervision != "multiview":
+        raise ValueError(f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
+                         f"have; scene '{ctx.scene_name}' is real: use supervision=multiview")
     heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(ctx, body)

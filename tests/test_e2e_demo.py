@@ -35,6 +35,7 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
           pretrain: {params: {steps: 2, batch_size: 2, world_frames: 3, world_people: 1, crop_size: 128}}
           train: {needs: [extract, pretrain], params: {steps: 2, batch_size: 2, num_targets: 2}}
           track: {needs: [train], params: {overlay: false}}
+          evaluate: {needs: [train], params: {max_groups: 4, render_size: 32}}
     """))
     assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0, capsys.readouterr().err
     ws = tmp_path / "ws" / "tiny"
@@ -51,3 +52,7 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
     assert main(["status", "--config", str(cfg)]) == 0
     status = capsys.readouterr().err
     assert "stale" not in status and "missing" not in status
+    assert (ws / "reports/evaluate/summary.json").is_file()
+    # the paper's 3D fine-tuning baseline through the same stage (synthetic truth)
+    assert main(["run", "train", "--config", str(cfg), "--quiet", "--set", "train.supervision=3d"]) == 0
+    assert (ws / "models/gst.pt").is_file()

@@ -206,6 +206,7 @@ class VoxelGrid:
             u = np.floor((uv[:, 0] + 0.5) * sx)
             r = np.floor((uv[:, 1] + 0.5) * sy)
             inside = ok & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+            u, r = np.where(inside, u, 0), np.where(inside, r, 0)  # points behind the camera project to NaN
             pix[cam.name] = np.where(inside, r.astype(np.int64) * w + u.astype(np.int64), -1)
             focal[cam.name] = cam.fx * sx
         seen = sum((p >= 0).astype(np.int16) for p in pix.values())
