@@ -60,19 +60,21 @@ class StaticCameraDetector:
     a box whose bottom is inside the image must imply a height in `height_range` metres.
     """
 
-    def __init__(self, video: str | Path, *, plate: str | Path | None = None, work_scale: float = 0.5,
+    def __init__(self, video: str | Path, *, plate: str | Path | None = None, work_scale: float | None = None,
                  background: BackgroundConfig | None = None, masks: MaskConfig | None = None,
                  min_height_frac: float = 0.08, camera: Camera | None = None, up=(0.0, 0.0, 1.0),
                  floor: float = 0.0, height_range: tuple[float, float] = (1.0, 2.4), group: bool = True):
         self.config = background or BackgroundConfig()
         self.mask_config = masks or MaskConfig()
-        self.work_scale = float(work_scale)
+        source = Path(plate) if plate is not None else Path(video)
+        info = probe_video(source, source.stem)
+        # Boxes need no more than ~640 px of width: at 1080p that is 2.25x fewer pixels than
+        # half size, and the background model is most of the per-frame cost.
+        self.work_scale = float(work_scale) if work_scale is not None else min(0.5, 640 / info.width)
         self.min_height_frac = min_height_frac
         self.camera, self.up, self.floor = camera, np.asarray(up, dtype=np.float64), float(floor)
         self.height_range = height_range
         self.group = group
-        source = Path(plate) if plate is not None else Path(video)
-        info = probe_video(source, source.stem)
         if camera is not None and (camera.width, camera.height) != (info.width, info.height):
             raise ValueError(f"{source}: frames are {info.width}x{info.height} but camera '{camera.name}' is "
                              f"calibrated for {camera.width}x{camera.height}")
