@@ -11,25 +11,14 @@ the body model is the open default.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
 
 from gst.body import load_body_model
+from gst.eval.bench import time_inference
 from gst.model.assemble import assemble
 from gst.model.presets import get_preset
 from gst.train.recipe import build_network
-
-
-def timed(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def main() -> None:
@@ -58,8 +47,8 @@ def main() -> None:
                 out = net(x, with_gaussians=with_gaussians)
                 assemble(out, body, K, 256, vertex_ids=vid)
 
-        t_pose = timed(lambda: run(False), args.repeats)
-        t_full = timed(lambda: run(True), args.repeats)
+        t_pose = time_inference(lambda: run(False), args.repeats)
+        t_full = time_inference(lambda: run(True), args.repeats)
         print(f"{name:<7} {cfg.image_size[0]}x{cfg.image_size[1]:<4} {len(ids):>9} {1000 * t_pose:>9.1f} "
               f"{args.batch / t_pose:>9.1f} {1000 * t_full:>9.1f} {args.batch / t_full:>9.1f} {t_full / t_pose:>9.2f}")
 

@@ -11,6 +11,7 @@ import pytest
 from gst.metrics.lpips_weights import default_weights_path
 from gst.track import read_tracks
 from pipeline.cli import main
+from tests.tiny_config import TINY_CONFIG
 
 pytestmark = pytest.mark.skipif(not default_weights_path("alex").is_file(),
                                 reason="LPIPS weights missing: run `python -m gst.metrics.lpips fetch`")
@@ -18,25 +19,9 @@ pytestmark = pytest.mark.skipif(not default_weights_path("alex").is_file(),
 
 def test_tiny_scene_runs_every_stage(tmp_path, capsys):
     cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(textwrap.dedent("""
-        workspace: ws
-        executor: {kind: local, workers: 1}
-        scenes:
-          tiny:
-            synthetic:
-              preset: demo
-              seed: 3
-              overrides: {n_frames: 8, n_people: 1, motions: [[run]],
-                          rig: {n_cameras: 3, width: 192, height: 144}, board: {n_frames: 12}}
-        stages:
-          synth: {}
-          calibrate: {needs: [synth], params: {synthetic_source: rig}}
-          extract: {needs: [calibrate], params: {crop_size: 128}}
-          pretrain: {params: {steps: 2, batch_size: 2, world_frames: 3, world_people: 1, crop_size: 128}}
-          train: {needs: [extract, pretrain], params: {steps: 2, batch_size: 2, num_targets: 2}}
-          track: {needs: [train], params: {overlay: false}}
-          evaluate: {needs: [train], params: {max_groups: 4, render_size: 32}}
-    """))
+    cfg.write_text(textwrap.dedent(TINY_CONFIG)
+                   + "  track: {needs: [train], params: {overlay: false}}\n"
+                   + "  evaluate: {needs: [train], params: {max_groups: 4, render_size: 32}}\n")
     assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0, capsys.readouterr().err
     ws = tmp_path / "ws" / "tiny"
     for rel in ("calibration/rig.json", "crops/crops.h5", "models/pretrain.pt", "models/gst.pt", "models/example.ply",

@@ -12,28 +12,13 @@ from pathlib import Path
 import pytest
 
 from gst.metrics.lpips_weights import default_weights_path
+from tests.tiny_config import TINY_CONFIG
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not default_weights_path("alex").is_file(),
                                  reason="LPIPS weights missing: run `python -m gst.metrics.lpips fetch`")]
 REPO = Path(__file__).resolve().parents[1]
-CONFIG = """
-    workspace: ws
-    executor: {kind: local, workers: 1}
-    scenes:
-      tiny:
-        synthetic:
-          preset: demo
-          seed: 3
-          overrides: {n_frames: 8, n_people: 1, motions: [[run]],
-                      rig: {n_cameras: 3, width: 192, height: 144}, board: {n_frames: 12}}
-    stages:
-      synth: {}
-      calibrate: {needs: [synth], params: {synthetic_source: rig}}
-      extract: {needs: [calibrate], params: {crop_size: 128}}
-      pretrain: {params: {steps: 2, batch_size: 2, world_frames: 3, world_people: 1, crop_size: 128}}
-      train: {needs: [extract, pretrain], params: {steps: 2, batch_size: 2, num_targets: 2}}
-"""
+CONFIG = TINY_CONFIG
 
 
 def _run(args, cwd):
