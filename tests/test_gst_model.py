@@ -101,7 +101,7 @@ def test_outputs_shapes_and_unit_quaternions(tiny):
     torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, 400))
     c = tiny.cfg
     assert float(g.scales.detach().min()) >= c.min_scale and float(g.scales.detach().max()) <= c.max_scale
-    assert float(g.offsets.abs().max()) <= c.max_offset
+    assert float(g.offsets.detach().abs().max()) <= c.max_offset
     eye = torch.eye(3).expand(2, 24, 3, 3)
     torch.testing.assert_close(out.rotmats @ out.rotmats.transpose(-1, -2), eye, atol=1e-5, rtol=0)
 
