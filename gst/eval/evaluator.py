@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, ssim
+from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, silhouette_iou, ssim
 from gst.metrics.pose import procrustes_align, vertex_error
 from gst.model.assemble import to_world
 from gst.train.steps import GSTTask, predict
-from gst.train.views import CropSet, resize_images, scale_intrinsics
+from gst.train.views import CropSet, target_views
 
 __all__ = ["PoseRecords", "ViewRecords", "ViewPairs", "evaluate_pose", "evaluate_views", "view_pairs",
            "per_joint_errors"]
@@ -146,15 +146,6 @@ class ViewRecords:
     images: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # pair -> (render, target)
 
 
-def _target_view(crops: CropSet, tgt: torch.Tensor, size: int):
-    view = torch.eye(4).repeat(len(tgt), 1, 1)
-    view[:, :3, :3] = crops.R[tgt]
-    view[:, :3, 3] = crops.t[tgt]
-    image = resize_images(crops.images[tgt].float() / 255.0, size)
-    mask = resize_images(crops.masks[tgt][..., None].float(), size)[..., 0]
-    return view, scale_intrinsics(crops.K[tgt], size / crops.crop_size), image * mask[..., None], mask
-
-
 @torch.no_grad()
 def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldout: set[int], size: int = 128,
                    lpips=None, scene_vertices: torch.Tensor | None = None, box_margin: float = 0.05,
@@ -174,7 +165,8 @@ def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldo
         inp, tgt = pairs.inputs[s:s + batch_size], pairs.targets[s:s + batch_size]
         pred = predict(model, task, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], with_gaussians=True)
         g = pred.gaussians_world
-        view, K, target, mask = _target_view(crops, tgt, size)
+        view, K, image, mask = target_views(crops, tgt, size)
+        target = image * mask[..., None]
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, view[:, None], K[:, None], size, size,
                         backgrounds=torch.zeros(len(inp), 1, 3))
         rgb = out.rgb[:, 0].clamp(0, 1).permute(0, 3, 1, 2)
@@ -182,8 +174,7 @@ def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldo
         cols["psnr"] += psnr(rgb, tgt_img).tolist()
         cols["ssim"] += ssim(rgb, tgt_img).tolist()
         cols["lpips"] += lpips(rgb, tgt_img).tolist() if lpips is not None else [nan] * len(inp)
-        sil, m = out.alpha[:, 0] > 0.5, mask > 0.5
-        cols["iou"] += ((sil & m).flatten(1).sum(1) / (sil | m).flatten(1).sum(1).clamp_min(1)).tolist()
+        cols["iou"] += silhouette_iou(out.alpha[:, 0], mask).tolist()
         row = crops.truth["truth_row"][tgt] if "truth_row" in crops.truth else None
         if scene_vertices is not None and row is not None:
             corners = np.stack([points_box_corners(scene_vertices[int(k)].numpy(), box_margin) for k in row])

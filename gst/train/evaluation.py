@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import torch
 
-from gst.metrics.image import psnr, ssim
+from gst.metrics.image import psnr, silhouette_iou, ssim
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.train.steps import GSTTask, predict
-from gst.train.views import CropSet, MultiViewBatch, resize_images, scale_intrinsics
+from gst.train.views import CropSet, MultiViewBatch, target_views
 
 
 @torch.no_grad()
@@ -56,14 +56,9 @@ def novel_view_pairs(crops: CropSet, heldout: set[int], max_pairs: int = 64, see
 
 
 def _batch(crops: CropSet, inp: torch.Tensor, tgt: torch.Tensor, size: int) -> MultiViewBatch:
-    t = tgt[:, None]
-    view = torch.eye(4).repeat(len(inp), 1, 1, 1)
-    view[..., :3, :3] = crops.R[t]
-    view[..., :3, 3] = crops.t[t]
-    return MultiViewBatch(inp, t, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp],
-                          resize_images(crops.images[t].float() / 255.0, size),
-                          resize_images(crops.masks[t][..., None], size)[..., 0],
-                          scale_intrinsics(crops.K[t], size / crops.crop_size), view, torch.zeros(len(inp), 1, 3))
+    view, K, images, masks = target_views(crops, tgt[:, None], size)
+    return MultiViewBatch(inp, tgt[:, None], crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], images,
+                          masks, K, view, torch.zeros(len(inp), 1, 3))
 
 
 @torch.no_grad()
@@ -83,10 +78,7 @@ def novel_view_metrics(model, task: GSTTask, crops: CropSet, pairs: NovelViewSet
         target = (b.target_images[:, 0] * b.target_masks[:, 0, ..., None]).permute(0, 3, 1, 2)
         ps.append(psnr(rgb, target))
         ss.append(ssim(rgb, target))
-        sil, mask = out.alpha[:, 0] > 0.5, b.target_masks[:, 0] > 0.5
-        inter = (sil & mask).flatten(1).sum(1).float()
-        union = (sil | mask).flatten(1).sum(1).float().clamp_min(1)
-        ious.append(inter / union)
+        ious.append(silhouette_iou(out.alpha[:, 0], b.target_masks[:, 0]))
         if return_images:
             images.append((b.input_images, rgb, target))
     result = {"psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),

@@ -18,10 +18,9 @@ from dataclasses import dataclass, field
 import torch
 
 from gst.metrics.image import psnr
-from gst.train.recipe import gaussian_parameter_groups
+from gst.train.recipe import gaussian_parameter_groups, supervised_batch
 from gst.train.steps import (
     GSTTask,
-    SupervisedBatch,
     multiview_step,
     predict,
     render_predictions,
@@ -61,13 +60,6 @@ def training_view_psnr(model, task: GSTTask, crops: CropSet, group: torch.Tensor
     return scores
 
 
-def _truth_batch(crops: CropSet, group: torch.Tensor) -> SupervisedBatch:
-    t = crops.truth
-    return SupervisedBatch(images=crops.images[group], K=crops.K[group], joints_cam=t["joints_cam"][group],
-                           joints2d=t["joints2d"][group], visible=t["visible"][group],
-                           rotmats=t["rotmats_cam"][group], betas=t["betas"][group][:, :10])
-
-
 def overfit_sample(model, task: GSTTask, crops: CropSet, group: torch.Tensor, *, warm_steps: int = 100,
                    steps: int = 300, lr: float = 1e-3, body_lr: float = 1e-5, warm_lr: float = 1e-3,
                    render_size: int = 64,
@@ -81,7 +73,7 @@ def overfit_sample(model, task: GSTTask, crops: CropSet, group: torch.Tensor, *,
     if warm_steps and "joints_cam" in crops.truth:
         supervision, task.supervision = task.supervision, "3d"
         opt = torch.optim.Adam(model.parameters(), lr=warm_lr)
-        batch = _truth_batch(crops, group)
+        batch = supervised_batch(crops, group)
         for _ in range(warm_steps):
             loss, parts = supervised_step(model, batch, task)
             opt.zero_grad(set_to_none=True)

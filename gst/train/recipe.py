@@ -79,7 +79,8 @@ class FitOptions:
     body_lr: float | None = None  # backbone + SMPL head learning rate (None: the config's lr for all)
 
 
-def _supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
+def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
+    """A supervised batch of crop rows `idx` from their truth (joints, 2D joints, parameters)."""
     t = crops.truth
     return SupervisedBatch(images=crops.images[idx], K=crops.K[idx], joints_cam=t["joints_cam"][idx],
                            joints2d=t["joints2d"][idx], visible=t["visible"][idx], rotmats=t["rotmats_cam"][idx],
@@ -89,7 +90,7 @@ def _supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
 def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
     """Supervised 3D terms on the input view plus image terms on the rendered views."""
     pred, _, _, parts = multiview_image_terms(model, batch, task)
-    sup = _supervised_batch(crops, batch.input_index)
+    sup = supervised_batch(crops, batch.input_index)
     parts.update(supervised_terms(pred.joints_cam, project(pred.joints_cam, sup.K), pred.rotmats, pred.betas,
                                   sup.joints_cam, sup.joints2d, sup.rotmats, sup.betas, task.crop_size, sup.visible))
     terms = combine(parts, task.weights)
@@ -132,7 +133,7 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
             raise ValueError(f"mode '{opts.mode}' needs truth joints on the crops")
 
         def sample(gen, bs):
-            return _supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
+            return supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
 
         task.supervision = opts.mode
 

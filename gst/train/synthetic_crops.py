@@ -19,6 +19,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from calibration.formats import read_rig
+from gst.metrics.image import box_iou
 from gst.track.view import TrackingView
 from gst.train.views import CropSet
 
@@ -156,35 +157,7 @@ def match_truth_views(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, 
                 continue
             xy = cam.undistort_points(corners) * [cam.fx, cam.fy] + [cam.cx, cam.cy]
             tb = np.r_[xy.min(0), xy.max(0)] + 0.5
-            iou = _box_iou(boxes[i], tb)
+            iou = float(box_iou(boxes[i], tb)[0, 0])
             if iou > best_iou:
                 out[i], best_iou = r, iou
     return out
-
-
-def attach_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3) -> int:
-    """Give extracted crops the truth of the synthetic person they show (`match_truth_views`).
-    Adds truth keys joints_world (N,24,3) and has_truth (N,); returns how many matched."""
-    scene_dir = Path(scene_dir)
-    views = pq.read_table(scene_dir / "truth" / "views.parquet")
-    people = pq.read_table(scene_dir / "truth" / "people.parquet")
-    p_index = {(int(f), int(i)): k for k, (f, i) in
-               enumerate(zip(people.column("frame").to_numpy(), people.column("person_id").to_numpy(), strict=True))}
-    joints = _column(people, "joints3d", 72).reshape(-1, 24, 3)
-    v_frame, v_pid = views.column("frame").to_numpy(), views.column("person_id").to_numpy()
-    out = np.full((len(crops), 24, 3), np.nan, np.float32)
-    for i, r in enumerate(match_truth_views(crops, boxes, scene_dir, min_iou)):
-        if r >= 0:
-            out[i] = joints[p_index[(int(v_frame[r]), int(v_pid[r]))]]
-    has = np.isfinite(out).all(axis=(1, 2))
-    crops.truth["joints_world"] = torch.as_tensor(np.nan_to_num(out))
-    crops.truth["has_truth"] = torch.as_tensor(has)
-    return int(has.sum())
-
-
-def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
-    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = iw * ih
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0

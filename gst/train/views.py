@@ -76,6 +76,17 @@ def resize_images(images: torch.Tensor, size: int) -> torch.Tensor:
     return x.permute(0, 2, 3, 1).reshape(*lead, size, size, c)
 
 
+def target_views(crops: CropSet, idx: torch.Tensor, size: int):
+    """What rendering into crop rows `idx` (any shape) at `size` px needs: world-to-camera 4x4
+    matrices, intrinsics scaled to `size`, images (float in [0, 1]) and masks resized to `size`."""
+    view = torch.eye(4).repeat(*idx.shape, 1, 1)
+    view[..., :3, :3] = crops.R[idx]
+    view[..., :3, 3] = crops.t[idx]
+    images = resize_images(crops.images[idx].float() / 255.0, size)
+    masks = resize_images(crops.masks[idx][..., None].float(), size)[..., 0]
+    return view, scale_intrinsics(crops.K[idx], size / crops.crop_size), images, masks
+
+
 @dataclass
 class MultiViewBatch:
     input_index: torch.Tensor  # (B,)
@@ -111,15 +122,10 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
         targets.append(tgt)
     inp = torch.stack(inputs)
     tgt = torch.stack(targets)
-    factor = render_size / crops.crop_size
-    timg = resize_images(crops.images[tgt].float() / 255.0, render_size)
-    tmask = resize_images(crops.masks[tgt][..., None].float(), render_size)[..., 0]
-    view = torch.eye(4).repeat(*tgt.shape, 1, 1)
-    view[..., :3, :3] = crops.R[tgt]
-    view[..., :3, 3] = crops.t[tgt]
+    view, K, timg, tmask = target_views(crops, tgt, render_size)
     bg = torch.rand(*tgt.shape, 3, generator=gen)
-    return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask,
-                          scale_intrinsics(crops.K[tgt], factor), view, bg)
+    return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask, K,
+                          view, bg)
 
 
 def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:
