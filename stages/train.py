@@ -27,6 +27,7 @@ from gst.model.presets import get_preset
 from gst.render.ply import write_gaussians_ply
 from gst.train.evaluation import novel_view_metrics, novel_view_pairs
 from gst.train.losses import LossWeights
+from gst.train.occlusion import with_occluders
 from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
 from gst.train.steps import predict
 from gst.train.trainer import TrainConfig
@@ -49,6 +50,7 @@ class Params(StageParams):
     freeze_backbone: bool = False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
     num_targets: int = 4
     render_size: int = 64
+    ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
     losses: LossWeights = LossWeights()
     threads: int | None = None
 
@@ -101,6 +103,9 @@ def run(ctx: StageContext) -> None:
     elif p.supervision != "multiview":
         raise ValueError(f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
                          f"have; scene '{ctx.scene_name}' is real: use supervision=multiview")
+    if p.ignore_occluders and p.supervision == "multiview":
+        with_occluders(crops)
+        ctx.log.info("occluders: %.1f%% of crop pixels belong to another person", 100 * float(crops.occluders.mean()))
     heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(ctx, body)

@@ -67,3 +67,24 @@ def test_heldout_camera_must_exist(tmp_path):
     with pytest.raises(ValueError, match="held-out cameras"):
         fit_gst(net, task, crops, TrainConfig(steps=1), tmp_path, FitOptions(heldout_cameras=("nope",)),
                 body_spec="random", vertex_ids=ids, group_index=groups)
+
+
+def test_augmented_3d_fit_validates_on_the_unseen_crops(tmp_path):
+    """With val_crops, the reported MPJPE is on them: a validation set whose truth is shifted by a
+    constant per-joint offset reports a different error than the training crops."""
+    from gst.train.augment import CropJitter
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    cfg = get_preset("tiny", vertex_preset="full")
+    crops, val = crop_set(), crop_set(n_frames=2)
+    val.truth["joints_world"] = val.truth["joints_world"] + 0.5 * torch.linspace(0, 1, 24)[None, :, None]
+
+    def fit(val_crops, out):
+        net, ids, groups = build_network(cfg, body)
+        task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
+        return fit_gst(net, task, crops, TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2),
+                       out, FitOptions(mode="3d", augment=CropJitter()), body_spec="random", vertex_ids=ids,
+                       group_index=groups, val_crops=val_crops)
+
+    own, unseen = fit(None, tmp_path / "a"), fit(val, tmp_path / "b")
+    assert unseen["bad_steps"] == 0 and math.isfinite(unseen["after"]["mpjpe_mm"])
+    assert abs(unseen["after"]["mpjpe_mm"] - own["after"]["mpjpe_mm"]) > 50

@@ -140,4 +140,5 @@ def select_rows(crops: CropSet, rows: torch.Tensor | np.ndarray) -> CropSet:
     r = torch.as_tensor(np.asarray(rows), dtype=torch.long)
     return CropSet(images=crops.images[r], masks=crops.masks[r], K=crops.K[r], R=crops.R[r], t=crops.t[r],
                    camera=crops.camera[r], frame=crops.frame[r], person=crops.person[r],
-                   camera_names=list(crops.camera_names), truth={k: v[r] for k, v in crops.truth.items()})
+                   camera_names=list(crops.camera_names), truth={k: v[r] for k, v in crops.truth.items()},
+                   occluders=None if crops.occluders is None else crops.occluders[r])

@@ -26,6 +26,7 @@ from gst.model.checkpoint import (
 )
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
+from gst.train.augment import CropJitter, jitter_batch
 from gst.train.evaluation import novel_view_metrics, novel_view_pairs, pose_metrics
 from gst.train.losses import LossWeights, combine, supervised_terms
 from gst.train.steps import (
@@ -77,6 +78,7 @@ class FitOptions:
     val_pairs: int = 48
     val_pose_crops: int = 96
     body_lr: float | None = None  # backbone + SMPL head learning rate (None: the config's lr for all)
+    augment: CropJitter | None = None  # re-crop + colour jitter of supervised (2d/3d) batches
 
 
 def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
@@ -102,8 +104,11 @@ def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
 
 def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, out_dir: Path, opts: FitOptions, *,
             body_spec: str, vertex_ids: np.ndarray, group_index: np.ndarray, progress=None,
-            resume: bool = True) -> dict:
-    """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`."""
+            resume: bool = True, val_crops: CropSet | None = None) -> dict:
+    """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`.
+
+    `val_crops`: crops with truth that training never sees (e.g. another world); pose validation
+    (and so the best checkpoint) uses them instead of the training crops."""
     names = crops.camera_names
     unknown = [c for c in opts.heldout_cameras if c not in names]
     if unknown:
@@ -114,9 +119,10 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
     if not groups:
         raise ValueError(f"no training samples: no (frame, person) seen by >= 2 training cameras "
                          f"(held out: {sorted(opts.heldout_cameras)})")
-    has_truth = "joints_world" in crops.truth
-    truth_rows = torch.nonzero(crops.truth["has_truth"])[:, 0] if "has_truth" in crops.truth else \
-        torch.arange(len(crops)) if has_truth else torch.zeros(0, dtype=torch.long)
+    pose_crops = crops if val_crops is None else val_crops
+    has_truth = "joints_world" in pose_crops.truth
+    truth_rows = torch.nonzero(pose_crops.truth["has_truth"])[:, 0] if "has_truth" in pose_crops.truth else \
+        torch.arange(len(pose_crops)) if has_truth else torch.zeros(0, dtype=torch.long)
     if len(truth_rows):
         gen = torch.Generator().manual_seed(1)
         truth_rows = truth_rows[torch.randperm(len(truth_rows), generator=gen)[:opts.val_pose_crops]]
@@ -133,7 +139,8 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
             raise ValueError(f"mode '{opts.mode}' needs truth joints on the crops")
 
         def sample(gen, bs):
-            return supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
+            batch = supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
+            return batch if opts.augment is None else jitter_batch(batch, opts.augment, gen)
 
         task.supervision = opts.mode
 
@@ -141,7 +148,7 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
             return supervised_step(m, b, task)
 
     def validate(m) -> dict:
-        metrics = pose_metrics(m, task, crops, truth_rows) if len(truth_rows) else {}
+        metrics = pose_metrics(m, task, pose_crops, truth_rows) if len(truth_rows) else {}
         if pairs is not None and len(pairs.inputs):
             metrics.update(novel_view_metrics(m, task, crops, pairs, opts.render_size))
         return metrics

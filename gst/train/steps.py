@@ -18,6 +18,7 @@ from gst.model.assemble import BodyPrediction, assemble
 from gst.model.preprocess import network_input, to_float_images
 from gst.render import rasterize
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
+from gst.train.occlusion import ignore_occluded
 from gst.train.views import MultiViewBatch
 
 Supervision = Literal["multiview", "2d", "3d"]
@@ -57,11 +58,14 @@ def render_predictions(pred: BodyPrediction, batch: MultiViewBatch, size: int):
 
 def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask):
     """Predict from the input view, render into the target views, and compare with the targets
-    composited on the batch's random backgrounds. Returns (prediction, render, target, terms)."""
+    composited on the batch's random backgrounds; pixels where another person hides this one are
+    not supervised when the batch knows them. Returns (prediction, render, target, terms)."""
     pred = predict(model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True)
     out = render_predictions(pred, batch, batch.target_images.shape[-2])
     mask = batch.target_masks
     target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (1 - mask[..., None])
+    if batch.target_occluders is not None:
+        target, mask = ignore_occluded(out.rgb, out.alpha, target, mask, batch.target_occluders)
     parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
                         task.weights, task.lpips)
     return pred, out, target, parts

@@ -28,6 +28,7 @@ class CropSet:
     person: torch.Tensor  # (N,)
     camera_names: list[str]
     truth: dict[str, torch.Tensor] = field(default_factory=dict)  # e.g. joints_world (N, 24, 3)
+    occluders: torch.Tensor | None = None  # (N, S, S) other people's pixels (gst.train.occlusion)
 
     def __post_init__(self):
         n = self.images.shape[0]
@@ -53,6 +54,33 @@ class CropSet:
         idx, key = idx[order], key[order]
         _, counts = torch.unique_consecutive(key, return_counts=True)
         return [g for g in torch.split(idx, counts.tolist()) if len(g) >= min_views]
+
+
+def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
+    """One CropSet from several worlds: camera names become '<prefix>/<name>', and frames are
+    offset so (frame, person) groups of different worlds never merge. Truth keys must agree."""
+    if not sets or len(sets) != len(prefixes):
+        raise ValueError(f"concat_crop_sets needs one prefix per set, got {len(sets)} sets, {len(prefixes)} prefixes")
+    keys = set(sets[0].truth)
+    for prefix, s in zip(prefixes, sets, strict=True):
+        if set(s.truth) != keys or s.crop_size != sets[0].crop_size:
+            raise ValueError(f"crop set '{prefix}': truth keys {sorted(s.truth)} / crop size {s.crop_size} differ "
+                             f"from the first set's {sorted(keys)} / {sets[0].crop_size}")
+    cams, frames, names = [], [], []
+    cam_offset = frame_offset = 0
+    for prefix, s in zip(prefixes, sets, strict=True):
+        cams.append(s.camera + cam_offset)
+        frames.append(s.frame + frame_offset)
+        names += [f"{prefix}/{n}" for n in s.camera_names]
+        cam_offset += len(s.camera_names)
+        frame_offset += int(s.frame.max()) + 1 if len(s) else 0
+
+    def cat(name: str) -> torch.Tensor:
+        return torch.cat([getattr(s, name) for s in sets])
+
+    return CropSet(images=cat("images"), masks=cat("masks"), K=cat("K"), R=cat("R"), t=cat("t"),
+                   camera=torch.cat(cams), frame=torch.cat(frames), person=cat("person"), camera_names=names,
+                   truth={k: torch.cat([s.truth[k] for s in sets]) for k in keys})
 
 
 def scale_intrinsics(K: torch.Tensor, factor: float) -> torch.Tensor:
@@ -100,6 +128,7 @@ class MultiViewBatch:
     K_target: torch.Tensor  # (B, M, 3, 3) at render size
     viewmats: torch.Tensor  # (B, M, 4, 4)
     backgrounds: torch.Tensor  # (B, M, 3) random per view, so alpha must be right to match
+    target_occluders: torch.Tensor | None = None  # (B, M, r, r) other people's pixels: not supervised
 
 
 def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Generator, batch_size: int,
@@ -124,8 +153,9 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
     tgt = torch.stack(targets)
     view, K, timg, tmask = target_views(crops, tgt, render_size)
     bg = torch.rand(*tgt.shape, 3, generator=gen)
+    occ = None if crops.occluders is None else resize_images(crops.occluders[tgt][..., None], render_size)[..., 0]
     return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask, K,
-                          view, bg)
+                          view, bg, occ)
 
 
 def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:

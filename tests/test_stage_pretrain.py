@@ -1,0 +1,55 @@
+"""The pretraining corpus: distinct worlds, the validation world last and never trained on."""
+
+from stages.pretrain import Params, world_specs
+
+
+def test_world_specs_vary_and_end_with_the_validation_world():
+    p = Params(worlds=6, world_rigs=["dome", "h36m"], static_every=3, world_fov_deg=(40.0, 75.0))
+    specs = world_specs(p)
+    assert len(specs) == 7
+    assert [s["name"] for s in specs][-1] == "pretrain_val"
+    assert len({s["seed"] for s in specs}) == 7
+    assert [s["rig"]["kind"] for s in specs[:4]] == ["dome", "h36m", "dome", "h36m"]
+    static = [i for i, s in enumerate(specs) if s["motions"] == [["random_static"]] * p.world_people]
+    assert static == [2, 5]
+    fovs = [s["rig"]["fov_deg"] for s in specs]
+    assert all(40 <= f <= 75 for f in fovs) and len(set(fovs)) == 7
+    assert specs == world_specs(p)  # deterministic: a resumed stage renders the same worlds
+
+
+def _ctx(tmp_path, params):
+    import logging
+
+    from pipeline.stage import StageContext
+    return StageContext(stage="pretrain", scene_name="s", scene=None, config=None, workspace=tmp_path / "ws",
+                        staging=tmp_path / "staging", params=params, log=logging.getLogger("test"))
+
+
+def test_reuse_copies_a_checked_checkpoint_and_fingerprints_it(tmp_path):
+    import json
+
+    import pytest
+
+    from gst.body import BodyModel
+    from gst.body.random_model import random_body_data
+    from gst.model.checkpoint import save_checkpoint
+    from gst.model.presets import get_preset
+    from gst.train.recipe import build_network
+    from stages.pretrain import STAGE, run
+
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    net, ids, groups = build_network(get_preset("tiny", vertex_preset="full"), body)
+    ckpt = tmp_path / "other_scene_pretrain.pt"
+    save_checkpoint(ckpt, net, "random", ids, groups)
+    ctx = _ctx(tmp_path, Params(body_model="random", reuse=ckpt))
+    run(ctx)
+    assert (ctx.staging / "models/pretrain.pt").read_bytes() == ckpt.read_bytes()
+    assert json.loads((ctx.staging / "reports/pretrain/summary.json").read_text()) == {"reused": str(ckpt)}
+    assert STAGE.inputs(ctx) == [ckpt]
+    with pytest.raises(ValueError, match="body model 'random'"):
+        run(_ctx(tmp_path / "b", Params(body_model="anny", reuse=ckpt)))
+    not_gst = tmp_path / "x.pt"
+    import torch
+    torch.save({"state_dict": {}}, not_gst)
+    with pytest.raises(ValueError, match="not a GST checkpoint"):
+        run(_ctx(tmp_path / "c", Params(reuse=not_gst)))
