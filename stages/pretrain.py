@@ -1,9 +1,9 @@
 """pretrain: supervised pretraining on synthetic people, our stand-in for HMR2's 3D-labelled start.
 
 It renders its own corpus of small synthetic worlds, each with its own seed, rig (dome or H36M
-style, field of view drawn per world), people, outfits and motions (every third world holds
+style, field of view drawn per world), person, outfit and motions (every third world holds
 independent random poses), cuts crops with exact truth, and trains the network with 3D joint and
-parameter supervision on jittered crops (`gst.train.augment`). One more world is rendered and
+parameter supervision (optionally on jittered crops, `gst.train.augment`). One more world is rendered and
 never trained on: pose validation, the reported MPJPE and the choice of the kept checkpoint
 use it, so the number says how the model does on people and cameras it has not seen. Writes
 `models/pretrain.pt` (a GST checkpoint) and `reports/pretrain/`.
@@ -40,13 +40,13 @@ class Params(StageParams):
     worlds: int = 12  # worlds trained on; one more (unseen) validates
     world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds
     world_cameras: int = 6
-    world_frames: int = 30  # per world
+    world_frames: int = 40  # per world
     world_fps: float = 10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
-    world_people: int = 3
+    world_people: int = 1  # one person per crop: with 3, crowded crops stalled learning (docs/training.md)
     world_fov_deg: tuple[float, float] = (40.0, 75.0)  # horizontal field of view, drawn per world
     static_every: int = 3  # every Nth world holds independent random poses instead of motions (0: none)
     crop_size: int = 128  # the tiny preset's input is 128x96; larger presets want 256
-    augment: bool = True  # box (zoom/shift) and colour jitter of the supervised crops
+    augment: bool = False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     mode: Literal["3d", "pretrain"] = "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
     steps: int = 1000
     batch_size: int = 8
