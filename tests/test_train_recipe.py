@@ -53,6 +53,10 @@ def test_fit_gst_modes(tmp_path, mode, heldout):
     assert all(math.isfinite(v) for v in summary["after"].values())
     if heldout:
         assert {"psnr", "ssim", "silhouette_iou"} <= set(summary["after"])
+        import csv
+        vals = [float(r["val_silhouette_iou"]) for r in csv.DictReader(open(tmp_path / "log.csv"))
+                if r.get("val_silhouette_iou")]
+        assert vals and summary["best"] == max(vals)  # IoU, not PSNR: fading to black must not win
     assert "mpjpe_mm" in summary["after"]
     reloaded = network_from_checkpoint(load_checkpoint(tmp_path / "best.pt"))
     assert reloaded.num_query_tokens == 5 * 26 + 1

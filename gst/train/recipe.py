@@ -158,9 +158,11 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
                 "body_model": body_spec, "vertex_ids": torch.as_tensor(vertex_ids, dtype=torch.long),
                 "group_index": torch.as_tensor(group_index, dtype=torch.long), "extra": {"mode": opts.mode}}
 
-    best_key = "psnr" if pairs is not None else ("mpjpe_mm" if len(truth_rows) else None)
+    # Held-out silhouette IoU, not PSNR, picks the best checkpoint: with the person on black, a
+    # body that fades to transparent scores a good PSNR (black matches black) and an IoU of 0.
+    best_key = "silhouette_iou" if pairs is not None else ("mpjpe_mm" if len(truth_rows) else None)
     trainer = Trainer(model, step, sample, cfg, out_dir, val_fn=validate, best_key=best_key,
-                      best_mode="max" if best_key == "psnr" else "min", progress=progress, checkpoint_extra=extra,
+                      best_mode="max" if best_key == "silhouette_iou" else "min", progress=progress, checkpoint_extra=extra,
                       param_groups=None if opts.body_lr is None else gaussian_parameter_groups(model, cfg.lr,
                                                                                               opts.body_lr))
     model.eval()
