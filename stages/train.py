@@ -25,6 +25,7 @@ from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
 from gst.model.presets import get_preset
 from gst.render.ply import write_gaussians_ply
+from gst.train.anchors import mask_centre_anchors
 from gst.train.evaluation import novel_view_metrics, novel_view_pairs
 from gst.train.losses import LossWeights
 from gst.train.occlusion import with_occluders
@@ -51,6 +52,7 @@ class Params(StageParams):
     num_targets: int = 4
     render_size: int = 64
     ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
+    anchor: bool = True  # pull the body towards its triangulated mask centre (losses.anchor weight)
     losses: LossWeights = LossWeights()
     threads: int | None = None
 
@@ -107,6 +109,11 @@ def run(ctx: StageContext) -> None:
         with_occluders(crops)
         ctx.log.info("occluders: %.1f%% of crop pixels belong to another person", 100 * float(crops.occluders.mean()))
     heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
+    if p.anchor and p.supervision == "multiview":
+        train_cams = {i for i, c in enumerate(crops.camera_names) if c not in heldout}
+        crops.anchors = mask_centre_anchors(crops, cameras=train_cams)  # held-out masks never used
+        ctx.log.info("anchors: %d of %d crops have a triangulated mask centre",
+                     int(torch.isfinite(crops.anchors).all(1).sum()), len(crops))
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(ctx, body)
     net.freeze_backbone(p.freeze_backbone)

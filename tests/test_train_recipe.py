@@ -92,3 +92,19 @@ def test_augmented_3d_fit_validates_on_the_unseen_crops(tmp_path):
     own, unseen = fit(None, tmp_path / "a"), fit(val, tmp_path / "b")
     assert unseen["bad_steps"] == 0 and math.isfinite(unseen["after"]["mpjpe_mm"])
     assert abs(unseen["after"]["mpjpe_mm"] - own["after"]["mpjpe_mm"]) > 50
+
+
+def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
+    import csv
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    cfg = get_preset("tiny", vertex_preset="full")
+    net, ids, groups = build_network(cfg, body)
+    crops = crop_set()
+    crops.anchors = torch.zeros(len(crops), 3)
+    crops.anchors[::2] = float("nan")
+    task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
+    fit_gst(net, task, crops, TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
+            tmp_path, FitOptions(mode="multiview", num_targets=2, render_size=16), body_spec="random",
+            vertex_ids=ids, group_index=groups)
+    rows = list(csv.DictReader(open(tmp_path / "log.csv")))
+    assert all(math.isfinite(float(r["anchor"])) for r in rows)

@@ -141,4 +141,5 @@ def select_rows(crops: CropSet, rows: torch.Tensor | np.ndarray) -> CropSet:
     return CropSet(images=crops.images[r], masks=crops.masks[r], K=crops.K[r], R=crops.R[r], t=crops.t[r],
                    camera=crops.camera[r], frame=crops.frame[r], person=crops.person[r],
                    camera_names=list(crops.camera_names), truth={k: v[r] for k, v in crops.truth.items()},
-                   occluders=None if crops.occluders is None else crops.occluders[r])
+                   occluders=None if crops.occluders is None else crops.occluders[r],
+                   anchors=None if crops.anchors is None else crops.anchors[r])

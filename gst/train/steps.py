@@ -17,6 +17,7 @@ from gst.body import BodyModel
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.preprocess import network_input, to_float_images
 from gst.render import rasterize
+from gst.train.anchors import anchor_term
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
 from gst.train.occlusion import ignore_occluded
 from gst.train.views import MultiViewBatch
@@ -68,6 +69,8 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
         target, mask = ignore_occluded(out.rgb, out.alpha, target, mask, batch.target_occluders)
     parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
                         task.weights, task.lpips)
+    if batch.anchors is not None and task.weights.anchor > 0:
+        parts["anchor"] = anchor_term(pred.gaussians_world.means.mean(1), batch.anchors)
     return pred, out, target, parts
 
 

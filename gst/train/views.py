@@ -29,6 +29,7 @@ class CropSet:
     camera_names: list[str]
     truth: dict[str, torch.Tensor] = field(default_factory=dict)  # e.g. joints_world (N, 24, 3)
     occluders: torch.Tensor | None = None  # (N, S, S) other people's pixels (gst.train.occlusion)
+    anchors: torch.Tensor | None = None  # (N, 3) world point per crop, NaN if none (gst.train.anchors)
 
     def __post_init__(self):
         n = self.images.shape[0]
@@ -129,6 +130,7 @@ class MultiViewBatch:
     viewmats: torch.Tensor  # (B, M, 4, 4)
     backgrounds: torch.Tensor  # (B, M, 3) random per view, so alpha must be right to match
     target_occluders: torch.Tensor | None = None  # (B, M, r, r) other people's pixels: not supervised
+    anchors: torch.Tensor | None = None  # (B, 3) the input person's triangulated mask centre (or NaN)
 
 
 def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Generator, batch_size: int,
@@ -154,8 +156,9 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
     view, K, timg, tmask = target_views(crops, tgt, render_size)
     bg = torch.rand(*tgt.shape, 3, generator=gen)
     occ = None if crops.occluders is None else resize_images(crops.occluders[tgt][..., None], render_size)[..., 0]
+    anchors = None if crops.anchors is None else crops.anchors[inp]
     return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask, K,
-                          view, bg, occ)
+                          view, bg, occ, anchors)
 
 
 def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:
