@@ -3,7 +3,8 @@
 It renders its own corpus of small synthetic worlds, each with its own seed, rig (dome or H36M
 style, field of view drawn per world), person, outfit and motions (every third world holds
 independent random poses), cuts crops with exact truth, and trains the network with 3D joint and
-parameter supervision (optionally on jittered crops, `gst.train.augment`). One more world is rendered and
+parameter supervision (optionally on jittered crops, `gst.train.augment`), then briefly adds the
+multi-view image terms so the Gaussian head learns to render (`gaussian_steps`). One more world is rendered and
 never trained on: pose validation, the reported MPJPE and the choice of the kept checkpoint
 use it, so the number says how the model does on people and cameras it has not seen. Writes
 `models/pretrain.pt` (a GST checkpoint) and `reports/pretrain/`.
@@ -48,6 +49,11 @@ class Params(StageParams):
     crop_size: int = 128  # the tiny preset's input is 128x96; larger presets want 256
     augment: bool = False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     mode: Literal["3d", "pretrain"] = "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
+    # Then this many steps of mode "pretrain" from the kept 3d checkpoint: the Gaussian head learns
+    # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
+    # head and the demo's held-out renders come out as faint dots (docs/training.md).
+    gaussian_steps: int = 800
+    gaussian_lr: float = 2e-4
     steps: int = 1000
     batch_size: int = 8
     lr: float = 5e-4
@@ -129,10 +135,23 @@ def run(ctx: StageContext) -> None:
                       val_pose_crops=256), body_spec=p.body_model, vertex_ids=ids, group_index=groups,
                       progress=ctx.progress, val_crops=val)
     # best.pt: the lowest MPJPE on the unseen world (early stopping against memorising the corpus).
-    shutil.copyfile(out / ("best.pt" if (out / "best.pt").is_file() else "last.pt"), ctx.out("models/pretrain.pt"))
+    kept = out / ("best.pt" if (out / "best.pt").is_file() else "last.pt")
     reports = ctx.out("reports/pretrain")
     reports.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "log.csv", reports / "log.csv")
+    if p.mode == "3d" and p.gaussian_steps > 0:
+        net.load_state_dict(load_checkpoint(kept)["model"])
+        task = make_task(body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None)
+        gauss_out = ctx.out("models/pretrain_gaussians")
+        gcfg = TrainConfig(steps=p.gaussian_steps, batch_size=p.batch_size, lr=p.gaussian_lr,
+                           warmup_steps=min(20, p.gaussian_steps // 10), val_every=p.gaussian_steps, ckpt_every=25,
+                           log_every=5)
+        summary["gaussians"] = fit_gst(net, task, crops, gcfg, gauss_out, FitOptions(
+            mode="pretrain", num_targets=p.num_targets, render_size=p.render_size, val_pose_crops=256),
+            body_spec=p.body_model, vertex_ids=ids, group_index=groups, progress=ctx.progress, val_crops=val)
+        kept = gauss_out / "last.pt"  # the pose barely moves here; the head keeps learning to the end
+        shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
+    shutil.copyfile(kept, ctx.out("models/pretrain.pt"))
     summary.update(corpus={"worlds": [s["name"] for s in specs[:-1]], "validation_world": specs[-1]["name"],
                            "train_crops": len(crops), "validation_crops": len(val)})
     (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
@@ -140,6 +159,7 @@ def run(ctx: StageContext) -> None:
                  summary["before"].get("mpjpe_mm", float("nan")), summary["after"].get("mpjpe_mm", float("nan")),
                  summary.get("best") or float("nan"))
     shutil.rmtree(out)
+    shutil.rmtree(ctx.staging / "models" / "pretrain_gaussians", ignore_errors=True)
     shutil.rmtree(ctx.staging / "worlds")
 
 

@@ -25,7 +25,7 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
     assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0, capsys.readouterr().err
     ws = tmp_path / "ws" / "tiny"
     for rel in ("calibration/rig.json", "crops/crops.h5", "models/pretrain.pt", "models/gst.pt", "models/example.ply",
-                "reports/train/summary.md", "reports/train/novel_views.png"):
+                "reports/train/summary.md", "reports/train/novel_views.png", "reports/pretrain/log_gaussians.csv"):
         assert (ws / rel).is_file(), rel
     tables = [read_tracks(p) for p in sorted((ws / "tracks").glob("video=*/tracks.parquet"))]
     assert len(tables) == 3
