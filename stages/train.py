@@ -28,7 +28,7 @@ from gst.render.ply import write_gaussians_ply
 from gst.train.anchors import mask_centre_anchors
 from gst.train.evaluation import novel_view_metrics, novel_view_pairs
 from gst.train.losses import LossWeights
-from gst.train.occlusion import with_occluders
+from gst.train.occlusion import occluder_masks
 from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
 from gst.train.steps import predict
 from gst.train.trainer import TrainConfig
@@ -109,7 +109,7 @@ def run(ctx: StageContext) -> None:
         raise ValueError(f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
                          f"have; scene '{ctx.scene_name}' is real: use supervision=multiview")
     if p.ignore_occluders and p.supervision == "multiview":
-        with_occluders(crops)
+        crops.occluders = occluder_masks(crops)
         ctx.log.info("occluders: %.1f%% of crop pixels belong to another person", 100 * float(crops.occluders.mean()))
     heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
     if p.anchor and p.supervision == "multiview":

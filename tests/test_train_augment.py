@@ -123,3 +123,13 @@ def test_concat_keeps_worlds_apart():
         assert len(names) == 1
     with pytest.raises(ValueError, match="truth keys"):
         concat_crop_sets([a, _set(1, ["c0"], truth_keys=("betas",))], ["w0", "w1"])
+
+
+def test_concat_carries_occluders_and_anchors_or_refuses_to_drop_them():
+    a, b = _set(1, ["c0"]), _set(1, ["c0"])
+    a.anchors, b.anchors = torch.zeros(len(a), 3), torch.ones(len(b), 3)
+    both = concat_crop_sets([a, b], ["w0", "w1"])
+    assert torch.equal(both.anchors, torch.cat([a.anchors, b.anchors])) and both.occluders is None
+    b.anchors = None
+    with pytest.raises(ValueError, match="anchors"):
+        concat_crop_sets([a, b], ["w0", "w1"])

@@ -37,12 +37,6 @@ def occluder_masks(crops: CropSet) -> torch.Tensor:
     return out
 
 
-def with_occluders(crops: CropSet) -> CropSet:
-    """The same crop set with `occluders` filled in (see occluder_masks)."""
-    crops.occluders = occluder_masks(crops)
-    return crops
-
-
 def ignore_occluded(rgb: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
                     occluders: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Targets that agree with the render wherever another person hides this one, so those pixels

@@ -76,12 +76,18 @@ def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
         cam_offset += len(s.camera_names)
         frame_offset += int(s.frame.max()) + 1 if len(s) else 0
 
-    def cat(name: str) -> torch.Tensor:
-        return torch.cat([getattr(s, name) for s in sets])
+    def cat(name: str) -> torch.Tensor | None:
+        parts = [getattr(s, name) for s in sets]
+        if all(x is None for x in parts):
+            return None
+        if any(x is None for x in parts):
+            raise ValueError(f"concat_crop_sets: some crop sets have {name}, others do not")
+        return torch.cat(parts)
 
     return CropSet(images=cat("images"), masks=cat("masks"), K=cat("K"), R=cat("R"), t=cat("t"),
                    camera=torch.cat(cams), frame=torch.cat(frames), person=cat("person"), camera_names=names,
-                   truth={k: torch.cat([s.truth[k] for s in sets]) for k in keys})
+                   truth={k: torch.cat([s.truth[k] for s in sets]) for k in keys}, occluders=cat("occluders"),
+                   anchors=cat("anchors"))
 
 
 def scale_intrinsics(K: torch.Tensor, factor: float) -> torch.Tensor:
