@@ -70,6 +70,8 @@ class SceneConfig(Strict):
     board: BoardSource | None = None
     masks: Path | None = None  # externally supplied masks/boxes (see docs/formats)
     fps: float | None = Field(default=None, gt=0)
+    # Stage parameters for this scene only: {stage: {key: value}}, over stages.STAGE.params.
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -107,6 +109,11 @@ class PipelineConfig(Strict):
                     raise ValueError(
                         f"stages.{name}.needs: unknown stage '{dep}' (declared stages: {sorted(self.stages)})"
                     )
+        for scene_name, scene in self.scenes.items():
+            for name in scene.params:
+                if name not in self.stages:
+                    raise ValueError(f"scenes.{scene_name}.params: unknown stage '{name}' "
+                                     f"(declared stages: {sorted(self.stages)})")
         if self.default_scene is not None and self.default_scene not in self.scenes:
             raise ValueError(f"default_scene: '{self.default_scene}' is not a scene (scenes: {sorted(self.scenes)})")
         return self
@@ -184,7 +191,8 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 def apply_override(raw: dict, parts: list[str], value: Any) -> None:
     """Apply a parsed override to the raw YAML dict. `stage.k=v` sets stages.stage.params.k;
-    keys starting with a top-level section (workspace, executor, scenes, ...) are set directly."""
+    keys starting with a top-level section (workspace, executor, scenes, ...) are set directly.
+    A stage override also removes that key from every scene's `params` for the stage."""
     top_level = set(PipelineConfig.model_fields)
     if parts[0] in top_level:
         path = parts
@@ -196,6 +204,11 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> None:
                 f"nor a top-level key ({sorted(top_level)})"
             )
         path = ["stages", parts[0], "params", *parts[1:]]
+        # --set wins over a scene's own value of that parameter.
+        for scene in (raw.get("scenes") or {}).values():
+            scene_params = ((scene or {}).get("params") or {}).get(parts[0])
+            if isinstance(scene_params, dict) and len(parts) > 1:
+                scene_params.pop(parts[1], None)
     node = raw
     for p in path[:-1]:
         nxt = node.get(p)

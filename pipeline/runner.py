@@ -91,11 +91,18 @@ class Runner:
     def _validate_params(self, name: str):
         model = self.stages[name].params_model
         try:
-            return model.model_validate(self.cfg.stages[name].params)
+            return model.model_validate({**self.cfg.stages[name].params, **self.scene.params.get(name, {})})
         except ValidationError as exc:
-            # Prefix locations with the YAML path of the params block.
+            # Prefix locations with the YAML path of the params block(s).
+            where = f"stages.{name}.params" + (f" / scenes.{self.scene_name}.params.{name}"
+                                               if name in self.scene.params else "")
             msg = format_validation_error(exc, "pipeline.yaml")
-            raise ConfigError(msg.replace("pipeline.yaml: ", f"pipeline.yaml: stages.{name}.params.")) from None
+            raise ConfigError(msg.replace("pipeline.yaml: ", f"pipeline.yaml: {where}.")) from None
+
+    def _scene_record(self) -> dict:
+        # Scene-level stage params reach each stage through its merged params; leaving them out
+        # here keeps a change for one stage from invalidating the others.
+        return self.scene.model_dump(mode="json", exclude={"params"})
 
     def context(self, name: str) -> StageContext:
         return StageContext(
@@ -153,7 +160,7 @@ class Runner:
             return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
         inputs = self._inputs(name, ctx)
         code = _code_version(stage)
-        scene = self.scene.model_dump(mode="json")
+        scene = self._scene_record()
         fp = stage_fingerprint(code, {"params": params, "scene": scene}, inputs)
         if record is None:
             interrupted = (self.meta / "staging" / name).exists()
@@ -261,7 +268,7 @@ class Runner:
         record = {
             "stage": name, "key": st.key, "scene": self.scene_name, "fingerprint": st.fingerprint,
             "code": _code_version(stage), "params": ctx.params.model_dump(mode="json"),
-            "scene_config": self.scene.model_dump(mode="json"),
+            "scene_config": self._scene_record(),
             "inputs": self._inputs(name, ctx), "outputs": digests,
             "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "seconds": round(time.perf_counter() - t0, 3),
         }

@@ -1,7 +1,8 @@
 """extract: person crops, masks and crop intrinsics from every camera into `crops/crops.h5`.
 
 Library: `gst.data.extract_scene` (docs/extract.md, docs/formats/crops_h5.md). Supplied
-masks/boxes (`scenes.NAME.masks`) take precedence over the background model. Synthetic scenes
+masks/boxes (`scenes.NAME.masks`) take precedence over the background model; `person_model:
+blazepose` segments people with a learned model instead (real footage, people who stand still). Synthetic scenes
 learn their background from the board clip, which shows the empty stage (the board moves, so
 the temporal median removes it); real scenes can name empty-room clips in `background_videos`.
 """
@@ -13,6 +14,7 @@ from typing import Literal
 
 from calibration.formats import read_rig
 from gst.data import AssociationConfig, ExtractOptions, extract_scene, write_extract_report
+from gst.detect.persons import SegmenterConfig
 from pipeline.stage import Stage, StageContext, StageParams
 
 
@@ -26,6 +28,10 @@ class Params(StageParams):
     # Overrides of gst.data.AssociationConfig, e.g. {merge_radius: 0.6, peak_separation: 0.8}
     # for a capture where people stay >= 0.8 m apart and lunge (the real lab scene).
     association: dict[str, float | int] | None = None
+    # 'blazepose': learned person masks (finds people who stand still; needs the `detect` extra
+    # and `python -m gst.detect fetch`, docs/person_models.md). 'none': background model only.
+    person_model: Literal["none", "blazepose"] = "none"
+    person_hints: bool = True  # also segment around moving background blobs
 
 
 def _videos(ctx: StageContext) -> dict[str, Path]:
@@ -50,7 +56,9 @@ def run(ctx: StageContext) -> None:
                            method=p.method, external=ctx.scene.masks, truth=truth, progress=ctx.progress,
                            executor_map=executor_map,
                            options=ExtractOptions(background_videos=plates,
-                                                  association=AssociationConfig(**(p.association or {}))))
+                                                  association=AssociationConfig(**(p.association or {})),
+                                                  persons=SegmenterConfig() if p.person_model == "blazepose" else None,
+                                                  persons_hints=p.person_hints))
     write_extract_report(report, store, ctx.out("reports/extract"))
     ctx.log.info("extract: %d crops of %d people, %d multi-view groups; mask IoU %s; association %s",
                  report.crops, report.persons, report.multiview_groups, report.mask_iou, report.association_accuracy)

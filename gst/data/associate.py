@@ -54,6 +54,11 @@ class AssociationConfig:
     link_max_gap: int = 60  # processed frames between the end of one piece and the next
     link_speed: float = 2.0  # m/s: a person's typical displacement speed over a gap
     link_slack: float = 0.5  # m: centroid jitter tolerated on top
+    # Masks are person instances (a learned segmenter): a hull component whose voxels land on
+    # different instances in at least `min_views` cameras is split along them, however close
+    # the people stand. Off for background-subtraction blobs, where one body can be two blobs.
+    instance_split: bool = False
+    instance_share: float = 0.2  # an instance must hold this share of a component's voxels in a view
 
     def __post_init__(self):
         if self.voxel_size <= 0:
@@ -313,11 +318,75 @@ class VoxelGrid:
         for k in range(n):
             vox = occ_idx[order[bounds[k]:bounds[k + 1]]]
             for part in self._split_component(vox):
-                out.append(self._person(part, strict))
+                pieces = self._split_by_instances(part, labels) if cfg.instance_split and labels else [part]
+                out.extend(self._person(piece, strict) for piece in pieces)
         out = self._merge_stacked(out, strict)
         if labels is not None:
             out = self._merge_same_blobs(out, strict, labels)
         return [p for p in out if len(p.voxels) * v ** 3 >= cfg.min_person_volume and p.height >= cfg.min_person_height]
+
+    def _split_by_instances(self, vox: np.ndarray, labels: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """Split a component along person instances when the cameras agree it holds several.
+
+        Per camera, the instances holding at least `instance_share` of the component's labelled
+        voxels are its people there. With at least two such instances in `min_views` cameras,
+        the camera that separates the component most evenly gives a first grouping. Then every
+        camera votes: each of its instances goes to the group most of its voxels are in (when
+        that group holds at least 60% of them), and each voxel takes the group most cameras vote
+        for. A voxel hidden behind another person in one view is outvoted by the other views.
+        Voxels nobody votes for go to the nearest group on the ground.
+        """
+        cfg = self.config
+        names = [n for n in self.names if n in labels]
+        lab = np.zeros((len(names), len(vox)), dtype=np.int64)
+        for c, n in enumerate(names):
+            p = self.pixel[n][vox]
+            ok = p >= 0
+            lab[c, ok] = labels[n].reshape(-1)[p[ok]]
+        best: tuple[float, int, np.ndarray] | None = None
+        separating = 0
+        for c in range(len(names)):
+            counts = np.bincount(lab[c], minlength=2)
+            counts[0] = 0
+            total = counts.sum()
+            if total == 0:
+                continue
+            big = np.nonzero(counts >= cfg.instance_share * total)[0]
+            if len(big) < 2:
+                continue
+            separating += 1
+            balance = float(np.sort(counts[big])[-2] / total)  # share of the second largest
+            if best is None or balance > best[0]:
+                best = (balance, c, big)
+        if best is None or separating < cfg.min_views:
+            return [vox]
+        _, seed, big = best
+        n_groups = len(big)
+        group = np.full(len(vox), -1)
+        for g, value in enumerate(big):
+            group[lab[seed] == value] = g
+        for _ in range(3):
+            votes = np.zeros((len(vox), n_groups), dtype=np.int64)
+            for c in range(len(names)):
+                for value in np.unique(lab[c][lab[c] > 0]):
+                    members = lab[c] == value
+                    counts = np.bincount(group[members & (group >= 0)], minlength=n_groups)
+                    if counts.sum() and counts.max() >= 0.6 * counts.sum():
+                        votes[members, counts.argmax()] += 1
+            voted = votes.max(axis=1) > 0
+            group = np.where(voted, votes.argmax(axis=1), -1)
+        ground = self.ground[vox]
+        centres = [ground[group == g].mean(axis=0) for g in range(n_groups) if (group == g).any()]
+        if len(centres) < 2:
+            return [vox]
+        centres = np.array(centres)
+        kept = [g for g in range(n_groups) if (group == g).any()]
+        remap = {g: i for i, g in enumerate(kept)}
+        group = np.array([remap.get(int(g), -1) for g in group])
+        rest = group < 0
+        if rest.any():
+            group[rest] = ((ground[rest, None, :] - centres[None]) ** 2).sum(-1).argmin(axis=1)
+        return [vox[group == g] for g in range(len(kept))]
 
     def _merge_same_blobs(self, cands: list[Person3D], strict: np.ndarray,
                           labels: dict[str, np.ndarray]) -> list[Person3D]:
@@ -402,6 +471,8 @@ class VoxelGrid:
         real people are accepted, it explains almost nothing new.
         """
         cfg = self.config
+        if cfg.instance_split:
+            return self._select_instance_owners(cands, labels)
         names = [n for n in self.names if n in labels]
         fg = {n: labels[n] > 0 for n in names}
         feet = [{n: self.footprint(n, c, labels[n].shape) & fg[n] for n in names} for c in cands]
@@ -428,6 +499,32 @@ class VoxelGrid:
                 explained[n] |= feet[best][n]
         return [cands[k] for k in sorted(chosen)]
 
+    def _select_instance_owners(self, cands: list[Person3D], labels: dict[str, np.ndarray]) -> list[Person3D]:
+        """With instance masks: keep the candidates that own an instance in `min_views` cameras.
+
+        In each camera every instance belongs to the candidate with the most core voxels on it.
+        A real person is the top voter of its own instance in most views; a ghost (where two
+        people's viewing cones cross) lands on instances that their own people vote for more.
+        Footprints cannot decide this when people overlap in the image.
+        """
+        owned = np.zeros(len(cands), dtype=np.int64)
+        for n in self.names:
+            if n not in labels or not cands:
+                continue
+            flat = labels[n].reshape(-1)
+            n_inst = int(flat.max()) + 1
+            votes = np.zeros((len(cands), n_inst), dtype=np.int64)
+            for k, c in enumerate(cands):
+                p = self.pixel[n][c.core]
+                p = p[p >= 0]
+                if len(p):
+                    votes[k] = np.bincount(flat[p], minlength=n_inst)
+            votes[:, 0] = 0
+            owners = {int(votes[:, b].argmax()) for b in range(1, n_inst) if votes[:, b].max() > 0}
+            for k in owners:
+                owned[k] += 1
+        return [c for k, c in enumerate(cands) if owned[k] >= self.config.min_views]
+
     def person_labels(self, name: str, labels: np.ndarray, persons: list[Person3D]) -> np.ndarray:
         """Split camera `name`'s foreground blobs among the people; returns a label image with
         value k + 1 for persons[k] (uint8, so at most 254 people)."""
@@ -453,7 +550,10 @@ class VoxelGrid:
             top = votes[:, b].max()
             if top == 0:
                 continue
-            owners = np.nonzero(votes[:, b] >= max(1, cfg.owner_ratio * top))[0]
+            if cfg.instance_split:  # a blob is one person's instance mask: it has one owner
+                owners = np.array([votes[:, b].argmax()])
+            else:
+                owners = np.nonzero(votes[:, b] >= max(1, cfg.owner_ratio * top))[0]
             blob = labels == b
             if len(owners) == 1:
                 out[blob] = owners[0] + 1

@@ -23,7 +23,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -59,6 +59,9 @@ from gst.data.external import (
 from gst.data.masks import MaskConfig, clean_mask
 from gst.data.store import CropBatch, CropStore, CropStoreWriter
 from gst.data.video import VideoError, check_videos, probe_video, read_frames, scaled_size
+from gst.detect.blazepose import BlazePose
+from gst.detect.persons import PersonSegmenter, SegmenterConfig
+from gst.detect.weights import model_paths
 
 WORK_MAX_SIDE = 960  # default work resolution: longer image side in pixels
 
@@ -83,6 +86,12 @@ class ExtractOptions:
     # camera -> video of the empty scene (a "clean plate"): the background is learnt from it
     # instead of the capture itself, which is what makes people who barely move visible.
     background_videos: dict[str, Path] | None = None
+    # Learned person masks (BlazePose, gst.detect) instead of background subtraction: finds
+    # people who stand still. None: background model only.
+    persons: SegmenterConfig | None = None
+    persons_models_dir: str | None = None  # None: the default cache (python -m gst.detect fetch)
+    # Also segment around moving background blobs (finds movers the detector misses).
+    persons_hints: bool = True
 
 
 @dataclass
@@ -144,6 +153,9 @@ class MaskJob:
     clean_plate: str | None = None  # video of the empty scene to learn the background from
     external_boxes: dict | None = None  # frame -> [(person_id, box)] in full-resolution pixels
     cache_bytes: int = 1 << 30  # decode once and keep work frames in memory up to this size
+    persons: SegmenterConfig | None = None  # learned person masks instead of the background model
+    persons_models_dir: str | None = None
+    persons_hints: bool = True
 
 
 @dataclass(frozen=True)
@@ -203,9 +215,14 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
             samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
         model = build_background(samples, job.background)
         del samples
+        segmenter = None
+        if job.persons is not None:
+            segmenter = PersonSegmenter(BlazePose(job.persons_models_dir), job.persons)
         frames_iter = ((f, cache.pop(f)) for f in job.frames) if cache else read_frames(job.video, job.frames, job.camera, sx)
         for f, img in frames_iter:
-            lab, _ = clean_mask(model.foreground(img), job.masks)
+            lab, blobs = clean_mask(model.foreground(img), job.masks)
+            if segmenter is not None:
+                lab, _ = segmenter.segment(img, [b.box for b in blobs] if job.persons_hints else ())
             if job.external_boxes is not None:
                 lab = boxes_to_labels(lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1]))
             labels[pos[f]] = lab
@@ -597,6 +614,10 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
         if (info.width, info.height) != sizes[n]:
             raise VideoError(f"camera '{n}' background video {p}: frames are {info.width}x{info.height}, "
                              f"the camera's video is {sizes[n][0]}x{sizes[n][1]}")
+    if opts.persons is not None:
+        model_paths(opts.persons_models_dir)  # fail now, with the fix, rather than in a worker
+        # Learned masks are person instances: split hull components along them.
+        opts = replace(opts, association=replace(opts.association, instance_split=True))
     truth_dir = _resolve_truth(truth)
     truth_files = {n: find_mask_file(truth_dir, n) for n in names} if truth_dir else {}
 
@@ -613,7 +634,8 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
                                         opts.work_scale, None if opts.volume is None else
                                         [opts.volume.basis.tolist(), opts.volume.lo.tolist(), opts.volume.hi.tolist()],
                                         str(getattr(ext, "root", None)), [_camera_signature(rig[n]) for n in names],
-                                        {n: str(p) for n, p in sorted(plates.items())}])}
+                                        {n: str(p) for n, p in sorted(plates.items())},
+                                        None if opts.persons is None else [asdict(opts.persons), opts.persons_hints]])}
     work = out_h5.with_name(out_h5.name + ".work")
     work_key = _fingerprint([settings, {n: [str(p), os.path.getsize(p), os.path.getmtime(p)] for n, p in videos.items()}])
     marker = work / "settings.json"
@@ -641,7 +663,9 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
                 jobs.append(MaskJob(n, str(videos[n]), tuple(frames), n_frames, sizes[n], work_sizes[n], bg_cfg,
                                     opts.masks, str(work / f"labels_{n}.h5"),
                                     external_masks=str(ext.mask_files[n]) if ext is not None and n in ext.mask_files else None,
-                                    external_boxes=boxes, clean_plate=str(plates[n]) if n in plates else None))
+                                    external_boxes=boxes, clean_plate=str(plates[n]) if n in plates else None,
+                                    persons=opts.persons, persons_models_dir=opts.persons_models_dir,
+                                    persons_hints=opts.persons_hints))
             for r in _map(executor_map, compute_camera_masks, jobs, "foreground masks per camera"):
                 per_cam[r.camera].seconds_masks = r.seconds
                 if r.frames_with_blobs == 0:

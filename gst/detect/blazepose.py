@@ -1,0 +1,248 @@
+"""BlazePose on CPU through LiteRT: person detection, 33 landmarks and a segmentation mask per person.
+
+Two TFLite models (see `gst.detect.weights`) run in the `ai-edge-litert` interpreter:
+
+- the detector takes the frame letterboxed to 224x224 RGB in [-1, 1] and scores 2254 SSD
+  anchors. Each anchor regresses a box and 4 keypoints: hip centre, a point on the full-body
+  circle, shoulder centre, a point on the upper-body circle. Scores go through a sigmoid (logits
+  clipped to +-100); overlapping detections are merged by score-weighted averaging
+  (MediaPipe's "weighted NMS", IoU 0.3).
+- the landmark model takes a rotated square region of interest, 256x256 RGB in [0, 1], and
+  returns 39 landmarks (33 body + alignment points), a presence score, and 256x256
+  segmentation logits of that person.
+
+A region of interest comes from the hip centre and the full-body point: centre at the hips,
+side 2.5 x their distance, rotated so that the body axis points up. It can also come from a
+box (e.g. a background-subtraction blob), or from the previous frame's landmarks (tracking).
+Portrait or landscape frames are also scanned in overlapping square tiles, so that people who
+are small in the full letterboxed frame are still found.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gst.detect.weights import model_paths
+
+DETECTOR_SIZE = 224
+LANDMARK_SIZE = 256
+N_BODY_LANDMARKS = 33
+ROI_SCALE = 1.25  # the region is 1.25 x the body circle's diameter (MediaPipe's setting)
+
+
+# --- detector: anchors and decoding ------------------------------------------------------------
+
+def ssd_anchors() -> np.ndarray:
+    """(2254, 2) anchor centres in [0, 1] of BlazePose's detector.
+
+    Five SSD layers with strides 8, 16, 32, 32, 32 over a 224 input; layers with the same
+    stride share one grid, and each layer adds 2 anchors per cell (aspect 1 and the
+    interpolated scale). With fixed anchor size all anchors of a cell are the same point, so
+    the layout is 28x28x2, 14x14x2 and 7x7x6, cells in row-major order.
+    """
+    centres = []
+    for stride, per_cell in ((8, 2), (16, 2), (32, 6)):
+        n = math.ceil(DETECTOR_SIZE / stride)
+        ys, xs = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n, indexing="ij")
+        cell = np.stack([xs.ravel(), ys.ravel()], axis=1)
+        centres.append(np.repeat(cell, per_cell, axis=0))
+    return np.concatenate(centres).astype(np.float32)
+
+
+_ANCHORS = ssd_anchors()
+
+
+@dataclass(frozen=True)
+class PoseDetection:
+    """One detected person in image pixels."""
+
+    score: float
+    box: np.ndarray        # (4,) x0, y0, x1, y1 of the detector's box (face and upper body)
+    keypoints: np.ndarray  # (4, 2): hip centre, full-body circle point, shoulder centre, upper-body point
+
+
+def decode_detections(regressors: np.ndarray, logits: np.ndarray, min_score: float = 0.5
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw detector outputs (2254, 12) and (2254,) -> scores (n,), boxes (n, 4), keypoints (n, 4, 2)
+    in [0, 1] coordinates of the detector input, for the anchors scoring at least `min_score`."""
+    if regressors.shape != (len(_ANCHORS), 12) or logits.shape != (len(_ANCHORS),):
+        raise ValueError(f"detector outputs must be ({len(_ANCHORS)}, 12) and ({len(_ANCHORS)},), "
+                         f"got {regressors.shape} and {logits.shape}")
+    scores = 1.0 / (1.0 + np.exp(-np.clip(logits.astype(np.float64), -100.0, 100.0)))
+    keep = scores >= min_score
+    reg, anchors = regressors[keep] / DETECTOR_SIZE, _ANCHORS[keep]
+    centre = reg[:, :2] + anchors
+    half = reg[:, 2:4] / 2
+    boxes = np.concatenate([centre - half, centre + half], axis=1)
+    keypoints = reg[:, 4:12].reshape(-1, 4, 2) + anchors[:, None, :]
+    return scores[keep], boxes, keypoints
+
+
+def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """IoU of one (4,) x0, y0, x1, y1 box with each of (n, 4) boxes."""
+    lo = np.maximum(box[:2], boxes[:, :2])
+    hi = np.minimum(box[2:], boxes[:, 2:])
+    inter = np.prod(np.clip(hi - lo, 0, None), axis=1)
+    area = lambda b: np.prod(np.clip(b[..., 2:] - b[..., :2], 0, None), axis=-1)  # noqa: E731
+    union = area(box) + area(boxes) - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def weighted_nms(scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, iou: float = 0.3
+                 ) -> list[PoseDetection]:
+    """Merge detections that overlap by more than `iou`: the best score is kept, and its box and
+    keypoints become the score-weighted mean of its group (steadier than keeping one anchor)."""
+    order = np.argsort(-scores, kind="stable")
+    free = np.ones(len(scores), dtype=bool)
+    out = []
+    for i in order:
+        if not free[i]:
+            continue
+        group = free & (box_iou(boxes[i], boxes) > iou)
+        group[i] = True
+        free &= ~group
+        w = scores[group] / scores[group].sum()
+        out.append(PoseDetection(float(scores[i]), (boxes[group] * w[:, None]).sum(0),
+                                 (keypoints[group] * w[:, None, None]).sum(0)))
+    return out
+
+
+def square_windows(width: int, height: int) -> list[tuple[int, int, int]]:
+    """(x0, y0, side) of the squares scanned: the whole frame letterboxed, plus overlapping
+    squares along the longer side when the frame is not square (none for a square frame)."""
+    side = max(width, height)
+    wins = [((width - side) // 2, (height - side) // 2, side)]
+    short, long_ = min(width, height), max(width, height)
+    if long_ > 1.2 * short:
+        n = max(2, math.ceil((long_ - short) / (0.75 * short)) + 1)
+        for k in range(n):
+            off = round(k * (long_ - short) / (n - 1))
+            wins.append((off, 0, short) if width > height else (0, off, short))
+    return wins
+
+
+# --- regions of interest ---------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BodyRoi:
+    """A rotated square around one person, in image pixels."""
+
+    centre: tuple[float, float]
+    side: float
+    angle: float  # radians; the region's "up" is the image's up rotated by this angle
+
+    def to_crop(self, size: int) -> np.ndarray:
+        """2x3 affine matrix from image pixels to the size x size crop."""
+        c, s = math.cos(self.angle), math.sin(self.angle)
+        cx, cy = self.centre
+
+        def corner(u: float, v: float) -> list[float]:
+            x, y = u * self.side, v * self.side
+            return [cx + x * c - y * s, cy + x * s + y * c]
+
+        src = np.float32([corner(-0.5, -0.5), corner(0.5, -0.5), corner(-0.5, 0.5)])
+        dst = np.float32([[0, 0], [size, 0], [0, size]])
+        return cv2.getAffineTransform(src, dst)
+
+
+def roi_from_alignment(centre: np.ndarray, scale_point: np.ndarray) -> BodyRoi:
+    """Region from the hip centre and the full-body circle point (detector keypoints 0 and 1, or
+    landmarks 33 and 34): side ROI_SCALE x the circle's diameter, body axis turned upright."""
+    d = np.asarray(scale_point, np.float64) - np.asarray(centre, np.float64)
+    radius = float(np.hypot(*d))
+    # The target angle is 90 degrees: the centre -> scale-point vector should point up.
+    angle = math.pi / 2 - math.atan2(-d[1], d[0])
+    angle = (angle + math.pi) % (2 * math.pi) - math.pi
+    return BodyRoi((float(centre[0]), float(centre[1])), 2 * radius * ROI_SCALE, angle)
+
+
+def roi_from_box(box: tuple[float, float, float, float]) -> BodyRoi:
+    """Upright region around an x, y, w, h person box (a whole body): side 1.25 x its longer side."""
+    x, y, w, h = box
+    return BodyRoi((x + w / 2, y + h / 2), ROI_SCALE * max(w, h), 0.0)
+
+
+# --- the models ------------------------------------------------------------------------------
+
+def _interpreter(path: Path, threads: int):
+    try:
+        from ai_edge_litert.interpreter import Interpreter
+    except ImportError as exc:  # the optional extra is not installed
+        raise ImportError("the BlazePose person models need the LiteRT interpreter: "
+                          "pip install -e \".[detect]\" (package ai-edge-litert)") from exc
+    it = Interpreter(model_path=str(path), num_threads=threads)
+    it.allocate_tensors()
+    return it
+
+
+def _outputs_by_shape(it) -> dict[tuple[int, ...], np.ndarray]:
+    return {tuple(int(v) for v in d["shape"]): it.get_tensor(d["index"]) for d in it.get_output_details()}
+
+
+@dataclass(frozen=True)
+class PersonSegment:
+    """The landmark model's answer for one region, mapped back to the image."""
+
+    presence: float             # probability that a person is in the region
+    probability: np.ndarray     # (H, W) float32 person probability in the image (0 outside the region)
+    landmarks: np.ndarray       # (33, 3) x, y in image pixels and visibility in [0, 1]
+    next_roi: BodyRoi           # where this person is expected in the next frame
+
+
+class BlazePose:
+    """Person detector plus landmark/segmentation model. Not thread-safe: one per worker."""
+
+    def __init__(self, models_dir: str | Path | None = None, threads: int = 1, min_score: float = 0.5):
+        paths = model_paths(models_dir)
+        self.detector = _interpreter(paths["detector"], threads)
+        self.landmarker = _interpreter(paths["landmarks"], threads)
+        self.min_score = min_score
+
+    def detect(self, image: np.ndarray) -> list[PoseDetection]:
+        """People in a BGR image: every scan window, merged by weighted NMS, in image pixels."""
+        h, w = image.shape[:2]
+        rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        scores, boxes, kps = [], [], []
+        inp = self.detector.get_input_details()[0]["index"]
+        for x0, y0, side in square_windows(w, h):
+            # Cut the window out of a zero-padded frame (the full-frame window is a letterbox).
+            m = np.float32([[DETECTOR_SIZE / side, 0, -x0 * DETECTOR_SIZE / side],
+                            [0, DETECTOR_SIZE / side, -y0 * DETECTOR_SIZE / side]])
+            win = cv2.warpAffine(rgb, m, (DETECTOR_SIZE, DETECTOR_SIZE), flags=cv2.INTER_AREA,
+                                 borderMode=cv2.BORDER_CONSTANT)
+            self.detector.set_tensor(inp, (win.astype(np.float32) / 127.5 - 1.0)[None])
+            self.detector.invoke()
+            out = _outputs_by_shape(self.detector)
+            s, b, k = decode_detections(out[(1, len(_ANCHORS), 12)][0], out[(1, len(_ANCHORS), 1)][0, :, 0],
+                                        self.min_score)
+            offset = np.array([x0, y0], np.float32)
+            scores.append(s)
+            boxes.append(b * side + np.tile(offset, 2))
+            kps.append(k * side + offset)
+        return weighted_nms(np.concatenate(scores), np.concatenate(boxes), np.concatenate(kps))
+
+    def segment(self, image: np.ndarray, roi: BodyRoi) -> PersonSegment:
+        """Landmarks and segmentation of the person in `roi` of a BGR image."""
+        h, w = image.shape[:2]
+        to_crop = roi.to_crop(LANDMARK_SIZE)
+        crop = cv2.warpAffine(image, to_crop, (LANDMARK_SIZE, LANDMARK_SIZE), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT)
+        rgb = cv2.cvtColor(crop, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+        self.landmarker.set_tensor(self.landmarker.get_input_details()[0]["index"], rgb[None])
+        self.landmarker.invoke()
+        out = _outputs_by_shape(self.landmarker)
+        raw = out[(1, 195)][0].reshape(39, 5)
+        presence = float(np.clip(out[(1, 1)][0, 0], 0.0, 1.0))
+        logits = out[(1, LANDMARK_SIZE, LANDMARK_SIZE, 1)][0, :, :, 0]
+        prob_crop = (1.0 / (1.0 + np.exp(-np.clip(logits, -30, 30)))).astype(np.float32)
+        to_image = cv2.invertAffineTransform(to_crop)
+        prob = cv2.warpAffine(prob_crop, to_image, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        xy = np.c_[raw[:, :2], np.ones(39)] @ to_image.T
+        visibility = 1.0 / (1.0 + np.exp(-np.clip(raw[:N_BODY_LANDMARKS, 3], -30, 30)))
+        landmarks = np.c_[xy[:N_BODY_LANDMARKS], visibility].astype(np.float32)
+        return PersonSegment(presence, prob, landmarks, roi_from_alignment(xy[33], xy[34]))

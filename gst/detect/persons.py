@@ -1,0 +1,191 @@
+"""Person instance masks for a frame: BlazePose regions from detection, hints and tracking.
+
+`PersonSegmenter.segment(frame, hints)` gathers regions of interest from three sources: the
+detector, boxes supplied by the caller (e.g. background-subtraction blobs, which find moving
+people the detector misses), and the previous frame's people (their landmarks predict where
+they are now, as MediaPipe tracks). The landmark model segments each region; regions whose
+person is absent are dropped, duplicates of the same person are merged, and every pixel goes to
+the person with the highest probability above the threshold. The result is a uint8 label
+image in the same convention as `gst.data.masks.clean_mask` (1..n, largest person first).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from gst.detect.blazepose import BlazePose, BodyRoi, PersonSegment, roi_from_alignment, roi_from_box
+
+# BlazePose's 33 landmarks: the bones drawn to bound a person's mask (limbs, hands, feet).
+BONES = ((11, 13), (13, 15), (12, 14), (14, 16), (15, 17), (15, 19), (15, 21), (16, 18), (16, 20), (16, 22),
+         (11, 23), (12, 24), (23, 25), (25, 27), (24, 26), (26, 28), (27, 29), (29, 31), (27, 31),
+         (28, 30), (30, 32), (28, 32))
+TORSO = (11, 12, 24, 23)  # shoulders and hips
+HEAD = (0, 7, 8)          # nose and ears
+
+
+def skeleton_support(landmarks: np.ndarray, shape: tuple[int, int], width: float) -> np.ndarray:
+    """Boolean (H, W) region within `width` pixels of a person's skeleton: thick bones, the filled
+    torso and the head. The landmark model segments everyone in its region; keeping only the
+    pixels near this person's own skeleton stops one person's mask from swallowing a neighbour."""
+    h, w = shape
+    out = np.zeros((h, w), np.uint8)
+    pts = np.round(landmarks[:, :2]).astype(np.int32)
+    t = max(1, int(round(width)))
+    for a, b in BONES:
+        cv2.line(out, tuple(map(int, pts[a])), tuple(map(int, pts[b])), 1, thickness=2 * t)
+    cv2.fillConvexPoly(out, pts[list(TORSO)], 1)
+    cv2.polylines(out, [pts[list(TORSO)]], True, 1, thickness=2 * t)
+    head = pts[list(HEAD)]
+    head_r = max(t, int(round(np.linalg.norm(landmarks[7, :2] - landmarks[8, :2]))))
+    cv2.circle(out, tuple(map(int, head.mean(axis=0))), int(round(head_r * 1.2)) + t, 1, thickness=-1)
+    cv2.line(out, tuple(map(int, head.mean(axis=0))), tuple(map(int, (pts[11] + pts[12]) // 2)), 1, thickness=2 * t)
+    return out.astype(bool)
+
+
+@dataclass(frozen=True)
+class SegmenterConfig:
+    min_presence: float = 0.5   # landmark model's presence score needed to keep a region
+    threshold: float = 0.5      # person probability for a pixel to belong to someone
+    # Two regions found the same person when their limb joints lie this close (share of body size).
+    duplicate_distance: float = 0.15
+    min_area: float = 0.001     # smallest person mask, as a share of the image area
+    track: bool = True          # seed each frame with the previous frame's people
+    # Mask pixels must lie within this share of the region's side of the person's own skeleton.
+    skeleton_width: float = 0.08
+    # A hint box is segmented only if people found without hints cover less than this share of it.
+    hint_covered: float = 0.3
+
+    def __post_init__(self):
+        for name in ("min_presence", "threshold", "hint_covered"):
+            if not 0 < getattr(self, name) < 1:
+                raise ValueError(f"segmenter {name} must be in (0, 1), got {getattr(self, name)}")
+        if self.duplicate_distance <= 0:
+            raise ValueError(f"segmenter duplicate_distance must be > 0, got {self.duplicate_distance}")
+
+
+LIMB_JOINTS = [11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28]  # shoulders .. ankles
+
+
+def body_size(landmarks: np.ndarray) -> float:
+    """Diagonal of the limb joints' box, in pixels: the scale for comparing two skeletons."""
+    j = landmarks[LIMB_JOINTS, :2]
+    return float(np.hypot(*(j.max(axis=0) - j.min(axis=0))))
+
+
+def same_person(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
+    """Whether two landmark sets describe one person: median limb-joint distance below
+    `distance` x the smaller body size. (Masks cannot tell: people who overlap in the image
+    have overlapping masks, and the landmark model segments everyone in its region.)"""
+    d = np.linalg.norm(a[LIMB_JOINTS, :2] - b[LIMB_JOINTS, :2], axis=1)
+    return float(np.median(d)) < distance * max(min(body_size(a), body_size(b)), 1.0)
+
+
+def _skeleton_distance(landmarks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Distance (px) of every pixel to a person's skeleton lines."""
+    lines = np.full(shape, 255, np.uint8)
+    pts = np.round(landmarks[:, :2]).astype(np.int32)
+    for a, b in BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)):
+        cv2.line(lines, tuple(map(int, pts[a])), tuple(map(int, pts[b])), 0, thickness=1)
+    head = pts[list(HEAD)].mean(axis=0).astype(int)
+    cv2.line(lines, tuple(map(int, head)), tuple(map(int, (pts[11] + pts[12]) // 2)), 0, thickness=1)
+    return cv2.distanceTransform(lines, cv2.DIST_L2, 3)
+
+
+def compose_instances(segments: Sequence[PersonSegment], config: SegmenterConfig, image_area: int
+                      ) -> tuple[np.ndarray | None, list[PersonSegment]]:
+    """Label image (1..n, largest first) of the distinct people among `segments`, and those people.
+
+    A segment is kept when its person is present, its mask is big enough and its skeleton does
+    not repeat a kept, more confident one. A pixel that some kept person's mask claims goes to
+    the claimant whose skeleton is nearest, which splits people who overlap in the image.
+    Returns (None, []) when nobody is kept.
+    """
+    cands = [s for s in segments if s.presence >= config.min_presence]
+    masks = [s.probability > config.threshold for s in cands]
+    order = sorted(range(len(cands)), key=lambda i: (-round(cands[i].presence, 2), -int(np.count_nonzero(masks[i]))))
+    kept: list[int] = []
+    for i in order:
+        if np.count_nonzero(masks[i]) < config.min_area * image_area:
+            continue
+        if any(same_person(cands[i].landmarks, cands[j].landmarks, config.duplicate_distance) for j in kept):
+            continue
+        kept.append(i)
+    if not kept:
+        return None, []
+    claimed = np.stack([masks[i] for i in kept])
+    dist = np.stack([_skeleton_distance(cands[i].landmarks, masks[i].shape) for i in kept])
+    best = np.where(claimed, dist, np.inf).argmin(axis=0)
+    owned = claimed.any(axis=0)
+    areas = np.bincount(best[owned], minlength=len(kept))
+    rank = np.argsort(-areas, kind="stable")  # label 1 = largest person
+    lut = np.zeros(len(kept), dtype=np.uint8)
+    lut[rank] = np.arange(1, len(kept) + 1, dtype=np.uint8)
+    labels = np.where(owned, lut[best], 0).astype(np.uint8)
+    people = [cands[kept[r]] for r in rank]
+    # A person whose whole mask went to others is not in the image.
+    people = [p for k, p in enumerate(people) if areas[rank[k]] > 0]
+    if len(people) < len(kept):
+        present = np.unique(labels[labels > 0])
+        relabel = np.zeros(256, np.uint8)
+        relabel[present] = np.arange(1, len(present) + 1, dtype=np.uint8)
+        labels = relabel[labels]
+    return labels, people
+
+
+class PersonSegmenter:
+    """Instance masks of the people in a stream of frames from one camera (keeps tracking state)."""
+
+    def __init__(self, model: BlazePose, config: SegmenterConfig = SegmenterConfig()):
+        self.model = model
+        self.config = config
+        self._tracked: list[BodyRoi] = []
+
+    def reset(self) -> None:
+        self._tracked = []
+
+    def _segment_rois(self, frame: np.ndarray, rois: Sequence[BodyRoi]) -> list[PersonSegment]:
+        h, w = frame.shape[:2]
+        out = []
+        for roi in rois:
+            seg = self.model.segment(frame, roi)
+            if self.config.skeleton_width > 0:
+                near = skeleton_support(seg.landmarks, (h, w), self.config.skeleton_width * roi.side)
+                seg = replace(seg, probability=np.where(near, seg.probability, 0.0).astype(np.float32))
+            out.append(seg)
+        return out
+
+    def segment(self, frame: np.ndarray, hints: Sequence[tuple[float, float, float, float]] = ()
+                ) -> tuple[np.ndarray, list[PersonSegment]]:
+        """Label image (uint8, 0 = nobody) and the people found in a BGR frame.
+
+        `hints` are x, y, w, h boxes that may hold a person (e.g. moving blobs). They are looked
+        at after the detector and tracking, and only where those found nobody; a hint's region
+        is at least as big as the people already found (a blob may be a fragment of a body).
+        """
+        h, w = frame.shape[:2]
+        rois = [roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in self.model.detect(frame)]
+        if self.config.track:
+            rois += self._tracked
+        segments = self._segment_rois(frame, rois)
+        labels, people = compose_instances(segments, self.config, h * w)
+        if hints:
+            found = labels > 0 if labels is not None else np.zeros((h, w), bool)
+            sides = [r.side for r in rois]
+            floor = float(np.median(sides)) if sides else 0.0
+            extra = []
+            for x, y, bw, bh in hints:
+                box = found[int(y):int(y + bh), int(x):int(x + bw)]
+                if box.size and box.mean() < self.config.hint_covered:
+                    roi = roi_from_box((x, y, bw, bh))
+                    extra.append(replace(roi, side=max(roi.side, floor)))
+            if extra:
+                segments += self._segment_rois(frame, extra)
+                labels, people = compose_instances(segments, self.config, h * w)
+        self._tracked = [p.next_roi for p in people]
+        if labels is None:
+            return np.zeros((h, w), np.uint8), []
+        return labels, people
