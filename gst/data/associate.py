@@ -499,31 +499,61 @@ class VoxelGrid:
                 explained[n] |= feet[best][n]
         return [cands[k] for k in sorted(chosen)]
 
-    def _select_instance_owners(self, cands: list[Person3D], labels: dict[str, np.ndarray]) -> list[Person3D]:
-        """With instance masks: keep the candidates that own an instance in `min_views` cameras.
+    def _instance_scores(self, name: str, labels: np.ndarray, cands: list[Person3D]) -> np.ndarray:
+        """(candidates, instances + 1) IoU of each candidate's footprint in camera `name` with
+        each instance mask (column 0, the background, is 0). A person's footprint matches its
+        own instance; a ghost (where two people's viewing cones cross) covers only parts of
+        theirs, and a bigger region than either."""
+        flat = labels.reshape(-1)
+        n_inst = int(flat.max()) + 1
+        areas = np.bincount(flat, minlength=n_inst)
+        scores = np.zeros((len(cands), n_inst))
+        for k, c in enumerate(cands):
+            foot = self.footprint(name, c, labels.shape).reshape(-1)
+            inter = np.bincount(flat[foot], minlength=n_inst)
+            scores[k] = inter / np.maximum(np.count_nonzero(foot) + areas - inter, 1)
+        scores[:, 0] = 0
+        return scores
 
-        In each camera every instance belongs to the candidate with the most core voxels on it.
-        A real person is the top voter of its own instance in most views; a ghost (where two
-        people's viewing cones cross) lands on instances that their own people vote for more.
-        Footprints cannot decide this when people overlap in the image.
+    def _select_instance_owners(self, cands: list[Person3D], labels: dict[str, np.ndarray]) -> list[Person3D]:
+        """With instance masks: keep the candidates that claim an instance in enough cameras.
+
+        Greedy, best first: the candidate whose footprints overlap unclaimed instances most
+        (summed IoU over cameras, each camera's best instance with IoU >= 0.1) claims those
+        instances, provided it gets one in `min_views` cameras and in at least half of the
+        cameras that see it. A ghost, where two people's viewing cones cross, matches parts of
+        their instances; once the people have claimed them it is left with nothing.
         """
-        owned = np.zeros(len(cands), dtype=np.int64)
-        for n in self.names:
-            if n not in labels or not cands:
-                continue
-            flat = labels[n].reshape(-1)
-            n_inst = int(flat.max()) + 1
-            votes = np.zeros((len(cands), n_inst), dtype=np.int64)
+        names = [n for n in self.names if n in labels]
+        if not cands or not names:
+            return []
+        scores = {n: self._instance_scores(n, labels[n], cands) for n in names}
+        seeing = np.zeros(len(cands), dtype=np.int64)
+        for n in names:
             for k, c in enumerate(cands):
                 p = self.pixel[n][c.core]
-                p = p[p >= 0]
-                if len(p):
-                    votes[k] = np.bincount(flat[p], minlength=n_inst)
-            votes[:, 0] = 0
-            owners = {int(votes[:, b].argmax()) for b in range(1, n_inst) if votes[:, b].max() > 0}
-            for k in owners:
-                owned[k] += 1
-        return [c for k, c in enumerate(cands) if owned[k] >= self.config.min_views]
+                seeing[k] += int(len(p) > 0 and np.mean(p >= 0) >= 0.5)
+        need = np.maximum(self.config.min_views, np.ceil(0.5 * seeing))
+        free = {n: np.ones(scores[n].shape[1], dtype=bool) for n in names}
+        remaining, chosen = list(range(len(cands))), []
+        while remaining:
+            best, best_total, best_claims = None, 0.0, {}
+            for k in remaining:
+                claims, total = {}, 0.0
+                for n in names:
+                    row = np.where(free[n], scores[n][k], 0.0)
+                    j = int(row.argmax())
+                    if row[j] >= 0.1:
+                        claims[n], total = j, total + row[j]
+                if len(claims) >= need[k] and total > best_total:
+                    best, best_total, best_claims = k, total, claims
+            if best is None:
+                break
+            for n, j in best_claims.items():
+                free[n][j] = False
+            chosen.append(best)
+            remaining.remove(best)
+        return [cands[k] for k in sorted(chosen)]
 
     def person_labels(self, name: str, labels: np.ndarray, persons: list[Person3D]) -> np.ndarray:
         """Split camera `name`'s foreground blobs among the people; returns a label image with
@@ -546,21 +576,39 @@ class VoxelGrid:
         votes[:, 0] = 0
         cam = self.cameras[name]
         depth = np.array([cam.to_camera(p.centroid)[0, 2] for p in persons])
+        if cfg.instance_split:
+            # A blob is one person's instance mask: it has one owner. One person, one instance
+            # first (Hungarian on footprint IoU): someone half hidden behind another overlaps
+            # the front person's instance too, yet their own sliver is theirs. Leftover
+            # instances go to the person with the most core voxels on them.
+            owner_of = np.full(n_blobs, -1)
+            scores = self._instance_scores(name, labels, persons)
+            rows, cols = linear_sum_assignment(-scores[:, 1:])
+            for k, b in zip(rows, cols + 1, strict=True):
+                if scores[k, b] > 0:
+                    owner_of[b] = k
+            for b in range(1, n_blobs):
+                if owner_of[b] < 0 and votes[:, b].max() > 0:
+                    owner_of[b] = votes[:, b].argmax()
+                if owner_of[b] >= 0:
+                    out[labels == b] = owner_of[b] + 1
+            return self._drop_small_views(out, len(persons))
         for b in range(1, n_blobs):
             top = votes[:, b].max()
             if top == 0:
                 continue
-            if cfg.instance_split:  # a blob is one person's instance mask: it has one owner
-                owners = np.array([votes[:, b].argmax()])
-            else:
-                owners = np.nonzero(votes[:, b] >= max(1, cfg.owner_ratio * top))[0]
+            owners = np.nonzero(votes[:, b] >= max(1, cfg.owner_ratio * top))[0]
             blob = labels == b
             if len(owners) == 1:
                 out[blob] = owners[0] + 1
                 continue
             self._split_blob(out, blob, owners, proj, depth, self.focal[name])
-        min_px = cfg.min_mask_fraction * h * w
-        for k in range(len(persons)):
+        return self._drop_small_views(out, len(persons))
+
+    def _drop_small_views(self, out: np.ndarray, n_persons: int) -> np.ndarray:
+        """Unlabel people whose mask in this view is smaller than `min_mask_fraction`."""
+        min_px = self.config.min_mask_fraction * out.size
+        for k in range(n_persons):
             if 0 < np.count_nonzero(out == k + 1) < min_px:
                 out[out == k + 1] = 0
         return out

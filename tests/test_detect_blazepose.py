@@ -1,0 +1,267 @@
+"""BlazePose person models: anchor layout, decoding, NMS, regions of interest, instance
+composition, the pinned fetch, and (when the models and LiteRT are here) the models on real
+footage and on a synthetic render."""
+
+import hashlib
+import math
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gst.detect.blazepose import (
+    DETECTOR_SIZE,
+    BodyRoi,
+    PersonSegment,
+    box_iou,
+    decode_detections,
+    roi_from_alignment,
+    roi_from_box,
+    square_windows,
+    ssd_anchors,
+    weighted_nms,
+)
+from gst.detect.persons import SegmenterConfig, compose_instances, same_person, skeleton_support
+from gst.detect.weights import (
+    MEDIAPIPE_WHEEL,
+    MODELS,
+    BlazePoseModelsMissing,
+    fetch_blazepose_models,
+    model_paths,
+)
+
+LAB = Path("/work/shared/real/pose2sim-multiperson")
+
+
+def _models_ready() -> bool:
+    try:
+        import ai_edge_litert.interpreter  # noqa: F401
+        model_paths()
+    except (ImportError, BlazePoseModelsMissing):
+        return False
+    return True
+
+
+needs_models = pytest.mark.skipif(not _models_ready(), reason="BlazePose models not fetched "
+                                  "(python -m gst.detect fetch) or ai-edge-litert missing")
+
+
+def test_anchor_layout_matches_the_detector():
+    a = ssd_anchors()
+    assert a.shape == (2254, 2)
+    # 28x28 cells x 2, then 14x14 x 2, then 7x7 x 6, row-major, centres of cells
+    assert np.allclose(a[0], [0.5 / 28, 0.5 / 28]) and np.allclose(a[1], a[0])
+    assert np.allclose(a[2], [1.5 / 28, 0.5 / 28])
+    assert np.allclose(a[28 * 28 * 2], [0.5 / 14, 0.5 / 14])
+    assert np.allclose(a[-1], [6.5 / 7, 6.5 / 7]) and np.allclose(a[-6], a[-1])
+    assert a.min() > 0 and a.max() < 1
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2253), st.floats(-20, 20), st.floats(-20, 20), st.floats(10, 150), st.floats(10, 150))
+def test_decode_puts_boxes_and_keypoints_at_anchor_plus_offset(idx, dx, dy, w, h):
+    reg = np.zeros((2254, 12), np.float32)
+    logits = np.full(2254, -50.0, np.float32)
+    reg[idx, :4] = [dx, dy, w, h]
+    reg[idx, 4:] = np.arange(8) - 4.0
+    logits[idx] = 3.0
+    scores, boxes, kps = decode_detections(reg, logits, 0.5)
+    a = ssd_anchors()[idx]
+    assert len(scores) == 1 and scores[0] == pytest.approx(1 / (1 + math.exp(-3)))
+    centre = a + np.array([dx, dy]) / DETECTOR_SIZE
+    assert np.allclose(boxes[0], np.r_[centre - np.array([w, h]) / 2 / DETECTOR_SIZE,
+                                       centre + np.array([w, h]) / 2 / DETECTOR_SIZE], atol=1e-6)
+    assert np.allclose(kps[0], (np.arange(8) - 4.0).reshape(4, 2) / DETECTOR_SIZE + a, atol=1e-6)
+
+
+def test_decode_rejects_wrong_shapes_and_survives_huge_logits():
+    with pytest.raises(ValueError, match="2254"):
+        decode_detections(np.zeros((100, 12)), np.zeros(100))
+    s, _, _ = decode_detections(np.zeros((2254, 12), np.float32), np.full(2254, 1e6, np.float32))
+    assert len(s) == 2254 and np.all(np.isfinite(s))
+
+
+def test_weighted_nms_merges_overlaps_by_score_and_keeps_separate_people():
+    boxes = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [50, 50, 60, 60]], float)
+    kps = np.stack([np.full((4, 2), v, float) for v in (0.0, 3.0, 100.0)])
+    out = weighted_nms(np.array([0.9, 0.3, 0.8]), boxes, kps, iou=0.3)
+    assert len(out) == 2
+    assert out[0].score == 0.9 and np.allclose(out[0].box, [0.25, 0, 10.25, 10])  # 0.75/0.25 weights
+    assert np.allclose(out[0].keypoints, 0.75)
+    assert np.allclose(out[1].box, boxes[2])
+
+
+def test_box_iou_reference():
+    assert box_iou(np.array([0, 0, 2, 2.0]), np.array([[1, 1, 3, 3.0], [5, 5, 6, 6.0]])) == pytest.approx([1 / 7, 0])
+
+
+@pytest.mark.parametrize("w,h", [(540, 960), (960, 540), (500, 500), (400, 1000)])
+def test_square_windows_cover_the_frame(w, h):
+    wins = square_windows(w, h)
+    full = wins[0]
+    assert full[2] == max(w, h)
+    tiles = wins[1:]
+    if max(w, h) > 1.2 * min(w, h):
+        assert len(tiles) >= 2
+        covered = np.zeros(max(w, h), bool)
+        for x0, y0, side in tiles:
+            assert side == min(w, h)
+            off = x0 if w > h else y0
+            assert 0 <= off and off + side <= max(w, h)
+            covered[off:off + side] = True
+        assert covered.all()
+    else:
+        assert tiles == []
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(50, 500), st.floats(50, 500), st.floats(20, 200), st.floats(-math.pi, math.pi))
+def test_roi_turns_the_body_axis_upright(cx, cy, r, theta):
+    centre = np.array([cx, cy])
+    scale_point = centre + r * np.array([math.cos(theta), math.sin(theta)])
+    roi = roi_from_alignment(centre, scale_point)
+    assert roi.side == pytest.approx(2 * r * 1.25)
+    m = roi.to_crop(256)
+    c = m @ np.r_[centre, 1]
+    s = m @ np.r_[scale_point, 1]
+    assert np.allclose(c, [128, 128], atol=1e-3)
+    # the scale point lands straight above the centre in the crop, at r / side * 256 pixels
+    assert np.allclose(s, [128, 128 - r / roi.side * 256], atol=1e-3)
+
+
+def test_roi_from_box_is_upright_and_covers_the_box():
+    roi = roi_from_box((100, 50, 40, 120))
+    assert roi.angle == 0 and roi.centre == (120, 110) and roi.side == pytest.approx(150)
+    m = roi.to_crop(256)
+    for x, y in [(100, 50), (140, 170)]:
+        u, v = m @ np.array([x, y, 1.0])
+        assert 0 <= u <= 256 and 0 <= v <= 256
+
+
+def _stick(cx: float, top: float, height: float) -> np.ndarray:
+    """33 BlazePose landmarks of an upright stick figure (x, y, visibility)."""
+    lm = np.zeros((33, 3), np.float32)
+    lm[:, 0], lm[:, 2] = cx, 1.0
+    s = height
+    y = {0: 0.05, 7: 0.05, 8: 0.05, 11: 0.18, 12: 0.18, 13: 0.33, 14: 0.33, 15: 0.47, 16: 0.47,
+         17: 0.5, 18: 0.5, 19: 0.5, 20: 0.5, 21: 0.49, 22: 0.49, 23: 0.5, 24: 0.5, 25: 0.72, 26: 0.72,
+         27: 0.93, 28: 0.93, 29: 0.95, 30: 0.95, 31: 0.97, 32: 0.97}
+    for i, f in y.items():
+        lm[i, 1] = top + f * s
+    for i in (7, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31):
+        lm[i, 0] = cx - 0.1 * s
+    for i in (8, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30, 32):
+        lm[i, 0] = cx + 0.1 * s
+    return lm
+
+
+def _segment(lm: np.ndarray, prob: np.ndarray, presence: float = 1.0) -> PersonSegment:
+    return PersonSegment(presence, prob.astype(np.float32), lm, BodyRoi((0, 0), 1, 0))
+
+
+def test_skeleton_support_covers_the_body_and_not_far_away():
+    lm = _stick(100, 20, 200)
+    sup = skeleton_support(lm, (260, 400), width=10)
+    assert sup[120, 100] and sup[int(lm[27, 1]), int(lm[27, 0])]  # torso and ankle
+    assert not sup[120, 300]  # far to the side
+    assert sup.mean() < 0.25
+
+
+def test_same_person_by_joints():
+    a = _stick(100, 20, 200)
+    assert same_person(a, a + np.array([5, 3, 0], np.float32), 0.15)
+    assert not same_person(a, _stick(180, 20, 200), 0.15)
+
+
+def test_compose_splits_overlapping_people_by_nearest_skeleton_and_drops_duplicates():
+    h, w = 260, 400
+    left, right = _stick(150, 20, 200), _stick(230, 20, 200)
+    # The landmark model claims every person in its region: both probability maps cover both.
+    both = np.zeros((h, w), np.float32)
+    both[20:225, 110:275] = 0.9
+    segs = [_segment(left, both), _segment(right, both),
+            _segment(left + np.array([2, 1, 0], np.float32), both, presence=0.8),  # duplicate of left
+            _segment(_stick(330, 20, 200), np.zeros((h, w)), presence=0.9),  # empty mask: not present
+            _segment(_stick(60, 20, 200), both, presence=0.2)]  # below min_presence
+    labels, people = compose_instances(segs, SegmenterConfig(), h * w)
+    assert len(people) == 2 and labels.max() == 2
+    lab_left = labels[120, 150]
+    lab_right = labels[120, 230]
+    assert {lab_left, lab_right} == {1, 2}
+    # the boundary lies half-way between the two skeletons' nearest lines
+    assert labels[120, 185] == lab_left and labels[120, 195] == lab_right
+    assert labels[5, 5] == 0
+
+
+def test_compose_with_nobody():
+    labels, people = compose_instances([], SegmenterConfig(), 100)
+    assert labels is None and people == []
+
+
+def test_segmenter_config_is_checked():
+    with pytest.raises(ValueError, match="threshold"):
+        SegmenterConfig(threshold=1.5)
+
+
+def _fake_wheel(path: Path, payloads: dict[str, bytes]) -> None:
+    with zipfile.ZipFile(path, "w") as zf:
+        for member, data in payloads.items():
+            zf.writestr(member, data)
+
+
+def test_fetch_refuses_an_archive_with_the_wrong_hash(tmp_path):
+    archives = tmp_path / "archives"
+    archives.mkdir()
+    _fake_wheel(archives / MEDIAPIPE_WHEEL.filename, {m.member: b"not a model" for m in MODELS.values()})
+    with pytest.raises(ValueError, match="SHA-256"):
+        fetch_blazepose_models(tmp_path / "models", archive_dir=archives)
+    assert not (tmp_path / "models").exists() or not any((tmp_path / "models").iterdir())
+
+
+def test_fetch_from_a_folder_without_the_wheel_says_what_it_needs(tmp_path):
+    with pytest.raises(FileNotFoundError, match=MEDIAPIPE_WHEEL.filename):
+        fetch_blazepose_models(tmp_path / "models", archive_dir=tmp_path)
+
+
+def test_missing_models_name_the_fix(tmp_path):
+    with pytest.raises(BlazePoseModelsMissing, match="python -m gst.detect fetch"):
+        model_paths(tmp_path)
+
+
+def test_pinned_model_hashes_are_well_formed():
+    for m in MODELS.values():
+        assert len(m.sha256) == 64 and int(m.sha256, 16) >= 0
+    assert len(MEDIAPIPE_WHEEL.sha256) == 64 and MEDIAPIPE_WHEEL.platform
+
+
+@needs_models
+def test_cached_models_match_their_pins():
+    for role, p in model_paths().items():
+        assert hashlib.sha256(p.read_bytes()).hexdigest() == MODELS[role].sha256
+
+
+@needs_models
+@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+def test_lab_frames_show_both_subjects_with_separate_full_masks():
+    from gst.detect.blazepose import BlazePose
+    from gst.detect.persons import PersonSegmenter
+
+    model = BlazePose()
+    cap = cv2.VideoCapture(str(LAB / "cam01.mp4"))
+    seg = PersonSegmenter(model)
+    counts = []
+    for _ in range(12):
+        ok, frame = cap.read()
+        assert ok
+        labels, people = seg.segment(cv2.resize(frame, (540, 960), interpolation=cv2.INTER_AREA))
+        counts.append(len(people))
+    # The man and the woman who barely moves (the background model never saw her whole).
+    assert min(counts) == 2 and max(counts) == 2
+    areas = np.bincount(labels.ravel(), minlength=3)[1:]
+    assert areas.min() > 0.02 * labels.size  # whole bodies, not outlines
+    for p in people:
+        assert p.landmarks.shape == (33, 3) and 0.5 <= p.presence <= 1.0
