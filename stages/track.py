@@ -21,11 +21,13 @@ from __future__ import annotations
 import functools
 import json
 from pathlib import Path
+from typing import Literal
 
 import torch
 from pydantic import Field
 
 from calibration.formats import read_rig
+from gst.detect.weights import model_paths
 from gst.eval.truth import has_scene_truth
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
@@ -35,6 +37,7 @@ from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
+from gst.track.person_detector import PersonModelDetector
 from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
@@ -50,6 +53,9 @@ class Params(StageParams):
     min_cutoff: float = 1.0
     beta: float = 0.5
     boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of the background detector
+    # 'blazepose': the learned person segmenter (gst.detect; finds people who stand still, needs
+    # the `detect` extra and `python -m gst.detect fetch`). 'background': static-camera model.
+    detector: Literal["background", "blazepose"] = "background"
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
@@ -89,6 +95,8 @@ def run(ctx: StageContext) -> None:
     with_gaussians = bool(ctx.options.get("with_gaussians"))
     checkpoint = ctx.path("models/gst.pt")
     name = GSTPredictor(checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size).name  # fails early, here
+    if p.detector == "blazepose" and not p.boxes:
+        model_paths()  # missing models fail here, with the fetch command, not in a worker
     rig_path = ctx.path("calibration/rig.json")
     rig = read_rig(rig_path, "rig") if rig_path.is_file() else None
     options = TrackOptions(stride=p.stride, tracker=TrackerConfig(min_hits=p.min_hits, max_misses=p.max_misses),
@@ -102,9 +110,13 @@ def run(ctx: StageContext) -> None:
     jobs = []
     for video in _videos(ctx):
         camera = rig[video.stem] if rig is not None and video.stem in rig.names else None
-        detector = (functools.partial(SuppliedBoxes.from_file, p.boxes, video=video.stem) if p.boxes
-                    else functools.partial(StaticCameraDetector, video, camera=camera,
-                                           up=tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)))
+        if p.boxes:
+            detector = functools.partial(SuppliedBoxes.from_file, p.boxes, video=video.stem)
+        elif p.detector == "blazepose":
+            detector = PersonModelDetector
+        else:
+            detector = functools.partial(StaticCameraDetector, video, camera=camera,
+                                         up=tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0))
         jobs.append(VideoJob(video, detector, predictor, model_info, name=video.stem, camera=camera,
                              world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
                              options=options, threads=threads, keep_extras=with_gaussians))

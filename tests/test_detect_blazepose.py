@@ -17,7 +17,6 @@ from gst.detect.blazepose import (
     DETECTOR_SIZE,
     BodyRoi,
     PersonSegment,
-    box_iou,
     decode_detections,
     roi_from_alignment,
     roi_from_box,
@@ -93,10 +92,6 @@ def test_weighted_nms_merges_overlaps_by_score_and_keeps_separate_people():
     assert out[0].score == 0.9 and np.allclose(out[0].box, [0.25, 0, 10.25, 10])  # 0.75/0.25 weights
     assert np.allclose(out[0].keypoints, 0.75)
     assert np.allclose(out[1].box, boxes[2])
-
-
-def test_box_iou_reference():
-    assert box_iou(np.array([0, 0, 2, 2.0]), np.array([[1, 1, 3, 3.0], [5, 5, 6, 6.0]])) == pytest.approx([1 / 7, 0])
 
 
 @pytest.mark.parametrize("w,h", [(540, 960), (960, 540), (500, 500), (400, 1000)])

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from gst.detect.weights import model_paths
+from gst.metrics.image import box_iou
 
 DETECTOR_SIZE = 224
 LANDMARK_SIZE = 256
@@ -83,16 +84,6 @@ def decode_detections(regressors: np.ndarray, logits: np.ndarray, min_score: flo
     return scores[keep], boxes, keypoints
 
 
-def box_iou(box: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """IoU of one (4,) x0, y0, x1, y1 box with each of (n, 4) boxes."""
-    lo = np.maximum(box[:2], boxes[:, :2])
-    hi = np.minimum(box[2:], boxes[:, 2:])
-    inter = np.prod(np.clip(hi - lo, 0, None), axis=1)
-    area = lambda b: np.prod(np.clip(b[..., 2:] - b[..., :2], 0, None), axis=-1)  # noqa: E731
-    union = area(box) + area(boxes) - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
-
-
 def weighted_nms(scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, iou: float = 0.3
                  ) -> list[PoseDetection]:
     """Merge detections that overlap by more than `iou`: the best score is kept, and its box and
@@ -103,7 +94,7 @@ def weighted_nms(scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, i
     for i in order:
         if not free[i]:
             continue
-        group = free & (box_iou(boxes[i], boxes) > iou)
+        group = free & (box_iou(boxes[i], boxes)[0] > iou)
         group[i] = True
         free &= ~group
         w = scores[group] / scores[group].sum()

@@ -11,7 +11,8 @@ track i is the weighted mean of three terms in [0, 1]:
 A pair is allowed only if its cost is at most `max_cost`, the boxes overlap (IoU >= min_iou) or
 the 3D positions are within the gate, and the positions are within `hard_gate` gates (a
 generous bound, since monocular depth is noisy). scipy's linear_sum_assignment picks the cheapest
-allowed matching. Unmatched tracks coast on their velocity for up to `max_misses` processed
+allowed matching, confirmed tracks first and tentative ones among the detections left (a
+duplicate detection's tentative track cannot take a person over). Unmatched tracks coast on their velocity for up to `max_misses` processed
 frames (short occlusions), then end; unmatched detections start tentative tracks. A
 tentative track gets its id only once it has been matched in `min_hits` consecutive processed
 frames (until then its detections get id -1, and one miss ends it), so flickering fragments and
@@ -137,18 +138,28 @@ class Tracker:
         ids: list[int | None] = [None] * len(observations)
         matched_tracks: set[int] = set()
         matched_obs: set[int] = set()
-        if cost.size:
-            rows, cols = linear_sum_assignment(np.where(allowed, cost, _INFEASIBLE))
-            for r, j in zip(rows, cols, strict=True):
-                if allowed[r, j]:
-                    t = self.tracks[r]
-                    self._absorb(t, observations[j], time_s)
-                    if not t.confirmed and t.hits >= c.min_hits:
-                        t.confirmed, t.id = True, self.next_id
-                        self.next_id += 1
-                    ids[j] = _publish(t)
-                    matched_tracks.add(r)
-                    matched_obs.add(j)
+        # Confirmed tracks choose first, tentative ones share what is left: a duplicate
+        # detection's tentative track must not take a person over from their own track.
+        for confirmed in (True, False):
+            rows_in = [r for r, t in enumerate(self.tracks) if t.confirmed == confirmed]
+            cols_in = [j for j in range(len(observations)) if j not in matched_obs]
+            if not rows_in or not cols_in:
+                continue
+            sub_cost = cost[np.ix_(rows_in, cols_in)]
+            sub_ok = allowed[np.ix_(rows_in, cols_in)]
+            rows, cols = linear_sum_assignment(np.where(sub_ok, sub_cost, _INFEASIBLE))
+            for a, b in zip(rows, cols, strict=True):
+                if not sub_ok[a, b]:
+                    continue
+                r, j = rows_in[a], cols_in[b]
+                t = self.tracks[r]
+                self._absorb(t, observations[j], time_s)
+                if not t.confirmed and t.hits >= c.min_hits:
+                    t.confirmed, t.id = True, self.next_id
+                    self.next_id += 1
+                ids[j] = _publish(t)
+                matched_tracks.add(r)
+                matched_obs.add(j)
         survivors = []
         for r, t in enumerate(self.tracks):
             if r not in matched_tracks:
