@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration import Camera, Rig  # noqa: E402
 from gst.data import ExtractOptions, extract_scene  # noqa: E402
+from gst.detect.persons import SegmenterConfig  # noqa: E402
 
 
 def synthetic_1080p(root: Path, n_frames: int, n_people: int) -> tuple[dict, Rig, Path]:
@@ -64,13 +65,15 @@ def synthetic_1080p(root: Path, n_frames: int, n_people: int) -> tuple[dict, Rig
 
 
 VARIANTS = [
-    # name, method, work_scale (None = default: longer side 960 px), compression
-    ("median, work 1/2 (default)", "median", None, "gzip"),
-    ("median, work 1/4", "median", 0.25, "gzip"),
-    ("median, work 1/1", "median", 1.0, "gzip"),
-    ("mog2, work 1/2", "mog2", None, "gzip"),
-    ("knn, work 1/2", "knn", None, "gzip"),
-    ("median, work 1/2, lzf store", "median", None, "lzf"),
+    # name, method, work_scale (None = default: longer side 960 px), compression, person model
+    ("median, work 1/2 (default)", "median", None, "gzip", False),
+    ("median, work 1/4", "median", 0.25, "gzip", False),
+    ("median, work 1/1", "median", 1.0, "gzip", False),
+    ("mog2, work 1/2", "mog2", None, "gzip", False),
+    ("knn, work 1/2", "knn", None, "gzip", False),
+    ("median, work 1/2, lzf store", "median", None, "lzf", False),
+    # Learned person masks (gst.detect; needs the detect extra and `python -m gst.detect fetch`).
+    ("blazepose masks, work 1/2", "median", None, "gzip", True),
 ]
 
 
@@ -104,7 +107,7 @@ def main() -> None:
         chosen = range(len(VARIANTS)) if args.variants == "all" else [int(v) for v in args.variants.split(",")]
         rows = []
         for vi in chosen:
-            name, method, ws, comp = VARIANTS[vi]
+            name, method, ws, comp, persons = VARIANTS[vi]
             times, reports = [], []
             for _ in range(args.repeats):
                 out = work / f"v{vi}" / "crops.h5"
@@ -112,7 +115,8 @@ def main() -> None:
                     shutil.rmtree(out.parent)
                 t = time.perf_counter()
                 rep = extract_scene(videos, rig, out, method=method, truth=truth,
-                                    options=ExtractOptions(work_scale=ws, compression=comp))
+                                    options=ExtractOptions(work_scale=ws, compression=comp,
+                                                           persons=SegmenterConfig() if persons else None))
                 times.append(time.perf_counter() - t)
                 reports.append(rep)
             rep = reports[int(np.argsort(times)[len(times) // 2])]

@@ -159,9 +159,17 @@ def main() -> None:
 
         checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
         gst = GSTPredictor(checkpoint)
-        for name, detector in [(f"end to end, {gst.name} pose-only, supplied boxes", lambda: det),
-                               (f"end to end, {gst.name} pose-only, background detector",
-                                lambda: StaticCameraDetector(video))]:
+        detectors = [(f"end to end, {gst.name} pose-only, supplied boxes", lambda: det),
+                     (f"end to end, {gst.name} pose-only, background detector", lambda: StaticCameraDetector(video))]
+        try:  # the learned person detector, when its extra and models are installed
+            from gst.detect import BlazePoseModelsMissing, model_paths
+            from gst.track.person_detector import PersonModelDetector
+
+            model_paths()
+            detectors.append((f"end to end, {gst.name} pose-only, blazepose detector", PersonModelDetector))
+        except (ImportError, BlazePoseModelsMissing) as exc:
+            print(f"(blazepose detector skipped: {str(exc).splitlines()[0][:100]})")
+        for name, detector in detectors:
             def run_gst(detector=detector):
                 out = tmp / "out"
                 shutil.rmtree(out, ignore_errors=True)

@@ -2,9 +2,10 @@
 
 Library: `gst.data.extract_scene` (docs/extract.md, docs/formats/crops_h5.md). Supplied
 masks/boxes (`scenes.NAME.masks`) take precedence over the background model; `person_model:
-blazepose` segments people with a learned model instead (real footage, people who stand still). Synthetic scenes
-learn their background from the board clip, which shows the empty stage (the board moves, so
-the temporal median removes it); real scenes can name empty-room clips in `background_videos`.
+blazepose` segments people with a learned model instead (real footage, people who stand
+still; docs/person_models.md). Synthetic scenes learn their background from the board clip,
+which shows the empty stage (the board moves, so the temporal median removes it); real scenes
+can name empty-room clips in `background_videos`.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ class Params(StageParams):
     background_videos: dict[str, Path] | None = None  # camera -> clip of the empty scene
     use_board_clip_as_background: bool = True  # synthetic scenes: the board clip is an empty stage
     # Overrides of gst.data.AssociationConfig, e.g. {merge_radius: 0.6, peak_separation: 0.8}
-    # for a capture where people stay >= 0.8 m apart and lunge (the real lab scene).
+    # for background-model masks of people who stay >= 0.8 m apart and lunge.
     association: dict[str, float | int] | None = None
     # 'blazepose': learned person masks (finds people who stand still; needs the `detect` extra
     # and `python -m gst.detect fetch`, docs/person_models.md). 'none': background model only.

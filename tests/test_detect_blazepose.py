@@ -260,3 +260,39 @@ def test_lab_frames_show_both_subjects_with_separate_full_masks():
     assert areas.min() > 0.02 * labels.size  # whole bodies, not outlines
     for p in people:
         assert p.landmarks.shape == (33, 3) and 0.5 <= p.presence <= 1.0
+
+
+@needs_models
+@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+def test_lab_extraction_with_person_masks_keeps_two_ids(tmp_path):
+    """Every 10th frame of the real capture: the man and the still woman, one id each, seen by
+    at least two cameras in (nearly) every frame; masks cover most of each person's hull."""
+    from calibration.formats import read_rig
+    from gst.data import CropStore, ExtractOptions, extract_scene
+
+    rig = read_rig(LAB / "Calib.qca.txt", "qualisys")
+    videos = {p.stem: p for p in sorted(LAB.glob("cam0*.mp4"))}
+    rep = extract_scene(videos, rig, tmp_path / "crops.h5", crop_size=64, frame_stride=10,
+                        options=ExtractOptions(persons=SegmenterConfig()))
+    assert rep.persons == 2
+    assert rep.multiview_groups >= 18  # of 10 frames x 2 people
+    support = np.asarray(CropStore(tmp_path / "crops.h5").index.column("mask_support").to_pylist(), float)
+    assert np.nanmedian(support) > 0.6
+
+
+@needs_models
+@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+def test_person_detector_boxes_on_lab_video():
+    from gst.track.person_detector import PersonModelDetector
+
+    det = PersonModelDetector()
+    cap = cv2.VideoCapture(str(LAB / "cam02.mp4"))
+    counts = []
+    for i in range(6):
+        ok, frame = cap.read()
+        found = det.detect(frame, i)
+        counts.append(len(found))
+        for d in found:  # full-resolution boxes of standing people
+            assert 0 <= d.box[0] < d.box[2] <= frame.shape[1] and 0 <= d.box[1] < d.box[3] <= frame.shape[0]
+            assert d.box[3] - d.box[1] > 0.3 * frame.shape[0]
+    assert counts == [2] * 6

@@ -192,3 +192,39 @@ def test_scene_config_change_reruns(tmp_path, counter, capsys):
     assert "scene synthetic.seed: 0 -> 3" in capsys.readouterr().err
     assert run(cfg, "run", "all") == 0
     assert counter() == ["source", "double", "report"] * 2
+
+
+def test_scene_params_apply_to_that_scene_only_and_set_wins(tmp_path, counter, capsys):
+    cfg = write_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace(
+        "demo: {synthetic: {preset: demo}}",
+        "demo: {synthetic: {preset: demo}}\n  other: {synthetic: {preset: demo}, params: {double: {factor: 3}}}"))
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "all", "--scene", "other") == 0
+    ws = tmp_path / "ws"
+    demo, other = (ws / "demo" / "double" / "result.txt").read_text(), (ws / "other" / "double" / "result.txt").read_text()
+    assert len(other) == len(demo) * 3 // 2  # factor 3 there, the default 2 here
+    # Changing the scene's own params reruns that scene's `double` (and downstream), not `source`.
+    cfg.write_text(cfg.read_text().replace("factor: 3", "factor: 4"))
+    before = len(counter())
+    assert run(cfg, "run", "all", "--scene", "other") == 0
+    assert counter()[before:] == ["double", "report"]
+    # --set on the stage wins over the scene's value.
+    assert run(cfg, "run", "all", "--scene", "other", "--set", "double.factor=2") == 0
+    assert (ws / "other" / "double" / "result.txt").read_text() == demo
+
+
+def test_scene_params_for_an_unknown_stage_exit_2(tmp_path, capsys):
+    cfg = write_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("demo: {synthetic: {preset: demo}}",
+                                           "demo: {synthetic: {preset: demo}, params: {tripple: {factor: 3}}}"))
+    assert run(cfg, "run", "all") == 2
+    assert "scenes.demo.params: unknown stage 'tripple'" in capsys.readouterr().err
+
+
+def test_bad_scene_param_names_the_scene_block(tmp_path, capsys):
+    cfg = write_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("demo: {synthetic: {preset: demo}}",
+                                           "demo: {synthetic: {preset: demo}, params: {double: {factr: 3}}}"))
+    assert run(cfg, "run", "all") == 2
+    assert "scenes.demo.params.double" in capsys.readouterr().err

@@ -129,3 +129,21 @@ def test_colour_histogram_tells_shirts_apart():
     blue[..., 2] = 200
     hr, hb = colour_histogram(red), colour_histogram(blue)
     assert abs(hr.sum() - 1) < 1e-12 and hellinger(hr, hr) == 0.0 and hellinger(hr, hb) > 0.99
+
+
+def test_a_duplicate_detection_cannot_take_a_person_over():
+    """The lab failure: a person detected twice in one frame starts a tentative track beside
+    their own; next frame that tentative track fits the single detection slightly better. The
+    person must keep their id (confirmed tracks choose first) and the duplicate die quietly."""
+    def obs(x):
+        return Observation(np.array([x, 100.0, x + 50, 300.0]), np.array([x / 100, 0.0, 5.0]), np.full(4, 0.25))
+
+    tr = Tracker(TrackerConfig(min_hits=3, max_misses=5))
+    ids = [tr.update(k / 30, [obs(100.0 + 2 * k)]) for k in range(4)]
+    assert ids[-1] == [0]
+    # frame 4: the person (x=108) and a duplicate box ahead of them (x=116)
+    assert tr.update(4 / 30, [obs(108.0), obs(116.0)]) == [0, -1]
+    # frame 5: one detection at x=117, nearer the duplicate's track than the person's (x=110 expected)
+    assert tr.update(5 / 30, [obs(117.0)]) == [0]
+    assert [tr.update(k / 30, [obs(117.0 + 2 * (k - 5))]) for k in range(6, 9)] == [[0], [0], [0]]
+    assert tr.next_id == 1
