@@ -56,6 +56,10 @@ class Params(StageParams):
     render_size: int = 64
     ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
     anchor: bool = True  # pull the body towards its triangulated mask centre (losses.anchor weight)
+    # Reproject the joints into the target views against 2D joints the BlazePose landmark model
+    # detects in their crops (losses.keypoints; gst.train.keypoints). Needs the `detect` extra and
+    # `python -m gst.detect fetch`.
+    keypoints: bool = False
     losses: LossWeights = LossWeights()
     threads: int | None = None
 
@@ -117,6 +121,13 @@ def run(ctx: StageContext) -> None:
         crops.anchors = mask_centre_anchors(crops, cameras=train_cams)  # held-out masks never used
         ctx.log.info("anchors: %d of %d crops have a triangulated mask centre",
                      int(torch.isfinite(crops.anchors).all(1).sum()), len(crops))
+    if p.keypoints and p.supervision == "multiview":
+        from gst.detect.blazepose import BlazePose
+        from gst.train.keypoints import crop_keypoints
+
+        crops.keypoints = crop_keypoints(crops.images, BlazePose(), ctx.progress)
+        ctx.log.info("keypoints: %d of %d crops have detected joints",
+                     int((crops.keypoints[..., 2].amax(1) > 0).sum()), len(crops))
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(ctx, body)
     net.freeze_backbone(p.freeze_backbone)

@@ -30,6 +30,9 @@ class LossWeights(BaseModel):
     # Ours, not the paper's (0 gives its objective): the body's centre within 0.1 m of the
     # triangulated mask centre of its person (gst.train.anchors); used when anchors are known.
     anchor: float = Field(1.0, ge=0)
+    # Ours: predicted joints against 2D joints detected in the target views (gst.train.keypoints);
+    # used when the crops carry detections (train.keypoints).
+    keypoints: float = Field(1.0, ge=0)
 
 
 @dataclass

@@ -18,6 +18,7 @@ from gst.model.assemble import BodyPrediction, assemble
 from gst.model.preprocess import network_input, to_float_images
 from gst.render import rasterize
 from gst.train.anchors import anchor_term
+from gst.train.keypoints import keypoint_term
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
 from gst.train.occlusion import ignore_occluded
 from gst.train.views import MultiViewBatch
@@ -71,6 +72,9 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
                         task.weights, task.lpips)
     if batch.anchors is not None and task.weights.anchor > 0:
         parts["anchor"] = anchor_term(pred.gaussians_world.means.mean(1), batch.anchors)
+    if batch.target_keypoints is not None and task.weights.keypoints > 0:
+        parts["keypoints"] = keypoint_term(pred.joints_world, batch.viewmats, batch.K_target,
+                                           batch.target_keypoints, batch.target_images.shape[-2])
     return pred, out, target, parts
 
 

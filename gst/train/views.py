@@ -30,6 +30,7 @@ class CropSet:
     truth: dict[str, torch.Tensor] = field(default_factory=dict)  # e.g. joints_world (N, 24, 3)
     occluders: torch.Tensor | None = None  # (N, S, S) other people's pixels (gst.train.occlusion)
     anchors: torch.Tensor | None = None  # (N, 3) world point per crop, NaN if none (gst.train.anchors)
+    keypoints: torch.Tensor | None = None  # (N, 24, 3) detected joints: crop px, confidence (gst.train.keypoints)
 
     def __post_init__(self):
         n = self.images.shape[0]
@@ -87,7 +88,7 @@ def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
     return CropSet(images=cat("images"), masks=cat("masks"), K=cat("K"), R=cat("R"), t=cat("t"),
                    camera=torch.cat(cams), frame=torch.cat(frames), person=cat("person"), camera_names=names,
                    truth={k: torch.cat([s.truth[k] for s in sets]) for k in keys}, occluders=cat("occluders"),
-                   anchors=cat("anchors"))
+                   anchors=cat("anchors"), keypoints=cat("keypoints"))
 
 
 def scale_intrinsics(K: torch.Tensor, factor: float) -> torch.Tensor:
@@ -137,6 +138,7 @@ class MultiViewBatch:
     backgrounds: torch.Tensor  # (B, M, 3) random per view, so alpha must be right to match
     target_occluders: torch.Tensor | None = None  # (B, M, r, r) other people's pixels: not supervised
     anchors: torch.Tensor | None = None  # (B, 3) the input person's triangulated mask centre (or NaN)
+    target_keypoints: torch.Tensor | None = None  # (B, M, 24, 3) detected joints at render size, confidence
 
 
 def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Generator, batch_size: int,
@@ -163,8 +165,13 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
     bg = torch.rand(*tgt.shape, 3, generator=gen)
     occ = None if crops.occluders is None else resize_images(crops.occluders[tgt][..., None], render_size)[..., 0]
     anchors = None if crops.anchors is None else crops.anchors[inp]
+    keypoints = None
+    if crops.keypoints is not None:  # crop pixels -> render pixels (pixel centres at integers)
+        f = render_size / crops.crop_size
+        keypoints = crops.keypoints[tgt].clone()
+        keypoints[..., :2] = (keypoints[..., :2] + 0.5) * f - 0.5
     return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask, K,
-                          view, bg, occ, anchors)
+                          view, bg, occ, anchors, keypoints)
 
 
 def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:

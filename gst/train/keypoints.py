@@ -1,0 +1,70 @@
+"""Detected 2D joints of every crop, for a label-free reprojection term in multi-view training.
+
+The BlazePose landmark model (gst.detect) looks at each crop as one region of interest (the
+crop frames the person with margin, as the model expects) and gives 33 landmarks with a
+visibility each. Thirteen of the body model's 24 joints have a counterpart: the hips, knees,
+ankles, shoulders, elbows and wrists, and the pelvis as the mid-point of the hips. Each such
+joint gets its crop-pixel position and a confidence (presence x visibility); the others get
+confidence 0.
+
+`keypoint_term` projects the predicted world joints into every target view of a multi-view
+batch and compares them with those views' detections: the 2D evidence of several calibrated
+cameras constrains the 3D joints, which the photometric terms alone do not pull in from a poor
+start. Ours, not the paper's (weight `losses.keypoints`, 0 gives its objective); no 3D labels
+are used, and held-out cameras never enter training batches.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gst.detect.blazepose import BlazePose, BodyRoi
+
+# body-model joint (SMPL order) -> BlazePose landmarks averaged for it
+BODY_FROM_BLAZEPOSE: dict[int, tuple[int, ...]] = {
+    0: (23, 24),          # pelvis: mid-hips
+    1: (23,), 2: (24,),   # hips
+    4: (25,), 5: (26,),   # knees
+    7: (27,), 8: (28,),   # ankles
+    16: (11,), 17: (12,),  # shoulders
+    18: (13,), 19: (14,),  # elbows
+    20: (15,), 21: (16,),  # wrists
+}
+
+
+def landmarks_to_body(landmarks: np.ndarray, presence: float, n_joints: int = 24) -> np.ndarray:
+    """(33, 3) BlazePose x, y, visibility -> (n_joints, 3) u, v, confidence."""
+    out = np.zeros((n_joints, 3), np.float32)
+    for j, src in BODY_FROM_BLAZEPOSE.items():
+        pts = landmarks[list(src)]
+        out[j, :2] = pts[:, :2].mean(axis=0)
+        out[j, 2] = presence * float(pts[:, 2].min())
+    return out
+
+
+def crop_keypoints(images: torch.Tensor, model: BlazePose, progress=None) -> torch.Tensor:
+    """(N, S, S, 3) uint8 RGB crops -> (N, 24, 3) detected joints: crop pixels and confidence."""
+    n, s = images.shape[0], images.shape[1]
+    roi = BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0)
+    out = np.zeros((n, 24, 3), np.float32)
+    rows = range(n) if progress is None else progress(range(n), description="detecting 2D joints in crops", total=n)
+    for i in rows:
+        bgr = np.ascontiguousarray(images[i].numpy()[..., ::-1])
+        seg = model.segment(bgr, roi)
+        out[i] = landmarks_to_body(seg.landmarks, seg.presence)
+    return torch.from_numpy(out)
+
+
+def keypoint_term(joints_world: torch.Tensor, viewmats: torch.Tensor, K: torch.Tensor,
+                  keypoints: torch.Tensor, image_size: int) -> torch.Tensor:
+    """Confidence-weighted mean distance, in image widths, between the predicted joints
+    (B, J, 3) projected into the target views (viewmats (B, M, 4, 4), K (B, M, 3, 3)) and
+    the views' detected joints (B, M, J, 3: u, v, confidence, in the same pixels as K)."""
+    R, t = viewmats[..., :3, :3], viewmats[..., :3, 3]
+    cam = torch.einsum("bmij,bnj->bmni", R, joints_world) + t[:, :, None, :]
+    z = cam[..., 2:].clamp_min(1e-3)
+    uv = torch.einsum("bmij,bmnj->bmni", K, cam / z)[..., :2]
+    conf = keypoints[..., 2] * (cam[..., 2] > 1e-3)
+    err = (uv - keypoints[..., :2]).norm(dim=-1) / image_size
+    return (conf * err.clamp(max=0.5)).sum() / conf.sum().clamp_min(1e-6)

@@ -1,0 +1,68 @@
+"""Detected-joint reprojection term: exact projections cost nothing, errors are measured in image
+widths and weighted by confidence; the BlazePose-to-body joint mapping."""
+
+import numpy as np
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gst.train.keypoints import BODY_FROM_BLAZEPOSE, keypoint_term, landmarks_to_body
+
+
+def _views(b: int, m: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    viewmats = torch.eye(4).repeat(b, m, 1, 1)
+    angles = torch.rand(b, m, generator=g) * 0.6 - 0.3
+    c, s = torch.cos(angles), torch.sin(angles)
+    viewmats[..., 0, 0], viewmats[..., 0, 2], viewmats[..., 2, 0], viewmats[..., 2, 2] = c, s, -s, c
+    viewmats[..., 2, 3] = 4.0
+    K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 31.5], [0, 0, 1]]).repeat(b, m, 1, 1)
+    return viewmats, K
+
+
+def _project(joints, viewmats, K):
+    cam = torch.einsum("bmij,bnj->bmni", viewmats[..., :3, :3], joints) + viewmats[..., None, :3, 3]
+    uv = torch.einsum("bmij,bmnj->bmni", K, cam / cam[..., 2:])[..., :2]
+    return uv
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.floats(0.5, 3.0))
+def test_exact_detections_cost_nothing_and_shifts_cost_their_size(seed, shift_px):
+    g = torch.Generator().manual_seed(seed)
+    joints = torch.rand(2, 24, 3, generator=g) - 0.5
+    viewmats, K = _views(2, 3, seed)
+    uv = _project(joints, viewmats, K)
+    conf = torch.rand(2, 3, 24, generator=g) + 0.1
+    kp = torch.cat([uv, conf[..., None]], -1)
+    assert keypoint_term(joints, viewmats, K, kp, 64).item() < 1e-5
+    shifted = kp.clone()
+    shifted[..., 0] += shift_px
+    assert abs(keypoint_term(joints, viewmats, K, shifted, 64).item() - shift_px / 64) < 1e-4
+
+
+def test_zero_confidence_joints_are_ignored_and_gradients_flow():
+    joints = (torch.rand(1, 24, 3) - 0.5).requires_grad_()
+    viewmats, K = _views(1, 2)
+    kp = torch.cat([_project(joints.detach(), viewmats, K), torch.zeros(1, 2, 24, 1)], -1)
+    kp[..., 5, 2] = 1.0
+    kp[..., 5, 0] += 6.4  # only joint 5 is detected, 0.1 image widths off
+    kp[..., 7, 0] += 50.0  # wrong but confidence 0: ignored
+    loss = keypoint_term(joints, viewmats, K, kp, 64)
+    assert abs(loss.item() - 0.1) < 1e-4
+    loss.backward()
+    assert joints.grad[0, 5].abs().sum() > 0 and joints.grad[0, 7].abs().sum() == 0
+
+
+def test_landmark_mapping():
+    lm = np.zeros((33, 3), np.float32)
+    lm[:, 0] = np.arange(33)
+    lm[:, 1] = 100 + np.arange(33)
+    lm[:, 2] = 0.9
+    lm[24, 2] = 0.3
+    out = landmarks_to_body(lm, presence=0.8)
+    assert out.shape == (24, 3)
+    assert np.allclose(out[0, :2], [23.5, 123.5]) and np.isclose(out[0, 2], 0.8 * 0.3)  # pelvis: mid-hips
+    assert np.allclose(out[16, :2], [11, 111]) and np.isclose(out[16, 2], 0.72)  # left shoulder
+    unmapped = [j for j in range(24) if j not in BODY_FROM_BLAZEPOSE]
+    assert np.all(out[unmapped] == 0)
