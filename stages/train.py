@@ -44,12 +44,13 @@ class Params(StageParams):
     hmr2_checkpoint: Path | None = None  # with init=hmr2 (huge preset); loaded with weights_only=True
     body_model: str = "anny"
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    steps: int = 300
+    steps: int = 1000
     batch_size: int = 8
     lr: float = 1e-3  # Gaussian head (tokens, attribute heads)
-    # backbone + SMPL head (None: `lr` for everything). Low: from a poor start the photometric
-    # gradient drags the pose away (demo: +11% MPJPE at 1e-4, -2% at 1e-5; docs/training.md).
-    body_lr: float | None = 1e-5
+    # backbone + SMPL head (None: `lr` for everything). With the keypoint term the body can
+    # learn (demo: -27% MPJPE at 3e-4); without it, keep it low: from a poor start the
+    # photometric gradient alone drags the pose away (+11% at 1e-4, -2% at 1e-5; docs/training.md).
+    body_lr: float | None = 3e-4
     supervised_lr: float = 1e-4  # supervision 2d/3d (the Table 1 baselines): the whole network
     freeze_backbone: bool = False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
     num_targets: int = 4
@@ -58,8 +59,8 @@ class Params(StageParams):
     anchor: bool = True  # pull the body towards its triangulated mask centre (losses.anchor weight)
     # Reproject the joints into the target views against 2D joints the BlazePose landmark model
     # detects in their crops (losses.keypoints; gst.train.keypoints). Needs the `detect` extra and
-    # `python -m gst.detect fetch`.
-    keypoints: bool = False
+    # `python -m gst.detect fetch`. Ours, not the paper's; false gives its objective.
+    keypoints: bool = True
     losses: LossWeights = LossWeights()
     threads: int | None = None
 

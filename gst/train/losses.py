@@ -32,7 +32,7 @@ class LossWeights(BaseModel):
     anchor: float = Field(1.0, ge=0)
     # Ours: predicted joints against 2D joints detected in the target views (gst.train.keypoints);
     # used when the crops carry detections (train.keypoints).
-    keypoints: float = Field(1.0, ge=0)
+    keypoints: float = Field(10.0, ge=0)
 
 
 @dataclass
