@@ -19,6 +19,8 @@ import numpy as np
 import torch
 
 from gst.body import load_body_model
+from gst.detect.blazepose import import_litert
+from gst.detect.weights import model_paths
 from gst.eval.truth import attach_scene_truth, select_rows
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
@@ -103,6 +105,9 @@ def run(ctx: StageContext) -> None:
     p = ctx.params
     if p.threads:
         torch.set_num_threads(p.threads)
+    if p.keypoints and p.supervision == "multiview":
+        model_paths()  # missing person models or LiteRT fail now, with the fix, not after loading
+        import_litert()
     crops, boxes = load_cropset(ctx.path("crops/crops.h5"))
     if ctx.scene.is_synthetic:
         attach_scene_truth(crops, boxes, ctx.path("synth"))
@@ -127,8 +132,8 @@ def run(ctx: StageContext) -> None:
         from gst.train.keypoints import crop_keypoints
 
         crops.keypoints = crop_keypoints(crops.images, BlazePose(), ctx.progress)
-        ctx.log.info("keypoints: %d of %d crops have detected joints",
-                     int((crops.keypoints[..., 2].amax(1) > 0).sum()), len(crops))
+        ctx.log.info("keypoints: %d of %d crops have a joint detected with confidence >= 0.5",
+                     int((crops.keypoints[..., 2].amax(1) >= 0.5).sum()), len(crops))
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(ctx, body)
     net.freeze_backbone(p.freeze_backbone)

@@ -24,6 +24,8 @@ from scipy.optimize import linear_sum_assignment
 
 from calibration import Camera, Rig
 
+_MIN_INSTANCE_IOU = 0.1  # a footprint overlapping an instance less than this does not own it
+
 
 @dataclass(frozen=True)
 class AssociationConfig:
@@ -55,8 +57,9 @@ class AssociationConfig:
     link_speed: float = 2.0  # m/s: a person's typical displacement speed over a gap
     link_slack: float = 0.5  # m: centroid jitter tolerated on top
     # Masks are person instances (a learned segmenter): a hull component whose voxels land on
-    # different instances in at least `min_views` cameras is split along them, however close
-    # the people stand. Off for background-subtraction blobs, where one body can be two blobs.
+    # different instances in at least `min_views` cameras is split along them (pieces whose
+    # ground centres end up closer than `merge_radius` are still merged back). Off for
+    # background-subtraction blobs, where one body can be two blobs.
     instance_split: bool = False
     instance_share: float = 0.2  # an instance must hold this share of a component's voxels in a view
 
@@ -67,6 +70,8 @@ class AssociationConfig:
             raise ValueError(f"min_views must be >= 2 (one view cannot place a person in 3D), got {self.min_views}")
         if self.max_misses < 0:
             raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")
+        if not 0 < self.instance_share < 1:
+            raise ValueError(f"instance_share must be in (0, 1), got {self.instance_share}")
 
 
 @dataclass(frozen=True)
@@ -543,7 +548,7 @@ class VoxelGrid:
                 for n in names:
                     row = np.where(free[n], scores[n][k], 0.0)
                     j = int(row.argmax())
-                    if row[j] >= 0.1:
+                    if row[j] >= _MIN_INSTANCE_IOU:
                         claims[n], total = j, total + row[j]
                 if len(claims) >= need[k] and total > best_total:
                     best, best_total, best_claims = k, total, claims
@@ -585,11 +590,14 @@ class VoxelGrid:
             scores = self._instance_scores(name, labels, persons)
             rows, cols = linear_sum_assignment(-scores[:, 1:])
             for k, b in zip(rows, cols + 1, strict=True):
-                if scores[k, b] > 0:
+                if scores[k, b] >= _MIN_INSTANCE_IOU:
                     owner_of[b] = k
             for b in range(1, n_blobs):
-                if owner_of[b] < 0 and votes[:, b].max() > 0:
-                    owner_of[b] = votes[:, b].argmax()
+                k = int(votes[:, b].argmax())
+                # A leftover instance must be this person's too, not a neighbour (a bystander
+                # nobody accepted) that a few edge voxels happen to land on.
+                if owner_of[b] < 0 and votes[k, b] > 0 and scores[k, b] >= _MIN_INSTANCE_IOU:
+                    owner_of[b] = k
                 if owner_of[b] >= 0:
                     out[labels == b] = owner_of[b] + 1
             return self._drop_small_views(out, len(persons))

@@ -160,13 +160,18 @@ def roi_from_box(box: tuple[float, float, float, float]) -> BodyRoi:
 
 # --- the models ------------------------------------------------------------------------------
 
-def _interpreter(path: Path, threads: int):
+def import_litert():
+    """LiteRT's Interpreter class, or an ImportError that says how to install it."""
     try:
         from ai_edge_litert.interpreter import Interpreter
     except ImportError as exc:  # the optional extra is not installed
         raise ImportError("the BlazePose person models need the LiteRT interpreter: "
                           "pip install -e \".[detect]\" (package ai-edge-litert)") from exc
-    it = Interpreter(model_path=str(path), num_threads=threads)
+    return Interpreter
+
+
+def _interpreter(path: Path, threads: int):
+    it = import_litert()(model_path=str(path), num_threads=threads)
     it.allocate_tensors()
     return it
 
@@ -204,7 +209,8 @@ class BlazePose:
             # Cut the window out of a zero-padded frame (the full-frame window is a letterbox).
             m = np.float32([[DETECTOR_SIZE / side, 0, -x0 * DETECTOR_SIZE / side],
                             [0, DETECTOR_SIZE / side, -y0 * DETECTOR_SIZE / side]])
-            win = cv2.warpAffine(rgb, m, (DETECTOR_SIZE, DETECTOR_SIZE), flags=cv2.INTER_AREA,
+            # (warpAffine has no area filter: INTER_AREA would silently be bilinear too.)
+            win = cv2.warpAffine(rgb, m, (DETECTOR_SIZE, DETECTOR_SIZE), flags=cv2.INTER_LINEAR,
                                  borderMode=cv2.BORDER_CONSTANT)
             self.detector.set_tensor(inp, (win.astype(np.float32) / 127.5 - 1.0)[None])
             self.detector.invoke()

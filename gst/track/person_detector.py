@@ -4,7 +4,8 @@ where the background model fails (people who stand still, cameras that move, no 
 It runs at a work resolution (longer side `max_side` px), keeps its own tracking state across
 frames (the previous frame's landmarks seed the next frame's regions), and returns each
 person's mask box at full resolution with the landmark model's presence as the score. Frames
-must come in order; a jump in the frame index resets the state.
+must come in order; a frame index that goes back (or repeats) resets the state, and a forward
+jump of more than `max_gap` frames does too.
 """
 
 from __future__ import annotations
@@ -23,15 +24,16 @@ from gst.track.detection import Detection
 class PersonModelDetector:
     def __init__(self, *, models_dir: str | Path | None = None, max_side: int = 960,
                  config: SegmenterConfig | None = None, min_height_frac: float = 0.08, threads: int = 1,
-                 duplicate_iou: float = 0.6):
+                 duplicate_iou: float = 0.6, max_gap: int = 5):
         self.segmenter = PersonSegmenter(BlazePose(models_dir, threads=threads), config or SegmenterConfig())
         self.max_side = max_side
         self.min_height_frac = min_height_frac
         self.duplicate_iou = duplicate_iou
+        self.max_gap = max_gap  # frames; a stride up to this keeps the tracked regions
         self._last: int | None = None
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
-        if self._last is not None and frame_index <= self._last:
+        if self._last is not None and not 0 < frame_index - self._last <= self.max_gap:
             self.segmenter.reset()
         self._last = frame_index
         h, w = frame_bgr.shape[:2]
