@@ -214,17 +214,13 @@ def test_scene_params_apply_to_that_scene_only_and_set_wins(tmp_path, counter, c
     assert (ws / "other" / "double" / "result.txt").read_text() == demo
 
 
-def test_scene_params_for_an_unknown_stage_exit_2(tmp_path, capsys):
+@pytest.mark.parametrize("scene_params,expected", [
+    ("{tripple: {factor: 3}}", "scenes.demo.params: unknown stage 'tripple'"),
+    ("{double: {factr: 3}}", "scenes.demo.params.double"),
+])
+def test_bad_scene_params_exit_2_and_name_the_block(tmp_path, capsys, scene_params, expected):
     cfg = write_config(tmp_path)
     cfg.write_text(cfg.read_text().replace("demo: {synthetic: {preset: demo}}",
-                                           "demo: {synthetic: {preset: demo}, params: {tripple: {factor: 3}}}"))
+                                           f"demo: {{synthetic: {{preset: demo}}, params: {scene_params}}}"))
     assert run(cfg, "run", "all") == 2
-    assert "scenes.demo.params: unknown stage 'tripple'" in capsys.readouterr().err
-
-
-def test_bad_scene_param_names_the_scene_block(tmp_path, capsys):
-    cfg = write_config(tmp_path)
-    cfg.write_text(cfg.read_text().replace("demo: {synthetic: {preset: demo}}",
-                                           "demo: {synthetic: {preset: demo}, params: {double: {factr: 3}}}"))
-    assert run(cfg, "run", "all") == 2
-    assert "scenes.demo.params.double" in capsys.readouterr().err
+    assert expected in capsys.readouterr().err

@@ -27,22 +27,25 @@ TORSO = (11, 12, 24, 23)  # shoulders and hips
 HEAD = (0, 7, 8)          # nose and ears
 
 
+def _draw_skeleton(canvas: np.ndarray, pts: np.ndarray, value: int, thickness: int) -> None:
+    """Bones, the torso outline and the head-to-neck line of int landmarks `pts`, in place."""
+    for a, b in BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)):
+        cv2.line(canvas, tuple(map(int, pts[a])), tuple(map(int, pts[b])), value, thickness=thickness)
+    head = tuple(map(int, pts[list(HEAD)].mean(axis=0)))
+    cv2.line(canvas, head, tuple(map(int, (pts[11] + pts[12]) // 2)), value, thickness=thickness)
+
+
 def skeleton_support(landmarks: np.ndarray, shape: tuple[int, int], width: float) -> np.ndarray:
     """Boolean (H, W) region within `width` pixels of a person's skeleton: thick bones, the filled
     torso and the head. The landmark model segments everyone in its region; keeping only the
     pixels near this person's own skeleton stops one person's mask from swallowing a neighbour."""
-    h, w = shape
-    out = np.zeros((h, w), np.uint8)
+    out = np.zeros(shape, np.uint8)
     pts = np.round(landmarks[:, :2]).astype(np.int32)
     t = max(1, int(round(width)))
-    for a, b in BONES:
-        cv2.line(out, tuple(map(int, pts[a])), tuple(map(int, pts[b])), 1, thickness=2 * t)
+    _draw_skeleton(out, pts, 1, 2 * t)
     cv2.fillConvexPoly(out, pts[list(TORSO)], 1)
-    cv2.polylines(out, [pts[list(TORSO)]], True, 1, thickness=2 * t)
-    head = pts[list(HEAD)]
     head_r = max(t, int(round(np.linalg.norm(landmarks[7, :2] - landmarks[8, :2]))))
-    cv2.circle(out, tuple(map(int, head.mean(axis=0))), int(round(head_r * 1.2)) + t, 1, thickness=-1)
-    cv2.line(out, tuple(map(int, head.mean(axis=0))), tuple(map(int, (pts[11] + pts[12]) // 2)), 1, thickness=2 * t)
+    cv2.circle(out, tuple(map(int, pts[list(HEAD)].mean(axis=0))), int(round(head_r * 1.2)) + t, 1, thickness=-1)
     return out.astype(bool)
 
 
@@ -87,11 +90,7 @@ def same_person(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
 def _skeleton_distance(landmarks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Distance (px) of every pixel to a person's skeleton lines."""
     lines = np.full(shape, 255, np.uint8)
-    pts = np.round(landmarks[:, :2]).astype(np.int32)
-    for a, b in BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)):
-        cv2.line(lines, tuple(map(int, pts[a])), tuple(map(int, pts[b])), 0, thickness=1)
-    head = pts[list(HEAD)].mean(axis=0).astype(int)
-    cv2.line(lines, tuple(map(int, head)), tuple(map(int, (pts[11] + pts[12]) // 2)), 0, thickness=1)
+    _draw_skeleton(lines, np.round(landmarks[:, :2]).astype(np.int32), 0, 1)
     return cv2.distanceTransform(lines, cv2.DIST_L2, 3)
 
 
@@ -125,14 +124,9 @@ def compose_instances(segments: Sequence[PersonSegment], config: SegmenterConfig
     lut = np.zeros(len(kept), dtype=np.uint8)
     lut[rank] = np.arange(1, len(kept) + 1, dtype=np.uint8)
     labels = np.where(owned, lut[best], 0).astype(np.uint8)
-    people = [cands[kept[r]] for r in rank]
-    # A person whose whole mask went to others is not in the image.
-    people = [p for k, p in enumerate(people) if areas[rank[k]] > 0]
-    if len(people) < len(kept):
-        present = np.unique(labels[labels > 0])
-        relabel = np.zeros(256, np.uint8)
-        relabel[present] = np.arange(1, len(present) + 1, dtype=np.uint8)
-        labels = relabel[labels]
+    # A person whose whole mask went to others is not in the image. Their area is 0, so they
+    # rank last and the labels of the others are already 1..m.
+    people = [cands[kept[r]] for r in rank if areas[r] > 0]
     return labels, people
 
 
