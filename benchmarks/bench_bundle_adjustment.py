@@ -71,8 +71,14 @@ def accuracy(result, scene):
     truth = scene.rig.transformed(T[:3, :3], T[:3, 3])
     c = np.array([cam.center for cam in truth])
     diameter = max(np.linalg.norm(a - b) for a in c for b in c)
-    f_err = max(max(abs(e.fx / t.fx - 1), abs(e.fy / t.fy - 1)) for t, e in zip(truth, result.rig, strict=True))
-    c_err = max(np.linalg.norm(e.center - t.center) for t, e in zip(truth, result.rig, strict=True)) / diameter
+    f_err = max(
+        max(abs(e.fx / t.fx - 1), abs(e.fy / t.fy - 1))
+        for t, e in zip(truth, result.rig, strict=True)
+    )
+    c_err = (
+        max(np.linalg.norm(e.center - t.center) for t, e in zip(truth, result.rig, strict=True))
+        / diameter
+    )
     r_err = max(rotation_angle_deg(e.R, t.R) for t, e in zip(truth, result.rig, strict=True))
     return 100 * f_err, 100 * c_err, r_err, result.rms_px_overall
 
@@ -82,7 +88,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cameras", type=int, default=8)
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--noise", type=float, default=0.3)
-    ap.add_argument("--outliers", type=float, default=0.0, help="fraction of corners made gross outliers")
+    ap.add_argument(
+        "--outliers", type=float, default=0.0, help="fraction of corners made gross outliers"
+    )
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", default=None, help="run only variants whose name contains this")
@@ -100,15 +108,23 @@ def main(argv=None) -> int:
     init = initialise_from_detections(dets, sizes, scene.board)
     t_init = time.perf_counter() - t0
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"machine: {os.cpu_count()} CPUs, load average {load:.1f} (wall times grow with load; CPU s is "
-          "process CPU time, all threads)")
-    print(f"{args.cameras} cameras x {args.frames} board poses: {views} views, {corners} corners, "
-          f"noise {args.noise} px, {n_bad} gross outliers")
-    print(f"initialisation (intrinsics + pose graph): {t_init:.2f} s  "
-          f"({', '.join(f'{k} {v:.2f} s' for k, v in init.timings.items())})")
+    print(
+        f"machine: {os.cpu_count()} CPUs, load average {load:.1f} (wall times grow with load; CPU s is "
+        "process CPU time, all threads)"
+    )
+    print(
+        f"{args.cameras} cameras x {args.frames} board poses: {views} views, {corners} corners, "
+        f"noise {args.noise} px, {n_bad} gross outliers"
+    )
+    print(
+        f"initialisation (intrinsics + pose graph): {t_init:.2f} s  "
+        f"({', '.join(f'{k} {v:.2f} s' for k, v in init.timings.items())})"
+    )
     print()
-    header = (f"{'variant':36s} {'BA s (median)':>13s} {'ratio':>6s} {'CPU s':>6s} {'rounds':>6s} {'f err %':>8s} "
-              f"{'centre %':>8s} {'rot deg':>8s} {'RMS px':>7s} {'removed':>7s}")
+    header = (
+        f"{'variant':36s} {'BA s (median)':>13s} {'ratio':>6s} {'CPU s':>6s} {'rounds':>6s} {'f err %':>8s} "
+        f"{'centre %':>8s} {'rot deg':>8s} {'RMS px':>7s} {'removed':>7s}"
+    )
     print(header)
     print("-" * len(header))
     base = None
@@ -127,10 +143,14 @@ def main(argv=None) -> int:
         base = base or med
         f_err, c_err, r_err, rms = accuracy(result, scene)
         removed = sum(r["removed"] for r in result.ba_rounds)
-        print(f"{name:36s} {med:13.2f} {med / base:6.2f} {statistics.median(cpu):6.2f} {len(result.ba_rounds):6d} {f_err:8.3f} "
-              f"{c_err:8.3f} {r_err:8.3f} {rms:7.3f} {removed:7d}")
+        print(
+            f"{name:36s} {med:13.2f} {med / base:6.2f} {statistics.median(cpu):6.2f} {len(result.ba_rounds):6d} {f_err:8.3f} "
+            f"{c_err:8.3f} {r_err:8.3f} {rms:7.3f} {removed:7d}"
+        )
     print()
-    print("goal: BA under 10 s; acceptance: f err < 0.5 %, centre < 1 %, rotation < 0.3 deg, RMS < 0.5 px")
+    print(
+        "goal: BA under 10 s; acceptance: f err < 0.5 %, centre < 1 %, rotation < 0.3 deg, RMS < 0.5 px"
+    )
     return 0
 
 

@@ -36,7 +36,9 @@ def synthetic_1080p(root: Path, n_frames: int, n_people: int) -> tuple[dict, Rig
     """Render a small scene and upscale it x4 to 1920x1080 (videos, truth masks and intrinsics)."""
     from tests.extract_scenes import make_scene
 
-    small = make_scene(root / "small", n_people=n_people, n_frames=n_frames, size=(480, 270), laps=0.6)
+    small = make_scene(
+        root / "small", n_people=n_people, n_frames=n_frames, size=(480, 270), laps=0.6
+    )
     up = 4
     cams, videos = [], {}
     (root / "truth" / "masks").mkdir(parents=True, exist_ok=True)
@@ -46,10 +48,14 @@ def synthetic_1080p(root: Path, n_frames: int, n_people: int) -> tuple[dict, Rig
         K = cam.K.copy()
         K[:2, :2] *= up
         K[:2, 2] = (K[:2, 2] + 0.5) * up - 0.5
-        cams.append(Camera.create(cam.name, K, cam.dist, cam.R, cam.t, cam.width * up, cam.height * up))
+        cams.append(
+            Camera.create(cam.name, K, cam.dist, cam.R, cam.t, cam.width * up, cam.height * up)
+        )
         cap = cv2.VideoCapture(str(small.videos[cam.name]))
         path = root / "videos" / f"{cam.name}.mp4"
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25, (cam.width * up, cam.height * up))
+        writer = cv2.VideoWriter(
+            str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25, (cam.width * up, cam.height * up)
+        )
         while True:
             ok, frame = cap.read()
             if not ok:
@@ -58,7 +64,9 @@ def synthetic_1080p(root: Path, n_frames: int, n_people: int) -> tuple[dict, Rig
         writer.release()
         videos[cam.name] = path
         masks = np.load(small.truth / "masks" / f"{cam.name}.npz")["masks"]
-        big = np.stack([cv2.resize(m, None, fx=up, fy=up, interpolation=cv2.INTER_NEAREST) for m in masks])
+        big = np.stack(
+            [cv2.resize(m, None, fx=up, fy=up, interpolation=cv2.INTER_NEAREST) for m in masks]
+        )
         np.savez_compressed(root / "truth" / "masks" / f"{cam.name}.npz", masks=big)
     shutil.rmtree(root / "small")
     return videos, Rig(tuple(cams)), root / "truth"
@@ -78,12 +86,20 @@ VARIANTS = [
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--people", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--variants", default="all", help="comma-separated variant numbers (0-based) or 'all'")
-    ap.add_argument("--real", type=Path, help="folder of real <camera>.mp4 videos instead of the synthetic scene")
+    ap.add_argument(
+        "--variants", default="all", help="comma-separated variant numbers (0-based) or 'all'"
+    )
+    ap.add_argument(
+        "--real",
+        type=Path,
+        help="folder of real <camera>.mp4 videos instead of the synthetic scene",
+    )
     ap.add_argument("--calib", type=Path, help="calibration file for --real")
     ap.add_argument("--format", default=None, help="calibration format for --real (e.g. qualisys)")
     args = ap.parse_args()
@@ -102,9 +118,15 @@ def main() -> None:
             videos, rig, truth = synthetic_1080p(work / "scene", args.frames, args.people)
             what = f"synthetic {args.people}-person scene, {args.frames} frames"
         cam0 = rig[next(iter(videos))]
-        print(f"input: {what}; {len(videos)} cameras at {cam0.width}x{cam0.height} "
-              f"(prepared in {time.perf_counter() - t0:.1f} s)")
-        chosen = range(len(VARIANTS)) if args.variants == "all" else [int(v) for v in args.variants.split(",")]
+        print(
+            f"input: {what}; {len(videos)} cameras at {cam0.width}x{cam0.height} "
+            f"(prepared in {time.perf_counter() - t0:.1f} s)"
+        )
+        chosen = (
+            range(len(VARIANTS))
+            if args.variants == "all"
+            else [int(v) for v in args.variants.split(",")]
+        )
         rows = []
         for vi in chosen:
             name, method, ws, comp, persons = VARIANTS[vi]
@@ -114,26 +136,41 @@ def main() -> None:
                 if out.parent.exists():
                     shutil.rmtree(out.parent)
                 t = time.perf_counter()
-                rep = extract_scene(videos, rig, out, method=method, truth=truth,
-                                    options=ExtractOptions(work_scale=ws, compression=comp,
-                                                           persons=SegmenterConfig() if persons else None))
+                rep = extract_scene(
+                    videos,
+                    rig,
+                    out,
+                    method=method,
+                    truth=truth,
+                    options=ExtractOptions(
+                        work_scale=ws,
+                        compression=comp,
+                        persons=SegmenterConfig() if persons else None,
+                    ),
+                )
                 times.append(time.perf_counter() - t)
                 reports.append(rep)
             rep = reports[int(np.argsort(times)[len(times) // 2])]
             rows.append((name, float(np.median(times)), rep))
         base = rows[0][1]
         n_cf = None
-        print(f"\n{'variant':30s} {'total s':>8s} {'cam-frames/s':>12s} {'x default':>9s} | "
-              f"{'masks':>6s} {'assoc':>6s} {'crops':>6s} {'merge':>6s} (cam-frames/s per phase) | "
-              f"{'mask IoU':>8s} {'assoc acc':>9s} {'crops':>6s} ids")
+        print(
+            f"\n{'variant':30s} {'total s':>8s} {'cam-frames/s':>12s} {'x default':>9s} | "
+            f"{'masks':>6s} {'assoc':>6s} {'crops':>6s} {'merge':>6s} (cam-frames/s per phase) | "
+            f"{'mask IoU':>8s} {'assoc acc':>9s} {'crops':>6s} ids"
+        )
         for name, secs, rep in rows:
             n_cf = rep.frames_considered * len(rep.cameras)
             ph = {k: (n_cf / v if v > 0 else float("inf")) for k, v in rep.timings.items()}
             iou = f"{rep.mask_iou:.3f}" if rep.mask_iou is not None else "n/a"
-            acc = f"{rep.association_accuracy:.3f}" if rep.association_accuracy is not None else "n/a"
-            print(f"{name:30s} {secs:8.1f} {n_cf / secs:12.2f} {base / secs:9.2f} | "
-                  f"{ph.get('masks', 0):6.1f} {ph.get('association', 0):6.1f} {ph.get('crops', 0):6.1f} "
-                  f"{ph.get('merge', 0):6.1f}                         | {iou:>8s} {acc:>9s} {rep.crops:6d} {rep.persons}")
+            acc = (
+                f"{rep.association_accuracy:.3f}" if rep.association_accuracy is not None else "n/a"
+            )
+            print(
+                f"{name:30s} {secs:8.1f} {n_cf / secs:12.2f} {base / secs:9.2f} | "
+                f"{ph.get('masks', 0):6.1f} {ph.get('association', 0):6.1f} {ph.get('crops', 0):6.1f} "
+                f"{ph.get('merge', 0):6.1f}                         | {iou:>8s} {acc:>9s} {rep.crops:6d} {rep.persons}"
+            )
         print(f"\n{n_cf} camera-frames per run; repeats: {args.repeats} (median shown)")
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -31,9 +31,13 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     body = load_body_model("anny")
-    print(f"device cpu, threads {torch.get_num_threads()}, batch {args.batch}, median of {args.repeats}")
-    print(f"{'preset':<7} {'input':>8} {'gaussians':>9} {'pose ms':>9} {'pose fps':>9} {'full ms':>9} "
-          f"{'full fps':>9} {'full/pose':>9}")
+    print(
+        f"device cpu, threads {torch.get_num_threads()}, batch {args.batch}, median of {args.repeats}"
+    )
+    print(
+        f"{'preset':<7} {'input':>8} {'gaussians':>9} {'pose ms':>9} {'pose fps':>9} {'full ms':>9} "
+        f"{'full fps':>9} {'full/pose':>9}"
+    )
     for name in args.presets:
         cfg = get_preset(name)
         net, ids, _ = build_network(cfg, body)
@@ -49,8 +53,10 @@ def main() -> None:
 
         t_pose = time_inference(lambda: run(False), args.repeats)
         t_full = time_inference(lambda: run(True), args.repeats)
-        print(f"{name:<7} {cfg.image_size[0]}x{cfg.image_size[1]:<4} {len(ids):>9} {1000 * t_pose:>9.1f} "
-              f"{args.batch / t_pose:>9.1f} {1000 * t_full:>9.1f} {args.batch / t_full:>9.1f} {t_full / t_pose:>9.2f}")
+        print(
+            f"{name:<7} {cfg.image_size[0]}x{cfg.image_size[1]:<4} {len(ids):>9} {1000 * t_pose:>9.1f} "
+            f"{args.batch / t_pose:>9.1f} {1000 * t_full:>9.1f} {args.batch / t_full:>9.1f} {t_full / t_pose:>9.2f}"
+        )
 
 
 if __name__ == "__main__":

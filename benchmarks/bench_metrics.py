@@ -41,15 +41,20 @@ def bench_lpips(device: torch.device, batch: int, size: int, repeats: int) -> No
     x = torch.rand(batch, 3, size, size, generator=g).to(device)
     y = (x + 0.1 * torch.randn(x.shape, generator=g).to(device)).clamp(0, 1)
     print(f"LPIPS, batch {batch} x 3 x {size} x {size}, {device}")
-    print(f"{'net':5} {'precision':9} {'forward ms':>11} {'fwd+bwd ms':>11} {'max |d - d_fp32|':>17} {'fwd+bwd vs alex fp32':>21}")
+    print(
+        f"{'net':5} {'precision':9} {'forward ms':>11} {'fwd+bwd ms':>11} {'max |d - d_fp32|':>17} {'fwd+bwd vs alex fp32':>21}"
+    )
     base = None
     for net in ("alex", "vgg"):
         model = load_lpips(net, device=device)
         with torch.no_grad():
             ref = model(x, y)
         for precision in ("fp32", "bf16"):
+
             def autocast(precision=precision):
-                return torch.autocast(device.type, dtype=torch.bfloat16, enabled=precision == "bf16")
+                return torch.autocast(
+                    device.type, dtype=torch.bfloat16, enabled=precision == "bf16"
+                )
 
             def forward(model=model, autocast=autocast):
                 with torch.no_grad(), autocast():
@@ -65,7 +70,9 @@ def bench_lpips(device: torch.device, batch: int, size: int, repeats: int) -> No
             t_fb = _median_s(forward_backward, repeats, device)
             err = (forward().float() - ref).abs().max().item()
             base = base or t_fb
-            print(f"{net:5} {precision:9} {t_f * 1e3:11.1f} {t_fb * 1e3:11.1f} {err:17.2e} {t_fb / base:20.2f}x")
+            print(
+                f"{net:5} {precision:9} {t_f * 1e3:11.1f} {t_fb * 1e3:11.1f} {err:17.2e} {t_fb / base:20.2f}x"
+            )
 
 
 def _umeyama_loop(p: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -76,7 +83,7 @@ def _umeyama_loop(p: np.ndarray, g: np.ndarray) -> np.ndarray:
         u, s, vt = np.linalg.svd(gc.T @ pc / len(pc))
         d = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
         rot = (u * d) @ vt
-        scale = (s * d).sum() / (pc ** 2).sum(1).mean()
+        scale = (s * d).sum() / (pc**2).sum(1).mean()
         aligned = scale * pc @ rot.T + mu_g
         out[i] = np.linalg.norm(aligned - g[i], axis=-1).mean()
     return out
@@ -93,17 +100,25 @@ def bench_pa_mpjpe(device: torch.device, repeats: int, batch: int = 4096, joints
     print(f"\nPA-MPJPE, {batch} poses x {joints} joints")
     print(f"{'variant':24} {'ms':>9} {'speed-up':>9} {'max |diff| (m)':>15}")
     print(f"{'numpy loop (reference)':24} {t_np * 1e3:9.1f} {1.0:8.1f}x {0.0:15.1e}")
-    print(f"{'torch batched ' + device.type:24} {t_torch * 1e3:9.1f} {t_np / t_torch:8.1f}x {diff:15.1e}")
+    print(
+        f"{'torch batched ' + device.type:24} {t_torch * 1e3:9.1f} {t_np / t_torch:8.1f}x {diff:15.1e}"
+    )
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=0,
-                    help="torch CPU threads (0: torch's default); 1 is steadier on a shared machine")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="torch CPU threads (0: torch's default); 1 is steadier on a shared machine",
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

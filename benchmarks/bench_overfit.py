@@ -35,8 +35,15 @@ VARIANTS = {  # name: (Gaussian-head lr, body lr, render size)
 
 
 def one_person_scene(out_dir: str, seed: int = 7, cameras: int = 4):
-    spec = preset("demo", seed=seed, n_frames=2, n_people=1, motions=[["jump"]],
-                  rig={"kind": "dome", "n_cameras": cameras, "width": 320, "height": 240}, board={"n_frames": 1})
+    spec = preset(
+        "demo",
+        seed=seed,
+        n_frames=2,
+        n_people=1,
+        motions=[["jump"]],
+        rig={"kind": "dome", "n_cameras": cameras, "width": 320, "height": 240},
+        board={"n_frames": 1},
+    )
     render_scene(spec, out_dir)
     return crops_from_synth_scene(out_dir, crop_size=128)
 
@@ -54,23 +61,42 @@ def main() -> None:
         crops = one_person_scene(tmp)
     group = crops.groups(min_views=2)[0]
     body, lpips, cfg = load_body_model("anny"), load_lpips(), get_preset("tiny")
-    print(f"one sample, {len(group)} views, crops {crops.crop_size}px, tiny preset, {args.warm_steps} warm-start "
-          f"+ {args.steps} multi-view steps, torch threads {torch.get_num_threads()}")
-    print(f"{'variant':<9} {'lr gauss':>8} {'lr body':>8} {'render':>6} {'warm mm':>7} {'PSNR dB':>7} "
-          f"{'s total':>7} {'s to 30 dB':>10}")
+    print(
+        f"one sample, {len(group)} views, crops {crops.crop_size}px, tiny preset, {args.warm_steps} warm-start "
+        f"+ {args.steps} multi-view steps, torch threads {torch.get_num_threads()}"
+    )
+    print(
+        f"{'variant':<9} {'lr gauss':>8} {'lr body':>8} {'render':>6} {'warm mm':>7} {'PSNR dB':>7} "
+        f"{'s total':>7} {'s to 30 dB':>10}"
+    )
     rows = {}
     for name in args.variants:
         lr, body_lr, size = VARIANTS[name]
         net, ids, _ = build_network(cfg, body, seed=0)
         task = make_task(body, ids, cfg, crops.crop_size, LossWeights(), lpips)
         t0 = time.perf_counter()
-        r = overfit_sample(net, task, crops, group, warm_steps=args.warm_steps, steps=args.steps, lr=lr,
-                           body_lr=body_lr, render_size=size, eval_every=50)
+        r = overfit_sample(
+            net,
+            task,
+            crops,
+            group,
+            warm_steps=args.warm_steps,
+            steps=args.steps,
+            lr=lr,
+            body_lr=body_lr,
+            render_size=size,
+            eval_every=50,
+        )
         reached = next((h["seconds"] for h in r.history if h["psnr"] >= 30), None)
         rows[name] = r
-        print(f"{name:<9} {lr:>8.0e} {body_lr:>8.0e} {size:>6} {r.warm_mpjpe_mm or float('nan'):>7.1f} "
-              f"{r.psnr:>7.2f} {time.perf_counter() - t0:>7.1f} {'never' if reached is None else f'{reached:.1f}':>10}")
-        print("          PSNR by step: " + ", ".join(f"{h['step']}:{h['psnr']:.1f}" for h in r.history))
+        print(
+            f"{name:<9} {lr:>8.0e} {body_lr:>8.0e} {size:>6} {r.warm_mpjpe_mm or float('nan'):>7.1f} "
+            f"{r.psnr:>7.2f} {time.perf_counter() - t0:>7.1f} {'never' if reached is None else f'{reached:.1f}':>10}"
+        )
+        print(
+            "          PSNR by step: "
+            + ", ".join(f"{h['step']}:{h['psnr']:.1f}" for h in r.history)
+        )
     if "split" in rows and "shared" in rows:
         print(f"split vs shared learning rates: {rows['split'].psnr - rows['shared'].psnr:+.2f} dB")
 

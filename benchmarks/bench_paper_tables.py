@@ -43,7 +43,12 @@ ROWS = [
     ("Table 1", "GST multi-view", "multiview", PAPER),
     ("Table 5", "GST w/o LPIPS", "multiview", PAPER.model_copy(update={"lpips": 0.0})),
     ("Table 5", "GST w/o tightness", "multiview", PAPER.model_copy(update={"tightness": 0.0})),
-    ("Table 5", "GST w/o alpha (transparency)", "multiview", PAPER.model_copy(update={"alpha": 0.0})),
+    (
+        "Table 5",
+        "GST w/o alpha (transparency)",
+        "multiview",
+        PAPER.model_copy(update={"alpha": 0.0}),
+    ),
 ]
 
 
@@ -53,7 +58,9 @@ def _f(v, d=1) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--workspace", type=Path, default=Path("workspace/demo"), help="scene workspace (synthetic)")
+    ap.add_argument(
+        "--workspace", type=Path, default=Path("workspace/demo"), help="scene workspace (synthetic)"
+    )
     ap.add_argument("--steps", type=int, default=300, help="fine-tuning steps of every row")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--lr", type=float, default=1e-4)
@@ -61,7 +68,12 @@ def main() -> None:
     ap.add_argument("--test-fraction", type=float, default=0.25)
     ap.add_argument("--rows", nargs="*", help="row names to run (default: all)")
     ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--out", type=Path, default=None, help="markdown output (default: <workspace>/reports/paper_tables.md)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="markdown output (default: <workspace>/reports/paper_tables.md)",
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -76,12 +88,18 @@ def main() -> None:
     ids, groups = ckpt["vertex_ids"].numpy(), ckpt["group_index"].numpy()
     lpips = load_lpips()
     vertices = truth.vertices(body) if ckpt["body_model"] == truth.body_model else None
-    eval_cfg = EvalConfig(heldout_cameras=heldout, render_size=args.render_size, frames=split.test_frames,
-                          side_by_side_groups=0)
-    print(f"preset {base.cfg.name}, {torch.get_num_threads()} threads; {args.steps} steps x batch {args.batch} per row "
-          f"(lr {args.lr}); train: {len(split.train_rows)} crops of frames < {split.test_frames[0]} outside {heldout}; "
-          f"test: frames {split.test_frames[0]}-{split.test_frames[1] - 1}; novel views at {args.render_size} px",
-          flush=True)
+    eval_cfg = EvalConfig(
+        heldout_cameras=heldout,
+        render_size=args.render_size,
+        frames=split.test_frames,
+        side_by_side_groups=0,
+    )
+    print(
+        f"preset {base.cfg.name}, {torch.get_num_threads()} threads; {args.steps} steps x batch {args.batch} per row "
+        f"(lr {args.lr}); train: {len(split.train_rows)} crops of frames < {split.test_frames[0]} outside {heldout}; "
+        f"test: frames {split.test_frames[0]}-{split.test_frames[1] - 1}; novel views at {args.render_size} px",
+        flush=True,
+    )
     results = []
     t_all = time.perf_counter()
     for table, name, mode, weights in ROWS:
@@ -91,24 +109,44 @@ def main() -> None:
         net = copy.deepcopy(base)
         train_s = 0.0
         if mode is not None:
-            cfg = FinetuneConfig(mode=mode, steps=args.steps, batch_size=args.batch, lr=args.lr, weights=weights)
-            train_s = finetune(net, body, ids, groups, crops, split, cfg, body_spec=ckpt["body_model"], lpips=lpips)
+            cfg = FinetuneConfig(
+                mode=mode, steps=args.steps, batch_size=args.batch, lr=args.lr, weights=weights
+            )
+            train_s = finetune(
+                net, body, ids, groups, crops, split, cfg, body_spec=ckpt["body_model"], lpips=lpips
+            )
         task = make_task(body, ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
-        res = evaluate_model(net, task, crops, eval_cfg, joint_names=truth.joint_names, lpips=lpips,
-                             scene_vertices=vertices, motions=truth.motion)
+        res = evaluate_model(
+            net,
+            task,
+            crops,
+            eval_cfg,
+            joint_names=truth.joint_names,
+            lpips=lpips,
+            scene_vertices=vertices,
+            motions=truth.motion,
+        )
         p, v = res.summary["pose"]["overall"], res.summary["novel_view"]["heldout"]
         results.append((table, name, p, v, train_s, time.perf_counter() - t0))
-        print(f"{table} {name}: MPJPE {_f(p['mpjpe_mm'])} PA-MPJPE {_f(p['pa_mpjpe_mm'])} PSNR {_f(v['psnr'], 2)} "
-              f"SSIM {_f(v['ssim'], 3)} LPIPS {_f(v['lpips'], 3)} ({train_s:.0f} s training, "
-              f"{time.perf_counter() - t0:.0f} s total)", flush=True)
-    lines = [f"Fine-tuning budget per row: {args.steps} steps x batch {args.batch}; total {time.perf_counter() - t_all:.0f} s "
-             f"on CPU ({torch.get_num_threads()} threads). Pose on {res.summary['counts']['pose_crops']} test crops; "
-             f"novel views: {v['n']} held-out-camera pairs.", "",
-             "| table | row | MPJPE (mm) | PA-MPJPE (mm) | PSNR (dB) | SSIM | LPIPS | box PSNR (dB) | train s | total s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+        print(
+            f"{table} {name}: MPJPE {_f(p['mpjpe_mm'])} PA-MPJPE {_f(p['pa_mpjpe_mm'])} PSNR {_f(v['psnr'], 2)} "
+            f"SSIM {_f(v['ssim'], 3)} LPIPS {_f(v['lpips'], 3)} ({train_s:.0f} s training, "
+            f"{time.perf_counter() - t0:.0f} s total)",
+            flush=True,
+        )
+    lines = [
+        f"Fine-tuning budget per row: {args.steps} steps x batch {args.batch}; total {time.perf_counter() - t_all:.0f} s "
+        f"on CPU ({torch.get_num_threads()} threads). Pose on {res.summary['counts']['pose_crops']} test crops; "
+        f"novel views: {v['n']} held-out-camera pairs.",
+        "",
+        "| table | row | MPJPE (mm) | PA-MPJPE (mm) | PSNR (dB) | SSIM | LPIPS | box PSNR (dB) | train s | total s |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for table, name, p, v, train_s, total in results:
-        lines.append(f"| {table} | {name} | {_f(p['mpjpe_mm'])} | {_f(p['pa_mpjpe_mm'])} | {_f(v['psnr'], 2)} | "
-                     f"{_f(v['ssim'], 3)} | {_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | {train_s:.0f} | {total:.0f} |")
+        lines.append(
+            f"| {table} | {name} | {_f(p['mpjpe_mm'])} | {_f(p['pa_mpjpe_mm'])} | {_f(v['psnr'], 2)} | "
+            f"{_f(v['ssim'], 3)} | {_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | {train_s:.0f} | {total:.0f} |"
+        )
     text = "\n".join(lines) + "\n"
     print()
     print(text)

@@ -55,7 +55,9 @@ def body_scene(n: int, size: int, seed: int = 0, dtype=torch.float32):
     """Gaussians on a capsule person and a crop camera 3 m in front; see the module docstring."""
     g = np.random.default_rng(seed)
     caps = [(np.array(a), np.array(b), r) for a, b, r in _BODY]
-    areas = np.array([2 * np.pi * r * np.linalg.norm(b - a) + 4 * np.pi * r * r for a, b, r in caps])
+    areas = np.array(
+        [2 * np.pi * r * np.linalg.norm(b - a) + 4 * np.pi * r * r for a, b, r in caps]
+    )
     which = g.choice(len(caps), size=n, p=areas / areas.sum())
     pts = np.zeros((n, 3))
     for k, (a, b, r) in enumerate(caps):
@@ -205,10 +207,15 @@ def main() -> None:
             dense = None
             if not args.no_dense:
                 dense = _run(
-                    lambda *a: dense_rasterize(*a), scene, size, loss_w, args.dense_repeats,
+                    lambda *a: dense_rasterize(*a),
+                    scene,
+                    size,
+                    loss_w,
+                    args.dense_repeats,
                     warmup=False,  # seconds per call: nothing left to warm
                 )
             for tile in args.tiles:
+
                 def ours(*a, tile=tile):
                     return rasterize_cpu(*a, near=0.01, tile=tile, chunk_elements=args.chunk)
 

@@ -31,13 +31,19 @@ from synth.scene import preset, render_scene  # noqa: E402
 
 
 def digest(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def cpu_seconds() -> float:
     """User + system CPU time of this process and its finished child processes (the pool's)."""
-    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    own, kids = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
@@ -45,23 +51,34 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="demo")
     ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--body", choices=["anny", "capsule"], default="anny",
-                    help="'capsule': the test fixture's fast fake body instead of the spec's model")
+    ap.add_argument(
+        "--body",
+        choices=["anny", "capsule"],
+        default="anny",
+        help="'capsule': the test fixture's fast fake body instead of the spec's model",
+    )
     args = ap.parse_args()
     spec = preset(args.preset)
     if args.body == "capsule":
         sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
         from synth_fixtures import CapsuleBody
+
         body = CapsuleBody()
     else:
         from gst.body import load_body_model
+
         body = load_body_model(spec.body_model)
     n_cams = spec.rig.n_cameras or 1
-    variants = [("serial", None, None), ("local-2 shares=2", LocalExecutor(2).map, 2),
-                (f"local-2 shares={n_cams}", LocalExecutor(2).map, n_cams)]
-    print(f"preset {args.preset}: {spec.n_frames} frames + {spec.board.n_frames} board frames, {n_cams} cameras "
-          f"{spec.rig.width}x{spec.rig.height}, body {args.body}; os.cpu_count()={os.cpu_count()}, "
-          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}")
+    variants = [
+        ("serial", None, None),
+        ("local-2 shares=2", LocalExecutor(2).map, 2),
+        (f"local-2 shares={n_cams}", LocalExecutor(2).map, n_cams),
+    ]
+    print(
+        f"preset {args.preset}: {spec.n_frames} frames + {spec.board.n_frames} board frames, {n_cams} cameras "
+        f"{spec.rig.width}x{spec.rig.height}, body {args.body}; os.cpu_count()={os.cpu_count()}, "
+        f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         reference = None
         times = {}
@@ -76,7 +93,9 @@ def main() -> None:
                 reference = reference or files
                 times.setdefault(name + ":same", []).append(files == reference)
         base = statistics.median(times["serial"])
-        print(f"{'variant':<18}{'median s':>10}{'speed-up':>10}{'cpu s':>8}  files identical to serial")
+        print(
+            f"{'variant':<18}{'median s':>10}{'speed-up':>10}{'cpu s':>8}  files identical to serial"
+        )
         for name, _, _ in variants:
             t, cpu = statistics.median(times[name]), statistics.median(times[name + ":cpu"])
             print(f"{name:<18}{t:>10.1f}{base / t:>10.2f}{cpu:>8.1f}  {all(times[name + ':same'])}")

@@ -40,8 +40,15 @@ W, H = 1280, 720
 
 def make_clip(root: Path, name: str, frames: int) -> tuple[Path, Path]:
     walkers = separated_walkers()
-    scaled = [type(w)(w.colour, (w.start[0] * 4, w.start[1] * 3), (w.velocity[0] * 0.8, w.velocity[1]),
-                      (w.size[0] * 3, w.size[1] * 3)) for w in walkers]
+    scaled = [
+        type(w)(
+            w.colour,
+            (w.start[0] * 4, w.start[1] * 3),
+            (w.velocity[0] * 0.8, w.velocity[1]),
+            (w.size[0] * 3, w.size[1] * 3),
+        )
+        for w in walkers
+    ]
     boxes = walker_boxes(scaled, frames)
     video = write_video(root / f"{name}.avi", render(scaled, boxes, W, H), W, H)
     return video, write_boxes_csv(root / f"{name}.csv", boxes, name)
@@ -54,7 +61,12 @@ def rows(path: Path):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--videos", type=int, default=2)
-    ap.add_argument("--frames", type=int, default=400, help="frames per video (the chunked video has twice as many)")
+    ap.add_argument(
+        "--frames",
+        type=int,
+        default=400,
+        help="frames per video (the chunked video has twice as many)",
+    )
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-ray", action="store_true")
     args = ap.parse_args()
@@ -65,9 +77,14 @@ def main() -> None:
         clips = [make_clip(tmp, f"v{i}", args.frames) for i in range(args.videos)]
         long_clip = make_clip(tmp, "long", 2 * args.frames)
         workloads = {
-            f"{args.videos} videos x {args.frames} frames, 1 item per video": ([job(v, c, options=options) for v, c in clips], None),
-            f"1 video x {2 * args.frames} frames, 2 chunks": ([job(*long_clip, options=options)],
-                                                              ChunkingConfig(chunk_frames=args.frames, overlap=10)),
+            f"{args.videos} videos x {args.frames} frames, 1 item per video": (
+                [job(v, c, options=options) for v, c in clips],
+                None,
+            ),
+            f"1 video x {2 * args.frames} frames, 2 chunks": (
+                [job(*long_clip, options=options)],
+                ChunkingConfig(chunk_frames=args.frames, overlap=10),
+            ),
         }
         reference = {}
         for jobs, _ in workloads.values():
@@ -87,10 +104,14 @@ def main() -> None:
                 shutil.rmtree(out)
             return statistics.median(times), identical, persons
 
-        print(f"machine: {os.cpu_count()} CPU cores, shared with other users (timings are noisy); "
-              f"OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}; {W}x{H} MJPG, BoxDepthPredictor; "
-              f"median of {args.repeats}")
-        print(f"{'workload':<42} {'executor':<8} {'workers':>7} {'median s':>9} {'speed-up':>9}  consistency")
+        print(
+            f"machine: {os.cpu_count()} CPU cores, shared with other users (timings are noisy); "
+            f"OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}; {W}x{H} MJPG, BoxDepthPredictor; "
+            f"median of {args.repeats}"
+        )
+        print(
+            f"{'workload':<42} {'executor':<8} {'workers':>7} {'median s':>9} {'speed-up':>9}  consistency"
+        )
         executors = [("local", lambda n: LocalExecutor(n), None)]
         if not args.no_ray:
             try:
@@ -109,14 +130,18 @@ def main() -> None:
                     started = time.perf_counter() - t0
                     warm = [job(*make_clip(tmp, f"warm{i}", 5), options=options) for i in range(n)]
                     track_videos(warm, tmp / "warm", map_fn=ex.map)  # workers import gst once
-                    print(f"(ray cluster with {n} worker(s): started in {started:.1f} s, workers warmed up in "
-                          f"{time.perf_counter() - t0 - started:.1f} s; neither is timed below)")
+                    print(
+                        f"(ray cluster with {n} worker(s): started in {started:.1f} s, workers warmed up in "
+                        f"{time.perf_counter() - t0 - started:.1f} s; neither is timed below)"
+                    )
                 for name, (jobs, chunking) in workloads.items():
                     sec, same, persons = timed(ex.map, jobs, chunking)
                     results[(name, n)] = sec
                     ratio = results[(name, 1)] / sec
-                    print(f"{name:<42} {kind:<8} {n:>7} {sec:>9.2f} {ratio:>8.2f}x  rows identical: {same}, "
-                          f"persons {sorted(persons)}")
+                    print(
+                        f"{name:<42} {kind:<8} {n:>7} {sec:>9.2f} {ratio:>8.2f}x  rows identical: {same}, "
+                        f"persons {sorted(persons)}"
+                    )
                 if kind == "ray":
                     ex.shutdown()
     finally:

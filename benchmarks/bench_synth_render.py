@@ -72,7 +72,9 @@ def load_body():
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--people", type=int, default=2)
     args = ap.parse_args()
@@ -80,35 +82,70 @@ def main() -> None:
     faces = np.asarray(model.faces, np.int32)
     fps, n = 30.0, args.frames
     rig0 = make_rig("dome", n_cameras=1, seed=0)
-    people = sample_people(args.people, np.random.default_rng(0), int(model.num_betas), rig0.meta["volume_center"],
-                           rig0.meta["volume_radius"], n, fps,
-                           programmes=[["run"], ["jump"]][: args.people] if args.people <= 2 else None)
+    people = sample_people(
+        args.people,
+        np.random.default_rng(0),
+        int(model.num_betas),
+        rig0.meta["volume_center"],
+        rig0.meta["volume_radius"],
+        n,
+        fps,
+        programmes=[["run"], ["jump"]][: args.people] if args.people <= 2 else None,
+    )
     tracks = [pose_person(model, p.betas, p.motion_clip(n, fps, 0), p.person_id) for p in people]
-    atlases = [BodyAtlas.build(t.rest_vertices, t.rest_joints, getattr(model, "part_labels", None),
-                               getattr(model, "part_names", None)) for t in tracks]
+    atlases = [
+        BodyAtlas.build(
+            t.rest_vertices,
+            t.rest_joints,
+            getattr(model, "part_labels", None),
+            getattr(model, "part_names", None),
+        )
+        for t in tracks
+    ]
     normals = [vertex_normals(t.vertices, faces) for t in tracks]
     stage = stage_for_rig("dome", 0)
-    print(f"body: {body_name}, {tracks[0].vertices.shape[1]} vertices, {len(faces)} triangles; "
-          f"{args.people} people, {n} frames per variant; medians")
+    print(
+        f"body: {body_name}, {tracks[0].vertices.shape[1]} vertices, {len(faces)} triangles; "
+        f"{args.people} people, {n} frames per variant; medians"
+    )
     for width, height in ((512, 512), (1920, 1080)):
-        cam = make_rig("dome", n_cameras=1, width=width, height=height, fov_deg=60.0, distortion="mild", seed=4).cameras[0]
+        cam = make_rig(
+            "dome", n_cameras=1, width=width, height=height, fov_deg=60.0, distortion="mild", seed=4
+        ).cameras[0]
         radius = field_radius(cam)
         print(f"\n{width}x{height}  camera '{cam.name}'")
-        print(f"{'variant':<11} {'setup s':>8} {'shared ms':>10} {'render ms':>10} {'frame ms':>9} {'wall ms':>8} "
-              f"{'fps/cam':>8} {'fps lone':>9} {'ratio':>6} {'mask px vs ref':>15} {'joints on mask':>15} {'img diff':>9}")
+        print(
+            f"{'variant':<11} {'setup s':>8} {'shared ms':>10} {'render ms':>10} {'frame ms':>9} {'wall ms':>8} "
+            f"{'fps/cam':>8} {'fps lone':>9} {'ratio':>6} {'mask px vs ref':>15} {'joints on mask':>15} {'img diff':>9}"
+        )
         # Variants run interleaved frame by frame, so machine load hits them alike.
         results, renderers, sinks = {}, {}, {}
         tmp = tempfile.TemporaryDirectory()
         for name, opts in VARIANTS.items():
             t0 = time.perf_counter()
             renderers[name] = ViewRenderer(cam, stage, opts)
-            results[name] = dict(setup=time.perf_counter() - t0, shared=[], render=[], frame=[], wall=[], masks=[],
-                                 images=[], on=0, total=0)
-            sinks[name] = (VideoOut(Path(tmp.name) / f"{name}.mp4", fps, width, height),
-                           MaskStore(Path(tmp.name) / f"{name}.h5", n, width, height, cam.name, True))
+            results[name] = dict(
+                setup=time.perf_counter() - t0,
+                shared=[],
+                render=[],
+                frame=[],
+                wall=[],
+                masks=[],
+                images=[],
+                on=0,
+                total=0,
+            )
+            sinks[name] = (
+                VideoOut(Path(tmp.name) / f"{name}.mp4", fps, width, height),
+                MaskStore(Path(tmp.name) / f"{name}.h5", n, width, height, cam.name, True),
+            )
         for f in range(n):
-            posed = [PosedPerson(t.person_id, t.vertices[f], normals[k][f], faces, atlases[k], people[k].outfit)
-                     for k, t in enumerate(tracks)]
+            posed = [
+                PosedPerson(
+                    t.person_id, t.vertices[f], normals[k][f], faces, atlases[k], people[k].outfit
+                )
+                for k, t in enumerate(tracks)
+            ]
             for name, opts in VARIANTS.items():
                 r, (video, store) = results[name], sinks[name]
                 cs = time.process_time()
@@ -118,7 +155,11 @@ def main() -> None:
                 t0, c0 = time.perf_counter(), time.process_time()
                 layers = renderers[name].render_people(posed, caster, shadows)
                 c1 = time.process_time()
-                image = develop(layers.radiance, CameraResponse(blur_sigma=0.5, noise_sigma=1.5), np.random.default_rng(f))
+                image = develop(
+                    layers.radiance,
+                    CameraResponse(blur_sigma=0.5, noise_sigma=1.5),
+                    np.random.default_rng(f),
+                )
                 video.write(image)
                 store.write(f, layers.mask, layers.depth)
                 t2, c2 = time.perf_counter(), time.process_time()
@@ -142,14 +183,22 @@ def main() -> None:
         tmp.cleanup()
         ref, base = results["full-frame"], results["ours"]
         for name, r in results.items():
-            diff_px = int(np.mean([(a != b).sum() for a, b in zip(r["masks"], ref["masks"], strict=True)]))
-            img_diff = np.mean([np.abs(a.astype(int) - b.astype(int)).mean()
-                                for a, b in zip(r["images"], base["images"], strict=True)])
-            print(f"{name:<11} {r['setup']:>8.2f} {1000 * r['shared']:>10.1f} {1000 * r['render']:>10.1f} "
-                  f"{1000 * r['frame']:>9.1f} {1000 * r['wall']:>8.1f} {1 / r['frame']:>8.2f} "
-                  f"{1 / (r['shared'] + r['frame']):>9.2f} "
-                  f"{r['frame'] / base['frame']:>6.2f} {diff_px:>15d} "
-                  f"{100 * r['joints']:>14.1f}% {img_diff:>9.3f}")
+            diff_px = int(
+                np.mean([(a != b).sum() for a, b in zip(r["masks"], ref["masks"], strict=True)])
+            )
+            img_diff = np.mean(
+                [
+                    np.abs(a.astype(int) - b.astype(int)).mean()
+                    for a, b in zip(r["images"], base["images"], strict=True)
+                ]
+            )
+            print(
+                f"{name:<11} {r['setup']:>8.2f} {1000 * r['shared']:>10.1f} {1000 * r['render']:>10.1f} "
+                f"{1000 * r['frame']:>9.1f} {1000 * r['wall']:>8.1f} {1 / r['frame']:>8.2f} "
+                f"{1 / (r['shared'] + r['frame']):>9.2f} "
+                f"{r['frame'] / base['frame']:>6.2f} {diff_px:>15d} "
+                f"{100 * r['joints']:>14.1f}% {img_diff:>9.3f}"
+            )
 
 
 if __name__ == "__main__":

@@ -50,11 +50,17 @@ class BoardSpec:
         if self.kind not in BOARD_KINDS:
             raise BoardError(f"board kind '{self.kind}' is unknown, expected one of {BOARD_KINDS}")
         if int(self.squares_x) != self.squares_x or int(self.squares_y) != self.squares_y:
-            raise BoardError(f"board squares must be integers, got {self.squares_x} x {self.squares_y}")
+            raise BoardError(
+                f"board squares must be integers, got {self.squares_x} x {self.squares_y}"
+            )
         if self.squares_x < 3 or self.squares_y < 3:
-            raise BoardError(f"board needs at least 3 x 3 squares, got {self.squares_x} x {self.squares_y}")
+            raise BoardError(
+                f"board needs at least 3 x 3 squares, got {self.squares_x} x {self.squares_y}"
+            )
         if not (np.isfinite(self.square_size) and self.square_size > 0):
-            raise BoardError(f"board square_size must be a positive length in metres, got {self.square_size}")
+            raise BoardError(
+                f"board square_size must be a positive length in metres, got {self.square_size}"
+            )
         if self.kind == "charuco":
             if self.marker_size is None or not (0 < self.marker_size < self.square_size):
                 raise BoardError(
@@ -62,12 +68,18 @@ class BoardSpec:
                     f"got {self.marker_size}"
                 )
             if not hasattr(cv2.aruco, self.dictionary):
-                raise BoardError(f"ArUco dictionary '{self.dictionary}' is unknown to OpenCV "
-                                 "(expected a name such as 'DICT_5X5_100')")
+                raise BoardError(
+                    f"ArUco dictionary '{self.dictionary}' is unknown to OpenCV "
+                    "(expected a name such as 'DICT_5X5_100')"
+                )
             n_markers = (self.squares_x * self.squares_y) // 2
-            dict_size = len(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)).bytesList)
+            dict_size = len(
+                cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)).bytesList
+            )
             if n_markers > dict_size:
-                raise BoardError(f"board needs {n_markers} markers but {self.dictionary} has only {dict_size}")
+                raise BoardError(
+                    f"board needs {n_markers} markers but {self.dictionary} has only {dict_size}"
+                )
         elif (self.squares_x + self.squares_y) % 2 == 0:
             raise BoardError(
                 f"checkerboard {self.squares_x} x {self.squares_y}: use one odd and one even number of "
@@ -76,10 +88,14 @@ class BoardSpec:
 
     # -- serialisation --------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "squares_x": int(self.squares_x), "squares_y": int(self.squares_y),
-                "square_size": float(self.square_size),
-                "marker_size": None if self.marker_size is None else float(self.marker_size),
-                "dictionary": self.dictionary}
+        return {
+            "kind": self.kind,
+            "squares_x": int(self.squares_x),
+            "squares_y": int(self.squares_y),
+            "square_size": float(self.square_size),
+            "marker_size": None if self.marker_size is None else float(self.marker_size),
+            "dictionary": self.dictionary,
+        }
 
     @classmethod
     def from_dict(cls, data: dict) -> BoardSpec:
@@ -87,12 +103,18 @@ class BoardSpec:
         unknown = set(data) - expected
         missing = {"kind", "squares_x", "squares_y", "square_size"} - set(data)
         if unknown or missing:
-            raise BoardError(f"board spec keys: unknown {sorted(unknown)}, missing {sorted(missing)}; "
-                             f"expected {sorted(expected)}")
-        return cls(kind=data["kind"], squares_x=int(data["squares_x"]), squares_y=int(data["squares_y"]),
-                   square_size=float(data["square_size"]),
-                   marker_size=None if data.get("marker_size") is None else float(data["marker_size"]),
-                   dictionary=data.get("dictionary", "DICT_5X5_100"))
+            raise BoardError(
+                f"board spec keys: unknown {sorted(unknown)}, missing {sorted(missing)}; "
+                f"expected {sorted(expected)}"
+            )
+        return cls(
+            kind=data["kind"],
+            squares_x=int(data["squares_x"]),
+            squares_y=int(data["squares_y"]),
+            square_size=float(data["square_size"]),
+            marker_size=None if data.get("marker_size") is None else float(data["marker_size"]),
+            dictionary=data.get("dictionary", "DICT_5X5_100"),
+        )
 
     # -- geometry -------------------------------------------------------------------------------
     @property
@@ -114,18 +136,27 @@ class BoardSpec:
         """(n_corners, 3) corner positions in board coordinates, indexed by corner id."""
         cols, rows = self.inner_corners
         c, r = np.meshgrid(np.arange(cols), np.arange(rows))
-        pts = np.stack([(c.ravel() + 1) * self.square_size, (r.ravel() + 1) * self.square_size,
-                        np.zeros(cols * rows)], axis=1)
+        pts = np.stack(
+            [
+                (c.ravel() + 1) * self.square_size,
+                (r.ravel() + 1) * self.square_size,
+                np.zeros(cols * rows),
+            ],
+            axis=1,
+        )
         return pts.astype(np.float64)
 
     def create_cv_board(self) -> cv2.aruco.CharucoBoard:
         """The OpenCV ChArUco board (ChArUco only; checkerboards have no OpenCV board object)."""
         if self.kind != "charuco":
-            raise BoardError("create_cv_board() is for ChArUco boards; a checkerboard is detected "
-                             "with cv2.findChessboardCornersSB and needs no board object")
+            raise BoardError(
+                "create_cv_board() is for ChArUco boards; a checkerboard is detected "
+                "with cv2.findChessboardCornersSB and needs no board object"
+            )
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_size,
-                                      self.marker_size, dictionary)
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_size, self.marker_size, dictionary
+        )
 
     def render_image(self, px_per_square: int = 100, margin_px: int = 0) -> np.ndarray:
         """The printable board as a uint8 grayscale image (square (0, 0) is black).
@@ -143,8 +174,9 @@ class BoardSpec:
             yy, xx = np.mgrid[0:h, 0:w] // px_per_square
             img = np.where((xx + yy) % 2 == 0, 0, 255).astype(np.uint8)
         if margin_px:
-            img = cv2.copyMakeBorder(img, margin_px, margin_px, margin_px, margin_px,
-                                     cv2.BORDER_CONSTANT, value=255)
+            img = cv2.copyMakeBorder(
+                img, margin_px, margin_px, margin_px, margin_px, cv2.BORDER_CONSTANT, value=255
+            )
         return img
 
 
@@ -193,7 +225,9 @@ class BoardDetector:
             params.cornerRefinementMaxIterations = 50
             charuco_params = cv2.aruco.CharucoParameters()
             charuco_params.tryRefineMarkers = True  # recover markers missed in blurred frames
-            self._detector = cv2.aruco.CharucoDetector(board.create_cv_board(), charuco_params, params)
+            self._detector = cv2.aruco.CharucoDetector(
+                board.create_cv_board(), charuco_params, params
+            )
         else:
             self._detector = None
 
@@ -207,7 +241,9 @@ class BoardDetector:
             ids, corners = ids.ravel(), corners.reshape(-1, 2)
         else:
             flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-            found, corners = cv2.findChessboardCornersSB(gray, self.board.inner_corners, flags=flags)
+            found, corners = cv2.findChessboardCornersSB(
+                gray, self.board.inner_corners, flags=flags
+            )
             if not found:
                 return None
             corners = _orient_checkerboard(gray, corners.reshape(-1, 2), self.board)
@@ -215,8 +251,12 @@ class BoardDetector:
         obj = self.board.object_points()[ids, :2]
         if not spans_plane(obj):
             return None  # collinear corners constrain no pose
-        return FrameDetection(frame=frame, ids=ids, corners=corners.astype(np.float64),
-                              sharpness=_sharpness(gray, corners))
+        return FrameDetection(
+            frame=frame,
+            ids=ids,
+            corners=corners.astype(np.float64),
+            sharpness=_sharpness(gray, corners),
+        )
 
 
 def _orient_checkerboard(gray: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.ndarray:
@@ -239,7 +279,9 @@ def _orient_checkerboard(gray: np.ndarray, corners: np.ndarray, board: BoardSpec
             H, _ = cv2.findHomography(obj, grid.reshape(-1, 2))
     if H is not None:
         s = board.square_size
-        probe = np.array([[0.5 * s, 0.5 * s], [1.5 * s, 0.5 * s]])  # square (0,0) black, (1,0) white
+        probe = np.array(
+            [[0.5 * s, 0.5 * s], [1.5 * s, 0.5 * s]]
+        )  # square (0,0) black, (1,0) white
         px = cv2.perspectiveTransform(probe.reshape(-1, 1, 2), H).reshape(-1, 2)
         values = [_sample(gray, p) for p in px]
         if None not in values and values[0] > values[1]:
@@ -259,7 +301,7 @@ def _sample(gray: np.ndarray, xy: np.ndarray) -> float | None:
     h, w = gray.shape[:2]
     if not (1 <= x < w - 1 and 1 <= y < h - 1):
         return None
-    return float(gray[y - 1:y + 2, x - 1:x + 2].mean())
+    return float(gray[y - 1 : y + 2, x - 1 : x + 2].mean())
 
 
 def spans_plane(points_2d: np.ndarray, min_ratio: float = 0.05) -> bool:
@@ -276,16 +318,23 @@ def _sharpness(gray: np.ndarray, corners: np.ndarray) -> float:
     x0, y0 = np.floor(corners.min(axis=0)).astype(int)
     x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 1
     h, w = gray.shape[:2]
-    roi = gray[max(y0, 0):min(y1, h), max(x0, 0):min(x1, w)]
+    roi = gray[max(y0, 0) : min(y1, h), max(x0, 0) : min(x1, w)]
     if roi.size < 9:
         return float("nan")
     return float(cv2.Laplacian(roi, cv2.CV_64F).var())
 
 
-def detect_in_source(source: str | Path, board: BoardSpec, *, camera: str | None = None,
-                     frame_step: int = 1, max_frames: int | None = None, min_corners: int = 6,
-                     min_sharpness_ratio: float = 0.2,
-                     progress: Callable[[str, int, int], None] | None = None) -> CameraDetections:
+def detect_in_source(
+    source: str | Path,
+    board: BoardSpec,
+    *,
+    camera: str | None = None,
+    frame_step: int = 1,
+    max_frames: int | None = None,
+    min_corners: int = 6,
+    min_sharpness_ratio: float = 0.2,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> CameraDetections:
     """Detect the board in every `frame_step`-th frame of a video file or an image folder.
 
     Blurred frames: a detection whose sharpness is below `min_sharpness_ratio` times the camera's
@@ -310,8 +359,12 @@ def detect_in_source(source: str | Path, board: BoardSpec, *, camera: str | None
         if progress is not None and (searched % 10 == 0 or searched == n_search):
             progress(name, searched, n_search)
     found = drop_blurred(found, min_sharpness_ratio)
-    return CameraDetections(camera=name, image_size=source_image_size(source),
-                            frames_searched=searched, detections=found)
+    return CameraDetections(
+        camera=name,
+        image_size=source_image_size(source),
+        frames_searched=searched,
+        detections=found,
+    )
 
 
 def drop_blurred(detections: Iterable[FrameDetection], min_ratio: float) -> list[FrameDetection]:
@@ -324,15 +377,29 @@ def drop_blurred(detections: Iterable[FrameDetection], min_ratio: float) -> list
     return [d for d, s in zip(detections, sharp, strict=True) if not np.isfinite(s) or s >= floor]
 
 
-def detect_in_sources(sources: dict[str, str | Path], board: BoardSpec, *, frame_step: int = 1,
-                      max_frames: int | None = None, min_corners: int = 6,
-                      min_sharpness_ratio: float = 0.2,
-                      progress: Callable[[str, int, int], None] | None = None
-                      ) -> dict[str, CameraDetections]:
+def detect_in_sources(
+    sources: dict[str, str | Path],
+    board: BoardSpec,
+    *,
+    frame_step: int = 1,
+    max_frames: int | None = None,
+    min_corners: int = 6,
+    min_sharpness_ratio: float = 0.2,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> dict[str, CameraDetections]:
     """`detect_in_source` for each camera (name -> video file or image folder)."""
     if not sources:
         raise BoardError("no camera sources given")
-    return {name: detect_in_source(path, board, camera=name, frame_step=frame_step,
-                                   max_frames=max_frames, min_corners=min_corners,
-                                   min_sharpness_ratio=min_sharpness_ratio, progress=progress)
-            for name, path in sources.items()}
+    return {
+        name: detect_in_source(
+            path,
+            board,
+            camera=name,
+            frame_step=frame_step,
+            max_frames=max_frames,
+            min_corners=min_corners,
+            min_sharpness_ratio=min_sharpness_ratio,
+            progress=progress,
+        )
+        for name, path in sources.items()
+    }

@@ -63,11 +63,15 @@ class BAResult:
     residuals: dict[str, np.ndarray]  # camera -> (N,) px, final inlier observations
     observations: dict[str, np.ndarray]  # camera -> (N, 2) px of those observations
     outliers: dict[str, np.ndarray]  # camera -> (M, 2) px of removed observations
-    rounds: list[dict] = field(default_factory=list)  # per round: observations, rms, removed, seconds
+    rounds: list[dict] = field(
+        default_factory=list
+    )  # per round: observations, rms, removed, seconds
 
     def rms_px(self) -> dict[str, float]:
-        return {c: float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
-                for c, r in self.residuals.items()}
+        return {
+            c: float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
+            for c, r in self.residuals.items()
+        }
 
 
 def _rigid(T: np.ndarray) -> pycolmap.Rigid3d:
@@ -83,7 +87,7 @@ def _matrix(r: pycolmap.Rigid3d) -> np.ndarray:
 def _colmap_params(K: np.ndarray, dist: np.ndarray, lens_model: str) -> list[float]:
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5
     d = np.zeros(8)
-    d[:min(len(dist), 8)] = dist[:8]
+    d[: min(len(dist), 8)] = dist[:8]
     n = LENS_MODELS[lens_model][1]
     return [fx, fy, cx, cy] + d[:n].tolist()
 
@@ -92,17 +96,25 @@ def _opencv_intrinsics(params: np.ndarray, lens_model: str) -> tuple[np.ndarray,
     fx, fy, cx, cy = params[:4]
     K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1.0]])
     extra = np.asarray(params[4:], dtype=np.float64)
-    dist = extra if lens_model == "full_opencv" else np.concatenate([extra, np.zeros(5 - len(extra))])
+    dist = (
+        extra if lens_model == "full_opencv" else np.concatenate([extra, np.zeros(5 - len(extra))])
+    )
     return K, dist
 
 
 class BoardBundleAdjuster:
     """Builds the pycolmap reconstruction once, then adjusts and prunes it in rounds."""
 
-    def __init__(self, cameras: dict[str, CameraState], reference: str,
-                 rig_from_board: dict[int, np.ndarray], object_points: np.ndarray,
-                 observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
-                 lens_model: str = "opencv", options: BAOptions | None = None):
+    def __init__(
+        self,
+        cameras: dict[str, CameraState],
+        reference: str,
+        rig_from_board: dict[int, np.ndarray],
+        object_points: np.ndarray,
+        observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
+        lens_model: str = "opencv",
+        options: BAOptions | None = None,
+    ):
         """`observations[camera][frame] = (corner ids, (M, 2) OpenCV pixels)`; every camera's
         `cam_from_rig` is relative to `reference` (whose own is the identity)."""
         self.options = options or BAOptions()
@@ -112,15 +124,23 @@ class BoardBundleAdjuster:
         self.rec = rec = pycolmap.Reconstruction()
         model_name = LENS_MODELS[lens_model][0]
         for n, c in cameras.items():
-            rec.add_camera(pycolmap.Camera(model=model_name, width=c.width, height=c.height,
-                                           params=_colmap_params(c.K, c.dist, lens_model),
-                                           camera_id=self.cam_id[n]))
+            rec.add_camera(
+                pycolmap.Camera(
+                    model=model_name,
+                    width=c.width,
+                    height=c.height,
+                    params=_colmap_params(c.K, c.dist, lens_model),
+                    camera_id=self.cam_id[n],
+                )
+            )
         rig = pycolmap.Rig(rig_id=1)
         rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.cam_id[reference]))
         for n, c in cameras.items():
             if n != reference:
-                rig.add_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.cam_id[n]),
-                               _rigid(c.cam_from_rig))
+                rig.add_sensor(
+                    pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.cam_id[n]),
+                    _rigid(c.cam_from_rig),
+                )
         rec.add_rig(rig)
 
         # Images: one per (camera, frame) view; a frame groups the views of one board pose.
@@ -140,23 +160,34 @@ class BoardBundleAdjuster:
                 self.image_key[image_id] = (n, f)
                 frame_images.setdefault(f, []).append((image_id, n))
                 image_points[image_id] = np.asarray(px, dtype=np.float64) + 0.5
-                self.image_obs[image_id] = (np.asarray(ids, dtype=np.int64).ravel(),
-                                            np.asarray(px, dtype=np.float64).reshape(-1, 2))
+                self.image_obs[image_id] = (
+                    np.asarray(ids, dtype=np.int64).ravel(),
+                    np.asarray(px, dtype=np.float64).reshape(-1, 2),
+                )
                 self.alive[image_id] = np.ones(len(self.image_obs[image_id][0]), dtype=bool)
                 for k, cid in enumerate(np.asarray(ids).ravel()):
                     tracks.setdefault(int(cid), []).append((image_id, k))
         self.frame_ids = {}
         for k, f in enumerate(sorted(frame_images)):
-            frame = pycolmap.Frame(frame_id=k + 1, rig_id=1, rig_from_world=_rigid(rig_from_board[f]))
+            frame = pycolmap.Frame(
+                frame_id=k + 1, rig_id=1, rig_from_world=_rigid(rig_from_board[f])
+            )
             for iid, n in frame_images[f]:
-                frame.add_data_id(pycolmap.data_t(
-                    pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.cam_id[n]), iid))
+                frame.add_data_id(
+                    pycolmap.data_t(
+                        pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.cam_id[n]), iid
+                    )
+                )
             rec.add_frame(frame)
             self.frame_ids[f] = k + 1
         for f, images in frame_images.items():
             for iid, n in images:
-                img = pycolmap.Image(name=f"{n}/{f:06d}", keypoints=image_points[iid],
-                                     camera_id=self.cam_id[n], image_id=iid)
+                img = pycolmap.Image(
+                    name=f"{n}/{f:06d}",
+                    keypoints=image_points[iid],
+                    camera_id=self.cam_id[n],
+                    image_id=iid,
+                )
                 img.frame_id = self.frame_ids[f]
                 rec.add_image(img)
         for fid in self.frame_ids.values():
@@ -189,8 +220,10 @@ class BoardBundleAdjuster:
         if o.linear_solver is not None:
             solver_types = type(opts.ceres.solver_options.linear_solver_type).__members__
             if o.linear_solver not in solver_types:
-                raise BundleAdjustmentError(f"linear solver '{o.linear_solver}' is unknown, expected one "
-                                            f"of {sorted(solver_types)}")
+                raise BundleAdjustmentError(
+                    f"linear solver '{o.linear_solver}' is unknown, expected one "
+                    f"of {sorted(solver_types)}"
+                )
             opts.ceres.auto_select_solver_type = False
             opts.ceres.solver_options.linear_solver_type = solver_types[o.linear_solver]
         return opts
@@ -204,7 +237,9 @@ class BoardBundleAdjuster:
         return config
 
     def solve_once(self) -> pycolmap.BundleAdjustmentSummary:
-        adjuster = pycolmap.create_default_bundle_adjuster(self._options(), self._config(), self.rec)
+        adjuster = pycolmap.create_default_bundle_adjuster(
+            self._options(), self._config(), self.rec
+        )
         summary = adjuster.solve()
         if not summary.is_solution_usable():
             raise BundleAdjustmentError(f"bundle adjustment failed: {summary.brief_report()}")
@@ -227,7 +262,9 @@ class BoardBundleAdjuster:
             alive = self.alive[iid]
             if alive.any():
                 depth = pts[alive] @ T[2, :3] + T[2, 3]
-                proj, _ = cv2.projectPoints(pts[alive], cv2.Rodrigues(T[:, :3])[0], T[:, 3], K, dist)
+                proj, _ = cv2.projectPoints(
+                    pts[alive], cv2.Rodrigues(T[:, :3])[0], T[:, 3], K, dist
+                )
                 e = np.linalg.norm(proj.reshape(-1, 2) - px[alive], axis=1)
                 err[alive] = np.where(depth > 0, e, np.inf)
             out[iid] = err
@@ -253,8 +290,16 @@ class BoardBundleAdjuster:
                         self.rec.delete_observation(iid, int(idx))
                         self.alive[iid][idx] = False
                         removed += 1
-            rounds.append({"round": k, "observations": len(err), "rms_px": float(np.sqrt(np.mean(finite ** 2))),
-                           "limit_px": limit, "removed": removed, "seconds": time.perf_counter() - t0})
+            rounds.append(
+                {
+                    "round": k,
+                    "observations": len(err),
+                    "rms_px": float(np.sqrt(np.mean(finite**2))),
+                    "limit_px": limit,
+                    "removed": removed,
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
             if not removed:
                 break
         return rounds
@@ -285,23 +330,39 @@ class BoardBundleAdjuster:
         def cat(parts, shape):
             return np.concatenate(parts).reshape(shape) if parts else np.zeros(shape)
 
-        return BAResult(cams, frames, {n: cat(v, (-1,)) for n, v in residuals.items()},
-                        {n: cat(v, (-1, 2)) for n, v in obs.items()},
-                        {n: cat(v, (-1, 2)) for n, v in outliers.items()}, rounds)
+        return BAResult(
+            cams,
+            frames,
+            {n: cat(v, (-1,)) for n, v in residuals.items()},
+            {n: cat(v, (-1, 2)) for n, v in obs.items()},
+            {n: cat(v, (-1, 2)) for n, v in outliers.items()},
+            rounds,
+        )
 
 
-def bundle_adjust_board(cameras: dict[str, CameraState], reference: str,
-                        rig_from_board: dict[int, np.ndarray], object_points: np.ndarray,
-                        observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
-                        lens_model: str = "opencv", options: BAOptions | None = None) -> BAResult:
+def bundle_adjust_board(
+    cameras: dict[str, CameraState],
+    reference: str,
+    rig_from_board: dict[int, np.ndarray],
+    object_points: np.ndarray,
+    observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
+    lens_model: str = "opencv",
+    options: BAOptions | None = None,
+) -> BAResult:
     """Jointly refine intrinsics, camera-in-rig poses and board poses; see BoardBundleAdjuster."""
-    ba = BoardBundleAdjuster(cameras, reference, rig_from_board, object_points, observations,
-                             lens_model, options)
+    ba = BoardBundleAdjuster(
+        cameras, reference, rig_from_board, object_points, observations, lens_model, options
+    )
     return ba.result(ba.run())
 
 
-def reprojection_errors(K: np.ndarray, dist: np.ndarray, cam_from_board: np.ndarray,
-                        object_points: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+def reprojection_errors(
+    K: np.ndarray,
+    dist: np.ndarray,
+    cam_from_board: np.ndarray,
+    object_points: np.ndarray,
+    pixels: np.ndarray,
+) -> np.ndarray:
     """Per-point reprojection error (px) of board points under a pose, through OpenCV."""
     rvec = cv2.Rodrigues(cam_from_board[:3, :3])[0]
     proj, _ = cv2.projectPoints(object_points, rvec, cam_from_board[:3, 3], K, dist)

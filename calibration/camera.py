@@ -73,9 +73,18 @@ class Camera:
         if np.linalg.det(R) < 0:
             raise CameraError(f"camera '{name}': R is a reflection (det = -1), expected a rotation")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise CameraError(f"camera '{name}': focal lengths must be positive, got K = {K.tolist()}")
-        if abs(K[2, 2] - 1) > 1e-9 or abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9:
-            raise CameraError(f"camera '{name}': K must be upper triangular with K[2,2] = 1, got {K.tolist()}")
+            raise CameraError(
+                f"camera '{name}': focal lengths must be positive, got K = {K.tolist()}"
+            )
+        if (
+            abs(K[2, 2] - 1) > 1e-9
+            or abs(K[1, 0]) > 1e-9
+            or abs(K[2, 0]) > 1e-9
+            or abs(K[2, 1]) > 1e-9
+        ):
+            raise CameraError(
+                f"camera '{name}': K must be upper triangular with K[2,2] = 1, got {K.tolist()}"
+            )
         width, height = int(width), int(height)
         if width <= 0 or height <= 0:
             raise CameraError(f"camera '{name}': resolution must be positive, got {width}x{height}")
@@ -135,8 +144,16 @@ class Camera:
 
     def replace(self, **changes) -> Camera:
         """A validated copy with some fields changed."""
-        fields = dict(name=self.name, K=self.K, dist=self.dist, R=self.R, t=self.t,
-                      width=self.width, height=self.height, meta=self.meta)
+        fields = dict(
+            name=self.name,
+            K=self.K,
+            dist=self.dist,
+            R=self.R,
+            t=self.t,
+            width=self.width,
+            height=self.height,
+            meta=self.meta,
+        )
         fields.update(changes)
         return Camera.create(**fields)
 
@@ -158,8 +175,13 @@ class Camera:
         # rotations below ~1e-5 rad as the identity. cv2.projectPoints also ignores K[0, 1]
         # (skew); project without it and add it after.
         zero = np.zeros(3)
-        uv, _ = cv2.projectPoints(self.to_camera(pts), zero, zero, self._K_no_skew(),
-                                  self.dist if self.dist.size else None)
+        uv, _ = cv2.projectPoints(
+            self.to_camera(pts),
+            zero,
+            zero,
+            self._K_no_skew(),
+            self.dist if self.dist.size else None,
+        )
         uv = uv.reshape(-1, 2)
         if self.skew:
             uv[:, 0] += self.skew * (uv[:, 1] - self.cy) / self.fy
@@ -173,8 +195,9 @@ class Camera:
         if self.skew:  # cv2.undistortPoints ignores skew too: remove it first
             px[:, 0, 0] -= self.skew * (px[:, 0, 1] - self.cy) / self.fy
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        out = cv2.undistortPoints(px, self._K_no_skew(), self.dist if self.dist.size else None,
-                                  None, None, None, crit)
+        out = cv2.undistortPoints(
+            px, self._K_no_skew(), self.dist if self.dist.size else None, None, None, None, crit
+        )
         return out.reshape(-1, 2)
 
     def unproject(self, pixels: np.ndarray, depth: np.ndarray | float | None = None) -> np.ndarray:
@@ -193,8 +216,10 @@ class Camera:
         if not self.dist.size or not np.any(self.dist):
             return image
         if self.skew:
-            raise CameraError(f"camera '{self.name}': undistort_image does not support skew "
-                              "(OpenCV ignores K[0, 1])")
+            raise CameraError(
+                f"camera '{self.name}': undistort_image does not support skew "
+                "(OpenCV ignores K[0, 1])"
+            )
         return cv2.undistort(image, self.K, self.dist)
 
 
@@ -214,7 +239,9 @@ class Rig:
         if dupes:
             raise CameraError(f"rig has duplicate camera names: {dupes}")
         if self.units != "m":
-            raise CameraError(f"rig units must be metres ('m'), got '{self.units}'; convert on import")
+            raise CameraError(
+                f"rig units must be metres ('m'), got '{self.units}'; convert on import"
+            )
         up = np.asarray(self.up, dtype=np.float64)
         if up.shape != (3,) or not np.all(np.isfinite(up)) or abs(np.linalg.norm(up) - 1) > 1e-6:
             raise CameraError(f"rig up axis must be a finite unit 3-vector, got {self.up}")
@@ -240,8 +267,13 @@ class Rig:
     def subset(self, names: list[str]) -> Rig:
         return replace(self, cameras=tuple(self[n] for n in names))
 
-    def transformed(self, rotation: np.ndarray, translation: np.ndarray, scale: float = 1.0,
-                    up: tuple[float, float, float] | None = None) -> Rig:
+    def transformed(
+        self,
+        rotation: np.ndarray,
+        translation: np.ndarray,
+        scale: float = 1.0,
+        up: tuple[float, float, float] | None = None,
+    ) -> Rig:
         """The same cameras in a new world frame, X_new = scale * rotation @ X_old + translation.
 
         `up` is the new world's up axis; by default the old one carried over by `rotation`.
@@ -252,7 +284,9 @@ class Rig:
             raise CameraError(f"rig transform scale must be positive, got {scale}")
         cams = tuple(c.replace(R=c.R @ Rw.T, t=scale * c.t - c.R @ Rw.T @ tw) for c in self.cameras)
         new_up = np.asarray(up if up is not None else Rw @ np.asarray(self.up), dtype=np.float64)
-        return replace(self, cameras=cams, up=tuple(float(v) for v in new_up / np.linalg.norm(new_up)))
+        return replace(
+            self, cameras=cams, up=tuple(float(v) for v in new_up / np.linalg.norm(new_up))
+        )
 
     def stacked(self) -> dict[str, np.ndarray]:
         """Per-camera arrays stacked in rig order, for batched code: K (C, 3, 3), R (C, 3, 3),
@@ -260,10 +294,14 @@ class Rig:
         n_dist = max([5] + [c.dist.size for c in self.cameras])
         dist = np.zeros((len(self.cameras), n_dist))
         for i, c in enumerate(self.cameras):
-            dist[i, :c.dist.size] = c.dist
-        return {"K": np.stack([c.K for c in self.cameras]), "R": np.stack([c.R for c in self.cameras]),
-                "t": np.stack([c.t for c in self.cameras]), "dist": dist,
-                "size": np.array([[c.width, c.height] for c in self.cameras])}
+            dist[i, : c.dist.size] = c.dist
+        return {
+            "K": np.stack([c.K for c in self.cameras]),
+            "R": np.stack([c.R for c in self.cameras]),
+            "t": np.stack([c.t for c in self.cameras]),
+            "dist": dist,
+            "size": np.array([[c.width, c.height] for c in self.cameras]),
+        }
 
 
 def look_at_rotation(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -298,7 +336,9 @@ def project_points_torch(points, K, R, t, dist=None):
     if dist is not None and dist.shape[-1] > 0:
         D = dist.shape[-1]
         if D not in (4, 5, 8, 12):
-            raise CameraError(f"project_points_torch: {D} distortion terms, expected 0, 4, 5, 8 or 12")
+            raise CameraError(
+                f"project_points_torch: {D} distortion terms, expected 0, 4, 5, 8 or 12"
+            )
         d = dist.unsqueeze(-2)  # broadcast against N
 
         def term(i):
@@ -307,7 +347,8 @@ def project_points_torch(points, K, R, t, dist=None):
         r2 = x * x + y * y
         r4, r6 = r2 * r2, r2 * r2 * r2
         radial = (1 + term(0) * r2 + term(1) * r4 + term(4) * r6) / (
-            1 + term(5) * r2 + term(6) * r4 + term(7) * r6)
+            1 + term(5) * r2 + term(6) * r4 + term(7) * r6
+        )
         p1, p2 = term(2), term(3)
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + term(8) * r2 + term(9) * r4
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + term(10) * r2 + term(11) * r4

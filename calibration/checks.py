@@ -19,7 +19,9 @@ class CaptureVolume:
     def __post_init__(self):
         lo, hi = np.asarray(self.lo, dtype=float), np.asarray(self.hi, dtype=float)
         if lo.shape != (3,) or hi.shape != (3,) or not np.all(np.isfinite(lo)) or np.any(hi <= lo):
-            raise ValueError(f"capture volume needs finite lo < hi 3-vectors, got {self.lo}, {self.hi}")
+            raise ValueError(
+                f"capture volume needs finite lo < hi 3-vectors, got {self.lo}, {self.hi}"
+            )
 
     @property
     def center(self) -> np.ndarray:
@@ -27,7 +29,9 @@ class CaptureVolume:
 
     def corners(self) -> np.ndarray:
         lo, hi = np.asarray(self.lo), np.asarray(self.hi)
-        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        return np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
 
     def ray_hits(self, origin: np.ndarray, direction: np.ndarray) -> bool:
         """Whether the ray origin + s * direction (s >= 0) meets the box (slab test)."""
@@ -57,7 +61,9 @@ def estimate_volume(rig: Rig, height: float = 2.0) -> CaptureVolume:
     if not np.allclose(up, [0, 0, 1]):
         raise ValueError(f"estimate_volume needs a z-up rig, this one's up axis is {rig.up}")
     c = axes_meeting_point(rig)
-    dist = np.median([np.linalg.norm(cam.center[:2] - c[:2]) for cam in rig]) if len(rig) > 1 else 2.0
+    dist = (
+        np.median([np.linalg.norm(cam.center[:2] - c[:2]) for cam in rig]) if len(rig) > 1 else 2.0
+    )
     half = max(0.35 * dist, 0.5)
     return CaptureVolume((c[0] - half, c[1] - half, 0.0), (c[0] + half, c[1] + half, height))
 
@@ -74,5 +80,7 @@ def check_rig(rig: Rig, volume: CaptureVolume | None = None) -> list[str]:
     if volume is not None:
         away = [c.name for c in rig if not volume.ray_hits(c.center, c.optical_axis)]
         if away:
-            problems.append(f"optical axes miss the capture volume {volume.lo}..{volume.hi}: {away}")
+            problems.append(
+                f"optical axes miss the capture volume {volume.lo}..{volume.hi}: {away}"
+            )
     return problems

@@ -24,12 +24,26 @@ class RigComparison:
     scale: float  # fitted scale (1 when not fitted)
 
     def as_rows(self) -> list[dict]:
-        return [dict(camera=n, focal_rel_error=float(f), center_error_m=float(c), rotation_error_deg=float(r))
-                for n, f, c, r in zip(self.names, self.focal_rel_error, self.center_error_m,
-                                      self.rotation_error_deg, strict=True)]
+        return [
+            dict(
+                camera=n,
+                focal_rel_error=float(f),
+                center_error_m=float(c),
+                rotation_error_deg=float(r),
+            )
+            for n, f, c, r in zip(
+                self.names,
+                self.focal_rel_error,
+                self.center_error_m,
+                self.rotation_error_deg,
+                strict=True,
+            )
+        ]
 
 
-def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+def umeyama(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool
+) -> tuple[float, np.ndarray, np.ndarray]:
     """s, R, t minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
     mu_s, mu_d = src.mean(0), dst.mean(0)
     xs, xd = src - mu_s, dst - mu_d
@@ -58,6 +72,8 @@ def compare_rigs(estimate: Rig, reference: Rig, fit_scale: bool = False) -> RigC
         # world_ref = s Ra world_est + ta, so the estimated camera in reference world has R_e Ra^T.
         delta = (e.R @ Ra.T) @ r.R.T
         rot_err.append(np.degrees(np.arccos(np.clip((np.trace(delta) - 1) / 2, -1, 1))))
-    focal = [max(abs(e.fx - r.fx) / r.fx, abs(e.fy - r.fy) / r.fy) for e, r in zip(est, ref, strict=True)]
+    focal = [
+        max(abs(e.fx - r.fx) / r.fx, abs(e.fy - r.fy) / r.fy) for e, r in zip(est, ref, strict=True)
+    ]
     diam = float(max(np.linalg.norm(a - b) for a in c_ref for b in c_ref))
     return RigComparison(names, np.array(focal), center_err, np.array(rot_err), diam, s)

@@ -29,7 +29,9 @@ def list_images(folder: Path) -> list[Path]:
     """Image files in a folder, in natural filename order."""
     files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
     if not files:
-        raise FrameSourceError(f"image folder '{folder}' holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        raise FrameSourceError(
+            f"image folder '{folder}' holds no images ({', '.join(IMAGE_SUFFIXES)})"
+        )
     return sorted(files, key=_natural_key)
 
 
@@ -42,7 +44,9 @@ def _open_video(path: Path) -> cv2.VideoCapture:
 
 def _check_exists(source: Path) -> None:
     if not source.exists():
-        raise FrameSourceError(f"frame source '{source}' does not exist (expected a video or image folder)")
+        raise FrameSourceError(
+            f"frame source '{source}' does not exist (expected a video or image folder)"
+        )
 
 
 def count_frames(source: str | Path) -> int:
@@ -75,8 +79,9 @@ def source_image_size(source: str | Path) -> tuple[int, int]:
         cap.release()
 
 
-def iter_frames(source: str | Path, frame_step: int = 1, max_frames: int | None = None,
-                grayscale: bool = True) -> Iterator[tuple[int, np.ndarray]]:
+def iter_frames(
+    source: str | Path, frame_step: int = 1, max_frames: int | None = None, grayscale: bool = True
+) -> Iterator[tuple[int, np.ndarray]]:
     """Yield (frame index, image) for every `frame_step`-th frame, at most `max_frames` of them.
 
     Video frames that are skipped are grabbed but not decoded to images, which is cheaper.

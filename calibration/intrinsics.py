@@ -37,9 +37,11 @@ class Intrinsics:
 
 def _calib_flags(lens_model: str) -> int:
     if lens_model not in LENS_MODELS:
-        raise IntrinsicsError(f"lens model '{lens_model}' is unknown, expected one of {sorted(LENS_MODELS)}")
+        raise IntrinsicsError(
+            f"lens model '{lens_model}' is unknown, expected one of {sorted(LENS_MODELS)}"
+        )
     if lens_model == "pinhole":
-        return (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST)
+        return cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     if lens_model == "opencv":
         return cv2.CALIB_FIX_K3
     return cv2.CALIB_RATIONAL_MODEL
@@ -53,10 +55,18 @@ def spread_subset(items: list, n: int) -> list:
     return [items[i] for i in idx]
 
 
-def calibrate_intrinsics(camera: str, detections: list[FrameDetection], board: BoardSpec,
-                         image_size: tuple[int, int], *, lens_model: str = "opencv",
-                         max_views: int = 40, outlier_factor: float = 3.0, min_outlier_px: float = 1.0,
-                         max_rounds: int = 3) -> Intrinsics:
+def calibrate_intrinsics(
+    camera: str,
+    detections: list[FrameDetection],
+    board: BoardSpec,
+    image_size: tuple[int, int],
+    *,
+    lens_model: str = "opencv",
+    max_views: int = 40,
+    outlier_factor: float = 3.0,
+    min_outlier_px: float = 1.0,
+    max_rounds: int = 3,
+) -> Intrinsics:
     """cv2.calibrateCamera on up to `max_views` views spread through the footage.
 
     A view whose RMS exceeds max(`outlier_factor` x median view RMS, `min_outlier_px`) is
@@ -64,8 +74,10 @@ def calibrate_intrinsics(camera: str, detections: list[FrameDetection], board: B
     """
     min_views = 4
     if len(detections) < min_views:
-        raise IntrinsicsError(f"camera '{camera}': only {len(detections)} board views, need at least "
-                              f"{min_views} to estimate intrinsics")
+        raise IntrinsicsError(
+            f"camera '{camera}': only {len(detections)} board views, need at least "
+            f"{min_views} to estimate intrinsics"
+        )
     obj_all = board.object_points()
     views = spread_subset(sorted(detections, key=lambda d: d.frame), max_views)
     flags = _calib_flags(lens_model)
@@ -75,7 +87,8 @@ def calibrate_intrinsics(camera: str, detections: list[FrameDetection], board: B
         obj = [obj_all[d.ids].astype(np.float32) for d in views]
         img = [d.corners.astype(np.float32) for d in views]
         rms, K, dist, _, _, _, _, per_view = cv2.calibrateCameraExtended(
-            obj, img, tuple(image_size), None, None, flags=flags, criteria=crit)
+            obj, img, tuple(image_size), None, None, flags=flags, criteria=crit
+        )
         per_view = per_view.ravel()
         limit = max(outlier_factor * float(np.median(per_view)), min_outlier_px)
         bad = per_view > limit
@@ -86,9 +99,17 @@ def calibrate_intrinsics(camera: str, detections: list[FrameDetection], board: B
     dist = dist.ravel().astype(np.float64)
     dist = dist[:8] if lens_model == "full_opencv" else np.concatenate([dist[:4], [0.0]])
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
-        raise IntrinsicsError(f"camera '{camera}': calibrateCamera returned an invalid K {K.tolist()}")
-    return Intrinsics(camera, K.astype(np.float64), dist, float(rms),
-                      sorted(d.frame for d in views), sorted(rejected))
+        raise IntrinsicsError(
+            f"camera '{camera}': calibrateCamera returned an invalid K {K.tolist()}"
+        )
+    return Intrinsics(
+        camera,
+        K.astype(np.float64),
+        dist,
+        float(rms),
+        sorted(d.frame for d in views),
+        sorted(rejected),
+    )
 
 
 @dataclass(frozen=True)
@@ -108,8 +129,14 @@ class ViewPose:
         return T
 
 
-def board_pose(detection: FrameDetection, board: BoardSpec, K: np.ndarray, dist: np.ndarray,
-               outlier_px: float = 3.0, min_corners: int = 4) -> ViewPose:
+def board_pose(
+    detection: FrameDetection,
+    board: BoardSpec,
+    K: np.ndarray,
+    dist: np.ndarray,
+    outlier_px: float = 3.0,
+    min_corners: int = 4,
+) -> ViewPose:
     """Board pose from one view: IPPE (both planar solutions, lowest error kept), then LM.
 
     Corners off by more than `outlier_px` are left out and the pose solved again (twice at

@@ -34,8 +34,9 @@ def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
-def robust_mean_pose(poses: np.ndarray, weights: np.ndarray | None = None,
-                     min_inlier_deg: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+def robust_mean_pose(
+    poses: np.ndarray, weights: np.ndarray | None = None, min_inlier_deg: float = 2.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Robust average of (N, 4, 4) rigid transforms: chordal mean rotation, then the median
     rotation outliers (above max(3 x median angle, `min_inlier_deg`)) dropped and the mean
     redone; translation is the weighted mean of the inliers. Returns (pose, inlier mask)."""
@@ -68,8 +69,9 @@ class Edge:
     n_frames: int  # frames agreeing with the average
 
 
-def pairwise_edges(views: dict[str, dict[int, np.ndarray]],
-                   weights: dict[str, dict[int, float]] | None = None) -> list[Edge]:
+def pairwise_edges(
+    views: dict[str, dict[int, np.ndarray]], weights: dict[str, dict[int, float]] | None = None
+) -> list[Edge]:
     """Relative poses of every camera pair that shares board frames.
 
     `views[camera][frame]` is the 4x4 cam_from_board pose of that view; `weights` (e.g. corner
@@ -77,7 +79,7 @@ def pairwise_edges(views: dict[str, dict[int, np.ndarray]],
     names = list(views)
     edges = []
     for i, a in enumerate(names):
-        for b in names[i + 1:]:
+        for b in names[i + 1 :]:
             shared = sorted(set(views[a]) & set(views[b]))
             if not shared:
                 continue
@@ -90,8 +92,9 @@ def pairwise_edges(views: dict[str, dict[int, np.ndarray]],
     return edges
 
 
-def chain_poses(cameras: list[str], edges: list[Edge], reference: str | None = None
-                ) -> tuple[dict[str, np.ndarray], str]:
+def chain_poses(
+    cameras: list[str], edges: list[Edge], reference: str | None = None
+) -> tuple[dict[str, np.ndarray], str]:
     """cam_from_ref for every camera, chained along the maximum spanning tree of shared frames.
 
     Returns (poses, reference). The reference defaults to the best-connected camera."""

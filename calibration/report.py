@@ -52,9 +52,23 @@ def plot_coverage(camera: Camera, inliers: np.ndarray, outliers: np.ndarray, pat
     ax = fig.add_subplot(1, 1, 1)
     ax.add_patch(_rect(camera.width, camera.height))
     if len(inliers):
-        ax.scatter(inliers[:, 0], inliers[:, 1], s=2, c="tab:blue", alpha=0.5, label=f"corners ({len(inliers)})")
+        ax.scatter(
+            inliers[:, 0],
+            inliers[:, 1],
+            s=2,
+            c="tab:blue",
+            alpha=0.5,
+            label=f"corners ({len(inliers)})",
+        )
     if len(outliers):
-        ax.scatter(outliers[:, 0], outliers[:, 1], s=8, c="tab:red", marker="x", label=f"outliers ({len(outliers)})")
+        ax.scatter(
+            outliers[:, 0],
+            outliers[:, 1],
+            s=8,
+            c="tab:red",
+            marker="x",
+            label=f"outliers ({len(outliers)})",
+        )
     ax.set_xlim(-0.02 * camera.width, 1.02 * camera.width)
     ax.set_ylim(1.02 * camera.height, -0.02 * camera.height)  # image y down
     ax.set_aspect("equal")
@@ -82,8 +96,13 @@ def _display_rotation(up) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1 + c)
 
 
-def plot_rig(rig: Rig, path: Path, volume: CaptureVolume | None = None,
-             board_points: np.ndarray | None = None, title: str = "") -> Path:
+def plot_rig(
+    rig: Rig,
+    path: Path,
+    volume: CaptureVolume | None = None,
+    board_points: np.ndarray | None = None,
+    title: str = "",
+) -> Path:
     """Camera poses in 3D and from above: frusta (the image's top edge drawn thick), names,
     optical axes, the floor (z = 0 of the up axis), world axes and the capture volume."""
     Rd = _display_rotation(rig.up)
@@ -95,15 +114,36 @@ def plot_rig(rig: Rig, path: Path, volume: CaptureVolume | None = None,
     ax2 = fig.add_subplot(1, 2, 2)
     pts = [centers, np.zeros((1, 3))]
     for cam, C in zip(rig, centers, strict=True):
-        corners = cam.unproject(np.array([[0, 0], [cam.width - 1, 0], [cam.width - 1, cam.height - 1],
-                                          [0, cam.height - 1]], dtype=float), depth) @ Rd.T
+        corners = (
+            cam.unproject(
+                np.array(
+                    [
+                        [0, 0],
+                        [cam.width - 1, 0],
+                        [cam.width - 1, cam.height - 1],
+                        [0, cam.height - 1],
+                    ],
+                    dtype=float,
+                ),
+                depth,
+            )
+            @ Rd.T
+        )
         axis_end = C + (Rd @ cam.optical_axis) * 0.6 * span
         for ax, dims in ((ax3, slice(0, 3)), (ax2, slice(0, 2))):
             for k in range(4):
                 ax.plot(*np.stack([C, corners[k]])[:, dims].T, color="tab:blue", linewidth=0.8)
-                ax.plot(*np.stack([corners[k], corners[(k + 1) % 4]])[:, dims].T, color="tab:blue",
-                        linewidth=2.0 if k == 0 else 0.8)  # edge 0-1 is the image's top
-            ax.plot(*np.stack([C, axis_end])[:, dims].T, color="tab:orange", linewidth=0.7, linestyle="--")
+                ax.plot(
+                    *np.stack([corners[k], corners[(k + 1) % 4]])[:, dims].T,
+                    color="tab:blue",
+                    linewidth=2.0 if k == 0 else 0.8,
+                )  # edge 0-1 is the image's top
+            ax.plot(
+                *np.stack([C, axis_end])[:, dims].T,
+                color="tab:orange",
+                linewidth=0.7,
+                linestyle="--",
+            )
             ax.text(*C[dims], f" {cam.name}", fontsize=7)
         pts.append(corners)
     if volume is not None:
@@ -125,8 +165,12 @@ def plot_rig(rig: Rig, path: Path, volume: CaptureVolume | None = None,
     # Floor grid and world axes (x red, y green, up blue) at the origin.
     g = np.linspace(-half, half, 9)
     for v in g:
-        ax3.plot([mid[0] + v] * 2, [mid[1] - half, mid[1] + half], [0, 0], color="0.6", linewidth=0.5)
-        ax3.plot([mid[0] - half, mid[0] + half], [mid[1] + v] * 2, [0, 0], color="0.6", linewidth=0.5)
+        ax3.plot(
+            [mid[0] + v] * 2, [mid[1] - half, mid[1] + half], [0, 0], color="0.6", linewidth=0.5
+        )
+        ax3.plot(
+            [mid[0] - half, mid[0] + half], [mid[1] + v] * 2, [0, 0], color="0.6", linewidth=0.5
+        )
     for k, col in enumerate(("tab:red", "tab:green", "tab:blue")):
         e = np.zeros(3)
         e[k] = 0.15 * span
@@ -146,13 +190,22 @@ def plot_rig(rig: Rig, path: Path, volume: CaptureVolume | None = None,
     ax2.set_xlabel("x (m)")
     ax2.set_ylabel("y (m)")
     ax2.set_title("from above")
-    fig.suptitle(title or f"{len(rig)} cameras (blue, thick edge = image top), optical axes (orange), "
-                          "capture volume (green), world axes x/y/up (red/green/blue)", fontsize=10)
+    fig.suptitle(
+        title
+        or f"{len(rig)} cameras (blue, thick edge = image top), optical axes (orange), "
+        "capture volume (green), world axes x/y/up (red/green/blue)",
+        fontsize=10,
+    )
     return _save(fig, path)
 
 
-def draw_world_overlay(camera: Camera, image: np.ndarray, extent: float = 3.0, step: float = 0.5,
-                       pole_height: float = 1.8) -> np.ndarray:
+def draw_world_overlay(
+    camera: Camera,
+    image: np.ndarray,
+    extent: float = 3.0,
+    step: float = 0.5,
+    pole_height: float = 1.8,
+) -> np.ndarray:
     """A copy of `image` with the floor grid (z = 0, every `step` m within +-`extent` m, yellow),
     the world axes (1 m; x red, y green, z blue) and a `pole_height` m pole at the origin
     (magenta) drawn through the camera: a visual check that a calibration fits its footage.
@@ -164,8 +217,15 @@ def draw_world_overlay(camera: Camera, image: np.ndarray, extent: float = 3.0, s
 
     # Distortion polynomials misbehave far outside the image: keep points whose normalised
     # radius is within 1.2x that of the image corners.
-    corners = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1],
-                        [camera.width - 1, camera.height - 1]], dtype=float)
+    corners = np.array(
+        [
+            [0, 0],
+            [camera.width - 1, 0],
+            [0, camera.height - 1],
+            [camera.width - 1, camera.height - 1],
+        ],
+        dtype=float,
+    )
     r_max = 1.2 * np.linalg.norm(camera.undistort_points(corners), axis=1).max()
 
     def polyline(a, b, colour, width):
@@ -197,9 +257,13 @@ def _fmt(v: float, nd: int = 2) -> str:
     return "-" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
 
 
-def write_calibration_report(rig: Rig, out_dir: str | Path, calibration: BoardCalibration | None = None,
-                             volume: CaptureVolume | tuple | None = None,
-                             frames: dict[str, np.ndarray] | None = None) -> Path:
+def write_calibration_report(
+    rig: Rig,
+    out_dir: str | Path,
+    calibration: BoardCalibration | None = None,
+    volume: CaptureVolume | tuple | None = None,
+    frames: dict[str, np.ndarray] | None = None,
+) -> Path:
     """Write `calibration.md`, `coverage_<camera>.png` (board calibrations only),
     `camera_poses.png` and, given `frames` (camera name -> an image from that camera, z-up
     rigs), `overlay_<camera>.png` with the floor grid drawn in; returns the markdown path.
@@ -215,12 +279,16 @@ def write_calibration_report(rig: Rig, out_dir: str | Path, calibration: BoardCa
     board_pts = None
     if calibration is not None and calibration.world_from_board:
         obj = np.c_[calibration.board.object_points(), np.ones(calibration.board.n_corners)]
-        board_pts = np.concatenate([(T @ obj.T).T[:, :3] for T in calibration.world_from_board.values()])
+        board_pts = np.concatenate(
+            [(T @ obj.T).T[:, :3] for T in calibration.world_from_board.values()]
+        )
     plot_rig(rig, out / "camera_poses.png", volume, board_pts)
 
     lines = ["# Calibration report", ""]
-    lines.append(f"{len(rig)} cameras; units m; up axis ({', '.join(f'{float(v):g}' for v in rig.up)}); "
-                 f"source: {rig.meta.get('source', 'unknown')}.")
+    lines.append(
+        f"{len(rig)} cameras; units m; up axis ({', '.join(f'{float(v):g}' for v in rig.up)}); "
+        f"source: {rig.meta.get('source', 'unknown')}."
+    )
     lines.append("")
     lines.append("![camera poses](camera_poses.png)")
     lines.append("")
@@ -232,66 +300,98 @@ def write_calibration_report(rig: Rig, out_dir: str | Path, calibration: BoardCa
     lines += [header, sep]
     for cam in rig:
         d = np.zeros(2)
-        d[:min(2, cam.dist.size)] = cam.dist[:2]
+        d[: min(2, cam.dist.size)] = cam.dist[:2]
         c = cam.center
-        row = (f"| {cam.name} | {cam.width}x{cam.height} | {cam.fx:.1f} | {cam.fy:.1f} | {cam.cx:.1f} | "
-               f"{cam.cy:.1f} | {d[0]:.4f} | {d[1]:.4f} | {c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f} |")
+        row = (
+            f"| {cam.name} | {cam.width}x{cam.height} | {cam.fx:.1f} | {cam.fy:.1f} | {cam.cx:.1f} | "
+            f"{cam.cy:.1f} | {d[0]:.4f} | {d[1]:.4f} | {c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f} |"
+        )
         if calibration is not None:
             n = cam.name
             obs = calibration.observations.get(n, np.zeros((0, 2)))
             cov = coverage_fraction(obs, cam.width, cam.height)
-            row += (f" {_fmt(calibration.rms_px.get(n, np.nan), 3)} | {_fmt(calibration.initial_rms_px.get(n, np.nan), 3)}"
-                    f" | {calibration.detections.get(n, 0)} / {calibration.frames_searched.get(n, '?')}"
-                    f" | {len(obs)} | {len(calibration.outliers.get(n, []))} | {100 * cov:.0f}% |")
+            row += (
+                f" {_fmt(calibration.rms_px.get(n, np.nan), 3)} | {_fmt(calibration.initial_rms_px.get(n, np.nan), 3)}"
+                f" | {calibration.detections.get(n, 0)} / {calibration.frames_searched.get(n, '?')}"
+                f" | {len(obs)} | {len(calibration.outliers.get(n, []))} | {100 * cov:.0f}% |"
+            )
         lines.append(row)
     lines.append("")
     problems = check_rig(rig, volume)
     lines.append("## Checks")
     lines.append("")
-    lines += [f"- {p}" for p in problems] or ["- all cameras above the floor and aimed into the capture volume"
-                                             if volume is not None else "- no capture volume to check against"]
+    lines += [f"- {p}" for p in problems] or [
+        "- all cameras above the floor and aimed into the capture volume"
+        if volume is not None
+        else "- no capture volume to check against"
+    ]
     if volume is not None:
         lo, hi = (", ".join(f"{float(v):.2f}" for v in b) for b in (volume.lo, volume.hi))
         lines.append(f"- capture volume: ({lo}) to ({hi}) m")
     lines.append("")
     if calibration is not None:
-        lines += ["## Board calibration", "",
-                  f"Board: {calibration.board.to_dict()}.", "",
-                  f"Overall RMS {calibration.rms_px_overall:.3f} px; world from the board on the floor in "
-                  f"frame {calibration.floor_frame}." if calibration.floor_frame is not None else
-                  f"Overall RMS {calibration.rms_px_overall:.3f} px; world = first camera.", "",
-                  "| step | seconds |", "|---|---|"]
+        lines += [
+            "## Board calibration",
+            "",
+            f"Board: {calibration.board.to_dict()}.",
+            "",
+            f"Overall RMS {calibration.rms_px_overall:.3f} px; world from the board on the floor in "
+            f"frame {calibration.floor_frame}."
+            if calibration.floor_frame is not None
+            else f"Overall RMS {calibration.rms_px_overall:.3f} px; world = first camera.",
+            "",
+            "| step | seconds |",
+            "|---|---|",
+        ]
         lines += [f"| {k} | {v:.2f} |" for k, v in calibration.timings.items()]
-        lines += ["", "| BA round | observations | RMS px | outlier limit px | removed | seconds |",
-                  "|---|---|---|---|---|---|"]
-        lines += [f"| {r['round']} | {r['observations']} | {r['rms_px']:.3f} | {r['limit_px']:.2f} | "
-                  f"{r['removed']} | {r['seconds']:.2f} |" for r in calibration.ba_rounds]
+        lines += [
+            "",
+            "| BA round | observations | RMS px | outlier limit px | removed | seconds |",
+            "|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {r['round']} | {r['observations']} | {r['rms_px']:.3f} | {r['limit_px']:.2f} | "
+            f"{r['removed']} | {r['seconds']:.2f} |"
+            for r in calibration.ba_rounds
+        ]
         if calibration.notes:
             lines += ["", "Notes:", ""] + [f"- {n}" for n in calibration.notes]
         lines += ["", "## Coverage", ""]
         for cam in rig:
             name = f"coverage_{_safe(cam.name)}.png"
-            plot_coverage(cam, calibration.observations.get(cam.name, np.zeros((0, 2))),
-                          calibration.outliers.get(cam.name, np.zeros((0, 2))), out / name)
+            plot_coverage(
+                cam,
+                calibration.observations.get(cam.name, np.zeros((0, 2))),
+                calibration.outliers.get(cam.name, np.zeros((0, 2))),
+                out / name,
+            )
             lines.append(f"![{cam.name}]({name})")
         lines.append("")
     if frames and np.allclose(rig.up, [0, 0, 1]):
         import cv2
 
-        lines += ["## Floor grid drawn through each camera", "",
-                  "Yellow: floor grid every 0.5 m; red/green/blue: world x/y/z (1 m); magenta: 1.8 m pole at "
-                  "the origin. The grid should lie on the floor in every view.", ""]
+        lines += [
+            "## Floor grid drawn through each camera",
+            "",
+            "Yellow: floor grid every 0.5 m; red/green/blue: world x/y/z (1 m); magenta: 1.8 m pole at "
+            "the origin. The grid should lie on the floor in every view.",
+            "",
+        ]
         for name, image in frames.items():
             cam = rig[name]
             if image.shape[:2] != (cam.height, cam.width):
-                lines.append(f"- {name}: frame is {image.shape[1]}x{image.shape[0]}, the calibration says "
-                             f"{cam.width}x{cam.height}; no overlay drawn")
+                lines.append(
+                    f"- {name}: frame is {image.shape[1]}x{image.shape[0]}, the calibration says "
+                    f"{cam.width}x{cam.height}; no overlay drawn"
+                )
                 continue
             fname = f"overlay_{_safe(name)}.png"
             overlay = draw_world_overlay(cam, image)
             scale = 960 / max(overlay.shape[:2])
             if scale < 1:
-                overlay = cv2.resize(overlay, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+                overlay = cv2.resize(
+                    overlay, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA
+                )
             atomic_write(out / fname, lambda p, img=overlay: _imwrite_png(p, img))
             lines.append(f"![{name}]({fname})")
         lines.append("")

@@ -36,9 +36,17 @@ WORLD_FROM_FLOOR_BOARD_AXES = np.diag([1.0, -1.0, -1.0])
 
 Progress = Callable[[str, int, int], None]
 
-__all__ = ["BoardCalibration", "CalibrationError", "InitialSolution", "SolveOptions", "bundle_adjust",
-           "calibrate_from_board", "calibrate_from_detections", "finish_calibration",
-           "initialise_from_detections"]
+__all__ = [
+    "BoardCalibration",
+    "CalibrationError",
+    "InitialSolution",
+    "SolveOptions",
+    "bundle_adjust",
+    "calibrate_from_board",
+    "calibrate_from_detections",
+    "finish_calibration",
+    "initialise_from_detections",
+]
 
 
 @dataclass(frozen=True)
@@ -78,7 +86,7 @@ class BoardCalibration:
     @property
     def rms_px_overall(self) -> float:
         r = np.concatenate([v for v in self.residuals_px.values() if len(v)])
-        return float(np.sqrt(np.mean(r ** 2)))
+        return float(np.sqrt(np.mean(r**2)))
 
 
 def _clean(det: FrameDetection, board: BoardSpec, min_corners: int) -> FrameDetection | None:
@@ -109,18 +117,24 @@ class InitialSolution:
     timings: dict[str, float]
 
 
-def initialise_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
-                               image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
-                               frames_searched: Mapping[str, int] | None = None,
-                               options: SolveOptions | None = None,
-                               progress: Progress | None = None) -> InitialSolution:
+def initialise_from_detections(
+    detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
+    image_sizes: Mapping[str, tuple[int, int]],
+    board: BoardSpec,
+    *,
+    frames_searched: Mapping[str, int] | None = None,
+    options: SolveOptions | None = None,
+    progress: Progress | None = None,
+) -> InitialSolution:
     """Steps before bundle adjustment: per-camera intrinsics (cv2.calibrateCamera, outlier
     views rejected), per-view board poses (robust PnP), camera poses from the pose graph and
     board poses in the rig. Raises CalibrationError / PoseGraphError naming cameras that never
     saw the board or share no frame with the others."""
     opts = options or SolveOptions()
     if opts.lens_model not in LENS_MODELS:
-        raise CalibrationError(f"lens model '{opts.lens_model}' is unknown, expected one of {sorted(LENS_MODELS)}")
+        raise CalibrationError(
+            f"lens model '{opts.lens_model}' is unknown, expected one of {sorted(LENS_MODELS)}"
+        )
     timings: dict[str, float] = {}
     names = list(detections)
     if not names:
@@ -137,7 +151,9 @@ def initialise_from_detections(detections: Mapping[str, Sequence[FrameDetection]
         dets[n] = [d for d in (_clean(d, board, opts.min_corners) for d in raw) if d is not None]
     blind = [n for n in names if not dets[n]]
     if blind:
-        parts = [f"'{n}' ({searched[n]} frames searched)" if n in searched else f"'{n}'" for n in blind]
+        parts = [
+            f"'{n}' ({searched[n]} frames searched)" if n in searched else f"'{n}'" for n in blind
+        ]
         raise CalibrationError(
             f"camera {', '.join(parts)} never saw the board with at least {opts.min_corners} corners; "
             "check that the board is in view and in focus, and that the board spec matches it"
@@ -149,12 +165,22 @@ def initialise_from_detections(detections: Mapping[str, Sequence[FrameDetection]
     for i, n in enumerate(names):
         if progress:
             progress("intrinsics", i, len(names))
-        intr[n] = calibrate_intrinsics(n, dets[n], board, tuple(image_sizes[n]), lens_model=opts.lens_model,
-                                       max_views=opts.max_intrinsic_views)
+        intr[n] = calibrate_intrinsics(
+            n,
+            dets[n],
+            board,
+            tuple(image_sizes[n]),
+            lens_model=opts.lens_model,
+            max_views=opts.max_intrinsic_views,
+        )
         initial_rms[n] = intr[n].rms_px
         limit = max(opts.view_outlier_px, 3.0 * intr[n].rms_px)
-        poses = [board_pose(d, board, intr[n].K, intr[n].dist, outlier_px=limit,
-                            min_corners=opts.min_corners) for d in dets[n]]
+        poses = [
+            board_pose(
+                d, board, intr[n].K, intr[n].dist, outlier_px=limit, min_corners=opts.min_corners
+            )
+            for d in dets[n]
+        ]
         views[n] = {p.frame: p.matrix for p in poses if p.rms_px <= limit}
         weights[n] = {p.frame: float(p.n_corners) for p in poses if p.rms_px <= limit}
     timings["intrinsics"] = time.perf_counter() - t0
@@ -169,23 +195,56 @@ def initialise_from_detections(detections: Mapping[str, Sequence[FrameDetection]
         est = np.stack([invert(cam_from_ref[n]) @ views[n][f] for n in seen])
         rig_from_board[f], _ = robust_mean_pose(est, np.array([weights[n][f] for n in seen]))
     timings["pose_graph"] = time.perf_counter() - t0
-    states = {n: CameraState(n, int(image_sizes[n][0]), int(image_sizes[n][1]), intr[n].K, intr[n].dist,
-                             cam_from_ref[n]) for n in names}
-    observations = {n: {d.frame: (d.ids, d.corners) for d in dets[n] if d.frame in views[n]} for n in names}
-    return InitialSolution(names, board, dets, searched, states, reference, rig_from_board, observations,
-                           initial_rms, timings)
+    states = {
+        n: CameraState(
+            n,
+            int(image_sizes[n][0]),
+            int(image_sizes[n][1]),
+            intr[n].K,
+            intr[n].dist,
+            cam_from_ref[n],
+        )
+        for n in names
+    }
+    observations = {
+        n: {d.frame: (d.ids, d.corners) for d in dets[n] if d.frame in views[n]} for n in names
+    }
+    return InitialSolution(
+        names,
+        board,
+        dets,
+        searched,
+        states,
+        reference,
+        rig_from_board,
+        observations,
+        initial_rms,
+        timings,
+    )
 
 
 def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) -> BAResult:
     """Joint bundle adjustment (pycolmap) of an initial solution."""
     opts = options or SolveOptions()
-    return bundle_adjust_board(init.cameras, init.reference, init.rig_from_board, init.board.object_points(),
-                               init.observations, opts.lens_model, opts.ba)
+    return bundle_adjust_board(
+        init.cameras,
+        init.reference,
+        init.rig_from_board,
+        init.board.object_points(),
+        init.observations,
+        opts.lens_model,
+        opts.ba,
+    )
 
 
-def finish_calibration(init: InitialSolution, ba: BAResult, *, floor_world: bool = True,
-                       floor_frame: int | None = None, timings: dict[str, float] | None = None
-                       ) -> BoardCalibration:
+def finish_calibration(
+    init: InitialSolution,
+    ba: BAResult,
+    *,
+    floor_world: bool = True,
+    floor_frame: int | None = None,
+    timings: dict[str, float] | None = None,
+) -> BoardCalibration:
     """Put the adjusted rig into its world frame (see the module docstring) and collect results."""
     names, board = init.names, init.board
     notes: list[str] = []
@@ -194,8 +253,10 @@ def finish_calibration(init: InitialSolution, ba: BAResult, *, floor_world: bool
         if floor_frame is None:
             floor_frame = min(ba.rig_from_board)
         if floor_frame not in ba.rig_from_board:
-            raise CalibrationError(f"floor frame {floor_frame} has no usable board detection; frames with "
-                                   f"board poses: {sorted(ba.rig_from_board)[:20]}...")
+            raise CalibrationError(
+                f"floor frame {floor_frame} has no usable board detection; frames with "
+                f"board poses: {sorted(ba.rig_from_board)[:20]}..."
+            )
         board_from_world = invert(_world_from_floor_board())
         rig_from_world = ba.rig_from_board[floor_frame] @ board_from_world
         up = (0.0, 0.0, 1.0)
@@ -208,33 +269,64 @@ def finish_calibration(init: InitialSolution, ba: BAResult, *, floor_world: bool
     for n in names:
         s = ba.cameras[n]
         T = cams_rig[n] @ rig_from_world
-        cameras.append(Camera.create(n, s.K, s.dist, T[:3, :3], T[:3, 3], s.width, s.height,
-                                     {"source": "board-calibration", "rms_px": rms[n]}))
-    rig = Rig(tuple(cameras), up=up, meta={"source": "board-calibration", "board": board.to_dict(),
-                                           "floor_frame": floor_frame})
+        cameras.append(
+            Camera.create(
+                n,
+                s.K,
+                s.dist,
+                T[:3, :3],
+                T[:3, 3],
+                s.width,
+                s.height,
+                {"source": "board-calibration", "rms_px": rms[n]},
+            )
+        )
+    rig = Rig(
+        tuple(cameras),
+        up=up,
+        meta={"source": "board-calibration", "board": board.to_dict(), "floor_frame": floor_frame},
+    )
     if floor_world:
         below = [c.name for c in rig if c.center[2] <= 0]
         if below:
-            notes.append(f"cameras {below} are below the floor: was the board in frame {floor_frame} "
-                         "really lying flat on the floor, printed side up?")
+            notes.append(
+                f"cameras {below} are below the floor: was the board in frame {floor_frame} "
+                "really lying flat on the floor, printed side up?"
+            )
     world_from_rig = invert(rig_from_world)
     return BoardCalibration(
-        rig=rig, board=board, rms_px=rms, detections={n: len(init.detections[n]) for n in names},
+        rig=rig,
+        board=board,
+        rms_px=rms,
+        detections={n: len(init.detections[n]) for n in names},
         detected_frames={n: [d.frame for d in init.detections[n]] for n in names},
-        frames_searched={n: int(init.frames_searched[n]) for n in names if n in init.frames_searched},
+        frames_searched={
+            n: int(init.frames_searched[n]) for n in names if n in init.frames_searched
+        },
         image_sizes={n: (init.cameras[n].width, init.cameras[n].height) for n in names},
-        observations=ba.observations, residuals_px=ba.residuals, outliers=ba.outliers,
+        observations=ba.observations,
+        residuals_px=ba.residuals,
+        outliers=ba.outliers,
         initial_rms_px=init.initial_rms_px,
         world_from_board={f: world_from_rig @ T for f, T in ba.rig_from_board.items()},
-        floor_frame=floor_frame, timings=dict(timings or init.timings), ba_rounds=ba.rounds, notes=notes)
+        floor_frame=floor_frame,
+        timings=dict(timings or init.timings),
+        ba_rounds=ba.rounds,
+        notes=notes,
+    )
 
 
-def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
-                              image_sizes: Mapping[str, tuple[int, int]], board: BoardSpec, *,
-                              floor_world: bool = True, floor_frame: int | None = None,
-                              frames_searched: Mapping[str, int] | None = None,
-                              options: SolveOptions | None = None,
-                              progress: Progress | None = None) -> BoardCalibration:
+def calibrate_from_detections(
+    detections: Mapping[str, Sequence[FrameDetection] | CameraDetections],
+    image_sizes: Mapping[str, tuple[int, int]],
+    board: BoardSpec,
+    *,
+    floor_world: bool = True,
+    floor_frame: int | None = None,
+    frames_searched: Mapping[str, int] | None = None,
+    options: SolveOptions | None = None,
+    progress: Progress | None = None,
+) -> BoardCalibration:
     """Calibrate a rig from board corners already found in each camera's frames.
 
     `detections[camera]` lists that camera's FrameDetection (frame indices shared across cameras
@@ -242,8 +334,14 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
     `detections`. Raises CalibrationError naming any camera that never saw the board, and
     PoseGraphError naming cameras that share no board frame with the others.
     """
-    init = initialise_from_detections(detections, image_sizes, board, frames_searched=frames_searched,
-                                      options=options, progress=progress)
+    init = initialise_from_detections(
+        detections,
+        image_sizes,
+        board,
+        frames_searched=frames_searched,
+        options=options,
+        progress=progress,
+    )
     if progress:
         progress("bundle adjustment", 0, 1)
     t0 = time.perf_counter()
@@ -251,7 +349,9 @@ def calibrate_from_detections(detections: Mapping[str, Sequence[FrameDetection] 
     timings = {**init.timings, "bundle_adjustment": time.perf_counter() - t0}
     if progress:
         progress("bundle adjustment", 1, 1)
-    return finish_calibration(init, ba, floor_world=floor_world, floor_frame=floor_frame, timings=timings)
+    return finish_calibration(
+        init, ba, floor_world=floor_world, floor_frame=floor_frame, timings=timings
+    )
 
 
 def _world_from_floor_board() -> np.ndarray:
@@ -260,10 +360,17 @@ def _world_from_floor_board() -> np.ndarray:
     return T
 
 
-def calibrate_from_board(sources: Mapping[str, str | Path], board: BoardSpec, *, frame_step: int = 1,
-                         max_frames: int | None = None, floor_world: bool = True,
-                         progress: Progress | None = None, floor_frame: int | None = None,
-                         options: SolveOptions | None = None) -> BoardCalibration:
+def calibrate_from_board(
+    sources: Mapping[str, str | Path],
+    board: BoardSpec,
+    *,
+    frame_step: int = 1,
+    max_frames: int | None = None,
+    floor_world: bool = True,
+    progress: Progress | None = None,
+    floor_frame: int | None = None,
+    options: SolveOptions | None = None,
+) -> BoardCalibration:
     """Calibrate a rig from synchronised board footage, one video file or image folder per camera.
 
     Every `frame_step`-th frame is searched, at most `max_frames` per camera. See the module
@@ -272,12 +379,24 @@ def calibrate_from_board(sources: Mapping[str, str | Path], board: BoardSpec, *,
     """
     opts = options or SolveOptions()
     t0 = time.perf_counter()
-    found = detect_in_sources(dict(sources), board, frame_step=frame_step, max_frames=max_frames,
-                              min_corners=opts.min_corners, min_sharpness_ratio=opts.min_sharpness_ratio,
-                              progress=(lambda cam, i, n: progress(f"detect {cam}", i, n)) if progress else None)
+    found = detect_in_sources(
+        dict(sources),
+        board,
+        frame_step=frame_step,
+        max_frames=max_frames,
+        min_corners=opts.min_corners,
+        min_sharpness_ratio=opts.min_sharpness_ratio,
+        progress=(lambda cam, i, n: progress(f"detect {cam}", i, n)) if progress else None,
+    )
     t_detect = time.perf_counter() - t0
-    result = calibrate_from_detections(found, {n: d.image_size for n, d in found.items()}, board,
-                                       floor_world=floor_world, floor_frame=floor_frame,
-                                       options=opts, progress=progress)
+    result = calibrate_from_detections(
+        found,
+        {n: d.image_size for n, d in found.items()},
+        board,
+        floor_world=floor_world,
+        floor_frame=floor_frame,
+        options=opts,
+        progress=progress,
+    )
     result.timings = {"detection": t_detect, **result.timings}
     return result

@@ -28,7 +28,9 @@ class Triangulation:
         return self.used.sum(axis=0)
 
 
-def _check(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _check(
+    rig: Rig, pixels: np.ndarray, visible: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
     pixels = np.asarray(pixels, dtype=np.float64)
     if pixels.ndim != 3 or pixels.shape[0] != len(rig) or pixels.shape[2] != 2:
         raise ValueError(f"pixels must have shape (cameras={len(rig)}, N, 2), got {pixels.shape}")
@@ -50,7 +52,9 @@ def normalised_points(rig: Rig, pixels: np.ndarray, visible: np.ndarray) -> np.n
     return out
 
 
-def reprojection_errors(rig: Rig, points: np.ndarray, pixels: np.ndarray, used: np.ndarray) -> np.ndarray:
+def reprojection_errors(
+    rig: Rig, points: np.ndarray, pixels: np.ndarray, used: np.ndarray
+) -> np.ndarray:
     err = np.full(used.shape, np.nan)
     ok = np.all(np.isfinite(points), axis=1)
     for c, cam in enumerate(rig):
@@ -60,7 +64,9 @@ def reprojection_errors(rig: Rig, points: np.ndarray, pixels: np.ndarray, used: 
     return err
 
 
-def triangulate_dlt(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None) -> Triangulation:
+def triangulate_dlt(
+    rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None
+) -> Triangulation:
     """Linear triangulation of N points from (C, N, 2) pixels (NaN or `visible` False = unseen).
 
     Each view contributes two rows of the homogeneous system A X = 0 in normalised coordinates
@@ -73,7 +79,9 @@ def triangulate_dlt(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = N
     x, y = np.nan_to_num(xy[..., 0]), np.nan_to_num(xy[..., 1])  # (C, N)
     rows_x = x[..., None] * P[:, None, 2, :] - P[:, None, 0, :]  # (C, N, 4)
     rows_y = y[..., None] * P[:, None, 2, :] - P[:, None, 1, :]
-    A = np.concatenate([rows_x, rows_y], axis=0) * np.concatenate([vis, vis])[..., None]  # (2C, N, 4)
+    A = (
+        np.concatenate([rows_x, rows_y], axis=0) * np.concatenate([vis, vis])[..., None]
+    )  # (2C, N, 4)
     A = np.transpose(A, (1, 0, 2))  # (N, 2C, 4)
     _, _, Vt = np.linalg.svd(A)
     Xh = Vt[:, -1, :]
@@ -85,15 +93,23 @@ def triangulate_dlt(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = N
 
 def _colmap_camera(cam) -> pycolmap.Camera:
     d = np.zeros(8)
-    d[:min(cam.dist.size, 8)] = cam.dist[:8]
+    d[: min(cam.dist.size, 8)] = cam.dist[:8]
     if cam.dist.size > 8 and np.any(cam.dist[8:]):
         raise ValueError(f"camera '{cam.name}': thin-prism distortion is not supported by pycolmap")
-    return pycolmap.Camera(model="FULL_OPENCV", width=cam.width, height=cam.height,
-                           params=[cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, *d])
+    return pycolmap.Camera(
+        model="FULL_OPENCV",
+        width=cam.width,
+        height=cam.height,
+        params=[cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, *d],
+    )
 
 
-def triangulate_robust(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None,
-                       max_angle_error_deg: float = 1.0) -> Triangulation:
+def triangulate_robust(
+    rig: Rig,
+    pixels: np.ndarray,
+    visible: np.ndarray | None = None,
+    max_angle_error_deg: float = 1.0,
+) -> Triangulation:
     """Per point, pycolmap's LO-RANSAC triangulation: views whose ray misses the point by more
     than `max_angle_error_deg` are outliers and left out. Slower than DLT (a Python loop)."""
     pixels, vis = _check(rig, pixels, visible)
@@ -109,8 +125,9 @@ def triangulate_robust(rig: Rig, pixels: np.ndarray, visible: np.ndarray | None 
         views = np.flatnonzero(vis[:, j])
         if len(views) < 2:
             continue
-        res = pycolmap.estimate_triangulation(pixels[views, j] + 0.5, [poses[v] for v in views],
-                                              [cams[v] for v in views], opts)
+        res = pycolmap.estimate_triangulation(
+            pixels[views, j] + 0.5, [poses[v] for v in views], [cams[v] for v in views], opts
+        )
         if res is None:
             continue
         points[j] = res["xyz"]

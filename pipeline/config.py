@@ -90,7 +90,9 @@ class SceneConfig(Strict):
 
 class StageConfig(Strict):
     needs: list[str] = Field(default_factory=list)
-    module: str | None = None  # 'module' or 'module:ATTR' defining the Stage; default `stages.<name>`
+    module: str | None = (
+        None  # 'module' or 'module:ATTR' defining the Stage; default `stages.<name>`
+    )
     params: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -112,10 +114,14 @@ class PipelineConfig(Strict):
         for scene_name, scene in self.scenes.items():
             for name in scene.params:
                 if name not in self.stages:
-                    raise ValueError(f"scenes.{scene_name}.params: unknown stage '{name}' "
-                                     f"(declared stages: {sorted(self.stages)})")
+                    raise ValueError(
+                        f"scenes.{scene_name}.params: unknown stage '{name}' "
+                        f"(declared stages: {sorted(self.stages)})"
+                    )
         if self.default_scene is not None and self.default_scene not in self.scenes:
-            raise ValueError(f"default_scene: '{self.default_scene}' is not a scene (scenes: {sorted(self.scenes)})")
+            raise ValueError(
+                f"default_scene: '{self.default_scene}' is not a scene (scenes: {sorted(self.scenes)})"
+            )
         return self
 
     def scene_workspace(self, scene: str) -> Path:
@@ -142,7 +148,9 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
 
     cfg.workspace = fix(cfg.workspace)
     for scene in cfg.scenes.values():
-        scene.videos = [fix(p) for p in scene.videos] if isinstance(scene.videos, list) else fix(scene.videos)
+        scene.videos = (
+            [fix(p) for p in scene.videos] if isinstance(scene.videos, list) else fix(scene.videos)
+        )
         scene.masks = fix(scene.masks)
         if scene.calibration:
             scene.calibration.file = fix(scene.calibration.file)
@@ -176,7 +184,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     key, raw = text.split("=", 1)
     parts = [p for p in key.strip().split(".") if p]
     if len(parts) < 2 and parts[:1] not in (["workspace"], ["default_scene"]):
-        raise ConfigError(f"--set {text!r}: expected STAGE.KEY=VALUE (or a top-level key like executor.workers)")
+        raise ConfigError(
+            f"--set {text!r}: expected STAGE.KEY=VALUE (or a top-level key like executor.workers)"
+        )
     try:
         value = yaml.safe_load(raw)
     except yaml.YAMLError as exc:

@@ -34,7 +34,9 @@ def setup_logging(console: Console, log_dir: Path | None, command: str, quiet: b
     for h in list(root.handlers):
         root.removeHandler(h)
     if not quiet:
-        root.addHandler(RichHandler(console=console, show_path=False, markup=False, rich_tracebacks=False))
+        root.addHandler(
+            RichHandler(console=console, show_path=False, markup=False, rich_tracebacks=False)
+        )
     log_path = None
     if log_dir is not None:
         log_dir.mkdir(parents=True, exist_ok=True)
@@ -57,7 +59,9 @@ class ProgressBars:
         self.console = console
         self.enabled = enabled and console.is_terminal
 
-    def __call__(self, items: Iterable, description: str = "", total: int | None = None) -> Iterator:
+    def __call__(
+        self, items: Iterable, description: str = "", total: int | None = None
+    ) -> Iterator:
         if total is None:
             try:
                 total = len(items)  # type: ignore[arg-type]
@@ -66,8 +70,14 @@ class ProgressBars:
         if not self.enabled:
             yield from self._logged(items, description, total)
             return
-        columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                   TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn()]
+        columns = [
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TextColumn("eta"),
+            TimeRemainingColumn(),
+        ]
         with Progress(*columns, console=self.console, transient=True) as progress:
             task = progress.add_task(description, total=total)
             for item in items:
@@ -87,5 +97,7 @@ class ProgressBars:
 
 def print_error(console: Console, message: str) -> None:
     # Errors are shown even in quiet mode.
-    Console(stderr=True).print(Text("error: ", style="bold red") + Text(message), highlight=False, soft_wrap=True)
+    Console(stderr=True).print(
+        Text("error: ", style="bold red") + Text(message), highlight=False, soft_wrap=True
+    )
     sys.stderr.flush()

@@ -20,4 +20,6 @@ class StageFailed(PipelineError):
 
     def __init__(self, stage: str, scene: str, cause: BaseException):
         self.stage, self.scene, self.cause = stage, scene, cause
-        super().__init__(f"stage '{stage}' (scene '{scene}') failed: {type(cause).__name__}: {cause}")
+        super().__init__(
+            f"stage '{stage}' (scene '{scene}') failed: {type(cause).__name__}: {cause}"
+        )

@@ -18,7 +18,9 @@ from typing import Any, Protocol
 class Executor(Protocol):
     workers: int
 
-    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], description: str = "") -> list[Any]: ...
+    def map(
+        self, fn: Callable[[Any], Any], items: Iterable[Any], description: str = ""
+    ) -> list[Any]: ...
 
 
 ProgressFactory = Callable[..., Any]
@@ -34,7 +36,11 @@ class LocalExecutor:
     def map(self, fn, items, description: str = "") -> list:
         items = list(items)
         if self.workers == 1 or len(items) <= 1:
-            it = items if self._progress is None else self._progress(items, description=description, total=len(items))
+            it = (
+                items
+                if self._progress is None
+                else self._progress(items, description=description, total=len(items))
+            )
             return [fn(x) for x in it]
         results: list = [None] * len(items)
         ctx = mp.get_context("spawn")  # fork is unsafe with torch/OpenMP threads
@@ -48,8 +54,12 @@ class LocalExecutor:
         return results
 
 
-def make_executor(kind: str, workers: int | None, progress: ProgressFactory | None = None,
-                  ray_address: str | None = None) -> Executor:
+def make_executor(
+    kind: str,
+    workers: int | None,
+    progress: ProgressFactory | None = None,
+    ray_address: str | None = None,
+) -> Executor:
     if kind == "local":
         return LocalExecutor(workers, progress)
     if kind == "ray":
@@ -63,4 +73,4 @@ def make_executor(kind: str, workers: int | None, progress: ProgressFactory | No
 
 def chunks(seq: Sequence, size: int) -> list[Sequence]:
     """Split a sequence into consecutive chunks of at most `size` items."""
-    return [seq[i:i + size] for i in range(0, len(seq), max(1, size))]
+    return [seq[i : i + size] for i in range(0, len(seq), max(1, size))]

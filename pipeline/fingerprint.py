@@ -72,5 +72,7 @@ class HashCache:
 
 def stage_fingerprint(code: str, params: dict[str, Any], inputs: dict[str, str | None]) -> str:
     """One hash over the code version, the params and the input digests."""
-    blob = json.dumps({"code": code, "params": params, "inputs": inputs}, sort_keys=True, default=str)
+    blob = json.dumps(
+        {"code": code, "params": params, "inputs": inputs}, sort_keys=True, default=str
+    )
     return hashlib.sha256(blob.encode()).hexdigest()

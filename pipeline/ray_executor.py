@@ -39,7 +39,10 @@ def _describe(item: Any, limit: int = 200) -> str:
 def _worker_env(extra_path: Path) -> dict[str, str]:
     parts = [str(extra_path)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
     # One thread per task: Ray schedules one task per CPU, so BLAS/OpenMP pools would oversubscribe.
-    return {"PYTHONPATH": os.pathsep.join(dict.fromkeys(parts)), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    return {
+        "PYTHONPATH": os.pathsep.join(dict.fromkeys(parts)),
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"),
+    }
 
 
 def _call(fn: Callable[[Any], Any], item: Any) -> Any:
@@ -49,10 +52,19 @@ def _call(fn: Callable[[Any], Any], item: Any) -> Any:
 class RayExecutor:
     """Maps a function over items as Ray tasks (one CPU each), ordered results, with retries."""
 
-    def __init__(self, workers: int | None = None, progress: ProgressFactory | None = None, *,
-                 address: str | None = None, max_retries: int = 3, exception_retries: int = 1):
+    def __init__(
+        self,
+        workers: int | None = None,
+        progress: ProgressFactory | None = None,
+        *,
+        address: str | None = None,
+        max_retries: int = 3,
+        exception_retries: int = 1,
+    ):
         if max_retries < 0 or exception_retries < 0:
-            raise ValueError(f"retries must be >= 0, got max_retries={max_retries}, exception_retries={exception_retries}")
+            raise ValueError(
+                f"retries must be >= 0, got max_retries={max_retries}, exception_retries={exception_retries}"
+            )
         self.workers = max(1, workers or os.cpu_count() or 1)
         self.address = address
         self.max_retries = max_retries
@@ -65,13 +77,19 @@ class RayExecutor:
         if ray.is_initialized():
             return
         runtime_env = {"env_vars": _worker_env(REPO_ROOT)}
-        common = {"logging_level": logging.WARNING, "log_to_driver": True, "runtime_env": runtime_env,
-                  "ignore_reinit_error": True}
+        common = {
+            "logging_level": logging.WARNING,
+            "log_to_driver": True,
+            "runtime_env": runtime_env,
+            "ignore_reinit_error": True,
+        }
         if self.address:
             try:
                 ray.init(address=self.address, **common)
             except (ConnectionError, RuntimeError, ValueError) as exc:
-                raise RuntimeError(f"cannot connect to the Ray cluster at --ray-address {self.address!r}: {exc}") from exc
+                raise RuntimeError(
+                    f"cannot connect to the Ray cluster at --ray-address {self.address!r}: {exc}"
+                ) from exc
             return
         ray.init(num_cpus=self.workers, include_dashboard=False, **common)
         self._started_cluster = True
@@ -90,7 +108,9 @@ class RayExecutor:
         self.shutdown()
 
     # -- mapping --------------------------------------------------------------------------------
-    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], description: str = "") -> list[Any]:
+    def map(
+        self, fn: Callable[[Any], Any], items: Iterable[Any], description: str = ""
+    ) -> list[Any]:
         """`[fn(x) for x in items]`, computed as Ray tasks; raises ItemFailed naming the item."""
         items = list(items)
         if not items:
@@ -113,17 +133,29 @@ class RayExecutor:
                     if attempts[i] <= self.exception_retries:
                         attempts[i] += 1
                         logging.getLogger("pipeline").warning(
-                            "%s: item %d (%s) failed (%s); retrying (attempt %d of %d)", description or "ray map", i,
-                            _describe(items[i]), _cause(exc), attempts[i], self.exception_retries + 1)
+                            "%s: item %d (%s) failed (%s); retrying (attempt %d of %d)",
+                            description or "ray map",
+                            i,
+                            _describe(items[i]),
+                            _cause(exc),
+                            attempts[i],
+                            self.exception_retries + 1,
+                        )
                         pending[task.remote(fn_ref, items[i])] = i
                         continue
                     self._cancel(pending)
-                    raise ItemFailed(f"{description or 'ray map'}: item {i} ({_describe(items[i])}) failed after "
-                                     f"{attempts[i]} attempt(s): {_cause(exc)}") from exc
-                except RayError as exc:  # worker died more often than max_retries, or the node was lost
+                    raise ItemFailed(
+                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) failed after "
+                        f"{attempts[i]} attempt(s): {_cause(exc)}"
+                    ) from exc
+                except (
+                    RayError
+                ) as exc:  # worker died more often than max_retries, or the node was lost
                     self._cancel(pending)
-                    raise ItemFailed(f"{description or 'ray map'}: item {i} ({_describe(items[i])}) was lost: its "
-                                     f"worker died {self.max_retries + 1} time(s) ({type(exc).__name__}: {exc})") from exc
+                    raise ItemFailed(
+                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) was lost: its "
+                        f"worker died {self.max_retries + 1} time(s) ({type(exc).__name__}: {exc})"
+                    ) from exc
                 yield i
 
         done = finished()

@@ -26,7 +26,9 @@ def load_stage(name: str, module: str | None = None) -> Stage:
     if not isinstance(stage, Stage):
         raise ConfigError(f"stages.{name}: module '{module_name}' defines no {attr} = Stage(...)")
     if stage.name != name:
-        raise ConfigError(f"stages.{name}: module '{module_name}' defines stage '{stage.name}', not '{name}'")
+        raise ConfigError(
+            f"stages.{name}: module '{module_name}' defines stage '{stage.name}', not '{name}'"
+        )
     return stage
 
 

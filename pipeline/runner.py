@@ -73,10 +73,20 @@ def _diff_params(old: dict, new: dict, prefix: str = "") -> list[str]:
 class Runner:
     """Runs the stages of one scene."""
 
-    def __init__(self, cfg: PipelineConfig, scene_name: str, stages: dict[str, Stage], *,
-                 options: dict[str, Any] | None = None, executor=None, progress=None):
+    def __init__(
+        self,
+        cfg: PipelineConfig,
+        scene_name: str,
+        stages: dict[str, Stage],
+        *,
+        options: dict[str, Any] | None = None,
+        executor=None,
+        progress=None,
+    ):
         if scene_name not in cfg.scenes:
-            raise ConfigError(f"--scene: unknown scene '{scene_name}' (scenes: {sorted(cfg.scenes)})")
+            raise ConfigError(
+                f"--scene: unknown scene '{scene_name}' (scenes: {sorted(cfg.scenes)})"
+            )
         self.cfg, self.scene_name, self.scene = cfg, scene_name, cfg.scenes[scene_name]
         self.stages = stages
         self.options = options or {}
@@ -91,11 +101,14 @@ class Runner:
     def _validate_params(self, name: str):
         model = self.stages[name].params_model
         try:
-            return model.model_validate({**self.cfg.stages[name].params, **self.scene.params.get(name, {})})
+            return model.model_validate(
+                {**self.cfg.stages[name].params, **self.scene.params.get(name, {})}
+            )
         except ValidationError as exc:
             # Prefix locations with the YAML path of the params block(s).
-            where = f"stages.{name}.params" + (f" / scenes.{self.scene_name}.params.{name}"
-                                               if name in self.scene.params else "")
+            where = f"stages.{name}.params" + (
+                f" / scenes.{self.scene_name}.params.{name}" if name in self.scene.params else ""
+            )
             msg = format_validation_error(exc, "pipeline.yaml")
             raise ConfigError(msg.replace("pipeline.yaml: ", f"pipeline.yaml: {where}.")) from None
 
@@ -106,10 +119,17 @@ class Runner:
 
     def context(self, name: str) -> StageContext:
         return StageContext(
-            stage=name, scene_name=self.scene_name, scene=self.scene, config=self.cfg,
-            workspace=self.workspace, staging=self.meta / "staging" / name,
-            params=self._params[name], options=self.options, executor=self.executor,
-            log=logging.getLogger(f"pipeline.{name}"), progress=self.progress,
+            stage=name,
+            scene_name=self.scene_name,
+            scene=self.scene,
+            config=self.cfg,
+            workspace=self.workspace,
+            staging=self.meta / "staging" / name,
+            params=self._params[name],
+            options=self.options,
+            executor=self.executor,
+            log=logging.getLogger(f"pipeline.{name}"),
+            progress=self.progress,
         )
 
     def key(self, name: str, ctx: StageContext | None = None) -> str:
@@ -141,7 +161,9 @@ class Runner:
         for path in self.stages[name].inputs(ctx):
             d = self.hashes.digest(Path(path))
             if d is None:
-                raise StageFailed(name, self.scene_name, FileNotFoundError(f"input file is missing: {path}"))
+                raise StageFailed(
+                    name, self.scene_name, FileNotFoundError(f"input file is missing: {path}")
+                )
             digests[str(path)] = d
         return digests
 
@@ -178,10 +200,17 @@ class Runner:
         if record.get("code") != code:
             reasons.append("code changed")
         reasons += [f"param {c}" for c in _diff_params(record.get("params", {}), params)]
-        old_scene = record.get("scene_config", record.get("scene"))  # records before 2026-11-21: "scene"
-        reasons += [f"scene {c}" for c in _diff_params(old_scene if isinstance(old_scene, dict) else {}, scene)]
+        old_scene = record.get(
+            "scene_config", record.get("scene")
+        )  # records before 2026-11-21: "scene"
+        reasons += [
+            f"scene {c}"
+            for c in _diff_params(old_scene if isinstance(old_scene, dict) else {}, scene)
+        ]
         old_inputs = record.get("inputs", {})
-        changed = [k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)]
+        changed = [
+            k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)
+        ]
         reasons += [f"input changed: {k}" for k in changed[:5]]
         if len(changed) > 5:
             reasons.append(f"... and {len(changed) - 5} more inputs")
@@ -203,17 +232,29 @@ class Runner:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                raise PipelineError(f"another pipeline run holds the workspace lock {self.meta / 'lock'}") from None
+                raise PipelineError(
+                    f"another pipeline run holds the workspace lock {self.meta / 'lock'}"
+                ) from None
             yield
 
-    def run(self, targets: list[str], *, force: bool = False, force_all: bool = False,
-            dry_run: bool = False) -> list[StageStatus]:
+    def run(
+        self,
+        targets: list[str],
+        *,
+        force: bool = False,
+        force_all: bool = False,
+        dry_run: bool = False,
+    ) -> list[StageStatus]:
         """Run the targets and their stale upstream stages. Returns the statuses as planned."""
         names = upstream_closure(self.needs, targets)
         planned: dict[str, StageStatus] = {}
         for name in names:
             st = self.status_of(name, planned)
-            if st.state != SKIPPED and (force_all or (force and name in targets)) and not st.needs_run:
+            if (
+                st.state != SKIPPED
+                and (force_all or (force and name in targets))
+                and not st.needs_run
+            ):
                 st = StageStatus(name, st.key, STALE, "forced", st.fingerprint)
             planned[name] = st
         self.hashes.save()
@@ -238,7 +279,9 @@ class Runner:
         ctx = self.context(name)
         staging = ctx.staging
         marker = staging / ".fingerprint"
-        if staging.exists() and not (stage.resumable and marker.is_file() and marker.read_text() == st.fingerprint):
+        if staging.exists() and not (
+            stage.resumable and marker.is_file() and marker.read_text() == st.fingerprint
+        ):
             remove_path(staging)
         ctx.resumed = staging.exists()
         staging.mkdir(parents=True, exist_ok=True)
@@ -257,7 +300,11 @@ class Runner:
         outputs = stage.outputs(ctx)
         absent = [rel for rel in outputs if not (staging / rel).exists()]
         if absent:
-            raise StageFailed(name, self.scene_name, RuntimeError(f"the stage did not write its declared outputs {absent}"))
+            raise StageFailed(
+                name,
+                self.scene_name,
+                RuntimeError(f"the stage did not write its declared outputs {absent}"),
+            )
         # Commit: forget the old record, move outputs into place, then record the new one.
         self._record_path(st.key).unlink(missing_ok=True)
         trash = self.meta / "trash"
@@ -266,11 +313,17 @@ class Runner:
         digests = {rel: self.hashes.digest(self.workspace / rel) for rel in outputs}
         self.hashes.save()
         record = {
-            "stage": name, "key": st.key, "scene": self.scene_name, "fingerprint": st.fingerprint,
-            "code": _code_version(stage), "params": ctx.params.model_dump(mode="json"),
+            "stage": name,
+            "key": st.key,
+            "scene": self.scene_name,
+            "fingerprint": st.fingerprint,
+            "code": _code_version(stage),
+            "params": ctx.params.model_dump(mode="json"),
             "scene_config": self._scene_record(),
-            "inputs": self._inputs(name, ctx), "outputs": digests,
-            "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "seconds": round(time.perf_counter() - t0, 3),
+            "inputs": self._inputs(name, ctx),
+            "outputs": digests,
+            "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "seconds": round(time.perf_counter() - t0, 3),
         }
         atomic_write_text(self._record_path(st.key), json.dumps(record, indent=2))
         remove_path(staging)

@@ -47,7 +47,9 @@ class Params(StageParams):
     steps: int = 40  # equal training budget of every variant
     batch_size: int = 8
     lr: float = 5e-4
-    mode: Literal["pretrain", "3d"] = "pretrain"  # 3D supervision + image terms (Gaussians learn too)
+    mode: Literal["pretrain", "3d"] = (
+        "pretrain"  # 3D supervision + image terms (Gaussians learn too)
+    )
     test_fraction: float = 0.25
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
     repeats: int = 5
@@ -72,8 +74,14 @@ def run(ctx: StageContext) -> None:
     variants = []
     if p.include_pretrained:
         cfg = network_from_checkpoint(ckpt).cfg
-        variants.append(Variant(name="pretrained", preset=cfg.name, image_size=cfg.image_size,
-                                checkpoint="models/pretrain.pt"))
+        variants.append(
+            Variant(
+                name="pretrained",
+                preset=cfg.name,
+                image_size=cfg.image_size,
+                checkpoint="models/pretrain.pt",
+            )
+        )
     variants += [Variant(v.name, v.preset, v.image_size, v.vertex_preset) for v in p.variants]
 
     def load(rel: str):
@@ -81,30 +89,61 @@ def run(ctx: StageContext) -> None:
         return network_from_checkpoint(c), c["vertex_ids"].numpy(), c["group_index"].numpy()
 
     # LPIPS is left out of the short runs (equal for every variant) to keep the sweep on budget.
-    train = FinetuneConfig(mode=p.mode, steps=p.steps, batch_size=p.batch_size, lr=p.lr, num_targets=3,
-                           render_size=p.render_size, weights=LossWeights(lpips=0.0))
-    ctx.log.info("bench: %d variants, %d training rows, test frames %s, held out %s", len(variants),
-                 len(split.train_rows), split.test_frames, heldout)
-    rows = run_bench(variants, crops, split, body, body_spec, train, repeats=p.repeats, batch=p.timing_batch,
-                     render_size=p.render_size, max_groups=p.max_groups, log=ctx.log.info, load_checkpoint_fn=load)
+    train = FinetuneConfig(
+        mode=p.mode,
+        steps=p.steps,
+        batch_size=p.batch_size,
+        lr=p.lr,
+        num_targets=3,
+        render_size=p.render_size,
+        weights=LossWeights(lpips=0.0),
+    )
+    ctx.log.info(
+        "bench: %d variants, %d training rows, test frames %s, held out %s",
+        len(variants),
+        len(split.train_rows),
+        split.test_frames,
+        heldout,
+    )
+    rows = run_bench(
+        variants,
+        crops,
+        split,
+        body,
+        body_spec,
+        train,
+        repeats=p.repeats,
+        batch=p.timing_batch,
+        render_size=p.render_size,
+        max_groups=p.max_groups,
+        log=ctx.log.info,
+        load_checkpoint_fn=load,
+    )
     out = ctx.out("reports/bench")
     out.mkdir(parents=True, exist_ok=True)
     seconds = time.perf_counter() - t0
-    header = (f"# Run time against error (scene `{ctx.scene_name}`)\n\n"
-              f"CPU, {torch.get_num_threads()} threads; time = median of {p.repeats} runs of one batch of "
-              f"{p.timing_batch} real crops after a warm-up, all variants timed round-robin (pose-only: Gaussian tokens skipped; full: network plus "
-              f"posed Gaussians, no rendering). Every variant except `pretrained` was trained from scratch with the "
-              f"same budget: {p.steps} steps of batch {p.batch_size}, mode `{p.mode}` (3D truth + image terms, no "
-              f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras other than "
-              f"{', '.join(heldout)}. MPJPE/PA-MPJPE on crops of frames {split.test_frames[0]}-{split.test_frames[1] - 1} "
-              f"(all cameras); PSNR of those frames rendered at {p.render_size} px into the held-out camera(s). "
-              f"`pretrained` is models/pretrain.pt as it is (longer training, another synthetic world). "
-              f"Whole sweep: {seconds:.0f} s.")
+    header = (
+        f"# Run time against error (scene `{ctx.scene_name}`)\n\n"
+        f"CPU, {torch.get_num_threads()} threads; time = median of {p.repeats} runs of one batch of "
+        f"{p.timing_batch} real crops after a warm-up, all variants timed round-robin (pose-only: Gaussian tokens skipped; full: network plus "
+        f"posed Gaussians, no rendering). Every variant except `pretrained` was trained from scratch with the "
+        f"same budget: {p.steps} steps of batch {p.batch_size}, mode `{p.mode}` (3D truth + image terms, no "
+        f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras other than "
+        f"{', '.join(heldout)}. MPJPE/PA-MPJPE on crops of frames {split.test_frames[0]}-{split.test_frames[1] - 1} "
+        f"(all cameras); PSNR of those frames rendered at {p.render_size} px into the held-out camera(s). "
+        f"`pretrained` is models/pretrain.pt as it is (longer training, another synthetic world). "
+        f"Whole sweep: {seconds:.0f} s."
+    )
     write_bench_table(out, rows, header)
     write_pareto_plot(out / "pareto.png", rows)
     ctx.log.info("bench: %d rows in %.0f s -> reports/bench/table.md", len(rows), seconds)
 
 
-STAGE = Stage(name="bench", run=run, params_model=Params, applies=lambda scene: scene.is_synthetic,
-              outputs=lambda ctx: ["reports/bench"],
-              help="run time against error for model variants (needs a scene with truth)")
+STAGE = Stage(
+    name="bench",
+    run=run,
+    params_model=Params,
+    applies=lambda scene: scene.is_synthetic,
+    outputs=lambda ctx: ["reports/bench"],
+    help="run time against error for model variants (needs a scene with truth)",
+)

@@ -40,11 +40,23 @@ def _board_sources(ctx: StageContext) -> tuple[dict[str, Path], BoardSpec]:
         spec = BoardSpec.from_dict(json.loads(ctx.path("synth/board.json").read_text()))
         return {p.stem: p for p in sorted(ctx.path("synth/board").glob("*.mp4"))}, spec
     b = ctx.scene.board
-    videos = b.videos if isinstance(b.videos, list) else sorted(Path(p) for p in __import__("glob").glob(b.videos))
+    videos = (
+        b.videos
+        if isinstance(b.videos, list)
+        else sorted(Path(p) for p in __import__("glob").glob(b.videos))
+    )
     if not videos:
-        raise FileNotFoundError(f"scene '{ctx.scene_name}': board.videos matched no files ({b.videos})")
-    spec = BoardSpec(kind=b.kind, squares_x=b.squares_x, squares_y=b.squares_y, square_size=b.square_size,
-                     marker_size=b.marker_size, dictionary=b.dictionary)
+        raise FileNotFoundError(
+            f"scene '{ctx.scene_name}': board.videos matched no files ({b.videos})"
+        )
+    spec = BoardSpec(
+        kind=b.kind,
+        squares_x=b.squares_x,
+        squares_y=b.squares_y,
+        square_size=b.square_size,
+        marker_size=b.marker_size,
+        dictionary=b.dictionary,
+    )
     return {Path(v).stem: Path(v) for v in videos}, spec
 
 
@@ -73,7 +85,9 @@ def run(ctx: StageContext) -> None:
         rig = read_rig(c.file, c.format, **c.options)
         ctx.log.info("imported %d cameras from %s", len(rig), c.file)
     elif ctx.scene.is_synthetic and p.synthetic_source != "board":
-        rig = read_rig(ctx.path("synth/calibration") / SYNTH_FILES[p.synthetic_source], p.synthetic_source)
+        rig = read_rig(
+            ctx.path("synth/calibration") / SYNTH_FILES[p.synthetic_source], p.synthetic_source
+        )
     elif ctx.scene.is_synthetic or ctx.scene.board is not None:
         sources, board = _board_sources(ctx)
         step_log = {}
@@ -83,47 +97,77 @@ def run(ctx: StageContext) -> None:
                 step_log[step] = done
                 ctx.log.info("%s: %d/%d", step, done, total)
 
-        solved = calibrate_from_board(sources, board, frame_step=p.frame_step, max_frames=p.max_frames,
-                                      floor_world=p.floor_world, progress=progress)
+        solved = calibrate_from_board(
+            sources,
+            board,
+            frame_step=p.frame_step,
+            max_frames=p.max_frames,
+            floor_world=p.floor_world,
+            progress=progress,
+        )
         rig = solved.rig
-        ctx.log.info("board calibration: RMS %s px", {k: round(v, 3) for k, v in solved.rms_px.items()})
+        ctx.log.info(
+            "board calibration: RMS %s px", {k: round(v, 3) for k, v in solved.rms_px.items()}
+        )
         if ctx.scene.is_synthetic:
             truth = read_rig(ctx.path("synth/calibration/rig.json"), "rig")
     else:
-        raise ValueError(f"scene '{ctx.scene_name}' has neither a calibration file nor board footage: add "
-                         "'calibration: {file: ..., format: ...}' or 'board: {...}' to the scene in pipeline.yaml")
+        raise ValueError(
+            f"scene '{ctx.scene_name}' has neither a calibration file nor board footage: add "
+            "'calibration: {file: ..., format: ...}' or 'board: {...}' to the scene in pipeline.yaml"
+        )
 
     videos = _scene_videos(ctx)
     missing = [name for name in videos if name not in rig.names]
     if missing:
-        raise ValueError(f"scene '{ctx.scene_name}': videos {missing} have no camera of that name in the "
-                         f"calibration (cameras: {rig.names}); rename the files or the cameras")
+        raise ValueError(
+            f"scene '{ctx.scene_name}': videos {missing} have no camera of that name in the "
+            f"calibration (cameras: {rig.names}); rename the files or the cameras"
+        )
     problems = check_rig(rig)
     if problems and p.strict_checks:
-        raise ValueError(f"scene '{ctx.scene_name}': the rig failed its checks and was not written: "
-                         + "; ".join(problems) + " (set calibrate.strict_checks=false to accept it)")
+        raise ValueError(
+            f"scene '{ctx.scene_name}': the rig failed its checks and was not written: "
+            + "; ".join(problems)
+            + " (set calibrate.strict_checks=false to accept it)"
+        )
     for problem in problems:
         ctx.log.warning("rig check: %s", problem)
 
     write_rig(rig, ctx.out("calibration/rig.json"), "rig")
     report_dir = ctx.out("reports/calibrate")
-    report = write_calibration_report(rig, report_dir, calibration=solved, frames=_first_frames(videos))
+    report = write_calibration_report(
+        rig, report_dir, calibration=solved, frames=_first_frames(videos)
+    )
     if truth is not None:
         _append_truth_comparison(ctx, report, compare_rigs(rig, truth))
 
 
 def _append_truth_comparison(ctx: StageContext, report: Path, cmp) -> None:
     rows = cmp.as_rows()
-    lines = ["", "## Against the synthetic truth", "",
-             f"Rig diameter {cmp.rig_diameter_m:.2f} m. Errors after aligning camera centres (no scale fitted).", "",
-             "| camera | focal error % | centre error mm | rotation error deg |", "|---|---|---|---|"]
-    lines += [f"| {r['camera']} | {100 * r['focal_rel_error']:.3f} | {1000 * r['center_error_m']:.1f} | "
-              f"{r['rotation_error_deg']:.3f} |" for r in rows]
+    lines = [
+        "",
+        "## Against the synthetic truth",
+        "",
+        f"Rig diameter {cmp.rig_diameter_m:.2f} m. Errors after aligning camera centres (no scale fitted).",
+        "",
+        "| camera | focal error % | centre error mm | rotation error deg |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['camera']} | {100 * r['focal_rel_error']:.3f} | {1000 * r['center_error_m']:.1f} | "
+        f"{r['rotation_error_deg']:.3f} |"
+        for r in rows
+    ]
     with open(report, "a") as f:
         f.write("\n".join(lines) + "\n")
     (report.parent / "truth_comparison.json").write_text(json.dumps(rows, indent=2))
-    ctx.log.info("against truth: focal %.3f%%, centre %.1f mm, rotation %.3f deg (worst camera)",
-                 100 * cmp.focal_rel_error.max(), 1000 * cmp.center_error_m.max(), cmp.rotation_error_deg.max())
+    ctx.log.info(
+        "against truth: focal %.3f%%, centre %.1f mm, rotation %.3f deg (worst camera)",
+        100 * cmp.focal_rel_error.max(),
+        1000 * cmp.center_error_m.max(),
+        cmp.rotation_error_deg.max(),
+    )
 
 
 def _inputs(ctx: StageContext) -> list[Path]:
@@ -135,7 +179,10 @@ def _inputs(ctx: StageContext) -> list[Path]:
 
 
 STAGE = Stage(
-    name="calibrate", run=run, params_model=Params, inputs=_inputs,
+    name="calibrate",
+    run=run,
+    params_model=Params,
+    inputs=_inputs,
     outputs=lambda ctx: ["calibration", "reports/calibrate"],
     help="import the scene's calibration file, or solve the rig from ChArUco/checkerboard footage",
 )

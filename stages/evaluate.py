@@ -53,7 +53,9 @@ def run(ctx: StageContext) -> None:
     ctx.log.info("evaluate: truth matched for %d of %d crops", matched, len(crops))
     heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
     lpips = load_lpips() if p.lpips else None
-    cfg = EvalConfig(heldout_cameras=tuple(heldout), render_size=p.render_size, max_groups=p.max_groups)
+    cfg = EvalConfig(
+        heldout_cameras=tuple(heldout), render_size=p.render_size, max_groups=p.max_groups
+    )
     bodies: dict = {}
     models = {"pretrained": ctx.path("models/pretrain.pt")} if p.compare_pretrained else {}
     models["gst"] = ctx.path("models/gst.pt")
@@ -64,19 +66,41 @@ def run(ctx: StageContext) -> None:
         if vertices is None and ckpt["body_model"] == truth.body_model:
             vertices = truth.vertices(body)
         elif vertices is None:
-            ctx.log.info("evaluate: model body '%s' differs from the scene's '%s': no vertex error, SHERF box "
-                         "from joints", ckpt["body_model"], truth.body_model)
+            ctx.log.info(
+                "evaluate: model body '%s' differs from the scene's '%s': no vertex error, SHERF box "
+                "from joints",
+                ckpt["body_model"],
+                truth.body_model,
+            )
         task = make_task(body, ckpt["vertex_ids"], net.cfg, crops.crop_size, LossWeights(lpips=0.0))
-        results[name] = evaluate_model(net, task, crops, cfg, joint_names=truth.joint_names, lpips=lpips,
-                                       scene_vertices=vertices, motions=truth.motion)
+        results[name] = evaluate_model(
+            net,
+            task,
+            crops,
+            cfg,
+            joint_names=truth.joint_names,
+            lpips=lpips,
+            scene_vertices=vertices,
+            motions=truth.motion,
+        )
         meta_models[name] = f"{path.relative_to(ctx.workspace)}, preset {net.cfg.name}"
         s = results[name].summary
-        ctx.log.info("evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm, held-out PSNR %s dB (%.0f s)", name,
-                     s["pose"]["overall"]["mpjpe_mm"], s["pose"]["overall"]["pa_mpjpe_mm"],
-                     s.get("novel_view", {}).get("heldout", {}).get("psnr"), results[name].seconds)
-    meta = {"scene": ctx.scene_name, "models": meta_models, "crops": len(crops), "crops_with_truth": matched,
-            "note": "The frames evaluated here are the frames `train` trained on (self-supervised, no labels, "
-                    "held-out cameras never used); for a split by frames see benchmarks/bench_paper_tables.py."}
+        ctx.log.info(
+            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm, held-out PSNR %s dB (%.0f s)",
+            name,
+            s["pose"]["overall"]["mpjpe_mm"],
+            s["pose"]["overall"]["pa_mpjpe_mm"],
+            s.get("novel_view", {}).get("heldout", {}).get("psnr"),
+            results[name].seconds,
+        )
+    meta = {
+        "scene": ctx.scene_name,
+        "models": meta_models,
+        "crops": len(crops),
+        "crops_with_truth": matched,
+        "note": "The frames evaluated here are the frames `train` trained on (self-supervised, no labels, "
+        "held-out cameras never used); for a split by frames see benchmarks/bench_paper_tables.py.",
+    }
     write_report(out, results, crops, meta, truth.motion)
 
 
@@ -84,7 +108,11 @@ def _applies(scene) -> bool:
     return scene.is_synthetic
 
 
-STAGE = Stage(name="evaluate", run=run, params_model=Params, applies=_applies,
-              outputs=lambda ctx: ["reports/evaluate"],
-              help="pose and novel-view metrics against the synthetic truth (skipped on scenes without truth)")
-
+STAGE = Stage(
+    name="evaluate",
+    run=run,
+    params_model=Params,
+    applies=_applies,
+    outputs=lambda ctx: ["reports/evaluate"],
+    help="pose and novel-view metrics against the synthetic truth (skipped on scenes without truth)",
+)

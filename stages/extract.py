@@ -53,16 +53,34 @@ def run(ctx: StageContext) -> None:
     truth = ctx.path("synth/truth") if ctx.scene.is_synthetic else None
     executor_map = ctx.executor.map if ctx.executor is not None else None
     store = ctx.out("crops/crops.h5")
-    report = extract_scene(videos, rig, store, crop_size=p.crop_size, scale=p.scale, frame_stride=p.frame_stride,
-                           method=p.method, external=ctx.scene.masks, truth=truth, progress=ctx.progress,
-                           executor_map=executor_map,
-                           options=ExtractOptions(background_videos=plates,
-                                                  association=AssociationConfig(**(p.association or {})),
-                                                  persons=SegmenterConfig() if p.person_model == "blazepose" else None,
-                                                  persons_hints=p.person_hints))
+    report = extract_scene(
+        videos,
+        rig,
+        store,
+        crop_size=p.crop_size,
+        scale=p.scale,
+        frame_stride=p.frame_stride,
+        method=p.method,
+        external=ctx.scene.masks,
+        truth=truth,
+        progress=ctx.progress,
+        executor_map=executor_map,
+        options=ExtractOptions(
+            background_videos=plates,
+            association=AssociationConfig(**(p.association or {})),
+            persons=SegmenterConfig() if p.person_model == "blazepose" else None,
+            persons_hints=p.person_hints,
+        ),
+    )
     write_extract_report(report, store, ctx.out("reports/extract"))
-    ctx.log.info("extract: %d crops of %d people, %d multi-view groups; mask IoU %s; association %s",
-                 report.crops, report.persons, report.multiview_groups, report.mask_iou, report.association_accuracy)
+    ctx.log.info(
+        "extract: %d crops of %d people, %d multi-view groups; mask IoU %s; association %s",
+        report.crops,
+        report.persons,
+        report.multiview_groups,
+        report.mask_iou,
+        report.association_accuracy,
+    )
 
 
 def _inputs(ctx: StageContext) -> list[Path]:
@@ -72,6 +90,11 @@ def _inputs(ctx: StageContext) -> list[Path]:
     return files
 
 
-STAGE = Stage(name="extract", run=run, params_model=Params, inputs=_inputs,
-              outputs=lambda ctx: ["crops", "reports/extract"],
-              help="person crops and masks from every camera (background model, multi-view association)")
+STAGE = Stage(
+    name="extract",
+    run=run,
+    params_model=Params,
+    inputs=_inputs,
+    outputs=lambda ctx: ["crops", "reports/extract"],
+    help="person crops and masks from every camera (background model, multi-view association)",
+)

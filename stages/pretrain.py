@@ -42,13 +42,23 @@ class Params(StageParams):
     world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds
     world_cameras: int = 6
     world_frames: int = 40  # per world
-    world_fps: float = 10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
-    world_people: int = 1  # one person per crop: with 3, crowded crops stalled learning (docs/training.md)
+    world_fps: float = (
+        10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
+    )
+    world_people: int = (
+        1  # one person per crop: with 3, crowded crops stalled learning (docs/training.md)
+    )
     world_fov_deg: tuple[float, float] = (40.0, 75.0)  # horizontal field of view, drawn per world
-    static_every: int = 3  # every Nth world holds independent random poses instead of motions (0: none)
+    static_every: int = (
+        3  # every Nth world holds independent random poses instead of motions (0: none)
+    )
     crop_size: int = 128  # the tiny preset's input is 128x96; larger presets want 256
-    augment: bool = False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
-    mode: Literal["3d", "pretrain"] = "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
+    augment: bool = (
+        False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
+    )
+    mode: Literal["3d", "pretrain"] = (
+        "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
+    )
     # Then this many steps of mode "pretrain" from the kept 3d checkpoint: the Gaussian head learns
     # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
     # head and the demo's held-out renders come out as faint dots (docs/training.md).
@@ -73,13 +83,27 @@ def world_specs(p: Params) -> list[dict]:
         seed = p.world_seed + k
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x9E7]))
         static = p.static_every > 0 and k % p.static_every == p.static_every - 1
-        spec = preset("demo", seed=seed, n_frames=p.world_frames, n_people=p.world_people,
-                      motions=[["random_static"]] * p.world_people if static else None,
-                      rig={"kind": p.world_rigs[k % len(p.world_rigs)], "n_cameras": p.world_cameras, "width": 480,
-                           "height": 360, "fps": p.world_fps, "fov_deg": float(rng.uniform(*p.world_fov_deg))},
-                      board={"n_frames": 1})
-        specs.append(spec.model_copy(update={"name": "pretrain_val" if k == p.worlds else f"pretrain_{k:02d}"})
-                     .model_dump(mode="json"))
+        spec = preset(
+            "demo",
+            seed=seed,
+            n_frames=p.world_frames,
+            n_people=p.world_people,
+            motions=[["random_static"]] * p.world_people if static else None,
+            rig={
+                "kind": p.world_rigs[k % len(p.world_rigs)],
+                "n_cameras": p.world_cameras,
+                "width": 480,
+                "height": 360,
+                "fps": p.world_fps,
+                "fov_deg": float(rng.uniform(*p.world_fov_deg)),
+            },
+            board={"n_frames": 1},
+        )
+        specs.append(
+            spec.model_copy(
+                update={"name": "pretrain_val" if k == p.worlds else f"pretrain_{k:02d}"}
+            ).model_dump(mode="json")
+        )
     return specs
 
 
@@ -95,8 +119,10 @@ def _reuse(ctx: StageContext) -> None:
     p = ctx.params
     ckpt = load_checkpoint(p.reuse)  # weights_only: a GST checkpoint or a clear error
     if ckpt["body_model"] != p.body_model:
-        raise ValueError(f"pretrain.reuse={p.reuse} was trained with body model '{ckpt['body_model']}', "
-                         f"pretrain.body_model is '{p.body_model}'")
+        raise ValueError(
+            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt['body_model']}', "
+            f"pretrain.body_model is '{p.body_model}'"
+        )
     shutil.copyfile(p.reuse, ctx.out("models/pretrain.pt"))
     reports = ctx.out("reports/pretrain")
     reports.mkdir(parents=True, exist_ok=True)
@@ -116,23 +142,52 @@ def run(ctx: StageContext) -> None:
         dirs = ctx.executor.map(render_world, items, description="pretraining worlds")
     else:
         dirs = [render_world(x) for x in ctx.track(items, "pretraining worlds", total=len(items))]
-    sets = [crops_from_synth_scene(d, crop_size=p.crop_size) for d in ctx.track(dirs, "synthetic crops")]
+    sets = [
+        crops_from_synth_scene(d, crop_size=p.crop_size) for d in ctx.track(dirs, "synthetic crops")
+    ]
     crops = concat_crop_sets(sets[:-1], [Path(d).name for d in dirs[:-1]])
     val = sets[-1]
-    ctx.log.info("pretraining corpus: %d worlds, %d crops (%d groups); validation world: %d crops", p.worlds,
-                 len(crops), len(crops.groups(min_views=1)), len(val))
+    ctx.log.info(
+        "pretraining corpus: %d worlds, %d crops (%d groups); validation world: %d crops",
+        p.worlds,
+        len(crops),
+        len(crops.groups(min_views=1)),
+        len(val),
+    )
     body = load_body_model(p.body_model)
     cfg = get_preset(p.preset)
     net, ids, groups = build_network(cfg, body)
     lpips = load_lpips() if p.losses.lpips > 0 and p.mode == "pretrain" else None
     task = make_task(body, ids, cfg, crops.crop_size, p.losses, lpips)
-    train_cfg = TrainConfig(steps=p.steps, batch_size=p.batch_size, lr=p.lr, warmup_steps=min(30, p.steps // 10),
-                            val_every=max(1, p.steps // 10), ckpt_every=25, log_every=5)
+    train_cfg = TrainConfig(
+        steps=p.steps,
+        batch_size=p.batch_size,
+        lr=p.lr,
+        warmup_steps=min(30, p.steps // 10),
+        val_every=max(1, p.steps // 10),
+        ckpt_every=25,
+        log_every=5,
+    )
     out = ctx.out("models/pretrain_run")
-    summary = fit_gst(net, task, crops, train_cfg, out, FitOptions(mode=p.mode, num_targets=p.num_targets,
-                      render_size=p.render_size, augment=CropJitter() if p.augment else None,
-                      val_pose_crops=256), body_spec=p.body_model, vertex_ids=ids, group_index=groups,
-                      progress=ctx.progress, val_crops=val)
+    summary = fit_gst(
+        net,
+        task,
+        crops,
+        train_cfg,
+        out,
+        FitOptions(
+            mode=p.mode,
+            num_targets=p.num_targets,
+            render_size=p.render_size,
+            augment=CropJitter() if p.augment else None,
+            val_pose_crops=256,
+        ),
+        body_spec=p.body_model,
+        vertex_ids=ids,
+        group_index=groups,
+        progress=ctx.progress,
+        val_crops=val,
+    )
     # best.pt: the lowest MPJPE on the unseen world (early stopping against memorising the corpus).
     kept = out / ("best.pt" if (out / "best.pt").is_file() else "last.pt")
     reports = ctx.out("reports/pretrain")
@@ -140,29 +195,68 @@ def run(ctx: StageContext) -> None:
     shutil.copyfile(out / "log.csv", reports / "log.csv")
     if p.mode == "3d" and p.gaussian_steps > 0:
         net.load_state_dict(load_checkpoint(kept)["model"])
-        task = make_task(body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None)
+        task = make_task(
+            body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None
+        )
         gauss_out = ctx.out("models/pretrain_gaussians")
-        gcfg = TrainConfig(steps=p.gaussian_steps, batch_size=p.batch_size, lr=p.gaussian_lr,
-                           warmup_steps=min(20, p.gaussian_steps // 10), val_every=p.gaussian_steps, ckpt_every=25,
-                           log_every=5)
-        summary["gaussians"] = fit_gst(net, task, crops, gcfg, gauss_out, FitOptions(
-            mode="pretrain", num_targets=p.num_targets, render_size=p.render_size, val_pose_crops=256),
-            body_spec=p.body_model, vertex_ids=ids, group_index=groups, progress=ctx.progress, val_crops=val)
-        kept = gauss_out / "last.pt"  # the pose barely moves here; the head keeps learning to the end
+        gcfg = TrainConfig(
+            steps=p.gaussian_steps,
+            batch_size=p.batch_size,
+            lr=p.gaussian_lr,
+            warmup_steps=min(20, p.gaussian_steps // 10),
+            val_every=p.gaussian_steps,
+            ckpt_every=25,
+            log_every=5,
+        )
+        summary["gaussians"] = fit_gst(
+            net,
+            task,
+            crops,
+            gcfg,
+            gauss_out,
+            FitOptions(
+                mode="pretrain",
+                num_targets=p.num_targets,
+                render_size=p.render_size,
+                val_pose_crops=256,
+            ),
+            body_spec=p.body_model,
+            vertex_ids=ids,
+            group_index=groups,
+            progress=ctx.progress,
+            val_crops=val,
+        )
+        kept = (
+            gauss_out / "last.pt"
+        )  # the pose barely moves here; the head keeps learning to the end
         shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
     shutil.copyfile(kept, ctx.out("models/pretrain.pt"))
-    summary.update(corpus={"worlds": [s["name"] for s in specs[:-1]], "validation_world": specs[-1]["name"],
-                           "train_crops": len(crops), "validation_crops": len(val)})
+    summary.update(
+        corpus={
+            "worlds": [s["name"] for s in specs[:-1]],
+            "validation_world": specs[-1]["name"],
+            "train_crops": len(crops),
+            "validation_crops": len(val),
+        }
+    )
     (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     kept_metrics = summary["gaussians"]["after"] if "gaussians" in summary else summary["after"]
-    ctx.log.info("pretrain: MPJPE on the unseen validation world %.1f -> %.1f mm (the kept model)",
-                 summary["before"].get("mpjpe_mm", float("nan")), kept_metrics.get("mpjpe_mm", float("nan")))
+    ctx.log.info(
+        "pretrain: MPJPE on the unseen validation world %.1f -> %.1f mm (the kept model)",
+        summary["before"].get("mpjpe_mm", float("nan")),
+        kept_metrics.get("mpjpe_mm", float("nan")),
+    )
     shutil.rmtree(out)
     shutil.rmtree(ctx.staging / "models" / "pretrain_gaussians", ignore_errors=True)
     shutil.rmtree(ctx.staging / "worlds")
 
 
-STAGE = Stage(name="pretrain", run=run, params_model=Params, resumable=True,
-              inputs=lambda ctx: [ctx.params.reuse] if ctx.params.reuse is not None else [],
-              outputs=lambda ctx: ["models/pretrain.pt", "reports/pretrain"],
-              help="supervised pretraining on separate synthetic worlds (stand-in for HMR2 weights)")
+STAGE = Stage(
+    name="pretrain",
+    run=run,
+    params_model=Params,
+    resumable=True,
+    inputs=lambda ctx: [ctx.params.reuse] if ctx.params.reuse is not None else [],
+    outputs=lambda ctx: ["models/pretrain.pt", "reports/pretrain"],
+    help="supervised pretraining on separate synthetic worlds (stand-in for HMR2 weights)",
+)

@@ -27,13 +27,28 @@ def run(ctx: StageContext) -> None:
     # the files are identical to a serial render either way. One worker renders inline (per-frame progress).
     workers = getattr(ctx.executor, "workers", 1)
     fan_out = ctx.executor is not None and workers > 1
-    summary = render_scene(spec, ctx.out("synth"), progress=progress, map_fn=ctx.executor.map if fan_out else None,
-                           shares=workers if fan_out else None)
-    ctx.log.info("rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their mask",
-                 summary.n_frames, len(summary.cameras), summary.n_people, summary.seconds,
-                 100 * summary.joints_in_mask)
+    summary = render_scene(
+        spec,
+        ctx.out("synth"),
+        progress=progress,
+        map_fn=ctx.executor.map if fan_out else None,
+        shares=workers if fan_out else None,
+    )
+    ctx.log.info(
+        "rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their mask",
+        summary.n_frames,
+        len(summary.cameras),
+        summary.n_people,
+        summary.seconds,
+        100 * summary.joints_in_mask,
+    )
 
 
-STAGE = Stage(name="synth", run=run, params_model=Params, outputs=lambda ctx: ["synth"],
-              applies=lambda scene: scene.is_synthetic,
-              help="render the synthetic capture with exact truth (synthetic scenes only)")
+STAGE = Stage(
+    name="synth",
+    run=run,
+    params_model=Params,
+    outputs=lambda ctx: ["synth"],
+    applies=lambda scene: scene.is_synthetic,
+    help="render the synthetic capture with exact truth (synthetic scenes only)",
+)

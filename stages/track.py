@@ -94,19 +94,28 @@ def run(ctx: StageContext) -> None:
         torch.set_num_threads(p.threads)
     with_gaussians = bool(ctx.options.get("with_gaussians"))
     checkpoint = ctx.path("models/gst.pt")
-    name = GSTPredictor(checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size).name  # fails early, here
+    name = GSTPredictor(
+        checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size
+    ).name  # fails early, here
     if p.detector == "blazepose" and not p.boxes:
         model_paths()  # missing models fail here, with the fetch command, not in a worker
     rig_path = ctx.path("calibration/rig.json")
     rig = read_rig(rig_path, "rig") if rig_path.is_file() else None
-    options = TrackOptions(stride=p.stride, tracker=TrackerConfig(min_hits=p.min_hits, max_misses=p.max_misses),
-                           start_s=p.start_s, end_s=p.end_s, batch_size=p.batch_size,
-                           smoothing=OneEuroConfig(min_cutoff=p.min_cutoff, beta=p.beta) if p.smoothing else None)
+    options = TrackOptions(
+        stride=p.stride,
+        tracker=TrackerConfig(min_hits=p.min_hits, max_misses=p.max_misses),
+        start_s=p.start_s,
+        end_s=p.end_s,
+        batch_size=p.batch_size,
+        smoothing=OneEuroConfig(min_cutoff=p.min_cutoff, beta=p.beta) if p.smoothing else None,
+    )
     model_info = {"name": name, "version": "1", "checkpoint": "models/gst.pt"}
     workers = getattr(ctx.executor, "workers", 1)
     # Parallel workers share the cores: one torch thread each unless told otherwise.
     threads = p.threads or (1 if workers > 1 else None)
-    predictor = functools.partial(GSTPredictor, checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size)
+    predictor = functools.partial(
+        GSTPredictor, checkpoint, with_gaussians=with_gaussians, batch_size=p.batch_size
+    )
     jobs = []
     for video in _videos(ctx):
         camera = rig[video.stem] if rig is not None and video.stem in rig.names else None
@@ -115,14 +124,35 @@ def run(ctx: StageContext) -> None:
         elif p.detector == "blazepose":
             detector = PersonModelDetector
         else:
-            detector = functools.partial(StaticCameraDetector, video, camera=camera,
-                                         up=tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0))
-        jobs.append(VideoJob(video, detector, predictor, model_info, name=video.stem, camera=camera,
-                             world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
-                             options=options, threads=threads, keep_extras=with_gaussians))
+            detector = functools.partial(
+                StaticCameraDetector,
+                video,
+                camera=camera,
+                up=tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0),
+            )
+        jobs.append(
+            VideoJob(
+                video,
+                detector,
+                predictor,
+                model_info,
+                name=video.stem,
+                camera=camera,
+                world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
+                options=options,
+                threads=threads,
+                keep_extras=with_gaussians,
+            )
+        )
     chunking = ChunkingConfig(p.chunk_frames, p.chunk_overlap) if p.chunk_frames else None
-    outcomes = track_videos(jobs, ctx.out("tracks"), map_fn=_map(ctx), staging_root=ctx.staging / "inprogress",
-                            chunking=chunking, description="track videos" + (" (chunks)" if chunking else ""))
+    outcomes = track_videos(
+        jobs,
+        ctx.out("tracks"),
+        map_fn=_map(ctx),
+        staging_root=ctx.staging / "inprogress",
+        chunking=chunking,
+        description="track videos" + (" (chunks)" if chunking else ""),
+    )
     evaluations = [e for e in (_report(ctx, outcome) for outcome in outcomes) if e is not None]
     if _writes_combined_evaluation(ctx):
         write_evaluation_markdown(evaluations, ctx.out("reports/track/evaluation.md"))
@@ -151,20 +181,40 @@ def _evaluate(ctx: StageContext, outcome: VideoOutcome, report: Path) -> TrackEv
         return None
     ev = evaluate_tracks(outcome.result.path, ctx.path("synth"), camera)
     write_evaluation_json(ev, report / "evaluation.json")
-    ctx.log.info("%s vs truth: MPJPE %s (PA %s, root %s), %d id switches, %d fragments, recall %.3f, "
-                 "precision %.3f", ev.video, _mm(ev.mpjpe_mm), _mm(ev.pa_mpjpe_mm), _mm(ev.root_error_mm),
-                 ev.id_switches, ev.fragments, ev.recall, ev.precision)
+    ctx.log.info(
+        "%s vs truth: MPJPE %s (PA %s, root %s), %d id switches, %d fragments, recall %.3f, "
+        "precision %.3f",
+        ev.video,
+        _mm(ev.mpjpe_mm),
+        _mm(ev.pa_mpjpe_mm),
+        _mm(ev.root_error_mm),
+        ev.id_switches,
+        ev.fragments,
+        ev.recall,
+        ev.precision,
+    )
     return ev
 
 
 def _report(ctx: StageContext, outcome: VideoOutcome) -> TrackEvaluation | None:
     """Summary, overlay video, joint-angle plot and splats of one tracked video (in the caller)."""
     name, result = outcome.job.name, outcome.result
-    summary = {"rows": result.rows, "frames": result.frames, "persons": result.persons,
-               "seconds": round(result.seconds, 2), "fps": round(result.frames / max(result.seconds, 1e-9), 2),
-               "calibrated": outcome.job.camera is not None, "chunks": outcome.chunks}
-    ctx.log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons,
-                 result.frames / max(result.seconds, 1e-9))
+    summary = {
+        "rows": result.rows,
+        "frames": result.frames,
+        "persons": result.persons,
+        "seconds": round(result.seconds, 2),
+        "fps": round(result.frames / max(result.seconds, 1e-9), 2),
+        "calibrated": outcome.job.camera is not None,
+        "chunks": outcome.chunks,
+    }
+    ctx.log.info(
+        "%s: %d frames, %d people, %.1f frames/s",
+        name,
+        result.frames,
+        result.persons,
+        result.frames / max(result.seconds, 1e-9),
+    )
     report = ctx.out(f"reports/track/{name}/x").parent
     report.mkdir(parents=True, exist_ok=True)
     (report / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -174,8 +224,14 @@ def _report(ctx: StageContext, outcome: VideoOutcome) -> TrackEvaluation | None:
     evaluation = _evaluate(ctx, outcome, report)
     for person, g in outcome.extras.items():
         if "gaussian_means" in g:
-            write_gaussians_ply(ctx.out(f"models/splats/{name}/person_{person}.ply"), g["gaussian_means"],
-                                g["gaussian_quats"], g["gaussian_scales"], g["gaussian_opacities"], g["gaussian_colors"])
+            write_gaussians_ply(
+                ctx.out(f"models/splats/{name}/person_{person}.ply"),
+                g["gaussian_means"],
+                g["gaussian_quats"],
+                g["gaussian_scales"],
+                g["gaussian_opacities"],
+                g["gaussian_colors"],
+            )
     return evaluation
 
 
@@ -189,7 +245,16 @@ def _outputs(ctx: StageContext) -> list[str]:
     return outs
 
 
-STAGE = Stage(name="track", run=run, params_model=Params, resumable=True, variant=_variant,
-              inputs=lambda ctx: _videos(ctx) if ctx.options.get("video") or not ctx.scene.is_synthetic else [],
-              outputs=_outputs, cli_options=("video", "with_gaussians"),
-              help="per-frame inference on videos -> tracks/video=<name>/tracks.parquet")
+STAGE = Stage(
+    name="track",
+    run=run,
+    params_model=Params,
+    resumable=True,
+    variant=_variant,
+    inputs=lambda ctx: (
+        _videos(ctx) if ctx.options.get("video") or not ctx.scene.is_synthetic else []
+    ),
+    outputs=_outputs,
+    cli_options=("video", "with_gaussians"),
+    help="per-frame inference on videos -> tracks/video=<name>/tracks.parquet",
+)

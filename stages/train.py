@@ -43,7 +43,9 @@ class Params(StageParams):
     # synthetic truth's 2D joints / 3D joints and parameters (synthetic scenes only).
     supervision: Literal["multiview", "2d", "3d"] = "multiview"
     init: Literal["pretrain", "hmr2"] = "pretrain"
-    hmr2_checkpoint: Path | None = None  # with init=hmr2 (huge preset); loaded with weights_only=True
+    hmr2_checkpoint: Path | None = (
+        None  # with init=hmr2 (huge preset); loaded with weights_only=True
+    )
     body_model: str = "anny"
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
     steps: int = 1000
@@ -54,7 +56,9 @@ class Params(StageParams):
     # photometric gradient alone drags the pose away (+11% at 1e-4, -2% at 1e-5; docs/training.md).
     body_lr: float | None = 3e-4
     supervised_lr: float = 1e-4  # supervision 2d/3d (the Table 1 baselines): the whole network
-    freeze_backbone: bool = False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
+    freeze_backbone: bool = (
+        False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
+    )
     num_targets: int = 4
     render_size: int = 64
     ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
@@ -71,7 +75,9 @@ def _initial_network(ctx: StageContext, body):
     p = ctx.params
     if p.init == "hmr2":
         if p.hmr2_checkpoint is None:
-            raise ValueError("train.init=hmr2 needs train.hmr2_checkpoint=PATH (an HMR2 .ckpt or state dict)")
+            raise ValueError(
+                "train.init=hmr2 needs train.hmr2_checkpoint=PATH (an HMR2 .ckpt or state dict)"
+            )
         cfg = get_preset("huge")
         net, ids, groups = build_network(cfg, body)
         report = import_hmr2(net, p.hmr2_checkpoint)
@@ -79,8 +85,10 @@ def _initial_network(ctx: StageContext, body):
         return net, ids, groups
     ckpt = load_checkpoint(ctx.path("models/pretrain.pt"))
     if ckpt["body_model"] != p.body_model:
-        raise ValueError(f"models/pretrain.pt was trained with body model '{ckpt['body_model']}', "
-                         f"train.body_model is '{p.body_model}'")
+        raise ValueError(
+            f"models/pretrain.pt was trained with body model '{ckpt['body_model']}', "
+            f"train.body_model is '{p.body_model}'"
+        )
     return network_from_checkpoint(ckpt), ckpt["vertex_ids"].numpy(), ckpt["group_index"].numpy()
 
 
@@ -97,7 +105,9 @@ def _contact_sheet(images, path: Path, max_rows: int = 8) -> None:
                 break
     if rows:
         sheet = np.concatenate(rows, axis=0)
-        sheet = cv2.resize(sheet, (sheet.shape[1] * 2, sheet.shape[0] * 2), interpolation=cv2.INTER_NEAREST)
+        sheet = cv2.resize(
+            sheet, (sheet.shape[1] * 2, sheet.shape[0] * 2), interpolation=cv2.INTER_NEAREST
+        )
         cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
 
@@ -116,38 +126,72 @@ def run(ctx: StageContext) -> None:
         if p.supervision != "multiview":
             crops = select_rows(crops, torch.nonzero(has)[:, 0])  # supervised rows need their truth
     elif p.supervision != "multiview":
-        raise ValueError(f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
-                         f"have; scene '{ctx.scene_name}' is real: use supervision=multiview")
+        raise ValueError(
+            f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
+            f"have; scene '{ctx.scene_name}' is real: use supervision=multiview"
+        )
     if p.ignore_occluders and p.supervision == "multiview":
         crops.occluders = occluder_masks(crops)
-        ctx.log.info("occluders: %.1f%% of crop pixels belong to another person", 100 * float(crops.occluders.mean()))
+        ctx.log.info(
+            "occluders: %.1f%% of crop pixels belong to another person",
+            100 * float(crops.occluders.mean()),
+        )
     heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
     if p.anchor and p.supervision == "multiview":
         train_cams = {i for i, c in enumerate(crops.camera_names) if c not in heldout}
         crops.anchors = mask_centre_anchors(crops, cameras=train_cams)  # held-out masks never used
-        ctx.log.info("anchors: %d of %d crops have a triangulated mask centre",
-                     int(torch.isfinite(crops.anchors).all(1).sum()), len(crops))
+        ctx.log.info(
+            "anchors: %d of %d crops have a triangulated mask centre",
+            int(torch.isfinite(crops.anchors).all(1).sum()),
+            len(crops),
+        )
     if p.keypoints and p.supervision == "multiview":
         from gst.detect.blazepose import BlazePose
         from gst.train.keypoints import crop_keypoints
 
         crops.keypoints = crop_keypoints(crops.images, BlazePose(), ctx.progress)
-        ctx.log.info("keypoints: %d of %d crops have a joint detected with confidence >= 0.5",
-                     int((crops.keypoints[..., 2].amax(1) >= 0.5).sum()), len(crops))
+        ctx.log.info(
+            "keypoints: %d of %d crops have a joint detected with confidence >= 0.5",
+            int((crops.keypoints[..., 2].amax(1) >= 0.5).sum()),
+            len(crops),
+        )
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(ctx, body)
     net.freeze_backbone(p.freeze_backbone)
     lpips = load_lpips() if p.losses.lpips > 0 else None
     task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
     multiview = p.supervision == "multiview"
-    cfg = TrainConfig(steps=p.steps, batch_size=p.batch_size, lr=p.lr if multiview else p.supervised_lr,
-                      warmup_steps=min(30, p.steps // 10),
-                      val_every=max(1, p.steps // 5), ckpt_every=25, log_every=5)
+    cfg = TrainConfig(
+        steps=p.steps,
+        batch_size=p.batch_size,
+        lr=p.lr if multiview else p.supervised_lr,
+        warmup_steps=min(30, p.steps // 10),
+        val_every=max(1, p.steps // 5),
+        ckpt_every=25,
+        log_every=5,
+    )
     run_dir = ctx.out("models/train_run")
-    body_lr = p.body_lr if multiview else None  # the 2d/3d baselines train everything at supervised_lr
-    summary = fit_gst(net, task, crops, cfg, run_dir, FitOptions(mode=p.supervision, num_targets=p.num_targets,
-                      render_size=p.render_size, heldout_cameras=tuple(heldout), body_lr=body_lr),
-                      body_spec=p.body_model, vertex_ids=ids, group_index=groups, progress=ctx.progress)
+    body_lr = (
+        p.body_lr if multiview else None
+    )  # the 2d/3d baselines train everything at supervised_lr
+    summary = fit_gst(
+        net,
+        task,
+        crops,
+        cfg,
+        run_dir,
+        FitOptions(
+            mode=p.supervision,
+            num_targets=p.num_targets,
+            render_size=p.render_size,
+            heldout_cameras=tuple(heldout),
+            body_lr=body_lr,
+        ),
+        body_spec=p.body_model,
+        vertex_ids=ids,
+        group_index=groups,
+        progress=ctx.progress,
+    )
     if torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
         return  # under torchrun the other ranks only contribute gradients; rank 0 writes everything
     best = run_dir / "best.pt"
@@ -156,22 +200,34 @@ def run(ctx: StageContext) -> None:
     reports = ctx.out("reports/train")
     reports.mkdir(parents=True, exist_ok=True)
     heldout_idx = {crops.camera_names.index(c) for c in heldout}
-    nv = novel_view_metrics(net, task, crops, novel_view_pairs(crops, heldout_idx, max_pairs=8), 128,
-                            return_images=True)
+    nv = novel_view_metrics(
+        net, task, crops, novel_view_pairs(crops, heldout_idx, max_pairs=8), 128, return_images=True
+    )
     _contact_sheet(nv.pop("images", []), reports / "novel_views.png")
     with torch.no_grad():
         i = torch.tensor([0])
         g = predict(net, task, crops.images[i], crops.K[i], crops.R[i], crops.t[i]).gaussians_world
-    write_gaussians_ply(ctx.out("models/example.ply"), g.means[0], g.quats[0], g.scales[0], g.opacities[0],
-                        g.colors[0])
+    write_gaussians_ply(
+        ctx.out("models/example.ply"),
+        g.means[0],
+        g.quats[0],
+        g.scales[0],
+        g.opacities[0],
+        g.colors[0],
+    )
     shutil.copyfile(run_dir / "log.csv", reports / "log.csv")
     summary["best_checkpoint_novel_view_128px"] = nv
     (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     _write_markdown(reports / "summary.md", summary)
     shutil.rmtree(run_dir)
     b, a = summary["before"], summary["after"]
-    ctx.log.info("train: MPJPE %s -> %s mm; held-out PSNR %s -> %s dB", _f(b.get("mpjpe_mm")), _f(a.get("mpjpe_mm")),
-                 _f(b.get("psnr")), _f(a.get("psnr")))
+    ctx.log.info(
+        "train: MPJPE %s -> %s mm; held-out PSNR %s -> %s dB",
+        _f(b.get("mpjpe_mm")),
+        _f(a.get("mpjpe_mm")),
+        _f(b.get("psnr")),
+        _f(a.get("psnr")),
+    )
 
 
 def _f(v) -> str:
@@ -180,18 +236,34 @@ def _f(v) -> str:
 
 def _write_markdown(path: Path, s: dict) -> None:
     keys = sorted(set(s["before"]) | set(s["after"]))
-    lines = ["# GST training", "", f"{s['steps']} steps, {s['bad_steps']} skipped, {s['seconds']:.0f} s; "
-             f"{s['train_groups']} multi-view training samples; held-out cameras: {', '.join(s['heldout'])}.", "",
-             "| metric | before (pretrained) | after (GST) |", "|---|---|---|"]
+    lines = [
+        "# GST training",
+        "",
+        f"{s['steps']} steps, {s['bad_steps']} skipped, {s['seconds']:.0f} s; "
+        f"{s['train_groups']} multi-view training samples; held-out cameras: {', '.join(s['heldout'])}.",
+        "",
+        "| metric | before (pretrained) | after (GST) |",
+        "|---|---|---|",
+    ]
     lines += [f"| {k} | {_f(s['before'].get(k))} | {_f(s['after'].get(k))} |" for k in keys]
-    lines += ["", "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), SSIM and "
-              "silhouette IoU on held-out cameras, person composited on black, rendered at the training size.",
-              "", "![novel views](novel_views.png)", "",
-              "Each row: the input crop (a training camera), the prediction rendered into a held-out camera, "
-              "what that camera saw."]
+    lines += [
+        "",
+        "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), SSIM and "
+        "silhouette IoU on held-out cameras, person composited on black, rendered at the training size.",
+        "",
+        "![novel views](novel_views.png)",
+        "",
+        "Each row: the input crop (a training camera), the prediction rendered into a held-out camera, "
+        "what that camera saw.",
+    ]
     path.write_text("\n".join(lines) + "\n")
 
 
-STAGE = Stage(name="train", run=run, params_model=Params, resumable=True,
-              outputs=lambda ctx: ["models/gst.pt", "models/example.ply", "reports/train"],
-              help="GST multi-view training (no 3D labels) from the pretrained model")
+STAGE = Stage(
+    name="train",
+    run=run,
+    params_model=Params,
+    resumable=True,
+    outputs=lambda ctx: ["models/gst.pt", "models/example.ply", "reports/train"],
+    help="GST multi-view training (no 3D labels) from the pretrained model",
+)

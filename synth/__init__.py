@@ -15,5 +15,15 @@ from synth.motions import MOTIONS, MotionClip, generate_motion, random_static_po
 from synth.rigs import make_rig
 from synth.scene import PRESETS, SceneSpec, SceneSummary, preset, render_scene
 
-__all__ = ["MOTIONS", "PRESETS", "MotionClip", "SceneSpec", "SceneSummary", "generate_motion", "make_rig",
-           "preset", "random_static_poses", "render_scene"]
+__all__ = [
+    "MOTIONS",
+    "PRESETS",
+    "MotionClip",
+    "SceneSpec",
+    "SceneSummary",
+    "generate_motion",
+    "make_rig",
+    "preset",
+    "random_static_poses",
+    "render_scene",
+]

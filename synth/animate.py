@@ -27,8 +27,13 @@ class BodyModelLike(Protocol):
     num_betas: int
     joint_names: list[str]
 
-    def __call__(self, betas: torch.Tensor, body_pose: torch.Tensor, global_orient: torch.Tensor,
-                 transl: torch.Tensor) -> Any: ...
+    def __call__(
+        self,
+        betas: torch.Tensor,
+        body_pose: torch.Tensor,
+        global_orient: torch.Tensor,
+        transl: torch.Tensor,
+    ) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -55,26 +60,38 @@ def check_body_model(model) -> None:
     """Raise a clear error if `model` lacks what synth needs."""
     missing = [a for a in ("faces", "num_betas", "joint_names") if not hasattr(model, a)]
     if missing:
-        raise TypeError(f"body model {type(model).__name__} lacks {missing}; expected the gst.body API")
+        raise TypeError(
+            f"body model {type(model).__name__} lacks {missing}; expected the gst.body API"
+        )
     if len(model.joint_names) != NUM_JOINTS:
-        raise ValueError(f"body model has {len(model.joint_names)} joints, expected {NUM_JOINTS} (SMPL layout)")
+        raise ValueError(
+            f"body model has {len(model.joint_names)} joints, expected {NUM_JOINTS} (SMPL layout)"
+        )
     faces = np.asarray(model.faces)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"body model faces have shape {faces.shape}, expected (F, 3)")
 
 
-def run_body_model(model, betas: np.ndarray, body_pose: np.ndarray, global_orient: np.ndarray,
-                   transl: np.ndarray, batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+def run_body_model(
+    model,
+    betas: np.ndarray,
+    body_pose: np.ndarray,
+    global_orient: np.ndarray,
+    transl: np.ndarray,
+    batch: int = 64,
+) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate the model on (T, ...) float32 arrays in batches; returns vertices, joints."""
     T = len(body_pose)
     verts, joints = [], []
     with torch.no_grad():
         for s in range(0, T, batch):
             e = min(T, s + batch)
-            out = model(betas=torch.from_numpy(np.repeat(betas[None], e - s, axis=0)),
-                        body_pose=torch.from_numpy(body_pose[s:e]),
-                        global_orient=torch.from_numpy(global_orient[s:e]),
-                        transl=torch.from_numpy(transl[s:e]))
+            out = model(
+                betas=torch.from_numpy(np.repeat(betas[None], e - s, axis=0)),
+                body_pose=torch.from_numpy(body_pose[s:e]),
+                global_orient=torch.from_numpy(global_orient[s:e]),
+                transl=torch.from_numpy(transl[s:e]),
+            )
             verts.append(out.vertices.detach().to(torch.float32).numpy())
             joints.append(out.joints.detach().to(torch.float32).numpy()[:, :NUM_JOINTS])
     return np.concatenate(verts), np.concatenate(joints)
@@ -83,8 +100,13 @@ def run_body_model(model, betas: np.ndarray, body_pose: np.ndarray, global_orien
 def rest_pose(model, betas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Zero-pose vertices and joints (SMPL axes) for one shape."""
     z = np.zeros((1, 23, 3), np.float32)
-    v, j = run_body_model(model, betas.astype(np.float32), z, np.zeros((1, 3), np.float32),
-                          np.zeros((1, 3), np.float32))
+    v, j = run_body_model(
+        model,
+        betas.astype(np.float32),
+        z,
+        np.zeros((1, 3), np.float32),
+        np.zeros((1, 3), np.float32),
+    )
     return v[0], j[0]
 
 
@@ -122,14 +144,25 @@ def pose_person(model, betas: np.ndarray, clip: MotionClip, person_id: int) -> P
     check_body_model(model)
     betas = np.asarray(betas, dtype=np.float32).ravel()
     if betas.size != model.num_betas:
-        raise ValueError(f"person {person_id}: betas has {betas.size} values, the body model expects {model.num_betas}")
+        raise ValueError(
+            f"person {person_id}: betas has {betas.size} values, the body model expects {model.num_betas}"
+        )
     rest_v, rest_j = rest_pose(model, betas)
     C = rest_corrections(rest_j)
     T = clip.n_frames
-    authored = Rotation.from_euler("XYZ", clip.angles.reshape(-1, 3)).as_matrix().reshape(T, NUM_JOINTS, 3, 3)
+    authored = (
+        Rotation.from_euler("XYZ", clip.angles.reshape(-1, 3))
+        .as_matrix()
+        .reshape(T, NUM_JOINTS, 3, 3)
+    )
     local = local_rotations(authored, C)
     root = heading_rotation(clip.heading) @ authored[:, 0]
-    body_pose = Rotation.from_matrix(local[:, 1:].reshape(-1, 3, 3)).as_rotvec().reshape(T, 23, 3).astype(np.float32)
+    body_pose = (
+        Rotation.from_matrix(local[:, 1:].reshape(-1, 3, 3))
+        .as_rotvec()
+        .reshape(T, 23, 3)
+        .astype(np.float32)
+    )
     global_orient = Rotation.from_matrix(root).as_rotvec().astype(np.float32)
     v0, j0 = run_body_model(model, betas, body_pose, global_orient, np.zeros((T, 3), np.float32))
     transl = np.zeros((T, 3))
@@ -137,6 +170,15 @@ def pose_person(model, betas: np.ndarray, clip: MotionClip, person_id: int) -> P
     transl[:, 2] = floor_offset(clip.lift - v0[..., 2].min(axis=1), clip.fps, clip.smooth)
     transl = transl.astype(np.float32)
     verts, joints = run_body_model(model, betas, body_pose, global_orient, transl)
-    return PersonTrack(person_id=person_id, betas=betas, global_orient=global_orient, body_pose=body_pose,
-                       transl=transl, joints=joints, vertices=verts, labels=clip.labels,
-                       rest_vertices=rest_v, rest_joints=rest_j)
+    return PersonTrack(
+        person_id=person_id,
+        betas=betas,
+        global_orient=global_orient,
+        body_pose=body_pose,
+        transl=transl,
+        joints=joints,
+        vertices=verts,
+        labels=clip.labels,
+        rest_vertices=rest_v,
+        rest_joints=rest_j,
+    )

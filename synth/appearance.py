@@ -21,19 +21,59 @@ _R = {name: i for i, name in enumerate(REGIONS)}
 
 # Region of the bone that starts at each joint.
 _BONE_REGION = {
-    "pelvis": "trunk", "spine1": "trunk", "spine2": "trunk", "spine3": "trunk", "collar": "trunk",
-    "neck": "neck", "head": "head", "shoulder": "upperarm", "elbow": "forearm", "wrist": "hand",
-    "hand": "hand", "hip": "upperleg", "knee": "lowerleg", "ankle": "foot", "foot": "foot",
+    "pelvis": "trunk",
+    "spine1": "trunk",
+    "spine2": "trunk",
+    "spine3": "trunk",
+    "collar": "trunk",
+    "neck": "neck",
+    "head": "head",
+    "shoulder": "upperarm",
+    "elbow": "forearm",
+    "wrist": "hand",
+    "hand": "hand",
+    "hip": "upperleg",
+    "knee": "lowerleg",
+    "ankle": "foot",
+    "foot": "foot",
 }
 # Substrings of a body model's part names that identify extremities.
-_PART_KEYWORDS = {"head": ("head", "face", "skull", "eye"), "hand": ("hand", "finger", "thumb", "palm"),
-                  "foot": ("foot", "toe", "heel")}
+_PART_KEYWORDS = {
+    "head": ("head", "face", "skull", "eye"),
+    "hand": ("hand", "finger", "thumb", "palm"),
+    "foot": ("foot", "toe", "heel"),
+}
 
-SKIN_TONES = ((255, 224, 196), (241, 194, 167), (224, 172, 138), (198, 134, 98), (161, 102, 72),
-              (120, 78, 55), (86, 56, 41))
-HAIR_COLOURS = ((28, 24, 22), (55, 38, 28), (95, 65, 42), (190, 155, 100), (135, 62, 30), (150, 148, 145))
-KIT_COLOURS = ((200, 20, 30), (20, 60, 170), (235, 235, 235), (15, 25, 60), (245, 200, 20), (20, 130, 60),
-               (240, 110, 20), (25, 25, 25), (110, 175, 225), (100, 40, 140), (120, 20, 40))
+SKIN_TONES = (
+    (255, 224, 196),
+    (241, 194, 167),
+    (224, 172, 138),
+    (198, 134, 98),
+    (161, 102, 72),
+    (120, 78, 55),
+    (86, 56, 41),
+)
+HAIR_COLOURS = (
+    (28, 24, 22),
+    (55, 38, 28),
+    (95, 65, 42),
+    (190, 155, 100),
+    (135, 62, 30),
+    (150, 148, 145),
+)
+KIT_COLOURS = (
+    (200, 20, 30),
+    (20, 60, 170),
+    (235, 235, 235),
+    (15, 25, 60),
+    (245, 200, 20),
+    (20, 130, 60),
+    (240, 110, 20),
+    (25, 25, 25),
+    (110, 175, 225),
+    (100, 40, 140),
+    (120, 20, 40),
+)
 SHOE_COLOURS = ((240, 240, 240), (30, 30, 30), (200, 240, 40), (230, 60, 40), (40, 90, 200))
 PATTERNS = ("solid", "stripes", "hoops", "sash")
 HAIR_STYLES = ("short", "long", "shaved")
@@ -80,10 +120,21 @@ def team_kits(n_teams: int, rng: np.random.Generator) -> list[dict]:
     for k in range(n_teams):
         main = KIT_COLOURS[order[(2 * k) % len(order)]]
         second = KIT_COLOURS[order[(2 * k + 1) % len(order)]]
-        kits.append(dict(jersey=main, jersey_second=second, pattern=str(rng.choice(PATTERNS)),
-                         shorts=second if rng.random() < 0.6 else (25, 25, 25) if sum(main) > 300 else (235, 235, 235),
-                         socks=main if rng.random() < 0.5 else second, trim=_contrast(main),
-                         sleeve=float(rng.choice([0.5, 0.5, 0.0, 1.5]))))
+        kits.append(
+            dict(
+                jersey=main,
+                jersey_second=second,
+                pattern=str(rng.choice(PATTERNS)),
+                shorts=second
+                if rng.random() < 0.6
+                else (25, 25, 25)
+                if sum(main) > 300
+                else (235, 235, 235),
+                socks=main if rng.random() < 0.5 else second,
+                trim=_contrast(main),
+                sleeve=float(rng.choice([0.5, 0.5, 0.0, 1.5])),
+            )
+        )
     return kits
 
 
@@ -93,11 +144,18 @@ def sample_outfit(rng: np.random.Generator, kit: dict, team: int) -> Outfit:
         skin=SKIN_TONES[rng.integers(len(SKIN_TONES))],
         hair=HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))],
         hair_style=str(rng.choice(HAIR_STYLES, p=[0.6, 0.25, 0.15])),
-        jersey=kit["jersey"], jersey_second=kit["jersey_second"], pattern=kit["pattern"], trim=kit["trim"],
+        jersey=kit["jersey"],
+        jersey_second=kit["jersey_second"],
+        pattern=kit["pattern"],
+        trim=kit["trim"],
         number=int(rng.integers(1, 99)) if rng.random() < 0.85 else None,
-        sleeve=kit["sleeve"], shorts=kit["shorts"], shorts_length=float(rng.uniform(0.3, 0.55)),
-        socks=kit["socks"], sock_height=float(rng.uniform(0.45, 0.8)),
-        shoes=SHOE_COLOURS[rng.integers(len(SHOE_COLOURS))], team=team,
+        sleeve=kit["sleeve"],
+        shorts=kit["shorts"],
+        shorts_length=float(rng.uniform(0.3, 0.55)),
+        socks=kit["socks"],
+        sock_height=float(rng.uniform(0.45, 0.8)),
+        shoes=SHOE_COLOURS[rng.integers(len(SHOE_COLOURS))],
+        team=team,
     )
 
 
@@ -154,8 +212,9 @@ class BodyAtlas:
         return np.clip(((points - a) * d).sum(1) / np.maximum((d * d).sum(1), 1e-12), 0, 1)
 
     @classmethod
-    def build(cls, rest_vertices: np.ndarray, rest_joints: np.ndarray, part_labels=None,
-              part_names=None) -> BodyAtlas:
+    def build(
+        cls, rest_vertices: np.ndarray, rest_joints: np.ndarray, part_labels=None, part_names=None
+    ) -> BodyAtlas:
         rest = np.asarray(rest_vertices, dtype=np.float64)
         joints = np.asarray(rest_joints, dtype=np.float64)
         starts, ends, owner = _segments(joints)
@@ -166,19 +225,31 @@ class BodyAtlas:
         if part_labels is not None and part_names is not None:
             labels = np.asarray(part_labels).ravel()
             if labels.shape[0] != rest.shape[0]:
-                raise ValueError(f"body model part_labels has {labels.shape[0]} entries for {rest.shape[0]} vertices")
+                raise ValueError(
+                    f"body model part_labels has {labels.shape[0]} entries for {rest.shape[0]} vertices"
+                )
             for reg, words in _PART_KEYWORDS.items():
-                ids = [i for i, n in enumerate(part_names) if any(w in str(n).lower() for w in words)]
+                ids = [
+                    i for i, n in enumerate(part_names) if any(w in str(n).lower() for w in words)
+                ]
                 sel = np.isin(labels, ids)
                 if sel.any():
-                    k[sel], _ = _nearest_segment(rest[sel], starts, ends, (seg_region == _R[reg])[None])
+                    k[sel], _ = _nearest_segment(
+                        rest[sel], starts, ends, (seg_region == _R[reg])[None]
+                    )
                     region[sel] = _R[reg]
-            eye_ids = [i for i, n in enumerate(part_names) if "eye" in str(n).lower() and "cavity" not in str(n).lower()]
+            eye_ids = [
+                i
+                for i, n in enumerate(part_names)
+                if "eye" in str(n).lower() and "cavity" not in str(n).lower()
+            ]
             is_eye = np.isin(labels, eye_ids)
         head = rest[region == _R["head"]]
         feet = rest[region == _R["foot"]]
         if len(head) < 4 or len(feet) < 4:
-            raise ValueError("body model rest mesh has no recognisable head or feet near the SMPL joints")
+            raise ValueError(
+                "body model rest mesh has no recognisable head or feet near the SMPL joints"
+            )
         top = head[:, 1].max()
         chin = np.percentile(head[:, 1], 3)
         eye_y, eye_dx, eye_front = top - 0.48 * (top - chin), 0.033, float(head[:, 2].max())
@@ -188,14 +259,30 @@ class BodyAtlas:
             eye_dx = float(np.abs(eyes[:, 0] - joints[J["head"], 0]).mean())
             eye_front = float(eyes[:, 2].max())
         landmarks = dict(
-            top=top, chin=chin, eye_y=eye_y, eye_dx=eye_dx, eye_front=eye_front, front_z=head[:, 2].max(),
-            back_z=head[:, 2].min(), head_x=float(joints[J["head"], 0]),
+            top=top,
+            chin=chin,
+            eye_y=eye_y,
+            eye_dx=eye_dx,
+            eye_front=eye_front,
+            front_z=head[:, 2].max(),
+            back_z=head[:, 2].min(),
+            head_x=float(joints[J["head"], 0]),
             waist_y=joints[J["spine1"], 1] - 0.02,
-            neck_y=joints[J["neck"], 1], spine2_y=joints[J["spine2"], 1], spine3_y=joints[J["spine3"], 1],
-            chest_z=joints[J["spine3"], 2], sole_y=feet[:, 1].min(),
+            neck_y=joints[J["neck"], 1],
+            spine2_y=joints[J["spine2"], 1],
+            spine3_y=joints[J["spine3"], 1],
+            chest_z=joints[J["spine3"], 2],
+            sole_y=feet[:, 1].min(),
         )
-        return cls(rest=rest, region=region, segment=k, seg_start=starts, seg_end=ends, landmarks=landmarks,
-                   is_eye=is_eye)
+        return cls(
+            rest=rest,
+            region=region,
+            segment=k,
+            seg_start=starts,
+            seg_end=ends,
+            landmarks=landmarks,
+            is_eye=is_eye,
+        )
 
 
 def _digits_bitmap(number: int) -> np.ndarray:
@@ -222,7 +309,9 @@ def srgb_to_linear(rgb) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
-def albedo(outfit: Outfit, atlas: BodyAtlas, tri_vertices: np.ndarray, bary: np.ndarray) -> np.ndarray:
+def albedo(
+    outfit: Outfit, atlas: BodyAtlas, tri_vertices: np.ndarray, bary: np.ndarray
+) -> np.ndarray:
     """Linear RGB albedo (N, 3) at N hits given each hit's triangle vertex ids (N, 3) and
     barycentric weights (N, 3)."""
     n = len(bary)
@@ -256,15 +345,23 @@ def albedo(outfit: Outfit, atlas: BodyAtlas, tri_vertices: np.ndarray, bary: np.
         paint(garment & (np.mod(y - L["waist_y"], 0.16) < 0.08), outfit.jersey_second)
     elif outfit.pattern == "sash":
         paint(jersey & (np.abs(x * 0.9 - (y - L["spine2_y"])) < 0.06), outfit.jersey_second)
-    cuff = is_("upperarm") & (np.abs(along - outfit.sleeve) < 0.05) & (outfit.sleeve <= 1.0) & (outfit.sleeve > 0)
-    paint(cuff | (trunk & neckline & (y < L["neck_y"] - 0.01 - 0.04 * (z > L["chest_z"]))), outfit.trim)
+    cuff = (
+        is_("upperarm")
+        & (np.abs(along - outfit.sleeve) < 0.05)
+        & (outfit.sleeve <= 1.0)
+        & (outfit.sleeve > 0)
+    )
+    paint(
+        cuff | (trunk & neckline & (y < L["neck_y"] - 0.01 - 0.04 * (z > L["chest_z"]))),
+        outfit.trim,
+    )
     if outfit.number is not None:
         digits = _digits_bitmap(outfit.number)
         aspect = digits.shape[1] / digits.shape[0]
         back = jersey & (z < L["chest_z"])
         hgt = 0.22
         cy = L["spine2_y"] + 0.05
-        u = (x / (hgt * aspect) + 0.5)
+        u = x / (hgt * aspect) + 0.5
         v = (cy + hgt / 2 - y) / hgt
         u_back = 1.0 - u  # seen from behind, +x (body left) is on the viewer's right
         m = _sample_mask(digits, u_back[back], v[back])
@@ -282,19 +379,27 @@ def albedo(outfit: Outfit, atlas: BodyAtlas, tri_vertices: np.ndarray, bary: np.
     paint(is_("lowerleg") & (along > 1 - outfit.sock_height), outfit.socks)
     foot = is_("foot")
     paint(foot, outfit.shoes)
-    paint(foot & (y < L["sole_y"] + 0.018), (60, 60, 60) if sum(outfit.shoes) > 300 else (235, 235, 235))
+    paint(
+        foot & (y < L["sole_y"] + 0.018),
+        (60, 60, 60) if sum(outfit.shoes) > 300 else (235, 235, 235),
+    )
 
     head = is_("head")
     depth = np.clip((L["front_z"] - z) / max(L["front_z"] - L["back_z"], 1e-6), 0, 1)
     drop = {"short": 0.09, "long": 0.2, "shaved": 0.07}[outfit.hair_style]
-    hair = head & (y > L["eye_y"] + 0.05 - drop * depth ** 0.7)
+    hair = head & (y > L["eye_y"] + 0.05 - drop * depth**0.7)
     if outfit.hair_style == "shaved":
         col[hair] = 0.5 * col[hair] + 0.5 * srgb_to_linear(outfit.hair)[None]
     else:
         paint(hair, outfit.hair)
     if outfit.hair_style == "long":
-        paint((is_("neck") | trunk) & (z < L["chest_z"] - 0.04) & (y > L["neck_y"] - 0.08) & (np.abs(x) < 0.09),
-              outfit.hair)
+        paint(
+            (is_("neck") | trunk)
+            & (z < L["chest_z"] - 0.04)
+            & (y > L["neck_y"] - 0.08)
+            & (np.abs(x) < 0.09),
+            outfit.hair,
+        )
     face = head & (z > L["front_z"] - 0.05)
     real_eyes = atlas.is_eye.any()
     for sx in (-1.0, 1.0):
@@ -302,11 +407,15 @@ def albedo(outfit: Outfit, atlas: BodyAtlas, tri_vertices: np.ndarray, bary: np.
         brow = face & (((x - ex) / 0.018) ** 2 + ((y - L["eye_y"] - 0.02) / 0.004) ** 2 < 1)
         col[brow] = 0.45 * col[brow] + 0.55 * srgb_to_linear(outfit.hair)[None] * 0.6
         if not real_eyes:  # painted eyes on bodies without eyeballs
-            paint(face & (((x - ex) / 0.013) ** 2 + ((y - L["eye_y"]) / 0.007) ** 2 < 1), (35, 30, 30))
+            paint(
+                face & (((x - ex) / 0.013) ** 2 + ((y - L["eye_y"]) / 0.007) ** 2 < 1), (35, 30, 30)
+            )
     if real_eyes:  # eyeballs: dark iris facing forward, white around it
         eye = atlas.is_eye[main]
         paint(eye, (225, 220, 210))
         paint(eye & (z > L["eye_front"] - 0.006), (45, 35, 30))
-    mouth = face & (((x - L["head_x"]) / 0.022) ** 2 + ((y - (L["eye_y"] - 0.065)) / 0.005) ** 2 < 1)
+    mouth = face & (
+        ((x - L["head_x"]) / 0.022) ** 2 + ((y - (L["eye_y"] - 0.065)) / 0.005) ** 2 < 1
+    )
     col[mouth] = col[mouth] * np.array([0.75, 0.45, 0.45])
     return col

@@ -34,21 +34,38 @@ class ChArUcoSpec:
 
     def __post_init__(self):
         if self.squares_x < 3 or self.squares_y < 3:
-            raise ValueError(f"ChArUco board needs at least 3x3 squares, got {self.squares_x}x{self.squares_y}")
+            raise ValueError(
+                f"ChArUco board needs at least 3x3 squares, got {self.squares_x}x{self.squares_y}"
+            )
         if not 0 < self.marker_size < self.square_size:
-            raise ValueError(f"marker_size {self.marker_size} must be in (0, square_size={self.square_size})")
+            raise ValueError(
+                f"marker_size {self.marker_size} must be in (0, square_size={self.square_size})"
+            )
         if not hasattr(cv2.aruco, self.dictionary):
-            raise ValueError(f"unknown ArUco dictionary '{self.dictionary}' (expected e.g. DICT_4X4_50)")
+            raise ValueError(
+                f"unknown ArUco dictionary '{self.dictionary}' (expected e.g. DICT_4X4_50)"
+            )
         n_markers = (self.squares_x * self.squares_y) // 2
-        dict_size = int(self.dictionary.rsplit("_", 1)[-1]) if self.dictionary.rsplit("_", 1)[-1].isdigit() else 1000
+        dict_size = (
+            int(self.dictionary.rsplit("_", 1)[-1])
+            if self.dictionary.rsplit("_", 1)[-1].isdigit()
+            else 1000
+        )
         if n_markers > dict_size:
-            raise ValueError(f"board needs {n_markers} markers but {self.dictionary} has only {dict_size}")
+            raise ValueError(
+                f"board needs {n_markers} markers but {self.dictionary} has only {dict_size}"
+            )
 
     def to_dict(self) -> dict:
         """board.json content: exactly the keys of calibration.board.BoardSpec.to_dict()."""
-        return {"kind": "charuco", "squares_x": int(self.squares_x), "squares_y": int(self.squares_y),
-                "square_size": float(self.square_size), "marker_size": float(self.marker_size),
-                "dictionary": self.dictionary}
+        return {
+            "kind": "charuco",
+            "squares_x": int(self.squares_x),
+            "squares_y": int(self.squares_y),
+            "square_size": float(self.square_size),
+            "marker_size": float(self.marker_size),
+            "dictionary": self.dictionary,
+        }
 
     @property
     def size(self) -> tuple[float, float]:
@@ -58,7 +75,9 @@ class ChArUcoSpec:
     @cached_property
     def cv_board(self) -> cv2.aruco.CharucoBoard:
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_size, self.marker_size, d)
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_size, self.marker_size, d
+        )
 
     @cached_property
     def corners(self) -> np.ndarray:
@@ -71,8 +90,9 @@ class ChArUcoSpec:
         w = self.squares_x * px_per_square + 2 * m
         h = self.squares_y * px_per_square + 2 * m
         image = self.cv_board.generateImage((w, h), marginSize=m, borderBits=1)
-        return BoardTexture(image=image, px_per_square=px_per_square, margin_px=m,
-                            square_size=self.square_size)
+        return BoardTexture(
+            image=image, px_per_square=px_per_square, margin_px=m, square_size=self.square_size
+        )
 
 
 @dataclass(frozen=True)
@@ -104,7 +124,9 @@ def board_json(spec: ChArUcoSpec) -> dict:
         return d
     other = BoardSpec(**d).to_dict()
     if set(other) != set(_BOARD_KEYS) or any(other[k] != d[k] for k in _BOARD_KEYS):
-        raise ValueError(f"calibration.board.BoardSpec disagrees with synth's board: {other} vs {d}")
+        raise ValueError(
+            f"calibration.board.BoardSpec disagrees with synth's board: {other} vs {d}"
+        )
     return other
 
 
@@ -131,9 +153,16 @@ FLOOR_BOARD_R = np.diag([1.0, -1.0, -1.0])
 FLOOR_LIFT = 0.001  # metres above the floor (keeps the board in front of the floor for rays)
 
 
-def board_clip(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: float,
-               rng: np.random.Generator, camera_centers: np.ndarray | None = None,
-               floor_frames: int = 3, lift_frames: int | None = None) -> list[BoardPose]:
+def board_clip(
+    spec: ChArUcoSpec,
+    n_frames: int,
+    volume_center,
+    volume_radius: float,
+    rng: np.random.Generator,
+    camera_centers: np.ndarray | None = None,
+    floor_frames: int = 3,
+    lift_frames: int | None = None,
+) -> list[BoardPose]:
     """The calibration clip: `floor_frames` frames with the board flat on the floor (see
     FLOOR_BOARD_R), `lift_frames` frames (default a tenth of the rest, at least 4) lifting it, up
     first, then turning into the path, and the rest along `board_path`. Short clips are like a
@@ -168,8 +197,14 @@ def _ease(x: float) -> float:
     return x * x * (3 - 2 * x)
 
 
-def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: float,
-               rng: np.random.Generator, camera_centers: np.ndarray | None = None) -> list[BoardPose]:
+def board_path(
+    spec: ChArUcoSpec,
+    n_frames: int,
+    volume_center,
+    volume_radius: float,
+    rng: np.random.Generator,
+    camera_centers: np.ndarray | None = None,
+) -> list[BoardPose]:
     """A smooth hand-held path: the board wanders through the volume at about 0.9-1.6 m and
     turns its printed side once around. With `camera_centers` it faces each camera in turn
     (sorted by azimuth), so every camera gets frontal and oblique views; without, it faces the
@@ -182,9 +217,14 @@ def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: f
     r = 0.5 * volume_radius
     half_diag = 0.5 * np.hypot(*spec.size) + spec.margin
     zc = max(1.25, half_diag + 0.15)
-    centre = np.stack([c[0] + r * np.sin(2 * np.pi * 1.0 * tau + ph[0]),
-                       c[1] + r * np.sin(2 * np.pi * 2.0 * tau + ph[1]),
-                       zc + 0.3 * np.sin(2 * np.pi * 1.5 * tau + ph[2])], -1)
+    centre = np.stack(
+        [
+            c[0] + r * np.sin(2 * np.pi * 1.0 * tau + ph[0]),
+            c[1] + r * np.sin(2 * np.pi * 2.0 * tau + ph[1]),
+            zc + 0.3 * np.sin(2 * np.pi * 1.5 * tau + ph[2]),
+        ],
+        -1,
+    )
     direction = rng.choice([-1.0, 1.0])
     azimuth = ph[3] + 2 * np.pi * tau * direction
     wobble_tilt = np.deg2rad(12 * np.sin(2 * np.pi * 3.0 * tau + ph[0]))
@@ -229,11 +269,16 @@ def board_path(spec: ChArUcoSpec, n_frames: int, volume_center, volume_radius: f
 
 def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
     """Rodrigues rotation of vector v about a unit axis."""
-    return v * np.cos(angle) + np.cross(axis, v) * np.sin(angle) + axis * np.dot(axis, v) * (1 - np.cos(angle))
+    return (
+        v * np.cos(angle)
+        + np.cross(axis, v) * np.sin(angle)
+        + axis * np.dot(axis, v) * (1 - np.cos(angle))
+    )
 
 
-def visible_corners(spec: ChArUcoSpec, pose: BoardPose, camera, radius: float | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def visible_corners(
+    spec: ChArUcoSpec, pose: BoardPose, camera, radius: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Ids and distorted pixel positions of the chessboard corners a camera sees: printed side
     facing it, in front of it and inside the image (nothing else can hide the board).
     `radius` is the camera's undistorted field radius (`synth.projection.field_radius`)."""

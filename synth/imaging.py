@@ -44,19 +44,25 @@ def tonemap(x: np.ndarray) -> np.ndarray:
 # an 8-bit level of the exact curve, at a fraction of the cost of exp and pow per pixel.
 _LUT_MAX = 4.0
 _LUT_SIZE = 1 << 18
-_LUT = (linear_to_srgb(tonemap(np.arange(_LUT_SIZE) * (_LUT_MAX / (_LUT_SIZE - 1)))) * 255.0).astype(np.float32)
+_LUT = (
+    linear_to_srgb(tonemap(np.arange(_LUT_SIZE) * (_LUT_MAX / (_LUT_SIZE - 1)))) * 255.0
+).astype(np.float32)
 
 
 def encode_srgb(x: np.ndarray) -> np.ndarray:
     """Tone-mapped sRGB in 8-bit units (float32) of linear radiance x."""
-    idx = (np.clip(x, 0.0, _LUT_MAX) * np.float32((_LUT_SIZE - 1) / _LUT_MAX) + np.float32(0.5)).astype(np.int32)
+    idx = (
+        np.clip(x, 0.0, _LUT_MAX) * np.float32((_LUT_SIZE - 1) / _LUT_MAX) + np.float32(0.5)
+    ).astype(np.int32)
     return _LUT[idx]
 
 
 @lru_cache(maxsize=16)
 def _vignette(h: int, w: int, strength: float) -> np.ndarray:
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
+    r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (
+        ((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2
+    )
     return (1 - strength * r2).astype(np.float32)
 
 
@@ -72,7 +78,9 @@ def develop(radiance: np.ndarray, response: CameraResponse, rng: np.random.Gener
     if response.noise_sigma > 0:
         # Read noise is flat, shot noise grows with the signal. Triangular noise (difference of
         # two uniforms, scaled to unit variance) is cheaper than normal draws and looks the same.
-        std = np.float32(response.noise_sigma * np.sqrt(6.0)) * np.sqrt(np.float32(0.35) + srgb * np.float32(0.65 / 128.0))
+        std = np.float32(response.noise_sigma * np.sqrt(6.0)) * np.sqrt(
+            np.float32(0.35) + srgb * np.float32(0.65 / 128.0)
+        )
         tri = rng.random(srgb.shape, dtype=np.float32) - rng.random(srgb.shape, dtype=np.float32)
         srgb = srgb + tri * std
     out = np.clip(srgb + np.float32(0.5), 0, 255).astype(np.uint8)

@@ -53,15 +53,21 @@ class VideoOut:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = self.path.with_name(f".{self.path.stem}.tmp.mp4")
         self._size = (width, height)
-        self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
+        self._writer = cv2.VideoWriter(
+            str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height)
+        )
         if not self._writer.isOpened():
-            raise OSError(f"OpenCV cannot open an mp4v writer for {self.path} (is FFmpeg available in cv2?)")
+            raise OSError(
+                f"OpenCV cannot open an mp4v writer for {self.path} (is FFmpeg available in cv2?)"
+            )
         self.frames = 0
 
     def write(self, bgr: np.ndarray) -> None:
         if bgr.shape != (self._size[1], self._size[0], 3) or bgr.dtype != np.uint8:
-            raise ValueError(f"{self.path.name}: frame {bgr.shape} {bgr.dtype}, expected "
-                             f"({self._size[1]}, {self._size[0]}, 3) uint8")
+            raise ValueError(
+                f"{self.path.name}: frame {bgr.shape} {bgr.dtype}, expected "
+                f"({self._size[1]}, {self._size[0]}, 3) uint8"
+            )
         self._writer.write(bgr)
         self.frames += 1
 
@@ -79,20 +85,37 @@ class MaskStore:
     """Per-camera HDF5 of person-id masks (T, H, W) uint8 and optional person depth float32,
     one gzip chunk per frame."""
 
-    def __init__(self, path: Path, n_frames: int, width: int, height: int, camera: str, with_depth: bool):
+    def __init__(
+        self, path: Path, n_frames: int, width: int, height: int, camera: str, with_depth: bool
+    ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = self.path.with_name(f".{self.path.stem}.tmp.h5")
         self._f = h5py.File(self._tmp, "w", track_order=False)
         self._f.attrs["camera"] = camera
         self._f.attrs["mask_values"] = "0 = background, k = person_id k"
-        self.mask = self._f.create_dataset("mask", (n_frames, height, width), np.uint8, chunks=(1, height, width),
-                                           compression="gzip", compression_opts=4, shuffle=True, track_times=False)
+        self.mask = self._f.create_dataset(
+            "mask",
+            (n_frames, height, width),
+            np.uint8,
+            chunks=(1, height, width),
+            compression="gzip",
+            compression_opts=4,
+            shuffle=True,
+            track_times=False,
+        )
         self.depth = None
         if with_depth:
-            self.depth = self._f.create_dataset("depth", (n_frames, height, width), np.float32,
-                                                chunks=(1, height, width), compression="gzip",
-                                                compression_opts=4, shuffle=True, track_times=False)
+            self.depth = self._f.create_dataset(
+                "depth",
+                (n_frames, height, width),
+                np.float32,
+                chunks=(1, height, width),
+                compression="gzip",
+                compression_opts=4,
+                shuffle=True,
+                track_times=False,
+            )
             self.depth.attrs["units"] = "m, camera z; 0 where the mask is 0"
 
     def write(self, frame: int, mask: np.ndarray, depth: np.ndarray | None) -> None:

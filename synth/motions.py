@@ -50,7 +50,9 @@ class MotionClip:
         expected = {"angles": (T, NUM_JOINTS, 3), "position": (T, 2), "heading": (T,), "lift": (T,)}
         for name, shape in expected.items():
             if getattr(self, name).shape != shape:
-                raise ValueError(f"MotionClip.{name} has shape {getattr(self, name).shape}, expected {shape}")
+                raise ValueError(
+                    f"MotionClip.{name} has shape {getattr(self, name).shape}, expected {shape}"
+                )
 
     @property
     def n_frames(self) -> int:
@@ -70,6 +72,7 @@ class _Segment:
 # ----------------------------------------------------------------------------------------------
 # Authoring helpers
 
+
 def _pose(**joints) -> dict[str, tuple[float, float, float]]:
     """Pose dict from keyword args; `both_<joint>` sets left and right (anatomical signs)."""
     out: dict[str, tuple[float, float, float]] = {}
@@ -87,8 +90,13 @@ def _pose(**joints) -> dict[str, tuple[float, float, float]]:
 
 
 # Relaxed standing posture: arms hang slightly away from the body, soft knees and elbows.
-STAND = _pose(both_shoulder=(0, 0, -78), both_elbow=(0, -12, 0), both_knee=(4, 0, 0),
-              both_hip=(-3, 0, 2), both_ankle=(-1, 0, -2))
+STAND = _pose(
+    both_shoulder=(0, 0, -78),
+    both_elbow=(0, -12, 0),
+    both_knee=(4, 0, 0),
+    both_hip=(-3, 0, 2),
+    both_ankle=(-1, 0, -2),
+)
 
 
 def _with(base: dict, **changes) -> dict:
@@ -108,7 +116,9 @@ def _flat_feet(arr: np.ndarray, sides: tuple[str, ...]) -> np.ndarray:
     """Set the ankle flexion of planted legs so the sole is level: the sagittal angles of root,
     hip, knee and ankle add up to zero."""
     for side in sides:
-        arr[J[f"{side}_ankle"], 0] = -(arr[0, 0] + arr[J[f"{side}_hip"], 0] + arr[J[f"{side}_knee"], 0])
+        arr[J[f"{side}_ankle"], 0] = -(
+            arr[0, 0] + arr[J[f"{side}_hip"], 0] + arr[J[f"{side}_knee"], 0]
+        )
     return arr
 
 
@@ -125,7 +135,9 @@ def _keyframed(keys: list[_Key], t: np.ndarray) -> _Segment:
     """Interpolate keyframes (looped with their period) at times t."""
     times = np.array([k.time for k in keys])
     period = times[-1]
-    arrays = np.stack([_flat_feet(_to_array(k.pose), k.planted) for k in keys]).reshape(len(keys), -1)
+    arrays = np.stack([_flat_feet(_to_array(k.pose), k.planted) for k in keys]).reshape(
+        len(keys), -1
+    )
     fwd = np.array([k.forward for k in keys])
     trn = np.array([k.turn for k in keys])
     if not np.allclose(arrays[0], arrays[-1]):
@@ -156,17 +168,25 @@ def _bump(phase: np.ndarray, centre: float, power: float) -> np.ndarray:
 def _gait(t: np.ndarray, cadence: np.ndarray, style: dict) -> tuple[np.ndarray, np.ndarray]:
     """Cyclic gait angles (T, 24, 3) in anatomical degrees, and the stride phase (T,).
     `cadence` is strides per second (T,); the left heel strikes at phase 0, left thigh forward."""
-    phase = 2 * np.pi * np.concatenate([[0.0], np.cumsum((cadence[1:] + cadence[:-1]) / 2 * np.diff(t))])
+    phase = (
+        2
+        * np.pi
+        * np.concatenate([[0.0], np.cumsum((cadence[1:] + cadence[:-1]) / 2 * np.diff(t))])
+    )
     phase = phase + style.get("phase0", 0.0)
     a = np.tile(_to_array(STAND), (len(t), 1, 1))
     for side, off in (("left", 0.0), ("right", np.pi)):
         ph = phase + off
         a[:, J[f"{side}_hip"], 0] = style["hip_bias"] - style["hip_amp"] * np.cos(ph)
         a[:, J[f"{side}_hip"], 2] = 3.0
-        a[:, J[f"{side}_knee"], 0] = (style["knee_stance"] * _bump(ph, 0.5, 2)
-                                      + style["knee_swing"] * _bump(ph, style["swing_peak"], 3) + 3)
-        a[:, J[f"{side}_ankle"], 0] = (style["ankle_push"] * _bump(ph, 3.6, 4)
-                                       - style["ankle_dorsi"] * _bump(ph, 0.9, 2))
+        a[:, J[f"{side}_knee"], 0] = (
+            style["knee_stance"] * _bump(ph, 0.5, 2)
+            + style["knee_swing"] * _bump(ph, style["swing_peak"], 3)
+            + 3
+        )
+        a[:, J[f"{side}_ankle"], 0] = style["ankle_push"] * _bump(ph, 3.6, 4) - style[
+            "ankle_dorsi"
+        ] * _bump(ph, 0.9, 2)
         a[:, J[f"{side}_shoulder"], 0] = style["arm_amp"] * np.cos(ph) + style["arm_bias"]
         a[:, J[f"{side}_shoulder"], 2] = style["arm_abduction"]
         a[:, J[f"{side}_elbow"], 1] = -(style["elbow"] + style["elbow_amp"] * np.cos(ph + np.pi))
@@ -181,13 +201,27 @@ def _gait(t: np.ndarray, cadence: np.ndarray, style: dict) -> tuple[np.ndarray, 
 # ----------------------------------------------------------------------------------------------
 # Motion generators: f(t, rng) -> _Segment, anatomical degrees, mover's frame
 
+
 def _walk(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     cad = rng.uniform(0.85, 1.0)
     speed = rng.uniform(1.1, 1.5)
-    style = dict(hip_bias=-5, hip_amp=rng.uniform(20, 26), knee_stance=15, knee_swing=rng.uniform(50, 60),
-                 swing_peak=4.5, ankle_push=15, ankle_dorsi=8, arm_amp=rng.uniform(12, 22),
-                 arm_bias=0, arm_abduction=-80, elbow=rng.uniform(12, 25), elbow_amp=6,
-                 twist=5, lean=rng.uniform(1, 4), phase0=rng.uniform(0, 2 * np.pi))
+    style = dict(
+        hip_bias=-5,
+        hip_amp=rng.uniform(20, 26),
+        knee_stance=15,
+        knee_swing=rng.uniform(50, 60),
+        swing_peak=4.5,
+        ankle_push=15,
+        ankle_dorsi=8,
+        arm_amp=rng.uniform(12, 22),
+        arm_bias=0,
+        arm_abduction=-80,
+        elbow=rng.uniform(12, 25),
+        elbow_amp=6,
+        twist=5,
+        lean=rng.uniform(1, 4),
+        phase0=rng.uniform(0, 2 * np.pi),
+    )
     ang, _ = _gait(t, np.full_like(t, cad), style)
     return _Segment(ang, speed * t, np.zeros_like(t), np.zeros_like(t))
 
@@ -195,10 +229,23 @@ def _walk(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 def _run(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     cad = rng.uniform(1.3, 1.5)
     speed = rng.uniform(2.6, 3.6)
-    style = dict(hip_bias=-12, hip_amp=rng.uniform(30, 38), knee_stance=22, knee_swing=rng.uniform(75, 95),
-                 swing_peak=4.4, ankle_push=25, ankle_dorsi=10, arm_amp=rng.uniform(35, 50),
-                 arm_bias=-5, arm_abduction=-75, elbow=rng.uniform(80, 95), elbow_amp=12,
-                 twist=9, lean=rng.uniform(5, 10), phase0=rng.uniform(0, 2 * np.pi))
+    style = dict(
+        hip_bias=-12,
+        hip_amp=rng.uniform(30, 38),
+        knee_stance=22,
+        knee_swing=rng.uniform(75, 95),
+        swing_peak=4.4,
+        ankle_push=25,
+        ankle_dorsi=10,
+        arm_amp=rng.uniform(35, 50),
+        arm_bias=-5,
+        arm_abduction=-75,
+        elbow=rng.uniform(80, 95),
+        elbow_amp=12,
+        twist=9,
+        lean=rng.uniform(5, 10),
+        phase0=rng.uniform(0, 2 * np.pi),
+    )
     ang, phase = _gait(t, np.full_like(t, cad), style)
     flight = GRAVITY * 0.1**2 / 8  # peak height of a ~0.1 s flight phase, twice per stride
     lift = flight * np.clip(np.sin(2 * phase - 0.6), 0, None) ** 2
@@ -208,17 +255,42 @@ def _run(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 def _sprint_start(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     t_set = rng.uniform(0.4, 0.7)
     vmax, tau = rng.uniform(6.0, 8.0), rng.uniform(0.9, 1.3)
-    crouch = _to_array(_with(STAND, pelvis=(62, 0, 0), left_hip=(-112, 0, 5), left_knee=(105, 0, 0),
-                             right_hip=(-58, 0, 5), right_knee=(118, 0, 0), both_shoulder=(-70, 0, -86),
-                             both_elbow=(0, -5, 0), neck=(-30, 0, 0), spine1=(8, 0, 0)))
+    crouch = _to_array(
+        _with(
+            STAND,
+            pelvis=(62, 0, 0),
+            left_hip=(-112, 0, 5),
+            left_knee=(105, 0, 0),
+            right_hip=(-58, 0, 5),
+            right_knee=(118, 0, 0),
+            both_shoulder=(-70, 0, -86),
+            both_elbow=(0, -5, 0),
+            neck=(-30, 0, 0),
+            spine1=(8, 0, 0),
+        )
+    )
     crouch = _flat_feet(crouch, ("left",))
     crouch[J["right_ankle"], 0] = 35  # rear foot on its toes
     drive = np.clip(t - t_set, 0, None)
     speed = vmax * (1 - np.exp(-drive / tau))
     cadence = 1.2 + 0.6 * (1 - np.exp(-drive / tau))
-    style = dict(hip_bias=-22, hip_amp=40, knee_stance=40, knee_swing=105, swing_peak=4.4,
-                 ankle_push=30, ankle_dorsi=8, arm_amp=55, arm_bias=-5, arm_abduction=-78,
-                 elbow=85, elbow_amp=15, twist=8, lean=0, phase0=np.pi)
+    style = dict(
+        hip_bias=-22,
+        hip_amp=40,
+        knee_stance=40,
+        knee_swing=105,
+        swing_peak=4.4,
+        ankle_push=30,
+        ankle_dorsi=8,
+        arm_amp=55,
+        arm_bias=-5,
+        arm_abduction=-78,
+        elbow=85,
+        elbow_amp=15,
+        twist=8,
+        lean=0,
+        phase0=np.pi,
+    )
     gait, _ = _gait(t, cadence, style)
     gait[:, 0, 0] = 12 + 38 * np.exp(-drive / 0.6)  # body lean decays while accelerating
     w = _smoothstep((t - t_set) / 0.35)[:, None, None]
@@ -230,22 +302,65 @@ def _sprint_start(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 def _jump(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     depth = rng.uniform(0.8, 1.1)
     flight_time = rng.uniform(0.38, 0.5)
-    s = dict(pelvis=(35 * depth, 0, 0), both_hip=(-85 * depth, 0, 4), both_knee=(95 * depth, 0, 0),
-             both_shoulder=(55, 0, -82), both_elbow=(0, -15, 0), spine2=(10, 0, 0), neck=(-20, 0, 0))
+    s = dict(
+        pelvis=(35 * depth, 0, 0),
+        both_hip=(-85 * depth, 0, 4),
+        both_knee=(95 * depth, 0, 0),
+        both_shoulder=(55, 0, -82),
+        both_elbow=(0, -15, 0),
+        spine2=(10, 0, 0),
+        neck=(-20, 0, 0),
+    )
     t0, t1, t2 = 0.3, 0.75, 0.95
     t3 = t2 + flight_time
     keys = [
         _Key(0.0, STAND),
         _Key(t0, STAND),
         _Key(t1, _with(STAND, **s)),
-        _Key(t2, _with(STAND, pelvis=(5, 0, 0), both_hip=(-5, 0, 3), both_knee=(5, 0, 0),
-                       both_shoulder=(-110, 0, -72), both_elbow=(0, -20, 0)), planted=()),
-        _Key(t2 + 0.5 * flight_time, _with(STAND, both_hip=(-12, 0, 4), both_knee=(15, 0, 0),
-                                           both_ankle=(30, 0, 0), both_shoulder=(-140, 0, -70)), planted=()),
-        _Key(t3, _with(STAND, both_hip=(-20, 0, 4), both_knee=(20, 0, 0), both_ankle=(25, 0, 0),
-                       both_shoulder=(-60, 0, -75)), planted=()),
-        _Key(t3 + 0.25, _with(STAND, pelvis=(25, 0, 0), both_hip=(-60, 0, 4), both_knee=(70, 0, 0),
-                              both_shoulder=(-40, 0, -80))),
+        _Key(
+            t2,
+            _with(
+                STAND,
+                pelvis=(5, 0, 0),
+                both_hip=(-5, 0, 3),
+                both_knee=(5, 0, 0),
+                both_shoulder=(-110, 0, -72),
+                both_elbow=(0, -20, 0),
+            ),
+            planted=(),
+        ),
+        _Key(
+            t2 + 0.5 * flight_time,
+            _with(
+                STAND,
+                both_hip=(-12, 0, 4),
+                both_knee=(15, 0, 0),
+                both_ankle=(30, 0, 0),
+                both_shoulder=(-140, 0, -70),
+            ),
+            planted=(),
+        ),
+        _Key(
+            t3,
+            _with(
+                STAND,
+                both_hip=(-20, 0, 4),
+                both_knee=(20, 0, 0),
+                both_ankle=(25, 0, 0),
+                both_shoulder=(-60, 0, -75),
+            ),
+            planted=(),
+        ),
+        _Key(
+            t3 + 0.25,
+            _with(
+                STAND,
+                pelvis=(25, 0, 0),
+                both_hip=(-60, 0, 4),
+                both_knee=(70, 0, 0),
+                both_shoulder=(-40, 0, -80),
+            ),
+        ),
         _Key(t3 + 0.75, STAND),
         _Key(t3 + 1.0, STAND),
     ]
@@ -259,11 +374,23 @@ def _jump(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 def _squat(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     period = rng.uniform(2.0, 2.8)
     d = rng.uniform(0.8, 1.05)
-    bottom = _with(STAND, pelvis=(35 * d, 0, 0), both_hip=(-112 * d, 0, 12), both_knee=(112 * d, 0, 0),
-                   both_shoulder=(-85 * d, 0, -88), both_elbow=(0, -5, 0), spine2=(8, 0, 0),
-                   neck=(-25, 0, 0))
-    keys = [_Key(0.0, STAND), _Key(0.15 * period, STAND), _Key(0.5 * period, bottom),
-            _Key(0.6 * period, bottom), _Key(period, STAND)]
+    bottom = _with(
+        STAND,
+        pelvis=(35 * d, 0, 0),
+        both_hip=(-112 * d, 0, 12),
+        both_knee=(112 * d, 0, 0),
+        both_shoulder=(-85 * d, 0, -88),
+        both_elbow=(0, -5, 0),
+        spine2=(8, 0, 0),
+        neck=(-25, 0, 0),
+    )
+    keys = [
+        _Key(0.0, STAND),
+        _Key(0.15 * period, STAND),
+        _Key(0.5 * period, bottom),
+        _Key(0.6 * period, bottom),
+        _Key(period, STAND),
+    ]
     return _keyframed(keys, t)
 
 
@@ -271,36 +398,98 @@ def _lunge(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     p = rng.uniform(1.4, 1.8)
     step = rng.uniform(0.35, 0.45)
     hands = dict(both_shoulder=(-5, 0, -60), both_elbow=(0, -105, 0))
-    low_l = _with(STAND, left_hip=(-85, 0, 3), left_knee=(92, 0, 0), right_hip=(22, 0, 3),
-                  right_knee=(80, 0, 0), right_ankle=(35, 0, 0), **hands)
-    low_r = _with(STAND, right_hip=(-85, 0, 3), right_knee=(92, 0, 0), left_hip=(22, 0, 3),
-                  left_knee=(80, 0, 0), left_ankle=(35, 0, 0), **hands)
+    low_l = _with(
+        STAND,
+        left_hip=(-85, 0, 3),
+        left_knee=(92, 0, 0),
+        right_hip=(22, 0, 3),
+        right_knee=(80, 0, 0),
+        right_ankle=(35, 0, 0),
+        **hands,
+    )
+    low_r = _with(
+        STAND,
+        right_hip=(-85, 0, 3),
+        right_knee=(92, 0, 0),
+        left_hip=(22, 0, 3),
+        left_knee=(80, 0, 0),
+        left_ankle=(35, 0, 0),
+        **hands,
+    )
     up = _with(STAND, **hands)
-    keys = [_Key(0.0, up), _Key(0.45 * p, low_l, forward=step, planted=("left",)),
-            _Key(0.6 * p, low_l, forward=step, planted=("left",)), _Key(p, up),
-            _Key(1.45 * p, low_r, forward=step, planted=("right",)),
-            _Key(1.6 * p, low_r, forward=step, planted=("right",)), _Key(2 * p, up)]
+    keys = [
+        _Key(0.0, up),
+        _Key(0.45 * p, low_l, forward=step, planted=("left",)),
+        _Key(0.6 * p, low_l, forward=step, planted=("left",)),
+        _Key(p, up),
+        _Key(1.45 * p, low_r, forward=step, planted=("right",)),
+        _Key(1.6 * p, low_r, forward=step, planted=("right",)),
+        _Key(2 * p, up),
+    ]
     return _keyframed(keys, t)
 
 
 def _kick(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     """Right-footed instep kick (mirror for left-footed players)."""
     power = rng.uniform(0.85, 1.1)
-    arms_out = dict(left_shoulder=(-40, 0, -35), right_shoulder=(30, 0, -45), both_elbow=(0, -25, 0))
+    arms_out = dict(
+        left_shoulder=(-40, 0, -35), right_shoulder=(30, 0, -45), both_elbow=(0, -25, 0)
+    )
     keys = [
         _Key(0.0, STAND),
-        _Key(0.3, _with(STAND, left_hip=(-25, 0, 3), right_hip=(20, 0, 3), right_knee=(40, 0, 0)),
-             forward=0.3),
-        _Key(0.6, _with(STAND, left_hip=(-10, 0, 5), left_knee=(20, 0, 0), right_hip=(35 * power, 0, 5),
-                        right_knee=(105, 0, 0), right_ankle=(30, 0, 0), spine2=(0, 12, 0),
-                        pelvis=(0, 0, 6), **arms_out), forward=0.6, planted=("left",)),
-        _Key(0.78, _with(STAND, left_hip=(-8, 0, 5), left_knee=(12, 0, 0), right_hip=(-35 * power, 0, 5),
-                         right_knee=(65, 0, 0), right_ankle=(40, 0, 0), spine2=(-8, -10, 0),
-                         pelvis=(-5, 0, 6), **arms_out), forward=0.65, planted=("left",)),
-        _Key(0.98, _with(STAND, left_hip=(-5, 0, 5), left_knee=(15, 0, 0), right_hip=(-85 * power, 0, 5),
-                         right_knee=(10, 0, 0), right_ankle=(30, 0, 0), spine2=(10, -18, 0),
-                         left_shoulder=(-20, 0, -40), right_shoulder=(45, 0, -60)),
-             forward=0.7, planted=("left",)),
+        _Key(
+            0.3,
+            _with(STAND, left_hip=(-25, 0, 3), right_hip=(20, 0, 3), right_knee=(40, 0, 0)),
+            forward=0.3,
+        ),
+        _Key(
+            0.6,
+            _with(
+                STAND,
+                left_hip=(-10, 0, 5),
+                left_knee=(20, 0, 0),
+                right_hip=(35 * power, 0, 5),
+                right_knee=(105, 0, 0),
+                right_ankle=(30, 0, 0),
+                spine2=(0, 12, 0),
+                pelvis=(0, 0, 6),
+                **arms_out,
+            ),
+            forward=0.6,
+            planted=("left",),
+        ),
+        _Key(
+            0.78,
+            _with(
+                STAND,
+                left_hip=(-8, 0, 5),
+                left_knee=(12, 0, 0),
+                right_hip=(-35 * power, 0, 5),
+                right_knee=(65, 0, 0),
+                right_ankle=(40, 0, 0),
+                spine2=(-8, -10, 0),
+                pelvis=(-5, 0, 6),
+                **arms_out,
+            ),
+            forward=0.65,
+            planted=("left",),
+        ),
+        _Key(
+            0.98,
+            _with(
+                STAND,
+                left_hip=(-5, 0, 5),
+                left_knee=(15, 0, 0),
+                right_hip=(-85 * power, 0, 5),
+                right_knee=(10, 0, 0),
+                right_ankle=(30, 0, 0),
+                spine2=(10, -18, 0),
+                left_shoulder=(-20, 0, -40),
+                right_shoulder=(45, 0, -60),
+            ),
+            forward=0.7,
+            planted=("left",),
+        ),
         _Key(1.35, _with(STAND, right_hip=(-20, 0, 3), right_knee=(10, 0, 0)), forward=0.85),
         _Key(1.8, STAND, forward=0.9),
     ]
@@ -312,20 +501,59 @@ def _throw(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     v = rng.uniform(0.85, 1.1)
     keys = [
         _Key(0.0, STAND),
-        _Key(0.45, _with(STAND, left_hip=(-35, 0, 5), left_knee=(20, 0, 0), right_hip=(12, 0, 5),
-                         right_knee=(12, 0, 0), spine2=(-5, -25 * v, 0), spine3=(-5, -15 * v, 0),
-                         right_shoulder=(35, 60, 0), right_elbow=(0, -95, 0),
-                         left_shoulder=(-70, 0, -20), left_elbow=(0, -20, 0), neck=(0, 30, 0)),
-             forward=0.3),
-        _Key(0.68, _with(STAND, left_hip=(-40, 0, 5), left_knee=(25, 0, 0), right_hip=(15, 0, 5),
-                         right_knee=(20, 0, 0), spine2=(15, 25 * v, 0), spine3=(10, 15 * v, 0),
-                         right_shoulder=(-120, 10, -25), right_elbow=(0, -25, 0),
-                         left_shoulder=(-20, 0, -75), left_elbow=(0, -40, 0)),
-             forward=0.4, planted=("left",)),
-        _Key(0.9, _with(STAND, left_hip=(-35, 0, 5), left_knee=(30, 0, 0), right_hip=(10, 0, 5),
-                        right_knee=(40, 0, 0), right_ankle=(35, 0, 0), spine2=(30, 30, 0),
-                        right_shoulder=(-60, 0, -75), right_elbow=(0, -20, 0),
-                        left_shoulder=(10, 0, -80)), forward=0.45, planted=("left",)),
+        _Key(
+            0.45,
+            _with(
+                STAND,
+                left_hip=(-35, 0, 5),
+                left_knee=(20, 0, 0),
+                right_hip=(12, 0, 5),
+                right_knee=(12, 0, 0),
+                spine2=(-5, -25 * v, 0),
+                spine3=(-5, -15 * v, 0),
+                right_shoulder=(35, 60, 0),
+                right_elbow=(0, -95, 0),
+                left_shoulder=(-70, 0, -20),
+                left_elbow=(0, -20, 0),
+                neck=(0, 30, 0),
+            ),
+            forward=0.3,
+        ),
+        _Key(
+            0.68,
+            _with(
+                STAND,
+                left_hip=(-40, 0, 5),
+                left_knee=(25, 0, 0),
+                right_hip=(15, 0, 5),
+                right_knee=(20, 0, 0),
+                spine2=(15, 25 * v, 0),
+                spine3=(10, 15 * v, 0),
+                right_shoulder=(-120, 10, -25),
+                right_elbow=(0, -25, 0),
+                left_shoulder=(-20, 0, -75),
+                left_elbow=(0, -40, 0),
+            ),
+            forward=0.4,
+            planted=("left",),
+        ),
+        _Key(
+            0.9,
+            _with(
+                STAND,
+                left_hip=(-35, 0, 5),
+                left_knee=(30, 0, 0),
+                right_hip=(10, 0, 5),
+                right_knee=(40, 0, 0),
+                right_ankle=(35, 0, 0),
+                spine2=(30, 30, 0),
+                right_shoulder=(-60, 0, -75),
+                right_elbow=(0, -20, 0),
+                left_shoulder=(10, 0, -80),
+            ),
+            forward=0.45,
+            planted=("left",),
+        ),
         _Key(1.5, STAND, forward=0.55),
     ]
     return _keyframed(keys, t)
@@ -333,11 +561,20 @@ def _throw(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 
 def _turn(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     angle = np.pi * rng.uniform(0.6, 1.0) * rng.choice([-1.0, 1.0])
-    step_l = _with(STAND, left_hip=(-22, 0, 6), left_knee=(40, 0, 0), spine2=(0, 10 * np.sign(angle), 0))
-    step_r = _with(STAND, right_hip=(-22, 0, 6), right_knee=(40, 0, 0), spine2=(0, 10 * np.sign(angle), 0))
-    keys = [_Key(0.0, STAND), _Key(0.25, step_l, turn=0.25 * angle, planted=("right",)),
-            _Key(0.5, STAND, turn=0.5 * angle), _Key(0.75, step_r, turn=0.75 * angle, planted=("left",)),
-            _Key(1.0, STAND, turn=angle), _Key(1.6, STAND, turn=angle)]
+    step_l = _with(
+        STAND, left_hip=(-22, 0, 6), left_knee=(40, 0, 0), spine2=(0, 10 * np.sign(angle), 0)
+    )
+    step_r = _with(
+        STAND, right_hip=(-22, 0, 6), right_knee=(40, 0, 0), spine2=(0, 10 * np.sign(angle), 0)
+    )
+    keys = [
+        _Key(0.0, STAND),
+        _Key(0.25, step_l, turn=0.25 * angle, planted=("right",)),
+        _Key(0.5, STAND, turn=0.5 * angle),
+        _Key(0.75, step_r, turn=0.75 * angle, planted=("left",)),
+        _Key(1.0, STAND, turn=angle),
+        _Key(1.6, STAND, turn=angle),
+    ]
     return _keyframed(keys, t)
 
 
@@ -356,8 +593,16 @@ def _idle(t: np.ndarray, rng: np.random.Generator) -> _Segment:
 
 
 MOTIONS: dict[str, Callable[[np.ndarray, np.random.Generator], _Segment]] = {
-    "idle": _idle, "walk": _walk, "run": _run, "sprint_start": _sprint_start, "jump": _jump,
-    "squat": _squat, "lunge": _lunge, "kick": _kick, "throw": _throw, "turn": _turn,
+    "idle": _idle,
+    "walk": _walk,
+    "run": _run,
+    "sprint_start": _sprint_start,
+    "jump": _jump,
+    "squat": _squat,
+    "lunge": _lunge,
+    "kick": _kick,
+    "throw": _throw,
+    "turn": _turn,
 }
 LOCOMOTION = ("walk", "run", "sprint_start")
 IN_PLACE = tuple(m for m in MOTIONS if m not in LOCOMOTION)
@@ -366,6 +611,7 @@ _LATERAL = ("kick", "throw", "lunge", "sprint_start")  # motions with a preferre
 
 # ----------------------------------------------------------------------------------------------
 # Per-person variation and programs
+
 
 def _smooth_noise(n: int, fps: float, rng: np.random.Generator, amplitude_deg: float) -> np.ndarray:
     """(n, 24, 3) low-frequency noise in degrees: a few random sinusoids per channel."""
@@ -388,8 +634,14 @@ def _anatomical_to_model(angles_deg: np.ndarray) -> np.ndarray:
     return out
 
 
-def motion_segment(name: str, n_frames: int, fps: float, rng: np.random.Generator,
-                   mirrored: bool | None = None, noise_deg: float = 2.0) -> _Segment:
+def motion_segment(
+    name: str,
+    n_frames: int,
+    fps: float,
+    rng: np.random.Generator,
+    mirrored: bool | None = None,
+    noise_deg: float = 2.0,
+) -> _Segment:
     """One motion with per-person variation, in model signs (radians) and the mover's frame.
 
     `mirrored` picks the side for lateral motions (kick foot, throwing hand, lead leg); None
@@ -415,10 +667,17 @@ def motion_segment(name: str, n_frames: int, fps: float, rng: np.random.Generato
     return _Segment(clip_to_limits(ang), seg.forward, turn, seg.lift)
 
 
-def generate_motion(names: list[str] | tuple[str, ...] | str, n_frames: int, fps: float,
-                    rng: np.random.Generator, start: tuple[float, float] = (0.0, 0.0),
-                    heading: float = 0.0, curvature: float = 0.0, blend_s: float = 0.35,
-                    noise_deg: float = 2.0) -> MotionClip:
+def generate_motion(
+    names: list[str] | tuple[str, ...] | str,
+    n_frames: int,
+    fps: float,
+    rng: np.random.Generator,
+    start: tuple[float, float] = (0.0, 0.0),
+    heading: float = 0.0,
+    curvature: float = 0.0,
+    blend_s: float = 0.35,
+    noise_deg: float = 2.0,
+) -> MotionClip:
     """A person's motion program: `names` played in turn over `n_frames`, crossfaded.
 
     The pelvis starts at world XY `start` facing `heading`; forward motion bends with
@@ -465,12 +724,23 @@ def generate_motion(names: list[str] | tuple[str, ...] | str, n_frames: int, fps
     step = dfwd[:, None] * np.stack([np.cos(heading_t), np.sin(heading_t)], -1)
     position = np.asarray(start, dtype=np.float64)[None] + np.cumsum(step, axis=0)
     # A convex blend of in-limit angles is in limits, so no second clip is needed.
-    return MotionClip(fps=float(fps), angles=angles, position=position,
-                      heading=heading_t, lift=lift, labels=tuple(str(x) for x in labels))
+    return MotionClip(
+        fps=float(fps),
+        angles=angles,
+        position=position,
+        heading=heading_t,
+        lift=lift,
+        labels=tuple(str(x) for x in labels),
+    )
 
 
-def random_static_poses(n_frames: int, rng: np.random.Generator, fps: float = 30.0,
-                        start: tuple[float, float] = (0.0, 0.0), spread: float = 0.8) -> MotionClip:
+def random_static_poses(
+    n_frames: int,
+    rng: np.random.Generator,
+    fps: float = 30.0,
+    start: tuple[float, float] = (0.0, 0.0),
+    spread: float = 0.8,
+) -> MotionClip:
     """Independent random poses for training diversity (no temporal coherence).
 
     Each joint angle is drawn uniformly from a window `spread` times its range wide, centred
@@ -485,6 +755,12 @@ def random_static_poses(n_frames: int, rng: np.random.Generator, fps: float = 30
     angles[:, 0] = np.deg2rad(rng.uniform(-15, 25, (n_frames, 3)) * np.array([1, 0, 0.4]))
     heading = rng.uniform(-np.pi, np.pi, n_frames)
     position = np.tile(np.asarray(start, dtype=np.float64), (n_frames, 1))
-    return MotionClip(fps=float(fps), angles=clip_to_limits(angles), position=position,
-                      heading=heading, lift=np.zeros(n_frames),
-                      labels=("random_static",) * n_frames, smooth=False)
+    return MotionClip(
+        fps=float(fps),
+        angles=clip_to_limits(angles),
+        position=position,
+        heading=heading,
+        lift=np.zeros(n_frames),
+        labels=("random_static",) * n_frames,
+        smooth=False,
+    )

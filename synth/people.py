@@ -32,18 +32,30 @@ class PersonSpec:
     curvature: float
 
     def to_dict(self) -> dict:
-        return {"person_id": self.person_id, "betas": [round(float(b), 6) for b in self.betas],
-                "motions": list(self.motions), "start": [round(v, 6) for v in self.start],
-                "heading": round(self.heading, 6), "curvature": round(self.curvature, 6),
-                "outfit": self.outfit.to_dict()}
+        return {
+            "person_id": self.person_id,
+            "betas": [round(float(b), 6) for b in self.betas],
+            "motions": list(self.motions),
+            "start": [round(v, 6) for v in self.start],
+            "heading": round(self.heading, 6),
+            "curvature": round(self.curvature, 6),
+            "outfit": self.outfit.to_dict(),
+        }
 
     def motion_clip(self, n_frames: int, fps: float, seed: int) -> MotionClip:
         """The person's motion, deterministic from `seed` and the person id."""
         rng = np.random.default_rng(np.random.SeedSequence([seed, 2, self.person_id]))
         if self.motions == ("random_static",):
             return random_static_poses(n_frames, rng, fps=fps, start=self.start)
-        return generate_motion(list(self.motions), n_frames, fps, rng, start=self.start,
-                               heading=self.heading, curvature=self.curvature)
+        return generate_motion(
+            list(self.motions),
+            n_frames,
+            fps,
+            rng,
+            start=self.start,
+            heading=self.heading,
+            curvature=self.curvature,
+        )
 
 
 SAMPLED_BETAS = 10  # SMPL and GST use the first 10 shape coefficients
@@ -70,9 +82,17 @@ def _programme(rng: np.random.Generator, n_frames: int, fps: float) -> tuple[str
     return tuple(str(m) for m in rng.choice(moves, size=n_moves, replace=False))
 
 
-def sample_people(n: int, rng: np.random.Generator, num_betas: int, volume_center: Sequence[float],
-                  volume_radius: float, n_frames: int, fps: float,
-                  programmes: Sequence[Sequence[str]] | None = None, n_teams: int = 2) -> list[PersonSpec]:
+def sample_people(
+    n: int,
+    rng: np.random.Generator,
+    num_betas: int,
+    volume_center: Sequence[float],
+    volume_radius: float,
+    n_frames: int,
+    fps: float,
+    programmes: Sequence[Sequence[str]] | None = None,
+    n_teams: int = 2,
+) -> list[PersonSpec]:
     """Sample `n` people. `programmes` optionally fixes each person's motion names (one list per
     person; 'random_static' gives independent random poses)."""
     if not 1 <= n <= 255:
@@ -85,8 +105,10 @@ def sample_people(n: int, rng: np.random.Generator, num_betas: int, volume_cente
         prog = tuple(programmes[i]) if programmes is not None else _programme(rng, n_frames, fps)
         unknown = [m for m in prog if m not in MOTIONS and m != "random_static"]
         if not prog or unknown:
-            raise ValueError(f"person {i + 1}: unknown motions {unknown or prog}; available: {sorted(MOTIONS)} "
-                             f"or ['random_static']")
+            raise ValueError(
+                f"person {i + 1}: unknown motions {unknown or prog}; available: {sorted(MOTIONS)} "
+                f"or ['random_static']"
+            )
         progs.append(prog)
     cx, cy = float(volume_center[0]), float(volume_center[1])
     movers = [i for i, p in enumerate(progs) if any(m in LOCOMOTION for m in p)]
@@ -107,11 +129,26 @@ def sample_people(n: int, rng: np.random.Generator, num_betas: int, volume_cente
             k = stayers.index(i)
             r = 0.0 if len(stayers) == 1 else 0.35 * volume_radius
             a = phase0 + np.pi / 3 + 2 * np.pi * k / max(1, len(stayers))
-            start = (cx + r * np.cos(a) + rng.uniform(-0.1, 0.1), cy + r * np.sin(a) + rng.uniform(-0.1, 0.1))
+            start = (
+                cx + r * np.cos(a) + rng.uniform(-0.1, 0.1),
+                cy + r * np.sin(a) + rng.uniform(-0.1, 0.1),
+            )
             # Face the centre so forward steps (kick, throw) stay in the volume.
-            heading = float(np.arctan2(cy - start[1], cx - start[0])) if r > 0 else rng.uniform(-np.pi, np.pi)
+            heading = (
+                float(np.arctan2(cy - start[1], cx - start[0]))
+                if r > 0
+                else rng.uniform(-np.pi, np.pi)
+            )
             curvature = 0.0
-        people.append(PersonSpec(person_id=i + 1, betas=betas, outfit=outfit, motions=progs[i],
-                                 start=(float(start[0]), float(start[1])), heading=float(heading),
-                                 curvature=float(curvature)))
+        people.append(
+            PersonSpec(
+                person_id=i + 1,
+                betas=betas,
+                outfit=outfit,
+                motions=progs[i],
+                start=(float(start[0]), float(start[1])),
+                heading=float(heading),
+                curvature=float(curvature),
+            )
+        )
     return people

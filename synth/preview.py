@@ -25,7 +25,9 @@ def contact_sheet(images: list[np.ndarray], names: list[str], thumb_width: int =
         th = int(round(h * tw / w))
         t = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA) if tw != w else img.copy()
         cv2.rectangle(t, (0, 0), (min(tw, 12 + 9 * len(name)), 20), (0, 0, 0), -1)
-        cv2.putText(t, name, (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            t, name, (5, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA
+        )
         thumbs.append(t)
     th = max(t.shape[0] for t in thumbs)
     tw = max(t.shape[1] for t in thumbs)
@@ -33,11 +35,13 @@ def contact_sheet(images: list[np.ndarray], names: list[str], thumb_width: int =
     for i, t in enumerate(thumbs):
         r, c = divmod(i, cols)
         y, x = 4 + r * (th + 4), 4 + c * (tw + 4)
-        sheet[y:y + t.shape[0], x:x + t.shape[1]] = t
+        sheet[y : y + t.shape[0], x : x + t.shape[1]] = t
     return sheet
 
 
-def truth_overlay(images: list[np.ndarray], cameras: list[Camera], tracks, frame: int) -> np.ndarray:
+def truth_overlay(
+    images: list[np.ndarray], cameras: list[Camera], tracks, frame: int
+) -> np.ndarray:
     """Contact sheet with each person's projected skeleton and full-body box drawn in."""
     drawn = []
     for img, cam in zip(images, cameras, strict=True):
@@ -47,8 +51,14 @@ def truth_overlay(images: list[np.ndarray], cameras: list[Camera], tracks, frame
             uv, inside = project_in_view(cam, tr.joints[frame])
             for j, p in enumerate(PARENTS):
                 if p >= 0 and inside[j] and inside[p]:
-                    cv2.line(out, tuple(np.rint(uv[j]).astype(int)), tuple(np.rint(uv[p]).astype(int)), colour, 1,
-                             cv2.LINE_AA)
+                    cv2.line(
+                        out,
+                        tuple(np.rint(uv[j]).astype(int)),
+                        tuple(np.rint(uv[p]).astype(int)),
+                        colour,
+                        1,
+                        cv2.LINE_AA,
+                    )
             for j in np.flatnonzero(inside):
                 cv2.circle(out, tuple(np.rint(uv[j]).astype(int)), 2, colour, -1, cv2.LINE_AA)
         drawn.append(out)

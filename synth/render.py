@@ -42,7 +42,9 @@ class RenderOptions:
             if not 1 <= v <= 8:
                 raise ValueError(f"RenderOptions.{name} must be in 1..8, got {v}")
         if self.backend not in ("embree", "trimesh"):
-            raise ValueError(f"RenderOptions.backend must be 'embree' or 'trimesh', got {self.backend!r}")
+            raise ValueError(
+                f"RenderOptions.backend must be 'embree' or 'trimesh', got {self.backend!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,7 @@ def _scatter_sum(values: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 # Ray casting backends
 
+
 class RayCaster:
     """Nearest-hit ray casting against a list of meshes (one geometry id per mesh).
 
@@ -102,8 +105,10 @@ class RayCaster:
         if backend not in ("embree", "trimesh"):
             raise ValueError(f"ray casting backend must be 'embree' or 'trimesh', got {backend!r}")
         self.backend = backend
-        self.meshes = [(np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
-                       for v, f in meshes]
+        self.meshes = [
+            (np.ascontiguousarray(v, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
+            for v, f in meshes
+        ]
         if backend == "embree":
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
@@ -127,8 +132,13 @@ class RayCaster:
         """Nearest hits: dict with geom (N,) (-1 = miss), prim (N,), u, v (barycentric of
         vertices 1 and 2) and t (distance along the unit direction, inf on a miss)."""
         n = len(dirs)
-        out = {"geom": np.full(n, -1, np.int32), "prim": np.full(n, -1, np.int32),
-               "u": np.zeros(n, np.float32), "v": np.zeros(n, np.float32), "t": np.full(n, np.inf, np.float32)}
+        out = {
+            "geom": np.full(n, -1, np.int32),
+            "prim": np.full(n, -1, np.int32),
+            "u": np.zeros(n, np.float32),
+            "v": np.zeros(n, np.float32),
+            "t": np.full(n, np.inf, np.float32),
+        }
         if n == 0 or not self.meshes:
             return out
         o = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
@@ -136,8 +146,13 @@ class RayCaster:
         if self.backend == "embree":
             r = self._scene.run(o, d, output=1)
             geom = np.where(r["primID"] >= 0, r["geomID"], -1).astype(np.int32)
-            return {"geom": geom, "prim": r["primID"].astype(np.int32), "u": r["u"], "v": r["v"],
-                    "t": np.where(geom >= 0, r["tfar"], np.inf).astype(np.float32)}
+            return {
+                "geom": geom,
+                "prim": r["primID"].astype(np.int32),
+                "u": r["u"],
+                "v": r["v"],
+                "t": np.where(geom >= 0, r["tfar"], np.inf).astype(np.float32),
+            }
         import trimesh
 
         o64, d64 = o.astype(np.float64), d.astype(np.float64)
@@ -164,6 +179,7 @@ class RayCaster:
 # ------------------------------------------------------------------------------------------------
 # Floor shadows, shared by all cameras of a frame
 
+
 @dataclass(frozen=True)
 class FloorShadowMap:
     """Radiance factor (1 = fully lit) of the floor around one person, on a grid of cells
@@ -181,12 +197,15 @@ class FloorShadowMap:
         v = (xy[:, 1] - self.origin[1]) / self.cell
         inside = (u > -1) & (u < nx) & (v > -1) & (v < ny)
         if inside.any():
-            out[inside] = sample_image(self.factor, u[inside], v[inside], border=cv2.BORDER_CONSTANT, value=1.0)
+            out[inside] = sample_image(
+                self.factor, u[inside], v[inside], border=cv2.BORDER_CONSTANT, value=1.0
+            )
         return out
 
 
-def floor_shadow_maps(people: list[PosedPerson], caster: RayCaster, stage: Stage, samples: int,
-                      cell: float = 0.015) -> list[FloorShadowMap]:
+def floor_shadow_maps(
+    people: list[PosedPerson], caster: RayCaster, stage: Stage, samples: int, cell: float = 0.015
+) -> list[FloorShadowMap]:
     """Soft shadows on the floor: shadow rays from a grid over each person's footprint (their
     bounding box swept along every light sample) toward the area light's samples."""
     lights = stage.light.samples(samples)
@@ -199,22 +218,40 @@ def floor_shadow_maps(people: list[PosedPerson], caster: RayCaster, stage: Stage
     for person in people:
         lo = person.vertices.min(0).astype(np.float64) - 0.05
         hi = person.vertices.max(0).astype(np.float64) + 0.05
-        box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (max(lo[2], 0.0), hi[2])])
+        box = np.array(
+            [
+                [x, y, z]
+                for x in (lo[0], hi[0])
+                for y in (lo[1], hi[1])
+                for z in (max(lo[2], 0.0), hi[2])
+            ]
+        )
         feet = np.concatenate([box[:, :2] - ld[None, :2] * (box[:, 2:3] / ld[2]) for ld in lights])
         flo, fhi = feet.min(0), feet.max(0)
-        nx, ny = int(np.ceil((fhi[0] - flo[0]) / cell)) + 1, int(np.ceil((fhi[1] - flo[1]) / cell)) + 1
+        nx, ny = (
+            int(np.ceil((fhi[0] - flo[0]) / cell)) + 1,
+            int(np.ceil((fhi[1] - flo[1]) / cell)) + 1,
+        )
         gx, gy = np.meshgrid(flo[0] + cell * np.arange(nx), flo[1] + cell * np.arange(ny))
         pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 1e-3)], -1)
         k = len(lights)
-        occ = caster.occluded(np.repeat(pts, k, axis=0), np.tile(lights, (len(pts), 1))).reshape(-1, k)
+        occ = caster.occluded(np.repeat(pts, k, axis=0), np.tile(lights, (len(pts), 1))).reshape(
+            -1, k
+        )
         lit = stage.light.ambient + stage.light.key * ((~occ) * lz[None]).mean(1)
-        maps.append(FloorShadowMap((float(flo[0]), float(flo[1])), cell,
-                                   (lit / full).reshape(ny, nx).astype(np.float32)))
+        maps.append(
+            FloorShadowMap(
+                (float(flo[0]), float(flo[1])),
+                cell,
+                (lit / full).reshape(ny, nx).astype(np.float32),
+            )
+        )
     return maps
 
 
 # ------------------------------------------------------------------------------------------------
 # Per-camera renderer
+
 
 def _pixel_grids(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Undistorted normalised coordinates of pixel centres (H*W, 2) and pixel corners
@@ -222,7 +259,9 @@ def _pixel_grids(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     w, h = camera.width, camera.height
     uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     centres = camera.undistort_points(np.stack([uu.ravel(), vv.ravel()], -1))
-    uc, vc = np.meshgrid(np.arange(w + 1, dtype=np.float64) - 0.5, np.arange(h + 1, dtype=np.float64) - 0.5)
+    uc, vc = np.meshgrid(
+        np.arange(w + 1, dtype=np.float64) - 0.5, np.arange(h + 1, dtype=np.float64) - 0.5
+    )
     corners = camera.undistort_points(np.stack([uc.ravel(), vc.ravel()], -1))
     return centres.astype(np.float32), corners.astype(np.float32)
 
@@ -244,8 +283,10 @@ class ViewRenderer:
 
     def __init__(self, camera: Camera, stage: Stage, options: RenderOptions = RenderOptions()):
         if not stage.contains(camera.center[None])[0]:
-            raise ValueError(f"camera '{camera.name}' at {camera.center.round(2).tolist()} is outside the stage box "
-                             f"(+-{stage.half_x} x +-{stage.half_y} x {stage.height} m)")
+            raise ValueError(
+                f"camera '{camera.name}' at {camera.center.round(2).tolist()} is outside the stage box "
+                f"(+-{stage.half_x} x +-{stage.half_y} x {stage.height} m)"
+            )
         self.camera, self.stage, self.options = camera, stage, options
         self.h, self.w = camera.height, camera.width
         self.origin = camera.center.astype(np.float64)
@@ -253,7 +294,9 @@ class ViewRenderer:
         self.xy, self.corners = _pixel_grids(camera)
         self.light_dirs = stage.light.samples(options.shadow_samples)
         self._body_lights = stage.light.samples(max(1, options.shadow_samples // 2))
-        self.zfac = (1.0 / np.sqrt(1.0 + (self.xy.astype(np.float64) ** 2).sum(1))).astype(np.float32)
+        self.zfac = (1.0 / np.sqrt(1.0 + (self.xy.astype(np.float64) ** 2).sum(1))).astype(
+            np.float32
+        )
         dirs = self.dirs_from_xy(self.xy)
         t, surf, _ = stage.intersect(self.origin, dirs)
         self.bg_points = (self.origin + dirs * t[:, None]).astype(np.float32)
@@ -271,7 +314,7 @@ class ViewRenderer:
         x, y = xy[:, 0:1].astype(np.float32), xy[:, 1:2].astype(np.float32)
         R = self._Rf
         d = x * R[0] + y * R[1] + R[2]
-        d *= (1.0 / np.sqrt(1.0 + x * x + y * y))
+        d *= 1.0 / np.sqrt(1.0 + x * x + y * y)
         return d
 
     def subpixel_xy(self, pixels: np.ndarray, n: int) -> np.ndarray:
@@ -285,8 +328,9 @@ class ViewRenderer:
         c11 = self.corners[(rows + 1) * W1 + cols + 1]
         f = _subpixel_offsets(n).astype(np.float32)
         fx, fy = f[None, :, 0:1], f[None, :, 1:2]
-        xy = ((1 - fy) * ((1 - fx) * c00[:, None] + fx * c01[:, None])
-              + fy * ((1 - fx) * c10[:, None] + fx * c11[:, None]))
+        xy = (1 - fy) * ((1 - fx) * c00[:, None] + fx * c01[:, None]) + fy * (
+            (1 - fx) * c10[:, None] + fx * c11[:, None]
+        )
         return xy.reshape(-1, 2)
 
     # -- static room ----------------------------------------------------------------------------
@@ -312,11 +356,17 @@ class ViewRenderer:
         xy = cam[:, :2] / cam[:, 2:3]
         margin = 2.0 / self.camera.fx
         lo, hi = xy.min(0) - margin, xy.max(0) + margin
-        sel = (self.xy[:, 0] >= lo[0]) & (self.xy[:, 0] <= hi[0]) & (self.xy[:, 1] >= lo[1]) & (self.xy[:, 1] <= hi[1])
+        sel = (
+            (self.xy[:, 0] >= lo[0])
+            & (self.xy[:, 0] <= hi[0])
+            & (self.xy[:, 1] >= lo[1])
+            & (self.xy[:, 1] <= hi[1])
+        )
         return np.flatnonzero(sel)
 
-    def _shade_hits(self, hits: dict, dirs: np.ndarray, people: list[PosedPerson],
-                    caster: RayCaster) -> np.ndarray:
+    def _shade_hits(
+        self, hits: dict, dirs: np.ndarray, people: list[PosedPerson], caster: RayCaster
+    ) -> np.ndarray:
         """Radiance (N, 3) of person hits (all entries of `hits` must be hits)."""
         n = len(dirs)
         rgb = np.zeros((n, 3))
@@ -337,13 +387,22 @@ class ViewRenderer:
         # Half the light samples on bodies: self-shadows are small and seen up close less often.
         lights = self._body_lights
         # Surfaces facing away from a light sample are unlit by it: no shadow ray needed.
-        facing = (normal[:, 0:1] * lights[:, 0] + normal[:, 1:2] * lights[:, 1] + normal[:, 2:3] * lights[:, 2]) > 0
+        facing = (
+            normal[:, 0:1] * lights[:, 0]
+            + normal[:, 1:2] * lights[:, 1]
+            + normal[:, 2:3] * lights[:, 2]
+        ) > 0
         vis = self._visibility(points + normal * 2e-3, caster, lights, facing)
         amb, direct = self.stage.shade(rgb, normal, lights, vis)
         return amb + direct
 
-    def _visibility(self, points: np.ndarray, caster: RayCaster, light_dirs: np.ndarray,
-                    needed: np.ndarray | None = None) -> np.ndarray:
+    def _visibility(
+        self,
+        points: np.ndarray,
+        caster: RayCaster,
+        light_dirs: np.ndarray,
+        needed: np.ndarray | None = None,
+    ) -> np.ndarray:
         """(N, len(light_dirs)) 1 where the light sample is not blocked by a person; only the
         (point, light) pairs in `needed` are traced, the others are reported visible."""
         k = len(light_dirs)
@@ -353,7 +412,9 @@ class ViewRenderer:
         vis[pi, li] = ~caster.occluded(points[pi], light_dirs[li])
         return vis
 
-    def _floor_shadows(self, shadows: list[FloorShadowMap], covered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _floor_shadows(
+        self, shadows: list[FloorShadowMap], covered: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Floor pixels (flat ids) in the people's shadows and their radiance factor."""
         xy = self._floor_xy
         factor = np.ones(len(xy), np.float32)
@@ -362,8 +423,12 @@ class ViewRenderer:
         keep = (factor < 0.999) & ~covered[self._floor_idx]
         return self._floor_idx[keep], factor[keep]
 
-    def render_people(self, people: list[PosedPerson], caster: RayCaster | None = None,
-                      shadows: list[FloorShadowMap] | None = None) -> Layers:
+    def render_people(
+        self,
+        people: list[PosedPerson],
+        caster: RayCaster | None = None,
+        shadows: list[FloorShadowMap] | None = None,
+    ) -> Layers:
         """Render the room with `people`. `caster` (their meshes, same order) and `shadows`
         (their floor shadow maps) are per frame and can be shared by all cameras."""
         npx = self.h * self.w
@@ -371,7 +436,11 @@ class ViewRenderer:
         mask = np.zeros(npx, np.uint8)
         depth = self.bg_depth.copy()
         if not people:
-            return Layers(radiance.reshape(self.h, self.w, 3), mask.reshape(self.h, self.w), depth.reshape(self.h, self.w))
+            return Layers(
+                radiance.reshape(self.h, self.w, 3),
+                mask.reshape(self.h, self.w),
+                depth.reshape(self.h, self.w),
+            )
         if caster is None:
             caster = RayCaster([(p.vertices, p.faces) for p in people], self.options.backend)
         if shadows is None:
@@ -391,7 +460,11 @@ class ViewRenderer:
         radiance[sh_idx] *= sh_factor[:, None]
         if self.options.antialias > 1:
             self._antialias_edges(radiance, mask, people, caster, sh_idx, sh_factor)
-        return Layers(radiance.reshape(self.h, self.w, 3), mask.reshape(self.h, self.w), depth.reshape(self.h, self.w))
+        return Layers(
+            radiance.reshape(self.h, self.w, 3),
+            mask.reshape(self.h, self.w),
+            depth.reshape(self.h, self.w),
+        )
 
     def _antialias_edges(self, radiance, mask, people, caster, sh_idx, sh_factor) -> None:
         """Supersample pixels on a silhouette (any id change among the 4-neighbours)."""
@@ -419,7 +492,9 @@ class ViewRenderer:
         bg *= shadow[owner][:, None]
         samples = bg
         if hit.any():
-            samples[hit] = self._shade_hits({k: v[hit] for k, v in hits.items()}, dirs[hit], people, caster)
+            samples[hit] = self._shade_hits(
+                {k: v[hit] for k, v in hits.items()}, dirs[hit], people, caster
+            )
         radiance[pix] = samples.reshape(len(pix), n * n, 3).mean(1)
 
     # -- calibration board ----------------------------------------------------------------------
@@ -432,7 +507,9 @@ class ViewRenderer:
         depth = self.bg_depth.copy()
         W, H = spec.size
         m = texture.margin
-        outline = pose.to_world(np.array([[-m, -m, 0], [W + m, -m, 0], [-m, H + m, 0], [W + m, H + m, 0]]))
+        outline = pose.to_world(
+            np.array([[-m, -m, 0], [W + m, -m, 0], [-m, H + m, 0], [W + m, H + m, 0]])
+        )
         roi = self._roi(outline)
         hit, t, colour = self._board_hits(spec, pose, texture, self.dirs_from_xy(self.xy[roi]))
         hit &= t * self.zfac[roi] < self.bg_depth[roi]
@@ -460,10 +537,20 @@ class ViewRenderer:
             samples = self.bg_radiance[owner].astype(np.float64)
             samples[s_hit] = s_col[s_hit]
             radiance[sel] = samples.reshape(len(sel), n * n, 3).mean(1)
-        return Layers(radiance.reshape(self.h, self.w, 3), mask.reshape(self.h, self.w), depth.reshape(self.h, self.w))
+        return Layers(
+            radiance.reshape(self.h, self.w, 3),
+            mask.reshape(self.h, self.w),
+            depth.reshape(self.h, self.w),
+        )
 
-    def _board_hits(self, spec: ChArUcoSpec, pose: BoardPose, texture: BoardTexture, dirs: np.ndarray,
-                    colour: bool = True):
+    def _board_hits(
+        self,
+        spec: ChArUcoSpec,
+        pose: BoardPose,
+        texture: BoardTexture,
+        dirs: np.ndarray,
+        colour: bool = True,
+    ):
         """Ray-board intersection: hit (N,), distance (N,), radiance (N, 3)."""
         z = pose.R[:, 2]
         denom = _dot3(dirs, z)
@@ -473,7 +560,14 @@ class ViewRenderer:
         b = np.stack([_dot3(rel, pose.R[:, 0]), _dot3(rel, pose.R[:, 1])], -1)  # board coordinates
         W, H = spec.size
         m = texture.margin
-        hit = (np.abs(denom) > 1e-9) & (t > 0) & (b[:, 0] >= -m) & (b[:, 0] <= W + m) & (b[:, 1] >= -m) & (b[:, 1] <= H + m)
+        hit = (
+            (np.abs(denom) > 1e-9)
+            & (t > 0)
+            & (b[:, 0] >= -m)
+            & (b[:, 0] <= W + m)
+            & (b[:, 1] >= -m)
+            & (b[:, 1] <= H + m)
+        )
         if not colour:
             return hit, t, None
         front = denom > 0  # travelling along +z: entering through the printed (-z) side
@@ -481,7 +575,12 @@ class ViewRenderer:
         u, v = texture.pixel_coords(b[:, 0], b[:, 1])
         sel = hit & front
         if sel.any():
-            val = sample_image(texture.image, u[sel], v[sel], border=cv2.BORDER_REPLICATE).astype(np.float64) / 255.0
+            val = (
+                sample_image(texture.image, u[sel], v[sel], border=cv2.BORDER_REPLICATE).astype(
+                    np.float64
+                )
+                / 255.0
+            )
             alb = 0.03 + 0.82 * srgb_to_linear(val[:, None] * 255.0)
             rgb[sel] = alb
         back = hit & ~front

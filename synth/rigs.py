@@ -40,8 +40,17 @@ RIG_KINDS = {
 }
 
 
-def look_at(name: str, center: np.ndarray, target: np.ndarray, K: np.ndarray, dist: np.ndarray,
-            width: int, height: int, roll: float = 0.0, meta: dict | None = None) -> Camera:
+def look_at(
+    name: str,
+    center: np.ndarray,
+    target: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray,
+    width: int,
+    height: int,
+    roll: float = 0.0,
+    meta: dict | None = None,
+) -> Camera:
     """An OpenCV camera at `center` looking at `target` with world Z up (image y down)."""
     center = np.asarray(center, dtype=np.float64)
     forward = np.asarray(target, dtype=np.float64) - center
@@ -66,8 +75,14 @@ def _positions(kind: str, n: int, rng: np.random.Generator) -> tuple[list[str], 
         k = np.arange(n)
         az = np.mod(k * 2.399963 + rng.uniform(0, 2 * np.pi), 2 * np.pi)
         elev = np.deg2rad(-10 + 55 * ((k * 0.618034 + 0.31) % 1.0))
-        pos = np.stack([radius * np.cos(elev) * np.cos(az), radius * np.cos(elev) * np.sin(az),
-                        centre_z + radius * np.sin(elev)], -1)
+        pos = np.stack(
+            [
+                radius * np.cos(elev) * np.cos(az),
+                radius * np.cos(elev) * np.sin(az),
+                centre_z + radius * np.sin(elev),
+            ],
+            -1,
+        )
         return [f"00_{i:02d}" for i in range(n)], pos
     if kind == "h36m":
         # Room corners first, then along the walls: cameras at chest height, 4.3-4.8 m away.
@@ -97,16 +112,30 @@ def sample_distortion(spec, n: int, rng: np.random.Generator) -> np.ndarray:
     if spec is None or (isinstance(spec, str) and spec == "none"):
         return np.zeros((n, 5))
     if isinstance(spec, str):
-        ranges = {"mild": ((-0.12, -0.03), (0.0, 0.05), (0.0, 0.005)),
-                  "strong": ((-0.3, -0.2), (0.05, 0.12), (0.0, 0.02))}
+        ranges = {
+            "mild": ((-0.12, -0.03), (0.0, 0.05), (0.0, 0.005)),
+            "strong": ((-0.3, -0.2), (0.05, 0.12), (0.0, 0.02)),
+        }
         if spec not in ranges:
-            raise ValueError(f"distortion '{spec}' is not known; use 'none', 'mild', 'strong' or 4-5 coefficients")
+            raise ValueError(
+                f"distortion '{spec}' is not known; use 'none', 'mild', 'strong' or 4-5 coefficients"
+            )
         (a, b), (c, d), (e, f) = ranges[spec]
-        return np.stack([rng.uniform(a, b, n), rng.uniform(c, d, n), np.zeros(n), np.zeros(n),
-                         rng.uniform(e, f, n)], -1)
+        return np.stack(
+            [
+                rng.uniform(a, b, n),
+                rng.uniform(c, d, n),
+                np.zeros(n),
+                np.zeros(n),
+                rng.uniform(e, f, n),
+            ],
+            -1,
+        )
     coeffs = np.asarray(spec, dtype=np.float64).ravel()
     if coeffs.size not in (4, 5) or not np.all(np.isfinite(coeffs)):
-        raise ValueError(f"distortion coefficients must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {spec!r}")
+        raise ValueError(
+            f"distortion coefficients must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {spec!r}"
+        )
     return np.tile(np.pad(coeffs, (0, 5 - coeffs.size)), (n, 1))
 
 
@@ -121,9 +150,18 @@ def _folds(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> bool:
     return bool(np.any(slope <= 0.05))
 
 
-def make_rig(kind: str, n_cameras: int | None = None, width: int | None = None, height: int | None = None,
-             focal_mm: float | None = None, fov_deg: float | None = None, sensor_width_mm: float = 36.0,
-             distortion: str | Sequence[float] | None = None, fps: float | None = None, seed: int = 0) -> Rig:
+def make_rig(
+    kind: str,
+    n_cameras: int | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    focal_mm: float | None = None,
+    fov_deg: float | None = None,
+    sensor_width_mm: float = 36.0,
+    distortion: str | Sequence[float] | None = None,
+    fps: float | None = None,
+    seed: int = 0,
+) -> Rig:
     """Build a synthetic rig of `kind` ('dome', 'h36m' or 'hall').
 
     Focal length comes from `focal_mm` on a sensor `sensor_width_mm` wide (35 mm equivalent by
@@ -167,11 +205,23 @@ def make_rig(kind: str, n_cameras: int | None = None, width: int | None = None, 
             while _folds(K, dists[i], width, height):  # sampled: tame it for wide lenses
                 dists[i] *= 0.8
         elif _folds(K, dists[i], width, height):
-            raise ValueError(f"camera '{name}': distortion {dists[i].tolist()} folds over within the image "
-                             f"(fov {np.degrees(2 * np.arctan(width / 2 / f)):.0f} deg); reduce k1/k2")
-        target = target0 + np.r_[rng.uniform(-0.15, 0.15, 2) * d.volume_radius, rng.uniform(-0.1, 0.1)]
+            raise ValueError(
+                f"camera '{name}': distortion {dists[i].tolist()} folds over within the image "
+                f"(fov {np.degrees(2 * np.arctan(width / 2 / f)):.0f} deg); reduce k1/k2"
+            )
+        target = (
+            target0 + np.r_[rng.uniform(-0.15, 0.15, 2) * d.volume_radius, rng.uniform(-0.1, 0.1)]
+        )
         roll = np.deg2rad(rng.uniform(-1.5, 1.5))
-        cams.append(look_at(name, c, target, K, dists[i], width, height, roll, meta={"source": "synth"}))
-    meta = {"fps": fps, "kind": kind, "volume_center": list(d.volume_center),
-            "volume_radius": d.volume_radius, "seed": int(seed), "source": "synth"}
+        cams.append(
+            look_at(name, c, target, K, dists[i], width, height, roll, meta={"source": "synth"})
+        )
+    meta = {
+        "fps": fps,
+        "kind": kind,
+        "volume_center": list(d.volume_center),
+        "volume_radius": d.volume_radius,
+        "seed": int(seed),
+        "source": "synth",
+    }
     return Rig(tuple(cams), up=WORLD_UP, meta=meta)

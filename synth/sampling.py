@@ -8,8 +8,13 @@ import numpy as np
 _BLOCK = 1024  # cv2.remap needs map dimensions below 32767
 
 
-def sample_image(image: np.ndarray, x: np.ndarray, y: np.ndarray, border: int = cv2.BORDER_CONSTANT,
-                 value: float = 0.0) -> np.ndarray:
+def sample_image(
+    image: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    border: int = cv2.BORDER_CONSTANT,
+    value: float = 0.0,
+) -> np.ndarray:
     """Bilinear samples of a single-channel image at pixel coords (x, y) (centres at integers)."""
     x = np.asarray(x, dtype=np.float32).ravel()
     y = np.asarray(y, dtype=np.float32).ravel()

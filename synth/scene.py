@@ -50,8 +50,11 @@ from synth.world import WORLD_CONVENTION
 ProgressFn = Callable[[str, int, int], None]
 MapFn = Callable[..., Sequence]  # map_fn(fn, items, description=...) -> results in item order
 SCENE_FORMAT_VERSION = 1
-CALIBRATION_FILES = (("rig", "calibration/rig.json"), ("panoptic", "calibration/calibration_synth.json"),
-                     ("h36m", "calibration/cameras.h5"))
+CALIBRATION_FILES = (
+    ("rig", "calibration/rig.json"),
+    ("panoptic", "calibration/calibration_synth.json"),
+    ("h36m", "calibration/cameras.h5"),
+)
 
 
 class _Spec(BaseModel):
@@ -85,8 +88,14 @@ class BoardClipSpec(_Spec):
     n_frames: int = Field(40, ge=0, le=100_000)
 
     def board(self) -> ChArUcoSpec:
-        return ChArUcoSpec(self.squares_x, self.squares_y, self.square_size, self.marker_size, self.dictionary,
-                           self.margin)
+        return ChArUcoSpec(
+            self.squares_x,
+            self.squares_y,
+            self.square_size,
+            self.marker_size,
+            self.dictionary,
+            self.margin,
+        )
 
 
 class ImagingSpec(_Spec):
@@ -125,9 +134,13 @@ class SceneSpec(_Spec):
     @model_validator(mode="after")
     def _consistent(self):
         if self.motions is not None and len(self.motions) != self.n_people:
-            raise ValueError(f"motions has {len(self.motions)} programmes but n_people is {self.n_people}")
+            raise ValueError(
+                f"motions has {len(self.motions)} programmes but n_people is {self.n_people}"
+            )
         if self.preview_frame is not None and not 0 <= self.preview_frame < self.n_frames:
-            raise ValueError(f"preview_frame {self.preview_frame} is outside 0..{self.n_frames - 1}")
+            raise ValueError(
+                f"preview_frame {self.preview_frame} is outside 0..{self.n_frames - 1}"
+            )
         if self.board.marker_size >= self.board.square_size:
             raise ValueError("board.marker_size must be smaller than board.square_size")
         return self
@@ -135,16 +148,29 @@ class SceneSpec(_Spec):
 
 PRESETS: dict[str, dict] = {
     # Small enough to render in well under 2 minutes on 2 CPU cores, board clip included.
-    "demo": dict(name="demo", n_frames=48, n_people=2, motions=[["run"], ["jump"]],
-                 rig=dict(kind="dome", n_cameras=6, width=480, height=360, distortion="mild", fps=30.0),
-                 board=dict(n_frames=40)),
-    "small": dict(name="small", n_frames=120, n_people=2,
-                  rig=dict(kind="dome", n_cameras=8, width=640, height=480, distortion="mild", fps=30.0),
-                  board=dict(n_frames=80)),
-    "full": dict(name="full", n_frames=300, n_people=4,
-                 rig=dict(kind="hall", n_cameras=8, width=1920, height=1080, distortion="mild"),
-                 board=dict(n_frames=200, squares_x=7, squares_y=5, square_size=0.2, marker_size=0.15),
-                 imaging=dict(antialias=3)),
+    "demo": dict(
+        name="demo",
+        n_frames=48,
+        n_people=2,
+        motions=[["run"], ["jump"]],
+        rig=dict(kind="dome", n_cameras=6, width=480, height=360, distortion="mild", fps=30.0),
+        board=dict(n_frames=40),
+    ),
+    "small": dict(
+        name="small",
+        n_frames=120,
+        n_people=2,
+        rig=dict(kind="dome", n_cameras=8, width=640, height=480, distortion="mild", fps=30.0),
+        board=dict(n_frames=80),
+    ),
+    "full": dict(
+        name="full",
+        n_frames=300,
+        n_people=4,
+        rig=dict(kind="hall", n_cameras=8, width=1920, height=1080, distortion="mild"),
+        board=dict(n_frames=200, squares_x=7, squares_y=5, square_size=0.2, marker_size=0.15),
+        imaging=dict(antialias=3),
+    ),
 }
 
 
@@ -191,8 +217,10 @@ def _load_body_model(name: str):
     try:
         from gst.body import load_body_model
     except ImportError as exc:
-        raise ImportError(f"synth needs gst.body.load_body_model to load body model '{name}' "
-                          "(or pass body_model= to render_scene)") from exc
+        raise ImportError(
+            f"synth needs gst.body.load_body_model to load body model '{name}' "
+            "(or pass body_model= to render_scene)"
+        ) from exc
     return load_body_model(name)
 
 
@@ -200,8 +228,10 @@ def _default_rig_writer():
     try:
         from calibration.formats import write_rig
     except ImportError as exc:
-        raise ImportError("synth writes calibration files with calibration.formats.write_rig "
-                          "(or pass rig_writer= to render_scene)") from exc
+        raise ImportError(
+            "synth writes calibration files with calibration.formats.write_rig "
+            "(or pass rig_writer= to render_scene)"
+        ) from exc
     return write_rig
 
 
@@ -240,9 +270,15 @@ def _camera_groups(rig, budget_bytes: float = 1.5e9) -> list[list[int]]:
     return groups
 
 
-def render_scene(spec: SceneSpec, out_dir: str | os.PathLike, progress: ProgressFn | None = None,
-                 body_model=None, rig_writer: Callable | None = None, map_fn: MapFn | None = None,
-                 shares: int | None = None) -> SceneSummary:
+def render_scene(
+    spec: SceneSpec,
+    out_dir: str | os.PathLike,
+    progress: ProgressFn | None = None,
+    body_model=None,
+    rig_writer: Callable | None = None,
+    map_fn: MapFn | None = None,
+    shares: int | None = None,
+) -> SceneSummary:
     """Render a complete synthetic capture for `spec` into `out_dir` (replaced atomically).
 
     `body_model` defaults to `gst.body.load_body_model(spec.body_model)`; `rig_writer(rig, path,
@@ -284,27 +320,57 @@ class _Progress:
         self.report(name, self.done, self.total)
 
 
-def _pose_cast(spec: SceneSpec, model, rig, fps: float, report: ProgressFn) -> tuple[list, list, Cast]:
+def _pose_cast(
+    spec: SceneSpec, model, rig, fps: float, report: ProgressFn
+) -> tuple[list, list, Cast]:
     """(people specs, person tracks, the cast the renderer sees)."""
     faces = np.asarray(model.faces, dtype=np.int32)
-    people = sample_people(spec.n_people, np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
-                           int(model.num_betas), rig.meta["volume_center"], rig.meta["volume_radius"],
-                           spec.n_frames, fps, programmes=spec.motions)
+    people = sample_people(
+        spec.n_people,
+        np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
+        int(model.num_betas),
+        rig.meta["volume_center"],
+        rig.meta["volume_radius"],
+        spec.n_frames,
+        fps,
+        programmes=spec.motions,
+    )
     tracks, members = [], []
     for k, person in enumerate(people):
         report("pose", k, len(people))
-        track = pose_person(model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id)
+        track = pose_person(
+            model, person.betas, person.motion_clip(spec.n_frames, fps, spec.seed), person.person_id
+        )
         tracks.append(track)
-        atlas = BodyAtlas.build(track.rest_vertices, track.rest_joints, getattr(model, "part_labels", None),
-                                getattr(model, "part_names", None))
-        members.append(CastMember(track.person_id, track.vertices, vertex_normals(track.vertices, faces), track.joints,
-                                  atlas, person.outfit))
+        atlas = BodyAtlas.build(
+            track.rest_vertices,
+            track.rest_joints,
+            getattr(model, "part_labels", None),
+            getattr(model, "part_names", None),
+        )
+        members.append(
+            CastMember(
+                track.person_id,
+                track.vertices,
+                vertex_normals(track.vertices, faces),
+                track.joints,
+                atlas,
+                person.outfit,
+            )
+        )
     report("pose", len(people), len(people))
     return people, tracks, Cast(members, faces)
 
 
-def _render_shares(spec: SceneSpec, setup: SceneSetup, cast: Cast, shares: list[tuple[int, ...]], out: Path,
-                   progress: _Progress, map_fn: MapFn | None) -> list[ShareResult]:
+def _render_shares(
+    spec: SceneSpec,
+    setup: SceneSetup,
+    cast: Cast,
+    shares: list[tuple[int, ...]],
+    out: Path,
+    progress: _Progress,
+    map_fn: MapFn | None,
+) -> list[ShareResult]:
     """Render every share, inline (with per-frame progress) or through `map_fn`."""
     if map_fn is None:
         return [render_share(spec, setup, cast, share, out, progress.step) for share in shares]
@@ -315,8 +381,10 @@ def _render_shares(spec: SceneSpec, setup: SceneSetup, cast: Cast, shares: list[
     finally:
         shutil.rmtree(cast_files.folder, ignore_errors=True)
     if len(results) != len(jobs) or not all(isinstance(r, ShareResult) for r in results):
-        raise RuntimeError(f"map_fn returned {len(results)} results of types {sorted({type(r).__name__ for r in results})} "
-                           f"for {len(jobs)} camera shares; expected one ShareResult per share, in order")
+        raise RuntimeError(
+            f"map_fn returned {len(results)} results of types {sorted({type(r).__name__ for r in results})} "
+            f"for {len(jobs)} camera shares; expected one ShareResult per share, in order"
+        )
     n_cams = sum(len(s) for s in shares)
     progress.step("render", n_cams * spec.n_frames)
     if setup.board_poses:
@@ -324,11 +392,24 @@ def _render_shares(spec: SceneSpec, setup: SceneSetup, cast: Cast, shares: list[
     return results
 
 
-def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writer, map_fn: MapFn | None,
-                 n_shares: int | None) -> dict:
+def _render_into(
+    spec: SceneSpec,
+    out: Path,
+    report: ProgressFn,
+    model,
+    rig_writer,
+    map_fn: MapFn | None,
+    n_shares: int | None,
+) -> dict:
     setup = SceneSetup.build(spec)
-    rig, fps, stage, board_spec, texture, poses = (setup.rig, setup.fps, setup.stage, setup.board, setup.texture,
-                                                   setup.board_poses)
+    rig, fps, stage, board_spec, texture, poses = (
+        setup.rig,
+        setup.fps,
+        setup.stage,
+        setup.board,
+        setup.texture,
+        setup.board_poses,
+    )
     radii = setup.radii
     people, tracks, cast = _pose_cast(spec, model, rig, fps, report)
     # Camera caches of one memory group fit in memory together; shares split groups further.
@@ -336,7 +417,9 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     progress = _Progress(report, len(rig) * (spec.n_frames + spec.board.n_frames))
     preview, board_preview = {}, {}
     views, check = ViewRows(), JointCheck()
-    for result in _render_shares(spec, setup, cast, shares, out, progress, map_fn):  # in share (camera) order
+    for result in _render_shares(
+        spec, setup, cast, shares, out, progress, map_fn
+    ):  # in share (camera) order
         views.extend(result.views)
         check.merge(result.check)
         preview.update(result.preview)
@@ -344,49 +427,103 @@ def _render_into(spec: SceneSpec, out: Path, report: ProgressFn, model, rig_writ
     names = [c.name for c in rig.cameras]
     missing = [n for n in names if n not in preview or (poses and n not in board_preview)]
     if missing:
-        raise RuntimeError(f"no rendered preview frame came back for camera(s) {missing}: a share was not rendered")
+        raise RuntimeError(
+            f"no rendered preview frame came back for camera(s) {missing}: a share was not rendered"
+        )
 
     report("write", 0, 1)
-    body_meta = {"name": spec.body_model, "num_betas": int(model.num_betas),
-                 "num_vertices": int(tracks[0].vertices.shape[1]), "num_faces": int(len(cast.faces)),
-                 "joint_names": list(JOINT_NAMES)}
-    meta = {"scene": spec.name, "fps": fps, "units": "m", "world": WORLD_CONVENTION, "joint_names": list(JOINT_NAMES),
-            "body_model": body_meta, "format_version": SCENE_FORMAT_VERSION}
+    body_meta = {
+        "name": spec.body_model,
+        "num_betas": int(model.num_betas),
+        "num_vertices": int(tracks[0].vertices.shape[1]),
+        "num_faces": int(len(cast.faces)),
+        "joint_names": list(JOINT_NAMES),
+    }
+    meta = {
+        "scene": spec.name,
+        "fps": fps,
+        "units": "m",
+        "world": WORLD_CONVENTION,
+        "joint_names": list(JOINT_NAMES),
+        "body_model": body_meta,
+        "format_version": SCENE_FORMAT_VERSION,
+    }
     write_parquet(out / "truth" / "people.parquet", people_table(tracks, meta))
-    write_parquet(out / "truth" / "views.parquet", views.table({**meta, "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
-                                                                 "pixel_convention": "OpenCV, pixel centres at integers"}))
+    write_parquet(
+        out / "truth" / "views.parquet",
+        views.table(
+            {
+                **meta,
+                "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
+                "pixel_convention": "OpenCV, pixel centres at integers",
+            }
+        ),
+    )
     if poses:
-        bp, bv = board_tables(board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)})
+        bp, bv = board_tables(
+            board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)}
+        )
         write_parquet(out / "truth" / "board_poses.parquet", bp)
         write_parquet(out / "truth" / "board_views.parquet", bv)
-        write_png(out / "preview" / "board_sheet.png", contact_sheet([board_preview[n] for n in names], names))
+        write_png(
+            out / "preview" / "board_sheet.png",
+            contact_sheet([board_preview[n] for n in names], names),
+        )
     write_json(out / "board.json", board_json(board_spec))
     calibration_notes = _write_calibration(rig, out, rig_writer)
     preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
-    write_png(out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names))
-    write_png(out / "preview" / "truth_overlay.png",
-              truth_overlay([preview[n] for n in names], list(rig.cameras), tracks, preview_f))
+    write_png(
+        out / "preview" / "contact_sheet.png", contact_sheet([preview[n] for n in names], names)
+    )
+    write_png(
+        out / "preview" / "truth_overlay.png",
+        truth_overlay([preview[n] for n in names], list(rig.cameras), tracks, preview_f),
+    )
     scene = {
-        "format": "synth-scene", "format_version": SCENE_FORMAT_VERSION, "name": spec.name,
-        "spec": spec.model_dump(mode="json"), "fps": fps, "n_frames": spec.n_frames,
-        "n_board_frames": spec.board.n_frames, "cameras": names,
+        "format": "synth-scene",
+        "format_version": SCENE_FORMAT_VERSION,
+        "name": spec.name,
+        "spec": spec.model_dump(mode="json"),
+        "fps": fps,
+        "n_frames": spec.n_frames,
+        "n_board_frames": spec.board.n_frames,
+        "cameras": names,
         "image_size": {n: [c.width, c.height] for n, c in zip(names, rig.cameras, strict=True)},
         "volume": {"center": rig.meta["volume_center"], "radius": rig.meta["volume_radius"]},
-        "world": WORLD_CONVENTION, "stage": stage.to_dict(), "body_model": body_meta,
-        "people": [p.to_dict() for p in people], "board": board_json(board_spec),
-        "board_margin_m": float(texture.margin), "preview_frame": preview_f,
+        "world": WORLD_CONVENTION,
+        "stage": stage.to_dict(),
+        "body_model": body_meta,
+        "people": [p.to_dict() for p in people],
+        "board": board_json(board_spec),
+        "board_margin_m": float(texture.margin),
+        "preview_frame": preview_f,
         "calibration_notes": calibration_notes,
-        "files": {"videos": "videos/<camera>.mp4", "board_videos": "board/<camera>.mp4",
-                  "board": "board.json", "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
-                  "people": "truth/people.parquet", "views": "truth/views.parquet",
-                  "masks": "truth/masks/<camera>.h5", "board_poses": "truth/board_poses.parquet",
-                  "board_views": "truth/board_views.parquet", "contact_sheet": "preview/contact_sheet.png"},
+        "files": {
+            "videos": "videos/<camera>.mp4",
+            "board_videos": "board/<camera>.mp4",
+            "board": "board.json",
+            "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
+            "people": "truth/people.parquet",
+            "views": "truth/views.parquet",
+            "masks": "truth/masks/<camera>.h5",
+            "board_poses": "truth/board_poses.parquet",
+            "board_views": "truth/board_views.parquet",
+            "contact_sheet": "preview/contact_sheet.png",
+        },
     }
     write_json(out / "scene.json", scene)
     report("write", 1, 1)
     on_person, on_own = check.fractions()
-    return dict(name=spec.name, n_frames=spec.n_frames, n_board_frames=spec.board.n_frames, fps=fps,
-                cameras=tuple(names), n_people=len(people), joints_in_mask=on_person, joints_on_own_mask=on_own)
+    return dict(
+        name=spec.name,
+        n_frames=spec.n_frames,
+        n_board_frames=spec.board.n_frames,
+        fps=fps,
+        cameras=tuple(names),
+        n_people=len(people),
+        joints_in_mask=on_person,
+        joints_on_own_mask=on_own,
+    )
 
 
 def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:

@@ -55,18 +55,44 @@ class SceneSetup:
     @classmethod
     def build(cls, spec: SceneSpec) -> SceneSetup:
         r = spec.rig
-        rig = make_rig(r.kind, n_cameras=r.n_cameras, width=r.width, height=r.height, fov_deg=r.fov_deg,
-                       focal_mm=r.focal_mm, distortion=r.distortion, fps=r.fps, seed=spec.seed)
+        rig = make_rig(
+            r.kind,
+            n_cameras=r.n_cameras,
+            width=r.width,
+            height=r.height,
+            fov_deg=r.fov_deg,
+            focal_mm=r.focal_mm,
+            distortion=r.distortion,
+            fps=r.fps,
+            seed=spec.seed,
+        )
         board = spec.board.board()
-        poses = board_clip(board, spec.board.n_frames, rig.meta["volume_center"], rig.meta["volume_radius"],
-                           np.random.default_rng(np.random.SeedSequence([spec.seed, 3])),
-                           camera_centers=np.stack([c.center for c in rig.cameras]))
+        poses = board_clip(
+            board,
+            spec.board.n_frames,
+            rig.meta["volume_center"],
+            rig.meta["volume_radius"],
+            np.random.default_rng(np.random.SeedSequence([spec.seed, 3])),
+            camera_centers=np.stack([c.center for c in rig.cameras]),
+        )
         im = spec.imaging
-        options = RenderOptions(antialias=im.antialias, background_samples=im.background_samples,
-                                shadow_samples=im.shadow_samples, backend=im.backend)
-        return cls(rig=rig, fps=float(rig.meta["fps"]), stage=stage_for_rig(r.kind, spec.seed), board=board,
-                   texture=board.texture(), board_poses=poses, options=options, responses=_responses(spec, len(rig)),
-                   radii={cam.name: field_radius(cam) for cam in rig.cameras})
+        options = RenderOptions(
+            antialias=im.antialias,
+            background_samples=im.background_samples,
+            shadow_samples=im.shadow_samples,
+            backend=im.backend,
+        )
+        return cls(
+            rig=rig,
+            fps=float(rig.meta["fps"]),
+            stage=stage_for_rig(r.kind, spec.seed),
+            board=board,
+            texture=board.texture(),
+            board_poses=poses,
+            options=options,
+            responses=_responses(spec, len(rig)),
+            radii={cam.name: field_radius(cam) for cam in rig.cameras},
+        )
 
 
 def _responses(spec: SceneSpec, n: int) -> list[CameraResponse]:
@@ -74,8 +100,14 @@ def _responses(spec: SceneSpec, n: int) -> list[CameraResponse]:
     for i in range(n):
         rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 4, i]))
         j = spec.imaging.exposure_jitter
-        out.append(CameraResponse(exposure=float(np.exp(rng.uniform(-j, j))), vignetting=spec.imaging.vignetting,
-                                  blur_sigma=spec.imaging.blur_sigma, noise_sigma=spec.imaging.noise_sigma))
+        out.append(
+            CameraResponse(
+                exposure=float(np.exp(rng.uniform(-j, j))),
+                vignetting=spec.imaging.vignetting,
+                blur_sigma=spec.imaging.blur_sigma,
+                noise_sigma=spec.imaging.noise_sigma,
+            )
+        )
     return out
 
 
@@ -99,8 +131,12 @@ class Cast:
     faces: np.ndarray  # (F, 3) int32
 
     def posed(self, frame: int) -> list[PosedPerson]:
-        return [PosedPerson(m.person_id, m.vertices[frame], m.normals[frame], self.faces, m.atlas, m.outfit)
-                for m in self.members]
+        return [
+            PosedPerson(
+                m.person_id, m.vertices[frame], m.normals[frame], self.faces, m.atlas, m.outfit
+            )
+            for m in self.members
+        ]
 
 
 @dataclass(frozen=True)
@@ -121,15 +157,20 @@ class CastFiles:
 
     def load(self) -> Cast:
         """The cast, its per-frame arrays memory-mapped (no pickles: allow_pickle=False)."""
+
         def arr(name: str, mmap: bool = True) -> np.ndarray:
             path = self.folder / f"{name}.npy"
             if not path.is_file():
-                raise FileNotFoundError(f"{path} is missing: the cast files of this render were removed, or the "
-                                        "worker does not share the scene's staging folder with the caller")
+                raise FileNotFoundError(
+                    f"{path} is missing: the cast files of this render were removed, or the "
+                    "worker does not share the scene's staging folder with the caller"
+                )
             return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
 
-        members = [CastMember(pid, *(arr(f"{k}_{name}") for name in CAST_FIELDS), atlas, outfit)
-                   for k, (pid, atlas, outfit) in enumerate(self.people)]
+        members = [
+            CastMember(pid, *(arr(f"{k}_{name}") for name in CAST_FIELDS), atlas, outfit)
+            for k, (pid, atlas, outfit) in enumerate(self.people)
+        ]
         return Cast(members, arr("faces", mmap=False))
 
 
@@ -141,7 +182,9 @@ class JointCheck:
     on_person: int = 0
     on_own: int = 0
 
-    def add(self, camera, radius: float, members: Sequence[CastMember], frame: int, mask: np.ndarray) -> None:
+    def add(
+        self, camera, radius: float, members: Sequence[CastMember], frame: int, mask: np.ndarray
+    ) -> None:
         for m in members:
             uv, inside = project_in_view(camera, m.joints[frame], radius)
             px = np.rint(uv[inside]).astype(int)
@@ -194,17 +237,25 @@ def camera_shares(groups: Sequence[Sequence[int]], n_shares: int | None) -> list
     out = []
     for g in groups:
         step = len(g) if size is None else size
-        out.extend(tuple(g[i:i + step]) for i in range(0, len(g), step))
+        out.extend(tuple(g[i : i + step]) for i in range(0, len(g), step))
     return out
 
 
 def render_share_job(job: CameraShareJob) -> ShareResult:
     """Worker entry point: rebuild the setup from the spec, map the cast, render the share."""
-    return render_share(job.spec, SceneSetup.build(job.spec), job.cast.load(), job.cameras, job.out_dir)
+    return render_share(
+        job.spec, SceneSetup.build(job.spec), job.cast.load(), job.cameras, job.out_dir
+    )
 
 
-def render_share(spec: SceneSpec, setup: SceneSetup, cast: Cast, cameras: Sequence[int], out: Path,
-                 step: StepFn | None = None) -> ShareResult:
+def render_share(
+    spec: SceneSpec,
+    setup: SceneSetup,
+    cast: Cast,
+    cameras: Sequence[int],
+    out: Path,
+    step: StepFn | None = None,
+) -> ShareResult:
     """Render people and board clips of `cameras` into `out`; `step(name, n)` after each frame."""
     step = step or (lambda *_: None)
     renderers = [ViewRenderer(setup.rig.cameras[i], setup.stage, setup.options) for i in cameras]
@@ -215,14 +266,33 @@ def render_share(spec: SceneSpec, setup: SceneSetup, cast: Cast, cameras: Sequen
     return result
 
 
-def _render_people_clip(spec: SceneSpec, setup: SceneSetup, out: Path, cast: Cast, cameras: Sequence[int],
-                        renderers: list[ViewRenderer], result: ShareResult, step: StepFn) -> None:
+def _render_people_clip(
+    spec: SceneSpec,
+    setup: SceneSetup,
+    out: Path,
+    cast: Cast,
+    cameras: Sequence[int],
+    renderers: list[ViewRenderer],
+    result: ShareResult,
+    step: StepFn,
+) -> None:
     """videos/<cam>.mp4 and truth/masks/<cam>.h5 for the share's cameras, plus view truth."""
     preview_f = spec.preview_frame if spec.preview_frame is not None else spec.n_frames // 2
     cams = [r.camera for r in renderers]
-    videos = [VideoOut(out / "videos" / f"{c.name}.mp4", setup.fps, c.width, c.height) for c in cams]
-    masks = [MaskStore(out / "truth" / "masks" / f"{c.name}.h5", spec.n_frames, c.width, c.height, c.name,
-                       spec.imaging.write_depth) for c in cams]
+    videos = [
+        VideoOut(out / "videos" / f"{c.name}.mp4", setup.fps, c.width, c.height) for c in cams
+    ]
+    masks = [
+        MaskStore(
+            out / "truth" / "masks" / f"{c.name}.h5",
+            spec.n_frames,
+            c.width,
+            c.height,
+            c.name,
+            spec.imaging.write_depth,
+        )
+        for c in cams
+    ]
     try:
         for f in range(spec.n_frames):
             posed = cast.posed(f)
@@ -249,12 +319,21 @@ def _render_people_clip(spec: SceneSpec, setup: SceneSetup, out: Path, cast: Cas
         sink.close()
 
 
-def _render_board_clip(spec: SceneSpec, setup: SceneSetup, out: Path, cameras: Sequence[int],
-                       renderers: list[ViewRenderer], result: ShareResult, step: StepFn) -> None:
+def _render_board_clip(
+    spec: SceneSpec,
+    setup: SceneSetup,
+    out: Path,
+    cameras: Sequence[int],
+    renderers: list[ViewRenderer],
+    result: ShareResult,
+    step: StepFn,
+) -> None:
     """board/<cam>.mp4 for the share's cameras."""
     poses = setup.board_poses
-    videos = [VideoOut(out / "board" / f"{r.camera.name}.mp4", setup.fps, r.camera.width, r.camera.height)
-              for r in renderers]
+    videos = [
+        VideoOut(out / "board" / f"{r.camera.name}.mp4", setup.fps, r.camera.width, r.camera.height)
+        for r in renderers
+    ]
     try:
         for f, pose in enumerate(poses):
             for ci, (cam_i, rend) in enumerate(zip(cameras, renderers, strict=True)):

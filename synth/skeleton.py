@@ -16,20 +16,67 @@ from __future__ import annotations
 import numpy as np
 
 JOINT_NAMES: tuple[str, ...] = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
-    "left_ankle", "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar",
-    "right_collar", "head", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-    "left_wrist", "right_wrist", "left_hand", "right_hand",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
+    "right_hand",
 )
 NUM_JOINTS = len(JOINT_NAMES)
-PARENTS: tuple[int, ...] = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18,
-                            19, 20, 21)
+PARENTS: tuple[int, ...] = (
+    -1,
+    0,
+    0,
+    0,
+    1,
+    2,
+    3,
+    4,
+    5,
+    6,
+    7,
+    8,
+    9,
+    9,
+    9,
+    12,
+    13,
+    14,
+    16,
+    17,
+    18,
+    19,
+    20,
+    21,
+)
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 # Index of each joint's mirror image (left <-> right, central joints map to themselves).
 MIRROR: tuple[int, ...] = tuple(
-    J[n.replace("left_", "right_")] if n.startswith("left_")
-    else J[n.replace("right_", "left_")] if n.startswith("right_") else i
+    J[n.replace("left_", "right_")]
+    if n.startswith("left_")
+    else J[n.replace("right_", "left_")]
+    if n.startswith("right_")
+    else i
     for i, n in enumerate(JOINT_NAMES)
 )
 
@@ -43,13 +90,25 @@ PRIMARY_CHILD: tuple[int, ...] = tuple(
 # Only long limb bones are corrected; ankles, feet, wrists and hands inherit their parent's
 # correction so hands and feet keep their rest orientation relative to the limb.
 _TPOSE_BONE_DIRECTION = {
-    "left_hip": (0.0, -1.0, 0.0), "right_hip": (0.0, -1.0, 0.0),
-    "left_knee": (0.0, -1.0, 0.0), "right_knee": (0.0, -1.0, 0.0),
-    "left_shoulder": (1.0, 0.0, 0.0), "right_shoulder": (-1.0, 0.0, 0.0),
-    "left_elbow": (1.0, 0.0, 0.0), "right_elbow": (-1.0, 0.0, 0.0),
+    "left_hip": (0.0, -1.0, 0.0),
+    "right_hip": (0.0, -1.0, 0.0),
+    "left_knee": (0.0, -1.0, 0.0),
+    "right_knee": (0.0, -1.0, 0.0),
+    "left_shoulder": (1.0, 0.0, 0.0),
+    "right_shoulder": (-1.0, 0.0, 0.0),
+    "left_elbow": (1.0, 0.0, 0.0),
+    "right_elbow": (-1.0, 0.0, 0.0),
 }
-_INHERIT = ("left_ankle", "right_ankle", "left_foot", "right_foot", "left_wrist", "right_wrist",
-            "left_hand", "right_hand")
+_INHERIT = (
+    "left_ankle",
+    "right_ankle",
+    "left_foot",
+    "right_foot",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
+    "right_hand",
+)
 
 # Joint limits in degrees for the left side, (lo, hi) per Euler axis x, y, z. Index 0 is the
 # root tilt relative to upright (heading is separate). Sign conventions (left side):
@@ -100,7 +159,9 @@ def mirror_angles(angles: np.ndarray) -> np.ndarray:
     return out
 
 
-def soft_clip(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, knee: float = np.deg2rad(8)) -> np.ndarray:
+def soft_clip(
+    x: np.ndarray, lo: np.ndarray, hi: np.ndarray, knee: float = np.deg2rad(8)
+) -> np.ndarray:
     """Clip to [lo, hi] with smooth (C1) shoulders of width `knee`, so clipped motion stays
     smooth in time. Values well inside the range are unchanged."""
     x = np.asarray(x, dtype=np.float64)

@@ -62,7 +62,9 @@ class Stage:
         if self.style not in ("court", "studio", "lab"):
             raise ValueError(f"stage style '{self.style}' is not one of court, studio, lab")
         if min(self.half_x, self.half_y, self.height) <= 0:
-            raise ValueError(f"stage box must have positive size, got {self.half_x}, {self.half_y}, {self.height}")
+            raise ValueError(
+                f"stage box must have positive size, got {self.half_x}, {self.half_y}, {self.height}"
+            )
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x57A6E]))
         noise = rng.random((256, 256)).astype(np.float32)
         noise = cv2.GaussianBlur(np.tile(noise, (3, 3)), (0, 0), 2.0)[256:512, 256:512]  # tileable
@@ -70,23 +72,43 @@ class Stage:
         object.__setattr__(self, "_noise", noise.astype(np.float32))
 
     def to_dict(self) -> dict:
-        return {"style": self.style, "half_x": self.half_x, "half_y": self.half_y, "height": self.height,
-                "light": {"direction": list(self.light.direction), "spread": self.light.spread,
-                          "key": self.light.key, "ambient": self.light.ambient}}
+        return {
+            "style": self.style,
+            "half_x": self.half_x,
+            "half_y": self.half_y,
+            "height": self.height,
+            "light": {
+                "direction": list(self.light.direction),
+                "spread": self.light.spread,
+                "key": self.light.key,
+                "ambient": self.light.ambient,
+            },
+        }
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         p = np.asarray(points)
-        return (np.abs(p[..., 0]) < self.half_x) & (np.abs(p[..., 1]) < self.half_y) & (p[..., 2] > 0) & (p[..., 2] < self.height)
+        return (
+            (np.abs(p[..., 0]) < self.half_x)
+            & (np.abs(p[..., 1]) < self.half_y)
+            & (p[..., 2] > 0)
+            & (p[..., 2] < self.height)
+        )
 
     # -- geometry -------------------------------------------------------------------------------
-    def intersect(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def intersect(
+        self, origin: np.ndarray, dirs: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Exit distance t (N,), surface id (N,) into SURFACES and inward normal (N, 3) of rays
         from `origin` (inside the box) along unit `dirs` (N, 3)."""
         o = np.asarray(origin, dtype=np.float64)
         d = np.asarray(dirs, dtype=np.float64)
         big = np.float64(1e9)
         with np.errstate(divide="ignore", invalid="ignore"):
-            tz = np.where(d[:, 2] < 0, -o[2] / d[:, 2], np.where(d[:, 2] > 0, (self.height - o[2]) / d[:, 2], big))
+            tz = np.where(
+                d[:, 2] < 0,
+                -o[2] / d[:, 2],
+                np.where(d[:, 2] > 0, (self.height - o[2]) / d[:, 2], big),
+            )
             tx = np.where(d[:, 0] != 0, (np.sign(d[:, 0]) * self.half_x - o[0]) / d[:, 0], big)
             ty = np.where(d[:, 1] != 0, (np.sign(d[:, 1]) * self.half_y - o[1]) / d[:, 1], big)
         t = np.minimum(tz, np.minimum(tx, ty))
@@ -124,28 +146,39 @@ class Stage:
             col = np.floor((x + offset) / plank_l)
             h = np.mod(np.sin(row * 12.9898 + col * 78.233) * 43758.5453, 1.0)  # per-plank tone
             grain = self._tex(x * 12.0, y * 160.0)
-            base = srgb_to_linear((196, 150, 98))[None] * (0.82 + 0.3 * h[:, None] + 0.05 * grain[:, None])
+            base = srgb_to_linear((196, 150, 98))[None] * (
+                0.82 + 0.3 * h[:, None] + 0.05 * grain[:, None]
+            )
             seam = (np.mod(y, plank_w) < 0.004) | (np.mod(x + offset, plank_l) < 0.004)
             base[seam] *= 0.7
             return self._court_lines(x, y, base)
         if self.style == "studio":
-            base = srgb_to_linear((58, 60, 66))[None] * (1 + 0.06 * self._tex(x * 40, y * 40)[:, None])
+            base = srgb_to_linear((58, 60, 66))[None] * (
+                1 + 0.06 * self._tex(x * 40, y * 40)[:, None]
+            )
             tape = np.zeros(len(x), bool)
             for cx, cy in ((0, 0), (1.2, 0), (-1.2, 0), (0, 1.2), (0, -1.2)):
-                tape |= ((np.abs(x - cx) < 0.15) & (np.abs(y - cy) < 0.025)) | ((np.abs(y - cy) < 0.15) & (np.abs(x - cx) < 0.025))
+                tape |= ((np.abs(x - cx) < 0.15) & (np.abs(y - cy) < 0.025)) | (
+                    (np.abs(y - cy) < 0.15) & (np.abs(x - cx) < 0.025)
+                )
             ring = np.abs(np.hypot(x, y) - 2.0) < 0.025
             base[tape] = srgb_to_linear((220, 200, 60))
             base[ring] = srgb_to_linear((200, 200, 200))
             return base
-        carpet = srgb_to_linear((92, 100, 104))[None] * (1 + 0.12 * self._tex(x * 60, y * 60)[:, None]
-                                                           + 0.05 * self._tex(x * 5 + 50, y * 5)[:, None])
+        carpet = srgb_to_linear((92, 100, 104))[None] * (
+            1
+            + 0.12 * self._tex(x * 60, y * 60)[:, None]
+            + 0.05 * self._tex(x * 5 + 50, y * 5)[:, None]
+        )
         return carpet
 
     def _court_lines(self, x, y, base):
         """Handball-like court: 20 x 10 m (or smaller to fit), centre line, circle, areas."""
         hx, hy = min(10.0, self.half_x - 1.5), min(5.0, self.half_y - 1.5)
         w = 0.05
-        line = ((np.abs(np.abs(x) - hx) < w) & (np.abs(y) <= hy + w)) | ((np.abs(np.abs(y) - hy) < w) & (np.abs(x) <= hx + w))
+        line = ((np.abs(np.abs(x) - hx) < w) & (np.abs(y) <= hy + w)) | (
+            (np.abs(np.abs(y) - hy) < w) & (np.abs(x) <= hx + w)
+        )
         line |= (np.abs(x) < w) & (np.abs(y) <= hy)
         line |= np.abs(np.hypot(x, y) - 1.8) < w
         goal_area = (np.abs(x) > hx - 3.0) & (np.abs(x) <= hx) & (np.abs(y) < 3.0)
@@ -174,16 +207,26 @@ class Stage:
         out = np.tile(srgb_to_linear((180, 170, 150)), (len(p), 1))
         out[z < 0.1] = srgb_to_linear((60, 55, 50))
         curtain = np.abs(along) < 1.5
-        out[curtain & (z > 0.1)] = srgb_to_linear((35, 35, 40)) * (1 + 0.25 * np.sin(along[curtain & (z > 0.1)] * 25))[:, None]
+        out[curtain & (z > 0.1)] = (
+            srgb_to_linear((35, 35, 40))
+            * (1 + 0.25 * np.sin(along[curtain & (z > 0.1)] * 25))[:, None]
+        )
         return out
 
-    def shade(self, albedo: np.ndarray, normal: np.ndarray, light_dirs: np.ndarray,
-              visibility: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def shade(
+        self,
+        albedo: np.ndarray,
+        normal: np.ndarray,
+        light_dirs: np.ndarray,
+        visibility: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Ambient and direct radiance (N, 3) each; direct is scaled by mean `visibility`
         (N, n_lights) when given."""
         ambient = albedo * (self.light.ambient * (0.8 + 0.2 * normal[:, 2:3]))
         L = np.asarray(light_dirs, dtype=normal.dtype)
-        cos = np.clip(normal[:, 0:1] * L[:, 0] + normal[:, 1:2] * L[:, 1] + normal[:, 2:3] * L[:, 2], 0, None)
+        cos = np.clip(
+            normal[:, 0:1] * L[:, 0] + normal[:, 1:2] * L[:, 1] + normal[:, 2:3] * L[:, 2], 0, None
+        )
         if visibility is not None:
             cos = cos * visibility
         direct = albedo * (self.light.key * cos.mean(1, keepdims=True))
@@ -206,5 +249,11 @@ def stage_for_rig(kind: str, seed: int = 0) -> Stage:
     else:
         raise ValueError(f"unknown rig kind '{kind}' for a stage")
     d = (np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev))
-    return Stage(style=style, half_x=hx, half_y=hy, height=h, light=Light(direction=tuple(float(v) for v in d)),
-                 seed=seed)
+    return Stage(
+        style=style,
+        half_x=hx,
+        half_y=hy,
+        height=h,
+        light=Light(direction=tuple(float(v) for v in d)),
+        seed=seed,
+    )

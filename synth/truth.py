@@ -21,7 +21,9 @@ from synth.skeleton import JOINT_NAMES, NUM_JOINTS
 OCCLUSION_TOLERANCE = 0.25
 
 
-def _fixed(values: np.ndarray, width: int, dtype: pa.DataType | None = None) -> pa.FixedSizeListArray:
+def _fixed(
+    values: np.ndarray, width: int, dtype: pa.DataType | None = None
+) -> pa.FixedSizeListArray:
     flat = np.ascontiguousarray(values).reshape(-1)
     return pa.FixedSizeListArray.from_arrays(pa.array(flat, type=dtype or pa.float32()), width)
 
@@ -32,26 +34,38 @@ def people_table(tracks: list[PersonTrack], metadata: dict) -> pa.Table:
     rows = []
     for tr in tracks:
         T = tr.n_frames
-        rows.append(dict(
-            frame=np.arange(T, dtype=np.int32), person_id=np.full(T, tr.person_id, np.int16),
-            motion=list(tr.labels), betas=np.tile(tr.betas, (T, 1)), global_orient=tr.global_orient,
-            body_pose=tr.body_pose.reshape(T, -1), transl=tr.transl, joints3d=tr.joints.reshape(T, -1)))
+        rows.append(
+            dict(
+                frame=np.arange(T, dtype=np.int32),
+                person_id=np.full(T, tr.person_id, np.int16),
+                motion=list(tr.labels),
+                betas=np.tile(tr.betas, (T, 1)),
+                global_orient=tr.global_orient,
+                body_pose=tr.body_pose.reshape(T, -1),
+                transl=tr.transl,
+                joints3d=tr.joints.reshape(T, -1),
+            )
+        )
     if not rows:
         raise ValueError("no people to write")
     nb = rows[0]["betas"].shape[1]
-    cat = {k: np.concatenate([r[k] for r in rows]) if k != "motion" else sum((r[k] for r in rows), [])
-           for k in rows[0]}
+    cat = {
+        k: np.concatenate([r[k] for r in rows]) if k != "motion" else sum((r[k] for r in rows), [])
+        for k in rows[0]
+    }
     order = np.lexsort((cat["person_id"], cat["frame"]))
-    table = pa.table({
-        "frame": pa.array(cat["frame"][order]),
-        "person_id": pa.array(cat["person_id"][order]),
-        "motion": pa.array([cat["motion"][i] for i in order], type=pa.string()),
-        "betas": _fixed(cat["betas"][order].astype(np.float32), nb),
-        "global_orient": _fixed(cat["global_orient"][order].astype(np.float32), 3),
-        "body_pose": _fixed(cat["body_pose"][order].astype(np.float32), 69),
-        "transl": _fixed(cat["transl"][order].astype(np.float32), 3),
-        "joints3d": _fixed(cat["joints3d"][order].astype(np.float32), 3 * NUM_JOINTS),
-    })
+    table = pa.table(
+        {
+            "frame": pa.array(cat["frame"][order]),
+            "person_id": pa.array(cat["person_id"][order]),
+            "motion": pa.array([cat["motion"][i] for i in order], type=pa.string()),
+            "betas": _fixed(cat["betas"][order].astype(np.float32), nb),
+            "global_orient": _fixed(cat["global_orient"][order].astype(np.float32), 3),
+            "body_pose": _fixed(cat["body_pose"][order].astype(np.float32), 69),
+            "transl": _fixed(cat["transl"][order].astype(np.float32), 3),
+            "joints3d": _fixed(cat["joints3d"][order].astype(np.float32), 3 * NUM_JOINTS),
+        }
+    )
     return table.replace_schema_metadata({k: json.dumps(v) for k, v in metadata.items()})
 
 
@@ -59,12 +73,35 @@ class ViewRows:
     """Accumulates per (frame, person, camera) 2D truth rows."""
 
     def __init__(self):
-        self._cols: dict[str, list] = {k: [] for k in (
-            "frame", "person_id", "camera", "joints2d", "visible", "x0", "y0", "x1", "y1", "mask_area",
-            "full_x0", "full_y0", "full_x1", "full_y1")}
+        self._cols: dict[str, list] = {
+            k: []
+            for k in (
+                "frame",
+                "person_id",
+                "camera",
+                "joints2d",
+                "visible",
+                "x0",
+                "y0",
+                "x1",
+                "y1",
+                "mask_area",
+                "full_x0",
+                "full_y0",
+                "full_x1",
+                "full_y1",
+            )
+        }
 
-    def add(self, camera: Camera, radius: float, frame: int, tracks: list[PersonTrack],
-            mask: np.ndarray, depth: np.ndarray) -> None:
+    def add(
+        self,
+        camera: Camera,
+        radius: float,
+        frame: int,
+        tracks: list[PersonTrack],
+        mask: np.ndarray,
+        depth: np.ndarray,
+    ) -> None:
         """Rows for one rendered view (mask and camera-z depth of that view)."""
         for tr in tracks:
             pid = tr.person_id
@@ -72,7 +109,9 @@ class ViewRows:
             zc = camera.to_camera(tr.joints[frame])[:, 2]
             vis = np.zeros(NUM_JOINTS, bool)
             if inside.any():
-                px = np.clip(np.rint(uv[inside]).astype(int), 0, [camera.width - 1, camera.height - 1])
+                px = np.clip(
+                    np.rint(uv[inside]).astype(int), 0, [camera.width - 1, camera.height - 1]
+                )
                 own = mask[px[:, 1], px[:, 0]] == pid
                 near = depth[px[:, 1], px[:, 0]] > zc[inside] - OCCLUSION_TOLERANCE
                 vis[inside] = own & near
@@ -81,12 +120,21 @@ class ViewRows:
             if area:
                 rows = np.flatnonzero(m.any(1))
                 cols = np.flatnonzero(m.any(0))
-                box = (float(cols[0]) - 0.5, float(rows[0]) - 0.5, float(cols[-1]) + 0.5, float(rows[-1]) + 0.5)
+                box = (
+                    float(cols[0]) - 0.5,
+                    float(rows[0]) - 0.5,
+                    float(cols[-1]) + 0.5,
+                    float(rows[-1]) + 0.5,
+                )
             else:
                 box = (np.nan,) * 4
             vuv, vin = project_in_view(camera, tr.vertices[frame], radius)
             ok = ~np.isnan(vuv[:, 0])
-            full = (tuple(float(x) for x in (*vuv[ok].min(0), *vuv[ok].max(0))) if ok.any() else (np.nan,) * 4)
+            full = (
+                tuple(float(x) for x in (*vuv[ok].min(0), *vuv[ok].max(0)))
+                if ok.any()
+                else (np.nan,) * 4
+            )
             c = self._cols
             c["frame"].append(frame)
             c["person_id"].append(pid)
@@ -112,26 +160,55 @@ class ViewRows:
             "frame": pa.array(np.array(c["frame"], np.int32)[order]),
             "person_id": pa.array(np.array(c["person_id"], np.int16)[order]),
             "camera": pa.array([c["camera"][i] for i in order], type=pa.string()),
-            "joints2d": _fixed(np.stack(c["joints2d"])[order] if n else np.zeros((0, 48), np.float32), 2 * NUM_JOINTS),
-            "visible": _fixed(np.stack(c["visible"])[order] if n else np.zeros((0, 24), bool), NUM_JOINTS, pa.bool_()),
+            "joints2d": _fixed(
+                np.stack(c["joints2d"])[order] if n else np.zeros((0, 48), np.float32),
+                2 * NUM_JOINTS,
+            ),
+            "visible": _fixed(
+                np.stack(c["visible"])[order] if n else np.zeros((0, 24), bool),
+                NUM_JOINTS,
+                pa.bool_(),
+            ),
         }
         for k in ("x0", "y0", "x1", "y1", "full_x0", "full_y0", "full_x1", "full_y1"):
             arr[k] = pa.array(np.array(c[k], np.float32)[order])
         arr["mask_area"] = pa.array(np.array(c["mask_area"], np.int32)[order])
-        cols = ["frame", "person_id", "camera", "joints2d", "visible", "x0", "y0", "x1", "y1", "mask_area",
-                "full_x0", "full_y0", "full_x1", "full_y1"]
+        cols = [
+            "frame",
+            "person_id",
+            "camera",
+            "joints2d",
+            "visible",
+            "x0",
+            "y0",
+            "x1",
+            "y1",
+            "mask_area",
+            "full_x0",
+            "full_y0",
+            "full_x1",
+            "full_y1",
+        ]
         return pa.table({k: arr[k] for k in cols}).replace_schema_metadata(
-            {k: json.dumps(v) for k, v in metadata.items()})
+            {k: json.dumps(v) for k, v in metadata.items()}
+        )
 
 
-def board_tables(spec: ChArUcoSpec, poses: list[BoardPose], cameras: list[Camera],
-                 radii: dict[str, float], metadata: dict) -> tuple[pa.Table, pa.Table]:
+def board_tables(
+    spec: ChArUcoSpec,
+    poses: list[BoardPose],
+    cameras: list[Camera],
+    radii: dict[str, float],
+    metadata: dict,
+) -> tuple[pa.Table, pa.Table]:
     """Board poses per frame and the corners each camera sees (ids and distorted pixels)."""
-    poses_t = pa.table({
-        "frame": pa.array(np.arange(len(poses), dtype=np.int32)),
-        "R": _fixed(np.stack([p.R for p in poses]).astype(np.float64), 9, pa.float64()),
-        "t": _fixed(np.stack([p.t for p in poses]).astype(np.float64), 3, pa.float64()),
-    }).replace_schema_metadata({k: json.dumps(v) for k, v in metadata.items()})
+    poses_t = pa.table(
+        {
+            "frame": pa.array(np.arange(len(poses), dtype=np.int32)),
+            "R": _fixed(np.stack([p.R for p in poses]).astype(np.float64), 9, pa.float64()),
+            "t": _fixed(np.stack([p.t for p in poses]).astype(np.float64), 3, pa.float64()),
+        }
+    ).replace_schema_metadata({k: json.dumps(v) for k, v in metadata.items()})
     frames, cams, ids, uvs = [], [], [], []
     for f, pose in enumerate(poses):
         for cam in cameras:
@@ -140,12 +217,14 @@ def board_tables(spec: ChArUcoSpec, poses: list[BoardPose], cameras: list[Camera
             cams.append(cam.name)
             ids.append(i.astype(np.int32))
             uvs.append(uv.astype(np.float32).ravel())
-    views_t = pa.table({
-        "frame": pa.array(np.array(frames, np.int32)),
-        "camera": pa.array(cams, type=pa.string()),
-        "corner_ids": pa.array([x.tolist() for x in ids], type=pa.list_(pa.int32())),
-        "corners2d": pa.array([x.tolist() for x in uvs], type=pa.list_(pa.float32())),
-    })
+    views_t = pa.table(
+        {
+            "frame": pa.array(np.array(frames, np.int32)),
+            "camera": pa.array(cams, type=pa.string()),
+            "corner_ids": pa.array([x.tolist() for x in ids], type=pa.list_(pa.int32())),
+            "corners2d": pa.array([x.tolist() for x in uvs], type=pa.list_(pa.float32())),
+        }
+    )
     return poses_t, views_t
 
 

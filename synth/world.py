@@ -30,7 +30,9 @@ def rot_z(angle: np.ndarray | float) -> np.ndarray:
     a = np.asarray(angle, dtype=np.float64)
     c, s = np.cos(a), np.sin(a)
     z, o = np.zeros_like(a), np.ones_like(a)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    return np.stack(
+        [np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2
+    )
 
 
 def heading_rotation(heading: np.ndarray | float) -> np.ndarray:

@@ -45,8 +45,15 @@ class SynthScene:
     n_people: int
 
 
-def ring_rig(n_cams: int = 4, radius: float = 5.0, height: float = 2.4, size=(320, 240), f: float = 300.0,
-             distort: bool = True, target=(0.0, 0.0, 1.0)) -> Rig:
+def ring_rig(
+    n_cams: int = 4,
+    radius: float = 5.0,
+    height: float = 2.4,
+    size=(320, 240),
+    f: float = 300.0,
+    distort: bool = True,
+    target=(0.0, 0.0, 1.0),
+) -> Rig:
     """Cameras on a circle around the origin, looking at `target`; z is up."""
     cams = []
     w, h = size
@@ -60,7 +67,11 @@ def ring_rig(n_cams: int = 4, radius: float = 5.0, height: float = 2.4, size=(32
         y = np.cross(z, x)
         R = np.stack([x, y, z])
         dist = [-0.08 + 0.02 * i, 0.02, 0.001, -0.001, 0.0] if distort else []
-        K = [[f * (1 + 0.02 * i), 0, w / 2 - 0.5 + 3 * i], [0, f * (1 + 0.02 * i), h / 2 - 0.5 - 2 * i], [0, 0, 1]]
+        K = [
+            [f * (1 + 0.02 * i), 0, w / 2 - 0.5 + 3 * i],
+            [0, f * (1 + 0.02 * i), h / 2 - 0.5 - 2 * i],
+            [0, 0, 1],
+        ]
         cams.append(Camera.create(f"cam{i}", K, dist, R, -R @ C, w, h))
     return Rig(tuple(cams))
 
@@ -86,13 +97,21 @@ def _background(cam: Camera, origin: np.ndarray, d: np.ndarray, rng_seed: int = 
     p = origin + t_floor[:, None] * d
     checker = ((np.floor(p[:, 0] / 0.5) + np.floor(p[:, 1] / 0.5)) % 2)[floor]
     noise = np.sin(p[floor, 0] * 7.3) * np.sin(p[floor, 1] * 5.1)
-    img[floor] = np.stack([150 + 40 * checker + 15 * noise, 140 + 30 * checker, 120 + 20 * noise], 1)
+    img[floor] = np.stack(
+        [150 + 40 * checker + 15 * noise, 140 + 30 * checker, 120 + 20 * noise], 1
+    )
     q = origin + t_wall[:, None] * d
     ang = np.arctan2(q[:, 1], q[:, 0])
     stripe = (np.sin(ang * 40) > 0).astype(np.float32)
     wall = ~floor
-    img[wall] = np.stack([90 + 60 * stripe[wall], 160 + 30 * np.cos(q[wall, 2] * 3),
-                          180 - 50 * stripe[wall] + 20 * np.sin(ang[wall] * 7)], 1)
+    img[wall] = np.stack(
+        [
+            90 + 60 * stripe[wall],
+            160 + 30 * np.cos(q[wall, 2] * 3),
+            180 - 50 * stripe[wall] + 20 * np.sin(ang[wall] * 7),
+        ],
+        1,
+    )
     return img.clip(0, 255)
 
 
@@ -116,11 +135,12 @@ def _render_people(origin, d, people_ellipsoids):
     col = np.zeros((n, 3), np.float32)
     light = np.array([0.3, -0.4, 0.86])
     light /= np.linalg.norm(light)
+
     def near(idx, centre, radius):
         # Rays (among idx) passing within `radius` of `centre`: cheap culling before the exact test.
         v = centre - origin
         along = d[idx] @ v
-        return idx[(v @ v - along ** 2 <= radius ** 2) & (along > 0)]
+        return idx[(v @ v - along**2 <= radius**2) & (along > 0)]
 
     all_rays = np.arange(n)
     for person, ellipsoids in enumerate(people_ellipsoids, start=1):
@@ -133,7 +153,7 @@ def _render_people(origin, d, people_ellipsoids):
                 continue
             o = ((origin - centre) @ Rb) / radii
             dd = (d[idx] @ Rb) / radii
-            a = (dd ** 2).sum(1)
+            a = (dd**2).sum(1)
             b = 2 * (dd @ o)
             c = o @ o - 1
             disc = b * b - 4 * a * c
@@ -184,10 +204,20 @@ def away_camera(size=(320, 240), f: float = 300.0) -> Camera:
     return Camera.create("away", [[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]], [], R, -R @ C, w, h)
 
 
-def make_scene(root: Path, n_people: int = 1, n_frames: int = 30, n_cams: int = 4, size=(320, 240),
-               distort: bool = True, noise: float = 2.0, seed: int = 0, codec: str = "mp4v",
-               present: tuple[int, int] | None = None, with_away_camera: bool = False,
-               laps: float = 1.0) -> SynthScene:
+def make_scene(
+    root: Path,
+    n_people: int = 1,
+    n_frames: int = 30,
+    n_cams: int = 4,
+    size=(320, 240),
+    distort: bool = True,
+    noise: float = 2.0,
+    seed: int = 0,
+    codec: str = "mp4v",
+    present: tuple[int, int] | None = None,
+    with_away_camera: bool = False,
+    laps: float = 1.0,
+) -> SynthScene:
     """Render a scene into `root` (videos, truth masks) and return its description.
 
     present: (first, last) frame in which people are in the scene (default all frames).
@@ -202,7 +232,10 @@ def make_scene(root: Path, n_people: int = 1, n_frames: int = 30, n_cams: int = 
     rng = np.random.default_rng(seed)
     videos = {}
     first, last = present if present is not None else (0, n_frames - 1)
-    people = [_people_at(f, n_frames, n_people, laps) if first <= f <= last else [] for f in range(n_frames)]
+    people = [
+        _people_at(f, n_frames, n_people, laps) if first <= f <= last else []
+        for f in range(n_frames)
+    ]
     for cam in rig:
         origin, d = _rays(cam)
         bg = _background(cam, origin, d)

@@ -31,7 +31,10 @@ def _bump_counter(ctx: StageContext, name: str) -> None:
 
 
 SOURCE = Stage(
-    name="source", run=_source, outputs=lambda ctx: ["source"], params_model=SourceParams,
+    name="source",
+    run=_source,
+    outputs=lambda ctx: ["source"],
+    params_model=SourceParams,
     inputs=lambda ctx: [Path(ctx.params.input_file)] if ctx.params.input_file else [],
     help="writes source/data.txt",
 )
@@ -54,8 +57,13 @@ def _double(ctx: StageContext) -> None:
     _bump_counter(ctx, "double")
 
 
-DOUBLE = Stage(name="double", run=_double, outputs=lambda ctx: ["double"], params_model=DoubleParams,
-               help="repeats the source text")
+DOUBLE = Stage(
+    name="double",
+    run=_double,
+    outputs=lambda ctx: ["double"],
+    params_model=DoubleParams,
+    help="repeats the source text",
+)
 
 
 def _report(ctx: StageContext) -> None:
@@ -63,8 +71,12 @@ def _report(ctx: StageContext) -> None:
     _bump_counter(ctx, "report")
 
 
-REPORT = Stage(name="report", run=_report, outputs=lambda ctx: ["reports/summary.txt"],
-               help="counts characters")
+REPORT = Stage(
+    name="report",
+    run=_report,
+    outputs=lambda ctx: ["reports/summary.txt"],
+    help="counts characters",
+)
 
 
 class FailParams(StageParams):

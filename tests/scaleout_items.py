@@ -64,8 +64,14 @@ def ddp_problem():
     from torch import nn
 
     torch.manual_seed(0)
-    model = nn.Sequential(nn.Conv2d(3, 4, 3, padding=1), nn.ReLU(), nn.Flatten(), nn.Linear(4 * 6 * 6, 8),
-                          nn.Tanh(), nn.Linear(8, 2))
+    model = nn.Sequential(
+        nn.Conv2d(3, 4, 3, padding=1),
+        nn.ReLU(),
+        nn.Flatten(),
+        nn.Linear(4 * 6 * 6, 8),
+        nn.Tanh(),
+        nn.Linear(8, 2),
+    )
     g = torch.Generator().manual_seed(1)
     x = torch.randn(COMBINED_BATCH, 3, 6, 6, generator=g)
     y = torch.randn(COMBINED_BATCH, 2, generator=g)
@@ -76,8 +82,13 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
     """One torchrun-like rank: a Trainer step on this rank's share of the combined batch."""
     import torch
 
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(world), RANK=str(rank),
-                      LOCAL_RANK=str(rank))
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        WORLD_SIZE=str(world),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+    )
     torch.set_num_threads(1)
     from gst.train.trainer import TrainConfig, Trainer
 
@@ -85,15 +96,23 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
     share = COMBINED_BATCH // world
 
     def sample(gen, bs):
-        return x[rank * share:(rank + 1) * share], y[rank * share:(rank + 1) * share]
+        return x[rank * share : (rank + 1) * share], y[rank * share : (rank + 1) * share]
 
     def step(m, batch):
         xb, yb = batch
         loss = ((m(xb) - yb) ** 2).mean()
         return loss, {}
 
-    cfg = TrainConfig(steps=1, batch_size=share, lr=1e-3, warmup_steps=0, grad_clip=1e9, ckpt_every=1,
-                      val_every=100, log_every=1)
+    cfg = TrainConfig(
+        steps=1,
+        batch_size=share,
+        lr=1e-3,
+        warmup_steps=0,
+        grad_clip=1e9,
+        ckpt_every=1,
+        val_every=100,
+        log_every=1,
+    )
     trainer = Trainer(model, step, sample, cfg, Path(out_dir))
     assert trainer.world == world and trainer.rank == rank
     trainer.fit()

@@ -17,9 +17,11 @@ W, H = 320, 240
 
 
 def separated_walkers() -> list[Walker]:
-    return [Walker((40, 40, 220), (40.0, 130.0), (3.0, 0.0), (40.0, 100.0)),
-            Walker((220, 80, 40), (280.0, 60.0), (-2.0, 0.5), (36.0, 90.0)),
-            Walker((60, 200, 60), (160.0, 40.0), (0.5, 1.5), (30.0, 80.0))]
+    return [
+        Walker((40, 40, 220), (40.0, 130.0), (3.0, 0.0), (40.0, 100.0)),
+        Walker((220, 80, 40), (280.0, 60.0), (-2.0, 0.5), (36.0, 90.0)),
+        Walker((60, 200, 60), (160.0, 40.0), (0.5, 1.5), (30.0, 80.0)),
+    ]
 
 
 def write_clip(root: Path, name: str, frames: int) -> tuple[Path, Path]:
@@ -37,4 +39,6 @@ def job(video: Path, csv: Path, **kw) -> VideoJob:
     """A tracking job with supplied boxes and the pixel-free predictor (fast, deterministic)."""
     options = kw.pop("options", TrackOptions(frames_per_group=5, batch_size=4))
     detector = kw.pop("detector", functools.partial(SuppliedBoxes.from_file, csv, video.stem))
-    return VideoJob(video, detector, BoxDepthPredictor, MODEL, name=video.stem, options=options, **kw)
+    return VideoJob(
+        video, detector, BoxDepthPredictor, MODEL, name=video.stem, options=options, **kw
+    )

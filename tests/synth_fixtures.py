@@ -19,17 +19,43 @@ from synth.skeleton import JOINT_NAMES, PARENTS
 
 # Rest joints of a ~1.68 m person in SMPL axes (x left, y up, z facing), pelvis at the origin.
 _REST_JOINTS = {
-    "pelvis": (0.0, 0.0, 0.0), "left_hip": (0.09, -0.08, 0.0), "right_hip": (-0.09, -0.08, 0.0),
-    "spine1": (0.0, 0.11, -0.01), "left_knee": (0.10, -0.47, 0.01), "right_knee": (-0.10, -0.47, 0.01),
-    "spine2": (0.0, 0.24, 0.0), "left_ankle": (0.10, -0.86, -0.03), "right_ankle": (-0.10, -0.86, -0.03),
-    "spine3": (0.0, 0.30, 0.01), "left_foot": (0.11, -0.92, 0.09), "right_foot": (-0.11, -0.92, 0.09),
-    "neck": (0.0, 0.52, -0.02), "left_collar": (0.07, 0.42, -0.01), "right_collar": (-0.07, 0.42, -0.01),
-    "head": (0.0, 0.60, 0.03), "left_shoulder": (0.18, 0.44, -0.02), "right_shoulder": (-0.18, 0.44, -0.02),
-    "left_elbow": (0.44, 0.44, -0.03), "right_elbow": (-0.44, 0.44, -0.03),
-    "left_wrist": (0.69, 0.44, -0.03), "right_wrist": (-0.69, 0.44, -0.03),
-    "left_hand": (0.77, 0.44, -0.03), "right_hand": (-0.77, 0.44, -0.03),
+    "pelvis": (0.0, 0.0, 0.0),
+    "left_hip": (0.09, -0.08, 0.0),
+    "right_hip": (-0.09, -0.08, 0.0),
+    "spine1": (0.0, 0.11, -0.01),
+    "left_knee": (0.10, -0.47, 0.01),
+    "right_knee": (-0.10, -0.47, 0.01),
+    "spine2": (0.0, 0.24, 0.0),
+    "left_ankle": (0.10, -0.86, -0.03),
+    "right_ankle": (-0.10, -0.86, -0.03),
+    "spine3": (0.0, 0.30, 0.01),
+    "left_foot": (0.11, -0.92, 0.09),
+    "right_foot": (-0.11, -0.92, 0.09),
+    "neck": (0.0, 0.52, -0.02),
+    "left_collar": (0.07, 0.42, -0.01),
+    "right_collar": (-0.07, 0.42, -0.01),
+    "head": (0.0, 0.60, 0.03),
+    "left_shoulder": (0.18, 0.44, -0.02),
+    "right_shoulder": (-0.18, 0.44, -0.02),
+    "left_elbow": (0.44, 0.44, -0.03),
+    "right_elbow": (-0.44, 0.44, -0.03),
+    "left_wrist": (0.69, 0.44, -0.03),
+    "right_wrist": (-0.69, 0.44, -0.03),
+    "left_hand": (0.77, 0.44, -0.03),
+    "right_hand": (-0.77, 0.44, -0.03),
 }
-PART_NAMES = ["head", "neck", "torso", "hips", "upperarm", "forearm", "hand", "upperleg", "lowerleg", "foot"]
+PART_NAMES = [
+    "head",
+    "neck",
+    "torso",
+    "hips",
+    "upperarm",
+    "forearm",
+    "hand",
+    "upperleg",
+    "lowerleg",
+    "foot",
+]
 
 
 @dataclass
@@ -38,7 +64,9 @@ class BodyOutput:
     joints: torch.Tensor
 
 
-def _capsule_mesh(a, b, radius, scale=(1.0, 1.0, 1.0), count=(10, 14), max_edge=0.04) -> trimesh.Trimesh:
+def _capsule_mesh(
+    a, b, radius, scale=(1.0, 1.0, 1.0), count=(10, 14), max_edge=0.04
+) -> trimesh.Trimesh:
     a, b = np.asarray(a, float), np.asarray(b, float)
     length = float(np.linalg.norm(b - a))
     mesh = trimesh.creation.capsule(height=max(length, 1e-3), radius=radius, count=list(count))
@@ -88,7 +116,8 @@ class CapsuleBody(torch.nn.Module):
 
         def _capsule(*args, **kw):  # this body's edge length
             return _capsule_mesh(*args, max_edge=max_edge, **kw)
-  # (mesh, joint that moves it, part name)
+
+        # (mesh, joint that moves it, part name)
 
         def add(mesh, joint, part):
             parts.append((mesh, joint, part))
@@ -100,18 +129,53 @@ class CapsuleBody(torch.nn.Module):
             heel = j[f"{s}_ankle"] + np.array([0.0, -0.05, -0.05])
             toe = j[f"{s}_foot"] + np.array([0.0, -0.005, 0.06])
             add(_capsule(heel, toe, 0.038, scale=(1.3, 1.0, 1.0), count=c), f"{s}_ankle", "foot")
-            add(_capsule(j[f"{s}_shoulder"], j[f"{s}_elbow"], 0.047, count=c), f"{s}_shoulder", "upperarm")
+            add(
+                _capsule(j[f"{s}_shoulder"], j[f"{s}_elbow"], 0.047, count=c),
+                f"{s}_shoulder",
+                "upperarm",
+            )
             add(_capsule(j[f"{s}_elbow"], j[f"{s}_wrist"], 0.038, count=c), f"{s}_elbow", "forearm")
-            add(_ellipsoid(j[f"{s}_wrist"] + np.array([sx * 0.07, 0.0, 0.0]), (0.08, 0.022, 0.045)),
-                f"{s}_wrist", "hand")
-            add(_capsule(j[f"{s}_collar"], j[f"{s}_shoulder"], 0.06, count=c), f"{s}_collar", "torso")
-        add(_capsule(j["left_hip"] * [1, 1, 0], j["right_hip"] * [1, 1, 0], 0.115, scale=(1, 1, 0.95), count=c),
-            "pelvis", "hips")
-        add(_capsule(j["pelvis"], j["spine2"], 0.14, scale=(1.0, 0.68, 1.0), count=c), "spine1", "torso")
-        add(_capsule(j["spine2"], j["neck"] - [0, 0.06, 0], 0.15, scale=(1.0, 0.7, 1.0), count=c), "spine3", "torso")
+            add(
+                _ellipsoid(j[f"{s}_wrist"] + np.array([sx * 0.07, 0.0, 0.0]), (0.08, 0.022, 0.045)),
+                f"{s}_wrist",
+                "hand",
+            )
+            add(
+                _capsule(j[f"{s}_collar"], j[f"{s}_shoulder"], 0.06, count=c),
+                f"{s}_collar",
+                "torso",
+            )
+        add(
+            _capsule(
+                j["left_hip"] * [1, 1, 0],
+                j["right_hip"] * [1, 1, 0],
+                0.115,
+                scale=(1, 1, 0.95),
+                count=c,
+            ),
+            "pelvis",
+            "hips",
+        )
+        add(
+            _capsule(j["pelvis"], j["spine2"], 0.14, scale=(1.0, 0.68, 1.0), count=c),
+            "spine1",
+            "torso",
+        )
+        add(
+            _capsule(j["spine2"], j["neck"] - [0, 0.06, 0], 0.15, scale=(1.0, 0.7, 1.0), count=c),
+            "spine3",
+            "torso",
+        )
         add(_capsule(j["neck"] - [0, 0.04, 0], j["head"], 0.052, count=c), "neck", "neck")
-        add(_ellipsoid(j["head"] + np.array([0.0, 0.07, 0.0]), (0.082, 0.112, 0.098), subdivisions=3 + (detail > 1)),
-            "head", "head")
+        add(
+            _ellipsoid(
+                j["head"] + np.array([0.0, 0.07, 0.0]),
+                (0.082, 0.112, 0.098),
+                subdivisions=3 + (detail > 1),
+            ),
+            "head",
+            "head",
+        )
 
         verts, faces, weights, labels, off = [], [], [], [], 0
         for mesh, joint, part in parts:
@@ -130,8 +194,13 @@ class CapsuleBody(torch.nn.Module):
             pose = torch.zeros(1, 23, 3)
             pose[0, JOINT_NAMES.index("left_shoulder") - 1, 2] = -np.pi / 4
             pose[0, JOINT_NAMES.index("right_shoulder") - 1, 2] = np.pi / 4
-            v, jj = self._skin(rest_v[None], rest_j[None], _axis_angle_to_matrix(pose),
-                               torch.eye(3)[None], torch.zeros(1, 3))
+            v, jj = self._skin(
+                rest_v[None],
+                rest_j[None],
+                _axis_angle_to_matrix(pose),
+                torch.eye(3)[None],
+                torch.zeros(1, 3),
+            )
             rest_v, rest_j = v[0], jj[0]
         elif rest != "T":
             raise ValueError(f"rest must be 'T' or 'A', got {rest!r}")
@@ -178,6 +247,7 @@ class CapsuleBody(torch.nn.Module):
 # ------------------------------------------------------------------------------------------------
 # Stand-in rig writer (used only when calibration.formats is not installed)
 
+
 def standin_write_rig(rig, path, fmt: str, **_opts) -> None:
     """Minimal writer for the three formats synth emits (rig JSON, CMU Panoptic, H36M h5)."""
     import json
@@ -186,15 +256,42 @@ def standin_write_rig(rig, path, fmt: str, **_opts) -> None:
 
     path = Path(path)
     if fmt == "rig":
-        data = {"version": 1, "units": "m", "up": list(rig.up), "cameras": [
-            {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(), "dist": c.dist.tolist(),
-             "R": c.R.tolist(), "t": c.t.tolist()} for c in rig.cameras]}
+        data = {
+            "version": 1,
+            "units": "m",
+            "up": list(rig.up),
+            "cameras": [
+                {
+                    "name": c.name,
+                    "width": c.width,
+                    "height": c.height,
+                    "K": c.K.tolist(),
+                    "dist": c.dist.tolist(),
+                    "R": c.R.tolist(),
+                    "t": c.t.tolist(),
+                }
+                for c in rig.cameras
+            ],
+        }
         path.write_text(json.dumps(data))
     elif fmt == "panoptic":
-        data = {"calibDataSource": "synth", "cameras": [
-            {"name": c.name, "type": "hd", "resolution": [c.width, c.height], "panel": 0, "node": i,
-             "K": c.K.tolist(), "distCoef": np.pad(c.dist, (0, max(0, 5 - c.dist.size)))[:5].tolist(),
-             "R": c.R.tolist(), "t": (c.t * 100.0).reshape(3, 1).tolist()} for i, c in enumerate(rig.cameras)]}
+        data = {
+            "calibDataSource": "synth",
+            "cameras": [
+                {
+                    "name": c.name,
+                    "type": "hd",
+                    "resolution": [c.width, c.height],
+                    "panel": 0,
+                    "node": i,
+                    "K": c.K.tolist(),
+                    "distCoef": np.pad(c.dist, (0, max(0, 5 - c.dist.size)))[:5].tolist(),
+                    "R": c.R.tolist(),
+                    "t": (c.t * 100.0).reshape(3, 1).tolist(),
+                }
+                for i, c in enumerate(rig.cameras)
+            ],
+        }
         path.write_text(json.dumps(data))
     elif fmt == "h36m":
         with h5py.File(path, "w") as f:
@@ -204,7 +301,9 @@ def standin_write_rig(rig, path, fmt: str, **_opts) -> None:
                 g["T"] = (c.center * 1000.0).reshape(3, 1)
                 g["f"] = np.array([[c.fx], [c.fy]])
                 g["c"] = np.array([[c.cx], [c.cy]])
-                g["k"] = np.array([[c.dist[0]], [c.dist[1]], [c.dist[4] if c.dist.size > 4 else 0.0]])
+                g["k"] = np.array(
+                    [[c.dist[0]], [c.dist[1]], [c.dist[4] if c.dist.size > 4 else 0.0]]
+                )
                 g["p"] = np.array([[c.dist[2]], [c.dist[3]]])
     else:
         raise ValueError(f"unknown rig format {fmt!r}")
@@ -217,8 +316,18 @@ def read_panoptic(path) -> list:
     from calibration import Camera
 
     data = json.loads(Path(path).read_text())
-    return [Camera.create(c["name"], c["K"], c["distCoef"], c["R"], np.asarray(c["t"], float).ravel() / 100.0,
-                          c["resolution"][0], c["resolution"][1]) for c in data["cameras"]]
+    return [
+        Camera.create(
+            c["name"],
+            c["K"],
+            c["distCoef"],
+            c["R"],
+            np.asarray(c["t"], float).ravel() / 100.0,
+            c["resolution"][0],
+            c["resolution"][1],
+        )
+        for c in data["cameras"]
+    ]
 
 
 def rig_io():

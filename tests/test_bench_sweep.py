@@ -40,7 +40,9 @@ def test_time_inference_counts_calls():
 
 def test_interleaved_timing_is_round_robin():
     order = []
-    medians = _interleaved_medians([lambda: order.append("a"), lambda: order.append("b")], repeats=3)
+    medians = _interleaved_medians(
+        [lambda: order.append("a"), lambda: order.append("b")], repeats=3
+    )
     assert order == ["a", "b"] * 4 and len(medians) == 2  # warm-ups, then 3 rounds over both
 
 
@@ -51,12 +53,32 @@ def test_two_variant_sweep_writes_table_and_plot(tmp_path):
     crops.truth["has_truth"] = torch.ones(len(crops), dtype=torch.bool)
     split = frame_split(crops, ("c2",), test_fraction=0.25)
     variants = [Variant("a", "tiny", (64, 48), "full"), Variant("b", "tiny", (128, 96), "full")]
-    train = FinetuneConfig(mode="pretrain", steps=2, batch_size=2, num_targets=2, render_size=16,
-                           weights=LossWeights(lpips=0.0))
-    rows = run_bench(variants, crops, split, body, "random", train, repeats=2, batch=2, render_size=32,
-                     log=lambda s: None)
-    assert [(r.variant, r.output) for r in rows] == [("a", "pose-only"), ("a", "full"), ("b", "pose-only"),
-                                                      ("b", "full")]
+    train = FinetuneConfig(
+        mode="pretrain",
+        steps=2,
+        batch_size=2,
+        num_targets=2,
+        render_size=16,
+        weights=LossWeights(lpips=0.0),
+    )
+    rows = run_bench(
+        variants,
+        crops,
+        split,
+        body,
+        "random",
+        train,
+        repeats=2,
+        batch=2,
+        render_size=32,
+        log=lambda s: None,
+    )
+    assert [(r.variant, r.output) for r in rows] == [
+        ("a", "pose-only"),
+        ("a", "full"),
+        ("b", "pose-only"),
+        ("b", "full"),
+    ]
     assert rows[0].input_size == "64x48" and rows[2].input_size == "128x96"
     assert rows[0].mpjpe_mm == rows[1].mpjpe_mm  # same model, two outputs
     assert rows[0].psnr is None and rows[1].psnr is not None
@@ -68,15 +90,24 @@ def test_two_variant_sweep_writes_table_and_plot(tmp_path):
     assert len(table) == 4 and table[1]["output"] == "full"
     assert float(table[3]["mpjpe_mm"]) == pytest.approx(rows[3].mpjpe_mm)
     md = (tmp_path / "table.md").read_text().splitlines()
-    assert md[0] == "# test" and sum(line.startswith("| a |") or line.startswith("| b |") for line in md) == 4
+    assert (
+        md[0] == "# test"
+        and sum(line.startswith("| a |") or line.startswith("| b |") for line in md) == 4
+    )
     img = cv2.imread(str(tmp_path / "pareto.png"))
     assert img is not None and img.shape[1] > 100
 
 
 def test_checkpoint_variant_must_match():
     with pytest.raises(ValueError, match="load_checkpoint_fn"):
-        run_bench([Variant("x", checkpoint="m.pt")], crop_set(), frame_split_ones(), None, "random",
-                  FinetuneConfig(mode="3d", steps=1))
+        run_bench(
+            [Variant("x", checkpoint="m.pt")],
+            crop_set(),
+            frame_split_ones(),
+            None,
+            "random",
+            FinetuneConfig(mode="3d", steps=1),
+        )
 
 
 def frame_split_ones():
@@ -86,4 +117,10 @@ def frame_split_ones():
 
 
 def test_bench_row_fields_are_the_csv_header():
-    assert list(BenchRow.__dataclass_fields__)[:5] == ["variant", "preset", "input_size", "gaussians", "output"]
+    assert list(BenchRow.__dataclass_fields__)[:5] == [
+        "variant",
+        "preset",
+        "input_size",
+        "gaussians",
+        "output",
+    ]

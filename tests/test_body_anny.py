@@ -42,7 +42,11 @@ def test_layout_licence_and_shape_space(anny_data):
     assert d.num_betas >= 10 and d.shapedirs.shape == (d.num_vertices, 3, d.num_betas)
     assert d.posedirs is None
     ratio = d.shape_variance_ratio
-    assert ratio.shape == (d.num_betas,) and np.all(np.diff(ratio) <= 0) and 0.99 < ratio[:10].sum() <= 1.0
+    assert (
+        ratio.shape == (d.num_betas,)
+        and np.all(np.diff(ratio) <= 0)
+        and 0.99 < ratio[:10].sum() <= 1.0
+    )
     assert np.all(np.diff(d.shape_variance) <= 0)
     assert "Apache-2.0" in d.licence and "CC0" in d.licence
     assert len(d.source_vertex_ids) == d.num_vertices and np.all(np.diff(d.source_vertex_ids) > 0)
@@ -51,7 +55,10 @@ def test_layout_licence_and_shape_space(anny_data):
     counts = np.bincount(d.part_labels, minlength=len(PART_NAMES))
     assert np.all(counts > 0), dict(zip(PART_NAMES, counts, strict=True))
     internal = np.isin(d.part_labels, [PART_NAMES.index(p) for p in INTERNAL_PART_NAMES])
-    assert d.v_template[internal, 1].min() > d.dense_J_regressor()[SMPL_JOINT_NAMES.index("neck")] @ d.v_template[:, 1]
+    assert (
+        d.v_template[internal, 1].min()
+        > d.dense_J_regressor()[SMPL_JOINT_NAMES.index("neck")] @ d.v_template[:, 1]
+    )
 
 
 def test_smpl_axes(anny_data):
@@ -86,11 +93,13 @@ def test_matches_anny_posed_joints_and_vertices(anny_data, anny_reference):
     rest_err = (body.rest_joints(betas) - rest_heads).norm(dim=-1)
     joint_err = (out.joints - anny_heads).norm(dim=-1)
     vert_err = (out.vertices - anny_v[:, ids]).norm(dim=-1)
-    print(f"\nrest joints: mean {1e3 * rest_err.mean():.2f} mm, max {1e3 * rest_err.max():.2f} mm"
-          f"\nposed joints: mean {1e3 * joint_err.mean():.2f} mm, median {1e3 * joint_err.median():.2f} mm, "
-          f"p95 {1e3 * joint_err.quantile(0.95):.2f} mm, max {1e3 * joint_err.max():.2f} mm"
-          f"\nvertices: median {1e3 * vert_err.median():.2f} mm, p95 {1e3 * vert_err.flatten().quantile(0.95):.2f} mm, "
-          f"max {1e3 * vert_err.max():.2f} mm")
+    print(
+        f"\nrest joints: mean {1e3 * rest_err.mean():.2f} mm, max {1e3 * rest_err.max():.2f} mm"
+        f"\nposed joints: mean {1e3 * joint_err.mean():.2f} mm, median {1e3 * joint_err.median():.2f} mm, "
+        f"p95 {1e3 * joint_err.quantile(0.95):.2f} mm, max {1e3 * joint_err.max():.2f} mm"
+        f"\nvertices: median {1e3 * vert_err.median():.2f} mm, p95 {1e3 * vert_err.flatten().quantile(0.95):.2f} mm, "
+        f"max {1e3 * vert_err.max():.2f} mm"
+    )
     assert joint_err.mean() < 5e-3
     assert joint_err.quantile(0.95) < 5e-3
     assert vert_err.median() < 5e-3
@@ -131,9 +140,20 @@ def test_rebuild_in_another_cache_dir_is_identical(anny_data, tmp_path):
     deterministic, so the cache key describes the content."""
     fresh = ad.build_anny_default(cache_dir=tmp_path)
     assert len(list((tmp_path / "body").glob("anny-default-smpl24-*.npz"))) == 1
-    for field in ("v_template", "shapedirs", "weights", "faces", "part_labels", "shape_variance_ratio"):
-        np.testing.assert_allclose(getattr(fresh, field), getattr(anny_data, field), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(fresh.dense_J_regressor(), anny_data.dense_J_regressor(), rtol=0, atol=1e-9)
+    for field in (
+        "v_template",
+        "shapedirs",
+        "weights",
+        "faces",
+        "part_labels",
+        "shape_variance_ratio",
+    ):
+        np.testing.assert_allclose(
+            getattr(fresh, field), getattr(anny_data, field), rtol=0, atol=1e-12
+        )
+    np.testing.assert_allclose(
+        fresh.dense_J_regressor(), anny_data.dense_J_regressor(), rtol=0, atol=1e-9
+    )
 
 
 def test_load_body_model_anny(anny_data):

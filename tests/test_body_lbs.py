@@ -35,9 +35,17 @@ def _smplx_reference(data: BodyModelData, betas, pose, orient, dtype=torch.float
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype)  # noqa: E731
     full_pose = torch.cat([orient[:, None], pose], dim=1).reshape(-1, 3).numpy()
     rotmats = t(Rotation.from_rotvec(full_pose).as_matrix()).reshape(len(pose), 24, 3, 3)
-    return smplx_lbs(betas, rotmats, t(data.v_template), t(data.shapedirs), t(data.posedirs),
-                     t(data.dense_J_regressor()), torch.as_tensor(np.asarray(data.parents)), t(data.weights),
-                     pose2rot=False)
+    return smplx_lbs(
+        betas,
+        rotmats,
+        t(data.v_template),
+        t(data.shapedirs),
+        t(data.posedirs),
+        t(data.dense_J_regressor()),
+        torch.as_tensor(np.asarray(data.parents)),
+        t(data.weights),
+        pose2rot=False,
+    )
 
 
 @pytest.mark.parametrize("fmt, protocol", [("pkl", 2), ("pkl", 1), ("npz", None)])
@@ -51,7 +59,9 @@ def test_lbs_matches_smplx_on_official_file(tmp_path, small_data, fmt, protocol)
         write_official_npz(small_data, path)
     loaded = load_smpl_file(tmp_path)  # a folder: finds SMPL_NEUTRAL.*
     for field in ("v_template", "shapedirs", "weights", "posedirs", "faces", "parents"):
-        np.testing.assert_array_equal(np.asarray(getattr(loaded, field)), np.asarray(getattr(small_data, field)))
+        np.testing.assert_array_equal(
+            np.asarray(getattr(loaded, field)), np.asarray(getattr(small_data, field))
+        )
     np.testing.assert_array_equal(loaded.dense_J_regressor(), small_data.dense_J_regressor())
 
     betas, pose, orient, _ = _random_inputs(6, 10)
@@ -82,22 +92,37 @@ def test_transforms_subsets_and_translation(small_data):
     full = body(betas, pose, orient, transl, return_transforms=True)
     sub = body(betas, pose, orient, transl, vertex_ids=ids, return_transforms=True)
     torch.testing.assert_close(sub.vertices, full.vertices[:, ids], rtol=0, atol=1e-12)
-    torch.testing.assert_close(sub.vertex_transforms, full.vertex_transforms[:, ids], rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        sub.vertex_transforms, full.vertex_transforms[:, ids], rtol=0, atol=1e-12
+    )
     torch.testing.assert_close(sub.joints, full.joints, rtol=0, atol=0)
-    assert full.joint_transforms.shape == (4, 24, 4, 4) and full.vertex_transforms.shape == (4, 900, 4, 4)
+    assert full.joint_transforms.shape == (4, 24, 4, 4) and full.vertex_transforms.shape == (
+        4,
+        900,
+        4,
+        4,
+    )
 
     # The vertex transform maps the rest vertex (with pose correctives) to the posed vertex.
     eye = torch.eye(3, dtype=torch.float64)
     rot = axis_angle_to_matrix(torch.cat([orient[:, None], pose], 1))
-    rest = body.rest_vertices(betas) + ((rot[:, 1:] - eye).reshape(4, -1) @ body.posedirs).reshape(4, -1, 3)
-    moved = (full.vertex_transforms[..., :3, :3] @ rest[..., None])[..., 0] + full.vertex_transforms[..., :3, 3]
+    rest = body.rest_vertices(betas) + ((rot[:, 1:] - eye).reshape(4, -1) @ body.posedirs).reshape(
+        4, -1, 3
+    )
+    moved = (full.vertex_transforms[..., :3, :3] @ rest[..., None])[
+        ..., 0
+    ] + full.vertex_transforms[..., :3, 3]
     torch.testing.assert_close(moved, full.vertices, rtol=0, atol=1e-12)
     # A joint transform maps that joint's rest position to its posed position.
     rest_j = body.rest_joints(betas)
-    moved_j = (full.joint_transforms[..., :3, :3] @ rest_j[..., None])[..., 0] + full.joint_transforms[..., :3, 3]
+    moved_j = (full.joint_transforms[..., :3, :3] @ rest_j[..., None])[
+        ..., 0
+    ] + full.joint_transforms[..., :3, 3]
     torch.testing.assert_close(moved_j, full.joints, rtol=0, atol=1e-12)
-    torch.testing.assert_close(full.vertex_transforms[..., 3, :],
-                               torch.tensor([0.0, 0, 0, 1], dtype=torch.float64).expand(4, 900, 4))
+    torch.testing.assert_close(
+        full.vertex_transforms[..., 3, :],
+        torch.tensor([0.0, 0, 0, 1], dtype=torch.float64).expand(4, 900, 4),
+    )
     # Translation shifts everything rigidly.
     plain = body(betas, pose, orient)
     torch.testing.assert_close(full.vertices, plain.vertices + transl[:, None], rtol=0, atol=1e-12)
@@ -106,19 +131,28 @@ def test_transforms_subsets_and_translation(small_data):
 
 def test_rest_pose_reproduces_template(small_data):
     body = BodyModel(small_data, dtype=torch.float64)
-    out = body(torch.zeros(1, 10, dtype=torch.float64), torch.zeros(1, 69), torch.zeros(1, 3),
-               return_transforms=True)
+    out = body(
+        torch.zeros(1, 10, dtype=torch.float64),
+        torch.zeros(1, 69),
+        torch.zeros(1, 3),
+        return_transforms=True,
+    )
     np.testing.assert_allclose(out.vertices[0].numpy(), small_data.v_template, atol=1e-12)
-    np.testing.assert_allclose(out.joints[0].numpy(), small_data.dense_J_regressor() @ small_data.v_template,
-                               atol=1e-12)
-    torch.testing.assert_close(out.joint_transforms, torch.eye(4, dtype=torch.float64).expand(1, 24, 4, 4))
+    np.testing.assert_allclose(
+        out.joints[0].numpy(), small_data.dense_J_regressor() @ small_data.v_template, atol=1e-12
+    )
+    torch.testing.assert_close(
+        out.joint_transforms, torch.eye(4, dtype=torch.float64).expand(1, 24, 4, 4)
+    )
 
 
 def test_fewer_betas_and_broadcast(small_data):
     body = BodyModel(small_data, dtype=torch.float64)
     betas, pose, orient, _ = _random_inputs(3, 10, seed=4)
     padded = torch.cat([betas[:, :4], torch.zeros(3, 6, dtype=torch.float64)], 1)
-    torch.testing.assert_close(body(betas[:, :4], pose, orient).vertices, body(padded, pose, orient).vertices)
+    torch.testing.assert_close(
+        body(betas[:, :4], pose, orient).vertices, body(padded, pose, orient).vertices
+    )
     one = body(betas[:1], pose, orient)  # (1, nb) betas broadcast over the batch
     torch.testing.assert_close(one.vertices, body(betas[:1].expand(3, -1), pose, orient).vertices)
     assert body(None, pose, orient).vertices.shape == (3, 900, 3)
@@ -136,8 +170,13 @@ def test_gradients_match_finite_differences():
 
     def f(b, p, o, t):  # random projections keep the Jacobian small
         out = body(b, p, o, t, vertex_ids=ids, return_transforms=True)
-        return torch.stack([(out.vertices * w_v).sum(), (out.joints * w_j).sum(),
-                            (out.vertex_transforms * w_t).sum()])
+        return torch.stack(
+            [
+                (out.vertices * w_v).sum(),
+                (out.joints * w_j).sum(),
+                (out.vertex_transforms * w_t).sum(),
+            ]
+        )
 
     inputs = tuple(x.clone().requires_grad_(True) for x in (betas, pose, orient, transl))
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, fast_mode=True)
@@ -150,17 +189,32 @@ def _bad_call(body, **override):
     return body(**args)
 
 
-@pytest.mark.parametrize("name, value, message", [
-    ("body_pose", torch.zeros(2, 24, 3), r"body_pose must have shape \(B, 23, 3, 3\).*got \(2, 24, 3\)"),
-    ("body_pose", torch.zeros(2, 23, 3, 2), r"body_pose must have shape"),
-    ("global_orient", torch.zeros(2, 4), r"global_orient must have shape \(B, 3, 3\)"),
-    ("global_orient", torch.zeros(3, 3, 3), r"global_orient has batch 3 but body_pose has batch 2"),
-    ("betas", torch.zeros(2, 11), r"betas must have shape \(B, nb\).*nb <= 10.*got \(2, 11\)"),
-    ("betas", torch.zeros(10), r"betas must have shape"),
-    ("transl", torch.zeros(2, 2), r"transl must have shape \(2, 3\)"),
-    ("body_pose", torch.zeros(2, 23, 3, dtype=torch.int64), r"body_pose must be a floating-point tensor"),
-    ("vertex_ids", torch.tensor([0, 900]), r"vertex_ids must lie in \[0, 900\)"),
-])
+@pytest.mark.parametrize(
+    "name, value, message",
+    [
+        (
+            "body_pose",
+            torch.zeros(2, 24, 3),
+            r"body_pose must have shape \(B, 23, 3, 3\).*got \(2, 24, 3\)",
+        ),
+        ("body_pose", torch.zeros(2, 23, 3, 2), r"body_pose must have shape"),
+        ("global_orient", torch.zeros(2, 4), r"global_orient must have shape \(B, 3, 3\)"),
+        (
+            "global_orient",
+            torch.zeros(3, 3, 3),
+            r"global_orient has batch 3 but body_pose has batch 2",
+        ),
+        ("betas", torch.zeros(2, 11), r"betas must have shape \(B, nb\).*nb <= 10.*got \(2, 11\)"),
+        ("betas", torch.zeros(10), r"betas must have shape"),
+        ("transl", torch.zeros(2, 2), r"transl must have shape \(2, 3\)"),
+        (
+            "body_pose",
+            torch.zeros(2, 23, 3, dtype=torch.int64),
+            r"body_pose must be a floating-point tensor",
+        ),
+        ("vertex_ids", torch.tensor([0, 900]), r"vertex_ids must lie in \[0, 900\)"),
+    ],
+)
 def test_wrong_shapes_name_the_argument(small_data, name, value, message):
     body = BodyModel(small_data)
     with pytest.raises(ValueError, match=message):

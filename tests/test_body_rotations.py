@@ -99,8 +99,15 @@ def test_degenerate_6d_is_finite():
     assert torch.isfinite(rot6d_to_matrix(torch.tensor([1.0, 0, 0, 2.0, 0, 0]))).all()
 
 
-@pytest.mark.parametrize("fn, shape", [(rot6d_to_matrix, (3, 5)), (matrix_to_rot6d, (3, 4)),
-                                       (axis_angle_to_matrix, (2, 4)), (matrix_to_axis_angle, (3,))])
+@pytest.mark.parametrize(
+    "fn, shape",
+    [
+        (rot6d_to_matrix, (3, 5)),
+        (matrix_to_rot6d, (3, 4)),
+        (axis_angle_to_matrix, (2, 4)),
+        (matrix_to_axis_angle, (3,)),
+    ],
+)
 def test_wrong_shapes_raise(fn, shape):
     with pytest.raises(ValueError, match="must have shape"):
         fn(torch.zeros(shape))

@@ -43,7 +43,10 @@ def test_presets_are_nested_sorted_stable_and_skip_internal(big):
         ids = subsets[preset]
         assert len(ids) == n and len(np.unique(ids)) == n and np.all(np.diff(ids) > 0)
         assert not np.isin(ids, internal).any()
-    assert np.isin(subsets["1723"], subsets["3445"]).all() and np.isin(subsets["3445"], subsets["6890"]).all()
+    assert (
+        np.isin(subsets["1723"], subsets["3445"]).all()
+        and np.isin(subsets["3445"], subsets["6890"]).all()
+    )
     # Deterministic: the same data gives the same ids (also when rebuilt from scratch).
     rebuilt = random_body_data(num_vertices=9000, with_posedirs=False, seed=1)
     rebuilt = rebuilt.replace(part_labels=np.asarray(big.part_labels))
@@ -90,7 +93,9 @@ def test_partition_is_compact_and_deterministic(smpl_sized):
     v = np.asarray(smpl_sized.v_template)[vertex_subset(smpl_sized, "6890")]
     labels = partition_vertices(v, K=26)
     np.testing.assert_array_equal(labels, partition_vertices(v, K=26))
-    np.testing.assert_array_equal(np.bincount(labels, minlength=26), np.full(26, 265))  # as in the paper
+    np.testing.assert_array_equal(
+        np.bincount(labels, minlength=26), np.full(26, 265)
+    )  # as in the paper
 
     def spread(lab):  # mean distance of a vertex to its group's centroid
         cent = np.stack([v[lab == g].mean(0) for g in range(26)])

@@ -21,7 +21,9 @@ CHARUCO = BoardSpec("charuco", 7, 5, 0.15, 0.11, "DICT_4X4_50")
 CHECKER = BoardSpec("checkerboard", 8, 5, 0.1)
 
 
-def camera_facing_board(board: BoardSpec, distance=1.6, offset=(0.0, 0.0), tilt_deg=20.0, size=(800, 600)):
+def camera_facing_board(
+    board: BoardSpec, distance=1.6, offset=(0.0, 0.0), tilt_deg=20.0, size=(800, 600)
+):
     """A camera looking at the centre of a board lying in the world plane z = 0 (printed side
     towards -z, so the camera sits at negative z), with some tilt."""
     w, h = board.size_m
@@ -55,7 +57,9 @@ def test_board_spec_dict_round_trip_and_validation():
         BoardSpec("checkerboard", 7, 5, 0.1)
     assert CHARUCO.n_corners == 24 and CHARUCO.object_points()[7].tolist() == [0.3, 0.3, 0.0]
     # Our corner ids and OpenCV's ChArUco corner ids are the same corners.
-    np.testing.assert_allclose(CHARUCO.create_cv_board().getChessboardCorners(), CHARUCO.object_points(), atol=1e-7)
+    np.testing.assert_allclose(
+        CHARUCO.create_cv_board().getChessboardCorners(), CHARUCO.object_points(), atol=1e-7
+    )
 
 
 def test_render_image_marks_square_zero_black():
@@ -68,7 +72,9 @@ def test_render_image_marks_square_zero_black():
 @pytest.mark.parametrize("board", [CHARUCO, CHECKER], ids=["charuco", "checkerboard"])
 def test_detection_is_subpixel_accurate(board):
     cam = camera_facing_board(board)
-    img = BoardRenderer(cam, board).render(np.eye(4), blur_sigma=0.6, noise_std=2.0, rng=np.random.default_rng(0))
+    img = BoardRenderer(cam, board).render(
+        np.eye(4), blur_sigma=0.6, noise_std=2.0, rng=np.random.default_rng(0)
+    )
     det = BoardDetector(board).detect(img, frame=5)
     assert det is not None and det.frame == 5
     assert len(det.ids) == board.n_corners
@@ -116,7 +122,10 @@ def test_blur_lowers_sharpness_and_blurred_detections_are_dropped():
     sharp = det.detect(r.render(np.eye(4), 0.5, 1.0, np.random.default_rng(0)), 0)
     soft = det.detect(r.render(np.eye(4), 1.8, 1.0, np.random.default_rng(0)), 1)
     assert soft is not None and soft.sharpness < 0.5 * sharp.sharpness
-    dets = [FrameDetection(i, [0, 1, 2, 3], np.zeros((4, 2)), s) for i, s in enumerate([100, 90, 110, 95, 5])]
+    dets = [
+        FrameDetection(i, [0, 1, 2, 3], np.zeros((4, 2)), s)
+        for i, s in enumerate([100, 90, 110, 95, 5])
+    ]
     assert [d.frame for d in drop_blurred(dets, 0.2)] == [0, 1, 2, 3]
     assert len(drop_blurred(dets, 0.0)) == 5
 
@@ -129,14 +138,18 @@ def footage(tmp_path):
     r = BoardRenderer(cam, CHARUCO)
     away = np.eye(4)
     away[:3, 3] = [0, 0, -50]  # far behind the camera: not visible
-    frames = [r.render(np.eye(4) if i in (1, 2, 4) else away, 0.5, 1.0, np.random.default_rng(i))
-              for i in range(6)]
+    frames = [
+        r.render(np.eye(4) if i in (1, 2, 4) else away, 0.5, 1.0, np.random.default_rng(i))
+        for i in range(6)
+    ]
     folder = tmp_path / "cam"
     folder.mkdir()
     for i, f in enumerate(frames):
         cv2.imwrite(str(folder / f"img{i}.png"), f)  # natural order: img2 before img10
     video = tmp_path / "cam.mkv"
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30, (640, 480), isColor=False)
+    writer = cv2.VideoWriter(
+        str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30, (640, 480), isColor=False
+    )
     for f in frames:
         writer.write(f)
     writer.release()

@@ -35,8 +35,14 @@ def problem():
         K[0, 0] *= 1.03
         K[1, 1] *= 0.98
         K[:2, 2] += [6.0, -4.0]
-        cams[c.name] = CameraState(c.name, c.width, c.height, K, c.dist * 0.5,
-                                   cam_from_rig if c.name == ref.name else perturb(cam_from_rig, rng))
+        cams[c.name] = CameraState(
+            c.name,
+            c.width,
+            c.height,
+            K,
+            c.dist * 0.5,
+            cam_from_rig if c.name == ref.name else perturb(cam_from_rig, rng),
+        )
         obs[c.name] = {d.frame: (d.ids, d.corners) for d in dets[c.name]}
     frames = {d.frame for v in dets.values() for d in v}
     rig_from_board = {f: perturb(ref.world_to_cam @ scene.world_from_board[f], rng) for f in frames}
@@ -45,8 +51,14 @@ def problem():
 
 def test_bundle_adjustment_recovers_exact_truth(problem):
     scene, cams, ref, rig_from_board, obs = problem
-    ba = BoardBundleAdjuster(cams, ref, rig_from_board, scene.board.object_points(), obs,
-                             options=BAOptions(loss="trivial", max_outlier_rounds=0))
+    ba = BoardBundleAdjuster(
+        cams,
+        ref,
+        rig_from_board,
+        scene.board.object_points(),
+        obs,
+        options=BAOptions(loss="trivial", max_outlier_rounds=0),
+    )
     result = ba.result(ba.run())
     for c in scene.rig:
         s = result.cameras[c.name]
@@ -57,7 +69,9 @@ def test_bundle_adjustment_recovers_exact_truth(problem):
         np.testing.assert_allclose(s.cam_from_rig[:3, 3], truth[:3, 3], atol=1e-6)
         assert result.residuals[c.name].max() < 1e-4
     for f, T in result.rig_from_board.items():
-        np.testing.assert_allclose(T, scene.rig[0].world_to_cam @ scene.world_from_board[f], atol=1e-6)
+        np.testing.assert_allclose(
+            T, scene.rig[0].world_to_cam @ scene.world_from_board[f], atol=1e-6
+        )
 
 
 def test_residuals_match_colmap_projection(problem):
@@ -68,7 +82,9 @@ def test_residuals_match_colmap_projection(problem):
         img = ba.rec.image(iid)
         for k, p2d in enumerate(img.points2D):
             xyz = ba.rec.point3D(p2d.point3D_id).xyz
-            ref_err = np.linalg.norm(np.asarray(img.project_point(xyz)) - p2d.xy)  # COLMAP's own math
+            ref_err = np.linalg.norm(
+                np.asarray(img.project_point(xyz)) - p2d.xy
+            )  # COLMAP's own math
             assert ours[iid][k] == pytest.approx(ref_err, abs=1e-6)
 
 
@@ -94,8 +110,14 @@ def test_outliers_are_removed_in_rounds(problem):
 
 def test_unknown_solver_is_reported(problem):
     scene, cams, ref, rig_from_board, obs = problem
-    ba = BoardBundleAdjuster(cams, ref, rig_from_board, scene.board.object_points(), obs,
-                             options=BAOptions(linear_solver="MAGIC"))
+    ba = BoardBundleAdjuster(
+        cams,
+        ref,
+        rig_from_board,
+        scene.board.object_points(),
+        obs,
+        options=BAOptions(linear_solver="MAGIC"),
+    )
     with pytest.raises(BundleAdjustmentError, match="MAGIC"):
         ba.run()
 
@@ -109,6 +131,8 @@ def test_pose_graph_chains_cameras_without_a_common_frame():
     poses, reference = chain_poses(list(views), pairwise_edges(views), reference="c0")
     for c in truth:
         np.testing.assert_allclose(poses[c], truth[c] @ invert(truth["c0"]), atol=1e-9)
-    mean, inliers = robust_mean_pose(np.stack([truth["c1"]] * 5 + [perturb(truth["c1"], rng, 20, 1)]))
+    mean, inliers = robust_mean_pose(
+        np.stack([truth["c1"]] * 5 + [perturb(truth["c1"], rng, 20, 1)])
+    )
     np.testing.assert_allclose(mean, truth["c1"], atol=1e-9)
     assert inliers.tolist() == [True] * 5 + [False]

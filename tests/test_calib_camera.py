@@ -20,11 +20,15 @@ def camera_and_points(draw, dist_len=None):
     fx, fy = draw(st.floats(200, 3000, **finite)), draw(st.floats(200, 3000, **finite))
     cx, cy = draw(st.floats(100, 1000, **finite)), draw(st.floats(100, 1000, **finite))
     n = dist_len if dist_len is not None else draw(st.sampled_from([0, 4, 5, 8, 12]))
-    scales = np.array([0.2, 0.05, 0.002, 0.002, 0.01, 0.05, 0.01, 0.005, 0.002, 0.001, 0.002, 0.001])[:n]
+    scales = np.array(
+        [0.2, 0.05, 0.002, 0.002, 0.01, 0.05, 0.01, 0.005, 0.002, 0.001, 0.002, 0.001]
+    )[:n]
     dist = np.array(draw(st.lists(st.floats(-1, 1, **finite), min_size=n, max_size=n))) * scales
     # Points in front of the camera inside a moderate field of view.
     m = draw(st.integers(1, 20))
-    xy = np.array(draw(st.lists(st.floats(-0.6, 0.6, **finite), min_size=2 * m, max_size=2 * m))).reshape(m, 2)
+    xy = np.array(
+        draw(st.lists(st.floats(-0.6, 0.6, **finite), min_size=2 * m, max_size=2 * m))
+    ).reshape(m, 2)
     z = np.array(draw(st.lists(st.floats(0.5, 10, **finite), min_size=m, max_size=m)))
     pts_cam = np.c_[xy * z[:, None], z]
     R = cv2.Rodrigues(rvec)[0]
@@ -35,8 +39,15 @@ def camera_and_points(draw, dist_len=None):
 
 @settings(max_examples=60, deadline=None)
 @given(camera_and_points())
-@example((np.array([[200.0, 0, 100], [0, 200, 100], [0, 0, 1]]), np.array([]),
-          cv2.Rodrigues(np.array([0.0, 1e-5, 0.0]))[0], np.zeros(3), np.array([[-1e-5, 0.0, 1.0]])))
+@example(
+    (
+        np.array([[200.0, 0, 100], [0, 200, 100], [0, 0, 1]]),
+        np.array([]),
+        cv2.Rodrigues(np.array([0.0, 1e-5, 0.0]))[0],
+        np.zeros(3),
+        np.array([[-1e-5, 0.0, 1.0]]),
+    )
+)
 def test_torch_projection_matches_opencv(data):
     K, dist, R, t, pts = data
     # scipy's rotation vector is exact for tiny angles, where cv2.Rodrigues(matrix) rounds to 0.
@@ -58,12 +69,18 @@ def test_torch_projection_batched_and_differentiable():
     out = project_points_torch(pts, K, R, t, dist)
     assert out.shape == (B, N, 2)
     for b in range(B):  # each batch element equals its own OpenCV projection
-        ref, _ = cv2.projectPoints(pts[b].detach().numpy(), cv2.Rodrigues(R[b].numpy())[0], t[b].numpy(),
-                                   K[b].numpy(), dist[b].numpy())
+        ref, _ = cv2.projectPoints(
+            pts[b].detach().numpy(),
+            cv2.Rodrigues(R[b].numpy())[0],
+            t[b].numpy(),
+            K[b].numpy(),
+            dist[b].numpy(),
+        )
         np.testing.assert_allclose(out[b].detach().numpy(), ref.reshape(-1, 2), atol=1e-8)
     # Gradients w.r.t. points and distortion agree with finite differences.
     assert torch.autograd.gradcheck(
-        lambda p, d: project_points_torch(p, K, R, t, d), (pts, dist.clone().requires_grad_(True)))
+        lambda p, d: project_points_torch(p, K, R, t, d), (pts, dist.clone().requires_grad_(True))
+    )
     # Shared camera broadcast over a batch of point sets.
     out2 = project_points_torch(pts, K[0], R[0], t[0], dist[0])
     assert out2.shape == (B, N, 2)
@@ -71,7 +88,9 @@ def test_torch_projection_batched_and_differentiable():
 
 def test_torch_projection_rejects_tilted_model():
     with pytest.raises(CameraError, match="14"):
-        project_points_torch(torch.zeros(1, 3), torch.eye(3), torch.eye(3), torch.ones(3), torch.zeros(14))
+        project_points_torch(
+            torch.zeros(1, 3), torch.eye(3), torch.eye(3), torch.ones(3), torch.zeros(14)
+        )
 
 
 @settings(max_examples=40, deadline=None)
@@ -89,7 +108,9 @@ def test_skew_is_honoured_by_project_and_undistort(data, skew):
     depth = cam.to_camera(pts)[:, 2]
     np.testing.assert_allclose(cam.unproject(uv, depth), pts, atol=1e-6)
     T = lambda a: torch.tensor(a, dtype=torch.float64)  # noqa: E731
-    np.testing.assert_allclose(project_points_torch(T(pts), T(K), T(R), T(t), T(dist)).numpy(), uv, atol=1e-6)
+    np.testing.assert_allclose(
+        project_points_torch(T(pts), T(K), T(R), T(t), T(dist)).numpy(), uv, atol=1e-6
+    )
 
 
 def test_rig_transformed_keeps_projections_and_stacked_arrays():
@@ -98,8 +119,17 @@ def test_rig_transformed_keeps_projections_and_stacked_arrays():
     for i in range(3):
         pos = rng.normal(size=3) * 3 + [0, 0, 2]
         R = look_at_rotation(pos, [0, 0, 1])
-        cams.append(Camera.create(f"c{i}", [[700, 0, 320], [0, 700, 240], [0, 0, 1]], [0.1, -0.02, 0, 0, 0],
-                                  R, -R @ pos, 640, 480))
+        cams.append(
+            Camera.create(
+                f"c{i}",
+                [[700, 0, 320], [0, 700, 240], [0, 0, 1]],
+                [0.1, -0.02, 0, 0, 0],
+                R,
+                -R @ pos,
+                640,
+                480,
+            )
+        )
     rig = Rig(tuple(cams))
     Rw = cv2.Rodrigues(np.array([0.3, -0.2, 0.5]))[0]
     tw, s = np.array([1.0, -2.0, 0.5]), 1.7
@@ -110,7 +140,11 @@ def test_rig_transformed_keeps_projections_and_stacked_arrays():
         np.testing.assert_allclose(b.center, s * Rw @ a.center + tw, atol=1e-9)
     np.testing.assert_allclose(new.up, Rw @ np.array([0, 0, 1.0]), atol=1e-12)
     arrays = rig.stacked()
-    assert arrays["K"].shape == (3, 3, 3) and arrays["dist"].shape == (3, 5) and arrays["size"].tolist()[0] == [640, 480]
+    assert (
+        arrays["K"].shape == (3, 3, 3)
+        and arrays["dist"].shape == (3, 5)
+        and arrays["size"].tolist()[0] == [640, 480]
+    )
 
 
 def test_look_at_points_camera_at_target_with_image_up():
@@ -121,13 +155,16 @@ def test_look_at_points_camera_at_target_with_image_up():
     assert R[1] @ [0, 0, 1] < 0  # image y (down) points against world up
 
 
-@pytest.mark.parametrize("field,value,match", [
-    ("K", np.full((3, 3), np.nan), "NaN"),
-    ("R", np.diag([1.0, 1.0, 1.1]), "orthonormal"),
-    ("R", np.diag([1.0, 1.0, -1.0]), "reflection"),
-    ("t", np.zeros(4), "shape"),
-    ("dist", np.zeros(6), "distortion has 6 terms"),
-])
+@pytest.mark.parametrize(
+    "field,value,match",
+    [
+        ("K", np.full((3, 3), np.nan), "NaN"),
+        ("R", np.diag([1.0, 1.0, 1.1]), "orthonormal"),
+        ("R", np.diag([1.0, 1.0, -1.0]), "reflection"),
+        ("t", np.zeros(4), "shape"),
+        ("dist", np.zeros(6), "distortion has 6 terms"),
+    ],
+)
 def test_camera_validation_names_camera_and_field(field, value, match):
     fields = dict(K=np.eye(3), dist=None, R=np.eye(3), t=np.zeros(3), width=10, height=10)
     fields[field] = value
@@ -141,6 +178,10 @@ def test_tiny_rotation_is_not_rounded_to_identity():
     R = np.array([[1.0, 0.0, 1e-5], [0.0, 1.0, 0.0], [-1e-5, 0.0, 1.0]])
     R, _ = np.linalg.qr(R)
     R *= np.sign(np.diag(R))[None]
-    cam = Camera.create("c", [[200, 0, 100], [0, 200, 100], [0, 0, 1]], np.zeros(5), R, np.zeros(3), 1280, 960)
+    cam = Camera.create(
+        "c", [[200, 0, 100], [0, 200, 100], [0, 0, 1]], np.zeros(5), R, np.zeros(3), 1280, 960
+    )
     pts = np.array([[-1e-5, 0.0, 1.0]])
-    np.testing.assert_allclose(cam.unproject(cam.project(pts), cam.to_camera(pts)[:, 2]), pts, atol=1e-9)
+    np.testing.assert_allclose(
+        cam.unproject(cam.project(pts), cam.to_camera(pts)[:, 2]), pts, atol=1e-9
+    )

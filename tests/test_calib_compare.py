@@ -19,7 +19,11 @@ def ring_rig(n=6, radius=4.0, height=2.5):
         x /= np.linalg.norm(x)
         y = np.cross(z, x)
         R = np.stack([x, y, z])
-        cams.append(Camera.create(f"c{i}", [[800, 0, 320], [0, 810, 240], [0, 0, 1]], [], R, -R @ c, 640, 480))
+        cams.append(
+            Camera.create(
+                f"c{i}", [[800, 0, 320], [0, 810, 240], [0, 0, 1]], [], R, -R @ c, 640, 480
+            )
+        )
     return Rig(tuple(cams))
 
 
@@ -40,7 +44,9 @@ def test_perturbed_camera_is_reported():
     ref = ring_rig()
     cams = list(ref.cameras)
     R = Rotation.from_euler("y", 1.0, degrees=True).as_matrix() @ cams[2].R
-    cams[2] = cams[2].replace(R=R, K=np.diag([808.0, 810.0, 1.0]) + np.array([[0, 0, 320], [0, 0, 240], [0, 0, 0]]))
+    cams[2] = cams[2].replace(
+        R=R, K=np.diag([808.0, 810.0, 1.0]) + np.array([[0, 0, 320], [0, 0, 240], [0, 0, 0]])
+    )
     cmp = compare_rigs(Rig(tuple(cams)), ref)
     assert np.argmax(cmp.focal_rel_error) == 2 and abs(cmp.focal_rel_error[2] - 0.01) < 1e-12
     assert cmp.rotation_error_deg[2] > 0.3

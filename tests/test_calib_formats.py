@@ -54,7 +54,7 @@ def assert_same_rig(a: Rig, b: Rig, atol=1e-9):
         assert (ca.width, ca.height) == (cb.width, cb.height)
         np.testing.assert_allclose(cb.K, ca.K, rtol=1e-12, atol=atol)
         da, db = np.zeros(14), np.zeros(14)
-        da[:ca.dist.size], db[:cb.dist.size] = ca.dist, cb.dist
+        da[: ca.dist.size], db[: cb.dist.size] = ca.dist, cb.dist
         np.testing.assert_allclose(db, da, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(cb.R, ca.R, atol=1e-12)
         np.testing.assert_allclose(cb.t, ca.t, rtol=1e-12, atol=1e-12)
@@ -62,11 +62,17 @@ def assert_same_rig(a: Rig, b: Rig, atol=1e-9):
 
 
 # -- sample files from the documentation --------------------------------------------------------
-PANOPTIC_CAM = {"name": "00_03", "type": "hd", "resolution": [1920, 1080], "panel": 0, "node": 3,
-                "K": [[1633.5, 0.0, 944.8], [0.0, 1628.9, 556.6], [0.0, 0.0, 1.0]],
-                "distCoef": [-0.2212, 0.1843, 0.00031, -0.00044, -0.0411],
-                "R": cv2.Rodrigues(np.array([0.2, -2.4, 0.15]))[0].tolist(),
-                "t": [[-12.6], [135.3], [282.4]]}
+PANOPTIC_CAM = {
+    "name": "00_03",
+    "type": "hd",
+    "resolution": [1920, 1080],
+    "panel": 0,
+    "node": 3,
+    "K": [[1633.5, 0.0, 944.8], [0.0, 1628.9, 556.6], [0.0, 0.0, 1.0]],
+    "distCoef": [-0.2212, 0.1843, 0.00031, -0.00044, -0.0411],
+    "R": cv2.Rodrigues(np.array([0.2, -2.4, 0.15]))[0].tolist(),
+    "t": [[-12.6], [135.3], [282.4]],
+}
 
 
 def test_panoptic_projects_like_its_own_math(tmp_path):
@@ -78,8 +84,13 @@ def test_panoptic_projects_like_its_own_math(tmp_path):
     assert rig.names == ["00_03"] and rig.up == (0.0, -1.0, 0.0)
     cam = rig["00_03"]
     # Panoptic math: centimetres, world y down. A point in front of the camera:
-    X_cm = (np.linalg.inv(cam.R) @ (np.array([[10.0, -5, 300], [-40, 20, 250]]) - np.ravel(PANOPTIC_CAM["t"])).T).T
-    ref = pinhole_project(X_cm, PANOPTIC_CAM["K"], PANOPTIC_CAM["R"], PANOPTIC_CAM["t"], PANOPTIC_CAM["distCoef"])
+    X_cm = (
+        np.linalg.inv(cam.R)
+        @ (np.array([[10.0, -5, 300], [-40, 20, 250]]) - np.ravel(PANOPTIC_CAM["t"])).T
+    ).T
+    ref = pinhole_project(
+        X_cm, PANOPTIC_CAM["K"], PANOPTIC_CAM["R"], PANOPTIC_CAM["t"], PANOPTIC_CAM["distCoef"]
+    )
     np.testing.assert_allclose(cam.project(X_cm / 100), ref, atol=1e-8)
     assert len(read_rig(path)) == 2  # all types by default
     assert cam.meta["panel"] == 0 and cam.meta["node"] == 3
@@ -98,10 +109,24 @@ def h36m_project(P_mm, R, T, f, c, k, p):
 
 
 H36M_CAMS = [  # (id, rvec world->cam, centre mm, f, c, k, p)
-    ("54138969", [1.84, -0.42, 0.37], [-1841.1, 4955.3, 1563.4], [1145.05, 1143.78], [512.54, 515.45],
-     [-0.2071, 0.2479, -0.0031], [-0.00097, -0.00142]),
-    ("55011271", [1.67, 0.72, -0.51], [1761.3, 4448.0, 1588.1], [1149.68, 1147.59], [508.85, 508.06],
-     [-0.1942, 0.2404, 0.0068], [-0.0016, -0.00277]),
+    (
+        "54138969",
+        [1.84, -0.42, 0.37],
+        [-1841.1, 4955.3, 1563.4],
+        [1145.05, 1143.78],
+        [512.54, 515.45],
+        [-0.2071, 0.2479, -0.0031],
+        [-0.00097, -0.00142],
+    ),
+    (
+        "55011271",
+        [1.67, 0.72, -0.51],
+        [1761.3, 4448.0, 1588.1],
+        [1149.68, 1147.59],
+        [508.85, 508.06],
+        [-0.1942, 0.2404, 0.0068],
+        [-0.0016, -0.00277],
+    ),
 ]
 
 
@@ -148,8 +173,12 @@ def test_h36m_export_exact_for_h36m_cameras_and_refuses_or_fits_others(tmp_path)
     with h5py.File(out) as a, h5py.File(src) as b:
         for ck in ("camera1", "camera2"):
             for ds in ("R", "T", "f", "c", "k", "p"):
-                np.testing.assert_allclose(a[f"subject1/{ck}/{ds}"][()], b[f"subject1/{ck}/{ds}"][()],
-                                           rtol=1e-12, atol=1e-12)
+                np.testing.assert_allclose(
+                    a[f"subject1/{ck}/{ds}"][()],
+                    b[f"subject1/{ck}/{ds}"][()],
+                    rtol=1e-12,
+                    atol=1e-12,
+                )
     assert_same_rig(rig, read_rig(out, "h36m"))
     general = ring_cameras(1)
     with pytest.raises(RigFormatError, match="approximate_distortion"):
@@ -172,8 +201,12 @@ def test_h36m_json_variant(tmp_path):
     R = cv2.Rodrigues(np.array(rvec))[0]
     t_mm = -R @ np.array(T)
     K = [[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1]]
-    data = {"intrinsics": {name: {"calibration_matrix": K, "distortion": [k[0], k[1], p[0], p[1], k[2]]}},
-            "extrinsics": {"S1": {name: {"R": R.tolist(), "t": t_mm.reshape(3, 1).tolist()}}}}
+    data = {
+        "intrinsics": {
+            name: {"calibration_matrix": K, "distortion": [k[0], k[1], p[0], p[1], k[2]]}
+        },
+        "extrinsics": {"S1": {name: {"R": R.tolist(), "t": t_mm.reshape(3, 1).tolist()}}},
+    }
     path = tmp_path / "camera-parameters.json"
     path.write_text(json.dumps(data))
     assert detect_format(path) == "h36m-json"
@@ -184,7 +217,9 @@ def test_h36m_json_variant(tmp_path):
     np.testing.assert_allclose(cam.project(P_m), ref, atol=1e-8)
     # tangential='h36m': H36M's own model, converted exactly.
     cam_h = read_rig(path, subject=1, tangential="h36m")[name]
-    np.testing.assert_allclose(cam_h.project(P_m), h36m_project(P_m * 1000, R, np.array(T), f, c, k, p), atol=1e-8)
+    np.testing.assert_allclose(
+        cam_h.project(P_m), h36m_project(P_m * 1000, R, np.array(T), f, c, k, p), atol=1e-8
+    )
     out = tmp_path / "rt.json"
     write_rig(read_rig(path), out, "h36m-json", subject="S1")
     assert_same_rig(read_rig(path), read_rig(out))
@@ -216,7 +251,9 @@ error = 0.41
 
 
 def _toml_reference(section_rvec, section_t, K, dist, X_units):
-    uv, _ = cv2.projectPoints(X_units, np.array(section_rvec), np.array(section_t), np.array(K), np.array(dist))
+    uv, _ = cv2.projectPoints(
+        X_units, np.array(section_rvec), np.array(section_t), np.array(K), np.array(dist)
+    )
     return uv.reshape(-1, 2)
 
 
@@ -226,9 +263,13 @@ def test_anipose_toml_units_and_projection(tmp_path):
     assert detect_format(path) == "anipose"
     rig = read_rig(path)  # mm by default
     X_mm = np.array([[100.0, 200.0, 300.0], [-250.0, 50.0, 600.0]])
-    ref = _toml_reference([0.12, -0.83, 0.05], [412.0, -95.5, 2210.0],
-                          [[912.4, 0.0, 640.2], [0.0, 911.8, 361.7], [0.0, 0.0, 1.0]],
-                          [-0.102, 0.087, 0.0011, -0.0006, -0.021], X_mm)
+    ref = _toml_reference(
+        [0.12, -0.83, 0.05],
+        [412.0, -95.5, 2210.0],
+        [[912.4, 0.0, 640.2], [0.0, 911.8, 361.7], [0.0, 0.0, 1.0]],
+        [-0.102, 0.087, 0.0011, -0.0006, -0.021],
+        X_mm,
+    )
     np.testing.assert_allclose(rig["A"].project(X_mm / 1000), ref, atol=1e-8)
     assert rig.names == ["A", "B"] and rig.meta["metadata"]["error"] == 0.41
     rig_cm = read_rig(path, "anipose", units="cm")
@@ -260,9 +301,13 @@ def test_pose2sim_toml_metres_and_projection(tmp_path):
     cam = read_rig(path)["cam_01"]
     assert (cam.width, cam.height) == (1088, 1920) and cam.dist.size == 4
     X = np.array([[0.2, 0.1, 1.0], [-0.4, 0.3, 0.5]])
-    ref = _toml_reference([1.688, 1.048, -0.4196], [0.3211, 0.9563, 2.8907],
-                          [[1681.2, 0.0, 533.0], [0.0, 1681.1, 948.1], [0.0, 0.0, 1.0]],
-                          [-0.046, 0.14, 0.0006, 0.0007], X)
+    ref = _toml_reference(
+        [1.688, 1.048, -0.4196],
+        [0.3211, 0.9563, 2.8907],
+        [[1681.2, 0.0, 533.0], [0.0, 1681.1, 948.1], [0.0, 0.0, 1.0]],
+        [-0.046, 0.14, 0.0006, 0.0007],
+        X,
+    )
     np.testing.assert_allclose(cam.project(X), ref, atol=1e-8)
     bad = tmp_path / "fish.toml"
     bad.write_text(POSE2SIM_TOML.replace("fisheye = false", "fisheye = true"))
@@ -321,10 +366,16 @@ def test_qualisys_real_lab_file_matches_pose2sim_conversion():
     rig = read_rig(QCA)
     assert rig.names == ["cam01", "cam02", "cam03", "cam04"]
     assert all((c.width, c.height) == (1088, 1920) for c in rig)
-    published = {"cam01": ([1.6882754799999993, 1.0483220499999997, -0.41955852000000016],
-                           [0.3211048899999996, 0.9563320600000009, 2.8907130499999996]),
-                 "cam04": ([1.4045571699999995, -1.3887412699999993, 0.42535743000000026],
-                           [0.5030217200000007, 0.04894934000000107, 4.406564460000002])}
+    published = {
+        "cam01": (
+            [1.6882754799999993, 1.0483220499999997, -0.41955852000000016],
+            [0.3211048899999996, 0.9563320600000009, 2.8907130499999996],
+        ),
+        "cam04": (
+            [1.4045571699999995, -1.3887412699999993, 0.42535743000000026],
+            [0.5030217200000007, 0.04894934000000107, 4.406564460000002],
+        ),
+    }
     for name, (rvec, t) in published.items():
         np.testing.assert_allclose(rig[name].rvec, rvec, atol=1e-9)
         np.testing.assert_allclose(rig[name].t, t, atol=1e-9)
@@ -334,8 +385,9 @@ def test_qualisys_real_lab_file_matches_pose2sim_conversion():
 def test_colmap_model_written_by_pycolmap(tmp_path):
     rec = pycolmap.Reconstruction()
     params = [1500.0, 1495.0, 960.5, 540.5, -0.11, 0.04, 0.0007, -0.0005]
-    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="OPENCV", width=1920, height=1080,
-                                                    params=params, camera_id=1))
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="OPENCV", width=1920, height=1080, params=params, camera_id=1)
+    )
     R = cv2.Rodrigues(np.array([0.1, 2.9, -0.2]))[0]
     pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), np.array([0.2, 0.4, 3.0]))
     rec.add_image_with_trivial_frame(pycolmap.Image(name="left.jpg", camera_id=1, image_id=7), pose)
@@ -371,18 +423,30 @@ def test_round_trip_is_lossless(tmp_path, fmt, wopts, ropts):
         rig = ring_cameras(3, dist=(-0.2, 0.05, 0.001, -0.002))
     else:
         rig = ring_cameras(3)
-    suffix = {"rig": ".json", "panoptic": ".json", "anipose": ".toml", "pose2sim": ".toml",
-              "colmap": "", "h36m": ".h5", "h36m-json": ".json"}[fmt]
+    suffix = {
+        "rig": ".json",
+        "panoptic": ".json",
+        "anipose": ".toml",
+        "pose2sim": ".toml",
+        "colmap": "",
+        "h36m": ".h5",
+        "h36m-json": ".json",
+    }[fmt]
     path = tmp_path / f"rig_{fmt}{suffix}"
     write_rig(rig, path, fmt, **wopts)
     back = read_rig(path, fmt, **ropts)
     assert_same_rig(rig, back)
     if fmt == "rig":  # canonical file: bit-exact, meta kept
         for a, b in zip(rig, back, strict=True):
-            assert np.array_equal(a.K, b.K) and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+            assert (
+                np.array_equal(a.K, b.K) and np.array_equal(a.R, b.R) and np.array_equal(a.t, b.t)
+            )
             assert b.meta == a.meta
         assert back.up == rig.up
-    if fmt not in ("anipose", "pose2sim"):  # TOML's two layouts look alike; auto-detection elsewhere
+    if fmt not in (
+        "anipose",
+        "pose2sim",
+    ):  # TOML's two layouts look alike; auto-detection elsewhere
         assert detect_format(path) == fmt
     # Written again from the read rig: identical file (stable writer).
     if fmt not in ("colmap", "h36m"):
@@ -392,7 +456,16 @@ def test_round_trip_is_lossless(tmp_path, fmt, wopts, ropts):
 
 
 def test_formats_listing_and_options():
-    assert set(FORMATS) == {"rig", "panoptic", "h36m", "h36m-json", "anipose", "pose2sim", "qualisys", "colmap"}
+    assert set(FORMATS) == {
+        "rig",
+        "panoptic",
+        "h36m",
+        "h36m-json",
+        "anipose",
+        "pose2sim",
+        "qualisys",
+        "colmap",
+    }
     assert not FORMATS["qualisys"].can_write
     with pytest.raises(RigFormatError, match="read only"):
         write_rig(ring_cameras(1), "/tmp/never.qca.txt", "qualisys")
@@ -408,7 +481,12 @@ def test_invalid_rig_is_never_written(tmp_path):
     c = good[1]
     broken = Camera(c.name, c.K, c.dist, c.R * 1.01, c.t, c.width, c.height)  # bypasses validation
     rig = Rig((good[0], broken))
-    for fmt, suffix in (("rig", ".json"), ("panoptic", ".json"), ("colmap", ""), ("anipose", ".toml")):
+    for fmt, suffix in (
+        ("rig", ".json"),
+        ("panoptic", ".json"),
+        ("colmap", ""),
+        ("anipose", ".toml"),
+    ):
         path = tmp_path / f"out{suffix}"
         with pytest.raises(CameraError, match="c1.*orthonormal"):
             write_rig(rig, path, fmt)
@@ -430,17 +508,22 @@ def test_failed_write_keeps_the_old_file(tmp_path):
 
     with pytest.raises(OSError, match="disk full"):
         atomic_write(path, crash)
-    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["rig.json"]
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "rig.json"
+    ]
 
 
-@pytest.mark.parametrize("mutate,match", [
-    (lambda d: d.update(version=2), "newer"),
-    (lambda d: d.update(schema="other"), "schema"),
-    (lambda d: d["cameras"][0].pop("K"), "missing key 'K'.*camera 'c0'"),
-    (lambda d: d["cameras"][0].update(R=[[1, 0], [0, 1]]), "c0.*R has shape"),
-    (lambda d: d["cameras"][0].update(t=[0, float("nan"), 0]), "c0.*NaN"),
-    (lambda d: d["cameras"][0].update(focal=1.0), "unknown keys"),
-])
+@pytest.mark.parametrize(
+    "mutate,match",
+    [
+        (lambda d: d.update(version=2), "newer"),
+        (lambda d: d.update(schema="other"), "schema"),
+        (lambda d: d["cameras"][0].pop("K"), "missing key 'K'.*camera 'c0'"),
+        (lambda d: d["cameras"][0].update(R=[[1, 0], [0, 1]]), "c0.*R has shape"),
+        (lambda d: d["cameras"][0].update(t=[0, float("nan"), 0]), "c0.*NaN"),
+        (lambda d: d["cameras"][0].update(focal=1.0), "unknown keys"),
+    ],
+)
 def test_bad_rig_json_is_reported_with_file_and_key(tmp_path, mutate, match):
     path = tmp_path / "rig.json"
     write_rig(ring_cameras(1), path)

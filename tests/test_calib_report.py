@@ -24,7 +24,11 @@ def test_real_qualisys_cameras_look_into_the_volume(tmp_path):
         assert LAB_VOLUME.ray_hits(cam.center, cam.optical_axis), cam.name
         # The volume centre lies inside the image of every camera.
         uv = cam.project(np.array([[0.0, 0.0, 1.0]]))[0]
-        assert 0 <= uv[0] < cam.width and 0 <= uv[1] < cam.height and cam.to_camera([[0, 0, 1.0]])[0, 2] > 0
+        assert (
+            0 <= uv[0] < cam.width
+            and 0 <= uv[1] < cam.height
+            and cam.to_camera([[0, 0, 1.0]])[0, 2] > 0
+        )
     assert check_rig(rig, LAB_VOLUME) == [] and check_rig(rig) == []
     md = write_calibration_report(rig, tmp_path, volume=LAB_VOLUME)
     text = md.read_text()
@@ -35,7 +39,9 @@ def test_real_qualisys_cameras_look_into_the_volume(tmp_path):
 
 def test_checks_flag_cameras_below_floor_or_looking_away():
     rig = read_rig(QCA)
-    flipped = rig.transformed(np.diag([1.0, -1.0, -1.0]), np.zeros(3), up=(0.0, 0.0, 1.0))  # upside down
+    flipped = rig.transformed(
+        np.diag([1.0, -1.0, -1.0]), np.zeros(3), up=(0.0, 0.0, 1.0)
+    )  # upside down
     problems = check_rig(flipped, LAB_VOLUME)
     assert any("below the floor" in p for p in problems)
     away = CaptureVolume((10.0, 10.0, 0.0), (11.0, 11.0, 2.0))
@@ -54,7 +60,9 @@ def test_volume_estimate_contains_the_axes_meeting_point():
 def test_board_calibration_report(tmp_path):
     scene = make_scene(n_cameras=4, n_frames=40, seed=2)
     dets = synthetic_detections(scene, noise_px=0.3, seed=2)
-    result = calibrate_from_detections(dets, {c.name: (c.width, c.height) for c in scene.rig}, scene.board)
+    result = calibrate_from_detections(
+        dets, {c.name: (c.width, c.height) for c in scene.rig}, scene.board
+    )
     md = write_calibration_report(result.rig, tmp_path / "report", result)
     text = md.read_text()
     for cam in result.rig:
@@ -86,7 +94,7 @@ def test_floor_overlay_on_real_footage(tmp_path):
     assert overlay.shape[0] == 960
     # The world origin is drawn where the camera projects it (axis colours differ from the frame).
     u, v = rig["cam01"].project(np.zeros((1, 3)))[0] * 960 / 1920
-    patch = overlay[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4].reshape(-1, 3)
+    patch = overlay[int(v) - 3 : int(v) + 4, int(u) - 3 : int(u) + 4].reshape(-1, 3)
     small = cv2.resize(frame, (overlay.shape[1], overlay.shape[0]), interpolation=cv2.INTER_AREA)
-    before = small[int(v) - 3:int(v) + 4, int(u) - 3:int(u) + 4].reshape(-1, 3)
+    before = small[int(v) - 3 : int(v) + 4, int(u) - 3 : int(u) + 4].reshape(-1, 3)
     assert np.abs(patch.astype(int) - before.astype(int)).max() > 80

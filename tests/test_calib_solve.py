@@ -112,7 +112,9 @@ def test_gross_outliers_are_removed(scene, noisy_detections):
 
 def test_world_can_be_the_first_camera(small_scene, small_detections):
     scene = small_scene
-    result = calibrate_from_detections(small_detections, sizes(scene.rig), scene.board, floor_world=False)
+    result = calibrate_from_detections(
+        small_detections, sizes(scene.rig), scene.board, floor_world=False
+    )
     first = result.rig[0]
     np.testing.assert_allclose(first.R, np.eye(3), atol=1e-9)
     np.testing.assert_allclose(first.t, 0, atol=1e-9)
@@ -133,8 +135,9 @@ def test_wrong_floor_frame_is_flagged(small_scene, small_detections):
         for d in v:
             seen_by[d.frame] = seen_by.get(d.frame, 0) + 1
     upright = min(f for f, n in seen_by.items() if f > 0 and n >= 2)  # a board standing upright
-    result = calibrate_from_detections(small_detections, sizes(small_scene.rig), small_scene.board,
-                                       floor_frame=upright)
+    result = calibrate_from_detections(
+        small_detections, sizes(small_scene.rig), small_scene.board, floor_frame=upright
+    )
     assert result.notes and "below the floor" in result.notes[0]
 
 
@@ -142,7 +145,9 @@ def test_camera_that_never_sees_the_board_is_named(scene, noisy_detections):
     dets = dict(noisy_detections)
     dets["cam03"] = []
     with pytest.raises(CalibrationError, match=r"'cam03' \(80 frames searched\)"):
-        calibrate_from_detections(dets, sizes(scene.rig), scene.board, frames_searched={"cam03": 80})
+        calibrate_from_detections(
+            dets, sizes(scene.rig), scene.board, frames_searched={"cam03": 80}
+        )
 
 
 def test_camera_sharing_no_frame_is_named(scene, noisy_detections):
@@ -158,8 +163,9 @@ def test_camera_sharing_no_frame_is_named(scene, noisy_detections):
 def test_pinhole_lens_model_option():
     pin = make_scene(n_cameras=4, n_frames=50, seed=2, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
     dets = synthetic_detections(pin, noise_px=0.3, seed=1)
-    result = calibrate_from_detections(dets, sizes(pin.rig), pin.board,
-                                       options=SolveOptions(lens_model="pinhole"))
+    result = calibrate_from_detections(
+        dets, sizes(pin.rig), pin.board, options=SolveOptions(lens_model="pinhole")
+    )
     assert_acceptance(result, pin)
     assert all(c.dist.size == 5 and not np.any(c.dist) for c in result.rig)
 
@@ -197,5 +203,7 @@ def test_blind_camera_in_footage_is_named_with_frames_searched(tmp_path):
     blind.mkdir()
     for i in range(5):
         cv2.imwrite(str(blind / f"{i}.png"), np.full((600, 800), 90, np.uint8))
-    with pytest.raises(CalibrationError, match=r"camera 'wall' \(5 frames searched\) never saw the board"):
+    with pytest.raises(
+        CalibrationError, match=r"camera 'wall' \(5 frames searched\) never saw the board"
+    ):
         calibrate_from_board({**sources, "wall": blind}, scene.board)

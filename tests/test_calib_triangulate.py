@@ -18,8 +18,13 @@ def observe(points, noise=0.0, seed=0):
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.lists(st.tuples(st.floats(-1.2, 1.2), st.floats(-1.2, 1.2), st.floats(0.0, 2.0)),
-                min_size=1, max_size=30))
+@given(
+    st.lists(
+        st.tuples(st.floats(-1.2, 1.2), st.floats(-1.2, 1.2), st.floats(0.0, 2.0)),
+        min_size=1,
+        max_size=30,
+    )
+)
 def test_dlt_recovers_exact_points(pts):
     X = np.array(pts, dtype=float)
     tri = triangulate_dlt(RIG, observe(X))

@@ -39,14 +39,17 @@ LAB = Path("/work/shared/real/pose2sim-multiperson")
 def _models_ready() -> bool:
     try:
         import ai_edge_litert.interpreter  # noqa: F401
+
         model_paths()
     except (ImportError, BlazePoseModelsMissing):
         return False
     return True
 
 
-needs_models = pytest.mark.skipif(not _models_ready(), reason="BlazePose models not fetched "
-                                  "(python -m gst.detect fetch) or ai-edge-litert missing")
+needs_models = pytest.mark.skipif(
+    not _models_ready(),
+    reason="BlazePose models not fetched (python -m gst.detect fetch) or ai-edge-litert missing",
+)
 
 
 def test_anchor_layout_matches_the_detector():
@@ -61,7 +64,13 @@ def test_anchor_layout_matches_the_detector():
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, 2253), st.floats(-20, 20), st.floats(-20, 20), st.floats(10, 150), st.floats(10, 150))
+@given(
+    st.integers(0, 2253),
+    st.floats(-20, 20),
+    st.floats(-20, 20),
+    st.floats(10, 150),
+    st.floats(10, 150),
+)
 def test_decode_puts_boxes_and_keypoints_at_anchor_plus_offset(idx, dx, dy, w, h):
     reg = np.zeros((2254, 12), np.float32)
     logits = np.full(2254, -50.0, np.float32)
@@ -72,8 +81,14 @@ def test_decode_puts_boxes_and_keypoints_at_anchor_plus_offset(idx, dx, dy, w, h
     a = ssd_anchors()[idx]
     assert len(scores) == 1 and scores[0] == pytest.approx(1 / (1 + math.exp(-3)))
     centre = a + np.array([dx, dy]) / DETECTOR_SIZE
-    assert np.allclose(boxes[0], np.r_[centre - np.array([w, h]) / 2 / DETECTOR_SIZE,
-                                       centre + np.array([w, h]) / 2 / DETECTOR_SIZE], atol=1e-6)
+    assert np.allclose(
+        boxes[0],
+        np.r_[
+            centre - np.array([w, h]) / 2 / DETECTOR_SIZE,
+            centre + np.array([w, h]) / 2 / DETECTOR_SIZE,
+        ],
+        atol=1e-6,
+    )
     assert np.allclose(kps[0], (np.arange(8) - 4.0).reshape(4, 2) / DETECTOR_SIZE + a, atol=1e-6)
 
 
@@ -89,7 +104,9 @@ def test_weighted_nms_merges_overlaps_by_score_and_keeps_separate_people():
     kps = np.stack([np.full((4, 2), v, float) for v in (0.0, 3.0, 100.0)])
     out = weighted_nms(np.array([0.9, 0.3, 0.8]), boxes, kps, iou=0.3)
     assert len(out) == 2
-    assert out[0].score == 0.9 and np.allclose(out[0].box, [0.25, 0, 10.25, 10])  # 0.75/0.25 weights
+    assert out[0].score == 0.9 and np.allclose(
+        out[0].box, [0.25, 0, 10.25, 10]
+    )  # 0.75/0.25 weights
     assert np.allclose(out[0].keypoints, 0.75)
     assert np.allclose(out[1].box, boxes[2])
 
@@ -107,7 +124,7 @@ def test_square_windows_cover_the_frame(w, h):
             assert side == min(w, h)
             off = x0 if w > h else y0
             assert 0 <= off and off + side <= max(w, h)
-            covered[off:off + side] = True
+            covered[off : off + side] = True
         assert covered.all()
     else:
         assert tiles == []
@@ -142,9 +159,33 @@ def _stick(cx: float, top: float, height: float) -> np.ndarray:
     lm = np.zeros((33, 3), np.float32)
     lm[:, 0], lm[:, 2] = cx, 1.0
     s = height
-    y = {0: 0.05, 7: 0.05, 8: 0.05, 11: 0.18, 12: 0.18, 13: 0.33, 14: 0.33, 15: 0.47, 16: 0.47,
-         17: 0.5, 18: 0.5, 19: 0.5, 20: 0.5, 21: 0.49, 22: 0.49, 23: 0.5, 24: 0.5, 25: 0.72, 26: 0.72,
-         27: 0.93, 28: 0.93, 29: 0.95, 30: 0.95, 31: 0.97, 32: 0.97}
+    y = {
+        0: 0.05,
+        7: 0.05,
+        8: 0.05,
+        11: 0.18,
+        12: 0.18,
+        13: 0.33,
+        14: 0.33,
+        15: 0.47,
+        16: 0.47,
+        17: 0.5,
+        18: 0.5,
+        19: 0.5,
+        20: 0.5,
+        21: 0.49,
+        22: 0.49,
+        23: 0.5,
+        24: 0.5,
+        25: 0.72,
+        26: 0.72,
+        27: 0.93,
+        28: 0.93,
+        29: 0.95,
+        30: 0.95,
+        31: 0.97,
+        32: 0.97,
+    }
     for i, f in y.items():
         lm[i, 1] = top + f * s
     for i in (7, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31):
@@ -178,10 +219,13 @@ def test_compose_splits_overlapping_people_by_nearest_skeleton_and_drops_duplica
     # The landmark model claims every person in its region: both probability maps cover both.
     both = np.zeros((h, w), np.float32)
     both[20:225, 110:275] = 0.9
-    segs = [_segment(left, both), _segment(right, both),
-            _segment(left + np.array([2, 1, 0], np.float32), both, presence=0.8),  # duplicate of left
-            _segment(_stick(330, 20, 200), np.zeros((h, w)), presence=0.9),  # empty mask: not present
-            _segment(_stick(60, 20, 200), both, presence=0.2)]  # below min_presence
+    segs = [
+        _segment(left, both),
+        _segment(right, both),
+        _segment(left + np.array([2, 1, 0], np.float32), both, presence=0.8),  # duplicate of left
+        _segment(_stick(330, 20, 200), np.zeros((h, w)), presence=0.9),  # empty mask: not present
+        _segment(_stick(60, 20, 200), both, presence=0.2),
+    ]  # below min_presence
     labels, people = compose_instances(segs, SegmenterConfig(), h * w)
     assert len(people) == 2 and labels.max() == 2
     lab_left = labels[120, 150]
@@ -211,7 +255,9 @@ def _fake_wheel(path: Path, payloads: dict[str, bytes]) -> None:
 def test_fetch_refuses_an_archive_with_the_wrong_hash(tmp_path):
     archives = tmp_path / "archives"
     archives.mkdir()
-    _fake_wheel(archives / MEDIAPIPE_WHEEL.filename, {m.member: b"not a model" for m in MODELS.values()})
+    _fake_wheel(
+        archives / MEDIAPIPE_WHEEL.filename, {m.member: b"not a model" for m in MODELS.values()}
+    )
     with pytest.raises(ValueError, match="SHA-256"):
         fetch_blazepose_models(tmp_path / "models", archive_dir=archives)
     assert not (tmp_path / "models").exists() or not any((tmp_path / "models").iterdir())
@@ -272,11 +318,19 @@ def test_lab_extraction_with_person_masks_keeps_two_ids(tmp_path):
 
     rig = read_rig(LAB / "Calib.qca.txt", "qualisys")
     videos = {p.stem: p for p in sorted(LAB.glob("cam0*.mp4"))}
-    rep = extract_scene(videos, rig, tmp_path / "crops.h5", crop_size=64, frame_stride=10,
-                        options=ExtractOptions(persons=SegmenterConfig()))
+    rep = extract_scene(
+        videos,
+        rig,
+        tmp_path / "crops.h5",
+        crop_size=64,
+        frame_stride=10,
+        options=ExtractOptions(persons=SegmenterConfig()),
+    )
     assert rep.persons == 2
     assert rep.multiview_groups >= 18  # of 10 frames x 2 people
-    support = np.asarray(CropStore(tmp_path / "crops.h5").index.column("mask_support").to_pylist(), float)
+    support = np.asarray(
+        CropStore(tmp_path / "crops.h5").index.column("mask_support").to_pylist(), float
+    )
     assert np.nanmedian(support) > 0.6
 
 
@@ -293,6 +347,9 @@ def test_person_detector_boxes_on_lab_video():
         found = det.detect(frame, i)
         counts.append(len(found))
         for d in found:  # full-resolution boxes of standing people
-            assert 0 <= d.box[0] < d.box[2] <= frame.shape[1] and 0 <= d.box[1] < d.box[3] <= frame.shape[0]
+            assert (
+                0 <= d.box[0] < d.box[2] <= frame.shape[1]
+                and 0 <= d.box[1] < d.box[3] <= frame.shape[0]
+            )
             assert d.box[3] - d.box[1] > 0.3 * frame.shape[0]
     assert counts == [2] * 6

@@ -13,19 +13,31 @@ from gst.track import read_tracks
 from pipeline.cli import main
 from tests.tiny_config import TINY_CONFIG
 
-pytestmark = pytest.mark.skipif(not default_weights_path("alex").is_file(),
-                                reason="LPIPS weights missing: run `python -m gst.metrics.lpips fetch`")
+pytestmark = pytest.mark.skipif(
+    not default_weights_path("alex").is_file(),
+    reason="LPIPS weights missing: run `python -m gst.metrics.lpips fetch`",
+)
 
 
 def test_tiny_scene_runs_every_stage(tmp_path, capsys):
     cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(textwrap.dedent(TINY_CONFIG)
-                   + "  track: {needs: [train], params: {overlay: false}}\n"
-                   + "  evaluate: {needs: [train], params: {max_groups: 4, render_size: 32}}\n")
+    cfg.write_text(
+        textwrap.dedent(TINY_CONFIG)
+        + "  track: {needs: [train], params: {overlay: false}}\n"
+        + "  evaluate: {needs: [train], params: {max_groups: 4, render_size: 32}}\n"
+    )
     assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0, capsys.readouterr().err
     ws = tmp_path / "ws" / "tiny"
-    for rel in ("calibration/rig.json", "crops/crops.h5", "models/pretrain.pt", "models/gst.pt", "models/example.ply",
-                "reports/train/summary.md", "reports/train/novel_views.png", "reports/pretrain/log_gaussians.csv"):
+    for rel in (
+        "calibration/rig.json",
+        "crops/crops.h5",
+        "models/pretrain.pt",
+        "models/gst.pt",
+        "models/example.ply",
+        "reports/train/summary.md",
+        "reports/train/novel_views.png",
+        "reports/pretrain/log_gaussians.csv",
+    ):
         assert (ws / rel).is_file(), rel
     tables = [read_tracks(p) for p in sorted((ws / "tracks").glob("video=*/tracks.parquet"))]
     assert len(tables) == 3
@@ -39,5 +51,8 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
     assert "stale" not in status and "missing" not in status
     assert (ws / "reports/evaluate/summary.json").is_file()
     # the paper's 3D fine-tuning baseline through the same stage (synthetic truth)
-    assert main(["run", "train", "--config", str(cfg), "--quiet", "--set", "train.supervision=3d"]) == 0
+    assert (
+        main(["run", "train", "--config", str(cfg), "--quiet", "--set", "train.supervision=3d"])
+        == 0
+    )
     assert (ws / "models/gst.pt").is_file()

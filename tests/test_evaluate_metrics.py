@@ -34,7 +34,9 @@ def test_perfect_prediction_has_zero_error():
 
 def test_known_offsets_give_known_errors():
     gt = torch.randn(2, 24, 3, dtype=torch.float64)
-    shifted = gt + torch.tensor([0.3, -0.2, 1.0], dtype=torch.float64)  # a global translation: root-aligned away
+    shifted = gt + torch.tensor(
+        [0.3, -0.2, 1.0], dtype=torch.float64
+    )  # a global translation: root-aligned away
     e, _ = per_joint_errors(shifted, gt)
     assert e.abs().max() < 1e-12
     moved = gt.clone()
@@ -51,12 +53,19 @@ def test_known_offsets_give_known_errors():
 
 def test_pose_summary_groups_and_breakdowns_by_hand():
     err = np.arange(2 * 24, dtype=np.float64).reshape(2, 24) / 1000  # metres
-    rec = PoseRecords(rows=np.array([0, 1]), camera=np.array([0, 1]), frame=np.array([0, 0]), joint_error=err,
-                      joint_error_pa=err / 2)
+    rec = PoseRecords(
+        rows=np.array([0, 1]),
+        camera=np.array([0, 1]),
+        frame=np.array([0, 0]),
+        joint_error=err,
+        joint_error_pa=err / 2,
+    )
     s = pose_summary(rec, ["a", "b"], np.array(["run", "jump"], dtype=object), JOINTS)
     assert s["overall"]["mpjpe_mm"] == pytest.approx(err.mean() * 1000)
     assert s["per_camera"]["b"]["mpjpe_mm"] == pytest.approx(err[1].mean() * 1000)
-    assert s["per_motion"]["run"]["n"] == 1 and s["per_motion"]["run"]["mpjpe_mm"] == pytest.approx(11.5)
+    assert s["per_motion"]["run"]["n"] == 1 and s["per_motion"]["run"]["mpjpe_mm"] == pytest.approx(
+        11.5
+    )
     idx = joint_group_indices(JOINTS)["hands"]
     assert s["per_part"]["hands"]["pa_mpjpe_mm"] == pytest.approx(err[:, idx].mean() * 500)
     with pytest.raises(ValueError, match="lack"):
@@ -96,10 +105,14 @@ def tiny_model():
 def test_evaluate_model_matches_the_training_validation(tiny_model):
     net, task, _ = tiny_model
     crops = crop_set(n_frames=4, n_cams=3)
-    res = evaluate_model(net, task, crops, EvalConfig(heldout_cameras=("c2",), render_size=32), joint_names=JOINTS)
+    res = evaluate_model(
+        net, task, crops, EvalConfig(heldout_cameras=("c2",), render_size=32), joint_names=JOINTS
+    )
     ref = pose_metrics(net, task, crops, torch.arange(len(crops)))  # gst.train's own implementation
     assert res.summary["pose"]["overall"]["mpjpe_mm"] == pytest.approx(ref["mpjpe_mm"], rel=1e-4)
-    assert res.summary["pose"]["overall"]["pa_mpjpe_mm"] == pytest.approx(ref["pa_mpjpe_mm"], rel=1e-4)
+    assert res.summary["pose"]["overall"]["pa_mpjpe_mm"] == pytest.approx(
+        ref["pa_mpjpe_mm"], rel=1e-4
+    )
     nv = res.summary["novel_view"]
     assert nv["heldout"]["n"] == 4 and nv["trained_views"]["n"] == 4
     assert nv["per_target_camera"]["c2"]["heldout"] and not nv["per_target_camera"]["c0"]["heldout"]
@@ -121,7 +134,9 @@ def test_view_scores_recomputed_from_kept_images(tiny_model):
         # SHERF box by hand: the joints' box padded by 0.15 m, corners projected, convex hull filled
         j = crops.truth["joints_world"][int(pairs.targets[k])].numpy().astype(np.float64)
         lo, hi = j.min(0) - 0.15, j.max(0) + 0.15
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         t = int(pairs.targets[k])
         cam = corners @ crops.R[t].numpy().T + crops.t[t].numpy()
         K = crops.K[t].numpy().astype(np.float64)
@@ -129,7 +144,9 @@ def test_view_scores_recomputed_from_kept_images(tiny_model):
         cx, cy = (K[0, 2] + 0.5) * scale - 0.5, (K[1, 2] + 0.5) * scale - 0.5
         uv = np.stack([fx * cam[:, 0] / cam[:, 2] + cx, fy * cam[:, 1] / cam[:, 2] + cy], 1)
         mask = np.zeros((size, size), np.uint8)
-        cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv * 256).astype(np.int32)), 1, cv2.LINE_8, 8)
+        cv2.fillConvexPoly(
+            mask, cv2.convexHull(np.round(uv * 256).astype(np.int32)), 1, cv2.LINE_8, 8
+        )
         m = mask.astype(bool)
         if m.sum() < 20:
             continue

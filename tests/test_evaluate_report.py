@@ -32,9 +32,15 @@ BODY = CapsuleBody()
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("scene") / "tiny"
-    spec = preset("demo", n_frames=4, n_people=2, motions=[["run"], ["squat"]],
-                  rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="none"), board=dict(n_frames=1),
-                  imaging=dict(antialias=1, background_samples=1, shadow_samples=1))
+    spec = preset(
+        "demo",
+        n_frames=4,
+        n_people=2,
+        motions=[["run"], ["squat"]],
+        rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="none"),
+        board=dict(n_frames=1),
+        imaging=dict(antialias=1, background_samples=1, shadow_samples=1),
+    )
     render_scene(spec, out, body_model=BODY, rig_writer=rig_io()[0])
     return out
 
@@ -43,12 +49,22 @@ def test_attached_truth_matches_synth_truth_crops(tiny_scene):
     crops = crops_from_synth_scene(tiny_scene, crop_size=64, min_mask_area=20, min_visible_joints=1)
     reference = {k: v.clone() for k, v in crops.truth.items()}
     views = pq.read_table(tiny_scene / "truth" / "views.parquet").to_pydict()
-    key = {(f, p, c): i for i, (f, p, c) in enumerate(zip(views["frame"], views["person_id"], views["camera"],
-                                                          strict=True))}
+    key = {
+        (f, p, c): i
+        for i, (f, p, c) in enumerate(
+            zip(views["frame"], views["person_id"], views["camera"], strict=True)
+        )
+    }
     # undistorted rig: the extracted person box is the truth box (pixel-centre edges -> edges)
-    boxes = np.array([[views[k][key[(int(f), int(p), crops.camera_names[int(c)])]] + 0.5
-                       for k in ("full_x0", "full_y0", "full_x1", "full_y1")]
-                      for f, p, c in zip(crops.frame, reference["person_truth_id"], crops.camera, strict=True)])
+    boxes = np.array(
+        [
+            [
+                views[k][key[(int(f), int(p), crops.camera_names[int(c)])]] + 0.5
+                for k in ("full_x0", "full_y0", "full_x1", "full_y1")
+            ]
+            for f, p, c in zip(crops.frame, reference["person_truth_id"], crops.camera, strict=True)
+        ]
+    )
     crops.truth = {}
     truth = attach_scene_truth(crops, boxes, tiny_scene)
     assert bool(crops.truth["has_truth"].all())
@@ -59,8 +75,12 @@ def test_attached_truth_matches_synth_truth_crops(tiny_scene):
     assert torch.allclose(t["rotmats_cam"], reference["rotmats_cam"], atol=1e-5)
     assert set(truth.motion) <= {"run", "squat"}
     # truth meshes posed from the written parameters reproduce the written joints
-    out = BODY(betas=torch.from_numpy(truth.betas), body_pose=torch.from_numpy(truth.body_pose),
-               global_orient=torch.from_numpy(truth.global_orient), transl=torch.from_numpy(truth.transl))
+    out = BODY(
+        betas=torch.from_numpy(truth.betas),
+        body_pose=torch.from_numpy(truth.body_pose),
+        global_orient=torch.from_numpy(truth.global_orient),
+        transl=torch.from_numpy(truth.transl),
+    )
     assert np.abs(out.joints.numpy()[:, :24] - truth.joints_world).max() < 1e-4
 
 
@@ -76,11 +96,23 @@ def test_report_files_are_well_formed(tmp_path):
     net, ids, _ = build_network(cfg, body)
     task = make_task(body, ids, cfg, 64, LossWeights(lpips=0.0))
     crops = crop_set(n_frames=3, n_cams=3)
-    res = evaluate_model(net, task, crops, EvalConfig(heldout_cameras=("c2",), render_size=32), joint_names=JOINTS)
-    doc = write_report(tmp_path, {"gst": res}, crops, {"scene": "test", "models": {"gst": "random"}})
+    res = evaluate_model(
+        net, task, crops, EvalConfig(heldout_cameras=("c2",), render_size=32), joint_names=JOINTS
+    )
+    doc = write_report(
+        tmp_path, {"gst": res}, crops, {"scene": "test", "models": {"gst": "random"}}
+    )
     names = {p.name for p in tmp_path.iterdir()}
-    assert {"summary.json", "report.md", "per_crop.csv", "per_view.csv", "per_camera.png", "per_part.png",
-            "per_motion.png", "side_by_side.png"} <= names
+    assert {
+        "summary.json",
+        "report.md",
+        "per_crop.csv",
+        "per_view.csv",
+        "per_camera.png",
+        "per_part.png",
+        "per_motion.png",
+        "side_by_side.png",
+    } <= names
     loaded = json.loads((tmp_path / "summary.json").read_text())
     assert loaded == json.loads(json.dumps(doc, default=float))
     assert loaded["format"] == "gst-capture/evaluation"

@@ -20,8 +20,15 @@ from gst.data.crop import (
 
 def _camera(dist, skew=0.0, w=640, h=480, f=520.0) -> Camera:
     R = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
-    return Camera.create("c", [[f, skew, w / 2 - 3.2], [0, f * 1.01, h / 2 + 2.1], [0, 0, 1]], dist, R,
-                         [0.1, -0.2, 4.0], w, h)
+    return Camera.create(
+        "c",
+        [[f, skew, w / 2 - 3.2], [0, f * 1.01, h / 2 + 2.1], [0, 0, 1]],
+        dist,
+        R,
+        [0.1, -0.2, 4.0],
+        w,
+        h,
+    )
 
 
 def test_crop_intrinsics_formula_and_pixel_centres():
@@ -29,7 +36,9 @@ def test_crop_intrinsics_formula_and_pixel_centres():
     box = CropBox(100.0, 50.0, 200.0)
     Kc = crop_intrinsics(K, box, 100)
     s = 0.5
-    assert np.allclose(Kc, [[250, 0, (320 - 100) * s - 0.5], [0, 255, (240 - 50) * s - 0.5], [0, 0, 1]])
+    assert np.allclose(
+        Kc, [[250, 0, (320 - 100) * s - 0.5], [0, 255, (240 - 50) * s - 0.5], [0, 0, 1]]
+    )
     # A crop of side S mapped to S pixels is a pure shift: full pixel (u, v) -> (u - x0, v - y0)
     # when the box edge sits on a pixel edge (x0 = u_edge - 0.5).
     Kid = crop_intrinsics(K, CropBox(99.5, 49.5, 64.0), 64)
@@ -52,13 +61,26 @@ def test_hmr_crop_box_is_square_centred_and_scaled():
         hmr_crop_box((5, 5, 5, 10))
 
 
-dist_st = st.one_of(st.just([]), st.tuples(st.floats(-0.25, 0.1), st.floats(-0.05, 0.05), st.floats(-0.002, 0.002),
-                                          st.floats(-0.002, 0.002), st.floats(-0.01, 0.01)).map(list))
+dist_st = st.one_of(
+    st.just([]),
+    st.tuples(
+        st.floats(-0.25, 0.1),
+        st.floats(-0.05, 0.05),
+        st.floats(-0.002, 0.002),
+        st.floats(-0.002, 0.002),
+        st.floats(-0.01, 0.01),
+    ).map(list),
+)
 
 
 @settings(max_examples=40, deadline=None)
-@given(dist=dist_st, cx=st.floats(150, 490), cy=st.floats(120, 360), side=st.floats(40, 400),
-       size=st.sampled_from([64, 128, 256]))
+@given(
+    dist=dist_st,
+    cx=st.floats(150, 490),
+    cy=st.floats(120, 360),
+    side=st.floats(40, 400),
+    size=st.sampled_from([64, 128, 256]),
+)
 def test_full_camera_and_crop_camera_agree(dist, cx, cy, side, size):
     """A 3D point projected with the full (distorted) camera and with the crop camera lands on
     the same image content: drawn as a dot in the full frame, it is found in the crop where the
@@ -76,8 +98,10 @@ def test_full_camera_and_crop_camera_agree(dist, cx, cy, side, size):
     assert np.allclose(uv_crop, [j, i], atol=1e-6)
     # Content: a Gaussian dot of radius ~3 crop pixels at the full-image projection.
     sigma = max(1.5, 3.0 * side / size)
-    yy, xx = np.mgrid[0:cam.height, 0:cam.width]
-    dot = np.exp(-((xx - uv_full[0]) ** 2 + (yy - uv_full[1]) ** 2) / (2 * sigma ** 2)).astype(np.float32)
+    yy, xx = np.mgrid[0 : cam.height, 0 : cam.width]
+    dot = np.exp(-((xx - uv_full[0]) ** 2 + (yy - uv_full[1]) ** 2) / (2 * sigma**2)).astype(
+        np.float32
+    )
     crop = extract_crop(dot, cam, box, size)
     # Sub-pixel peak: centroid of the dot's upper part (symmetric, so unbiased).
     w = np.clip(crop - 0.3 * crop.max(), 0, None)
@@ -97,7 +121,9 @@ def test_crop_is_undistorted_straight_lines_stay_straight():
     pts = P0 + np.linspace(0, 1, 400)[:, None] * (P1 - P0)
     img = np.zeros((cam.height, cam.width), np.float32)
     for u, v in cam.project(pts):
-        cv2.circle(img, (int(round(u * 16)), int(round(v * 16))), 2 * 16, 1.0, -1, cv2.LINE_AA, shift=4)
+        cv2.circle(
+            img, (int(round(u * 16)), int(round(v * 16))), 2 * 16, 1.0, -1, cv2.LINE_AA, shift=4
+        )
     crop = extract_crop(img, cam, box, size)
     ys, xs = np.nonzero(crop > 0.5)
     a, b = np.polyfit(xs, ys, 1)
@@ -121,7 +147,12 @@ def test_undistorted_box_contains_undistorted_points():
 def test_fast_projection_matches_opencv(dist):
     cam = _camera(dist)
     pts = np.random.default_rng(1).normal(size=(500, 3)) * [1.5, 1.2, 0.8]
-    pts = cam.unproject(np.random.default_rng(2).uniform([0, 0], [cam.width, cam.height], (500, 2)), 3.0) + pts * 0.1
+    pts = (
+        cam.unproject(
+            np.random.default_rng(2).uniform([0, 0], [cam.width, cam.height], (500, 2)), 3.0
+        )
+        + pts * 0.1
+    )
     uv, ok = project_fast(cam, pts)
     ref = cam.project(pts)
     assert ok.mean() > 0.5

@@ -28,7 +28,13 @@ def _instance_labels(rig, people):
         for k, pts in enumerate(people):
             uv = np.round(cam.project(pts)).astype(int)
             d = cam.to_camera(pts)[:, 2]
-            ok = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height) & (d > 0)
+            ok = (
+                (uv[:, 0] >= 0)
+                & (uv[:, 0] < cam.width)
+                & (uv[:, 1] >= 0)
+                & (uv[:, 1] < cam.height)
+                & (d > 0)
+            )
             for (u, v), dd in zip(uv[ok], d[ok], strict=True):
                 for dv in (-1, 0, 1):
                     for du in (-1, 0, 1):
@@ -51,7 +57,9 @@ def test_close_people_stay_apart_with_instance_masks(gap):
     grid = VoxelGrid(list(rig), sizes, volume, cfg)
     result = grid.associate(labels)
     assert len(result.persons) == 2
-    centres = sorted(p.ground[0] if abs(p.ground[0]) > abs(p.ground[1]) else p.ground[1] for p in result.persons)
+    centres = sorted(
+        p.ground[0] if abs(p.ground[0]) > abs(p.ground[1]) else p.ground[1] for p in result.persons
+    )
     assert centres[0] < 0 < centres[1]
     for name, (lab, order) in rendered.items():
         pl = result.labels[name]
@@ -68,6 +76,10 @@ def test_instance_split_never_splits_one_person():
     rig = ring_rig(4, size=(320, 240), distort=False)
     rendered = _instance_labels(rig, [_body_points((0.3, -0.2), seed=3)])
     labels = {n: lab for n, (lab, _) in rendered.items()}
-    grid = VoxelGrid(list(rig), {c.name: (c.width, c.height) for c in rig},
-                     CaptureVolume.around((0.0, 0.0, 1.0), (2.0, 2.0, 1.2)), AssociationConfig(instance_split=True))
+    grid = VoxelGrid(
+        list(rig),
+        {c.name: (c.width, c.height) for c in rig},
+        CaptureVolume.around((0.0, 0.0, 1.0), (2.0, 2.0, 1.2)),
+        AssociationConfig(instance_split=True),
+    )
     assert len(grid.associate(labels).persons) == 1

@@ -18,7 +18,11 @@ from gst.data.masks import MaskConfig, clean_mask, fill_small_holes
 
 def _textured(h=120, w=160, seed=0):
     rng = np.random.default_rng(seed)
-    base = cv2.resize(rng.integers(40, 220, (h // 8, w // 8, 3), dtype=np.uint8), (w, h), interpolation=cv2.INTER_CUBIC)
+    base = cv2.resize(
+        rng.integers(40, 220, (h // 8, w // 8, 3), dtype=np.uint8),
+        (w, h),
+        interpolation=cv2.INTER_CUBIC,
+    )
     return base
 
 
@@ -29,9 +33,9 @@ def _scene_frames(n=25):
     for i in range(n):
         f = bg.copy()
         x = 5 + 5 * i
-        f[40:100, x:x + 20] = (30, 30, 200)
+        f[40:100, x : x + 20] = (30, 30, 200)
         truth = np.zeros(bg.shape[:2], bool)
-        truth[40:100, x:x + 20] = True
+        truth[40:100, x : x + 20] = True
         frames.append(f)
         truths.append(truth)
     return bg, np.stack(frames), truths
@@ -106,8 +110,13 @@ def test_match_truth_and_association_accuracy():
     tid, iou = match_truth(pred, truth)
     assert tid == 1 and iou == pytest.approx(0.8)
     assert match_truth(np.zeros_like(pred), truth) == (0, 0.0)
-    rows = [CropTruth(0, "a", 5, 1, 1.0), CropTruth(0, "b", 5, 1, 1.0), CropTruth(0, "c", 6, 2, 1.0),
-            CropTruth(1, "a", 5, 1, 1.0), CropTruth(1, "b", 5, 2, 1.0)]  # frame 1: one id spans two people
+    rows = [
+        CropTruth(0, "a", 5, 1, 1.0),
+        CropTruth(0, "b", 5, 1, 1.0),
+        CropTruth(0, "c", 6, 2, 1.0),
+        CropTruth(1, "a", 5, 1, 1.0),
+        CropTruth(1, "b", 5, 2, 1.0),
+    ]  # frame 1: one id spans two people
     acc, n = association_accuracy(rows)
     assert n == 5 and acc == pytest.approx(4 / 5)
 
@@ -116,7 +125,9 @@ def test_tracker_keeps_ids_and_gates_by_speed():
     from gst.data.associate import Person3D
 
     def person(x, y):
-        return Person3D(np.zeros(1, int), np.zeros(1, int), np.zeros(3), np.array([x, y], float), 1.7)
+        return Person3D(
+            np.zeros(1, int), np.zeros(1, int), np.zeros(3), np.array([x, y], float), 1.7
+        )
 
     tr = PersonTracker(max_speed=5.0, step_seconds=0.1, slack=0.1)
     assert tr.update([person(0, 0), person(3, 0)]) == [1, 2]
@@ -132,8 +143,20 @@ def test_external_folder_masks_boxes_and_errors(tmp_path):
     np.savez_compressed(root / "camA.npz", masks=masks, frames=np.array([0, 2, 4]))
     with h5py.File(root / "camB.h5", "w") as f:
         f["masks"] = masks
-    pq.write_table(pa.table({"frame": [0, 0], "camera": ["camC", "camC"], "x0": [1.0, 10.0], "y0": [1.0, 2.0],
-                             "x1": [8.0, 20.0], "y1": [9.0, 12.0], "person_id": [3, 4]}), root / "boxes.parquet")
+    pq.write_table(
+        pa.table(
+            {
+                "frame": [0, 0],
+                "camera": ["camC", "camC"],
+                "x0": [1.0, 10.0],
+                "y0": [1.0, 2.0],
+                "x1": [8.0, 20.0],
+                "y1": [9.0, 12.0],
+                "person_id": [3, 4],
+            }
+        ),
+        root / "boxes.parquet",
+    )
     (root / "meta.json").write_text(json.dumps({"global_ids": True}))
     ext = read_external(root, ["camA", "camB", "camC"])
     assert ext.global_ids and set(ext.mask_files) == {"camA", "camB"}
@@ -174,8 +197,12 @@ def test_external_bad_files_are_named(tmp_path):
     with pytest.raises(ExternalError, match="optional key 'global_ids'"):
         read_external(root, ["cam0"])
     (root / "meta.json").unlink()
-    pq.write_table(pa.table({"frame": [0], "camera": ["cam0"], "x0": [5.0], "y0": [1.0], "x1": [2.0],
-                             "y1": [9.0]}), root / "boxes.parquet")
+    pq.write_table(
+        pa.table(
+            {"frame": [0], "camera": ["cam0"], "x0": [5.0], "y0": [1.0], "x1": [2.0], "y1": [9.0]}
+        ),
+        root / "boxes.parquet",
+    )
     with pytest.raises(ExternalError, match=r"row 0 \(camera cam0, frame 0\) has an invalid box"):
         read_external(root, ["cam0"])
     pq.write_table(pa.table({"frame": [0], "camera": ["cam0"]}), root / "boxes.parquet")
@@ -194,7 +221,9 @@ def test_truth_scoring_on_a_bounding_box_matches_full_resolution():
     work = np.zeros((60, 80), bool)
     cv2.ellipse(work.view(np.uint8), (31, 30), (10, 19), 12, 0, 360, 1, -1)
     work |= rng.random(work.shape) > 0.995
-    full = cv2.resize(work.astype(np.uint8) * 255, (160, 120), interpolation=cv2.INTER_LINEAR) >= 128
+    full = (
+        cv2.resize(work.astype(np.uint8) * 255, (160, 120), interpolation=cv2.INTER_LINEAR) >= 128
+    )
     tid_ref, iou_ref = match_truth(full, truth)
     tid, iou = score_against_truth(work, truth, np.bincount(truth.ravel(), minlength=256))
     assert tid == tid_ref == 3

@@ -31,7 +31,9 @@ def test_link_joins_lost_and_interleaved_pieces_but_not_two_people():
     c = _walk(range(0, 90), [-2, 0], [0, 1])
     c5 = [o for o in c if (o[0] // 4) % 2 == 0]
     c6 = [o for o in c if (o[0] // 4) % 2 == 1]
-    link = link_tracklets({1: a, 2: b, 3: a_again, 5: c5, 6: c6}, 1 / 60, speed=2.0, slack=0.5, max_gap=60)
+    link = link_tracklets(
+        {1: a, 2: b, 3: a_again, 5: c5, 6: c6}, 1 / 60, speed=2.0, slack=0.5, max_gap=60
+    )
     assert link == {1: 1, 2: 2, 3: 1, 5: 5, 6: 5}
 
 
@@ -43,8 +45,15 @@ def test_link_never_joins_pieces_seen_in_the_same_frame():
 
 def _camera(pos, target=(0.0, 0.0, 1.0)):
     R = look_at_rotation(np.asarray(pos, float), np.asarray(target, float))
-    return Camera.create("c", [[1200.0, 0, 540.0], [0, 1200.0, 960.0], [0, 0, 1]], [-0.05, 0.1, 0, 0, 0],
-                         R, -R @ np.asarray(pos, float), 1088, 1920)
+    return Camera.create(
+        "c",
+        [[1200.0, 0, 540.0], [0, 1200.0, 960.0], [0, 0, 1]],
+        [-0.05, 0.1, 0, 0, 0],
+        R,
+        -R @ np.asarray(pos, float),
+        1088,
+        1920,
+    )
 
 
 @settings(max_examples=40, deadline=None)
@@ -80,15 +89,21 @@ def test_dlt_triangulation_recovers_a_point(x, y, z):
 
 
 def test_group_boxes_joins_stacked_pieces_only():
-    boxes = np.array([[100, 100, 200, 300],  # torso
-                      [110, 310, 190, 500],  # legs, just below
-                      [400, 100, 500, 500],  # another person beside
-                      [120, 700, 180, 750]])  # far below: not the same body
+    boxes = np.array(
+        [
+            [100, 100, 200, 300],  # torso
+            [110, 310, 190, 500],  # legs, just below
+            [400, 100, 500, 500],  # another person beside
+            [120, 700, 180, 750],
+        ]
+    )  # far below: not the same body
     assert group_boxes(boxes) == [[0, 1], [2], [3]]
 
 
 def _obs(x, t=0.0):
-    return Observation(np.array([x, 100.0, x + 50, 300.0]), np.array([x / 100, 0.0, 5.0]), np.full(4, 0.25))
+    return Observation(
+        np.array([x, 100.0, x + 50, 300.0]), np.array([x / 100, 0.0, 5.0]), np.full(4, 0.25)
+    )
 
 
 def test_tentative_tracks_do_not_use_up_ids():
@@ -122,9 +137,17 @@ def test_lab_camera_tracking_keeps_few_ids(tmp_path):
     cam = rig["cam03"]
     video = LAB / "cam03.mp4"
     det = StaticCameraDetector(video, camera=cam, up=rig.up, background=None)
-    res = track_video(video, tmp_path, det, BoxDepthPredictor(), model={"name": "box", "version": "1"},
-                      camera=cam, options=TrackOptions(stride=2, prefetch=0,
-                                                       tracker=TrackerConfig(min_hits=3, max_misses=15)))
+    res = track_video(
+        video,
+        tmp_path,
+        det,
+        BoxDepthPredictor(),
+        model={"name": "box", "version": "1"},
+        camera=cam,
+        options=TrackOptions(
+            stride=2, prefetch=0, tracker=TrackerConfig(min_hits=3, max_misses=15)
+        ),
+    )
     t = pq.read_table(res.path).to_pandas()
     assert t["person_id"].nunique() <= 5
     assert t.groupby("frame").size().count() >= 35  # someone tracked in most of the 50 frames

@@ -43,19 +43,30 @@ def two_people(tmp_path_factory):
 @pytest.fixture(scope="module")
 def short_scene(tmp_path_factory):
     """12 frames, people present only in frames 3..8, plus a camera that sees no one."""
-    return make_scene(tmp_path_factory.mktemp("short"), n_people=1, n_frames=12, present=(3, 8),
-                      with_away_camera=True, seed=2, laps=0.4)
+    return make_scene(
+        tmp_path_factory.mktemp("short"),
+        n_people=1,
+        n_frames=12,
+        present=(3, 8),
+        with_away_camera=True,
+        seed=2,
+        laps=0.4,
+    )
 
 
 def _opts(**kw):
     """Short scenes: a smaller capture volume (faster) and short tracks allowed."""
-    return ExtractOptions(volume=SMALL_VOLUME, **{"association": AssociationConfig(min_track_frames=2), **kw})
+    return ExtractOptions(
+        volume=SMALL_VOLUME, **{"association": AssociationConfig(min_track_frames=2), **kw}
+    )
 
 
 @pytest.fixture(scope="module")
 def one_person_run(one_person, tmp_path_factory):
     out = tmp_path_factory.mktemp("one_run") / "crops.h5"
-    return extract_scene(one_person.videos, one_person.rig, out, crop_size=96, truth=one_person.truth), out
+    return extract_scene(
+        one_person.videos, one_person.rig, out, crop_size=96, truth=one_person.truth
+    ), out
 
 
 def test_single_person_masks_match_truth(one_person_run):
@@ -70,8 +81,13 @@ def test_single_person_masks_match_truth(one_person_run):
 
 
 def test_two_people_are_associated_across_cameras(two_people, tmp_path):
-    rep = extract_scene(two_people.videos, two_people.rig, tmp_path / "crops.h5", crop_size=96,
-                        truth=two_people.truth)
+    rep = extract_scene(
+        two_people.videos,
+        two_people.rig,
+        tmp_path / "crops.h5",
+        crop_size=96,
+        truth=two_people.truth,
+    )
     assert rep.association_accuracy >= 0.98, rep.association_accuracy
     assert rep.persons == 2
     # Nearly every truth view (a person visible in a camera) produced a crop.
@@ -103,8 +119,14 @@ def test_crop_content_and_geometry(one_person, one_person_run):
 
 
 def test_skips_empty_frames_idle_cameras_and_honours_stride(short_scene, tmp_path):
-    rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
-                        frame_stride=2, options=_opts())
+    rep = extract_scene(
+        short_scene.videos,
+        short_scene.rig,
+        tmp_path / "crops.h5",
+        crop_size=64,
+        frame_stride=2,
+        options=_opts(),
+    )
     assert rep.frames_considered == 6  # frames 0, 2, ..., 10
     assert rep.frames_with_people == 3  # 4, 6, 8
     assert rep.frames_skipped_empty == 3
@@ -135,8 +157,14 @@ def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
     rep = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
     assert rep.pairs_resumed == 12  # the first camera's 12 (frame, camera) pairs were kept
     store = CropStore(out)
-    keys = list(zip(store.index.column("frame").to_pylist(), store.index.column("camera").to_pylist(),
-                    store.index.column("person_id").to_pylist(), strict=True))
+    keys = list(
+        zip(
+            store.index.column("frame").to_pylist(),
+            store.index.column("camera").to_pylist(),
+            store.index.column("person_id").to_pylist(),
+            strict=True,
+        )
+    )
     assert len(keys) == len(set(keys)) == 6 * 4  # no duplicates, nothing lost
     assert not (tmp_path / "crops.h5.work").exists()
     # A complete store is not redone.
@@ -147,10 +175,18 @@ def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
 def test_process_pool_executor_map(short_scene, tmp_path):
     ctx = mp.get_context("spawn")
     with ProcessPoolExecutor(max_workers=2, mp_context=ctx) as pool:
+
         def pool_map(fn, items, description):
             return list(pool.map(fn, items))
-        rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
-                            options=_opts(), executor_map=pool_map)
+
+        rep = extract_scene(
+            short_scene.videos,
+            short_scene.rig,
+            tmp_path / "crops.h5",
+            crop_size=64,
+            options=_opts(),
+            executor_map=pool_map,
+        )
     assert rep.crops == 24
 
 
@@ -159,8 +195,15 @@ def test_external_masks_take_precedence(short_scene, tmp_path):
     ext = tmp_path / "external"
     shutil.copytree(short_scene.truth / "masks", ext)
     (ext / "meta.json").write_text(json.dumps({"global_ids": True}))
-    rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
-                        external=ext, truth=short_scene.truth, options=_opts())
+    rep = extract_scene(
+        short_scene.videos,
+        short_scene.rig,
+        tmp_path / "crops.h5",
+        crop_size=64,
+        external=ext,
+        truth=short_scene.truth,
+        options=_opts(),
+    )
     assert rep.mask_iou > 0.999
     assert rep.association_accuracy == 1.0
     assert set(CropStore(tmp_path / "crops.h5").index.column("person_id").to_pylist()) == {1}
@@ -168,8 +211,14 @@ def test_external_masks_take_precedence(short_scene, tmp_path):
 
 def test_report_files(short_scene, tmp_path):
     out = tmp_path / "crops.h5"
-    rep = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, truth=short_scene.truth,
-                        options=_opts())
+    rep = extract_scene(
+        short_scene.videos,
+        short_scene.rig,
+        out,
+        crop_size=64,
+        truth=short_scene.truth,
+        options=_opts(),
+    )
     files = write_extract_report(rep, out, tmp_path / "reports")
     text = files["markdown"].read_text()
     assert "| away | 0 |" in text and "mask IoU" in text
@@ -179,6 +228,7 @@ def test_report_files(short_scene, tmp_path):
 
 
 # -- bad input --------------------------------------------------------------------------------
+
 
 def _nothing_written(tmp_path):
     return not (tmp_path / "crops.h5").exists() and not (tmp_path / "crops.h5.work").exists()
@@ -223,7 +273,9 @@ def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, m
     def failing(path, frames, camera="", scale=1.0):
         for k, item in enumerate(real(path, frames, camera, scale)):
             if camera == "cam2" and scale == 1.0 and k == 2:
-                raise VideoError(f"camera '{camera}' video {path}: frame {item[0]} could not be decoded")
+                raise VideoError(
+                    f"camera '{camera}' video {path}: frame {item[0]} could not be decoded"
+                )
             yield item
 
     monkeypatch.setattr(extract_mod, "read_frames", failing)
@@ -238,17 +290,25 @@ def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, m
 
 def test_wrong_image_size_for_rig_is_named(short_scene, tmp_path):
     cam = short_scene.rig["cam0"]
-    rig = Rig(tuple(c.replace(width=640, height=480) if c.name == "cam0" else c for c in short_scene.rig))
+    rig = Rig(
+        tuple(c.replace(width=640, height=480) if c.name == "cam0" else c for c in short_scene.rig)
+    )
     assert cam.width == 320
     with pytest.raises(VideoError, match=r"camera 'cam0'.*320x240.*640x480"):
         extract_scene(short_scene.videos, rig, tmp_path / "crops.h5", options=_opts())
 
 
 def test_bad_parameters(short_scene, tmp_path):
-    for kw, msg in [({"crop_size": 8}, "crop_size"), ({"scale": 0.9}, "scale"), ({"frame_stride": 0}, "frame_stride"),
-                    ({"method": "magic"}, "background method 'magic'")]:
+    for kw, msg in [
+        ({"crop_size": 8}, "crop_size"),
+        ({"scale": 0.9}, "scale"),
+        ({"frame_stride": 0}, "frame_stride"),
+        ({"method": "magic"}, "background method 'magic'"),
+    ]:
         with pytest.raises(ValueError, match=msg):
-            extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", options=_opts(), **kw)
+            extract_scene(
+                short_scene.videos, short_scene.rig, tmp_path / "crops.h5", options=_opts(), **kw
+            )
     assert _nothing_written(tmp_path)
 
 
@@ -257,15 +317,27 @@ def test_clean_plate_reveals_a_person_standing_still(tmp_path_factory, tmp_path)
     a short video of the empty scene per camera (`background_videos`) fixes that."""
     still = make_scene(tmp_path_factory.mktemp("still"), n_people=1, n_frames=12, laps=0.0, seed=4)
     empty = make_scene(tmp_path_factory.mktemp("empty"), n_people=0, n_frames=8, seed=5)
-    without = extract_scene(still.videos, still.rig, tmp_path / "a.h5", crop_size=64, truth=still.truth,
-                            options=_opts())
-    with_plate = extract_scene(still.videos, still.rig, tmp_path / "b.h5", crop_size=64, truth=still.truth,
-                               options=_opts(background_videos=empty.videos))
+    without = extract_scene(
+        still.videos, still.rig, tmp_path / "a.h5", crop_size=64, truth=still.truth, options=_opts()
+    )
+    with_plate = extract_scene(
+        still.videos,
+        still.rig,
+        tmp_path / "b.h5",
+        crop_size=64,
+        truth=still.truth,
+        options=_opts(background_videos=empty.videos),
+    )
     assert with_plate.mask_iou >= 0.9, with_plate.mask_iou
     assert with_plate.crops == 4 * 12
     assert without.crops < with_plate.crops and (without.mask_iou or 0) < 0.5
     with pytest.raises(VideoError, match="background video .* camera 'nope'"):
-        extract_scene(still.videos, still.rig, tmp_path / "c.h5", options=_opts(background_videos={"nope": empty.videos["cam0"]}))
+        extract_scene(
+            still.videos,
+            still.rig,
+            tmp_path / "c.h5",
+            options=_opts(background_videos={"nope": empty.videos["cam0"]}),
+        )
 
 
 def test_external_boxes_drive_extraction(short_scene, tmp_path):
@@ -282,14 +354,24 @@ def test_external_boxes_drive_extraction(short_scene, tmp_path):
         for f in masks.frames:
             ys, xs = np.nonzero(masks.get(f))
             if len(xs):
-                for k, v in zip(("frame", "camera", "x0", "y0", "x1", "y1"),
-                                (f, cam, xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5), strict=True):
+                for k, v in zip(
+                    ("frame", "camera", "x0", "y0", "x1", "y1"),
+                    (f, cam, xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5),
+                    strict=True,
+                ):
                     rows[k].append(v)
     ext = tmp_path / "ext"
     ext.mkdir()
     pq.write_table(pa.table(rows), ext / "boxes.parquet")
-    rep = extract_scene(short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64, external=ext,
-                        truth=short_scene.truth, options=_opts())
+    rep = extract_scene(
+        short_scene.videos,
+        short_scene.rig,
+        tmp_path / "crops.h5",
+        crop_size=64,
+        external=ext,
+        truth=short_scene.truth,
+        options=_opts(),
+    )
     assert rep.crops == 6 * 4
     assert rep.mask_iou > 0.85
     assert rep.association_accuracy == 1.0

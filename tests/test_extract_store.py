@@ -20,10 +20,15 @@ def _batch(frames, cams, persons, seed=0) -> CropBatch:
         images=rng.integers(0, 255, (n, S, S, 3), dtype=np.uint8),
         masks=rng.integers(0, 255, (n, S, S), dtype=np.uint8),
         K_crop=np.tile(np.eye(3), (n, 1, 1)) * rng.uniform(1, 2, (n, 1, 1)),
-        R=np.tile(np.eye(3), (n, 1, 1)), t=rng.normal(size=(n, 3)),
-        box=rng.uniform(0, 100, (n, 4)), crop_box=rng.uniform(0, 100, (n, 3)),
-        camera=np.asarray(cams, np.int32), frame=np.asarray(frames, np.int64),
-        person_id=np.asarray(persons, np.int64), mask_support=rng.uniform(0, 1, n).astype(np.float32))
+        R=np.tile(np.eye(3), (n, 1, 1)),
+        t=rng.normal(size=(n, 3)),
+        box=rng.uniform(0, 100, (n, 4)),
+        crop_box=rng.uniform(0, 100, (n, 3)),
+        camera=np.asarray(cams, np.int32),
+        frame=np.asarray(frames, np.int64),
+        person_id=np.asarray(persons, np.int64),
+        mask_support=rng.uniform(0, 1, n).astype(np.float32),
+    )
 
 
 def test_write_read_select_and_groups(tmp_path):

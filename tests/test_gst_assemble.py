@@ -25,11 +25,20 @@ def body():
 
 def output(rotmats, offsets, quats, cam=(0.9, 0.1, -0.2)):
     b, v = offsets.shape[:2]
-    g = GaussianParams(colors=torch.rand(b, v, 3, dtype=torch.float64), quats=quats,
-                       opacities=torch.full((b, v), 0.5, dtype=torch.float64),
-                       scales=torch.full((b, v, 3), 0.01, dtype=torch.float64), offsets=offsets)
-    return GSTOutput(matrix_to_rot6d(rotmats), rotmats, torch.zeros(b, 10, dtype=torch.float64),
-                     torch.tensor([cam], dtype=torch.float64).expand(b, 3), g)
+    g = GaussianParams(
+        colors=torch.rand(b, v, 3, dtype=torch.float64),
+        quats=quats,
+        opacities=torch.full((b, v), 0.5, dtype=torch.float64),
+        scales=torch.full((b, v, 3), 0.01, dtype=torch.float64),
+        offsets=offsets,
+    )
+    return GSTOutput(
+        matrix_to_rot6d(rotmats),
+        rotmats,
+        torch.zeros(b, 10, dtype=torch.float64),
+        torch.tensor([cam], dtype=torch.float64).expand(b, 3),
+        g,
+    )
 
 
 def K(f=500.0, c=128.0):
@@ -44,22 +53,35 @@ def test_rigid_pose_moves_offsets_and_rotations_with_the_body(body, seed):
     rotmats[0, 0] = rot  # only a global rotation: every vertex transform is this rotation
     gen = torch.Generator().manual_seed(seed)
     offsets = 0.02 * torch.randn(1, 500, 3, generator=gen, dtype=torch.float64)
-    quats = torch.nn.functional.normalize(torch.randn(1, 500, 4, generator=gen, dtype=torch.float64), dim=-1)
+    quats = torch.nn.functional.normalize(
+        torch.randn(1, 500, 4, generator=gen, dtype=torch.float64), dim=-1
+    )
     pred = assemble(output(rotmats, offsets, quats), body, K(), 256)
     g = pred.gaussians_cam
     torch.testing.assert_close(g.means - pred.vertices_cam, offsets @ rot.T)
     expected_rot = rot @ quaternion_to_rotation_matrix(quats)
-    torch.testing.assert_close(quaternion_to_rotation_matrix(g.quats), expected_rot, atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        quaternion_to_rotation_matrix(g.quats), expected_rot, atol=1e-9, rtol=0
+    )
 
 
 def test_camera_translation_uses_crop_focal():
     t = camera_translation(torch.tensor([[0.5, 0.1, 0.2]], dtype=torch.float64), K(f=800.0), 256)
-    torch.testing.assert_close(t, torch.tensor([[0.1, 0.2, 2 * 800 / (256 * 0.5)]], dtype=torch.float64))
+    torch.testing.assert_close(
+        t, torch.tensor([[0.1, 0.2, 2 * 800 / (256 * 0.5)]], dtype=torch.float64)
+    )
 
 
 def test_world_transform_matches_camera(body):
-    cam = Camera.create("c", [[500, 0, 128], [0, 500, 128], [0, 0, 1]], [],
-                        Rotation.from_euler("xyz", [10, -30, 5], degrees=True).as_matrix(), [0.3, -0.2, 4.0], 256, 256)
+    cam = Camera.create(
+        "c",
+        [[500, 0, 128], [0, 500, 128], [0, 0, 1]],
+        [],
+        Rotation.from_euler("xyz", [10, -30, 5], degrees=True).as_matrix(),
+        [0.3, -0.2, 4.0],
+        256,
+        256,
+    )
     pts_world = np.random.default_rng(0).normal(size=(7, 3))
     pts_cam = torch.tensor(cam.to_camera(pts_world))[None]
     back = to_world(pts_cam, torch.tensor(cam.R)[None], torch.tensor(cam.t)[None])
@@ -68,7 +90,11 @@ def test_world_transform_matches_camera(body):
 
 def test_pose_only_output_has_no_gaussians(body):
     rotmats = torch.eye(3, dtype=torch.float64).repeat(2, 24, 1, 1)
-    out = output(rotmats, torch.zeros(2, 500, 3, dtype=torch.float64), torch.zeros(2, 500, 4, dtype=torch.float64))
+    out = output(
+        rotmats,
+        torch.zeros(2, 500, 3, dtype=torch.float64),
+        torch.zeros(2, 500, 4, dtype=torch.float64),
+    )
     out.gaussians = None
     pred = assemble(out, body, K().expand(2, 3, 3), 256)
     assert pred.gaussians_cam is None and pred.joints_cam.shape == (2, 24, 3)

@@ -13,37 +13,86 @@ from gst.model.network import GSTNetwork
 from gst.model.presets import get_preset
 
 
-def hmr2_key_shapes(vit_dim=1280, depth=32, grid=(16, 12), head_dim=1024, head_depth=6, heads=8, dim_head=64,
-                    mlp=1024, mlp_ratio=4) -> dict[str, tuple]:
+def hmr2_key_shapes(
+    vit_dim=1280,
+    depth=32,
+    grid=(16, 12),
+    head_dim=1024,
+    head_depth=6,
+    heads=8,
+    dim_head=64,
+    mlp=1024,
+    mlp_ratio=4,
+) -> dict[str, tuple]:
     """HMR2 checkpoint keys and shapes, written from the published layout (facts.md), not from
     our module names."""
     d, inner = vit_dim, heads * dim_head
-    s = {"backbone.patch_embed.proj.weight": (d, 3, 16, 16), "backbone.patch_embed.proj.bias": (d,),
-         "backbone.pos_embed": (1, grid[0] * grid[1] + 1, d),
-         "backbone.last_norm.weight": (d,), "backbone.last_norm.bias": (d,)}
+    s = {
+        "backbone.patch_embed.proj.weight": (d, 3, 16, 16),
+        "backbone.patch_embed.proj.bias": (d,),
+        "backbone.pos_embed": (1, grid[0] * grid[1] + 1, d),
+        "backbone.last_norm.weight": (d,),
+        "backbone.last_norm.bias": (d,),
+    }
     for i in range(depth):
         b = f"backbone.blocks.{i}."
-        s.update({b + "norm1.weight": (d,), b + "norm1.bias": (d,), b + "attn.qkv.weight": (3 * d, d),
-                  b + "attn.qkv.bias": (3 * d,), b + "attn.proj.weight": (d, d), b + "attn.proj.bias": (d,),
-                  b + "norm2.weight": (d,), b + "norm2.bias": (d,), b + "mlp.fc1.weight": (mlp_ratio * d, d),
-                  b + "mlp.fc1.bias": (mlp_ratio * d,), b + "mlp.fc2.weight": (d, mlp_ratio * d), b + "mlp.fc2.bias": (d,)})
+        s.update(
+            {
+                b + "norm1.weight": (d,),
+                b + "norm1.bias": (d,),
+                b + "attn.qkv.weight": (3 * d, d),
+                b + "attn.qkv.bias": (3 * d,),
+                b + "attn.proj.weight": (d, d),
+                b + "attn.proj.bias": (d,),
+                b + "norm2.weight": (d,),
+                b + "norm2.bias": (d,),
+                b + "mlp.fc1.weight": (mlp_ratio * d, d),
+                b + "mlp.fc1.bias": (mlp_ratio * d,),
+                b + "mlp.fc2.weight": (d, mlp_ratio * d),
+                b + "mlp.fc2.bias": (d,),
+            }
+        )
     h = "smpl_head.transformer."
-    s.update({h + "to_token_embedding.weight": (head_dim, 1), h + "to_token_embedding.bias": (head_dim,),
-              h + "pos_embedding": (1, 1, head_dim)})
+    s.update(
+        {
+            h + "to_token_embedding.weight": (head_dim, 1),
+            h + "to_token_embedding.bias": (head_dim,),
+            h + "pos_embedding": (1, 1, head_dim),
+        }
+    )
     for layer in range(head_depth):
         p = f"{h}transformer.layers.{layer}."
         for j in range(3):
             s[p + f"{j}.norm.weight"] = (head_dim,)
             s[p + f"{j}.norm.bias"] = (head_dim,)
-        s.update({p + "0.fn.to_qkv.weight": (3 * inner, head_dim), p + "0.fn.to_out.0.weight": (head_dim, inner),
-                  p + "0.fn.to_out.0.bias": (head_dim,), p + "1.fn.to_q.weight": (inner, head_dim),
-                  p + "1.fn.to_kv.weight": (2 * inner, d), p + "1.fn.to_out.0.weight": (head_dim, inner),
-                  p + "1.fn.to_out.0.bias": (head_dim,), p + "2.fn.net.0.weight": (mlp, head_dim),
-                  p + "2.fn.net.0.bias": (mlp,), p + "2.fn.net.3.weight": (head_dim, mlp), p + "2.fn.net.3.bias": (head_dim,)})
-    s.update({"smpl_head.decpose.weight": (144, head_dim), "smpl_head.decpose.bias": (144,),
-              "smpl_head.decshape.weight": (10, head_dim), "smpl_head.decshape.bias": (10,),
-              "smpl_head.deccam.weight": (3, head_dim), "smpl_head.deccam.bias": (3,),
-              "smpl_head.init_body_pose": (1, 144), "smpl_head.init_betas": (1, 10), "smpl_head.init_cam": (1, 3)})
+        s.update(
+            {
+                p + "0.fn.to_qkv.weight": (3 * inner, head_dim),
+                p + "0.fn.to_out.0.weight": (head_dim, inner),
+                p + "0.fn.to_out.0.bias": (head_dim,),
+                p + "1.fn.to_q.weight": (inner, head_dim),
+                p + "1.fn.to_kv.weight": (2 * inner, d),
+                p + "1.fn.to_out.0.weight": (head_dim, inner),
+                p + "1.fn.to_out.0.bias": (head_dim,),
+                p + "2.fn.net.0.weight": (mlp, head_dim),
+                p + "2.fn.net.0.bias": (mlp,),
+                p + "2.fn.net.3.weight": (head_dim, mlp),
+                p + "2.fn.net.3.bias": (head_dim,),
+            }
+        )
+    s.update(
+        {
+            "smpl_head.decpose.weight": (144, head_dim),
+            "smpl_head.decpose.bias": (144,),
+            "smpl_head.decshape.weight": (10, head_dim),
+            "smpl_head.decshape.bias": (10,),
+            "smpl_head.deccam.weight": (3, head_dim),
+            "smpl_head.deccam.bias": (3,),
+            "smpl_head.init_body_pose": (1, 144),
+            "smpl_head.init_betas": (1, 10),
+            "smpl_head.init_cam": (1, 3),
+        }
+    )
     return s
 
 
@@ -66,19 +115,31 @@ def test_huge_preset_matches_hmr2_layout_exactly():
 def test_hmr2_import_maps_keys_and_reports_unmatched():
     cfg = replace(get_preset("tiny"), num_groups=26)
     net = GSTNetwork(cfg, groups())
-    shapes = hmr2_key_shapes(vit_dim=cfg.vit.dim, depth=cfg.vit.depth, grid=cfg.vit.grid, head_dim=cfg.decoder.dim,
-                             head_depth=cfg.decoder.depth, heads=cfg.decoder.heads, dim_head=cfg.decoder.dim_head,
-                             mlp=cfg.decoder.mlp_dim)
+    shapes = hmr2_key_shapes(
+        vit_dim=cfg.vit.dim,
+        depth=cfg.vit.depth,
+        grid=cfg.vit.grid,
+        head_dim=cfg.decoder.dim,
+        head_depth=cfg.decoder.depth,
+        heads=cfg.decoder.heads,
+        dim_head=cfg.decoder.dim_head,
+        mlp=cfg.decoder.mlp_dim,
+    )
     gen = torch.Generator().manual_seed(0)
     state = {k: torch.randn(s, generator=gen) for k, s in shapes.items()}
     state["smpl.body_pose"] = torch.zeros(1, 69)
     state["discriminator.pose.0.weight"] = torch.zeros(2, 2)
     report = import_hmr2(net, state)
-    assert sorted(report.unmatched_checkpoint_keys) == ["discriminator.pose.0.weight", "smpl.body_pose"]
+    assert sorted(report.unmatched_checkpoint_keys) == [
+        "discriminator.pose.0.weight",
+        "smpl.body_pose",
+    ]
     assert len(report.loaded) == len(shapes)
     assert all(k.startswith("gaussian_head.") for k in report.missing_model_keys)
-    torch.testing.assert_close(net.state_dict()["backbone.blocks.1.attn.qkv.weight"],
-                               state["backbone.blocks.1.attn.qkv.weight"])
+    torch.testing.assert_close(
+        net.state_dict()["backbone.blocks.1.attn.qkv.weight"],
+        state["backbone.blocks.1.attn.qkv.weight"],
+    )
     bad = dict(state)
     bad["smpl_head.decpose.weight"] = torch.zeros(10, 3)
     with pytest.raises(ValueError, match="shapes differ"):
@@ -95,12 +156,23 @@ def tiny():
 def test_outputs_shapes_and_unit_quaternions(tiny):
     x = torch.randn(2, 3, *tiny.cfg.image_size)
     out = tiny(x)
-    assert out.rotmats.shape == (2, 24, 3, 3) and out.betas.shape == (2, 10) and out.cam.shape == (2, 3)
+    assert (
+        out.rotmats.shape == (2, 24, 3, 3)
+        and out.betas.shape == (2, 10)
+        and out.cam.shape == (2, 3)
+    )
     g = out.gaussians
-    assert g.colors.shape == (2, 400, 3) and g.quats.shape == (2, 400, 4) and g.opacities.shape == (2, 400)
+    assert (
+        g.colors.shape == (2, 400, 3)
+        and g.quats.shape == (2, 400, 4)
+        and g.opacities.shape == (2, 400)
+    )
     torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, 400))
     c = tiny.cfg
-    assert float(g.scales.detach().min()) >= c.min_scale and float(g.scales.detach().max()) <= c.max_scale
+    assert (
+        float(g.scales.detach().min()) >= c.min_scale
+        and float(g.scales.detach().max()) <= c.max_scale
+    )
     assert float(g.offsets.detach().abs().max()) <= c.max_offset
     eye = torch.eye(3).expand(2, 24, 3, 3)
     torch.testing.assert_close(out.rotmats @ out.rotmats.transpose(-1, -2), eye, atol=1e-5, rtol=0)
@@ -113,7 +185,9 @@ def test_smpl_output_does_not_depend_on_gaussian_tokens(tiny):
     assert pose_only.gaussians is None
     torch.testing.assert_close(full.body_pose_6d, pose_only.body_pose_6d, rtol=0, atol=0)
     with torch.no_grad():
-        tiny.gaussian_head.tokens.add_(1.0)  # changing the Gaussian tokens leaves the pose untouched
+        tiny.gaussian_head.tokens.add_(
+            1.0
+        )  # changing the Gaussian tokens leaves the pose untouched
         again = tiny(x, with_gaussians=True)
         tiny.gaussian_head.tokens.sub_(1.0)
     torch.testing.assert_close(again.body_pose_6d, full.body_pose_6d, rtol=0, atol=0)

@@ -29,12 +29,15 @@ def _images(b=2, c=3, h=24, w=28, noise=0.1, seed=0):
 
 # --- PSNR ---------------------------------------------------------------------------------------
 
+
 def test_psnr_matches_numpy_formula():
     x, y = _images()
     for i in range(2):
         mse = np.mean((x[i].numpy() - y[i].numpy()) ** 2)
         assert psnr(x, y)[i].item() == pytest.approx(10 * math.log10(1.0 / mse), abs=1e-9)
-    assert psnr(x * 255, y * 255, data_range=255.0).tolist() == pytest.approx(psnr(x, y).tolist(), abs=1e-9)
+    assert psnr(x * 255, y * 255, data_range=255.0).tolist() == pytest.approx(
+        psnr(x, y).tolist(), abs=1e-9
+    )
 
 
 def test_psnr_mask_uses_only_covered_pixels():
@@ -71,11 +74,14 @@ def test_psnr_is_differentiable():
 
 # --- SSIM ---------------------------------------------------------------------------------------
 
-def _ssim_brute_force(x: np.ndarray, y: np.ndarray, win: int = 11, sigma: float = 1.5, pad: str = "same") -> float:
+
+def _ssim_brute_force(
+    x: np.ndarray, y: np.ndarray, win: int = 11, sigma: float = 1.5, pad: str = "same"
+) -> float:
     """Wang et al. 2004 SSIM, one Gaussian-weighted window at a time (float64). x, y: (C, H, W) in [0, 1]."""
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    c1, c2 = 0.01**2, 0.03**2
     r = win // 2
-    g = np.exp(-((np.arange(win) - r) ** 2) / (2 * sigma ** 2))
+    g = np.exp(-((np.arange(win) - r) ** 2) / (2 * sigma**2))
     g = np.outer(g, g) / np.outer(g, g).sum()
     if pad == "same":  # numpy's 'reflect' mirrors without repeating the edge, as torch's does
         x, y = (np.pad(a, ((0, 0), (r, r), (r, r)), mode="reflect") for a in (x, y))
@@ -83,11 +89,13 @@ def _ssim_brute_force(x: np.ndarray, y: np.ndarray, win: int = 11, sigma: float 
     for ch in range(x.shape[0]):
         for i in range(x.shape[1] - 2 * r):
             for j in range(x.shape[2] - 2 * r):
-                a, b = x[ch, i:i + win, j:j + win], y[ch, i:i + win, j:j + win]
+                a, b = x[ch, i : i + win, j : j + win], y[ch, i : i + win, j : j + win]
                 ma, mb = (g * a).sum(), (g * b).sum()
-                va, vb = (g * a * a).sum() - ma ** 2, (g * b * b).sum() - mb ** 2
+                va, vb = (g * a * a).sum() - ma**2, (g * b * b).sum() - mb**2
                 cov = (g * a * b).sum() - ma * mb
-                vals.append((2 * ma * mb + c1) * (2 * cov + c2) / ((ma ** 2 + mb ** 2 + c1) * (va + vb + c2)))
+                vals.append(
+                    (2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
+                )
     return float(np.mean(vals))
 
 
@@ -114,6 +122,7 @@ def test_ssim_float32_and_properties():
 
 # --- projected body box -------------------------------------------------------------------------
 
+
 def _camera(yaw_deg: float, pos: np.ndarray, w: int = 64, h: int = 48, f: float = 50.0):
     """World-to-camera R, t for a camera at `pos` looking along its rotated +z axis."""
     R = Rotation.from_euler("y", yaw_deg, degrees=True).as_matrix().T
@@ -136,12 +145,15 @@ def _ray_cast_mask(lo, hi, K, R, t, size) -> np.ndarray:
     return ((tmax >= np.maximum(tmin, 0)) & (tmax > 0)).reshape(h, w)
 
 
-@pytest.mark.parametrize("yaw,pos", [
-    (0.0, (0.0, 0.3, -4.0)),      # box in front
-    (-25.0, (1.5, -0.2, -3.0)),   # seen obliquely
-    (-20.0, (0.6, 0.0, -0.1)),    # camera beside the box: it crosses the camera plane
-    (40.0, (0.1, 0.1, 0.0)),      # camera inside the box: everything is covered
-])
+@pytest.mark.parametrize(
+    "yaw,pos",
+    [
+        (0.0, (0.0, 0.3, -4.0)),  # box in front
+        (-25.0, (1.5, -0.2, -3.0)),  # seen obliquely
+        (-20.0, (0.6, 0.0, -0.1)),  # camera beside the box: it crosses the camera plane
+        (40.0, (0.1, 0.1, 0.0)),  # camera inside the box: everything is covered
+    ],
+)
 def test_projected_box_matches_ray_casting(yaw, pos):
     lo, hi = np.array([-0.4, -0.9, -0.3]), np.array([0.4, 0.9, 0.3])
     K, R, t, size = _camera(yaw, np.array(pos), w=128, h=96, f=120.0)
@@ -174,6 +186,7 @@ def test_points_box_corners_pads_and_checks():
 
 
 # --- SHERF-style metrics ------------------------------------------------------------------------
+
 
 def _scene(b=2):
     K, R, t, size = _camera(10.0, np.array([0.2, 0.1, -4.0]), w=96, h=80, f=120.0)
@@ -217,10 +230,20 @@ def test_bbox_metrics_ignore_pixels_outside_the_box():
 def test_bbox_metrics_per_image_cameras_and_invisible_box():
     pred, target, corners, K, R, t, _ = _scene()
     turn = Rotation.from_euler("y", 180, degrees=True).as_matrix()  # same camera, turned around
-    m = masked_bbox_metrics(pred, target, np.stack([corners, corners]), np.stack([K, K]),
-                            np.stack([R, turn @ R]), np.stack([t, turn @ t]))
+    m = masked_bbox_metrics(
+        pred,
+        target,
+        np.stack([corners, corners]),
+        np.stack([K, K]),
+        np.stack([R, turn @ R]),
+        np.stack([t, turn @ t]),
+    )
     assert m.valid.tolist() == [True, False]
-    assert math.isfinite(m.psnr[0].item()) and math.isnan(m.psnr[1].item()) and math.isnan(m.ssim[1].item())
+    assert (
+        math.isfinite(m.psnr[0].item())
+        and math.isnan(m.psnr[1].item())
+        and math.isnan(m.ssim[1].item())
+    )
     with pytest.raises(ValueError, match="K has shape"):
         masked_bbox_metrics(pred, target, corners, np.eye(4), R, t)
 
@@ -228,7 +251,9 @@ def test_bbox_metrics_per_image_cameras_and_invisible_box():
 def test_bbox_metrics_with_lpips():
     path = default_weights_path("alex")
     if not path.is_file():
-        pytest.skip(f"LPIPS weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net alex`")
+        pytest.skip(
+            f"LPIPS weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net alex`"
+        )
     from gst.metrics.lpips import LPIPS
 
     model = LPIPS("alex")

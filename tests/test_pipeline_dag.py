@@ -21,7 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 def write_config(tmp_path: Path, extra_params: str = "", input_file: Path | None = None) -> Path:
     src_params = f"input_file: {input_file}" if input_file else ""
     cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(textwrap.dedent(f"""
+    cfg.write_text(
+        textwrap.dedent(f"""
         workspace: ws
         default_scene: demo
         executor: {{kind: local, workers: 1}}
@@ -31,7 +32,8 @@ def write_config(tmp_path: Path, extra_params: str = "", input_file: Path | None
           source: {{module: "tests.fake_stages:SOURCE", params: {{{src_params}}}}}
           double: {{module: "tests.fake_stages:DOUBLE", needs: [source], params: {{{extra_params}}}}}
           report: {{module: "tests.fake_stages:REPORT", needs: [double]}}
-    """))
+    """)
+    )
     return cfg
 
 
@@ -51,7 +53,12 @@ def run(cfg: Path, *args: str) -> int:
 
 
 def test_topological_order_respects_needs_and_declaration_order():
-    needs = {"train": ["extract", "pretrain"], "pretrain": [], "extract": ["calibrate"], "calibrate": []}
+    needs = {
+        "train": ["extract", "pretrain"],
+        "pretrain": [],
+        "extract": ["calibrate"],
+        "calibrate": [],
+    }
     order = topological_order(needs)
     assert order.index("calibrate") < order.index("extract") < order.index("train")
     assert order.index("pretrain") < order.index("train")
@@ -131,12 +138,22 @@ def test_status_reports_reason(tmp_path, capsys):
 def test_killed_stage_is_missing_and_reruns(tmp_path, counter):
     cfg = write_config(tmp_path, extra_params="die_after_partial_write: true")
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.run([sys.executable, "-m", "pipeline", "run", "double", "--config", str(cfg), "--quiet"],
-                          cwd=REPO, env=env, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", "double", "--config", str(cfg), "--quiet"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == -9, proc.stderr  # SIGKILL while writing its output
     assert not (tmp_path / "ws/demo/double").exists()  # nothing half-written in the workspace
-    capture = subprocess.run([sys.executable, "-m", "pipeline", "status", "--config", str(cfg)],
-                             cwd=REPO, env=env, capture_output=True, text=True)
+    capture = subprocess.run(
+        [sys.executable, "-m", "pipeline", "status", "--config", str(cfg)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     assert "interrupted" in capture.stdout + capture.stderr
     assert run(cfg, "run", "all", "--set", "double.die_after_partial_write=false") == 0
     assert (tmp_path / "ws/demo/double/result.txt").read_text() == "value=1\n" * 2
@@ -152,13 +169,19 @@ def test_failed_stage_exit_1_keeps_previous_outputs(tmp_path, capsys):
     assert not (tmp_path / "ws/demo/fail").exists()
 
 
-@pytest.mark.parametrize("text, expected", [
-    ("scenes: [oops", "not valid YAML"),
-    ("scenes: {demo: {synthetic: {preset: demo}}}\nstagez: {}\n", "stagez: unknown key"),
-    ("scenes: {demo: {synthetic: {preset: demo}, videos: a.mp4}}\n", "exactly one of"),
-    ("scenes: {demo: {synthetic: {preset: demo}}}\nstages: {a: {needs: [b]}}\n", "unknown stage 'b'"),
-    ("scenes: {demo: {synthetic: {sed: 1}}}\n", "scenes.demo.synthetic.sed: unknown key"),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("scenes: [oops", "not valid YAML"),
+        ("scenes: {demo: {synthetic: {preset: demo}}}\nstagez: {}\n", "stagez: unknown key"),
+        ("scenes: {demo: {synthetic: {preset: demo}, videos: a.mp4}}\n", "exactly one of"),
+        (
+            "scenes: {demo: {synthetic: {preset: demo}}}\nstages: {a: {needs: [b]}}\n",
+            "unknown stage 'b'",
+        ),
+        ("scenes: {demo: {synthetic: {sed: 1}}}\n", "scenes.demo.synthetic.sed: unknown key"),
+    ],
+)
 def test_bad_config_exit_2_names_key_and_writes_nothing(tmp_path, capsys, text, expected):
     cfg = tmp_path / "pipeline.yaml"
     cfg.write_text(text)
@@ -180,7 +203,11 @@ def test_bad_override_and_unknown_stage_exit_2(tmp_path, capsys):
     assert run(cfg, "run", "all", "--set", "nostage.x=1") == 2
     assert run(cfg, "run", "nostage") == 2
     err = capsys.readouterr().err
-    assert "expected KEY=VALUE" in err and "'nostage' is neither a stage" in err and "unknown stage 'nostage'" in err
+    assert (
+        "expected KEY=VALUE" in err
+        and "'nostage' is neither a stage" in err
+        and "unknown stage 'nostage'" in err
+    )
 
 
 def test_scene_config_change_reruns(tmp_path, counter, capsys):
@@ -196,13 +223,19 @@ def test_scene_config_change_reruns(tmp_path, counter, capsys):
 
 def test_scene_params_apply_to_that_scene_only_and_set_wins(tmp_path, counter, capsys):
     cfg = write_config(tmp_path)
-    cfg.write_text(cfg.read_text().replace(
-        "demo: {synthetic: {preset: demo}}",
-        "demo: {synthetic: {preset: demo}}\n  other: {synthetic: {preset: demo}, params: {double: {factor: 3}}}"))
+    cfg.write_text(
+        cfg.read_text().replace(
+            "demo: {synthetic: {preset: demo}}",
+            "demo: {synthetic: {preset: demo}}\n  other: {synthetic: {preset: demo}, params: {double: {factor: 3}}}",
+        )
+    )
     assert run(cfg, "run", "all") == 0
     assert run(cfg, "run", "all", "--scene", "other") == 0
     ws = tmp_path / "ws"
-    demo, other = (ws / "demo" / "double" / "result.txt").read_text(), (ws / "other" / "double" / "result.txt").read_text()
+    demo, other = (
+        (ws / "demo" / "double" / "result.txt").read_text(),
+        (ws / "other" / "double" / "result.txt").read_text(),
+    )
     assert len(other) == len(demo) * 3 // 2  # factor 3 there, the default 2 here
     # Changing the scene's own params reruns that scene's `double` (and downstream), not `source`.
     cfg.write_text(cfg.read_text().replace("factor: 3", "factor: 4"))
@@ -214,13 +247,20 @@ def test_scene_params_apply_to_that_scene_only_and_set_wins(tmp_path, counter, c
     assert (ws / "other" / "double" / "result.txt").read_text() == demo
 
 
-@pytest.mark.parametrize("scene_params,expected", [
-    ("{tripple: {factor: 3}}", "scenes.demo.params: unknown stage 'tripple'"),
-    ("{double: {factr: 3}}", "scenes.demo.params.double"),
-])
+@pytest.mark.parametrize(
+    "scene_params,expected",
+    [
+        ("{tripple: {factor: 3}}", "scenes.demo.params: unknown stage 'tripple'"),
+        ("{double: {factr: 3}}", "scenes.demo.params.double"),
+    ],
+)
 def test_bad_scene_params_exit_2_and_name_the_block(tmp_path, capsys, scene_params, expected):
     cfg = write_config(tmp_path)
-    cfg.write_text(cfg.read_text().replace("demo: {synthetic: {preset: demo}}",
-                                           f"demo: {{synthetic: {{preset: demo}}, params: {scene_params}}}"))
+    cfg.write_text(
+        cfg.read_text().replace(
+            "demo: {synthetic: {preset: demo}}",
+            f"demo: {{synthetic: {{preset: demo}}, params: {scene_params}}}",
+        )
+    )
     assert run(cfg, "run", "all") == 2
     assert expected in capsys.readouterr().err

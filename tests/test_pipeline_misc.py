@@ -39,9 +39,13 @@ def test_chunks_cover_sequence():
 
 
 def test_module_help_and_status_run():
-    out = subprocess.run([sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True
+    )
     assert out.returncode == 0 and "run" in out.stdout and "status" in out.stdout
-    out = subprocess.run([sys.executable, "-m", "pipeline", "status"], cwd=REPO, capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "pipeline", "status"], cwd=REPO, capture_output=True, text=True
+    )
     assert out.returncode == 0, out.stderr
 
 
@@ -73,6 +77,9 @@ def test_libraries_never_import_orchestration():
                     names = [a.name for a in node.names]
                 elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
                     names = [node.module]
-                offenders += [f"{path.relative_to(REPO)} imports {n}" for n in names
-                              if n.split(".")[0] in ("pipeline", "stages")]
+                offenders += [
+                    f"{path.relative_to(REPO)} imports {n}"
+                    for n in names
+                    if n.split(".")[0] in ("pipeline", "stages")
+                ]
     assert offenders == []

@@ -40,7 +40,9 @@ def test_gsplat_matches_torch_with_gsplat_footprint_and_clamp():
 
     scene = _scene_cuda(0, max_opacity=1.0)
     g_rgb, g_alpha, g_depth = rasterize_gsplat(*scene, 96, 80, 0.01)
-    c_rgb, c_alpha, c_dsum = rasterize_cpu(*scene, 96, 80, 0.01, sigma_cutoff=math.inf, alpha_max=0.999)
+    c_rgb, c_alpha, c_dsum = rasterize_cpu(
+        *scene, 96, 80, 0.01, sigma_cutoff=math.inf, alpha_max=0.999
+    )
     c_depth = c_dsum / c_alpha.clamp_min(1e-10)
     torch.testing.assert_close(g_rgb, c_rgb, atol=2e-4, rtol=0)
     torch.testing.assert_close(g_alpha, c_alpha, atol=2e-4, rtol=0)
@@ -58,7 +60,9 @@ def test_auto_backend_parity_and_gradients():
     def run(backend, tensors):
         inputs = [t.clone().requires_grad_(True) for t in tensors]
         out = rasterize(*inputs, 96, 80, backgrounds=bgs, backend=backend)
-        w = torch.rand(out.rgb.shape, generator=torch.Generator("cuda").manual_seed(0), device="cuda")
+        w = torch.rand(
+            out.rgb.shape, generator=torch.Generator("cuda").manual_seed(0), device="cuda"
+        )
         ((out.rgb * w).sum() + out.alpha.sum()).backward()
         return out, [t.grad for t in inputs]
 
@@ -66,7 +70,9 @@ def test_auto_backend_parity_and_gradients():
     c_out, c_grads = run("torch", scene)
     torch.testing.assert_close(g_out.rgb, c_out.rgb, atol=2e-4, rtol=0)
     torch.testing.assert_close(g_out.alpha, c_out.alpha, atol=2e-4, rtol=0)
-    for name, g, c in zip(("means", "quats", "scales", "opacities", "colors"), g_grads, c_grads, strict=False):
+    for name, g, c in zip(
+        ("means", "quats", "scales", "opacities", "colors"), g_grads, c_grads, strict=False
+    ):
         rel = (g - c).norm() / c.norm().clamp_min(1e-12)
         assert rel < 1e-3, f"gradient of {name} differs by {rel:.2e} (relative)"
 

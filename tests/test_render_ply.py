@@ -14,10 +14,15 @@ from gst.render.ply import (
     write_gaussians_ply,
 )
 
-EXPECTED_PROPS = (
-    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
-    + ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-)
+EXPECTED_PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+]
 
 
 def _cloud(n=50, seed=0):
@@ -51,13 +56,17 @@ def test_bytes_follow_the_standard_layout(tmp_path):
     assert lines[3:] == [f"property float {p}" for p in EXPECTED_PROPS]
     rec = np.frombuffer(body, dtype="<f4").reshape(7, len(EXPECTED_PROPS))
     col = {p: rec[:, i] for i, p in enumerate(EXPECTED_PROPS)}
-    np.testing.assert_allclose(np.stack([col["x"], col["y"], col["z"]], 1), cloud["means"], rtol=1e-6)
+    np.testing.assert_allclose(
+        np.stack([col["x"], col["y"], col["z"]], 1), cloud["means"], rtol=1e-6
+    )
     rgb = 0.5 + 0.28209479 * np.stack([col[f"f_dc_{i}"] for i in range(3)], 1)
     np.testing.assert_allclose(rgb, cloud["colors"], atol=1e-5)
     o = cloud["opacities"].double().numpy()
     np.testing.assert_allclose(col["opacity"], np.log(o / (1 - o)), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(
-        np.stack([col[f"scale_{i}"] for i in range(3)], 1), np.log(cloud["scales"].numpy()), rtol=1e-5
+        np.stack([col[f"scale_{i}"] for i in range(3)], 1),
+        np.log(cloud["scales"].numpy()),
+        rtol=1e-5,
     )
     np.testing.assert_allclose(np.stack([col[f"rot_{i}"] for i in range(4)], 1), cloud["quats"])
     assert np.all(np.stack([col["nx"], col["ny"], col["nz"]]) == 0)
@@ -102,8 +111,14 @@ def test_reads_other_tools_files_with_extra_properties(tmp_path):
     "content, message",
     [
         (b"hello", "not a PLY"),
-        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n", "binary_little_endian"),
-        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n", "lacks properties"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n",
+            "binary_little_endian",
+        ),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n",
+            "lacks properties",
+        ),
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n", "no end_header"),
     ],
 )

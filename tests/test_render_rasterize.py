@@ -135,8 +135,12 @@ def _compare(scene, width, height, backgrounds, atol_rgb, atol_depth, near=0.01)
             )  # fmt: skip
             assert alpha.max() > 0.5, "scene should cover part of the image"
             np.testing.assert_allclose(out.rgb[si, ci].double().numpy(), rgb, atol=atol_rgb, rtol=0)
-            np.testing.assert_allclose(out.alpha[si, ci].double().numpy(), alpha, atol=atol_rgb, rtol=0)
-            np.testing.assert_allclose(out.depth[si, ci].double().numpy(), depth, atol=atol_depth, rtol=0)
+            np.testing.assert_allclose(
+                out.alpha[si, ci].double().numpy(), alpha, atol=atol_rgb, rtol=0
+            )
+            np.testing.assert_allclose(
+                out.depth[si, ci].double().numpy(), depth, atol=atol_depth, rtol=0
+            )
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -156,7 +160,9 @@ def test_early_stop_on_deep_stack():
     """Many opaque Gaussians along one ray: compositing must stop at transmittance 1e-4."""
     n = 12
     z = torch.linspace(2.0, 3.0, n, dtype=torch.float64)
-    means = torch.stack([torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64), z], -1)
+    means = torch.stack(
+        [torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64), z], -1
+    )
     quats = torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64).repeat(n, 1)
     scales = torch.full((n, 3), 0.05, dtype=torch.float64)
     opac = torch.full((n,), 0.93, dtype=torch.float64)
@@ -164,7 +170,9 @@ def test_early_stop_on_deep_stack():
     vm = torch.eye(4, dtype=torch.float64)[None]
     ks = torch.tensor([[[40.0, 0, 10], [0, 40.0, 10], [0, 0, 1]]], dtype=torch.float64)
     out = rasterize(means, quats, scales, opac, colors, vm, ks, 21, 21, backend="torch")
-    rgb, alpha, depth = reference_render(means, quats, scales, opac, colors, vm[0], ks[0], 21, 21, 0.01)
+    rgb, alpha, depth = reference_render(
+        means, quats, scales, opac, colors, vm[0], ks[0], 21, 21, 0.01
+    )
     np.testing.assert_allclose(out.rgb[0].numpy(), rgb, atol=1e-10)
     np.testing.assert_allclose(out.alpha[0].numpy(), alpha, atol=1e-10)
     np.testing.assert_allclose(out.depth[0].numpy(), depth, atol=1e-10)
@@ -235,7 +243,9 @@ def test_bad_input_names_the_culprit(change, message):
 
 
 def test_empty_and_fully_culled_scenes_render_the_background():
-    means, quats, scales, opac, colors, viewmats, ks = random_scene(4, s=1, n=6, c=2, width=9, height=7)
+    means, quats, scales, opac, colors, viewmats, ks = random_scene(
+        4, s=1, n=6, c=2, width=9, height=7
+    )
     bgs = torch.rand(1, 2, 3, dtype=torch.float64)
     empty = rasterize(means[:, :0], quats[:, :0], scales[:, :0], opac[:, :0], colors[:, :0],
                       viewmats, ks, 9, 7, backgrounds=bgs)  # fmt: skip

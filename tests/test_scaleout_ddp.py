@@ -29,8 +29,16 @@ def test_two_gloo_ranks_match_single_process_gradients(tmp_path, monkeypatch):
     def step(m, batch):
         return ((m(batch[0]) - batch[1]) ** 2).mean(), {}
 
-    cfg = TrainConfig(steps=1, batch_size=COMBINED_BATCH, lr=1e-3, warmup_steps=0, grad_clip=1e9, ckpt_every=1,
-                      val_every=100, log_every=1)
+    cfg = TrainConfig(
+        steps=1,
+        batch_size=COMBINED_BATCH,
+        lr=1e-3,
+        warmup_steps=0,
+        grad_clip=1e9,
+        ckpt_every=1,
+        val_every=100,
+        log_every=1,
+    )
     single = Trainer(model, step, lambda gen, bs: (x, y), cfg, tmp_path / "single")
     assert single.world == 1
     single.fit()
@@ -39,13 +47,21 @@ def test_two_gloo_ranks_match_single_process_gradients(tmp_path, monkeypatch):
         grads = torch.load(out / f"grads-rank{rank}.pt", weights_only=True)
         assert grads.keys() == reference.keys()
         for n, g in grads.items():
-            torch.testing.assert_close(g, reference[n], rtol=1e-5, atol=1e-7, msg=f"rank {rank}: {n}")
+            torch.testing.assert_close(
+                g, reference[n], rtol=1e-5, atol=1e-7, msg=f"rank {rank}: {n}"
+            )
     # The averaged gradient differs from either rank's own half-batch gradient (a real check).
     half = Trainer(ddp_problem()[0], step, lambda gen, bs: (x[:4], y[:4]), cfg, tmp_path / "half")
     half.fit()
     assert not torch.allclose(next(half.model.parameters()).grad, reference["0.weight"])
     # Rank 0 alone wrote the checkpoint and the log; both ranks took the same optimiser step.
-    assert sorted(p.name for p in out.iterdir()) == ["best.pt", "grads-rank0.pt", "grads-rank1.pt", "last.pt", "log.csv"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "best.pt",
+        "grads-rank0.pt",
+        "grads-rank1.pt",
+        "last.pt",
+        "log.csv",
+    ]
     ddp_state = torch.load(out / "last.pt", weights_only=True)["model"]
     for n, p in model.state_dict().items():
         torch.testing.assert_close(ddp_state[n], p, rtol=1e-5, atol=1e-6, msg=n)

@@ -10,7 +10,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-ray = pytest.importorskip("ray", reason="ray is not installed: pip install -e '.[dist]' to run the Ray executor tests")
+ray = pytest.importorskip(
+    "ray", reason="ray is not installed: pip install -e '.[dist]' to run the Ray executor tests"
+)
 
 from gst.data import extract_scene  # noqa: E402
 from gst.track.batch import track_videos  # noqa: E402
@@ -78,7 +80,9 @@ def test_failed_item_is_retried_nothing_lost_or_duplicated(ray_executor, tmp_pat
 
 
 def test_persistent_failure_names_the_item(ray_executor):
-    with pytest.raises(ItemFailed, match=r"bad: item 0 \(12\) failed after 2 attempt\(s\): ValueError: bad item 12"):
+    with pytest.raises(
+        ItemFailed, match=r"bad: item 0 \(12\) failed after 2 attempt\(s\): ValueError: bad item 12"
+    ):
         ray_executor.map(always_fails, [12], "bad")
     with pytest.raises(ItemFailed, match=r"item [01] \(1[12]\) failed after 2"):
         ray_executor.map(always_fails, [11, 12], "bad")
@@ -105,33 +109,56 @@ def test_track_worker_killed_mid_video_is_resumed_exactly(ray_executor, clips, t
     video, csv = clips[0]
     killer = functools.partial(KillOnceDetector, csv, video.stem, tmp_path / "killed", 33)
     chunking = ChunkingConfig(chunk_frames=20, overlap=5) if chunked else None
-    out = track_videos([job(video, csv, detector=killer)], tmp_path / "out", map_fn=ray_executor.map,
-                       chunking=chunking)[0]
+    out = track_videos(
+        [job(video, csv, detector=killer)],
+        tmp_path / "out",
+        map_fn=ray_executor.map,
+        chunking=chunking,
+    )[0]
     assert (tmp_path / "killed").exists()  # the worker really died once
     if not chunked:
         # The retry continued after the last committed group (detection runs a few frames ahead).
         assert out.result.resumed_from_frame in (20, 25, 30)
     reference = track_videos([job(video, csv)], tmp_path / "ref")[0]
-    assert _rows(out.result.path).equals(_rows(reference.result.path))  # nothing lost, nothing twice
+    assert _rows(out.result.path).equals(
+        _rows(reference.result.path)
+    )  # nothing lost, nothing twice
 
 
 def _h5_contents(path):
     out = {}
     with h5py.File(path, "r") as f:
-        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+        f.visititems(
+            lambda name, obj: (
+                out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None
+            )
+        )
     return out
 
 
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory):
-    return make_scene(tmp_path_factory.mktemp("extract"), n_people=1, n_frames=12, present=(3, 8), seed=2, laps=0.4)
+    return make_scene(
+        tmp_path_factory.mktemp("extract"),
+        n_people=1,
+        n_frames=12,
+        present=(3, 8),
+        seed=2,
+        laps=0.4,
+    )
 
 
 def test_extract_ray_equals_local(ray_executor, local_executor, small_scene, tmp_path):
     def run(name, map_fn):
         out = tmp_path / name / "crops.h5"
-        rep = extract_scene(small_scene.videos, small_scene.rig, out, crop_size=64, options=_opts(),
-                            executor_map=map_fn)
+        rep = extract_scene(
+            small_scene.videos,
+            small_scene.rig,
+            out,
+            crop_size=64,
+            options=_opts(),
+            executor_map=map_fn,
+        )
         return rep, _h5_contents(out)
 
     rep_local, local = run("local", local_executor.map)

@@ -21,14 +21,23 @@ HAVE_RAY = importlib.util.find_spec("ray") is not None
 
 
 def _spec():
-    return preset("demo", n_frames=5, n_people=2, motions=[["run"], ["squat"]],
-                  rig=dict(kind="dome", n_cameras=3, width=80, height=60, distortion="mild"), board=dict(n_frames=2),
-                  imaging=dict(antialias=1, background_samples=1, shadow_samples=2))
+    return preset(
+        "demo",
+        n_frames=5,
+        n_people=2,
+        motions=[["run"], ["squat"]],
+        rig=dict(kind="dome", n_cameras=3, width=80, height=60, distortion="mild"),
+        board=dict(n_frames=2),
+        imaging=dict(antialias=1, background_samples=1, shadow_samples=2),
+    )
 
 
 def _digest(folder: Path) -> dict[str, str]:
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 class _RecordingMap:
@@ -67,18 +76,35 @@ def test_camera_shares_split_groups_in_order():
 def test_pickled_shares_give_identical_files(serial_scene, tmp_path, n_shares):
     out, summary = serial_scene
     mapper = _RecordingMap()
-    fanned = render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=mapper,
-                          shares=n_shares)
-    assert mapper.calls == [("synth.shares", "render_share_job", n_shares or 1, "synth demo: render")]
+    fanned = render_scene(
+        _spec(),
+        tmp_path / "scene",
+        body_model=BODY,
+        rig_writer=WRITE_RIG,
+        map_fn=mapper,
+        shares=n_shares,
+    )
+    assert mapper.calls == [
+        ("synth.shares", "render_share_job", n_shares or 1, "synth demo: render")
+    ]
     assert _digest(tmp_path / "scene") == _digest(out)
     assert not (tmp_path / "scene" / ".cast").exists()
-    assert (fanned.joints_in_mask, fanned.joints_on_own_mask) == (summary.joints_in_mask, summary.joints_on_own_mask)
+    assert (fanned.joints_in_mask, fanned.joints_on_own_mask) == (
+        summary.joints_in_mask,
+        summary.joints_on_own_mask,
+    )
 
 
 def test_two_local_worker_processes_give_identical_files(serial_scene, tmp_path):
     out, _ = serial_scene
-    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=LocalExecutor(2).map,
-                 shares=2)
+    render_scene(
+        _spec(),
+        tmp_path / "scene",
+        body_model=BODY,
+        rig_writer=WRITE_RIG,
+        map_fn=LocalExecutor(2).map,
+        shares=2,
+    )
     assert _digest(tmp_path / "scene") == _digest(out)
 
 
@@ -94,15 +120,23 @@ def test_failed_share_leaves_previous_scene_untouched(serial_scene, tmp_path):
     render_scene(_spec(), target, body_model=BODY, rig_writer=WRITE_RIG)
     before = _digest(target)
     with pytest.raises(RuntimeError, match="worker lost"):
-        render_scene(_spec(), target, body_model=BODY, rig_writer=WRITE_RIG, map_fn=_failing_map, shares=3)
+        render_scene(
+            _spec(), target, body_model=BODY, rig_writer=WRITE_RIG, map_fn=_failing_map, shares=3
+        )
     assert _digest(target) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no staging folder left behind
 
 
 def test_map_fn_that_drops_a_share_is_an_error(tmp_path):
     with pytest.raises(RuntimeError, match="3 camera shares"):
-        render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, shares=3,
-                     map_fn=lambda fn, items, description="": [fn(x) for x in list(items)[:2]])
+        render_scene(
+            _spec(),
+            tmp_path / "scene",
+            body_model=BODY,
+            rig_writer=WRITE_RIG,
+            shares=3,
+            map_fn=lambda fn, items, description="": [fn(x) for x in list(items)[:2]],
+        )
     assert not (tmp_path / "scene").exists()
 
 
@@ -118,19 +152,37 @@ def ray_executor():
 
 def test_two_worker_ray_cluster_gives_identical_files(serial_scene, ray_executor, tmp_path):
     out, _ = serial_scene
-    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=ray_executor.map, shares=2)
+    render_scene(
+        _spec(),
+        tmp_path / "scene",
+        body_model=BODY,
+        rig_writer=WRITE_RIG,
+        map_fn=ray_executor.map,
+        shares=2,
+    )
     assert _digest(tmp_path / "scene") == _digest(out)
 
 
-def test_worker_killed_mid_share_is_retried_with_identical_files(serial_scene, ray_executor, tmp_path):
+def test_worker_killed_mid_share_is_retried_with_identical_files(
+    serial_scene, ray_executor, tmp_path
+):
     from tests.scaleout_synth_items import DieOnceMidShare
 
     out, _ = serial_scene
     (tmp_path / "markers").mkdir()
 
     def dying_map(fn, items, description=""):
-        return ray_executor.map(DieOnceMidShare(fn, tmp_path / "markers", camera=0), items, description)
+        return ray_executor.map(
+            DieOnceMidShare(fn, tmp_path / "markers", camera=0), items, description
+        )
 
-    render_scene(_spec(), tmp_path / "scene", body_model=BODY, rig_writer=WRITE_RIG, map_fn=dying_map, shares=2)
+    render_scene(
+        _spec(),
+        tmp_path / "scene",
+        body_model=BODY,
+        rig_writer=WRITE_RIG,
+        map_fn=dying_map,
+        shares=2,
+    )
     assert (tmp_path / "markers" / "died-0").exists()  # the worker did die once
     assert _digest(tmp_path / "scene") == _digest(out)  # and the stale half-written video is gone

@@ -14,9 +14,13 @@ import pytest
 from gst.metrics.lpips_weights import default_weights_path
 from tests.tiny_config import TINY_CONFIG
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not default_weights_path("alex").is_file(),
-                                 reason="LPIPS weights missing: run `python -m gst.metrics.lpips fetch`")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        not default_weights_path("alex").is_file(),
+        reason="LPIPS weights missing: run `python -m gst.metrics.lpips fetch`",
+    ),
+]
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = TINY_CONFIG
 
@@ -28,8 +32,19 @@ def _run(args, cwd):
 
 def test_torchrun_two_cpu_ranks_train_and_rank0_commits(tmp_path):
     (tmp_path / "pipeline.yaml").write_text(textwrap.dedent(CONFIG))
-    torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "-m", "pipeline",
-                "run", "train", "--set", "train.steps=4"]
+    torchrun = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node",
+        "2",
+        "-m",
+        "pipeline",
+        "run",
+        "train",
+        "--set",
+        "train.steps=4",
+    ]
     early = _run(torchrun, tmp_path)
     assert early.returncode != 0 and "upstream stages must be up to date" in early.stderr
     for stage in ("extract", "pretrain"):
@@ -40,6 +55,10 @@ def test_torchrun_two_cpu_ranks_train_and_rank0_commits(tmp_path):
     assert "[rank1]" in res.stderr  # the second rank really joined the DDP group
     ws = tmp_path / "ws" / "tiny"
     assert (ws / "models" / "gst.pt").is_file() and (ws / "reports" / "train").is_dir()
-    assert not (ws / ".pipeline" / "staging").exists() or not any((ws / ".pipeline" / "staging").iterdir())
+    assert not (ws / ".pipeline" / "staging").exists() or not any(
+        (ws / ".pipeline" / "staging").iterdir()
+    )
     status = _run([sys.executable, "-m", "pipeline", "status", "--set", "train.steps=4"], tmp_path)
-    assert "train" in status.stderr and "stale" not in status.stderr and "missing" not in status.stderr
+    assert (
+        "train" in status.stderr and "stale" not in status.stderr and "missing" not in status.stderr
+    )

@@ -29,9 +29,15 @@ def _rows(path):
 def test_chunked_rows_equal_unchunked(clip, tmp_path, chunk_frames, overlap):
     video, csv = clip
     plain = track_videos([job(video, csv)], tmp_path / "plain")[0]
-    chunked = track_videos([job(video, csv)], tmp_path / "chunked",
-                           chunking=ChunkingConfig(chunk_frames=chunk_frames, overlap=overlap))[0]
-    assert chunked.chunks == -(-60 // ChunkingConfig(chunk_frames, overlap).effective_size(TrackOptions(frames_per_group=5)))
+    chunked = track_videos(
+        [job(video, csv)],
+        tmp_path / "chunked",
+        chunking=ChunkingConfig(chunk_frames=chunk_frames, overlap=overlap),
+    )[0]
+    assert chunked.chunks == -(
+        -60
+        // ChunkingConfig(chunk_frames, overlap).effective_size(TrackOptions(frames_per_group=5))
+    )
     assert chunked.chunks > 1
     assert _rows(chunked.result.path).equals(_rows(plain.result.path))
     assert len(set(_rows(plain.result.path).column("person_id").to_pylist())) == 3
@@ -57,7 +63,9 @@ def _table(frames, ids, boxes):
     cols = {f.name: pa.nulls(n, f.type) for f in schema}
     cols["frame"] = pa.array(frames, pa.int64())
     cols["person_id"] = pa.array(ids, pa.int64())
-    cols["bbox"] = pa.FixedSizeListArray.from_arrays(pa.array(np.asarray(boxes, np.float32).reshape(-1)), 4)
+    cols["bbox"] = pa.FixedSizeListArray.from_arrays(
+        pa.array(np.asarray(boxes, np.float32).reshape(-1)), 4
+    )
     return pa.Table.from_arrays([cols[f.name] for f in schema], schema=schema)
 
 
@@ -74,10 +82,18 @@ def test_match_ids_hungarian_and_agreement():
 
 def test_stitch_gives_new_ids_in_creation_order_after_the_carried_ones():
     box = {0: [0, 0, 10, 10], 1: [50, 0, 60, 10]}
-    stats = {"frames": 1, "rows": 0, "detections": 0, "dropped_nonfinite": 0, "dropped_low_score": 0}
+    stats = {
+        "frames": 1,
+        "rows": 0,
+        "detections": 0,
+        "dropped_nonfinite": 0,
+        "dropped_low_score": 0,
+    }
     c0 = _table([0, 1, 1], [0, 0, 1], [box[0], box[0], box[1]])
     c1 = _table([1, 1, 2, 2], [1, 0, 1, 0], [box[0], box[1], box[0], box[1]])  # ids swapped locally
-    s = stitch_chunks([(c0, {"keep_from": 0, "stats": stats}), (c1, {"keep_from": 2, "stats": stats})])
+    s = stitch_chunks(
+        [(c0, {"keep_from": 0, "stats": stats}), (c1, {"keep_from": 2, "stats": stats})]
+    )
     assert s.tables[1].column("person_id").to_pylist() == [0, 1]
     assert s.inherited[1] == {1: 0, 0: 1}
     assert s.stats["persons"] == 2 and s.stats["frames"] == 2

@@ -19,8 +19,12 @@ from gst.body.rotations import rot6d_to_matrix
 from gst.body.skeleton import SMPL_JOINT_NAMES
 
 _NAMES = SMPL_JOINT_NAMES[1:]
-_LO = torch.tensor([[r[0] for r in JOINT_LIMITS_DEG[n]] for n in _NAMES], dtype=torch.float64).deg2rad()
-_HI = torch.tensor([[r[1] for r in JOINT_LIMITS_DEG[n]] for n in _NAMES], dtype=torch.float64).deg2rad()
+_LO = torch.tensor(
+    [[r[0] for r in JOINT_LIMITS_DEG[n]] for n in _NAMES], dtype=torch.float64
+).deg2rad()
+_HI = torch.tensor(
+    [[r[1] for r in JOINT_LIMITS_DEG[n]] for n in _NAMES], dtype=torch.float64
+).deg2rad()
 
 
 @pytest.fixture(scope="module")
@@ -46,16 +50,30 @@ def _assert_finite_lbs(body: BodyModel, body_pose, global_orient, betas=None, tr
     pose = body_pose.to(dtype).clone().requires_grad_(True)
     orient = global_orient.to(dtype).clone().requires_grad_(True)
     b = pose.shape[0]
-    betas = (torch.zeros(b, body.num_betas) if betas is None else betas).to(dtype).clone().requires_grad_(True)
-    transl = (torch.zeros(b, 3) if transl is None else transl).to(dtype).clone().requires_grad_(True)
+    betas = (
+        (torch.zeros(b, body.num_betas) if betas is None else betas)
+        .to(dtype)
+        .clone()
+        .requires_grad_(True)
+    )
+    transl = (
+        (torch.zeros(b, 3) if transl is None else transl).to(dtype).clone().requires_grad_(True)
+    )
     out = body(betas, pose, orient, transl, return_transforms=True)
     for name in ("vertices", "joints", "joint_transforms", "vertex_transforms"):
         assert torch.isfinite(getattr(out, name)).all(), f"{name} not finite"
     g = torch.Generator().manual_seed(0)
-    loss = sum((getattr(out, k) * torch.randn(getattr(out, k).shape, generator=g, dtype=dtype)).sum()
-               for k in ("vertices", "joints", "vertex_transforms"))
+    loss = sum(
+        (getattr(out, k) * torch.randn(getattr(out, k).shape, generator=g, dtype=dtype)).sum()
+        for k in ("vertices", "joints", "vertex_transforms")
+    )
     loss.backward()
-    for name, t in (("body_pose", pose), ("global_orient", orient), ("betas", betas), ("transl", transl)):
+    for name, t in (
+        ("body_pose", pose),
+        ("global_orient", orient),
+        ("betas", betas),
+        ("transl", transl),
+    ):
         assert t.grad is not None and torch.isfinite(t.grad).all(), f"gradient of {name} not finite"
     return out
 
@@ -64,7 +82,9 @@ def _assert_finite_lbs(body: BodyModel, body_pose, global_orient, betas=None, tr
 @pytest.mark.parametrize("corner", ["all_lower", "all_upper", "alternating"])
 def test_every_joint_at_its_limits(request, which, corner):
     body = request.getfixturevalue(which)
-    bits = {"all_lower": np.zeros(69), "all_upper": np.ones(69), "alternating": np.arange(69) % 2}[corner]
+    bits = {"all_lower": np.zeros(69), "all_upper": np.ones(69), "alternating": np.arange(69) % 2}[
+        corner
+    ]
     out = _assert_finite_lbs(body, _limit_corner(bits), torch.zeros(1, 3))
     # Bent to its limits, the body stays body-sized (no joint flies off): within 2.5 m of the pelvis.
     assert (out.joints - out.joints[:, :1]).norm(dim=-1).max() < 2.5
@@ -78,7 +98,9 @@ def test_random_limit_corners_synthetic(synthetic, bits):
 
 def _axis_angles(norm: float, b: int = 2, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    axes = torch.nn.functional.normalize(torch.randn(b, 24, 3, generator=g, dtype=torch.float64), dim=-1)
+    axes = torch.nn.functional.normalize(
+        torch.randn(b, 24, 3, generator=g, dtype=torch.float64), dim=-1
+    )
     return axes * norm
 
 
@@ -95,7 +117,7 @@ def test_whole_turns_do_not_change_the_mesh(synthetic):
     """theta + 2 pi k poses the body exactly like theta (float64 model, k up to 1e5 turns)."""
     body64 = BodyModel(synthetic.data, dtype=torch.float64)
     aa = _axis_angles(1.0, b=1, seed=1) * torch.rand(1, 24, 1, dtype=torch.float64) * math.pi
-    turns = torch.randint(-10**5, 10**5, (1, 24, 1), generator=torch.Generator().manual_seed(2))
+    turns = torch.randint(-(10**5), 10**5, (1, 24, 1), generator=torch.Generator().manual_seed(2))
     wound = aa + aa / aa.norm(dim=-1, keepdim=True) * 2 * math.pi * turns.double()
     a = body64(None, aa[:, 1:], aa[:, 0])
     b = body64(None, wound[:, 1:], wound[:, 0])
@@ -109,8 +131,12 @@ def test_degenerate_6d_poses_through_lbs(request, which, six):
     non-rotation but everything downstream, gradients included, stays finite."""
     body = request.getfixturevalue(which)
     base = torch.tensor([0.3, -1.0, 0.2])
-    x = {"zero": torch.zeros(6), "collinear": torch.cat([base, 2 * base]),
-         "antiparallel": torch.cat([base, -base]), "tiny": torch.tensor([1e-20, 0, 0, 0, 1e-20, 0])}[six]
+    x = {
+        "zero": torch.zeros(6),
+        "collinear": torch.cat([base, 2 * base]),
+        "antiparallel": torch.cat([base, -base]),
+        "tiny": torch.tensor([1e-20, 0, 0, 0, 1e-20, 0]),
+    }[six]
     six_d = x.expand(2, 24, 6).clone().requires_grad_(True)
     R = rot6d_to_matrix(six_d)
     out = body(torch.zeros(2, body.num_betas), R[:, 1:], R[:, 0], return_transforms=True)
@@ -123,7 +149,9 @@ def test_degenerate_6d_poses_through_lbs(request, which, six):
 def test_extreme_shapes_and_translations(request, which):
     """Shape coefficients far outside their range and translations of kilometres (float32)."""
     body = request.getfixturevalue(which)
-    betas = torch.tensor([[10.0] * body.num_betas, [-10.0] * body.num_betas, [1e3] * body.num_betas])
+    betas = torch.tensor(
+        [[10.0] * body.num_betas, [-10.0] * body.num_betas, [1e3] * body.num_betas]
+    )
     transl = torch.tensor([[0.0, 0.0, 0.0], [1e3, -1e3, 5e3], [0.0, 0.0, 1e-30]])
     pose = _limit_corner(np.ones(69)).expand(3, -1, -1, -1)
     _assert_finite_lbs(body, pose, torch.zeros(3, 3), betas, transl)

@@ -18,7 +18,9 @@ from calibration.formats import read_rig, write_rig
 from tests.test_calib_formats import assert_same_rig
 
 finite = dict(allow_nan=False, allow_infinity=False)
-DIST_SCALES = np.array([0.2, 0.05, 0.002, 0.002, 0.01, 0.05, 0.01, 0.005, 0.002, 0.001, 0.002, 0.001, 0.01, 0.01])
+DIST_SCALES = np.array(
+    [0.2, 0.05, 0.002, 0.002, 0.01, 0.05, 0.01, 0.005, 0.002, 0.001, 0.002, 0.001, 0.01, 0.01]
+)
 
 
 @st.composite
@@ -26,7 +28,11 @@ def rotations(draw) -> np.ndarray:
     axis = np.array(draw(st.lists(st.floats(-1, 1, **finite), min_size=3, max_size=3)))
     if np.linalg.norm(axis) < 1e-3:
         axis = np.array([0.0, 0.0, 1.0])
-    angle = draw(st.one_of(st.just(0.0), st.floats(0, 1e-5), st.floats(0, np.pi), st.floats(np.pi - 1e-5, np.pi)))
+    angle = draw(
+        st.one_of(
+            st.just(0.0), st.floats(0, 1e-5), st.floats(0, np.pi), st.floats(np.pi - 1e-5, np.pi)
+        )
+    )
     R, _ = cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)
     return R
 
@@ -38,9 +44,16 @@ def cameras(draw, name: str, dist_lengths=(0, 4, 5, 8, 12, 14), skew: bool = Tru
     w, h = draw(st.integers(16, 4096)), draw(st.integers(16, 4096))
     fx, fy = draw(st.floats(50, 8000, **finite)), draw(st.floats(50, 8000, **finite))
     s = draw(st.floats(-20, 20, **finite)) if skew else 0.0
-    K = [[fx, s, draw(st.floats(0, w, **finite))], [0, fy, draw(st.floats(0, h, **finite))], [0, 0, 1]]
+    K = [
+        [fx, s, draw(st.floats(0, w, **finite))],
+        [0, fy, draw(st.floats(0, h, **finite))],
+        [0, 0, 1],
+    ]
     n = draw(st.sampled_from(dist_lengths))
-    dist = np.array(draw(st.lists(st.floats(-1, 1, **finite), min_size=n, max_size=n))) * DIST_SCALES[:n]
+    dist = (
+        np.array(draw(st.lists(st.floats(-1, 1, **finite), min_size=n, max_size=n)))
+        * DIST_SCALES[:n]
+    )
     return Camera.create(name, K, dist, R, t, w, h, {"serial": name.upper()})
 
 
@@ -83,7 +96,9 @@ def test_unprojected_rays_point_at_the_world_points(cam, seed):
     for their pixel is the direction from the camera centre to the point."""
     rng = np.random.default_rng(seed)
     # Normalised coordinates within +-0.5 keep every drawn distortion monotonic (invertible).
-    xy = rng.uniform(-0.5, 0.5, (8, 2)) * np.array([cam.width / cam.fx, cam.height / cam.fy]).clip(max=1.0)
+    xy = rng.uniform(-0.5, 0.5, (8, 2)) * np.array([cam.width / cam.fx, cam.height / cam.fy]).clip(
+        max=1.0
+    )
     z = rng.uniform(0.2, 50.0, 8)
     pts = (np.c_[xy * z[:, None], z] - cam.t) @ cam.R  # camera -> world
     rays = cam.unproject(cam.project(pts))
@@ -95,8 +110,12 @@ def test_unprojected_rays_point_at_the_world_points(cam, seed):
 
 
 @settings(max_examples=30, deadline=None)
-@given(rigs(), rotations(), st.lists(st.floats(-100, 100, **finite), min_size=3, max_size=3),
-       st.floats(1e-3, 1e3, **finite))
+@given(
+    rigs(),
+    rotations(),
+    st.lists(st.floats(-100, 100, **finite), min_size=3, max_size=3),
+    st.floats(1e-3, 1e3, **finite),
+)
 def test_world_frame_change_and_its_inverse(rig, Rw, tw, scale):
     tw = np.array(tw)
     moved = rig.transformed(Rw, tw, scale)

@@ -42,8 +42,12 @@ def setup():
     # outputs depend on the image and a precision loss would show.
     gen = torch.Generator().manual_seed(1)
     with torch.no_grad():
-        for lin in (net.smpl_head.decpose, net.smpl_head.decshape, net.smpl_head.deccam,
-                    *net.gaussian_head.heads.values()):
+        for lin in (
+            net.smpl_head.decpose,
+            net.smpl_head.decshape,
+            net.smpl_head.deccam,
+            *net.gaussian_head.heads.values(),
+        ):
             bound = math.sqrt(6.0 / (lin.in_features + lin.out_features))
             lin.weight.copy_(torch.empty_like(lin.weight).uniform_(-bound, bound, generator=gen))
     return body, cfg, net, ids, groups
@@ -56,8 +60,15 @@ def _images(b: int, cfg, seed: int = 0) -> torch.Tensor:
 # --- bf16 autocast ------------------------------------------------------------------------------
 
 TOLERANCE = {  # max |bf16 - fp32| allowed, per output; bf16 keeps ~3 significant digits
-    "body_pose_6d": 0.08, "rotmats": 0.05, "betas": 0.08, "cam": 0.05,
-    "colors": 0.02, "quats": 0.05, "opacities": 0.02, "scales": 2e-3, "offsets": 5e-3,
+    "body_pose_6d": 0.08,
+    "rotmats": 0.05,
+    "betas": 0.08,
+    "cam": 0.05,
+    "colors": 0.02,
+    "quats": 0.05,
+    "opacities": 0.02,
+    "scales": 2e-3,
+    "offsets": 5e-3,
 }
 
 
@@ -70,9 +81,15 @@ def test_bf16_autocast_forward_is_finite_and_close_to_fp32(setup):
         with torch.autocast("cpu", dtype=torch.bfloat16):
             low = net(x)
     assert low.gaussians.scales.dtype == torch.bfloat16  # autocast really was active
-    pairs = {k: (getattr(ref, k), getattr(low, k)) for k in ("body_pose_6d", "rotmats", "betas", "cam")}
-    pairs.update({k: (getattr(ref.gaussians, k), getattr(low.gaussians, k))
-                  for k in ("colors", "quats", "opacities", "scales", "offsets")})
+    pairs = {
+        k: (getattr(ref, k), getattr(low, k)) for k in ("body_pose_6d", "rotmats", "betas", "cam")
+    }
+    pairs.update(
+        {
+            k: (getattr(ref.gaussians, k), getattr(low.gaussians, k))
+            for k in ("colors", "quats", "opacities", "scales", "offsets")
+        }
+    )
     for name, (a, b) in pairs.items():
         assert torch.isfinite(b).all(), name
         err = (a - b.float()).abs()
@@ -106,6 +123,7 @@ def test_pose_only_batches_of_1_and_256(setup):
 
 # --- full forward + backward on degenerate inputs and head outputs --------------------------------
 
+
 def _degenerate(net, mode: str):
     """A copy of `net` whose heads emit one degenerate output for every image."""
     net = copy.deepcopy(net)
@@ -134,7 +152,9 @@ def _degenerate(net, mode: str):
     return net
 
 
-def _step(setup, net, *, black: bool, empty_masks: bool, lpips=None, render_size: int = 16, batch: int = 2):
+def _step(
+    setup, net, *, black: bool, empty_masks: bool, lpips=None, render_size: int = 16, batch: int = 2
+):
     body, cfg, _, ids, _ = setup
     crops = crop_set(n_frames=2, n_cams=3, size=64)
     if black:
@@ -143,7 +163,9 @@ def _step(setup, net, *, black: bool, empty_masks: bool, lpips=None, render_size
         crops.masks.zero_()
     weights = LossWeights(lpips=0.01 if lpips is not None else 0.0)
     task = make_task(body, ids, cfg, crops.crop_size, weights, lpips=lpips)
-    b = sample_multiview(crops, crops.groups(), torch.Generator().manual_seed(0), batch, 2, render_size)
+    b = sample_multiview(
+        crops, crops.groups(), torch.Generator().manual_seed(0), batch, 2, render_size
+    )
     net.train()
     net.zero_grad(set_to_none=True)
     loss, parts = multiview_step(net, b, task)
@@ -154,8 +176,18 @@ def _step(setup, net, *, black: bool, empty_masks: bool, lpips=None, render_size
     return loss, parts
 
 
-@pytest.mark.parametrize("mode", ["none", "zero_6d", "collinear_6d", "collapsed_camera", "transparent",
-                                  "saturated", "zero_quaternions"])
+@pytest.mark.parametrize(
+    "mode",
+    [
+        "none",
+        "zero_6d",
+        "collinear_6d",
+        "collapsed_camera",
+        "transparent",
+        "saturated",
+        "zero_quaternions",
+    ],
+)
 def test_forward_backward_with_degenerate_heads(setup, mode):
     _step(setup, _degenerate(setup[2], mode), black=False, empty_masks=False)
 
@@ -169,13 +201,21 @@ def test_lpips_term_on_black_images_and_empty_masks(setup):
     """The LPIPS term sees a black target composited on the background and a render."""
     if not default_weights_path("alex").is_file():
         pytest.skip("LPIPS weights not cached; run `python -m gst.metrics.lpips fetch --net alex`")
-    loss, parts = _step(setup, _degenerate(setup[2], "transparent"), black=True, empty_masks=True,
-                        lpips=LPIPS("alex"), render_size=32, batch=1)
+    loss, parts = _step(
+        setup,
+        _degenerate(setup[2], "transparent"),
+        black=True,
+        empty_masks=True,
+        lpips=LPIPS("alex"),
+        render_size=32,
+        batch=1,
+    )
     # Transparent Gaussians render pure background, which is exactly the target: all zero.
     assert abs(float(parts["mse"])) < 1e-12 and abs(float(parts["lpips"])) < 1e-6
 
 
 # --- bf16 training (TrainConfig.amp) ---------------------------------------------------------------
+
 
 def test_bf16_training_step_matches_fp32_and_trains(setup, tmp_path):
     """Under autocast only the network runs in bf16 (assemble and rasterize switch it off); this
@@ -189,9 +229,17 @@ def test_bf16_training_step_matches_fp32_and_trains(setup, tmp_path):
     crops = crop_set(n_frames=2, n_cams=3, size=64)
     model = copy.deepcopy(net)
     task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
-    summary = fit_gst(model, task, crops, TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, amp=True),
-                      tmp_path, FitOptions(mode="multiview", num_targets=2, render_size=16, heldout_cameras=("c2",)),
-                      body_spec="random", vertex_ids=ids, group_index=groups)
+    summary = fit_gst(
+        model,
+        task,
+        crops,
+        TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, amp=True),
+        tmp_path,
+        FitOptions(mode="multiview", num_targets=2, render_size=16, heldout_cameras=("c2",)),
+        body_spec="random",
+        vertex_ids=ids,
+        group_index=groups,
+    )
     assert summary["steps"] == 2 and summary["bad_steps"] == 0
     assert all(math.isfinite(v) for v in summary["after"].values())
     assert all(torch.isfinite(p).all() for p in model.parameters())

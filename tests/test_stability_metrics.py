@@ -40,7 +40,9 @@ from tests.test_metrics_lpips import pattern
 # --- MPJPE / PA-MPJPE ----------------------------------------------------------------------------
 
 # Four joints of a hand-built "pose", not coplanar.
-GT = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0]]], dtype=torch.float64)
+GT = torch.tensor(
+    [[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0]]], dtype=torch.float64
+)
 
 
 def test_mpjpe_hand_values():
@@ -92,6 +94,7 @@ def test_pa_mpjpe_hand_value_for_a_stretch():
 
 # --- PSNR / SSIM ---------------------------------------------------------------------------------
 
+
 def test_psnr_hand_values_and_kornia():
     x = torch.full((1, 3, 16, 16), 0.5, dtype=torch.float64)
     y = x.clone()
@@ -100,7 +103,9 @@ def test_psnr_hand_values_and_kornia():
     black = torch.zeros(1, 3, 16, 16, dtype=torch.float64)
     assert psnr(black, black + 0.1).item() == pytest.approx(20.0, abs=1e-9)  # MSE 0.01
     assert psnr(black, black).item() == math.inf
-    assert psnr(black * 255, (black + 0.1) * 255, data_range=255.0).item() == pytest.approx(20.0, abs=1e-9)
+    assert psnr(black * 255, (black + 0.1) * 255, data_range=255.0).item() == pytest.approx(
+        20.0, abs=1e-9
+    )
     # Only the masked half counts: there every pixel is off by 0.1.
     mask = torch.zeros(16, 16, dtype=torch.bool)
     mask[:8] = True
@@ -108,7 +113,9 @@ def test_psnr_hand_values_and_kornia():
     # kornia's PSNR (an independent implementation) on random images.
     g = torch.Generator().manual_seed(0)
     a, b = torch.rand(2, 1, 3, 20, 20, generator=g, dtype=torch.float64)
-    assert psnr(a, b).item() == pytest.approx(kornia.metrics.psnr(a, b, max_val=1.0).item(), abs=1e-9)
+    assert psnr(a, b).item() == pytest.approx(
+        kornia.metrics.psnr(a, b, max_val=1.0).item(), abs=1e-9
+    )
 
 
 @pytest.mark.parametrize("padding", ["same", "valid"])
@@ -133,7 +140,7 @@ def test_ssim_of_a_two_level_image_by_hand():
     got = ssim(x, y, window_size=11, padding="valid").item()
     # Independent evaluation: 11x11 Gaussian windows (sigma 1.5) along the 12 valid columns.
     r = np.arange(11) - 5
-    g1 = np.exp(-(r ** 2) / (2 * 1.5 ** 2))
+    g1 = np.exp(-(r**2) / (2 * 1.5**2))
     g1 /= g1.sum()
     c1, c2 = 1e-4, 9e-4
     vals = []
@@ -141,21 +148,24 @@ def test_ssim_of_a_two_level_image_by_hand():
         wx = np.where(np.arange(j, j + 11) >= 11, 1.0, 0.0)  # column profile of x in the window
         mx = (g1 * wx).sum()  # rows are constant, so the 2D window reduces to the column weights
         my = 1 - mx
-        vx = (g1 * wx ** 2).sum() - mx ** 2
+        vx = (g1 * wx**2).sum() - mx**2
         vy = vx
         cov = (g1 * wx * (1 - wx)).sum() - mx * my
-        vals.append((2 * mx * my + c1) * (2 * cov + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2)))
+        vals.append((2 * mx * my + c1) * (2 * cov + c2) / ((mx**2 + my**2 + c1) * (vx + vy + c2)))
     assert got == pytest.approx(float(np.mean(vals)), abs=1e-9)
     assert got < 0.01
 
 
 # --- box IoU -----------------------------------------------------------------------------------
 
+
 def test_box_iou_hand_values():
     a = np.array([[0.0, 0, 2, 2], [0, 0, 4, 4], [0, 0, 1, 1], [0, 0, 0, 0]])
     b = np.array([[1.0, 1, 3, 3], [1, 1, 3, 3], [1, 0, 2, 1], [0, 0, 0, 0]])
     iou = box_iou(a, b)
-    np.testing.assert_allclose(np.diag(iou), [1 / 7, 4 / 16, 0.0, 0.0], atol=1e-15)  # overlap, inside, touching, empty
+    np.testing.assert_allclose(
+        np.diag(iou), [1 / 7, 4 / 16, 0.0, 0.0], atol=1e-15
+    )  # overlap, inside, touching, empty
     assert iou[0, 0] == pytest.approx(iou.T[0, 0]) and np.isfinite(iou).all()
     np.testing.assert_allclose(box_iou(a[:2], a[:2]).diagonal(), [1.0, 1.0])
 
@@ -164,10 +174,28 @@ def test_box_iou_hand_values():
 
 # Published layouts (torchvision AlexNet / VGG16 `features`): per conv (stride, padding), a max
 # pool (kernel, stride) before it or not, and whether its ReLU output is an LPIPS tap.
-ALEX = [(4, 2, None, True), (1, 2, (3, 2), True), (1, 1, (3, 2), True), (1, 1, None, True), (1, 1, None, True)]
-VGG = [(1, 1, None, False), (1, 1, None, True), (1, 1, (2, 2), False), (1, 1, None, True),
-       (1, 1, (2, 2), False), (1, 1, None, False), (1, 1, None, True), (1, 1, (2, 2), False),
-       (1, 1, None, False), (1, 1, None, True), (1, 1, (2, 2), False), (1, 1, None, False), (1, 1, None, True)]
+ALEX = [
+    (4, 2, None, True),
+    (1, 2, (3, 2), True),
+    (1, 1, (3, 2), True),
+    (1, 1, None, True),
+    (1, 1, None, True),
+]
+VGG = [
+    (1, 1, None, False),
+    (1, 1, None, True),
+    (1, 1, (2, 2), False),
+    (1, 1, None, True),
+    (1, 1, (2, 2), False),
+    (1, 1, None, False),
+    (1, 1, None, True),
+    (1, 1, (2, 2), False),
+    (1, 1, None, False),
+    (1, 1, None, True),
+    (1, 1, (2, 2), False),
+    (1, 1, None, False),
+    (1, 1, None, True),
+]
 
 
 def lpips_by_formula(state: dict, layout, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -182,8 +210,15 @@ def lpips_by_formula(state: dict, layout, x: torch.Tensor, y: torch.Tensor) -> t
         for i, (stride, pad, pool, tap) in enumerate(layout):
             if pool is not None:
                 h = F.max_pool2d(h, pool[0], pool[1])
-            h = F.relu(F.conv2d(h, state[f"backbone.convs.{i}.weight"].double(),
-                                state[f"backbone.convs.{i}.bias"].double(), stride=stride, padding=pad))
+            h = F.relu(
+                F.conv2d(
+                    h,
+                    state[f"backbone.convs.{i}.weight"].double(),
+                    state[f"backbone.convs.{i}.bias"].double(),
+                    stride=stride,
+                    padding=pad,
+                )
+            )
             if tap:
                 taps.append(h)
         return taps
@@ -203,16 +238,31 @@ def _pairs() -> tuple[torch.Tensor, torch.Tensor]:
     noise = torch.rand(1, 3, 64, 64, generator=g)
     blurred = F.avg_pool2d(F.pad(noise, (2, 2, 2, 2), mode="reflect"), 5, stride=1)
     smooth = pattern(64, 64, 3, 2, 0.0)
-    xs = [smooth, pattern(64, 64, 1, 5, 0.3), noise, smooth, torch.zeros(1, 3, 64, 64), torch.zeros(1, 3, 64, 64)]
-    ys = [pattern(64, 64, 3, 2, 0.7), pattern(64, 64, 6, 1, 1.1), blurred, smooth.roll(3, dims=-1),
-          torch.ones(1, 3, 64, 64), noise]
+    xs = [
+        smooth,
+        pattern(64, 64, 1, 5, 0.3),
+        noise,
+        smooth,
+        torch.zeros(1, 3, 64, 64),
+        torch.zeros(1, 3, 64, 64),
+    ]
+    ys = [
+        pattern(64, 64, 3, 2, 0.7),
+        pattern(64, 64, 6, 1, 1.1),
+        blurred,
+        smooth.roll(3, dims=-1),
+        torch.ones(1, 3, 64, 64),
+        noise,
+    ]
     return torch.cat(xs), torch.cat(ys)
 
 
 def _weights(net: str) -> dict:
     path = default_weights_path(net)
     if not path.is_file():
-        pytest.skip(f"LPIPS {net} weights not cached; run `python -m gst.metrics.lpips fetch --net {net}`")
+        pytest.skip(
+            f"LPIPS {net} weights not cached; run `python -m gst.metrics.lpips fetch --net {net}`"
+        )
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
@@ -245,6 +295,7 @@ def test_lpips_published_properties(net):
 
 # --- LPIPS: the official code (opt-in) ---------------------------------------------------------
 
+
 def _torchvision_stand_in(state: dict, net: str) -> types.ModuleType:
     """A `torchvision` module whose models.alexnet / models.vgg16 return the torchvision
     `features` layout loaded with `state`'s backbone; lpips only slices `.features`."""
@@ -275,9 +326,13 @@ def _torchvision_stand_in(state: dict, net: str) -> types.ModuleType:
 def test_lpips_matches_the_official_code(net, layout, tmp_path, monkeypatch):
     wheel = os.environ.get("GST_LPIPS_WHEEL")
     if not wheel:
-        pytest.skip("set GST_LPIPS_WHEEL=/path/to/lpips-0.1.4-py3-none-any.whl to compare with the official code")
+        pytest.skip(
+            "set GST_LPIPS_WHEEL=/path/to/lpips-0.1.4-py3-none-any.whl to compare with the official code"
+        )
     data = Path(wheel).read_bytes()
-    assert hashlib.sha256(data).hexdigest() == LPIPS_WHEEL.sha256, f"{wheel} is not the pinned lpips 0.1.4 wheel"
+    assert hashlib.sha256(data).hexdigest() == LPIPS_WHEEL.sha256, (
+        f"{wheel} is not the pinned lpips 0.1.4 wheel"
+    )
     state = _weights(net)
     with zipfile.ZipFile(wheel) as z:
         z.extractall(tmp_path, [n for n in z.namelist() if n.startswith("lpips/")])
@@ -296,7 +351,9 @@ def test_lpips_matches_the_official_code(net, layout, tmp_path, monkeypatch):
         got = LPIPS(net)(x, y)
         torch.testing.assert_close(got, ref, atol=1e-6, rtol=1e-5)
         # The formula above agrees with the official code too (float64 vs float32 rounding).
-        torch.testing.assert_close(lpips_by_formula(state, layout, x, y).float(), ref, atol=2e-6, rtol=1e-5)
+        torch.testing.assert_close(
+            lpips_by_formula(state, layout, x, y).float(), ref, atol=2e-6, rtol=1e-5
+        )
     finally:
         for name in [m for m in sys.modules if m == "lpips" or m.startswith("lpips.")]:
             sys.modules.pop(name, None)

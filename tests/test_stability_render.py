@@ -37,13 +37,18 @@ def _render(means, quats, scales, opac, colors, background=True):
     """Render with gradients on every input; return outputs and the inputs' gradients."""
     dtype = means.dtype
     viewmats, Ks = _camera(dtype)
-    inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors, viewmats, Ks)]
+    inputs = [
+        t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors, viewmats, Ks)
+    ]
     bg = torch.tensor([[0.2, 0.5, 0.7]], dtype=dtype, requires_grad=True) if background else None
     out = rasterize(*inputs, W, H, backgrounds=bg, backend="torch")
     for name, v in (("rgb", out.rgb), ("alpha", out.alpha), ("depth", out.depth)):
         assert torch.isfinite(v).all(), f"{name} not finite"
     g = torch.Generator().manual_seed(1)
-    loss = sum((v * torch.rand(v.shape, generator=g, dtype=dtype)).sum() for v in (out.rgb, out.alpha, out.depth))
+    loss = sum(
+        (v * torch.rand(v.shape, generator=g, dtype=dtype)).sum()
+        for v in (out.rgb, out.alpha, out.depth)
+    )
     loss.backward()
     names = ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks")
     for name, t in zip(names, inputs, strict=True):
@@ -56,7 +61,11 @@ def _render(means, quats, scales, opac, colors, background=True):
 def _assert_blank(out, grads, bg):
     """Nothing drawn: alpha and depth exactly 0, rgb exactly the background, no gradient."""
     assert out.alpha.abs().max() == 0 and out.depth.abs().max() == 0
-    expected = bg.detach()[:, None, None, :].expand_as(out.rgb) if bg is not None else torch.zeros_like(out.rgb)
+    expected = (
+        bg.detach()[:, None, None, :].expand_as(out.rgb)
+        if bg is not None
+        else torch.zeros_like(out.rgb)
+    )
     assert torch.equal(out.rgb.detach(), expected)
     for name in ("means", "quats", "scales", "opacities", "colors"):
         assert grads[name].abs().sum() == 0, name
@@ -87,7 +96,9 @@ def test_every_gaussian_culled(dtype, where):
     elif where == "camera_centre":
         means = torch.zeros_like(means)
     else:
-        means = means * torch.tensor([1.0, 1.0, 0.0], dtype=dtype) + torch.tensor([0, 0, 0.009], dtype=dtype)
+        means = means * torch.tensor([1.0, 1.0, 0.0], dtype=dtype) + torch.tensor(
+            [0, 0, 0.009], dtype=dtype
+        )
     _assert_blank(*_render(means, quats, scales, opac, colors))
 
 
@@ -104,9 +115,14 @@ def test_point_like_gaussians_are_the_lowpass_blob(dtype, scale):
     alpha(d) = o exp(-|d|^2 / (2 * 0.3)) around its centre, computed here by hand."""
     o = 0.7
     means = torch.tensor([[0.0, 0.0, 2.0]], dtype=dtype)  # projects exactly onto pixel (11, 9)
-    out, _, _ = _render(means, torch.tensor([[1.0, 0, 0, 0]], dtype=dtype),
-                        torch.full((1, 3), scale, dtype=dtype), torch.tensor([o], dtype=dtype),
-                        torch.ones(1, 3, dtype=dtype), background=False)
+    out, _, _ = _render(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]], dtype=dtype),
+        torch.full((1, 3), scale, dtype=dtype),
+        torch.tensor([o], dtype=dtype),
+        torch.ones(1, 3, dtype=dtype),
+        background=False,
+    )
     alpha = out.alpha.detach()[0]
     assert alpha[9, 11].item() == pytest.approx(o, rel=1e-5)
     assert alpha[9, 12].item() == pytest.approx(o * math.exp(-1 / (2 * LOWPASS_EPS2D)), rel=1e-4)
@@ -123,14 +139,22 @@ def test_huge_gaussians_are_flat(dtype, scale):
     (Its footprint is >= 1e5 px wide, so the fall-off over the image is below 1e-7.)"""
     o = 0.6
     color = torch.tensor([[0.9, 0.1, 0.4]], dtype=dtype)
-    out, grads, bg = _render(torch.tensor([[0.1, -0.2, 3.0]], dtype=dtype),
-                             torch.tensor([[0.9, 0.1, -0.3, 0.2]], dtype=dtype),
-                             torch.full((1, 3), scale, dtype=dtype), torch.tensor([o], dtype=dtype), color)
+    out, grads, bg = _render(
+        torch.tensor([[0.1, -0.2, 3.0]], dtype=dtype),
+        torch.tensor([[0.9, 0.1, -0.3, 0.2]], dtype=dtype),
+        torch.full((1, 3), scale, dtype=dtype),
+        torch.tensor([o], dtype=dtype),
+        color,
+    )
     tol = 2e-6
     torch.testing.assert_close(out.alpha.detach(), torch.full_like(out.alpha, o), atol=tol, rtol=0)
-    torch.testing.assert_close(out.depth.detach(), torch.full_like(out.depth, 3.0), atol=tol * 3, rtol=0)
+    torch.testing.assert_close(
+        out.depth.detach(), torch.full_like(out.depth, 3.0), atol=tol * 3, rtol=0
+    )
     expected = o * color + (1 - o) * bg.detach()
-    torch.testing.assert_close(out.rgb.detach(), expected[:, None, None, :].expand_as(out.rgb), atol=tol, rtol=0)
+    torch.testing.assert_close(
+        out.rgb.detach(), expected[:, None, None, :].expand_as(out.rgb), atol=tol, rtol=0
+    )
     assert grads["opacities"].abs().sum() > 0  # still trainable
 
 
@@ -158,8 +182,12 @@ def test_opaque_stack_saturates_without_overflow(dtype):
     composited (0.01 * 0.01 sits right at the limit) and alpha is 0.99 or 0.9999."""
     n = 200
     means = torch.tensor([0.0, 0.0, 2.0], dtype=dtype).expand(n, 3)
-    out, _, _ = _render(means, torch.tensor([1.0, 0, 0, 0], dtype=dtype).expand(n, 4),
-                        torch.full((n, 3), 0.5, dtype=dtype), torch.ones(n, dtype=dtype),
-                        torch.rand(n, 3, dtype=dtype, generator=torch.Generator().manual_seed(0)))
+    out, _, _ = _render(
+        means,
+        torch.tensor([1.0, 0, 0, 0], dtype=dtype).expand(n, 4),
+        torch.full((n, 3), 0.5, dtype=dtype),
+        torch.ones(n, dtype=dtype),
+        torch.rand(n, 3, dtype=dtype, generator=torch.Generator().manual_seed(0)),
+    )
     centre = out.alpha.detach()[0, 9, 11].item()
     assert min(abs(centre - ALPHA_MAX), abs(centre - (1 - (1 - ALPHA_MAX) ** 2))) < 1e-6

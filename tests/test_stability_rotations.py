@@ -25,11 +25,19 @@ from gst.body.rotations import (
 from gst.render.projection import quats_to_rotmats
 
 finite = st.floats(-10.0, 10.0, allow_nan=False, width=64)
-unit_axis = (arrays(np.float64, (3,), elements=finite)
-             .filter(lambda v: np.linalg.norm(v) > 1e-3).map(lambda v: v / np.linalg.norm(v)))
+unit_axis = (
+    arrays(np.float64, (3,), elements=finite)
+    .filter(lambda v: np.linalg.norm(v) > 1e-3)
+    .map(lambda v: v / np.linalg.norm(v))
+)
 # Zero, tiny (Taylor branch), ordinary, and half-turn angles (where the axis sign flips).
-angles = st.one_of(st.just(0.0), st.floats(0.0, 1e-6), st.floats(1e-6, np.pi),
-                   st.floats(np.pi - 1e-6, np.pi), st.just(np.pi))
+angles = st.one_of(
+    st.just(0.0),
+    st.floats(0.0, 1e-6),
+    st.floats(1e-6, np.pi),
+    st.floats(np.pi - 1e-6, np.pi),
+    st.just(np.pi),
+)
 
 
 def _wxyz_from_scipy(rot: Rotation) -> np.ndarray:
@@ -53,7 +61,10 @@ def test_round_trip_through_every_representation(axis, angle):
 
     q = rotation_matrix_to_quaternion(R, eps=1e-12)  # what gst.model.assemble uses
     assert _same_quaternion(q.numpy(), _wxyz_from_scipy(ref), atol=1e-9)
-    for to_matrix in (quaternion_to_rotation_matrix, quats_to_rotmats):  # kornia's, the rasteriser's
+    for to_matrix in (
+        quaternion_to_rotation_matrix,
+        quats_to_rotmats,
+    ):  # kornia's, the rasteriser's
         np.testing.assert_allclose(to_matrix(q).numpy(), ref.as_matrix(), atol=1e-9)
 
     R6 = rot6d_to_matrix(matrix_to_rot6d(quats_to_rotmats(q)))
@@ -61,7 +72,9 @@ def test_round_trip_through_every_representation(axis, angle):
 
     back = matrix_to_axis_angle(R6)
     assert abs(float(back.norm()) - angle) < 1e-7
-    np.testing.assert_allclose(Rotation.from_rotvec(back.numpy()).as_matrix(), ref.as_matrix(), atol=1e-7)
+    np.testing.assert_allclose(
+        Rotation.from_rotvec(back.numpy()).as_matrix(), ref.as_matrix(), atol=1e-7
+    )
 
 
 @settings(max_examples=50, deadline=None)
@@ -74,11 +87,13 @@ def test_float32_round_trip_stays_close(axis, angle):
     q = rotation_matrix_to_quaternion(R, eps=1e-12)
     np.testing.assert_allclose(quats_to_rotmats(q).numpy(), ref, atol=5e-6)
     back = matrix_to_axis_angle(rot6d_to_matrix(matrix_to_rot6d(R)))
-    np.testing.assert_allclose(Rotation.from_rotvec(back.double().numpy()).as_matrix(), ref, atol=5e-5)
+    np.testing.assert_allclose(
+        Rotation.from_rotvec(back.double().numpy()).as_matrix(), ref, atol=5e-5
+    )
 
 
 @settings(max_examples=60, deadline=None)
-@given(unit_axis, st.floats(0.0, 2 * np.pi), st.integers(-10**6, 10**6))
+@given(unit_axis, st.floats(0.0, 2 * np.pi), st.integers(-(10**6), 10**6))
 def test_axis_angle_is_two_pi_periodic_for_huge_norms(axis, angle, turns):
     """theta and theta + 2 pi k are the same rotation, for k up to a million turns."""
     total = angle + 2 * np.pi * turns
@@ -89,8 +104,9 @@ def test_axis_angle_is_two_pi_periodic_for_huge_norms(axis, angle, turns):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("norm", [0.0, 1e-30, 1e-8, math.pi - 1e-7, math.pi, 2 * math.pi, 1e3, 1e6,
-                                  1e19, 1e20, 1e30])
+@pytest.mark.parametrize(
+    "norm", [0.0, 1e-30, 1e-8, math.pi - 1e-7, math.pi, 2 * math.pi, 1e3, 1e6, 1e19, 1e20, 1e30]
+)
 def test_axis_angle_extremes_give_rotations_and_finite_gradients(norm, dtype):
     """Above ~1.8e19 rad float32 used to overflow (theta^2) into NaN."""
     aa = (torch.tensor([0.3, -0.5, 0.8], dtype=dtype) / math.sqrt(0.98) * norm).requires_grad_(True)
@@ -104,16 +120,23 @@ def test_axis_angle_extremes_give_rotations_and_finite_gradients(norm, dtype):
 
 
 @settings(max_examples=50, deadline=None)
-@given(unit_axis, st.one_of(st.floats(0.0, 1e-5), st.floats(np.pi - 1e-5, np.pi)),
-       st.sampled_from([torch.float32, torch.float64]))
+@given(
+    unit_axis,
+    st.one_of(st.floats(0.0, 1e-5), st.floats(np.pi - 1e-5, np.pi)),
+    st.sampled_from([torch.float32, torch.float64]),
+)
 def test_matrix_to_axis_angle_and_quaternion_gradients_are_finite(axis, angle, dtype):
     """Near the identity and near a half turn (the two branch points of the inverse maps)."""
-    R = torch.tensor(Rotation.from_rotvec(axis * angle).as_matrix(), dtype=dtype, requires_grad=True)
+    R = torch.tensor(
+        Rotation.from_rotvec(axis * angle).as_matrix(), dtype=dtype, requires_grad=True
+    )
     w = torch.arange(1.0, 4.0, dtype=dtype)
     (matrix_to_axis_angle(R) * w).sum().backward()
     assert torch.isfinite(R.grad).all()
     R.grad = None
-    (rotation_matrix_to_quaternion(R, eps=1e-12) * torch.arange(1.0, 5.0, dtype=dtype)).sum().backward()
+    (
+        rotation_matrix_to_quaternion(R, eps=1e-12) * torch.arange(1.0, 5.0, dtype=dtype)
+    ).sum().backward()
     assert torch.isfinite(R.grad).all()
 
 
@@ -122,11 +145,16 @@ def _near_collinear(a1: np.ndarray, factor: float, eps: float, direction: np.nda
 
 
 @settings(max_examples=60, deadline=None)
-@given(arrays(np.float64, (3,), elements=st.floats(-1e3, 1e3, allow_nan=False)),
-       st.floats(-1e3, 1e3, allow_nan=False), st.sampled_from([0.0, 1e-30, 1e-12, 1e-7, 1e-4]),
-       arrays(np.float64, (3,), elements=st.floats(-1, 1, allow_nan=False)),
-       st.sampled_from([torch.float32, torch.float64]))
-def test_near_collinear_and_zero_6d_are_finite_with_finite_gradients(a1, factor, eps, direction, dtype):
+@given(
+    arrays(np.float64, (3,), elements=st.floats(-1e3, 1e3, allow_nan=False)),
+    st.floats(-1e3, 1e3, allow_nan=False),
+    st.sampled_from([0.0, 1e-30, 1e-12, 1e-7, 1e-4]),
+    arrays(np.float64, (3,), elements=st.floats(-1, 1, allow_nan=False)),
+    st.sampled_from([torch.float32, torch.float64]),
+)
+def test_near_collinear_and_zero_6d_are_finite_with_finite_gradients(
+    a1, factor, eps, direction, dtype
+):
     x = torch.tensor(_near_collinear(a1, factor, eps, direction), dtype=dtype, requires_grad=True)
     R = rot6d_to_matrix(x)
     assert torch.isfinite(R).all()
@@ -147,9 +175,19 @@ def test_near_collinear_and_zero_6d_are_finite_with_finite_gradients(a1, factor,
 def test_degenerate_6d_batch_gradients(dtype):
     """A batch mixing zero, parallel, antiparallel and tiny 6D vectors (what an untrained or
     diverging pose head can emit): outputs and gradients finite, rows independent."""
-    x = torch.tensor([[0, 0, 0, 0, 0, 0], [1, 2, 3, 2, 4, 6], [1, 2, 3, -1, -2, -3],
-                      [1e-20, 0, 0, 0, 1e-20, 0], [0, 0, 0, 1, 0, 0], [1, 0, 0, 0, 0, 0],
-                      [1, 0, 0, 0, 1, 0]], dtype=dtype, requires_grad=True)
+    x = torch.tensor(
+        [
+            [0, 0, 0, 0, 0, 0],
+            [1, 2, 3, 2, 4, 6],
+            [1, 2, 3, -1, -2, -3],
+            [1e-20, 0, 0, 0, 1e-20, 0],
+            [0, 0, 0, 1, 0, 0],
+            [1, 0, 0, 0, 0, 0],
+            [1, 0, 0, 0, 1, 0],
+        ],
+        dtype=dtype,
+        requires_grad=True,
+    )
     R = rot6d_to_matrix(x)
     assert torch.isfinite(R).all()
     R.square().sum().backward()
@@ -165,7 +203,9 @@ def test_quaternion_to_matrix_extremes(scale):
     q = (q0 * scale).requires_grad_(True)
     R = quats_to_rotmats(q)
     assert torch.isfinite(R).all()
-    expected = torch.eye(3)[None] if scale < 1e-20 else quats_to_rotmats(q0)  # far below QUAT_EPS: identity
+    expected = (
+        torch.eye(3)[None] if scale < 1e-20 else quats_to_rotmats(q0)
+    )  # far below QUAT_EPS: identity
     torch.testing.assert_close(R, expected, atol=1e-5, rtol=0)
     (R * torch.arange(9.0).view(1, 3, 3)).sum().backward()
     assert torch.isfinite(q.grad).all()

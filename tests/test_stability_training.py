@@ -37,14 +37,26 @@ class Splats(nn.Module):
         super().__init__()
         g = torch.Generator().manual_seed(seed)
         self.means = nn.Parameter(spread * torch.randn(N, 3, generator=g))
-        self.log_scales = nn.Parameter(torch.log(torch.full((N, 3), 0.12)) + 0.2 * torch.randn(N, 3, generator=g))
+        self.log_scales = nn.Parameter(
+            torch.log(torch.full((N, 3), 0.12)) + 0.2 * torch.randn(N, 3, generator=g)
+        )
         self.quats = nn.Parameter(torch.randn(N, 4, generator=g))
         self.opacity_logits = nn.Parameter(torch.zeros(N))
         self.color_logits = nn.Parameter(torch.randn(N, 3, generator=g))
 
     def forward(self, viewmats, Ks):
-        return rasterize(self.means, self.quats, self.log_scales.exp(), torch.sigmoid(self.opacity_logits),
-                         torch.sigmoid(self.color_logits), viewmats, Ks, SIZE, SIZE, backend="torch")
+        return rasterize(
+            self.means,
+            self.quats,
+            self.log_scales.exp(),
+            torch.sigmoid(self.opacity_logits),
+            torch.sigmoid(self.color_logits),
+            viewmats,
+            Ks,
+            SIZE,
+            SIZE,
+            backend="torch",
+        )
 
 
 class Problem:
@@ -100,8 +112,17 @@ def test_long_run_survives_injected_nan_and_inf(tmp_path):
     inf_steps = {20, 120, 200}
     problem = Problem(nan_target=nan_steps, inf_grad=inf_steps)
     before = problem.loss_now()
-    cfg = TrainConfig(steps=steps, batch_size=1, lr=0.02, warmup_steps=10, weight_decay=0.0, grad_clip=1.0,
-                      ckpt_every=100, val_every=10**6, log_every=1)  # default max_bad_steps (20)
+    cfg = TrainConfig(
+        steps=steps,
+        batch_size=1,
+        lr=0.02,
+        warmup_steps=10,
+        weight_decay=0.0,
+        grad_clip=1.0,
+        ckpt_every=100,
+        val_every=10**6,
+        log_every=1,
+    )  # default max_bad_steps (20)
     trainer = Trainer(problem.model, problem.step, problem.sample, cfg, tmp_path)
     summary = trainer.fit()
 
@@ -132,10 +153,20 @@ def test_consecutive_bad_steps_abort_with_a_clear_error(tmp_path, kind):
     limit = 4
     poisoned = range(13, 100)
     problem = Problem(**{"nan_target" if kind == "nan_loss" else "inf_grad": poisoned})
-    cfg = TrainConfig(steps=100, batch_size=1, lr=0.02, warmup_steps=2, max_bad_steps=limit, ckpt_every=10,
-                      val_every=10**6, log_every=1)
+    cfg = TrainConfig(
+        steps=100,
+        batch_size=1,
+        lr=0.02,
+        warmup_steps=2,
+        max_bad_steps=limit,
+        ckpt_every=10,
+        val_every=10**6,
+        log_every=1,
+    )
     trainer = Trainer(problem.model, problem.step, problem.sample, cfg, tmp_path)
-    with pytest.raises(NonFiniteLossError, match=rf"{limit} non-finite steps \(limit {limit}\).*learning rate"):
+    with pytest.raises(
+        NonFiniteLossError, match=rf"{limit} non-finite steps \(limit {limit}\).*learning rate"
+    ):
         trainer.fit()
     assert trainer.step == 12 + limit - 1 and trainer.bad_steps == limit
     assert all(torch.isfinite(p).all() for p in problem.model.parameters())
@@ -151,7 +182,9 @@ def test_consecutive_bad_steps_abort_with_a_clear_error(tmp_path, kind):
 def test_one_bad_step_short_of_the_limit_finishes(tmp_path):
     limit = 4
     problem = Problem(nan_target=range(3, 3 + limit - 1))
-    cfg = TrainConfig(steps=12, batch_size=1, lr=0.02, warmup_steps=2, max_bad_steps=limit, val_every=10**6)
+    cfg = TrainConfig(
+        steps=12, batch_size=1, lr=0.02, warmup_steps=2, max_bad_steps=limit, val_every=10**6
+    )
     summary = Trainer(problem.model, problem.step, problem.sample, cfg, tmp_path).fit()
     assert summary["steps"] == 12 and summary["bad_steps"] == limit - 1
 
@@ -161,10 +194,13 @@ def test_log_keeps_columns_that_appear_later(tmp_path):
     column was silently dropped."""
     problem = Problem(nan_target={4})
     cfg = TrainConfig(steps=6, batch_size=1, lr=0.02, warmup_steps=1, val_every=3, log_every=1)
-    Trainer(problem.model, problem.step, problem.sample, cfg, tmp_path,
-            val_fn=lambda m: {"score": 0.5}).fit()
+    Trainer(
+        problem.model, problem.step, problem.sample, cfg, tmp_path, val_fn=lambda m: {"score": 0.5}
+    ).fit()
     with open(tmp_path / "log.csv") as f:
         rows = {int(r["step"]): r for r in csv.DictReader(f)}
     assert sorted(rows) == [1, 2, 3, 4, 5, 6]
     assert float(rows[3]["val_score"]) == 0.5 and float(rows[6]["val_score"]) == 0.5
-    assert rows[1]["val_score"] == "" and float(rows[4]["skipped"]) == 1 and rows[5]["skipped"] == ""
+    assert (
+        rows[1]["val_score"] == "" and float(rows[4]["skipped"]) == 1 and rows[5]["skipped"] == ""
+    )

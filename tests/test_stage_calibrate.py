@@ -15,18 +15,22 @@ from pipeline.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 LAB = REPO.parent / "shared" / "real" / "pose2sim-multiperson"
-needs_lab = pytest.mark.skipif(not (LAB / "Calib.qca.txt").is_file(), reason=f"real lab capture not found at {LAB}")
+needs_lab = pytest.mark.skipif(
+    not (LAB / "Calib.qca.txt").is_file(), reason=f"real lab capture not found at {LAB}"
+)
 
 
 def config(tmp_path: Path, calib: Path, fmt: str, videos: str) -> Path:
     cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(textwrap.dedent(f"""
+    cfg.write_text(
+        textwrap.dedent(f"""
         workspace: ws
         scenes:
           lab: {{videos: "{videos}", calibration: {{file: "{calib}", format: {fmt}}}}}
         stages:
           calibrate: {{}}
-    """))
+    """)
+    )
     return cfg
 
 
@@ -66,8 +70,18 @@ def test_video_without_camera_is_named(tmp_path, capsys):
 
 def test_rig_below_floor_is_refused(tmp_path, capsys):
     R = np.diag([1.0, -1.0, -1.0])  # looking straight down from z = -2 (below the floor)
-    cams = [Camera.create(f"c{i}", [[500, 0, 320], [0, 500, 240], [0, 0, 1]], [], R, -R @ np.array([i, 0, -2.0]),
-                          640, 480) for i in range(3)]
+    cams = [
+        Camera.create(
+            f"c{i}",
+            [[500, 0, 320], [0, 500, 240], [0, 0, 1]],
+            [],
+            R,
+            -R @ np.array([i, 0, -2.0]),
+            640,
+            480,
+        )
+        for i in range(3)
+    ]
     write_rig(Rig(tuple(cams)), tmp_path / "low.json", "rig")
     cfg = config(tmp_path, tmp_path / "low.json", "rig", str(tmp_path / "none*.mp4"))
     assert main(["run", "calibrate", "--config", str(cfg), "--quiet"]) == 1

@@ -10,7 +10,9 @@ def test_world_specs_vary_and_end_with_the_validation_world():
     assert [s["name"] for s in specs][-1] == "pretrain_val"
     assert len({s["seed"] for s in specs}) == 7
     assert [s["rig"]["kind"] for s in specs[:4]] == ["dome", "h36m", "dome", "h36m"]
-    static = [i for i, s in enumerate(specs) if s["motions"] == [["random_static"]] * p.world_people]
+    static = [
+        i for i, s in enumerate(specs) if s["motions"] == [["random_static"]] * p.world_people
+    ]
     assert static == [2, 5]
     fovs = [s["rig"]["fov_deg"] for s in specs]
     assert all(40 <= f <= 75 for f in fovs) and len(set(fovs)) == 7
@@ -21,8 +23,17 @@ def _ctx(tmp_path, params):
     import logging
 
     from pipeline.stage import StageContext
-    return StageContext(stage="pretrain", scene_name="s", scene=None, config=None, workspace=tmp_path / "ws",
-                        staging=tmp_path / "staging", params=params, log=logging.getLogger("test"))
+
+    return StageContext(
+        stage="pretrain",
+        scene_name="s",
+        scene=None,
+        config=None,
+        workspace=tmp_path / "ws",
+        staging=tmp_path / "staging",
+        params=params,
+        log=logging.getLogger("test"),
+    )
 
 
 def test_reuse_copies_a_checked_checkpoint_and_fingerprints_it(tmp_path):
@@ -44,12 +55,15 @@ def test_reuse_copies_a_checked_checkpoint_and_fingerprints_it(tmp_path):
     ctx = _ctx(tmp_path, Params(body_model="random", reuse=ckpt))
     run(ctx)
     assert (ctx.staging / "models/pretrain.pt").read_bytes() == ckpt.read_bytes()
-    assert json.loads((ctx.staging / "reports/pretrain/summary.json").read_text()) == {"reused": str(ckpt)}
+    assert json.loads((ctx.staging / "reports/pretrain/summary.json").read_text()) == {
+        "reused": str(ckpt)
+    }
     assert STAGE.inputs(ctx) == [ckpt]
     with pytest.raises(ValueError, match="body model 'random'"):
         run(_ctx(tmp_path / "b", Params(body_model="anny", reuse=ckpt)))
     not_gst = tmp_path / "x.pt"
     import torch
+
     torch.save({"state_dict": {}}, not_gst)
     with pytest.raises(ValueError, match="not a GST checkpoint"):
         run(_ctx(tmp_path / "c", Params(reuse=not_gst)))

@@ -12,8 +12,18 @@ from synth.people import sample_people
 BODY = CapsuleBody()
 REST_V, REST_J = rest_pose(BODY, np.zeros(10, np.float32))
 # The stand-in's own part labels, in synth's region names (an independent segmentation).
-_TO_REGION = {"head": "head", "neck": "neck", "torso": "trunk", "hips": "trunk", "upperarm": "upperarm",
-              "forearm": "forearm", "hand": "hand", "upperleg": "upperleg", "lowerleg": "lowerleg", "foot": "foot"}
+_TO_REGION = {
+    "head": "head",
+    "neck": "neck",
+    "torso": "trunk",
+    "hips": "trunk",
+    "upperarm": "upperarm",
+    "forearm": "forearm",
+    "hand": "hand",
+    "upperleg": "upperleg",
+    "lowerleg": "lowerleg",
+    "foot": "foot",
+}
 TRUE_REGION = np.array([REGIONS.index(_TO_REGION[BODY.part_names[i]]) for i in BODY.part_labels])
 
 
@@ -49,11 +59,25 @@ def test_unusable_part_labels_fall_back_to_geometry():
 
 def test_kit_pieces_land_on_the_right_parts():
     atlas = BodyAtlas.build(REST_V, REST_J, BODY.part_labels, BODY.part_names)
-    kit = dict(jersey=(200, 20, 30), jersey_second=(20, 60, 170), pattern="solid", shorts=(15, 25, 60),
-               socks=(245, 200, 20), trim=(245, 245, 245), sleeve=0.5)
+    kit = dict(
+        jersey=(200, 20, 30),
+        jersey_second=(20, 60, 170),
+        pattern="solid",
+        shorts=(15, 25, 60),
+        socks=(245, 200, 20),
+        trim=(245, 245, 245),
+        sleeve=0.5,
+    )
     outfit = sample_outfit(np.random.default_rng(0), kit, 0)
-    outfit = type(outfit)(**{**outfit.__dict__, "number": 7, "hair_style": "short",
-                             "shoes": (30, 30, 30), "skin": (198, 134, 98)})
+    outfit = type(outfit)(
+        **{
+            **outfit.__dict__,
+            "number": 7,
+            "hair_style": "short",
+            "shoes": (30, 30, 30),
+            "skin": (198, 134, 98),
+        }
+    )
     idx = np.arange(len(REST_V))
     col = _vertex_albedo(outfit, atlas, idx)
 
@@ -67,18 +91,25 @@ def test_kit_pieces_land_on_the_right_parts():
     knee_y = REST_J[4, 1]
     ankle_y = REST_J[7, 1]
     assert share("upperleg", outfit.shorts, y > REST_J[1, 1] - 0.05) > 0.9  # top of the thighs
-    assert share("lowerleg", outfit.socks, (y > ankle_y + 0.02) & (y < ankle_y + 0.1)) > 0.9  # above the ankles
-    assert share("lowerleg", outfit.skin, (y > knee_y - 0.06) & (y < knee_y)) > 0.8  # just below the knee
+    assert (
+        share("lowerleg", outfit.socks, (y > ankle_y + 0.02) & (y < ankle_y + 0.1)) > 0.9
+    )  # above the ankles
+    assert (
+        share("lowerleg", outfit.skin, (y > knee_y - 0.06) & (y < knee_y)) > 0.8
+    )  # just below the knee
     assert share("foot", outfit.shoes) + share("foot", (235, 235, 235)) > 0.95  # shoe or sole
     assert share("forearm", outfit.skin) > 0.95  # short sleeves
     chest = (TRUE_REGION == REGIONS.index("trunk")) & (y > REST_J[3, 1] + 0.05) & (y < REST_J[9, 1])
-    jersey_or_number = np.isclose(col[chest], srgb_to_linear(outfit.jersey), atol=1e-6).all(1) | \
-        np.isclose(col[chest], srgb_to_linear(outfit.trim), atol=1e-6).all(1)
+    jersey_or_number = np.isclose(col[chest], srgb_to_linear(outfit.jersey), atol=1e-6).all(
+        1
+    ) | np.isclose(col[chest], srgb_to_linear(outfit.trim), atol=1e-6).all(1)
     assert jersey_or_number.mean() > 0.8
     # The number is printed on the back (trim colour), and there is hair on top of the head.
     back = chest & (REST_V[:, 2] < REST_J[9, 2])
     assert np.isclose(col[back], srgb_to_linear(outfit.trim), atol=0.05).all(1).mean() > 0.05
-    top = (TRUE_REGION == REGIONS.index("head")) & (y > np.percentile(y[TRUE_REGION == REGIONS.index("head")], 85))
+    top = (TRUE_REGION == REGIONS.index("head")) & (
+        y > np.percentile(y[TRUE_REGION == REGIONS.index("head")], 85)
+    )
     assert share("head", outfit.hair, top) > 0.9
 
 
@@ -96,11 +127,28 @@ def test_teams_share_kits_and_people_differ():
 
 
 def test_people_start_inside_the_volume():
-    people = sample_people(6, np.random.default_rng(1), 10, (0.5, -0.5, 0.9), 2.0, 90, 30.0,
-                           programmes=[["run"], ["walk", "run"], ["squat"], ["jump", "kick"], ["throw"], ["random_static"]])
+    people = sample_people(
+        6,
+        np.random.default_rng(1),
+        10,
+        (0.5, -0.5, 0.9),
+        2.0,
+        90,
+        30.0,
+        programmes=[
+            ["run"],
+            ["walk", "run"],
+            ["squat"],
+            ["jump", "kick"],
+            ["throw"],
+            ["random_static"],
+        ],
+    )
     for p in people:
         assert np.hypot(p.start[0] - 0.5, p.start[1] + 0.5) <= 2.0
         clip = p.motion_clip(90, 30.0, seed=0)
         assert np.all(np.hypot(clip.position[:, 0] - 0.5, clip.position[:, 1] + 0.5) < 2.5)
     with pytest.raises(ValueError, match="unknown motions"):
-        sample_people(1, np.random.default_rng(0), 10, (0, 0, 0), 1.0, 10, 30.0, programmes=[["moonwalk"]])
+        sample_people(
+            1, np.random.default_rng(0), 10, (0, 0, 0), 1.0, 10, 30.0, programmes=[["moonwalk"]]
+        )

@@ -42,7 +42,9 @@ def test_angles_stay_within_joint_limits(name, seed):
             u = tr.joints[:, J[f"{side}_{b}"]] - tr.joints[:, J[f"{side}_{a}"]]
             v = tr.joints[:, J[f"{side}_{c}"]] - tr.joints[:, J[f"{side}_{b}"]]
             cos = (u * v).sum(-1) / np.linalg.norm(u, axis=-1) / np.linalg.norm(v, axis=-1)
-            assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() <= 151, f"{side} {b} over-bent in {name}"
+            assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() <= 151, (
+                f"{side} {b} over-bent in {name}"
+            )
 
 
 @pytest.mark.parametrize("name", sorted(MOTIONS))
@@ -76,7 +78,9 @@ def test_motion_is_smooth_in_time(name):
         clip = generate_motion(name, int(3 * fps), fps, np.random.default_rng(11))
         tr = pose_person(BODY, np.zeros(10), clip, 1)
         acc.append(np.linalg.norm(np.diff(tr.joints, 2, axis=0), axis=-1).max() * fps**2)
-    assert acc[1] < 1.6 * acc[0], f"{name}: acceleration {acc[0]:.0f} -> {acc[1]:.0f} m/s^2 when sampled finer"
+    assert acc[1] < 1.6 * acc[0], (
+        f"{name}: acceleration {acc[0]:.0f} -> {acc[1]:.0f} m/s^2 when sampled finer"
+    )
     assert acc[0] < 700, f"{name}: implausible peak joint acceleration {acc[0]:.0f} m/s^2"
 
 
@@ -93,8 +97,15 @@ def test_programme_crossfades_smoothly_and_labels_frames():
 
 
 def test_locomotion_moves_and_curves():
-    clip = generate_motion("run", 90, 30.0, np.random.default_rng(1), start=(1.0, 0.0), heading=np.pi / 2,
-                           curvature=1.0)
+    clip = generate_motion(
+        "run",
+        90,
+        30.0,
+        np.random.default_rng(1),
+        start=(1.0, 0.0),
+        heading=np.pi / 2,
+        curvature=1.0,
+    )
     speed = np.linalg.norm(np.diff(clip.position, axis=0), axis=1).mean() * 30
     assert 2.0 < speed < 4.5
     # On a unit-curvature loop around the origin the runner stays ~1 m from it.
@@ -130,17 +141,25 @@ def test_a_pose_rest_gives_the_same_motion_as_t_pose():
     a_pose = pose_person(CapsuleBody("A"), np.zeros(10), clip, 1)
     assert np.abs(t_pose.joints - a_pose.joints).max() < 1e-4
     C = rest_corrections(a_pose.rest_joints)
-    assert np.degrees(Rotation.from_matrix(C[J["left_shoulder"]]).magnitude()) == pytest.approx(45, abs=0.5)
+    assert np.degrees(Rotation.from_matrix(C[J["left_shoulder"]]).magnitude()) == pytest.approx(
+        45, abs=0.5
+    )
     # The stand-in T-pose has slightly tilted shins (6 degrees) and arms (2): only that is corrected.
-    assert np.degrees(Rotation.from_matrix(rest_corrections(t_pose.rest_joints)).magnitude()).max() < 7
+    assert (
+        np.degrees(Rotation.from_matrix(rest_corrections(t_pose.rest_joints)).magnitude()).max() < 7
+    )
 
 
 def test_body_parameters_reproduce_the_world_joints():
     clip, tr = _posed("kick", seed=9, n=20)
     import torch
 
-    out = BODY(betas=torch.from_numpy(np.repeat(tr.betas[None], 20, 0)), body_pose=torch.from_numpy(tr.body_pose),
-               global_orient=torch.from_numpy(tr.global_orient), transl=torch.from_numpy(tr.transl))
+    out = BODY(
+        betas=torch.from_numpy(np.repeat(tr.betas[None], 20, 0)),
+        body_pose=torch.from_numpy(tr.body_pose),
+        global_orient=torch.from_numpy(tr.global_orient),
+        transl=torch.from_numpy(tr.transl),
+    )
     assert np.abs(out.joints.numpy() - tr.joints).max() < 1e-5
     # The pelvis follows the motion's path in the world.
     assert np.abs(tr.joints[:, 0, :2] - clip.position).max() < 1e-4
@@ -150,7 +169,9 @@ def test_mirroring_swaps_sides():
     a = np.zeros((1, 24, 3))
     a[0, J["left_hip"]] = [0.1, 0.2, 0.3]
     m = mirror_angles(a)
-    assert np.allclose(m[0, J["right_hip"]], [0.1, -0.2, -0.3]) and np.allclose(m[0, J["left_hip"]], 0)
+    assert np.allclose(m[0, J["right_hip"]], [0.1, -0.2, -0.3]) and np.allclose(
+        m[0, J["left_hip"]], 0
+    )
     assert np.allclose(mirror_angles(m), a)
     assert JOINT_NAMES[PARENTS[J["left_knee"]]] == "left_hip"
 

@@ -29,7 +29,9 @@ STAGE = stage_for_rig("dome", seed=0)
 
 
 def _person(frame=10, heading=0.3, motion="kick", body=BODY):
-    clip = generate_motion(motion, 20, 30.0, np.random.default_rng(1), start=(0.1, -0.2), heading=heading)
+    clip = generate_motion(
+        motion, 20, 30.0, np.random.default_rng(1), start=(0.1, -0.2), heading=heading
+    )
     tr = pose_person(body, np.zeros(10), clip, 1)
     faces = body.faces.astype(np.int32)
     atlas = BodyAtlas.build(tr.rest_vertices, tr.rest_joints, body.part_labels, body.part_names)
@@ -58,7 +60,9 @@ def test_pixel_rays_reproject_to_their_pixels_with_distortion():
     pts = r.origin + r.dirs_from_xy(sub).astype(np.float64) * 3.0
     off = (np.arange(3) + 0.5) / 3 - 0.5
     fx, fy = np.meshgrid(off, off)
-    expected = np.repeat(np.c_[cols, rows], 9, 0) + np.tile(np.c_[fx.ravel(), fy.ravel()], (len(pix), 1))
+    expected = np.repeat(np.c_[cols, rows], 9, 0) + np.tile(
+        np.c_[fx.ravel(), fy.ravel()], (len(pix), 1)
+    )
     assert np.abs(cam.project(pts) - expected).max() < 0.02
 
 
@@ -80,7 +84,9 @@ def _rasterise(cam, vertices, faces):
             continue
         gx, gy = np.meshgrid(np.arange(x0, x1 + 1), np.arange(y0, y1 + 1))
         q = np.stack([gx.ravel(), gy.ravel()], -1).astype(np.float64)
-        e = np.stack([_cross2(p[(i + 2) % 3] - p[(i + 1) % 3], q - p[(i + 1) % 3]) for i in range(3)], -1)
+        e = np.stack(
+            [_cross2(p[(i + 2) % 3] - p[(i + 1) % 3], q - p[(i + 1) % 3]) for i in range(3)], -1
+        )
         area = e.sum(1)
         inside = (np.all(e >= 0, 1) | np.all(e <= 0, 1)) & (np.abs(area) > 1e-12)
         if not inside.any():
@@ -96,8 +102,14 @@ def _rasterise(cam, vertices, faces):
 def test_mask_and_depth_match_an_independent_rasteriser(backend):
     person, _ = _person(body=COARSE_BODY)
     cam = _camera(160, 120, dist=())
-    r = ViewRenderer(cam, STAGE, RenderOptions(antialias=1, background_samples=1, shadow_samples=1, backend=backend))
-    layers = r.render_people([person], RayCaster([(person.vertices, person.faces)], backend), shadows=[])
+    r = ViewRenderer(
+        cam,
+        STAGE,
+        RenderOptions(antialias=1, background_samples=1, shadow_samples=1, backend=backend),
+    )
+    layers = r.render_people(
+        [person], RayCaster([(person.vertices, person.faces)], backend), shadows=[]
+    )
     ref_mask, ref_depth = _rasterise(cam, person.vertices, person.faces)
     mine = layers.mask > 0
     assert ref_mask.sum() > 300
@@ -114,7 +126,10 @@ def test_room_depth_is_exact_and_people_cast_shadows():
         r = ViewRenderer(cam, STAGE, RenderOptions(background_samples=1))
         floor = r.bg_floor.reshape(cam.height, cam.width)
         rows, cols = np.nonzero(floor)
-        pts = cam.unproject(np.c_[cols, rows].astype(np.float64), r.bg_depth.reshape(cam.height, cam.width)[rows, cols])
+        pts = cam.unproject(
+            np.c_[cols, rows].astype(np.float64),
+            r.bg_depth.reshape(cam.height, cam.width)[rows, cols],
+        )
         assert np.abs(pts[:, 2]).max() < 1e-3
     caster = RayCaster([(person.vertices, person.faces)])
     (sm,) = floor_shadow_maps([person], caster, STAGE, 4)
@@ -141,20 +156,37 @@ def test_board_is_detected_at_its_ground_truth_corners():
     pose = BoardPose(R=R, t=centre - R @ np.array([spec.size[0] / 2, spec.size[1] / 2, 0]))
     r = ViewRenderer(cam, STAGE, RenderOptions(antialias=3))
     layers = r.render_board(spec, pose, spec.texture())
-    image = develop(layers.radiance, CameraResponse(blur_sigma=0.4, noise_sigma=1.0), np.random.default_rng(0))
-    cc, ci, _, _ = cv2.aruco.CharucoDetector(spec.cv_board).detectBoard(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    image = develop(
+        layers.radiance, CameraResponse(blur_sigma=0.4, noise_sigma=1.0), np.random.default_rng(0)
+    )
+    cc, ci, _, _ = cv2.aruco.CharucoDetector(spec.cv_board).detectBoard(
+        cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    )
     ids, uv = visible_corners(spec, pose, cam)
     assert len(ids) == len(spec.corners)
     assert ci is not None and len(ci) >= 0.9 * len(ids)
     gt = dict(zip(ids.tolist(), uv, strict=True))
-    err = np.array([np.linalg.norm(c - gt[i]) for c, i in zip(cc.reshape(-1, 2), ci.ravel(), strict=True)])
+    err = np.array(
+        [np.linalg.norm(c - gt[i]) for c, i in zip(cc.reshape(-1, 2), ci.ravel(), strict=True)]
+    )
     assert np.median(err) < 0.15 and err.max() < 0.5, f"corner errors {err.round(3)}"
     assert layers.mask.sum() > 1000
     # Seen from behind, the board shows no pattern.
-    back = BoardPose(R=R @ np.diag([-1.0, 1.0, -1.0]), t=pose.t + R @ np.array([spec.size[0], 0, 0]))
+    back = BoardPose(
+        R=R @ np.diag([-1.0, 1.0, -1.0]), t=pose.t + R @ np.array([spec.size[0], 0, 0])
+    )
     assert len(visible_corners(spec, back, cam)[0]) == 0
-    behind = develop(r.render_board(spec, back, spec.texture()).radiance, CameraResponse(), np.random.default_rng(0))
-    assert cv2.aruco.CharucoDetector(spec.cv_board).detectBoard(cv2.cvtColor(behind, cv2.COLOR_BGR2GRAY))[1] is None
+    behind = develop(
+        r.render_board(spec, back, spec.texture()).radiance,
+        CameraResponse(),
+        np.random.default_rng(0),
+    )
+    assert (
+        cv2.aruco.CharucoDetector(spec.cv_board).detectBoard(
+            cv2.cvtColor(behind, cv2.COLOR_BGR2GRAY)
+        )[1]
+        is None
+    )
 
 
 def test_develop_noise_level_and_encoding():
@@ -177,5 +209,15 @@ def test_render_options_are_validated():
     with pytest.raises(ValueError, match="backend"):
         RenderOptions(backend="optix")
     with pytest.raises(ValueError, match="outside the stage"):
-        ViewRenderer(look_at("far", [50.0, 0, 1], [0, 0, 1], np.eye(3) * [100, 100, 1] + [[0, 0, 32], [0, 0, 24], [0, 0, 0]],
-                             np.zeros(5), 64, 48), STAGE)
+        ViewRenderer(
+            look_at(
+                "far",
+                [50.0, 0, 1],
+                [0, 0, 1],
+                np.eye(3) * [100, 100, 1] + [[0, 0, 32], [0, 0, 24], [0, 0, 0]],
+                np.zeros(5),
+                64,
+                48,
+            ),
+            STAGE,
+        )

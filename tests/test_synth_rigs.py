@@ -16,17 +16,27 @@ def _volume_points(rig, n_ring=16):
     c = np.asarray(rig.meta["volume_center"])
     r = 0.7 * rig.meta["volume_radius"]
     a = np.linspace(0, 2 * np.pi, n_ring, endpoint=False)
-    rim = [np.c_[c[0] + r * np.cos(a), c[1] + r * np.sin(a), np.full(n_ring, z)] for z in (0.1, 1.8)]
+    rim = [
+        np.c_[c[0] + r * np.cos(a), c[1] + r * np.sin(a), np.full(n_ring, z)] for z in (0.1, 1.8)
+    ]
     return np.concatenate([np.array([[c[0], c[1], z] for z in (0.1, 0.9, 1.8)])] + rim)
 
 
 @settings(max_examples=25, deadline=None)
-@given(kind=st.sampled_from(sorted(RIG_KINDS)), n=st.integers(1, 32), seed=st.integers(0, 10_000),
-       width=st.integers(64, 1920), aspect=st.sampled_from([0.5625, 0.75, 1.0]),
-       fov=st.floats(30, 80), distortion=st.sampled_from([None, "mild", "strong"]))
+@given(
+    kind=st.sampled_from(sorted(RIG_KINDS)),
+    n=st.integers(1, 32),
+    seed=st.integers(0, 10_000),
+    width=st.integers(64, 1920),
+    aspect=st.sampled_from([0.5625, 0.75, 1.0]),
+    fov=st.floats(30, 80),
+    distortion=st.sampled_from([None, "mild", "strong"]),
+)
 def test_every_camera_looks_at_the_volume(kind, n, seed, width, aspect, fov, distortion):
     height = max(16, int(width * aspect))
-    rig = make_rig(kind, n_cameras=n, width=width, height=height, fov_deg=fov, distortion=distortion, seed=seed)
+    rig = make_rig(
+        kind, n_cameras=n, width=width, height=height, fov_deg=fov, distortion=distortion, seed=seed
+    )
     assert len(rig) == n and len(set(rig.names)) == n
     c = np.asarray(rig.meta["volume_center"])
     stage = stage_for_rig(kind, seed)
@@ -71,7 +81,10 @@ def test_rig_is_deterministic_from_seed():
     a = make_rig("dome", n_cameras=6, distortion="mild", seed=7)
     b = make_rig("dome", n_cameras=6, distortion="mild", seed=7)
     c = make_rig("dome", n_cameras=6, distortion="mild", seed=8)
-    assert all(np.array_equal(x.R, y.R) and np.array_equal(x.dist, y.dist) for x, y in zip(a, b, strict=True))
+    assert all(
+        np.array_equal(x.R, y.R) and np.array_equal(x.dist, y.dist)
+        for x, y in zip(a, b, strict=True)
+    )
     assert not all(np.array_equal(x.dist, y.dist) for x, y in zip(a, c, strict=True))
 
 

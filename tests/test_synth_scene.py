@@ -21,10 +21,14 @@ WRITE_RIG, READ_RIG = rig_io()
 
 
 def _tiny(**overrides) -> SceneSpec:
-    base = dict(n_frames=6, n_people=2, motions=[["run"], ["squat"]],
-                rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="mild"),
-                board=dict(n_frames=3),
-                imaging=dict(antialias=2, background_samples=1, shadow_samples=2))
+    base = dict(
+        n_frames=6,
+        n_people=2,
+        motions=[["run"], ["squat"]],
+        rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="mild"),
+        board=dict(n_frames=3),
+        imaging=dict(antialias=2, background_samples=1, shadow_samples=2),
+    )
     return preset("demo", **{**base, **overrides})
 
 
@@ -36,8 +40,11 @@ def tiny_scene(tmp_path_factory):
 
 
 def _digest(folder):
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_scene_layout_and_tables(tiny_scene):
@@ -45,12 +52,27 @@ def test_scene_layout_and_tables(tiny_scene):
     scene = json.loads((out / "scene.json").read_text())
     cams = scene["cameras"]
     assert summary.cameras == tuple(cams) and len(cams) == 2
-    assert scene["n_frames"] == 6 and scene["fps"] == 30.0 and scene["world"]["up"] == [0.0, 0.0, 1.0]
+    assert (
+        scene["n_frames"] == 6 and scene["fps"] == 30.0 and scene["world"]["up"] == [0.0, 0.0, 1.0]
+    )
     assert set(json.loads((out / "board.json").read_text())) == {
-        "kind", "squares_x", "squares_y", "square_size", "marker_size", "dictionary"}
-    for rel in ("calibration/rig.json", "calibration/calibration_synth.json", "calibration/cameras.h5",
-                "preview/contact_sheet.png", "preview/truth_overlay.png", "preview/board_sheet.png",
-                "truth/board_poses.parquet", "truth/board_views.parquet"):
+        "kind",
+        "squares_x",
+        "squares_y",
+        "square_size",
+        "marker_size",
+        "dictionary",
+    }
+    for rel in (
+        "calibration/rig.json",
+        "calibration/calibration_synth.json",
+        "calibration/cameras.h5",
+        "preview/contact_sheet.png",
+        "preview/truth_overlay.png",
+        "preview/board_sheet.png",
+        "truth/board_poses.parquet",
+        "truth/board_views.parquet",
+    ):
         assert (out / rel).is_file(), rel
     for cam in cams:
         for clip, n in (("videos", 6), ("board", 3)):
@@ -93,11 +115,17 @@ def test_truth_parameters_reproduce_joints_through_the_body_model(tiny_scene):
     out, _ = tiny_scene
     t = pq.read_table(out / "truth" / "people.parquet").to_pydict()
     n = len(t["frame"])
-    col = {k: torch.tensor(np.asarray(t[k], np.float32)) for k in ("betas", "global_orient", "transl")}
+    col = {
+        k: torch.tensor(np.asarray(t[k], np.float32)) for k in ("betas", "global_orient", "transl")
+    }
     pose = torch.tensor(np.asarray(t["body_pose"], np.float32).reshape(n, 23, 3))
-    joints = BODY(betas=col["betas"], body_pose=pose, global_orient=col["global_orient"], transl=col["transl"]).joints
+    joints = BODY(
+        betas=col["betas"], body_pose=pose, global_orient=col["global_orient"], transl=col["transl"]
+    ).joints
     assert np.abs(joints.numpy().reshape(n, -1) - np.asarray(t["joints3d"])).max() < 1e-5
-    assert np.asarray(t["joints3d"]).reshape(n, 24, 3)[..., 2].min() > -0.01  # nobody under the floor
+    assert (
+        np.asarray(t["joints3d"]).reshape(n, 24, 3)[..., 2].min() > -0.01
+    )  # nobody under the floor
 
 
 def test_same_seed_gives_byte_identical_files(tiny_scene, tmp_path):
@@ -114,14 +142,22 @@ def test_same_seed_gives_byte_identical_files(tiny_scene, tmp_path):
 def test_ground_truth_projects_onto_the_rendered_people_through_written_calibration(tmp_path):
     """Acceptance: >= 95% of in-image GT joints, projected with the calibration read back from
     the written files, land inside the GT mask (strong lens distortion on purpose)."""
-    spec = _tiny(n_frames=8, rig=dict(kind="dome", n_cameras=3, width=200, height=150, distortion="strong"))
+    spec = _tiny(
+        n_frames=8, rig=dict(kind="dome", n_cameras=3, width=200, height=150, distortion="strong")
+    )
     out = tmp_path / "accept"
     render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
     rigs = {"panoptic": read_panoptic(out / "calibration" / "calibration_synth.json")}
     if READ_RIG is not None:
-        for fmt, rel in (("rig", "rig.json"), ("panoptic", "calibration_synth.json"), ("h36m", "cameras.h5")):
+        for fmt, rel in (
+            ("rig", "rig.json"),
+            ("panoptic", "calibration_synth.json"),
+            ("h36m", "cameras.h5"),
+        ):
             rigs[f"read_rig:{fmt}"] = list(READ_RIG(out / "calibration" / rel, fmt))
-    joints = np.asarray(pq.read_table(out / "truth" / "people.parquet").column("joints3d").to_pylist()).reshape(-1, 24, 3)
+    joints = np.asarray(
+        pq.read_table(out / "truth" / "people.parquet").column("joints3d").to_pylist()
+    ).reshape(-1, 24, 3)
     people = pq.read_table(out / "truth" / "people.parquet").to_pydict()
     for source, cameras in rigs.items():
         assert len(cameras) == 3, source
@@ -132,15 +168,25 @@ def test_ground_truth_projects_onto_the_rendered_people_through_written_calibrat
                 f, pid = people["frame"][row], people["person_id"][row]
                 uv = cam.project(joints[row])
                 z = cam.to_camera(joints[row])[:, 2]
-                inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height - 1)
+                inside = (
+                    (z > 0)
+                    & (uv[:, 0] >= 0)
+                    & (uv[:, 0] <= cam.width - 1)
+                    & (uv[:, 1] >= 0)
+                    & (uv[:, 1] <= cam.height - 1)
+                )
                 px = np.rint(uv[inside]).astype(int)
                 hit = masks[f][px[:, 1], px[:, 0]]
                 total += int(inside.sum())
                 on_person += int((hit > 0).sum())
                 on_own += int((hit == pid).sum())
         assert total > 200, source
-        assert on_person / total >= 0.95, f"{source}: only {on_person / total:.1%} of joints on a person"
-        assert on_own / total >= 0.9, f"{source}: only {on_own / total:.1%} of joints on their own person"
+        assert on_person / total >= 0.95, (
+            f"{source}: only {on_person / total:.1%} of joints on a person"
+        )
+        assert on_own / total >= 0.9, (
+            f"{source}: only {on_own / total:.1%} of joints on their own person"
+        )
 
 
 def test_failed_render_leaves_previous_scene_untouched(tiny_scene, tmp_path):
@@ -208,7 +254,9 @@ def test_board_clip_starts_flat_on_the_floor_at_the_world_origin():
     outline = np.array([[-m, -m, 0], [W + m, -m, 0], [-m, H + m, 0], [W + m, H + m, 0]])
     assert min(p.to_world(outline)[:, 2].min() for p in poses) > 0
     centres = np.array([p.to_world(np.array([W / 2, H / 2, 0])) for p in poses])
-    assert np.linalg.norm(np.diff(centres, axis=0), axis=1).max() < 0.25  # 200 frames: no teleporting
+    assert (
+        np.linalg.norm(np.diff(centres, axis=0), axis=1).max() < 0.25
+    )  # 200 frames: no teleporting
 
 
 @pytest.mark.slow
@@ -223,7 +271,9 @@ def test_board_calibration_recovers_the_synthetic_rig(tmp_path):
     out = tmp_path / "scene"
     render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
     board = board_mod.BoardSpec.from_dict(json.loads((out / "board.json").read_text()))
-    result = solve.calibrate_from_board({p.stem: p for p in sorted((out / "board").glob("*.mp4"))}, board)
+    result = solve.calibrate_from_board(
+        {p.stem: p for p in sorted((out / "board").glob("*.mp4"))}, board
+    )
     truth = READ_RIG(out / "calibration" / "rig.json", "rig")
     for cam in result.rig:
         true = truth[cam.name]
@@ -236,15 +286,26 @@ def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
     """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras exactly."""
     from synth.rigs import make_rig
 
-    spec = _tiny(n_frames=2, n_people=1, motions=[["idle"]], board={"n_frames": 1},
-                 rig=dict(kind=kind, n_cameras=2, width=64, height=48, distortion="strong"))
+    spec = _tiny(
+        n_frames=2,
+        n_people=1,
+        motions=[["idle"]],
+        board={"n_frames": 1},
+        rig=dict(kind=kind, n_cameras=2, width=64, height=48, distortion="strong"),
+    )
     out = tmp_path / kind
     render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
     truth = make_rig(kind, n_cameras=2, width=64, height=48, distortion="strong", seed=spec.seed)
     readers = {"panoptic": lambda: read_panoptic(out / "calibration" / "calibration_synth.json")}
     if READ_RIG is not None:
-        for fmt, rel in (("rig", "rig.json"), ("panoptic", "calibration_synth.json"), ("h36m", "cameras.h5")):
-            readers[f"read_rig:{fmt}"] = lambda fmt=fmt, rel=rel: list(READ_RIG(out / "calibration" / rel, fmt))
+        for fmt, rel in (
+            ("rig", "rig.json"),
+            ("panoptic", "calibration_synth.json"),
+            ("h36m", "cameras.h5"),
+        ):
+            readers[f"read_rig:{fmt}"] = lambda fmt=fmt, rel=rel: list(
+                READ_RIG(out / "calibration" / rel, fmt)
+            )
     pts = np.random.default_rng(0).uniform([-1.5, -1.5, 0], [1.5, 1.5, 2], (50, 3))
     for source, read in readers.items():
         cams = {c.name: c for c in read()}

@@ -28,13 +28,24 @@ def test_window_is_centred_square_of_1_2_times_long_side(x0, y0, w, h, size):
     assert win.x0 + win.side / 2 == pytest.approx(x0 + w / 2)
     assert win.y0 + win.side / 2 == pytest.approx(y0 + h / 2)
     # the window's corners (corner convention) land on the crop's outer pixel edges
-    corners = np.array([[win.x0, win.y0], [win.x0 + win.side, win.y0 + win.side]]) - 0.5  # as centre coords
-    np.testing.assert_allclose(win.to_crop(corners), [[-0.5, -0.5], [size - 0.5, size - 0.5]], atol=1e-6)
+    corners = (
+        np.array([[win.x0, win.y0], [win.x0 + win.side, win.y0 + win.side]]) - 0.5
+    )  # as centre coords
+    np.testing.assert_allclose(
+        win.to_crop(corners), [[-0.5, -0.5], [size - 0.5, size - 0.5]], atol=1e-6
+    )
     np.testing.assert_allclose(win.to_frame(win.to_crop(corners)), corners, atol=1e-6)
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.floats(300, 3000), st.floats(-0.01, 0.01), finite, finite, st.floats(10, 800), st.integers(0, 10_000))
+@given(
+    st.floats(300, 3000),
+    st.floats(-0.01, 0.01),
+    finite,
+    finite,
+    st.floats(10, 800),
+    st.integers(0, 10_000),
+)
 def test_crop_intrinsics_project_like_the_affine_map(f, skew, bx, by, side, seed):
     K = np.array([[f, skew * f, 960.0], [0, f * 1.05, 540.0], [0, 0, 1]])
     win = CropWindow(bx, by, side, 256)
@@ -55,12 +66,14 @@ def blob_image(h, w, centre, sigma):
 
 
 def centroid(img):
-    yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    yy, xx = np.mgrid[0 : img.shape[0], 0 : img.shape[1]]
     m = img.astype(np.float64)
     return np.array([(xx * m).sum() / m.sum(), (yy * m).sum() / m.sum()])
 
 
-@pytest.mark.parametrize("side", [40.0, 200.0, 900.0])  # up-scaling, mild and strong (pyramid) down-scaling
+@pytest.mark.parametrize(
+    "side", [40.0, 200.0, 900.0]
+)  # up-scaling, mild and strong (pyramid) down-scaling
 def test_crop_pixels_sit_where_the_map_says(side):
     h, w = 1080, 1920
     centre = np.array([811.3, 517.8])
@@ -79,8 +92,14 @@ def test_crop_matches_direct_resampling_and_zero_pads():
     # reference: invert the map for every crop pixel and sample with cv2.remap
     v, u = np.mgrid[0:256, 0:256].astype(np.float64)
     src = win.to_frame(np.stack([u.ravel(), v.ravel()], 1))
-    ref = cv2.remap(img, src[:, 0].reshape(256, 256).astype(np.float32), src[:, 1].reshape(256, 256).astype(np.float32),
-                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    ref = cv2.remap(
+        img,
+        src[:, 0].reshape(256, 256).astype(np.float32),
+        src[:, 1].reshape(256, 256).astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
     assert np.abs(crop.astype(int) - ref.astype(int)).max() <= 1
     left_of_frame = win.to_crop([[-1.0, 200.0]])[0, 0]
     assert crop[:, : int(left_of_frame) - 1].max() == 0
@@ -88,7 +107,9 @@ def test_crop_matches_direct_resampling_and_zero_pads():
 
 def distorted_camera():
     K = [[900.0, 0, 640.0], [0, 905.0, 360.0], [0, 0, 1]]
-    return Camera.create("c1", K, [-0.28, 0.09, 0.001, -0.0008, -0.01], np.eye(3), [0.1, 0.2, 3.0], 1280, 720)
+    return Camera.create(
+        "c1", K, [-0.28, 0.09, 0.001, -0.0008, -0.01], np.eye(3), [0.1, 0.2, 3.0], 1280, 720
+    )
 
 
 def test_undistorted_crop_equals_crop_of_undistorted_frame():
@@ -100,7 +121,10 @@ def test_undistorted_crop_equals_crop_of_undistorted_frame():
         ref = cut_crop(cam.undistort_image(img), win).astype(int)
         # compare away from the edge of the undistorted frame (cv2.undistort keeps only W x H;
         # the direct remap also sees raw pixels that undistort beyond it)
-        inside = cv2.erode(((ref > 0).all(-1) & (ours > 0).all(-1)).astype(np.uint8), np.ones((5, 5))) > 0
+        inside = (
+            cv2.erode(((ref > 0).all(-1) & (ours > 0).all(-1)).astype(np.uint8), np.ones((5, 5)))
+            > 0
+        )
         diff = np.abs(ours - ref)[inside]
         assert inside.mean() > 0.6
         assert np.median(diff) <= 2 and np.percentile(diff, 99) <= 12
@@ -108,9 +132,15 @@ def test_undistorted_crop_equals_crop_of_undistorted_frame():
 
 def test_interpolated_distortion_maps_match_opencv():
     cam = distorted_camera()
-    for win in (CropWindow(900.0, 60.0, 300.0, 256), CropWindow(-100.0, -50.0, 500.0, 192), CropWindow(600, 300, 50, 256)):
+    for win in (
+        CropWindow(900.0, 60.0, 300.0, 256),
+        CropWindow(-100.0, -50.0, 500.0, 192),
+        CropWindow(600, 300, 50, 256),
+    ):
         K_crop = crop_intrinsics(cam.K, win)
-        ref_x, ref_y = cv2.initUndistortRectifyMap(cam.K, cam.dist, None, K_crop, (win.size, win.size), cv2.CV_32FC1)
+        ref_x, ref_y = cv2.initUndistortRectifyMap(
+            cam.K, cam.dist, None, K_crop, (win.size, win.size), cv2.CV_32FC1
+        )
         mx, my = distortion_maps(cam, K_crop, win.size)
         err_raw_px = max(np.abs(mx - ref_x).max(), np.abs(my - ref_y).max())
         assert err_raw_px * win.scale < 0.03  # in crop pixels, what resampling accuracy is about
@@ -150,7 +180,9 @@ def test_tracking_window_and_extraction_box_are_one_crop():
     rng = np.random.default_rng(3)
     img = cv2.GaussianBlur(rng.integers(0, 255, (720, 1280, 3), dtype=np.uint8), (0, 0), 4)
     win = crop_window([700.0, 100.0, 900.0, 600.0], 128)
-    np.testing.assert_allclose(crop_intrinsics(cam.K, win), crop_intrinsics(cam.K, win.box, win.size), atol=1e-12)
+    np.testing.assert_allclose(
+        crop_intrinsics(cam.K, win), crop_intrinsics(cam.K, win.box, win.size), atol=1e-12
+    )
     fast = cut_undistorted_crop(img, cam, win).astype(int)
     exact = extract_crop(img, cam, win.box, win.size).astype(int)
     diff = np.abs(fast - exact)[8:-8, 8:-8]

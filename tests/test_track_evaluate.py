@@ -45,20 +45,42 @@ def truth_scene(tmp_path, frames=N_FRAMES):
             root = np.array([0.05 * f, 2.0 * pid, 0.9])
             rows.append((f, pid, rest + root))
             x0 = 20.0 + 200 * (pid - 1) + 3 * f
-            views.append((f, pid, (x0 - 0.5, 50 - 0.5, x0 + 40 - 0.5, 150 - 0.5)))  # pixel-centre edges
+            views.append(
+                (f, pid, (x0 - 0.5, 50 - 0.5, x0 + 40 - 0.5, 150 - 0.5))
+            )  # pixel-centre edges
     (tmp_path / "truth").mkdir(parents=True)
     n = len(rows)
-    pq.write_table(pa.table({
-        "frame": pa.array([r[0] for r in rows], pa.int32()), "person_id": pa.array([r[1] for r in rows], pa.int16()),
-        "motion": ["walk"] * n, "betas": _fixed(np.zeros((n, 10))), "global_orient": _fixed(np.zeros((n, 3))),
-        "body_pose": _fixed(np.zeros((n, 69))), "transl": _fixed(np.stack([r[2][0] for r in rows])),
-        "joints3d": _fixed(np.stack([r[2] for r in rows]))},
-    ).replace_schema_metadata({"joint_names": json.dumps(list(SMPL_JOINT_NAMES))}), tmp_path / "truth/people.parquet")
+    pq.write_table(
+        pa.table(
+            {
+                "frame": pa.array([r[0] for r in rows], pa.int32()),
+                "person_id": pa.array([r[1] for r in rows], pa.int16()),
+                "motion": ["walk"] * n,
+                "betas": _fixed(np.zeros((n, 10))),
+                "global_orient": _fixed(np.zeros((n, 3))),
+                "body_pose": _fixed(np.zeros((n, 69))),
+                "transl": _fixed(np.stack([r[2][0] for r in rows])),
+                "joints3d": _fixed(np.stack([r[2] for r in rows])),
+            },
+        ).replace_schema_metadata({"joint_names": json.dumps(list(SMPL_JOINT_NAMES))}),
+        tmp_path / "truth/people.parquet",
+    )
     b = np.array([v[2] for v in views], np.float32)
-    pq.write_table(pa.table({
-        "frame": pa.array([v[0] for v in views], pa.int32()), "person_id": pa.array([v[1] for v in views], pa.int16()),
-        "camera": [CAM] * n, "x0": b[:, 0], "y0": b[:, 1], "x1": b[:, 2], "y1": b[:, 3],
-        "mask_area": pa.array([4000] * n, pa.int32())}), tmp_path / "truth/views.parquet")
+    pq.write_table(
+        pa.table(
+            {
+                "frame": pa.array([v[0] for v in views], pa.int32()),
+                "person_id": pa.array([v[1] for v in views], pa.int16()),
+                "camera": [CAM] * n,
+                "x0": b[:, 0],
+                "y0": b[:, 1],
+                "x1": b[:, 2],
+                "y1": b[:, 3],
+                "mask_area": pa.array([4000] * n, pa.int32()),
+            }
+        ),
+        tmp_path / "truth/views.parquet",
+    )
     joints = {(r[0], r[1]): r[2] for r in rows}
     boxes = {(v[0], v[1]): np.array(v[2]) + 0.5 for v in views}  # corner convention
     return tmp_path, joints, boxes
@@ -68,18 +90,33 @@ def write_tracks(path, rows, world=True, stride=1, frames=N_FRAMES):
     """rows: (frame, person_id, bbox (4,), joints (24, 3)) -> a tracks file with real metadata."""
     rows = sorted(rows, key=lambda r: (r[0], r[1]))
     n = len(rows)
-    meta = file_metadata(fps=30.0, model={"name": "hand", "version": "0"}, calibration={"calibrated": world},
-                         axes={"joints3d": "world" if world else "camera"},
-                         video={"name": "cam0", "first_frame": 0, "end_frame": frames, "stride": stride},
-                         tracking={}, smoothing=None, stats={"rows": n}, settings_sha256="0")
+    meta = file_metadata(
+        fps=30.0,
+        model={"name": "hand", "version": "0"},
+        calibration={"calibrated": world},
+        axes={"joints3d": "world" if world else "camera"},
+        video={"name": "cam0", "first_frame": 0, "end_frame": frames, "stride": stride},
+        tracking={},
+        smoothing=None,
+        stats={"rows": n},
+        settings_sha256="0",
+    )
     z = np.zeros((n, 1))
-    cols = {"frame": pa.array([r[0] for r in rows], pa.int64()), "time_s": pa.array([r[0] / 30 for r in rows]),
-            "person_id": pa.array([r[1] for r in rows], pa.int64()), "bbox": _fixed(np.stack([r[2] for r in rows])),
-            "score": pa.array(np.ones(n, np.float32)), "global_orient": _fixed(z.repeat(3, 1)),
-            "global_orient_cam": _fixed(z.repeat(3, 1)), "body_pose": _fixed(z.repeat(69, 1)),
-            "betas": _fixed(z.repeat(10, 1)), "transl_cam": _fixed(z.repeat(3, 1)),
-            "transl_world": _fixed(z.repeat(3, 1)), "joints3d": _fixed(np.stack([r[3] for r in rows])),
-            "joints2d": _fixed(z.repeat(48, 1))}
+    cols = {
+        "frame": pa.array([r[0] for r in rows], pa.int64()),
+        "time_s": pa.array([r[0] / 30 for r in rows]),
+        "person_id": pa.array([r[1] for r in rows], pa.int64()),
+        "bbox": _fixed(np.stack([r[2] for r in rows])),
+        "score": pa.array(np.ones(n, np.float32)),
+        "global_orient": _fixed(z.repeat(3, 1)),
+        "global_orient_cam": _fixed(z.repeat(3, 1)),
+        "body_pose": _fixed(z.repeat(69, 1)),
+        "betas": _fixed(z.repeat(10, 1)),
+        "transl_cam": _fixed(z.repeat(3, 1)),
+        "transl_world": _fixed(z.repeat(3, 1)),
+        "joints3d": _fixed(np.stack([r[3] for r in rows])),
+        "joints2d": _fixed(z.repeat(48, 1)),
+    }
     table = pa.table(cols, schema=tracks_schema(10, meta))
     path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(table, path)
@@ -100,9 +137,13 @@ def hand(tmp_path):
 def test_perfect_tracks_score_zero_error_and_no_switches(hand):
     scene, joints, boxes, out = hand
     ev = evaluate_tracks(write_tracks(out, perfect_rows(joints, boxes)), scene, CAM)
-    assert ev.frames == N_FRAMES and ev.truth_instances == ev.track_rows == ev.matches == 2 * N_FRAMES
+    assert (
+        ev.frames == N_FRAMES and ev.truth_instances == ev.track_rows == ev.matches == 2 * N_FRAMES
+    )
     assert ev.recall == ev.precision == ev.mota == 1.0
-    assert ev.mpjpe_mm == pytest.approx(0, abs=1e-3) and ev.pa_mpjpe_mm == pytest.approx(0, abs=1e-2)
+    assert ev.mpjpe_mm == pytest.approx(0, abs=1e-3) and ev.pa_mpjpe_mm == pytest.approx(
+        0, abs=1e-2
+    )
     assert ev.root_error_mm == pytest.approx(0, abs=1e-3)
     assert ev.id_switches == ev.fragments == 0 and ev.ids_per_person == 1.0 and ev.track_ids == 2
     assert [p.track_ids for p in ev.persons] == [(0,), (1,)]
@@ -118,14 +159,16 @@ def test_known_offsets_give_their_errors(hand):
         j[wrist] += [0.0, 0.0, 0.24]  # one joint 0.24 m off: 240 / 24 = 10 mm pelvis-aligned MPJPE
         moved[k] = j
     ev = evaluate_tracks(write_tracks(out, perfect_rows(moved, boxes)), scene, CAM)
-    assert ev.root_error_mm == pytest.approx(500.0, abs=1e-2) and ev.root_error_median_mm == pytest.approx(500.0, abs=1e-2)
+    assert ev.root_error_mm == pytest.approx(
+        500.0, abs=1e-2
+    ) and ev.root_error_median_mm == pytest.approx(500.0, abs=1e-2)
     assert ev.mpjpe_mm == pytest.approx(10.0, abs=1e-3)
     # PA-MPJPE: independent reference, the optimal similarity by SVD in numpy for one pose
     p, g = moved[(0, 1)].astype(np.float64), joints[(0, 1)].astype(np.float64)
     pc, gc = p - p.mean(0), g - g.mean(0)
     u, s, vt = np.linalg.svd(gc.T @ pc)
     d = np.diag([1, 1, np.sign(np.linalg.det(u @ vt))])
-    R, scale = u @ d @ vt, (s * np.diag(d)).sum() / (pc ** 2).sum()
+    R, scale = u @ d @ vt, (s * np.diag(d)).sum() / (pc**2).sum()
     ref = np.linalg.norm(scale * pc @ R.T - gc, axis=1).mean() * 1000
     # (least squares spreads one joint's error over all joints, so PA can exceed the 10 mm here)
     assert ev.pa_mpjpe_mm > 0 and ev.pa_mpjpe_mm == pytest.approx(ref, rel=1e-3)
@@ -159,7 +202,11 @@ def test_a_box_below_min_iou_is_a_false_row_and_a_miss(hand):
     assert box_iou(shifted, box)[0, 0] < 0.3
     rows[0] = (f, pid, shifted, j)
     ev = evaluate_tracks(write_tracks(out, rows), scene, CAM)
-    assert ev.matches == 19 and ev.recall == pytest.approx(19 / 20) and ev.precision == pytest.approx(19 / 20)
+    assert (
+        ev.matches == 19
+        and ev.recall == pytest.approx(19 / 20)
+        and ev.precision == pytest.approx(19 / 20)
+    )
     assert ev.mota == pytest.approx(1 - 2 / 20)
     assert evaluate_tracks(out, scene, CAM, min_iou=0.1).matches == 20
 
@@ -178,7 +225,9 @@ def test_camera_frame_tracks_get_identity_but_no_pose_errors(hand, tmp_path):
     assert ev.recall == 1.0 and ev.id_switches == 0
     d = json.loads(write_evaluation_json(ev, tmp_path / "ev.json").read_text())
     assert d["mpjpe_mm"] is None and d["persons"][0]["track_ids"] == [0]
-    assert "| cam0 | 10 | 1.000 |" in evaluation_markdown([ev]) and "n/a" in evaluation_markdown([ev])
+    assert "| cam0 | 10 | 1.000 |" in evaluation_markdown([ev]) and "n/a" in evaluation_markdown(
+        [ev]
+    )
 
 
 def test_bad_inputs_name_the_culprit(hand, tmp_path):
@@ -223,9 +272,16 @@ def test_identity_counts_match_a_run_length_reference(ids):
 @pytest.fixture(scope="module")
 def walkers(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "two"
-    spec = preset("demo", n_frames=20, n_people=2, motions=[["walk"], ["walk"]], seed=0,
-                  rig=dict(kind="dome", n_cameras=3, width=160, height=120, distortion="none"),
-                  board=dict(n_frames=1), imaging=dict(antialias=1, background_samples=1, shadow_samples=1))
+    spec = preset(
+        "demo",
+        n_frames=20,
+        n_people=2,
+        motions=[["walk"], ["walk"]],
+        seed=0,
+        rig=dict(kind="dome", n_cameras=3, width=160, height=120, distortion="none"),
+        board=dict(n_frames=1),
+        imaging=dict(antialias=1, background_samples=1, shadow_samples=1),
+    )
     render_scene(spec, out, body_model=CapsuleBody(), rig_writer=rig_io()[0])
     return out
 
@@ -235,8 +291,13 @@ def _apart_cameras(scene):
     v = pq.read_table(scene / "truth" / "views.parquet").to_pandas()
     out = []
     for cam, d in v.groupby("camera"):
-        boxes = [g.sort_values("person_id")[["x0", "y0", "x1", "y1"]].to_numpy() for _, g in d.groupby("frame")]
-        if all(len(b) == 2 and np.isfinite(b).all() and box_iou(b[:1], b[1:])[0, 0] == 0 for b in boxes):
+        boxes = [
+            g.sort_values("person_id")[["x0", "y0", "x1", "y1"]].to_numpy()
+            for _, g in d.groupby("frame")
+        ]
+        if all(
+            len(b) == 2 and np.isfinite(b).all() and box_iou(b[:1], b[1:])[0, 0] == 0 for b in boxes
+        ):
             out.append(cam)
     return out
 
@@ -247,13 +308,22 @@ def test_two_people_apart_keep_their_ids(walkers, tmp_path):
     assert len(cams) >= 2, "the scene must have cameras seeing the two people without occlusion"
     for cam in cams:
         video = walkers / "videos" / f"{cam}.mp4"
-        res = track_video(video, tmp_path, StaticCameraDetector(video, camera=rig[cam], up=tuple(rig.up)),
-                          BoxDepthPredictor(), model={"name": "box-depth", "version": "0"}, camera=rig[cam],
-                          world_up=rig.up)
+        res = track_video(
+            video,
+            tmp_path,
+            StaticCameraDetector(video, camera=rig[cam], up=tuple(rig.up)),
+            BoxDepthPredictor(),
+            model={"name": "box-depth", "version": "0"},
+            camera=rig[cam],
+            world_up=rig.up,
+        )
         ev = evaluate_tracks(res.path, walkers, cam)
         assert ev.frames == 20 and ev.truth_instances == 40
         assert ev.recall >= 0.9 and ev.precision >= 0.9, (cam, ev.recall, ev.precision)
-        assert ev.id_switches == 0 and ev.ids_per_person == 1.0 and ev.track_ids == 2, (cam, ev.persons)
+        assert ev.id_switches == 0 and ev.ids_per_person == 1.0 and ev.track_ids == 2, (
+            cam,
+            ev.persons,
+        )
         # a standing T-pose against walking people: a finite, person-sized error, placed in the world
         assert ev.joints_frame == "world" and 50 < ev.mpjpe_mm < 600 and ev.root_error_mm < 1000
         # the metric is not blind on this file: swapping the two ids half-way is one switch each
@@ -261,6 +331,15 @@ def test_two_people_apart_keep_their_ids(walkers, tmp_path):
         pid, frame = t.column("person_id").to_numpy(), t.column("frame").to_numpy()
         ids = sorted(set(pid))
         swapped = np.where(frame >= 10, np.where(pid == ids[0], ids[1], ids[0]), pid)
-        pq.write_table(t.set_column(t.schema.get_field_index("person_id"), t.schema.field("person_id"),
-                                    pa.array(swapped, pa.int64())), tmp_path / f"{cam}_swapped.parquet")
-        assert [p.id_switches for p in evaluate_tracks(tmp_path / f"{cam}_swapped.parquet", walkers, cam).persons] == [1, 1]
+        pq.write_table(
+            t.set_column(
+                t.schema.get_field_index("person_id"),
+                t.schema.field("person_id"),
+                pa.array(swapped, pa.int64()),
+            ),
+            tmp_path / f"{cam}_swapped.parquet",
+        )
+        assert [
+            p.id_switches
+            for p in evaluate_tracks(tmp_path / f"{cam}_swapped.parquet", walkers, cam).persons
+        ] == [1, 1]

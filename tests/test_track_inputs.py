@@ -14,11 +14,13 @@ from gst.track.view import default_camera
 
 def test_csv_with_two_videos(tmp_path):
     p = tmp_path / "boxes.csv"
-    p.write_text("video,frame,x0,y0,x1,y1,score,id\n"
-                 "a,0,10,20,50,120,0.9,3\n"
-                 "a,0,60,20,90,110,,\n"
-                 "b,0,1,1,5,5,1,\n"
-                 "a,2,12,20,52,121,0.8,3\n")
+    p.write_text(
+        "video,frame,x0,y0,x1,y1,score,id\n"
+        "a,0,10,20,50,120,0.9,3\n"
+        "a,0,60,20,90,110,,\n"
+        "b,0,1,1,5,5,1,\n"
+        "a,2,12,20,52,121,0.8,3\n"
+    )
     boxes = SuppliedBoxes.from_file(p, "a")
     assert isinstance(boxes, Detector)
     d0 = boxes.detect(np.zeros((4, 4, 3), np.uint8), 0)
@@ -33,18 +35,31 @@ def test_csv_with_two_videos(tmp_path):
 
 def test_parquet_boxes(tmp_path):
     p = tmp_path / "boxes.parquet"
-    pq.write_table(pa.table({"frame": [0, 0, 5], "x0": [1.0, 2, 3], "y0": [1.0, 2, 3], "x1": [9.0, 9, 9],
-                             "y1": [9.0, 9, 9]}), p)
+    pq.write_table(
+        pa.table(
+            {
+                "frame": [0, 0, 5],
+                "x0": [1.0, 2, 3],
+                "y0": [1.0, 2, 3],
+                "x1": [9.0, 9, 9],
+                "y1": [9.0, 9, 9],
+            }
+        ),
+        p,
+    )
     boxes = SuppliedBoxes.from_file(p)
     assert len(boxes.detect(None, 0)) == 2 and boxes.detect(None, 5)[0].score == 1.0
 
 
-@pytest.mark.parametrize("content, message", [
-    ("frame,x0,y0,x1\n0,1,2,3\n", r"missing column\(s\) \['y1'\]"),
-    ("frame,x0,y0,x1,y1\n0,1,2,zz,4\n", "row 2: non-numeric"),
-    ("frame,x0,y0,x1,y1\n0,1,2,3,4\n0,5,5,4,9\n", "row 3: detection box must be"),
-    ("frame,x0,y0,x1,y1\n-1,1,2,3,4\n", "row 2: frame must be >= 0"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("frame,x0,y0,x1\n0,1,2,3\n", r"missing column\(s\) \['y1'\]"),
+        ("frame,x0,y0,x1,y1\n0,1,2,zz,4\n", "row 2: non-numeric"),
+        ("frame,x0,y0,x1,y1\n0,1,2,3,4\n0,5,5,4,9\n", "row 3: detection box must be"),
+        ("frame,x0,y0,x1,y1\n-1,1,2,3,4\n", "row 2: frame must be >= 0"),
+    ],
+)
 def test_bad_box_files_name_file_and_row(tmp_path, content, message):
     p = tmp_path / "bad.csv"
     p.write_text(content)
@@ -72,7 +87,9 @@ def test_prediction_contract_errors_name_the_key():
     with pytest.raises(PredictorOutputError, match="lacks 'joints_cam'"):
         validate_prediction({k: v for k, v in good.items() if k != "joints_cam"}, 2)
     bad = dict(good, rotmats=good["rotmats"][:, :23])
-    with pytest.raises(PredictorOutputError, match=r"'rotmats' has shape \(2, 23, 3, 3\), expected \(2, 24, 3, 3\)"):
+    with pytest.raises(
+        PredictorOutputError, match=r"'rotmats' has shape \(2, 23, 3, 3\), expected \(2, 24, 3, 3\)"
+    ):
         validate_prediction(bad, 2)
     with pytest.raises(PredictorOutputError, match="must return a dict"):
         validate_prediction([1, 2], 2)
@@ -84,7 +101,11 @@ def test_batched_prediction_equals_one_call():
     Ks = []
     for _ in range(11):
         x, y = rng.uniform(0, 1700), rng.uniform(0, 800)
-        Ks.append(crop_intrinsics(cam.K, crop_window([x, y, x + rng.uniform(30, 200), y + rng.uniform(80, 300)])))
+        Ks.append(
+            crop_intrinsics(
+                cam.K, crop_window([x, y, x + rng.uniform(30, 200), y + rng.uniform(80, 300)])
+            )
+        )
     crops = np.zeros((11, 256, 256, 3), np.uint8)
     pred = BoxDepthPredictor()
     one = validate_prediction(pred(crops, np.stack(Ks)), 11)

@@ -37,7 +37,10 @@ def occlusion_visibility(boxes, walkers, min_visible=0.6):
             area = np.prod(boxes[i, k, 2:] - boxes[i, k, :2])
             for m, wm in enumerate(walkers):
                 if wm.depth_order > wk.depth_order:
-                    lo, hi = np.maximum(boxes[i, k, :2], boxes[i, m, :2]), np.minimum(boxes[i, k, 2:], boxes[i, m, 2:])
+                    lo, hi = (
+                        np.maximum(boxes[i, k, :2], boxes[i, m, :2]),
+                        np.minimum(boxes[i, k, 2:], boxes[i, m, 2:]),
+                    )
                     if np.prod(np.clip(hi - lo, 0, None)) > (1 - min_visible) * area:
                         vis[i, k] = False
     return vis
@@ -58,13 +61,21 @@ def truth_identity(table, boxes):
     """The walker each row's box belongs to (boxes come straight from the truth file)."""
     frames = table.column("frame").to_numpy()
     bb = column_array(table, "bbox")
-    return np.array([int(np.argmax(box_iou(b, boxes[f])[0])) for f, b in zip(frames, bb, strict=True)])
+    return np.array(
+        [int(np.argmax(box_iou(b, boxes[f])[0])) for f, b in zip(frames, bb, strict=True)]
+    )
 
 
 def test_crossing_people_keep_their_ids(scene, tmp_path):
     assert (~scene["visible"]).sum() >= 3, "the scene must contain occluded frames"
-    res = track_video(scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"], "clip"), BoxDepthPredictor(),
-                      model=MODEL, options=TrackOptions(frames_per_group=9, batch_size=4))
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        SuppliedBoxes.from_file(scene["csv"], "clip"),
+        BoxDepthPredictor(),
+        model=MODEL,
+        options=TrackOptions(frames_per_group=9, batch_size=4),
+    )
     t = read_tracks(res.path)
     assert t.num_rows == res.rows == scene["visible"].sum()
     who = truth_identity(t, scene["boxes"])
@@ -72,7 +83,9 @@ def test_crossing_people_keep_their_ids(scene, tmp_path):
     mapping = {w: set(pid[who == w]) for w in range(3)}
     assert all(len(v) == 1 for v in mapping.values()), f"id switches: {mapping}"
     assert len({next(iter(v)) for v in mapping.values()}) == 3 and res.persons == 3
-    assert naive_iou_switches(t, who) > 0, "the scene is too easy: frame-to-frame box overlap alone solves it"
+    assert naive_iou_switches(t, who) > 0, (
+        "the scene is too easy: frame-to-frame box overlap alone solves it"
+    )
 
 
 def naive_iou_switches(table, who):
@@ -98,8 +111,14 @@ def naive_iou_switches(table, who):
 
 
 def test_metadata_is_complete_and_self_describing(scene, tmp_path):
-    res = track_video(scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), BoxDepthPredictor(),
-                      model={**MODEL, "preset": "tiny"}, options=TrackOptions(stride=2))
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        SuppliedBoxes.from_file(scene["csv"]),
+        BoxDepthPredictor(),
+        model={**MODEL, "preset": "tiny"},
+        options=TrackOptions(stride=2),
+    )
     schema = pq.read_schema(res.path)
     assert {k.decode() for k in schema.metadata} >= set(METADATA_KEYS)
     meta = read_metadata(res.path)
@@ -110,7 +129,10 @@ def test_metadata_is_complete_and_self_describing(scene, tmp_path):
     cal = meta["calibration"]
     assert cal["calibrated"] is False and cal["K"][0][0] == pytest.approx(np.hypot(W, H))
     assert meta["video"]["stride"] == 2 and meta["video"]["frame_count"] == N
-    assert meta["stats"]["rows"] == pq.read_metadata(res.path).num_rows and meta["stats"]["frames"] == N // 2
+    assert (
+        meta["stats"]["rows"] == pq.read_metadata(res.path).num_rows
+        and meta["stats"]["frames"] == N // 2
+    )
     assert meta["columns"]["joints3d"]["shape"] == [24, 3] and meta["smoothing"] is None
     for name in ("bbox", "joints3d", "joints2d", "body_pose", "betas"):
         field = schema.field(name)
@@ -132,26 +154,42 @@ class RigidBodyPredictor:
 
     def __call__(self, crops, K_crop):
         base = BoxDepthPredictor()(crops, K_crop)
-        R = Rotation.from_rotvec(np.stack([[0.3, 2.5 + k[0, 2] * 1e-3, 0.2] for k in K_crop])).as_matrix()
+        R = Rotation.from_rotvec(
+            np.stack([[0.3, 2.5 + k[0, 2] * 1e-3, 0.2] for k in K_crop])
+        ).as_matrix()
         J0 = self.J[0]
         T = base["transl_cam"] - J0  # pelvis lands where the baseline puts it
         joints = np.einsum("bij,nj->bni", R, self.J - J0) + J0 + T[:, None]
         rot = base["rotmats"].copy()
         rot[:, 0] = R
         rot[:, 1:] = Rotation.from_rotvec(self.BODY_POSE).as_matrix()
-        return {"rotmats": rot, "betas": np.zeros((len(crops), 10)), "transl_cam": T, "joints_cam": joints}
+        return {
+            "rotmats": rot,
+            "betas": np.zeros((len(crops), 10)),
+            "transl_cam": T,
+            "joints_cam": joints,
+        }
 
 
 def tilted_camera():
     R = Rotation.from_euler("xyz", [-100, 5, 20], degrees=True).as_matrix()
     K = [[380.0, 0, 161.0], [0, 385.0, 118.0], [0, 0, 1]]
-    return Camera.create("cam01", K, [-0.2, 0.05, 0.001, 0.0, 0.0], R, -R @ np.array([1.0, -6.0, 1.5]), W, H)
+    return Camera.create(
+        "cam01", K, [-0.2, 0.05, 0.001, 0.0, 0.0], R, -R @ np.array([1.0, -6.0, 1.5]), W, H
+    )
 
 
 def test_calibrated_camera_gives_consistent_world_values(scene, tmp_path):
     cam = tilted_camera()
-    res = track_video(scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), RigidBodyPredictor(),
-                      model=MODEL, camera=cam, world_up=[0, 0, 1])
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        SuppliedBoxes.from_file(scene["csv"]),
+        RigidBodyPredictor(),
+        model=MODEL,
+        camera=cam,
+        world_up=[0, 0, 1],
+    )
     t = read_tracks(res.path)
     meta = read_metadata(res.path)
     assert meta["calibration"]["calibrated"] and meta["axes"]["joints3d"] == "world"
@@ -165,14 +203,25 @@ def test_calibrated_camera_gives_consistent_world_values(scene, tmp_path):
     R_c = Rotation.from_rotvec(column_array(t, "global_orient_cam")).as_matrix()
     np.testing.assert_allclose(R_w, cam.R.T @ R_c, atol=1e-5)
     body_pose = column_array(t, "body_pose")
-    np.testing.assert_allclose(body_pose, np.broadcast_to(RigidBodyPredictor.BODY_POSE, body_pose.shape), atol=1e-6)
+    np.testing.assert_allclose(
+        body_pose, np.broadcast_to(RigidBodyPredictor.BODY_POSE, body_pose.shape), atol=1e-6
+    )
     J0 = RigidBodyPredictor.J[0]
-    posed = np.einsum("bij,nj->bni", R_w, RigidBodyPredictor.J - J0) + J0 + column_array(t, "transl_world")[:, None]
+    posed = (
+        np.einsum("bij,nj->bni", R_w, RigidBodyPredictor.J - J0)
+        + J0
+        + column_array(t, "transl_world")[:, None]
+    )
     np.testing.assert_allclose(posed, j3, atol=1e-4)
     # and the pelvis sits in front of the camera, projected into its box
     box = column_array(t, "bbox")
     pel = column_array(t, "joints2d")[:, 0]
-    assert ((pel[:, 0] > box[:, 0]) & (pel[:, 0] < box[:, 2]) & (pel[:, 1] > box[:, 1]) & (pel[:, 1] < box[:, 3])).all()
+    assert (
+        (pel[:, 0] > box[:, 0])
+        & (pel[:, 0] < box[:, 2])
+        & (pel[:, 1] > box[:, 1])
+        & (pel[:, 1] < box[:, 3])
+    ).all()
 
 
 class JitteryPredictor:
@@ -188,12 +237,20 @@ class JitteryPredictor:
 
 def test_smoothing_reduces_jitter(scene, tmp_path):
     def run(smoothing, sub):
-        res = track_video(scene["video"], tmp_path / sub, SuppliedBoxes.from_file(scene["csv"]), JitteryPredictor(),
-                          model=MODEL, options=TrackOptions(smoothing=smoothing))
+        res = track_video(
+            scene["video"],
+            tmp_path / sub,
+            SuppliedBoxes.from_file(scene["csv"]),
+            JitteryPredictor(),
+            model=MODEL,
+            options=TrackOptions(smoothing=smoothing),
+        )
         t = read_tracks(res.path)
         j = column_array(t, "joints3d")
         pid = t.column("person_id").to_numpy()
-        return np.mean([np.abs(np.diff(j[pid == p], 2, axis=0)).mean() for p in np.unique(pid)]), res.path
+        return np.mean(
+            [np.abs(np.diff(j[pid == p], 2, axis=0)).mean() for p in np.unique(pid)]
+        ), res.path
 
     raw, _ = run(None, "raw")
     smooth, path = run(OneEuroConfig(min_cutoff=0.5, beta=0.0, d_cutoff=1.0), "smooth")
@@ -204,8 +261,15 @@ def test_smoothing_reduces_jitter(scene, tmp_path):
 def test_many_videos_form_a_hive_dataset(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     for name in ("cam 1", "cam2"):  # a space must survive the partition path
-        track_video(scene["video"], tmp_path, det, BoxDepthPredictor(), model=MODEL, video_name=name,
-                    options=TrackOptions(end_s=0.5))
+        track_video(
+            scene["video"],
+            tmp_path,
+            det,
+            BoxDepthPredictor(),
+            model=MODEL,
+            video_name=name,
+            options=TrackOptions(end_s=0.5),
+        )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["video=cam%201", "video=cam2"]
     dataset = ds.dataset(tmp_path, format="parquet", partitioning="hive")
     t = dataset.to_table()
@@ -251,8 +315,14 @@ class EveryThirdFrame:
 
 
 def test_frames_without_detections(scene, tmp_path):
-    res = track_video(scene["video"], tmp_path, EveryThirdFrame(SuppliedBoxes.from_file(scene["csv"])),
-                      BoxDepthPredictor(), model=MODEL, options=TrackOptions(frames_per_group=4))
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        EveryThirdFrame(SuppliedBoxes.from_file(scene["csv"])),
+        BoxDepthPredictor(),
+        model=MODEL,
+        options=TrackOptions(frames_per_group=4),
+    )
     t = read_tracks(res.path)
     assert set(t.column("frame").to_pylist()) == set(range(0, N, 3)) and res.frames == N
     who = truth_identity(t, scene["boxes"])
@@ -271,11 +341,19 @@ def test_non_finite_predictions_are_dropped_and_counted(scene, tmp_path):
                 out["joints_cam"][0, 5, 1] = np.nan
             return out
 
-    res = track_video(scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), SometimesNaN(), model=MODEL,
-                      options=TrackOptions(batch_size=4))
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        SuppliedBoxes.from_file(scene["csv"]),
+        SometimesNaN(),
+        model=MODEL,
+        options=TrackOptions(batch_size=4),
+    )
     stats = read_metadata(res.path)["stats"]
     assert stats["dropped_nonfinite"] > 0
-    assert stats["rows"] + stats["dropped_nonfinite"] == stats["detections"] == scene["visible"].sum()
+    assert (
+        stats["rows"] + stats["dropped_nonfinite"] == stats["detections"] == scene["visible"].sum()
+    )
     assert np.isfinite(column_array(read_tracks(res.path), "joints3d")).all()
 
 
@@ -283,7 +361,9 @@ def test_extra_outputs_reach_the_callback_per_row(scene, tmp_path):
     class WithGaussians(BoxDepthPredictor):
         def __call__(self, crops, K_crop):
             out = super().__call__(crops, K_crop)
-            out["gaussian_means"] = out["joints_cam"][:, :1] + np.zeros((len(crops), 5, 3))  # stand-in payload
+            out["gaussian_means"] = out["joints_cam"][:, :1] + np.zeros(
+                (len(crops), 5, 3)
+            )  # stand-in payload
             return out
 
     class Shuffled:  # detection order differs from id order from frame 10 on
@@ -294,12 +374,19 @@ def test_extra_outputs_reach_the_callback_per_row(scene, tmp_path):
             return d[::-1] if frame_index >= 10 else d
 
     got = []
-    res = track_video(scene["video"], tmp_path, Shuffled(), WithGaussians(), model=MODEL,
-                      options=TrackOptions(batch_size=4, frames_per_group=6),
-                      on_extra=lambda f, p, extra: got.append((f, p, extra["gaussian_means"])))
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        Shuffled(),
+        WithGaussians(),
+        model=MODEL,
+        options=TrackOptions(batch_size=4, frames_per_group=6),
+        on_extra=lambda f, p, extra: got.append((f, p, extra["gaussian_means"])),
+    )
     t = read_tracks(res.path)
-    assert [(f, p) for f, p, _ in got] == list(zip(t.column("frame").to_pylist(), t.column("person_id").to_pylist(),
-                                                   strict=True))
+    assert [(f, p) for f, p, _ in got] == list(
+        zip(t.column("frame").to_pylist(), t.column("person_id").to_pylist(), strict=True)
+    )
     pelvis = column_array(t, "joints3d")[:, 0]
     np.testing.assert_allclose(np.stack([g[0] for _, _, g in got]), pelvis, atol=1e-5)
 
@@ -309,8 +396,14 @@ def test_video_with_nobody_gives_an_empty_valid_file(scene, tmp_path):
         def detect(self, frame_bgr, frame_index):
             return []
 
-    res = track_video(scene["video"], tmp_path, Nobody(), BoxDepthPredictor(), model=MODEL,
-                      options=TrackOptions(frames_per_group=16))
+    res = track_video(
+        scene["video"],
+        tmp_path,
+        Nobody(),
+        BoxDepthPredictor(),
+        model=MODEL,
+        options=TrackOptions(frames_per_group=16),
+    )
     t = read_tracks(res.path)
     assert t.num_rows == 0 and res.frames == N and read_metadata(res.path)["stats"]["frames"] == N
     assert column_array(t, "joints3d").shape == (0, 24, 3)
@@ -322,4 +415,6 @@ def test_predictor_with_wrong_betas_count_is_named(scene, tmp_path):
             super().__init__(num_betas=11)
 
     with pytest.raises(ValueError, match="returned 11 betas per person, expected num_betas = 10"):
-        track_video(scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), Eleven(), model=MODEL)
+        track_video(
+            scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), Eleven(), model=MODEL
+        )

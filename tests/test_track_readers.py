@@ -33,8 +33,15 @@ def dataset(tmp_path_factory):
     video = write_video(d / "clip.avi", render(walkers, boxes, 320, 240), 320, 240)
     det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
     for name in ("match_cam1", "match cam2"):
-        track_video(video, d / "tracks", det, BoxDepthPredictor(), model={"name": "t", "version": "0"},
-                    video_name=name, options=TrackOptions(prefetch=0))
+        track_video(
+            video,
+            d / "tracks",
+            det,
+            BoxDepthPredictor(),
+            model={"name": "t", "version": "0"},
+            video_name=name,
+            options=TrackOptions(prefetch=0),
+        )
     return d
 
 
@@ -65,7 +72,10 @@ def test_polars_snippet(dataset, monkeypatch):
     code = next(v for k, v in blocks("python").items() if k.startswith("polars"))
     s = run_python(code, dataset, monkeypatch)
     long = s["long"]
-    assert long.height == 2 * 24 * 3 * N and set(long["video"].unique()) == {"match_cam1", "match cam2"}
+    assert long.height == 2 * 24 * 3 * N and set(long["video"].unique()) == {
+        "match_cam1",
+        "match cam2",
+    }
     assert long.filter(long["joint_index"] == 4)["joint"].unique().to_list() == ["left_knee"]
 
 

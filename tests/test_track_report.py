@@ -34,16 +34,28 @@ def tracked(tmp_path_factory):
     boxes = walker_boxes(walkers, N)
     video = write_video(d / "clip.avi", render(walkers, boxes, 320, 240), 320, 240)
     det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
-    res = track_video(video, d / "tracks", det, BoxDepthPredictor(), model={"name": "t", "version": "0"},
-                      options=TrackOptions(stride=2))
+    res = track_video(
+        video,
+        d / "tracks",
+        det,
+        BoxDepthPredictor(),
+        model={"name": "t", "version": "0"},
+        options=TrackOptions(stride=2),
+    )
     return d, video, res.path
 
 
 def test_joint_angles_of_known_geometry():
     j = np.tile(REST_JOINTS, (2, 1, 1)).astype(np.float64)
     a = joint_angles(j)
-    hip, knee, ankle = (REST_JOINTS[SMPL_JOINT_NAMES.index(n)] for n in ("left_hip", "left_knee", "left_ankle"))
-    a_, b_, c_ = np.linalg.norm(hip - knee), np.linalg.norm(ankle - knee), np.linalg.norm(hip - ankle)
+    hip, knee, ankle = (
+        REST_JOINTS[SMPL_JOINT_NAMES.index(n)] for n in ("left_hip", "left_knee", "left_ankle")
+    )
+    a_, b_, c_ = (
+        np.linalg.norm(hip - knee),
+        np.linalg.norm(ankle - knee),
+        np.linalg.norm(hip - ankle),
+    )
     law_of_cosines = np.degrees(np.arccos((a_**2 + b_**2 - c_**2) / (2 * a_ * b_)))
     assert a["left_knee"][0] == pytest.approx(law_of_cosines, abs=1e-6)
     # bend the right knee to a right angle: ankle straight forward of the knee
@@ -64,13 +76,19 @@ def test_overlay_draws_skeletons_at_their_joints(tracked):
     d, video, path = tracked
     out = write_overlay(video, path, d / "overlay.mp4")
     info = probe_video(out)
-    assert (info.width, info.height, info.frame_count) == (320, 240, N // 2) and info.fps == pytest.approx(15.0)
+    assert (info.width, info.height, info.frame_count) == (
+        320,
+        240,
+        N // 2,
+    ) and info.fps == pytest.approx(15.0)
     t = read_tracks(path)
     first = t.filter(t.column("frame").to_numpy() == 0)
     blank = np.zeros((240, 320, 3), np.uint8)
     drawn = draw_people(blank, first)
     for joints in column_array(first, "joints2d"):
-        inside = joints[(joints[:, 0] >= 0) & (joints[:, 0] < 319) & (joints[:, 1] >= 0) & (joints[:, 1] < 239)]
+        inside = joints[
+            (joints[:, 0] >= 0) & (joints[:, 0] < 319) & (joints[:, 1] >= 0) & (joints[:, 1] < 239)
+        ]
         for u, v in np.round(inside).astype(int):
             assert drawn[v, u].max() > 0  # every visible joint is marked
 

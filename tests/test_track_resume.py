@@ -43,8 +43,14 @@ def scene(tmp_path_factory):
 @pytest.fixture(scope="module")
 def reference(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref")
-    res = track_video(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]), BoxDepthPredictor(), model=MODEL,
-                      options=OPTIONS)
+    res = track_video(
+        scene["video"],
+        out,
+        SuppliedBoxes.from_file(scene["csv"]),
+        BoxDepthPredictor(),
+        model=MODEL,
+        options=OPTIONS,
+    )
     return res.path.read_bytes()
 
 
@@ -68,7 +74,14 @@ def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     out = tmp_path / "out"
     with pytest.raises(RuntimeError, match="model crashed"):
-        track_video(scene["video"], out, det, FailingPredictor(fail_on_call=13), model=MODEL, options=OPTIONS)
+        track_video(
+            scene["video"],
+            out,
+            det,
+            FailingPredictor(fail_on_call=13),
+            model=MODEL,
+            options=OPTIONS,
+        )
     assert not (out / "video=clip" / "tracks.parquet").exists()  # nothing presented as complete
     segments = sorted(staging_of(out).glob("seg-*.parquet"))
     assert 2 <= len(segments) < 6
@@ -103,13 +116,33 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
     script = tmp_path / "run.py"
     script.write_text(KILL_SCRIPT)
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, str(script), str(REPO), str(scene["video"]), str(out), str(scene["csv"]), "17"],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(script),
+            str(REPO),
+            str(scene["video"]),
+            str(out),
+            str(scene["csv"]),
+            "17",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == -signal.SIGKILL, proc.stderr
     staging = staging_of(out)
-    assert (staging / "progress.json").exists() and not (out / "video=clip" / "tracks.parquet").exists()
-    res = track_video(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]), BoxDepthPredictor(), model=MODEL,
-                      options=OPTIONS)
+    assert (staging / "progress.json").exists() and not (
+        out / "video=clip" / "tracks.parquet"
+    ).exists()
+    res = track_video(
+        scene["video"],
+        out,
+        SuppliedBoxes.from_file(scene["csv"]),
+        BoxDepthPredictor(),
+        model=MODEL,
+        options=OPTIONS,
+    )
     assert res.resumed_from_frame is not None and res.resumed_from_frame > 0
     assert res.path.read_bytes() == reference
     t = read_tracks(res.path)
@@ -120,30 +153,63 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
 def test_orphan_segment_from_an_interrupted_commit_is_discarded(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     with pytest.raises(RuntimeError):
-        track_video(scene["video"], tmp_path / "out", det, FailingPredictor(fail_on_call=10), model=MODEL, options=OPTIONS)
+        track_video(
+            scene["video"],
+            tmp_path / "out",
+            det,
+            FailingPredictor(fail_on_call=10),
+            model=MODEL,
+            options=OPTIONS,
+        )
     staging = staging_of(tmp_path / "out")
     segs = sorted(staging.glob("seg-*.parquet"))
     # a kill between writing a segment and recording it leaves an unrecorded segment behind
     (staging / f"seg-{len(segs):06d}.parquet").write_bytes(segs[0].read_bytes())
-    res = track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    res = track_video(
+        scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
+    )
     assert res.path.read_bytes() == reference
 
 
 def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     with pytest.raises(RuntimeError):
-        track_video(scene["video"], tmp_path / "out", det, FailingPredictor(fail_on_call=10), model=MODEL, options=OPTIONS)
-    with pytest.raises(ResumeError, match=r"different settings exists \(changed: \['options.smoothing'\]\)"):
-        track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL,
-                    options=TrackOptions(frames_per_group=7, batch_size=5))
-    res = track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL,
-                      options=TrackOptions(frames_per_group=7, batch_size=5), resume=False)
+        track_video(
+            scene["video"],
+            tmp_path / "out",
+            det,
+            FailingPredictor(fail_on_call=10),
+            model=MODEL,
+            options=OPTIONS,
+        )
+    with pytest.raises(
+        ResumeError, match=r"different settings exists \(changed: \['options.smoothing'\]\)"
+    ):
+        track_video(
+            scene["video"],
+            tmp_path / "out",
+            det,
+            BoxDepthPredictor(),
+            model=MODEL,
+            options=TrackOptions(frames_per_group=7, batch_size=5),
+        )
+    res = track_video(
+        scene["video"],
+        tmp_path / "out",
+        det,
+        BoxDepthPredictor(),
+        model=MODEL,
+        options=TrackOptions(frames_per_group=7, batch_size=5),
+        resume=False,
+    )
     assert res.resumed_from_frame is None and res.rows == 3 * N
 
 
 def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    track_video(
+        scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
+    )
     staging_of(tmp_path / "out").mkdir(parents=True)  # as if killed after the final rename
     never = FailingPredictor(fail_on_call=1)
     res = track_video(scene["video"], tmp_path / "out", det, never, model=MODEL, options=OPTIONS)
@@ -156,7 +222,9 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
     data = scene["video"].read_bytes()
     cut.write_bytes(data[: int(len(data) * 0.6)])
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(VideoTruncatedError, match=r"clip.avi: decoding failed at frame (\d+)") as err:
+    with pytest.raises(
+        VideoTruncatedError, match=r"clip.avi: decoding failed at frame (\d+)"
+    ) as err:
         track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
     bad = err.value.frame
     staging = staging_of(tmp_path / "out")
@@ -167,16 +235,29 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
     with pytest.raises(VideoTruncatedError):
         track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
     np.testing.assert_array_equal(
-        pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None).read().column("frame").to_numpy(),
-        rows.column("frame").to_numpy())
+        pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None)
+        .read()
+        .column("frame")
+        .to_numpy(),
+        rows.column("frame").to_numpy(),
+    )
 
 
 def test_unreadable_progress_record_is_reported(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     with pytest.raises(RuntimeError):
-        track_video(scene["video"], tmp_path / "out", det, FailingPredictor(fail_on_call=10), model=MODEL, options=OPTIONS)
+        track_video(
+            scene["video"],
+            tmp_path / "out",
+            det,
+            FailingPredictor(fail_on_call=10),
+            model=MODEL,
+            options=OPTIONS,
+        )
     progress = staging_of(tmp_path / "out") / "progress.json"
     progress.write_text("{not json")
     with pytest.raises(ResumeError, match="progress.json: unreadable progress record"):
-        track_video(scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+        track_video(
+            scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
+        )
     os.remove(progress)

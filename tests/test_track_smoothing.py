@@ -18,6 +18,7 @@ from gst.track.smoothing import (
 
 def reference_one_euro(xs, ts, min_cutoff, beta, d_cutoff):
     """Casiez et al. 2012, one scalar at a time, written without numpy."""
+
     def alpha(cutoff, te):
         tau = 1.0 / (2 * math.pi * cutoff)
         return 1.0 / (1.0 + tau / te)
@@ -51,12 +52,15 @@ def test_matches_reference_elementwise_with_irregular_times(min_cutoff, beta, d_
     f = OneEuroFilter(cfg)
     ours = np.stack([f(x, t) for x, t in zip(xs, ts, strict=True)])
     for idx in [(0, 0), (1, 2), (3, 1)]:
-        ref = reference_one_euro(xs[(slice(None), *idx)].tolist(), ts.tolist(), min_cutoff, beta, d_cutoff)
+        ref = reference_one_euro(
+            xs[(slice(None), *idx)].tolist(), ts.tolist(), min_cutoff, beta, d_cutoff
+        )
         np.testing.assert_allclose(ours[(slice(None), *idx)], ref, rtol=1e-12, atol=1e-12)
 
 
 def test_state_round_trip_continues_identically():
     import json
+
     rng = np.random.default_rng(3)
     xs, ts = rng.normal(size=(40, 5)), np.arange(40) / 30.0
     cfg = OneEuroConfig(1.0, 0.3, 1.0)
@@ -90,10 +94,21 @@ def test_rotations_stay_rotations_and_6d_round_trips():
     rng = np.random.default_rng(5)
     for i in range(20):
         rot = Rotation.from_rotvec(rng.normal(0, 0.5, (24, 3))).as_matrix()
-        out = sm(7, i / 30, {"rotmats": rot, "betas": np.zeros(10), "transl_cam": np.zeros(3),
-                             "joints_cam": np.zeros((24, 3))})
-        np.testing.assert_allclose(out["rotmats"] @ out["rotmats"].transpose(0, 2, 1), np.broadcast_to(np.eye(3), (24, 3, 3)),
-                                   atol=1e-12)
+        out = sm(
+            7,
+            i / 30,
+            {
+                "rotmats": rot,
+                "betas": np.zeros(10),
+                "transl_cam": np.zeros(3),
+                "joints_cam": np.zeros((24, 3)),
+            },
+        )
+        np.testing.assert_allclose(
+            out["rotmats"] @ out["rotmats"].transpose(0, 2, 1),
+            np.broadcast_to(np.eye(3), (24, 3, 3)),
+            atol=1e-12,
+        )
         np.testing.assert_allclose(np.linalg.det(out["rotmats"]), 1.0, atol=1e-12)
     sm.retain(set())
     assert sm.filters == {}

@@ -31,8 +31,8 @@ def test_iou_matches_pixel_counting(v):
     a = [min(v[0], v[2]), min(v[1], v[3]), max(v[0], v[2]) + 1, max(v[1], v[3]) + 1]
     b = [min(v[4], v[6]), min(v[5], v[7]), max(v[4], v[6]) + 1, max(v[5], v[7]) + 1]
     ma, mb = np.zeros((32, 32), bool), np.zeros((32, 32), bool)
-    ma[a[1]:a[3], a[0]:a[2]] = True
-    mb[b[1]:b[3], b[0]:b[2]] = True
+    ma[a[1] : a[3], a[0] : a[2]] = True
+    mb[b[1] : b[3], b[0] : b[2]] = True
     ref = (ma & mb).sum() / (ma | mb).sum()
     assert box_iou(np.array(a), np.array(b))[0, 0] == ref
 
@@ -79,12 +79,18 @@ def test_appearance_decides_when_geometry_is_ambiguous():
 def test_three_d_position_separates_people_overlapping_in_the_image():
     """A near and a far person (same clothing) pass each other in the image between two frames:
     box overlap favours swapping their ids, their depths do not."""
+
     def run(w_position):
-        tr = Tracker(TrackerConfig(w_appearance=0.0, w_position=w_position, hard_gate=1e9 if w_position == 0 else 3.0))
+        tr = Tracker(
+            TrackerConfig(
+                w_appearance=0.0, w_position=w_position, hard_gate=1e9 if w_position == 0 else 3.0
+            )
+        )
         near0, far0 = obs(940, 540, w=60, h=150, z=5.0), obs(980, 540, w=60, h=150, z=12.0)
         ids0 = tr.update(0.0, [near0, far0])
         near1, far1 = obs(985, 540, w=60, h=150, z=5.0), obs(945, 540, w=60, h=150, z=12.0)
         return ids0, tr.update(1 / FPS, [near1, far1])
+
     ids0, ids1 = run(w_position=1.0)
     assert ids1 == ids0
     ids0, ids1 = run(w_position=0.0)
@@ -110,7 +116,10 @@ def test_low_score_detection_does_not_start_a_track():
 
 def test_state_round_trip_gives_identical_future():
     rng = np.random.default_rng(0)
-    seq = [[obs(400 + 5 * i + rng.normal(), 500, app=hist(1)), obs(900 - 4 * i, 520, app=hist(2))] for i in range(30)]
+    seq = [
+        [obs(400 + 5 * i + rng.normal(), 500, app=hist(1)), obs(900 - 4 * i, 520, app=hist(2))]
+        for i in range(30)
+    ]
     a = Tracker()
     ref = [a.update(i / FPS, o) for i, o in enumerate(seq)]
     b = Tracker()
@@ -135,8 +144,11 @@ def test_a_duplicate_detection_cannot_take_a_person_over():
     """The lab failure: a person detected twice in one frame starts a tentative track beside
     their own; next frame that tentative track fits the single detection slightly better. The
     person must keep their id (confirmed tracks choose first) and the duplicate die quietly."""
+
     def obs(x):
-        return Observation(np.array([x, 100.0, x + 50, 300.0]), np.array([x / 100, 0.0, 5.0]), np.full(4, 0.25))
+        return Observation(
+            np.array([x, 100.0, x + 50, 300.0]), np.array([x / 100, 0.0, 5.0]), np.full(4, 0.25)
+        )
 
     tr = Tracker(TrackerConfig(min_hits=3, max_misses=5))
     ids = [tr.update(k / 30, [obs(100.0 + 2 * k)]) for k in range(4)]

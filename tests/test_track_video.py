@@ -28,7 +28,13 @@ def video(tmp_path_factory):
 
 def test_probe(video):
     info = probe_video(video)
-    assert (info.width, info.height, info.fps, info.frame_count, info.name) == (W, H, FPS, N, "clip")
+    assert (info.width, info.height, info.fps, info.frame_count, info.name) == (
+        W,
+        H,
+        FPS,
+        N,
+        "clip",
+    )
 
 
 def test_all_frames_and_times(video):
@@ -82,7 +88,9 @@ def test_truncated_file_raises_after_the_good_frames(video, tmp_path):
     data = video.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
     seen = []
-    with pytest.raises(VideoTruncatedError, match=r"cut.avi: decoding failed at frame \d+ of 30") as err:
+    with pytest.raises(
+        VideoTruncatedError, match=r"cut.avi: decoding failed at frame \d+ of 30"
+    ) as err:
         for f in iter_frames(cut):
             seen.append(f.index)
     assert 5 < len(seen) < N and err.value.frame == len(seen)

@@ -31,21 +31,34 @@ def _crops(X: np.ndarray, shift_px: dict | None = None, n_cams: int = 3) -> Crop
     for i in range(n_cams):
         p = K @ (R[i] @ X + t[i])
         u, v = p[:2] / p[2] + np.asarray(shift_px.get(i, (0, 0)))
-        m = np.zeros((S * 8, S * 8), np.uint8)  # drawn at 8x with sub-pixel centre, then area-averaged
-        cv2.circle(m, (int(round((u + 0.5) * 8 - 0.5)), int(round((v + 0.5) * 8 - 0.5))), 15 * 8, 255, -1)
+        m = np.zeros(
+            (S * 8, S * 8), np.uint8
+        )  # drawn at 8x with sub-pixel centre, then area-averaged
+        cv2.circle(
+            m, (int(round((u + 0.5) * 8 - 0.5)), int(round((v + 0.5) * 8 - 0.5))), 15 * 8, 255, -1
+        )
         masks.append(cv2.resize(m, (S, S), interpolation=cv2.INTER_AREA) / 255.0)
     n = n_cams
-    return CropSet(images=torch.zeros(n, S, S, 3, dtype=torch.uint8), masks=torch.tensor(np.stack(masks)).float(),
-                   K=torch.tensor(K).float().repeat(n, 1, 1), R=torch.tensor(np.stack(R)).float(),
-                   t=torch.tensor(np.stack(t)).float(), camera=torch.arange(n), frame=torch.zeros(n, dtype=torch.long),
-                   person=torch.zeros(n, dtype=torch.long), camera_names=[f"c{i}" for i in range(n)])
+    return CropSet(
+        images=torch.zeros(n, S, S, 3, dtype=torch.uint8),
+        masks=torch.tensor(np.stack(masks)).float(),
+        K=torch.tensor(K).float().repeat(n, 1, 1),
+        R=torch.tensor(np.stack(R)).float(),
+        t=torch.tensor(np.stack(t)).float(),
+        camera=torch.arange(n),
+        frame=torch.zeros(n, dtype=torch.long),
+        person=torch.zeros(n, dtype=torch.long),
+        camera_names=[f"c{i}" for i in range(n)],
+    )
 
 
 def test_centroid_of_a_disk_is_its_centre():
     m = np.zeros((S, S), np.float32)
     cv2.circle(m, (40, 55), 12, 1.0, -1)
     uv, ok = mask_centroids(torch.tensor(m)[None])
-    assert ok.all() and torch.allclose(uv[0], torch.tensor([40.0, 55.0], dtype=torch.float64), atol=1e-6)
+    assert ok.all() and torch.allclose(
+        uv[0], torch.tensor([40.0, 55.0], dtype=torch.float64), atol=1e-6
+    )
     _, ok = mask_centroids(torch.zeros(1, S, S))
     assert not ok.any()
 
@@ -72,6 +85,10 @@ def test_anchor_term_is_a_hinge_with_gradient():
     loss = anchor_term(centres, anchors, margin=0.1)
     assert math.isclose(float(loss.detach()), (0.0 + 0.9) / 2, rel_tol=1e-6)  # NaN rows are ignored
     loss.backward()
-    assert centres.grad[0].abs().sum() == 0 and centres.grad[1, 0] > 0 and centres.grad[2].abs().sum() == 0
+    assert (
+        centres.grad[0].abs().sum() == 0
+        and centres.grad[1, 0] > 0
+        and centres.grad[2].abs().sum() == 0
+    )
     none = anchor_term(centres, torch.full((3, 3), float("nan")))
     assert float(none.detach()) == 0.0

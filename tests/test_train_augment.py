@@ -16,20 +16,33 @@ SIZE = 96
 def _blob_batch(points_cam: torch.Tensor, K: torch.Tensor) -> SupervisedBatch:
     """One white Gaussian blob per image at the projection of its 3D point."""
     uv = (points_cam[:, :2] / points_cam[:, 2:]) * K[:, [0, 1], [0, 1]] + K[:, :2, 2]
-    ys, xs = torch.meshgrid(torch.arange(SIZE, dtype=torch.float64), torch.arange(SIZE, dtype=torch.float64),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(SIZE, dtype=torch.float64),
+        torch.arange(SIZE, dtype=torch.float64),
+        indexing="ij",
+    )
     d2 = (xs[None] - uv[:, 0, None, None]) ** 2 + (ys[None] - uv[:, 1, None, None]) ** 2
-    img = (255 * torch.exp(-d2 / (2 * 2.0 ** 2))).round().to(torch.uint8)
+    img = (255 * torch.exp(-d2 / (2 * 2.0**2))).round().to(torch.uint8)
     joints = points_cam[:, None].repeat(1, 24, 1).float()
-    return SupervisedBatch(images=img[..., None].repeat(1, 1, 1, 3), K=K.float(), joints_cam=joints,
-                           joints2d=uv[:, None].repeat(1, 24, 1).float(), visible=torch.ones(len(K), 24))
+    return SupervisedBatch(
+        images=img[..., None].repeat(1, 1, 1, 3),
+        K=K.float(),
+        joints_cam=joints,
+        joints2d=uv[:, None].repeat(1, 24, 1).float(),
+        visible=torch.ones(len(K), 24),
+    )
 
 
 def _centroid(images: torch.Tensor) -> torch.Tensor:
     w = images[..., 0].double()
-    ys, xs = torch.meshgrid(torch.arange(SIZE, dtype=torch.float64), torch.arange(SIZE, dtype=torch.float64),
-                            indexing="ij")
-    return torch.stack([(w * xs).sum((1, 2)) / w.sum((1, 2)), (w * ys).sum((1, 2)) / w.sum((1, 2))], -1)
+    ys, xs = torch.meshgrid(
+        torch.arange(SIZE, dtype=torch.float64),
+        torch.arange(SIZE, dtype=torch.float64),
+        indexing="ij",
+    )
+    return torch.stack(
+        [(w * xs).sum((1, 2)) / w.sum((1, 2)), (w * ys).sum((1, 2)) / w.sum((1, 2))], -1
+    )
 
 
 def _K(n: int) -> torch.Tensor:
@@ -42,10 +55,14 @@ def _K(n: int) -> torch.Tensor:
 
 def test_jitter_moves_pixels_k_and_2d_truth_together():
     gen = torch.Generator().manual_seed(0)
-    pts = torch.tensor([[0.05, -0.03, 3.0], [-0.1, 0.08, 4.0], [0.0, 0.0, 2.5], [0.12, 0.1, 5.0]],
-                       dtype=torch.float64)
+    pts = torch.tensor(
+        [[0.05, -0.03, 3.0], [-0.1, 0.08, 4.0], [0.0, 0.0, 2.5], [0.12, 0.1, 5.0]],
+        dtype=torch.float64,
+    )
     batch = _blob_batch(pts, _K(len(pts)))
-    out = jitter_batch(batch, CropJitter(zoom=0.3, shift=0.1, brightness=0, contrast=0, saturation=0), gen)
+    out = jitter_batch(
+        batch, CropJitter(zoom=0.3, shift=0.1, brightness=0, contrast=0, saturation=0), gen
+    )
     K2 = out.K.double()
     uv_new_k = (pts[:, :2] / pts[:, 2:]) * K2[:, [0, 1], [0, 1]] + K2[:, :2, 2]
     # the 2D truth is the projection with the new K, and the warped blob sits there (< 0.15 px)
@@ -73,7 +90,9 @@ def test_joints_pushed_off_the_crop_are_not_visible():
     seen = []
     for _ in range(30):
         out = jitter_batch(batch, CropJitter(zoom=0.5, shift=0.3), gen)
-        inside = bool((out.joints2d[0, 0] <= SIZE - 0.5).all() and (out.joints2d[0, 0] >= -0.5).all())
+        inside = bool(
+            (out.joints2d[0, 0] <= SIZE - 0.5).all() and (out.joints2d[0, 0] >= -0.5).all()
+        )
         assert bool(out.visible[0, 0]) == inside
         seen.append(inside)
     assert any(seen) and not all(seen)
@@ -82,7 +101,11 @@ def test_joints_pushed_off_the_crop_are_not_visible():
 @settings(max_examples=50, deadline=None)
 @given(zoom=st.floats(0.5, 2.0), sx=st.floats(-20, 20), sy=st.floats(-20, 20))
 def test_similarity_fixes_the_centre_up_to_the_shift(zoom, sx, sy):
-    A = similarity(torch.tensor([zoom], dtype=torch.float64), torch.tensor([[sx, sy]], dtype=torch.float64), SIZE)
+    A = similarity(
+        torch.tensor([zoom], dtype=torch.float64),
+        torch.tensor([[sx, sy]], dtype=torch.float64),
+        SIZE,
+    )
     c = (SIZE - 1) / 2
     moved = A[0] @ torch.tensor([c, c, 1.0], dtype=torch.float64)
     assert np.allclose(moved[:2].numpy(), [c + sx, c + sy])
@@ -104,11 +127,18 @@ def test_jitter_ranges_are_checked(bad):
 def _set(n_frames: int, cams: list[str], truth_keys=("joints_world",)) -> CropSet:
     rows = [(f, c, p) for f in range(n_frames) for c in range(len(cams)) for p in (1, 2)]
     n = len(rows)
-    return CropSet(images=torch.zeros(n, 8, 8, 3, dtype=torch.uint8), masks=torch.zeros(n, 8, 8),
-                   K=torch.eye(3).repeat(n, 1, 1), R=torch.eye(3).repeat(n, 1, 1), t=torch.zeros(n, 3),
-                   camera=torch.tensor([r[1] for r in rows]), frame=torch.tensor([r[0] for r in rows]),
-                   person=torch.tensor([r[2] for r in rows]), camera_names=cams,
-                   truth={k: torch.zeros(n, 24, 3) for k in truth_keys})
+    return CropSet(
+        images=torch.zeros(n, 8, 8, 3, dtype=torch.uint8),
+        masks=torch.zeros(n, 8, 8),
+        K=torch.eye(3).repeat(n, 1, 1),
+        R=torch.eye(3).repeat(n, 1, 1),
+        t=torch.zeros(n, 3),
+        camera=torch.tensor([r[1] for r in rows]),
+        frame=torch.tensor([r[0] for r in rows]),
+        person=torch.tensor([r[2] for r in rows]),
+        camera_names=cams,
+        truth={k: torch.zeros(n, 24, 3) for k in truth_keys},
+    )
 
 
 def test_concat_keeps_worlds_apart():

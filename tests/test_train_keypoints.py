@@ -62,7 +62,9 @@ def test_landmark_mapping():
     lm[24, 2] = 0.3
     out = landmarks_to_body(lm, presence=0.8)
     assert out.shape == (24, 3)
-    assert np.allclose(out[0, :2], [23.5, 123.5]) and np.isclose(out[0, 2], 0.8 * 0.3)  # pelvis: mid-hips
+    assert np.allclose(out[0, :2], [23.5, 123.5]) and np.isclose(
+        out[0, 2], 0.8 * 0.3
+    )  # pelvis: mid-hips
     assert np.allclose(out[16, :2], [11, 111]) and np.isclose(out[16, 2], 0.72)  # left shoulder
     unmapped = [j for j in range(24) if j not in BODY_FROM_BLAZEPOSE]
     assert np.all(out[unmapped] == 0)

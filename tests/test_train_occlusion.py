@@ -30,16 +30,27 @@ def _crop(img, A):
 def test_occluder_masks_equal_cropping_the_other_persons_full_frame_mask():
     people = {1: _disk(140, 120, 40), 2: _disk(185, 130, 45)}
     windows = {1: _window(140, 120, 110), 2: _window(190, 125, 150)}
-    rows = [(0, 0, 1), (0, 0, 2), (0, 1, 1)]  # (frame, camera, person); camera 1 sees person 1 alone
+    rows = [
+        (0, 0, 1),
+        (0, 0, 2),
+        (0, 1, 1),
+    ]  # (frame, camera, person); camera 1 sees person 1 alone
     masks, K = [], []
     for _, _, p in rows:
         masks.append(_crop(people[p], windows[p]) / 255.0)
         K.append(windows[p] @ K_FULL)
     n = len(rows)
-    crops = CropSet(images=torch.zeros(n, S, S, 3, dtype=torch.uint8), masks=torch.tensor(np.stack(masks)).float(),
-                    K=torch.tensor(np.stack(K)).float(), R=torch.eye(3).repeat(n, 1, 1), t=torch.zeros(n, 3),
-                    camera=torch.tensor([r[1] for r in rows]), frame=torch.tensor([r[0] for r in rows]),
-                    person=torch.tensor([r[2] for r in rows]), camera_names=["a", "b"])
+    crops = CropSet(
+        images=torch.zeros(n, S, S, 3, dtype=torch.uint8),
+        masks=torch.tensor(np.stack(masks)).float(),
+        K=torch.tensor(np.stack(K)).float(),
+        R=torch.eye(3).repeat(n, 1, 1),
+        t=torch.zeros(n, 3),
+        camera=torch.tensor([r[1] for r in rows]),
+        frame=torch.tensor([r[0] for r in rows]),
+        person=torch.tensor([r[2] for r in rows]),
+        camera_names=["a", "b"],
+    )
     occ = occluder_masks(crops).numpy()
     for i, other in ((0, 2), (1, 1)):
         expected = _crop(people[other], windows[rows[i][2]]) / 255.0

@@ -18,8 +18,15 @@ from synth.scene import preset, render_scene
 @pytest.fixture(scope="module")
 def one_sample(tmp_path_factory):
     out = tmp_path_factory.mktemp("one_person")
-    spec = preset("demo", seed=7, n_frames=2, n_people=1, motions=[["jump"]],
-                  rig={"kind": "dome", "n_cameras": 4, "width": 320, "height": 240}, board={"n_frames": 1})
+    spec = preset(
+        "demo",
+        seed=7,
+        n_frames=2,
+        n_people=1,
+        motions=[["jump"]],
+        rig={"kind": "dome", "n_cameras": 4, "width": 320, "height": 240},
+        board={"n_frames": 1},
+    )
     render_scene(spec, out)
     crops = crops_from_synth_scene(out, crop_size=128)
     body = load_body_model("anny")
@@ -45,9 +52,13 @@ def test_parameter_groups_split_gaussian_head_from_body(one_sample):
 def test_short_overfit_learns_the_sample(one_sample):
     crops, group, body = one_sample
     net, task = _network(body, crops.crop_size)
-    r0 = overfit_sample(net, task, crops, group, warm_steps=60, steps=0, render_size=32, eval_every=0)
+    r0 = overfit_sample(
+        net, task, crops, group, warm_steps=60, steps=0, render_size=32, eval_every=0
+    )
     before = r0.psnr
-    r = overfit_sample(net, task, crops, group, warm_steps=0, steps=80, lr=2e-3, render_size=32, eval_every=0)
+    r = overfit_sample(
+        net, task, crops, group, warm_steps=0, steps=80, lr=2e-3, render_size=32, eval_every=0
+    )
     assert r0.warm_mpjpe_mm < 60  # the warm start puts the body where the truth is
     assert r.psnr > before + 3.0, (before, r.psnr)
     assert len(r.psnr_per_input) == len(group)
@@ -64,6 +75,16 @@ def test_overfit_reaches_30_db(one_sample):
     net, ids, _ = build_network(cfg, body, seed=0)
     task = make_task(body, ids, cfg, crops.crop_size, LossWeights(), load_lpips())
     torch.manual_seed(0)
-    r = overfit_sample(net, task, crops, group, warm_steps=100, steps=600, lr=2e-3, body_lr=1e-5, render_size=64,
-                       eval_every=0)
+    r = overfit_sample(
+        net,
+        task,
+        crops,
+        group,
+        warm_steps=100,
+        steps=600,
+        lr=2e-3,
+        body_lr=1e-5,
+        render_size=64,
+        eval_every=0,
+    )
     assert r.psnr >= 30.0, r.psnr_per_input

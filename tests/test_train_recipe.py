@@ -31,31 +31,59 @@ def crop_set(n_frames=4, n_cams=3, size=64) -> CropSet:
     joints_world = 0.3 * torch.randn(n_frames, 24, 3, generator=gen)[torch.arange(n) // n_cams]
     joints_cam = joints_world @ R.transpose(1, 2) + t[:, None]
     uv = joints_cam[..., :2] / joints_cam[..., 2:] * 120 + size / 2
-    truth = {"joints_world": joints_world, "joints_cam": joints_cam, "joints2d": uv, "visible": torch.ones(n, 24),
-             "rotmats_cam": torch.eye(3).expand(n, 24, 3, 3).clone(), "betas": torch.zeros(n, 10)}
-    return CropSet(images=torch.randint(0, 255, (n, size, size, 3), generator=gen, dtype=torch.uint8),
-                   masks=(torch.rand(n, size, size, generator=gen) > 0.5).float(), K=K.clone(), R=R, t=t.clone(),
-                   camera=cam, frame=torch.arange(n) // n_cams, person=torch.zeros(n, dtype=torch.long),
-                   camera_names=[f"c{i}" for i in range(n_cams)], truth=truth)
+    truth = {
+        "joints_world": joints_world,
+        "joints_cam": joints_cam,
+        "joints2d": uv,
+        "visible": torch.ones(n, 24),
+        "rotmats_cam": torch.eye(3).expand(n, 24, 3, 3).clone(),
+        "betas": torch.zeros(n, 10),
+    }
+    return CropSet(
+        images=torch.randint(0, 255, (n, size, size, 3), generator=gen, dtype=torch.uint8),
+        masks=(torch.rand(n, size, size, generator=gen) > 0.5).float(),
+        K=K.clone(),
+        R=R,
+        t=t.clone(),
+        camera=cam,
+        frame=torch.arange(n) // n_cams,
+        person=torch.zeros(n, dtype=torch.long),
+        camera_names=[f"c{i}" for i in range(n_cams)],
+        truth=truth,
+    )
 
 
-@pytest.mark.parametrize("mode, heldout", [("multiview", ("c2",)), ("pretrain", ()), ("3d", ()), ("2d", ())])
+@pytest.mark.parametrize(
+    "mode, heldout", [("multiview", ("c2",)), ("pretrain", ()), ("3d", ()), ("2d", ())]
+)
 def test_fit_gst_modes(tmp_path, mode, heldout):
     body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
     cfg = get_preset("tiny", vertex_preset="full")
     net, ids, groups = build_network(cfg, body)
     crops = crop_set()
     task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
-    summary = fit_gst(net, task, crops, TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
-                      tmp_path, FitOptions(mode=mode, num_targets=2, render_size=16, heldout_cameras=heldout),
-                      body_spec="random", vertex_ids=ids, group_index=groups)
+    summary = fit_gst(
+        net,
+        task,
+        crops,
+        TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
+        tmp_path,
+        FitOptions(mode=mode, num_targets=2, render_size=16, heldout_cameras=heldout),
+        body_spec="random",
+        vertex_ids=ids,
+        group_index=groups,
+    )
     assert summary["steps"] == 2 and summary["bad_steps"] == 0
     assert all(math.isfinite(v) for v in summary["after"].values())
     if heldout:
         assert {"psnr", "ssim", "silhouette_iou"} <= set(summary["after"])
         import csv
-        vals = [float(r["val_silhouette_iou"]) for r in csv.DictReader(open(tmp_path / "log.csv"))
-                if r.get("val_silhouette_iou")]
+
+        vals = [
+            float(r["val_silhouette_iou"])
+            for r in csv.DictReader(open(tmp_path / "log.csv"))
+            if r.get("val_silhouette_iou")
+        ]
         assert vals and summary["best"] == max(vals)  # IoU, not PSNR: fading to black must not win
     assert "mpjpe_mm" in summary["after"]
     reloaded = network_from_checkpoint(load_checkpoint(tmp_path / "best.pt"))
@@ -69,25 +97,46 @@ def test_heldout_camera_must_exist(tmp_path):
     crops = crop_set()
     task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
     with pytest.raises(ValueError, match="held-out cameras"):
-        fit_gst(net, task, crops, TrainConfig(steps=1), tmp_path, FitOptions(heldout_cameras=("nope",)),
-                body_spec="random", vertex_ids=ids, group_index=groups)
+        fit_gst(
+            net,
+            task,
+            crops,
+            TrainConfig(steps=1),
+            tmp_path,
+            FitOptions(heldout_cameras=("nope",)),
+            body_spec="random",
+            vertex_ids=ids,
+            group_index=groups,
+        )
 
 
 def test_augmented_3d_fit_validates_on_the_unseen_crops(tmp_path):
     """With val_crops, the reported MPJPE is on them: a validation set whose truth is shifted by a
     constant per-joint offset reports a different error than the training crops."""
     from gst.train.augment import CropJitter
+
     body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
     cfg = get_preset("tiny", vertex_preset="full")
     crops, val = crop_set(), crop_set(n_frames=2)
-    val.truth["joints_world"] = val.truth["joints_world"] + 0.5 * torch.linspace(0, 1, 24)[None, :, None]
+    val.truth["joints_world"] = (
+        val.truth["joints_world"] + 0.5 * torch.linspace(0, 1, 24)[None, :, None]
+    )
 
     def fit(val_crops, out):
         net, ids, groups = build_network(cfg, body)
         task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
-        return fit_gst(net, task, crops, TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2),
-                       out, FitOptions(mode="3d", augment=CropJitter()), body_spec="random", vertex_ids=ids,
-                       group_index=groups, val_crops=val_crops)
+        return fit_gst(
+            net,
+            task,
+            crops,
+            TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2),
+            out,
+            FitOptions(mode="3d", augment=CropJitter()),
+            body_spec="random",
+            vertex_ids=ids,
+            group_index=groups,
+            val_crops=val_crops,
+        )
 
     own, unseen = fit(None, tmp_path / "a"), fit(val, tmp_path / "b")
     assert unseen["bad_steps"] == 0 and math.isfinite(unseen["after"]["mpjpe_mm"])
@@ -96,6 +145,7 @@ def test_augmented_3d_fit_validates_on_the_unseen_crops(tmp_path):
 
 def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
     import csv
+
     body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
     cfg = get_preset("tiny", vertex_preset="full")
     net, ids, groups = build_network(cfg, body)
@@ -103,8 +153,16 @@ def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
     crops.anchors = torch.zeros(len(crops), 3)
     crops.anchors[::2] = float("nan")
     task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
-    fit_gst(net, task, crops, TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
-            tmp_path, FitOptions(mode="multiview", num_targets=2, render_size=16), body_spec="random",
-            vertex_ids=ids, group_index=groups)
+    fit_gst(
+        net,
+        task,
+        crops,
+        TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
+        tmp_path,
+        FitOptions(mode="multiview", num_targets=2, render_size=16),
+        body_spec="random",
+        vertex_ids=ids,
+        group_index=groups,
+    )
     rows = list(csv.DictReader(open(tmp_path / "log.csv")))
     assert all(math.isfinite(float(r["anchor"])) for r in rows)

@@ -39,7 +39,9 @@ def make_problem(kill_at: int | None = None, nan_every: int | None = None):
 
 
 def test_resume_after_kill_is_exact(tmp_path):
-    cfg = TrainConfig(steps=12, batch_size=4, lr=1e-2, warmup_steps=3, ckpt_every=5, val_every=100, log_every=1)
+    cfg = TrainConfig(
+        steps=12, batch_size=4, lr=1e-2, warmup_steps=3, ckpt_every=5, val_every=100, log_every=1
+    )
     model, step, sample = make_problem()
     Trainer(model, step, sample, cfg, tmp_path / "a").fit()
     reference = [p.detach().clone() for p in model.parameters()]
@@ -59,7 +61,9 @@ def test_resume_after_kill_is_exact(tmp_path):
 
 
 def test_nan_guard_skips_and_aborts(tmp_path):
-    cfg = TrainConfig(steps=10, batch_size=4, lr=1e-2, warmup_steps=1, max_bad_steps=100, log_every=1)
+    cfg = TrainConfig(
+        steps=10, batch_size=4, lr=1e-2, warmup_steps=1, max_bad_steps=100, log_every=1
+    )
     model, step, sample = make_problem(nan_every=3)
     summary = Trainer(model, step, sample, cfg, tmp_path).fit()
     assert summary["bad_steps"] == 3

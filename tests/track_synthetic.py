@@ -26,7 +26,9 @@ def walker_boxes(walkers: list[Walker], frames: int) -> np.ndarray:
     for i in range(frames):
         for k, w in enumerate(walkers):
             cx, cy = w.start[0] + w.velocity[0] * i, w.start[1] + w.velocity[1] * i
-            out[i, k] = np.round([cx - w.size[0] / 2, cy - w.size[1] / 2, cx + w.size[0] / 2, cy + w.size[1] / 2])
+            out[i, k] = np.round(
+                [cx - w.size[0] / 2, cy - w.size[1] / 2, cx + w.size[0] / 2, cy + w.size[1] / 2]
+            )
     return out
 
 
@@ -51,7 +53,9 @@ def render(walkers: list[Walker], boxes: np.ndarray, width: int, height: int, se
         yield f
 
 
-def write_video(path: Path, frames, width: int, height: int, fps: float = 30.0, fourcc: str = "MJPG") -> Path:
+def write_video(
+    path: Path, frames, width: int, height: int, fps: float = 30.0, fourcc: str = "MJPG"
+) -> Path:
     vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), fps, (width, height))
     if not vw.isOpened():
         raise RuntimeError(f"cannot write {path} with {fourcc}")
@@ -61,7 +65,9 @@ def write_video(path: Path, frames, width: int, height: int, fps: float = 30.0, 
     return path
 
 
-def write_boxes_csv(path: Path, boxes: np.ndarray, video: str, visible: np.ndarray | None = None) -> Path:
+def write_boxes_csv(
+    path: Path, boxes: np.ndarray, video: str, visible: np.ndarray | None = None
+) -> Path:
     """One CSV row per visible true box (no ids: the tracker must find them)."""
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)

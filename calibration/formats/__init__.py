@@ -41,22 +41,61 @@ class FormatInfo:
     write_options: tuple[str, ...] = ()
 
 
-FORMATS: dict[str, FormatInfo] = {f.name: f for f in (
-    FormatInfo("rig", "gst-capture rig.json (metres, world to camera, versioned)", rig_json, True),
-    FormatInfo("panoptic", "CMU Panoptic calibration_<seq>.json (cm, world y down)", panoptic, True,
-               ("camera_types",)),
-    FormatInfo("h36m", "Human3.6M cameras.h5 (mm, H36M lens model)", h36m, True,
-               ("subject", "image_size"), ("subject", "approximate_distortion")),
-    FormatInfo("h36m-json", "Human3.6M camera JSON variant (mm)", h36m_json, True,
-               ("subject", "tangential", "image_size"), ("subject", "tangential")),
-    FormatInfo("anipose", "aniposelib / FreeMoCap TOML (board units, default mm)", anipose, True,
-               ("units",), ("units",)),
-    FormatInfo("pose2sim", "Pose2Sim TOML (m, 4 distortion terms)", pose2sim, True),
-    FormatInfo("qualisys", "Qualisys .qca.txt XML (mm; read only)", qualisys, False,
-               ("include_inactive", "video_only", "distortion_scale")),
-    FormatInfo("colmap", "COLMAP sparse model folder via pycolmap (unitless)", colmap, True,
-               ("metres_per_unit", "up"), ("metres_per_unit",)),
-)}
+FORMATS: dict[str, FormatInfo] = {
+    f.name: f
+    for f in (
+        FormatInfo(
+            "rig", "gst-capture rig.json (metres, world to camera, versioned)", rig_json, True
+        ),
+        FormatInfo(
+            "panoptic",
+            "CMU Panoptic calibration_<seq>.json (cm, world y down)",
+            panoptic,
+            True,
+            ("camera_types",),
+        ),
+        FormatInfo(
+            "h36m",
+            "Human3.6M cameras.h5 (mm, H36M lens model)",
+            h36m,
+            True,
+            ("subject", "image_size"),
+            ("subject", "approximate_distortion"),
+        ),
+        FormatInfo(
+            "h36m-json",
+            "Human3.6M camera JSON variant (mm)",
+            h36m_json,
+            True,
+            ("subject", "tangential", "image_size"),
+            ("subject", "tangential"),
+        ),
+        FormatInfo(
+            "anipose",
+            "aniposelib / FreeMoCap TOML (board units, default mm)",
+            anipose,
+            True,
+            ("units",),
+            ("units",),
+        ),
+        FormatInfo("pose2sim", "Pose2Sim TOML (m, 4 distortion terms)", pose2sim, True),
+        FormatInfo(
+            "qualisys",
+            "Qualisys .qca.txt XML (mm; read only)",
+            qualisys,
+            False,
+            ("include_inactive", "video_only", "distortion_scale"),
+        ),
+        FormatInfo(
+            "colmap",
+            "COLMAP sparse model folder via pycolmap (unitless)",
+            colmap,
+            True,
+            ("metres_per_unit", "up"),
+            ("metres_per_unit",),
+        ),
+    )
+}
 
 # Order matters: specific signatures before generic ones.
 _SNIFF_ORDER = ("rig", "h36m-json", "panoptic", "qualisys", "h36m", "colmap", "pose2sim", "anipose")
@@ -88,7 +127,9 @@ def _info(fmt: str) -> FormatInfo:
 def _check_options(fmt: str, opts: dict, allowed: tuple[str, ...], verb: str) -> None:
     unknown = sorted(set(opts) - set(allowed))
     if unknown:
-        raise RigFormatError(f"format '{fmt}' takes no {verb} options {unknown} (it takes {list(allowed)})")
+        raise RigFormatError(
+            f"format '{fmt}' takes no {verb} options {unknown} (it takes {list(allowed)})"
+        )
 
 
 def read_rig(path: str | Path, fmt: str | None = None, **opts) -> Rig:

@@ -21,7 +21,9 @@ class RigFormatError(ValueError):
 
 def metres_per_unit(units: str, fmt: str) -> float:
     if units not in UNIT_SCALE:
-        raise RigFormatError(f"{fmt}: units '{units}' unknown, expected one of {sorted(UNIT_SCALE)}")
+        raise RigFormatError(
+            f"{fmt}: units '{units}' unknown, expected one of {sorted(UNIT_SCALE)}"
+        )
     return UNIT_SCALE[units]
 
 
@@ -117,7 +119,7 @@ def trim_dist(dist: np.ndarray, min_len: int = 5) -> np.ndarray:
     for n in (4, 5, 8, 12, 14):
         if n >= need:
             out = np.zeros(n)
-            out[:min(n, len(d))] = d[:n]
+            out[: min(n, len(d))] = d[:n]
             return out
     raise RigFormatError(f"distortion has {len(d)} terms, more than OpenCV's 14")
 

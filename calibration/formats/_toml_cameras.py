@@ -44,24 +44,46 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
             continue
         where = f"[{key}]"
         if table.get("fisheye", False):
-            raise RigFormatError(f"{path}: {where} is a fisheye camera, which this project does not model")
+            raise RigFormatError(
+                f"{path}: {where} is a fisheye camera, which this project does not model"
+            )
         w, h = as_float_array(require(table, "size", path, where), (2,), path, f"{where} size")
-        rvec = as_float_array(require(table, "rotation", path, where), (3,), path, f"{where} rotation")
-        t = as_float_array(require(table, "translation", path, where), (3,), path, f"{where} translation")
-        cameras.append(make_camera(
-            path, str(table.get("name", key)),
-            K=as_float_array(require(table, "matrix", path, where), (3, 3), path, f"{where} matrix"),
-            dist=np.asarray(table.get("distortions", []), dtype=np.float64),
-            R=cv2.Rodrigues(rvec)[0], t=t * metres_per_unit, width=int(round(w)), height=int(round(h)),
-            meta={"source": source, "section": key}))
+        rvec = as_float_array(
+            require(table, "rotation", path, where), (3,), path, f"{where} rotation"
+        )
+        t = as_float_array(
+            require(table, "translation", path, where), (3,), path, f"{where} translation"
+        )
+        cameras.append(
+            make_camera(
+                path,
+                str(table.get("name", key)),
+                K=as_float_array(
+                    require(table, "matrix", path, where), (3, 3), path, f"{where} matrix"
+                ),
+                dist=np.asarray(table.get("distortions", []), dtype=np.float64),
+                R=cv2.Rodrigues(rvec)[0],
+                t=t * metres_per_unit,
+                width=int(round(w)),
+                height=int(round(h)),
+                meta={"source": source, "section": key},
+            )
+        )
     meta = {"source": source}
     if isinstance(data.get("metadata"), dict):
         meta["metadata"] = data["metadata"]
     return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta=meta)
 
 
-def write_cameras(rig: Rig, path: str | Path, metres_per_unit: float, dist_len: int,
-                  keys: str, extra: dict | None = None, metadata: dict | None = None) -> None:
+def write_cameras(
+    rig: Rig,
+    path: str | Path,
+    metres_per_unit: float,
+    dist_len: int,
+    keys: str,
+    extra: dict | None = None,
+    metadata: dict | None = None,
+) -> None:
     """`keys`: 'index' gives [cam_0], [cam_1], ...; 'name' uses the camera name when it is a
     bare TOML key (else cam_NN). Distortion is written with `dist_len` terms, or all of them
     when later terms are non-zero (OpenCV reads any valid length)."""
@@ -70,16 +92,21 @@ def write_cameras(rig: Rig, path: str | Path, metres_per_unit: float, dist_len: 
         d = c.dist
         n = dist_len if not np.any(d[dist_len:]) else d.size
         dist = np.zeros(n)
-        dist[:min(n, d.size)] = d[:n]
+        dist[: min(n, d.size)] = d[:n]
         if keys == "name" and _BARE_KEY.match(c.name) and c.name != "metadata":
             key = c.name
         else:
             key = f"cam_{i}" if keys == "index" else f"cam_{i + 1:02d}"
         if key in tables:
             raise RigFormatError(f"two cameras map to the TOML table [{key}]")
-        table = {"name": c.name, "size": [c.width, c.height], "matrix": c.K.tolist(),
-                 "distortions": dist.tolist(), "rotation": c.rvec.tolist(),
-                 "translation": (c.t / metres_per_unit).tolist()}
+        table = {
+            "name": c.name,
+            "size": [c.width, c.height],
+            "matrix": c.K.tolist(),
+            "distortions": dist.tolist(),
+            "rotation": c.rvec.tolist(),
+            "translation": (c.t / metres_per_unit).tolist(),
+        }
         table.update(extra or {})
         tables[key] = table
     tables["metadata"] = metadata or {"adjusted": False, "error": 0.0}

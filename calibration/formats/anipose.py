@@ -26,8 +26,14 @@ def read(path: str | Path, units: str = "mm") -> Rig:
 
 
 def write(rig: Rig, path: str | Path, units: str = "mm") -> None:
-    write_cameras(rig, path, metres_per_unit(units, "anipose"), dist_len=5, keys="index",
-                  metadata={"adjusted": False, "error": rms_or_zero(rig)})
+    write_cameras(
+        rig,
+        path,
+        metres_per_unit(units, "anipose"),
+        dist_len=5,
+        keys="index",
+        metadata={"adjusted": False, "error": rms_or_zero(rig)},
+    )
 
 
 def sniff(path: Path, text: str | None) -> bool:

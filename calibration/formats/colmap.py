@@ -29,7 +29,9 @@ def _model_dir(path: Path) -> Path:
     for cand in (path, path / "sparse" / "0", path / "0", path / "sparse"):
         if (cand / "cameras.bin").exists() or (cand / "cameras.txt").exists():
             return cand
-    raise RigFormatError(f"{path}: no COLMAP model (cameras.bin or cameras.txt) here or in sparse/0")
+    raise RigFormatError(
+        f"{path}: no COLMAP model (cameras.bin or cameras.txt) here or in sparse/0"
+    )
 
 
 def _intrinsics(cam: pycolmap.Camera, path: Path, name: str) -> tuple[list, np.ndarray]:
@@ -54,9 +56,11 @@ def _intrinsics(cam: pycolmap.Camera, path: Path, name: str) -> tuple[list, np.n
         d = p[4:12]
         dist = d[:5].copy() if not np.any(d[5:]) else d.copy()
     else:
-        raise RigFormatError(f"{path}: image '{name}' uses COLMAP camera model {model}, which has no "
-                             "OpenCV pinhole equivalent here (supported: SIMPLE_PINHOLE, PINHOLE, "
-                             "SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV)")
+        raise RigFormatError(
+            f"{path}: image '{name}' uses COLMAP camera model {model}, which has no "
+            "OpenCV pinhole equivalent here (supported: SIMPLE_PINHOLE, PINHOLE, "
+            "SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV)"
+        )
     return [[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]], dist
 
 
@@ -73,21 +77,38 @@ def read(path: str | Path, metres_per_unit: float = 1.0, up=(0.0, 0.0, 1.0)) -> 
         img = rec.image(image_id)
         K, dist = _intrinsics(img.camera, path, img.name)
         T = img.cam_from_world().matrix()
-        cameras.append(make_camera(
-            path, img.name, K=K, dist=dist, R=T[:, :3], t=T[:, 3] * metres_per_unit,
-            width=img.camera.width, height=img.camera.height,
-            meta={"source": "colmap", "image_id": int(image_id), "camera_model": img.camera.model_name}))
+        cameras.append(
+            make_camera(
+                path,
+                img.name,
+                K=K,
+                dist=dist,
+                R=T[:, :3],
+                t=T[:, 3] * metres_per_unit,
+                width=img.camera.width,
+                height=img.camera.height,
+                meta={
+                    "source": "colmap",
+                    "image_id": int(image_id),
+                    "camera_model": img.camera.model_name,
+                },
+            )
+        )
     return make_rig(path, cameras, up=tuple(float(v) for v in up), meta={"source": "colmap"})
 
 
 def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
     if cam.skew:
-        raise RigFormatError(f"camera '{cam.name}': COLMAP models have no skew (K[0, 1] = {cam.skew})")
+        raise RigFormatError(
+            f"camera '{cam.name}': COLMAP models have no skew (K[0, 1] = {cam.skew})"
+        )
     d = np.zeros(14)
-    d[:cam.dist.size] = cam.dist
+    d[: cam.dist.size] = cam.dist
     if np.any(d[8:]):
-        raise RigFormatError(f"camera '{cam.name}': thin-prism/tilt distortion terms "
-                             f"{d[8:cam.dist.size].tolist()} have no COLMAP equivalent")
+        raise RigFormatError(
+            f"camera '{cam.name}': thin-prism/tilt distortion terms "
+            f"{d[8 : cam.dist.size].tolist()} have no COLMAP equivalent"
+        )
     pp = [cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5]
     if not np.any(d):
         model, params = "PINHOLE", pp
@@ -95,8 +116,9 @@ def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
         model, params = "OPENCV", pp + d[:4].tolist()
     else:
         model, params = "FULL_OPENCV", pp + d[:8].tolist()
-    return pycolmap.Camera(model=model, width=cam.width, height=cam.height, params=params,
-                           camera_id=camera_id)
+    return pycolmap.Camera(
+        model=model, width=cam.width, height=cam.height, params=params, camera_id=camera_id
+    )
 
 
 def write(rig: Rig, path: str | Path, metres_per_unit: float = 1.0) -> None:

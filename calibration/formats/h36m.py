@@ -35,8 +35,12 @@ from calibration.formats._common import RigFormatError, atomic_write, make_camer
 
 MM_PER_M = 1000.0
 # Image sizes (width, height) of the four H36M video cameras, from the dataset's metadata.
-KNOWN_SIZES = {"54138969": (1000, 1002), "55011271": (1000, 1000),
-               "58860488": (1000, 1000), "60457274": (1000, 1002)}
+KNOWN_SIZES = {
+    "54138969": (1000, 1002),
+    "55011271": (1000, 1000),
+    "58860488": (1000, 1000),
+    "60457274": (1000, 1002),
+}
 
 
 # -- H36M lens model <-> OpenCV -------------------------------------------------------------------
@@ -45,7 +49,9 @@ def h36m_to_opencv(k, p) -> np.ndarray:
     k = np.asarray(k, dtype=np.float64).ravel()
     p = np.asarray(p, dtype=np.float64).ravel()
     if k.size != 3 or p.size != 2:
-        raise RigFormatError(f"H36M distortion needs 3 radial and 2 tangential terms, got {k.size} and {p.size}")
+        raise RigFormatError(
+            f"H36M distortion needs 3 radial and 2 tangential terms, got {k.size} and {p.size}"
+        )
     return np.array([k[0], k[1], p[0] / 2, p[1] / 2, k[2], 0, 0, 0, p[1] / 2, 0, p[0] / 2, 0])
 
 
@@ -55,24 +61,30 @@ def project_h36m(points, R, T, f, c, k, p) -> np.ndarray:
     x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
     k, p = np.ravel(k), np.ravel(p)
     r2 = x * x + y * y
-    radial = 1 + k[0] * r2 + k[1] * r2 ** 2 + k[2] * r2 ** 3
+    radial = 1 + k[0] * r2 + k[1] * r2**2 + k[2] * r2**3
     tan = p[0] * y + p[1] * x
     xd = x * (radial + tan) + p[1] * r2
     yd = y * (radial + tan) + p[0] * r2
-    return np.stack([np.ravel(f)[0] * xd + np.ravel(c)[0], np.ravel(f)[1] * yd + np.ravel(c)[1]], axis=1)
+    return np.stack(
+        [np.ravel(f)[0] * xd + np.ravel(c)[0], np.ravel(f)[1] * yd + np.ravel(c)[1]], axis=1
+    )
 
 
-def opencv_to_h36m(camera: Camera, approximate: bool = False, tol: float = 1e-12
-                   ) -> tuple[np.ndarray, np.ndarray, float]:
+def opencv_to_h36m(
+    camera: Camera, approximate: bool = False, tol: float = 1e-12
+) -> tuple[np.ndarray, np.ndarray, float]:
     """(k, p, worst error px) of H36M's model for a camera's OpenCV distortion.
 
     Exact (error 0) when the distortion has H36M's structure; otherwise a least-squares fit if
     `approximate`, else RigFormatError."""
     d = np.zeros(14)
-    d[:camera.dist.size] = camera.dist
+    d[: camera.dist.size] = camera.dist
     k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = d[:12]
-    exact = (max(abs(k4), abs(k5), abs(k6), abs(s2), abs(s4), *np.abs(d[12:])) <= tol
-             and abs(s1 - p2) <= tol and abs(s3 - p1) <= tol)
+    exact = (
+        max(abs(k4), abs(k5), abs(k6), abs(s2), abs(s4), *np.abs(d[12:])) <= tol
+        and abs(s1 - p2) <= tol
+        and abs(s3 - p1) <= tol
+    )
     if exact:
         return np.array([k1, k2, k3]), np.array([2 * p1, 2 * p2]), 0.0
     if not approximate:
@@ -90,11 +102,14 @@ def _fit_h36m(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     xy = camera.undistort_points(np.stack([u.ravel(), v.ravel()], axis=1))
     x, y = xy[:, 0], xy[:, 1]
     pts = np.stack([x, y, np.ones_like(x)], axis=1)
-    target = (camera.project(pts @ camera.R + camera.center) - camera.K[:2, 2]) / [camera.fx, camera.fy]
+    target = (camera.project(pts @ camera.R + camera.center) - camera.K[:2, 2]) / [
+        camera.fx,
+        camera.fy,
+    ]
     r2 = x * x + y * y
     # x_d - x = x (k1 r2 + k2 r4 + k3 r6) + p1 x y + p2 (x^2 + r2); likewise for y.
-    Ax = np.stack([x * r2, x * r2 ** 2, x * r2 ** 3, x * y, x * x + r2], axis=1)
-    Ay = np.stack([y * r2, y * r2 ** 2, y * r2 ** 3, y * y + r2, x * y], axis=1)
+    Ax = np.stack([x * r2, x * r2**2, x * r2**3, x * y, x * x + r2], axis=1)
+    Ay = np.stack([y * r2, y * r2**2, y * r2**3, y * y + r2, x * y], axis=1)
     A = np.concatenate([Ax, Ay])
     b = np.concatenate([target[:, 0] - x, target[:, 1] - y])
     sol, *_ = np.linalg.lstsq(A, b, rcond=None)
@@ -131,14 +146,18 @@ def read(path: str | Path, subject=None, image_size: tuple[int, int] | None = No
         subjects = sorted(k for k in h5.keys() if k.startswith("subject"))
         if subject is None:
             if len(subjects) != 1:
-                raise RigFormatError(f"{path}: holds subjects {subjects}; choose one with subject=...")
+                raise RigFormatError(
+                    f"{path}: holds subjects {subjects}; choose one with subject=..."
+                )
             key = subjects[0]
         else:
             key = _subject_key(subject)
             if key not in h5:
                 raise RigFormatError(f"{path}: no group '{key}' (subjects: {subjects})")
         group = h5[key]
-        cam_keys = sorted((k for k in group.keys() if k.startswith("camera")), key=lambda s: int(s[6:]))
+        cam_keys = sorted(
+            (k for k in group.keys() if k.startswith("camera")), key=lambda s: int(s[6:])
+        )
         cameras = []
         for ck in cam_keys:
             g = group[ck]
@@ -157,12 +176,23 @@ def read(path: str | Path, subject=None, image_size: tuple[int, int] | None = No
             elif image_size is not None:
                 size = tuple(int(v) for v in image_size)
             else:
-                raise RigFormatError(f"{path}: {key}/{ck} (camera '{name}') has no known image size; "
-                                     "pass image_size=(width, height)")
-            cameras.append(make_camera(
-                path, name, K=[[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1]],
-                dist=h36m_to_opencv(g["k"][()], g["p"][()]), R=R, t=-R @ T,
-                width=size[0], height=size[1], meta={"source": "h36m", "subject": key}))
+                raise RigFormatError(
+                    f"{path}: {key}/{ck} (camera '{name}') has no known image size; "
+                    "pass image_size=(width, height)"
+                )
+            cameras.append(
+                make_camera(
+                    path,
+                    name,
+                    K=[[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1]],
+                    dist=h36m_to_opencv(g["k"][()], g["p"][()]),
+                    R=R,
+                    t=-R @ T,
+                    width=size[0],
+                    height=size[1],
+                    meta={"source": "h36m", "subject": key},
+                )
+            )
     return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "h36m", "subject": key})
 
 
@@ -175,8 +205,9 @@ def write(rig: Rig, path: str | Path, subject=1, approximate_distortion: bool = 
             raise RigFormatError(f"camera '{c.name}': H36M has no skew, K[0, 1] = {c.skew}")
         k, p, err = opencv_to_h36m(c, approximate_distortion)
         if err > 0:
-            warnings.warn(f"camera '{c.name}': H36M distortion fitted, worst error {err:.3g} px",
-                          stacklevel=2)
+            warnings.warn(
+                f"camera '{c.name}': H36M distortion fitted, worst error {err:.3g} px", stacklevel=2
+            )
         entries.append((c, k, p))
 
     def _write(tmp: Path) -> None:

@@ -42,8 +42,12 @@ def _subject_name(subject) -> str:
     return f"S{int(s)}"
 
 
-def read(path: str | Path, subject=None, tangential: str = "opencv",
-         image_size: tuple[int, int] | None = None) -> Rig:
+def read(
+    path: str | Path,
+    subject=None,
+    tangential: str = "opencv",
+    image_size: tuple[int, int] | None = None,
+) -> Rig:
     """One subject's cameras (`subject='S1'` or 1; optional when the file holds one)."""
     path = Path(path)
     if tangential not in TANGENTIAL:
@@ -56,17 +60,26 @@ def read(path: str | Path, subject=None, tangential: str = "opencv",
     extr = require(data, "extrinsics", path)
     if subject is None:
         if len(extr) != 1:
-            raise RigFormatError(f"{path}: holds subjects {sorted(extr)}; choose one with subject=...")
+            raise RigFormatError(
+                f"{path}: holds subjects {sorted(extr)}; choose one with subject=..."
+            )
         subj = next(iter(extr))
     else:
         subj = _subject_name(subject)
         if subj not in extr:
-            raise RigFormatError(f"{path}: no extrinsics for subject '{subj}' (subjects: {sorted(extr)})")
+            raise RigFormatError(
+                f"{path}: no extrinsics for subject '{subj}' (subjects: {sorted(extr)})"
+            )
     cameras = []
     for name, e in extr[subj].items():
         where = f"camera '{name}'"
         i = require(intr, name, path, "intrinsics")
-        K = as_float_array(require(i, "calibration_matrix", path, f"{where} intrinsics"), (3, 3), path, f"{where} K")
+        K = as_float_array(
+            require(i, "calibration_matrix", path, f"{where} intrinsics"),
+            (3, 3),
+            path,
+            f"{where} K",
+        )
         raw = np.asarray(i.get("distortion", []), dtype=np.float64).ravel()
         if tangential == "h36m":
             if raw.size != 5:
@@ -81,13 +94,25 @@ def read(path: str | Path, subject=None, tangential: str = "opencv",
         elif image_size is not None:
             size = tuple(int(v) for v in image_size)
         else:
-            raise RigFormatError(f"{path}: {where} has no known image size; pass image_size=(width, height)")
-        cameras.append(make_camera(
-            path, name, K=K, dist=dist,
-            R=as_float_array(require(e, "R", path, where), (3, 3), path, f"{where} R"),
-            t=as_float_array(require(e, "t", path, where), (3,), path, f"{where} t") / MM_PER_M,
-            width=size[0], height=size[1], meta={"source": "h36m-json", "subject": subj}))
-    return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "h36m-json", "subject": subj})
+            raise RigFormatError(
+                f"{path}: {where} has no known image size; pass image_size=(width, height)"
+            )
+        cameras.append(
+            make_camera(
+                path,
+                name,
+                K=K,
+                dist=dist,
+                R=as_float_array(require(e, "R", path, where), (3, 3), path, f"{where} R"),
+                t=as_float_array(require(e, "t", path, where), (3,), path, f"{where} t") / MM_PER_M,
+                width=size[0],
+                height=size[1],
+                meta={"source": "h36m-json", "subject": subj},
+            )
+        )
+    return make_rig(
+        path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "h36m-json", "subject": subj}
+    )
 
 
 def write(rig: Rig, path: str | Path, subject="S1", tangential: str = "opencv") -> None:
@@ -105,13 +130,21 @@ def write(rig: Rig, path: str | Path, subject="S1", tangential: str = "opencv") 
         else:
             d = trim_dist(c.dist)
             if d.size > 5:
-                raise RigFormatError(f"camera '{c.name}': distortion {c.dist.tolist()} needs more than "
-                                     "the 5 OpenCV terms this format holds")
+                raise RigFormatError(
+                    f"camera '{c.name}': distortion {c.dist.tolist()} needs more than "
+                    "the 5 OpenCV terms this format holds"
+                )
             dist = d.tolist()
-        intr[c.name] = {"calibration_matrix": c.K.tolist(), "distortion": [float(v) for v in dist],
-                        "width": c.width, "height": c.height}
+        intr[c.name] = {
+            "calibration_matrix": c.K.tolist(),
+            "distortion": [float(v) for v in dist],
+            "width": c.width,
+            "height": c.height,
+        }
         extr[c.name] = {"R": c.R.tolist(), "t": (c.t * MM_PER_M).reshape(3, 1).tolist()}
-    atomic_write_text(path, json.dumps({"intrinsics": intr, "extrinsics": {subj: extr}}, indent=1) + "\n")
+    atomic_write_text(
+        path, json.dumps({"intrinsics": intr, "extrinsics": {subj: extr}}, indent=1) + "\n"
+    )
 
 
 def sniff(path: Path, text: str | None) -> bool:

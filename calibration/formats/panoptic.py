@@ -43,23 +43,33 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
         ctype = cd.get("type", "")
         if camera_types is not None and ctype not in camera_types:
             continue
-        w, h = as_float_array(require(cd, "resolution", path, where), (2,), path, f"{where} resolution")
+        w, h = as_float_array(
+            require(cd, "resolution", path, where), (2,), path, f"{where} resolution"
+        )
         dist = np.asarray(cd.get("distCoef", []), dtype=np.float64).ravel()
         meta = {"source": "panoptic", "type": ctype}
         for key in ("panel", "node"):
             if key in cd:
                 meta[key] = cd[key]
-        cameras.append(make_camera(
-            path, name,
-            K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
-            dist=dist,
-            R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
-            t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t") / CM_PER_M,
-            width=int(w), height=int(h), meta=meta,
-        ))
+        cameras.append(
+            make_camera(
+                path,
+                name,
+                K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
+                dist=dist,
+                R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
+                t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t")
+                / CM_PER_M,
+                width=int(w),
+                height=int(h),
+                meta=meta,
+            )
+        )
     if not cameras:
-        raise RigFormatError(f"{path}: no cameras of types {camera_types} "
-                             f"(types present: {sorted({c.get('type') for c in cams_data})})")
+        raise RigFormatError(
+            f"{path}: no cameras of types {camera_types} "
+            f"(types present: {sorted({c.get('type') for c in cams_data})})"
+        )
     rig_meta = {"source": "panoptic"}
     if "calibDataSource" in data:
         rig_meta["calibDataSource"] = data["calibDataSource"]
@@ -71,12 +81,19 @@ def write(rig: Rig, path: str | Path) -> None:
     read from Panoptic; otherwise type 'hd', panel 0 and node = index."""
     cams = []
     for i, c in enumerate(rig):
-        cams.append({
-            "name": c.name, "type": c.meta.get("type", "hd"), "resolution": [c.width, c.height],
-            "panel": c.meta.get("panel", 0), "node": c.meta.get("node", i), "K": c.K.tolist(),
-            "distCoef": trim_dist(c.dist).tolist(), "R": c.R.tolist(),
-            "t": (c.t * CM_PER_M).reshape(3, 1).tolist(),
-        })
+        cams.append(
+            {
+                "name": c.name,
+                "type": c.meta.get("type", "hd"),
+                "resolution": [c.width, c.height],
+                "panel": c.meta.get("panel", 0),
+                "node": c.meta.get("node", i),
+                "K": c.K.tolist(),
+                "distCoef": trim_dist(c.dist).tolist(),
+                "R": c.R.tolist(),
+                "t": (c.t * CM_PER_M).reshape(3, 1).tolist(),
+            }
+        )
     data = {"calibDataSource": str(rig.meta.get("calibDataSource", "gst-capture")), "cameras": cams}
     atomic_write_text(path, json.dumps(data, indent=1) + "\n")
 

@@ -20,8 +20,15 @@ def read(path: str | Path) -> Rig:
 
 
 def write(rig: Rig, path: str | Path) -> None:
-    write_cameras(rig, path, 1.0, dist_len=4, keys="name", extra={"fisheye": False},
-                  metadata={"adjusted": False, "error": rms_or_zero(rig)})
+    write_cameras(
+        rig,
+        path,
+        1.0,
+        dist_len=4,
+        keys="name",
+        extra={"fisheye": False},
+        metadata={"adjusted": False, "error": rms_or_zero(rig)},
+    )
 
 
 def sniff(path: Path, text: str | None) -> bool:

@@ -37,7 +37,9 @@ def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
     try:
         return float(value)
     except ValueError as exc:
-        raise RigFormatError(f"{path}: {where} <{el.tag}> {attr}={value!r} is not a number") from exc
+        raise RigFormatError(
+            f"{path}: {where} <{el.tag}> {attr}={value!r} is not a number"
+        ) from exc
 
 
 def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
@@ -47,8 +49,12 @@ def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
     return el
 
 
-def read(path: str | Path, include_inactive: bool = False, video_only: bool = True,
-         distortion_scale: float = 1.0) -> Rig:
+def read(
+    path: str | Path,
+    include_inactive: bool = False,
+    video_only: bool = True,
+    distortion_scale: float = 1.0,
+) -> Rig:
     """Active video cameras (model containing 'Video', or 'none' as in exported files)."""
     path = Path(path)
     try:
@@ -67,36 +73,58 @@ def read(path: str | Path, include_inactive: bool = False, video_only: bool = Tr
         if video_only and not ("video" in model.lower() or model == "none"):
             continue
         if cam.get("viewrotation", "0") not in ("0", "0.0"):
-            raise RigFormatError(f"{path}: {where} has viewrotation={cam.get('viewrotation')}; "
-                                 "rotated views are not supported")
+            raise RigFormatError(
+                f"{path}: {where} has viewrotation={cam.get('viewrotation')}; "
+                "rotated views are not supported"
+            )
         fov = _child(cam, "fov_video", path, where)
         left, top = _float(fov, "left", path, where), _float(fov, "top", path, where)
         width = int(_float(fov, "right", path, where) - left + 1)
         height = int(_float(fov, "bottom", path, where) - top + 1)
         intr = _child(cam, "intrinsic", path, where)
         if float(intr.get("skew", "0") or 0) != 0:
-            raise RigFormatError(f"{path}: {where} has skew={intr.get('skew')}; its units are not "
-                                 "documented, so it is not supported")
+            raise RigFormatError(
+                f"{path}: {where} has skew={intr.get('skew')}; its units are not "
+                "documented, so it is not supported"
+            )
         fu = _float(intr, "focalLengthU", path, where) / SUBPIXELS_PER_PIXEL
         fv = _float(intr, "focalLengthV", path, where) / SUBPIXELS_PER_PIXEL
         cu = _float(intr, "centerPointU", path, where) / SUBPIXELS_PER_PIXEL - left
         cv = _float(intr, "centerPointV", path, where) / SUBPIXELS_PER_PIXEL - top
-        dist = distortion_scale * np.array([
-            _float(intr, "radialDistortion1", path, where), _float(intr, "radialDistortion2", path, where),
-            _float(intr, "tangentalDistortion1", path, where), _float(intr, "tangentalDistortion2", path, where),
-            _float(intr, "radialDistortion3", path, where)])
+        dist = distortion_scale * np.array(
+            [
+                _float(intr, "radialDistortion1", path, where),
+                _float(intr, "radialDistortion2", path, where),
+                _float(intr, "tangentalDistortion1", path, where),
+                _float(intr, "tangentalDistortion2", path, where),
+                _float(intr, "radialDistortion3", path, where),
+            ]
+        )
         tr = _child(cam, "transform", path, where)
         position = np.array([_float(tr, a, path, where) for a in "xyz"]) / MM_PER_M
         M = np.array([[_float(tr, f"r{r}{c}", path, where) for c in (1, 2, 3)] for r in (1, 2, 3)])
         ortho_err = float(np.abs(M @ M.T - np.eye(3)).max())
         if ortho_err > 1e-5:
-            raise RigFormatError(f"{path}: {where} rotation r11..r33 is not orthonormal "
-                                 f"(max |M M^T - I| = {ortho_err:.2e})")
+            raise RigFormatError(
+                f"{path}: {where} rotation r11..r33 is not orthonormal "
+                f"(max |M M^T - I| = {ortho_err:.2e})"
+            )
         U, _, Vt = np.linalg.svd(M)  # remove the last digits' rounding
         R = QUALISYS_TO_OPENCV_AXES @ (U @ Vt)
         meta = {"source": "qualisys", "model": model, "avg_residual": cam.get("avg-residual")}
-        cameras.append(make_camera(path, name, K=[[fu, 0, cu], [0, fv, cv], [0, 0, 1]], dist=dist, R=R,
-                                   t=-R @ position, width=width, height=height, meta=meta))
+        cameras.append(
+            make_camera(
+                path,
+                name,
+                K=[[fu, 0, cu], [0, fv, cv], [0, 0, 1]],
+                dist=dist,
+                R=R,
+                t=-R @ position,
+                width=width,
+                height=height,
+                meta=meta,
+            )
+        )
     return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "qualisys"})
 
 

@@ -32,12 +32,20 @@ def to_dict(rig: Rig) -> dict:
         "version": VERSION,
         "units": "m",
         "convention": "world_to_camera; OpenCV axes (x right, y down, z forward); "
-                      "pixel (0, 0) is the centre of the top-left pixel",
+        "pixel (0, 0) is the centre of the top-left pixel",
         "up": [float(v) for v in rig.up],
         "meta": json_safe(rig.meta),
         "cameras": [
-            {"name": c.name, "width": c.width, "height": c.height, "K": c.K.tolist(),
-             "dist": c.dist.tolist(), "R": c.R.tolist(), "t": c.t.tolist(), "meta": json_safe(c.meta)}
+            {
+                "name": c.name,
+                "width": c.width,
+                "height": c.height,
+                "K": c.K.tolist(),
+                "dist": c.dist.tolist(),
+                "R": c.R.tolist(),
+                "t": c.t.tolist(),
+                "meta": json_safe(c.meta),
+            }
             for c in rig
         ],
     }
@@ -53,8 +61,10 @@ def from_dict(data: dict, path: Path) -> Rig:
     if not isinstance(version, int) or version < 1:
         raise RigFormatError(f"{path}: version must be a positive integer, got {version!r}")
     if version > VERSION:
-        raise RigFormatError(f"{path}: rig file version {version} is newer than this reader "
-                             f"(version {VERSION}); update gst-capture")
+        raise RigFormatError(
+            f"{path}: rig file version {version} is newer than this reader "
+            f"(version {VERSION}); update gst-capture"
+        )
     units = data.get("units", "m")
     if units != "m":
         raise RigFormatError(f"{path}: units must be 'm', got '{units}'")
@@ -68,19 +78,25 @@ def from_dict(data: dict, path: Path) -> Rig:
             raise RigFormatError(f"{path}: {where} must be an object")
         unknown = set(cd) - CAMERA_KEYS
         if unknown:
-            raise RigFormatError(f"{path}: {where} has unknown keys {sorted(unknown)}; "
-                                 f"expected {sorted(CAMERA_KEYS)}")
+            raise RigFormatError(
+                f"{path}: {where} has unknown keys {sorted(unknown)}; "
+                f"expected {sorted(CAMERA_KEYS)}"
+            )
         name = require(cd, "name", path, where)
         where = f"camera '{name}'"
-        cameras.append(make_camera(
-            path, name,
-            K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
-            dist=require(cd, "dist", path, where),
-            R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
-            t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t"),
-            width=require(cd, "width", path, where), height=require(cd, "height", path, where),
-            meta=cd.get("meta") or {},
-        ))
+        cameras.append(
+            make_camera(
+                path,
+                name,
+                K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
+                dist=require(cd, "dist", path, where),
+                R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
+                t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t"),
+                width=require(cd, "width", path, where),
+                height=require(cd, "height", path, where),
+                meta=cd.get("meta") or {},
+            )
+        )
     up = data.get("up", [0.0, 0.0, 1.0])
     return make_rig(path, cameras, up=tuple(float(v) for v in up), meta=data.get("meta") or {})
 

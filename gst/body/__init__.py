@@ -62,7 +62,8 @@ def load_body_data(spec: str = "anny") -> BodyModelData:
     return load_smpl_file(path)
 
 
-def load_body_model(spec: str = "anny", device: torch.device | str | None = None,
-                    dtype: torch.dtype = torch.float32) -> BodyModel:
+def load_body_model(
+    spec: str = "anny", device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+) -> BodyModel:
     """A ready :class:`BodyModel` for ``spec`` (see :func:`load_body_data`)."""
     return BodyModel(load_body_data(spec), dtype=dtype, device=device)

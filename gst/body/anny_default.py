@@ -114,7 +114,9 @@ def _import_anny():
     try:
         import anny
     except ImportError as err:  # pragma: no cover - anny is a declared dependency
-        raise ImportError("the open default body needs the 'anny' package (pip install anny==0.6.2)") from err
+        raise ImportError(
+            "the open default body needs the 'anny' package (pip install anny==0.6.2)"
+        ) from err
     return anny
 
 
@@ -123,7 +125,9 @@ def _anny_version() -> str:
     try:
         return importlib.metadata.version("anny")
     except importlib.metadata.PackageNotFoundError as err:
-        raise ImportError("the open default body needs the 'anny' package (pip install anny==0.6.2)") from err
+        raise ImportError(
+            "the open default body needs the 'anny' package (pip install anny==0.6.2)"
+        ) from err
 
 
 # --------------------------------------------------------------------------- Anny access
@@ -140,7 +144,9 @@ class AnnyReference:
         self.model = anny.Anny()  # rig 'anny', topology 'anny', 'local-ref' pose deltas, float64
         self.bone_labels: list[str] = list(self.model.bone_labels)
         self.bone_parents: list[int] = [int(p) for p in self.model.bone_parents]
-        self.joint_bones = np.array([self.bone_labels.index(ANNY_BONE_FOR_JOINT[n]) for n in SMPL_JOINT_NAMES])
+        self.joint_bones = np.array(
+            [self.bone_labels.index(ANNY_BONE_FOR_JOINT[n]) for n in SMPL_JOINT_NAMES]
+        )
         self.axes = torch.as_tensor(ANNY_TO_SMPL_AXES, dtype=self.model.dtype)
         self.merge_targets = _merge_targets(self.bone_labels, self.bone_parents, self.joint_bones)
 
@@ -154,7 +160,9 @@ class AnnyReference:
         from anny.shape_distribution import SimpleShapeDistribution
 
         lo, hi = (torch.tensor(float(a), dtype=self.dtype) for a in age_range)
-        dist = SimpleShapeDistribution(self.model, morphological_age_distribution=torch.distributions.Uniform(lo, hi))
+        dist = SimpleShapeDistribution(
+            self.model, morphological_age_distribution=torch.distributions.Uniform(lo, hi)
+        )
         state = torch.random.get_rng_state()
         try:
             torch.manual_seed(seed)
@@ -178,7 +186,9 @@ class AnnyReference:
         heads = out["rest_bone_heads"][:, self.joint_bones]
         return self.to_smpl_axes(out["rest_vertices"]), self.to_smpl_axes(heads)
 
-    def posed(self, phenotypes: torch.Tensor, rotmats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def posed(
+        self, phenotypes: torch.Tensor, rotmats: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Pose Anny, with its own kinematics, from SMPL-layout local rotations (n, 24, 3, 3) in
         SMPL axes. Returns posed vertices (n, V_anny, 3) and the posed heads of the 24 mapped
         bones (n, 24, 3), SMPL axes, with the root bone's head at the origin.
@@ -201,14 +211,19 @@ class AnnyReference:
         rest = self.model(phenotype_kwargs=phenotypes)["rest_bone_poses"].expand(n, -1, -1, -1)
         deltas = torch.eye(4, dtype=self.dtype).repeat(n, len(self.bone_labels), 1, 1)
         deltas[..., :3, :3] = world_anny[:, self.merge_targets] @ rest[..., :3, :3]
-        out = self.model(pose_parameters=deltas, phenotype_kwargs=phenotypes,
-                         pose_parameterization="world-orient")
+        out = self.model(
+            pose_parameters=deltas,
+            phenotype_kwargs=phenotypes,
+            pose_parameterization="world-orient",
+        )
         heads = out["bone_poses"][:, self.joint_bones, :3, 3]
         return self.to_smpl_axes(out["vertices"]), self.to_smpl_axes(heads)
 
 
 # --------------------------------------------------------------------------- conversion pieces
-def _merge_targets(bone_labels: list[str], bone_parents: list[int], joint_bones: np.ndarray) -> np.ndarray:
+def _merge_targets(
+    bone_labels: list[str], bone_parents: list[int], joint_bones: np.ndarray
+) -> np.ndarray:
     """For every Anny bone, the SMPL joint that takes its skinning weights."""
     kept = {int(b): j for j, b in enumerate(joint_bones)}
     hand = {"L": SMPL_JOINT_NAMES.index("left_hand"), "R": SMPL_JOINT_NAMES.index("right_hand")}
@@ -249,7 +264,9 @@ def _segment_faces(ref: AnnyReference) -> tuple[list[str], np.ndarray]:
     return labels, face_label
 
 
-def _vertex_majority(faces: np.ndarray, face_label: np.ndarray, n_vertices: int, n_labels: int) -> np.ndarray:
+def _vertex_majority(
+    faces: np.ndarray, face_label: np.ndarray, n_vertices: int, n_labels: int
+) -> np.ndarray:
     counts = np.zeros((n_vertices, n_labels), dtype=np.int64)
     np.add.at(counts, (faces.ravel(), np.repeat(face_label, 3)), 1)
     return counts.argmax(axis=1)
@@ -279,8 +296,9 @@ def _pca_shape_space(coeffs: np.ndarray, blend: np.ndarray, template: np.ndarray
     return template + mean_c @ blend, directions, s**2, projection
 
 
-def _joint_shape_model(coeffs: np.ndarray, projection: np.ndarray, template_j: np.ndarray,
-                       blend_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _joint_shape_model(
+    coeffs: np.ndarray, projection: np.ndarray, template_j: np.ndarray, blend_j: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Best linear prediction of the bone heads from the betas over the shape distribution.
 
     Heads are h = template_j + c @ blend_j and betas b = (c - mean_c) @ P are white, so the
@@ -292,8 +310,14 @@ def _joint_shape_model(coeffs: np.ndarray, projection: np.ndarray, template_j: n
     return mean_h, np.einsum("kjd,kl,lb->jdb", blend_j, sigma, projection)
 
 
-def _fit_joint_regressor(mean_v: np.ndarray, directions: np.ndarray, mean_j: np.ndarray,
-                         joint_dirs: np.ndarray, support_size: int, radius: float) -> scipy.sparse.csr_matrix:
+def _fit_joint_regressor(
+    mean_v: np.ndarray,
+    directions: np.ndarray,
+    mean_j: np.ndarray,
+    joint_dirs: np.ndarray,
+    support_size: int,
+    radius: float,
+) -> scipy.sparse.csr_matrix:
     """A regressor R (J, V) with R @ (mean_v + directions @ b) = mean_j + joint_dirs @ b for
     every beta vector b, and rows summing to one (translation equivariance).
 
@@ -312,7 +336,9 @@ def _fit_joint_regressor(mean_v: np.ndarray, directions: np.ndarray, mean_j: np.
         support = np.sort(np.argsort(dist)[:support_size])
         prior = np.exp(-((dist[support] / radius) ** 2))
         # Equations: coordinates of the mean mesh, of every direction, and the partition of unity.
-        a = np.concatenate([mean_v[support].T[None], directions[support].transpose(2, 1, 0)], axis=0)
+        a = np.concatenate(
+            [mean_v[support].T[None], directions[support].transpose(2, 1, 0)], axis=0
+        )
         a = np.vstack([a.reshape(-1, len(support)), np.ones((1, len(support)))])
         b = np.append(np.concatenate([mean_j[j][None], joint_dirs[j].T], axis=0).reshape(-1), 1.0)
         r = prior * (a.T @ np.linalg.solve((a * prior) @ a.T, b))
@@ -323,8 +349,14 @@ def _fit_joint_regressor(mean_v: np.ndarray, directions: np.ndarray, mean_j: np.
 
 
 # --------------------------------------------------------------------------- build + cache
-def _build(num_betas: int, age_range: tuple[float, float], num_shape_samples: int,
-           support_size: int, regressor_radius: float, seed: int) -> BodyModelData:
+def _build(
+    num_betas: int,
+    age_range: tuple[float, float],
+    num_shape_samples: int,
+    support_size: int,
+    regressor_radius: float,
+    seed: int,
+) -> BodyModelData:
     t0 = time.perf_counter()
     ref = AnnyReference()
     model = ref.model
@@ -345,7 +377,9 @@ def _build(num_betas: int, age_range: tuple[float, float], num_shape_samples: in
 
     # Skinning weights merged onto the 24 joints.
     dense = torch.zeros(n_anny, len(ref.bone_labels), dtype=torch.float64)
-    dense.scatter_add_(1, model.vertex_bone_indices.long().cpu(), model.vertex_bone_weights.cpu().double())
+    dense.scatter_add_(
+        1, model.vertex_bone_indices.long().cpu(), model.vertex_bone_weights.cpu().double()
+    )
     targets = ref.merge_targets
     merge = np.zeros((len(ref.bone_labels), NUM_JOINTS))
     merge[np.arange(len(targets)), targets] = 1.0
@@ -361,14 +395,16 @@ def _build(num_betas: int, age_range: tuple[float, float], num_shape_samples: in
     template_j = model.template_bone_heads.detach().cpu().numpy()[ref.joint_bones] @ axes.T
     _check_coefficients(ref, phen[:4], coeffs[:4], source_ids, blend_v, template_v)
     mean_v, directions, variances, projection = _pca_shape_space(
-        coeffs, blend_v.reshape(len(blend_v), -1), template_v.reshape(-1), num_betas)
+        coeffs, blend_v.reshape(len(blend_v), -1), template_v.reshape(-1), num_betas
+    )
     shapedirs = directions.reshape(V, 3, num_betas)
 
     # Joint regressor: regressed joints of the model's meshes follow Anny's bone heads as well
     # as any linear function of the betas can.
     mean_j, joint_dirs = _joint_shape_model(coeffs, projection, template_j, blend_j)
-    regressor = _fit_joint_regressor(mean_v.reshape(V, 3), shapedirs, mean_j, joint_dirs,
-                                     support_size, regressor_radius)
+    regressor = _fit_joint_regressor(
+        mean_v.reshape(V, 3), shapedirs, mean_j, joint_dirs, support_size, regressor_radius
+    )
 
     # Part labels: Anny's segmentation where it is specific, the dominant joint elsewhere.
     vertex_seg = _vertex_majority(faces_all, face_seg, n_anny, len(seg_labels))[source_ids]
@@ -385,17 +421,34 @@ def _build(num_betas: int, age_range: tuple[float, float], num_shape_samples: in
 
     ratio = variances / variances.sum()
     data = BodyModelData(
-        v_template=mean_v.reshape(V, 3), shapedirs=shapedirs, J_regressor=regressor,
-        weights=weights, parents=np.array(SMPL_PARENTS, dtype=np.int64), faces=faces,
-        joint_names=SMPL_JOINT_NAMES, part_labels=part_labels, part_names=PART_NAMES,
-        posedirs=None, name="anny-default",
-        source=(f"anny {ref.anny_version} (rig 'anny', topology 'anny'), converter v{CONVERTER_VERSION}, "
-                f"PCA of {num_shape_samples} shapes, ages {age_range[0]:g}-{age_range[1]:g}"),
-        licence=ANNY_LICENCE, shape_variance=variances[:num_betas],
-        shape_variance_ratio=ratio[:num_betas], source_vertex_ids=source_ids,
+        v_template=mean_v.reshape(V, 3),
+        shapedirs=shapedirs,
+        J_regressor=regressor,
+        weights=weights,
+        parents=np.array(SMPL_PARENTS, dtype=np.int64),
+        faces=faces,
+        joint_names=SMPL_JOINT_NAMES,
+        part_labels=part_labels,
+        part_names=PART_NAMES,
+        posedirs=None,
+        name="anny-default",
+        source=(
+            f"anny {ref.anny_version} (rig 'anny', topology 'anny'), converter v{CONVERTER_VERSION}, "
+            f"PCA of {num_shape_samples} shapes, ages {age_range[0]:g}-{age_range[1]:g}"
+        ),
+        licence=ANNY_LICENCE,
+        shape_variance=variances[:num_betas],
+        shape_variance_ratio=ratio[:num_betas],
+        source_vertex_ids=source_ids,
     )
-    log.info("built the Anny default body in %.1f s (%d vertices, %d betas explain %.4f%% of shape "
-             "variance)", time.perf_counter() - t0, V, num_betas, 100 * ratio[:num_betas].sum())
+    log.info(
+        "built the Anny default body in %.1f s (%d vertices, %d betas explain %.4f%% of shape "
+        "variance)",
+        time.perf_counter() - t0,
+        V,
+        num_betas,
+        100 * ratio[:num_betas].sum(),
+    )
     return data.validate()
 
 
@@ -405,14 +458,23 @@ def _check_coefficients(ref, phen, coeffs, source_ids, blend_v, template_v) -> N
     ours = template_v[None] + np.einsum("nk,kvd->nvd", coeffs, blend_v)
     err = np.abs(rest.detach().cpu().numpy()[:, source_ids] - ours).max()
     if err > 1e-6:
-        raise RuntimeError(f"Anny blend-shape coefficients do not reproduce Anny's rest mesh "
-                           f"(max error {err:.2e} m); is anny {ref.anny_version} supported?")
+        raise RuntimeError(
+            f"Anny blend-shape coefficients do not reproduce Anny's rest mesh "
+            f"(max error {err:.2e} m); is anny {ref.anny_version} supported?"
+        )
 
 
-def build_anny_default(cache_dir: str | Path | None = None, *, num_betas: int = 16,
-                       age_range: tuple[float, float] = (12.0, 80.0), num_shape_samples: int = 5000,
-                       support_size: int = 3200, regressor_radius: float = 0.2, seed: int = 0,
-                       rebuild: bool = False) -> BodyModelData:
+def build_anny_default(
+    cache_dir: str | Path | None = None,
+    *,
+    num_betas: int = 16,
+    age_range: tuple[float, float] = (12.0, 80.0),
+    num_shape_samples: int = 5000,
+    support_size: int = 3200,
+    regressor_radius: float = 0.2,
+    seed: int = 0,
+    rebuild: bool = False,
+) -> BodyModelData:
     """The open default body in SMPL layout, built from Anny once and then read from the cache.
 
     Args:
@@ -430,9 +492,16 @@ def build_anny_default(cache_dir: str | Path | None = None, *, num_betas: int = 
     """
     if num_betas < 10:
         raise ValueError(f"num_betas must be at least 10, got {num_betas}")
-    key = {"converter": CONVERTER_VERSION, "anny": _anny_version(), "num_betas": num_betas,
-           "age_range": [float(a) for a in age_range], "num_shape_samples": num_shape_samples,
-           "support_size": support_size, "regressor_radius": regressor_radius, "seed": seed}
+    key = {
+        "converter": CONVERTER_VERSION,
+        "anny": _anny_version(),
+        "num_betas": num_betas,
+        "age_range": [float(a) for a in age_range],
+        "num_shape_samples": num_shape_samples,
+        "support_size": support_size,
+        "regressor_radius": regressor_radius,
+        "seed": seed,
+    }
     digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
     folder = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     path = folder / "body" / f"anny-default-smpl24-{digest}.npz"
@@ -442,6 +511,8 @@ def build_anny_default(cache_dir: str | Path | None = None, *, num_betas: int = 
         except (ValueError, OSError, KeyError) as err:
             log.warning("ignoring unreadable cached body %s (%s); rebuilding", path, err)
     log.info("building the Anny default body (first time only, about a minute) -> %s", path)
-    data = _build(num_betas, tuple(age_range), num_shape_samples, support_size, regressor_radius, seed)
+    data = _build(
+        num_betas, tuple(age_range), num_shape_samples, support_size, regressor_radius, seed
+    )
     data.save_npz(path)
     return data

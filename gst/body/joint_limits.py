@@ -65,15 +65,23 @@ def euler_xyz_to_matrix(angles: torch.Tensor) -> torch.Tensor:
     return rx @ ry @ rz
 
 
-def sample_body_pose(n: int, generator: torch.Generator | None = None, scale: float = 1.0,
-                     dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def sample_body_pose(
+    n: int,
+    generator: torch.Generator | None = None,
+    scale: float = 1.0,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
     """(n, 23, 3, 3) local rotations of SMPL joints 1..23, each angle uniform within its limits
     (limits scaled about zero by ``scale``, which must lie in [0, 1])."""
     if not 0.0 <= scale <= 1.0:
         raise ValueError(f"scale must lie in [0, 1], got {scale}")
     names = SMPL_JOINT_NAMES[1:]
-    lo = torch.tensor([[r[0] for r in JOINT_LIMITS_DEG[name]] for name in names], dtype=torch.float64)
-    hi = torch.tensor([[r[1] for r in JOINT_LIMITS_DEG[name]] for name in names], dtype=torch.float64)
+    lo = torch.tensor(
+        [[r[0] for r in JOINT_LIMITS_DEG[name]] for name in names], dtype=torch.float64
+    )
+    hi = torch.tensor(
+        [[r[1] for r in JOINT_LIMITS_DEG[name]] for name in names], dtype=torch.float64
+    )
     u = torch.rand((n, len(names), 3), generator=generator, dtype=torch.float64)
     angles = np.deg2rad(1.0) * scale * (lo + u * (hi - lo))
     return euler_xyz_to_matrix(angles).to(dtype)

@@ -89,7 +89,9 @@ class BodyModelData:
 
         def shape_is(field: str, arr, want: tuple) -> None:
             got = tuple(np.shape(arr))
-            if len(got) != len(want) or any(w is not None and g != w for g, w in zip(got, want, strict=True)):
+            if len(got) != len(want) or any(
+                w is not None and g != w for g, w in zip(got, want, strict=True)
+            ):
                 pretty = "(" + ", ".join("*" if w is None else str(w) for w in want) + ")"
                 fail(field, f"has shape {got}, expected {pretty}")
 
@@ -106,13 +108,18 @@ class BodyModelData:
             fail("joint_names", f"has {len(self.joint_names)} names, expected {J}")
         parents = np.asarray(self.parents)
         if parents[0] != -1 or np.any(parents[1:] < 0) or np.any(parents[1:] >= np.arange(1, J)):
-            fail("parents", f"must have parents[0] = -1 and 0 <= parents[j] < j, got {parents.tolist()}")
+            fail(
+                "parents",
+                f"must have parents[0] = -1 and 0 <= parents[j] < j, got {parents.tolist()}",
+            )
         faces = np.asarray(self.faces)
         if faces.size and (faces.min() < 0 or faces.max() >= V):
             fail("faces", f"index vertices outside [0, {V})")
         w = np.asarray(self.weights)
         if not np.all(np.isfinite(w)) or w.min() < -1e-6 or np.abs(w.sum(1) - 1).max() > 1e-4:
-            fail("weights", "must be finite, non-negative, and sum to 1 over joints for every vertex")
+            fail(
+                "weights", "must be finite, non-negative, and sum to 1 over joints for every vertex"
+            )
         for field in ("v_template", "shapedirs"):
             if not np.all(np.isfinite(getattr(self, field))):
                 fail(field, "contains NaN or Inf")
@@ -121,8 +128,10 @@ class BodyModelData:
         labels = np.asarray(self.part_labels)
         n_parts = len(self.part_names) if self.part_names is not None else None
         if labels.size and (labels.min() < 0 or (n_parts is not None and labels.max() >= n_parts)):
-            fail("part_labels", f"must index part_names (0..{n_parts}), got range "
-                 f"[{labels.min()}, {labels.max()}]")
+            fail(
+                "part_labels",
+                f"must index part_names (0..{n_parts}), got range [{labels.min()}, {labels.max()}]",
+            )
         return self
 
     # ----- persistence (our own npz; official SMPL files are read by gst.body.smpl_file) -----
@@ -144,13 +153,19 @@ class BodyModelData:
             "source": np.array(self.source),
             "licence": np.array(self.licence),
         }
-        optional = {"part_names": self.part_names, "posedirs": self.posedirs,
-                    "shape_variance": self.shape_variance,
-                    "shape_variance_ratio": self.shape_variance_ratio,
-                    "source_vertex_ids": self.source_vertex_ids}
+        optional = {
+            "part_names": self.part_names,
+            "posedirs": self.posedirs,
+            "shape_variance": self.shape_variance,
+            "shape_variance_ratio": self.shape_variance_ratio,
+            "source_vertex_ids": self.source_vertex_ids,
+        }
         for key, value in optional.items():
             if value is not None:
-                arrays[key] = np.array(list(value), dtype=str) if key == "part_names" else np.asarray(value)
+                arrays[key] = (
+                    np.array(list(value), dtype=str) if key == "part_names" else np.asarray(value)
+                )
+
         def write(tmp: str) -> None:
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
@@ -167,12 +182,22 @@ class BodyModelData:
                 raise ValueError(f"{path}: not a {_NPZ_FORMAT} body file (keys {sorted(z.files)})")
             get = lambda k: z[k] if k in z.files else None  # noqa: E731
             data = cls(
-                v_template=z["v_template"], shapedirs=z["shapedirs"], J_regressor=z["J_regressor"],
-                weights=z["weights"], parents=z["parents"], faces=z["faces"],
-                joint_names=tuple(str(s) for s in z["joint_names"]), part_labels=z["part_labels"],
-                part_names=tuple(str(s) for s in z["part_names"]) if "part_names" in z.files else None,
-                posedirs=get("posedirs"), name=str(z["name"]), source=str(z["source"]),
-                licence=str(z["licence"]), shape_variance=get("shape_variance"),
+                v_template=z["v_template"],
+                shapedirs=z["shapedirs"],
+                J_regressor=z["J_regressor"],
+                weights=z["weights"],
+                parents=z["parents"],
+                faces=z["faces"],
+                joint_names=tuple(str(s) for s in z["joint_names"]),
+                part_labels=z["part_labels"],
+                part_names=tuple(str(s) for s in z["part_names"])
+                if "part_names" in z.files
+                else None,
+                posedirs=get("posedirs"),
+                name=str(z["name"]),
+                source=str(z["source"]),
+                licence=str(z["licence"]),
+                shape_variance=get("shape_variance"),
                 shape_variance_ratio=get("shape_variance_ratio"),
                 source_vertex_ids=get("source_vertex_ids"),
             )
@@ -202,8 +227,12 @@ class BodyModel(torch.nn.Module):
     ``model.to(torch.float64)`` switches precision; inputs are cast to the model's dtype.
     """
 
-    def __init__(self, data: BodyModelData, dtype: torch.dtype = torch.float32,
-                 device: torch.device | str | None = None) -> None:
+    def __init__(
+        self,
+        data: BodyModelData,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> None:
         super().__init__()
         data.validate()
         self.data = data
@@ -222,7 +251,9 @@ class BodyModel(torch.nn.Module):
         v_template = np.asarray(data.v_template, dtype=np.float64)
 
         def buf(name: str, arr: np.ndarray) -> None:
-            self.register_buffer(name, torch.as_tensor(np.ascontiguousarray(arr), dtype=dtype, device=device))
+            self.register_buffer(
+                name, torch.as_tensor(np.ascontiguousarray(arr), dtype=dtype, device=device)
+            )
 
         buf("v_template", v_template)
         buf("shapedirs", shapedirs)
@@ -231,7 +262,10 @@ class BodyModel(torch.nn.Module):
         # Joints are linear in betas: regress the template and each blend shape once, in float64,
         # instead of multiplying a (J, V) matrix by every rest mesh at run time.
         buf("J_template", reg @ v_template)
-        buf("J_shapedirs", (reg @ shapedirs.reshape(self.num_vertices, -1)).reshape(self.num_joints, 3, -1))
+        buf(
+            "J_shapedirs",
+            (reg @ shapedirs.reshape(self.num_vertices, -1)).reshape(self.num_joints, 3, -1),
+        )
         if data.posedirs is not None:
             buf("posedirs", np.asarray(data.posedirs, dtype=np.float64))
         else:
@@ -241,20 +275,30 @@ class BodyModel(torch.nn.Module):
         levels = kinematic_levels(self.parents)
         order = np.concatenate(levels)
         self._level_slices: list[tuple[int, int]] = []
-        local_parent = np.zeros(len(order), dtype=np.int64)  # parent's position inside previous level
+        local_parent = np.zeros(
+            len(order), dtype=np.int64
+        )  # parent's position inside previous level
         start = 0
         for d, level in enumerate(levels):
             self._level_slices.append((start, start + len(level)))
             if d > 0:
                 prev = {int(j): i for i, j in enumerate(levels[d - 1])}
-                local_parent[start:start + len(level)] = [prev[int(self.parents[j])] for j in level]
+                local_parent[start : start + len(level)] = [
+                    prev[int(self.parents[j])] for j in level
+                ]
             start += len(level)
         self.register_buffer("_order", torch.as_tensor(order, device=device), persistent=False)
-        self.register_buffer("_inverse_order", torch.as_tensor(np.argsort(order), device=device),
-                             persistent=False)
-        self.register_buffer("_local_parent", torch.as_tensor(local_parent, device=device), persistent=False)
-        self.register_buffer("_parent_index", torch.as_tensor(np.maximum(self.parents, 0), device=device),
-                             persistent=False)
+        self.register_buffer(
+            "_inverse_order", torch.as_tensor(np.argsort(order), device=device), persistent=False
+        )
+        self.register_buffer(
+            "_local_parent", torch.as_tensor(local_parent, device=device), persistent=False
+        )
+        self.register_buffer(
+            "_parent_index",
+            torch.as_tensor(np.maximum(self.parents, 0), device=device),
+            persistent=False,
+        )
 
     @property
     def dtype(self) -> torch.dtype:
@@ -265,8 +309,10 @@ class BodyModel(torch.nn.Module):
         return self.v_template.device
 
     def extra_repr(self) -> str:
-        return (f"name={self.name!r}, vertices={self.num_vertices}, joints={self.num_joints}, "
-                f"betas={self.num_betas}, posedirs={self.posedirs is not None}")
+        return (
+            f"name={self.name!r}, vertices={self.num_vertices}, joints={self.num_joints}, "
+            f"betas={self.num_betas}, posedirs={self.posedirs is not None}"
+        )
 
     # ------------------------------------------------------------------ input checking
     def _tensor(self, x, name: str) -> torch.Tensor:
@@ -303,8 +349,10 @@ class BodyModel(torch.nn.Module):
             else:
                 raise ValueError(f"{name} must have shape {expected}, got {_fmt(shape)}")
         else:
-            expected = (f"(B, {count}, 3, 3) rotation matrices, (B, {count}, 3) or "
-                        f"(B, {3 * count}) axis-angle")
+            expected = (
+                f"(B, {count}, 3, 3) rotation matrices, (B, {count}, 3) or "
+                f"(B, {3 * count}) axis-angle"
+            )
             if x.dim() == 4 and shape[1:] == (count, 3, 3):
                 pass
             elif x.dim() == 3 and shape[1:] == (count, 3):
@@ -323,11 +371,15 @@ class BodyModel(torch.nn.Module):
             return None
         ids = torch.as_tensor(vertex_ids, device=self.device)
         if ids.dim() != 1 or ids.dtype not in (torch.int64, torch.int32):
-            raise ValueError(f"vertex_ids must be a 1-D integer tensor, got shape {_fmt(ids.shape)} "
-                             f"dtype {ids.dtype}")
+            raise ValueError(
+                f"vertex_ids must be a 1-D integer tensor, got shape {_fmt(ids.shape)} "
+                f"dtype {ids.dtype}"
+            )
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= self.num_vertices):
-            raise ValueError(f"vertex_ids must lie in [0, {self.num_vertices}), got range "
-                             f"[{int(ids.min())}, {int(ids.max())}]")
+            raise ValueError(
+                f"vertex_ids must lie in [0, {self.num_vertices}), got range "
+                f"[{int(ids.min())}, {int(ids.max())}]"
+            )
         return ids.long()
 
     # ------------------------------------------------------------------ model pieces
@@ -336,7 +388,9 @@ class BodyModel(torch.nn.Module):
         nb = betas.shape[1]
         return self.J_template + torch.einsum("bl,jkl->bjk", betas, self.J_shapedirs[..., :nb])
 
-    def rest_vertices(self, betas: torch.Tensor, vertex_ids: torch.Tensor | None = None) -> torch.Tensor:
+    def rest_vertices(
+        self, betas: torch.Tensor, vertex_ids: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """(B, V', 3) rest-pose vertices (no pose correctives)."""
         nb = betas.shape[1]
         v_t = self.v_template if vertex_ids is None else self.v_template[vertex_ids]
@@ -363,9 +417,15 @@ class BodyModel(torch.nn.Module):
         return g_rot, g_pos
 
     # ------------------------------------------------------------------ forward
-    def forward(self, betas: torch.Tensor | None, body_pose: torch.Tensor, global_orient: torch.Tensor,
-                transl: torch.Tensor | None = None, vertex_ids: torch.Tensor | None = None,
-                return_transforms: bool = False) -> BodyOutput:
+    def forward(
+        self,
+        betas: torch.Tensor | None,
+        body_pose: torch.Tensor,
+        global_orient: torch.Tensor,
+        transl: torch.Tensor | None = None,
+        vertex_ids: torch.Tensor | None = None,
+        return_transforms: bool = False,
+    ) -> BodyOutput:
         """Pose the body.
 
         Args:
@@ -387,13 +447,21 @@ class BodyModel(torch.nn.Module):
         B = body_rot.shape[0]
         root_rot = self._rotations(global_orient, "global_orient", 1)
         if root_rot.shape[0] != B:
-            raise ValueError(f"global_orient has batch {root_rot.shape[0]} but body_pose has batch {B}")
+            raise ValueError(
+                f"global_orient has batch {root_rot.shape[0]} but body_pose has batch {B}"
+            )
         if betas is None:
             betas = torch.zeros(B, self.num_betas, dtype=self.dtype, device=self.device)
         betas = self._tensor(betas, "betas")
-        if betas.dim() != 2 or betas.shape[0] not in (1, B) or not 0 < betas.shape[1] <= self.num_betas:
-            raise ValueError(f"betas must have shape (B, nb) with B = {B} (or 1) and "
-                             f"1 <= nb <= {self.num_betas}, got {_fmt(betas.shape)}")
+        if (
+            betas.dim() != 2
+            or betas.shape[0] not in (1, B)
+            or not 0 < betas.shape[1] <= self.num_betas
+        ):
+            raise ValueError(
+                f"betas must have shape (B, nb) with B = {B} (or 1) and "
+                f"1 <= nb <= {self.num_betas}, got {_fmt(betas.shape)}"
+            )
         self._finite(betas, "betas")
         betas = betas.expand(B, -1)
         if transl is not None:
@@ -411,7 +479,9 @@ class BodyModel(torch.nn.Module):
             pose_feature = (rotmats[:, 1:] - eye).reshape(B, -1)
             posedirs = self.posedirs
             if ids is not None:
-                posedirs = posedirs.reshape(posedirs.shape[0], -1, 3)[:, ids].reshape(posedirs.shape[0], -1)
+                posedirs = posedirs.reshape(posedirs.shape[0], -1, 3)[:, ids].reshape(
+                    posedirs.shape[0], -1
+                )
             v = v + (pose_feature @ posedirs).reshape(B, -1, 3)
 
         g_rot, g_pos = self._forward_kinematics(rotmats, joints_rest)
@@ -424,19 +494,28 @@ class BodyModel(torch.nn.Module):
         # elementwise products: on CPU this beats batched 3x3 matmuls over the vertices, forward
         # and (twice over) backward, and avoids slicing a large tensor, whose backward zero-fills it.
         a12 = torch.cat([g_rot.reshape(B, self.num_joints, 9), a_trans], dim=-1)  # (B, J, 12)
-        r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz = (a12.transpose(1, 2) @ w_t).unbind(1)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz = (
+            a12.transpose(1, 2) @ w_t
+        ).unbind(1)
         x, y, z = v.unbind(-1)
-        vertices = torch.stack([r00 * x + r01 * y + r02 * z + tx,
-                                r10 * x + r11 * y + r12 * z + ty,
-                                r20 * x + r21 * y + r22 * z + tz], dim=-1)
+        vertices = torch.stack(
+            [
+                r00 * x + r01 * y + r02 * z + tx,
+                r10 * x + r11 * y + r12 * z + ty,
+                r20 * x + r21 * y + r22 * z + tz,
+            ],
+            dim=-1,
+        )
 
         out = BodyOutput(vertices=vertices, joints=g_pos)
         if return_transforms:
             out.joint_transforms = _homogeneous(torch.cat([g_rot, a_trans[..., None]], dim=-1))
             # sum_j w_vj A_j; its last row is [0 0 0 1] because the weights sum to one.
             zero, one = torch.zeros_like(x), torch.ones_like(x)
-            out.vertex_transforms = torch.stack([r00, r01, r02, tx, r10, r11, r12, ty, r20, r21, r22, tz,
-                                                 zero, zero, zero, one], dim=-1).reshape(B, -1, 4, 4)
+            out.vertex_transforms = torch.stack(
+                [r00, r01, r02, tx, r10, r11, r12, ty, r20, r21, r22, tz, zero, zero, zero, one],
+                dim=-1,
+            ).reshape(B, -1, 4, 4)
         return out
 
 

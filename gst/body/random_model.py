@@ -34,7 +34,13 @@ ROUGH_TPOSE_JOINTS = np.array([
     [0.68, 0.44, -0.03], [-0.68, 0.44, -0.03], [0.76, 0.43, -0.04], [-0.76, 0.43, -0.04],
 ])  # fmt: skip
 
-_LEAF_EXTENSION = {"head": 0.18, "left_hand": 0.10, "right_hand": 0.10, "left_foot": 0.08, "right_foot": 0.08}
+_LEAF_EXTENSION = {
+    "head": 0.18,
+    "left_hand": 0.10,
+    "right_hand": 0.10,
+    "left_foot": 0.08,
+    "right_foot": 0.08,
+}
 _RING = 16
 
 
@@ -59,8 +65,11 @@ def _tube(a: np.ndarray, b: np.ndarray, radius: float, n_len: int) -> tuple[np.n
     phi = 2 * np.pi * np.arange(_RING) / _RING
     # Slightly tapered ends so neighbouring tubes do not coincide.
     r = radius * (0.85 + 0.15 * np.sin(np.pi * t))
-    pts = (a + t[:, None, None] * axis + r[:, None, None]
-           * (np.cos(phi)[None, :, None] * e1 + np.sin(phi)[None, :, None] * e2))
+    pts = (
+        a
+        + t[:, None, None] * axis
+        + r[:, None, None] * (np.cos(phi)[None, :, None] * e1 + np.sin(phi)[None, :, None] * e2)
+    )
     return pts.reshape(-1, 3), np.repeat(t, _RING)
 
 
@@ -74,8 +83,9 @@ def _tube_faces(first: int, n_len: int) -> np.ndarray:
     return np.array(faces, dtype=np.int64).reshape(-1, 3)
 
 
-def random_body_data(num_vertices: int = 6890, num_betas: int = 10, with_posedirs: bool = True,
-                     seed: int = 0) -> BodyModelData:
+def random_body_data(
+    num_vertices: int = 6890, num_betas: int = 10, with_posedirs: bool = True, seed: int = 0
+) -> BodyModelData:
     """A synthetic SMPL-layout body with exactly ``num_vertices`` vertices (>= 400)."""
     if num_vertices < 400:
         raise ValueError(f"num_vertices must be at least 400, got {num_vertices}")
@@ -120,8 +130,9 @@ def random_body_data(num_vertices: int = 6890, num_betas: int = 10, with_posedir
         near = np.argsort(np.linalg.norm(v - joints[j], axis=1))[:12]
         rows += [j] * len(near)
         cols += near.tolist()
-    regressor = scipy.sparse.csr_matrix((np.full(len(rows), 1.0 / 12), (rows, cols)),
-                                        shape=(NUM_JOINTS, num_vertices))
+    regressor = scipy.sparse.csr_matrix(
+        (np.full(len(rows), 1.0 / 12), (rows, cols)), shape=(NUM_JOINTS, num_vertices)
+    )
 
     # Shape: overall scale, girth, then smooth random fields (about a centimetre per beta).
     centre = v.mean(axis=0)
@@ -132,12 +143,24 @@ def random_body_data(num_vertices: int = 6890, num_betas: int = 10, with_posedir
     for b in range(2, num_betas):
         lin = rng.normal(size=(3, 3)) * 0.01
         shapedirs[:, :, b] = (v - centre) @ lin + 0.003 * np.sin(v @ rng.normal(size=(3, 3)) * 6.0)
-    posedirs = rng.normal(scale=2e-3, size=(9 * (NUM_JOINTS - 1), 3 * num_vertices)) if with_posedirs else None
+    posedirs = (
+        rng.normal(scale=2e-3, size=(9 * (NUM_JOINTS - 1), 3 * num_vertices))
+        if with_posedirs
+        else None
+    )
 
     return BodyModelData(
-        v_template=v, shapedirs=shapedirs, J_regressor=regressor, weights=weights,
-        parents=np.array(SMPL_PARENTS), faces=faces, joint_names=SMPL_JOINT_NAMES,
-        part_labels=parts_from_weights(weights, SMPL_JOINT_NAMES), part_names=PART_NAMES,
-        posedirs=posedirs, name=f"random-{num_vertices}", source=f"gst.body.random_model seed {seed}",
+        v_template=v,
+        shapedirs=shapedirs,
+        J_regressor=regressor,
+        weights=weights,
+        parents=np.array(SMPL_PARENTS),
+        faces=faces,
+        joint_names=SMPL_JOINT_NAMES,
+        part_labels=parts_from_weights(weights, SMPL_JOINT_NAMES),
+        part_names=PART_NAMES,
+        posedirs=posedirs,
+        name=f"random-{num_vertices}",
+        source=f"gst.body.random_model seed {seed}",
         licence="synthetic (no licence restrictions)",
     ).validate()

@@ -27,7 +27,7 @@ _GS_EPS = 1e-12
 def _check_last_dims(x: torch.Tensor, dims: tuple[int, ...], name: str, fn: str) -> None:
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{fn}: {name} must be a torch.Tensor, got {type(x).__name__}")
-    if tuple(x.shape[x.dim() - len(dims):]) != dims or x.dim() < len(dims):
+    if tuple(x.shape[x.dim() - len(dims) :]) != dims or x.dim() < len(dims):
         want = "(..., " + ", ".join(map(str, dims)) + ")"
         raise ValueError(f"{fn}: {name} must have shape {want}, got {tuple(x.shape)}")
 

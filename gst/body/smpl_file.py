@@ -36,9 +36,17 @@ SMPL_LICENCE_NOTE = (
 _GENDERS = ("neutral", "male", "female")
 # File names used by the official releases, most specific first.
 _OFFICIAL_NAMES = {
-    "neutral": ["SMPL_NEUTRAL", "basicModel_neutral_lbs_10_207_0_v1.0.0", "basicmodel_neutral_lbs_10_207_0_v1.1.0"],
+    "neutral": [
+        "SMPL_NEUTRAL",
+        "basicModel_neutral_lbs_10_207_0_v1.0.0",
+        "basicmodel_neutral_lbs_10_207_0_v1.1.0",
+    ],
     "male": ["SMPL_MALE", "basicmodel_m_lbs_10_207_0_v1.0.0", "basicmodel_m_lbs_10_207_0_v1.1.0"],
-    "female": ["SMPL_FEMALE", "basicModel_f_lbs_10_207_0_v1.0.0", "basicmodel_f_lbs_10_207_0_v1.1.0"],
+    "female": [
+        "SMPL_FEMALE",
+        "basicModel_f_lbs_10_207_0_v1.0.0",
+        "basicmodel_f_lbs_10_207_0_v1.1.0",
+    ],
 }
 
 
@@ -69,12 +77,17 @@ class _Placeholder:
 
 
 def _placeholder_class(kind: str, module: str, name: str) -> type:
-    return type(f"{kind}:{module}.{name}", (_Placeholder,), {"kind": kind, "qualname": f"{module}.{name}"})
+    return type(
+        f"{kind}:{module}.{name}", (_Placeholder,), {"kind": kind, "qualname": f"{module}.{name}"}
+    )
 
 
 def _numpy_global(module: str, name: str):
     # numpy >= 2 keeps the array reconstruction helpers in numpy._core; old pickles say numpy.core.
-    if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name in ("_reconstruct", "scalar"):
+    if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name in (
+        "_reconstruct",
+        "scalar",
+    ):
         import numpy._core.multiarray as multiarray
 
         return getattr(multiarray, name)
@@ -97,8 +110,15 @@ def _latin1_encode(text: str, encoding: str = "utf-8") -> bytes:
     return text.encode("latin1")
 
 
-_BUILTINS = {"object": object, "set": set, "frozenset": frozenset, "list": list, "dict": dict,
-             "tuple": tuple, "complex": complex}
+_BUILTINS = {
+    "object": object,
+    "set": set,
+    "frozenset": frozenset,
+    "list": list,
+    "dict": dict,
+    "tuple": tuple,
+    "complex": complex,
+}
 
 
 class _RestrictedUnpickler(pickle.Unpickler):
@@ -116,8 +136,10 @@ class _RestrictedUnpickler(pickle.Unpickler):
             return _placeholder_class("chumpy", module, name)
         if module.startswith("scipy.sparse") and name.endswith(("_matrix", "_array")):
             return _placeholder_class("sparse", module, name)
-        raise UnsafePickleError(f"refusing to load {module}.{name} from a pickle (only numpy arrays, "
-                                "chumpy arrays and scipy sparse matrices are allowed)")
+        raise UnsafePickleError(
+            f"refusing to load {module}.{name} from a pickle (only numpy arrays, "
+            "chumpy arrays and scipy sparse matrices are allowed)"
+        )
 
 
 def _convert(obj: Any, where: str) -> Any:
@@ -126,8 +148,10 @@ def _convert(obj: Any, where: str) -> Any:
         if obj.kind == "chumpy":
             state = obj.state if isinstance(obj.state, dict) else {}
             if "x" not in state:
-                raise ValueError(f"{where}: chumpy object {obj.qualname} is not a plain array (it is a "
-                                 "derived expression); convert the file to .npz with numpy arrays first")
+                raise ValueError(
+                    f"{where}: chumpy object {obj.qualname} is not a plain array (it is a "
+                    "derived expression); convert the file to .npz with numpy arrays first"
+                )
             return np.asarray(_convert(state["x"], where))
         return _sparse_from_state(obj, where)
     if isinstance(obj, dict):
@@ -144,11 +168,19 @@ def _sparse_from_state(obj: _Placeholder, where: str):
     try:
         if fmt in ("csc", "csr"):
             cls = scipy.sparse.csc_matrix if fmt == "csc" else scipy.sparse.csr_matrix
-            return cls((np.asarray(state["data"]), np.asarray(state["indices"]), np.asarray(state["indptr"])),
-                       shape=tuple(shape))
+            return cls(
+                (
+                    np.asarray(state["data"]),
+                    np.asarray(state["indices"]),
+                    np.asarray(state["indptr"]),
+                ),
+                shape=tuple(shape),
+            )
         if fmt == "coo":
-            return scipy.sparse.coo_matrix((np.asarray(state["data"]), (np.asarray(state["row"]),
-                                            np.asarray(state["col"]))), shape=tuple(shape)).tocsr()
+            return scipy.sparse.coo_matrix(
+                (np.asarray(state["data"]), (np.asarray(state["row"]), np.asarray(state["col"]))),
+                shape=tuple(shape),
+            ).tocsr()
     except (KeyError, TypeError) as err:
         raise ValueError(f"{where}: unreadable sparse matrix {obj.qualname} ({err})") from err
     raise ValueError(f"{where}: unsupported sparse matrix type {obj.qualname}")
@@ -205,8 +237,10 @@ def _read_raw(path: Path) -> dict[str, Any]:
             with np.load(path, allow_pickle=False) as z:
                 return {k: z[k] for k in z.files}
         except ValueError as err:
-            raise ValueError(f"{path}: holds pickled objects, which we do not load from .npz ({err}); "
-                             "use the official .pkl or save plain arrays") from err
+            raise ValueError(
+                f"{path}: holds pickled objects, which we do not load from .npz ({err}); "
+                "use the official .pkl or save plain arrays"
+            ) from err
     raise ValueError(f"{path}: unknown SMPL file type {path.suffix!r}, expected .pkl or .npz")
 
 
@@ -235,12 +269,18 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
     faces = np.asarray(_required(raw, "f", file)).astype(np.int64)
     kintree = np.asarray(_required(raw, "kintree_table", file)).astype(np.int64)
     reg = _required(raw, "J_regressor", file)
-    reg = reg.astype(np.float64).tocsr() if scipy.sparse.issparse(reg) else np.asarray(reg, dtype=np.float64)
+    reg = (
+        reg.astype(np.float64).tocsr()
+        if scipy.sparse.issparse(reg)
+        else np.asarray(reg, dtype=np.float64)
+    )
 
     V = v_template.shape[0] if v_template.ndim == 2 else -1
     if kintree.ndim != 2 or kintree.shape[0] != 2 or kintree.shape[1] != NUM_JOINTS:
-        raise ValueError(f"{file}: kintree_table has shape {kintree.shape}, expected (2, {NUM_JOINTS}); "
-                         "only the 24-joint SMPL body is supported")
+        raise ValueError(
+            f"{file}: kintree_table has shape {kintree.shape}, expected (2, {NUM_JOINTS}); "
+            "only the 24-joint SMPL body is supported"
+        )
     parents = kintree[0].copy()
     parents[0] = -1  # stored as uint32 max in the official files
     if shapedirs.ndim == 2 and V > 0:  # some exports flatten (V*3, B)
@@ -250,15 +290,25 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
         posedirs = np.asarray(posedirs, dtype=np.float64)
         n_pose = 9 * (NUM_JOINTS - 1)
         if posedirs.shape != (V, 3, n_pose):
-            raise ValueError(f"{file}: posedirs has shape {posedirs.shape}, expected ({V}, 3, {n_pose})")
+            raise ValueError(
+                f"{file}: posedirs has shape {posedirs.shape}, expected ({V}, 3, {n_pose})"
+            )
         posedirs = posedirs.reshape(-1, n_pose).T.copy()  # smplx's (P, V*3) layout
     gender_name = (gender or "neutral").lower()
     data = BodyModelData(
-        v_template=v_template, shapedirs=shapedirs, J_regressor=reg, weights=weights,
-        parents=parents, faces=faces, joint_names=SMPL_JOINT_NAMES,
-        part_labels=parts_from_weights(weights, SMPL_JOINT_NAMES), part_names=PART_NAMES,
-        posedirs=posedirs, name=f"SMPL ({gender_name})" if file.stem.startswith("SMPL_") else f"SMPL ({file.stem})",
-        source=str(file), licence=SMPL_LICENCE_NOTE,
+        v_template=v_template,
+        shapedirs=shapedirs,
+        J_regressor=reg,
+        weights=weights,
+        parents=parents,
+        faces=faces,
+        joint_names=SMPL_JOINT_NAMES,
+        part_labels=parts_from_weights(weights, SMPL_JOINT_NAMES),
+        part_names=PART_NAMES,
+        posedirs=posedirs,
+        name=f"SMPL ({gender_name})" if file.stem.startswith("SMPL_") else f"SMPL ({file.stem})",
+        source=str(file),
+        licence=SMPL_LICENCE_NOTE,
     )
     try:
         return data.validate()

@@ -73,7 +73,9 @@ def vertex_subset(model_or_data: BodyModel | BodyModelData, preset: str) -> np.n
     mesh (all surface vertices when the mesh has no more than that).
     """
     if preset not in VERTEX_PRESETS:
-        raise ValueError(f"unknown vertex preset {preset!r}; expected one of {list(VERTEX_PRESETS)}")
+        raise ValueError(
+            f"unknown vertex preset {preset!r}; expected one of {list(VERTEX_PRESETS)}"
+        )
     data = model_or_data.data if isinstance(model_or_data, BodyModel) else model_or_data
     candidates = _surface_candidates(np.asarray(data.part_labels), data.part_names)
     count = VERTEX_PRESETS[preset]
@@ -134,7 +136,7 @@ def partition_vertices(rest_vertices: np.ndarray, K: int = 26, seed: int = 0) ->
             labels[ids] = first
             return
         k_left = k // 2
-        n_left = int(sizes[first:first + k_left].sum())
+        n_left = int(sizes[first : first + k_left].sum())
         mask = _balanced_split(jittered[ids], n_left)
         split(ids[mask], first, k_left)
         split(ids[~mask], first + k_left, k - k_left)

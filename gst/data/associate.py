@@ -46,7 +46,9 @@ class AssociationConfig:
     owner_ratio: float = 0.15  # a blob belongs to every person with >= this share of its top vote
     new_fraction: float = 0.3  # a person must explain this share of its footprint anew in a view
     box_radius: float = 1.0  # hull voxels this far (ground) from a person's centre are its own
-    partial_support: float = 0.6  # below this mask support, crop boxes also cover the hull footprint
+    partial_support: float = (
+        0.6  # below this mask support, crop boxes also cover the hull footprint
+    )
     track_max_speed: float = 8.0  # m/s a person can move on the ground (a sprint is ~9)
     track_slack: float = 0.5  # m of centroid jitter tolerated on top (partial silhouettes move it)
     track_max_gap: int = 15  # processed frames a lost id is kept for re-identification
@@ -61,13 +63,17 @@ class AssociationConfig:
     # ground centres end up closer than `merge_radius` are still merged back). Off for
     # background-subtraction blobs, where one body can be two blobs.
     instance_split: bool = False
-    instance_share: float = 0.2  # an instance must hold this share of a component's voxels in a view
+    instance_share: float = (
+        0.2  # an instance must hold this share of a component's voxels in a view
+    )
 
     def __post_init__(self):
         if self.voxel_size <= 0:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
         if self.min_views < 2:
-            raise ValueError(f"min_views must be >= 2 (one view cannot place a person in 3D), got {self.min_views}")
+            raise ValueError(
+                f"min_views must be >= 2 (one view cannot place a person in 3D), got {self.min_views}"
+            )
         if self.max_misses < 0:
             raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")
         if not 0 < self.instance_share < 1:
@@ -101,7 +107,9 @@ class CaptureVolume:
         return cls(basis, c - h, c + h)
 
     @classmethod
-    def from_rig(cls, rig: Rig, extent_factor: float = 0.8, half_height: float = 1.5) -> CaptureVolume:
+    def from_rig(
+        cls, rig: Rig, extent_factor: float = 0.8, half_height: float = 1.5
+    ) -> CaptureVolume:
         """The region the cameras look at: a box around the point nearest to all optical axes,
         `extent_factor` times the median camera distance to it across the ground, and
         +-`half_height` metres along the up axis (cameras usually aim at people's middles)."""
@@ -113,7 +121,9 @@ class CaptureVolume:
             A += P
             b += P @ cam.center
         if np.linalg.cond(A) > 1e8:
-            raise ValueError(f"cameras {rig.names} have parallel optical axes; give the capture volume explicitly")
+            raise ValueError(
+                f"cameras {rig.names} have parallel optical axes; give the capture volume explicitly"
+            )
         center = np.linalg.solve(A, b)
         dist = np.median([np.linalg.norm(cam.center - center) for cam in rig])
         r = extent_factor * dist
@@ -160,7 +170,7 @@ def project_fast(cam: Camera, world: np.ndarray) -> tuple[np.ndarray, np.ndarray
     lo, hi = _normalised_bounds(cam)
     valid &= (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
     d = np.zeros(12)
-    d[:min(12, cam.dist.size)] = cam.dist[:12]
+    d[: min(12, cam.dist.size)] = cam.dist[:12]
     if cam.dist.size == 14:
         uv = np.full((len(world), 2), -1e9)
         uv[valid] = cam.project(world[valid].astype(np.float64))
@@ -180,8 +190,14 @@ def _normalised_bounds(cam: Camera, margin: float = 0.1) -> tuple[np.ndarray, np
     `margin` of its size (a conservative pinhole stand-in for the lens model)."""
     w, h = cam.width, cam.height
     t = np.linspace(0, 1, 33)
-    border = np.concatenate([np.stack([t * (w - 1), np.zeros_like(t)], 1), np.stack([t * (w - 1), np.full_like(t, h - 1)], 1),
-                             np.stack([np.zeros_like(t), t * (h - 1)], 1), np.stack([np.full_like(t, w - 1), t * (h - 1)], 1)])
+    border = np.concatenate(
+        [
+            np.stack([t * (w - 1), np.zeros_like(t)], 1),
+            np.stack([t * (w - 1), np.full_like(t, h - 1)], 1),
+            np.stack([np.zeros_like(t), t * (h - 1)], 1),
+            np.stack([np.full_like(t, w - 1), t * (h - 1)], 1),
+        ]
+    )
     xy = cam.undistort_points(border)
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     pad = margin * (hi - lo)
@@ -191,8 +207,13 @@ def _normalised_bounds(cam: Camera, margin: float = 0.1) -> tuple[np.ndarray, np
 class VoxelGrid:
     """The capture volume as voxels, with each voxel's pixel in every camera's work image."""
 
-    def __init__(self, cameras: list[Camera], work_sizes: dict[str, tuple[int, int]],
-                 volume: CaptureVolume, config: AssociationConfig):
+    def __init__(
+        self,
+        cameras: list[Camera],
+        work_sizes: dict[str, tuple[int, int]],
+        volume: CaptureVolume,
+        config: AssociationConfig,
+    ):
         self.config = config
         self.volume = volume
         self.names = [c.name for c in cameras]
@@ -201,8 +222,10 @@ class VoxelGrid:
         self.dims = np.maximum(1, np.ceil((volume.hi - volume.lo) / v).astype(int))
         n_all = int(np.prod(self.dims))
         if n_all > 40_000_000:
-            raise ValueError(f"capture volume {volume.hi - volume.lo} m at voxel {v} m has {n_all} voxels; "
-                             "use a larger voxel_size or a smaller volume")
+            raise ValueError(
+                f"capture volume {volume.hi - volume.lo} m at voxel {v} m has {n_all} voxels; "
+                "use a larger voxel_size or a smaller volume"
+            )
         ijk = np.indices(self.dims, dtype=np.int32).reshape(3, -1).T
         g = (volume.lo + (ijk + 0.5) * v).astype(np.float32)
         world = g @ volume.basis.astype(np.float32)  # basis is orthonormal: X = basis^T g
@@ -216,7 +239,10 @@ class VoxelGrid:
             u = np.floor((uv[:, 0] + 0.5) * sx)
             r = np.floor((uv[:, 1] + 0.5) * sy)
             inside = ok & (u >= 0) & (u < w) & (r >= 0) & (r < h)
-            u, r = np.where(inside, u, 0), np.where(inside, r, 0)  # points behind the camera project to NaN
+            u, r = (
+                np.where(inside, u, 0),
+                np.where(inside, r, 0),
+            )  # points behind the camera project to NaN
             pix[cam.name] = np.where(inside, r.astype(np.int64) * w + u.astype(np.int64), -1)
             focal[cam.name] = cam.fx * sx
         seen = sum((p >= 0).astype(np.int16) for p in pix.values())
@@ -239,8 +265,9 @@ class VoxelGrid:
     def __len__(self) -> int:
         return len(self.kept)
 
-    def occupancy(self, labels: dict[str, np.ndarray], active: set[str] | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+    def occupancy(
+        self, labels: dict[str, np.ndarray], active: set[str] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Occupancy of the kept voxels given per-camera label images (0 = background): the
         tolerant hull (up to `max_misses` cameras may disagree) and the strict one (none may).
 
@@ -256,7 +283,9 @@ class VoxelGrid:
             fg = (labels[name] > 0).astype(np.uint8)
             r = self.reach_px[name]
             if r > 0:
-                fg = cv2.dilate(fg, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+                fg = cv2.dilate(
+                    fg, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+                )
             hits += vis & (fg.reshape(-1)[np.where(vis, p, 0)] > 0)
             seen += vis
         enough = hits >= cfg.min_views
@@ -277,8 +306,9 @@ class VoxelGrid:
         dens = np.pad(dens, pad)
         dens = ndimage.gaussian_filter(dens, cfg.ground_sigma / v)
         win = max(3, int(round(cfg.peak_separation / v)) | 1)
-        peaks = np.argwhere((dens == ndimage.maximum_filter(dens, size=win))
-                            & (dens >= cfg.peak_ratio * dens.max()))
+        peaks = np.argwhere(
+            (dens == ndimage.maximum_filter(dens, size=win)) & (dens >= cfg.peak_ratio * dens.max())
+        )
         if len(peaks) <= 1:
             return [vox]
         # Keep peaks that are far enough apart, strongest first.
@@ -299,11 +329,20 @@ class VoxelGrid:
         if len(core) < 0.2 * len(vox):  # too little agreement to trust: use everything
             core = vox
         up = self.up[vox]
-        return Person3D(vox, core, self.world[core].mean(axis=0), self.ground[core].mean(axis=0),
-                        float(up.max() - up.min() + self.config.voxel_size))
+        return Person3D(
+            vox,
+            core,
+            self.world[core].mean(axis=0),
+            self.ground[core].mean(axis=0),
+            float(up.max() - up.min() + self.config.voxel_size),
+        )
 
-    def candidates(self, occupied: np.ndarray, strict: np.ndarray | None = None,
-                   labels: dict[str, np.ndarray] | None = None) -> list[Person3D]:
+    def candidates(
+        self,
+        occupied: np.ndarray,
+        strict: np.ndarray | None = None,
+        labels: dict[str, np.ndarray] | None = None,
+    ) -> list[Person3D]:
         """Person candidates among the occupied voxels: 3D components, split where several
         people touch, with pieces of one body merged back (pieces standing on one spot, and,
         given the `labels`, pieces that land on the same silhouettes in the cameras)."""
@@ -321,16 +360,26 @@ class VoxelGrid:
         bounds = np.searchsorted(comp_of_kept[order], np.arange(1, n + 2))
         out = []
         for k in range(n):
-            vox = occ_idx[order[bounds[k]:bounds[k + 1]]]
+            vox = occ_idx[order[bounds[k] : bounds[k + 1]]]
             for part in self._split_component(vox):
-                pieces = self._split_by_instances(part, labels) if cfg.instance_split and labels else [part]
+                pieces = (
+                    self._split_by_instances(part, labels)
+                    if cfg.instance_split and labels
+                    else [part]
+                )
                 out.extend(self._person(piece, strict) for piece in pieces)
         out = self._merge_stacked(out, strict)
         if labels is not None:
             out = self._merge_same_blobs(out, strict, labels)
-        return [p for p in out if len(p.voxels) * v ** 3 >= cfg.min_person_volume and p.height >= cfg.min_person_height]
+        return [
+            p
+            for p in out
+            if len(p.voxels) * v**3 >= cfg.min_person_volume and p.height >= cfg.min_person_height
+        ]
 
-    def _split_by_instances(self, vox: np.ndarray, labels: dict[str, np.ndarray]) -> list[np.ndarray]:
+    def _split_by_instances(
+        self, vox: np.ndarray, labels: dict[str, np.ndarray]
+    ) -> list[np.ndarray]:
         """Split a component along person instances when the cameras agree it holds several.
 
         Per camera, the instances holding at least `instance_share` of the component's labelled
@@ -393,8 +442,9 @@ class VoxelGrid:
             group[rest] = ((ground[rest, None, :] - centres[None]) ** 2).sum(-1).argmin(axis=1)
         return [vox[group == g] for g in range(len(kept))]
 
-    def _merge_same_blobs(self, cands: list[Person3D], strict: np.ndarray,
-                          labels: dict[str, np.ndarray]) -> list[Person3D]:
+    def _merge_same_blobs(
+        self, cands: list[Person3D], strict: np.ndarray, labels: dict[str, np.ndarray]
+    ) -> list[Person3D]:
         """Merge pieces that never appear apart: in (nearly) every camera that sees both, most of
         their voxels land on the same silhouette blob. Two people stand apart in some view;
         the pieces of one person with a ragged silhouette (a lunge, clothes matching the
@@ -421,7 +471,9 @@ class VoxelGrid:
                     both = [n for n in blobs[a] if n in blobs[b]]
                     same = sum(1 for n in both if blobs[a][n] == blobs[b][n])
                     if len(both) >= 2 and same >= max(2, len(both) - slack):
-                        cands[a] = self._person(np.concatenate([cands[a].voxels, cands[b].voxels]), strict)
+                        cands[a] = self._person(
+                            np.concatenate([cands[a].voxels, cands[b].voxels]), strict
+                        )
                         blobs[a] = main_blobs(cands[a])
                         del cands[b], blobs[b]
                         merged = True
@@ -439,7 +491,9 @@ class VoxelGrid:
             for a in range(len(cands)):
                 for b in range(a + 1, len(cands)):
                     if np.linalg.norm(cands[a].ground - cands[b].ground) < limit:
-                        cands[a] = self._person(np.concatenate([cands[a].voxels, cands[b].voxels]), strict)
+                        cands[a] = self._person(
+                            np.concatenate([cands[a].voxels, cands[b].voxels]), strict
+                        )
                         del cands[b]
                         merged = True
                         break
@@ -447,8 +501,9 @@ class VoxelGrid:
                     break
         return cands
 
-    def footprint(self, name: str, person: Person3D, shape: tuple[int, int],
-                  voxels: np.ndarray | None = None) -> np.ndarray:
+    def footprint(
+        self, name: str, person: Person3D, shape: tuple[int, int], voxels: np.ndarray | None = None
+    ) -> np.ndarray:
         """Where a person's voxels (its core by default) land in camera `name` (boolean image),
         each voxel drawn as a disc about its projected size."""
         h, w = shape
@@ -520,7 +575,9 @@ class VoxelGrid:
         scores[:, 0] = 0
         return scores
 
-    def _select_instance_owners(self, cands: list[Person3D], labels: dict[str, np.ndarray]) -> list[Person3D]:
+    def _select_instance_owners(
+        self, cands: list[Person3D], labels: dict[str, np.ndarray]
+    ) -> list[Person3D]:
         """With instance masks: keep the candidates that claim an instance in enough cameras.
 
         Greedy, best first: the candidate whose footprints overlap unclaimed instances most
@@ -621,8 +678,9 @@ class VoxelGrid:
                 out[out == k + 1] = 0
         return out
 
-    def person_views(self, name: str, person_labels: np.ndarray, persons: list[Person3D]
-                     ) -> list[tuple[np.ndarray, float] | None]:
+    def person_views(
+        self, name: str, person_labels: np.ndarray, persons: list[Person3D]
+    ) -> list[tuple[np.ndarray, float] | None]:
         """Per person seen in camera `name`: (box, support), else None.
 
         support = the share of the person's hull voxels (those within `box_radius` of its
@@ -636,17 +694,23 @@ class VoxelGrid:
         cfg = self.config
         h, w = person_labels.shape
         r = self.reach_px[name]
-        disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) if r > 0 else None
+        disk = (
+            cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) if r > 0 else None
+        )
         out: list[tuple[np.ndarray, float] | None] = []
         for k, person in enumerate(persons):
             mask = person_labels == k + 1
             if not mask.any():
                 out.append(None)
                 continue
-            near = np.linalg.norm(self.ground[person.voxels] - person.ground, axis=1) <= cfg.box_radius
+            near = (
+                np.linalg.norm(self.ground[person.voxels] - person.ground, axis=1) <= cfg.box_radius
+            )
             p = self.pixel[name][person.voxels[near]]
             p = p[p >= 0]
-            reach = cv2.dilate(mask.view(np.uint8), disk) if disk is not None else mask.view(np.uint8)
+            reach = (
+                cv2.dilate(mask.view(np.uint8), disk) if disk is not None else mask.view(np.uint8)
+            )
             support = float(np.mean(reach.reshape(-1)[p] > 0)) if len(p) else float("nan")
             rows = np.nonzero(mask.any(axis=1))[0]
             cols = np.nonzero(mask.any(axis=0))[0]
@@ -655,11 +719,23 @@ class VoxelGrid:
                 pr, pc = p // w, p % w
                 x0, y0 = min(x0, pc.min() - r), min(y0, pr.min() - r)
                 x1, y1 = max(x1, pc.max() + 1 + r), max(y1, pr.max() + 1 + r)
-            out.append((np.array([max(0, x0), max(0, y0), min(w, x1), min(h, y1)], dtype=np.float64), support))
+            out.append(
+                (
+                    np.array([max(0, x0), max(0, y0), min(w, x1), min(h, y1)], dtype=np.float64),
+                    support,
+                )
+            )
         return out
 
-    def _split_blob(self, out: np.ndarray, blob: np.ndarray, owners: np.ndarray, proj: list[np.ndarray],
-                    depth: np.ndarray, focal: float) -> None:
+    def _split_blob(
+        self,
+        out: np.ndarray,
+        blob: np.ndarray,
+        owners: np.ndarray,
+        proj: list[np.ndarray],
+        depth: np.ndarray,
+        focal: float,
+    ) -> None:
         """Share one blob among several people: paint each one's projected footprint, far to
         near (the nearer person occludes), then give leftover blob pixels to the nearest paint."""
         h, w = out.shape
@@ -674,7 +750,9 @@ class VoxelGrid:
             dots = np.zeros_like(paint)
             dots[r[ok], c[ok]] = 1
             rad = max(1, int(round(0.75 * focal * self.config.voxel_size / max(depth[k], 1e-3))))
-            foot = cv2.dilate(dots, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1)))
+            foot = cv2.dilate(
+                dots, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rad + 1, 2 * rad + 1))
+            )
             paint[(foot > 0) & roi_blob] = k + 1
         if not paint.any():
             return
@@ -684,7 +762,9 @@ class VoxelGrid:
         region = out[y0:y1, x0:x1]
         region[roi_blob] = paint[roi_blob]
 
-    def associate(self, labels: dict[str, np.ndarray], active: set[str] | None = None) -> FrameAssociation:
+    def associate(
+        self, labels: dict[str, np.ndarray], active: set[str] | None = None
+    ) -> FrameAssociation:
         """People in one frame and, per camera, which pixels belong to whom."""
         occupied, strict = self.occupancy(labels, active)
         persons = self.select(self.candidates(occupied, strict, labels), labels)
@@ -703,8 +783,14 @@ class PersonTracker:
     partial in some frames make the centroid jitter); ids unseen for `max_gap` steps retire.
     """
 
-    def __init__(self, max_speed: float = 8.0, step_seconds: float = 1 / 30, slack: float = 0.3,
-                 max_gap: int = 15, first_id: int = 1):
+    def __init__(
+        self,
+        max_speed: float = 8.0,
+        step_seconds: float = 1 / 30,
+        slack: float = 0.3,
+        max_gap: int = 15,
+        first_id: int = 1,
+    ):
         self.max_speed = max_speed
         self.step_seconds = step_seconds
         self.slack = slack
@@ -748,8 +834,14 @@ class PersonTracker:
         return ids
 
 
-def link_tracklets(tracks: dict[int, list[tuple[int, np.ndarray]]], step_seconds: float, speed: float,
-                   slack: float, max_gap: int, agree: float = 0.8) -> dict[int, int]:
+def link_tracklets(
+    tracks: dict[int, list[tuple[int, np.ndarray]]],
+    step_seconds: float,
+    speed: float,
+    slack: float,
+    max_gap: int,
+    agree: float = 0.8,
+) -> dict[int, int]:
     """Join id fragments of one person, offline: returns old id -> linked id.
 
     `tracks` maps an id to its (step, ground position) observations. Pieces are visited in
@@ -785,6 +877,10 @@ def link_tracklets(tracks: dict[int, list[tuple[int, np.ndarray]]], step_seconds
             continue
         cid, c_steps, c_pos = chains[best]
         merged = np.argsort(np.concatenate([c_steps, steps]), kind="stable")
-        chains[best] = (cid, np.concatenate([c_steps, steps])[merged], np.concatenate([c_pos, pos])[merged])
+        chains[best] = (
+            cid,
+            np.concatenate([c_steps, steps])[merged],
+            np.concatenate([c_pos, pos])[merged],
+        )
         mapping[i] = cid
     return mapping

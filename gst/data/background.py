@@ -28,18 +28,24 @@ class BackgroundConfig:
     # person: below 1 cast shadows, above 1 a shadow that the background model itself holds.
     shadow_ratio: tuple[float, float] = (0.45, 1.5)
     shadow_chroma: float = 12.0  # median: max colour change (after brightness) for a shadow
-    edge_fraction: float = 0.5  # median: a silhouette-edge pixel needs this share of the inner contrast
+    edge_fraction: float = (
+        0.5  # median: a silhouette-edge pixel needs this share of the inner contrast
+    )
     edge_radius: int = 2  # median: width (px) of the silhouette edge that is refined
     mog2_var_threshold: float = 16.0
     knn_dist2_threshold: float = 400.0
 
     def __post_init__(self):
         if self.method not in METHODS:
-            raise ValueError(f"background method '{self.method}' is unknown; expected one of {METHODS}")
+            raise ValueError(
+                f"background method '{self.method}' is unknown; expected one of {METHODS}"
+            )
         if self.samples < 3:
             raise ValueError(f"background samples must be >= 3, got {self.samples}")
         if not 0 < self.low_threshold <= self.threshold:
-            raise ValueError(f"need 0 < low_threshold <= threshold, got {self.low_threshold}, {self.threshold}")
+            raise ValueError(
+                f"need 0 < low_threshold <= threshold, got {self.low_threshold}, {self.threshold}"
+            )
         lo, hi = self.shadow_ratio
         if not 0 < lo < 1 <= hi:
             raise ValueError(f"shadow_ratio must satisfy 0 < lo < 1 <= hi, got {self.shadow_ratio}")
@@ -113,7 +119,7 @@ class MedianBackground:
         alpha = dot * self._inv_bg_norm2
         chroma2 = _channel_sum(cv2.multiply(img, img)) - dot * alpha
         lo, hi = cfg.shadow_ratio
-        light = (alpha >= lo) & (alpha <= hi) & (chroma2 < cfg.shadow_chroma ** 2)
+        light = (alpha >= lo) & (alpha <= hi) & (chroma2 < cfg.shadow_chroma**2)
         weak &= ~light
         strong = weak & (dist > cfg.threshold)
         fg = hysteresis(strong, weak)
@@ -140,13 +146,15 @@ class OpenCVBackground:
         n = len(samples)
         if config.method == "mog2":
             self.sub = cv2.createBackgroundSubtractorMOG2(
-                history=n, varThreshold=config.mog2_var_threshold, detectShadows=True)
+                history=n, varThreshold=config.mog2_var_threshold, detectShadows=True
+            )
             # Colours seen in fewer than 40% of the samples are not background (OpenCV's
             # default 0.9 lets anyone who stood somewhere 10% of the clip become background).
             self.sub.setBackgroundRatio(0.6)
         else:
             self.sub = cv2.createBackgroundSubtractorKNN(
-                history=n, dist2Threshold=config.knn_dist2_threshold, detectShadows=True)
+                history=n, dist2Threshold=config.knn_dist2_threshold, detectShadows=True
+            )
             # Same idea for KNN: keep more samples per pixel and ask more of them to agree.
             self.sub.setNSamples(20)
             self.sub.setkNNSamples(6)

@@ -68,8 +68,7 @@ class CropWindow:
     def affine(self) -> np.ndarray:
         """(2, 3) map of frame points to crop points, both in the pixel-centre convention."""
         s = self.scale
-        return np.array([[s, 0.0, s * (0.5 - self.x0) - 0.5],
-                         [0.0, s, s * (0.5 - self.y0) - 0.5]])
+        return np.array([[s, 0.0, s * (0.5 - self.x0) - 0.5], [0.0, s, s * (0.5 - self.y0) - 0.5]])
 
     def to_crop(self, uv: np.ndarray) -> np.ndarray:
         """Frame points (N, 2) -> crop points (N, 2), pixel-centre convention."""
@@ -89,7 +88,9 @@ def hmr_crop_box(box_xyxy: np.ndarray | tuple, scale: float = 1.2) -> CropBox:
     """
     x0, y0, x1, y1 = (float(v) for v in np.asarray(box_xyxy, dtype=np.float64).reshape(4))
     if not (np.isfinite([x0, y0, x1, y1]).all() and x1 > x0 and y1 > y0):
-        raise ValueError(f"person box must be finite with x1 > x0 and y1 > y0, got {[x0, y0, x1, y1]}")
+        raise ValueError(
+            f"person box must be finite with x1 > x0 and y1 > y0, got {[x0, y0, x1, y1]}"
+        )
     if scale <= 0:
         raise ValueError(f"crop scale must be positive, got {scale}")
     side = scale * max(x1 - x0, y1 - y0)
@@ -105,7 +106,9 @@ def crop_window(box_xyxy, size: int = 256, enlarge: float = CROP_ENLARGE) -> Cro
     return CropWindow(b.x0 + 0.5, b.y0 + 0.5, b.side, int(size))
 
 
-def crop_intrinsics(K: np.ndarray, box: CropBox | CropWindow, size: int | None = None) -> np.ndarray:
+def crop_intrinsics(
+    K: np.ndarray, box: CropBox | CropWindow, size: int | None = None
+) -> np.ndarray:
     """Intrinsics of the crop `box` resampled to `size` x `size` pixels (formula in module doc).
 
     A `CropWindow` carries its own size (pass none)."""
@@ -117,17 +120,28 @@ def crop_intrinsics(K: np.ndarray, box: CropBox | CropWindow, size: int | None =
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3):
         raise ValueError(f"K must be (3, 3), got {K.shape}")
-    Kc = np.array([[K[0, 0] * s, K[0, 1] * s, (K[0, 2] - box.x0) * s - 0.5],
-                   [0.0, K[1, 1] * s, (K[1, 2] - box.y0) * s - 0.5],
-                   [0.0, 0.0, 1.0]])
+    Kc = np.array(
+        [
+            [K[0, 0] * s, K[0, 1] * s, (K[0, 2] - box.x0) * s - 0.5],
+            [0.0, K[1, 1] * s, (K[1, 2] - box.y0) * s - 0.5],
+            [0.0, 0.0, 1.0],
+        ]
+    )
     return Kc
 
 
 def crop_camera(camera: Camera, box: CropBox, size: int) -> Camera:
     """A distortion-free camera (same R, t) that sees exactly what the crop shows."""
-    return Camera.create(f"{camera.name}@crop", crop_intrinsics(camera.K, box, size), [],
-                         camera.R, camera.t, size, size,
-                         meta={"parent": camera.name, "crop_box": box.as_array().tolist()})
+    return Camera.create(
+        f"{camera.name}@crop",
+        crop_intrinsics(camera.K, box, size),
+        [],
+        camera.R,
+        camera.t,
+        size,
+        size,
+        meta={"parent": camera.name, "crop_box": box.as_array().tolist()},
+    )
 
 
 def _interpolation_weights(size: int, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -147,7 +161,9 @@ def _bilinear(values: np.ndarray, i: np.ndarray, w: np.ndarray) -> np.ndarray:
     return rows[:, i] * (1 - w)[None, :] + rows[:, i + 1] * w[None, :]
 
 
-def distortion_maps(camera: Camera, K_crop: np.ndarray, size: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def distortion_maps(
+    camera: Camera, K_crop: np.ndarray, size: int, step: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """For every pixel of an ideal size x size camera with intrinsics K_crop, the raw-frame
     pixel it sees (float32 maps for cv2.remap). The lens model is evaluated exactly
     (cv2.projectPoints) on a grid every `step` pixels and interpolated bilinearly in between:
@@ -162,11 +178,18 @@ def distortion_maps(camera: Camera, K_crop: np.ndarray, size: int, step: int = 8
     rays = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
     uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera.K, camera.dist)
     uv = uv.reshape(len(grid), len(grid), 2)
-    return _bilinear(uv[..., 0], i, w).astype(np.float32), _bilinear(uv[..., 1], i, w).astype(np.float32)
+    return _bilinear(uv[..., 0], i, w).astype(np.float32), _bilinear(uv[..., 1], i, w).astype(
+        np.float32
+    )
 
 
-def crop_maps(camera: Camera, box: CropBox, size: int, src_scale: tuple[float, float] = (1.0, 1.0),
-              grid_step: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def crop_maps(
+    camera: Camera,
+    box: CropBox,
+    size: int,
+    src_scale: tuple[float, float] = (1.0, 1.0),
+    grid_step: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Sampling maps (float32, size x size) into a source image of this camera.
 
     The source may be the full frame shrunk by `src_scale` = (sx, sy) (work-resolution masks);
@@ -179,7 +202,9 @@ def crop_maps(camera: Camera, box: CropBox, size: int, src_scale: tuple[float, f
         mapx, mapy = distortion_maps(camera, Kc, size, grid_step)
     else:
         dist = camera.dist if camera.dist.size else None
-        mapx, mapy = cv2.initUndistortRectifyMap(camera.K, dist, None, Kc, (size, size), cv2.CV_32FC1)
+        mapx, mapy = cv2.initUndistortRectifyMap(
+            camera.K, dist, None, Kc, (size, size), cv2.CV_32FC1
+        )
     sx, sy = src_scale
     if (sx, sy) != (1.0, 1.0):
         mapx = (mapx + 0.5) * np.float32(sx) - 0.5
@@ -190,8 +215,14 @@ def crop_maps(camera: Camera, box: CropBox, size: int, src_scale: tuple[float, f
 ANTIALIAS = ("gaussian", "pyramid")
 
 
-def resample(image: np.ndarray, mapx: np.ndarray, mapy: np.ndarray, src_per_dst: float,
-             interpolation: int = cv2.INTER_LINEAR, antialias: str = "gaussian") -> np.ndarray:
+def resample(
+    image: np.ndarray,
+    mapx: np.ndarray,
+    mapy: np.ndarray,
+    src_per_dst: float,
+    interpolation: int = cv2.INTER_LINEAR,
+    antialias: str = "gaussian",
+) -> np.ndarray:
     """`cv2.remap` with anti-aliasing when the crop shrinks the source.
 
     Only the source region the maps touch is filtered, so a small crop of a 4K frame stays
@@ -215,25 +246,33 @@ def resample(image: np.ndarray, mapx: np.ndarray, mapy: np.ndarray, src_per_dst:
         return np.zeros(out_shape, dtype=image.dtype)
     roi = image[y_lo:y_hi, x_lo:x_hi]
     if sigma > 0.25:
-        roi = cv2.GaussianBlur(roi, (0, 0), sigmaX=sigma, sigmaY=sigma,
-                               borderType=cv2.BORDER_REPLICATE)
-    return cv2.remap(roi, mapx - np.float32(x_lo), mapy - np.float32(y_lo), interpolation,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        roi = cv2.GaussianBlur(
+            roi, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REPLICATE
+        )
+    return cv2.remap(
+        roi,
+        mapx - np.float32(x_lo),
+        mapy - np.float32(y_lo),
+        interpolation,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
 
 
 def _pyramid_levels(src_per_dst: float) -> int:
     levels = 0
-    while src_per_dst / (2 ** levels) > 2.0:
+    while src_per_dst / (2**levels) > 2.0:
         levels += 1
     return levels
 
 
-def _pyramid_roi(image: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float, levels: int
-                 ) -> tuple[np.ndarray, float, float, float]:
+def _pyramid_roi(
+    image: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi: float, levels: int
+) -> tuple[np.ndarray, float, float, float]:
     """The part of `image` over the source-pixel range [lo, hi], halved `levels` times with
     cv2.pyrDown. Returns (roi, offset_x, offset_y, factor): a source pixel centre u sits at
     (u - offset_x) / factor in the roi, in the roi's corner convention (see callers)."""
-    margin = 3 * 2 ** levels  # keeps pyrDown's border reflection outside the sampled region
+    margin = 3 * 2**levels  # keeps pyrDown's border reflection outside the sampled region
     h, w = image.shape[:2]
     rx0 = max(int(np.floor(x_lo)) - margin, 0)
     ry0 = max(int(np.floor(y_lo)) - margin, 0)
@@ -244,36 +283,55 @@ def _pyramid_roi(image: np.ndarray, x_lo: float, y_lo: float, x_hi: float, y_hi:
     roi = image[ry0:ry1, rx0:rx1]
     for _ in range(levels):
         roi = cv2.pyrDown(roi)
-    return roi, float(rx0), float(ry0), float(2 ** levels)
+    return roi, float(rx0), float(ry0), float(2**levels)
 
 
 def _resample_pyramid(image, mapx, mapy, src_per_dst, interpolation):
-    roi, ox, oy, f = _pyramid_roi(image, float(np.nanmin(mapx)), float(np.nanmin(mapy)),
-                                  float(np.nanmax(mapx)) + 1, float(np.nanmax(mapy)) + 1,
-                                  _pyramid_levels(src_per_dst))
+    roi, ox, oy, f = _pyramid_roi(
+        image,
+        float(np.nanmin(mapx)),
+        float(np.nanmin(mapy)),
+        float(np.nanmax(mapx)) + 1,
+        float(np.nanmax(mapy)) + 1,
+        _pyramid_levels(src_per_dst),
+    )
     if f != 1.0 or ox or oy:
         mapx = (mapx - np.float32(ox)) / np.float32(f)
         mapy = (mapy - np.float32(oy)) / np.float32(f)
     return cv2.remap(roi, mapx, mapy, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def cut_crop(image: np.ndarray, window: CropWindow, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+def cut_crop(
+    image: np.ndarray, window: CropWindow, interpolation: int = cv2.INTER_LINEAR
+) -> np.ndarray:
     """Resample `window` of a distortion-free `image` (H, W[, C]) to size x size: one affine
     warp after pyramid anti-aliasing (the pinhole fast path of tracking); zero outside the frame."""
     levels = _pyramid_levels(window.side / window.size)
-    roi, ox, oy, f = _pyramid_roi(image, window.x0, window.y0, window.x0 + window.side,
-                                  window.y0 + window.side, levels)
+    roi, ox, oy, f = _pyramid_roi(
+        image, window.x0, window.y0, window.x0 + window.side, window.y0 + window.side, levels
+    )
     s = window.scale * f  # crop pixels per roi pixel
     # roi point r = (u - ox) / f; crop point u' = (u - x0 + 0.5) * scale - 0.5
     #   = (f r + ox - x0 + 0.5) * scale - 0.5 = s r + s (ox - x0 + 0.5) / f - 0.5
-    M = np.array([[s, 0.0, s * ((ox - window.x0) / f + 0.5 / f) - 0.5],
-                  [0.0, s, s * ((oy - window.y0) / f + 0.5 / f) - 0.5]])
-    return cv2.warpAffine(roi, M, (window.size, window.size), flags=interpolation,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    M = np.array(
+        [
+            [s, 0.0, s * ((ox - window.x0) / f + 0.5 / f) - 0.5],
+            [0.0, s, s * ((oy - window.y0) / f + 0.5 / f) - 0.5],
+        ]
+    )
+    return cv2.warpAffine(
+        roi,
+        M,
+        (window.size, window.size),
+        flags=interpolation,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
 
 
-def cut_undistorted_crop(image: np.ndarray, camera: Camera, window: CropWindow,
-                         interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+def cut_undistorted_crop(
+    image: np.ndarray, camera: Camera, window: CropWindow, interpolation: int = cv2.INTER_LINEAR
+) -> np.ndarray:
     """Crop `window` of the UNDISTORTED image (same K as `camera`) straight from the distorted
     `image` in one remap, with interpolated lens maps and pyramid anti-aliasing (tracking's
     fast path of `extract_crop`). `window` is in undistorted-image coordinates."""
@@ -281,16 +339,22 @@ def cut_undistorted_crop(image: np.ndarray, camera: Camera, window: CropWindow,
     # Bound the window in the distorted frame by the maps themselves (a square of their span).
     x_lo, y_lo = float(mapx.min()) + 0.5, float(mapy.min()) + 0.5
     span = max(float(mapx.max() - mapx.min()), float(mapy.max() - mapy.min()), 1.0)
-    roi, ox, oy, f = _pyramid_roi(image, x_lo, y_lo, x_lo + span, y_lo + span,
-                                  _pyramid_levels(span / window.size))
+    roi, ox, oy, f = _pyramid_roi(
+        image, x_lo, y_lo, x_lo + span, y_lo + span, _pyramid_levels(span / window.size)
+    )
     if f != 1.0 or ox or oy:
         mapx = (mapx - np.float32(ox)) / np.float32(f)
         mapy = (mapy - np.float32(oy)) / np.float32(f)
     return cv2.remap(roi, mapx, mapy, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def extract_crop(image: np.ndarray, camera: Camera, box: CropBox, size: int,
-                 src_scale: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+def extract_crop(
+    image: np.ndarray,
+    camera: Camera,
+    box: CropBox,
+    size: int,
+    src_scale: tuple[float, float] = (1.0, 1.0),
+) -> np.ndarray:
     """The crop `box` of a (distorted) camera image, undistorted and resized to `size`².
 
     `image` is the camera's frame, or the frame shrunk by `src_scale` (sx, sy). Multi-channel
@@ -318,7 +382,9 @@ def undistorted_box(camera: Camera, points_px: np.ndarray, half_pixel: float = 0
     return np.array([lo[0], lo[1], hi[0], hi[1]])
 
 
-def mask_outline_full_res(mask: np.ndarray, src_scale: tuple[float, float]) -> tuple[np.ndarray, float]:
+def mask_outline_full_res(
+    mask: np.ndarray, src_scale: tuple[float, float]
+) -> tuple[np.ndarray, float]:
     """Outer contour points of a binary mask, as full-resolution pixel centres.
 
     Returns the points and the half-extent in full-resolution pixels that one mask pixel covers.

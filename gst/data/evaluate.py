@@ -60,5 +60,7 @@ def association_accuracy(rows: list[CropTruth]) -> tuple[float, int]:
                 votes[pids.index(r.person_id), tids.index(r.truth_id)] += 1
         pi, ti = linear_sum_assignment(-votes)
         partner = {pids[a]: tids[b] for a, b in zip(pi, ti, strict=True) if votes[a, b] > 0}
-        correct += sum(1 for r in frame_rows if r.truth_id > 0 and partner.get(r.person_id) == r.truth_id)
+        correct += sum(
+            1 for r in frame_rows if r.truth_id > 0 and partner.get(r.person_id) == r.truth_id
+        )
     return correct / len(rows), len(rows)

@@ -37,7 +37,9 @@ def _pick_masks_array(keys_shapes: dict[str, tuple], path: Path) -> str:
     three_d = [k for k, s in keys_shapes.items() if len(s) == 3]
     if len(three_d) == 1:
         return three_d[0]
-    raise ExternalError(f"{path}: expected a dataset 'masks' of shape (frames, H, W); found {keys_shapes}")
+    raise ExternalError(
+        f"{path}: expected a dataset 'masks' of shape (frames, H, W); found {keys_shapes}"
+    )
 
 
 class IdMaskFile:
@@ -68,13 +70,19 @@ class IdMaskFile:
         else:
             raise ExternalError(f"camera '{camera}': mask file {self.path} must be .h5 or .npz")
         if len(self.shape) != 3:
-            raise ExternalError(f"camera '{camera}': {self.path} masks have shape {self.shape}, expected (F, H, W)")
+            raise ExternalError(
+                f"camera '{camera}': {self.path} masks have shape {self.shape}, expected (F, H, W)"
+            )
         if self.dtype != np.uint8:
-            raise ExternalError(f"camera '{camera}': {self.path} masks are {self.dtype}, expected uint8 ids")
+            raise ExternalError(
+                f"camera '{camera}': {self.path} masks are {self.dtype}, expected uint8 ids"
+            )
         frames = np.asarray(frames).astype(np.int64).reshape(-1)
         if len(frames) != self.shape[0]:
-            raise ExternalError(f"camera '{camera}': {self.path} has {self.shape[0]} masks but "
-                                f"{len(frames)} frame numbers")
+            raise ExternalError(
+                f"camera '{camera}': {self.path} has {self.shape[0]} masks but "
+                f"{len(frames)} frame numbers"
+            )
         self._row = {int(f): i for i, f in enumerate(frames)}
 
     def __getstate__(self):
@@ -137,17 +145,23 @@ class ExternalDetections:
         """Check that every mask file fits its camera's video (size, frame range)."""
         for cam in list(self.mask_files) + list(self.boxes):
             if cam not in sizes:
-                raise ExternalError(f"{self.root}: external data for camera '{cam}', which has no video "
-                                    f"(cameras: {sorted(sizes)})")
+                raise ExternalError(
+                    f"{self.root}: external data for camera '{cam}', which has no video "
+                    f"(cameras: {sorted(sizes)})"
+                )
         for cam, path in self.mask_files.items():
             m = IdMaskFile(path, cam)
             if m.size != tuple(sizes[cam]):
-                raise ExternalError(f"camera '{cam}': masks in {path} are {m.size[0]}x{m.size[1]}, "
-                                    f"the video is {sizes[cam][0]}x{sizes[cam][1]}")
+                raise ExternalError(
+                    f"camera '{cam}': masks in {path} are {m.size[0]}x{m.size[1]}, "
+                    f"the video is {sizes[cam][0]}x{sizes[cam][1]}"
+                )
             bad = [f for f in m.frames if not 0 <= f < n_frames]
             if bad:
-                raise ExternalError(f"camera '{cam}': {path} has masks for frames {bad[:5]} outside "
-                                    f"the video's 0..{n_frames - 1}")
+                raise ExternalError(
+                    f"camera '{cam}': {path} has masks for frames {bad[:5]} outside "
+                    f"the video's 0..{n_frames - 1}"
+                )
 
 
 def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
@@ -167,26 +181,35 @@ def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
         except json.JSONDecodeError as exc:
             raise ExternalError(f"{meta}: invalid JSON ({exc})") from exc
         if not isinstance(info, dict) or not set(info) <= {"global_ids"}:
-            raise ExternalError(f"{meta}: expected an object with optional key 'global_ids', got {info!r}")
+            raise ExternalError(
+                f"{meta}: expected an object with optional key 'global_ids', got {info!r}"
+            )
         ext.global_ids = bool(info.get("global_ids", False))
     boxes_path = root / "boxes.parquet"
     if boxes_path.is_file():
         table = pq.read_table(boxes_path)
         need = {"frame", "camera", "x0", "y0", "x1", "y1"}
         if not need <= set(table.column_names):
-            raise ExternalError(f"{boxes_path}: missing columns {sorted(need - set(table.column_names))}; "
-                                f"has {table.column_names}")
+            raise ExternalError(
+                f"{boxes_path}: missing columns {sorted(need - set(table.column_names))}; "
+                f"has {table.column_names}"
+            )
         cols = {k: table.column(k).to_pylist() for k in table.column_names}
         pid = cols.get("person_id", [-1] * table.num_rows)
         for i in range(table.num_rows):
             box = np.array([cols[k][i] for k in ("x0", "y0", "x1", "y1")], dtype=np.float64)
             if not (np.all(np.isfinite(box)) and box[2] > box[0] and box[3] > box[1]):
-                raise ExternalError(f"{boxes_path}: row {i} (camera {cols['camera'][i]}, frame "
-                                    f"{cols['frame'][i]}) has an invalid box {box.tolist()}")
-            ext.boxes.setdefault(str(cols["camera"][i]), {}).setdefault(int(cols["frame"][i]), []).append(
-                (int(pid[i]) if pid[i] is not None else -1, box))
+                raise ExternalError(
+                    f"{boxes_path}: row {i} (camera {cols['camera'][i]}, frame "
+                    f"{cols['frame'][i]}) has an invalid box {box.tolist()}"
+                )
+            ext.boxes.setdefault(str(cols["camera"][i]), {}).setdefault(
+                int(cols["frame"][i]), []
+            ).append((int(pid[i]) if pid[i] is not None else -1, box))
     if not ext.mask_files and not ext.boxes:
-        raise ExternalError(f"{root}: no mask files named after cameras {cameras} (.h5/.npz) and no boxes.parquet")
+        raise ExternalError(
+            f"{root}: no mask files named after cameras {cameras} (.h5/.npz) and no boxes.parquet"
+        )
     return ext
 
 
@@ -197,8 +220,13 @@ def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
 
 
-def boxes_to_labels(fg: np.ndarray | None, boxes: list[tuple[int, np.ndarray]], size: tuple[int, int],
-                    scale: tuple[float, float], min_fill: float = 0.2) -> np.ndarray:
+def boxes_to_labels(
+    fg: np.ndarray | None,
+    boxes: list[tuple[int, np.ndarray]],
+    size: tuple[int, int],
+    scale: tuple[float, float],
+    min_fill: float = 0.2,
+) -> np.ndarray:
     """Label image from boxes (full-resolution pixel edges): each box's foreground pixels, or the
     whole box when the background model sees too little of it (someone standing still).
 
@@ -206,12 +234,21 @@ def boxes_to_labels(fg: np.ndarray | None, boxes: list[tuple[int, np.ndarray]], 
     """
     w, h = size
     out = np.zeros((h, w), dtype=np.uint8)
-    order = sorted(range(len(boxes)), key=lambda i: -(boxes[i][1][2] - boxes[i][1][0]) * (boxes[i][1][3] - boxes[i][1][1]))
+    order = sorted(
+        range(len(boxes)),
+        key=lambda i: -(boxes[i][1][2] - boxes[i][1][0]) * (boxes[i][1][3] - boxes[i][1][1]),
+    )
     for label, i in enumerate(order[:254], start=1):
         # Edges in pixel-centre coordinates (x = -0.5 is the image's left edge) to work columns.
         x0, y0, x1, y1 = boxes[i][1] + 0.5
-        c0, r0 = max(0, int(np.floor(x0 * scale[0] + 1e-9))), max(0, int(np.floor(y0 * scale[1] + 1e-9)))
-        c1, r1 = min(w, int(np.ceil(x1 * scale[0] - 1e-9))), min(h, int(np.ceil(y1 * scale[1] - 1e-9)))
+        c0, r0 = (
+            max(0, int(np.floor(x0 * scale[0] + 1e-9))),
+            max(0, int(np.floor(y0 * scale[1] + 1e-9))),
+        )
+        c1, r1 = (
+            min(w, int(np.ceil(x1 * scale[0] - 1e-9))),
+            min(h, int(np.ceil(y1 * scale[1] - 1e-9))),
+        )
         if c1 <= c0 or r1 <= r0:
             continue
         region = out[r0:r1, c0:c1]

@@ -74,7 +74,9 @@ class ExtractError(ValueError):
 class ExtractOptions:
     """Advanced settings of `extract_scene` (the common ones are its keyword arguments)."""
 
-    work_scale: float | None = None  # mask resolution / video resolution; None: longer side <= 960 px
+    work_scale: float | None = (
+        None  # mask resolution / video resolution; None: longer side <= 960 px
+    )
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
     masks: MaskConfig = field(default_factory=MaskConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
@@ -138,6 +140,7 @@ class ExtractReport:
 
 # -- per-camera phase 1: foreground labels ----------------------------------------------------
 
+
 @dataclass(frozen=True, eq=False)
 class MaskJob:
     camera: str
@@ -179,8 +182,13 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
     out = Path(job.out)
     if out.is_file():
         with h5py.File(out, "r") as f:
-            return MaskJobResult(job.camera, int(f.attrs["frames_with_blobs"]), int(f.attrs["blobs"]),
-                                 float(f.attrs["seconds"]), True)
+            return MaskJobResult(
+                job.camera,
+                int(f.attrs["frames_with_blobs"]),
+                int(f.attrs["blobs"]),
+                float(f.attrs["seconds"]),
+                True,
+            )
     t0 = time.perf_counter()
     w, h = job.work_size
     sx = w / job.full_size[0]
@@ -199,13 +207,22 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
             # An empty-scene clip of this camera: learn the background from it alone.
             plate = probe_video(job.clean_plate, job.camera)
             if (plate.width, plate.height) != tuple(job.full_size):
-                raise VideoError(f"camera '{job.camera}' background video {job.clean_plate}: frames are "
-                                 f"{plate.width}x{plate.height}, the camera's video is "
-                                 f"{job.full_size[0]}x{job.full_size[1]}")
+                raise VideoError(
+                    f"camera '{job.camera}' background video {job.clean_plate}: frames are "
+                    f"{plate.width}x{plate.height}, the camera's video is "
+                    f"{job.full_size[0]}x{job.full_size[1]}"
+                )
             idx = sample_indices(plate.frames, job.background.samples)
-            samples = np.stack([img for _, img in read_frames(job.clean_plate, idx, job.camera, sx)])
-        elif len(set(sample_indices(job.n_frames, job.background.samples)) | set(job.frames)) * w * h * 3 \
-                <= job.cache_bytes:
+            samples = np.stack(
+                [img for _, img in read_frames(job.clean_plate, idx, job.camera, sx)]
+            )
+        elif (
+            len(set(sample_indices(job.n_frames, job.background.samples)) | set(job.frames))
+            * w
+            * h
+            * 3
+            <= job.cache_bytes
+        ):
             # Short clip: decode once, keep the small work frames for the second pass.
             idx = sample_indices(job.n_frames, job.background.samples)
             cache = dict(read_frames(job.video, sorted(set(idx) | set(job.frames)), job.camera, sx))
@@ -218,13 +235,19 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         segmenter = None
         if job.persons is not None:
             segmenter = PersonSegmenter(BlazePose(job.persons_models_dir), job.persons)
-        frames_iter = ((f, cache.pop(f)) for f in job.frames) if cache else read_frames(job.video, job.frames, job.camera, sx)
+        frames_iter = (
+            ((f, cache.pop(f)) for f in job.frames)
+            if cache
+            else read_frames(job.video, job.frames, job.camera, sx)
+        )
         for f, img in frames_iter:
             lab, blobs = clean_mask(model.foreground(img), job.masks)
             if segmenter is not None:
                 lab, _ = segmenter.segment(img, [b.box for b in blobs] if job.persons_hints else ())
             if job.external_boxes is not None:
-                lab = boxes_to_labels(lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1]))
+                lab = boxes_to_labels(
+                    lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1])
+                )
             labels[pos[f]] = lab
     per_frame_max = labels.reshape(len(labels), -1).max(axis=1)  # clean_mask labels are 1..n
     n_with = int(np.count_nonzero(per_frame_max))
@@ -232,9 +255,18 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
     seconds = time.perf_counter() - t0
 
     def fill(f: h5py.File) -> None:
-        f.create_dataset("labels", data=labels, chunks=(1, h, w), compression="gzip", compression_opts=1)
+        f.create_dataset(
+            "labels", data=labels, chunks=(1, h, w), compression="gzip", compression_opts=1
+        )
         f.create_dataset("frames", data=np.asarray(job.frames, dtype=np.int64))
-        f.attrs.update({"frames_with_blobs": n_with, "blobs": n_blobs, "seconds": seconds, "camera": job.camera})
+        f.attrs.update(
+            {
+                "frames_with_blobs": n_with,
+                "blobs": n_blobs,
+                "seconds": seconds,
+                "camera": job.camera,
+            }
+        )
 
     _write_atomic_h5(out, fill)
     return MaskJobResult(job.camera, n_with, n_blobs, seconds, False)
@@ -242,15 +274,24 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
 
 # -- phase 2: association --------------------------------------------------------------------
 
+
 def _values_present(labels: np.ndarray) -> np.ndarray:
     """Distinct values of a uint8 label image (a histogram: much faster than np.unique)."""
     return np.nonzero(np.bincount(labels.reshape(-1), minlength=256))[0]
 
 
-def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_sizes: dict[str, tuple[int, int]],
-                    frames: list[int], out_dir: Path, config: AssociationConfig,
-                    volume: CaptureVolume | None, global_ids: bool = False,
-                    progress: Callable | None = None, step_seconds: float = 1 / 30) -> dict:
+def associate_scene(
+    label_files: dict[str, Path],
+    cameras: list[Camera],
+    work_sizes: dict[str, tuple[int, int]],
+    frames: list[int],
+    out_dir: Path,
+    config: AssociationConfig,
+    volume: CaptureVolume | None,
+    global_ids: bool = False,
+    progress: Callable | None = None,
+    step_seconds: float = 1 / 30,
+) -> dict:
     """Per-frame people and per-camera person labels, written to `out_dir/persons_<cam>.h5`.
 
     Returns a summary (people per frame, ids). With `global_ids` the label values already are
@@ -258,15 +299,23 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
     """
     names = [c.name for c in cameras]
     if len(names) < 2 and not global_ids:
-        raise ExtractError(f"only camera(s) {names} see anyone; associating people across views "
-                           "needs at least two cameras that see them")
+        raise ExtractError(
+            f"only camera(s) {names} see anyone; associating people across views "
+            "needs at least two cameras that see them"
+        )
     grid = None
     if not global_ids:
-        grid = VoxelGrid(cameras, work_sizes, volume or CaptureVolume.from_rig(Rig(tuple(cameras))), config)
+        grid = VoxelGrid(
+            cameras, work_sizes, volume or CaptureVolume.from_rig(Rig(tuple(cameras))), config
+        )
         if len(grid) == 0:
-            raise ExtractError(f"no voxel of the capture volume is seen by {config.min_views} of the cameras "
-                               f"{names}; check the calibration or give the volume explicitly")
-    tracker = PersonTracker(config.track_max_speed, step_seconds, config.track_slack, config.track_max_gap)
+            raise ExtractError(
+                f"no voxel of the capture volume is seen by {config.min_views} of the cameras "
+                f"{names}; check the calibration or give the volume explicitly"
+            )
+    tracker = PersonTracker(
+        config.track_max_speed, step_seconds, config.track_slack, config.track_max_gap
+    )
     inputs = {n: h5py.File(label_files[n], "r") for n in names}
     tmp_files = {}
     outs = {}
@@ -279,8 +328,14 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
             w, h = work_sizes[n]
             tmp_files[n] = out_dir / f"persons_{n}.h5.tmp"
             outs[n] = h5py.File(tmp_files[n], "w")
-            outs[n].create_dataset("labels", shape=(len(frames), h, w), dtype="uint8", chunks=(1, h, w),
-                                   compression="gzip", compression_opts=1)
+            outs[n].create_dataset(
+                "labels",
+                shape=(len(frames), h, w),
+                dtype="uint8",
+                chunks=(1, h, w),
+                compression="gzip",
+                compression_opts=1,
+            )
             outs[n].create_dataset("frames", data=np.asarray(frames, dtype=np.int64))
         it: Iterable = enumerate(frames)
         if progress is not None:
@@ -312,13 +367,19 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
                         views[n].append((*view[0].tolist(), view[1]))
         if not global_ids and observed:
             # Offline: join id fragments of one person (lost for a while, then found again).
-            link = link_tracklets(observed, step_seconds, config.link_speed, config.link_slack, config.link_max_gap)
+            link = link_tracklets(
+                observed, step_seconds, config.link_speed, config.link_slack, config.link_max_gap
+            )
             per_frame = [[link[i] for i in ids] for ids in per_frame]
             for n in names:
                 slots[n] = [(f, v, link.get(pid, pid)) for f, v, pid in slots[n]]
         for n in names:
-            outs[n].create_dataset("slots", data=np.asarray(slots[n], dtype=np.int64).reshape(-1, 3))
-            outs[n].create_dataset("views", data=np.asarray(views[n], dtype=np.float64).reshape(-1, 5))
+            outs[n].create_dataset(
+                "slots", data=np.asarray(slots[n], dtype=np.int64).reshape(-1, 3)
+            )
+            outs[n].create_dataset(
+                "views", data=np.asarray(views[n], dtype=np.float64).reshape(-1, 5)
+            )
             outs[n].close()
             os.replace(tmp_files[n], out_dir / f"persons_{n}.h5")
     finally:
@@ -334,11 +395,16 @@ def associate_scene(label_files: dict[str, Path], cameras: list[Camera], work_si
         for i in ids:
             counts[i] = counts.get(i, 0) + 1
     short = sorted(i for i, c in counts.items() if c < config.min_track_frames and not global_ids)
-    return {"frames": frames, "ids": per_frame, "voxels": len(grid) if grid is not None else 0,
-            "short_tracks": short}
+    return {
+        "frames": frames,
+        "ids": per_frame,
+        "voxels": len(grid) if grid is not None else 0,
+        "short_tracks": short,
+    }
 
 
 # -- per-camera phase 3: crops ----------------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class CropJob:
@@ -371,9 +437,14 @@ class CropJobResult:
     truth_views_missed: int = 0
 
 
-def crop_person(frame: np.ndarray, person_mask: np.ndarray, camera: Camera, crop_size: int, scale: float,
-                extra_box: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+def crop_person(
+    frame: np.ndarray,
+    person_mask: np.ndarray,
+    camera: Camera,
+    crop_size: int,
+    scale: float,
+    extra_box: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Crop one person: (image S x S x 3, mask S x S coverage 0..255, K_crop, person box, crop box).
 
     `person_mask` is boolean at work resolution (any size that is a scaling of the frame).
@@ -391,8 +462,14 @@ def crop_person(frame: np.ndarray, person_mask: np.ndarray, camera: Camera, crop
         t = np.linspace(0.0, 1.0, 9)
         xs = ex0 + (ex1 - ex0) * t
         ys = ey0 + (ey1 - ey0) * t
-        outline = np.concatenate([np.stack([xs, np.full_like(xs, ey0)], 1), np.stack([xs, np.full_like(xs, ey1)], 1),
-                                  np.stack([np.full_like(ys, ex0), ys], 1), np.stack([np.full_like(ys, ex1), ys], 1)])
+        outline = np.concatenate(
+            [
+                np.stack([xs, np.full_like(xs, ey0)], 1),
+                np.stack([xs, np.full_like(xs, ey1)], 1),
+                np.stack([np.full_like(ys, ex0), ys], 1),
+                np.stack([np.full_like(ys, ex1), ys], 1),
+            ]
+        )
         outline = outline / np.array(src_scale) - 0.5
         pts = np.concatenate([pts, outline])
     box = undistorted_box(camera, pts, half)
@@ -408,7 +485,9 @@ def crop_person(frame: np.ndarray, person_mask: np.ndarray, camera: Camera, crop
     return image, mask, crop_intrinsics(camera.K, cbox, crop_size), box, cbox.as_array()
 
 
-def score_against_truth(work_mask: np.ndarray, truth: np.ndarray, truth_areas: np.ndarray) -> tuple[int, float]:
+def score_against_truth(
+    work_mask: np.ndarray, truth: np.ndarray, truth_areas: np.ndarray
+) -> tuple[int, float]:
     """(truth id, IoU) of a work-resolution person mask against a full-resolution truth id mask.
 
     The mask is upsampled bilinearly (threshold 0.5, as `cv2.resize` would) only over its own
@@ -427,7 +506,12 @@ def score_against_truth(work_mask: np.ndarray, truth: np.ndarray, truth_areas: n
     y1 = min(H, int(np.ceil((rows[-1] + 2) / sy)))
     mx = ((np.arange(x0, x1, dtype=np.float32) + 0.5) * sx - 0.5)[None].repeat(y1 - y0, 0)
     my = ((np.arange(y0, y1, dtype=np.float32) + 0.5) * sy - 0.5)[:, None].repeat(x1 - x0, 1)
-    up = cv2.remap(work_mask.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) >= 0.5
+    up = (
+        cv2.remap(
+            work_mask.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        >= 0.5
+    )
     roi = truth[y0:y1, x0:x1]
     ids = roi[up]
     ids = ids[ids > 0]
@@ -457,8 +541,9 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
         result = CropJobResult(cam.name, 0, 0, 0, 0.0)
         truth = IdMaskFile(job.truth_masks, cam.name) if job.truth_masks else None
         # The part store is temporary: no compression (the scene store compresses once).
-        with CropStoreWriter(job.part, list(job.camera_names), job.crop_size, job.settings,
-                             compression="none") as part:
+        with CropStoreWriter(
+            job.part, list(job.camera_names), job.crop_size, job.settings, compression="none"
+        ) as part:
             done = {f for f, c in part.done_pairs() if c == job.camera_index}
             todo = [f for f in job.frames if f not in done]
             with_people = [f for f in todo if f in by_frame]
@@ -489,15 +574,28 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                         if got is None:
                             continue
                         img, msk, Kc, box, cbox = got
-                        rows.append(CropBatch(img[None], msk[None], Kc[None], cam.R[None], cam.t[None],
-                                              box[None], cbox[None], np.array([job.camera_index], np.int32),
-                                              np.array([f], np.int64), np.array([pid], np.int64),
-                                              np.array([support], np.float32)))
+                        rows.append(
+                            CropBatch(
+                                img[None],
+                                msk[None],
+                                Kc[None],
+                                cam.R[None],
+                                cam.t[None],
+                                box[None],
+                                cbox[None],
+                                np.array([job.camera_index], np.int32),
+                                np.array([f], np.int64),
+                                np.array([pid], np.int64),
+                                np.array([support], np.float32),
+                            )
+                        )
                         if gt is not None:
                             tid, iou = score_against_truth(pmask, gt, gt_areas)
                             scored.append(CropTruth(f, cam.name, pid, tid, iou))
                 if gt is not None:
-                    big = set(np.nonzero(gt_areas >= job.min_truth_fraction * gt.size)[0].tolist()) - {0}
+                    big = set(
+                        np.nonzero(gt_areas >= job.min_truth_fraction * gt.size)[0].tolist()
+                    ) - {0}
                     result.truth_views += len(big)
                     result.truth_views_missed += len(big - {r.truth_id for r in scored})
                     result.truth.extend(scored)
@@ -519,7 +617,10 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
 
 # -- phase 4: merge ---------------------------------------------------------------------------
 
-def merge_part(writer: CropStoreWriter, part_path: Path, camera_index: int, commit_frames: int) -> int:
+
+def merge_part(
+    writer: CropStoreWriter, part_path: Path, camera_index: int, commit_frames: int
+) -> int:
     """Append a camera's part store to the scene store, frame chunk by frame chunk; returns the
     number of (frame, camera) pairs added."""
     done_main = writer.done_pairs()
@@ -531,12 +632,14 @@ def merge_part(writer: CropStoreWriter, part_path: Path, camera_index: int, comm
         part_done = sorted(int(fr) for fr, c in f["done"][:n_done] if c == camera_index)
         todo = [fr for fr in part_done if (fr, camera_index) not in done_main]
         for i0 in range(0, len(todo), commit_frames):
-            chunk = todo[i0:i0 + commit_frames]
+            chunk = todo[i0 : i0 + commit_frames]
             rows = np.nonzero(np.isin(frames_col, chunk))[0]
             if len(rows):
                 a, b = int(rows.min()), int(rows.max()) + 1
                 if b - a != len(rows):
-                    raise ExtractError(f"{part_path}: rows of frames {chunk[0]}..{chunk[-1]} are not contiguous")
+                    raise ExtractError(
+                        f"{part_path}: rows of frames {chunk[0]}..{chunk[-1]} are not contiguous"
+                    )
                 batch = CropBatch(**{k: f[k][a:b] for k in CropBatch.__dataclass_fields__})
             else:
                 batch = CropBatch.empty(writer.crop_size)
@@ -547,13 +650,21 @@ def merge_part(writer: CropStoreWriter, part_path: Path, camera_index: int, comm
 
 # -- the whole job ----------------------------------------------------------------------------
 
+
 def _fingerprint(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def _camera_signature(cam: Camera) -> list:
-    return [cam.name, cam.K.round(9).tolist(), cam.dist.round(12).tolist(), cam.R.round(12).tolist(),
-            cam.t.round(12).tolist(), cam.width, cam.height]
+    return [
+        cam.name,
+        cam.K.round(9).tolist(),
+        cam.dist.round(12).tolist(),
+        cam.R.round(12).tolist(),
+        cam.t.round(12).tolist(),
+        cam.width,
+        cam.height,
+    ]
 
 
 def _resolve_truth(truth: Path | str | None) -> Path | None:
@@ -563,7 +674,9 @@ def _resolve_truth(truth: Path | str | None) -> Path | None:
     if (p / "masks").is_dir():
         p = p / "masks"
     if not p.is_dir():
-        raise ExtractError(f"truth masks folder {p} does not exist (expected <scene>/truth or <scene>/truth/masks)")
+        raise ExtractError(
+            f"truth masks folder {p} does not exist (expected <scene>/truth or <scene>/truth/masks)"
+        )
     return p
 
 
@@ -573,10 +686,21 @@ def _map(executor_map, fn, items, description):
     return list(executor_map(fn, items, description))
 
 
-def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size: int = 256, scale: float = 1.2,
-                  frame_stride: int = 1, method: str = "median", external: Path | str | ExternalDetections | None = None,
-                  truth: Path | str | None = None, progress: Callable | None = None,
-                  executor_map: Callable | None = None, options: ExtractOptions | None = None) -> ExtractReport:
+def extract_scene(
+    videos: dict[str, Path],
+    rig: Rig,
+    out_h5: Path,
+    *,
+    crop_size: int = 256,
+    scale: float = 1.2,
+    frame_stride: int = 1,
+    method: str = "median",
+    external: Path | str | ExternalDetections | None = None,
+    truth: Path | str | None = None,
+    progress: Callable | None = None,
+    executor_map: Callable | None = None,
+    options: ExtractOptions | None = None,
+) -> ExtractReport:
     """Person crops, masks and intrinsics from every camera of a scene into one crop store.
 
     videos: camera name -> video file (synchronised, equal length; names must be rig cameras).
@@ -603,17 +727,25 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
     n_frames = next(iter(infos.values())).frames
     frames = list(range(0, n_frames, frame_stride))
     sizes = {n: (infos[n].width, infos[n].height) for n in names}
-    ext = external if isinstance(external, ExternalDetections) or external is None else read_external(external, names)
+    ext = (
+        external
+        if isinstance(external, ExternalDetections) or external is None
+        else read_external(external, names)
+    )
     if ext is not None:
         ext.validate(sizes, n_frames)
     plates = {str(k): Path(v) for k, v in (opts.background_videos or {}).items()}
     for n, p in plates.items():
         if n not in videos:
-            raise VideoError(f"background video {p} is for camera '{n}', which has no video (cameras: {names})")
+            raise VideoError(
+                f"background video {p} is for camera '{n}', which has no video (cameras: {names})"
+            )
         info = probe_video(p, n)
         if (info.width, info.height) != sizes[n]:
-            raise VideoError(f"camera '{n}' background video {p}: frames are {info.width}x{info.height}, "
-                             f"the camera's video is {sizes[n][0]}x{sizes[n][1]}")
+            raise VideoError(
+                f"camera '{n}' background video {p}: frames are {info.width}x{info.height}, "
+                f"the camera's video is {sizes[n][0]}x{sizes[n][1]}"
+            )
     if opts.persons is not None:
         model_paths(opts.persons_models_dir)  # fail now, with the fix, rather than in a worker
         # Learned masks are person instances: split hull components along them.
@@ -629,23 +761,45 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
         return scaled_size(w, h, ws)
 
     work_sizes = {n: work_size(n) for n in names}
-    settings = {"scale": float(scale), "frame_stride": int(frame_stride), "method": method,
-                "config": _fingerprint([asdict(bg_cfg), asdict(opts.masks), asdict(opts.association),
-                                        opts.work_scale, None if opts.volume is None else
-                                        [opts.volume.basis.tolist(), opts.volume.lo.tolist(), opts.volume.hi.tolist()],
-                                        str(getattr(ext, "root", None)), [_camera_signature(rig[n]) for n in names],
-                                        {n: str(p) for n, p in sorted(plates.items())},
-                                        None if opts.persons is None else [asdict(opts.persons), opts.persons_hints]])}
+    settings = {
+        "scale": float(scale),
+        "frame_stride": int(frame_stride),
+        "method": method,
+        "config": _fingerprint(
+            [
+                asdict(bg_cfg),
+                asdict(opts.masks),
+                asdict(opts.association),
+                opts.work_scale,
+                None
+                if opts.volume is None
+                else [opts.volume.basis.tolist(), opts.volume.lo.tolist(), opts.volume.hi.tolist()],
+                str(getattr(ext, "root", None)),
+                [_camera_signature(rig[n]) for n in names],
+                {n: str(p) for n, p in sorted(plates.items())},
+                None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
+            ]
+        ),
+    }
     work = out_h5.with_name(out_h5.name + ".work")
-    work_key = _fingerprint([settings, {n: [str(p), os.path.getsize(p), os.path.getmtime(p)] for n, p in videos.items()}])
+    work_key = _fingerprint(
+        [
+            settings,
+            {n: [str(p), os.path.getsize(p), os.path.getmtime(p)] for n, p in videos.items()},
+        ]
+    )
     marker = work / "settings.json"
-    if work.exists() and (not marker.is_file() or json.loads(marker.read_text()).get("key") != work_key):
+    if work.exists() and (
+        not marker.is_file() or json.loads(marker.read_text()).get("key") != work_key
+    ):
         shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
     marker.write_text(json.dumps({"key": work_key, "settings": settings}))
     timings: dict[str, float] = {}
 
-    with CropStoreWriter(out_h5, names, crop_size, settings, opts.compression, opts.compression_level) as writer:
+    with CropStoreWriter(
+        out_h5, names, crop_size, settings, opts.compression, opts.compression_level
+    ) as writer:
         done_main = writer.done_pairs()
         pairs_resumed = sum(1 for f in frames for ci in range(len(names)) if (f, ci) in done_main)
         all_done = pairs_resumed == len(frames) * len(names)
@@ -660,12 +814,27 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
             jobs = []
             for n in names:
                 boxes = ext.camera_boxes(n) if ext is not None else None
-                jobs.append(MaskJob(n, str(videos[n]), tuple(frames), n_frames, sizes[n], work_sizes[n], bg_cfg,
-                                    opts.masks, str(work / f"labels_{n}.h5"),
-                                    external_masks=str(ext.mask_files[n]) if ext is not None and n in ext.mask_files else None,
-                                    external_boxes=boxes, clean_plate=str(plates[n]) if n in plates else None,
-                                    persons=opts.persons, persons_models_dir=opts.persons_models_dir,
-                                    persons_hints=opts.persons_hints))
+                jobs.append(
+                    MaskJob(
+                        n,
+                        str(videos[n]),
+                        tuple(frames),
+                        n_frames,
+                        sizes[n],
+                        work_sizes[n],
+                        bg_cfg,
+                        opts.masks,
+                        str(work / f"labels_{n}.h5"),
+                        external_masks=str(ext.mask_files[n])
+                        if ext is not None and n in ext.mask_files
+                        else None,
+                        external_boxes=boxes,
+                        clean_plate=str(plates[n]) if n in plates else None,
+                        persons=opts.persons,
+                        persons_models_dir=opts.persons_models_dir,
+                        persons_hints=opts.persons_hints,
+                    )
+                )
             for r in _map(executor_map, compute_camera_masks, jobs, "foreground masks per camera"):
                 per_cam[r.camera].seconds_masks = r.seconds
                 if r.frames_with_blobs == 0:
@@ -676,17 +845,36 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
             # Phase 2: association.
             t0 = time.perf_counter()
             assoc_marker = work / "association.json"
-            global_ids = bool(ext is not None and ext.global_ids and all(n in ext.mask_files for n in active))
+            global_ids = bool(
+                ext is not None and ext.global_ids and all(n in ext.mask_files for n in active)
+            )
             if assoc_marker.is_file():
                 summary = json.loads(assoc_marker.read_text())
             elif active:
-                fps = infos[names[0]].fps if infos[names[0]].fps > 0 else 30.0  # unknown rate: assume 30
-                summary = associate_scene({n: work / f"labels_{n}.h5" for n in active}, [rig[n] for n in active],
-                                          work_sizes, frames, work, opts.association, opts.volume, global_ids, progress,
-                                          step_seconds=frame_stride / fps)
+                fps = (
+                    infos[names[0]].fps if infos[names[0]].fps > 0 else 30.0
+                )  # unknown rate: assume 30
+                summary = associate_scene(
+                    {n: work / f"labels_{n}.h5" for n in active},
+                    [rig[n] for n in active],
+                    work_sizes,
+                    frames,
+                    work,
+                    opts.association,
+                    opts.volume,
+                    global_ids,
+                    progress,
+                    step_seconds=frame_stride / fps,
+                )
                 assoc_marker.write_text(json.dumps({**summary, "active": active}))
             else:
-                summary = {"frames": frames, "ids": [[] for _ in frames], "voxels": 0, "active": [], "short_tracks": []}
+                summary = {
+                    "frames": frames,
+                    "ids": [[] for _ in frames],
+                    "voxels": 0,
+                    "active": [],
+                    "short_tracks": [],
+                }
             timings["association"] = time.perf_counter() - t0
 
             # Phase 3: crops per camera.
@@ -695,10 +883,25 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
             for n in active:
                 ci = names.index(n)
                 todo = tuple(f for f in frames if (f, ci) not in done_main)
-                crop_jobs.append(CropJob(rig[n], ci, tuple(names), str(videos[n]), str(work / f"persons_{n}.h5"),
-                                         todo, work_sizes[n], crop_size, float(scale), str(work / f"part_{n}.h5"),
-                                         settings, opts.commit_frames, str(truth_files[n]) if truth_files.get(n) else None,
-                                         opts.association.min_mask_fraction, tuple(summary["short_tracks"])))
+                crop_jobs.append(
+                    CropJob(
+                        rig[n],
+                        ci,
+                        tuple(names),
+                        str(videos[n]),
+                        str(work / f"persons_{n}.h5"),
+                        todo,
+                        work_sizes[n],
+                        crop_size,
+                        float(scale),
+                        str(work / f"part_{n}.h5"),
+                        settings,
+                        opts.commit_frames,
+                        str(truth_files[n]) if truth_files.get(n) else None,
+                        opts.association.min_mask_fraction,
+                        tuple(summary["short_tracks"]),
+                    )
+                )
             for r in _map(executor_map, extract_camera_crops, crop_jobs, "crops per camera"):
                 per_cam[r.camera].seconds_crops = r.seconds
                 truth_rows.extend(r.truth)
@@ -713,10 +916,17 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
             # Cameras that saw no one: their frames are done (with no crops).
             for n in skipped_cams:
                 ci = names.index(n)
-                writer.commit(CropBatch.empty(crop_size), [(f, ci) for f in frames if (f, ci) not in done_main])
+                writer.commit(
+                    CropBatch.empty(crop_size),
+                    [(f, ci) for f in frames if (f, ci) not in done_main],
+                )
             timings["merge"] = time.perf_counter() - t0
-        writer.finalize({"source_videos": json.dumps({n: str(p) for n, p in videos.items()}),
-                         "n_frames": n_frames})
+        writer.finalize(
+            {
+                "source_videos": json.dumps({n: str(p) for n, p in videos.items()}),
+                "n_frames": n_frames,
+            }
+        )
 
     store = CropStore(out_h5)
     cam_col = store.index.column("camera_index").to_numpy()
@@ -739,18 +949,43 @@ def extract_scene(videos: dict[str, Path], rig: Rig, out_h5: Path, *, crop_size:
         shutil.rmtree(work)
     timings["total"] = time.perf_counter() - t_start
     return ExtractReport(
-        store=str(out_h5), cameras=names, frames_total=n_frames, frame_stride=frame_stride,
-        frames_considered=len(frames), frames_with_people=with_people,
-        frames_skipped_empty=len(frames) - with_people, cameras_skipped=skipped_cams, per_camera=per_cam,
-        crops=len(store), persons=int(len(np.unique(store.index.column("person_id").to_numpy()))),
-        multiview_groups=len(store.multiview_groups(2)), pairs_resumed=pairs_resumed,
+        store=str(out_h5),
+        cameras=names,
+        frames_total=n_frames,
+        frame_stride=frame_stride,
+        frames_considered=len(frames),
+        frames_with_people=with_people,
+        frames_skipped_empty=len(frames) - with_people,
+        cameras_skipped=skipped_cams,
+        per_camera=per_cam,
+        crops=len(store),
+        persons=int(len(np.unique(store.index.column("person_id").to_numpy()))),
+        multiview_groups=len(store.multiview_groups(2)),
+        pairs_resumed=pairs_resumed,
         short_tracks_dropped=list(summary["short_tracks"]) if summary else [],
         mask_iou=float(np.mean([r.iou for r in truth_rows])) if truth_rows else None,
-        association_accuracy=acc if n_scored else None, crops_scored=n_scored,
-        truth_views=truth_views, truth_views_missed=truth_missed, timings=timings,
-        settings={**settings, "crop_size": crop_size, "work_sizes": work_sizes,
-                  "voxels": summary.get("voxels") if summary else None})
+        association_accuracy=acc if n_scored else None,
+        crops_scored=n_scored,
+        truth_views=truth_views,
+        truth_views_missed=truth_missed,
+        timings=timings,
+        settings={
+            **settings,
+            "crop_size": crop_size,
+            "work_sizes": work_sizes,
+            "voxels": summary.get("voxels") if summary else None,
+        },
+    )
 
 
-__all__ = ["ExtractError", "ExtractOptions", "ExtractReport", "CameraReport", "extract_scene",
-           "compute_camera_masks", "extract_camera_crops", "crop_person", "VideoError"]
+__all__ = [
+    "ExtractError",
+    "ExtractOptions",
+    "ExtractReport",
+    "CameraReport",
+    "extract_scene",
+    "compute_camera_masks",
+    "extract_camera_crops",
+    "crop_person",
+    "VideoError",
+]

@@ -34,8 +34,14 @@ def _ray(camera: Camera, uv: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def ground_seed(camera: Camera, box_full: np.ndarray, up: np.ndarray, floor: float = 0.0,
-                frame: int = -1, score: float = 1.0) -> GroundSeed | None:
+def ground_seed(
+    camera: Camera,
+    box_full: np.ndarray,
+    up: np.ndarray,
+    floor: float = 0.0,
+    frame: int = -1,
+    score: float = 1.0,
+) -> GroundSeed | None:
     """The person a full-resolution box (corner convention) shows, standing on the plane
     up . X = floor; None when the feet ray misses the floor in front of the camera."""
     up = np.asarray(up, dtype=np.float64)

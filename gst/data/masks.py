@@ -59,12 +59,12 @@ def fill_small_holes(mask: np.ndarray, max_area_px: int) -> np.ndarray:
         return mask
     ys, xs = np.nonzero(holes)
     y0, x0 = ys.min(), xs.min()
-    roi = holes[y0:ys.max() + 1, x0:xs.max() + 1]
+    roi = holes[y0 : ys.max() + 1, x0 : xs.max() + 1]
     n, labels, stats, _ = cv2.connectedComponentsWithStats(roi.astype(np.uint8), connectivity=4)
     small = stats[:, cv2.CC_STAT_AREA] <= max_area_px
     small[0] = False
     out = mask.copy()
-    out[y0:ys.max() + 1, x0:xs.max() + 1] |= small[labels]
+    out[y0 : ys.max() + 1, x0 : xs.max() + 1] |= small[labels]
     return out
 
 
@@ -82,7 +82,9 @@ def clean_mask(raw: np.ndarray, config: MaskConfig = MaskConfig()) -> tuple[np.n
     if r_close > 0:
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, _disk(r_close))
     filled = fill_small_holes(mask.astype(bool), int(config.max_hole_area * h * w))
-    n, labels, stats, cents = cv2.connectedComponentsWithStats(filled.astype(np.uint8), connectivity=8)
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(
+        filled.astype(np.uint8), connectivity=8
+    )
     keep = []
     for i in range(1, n):
         x, y, bw, bh, area = (int(v) for v in stats[i])
@@ -110,7 +112,17 @@ def blobs_of_labels(labels: np.ndarray) -> list[Blob]:
         if value == 0:
             continue
         ys, xs = np.nonzero(labels == value)
-        blobs.append(Blob(int(value), len(xs), (int(xs.min()), int(ys.min()),
-                                                int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)),
-                          (float(xs.mean()), float(ys.mean()))))
+        blobs.append(
+            Blob(
+                int(value),
+                len(xs),
+                (
+                    int(xs.min()),
+                    int(ys.min()),
+                    int(xs.max() - xs.min() + 1),
+                    int(ys.max() - ys.min() + 1),
+                ),
+                (float(xs.mean()), float(ys.mean())),
+            )
+        )
     return blobs

@@ -45,7 +45,9 @@ def triangulate_dlt(P: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return X[:3] / X[3]
 
 
-def extract_proxies(store_path, rig: Rig, expected: int = 2, min_frames: int = 10) -> ExtractProxies:
+def extract_proxies(
+    store_path, rig: Rig, expected: int = 2, min_frames: int = 10
+) -> ExtractProxies:
     """Proxies (module doc) of a crop store written for `rig` (box columns are undistorted
     full-resolution pixel edges, so a pinhole K [R | t] projects them)."""
     store = CropStore(store_path)
@@ -56,7 +58,9 @@ def extract_proxies(store_path, rig: Rig, expected: int = 2, min_frames: int = 1
     for n in names:
         sel = t[t["camera"] == n]
         per_frame = sel.groupby("frame").size().reindex(range(n_frames), fill_value=0).to_numpy()
-        coverage[n] = float(np.mean(np.minimum(per_frame, expected) / expected)) if n_frames else 0.0
+        coverage[n] = (
+            float(np.mean(np.minimum(per_frame, expected) / expected)) if n_frames else 0.0
+        )
     P = {c.name: c.K @ np.concatenate([c.R, c.t.reshape(3, 1)], axis=1) for c in rig}
     errors = []
     groups = 0
@@ -68,13 +72,27 @@ def extract_proxies(store_path, rig: Rig, expected: int = 2, min_frames: int = 1
         uv = np.stack([0.5 * (g["x0"] + g["x1"]), 0.5 * (g["y0"] + g["y1"])], axis=1) - 0.5
         Ps = np.stack([P[c] for c in g["camera"]])
         X = triangulate_dlt(Ps, uv)
-        proj = (Ps @ np.append(X, 1.0))
-        err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1) / (g["y1"] - g["y0"]).to_numpy()
+        proj = Ps @ np.append(X, 1.0)
+        err = (
+            np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1) / (g["y1"] - g["y0"]).to_numpy()
+        )
         errors.extend(err.tolist())
     per_id = t.groupby("person_id")["frame"].nunique().sort_values(ascending=False)
-    groups_per_id = t.groupby("person_id").apply(lambda g: g["frame"].nunique(), include_groups=False)
+    groups_per_id = t.groupby("person_id").apply(
+        lambda g: g["frame"].nunique(), include_groups=False
+    )
     total = float(groups_per_id.sum()) if len(groups_per_id) else 0.0
-    main = float(groups_per_id.sort_values(ascending=False).iloc[:expected].sum()) if len(groups_per_id) else 0.0
-    return ExtractProxies(coverage, groups, float(np.median(errors)) if errors else float("nan"),
-                          float(np.percentile(errors, 90)) if errors else float("nan"), int(len(per_id)),
-                          int((per_id >= min_frames).sum()), main / total if total else 0.0)
+    main = (
+        float(groups_per_id.sort_values(ascending=False).iloc[:expected].sum())
+        if len(groups_per_id)
+        else 0.0
+    )
+    return ExtractProxies(
+        coverage,
+        groups,
+        float(np.median(errors)) if errors else float("nan"),
+        float(np.percentile(errors, 90)) if errors else float("nan"),
+        int(len(per_id)),
+        int((per_id >= min_frames).sum()),
+        main / total if total else 0.0,
+    )

@@ -12,16 +12,27 @@ import numpy as np
 from gst.data.extract import ExtractReport
 from gst.data.store import CropStore
 
-_PALETTE = [(60, 200, 60), (60, 60, 230), (230, 140, 40), (200, 60, 200), (40, 200, 220), (200, 200, 60)]
+_PALETTE = [
+    (60, 200, 60),
+    (60, 60, 230),
+    (230, 140, 40),
+    (200, 60, 200),
+    (40, 200, 220),
+    (200, 200, 60),
+]
 
 
-def overlay_mask(image: np.ndarray, mask: np.ndarray, color: tuple[int, int, int], alpha: float = 0.35) -> np.ndarray:
+def overlay_mask(
+    image: np.ndarray, mask: np.ndarray, color: tuple[int, int, int], alpha: float = 0.35
+) -> np.ndarray:
     """Tint the masked part of a BGR crop and outline it (mask: 0..255 coverage)."""
     out = image.astype(np.float32)
     a = (mask.astype(np.float32) / 255.0)[..., None] * alpha
     out = out * (1 - a) + np.array(color, dtype=np.float32) * a
     out = out.clip(0, 255).astype(np.uint8)
-    contours, _ = cv2.findContours((mask >= 128).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    contours, _ = cv2.findContours(
+        (mask >= 128).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE
+    )
     cv2.drawContours(out, contours, -1, color, 1, lineType=cv2.LINE_AA)
     return out
 
@@ -33,25 +44,45 @@ def contact_sheet(store: CropStore, rows: int = 10, tile: int = 144) -> np.ndarr
     head, left = 24, 90
     if not groups:
         sheet = np.full((head + tile, left + tile * max(1, len(names)), 3), 40, np.uint8)
-        cv2.putText(sheet, "no crops", (8, head + tile // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
+        cv2.putText(
+            sheet,
+            "no crops",
+            (8, head + tile // 2),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.6,
+            (255, 255, 255),
+            1,
+        )
         return sheet
     # Spread the sample over time and over people.
     pick = np.unique(np.linspace(0, len(groups) - 1, min(rows, len(groups))).round().astype(int))
     chosen = [groups[i] for i in pick]
     sheet = np.full((head + tile * len(chosen), left + tile * len(names), 3), 32, np.uint8)
     for j, n in enumerate(names):
-        cv2.putText(sheet, n[:14], (left + j * tile + 4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
+        cv2.putText(
+            sheet,
+            n[:14],
+            (left + j * tile + 4, 17),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (255, 255, 255),
+            1,
+        )
     for i, g in enumerate(chosen):
         y = head + i * tile
         color = _PALETTE[g.person_id % len(_PALETTE)]
-        cv2.putText(sheet, f"f{g.frame}", (4, y + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1)
-        cv2.putText(sheet, f"id {g.person_id}", (4, y + 42), cv2.FONT_HERSHEY_SIMPLEX, 0.5, color, 1)
+        cv2.putText(
+            sheet, f"f{g.frame}", (4, y + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1
+        )
+        cv2.putText(
+            sheet, f"id {g.person_id}", (4, y + 42), cv2.FONT_HERSHEY_SIMPLEX, 0.5, color, 1
+        )
         batch = store.read(g.indices)
         for k, cam in enumerate(g.cameras):
             crop = overlay_mask(batch.images[k], batch.masks[k], color)
             crop = cv2.resize(crop, (tile - 2, tile - 2), interpolation=cv2.INTER_AREA)
             x = left + int(cam) * tile
-            sheet[y + 1:y + tile - 1, x + 1:x + tile - 1] = crop
+            sheet[y + 1 : y + tile - 1, x + 1 : x + tile - 1] = crop
     return sheet
 
 
@@ -63,8 +94,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def write_extract_report(report: ExtractReport, store_path: Path | str, out_dir: Path | str,
-                         name: str = "extract") -> dict[str, Path]:
+def write_extract_report(
+    report: ExtractReport, store_path: Path | str, out_dir: Path | str, name: str = "extract"
+) -> dict[str, Path]:
     """Write `<name>.md`, `<name>.json` and `<name>_contact_sheet.png` into `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -91,8 +123,10 @@ def write_extract_report(report: ExtractReport, store_path: Path | str, out_dir:
     ]
     if len(support):
         q = np.percentile(support, [10, 50, 90])
-        lines.append(f"- mask support (share of the person's 3D hull this view's mask covers; low = partial mask): "
-                     f"10% {q[0]:.2f}, median {q[1]:.2f}, 90% {q[2]:.2f}; {int((support < 0.5).sum())} crops below 0.5")
+        lines.append(
+            f"- mask support (share of the person's 3D hull this view's mask covers; low = partial mask): "
+            f"10% {q[0]:.2f}, median {q[1]:.2f}, 90% {q[2]:.2f}; {int((support < 0.5).sum())} crops below 0.5"
+        )
     if r.short_tracks_dropped:
         lines.append(f"- ids seen too briefly to crop (dropped): {r.short_tracks_dropped}")
     if r.crops_scored:
@@ -100,16 +134,29 @@ def write_extract_report(report: ExtractReport, store_path: Path | str, out_dir:
             f"- truth: mean mask IoU {_fmt(r.mask_iou)}, association accuracy {_fmt(r.association_accuracy)} "
             f"over {r.crops_scored} crops; truth views {r.truth_views}, missed {r.truth_views_missed}",
         ]
-    lines += ["", "| camera | crops | frames with people | frames without | mask IoU | masks s | crops s |",
-              "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    lines += [
+        "",
+        "| camera | crops | frames with people | frames without | mask IoU | masks s | crops s |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for cam, c in r.per_camera.items():
-        lines.append(f"| {cam} | {c.crops} | {c.frames_with_people} | {c.frames_without_people} | "
-                     f"{_fmt(c.mask_iou)} | {c.seconds_masks:.1f} | {c.seconds_crops:.1f} |")
-    lines += ["", "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in r.timings.items()), "",
-              f"![contact sheet]({sheet_path.name})", ""]
+        lines.append(
+            f"| {cam} | {c.crops} | {c.frames_with_people} | {c.frames_without_people} | "
+            f"{_fmt(c.mask_iou)} | {c.seconds_masks:.1f} | {c.seconds_crops:.1f} |"
+        )
+    lines += [
+        "",
+        "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in r.timings.items()),
+        "",
+        f"![contact sheet]({sheet_path.name})",
+        "",
+    ]
     md_path = out_dir / f"{name}.md"
     json_path = out_dir / f"{name}.json"
-    for path, text in ((md_path, "\n".join(lines)), (json_path, json.dumps(r.to_dict(), indent=1, default=str))):
+    for path, text in (
+        (md_path, "\n".join(lines)),
+        (json_path, json.dumps(r.to_dict(), indent=1, default=str)),
+    ):
         tmp_text = path.with_name("." + path.name + ".tmp")
         tmp_text.write_text(text)
         os.replace(tmp_text, path)

@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 FORMAT = "gst-crops"
 VERSION = 1
 
+
 # name -> (per-row shape given crop size S, dtype)
 def _row_specs(size: int) -> dict[str, tuple[tuple[int, ...], str]]:
     return {
@@ -57,7 +58,9 @@ class CropBatch:
     camera: np.ndarray  # (n,) index into the store's camera names
     frame: np.ndarray  # (n,)
     person_id: np.ndarray  # (n,)
-    mask_support: np.ndarray  # (n,) share of the person's 3D-hull footprint its mask covers (NaN: unknown)
+    mask_support: (
+        np.ndarray
+    )  # (n,) share of the person's 3D-hull footprint its mask covers (NaN: unknown)
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -68,12 +71,18 @@ class CropBatch:
 
     @staticmethod
     def concat(batches: list[CropBatch]) -> CropBatch:
-        return CropBatch(**{k: np.concatenate([getattr(b, k) for b in batches])
-                            for k in CropBatch.__dataclass_fields__})
+        return CropBatch(
+            **{
+                k: np.concatenate([getattr(b, k) for b in batches])
+                for k in CropBatch.__dataclass_fields__
+            }
+        )
 
     @staticmethod
     def empty(size: int) -> CropBatch:
-        return CropBatch(**{k: np.zeros((0, *shape), dtype=dt) for k, (shape, dt) in _row_specs(size).items()})
+        return CropBatch(
+            **{k: np.zeros((0, *shape), dtype=dt) for k, (shape, dt) in _row_specs(size).items()}
+        )
 
 
 class CropStoreWriter:
@@ -84,8 +93,15 @@ class CropStoreWriter:
     (frame, camera) pairs it finishes visible atomically with respect to readers and resumes.
     """
 
-    def __init__(self, path: Path | str, camera_names: list[str], crop_size: int,
-                 settings: dict | None = None, compression: str = "gzip", compression_level: int = 1):
+    def __init__(
+        self,
+        path: Path | str,
+        camera_names: list[str],
+        crop_size: int,
+        settings: dict | None = None,
+        compression: str = "gzip",
+        compression_level: int = 1,
+    ):
         self.path = Path(path)
         self.camera_names = list(camera_names)
         self.crop_size = int(crop_size)
@@ -106,16 +122,20 @@ class CropStoreWriter:
         try:
             self._h5 = h5py.File(self.path, "a")
         except OSError as exc:
-            raise StoreError(f"{self.path}: cannot open as HDF5 for appending ({exc}); "
-                             "delete it or choose another path") from exc
+            raise StoreError(
+                f"{self.path}: cannot open as HDF5 for appending ({exc}); "
+                "delete it or choose another path"
+            ) from exc
         f = self._h5
         try:
             fmt = f.attrs.get("format")
             if fmt is None and not len(f.keys()) and not len(f.attrs):
                 self._create()  # new (empty) file
             elif fmt != FORMAT:
-                raise StoreError(f"{self.path}: exists and is not a crop store (format {fmt!r}); "
-                                 "refusing to overwrite it")
+                raise StoreError(
+                    f"{self.path}: exists and is not a crop store (format {fmt!r}); "
+                    "refusing to overwrite it"
+                )
             elif "n_committed" not in f.attrs:
                 self._create()  # creation was interrupted before anything was committed
             else:
@@ -142,14 +162,25 @@ class CropStoreWriter:
         elif self.compression == "lzf":
             opts = {"compression": "lzf"}
         elif self.compression != "none":
-            raise StoreError(f"compression '{self.compression}' is unknown; expected gzip, lzf or none")
+            raise StoreError(
+                f"compression '{self.compression}' is unknown; expected gzip, lzf or none"
+            )
         for name, (shape, dtype) in _row_specs(S).items():
             big = name in ("images", "masks")
             chunk_rows = 1 if big else 1024
-            f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                             chunks=(chunk_rows, *shape), shuffle=not big and bool(opts), **opts)
+            f.create_dataset(
+                name,
+                shape=(0, *shape),
+                maxshape=(None, *shape),
+                dtype=dtype,
+                chunks=(chunk_rows, *shape),
+                shuffle=not big and bool(opts),
+                **opts,
+            )
         f.create_dataset("done", shape=(0, 2), maxshape=(None, 2), dtype="int64", chunks=(4096, 2))
-        f.create_dataset("camera_names", data=np.array(self.camera_names, dtype=h5py.string_dtype()))
+        f.create_dataset(
+            "camera_names", data=np.array(self.camera_names, dtype=h5py.string_dtype())
+        )
         f.attrs["format"] = FORMAT
         f.attrs["version"] = VERSION
         f.attrs["crop_size"] = S
@@ -163,19 +194,27 @@ class CropStoreWriter:
     def _check_compatible(self) -> None:
         f = self._h5
         if f.attrs.get("format") != FORMAT:
-            raise StoreError(f"{self.path}: not a crop store (format attribute {f.attrs.get('format')!r})")
+            raise StoreError(
+                f"{self.path}: not a crop store (format attribute {f.attrs.get('format')!r})"
+            )
         if int(f.attrs["crop_size"]) != self.crop_size:
-            raise StoreError(f"{self.path}: written with crop_size={int(f.attrs['crop_size'])}, "
-                             f"asked to append crop_size={self.crop_size}; use a new path or delete it")
+            raise StoreError(
+                f"{self.path}: written with crop_size={int(f.attrs['crop_size'])}, "
+                f"asked to append crop_size={self.crop_size}; use a new path or delete it"
+            )
         names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["camera_names"][()]]
         if names != self.camera_names:
-            raise StoreError(f"{self.path}: written for cameras {names}, asked to append for "
-                             f"{self.camera_names}; use a new path or delete it")
+            raise StoreError(
+                f"{self.path}: written for cameras {names}, asked to append for "
+                f"{self.camera_names}; use a new path or delete it"
+            )
         for key, value in self.settings.items():
             old = f.attrs.get(f"setting.{key}")
             if old is not None and not np.array_equal(np.asarray(old), np.asarray(value)):
-                raise StoreError(f"{self.path}: written with {key}={old!r}, asked to append with "
-                                 f"{key}={value!r}; use a new path or delete it")
+                raise StoreError(
+                    f"{self.path}: written with {key}={old!r}, asked to append with "
+                    f"{key}={value!r}; use a new path or delete it"
+                )
 
     def _truncate_to_committed(self) -> None:
         f = self._h5
@@ -207,11 +246,13 @@ class CropStoreWriter:
         S = self.crop_size
         if n:
             if batch.images.shape[1:] != (S, S, 3) or batch.masks.shape[1:] != (S, S):
-                raise StoreError(f"{self.path}: batch crops are {batch.images.shape[1:]}, store holds {S}x{S}")
+                raise StoreError(
+                    f"{self.path}: batch crops are {batch.images.shape[1:]}, store holds {S}x{S}"
+                )
             for name in _row_specs(S):
                 ds = f[name]
                 ds.resize(n0 + n, axis=0)
-                ds[n0:n0 + n] = getattr(batch, name)
+                ds[n0 : n0 + n] = getattr(batch, name)
         done = np.asarray(done, dtype=np.int64).reshape(-1, 2)
         d0 = int(f.attrs["n_done"])
         if len(done):
@@ -247,16 +288,21 @@ def _read_index_columns(f: h5py.File) -> dict[str, np.ndarray]:
     crop = f["crop_box"][:n]
     masks_area = np.empty(n, dtype=np.float32)
     for i0 in range(0, n, 512):  # mask coverage, read in slabs to bound memory
-        m = f["masks"][i0:i0 + 512]
-        masks_area[i0:i0 + len(m)] = m.reshape(len(m), -1).mean(axis=1) / 255.0
+        m = f["masks"][i0 : i0 + 512]
+        masks_area[i0 : i0 + len(m)] = m.reshape(len(m), -1).mean(axis=1) / 255.0
     return {
         "row": np.arange(n, dtype=np.int64),
         "frame": f["frame"][:n],
         "camera": np.array(names, dtype=object)[cam] if n else np.zeros(0, dtype=object),
         "camera_index": cam,
         "person_id": f["person_id"][:n],
-        "x0": box[:, 0], "y0": box[:, 1], "x1": box[:, 2], "y1": box[:, 3],
-        "crop_x0": crop[:, 0], "crop_y0": crop[:, 1], "crop_side": crop[:, 2],
+        "x0": box[:, 0],
+        "y0": box[:, 1],
+        "x1": box[:, 2],
+        "y1": box[:, 3],
+        "crop_x0": crop[:, 0],
+        "crop_y0": crop[:, 1],
+        "crop_side": crop[:, 2],
         "mask_coverage": masks_area,
         "mask_support": f["mask_support"][:n],
     }
@@ -266,9 +312,13 @@ def write_index(f: h5py.File, store_path: Path) -> Path:
     """Write the Parquet index of the committed rows of an open store (atomically)."""
     cols = _read_index_columns(f)
     table = pa.table({k: pa.array(v.tolist() if k == "camera" else v) for k, v in cols.items()})
-    table = table.replace_schema_metadata({
-        "store": Path(store_path).name, "n_committed": str(int(f.attrs["n_committed"])),
-        "crop_size": str(int(f.attrs["crop_size"]))})
+    table = table.replace_schema_metadata(
+        {
+            "store": Path(store_path).name,
+            "n_committed": str(int(f.attrs["n_committed"])),
+            "crop_size": str(int(f.attrs["crop_size"])),
+        }
+    )
     out = index_path_for(store_path)
     tmp = out.with_name(out.name + ".tmp")
     pq.write_table(table, tmp)
@@ -300,11 +350,15 @@ class CropStore:
             if f.attrs.get("format") != FORMAT or "n_committed" not in f.attrs:
                 raise StoreError(f"{self.path}: not a crop store")
             if not bool(f.attrs.get("complete")) and not allow_incomplete:
-                raise StoreError(f"{self.path}: the store is incomplete (its writer did not finish); "
-                                 "rerun the extraction to resume it, or pass allow_incomplete=True")
+                raise StoreError(
+                    f"{self.path}: the store is incomplete (its writer did not finish); "
+                    "rerun the extraction to resume it, or pass allow_incomplete=True"
+                )
             self.n = int(f.attrs["n_committed"])
             self.crop_size = int(f.attrs["crop_size"])
-            self.camera_names = [x.decode() if isinstance(x, bytes) else str(x) for x in f["camera_names"][()]]
+            self.camera_names = [
+                x.decode() if isinstance(x, bytes) else str(x) for x in f["camera_names"][()]
+            ]
             self.attrs = {k: f.attrs[k] for k in f.attrs}
             self.index = self._load_index(f)
         self._h5: h5py.File | None = None
@@ -345,7 +399,9 @@ class CropStore:
         for c in cameras:
             if isinstance(c, str):
                 if c not in self.camera_names:
-                    raise KeyError(f"camera '{c}' is not in store {self.path} (cameras: {self.camera_names})")
+                    raise KeyError(
+                        f"camera '{c}' is not in store {self.path} (cameras: {self.camera_names})"
+                    )
                 out.append(self.camera_names.index(c))
             else:
                 out.append(int(c))
@@ -372,14 +428,18 @@ class CropStore:
         if len(order) == 0:
             return groups
         key = np.stack([frame[order], person[order]], axis=1)
-        starts = np.concatenate([[0], np.nonzero(np.any(key[1:] != key[:-1], axis=1))[0] + 1, [len(order)]])
+        starts = np.concatenate(
+            [[0], np.nonzero(np.any(key[1:] != key[:-1], axis=1))[0] + 1, [len(order)]]
+        )
         for a, b in zip(starts[:-1], starts[1:], strict=True):
             rows = order[a:b]
             # One crop per camera (the writer guarantees it; keep the first if not).
             _, first = np.unique(cam[rows], return_index=True)
             rows = rows[np.sort(first)]
             if len(rows) >= min_views:
-                groups.append(MultiViewGroup(int(frame[rows[0]]), int(person[rows[0]]), rows, cam[rows]))
+                groups.append(
+                    MultiViewGroup(int(frame[rows[0]]), int(person[rows[0]]), rows, cam[rows])
+                )
         return groups
 
     def read(self, rows) -> CropBatch:

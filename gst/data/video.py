@@ -56,8 +56,9 @@ def probe_video(path: Path | str, camera: str = "") -> VideoInfo:
     return VideoInfo(camera=camera, path=path, frames=frames, width=w, height=h, fps=fps)
 
 
-def check_videos(videos: dict[str, Path], rig_names: Sequence[str],
-                 rig_sizes: dict[str, tuple[int, int]]) -> dict[str, VideoInfo]:
+def check_videos(
+    videos: dict[str, Path], rig_names: Sequence[str], rig_sizes: dict[str, tuple[int, int]]
+) -> dict[str, VideoInfo]:
     """Probe every camera's video and check them against the rig and against each other.
 
     `rig_sizes` maps camera name to (width, height). Errors name the camera and file: a video
@@ -70,24 +71,29 @@ def check_videos(videos: dict[str, Path], rig_names: Sequence[str],
     if missing:
         raise VideoError(
             f"camera(s) {missing} have videos ({', '.join(str(videos[m]) for m in missing)}) "
-            f"but are missing from the rig (rig cameras: {list(rig_names)})")
+            f"but are missing from the rig (rig cameras: {list(rig_names)})"
+        )
     infos = {name: probe_video(path, name) for name, path in videos.items()}
     for name, info in infos.items():
         w, h = rig_sizes[name]
         if (info.width, info.height) != (w, h):
             raise VideoError(
                 f"camera '{name}' video {info.path}: frames are {info.width}x{info.height}, but the "
-                f"rig calibrates this camera at {w}x{h}")
+                f"rig calibrates this camera at {w}x{h}"
+            )
     counts = {name: info.frames for name, info in infos.items()}
     if len(set(counts.values())) > 1:
         detail = ", ".join(f"{n}: {c} ({infos[n].path.name})" for n, c in counts.items())
-        raise VideoError(f"videos have different frame counts across cameras ({detail}); "
-                         "expected synchronised videos of equal length")
+        raise VideoError(
+            f"videos have different frame counts across cameras ({detail}); "
+            "expected synchronised videos of equal length"
+        )
     return infos
 
 
-def read_frames(path: Path | str, frames: Sequence[int], camera: str = "",
-                scale: float = 1.0) -> Iterator[tuple[int, np.ndarray]]:
+def read_frames(
+    path: Path | str, frames: Sequence[int], camera: str = "", scale: float = 1.0
+) -> Iterator[tuple[int, np.ndarray]]:
     """Yield (frame index, BGR image) for the sorted frame indices in `frames`.
 
     Decodes sequentially and skips unwanted frames with `grab` (cheaper than seeking in
@@ -106,13 +112,17 @@ def read_frames(path: Path | str, frames: Sequence[int], camera: str = "",
         for f in wanted:
             while pos < f:
                 if not cap.grab():
-                    raise VideoError(f"camera '{camera}' video {path}: ended at frame {pos}, "
-                                     f"but frame {f} was requested")
+                    raise VideoError(
+                        f"camera '{camera}' video {path}: ended at frame {pos}, "
+                        f"but frame {f} was requested"
+                    )
                 pos += 1
             ok, image = cap.read()
             if not ok or image is None:
-                raise VideoError(f"camera '{camera}' video {path}: frame {f} could not be decoded "
-                                 "(truncated or corrupt video)")
+                raise VideoError(
+                    f"camera '{camera}' video {path}: frame {f} could not be decoded "
+                    "(truncated or corrupt video)"
+                )
             pos += 1
             if scale != 1.0:
                 size = scaled_size(image.shape[1], image.shape[0], scale)

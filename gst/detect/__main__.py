@@ -10,14 +10,29 @@ from gst.detect.weights import MEDIAPIPE_WHEEL, default_models_dir, fetch_blazep
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m gst.detect",
-                                     description="BlazePose person models for real footage (docs/person_models.md)")
+    parser = argparse.ArgumentParser(
+        prog="python -m gst.detect",
+        description="BlazePose person models for real footage (docs/person_models.md)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
-    fetch = sub.add_parser("fetch", help=f"download {MEDIAPIPE_WHEEL.requirement}'s wheel from PyPI (not installed) "
-                                         "and keep its two BlazePose models")
-    fetch.add_argument("--models-dir", type=Path, default=None, help=f"where to keep them (default {default_models_dir()})")
-    fetch.add_argument("--from", dest="archive_dir", type=Path, default=None,
-                       help=f"folder holding {MEDIAPIPE_WHEEL.filename} (no download)")
+    fetch = sub.add_parser(
+        "fetch",
+        help=f"download {MEDIAPIPE_WHEEL.requirement}'s wheel from PyPI (not installed) "
+        "and keep its two BlazePose models",
+    )
+    fetch.add_argument(
+        "--models-dir",
+        type=Path,
+        default=None,
+        help=f"where to keep them (default {default_models_dir()})",
+    )
+    fetch.add_argument(
+        "--from",
+        dest="archive_dir",
+        type=Path,
+        default=None,
+        help=f"folder holding {MEDIAPIPE_WHEEL.filename} (no download)",
+    )
     fetch.add_argument("--force", action="store_true", help="fetch again even if the files exist")
     args = parser.parse_args(argv)
     paths = fetch_blazepose_models(args.models_dir, archive_dir=args.archive_dir, force=args.force)

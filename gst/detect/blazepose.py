@@ -38,6 +38,7 @@ ROI_SCALE = 1.25  # the region is 1.25 x the body circle's diameter (MediaPipe's
 
 # --- detector: anchors and decoding ------------------------------------------------------------
 
+
 def ssd_anchors() -> np.ndarray:
     """(2254, 2) anchor centres in [0, 1] of BlazePose's detector.
 
@@ -63,17 +64,22 @@ class PoseDetection:
     """One detected person in image pixels."""
 
     score: float
-    box: np.ndarray        # (4,) x0, y0, x1, y1 of the detector's box (face and upper body)
-    keypoints: np.ndarray  # (4, 2): hip centre, full-body circle point, shoulder centre, upper-body point
+    box: np.ndarray  # (4,) x0, y0, x1, y1 of the detector's box (face and upper body)
+    keypoints: (
+        np.ndarray
+    )  # (4, 2): hip centre, full-body circle point, shoulder centre, upper-body point
 
 
-def decode_detections(regressors: np.ndarray, logits: np.ndarray, min_score: float = 0.5
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def decode_detections(
+    regressors: np.ndarray, logits: np.ndarray, min_score: float = 0.5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Raw detector outputs (2254, 12) and (2254,) -> scores (n,), boxes (n, 4), keypoints (n, 4, 2)
     in [0, 1] coordinates of the detector input, for the anchors scoring at least `min_score`."""
     if regressors.shape != (len(_ANCHORS), 12) or logits.shape != (len(_ANCHORS),):
-        raise ValueError(f"detector outputs must be ({len(_ANCHORS)}, 12) and ({len(_ANCHORS)},), "
-                         f"got {regressors.shape} and {logits.shape}")
+        raise ValueError(
+            f"detector outputs must be ({len(_ANCHORS)}, 12) and ({len(_ANCHORS)},), "
+            f"got {regressors.shape} and {logits.shape}"
+        )
     scores = 1.0 / (1.0 + np.exp(-np.clip(logits.astype(np.float64), -100.0, 100.0)))
     keep = scores >= min_score
     reg, anchors = regressors[keep] / DETECTOR_SIZE, _ANCHORS[keep]
@@ -84,8 +90,9 @@ def decode_detections(regressors: np.ndarray, logits: np.ndarray, min_score: flo
     return scores[keep], boxes, keypoints
 
 
-def weighted_nms(scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, iou: float = 0.3
-                 ) -> list[PoseDetection]:
+def weighted_nms(
+    scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, iou: float = 0.3
+) -> list[PoseDetection]:
     """Merge detections that overlap by more than `iou`: the best score is kept, and its box and
     keypoints become the score-weighted mean of its group (steadier than keeping one anchor)."""
     order = np.argsort(-scores, kind="stable")
@@ -98,8 +105,13 @@ def weighted_nms(scores: np.ndarray, boxes: np.ndarray, keypoints: np.ndarray, i
         group[i] = True
         free &= ~group
         w = scores[group] / scores[group].sum()
-        out.append(PoseDetection(float(scores[i]), (boxes[group] * w[:, None]).sum(0),
-                                 (keypoints[group] * w[:, None, None]).sum(0)))
+        out.append(
+            PoseDetection(
+                float(scores[i]),
+                (boxes[group] * w[:, None]).sum(0),
+                (keypoints[group] * w[:, None, None]).sum(0),
+            )
+        )
     return out
 
 
@@ -118,6 +130,7 @@ def square_windows(width: int, height: int) -> list[tuple[int, int, int]]:
 
 
 # --- regions of interest ---------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class BodyRoi:
@@ -160,13 +173,16 @@ def roi_from_box(box: tuple[float, float, float, float]) -> BodyRoi:
 
 # --- the models ------------------------------------------------------------------------------
 
+
 def import_litert():
     """LiteRT's Interpreter class, or an ImportError that says how to install it."""
     try:
         from ai_edge_litert.interpreter import Interpreter
     except ImportError as exc:  # the optional extra is not installed
-        raise ImportError("the BlazePose person models need the LiteRT interpreter: "
-                          "pip install -e \".[detect]\" (package ai-edge-litert)") from exc
+        raise ImportError(
+            "the BlazePose person models need the LiteRT interpreter: "
+            'pip install -e ".[detect]" (package ai-edge-litert)'
+        ) from exc
     return Interpreter
 
 
@@ -177,23 +193,28 @@ def _interpreter(path: Path, threads: int):
 
 
 def _outputs_by_shape(it) -> dict[tuple[int, ...], np.ndarray]:
-    return {tuple(int(v) for v in d["shape"]): it.get_tensor(d["index"]) for d in it.get_output_details()}
+    return {
+        tuple(int(v) for v in d["shape"]): it.get_tensor(d["index"])
+        for d in it.get_output_details()
+    }
 
 
 @dataclass(frozen=True)
 class PersonSegment:
     """The landmark model's answer for one region, mapped back to the image."""
 
-    presence: float             # probability that a person is in the region
-    probability: np.ndarray     # (H, W) float32 person probability in the image (0 outside the region)
-    landmarks: np.ndarray       # (33, 3) x, y in image pixels and visibility in [0, 1]
-    next_roi: BodyRoi           # where this person is expected in the next frame
+    presence: float  # probability that a person is in the region
+    probability: np.ndarray  # (H, W) float32 person probability in the image (0 outside the region)
+    landmarks: np.ndarray  # (33, 3) x, y in image pixels and visibility in [0, 1]
+    next_roi: BodyRoi  # where this person is expected in the next frame
 
 
 class BlazePose:
     """Person detector plus landmark/segmentation model. Not thread-safe: one per worker."""
 
-    def __init__(self, models_dir: str | Path | None = None, threads: int = 1, min_score: float = 0.5):
+    def __init__(
+        self, models_dir: str | Path | None = None, threads: int = 1, min_score: float = 0.5
+    ):
         paths = model_paths(models_dir)
         self.detector = _interpreter(paths["detector"], threads)
         self.landmarker = _interpreter(paths["landmarks"], threads)
@@ -207,16 +228,26 @@ class BlazePose:
         inp = self.detector.get_input_details()[0]["index"]
         for x0, y0, side in square_windows(w, h):
             # Cut the window out of a zero-padded frame (the full-frame window is a letterbox).
-            m = np.float32([[DETECTOR_SIZE / side, 0, -x0 * DETECTOR_SIZE / side],
-                            [0, DETECTOR_SIZE / side, -y0 * DETECTOR_SIZE / side]])
+            m = np.float32(
+                [
+                    [DETECTOR_SIZE / side, 0, -x0 * DETECTOR_SIZE / side],
+                    [0, DETECTOR_SIZE / side, -y0 * DETECTOR_SIZE / side],
+                ]
+            )
             # (warpAffine has no area filter: INTER_AREA would silently be bilinear too.)
-            win = cv2.warpAffine(rgb, m, (DETECTOR_SIZE, DETECTOR_SIZE), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_CONSTANT)
+            win = cv2.warpAffine(
+                rgb,
+                m,
+                (DETECTOR_SIZE, DETECTOR_SIZE),
+                flags=cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+            )
             self.detector.set_tensor(inp, (win.astype(np.float32) / 127.5 - 1.0)[None])
             self.detector.invoke()
             out = _outputs_by_shape(self.detector)
-            s, b, k = decode_detections(out[(1, len(_ANCHORS), 12)][0], out[(1, len(_ANCHORS), 1)][0, :, 0],
-                                        self.min_score)
+            s, b, k = decode_detections(
+                out[(1, len(_ANCHORS), 12)][0], out[(1, len(_ANCHORS), 1)][0, :, 0], self.min_score
+            )
             offset = np.array([x0, y0], np.float32)
             scores.append(s)
             boxes.append(b * side + np.tile(offset, 2))
@@ -227,8 +258,13 @@ class BlazePose:
         """Landmarks and segmentation of the person in `roi` of a BGR image."""
         h, w = image.shape[:2]
         to_crop = roi.to_crop(LANDMARK_SIZE)
-        crop = cv2.warpAffine(image, to_crop, (LANDMARK_SIZE, LANDMARK_SIZE), flags=cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_CONSTANT)
+        crop = cv2.warpAffine(
+            image,
+            to_crop,
+            (LANDMARK_SIZE, LANDMARK_SIZE),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+        )
         rgb = cv2.cvtColor(crop, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         self.landmarker.set_tensor(self.landmarker.get_input_details()[0]["index"], rgb[None])
         self.landmarker.invoke()
@@ -238,7 +274,9 @@ class BlazePose:
         logits = out[(1, LANDMARK_SIZE, LANDMARK_SIZE, 1)][0, :, :, 0]
         prob_crop = (1.0 / (1.0 + np.exp(-np.clip(logits, -30, 30)))).astype(np.float32)
         to_image = cv2.invertAffineTransform(to_crop)
-        prob = cv2.warpAffine(prob_crop, to_image, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        prob = cv2.warpAffine(
+            prob_crop, to_image, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        )
         xy = np.c_[raw[:, :2], np.ones(39)] @ to_image.T
         visibility = 1.0 / (1.0 + np.exp(-np.clip(raw[:N_BODY_LANDMARKS, 3], -30, 30)))
         landmarks = np.c_[xy[:N_BODY_LANDMARKS], visibility].astype(np.float32)

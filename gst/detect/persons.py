@@ -20,17 +20,40 @@ import numpy as np
 from gst.detect.blazepose import BlazePose, BodyRoi, PersonSegment, roi_from_alignment, roi_from_box
 
 # BlazePose's 33 landmarks: the bones drawn to bound a person's mask (limbs, hands, feet).
-BONES = ((11, 13), (13, 15), (12, 14), (14, 16), (15, 17), (15, 19), (15, 21), (16, 18), (16, 20), (16, 22),
-         (11, 23), (12, 24), (23, 25), (25, 27), (24, 26), (26, 28), (27, 29), (29, 31), (27, 31),
-         (28, 30), (30, 32), (28, 32))
+BONES = (
+    (11, 13),
+    (13, 15),
+    (12, 14),
+    (14, 16),
+    (15, 17),
+    (15, 19),
+    (15, 21),
+    (16, 18),
+    (16, 20),
+    (16, 22),
+    (11, 23),
+    (12, 24),
+    (23, 25),
+    (25, 27),
+    (24, 26),
+    (26, 28),
+    (27, 29),
+    (29, 31),
+    (27, 31),
+    (28, 30),
+    (30, 32),
+    (28, 32),
+)
 TORSO = (11, 12, 24, 23)  # shoulders and hips
-HEAD = (0, 7, 8)          # nose and ears
+HEAD = (0, 7, 8)  # nose and ears
 
 
 def _draw_skeleton(canvas: np.ndarray, pts: np.ndarray, value: int, thickness: int) -> None:
     """Bones, the torso outline and the head-to-neck line of int landmarks `pts`, in place."""
     for a, b in BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)):
-        cv2.line(canvas, tuple(map(int, pts[a])), tuple(map(int, pts[b])), value, thickness=thickness)
+        cv2.line(
+            canvas, tuple(map(int, pts[a])), tuple(map(int, pts[b])), value, thickness=thickness
+        )
     head = tuple(map(int, pts[list(HEAD)].mean(axis=0)))
     cv2.line(canvas, head, tuple(map(int, (pts[11] + pts[12]) // 2)), value, thickness=thickness)
 
@@ -45,18 +68,24 @@ def skeleton_support(landmarks: np.ndarray, shape: tuple[int, int], width: float
     _draw_skeleton(out, pts, 1, 2 * t)
     cv2.fillConvexPoly(out, pts[list(TORSO)], 1)
     head_r = max(t, int(round(np.linalg.norm(landmarks[7, :2] - landmarks[8, :2]))))
-    cv2.circle(out, tuple(map(int, pts[list(HEAD)].mean(axis=0))), int(round(head_r * 1.2)) + t, 1, thickness=-1)
+    cv2.circle(
+        out,
+        tuple(map(int, pts[list(HEAD)].mean(axis=0))),
+        int(round(head_r * 1.2)) + t,
+        1,
+        thickness=-1,
+    )
     return out.astype(bool)
 
 
 @dataclass(frozen=True)
 class SegmenterConfig:
-    min_presence: float = 0.5   # landmark model's presence score needed to keep a region
-    threshold: float = 0.5      # person probability for a pixel to belong to someone
+    min_presence: float = 0.5  # landmark model's presence score needed to keep a region
+    threshold: float = 0.5  # person probability for a pixel to belong to someone
     # Two regions found the same person when their limb joints lie this close (share of body size).
     duplicate_distance: float = 0.15
-    min_area: float = 0.001     # smallest person mask, as a share of the image area
-    track: bool = True          # seed each frame with the previous frame's people
+    min_area: float = 0.001  # smallest person mask, as a share of the image area
+    track: bool = True  # seed each frame with the previous frame's people
     # Mask pixels must lie within this share of the region's side of the person's own skeleton.
     skeleton_width: float = 0.08
     # A hint box is segmented only if people found without hints cover less than this share of it.
@@ -67,7 +96,9 @@ class SegmenterConfig:
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"segmenter {name} must be in (0, 1), got {getattr(self, name)}")
         if self.duplicate_distance <= 0:
-            raise ValueError(f"segmenter duplicate_distance must be > 0, got {self.duplicate_distance}")
+            raise ValueError(
+                f"segmenter duplicate_distance must be > 0, got {self.duplicate_distance}"
+            )
 
 
 LIMB_JOINTS = [11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28]  # shoulders .. ankles
@@ -94,8 +125,9 @@ def _skeleton_distance(landmarks: np.ndarray, shape: tuple[int, int]) -> np.ndar
     return cv2.distanceTransform(lines, cv2.DIST_L2, 3)
 
 
-def compose_instances(segments: Sequence[PersonSegment], config: SegmenterConfig, image_area: int
-                      ) -> tuple[np.ndarray | None, list[PersonSegment]]:
+def compose_instances(
+    segments: Sequence[PersonSegment], config: SegmenterConfig, image_area: int
+) -> tuple[np.ndarray | None, list[PersonSegment]]:
     """Label image (1..n, largest first) of the distinct people among `segments`, and those people.
 
     A segment is kept when its person is present, its mask is big enough and its skeleton does
@@ -105,12 +137,18 @@ def compose_instances(segments: Sequence[PersonSegment], config: SegmenterConfig
     """
     cands = [s for s in segments if s.presence >= config.min_presence]
     masks = [s.probability > config.threshold for s in cands]
-    order = sorted(range(len(cands)), key=lambda i: (-round(cands[i].presence, 2), -int(np.count_nonzero(masks[i]))))
+    order = sorted(
+        range(len(cands)),
+        key=lambda i: (-round(cands[i].presence, 2), -int(np.count_nonzero(masks[i]))),
+    )
     kept: list[int] = []
     for i in order:
         if np.count_nonzero(masks[i]) < config.min_area * image_area:
             continue
-        if any(same_person(cands[i].landmarks, cands[j].landmarks, config.duplicate_distance) for j in kept):
+        if any(
+            same_person(cands[i].landmarks, cands[j].landmarks, config.duplicate_distance)
+            for j in kept
+        ):
             continue
         kept.append(i)
     if not kept:
@@ -147,13 +185,18 @@ class PersonSegmenter:
         for roi in rois:
             seg = self.model.segment(frame, roi)
             if self.config.skeleton_width > 0:
-                near = skeleton_support(seg.landmarks, (h, w), self.config.skeleton_width * roi.side)
-                seg = replace(seg, probability=np.where(near, seg.probability, 0.0).astype(np.float32))
+                near = skeleton_support(
+                    seg.landmarks, (h, w), self.config.skeleton_width * roi.side
+                )
+                seg = replace(
+                    seg, probability=np.where(near, seg.probability, 0.0).astype(np.float32)
+                )
             out.append(seg)
         return out
 
-    def segment(self, frame: np.ndarray, hints: Sequence[tuple[float, float, float, float]] = ()
-                ) -> tuple[np.ndarray, list[PersonSegment]]:
+    def segment(
+        self, frame: np.ndarray, hints: Sequence[tuple[float, float, float, float]] = ()
+    ) -> tuple[np.ndarray, list[PersonSegment]]:
         """Label image (uint8, 0 = nobody) and the people found in a BGR frame.
 
         `hints` are x, y, w, h boxes that may hold a person (e.g. moving blobs). They are looked
@@ -161,7 +204,9 @@ class PersonSegmenter:
         is at least as big as the people already found (a blob may be a fragment of a body).
         """
         h, w = frame.shape[:2]
-        rois = [roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in self.model.detect(frame)]
+        rois = [
+            roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in self.model.detect(frame)
+        ]
         if self.config.track:
             rois += self._tracked
         segments = self._segment_rois(frame, rois)
@@ -172,7 +217,7 @@ class PersonSegmenter:
             floor = float(np.median(sides)) if sides else 0.0
             extra = []
             for x, y, bw, bh in hints:
-                box = found[int(y):int(y + bh), int(x):int(x + bw)]
+                box = found[int(y) : int(y + bh), int(x) : int(x + bw)]
                 if box.size and box.mean() < self.config.hint_covered:
                     roi = roi_from_box((x, y, bw, bh))
                     extra.append(replace(roi, side=max(roi.side, floor)))

@@ -20,14 +20,17 @@ from gst.registry import PinnedArchive, check_hash, default_cache_dir, pip_downl
 
 # The platform wheel is pinned by tag, so every host downloads the same file.
 MEDIAPIPE_WHEEL = PinnedArchive(
-    "mediapipe==0.10.14", "mediapipe-0.10.14-cp311-cp311-manylinux_2_17_x86_64.manylinux2014_x86_64.whl",
+    "mediapipe==0.10.14",
+    "mediapipe-0.10.14-cp311-cp311-manylinux_2_17_x86_64.manylinux2014_x86_64.whl",
     "a807328339e7356fda0bb14df12fedbf1d33bdf81649c5f8666b0026b1cc30b4",
-    platform="manylinux2014_x86_64", python_version="3.11")
+    platform="manylinux2014_x86_64",
+    python_version="3.11",
+)
 
 
 @dataclass(frozen=True)
 class ModelFile:
-    member: str   # path inside the wheel
+    member: str  # path inside the wheel
     sha256: str
 
     @property
@@ -36,10 +39,14 @@ class ModelFile:
 
 
 MODELS = {
-    "detector": ModelFile("mediapipe/modules/pose_detection/pose_detection.tflite",
-                          "9ba9dd3d42efaaba86b4ff0122b06f29c4122e756b329d89dca1e297fd8f866c"),
-    "landmarks": ModelFile("mediapipe/modules/pose_landmark/pose_landmark_full.tflite",
-                           "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f"),
+    "detector": ModelFile(
+        "mediapipe/modules/pose_detection/pose_detection.tflite",
+        "9ba9dd3d42efaaba86b4ff0122b06f29c4122e756b329d89dca1e297fd8f866c",
+    ),
+    "landmarks": ModelFile(
+        "mediapipe/modules/pose_landmark/pose_landmark_full.tflite",
+        "e9a5c5cb17f736fafd4c2ec1da3b3d331d6edbe8a0d32395855aeb2cdfd64b9f",
+    ),
 }
 
 FETCH_COMMAND = "python -m gst.detect fetch"
@@ -62,12 +69,17 @@ def model_paths(models_dir: str | Path | None = None) -> dict[str, Path]:
         raise BlazePoseModelsMissing(
             f"BlazePose model files missing: {', '.join(missing)}. Fetch them once with `{FETCH_COMMAND}` "
             f"(downloads {MEDIAPIPE_WHEEL.requirement}'s wheel, about 35 MB, from PyPI; nothing is installed), "
-            f"or on an offline machine `{FETCH_COMMAND} --from DIR` with {MEDIAPIPE_WHEEL.filename} in DIR.")
+            f"or on an offline machine `{FETCH_COMMAND} --from DIR` with {MEDIAPIPE_WHEEL.filename} in DIR."
+        )
     return paths
 
 
-def fetch_blazepose_models(models_dir: str | Path | None = None, *, archive_dir: str | Path | None = None,
-                           force: bool = False) -> dict[str, Path]:
+def fetch_blazepose_models(
+    models_dir: str | Path | None = None,
+    *,
+    archive_dir: str | Path | None = None,
+    force: bool = False,
+) -> dict[str, Path]:
     """Make sure both model files exist under `models_dir` (default `default_models_dir()`)."""
     root = Path(models_dir) if models_dir is not None else default_models_dir()
     paths = {role: root / m.name for role, m in MODELS.items()}
@@ -77,7 +89,9 @@ def fetch_blazepose_models(models_dir: str | Path | None = None, *, archive_dir:
         if archive_dir is not None:
             wheel = Path(archive_dir) / MEDIAPIPE_WHEEL.filename
             if not wheel.is_file():
-                raise FileNotFoundError(f"{wheel} not found: --from needs {MEDIAPIPE_WHEEL.filename} in {archive_dir}")
+                raise FileNotFoundError(
+                    f"{wheel} not found: --from needs {MEDIAPIPE_WHEEL.filename} in {archive_dir}"
+                )
         else:
             wheel = pip_download(MEDIAPIPE_WHEEL, Path(tmp))
         check_hash(wheel, MEDIAPIPE_WHEEL)
@@ -86,6 +100,8 @@ def fetch_blazepose_models(models_dir: str | Path | None = None, *, archive_dir:
         # The wheel's hash pins its content already; this also guards against a wrong member path.
         got = hashlib.sha256(blobs[role]).hexdigest()
         if got != m.sha256:
-            raise ValueError(f"{MEDIAPIPE_WHEEL.filename}:{m.member}: SHA-256 {got} is not the pinned {m.sha256}")
+            raise ValueError(
+                f"{MEDIAPIPE_WHEEL.filename}:{m.member}: SHA-256 {got} is not the pinned {m.sha256}"
+            )
         atomic_write(paths[role], lambda tmp, data=blobs[role]: Path(tmp).write_bytes(data))
     return paths

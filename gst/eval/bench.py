@@ -29,7 +29,14 @@ from gst.train.recipe import build_network, make_task
 from gst.train.steps import predict
 from gst.train.views import CropSet
 
-__all__ = ["Variant", "BenchRow", "time_inference", "run_bench", "write_bench_table", "write_pareto_plot"]
+__all__ = [
+    "Variant",
+    "BenchRow",
+    "time_inference",
+    "run_bench",
+    "write_bench_table",
+    "write_pareto_plot",
+]
 
 
 @dataclass(frozen=True)
@@ -37,8 +44,12 @@ class Variant:
     name: str
     preset: str = "tiny"
     image_size: tuple[int, int] | None = None  # ViT input (H, W); None: the preset's
-    vertex_preset: str | None = None  # Gaussian count: "1723", "3445", "6890", "full"; None: the preset's
-    checkpoint: str | None = None  # use these weights as they are (no training); must match the variant
+    vertex_preset: str | None = (
+        None  # Gaussian count: "1723", "3445", "6890", "full"; None: the preset's
+    )
+    checkpoint: str | None = (
+        None  # use these weights as they are (no training); must match the variant
+    )
 
     def config(self):
         cfg = get_preset(self.preset)
@@ -90,48 +101,95 @@ def _interleaved_medians(calls: list[Callable[[], object]], repeats: int) -> lis
     return [statistics.median(t) for t in times]
 
 
-def run_bench(variants: list[Variant], crops: CropSet, split: Split, body, body_spec: str, train: FinetuneConfig,
-              *, lpips=None, repeats: int = 5, batch: int = 8, render_size: int = 64, max_groups: int | None = 16,
-              log: Callable[[str], None] = print, load_checkpoint_fn=None) -> list[BenchRow]:
+def run_bench(
+    variants: list[Variant],
+    crops: CropSet,
+    split: Split,
+    body,
+    body_spec: str,
+    train: FinetuneConfig,
+    *,
+    lpips=None,
+    repeats: int = 5,
+    batch: int = 8,
+    render_size: int = 64,
+    max_groups: int | None = 16,
+    log: Callable[[str], None] = print,
+    load_checkpoint_fn=None,
+) -> list[BenchRow]:
     """Train (or load) and score every variant, then time them all round-robin; returns two rows
     per variant (pose-only, full)."""
-    test = torch.nonzero((crops.frame >= split.test_frames[0]) & (crops.frame < split.test_frames[1]))[:, 0]
+    test = torch.nonzero(
+        (crops.frame >= split.test_frames[0]) & (crops.frame < split.test_frames[1])
+    )[:, 0]
     timing_rows = test[:batch] if len(test) >= batch else torch.arange(min(batch, len(crops)))
     images, K = crops.images[timing_rows], crops.K[timing_rows]
-    eval_cfg = EvalConfig(heldout_cameras=split.heldout_cameras, render_size=render_size, frames=split.test_frames,
-                          max_groups=max_groups, side_by_side_groups=0)
+    eval_cfg = EvalConfig(
+        heldout_cameras=split.heldout_cameras,
+        render_size=render_size,
+        frames=split.test_frames,
+        max_groups=max_groups,
+        side_by_side_groups=0,
+    )
     pending, calls = [], []
     for v in variants:
         if v.checkpoint is not None:
             if load_checkpoint_fn is None:
                 raise ValueError(f"variant {v.name}: a checkpoint needs load_checkpoint_fn")
             net, ids, groups = load_checkpoint_fn(v.checkpoint)
-            if net.cfg.name != v.preset or tuple(net.cfg.image_size) != tuple(v.config().image_size):
-                raise ValueError(f"variant {v.name}: checkpoint {v.checkpoint} is preset {net.cfg.name} at "
-                                 f"{net.cfg.image_size}, the variant asks for {v.preset} at {v.config().image_size}")
+            if net.cfg.name != v.preset or tuple(net.cfg.image_size) != tuple(
+                v.config().image_size
+            ):
+                raise ValueError(
+                    f"variant {v.name}: checkpoint {v.checkpoint} is preset {net.cfg.name} at "
+                    f"{net.cfg.image_size}, the variant asks for {v.preset} at {v.config().image_size}"
+                )
             how = "checkpoint as is"
         else:
             net, ids, groups = build_network(v.config(), body)
-            secs = finetune(net, body, ids, groups, crops, split, train, body_spec=body_spec, lpips=lpips)
+            secs = finetune(
+                net, body, ids, groups, crops, split, train, body_spec=body_spec, lpips=lpips
+            )
             how = f"{train.steps} steps {train.mode} from scratch ({secs:.0f} s)"
         net.eval()
         task = make_task(body, ids, net.cfg, crops.crop_size, train.weights)
         res = evaluate_model(net, task, crops, eval_cfg, joint_names=body.joint_names, lpips=None)
-        pose, nv = res.summary["pose"]["overall"], res.summary.get("novel_view", {}).get("heldout", {})
-        log(f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, held-out PSNR {nv.get('psnr')} ({how})")
+        pose, nv = (
+            res.summary["pose"]["overall"],
+            res.summary.get("novel_view", {}).get("heldout", {}),
+        )
+        log(
+            f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, held-out PSNR {nv.get('psnr')} ({how})"
+        )
         params_m = round(sum(p.numel() for p in net.parameters()) / 1e6, 2)
         for output, with_g in (("pose-only", False), ("full", True)):
+
             def call(net=net, task=task, with_g=with_g):
                 with torch.no_grad():
                     predict(net, task, images, K, with_gaussians=with_g)
 
             calls.append(call)
-            pending.append(BenchRow(v.name, net.cfg.name, f"{net.cfg.image_size[0]}x{net.cfg.image_size[1]}", len(ids),
-                                    output, params_m, how, 0.0, 0.0, pose["mpjpe_mm"], pose["pa_mpjpe_mm"],
-                                    nv.get("psnr") if with_g else None))
+            pending.append(
+                BenchRow(
+                    v.name,
+                    net.cfg.name,
+                    f"{net.cfg.image_size[0]}x{net.cfg.image_size[1]}",
+                    len(ids),
+                    output,
+                    params_m,
+                    how,
+                    0.0,
+                    0.0,
+                    pose["mpjpe_mm"],
+                    pose["pa_mpjpe_mm"],
+                    nv.get("psnr") if with_g else None,
+                )
+            )
     for row, sec in zip(pending, _interleaved_medians(calls, repeats), strict=True):
         row.ms_per_batch, row.fps = 1000 * sec, len(timing_rows) / sec
-        log(f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of {len(timing_rows)}")
+        log(
+            f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of {len(timing_rows)}"
+        )
     return pending
 
 
@@ -153,13 +211,19 @@ def write_bench_table(out: Path, rows: list[BenchRow], header: str) -> None:
     atomic_write(out / "table.csv", write_csv)
     base = {r.variant: r.ms_per_batch for r in rows if r.output == "pose-only"}
     ref = min(base.values()) if base else None
-    lines = [header, "", "| variant | preset | input | Gaussians | output | params (M) | ms/batch | frames/s | "
-             "time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | PSNR held-out (dB) | weights |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        header,
+        "",
+        "| variant | preset | input | Gaussians | output | params (M) | ms/batch | frames/s | "
+        "time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | PSNR held-out (dB) | weights |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.output} | {r.params_m:.2f} | "
-                     f"{r.ms_per_batch:.1f} | {r.fps:.1f} | {r.ms_per_batch / ref:.2f}x | {_fmt(r.mpjpe_mm)} | "
-                     f"{_fmt(r.pa_mpjpe_mm)} | {_fmt(r.psnr, 2)} | {r.training} |")
+        lines.append(
+            f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.output} | {r.params_m:.2f} | "
+            f"{r.ms_per_batch:.1f} | {r.fps:.1f} | {r.ms_per_batch / ref:.2f}x | {_fmt(r.mpjpe_mm)} | "
+            f"{_fmt(r.pa_mpjpe_mm)} | {_fmt(r.psnr, 2)} | {r.training} |"
+        )
     text = "\n".join(lines) + "\n\n![Pareto](pareto.png)\n"
     atomic_write(out / "table.md", lambda tmp: Path(tmp).write_text(text))
 
@@ -169,8 +233,11 @@ def _pareto(points: list[tuple[float, float]], lower_better: bool) -> list[int]:
     keep = []
     for i, (t, e) in enumerate(points):
         better = lambda a, b: a < b if lower_better else a > b  # noqa: E731
-        dominated = any((t2 <= t and (better(e2, e) or e2 == e)) and (t2 < t or better(e2, e))
-                        for j, (t2, e2) in enumerate(points) if j != i)
+        dominated = any(
+            (t2 <= t and (better(e2, e) or e2 == e)) and (t2 < t or better(e2, e))
+            for j, (t2, e2) in enumerate(points)
+            if j != i
+        )
         if not dominated:
             keep.append(i)
     return keep
@@ -188,12 +255,19 @@ def write_pareto_plot(path: Path, rows: list[BenchRow]) -> None:
     fig.subplots_adjust(wspace=0.3)
     names = list(dict.fromkeys(r.variant for r in rows))
     colours = {n: plt.cm.tab10(i % 10) for i, n in enumerate(names)}
-    for ax, key, label, lower in ((axes[0], "mpjpe_mm", "MPJPE (mm), lower is better", True),
-                                  (axes[1], "psnr", "held-out PSNR (dB), higher is better", False)):
+    for ax, key, label, lower in (
+        (axes[0], "mpjpe_mm", "MPJPE (mm), lower is better", True),
+        (axes[1], "psnr", "held-out PSNR (dB), higher is better", False),
+    ):
         pts = [(r, getattr(r, key)) for r in rows if getattr(r, key) is not None]
         for r, e in pts:
-            ax.scatter(r.ms_per_batch, e, color=colours[r.variant], marker="o" if r.output == "full" else "s",
-                       label=f"{r.variant} ({r.output})")
+            ax.scatter(
+                r.ms_per_batch,
+                e,
+                color=colours[r.variant],
+                marker="o" if r.output == "full" else "s",
+                label=f"{r.variant} ({r.output})",
+            )
         front = _pareto([(r.ms_per_batch, e) for r, e in pts], lower)
         fr = sorted((pts[i][0].ms_per_batch, pts[i][1]) for i in front)
         if fr:

@@ -47,7 +47,11 @@ class EvalResult:
 
 def truth_rows(crops: CropSet, frames: tuple[int, int] | None = None) -> torch.Tensor:
     """Rows with truth (has_truth, or all rows when the key is absent), within `frames`."""
-    keep = crops.truth["has_truth"].bool().clone() if "has_truth" in crops.truth else torch.ones(len(crops), dtype=torch.bool)
+    keep = (
+        crops.truth["has_truth"].bool().clone()
+        if "has_truth" in crops.truth
+        else torch.ones(len(crops), dtype=torch.bool)
+    )
     if frames is not None:
         keep &= (crops.frame >= frames[0]) & (crops.frame < frames[1])
     return torch.nonzero(keep)[:, 0]
@@ -56,36 +60,71 @@ def truth_rows(crops: CropSet, frames: tuple[int, int] | None = None) -> torch.T
 def _labels(motions: np.ndarray | None, crops: CropSet, rows: np.ndarray) -> np.ndarray:
     if motions is None or "truth_row" not in crops.truth:
         return np.full(len(rows), "all", dtype=object)
-    return np.asarray(motions, dtype=object)[crops.truth["truth_row"][torch.as_tensor(rows)].numpy()]
+    return np.asarray(motions, dtype=object)[
+        crops.truth["truth_row"][torch.as_tensor(rows)].numpy()
+    ]
 
 
-def evaluate_model(model, task: GSTTask, crops: CropSet, cfg: EvalConfig, *, joint_names, lpips=None,
-                   scene_vertices: torch.Tensor | None = None, motions: np.ndarray | None = None) -> EvalResult:
+def evaluate_model(
+    model,
+    task: GSTTask,
+    crops: CropSet,
+    cfg: EvalConfig,
+    *,
+    joint_names,
+    lpips=None,
+    scene_vertices: torch.Tensor | None = None,
+    motions: np.ndarray | None = None,
+) -> EvalResult:
     """Evaluate `model` on the crops with truth (see module doc). `motions` (P,) labels the
     truth rows (SceneTruth.motion); `scene_vertices` (P, V, 3) enables vertex and SHERF box metrics."""
     unknown = [c for c in cfg.heldout_cameras if c not in crops.camera_names]
     if unknown:
-        raise ValueError(f"held-out cameras {unknown} are not in the crop set (cameras: {crops.camera_names})")
+        raise ValueError(
+            f"held-out cameras {unknown} are not in the crop set (cameras: {crops.camera_names})"
+        )
     t0 = time.perf_counter()
     model.eval()
     rows = truth_rows(crops, cfg.frames)
     if len(rows) == 0:
-        raise ValueError(f"no crop with truth to evaluate (frames {cfg.frames}, {len(crops)} crops)")
+        raise ValueError(
+            f"no crop with truth to evaluate (frames {cfg.frames}, {len(crops)} crops)"
+        )
     pose = evaluate_pose(model, task, crops, rows, scene_vertices)
-    summary = {"pose": pose_summary(pose, crops.camera_names, _labels(motions, crops, pose.rows), joint_names)}
+    summary = {
+        "pose": pose_summary(
+            pose, crops.camera_names, _labels(motions, crops, pose.rows), joint_names
+        )
+    }
     views = pairs = None
     kept: list[int] = []
     if cfg.with_views:
         heldout = {crops.camera_names.index(c) for c in cfg.heldout_cameras}
         pairs = view_pairs(crops, heldout, rows, cfg.max_groups, cfg.seed)
         if len(pairs.inputs):
-            first_inputs = list(dict.fromkeys(pairs.inputs.tolist()))[:cfg.side_by_side_groups]
+            first_inputs = list(dict.fromkeys(pairs.inputs.tolist()))[: cfg.side_by_side_groups]
             kept = [i for i, x in enumerate(pairs.inputs.tolist()) if x in first_inputs]
-            views = evaluate_views(model, task, crops, pairs, heldout, cfg.render_size, lpips, scene_vertices,
-                                   keep_images=set(kept))
-            summary["novel_view"] = view_summary(views, crops.camera_names, _labels(motions, crops, views.targets))
+            views = evaluate_views(
+                model,
+                task,
+                crops,
+                pairs,
+                heldout,
+                cfg.render_size,
+                lpips,
+                scene_vertices,
+                keep_images=set(kept),
+            )
+            summary["novel_view"] = view_summary(
+                views, crops.camera_names, _labels(motions, crops, views.targets)
+            )
     seconds = time.perf_counter() - t0
-    summary["counts"] = {"pose_crops": int(len(rows)), "view_pairs": int(len(pairs.inputs)) if pairs else 0,
-                         "render_size": cfg.render_size, "frames": list(cfg.frames) if cfg.frames else None,
-                         "heldout_cameras": list(cfg.heldout_cameras), "seconds": seconds}
+    summary["counts"] = {
+        "pose_crops": int(len(rows)),
+        "view_pairs": int(len(pairs.inputs)) if pairs else 0,
+        "render_size": cfg.render_size,
+        "frames": list(cfg.frames) if cfg.frames else None,
+        "heldout_cameras": list(cfg.heldout_cameras),
+        "seconds": seconds,
+    }
     return EvalResult(summary, pose, views, pairs, kept, seconds)

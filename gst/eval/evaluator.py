@@ -26,14 +26,23 @@ from gst.model.assemble import to_world
 from gst.train.steps import GSTTask, predict
 from gst.train.views import CropSet, target_views
 
-__all__ = ["PoseRecords", "ViewRecords", "ViewPairs", "evaluate_pose", "evaluate_views", "view_pairs",
-           "per_joint_errors"]
+__all__ = [
+    "PoseRecords",
+    "ViewRecords",
+    "ViewPairs",
+    "evaluate_pose",
+    "evaluate_views",
+    "view_pairs",
+    "per_joint_errors",
+]
 
 
-def per_joint_errors(pred: torch.Tensor, gt: torch.Tensor, root: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def per_joint_errors(
+    pred: torch.Tensor, gt: torch.Tensor, root: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, J) root-aligned and Procrustes-aligned per-joint distances of (B, J, 3) joints; their
     means over joints are MPJPE and PA-MPJPE."""
-    rel = (pred - pred[:, root:root + 1]) - (gt - gt[:, root:root + 1])
+    rel = (pred - pred[:, root : root + 1]) - (gt - gt[:, root : root + 1])
     pa = procrustes_align(pred, gt) - gt
     return rel.norm(dim=-1), pa.norm(dim=-1)
 
@@ -60,27 +69,47 @@ class PoseRecords:
 
 
 @torch.no_grad()
-def evaluate_pose(model, task: GSTTask, crops: CropSet, rows: torch.Tensor, scene_vertices: torch.Tensor | None = None,
-                  batch_size: int = 32) -> PoseRecords:
+def evaluate_pose(
+    model,
+    task: GSTTask,
+    crops: CropSet,
+    rows: torch.Tensor,
+    scene_vertices: torch.Tensor | None = None,
+    batch_size: int = 32,
+) -> PoseRecords:
     """Pose errors of `model` on crops `rows` (which must have truth joints_world).
 
     `scene_vertices` (P, V, 3): truth world meshes indexed by crops.truth["truth_row"]; when
     given (and V matches the task's body model), vertex errors are computed too."""
     rows = torch.as_tensor(rows, dtype=torch.long)
     if "joints_world" not in crops.truth:
-        raise ValueError("evaluate_pose: the crop set has no truth joints_world (see gst.eval.truth)")
+        raise ValueError(
+            "evaluate_pose: the crop set has no truth joints_world (see gst.eval.truth)"
+        )
     with_vertices = scene_vertices is not None
     if with_vertices:
         if "truth_row" not in crops.truth:
-            raise ValueError("evaluate_pose: scene_vertices given but the crop set has no truth_row")
+            raise ValueError(
+                "evaluate_pose: scene_vertices given but the crop set has no truth_row"
+            )
         if scene_vertices.shape[1] != task.body.num_vertices:
-            raise ValueError(f"evaluate_pose: truth meshes have {scene_vertices.shape[1]} vertices, the model's body "
-                             f"{task.body.num_vertices}: vertex error needs the same topology")
+            raise ValueError(
+                f"evaluate_pose: truth meshes have {scene_vertices.shape[1]} vertices, the model's body "
+                f"{task.body.num_vertices}: vertex error needs the same topology"
+            )
     je, jpa, pve, papve = [], [], [], []
     for s in range(0, len(rows), batch_size):
-        r = rows[s:s + batch_size]
-        pred = predict(model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r], with_gaussians=False,
-                       with_vertices=with_vertices)
+        r = rows[s : s + batch_size]
+        pred = predict(
+            model,
+            task,
+            crops.images[r],
+            crops.K[r],
+            crops.R[r],
+            crops.t[r],
+            with_gaussians=False,
+            with_vertices=with_vertices,
+        )
         gt = crops.truth["joints_world"][r].to(pred.joints_world)
         e, pa = per_joint_errors(pred.joints_world, gt)
         je.append(e)
@@ -92,9 +121,15 @@ def evaluate_pose(model, task: GSTTask, crops: CropSet, rows: torch.Tensor, scen
             pve.append(vertex_error(v_pred - pred.joints_world[:, :1], v_gt - gt[:, :1]))
             papve.append(vertex_error(v_pred, v_gt, align="procrustes"))
     cat = lambda xs: torch.cat(xs).double().numpy() if xs else np.zeros((0,))  # noqa: E731
-    return PoseRecords(rows=rows.numpy(), camera=crops.camera[rows].numpy(), frame=crops.frame[rows].numpy(),
-                       joint_error=cat(je).reshape(len(rows), -1), joint_error_pa=cat(jpa).reshape(len(rows), -1),
-                       pve=cat(pve) if with_vertices else None, pa_pve=cat(papve) if with_vertices else None)
+    return PoseRecords(
+        rows=rows.numpy(),
+        camera=crops.camera[rows].numpy(),
+        frame=crops.frame[rows].numpy(),
+        joint_error=cat(je).reshape(len(rows), -1),
+        joint_error_pa=cat(jpa).reshape(len(rows), -1),
+        pve=cat(pve) if with_vertices else None,
+        pa_pve=cat(papve) if with_vertices else None,
+    )
 
 
 @dataclass
@@ -105,15 +140,24 @@ class ViewPairs:
     targets: torch.Tensor  # (P,)
 
 
-def view_pairs(crops: CropSet, heldout: set[int], rows: torch.Tensor | None = None, max_groups: int | None = None,
-               seed: int = 0) -> ViewPairs:
+def view_pairs(
+    crops: CropSet,
+    heldout: set[int],
+    rows: torch.Tensor | None = None,
+    max_groups: int | None = None,
+    seed: int = 0,
+) -> ViewPairs:
     """For every (frame, person) seen by >= 2 cameras (among `rows`, default all): one input view,
     drawn from the training cameras (not `heldout`), and every other view as a target."""
     gen = torch.Generator().manual_seed(seed)
     allowed = torch.zeros(len(crops), dtype=torch.bool)
-    allowed[torch.arange(len(crops)) if rows is None else torch.as_tensor(rows, dtype=torch.long)] = True
+    allowed[
+        torch.arange(len(crops)) if rows is None else torch.as_tensor(rows, dtype=torch.long)
+    ] = True
     groups = [g[allowed[g]] for g in crops.groups(min_views=2)]
-    groups = [g for g in groups if len(g) >= 2 and any(int(crops.camera[i]) not in heldout for i in g)]
+    groups = [
+        g for g in groups if len(g) >= 2 and any(int(crops.camera[i]) not in heldout for i in g)
+    ]
     if max_groups is not None and len(groups) > max_groups:
         keep = torch.randperm(len(groups), generator=gen)[:max_groups].sort().values
         groups = [groups[int(k)] for k in keep]
@@ -125,7 +169,9 @@ def view_pairs(crops: CropSet, heldout: set[int], rows: torch.Tensor | None = No
             if int(i) != inp:
                 inputs.append(inp)
                 targets.append(int(i))
-    return ViewPairs(torch.tensor(inputs, dtype=torch.long), torch.tensor(targets, dtype=torch.long))
+    return ViewPairs(
+        torch.tensor(inputs, dtype=torch.long), torch.tensor(targets, dtype=torch.long)
+    )
 
 
 @dataclass
@@ -143,13 +189,25 @@ class ViewRecords:
     box_psnr: np.ndarray
     box_ssim: np.ndarray
     box_lpips: np.ndarray
-    images: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # pair -> (render, target)
+    images: dict[int, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict
+    )  # pair -> (render, target)
 
 
 @torch.no_grad()
-def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldout: set[int], size: int = 128,
-                   lpips=None, scene_vertices: torch.Tensor | None = None, box_margin: float = 0.05,
-                   batch_size: int = 16, keep_images: set[int] | None = None) -> ViewRecords:
+def evaluate_views(
+    model,
+    task: GSTTask,
+    crops: CropSet,
+    pairs: ViewPairs,
+    heldout: set[int],
+    size: int = 128,
+    lpips=None,
+    scene_vertices: torch.Tensor | None = None,
+    box_margin: float = 0.05,
+    batch_size: int = 16,
+    keep_images: set[int] | None = None,
+) -> ViewRecords:
     """Render each pair's prediction into its target view at `size` px and score it (module doc).
 
     SHERF-style box metrics need the truth mesh (`scene_vertices` indexed by truth_row); without
@@ -158,17 +216,37 @@ def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldo
     from gst.render import rasterize
 
     nan = float("nan")
-    cols: dict[str, list] = {k: [] for k in ("psnr", "ssim", "lpips", "iou", "box_psnr", "box_ssim", "box_lpips")}
+    cols: dict[str, list] = {
+        k: [] for k in ("psnr", "ssim", "lpips", "iou", "box_psnr", "box_ssim", "box_lpips")
+    }
     images: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     keep_images = keep_images or set()
     for s in range(0, len(pairs.inputs), batch_size):
-        inp, tgt = pairs.inputs[s:s + batch_size], pairs.targets[s:s + batch_size]
-        pred = predict(model, task, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], with_gaussians=True)
+        inp, tgt = pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size]
+        pred = predict(
+            model,
+            task,
+            crops.images[inp],
+            crops.K[inp],
+            crops.R[inp],
+            crops.t[inp],
+            with_gaussians=True,
+        )
         g = pred.gaussians_world
         view, K, image, mask = target_views(crops, tgt, size)
         target = image * mask[..., None]
-        out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, view[:, None], K[:, None], size, size,
-                        backgrounds=torch.zeros(len(inp), 1, 3))
+        out = rasterize(
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.colors,
+            view[:, None],
+            K[:, None],
+            size,
+            size,
+            backgrounds=torch.zeros(len(inp), 1, 3),
+        )
         rgb = out.rgb[:, 0].clamp(0, 1).permute(0, 3, 1, 2)
         tgt_img = target.permute(0, 3, 1, 2)
         cols["psnr"] += psnr(rgb, tgt_img).tolist()
@@ -177,12 +255,27 @@ def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldo
         cols["iou"] += silhouette_iou(out.alpha[:, 0], mask).tolist()
         row = crops.truth["truth_row"][tgt] if "truth_row" in crops.truth else None
         if scene_vertices is not None and row is not None:
-            corners = np.stack([points_box_corners(scene_vertices[int(k)].numpy(), box_margin) for k in row])
+            corners = np.stack(
+                [points_box_corners(scene_vertices[int(k)].numpy(), box_margin) for k in row]
+            )
         else:
-            corners = np.stack([points_box_corners(crops.truth["joints_world"][int(i)].numpy(), box_margin + 0.1)
-                                for i in tgt])
-        box = masked_bbox_metrics(rgb, tgt_img, corners, K.numpy(), crops.R[tgt].numpy(), crops.t[tgt].numpy(),
-                                  lpips=lpips)
+            corners = np.stack(
+                [
+                    points_box_corners(
+                        crops.truth["joints_world"][int(i)].numpy(), box_margin + 0.1
+                    )
+                    for i in tgt
+                ]
+            )
+        box = masked_bbox_metrics(
+            rgb,
+            tgt_img,
+            corners,
+            K.numpy(),
+            crops.R[tgt].numpy(),
+            crops.t[tgt].numpy(),
+            lpips=lpips,
+        )
         cols["box_psnr"] += box.psnr.tolist()
         cols["box_ssim"] += box.ssim.tolist()
         cols["box_lpips"] += box.lpips.tolist() if box.lpips is not None else [nan] * len(inp)
@@ -192,7 +285,17 @@ def evaluate_views(model, task: GSTTask, crops: CropSet, pairs: ViewPairs, heldo
                 images[s + j] = (to8(rgb[j]), to8(tgt_img[j]))
     cam = crops.camera[pairs.targets].numpy()
     arr = lambda k: np.asarray(cols[k], dtype=np.float64)  # noqa: E731
-    return ViewRecords(inputs=pairs.inputs.numpy(), targets=pairs.targets.numpy(), camera=cam,
-                       heldout=np.isin(cam, sorted(heldout)), psnr=arr("psnr"), ssim=arr("ssim"), lpips=arr("lpips"),
-                       silhouette_iou=arr("iou"), box_psnr=arr("box_psnr"), box_ssim=arr("box_ssim"),
-                       box_lpips=arr("box_lpips"), images=images)
+    return ViewRecords(
+        inputs=pairs.inputs.numpy(),
+        targets=pairs.targets.numpy(),
+        camera=cam,
+        heldout=np.isin(cam, sorted(heldout)),
+        psnr=arr("psnr"),
+        ssim=arr("ssim"),
+        lpips=arr("lpips"),
+        silhouette_iou=arr("iou"),
+        box_psnr=arr("box_psnr"),
+        box_ssim=arr("box_ssim"),
+        box_lpips=arr("box_lpips"),
+        images=images,
+    )

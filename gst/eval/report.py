@@ -39,14 +39,21 @@ def _save_figure(fig, path: Path) -> None:
 
 
 def _f(v, digits: int = 1) -> str:
-    return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}f}"
+    return (
+        "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}f}"
+    )
 
 
 def _grouped_bars(ax, groups: list[str], series: dict[str, list], ylabel: str, title: str) -> None:
     width = 0.8 / max(1, len(series))
     x = np.arange(len(groups))
     for k, (name, values) in enumerate(series.items()):
-        ax.bar(x + (k - (len(series) - 1) / 2) * width, [np.nan if v is None else v for v in values], width, label=name)
+        ax.bar(
+            x + (k - (len(series) - 1) / 2) * width,
+            [np.nan if v is None else v for v in values],
+            width,
+            label=name,
+        )
     ax.set_xticks(x, groups, rotation=30, ha="right")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
@@ -65,35 +72,91 @@ def _plots(out: Path, summaries: dict[str, dict]) -> list[str]:
     written = []
     cams = sorted({c for s in summaries.values() for c in s["pose"]["per_camera"]})
     has_views = all("novel_view" in s for s in summaries.values())
-    fig, axes = plt.subplots(1, 2 if has_views else 1, figsize=(11 if has_views else 6, 3.6), squeeze=False)
-    _grouped_bars(axes[0, 0], cams, {n: [summaries[n]["pose"]["per_camera"].get(c, {}).get("mpjpe_mm") for c in cams]
-                                     for n in names}, "MPJPE (mm)", "pose error per input camera")
+    fig, axes = plt.subplots(
+        1, 2 if has_views else 1, figsize=(11 if has_views else 6, 3.6), squeeze=False
+    )
+    _grouped_bars(
+        axes[0, 0],
+        cams,
+        {
+            n: [summaries[n]["pose"]["per_camera"].get(c, {}).get("mpjpe_mm") for c in cams]
+            for n in names
+        },
+        "MPJPE (mm)",
+        "pose error per input camera",
+    )
     if has_views:
-        tcams = sorted({c for s in summaries.values() for c in s["novel_view"]["per_target_camera"]})
-        held = {c for s in summaries.values() for c, v in s["novel_view"]["per_target_camera"].items() if v["heldout"]}
-        _grouped_bars(axes[0, 1], [c + (" (held out)" if c in held else "") for c in tcams],
-                      {n: [summaries[n]["novel_view"]["per_target_camera"].get(c, {}).get("psnr") for c in tcams]
-                       for n in names}, "PSNR (dB)", "novel-view PSNR per target camera")
+        tcams = sorted(
+            {c for s in summaries.values() for c in s["novel_view"]["per_target_camera"]}
+        )
+        held = {
+            c
+            for s in summaries.values()
+            for c, v in s["novel_view"]["per_target_camera"].items()
+            if v["heldout"]
+        }
+        _grouped_bars(
+            axes[0, 1],
+            [c + (" (held out)" if c in held else "") for c in tcams],
+            {
+                n: [
+                    summaries[n]["novel_view"]["per_target_camera"].get(c, {}).get("psnr")
+                    for c in tcams
+                ]
+                for n in names
+            },
+            "PSNR (dB)",
+            "novel-view PSNR per target camera",
+        )
     _save_figure(fig, out / "per_camera.png")
     written.append("per_camera.png")
 
     parts = list(next(iter(summaries.values()))["pose"]["per_part"])
     fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
-    _grouped_bars(ax[0], parts, {n: [summaries[n]["pose"]["per_part"][p]["mpjpe_mm"] for p in parts] for n in names},
-                  "MPJPE (mm)", "per body part (root-aligned)")
-    _grouped_bars(ax[1], parts, {n: [summaries[n]["pose"]["per_part"][p]["pa_mpjpe_mm"] for p in parts] for n in names},
-                  "PA-MPJPE (mm)", "per body part (Procrustes-aligned)")
+    _grouped_bars(
+        ax[0],
+        parts,
+        {n: [summaries[n]["pose"]["per_part"][p]["mpjpe_mm"] for p in parts] for n in names},
+        "MPJPE (mm)",
+        "per body part (root-aligned)",
+    )
+    _grouped_bars(
+        ax[1],
+        parts,
+        {n: [summaries[n]["pose"]["per_part"][p]["pa_mpjpe_mm"] for p in parts] for n in names},
+        "PA-MPJPE (mm)",
+        "per body part (Procrustes-aligned)",
+    )
     _save_figure(fig, out / "per_part.png")
     written.append("per_part.png")
 
     motions = sorted({m for s in summaries.values() for m in s["pose"]["per_motion"]})
-    fig, axes = plt.subplots(1, 2 if has_views else 1, figsize=(11 if has_views else 6, 3.6), squeeze=False)
-    _grouped_bars(axes[0, 0], motions, {n: [summaries[n]["pose"]["per_motion"].get(m, {}).get("mpjpe_mm")
-                                           for m in motions] for n in names}, "MPJPE (mm)", "pose error per motion")
+    fig, axes = plt.subplots(
+        1, 2 if has_views else 1, figsize=(11 if has_views else 6, 3.6), squeeze=False
+    )
+    _grouped_bars(
+        axes[0, 0],
+        motions,
+        {
+            n: [summaries[n]["pose"]["per_motion"].get(m, {}).get("mpjpe_mm") for m in motions]
+            for n in names
+        },
+        "MPJPE (mm)",
+        "pose error per motion",
+    )
     if has_views:
-        _grouped_bars(axes[0, 1], motions, {n: [summaries[n]["novel_view"]["per_motion"].get(m, {}).get("psnr")
-                                               for m in motions] for n in names}, "PSNR (dB)",
-                      "held-out-view PSNR per motion")
+        _grouped_bars(
+            axes[0, 1],
+            motions,
+            {
+                n: [
+                    summaries[n]["novel_view"]["per_motion"].get(m, {}).get("psnr") for m in motions
+                ]
+                for n in names
+            },
+            "PSNR (dB)",
+            "held-out-view PSNR per motion",
+        )
     _save_figure(fig, out / "per_motion.png")
     written.append("per_motion.png")
     return written
@@ -135,18 +198,40 @@ def side_by_side_image(result: EvalResult, crops: CropSet) -> np.ndarray | None:
 
 def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
     p = result.pose
-    motion_of = (lambda r: str(motions[int(crops.truth["truth_row"][r])])) if motions is not None and \
-        "truth_row" in crops.truth else (lambda r: "all")
+    motion_of = (
+        (lambda r: str(motions[int(crops.truth["truth_row"][r])]))
+        if motions is not None and "truth_row" in crops.truth
+        else (lambda r: "all")
+    )
 
     def pose_csv(tmp: str) -> None:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["row", "camera", "frame", "motion", "mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pa_pve_mm"])
+            w.writerow(
+                [
+                    "row",
+                    "camera",
+                    "frame",
+                    "motion",
+                    "mpjpe_mm",
+                    "pa_mpjpe_mm",
+                    "pve_mm",
+                    "pa_pve_mm",
+                ]
+            )
             for i, r in enumerate(p.rows):
-                w.writerow([int(r), crops.camera_names[int(p.camera[i])], int(p.frame[i]), motion_of(int(r)),
-                            f"{1000 * p.mpjpe[i]:.3f}", f"{1000 * p.pa_mpjpe[i]:.3f}",
-                            "" if p.pve is None else f"{1000 * p.pve[i]:.3f}",
-                            "" if p.pa_pve is None else f"{1000 * p.pa_pve[i]:.3f}"])
+                w.writerow(
+                    [
+                        int(r),
+                        crops.camera_names[int(p.camera[i])],
+                        int(p.frame[i]),
+                        motion_of(int(r)),
+                        f"{1000 * p.mpjpe[i]:.3f}",
+                        f"{1000 * p.pa_mpjpe[i]:.3f}",
+                        "" if p.pve is None else f"{1000 * p.pve[i]:.3f}",
+                        "" if p.pa_pve is None else f"{1000 * p.pa_pve[i]:.3f}",
+                    ]
+                )
 
     atomic_write(out / "per_crop.csv", pose_csv)
     if result.views is None:
@@ -157,25 +242,47 @@ def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
     def view_csv(tmp: str) -> None:
         with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["input_row", "target_row", "input_camera", "target_camera", "heldout", "frame", *keys])
+            w.writerow(
+                [
+                    "input_row",
+                    "target_row",
+                    "input_camera",
+                    "target_camera",
+                    "heldout",
+                    "frame",
+                    *keys,
+                ]
+            )
             for i in range(len(v.inputs)):
-                w.writerow([int(v.inputs[i]), int(v.targets[i]), crops.camera_names[int(crops.camera[v.inputs[i]])],
-                            crops.camera_names[int(v.camera[i])], bool(v.heldout[i]), int(crops.frame[v.targets[i]]),
-                            *(f"{getattr(v, k)[i]:.5f}" for k in keys)])
+                w.writerow(
+                    [
+                        int(v.inputs[i]),
+                        int(v.targets[i]),
+                        crops.camera_names[int(crops.camera[v.inputs[i]])],
+                        crops.camera_names[int(v.camera[i])],
+                        bool(v.heldout[i]),
+                        int(crops.frame[v.targets[i]]),
+                        *(f"{getattr(v, k)[i]:.5f}" for k in keys),
+                    ]
+                )
 
     atomic_write(out / "per_view.csv", view_csv)
 
 
-_HEADLINE = [("MPJPE (mm)", "pose", "overall", "mpjpe_mm", 1), ("PA-MPJPE (mm)", "pose", "overall", "pa_mpjpe_mm", 1),
-             ("PVE (mm)", "pose", "overall", "pve_mm", 1), ("PA-PVE (mm)", "pose", "overall", "pa_pve_mm", 1),
-             ("PSNR (dB), held-out, full crop", "novel_view", "heldout", "psnr", 2),
-             ("SSIM, held-out, full crop", "novel_view", "heldout", "ssim", 3),
-             ("LPIPS, held-out, full crop", "novel_view", "heldout", "lpips", 3),
-             ("PSNR (dB), held-out, SHERF box", "novel_view", "heldout", "box_psnr", 2),
-             ("SSIM, held-out, SHERF box", "novel_view", "heldout", "box_ssim", 3),
-             ("LPIPS, held-out, SHERF box", "novel_view", "heldout", "box_lpips", 3),
-             ("silhouette IoU, held-out", "novel_view", "heldout", "silhouette_iou", 3),
-             ("PSNR (dB), other training views", "novel_view", "trained_views", "psnr", 2)]
+_HEADLINE = [
+    ("MPJPE (mm)", "pose", "overall", "mpjpe_mm", 1),
+    ("PA-MPJPE (mm)", "pose", "overall", "pa_mpjpe_mm", 1),
+    ("PVE (mm)", "pose", "overall", "pve_mm", 1),
+    ("PA-PVE (mm)", "pose", "overall", "pa_pve_mm", 1),
+    ("PSNR (dB), held-out, full crop", "novel_view", "heldout", "psnr", 2),
+    ("SSIM, held-out, full crop", "novel_view", "heldout", "ssim", 3),
+    ("LPIPS, held-out, full crop", "novel_view", "heldout", "lpips", 3),
+    ("PSNR (dB), held-out, SHERF box", "novel_view", "heldout", "box_psnr", 2),
+    ("SSIM, held-out, SHERF box", "novel_view", "heldout", "box_ssim", 3),
+    ("LPIPS, held-out, SHERF box", "novel_view", "heldout", "box_lpips", 3),
+    ("silhouette IoU, held-out", "novel_view", "heldout", "silhouette_iou", 3),
+    ("PSNR (dB), other training views", "novel_view", "trained_views", "psnr", 2),
+]
 
 
 def _get(s: dict, a: str, b: str, c: str):
@@ -186,11 +293,15 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
     names = list(summaries)
     first = summaries[names[0]]
     models = ", ".join(f"`{n}` ({meta.get('models', {}).get(n, '?')})" for n in names)
-    lines = ["# Evaluation against the synthetic truth", "",
-             f"Scene `{meta.get('scene', '?')}`; models: {models}. "
-             f"{first['counts']['pose_crops']} crops with truth; {first['counts']['view_pairs']} novel-view pairs "
-             f"rendered at {first['counts']['render_size']} px; held-out cameras: "
-             f"{', '.join(first['counts']['heldout_cameras']) or 'none'}.", ""]
+    lines = [
+        "# Evaluation against the synthetic truth",
+        "",
+        f"Scene `{meta.get('scene', '?')}`; models: {models}. "
+        f"{first['counts']['pose_crops']} crops with truth; {first['counts']['view_pairs']} novel-view pairs "
+        f"rendered at {first['counts']['render_size']} px; held-out cameras: "
+        f"{', '.join(first['counts']['heldout_cameras']) or 'none'}.",
+        "",
+    ]
     if meta.get("note"):
         lines += [meta["note"], ""]
     lines += ["| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
@@ -201,43 +312,79 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
         lines.append(f"| {label} | " + " | ".join(_f(v, d) for v in vals) + " |")
     last = names[-1]
     s = summaries[last]
-    lines += ["", f"## Breakdowns (`{last}`)", "", "### Per input camera (pose)", "",
-              "| camera | n | MPJPE | PA-MPJPE | PVE |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        f"## Breakdowns (`{last}`)",
+        "",
+        "### Per input camera (pose)",
+        "",
+        "| camera | n | MPJPE | PA-MPJPE | PVE |",
+        "|---|---|---|---|---|",
+    ]
     for cam, v in s["pose"]["per_camera"].items():
-        lines.append(f"| {cam} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | {_f(v.get('pve_mm'))} |")
-    lines += ["", "### Per motion", "", "| motion | n | MPJPE | PA-MPJPE | held-out PSNR | held-out LPIPS |",
-              "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {cam} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | {_f(v.get('pve_mm'))} |"
+        )
+    lines += [
+        "",
+        "### Per motion",
+        "",
+        "| motion | n | MPJPE | PA-MPJPE | held-out PSNR | held-out LPIPS |",
+        "|---|---|---|---|---|---|",
+    ]
     for m, v in s["pose"]["per_motion"].items():
         nv = s.get("novel_view", {}).get("per_motion", {}).get(m, {})
-        lines.append(f"| {m} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | {_f(nv.get('psnr'), 2)} | "
-                     f"{_f(nv.get('lpips'), 3)} |")
+        lines.append(
+            f"| {m} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | {_f(nv.get('psnr'), 2)} | "
+            f"{_f(nv.get('lpips'), 3)} |"
+        )
     lines += ["", "### Per body part", "", "| part | MPJPE | PA-MPJPE |", "|---|---|---|"]
     for part, v in s["pose"]["per_part"].items():
         lines.append(f"| {part} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} |")
     if "novel_view" in s:
-        lines += ["", "### Per target camera (novel views)", "",
-                  "| camera | held out | n | PSNR | SSIM | LPIPS | box PSNR | box SSIM | box LPIPS | IoU |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "### Per target camera (novel views)",
+            "",
+            "| camera | held out | n | PSNR | SSIM | LPIPS | box PSNR | box SSIM | box LPIPS | IoU |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for cam, v in s["novel_view"]["per_target_camera"].items():
-            lines.append(f"| {cam} | {'yes' if v['heldout'] else 'no'} | {v['n']} | {_f(v['psnr'], 2)} | "
-                         f"{_f(v['ssim'], 3)} | {_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | {_f(v['box_ssim'], 3)} | "
-                         f"{_f(v['box_lpips'], 3)} | {_f(v['silhouette_iou'], 3)} |")
+            lines.append(
+                f"| {cam} | {'yes' if v['heldout'] else 'no'} | {v['n']} | {_f(v['psnr'], 2)} | "
+                f"{_f(v['ssim'], 3)} | {_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | {_f(v['box_ssim'], 3)} | "
+                f"{_f(v['box_lpips'], 3)} | {_f(v['silhouette_iou'], 3)} |"
+            )
     lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
     if has_sbs:
-        lines += ["", "## Side by side", "", "![side by side](side_by_side.png)", "",
-                  f"Model `{last}`. Per input: top row the input crop, then the prediction rendered into every other "
-                  "camera of the same frame ([H] = held-out camera); bottom row what those cameras saw, background "
-                  "removed."]
-    lines += ["", "MPJPE is pelvis-aligned, PA-MPJPE after a similarity Procrustes fit, PVE/PA-PVE the same on all mesh "
-              "vertices; all in the world frame through the input camera. Novel views: prediction rendered on black "
-              "vs image x mask; full crop = the whole rendered crop, SHERF box = inside the truth body's projected 3D "
-              "box (5 cm margin) for PSNR and its 2D bounding rectangle for SSIM/LPIPS (LPIPS v0.1 AlexNet). "
-              "Formats: docs/evaluate.md."]
+        lines += [
+            "",
+            "## Side by side",
+            "",
+            "![side by side](side_by_side.png)",
+            "",
+            f"Model `{last}`. Per input: top row the input crop, then the prediction rendered into every other "
+            "camera of the same frame ([H] = held-out camera); bottom row what those cameras saw, background "
+            "removed.",
+        ]
+    lines += [
+        "",
+        "MPJPE is pelvis-aligned, PA-MPJPE after a similarity Procrustes fit, PVE/PA-PVE the same on all mesh "
+        "vertices; all in the world frame through the input camera. Novel views: prediction rendered on black "
+        "vs image x mask; full crop = the whole rendered crop, SHERF box = inside the truth body's projected 3D "
+        "box (5 cm margin) for PSNR and its 2D bounding rectangle for SSIM/LPIPS (LPIPS v0.1 AlexNet). "
+        "Formats: docs/evaluate.md.",
+    ]
     return "\n".join(lines) + "\n"
 
 
-def write_report(out: Path, results: dict[str, EvalResult], crops: CropSet, meta: dict,
-                 motions: np.ndarray | None = None) -> dict:
+def write_report(
+    out: Path,
+    results: dict[str, EvalResult],
+    crops: CropSet,
+    meta: dict,
+    motions: np.ndarray | None = None,
+) -> dict:
     """Write the report of one or more evaluated models (the last one is detailed). Returns the
     summary.json content: {"meta": ..., "models": {name: summary}}."""
     out = Path(out)

@@ -29,23 +29,33 @@ class Split:
     heldout_cameras: tuple[str, ...]
 
 
-def frame_split(crops: CropSet, heldout_cameras: tuple[str, ...], test_fraction: float = 0.25) -> Split:
+def frame_split(
+    crops: CropSet, heldout_cameras: tuple[str, ...], test_fraction: float = 0.25
+) -> Split:
     """The last `test_fraction` of the frames with crops are test; training rows have truth, an
     earlier frame and a camera not held out."""
     if not 0 < test_fraction < 1:
         raise ValueError(f"test_fraction must lie in (0, 1), got {test_fraction}")
     unknown = [c for c in heldout_cameras if c not in crops.camera_names]
     if unknown:
-        raise ValueError(f"held-out cameras {unknown} are not in the crop set (cameras: {crops.camera_names})")
+        raise ValueError(
+            f"held-out cameras {unknown} are not in the crop set (cameras: {crops.camera_names})"
+        )
     frames = torch.unique(crops.frame)
     if len(frames) < 2:
         raise ValueError(f"a frame split needs crops from >= 2 frames, got {len(frames)}")
     n_test = max(1, round(test_fraction * len(frames)))
     first_test = int(frames[len(frames) - n_test])
     held = torch.tensor([crops.camera_names.index(c) for c in heldout_cameras], dtype=torch.long)
-    has = crops.truth["has_truth"].bool() if "has_truth" in crops.truth else torch.ones(len(crops), dtype=torch.bool)
+    has = (
+        crops.truth["has_truth"].bool()
+        if "has_truth" in crops.truth
+        else torch.ones(len(crops), dtype=torch.bool)
+    )
     keep = has & (crops.frame < first_test) & ~torch.isin(crops.camera, held)
-    return Split(torch.nonzero(keep)[:, 0], (first_test, int(frames[-1]) + 1), tuple(heldout_cameras))
+    return Split(
+        torch.nonzero(keep)[:, 0], (first_test, int(frames[-1]) + 1), tuple(heldout_cameras)
+    )
 
 
 @dataclass(frozen=True)
@@ -59,20 +69,56 @@ class FinetuneConfig:
     weights: LossWeights = field(default_factory=LossWeights)
 
 
-def finetune(net, body, vertex_ids, group_index, crops: CropSet, split: Split, cfg: FinetuneConfig, *,
-             body_spec: str, lpips=None, run_dir: Path | None = None) -> float:
+def finetune(
+    net,
+    body,
+    vertex_ids,
+    group_index,
+    crops: CropSet,
+    split: Split,
+    cfg: FinetuneConfig,
+    *,
+    body_spec: str,
+    lpips=None,
+    run_dir: Path | None = None,
+) -> float:
     """Train `net` in place on the split's training rows for exactly `cfg.steps` steps (no
     validation inside the loop, the final weights are kept). Returns the training seconds."""
     train = select_rows(crops, split.train_rows)
-    task = make_task(body, vertex_ids, net.cfg, crops.crop_size, cfg.weights,
-                     lpips if cfg.weights.lpips > 0 else None)
-    tc = TrainConfig(steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr, warmup_steps=min(30, cfg.steps // 10),
-                     val_every=10 ** 9, ckpt_every=10 ** 9, log_every=max(1, cfg.steps // 10))
-    opts = FitOptions(mode=cfg.mode, num_targets=cfg.num_targets, render_size=cfg.render_size, val_pose_crops=0)
+    task = make_task(
+        body,
+        vertex_ids,
+        net.cfg,
+        crops.crop_size,
+        cfg.weights,
+        lpips if cfg.weights.lpips > 0 else None,
+    )
+    tc = TrainConfig(
+        steps=cfg.steps,
+        batch_size=cfg.batch_size,
+        lr=cfg.lr,
+        warmup_steps=min(30, cfg.steps // 10),
+        val_every=10**9,
+        ckpt_every=10**9,
+        log_every=max(1, cfg.steps // 10),
+    )
+    opts = FitOptions(
+        mode=cfg.mode, num_targets=cfg.num_targets, render_size=cfg.render_size, val_pose_crops=0
+    )
     with tempfile.TemporaryDirectory(dir=run_dir) as tmp:
         t0 = time.perf_counter()
-        fit_gst(net, task, train, tc, Path(tmp), opts, body_spec=body_spec, vertex_ids=vertex_ids,
-                group_index=group_index, resume=False)
+        fit_gst(
+            net,
+            task,
+            train,
+            tc,
+            Path(tmp),
+            opts,
+            body_spec=body_spec,
+            vertex_ids=vertex_ids,
+            group_index=group_index,
+            resume=False,
+        )
         seconds = time.perf_counter() - t0
     net.eval()
     return seconds

@@ -16,7 +16,14 @@ __all__ = ["JOINT_GROUPS", "joint_group_indices", "pose_summary", "view_summary"
 JOINT_GROUPS: dict[str, tuple[str, ...]] = {
     "torso": ("pelvis", "spine1", "spine2", "spine3"),
     "head": ("neck", "head"),
-    "arms": ("left_collar", "right_collar", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow"),
+    "arms": (
+        "left_collar",
+        "right_collar",
+        "left_shoulder",
+        "right_shoulder",
+        "left_elbow",
+        "right_elbow",
+    ),
     "hands": ("left_wrist", "right_wrist", "left_hand", "right_hand"),
     "legs": ("left_hip", "right_hip", "left_knee", "right_knee"),
     "feet": ("left_ankle", "right_ankle", "left_foot", "right_foot"),
@@ -42,30 +49,49 @@ def _mean(x: np.ndarray) -> float | None:
 
 
 def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
-    block = {"n": int(sel.sum()), "mpjpe_mm": _mean(1000 * rec.mpjpe[sel]), "pa_mpjpe_mm": _mean(1000 * rec.pa_mpjpe[sel])}
+    block = {
+        "n": int(sel.sum()),
+        "mpjpe_mm": _mean(1000 * rec.mpjpe[sel]),
+        "pa_mpjpe_mm": _mean(1000 * rec.pa_mpjpe[sel]),
+    }
     if rec.pve is not None:
         block.update(pve_mm=_mean(1000 * rec.pve[sel]), pa_pve_mm=_mean(1000 * rec.pa_pve[sel]))
     return block
 
 
-def pose_summary(rec: PoseRecords, camera_names: list[str], motions: np.ndarray,
-                 joint_names: tuple[str, ...] | list[str]) -> dict:
+def pose_summary(
+    rec: PoseRecords,
+    camera_names: list[str],
+    motions: np.ndarray,
+    joint_names: tuple[str, ...] | list[str],
+) -> dict:
     """{"overall", "per_camera", "per_motion", "per_part", "per_joint"} of pose errors (mm).
     `motions` (N,) is the motion label of each record."""
     every = np.ones(len(rec.rows), dtype=bool)
     motions = np.asarray(motions, dtype=object)
     per_part = {}
     for part, idx in joint_group_indices(joint_names).items():
-        per_part[part] = {"mpjpe_mm": _mean(1000 * rec.joint_error[:, idx].mean(1)),
-                          "pa_mpjpe_mm": _mean(1000 * rec.joint_error_pa[:, idx].mean(1))}
+        per_part[part] = {
+            "mpjpe_mm": _mean(1000 * rec.joint_error[:, idx].mean(1)),
+            "pa_mpjpe_mm": _mean(1000 * rec.joint_error_pa[:, idx].mean(1)),
+        }
     return {
         "overall": _pose_block(rec, every),
-        "per_camera": {camera_names[c]: _pose_block(rec, rec.camera == c) for c in sorted(set(rec.camera.tolist()))},
-        "per_motion": {str(m): _pose_block(rec, motions == m) for m in sorted(set(motions.tolist()))},
+        "per_camera": {
+            camera_names[c]: _pose_block(rec, rec.camera == c)
+            for c in sorted(set(rec.camera.tolist()))
+        },
+        "per_motion": {
+            str(m): _pose_block(rec, motions == m) for m in sorted(set(motions.tolist()))
+        },
         "per_part": per_part,
-        "per_joint": {name: {"mpjpe_mm": _mean(1000 * rec.joint_error[:, j]),
-                             "pa_mpjpe_mm": _mean(1000 * rec.joint_error_pa[:, j])}
-                      for j, name in enumerate(joint_names)},
+        "per_joint": {
+            name: {
+                "mpjpe_mm": _mean(1000 * rec.joint_error[:, j]),
+                "pa_mpjpe_mm": _mean(1000 * rec.joint_error_pa[:, j]),
+            }
+            for j, name in enumerate(joint_names)
+        },
     }
 
 
@@ -85,8 +111,14 @@ def view_summary(rec: ViewRecords, camera_names: list[str], motions: np.ndarray)
     return {
         "heldout": _view_block(rec, held),
         "trained_views": _view_block(rec, ~held),
-        "per_target_camera": {camera_names[c]: {**_view_block(rec, rec.camera == c),
-                                                "heldout": bool(held[rec.camera == c].any())}
-                              for c in sorted(set(rec.camera.tolist()))},
-        "per_motion": {str(m): _view_block(rec, held & (motions == m)) for m in sorted(set(motions.tolist()))},
+        "per_target_camera": {
+            camera_names[c]: {
+                **_view_block(rec, rec.camera == c),
+                "heldout": bool(held[rec.camera == c].any()),
+            }
+            for c in sorted(set(rec.camera.tolist()))
+        },
+        "per_motion": {
+            str(m): _view_block(rec, held & (motions == m)) for m in sorted(set(motions.tolist()))
+        },
     }

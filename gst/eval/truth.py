@@ -51,9 +51,13 @@ class SceneTruth:
         rows = np.arange(len(self)) if rows is None else np.asarray(rows)
         parts = []
         for s in range(0, len(rows), batch):
-            r = rows[s:s + batch]
-            out = body(torch.from_numpy(self.betas[r]), torch.from_numpy(self.body_pose[r]),
-                       torch.from_numpy(self.global_orient[r]), torch.from_numpy(self.transl[r]))
+            r = rows[s : s + batch]
+            out = body(
+                torch.from_numpy(self.betas[r]),
+                torch.from_numpy(self.body_pose[r]),
+                torch.from_numpy(self.global_orient[r]),
+                torch.from_numpy(self.transl[r]),
+            )
             parts.append(out.vertices.float())
         if not parts:
             return torch.zeros(0, body.num_vertices, 3)
@@ -71,8 +75,10 @@ def _fixed(table, name: str, width: int, path: Path) -> np.ndarray:
         raise ValueError(f"{path}: column '{name}' is missing (columns: {table.column_names})")
     flat = table.column(name).combine_chunks().flatten().to_numpy(zero_copy_only=False)
     if flat.size != table.num_rows * width:
-        raise ValueError(f"{path}: column '{name}' has {flat.size // max(table.num_rows, 1)} values per row, "
-                         f"expected {width}")
+        raise ValueError(
+            f"{path}: column '{name}' has {flat.size // max(table.num_rows, 1)} values per row, "
+            f"expected {width}"
+        )
     return np.array(flat, dtype=np.float32).reshape(table.num_rows, width)
 
 
@@ -83,23 +89,35 @@ def read_scene_truth(scene_dir: str | Path) -> SceneTruth:
         raise FileNotFoundError(f"{path}: no truth (only synthetic scenes carry it)")
     table = pq.read_table(path)
     meta = table.schema.metadata or {}
-    joint_names = tuple(json.loads(meta[b"joint_names"])) if b"joint_names" in meta else tuple(
-        f"joint_{i}" for i in range(24))
+    joint_names = (
+        tuple(json.loads(meta[b"joint_names"]))
+        if b"joint_names" in meta
+        else tuple(f"joint_{i}" for i in range(24))
+    )
     body_model = json.loads(meta[b"body_model"]).get("name", "") if b"body_model" in meta else ""
     nb = table.schema.field("betas").type.list_size
-    motion = (np.asarray(table.column("motion").to_pylist(), dtype=object) if "motion" in table.column_names
-              else np.full(table.num_rows, "unknown", dtype=object))
-    return SceneTruth(frame=table.column("frame").to_numpy().astype(np.int64),
-                      person_id=table.column("person_id").to_numpy().astype(np.int64),
-                      motion=motion, betas=_fixed(table, "betas", nb, path),
-                      global_orient=_fixed(table, "global_orient", 3, path),
-                      body_pose=_fixed(table, "body_pose", 69, path).reshape(-1, 23, 3),
-                      transl=_fixed(table, "transl", 3, path),
-                      joints_world=_fixed(table, "joints3d", 72, path).reshape(-1, 24, 3),
-                      joint_names=joint_names, body_model=body_model)
+    motion = (
+        np.asarray(table.column("motion").to_pylist(), dtype=object)
+        if "motion" in table.column_names
+        else np.full(table.num_rows, "unknown", dtype=object)
+    )
+    return SceneTruth(
+        frame=table.column("frame").to_numpy().astype(np.int64),
+        person_id=table.column("person_id").to_numpy().astype(np.int64),
+        motion=motion,
+        betas=_fixed(table, "betas", nb, path),
+        global_orient=_fixed(table, "global_orient", 3, path),
+        body_pose=_fixed(table, "body_pose", 69, path).reshape(-1, 23, 3),
+        transl=_fixed(table, "transl", 3, path),
+        joints_world=_fixed(table, "joints3d", 72, path).reshape(-1, 24, 3),
+        joint_names=joint_names,
+        body_model=body_model,
+    )
 
 
-def attach_scene_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3) -> SceneTruth:
+def attach_scene_truth(
+    crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3
+) -> SceneTruth:
     """Match every crop to the truth person it shows and add truth keys to `crops.truth`:
     has_truth (N,) bool, truth_row (N,) index into the returned SceneTruth (-1: unmatched),
     joints_world / joints_cam (N,24,3), joints2d (N,24,2) crop px, visible (N,24),
@@ -109,7 +127,10 @@ def attach_scene_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path,
     truth = read_scene_truth(scene_dir)
     views = pq.read_table(scene_dir / "truth" / "views.parquet")
     view_rows = match_truth_views(crops, boxes, scene_dir, min_iou)
-    index = {(int(f), int(p)): k for k, (f, p) in enumerate(zip(truth.frame, truth.person_id, strict=True))}
+    index = {
+        (int(f), int(p)): k
+        for k, (f, p) in enumerate(zip(truth.frame, truth.person_id, strict=True))
+    }
     v_frame, v_pid = views.column("frame").to_numpy(), views.column("person_id").to_numpy()
     v_visible = _fixed(views, "visible", 24, scene_dir / "truth" / "views.parquet") > 0.5
     n = len(crops)
@@ -126,20 +147,38 @@ def attach_scene_truth(crops: CropSet, boxes: np.ndarray, scene_dir: str | Path,
     z = jc[..., 2:].clamp_min(1e-6)
     uv = (jc / z) @ crops.K.transpose(1, 2)
     rot = axis_angle_to_rotation_matrix(
-        torch.from_numpy(np.concatenate([truth.global_orient[safe][:, None], truth.body_pose[safe]], 1)).reshape(-1, 3)
+        torch.from_numpy(
+            np.concatenate([truth.global_orient[safe][:, None], truth.body_pose[safe]], 1)
+        ).reshape(-1, 3)
     ).reshape(n, 24, 3, 3)
     rot[:, 0] = crops.R @ rot[:, 0]  # body -> world, then world -> this crop's camera
-    crops.truth.update(has_truth=torch.from_numpy(has), truth_row=torch.from_numpy(row), joints_world=jw,
-                       joints_cam=jc, joints2d=uv[..., :2], visible=torch.from_numpy(visible), rotmats_cam=rot,
-                       betas=torch.from_numpy(truth.betas[safe]))
+    crops.truth.update(
+        has_truth=torch.from_numpy(has),
+        truth_row=torch.from_numpy(row),
+        joints_world=jw,
+        joints_cam=jc,
+        joints2d=uv[..., :2],
+        visible=torch.from_numpy(visible),
+        rotmats_cam=rot,
+        betas=torch.from_numpy(truth.betas[safe]),
+    )
     return truth
 
 
 def select_rows(crops: CropSet, rows: torch.Tensor | np.ndarray) -> CropSet:
     """A CropSet of the given rows only (truth included), e.g. a train split."""
     r = torch.as_tensor(np.asarray(rows), dtype=torch.long)
-    return CropSet(images=crops.images[r], masks=crops.masks[r], K=crops.K[r], R=crops.R[r], t=crops.t[r],
-                   camera=crops.camera[r], frame=crops.frame[r], person=crops.person[r],
-                   camera_names=list(crops.camera_names), truth={k: v[r] for k, v in crops.truth.items()},
-                   occluders=None if crops.occluders is None else crops.occluders[r],
-                   anchors=None if crops.anchors is None else crops.anchors[r])
+    return CropSet(
+        images=crops.images[r],
+        masks=crops.masks[r],
+        K=crops.K[r],
+        R=crops.R[r],
+        t=crops.t[r],
+        camera=crops.camera[r],
+        frame=crops.frame[r],
+        person=crops.person[r],
+        camera_names=list(crops.camera_names),
+        truth={k: v[r] for k, v in crops.truth.items()},
+        occluders=None if crops.occluders is None else crops.occluders[r],
+        anchors=None if crops.anchors is None else crops.anchors[r],
+    )

@@ -27,8 +27,22 @@ from gst.metrics.pose import (
 )
 
 __all__ = [
-    "LPIPS", "BoxMetrics", "BoxRegion", "LPIPSWeightsMissing", "Similarity", "box_corners",
-    "fetch_lpips_weights", "load_lpips", "masked_bbox_metrics", "mpjpe", "pa_mpjpe",
-    "points_box_corners", "procrustes_align", "project_box_region", "psnr", "similarity_procrustes",
-    "ssim", "vertex_error",
+    "LPIPS",
+    "BoxMetrics",
+    "BoxRegion",
+    "LPIPSWeightsMissing",
+    "Similarity",
+    "box_corners",
+    "fetch_lpips_weights",
+    "load_lpips",
+    "masked_bbox_metrics",
+    "mpjpe",
+    "pa_mpjpe",
+    "points_box_corners",
+    "procrustes_align",
+    "project_box_region",
+    "psnr",
+    "similarity_procrustes",
+    "ssim",
+    "vertex_error",
 ]

@@ -20,19 +20,35 @@ import kornia
 import numpy as np
 import torch
 
-__all__ = ["BoxMetrics", "BoxRegion", "box_corners", "box_iou", "masked_bbox_metrics", "points_box_corners",
-           "project_box_region", "psnr", "silhouette_iou", "ssim"]
+__all__ = [
+    "BoxMetrics",
+    "BoxRegion",
+    "box_corners",
+    "box_iou",
+    "masked_bbox_metrics",
+    "points_box_corners",
+    "project_box_region",
+    "psnr",
+    "silhouette_iou",
+    "ssim",
+]
 
 
 def _check_pair(pred: torch.Tensor, target: torch.Tensor, fn: str) -> None:
     if pred.ndim != 4:
         raise ValueError(f"{fn}: pred has shape {tuple(pred.shape)}, expected (B, C, H, W)")
     if pred.shape != target.shape:
-        raise ValueError(f"{fn}: pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same shape")
+        raise ValueError(
+            f"{fn}: pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same shape"
+        )
 
 
-def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None,
-         data_range: float = 1.0) -> torch.Tensor:
+def psnr(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    data_range: float = 1.0,
+) -> torch.Tensor:
     """Peak signal-to-noise ratio in dB per image, (B,).
 
     `mask` (B, 1, H, W), (B, H, W) or (H, W), boolean or float weights, restricts the mean squared
@@ -51,14 +67,25 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = N
         elif m.shape == (b, h, w):
             m = m.unsqueeze(1)
         if m.shape != (b, 1, h, w):
-            raise ValueError(f"psnr: mask has shape {tuple(mask.shape)}, expected ({b}, 1, {h}, {w}), "
-                             f"({b}, {h}, {w}) or ({h}, {w})")
-        mse = (err * m).sum(dim=(1, 2, 3)) / (m.sum(dim=(1, 2, 3)) * c)  # 0/0 -> NaN for empty masks
-    return (10.0 * torch.log10(data_range ** 2 / mse)).to(pred.dtype if pred.is_floating_point() else torch.float32)
+            raise ValueError(
+                f"psnr: mask has shape {tuple(mask.shape)}, expected ({b}, 1, {h}, {w}), "
+                f"({b}, {h}, {w}) or ({h}, {w})"
+            )
+        mse = (err * m).sum(dim=(1, 2, 3)) / (
+            m.sum(dim=(1, 2, 3)) * c
+        )  # 0/0 -> NaN for empty masks
+    return (10.0 * torch.log10(data_range**2 / mse)).to(
+        pred.dtype if pred.is_floating_point() else torch.float32
+    )
 
 
-def ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, data_range: float = 1.0,
-         padding: Literal["same", "valid"] = "same") -> torch.Tensor:
+def ssim(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    window_size: int = 11,
+    data_range: float = 1.0,
+    padding: Literal["same", "valid"] = "same",
+) -> torch.Tensor:
     """Mean SSIM per image, (B,), from `kornia.metrics.ssim` (Gaussian window, sigma 1.5, K1 0.01, K2 0.03).
 
     `padding="same"` (default, kornia's) reflect-pads the borders and averages over every pixel,
@@ -67,8 +94,12 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window_size: int = 11, data_r
     """
     _check_pair(pred, target, "ssim")
     if min(pred.shape[-2:]) < window_size:
-        raise ValueError(f"ssim: images of {tuple(pred.shape[-2:])} px are smaller than the {window_size} px window")
-    smap = kornia.metrics.ssim(pred, target, window_size, max_val=data_range, eps=0.0, padding=padding)
+        raise ValueError(
+            f"ssim: images of {tuple(pred.shape[-2:])} px are smaller than the {window_size} px window"
+        )
+    smap = kornia.metrics.ssim(
+        pred, target, window_size, max_val=data_range, eps=0.0, padding=padding
+    )
     return smap.mean(dim=(1, 2, 3))
 
 
@@ -81,9 +112,16 @@ _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N, 4) x (M, 4) corner-convention boxes -> (N, M) intersection over union."""
-    a, b = np.asarray(a, dtype=np.float64).reshape(-1, 4), np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
-    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
+    a, b = (
+        np.asarray(a, dtype=np.float64).reshape(-1, 4),
+        np.asarray(b, dtype=np.float64).reshape(-1, 4),
+    )
+    iw = np.clip(
+        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
+    )
+    ih = np.clip(
+        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
+    )
     inter = iw * ih
     area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
     area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
@@ -143,8 +181,14 @@ def _clip_polygon_near(poly: np.ndarray, near: float) -> np.ndarray:
     return np.array(out).reshape(-1, 3)
 
 
-def project_box_region(corners: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
-                       image_size: tuple[int, int], near: float = 1e-3) -> BoxRegion:
+def project_box_region(
+    corners: np.ndarray,
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    image_size: tuple[int, int],
+    near: float = 1e-3,
+) -> BoxRegion:
     """Project a 3D box (8 corners, ordered as `box_corners`) into a pinhole camera.
 
     K (3, 3); R (3, 3) and t (3,) map world to camera (x_cam = R x + t). image_size is (W, H).
@@ -155,12 +199,19 @@ def project_box_region(corners: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.
     corners = np.asarray(corners, dtype=np.float64)
     K, R = np.asarray(K, dtype=np.float64), np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64).reshape(-1)
-    for name, arr, shape in (("corners", corners, (8, 3)), ("K", K, (3, 3)), ("R", R, (3, 3)), ("t", t, (3,))):
+    for name, arr, shape in (
+        ("corners", corners, (8, 3)),
+        ("K", K, (3, 3)),
+        ("R", R, (3, 3)),
+        ("t", t, (3,)),
+    ):
         if arr.shape != shape:
             raise ValueError(f"project_box_region: {name} has shape {arr.shape}, expected {shape}")
     w, h = (int(v) for v in image_size)
     if w <= 0 or h <= 0:
-        raise ValueError(f"project_box_region: image_size must be positive (W, H), got {image_size}")
+        raise ValueError(
+            f"project_box_region: image_size must be positive (W, H), got {image_size}"
+        )
     cam = corners @ R.T + t
     mask = np.zeros((h, w), dtype=np.uint8)
     polys = []
@@ -191,7 +242,9 @@ class BoxMetrics:
     rects: torch.Tensor
 
 
-def _per_image(arr: np.ndarray | torch.Tensor, b: int, shape: tuple[int, ...], name: str) -> np.ndarray:
+def _per_image(
+    arr: np.ndarray | torch.Tensor, b: int, shape: tuple[int, ...], name: str
+) -> np.ndarray:
     a = arr.detach().cpu().numpy() if isinstance(arr, torch.Tensor) else np.asarray(arr)
     a = a.astype(np.float64)
     if a.shape == shape:
@@ -200,13 +253,23 @@ def _per_image(arr: np.ndarray | torch.Tensor, b: int, shape: tuple[int, ...], n
         return a
     if name == "t" and a.shape in ((3, 1), (b, 3, 1)):
         return _per_image(a[..., 0], b, shape, name)
-    raise ValueError(f"masked_bbox_metrics: {name} has shape {a.shape}, expected {shape} or ({b}, {', '.join(map(str, shape))})")
+    raise ValueError(
+        f"masked_bbox_metrics: {name} has shape {a.shape}, expected {shape} or ({b}, {', '.join(map(str, shape))})"
+    )
 
 
-def masked_bbox_metrics(pred: torch.Tensor, target: torch.Tensor, corners: np.ndarray | torch.Tensor,
-                        K: np.ndarray | torch.Tensor, R: np.ndarray | torch.Tensor, t: np.ndarray | torch.Tensor,
-                        lpips: torch.nn.Module | None = None, region: Literal["faces", "rect"] = "faces",
-                        window_size: int = 11, data_range: float = 1.0) -> BoxMetrics:
+def masked_bbox_metrics(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    corners: np.ndarray | torch.Tensor,
+    K: np.ndarray | torch.Tensor,
+    R: np.ndarray | torch.Tensor,
+    t: np.ndarray | torch.Tensor,
+    lpips: torch.nn.Module | None = None,
+    region: Literal["faces", "rect"] = "faces",
+    window_size: int = 11,
+    data_range: float = 1.0,
+) -> BoxMetrics:
     """SHERF-style PSNR / SSIM / LPIPS inside the projected 3D body box.
 
     pred, target: (B, 3, H, W) in [0, data_range]. corners: (8, 3) or (B, 8, 3) world points, as
@@ -220,7 +283,11 @@ def masked_bbox_metrics(pred: torch.Tensor, target: torch.Tensor, corners: np.nd
         raise ValueError(f"masked_bbox_metrics: region must be 'faces' or 'rect', got {region!r}")
     b, _, h, w = pred.shape
     corners_b = _per_image(corners, b, (8, 3), "corners")
-    K_b, R_b, t_b = _per_image(K, b, (3, 3), "K"), _per_image(R, b, (3, 3), "R"), _per_image(t, b, (3,), "t")
+    K_b, R_b, t_b = (
+        _per_image(K, b, (3, 3), "K"),
+        _per_image(R, b, (3, 3), "R"),
+        _per_image(t, b, (3,), "t"),
+    )
 
     nan = float("nan")
     out_psnr, out_ssim, out_lpips, valid, rects = [], [], [], [], []
@@ -237,7 +304,7 @@ def masked_bbox_metrics(pred: torch.Tensor, target: torch.Tensor, corners: np.nd
         else:
             mask = torch.zeros((h, w), dtype=torch.bool, device=pred.device)
             mask[y0:y1, x0:x1] = True
-        p, g = pred[i:i + 1], target[i:i + 1]
+        p, g = pred[i : i + 1], target[i : i + 1]
         out_psnr.append(psnr(p, g, mask, data_range).item())
         pc, gc = p[..., y0:y1, x0:x1], g[..., y0:y1, x0:x1]
         if min(y1 - y0, x1 - x0) < window_size:
@@ -255,7 +322,9 @@ def masked_bbox_metrics(pred: torch.Tensor, target: torch.Tensor, corners: np.nd
     return BoxMetrics(
         psnr=torch.tensor(out_psnr, dtype=torch.float64, device=dev),
         ssim=torch.tensor(out_ssim, dtype=torch.float64, device=dev),
-        lpips=torch.tensor(out_lpips, dtype=torch.float64, device=dev) if lpips is not None else None,
+        lpips=torch.tensor(out_lpips, dtype=torch.float64, device=dev)
+        if lpips is not None
+        else None,
         valid=torch.tensor(valid, dtype=torch.bool, device=dev),
         rects=torch.tensor(rects, dtype=torch.long, device=dev).reshape(b, 4),
     )

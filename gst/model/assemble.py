@@ -63,25 +63,45 @@ def to_world(points_cam: torch.Tensor, R_in: torch.Tensor, t_in: torch.Tensor) -
     return (points_cam - t_in[:, None]) @ R_in
 
 
-def _gaussians_to_world(g: PosedGaussians, R_in: torch.Tensor, t_in: torch.Tensor) -> PosedGaussians:
+def _gaussians_to_world(
+    g: PosedGaussians, R_in: torch.Tensor, t_in: torch.Tensor
+) -> PosedGaussians:
     rot_cam = quaternion_to_rotation_matrix(g.quats)
     rot_world = R_in.transpose(1, 2)[:, None] @ rot_cam
-    return PosedGaussians(to_world(g.means, R_in, t_in), rotation_matrix_to_quaternion(rot_world, eps=1e-12),
-                          g.scales, g.opacities, g.colors, g.offsets)
+    return PosedGaussians(
+        to_world(g.means, R_in, t_in),
+        rotation_matrix_to_quaternion(rot_world, eps=1e-12),
+        g.scales,
+        g.opacities,
+        g.colors,
+        g.offsets,
+    )
 
 
 def _cast_output(out: GSTOutput, dtype: torch.dtype) -> GSTOutput:
     """The network's outputs in `dtype` (under bf16 autocast some of them come out in bf16)."""
-    cast = {f.name: getattr(out, f.name).to(dtype) for f in dataclasses.fields(out) if f.name != "gaussians"}
+    cast = {
+        f.name: getattr(out, f.name).to(dtype)
+        for f in dataclasses.fields(out)
+        if f.name != "gaussians"
+    }
     g = out.gaussians
     if g is not None:
         g = GaussianParams(**{f.name: getattr(g, f.name).to(dtype) for f in dataclasses.fields(g)})
     return GSTOutput(**cast, gaussians=g)
 
 
-def assemble(out: GSTOutput, body: BodyModel, K_crop: torch.Tensor, crop_size: int, *,
-             vertex_ids: torch.Tensor | None = None, R_in: torch.Tensor | None = None,
-             t_in: torch.Tensor | None = None, with_vertices: bool = False) -> BodyPrediction:
+def assemble(
+    out: GSTOutput,
+    body: BodyModel,
+    K_crop: torch.Tensor,
+    crop_size: int,
+    *,
+    vertex_ids: torch.Tensor | None = None,
+    R_in: torch.Tensor | None = None,
+    t_in: torch.Tensor | None = None,
+    with_vertices: bool = False,
+) -> BodyPrediction:
     """Pose the body (and the Gaussians, when the network produced them), in the body's dtype.
 
     Runs with autocast disabled: under bf16 autocast (``TrainConfig.amp``) only the network runs
@@ -90,28 +110,59 @@ def assemble(out: GSTOutput, body: BodyModel, K_crop: torch.Tensor, crop_size: i
     rasteriser a mix of dtypes.
     """
     with torch.autocast(body.device.type, enabled=False):
-        return _assemble(_cast_output(out, body.dtype), body, K_crop.to(body.dtype), crop_size,
-                         vertex_ids=vertex_ids, R_in=None if R_in is None else R_in.to(body.dtype),
-                         t_in=None if t_in is None else t_in.to(body.dtype), with_vertices=with_vertices)
+        return _assemble(
+            _cast_output(out, body.dtype),
+            body,
+            K_crop.to(body.dtype),
+            crop_size,
+            vertex_ids=vertex_ids,
+            R_in=None if R_in is None else R_in.to(body.dtype),
+            t_in=None if t_in is None else t_in.to(body.dtype),
+            with_vertices=with_vertices,
+        )
 
 
-def _assemble(out: GSTOutput, body: BodyModel, K_crop: torch.Tensor, crop_size: int, *,
-              vertex_ids: torch.Tensor | None, R_in: torch.Tensor | None, t_in: torch.Tensor | None,
-              with_vertices: bool) -> BodyPrediction:
+def _assemble(
+    out: GSTOutput,
+    body: BodyModel,
+    K_crop: torch.Tensor,
+    crop_size: int,
+    *,
+    vertex_ids: torch.Tensor | None,
+    R_in: torch.Tensor | None,
+    t_in: torch.Tensor | None,
+    with_vertices: bool,
+) -> BodyPrediction:
     transl = camera_translation(out.cam, K_crop, crop_size)
     want_gaussians = out.gaussians is not None
-    body_out = body(out.betas, out.rotmats[:, 1:], out.rotmats[:, 0], transl,
-                    vertex_ids=vertex_ids if (want_gaussians or not with_vertices) else None,
-                    return_transforms=want_gaussians)
-    pred = BodyPrediction(rotmats=out.rotmats, betas=out.betas, transl_cam=transl, joints_cam=body_out.joints,
-                          vertices_cam=body_out.vertices if (with_vertices or want_gaussians) else None)
+    body_out = body(
+        out.betas,
+        out.rotmats[:, 1:],
+        out.rotmats[:, 0],
+        transl,
+        vertex_ids=vertex_ids if (want_gaussians or not with_vertices) else None,
+        return_transforms=want_gaussians,
+    )
+    pred = BodyPrediction(
+        rotmats=out.rotmats,
+        betas=out.betas,
+        transl_cam=transl,
+        joints_cam=body_out.joints,
+        vertices_cam=body_out.vertices if (with_vertices or want_gaussians) else None,
+    )
     if want_gaussians:
         g = out.gaussians
         skin = body_out.vertex_transforms[..., :3, :3]
         means = body_out.vertices + (skin @ g.offsets[..., None])[..., 0]
         rot = _orthonormalise(skin) @ quaternion_to_rotation_matrix(g.quats)
-        pred.gaussians_cam = PosedGaussians(means, rotation_matrix_to_quaternion(rot, eps=1e-12), g.scales,
-                                            g.opacities, g.colors, g.offsets)
+        pred.gaussians_cam = PosedGaussians(
+            means,
+            rotation_matrix_to_quaternion(rot, eps=1e-12),
+            g.scales,
+            g.opacities,
+            g.colors,
+            g.offsets,
+        )
     if R_in is not None and t_in is not None:
         pred.joints_world = to_world(pred.joints_cam, R_in, t_in)
         if pred.gaussians_cam is not None:

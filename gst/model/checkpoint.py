@@ -37,14 +37,27 @@ def config_from_dict(d: dict) -> GSTConfig:
     return GSTConfig(**{**d, "vit": ViTConfig(**vit), "decoder": DecoderConfig(**d["decoder"])})
 
 
-def save_checkpoint(path: str | Path, network: GSTNetwork, body_spec: str, vertex_ids: np.ndarray,
-                    group_index: np.ndarray, extra: dict | None = None) -> None:
-    atomic_torch_save({
-        "format": FORMAT, "version": VERSION, "config": config_to_dict(network.cfg), "body_model": body_spec,
-        "vertex_ids": torch.as_tensor(np.asarray(vertex_ids), dtype=torch.long),
-        "group_index": torch.as_tensor(np.asarray(group_index), dtype=torch.long),
-        "model": network.state_dict(), "extra": extra or {},
-    }, path)
+def save_checkpoint(
+    path: str | Path,
+    network: GSTNetwork,
+    body_spec: str,
+    vertex_ids: np.ndarray,
+    group_index: np.ndarray,
+    extra: dict | None = None,
+) -> None:
+    atomic_torch_save(
+        {
+            "format": FORMAT,
+            "version": VERSION,
+            "config": config_to_dict(network.cfg),
+            "body_model": body_spec,
+            "vertex_ids": torch.as_tensor(np.asarray(vertex_ids), dtype=torch.long),
+            "group_index": torch.as_tensor(np.asarray(group_index), dtype=torch.long),
+            "model": network.state_dict(),
+            "extra": extra or {},
+        },
+        path,
+    )
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
@@ -56,7 +69,9 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"{path}: not a GST checkpoint (expected format '{FORMAT}')")
     if ckpt.get("version") != VERSION:
-        raise ValueError(f"{path}: checkpoint version {ckpt.get('version')} is not supported (expected {VERSION})")
+        raise ValueError(
+            f"{path}: checkpoint version {ckpt.get('version')} is not supported (expected {VERSION})"
+        )
     return ckpt
 
 

@@ -66,8 +66,13 @@ class CrossAttention(nn.Module):
 class FeedForward(nn.Module):
     def __init__(self, cfg: DecoderConfig):
         super().__init__()
-        self.net = nn.Sequential(nn.Linear(cfg.dim, cfg.mlp_dim), nn.GELU(), nn.Dropout(0.0),
-                                 nn.Linear(cfg.mlp_dim, cfg.dim), nn.Dropout(0.0))
+        self.net = nn.Sequential(
+            nn.Linear(cfg.dim, cfg.mlp_dim),
+            nn.GELU(),
+            nn.Dropout(0.0),
+            nn.Linear(cfg.mlp_dim, cfg.dim),
+            nn.Dropout(0.0),
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
@@ -87,8 +92,13 @@ class CrossAttnStack(nn.Module):
     def __init__(self, cfg: DecoderConfig):
         super().__init__()
         self.layers = nn.ModuleList(
-            nn.ModuleList([PreNorm(cfg.dim, SelfAttention(cfg)), PreNorm(cfg.dim, CrossAttention(cfg)),
-                           PreNorm(cfg.dim, FeedForward(cfg))])
+            nn.ModuleList(
+                [
+                    PreNorm(cfg.dim, SelfAttention(cfg)),
+                    PreNorm(cfg.dim, CrossAttention(cfg)),
+                    PreNorm(cfg.dim, FeedForward(cfg)),
+                ]
+            )
             for _ in range(cfg.depth)
         )
 

@@ -26,8 +26,10 @@ class ImportReport:
     shape_mismatches: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
-        return (f"loaded {len(self.loaded)} tensors; {len(self.unmatched_checkpoint_keys)} checkpoint keys unused; "
-                f"{len(self.missing_model_keys)} model keys kept at init; {len(self.shape_mismatches)} shape mismatches")
+        return (
+            f"loaded {len(self.loaded)} tensors; {len(self.unmatched_checkpoint_keys)} checkpoint keys unused; "
+            f"{len(self.missing_model_keys)} model keys kept at init; {len(self.shape_mismatches)} shape mismatches"
+        )
 
 
 def read_checkpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
@@ -42,14 +44,19 @@ def read_checkpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
         raise ValueError(
             f"{path}: cannot be loaded with weights_only=True ({exc}). It pickles Python objects besides "
             "tensors; in a trusted environment re-save just its tensors: "
-            "torch.save(torch.load(p, weights_only=False)['state_dict'], 'hmr2_state.pt')") from None
+            "torch.save(torch.load(p, weights_only=False)['state_dict'], 'hmr2_state.pt')"
+        ) from None
     state = obj.get("state_dict", obj) if isinstance(obj, dict) else None
     if not isinstance(state, dict):
-        raise ValueError(f"{path}: expected a dict of tensors (or a dict with 'state_dict'), got {type(obj).__name__}")
+        raise ValueError(
+            f"{path}: expected a dict of tensors (or a dict with 'state_dict'), got {type(obj).__name__}"
+        )
     return {k: v for k, v in state.items() if isinstance(v, torch.Tensor)}
 
 
-def import_hmr2(network: nn.Module, source: str | Path | dict[str, torch.Tensor], strict_shapes: bool = True) -> ImportReport:
+def import_hmr2(
+    network: nn.Module, source: str | Path | dict[str, torch.Tensor], strict_shapes: bool = True
+) -> ImportReport:
     """Copy HMR2 weights into `network` (a GSTNetwork) in place and report what matched."""
     state = read_checkpoint_state(source) if not isinstance(source, dict) else source
     own = network.state_dict()
@@ -60,13 +67,17 @@ def import_hmr2(network: nn.Module, source: str | Path | dict[str, torch.Tensor]
             report.unmatched_checkpoint_keys.append(key)
             continue
         if tuple(own[key].shape) != tuple(value.shape):
-            report.shape_mismatches.append(f"{key}: checkpoint {tuple(value.shape)} vs model {tuple(own[key].shape)}")
+            report.shape_mismatches.append(
+                f"{key}: checkpoint {tuple(value.shape)} vs model {tuple(own[key].shape)}"
+            )
             continue
         updates[key] = value.to(own[key].dtype)
         report.loaded.append(key)
     if report.shape_mismatches and strict_shapes:
-        raise ValueError("HMR2 import: shapes differ (is the network built with the 'huge' preset?):\n  "
-                         + "\n  ".join(report.shape_mismatches[:20]))
+        raise ValueError(
+            "HMR2 import: shapes differ (is the network built with the 'huge' preset?):\n  "
+            + "\n  ".join(report.shape_mismatches[:20])
+        )
     report.missing_model_keys = [k for k in own if k not in updates]
     network.load_state_dict(updates, strict=False)
     return report

@@ -20,8 +20,15 @@ from gst.model.preprocess import network_input, to_float_images
 
 
 class GSTPredictor:
-    def __init__(self, checkpoint: str | Path, *, with_gaussians: bool = False, device: str = "cpu",
-                 batch_size: int = 32, body_model: str | None = None):
+    def __init__(
+        self,
+        checkpoint: str | Path,
+        *,
+        with_gaussians: bool = False,
+        device: str = "cpu",
+        batch_size: int = 32,
+        body_model: str | None = None,
+    ):
         ckpt = load_checkpoint(checkpoint, map_location=device)
         self.network = network_from_checkpoint(ckpt).to(device).eval()
         self.body = load_body_model(body_model or ckpt["body_model"], device=device)
@@ -32,28 +39,48 @@ class GSTPredictor:
         self.checkpoint = str(checkpoint)
 
     @torch.no_grad()
-    def predict(self, crops: np.ndarray | torch.Tensor, K_crop: np.ndarray | torch.Tensor,
-                R: torch.Tensor | None = None, t: torch.Tensor | None = None,
-                with_gaussians: bool | None = None) -> BodyPrediction:
+    def predict(
+        self,
+        crops: np.ndarray | torch.Tensor,
+        K_crop: np.ndarray | torch.Tensor,
+        R: torch.Tensor | None = None,
+        t: torch.Tensor | None = None,
+        with_gaussians: bool | None = None,
+    ) -> BodyPrediction:
         """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t."""
         want = self.with_gaussians if with_gaussians is None else with_gaussians
         images = to_float_images(crops).to(self.device)
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=self.device)
         out = self.network(network_input(images, self.network.cfg.image_size), with_gaussians=want)
-        return assemble(out, self.body, K, images.shape[-1], vertex_ids=self.vertex_ids, R_in=R, t_in=t)
+        return assemble(
+            out, self.body, K, images.shape[-1], vertex_ids=self.vertex_ids, R_in=R, t_in=t
+        )
 
     def __call__(self, crops: np.ndarray, K_crop: np.ndarray) -> dict[str, np.ndarray]:
         parts = []
         for s in range(0, len(crops), self.batch_size):
-            pred = self.predict(crops[s:s + self.batch_size], K_crop[s:s + self.batch_size])
-            part = {"rotmats": pred.rotmats, "betas": pred.betas[:, :10], "transl_cam": pred.transl_cam,
-                    "joints_cam": pred.joints_cam}
+            pred = self.predict(crops[s : s + self.batch_size], K_crop[s : s + self.batch_size])
+            part = {
+                "rotmats": pred.rotmats,
+                "betas": pred.betas[:, :10],
+                "transl_cam": pred.transl_cam,
+                "joints_cam": pred.joints_cam,
+            }
             if pred.gaussians_cam is not None:  # camera-frame splat, handed to callers as extras
                 g = pred.gaussians_cam
-                part.update(gaussian_means=g.means, gaussian_quats=g.quats, gaussian_scales=g.scales,
-                            gaussian_opacities=g.opacities, gaussian_colors=g.colors)
+                part.update(
+                    gaussian_means=g.means,
+                    gaussian_quats=g.quats,
+                    gaussian_scales=g.scales,
+                    gaussian_opacities=g.opacities,
+                    gaussian_colors=g.colors,
+                )
             parts.append({k: v.detach().cpu().numpy().astype(np.float32) for k, v in part.items()})
         if not parts:
-            return {"rotmats": np.zeros((0, 24, 3, 3), np.float32), "betas": np.zeros((0, 10), np.float32),
-                    "transl_cam": np.zeros((0, 3), np.float32), "joints_cam": np.zeros((0, 24, 3), np.float32)}
+            return {
+                "rotmats": np.zeros((0, 24, 3, 3), np.float32),
+                "betas": np.zeros((0, 10), np.float32),
+                "transl_cam": np.zeros((0, 3), np.float32),
+                "joints_cam": np.zeros((0, 24, 3), np.float32),
+            }
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -71,7 +71,11 @@ class SMPLHead(nn.Module):
     def forward(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         token = self.transformer.smpl_token(context)
         pose = self.decpose(token) + self.init_body_pose
-        return pose.view(-1, 24, 6), self.decshape(token) + self.init_betas, self.deccam(token) + self.init_cam
+        return (
+            pose.view(-1, 24, 6),
+            self.decshape(token) + self.init_betas,
+            self.deccam(token) + self.init_cam,
+        )
 
 
 class GaussianHead(nn.Module):
@@ -84,20 +88,28 @@ class GaussianHead(nn.Module):
         k = cfg.num_groups
         group_index = np.asarray(group_index, dtype=np.int64)
         if group_index.ndim != 1 or group_index.min() < 0 or group_index.max() >= k:
-            raise ValueError(f"group_index must be (V,) with values in [0, {k}), got shape {group_index.shape}")
+            raise ValueError(
+                f"group_index must be (V,) with values in [0, {k}), got shape {group_index.shape}"
+            )
         counts = np.bincount(group_index, minlength=k)
         if counts.min() == 0:
-            raise ValueError(f"every one of the {k} Gaussian groups needs vertices; counts {counts.tolist()}")
+            raise ValueError(
+                f"every one of the {k} Gaussian groups needs vertices; counts {counts.tolist()}"
+            )
         self.group_size = int(counts.max())
         # slot of each vertex inside its group (its rank among the group's vertices)
         order = np.argsort(group_index, kind="stable")
         starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         slot = np.empty_like(group_index)
         slot[order] = np.arange(len(group_index)) - starts[group_index[order]]
-        self.register_buffer("flat_index", torch.from_numpy(group_index * self.group_size + slot), persistent=False)
+        self.register_buffer(
+            "flat_index", torch.from_numpy(group_index * self.group_size + slot), persistent=False
+        )
         dim = cfg.decoder.dim
         self.tokens = nn.Parameter(torch.randn(1, len(GAUSSIAN_ATTRIBUTES) * k, dim) * 0.02)
-        self.heads = nn.ModuleDict({a: nn.Linear(dim, self.group_size * _ATTR_DIMS[a]) for a in GAUSSIAN_ATTRIBUTES})
+        self.heads = nn.ModuleDict(
+            {a: nn.Linear(dim, self.group_size * _ATTR_DIMS[a]) for a in GAUSSIAN_ATTRIBUTES}
+        )
         for lin in self.heads.values():
             nn.init.xavier_uniform_(lin.weight, gain=0.01)
             nn.init.zeros_(lin.bias)
@@ -117,7 +129,7 @@ class GaussianHead(nn.Module):
         out = decoder.decode(self.tokens.expand(b, -1, -1), context)  # (B, 5K, dim)
         per_attr = {}
         for i, a in enumerate(GAUSSIAN_ATTRIBUTES):
-            raw = self.heads[a](out[:, i * k:(i + 1) * k])  # (B, K, G * d)
+            raw = self.heads[a](out[:, i * k : (i + 1) * k])  # (B, K, G * d)
             raw = raw.reshape(b, k * self.group_size, _ATTR_DIMS[a])
             per_attr[a] = raw[:, self.flat_index]  # (B, V, d)
         c = self.cfg
@@ -156,6 +168,13 @@ class GSTNetwork(nn.Module):
     def forward(self, images: torch.Tensor, with_gaussians: bool = True) -> GSTOutput:
         context = self.backbone(images)
         pose6d, betas, cam = self.smpl_head(context)
-        gaussians = self.gaussian_head(self.smpl_head.transformer, context) if with_gaussians else None
-        return GSTOutput(body_pose_6d=pose6d, rotmats=rot6d_to_matrix(pose6d), betas=betas, cam=cam,
-                         gaussians=gaussians)
+        gaussians = (
+            self.gaussian_head(self.smpl_head.transformer, context) if with_gaussians else None
+        )
+        return GSTOutput(
+            body_pose_6d=pose6d,
+            rotmats=rot6d_to_matrix(pose6d),
+            betas=betas,
+            cam=cam,
+            gaussians=gaussians,
+        )

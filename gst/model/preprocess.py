@@ -19,7 +19,9 @@ def to_float_images(crops: np.ndarray | torch.Tensor) -> torch.Tensor:
     """(B, S, S, 3) uint8 or float in [0, 1] -> (B, 3, S, S) float32 in [0, 1]."""
     x = torch.as_tensor(crops)
     if x.ndim != 4 or x.shape[-1] != 3 or x.shape[1] != x.shape[2]:
-        raise ValueError(f"crops must be (B, S, S, 3) square RGB images, got shape {tuple(x.shape)}")
+        raise ValueError(
+            f"crops must be (B, S, S, 3) square RGB images, got shape {tuple(x.shape)}"
+        )
     # Convert in the stored (channels-last) layout, then permute as a view: converting through
     # the permuted strides was ~10x slower on CPU.
     x = x.to(torch.float32).div_(255.0) if x.dtype == torch.uint8 else x.float()
@@ -30,8 +32,10 @@ def network_input(images: torch.Tensor, image_size: tuple[int, int]) -> torch.Te
     """(B, 3, S, S) in [0, 1] -> (B, 3, H, W) ImageNet-normalised central strip."""
     h, w = image_size
     if images.shape[-1] != h:
-        images = F.interpolate(images, size=(h, h), mode="bilinear", align_corners=False, antialias=True)
+        images = F.interpolate(
+            images, size=(h, h), mode="bilinear", align_corners=False, antialias=True
+        )
     x0 = (h - w) // 2
-    strip = images[..., x0:x0 + w]
+    strip = images[..., x0 : x0 + w]
     mean, std = IMAGENET_MEAN.to(images), IMAGENET_STD.to(images)
     return (strip - mean[:, None, None]) / std[:, None, None]

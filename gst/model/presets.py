@@ -28,19 +28,37 @@ class GSTConfig:
 
 
 def _preset(name, vit, dec, vertex_preset) -> GSTConfig:
-    return GSTConfig(name=name, vit=vit, decoder=replace(dec, context_dim=vit.dim), vertex_preset=vertex_preset)
+    return GSTConfig(
+        name=name, vit=vit, decoder=replace(dec, context_dim=vit.dim), vertex_preset=vertex_preset
+    )
 
 
 PRESETS: dict[str, GSTConfig] = {
-    "tiny": _preset("tiny", ViTConfig(image_size=(128, 96), dim=192, depth=6, heads=3),
-                    DecoderConfig(dim=256, depth=2, heads=4, dim_head=64, mlp_dim=512), "1723"),
-    "small": _preset("small", ViTConfig(image_size=(256, 192), dim=384, depth=12, heads=6),
-                     DecoderConfig(dim=512, depth=4, heads=8, dim_head=64, mlp_dim=1024), "3445"),
-    "base": _preset("base", ViTConfig(image_size=(256, 192), dim=768, depth=12, heads=12),
-                    DecoderConfig(dim=1024, depth=6, heads=8, dim_head=64, mlp_dim=1024), "6890"),
+    "tiny": _preset(
+        "tiny",
+        ViTConfig(image_size=(128, 96), dim=192, depth=6, heads=3),
+        DecoderConfig(dim=256, depth=2, heads=4, dim_head=64, mlp_dim=512),
+        "1723",
+    ),
+    "small": _preset(
+        "small",
+        ViTConfig(image_size=(256, 192), dim=384, depth=12, heads=6),
+        DecoderConfig(dim=512, depth=4, heads=8, dim_head=64, mlp_dim=1024),
+        "3445",
+    ),
+    "base": _preset(
+        "base",
+        ViTConfig(image_size=(256, 192), dim=768, depth=12, heads=12),
+        DecoderConfig(dim=1024, depth=6, heads=8, dim_head=64, mlp_dim=1024),
+        "6890",
+    ),
     # HMR2 / ViTPose-H: width 1280, depth 32, 16 heads; SMPL head width 1024, depth 6, 8x64 heads.
-    "huge": _preset("huge", ViTConfig(image_size=(256, 192), dim=1280, depth=32, heads=16),
-                    DecoderConfig(dim=1024, depth=6, heads=8, dim_head=64, mlp_dim=1024), "6890"),
+    "huge": _preset(
+        "huge",
+        ViTConfig(image_size=(256, 192), dim=1280, depth=32, heads=16),
+        DecoderConfig(dim=1024, depth=6, heads=8, dim_head=64, mlp_dim=1024),
+        "6890",
+    ),
 }
 
 

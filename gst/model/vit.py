@@ -81,7 +81,9 @@ class Block(nn.Module):
 class PatchEmbed(nn.Module):
     def __init__(self, cfg: ViTConfig):
         super().__init__()
-        self.proj = nn.Conv2d(3, cfg.dim, cfg.patch_size, stride=cfg.patch_size, padding=cfg.patch_padding)
+        self.proj = nn.Conv2d(
+            3, cfg.dim, cfg.patch_size, stride=cfg.patch_size, padding=cfg.patch_padding
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.proj(x).flatten(2).transpose(1, 2)  # (B, N, D)
@@ -103,7 +105,9 @@ class ViT(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         expected = (3, *self.cfg.image_size)
         if images.ndim != 4 or tuple(images.shape[1:]) != expected:
-            raise ValueError(f"ViT input must be (B, {expected[0]}, {expected[1]}, {expected[2]}), got {tuple(images.shape)}")
+            raise ValueError(
+                f"ViT input must be (B, {expected[0]}, {expected[1]}, {expected[2]}), got {tuple(images.shape)}"
+            )
         x = self.patch_embed(images)
         x = x + self.pos_embed[:, 1:] + self.pos_embed[:, :1]
         for block in self.blocks:

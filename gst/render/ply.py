@@ -32,9 +32,11 @@ _WRITE_PROPS = (
     + [f"scale_{i}" for i in range(3)]
     + [f"rot_{i}" for i in range(4)]
 )
-_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"] + [
-    f"scale_{i}" for i in range(3)
-] + [f"rot_{i}" for i in range(4)]
+_REQUIRED = (
+    ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    + [f"scale_{i}" for i in range(3)]
+    + [f"rot_{i}" for i in range(4)]
+)
 _PLY_TYPES = {
     "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
     "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1",

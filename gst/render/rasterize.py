@@ -119,7 +119,9 @@ def rasterize(
     if backgrounds is not None:
         _check_shape("backgrounds", backgrounds, (s, c, 3), batched)
     if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
-        raise ValueError(f"rasterize: width and height must be positive ints, got {width}, {height}")
+        raise ValueError(
+            f"rasterize: width and height must be positive ints, got {width}, {height}"
+        )
     if not near > 0:
         raise ValueError(f"rasterize: near must be > 0 (metres), got {near}")
     tensors = {
@@ -140,17 +142,45 @@ def rasterize(
     if bool((skew > 1e-9 * Ks[..., 0, 0].detach().abs()).any()):
         raise ValueError("rasterize: Ks has non-zero skew K[0, 1]; skewed cameras are unsupported")
     if bool((Ks[..., 0, 0] <= 0).any() or (Ks[..., 1, 1] <= 0).any()):
-        raise ValueError("rasterize: Ks must have positive focal lengths fx = K[0, 0], fy = K[1, 1]")
+        raise ValueError(
+            "rasterize: Ks must have positive focal lengths fx = K[0, 0], fy = K[1, 1]"
+        )
 
     # Rasterise in the inputs' own dtype even inside an autocast region (bf16 training): with
     # bf16 matmuls the projection and the transmittance sums lose far more than the image is worth.
     with torch.autocast(means.device.type, enabled=False):
-        return _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                          backgrounds, backend, near, batched)
+        return _rasterize(
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            backgrounds,
+            backend,
+            near,
+            batched,
+        )
 
 
-def _rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds,
-               backend, near, batched) -> RenderOutput:
+def _rasterize(
+    means,
+    quats,
+    scales,
+    opacities,
+    colors,
+    viewmats,
+    Ks,
+    width,
+    height,
+    backgrounds,
+    backend,
+    near,
+    batched,
+) -> RenderOutput:
     if not batched:
         means, quats, scales, opacities, colors, viewmats, Ks = (
             t[None] for t in (means, quats, scales, opacities, colors, viewmats, Ks)

@@ -11,7 +11,9 @@ HUE_BINS, SAT_BINS = 16, 8
 DESCRIPTOR_SIZE = HUE_BINS * SAT_BINS
 
 
-def core_region(size: int, box_in_crop: np.ndarray, shrink_x: float = 0.25, shrink_y: float = 0.1) -> tuple[slice, slice]:
+def core_region(
+    size: int, box_in_crop: np.ndarray, shrink_x: float = 0.25, shrink_y: float = 0.1
+) -> tuple[slice, slice]:
     """(rows, cols) slices of the crop covering the box shrunk by `shrink_x`/`shrink_y` of its
     width/height on each side, clipped to the crop."""
     x0, y0, x1, y1 = box_in_crop
@@ -28,7 +30,11 @@ def colour_histogram(crop_rgb: np.ndarray, mask: np.ndarray | None = None) -> np
         return np.full(DESCRIPTOR_SIZE, 1.0 / DESCRIPTOR_SIZE)
     hsv = cv2.cvtColor(np.ascontiguousarray(crop_rgb), cv2.COLOR_RGB2HSV)
     mask = None if mask is None else np.ascontiguousarray(mask, dtype=np.uint8)
-    hist = cv2.calcHist([hsv], [0, 1], mask, [HUE_BINS, SAT_BINS], [0, 180, 0, 256]).ravel().astype(np.float64)
+    hist = (
+        cv2.calcHist([hsv], [0, 1], mask, [HUE_BINS, SAT_BINS], [0, 180, 0, 256])
+        .ravel()
+        .astype(np.float64)
+    )
     total = hist.sum()
     return hist / total if total > 0 else np.full(DESCRIPTOR_SIZE, 1.0 / DESCRIPTOR_SIZE)
 

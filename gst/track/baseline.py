@@ -14,14 +14,34 @@ from gst.data.crop import CROP_ENLARGE
 
 # Approximate SMPL-layout rest joints (T-pose, metres, body frame: x = body left, y up, z forward),
 # pelvis at the origin; rough adult anthropometry, not taken from any model file.
-REST_JOINTS = np.array([
-    [0.00, 0.00, 0.00], [0.06, -0.09, 0.00], [-0.06, -0.09, 0.00], [0.00, 0.11, -0.01],
-    [0.10, -0.47, 0.00], [-0.10, -0.47, 0.00], [0.00, 0.24, 0.00], [0.09, -0.87, -0.04],
-    [-0.09, -0.87, -0.04], [0.00, 0.30, 0.02], [0.12, -0.93, 0.08], [-0.12, -0.93, 0.08],
-    [0.00, 0.51, -0.01], [0.08, 0.42, 0.00], [-0.08, 0.42, 0.00], [0.00, 0.58, 0.04],
-    [0.18, 0.44, -0.01], [-0.18, 0.44, -0.01], [0.43, 0.43, -0.03], [-0.43, 0.43, -0.03],
-    [0.68, 0.44, -0.03], [-0.68, 0.44, -0.03], [0.76, 0.43, -0.04], [-0.76, 0.43, -0.04],
-])
+REST_JOINTS = np.array(
+    [
+        [0.00, 0.00, 0.00],
+        [0.06, -0.09, 0.00],
+        [-0.06, -0.09, 0.00],
+        [0.00, 0.11, -0.01],
+        [0.10, -0.47, 0.00],
+        [-0.10, -0.47, 0.00],
+        [0.00, 0.24, 0.00],
+        [0.09, -0.87, -0.04],
+        [-0.09, -0.87, -0.04],
+        [0.00, 0.30, 0.02],
+        [0.12, -0.93, 0.08],
+        [-0.12, -0.93, 0.08],
+        [0.00, 0.51, -0.01],
+        [0.08, 0.42, 0.00],
+        [-0.08, 0.42, 0.00],
+        [0.00, 0.58, 0.04],
+        [0.18, 0.44, -0.01],
+        [-0.18, 0.44, -0.01],
+        [0.43, 0.43, -0.03],
+        [-0.43, 0.43, -0.03],
+        [0.68, 0.44, -0.03],
+        [-0.68, 0.44, -0.03],
+        [0.76, 0.43, -0.04],
+        [-0.76, 0.43, -0.04],
+    ]
+)
 
 # Upright and facing the camera: body y (up) -> camera -y, body z (forward) -> camera -z.
 UPRIGHT_FACING_CAMERA = np.diag([1.0, -1.0, -1.0])
@@ -44,5 +64,9 @@ class BoxDepthPredictor:
         rotmats = np.broadcast_to(np.eye(3), (B, 24, 3, 3)).copy()
         rotmats[:, 0] = UPRIGHT_FACING_CAMERA
         joints = REST_JOINTS @ UPRIGHT_FACING_CAMERA.T + transl[:, None]
-        return {"rotmats": rotmats, "betas": np.zeros((B, self.num_betas)), "transl_cam": transl,
-                "joints_cam": joints}
+        return {
+            "rotmats": rotmats,
+            "betas": np.zeros((B, self.num_betas)),
+            "transl_cam": transl,
+            "joints_cam": joints,
+        }

@@ -96,32 +96,66 @@ def run_item(item: _Item) -> Any:
         def keep(frame: int, person: int, extra: dict) -> None:
             extras.setdefault(person, extra)
 
-        result = track_video(job.video, item.out_root, detector, predictor, model=job.model, camera=job.camera,
-                             video_name=job.name, options=job.options, num_betas=job.num_betas,
-                             world_up=job.world_up, staging_root=item.staging_root,
-                             on_extra=keep if job.keep_extras else None)
+        result = track_video(
+            job.video,
+            item.out_root,
+            detector,
+            predictor,
+            model=job.model,
+            camera=job.camera,
+            video_name=job.name,
+            options=job.options,
+            num_betas=job.num_betas,
+            world_up=job.world_up,
+            staging_root=item.staging_root,
+            on_extra=keep if job.keep_extras else None,
+        )
         return VideoOutcome(job, result, extras)
-    run = plan_run(job.video, model=job.model, camera=job.camera, video_name=job.name, options=job.options,
-                   num_betas=job.num_betas, world_up=job.world_up,
-                   extra_settings=_chunk_settings(job, item.chunking))
+    run = plan_run(
+        job.video,
+        model=job.model,
+        camera=job.camera,
+        video_name=job.name,
+        options=job.options,
+        num_betas=job.num_betas,
+        world_up=job.world_up,
+        extra_settings=_chunk_settings(job, item.chunking),
+    )
     path = _chunk_path(item.staging_root, run.name, item.chunk.index)
     done = read_chunk(path, chunk_digest(run, item.chunk))
     if done is not None:  # a retry or a resumed stage run: the chunk is already there
         return done[1]
-    return track_chunk(job.video, run, item.chunk, detector, predictor, tracks_schema(job.num_betas),
-                       job.options, job.num_betas, path)
+    return track_chunk(
+        job.video,
+        run,
+        item.chunk,
+        detector,
+        predictor,
+        tracks_schema(job.num_betas),
+        job.options,
+        job.num_betas,
+        path,
+    )
 
 
-def track_videos(jobs: list[VideoJob], out_root: str | Path, *, map_fn: MapFn | None = None,
-                 staging_root: str | Path | None = None, chunking: ChunkingConfig | None = None,
-                 description: str = "track") -> list[VideoOutcome]:
+def track_videos(
+    jobs: list[VideoJob],
+    out_root: str | Path,
+    *,
+    map_fn: MapFn | None = None,
+    staging_root: str | Path | None = None,
+    chunking: ChunkingConfig | None = None,
+    description: str = "track",
+) -> list[VideoOutcome]:
     """Track every job's video into <out_root>/video=<name>/tracks.parquet, fanned out by `map_fn`.
 
     With `chunking`, a video longer than one chunk is split (see gst.track.chunks) and its chunks
     are separate items; this needs smoothing off and no extra outputs. Results are in job order.
     """
     out_root = Path(out_root)
-    staging_root = Path(staging_root) if staging_root is not None else default_staging_root(out_root)
+    staging_root = (
+        Path(staging_root) if staging_root is not None else default_staging_root(out_root)
+    )
     items: list[_Item] = []
     chunked: dict[int, tuple[list[int], Any]] = {}  # job index -> (item indices, its run)
     whole: dict[int, int] = {}  # job index -> item index
@@ -129,13 +163,24 @@ def track_videos(jobs: list[VideoJob], out_root: str | Path, *, map_fn: MapFn | 
         plans = []
         if chunking is not None:
             if job.keep_extras:
-                raise ValueError(f"{job.video}: chunked tracking cannot keep per-person extras (Gaussians); "
-                                 "turn chunking off for --with-gaussians")
+                raise ValueError(
+                    f"{job.video}: chunked tracking cannot keep per-person extras (Gaussians); "
+                    "turn chunking off for --with-gaussians"
+                )
             if job.options.smoothing is not None:
-                raise ValueError(f"{job.video}: chunked tracking cannot smooth; turn smoothing or chunking off")
-            run = plan_run(job.video, model=job.model, camera=job.camera, video_name=job.name, options=job.options,
-                           num_betas=job.num_betas, world_up=job.world_up,
-                           extra_settings=_chunk_settings(job, chunking))
+                raise ValueError(
+                    f"{job.video}: chunked tracking cannot smooth; turn smoothing or chunking off"
+                )
+            run = plan_run(
+                job.video,
+                model=job.model,
+                camera=job.camera,
+                video_name=job.name,
+                options=job.options,
+                num_betas=job.num_betas,
+                world_up=job.world_up,
+                extra_settings=_chunk_settings(job, chunking),
+            )
             if run.end is not None:
                 plans = plan_chunks(run.first, run.end, job.options, chunking)
         if len(plans) > 1:
@@ -144,43 +189,70 @@ def track_videos(jobs: list[VideoJob], out_root: str | Path, *, map_fn: MapFn | 
         else:
             whole[j] = len(items)
             items.append(_Item(job, out_root, staging_root))
-    results = map_fn(run_item, items, description) if map_fn is not None else [run_item(x) for x in items]
+    results = (
+        map_fn(run_item, items, description) if map_fn is not None else [run_item(x) for x in items]
+    )
     outcomes: list[VideoOutcome] = []
     for j, job in enumerate(jobs):
         if j in chunked:
             idx, run = chunked[j]
-            outcomes.append(_finish_chunked(job, run, [items[i].chunk for i in idx], out_root, staging_root, chunking))
+            outcomes.append(
+                _finish_chunked(
+                    job, run, [items[i].chunk for i in idx], out_root, staging_root, chunking
+                )
+            )
         else:
             outcomes.append(results[whole[j]])
     return outcomes
 
 
-def _finish_chunked(job: VideoJob, run, plans: list[ChunkPlan], out_root: Path, staging_root: Path,
-                    chunking: ChunkingConfig) -> VideoOutcome:
+def _finish_chunked(
+    job: VideoJob,
+    run,
+    plans: list[ChunkPlan],
+    out_root: Path,
+    staging_root: Path,
+    chunking: ChunkingConfig,
+) -> VideoOutcome:
     """Stitch the chunk files into the video's single Parquet file and clean up."""
     t0 = time.perf_counter()
     schema = tracks_schema(job.num_betas)
     writer = TrackWriter(out_root, run.name, schema, run.settings, staging_root)
     if writer.finished_digest() == writer.digest:
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
-        result = TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None, 0.0)
+        result = TrackResult(
+            writer.final_path, stats["rows"], stats["frames"], stats["persons"], None, 0.0
+        )
         return VideoOutcome(job, result, chunks=len(plans))
     chunks = []
     for p in plans:
         path = _chunk_path(staging_root, run.name, p.index)
         got = read_chunk(path, chunk_digest(run, p))
         if got is None:
-            raise RuntimeError(f"{job.video}: chunk {p.index} (frames {p.keep_from}..{p.end}) has no finished "
-                               f"file at {path}; its work item did not complete")
+            raise RuntimeError(
+                f"{job.video}: chunk {p.index} (frames {p.keep_from}..{p.end}) has no finished "
+                f"file at {path}; its work item did not complete"
+            )
         chunks.append(got)
     stitched = stitch_chunks(chunks, chunking.min_agreement)
     writer.start(resume=False)
     for p, table in zip(plans, stitched.tables, strict=True):
         writer.commit(table, p.end, {})
-    meta = run_metadata(run, job.options, job.model, job.world_up, stitched.stats, writer.digest, job.num_betas,
-                        tracking_extra=_chunk_settings(job, chunking))
+    meta = run_metadata(
+        run,
+        job.options,
+        job.model,
+        job.world_up,
+        stitched.stats,
+        writer.digest,
+        job.num_betas,
+        tracking_extra=_chunk_settings(job, chunking),
+    )
     path = writer.finalize(meta, job.options.row_group_rows)
     shutil.rmtree(partition_dir(staging_root / "chunks", run.name), ignore_errors=True)
     s = stitched.stats
-    return VideoOutcome(job, TrackResult(path, s["rows"], s["frames"], s["persons"], None, time.perf_counter() - t0),
-                        chunks=len(plans))
+    return VideoOutcome(
+        job,
+        TrackResult(path, s["rows"], s["frames"], s["persons"], None, time.perf_counter() - t0),
+        chunks=len(plans),
+    )

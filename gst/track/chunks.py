@@ -44,17 +44,24 @@ class ChunkingConfig:
 
     chunk_frames: int = 3000
     overlap: int = 30
-    min_agreement: float = 0.5  # share of an id's overlap rows that must sit on one earlier id to inherit it
+    min_agreement: float = (
+        0.5  # share of an id's overlap rows that must sit on one earlier id to inherit it
+    )
 
     def __post_init__(self):
         if self.chunk_frames < 1 or self.overlap < 1:
-            raise ValueError(f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, {self.overlap}")
+            raise ValueError(
+                f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, {self.overlap}"
+            )
         if not 0 < self.min_agreement <= 1:
             raise ValueError(f"min_agreement must be in (0, 1], got {self.min_agreement}")
 
     def settings(self, options: TrackOptions) -> dict:
-        return {"chunk_frames": self.effective_size(options), "overlap": self.overlap,
-                "min_agreement": self.min_agreement}
+        return {
+            "chunk_frames": self.effective_size(options),
+            "overlap": self.overlap,
+            "min_agreement": self.min_agreement,
+        }
 
     def effective_size(self, options: TrackOptions) -> int:
         """Chunk size in processed frames, rounded up to whole groups (keeps batches exact)."""
@@ -69,7 +76,9 @@ class ChunkPlan:
     end: int  # frame after the chunk (exclusive)
 
 
-def plan_chunks(first: int, end: int, options: TrackOptions, chunking: ChunkingConfig) -> list[ChunkPlan]:
+def plan_chunks(
+    first: int, end: int, options: TrackOptions, chunking: ChunkingConfig
+) -> list[ChunkPlan]:
     """Chunks covering frames [first, end) on the stride grid, each keeping whole groups."""
     span = chunking.effective_size(options) * options.stride
     plans = []
@@ -97,36 +106,66 @@ def read_chunk(path: Path, digest: str) -> tuple[pa.Table, dict] | None:
     return pq.read_table(path).replace_schema_metadata(None), record
 
 
-def track_chunk(video_path: str | Path, run: VideoRun, plan: ChunkPlan, detector: Detector, predictor: Predictor,
-                schema: pa.Schema, options: TrackOptions, num_betas: int, out_path: Path) -> dict:
+def track_chunk(
+    video_path: str | Path,
+    run: VideoRun,
+    plan: ChunkPlan,
+    detector: Detector,
+    predictor: Predictor,
+    schema: pa.Schema,
+    options: TrackOptions,
+    num_betas: int,
+    out_path: Path,
+) -> dict:
     """Track one chunk from a fresh tracker and write its rows (warm-up included, chunk-local
     ids) to `out_path` atomically. Returns the record stored with it: digest, keep_from and the
     stats of the kept frames only."""
     if options.smoothing is not None:
-        raise ValueError("chunked tracking cannot smooth (filter state would restart at every chunk); "
-                         "turn smoothing off or do not chunk")
+        raise ValueError(
+            "chunked tracking cannot smooth (filter state would restart at every chunk); "
+            "turn smoothing off or do not chunk"
+        )
     session = TrackingSession(options.tracker, None)
     warm = {k: 0 for k in STAT_KEYS}
     tables = []
-    for g in tracked_groups(video_path, run, detector, predictor, session, schema, options, num_betas,
-                            start_frame=plan.start, end_frame=plan.end):
+    for g in tracked_groups(
+        video_path,
+        run,
+        detector,
+        predictor,
+        session,
+        schema,
+        options,
+        num_betas,
+        start_frame=plan.start,
+        end_frame=plan.end,
+    ):
         tables.append(g.table)
         if g.next_frame == plan.keep_from:
             warm = {k: session.stats[k] for k in STAT_KEYS}
     table = pa.concat_tables(tables) if tables else schema.empty_table()
-    record = {"digest": chunk_digest(run, plan), "keep_from": plan.keep_from,
-              "stats": {k: session.stats[k] - warm[k] for k in STAT_KEYS}}
+    record = {
+        "digest": chunk_digest(run, plan),
+        "keep_from": plan.keep_from,
+        "stats": {k: session.stats[k] - warm[k] for k in STAT_KEYS},
+    }
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
-    pq.write_table(table.replace_schema_metadata({CHUNK_META_KEY: json.dumps(record)}), tmp,
-                   row_group_size=max(len(table), 1), **PARQUET_OPTIONS)
+    pq.write_table(
+        table.replace_schema_metadata({CHUNK_META_KEY: json.dumps(record)}),
+        tmp,
+        row_group_size=max(len(table), 1),
+        **PARQUET_OPTIONS,
+    )
     os.replace(tmp, out_path)
     return record
 
 
 def _detection_keys(table: pa.Table) -> list[tuple]:
     frames = table.column("frame").to_numpy()
-    boxes = np.asarray(table.column("bbox").combine_chunks().flatten().to_numpy(zero_copy_only=False)).reshape(-1, 4)
+    boxes = np.asarray(
+        table.column("bbox").combine_chunks().flatten().to_numpy(zero_copy_only=False)
+    ).reshape(-1, 4)
     return [(int(f), b.tobytes()) for f, b in zip(frames, boxes, strict=True)]
 
 
@@ -136,10 +175,14 @@ def match_ids(previous: pa.Table, warmup: pa.Table, min_agreement: float = 0.5) 
     Rows are the same detection when frame and box agree exactly (detection does not depend on
     the tracker). A warm-up id inherits an earlier id only if more than `min_agreement` of its
     overlap rows sit on that id's detections."""
-    prev_id = dict(zip(_detection_keys(previous), previous.column("person_id").to_pylist(), strict=True))
+    prev_id = dict(
+        zip(_detection_keys(previous), previous.column("person_id").to_pylist(), strict=True)
+    )
     pairs: dict[tuple[int, int], int] = {}
     seen: dict[int, int] = {}
-    for key, local in zip(_detection_keys(warmup), warmup.column("person_id").to_pylist(), strict=True):
+    for key, local in zip(
+        _detection_keys(warmup), warmup.column("person_id").to_pylist(), strict=True
+    ):
         seen[local] = seen.get(local, 0) + 1
         if key in prev_id:
             pairs[(prev_id[key], local)] = pairs.get((prev_id[key], local), 0) + 1
@@ -151,13 +194,18 @@ def match_ids(previous: pa.Table, warmup: pa.Table, min_agreement: float = 0.5) 
     for (a, b), n in pairs.items():
         votes[olds.index(a), news.index(b)] = n
     rows, cols = linear_sum_assignment(-votes)
-    return {news[c]: olds[r] for r, c in zip(rows, cols, strict=True)
-            if votes[r, c] > 0 and votes[r, c] > min_agreement * seen[news[c]]}
+    return {
+        news[c]: olds[r]
+        for r, c in zip(rows, cols, strict=True)
+        if votes[r, c] > 0 and votes[r, c] > min_agreement * seen[news[c]]
+    }
 
 
 @dataclass
 class Stitched:
-    tables: list[pa.Table]  # each chunk's kept rows with video-wide ids, in (frame, person_id) order
+    tables: list[
+        pa.Table
+    ]  # each chunk's kept rows with video-wide ids, in (frame, person_id) order
     stats: dict
     inherited: list[dict[int, int]]  # per chunk: local id -> earlier id carried over the border
 
@@ -172,7 +220,9 @@ def stitch_chunks(chunks: list[tuple[pa.Table, dict]], min_agreement: float = 0.
         frame = table.column("frame").to_numpy()
         warm_mask = frame < record["keep_from"]
         warm, kept = table.filter(pa.array(warm_mask)), table.filter(pa.array(~warm_mask))
-        carried = match_ids(previous, warm, min_agreement) if previous is not None and len(warm) else {}
+        carried = (
+            match_ids(previous, warm, min_agreement) if previous is not None and len(warm) else {}
+        )
         mapping = dict(carried)
         for local in sorted(set(kept.column("person_id").to_pylist()) - set(mapping)):
             mapping[local] = next_id  # chunk-local ids grow in creation order, as global ids do

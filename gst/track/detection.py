@@ -35,7 +35,9 @@ class Detection:
     def __post_init__(self):
         box = np.asarray(self.box, dtype=np.float64).reshape(-1)
         if box.shape != (4,) or not np.isfinite(box).all() or box[2] <= box[0] or box[3] <= box[1]:
-            raise ValueError(f"detection box must be 4 finite numbers x0 < x1, y0 < y1, got {box.tolist()}")
+            raise ValueError(
+                f"detection box must be 4 finite numbers x0 < x1, y0 < y1, got {box.tolist()}"
+            )
         object.__setattr__(self, "box", box)
 
 
@@ -64,13 +66,17 @@ def _read_columns(path: Path) -> dict[str, list]:
         with path.open(newline="") as fh:
             reader = csv.DictReader(fh)
             if reader.fieldnames is None:
-                raise SuppliedBoxesError(f"{path}: empty CSV, expected a header with {list(_REQUIRED)}")
+                raise SuppliedBoxesError(
+                    f"{path}: empty CSV, expected a header with {list(_REQUIRED)}"
+                )
             cols: dict[str, list] = {name.strip(): [] for name in reader.fieldnames}
             for row in reader:
                 for name, value in row.items():
                     cols[name.strip()].append(value)
             return cols
-    raise SuppliedBoxesError(f"{path}: unsupported box file type '{suffix}', expected .csv or .parquet")
+    raise SuppliedBoxesError(
+        f"{path}: unsupported box file type '{suffix}', expected .csv or .parquet"
+    )
 
 
 class SuppliedBoxes:
@@ -94,7 +100,9 @@ class SuppliedBoxes:
         videos = [str(v) for v in cols["video"]] if "video" in cols else [None] * n
         names = sorted({v for v in videos if v is not None})
         if video is None and len(names) > 1:
-            raise SuppliedBoxesError(f"{path}: holds boxes for several videos {names}; say which one")
+            raise SuppliedBoxesError(
+                f"{path}: holds boxes for several videos {names}; say which one"
+            )
         boxes: dict[int, list[Detection]] = defaultdict(list)
         for i in range(n):
             if video is not None and videos[i] is not None and videos[i] != video:
@@ -103,7 +111,11 @@ class SuppliedBoxes:
             try:
                 frame = int(cols["frame"][i])
                 box = [float(cols[k][i]) for k in ("x0", "y0", "x1", "y1")]
-                score = float(cols["score"][i]) if "score" in cols and cols["score"][i] not in ("", None) else 1.0
+                score = (
+                    float(cols["score"][i])
+                    if "score" in cols and cols["score"][i] not in ("", None)
+                    else 1.0
+                )
                 ident = cols["id"][i] if "id" in cols else None
                 ident = int(ident) if ident not in ("", None) else None
             except (TypeError, ValueError) as exc:
@@ -115,7 +127,9 @@ class SuppliedBoxes:
             except ValueError as exc:
                 raise SuppliedBoxesError(f"{where}: {exc}") from exc
         if video is not None and not boxes and video not in names and names:
-            raise SuppliedBoxesError(f"{path}: no boxes for video '{video}' (videos in file: {names})")
+            raise SuppliedBoxesError(
+                f"{path}: no boxes for video '{video}' (videos in file: {names})"
+            )
         return cls(dict(boxes), source=str(path))
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:

@@ -22,8 +22,15 @@ from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.track.read import column_array, read_metadata
 from gst.track.tracker import box_iou
 
-__all__ = ["PersonEvaluation", "TrackEvaluation", "TruthViews", "evaluate_tracks", "match_frame",
-           "read_truth_views", "identity_counts"]
+__all__ = [
+    "PersonEvaluation",
+    "TrackEvaluation",
+    "TruthViews",
+    "evaluate_tracks",
+    "match_frame",
+    "read_truth_views",
+    "identity_counts",
+]
 
 PELVIS = 0
 
@@ -45,18 +52,34 @@ def read_truth_views(scene_dir: str | Path, camera_name: str, min_mask_area: int
     path = Path(scene_dir) / "truth" / "views.parquet"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no truth views (only synthetic scenes carry them)")
-    table = pq.read_table(path, columns=["frame", "person_id", "camera", "x0", "y0", "x1", "y1", "mask_area"])
+    table = pq.read_table(
+        path, columns=["frame", "person_id", "camera", "x0", "y0", "x1", "y1", "mask_area"]
+    )
     cameras = np.asarray(table.column("camera").to_pylist(), dtype=object)
     if camera_name not in set(cameras):
-        raise KeyError(f"{path}: no camera '{camera_name}' in the truth views (cameras: {sorted(set(cameras))})")
-    box = np.stack([table.column(k).to_numpy().astype(np.float64) for k in ("x0", "y0", "x1", "y1")], 1) + 0.5
-    keep = (cameras == camera_name) & (table.column("mask_area").to_numpy() >= max(min_mask_area, 1))
+        raise KeyError(
+            f"{path}: no camera '{camera_name}' in the truth views (cameras: {sorted(set(cameras))})"
+        )
+    box = (
+        np.stack(
+            [table.column(k).to_numpy().astype(np.float64) for k in ("x0", "y0", "x1", "y1")], 1
+        )
+        + 0.5
+    )
+    keep = (cameras == camera_name) & (
+        table.column("mask_area").to_numpy() >= max(min_mask_area, 1)
+    )
     keep &= np.isfinite(box).all(1)
-    return TruthViews(frame=table.column("frame").to_numpy()[keep].astype(np.int64),
-                      person_id=table.column("person_id").to_numpy()[keep].astype(np.int64), box=box[keep])
+    return TruthViews(
+        frame=table.column("frame").to_numpy()[keep].astype(np.int64),
+        person_id=table.column("person_id").to_numpy()[keep].astype(np.int64),
+        box=box[keep],
+    )
 
 
-def match_frame(track_boxes: np.ndarray, truth_boxes: np.ndarray, min_iou: float) -> list[tuple[int, int]]:
+def match_frame(
+    track_boxes: np.ndarray, truth_boxes: np.ndarray, min_iou: float
+) -> list[tuple[int, int]]:
     """(track index, truth index) pairs of one frame: the Hungarian assignment maximising total box
     IoU, keeping only pairs with IoU >= `min_iou`."""
     if len(track_boxes) == 0 or len(truth_boxes) == 0:
@@ -151,8 +174,13 @@ def _mean_mm(x: np.ndarray) -> float | None:
     return float(np.mean(x) * 1000.0) if len(x) else None
 
 
-def evaluate_tracks(tracks_parquet: str | Path, scene_dir: str | Path, camera_name: str,
-                    min_iou: float = 0.3, min_mask_area: int = 1) -> TrackEvaluation:
+def evaluate_tracks(
+    tracks_parquet: str | Path,
+    scene_dir: str | Path,
+    camera_name: str,
+    min_iou: float = 0.3,
+    min_mask_area: int = 1,
+) -> TrackEvaluation:
     """Score one tracks file of `camera_name`'s video against the synthetic scene in `scene_dir`.
 
     Each processed frame's tracked rows are matched to the truth people visible in that camera
@@ -185,7 +213,10 @@ def evaluate_tracks(tracks_parquet: str | Path, scene_dir: str | Path, camera_na
     t_box = column_array(table, "bbox").astype(np.float64)
     t_joints = column_array(table, "joints3d").astype(np.float64)
     in_eval = np.isin(t_frame, frames)
-    truth_row = {(int(f), int(p)): i for i, (f, p) in enumerate(zip(truth.frame, truth.person_id, strict=True))}
+    truth_row = {
+        (int(f), int(p)): i
+        for i, (f, p) in enumerate(zip(truth.frame, truth.person_id, strict=True))
+    }
     v_in = np.isin(views.frame, frames)
 
     pairs: list[tuple[int, int]] = []  # (tracks row, scene truth row)
@@ -193,23 +224,31 @@ def evaluate_tracks(tracks_parquet: str | Path, scene_dir: str | Path, camera_na
     for f in frames:
         rows = np.flatnonzero(t_frame == f)
         vrows = np.flatnonzero(views.frame == f)
-        matched = dict((int(vrows[c]), int(rows[r])) for r, c in match_frame(t_box[rows], views.box[vrows], min_iou))
+        matched = dict(
+            (int(vrows[c]), int(rows[r]))
+            for r, c in match_frame(t_box[rows], views.box[vrows], min_iou)
+        )
         for v in vrows:
             person = int(views.person_id[v])
             r = matched.get(int(v))
             history[person].append(None if r is None else int(t_pid[r]))
             if r is not None:
                 if (int(f), person) not in truth_row:
-                    raise ValueError(f"{scene_dir}: views.parquet has frame {f} person {person} but people.parquet "
-                                     "does not")
+                    raise ValueError(
+                        f"{scene_dir}: views.parquet has frame {f} person {person} but people.parquet "
+                        "does not"
+                    )
                 pairs.append((r, truth_row[(int(f), person)]))
 
     err = {"mpjpe": np.zeros(0), "pa": np.zeros(0), "root": np.zeros(0)}
     if pairs and joints_frame == "world":
         pred = torch.from_numpy(t_joints[[p for p, _ in pairs]])
         gt = torch.from_numpy(truth.joints_world[[g for _, g in pairs]].astype(np.float64))
-        err = {"mpjpe": mpjpe(pred, gt, root=PELVIS).numpy(), "pa": pa_mpjpe(pred, gt).numpy(),
-               "root": (pred[:, PELVIS] - gt[:, PELVIS]).norm(dim=-1).numpy()}
+        err = {
+            "mpjpe": mpjpe(pred, gt, root=PELVIS).numpy(),
+            "pa": pa_mpjpe(pred, gt).numpy(),
+            "root": (pred[:, PELVIS] - gt[:, PELVIS]).norm(dim=-1).numpy(),
+        }
     pair_person = np.array([truth.person_id[g] for _, g in pairs], np.int64)
 
     persons = []
@@ -217,26 +256,48 @@ def evaluate_tracks(tracks_parquet: str | Path, scene_dir: str | Path, camera_na
         switches, fragments, _ = identity_counts(ids)
         mine = pair_person == person
         seen = tuple(dict.fromkeys(t for t in ids if t is not None))
-        persons.append(PersonEvaluation(
-            truth_person_id=person, frames_visible=len(ids), frames_matched=sum(t is not None for t in ids),
-            track_ids=seen, id_switches=switches, fragments=fragments,
-            mpjpe_mm=_mean_mm(err["mpjpe"][mine]) if len(err["mpjpe"]) else None,
-            pa_mpjpe_mm=_mean_mm(err["pa"][mine]) if len(err["pa"]) else None,
-            root_error_mm=_mean_mm(err["root"][mine]) if len(err["root"]) else None))
+        persons.append(
+            PersonEvaluation(
+                truth_person_id=person,
+                frames_visible=len(ids),
+                frames_matched=sum(t is not None for t in ids),
+                track_ids=seen,
+                id_switches=switches,
+                fragments=fragments,
+                mpjpe_mm=_mean_mm(err["mpjpe"][mine]) if len(err["mpjpe"]) else None,
+                pa_mpjpe_mm=_mean_mm(err["pa"][mine]) if len(err["pa"]) else None,
+                root_error_mm=_mean_mm(err["root"][mine]) if len(err["root"]) else None,
+            )
+        )
 
     n_truth, n_rows, n_match = int(v_in.sum()), int(in_eval.sum()), len(pairs)
     id_switches = sum(p.id_switches for p in persons)
     matched_persons = [p for p in persons if p.track_ids]
     return TrackEvaluation(
-        video=str((meta.get("video") or {}).get("name", tracks_parquet.parent.name)), camera=camera_name,
-        min_iou=float(min_iou), frames=len(frames), truth_instances=n_truth, track_rows=n_rows, matches=n_match,
+        video=str((meta.get("video") or {}).get("name", tracks_parquet.parent.name)),
+        camera=camera_name,
+        min_iou=float(min_iou),
+        frames=len(frames),
+        truth_instances=n_truth,
+        track_rows=n_rows,
+        matches=n_match,
         recall=n_match / n_truth if n_truth else float("nan"),
         precision=n_match / n_rows if n_rows else float("nan"),
-        mota=1.0 - ((n_truth - n_match) + (n_rows - n_match) + id_switches) / n_truth if n_truth else float("nan"),
-        id_switches=id_switches, fragments=sum(p.fragments for p in persons),
-        ids_per_person=(float(np.mean([len(p.track_ids) for p in matched_persons])) if matched_persons
-                        else float("nan")),
-        track_ids=len(np.unique(t_pid)), joints_frame=joints_frame,
-        mpjpe_mm=_mean_mm(err["mpjpe"]), pa_mpjpe_mm=_mean_mm(err["pa"]), root_error_mm=_mean_mm(err["root"]),
+        mota=1.0 - ((n_truth - n_match) + (n_rows - n_match) + id_switches) / n_truth
+        if n_truth
+        else float("nan"),
+        id_switches=id_switches,
+        fragments=sum(p.fragments for p in persons),
+        ids_per_person=(
+            float(np.mean([len(p.track_ids) for p in matched_persons]))
+            if matched_persons
+            else float("nan")
+        ),
+        track_ids=len(np.unique(t_pid)),
+        joints_frame=joints_frame,
+        mpjpe_mm=_mean_mm(err["mpjpe"]),
+        pa_mpjpe_mm=_mean_mm(err["pa"]),
+        root_error_mm=_mean_mm(err["root"]),
         root_error_median_mm=float(np.median(err["root"]) * 1000.0) if len(err["root"]) else None,
-        persons=tuple(persons))
+        persons=tuple(persons),
+    )

@@ -28,7 +28,9 @@ class PendingFrame:
     appearance: np.ndarray  # (n, D)
 
 
-def prepare_detection(view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def prepare_detection(
+    view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(RGB crop, K_crop, appearance histogram) of one detection."""
     box = view.model_box(det.box)  # in the undistorted image when the lens distorts
     window = crop_window(box, size)
@@ -38,9 +40,14 @@ def prepare_detection(view: TrackingView, frame_bgr: np.ndarray, det: Detection,
     if det.mask is not None:
         m = np.asarray(det.mask, dtype=np.uint8)
         if m.shape != frame_bgr.shape[:2]:
-            raise ValueError(f"detection mask has shape {m.shape}, expected the frame's {frame_bgr.shape[:2]}")
-        mc = (cut_undistorted_crop(m, view.camera, window, cv2.INTER_NEAREST) if view.has_distortion
-              else cut_crop(m, window, cv2.INTER_NEAREST))
+            raise ValueError(
+                f"detection mask has shape {m.shape}, expected the frame's {frame_bgr.shape[:2]}"
+            )
+        mc = (
+            cut_undistorted_crop(m, view.camera, window, cv2.INTER_NEAREST)
+            if view.has_distortion
+            else cut_crop(m, window, cv2.INTER_NEAREST)
+        )
         rows, cols = core_region(size, box_in_crop, 0.0, 0.0)
         hist = colour_histogram(crop_rgb[rows, cols], (mc[rows, cols] > 0).astype(np.uint8))
     else:
@@ -55,11 +62,20 @@ class TrackingSession:
     def __init__(self, tracker: TrackerConfig, smoothing: OneEuroConfig | None):
         self.tracker = Tracker(tracker)
         self.smoother = PoseSmoother(smoothing) if smoothing else None
-        self.stats = {"frames": 0, "rows": 0, "detections": 0, "dropped_nonfinite": 0, "dropped_low_score": 0}
+        self.stats = {
+            "frames": 0,
+            "rows": 0,
+            "detections": 0,
+            "dropped_nonfinite": 0,
+            "dropped_low_score": 0,
+        }
 
     def state_dict(self) -> dict:
-        return {"tracker": self.tracker.state_dict(), "smoother": self.smoother.state_dict() if self.smoother else {},
-                "stats": dict(self.stats)}
+        return {
+            "tracker": self.tracker.state_dict(),
+            "smoother": self.smoother.state_dict() if self.smoother else {},
+            "stats": dict(self.stats),
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.tracker.load_state_dict(state["tracker"])
@@ -67,21 +83,31 @@ class TrackingSession:
             self.smoother.load_state_dict(state["smoother"])
         self.stats = dict(state["stats"])
 
-    def track_group(self, view: TrackingView, group: list[PendingFrame], poses: PoseBatch) -> tuple[list[list[int]], PoseBatch, np.ndarray]:
+    def track_group(
+        self, view: TrackingView, group: list[PendingFrame], poses: PoseBatch
+    ) -> tuple[list[list[int]], PoseBatch, np.ndarray]:
         """Ids for every detection (-1: none), smoothed poses, and which detections to keep."""
         finite = poses.finite()
         ids: list[list[int]] = []
         keep = np.zeros(len(poses), bool)
-        out = PoseBatch(poses.rotmats.copy(), poses.betas.copy(), poses.transl_cam.copy(), poses.joints_cam.copy(), {})
+        out = PoseBatch(
+            poses.rotmats.copy(),
+            poses.betas.copy(),
+            poses.transl_cam.copy(),
+            poses.joints_cam.copy(),
+            {},
+        )
         k = 0
         for f in group:
             n = len(f.scores)
-            idx = np.arange(k, k + n)[finite[k:k + n]]
+            idx = np.arange(k, k + n)[finite[k : k + n]]
             self.stats["dropped_nonfinite"] += int(n - len(idx))
             pelvis = out.joints_cam[idx, 0]
             pos = view.to_world(pelvis) if view.calibrated else pelvis
-            obs = [Observation(f.boxes[j - k], pos[i], f.appearance[j - k], float(f.scores[j - k]))
-                   for i, j in enumerate(idx)]
+            obs = [
+                Observation(f.boxes[j - k], pos[i], f.appearance[j - k], float(f.scores[j - k]))
+                for i, j in enumerate(idx)
+            ]
             got = self.tracker.update(f.time_s, obs)
             frame_ids = [-1] * n
             for j, pid in zip(idx, got, strict=True):
@@ -89,8 +115,14 @@ class TrackingSession:
                 if pid >= 0:
                     keep[j] = True
                     if self.smoother:
-                        s = self.smoother(pid, f.time_s, {q: getattr(out, q)[j] for q in
-                                                          ("rotmats", "betas", "transl_cam", "joints_cam")})
+                        s = self.smoother(
+                            pid,
+                            f.time_s,
+                            {
+                                q: getattr(out, q)[j]
+                                for q in ("rotmats", "betas", "transl_cam", "joints_cam")
+                            },
+                        )
                         for q, v in s.items():
                             getattr(out, q)[j] = v
                 else:

@@ -52,7 +52,9 @@ class TrackOptions:
     min_score: float = 0.0  # detections scoring below this are ignored
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     smoothing: OneEuroConfig | None = None  # None: raw per-frame values
-    prefetch: int = 4  # frames decoded, detected and cropped ahead in a thread (0: inline); same output
+    prefetch: int = (
+        4  # frames decoded, detected and cropped ahead in a thread (0: inline); same output
+    )
     row_group_rows: int = 65536  # row-group size of the finished file
 
     def __post_init__(self):
@@ -67,7 +69,9 @@ class TrackOptions:
         return d
 
 
-CROP_DESCRIPTION = "HMR2: square side 1.2 x max(w, h) of the box, centred, resized, zero padding outside the frame"
+CROP_DESCRIPTION = (
+    "HMR2: square side 1.2 x max(w, h) of the box, centred, resized, zero padding outside the frame"
+)
 
 
 @dataclass(frozen=True)
@@ -81,18 +85,30 @@ class TrackResult:
 
 
 def _camera_json(cam: Camera, calibrated: bool) -> dict:
-    return {"calibrated": calibrated, "name": cam.name, "width": cam.width, "height": cam.height,
-            "K": cam.K.tolist(), "dist": cam.dist.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(),
-            "meta": {k: str(v) for k, v in cam.meta.items()}}
+    return {
+        "calibrated": calibrated,
+        "name": cam.name,
+        "width": cam.width,
+        "height": cam.height,
+        "K": cam.K.tolist(),
+        "dist": cam.dist.tolist(),
+        "R": cam.R.tolist(),
+        "t": cam.t.tolist(),
+        "meta": {k: str(v) for k, v in cam.meta.items()},
+    }
 
 
 def _axes_json(calibrated: bool, world_up) -> dict:
-    axes = {"camera": "OpenCV: x right, y down, z forward (metres)",
-            "joints3d": "world" if calibrated else "camera",
-            "body": "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's frame"}
+    axes = {
+        "camera": "OpenCV: x right, y down, z forward (metres)",
+        "joints3d": "world" if calibrated else "camera",
+        "body": "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's frame",
+    }
     if calibrated:
-        axes["world"] = {"description": "the rig's world frame (metres), X_cam = R X_world + t",
-                         "up": None if world_up is None else [float(v) for v in world_up]}
+        axes["world"] = {
+            "description": "the rig's world frame (metres), X_cam = R X_world + t",
+            "up": None if world_up is None else [float(v) for v in world_up],
+        }
     return axes
 
 
@@ -119,8 +135,10 @@ class _Group:
         del self.crops[:n], self.Ks[:n]
         pose = validate_prediction(self.predictor(crops, Ks), n)
         if pose.betas.shape[1] != self.num_betas:
-            raise ValueError(f"predictor returned {pose.betas.shape[1]} betas per person, expected "
-                             f"num_betas = {self.num_betas}")
+            raise ValueError(
+                f"predictor returned {pose.betas.shape[1]} betas per person, expected "
+                f"num_betas = {self.num_betas}"
+            )
         self.poses.append(pose)
 
     def predictions(self) -> PoseBatch:
@@ -143,8 +161,17 @@ class VideoRun:
     settings: dict  # everything that determines the output (hashed into the file)
 
 
-def plan_run(video_path: str | Path, *, model: dict, camera: Camera | None, video_name: str | None,
-             options: TrackOptions, num_betas: int, world_up, extra_settings: dict | None = None) -> VideoRun:
+def plan_run(
+    video_path: str | Path,
+    *,
+    model: dict,
+    camera: Camera | None,
+    video_name: str | None,
+    options: TrackOptions,
+    num_betas: int,
+    world_up,
+    extra_settings: dict | None = None,
+) -> VideoRun:
     """Probe the video and fix the run's settings (`extra_settings` are added, e.g. chunking)."""
     for key in ("name", "version"):
         if key not in model:
@@ -153,24 +180,59 @@ def plan_run(video_path: str | Path, *, model: dict, camera: Camera | None, vide
     name = video_name or info.name
     view = TrackingView.for_video(info.width, info.height, camera, video=str(video_path))
     first, end = frame_range(info, options.start_s, options.end_s)
-    video_json = {"name": name, "file": Path(info.path).name, "width": info.width, "height": info.height,
-                  "fps": info.fps, "frame_count": info.frame_count, "size_bytes": Path(info.path).stat().st_size,
-                  "first_frame": first, "end_frame": end, "stride": options.stride}
+    video_json = {
+        "name": name,
+        "file": Path(info.path).name,
+        "width": info.width,
+        "height": info.height,
+        "fps": info.fps,
+        "frame_count": info.frame_count,
+        "size_bytes": Path(info.path).stat().st_size,
+        "first_frame": first,
+        "end_frame": end,
+        "stride": options.stride,
+    }
     calibration = _camera_json(view.camera, view.calibrated)
-    settings = {"format_version": FORMAT_VERSION, "options": options.settings(), "model": model,
-                "video": video_json, "calibration": calibration, "num_betas": num_betas,
-                "world_up": None if world_up is None else [float(v) for v in world_up], **(extra_settings or {})}
+    settings = {
+        "format_version": FORMAT_VERSION,
+        "options": options.settings(),
+        "model": model,
+        "video": video_json,
+        "calibration": calibration,
+        "num_betas": num_betas,
+        "world_up": None if world_up is None else [float(v) for v in world_up],
+        **(extra_settings or {}),
+    }
     return VideoRun(info, name, view, first, end, video_json, calibration, settings)
 
 
-def run_metadata(run: VideoRun, options: TrackOptions, model: dict, world_up, stats: dict, digest: str,
-                 num_betas: int, tracking_extra: dict | None = None) -> dict[str, str]:
+def run_metadata(
+    run: VideoRun,
+    options: TrackOptions,
+    model: dict,
+    world_up,
+    stats: dict,
+    digest: str,
+    num_betas: int,
+    tracking_extra: dict | None = None,
+) -> dict[str, str]:
     """The finished file's schema metadata."""
     return file_metadata(
-        fps=run.info.fps, model=model, calibration=run.calibration, axes=_axes_json(run.view.calibrated, world_up),
-        video=run.video_json, tracking={"options": options.settings(), "crop": CROP_DESCRIPTION, **(tracking_extra or {})},
-        smoothing=asdict(options.smoothing) if options.smoothing else None, stats=stats,
-        settings_sha256=digest, num_betas=num_betas)
+        fps=run.info.fps,
+        model=model,
+        calibration=run.calibration,
+        axes=_axes_json(run.view.calibrated, world_up),
+        video=run.video_json,
+        tracking={
+            "options": options.settings(),
+            "crop": CROP_DESCRIPTION,
+            **(tracking_extra or {}),
+        },
+        smoothing=asdict(options.smoothing) if options.smoothing else None,
+        stats=stats,
+        settings_sha256=digest,
+        num_betas=num_betas,
+    )
 
 
 @dataclass
@@ -185,10 +247,20 @@ class TrackedGroup:
     poses: PoseBatch
 
 
-def tracked_groups(video_path: str | Path, run: VideoRun, detector: Detector, predictor: Predictor,
-                   session: TrackingSession, schema: pa.Schema, options: TrackOptions, num_betas: int, *,
-                   start_frame: int, end_frame: int | None = None,
-                   on_frame: Callable[[int], None] | None = None) -> Iterator[TrackedGroup]:
+def tracked_groups(
+    video_path: str | Path,
+    run: VideoRun,
+    detector: Detector,
+    predictor: Predictor,
+    session: TrackingSession,
+    schema: pa.Schema,
+    options: TrackOptions,
+    num_betas: int,
+    *,
+    start_frame: int,
+    end_frame: int | None = None,
+    on_frame: Callable[[int], None] | None = None,
+) -> Iterator[TrackedGroup]:
     """Track frames [start_frame, end_frame) of the run's range and yield each group as it closes.
 
     Groups close on the grid `run.first + k * frames_per_group * stride`, whatever the start, so a
@@ -211,15 +283,27 @@ def tracked_groups(video_path: str | Path, run: VideoRun, detector: Detector, pr
         return done
 
     def prepare(frame: Frame) -> tuple[PendingFrame, list[np.ndarray], list[np.ndarray]]:
-        dets = [d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score]
+        dets = [
+            d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score
+        ]
         cut = [prepare_detection(run.view, frame.image, d, options.crop_size) for d in dets]
-        pending = PendingFrame(frame.index, frame.time_s, np.array([d.box for d in dets]).reshape(-1, 4),
-                               np.array([d.score for d in dets], dtype=np.float64),
-                               np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE))
+        pending = PendingFrame(
+            frame.index,
+            frame.time_s,
+            np.array([d.box for d in dets]).reshape(-1, 4),
+            np.array([d.score for d in dets], dtype=np.float64),
+            np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE),
+        )
         return pending, [c[0] for c in cut], [c[1] for c in cut]
 
-    frames = iter_frames(video_path, stride=options.stride, start_s=options.start_s, end_s=options.end_s,
-                         start_frame=start_frame, end_frame=end_frame)
+    frames = iter_frames(
+        video_path,
+        stride=options.stride,
+        start_s=options.start_s,
+        end_s=options.end_s,
+        start_frame=start_frame,
+        end_frame=end_frame,
+    )
     prepared = (prepare(f) for f in frames)
     if options.prefetch > 0:
         prepared = background(prepared, options.prefetch)
@@ -245,11 +329,23 @@ def tracked_groups(video_path: str | Path, run: VideoRun, detector: Detector, pr
         yield close(last_index + options.stride)
 
 
-def track_video(video_path: str | Path, out_root: str | Path, detector: Detector, predictor: Predictor, *,
-                model: dict, camera: Camera | None = None, video_name: str | None = None,
-                options: TrackOptions | None = None, num_betas: int = 10, world_up=None, resume: bool = True,
-                staging_root: str | Path | None = None, on_frame: Callable[[int], None] | None = None,
-                on_extra: Callable[[int, int, dict], None] | None = None) -> TrackResult:
+def track_video(
+    video_path: str | Path,
+    out_root: str | Path,
+    detector: Detector,
+    predictor: Predictor,
+    *,
+    model: dict,
+    camera: Camera | None = None,
+    video_name: str | None = None,
+    options: TrackOptions | None = None,
+    num_betas: int = 10,
+    world_up=None,
+    resume: bool = True,
+    staging_root: str | Path | None = None,
+    on_frame: Callable[[int], None] | None = None,
+    on_extra: Callable[[int, int, dict], None] | None = None,
+) -> TrackResult:
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
     `model` must hold at least "name" and "version" (recorded in the file). `camera` is the
@@ -267,30 +363,59 @@ def track_video(video_path: str | Path, out_root: str | Path, detector: Detector
     """
     t0 = time.perf_counter()
     options = options or TrackOptions()
-    run = plan_run(video_path, model=model, camera=camera, video_name=video_name, options=options,
-                   num_betas=num_betas, world_up=world_up)
+    run = plan_run(
+        video_path,
+        model=model,
+        camera=camera,
+        video_name=video_name,
+        options=options,
+        num_betas=num_betas,
+        world_up=world_up,
+    )
     writer = TrackWriter(out_root, run.name, tracks_schema(num_betas), run.settings, staging_root)
     if resume and writer.finished_digest() == writer.digest:
         writer.discard_staging()  # left behind if a run died between finishing and cleaning up
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
-        return TrackResult(writer.final_path, stats["rows"], stats["frames"], stats["persons"], None,
-                           time.perf_counter() - t0)
+        return TrackResult(
+            writer.final_path,
+            stats["rows"],
+            stats["frames"],
+            stats["persons"],
+            None,
+            time.perf_counter() - t0,
+        )
     session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
     start_frame, resumed_from = run.first, None
     if point is not None:
         session.load_state_dict(point.state)
         start_frame = resumed_from = point.next_frame
-    for g in tracked_groups(video_path, run, detector, predictor, session, writer.schema, options, num_betas,
-                            start_frame=start_frame, on_frame=on_frame):
+    for g in tracked_groups(
+        video_path,
+        run,
+        detector,
+        predictor,
+        session,
+        writer.schema,
+        options,
+        num_betas,
+        start_frame=start_frame,
+        on_frame=on_frame,
+    ):
         writer.commit(g.table, g.next_frame, session.state_dict())
         if on_extra is not None and g.poses.extra:
             _replay_extras(g, on_extra)
     stats = {**session.stats, "persons": session.tracker.next_id}
     meta = run_metadata(run, options, model, world_up, stats, writer.digest, num_betas)
     path = writer.finalize(meta, options.row_group_rows)
-    return TrackResult(path, stats["rows"], stats["frames"], stats["persons"], resumed_from,
-                       time.perf_counter() - t0)
+    return TrackResult(
+        path,
+        stats["rows"],
+        stats["frames"],
+        stats["persons"],
+        resumed_from,
+        time.perf_counter() - t0,
+    )
 
 
 def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) -> None:
@@ -298,4 +423,8 @@ def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) 
     flat_ids = np.array([i for frame_ids in g.ids for i in frame_ids], dtype=np.int64)
     kept = np.flatnonzero(g.keep)
     for j in kept[np.lexsort((flat_ids[kept], frame_of[kept]))]:  # the rows' order
-        on_extra(int(frame_of[j]), int(flat_ids[j]), {k: np.asarray(v)[j] for k, v in g.poses.extra.items()})
+        on_extra(
+            int(frame_of[j]),
+            int(flat_ids[j]),
+            {k: np.asarray(v)[j] for k, v in g.poses.extra.items()},
+        )

@@ -22,10 +22,20 @@ from gst.track.detection import Detection
 
 
 class PersonModelDetector:
-    def __init__(self, *, models_dir: str | Path | None = None, max_side: int = 960,
-                 config: SegmenterConfig | None = None, min_height_frac: float = 0.08, threads: int = 1,
-                 duplicate_iou: float = 0.6, max_gap: int = 5):
-        self.segmenter = PersonSegmenter(BlazePose(models_dir, threads=threads), config or SegmenterConfig())
+    def __init__(
+        self,
+        *,
+        models_dir: str | Path | None = None,
+        max_side: int = 960,
+        config: SegmenterConfig | None = None,
+        min_height_frac: float = 0.08,
+        threads: int = 1,
+        duplicate_iou: float = 0.6,
+        max_gap: int = 5,
+    ):
+        self.segmenter = PersonSegmenter(
+            BlazePose(models_dir, threads=threads), config or SegmenterConfig()
+        )
         self.max_side = max_side
         self.min_height_frac = min_height_frac
         self.duplicate_iou = duplicate_iou
@@ -38,8 +48,11 @@ class PersonModelDetector:
         self._last = frame_index
         h, w = frame_bgr.shape[:2]
         s = min(1.0, self.max_side / max(h, w))
-        small = frame_bgr if s == 1.0 else cv2.resize(frame_bgr, (round(w * s), round(h * s)),
-                                                      interpolation=cv2.INTER_AREA)
+        small = (
+            frame_bgr
+            if s == 1.0
+            else cv2.resize(frame_bgr, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+        )
         labels, people = self.segmenter.segment(small)
         out = []
         for k, person in enumerate(people, start=1):

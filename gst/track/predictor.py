@@ -43,21 +43,37 @@ class PoseBatch:
     def finite(self) -> np.ndarray:
         """(B,) True where every body value is finite."""
         parts = [self.rotmats, self.betas, self.transl_cam, self.joints_cam]
-        return np.all(np.stack([np.isfinite(p).all(axis=tuple(range(1, p.ndim))) for p in parts]), axis=0)
+        return np.all(
+            np.stack([np.isfinite(p).all(axis=tuple(range(1, p.ndim))) for p in parts]), axis=0
+        )
 
     @staticmethod
     def concat(batches: list[PoseBatch], num_betas: int = 10) -> PoseBatch:
         if not batches:
-            return PoseBatch(np.zeros((0, NUM_JOINTS, 3, 3)), np.zeros((0, num_betas)), np.zeros((0, 3)),
-                             np.zeros((0, NUM_JOINTS, 3)), {})
+            return PoseBatch(
+                np.zeros((0, NUM_JOINTS, 3, 3)),
+                np.zeros((0, num_betas)),
+                np.zeros((0, 3)),
+                np.zeros((0, NUM_JOINTS, 3)),
+                {},
+            )
         keys = set.intersection(*(set(b.extra) for b in batches))
-        return PoseBatch(*(np.concatenate([getattr(b, k) for b in batches])
-                           for k in ("rotmats", "betas", "transl_cam", "joints_cam")),
-                         {k: np.concatenate([np.asarray(b.extra[k]) for b in batches]) for k in keys})
+        return PoseBatch(
+            *(
+                np.concatenate([getattr(b, k) for b in batches])
+                for k in ("rotmats", "betas", "transl_cam", "joints_cam")
+            ),
+            {k: np.concatenate([np.asarray(b.extra[k]) for b in batches]) for k in keys},
+        )
 
     def take(self, idx) -> PoseBatch:
-        return PoseBatch(self.rotmats[idx], self.betas[idx], self.transl_cam[idx], self.joints_cam[idx],
-                         {k: np.asarray(v)[idx] for k, v in self.extra.items()})
+        return PoseBatch(
+            self.rotmats[idx],
+            self.betas[idx],
+            self.transl_cam[idx],
+            self.joints_cam[idx],
+            {k: np.asarray(v)[idx] for k, v in self.extra.items()},
+        )
 
 
 def _to_numpy(value, key: str) -> np.ndarray:
@@ -73,27 +89,39 @@ def validate_prediction(out, batch: int) -> PoseBatch:
     """Check a predictor's output for a batch of `batch` crops and convert it to float64."""
     if not isinstance(out, dict):
         raise PredictorOutputError(f"predictor must return a dict, got {type(out).__name__}")
-    expected = {"rotmats": (batch, NUM_JOINTS, 3, 3), "betas": (batch, None), "transl_cam": (batch, 3),
-                "joints_cam": (batch, NUM_JOINTS, 3)}
+    expected = {
+        "rotmats": (batch, NUM_JOINTS, 3, 3),
+        "betas": (batch, None),
+        "transl_cam": (batch, 3),
+        "joints_cam": (batch, NUM_JOINTS, 3),
+    }
     arrays = {}
     for key, shape in expected.items():
         if key not in out:
             raise PredictorOutputError(f"predictor output lacks '{key}' (has {sorted(out)})")
         arr = _to_numpy(out[key], key)
-        if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape, strict=True)):
+        if arr.ndim != len(shape) or any(
+            s is not None and a != s for a, s in zip(arr.shape, shape, strict=True)
+        ):
             want = tuple("nb" if s is None else s for s in shape)
-            raise PredictorOutputError(f"predictor output '{key}' has shape {arr.shape}, expected {want}")
+            raise PredictorOutputError(
+                f"predictor output '{key}' has shape {arr.shape}, expected {want}"
+            )
         arrays[key] = arr
     extra = {k: v for k, v in out.items() if k not in expected}
-    return PoseBatch(arrays["rotmats"], arrays["betas"], arrays["transl_cam"], arrays["joints_cam"], extra)
+    return PoseBatch(
+        arrays["rotmats"], arrays["betas"], arrays["transl_cam"], arrays["joints_cam"], extra
+    )
 
 
-def predict_batched(predict: Predictor, crops: np.ndarray, K_crop: np.ndarray, batch_size: int) -> PoseBatch:
+def predict_batched(
+    predict: Predictor, crops: np.ndarray, K_crop: np.ndarray, batch_size: int
+) -> PoseBatch:
     """Run `predict` over crops in slices of `batch_size` and check each output."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     parts = []
     for i in range(0, len(crops), batch_size):
-        c, k = crops[i:i + batch_size], K_crop[i:i + batch_size]
+        c, k = crops[i : i + batch_size], K_crop[i : i + batch_size]
         parts.append(validate_prediction(predict(c, k), len(c)))
     return PoseBatch.concat(parts)

@@ -22,7 +22,9 @@ def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
     path = Path(path)
     if path.is_file():
         table = pq.read_table(path, partitioning=None)
-        name = parse_metadata(table.schema)["video"]["name"]  # in a dataset it comes from the folder
+        name = parse_metadata(table.schema)["video"][
+            "name"
+        ]  # in a dataset it comes from the folder
         table = table.add_column(0, "video", pa.array([name] * table.num_rows, pa.string()))
     elif path.is_dir():
         dataset = ds.dataset(path, format="parquet", partitioning="hive")
@@ -32,7 +34,9 @@ def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
         raise FileNotFoundError(f"{path}: no tracks file or folder here")
     if videos is not None and path.is_file():
         table = table.filter(pc.field("video").isin(videos))
-    return table.sort_by([("video", "ascending"), ("frame", "ascending"), ("person_id", "ascending")])
+    return table.sort_by(
+        [("video", "ascending"), ("frame", "ascending"), ("person_id", "ascending")]
+    )
 
 
 def read_metadata(path: str | Path) -> dict:
@@ -67,11 +71,21 @@ def long_format(table: pa.Table) -> pa.Table:
     n, J = j3.shape[:2]
     rep = np.repeat(np.arange(n), J)
     joint_index = np.tile(np.arange(J, dtype=np.int8), n)
-    names = pa.DictionaryArray.from_arrays(pa.array(joint_index.astype(np.int32)), pa.array(SMPL_JOINT_NAMES))
-    return pa.table({
-        "video": table.column("video").take(rep), "frame": table.column("frame").take(rep),
-        "time_s": table.column("time_s").take(rep), "person_id": table.column("person_id").take(rep),
-        "joint_index": joint_index, "joint": names,
-        "x": j3[..., 0].reshape(-1), "y": j3[..., 1].reshape(-1), "z": j3[..., 2].reshape(-1),
-        "u": j2[..., 0].reshape(-1), "v": j2[..., 1].reshape(-1),
-    })
+    names = pa.DictionaryArray.from_arrays(
+        pa.array(joint_index.astype(np.int32)), pa.array(SMPL_JOINT_NAMES)
+    )
+    return pa.table(
+        {
+            "video": table.column("video").take(rep),
+            "frame": table.column("frame").take(rep),
+            "time_s": table.column("time_s").take(rep),
+            "person_id": table.column("person_id").take(rep),
+            "joint_index": joint_index,
+            "joint": names,
+            "x": j3[..., 0].reshape(-1),
+            "y": j3[..., 1].reshape(-1),
+            "z": j3[..., 2].reshape(-1),
+            "u": j2[..., 0].reshape(-1),
+            "v": j2[..., 1].reshape(-1),
+        }
+    )

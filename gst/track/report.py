@@ -59,20 +59,32 @@ def draw_people(frame_bgr: np.ndarray, rows: pa.Table) -> np.ndarray:
         col = _colour(pid)
         x0, y0, x1, y1 = box
         cv2.rectangle(img, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), col, thick)
-        cv2.putText(img, str(pid), (int(x0), max(int(y0) - 4 * thick, 10)), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.5 * thick, col, thick, cv2.LINE_AA)
+        cv2.putText(
+            img,
+            str(pid),
+            (int(x0), max(int(y0) - 4 * thick, 10)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5 * thick,
+            col,
+            thick,
+            cv2.LINE_AA,
+        )
         if not np.isfinite(joints).all():
             continue
         pts = np.round(joints * 16).astype(np.int32)  # 4 fractional bits: sub-pixel lines
         for child, parent in enumerate(SMPL_PARENTS):
             if parent >= 0:
-                cv2.line(img, tuple(pts[parent]), tuple(pts[child]), col, thick, cv2.LINE_AA, shift=4)
+                cv2.line(
+                    img, tuple(pts[parent]), tuple(pts[child]), col, thick, cv2.LINE_AA, shift=4
+                )
         for p in pts:
             cv2.circle(img, tuple(p), 2 * thick * 16, (255, 255, 255), -1, cv2.LINE_AA, shift=4)
     return img
 
 
-def write_overlay(video_path: str | Path, tracks_path: str | Path, out_path: str | Path, fourcc: str = "mp4v") -> Path:
+def write_overlay(
+    video_path: str | Path, tracks_path: str | Path, out_path: str | Path, fourcc: str = "mp4v"
+) -> Path:
     """The processed frames of `video_path` with the tracks drawn on, as a video at the processed
     rate (fps / stride). Written to a temporary name and renamed."""
     meta = read_metadata(tracks_path)
@@ -82,14 +94,22 @@ def write_overlay(video_path: str | Path, tracks_path: str | Path, out_path: str
     frames_col = table.column("frame").to_numpy()
     out_path = Path(out_path)
     tmp = out_path.with_name(f".{out_path.stem}.tmp{out_path.suffix}")
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), float(v["fps"]) / stride,
-                             (int(v["width"]), int(v["height"])))
+    writer = cv2.VideoWriter(
+        str(tmp),
+        cv2.VideoWriter_fourcc(*fourcc),
+        float(v["fps"]) / stride,
+        (int(v["width"]), int(v["height"])),
+    )
     if not writer.isOpened():
         raise RuntimeError(f"{out_path}: cannot write video with codec '{fourcc}'")
     try:
         end = v["end_frame"]
-        for f in iter_frames(video_path, stride=stride, start_s=v["first_frame"] / v["fps"],
-                             end_s=None if end is None else end / v["fps"]):
+        for f in iter_frames(
+            video_path,
+            stride=stride,
+            start_s=v["first_frame"] / v["fps"],
+            end_s=None if end is None else end / v["fps"],
+        ):
             rows = table.filter(pa.array(frames_col == f.index))
             writer.write(draw_people(f.image, rows))
     finally:
@@ -112,13 +132,25 @@ def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: in
     t = table.column("time_s").to_numpy()
     pid = table.column("person_id").to_numpy()
     people = [p for p in np.unique(pid) if (pid == p).sum() >= min_rows]
-    fig, axes = plt.subplots(3, 2, figsize=(12, 8), sharex=True, sharey=True, constrained_layout=True)
-    for ax, name in zip(axes.ravel(), ["left_knee", "right_knee", "left_hip", "right_hip", "left_elbow",
-                                       "right_elbow"], strict=True):
+    fig, axes = plt.subplots(
+        3, 2, figsize=(12, 8), sharex=True, sharey=True, constrained_layout=True
+    )
+    for ax, name in zip(
+        axes.ravel(),
+        ["left_knee", "right_knee", "left_hip", "right_hip", "left_elbow", "right_elbow"],
+        strict=True,
+    ):
         for p in people:
             m = pid == p
-            ax.plot(t[m], angles[name][m], ".-", ms=2, lw=1, label=f"person {p}",
-                    color=np.array(_colour(int(p))[::-1]) / 255)
+            ax.plot(
+                t[m],
+                angles[name][m],
+                ".-",
+                ms=2,
+                lw=1,
+                label=f"person {p}",
+                color=np.array(_colour(int(p))[::-1]) / 255,
+            )
         ax.set_title(name.replace("_", " "))
         ax.set_ylabel("angle (deg, 180 = straight)")
         ax.grid(alpha=0.3)
@@ -126,8 +158,10 @@ def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: in
         ax.set_xlabel("time (s)")
     if people:
         axes[0, 0].legend(fontsize=8)
-    fig.suptitle(f"{meta['video']['name']}: joint angles ({meta['model']['name']} {meta['model']['version']}, "
-                 f"joints3d in the {meta['axes']['joints3d']} frame)")
+    fig.suptitle(
+        f"{meta['video']['name']}: joint angles ({meta['model']['name']} {meta['model']['version']}, "
+        f"joints3d in the {meta['axes']['joints3d']} frame)"
+    )
     out_png = Path(out_png)
     tmp = out_png.with_name(f".{out_png.stem}.tmp.png")
     fig.savefig(tmp, dpi=100)

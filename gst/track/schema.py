@@ -19,10 +19,30 @@ import pyarrow as pa
 FORMAT_NAME, FORMAT_VERSION = "gst-capture/tracks", 1
 
 SMPL_JOINT_NAMES = (
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
-    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
-    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
-    "left_hand", "right_hand",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
+    "right_hand",
 )
 
 
@@ -42,24 +62,58 @@ def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
         ColumnSpec("frame", None, "", "0-based frame index in the video"),
         ColumnSpec("time_s", None, "s", "frame / fps"),
         ColumnSpec("person_id", None, "", "track id, stable across frames of one video"),
-        ColumnSpec("bbox", (4,), "px", "detection box x0, y0, x1, y1 on the raw frame, pixel-corner convention"),
+        ColumnSpec(
+            "bbox",
+            (4,),
+            "px",
+            "detection box x0, y0, x1, y1 on the raw frame, pixel-corner convention",
+        ),
         ColumnSpec("score", None, "", "detection score"),
-        ColumnSpec("global_orient", (3,), "rad", "root orientation, axis-angle, in the frame of joints3d",
-                   "world|camera"),
-        ColumnSpec("global_orient_cam", (3,), "rad", "root orientation, axis-angle, camera frame", "camera"),
-        ColumnSpec("body_pose", (J - 1, 3), "rad", "joint rotations 1..23 relative to their parent, axis-angle"),
+        ColumnSpec(
+            "global_orient",
+            (3,),
+            "rad",
+            "root orientation, axis-angle, in the frame of joints3d",
+            "world|camera",
+        ),
+        ColumnSpec(
+            "global_orient_cam", (3,), "rad", "root orientation, axis-angle, camera frame", "camera"
+        ),
+        ColumnSpec(
+            "body_pose",
+            (J - 1, 3),
+            "rad",
+            "joint rotations 1..23 relative to their parent, axis-angle",
+        ),
         ColumnSpec("betas", (num_betas,), "", "body shape coefficients"),
         ColumnSpec("transl_cam", (3,), "m", "body model translation, camera frame", "camera"),
-        ColumnSpec("transl_world", (3,), "m", "body model translation for global_orient in world; null when "
-                   "uncalibrated", "world", nullable=True),
-        ColumnSpec("joints3d", (J, 3), "m", "3D joints; world frame when calibrated, else camera frame",
-                   "world|camera"),
-        ColumnSpec("joints2d", (J, 2), "px", "joints projected into the raw frame, pixel-centre convention"),
+        ColumnSpec(
+            "transl_world",
+            (3,),
+            "m",
+            "body model translation for global_orient in world; null when uncalibrated",
+            "world",
+            nullable=True,
+        ),
+        ColumnSpec(
+            "joints3d",
+            (J, 3),
+            "m",
+            "3D joints; world frame when calibrated, else camera frame",
+            "world|camera",
+        ),
+        ColumnSpec(
+            "joints2d", (J, 2), "px", "joints projected into the raw frame, pixel-centre convention"
+        ),
     ]
 
 
-_SCALAR_TYPES = {"frame": pa.int64(), "time_s": pa.float64(), "person_id": pa.int64(),
-                 "score": pa.float32()}
+_SCALAR_TYPES = {
+    "frame": pa.int64(),
+    "time_s": pa.float64(),
+    "person_id": pa.int64(),
+    "score": pa.float32(),
+}
 
 
 def arrow_type(spec: ColumnSpec) -> pa.DataType:
@@ -80,31 +134,86 @@ def tracks_schema(num_betas: int = 10, metadata: dict[str, str] | None = None) -
             fmeta["shape"] = json.dumps(list(spec.shape))
         if spec.frame is not None:
             fmeta["frame"] = spec.frame
-        fields.append(pa.field(spec.name, arrow_type(spec), nullable=spec.nullable or spec.name not in _SCALAR_TYPES,
-                               metadata=fmeta))
+        fields.append(
+            pa.field(
+                spec.name,
+                arrow_type(spec),
+                nullable=spec.nullable or spec.name not in _SCALAR_TYPES,
+                metadata=fmeta,
+            )
+        )
     return pa.schema(fields, metadata=metadata)
 
 
 def columns_description(num_betas: int = 10) -> dict:
-    return {s.name: {"shape": list(s.shape) if s.shape else [], "unit": s.unit, "frame": s.frame,
-                     "description": s.description} for s in column_specs(num_betas)}
+    return {
+        s.name: {
+            "shape": list(s.shape) if s.shape else [],
+            "unit": s.unit,
+            "frame": s.frame,
+            "description": s.description,
+        }
+        for s in column_specs(num_betas)
+    }
 
 
-METADATA_KEYS = ("gst.format", "gst.format_version", "gst.joint_names", "gst.units", "gst.axes", "gst.fps",
-                 "gst.model", "gst.calibration", "gst.video", "gst.tracking", "gst.smoothing", "gst.columns",
-                 "gst.stats", "gst.settings_sha256")
+METADATA_KEYS = (
+    "gst.format",
+    "gst.format_version",
+    "gst.joint_names",
+    "gst.units",
+    "gst.axes",
+    "gst.fps",
+    "gst.model",
+    "gst.calibration",
+    "gst.video",
+    "gst.tracking",
+    "gst.smoothing",
+    "gst.columns",
+    "gst.stats",
+    "gst.settings_sha256",
+)
 
 
-def file_metadata(*, fps: float, model: dict, calibration: dict, axes: dict, video: dict, tracking: dict,
-                  smoothing: dict | None, stats: dict, settings_sha256: str, num_betas: int = 10) -> dict[str, str]:
+def file_metadata(
+    *,
+    fps: float,
+    model: dict,
+    calibration: dict,
+    axes: dict,
+    video: dict,
+    tracking: dict,
+    smoothing: dict | None,
+    stats: dict,
+    settings_sha256: str,
+    num_betas: int = 10,
+) -> dict[str, str]:
     """Schema metadata of a tracks file: every value is a JSON document (strings included)."""
-    units = {"joints3d": "m", "transl_cam": "m", "transl_world": "m", "joints2d": "px", "bbox": "px",
-             "global_orient": "rad (axis-angle)", "body_pose": "rad (axis-angle)", "time_s": "s"}
+    units = {
+        "joints3d": "m",
+        "transl_cam": "m",
+        "transl_world": "m",
+        "joints2d": "px",
+        "bbox": "px",
+        "global_orient": "rad (axis-angle)",
+        "body_pose": "rad (axis-angle)",
+        "time_s": "s",
+    }
     values = {
-        "gst.format": FORMAT_NAME, "gst.format_version": FORMAT_VERSION, "gst.joint_names": list(SMPL_JOINT_NAMES),
-        "gst.units": units, "gst.axes": axes, "gst.fps": fps, "gst.model": model, "gst.calibration": calibration,
-        "gst.video": video, "gst.tracking": tracking, "gst.smoothing": smoothing,
-        "gst.columns": columns_description(num_betas), "gst.stats": stats, "gst.settings_sha256": settings_sha256,
+        "gst.format": FORMAT_NAME,
+        "gst.format_version": FORMAT_VERSION,
+        "gst.joint_names": list(SMPL_JOINT_NAMES),
+        "gst.units": units,
+        "gst.axes": axes,
+        "gst.fps": fps,
+        "gst.model": model,
+        "gst.calibration": calibration,
+        "gst.video": video,
+        "gst.tracking": tracking,
+        "gst.smoothing": smoothing,
+        "gst.columns": columns_description(num_betas),
+        "gst.stats": stats,
+        "gst.settings_sha256": settings_sha256,
     }
     return {k: json.dumps(v, sort_keys=True) for k, v in values.items()}
 
@@ -118,5 +227,7 @@ def parse_metadata(schema: pa.Schema) -> dict:
         if key.startswith("gst."):
             out[key[4:]] = json.loads(v.decode())
     if out.get("format") != FORMAT_NAME:
-        raise ValueError(f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected {FORMAT_NAME!r}")
+        raise ValueError(
+            f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected {FORMAT_NAME!r}"
+        )
     return out

@@ -49,7 +49,9 @@ class OneEuroFilter:
             return x.copy()
         te = float(t) - self.t_prev
         if te <= 0:
-            raise ValueError(f"One-Euro samples must move forward in time, got t = {t} after {self.t_prev}")
+            raise ValueError(
+                f"One-Euro samples must move forward in time, got t = {t} after {self.t_prev}"
+            )
         c = self.config
         dx = (x - self.x_hat) / te
         a_d = _alpha(c.d_cutoff, te)
@@ -98,9 +100,13 @@ class PoseSmoother:
         self.config = config
         self.filters: dict[int, dict[str, OneEuroFilter]] = {}
 
-    def __call__(self, person_id: int, t: float, pose: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def __call__(
+        self, person_id: int, t: float, pose: dict[str, np.ndarray]
+    ) -> dict[str, np.ndarray]:
         """Smooth one person's {rotmats (24,3,3), betas, transl_cam (3,), joints_cam (24,3)}."""
-        filters = self.filters.setdefault(person_id, {k: OneEuroFilter(self.config) for k in SMOOTHED_QUANTITIES})
+        filters = self.filters.setdefault(
+            person_id, {k: OneEuroFilter(self.config) for k in SMOOTHED_QUANTITIES}
+        )
         out = {}
         for k in SMOOTHED_QUANTITIES:
             if k == "rotmats":
@@ -114,7 +120,9 @@ class PoseSmoother:
         self.filters = {i: f for i, f in self.filters.items() if i in live_ids}
 
     def state_dict(self) -> dict:
-        return {str(i): {k: f.state_dict() for k, f in fs.items()} for i, fs in self.filters.items()}
+        return {
+            str(i): {k: f.state_dict() for k, f in fs.items()} for i, fs in self.filters.items()
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.filters = {}

@@ -25,7 +25,9 @@ from gst.data.video import probe_video, read_frames
 from gst.track.detection import Detection
 
 
-def group_boxes(boxes: np.ndarray, min_overlap: float = 0.5, max_gap: float = 0.25) -> list[list[int]]:
+def group_boxes(
+    boxes: np.ndarray, min_overlap: float = 0.5, max_gap: float = 0.25
+) -> list[list[int]]:
     """Groups of box indices (x0, y0, x1, y1) that are pieces of one upright person: boxes are
     joined when their horizontal overlap is at least `min_overlap` of the narrower one and the
     vertical gap between them at most `max_gap` of the taller one (transitively)."""
@@ -60,33 +62,52 @@ class StaticCameraDetector:
     a box whose bottom is inside the image must imply a height in `height_range` metres.
     """
 
-    def __init__(self, video: str | Path, *, plate: str | Path | None = None, work_scale: float | None = None,
-                 background: BackgroundConfig | None = None, masks: MaskConfig | None = None,
-                 min_height_frac: float = 0.08, camera: Camera | None = None, up=(0.0, 0.0, 1.0),
-                 floor: float = 0.0, height_range: tuple[float, float] = (1.0, 2.4), group: bool = True):
+    def __init__(
+        self,
+        video: str | Path,
+        *,
+        plate: str | Path | None = None,
+        work_scale: float | None = None,
+        background: BackgroundConfig | None = None,
+        masks: MaskConfig | None = None,
+        min_height_frac: float = 0.08,
+        camera: Camera | None = None,
+        up=(0.0, 0.0, 1.0),
+        floor: float = 0.0,
+        height_range: tuple[float, float] = (1.0, 2.4),
+        group: bool = True,
+    ):
         self.config = background or BackgroundConfig()
         self.mask_config = masks or MaskConfig()
         source = Path(plate) if plate is not None else Path(video)
         info = probe_video(source, source.stem)
         # Boxes need no more than ~640 px of width: at 1080p that is 2.25x fewer pixels than
         # half size, and the background model is most of the per-frame cost.
-        self.work_scale = float(work_scale) if work_scale is not None else min(0.5, 640 / info.width)
+        self.work_scale = (
+            float(work_scale) if work_scale is not None else min(0.5, 640 / info.width)
+        )
         self.min_height_frac = min_height_frac
         self.camera, self.up, self.floor = camera, np.asarray(up, dtype=np.float64), float(floor)
         self.height_range = height_range
         self.group = group
         if camera is not None and (camera.width, camera.height) != (info.width, info.height):
-            raise ValueError(f"{source}: frames are {info.width}x{info.height} but camera '{camera.name}' is "
-                             f"calibrated for {camera.width}x{camera.height}")
+            raise ValueError(
+                f"{source}: frames are {info.width}x{info.height} but camera '{camera.name}' is "
+                f"calibrated for {camera.width}x{camera.height}"
+            )
         picks = sample_indices(info.frames, min(self.config.samples, info.frames))
-        samples = np.stack([img for _, img in read_frames(source, picks, source.stem, scale=self.work_scale)])
+        samples = np.stack(
+            [img for _, img in read_frames(source, picks, source.stem, scale=self.work_scale)]
+        )
         self.model = build_background(samples, self.config)
         self.work_size = samples.shape[2], samples.shape[1]
 
     def _plausible(self, box: np.ndarray, frame_h: int) -> bool:
         if box[3] - box[1] < self.min_height_frac * frame_h:
             return False
-        if self.camera is None or box[3] >= frame_h - 2:  # feet out of view: no floor contact to use
+        if (
+            self.camera is None or box[3] >= frame_h - 2
+        ):  # feet out of view: no floor contact to use
             return True
         seed = ground_seed(self.camera, box, self.up, self.floor)
         return seed is not None and self.height_range[0] <= seed.height <= self.height_range[1]
@@ -98,7 +119,12 @@ class StaticCameraDetector:
         sx, sy = w / self.work_size[0], h / self.work_size[1]
         if not blobs:
             return []
-        boxes = np.array([[x * sx, y * sy, (x + bw) * sx, (y + bh) * sy] for x, y, bw, bh in (b.box for b in blobs)])
+        boxes = np.array(
+            [
+                [x * sx, y * sy, (x + bw) * sx, (y + bh) * sy]
+                for x, y, bw, bh in (b.box for b in blobs)
+            ]
+        )
         areas = np.array([b.area for b in blobs], dtype=np.float64)
         groups = group_boxes(boxes) if self.group else [[i] for i in range(len(blobs))]
         out = []

@@ -49,9 +49,14 @@ class TrackerConfig:
     min_hits: int = 1  # consecutive matches before a new track gets an id (1: at once)
 
     def __post_init__(self):
-        if min(self.w_iou, self.w_position, self.w_appearance) < 0 or self.w_iou + self.w_position + self.w_appearance <= 0:
-            raise ValueError(f"tracker weights must be >= 0 and not all 0, got {self.w_iou}, {self.w_position}, "
-                             f"{self.w_appearance}")
+        if (
+            min(self.w_iou, self.w_position, self.w_appearance) < 0
+            or self.w_iou + self.w_position + self.w_appearance <= 0
+        ):
+            raise ValueError(
+                f"tracker weights must be >= 0 and not all 0, got {self.w_iou}, {self.w_position}, "
+                f"{self.w_appearance}"
+            )
         if self.max_misses < 0:
             raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")
         if self.min_hits < 1:
@@ -91,12 +96,16 @@ class Track:
         return self.position + self.position_velocity * (time_s - self.last_time)
 
     def to_dict(self) -> dict:
-        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
+        return {
+            k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Track:
         arrays = ("box", "position", "appearance", "box_velocity", "position_velocity")
-        return cls(**{k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()})
+        return cls(
+            **{k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()}
+        )
 
 
 def _publish(track: Track) -> int | None:
@@ -111,7 +120,9 @@ class Tracker:
         self.tracks: list[Track] = []
         self.next_id = 0
 
-    def cost_matrix(self, time_s: float, observations: list[Observation]) -> tuple[np.ndarray, np.ndarray]:
+    def cost_matrix(
+        self, time_s: float, observations: list[Observation]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(cost (T, N), allowed (T, N)) between live tracks and observations."""
         c = self.config
         T, N = len(self.tracks), len(observations)
@@ -119,16 +130,30 @@ class Tracker:
             return np.zeros((T, N)), np.zeros((T, N), bool)
         pred_boxes = np.stack([t.predicted_box(time_s) for t in self.tracks])
         pred_pos = np.stack([t.predicted_position(time_s) for t in self.tracks])
-        gates = np.array([c.position_noise_m + c.max_speed_mps * max(time_s - t.last_time, 0.0) for t in self.tracks])
+        gates = np.array(
+            [
+                c.position_noise_m + c.max_speed_mps * max(time_s - t.last_time, 0.0)
+                for t in self.tracks
+            ]
+        )
         boxes = np.stack([o.box for o in observations])
         pos = np.stack([o.position for o in observations])
         iou = box_iou(pred_boxes, boxes)
         dist = np.linalg.norm(pred_pos[:, None] - pos[None], axis=-1)
-        app = hellinger(np.stack([t.appearance for t in self.tracks])[:, None], np.stack([o.appearance for o in observations])[None])
-        cost = (c.w_iou * (1 - iou) + c.w_position * np.minimum(dist / gates[:, None], 1.0)
-                + c.w_appearance * app) / (c.w_iou + c.w_position + c.w_appearance)
-        allowed = ((cost <= c.max_cost) & ((iou >= c.min_iou) | (dist <= gates[:, None]))
-                   & (dist <= c.hard_gate * gates[:, None]))
+        app = hellinger(
+            np.stack([t.appearance for t in self.tracks])[:, None],
+            np.stack([o.appearance for o in observations])[None],
+        )
+        cost = (
+            c.w_iou * (1 - iou)
+            + c.w_position * np.minimum(dist / gates[:, None], 1.0)
+            + c.w_appearance * app
+        ) / (c.w_iou + c.w_position + c.w_appearance)
+        allowed = (
+            (cost <= c.max_cost)
+            & ((iou >= c.min_iou) | (dist <= gates[:, None]))
+            & (dist <= c.hard_gate * gates[:, None])
+        )
         return cost, allowed
 
     def update(self, time_s: float, observations: list[Observation]) -> list[int]:
@@ -167,13 +192,22 @@ class Tracker:
             if t.misses <= (c.max_misses if t.confirmed else 0):
                 survivors.append(t)
         self.tracks = survivors
-        unmatched = [j for j, obs in enumerate(observations)
-                     if j not in matched_obs and obs.score >= c.min_score_new]
+        unmatched = [
+            j
+            for j, obs in enumerate(observations)
+            if j not in matched_obs and obs.score >= c.min_score_new
+        ]
         for j in unmatched:
             obs = observations[j]
             confirmed = c.min_hits <= 1
-            t = Track(self.next_id if confirmed else -1, obs.box.copy(), obs.position.copy(), obs.appearance.copy(),
-                      time_s, confirmed=confirmed)
+            t = Track(
+                self.next_id if confirmed else -1,
+                obs.box.copy(),
+                obs.position.copy(),
+                obs.appearance.copy(),
+                time_s,
+                confirmed=confirmed,
+            )
             if confirmed:
                 self.next_id += 1
             self.tracks.append(t)
@@ -186,7 +220,9 @@ class Tracker:
         if dt > 0:
             w = 1.0 if t.hits == 1 else c.velocity_weight
             t.box_velocity = w * (obs.box - t.box) / dt + (1 - w) * t.box_velocity
-            t.position_velocity = w * (obs.position - t.position) / dt + (1 - w) * t.position_velocity
+            t.position_velocity = (
+                w * (obs.position - t.position) / dt + (1 - w) * t.position_velocity
+            )
         t.box, t.position, t.last_time = obs.box.copy(), obs.position.copy(), time_s
         a = c.appearance_weight
         t.appearance = a * obs.appearance + (1 - a) * t.appearance

@@ -65,7 +65,9 @@ def _open(path: str | Path) -> cv2.VideoCapture:
         raise VideoError(f"{path}: video file not found")
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
-        raise VideoError(f"{path}: cannot open as a video (corrupt, truncated or unsupported codec)")
+        raise VideoError(
+            f"{path}: cannot open as a video (corrupt, truncated or unsupported codec)"
+        )
     return cap
 
 
@@ -81,11 +83,15 @@ def probe_video(path: str | Path) -> VideoInfo:
     if w <= 0 or h <= 0:
         raise VideoError(f"{path}: reports no frame size ({w}x{h}); not a video stream")
     if not math.isfinite(fps) or fps <= 0:
-        raise VideoError(f"{path}: reports no frame rate (fps = {fps}); cannot assign times to frames")
+        raise VideoError(
+            f"{path}: reports no frame rate (fps = {fps}); cannot assign times to frames"
+        )
     return VideoInfo(str(path), w, h, fps, n if n > 0 else None)
 
 
-def frame_range(info: VideoInfo, start_s: float | None = None, end_s: float | None = None) -> tuple[int, int | None]:
+def frame_range(
+    info: VideoInfo, start_s: float | None = None, end_s: float | None = None
+) -> tuple[int, int | None]:
     """[first, end) frame indices covering times [start_s, end_s); end is None for 'to the end'."""
     eps = 1e-9
     first = 0 if start_s is None else max(0, math.ceil(start_s * info.fps - eps))
@@ -116,7 +122,9 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
                     return
                 raise VideoTruncatedError(
                     f"{info.path}: decoding failed at frame {index} of {info.frame_count} announced "
-                    f"(file truncated or corrupt); frames before {index} decoded fine", index)
+                    f"(file truncated or corrupt); frames before {index} decoded fine",
+                    index,
+                )
             yield Frame(index, index / info.fps, image)
             for _ in range(stride - 1):
                 index += 1
@@ -127,8 +135,16 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
         cap.release()
 
 
-def iter_frames(path: str | Path, *, stride: int = 1, start_s: float | None = None, end_s: float | None = None,
-                start_frame: int | None = None, end_frame: int | None = None, prefetch: int = 0) -> Iterator[Frame]:
+def iter_frames(
+    path: str | Path,
+    *,
+    stride: int = 1,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    start_frame: int | None = None,
+    end_frame: int | None = None,
+    prefetch: int = 0,
+) -> Iterator[Frame]:
     """Yield frames first, first + stride, ... within [start_s, end_s).
 
     `start_frame` (used to resume, or to start a chunk) overrides the first frame; it must lie on
@@ -141,7 +157,9 @@ def iter_frames(path: str | Path, *, stride: int = 1, start_s: float | None = No
     first, end = frame_range(info, start_s, end_s)
     if start_frame is not None:
         if start_frame < first or (start_frame - first) % stride:
-            raise ValueError(f"{path}: start_frame {start_frame} is not on the grid {first} + k * {stride}")
+            raise ValueError(
+                f"{path}: start_frame {start_frame} is not on the grid {first} + k * {stride}"
+            )
         first = start_frame
     if end_frame is not None:
         end = end_frame if end is None else min(end, end_frame)

@@ -26,8 +26,16 @@ def default_camera(width: int, height: int, name: str = "default") -> Camera:
     no distortion, identity pose (world = camera)."""
     f = float(np.hypot(width, height))
     K = [[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
-    return Camera.create(name, K, [], np.eye(3), np.zeros(3), width, height,
-                         meta={"source": "default: focal = image diagonal (px), centred, no distortion"})
+    return Camera.create(
+        name,
+        K,
+        [],
+        np.eye(3),
+        np.zeros(3),
+        width,
+        height,
+        meta={"source": "default: focal = image diagonal (px), centred, no distortion"},
+    )
 
 
 def _box_outline(box: np.ndarray, per_edge: int = 8) -> np.ndarray:
@@ -35,8 +43,14 @@ def _box_outline(box: np.ndarray, per_edge: int = 8) -> np.ndarray:
     x0, y0, x1, y1 = box - 0.5
     t = np.linspace(0.0, 1.0, per_edge)
     xs, ys = x0 + (x1 - x0) * t, y0 + (y1 - y0) * t
-    return np.concatenate([np.stack([xs, np.full_like(xs, y0)], 1), np.stack([xs, np.full_like(xs, y1)], 1),
-                           np.stack([np.full_like(ys, x0), ys], 1), np.stack([np.full_like(ys, x1), ys], 1)])
+    return np.concatenate(
+        [
+            np.stack([xs, np.full_like(xs, y0)], 1),
+            np.stack([xs, np.full_like(xs, y1)], 1),
+            np.stack([np.full_like(ys, x0), ys], 1),
+            np.stack([np.full_like(ys, x1), ys], 1),
+        ]
+    )
 
 
 @dataclass(frozen=True)
@@ -47,13 +61,17 @@ class TrackingView:
     calibrated: bool
 
     @classmethod
-    def for_video(cls, width: int, height: int, camera: Camera | None = None, video: str = "video") -> TrackingView:
+    def for_video(
+        cls, width: int, height: int, camera: Camera | None = None, video: str = "video"
+    ) -> TrackingView:
         """The calibrated `camera` (checked against the frame size) or the default camera."""
         if camera is None:
             return cls(default_camera(width, height), calibrated=False)
         if (camera.width, camera.height) != (width, height):
-            raise ValueError(f"{video}: frames are {width}x{height} but camera '{camera.name}' is calibrated "
-                             f"for {camera.width}x{camera.height}")
+            raise ValueError(
+                f"{video}: frames are {width}x{height} but camera '{camera.name}' is calibrated "
+                f"for {camera.width}x{camera.height}"
+            )
         return cls(camera, calibrated=True)
 
     @property
@@ -88,7 +106,9 @@ class TrackingView:
 
     def rotation_to_world(self, rotmats_cam: np.ndarray) -> np.ndarray:
         """(..., 3, 3) camera-frame orientations -> world: R^T @ rot."""
-        return np.einsum("ji,...jk->...ik", self.camera.R, np.asarray(rotmats_cam, dtype=np.float64))
+        return np.einsum(
+            "ji,...jk->...ik", self.camera.R, np.asarray(rotmats_cam, dtype=np.float64)
+        )
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """(N, J, 3) camera-frame points -> (N, J, 2) raw-frame pixels (pixel-centre convention),

@@ -35,7 +35,12 @@ import pyarrow.parquet as pq
 
 PROGRESS_VERSION = 1
 FINAL_NAME = "tracks.parquet"
-PARQUET_OPTIONS = {"compression": "zstd", "compression_level": 3, "version": "2.6", "write_statistics": True}
+PARQUET_OPTIONS = {
+    "compression": "zstd",
+    "compression_level": 3,
+    "version": "2.6",
+    "write_statistics": True,
+}
 
 
 class ResumeError(RuntimeError):
@@ -112,8 +117,14 @@ class ResumePoint:
 class TrackWriter:
     """Committed row groups for one video, resumable, finalised into one Parquet file."""
 
-    def __init__(self, root: str | Path, video: str, schema: pa.Schema, settings: dict,
-                 staging_root: str | Path | None = None):
+    def __init__(
+        self,
+        root: str | Path,
+        video: str,
+        schema: pa.Schema,
+        settings: dict,
+        staging_root: str | Path | None = None,
+    ):
         self.video = video
         self.schema = schema.remove_metadata()
         self.settings = settings
@@ -142,23 +153,39 @@ class TrackWriter:
             try:
                 progress = json.loads(self.progress_path.read_text())
             except (OSError, json.JSONDecodeError) as exc:
-                raise ResumeError(f"{self.progress_path}: unreadable progress record ({exc}); delete "
-                                  f"{self.staging} or run without resume") from exc
+                raise ResumeError(
+                    f"{self.progress_path}: unreadable progress record ({exc}); delete "
+                    f"{self.staging} or run without resume"
+                ) from exc
             if progress.get("version") != PROGRESS_VERSION or progress.get("digest") != self.digest:
-                changed = _changed_keys(progress.get("settings", {}), json.loads(json.dumps(self.settings)))
-                raise ResumeError(f"{self.staging}: a partial run with different settings exists (changed: "
-                                  f"{changed}); run without resume to discard it")
+                changed = _changed_keys(
+                    progress.get("settings", {}), json.loads(json.dumps(self.settings))
+                )
+                raise ResumeError(
+                    f"{self.staging}: a partial run with different settings exists (changed: "
+                    f"{changed}); run without resume to discard it"
+                )
             self._check_segments(progress)
             self._progress = progress
         else:
             if self.staging.exists():
-                shutil.rmtree(self.staging)  # segments without a progress record were never committed
+                shutil.rmtree(
+                    self.staging
+                )  # segments without a progress record were never committed
             self.staging.mkdir(parents=True)
-            self._progress = {"version": PROGRESS_VERSION, "digest": self.digest, "settings": self.settings,
-                              "segments": [], "next_frame": None, "state": {}}
+            self._progress = {
+                "version": PROGRESS_VERSION,
+                "digest": self.digest,
+                "settings": self.settings,
+                "segments": [],
+                "next_frame": None,
+                "state": {},
+            }
             return None
         seg = progress["segments"]
-        return ResumePoint(progress["next_frame"], progress["state"], len(seg), sum(s["rows"] for s in seg))
+        return ResumePoint(
+            progress["next_frame"], progress["state"], len(seg), sum(s["rows"] for s in seg)
+        )
 
     def _check_segments(self, progress: dict) -> None:
         named = {s["file"] for s in progress["segments"]}
@@ -167,8 +194,10 @@ class TrackWriter:
             try:
                 rows = pq.read_metadata(path).num_rows
             except (OSError, pa.ArrowException) as exc:
-                raise ResumeError(f"{path}: committed segment is missing or unreadable ({exc}); delete "
-                                  f"{self.staging} or run without resume") from exc
+                raise ResumeError(
+                    f"{path}: committed segment is missing or unreadable ({exc}); delete "
+                    f"{self.staging} or run without resume"
+                ) from exc
             if rows != s["rows"]:
                 raise ResumeError(f"{path}: has {rows} rows, progress.json recorded {s['rows']}")
         for p in self.staging.iterdir():
@@ -205,7 +234,10 @@ class TrackWriter:
         """Every committed row so far, in order."""
         if self._progress is None:
             raise RuntimeError("call start() first")
-        tables = [pq.read_table(self.staging / s["file"], schema=self.schema) for s in self._progress["segments"]]
+        tables = [
+            pq.read_table(self.staging / s["file"], schema=self.schema)
+            for s in self._progress["segments"]
+        ]
         return pa.concat_tables(tables) if tables else self.schema.empty_table()
 
     def finalize(self, metadata: dict[str, str], row_group_rows: int = 65536) -> Path:
@@ -217,7 +249,9 @@ class TrackWriter:
         tmp = self.dir / f".{FINAL_NAME}.tmp"
         with pq.ParquetWriter(tmp, schema, **PARQUET_OPTIONS) as w:
             if len(table):
-                w.write_table(table.replace_schema_metadata(metadata), row_group_size=row_group_rows)
+                w.write_table(
+                    table.replace_schema_metadata(metadata), row_group_size=row_group_rows
+                )
         _durable_replace(tmp, self.final_path)
         self.discard_staging()
         return self.final_path

@@ -18,7 +18,9 @@ from gst.data.proxies import triangulate_dlt
 from gst.train.views import CropSet
 
 
-def mask_centroids(masks: torch.Tensor, min_pixels: float = 50.0) -> tuple[torch.Tensor, torch.Tensor]:
+def mask_centroids(
+    masks: torch.Tensor, min_pixels: float = 50.0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, S, S) masks -> (N, 2) centroids in crop pixels (pixel centres at integers) and (N,) ok."""
     s = masks.shape[-1]
     grid = torch.arange(s, dtype=torch.float64)
@@ -29,7 +31,9 @@ def mask_centroids(masks: torch.Tensor, min_pixels: float = 50.0) -> tuple[torch
     return torch.stack([u, v], -1), total >= min_pixels
 
 
-def mask_centre_anchors(crops: CropSet, cameras: set[int] | None = None, max_error: float = 0.08) -> torch.Tensor:
+def mask_centre_anchors(
+    crops: CropSet, cameras: set[int] | None = None, max_error: float = 0.08
+) -> torch.Tensor:
     """(N, 3) world point per crop: its person's triangulated mask centroid over the crops of
     `cameras` (default all) in the same frame; NaN where fewer than 2 views have a mask or the
     centroids disagree (mean reprojection error above `max_error` of the crop size)."""

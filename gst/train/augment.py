@@ -53,11 +53,15 @@ def warp_crops(images: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
     """Warp (B, S, S, 3) uint8 crops by A (old px -> new px); outside is black, like crop padding."""
     size = images.shape[1]
     x = images.permute(0, 3, 1, 2).float()
-    out = warp_affine(x, A[:, :2].to(x), (size, size), mode="bilinear", padding_mode="zeros", align_corners=True)
+    out = warp_affine(
+        x, A[:, :2].to(x), (size, size), mode="bilinear", padding_mode="zeros", align_corners=True
+    )
     return out.round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()
 
 
-def jitter_batch(batch: SupervisedBatch, jitter: CropJitter, gen: torch.Generator) -> SupervisedBatch:
+def jitter_batch(
+    batch: SupervisedBatch, jitter: CropJitter, gen: torch.Generator
+) -> SupervisedBatch:
     """A re-cropped, recoloured copy of `batch` with K and 2D truth moved to match."""
     b, size = batch.images.shape[0], batch.images.shape[1]
 
@@ -68,8 +72,11 @@ def jitter_batch(batch: SupervisedBatch, jitter: CropJitter, gen: torch.Generato
     shift = (uniform(-jitter.shift, jitter.shift, 2 * b).reshape(b, 2) * size).double()
     A = similarity(zoom, shift, size)
     images = warp_crops(batch.images, A)
-    colour = [uniform(-jitter.brightness, jitter.brightness), uniform(1 - jitter.contrast, 1 + jitter.contrast),
-              uniform(1 - jitter.saturation, 1 + jitter.saturation)]
+    colour = [
+        uniform(-jitter.brightness, jitter.brightness),
+        uniform(1 - jitter.contrast, 1 + jitter.contrast),
+        uniform(1 - jitter.saturation, 1 + jitter.saturation),
+    ]
     x = images.permute(0, 3, 1, 2).float() / 255
     x = adjust_brightness(x, colour[0])
     x = adjust_contrast(x, colour[1])

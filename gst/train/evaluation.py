@@ -20,18 +20,25 @@ from gst.train.views import CropSet, MultiViewBatch, target_views
 
 
 @torch.no_grad()
-def pose_metrics(model, task: GSTTask, crops: CropSet, rows: torch.Tensor, batch_size: int = 32) -> dict:
+def pose_metrics(
+    model, task: GSTTask, crops: CropSet, rows: torch.Tensor, batch_size: int = 32
+) -> dict:
     """MPJPE and PA-MPJPE (mm) over `rows` (crops that have truth joints_world)."""
     if len(rows) == 0:
         return {}
     errs, pa = [], []
     for s in range(0, len(rows), batch_size):
-        r = rows[s:s + batch_size]
-        pred = predict(model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r], with_gaussians=False)
+        r = rows[s : s + batch_size]
+        pred = predict(
+            model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r], with_gaussians=False
+        )
         gt = crops.truth["joints_world"][r].to(pred.joints_world)
         errs.append(mpjpe(pred.joints_world, gt, root=0))
         pa.append(pa_mpjpe(pred.joints_world, gt))
-    return {"mpjpe_mm": 1000 * float(torch.cat(errs).mean()), "pa_mpjpe_mm": 1000 * float(torch.cat(pa).mean())}
+    return {
+        "mpjpe_mm": 1000 * float(torch.cat(errs).mean()),
+        "pa_mpjpe_mm": 1000 * float(torch.cat(pa).mean()),
+    }
 
 
 @dataclass
@@ -42,7 +49,9 @@ class NovelViewSet:
     targets: torch.Tensor  # (P,)
 
 
-def novel_view_pairs(crops: CropSet, heldout: set[int], max_pairs: int = 64, seed: int = 0) -> NovelViewSet:
+def novel_view_pairs(
+    crops: CropSet, heldout: set[int], max_pairs: int = 64, seed: int = 0
+) -> NovelViewSet:
     gen = torch.Generator().manual_seed(seed)
     inputs, targets = [], []
     for g in crops.groups(min_views=2):
@@ -52,18 +61,39 @@ def novel_view_pairs(crops: CropSet, heldout: set[int], max_pairs: int = 64, see
             inputs.append(train[int(torch.randint(len(train), (1,), generator=gen))])
             targets.append(held[0])
     order = torch.randperm(len(inputs), generator=gen)[:max_pairs]
-    return NovelViewSet(torch.tensor(inputs, dtype=torch.long)[order], torch.tensor(targets, dtype=torch.long)[order])
+    return NovelViewSet(
+        torch.tensor(inputs, dtype=torch.long)[order],
+        torch.tensor(targets, dtype=torch.long)[order],
+    )
 
 
 def _batch(crops: CropSet, inp: torch.Tensor, tgt: torch.Tensor, size: int) -> MultiViewBatch:
     view, K, images, masks = target_views(crops, tgt[:, None], size)
-    return MultiViewBatch(inp, tgt[:, None], crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], images,
-                          masks, K, view, torch.zeros(len(inp), 1, 3))
+    return MultiViewBatch(
+        inp,
+        tgt[:, None],
+        crops.images[inp],
+        crops.K[inp],
+        crops.R[inp],
+        crops.t[inp],
+        images,
+        masks,
+        K,
+        view,
+        torch.zeros(len(inp), 1, 3),
+    )
 
 
 @torch.no_grad()
-def novel_view_metrics(model, task: GSTTask, crops: CropSet, pairs: NovelViewSet, size: int,
-                       batch_size: int = 16, return_images: bool = False) -> dict:
+def novel_view_metrics(
+    model,
+    task: GSTTask,
+    crops: CropSet,
+    pairs: NovelViewSet,
+    size: int,
+    batch_size: int = 16,
+    return_images: bool = False,
+) -> dict:
     """PSNR/SSIM of the person (composited on black) and silhouette IoU in held-out views."""
     from gst.train.steps import render_predictions
 
@@ -71,7 +101,7 @@ def novel_view_metrics(model, task: GSTTask, crops: CropSet, pairs: NovelViewSet
         return {}
     ps, ss, ious, images = [], [], [], []
     for s in range(0, len(pairs.inputs), batch_size):
-        b = _batch(crops, pairs.inputs[s:s + batch_size], pairs.targets[s:s + batch_size], size)
+        b = _batch(crops, pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size], size)
         pred = predict(model, task, b.input_images, b.K_in, b.R_in, b.t_in, with_gaussians=True)
         out = render_predictions(pred, b, size)
         rgb = out.rgb[:, 0].permute(0, 3, 1, 2).clamp(0, 1)
@@ -81,8 +111,11 @@ def novel_view_metrics(model, task: GSTTask, crops: CropSet, pairs: NovelViewSet
         ious.append(silhouette_iou(out.alpha[:, 0], b.target_masks[:, 0]))
         if return_images:
             images.append((b.input_images, rgb, target))
-    result = {"psnr": float(torch.cat(ps).mean()), "ssim": float(torch.cat(ss).mean()),
-              "silhouette_iou": float(torch.cat(ious).mean())}
+    result = {
+        "psnr": float(torch.cat(ps).mean()),
+        "ssim": float(torch.cat(ss).mean()),
+        "silhouette_iou": float(torch.cat(ious).mean()),
+    }
     if return_images:
         result["images"] = images
     return result

@@ -23,13 +23,19 @@ from gst.detect.blazepose import BlazePose, BodyRoi
 
 # body-model joint (SMPL order) -> BlazePose landmarks averaged for it
 BODY_FROM_BLAZEPOSE: dict[int, tuple[int, ...]] = {
-    0: (23, 24),          # pelvis: mid-hips
-    1: (23,), 2: (24,),   # hips
-    4: (25,), 5: (26,),   # knees
-    7: (27,), 8: (28,),   # ankles
-    16: (11,), 17: (12,),  # shoulders
-    18: (13,), 19: (14,),  # elbows
-    20: (15,), 21: (16,),  # wrists
+    0: (23, 24),  # pelvis: mid-hips
+    1: (23,),
+    2: (24,),  # hips
+    4: (25,),
+    5: (26,),  # knees
+    7: (27,),
+    8: (28,),  # ankles
+    16: (11,),
+    17: (12,),  # shoulders
+    18: (13,),
+    19: (14,),  # elbows
+    20: (15,),
+    21: (16,),  # wrists
 }
 
 
@@ -48,7 +54,11 @@ def crop_keypoints(images: torch.Tensor, model: BlazePose, progress=None) -> tor
     n, s = images.shape[0], images.shape[1]
     roi = BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0)
     out = np.zeros((n, 24, 3), np.float32)
-    rows = range(n) if progress is None else progress(range(n), description="detecting 2D joints in crops", total=n)
+    rows = (
+        range(n)
+        if progress is None
+        else progress(range(n), description="detecting 2D joints in crops", total=n)
+    )
     for i in rows:
         bgr = np.ascontiguousarray(images[i].numpy()[..., ::-1])
         seg = model.segment(bgr, roi)
@@ -56,8 +66,13 @@ def crop_keypoints(images: torch.Tensor, model: BlazePose, progress=None) -> tor
     return torch.from_numpy(out)
 
 
-def keypoint_term(joints_world: torch.Tensor, viewmats: torch.Tensor, K: torch.Tensor,
-                  keypoints: torch.Tensor, image_size: int) -> torch.Tensor:
+def keypoint_term(
+    joints_world: torch.Tensor,
+    viewmats: torch.Tensor,
+    K: torch.Tensor,
+    keypoints: torch.Tensor,
+    image_size: int,
+) -> torch.Tensor:
     """Confidence-weighted mean distance, in image widths, between the predicted joints
     (B, J, 3) projected into the target views (viewmats (B, M, 4, 4), K (B, M, 3, 3)) and
     the views' detected joints (B, M, J, 3: u, v, confidence, in the same pixels as K)."""

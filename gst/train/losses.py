@@ -41,15 +41,29 @@ class LossTerms:
     parts: dict[str, torch.Tensor]
 
 
-def image_terms(rgb: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                offsets: torch.Tensor, betas: torch.Tensor, w: LossWeights, lpips=None) -> dict[str, torch.Tensor]:
+def image_terms(
+    rgb: torch.Tensor,
+    alpha: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    offsets: torch.Tensor,
+    betas: torch.Tensor,
+    w: LossWeights,
+    lpips=None,
+) -> dict[str, torch.Tensor]:
     """rgb/target (B, M, H, W, 3) in [0, 1]; alpha/mask (B, M, H, W); offsets (B, V, 3)."""
-    parts = {"mse": ((rgb - target) ** 2).mean(), "alpha": ((alpha - mask) ** 2).mean(),
-             "tightness": offsets.norm(dim=-1).mean(), "betas": (betas ** 2).mean()}
+    parts = {
+        "mse": ((rgb - target) ** 2).mean(),
+        "alpha": ((alpha - mask) ** 2).mean(),
+        "tightness": offsets.norm(dim=-1).mean(),
+        "betas": (betas**2).mean(),
+    }
     if w.lpips > 0:
         if lpips is None:
-            raise ValueError("the LPIPS weight is > 0 but no LPIPS module was given (the term is never dropped "
-                             "silently; set lpips weight 0 explicitly to train without it)")
+            raise ValueError(
+                "the LPIPS weight is > 0 but no LPIPS module was given (the term is never dropped "
+                "silently; set lpips weight 0 explicitly to train without it)"
+            )
         h, wd = rgb.shape[-3:-1]
         a = rgb.reshape(-1, h, wd, 3).permute(0, 3, 1, 2)
         b = target.reshape(-1, h, wd, 3).permute(0, 3, 1, 2)
@@ -61,14 +75,24 @@ def root_relative(joints: torch.Tensor) -> torch.Tensor:
     return joints - joints[:, :1]
 
 
-def supervised_terms(joints_cam: torch.Tensor, joints2d: torch.Tensor, rotmats: torch.Tensor, betas: torch.Tensor,
-                     gt_joints_cam: torch.Tensor | None, gt_joints2d: torch.Tensor | None,
-                     gt_rotmats: torch.Tensor | None, gt_betas: torch.Tensor | None,
-                     crop_size: int, visible: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+def supervised_terms(
+    joints_cam: torch.Tensor,
+    joints2d: torch.Tensor,
+    rotmats: torch.Tensor,
+    betas: torch.Tensor,
+    gt_joints_cam: torch.Tensor | None,
+    gt_joints2d: torch.Tensor | None,
+    gt_rotmats: torch.Tensor | None,
+    gt_betas: torch.Tensor | None,
+    crop_size: int,
+    visible: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
     """Terms for whatever truth is present. joints2d in crop pixels (B, J, 2)."""
     parts: dict[str, torch.Tensor] = {}
     if gt_joints_cam is not None:
-        parts["joints3d"] = (root_relative(joints_cam) - root_relative(gt_joints_cam)).norm(dim=-1).mean()
+        parts["joints3d"] = (
+            (root_relative(joints_cam) - root_relative(gt_joints_cam)).norm(dim=-1).mean()
+        )
         parts["root"] = (joints_cam[:, 0] - gt_joints_cam[:, 0]).norm(dim=-1).mean()
     if gt_joints2d is not None:
         err = ((joints2d - gt_joints2d) / crop_size).norm(dim=-1)

@@ -31,14 +31,25 @@ def occluder_masks(crops: CropSet) -> torch.Tensor:
         for p in rows.tolist():
             others = rows[rows != p]
             A = crops.K[p].double()[None] @ torch.linalg.inv(crops.K[others].double())
-            warped = warp_affine(crops.masks[others][:, None].float(), A[:, :2].float(), (size, size),
-                                 mode="bilinear", padding_mode="zeros", align_corners=True)[:, 0]
+            warped = warp_affine(
+                crops.masks[others][:, None].float(),
+                A[:, :2].float(),
+                (size, size),
+                mode="bilinear",
+                padding_mode="zeros",
+                align_corners=True,
+            )[:, 0]
             out[p] = warped.amax(0)
     return out
 
 
-def ignore_occluded(rgb: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
-                    occluders: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def ignore_occluded(
+    rgb: torch.Tensor,
+    alpha: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    occluders: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Targets that agree with the render wherever another person hides this one, so those pixels
     give the image terms no gradient (exactly zero for MSE and alpha). rgb/target (..., H, W, 3),
     alpha/mask/occluders (..., H, W). The person's own pixels always stay supervised."""

@@ -39,16 +39,23 @@ class OverfitResult:
 
 
 @torch.no_grad()
-def training_view_psnr(model, task: GSTTask, crops: CropSet, group: torch.Tensor, size: int) -> list[float]:
+def training_view_psnr(
+    model, task: GSTTask, crops: CropSet, group: torch.Tensor, size: int
+) -> list[float]:
     """Mean PSNR of the renders into all views of `group`, once per input view."""
     was_training = model.training
     model.eval()
     base = sample_multiview(crops, [group], torch.Generator().manual_seed(0), 1, len(group), size)
     order = torch.argsort(base.target_index[0])  # targets in group order
-    base = dataclasses.replace(base, target_index=base.target_index[:, order],
-                               target_images=base.target_images[:, order], target_masks=base.target_masks[:, order],
-                               K_target=base.K_target[:, order], viewmats=base.viewmats[:, order],
-                               backgrounds=torch.zeros_like(base.backgrounds))
+    base = dataclasses.replace(
+        base,
+        target_index=base.target_index[:, order],
+        target_images=base.target_images[:, order],
+        target_masks=base.target_masks[:, order],
+        K_target=base.K_target[:, order],
+        viewmats=base.viewmats[:, order],
+        backgrounds=torch.zeros_like(base.backgrounds),
+    )
     target = (base.target_images * base.target_masks[..., None])[0].permute(0, 3, 1, 2)
     scores = []
     for i in group.sort().values:
@@ -60,11 +67,23 @@ def training_view_psnr(model, task: GSTTask, crops: CropSet, group: torch.Tensor
     return scores
 
 
-def overfit_sample(model, task: GSTTask, crops: CropSet, group: torch.Tensor, *, warm_steps: int = 100,
-                   steps: int = 300, lr: float = 1e-3, body_lr: float = 1e-5, warm_lr: float = 1e-3,
-                   render_size: int = 64,
-                   num_targets: int | None = None, eval_every: int = 50, seed: int = 0,
-                   progress=None) -> OverfitResult:
+def overfit_sample(
+    model,
+    task: GSTTask,
+    crops: CropSet,
+    group: torch.Tensor,
+    *,
+    warm_steps: int = 100,
+    steps: int = 300,
+    lr: float = 1e-3,
+    body_lr: float = 1e-5,
+    warm_lr: float = 1e-3,
+    render_size: int = 64,
+    num_targets: int | None = None,
+    eval_every: int = 50,
+    seed: int = 0,
+    progress=None,
+) -> OverfitResult:
     """Warm start on the group's truth (skipped without truth or with warm_steps=0), then
     `steps` multi-view steps on this one group. Trains `model` in place."""
     t0 = time.perf_counter()
@@ -83,10 +102,16 @@ def overfit_sample(model, task: GSTTask, crops: CropSet, group: torch.Tensor, *,
         warm_mpjpe = float(parts["mpjpe_mm"])
     gen = torch.Generator().manual_seed(seed)
     opt = torch.optim.Adam(gaussian_parameter_groups(model, lr, body_lr))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / max(1, steps))))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / max(1, steps)))
+    )
     history = []
     targets = num_targets or len(group)
-    it = range(steps) if progress is None else progress(range(steps), description="overfit", total=steps)
+    it = (
+        range(steps)
+        if progress is None
+        else progress(range(steps), description="overfit", total=steps)
+    )
     for step in it:
         batch = sample_multiview(crops, [group], gen, 1, targets, render_size)
         loss, _ = multiview_step(model, batch, task)
@@ -96,9 +121,22 @@ def overfit_sample(model, task: GSTTask, crops: CropSet, group: torch.Tensor, *,
         opt.step()
         sched.step()
         if eval_every and (step + 1) % eval_every == 0 and step + 1 < steps:
-            history.append({"step": step + 1, "seconds": time.perf_counter() - t0,
-                            "psnr": sum(s := training_view_psnr(model, task, crops, group, render_size)) / len(s)})
+            history.append(
+                {
+                    "step": step + 1,
+                    "seconds": time.perf_counter() - t0,
+                    "psnr": sum(s := training_view_psnr(model, task, crops, group, render_size))
+                    / len(s),
+                }
+            )
     final = training_view_psnr(model, task, crops, group, render_size)
-    history.append({"step": steps, "seconds": time.perf_counter() - t0, "psnr": sum(final) / len(final)})
-    return OverfitResult(psnr=sum(final) / len(final), psnr_per_input=final, warm_mpjpe_mm=warm_mpjpe,
-                         seconds=time.perf_counter() - t0, history=history)
+    history.append(
+        {"step": steps, "seconds": time.perf_counter() - t0, "psnr": sum(final) / len(final)}
+    )
+    return OverfitResult(
+        psnr=sum(final) / len(final),
+        psnr_per_input=final,
+        warm_mpjpe_mm=warm_mpjpe,
+        seconds=time.perf_counter() - t0,
+        history=history,
+    )

@@ -43,11 +43,18 @@ from gst.train.views import CropSet, sample_multiview
 log = logging.getLogger("gst.train")
 
 
-def build_network(cfg: GSTConfig, body: BodyModel, seed: int = 0) -> tuple[GSTNetwork, np.ndarray, np.ndarray]:
+def build_network(
+    cfg: GSTConfig, body: BodyModel, seed: int = 0
+) -> tuple[GSTNetwork, np.ndarray, np.ndarray]:
     """A fresh network with Gaussians on the preset's vertex subset, grouped into K tokens."""
     torch.manual_seed(seed)
     ids = vertex_subset(body, cfg.vertex_preset)
-    rest = body.rest_vertices(torch.zeros(1, body.num_betas), torch.as_tensor(ids))[0].detach().cpu().numpy()
+    rest = (
+        body.rest_vertices(torch.zeros(1, body.num_betas), torch.as_tensor(ids))[0]
+        .detach()
+        .cpu()
+        .numpy()
+    )
     groups = partition_vertices(rest, K=cfg.num_groups, seed=seed)
     return GSTNetwork(cfg, groups), ids, groups
 
@@ -59,8 +66,10 @@ def gaussian_parameter_groups(model: GSTNetwork, lr: float, body_lr: float) -> l
     the weak, noisy photometric gradient on pose and shape drag a pretrained body off the image."""
     gaussian = {id(p) for p in model.gaussian_head.parameters()}
     trainable = [p for p in model.parameters() if p.requires_grad]
-    groups = [{"params": [p for p in trainable if id(p) in gaussian], "lr": lr, "name": "gaussians"},
-              {"params": [p for p in trainable if id(p) not in gaussian], "lr": body_lr, "name": "body"}]
+    groups = [
+        {"params": [p for p in trainable if id(p) in gaussian], "lr": lr, "name": "gaussians"},
+        {"params": [p for p in trainable if id(p) not in gaussian], "lr": body_lr, "name": "body"},
+    ]
     return [g for g in groups if g["params"]]
 
 
@@ -77,24 +86,44 @@ class FitOptions:
     heldout_cameras: tuple[str, ...] = ()  # never used for training; novel-view validation
     val_pairs: int = 48
     val_pose_crops: int = 96
-    body_lr: float | None = None  # backbone + SMPL head learning rate (None: the config's lr for all)
+    body_lr: float | None = (
+        None  # backbone + SMPL head learning rate (None: the config's lr for all)
+    )
     augment: CropJitter | None = None  # re-crop + colour jitter of supervised (2d/3d) batches
 
 
 def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
     """A supervised batch of crop rows `idx` from their truth (joints, 2D joints, parameters)."""
     t = crops.truth
-    return SupervisedBatch(images=crops.images[idx], K=crops.K[idx], joints_cam=t["joints_cam"][idx],
-                           joints2d=t["joints2d"][idx], visible=t["visible"][idx], rotmats=t["rotmats_cam"][idx],
-                           betas=t["betas"][idx][:, :10])
+    return SupervisedBatch(
+        images=crops.images[idx],
+        K=crops.K[idx],
+        joints_cam=t["joints_cam"][idx],
+        joints2d=t["joints2d"][idx],
+        visible=t["visible"][idx],
+        rotmats=t["rotmats_cam"][idx],
+        betas=t["betas"][idx][:, :10],
+    )
 
 
 def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
     """Supervised 3D terms on the input view plus image terms on the rendered views."""
     pred, _, _, parts = multiview_image_terms(model, batch, task)
     sup = supervised_batch(crops, batch.input_index)
-    parts.update(supervised_terms(pred.joints_cam, project(pred.joints_cam, sup.K), pred.rotmats, pred.betas,
-                                  sup.joints_cam, sup.joints2d, sup.rotmats, sup.betas, task.crop_size, sup.visible))
+    parts.update(
+        supervised_terms(
+            pred.joints_cam,
+            project(pred.joints_cam, sup.K),
+            pred.rotmats,
+            pred.betas,
+            sup.joints_cam,
+            sup.joints2d,
+            sup.rotmats,
+            sup.betas,
+            task.crop_size,
+            sup.visible,
+        )
+    )
     terms = combine(parts, task.weights)
     with torch.no_grad():
         rel = (pred.joints_cam - pred.joints_cam[:, :1]) - (sup.joints_cam - sup.joints_cam[:, :1])
@@ -102,9 +131,21 @@ def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
     return terms.total, terms.parts
 
 
-def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, out_dir: Path, opts: FitOptions, *,
-            body_spec: str, vertex_ids: np.ndarray, group_index: np.ndarray, progress=None,
-            resume: bool = True, val_crops: CropSet | None = None) -> dict:
+def fit_gst(
+    model: GSTNetwork,
+    task: GSTTask,
+    crops: CropSet,
+    cfg: TrainConfig,
+    out_dir: Path,
+    opts: FitOptions,
+    *,
+    body_spec: str,
+    vertex_ids: np.ndarray,
+    group_index: np.ndarray,
+    progress=None,
+    resume: bool = True,
+    val_crops: CropSet | None = None,
+) -> dict:
     """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`.
 
     `val_crops`: crops with truth that training never sees (e.g. another world); pose validation
@@ -115,31 +156,49 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
         raise ValueError(f"held-out cameras {unknown} are not in the crop set (cameras: {names})")
     heldout = {names.index(c) for c in opts.heldout_cameras}
     train_cams = set(range(len(names))) - heldout
-    groups = crops.groups(cameras=train_cams, min_views=2 if opts.mode in ("multiview", "pretrain") else 1)
+    groups = crops.groups(
+        cameras=train_cams, min_views=2 if opts.mode in ("multiview", "pretrain") else 1
+    )
     if not groups:
-        raise ValueError(f"no training samples: no (frame, person) seen by >= 2 training cameras "
-                         f"(held out: {sorted(opts.heldout_cameras)})")
+        raise ValueError(
+            f"no training samples: no (frame, person) seen by >= 2 training cameras "
+            f"(held out: {sorted(opts.heldout_cameras)})"
+        )
     pose_crops = crops if val_crops is None else val_crops
     has_truth = "joints_world" in pose_crops.truth
-    truth_rows = torch.nonzero(pose_crops.truth["has_truth"])[:, 0] if "has_truth" in pose_crops.truth else \
-        torch.arange(len(pose_crops)) if has_truth else torch.zeros(0, dtype=torch.long)
+    truth_rows = (
+        torch.nonzero(pose_crops.truth["has_truth"])[:, 0]
+        if "has_truth" in pose_crops.truth
+        else torch.arange(len(pose_crops))
+        if has_truth
+        else torch.zeros(0, dtype=torch.long)
+    )
     if len(truth_rows):
         gen = torch.Generator().manual_seed(1)
-        truth_rows = truth_rows[torch.randperm(len(truth_rows), generator=gen)[:opts.val_pose_crops]]
+        truth_rows = truth_rows[
+            torch.randperm(len(truth_rows), generator=gen)[: opts.val_pose_crops]
+        ]
     pairs = novel_view_pairs(crops, heldout, max_pairs=opts.val_pairs) if heldout else None
     single = torch.cat(groups)  # rows usable as single-view supervised samples
 
     if opts.mode in ("multiview", "pretrain"):
+
         def sample(gen, bs):
             return sample_multiview(crops, groups, gen, bs, opts.num_targets, opts.render_size)
-        step = (lambda m, b: multiview_step(m, b, task)) if opts.mode == "multiview" else \
-            (lambda m, b: _pretrain_step(m, b, task, crops))
+
+        step = (
+            (lambda m, b: multiview_step(m, b, task))
+            if opts.mode == "multiview"
+            else (lambda m, b: _pretrain_step(m, b, task, crops))
+        )
     else:
         if "joints2d" not in crops.truth:
             raise ValueError(f"mode '{opts.mode}' needs truth joints on the crops")
 
         def sample(gen, bs):
-            batch = supervised_batch(crops, single[torch.randint(len(single), (bs,), generator=gen)])
+            batch = supervised_batch(
+                crops, single[torch.randint(len(single), (bs,), generator=gen)]
+            )
             return batch if opts.augment is None else jitter_batch(batch, opts.augment, gen)
 
         task.supervision = opts.mode
@@ -154,17 +213,34 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
         return metrics
 
     def extra() -> dict:
-        return {"format": "gst-capture/checkpoint", "version": 1, "config": config_to_dict(model.cfg),
-                "body_model": body_spec, "vertex_ids": torch.as_tensor(vertex_ids, dtype=torch.long),
-                "group_index": torch.as_tensor(group_index, dtype=torch.long), "extra": {"mode": opts.mode}}
+        return {
+            "format": "gst-capture/checkpoint",
+            "version": 1,
+            "config": config_to_dict(model.cfg),
+            "body_model": body_spec,
+            "vertex_ids": torch.as_tensor(vertex_ids, dtype=torch.long),
+            "group_index": torch.as_tensor(group_index, dtype=torch.long),
+            "extra": {"mode": opts.mode},
+        }
 
     # Held-out silhouette IoU, not PSNR, picks the best checkpoint: with the person on black, a
     # body that fades to transparent scores a good PSNR (black matches black) and an IoU of 0.
     best_key = "silhouette_iou" if pairs is not None else ("mpjpe_mm" if len(truth_rows) else None)
-    trainer = Trainer(model, step, sample, cfg, out_dir, val_fn=validate, best_key=best_key,
-                      best_mode="max" if best_key == "silhouette_iou" else "min", progress=progress, checkpoint_extra=extra,
-                      param_groups=None if opts.body_lr is None else gaussian_parameter_groups(model, cfg.lr,
-                                                                                              opts.body_lr))
+    trainer = Trainer(
+        model,
+        step,
+        sample,
+        cfg,
+        out_dir,
+        val_fn=validate,
+        best_key=best_key,
+        best_mode="max" if best_key == "silhouette_iou" else "min",
+        progress=progress,
+        checkpoint_extra=extra,
+        param_groups=None
+        if opts.body_lr is None
+        else gaussian_parameter_groups(model, cfg.lr, opts.body_lr),
+    )
     model.eval()
     before = validate(model)
     model.train()
@@ -173,17 +249,36 @@ def fit_gst(model: GSTNetwork, task: GSTTask, crops: CropSet, cfg: TrainConfig, 
     summary = trainer.fit()
     model.eval()
     after = validate(model)
-    summary.update(before={k: v for k, v in before.items() if k != "images"},
-                   after={k: v for k, v in after.items() if k != "images"}, train_groups=len(groups),
-                   heldout=list(opts.heldout_cameras))
+    summary.update(
+        before={k: v for k, v in before.items() if k != "images"},
+        after={k: v for k, v in after.items() if k != "images"},
+        train_groups=len(groups),
+        heldout=list(opts.heldout_cameras),
+    )
     return summary
 
 
-def export_checkpoint(model: GSTNetwork, path: Path, body_spec: str, vertex_ids, group_index, extra=None) -> None:
+def export_checkpoint(
+    model: GSTNetwork, path: Path, body_spec: str, vertex_ids, group_index, extra=None
+) -> None:
     save_checkpoint(path, model, body_spec, vertex_ids, group_index, extra)
 
 
-def make_task(body: BodyModel, vertex_ids, cfg: GSTConfig, crop_size: int, weights: LossWeights, lpips=None,
-              supervision: str = "multiview") -> GSTTask:
-    return GSTTask(body=body, vertex_ids=torch.as_tensor(vertex_ids, dtype=torch.long), crop_size=crop_size,
-                   image_size=cfg.image_size, weights=weights, lpips=lpips, supervision=supervision)
+def make_task(
+    body: BodyModel,
+    vertex_ids,
+    cfg: GSTConfig,
+    crop_size: int,
+    weights: LossWeights,
+    lpips=None,
+    supervision: str = "multiview",
+) -> GSTTask:
+    return GSTTask(
+        body=body,
+        vertex_ids=torch.as_tensor(vertex_ids, dtype=torch.long),
+        crop_size=crop_size,
+        image_size=cfg.image_size,
+        weights=weights,
+        lpips=lpips,
+        supervision=supervision,
+    )

@@ -37,12 +37,28 @@ class GSTTask:
     supervision: Supervision = "multiview"
 
 
-def predict(model: nn.Module, task: GSTTask, images: torch.Tensor, K: torch.Tensor, R: torch.Tensor | None = None,
-            t: torch.Tensor | None = None, with_gaussians: bool = True, with_vertices: bool = False) -> BodyPrediction:
+def predict(
+    model: nn.Module,
+    task: GSTTask,
+    images: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor | None = None,
+    t: torch.Tensor | None = None,
+    with_gaussians: bool = True,
+    with_vertices: bool = False,
+) -> BodyPrediction:
     x = network_input(to_float_images(images), task.image_size)
     out = model(x, with_gaussians=with_gaussians)
-    return assemble(out, task.body, K, task.crop_size, vertex_ids=task.vertex_ids, R_in=R, t_in=t,
-                    with_vertices=with_vertices)
+    return assemble(
+        out,
+        task.body,
+        K,
+        task.crop_size,
+        vertex_ids=task.vertex_ids,
+        R_in=R,
+        t_in=t,
+        with_vertices=with_vertices,
+    )
 
 
 def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
@@ -54,31 +70,60 @@ def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 def render_predictions(pred: BodyPrediction, batch: MultiViewBatch, size: int):
     g = pred.gaussians_world
-    return rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, batch.viewmats, batch.K_target,
-                     size, size, backgrounds=batch.backgrounds)
+    return rasterize(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.colors,
+        batch.viewmats,
+        batch.K_target,
+        size,
+        size,
+        backgrounds=batch.backgrounds,
+    )
 
 
 def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask):
     """Predict from the input view, render into the target views, and compare with the targets
     composited on the batch's random backgrounds; pixels where another person hides this one are
     not supervised when the batch knows them. Returns (prediction, render, target, terms)."""
-    pred = predict(model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True)
+    pred = predict(
+        model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True
+    )
     out = render_predictions(pred, batch, batch.target_images.shape[-2])
     mask = batch.target_masks
-    target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (1 - mask[..., None])
+    target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (
+        1 - mask[..., None]
+    )
     if batch.target_occluders is not None:
         target, mask = ignore_occluded(out.rgb, out.alpha, target, mask, batch.target_occluders)
-    parts = image_terms(out.rgb, out.alpha, target, mask, pred.gaussians_world.offsets, pred.betas,
-                        task.weights, task.lpips)
+    parts = image_terms(
+        out.rgb,
+        out.alpha,
+        target,
+        mask,
+        pred.gaussians_world.offsets,
+        pred.betas,
+        task.weights,
+        task.lpips,
+    )
     if batch.anchors is not None and task.weights.anchor > 0:
         parts["anchor"] = anchor_term(pred.gaussians_world.means.mean(1), batch.anchors)
     if batch.target_keypoints is not None and task.weights.keypoints > 0:
-        parts["keypoints"] = keypoint_term(pred.joints_world, batch.viewmats, batch.K_target,
-                                           batch.target_keypoints, batch.target_images.shape[-2])
+        parts["keypoints"] = keypoint_term(
+            pred.joints_world,
+            batch.viewmats,
+            batch.K_target,
+            batch.target_keypoints,
+            batch.target_images.shape[-2],
+        )
     return pred, out, target, parts
 
 
-def multiview_step(model: nn.Module, batch: MultiViewBatch, task: GSTTask) -> tuple[torch.Tensor, dict]:
+def multiview_step(
+    model: nn.Module, batch: MultiViewBatch, task: GSTTask
+) -> tuple[torch.Tensor, dict]:
     _, out, target, parts = multiview_image_terms(model, batch, task)
     terms = combine(parts, task.weights)
     with torch.no_grad():
@@ -98,18 +143,30 @@ class SupervisedBatch:
     betas: torch.Tensor | None = None
 
 
-def supervised_step(model: nn.Module, batch: SupervisedBatch, task: GSTTask) -> tuple[torch.Tensor, dict]:
+def supervised_step(
+    model: nn.Module, batch: SupervisedBatch, task: GSTTask
+) -> tuple[torch.Tensor, dict]:
     """2D supervision uses only 2D joints; 3D uses 3D joints and parameters as well."""
     pred = predict(model, task, batch.images, batch.K, with_gaussians=False)
     joints2d = project(pred.joints_cam, batch.K)
     use3d = task.supervision == "3d"
-    parts = supervised_terms(pred.joints_cam, joints2d, pred.rotmats, pred.betas,
-                             batch.joints_cam if use3d else None, batch.joints2d,
-                             batch.rotmats if use3d else None, batch.betas if use3d else None,
-                             task.crop_size, batch.visible)
+    parts = supervised_terms(
+        pred.joints_cam,
+        joints2d,
+        pred.rotmats,
+        pred.betas,
+        batch.joints_cam if use3d else None,
+        batch.joints2d,
+        batch.rotmats if use3d else None,
+        batch.betas if use3d else None,
+        task.crop_size,
+        batch.visible,
+    )
     terms = combine(parts, task.weights)
     if batch.joints_cam is not None:
         with torch.no_grad():
-            rel = (pred.joints_cam - pred.joints_cam[:, :1]) - (batch.joints_cam - batch.joints_cam[:, :1])
+            rel = (pred.joints_cam - pred.joints_cam[:, :1]) - (
+                batch.joints_cam - batch.joints_cam[:, :1]
+            )
             terms.parts["mpjpe_mm"] = 1000 * rel.norm(dim=-1).mean()
     return terms.total, terms.parts

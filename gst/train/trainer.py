@@ -57,7 +57,9 @@ def warmup_cosine(step: int, cfg: TrainConfig) -> float:
     if step < cfg.warmup_steps:
         return (step + 1) / max(1, cfg.warmup_steps)
     progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (
+        1 + math.cos(math.pi * min(1.0, progress))
+    )
 
 
 def distributed_env() -> tuple[int, int]:
@@ -71,23 +73,37 @@ def distributed_env() -> tuple[int, int]:
 
 
 class Trainer:
-    def __init__(self, model: nn.Module, step_fn: Callable[[nn.Module, Any], tuple[torch.Tensor, dict]],
-                 sample_fn: Callable[[torch.Generator, int], Any], cfg: TrainConfig, out_dir: Path, *,
-                 val_fn: Callable[[nn.Module], dict] | None = None, best_key: str | None = None,
-                 best_mode: str = "max", progress: Callable | None = None,
-                 checkpoint_extra: Callable[[], dict] | None = None, param_groups: list[dict] | None = None):
+    def __init__(
+        self,
+        model: nn.Module,
+        step_fn: Callable[[nn.Module, Any], tuple[torch.Tensor, dict]],
+        sample_fn: Callable[[torch.Generator, int], Any],
+        cfg: TrainConfig,
+        out_dir: Path,
+        *,
+        val_fn: Callable[[nn.Module], dict] | None = None,
+        best_key: str | None = None,
+        best_mode: str = "max",
+        progress: Callable | None = None,
+        checkpoint_extra: Callable[[], dict] | None = None,
+        param_groups: list[dict] | None = None,
+    ):
         self.cfg, self.out_dir = cfg, Path(out_dir)
         self.rank, self.world = distributed_env()
         self.model = model
         self.train_model = model
         if self.world > 1:
-            self.train_model = nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
+            self.train_model = nn.parallel.DistributedDataParallel(
+                model, find_unused_parameters=True
+            )
         self.step_fn, self.sample_fn, self.val_fn = step_fn, sample_fn, val_fn
         # param_groups: optimizer groups with their own "lr" (e.g. Gaussian head vs body); the
         # schedule scales every group alike.
         params = param_groups or [{"params": [p for p in model.parameters() if p.requires_grad]}]
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: warmup_cosine(s, cfg))
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lambda s: warmup_cosine(s, cfg)
+        )
         self.generator = torch.Generator().manual_seed(cfg.seed + 1000 * self.rank)
         self.best_key, self.best_mode = best_key, best_mode
         self.best_value: float | None = None
@@ -108,16 +124,26 @@ class Trainer:
 
     def state(self) -> dict:
         return {
-            "step": self.step, "bad_steps": self.bad_steps, "best_value": self.best_value,
-            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
-            "generator": self.generator.get_state(), "torch_rng": torch.get_rng_state(),
+            "step": self.step,
+            "bad_steps": self.bad_steps,
+            "best_value": self.best_value,
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
             "train_config": asdict(self.cfg),
         }
 
     def save(self, path: Path) -> None:
         if self.rank == 0:
-            atomic_torch_save({"model": self.model.state_dict(), "trainer": self.state(),
-                               **self.checkpoint_extra()}, path)
+            atomic_torch_save(
+                {
+                    "model": self.model.state_dict(),
+                    "trainer": self.state(),
+                    **self.checkpoint_extra(),
+                },
+                path,
+            )
 
     def resume(self, path: Path | None = None) -> bool:
         """Continue from `last.pt` if it exists. Returns whether it resumed."""
@@ -194,10 +220,16 @@ class Trainer:
             # NaN guard: drop this step entirely (no optimiser update), count it, maybe abort.
             self.optimizer.zero_grad(set_to_none=True)
             self.bad_steps += 1
-            log.warning("step %d: non-finite loss or gradient, skipped (%d so far)", self.step, self.bad_steps)
+            log.warning(
+                "step %d: non-finite loss or gradient, skipped (%d so far)",
+                self.step,
+                self.bad_steps,
+            )
             if self.bad_steps >= self.cfg.max_bad_steps:
-                raise NonFiniteLossError(f"{self.bad_steps} non-finite steps (limit {self.cfg.max_bad_steps}); "
-                                         "lower the learning rate or check the inputs")
+                raise NonFiniteLossError(
+                    f"{self.bad_steps} non-finite steps (limit {self.cfg.max_bad_steps}); "
+                    "lower the learning rate or check the inputs"
+                )
             metrics = {**metrics, "skipped": 1}
         else:
             self.optimizer.step()
@@ -210,12 +242,18 @@ class Trainer:
         self.model.train()
         t0 = time.perf_counter()
         steps = range(self.step, self.cfg.steps)
-        iterator = self.progress(steps, description="training", total=len(steps)) if self.progress else steps
+        iterator = (
+            self.progress(steps, description="training", total=len(steps))
+            if self.progress
+            else steps
+        )
         last_val: dict = {}
         for _ in iterator:
             row = self.train_step()
             self.step += 1
-            row.update(step=self.step, lr=self.scheduler.get_last_lr()[0], seconds=time.perf_counter() - t0)
+            row.update(
+                step=self.step, lr=self.scheduler.get_last_lr()[0], seconds=time.perf_counter() - t0
+            )
             if self.step % self.cfg.val_every == 0 or self.step == self.cfg.steps:
                 last_val = self.validate()
                 row.update({f"val_{k}": v for k, v in last_val.items()})
@@ -230,5 +268,9 @@ class Trainer:
             last_val = {}
         if self.best_key is None or not self.best_path.exists():
             self.save(self.best_path)
-        return {"steps": self.step, "bad_steps": self.bad_steps, "best": self.best_value,
-                "seconds": time.perf_counter() - t0}
+        return {
+            "steps": self.step,
+            "bad_steps": self.bad_steps,
+            "best": self.best_value,
+            "seconds": time.perf_counter() - t0,
+        }

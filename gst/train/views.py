@@ -29,14 +29,20 @@ class CropSet:
     camera_names: list[str]
     truth: dict[str, torch.Tensor] = field(default_factory=dict)  # e.g. joints_world (N, 24, 3)
     occluders: torch.Tensor | None = None  # (N, S, S) other people's pixels (gst.train.occlusion)
-    anchors: torch.Tensor | None = None  # (N, 3) world point per crop, NaN if none (gst.train.anchors)
-    keypoints: torch.Tensor | None = None  # (N, 24, 3) detected joints: crop px, confidence (gst.train.keypoints)
+    anchors: torch.Tensor | None = (
+        None  # (N, 3) world point per crop, NaN if none (gst.train.anchors)
+    )
+    keypoints: torch.Tensor | None = (
+        None  # (N, 24, 3) detected joints: crop px, confidence (gst.train.keypoints)
+    )
 
     def __post_init__(self):
         n = self.images.shape[0]
         for name in ("masks", "K", "R", "t", "camera", "frame", "person"):
             if getattr(self, name).shape[0] != n:
-                raise ValueError(f"CropSet.{name} has {getattr(self, name).shape[0]} rows, images have {n}")
+                raise ValueError(
+                    f"CropSet.{name} has {getattr(self, name).shape[0]} rows, images have {n}"
+                )
 
     @property
     def crop_size(self) -> int:
@@ -62,12 +68,16 @@ def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
     """One CropSet from several worlds: camera names become '<prefix>/<name>', and frames are
     offset so (frame, person) groups of different worlds never merge. Truth keys must agree."""
     if not sets or len(sets) != len(prefixes):
-        raise ValueError(f"concat_crop_sets needs one prefix per set, got {len(sets)} sets, {len(prefixes)} prefixes")
+        raise ValueError(
+            f"concat_crop_sets needs one prefix per set, got {len(sets)} sets, {len(prefixes)} prefixes"
+        )
     keys = set(sets[0].truth)
     for prefix, s in zip(prefixes, sets, strict=True):
         if set(s.truth) != keys or s.crop_size != sets[0].crop_size:
-            raise ValueError(f"crop set '{prefix}': truth keys {sorted(s.truth)} / crop size {s.crop_size} differ "
-                             f"from the first set's {sorted(keys)} / {sets[0].crop_size}")
+            raise ValueError(
+                f"crop set '{prefix}': truth keys {sorted(s.truth)} / crop size {s.crop_size} differ "
+                f"from the first set's {sorted(keys)} / {sets[0].crop_size}"
+            )
     cams, frames, names = [], [], []
     cam_offset = frame_offset = 0
     for prefix, s in zip(prefixes, sets, strict=True):
@@ -85,10 +95,21 @@ def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
             raise ValueError(f"concat_crop_sets: some crop sets have {name}, others do not")
         return torch.cat(parts)
 
-    return CropSet(images=cat("images"), masks=cat("masks"), K=cat("K"), R=cat("R"), t=cat("t"),
-                   camera=torch.cat(cams), frame=torch.cat(frames), person=cat("person"), camera_names=names,
-                   truth={k: torch.cat([s.truth[k] for s in sets]) for k in keys}, occluders=cat("occluders"),
-                   anchors=cat("anchors"), keypoints=cat("keypoints"))
+    return CropSet(
+        images=cat("images"),
+        masks=cat("masks"),
+        K=cat("K"),
+        R=cat("R"),
+        t=cat("t"),
+        camera=torch.cat(cams),
+        frame=torch.cat(frames),
+        person=cat("person"),
+        camera_names=names,
+        truth={k: torch.cat([s.truth[k] for s in sets]) for k in keys},
+        occluders=cat("occluders"),
+        anchors=cat("anchors"),
+        keypoints=cat("keypoints"),
+    )
 
 
 def scale_intrinsics(K: torch.Tensor, factor: float) -> torch.Tensor:
@@ -136,13 +157,26 @@ class MultiViewBatch:
     K_target: torch.Tensor  # (B, M, 3, 3) at render size
     viewmats: torch.Tensor  # (B, M, 4, 4)
     backgrounds: torch.Tensor  # (B, M, 3) random per view, so alpha must be right to match
-    target_occluders: torch.Tensor | None = None  # (B, M, r, r) other people's pixels: not supervised
-    anchors: torch.Tensor | None = None  # (B, 3) the input person's triangulated mask centre (or NaN)
-    target_keypoints: torch.Tensor | None = None  # (B, M, 24, 3) detected joints at render size, confidence
+    target_occluders: torch.Tensor | None = (
+        None  # (B, M, r, r) other people's pixels: not supervised
+    )
+    anchors: torch.Tensor | None = (
+        None  # (B, 3) the input person's triangulated mask centre (or NaN)
+    )
+    target_keypoints: torch.Tensor | None = (
+        None  # (B, M, 24, 3) detected joints at render size, confidence
+    )
 
 
-def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Generator, batch_size: int,
-                     num_targets: int, render_size: int, include_input_view: bool = True) -> MultiViewBatch:
+def sample_multiview(
+    crops: CropSet,
+    groups: list[torch.Tensor],
+    gen: torch.Generator,
+    batch_size: int,
+    num_targets: int,
+    render_size: int,
+    include_input_view: bool = True,
+) -> MultiViewBatch:
     """Random groups; random input view per group; `num_targets` views to render into (the
     input view first when `include_input_view`, then others, with replacement if too few)."""
     pick = torch.randint(len(groups), (batch_size,), generator=gen)
@@ -163,15 +197,33 @@ def sample_multiview(crops: CropSet, groups: list[torch.Tensor], gen: torch.Gene
     tgt = torch.stack(targets)
     view, K, timg, tmask = target_views(crops, tgt, render_size)
     bg = torch.rand(*tgt.shape, 3, generator=gen)
-    occ = None if crops.occluders is None else resize_images(crops.occluders[tgt][..., None], render_size)[..., 0]
+    occ = (
+        None
+        if crops.occluders is None
+        else resize_images(crops.occluders[tgt][..., None], render_size)[..., 0]
+    )
     anchors = None if crops.anchors is None else crops.anchors[inp]
     keypoints = None
     if crops.keypoints is not None:  # crop pixels -> render pixels (pixel centres at integers)
         f = render_size / crops.crop_size
         keypoints = crops.keypoints[tgt].clone()
         keypoints[..., :2] = (keypoints[..., :2] + 0.5) * f - 0.5
-    return MultiViewBatch(inp, tgt, crops.images[inp], crops.K[inp], crops.R[inp], crops.t[inp], timg, tmask, K,
-                          view, bg, occ, anchors, keypoints)
+    return MultiViewBatch(
+        inp,
+        tgt,
+        crops.images[inp],
+        crops.K[inp],
+        crops.R[inp],
+        crops.t[inp],
+        timg,
+        tmask,
+        K,
+        view,
+        bg,
+        occ,
+        anchors,
+        keypoints,
+    )
 
 
 def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:
@@ -182,9 +234,15 @@ def load_cropset(store_path, rows=None) -> tuple[CropSet, np.ndarray]:
     store = CropStore(store_path)
     rows = np.arange(len(store)) if rows is None else np.asarray(rows)
     b = store.read(rows)
-    crops = CropSet(images=torch.as_tensor(np.ascontiguousarray(b.rgb)),
-                    masks=torch.as_tensor(b.masks.astype(np.float32) / 255.0), K=torch.as_tensor(b.K_crop).float(),
-                    R=torch.as_tensor(b.R).float(), t=torch.as_tensor(b.t).float(),
-                    camera=torch.as_tensor(b.camera).long(), frame=torch.as_tensor(b.frame).long(),
-                    person=torch.as_tensor(b.person_id).long(), camera_names=list(store.camera_names))
+    crops = CropSet(
+        images=torch.as_tensor(np.ascontiguousarray(b.rgb)),
+        masks=torch.as_tensor(b.masks.astype(np.float32) / 255.0),
+        K=torch.as_tensor(b.K_crop).float(),
+        R=torch.as_tensor(b.R).float(),
+        t=torch.as_tensor(b.t).float(),
+        camera=torch.as_tensor(b.camera).long(),
+        frame=torch.as_tensor(b.frame).long(),
+        person=torch.as_tensor(b.person_id).long(),
+        camera_names=list(store.camera_names),
+    )
     return crops, b.box
