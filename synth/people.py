@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.appearance import Outfit, sample_outfit, team_kits
+from synth.crowd import CrowdConfig, crowd_programme, place_crowd, walkers
 from synth.motions import (
     IN_PLACE,
     LOCOMOTION,
@@ -82,6 +83,20 @@ def _programme(rng: np.random.Generator, n_frames: int, fps: float) -> tuple[str
     return tuple(str(m) for m in rng.choice(moves, size=n_moves, replace=False))
 
 
+def _check_programmes(n: int, programmes: Sequence[Sequence[str]] | None) -> None:
+    if not 1 <= n <= 255:
+        raise ValueError(f"number of people must be in 1..255 (mask ids are uint8), got {n}")
+    if programmes is not None and len(programmes) != n:
+        raise ValueError(f"got {len(programmes)} motion programmes for {n} people")
+    for i, prog in enumerate(programmes or ()):
+        unknown = [m for m in prog if m not in MOTIONS and m != "random_static"]
+        if not prog or unknown:
+            raise ValueError(
+                f"person {i + 1}: unknown motions {unknown or prog}; available: {sorted(MOTIONS)} "
+                f"or ['random_static']"
+            )
+
+
 def sample_people(
     n: int,
     rng: np.random.Generator,
@@ -95,20 +110,12 @@ def sample_people(
 ) -> list[PersonSpec]:
     """Sample `n` people. `programmes` optionally fixes each person's motion names (one list per
     person; 'random_static' gives independent random poses)."""
-    if not 1 <= n <= 255:
-        raise ValueError(f"number of people must be in 1..255 (mask ids are uint8), got {n}")
-    if programmes is not None and len(programmes) != n:
-        raise ValueError(f"got {len(programmes)} motion programmes for {n} people")
+    _check_programmes(n, programmes)
     kits = team_kits(max(1, n_teams), rng)
     progs = []
     for i in range(n):
         prog = tuple(programmes[i]) if programmes is not None else _programme(rng, n_frames, fps)
-        unknown = [m for m in prog if m not in MOTIONS and m != "random_static"]
-        if not prog or unknown:
-            raise ValueError(
-                f"person {i + 1}: unknown motions {unknown or prog}; available: {sorted(MOTIONS)} "
-                f"or ['random_static']"
-            )
+        _check_programmes(1, [prog])
         progs.append(prog)
     cx, cy = float(volume_center[0]), float(volume_center[1])
     movers = [i for i, p in enumerate(progs) if any(m in LOCOMOTION for m in p)]
@@ -152,3 +159,42 @@ def sample_people(
             )
         )
     return people
+
+
+def sample_crowd(
+    n: int,
+    rng: np.random.Generator,
+    num_betas: int,
+    volume_center: Sequence[float],
+    volume_radius: float,
+    n_frames: int,
+    fps: float,
+    seed: int,
+    programmes: Sequence[Sequence[str]] | None = None,
+    n_teams: int = 2,
+    config: CrowdConfig | None = None,
+) -> list[PersonSpec]:
+    """Sample `n` people who crowd together (`synth.crowd`): about half walk (at least two),
+    straight through the others; the rest play in-place moves a few decimetres from someone.
+    `seed` is the scene seed, which fixes each person's motion (`PersonSpec.motion_clip`): the
+    layout is chosen on those very motions."""
+    _check_programmes(n, programmes)
+    kits = team_kits(max(1, n_teams), rng)
+    walking = walkers(n, rng)
+    people = []
+    for i in range(n):
+        team = i % max(1, n_teams)
+        outfit = sample_outfit(rng, kits[team], team)
+        betas = sample_betas(num_betas, rng)
+        prog = (
+            tuple(programmes[i])
+            if programmes is not None
+            else crowd_programme(rng, n_frames, fps, bool(walking[i]))
+        )
+        people.append(PersonSpec(i + 1, betas, outfit, prog, (0.0, 0.0), 0.0, 0.0))
+    clips = [p.motion_clip(n_frames, fps, seed) for p in people]
+    places = place_crowd(clips, rng, volume_center, volume_radius, config or CrowdConfig())
+    return [
+        PersonSpec(p.person_id, p.betas, p.outfit, p.motions, pl.start, pl.heading, 0.0)
+        for p, pl in zip(people, places, strict=True)
+    ]

@@ -28,7 +28,7 @@ from synth.animate import check_body_model, pose_person
 from synth.appearance import BodyAtlas
 from synth.board import ChArUcoSpec, board_json
 from synth.io import replace_dir, write_json, write_parquet, write_png
-from synth.people import sample_people
+from synth.people import sample_crowd, sample_people
 from synth.preview import contact_sheet, truth_overlay
 from synth.render import vertex_normals
 from synth.shares import (
@@ -118,6 +118,9 @@ class SceneSpec(_Spec):
     n_frames: int = Field(48, ge=1, le=1_000_000)
     n_people: int = Field(2, ge=1, le=255)
     motions: list[list[str]] | None = None  # per-person programmes; None = sampled
+    # Where people are: "loop" (runners around the volume, in-place movers apart) or "crowd"
+    # (people a few decimetres apart, walkers crossing them: synth.crowd).
+    layout: Literal["loop", "crowd"] = "loop"
     rig: RigSpec = RigSpec()
     board: BoardClipSpec = BoardClipSpec()
     imaging: ImagingSpec = ImagingSpec()
@@ -156,6 +159,15 @@ PRESETS: dict[str, dict] = {
         rig=dict(kind="dome", n_cameras=6, width=480, height=360, distortion="mild", fps=30.0),
         board=dict(n_frames=40),
     ),
+    # People who come within 0.5 m of each other, walkers crossing and hiding the others.
+    "crowd": dict(
+        name="crowd",
+        n_frames=48,
+        n_people=4,
+        layout="crowd",
+        rig=dict(kind="dome", n_cameras=7, width=480, height=360, distortion="mild", fps=30.0),
+        board=dict(n_frames=40),
+    ),
     "small": dict(
         name="small",
         n_frames=120,
@@ -188,7 +200,7 @@ def _merge(base: dict, overrides: dict) -> dict:
 
 
 def preset(name: str, **overrides) -> SceneSpec:
-    """A preset spec ('demo', 'small', 'full') with overrides. Nested fields take a dict
+    """A preset spec ('demo', 'crowd', 'small', 'full') with overrides. Nested fields take a dict
     (`rig={"width": 320}`) or a double-underscore key (`rig__width=320`)."""
     if name not in PRESETS:
         raise KeyError(f"unknown synth preset '{name}', expected one of {sorted(PRESETS)}")
@@ -325,16 +337,16 @@ def _pose_cast(
 ) -> tuple[list, list, Cast]:
     """(people specs, person tracks, the cast the renderer sees)."""
     faces = np.asarray(model.faces, dtype=np.int32)
-    people = sample_people(
-        spec.n_people,
-        np.random.default_rng(np.random.SeedSequence([spec.seed, 1])),
-        int(model.num_betas),
-        rig.meta["volume_center"],
-        rig.meta["volume_radius"],
-        spec.n_frames,
-        fps,
-        programmes=spec.motions,
-    )
+    rng = np.random.default_rng(np.random.SeedSequence([spec.seed, 1]))
+    where = (rig.meta["volume_center"], rig.meta["volume_radius"], spec.n_frames, fps)
+    if spec.layout == "crowd":
+        people = sample_crowd(
+            spec.n_people, rng, int(model.num_betas), *where, spec.seed, programmes=spec.motions
+        )
+    else:
+        people = sample_people(
+            spec.n_people, rng, int(model.num_betas), *where, programmes=spec.motions
+        )
     tracks, members = [], []
     for k, person in enumerate(people):
         report("pose", k, len(people))

@@ -205,7 +205,7 @@ def test_failed_render_leaves_previous_scene_untouched(tiny_scene, tmp_path):
 
 
 def test_presets_and_validation():
-    assert set(PRESETS) == {"demo", "small", "full"}
+    assert set(PRESETS) == {"demo", "crowd", "small", "full"}
     demo = preset("demo")
     assert 4 <= demo.rig.n_cameras <= 6 and demo.rig.width * demo.rig.height <= 480 * 360
     assert 1 <= demo.n_people <= 2 and 30 <= demo.n_frames <= 60
