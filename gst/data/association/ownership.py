@@ -1,0 +1,213 @@
+"""Which person each foreground pixel belongs to, from the people's skeletons.
+
+Each person is a set of capsules between landmarks (limbs, torso, head) with body-part radii
+in metres. Projected into a camera, a capsule covers the pixels within its radius of its axis
+(the radius in pixels shrinks with depth). A foreground pixel goes to:
+
+- the person nearest the camera among those whose capsules cover it (a player in front hides
+  the one behind), when any do;
+- otherwise the person whose capsules are nearest in units of their radii (a pixel between
+  two arms goes to the arm it is closest to relative to its thickness).
+
+People known only in 2D (seen by one camera) have capsules drawn from their 2D landmarks with
+a radius in pixels and rank behind every 3D person where capsules overlap.
+
+The same pass tells how much of each person is hidden: the share of their capsule pixels where
+someone else is in front (their visibility in that camera).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.camera import Camera
+from gst.data.association.geometry import project
+
+# (end a, end b, radius in metres). An end is a landmark index or a tuple (their mean).
+_SH, _HIP = (11, 12), (23, 24)
+_HEAD = (7, 8)
+CAPSULES: tuple[tuple[int | tuple[int, ...], int | tuple[int, ...], float], ...] = (
+    (_SH, _HIP, 0.13),  # torso core
+    (11, 23, 0.09),
+    (12, 24, 0.09),
+    (11, 12, 0.07),
+    (23, 24, 0.09),
+    (_SH, _HEAD, 0.06),  # neck
+    (_HEAD, _HEAD, 0.11),  # head (a sphere)
+    (11, 13, 0.055),
+    (13, 15, 0.045),
+    (15, (17, 19, 21), 0.045),
+    (12, 14, 0.055),
+    (14, 16, 0.045),
+    (16, (18, 20, 22), 0.045),
+    (23, 25, 0.08),
+    (25, 27, 0.06),
+    (27, 29, 0.045),
+    (29, 31, 0.045),
+    (24, 26, 0.08),
+    (26, 28, 0.06),
+    (28, 30, 0.045),
+    (30, 32, 0.045),
+)
+
+
+@dataclass(frozen=True)
+class OwnershipConfig:
+    radius_scale: float = 0.8  # capsule radii x this (thinner than the body: a capsule that
+    # bulges past a silhouette would take the pixels of the person behind it)
+    reach: float = 3.0  # foreground further than this many radii from everyone is nobody's
+    pixel_radius: float = 0.04  # capsule radius of 2D-only people, share of their box's longer side
+
+    def __post_init__(self):
+        if not (self.radius_scale > 0 and self.reach >= 1 and self.pixel_radius > 0):
+            raise ValueError(
+                "OwnershipConfig needs radius_scale > 0, reach >= 1 and pixel_radius > 0, got "
+                f"{self.radius_scale}, {self.reach}, {self.pixel_radius}"
+            )
+
+
+def _end(points: np.ndarray, spec) -> np.ndarray:
+    idx = list(spec) if isinstance(spec, tuple) else [spec]
+    return points[idx].mean(axis=0)
+
+
+def capsules(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Capsule ends (S, 2, D) and radii (S,) of a (33, D) skeleton (metres for 3D), and the
+    (S,) bool of capsules whose ends are known (finite)."""
+    ends = np.stack([np.stack([_end(points, a), _end(points, b)]) for a, b, _ in CAPSULES])
+    radii = np.array([r for _, _, r in CAPSULES])
+    return ends, radii, np.all(np.isfinite(ends), axis=(1, 2))
+
+
+@dataclass(frozen=True)
+class Ownership:
+    labels: np.ndarray  # (H, W) int32: person index + 1, 0 = nobody
+    visibility: np.ndarray  # (P,) share of each person's capsule pixels not hidden by others
+    area: np.ndarray  # (P,) capsule pixels of each person in the image
+
+
+def _rasterize(
+    seg: tuple, x0: int, y0: int, shape: tuple[int, int], reach: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """One person's fields over the box at (x0, y0) of `shape`: per pixel the smallest
+    distance/radius over their capsules (ends a, b (S, 2), radii ra, rb at the ends in pixels,
+    depths za, zb), and the depth of the front covering capsule (inf where none covers). Each
+    capsule is evaluated only over its own box grown by `reach` radii."""
+    h, w = shape
+    Q = np.full(shape, np.inf, np.float32)
+    Z = np.full(shape, np.inf, np.float32)
+    for a, b, ra, rb, za, zb in zip(*seg, strict=True):
+        grow = reach * max(ra, rb)
+        lo = np.floor(np.minimum(a, b) - grow).astype(int) - (x0, y0)
+        hi = np.ceil(np.maximum(a, b) + grow).astype(int) - (x0, y0) + 1
+        cx0, cy0 = max(lo[0], 0), max(lo[1], 0)
+        cx1, cy1 = min(hi[0], w), min(hi[1], h)
+        if cx1 <= cx0 or cy1 <= cy0:
+            continue
+        px = (np.arange(cx0, cx1, dtype=np.float32) + x0 - a[0])[None, :]
+        py = (np.arange(cy0, cy1, dtype=np.float32) + y0 - a[1])[:, None]
+        ab = b - a
+        l2 = max(float(ab @ ab), 1e-9)
+        t = np.clip((px * ab[0] + py * ab[1]) / l2, 0.0, 1.0)
+        dx, dy = px - t * ab[0], py - t * ab[1]
+        q = np.sqrt(dx * dx + dy * dy) / np.maximum(ra + t * (rb - ra), 1e-6)
+        z = za + t * (zb - za)
+        sq, sz = Q[cy0:cy1, cx0:cx1], Z[cy0:cy1, cx0:cx1]
+        np.minimum(sq, q, out=sq)
+        np.minimum(sz, np.where(q < 1.0, z, np.inf), out=sz)
+    return Q, Z
+
+
+def own_pixels(
+    cam: Camera,
+    foreground: np.ndarray,
+    skeletons: Sequence[np.ndarray | None],
+    landmarks2d: Sequence[np.ndarray | None] = (),
+    config: OwnershipConfig = OwnershipConfig(),
+    scale: float = 1.0,
+) -> Ownership:
+    """Person labels of the `foreground` (H, W) bool pixels of one camera.
+
+    `skeletons[k]` is person k's (33, 3) world landmarks (NaN where unknown) or None; for a
+    person without a skeleton, `landmarks2d[k]` gives (33, 3) u, v, confidence in this camera's
+    distorted pixels. `scale` maps full-resolution pixels to the foreground's resolution (e.g.
+    0.5 for a half-size work image).
+    """
+    H, W = foreground.shape
+    n = len(skeletons)
+    segs = []  # per person: (a, b, ra, rb, za, zb) in foreground pixels
+    for k in range(n):
+        sk = skeletons[k]
+        if sk is not None:
+            ends, radii, ok = capsules(np.asarray(sk, np.float64))
+            ends, radii = ends[ok], radii[ok] * config.radius_scale
+            if not len(ends):
+                segs.append(None)
+                continue
+            flat = ends.reshape(-1, 3)
+            uv, front = project(cam, flat)
+            z = cam.to_camera(flat)[:, 2]
+            good = front.reshape(-1, 2).all(axis=1)
+            uv, z = uv.reshape(-1, 2, 2)[good] * scale, z.reshape(-1, 2)[good]
+            r_px = radii[good, None] * cam.fx * scale / z
+            segs.append(
+                (
+                    uv[:, 0],
+                    uv[:, 1],
+                    r_px[:, 0],
+                    r_px[:, 1],
+                    z[:, 0] - radii[good],
+                    z[:, 1] - radii[good],
+                )
+            )
+        elif k < len(landmarks2d) and landmarks2d[k] is not None:
+            lm = np.asarray(landmarks2d[k], np.float64)
+            pts = np.where(lm[:, 2:3] > 0, lm[:, :2], np.nan)
+            ends, radii, ok = capsules(pts)
+            ends = ends[ok] * scale
+            seen = lm[lm[:, 2] > 0, :2]
+            size = float(np.ptp(seen, axis=0).max()) if len(seen) >= 2 else 0.0
+            r = np.full(len(ends), config.pixel_radius * size * scale)
+            far = np.full(len(ends), 1e9)  # behind every 3D person
+            segs.append((ends[:, 0], ends[:, 1], r, r, far, far) if len(ends) else None)
+        else:
+            segs.append(None)
+    labels = np.zeros((H, W), np.int32)
+    visibility, area = np.zeros(n), np.zeros(n)
+    live = [k for k in range(n) if segs[k] is not None]
+    if not live:
+        return Ownership(labels, visibility, area)
+    # Work on the pixels near someone: the union of the capsules' boxes grown by `reach`.
+    lo = np.full(2, np.inf)
+    hi = np.full(2, -np.inf)
+    for k in live:
+        a, b, ra, rb = segs[k][:4]
+        rr = config.reach * np.maximum(ra, rb)[:, None]
+        lo = np.minimum(lo, np.minimum(a - rr, b - rr).min(axis=0))
+        hi = np.maximum(hi, np.maximum(a + rr, b + rr).max(axis=0))
+    x0, y0 = (max(0, int(np.floor(v))) for v in lo)
+    x1, y1 = min(W, int(np.ceil(hi[0])) + 1), min(H, int(np.ceil(hi[1])) + 1)
+    if x1 <= x0 or y1 <= y0:
+        return Ownership(labels, visibility, area)
+
+    shape = (y1 - y0, x1 - x0)
+    Q = np.full((n, *shape), np.inf, np.float32)
+    Z = np.full((n, *shape), np.inf, np.float32)
+    for k in live:
+        Q[k], Z[k] = _rasterize(segs[k], x0, y0, shape, config.reach)
+    covered = Q < 1.0
+    # 2D-only people are behind every 3D person (depth 1e9); among people at the same depth
+    # the nearer skeleton (smaller q) wins.
+    zc = np.where(covered, Z, np.inf)
+    tie = covered & (zc == zc.min(axis=0)[None])
+    front = np.where(tie, Q, np.inf).argmin(axis=0)
+    owner = np.where(covered.any(axis=0), front, Q.argmin(axis=0))
+    mine = foreground[y0:y1, x0:x1] & (Q.min(axis=0) < config.reach)
+    labels[y0:y1, x0:x1] = np.where(mine, owner + 1, 0)
+    for k in live:
+        area[k] = np.count_nonzero(covered[k])
+        visibility[k] = np.count_nonzero(covered[k] & (owner == k)) / area[k] if area[k] else 0.0
+    return Ownership(labels, visibility, area)

@@ -1,0 +1,218 @@
+"""Keypoint association across calibrated cameras (gst.data.association): people 0.3 m apart
+stay two, a person one camera sees keeps a single-view group, groups are cycle-consistent,
+ids survive two players crossing, and bad input is refused or skipped, never a crash."""
+
+import numpy as np
+import pytest
+from crowd_people import instances, person, rig
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from gst.data.association import (
+    MIRROR,
+    AssociationError,
+    FrameMatch,
+    InstanceError,
+    MatchConfig,
+    PersonGroup,
+    PersonIdTracker,
+    PersonInstance,
+    TrackerConfig,
+    match_frame,
+)
+
+RIG = rig("dome", 7)
+RIG5 = rig("dome", 5, seed=1)  # the tracking tests: fewer cameras, faster
+
+
+def consistent(match: FrameMatch, found: dict) -> bool:
+    """Every instance in exactly one group, at most one instance per camera in a group."""
+    seen = set()
+    for g in match.groups:
+        for cam, k in g.views.items():
+            if (cam, k) in seen:
+                return False
+            seen.add((cam, k))
+    return seen == {(c, k) for c, lst in found.items() for k in range(len(lst))}
+
+
+def pure(match: FrameMatch, truth: dict) -> bool:
+    """Each group holds one person only, and each person is one group."""
+    owners = [{truth[c][k] for c, k in g.views.items()} for g in match.groups]
+    people = [next(iter(o)) for o in owners if len(o) == 1]
+    return all(len(o) == 1 for o in owners) and len(people) == len(set(people))
+
+
+def test_purity_check_catches_a_swapped_view():
+    """The checks the tests rely on fail on a corrupted answer (they can fail)."""
+    found, truth = instances(RIG, [person(0, 0), person(0.3, 0)], noise_px=1.0, seed=1)
+    m = match_frame(found, RIG)
+    assert consistent(m, found) and pure(m, truth)
+    g0, g1 = m.groups[0], m.groups[1]
+    cam = next(c for c in g0.views if c in g1.views)
+    swapped = [
+        PersonGroup({**g0.views, cam: g1.views[cam]}, g0.skeleton, g0.errors, g0.mirrored),
+        PersonGroup({**g1.views, cam: g0.views[cam]}, g1.skeleton, g1.errors, g1.mirrored),
+    ]
+    assert not pure(FrameMatch(swapped), truth)
+    doubled = [PersonGroup({**g0.views}, None, {}, {}), *m.groups]
+    assert not consistent(FrameMatch(doubled), found)
+
+
+@pytest.mark.parametrize("heading", [0.0, np.pi / 2, 1.0])
+def test_two_people_0_3_m_apart_stay_two(heading):
+    """Side by side, one behind the other and diagonal: 0.3 m between their centres."""
+    off = 0.3 * np.array([np.cos(heading), np.sin(heading)])
+    people = [person(0, 0, 0.4), person(off[0], off[1], 2.5)]
+    found, truth = instances(RIG, people, noise_px=1.5, dropout=0.1, seed=2)
+    m = match_frame(found, RIG)
+    assert consistent(m, found) and pure(m, truth)
+    multi = [g for g in m.groups if not g.single_view]
+    assert len(multi) == 2
+    assert all(len(g.views) >= 5 for g in multi)
+    # Each skeleton is its own person's, not a blend of the two.
+    for g in multi:
+        k = truth[next(iter(g.views))][next(iter(g.views.values()))]
+        err = np.linalg.norm(g.skeleton - people[k], axis=1)
+        assert np.nanmedian(err) < 0.03
+
+
+def test_noiseless_skeleton_is_exact():
+    people = [person(0.2, -0.1, 1.0)]
+    found, _ = instances(RIG, people)
+    (g,) = match_frame(found, RIG).groups
+    np.testing.assert_allclose(g.skeleton, people[0], atol=1e-6)
+
+
+def test_a_person_one_camera_sees_keeps_a_single_view_group():
+    only = RIG.names[3]
+    people = [person(0, 0), person(0.6, 0.2), person(-0.5, 0.4)]
+    found, truth = instances(RIG, people, noise_px=1.0, seed=3, cameras={2: [only]})
+    m = match_frame(found, RIG)
+    assert consistent(m, found) and pure(m, truth)
+    single = [g for g in m.groups if g.single_view]
+    assert len(single) == 1 and list(single[0].views) == [only]
+    assert truth[only][single[0].views[only]] == 2 and single[0].skeleton is None
+    assert sum(not g.single_view for g in m.groups) == 2
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n=st.integers(3, 5),
+    seed=st.integers(0, 10_000),
+    noise=st.floats(0.0, 2.0),
+)
+def test_crowds_are_grouped_consistently_and_purely(n, seed, noise):
+    """Random crowds (centres >= 0.35 m apart, random headings), all cameras at once: a
+    partition of the instances (cycle-consistent: A~B and B~C put A, B, C in one group) in
+    which every group is one person."""
+    rng = np.random.default_rng(seed)
+    centres = []
+    while len(centres) < n:
+        c = rng.uniform(-0.8, 0.8, 2)
+        if all(np.linalg.norm(c - o) >= 0.35 for o in centres):
+            centres.append(c)
+    people = [person(x, y, rng.uniform(-np.pi, np.pi)) for x, y in centres]
+    found, truth = instances(RIG, people, noise_px=noise, dropout=0.1, seed=seed)
+    m = match_frame(found, RIG)
+    assert consistent(m, found)
+    assert pure(m, truth)
+    assert sum(not g.single_view for g in m.groups) == n
+
+
+def test_a_mirrored_view_still_joins_its_person():
+    """One camera's detector swapped the left and right of a person seen from behind."""
+    people = [person(0, 0, 0.3), person(0.45, 0.1, 2.0)]
+    found, truth = instances(RIG, people, noise_px=1.0, seed=4)
+    cam = RIG.names[2]
+    k = truth[cam].index(0)
+    lm = found[cam][k].landmarks[MIRROR]
+    found[cam][k] = PersonInstance.create(lm, found[cam][k].box)
+    m = match_frame(found, RIG)
+    assert pure(m, truth)
+    g = m.groups[m.group_of(cam, k)]
+    assert g.mirrored[cam] and len(g.views) == 7
+    assert not any(v for c, v in g.mirrored.items() if c != cam)
+
+
+def _walk(frames: int, gap: range) -> tuple[list, list]:
+    """Two players walking towards each other along x, passing 0.3 m apart, plus one who
+    stands; during `gap` nobody is detected (both hidden while they cross)."""
+    out, truths = [], []
+    for f in range(frames):
+        x = -1.0 + 2.0 * f / (frames - 1)
+        people = [person(x, 0.0, 0.0), person(-x, 0.3, np.pi), person(0.2, -0.8, 1.5)]
+        if f in gap:
+            out.append({c: [] for c in RIG5.names})
+            truths.append({c: [] for c in RIG5.names})
+            continue
+        found, truth = instances(RIG5, people, noise_px=1.5, dropout=0.1, seed=f)
+        out.append(found)
+        truths.append(truth)
+    return out, truths
+
+
+@pytest.mark.parametrize("gap", [range(0), range(8, 12), range(7, 13)])
+def test_ids_stay_with_players_who_cross(gap):
+    """20 frames at 30 fps (3 m/s each), crossing at frame 10; with a 4- or 6-frame hole in
+    the detections right at the crossing the constant-velocity model carries them through."""
+    frames, truths = _walk(20, gap)
+    tracker = PersonIdTracker(RIG5, 1 / 30)
+    by_person: dict[int, set] = {}
+    for f, (found, truth) in enumerate(zip(frames, truths, strict=True)):
+        m = match_frame(found, RIG5)
+        ids = tracker.update(f, m, found)
+        assert len(ids) == len(m.groups) and len(set(ids)) == len(ids)
+        for g, pid in zip(m.groups, ids, strict=True):
+            for cam, k in g.views.items():
+                by_person.setdefault(truth[cam][k], set()).add(pid)
+    assert {k: len(v) for k, v in by_person.items()} == {0: 1, 1: 1, 2: 1}
+
+
+def test_tracker_without_motion_model_would_swap():
+    """The crossing test can fail: a tracker that forgets velocity (smoothing to zero speed
+    by never updating it) swaps the two players across the hole."""
+    frames, truths = _walk(20, range(7, 13))
+    tracker = PersonIdTracker(RIG5, 1 / 30, TrackerConfig(max_speed=20.0, smoothing=1e-9))
+    by_person: dict[int, set] = {}
+    for f, (found, truth) in enumerate(zip(frames, truths, strict=True)):
+        m = match_frame(found, RIG5)
+        for g, pid in zip(m.groups, tracker.update(f, m, found), strict=True):
+            for cam, k in g.views.items():
+                by_person.setdefault(truth[cam][k], set()).add(pid)
+    assert by_person[0] != {min(by_person[0])} or by_person[1] != {min(by_person[1])}
+
+
+def test_bad_input_is_refused_or_skipped():
+    people = [person(0, 0), person(0.5, 0)]
+    found, truth = instances(RIG, people, noise_px=1.0, seed=5)
+    # A camera that sees nobody: skipped with a note, the others still match.
+    found[RIG.names[0]] = []
+    m = match_frame(found, RIG)
+    assert any("nobody" in note for note in m.notes) and pure(m, truth)
+    # A frame where the detector finds nobody at all.
+    empty = match_frame({c: [] for c in RIG.names}, RIG)
+    assert empty.groups == []
+    assert PersonIdTracker(RIG, 1 / 30).update(0, empty, {}) == []
+    assert match_frame({}, RIG).groups == []
+    # Landmarks with NaN: unseen, not poison; an instance of NaN only is a single-view note.
+    cam = RIG.names[1]
+    lm = found[cam][0].landmarks.copy()
+    lm[:10, :2] = np.nan
+    found[cam][0] = PersonInstance.create(lm)
+    found[cam].append(PersonInstance.create(np.full((33, 3), np.nan)))
+    m = match_frame(found, RIG)
+    assert all(np.all(np.isfinite(g.skeleton[11:])) for g in m.groups if g.skeleton is not None)
+    assert any("fewer than" in note for note in m.notes)
+    assert consistent(m, found)
+    # Malformed input: clear errors naming what is wrong.
+    with pytest.raises(InstanceError, match=r"\(33, 3\)"):
+        PersonInstance.create(np.zeros((17, 3)), where="camera c1")
+    with pytest.raises(AssociationError, match="not in the rig"):
+        match_frame({"nope": []}, RIG)
+    with pytest.raises(AssociationError, match="increasing"):
+        t = PersonIdTracker(RIG, 1 / 30)
+        t.update(3, empty, {})
+        t.update(2, empty, {})
+    with pytest.raises(AssociationError, match="pair_gap"):
+        MatchConfig(pair_gap=0)
