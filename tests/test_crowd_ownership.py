@@ -1,0 +1,90 @@
+"""Pixels between people: capsule ownership (the person in front keeps what they hide; a pixel
+no capsule covers goes to the nearest one) and regions from projected skeletons."""
+
+import numpy as np
+from crowd_people import person, rig
+
+from gst.data.association import MatchConfig, PersonInstance
+from gst.data.association.ownership import OwnershipConfig, capsules, own_pixels
+from gst.data.association.regions import roi_from_skeleton, skeleton_fit
+
+RIG = rig("dome", 4)
+
+
+def _towards(cam, dist: float, lateral: float = 0.0) -> np.ndarray:
+    """A point on the floor `dist` metres from the camera along its view, moved sideways."""
+    c = cam.center
+    fwd = np.r_[cam.optical_axis[:2], 0.0]
+    fwd /= np.linalg.norm(fwd)
+    side = np.r_[-fwd[1], fwd[0], 0.0]
+    return np.r_[c[:2], 0.0] + dist * fwd + lateral * side
+
+
+def test_the_person_in_front_keeps_the_pixels_they_hide():
+    cam = RIG[0]
+    near, far = _towards(cam, 2.6, 0.1), _towards(cam, 3.4, -0.1)
+    people = [person(far[0], far[1]), person(near[0], near[1])]
+    fg = np.ones((cam.height, cam.width), bool)
+    own = own_pixels(cam, fg, people)
+    # Where the near person's torso is, the label is theirs (index 1 -> label 2).
+    torso = cam.project(people[1][[11, 12, 23, 24]].mean(axis=0)[None])[0]
+    assert own.labels[int(torso[1]), int(torso[0])] == 2
+    assert own.visibility[1] > 0.95 > own.visibility[0] > 0.0
+    # Swapping who is in front swaps the owner of that pixel.
+    own2 = own_pixels(cam, fg, [person(near[0], near[1]), person(far[0], far[1])])
+    assert own2.labels[int(torso[1]), int(torso[0])] == 1
+
+
+def test_foreground_far_from_everyone_is_nobodys():
+    cam = RIG[1]
+    p = person(0.0, 0.0)
+    fg = np.zeros((cam.height, cam.width), bool)
+    fg[:5, :5] = True  # a corner blob: a shadow, a reflection, a ball
+    hips = cam.project(p[[23, 24]].mean(axis=0)[None])[0].astype(int)
+    fg[hips[1] - 2 : hips[1] + 3, hips[0] - 2 : hips[0] + 3] = True
+    own = own_pixels(cam, fg, [p])
+    assert own.labels[:5, :5].max() == 0
+    assert (own.labels[hips[1] - 2 : hips[1] + 3, hips[0] - 2 : hips[0] + 3] == 1).all()
+    assert np.count_nonzero(own.labels) == 25
+
+
+def test_two_d_people_and_empty_input():
+    cam = RIG[2]
+    fg = np.ones((cam.height, cam.width), bool)
+    p3 = person(0.0, 0.0)
+    lm = np.c_[cam.project(p3), np.ones(33)]
+    own = own_pixels(cam, fg, [None], [lm])
+    assert own.labels.max() == 1 and own.visibility[0] == 1.0
+    # A 3D person hides a 2D-only one wherever both are drawn.
+    own = own_pixels(cam, fg, [p3, None], [None, lm])
+    torso = cam.project(p3[[11, 12, 23, 24]].mean(axis=0)[None])[0].astype(int)
+    assert own.labels[torso[1], torso[0]] == 1
+    assert own.visibility[0] == 1.0 and own.visibility[1] < 0.5
+    empty = own_pixels(cam, fg, [])
+    assert empty.labels.max() == 0 and len(empty.visibility) == 0
+    nan = own_pixels(cam, fg, [np.full((33, 3), np.nan)])
+    assert nan.labels.max() == 0
+    ends, radii, ok = capsules(p3)
+    assert ends.shape == (len(radii), 2, 3) and ok.all()
+    assert OwnershipConfig().radius_scale > 0
+
+
+def test_region_from_a_projected_skeleton():
+    cam = RIG[3]
+    p = person(0.1, -0.2, 0.7)
+    roi = roi_from_skeleton(cam, p)
+    hips = cam.project(p[[23, 24]]).mean(axis=0)
+    np.testing.assert_allclose(roi.centre, hips, atol=1e-6)
+    uv = cam.project(p)
+    assert roi.side >= 2 * np.linalg.norm(uv - hips, axis=1).max()
+    # The region is turned so the body points up: the shoulders are above the hips in it.
+    m = roi.to_crop(256)
+    sh_hip = np.c_[uv[[11, 12, 23, 24]], np.ones(4)] @ m.T
+    assert sh_hip[:2, 1].mean() < sh_hip[2:, 1].mean() - 20
+    inst = PersonInstance.create(np.c_[uv, np.ones(33)])
+    assert skeleton_fit(cam, inst, p, MatchConfig()) < 1e-6
+    other = PersonInstance.create(np.c_[cam.project(person(0.6, -0.2)), np.ones(33)])
+    assert skeleton_fit(cam, other, p, MatchConfig()) > 0.1
+    behind = p.copy()
+    behind[:] = cam.center - 1.0 * cam.optical_axis
+    assert roi_from_skeleton(cam, behind) is None
