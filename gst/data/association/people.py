@@ -1,0 +1,279 @@
+"""The people of each frame of a calibrated multi-camera capture: ids, 3D skeletons, and in every
+camera that sees them their landmarks and their own mask.
+
+`CrowdTracker.process(frame, ...)` runs one frame, in frame order:
+
+1. Match the cameras' person instances (a detector's, e.g. BlazePose per camera) into people
+   (`match_frame`), with the people of the previous frames, moved on, as priors.
+2. Remembered people that no group explains are kept as candidates (a person the detectors
+   all missed in this frame is still there).
+3. Look again at every person in every camera (`refine`): the landmark model is run on a
+   region around their projected skeleton in which the pixels of everyone else (capsule
+   ownership of the foreground, `ownership.own_pixels`) are replaced by the empty background.
+   With its neighbours painted out, the model finds the intended person even when half
+   hidden (on the crowd preset: 98% of views at least 30% visible instead of 32% when the
+   view is under 60% visible; truth occluders). Answers whose landmarks do not fit the
+   projected skeleton are dropped; the rest re-triangulate the skeleton. Remembered people
+   that fewer than two cameras confirm are let go for this frame.
+4. Ids (`PersonIdTracker`), then per camera each person's mask: their region's segmentation
+   within the foreground, pixels claimed by several people going to the one in front
+   (capsule ownership). A trusted person (seen by `trusted_views` cameras, or remembered)
+   that no camera's model confirmed but who is at least `project_visibility` visible there
+   gets a mask from ownership alone and landmarks projected from the skeleton.
+
+Single-view instances (one camera only) keep their own detection and mask.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from calibration.camera import Camera, Rig
+from gst.data.association.geometry import project
+from gst.data.association.instances import BODY_LANDMARKS, PersonInstance
+from gst.data.association.matching import (
+    FrameMatch,
+    MatchConfig,
+    PersonGroup,
+    _triangulate_all,
+    camera_view,
+    match_frame,
+)
+from gst.data.association.ownership import OwnershipConfig, own_pixels
+from gst.data.association.regions import roi_from_skeleton, skeleton_fit
+from gst.data.association.tracking import PersonIdTracker, TrackerConfig, skeleton_distance
+from gst.detect.blazepose import BodyRoi
+
+_BODY = np.asarray(BODY_LANDMARKS)
+PROJECTED_CONFIDENCE = 0.5  # confidence of landmarks projected from a skeleton (not detected)
+ViewSource = Literal["detected", "refined", "projected", "single"]
+# segment(camera name, BGR image at work resolution, region in work pixels) ->
+# (landmarks (33, 3) in work pixels, presence, (H, W) person probability) or None.
+SegmentFn = Callable[[str, np.ndarray, BodyRoi], tuple[np.ndarray, float, np.ndarray] | None]
+
+
+@dataclass(frozen=True)
+class CrowdConfig:
+    match: MatchConfig = field(default_factory=MatchConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    ownership: OwnershipConfig = field(default_factory=OwnershipConfig)
+    refine: bool = True  # look again at every person with the others painted out
+    refine_fit: float = 0.15  # landmark error (share of size) for a refined view to count
+    min_presence: float = 0.5  # landmark model's presence score for a refined view
+    occluder_margin: int = 2  # pixels the painted-out people are grown by
+    project_visibility: float = 0.3  # projected views for trusted people at least this visible
+    trusted_views: int = 3  # cameras that must agree before a new person is trusted
+    remembered_gap: float = 0.3  # a prior further than this (m) from every group is a candidate
+    min_mask_pixels: int = 20  # smaller masks are no view
+
+    def __post_init__(self):
+        if not 0 < self.project_visibility <= 1 or self.trusted_views < 2:
+            raise ValueError(
+                "CrowdConfig needs 0 < project_visibility <= 1 and trusted_views >= 2, got "
+                f"{self.project_visibility}, {self.trusted_views}"
+            )
+
+
+@dataclass(frozen=True)
+class PersonView:
+    """One person in one camera."""
+
+    landmarks: np.ndarray  # (33, 3) u, v in distorted full-resolution pixels, confidence
+    mask: np.ndarray  # (H, W) bool at the work resolution
+    source: ViewSource
+    visibility: float  # share of the person's capsules not hidden by others (NaN: unknown)
+
+
+@dataclass(frozen=True)
+class FramePerson:
+    pid: int
+    skeleton: np.ndarray | None  # (33, 3) world landmarks; None for a single-view person
+    views: dict[str, PersonView]
+
+    @property
+    def single_view(self) -> bool:
+        return self.skeleton is None
+
+
+@dataclass(frozen=True)
+class FramePeople:
+    frame: int
+    people: list[FramePerson]
+    notes: list[str]
+
+
+@dataclass
+class _Candidate:
+    skeleton: np.ndarray
+    remembered: bool
+    group: PersonGroup | None
+    refined: dict[str, tuple[PersonInstance, np.ndarray]] = field(default_factory=dict)
+
+
+class CrowdTracker:
+    """People of consecutive frames of one capture (keeps tracking state; not thread-safe).
+
+    `scale` is the work resolution over the calibration's (images, foregrounds and masks are at
+    work resolution; landmarks and skeletons in full-resolution pixels and metres). `segment`
+    runs the landmark model (None: no refinement).
+    """
+
+    def __init__(
+        self,
+        rig: Rig | Sequence[Camera],
+        step_seconds: float,
+        config: CrowdConfig = CrowdConfig(),
+        segment: SegmentFn | None = None,
+        scale: float = 1.0,
+    ):
+        self.cams = {c.name: c for c in (rig.cameras if isinstance(rig, Rig) else rig)}
+        self.config = config
+        self.segment = segment
+        self.scale = float(scale)
+        self.ids = PersonIdTracker(
+            list(self.cams.values()), step_seconds, config.tracker, config.match
+        )
+        self._kernel = np.ones((2 * config.occluder_margin + 1,) * 2, np.uint8)
+
+    def process(
+        self,
+        frame: int,
+        instances: Mapping[str, Sequence[PersonInstance]],
+        foreground: Mapping[str, np.ndarray],
+        images: Mapping[str, np.ndarray] | None = None,
+        backgrounds: Mapping[str, np.ndarray] | None = None,
+        masks: Mapping[str, Sequence[np.ndarray | None]] | None = None,
+    ) -> FramePeople:
+        """One frame. `instances` and `foreground` (bool, work resolution) per camera; `images`
+        (BGR, work resolution) and `backgrounds` (the empty scene, same size) are needed to
+        refine; `masks[camera][i]` is instance i's own mask (used for single-view people)."""
+        cfg = self.config
+        priors = self.ids.predict(frame)
+        match = match_frame(instances, list(self.cams.values()), cfg.match, [s for _, s in priors])
+        cands = [_Candidate(g.skeleton, False, g) for g in match.groups if g.skeleton is not None]
+        for _, sk in priors:
+            if all(
+                skeleton_distance(sk[_BODY], c.skeleton[_BODY]) > cfg.remembered_gap for c in cands
+            ):
+                cands.append(_Candidate(sk, True, None))
+        can_refine = cfg.refine and self.segment is not None and images is not None
+        if can_refine and cands:
+            self._refine(cands, foreground, images, backgrounds)
+            cands = [c for c in cands if not c.remembered or len(c.refined) >= 2]
+        elif not can_refine:
+            cands = [c for c in cands if not c.remembered]
+        # Ids: one group per candidate (its refined views, else its matched ones) + singles.
+        view_inst: dict[str, list[PersonInstance]] = {n: [] for n in self.cams}
+        groups = []
+        for c in cands:
+            views = {}
+            for n, (inst, _) in c.refined.items():
+                views[n] = len(view_inst[n])
+                view_inst[n].append(inst)
+            if not views and c.group is not None:
+                for n, k in c.group.views.items():
+                    views[n] = len(view_inst[n])
+                    view_inst[n].append(instances[n][k])
+            groups.append(PersonGroup(views, c.skeleton, {}, {n: False for n in views}))
+        singles = [g for g in match.groups if g.skeleton is None]
+        for g in singles:
+            n, k = next(iter(g.views.items()))
+            groups.append(PersonGroup({n: len(view_inst[n])}, None, {}, {n: False}))
+            view_inst[n].append(instances[n][k])
+        pids = self.ids.update(frame, FrameMatch(groups), view_inst)
+        remembered = {pid for pid, _ in priors}
+        people = [
+            FramePerson(pid, c.skeleton, {})
+            for c, pid in zip(cands, pids[: len(cands)], strict=True)
+        ]
+        for n, cam in self.cams.items():
+            if n not in foreground:
+                continue
+            self._views(n, cam, cands, people, foreground[n], remembered, instances)
+        for g, pid in zip(singles, pids[len(cands) :], strict=True):
+            n, k = next(iter(g.views.items()))
+            m = masks[n][k] if masks is not None and masks.get(n) is not None else None
+            if m is None:
+                continue
+            people.append(
+                FramePerson(
+                    pid, None, {n: PersonView(instances[n][k].landmarks, m, "single", np.nan)}
+                )
+            )
+        return FramePeople(frame, people, list(match.notes))
+
+    def _refine(self, cands, foreground, images, backgrounds) -> None:
+        cfg = self.config
+        skels = [c.skeleton for c in cands]
+        for n, cam in self.cams.items():
+            if n not in images or n not in foreground:
+                continue
+            own = own_pixels(cam, foreground[n], skels, [], cfg.ownership, self.scale)
+            img, bg = images[n], (backgrounds or {}).get(n)
+            for k, c in enumerate(cands):
+                roi = roi_from_skeleton(cam, c.skeleton)
+                if roi is None:
+                    continue
+                others = (own.labels > 0) & (own.labels != k + 1)
+                others = cv2.dilate(others.astype(np.uint8), self._kernel) > 0
+                fill = bg if bg is not None else np.full_like(img, 128)
+                painted = np.where(others[..., None], fill, img)
+                s = self.scale
+                work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
+                got = self.segment(n, painted, work_roi)
+                if got is None:
+                    continue
+                lm, presence, prob = got
+                if presence < cfg.min_presence:
+                    continue
+                lm = np.asarray(lm, np.float64).copy()
+                lm[:, :2] /= s
+                inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
+                if skeleton_fit(cam, inst, c.skeleton, cfg.match) > cfg.refine_fit:
+                    continue
+                c.refined[n] = (inst, prob)
+        for c in cands:
+            if len(c.refined) >= 2:
+                views = {
+                    n: camera_view(self.cams[n], [inst], cfg.match.min_confidence)
+                    for n, (inst, _) in c.refined.items()
+                }
+                X = _triangulate_all(views, {n: (0, False) for n in c.refined}, cfg.match)
+                c.skeleton = np.where(np.isfinite(X), X, c.skeleton)
+
+    def _views(self, n, cam, cands, people, fg, remembered, instances) -> None:
+        """Each person's view in camera `n`: refined (their region's segmentation, contested
+        pixels to the one in front), detected (ownership of the foreground, the detector's
+        landmarks), or projected (ownership, projected landmarks) for trusted people."""
+        cfg = self.config
+        own = own_pixels(cam, fg, [c.skeleton for c in cands], [], cfg.ownership, self.scale)
+        claims = [(c.refined[n][1] > 0.5) & fg if n in c.refined else None for c in cands]
+        drawn = [m for m in claims if m is not None]
+        contested = np.sum(drawn, axis=0) > 1 if drawn else np.zeros_like(fg)
+        for k, (c, person) in enumerate(zip(cands, people, strict=True)):
+            if claims[k] is not None:
+                mask = claims[k] & (~contested | (own.labels == k + 1))
+                lm, source = c.refined[n][0].landmarks, "refined"
+            elif c.group is not None and n in c.group.views:
+                mask = own.labels == k + 1
+                lm, source = instances[n][c.group.views[n]].landmarks, "detected"
+            else:
+                strict = 0 if c.group is None else len(c.group.views) - len(c.group.loose)
+                trusted = (
+                    c.remembered
+                    or person.pid in remembered
+                    or max(strict, len(c.refined)) >= cfg.trusted_views
+                )
+                if not trusted or own.visibility[k] < cfg.project_visibility:
+                    continue
+                mask = own.labels == k + 1
+                uv, _ = project(cam, c.skeleton)
+                conf = np.where(np.all(np.isfinite(uv), axis=1), PROJECTED_CONFIDENCE, 0.0)
+                lm, source = np.c_[np.nan_to_num(uv), conf], "projected"
+            if np.count_nonzero(mask) >= cfg.min_mask_pixels:
+                person.views[n] = PersonView(lm, mask, source, float(own.visibility[k]))
