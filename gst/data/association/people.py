@@ -198,7 +198,12 @@ class CrowdTracker:
         for g, pid in zip(singles, pids[len(cands) :], strict=True):
             n, k = next(iter(g.views.items()))
             m = masks[n][k] if masks is not None and masks.get(n) is not None else None
-            if m is None:
+            if m is None or not np.any(m):
+                continue
+            # A detection of someone who already has a view here (a duplicate, or a
+            # fragment the association did not take) is not another person.
+            taken = [p.views[n].mask for p in people if n in p.views and p.skeleton is not None]
+            if taken and np.count_nonzero(m & np.any(taken, axis=0)) > 0.5 * np.count_nonzero(m):
                 continue
             people.append(
                 FramePerson(

@@ -1,0 +1,143 @@
+"""CrowdTracker: a person the detector misses in one camera is found there again from the other
+cameras (refined with a landmark model, or projected), ids hold over frames, a person one camera
+sees keeps a single-view crop, and frames or cameras with nobody are fine."""
+
+import numpy as np
+from crowd_people import instances, person, rig
+
+from gst.data.association.ownership import own_pixels
+from gst.data.association.people import CrowdConfig, CrowdTracker
+from gst.detect.persons import skeleton_support
+
+RIG = rig("dome", 5, seed=2)
+
+
+def _scene(frames: int = 6):
+    """Three people walking slowly; per frame their world landmarks."""
+    out = []
+    for f in range(frames):
+        dx = 0.02 * f
+        out.append(
+            [person(dx, 0.0, 0.3), person(0.45 + dx, 0.1, 2.0), person(-0.4, 0.4 - dx, -1.0)]
+        )
+    return out
+
+
+def _foreground(cam, people):
+    fg = np.zeros((cam.height, cam.width), bool)
+    for p in people:
+        lm = np.c_[cam.project(p), np.ones(33)]
+        fg |= skeleton_support(lm, fg.shape, 6)
+    return fg
+
+
+def _fake_model(frames, calls):
+    """A landmark model that answers with the true person nearest the region's centre."""
+
+    def segment(camera, image, roi):
+        cam = RIG[camera]
+        people = frames[calls["frame"]]
+        hips = [cam.project(p[[23, 24]]).mean(axis=0) for p in people]
+        k = int(np.argmin([np.linalg.norm(h - roi.centre) for h in hips]))
+        calls["n"] += 1
+        lm = np.c_[cam.project(people[k]), np.ones(33)]
+        prob = skeleton_support(lm, image.shape[:2], 6).astype(np.float32)
+        return lm, 1.0, prob
+
+    return segment
+
+
+def _run(refine: bool, hide: tuple[str, int] | None, single: int | None = None):
+    frames = _scene()
+    calls = {"frame": 0, "n": 0}
+    tracker = CrowdTracker(
+        RIG, 1 / 30, CrowdConfig(refine=refine), _fake_model(frames, calls) if refine else None
+    )
+    outs = []
+    for f, people in enumerate(frames):
+        calls["frame"] = f
+        only = 2 if single is None else single
+        cams = {only: [RIG.names[1]]}
+        found, truth = instances(RIG, people, noise_px=1.0, seed=f, cameras=cams)
+        if hide is not None:
+            cam, k = hide
+            keep = [i for i, t in enumerate(truth[cam]) if t != k]
+            found[cam] = [found[cam][i] for i in keep]
+            truth[cam] = [truth[cam][i] for i in keep]
+        # The single-view person is only in camera 1's picture.
+        seen = {
+            c.name: [p for k, p in enumerate(people) if k != only or c.name == RIG.names[1]]
+            for c in RIG
+        }
+        fg = {c.name: _foreground(c, seen[c.name]) for c in RIG}
+        images = {c.name: np.zeros((c.height, c.width, 3), np.uint8) for c in RIG}
+        masks = {c: [i.mask for i in found[c]] for c in found}
+        # instance masks for single-view people: their support in that camera
+        for c, lst in found.items():
+            masks[c] = [skeleton_support(inst.landmarks, fg[c].shape, 6) for inst in lst]
+        out = tracker.process(f, found, fg, images, {c: images[c] for c in images}, masks)
+        outs.append((out, truth, people))
+    return outs, calls
+
+
+def _who(view, cam, people):
+    """The true people a view's mask is mostly made of (at least 20% of its pixels each),
+    from the ownership of the foreground by the exact skeletons."""
+    if cam.name != RIG.names[1]:
+        people = people[:2] + [np.full((33, 3), np.nan)]
+    truth = own_pixels(
+        cam, _foreground(cam, [p for p in people if np.isfinite(p).all()]), people
+    ).labels
+    ids = truth[view.mask]
+    ids = ids[ids > 0]
+    return [k for k in range(len(people)) if np.count_nonzero(ids == k + 1) > 0.2 * len(ids)]
+
+
+def test_a_person_the_detector_misses_is_refound_from_the_other_cameras():
+    hidden = RIG.names[3]
+    outs, calls = _run(refine=True, hide=(hidden, 0))
+    assert calls["n"] > 0
+    pids = set()
+    for out, _, people in outs:
+        multi = [p for p in out.people if not p.single_view]
+        assert len(multi) == 2  # person 2 is seen by camera 1 only
+        owner = {}
+        for p in multi:
+            for cam, view in p.views.items():
+                who = _who(view, RIG[cam], people)
+                assert len(who) <= 1
+                if who:
+                    owner.setdefault(who[0], set()).add(p.pid)
+            if hidden in p.views and _who(p.views[hidden], RIG[hidden], people) == [0]:
+                assert p.views[hidden].source == "refined"
+                pids.add(p.pid)
+        assert all(len(v) == 1 for v in owner.values())
+    assert len(pids) == 1  # the same id every frame
+
+
+def test_without_a_landmark_model_the_missed_view_is_projected():
+    hidden = RIG.names[3]
+    outs, _ = _run(refine=False, hide=(hidden, 0))
+    sources = []
+    for out, _, people in outs:
+        for p in out.people:
+            if hidden in p.views and _who(p.views[hidden], RIG[hidden], people) == [0]:
+                sources.append(p.views[hidden].source)
+    # Once person 0 is remembered (confirmed after a few frames), the view is projected.
+    assert sources and set(sources) == {"projected"}
+    assert len(sources) >= len(outs) - 3
+
+
+def test_single_view_person_keeps_a_crop_and_empty_frames_are_fine():
+    outs, _ = _run(refine=True, hide=None)
+    for out, _, people in outs:
+        single = [p for p in out.people if p.single_view]
+        assert len(single) == 1 and list(single[0].views) == [RIG.names[1]]
+        view = single[0].views[RIG.names[1]]
+        assert view.source == "single" and _who(view, RIG[RIG.names[1]], people) == [2]
+    tracker = CrowdTracker(RIG, 1 / 30)
+    empty = tracker.process(
+        0, {c: [] for c in RIG.names}, {c: np.zeros((2, 2), bool) for c in RIG.names}
+    )
+    assert empty.people == [] and any("nobody" in n for n in empty.notes)
+    assert tracker.process(1, {}, {}).people == []
