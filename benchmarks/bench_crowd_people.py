@@ -9,7 +9,7 @@ the clean plate, as the extract stage does for synthetic scenes). Variants, on t
 - `old`: `gst.data.extract_scene` with the background model and the visual-hull association
   (its own report's numbers; its missed-view count uses its own area criterion).
 - `keypoints`: BlazePose per camera (`PersonSegmenter`: detector, tracked regions), keypoint
-  association across cameras and 3D ids (`gst.data.association.CrowdTracker`, no refinement);
+  association across cameras and 3D ids (`gst.data.keypoints.CrowdTracker`, no refinement);
   masks by capsule ownership of the clean-plate foreground.
 - `keypoints + refine`: the same, then every person is looked at again in every camera with
   the other people painted out by the clean plate.
@@ -41,10 +41,10 @@ import pyarrow.parquet as pq  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from calibration.formats import read_rig  # noqa: E402
-from gst.data.association import PersonInstance  # noqa: E402
-from gst.data.association.people import CrowdConfig, CrowdTracker  # noqa: E402
 from gst.data.background import BackgroundConfig, build_background  # noqa: E402
 from gst.data.evaluate import CropTruth, association_accuracy, match_truth  # noqa: E402
+from gst.data.keypoints import PersonInstance  # noqa: E402
+from gst.data.keypoints.people import CrowdConfig, CrowdTracker  # noqa: E402
 from gst.data.masks import MaskConfig, clean_mask  # noqa: E402
 from gst.detect.blazepose import BlazePose  # noqa: E402
 from gst.detect.persons import PersonSegmenter, SegmenterConfig, skeleton_support  # noqa: E402

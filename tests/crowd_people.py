@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gst.data.association import N_LANDMARKS, PersonInstance
+from gst.data.keypoints import N_LANDMARKS, PersonInstance
 from synth.rigs import make_rig
 
 # A 1.75 m person facing +y in a body frame (x = body left, y = forward, z = up), metres.

@@ -1,4 +1,4 @@
-"""Keypoint association across calibrated cameras (gst.data.association): people 0.3 m apart
+"""Keypoint association across calibrated cameras (gst.data.keypoints): people 0.3 m apart
 stay two, a person one camera sees keeps a single-view group, groups are cycle-consistent,
 ids survive two players crossing, and bad input is refused or skipped, never a crash."""
 
@@ -8,7 +8,7 @@ from crowd_people import instances, person, rig
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gst.data.association import (
+from gst.data.keypoints import (
     MIRROR,
     AssociationError,
     FrameMatch,

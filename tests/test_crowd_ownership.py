@@ -4,9 +4,9 @@ no capsule covers goes to the nearest one) and regions from projected skeletons.
 import numpy as np
 from crowd_people import person, rig
 
-from gst.data.association import MatchConfig, PersonInstance
-from gst.data.association.ownership import OwnershipConfig, capsules, own_pixels
-from gst.data.association.regions import roi_from_skeleton, skeleton_fit
+from gst.data.keypoints import MatchConfig, PersonInstance
+from gst.data.keypoints.ownership import OwnershipConfig, capsules, own_pixels
+from gst.data.keypoints.regions import roi_from_skeleton, skeleton_fit
 
 RIG = rig("dome", 4)
 

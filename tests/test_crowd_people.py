@@ -5,8 +5,8 @@ sees keeps a single-view crop, and frames or cameras with nobody are fine."""
 import numpy as np
 from crowd_people import instances, person, rig
 
-from gst.data.association.ownership import own_pixels
-from gst.data.association.people import CrowdConfig, CrowdTracker
+from gst.data.keypoints.ownership import own_pixels
+from gst.data.keypoints.people import CrowdConfig, CrowdTracker
 from gst.detect.persons import skeleton_support
 
 RIG = rig("dome", 5, seed=2)

@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.camera import Camera
-from gst.data.association.geometry import project
-from gst.data.association.instances import BODY_LANDMARKS, PersonInstance
-from gst.data.association.matching import MatchConfig, camera_view, fit_errors
+from gst.data.keypoints.geometry import project
+from gst.data.keypoints.instances import BODY_LANDMARKS, PersonInstance
+from gst.data.keypoints.matching import MatchConfig, camera_view, fit_errors
 from gst.detect.blazepose import BodyRoi, roi_from_alignment
 
 _HIPS, _SHOULDERS = [23, 24], [11, 12]

@@ -35,8 +35,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from calibration.camera import Camera, Rig
-from gst.data.association.geometry import project, ray_gaps, triangulate_weighted, viewing_rays
-from gst.data.association.instances import BODY_LANDMARKS, MIRROR, N_LANDMARKS, PersonInstance
+from gst.data.keypoints.geometry import project, ray_gaps, triangulate_weighted, viewing_rays
+from gst.data.keypoints.instances import BODY_LANDMARKS, MIRROR, N_LANDMARKS, PersonInstance
 
 _BODY = np.asarray(BODY_LANDMARKS)
 # Mirror map restricted to the body landmarks (positions within _BODY).

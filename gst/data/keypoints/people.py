@@ -34,9 +34,9 @@ import cv2
 import numpy as np
 
 from calibration.camera import Camera, Rig
-from gst.data.association.geometry import project
-from gst.data.association.instances import BODY_LANDMARKS, PersonInstance
-from gst.data.association.matching import (
+from gst.data.keypoints.geometry import project
+from gst.data.keypoints.instances import BODY_LANDMARKS, PersonInstance
+from gst.data.keypoints.matching import (
     FrameMatch,
     MatchConfig,
     PersonGroup,
@@ -44,9 +44,9 @@ from gst.data.association.matching import (
     camera_view,
     match_frame,
 )
-from gst.data.association.ownership import OwnershipConfig, own_pixels
-from gst.data.association.regions import roi_from_skeleton, skeleton_fit
-from gst.data.association.tracking import PersonIdTracker, TrackerConfig, skeleton_distance
+from gst.data.keypoints.ownership import OwnershipConfig, own_pixels
+from gst.data.keypoints.regions import roi_from_skeleton, skeleton_fit
+from gst.data.keypoints.tracking import PersonIdTracker, TrackerConfig, skeleton_distance
 from gst.detect.blazepose import BodyRoi
 
 _BODY = np.asarray(BODY_LANDMARKS)

@@ -23,8 +23,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from calibration.camera import Camera, Rig
-from gst.data.association.instances import BODY_LANDMARKS, PersonInstance
-from gst.data.association.matching import (
+from gst.data.keypoints.instances import BODY_LANDMARKS, PersonInstance
+from gst.data.keypoints.matching import (
     AssociationError,
     FrameMatch,
     MatchConfig,
@@ -39,8 +39,8 @@ _FAR = 1e6
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    max_speed: float = 7.0  # m/s: a landmark moving faster than this is someone else
-    slack: float = 0.25  # metres added to the speed gate (noise, jitter of one landmark)
+    max_speed: float = 5.0  # m/s: a landmark moving faster than this is someone else
+    slack: float = 0.12  # metres added to the speed gate (triangulation noise)
     max_gap: int = 15  # processed frames a person unseen is remembered
     view_error: float = 0.12  # single-view instance against a remembered person's projection
     box_iou: float = 0.3  # single-view instance against the previous frame's in that camera

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.camera import Camera
-from gst.data.association.geometry import project
+from gst.data.keypoints.geometry import project
 
 # (end a, end b, radius in metres). An end is a landmark index or a tuple (their mean).
 _SH, _HIP = (11, 12), (23, 24)

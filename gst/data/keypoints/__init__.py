@@ -7,7 +7,7 @@ group), each multi-view person gets a triangulated skeleton, and `PersonIdTracke
 ids over time.
 
 ```python
-from gst.data.association import PersonInstance, PersonIdTracker, match_frame
+from gst.data.keypoints import PersonInstance, PersonIdTracker, match_frame
 
 tracker = PersonIdTracker(rig, step_seconds=1 / fps)
 for frame, per_camera in frames:  # per_camera: camera name -> [PersonInstance, ...]
@@ -16,7 +16,7 @@ for frame, per_camera in frames:  # per_camera: camera name -> [PersonInstance, 
 ```
 """
 
-from gst.data.association.instances import (
+from gst.data.keypoints.instances import (
     BODY_LANDMARKS,
     LEFT_RIGHT,
     MIRROR,
@@ -24,14 +24,14 @@ from gst.data.association.instances import (
     InstanceError,
     PersonInstance,
 )
-from gst.data.association.matching import (
+from gst.data.keypoints.matching import (
     AssociationError,
     FrameMatch,
     MatchConfig,
     PersonGroup,
     match_frame,
 )
-from gst.data.association.tracking import PersonIdTracker, TrackerConfig
+from gst.data.keypoints.tracking import PersonIdTracker, TrackerConfig
 
 __all__ = [
     "BODY_LANDMARKS",
