@@ -17,6 +17,7 @@ Regenerate (about 1.5-3 min per world on 2 cores):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, fields
@@ -59,12 +60,17 @@ class LandmarkWorld:
     seed: int
     rig_kind: str
     fov_deg: float
+    motion: np.ndarray | None = None  # (N,) str, the motion playing ('random_static': random poses)
 
     def __len__(self) -> int:
         return int(self.frame.shape[0])
 
     def save(self, path: str | Path) -> None:
-        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
+        arrays = {
+            f.name: np.asarray(getattr(self, f.name))
+            for f in fields(self)
+            if getattr(self, f.name) is not None
+        }
         arrays["format_version"] = np.asarray(FORMAT_VERSION)
 
         def write(tmp: str) -> None:
@@ -83,6 +89,8 @@ class LandmarkWorld:
                 )
             kw = {}
             for f in fields(cls):
+                if f.name == "motion" and f.name not in z:  # written before the field existed
+                    continue
                 if f.name not in z:
                     raise ValueError(f"{path}: key '{f.name}' missing")
                 v = z[f.name]
@@ -137,6 +145,7 @@ def _people_columns(scene_dir: Path) -> tuple[dict[tuple[int, int], int], dict[s
     frames, pids = table.column("frame").to_numpy(), table.column("person_id").to_numpy()
     index = {(int(f), int(p)): i for i, (f, p) in enumerate(zip(frames, pids, strict=True))}
     cols = {k: col(k) for k in ("global_orient", "body_pose", "betas", "transl")}
+    cols["motion"] = np.asarray(table.column("motion").to_pylist())
     return index, cols
 
 
@@ -179,6 +188,7 @@ def detect_world(
         body_pose=cols["body_pose"][rows].reshape(-1, 23, 3),
         betas=cols["betas"][rows],
         transl=cols["transl"][rows],
+        motion=cols["motion"][rows],
         crop_size=crop_size,
         seed=int(spec["seed"]) if seed < 0 else seed,
         rig_kind=str(spec["rig"]["kind"]),
@@ -225,6 +235,7 @@ region (centre (127.5, 127.5), side 256, angle 0), as `gst.train.keypoints.crop_
 | `body_pose` | (N, 23, 3) float32 | axis-angle local rotations (the body model's parameters) |
 | `betas` | (N, B) float32 | shape coefficients of the body model that rendered the scene (`anny`) |
 | `transl` | (N, 3) float32 | world translation, metres |
+| `motion` | (N,) str | the motion playing (`run`, `jump`, ...; `random_static` = independent random poses, where BlazePose is much worse: docs/landmark_prior.md) |
 | `crop_size`, `seed`, `rig_kind`, `fov_deg`, `format_version` | scalars | |
 
 `gst.body.load_body_model("anny")(betas, body_pose, global_orient, transl)` reproduces
@@ -257,7 +268,14 @@ def build(root: Path, n_worlds: int, seed0: int = DEFAULT_SEED, log=print) -> li
         spec = world_spec(k, seed0)
         npz = root / f"world_{spec.seed}.npz"
         if npz.is_file():
-            worlds.append(LandmarkWorld.load(npz))
+            w = LandmarkWorld.load(npz)
+            if w.motion is None:  # an older file: add the motion column from the scene's truth
+                scene = root / "scenes" / f"world_{spec.seed}"
+                index, cols = _people_columns(scene)
+                rows = [index[(int(f), int(p))] for f, p in zip(w.frame, w.person, strict=True)]
+                w = dataclasses.replace(w, motion=cols["motion"][rows])
+                w.save(npz)
+            worlds.append(w)
             continue
         scene = root / "scenes" / f"world_{spec.seed}"
         t0 = time.perf_counter()
