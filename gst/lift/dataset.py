@@ -108,7 +108,13 @@ def load_worlds(root: str | Path) -> list[LandmarkWorld]:
     return [LandmarkWorld.load(p) for p in paths]
 
 
-def world_spec(k: int, seed0: int = DEFAULT_SEED, n_frames: int = 40, fps: float = 10.0):
+def world_spec(
+    k: int,
+    seed0: int = DEFAULT_SEED,
+    n_frames: int = 40,
+    fps: float = 10.0,
+    rigs: tuple[str, ...] = WORLD_RIGS,
+):
     """The k-th world's scene spec (deterministic from its seed)."""
     from synth.scene import preset
 
@@ -122,7 +128,7 @@ def world_spec(k: int, seed0: int = DEFAULT_SEED, n_frames: int = 40, fps: float
         n_people=2,
         motions=[["random_static"]] * 2 if static else None,
         rig={
-            "kind": WORLD_RIGS[k % len(WORLD_RIGS)],
+            "kind": rigs[k % len(rigs)],
             "n_cameras": 6,
             "width": 480,
             "height": 360,
@@ -255,7 +261,13 @@ def write_readme(root: Path, worlds: list[LandmarkWorld]) -> None:
     atomic_write(root / "README.md", lambda tmp: Path(tmp).write_text(text))
 
 
-def build(root: Path, n_worlds: int, seed0: int = DEFAULT_SEED, log=print) -> list[LandmarkWorld]:
+def build(
+    root: Path,
+    n_worlds: int,
+    seed0: int = DEFAULT_SEED,
+    log=print,
+    rigs: tuple[str, ...] = WORLD_RIGS,
+) -> list[LandmarkWorld]:
     """Render, crop and detect each world (skipping those already done), then the README."""
     from gst.body import load_body_model
     from synth.scene import render_scene
@@ -265,7 +277,7 @@ def build(root: Path, n_worlds: int, seed0: int = DEFAULT_SEED, log=print) -> li
     model = BlazePose(threads=1)
     worlds = []
     for k in range(n_worlds):
-        spec = world_spec(k, seed0)
+        spec = world_spec(k, seed0, rigs=rigs)
         npz = root / f"world_{spec.seed}.npz"
         if npz.is_file():
             w = LandmarkWorld.load(npz)
@@ -299,11 +311,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--worlds", type=int, default=8)
     ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
+    ap.add_argument("--rigs", nargs="+", default=list(WORLD_RIGS), choices=WORLD_RIGS)
     args = ap.parse_args(argv)
     import torch
 
     torch.set_num_threads(1)
-    build(args.out, args.worlds, args.seed)
+    build(args.out, args.worlds, args.seed, rigs=tuple(args.rigs))
 
 
 if __name__ == "__main__":

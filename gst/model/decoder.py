@@ -95,11 +95,14 @@ class PreNorm(nn.Module):
 @dataclass
 class LandmarkContext:
     """Landmark tokens (B, T, dim) beside the image tokens, with the tokens each sample may
-    attend to (B, T) bool and the samples that have any landmark at all (B,) bool."""
+    attend to (B, T) bool, the samples that have any landmark at all (B,) bool, and optionally
+    a query (B, dim) added to the SMPL token's input (a short path from the lifting MLP to the
+    pose: the decoder then refines it)."""
 
     tokens: torch.Tensor
     key_mask: torch.Tensor
     active: torch.Tensor
+    query: torch.Tensor | None = None
 
 
 class CrossAttnStack(nn.Module):
@@ -173,6 +176,8 @@ class TokenDecoder(nn.Module):
         ref = context if context is not None else landmarks.tokens
         zero = ref.new_zeros(ref.shape[0], 1, 1)
         x = self.to_token_embedding(zero) + self.pos_embedding
+        if landmarks is not None and landmarks.query is not None:
+            x = torch.where(landmarks.active[:, None, None], x + landmarks.query[:, None], x)
         return self.transformer(x, context, landmarks)[:, 0]
 
     def decode(

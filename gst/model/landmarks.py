@@ -5,7 +5,10 @@ a second cross-attention per decoder layer, to these tokens: one per landmark (i
 position and confidence, plus a learned identity) and `lift_tokens` more made by a residual MLP
 over all landmarks at once (a Martinez-style lifting network: the whole 2D skeleton is what
 tells the 3D pose) together with where the crop sits in its camera (so the orientation in the
-camera frame can be read from a crop cut off-centre). Landmarks come from BlazePose
+camera frame can be read from a crop cut off-centre). The same MLP also gives a query added to
+the SMPL token's input: a short path from the lifting MLP to the pose (measured: a transformer
+decoder reading only the lift tokens learns several times slower than an MLP,
+docs/landmark_prior.md). Landmarks come from BlazePose
 (`gst.detect`), in the simulated form during the render-free pretraining (`gst.lift`).
 
 `LandmarkInput.masked()` or `landmarks=None` gives exactly the image-only network's output.
@@ -98,8 +101,9 @@ class LandmarkEncoder(nn.Module):
             nn.Linear(num_landmarks * 3 + 3, width),
             *[_Residual(width) for _ in range(blocks)],
             nn.LayerNorm(width),
-            nn.Linear(width, lift_tokens * dim),
         )
+        self.to_tokens = nn.Linear(width, lift_tokens * dim)
+        self.to_query = nn.Linear(width, dim)
 
     def forward(self, inp: LandmarkInput) -> LandmarkContext:
         B, L, _ = inp.points.shape
@@ -110,8 +114,9 @@ class LandmarkEncoder(nn.Module):
         valid = inp.mask & (inp.points[..., 2] > 0)
         pts = torch.where(valid[..., None], inp.points, torch.zeros_like(inp.points))
         point_tokens = self.point(pts) + self.identity
-        lift = self.lift(torch.cat([pts.reshape(B, -1), inp.camera], -1))
-        tokens = torch.cat([point_tokens, lift.view(B, self.lift_tokens, self.dim)], 1)
+        h = self.lift(torch.cat([pts.reshape(B, -1), inp.camera], -1))
+        lift = self.to_tokens(h).view(B, self.lift_tokens, self.dim)
+        tokens = torch.cat([point_tokens, lift], 1)
         # the lift tokens are always attendable, so no sample's attention is empty (no NaN)
         key_mask = torch.cat([valid, valid.new_ones(B, self.lift_tokens)], 1)
-        return LandmarkContext(tokens, key_mask, valid.any(1))
+        return LandmarkContext(tokens, key_mask, valid.any(1), self.to_query(h))
