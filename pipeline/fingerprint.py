@@ -9,7 +9,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pipeline.fsutil import atomic_write_text
+from gst.atomic import atomic_write_text
 
 _CHUNK = 1 << 20
 

@@ -24,11 +24,11 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from gst.atomic import atomic_write_text, remove_path, replace_path
 from pipeline.config import PipelineConfig, format_validation_error
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import ConfigError, PipelineError, StageFailed
 from pipeline.fingerprint import HashCache, stage_fingerprint
-from pipeline.fsutil import atomic_write_text, remove_path, replace_path
 from pipeline.stage import Stage, StageContext
 
 log = logging.getLogger("pipeline")

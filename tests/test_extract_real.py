@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from calibration import Camera
 from calibration.camera import look_at_rotation
-from gst.data.associate import link_tracklets
+from gst.data.association import link_tracklets
 from gst.data.ground import ground_seed
 from gst.data.proxies import triangulate_dlt
 from gst.track.static_detector import group_boxes
