@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from calibration import Rig
+from calibration.triangulate import dlt_points
 from gst.data.store import CropStore
 
 
@@ -32,17 +33,6 @@ class ExtractProxies:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-def triangulate_dlt(P: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Linear triangulation of one point from (V, 3, 4) projection matrices and (V, 2) pixels."""
-    rows = []
-    for Pv, (u, v) in zip(P, uv, strict=True):
-        rows.append(u * Pv[2] - Pv[0])
-        rows.append(v * Pv[2] - Pv[1])
-    _, _, vt = np.linalg.svd(np.asarray(rows))
-    X = vt[-1]
-    return X[:3] / X[3]
 
 
 def extract_proxies(
@@ -71,7 +61,7 @@ def extract_proxies(
         # box edges -> centre in pixel-centre coordinates (edges are centre coordinate +- 0.5)
         uv = np.stack([0.5 * (g["x0"] + g["x1"]), 0.5 * (g["y0"] + g["y1"])], axis=1) - 0.5
         Ps = np.stack([P[c] for c in g["camera"]])
-        X = triangulate_dlt(Ps, uv)
+        X = dlt_points(Ps, uv[:, None, :])[0]
         proj = Ps @ np.append(X, 1.0)
         err = (
             np.linalg.norm(proj[:, :2] / proj[:, 2:3] - uv, axis=1) / (g["y1"] - g["y0"]).to_numpy()
