@@ -21,7 +21,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TriangulationOptions", "Triangulated", "triangulate_points", "project"]
+__all__ = [
+    "TriangulationOptions",
+    "Triangulated",
+    "PersonTriangulation",
+    "triangulate_points",
+    "triangulate_person",
+    "project",
+]
 
 
 @dataclass(frozen=True)
@@ -174,3 +181,39 @@ def triangulate_points(
     confidence_out = mean_conf * np.clip((n_used - 1) / 2, 0, 1)
     confidence_out *= np.exp(-np.square(np.nan_to_num(error, nan=np.inf) / o.outlier_px))
     return Triangulated(X, used, errors, error, np.nan_to_num(confidence_out))
+
+
+@dataclass
+class PersonTriangulation:
+    """Triangulated landmarks of one person: T frames, M landmarks, C cameras."""
+
+    points: np.ndarray  # (T, M, 3) world, NaN where < 2 views
+    used: np.ndarray  # (T, M, C) bool
+    errors: np.ndarray  # (T, M, C) full-image px, NaN where unobserved
+    error: np.ndarray  # (T, M) mean over used views
+    confidence: np.ndarray  # (T, M)
+
+    @property
+    def n_views(self) -> np.ndarray:
+        return self.used.sum(-1)
+
+
+def triangulate_person(obs, options: TriangulationOptions | None = None) -> PersonTriangulation:
+    """Triangulate every landmark of a `gst.fuse.observations.PersonObservations`."""
+    T, C, M = obs.uv.shape[:3]
+
+    def per_point(a: np.ndarray) -> np.ndarray:  # (T, C, ...) camera -> (T * M, C, ...)
+        return np.repeat(a[:, None], M, 1).reshape(T * M, C, *a.shape[2:])
+
+    K, Rt = per_point(obs.K), per_point(obs.Rt)
+    uv = np.moveaxis(obs.uv, 2, 1).reshape(T * M, C, 2)
+    conf = np.moveaxis(obs.confidence, 2, 1).reshape(T * M, C)
+    scale = np.repeat(obs.px_scale[:, None], M, 1).reshape(T * M, C)
+    tri = triangulate_points(K, Rt, uv, conf, scale, options)
+    return PersonTriangulation(
+        tri.points.reshape(T, M, 3),
+        tri.used.reshape(T, M, C),
+        tri.errors.reshape(T, M, C),
+        tri.error.reshape(T, M),
+        tri.confidence.reshape(T, M),
+    )
