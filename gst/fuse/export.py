@@ -10,8 +10,9 @@ OpenSim writes it (PathFileType 4, DataRate ... OrigNumFrames, `Frame#  Time  na
 
 C3D: written with the `c3d` package (pure Python, 0.6.0) as float points (POINT:SCALE < 0, so
 values are stored exactly as float32), POINT:UNITS "mm", the rig's world axes (Z up), frames
-numbered from the person's first video frame + 1. Residual is 0 for a joint observed by >= 2
-cameras and -1 (the C3D convention for "invalid") for a joint filled by the fit.
+numbered from the person's first video frame + 1. Every fitted joint is a valid point (readers
+zero the coordinates of points with a negative residual, so -1 would lose the fit's value):
+residual 0 marks a joint observed by >= 2 cameras, residual 1 a joint filled by the fit.
 """
 
 from __future__ import annotations
@@ -94,7 +95,8 @@ def write_c3d(
     writer.set_start_frame(int(frames[0]) + 1 if T else 1)
     pts = np.zeros((T, M, 5), np.float32)
     pts[..., :3] = np.nan_to_num(points * 1000.0).astype(np.float32)
-    pts[..., 3] = np.where(valid & np.isfinite(points).all(-1), 0.0, -1.0)
+    pts[..., 3] = np.where(valid, 0.0, 1.0)
+    pts[..., 3] = np.where(np.isfinite(points).all(-1), pts[..., 3], -1.0)
     writer.add_frames([(pts[i], np.zeros((0, 0), np.float32)) for i in range(T)])
 
     def write(tmp: str) -> None:
