@@ -183,10 +183,10 @@ def main() -> None:
     from gst.body import load_body_model
     from gst.body.markers import MarkerModel
     from gst.data.store import CropStore
-    from gst.eval.truth import read_scene_truth
     from gst.fuse.fit import FitOptions, fit_people
     from gst.fuse.observations import crop_landmarks, group_by_person
     from gst.fuse.triangulate import triangulate_person
+    from synth.truth import read_scene_truth
 
     ws = args.workspace
     store = CropStore(ws / "crops" / "crops.h5")

@@ -17,9 +17,9 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from gst.body.model import BodyModel
-from gst.eval.truth import SceneTruth
 from gst.fuse.fit import PersonFit
 from gst.metrics.pose import mpjpe, pa_mpjpe, vertex_error
+from synth.truth import SceneTruth
 
 __all__ = ["TruthComparison", "compare_with_truth"]
 

@@ -208,8 +208,8 @@ def fuse_scene(
     )
     truth = None
     if truth_dir is not None and fits:
-        from gst.eval.truth import read_scene_truth
         from gst.fuse.evaluate import compare_with_truth
+        from synth.truth import read_scene_truth
 
         truth = compare_with_truth(fits, read_scene_truth(truth_dir), body).as_dict()
     summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth)
