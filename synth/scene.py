@@ -12,7 +12,6 @@ outputs are byte-identical run to run and do not change when unrelated settings 
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import time
@@ -378,11 +377,3 @@ def _render_into(
         joints_in_mask=on_person,
         joints_on_own_mask=on_own,
     )
-
-
-def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:
-    """Camera names of a rendered scene (from scene.json)."""
-    path = Path(scene_dir) / "scene.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: not a synth scene folder")
-    return json.loads(path.read_text())["cameras"]
