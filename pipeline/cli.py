@@ -14,12 +14,12 @@ from pathlib import Path
 
 from rich.table import Table
 
+from gst.atomic import remove_path
 from pipeline.config import PipelineConfig, load_config
 from pipeline.console import ProgressBars, make_console, print_error, setup_logging
 from pipeline.dag import upstream_closure
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.executors import make_executor
-from pipeline.fsutil import remove_path
 from pipeline.registry import load_stages
 from pipeline.runner import MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
 

@@ -87,6 +87,10 @@ class SceneConfig(Strict):
         """The scene's camera videos, sorted by name (empty for synthetic scenes)."""
         return _expand(self.videos)
 
+    def board_videos(self) -> list[Path]:
+        """The board footage's files (empty without a `board` block)."""
+        return _expand(self.board.videos) if self.board is not None else []
+
 
 class StageConfig(Strict):
     needs: list[str] = Field(default_factory=list)

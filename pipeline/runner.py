@@ -24,11 +24,11 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from gst.atomic import atomic_write_text, remove_path, replace_path
 from pipeline.config import PipelineConfig, format_validation_error
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import ConfigError, PipelineError, StageFailed
-from pipeline.fingerprint import HashCache, stage_fingerprint
-from pipeline.fsutil import atomic_write_text, remove_path, replace_path
+from pipeline.fingerprint import HashCache, code_digests, stage_fingerprint
 from pipeline.stage import Stage, StageContext
 
 log = logging.getLogger("pipeline")
@@ -53,10 +53,19 @@ def _safe_key(key: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.@-]+", "_", key)
 
 
-def _code_version(stage: Stage) -> str:
+PROJECT_ROOT = Path(__file__).resolve().parent.parent  # holds calibration/, gst/, synth/, stages/
+
+
+def stage_code(stage: Stage) -> tuple[str, dict[str, str]]:
+    """(code version, per-file digests) of what a stage runs: its declared version and the
+    source of its module plus every project module it imports, transitively. Editing a library
+    module a stage uses makes that stage stale; editing an unrelated one does not."""
     src = inspect.getsourcefile(stage.run)
-    digest = hashlib.sha256(Path(src).read_bytes()).hexdigest()[:16] if src else "unknown"
-    return f"{stage.version}:{digest}"
+    if src is None:
+        return f"{stage.version}:unknown", {}
+    files = code_digests(stage.run.__module__, Path(src), PROJECT_ROOT)
+    digest = hashlib.sha256(json.dumps(files, sort_keys=True).encode()).hexdigest()[:16]
+    return f"{stage.version}:{digest}", files
 
 
 def _diff_params(old: dict, new: dict, prefix: str = "") -> list[str]:
@@ -96,6 +105,7 @@ class Runner:
         self.hashes = HashCache(cfg.workspace / ".pipeline" / "hashcache.json")
         self.needs = {name: list(sc.needs) for name, sc in cfg.stages.items()}
         self._params = {name: self._validate_params(name) for name in cfg.stages}
+        self._code_cache: dict[str, tuple[str, dict[str, str]]] = {}
 
     # -- context and bookkeeping -------------------------------------------------------------
     def _validate_params(self, name: str):
@@ -135,6 +145,13 @@ class Runner:
     def key(self, name: str, ctx: StageContext | None = None) -> str:
         variant = self.stages[name].variant(ctx or self.context(name))
         return name if variant is None else f"{name}@{variant}"
+
+    def _code(self, name: str) -> tuple[str, dict[str, str]]:
+        """The stage's code version and per-file digests, computed once per runner (the code
+        does not change during a run)."""
+        if name not in self._code_cache:
+            self._code_cache[name] = stage_code(self.stages[name])
+        return self._code_cache[name]
 
     def _record_path(self, key: str) -> Path:
         return self.meta / "state" / f"{_safe_key(key)}.json"
@@ -181,7 +198,7 @@ class Runner:
             state = MISSING if record is None else STALE
             return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
         inputs = self._inputs(name, ctx)
-        code = _code_version(stage)
+        code, files = self._code(name)
         scene = self._scene_record()
         fp = stage_fingerprint(code, {"params": params, "scene": scene}, inputs)
         if record is None:
@@ -198,7 +215,12 @@ class Runner:
             return StageStatus(name, key, UP_TO_DATE, f"ran {record.get('finished', '?')}", fp)
         reasons = []
         if record.get("code") != code:
-            reasons.append("code changed")
+            old = record.get("code_files") or {}
+            edited = sorted(f for f in set(old) | set(files) if old.get(f) != files.get(f))
+            shown = ", ".join(edited[:3]) + (
+                f" and {len(edited) - 3} more" if len(edited) > 3 else ""
+            )
+            reasons.append(f"code changed: {shown}" if old and edited else "code changed")
         reasons += [f"param {c}" for c in _diff_params(record.get("params", {}), params)]
         old_scene = record.get(
             "scene_config", record.get("scene")
@@ -317,7 +339,8 @@ class Runner:
             "key": st.key,
             "scene": self.scene_name,
             "fingerprint": st.fingerprint,
-            "code": _code_version(stage),
+            "code": self._code(name)[0],
+            "code_files": self._code(name)[1],
             "params": ctx.params.model_dump(mode="json"),
             "scene_config": self._scene_record(),
             "inputs": self._inputs(name, ctx),

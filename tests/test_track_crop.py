@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import Camera
+from gst.data.camera_view import TrackingView, default_camera
 from gst.data.crop import (
     CropWindow,
     crop_intrinsics,
@@ -15,7 +16,6 @@ from gst.data.crop import (
     cut_undistorted_crop,
     distortion_maps,
 )
-from gst.track.view import TrackingView, default_camera
 
 finite = st.floats(-500, 2500, allow_nan=False)
 

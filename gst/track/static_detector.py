@@ -21,8 +21,8 @@ from calibration import Camera
 from gst.data.background import BackgroundConfig, build_background, sample_indices
 from gst.data.ground import ground_seed
 from gst.data.masks import MaskConfig, clean_mask
-from gst.data.video import probe_video, read_frames
 from gst.track.detection import Detection
+from gst.video import probe_video, read_frames
 
 
 def group_boxes(
@@ -80,7 +80,7 @@ class StaticCameraDetector:
         self.config = background or BackgroundConfig()
         self.mask_config = masks or MaskConfig()
         source = Path(plate) if plate is not None else Path(video)
-        info = probe_video(source, source.stem)
+        info = probe_video(source, source.stem, strict=True)
         # Boxes need no more than ~640 px of width: at 1080p that is 2.25x fewer pixels than
         # half size, and the background model is most of the per-frame cost.
         self.work_scale = (
