@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from gst.atomic import atomic_write
+from gst.atomic import atomic_path, atomic_write_text
 from gst.detect.blazepose import BlazePose, BodyRoi
 from gst.train.synthetic_crops import crops_from_synth_scene
 
@@ -72,12 +72,8 @@ class LandmarkWorld:
             if getattr(self, f.name) is not None
         }
         arrays["format_version"] = np.asarray(FORMAT_VERSION)
-
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as fh:  # a file object: savez would append .npz to a name
-                np.savez_compressed(fh, **arrays)
-
-        atomic_write(path, write)
+        with atomic_path(path) as tmp:  # same suffix: savez keeps the name as given
+            np.savez_compressed(tmp, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> LandmarkWorld:
@@ -258,7 +254,7 @@ def write_readme(root: Path, worlds: list[LandmarkWorld]) -> None:
     text = README.format(
         root=root, n=len(worlds), seed0=min(seeds), seed_last=max(seeds), table=table
     )
-    atomic_write(root / "README.md", lambda tmp: Path(tmp).write_text(text))
+    atomic_write_text(root / "README.md", text)
 
 
 def build(

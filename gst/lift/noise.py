@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gst.atomic import atomic_write
+from gst.atomic import atomic_write_text
 from gst.lift.errors import (
     CONF_BINS,
     LIMB_LANDMARKS,
@@ -316,7 +316,7 @@ class LandmarkNoise:
 
 def save_models(models: dict[str, LandmarkNoise], path: str | Path = DEFAULT_PATH) -> None:
     text = json.dumps({k: m.to_json() for k, m in models.items()}, indent=1)
-    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+    atomic_write_text(path, text)
 
 
 def load_models(path: str | Path = DEFAULT_PATH) -> dict[str, LandmarkNoise]:
@@ -381,7 +381,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{k}: fitted on {int(sel.sum())} crops")
     save_models(models, DEFAULT_PATH)
     text = json.dumps(stats, indent=1)
-    atomic_write(STATS_PATH, lambda tmp: Path(tmp).write_text(text))
+    atomic_write_text(STATS_PATH, text)
     print(f"worlds {stats['worlds']}: {DEFAULT_PATH}, {STATS_PATH}")
 
 
