@@ -73,3 +73,18 @@ def test_sampler_is_deterministic_and_varied(body):
     assert torch.equal(a.landmarks, b.landmarks) and torch.equal(a.rotmats_cam, b.rotmats_cam)
     assert not torch.allclose(a.joints_cam, c.joints_cam)
     assert a.betas[:, :10].std() > 0.3 and (a.betas[:, 10:] == 0).all()
+
+
+def test_all_33_landmarks_sit_on_the_virtual_markers(body):
+    s = LiftSampler(body, seed=4, landmark_set="all")
+    b = s.sample(64)
+    assert b.landmarks.shape == (64, 33, 3) and b.reference2d.shape == (64, 33, 2)
+    # the limb markers lie near their joints (a few cm: within 6% of the crop), the nose near
+    # the head joint, and every marker inherits its anchor joint's visibility
+    ji = [j for _, j in LIMB_LANDMARKS]
+    li = [m for m, _ in LIMB_LANDMARKS]
+    near = (b.reference2d[:, li] - b.joints2d[:, ji]).norm(dim=-1) / b.crop_size
+    assert near.median() < 0.03 and near.max() < 0.12
+    assert ((b.reference2d[:, 0] - b.joints2d[:, 15]).norm(dim=-1) / b.crop_size).max() < 0.15
+    anchors = s.markers.anchors
+    assert torch.equal(b.reference_visible, b.visible[:, anchors] & b.reference_visible)

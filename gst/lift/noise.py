@@ -1,25 +1,26 @@
 """Simulated BlazePose detections: the detector's error measured on rendered crops, replayed on
-true joint projections, so the landmark -> body path can be pretrained without rendering.
+true landmark positions, so the landmark -> body path can be pretrained without rendering.
 
-For each of the 12 limb landmarks (`gst.lift.errors.LIMB_LANDMARKS`) and each truth state
-(visible / occluded) the model holds, fitted on the landmark worlds (`gst.lift.dataset`):
+For each landmark of a set (`gst.lift.errors.LIMBS`: 12 limb landmarks against the joints;
+`ALL`: the 33 against the virtual markers) and each truth state (visible / occluded) the model
+holds, fitted on the landmark worlds (`gst.lift.dataset`):
 
-- a systematic offset in the frame of the limb's bone in the image (along the bone, across it),
-  because a landmark is not exactly where the body model's joint is (BlazePose's shoulder sits
-  higher than the joint, its knee lower);
+- a systematic offset in the frame of a bone in the image (along the bone, across it), for
+  what the reference point does not capture (BlazePose's shoulder sits higher than the joint);
 - Gaussian scatter around it (per axis, from the median residual, robust to the tail);
 - gross errors: with a per-landmark, per-state probability the landmark lands a distance drawn
   from the measured gross-error distribution away, in a random direction;
 - left/right confusion: a whole-body flip (every pair exchanged: the person read as facing the
-  other way) and independent single-pair swaps;
+  other way) and independent swaps per group of pairs (hand landmarks swap with the wrists);
 - the confidence (visibility x presence), drawn from the measured histogram of its landmark and
-  state, so occluded arms come out with low confidence as they do on real detections.
+  state, so occluded arms come out with low confidence as they do on real detections; low
+  confidence goes with larger errors (scatter and gross rate scaled per confidence band).
 
-`LandmarkNoise.fit(worlds)` builds it, `save`/`load` keep it as a small JSON
-(`gst/lift/blazepose_noise.json`, refit with `python -m gst.lift.noise --worlds DIR`), and
-`simulate` turns true 2D joints + visibility into detections. The statistics it reproduces are
-measured by `gst.lift.errors.detection_stats`, the same function for real and simulated
-detections; `tests/test_lift_noise.py` compares them.
+BlazePose is much worse on unusual poses, so each set has one model per pose kind ('motion':
+the motion library, 'random': independent random poses). `python -m gst.lift.noise --worlds DIR`
+fits them into `gst/lift/blazepose_noise.json` and writes the measured statistics beside it
+(`blazepose_error.json`); `tests/test_lift_noise.py` compares simulated and measured statistics
+(`gst.lift.errors.detection_stats`, the same function for both).
 """
 
 from __future__ import annotations
@@ -36,108 +37,121 @@ import torch
 from gst.atomic import atomic_write_text
 from gst.lift.errors import (
     CONF_BINS,
-    LIMB_LANDMARKS,
-    LR_PAIRS,
+    LANDMARK_SETS,
+    LIMBS,
     OUTLIER,
+    LandmarkSet,
     detection_stats,
+    flipped_crops,
     pair_swaps,
+    set_arrays,
+    swapped_landmarks,
 )
 
 DEFAULT_PATH = Path(__file__).with_name("blazepose_noise.json")
 STATS_PATH = Path(__file__).with_name("blazepose_error.json")
-N_LIMB = len(LIMB_LANDMARKS)
-# The bone whose image direction defines each limb landmark's offset frame: (from, to) joints.
-BONE_OF_LANDMARK: tuple[tuple[int, int], ...] = (
-    (16, 18),  # shoulder: upper arm
-    (17, 19),
-    (16, 18),  # elbow: upper arm
-    (17, 19),
-    (18, 20),  # wrist: forearm
-    (19, 21),
-    (1, 4),  # hip: thigh
-    (2, 5),
-    (1, 4),  # knee: thigh
-    (2, 5),
-    (4, 7),  # ankle: shin
-    (5, 8),
-)
+POSE_KINDS = ("motion", "random")
 CONF_BANDS = (0.5, 0.9)  # band edges: below 0.5 (a dropped detection), 0.5-0.9, above 0.9
 _MEDIAN_RADIUS = float(np.sqrt(2 * np.log(2)))  # median radius of a 2D unit Gaussian
 
 
-def bone_frames(joints2d: torch.Tensor | np.ndarray) -> tuple:
-    """Unit bone directions (..., 12, 2) and their normals (+90 degrees) in the image, for each
-    limb landmark; zero where the bone is shorter than 1e-3 crop sizes in the image."""
-    lib = torch if isinstance(joints2d, torch.Tensor) else np
-    a = joints2d[..., [b[0] for b in BONE_OF_LANDMARK], :]
-    b = joints2d[..., [b[1] for b in BONE_OF_LANDMARK], :]
+def bone_frames(joints2d, lset: LandmarkSet = LIMBS) -> tuple:
+    """Unit bone directions (..., L, 2) and their normals (+90 degrees) in the image, for each
+    landmark of the set; zero where the bone is shorter than 1e-3 crop sizes in the image."""
+    a = joints2d[..., [b[0] for b in lset.bones], :]
+    b = joints2d[..., [b[1] for b in lset.bones], :]
     d = b - a
-    n = (d**2).sum(-1, keepdims=True) ** 0.5 if lib is np else d.norm(dim=-1, keepdim=True)
+    if isinstance(d, torch.Tensor):
+        n = d.norm(dim=-1, keepdim=True)
+        unit = d / (n + 1e-9) * (n > 1e-3)
+        return unit, torch.stack([-unit[..., 1], unit[..., 0]], -1)
+    n = np.linalg.norm(d, axis=-1, keepdims=True)
     unit = d / (n + 1e-9) * (n > 1e-3)
-    normal = (
-        lib.stack([-unit[..., 1], unit[..., 0]], -1)
-        if lib is torch
-        else np.stack([-unit[..., 1], unit[..., 0]], -1)
-    )
-    return unit, normal
+    return unit, np.stack([-unit[..., 1], unit[..., 0]], -1)
+
+
+def _reference(lset: LandmarkSet, reference2d, visible):
+    """The LIMBS set takes the 24 joints and picks its own; any set takes (N, L) references."""
+    if reference2d.shape[1] != len(lset):
+        if lset.joints is None:
+            raise ValueError(f"set '{lset.name}' needs ({len(lset)}) reference points per crop")
+        return reference2d[:, list(lset.joints)], visible[:, list(lset.joints)]
+    return reference2d, visible
 
 
 @dataclass(frozen=True)
 class LandmarkNoise:
-    """Fitted detection-error model (crop-size units; state 0 = visible, 1 = occluded)."""
+    """Fitted detection-error model of one landmark set and pose kind (crop-size units;
+    state 0 = visible, 1 = occluded; L landmarks, G swap groups)."""
 
-    offset: np.ndarray  # (12, 2) mean (along bone, across bone) of inlier errors
-    sigma: np.ndarray  # (12, 2) scatter per state
-    gross: np.ndarray  # (12, 2) gross-error probability per state
+    set_name: str
+    offset: np.ndarray  # (L, 2) mean (along bone, across bone) of inlier errors
+    sigma: np.ndarray  # (L, 2) scatter per state
+    gross: np.ndarray  # (L, 2) gross-error probability per state
     gross_quantiles: np.ndarray  # (21,) distance of gross errors, quantiles 0, 0.05, .., 1
-    pair_swap: np.ndarray  # (6,) single-pair swap probability (outside whole-body flips)
+    pair_swap: np.ndarray  # (G,) swap probability per group (outside whole-body flips)
     flip: float  # whole-body left/right flip probability
-    conf_hist: np.ndarray  # (12, 2, 10) confidence histogram per landmark and state
-    # Low confidence goes with larger errors: scatter and gross-error probability are scaled
-    # per state and confidence band (CONF_BANDS), pooled over the landmarks.
-    band_sigma: np.ndarray  # (2, 3)
-    band_gross: np.ndarray  # (2, 3)
+    flip_follow: np.ndarray  # (G,) probability that a group is swapped in a flipped crop
+    conf_hist: np.ndarray  # (L, 2, 10) confidence histogram per landmark and state
+    band_sigma: np.ndarray  # (2, 3) scatter factor per state and confidence band
+    band_gross: np.ndarray  # (2, 3) gross-error factor per state and confidence band
     presence_quantiles: np.ndarray  # (21,)
+
+    @property
+    def lset(self) -> LandmarkSet:
+        return LANDMARK_SETS[self.set_name]
 
     # -- fitting ---------------------------------------------------------------------------
 
     @classmethod
-    def fit(cls, landmarks, presence, joints2d, visible, crop_size: float) -> LandmarkNoise:
-        """From detections (N, 33, 3) and presence (N,) against the truth (N, 24, 2), (N, 24)."""
-        lm_idx = [lm for lm, _ in LIMB_LANDMARKS]
-        j_idx = [j for _, j in LIMB_LANDMARKS]
-        det = landmarks[:, lm_idx, :2] / crop_size
-        conf = landmarks[:, lm_idx, 2] * presence[:, None]
-        tru = joints2d[:, j_idx] / crop_size
-        vis = visible[:, j_idx].astype(bool)
+    def fit(
+        cls,
+        landmarks,
+        presence,
+        reference2d,
+        visible,
+        joints2d,
+        crop_size: float,
+        lset: LandmarkSet = LIMBS,
+    ) -> LandmarkNoise:
+        """From detections (N, 33, 3) and presence (N,) against reference points (N, L, 2) crop
+        px with visibility (N, L) (for LIMBS the joints (N, 24, 2), (N, 24) do), and the true
+        joints (N, 24, 2) for the bone frames."""
+        ref, vis = _reference(lset, reference2d, visible)
+        L = len(lset)
+        det, conf = set_arrays(landmarks, presence, lset, crop_size)
+        tru = ref / crop_size
+        vis = vis.astype(bool)
         in_image = ((tru >= 0) & (tru <= 1)).all(-1)
-        swapped, countable = pair_swaps(det, tru, in_image)
-        swapped_lm = np.zeros_like(vis)
-        for k, (a, b) in enumerate(LR_PAIRS):
-            swapped_lm[:, a] |= swapped[:, k]
-            swapped_lm[:, b] |= swapped[:, k]
+        swapped, countable = pair_swaps(det, tru, in_image, lset.pairs)
+        swapped_lm = swapped_landmarks(swapped, lset.pairs, L)
         diff = det - tru
         err = np.linalg.norm(diff, axis=-1)
-        unit, normal = bone_frames(joints2d / crop_size)
+        unit, normal = bone_frames(joints2d / crop_size, lset)
         local = np.stack([(diff * unit).sum(-1), (diff * normal).sum(-1)], -1)
-        offset = np.zeros((N_LIMB, 2))
-        sigma = np.zeros((N_LIMB, 2))
-        gross = np.zeros((N_LIMB, 2))
-        hist = np.zeros((N_LIMB, 2, len(CONF_BINS) - 1))
+        offset = np.zeros((L, 2))
+        sigma = np.full((L, 2), 0.02)
+        gross = np.zeros((L, 2))
+        hist = np.zeros((L, 2, len(CONF_BINS) - 1))
+        hist[..., -1] = 1.0
         gross_d = []
-        for k in range(N_LIMB):
+        for k in range(L):
             good = vis[:, k] & ~swapped_lm[:, k] & (err[:, k] <= OUTLIER)
-            offset[k] = local[good, k].mean(0)
+            if good.sum() >= 5:
+                offset[k] = local[good, k].mean(0)
             for s, state in enumerate((vis[:, k], ~vis[:, k])):
                 pool = state & ~swapped_lm[:, k]
                 inl = pool & (err[:, k] <= OUTLIER)
-                resid = local[inl, k] - offset[k]
-                sigma[k, s] = np.median(np.linalg.norm(resid, axis=-1)) / _MEDIAN_RADIUS
-                gross[k, s] = (err[pool, k] > OUTLIER).mean()
-                gross_d.append(err[pool & (err[:, k] > OUTLIER), k])
-                h, _ = np.histogram(np.clip(conf[state, k], 0, 1), bins=CONF_BINS)
-                hist[k, s] = h / max(1, h.sum())
-        band = np.digitize(conf, CONF_BANDS)  # (N, 12) in 0..2
+                if inl.sum() >= 5:
+                    resid = local[inl, k] - offset[k]
+                    sigma[k, s] = np.median(np.linalg.norm(resid, axis=-1)) / _MEDIAN_RADIUS
+                if pool.sum() >= 5:
+                    gross[k, s] = (err[pool, k] > OUTLIER).mean()
+                    gross_d.append(err[pool & (err[:, k] > OUTLIER), k])
+                if state.sum() >= 5:
+                    h, _ = np.histogram(np.clip(conf[state, k], 0, 1), bins=CONF_BINS)
+                    hist[k, s] = h / h.sum()
+        band = np.digitize(conf, CONF_BANDS)  # (N, L) in 0..2
         band_sigma = np.ones((2, len(CONF_BANDS) + 1))
         band_gross = np.ones_like(band_sigma)
         for s, state in enumerate((vis, ~vis)):
@@ -149,49 +163,67 @@ class LandmarkNoise:
                 if sel.sum() >= 20:
                     band_sigma[s, b] = np.median(err[sel & (err <= OUTLIER)]) / all_med
                     band_gross[s, b] = (err[sel] > OUTLIER).mean() / max(all_gross, 1e-6)
-        n_count = countable.sum(1)
-        flipped = (n_count > 0) & (swapped.sum(1) * 2 > n_count)
-        flip = float(flipped.mean())
-        # single-pair swaps outside flips; in a flipped crop a pair is swapped unless it is
-        # itself swapped back, so only unflipped crops measure the independent rate
+        flipped = flipped_crops(swapped, countable)
+        # swaps outside flips: in a flipped crop a pair is swapped unless swapped back, so only
+        # unflipped crops measure the independent rate (pooled over each group's pairs)
         unflipped = countable & ~flipped[:, None]
-        pair = (swapped & unflipped).sum(0) / np.maximum(unflipped.sum(0), 1)
+        group = np.asarray(lset.swap_group)
+        pair = np.array(
+            [
+                (swapped & unflipped)[:, group == g].sum() / max(unflipped[:, group == g].sum(), 1)
+                for g in range(lset.n_groups)
+            ]
+        )
+        follow = np.array(
+            [
+                (swapped & countable)[flipped][:, group == g].sum()
+                / max(countable[flipped][:, group == g].sum(), 1)
+                for g in range(lset.n_groups)
+            ]
+        )
         q = np.linspace(0, 1, 21)
         model = cls(
+            set_name=lset.name,
             offset=offset,
             sigma=sigma,
             gross=gross,
             gross_quantiles=np.quantile(np.concatenate(gross_d), q),
             pair_swap=pair,
-            flip=flip,
+            flip=float(flipped.mean()),
+            flip_follow=follow,
             conf_hist=hist,
             band_sigma=band_sigma,
             band_gross=band_gross,
             presence_quantiles=np.quantile(presence, q),
         )
-        return model.calibrated(landmarks, presence, joints2d, visible, crop_size)
+        return model.calibrated(landmarks, presence, ref, vis, joints2d, crop_size)
 
     def calibrated(
-        self, landmarks, presence, joints2d, visible, crop_size: float, rounds: int = 4
+        self, landmarks, presence, reference2d, visible, joints2d, crop_size: float, rounds: int = 4
     ) -> LandmarkNoise:
         """Moment matching: simulate on the same truth, then scale each landmark's scatter and
-        gross-error probability, and shift the pair-swap rates, until the simulated median
-        error, gross-error and swap rates equal the measured ones (the confidence bands and
-        the Gaussian tail make the closed-form estimates above biased)."""
-        real = detection_stats(landmarks, presence, joints2d, visible, crop_size)
+        gross-error probability, and shift the swap rates, until the simulated median error,
+        gross-error and swap rates equal the measured ones (the confidence bands and the
+        Gaussian tail make the closed-form estimates above biased)."""
+        lset = self.lset
+        real = detection_stats(landmarks, presence, reference2d, visible, crop_size, lset)
         model = self
-        j2 = torch.as_tensor(joints2d, dtype=torch.float64)
+        ref = torch.as_tensor(reference2d, dtype=torch.float64)
         vis = torch.as_tensor(visible)
+        j2 = torch.as_tensor(joints2d, dtype=torch.float64)
+        reps = max(1, 20000 // len(ref))
+        ref_r, vis_r, j2_r = ref.repeat(reps, 1, 1), vis.repeat(reps, 1), j2.repeat(reps, 1, 1)
+        group = np.asarray(lset.swap_group)
         for r in range(rounds):
             gen = torch.Generator().manual_seed(1234 + r)
-            reps = max(1, 20000 // len(j2))
-            sim, pres = model.simulate(j2.repeat(reps, 1, 1), vis.repeat(reps, 1), crop_size, gen)
+            sim, pres = model.simulate(ref_r, vis_r, j2_r, crop_size, gen)
             st = detection_stats(
-                as_detections(sim, pres),
+                as_detections(sim, pres, lset),
                 pres.numpy(),
-                j2.repeat(reps, 1, 1).numpy(),
-                vis.repeat(reps, 1).numpy(),
+                ref_r.numpy(),
+                vis_r.numpy(),
                 crop_size,
+                lset,
             )
             with np.errstate(invalid="ignore", divide="ignore"):
                 med = np.stack(
@@ -208,59 +240,75 @@ class LandmarkNoise:
                     ],
                     1,
                 )
+                dswap = real.swap_rate - st.swap_rate
+                shift = np.array(
+                    [
+                        np.nanmean(dswap[group == g]) if np.isfinite(dswap[group == g]).any() else 0
+                        for g in range(lset.n_groups)
+                    ]
+                )
             model = dataclasses.replace(
                 model,
-                sigma=model.sigma * np.nan_to_num(med, nan=1.0),
+                sigma=model.sigma * np.nan_to_num(med, nan=1.0, posinf=1.0),
                 gross=np.clip(model.gross * np.nan_to_num(out, nan=1.0, posinf=1.0), 0, 1),
-                pair_swap=np.clip(
-                    model.pair_swap + np.nan_to_num(real.swap_rate - st.swap_rate), 0, 1
-                ),
+                pair_swap=np.clip(model.pair_swap + shift, 0, 1),
             )
         return model
 
     # -- storage ---------------------------------------------------------------------------
 
     def to_json(self) -> dict:
-        return {
-            f.name: np.asarray(getattr(self, f.name)).round(6).tolist()
-            if isinstance(getattr(self, f.name), np.ndarray)
-            else round(float(getattr(self, f.name)), 6)
-            for f in fields(self)
-        }
+        out = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, np.ndarray):
+                out[f.name] = np.asarray(v, np.float64).round(6).tolist()
+            elif isinstance(v, str):
+                out[f.name] = v
+            else:
+                out[f.name] = round(float(v), 6)
+        return out
 
     @classmethod
     def from_json(cls, d: dict, where: str = "") -> LandmarkNoise:
         expected = {f.name for f in fields(cls)}
         if set(d) != expected:
             raise ValueError(f"{where}: keys {sorted(d)} differ from {sorted(expected)}")
-        return cls(
-            **{k: (np.asarray(v) if isinstance(v, list) else float(v)) for k, v in d.items()}
-        )
+        kw = {}
+        for k, v in d.items():
+            kw[k] = (
+                np.asarray(v) if isinstance(v, list) else (v if isinstance(v, str) else float(v))
+            )
+        if kw["set_name"] not in LANDMARK_SETS:
+            raise ValueError(f"{where}: unknown landmark set {kw['set_name']!r}")
+        return cls(**kw)
 
     @classmethod
-    def load(cls, path: str | Path = DEFAULT_PATH, kind: str = "motion") -> LandmarkNoise:
-        """The model of one pose kind ('motion' or 'random') from a saved JSON."""
-        models = json.loads(Path(path).read_text())
-        if kind not in models:
-            raise ValueError(f"{path}: no noise model for pose kind '{kind}' ({sorted(models)})")
-        return cls.from_json(models[kind], f"{path} [{kind}]")
+    def load(
+        cls, path: str | Path = DEFAULT_PATH, kind: str = "motion", set_name: str = "limbs"
+    ) -> LandmarkNoise:
+        """The model of one landmark set and pose kind ('motion' or 'random') from a JSON."""
+        return load_models(path, set_name)[kind] if kind in POSE_KINDS else _bad_kind(path, kind)
 
     # -- simulation ------------------------------------------------------------------------
 
     def simulate(
         self,
-        joints2d: torch.Tensor,
+        reference2d: torch.Tensor,
         visible: torch.Tensor,
+        joints2d: torch.Tensor,
         crop_size: float,
         generator: torch.Generator | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """True joints (B, 24, 2) crop px and visibility (B, 24) -> simulated limb landmarks
-        (B, 12, 3): u, v crop px and confidence (visibility x presence, as detections carry),
-        and the presence (B,). Landmarks are in LIMB_LANDMARKS order."""
+        """True landmark positions (B, L, 2) crop px (for LIMBS the joints (B, 24, 2) do) with
+        visibility, and the true joints (B, 24, 2) for the bone frames -> simulated landmarks
+        (B, L, 3): u, v crop px and confidence (visibility x presence, as detections carry),
+        and the presence (B,)."""
+        lset = self.lset
+        reference2d, visible = _reference(lset, reference2d, visible)
         g = generator
-        dev, dt = joints2d.device, joints2d.dtype
-        B = joints2d.shape[0]
-        j_idx = [j for _, j in LIMB_LANDMARKS]
+        dev, dt = reference2d.device, reference2d.dtype
+        B, L = reference2d.shape[:2]
 
         def t(x):
             return torch.as_tensor(np.asarray(x), dtype=dt, device=dev)
@@ -268,89 +316,100 @@ class LandmarkNoise:
         def rand(*shape):
             return torch.rand(*shape, generator=g, device=dev, dtype=dt)
 
-        def randn(*shape):
-            return torch.randn(*shape, generator=g, device=dev, dtype=dt)
-
-        tru = joints2d[:, j_idx] / crop_size  # (B, 12, 2)
-        occ = ~visible[:, j_idx].bool()
-        state = occ.long()  # 0 visible, 1 occluded
+        tru = reference2d / crop_size
+        state = (~visible.bool()).long()  # 0 visible, 1 occluded
         # confidence from the landmark's histogram in its state, uniform within the bin
-        cdf = t(np.cumsum(self.conf_hist, -1))  # (12, 2, 10)
-        cdf_b = cdf[torch.arange(N_LIMB, device=dev)[None], state]  # (B, 12, 10)
-        r = rand(B, N_LIMB, 1)
-        bin_ = (r > cdf_b).sum(-1).clamp(max=len(CONF_BINS) - 2)
-        conf = (bin_.to(dt) + rand(B, N_LIMB)) / (len(CONF_BINS) - 1)
-        band = torch.bucketize(conf, t(CONF_BANDS), right=True)  # (B, 12) in 0..2
-        unit, normal = bone_frames(joints2d / crop_size)
+        cdf = t(np.cumsum(self.conf_hist, -1))  # (L, 2, 10)
+        cdf_b = cdf[torch.arange(L, device=dev)[None], state]  # (B, L, 10)
+        bin_ = (rand(B, L, 1) > cdf_b).sum(-1).clamp(max=len(CONF_BINS) - 2)
+        conf = (bin_.to(dt) + rand(B, L)) / (len(CONF_BINS) - 1)
+        band = torch.bucketize(conf, t(CONF_BANDS), right=True)  # (B, L) in 0..2
+        unit, normal = bone_frames(joints2d.to(dt) / crop_size, lset)
         off = t(self.offset)
         det = tru + off[None, :, :1] * unit + off[None, :, 1:] * normal
-        sig = t(self.sigma).gather(1, state.T).T * t(self.band_sigma)[state, band]  # (B, 12)
-        det = det + randn(B, N_LIMB, 2) * sig[..., None]
+        idx = torch.arange(L, device=dev)[None].expand(B, L)
+        sig = t(self.sigma)[idx, state] * t(self.band_sigma)[state, band]
+        det = det + torch.randn(B, L, 2, generator=g, device=dev, dtype=dt) * sig[..., None]
         # gross errors: inverse-CDF draw of the distance, uniform direction
-        p_gross = t(self.gross).gather(1, state.T).T * t(self.band_gross)[state, band]
-        is_gross = rand(B, N_LIMB) < p_gross
-        q = t(self.gross_quantiles)
-        u = rand(B, N_LIMB) * (len(q) - 1)
-        lo = u.floor().long().clamp(max=len(q) - 2)
-        dist = q[lo] + (u - lo) * (q[lo + 1] - q[lo])
-        ang = rand(B, N_LIMB) * (2 * np.pi)
+        p_gross = t(self.gross)[idx, state] * t(self.band_gross)[state, band]
+        is_gross = rand(B, L) < p_gross
+        dist = _inverse_cdf(t(self.gross_quantiles), rand(B, L))
+        ang = rand(B, L) * (2 * np.pi)
         jump = torch.stack([ang.cos(), ang.sin()], -1) * dist[..., None]
         det = torch.where(is_gross[..., None], tru + jump, det)
-        # left/right: whole-body flips, then independent pair swaps (exchange the detections)
+        # left/right: whole-body flips, then independent swaps per group (exchange detections)
         flip = rand(B) < self.flip
-        swap = flip[:, None] ^ (rand(B, len(LR_PAIRS)) < t(self.pair_swap))
-        left = torch.tensor([a for a, _ in LR_PAIRS], device=dev)
-        right = torch.tensor([b for _, b in LR_PAIRS], device=dev)
+        u = rand(B, lset.n_groups)
+        grp = torch.where(flip[:, None], u < t(self.flip_follow), u < t(self.pair_swap))
+        swap = grp[:, list(lset.swap_group)]  # (B, P)
+        left = torch.tensor([a for a, _ in lset.pairs], device=dev)
+        right = torch.tensor([b for _, b in lset.pairs], device=dev)
+        # (positions only: the measured confidence of a landmark follows its own truth state)
         dl, dr = det[:, left], det[:, right]
         det = det.clone()
         det[:, left] = torch.where(swap[..., None], dr, dl)
         det[:, right] = torch.where(swap[..., None], dl, dr)
-        # presence: inverse CDF; the landmark confidence already includes it (measured product)
-        pq = t(self.presence_quantiles)
-        u = rand(B) * (len(pq) - 1)
-        lo = u.floor().long().clamp(max=len(pq) - 2)
-        presence = pq[lo] + (u - lo) * (pq[lo + 1] - pq[lo])
-        out = torch.cat([det * crop_size, conf[..., None]], -1)
-        return out, presence
+        presence = _inverse_cdf(t(self.presence_quantiles), rand(B))
+        return torch.cat([det * crop_size, conf[..., None]], -1), presence
 
 
-def save_models(models: dict[str, LandmarkNoise], path: str | Path = DEFAULT_PATH) -> None:
-    text = json.dumps({k: m.to_json() for k, m in models.items()}, indent=1)
-    atomic_write_text(path, text)
+def _bad_kind(path, kind):
+    raise ValueError(f"{path}: no noise model for pose kind '{kind}' (expected {POSE_KINDS})")
 
 
-def load_models(path: str | Path = DEFAULT_PATH) -> dict[str, LandmarkNoise]:
-    """Every pose kind's model: {'motion': ..., 'random': ...}."""
+def _inverse_cdf(q: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Piecewise-linear inverse CDF through the quantiles q (K,) at u in [0, 1)."""
+    x = u * (len(q) - 1)
+    lo = x.floor().long().clamp(max=len(q) - 2)
+    return q[lo] + (x - lo) * (q[lo + 1] - q[lo])
+
+
+def save_models(
+    models: dict[str, dict[str, LandmarkNoise]], path: str | Path = DEFAULT_PATH
+) -> None:
+    """{set name: {pose kind: model}} as one JSON."""
+    doc = {s: {k: m.to_json() for k, m in kinds.items()} for s, kinds in models.items()}
+    atomic_write_text(path, json.dumps(doc, indent=1))
+
+
+def load_models(
+    path: str | Path = DEFAULT_PATH, set_name: str = "limbs"
+) -> dict[str, LandmarkNoise]:
+    """Every pose kind's model of one landmark set: {'motion': ..., 'random': ...}."""
+    doc = json.loads(Path(path).read_text())
+    if set_name not in doc:
+        raise ValueError(f"{path}: no noise models for landmark set '{set_name}' ({sorted(doc)})")
     return {
-        k: LandmarkNoise.from_json(v, f"{path} [{k}]")
-        for k, v in json.loads(Path(path).read_text()).items()
+        k: LandmarkNoise.from_json(v, f"{path} [{set_name}/{k}]") for k, v in doc[set_name].items()
     }
 
 
-def limb_landmarks(landmarks: np.ndarray | torch.Tensor, presence) -> np.ndarray | torch.Tensor:
-    """Real detections (N, 33, 3) + presence (N,) -> (N, 12, 3) in the simulator's layout:
+def set_landmarks(landmarks, presence, lset: LandmarkSet = LIMBS):
+    """Real detections (N, 33, 3) + presence (N,) -> (N, L, 3) in the simulator's layout:
     u, v crop px and confidence = visibility x presence."""
-    idx = [lm for lm, _ in LIMB_LANDMARKS]
-    sub = landmarks[:, idx]
+    sub = landmarks[:, list(lset.ids)]
     conf = sub[..., 2] * presence[:, None]
     if isinstance(sub, torch.Tensor):
         return torch.cat([sub[..., :2], conf[..., None]], -1)
     return np.concatenate([sub[..., :2], conf[..., None]], -1)
 
 
-def as_detections(sim: torch.Tensor, presence: torch.Tensor) -> np.ndarray:
-    """Simulated (B, 12, 3) limb landmarks -> (B, 33, 3) in BlazePose's layout with the
+def limb_landmarks(landmarks, presence):
+    return set_landmarks(landmarks, presence, LIMBS)
+
+
+def as_detections(
+    sim: torch.Tensor, presence: torch.Tensor, lset: LandmarkSet = LIMBS
+) -> np.ndarray:
+    """Simulated (B, L, 3) landmarks -> (B, 33, 3) in BlazePose's layout with the
     visibility = confidence / presence (others zero), for `detection_stats`."""
     out = np.zeros((sim.shape[0], 33, 3), np.float32)
-    idx = [lm for lm, _ in LIMB_LANDMARKS]
+    idx = list(lset.ids)
     s = sim.detach().cpu().numpy()
     p = presence.detach().cpu().numpy()
     out[:, idx, :2] = s[..., :2]
     out[:, idx, 2] = s[..., 2] / np.maximum(p[:, None], 1e-6)
     return out
-
-
-POSE_KINDS = ("motion", "random")
 
 
 def pose_kind(motion: np.ndarray) -> np.ndarray:
@@ -359,29 +418,41 @@ def pose_kind(motion: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from gst.body import load_body_model
     from gst.lift.dataset import load_worlds
+    from gst.lift.references import world_references
 
-    ap = argparse.ArgumentParser(description="fit the BlazePose noise model on landmark worlds")
+    ap = argparse.ArgumentParser(description="fit the BlazePose noise models on landmark worlds")
     ap.add_argument("--worlds", type=Path, required=True)
     ap.add_argument("--exclude-seed", type=int, action="append", default=[])
     args = ap.parse_args(argv)
+    torch.set_num_threads(1)
     worlds = [w for w in load_worlds(args.worlds) if w.seed not in args.exclude_seed]
+    body = load_body_model("anny")
+    refs = [world_references(w, body) for w in worlds]
 
     def cat(k):
         return np.concatenate([getattr(w, k) for w in worlds])
 
     kind = pose_kind(cat("motion"))
     size = worlds[0].crop_size
-    models, stats = {}, {"worlds": [w.seed for w in worlds]}
-    for k in POSE_KINDS:
-        sel = kind == k
-        arrays = tuple(cat(n)[sel] for n in ("landmarks", "presence", "joints2d", "visible"))
-        models[k] = LandmarkNoise.fit(*arrays, size)
-        stats[k] = detection_stats(*arrays, size).to_json()
-        print(f"{k}: fitted on {int(sel.sum())} crops")
+    truth = {
+        "limbs": (cat("joints2d"), cat("visible")),
+        "all": (np.concatenate([r[0] for r in refs]), np.concatenate([r[1] for r in refs])),
+    }
+    models: dict = {}
+    stats: dict = {"worlds": [w.seed for w in worlds]}
+    for set_name, (ref, vis) in truth.items():
+        lset = LANDMARK_SETS[set_name]
+        models[set_name], stats[set_name] = {}, {}
+        for k in POSE_KINDS:
+            sel = kind == k
+            args_ = (cat("landmarks")[sel], cat("presence")[sel], ref[sel], vis[sel])
+            models[set_name][k] = LandmarkNoise.fit(*args_, cat("joints2d")[sel], size, lset)
+            stats[set_name][k] = detection_stats(*args_, size, lset).to_json()
+            print(f"{set_name}/{k}: fitted on {int(sel.sum())} crops")
     save_models(models, DEFAULT_PATH)
-    text = json.dumps(stats, indent=1)
-    atomic_write_text(STATS_PATH, text)
+    atomic_write_text(STATS_PATH, json.dumps(stats, indent=1))
     print(f"worlds {stats['worlds']}: {DEFAULT_PATH}, {STATS_PATH}")
 
 

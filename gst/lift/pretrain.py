@@ -22,14 +22,16 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from gst.body import BodyModel
 from gst.lift.dataset import LandmarkWorld
-from gst.lift.noise import limb_landmarks
+from gst.lift.errors import LANDMARK_SETS
+from gst.lift.noise import set_landmarks
 from gst.lift.sampler import LiftSampler
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.model.assemble import camera_translation, to_world
@@ -117,7 +119,14 @@ def pretrain_landmark_path(
     if net.landmark_encoder is None:
         raise ValueError("pretrain_landmark_path needs a network built with landmark_tokens")
     torch.manual_seed(cfg.seed)
-    sampler = sampler or LiftSampler(body, crop_size=cfg.crop_size, seed=cfg.seed)
+    sampler = sampler or LiftSampler(
+        body, crop_size=cfg.crop_size, seed=cfg.seed, landmark_set=landmark_set_of(net).name
+    )
+    if len(sampler.lset) != net.cfg.num_landmarks:
+        raise ValueError(
+            f"the sampler simulates {len(sampler.lset)} landmarks, the network takes "
+            f"{net.cfg.num_landmarks}"
+        )
     params = trainable_parameters(net)
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
@@ -220,10 +229,19 @@ def score(pred_world: torch.Tensor, gt_world: torch.Tensor) -> PoseScore:
     )
 
 
+def landmark_set_of(net: GSTNetwork):
+    """The landmark set a network takes (by its number of landmarks)."""
+    for lset in LANDMARK_SETS.values():
+        if len(lset) == net.cfg.num_landmarks:
+            return lset
+    raise ValueError(f"no landmark set has {net.cfg.num_landmarks} landmarks")
+
+
 def evaluate_world(net: GSTNetwork, body: BodyModel, world: LandmarkWorld) -> PoseScore:
     """Single-image pose from the world's real BlazePose detections, landmark path only."""
     f32 = torch.float32
-    lm = torch.as_tensor(limb_landmarks(world.landmarks, world.presence), dtype=f32)
+    lset = landmark_set_of(net)
+    lm = torch.as_tensor(set_landmarks(world.landmarks, world.presence, lset), dtype=f32)
     pred = predict_world_joints(
         net,
         body,
@@ -234,3 +252,54 @@ def evaluate_world(net: GSTNetwork, body: BodyModel, world: LandmarkWorld) -> Po
         world.crop_size,
     )
     return score(pred.double(), torch.as_tensor(world.joints_world, dtype=torch.float64))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Pretrain the landmark path of a tiny GST and score it on landmark worlds:
+
+    python -m gst.lift.pretrain --out lift.pt --steps 3000 --val held=world_7000.npz
+    """
+    import argparse
+    import json
+
+    from gst.body import load_body_model
+    from gst.model.checkpoint import save_checkpoint
+    from gst.model.presets import PRESETS, get_preset
+    from gst.train.recipe import build_network
+
+    ap = argparse.ArgumentParser(description="render-free pretraining of the landmark path")
+    ap.add_argument("--out", type=Path, required=True, help="checkpoint to write")
+    ap.add_argument("--preset", default="tiny", choices=sorted(PRESETS))
+    ap.add_argument("--steps", type=int, default=LiftPretrainConfig.steps)
+    ap.add_argument("--batch-size", type=int, default=LiftPretrainConfig.batch_size)
+    ap.add_argument("--lr", type=float, default=LiftPretrainConfig.lr)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--val", action="append", default=[], help="NAME=world.npz (repeatable)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--landmarks", default="limbs", choices=sorted(LANDMARK_SETS))
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    val = {}
+    for item in args.val:
+        name, _, path = item.partition("=")
+        if not path:
+            raise SystemExit(f"--val expects NAME=PATH, got {item!r}")
+        val[name] = LandmarkWorld.load(path)
+    body = load_body_model("anny")
+    n = len(LANDMARK_SETS[args.landmarks])
+    cfg_net = get_preset(args.preset, landmark_tokens=True, num_landmarks=n)
+    net, ids, groups = build_network(cfg_net, body, args.seed)
+    cfg = LiftPretrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        val_every=max(1, args.steps // 6),
+    )
+    res = pretrain_landmark_path(net, body, cfg, validation=val)
+    save_checkpoint(args.out, net, "anny", ids, groups, {"lift_pretrain": asdict(res)})
+    print(json.dumps(asdict(res), indent=1))
+
+
+if __name__ == "__main__":
+    main()

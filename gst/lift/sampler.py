@@ -19,7 +19,9 @@ Everything is batched torch after a one-off setup (about a second):
   0.25 m behind the surface it projects onto is occluded, the synthetic truth's rule), joints
   outside the crop, and with probability `occluder_p` a random box standing for another
   person in front;
-- detections: `gst.lift.noise.LandmarkNoise.simulate` on the true 2D joints and visibility.
+- detections: `gst.lift.noise.LandmarkNoise.simulate` on the true landmark positions (the
+  joints for the 12 limb landmarks, `landmark_set="limbs"`; the virtual markers of
+  `gst.body.markers` for all 33, `landmark_set="all"`) and their visibility.
 
 The body pose follows the synthetic worlds' convention: angles authored against the T-pose are
 turned into the body model's local rotations with its rest corrections at the mean shape
@@ -35,9 +37,10 @@ import torch
 
 from gst.body import BodyModel
 from gst.body.joint_limits import sample_body_pose
+from gst.body.markers import MarkerModel
 from gst.body.subsets import vertex_subset
 from gst.data.crop import CROP_ENLARGE
-from gst.lift.errors import LIMB_LANDMARKS
+from gst.lift.errors import LANDMARK_SETS
 from gst.lift.noise import LandmarkNoise, load_models
 from synth.motions import MOTIONS, generate_motion, random_static_poses
 from synth.rigs import RIG_KINDS, make_rig
@@ -51,7 +54,7 @@ OCCLUSION_DEPTH = 0.25  # metres, as the synthetic truth's visibility rule
 class LiftBatch:
     """One batch of simulated crops (B samples). Pixel units are the crop's."""
 
-    landmarks: torch.Tensor  # (B, 12, 3) simulated limb landmarks: u, v, confidence
+    landmarks: torch.Tensor  # (B, L, 3) simulated landmarks of the set: u, v, confidence
     presence: torch.Tensor  # (B,)
     K: torch.Tensor  # (B, 3, 3) crop intrinsics
     R: torch.Tensor  # (B, 3, 3) world -> camera
@@ -61,6 +64,8 @@ class LiftBatch:
     joints_cam: torch.Tensor  # (B, 24, 3) metres
     joints2d: torch.Tensor  # (B, 24, 2) crop px
     visible: torch.Tensor  # (B, 24) bool
+    reference2d: torch.Tensor  # (B, L, 2) true landmark positions, crop px
+    reference_visible: torch.Tensor  # (B, L) bool
     random_pose: torch.Tensor  # (B,) bool: a random pose (simulated with that kind's noise)
     crop_size: int
 
@@ -145,6 +150,7 @@ class LiftSampler:
         body: BodyModel,
         noise: LandmarkNoise | dict[str, LandmarkNoise] | None = None,
         crop_size: int = 256,
+        landmark_set: str = "limbs",
         seed: int = 0,
         blend_p: float = 0.3,
         uniform_p: float = 0.1,
@@ -156,8 +162,15 @@ class LiftSampler:
         self.body = body
         # BlazePose is much worse on unusual poses (docs/landmark_prior.md): one noise model for
         # the library's motions, one for random poses; a single model serves both if given
-        noise = load_models() if noise is None else noise
+        self.lset = LANDMARK_SETS[landmark_set]
+        noise = load_models(set_name=landmark_set) if noise is None else noise
         self.noise = noise if isinstance(noise, dict) else {"motion": noise, "random": noise}
+        for m in self.noise.values():
+            if m.set_name != landmark_set:
+                raise ValueError(
+                    f"noise model of set '{m.set_name}' given for landmark set '{landmark_set}'"
+                )
+        self.markers = MarkerModel.load() if landmark_set != "limbs" else None
         self.crop_size = int(crop_size)
         self.blend_p, self.uniform_p, self.occluder_p = blend_p, uniform_p, occluder_p
         self.box_jitter, self.zbuffer = box_jitter, zbuffer
@@ -238,20 +251,27 @@ class LiftSampler:
             root_world.to(dt),
             torch.zeros(B, 3, dtype=dt),
             vertex_ids=self.vids,
+            return_transforms=self.markers is not None,
         )
         verts, joints = out.vertices.float(), out.joints.float()
+        marks = self.markers.positions(out).float() if self.markers is not None else None
         shift = torch.zeros(B, 3)
         shift[:, :2] = spot - joints[:, 0, :2]
         shift[:, 2] = -verts[..., 2].amin(1)  # lowest point on the floor (airborne poses too)
         verts, joints = verts + shift[:, None], joints + shift[:, None]
+        if marks is not None:
+            marks = marks + shift[:, None]
         vc = verts @ R.transpose(1, 2) + t[:, None]
         jc = joints @ R.transpose(1, 2) + t[:, None]
+        mc = marks @ R.transpose(1, 2) + t[:, None] if marks is not None else None
         # bodies behind or grazing a camera: move them in front (rare; keeps the batch full)
         bad = vc[..., 2].amin(1) < 0.5
         if bad.any():
             push = (0.5 - vc[bad, :, 2].amin(1)).clamp_min(0) + 1.0
             vc[bad, :, 2] += push[:, None]
             jc[bad, :, 2] += push[:, None]
+            if mc is not None:
+                mc[bad, :, 2] += push[:, None]
         uv = vc[..., :2] / vc[..., 2:] @ K[:, :2, :2].transpose(1, 2) + K[:, None, :2, 2]
         lo, hi = uv.amin(1), uv.amax(1)
         centre = (lo + hi) / 2 + (hi - lo) * self.box_jitter * torch.randn(B, 2, generator=self.gen)
@@ -267,12 +287,17 @@ class LiftSampler:
         j2 = jc[..., :2] / jc[..., 2:] @ Kc[:, :2, :2].transpose(1, 2) + Kc[:, None, :2, 2]
         v2 = vc[..., :2] / vc[..., 2:] @ Kc[:, :2, :2].transpose(1, 2) + Kc[:, None, :2, 2]
         visible = self._visibility(v2, vc[..., 2], j2, jc[..., 2])
-        det = torch.zeros(B, len(LIMB_LANDMARKS), 3)
+        if mc is not None:
+            ref = mc[..., :2] / mc[..., 2:] @ Kc[:, :2, :2].transpose(1, 2) + Kc[:, None, :2, 2]
+            ref_vis = visible[:, self.markers.anchors] & (mc[..., 2] > 0)
+        else:
+            ref, ref_vis = j2[:, list(self.lset.joints)], visible[:, list(self.lset.joints)]
+        det = torch.zeros(B, len(self.lset), 3)
         presence = torch.zeros(B)
         for kind, sel in (("motion", ~random_pose), ("random", random_pose)):
             if sel.any():
                 det[sel], presence[sel] = self.noise[kind].simulate(
-                    j2[sel], visible[sel], S, self.gen
+                    ref[sel], ref_vis[sel], j2[sel], S, self.gen
                 )
         rot_cam = local.clone()
         rot_cam[:, 0] = R @ root_world
@@ -287,6 +312,8 @@ class LiftSampler:
             joints_cam=jc,
             joints2d=j2,
             visible=visible,
+            reference2d=ref,
+            reference_visible=ref_vis,
             random_pose=random_pose,
             crop_size=S,
         )
