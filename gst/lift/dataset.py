@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
+import torch
 
 from gst.atomic import atomic_path, atomic_write_text
 from gst.detect.blazepose import BlazePose, BodyRoi
@@ -151,26 +152,69 @@ def _people_columns(scene_dir: Path) -> tuple[dict[tuple[int, int], int], dict[s
     return index, cols
 
 
+def detect_crops(
+    images: np.ndarray | torch.Tensor, model: BlazePose
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """BlazePose on (N, S, S, 3) uint8 RGB crops, each crop as one region of interest:
+    landmarks (N, 33, 3) crop px + visibility, world landmarks (N, 33, 3), presence (N,)."""
+    images = np.asarray(images)
+    n, size = len(images), images.shape[1]
+    roi = BodyRoi(((size - 1) / 2, (size - 1) / 2), float(size), 0.0)
+    lms = np.zeros((n, 33, 3), np.float32)
+    world = np.zeros((n, 33, 3), np.float32)
+    presence = np.zeros(n, np.float32)
+    for i in range(n):
+        seg = model.segment(np.ascontiguousarray(images[i][..., ::-1]), roi)
+        lms[i], world[i], presence[i] = seg.landmarks, seg.world_landmarks, seg.presence
+    return lms, world, presence
+
+
 def detect_world(
     scene_dir: str | Path, model: BlazePose, crop_size: int = 256, seed: int = -1
 ) -> LandmarkWorld:
     """Crops of a rendered scene, BlazePose on each (whole crop as the region), and the truth."""
     scene_dir = Path(scene_dir)
     crops = crops_from_synth_scene(scene_dir, crop_size=crop_size)
-    n = len(crops)
-    roi = BodyRoi(((crop_size - 1) / 2, (crop_size - 1) / 2), float(crop_size), 0.0)
-    lms = np.zeros((n, 33, 3), np.float32)
-    world = np.zeros((n, 33, 3), np.float32)
-    presence = np.zeros(n, np.float32)
-    for i in range(n):
-        bgr = np.ascontiguousarray(crops.images[i].numpy()[..., ::-1])
-        seg = model.segment(bgr, roi)
-        lms[i], world[i], presence[i] = seg.landmarks, seg.world_landmarks, seg.presence
+    lms, world, presence = detect_crops(crops.images.numpy(), model)
     index, cols = _people_columns(scene_dir)
     rows = np.array(
         [index[(int(f), int(p))] for f, p in zip(crops.frame, crops.person, strict=True)]
     )
     spec = json.loads((scene_dir / "scene.json").read_text())["spec"]
+    return _world(crops, rows, cols, lms, world, presence, spec, crop_size, seed)
+
+
+def world_from_crop_store(
+    store_path: str | Path, scene_dir: str | Path, model: BlazePose
+) -> LandmarkWorld:
+    """An extracted crop store (`crops.h5`) of a synthetic scene: its crops matched to the
+    truth (`gst.train.scene_truth.attach_scene_truth`; unmatched crops are dropped) and
+    BlazePose on each, as one LandmarkWorld (e.g. the demo's crops, to score single-image
+    pose exactly on what training and tracking see)."""
+    from gst.train.scene_truth import attach_scene_truth, select_rows
+    from gst.train.views import load_cropset
+
+    scene_dir = Path(scene_dir)
+    crops, boxes = load_cropset(store_path)
+    truth = attach_scene_truth(crops, boxes, scene_dir)
+    keep = torch.nonzero(crops.truth["has_truth"])[:, 0]
+    if len(keep) == 0:
+        raise ValueError(f"{store_path}: no crop matches a person of {scene_dir}")
+    crops = select_rows(crops, keep)
+    lms, world, presence = detect_crops(crops.images.numpy(), model)
+    rows = crops.truth["truth_row"].numpy()
+    cols = {
+        "global_orient": truth.global_orient,
+        "body_pose": truth.body_pose.reshape(len(truth), -1),
+        "betas": truth.betas,
+        "transl": truth.transl,
+        "motion": np.asarray(truth.motion),
+    }
+    spec = json.loads((scene_dir / "scene.json").read_text())["spec"]
+    return _world(crops, rows, cols, lms, world, presence, spec, crops.crop_size, -1)
+
+
+def _world(crops, rows, cols, lms, world, presence, spec, crop_size, seed) -> LandmarkWorld:
     tr = crops.truth
     return LandmarkWorld(
         frame=crops.frame.numpy().astype(np.int32),
@@ -309,8 +353,6 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
     ap.add_argument("--rigs", nargs="+", default=list(WORLD_RIGS), choices=WORLD_RIGS)
     args = ap.parse_args(argv)
-    import torch
-
     torch.set_num_threads(1)
     build(args.out, args.worlds, args.seed, rigs=tuple(args.rigs))
 
