@@ -16,6 +16,7 @@ import hashlib
 import inspect
 import json
 import logging
+import os
 import re
 import time
 from dataclasses import dataclass
@@ -47,6 +48,16 @@ class StageStatus:
     @property
     def needs_run(self) -> bool:
         return self.state in (STALE, MISSING)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _safe_key(key: str) -> str:
@@ -249,15 +260,39 @@ class Runner:
     # -- running -----------------------------------------------------------------------------
     @contextlib.contextmanager
     def _lock(self):
+        """Hold the workspace lock for the run. The file records the owner's pid: the kernel
+        drops the lock when its owner dies, and a run that finds a dead owner's pid there says
+        it took over."""
         self.meta.mkdir(parents=True, exist_ok=True)
-        with open(self.meta / "lock", "w") as fh:
+        path = self.meta / "lock"
+        with open(path, "a+") as fh:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
+                fh.seek(0)
+                owner = fh.read().strip() or "?"
                 raise PipelineError(
-                    f"another pipeline run holds the workspace lock {self.meta / 'lock'}"
+                    f"another pipeline run (pid {owner}) holds the workspace lock {path}; wait "
+                    "for it to finish"
                 ) from None
-            yield
+            fh.seek(0)
+            previous = fh.read().strip()
+            if previous.isdigit() and int(previous) != os.getpid() and not _alive(int(previous)):
+                log.warning(
+                    "took over the workspace lock of run pid %s, which is gone (killed?); "
+                    "its unfinished stages resume or rerun",
+                    previous,
+                )
+            fh.seek(0)
+            fh.truncate()
+            fh.write(str(os.getpid()))
+            fh.flush()
+            try:
+                yield
+            finally:
+                fh.seek(0)
+                fh.truncate()
+                fh.flush()
 
     def run(
         self,
