@@ -26,7 +26,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from gst.atomic import atomic_write_text, remove_path, replace_path
-from pipeline.config import PipelineConfig, format_validation_error
+from pipeline.config import PipelineConfig, format_error_line
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import ConfigError, PipelineError, StageFailed
 from pipeline.fingerprint import HashCache, code_digests, stage_fingerprint
@@ -58,6 +58,25 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def is_report(rel: str) -> bool:
+    """Outputs under `reports/` are written for people (markdown, plots, timings): downstream
+    stages never read them, so they do not enter downstream fingerprints."""
+    return Path(rel).parts[:1] == ("reports",)
+
+
+def _relative_paths(obj, base: Path | None):
+    """Every absolute path string in a JSON-like object, made relative to `base`."""
+    if base is None:
+        return obj
+    if isinstance(obj, dict):
+        return {k: _relative_paths(v, base) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_relative_paths(v, base) for v in obj]
+    if isinstance(obj, str) and os.path.isabs(obj):
+        return os.path.relpath(obj, base)
+    return obj
 
 
 def _safe_key(key: str) -> str:
@@ -126,17 +145,26 @@ class Runner:
                 {**self.cfg.stages[name].params, **self.scene.params.get(name, {})}
             )
         except ValidationError as exc:
-            # Prefix locations with the YAML path of the params block(s).
+            # Locations as YAML paths of the params block(s), in the file actually loaded, and
+            # which of the bad values came from --set.
+            source = self.cfg.source.name if self.cfg.source is not None else "pipeline.yaml"
             where = f"stages.{name}.params" + (
                 f" / scenes.{self.scene_name}.params.{name}" if name in self.scene.params else ""
             )
-            msg = format_validation_error(exc, "pipeline.yaml")
-            raise ConfigError(msg.replace("pipeline.yaml: ", f"pipeline.yaml: {where}.")) from None
+            lines = []
+            for err in exc.errors():
+                key = ".".join(str(x) for x in err["loc"])
+                line = format_error_line(err, source).replace(f"{source}: ", f"{source}: {where}.")
+                given = self.cfg.overrides.get(f"{name}.{key}")
+                lines.append(line + (f" (set by --set {given})" if given else ""))
+            raise ConfigError("\n".join(lines)) from None
 
     def _scene_record(self) -> dict:
         # Scene-level stage params reach each stage through its merged params; leaving them out
-        # here keeps a change for one stage from invalidating the others.
-        return self.scene.model_dump(mode="json", exclude={"params"})
+        # here keeps a change for one stage from invalidating the others. Paths are recorded
+        # relative to the config's folder (see `_shown`).
+        record = self.scene.model_dump(mode="json", exclude={"params"})
+        return _relative_paths(record, self.cfg.base_dir)
 
     def context(self, name: str) -> StageContext:
         return StageContext(
@@ -185,15 +213,21 @@ class Runner:
                 continue
             dep_ctx = self.context(dep)
             for rel in self.stages[dep].outputs(dep_ctx):
+                if is_report(rel):
+                    continue  # for people to read (timings change every run), never an input
                 digests[f"{dep}:{rel}"] = self.hashes.digest(self.workspace / rel)
         for path in self.stages[name].inputs(ctx):
-            d = self.hashes.digest(Path(path))
-            if d is None:
-                raise StageFailed(
-                    name, self.scene_name, FileNotFoundError(f"input file is missing: {path}")
-                )
-            digests[str(path)] = d
+            digests[self._shown(path)] = self.hashes.digest(Path(path))
         return digests
+
+    def _shown(self, path: str | Path) -> str:
+        """A path as fingerprints record it: relative to the config's folder, so a project
+        copied elsewhere (config, workspace and inputs together) keeps its fingerprints."""
+        base = self.cfg.base_dir
+        return os.path.relpath(Path(path).absolute(), base) if base is not None else str(path)
+
+    def _missing_inputs(self, name: str, ctx: StageContext) -> list[str]:
+        return [str(p) for p in self.stages[name].inputs(ctx) if not Path(p).exists()]
 
     # -- status ------------------------------------------------------------------------------
     def status_of(self, name: str, upstream: dict[str, StageStatus]) -> StageStatus:
@@ -208,6 +242,9 @@ class Runner:
         if pending:
             state = MISSING if record is None else STALE
             return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
+        missing = self._missing_inputs(name, ctx)
+        if missing:
+            return StageStatus(name, key, MISSING, f"input file is missing: {', '.join(missing)}")
         inputs = self._inputs(name, ctx)
         code, files = self._code(name)
         scene = self._scene_record()
@@ -334,6 +371,13 @@ class Runner:
     def _execute(self, name: str, st: StageStatus) -> None:
         stage = self.stages[name]
         ctx = self.context(name)
+        missing = self._missing_inputs(name, ctx)
+        if missing:
+            raise StageFailed(
+                name,
+                self.scene_name,
+                FileNotFoundError(f"input file is missing: {', '.join(missing)}"),
+            )
         staging = ctx.staging
         marker = staging / ".fingerprint"
         if staging.exists() and not (

@@ -204,9 +204,9 @@ def plan_extraction(
                 None
                 if volume is None
                 else [volume.basis.tolist(), volume.lo.tolist(), volume.hi.tolist()],
-                str(getattr(ext, "root", None)),
+                Path(str(getattr(ext, "root", ""))).name,  # names: a moved workspace stays valid
                 [_camera_signature(rig[n]) for n in names],
-                {n: str(p) for n, p in sorted(plates.items())},
+                {n: p.name for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
             ]
         ),
@@ -448,7 +448,8 @@ def extract_scene(
         outcome = _run_phases(plan, writer, progress, executor_map)
         writer.finalize(
             {
-                "source_videos": json.dumps({n: str(p) for n, p in plan.videos.items()}),
+                # file names only: a workspace copied elsewhere keeps identical bytes
+                "source_videos": json.dumps({n: p.name for n, p in plan.videos.items()}),
                 "n_frames": plan.n_frames,
             }
         )
