@@ -21,7 +21,7 @@ from pipeline.dag import upstream_closure
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.executors import make_executor
 from pipeline.registry import load_stages
-from pipeline.runner import MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
+from pipeline.runner import KEPT, MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
 
 EPILOG = """examples:
   python -m pipeline run all                      run every stale stage of the default scene
@@ -83,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--force-all", action="store_true", help="rerun every stage in the plan")
     run.add_argument("--dry-run", action="store_true", help="print the plan and why, run nothing")
+    run.add_argument(
+        "--upstream",
+        action="store_true",
+        help="also rerun stale upstream stages whose outputs exist (default: use those outputs "
+        "and say so; missing ones always run)",
+    )
     run.add_argument("--executor", choices=["local", "ray"], help="override executor.kind")
     run.add_argument("--workers", type=int, help="override executor.workers")
     run.add_argument("--ray-address", help="address of an existing Ray cluster")
@@ -138,7 +144,7 @@ def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
     )
 
 
-_STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim"}
+_STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim", KEPT: "yellow"}
 
 
 def _status_table(title: str, statuses) -> Table:
@@ -232,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                     f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')"
                 )
             options = {
-                "video": _check_videos_option(args.video or []),
+                "video": [v.resolve() for v in _check_videos_option(args.video or [])],
                 "with_gaussians": args.with_gaussians,
             }
             executor = make_executor(
@@ -288,7 +294,11 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             targets = list(cfg.stages) if args.stage == "all" else [args.stage]
             planned = runner.run(
-                targets, force=args.force, force_all=args.force_all, dry_run=args.dry_run
+                targets,
+                force=args.force,
+                force_all=args.force_all,
+                dry_run=args.dry_run,
+                upstream=args.upstream,
             )
             if args.dry_run:
                 console.quiet = False

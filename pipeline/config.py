@@ -70,6 +70,9 @@ class SceneConfig(Strict):
     board: BoardSource | None = None
     masks: Path | None = None  # externally supplied masks/boxes (see docs/formats)
     fps: float | None = Field(default=None, gt=0)
+    # Decoded frames may be smaller than the calibration says by this many pixels (encoder
+    # padding, e.g. 1080 rows in a 1088-row calibration); calibration.camera.fit_to_frames.
+    frame_size_tolerance: int = Field(default=16, ge=0)
     # Stage parameters for this scene only: {stage: {key: value}}, over stages.STAGE.params.
     params: dict[str, dict[str, Any]] = Field(default_factory=dict)
 

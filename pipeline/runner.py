@@ -35,6 +35,7 @@ from pipeline.stage import Stage, StageContext
 log = logging.getLogger("pipeline")
 
 UP_TO_DATE, STALE, MISSING, SKIPPED = "up to date", "stale", "missing", "not needed"
+KEPT = "kept"  # stale, but an upstream stage nobody asked to run: its existing outputs are used
 
 
 @dataclass
@@ -58,6 +59,14 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def is_report(rel: str) -> bool:
@@ -291,8 +300,39 @@ class Runner:
         result: dict[str, StageStatus] = {}
         for name in names:
             result[name] = self.status_of(name, result)
+        out = list(result.values())
+        if not targets:
+            out += self._variant_statuses({st.key for st in out}, result)
         self.hashes.save()
-        return list(result.values())
+        return out
+
+    def _recorded_options(self, name: str) -> dict:
+        """The CLI options a stage reads (e.g. track's --video), as a record keeps them to let
+        `status` show that variant later; paths relative to the config's folder."""
+        opts = {k: self.options.get(k) for k in self.stages[name].cli_options}
+        return _relative_paths(json.loads(json.dumps(opts, default=str)), self.cfg.base_dir)
+
+    def _variant_statuses(self, shown: set[str], upstream: dict) -> list[StageStatus]:
+        """Statuses of the stage variants recorded earlier (e.g. `track@match` from a run with
+        --video match.mp4), re-evaluated with the options they ran with."""
+        out = []
+        state_dir = self.meta / "state"
+        for path in sorted(state_dir.glob("*@*.json")) if state_dir.is_dir() else []:
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            name, key = record.get("stage"), record.get("key")
+            if name not in self.stages or key in shown or "options" not in record:
+                continue
+            base = self.cfg.base_dir or Path.cwd()
+            options = {
+                k: [base / v for v in vals] if isinstance(vals, list) else vals
+                for k, vals in record["options"].items()
+            }
+            other = Runner(self.cfg, self.scene_name, self.stages, options=options)
+            out.append(other.status_of(name, upstream))
+        return out
 
     # -- running -----------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -338,8 +378,14 @@ class Runner:
         force: bool = False,
         force_all: bool = False,
         dry_run: bool = False,
+        upstream: bool = False,
     ) -> list[StageStatus]:
-        """Run the targets and their stale upstream stages. Returns the statuses as planned."""
+        """Run the targets and the upstream stages they need. Returns the statuses as planned.
+
+        An upstream stage (not a target) that is stale but has its outputs is KEPT: the targets
+        run against those outputs and the log says what is stale and how long the stage took
+        last time, so an expensive rerun (a pretraining) never starts unasked. `upstream=True`
+        reruns such stages too; missing upstream outputs are always produced."""
         names = upstream_closure(self.needs, targets)
         planned: dict[str, StageStatus] = {}
         for name in names:
@@ -350,6 +396,13 @@ class Runner:
                 and not st.needs_run
             ):
                 st = StageStatus(name, st.key, STALE, "forced", st.fingerprint)
+            elif (
+                st.state == STALE
+                and name not in targets
+                and not (upstream or force_all)
+                and self._read_record(st.key) is not None
+            ):
+                st = self._kept(name, st)
             planned[name] = st
         self.hashes.save()
         if dry_run:
@@ -367,6 +420,24 @@ class Runner:
                 self._execute(name, st)
                 done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)
         return list(planned.values())
+
+    def _kept(self, name: str, st: StageStatus) -> StageStatus:
+        """An upstream stage that is stale but not rerun (see `run`), with the log line that
+        says so. Its downstream stages see its current outputs."""
+        record = self._read_record(st.key) or {}
+        took = record.get("seconds")
+        took_text = f"; its last run took {_duration(took)}" if took is not None else ""
+        reason = st.reason
+        if reason.startswith("upstream "):  # its own upstream is kept too: it is as it was
+            reason = "an upstream stage is stale"
+        log.warning(
+            "%s is stale (%s)%s; using its existing outputs. Run it, or pass --upstream, to "
+            "update it",
+            name,
+            reason,
+            took_text,
+        )
+        return StageStatus(name, st.key, KEPT, f"stale ({reason}), outputs kept{took_text}")
 
     def _execute(self, name: str, st: StageStatus) -> None:
         stage = self.stages[name]
@@ -422,6 +493,7 @@ class Runner:
             "code_files": self._code(name)[1],
             "params": ctx.params.model_dump(mode="json"),
             "scene_config": self._scene_record(),
+            "options": self._recorded_options(name),
             "inputs": self._inputs(name, ctx),
             "outputs": digests,
             "finished": time.strftime("%Y-%m-%d %H:%M:%S"),

@@ -49,6 +49,7 @@ def run(ctx: StageContext) -> None:
         splats_dir=ctx.out("models/splats") if ctx.options.get("with_gaussians") else None,
         truth_scene=ctx.path("synth") if ctx.scene.is_synthetic else None,
         combined_evaluation=ctx.out("reports/track/evaluation.md") if _own_videos(ctx) else None,
+        frame_size_tolerance=ctx.scene.frame_size_tolerance,
     )
     executor = ctx.executor
     track_scene(ctx.params, request, map_fn=executor.map if executor is not None else None,
