@@ -234,7 +234,7 @@ def _world(crops, rows, cols, lms, world, presence, spec, crop_size, seed) -> La
         body_pose=cols["body_pose"][rows].reshape(-1, 23, 3),
         betas=cols["betas"][rows],
         transl=cols["transl"][rows],
-        motion=cols["motion"][rows],
+        motion=np.asarray(cols["motion"][rows]).astype(str),  # never object arrays (no pickle)
         crop_size=crop_size,
         seed=int(spec["seed"]) if seed < 0 else seed,
         rig_kind=str(spec["rig"]["kind"]),
