@@ -43,7 +43,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     body = load_body_model("anny")
     print("| set | sampler B=64 (samples/s) | sampler B=256 | training B=64 (samples/s) |")
-    print("|---|---|---|---|")
+    print("|---|---|---|---|---|")
     for name, lset in LANDMARK_SETS.items():
         sampler = LiftSampler(body, landmark_set=name, seed=1)
         s64 = _median_rate(lambda s=sampler: s.sample(64), 64, args.repeats)
@@ -51,12 +51,20 @@ def main() -> None:
         net, _, _ = build_network(
             get_preset("tiny", landmark_tokens=True, num_landmarks=len(lset)), body
         )
-        cfg = LiftPretrainConfig(steps=args.train_steps, warmup_steps=2)
-        rates = []
-        for _ in range(max(1, args.repeats // 2)):
-            res = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
-            rates.append(res.samples_per_s)
-        print(f"| {name} ({len(lset)}) | {s64:.0f} | {s256:.0f} | {statistics.median(rates):.0f} |")
+        train = []
+        for bs in (64, 256):
+            steps = max(2, args.train_steps * 64 // bs)
+            cfg = LiftPretrainConfig(steps=steps, batch_size=bs, warmup_steps=1)
+            rates = [
+                pretrain_landmark_path(
+                    net, body, cfg, sampler=sampler, log=lambda *_: None
+                ).samples_per_s
+                for _ in range(max(1, args.repeats // 2))
+            ]
+            train.append(statistics.median(rates))
+        print(
+            f"| {name} ({len(lset)}) | {s64:.0f} | {s256:.0f} | {train[0]:.0f} | {train[1]:.0f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -12,9 +12,9 @@ from gst.model.network import GSTNetwork
 from gst.model.presets import get_preset
 
 
-def _nets():
+def _nets(point_tokens: bool = True):
     torch.manual_seed(0)
-    cfg = get_preset("tiny", landmark_tokens=True)
+    cfg = get_preset("tiny", landmark_tokens=True, landmark_point_tokens=point_tokens)
     groups = np.arange(300) % cfg.num_groups
     net = GSTNetwork(cfg, groups).eval()
     plain = GSTNetwork(dataclasses.replace(cfg, landmark_tokens=False), groups).eval()
@@ -49,8 +49,9 @@ def test_landmarks_change_pose_and_gaussians():
     assert (a.gaussians.colors - b.gaussians.colors).abs().max() > 1e-6
 
 
-def test_masked_landmarks_give_exactly_the_image_only_network():
-    net, plain = _nets()
+@pytest.mark.parametrize("point_tokens", [True, False])
+def test_masked_landmarks_give_exactly_the_image_only_network(point_tokens):
+    net, plain = _nets(point_tokens)
     images, lm = _inputs()
     with torch.no_grad():
         ref = plain(images)

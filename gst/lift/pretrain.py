@@ -277,6 +277,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--val", action="append", default=[], help="NAME=world.npz (repeatable)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--landmarks", default="limbs", choices=sorted(LANDMARK_SETS))
+    ap.add_argument("--no-point-tokens", action="store_true", help="lift tokens only")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     val = {}
@@ -287,7 +288,12 @@ def main(argv: list[str] | None = None) -> None:
         val[name] = LandmarkWorld.load(path)
     body = load_body_model("anny")
     n = len(LANDMARK_SETS[args.landmarks])
-    cfg_net = get_preset(args.preset, landmark_tokens=True, num_landmarks=n)
+    cfg_net = get_preset(
+        args.preset,
+        landmark_tokens=True,
+        num_landmarks=n,
+        landmark_point_tokens=not args.no_point_tokens,
+    )
     net, ids, groups = build_network(cfg_net, body, args.seed)
     cfg = LiftPretrainConfig(
         steps=args.steps,

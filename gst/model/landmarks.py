@@ -91,12 +91,20 @@ class LandmarkEncoder(nn.Module):
     """LandmarkInput -> LandmarkContext (tokens of the decoder's width)."""
 
     def __init__(
-        self, num_landmarks: int, dim: int, lift_tokens: int = 4, width: int = 512, blocks: int = 2
+        self,
+        num_landmarks: int,
+        dim: int,
+        lift_tokens: int = 4,
+        width: int = 512,
+        blocks: int = 2,
+        point_tokens: bool = True,
     ):
         super().__init__()
         self.num_landmarks, self.lift_tokens, self.dim = num_landmarks, lift_tokens, dim
-        self.point = nn.Sequential(nn.Linear(3, dim), nn.GELU(), nn.Linear(dim, dim))
-        self.identity = nn.Parameter(torch.randn(1, num_landmarks, dim) * 0.02)
+        self.point_tokens = point_tokens
+        if point_tokens:
+            self.point = nn.Sequential(nn.Linear(3, dim), nn.GELU(), nn.Linear(dim, dim))
+            self.identity = nn.Parameter(torch.randn(1, num_landmarks, dim) * 0.02)
         self.lift = nn.Sequential(
             nn.Linear(num_landmarks * 3 + 3, width),
             *[_Residual(width) for _ in range(blocks)],
@@ -113,10 +121,12 @@ class LandmarkEncoder(nn.Module):
         # tokens cannot leak them either; confidence 0 means "not detected".
         valid = inp.mask & (inp.points[..., 2] > 0)
         pts = torch.where(valid[..., None], inp.points, torch.zeros_like(inp.points))
-        point_tokens = self.point(pts) + self.identity
         h = self.lift(torch.cat([pts.reshape(B, -1), inp.camera], -1))
         lift = self.to_tokens(h).view(B, self.lift_tokens, self.dim)
-        tokens = torch.cat([point_tokens, lift], 1)
         # the lift tokens are always attendable, so no sample's attention is empty (no NaN)
-        key_mask = torch.cat([valid, valid.new_ones(B, self.lift_tokens)], 1)
+        key_mask = valid.new_ones(B, self.lift_tokens)
+        tokens = lift
+        if self.point_tokens:
+            tokens = torch.cat([self.point(pts) + self.identity, lift], 1)
+            key_mask = torch.cat([valid, key_mask], 1)
         return LandmarkContext(tokens, key_mask, valid.any(1), self.to_query(h))

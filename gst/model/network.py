@@ -175,6 +175,7 @@ class GSTNetwork(nn.Module):
                 cfg.decoder.dim,
                 cfg.landmark_lift_tokens,
                 cfg.landmark_width,
+                point_tokens=cfg.landmark_point_tokens,
             )
             if cfg.landmark_tokens
             else None

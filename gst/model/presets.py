@@ -27,6 +27,9 @@ class GSTConfig:
     num_landmarks: int = 12  # gst.model.landmarks.LIMB_LANDMARK_IDS
     landmark_lift_tokens: int = 4
     landmark_width: int = 512
+    # One token per landmark besides the lift tokens (local evidence for the Gaussian tokens);
+    # they are most of the landmark path's compute (docs/landmark_prior.md, "Speed").
+    landmark_point_tokens: bool = True
 
     @property
     def image_size(self) -> tuple[int, int]:
