@@ -340,3 +340,30 @@ def test_a_corrupt_video_given_with_video_is_a_data_error(scene, tmp_path, capsy
     (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
     code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(bad))
     _assert_failed(code, err, 1, r"match.mp4", tmp_path / "ws")
+
+
+# -- the defects these cases came from ----------------------------------------------------------
+
+
+def test_status_and_dry_run_show_the_table_when_a_listed_video_is_missing(scene, tmp_path, capsys):
+    videos = f"[{scene.videos}/c1.mp4, {scene.videos}/c2.mp4, {tmp_path}/gone.mp4]"
+    cfg = _config(tmp_path, scene, videos=videos)
+    code, err = _cli(capsys, "status", "--config", str(cfg))
+    assert code == 0 and "gone.mp4" in err and "extract" in err, err
+    code = main(["run", "extract", "--config", str(cfg), "--dry-run"])
+    err = capsys.readouterr().err
+    assert code == 0 and "calibrate" in err and "gone.mp4" in err, err
+
+
+def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
+    clip = tmp_path / "match cam2.mp4"
+    clip.write_bytes((scene.videos / "c1.mp4").read_bytes())
+    cfg = _config(tmp_path, scene)
+    models = tmp_path / "ws/s/models"
+    models.mkdir(parents=True)
+    (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
+    code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip))
+    assert code == 0, err
+    assert (tmp_path / "ws/s/tracks/video=match%20cam2/tracks.parquet").is_file()
+    code, err = _cli(capsys, "status", "--config", str(cfg))
+    assert "track@match_cam2" in err.replace(" ", "") or "track@match" in err, err
