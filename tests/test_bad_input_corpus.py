@@ -247,6 +247,14 @@ def test_video_8_rows_short_is_encoder_padding(scene, tmp_path, capsys):
     code, err = _cli(capsys, "run", "extract", "--config", str(cfg))
     assert code == 0, err
     assert (tmp_path / "ws/s/crops/crops.h5").is_file()
+    report = (tmp_path / "ws/s/reports/calibrate/calibration.md").read_text()
+    assert "camera 'c2': frames are 160x112, the calibration says 160x120" in report
+    models = tmp_path / "ws/s/models"
+    models.mkdir(parents=True)
+    (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
+    code, err = _cli(capsys, "run", "track", "--config", str(cfg))
+    assert code == 0, err
+    assert (tmp_path / "ws/s/tracks/video=c2/tracks.parquet").is_file()
 
 
 # -- checkpoints: exit 1 ----------------------------------------------------------------------
