@@ -42,14 +42,21 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     body = load_body_model("anny")
-    print("| set | sampler B=64 (samples/s) | sampler B=256 | training B=64 (samples/s) |")
+    print("| set | sampler B=64 (samples/s) | sampler B=256 | training B=64 | training B=256 |")
     print("|---|---|---|---|---|")
-    for name, lset in LANDMARK_SETS.items():
+    for name, points in (("limbs", True), ("all", True), ("all", False)):
+        lset = LANDMARK_SETS[name]
         sampler = LiftSampler(body, landmark_set=name, seed=1)
         s64 = _median_rate(lambda s=sampler: s.sample(64), 64, args.repeats)
         s256 = _median_rate(lambda s=sampler: s.sample(256), 256, args.repeats)
         net, _, _ = build_network(
-            get_preset("tiny", landmark_tokens=True, num_landmarks=len(lset)), body
+            get_preset(
+                "tiny",
+                landmark_tokens=True,
+                num_landmarks=len(lset),
+                landmark_point_tokens=points,
+            ),
+            body,
         )
         train = []
         for bs in (64, 256):
@@ -63,7 +70,8 @@ def main() -> None:
             ]
             train.append(statistics.median(rates))
         print(
-            f"| {name} ({len(lset)}) | {s64:.0f} | {s256:.0f} | {train[0]:.0f} | {train[1]:.0f} |"
+            f"| {name} ({len(lset)}){'' if points else ', lift tokens only'} | {s64:.0f} "
+            f"| {s256:.0f} | {train[0]:.0f} | {train[1]:.0f} |"
         )
 
 
