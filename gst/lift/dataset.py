@@ -28,7 +28,8 @@ import pyarrow.parquet as pq
 import torch
 
 from gst.atomic import atomic_path, atomic_write_text
-from gst.detect.blazepose import BlazePose, BodyRoi
+from gst.detect.blazepose import BlazePose
+from gst.detect.crops import detect_crop_landmarks
 from gst.train.synthetic_crops import crops_from_synth_scene
 
 DEFAULT_SEED = 5000
@@ -155,18 +156,10 @@ def _people_columns(scene_dir: Path) -> tuple[dict[tuple[int, int], int], dict[s
 def detect_crops(
     images: np.ndarray | torch.Tensor, model: BlazePose
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """BlazePose on (N, S, S, 3) uint8 RGB crops, each crop as one region of interest:
-    landmarks (N, 33, 3) crop px + visibility, world landmarks (N, 33, 3), presence (N,)."""
-    images = np.asarray(images)
-    n, size = len(images), images.shape[1]
-    roi = BodyRoi(((size - 1) / 2, (size - 1) / 2), float(size), 0.0)
-    lms = np.zeros((n, 33, 3), np.float32)
-    world = np.zeros((n, 33, 3), np.float32)
-    presence = np.zeros(n, np.float32)
-    for i in range(n):
-        seg = model.segment(np.ascontiguousarray(images[i][..., ::-1]), roi)
-        lms[i], world[i], presence[i] = seg.landmarks, seg.world_landmarks, seg.presence
-    return lms, world, presence
+    """BlazePose on (N, S, S, 3) uint8 RGB crops (`gst.detect.crops`): landmarks (N, 33, 3)
+    crop px + visibility, world landmarks (N, 33, 3), presence (N,)."""
+    found = detect_crop_landmarks(np.asarray(images), model, rgb=True)
+    return found.landmarks, found.world, found.presence
 
 
 def detect_world(
