@@ -28,11 +28,11 @@ import torch
 from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, evaluate_model
 from gst.eval.split import FinetuneConfig, finetune, frame_split
-from gst.eval.truth import attach_scene_truth
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.train.losses import LossWeights
 from gst.train.recipe import make_task
+from gst.train.scene_truth import attach_scene_truth
 from gst.train.views import load_cropset
 
 PAPER = LossWeights()  # paper weights: LPIPS 0.01, alpha 0.1, tightness 0.1

@@ -14,10 +14,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gst.video import VideoError, probe_video
+from gst.video import iter_frames as video_frames
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
-class FrameSourceError(ValueError):
+class FrameSourceError(VideoError):
     """A video or image folder cannot be read."""
 
 
@@ -35,11 +38,11 @@ def list_images(folder: Path) -> list[Path]:
     return sorted(files, key=_natural_key)
 
 
-def _open_video(path: Path) -> cv2.VideoCapture:
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise FrameSourceError(f"cannot open video '{path}' (missing file or unsupported codec)")
-    return cap
+def _probe(path: Path):
+    try:
+        return probe_video(path)
+    except VideoError as exc:
+        raise FrameSourceError(str(exc)) from None
 
 
 def _check_exists(source: Path) -> None:
@@ -55,11 +58,7 @@ def count_frames(source: str | Path) -> int:
     _check_exists(source)
     if source.is_dir():
         return len(list_images(source))
-    cap = _open_video(source)
-    try:
-        return int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    finally:
-        cap.release()
+    return _probe(source).frames
 
 
 def source_image_size(source: str | Path) -> tuple[int, int]:
@@ -72,11 +71,8 @@ def source_image_size(source: str | Path) -> tuple[int, int]:
         if img is None:
             raise FrameSourceError(f"cannot read image '{first}'")
         return int(img.shape[1]), int(img.shape[0])
-    cap = _open_video(source)
-    try:
-        return int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-    finally:
-        cap.release()
+    info = _probe(source)
+    return info.width, info.height
 
 
 def iter_frames(
@@ -104,21 +100,12 @@ def iter_frames(
             yielded += 1
             yield index, img
         return
-    cap = _open_video(source)
-    try:
-        index = -1
-        while limit is None or yielded < limit:
-            index += 1
-            if index % step:
-                if not cap.grab():
-                    return
-                continue
-            ok, img = cap.read()
-            if not ok:
-                return
-            if grayscale and img.ndim == 3:
-                img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-            yielded += 1
-            yield index, img
-    finally:
-        cap.release()
+    _probe(source)
+    for frame in video_frames(source, stride=step):
+        if limit is not None and yielded >= limit:
+            return
+        img = frame.image
+        if grayscale and img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        yielded += 1
+        yield frame.index, img

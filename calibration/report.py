@@ -15,8 +15,8 @@ from matplotlib.figure import Figure
 
 from calibration.camera import Camera, Rig
 from calibration.checks import CaptureVolume, check_rig, estimate_volume
-from calibration.formats._common import atomic_write, atomic_write_text
 from calibration.solve import BoardCalibration
+from gst.atomic import atomic_write, atomic_write_text
 
 COVERAGE_GRID = (8, 6)  # cells across and down for the coverage percentage
 
@@ -263,12 +263,14 @@ def write_calibration_report(
     calibration: BoardCalibration | None = None,
     volume: CaptureVolume | tuple | None = None,
     frames: dict[str, np.ndarray] | None = None,
+    appendix: list[str] | None = None,
 ) -> Path:
     """Write `calibration.md`, `coverage_<camera>.png` (board calibrations only),
     `camera_poses.png` and, given `frames` (camera name -> an image from that camera, z-up
     rigs), `overlay_<camera>.png` with the floor grid drawn in; returns the markdown path.
 
     `volume` is a CaptureVolume or (lo, hi); by default it is estimated for z-up rigs.
+    `appendix`: markdown lines added at the end (e.g. a comparison with a known rig).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -395,6 +397,7 @@ def write_calibration_report(
             atomic_write(out / fname, lambda p, img=overlay: _imwrite_png(p, img))
             lines.append(f"![{name}]({fname})")
         lines.append("")
+    lines += appendix or []
     md = out / "calibration.md"
     atomic_write_text(md, "\n".join(lines) + "\n")
     return md

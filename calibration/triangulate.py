@@ -64,30 +64,42 @@ def reprojection_errors(
     return err
 
 
-def triangulate_dlt(
-    rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None
-) -> Triangulation:
-    """Linear triangulation of N points from (C, N, 2) pixels (NaN or `visible` False = unseen).
+def dlt_points(P: np.ndarray, xy: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Linear (DLT) triangulation of N points seen by V views, all at once.
 
-    Each view contributes two rows of the homogeneous system A X = 0 in normalised coordinates
-    (x P3 - P1, y P3 - P2 with P = [R | t]); rows of unseen views are zero. Solved for all
-    points at once with a batched SVD.
+    P: (V, 3, 4) projection matrices; xy: (V, N, 2) image points in the same coordinates
+    (pixels with P = K [R | t], normalised with P = [R | t]); weights: (V, N), 0 for an unseen
+    view (NaN points count as unseen), e.g. detection confidences. Each view contributes the
+    rows x P3 - P1 and y P3 - P2, scaled by its weight; one batched SVD solves them. Points seen
+    with positive weight in fewer than 2 views are NaN. Returns (N, 3).
     """
-    pixels, vis = _check(rig, pixels, visible)
-    xy = normalised_points(rig, pixels, vis)
-    P = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])  # (C, 3, 4)
-    x, y = np.nan_to_num(xy[..., 0]), np.nan_to_num(xy[..., 1])  # (C, N)
-    rows_x = x[..., None] * P[:, None, 2, :] - P[:, None, 0, :]  # (C, N, 4)
+    P = np.asarray(P, dtype=np.float64)
+    xy = np.asarray(xy, dtype=np.float64)
+    w = np.ones(xy.shape[:2]) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = np.where(np.isfinite(xy).all(axis=-1), np.nan_to_num(w), 0.0)
+    x, y = np.nan_to_num(xy[..., 0]), np.nan_to_num(xy[..., 1])  # (V, N)
+    rows_x = x[..., None] * P[:, None, 2, :] - P[:, None, 0, :]  # (V, N, 4)
     rows_y = y[..., None] * P[:, None, 2, :] - P[:, None, 1, :]
-    A = (
-        np.concatenate([rows_x, rows_y], axis=0) * np.concatenate([vis, vis])[..., None]
-    )  # (2C, N, 4)
-    A = np.transpose(A, (1, 0, 2))  # (N, 2C, 4)
-    _, _, Vt = np.linalg.svd(A)
+    # Rows interleaved per view (x, y of view 0, then view 1, ...), weighted.
+    A = np.stack([rows_x, rows_y], axis=1) * w[:, None, :, None]  # (V, 2, N, 4)
+    A = A.reshape(-1, *A.shape[2:])  # (2V, N, 4)
+    _, _, Vt = np.linalg.svd(np.transpose(A, (1, 0, 2)))  # (N, 4, 4)
     Xh = Vt[:, -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         points = Xh[:, :3] / Xh[:, 3:4]
-    points[vis.sum(axis=0) < 2] = np.nan
+    points[(w > 0).sum(axis=0) < 2] = np.nan
+    return points
+
+
+def triangulate_dlt(
+    rig: Rig, pixels: np.ndarray, visible: np.ndarray | None = None
+) -> Triangulation:
+    """Linear triangulation of N points from (C, N, 2) pixels (NaN or `visible` False = unseen),
+    in normalised coordinates (the lens model undone) with `dlt_points`."""
+    pixels, vis = _check(rig, pixels, visible)
+    xy = normalised_points(rig, pixels, vis)
+    P = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])  # (C, 3, 4)
+    points = dlt_points(P, xy, vis.astype(np.float64))
     return Triangulation(points, reprojection_errors(rig, points, pixels, vis), vis)
 
 

@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import os
 from pathlib import Path
 from typing import Any
 
-from pipeline.fsutil import atomic_write_text
+from gst.atomic import atomic_write_text
 
 _CHUNK = 1 << 20
 
@@ -76,3 +77,74 @@ def stage_fingerprint(code: str, params: dict[str, Any], inputs: dict[str, str |
         {"code": code, "params": params, "inputs": inputs}, sort_keys=True, default=str
     )
     return hashlib.sha256(blob.encode()).hexdigest()
+
+
+# -- the code a stage runs --------------------------------------------------------------------
+
+# Packages whose source counts as a stage's code. `pipeline/` is the orchestration around every
+# stage, not what a stage computes, so editing it reruns nothing.
+CODE_PACKAGES = ("calibration", "gst", "synth", "stages")
+
+
+def _module_file(root: Path, name: str) -> Path | None:
+    """The source file of a project module `name` (a module or a package's __init__)."""
+    parts = name.split(".")
+    if parts[0] not in CODE_PACKAGES:
+        return None
+    base = root.joinpath(*parts)
+    for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imports_of(path: Path, name: str) -> set[str]:
+    """Every module name an import statement in `path` may load (function-level imports
+    included: they run when the stage runs), parents and `from X import y` submodules too."""
+    is_package = path.name == "__init__.py"
+    package = name.split(".") if is_package else name.split(".")[:-1]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package[: len(package) - node.level + 1] + ([base] if base else []))
+            found.add(base)
+            found |= {f"{base}.{a.name}" for a in node.names}
+    # Importing a.b.c runs a/__init__.py and a/b/__init__.py first.
+    return {".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2)}
+
+
+def code_closure(module: str, path: Path, root: Path) -> dict[str, Path]:
+    """The project modules that module `module` (source file `path`) imports, transitively,
+    itself included, by name. `root` holds the project packages."""
+    seen: dict[str, Path] = {module: path}
+    todo = sorted(_imports_of(path, module))
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        file = _module_file(root, name)
+        if file is None:
+            continue
+        seen[name] = file
+        todo += sorted(_imports_of(file, name) - seen.keys())
+    return seen
+
+
+def code_digests(module: str, path: Path, root: Path) -> dict[str, str]:
+    """sha256 (16 hex digits) of every source file in the closure, keyed by the path relative to
+    `root` (absolute for files outside it)."""
+
+    def key(file: Path) -> str:
+        try:
+            return file.resolve().relative_to(root.resolve()).as_posix()
+        except ValueError:
+            return file.resolve().as_posix()
+
+    return {
+        key(file): hashlib.sha256(file.read_bytes()).hexdigest()[:16]
+        for file in sorted(code_closure(module, path, root).values())
+    }

@@ -16,6 +16,8 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
+from calibration import Rig
+from calibration.formats import read_rig
 from pipeline.config import PipelineConfig, SceneConfig
 
 T = TypeVar("T")
@@ -52,6 +54,19 @@ class StageContext:
         """Path of an existing artefact in the scene workspace (an upstream stage's output)."""
         return self.workspace / rel
 
+    def camera_videos(self) -> dict[str, Path]:
+        """The scene's camera videos by camera name (the file stem), sorted: a synthetic scene's
+        rendered `synth/videos/*.mp4`, or the files the scene's `videos` names."""
+        if self.scene.is_synthetic:
+            files = sorted(self.path("synth/videos").glob("*.mp4"))
+        else:
+            files = self.scene.video_files()
+        return {p.stem: p for p in files}
+
+    def rig(self) -> Rig:
+        """The scene's calibrated rig (`calibration/rig.json`, written by the calibrate stage)."""
+        return read_rig(self.path("calibration/rig.json"), "rig")
+
     def track(self, items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
         """Iterate with a progress bar (quiet runs just iterate)."""
         if self.progress is None:
@@ -75,3 +90,4 @@ class Stage:
     resumable: bool = False  # keep a killed run's staging folder and let `run` continue it
     help: str = ""
     cli_options: tuple[str, ...] = ()  # names of CLI options the stage reads from ctx.options
+    in_all: bool = True  # False: `run all` skips it; it runs when named (e.g. a benchmark sweep)

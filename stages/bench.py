@@ -1,149 +1,35 @@
 """bench: run time against error for model variants, in one run, on the scene's crops with truth.
 
-Sweeps backbone preset, input size and Gaussian count; every variant is trained with the same
-short budget on the training split (earlier frames, training cameras), timed pose-only and full
-(median of repeats), and scored on the test split (later frames; PSNR in held-out cameras).
-The pretrained checkpoint is benchmarked as it is, for reference. Writes `reports/bench/`
+Library: `gst.eval.bench_scene.bench_scene`. Sweeps backbone preset, input size and Gaussian
+count; every variant is trained with the same short budget on the training split, timed
+pose-only and full (median of repeats), and scored on the test split. Writes `reports/bench/`
 (table.md, table.csv, pareto.png; docs/evaluate.md).
 """
 
 from __future__ import annotations
 
-import time
-from typing import Literal
-
-import torch
-from pydantic import BaseModel, ConfigDict
-
-from gst.body import load_body_model
-from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
-from gst.eval.split import FinetuneConfig, frame_split
-from gst.eval.truth import attach_scene_truth
-from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.train.losses import LossWeights
-from gst.train.views import load_cropset
-from pipeline.stage import Stage, StageContext, StageParams
-
-
-class VariantParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    name: str
-    preset: Literal["tiny", "small", "base", "huge"] = "tiny"
-    image_size: tuple[int, int] | None = None
-    vertex_preset: Literal["1723", "3445", "6890", "full"] | None = None
-
-
-_DEFAULT_VARIANTS = [
-    VariantParams(name="tiny-128x96-1723"),
-    VariantParams(name="tiny-256x192-1723", image_size=(256, 192)),
-    VariantParams(name="tiny-128x96-6890", vertex_preset="6890"),
-    VariantParams(name="small-128x96-3445", preset="small", image_size=(128, 96)),
-]  # small at 256x192 (the preset's own size) and base train too slowly for the 20-minute CPU budget
-
-
-class Params(StageParams):
-    variants: list[VariantParams] = _DEFAULT_VARIANTS
-    include_pretrained: bool = True  # also time and score models/pretrain.pt as it is
-    steps: int = 40  # equal training budget of every variant
-    batch_size: int = 8
-    lr: float = 5e-4
-    mode: Literal["pretrain", "3d"] = (
-        "pretrain"  # 3D supervision + image terms (Gaussians learn too)
-    )
-    test_fraction: float = 0.25
-    heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    repeats: int = 5
-    timing_batch: int = 8
-    render_size: int = 64
-    max_groups: int | None = 16
-    threads: int | None = None
+from gst.eval.bench_scene import BenchSettings, bench_scene
+from pipeline.stage import Stage, StageContext
 
 
 def run(ctx: StageContext) -> None:
-    p = ctx.params
-    if p.threads:
-        torch.set_num_threads(p.threads)
-    t0 = time.perf_counter()
-    crops, boxes = load_cropset(ctx.path("crops/crops.h5"))
-    attach_scene_truth(crops, boxes, ctx.path("synth"))
-    heldout = tuple(p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:])
-    split = frame_split(crops, heldout, p.test_fraction)
-    ckpt = load_checkpoint(ctx.path("models/pretrain.pt"))
-    body_spec = ckpt["body_model"]
-    body = load_body_model(body_spec)
-    variants = []
-    if p.include_pretrained:
-        cfg = network_from_checkpoint(ckpt).cfg
-        variants.append(
-            Variant(
-                name="pretrained",
-                preset=cfg.name,
-                image_size=cfg.image_size,
-                checkpoint="models/pretrain.pt",
-            )
-        )
-    variants += [Variant(v.name, v.preset, v.image_size, v.vertex_preset) for v in p.variants]
-
-    def load(rel: str):
-        c = load_checkpoint(ctx.path(rel))
-        return network_from_checkpoint(c), c["vertex_ids"].numpy(), c["group_index"].numpy()
-
-    # LPIPS is left out of the short runs (equal for every variant) to keep the sweep on budget.
-    train = FinetuneConfig(
-        mode=p.mode,
-        steps=p.steps,
-        batch_size=p.batch_size,
-        lr=p.lr,
-        num_targets=3,
-        render_size=p.render_size,
-        weights=LossWeights(lpips=0.0),
+    bench_scene(
+        ctx.params,
+        ctx.path("crops/crops.h5"),
+        ctx.path("synth"),
+        ctx.path("models/pretrain.pt"),
+        ctx.out("reports/bench"),
+        scene=ctx.scene_name,
+        workspace=ctx.workspace,
     )
-    ctx.log.info(
-        "bench: %d variants, %d training rows, test frames %s, held out %s",
-        len(variants),
-        len(split.train_rows),
-        split.test_frames,
-        heldout,
-    )
-    rows = run_bench(
-        variants,
-        crops,
-        split,
-        body,
-        body_spec,
-        train,
-        repeats=p.repeats,
-        batch=p.timing_batch,
-        render_size=p.render_size,
-        max_groups=p.max_groups,
-        log=ctx.log.info,
-        load_checkpoint_fn=load,
-    )
-    out = ctx.out("reports/bench")
-    out.mkdir(parents=True, exist_ok=True)
-    seconds = time.perf_counter() - t0
-    header = (
-        f"# Run time against error (scene `{ctx.scene_name}`)\n\n"
-        f"CPU, {torch.get_num_threads()} threads; time = median of {p.repeats} runs of one batch of "
-        f"{p.timing_batch} real crops after a warm-up, all variants timed round-robin (pose-only: Gaussian tokens skipped; full: network plus "
-        f"posed Gaussians, no rendering). Every variant except `pretrained` was trained from scratch with the "
-        f"same budget: {p.steps} steps of batch {p.batch_size}, mode `{p.mode}` (3D truth + image terms, no "
-        f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras other than "
-        f"{', '.join(heldout)}. MPJPE/PA-MPJPE on crops of frames {split.test_frames[0]}-{split.test_frames[1] - 1} "
-        f"(all cameras); PSNR of those frames rendered at {p.render_size} px into the held-out camera(s). "
-        f"`pretrained` is models/pretrain.pt as it is (longer training, another synthetic world). "
-        f"Whole sweep: {seconds:.0f} s."
-    )
-    write_bench_table(out, rows, header)
-    write_pareto_plot(out / "pareto.png", rows)
-    ctx.log.info("bench: %d rows in %.0f s -> reports/bench/table.md", len(rows), seconds)
 
 
 STAGE = Stage(
     name="bench",
     run=run,
-    params_model=Params,
+    params_model=BenchSettings,
     applies=lambda scene: scene.is_synthetic,
     outputs=lambda ctx: ["reports/bench"],
+    in_all=False,  # a sweep over model variants: `python -m pipeline run bench` when wanted
     help="run time against error for model variants (needs a scene with truth)",
 )

@@ -1,260 +1,33 @@
 """pretrain: supervised pretraining on synthetic people, our stand-in for HMR2's 3D-labelled start.
 
-It renders its own corpus of small synthetic worlds, each with its own seed, rig (dome or H36M
-style, field of view drawn per world), person, outfit and motions (every third world holds
-independent random poses), cuts crops with exact truth, and trains the network with 3D joint and
-parameter supervision (optionally on jittered crops, `gst.train.augment`), then briefly adds the
-multi-view image terms so the Gaussian head learns to render (`gaussian_steps`). One more world is rendered and
-never trained on: pose validation, the reported MPJPE and the choice of the kept checkpoint
-use it, so the number says how the model does on people and cameras it has not seen. Writes
-`models/pretrain.pt` (a GST checkpoint) and `reports/pretrain/`.
+Library: `gst.train.pretrain.pretrain` (docs/training.md). It renders a corpus of small
+synthetic worlds, trains with 3D supervision, then briefly with the multi-view image terms so
+the Gaussian head learns to render; one more world, never trained on, validates. With
+`reuse: PATH` an existing GST checkpoint is used as it is. Writes `models/pretrain.pt` and
+`reports/pretrain/`.
 """
 
 from __future__ import annotations
 
-import json
-import shutil
-from pathlib import Path
-from typing import Literal
-
-import numpy as np
-import torch
-
-from gst.body import load_body_model
-from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import load_checkpoint
-from gst.model.presets import PRESETS, get_preset
-from gst.train.augment import CropJitter
-from gst.train.losses import LossWeights
-from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
-from gst.train.synthetic_crops import crops_from_synth_scene
-from gst.train.trainer import TrainConfig
-from gst.train.views import concat_crop_sets
-from pipeline.stage import Stage, StageContext, StageParams
-from synth.scene import SceneSpec, preset, render_scene
-
-
-class Params(StageParams):
-    preset: Literal[tuple(PRESETS)] = "tiny"  # type: ignore[valid-type]
-    body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
-    world_seed: int = 1000  # the pretraining worlds differ from every scene by construction
-    worlds: int = 12  # worlds trained on; one more (unseen) validates
-    world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds
-    world_cameras: int = 6
-    world_frames: int = 40  # per world
-    world_fps: float = (
-        10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
-    )
-    world_people: int = (
-        1  # one person per crop: with 3, crowded crops stalled learning (docs/training.md)
-    )
-    world_fov_deg: tuple[float, float] = (40.0, 75.0)  # horizontal field of view, drawn per world
-    static_every: int = (
-        3  # every Nth world holds independent random poses instead of motions (0: none)
-    )
-    crop_size: int = 128  # the tiny preset's input is 128x96; larger presets want 256
-    augment: bool = (
-        False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
-    )
-    mode: Literal["3d", "pretrain"] = (
-        "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
-    )
-    # Then this many steps of mode "pretrain" from the kept 3d checkpoint: the Gaussian head learns
-    # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
-    # head and the demo's held-out renders come out as faint dots (docs/training.md).
-    gaussian_steps: int = 800
-    gaussian_lr: float = 2e-4
-    steps: int = 1000
-    batch_size: int = 8
-    lr: float = 5e-4
-    num_targets: int = 3
-    render_size: int = 64
-    losses: LossWeights = LossWeights()
-    threads: int | None = None  # torch CPU threads (default: torch's choice)
-    # An existing GST checkpoint to use as is instead of pretraining (e.g. another scene's
-    # models/pretrain.pt: one pretraining serves every scene). Its content is part of the fingerprint.
-    reuse: Path | None = None
-
-
-def world_specs(p: Params) -> list[dict]:
-    """Scene specs of the corpus: `p.worlds` training worlds, then the validation world."""
-    specs = []
-    for k in range(p.worlds + 1):
-        seed = p.world_seed + k
-        rng = np.random.default_rng(np.random.SeedSequence([seed, 0x9E7]))
-        static = p.static_every > 0 and k % p.static_every == p.static_every - 1
-        spec = preset(
-            "demo",
-            seed=seed,
-            n_frames=p.world_frames,
-            n_people=p.world_people,
-            motions=[["random_static"]] * p.world_people if static else None,
-            rig={
-                "kind": p.world_rigs[k % len(p.world_rigs)],
-                "n_cameras": p.world_cameras,
-                "width": 480,
-                "height": 360,
-                "fps": p.world_fps,
-                "fov_deg": float(rng.uniform(*p.world_fov_deg)),
-            },
-            board={"n_frames": 1},
-        )
-        specs.append(
-            spec.model_copy(
-                update={"name": "pretrain_val" if k == p.worlds else f"pretrain_{k:02d}"}
-            ).model_dump(mode="json")
-        )
-    return specs
-
-
-def render_world(item: tuple[dict, str]) -> str:
-    """Render one corpus world (skipped when a finished one is there: the stage resumes)."""
-    spec, out = item
-    if not (Path(out) / "scene.json").is_file():
-        render_scene(SceneSpec.model_validate(spec), Path(out))
-    return out
-
-
-def _reuse(ctx: StageContext) -> None:
-    p = ctx.params
-    ckpt = load_checkpoint(p.reuse)  # weights_only: a GST checkpoint or a clear error
-    if ckpt["body_model"] != p.body_model:
-        raise ValueError(
-            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt['body_model']}', "
-            f"pretrain.body_model is '{p.body_model}'"
-        )
-    shutil.copyfile(p.reuse, ctx.out("models/pretrain.pt"))
-    reports = ctx.out("reports/pretrain")
-    reports.mkdir(parents=True, exist_ok=True)
-    (reports / "summary.json").write_text(json.dumps({"reused": str(p.reuse)}, indent=2))
-    ctx.log.info("pretrain: reusing %s", p.reuse)
+from gst.train.pretrain import PretrainConfig, pretrain
+from pipeline.stage import Stage, StageContext
 
 
 def run(ctx: StageContext) -> None:
-    p = ctx.params
-    if p.reuse is not None:
-        return _reuse(ctx)
-    if p.threads:
-        torch.set_num_threads(p.threads)
-    specs = world_specs(p)
-    items = [(spec, str(ctx.staging / "worlds" / spec["name"])) for spec in specs]
-    if ctx.executor is not None:
-        dirs = ctx.executor.map(render_world, items, description="pretraining worlds")
-    else:
-        dirs = [render_world(x) for x in ctx.track(items, "pretraining worlds", total=len(items))]
-    sets = [
-        crops_from_synth_scene(d, crop_size=p.crop_size) for d in ctx.track(dirs, "synthetic crops")
-    ]
-    crops = concat_crop_sets(sets[:-1], [Path(d).name for d in dirs[:-1]])
-    val = sets[-1]
-    ctx.log.info(
-        "pretraining corpus: %d worlds, %d crops (%d groups); validation world: %d crops",
-        p.worlds,
-        len(crops),
-        len(crops.groups(min_views=1)),
-        len(val),
-    )
-    body = load_body_model(p.body_model)
-    cfg = get_preset(p.preset)
-    net, ids, groups = build_network(cfg, body)
-    lpips = load_lpips() if p.losses.lpips > 0 and p.mode == "pretrain" else None
-    task = make_task(body, ids, cfg, crops.crop_size, p.losses, lpips)
-    train_cfg = TrainConfig(
-        steps=p.steps,
-        batch_size=p.batch_size,
-        lr=p.lr,
-        warmup_steps=min(30, p.steps // 10),
-        val_every=max(1, p.steps // 10),
-        ckpt_every=25,
-        log_every=5,
-    )
-    out = ctx.out("models/pretrain_run")
-    summary = fit_gst(
-        net,
-        task,
-        crops,
-        train_cfg,
-        out,
-        FitOptions(
-            mode=p.mode,
-            num_targets=p.num_targets,
-            render_size=p.render_size,
-            augment=CropJitter() if p.augment else None,
-            val_pose_crops=256,
-        ),
-        body_spec=p.body_model,
-        vertex_ids=ids,
-        group_index=groups,
+    pretrain(
+        ctx.params,
+        ctx.staging,
+        ctx.out("models/pretrain.pt"),
+        ctx.out("reports/pretrain"),
+        map_fn=ctx.executor.map if ctx.executor is not None else None,
         progress=ctx.progress,
-        val_crops=val,
     )
-    # best.pt: the lowest MPJPE on the unseen world (early stopping against memorising the corpus).
-    kept = out / ("best.pt" if (out / "best.pt").is_file() else "last.pt")
-    reports = ctx.out("reports/pretrain")
-    reports.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(out / "log.csv", reports / "log.csv")
-    if p.mode == "3d" and p.gaussian_steps > 0:
-        net.load_state_dict(load_checkpoint(kept)["model"])
-        task = make_task(
-            body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None
-        )
-        gauss_out = ctx.out("models/pretrain_gaussians")
-        gcfg = TrainConfig(
-            steps=p.gaussian_steps,
-            batch_size=p.batch_size,
-            lr=p.gaussian_lr,
-            warmup_steps=min(20, p.gaussian_steps // 10),
-            val_every=p.gaussian_steps,
-            ckpt_every=25,
-            log_every=5,
-        )
-        summary["gaussians"] = fit_gst(
-            net,
-            task,
-            crops,
-            gcfg,
-            gauss_out,
-            FitOptions(
-                mode="pretrain",
-                num_targets=p.num_targets,
-                render_size=p.render_size,
-                val_pose_crops=256,
-            ),
-            body_spec=p.body_model,
-            vertex_ids=ids,
-            group_index=groups,
-            progress=ctx.progress,
-            val_crops=val,
-        )
-        kept = (
-            gauss_out / "last.pt"
-        )  # the pose barely moves here; the head keeps learning to the end
-        shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
-    shutil.copyfile(kept, ctx.out("models/pretrain.pt"))
-    summary.update(
-        corpus={
-            "worlds": [s["name"] for s in specs[:-1]],
-            "validation_world": specs[-1]["name"],
-            "train_crops": len(crops),
-            "validation_crops": len(val),
-        }
-    )
-    (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    kept_metrics = summary["gaussians"]["after"] if "gaussians" in summary else summary["after"]
-    ctx.log.info(
-        "pretrain: MPJPE on the unseen validation world %.1f -> %.1f mm (the kept model)",
-        summary["before"].get("mpjpe_mm", float("nan")),
-        kept_metrics.get("mpjpe_mm", float("nan")),
-    )
-    shutil.rmtree(out)
-    shutil.rmtree(ctx.staging / "models" / "pretrain_gaussians", ignore_errors=True)
-    shutil.rmtree(ctx.staging / "worlds")
 
 
 STAGE = Stage(
     name="pretrain",
     run=run,
-    params_model=Params,
+    params_model=PretrainConfig,
     resumable=True,
     inputs=lambda ctx: [ctx.params.reuse] if ctx.params.reuse is not None else [],
     outputs=lambda ctx: ["models/pretrain.pt", "reports/pretrain"],

@@ -1,268 +1,40 @@
 """train: GST multi-view training on the scene's own crops, with no 3D labels.
 
-Starts from `models/pretrain.pt` (or an HMR2 checkpoint with the `huge` preset), renders each
-prediction into the other views of the same person and compares with what those cameras saw.
-Held-out cameras are never trained on: they measure novel-view quality. On synthetic scenes the
-report also gives MPJPE against the truth before and after training. Writes `models/gst.pt`,
+Library: `gst.train.scene_training.train_scene` (docs/training.md). Starts from
+`models/pretrain.pt` (or an HMR2 checkpoint with the `huge` preset), renders each prediction
+into the other views of the same person and compares with what those cameras saw. Held-out
+cameras are never trained on: they measure novel-view quality. Writes `models/gst.pt`,
 `models/example.ply` (one predicted splat) and `reports/train/`.
 """
 
 from __future__ import annotations
 
-import json
-import shutil
-from pathlib import Path
-from typing import Literal
-
-import cv2
-import numpy as np
-import torch
-
-from gst.body import load_body_model
-from gst.detect.blazepose import import_litert
-from gst.detect.weights import model_paths
-from gst.eval.truth import attach_scene_truth, select_rows
-from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.model.hmr2_import import import_hmr2
-from gst.model.presets import get_preset
-from gst.render.ply import write_gaussians_ply
-from gst.train.anchors import mask_centre_anchors
-from gst.train.evaluation import novel_view_metrics, novel_view_pairs
-from gst.train.losses import LossWeights
-from gst.train.occlusion import occluder_masks
-from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
-from gst.train.steps import predict
-from gst.train.trainer import TrainConfig
-from gst.train.views import load_cropset
-from pipeline.stage import Stage, StageContext, StageParams
-
-
-class Params(StageParams):
-    # multiview: GST (no labels). 2d / 3d: the paper's Table 1 baselines, fine-tuned on the
-    # synthetic truth's 2D joints / 3D joints and parameters (synthetic scenes only).
-    supervision: Literal["multiview", "2d", "3d"] = "multiview"
-    init: Literal["pretrain", "hmr2"] = "pretrain"
-    hmr2_checkpoint: Path | None = (
-        None  # with init=hmr2 (huge preset); loaded with weights_only=True
-    )
-    body_model: str = "anny"
-    heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    steps: int = 1000
-    batch_size: int = 8
-    lr: float = 1e-3  # Gaussian head (tokens, attribute heads)
-    # backbone + SMPL head (None: `lr` for everything). With the keypoint term the body can
-    # learn (demo: -27% MPJPE at 3e-4); without it, keep it low: from a poor start the
-    # photometric gradient alone drags the pose away (+11% at 1e-4, -2% at 1e-5; docs/training.md).
-    body_lr: float | None = 3e-4
-    supervised_lr: float = 1e-4  # supervision 2d/3d (the Table 1 baselines): the whole network
-    freeze_backbone: bool = (
-        False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
-    )
-    num_targets: int = 4
-    render_size: int = 64
-    ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
-    anchor: bool = True  # pull the body towards its triangulated mask centre (losses.anchor weight)
-    # Reproject the joints into the target views against 2D joints the BlazePose landmark model
-    # detects in their crops (losses.keypoints; gst.train.keypoints). Needs the `detect` extra and
-    # `python -m gst.detect fetch`. Ours, not the paper's; false gives its objective.
-    keypoints: bool = True
-    losses: LossWeights = LossWeights()
-    threads: int | None = None
-
-
-def _initial_network(ctx: StageContext, body):
-    p = ctx.params
-    if p.init == "hmr2":
-        if p.hmr2_checkpoint is None:
-            raise ValueError(
-                "train.init=hmr2 needs train.hmr2_checkpoint=PATH (an HMR2 .ckpt or state dict)"
-            )
-        cfg = get_preset("huge")
-        net, ids, groups = build_network(cfg, body)
-        report = import_hmr2(net, p.hmr2_checkpoint)
-        ctx.log.info("HMR2 import: %s", report.summary())
-        return net, ids, groups
-    ckpt = load_checkpoint(ctx.path("models/pretrain.pt"))
-    if ckpt["body_model"] != p.body_model:
-        raise ValueError(
-            f"models/pretrain.pt was trained with body model '{ckpt['body_model']}', "
-            f"train.body_model is '{p.body_model}'"
-        )
-    return network_from_checkpoint(ckpt), ckpt["vertex_ids"].numpy(), ckpt["group_index"].numpy()
-
-
-def _contact_sheet(images, path: Path, max_rows: int = 8) -> None:
-    rows = []
-    for inputs, renders, targets in images:
-        for i in range(len(renders)):
-            size = renders.shape[-1]
-            inp = cv2.resize(inputs[i].numpy(), (size, size), interpolation=cv2.INTER_AREA)
-            rnd = (renders[i].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
-            tgt = (targets[i].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
-            rows.append(np.concatenate([inp, rnd, tgt], axis=1))
-            if len(rows) >= max_rows:
-                break
-    if rows:
-        sheet = np.concatenate(rows, axis=0)
-        sheet = cv2.resize(
-            sheet, (sheet.shape[1] * 2, sheet.shape[0] * 2), interpolation=cv2.INTER_NEAREST
-        )
-        cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+from gst.train.scene_training import TrainOutputs, TrainSettings, train_scene
+from pipeline.stage import Stage, StageContext
 
 
 def run(ctx: StageContext) -> None:
-    p = ctx.params
-    if p.threads:
-        torch.set_num_threads(p.threads)
-    if p.keypoints and p.supervision == "multiview":
-        model_paths()  # missing person models or LiteRT fail now, with the fix, not after loading
-        import_litert()
-    crops, boxes = load_cropset(ctx.path("crops/crops.h5"))
-    if ctx.scene.is_synthetic:
-        attach_scene_truth(crops, boxes, ctx.path("synth"))
-        has = crops.truth["has_truth"]
-        ctx.log.info("truth matched for %d of %d crops", int(has.sum()), len(crops))
-        if p.supervision != "multiview":
-            crops = select_rows(crops, torch.nonzero(has)[:, 0])  # supervised rows need their truth
-    elif p.supervision != "multiview":
-        raise ValueError(
-            f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
-            f"have; scene '{ctx.scene_name}' is real: use supervision=multiview"
-        )
-    if p.ignore_occluders and p.supervision == "multiview":
-        crops.occluders = occluder_masks(crops)
-        ctx.log.info(
-            "occluders: %.1f%% of crop pixels belong to another person",
-            100 * float(crops.occluders.mean()),
-        )
-    heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
-    if p.anchor and p.supervision == "multiview":
-        train_cams = {i for i, c in enumerate(crops.camera_names) if c not in heldout}
-        crops.anchors = mask_centre_anchors(crops, cameras=train_cams)  # held-out masks never used
-        ctx.log.info(
-            "anchors: %d of %d crops have a triangulated mask centre",
-            int(torch.isfinite(crops.anchors).all(1).sum()),
-            len(crops),
-        )
-    if p.keypoints and p.supervision == "multiview":
-        from gst.detect.blazepose import BlazePose
-        from gst.train.keypoints import crop_keypoints
-
-        crops.keypoints = crop_keypoints(crops.images, BlazePose(), ctx.progress)
-        ctx.log.info(
-            "keypoints: %d of %d crops have a joint detected with confidence >= 0.5",
-            int((crops.keypoints[..., 2].amax(1) >= 0.5).sum()),
-            len(crops),
-        )
-    body = load_body_model(p.body_model)
-    net, ids, groups = _initial_network(ctx, body)
-    net.freeze_backbone(p.freeze_backbone)
-    lpips = load_lpips() if p.losses.lpips > 0 else None
-    task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
-    multiview = p.supervision == "multiview"
-    cfg = TrainConfig(
-        steps=p.steps,
-        batch_size=p.batch_size,
-        lr=p.lr if multiview else p.supervised_lr,
-        warmup_steps=min(30, p.steps // 10),
-        val_every=max(1, p.steps // 5),
-        ckpt_every=25,
-        log_every=5,
+    outputs = TrainOutputs(
+        model=ctx.out("models/gst.pt"),
+        example_ply=ctx.out("models/example.ply"),
+        reports=ctx.out("reports/train"),
+        run_dir=ctx.out("models/train_run"),
     )
-    run_dir = ctx.out("models/train_run")
-    body_lr = (
-        p.body_lr if multiview else None
-    )  # the 2d/3d baselines train everything at supervised_lr
-    summary = fit_gst(
-        net,
-        task,
-        crops,
-        cfg,
-        run_dir,
-        FitOptions(
-            mode=p.supervision,
-            num_targets=p.num_targets,
-            render_size=p.render_size,
-            heldout_cameras=tuple(heldout),
-            body_lr=body_lr,
-        ),
-        body_spec=p.body_model,
-        vertex_ids=ids,
-        group_index=groups,
+    train_scene(
+        ctx.params,
+        ctx.path("crops/crops.h5"),
+        ctx.path("models/pretrain.pt"),
+        outputs,
+        synth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
+        scene=ctx.scene_name,
         progress=ctx.progress,
     )
-    if torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
-        return  # under torchrun the other ranks only contribute gradients; rank 0 writes everything
-    best = run_dir / "best.pt"
-    shutil.copyfile(best, ctx.out("models/gst.pt"))
-    net = network_from_checkpoint(load_checkpoint(best)).eval()
-    reports = ctx.out("reports/train")
-    reports.mkdir(parents=True, exist_ok=True)
-    heldout_idx = {crops.camera_names.index(c) for c in heldout}
-    nv = novel_view_metrics(
-        net, task, crops, novel_view_pairs(crops, heldout_idx, max_pairs=8), 128, return_images=True
-    )
-    _contact_sheet(nv.pop("images", []), reports / "novel_views.png")
-    with torch.no_grad():
-        i = torch.tensor([0])
-        g = predict(net, task, crops.images[i], crops.K[i], crops.R[i], crops.t[i]).gaussians_world
-    write_gaussians_ply(
-        ctx.out("models/example.ply"),
-        g.means[0],
-        g.quats[0],
-        g.scales[0],
-        g.opacities[0],
-        g.colors[0],
-    )
-    shutil.copyfile(run_dir / "log.csv", reports / "log.csv")
-    summary["best_checkpoint_novel_view_128px"] = nv
-    (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    _write_markdown(reports / "summary.md", summary)
-    shutil.rmtree(run_dir)
-    b, a = summary["before"], summary["after"]
-    ctx.log.info(
-        "train: MPJPE %s -> %s mm; held-out PSNR %s -> %s dB",
-        _f(b.get("mpjpe_mm")),
-        _f(a.get("mpjpe_mm")),
-        _f(b.get("psnr")),
-        _f(a.get("psnr")),
-    )
-
-
-def _f(v) -> str:
-    return "n/a" if v is None else f"{v:.1f}"
-
-
-def _write_markdown(path: Path, s: dict) -> None:
-    keys = sorted(set(s["before"]) | set(s["after"]))
-    lines = [
-        "# GST training",
-        "",
-        f"{s['steps']} steps, {s['bad_steps']} skipped, {s['seconds']:.0f} s; "
-        f"{s['train_groups']} multi-view training samples; held-out cameras: {', '.join(s['heldout'])}.",
-        "",
-        "| metric | before (pretrained) | after (GST) |",
-        "|---|---|---|",
-    ]
-    lines += [f"| {k} | {_f(s['before'].get(k))} | {_f(s['after'].get(k))} |" for k in keys]
-    lines += [
-        "",
-        "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), SSIM and "
-        "silhouette IoU on held-out cameras, person composited on black, rendered at the training size.",
-        "",
-        "![novel views](novel_views.png)",
-        "",
-        "Each row: the input crop (a training camera), the prediction rendered into a held-out camera, "
-        "what that camera saw.",
-    ]
-    path.write_text("\n".join(lines) + "\n")
 
 
 STAGE = Stage(
     name="train",
     run=run,
-    params_model=Params,
+    params_model=TrainSettings,
     resumable=True,
     outputs=lambda ctx: ["models/gst.pt", "models/example.ply", "reports/train"],
     help="GST multi-view training (no 3D labels) from the pretrained model",

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
-from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -14,19 +11,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-
-@contextmanager
-def atomic_path(path: Path):
-    """Yield a temporary path beside `path` (same suffix); rename it over `path` on success."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+from gst.atomic import PendingFile, atomic_path
 
 
 def write_json(path: Path, data) -> None:
@@ -51,12 +36,13 @@ class VideoOut:
     def __init__(self, path: Path, fps: float, width: int, height: int):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".{self.path.stem}.tmp.mp4")
+        self._file = PendingFile(self.path)
         self._size = (width, height)
         self._writer = cv2.VideoWriter(
-            str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height)
+            str(self._file.path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height)
         )
         if not self._writer.isOpened():
+            self._file.abort()
             raise OSError(
                 f"OpenCV cannot open an mp4v writer for {self.path} (is FFmpeg available in cv2?)"
             )
@@ -73,12 +59,11 @@ class VideoOut:
 
     def close(self) -> None:
         self._writer.release()
-        os.replace(self._tmp, self.path)
+        self._file.commit()
 
     def abort(self) -> None:
         self._writer.release()
-        if self._tmp.exists():
-            self._tmp.unlink()
+        self._file.abort()
 
 
 class MaskStore:
@@ -90,8 +75,8 @@ class MaskStore:
     ):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(f".{self.path.stem}.tmp.h5")
-        self._f = h5py.File(self._tmp, "w", track_order=False)
+        self._file = PendingFile(self.path)
+        self._f = h5py.File(self._file.path, "w", track_order=False)
         self._f.attrs["camera"] = camera
         self._f.attrs["mask_values"] = "0 = background, k = person_id k"
         self.mask = self._f.create_dataset(
@@ -125,12 +110,11 @@ class MaskStore:
 
     def close(self) -> None:
         self._f.close()
-        os.replace(self._tmp, self.path)
+        self._file.commit()
 
     def abort(self) -> None:
         self._f.close()
-        if self._tmp.exists():
-            self._tmp.unlink()
+        self._file.abort()
 
 
 def read_masks(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -139,14 +123,3 @@ def read_masks(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         if "mask" not in f:
             raise KeyError(f"{path}: no 'mask' dataset (expected a synth truth/masks file)")
         return f["mask"][...], (f["depth"][...] if "depth" in f else None)
-
-
-def replace_dir(staging: Path, target: Path) -> None:
-    """Move a finished staging folder onto `target`, replacing an older one."""
-    old = None
-    if target.exists():
-        old = target.with_name(f".{target.name}.old-{os.getpid()}")
-        os.replace(target, old)
-    os.replace(staging, target)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)

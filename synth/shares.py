@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -28,11 +28,9 @@ from synth.io import MaskStore, VideoOut
 from synth.projection import field_radius, project_in_view
 from synth.render import PosedPerson, RayCaster, RenderOptions, ViewRenderer, floor_shadow_maps
 from synth.rigs import make_rig
+from synth.spec import SceneSpec
 from synth.stage import Stage, stage_for_rig
 from synth.truth import ViewRows
-
-if TYPE_CHECKING:
-    from synth.scene import SceneSpec
 
 StepFn = Callable[[str, int], None]  # (step name, camera-frames just finished)
 CAST_FIELDS = ("vertices", "normals", "joints")

@@ -1,4 +1,9 @@
-"""Ground-truth tables: body parameters and 3D joints per person, 2D views per camera.
+"""The synthetic scene's truth format, written and read here (docs/formats/synth_scene.md).
+
+Writers build the tables `render_scene` saves: body parameters and 3D joints per person
+(`truth/people.parquet`), 2D views per camera (`truth/views.parquet`) and the board's poses.
+Readers (`read_scene_truth`, `read_truth_views`, `truth_mask_file`) are the one
+place every consumer (evaluation, pretraining crops, track scoring) loads them from.
 
 `visible[j]` is True when joint j projects into the image, the pixel there belongs to the same
 person, and the surface seen there is at most `OCCLUSION_TOLERANCE` metres in front of the joint
@@ -8,13 +13,18 @@ person, and the surface seen there is at most `OCCLUSION_TOLERANCE` metres in fr
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.parquet as pq
+import torch
 
 from calibration import Camera
 from synth.animate import PersonTrack
 from synth.board import BoardPose, ChArUcoSpec, visible_corners
+from synth.io import write_parquet
 from synth.projection import project_in_view
 from synth.skeleton import JOINT_NAMES, NUM_JOINTS
 
@@ -230,3 +240,190 @@ def board_tables(
 
 def joint_names() -> list[str]:
     return list(JOINT_NAMES)
+
+
+# -- readers ----------------------------------------------------------------------------------
+
+PEOPLE_FILE = "truth/people.parquet"
+VIEWS_FILE = "truth/views.parquet"
+BOARD_POSES_FILE = "truth/board_poses.parquet"
+BOARD_VIEWS_FILE = "truth/board_views.parquet"
+
+
+def write_truth_tables(out: Path, tracks: list[PersonTrack], views: ViewRows, meta: dict) -> None:
+    """`truth/people.parquet` and `truth/views.parquet` of a scene folder, atomically."""
+    write_parquet(out / PEOPLE_FILE, people_table(tracks, meta))
+    write_parquet(
+        out / VIEWS_FILE,
+        views.table(
+            {
+                **meta,
+                "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
+                "pixel_convention": "OpenCV, pixel centres at integers",
+            }
+        ),
+    )
+
+
+def write_board_truth(out: Path, poses: pa.Table, views: pa.Table) -> None:
+    """`truth/board_poses.parquet` and `truth/board_views.parquet` (from `board_tables`)."""
+    write_parquet(out / BOARD_POSES_FILE, poses)
+    write_parquet(out / BOARD_VIEWS_FILE, views)
+
+
+@dataclass
+class SceneTruth:
+    """One row per (frame, person) of a synthetic scene. Arrays are float32 unless noted."""
+
+    frame: np.ndarray  # (P,) int
+    person_id: np.ndarray  # (P,) int
+    motion: np.ndarray  # (P,) str, the motion clip playing at that frame
+    betas: np.ndarray  # (P, nb)
+    global_orient: np.ndarray  # (P, 3) axis-angle, body -> world
+    body_pose: np.ndarray  # (P, 23, 3) axis-angle
+    transl: np.ndarray  # (P, 3) metres
+    joints_world: np.ndarray  # (P, 24, 3) metres
+    joint_names: tuple[str, ...]
+    body_model: str  # name of the body model the scene was posed with
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def row_index(self) -> dict[tuple[int, int], int]:
+        """(frame, person id) -> row."""
+        return {
+            (int(f), int(p)): k
+            for k, (f, p) in enumerate(zip(self.frame, self.person_id, strict=True))
+        }
+
+    @torch.no_grad()
+    def vertices(self, body, rows: np.ndarray | None = None, batch: int = 32) -> torch.Tensor:
+        """World vertices (P', V, 3) of `rows` (default all), posed with `body` (a gst BodyModel
+        of the same topology as the scene's)."""
+        rows = np.arange(len(self)) if rows is None else np.asarray(rows)
+        parts = []
+        for s in range(0, len(rows), batch):
+            r = rows[s : s + batch]
+            out = body(
+                torch.from_numpy(self.betas[r]),
+                torch.from_numpy(self.body_pose[r]),
+                torch.from_numpy(self.global_orient[r]),
+                torch.from_numpy(self.transl[r]),
+            )
+            parts.append(out.vertices.float())
+        if not parts:
+            return torch.zeros(0, body.num_vertices, 3)
+        return torch.cat(parts)
+
+
+@dataclass(frozen=True)
+class TruthViews:
+    """Rows of `truth/views.parquet`: one per (frame, person, camera). Boxes: `box` is the
+    person's mask box with edges at pixel-centre coordinates (`min column - 0.5`), NaN when the
+    mask is empty; `full_box` bounds the projected mesh, occluded parts included (distorted
+    image)."""
+
+    frame: np.ndarray  # (M,) int64
+    person_id: np.ndarray  # (M,) int64
+    camera: np.ndarray  # (M,) str (object array)
+    joints2d: np.ndarray  # (M, 24, 2) float32 distorted image pixels
+    visible: np.ndarray  # (M, 24) bool
+    box: np.ndarray  # (M, 4) float64 x0, y0, x1, y1
+    full_box: np.ndarray  # (M, 4) float64
+    mask_area: np.ndarray  # (M,) int64 pixels
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def rows(self, keep: np.ndarray) -> TruthViews:
+        return TruthViews(**{k: getattr(self, k)[keep] for k in self.__dataclass_fields__})
+
+
+def has_scene_truth(scene_dir: str | Path) -> bool:
+    """Whether `scene_dir` (a synthetic scene folder) carries per-person truth."""
+    return (Path(scene_dir) / PEOPLE_FILE).is_file() and (Path(scene_dir) / VIEWS_FILE).is_file()
+
+
+def _column(table: pa.Table, name: str, width: int, path: Path) -> np.ndarray:
+    if name not in table.column_names:
+        raise ValueError(f"{path}: column '{name}' is missing (columns: {table.column_names})")
+    flat = table.column(name).combine_chunks().flatten().to_numpy(zero_copy_only=False)
+    if flat.size != table.num_rows * width:
+        raise ValueError(
+            f"{path}: column '{name}' has {flat.size // max(table.num_rows, 1)} values per row, "
+            f"expected {width}"
+        )
+    return np.asarray(flat).reshape(table.num_rows, width)
+
+
+def _table(scene_dir: str | Path, rel: str) -> tuple[pa.Table, Path]:
+    path = Path(scene_dir) / rel
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no truth (only synthetic scenes carry it)")
+    return pq.read_table(path), path
+
+
+def read_scene_truth(scene_dir: str | Path) -> SceneTruth:
+    """Load `truth/people.parquet` of a synthetic scene; raises FileNotFoundError when absent."""
+    table, path = _table(scene_dir, PEOPLE_FILE)
+    meta = table.schema.metadata or {}
+    names = (
+        tuple(json.loads(meta[b"joint_names"]))
+        if b"joint_names" in meta
+        else tuple(f"joint_{i}" for i in range(NUM_JOINTS))
+    )
+    body_model = json.loads(meta[b"body_model"]).get("name", "") if b"body_model" in meta else ""
+    nb = table.schema.field("betas").type.list_size
+    motion = (
+        np.asarray(table.column("motion").to_pylist(), dtype=object)
+        if "motion" in table.column_names
+        else np.full(table.num_rows, "unknown", dtype=object)
+    )
+
+    def f32(name: str, width: int) -> np.ndarray:
+        return _column(table, name, width, path).astype(np.float32)
+
+    return SceneTruth(
+        frame=table.column("frame").to_numpy().astype(np.int64),
+        person_id=table.column("person_id").to_numpy().astype(np.int64),
+        motion=motion,
+        betas=f32("betas", nb),
+        global_orient=f32("global_orient", 3),
+        body_pose=f32("body_pose", 69).reshape(-1, 23, 3),
+        transl=f32("transl", 3),
+        joints_world=f32("joints3d", 3 * NUM_JOINTS).reshape(-1, NUM_JOINTS, 3),
+        joint_names=names,
+        body_model=body_model,
+    )
+
+
+def read_truth_views(scene_dir: str | Path, camera: str | None = None) -> TruthViews:
+    """Load `truth/views.parquet` (all cameras, or one: KeyError naming the cameras if absent)."""
+    table, path = _table(scene_dir, VIEWS_FILE)
+    cameras = np.asarray(table.column("camera").to_pylist(), dtype=object)
+
+    def f64(*names: str) -> np.ndarray:
+        return np.stack([table.column(k).to_numpy().astype(np.float64) for k in names], 1)
+
+    views = TruthViews(
+        frame=table.column("frame").to_numpy().astype(np.int64),
+        person_id=table.column("person_id").to_numpy().astype(np.int64),
+        camera=cameras,
+        joints2d=_column(table, "joints2d", 2 * NUM_JOINTS, path).reshape(-1, NUM_JOINTS, 2),
+        visible=_column(table, "visible", NUM_JOINTS, path).astype(bool),
+        box=f64("x0", "y0", "x1", "y1"),
+        full_box=f64("full_x0", "full_y0", "full_x1", "full_y1"),
+        mask_area=table.column("mask_area").to_numpy().astype(np.int64),
+    )
+    if camera is None:
+        return views
+    if camera not in set(cameras):
+        raise KeyError(
+            f"{path}: no camera '{camera}' in the truth views (cameras: {sorted(set(cameras))})"
+        )
+    return views.rows(cameras == camera)
+
+
+def truth_mask_file(scene_dir: str | Path, camera: str) -> Path:
+    """`truth/masks/<camera>.h5`: person-id masks (dataset `mask`, (T, H, W)) and depth."""
+    return Path(scene_dir) / "truth" / "masks" / f"{camera}.h5"

@@ -19,12 +19,13 @@ from gst.body import BodyModel
 from gst.body.random_model import random_body_data
 from gst.eval.evaluate import EvalConfig, evaluate_model
 from gst.eval.report import write_report
-from gst.eval.truth import attach_scene_truth, has_scene_truth, read_scene_truth
 from gst.model.presets import get_preset
 from gst.train.losses import LossWeights
 from gst.train.recipe import build_network, make_task
+from gst.train.scene_truth import attach_scene_truth
 from gst.train.synthetic_crops import crops_from_synth_scene
 from synth.scene import preset, render_scene
+from synth.truth import has_scene_truth, read_scene_truth
 
 BODY = CapsuleBody()
 

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import Camera
-from gst.data.associate import project_fast
+from gst.data.association import project_fast
 from gst.data.crop import (
     CropBox,
     crop_camera,

@@ -4,7 +4,7 @@ stay two people, and each camera's instance goes whole to its own person."""
 import numpy as np
 import pytest
 
-from gst.data.associate import AssociationConfig, CaptureVolume, VoxelGrid
+from gst.data.association import AssociationConfig, CaptureVolume, VoxelGrid, associate_frame
 from tests.extract_scenes import ring_rig
 
 
@@ -55,7 +55,7 @@ def test_close_people_stay_apart_with_instance_masks(gap):
     volume = CaptureVolume.around((0.0, 0.0, 1.0), (2.0, 2.0, 1.2))
     cfg = AssociationConfig(instance_split=True)
     grid = VoxelGrid(list(rig), sizes, volume, cfg)
-    result = grid.associate(labels)
+    result = associate_frame(grid, labels)
     assert len(result.persons) == 2
     centres = sorted(
         p.ground[0] if abs(p.ground[0]) > abs(p.ground[1]) else p.ground[1] for p in result.persons
@@ -82,4 +82,4 @@ def test_instance_split_never_splits_one_person():
         CaptureVolume.around((0.0, 0.0, 1.0), (2.0, 2.0, 1.2)),
         AssociationConfig(instance_split=True),
     )
-    assert len(grid.associate(labels).persons) == 1
+    assert len(associate_frame(grid, labels).persons) == 1

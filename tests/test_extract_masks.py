@@ -9,7 +9,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from gst.data.associate import PersonTracker
+from gst.data.association import PersonTracker
 from gst.data.background import BackgroundConfig, build_background, hysteresis, temporal_median
 from gst.data.evaluate import CropTruth, association_accuracy, match_truth
 from gst.data.external import ExternalError, IdMaskFile, boxes_to_labels, read_external
@@ -122,7 +122,7 @@ def test_match_truth_and_association_accuracy():
 
 
 def test_tracker_keeps_ids_and_gates_by_speed():
-    from gst.data.associate import Person3D
+    from gst.data.association import Person3D
 
     def person(x, y):
         return Person3D(

@@ -10,9 +10,9 @@ from hypothesis import strategies as st
 
 from calibration import Camera
 from calibration.camera import look_at_rotation
-from gst.data.associate import link_tracklets
+from calibration.triangulate import dlt_points
+from gst.data.association import link_tracklets
 from gst.data.ground import ground_seed
-from gst.data.proxies import triangulate_dlt
 from gst.track.static_detector import group_boxes
 from gst.track.tracker import Observation, Tracker, TrackerConfig
 
@@ -85,7 +85,7 @@ def test_dlt_triangulation_recovers_a_point(x, y, z):
     cams = [_camera(p) for p in ([4, -3, 2], [-4, -3, 2.2], [0, 5, 2.5])]
     P = np.stack([c.K @ np.c_[c.R, c.t.reshape(3, 1)] for c in cams])
     uv = np.stack([(Pi @ np.append(X, 1))[:2] / (Pi @ np.append(X, 1))[2] for Pi in P])
-    np.testing.assert_allclose(triangulate_dlt(P, uv), X, atol=1e-6)
+    np.testing.assert_allclose(dlt_points(P, uv[:, None, :])[0], X, atol=1e-6)
 
 
 def test_group_boxes_joins_stacked_pieces_only():

@@ -10,7 +10,8 @@ import h5py
 import numpy as np
 import pytest
 
-import gst.data.extract as extract_mod
+import gst.data.extract.crops as crops_phase
+import gst.data.extract.scene as scene_phase
 from calibration import Rig
 from gst.data import (
     AssociationConfig,
@@ -140,7 +141,7 @@ def test_skips_empty_frames_idle_cameras_and_honours_stride(short_scene, tmp_pat
 def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
     out = tmp_path / "crops.h5"
     calls = {"n": 0}
-    real_merge = extract_mod.merge_part
+    real_merge = scene_phase.merge_part
 
     def merge_then_crash(writer, part, ci, commit_frames):
         calls["n"] += 1
@@ -148,12 +149,12 @@ def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
             raise RuntimeError("simulated crash during merge")
         return real_merge(writer, part, ci, commit_frames)
 
-    monkeypatch.setattr(extract_mod, "merge_part", merge_then_crash)
+    monkeypatch.setattr(scene_phase, "merge_part", merge_then_crash)
     with pytest.raises(RuntimeError, match="simulated"):
         extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
     with pytest.raises(StoreError, match="incomplete"):
         CropStore(out)
-    monkeypatch.setattr(extract_mod, "merge_part", real_merge)
+    monkeypatch.setattr(scene_phase, "merge_part", real_merge)
     rep = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
     assert rep.pairs_resumed == 12  # the first camera's 12 (frame, camera) pairs were kept
     store = CropStore(out)
@@ -268,7 +269,7 @@ def test_frame_count_mismatch_is_named(short_scene, tmp_path):
 
 
 def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, monkeypatch):
-    real = extract_mod.read_frames
+    real = crops_phase.read_frames
 
     def failing(path, frames, camera="", scale=1.0):
         for k, item in enumerate(real(path, frames, camera, scale)):
@@ -278,7 +279,7 @@ def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, m
                 )
             yield item
 
-    monkeypatch.setattr(extract_mod, "read_frames", failing)
+    monkeypatch.setattr(crops_phase, "read_frames", failing)
     out = tmp_path / "crops.h5"
     with pytest.raises(VideoError, match="camera 'cam2'"):
         extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
@@ -294,7 +295,7 @@ def test_wrong_image_size_for_rig_is_named(short_scene, tmp_path):
         tuple(c.replace(width=640, height=480) if c.name == "cam0" else c for c in short_scene.rig)
     )
     assert cam.width == 320
-    with pytest.raises(VideoError, match=r"camera 'cam0'.*320x240.*640x480"):
+    with pytest.raises(ValueError, match=r"camera 'cam0'.*320x240.*640x480.*frame_size_tolerance"):
         extract_scene(short_scene.videos, rig, tmp_path / "crops.h5", options=_opts())
 
 

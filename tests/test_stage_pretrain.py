@@ -1,6 +1,7 @@
 """The pretraining corpus: distinct worlds, the validation world last and never trained on."""
 
-from stages.pretrain import Params, world_specs
+from gst.train.pretrain import PretrainConfig as Params
+from gst.train.pretrain import world_specs
 
 
 def test_world_specs_vary_and_end_with_the_validation_world():

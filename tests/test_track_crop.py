@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import Camera
+from gst.data.camera_view import TrackingView, default_camera
 from gst.data.crop import (
     CropWindow,
     crop_intrinsics,
@@ -15,7 +16,6 @@ from gst.data.crop import (
     cut_undistorted_crop,
     distortion_maps,
 )
-from gst.track.view import TrackingView, default_camera
 
 finite = st.floats(-500, 2500, allow_nan=False)
 
@@ -162,7 +162,7 @@ def test_box_on_raw_frame_maps_to_enclosing_undistorted_box():
 def test_default_camera_and_size_check():
     cam = default_camera(1920, 1080)
     assert cam.fx == pytest.approx(np.hypot(1920, 1080)) and cam.cx == 959.5 and cam.cy == 539.5
-    with pytest.raises(ValueError, match="calibrated for 1280x720"):
+    with pytest.raises(ValueError, match="1920x1080, but the calibration says 1280x720"):
         TrackingView.for_video(1920, 1080, distorted_camera(), video="match.mp4")
 
 

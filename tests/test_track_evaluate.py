@@ -77,6 +77,13 @@ def truth_scene(tmp_path, frames=N_FRAMES):
                 "x1": b[:, 2],
                 "y1": b[:, 3],
                 "mask_area": pa.array([4000] * n, pa.int32()),
+                # the rest of the format (docs/formats/synth_scene.md), unused here
+                "joints2d": _fixed(np.zeros((n, 48))),
+                "visible": pa.FixedSizeListArray.from_arrays(pa.array(np.ones(n * 24, bool)), 24),
+                "full_x0": b[:, 0],
+                "full_y0": b[:, 1],
+                "full_x1": b[:, 2],
+                "full_y1": b[:, 3],
             }
         ),
         tmp_path / "truth/views.parquet",

@@ -5,11 +5,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from gst.data.camera_view import default_camera
 from gst.data.crop import crop_intrinsics, crop_window
 from gst.track.baseline import BoxDepthPredictor
 from gst.track.detection import Detection, Detector, SuppliedBoxes, SuppliedBoxesError
 from gst.track.predictor import PredictorOutputError, predict_batched, validate_prediction
-from gst.track.view import default_camera
 
 
 def test_csv_with_two_videos(tmp_path):

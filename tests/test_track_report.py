@@ -21,7 +21,7 @@ from gst.track.report import (
     write_overlay,
 )
 from gst.track.schema import SMPL_JOINT_NAMES
-from gst.track.video import probe_video
+from gst.video import probe_video
 from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
 
 N = 16

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-import os
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from calibration.camera import Camera, CameraError, Rig
+from gst.atomic import atomic_write, atomic_write_text  # noqa: F401  (the formats' writers)
 
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 
@@ -72,26 +70,6 @@ def make_rig(path: Path, cameras: list[Camera], **kwargs) -> Rig:
         return Rig(tuple(cameras), **kwargs)
     except CameraError as exc:
         raise RigFormatError(f"{path}: {exc}") from exc
-
-
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
-    """Call `write(tmp_path)` on a temporary file next to `path`, then rename it into place, so
-    readers never see a half-written file and a failed write leaves the old file intact."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    try:
-        write(tmp_path)
-        os.replace(tmp_path, path)
-    finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
 
 
 def require(data: dict, key: str, path: Path, where: str = ""):

@@ -9,7 +9,7 @@ Entry points:
   (`external`), truth scores (`evaluate`).
 """
 
-from gst.data.associate import AssociationConfig, CaptureVolume, PersonTracker, VoxelGrid
+from gst.data.association import AssociationConfig, CaptureVolume, PersonTracker, VoxelGrid
 from gst.data.background import BackgroundConfig, build_background
 from gst.data.crop import CropBox, crop_camera, crop_intrinsics, extract_crop, hmr_crop_box
 from gst.data.external import ExternalDetections, ExternalError, IdMaskFile, read_external
@@ -24,7 +24,7 @@ from gst.data.extract import (
 from gst.data.masks import MaskConfig, clean_mask
 from gst.data.report import contact_sheet, write_extract_report
 from gst.data.store import CropBatch, CropStore, CropStoreWriter, MultiViewGroup, StoreError
-from gst.data.video import VideoError, VideoInfo, check_videos, probe_video, read_frames
+from gst.video import VideoError, VideoInfo, check_videos, probe_video, read_frames
 
 __all__ = [
     "AssociationConfig",

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from gst.atomic import atomic_path, atomic_write_text
 from gst.data.extract import ExtractReport
 from gst.data.store import CropStore
 
@@ -102,10 +102,9 @@ def write_extract_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     store = CropStore(store_path)
     sheet_path = out_dir / f"{name}_contact_sheet.png"
-    tmp = out_dir / f".{name}_contact_sheet.tmp.png"
-    if not cv2.imwrite(str(tmp), contact_sheet(store)):
-        raise OSError(f"could not write {tmp}")
-    os.replace(tmp, sheet_path)
+    with atomic_path(sheet_path) as tmp:
+        if not cv2.imwrite(str(tmp), contact_sheet(store)):
+            raise OSError(f"could not write {sheet_path}")
     support = store.index.column("mask_support").to_numpy() if len(store) else np.zeros(0)
     support = support[np.isfinite(support)]
     store.close()
@@ -157,7 +156,5 @@ def write_extract_report(
         (md_path, "\n".join(lines)),
         (json_path, json.dumps(r.to_dict(), indent=1, default=str)),
     ):
-        tmp_text = path.with_name("." + path.name + ".tmp")
-        tmp_text.write_text(text)
-        os.replace(tmp_text, path)
+        atomic_write_text(path, text)
     return {"markdown": md_path, "json": json_path, "contact_sheet": sheet_path}

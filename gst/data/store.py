@@ -10,7 +10,6 @@ Parquet index are written; `CropStore` refuses an incomplete store unless asked.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +17,8 @@ import h5py
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from gst.atomic import atomic_path
 
 FORMAT = "gst-crops"
 VERSION = 1
@@ -320,9 +321,8 @@ def write_index(f: h5py.File, store_path: Path) -> Path:
         }
     )
     out = index_path_for(store_path)
-    tmp = out.with_name(out.name + ".tmp")
-    pq.write_table(table, tmp)
-    os.replace(tmp, out)
+    with atomic_path(out) as tmp:
+        pq.write_table(table, tmp)
     return out
 
 
@@ -459,3 +459,33 @@ class CropStore:
             res[order] = vals
             out[name] = res
         return CropBatch(**out)
+
+
+def merge_part(
+    writer: CropStoreWriter, part_path: Path, camera_index: int, commit_frames: int
+) -> int:
+    """Append a camera's part store to the scene store, frame chunk by frame chunk; returns the
+    number of (frame, camera) pairs added."""
+    done_main = writer.done_pairs()
+    added = 0
+    with h5py.File(part_path, "r") as f:
+        n = int(f.attrs["n_committed"])
+        n_done = int(f.attrs["n_done"])
+        frames_col = f["frame"][:n]
+        part_done = sorted(int(fr) for fr, c in f["done"][:n_done] if c == camera_index)
+        todo = [fr for fr in part_done if (fr, camera_index) not in done_main]
+        for i0 in range(0, len(todo), commit_frames):
+            chunk = todo[i0 : i0 + commit_frames]
+            rows = np.nonzero(np.isin(frames_col, chunk))[0]
+            if len(rows):
+                a, b = int(rows.min()), int(rows.max()) + 1
+                if b - a != len(rows):
+                    raise StoreError(
+                        f"{part_path}: rows of frames {chunk[0]}..{chunk[-1]} are not contiguous"
+                    )
+                batch = CropBatch(**{k: f[k][a:b] for k in CropBatch.__dataclass_fields__})
+            else:
+                batch = CropBatch.empty(writer.crop_size)
+            writer.commit(batch, [(fr, camera_index) for fr in chunk])
+            added += len(chunk)
+    return added

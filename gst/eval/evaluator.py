@@ -84,7 +84,7 @@ def evaluate_pose(
     rows = torch.as_tensor(rows, dtype=torch.long)
     if "joints_world" not in crops.truth:
         raise ValueError(
-            "evaluate_pose: the crop set has no truth joints_world (see gst.eval.truth)"
+            "evaluate_pose: the crop set has no truth joints_world (see gst.train.scene_truth)"
         )
     with_vertices = scene_vertices is not None
     if with_vertices:

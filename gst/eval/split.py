@@ -13,9 +13,9 @@ from pathlib import Path
 
 import torch
 
-from gst.eval.truth import select_rows
 from gst.train.losses import LossWeights
 from gst.train.recipe import FitOptions, fit_gst, make_task
+from gst.train.scene_truth import select_rows
 from gst.train.trainer import TrainConfig
 from gst.train.views import CropSet
 

@@ -1,5 +1,6 @@
 """Tracking: per-frame inference on a video, written as pose time series to Parquet."""
 
+from gst.data.camera_view import TrackingView, default_camera
 from gst.data.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 from gst.track.baseline import BoxDepthPredictor
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
@@ -12,9 +13,8 @@ from gst.track.report import draw_people, joint_angles, plot_joint_angles, write
 from gst.track.schema import SMPL_JOINT_NAMES, tracks_schema
 from gst.track.smoothing import OneEuroConfig, OneEuroFilter, PoseSmoother
 from gst.track.tracker import Observation, Tracker, TrackerConfig, box_iou
-from gst.track.video import VideoError, VideoInfo, VideoTruncatedError, iter_frames, probe_video
-from gst.track.view import TrackingView, default_camera
 from gst.track.writer import ResumeError, TrackWriter
+from gst.video import VideoError, VideoInfo, VideoTruncatedError, iter_frames, probe_video
 
 __all__ = [
     "BoxDepthPredictor",

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +27,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from scipy.optimize import linear_sum_assignment
 
+from gst.atomic import atomic_path
 from gst.track.detection import Detector
 from gst.track.frames import TrackingSession
 from gst.track.loop import TrackOptions, VideoRun, tracked_groups
@@ -150,14 +150,13 @@ def track_chunk(
         "stats": {k: session.stats[k] - warm[k] for k in STAT_KEYS},
     }
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
-    pq.write_table(
-        table.replace_schema_metadata({CHUNK_META_KEY: json.dumps(record)}),
-        tmp,
-        row_group_size=max(len(table), 1),
-        **PARQUET_OPTIONS,
-    )
-    os.replace(tmp, out_path)
+    with atomic_path(out_path) as tmp:
+        pq.write_table(
+            table.replace_schema_metadata({CHUNK_META_KEY: json.dumps(record)}),
+            tmp,
+            row_group_size=max(len(table), 1),
+            **PARQUET_OPTIONS,
+        )
     return record
 
 

@@ -9,7 +9,7 @@ consistency (id switches, fragments, ids per person). Definitions: docs/track_ev
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,64 +17,30 @@ import pyarrow.parquet as pq
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from gst.eval.truth import read_scene_truth
+from gst.metrics.image import box_iou
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.track.read import column_array, read_metadata
-from gst.track.tracker import box_iou
+from synth.truth import TruthViews, read_scene_truth, read_truth_views
 
 __all__ = [
     "PersonEvaluation",
     "TrackEvaluation",
-    "TruthViews",
     "evaluate_tracks",
     "match_frame",
-    "read_truth_views",
     "identity_counts",
 ]
 
 PELVIS = 0
 
 
-@dataclass(frozen=True)
-class TruthViews:
-    """The truth people one camera sees: one row per (frame, person) with a non-empty mask.
-    Boxes are the person's mask box in the tracks' pixel-corner convention."""
-
-    frame: np.ndarray  # (M,) int
-    person_id: np.ndarray  # (M,) int
-    box: np.ndarray  # (M, 4) x0, y0, x1, y1
-
-
-def read_truth_views(scene_dir: str | Path, camera_name: str, min_mask_area: int = 1) -> TruthViews:
-    """Mask boxes of `camera_name` from `truth/views.parquet`, rows with at least `min_mask_area`
-    mask pixels. views.parquet puts box edges at pixel-centre coordinates (`min column - 0.5`); the
-    tracks use pixel corners (`min column`), hence the + 0.5."""
-    path = Path(scene_dir) / "truth" / "views.parquet"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no truth views (only synthetic scenes carry them)")
-    table = pq.read_table(
-        path, columns=["frame", "person_id", "camera", "x0", "y0", "x1", "y1", "mask_area"]
-    )
-    cameras = np.asarray(table.column("camera").to_pylist(), dtype=object)
-    if camera_name not in set(cameras):
-        raise KeyError(
-            f"{path}: no camera '{camera_name}' in the truth views (cameras: {sorted(set(cameras))})"
-        )
-    box = (
-        np.stack(
-            [table.column(k).to_numpy().astype(np.float64) for k in ("x0", "y0", "x1", "y1")], 1
-        )
-        + 0.5
-    )
-    keep = (cameras == camera_name) & (
-        table.column("mask_area").to_numpy() >= max(min_mask_area, 1)
-    )
-    keep &= np.isfinite(box).all(1)
-    return TruthViews(
-        frame=table.column("frame").to_numpy()[keep].astype(np.int64),
-        person_id=table.column("person_id").to_numpy()[keep].astype(np.int64),
-        box=box[keep],
-    )
+def _mask_boxes(scene_dir: str | Path, camera_name: str, min_mask_area: int) -> TruthViews:
+    """The truth people `camera_name` sees (rows with at least `min_mask_area` mask pixels), their
+    mask boxes moved from views.parquet's pixel-centre edges (`min column - 0.5`) to the tracks'
+    pixel corners (`min column`)."""
+    views = read_truth_views(scene_dir, camera_name)
+    keep = (views.mask_area >= max(min_mask_area, 1)) & np.isfinite(views.box).all(1)
+    views = views.rows(keep)
+    return replace(views, box=views.box + 0.5)
 
 
 def match_frame(
@@ -204,7 +170,7 @@ def evaluate_tracks(
     meta = read_metadata(tracks_parquet)
     table = pq.read_table(tracks_parquet, partitioning=None)
     truth = read_scene_truth(scene_dir)
-    views = read_truth_views(scene_dir, camera_name, min_mask_area)
+    views = _mask_boxes(scene_dir, camera_name, min_mask_area)
     joints_frame = (meta.get("axes") or {}).get("joints3d", "camera")
 
     frames = _processed_frames(meta, truth.frame)

@@ -8,13 +8,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from gst.data.camera_view import TrackingView
 from gst.data.crop import crop_window, cut_crop, cut_undistorted_crop
 from gst.track.appearance import colour_histogram, core_region
 from gst.track.detection import Detection
 from gst.track.predictor import PoseBatch
 from gst.track.smoothing import OneEuroConfig, PoseSmoother
 from gst.track.tracker import Observation, Tracker, TrackerConfig
-from gst.track.view import TrackingView
 
 
 @dataclass

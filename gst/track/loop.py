@@ -20,8 +20,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from calibration import Camera
+from gst.data.camera_view import TrackingView
+from gst.prefetch import background
 from gst.track.appearance import DESCRIPTOR_SIZE
-from gst.track.background import background
 from gst.track.detection import Detector
 from gst.track.frames import PendingFrame, TrackingSession, prepare_detection
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
@@ -29,7 +30,8 @@ from gst.track.rows import rows_table
 from gst.track.schema import FORMAT_VERSION, file_metadata, tracks_schema
 from gst.track.smoothing import OneEuroConfig
 from gst.track.tracker import TrackerConfig
-from gst.track.video import (
+from gst.track.writer import TrackWriter
+from gst.video import (
     Frame,
     VideoInfo,
     VideoTruncatedError,
@@ -37,8 +39,6 @@ from gst.track.video import (
     iter_frames,
     probe_video,
 )
-from gst.track.view import TrackingView
-from gst.track.writer import TrackWriter
 
 
 @dataclass(frozen=True)
@@ -349,7 +349,7 @@ def track_video(
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
     `model` must hold at least "name" and "version" (recorded in the file). `camera` is the
-    video's calibrated camera, or None for the default camera (see gst.track.view). With
+    video's calibrated camera, or None for the default camera (see gst.data.camera_view). With
     `resume`, a partial run with the same settings is continued and a finished file with the same
     settings is returned as is; without it, earlier output for this video is replaced. Raises
     VideoError (naming the file) for unreadable video; on a truncated video the frames before the
@@ -386,10 +386,12 @@ def track_video(
         )
     session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
-    start_frame, resumed_from = run.first, None
+    start_frame, resumed_from, seconds_before = run.first, None, 0.0
     if point is not None:
         session.load_state_dict(point.state)
         start_frame = resumed_from = point.next_frame
+        # time spent by the runs this one resumes (kept beside the state, never in the output)
+        seconds_before = float(point.state.get("elapsed_s", 0.0))
     for g in tracked_groups(
         video_path,
         run,
@@ -402,7 +404,8 @@ def track_video(
         start_frame=start_frame,
         on_frame=on_frame,
     ):
-        writer.commit(g.table, g.next_frame, session.state_dict())
+        elapsed = seconds_before + time.perf_counter() - t0
+        writer.commit(g.table, g.next_frame, {**session.state_dict(), "elapsed_s": elapsed})
         if on_extra is not None and g.poses.extra:
             _replay_extras(g, on_extra)
     stats = {**session.stats, "persons": session.tracker.next_id}
@@ -414,7 +417,7 @@ def track_video(
         stats["frames"],
         stats["persons"],
         resumed_from,
-        time.perf_counter() - t0,
+        seconds_before + time.perf_counter() - t0,
     )
 
 

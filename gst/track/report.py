@@ -3,16 +3,16 @@ of joint angles over time."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pyarrow as pa
 
+from gst.atomic import atomic_path, atomic_write
 from gst.track.read import column_array, read_metadata, read_tracks
 from gst.track.schema import SMPL_JOINT_NAMES
-from gst.track.video import iter_frames
+from gst.video import iter_frames
 
 # SMPL kinematic tree: parent of each joint (-1 for the root).
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
@@ -93,28 +93,27 @@ def write_overlay(
     stride = int(v["stride"])
     frames_col = table.column("frame").to_numpy()
     out_path = Path(out_path)
-    tmp = out_path.with_name(f".{out_path.stem}.tmp{out_path.suffix}")
-    writer = cv2.VideoWriter(
-        str(tmp),
-        cv2.VideoWriter_fourcc(*fourcc),
-        float(v["fps"]) / stride,
-        (int(v["width"]), int(v["height"])),
-    )
-    if not writer.isOpened():
-        raise RuntimeError(f"{out_path}: cannot write video with codec '{fourcc}'")
-    try:
-        end = v["end_frame"]
-        for f in iter_frames(
-            video_path,
-            stride=stride,
-            start_s=v["first_frame"] / v["fps"],
-            end_s=None if end is None else end / v["fps"],
-        ):
-            rows = table.filter(pa.array(frames_col == f.index))
-            writer.write(draw_people(f.image, rows))
-    finally:
-        writer.release()
-    os.replace(tmp, out_path)
+    with atomic_path(out_path) as tmp:
+        writer = cv2.VideoWriter(
+            str(tmp),
+            cv2.VideoWriter_fourcc(*fourcc),
+            float(v["fps"]) / stride,
+            (int(v["width"]), int(v["height"])),
+        )
+        if not writer.isOpened():
+            raise RuntimeError(f"{out_path}: cannot write video with codec '{fourcc}'")
+        try:
+            end = v["end_frame"]
+            for f in iter_frames(
+                video_path,
+                stride=stride,
+                start_s=v["first_frame"] / v["fps"],
+                end_s=None if end is None else end / v["fps"],
+            ):
+                rows = table.filter(pa.array(frames_col == f.index))
+                writer.write(draw_people(f.image, rows))
+        finally:
+            writer.release()
     return out_path
 
 
@@ -163,8 +162,8 @@ def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: in
         f"joints3d in the {meta['axes']['joints3d']} frame)"
     )
     out_png = Path(out_png)
-    tmp = out_png.with_name(f".{out_png.stem}.tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, out_png)
+    try:
+        atomic_write(out_png, lambda tmp: fig.savefig(tmp, dpi=100))
+    finally:
+        plt.close(fig)
     return out_png

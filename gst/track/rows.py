@@ -6,9 +6,9 @@ import numpy as np
 import pyarrow as pa
 from scipy.spatial.transform import Rotation
 
+from gst.data.camera_view import TrackingView
 from gst.track.frames import PendingFrame
 from gst.track.predictor import PoseBatch
-from gst.track.view import TrackingView
 
 
 def rotvec(R: np.ndarray) -> np.ndarray:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,8 @@ from urllib.parse import quote
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from gst.atomic import atomic_path, atomic_write_text
 
 PROGRESS_VERSION = 1
 FINAL_NAME = "tracks.parquet"
@@ -63,37 +64,8 @@ def partition_dir(root: str | Path, video: str) -> Path:
     return Path(root) / f"video={quote(video, safe='')}"
 
 
-def _fsync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some filesystems do not support fsync on directories
-    finally:
-        os.close(fd)
-
-
-def _durable_replace(tmp: Path, path: Path) -> None:
-    _fsync_file(tmp)
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
-
-
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, sort_keys=True))
-    _durable_replace(tmp, path)
+    atomic_write_text(path, json.dumps(obj, sort_keys=True))
 
 
 def _changed_keys(old, new, prefix: str = "") -> list[str]:
@@ -220,9 +192,8 @@ class TrackWriter:
         table = table.cast(self.schema) if table.schema != self.schema else table
         index = len(self._progress["segments"])
         name = f"seg-{index:06d}.parquet"
-        tmp = self.staging / f".{name}.tmp"
-        pq.write_table(table, tmp, row_group_size=max(len(table), 1), **PARQUET_OPTIONS)
-        _durable_replace(tmp, self.staging / name)
+        with atomic_path(self.staging / name) as tmp:
+            pq.write_table(table, tmp, row_group_size=max(len(table), 1), **PARQUET_OPTIONS)
         progress = dict(self._progress)
         progress["segments"] = [*self._progress["segments"], {"file": name, "rows": len(table)}]
         progress["next_frame"] = int(next_frame)
@@ -246,12 +217,13 @@ class TrackWriter:
         table = self.committed()
         schema = self.schema.with_metadata(metadata)
         self.dir.mkdir(parents=True, exist_ok=True)
-        tmp = self.dir / f".{FINAL_NAME}.tmp"
-        with pq.ParquetWriter(tmp, schema, **PARQUET_OPTIONS) as w:
+        with (
+            atomic_path(self.final_path) as tmp,
+            pq.ParquetWriter(tmp, schema, **PARQUET_OPTIONS) as w,
+        ):
             if len(table):
                 w.write_table(
                     table.replace_schema_metadata(metadata), row_group_size=row_group_rows
                 )
-        _durable_replace(tmp, self.final_path)
         self.discard_staging()
         return self.final_path

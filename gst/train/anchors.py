@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gst.data.proxies import triangulate_dlt
+from calibration.triangulate import dlt_points
 from gst.train.views import CropSet
 
 
@@ -45,7 +45,7 @@ def mask_centre_anchors(
         if len(use) < 2:
             continue
         Ps, pts = P[use.numpy()], uv[use].numpy()
-        X = triangulate_dlt(Ps, pts)
+        X = dlt_points(Ps, pts[:, None, :])[0]
         proj = Ps @ np.append(X, 1.0)
         if np.any(proj[:, 2] <= 0):
             continue

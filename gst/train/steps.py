@@ -14,8 +14,8 @@ import torch
 from torch import nn
 
 from gst.body import BodyModel
-from gst.model.assemble import BodyPrediction, assemble
-from gst.model.preprocess import network_input, to_float_images
+from gst.model.assemble import BodyPrediction
+from gst.model.inference import predict_bodies
 from gst.render import rasterize
 from gst.train.anchors import anchor_term
 from gst.train.keypoints import keypoint_term
@@ -47,18 +47,11 @@ def predict(
     with_gaussians: bool = True,
     with_vertices: bool = False,
 ) -> BodyPrediction:
-    x = network_input(to_float_images(images), task.image_size)
-    out = model(x, with_gaussians=with_gaussians)
-    return assemble(
-        out,
-        task.body,
-        K,
-        task.crop_size,
-        vertex_ids=task.vertex_ids,
-        R_in=R,
-        t_in=t,
-        with_vertices=with_vertices,
-    )
+    """`gst.model.inference.predict_bodies` with a training task's body and sizes."""
+    return predict_bodies(
+        model, task.body, task.vertex_ids, images, K, task.image_size, R=R, t=t,
+        with_gaussians=with_gaussians, with_vertices=with_vertices, crop_size=task.crop_size,
+    )  # fmt: skip
 
 
 def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:

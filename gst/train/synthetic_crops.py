@@ -2,47 +2,31 @@
 
 Used for supervised pretraining (the stand-in for HMR2's 3D-labelled start) and to measure
 MPJPE on scenes with truth. Crops follow the tracking/extraction convention (HMR2 square box,
-undistorted, own K) via `gst.track.view.TrackingView`, so a model sees the same kind of input
+undistorted, own K) via `gst.data.camera_view.TrackingView`, so a model sees the same kind of input
 at pretraining, training and tracking time.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import h5py
 import numpy as np
-import pyarrow.parquet as pq
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from calibration.formats import read_rig
-from gst.metrics.image import box_iou
-from gst.track.view import TrackingView
+from gst.data.camera_view import TrackingView
 from gst.train.views import CropSet
-
-
-def _column(table, name: str, width: int) -> np.ndarray:
-    return np.asarray(
-        table.column(name).combine_chunks().flatten().to_numpy(zero_copy_only=False)
-    ).reshape(-1, width)
+from gst.video import VideoError, iter_frames
+from synth.truth import read_scene_truth, read_truth_views, truth_mask_file
 
 
 def _read_video(path: Path) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise OSError(f"cannot open video {path}")
-    frames = []
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
-    cap.release()
+    frames = [cv2.cvtColor(f.image, cv2.COLOR_BGR2RGB) for f in iter_frames(path)]
     if not frames:
-        raise OSError(f"video {path} has no readable frame")
+        raise VideoError(f"video {path} has no readable frame")
     return frames
 
 
@@ -63,25 +47,13 @@ def crops_from_synth_scene(
     """
     scene_dir = Path(scene_dir)
     rig = read_rig(scene_dir / "calibration" / "rig.json", "rig")
-    views = pq.read_table(scene_dir / "truth" / "views.parquet")
-    people = pq.read_table(scene_dir / "truth" / "people.parquet")
-    nb = people.schema.field("betas").type.list_size
-    p_frame = people.column("frame").to_numpy()
-    p_id = people.column("person_id").to_numpy()
-    p_index = {(int(f), int(i)): k for k, (f, i) in enumerate(zip(p_frame, p_id, strict=True))}
-    joints_world_all = _column(people, "joints3d", 72).reshape(-1, 24, 3).astype(np.float64)
-    go = _column(people, "global_orient", 3)
-    bp = _column(people, "body_pose", 69).reshape(-1, 23, 3)
-    betas_all = _column(people, "betas", nb)
-
-    v_frame = views.column("frame").to_numpy()
-    v_pid = views.column("person_id").to_numpy()
-    v_cam = np.asarray(views.column("camera").to_pylist())
-    boxes = np.stack([views.column(k).to_numpy() for k in ("x0", "y0", "x1", "y1")], axis=1).astype(
-        np.float64
-    )
-    area = views.column("mask_area").to_numpy()
-    visible = _column(views, "visible", 24).astype(bool)
+    views = read_truth_views(scene_dir)
+    people = read_scene_truth(scene_dir)
+    p_index = people.row_index()
+    joints_world_all = people.joints_world.astype(np.float64)
+    go, bp, betas_all = people.global_orient, people.body_pose, people.betas
+    v_frame, v_pid, v_cam = views.frame, views.person_id, views.camera
+    boxes, area, visible = views.box, views.mask_area, views.visible
 
     names = cameras or rig.names
     out = {
@@ -110,7 +82,7 @@ def crops_from_synth_scene(
         cam = rig[name]
         view = TrackingView.for_video(cam.width, cam.height, cam, video=name)
         frames = _read_video(scene_dir / "videos" / f"{name}.mp4")
-        with h5py.File(scene_dir / "truth" / "masks" / f"{name}.h5", "r") as f:
+        with h5py.File(truth_mask_file(scene_dir, name), "r") as f:
             masks = f["mask"][:]
         rows = np.flatnonzero(
             (v_cam == name)
@@ -176,49 +148,3 @@ def crops_from_synth_scene(
         camera_names=list(names),
         truth=truth,
     )
-
-
-def scene_fps(scene_dir: str | Path) -> float:
-    return float(json.loads((Path(scene_dir) / "scene.json").read_text())["fps"])
-
-
-def match_truth_views(
-    crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3
-) -> np.ndarray:
-    """Row of `truth/views.parquet` showing the person of each extracted crop, or -1: matched per
-    (frame, camera) by the overlap of the crop's person box (undistorted image, edges) with the
-    truth box (IoU above `min_iou`). Returns (N,) int64."""
-    scene_dir = Path(scene_dir)
-    if len(boxes) != len(crops):
-        raise ValueError(f"boxes has {len(boxes)} rows, the crop set {len(crops)}")
-    rig = read_rig(scene_dir / "calibration" / "rig.json", "rig")
-    views = pq.read_table(scene_dir / "truth" / "views.parquet")
-    v_frame = views.column("frame").to_numpy()
-    v_cam = np.asarray(views.column("camera").to_pylist())
-    v_box = np.stack(
-        [views.column(k).to_numpy() for k in ("full_x0", "full_y0", "full_x1", "full_y1")], 1
-    )
-    out = np.full(len(crops), -1, np.int64)
-    for i in range(len(crops)):
-        cam_name = crops.camera_names[int(crops.camera[i])]
-        rows = np.flatnonzero((v_frame == int(crops.frame[i])) & (v_cam == cam_name))
-        best_iou = min_iou
-        cam = rig[cam_name]
-        for r in rows:
-            # truth boxes are in the distorted image: map their corners to the undistorted one
-            corners = np.array(
-                [
-                    [v_box[r, 0], v_box[r, 1]],
-                    [v_box[r, 2], v_box[r, 1]],
-                    [v_box[r, 0], v_box[r, 3]],
-                    [v_box[r, 2], v_box[r, 3]],
-                ]
-            )
-            if not np.isfinite(corners).all():
-                continue
-            xy = cam.undistort_points(corners) * [cam.fx, cam.fy] + [cam.cx, cam.cy]
-            tb = np.r_[xy.min(0), xy.max(0)] + 0.5
-            iou = float(box_iou(boxes[i], tb)[0, 0])
-            if iou > best_iou:
-                out[i], best_iou = r, iou
-    return out

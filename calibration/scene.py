@@ -1,0 +1,202 @@
+"""Calibrate one scene: import its calibration file or solve the rig from board footage, check
+the rig against the scene's videos, and write `rig.json` with a report.
+
+A scene that supplies a calibration file is imported and checked, never re-solved. Board
+footage (ChArUco or checkerboard, one video or image folder per camera) is solved with bundle
+adjustment (`calibration.solve`). Given the true rig (synthetic scenes), the report compares
+the solved one with it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.board import BoardSpec
+from calibration.camera import FRAME_PADDING_TOLERANCE, Rig, fit_to_frames
+from calibration.checks import check_rig
+from calibration.compare import RigComparison, compare_rigs
+from calibration.formats import read_rig, write_rig
+from calibration.report import write_calibration_report
+from calibration.solve import BoardCalibration, calibrate_from_board
+from gst.atomic import atomic_write_json
+from gst.video import VideoError, probe_video, read_frames
+
+log = logging.getLogger("calibration")
+
+
+@dataclass(frozen=True)
+class CalibrationFile:
+    path: Path
+    format: str | None = None  # auto-detected when None
+    options: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class BoardFootage:
+    sources: dict[str, Path]  # camera name -> board video or image folder
+    board: BoardSpec
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    frame_step: int = 1  # search every Nth frame of the board clips
+    max_frames: int | None = None  # cap on board frames searched per camera
+    floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
+    strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
+    frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # encoder padding accepted, in pixels
+
+
+@dataclass
+class SceneCalibration:
+    """What `calibrate_scene` wrote and found."""
+
+    rig: Rig
+    rig_path: Path
+    report: Path
+    solved: BoardCalibration | None = None
+    problems: tuple[str, ...] = ()
+    against_truth: RigComparison | None = None
+    frame_size_notes: tuple[str, ...] = ()  # cameras fitted to their videos' frame size
+
+
+def first_frames(videos: dict[str, Path]) -> dict[str, np.ndarray]:
+    """The first frame of every readable video (the report's floor-grid overlays)."""
+    frames = {}
+    for name, path in videos.items():
+        try:
+            for _, image in read_frames(path, [0], name):
+                frames[name] = image
+        except VideoError as exc:
+            log.warning("calibration report: no overlay for camera '%s': %s", name, exc)
+    return frames
+
+
+def fit_rig_to_videos(
+    rig: Rig, videos: dict[str, Path], tolerance: int = FRAME_PADDING_TOLERANCE
+) -> tuple[Rig, list[str]]:
+    """Every camera fitted to its video's decoded frame size (`fit_to_frames`: encoder padding
+    within `tolerance` px is accepted and noted, anything else stops with the fix)."""
+    cams, notes = [], []
+    for cam in rig:
+        if cam.name in videos:
+            info = probe_video(videos[cam.name], cam.name)
+            cam, note = fit_to_frames(cam, info.width, info.height, tolerance, str(info.path))
+            if note:
+                log.warning("%s", note)
+                notes.append(note)
+        cams.append(cam)
+    return Rig(tuple(cams), rig.up, rig.units, rig.meta), notes
+
+
+def _size_section(notes: list[str]) -> list[str]:
+    if not notes:
+        return []
+    return ["", "## Frame sizes adjusted to the videos", ""] + [f"- {n}" for n in notes]
+
+
+def _truth_section(cmp: RigComparison) -> list[str]:
+    lines = [
+        "",
+        "## Against the synthetic truth",
+        "",
+        f"Rig diameter {cmp.rig_diameter_m:.2f} m. "
+        "Errors after aligning camera centres (no scale fitted).",
+        "",
+        "| camera | focal error % | centre error mm | rotation error deg |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['camera']} | {100 * r['focal_rel_error']:.3f} | "
+        f"{1000 * r['center_error_m']:.1f} | {r['rotation_error_deg']:.3f} |"
+        for r in cmp.as_rows()
+    ]
+    return lines
+
+
+def _progress_logger():
+    seen: dict[str, int] = {}
+
+    def progress(step: str, done: int, total: int) -> None:
+        if done == total or step not in seen:
+            seen[step] = done
+            log.info("%s: %d/%d", step, done, total)
+
+    return progress
+
+
+def calibrate_scene(
+    videos: dict[str, Path],
+    rig_path: Path,
+    report_dir: Path,
+    *,
+    file: CalibrationFile | None = None,
+    footage: BoardFootage | None = None,
+    settings: SolveSettings = SolveSettings(),
+    truth_rig: Path | None = None,
+    scene: str = "scene",
+) -> SceneCalibration:
+    """Import `file` or solve from `footage` (exactly one), check the rig (every video needs a
+    camera of its name; floor and aim checks), write `rig_path` and the report in `report_dir`.
+    `truth_rig`: a rig.json to compare a solved rig with. Errors name the scene and the fix."""
+    if (file is None) == (footage is None):
+        raise ValueError(
+            f"scene '{scene}' needs exactly one of a calibration file or board footage: add "
+            "'calibration: {file: ..., format: ...}' or 'board: {...}' to the scene"
+        )
+    solved = None
+    if file is not None:
+        rig = read_rig(file.path, file.format, **(file.options or {}))
+        log.info("imported %d cameras from %s", len(rig), file.path)
+    else:
+        solved = calibrate_from_board(
+            footage.sources,
+            footage.board,
+            frame_step=settings.frame_step,
+            max_frames=settings.max_frames,
+            floor_world=settings.floor_world,
+            progress=_progress_logger(),
+        )
+        rig = solved.rig
+        rms = {k: round(v, 3) for k, v in solved.rms_px.items()}
+        log.info("board calibration: RMS %s px", rms)
+    missing = [name for name in videos if name not in rig.names]
+    if missing:
+        raise ValueError(
+            f"scene '{scene}': videos {missing} have no camera of that name in the "
+            f"calibration (cameras: {rig.names}); rename the files or the cameras"
+        )
+    problems = check_rig(rig)
+    if problems and settings.strict_checks:
+        raise ValueError(
+            f"scene '{scene}': the rig failed its checks and was not written: "
+            + "; ".join(problems)
+            + " (set calibrate.strict_checks=false to accept it)"
+        )
+    rig, size_notes = fit_rig_to_videos(rig, videos, settings.frame_size_tolerance)
+    for problem in problems:
+        log.warning("rig check: %s", problem)
+    write_rig(rig, rig_path, "rig")
+    cmp = None
+    if truth_rig is not None and solved is not None:
+        cmp = compare_rigs(rig, read_rig(truth_rig, "rig"))
+        log.info(
+            "against truth: focal %.3f%%, centre %.1f mm, rotation %.3f deg (worst camera)",
+            100 * cmp.focal_rel_error.max(),
+            1000 * cmp.center_error_m.max(),
+            cmp.rotation_error_deg.max(),
+        )
+    report = write_calibration_report(
+        rig,
+        report_dir,
+        calibration=solved,
+        frames=first_frames(videos),
+        appendix=_size_section(size_notes) + (_truth_section(cmp) if cmp is not None else []),
+    )
+    if cmp is not None:
+        atomic_write_json(report_dir / "truth_comparison.json", cmp.as_rows())
+    return SceneCalibration(rig, rig_path, report, solved, tuple(problems), cmp, tuple(size_notes))

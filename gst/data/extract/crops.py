@@ -1,0 +1,237 @@
+"""Extraction phase 3, per camera: undistorted square crops of image and mask with their own
+intrinsics, into a per-camera part store; scored against truth masks when given.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import h5py
+import numpy as np
+
+from calibration import Camera
+from gst.data.crop import (
+    crop_intrinsics,
+    crop_maps,
+    hmr_crop_box,
+    mask_outline_full_res,
+    resample,
+    undistorted_box,
+)
+from gst.data.evaluate import CropTruth
+from gst.data.external import (
+    IdMaskFile,
+)
+from gst.data.store import CropBatch, CropStoreWriter
+from gst.video import read_frames
+
+
+@dataclass(frozen=True, eq=False)
+class CropJob:
+    camera: Camera
+    camera_index: int
+    camera_names: tuple[str, ...]
+    video: str
+    persons_file: str
+    frames: tuple[int, ...]  # frames still to do for this camera
+    work_size: tuple[int, int]
+    crop_size: int
+    scale: float
+    part: str
+    settings: dict
+    commit_frames: int = 16
+    truth_masks: str | None = None
+    min_truth_fraction: float = 0.0003
+    drop_ids: tuple[int, ...] = ()  # person ids not to crop (tracks too short to trust)
+
+
+@dataclass
+class CropJobResult:
+    camera: str
+    crops: int
+    frames_with_people: int
+    frames_without_people: int
+    seconds: float
+    truth: list[CropTruth] = field(default_factory=list)
+    truth_views: int = 0
+    truth_views_missed: int = 0
+
+
+def crop_person(
+    frame: np.ndarray,
+    person_mask: np.ndarray,
+    camera: Camera,
+    crop_size: int,
+    scale: float,
+    extra_box: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Crop one person: (image S x S x 3, mask S x S coverage 0..255, K_crop, person box, crop box).
+
+    `person_mask` is boolean at work resolution (any size that is a scaling of the frame).
+    `extra_box` (x0, y0, x1, y1 pixel edges at work resolution) is a region the person box must
+    also cover (where the 3D hull says the person is). Returns None for an empty mask.
+    """
+    h, w = frame.shape[:2]
+    src_scale = (person_mask.shape[1] / w, person_mask.shape[0] / h)
+    pts, half = mask_outline_full_res(person_mask, src_scale)
+    if len(pts) == 0:
+        return None
+    if extra_box is not None and np.all(np.isfinite(extra_box)):
+        # Box edges to full-resolution pixel centres along its outline (the lens bends it).
+        ex0, ey0, ex1, ey1 = extra_box
+        t = np.linspace(0.0, 1.0, 9)
+        xs = ex0 + (ex1 - ex0) * t
+        ys = ey0 + (ey1 - ey0) * t
+        outline = np.concatenate(
+            [
+                np.stack([xs, np.full_like(xs, ey0)], 1),
+                np.stack([xs, np.full_like(xs, ey1)], 1),
+                np.stack([np.full_like(ys, ex0), ys], 1),
+                np.stack([np.full_like(ys, ex1), ys], 1),
+            ]
+        )
+        outline = outline / np.array(src_scale) - 0.5
+        pts = np.concatenate([pts, outline])
+    box = undistorted_box(camera, pts, half)
+    cbox = hmr_crop_box(box, scale)
+    mapx, mapy = crop_maps(camera, cbox, crop_size)
+    shrink = cbox.side / crop_size
+    image = resample(frame, mapx, mapy, shrink)
+    sx, sy = src_scale
+    mmx = (mapx + 0.5) * np.float32(sx) - 0.5
+    mmy = (mapy + 0.5) * np.float32(sy) - 0.5
+    mask = resample(person_mask.astype(np.float32), mmx, mmy, shrink * min(sx, sy))
+    mask = np.clip(mask * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return image, mask, crop_intrinsics(camera.K, cbox, crop_size), box, cbox.as_array()
+
+
+def score_against_truth(
+    work_mask: np.ndarray, truth: np.ndarray, truth_areas: np.ndarray
+) -> tuple[int, float]:
+    """(truth id, IoU) of a work-resolution person mask against a full-resolution truth id mask.
+
+    The mask is upsampled bilinearly (threshold 0.5, as `cv2.resize` would) only over its own
+    bounding box; `truth_areas[k]` is the pixel count of truth id k in the whole image.
+    """
+    H, W = truth.shape
+    h, w = work_mask.shape
+    sx, sy = w / W, h / H
+    rows = np.nonzero(work_mask.any(axis=1))[0]
+    cols = np.nonzero(work_mask.any(axis=0))[0]
+    if len(rows) == 0:
+        return 0, 0.0
+    x0 = max(0, int(np.floor((cols[0] - 1) / sx)))
+    x1 = min(W, int(np.ceil((cols[-1] + 2) / sx)))
+    y0 = max(0, int(np.floor((rows[0] - 1) / sy)))
+    y1 = min(H, int(np.ceil((rows[-1] + 2) / sy)))
+    mx = ((np.arange(x0, x1, dtype=np.float32) + 0.5) * sx - 0.5)[None].repeat(y1 - y0, 0)
+    my = ((np.arange(y0, y1, dtype=np.float32) + 0.5) * sy - 0.5)[:, None].repeat(x1 - x0, 1)
+    up = (
+        cv2.remap(
+            work_mask.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        >= 0.5
+    )
+    roi = truth[y0:y1, x0:x1]
+    ids = roi[up]
+    ids = ids[ids > 0]
+    if len(ids) == 0:
+        return 0, 0.0
+    tid = int(np.bincount(ids).argmax())
+    inter = int(np.count_nonzero(ids == tid))
+    union = int(np.count_nonzero(up)) + int(truth_areas[tid]) - inter
+    return tid, inter / union if union else 0.0
+
+
+def extract_camera_crops(job: CropJob) -> CropJobResult:
+    """Crops of every assigned person in one camera, appended to the part store `job.part`."""
+    t0 = time.perf_counter()
+    cam = job.camera
+    with h5py.File(job.persons_file, "r") as pf:
+        p_frames = pf["frames"][()]
+        row_of = {int(f): i for i, f in enumerate(p_frames)}
+        slot_rows = pf["slots"][()]
+        view_rows = pf["views"][()]
+        by_frame: dict[int, list[tuple[int, int, np.ndarray, float]]] = {}
+        drop = set(job.drop_ids)
+        for (f, slot, pid), view in zip(slot_rows, view_rows, strict=True):
+            if pid in drop:
+                continue
+            by_frame.setdefault(int(f), []).append((int(slot), int(pid), view[:4], float(view[4])))
+        result = CropJobResult(cam.name, 0, 0, 0, 0.0)
+        truth = IdMaskFile(job.truth_masks, cam.name) if job.truth_masks else None
+        # The part store is temporary: no compression (the scene store compresses once).
+        with CropStoreWriter(
+            job.part, list(job.camera_names), job.crop_size, job.settings, compression="none"
+        ) as part:
+            done = {f for f, c in part.done_pairs() if c == job.camera_index}
+            todo = [f for f in job.frames if f not in done]
+            with_people = [f for f in todo if f in by_frame]
+            pending: list[CropBatch] = []
+            pending_done: list[tuple[int, int]] = []
+
+            def flush() -> None:
+                batch = CropBatch.concat(pending) if pending else CropBatch.empty(job.crop_size)
+                part.commit(batch, pending_done)
+                pending.clear()
+                pending_done.clear()
+
+            frames_iter = iter(read_frames(job.video, with_people, cam.name))
+            next_frame = next(frames_iter, None)
+            for f in todo:
+                rows = []
+                scored: list[CropTruth] = []
+                gt = truth.get(f) if truth is not None else None
+                gt_areas = np.bincount(gt.reshape(-1), minlength=256) if gt is not None else None
+                if f in by_frame:
+                    fi, image = next_frame
+                    assert fi == f
+                    next_frame = next(frames_iter, None)
+                    labels = pf["labels"][row_of[f]]
+                    for slot, pid, extra_box, support in by_frame[f]:
+                        pmask = labels == slot
+                        got = crop_person(image, pmask, cam, job.crop_size, job.scale, extra_box)
+                        if got is None:
+                            continue
+                        img, msk, Kc, box, cbox = got
+                        rows.append(
+                            CropBatch(
+                                img[None],
+                                msk[None],
+                                Kc[None],
+                                cam.R[None],
+                                cam.t[None],
+                                box[None],
+                                cbox[None],
+                                np.array([job.camera_index], np.int32),
+                                np.array([f], np.int64),
+                                np.array([pid], np.int64),
+                                np.array([support], np.float32),
+                            )
+                        )
+                        if gt is not None:
+                            tid, iou = score_against_truth(pmask, gt, gt_areas)
+                            scored.append(CropTruth(f, cam.name, pid, tid, iou))
+                if gt is not None:
+                    big = set(
+                        np.nonzero(gt_areas >= job.min_truth_fraction * gt.size)[0].tolist()
+                    ) - {0}
+                    result.truth_views += len(big)
+                    result.truth_views_missed += len(big - {r.truth_id for r in scored})
+                    result.truth.extend(scored)
+                if rows:
+                    result.frames_with_people += 1
+                    result.crops += len(rows)
+                    pending.extend(rows)
+                else:
+                    result.frames_without_people += 1
+                pending_done.append((f, job.camera_index))
+                if len(pending_done) >= job.commit_frames:
+                    flush()
+            flush()
+        if truth is not None:
+            truth.close()
+    result.seconds = time.perf_counter() - t0
+    return result

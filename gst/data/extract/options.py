@@ -1,0 +1,119 @@
+"""Settings, errors and the report of a scene extraction (`gst.data.extract.extract_scene`)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from calibration.camera import FRAME_PADDING_TOLERANCE
+from gst.data.association import (
+    AssociationConfig,
+    CaptureVolume,
+)
+from gst.data.background import BackgroundConfig
+from gst.data.masks import MaskConfig
+from gst.detect.persons import SegmenterConfig
+
+WORK_MAX_SIDE = 960  # default work resolution: longer image side in pixels
+
+
+class ExtractError(ValueError):
+    """The extraction cannot proceed; the message names the camera, file or setting."""
+
+
+@dataclass(frozen=True, eq=False)
+class ExtractOptions:
+    """Advanced settings of `extract_scene` (the common ones are its keyword arguments)."""
+
+    work_scale: float | None = (
+        None  # mask resolution / video resolution; None: longer side <= 960 px
+    )
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    masks: MaskConfig = field(default_factory=MaskConfig)
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    volume: CaptureVolume | None = None  # None: derived from where the cameras look
+    compression: str = "gzip"
+    compression_level: int = 1
+    commit_frames: int = 16  # frames per store commit (the unit of resume)
+    keep_work: bool = False  # keep `<store>.work/` after success (for debugging)
+    # camera -> video of the empty scene (a "clean plate"): the background is learnt from it
+    # instead of the capture itself, which is what makes people who barely move visible.
+    background_videos: dict[str, Path] | None = None
+    # Learned person masks (BlazePose, gst.detect) instead of background subtraction: finds
+    # people who stand still. None: background model only.
+    persons: SegmenterConfig | None = None
+    persons_models_dir: str | None = None  # None: the default cache (python -m gst.detect fetch)
+    # Also segment around moving background blobs (finds movers the detector misses).
+    persons_hints: bool = True
+    # Frames smaller than the calibrated size by up to this many pixels are encoder padding
+    # (calibration.camera.fit_to_frames).
+    frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
+
+    @classmethod
+    def from_settings(
+        cls,
+        background_videos: dict[str, Path] | None = None,
+        association: dict[str, float | int] | None = None,
+        person_model: str = "none",
+        person_hints: bool = True,
+        frame_size_tolerance: int = FRAME_PADDING_TOLERANCE,
+    ) -> ExtractOptions:
+        """Options from a stage's flat settings: clean plates, association overrides, the person
+        model ('none' or 'blazepose') and whether to segment around moving blobs too."""
+        if person_model not in ("none", "blazepose"):
+            raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
+        return cls(
+            background_videos=background_videos,
+            association=AssociationConfig(**(association or {})),
+            persons=SegmenterConfig() if person_model == "blazepose" else None,
+            persons_hints=person_hints,
+            frame_size_tolerance=frame_size_tolerance,
+        )
+
+
+@dataclass
+class CameraReport:
+    """Per-camera outcome."""
+
+    crops: int = 0
+    frames_with_people: int = 0
+    frames_without_people: int = 0
+    seconds_masks: float = 0.0
+    seconds_crops: float = 0.0
+    mask_iou: float | None = None  # mean over this run's crops, when truth was given
+
+
+@dataclass
+class ExtractReport:
+    """What `extract_scene` did. Counts cover the whole store; truth scores this run's crops."""
+
+    store: str
+    cameras: list[str]
+    frames_total: int
+    frame_stride: int
+    frames_considered: int
+    frames_with_people: int
+    frames_skipped_empty: int
+    cameras_skipped: list[str]  # saw no one in any frame
+    per_camera: dict[str, CameraReport]
+    crops: int
+    persons: int  # distinct person ids
+    multiview_groups: int  # (frame, person) with crops from >= 2 cameras
+    pairs_resumed: int  # (frame, camera) pairs found already done
+    short_tracks_dropped: list[int] = field(default_factory=list)  # ids seen too briefly to crop
+    mask_iou: float | None = None
+    association_accuracy: float | None = None
+    crops_scored: int = 0
+    truth_views: int = 0  # (frame, camera, person) truth views big enough to count
+    truth_views_missed: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def summary_line(self) -> str:
+        return (
+            f"{self.crops} crops of {self.persons} people, {self.multiview_groups} multi-view "
+            f"groups; mask IoU {self.mask_iou}; association {self.association_accuracy}"
+        )

@@ -1,0 +1,158 @@
+"""Run time against error for model variants, in one run, on a scene's crops with truth.
+
+Sweeps backbone preset, input size and Gaussian count; every variant is trained with the same
+short budget on the training split (earlier frames, training cameras), timed pose-only and full
+(median of repeats), and scored on the test split (later frames; PSNR in held-out cameras).
+The pretrained checkpoint is benchmarked as it is, for reference. Writes `reports/bench/`
+(table.md, table.csv, pareto.png; docs/evaluate.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Literal
+
+import torch
+from pydantic import BaseModel, ConfigDict
+
+from gst.body import load_body_model
+from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
+from gst.eval.split import FinetuneConfig, frame_split
+from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+from gst.train.losses import LossWeights
+from gst.train.scene_truth import attach_scene_truth
+from gst.train.views import load_cropset
+
+log = logging.getLogger("gst.eval")
+
+
+class VariantParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str
+    preset: Literal["tiny", "small", "base", "huge"] = "tiny"
+    image_size: tuple[int, int] | None = None
+    vertex_preset: Literal["1723", "3445", "6890", "full"] | None = None
+
+
+_DEFAULT_VARIANTS = [
+    VariantParams(name="tiny-128x96-1723"),
+    VariantParams(name="tiny-256x192-1723", image_size=(256, 192)),
+    VariantParams(name="tiny-128x96-6890", vertex_preset="6890"),
+    VariantParams(name="small-128x96-3445", preset="small", image_size=(128, 96)),
+]  # small at 256x192 (the preset's own size) and base train too slowly for the 20-minute CPU budget
+
+
+class BenchSettings(BaseModel):
+    """Settings of the run-time-against-error sweep (the `bench` stage's parameters)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    variants: list[VariantParams] = _DEFAULT_VARIANTS
+    include_pretrained: bool = True  # also time and score models/pretrain.pt as it is
+    steps: int = 40  # equal training budget of every variant
+    batch_size: int = 8
+    lr: float = 5e-4
+    mode: Literal["pretrain", "3d"] = (
+        "pretrain"  # 3D supervision + image terms (Gaussians learn too)
+    )
+    test_fraction: float = 0.25
+    heldout_cameras: list[str] | None = None  # default: the rig's last camera
+    repeats: int = 5
+    timing_batch: int = 8
+    render_size: int = 64
+    max_groups: int | None = 16
+    threads: int | None = None
+
+
+def bench_scene(
+    p: BenchSettings,
+    crops_h5: Path,
+    synth: Path,
+    pretrained: Path,
+    out: Path,
+    *,
+    scene: str = "scene",
+    workspace: Path | None = None,
+) -> list:
+    """Train every variant with the same budget, time and score it, and write `out`
+    (table.md, table.csv, pareto.png); returns the table rows. `pretrained` (a GST
+    checkpoint) is benchmarked as it is when `include_pretrained`."""
+    root = workspace if workspace is not None else pretrained.parent.parent
+    if p.threads:
+        torch.set_num_threads(p.threads)
+    t0 = time.perf_counter()
+    crops, boxes = load_cropset(crops_h5)
+    attach_scene_truth(crops, boxes, synth)
+    heldout = tuple(p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:])
+    split = frame_split(crops, heldout, p.test_fraction)
+    ckpt = load_checkpoint(pretrained)
+    body_spec = ckpt["body_model"]
+    body = load_body_model(body_spec)
+    variants = []
+    if p.include_pretrained:
+        cfg = network_from_checkpoint(ckpt).cfg
+        variants.append(
+            Variant(
+                name="pretrained",
+                preset=cfg.name,
+                image_size=cfg.image_size,
+                checkpoint="models/pretrain.pt",
+            )
+        )
+    variants += [Variant(v.name, v.preset, v.image_size, v.vertex_preset) for v in p.variants]
+
+    def load(rel: str):
+        c = load_checkpoint(root / rel)
+        return network_from_checkpoint(c), c["vertex_ids"].numpy(), c["group_index"].numpy()
+
+    # LPIPS is left out of the short runs (equal for every variant) to keep the sweep on budget.
+    train = FinetuneConfig(
+        mode=p.mode,
+        steps=p.steps,
+        batch_size=p.batch_size,
+        lr=p.lr,
+        num_targets=3,
+        render_size=p.render_size,
+        weights=LossWeights(lpips=0.0),
+    )
+    log.info(
+        "bench: %d variants, %d training rows, test frames %s, held out %s",
+        len(variants),
+        len(split.train_rows),
+        split.test_frames,
+        heldout,
+    )
+    rows = run_bench(
+        variants,
+        crops,
+        split,
+        body,
+        body_spec,
+        train,
+        repeats=p.repeats,
+        batch=p.timing_batch,
+        render_size=p.render_size,
+        max_groups=p.max_groups,
+        log=log.info,
+        load_checkpoint_fn=load,
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    seconds = time.perf_counter() - t0
+    header = (
+        f"# Run time against error (scene `{scene}`)\n\n"
+        f"CPU, {torch.get_num_threads()} threads; time = median of {p.repeats} runs of one batch of "
+        f"{p.timing_batch} real crops after a warm-up, all variants timed round-robin (pose-only: Gaussian tokens skipped; full: network plus "
+        f"posed Gaussians, no rendering). Every variant except `pretrained` was trained from scratch with the "
+        f"same budget: {p.steps} steps of batch {p.batch_size}, mode `{p.mode}` (3D truth + image terms, no "
+        f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras other than "
+        f"{', '.join(heldout)}. MPJPE/PA-MPJPE on crops of frames {split.test_frames[0]}-{split.test_frames[1] - 1} "
+        f"(all cameras); PSNR of those frames rendered at {p.render_size} px into the held-out camera(s). "
+        f"`pretrained` is models/pretrain.pt as it is (longer training, another synthetic world). "
+        f"Whole sweep: {seconds:.0f} s."
+    )
+    write_bench_table(out, rows, header)
+    write_pareto_plot(out / "pareto.png", rows)
+    log.info("bench: %d rows in %.0f s -> reports/bench/table.md", len(rows), seconds)
+    return rows

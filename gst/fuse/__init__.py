@@ -1,0 +1,26 @@
+"""The rig as the measuring instrument: one world-space body per person and frame.
+
+    from gst.fuse import fuse_scene, FuseOptions
+    result = fuse_scene("workspace/demo/crops/crops.h5", rig, "out/fused", "out/reports")
+
+Modules: observations (landmarks per crop, grouped per person), triangulate (robust N-view
+triangulation), fit (the body fit over the clip), joint_map (landmark -> joint table), tables
+(Parquet), export (TRC, C3D), overlay, report, evaluate (against synthetic truth), scene (the
+entry point), marker_data and fit_markers (fitting gst.body.markers on synthetic worlds).
+"""
+
+from gst.fuse.fit import FitOptions, PersonFit, fit_people
+from gst.fuse.scene import FuseOptions, FuseResult, fuse_scene
+from gst.fuse.triangulate import TriangulationOptions, triangulate_person, triangulate_points
+
+__all__ = [
+    "FitOptions",
+    "FuseOptions",
+    "FuseResult",
+    "PersonFit",
+    "TriangulationOptions",
+    "fit_people",
+    "fuse_scene",
+    "triangulate_person",
+    "triangulate_points",
+]

@@ -1,0 +1,252 @@
+"""`fuse_scene`: from a scene's crop store to world-space bodies, marker files and a report.
+
+Steps: landmarks per crop (gst.fuse.observations) -> robust triangulation per person
+(gst.fuse.triangulate) -> body fit over the clip (gst.fuse.fit), people in fixed batches ->
+outputs (docs/formats/fused_*.md):
+
+    fused/bodies.parquet        the tracks schema in the world frame, + per-joint evidence
+    fused/landmarks.parquet     triangulated BlazePose landmarks, views, errors, confidence
+    fused/trc/person_<id>.trc   OpenSim markers (Y up), fused/c3d/person_<id>.c3d
+    reports/fuse/               report.md, summary.json, bone_lengths.png, overlay/<camera>.mp4
+
+Resumable: the landmarks and each batch of fits are saved under `fused/.work/` as they are
+done (atomically); a rerun into the same folder with the same settings reuses them. Batches are
+fixed by person order, so a resumed run writes the same bytes as an uninterrupted one. The
+work folder is removed when everything is written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gst.atomic import atomic_write
+from gst.body import load_body_model
+from gst.body.markers import MarkerModel
+from gst.data.store import CropStore
+from gst.fuse.export import write_c3d, write_trc
+from gst.fuse.fit import FitOptions, PersonFit, _dense_tri, fit_people
+from gst.fuse.observations import crop_landmarks, group_by_person
+from gst.fuse.report import FuseSummary, summarise, write_report
+from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
+from gst.fuse.triangulate import TriangulationOptions, triangulate_person
+
+__all__ = ["FuseOptions", "FuseResult", "fuse_scene"]
+
+
+@dataclass(frozen=True)
+class FuseOptions:
+    body_model: str = "anny"
+    markers: str | None = None  # a markers JSON; None: the package's fitted table
+    fit: FitOptions = FitOptions()
+    triangulation: TriangulationOptions = TriangulationOptions()
+    people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
+    overlay: bool = True
+    threads: int = 1
+
+    def settings(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self), default=str))
+
+
+@dataclass
+class FuseResult:
+    bodies: Path
+    landmarks: Path
+    trc: list[Path]
+    c3d: list[Path]
+    overlays: list[Path]
+    summary: FuseSummary
+    fits: list[PersonFit]
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+    atomic_write(path, write)
+
+
+def _video_fps(videos: dict[str, Path]) -> float:
+    import cv2
+
+    for path in videos.values():
+        cap = cv2.VideoCapture(str(path))
+        fps = cap.get(cv2.CAP_PROP_FPS)
+        cap.release()
+        if fps and fps > 0:
+            return float(fps)
+    raise ValueError(
+        "fuse: no frame rate given and none readable from the source videos "
+        f"{sorted(map(str, videos.values()))}; pass fps (pipeline.yaml: scenes.NAME.fps)"
+    )
+
+
+def _save_npy(path: Path, array: np.ndarray) -> None:
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            np.save(f, array)
+
+    atomic_write(path, write)
+
+
+def _fits_to_arrays(fits: list[PersonFit]) -> dict[str, np.ndarray]:
+    out = {}
+    for k, f in enumerate(fits):
+        for name, value in dataclasses.asdict(f).items():
+            out[f"{k}.{name}"] = np.asarray(value)
+    out["n"] = np.array(len(fits))
+    return out
+
+
+def _fits_from_npz(path: Path) -> list[PersonFit]:
+    with np.load(path, allow_pickle=False) as z:
+        n = int(z["n"])
+        fields = [f.name for f in dataclasses.fields(PersonFit)]
+        fits = []
+        for k in range(n):
+            d = {name: z[f"{k}.{name}"] for name in fields}
+            d["person_id"] = int(d["person_id"])
+            d["single_view"] = bool(d["single_view"])
+            d["sigma_px"] = float(d["sigma_px"])
+            fits.append(PersonFit(**d))
+    return fits
+
+
+def fuse_scene(
+    store_path: str | Path,
+    rig,
+    out_dir: str | Path,
+    report_dir: str | Path,
+    *,
+    fps: float | None = None,
+    options: FuseOptions | None = None,
+    landmarks: np.ndarray | Callable | None = None,
+    truth_dir: str | Path | None = None,
+    videos: dict[str, Path] | None = None,
+    progress=None,
+    log=None,
+) -> FuseResult:
+    """Fuse every person of the crop store at `store_path` (cameras of `rig`, a calibration Rig).
+
+    `landmarks`: per-crop landmarks (array or function, see group_by_person); default: the
+    store's own, else BlazePose on the crops. `truth_dir`: a synthetic scene folder (`synth/`)
+    to score against. `videos`: camera -> source video for the overlays (default: the store's
+    `source_videos`). `fps`: the capture's frame rate (default: the first source video's).
+    """
+    o = options or FuseOptions()
+    torch.set_num_threads(o.threads)
+    out_dir, report_dir = Path(out_dir), Path(report_dir)
+    work = out_dir / ".work"
+    work.mkdir(parents=True, exist_ok=True)
+    store = CropStore(store_path)
+    cams = store.camera_names
+    if videos is None:
+        sources = json.loads(store.attrs.get("source_videos", "{}"))
+        videos = {k: Path(v) for k, v in sources.items() if Path(v).is_file()}
+    if fps is None:
+        fps = _video_fps(videos)
+    missing = [c for c in cams if c not in rig.names]
+    if missing:
+        raise ValueError(f"{store_path}: cameras {missing} are not in the rig ({rig.names})")
+    settings = {"options": o.settings(), "store_rows": len(store), "fps": fps}
+    key = _digest(settings)
+    stamp = work / "settings.json"
+    if stamp.is_file() and json.loads(stamp.read_text()).get("key") != key:
+        shutil.rmtree(work)  # another configuration: start over
+        work.mkdir(parents=True)
+    atomic_write(stamp, lambda t: Path(t).write_text(json.dumps({"key": key})))
+
+    lm_path = work / "landmarks.npy"
+    if landmarks is None:
+        if lm_path.is_file():
+            landmarks = np.load(lm_path)
+        else:
+            landmarks = crop_landmarks(store, progress=progress)
+            _save_npy(lm_path, landmarks)
+    people = group_by_person(store, landmarks)
+    tris = [triangulate_person(p, o.triangulation) for p in people]
+    body = load_body_model(o.body_model)
+    markers = MarkerModel.load(o.markers)
+
+    fits: list[PersonFit] = []
+    batches = range(0, len(people), o.people_per_batch)
+    if progress is not None:
+        batches = progress(batches, description="body fit (batches of people)", total=len(batches))
+    for a in batches:
+        path = work / f"fit_{a:06d}.npz"
+        if path.is_file():
+            fits += _fits_from_npz(path)
+            continue
+        part = fit_people(
+            body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
+            fps, o.fit,
+        )  # fmt: skip
+        _save_npz(path, **_fits_to_arrays(part))
+        fits += part
+        if log is not None:
+            log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
+
+    dense_tris = [
+        _dense_tri(t, p.frames, f.frames) for t, p, f in zip(tris, people, fits, strict=True)
+    ]
+    evidence = [joint_evidence(f, t) for f, t in zip(fits, dense_tris, strict=True)]
+    n_frames = int(store.attrs.get("n_frames", 0)) or (
+        int(max(f.frames.max() for f in fits)) + 1 if fits else 0
+    )
+    truth = None
+    if truth_dir is not None and fits:
+        from gst.fuse.evaluate import compare_with_truth
+        from synth.truth import read_scene_truth
+
+        truth = compare_with_truth(fits, read_scene_truth(truth_dir), body).as_dict()
+    summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth)
+
+    bodies = out_dir / "bodies.parquet"
+    write_bodies(
+        bodies, fits, evidence, fps=fps, camera_names=cams,
+        model={"name": "gst-fuse", "body_model": o.body_model, "markers": markers.info,
+               "version": 1},
+        settings=o.settings(), settings_sha256=key,
+        stats={"people": len(fits), "rows": int(sum(len(f.frames) for f in fits)),
+               "crops": len(store)},
+    )  # fmt: skip
+    lm_out = out_dir / "landmarks.parquet"
+    write_landmarks(
+        lm_out, [p.person_id for p in people], [p.frames for p in people], tris, cams, fps
+    )
+    trc, c3d = [], []
+    for f, ev in zip(fits, evidence, strict=True):
+        t_path = out_dir / "trc" / f"person_{f.person_id}.trc"
+        c_path = out_dir / "c3d" / f"person_{f.person_id}.c3d"
+        write_trc(t_path, f.frames, f.joints, fps)
+        write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.gap_filled)
+        trc.append(t_path)
+        c3d.append(c_path)
+    write_report(summary, report_dir, fits, dense_tris)
+    overlays: list[Path] = []
+    if o.overlay and fits:
+        from gst.fuse.overlay import write_overlays
+
+        if videos is None:
+            videos = {
+                k: Path(v) for k, v in json.loads(store.attrs.get("source_videos", "{}")).items()
+            }
+        videos = {k: v for k, v in videos.items() if Path(v).is_file()}
+        overlays = write_overlays(
+            fits, body, rig, videos, report_dir / "overlay", progress=progress
+        )
+    shutil.rmtree(work)
+    return FuseResult(bodies, lm_out, trc, c3d, overlays, summary, fits)

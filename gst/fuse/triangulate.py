@@ -1,0 +1,219 @@
+"""Robust, batched N-view triangulation of 2D landmarks, each view with its own camera.
+
+Every observation carries its own camera (a crop's `K_crop` with the camera's R, t), so the
+cameras are per point: `K (N, C, 3, 3)` and `Rt (N, C, 3, 4)`. The steps, all batched over the N points (numpy):
+
+1. confidence-weighted DLT in normalised coordinates (x = K^-1 [u, v, 1] against [R | t]),
+   which keeps the homogeneous system well conditioned whatever the pixel scale;
+2. leave-one-out rejection: while a point's worst used view misses by more than
+   `outlier_px` and more than 2 views remain, every subset that drops one view is solved and
+   the one whose own worst error is smallest is kept (an outlier view drags the all-view DLT
+   towards itself, so the view with the largest residual is not necessarily the bad one);
+3. Gauss-Newton refinement of the confidence-weighted reprojection error over the kept views.
+
+Per point it records the views used, the reprojection error (in the observation's `px_scale`
+units: full-image pixels when `px_scale` = crop side / crop size) and a confidence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "TriangulationOptions",
+    "Triangulated",
+    "PersonTriangulation",
+    "triangulate_points",
+    "triangulate_person",
+    "project",
+]
+
+
+@dataclass(frozen=True)
+class TriangulationOptions:
+    min_confidence: float = 0.3  # observations below it are not used
+    outlier_px: float = 12.0  # worst-view error (px_scale units) above which a view is dropped
+    max_rejections: int = 2  # leave-one-out rounds
+    refine_iterations: int = 5  # Gauss-Newton steps
+
+
+@dataclass
+class Triangulated:
+    """Batched result for N points seen by up to C views."""
+
+    points: np.ndarray  # (N, 3) world; NaN where fewer than 2 views were usable
+    used: np.ndarray  # (N, C) bool, the views kept
+    errors: np.ndarray  # (N, C) reprojection error of every observed view (NaN: unobserved)
+    error: np.ndarray  # (N,) mean error over the used views (NaN: not triangulated)
+    confidence: np.ndarray  # (N,) in [0, 1]; 0 where not triangulated
+
+    @property
+    def n_views(self) -> np.ndarray:
+        return self.used.sum(axis=1)
+
+
+def project(P: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (..., C, 2) and depths (..., C) of points X (..., 3) through P (..., C, 3, 4)."""
+    Xh = np.concatenate([X, np.ones_like(X[..., :1])], axis=-1)
+    x = np.einsum("...cij,...j->...ci", P, Xh)
+    z = x[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return x[..., :2] / z[..., None], z
+
+
+def _dlt(Pn: np.ndarray, xn: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted DLT: Pn (N, C, 3, 4), xn (N, C, 2), w (N, C) >= 0 -> (N, 3) (NaN if < 2 views)."""
+    rows_x = xn[..., 0:1] * Pn[..., 2, :] - Pn[..., 0, :]
+    rows_y = xn[..., 1:2] * Pn[..., 2, :] - Pn[..., 1, :]
+    A = np.concatenate([rows_x, rows_y], axis=-2) * np.concatenate([w, w], axis=-1)[..., None]
+    A = np.nan_to_num(A)
+    _, _, vt = np.linalg.svd(A)
+    Xh = vt[..., -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[..., :3] / Xh[..., 3:4]
+    X[(w > 0).sum(-1) < 2] = np.nan
+    return X
+
+
+def _errors(P: np.ndarray, uv: np.ndarray, X: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    proj, z = project(P, X)
+    err = np.linalg.norm(proj - uv, axis=-1) * scale
+    return np.where(z > 0, err, np.inf)  # behind a camera: never acceptable
+
+
+def _refine(P, uv, w, X, iterations: int) -> np.ndarray:
+    """Gauss-Newton on sum_c w_c |proj_c(X) - uv_c|^2 (batched 3x3 normal equations)."""
+    ok = np.isfinite(X).all(-1)
+    X = X.copy()
+    for _ in range(iterations):
+        Xh = np.concatenate([X, np.ones_like(X[..., :1])], -1)
+        x = np.einsum("ncij,nj->nci", P, np.nan_to_num(Xh))
+        z = x[..., 2:3]
+        z = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        r = x[..., :2] / z - uv  # (N, C, 2)
+        # d(x_i / z)/dX = (P_i - (x_i / z) P_2)[:3] / z
+        J = (P[..., :2, :3] - (x[..., :2] / z)[..., None] * P[..., 2:3, :3]) / z[..., None]
+        W = np.nan_to_num(w)[..., None, None]
+        H = np.einsum("ncki,nckj->nij", J * W, J)
+        g = np.einsum("ncki,nck->ni", J * W, np.nan_to_num(r))
+        H = H + 1e-9 * np.eye(3)
+        step = np.linalg.solve(H[ok], g[ok][..., None])[..., 0]
+        X[ok] = X[ok] - step
+    return X
+
+
+def triangulate_points(
+    K: np.ndarray,
+    Rt: np.ndarray,
+    uv: np.ndarray,
+    confidence: np.ndarray,
+    px_scale: np.ndarray | None = None,
+    options: TriangulationOptions | None = None,
+) -> Triangulated:
+    """Triangulate N points from C views.
+
+    Args:
+        K: (N, C, 3, 3) intrinsics of each observation (e.g. the crop's K_crop) and
+        Rt: (N, C, 3, 4) its world-to-camera [R | t]; any finite values where unobserved.
+        uv: (N, C, 2) pixels in the image P maps to; NaN where unobserved.
+        confidence: (N, C) detection confidence in [0, 1]; 0 or NaN where unobserved.
+        px_scale: (N, C) factor turning those pixels into reported pixels (e.g. a crop's
+            side / size gives full-image pixels); default 1.
+    """
+    o = options or TriangulationOptions()
+    K = np.asarray(K, np.float64)
+    Rt = np.asarray(Rt, np.float64)
+    P = K @ Rt
+    uv = np.asarray(uv, np.float64)
+    conf = np.nan_to_num(np.asarray(confidence, np.float64))
+    N, C = uv.shape[:2]
+    if K.shape != (N, C, 3, 3) or Rt.shape != (N, C, 3, 4) or conf.shape != (N, C):
+        raise ValueError(
+            f"triangulate_points: K {K.shape}, Rt {Rt.shape}, uv {uv.shape} and confidence "
+            f"{conf.shape} must be (N, C, 3, 3), (N, C, 3, 4), (N, C, 2) and (N, C)"
+        )
+    scale = np.ones((N, C)) if px_scale is None else np.asarray(px_scale, np.float64)
+    seen = np.isfinite(uv).all(-1) & (conf >= o.min_confidence)
+    uv0 = np.where(seen[..., None], uv, 0.0)
+    # DLT rows in normalised coordinates (K^-1 [u, v, 1] against [R | t]): well conditioned.
+    safe_K = np.where(np.isfinite(K).all((-1, -2), keepdims=True), K, np.eye(3))
+    xh = np.linalg.solve(safe_K, np.concatenate([uv0, np.ones((N, C, 1))], -1)[..., None])[..., 0]
+    Pn, xn = np.nan_to_num(Rt), xh[..., :2] / xh[..., 2:3]
+    used = seen.copy()
+    X = _dlt(Pn, xn, np.where(used, conf, 0.0))
+    for _ in range(o.max_rejections):
+        err = np.where(used, _errors(P, uv0, X, scale), 0.0)
+        worst = err.max(axis=1, initial=0.0)
+        todo = np.flatnonzero((worst > o.outlier_px) & (used.sum(1) > 2))
+        if not len(todo):
+            break
+        # (n, C candidates dropped, C views) weights: each candidate leaves one used view out.
+        cand = used[todo][:, None, :] & ~np.eye(C, dtype=bool)[None]
+        Xc = _dlt(
+            np.repeat(Pn[todo][:, None], C, 1),
+            np.repeat(xn[todo][:, None], C, 1),
+            np.where(cand, conf[todo][:, None], 0.0),
+        )
+        ec = _errors(
+            np.repeat(P[todo][:, None], C, 1),
+            np.repeat(uv0[todo][:, None], C, 1),
+            Xc,
+            np.repeat(scale[todo][:, None], C, 1),
+        )
+        ec = np.where(cand, ec, 0.0).max(-1)
+        ec = np.where(used[todo] & np.isfinite(Xc).all(-1), ec, np.inf)
+        best = ec.argmin(1)
+        gain = ec[np.arange(len(todo)), best] < worst[todo]
+        rows, drop = todo[gain], best[gain]
+        used[rows, drop] = False
+        X[rows] = Xc[gain, drop]
+    X = _refine(P, uv0, np.where(used, conf, 0.0), X, o.refine_iterations)
+    X[used.sum(1) < 2] = np.nan
+    errors = np.where(seen, _errors(P, uv0, np.nan_to_num(X), scale), np.nan)
+    errors[~np.isfinite(X).all(-1)] = np.nan
+    n_used = used.sum(1)
+    with np.errstate(invalid="ignore"):
+        error = np.where(n_used >= 2, np.nansum(np.where(used, errors, 0), 1) / n_used, np.nan)
+        mean_conf = np.where(n_used > 0, (conf * used).sum(1) / np.maximum(n_used, 1), 0.0)
+    # Confidence: the detections' own, discounted for few views and for a poor fit.
+    confidence_out = mean_conf * np.clip((n_used - 1) / 2, 0, 1)
+    confidence_out *= np.exp(-np.square(np.nan_to_num(error, nan=np.inf) / o.outlier_px))
+    return Triangulated(X, used, errors, error, np.nan_to_num(confidence_out))
+
+
+@dataclass
+class PersonTriangulation:
+    """Triangulated landmarks of one person: T frames, M landmarks, C cameras."""
+
+    points: np.ndarray  # (T, M, 3) world, NaN where < 2 views
+    used: np.ndarray  # (T, M, C) bool
+    errors: np.ndarray  # (T, M, C) full-image px, NaN where unobserved
+    error: np.ndarray  # (T, M) mean over used views
+    confidence: np.ndarray  # (T, M)
+
+    @property
+    def n_views(self) -> np.ndarray:
+        return self.used.sum(-1)
+
+
+def triangulate_person(obs, options: TriangulationOptions | None = None) -> PersonTriangulation:
+    """Triangulate every landmark of a `gst.fuse.observations.PersonObservations`."""
+    T, C, M = obs.uv.shape[:3]
+
+    def per_point(a: np.ndarray) -> np.ndarray:  # (T, C, ...) camera -> (T * M, C, ...)
+        return np.repeat(a[:, None], M, 1).reshape(T * M, C, *a.shape[2:])
+
+    K, Rt = per_point(obs.K), per_point(obs.Rt)
+    uv = np.moveaxis(obs.uv, 2, 1).reshape(T * M, C, 2)
+    conf = np.moveaxis(obs.confidence, 2, 1).reshape(T * M, C)
+    scale = np.repeat(obs.px_scale[:, None], M, 1).reshape(T * M, C)
+    tri = triangulate_points(K, Rt, uv, conf, scale, options)
+    return PersonTriangulation(
+        tri.points.reshape(T, M, 3),
+        tri.used.reshape(T, M, C),
+        tri.errors.reshape(T, M, C),
+        tri.error.reshape(T, M),
+        tri.confidence.reshape(T, M),
+    )

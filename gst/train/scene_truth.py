@@ -1,0 +1,122 @@
+"""Exact truth of a synthetic scene (docs/formats/synth_scene.md), mapped onto extracted crops.
+
+The scene's truth is read by `synth.truth` (the format's owner): one row per (frame, person)
+with body-model parameters, world joints and the motion label. `attach_scene_truth` matches
+each extracted crop to the person it shows (`match_truth_views`) and gives the crop set the
+truth keys every consumer needs: world and camera joints, 2D joints in crop pixels, visibility,
+rotations (global orientation in the crop's camera) and betas, for evaluation and for the 2D/3D
+fine-tuning baselines. Truth meshes are posed on demand (`SceneTruth.vertices`): the scene writes
+parameters, and `body(betas, body_pose, global_orient, transl)` reproduces its world vertices.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+from calibration.formats import read_rig
+from gst.metrics.image import box_iou
+from gst.train.views import CropSet
+from synth.truth import SceneTruth, read_scene_truth, read_truth_views
+
+__all__ = ["attach_scene_truth", "match_truth_views", "select_rows"]
+
+
+def attach_scene_truth(
+    crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3
+) -> SceneTruth:
+    """Match every crop to the truth person it shows and add truth keys to `crops.truth`:
+    has_truth (N,) bool, truth_row (N,) index into the returned SceneTruth (-1: unmatched),
+    joints_world / joints_cam (N,24,3), joints2d (N,24,2) crop px, visible (N,24),
+    rotmats_cam (N,24,3,3) (index 0: global orientation in the crop's camera), betas (N,nb).
+    Unmatched crops carry zeros; always filter with has_truth."""
+    scene_dir = Path(scene_dir)
+    truth = read_scene_truth(scene_dir)
+    views = read_truth_views(scene_dir)
+    view_rows = match_truth_views(crops, boxes, scene_dir, min_iou)
+    index = truth.row_index()
+    v_frame, v_pid, v_visible = views.frame, views.person_id, views.visible
+    n = len(crops)
+    row = np.full(n, -1, np.int64)
+    visible = np.zeros((n, 24), np.float32)
+    for i, r in enumerate(view_rows):
+        if r >= 0:
+            row[i] = index[(int(v_frame[r]), int(v_pid[r]))]
+            visible[i] = v_visible[r]
+    has = row >= 0
+    safe = np.where(has, row, 0)
+    jw = torch.from_numpy(truth.joints_world[safe]) * torch.from_numpy(has)[:, None, None]
+    jc = jw @ crops.R.transpose(1, 2) + crops.t[:, None]
+    z = jc[..., 2:].clamp_min(1e-6)
+    uv = (jc / z) @ crops.K.transpose(1, 2)
+    rot = axis_angle_to_rotation_matrix(
+        torch.from_numpy(
+            np.concatenate([truth.global_orient[safe][:, None], truth.body_pose[safe]], 1)
+        ).reshape(-1, 3)
+    ).reshape(n, 24, 3, 3)
+    rot[:, 0] = crops.R @ rot[:, 0]  # body -> world, then world -> this crop's camera
+    crops.truth.update(
+        has_truth=torch.from_numpy(has),
+        truth_row=torch.from_numpy(row),
+        joints_world=jw,
+        joints_cam=jc,
+        joints2d=uv[..., :2],
+        visible=torch.from_numpy(visible),
+        rotmats_cam=rot,
+        betas=torch.from_numpy(truth.betas[safe]),
+    )
+    return truth
+
+
+def match_truth_views(
+    crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3
+) -> np.ndarray:
+    """Row of `truth/views.parquet` showing the person of each extracted crop, or -1: matched per
+    (frame, camera) by the overlap of the crop's person box (undistorted image, edges) with the
+    truth box (IoU above `min_iou`). Returns (N,) int64."""
+    scene_dir = Path(scene_dir)
+    if len(boxes) != len(crops):
+        raise ValueError(f"boxes has {len(boxes)} rows, the crop set {len(crops)}")
+    rig = read_rig(scene_dir / "calibration" / "rig.json", "rig")
+    views = read_truth_views(scene_dir)
+    v_box = views.full_box.astype(np.float32)  # stored as float32
+    out = np.full(len(crops), -1, np.int64)
+    for i in range(len(crops)):
+        cam_name = crops.camera_names[int(crops.camera[i])]
+        rows = np.flatnonzero((views.frame == int(crops.frame[i])) & (views.camera == cam_name))
+        best_iou = min_iou
+        cam = rig[cam_name]
+        for r in rows:
+            # truth boxes are in the distorted image: map their corners to the undistorted one
+            x0, y0, x1, y1 = v_box[r]
+            corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
+            if not np.isfinite(corners).all():
+                continue
+            xy = cam.undistort_points(corners) * [cam.fx, cam.fy] + [cam.cx, cam.cy]
+            tb = np.r_[xy.min(0), xy.max(0)] + 0.5
+            iou = float(box_iou(boxes[i], tb)[0, 0])
+            if iou > best_iou:
+                out[i], best_iou = r, iou
+    return out
+
+
+def select_rows(crops: CropSet, rows: torch.Tensor | np.ndarray) -> CropSet:
+    """A CropSet of the given rows only (truth included), e.g. a train split."""
+    r = torch.as_tensor(np.asarray(rows), dtype=torch.long)
+    return CropSet(
+        images=crops.images[r],
+        masks=crops.masks[r],
+        K=crops.K[r],
+        R=crops.R[r],
+        t=crops.t[r],
+        camera=crops.camera[r],
+        frame=crops.frame[r],
+        person=crops.person[r],
+        camera_names=list(crops.camera_names),
+        truth={k: v[r] for k, v in crops.truth.items()},
+        occluders=None if crops.occluders is None else crops.occluders[r],
+        anchors=None if crops.anchors is None else crops.anchors[r],
+    )

@@ -1,0 +1,290 @@
+"""Reading videos, the one module every package uses, with errors that name the file at fault.
+
+OpenCV's `VideoCapture` fails quietly (an unreadable file just yields no frames), so every entry
+point here checks what it got and raises `VideoError` naming the camera and the path.
+
+- `probe_video(path)`: size, rate and frame count (`strict=True` also decodes the first frame
+  and requires a frame count: what multi-camera extraction needs).
+- `check_videos(...)`: every camera's video against the rig and the other cameras.
+- `read_frames(path, frames)`: chosen frame indices, in order (skipped ones are only grabbed).
+- `iter_frames(path, stride=..., start_s=..., end_s=...)`: a stream with times, an exact start
+  frame (to resume or start a chunk) and optional prefetch in a thread.
+
+Frame i has time i / fps (constant frame rate assumed; the container's fps is used). A file that
+opens but stops decoding before the frame count it announces is reported as truncated or
+corrupt, naming the file and the frame.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gst.prefetch import background
+
+__all__ = [
+    "END_SLACK_FRAMES",
+    "Frame",
+    "VideoError",
+    "VideoInfo",
+    "VideoTruncatedError",
+    "check_videos",
+    "frame_range",
+    "iter_frames",
+    "probe_video",
+    "read_frames",
+    "scaled_size",
+]
+
+# A container's frame count can be an estimate; a shortfall of at most this many frames at the
+# very end is taken as the real end rather than as truncation.
+END_SLACK_FRAMES = 2
+
+
+class VideoError(ValueError):
+    """A video cannot be read, or does not match the rig or the other cameras."""
+
+
+class VideoTruncatedError(VideoError):
+    """Decoding stopped before the announced end; `frame` is the first frame that failed."""
+
+    def __init__(self, message: str, frame: int):
+        super().__init__(message)
+        self.frame = frame
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What a video file says about itself (from its container; checked by decoding when
+    probed strictly)."""
+
+    path: Path
+    width: int
+    height: int
+    fps: float  # 0 when the container does not say (strict probes only)
+    frame_count: int | None  # None when the container does not say
+    camera: str = ""
+
+    @property
+    def name(self) -> str:
+        return self.path.stem
+
+    @property
+    def frames(self) -> int:
+        """Frame count (0 if unknown)."""
+        return self.frame_count or 0
+
+    @property
+    def duration_s(self) -> float | None:
+        return None if self.frame_count is None else self.frame_count / self.fps
+
+
+@dataclass(frozen=True)
+class Frame:
+    index: int
+    time_s: float
+    image: np.ndarray  # (H, W, 3) uint8 BGR
+
+
+def _who(path: Path, camera: str) -> str:
+    return f"camera '{camera}' video {path}" if camera else f"video {path}"
+
+
+def _open(path: Path, camera: str = "") -> cv2.VideoCapture:
+    if not path.is_file():
+        raise VideoError(f"{_who(path, camera)}: file not found")
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    if not cap.isOpened():
+        raise VideoError(
+            f"{_who(path, camera)}: OpenCV cannot open it (not a video, truncated, or an "
+            "unsupported codec)"
+        )
+    return cap
+
+
+def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> VideoInfo:
+    """Size, rate and frame count of a video.
+
+    Default: the container's word, and a frame rate is required (times are assigned to frames).
+    `strict`: the first frame must decode (its size is used) and the container must report a
+    frame count; an unknown rate is allowed (reported as 0). Raises `VideoError` naming the
+    camera and file when it is missing, unreadable or empty.
+    """
+    path = Path(path)
+    who = _who(path, camera)
+    cap = _open(path, camera)
+    try:
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        n = int(round(cap.get(cv2.CAP_PROP_FRAME_COUNT)))
+        if strict:
+            ok, frame = cap.read()
+            if not ok or frame is None:
+                raise VideoError(f"{who}: no frame could be decoded (corrupt or empty video)")
+            h, w = frame.shape[:2]
+    finally:
+        cap.release()
+    if strict:
+        if n <= 0:
+            raise VideoError(f"{who}: the container reports {n} frames")
+        if not math.isfinite(fps) or fps < 0:
+            fps = 0.0
+    else:
+        if w <= 0 or h <= 0:
+            raise VideoError(f"{who}: reports no frame size ({w}x{h}); not a video stream")
+        if not math.isfinite(fps) or fps <= 0:
+            raise VideoError(
+                f"{who}: reports no frame rate (fps = {fps}); cannot assign times to frames"
+            )
+    return VideoInfo(path, w, h, fps, n if n > 0 else None, camera)
+
+
+def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str, VideoInfo]:
+    """Probe every camera's video and check them against the rig and against each other.
+
+    Errors name the camera and file: a video whose camera is not in the rig, or frame counts
+    that differ across cameras (the cameras must be synchronised frame for frame). Frame sizes
+    against the calibration: `calibration.camera.fit_to_frames`.
+    """
+    if not videos:
+        raise VideoError("no videos given: expected a mapping camera name -> video file")
+    missing = [name for name in videos if name not in rig_names]
+    if missing:
+        raise VideoError(
+            f"camera(s) {missing} have videos ({', '.join(str(videos[m]) for m in missing)}) "
+            f"but are missing from the rig (rig cameras: {list(rig_names)})"
+        )
+    infos = {name: probe_video(path, name, strict=True) for name, path in videos.items()}
+    counts = {name: info.frames for name, info in infos.items()}
+    if len(set(counts.values())) > 1:
+        detail = ", ".join(f"{n}: {c} ({infos[n].path.name})" for n, c in counts.items())
+        raise VideoError(
+            f"videos have different frame counts across cameras ({detail}); "
+            "expected synchronised videos of equal length"
+        )
+    return infos
+
+
+def scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """Work-image size for a scale factor. Pixel centres map as u_work = (u + 0.5) * sx - 0.5
+    with sx = width_work / width (OpenCV's resize convention)."""
+    return max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+
+
+def read_frames(
+    path: Path | str, frames: Sequence[int], camera: str = "", scale: float = 1.0
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield (frame index, BGR image) for the sorted frame indices in `frames`.
+
+    Decodes sequentially and skips unwanted frames with `grab` (cheaper than seeking in
+    compressed video). With `scale` < 1 the frames are shrunk with area averaging. Raises
+    `VideoError` naming the file if the video ends before a requested frame.
+    """
+    wanted = sorted(set(int(f) for f in frames))
+    if not wanted:
+        return
+    path = Path(path)
+    who = _who(path, camera)
+    cap = _open(path, camera)
+    try:
+        pos = 0
+        for f in wanted:
+            while pos < f:
+                if not cap.grab():
+                    raise VideoError(f"{who}: ended at frame {pos}, but frame {f} was requested")
+                pos += 1
+            ok, image = cap.read()
+            if not ok or image is None:
+                raise VideoError(
+                    f"{who}: frame {f} could not be decoded (truncated or corrupt video)"
+                )
+            pos += 1
+            if scale != 1.0:
+                size = scaled_size(image.shape[1], image.shape[0], scale)
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            yield f, image
+    finally:
+        cap.release()
+
+
+def frame_range(
+    info: VideoInfo, start_s: float | None = None, end_s: float | None = None
+) -> tuple[int, int | None]:
+    """[first, end) frame indices covering times [start_s, end_s); end is None for 'to the end'."""
+    eps = 1e-9
+    first = 0 if start_s is None else max(0, math.ceil(start_s * info.fps - eps))
+    end = None if end_s is None else max(0, math.ceil(end_s * info.fps - eps))
+    if info.frame_count is not None:
+        end = info.frame_count if end is None else min(end, info.frame_count)
+    if start_s is not None and end_s is not None and end_s <= start_s:
+        raise ValueError(f"{info.path}: time range end {end_s} s must be after start {start_s} s")
+    return first, end
+
+
+def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterator[Frame]:
+    if end is not None and first >= end:
+        return
+    cap = _open(info.path, info.camera)
+    try:
+        if first > 0:
+            cap.set(cv2.CAP_PROP_POS_FRAMES, first)
+            pos = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
+            if pos != first:
+                raise VideoError(f"{info.path}: cannot seek to frame {first} (decoder is at {pos})")
+        index = first
+        while end is None or index < end:
+            ok, image = cap.read()
+            if not ok or image is None:
+                short = None if info.frame_count is None else info.frame_count - index
+                if short is None or short <= END_SLACK_FRAMES:
+                    return
+                raise VideoTruncatedError(
+                    f"{info.path}: decoding failed at frame {index} of {info.frame_count} announced "
+                    f"(file truncated or corrupt); frames before {index} decoded fine",
+                    index,
+                )
+            yield Frame(index, index / info.fps, image)
+            for _ in range(stride - 1):
+                index += 1
+                if (end is not None and index >= end) or not cap.grab():
+                    return
+            index += 1
+    finally:
+        cap.release()
+
+
+def iter_frames(
+    path: str | Path,
+    *,
+    stride: int = 1,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    start_frame: int | None = None,
+    end_frame: int | None = None,
+    prefetch: int = 0,
+) -> Iterator[Frame]:
+    """Yield frames first, first + stride, ... within [start_s, end_s).
+
+    `start_frame` (used to resume, or to start a chunk) overrides the first frame; it must lie on
+    the stride grid. `end_frame` (exclusive) stops earlier than `end_s` (a chunk's end).
+    `prefetch` > 0 decodes that many frames ahead in a thread.
+    """
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    info = probe_video(path)
+    first, end = frame_range(info, start_s, end_s)
+    if start_frame is not None:
+        if start_frame < first or (start_frame - first) % stride:
+            raise ValueError(
+                f"{path}: start_frame {start_frame} is not on the grid {first} + k * {stride}"
+            )
+        first = start_frame
+    if end_frame is not None:
+        end = end_frame if end is None else min(end, end_frame)
+    frames = _decode(info, first, end, stride)
+    return background(frames, prefetch, name="video-decode") if prefetch > 0 else frames

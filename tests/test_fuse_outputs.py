@@ -1,0 +1,83 @@
+"""Fused outputs: the TRC opens with OpenSim's header (Y up), the C3D reads back identical
+through the `c3d` library, bodies.parquet has the tracks schema's columns and metadata."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from gst.body.skeleton import SMPL_JOINT_NAMES
+from gst.fuse.export import Z_UP_TO_Y_UP, read_c3d, read_trc, write_c3d, write_trc
+from gst.track.schema import METADATA_KEYS, column_specs
+
+
+def _points(T=5, M=24, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-2, -2, 0], [2, 2, 2], (T, M, 3))
+
+
+def test_trc_header_units_and_y_up(tmp_path):
+    pts = _points()
+    frames = np.arange(10, 15)
+    path = tmp_path / "person_1.trc"
+    write_trc(path, frames, pts, fps=60.0)
+    lines = path.read_text().splitlines()
+    assert lines[0].split("\t") == ["PathFileType", "4", "(X/Y/Z)", "person_1.trc"]
+    assert lines[1].split("\t") == [
+        "DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units", "OrigDataRate",
+        "OrigDataStartFrame", "OrigNumFrames",
+    ]  # fmt: skip
+    assert lines[2].split("\t") == ["60.00", "60.00", "5", "24", "m", "60.00", "11", "5"]
+    assert lines[3].split("\t")[:3] == ["Frame#", "Time", "pelvis"]
+    assert lines[4].split("\t")[2:5] == ["X1", "Y1", "Z1"]
+    header, names, fr, back = read_trc(path)
+    assert names == list(SMPL_JOINT_NAMES) and fr.tolist() == [11, 12, 13, 14, 15]
+    assert header["Units"] == "m"
+    # Y up: world z (height) becomes TRC y, and the rotation is proper
+    np.testing.assert_allclose(back[..., 1], pts[..., 2], atol=1e-6)
+    np.testing.assert_allclose(back, pts @ Z_UP_TO_Y_UP.T, atol=1e-6)
+    assert np.isclose(np.linalg.det(Z_UP_TO_Y_UP), 1.0)
+
+
+def test_c3d_round_trip_is_identical(tmp_path):
+    pts = _points(T=7)
+    valid = np.ones((7, 24), bool)
+    valid[3, 5] = False
+    path = tmp_path / "p.c3d"
+    write_c3d(path, np.arange(20, 27), pts, fps=30.0, valid=valid)
+    names, rate, frames, back = read_c3d(path)
+    assert names == list(SMPL_JOINT_NAMES) and rate == 30.0
+    assert frames.tolist() == list(range(21, 28))
+    np.testing.assert_array_equal(back[..., :3], (pts * 1000).astype(np.float32))
+    assert back[3, 5, 3] == 1 and (np.delete(back[..., 3].ravel(), 3 * 24 + 5) == 0).all()
+
+
+def test_bodies_parquet_has_the_tracks_schema(tmp_path):
+    from gst.fuse.fit import PersonFit
+    from gst.fuse.tables import EXTRA_COLUMNS, joint_evidence, write_bodies
+
+    T, C = 4, 3
+    rng = np.random.default_rng(1)
+    fit = PersonFit(
+        7, np.arange(T), rng.normal(size=10), rng.normal(size=(T, 3)), rng.normal(size=(T, 23, 3)),
+        rng.normal(size=(T, 3)), rng.normal(size=(T, 24, 3)), rng.normal(size=(T, 33, 3)),
+        np.abs(rng.normal(size=(T, C, 33))), np.ones(T, bool), np.zeros(T, bool), False, 3.0,
+    )  # fmt: skip
+    ev = joint_evidence(fit, None)
+    path = tmp_path / "bodies.parquet"
+    write_bodies(
+        path, [fit], [ev], fps=30.0, camera_names=["a", "b", "c"], model={"name": "x"},
+        settings={}, settings_sha256="0", stats={},
+    )  # fmt: skip
+    t = pq.read_table(path)
+    names = [s.name for s in column_specs(10)]
+    assert t.column_names == names + list(EXTRA_COLUMNS)
+    meta = t.schema.metadata
+    assert all(k.encode() in meta for k in METADATA_KEYS)
+    assert json.loads(meta[b"gst.axes"])["joints3d"] == "world"
+    joints = np.stack(t.column("joints3d").to_numpy(zero_copy_only=False)).reshape(-1, 24, 3)
+    np.testing.assert_allclose(joints, fit.joints, rtol=1e-6)
+    assert t.column("joints2d").null_count == T
+    assert np.stack(t.column("joint_gap_filled").to_numpy(zero_copy_only=False)).all(axis=0)[0]

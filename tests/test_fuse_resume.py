@@ -1,0 +1,97 @@
+"""fuse_scene end to end on a small crop store, and resume after kill -9: a run killed after
+its first batch of people, rerun into the same folder, writes byte-identical outputs."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from gst.body import load_body_model
+from gst.fuse import FitOptions, FuseOptions, fuse_scene
+from tests.fuse_fixtures import make_capture, write_store
+
+ROOT = Path(__file__).resolve().parents[1]
+OPTS = FuseOptions(fit=FitOptions(iterations=60), people_per_batch=1, overlay=False)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    torch.set_num_threads(1)
+    tmp = tmp_path_factory.mktemp("fuse")
+    cap = make_capture(load_body_model("anny"), n_people=3, n_frames=4, n_cams=3, seed=7)
+    landmarks = write_store(tmp / "crops.h5", cap)
+    np.save(tmp / "landmarks.npy", landmarks)
+    return tmp, cap, landmarks
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+def test_fuse_scene_writes_every_output(scene):
+    tmp, cap, landmarks = scene
+    res = fuse_scene(
+        tmp / "crops.h5", cap.rig, tmp / "a" / "fused", tmp / "a" / "report", fps=30.0,
+        options=OPTS, landmarks=landmarks,
+    )  # fmt: skip
+    names = set(_files(tmp / "a" / "fused"))
+    assert {"bodies.parquet", "landmarks.parquet"} <= names
+    assert {f"trc/person_{k}.trc" for k in (1, 2, 3)} <= names
+    assert {f"c3d/person_{k}.c3d" for k in (1, 2, 3)} <= names
+    assert not (tmp / "a" / "fused" / ".work").exists()
+    assert {"report.md", "summary.json", "bone_lengths.png"} <= set(_files(tmp / "a" / "report"))
+    t = pq.read_table(tmp / "a" / "fused" / "bodies.parquet")
+    assert t.num_rows == 12 and t.column("person_id").to_pylist()[:3] == [1, 2, 3]
+    err = [np.linalg.norm(f.joints - cap.joints[k], axis=-1).mean() for k, f in enumerate(res.fits)]
+    assert max(err) < 0.05  # few iterations, few frames; the accuracy test is test_fuse_fit
+    assert res.summary.gap_filled_share == 0.0
+
+
+def test_resume_after_kill_gives_identical_outputs(scene, tmp_path):
+    tmp, cap, landmarks = scene
+    ref_dir, run_dir = tmp_path / "ref", tmp_path / "run"
+    fuse_scene(tmp / "crops.h5", cap.rig, ref_dir / "fused", ref_dir / "report", fps=30.0,
+               options=OPTS, landmarks=landmarks)  # fmt: skip
+    # The child fits person 1, saves that batch, and is killed (SIGKILL) as it starts person 2.
+    child = textwrap.dedent(f"""
+        import os, signal, sys, numpy as np, torch
+        sys.path.insert(0, {str(ROOT)!r})
+        import gst.fuse.scene as scene
+        from tests.fuse_fixtures import make_rig
+        from tests.test_fuse_resume import OPTS
+        calls = []
+        real = scene.fit_people
+        def fit_then_die(*a, **k):
+            calls.append(1)
+            if len(calls) == 2:
+                os.kill(os.getpid(), signal.SIGKILL)
+            return real(*a, **k)
+        scene.fit_people = fit_then_die
+        scene.fuse_scene({str(tmp / "crops.h5")!r}, make_rig(3), {str(run_dir / "fused")!r},
+                         {str(run_dir / "report")!r}, fps=30.0, options=OPTS,
+                         landmarks=np.load({str(tmp / "landmarks.npy")!r}))
+    """)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-c", child], cwd=ROOT, env=env, capture_output=True)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
+    work = run_dir / "fused" / ".work"
+    assert (work / "fit_000000.npz").is_file() and not (work / "fit_000001.npz").exists()
+    assert not (run_dir / "fused" / "bodies.parquet").exists()
+    fuse_scene(tmp / "crops.h5", cap.rig, run_dir / "fused", run_dir / "report", fps=30.0,
+               options=OPTS, landmarks=landmarks)  # fmt: skip
+    ref, got = _files(ref_dir / "fused"), _files(run_dir / "fused")
+    assert sorted(ref) == sorted(got)
+    for name in ref:
+        assert ref[name] == got[name], name
+    assert _files(ref_dir / "report")["summary.json"] == _files(run_dir / "report")["summary.json"]

@@ -1,0 +1,116 @@
+"""Robust N-view triangulation (gst.fuse.triangulate): exact on noiseless projections (OpenCV
+projection as the reference), rejects a corrupted view, flags points seen by fewer than 2 views."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from calibration.camera import look_at_rotation
+from gst.fuse.triangulate import TriangulationOptions, triangulate_points
+
+
+def _rig(n_cams: int, rng: np.random.Generator):
+    """Cameras on a ring around the origin looking at it, with different intrinsics."""
+    K, Rt = [], []
+    for c in range(n_cams):
+        a = 2 * np.pi * c / n_cams + rng.uniform(-0.2, 0.2)
+        pos = np.array([4 * np.cos(a), 4 * np.sin(a), rng.uniform(1.0, 2.5)])
+        R = look_at_rotation(pos, np.array([0.0, 0.0, 1.0]))
+        f = rng.uniform(300, 900)
+        K.append(
+            np.array([[f, 0, rng.uniform(100, 300)], [0, f, rng.uniform(100, 300)], [0, 0, 1]])
+        )
+        Rt.append(np.hstack([R, (-R @ pos)[:, None]]))
+    return np.array(K), np.array(Rt)
+
+
+def _project_cv(K, Rt, X):
+    rvec, _ = cv2.Rodrigues(Rt[:3, :3])
+    uv, _ = cv2.projectPoints(X.reshape(-1, 1, 3), rvec, Rt[:, 3], K, None)
+    return uv.reshape(-1, 2)
+
+
+def _observe(K, Rt, X):
+    """(N, C, ...) batched inputs for N points seen by every camera."""
+    N, C = len(X), len(K)
+    uv = np.stack([_project_cv(K[c], Rt[c], X) for c in range(C)], axis=1)
+    return np.broadcast_to(K, (N, C, 3, 3)), np.broadcast_to(Rt, (N, C, 3, 4)), uv
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n_cams=st.integers(2, 8),
+    n_points=st.integers(1, 20),
+)
+def test_noiseless_projections_are_recovered_exactly(seed, n_cams, n_points):
+    rng = np.random.default_rng(seed)
+    K, Rt = _rig(n_cams, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (n_points, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    conf = rng.uniform(0.5, 1.0, (n_points, n_cams))
+    out = triangulate_points(Kb, Rtb, uv, conf)
+    np.testing.assert_allclose(out.points, X, atol=1e-7)
+    assert out.used.all()
+    assert np.nanmax(out.errors) < 1e-5
+    assert (out.confidence > 0).all()
+
+
+def test_one_corrupted_view_is_rejected():
+    rng = np.random.default_rng(3)
+    K, Rt = _rig(5, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (40, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    uv = uv + rng.normal(0, 0.5, uv.shape)  # detection noise
+    bad = rng.integers(0, 5, len(X))
+    uv[np.arange(len(X)), bad] += rng.uniform(40, 120, (len(X), 2)) * rng.choice(
+        [-1, 1], (len(X), 2)
+    )
+    conf = np.ones((len(X), 5))
+    plain = triangulate_points(Kb, Rtb, uv, conf, options=TriangulationOptions(max_rejections=0))
+    robust = triangulate_points(Kb, Rtb, uv, conf)
+    assert not robust.used[np.arange(len(X)), bad].any()  # every corrupted view dropped
+    assert robust.used.sum(1).min() == 4  # and only it
+    err_plain = np.linalg.norm(plain.points - X, axis=1)
+    err_robust = np.linalg.norm(robust.points - X, axis=1)
+    assert np.median(err_plain) > 0.02
+    assert err_robust.max() < 0.01
+    assert robust.error.max() < 2.0  # px, over the kept views
+
+
+def test_points_with_fewer_than_two_views_are_flagged():
+    rng = np.random.default_rng(5)
+    K, Rt = _rig(4, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (3, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    conf = np.ones((3, 4))
+    conf[0, 1:] = 0.0  # one view only
+    uv[1, :3] = np.nan  # one view only (unobserved)
+    conf[2, 2:] = 0.1  # two views above the confidence threshold
+    out = triangulate_points(Kb, Rtb, uv, conf)
+    assert np.isnan(out.points[:2]).all() and (out.confidence[:2] == 0).all()
+    assert out.n_views.tolist() == [1, 1, 2]
+    np.testing.assert_allclose(out.points[2], X[2], atol=1e-7)
+
+
+def test_px_scale_reports_errors_in_full_image_pixels():
+    rng = np.random.default_rng(7)
+    K, Rt = _rig(3, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (10, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    uv[:, 0] += [3.0, 4.0]  # 5 px off in view 0
+    a = triangulate_points(
+        Kb, Rtb, uv, np.ones((10, 3)), options=TriangulationOptions(outlier_px=1e9)
+    )
+    b = triangulate_points(
+        Kb,
+        Rtb,
+        uv,
+        np.ones((10, 3)),
+        px_scale=np.full((10, 3), 2.0),
+        options=TriangulationOptions(outlier_px=1e9),
+    )
+    np.testing.assert_allclose(b.errors, 2 * a.errors, rtol=1e-9)

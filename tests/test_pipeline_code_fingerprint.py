@@ -1,0 +1,119 @@
+"""A stage's fingerprint covers the library code it runs: its module and every project module
+it imports, transitively. Editing a library module reruns exactly the stages that import it."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+import pipeline.fingerprint as fingerprint
+import pipeline.runner as runner
+from pipeline.cli import main
+from pipeline.config import load_config
+from pipeline.registry import load_stage, load_stages
+from pipeline.runner import UP_TO_DATE, Runner, stage_code
+
+
+def test_real_stages_cover_the_library_modules_they_use():
+    _, train = stage_code(load_stage("train"))
+    _, track = stage_code(load_stage("track"))
+    _, calibrate = stage_code(load_stage("calibrate"))
+    assert "gst/train/losses.py" in train and "stages/train.py" in train
+    assert "gst/train/losses.py" not in track  # tracking never imports the training losses
+    assert "gst/video.py" in calibrate and "gst/train/losses.py" not in calibrate
+    assert not any(f.startswith("pipeline/") for f in train)  # orchestration is not stage code
+
+
+LIB = {
+    "fakelib/__init__.py": "",
+    "fakelib/alpha.py": "def value():\n    return 1\n",
+    "fakelib/beta.py": "from fakelib import gamma\n\ndef value():\n    return gamma.VALUE\n",
+    "fakelib/gamma.py": "VALUE = 2\n",
+    "fakestages/__init__.py": "",
+}
+STAGE_SRC = """
+from pipeline.stage import Stage
+
+def _run(ctx):
+    {imports}
+    ctx.out("{name}/value.txt").write_text(str(value()))
+
+STAGE = Stage(name="{name}", run=_run, outputs=lambda ctx: ["{name}"])
+"""
+
+
+@pytest.fixture
+def project(tmp_path, monkeypatch):
+    """A tiny project: stage `one` imports fakelib.alpha (inside its function), stage `two`
+    imports fakelib.beta, which imports fakelib.gamma."""
+    root = tmp_path / "project"
+    for rel, text in LIB.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+    for name, imports in (("one", "from fakelib.alpha import value"),
+                          ("two", "from fakelib.beta import value")):  # fmt: skip
+        (root / f"fakestages/{name}.py").write_text(STAGE_SRC.format(name=name, imports=imports))
+    cfg = root / "pipeline.yaml"
+    cfg.write_text(
+        textwrap.dedent("""
+        workspace: ws
+        scenes: {demo: {synthetic: {preset: demo}}}
+        stages:
+          one: {module: "fakestages.one"}
+          two: {module: "fakestages.two"}
+        """)
+    )
+    monkeypatch.syspath_prepend(str(root))
+    monkeypatch.setattr(runner, "PROJECT_ROOT", root)
+    monkeypatch.setattr(fingerprint, "CODE_PACKAGES", ("fakelib", "fakestages"))
+    yield root, cfg
+    for mod in [m for m in sys.modules if m.split(".")[0] in ("fakelib", "fakestages")]:
+        del sys.modules[mod]
+
+
+def _states(cfg: Path) -> dict[str, tuple[str, str]]:
+    c = load_config(cfg)
+    return {s.stage: (s.state, s.reason) for s in Runner(c, "demo", load_stages(c)).status()}
+
+
+def test_a_library_edit_reruns_exactly_the_stages_that_import_it(project):
+    root, cfg = project
+    assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0
+    assert {s: st for s, (st, _) in _states(cfg).items()} == {"one": UP_TO_DATE, "two": UP_TO_DATE}
+
+    (root / "fakelib/gamma.py").write_text("VALUE = 3\n")  # two imports it through beta
+    states = _states(cfg)
+    assert states["one"][0] == UP_TO_DATE
+    assert states["two"][0] == "stale" and "fakelib/gamma.py" in states["two"][1]
+
+    assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0
+    (root / "fakelib/alpha.py").write_text("def value():\n    return 10\n")
+    states = _states(cfg)
+    assert states["one"][0] == "stale" and "fakelib/alpha.py" in states["one"][1]
+    assert states["two"][0] == UP_TO_DATE
+
+    (root / "fakelib/unused.py").write_text("X = 1\n")  # imported by no stage
+    assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0
+    assert all(st == UP_TO_DATE for st, _ in _states(cfg).values())
+
+
+def test_imports_inside_functions_and_relative_imports_are_followed(tmp_path):
+    pkg = tmp_path / "fakelib"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("def f():\n    from . import b\n    return b\n")
+    (pkg / "b.py").write_text("from .c import X\n")
+    (pkg / "c.py").write_text("X = 1\n")
+    (pkg / "d.py").write_text("Y = 2\n")
+    import pipeline.fingerprint as fp
+
+    old = fp.CODE_PACKAGES
+    fp.CODE_PACKAGES = ("fakelib",)
+    try:
+        files = fp.code_digests("fakelib.a", pkg / "a.py", tmp_path)
+    finally:
+        fp.CODE_PACKAGES = old
+    assert sorted(files) == ["fakelib/__init__.py", "fakelib/a.py", "fakelib/b.py", "fakelib/c.py"]
