@@ -4,6 +4,14 @@
     python benchmarks/bench_extract.py --repeats 3 --frames 40
     python benchmarks/bench_extract.py --real ../shared/real/pose2sim-multiperson \\
         --calib ../shared/real/pose2sim-multiperson/Calib.qca.txt --format qualisys
+    python benchmarks/bench_extract.py --scenes workspace/crowd_7000/synth ...   # old vs new
+
+`--scenes` compares the associations on rendered synthetic scenes (e.g. the `crowd` preset),
+each with its board clip as the clean plate and its truth, in one run: the background model
+with the visual hull (the old default), BlazePose masks with the visual hull, and the keypoint
+association (BlazePose instances on every camera, matched by landmark geometry, tracked in 3D,
+refined with neighbours painted out). Missed views are counted both by the store's area
+criterion and among truth views where >= 30% of the person's joints are visible.
 
 The synthetic input is the test scene renderer (tests/extract_scenes.py) at 480x270, upscaled
 to 1920x1080 (so the content is soft, but the decoding, background, association, cropping and
@@ -82,7 +90,65 @@ VARIANTS = [
     ("median, work 1/2, lzf store", "median", None, "lzf", False),
     # Learned person masks (gst.detect; needs the detect extra and `python -m gst.detect fetch`).
     ("blazepose masks, work 1/2", "median", None, "gzip", True),
+    # Keypoint association (BlazePose instances, landmarks matched across views).
+    ("keypoints, work 1/2", "median", None, "gzip", "keypoints"),
 ]
+
+
+SCENE_VARIANTS = [
+    # name, association method, person model
+    ("background + hull (old)", "hull", "none"),
+    ("blazepose masks + hull", "hull", "blazepose"),
+    ("keypoints (new)", "keypoints", "none"),
+]
+
+
+def compare_on_scenes(scenes: list[Path]) -> None:
+    """Old and new association on the same synthetic scenes (see the module doc)."""
+    from calibration.formats import read_rig
+    from gst.data.extract.options import ExtractOptions as Options
+
+    print(
+        f"{'scene':24s} {'variant':26s} {'cam-fr/s':>8s} {'crops':>6s} {'IoU':>6s} {'assoc':>6s} "
+        f"{'missed (area)':>14s} {'missed (>=30% vis)':>19s} {'ids':>4s} {'single':>6s}"
+    )
+    totals: dict[str, list] = {}
+    for scene in scenes:
+        rig = read_rig(scene / "calibration" / "rig.json")
+        names = [c.name for c in rig]
+        videos = {n: scene / "videos" / f"{n}.mp4" for n in names}
+        plates = {n: scene / "board" / f"{n}.mp4" for n in names}
+        for name, method, person in SCENE_VARIANTS:
+            work = Path(tempfile.mkdtemp(prefix="bench_extract_"))
+            try:
+                opts = Options.from_settings(plates, None, person, association_method=method)
+                t = time.perf_counter()
+                rep = extract_scene(
+                    videos, rig, work / "crops.h5", truth=scene / "truth", options=opts
+                )
+                secs = time.perf_counter() - t
+            finally:
+                shutil.rmtree(work, ignore_errors=True)
+            cf = rep.frames_considered * len(names)
+            vis = rep.visible_views_missed / max(rep.visible_views, 1)
+            totals.setdefault(name, []).append((cf / secs, rep, vis))
+            print(
+                f"{scene.parent.name if scene.name == 'synth' else scene.name:24s} {name:26s} "
+                f"{cf / secs:8.2f} {rep.crops:6d} {rep.mask_iou or float('nan'):6.3f} "
+                f"{rep.association_accuracy or float('nan'):6.3f} "
+                f"{rep.truth_views_missed:6d}/{rep.truth_views:<7d} "
+                f"{rep.visible_views_missed:6d}/{rep.visible_views:<5d} ({vis:.3f}) "
+                f"{rep.persons:4d} {rep.single_view_crops:6d}",
+                flush=True,
+            )
+    print("\nmeans over scenes (cam-frames/s: median):")
+    for name, rows in totals.items():
+        print(
+            f"  {name:26s} {np.median([r[0] for r in rows]):6.2f} cam-frames/s  IoU "
+            f"{np.mean([r[1].mask_iou or 0 for r in rows]):.3f}  association "
+            f"{np.mean([r[1].association_accuracy or 0 for r in rows]):.3f}  missed (>=30% vis) "
+            f"{np.mean([r[2] for r in rows]):.3f}"
+        )
 
 
 def main() -> None:
@@ -102,7 +168,13 @@ def main() -> None:
     )
     ap.add_argument("--calib", type=Path, help="calibration file for --real")
     ap.add_argument("--format", default=None, help="calibration format for --real (e.g. qualisys)")
+    ap.add_argument(
+        "--scenes", type=Path, nargs="+", help="rendered synth scenes: old vs new association"
+    )
     args = ap.parse_args()
+    if args.scenes:
+        compare_on_scenes(args.scenes)
+        return
 
     work = Path(tempfile.mkdtemp(prefix="bench_extract_"))
     try:
@@ -145,7 +217,8 @@ def main() -> None:
                     options=ExtractOptions(
                         work_scale=ws,
                         compression=comp,
-                        persons=SegmenterConfig() if persons else None,
+                        persons=SegmenterConfig() if persons is True else None,
+                        association_method="keypoints" if persons == "keypoints" else "hull",
                     ),
                 )
                 times.append(time.perf_counter() - t)

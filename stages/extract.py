@@ -28,6 +28,8 @@ class Params(StageParams):
     # 'blazepose': learned person masks (the `detect` extra; docs/person_models.md).
     person_model: Literal["none", "blazepose"] = "none"
     person_hints: bool = True  # also segment around moving background blobs
+    # 'auto': keypoint association when BlazePose is installed, else the visual hull
+    association_method: Literal["auto", "keypoints", "hull"] = "auto"
 
 
 def run(ctx: StageContext) -> None:
@@ -36,8 +38,9 @@ def run(ctx: StageContext) -> None:
     if plates is None and ctx.scene.is_synthetic and p.use_board_clip_as_background:
         plates = {n: ctx.path(f"synth/board/{n}.mp4") for n in videos}
     options = ExtractOptions.from_settings(
-        plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance
-    )
+        plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance,
+        p.association_method,
+    )  # fmt: skip
     report = extract_scene(
         videos, ctx.rig(), ctx.out("crops/crops.h5"), crop_size=p.crop_size, scale=p.scale,
         frame_stride=p.frame_stride, method=p.method, external=ctx.scene.masks,

@@ -324,7 +324,7 @@ def test_lab_extraction_with_person_masks_keeps_two_ids(tmp_path):
         tmp_path / "crops.h5",
         crop_size=64,
         frame_stride=10,
-        options=ExtractOptions(persons=SegmenterConfig()),
+        options=ExtractOptions(persons=SegmenterConfig(), association_method="hull"),
     )
     assert rep.persons == 2
     assert rep.multiview_groups >= 18  # of 10 frames x 2 people

@@ -56,17 +56,26 @@ def short_scene(tmp_path_factory):
 
 
 def _opts(**kw):
-    """Short scenes: a smaller capture volume (faster) and short tracks allowed."""
+    """Short scenes: a smaller capture volume (faster) and short tracks allowed. These tests are
+    about the background model and the visual hull (the keypoint association: test_crowd_*)."""
     return ExtractOptions(
-        volume=SMALL_VOLUME, **{"association": AssociationConfig(min_track_frames=2), **kw}
+        volume=SMALL_VOLUME,
+        **{
+            "association": AssociationConfig(min_track_frames=2),
+            "association_method": "hull",
+            **kw,
+        },
     )
+
+
+HULL = ExtractOptions(association_method="hull")
 
 
 @pytest.fixture(scope="module")
 def one_person_run(one_person, tmp_path_factory):
     out = tmp_path_factory.mktemp("one_run") / "crops.h5"
     return extract_scene(
-        one_person.videos, one_person.rig, out, crop_size=96, truth=one_person.truth
+        one_person.videos, one_person.rig, out, crop_size=96, truth=one_person.truth, options=HULL
     ), out
 
 
@@ -88,6 +97,7 @@ def test_two_people_are_associated_across_cameras(two_people, tmp_path):
         tmp_path / "crops.h5",
         crop_size=96,
         truth=two_people.truth,
+        options=HULL,
     )
     assert rep.association_accuracy >= 0.98, rep.association_accuracy
     assert rep.persons == 2

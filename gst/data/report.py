@@ -119,11 +119,14 @@ def write_extract_report(
         f"{r.multiview_groups}",
         f"- cameras that saw no one (skipped): {', '.join(r.cameras_skipped) or 'none'}",
         f"- (frame, camera) pairs already done and resumed: {r.pairs_resumed}",
+        f"- association: {r.association_method}; single-view crops (one camera saw the person): "
+        f"{r.single_view_crops}",
     ]
     if len(support):
         q = np.percentile(support, [10, 50, 90])
         lines.append(
-            f"- mask support (share of the person's 3D hull this view's mask covers; low = partial mask): "
+            f"- mask support (hull: share of the person's 3D hull the mask covers; keypoints: share of "
+            f"the body not hidden by others; low = partial mask): "
             f"10% {q[0]:.2f}, median {q[1]:.2f}, 90% {q[2]:.2f}; {int((support < 0.5).sum())} crops below 0.5"
         )
     if r.short_tracks_dropped:
@@ -133,6 +136,11 @@ def write_extract_report(
             f"- truth: mean mask IoU {_fmt(r.mask_iou)}, association accuracy {_fmt(r.association_accuracy)} "
             f"over {r.crops_scored} crops; truth views {r.truth_views}, missed {r.truth_views_missed}",
         ]
+        if r.visible_views:
+            lines.append(
+                f"- truth views with >= 30% of the person's joints visible: {r.visible_views}, "
+                f"missed {r.visible_views_missed}"
+            )
     lines += [
         "",
         "| camera | crops | frames with people | frames without | mask IoU | masks s | crops s |",

@@ -21,12 +21,14 @@ import pyarrow.parquet as pq
 from gst.atomic import atomic_path
 
 FORMAT = "gst-crops"
-VERSION = 1
+VERSION = 2  # 2: single_view per crop, optional landmarks (version 1 stores read as before)
+N_LANDMARKS = 33
+OPTIONAL_ROWS = ("landmarks", "single_view")  # absent from version 1 stores
 
 
 # name -> (per-row shape given crop size S, dtype)
-def _row_specs(size: int) -> dict[str, tuple[tuple[int, ...], str]]:
-    return {
+def _row_specs(size: int, landmarks: bool = False) -> dict[str, tuple[tuple[int, ...], str]]:
+    specs = {
         "images": ((size, size, 3), "uint8"),
         "masks": ((size, size), "uint8"),
         "K_crop": ((3, 3), "float64"),
@@ -38,7 +40,11 @@ def _row_specs(size: int) -> dict[str, tuple[tuple[int, ...], str]]:
         "frame": ((), "int64"),
         "person_id": ((), "int64"),
         "mask_support": ((), "float32"),
+        "single_view": ((), "bool"),
     }
+    if landmarks:
+        specs["landmarks"] = ((N_LANDMARKS, 3), "float32")
+    return specs
 
 
 class StoreError(ValueError):
@@ -62,6 +68,14 @@ class CropBatch:
     mask_support: (
         np.ndarray
     )  # (n,) share of the person's 3D-hull footprint its mask covers (NaN: unknown)
+    # (n,) bool: only one camera saw this person in this frame (None: False for every row)
+    single_view: np.ndarray | None = None
+    # (n, 33, 3) float32 BlazePose landmarks: u, v in crop pixels, confidence (None: not known)
+    landmarks: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.single_view is None:
+            self.single_view = np.zeros(len(self.frame), bool)
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -72,17 +86,24 @@ class CropBatch:
 
     @staticmethod
     def concat(batches: list[CropBatch]) -> CropBatch:
-        return CropBatch(
-            **{
-                k: np.concatenate([getattr(b, k) for b in batches])
-                for k in CropBatch.__dataclass_fields__
-            }
-        )
+        out = {}
+        for k in CropBatch.__dataclass_fields__:
+            parts = [getattr(b, k) for b in batches]
+            if k == "landmarks" and any(p is None for p in parts):
+                if any(p is not None for p in parts):
+                    raise StoreError("cannot join crop batches with and without landmarks")
+                out[k] = None
+                continue
+            out[k] = np.concatenate(parts)
+        return CropBatch(**out)
 
     @staticmethod
-    def empty(size: int) -> CropBatch:
+    def empty(size: int, landmarks: bool = False) -> CropBatch:
         return CropBatch(
-            **{k: np.zeros((0, *shape), dtype=dt) for k, (shape, dt) in _row_specs(size).items()}
+            **{
+                k: np.zeros((0, *shape), dtype=dt)
+                for k, (shape, dt) in _row_specs(size, landmarks).items()
+            }
         )
 
 
@@ -102,8 +123,10 @@ class CropStoreWriter:
         settings: dict | None = None,
         compression: str = "gzip",
         compression_level: int = 1,
+        landmarks: bool = False,
     ):
         self.path = Path(path)
+        self.landmarks = bool(landmarks)  # the store holds per-crop landmarks
         self.camera_names = list(camera_names)
         self.crop_size = int(crop_size)
         self.settings = dict(settings or {})
@@ -166,7 +189,7 @@ class CropStoreWriter:
             raise StoreError(
                 f"compression '{self.compression}' is unknown; expected gzip, lzf or none"
             )
-        for name, (shape, dtype) in _row_specs(S).items():
+        for name, (shape, dtype) in _row_specs(S, self.landmarks).items():
             big = name in ("images", "masks")
             chunk_rows = 1 if big else 1024
             f.create_dataset(
@@ -203,6 +226,12 @@ class CropStoreWriter:
                 f"{self.path}: written with crop_size={int(f.attrs['crop_size'])}, "
                 f"asked to append crop_size={self.crop_size}; use a new path or delete it"
             )
+        missing = [k for k in _row_specs(self.crop_size, self.landmarks) if k not in f]
+        if missing:
+            raise StoreError(
+                f"{self.path}: has no {missing} datasets (written by an older version or "
+                "without landmarks); use a new path or delete it"
+            )
         names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["camera_names"][()]]
         if names != self.camera_names:
             raise StoreError(
@@ -220,7 +249,7 @@ class CropStoreWriter:
     def _truncate_to_committed(self) -> None:
         f = self._h5
         n = int(f.attrs["n_committed"])
-        for name in _row_specs(self.crop_size):
+        for name in _row_specs(self.crop_size, self.landmarks):
             if f[name].shape[0] != n:
                 f[name].resize(n, axis=0)
         n_done = int(f.attrs["n_done"])
@@ -250,7 +279,9 @@ class CropStoreWriter:
                 raise StoreError(
                     f"{self.path}: batch crops are {batch.images.shape[1:]}, store holds {S}x{S}"
                 )
-            for name in _row_specs(S):
+            if self.landmarks and batch.landmarks is None:
+                raise StoreError(f"{self.path}: the store holds landmarks, the batch has none")
+            for name in _row_specs(S, self.landmarks):
                 ds = f[name]
                 ds.resize(n0 + n, axis=0)
                 ds[n0 : n0 + n] = getattr(batch, name)
@@ -306,6 +337,7 @@ def _read_index_columns(f: h5py.File) -> dict[str, np.ndarray]:
         "crop_side": crop[:, 2],
         "mask_coverage": masks_area,
         "mask_support": f["mask_support"][:n],
+        "single_view": f["single_view"][:n] if "single_view" in f else np.zeros(n, bool),
     }
 
 
@@ -453,6 +485,8 @@ class CropStore:
         uniq, inv = np.unique(srt, return_inverse=True)
         out = {}
         for name in CropBatch.__dataclass_fields__:
+            if name in OPTIONAL_ROWS and name not in f:
+                continue  # a version 1 store, or one without landmarks
             data = f[name][uniq] if len(uniq) else f[name][:0]
             vals = data[inv]
             res = np.empty_like(vals)
@@ -483,9 +517,11 @@ def merge_part(
                     raise StoreError(
                         f"{part_path}: rows of frames {chunk[0]}..{chunk[-1]} are not contiguous"
                     )
-                batch = CropBatch(**{k: f[k][a:b] for k in CropBatch.__dataclass_fields__})
+                batch = CropBatch(
+                    **{k: f[k][a:b] for k in CropBatch.__dataclass_fields__ if k in f}
+                )
             else:
-                batch = CropBatch.empty(writer.crop_size)
+                batch = CropBatch.empty(writer.crop_size, writer.landmarks)
             writer.commit(batch, [(fr, camera_index) for fr in chunk])
             added += len(chunk)
     return added

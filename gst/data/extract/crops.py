@@ -45,6 +45,12 @@ class CropJob:
     truth_masks: str | None = None
     min_truth_fraction: float = 0.0003
     drop_ids: tuple[int, ...] = ()  # person ids not to crop (tracks too short to trust)
+    # Synthetic truth: (frame, person) views of this camera where the person is at least
+    # `MIN_VISIBLE_JOINTS` visible (their joints); the ones no crop covers are counted missed.
+    visible_views: tuple[tuple[int, int], ...] | None = None
+
+
+MIN_VISIBLE_JOINTS = 0.3  # share of a person's joints visible for a truth view to count
 
 
 @dataclass
@@ -57,6 +63,8 @@ class CropJobResult:
     truth: list[CropTruth] = field(default_factory=list)
     truth_views: int = 0
     truth_views_missed: int = 0
+    visible_views: int = 0
+    visible_views_missed: int = 0
 
 
 def crop_person(
@@ -107,6 +115,20 @@ def crop_person(
     return image, mask, crop_intrinsics(camera.K, cbox, crop_size), box, cbox.as_array()
 
 
+def landmarks_to_crop(camera: Camera, landmarks: np.ndarray, K_crop: np.ndarray) -> np.ndarray:
+    """(33, 3) distorted full-image pixels + confidence -> crop pixels + confidence: through
+    the lens model to the undistorted image, then `K_crop` (the crop's exact pinhole camera).
+    Landmarks without a position (confidence 0 or not finite) get confidence 0."""
+    out = np.zeros((len(landmarks), 3), np.float32)
+    ok = (landmarks[:, 2] > 0) & np.all(np.isfinite(landmarks[:, :2]), axis=1)
+    if ok.any():
+        xy = camera.undistort_points(landmarks[ok, :2])
+        uvw = np.c_[xy, np.ones(len(xy))] @ K_crop.T
+        out[ok, :2] = uvw[:, :2] / uvw[:, 2:3]
+        out[ok, 2] = landmarks[ok, 2]
+    return out
+
+
 def score_against_truth(
     work_mask: np.ndarray, truth: np.ndarray, truth_areas: np.ndarray
 ) -> tuple[int, float]:
@@ -154,17 +176,32 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
         row_of = {int(f): i for i, f in enumerate(p_frames)}
         slot_rows = pf["slots"][()]
         view_rows = pf["views"][()]
-        by_frame: dict[int, list[tuple[int, int, np.ndarray, float]]] = {}
+        # The keypoint association also gives each slot's landmarks and single-view flag.
+        lm_rows = pf["landmarks"][()] if "landmarks" in pf else None
+        sv_rows = pf["single_view"][()] if "single_view" in pf else np.zeros(len(slot_rows), bool)
+        by_frame: dict[int, list[tuple[int, int, np.ndarray, float, int]]] = {}
         drop = set(job.drop_ids)
-        for (f, slot, pid), view in zip(slot_rows, view_rows, strict=True):
+        for r, ((f, slot, pid), view) in enumerate(zip(slot_rows, view_rows, strict=True)):
             if pid in drop:
                 continue
-            by_frame.setdefault(int(f), []).append((int(slot), int(pid), view[:4], float(view[4])))
+            by_frame.setdefault(int(f), []).append(
+                (int(slot), int(pid), view[:4], float(view[4]), r)
+            )
         result = CropJobResult(cam.name, 0, 0, 0, 0.0)
+        visible: dict[int, set[int]] | None = None
+        if job.visible_views is not None:
+            visible = {}
+            for f, p in job.visible_views:
+                visible.setdefault(int(f), set()).add(int(p))
         truth = IdMaskFile(job.truth_masks, cam.name) if job.truth_masks else None
         # The part store is temporary: no compression (the scene store compresses once).
         with CropStoreWriter(
-            job.part, list(job.camera_names), job.crop_size, job.settings, compression="none"
+            job.part,
+            list(job.camera_names),
+            job.crop_size,
+            job.settings,
+            compression="none",
+            landmarks=lm_rows is not None,
         ) as part:
             done = {f for f, c in part.done_pairs() if c == job.camera_index}
             todo = [f for f in job.frames if f not in done]
@@ -173,7 +210,11 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
             pending_done: list[tuple[int, int]] = []
 
             def flush() -> None:
-                batch = CropBatch.concat(pending) if pending else CropBatch.empty(job.crop_size)
+                batch = (
+                    CropBatch.concat(pending)
+                    if pending
+                    else CropBatch.empty(job.crop_size, lm_rows is not None)
+                )
                 part.commit(batch, pending_done)
                 pending.clear()
                 pending_done.clear()
@@ -190,7 +231,7 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                     assert fi == f
                     next_frame = next(frames_iter, None)
                     labels = pf["labels"][row_of[f]]
-                    for slot, pid, extra_box, support in by_frame[f]:
+                    for slot, pid, extra_box, support, r in by_frame[f]:
                         pmask = labels == slot
                         got = crop_person(image, pmask, cam, job.crop_size, job.scale, extra_box)
                         if got is None:
@@ -209,6 +250,10 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                                 np.array([f], np.int64),
                                 np.array([pid], np.int64),
                                 np.array([support], np.float32),
+                                np.array([sv_rows[r]], bool),
+                                None
+                                if lm_rows is None
+                                else landmarks_to_crop(cam, lm_rows[r], Kc)[None],
                             )
                         )
                         if gt is not None:
@@ -221,6 +266,10 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                     result.truth_views += len(big)
                     result.truth_views_missed += len(big - {r.truth_id for r in scored})
                     result.truth.extend(scored)
+                    if visible is not None:
+                        want = visible.get(f, set())
+                        result.visible_views += len(want)
+                        result.visible_views_missed += len(want - {r.truth_id for r in scored})
                 if rows:
                     result.frames_with_people += 1
                     result.crops += len(rows)

@@ -3,6 +3,11 @@
 The background model labels moving blobs; a learned person model (BlazePose) labels person
 instances instead; external masks or boxes replace both for the cameras they cover. One
 picklable job per camera, so an executor can fan the cameras out.
+
+With `instances` (the keypoint association), the file also holds what phase 2 needs besides
+the labels: each instance's 33 landmarks (full-resolution distorted pixels, confidence) and
+presence, the background model's foreground per frame, and the background image itself (the
+clean plate's median, or the capture's) to paint people out with.
 """
 
 from __future__ import annotations
@@ -45,6 +50,10 @@ class MaskJob:
     persons: SegmenterConfig | None = None  # learned person masks instead of the background model
     persons_models_dir: str | None = None
     persons_hints: bool = True
+    instances: bool = False  # also keep landmarks, foreground and background (keypoint path)
+
+
+MAX_INSTANCES = 32  # instances kept per frame and camera (landmarks array width)
 
 
 @dataclass(frozen=True)
@@ -73,6 +82,16 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
     sx = w / job.full_size[0]
     labels = np.zeros((len(job.frames), h, w), dtype=np.uint8)
     pos = {f: i for i, f in enumerate(job.frames)}
+    keep = (
+        job.instances
+        and job.persons is not None
+        and not job.external_masks
+        and job.external_boxes is None
+    )
+    if keep:
+        landmarks = np.zeros((len(job.frames), MAX_INSTANCES, 33, 3), np.float32)
+        presence = np.zeros((len(job.frames), MAX_INSTANCES), np.float32)
+        foreground = np.zeros((len(job.frames), h, w), bool)
     if job.external_masks:
         ext = IdMaskFile(job.external_masks, job.camera)
         for f in job.frames:
@@ -110,6 +129,8 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
             idx = sample_indices(job.n_frames, job.background.samples)
             samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
         model = build_background(samples, job.background)
+        if keep:
+            background = np.median(samples, axis=0).astype(np.uint8)
         del samples
         segmenter = None
         if job.persons is not None:
@@ -121,8 +142,19 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         )
         for f, img in frames_iter:
             lab, blobs = clean_mask(model.foreground(img), job.masks)
+            if keep:
+                foreground[pos[f]] = lab > 0
             if segmenter is not None:
-                lab, _ = segmenter.segment(img, [b.box for b in blobs] if job.persons_hints else ())
+                lab, people = segmenter.segment(
+                    img, [b.box for b in blobs] if job.persons_hints else ()
+                )
+                if keep:
+                    for k, p in enumerate(people[:MAX_INSTANCES]):
+                        lm = p.landmarks.copy()
+                        # Work pixels to full-resolution pixels (centres at integers).
+                        lm[:, :2] = (lm[:, :2] + 0.5) / sx - 0.5
+                        landmarks[pos[f], k] = lm
+                        presence[pos[f], k] = p.presence
             if job.external_boxes is not None:
                 lab = boxes_to_labels(
                     lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1])
@@ -138,6 +170,14 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
             "labels", data=labels, chunks=(1, h, w), compression="gzip", compression_opts=1
         )
         f.create_dataset("frames", data=np.asarray(job.frames, dtype=np.int64))
+        if keep:
+            f.create_dataset("landmarks", data=landmarks, chunks=(1, MAX_INSTANCES, 33, 3))
+            f.create_dataset("presence", data=presence)
+            f.create_dataset(
+                "foreground", data=foreground, chunks=(1, h, w), compression="gzip",
+                compression_opts=1,
+            )  # fmt: skip
+            f.create_dataset("background", data=background)
         f.attrs.update(
             {
                 "frames_with_blobs": n_with,

@@ -11,10 +11,12 @@ from gst.data.association import (
     CaptureVolume,
 )
 from gst.data.background import BackgroundConfig
+from gst.data.keypoints.people import CrowdConfig
 from gst.data.masks import MaskConfig
 from gst.detect.persons import SegmenterConfig
 
 WORK_MAX_SIDE = 960  # default work resolution: longer image side in pixels
+ASSOCIATION_METHODS = ("auto", "keypoints", "hull")
 
 
 class ExtractError(ValueError):
@@ -48,6 +50,19 @@ class ExtractOptions:
     # Frames smaller than the calibrated size by up to this many pixels are encoder padding
     # (calibration.camera.fit_to_frames).
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
+    # Who is who across cameras: 'keypoints' (BlazePose instances on every camera, matched by
+    # their landmarks' geometry and tracked in 3D: gst.data.keypoints), 'hull' (the visual
+    # hull of the foreground), or 'auto' (keypoints when the detect extra and the BlazePose
+    # models are installed, else the hull; external masks always use the hull).
+    association_method: str = "auto"
+    crowd: CrowdConfig = field(default_factory=CrowdConfig)  # the keypoint association
+
+    def __post_init__(self):
+        if self.association_method not in ASSOCIATION_METHODS:
+            raise ExtractError(
+                f"association_method must be one of {ASSOCIATION_METHODS}, "
+                f"got {self.association_method!r}"
+            )
 
     @classmethod
     def from_settings(
@@ -57,9 +72,11 @@ class ExtractOptions:
         person_model: str = "none",
         person_hints: bool = True,
         frame_size_tolerance: int = FRAME_PADDING_TOLERANCE,
+        association_method: str = "auto",
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
-        model ('none' or 'blazepose') and whether to segment around moving blobs too."""
+        model ('none' or 'blazepose'), whether to segment around moving blobs too, and the
+        association method ('auto', 'keypoints' or 'hull')."""
         if person_model not in ("none", "blazepose"):
             raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
         return cls(
@@ -68,6 +85,7 @@ class ExtractOptions:
             persons=SegmenterConfig() if person_model == "blazepose" else None,
             persons_hints=person_hints,
             frame_size_tolerance=frame_size_tolerance,
+            association_method=association_method,
         )
 
 
@@ -106,8 +124,14 @@ class ExtractReport:
     crops_scored: int = 0
     truth_views: int = 0  # (frame, camera, person) truth views big enough to count
     truth_views_missed: int = 0
+    # Synthetic scenes: truth views where >= 30% of the person's joints are visible, and those
+    # no crop covers (a stricter count than `truth_views`, which goes by mask area).
+    visible_views: int = 0
+    visible_views_missed: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     settings: dict = field(default_factory=dict)
+    association_method: str = "hull"  # the path that ran: 'keypoints' or 'hull'
+    single_view_crops: int = 0  # crops of people only one camera saw (keypoint path)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -115,5 +139,6 @@ class ExtractReport:
     def summary_line(self) -> str:
         return (
             f"{self.crops} crops of {self.persons} people, {self.multiview_groups} multi-view "
-            f"groups; mask IoU {self.mask_iou}; association {self.association_accuracy}"
+            f"groups ({self.association_method} association); mask IoU {self.mask_iou}; "
+            f"association {self.association_accuracy}"
         )

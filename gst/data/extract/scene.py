@@ -3,9 +3,12 @@
 Four phases, resumable through a work folder next to the store (`<store>.work/`):
 
 1. masks (`masks`, per camera, parallel): learn the background, label foreground blobs per
-   frame at a reduced "work" resolution, or take external masks/boxes instead.
-2. association (`association`, all cameras, sequential in time): visual hull -> people -> ids
-   over time -> per-camera person label images.
+   frame at a reduced "work" resolution, or person instances with their landmarks (BlazePose),
+   or take external masks/boxes instead.
+2. association (all cameras, sequential in time): by keypoints (`keypoint_association`:
+   landmarks matched across views -> 3D people -> ids, each person looked at again with the
+   others painted out) when BlazePose is installed, else by the visual hull (`association`:
+   hull -> people -> ids); both write per-camera person label images. The log says which ran.
 3. crops (`crops`, per camera, parallel): undistorted square crops of image and mask with their
    own intrinsics, into a per-camera part store; scored against truth masks when given.
 4. merge (`gst.data.store.merge_part`): the part stores are appended to the scene store frame
@@ -35,7 +38,8 @@ from gst.data.background import BackgroundConfig
 from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import ExternalDetections, find_mask_file, read_external
 from gst.data.extract.association import AssociationSummary, associate_scene
-from gst.data.extract.crops import CropJob, extract_camera_crops
+from gst.data.extract.crops import MIN_VISIBLE_JOINTS, CropJob, extract_camera_crops
+from gst.data.extract.keypoint_association import associate_scene_keypoints
 from gst.data.extract.masks import MaskJob, compute_camera_masks
 from gst.data.extract.options import (
     WORK_MAX_SIDE,
@@ -45,8 +49,11 @@ from gst.data.extract.options import (
     ExtractReport,
 )
 from gst.data.store import CropBatch, CropStore, CropStoreWriter, merge_part
-from gst.detect.weights import model_paths
+from gst.detect.blazepose import import_litert
+from gst.detect.persons import SegmenterConfig
+from gst.detect.weights import BlazePoseModelsMissing, model_paths
 from gst.video import VideoError, VideoInfo, check_videos, probe_video, scaled_size
+from synth.truth import has_scene_truth, read_truth_views
 
 log = logging.getLogger("gst.data")
 
@@ -93,6 +100,31 @@ def _fit_rig(rig: Rig, infos: dict[str, VideoInfo], tolerance: int) -> Rig:
     return Rig(tuple(cams), rig.up, rig.units, rig.meta)
 
 
+def association_method(
+    options: ExtractOptions, external: ExternalDetections | None
+) -> tuple[str, str]:
+    """('keypoints' or 'hull', why) for these options: keypoints when asked or 'auto' and the
+    detect extra and the BlazePose models are there; the hull for external masks or boxes."""
+    asked = options.association_method
+    if external is not None and (external.mask_files or external.boxes):
+        if asked == "keypoints":
+            raise ExtractError(
+                "association_method 'keypoints' needs BlazePose instances on every camera; "
+                "external masks or boxes were given (use 'hull' or 'auto')"
+            )
+        return "hull", "external masks or boxes were given"
+    if asked == "hull":
+        return "hull", "association_method 'hull'"
+    try:
+        import_litert()
+        model_paths(options.persons_models_dir)
+    except (ImportError, BlazePoseModelsMissing) as exc:
+        if asked == "keypoints":
+            raise ExtractError(f"association_method 'keypoints': {exc}") from exc
+        return "hull", f"BlazePose is not available ({exc})"
+    return "keypoints", f"association_method '{asked}' and BlazePose is installed"
+
+
 def _map(executor_map, fn, items, description):
     if executor_map is None:
         return [fn(x) for x in items]
@@ -123,6 +155,11 @@ class ExtractPlan:
     truth_files: dict[str, Path | None]
     settings: dict
     work: Path
+    method: str = "hull"  # association: 'keypoints' or 'hull'
+
+    @property
+    def frame_set(self) -> set[int]:
+        return set(self.frames)
 
     @property
     def fps(self) -> float:
@@ -140,6 +177,8 @@ class PhaseOutcome:
     truth_rows: list[CropTruth] = field(default_factory=list)
     truth_views: int = 0
     truth_missed: int = 0
+    visible_views: int = 0
+    visible_missed: int = 0
     summary: AssociationSummary | None = None
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -193,7 +232,12 @@ def plan_extraction(
                 f"camera '{n}' background video {p}: frames are {info.width}x{info.height}, "
                 f"the camera's video is {sizes[n][0]}x{sizes[n][1]}"
             )
-    if opts.persons is not None:
+    method, why = association_method(opts, ext)
+    log.info("extract: %s association (%s)", method, why)
+    if method == "keypoints":
+        # Person instances with landmarks on every camera (phase 1), matched by keypoints.
+        opts = replace(opts, persons=opts.persons or SegmenterConfig())
+    elif opts.persons is not None:
         model_paths(opts.persons_models_dir)  # fail now, with the fix, rather than in a worker
         # Learned masks are person instances: split hull components along them.
         opts = replace(opts, association=replace(opts.association, instance_split=True))
@@ -226,8 +270,11 @@ def plan_extraction(
                 [_camera_signature(rig[n]) for n in names],
                 {n: p.name for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
+                method,
+                repr(opts.crowd) if method == "keypoints" else None,
             ]
         ),
+        "association": method,
     }
     out_h5 = Path(out_h5)
     work = out_h5.with_name(out_h5.name + ".work")
@@ -246,7 +293,7 @@ def plan_extraction(
     marker.write_text(json.dumps({"key": work_key, "settings": settings}))
     return ExtractPlan(
         videos, rig, out_h5, names, infos, n_frames, frames, sizes, work_sizes, crop_size,
-        float(scale), frame_stride, bg_cfg, opts, ext, plates, truth_files, settings, work,
+        float(scale), frame_stride, bg_cfg, opts, ext, plates, truth_files, settings, work, method,
     )  # fmt: skip
 
 
@@ -271,6 +318,7 @@ def _mask_jobs(plan: ExtractPlan) -> list[MaskJob]:
             persons=opts.persons,
             persons_models_dir=opts.persons_models_dir,
             persons_hints=opts.persons_hints,
+            instances=plan.method == "keypoints",
         )
         for n in plan.names
     ]
@@ -283,6 +331,22 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
         return AssociationSummary(**json.loads(marker.read_text()))
     if not active:
         return AssociationSummary.empty(plan.frames)
+    if plan.method == "keypoints":
+        summary = associate_scene_keypoints(
+            {n: plan.work / f"labels_{n}.h5" for n in active},
+            [plan.rig[n] for n in active],
+            {n: plan.videos[n] for n in active},
+            plan.work_sizes,
+            plan.frames,
+            plan.work,
+            plan.options.crowd,
+            plan.options.persons_models_dir,
+            plan.options.association.min_track_frames,
+            progress,
+            step_seconds=plan.frame_stride / plan.fps,
+        )
+        marker.write_text(json.dumps(asdict(summary)))
+        return summary
     ext = plan.external
     global_ids = bool(
         ext is not None and ext.global_ids and all(n in ext.mask_files for n in active)
@@ -303,10 +367,29 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
     return summary
 
 
+def _visible_views(plan: ExtractPlan) -> dict[str, tuple[tuple[int, int], ...]] | None:
+    """Per camera, the (frame, person) truth views at least 30% visible (by joints), when the
+    truth masks belong to a synthetic scene folder with `truth/views.parquet`."""
+    masks_dir = next((p for p in plan.truth_files.values() if p is not None), None)
+    if masks_dir is None:
+        return None
+    scene = next((d for d in Path(masks_dir).parents if has_scene_truth(d)), None)
+    if scene is None:
+        return None
+    v = read_truth_views(scene)
+    keep = v.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
+    out: dict[str, list] = {n: [] for n in plan.names}
+    for f, p, c in zip(v.frame[keep], v.person_id[keep], v.camera[keep], strict=True):
+        if c in out and int(f) in plan.frame_set:
+            out[c].append((int(f), int(p)))
+    return {n: tuple(x) for n, x in out.items()}
+
+
 def _crop_jobs(
     plan: ExtractPlan, active: list[str], done: set, summary: AssociationSummary
 ) -> list[CropJob]:
     jobs = []
+    visible = _visible_views(plan)
     for n in active:
         ci = plan.names.index(n)
         truth = plan.truth_files.get(n)
@@ -327,6 +410,7 @@ def _crop_jobs(
                 str(truth) if truth else None,
                 plan.options.association.min_mask_fraction,
                 tuple(summary.short_tracks),
+                visible.get(n) if visible is not None else None,
             )
         )
     return jobs
@@ -363,6 +447,8 @@ def _run_phases(plan: ExtractPlan, writer: CropStoreWriter, progress, executor_m
         outcome.truth_rows.extend(r.truth)
         outcome.truth_views += r.truth_views
         outcome.truth_missed += r.truth_views_missed
+        outcome.visible_views += r.visible_views
+        outcome.visible_missed += r.visible_views_missed
     timings["crops"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -371,7 +457,7 @@ def _run_phases(plan: ExtractPlan, writer: CropStoreWriter, progress, executor_m
     for n in outcome.skipped_cameras:  # cameras that saw no one: their frames are done, empty
         ci = names.index(n)
         pairs = [(f, ci) for f in frames if (f, ci) not in done]
-        writer.commit(CropBatch.empty(plan.crop_size), pairs)
+        writer.commit(CropBatch.empty(plan.crop_size, plan.method == "keypoints"), pairs)
     timings["merge"] = time.perf_counter() - t0
     return outcome
 
@@ -395,6 +481,7 @@ def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
     else:  # everything was already done: count from the store
         with_people = int(len(np.unique(frame_col)))
     acc, n_scored = association_accuracy(truth_rows)
+    single = store.index.column("single_view").to_numpy() if len(store) else np.zeros(0, bool)
     return ExtractReport(
         store=str(plan.out_h5),
         cameras=plan.names,
@@ -415,6 +502,8 @@ def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
         crops_scored=n_scored,
         truth_views=outcome.truth_views,
         truth_views_missed=outcome.truth_missed,
+        visible_views=outcome.visible_views,
+        visible_views_missed=outcome.visible_missed,
         timings=outcome.timings,
         settings={
             **plan.settings,
@@ -422,6 +511,8 @@ def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
             "work_sizes": plan.work_sizes,
             "voxels": summary.voxels if summary else None,
         },
+        association_method=plan.method,
+        single_view_crops=int(np.count_nonzero(single)),
     )
 
 
@@ -462,6 +553,7 @@ def extract_scene(
         plan.settings,
         plan.options.compression,
         plan.options.compression_level,
+        landmarks=plan.method == "keypoints",
     ) as writer:
         outcome = _run_phases(plan, writer, progress, executor_map)
         writer.finalize(

@@ -118,9 +118,9 @@ class _Candidate:
 class CrowdTracker:
     """People of consecutive frames of one capture (keeps tracking state; not thread-safe).
 
-    `scale` is the work resolution over the calibration's (images, foregrounds and masks are at
-    work resolution; landmarks and skeletons in full-resolution pixels and metres). `segment`
-    runs the landmark model (None: no refinement).
+    `scale` is the work resolution over the calibration's, one number or per camera (images,
+    foregrounds and masks are at work resolution; landmarks and skeletons in full-resolution
+    pixels and metres). `segment` runs the landmark model (None: no refinement).
     """
 
     def __init__(
@@ -129,12 +129,14 @@ class CrowdTracker:
         step_seconds: float,
         config: CrowdConfig = CrowdConfig(),
         segment: SegmentFn | None = None,
-        scale: float = 1.0,
+        scale: float | Mapping[str, float] = 1.0,
     ):
         self.cams = {c.name: c for c in (rig.cameras if isinstance(rig, Rig) else rig)}
         self.config = config
         self.segment = segment
-        self.scale = float(scale)
+        self.scale = {
+            n: float(scale[n] if isinstance(scale, Mapping) else scale) for n in self.cams
+        }
         self.ids = PersonIdTracker(
             list(self.cams.values()), step_seconds, config.tracker, config.match
         )
@@ -218,7 +220,7 @@ class CrowdTracker:
         for n, cam in self.cams.items():
             if n not in images or n not in foreground:
                 continue
-            own = own_pixels(cam, foreground[n], skels, [], cfg.ownership, self.scale)
+            own = own_pixels(cam, foreground[n], skels, [], cfg.ownership, self.scale[n])
             img, bg = images[n], (backgrounds or {}).get(n)
             for k, c in enumerate(cands):
                 roi = roi_from_skeleton(cam, c.skeleton)
@@ -228,7 +230,7 @@ class CrowdTracker:
                 others = cv2.dilate(others.astype(np.uint8), self._kernel) > 0
                 fill = bg if bg is not None else np.full_like(img, 128)
                 painted = np.where(others[..., None], fill, img)
-                s = self.scale
+                s = self.scale[n]
                 work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
                 got = self.segment(n, painted, work_roi)
                 if got is None:
@@ -256,7 +258,7 @@ class CrowdTracker:
         pixels to the one in front), detected (ownership of the foreground, the detector's
         landmarks), or projected (ownership, projected landmarks) for trusted people."""
         cfg = self.config
-        own = own_pixels(cam, fg, [c.skeleton for c in cands], [], cfg.ownership, self.scale)
+        own = own_pixels(cam, fg, [c.skeleton for c in cands], [], cfg.ownership, self.scale[n])
         claims = [(c.refined[n][1] > 0.5) & fg if n in c.refined else None for c in cands]
         drawn = [m for m in claims if m is not None]
         contested = np.sum(drawn, axis=0) > 1 if drawn else np.zeros_like(fg)

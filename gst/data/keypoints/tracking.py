@@ -39,7 +39,7 @@ _FAR = 1e6
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    max_speed: float = 5.0  # m/s: a landmark moving faster than this is someone else
+    max_speed: float = 10.0  # m/s: a landmark moving faster than this is someone else (sprint)
     slack: float = 0.12  # metres added to the speed gate (triangulation noise)
     max_gap: int = 15  # processed frames a person unseen is remembered
     view_error: float = 0.12  # single-view instance against a remembered person's projection

@@ -1,0 +1,186 @@
+"""Extraction phase 2 by keypoints: all cameras at once and in time order, the person instances
+of phase 1 (BlazePose landmarks per camera) are matched across the calibrated views, tracked in
+3D, looked at again with their neighbours painted out, and turned into per-camera person label
+images (`gst.data.keypoints.CrowdTracker`), written to `persons_<camera>.h5` like the
+visual-hull path, plus each slot's landmarks and whether one camera only saw that person.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from calibration import Camera
+from gst.atomic import PendingFile
+from gst.data.extract.association import AssociationSummary
+from gst.data.extract.options import ExtractError
+from gst.data.keypoints import PersonInstance
+from gst.data.keypoints.people import CrowdConfig, CrowdTracker, FramePeople
+from gst.detect.blazepose import BlazePose
+from gst.detect.persons import skeleton_support
+from gst.video import read_frames
+
+SOURCES = {"detected": 0, "refined": 1, "projected": 2, "single": 3}
+SKELETON_WIDTH = 0.08  # a region's mask stays within this share of its side of the skeleton
+
+
+def _landmark_segmenter(models_dir: str | None):
+    """The landmark model as `CrowdTracker` calls it: landmarks, presence and the person
+    probability near that person's own skeleton (as `PersonSegmenter` keeps it)."""
+    model = BlazePose(models_dir)
+
+    def segment(camera: str, image: np.ndarray, roi):
+        s = model.segment(image, roi)
+        near = skeleton_support(s.landmarks, image.shape[:2], SKELETON_WIDTH * roi.side)
+        return s.landmarks, s.presence, np.where(near, s.probability, 0.0)
+
+    return segment
+
+
+def _frame_instances(f: h5py.File, i: int, sx: float, sy: float, name: str):
+    """Phase 1's instances of frame row `i` of one camera: PersonInstances (full-resolution
+    landmarks and boxes) and their masks (work resolution)."""
+    labels = f["labels"][i]
+    n = int(labels.max())
+    lms, pres = f["landmarks"][i, :n], f["presence"][i, :n]
+    insts, masks = [], []
+    for k in range(n):
+        m = labels == k + 1
+        ys, xs = np.nonzero(m)
+        box = (
+            (xs.min() / sx, ys.min() / sy, (xs.max() + 1) / sx, (ys.max() + 1) / sy)
+            if len(xs)
+            else None
+        )
+        insts.append(PersonInstance.create(lms[k], box, float(pres[k]), where=f"camera {name}"))
+        masks.append(m)
+    return insts, masks
+
+
+def _extra_box(lm: np.ndarray, sx: float, sy: float) -> tuple[float, float, float, float]:
+    """Work-resolution box (pixel edges) of a view's landmarks: the crop covers the whole person
+    even where their mask is cut by someone in front."""
+    seen = lm[:, 2] > 0
+    if seen.sum() < 2:
+        return (np.nan,) * 4
+    lo, hi = lm[seen, :2].min(axis=0), lm[seen, :2].max(axis=0)
+    return ((lo[0] + 0.5) * sx, (lo[1] + 0.5) * sy, (hi[0] + 0.5) * sx, (hi[1] + 0.5) * sy)
+
+
+def associate_scene_keypoints(
+    label_files: dict[str, Path],
+    cameras: list[Camera],
+    videos: dict[str, Path],
+    work_sizes: dict[str, tuple[int, int]],
+    frames: list[int],
+    out_dir: Path,
+    config: CrowdConfig,
+    models_dir: str | None = None,
+    min_track_frames: int = 5,
+    progress: Callable | None = None,
+    step_seconds: float = 1 / 30,
+) -> AssociationSummary:
+    """Per-frame people and per-camera person labels, written to `out_dir/persons_<cam>.h5`
+    (datasets as the visual-hull path, plus `landmarks` (slots, 33, 3) full-resolution
+    distorted pixels and confidence, `single_view` and `source` per slot)."""
+    names = [c.name for c in cameras]
+    inputs = {n: h5py.File(label_files[n], "r") for n in names}
+    try:
+        missing = [n for n in names if "landmarks" not in inputs[n]]
+        if missing:
+            raise ExtractError(
+                f"camera(s) {missing}: phase 1 kept no landmarks (external masks or boxes?); "
+                "the keypoint association needs BlazePose instances on every camera"
+            )
+        sxy = {
+            c.name: (work_sizes[c.name][0] / c.width, work_sizes[c.name][1] / c.height)
+            for c in cameras
+        }
+        segment = _landmark_segmenter(models_dir) if config.refine else None
+        tracker = CrowdTracker(
+            cameras, step_seconds, config, segment, {n: sxy[n][0] for n in names}
+        )
+        backgrounds = {n: inputs[n]["background"][()] for n in names}
+        streams = {
+            n: iter(read_frames(videos[n], frames, n, sxy[n][0])) if config.refine else None
+            for n in names
+        }
+        results = _run(tracker, inputs, streams, backgrounds, frames, sxy, progress)
+    finally:
+        for f in inputs.values():
+            f.close()
+    return _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames)
+
+
+def _run(tracker, inputs, streams, backgrounds, frames, sxy, progress) -> list[FramePeople]:
+    names = list(inputs)
+    out = []
+    it: Iterable = enumerate(frames)
+    if progress is not None:
+        it = progress(it, description="associating people by keypoints", total=len(frames))
+    for i, frame in it:
+        insts, masks, fg, images = {}, {}, {}, {}
+        for n in names:
+            insts[n], masks[n] = _frame_instances(inputs[n], i, *sxy[n], n)
+            fg[n] = inputs[n]["foreground"][i]
+            if streams[n] is not None:
+                fi, images[n] = next(streams[n])
+                if fi != frame:
+                    raise ExtractError(f"camera {n}: decoded frame {fi}, expected {frame}")
+        out.append(tracker.process(frame, insts, fg, images or None, backgrounds, masks))
+    return out
+
+
+def _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames):
+    # Offline: multi-view ids seen in too few frames are not trusted (single-view ids stay).
+    frames_of: dict[int, int] = {}
+    for res in results:
+        for p in res.people:
+            if not p.single_view:
+                frames_of[p.pid] = frames_of.get(p.pid, 0) + 1
+    short = sorted(pid for pid, c in frames_of.items() if c < min_track_frames)
+    pending = {n: PendingFile(out_dir / f"persons_{n}.h5") for n in names}
+    per_frame = []
+    try:
+        for n in names:
+            w, h = work_sizes[n]
+            slots, views, lms, single, source = [], [], [], [], []
+            with h5py.File(pending[n].path, "w") as f:
+                lab_ds = f.create_dataset(
+                    "labels", shape=(len(frames), h, w), dtype="uint8", chunks=(1, h, w),
+                    compression="gzip", compression_opts=1,
+                )  # fmt: skip
+                for i, res in enumerate(results):
+                    lab = np.zeros((h, w), np.uint8)
+                    slot = 0
+                    for p in res.people:
+                        view = p.views.get(n)
+                        if view is None or slot >= 255:
+                            continue
+                        slot += 1
+                        lab[view.mask & (lab == 0)] = slot
+                        slots.append((res.frame, slot, p.pid))
+                        views.append((*_extra_box(view.landmarks, *sxy[n]), view.visibility))
+                        lms.append(view.landmarks.astype(np.float32))
+                        single.append(p.single_view)
+                        source.append(SOURCES[view.source])
+                    lab_ds[i] = lab
+                f.create_dataset("frames", data=np.asarray(frames, dtype=np.int64))
+                f.create_dataset("slots", data=np.asarray(slots, np.int64).reshape(-1, 3))
+                f.create_dataset("views", data=np.asarray(views, np.float64).reshape(-1, 5))
+                f.create_dataset("landmarks", data=np.asarray(lms, np.float32).reshape(-1, 33, 3))
+                f.create_dataset("single_view", data=np.asarray(single, bool))
+                f.create_dataset("source", data=np.asarray(source, np.uint8))
+                f.attrs["sources"] = ",".join(SOURCES)
+            pending[n].commit()
+    finally:
+        for file in pending.values():
+            file.abort()  # no-op for committed files
+    for res in results:
+        per_frame.append(sorted({p.pid for p in res.people}))
+    return AssociationSummary(
+        frames=list(frames), ids=per_frame, voxels=0, short_tracks=short, active=list(names)
+    )

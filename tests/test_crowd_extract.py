@@ -1,0 +1,138 @@
+"""Extraction with the keypoint association: BlazePose instances on every camera, people matched
+by landmark geometry, crops with their landmarks in the store; the log says which path ran, and
+without BlazePose the visual hull takes over (or a clear error when keypoints were demanded)."""
+
+import logging
+
+import numpy as np
+import pytest
+from extract_scenes import make_scene
+
+from gst.data import AssociationConfig, CropStore, ExtractError, ExtractOptions, extract_scene
+from gst.detect.blazepose import import_litert
+from gst.detect.weights import model_paths
+
+try:
+    import_litert()
+    model_paths()
+    HAVE_BLAZEPOSE = True
+except (ImportError, FileNotFoundError):
+    HAVE_BLAZEPOSE = False
+needs_blazepose = pytest.mark.skipif(
+    not HAVE_BLAZEPOSE,
+    reason="BlazePose missing: pip install -e '.[detect]' && python -m gst.detect fetch",
+)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    # Two people, four cameras and a fifth that looks away (it sees nobody).
+    return make_scene(
+        tmp_path_factory.mktemp("kp"), n_people=2, n_frames=10, with_away_camera=True, laps=1 / 3
+    )
+
+
+@pytest.fixture(scope="module")
+def run(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("kp_run") / "crops.h5"
+    rep = extract_scene(
+        scene.videos, scene.rig, out, crop_size=96, truth=scene.truth,
+        options=ExtractOptions(association_method="keypoints"),
+    )  # fmt: skip
+    return rep, out
+
+
+@needs_blazepose
+def test_keypoint_extraction_finds_both_people_everywhere(run, scene):
+    rep, out = run
+    assert rep.association_method == "keypoints"
+    assert rep.association_accuracy >= 0.97, rep.association_accuracy
+    assert rep.mask_iou >= 0.7, rep.mask_iou
+    assert rep.truth_views_missed <= 0.05 * rep.truth_views
+    away = scene.rig.cameras[-1].name
+    assert away in rep.cameras_skipped  # the camera that sees nobody is skipped, no crash
+    store = CropStore(out)
+    assert store.attrs["setting.association"] == "keypoints"
+    assert len(store.multiview_groups(min_views=3)) >= 15  # 10 frames x 2 people
+
+
+@needs_blazepose
+def test_store_landmarks_are_in_crop_pixels(run):
+    """Each crop's landmarks, through its own K_crop, R, t, agree with the other views of the
+    same person: triangulated from two crops, a landmark reprojects into a third crop close
+    to where that crop says it is."""
+    _, out = run
+    store = CropStore(out)
+    groups = store.multiview_groups(min_views=3)
+    errs = []
+    for g in groups[:10]:
+        b = store.read(g.indices)
+        assert b.landmarks.shape == (len(g.indices), 33, 3) and not b.single_view.any()
+        P = [b.K_crop[i] @ np.c_[b.R[i], b.t[i]] for i in range(len(g.indices))]
+        for k in (11, 12, 23, 24):  # shoulders and hips
+            lm = b.landmarks[:, k]
+            if (lm[:3, 2] < 0.5).any():
+                continue
+            A = np.concatenate([lm[i, :2, None] * P[i][2] - P[i][:2] for i in (0, 1)])
+            X = np.linalg.svd(A)[2][-1]
+            uv = P[2] @ X
+            errs.append(np.linalg.norm(uv[:2] / uv[2] - lm[2, :2]) / store.crop_size)
+    # BlazePose's own noise between views is a few pixels; landmarks left in full-image
+    # pixels would be off by tens of crop pixels.
+    assert errs and np.median(errs) < 0.1
+    lm = store.read(np.arange(len(store))).landmarks
+    seen = lm[..., 2] > 0.5
+    inside = (lm[..., :2] > -0.1 * 96).all(-1) & (lm[..., :2] < 1.1 * 96).all(-1)
+    assert inside[seen].mean() > 0.95
+
+
+def test_landmarks_to_crop_is_the_crop_camera():
+    """A world point's distorted image pixel, moved into the crop, is where the crop's own
+    pinhole camera (K_crop, R, t, no distortion) sees it."""
+    from extract_scenes import ring_rig
+
+    from gst.data.crop import crop_intrinsics, hmr_crop_box
+    from gst.data.extract.crops import landmarks_to_crop
+
+    cam = ring_rig(4, size=(320, 240), distort=True).cameras[1]
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-0.4, 0.4, (33, 3)) + [0, 0, 1.0]
+    uv = cam.project(X)
+    box = hmr_crop_box((uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()), 1.2)
+    K = crop_intrinsics(cam.K, box, 96)
+    got = landmarks_to_crop(cam, np.c_[uv, np.full(33, 0.8)], K)
+    ref = (X @ cam.R.T + cam.t) @ K.T
+    np.testing.assert_allclose(got[:, :2], ref[:, :2] / ref[:, 2:], atol=1e-4)
+    assert np.all(got[:, 2] == np.float32(0.8))
+    bad = np.c_[uv, np.ones(33)]
+    bad[3] = np.nan
+    bad[4, 2] = 0.0
+    out = landmarks_to_crop(cam, bad, K)
+    assert out[3, 2] == 0 and out[4, 2] == 0 and np.isfinite(out).all()
+
+
+def test_without_blazepose_the_hull_runs_and_says_so(scene, tmp_path, caplog):
+    missing = tmp_path / "no-models"
+    missing.mkdir()
+    with caplog.at_level(logging.INFO, logger="gst.data"):
+        rep = extract_scene(
+            scene.videos, scene.rig, tmp_path / "crops.h5", crop_size=64,
+            options=ExtractOptions(
+                persons_models_dir=str(missing),
+                association=AssociationConfig(min_track_frames=2),
+            ),
+            frame_stride=2,
+        )  # fmt: skip
+    assert rep.association_method == "hull"
+    assert any(
+        "hull association" in r.message and "not available" in r.message for r in caplog.records
+    )
+    store = CropStore(tmp_path / "crops.h5")
+    assert len(store) and store.read([0]).landmarks is None
+    with pytest.raises(ExtractError, match="gst.detect fetch"):
+        extract_scene(
+            scene.videos, scene.rig, tmp_path / "b.h5",
+            options=ExtractOptions(persons_models_dir=str(missing), association_method="keypoints"),
+        )  # fmt: skip
+    with pytest.raises(ExtractError, match="association_method"):
+        ExtractOptions(association_method="voxels")
