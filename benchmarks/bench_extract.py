@@ -103,7 +103,7 @@ SCENE_VARIANTS = [
 ]
 
 
-def compare_on_scenes(scenes: list[Path]) -> None:
+def compare_on_scenes(scenes: list[Path], chosen: list[int]) -> None:
     """Old and new association on the same synthetic scenes (see the module doc)."""
     from calibration.formats import read_rig
     from gst.data.extract.options import ExtractOptions as Options
@@ -118,7 +118,7 @@ def compare_on_scenes(scenes: list[Path]) -> None:
         names = [c.name for c in rig]
         videos = {n: scene / "videos" / f"{n}.mp4" for n in names}
         plates = {n: scene / "board" / f"{n}.mp4" for n in names}
-        for name, method, person in SCENE_VARIANTS:
+        for name, method, person in [SCENE_VARIANTS[i] for i in chosen]:
             work = Path(tempfile.mkdtemp(prefix="bench_extract_"))
             try:
                 opts = Options.from_settings(plates, None, person, association_method=method)
@@ -173,7 +173,12 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.scenes:
-        compare_on_scenes(args.scenes)
+        compare_on_scenes(
+            args.scenes,
+            list(range(len(SCENE_VARIANTS)))
+            if args.variants == "all"
+            else [int(v) for v in args.variants.split(",")],
+        )
         return
 
     work = Path(tempfile.mkdtemp(prefix="bench_extract_"))

@@ -88,3 +88,17 @@ def test_region_from_a_projected_skeleton():
     behind = p.copy()
     behind[:] = cam.center - 1.0 * cam.optical_axis
     assert roi_from_skeleton(cam, behind) is None
+
+
+def test_skeletons_around_or_behind_the_camera_do_not_break_ownership():
+    """A badly triangulated skeleton can reach behind a camera or project thousands of pixels
+    away: those capsules are left out, the rest still own their pixels."""
+    cam = RIG[0]
+    fg = np.ones((cam.height, cam.width), bool)
+    good = person(0.0, 0.0)
+    behind = np.tile(cam.center - 0.5 * cam.optical_axis, (33, 1))
+    around = good.copy()
+    around[:11] = cam.center + 0.01 * cam.optical_axis + [0.3, 0.0, 0.0]  # head at the lens
+    own = own_pixels(cam, fg, [good, behind, around])
+    assert own.labels.max() >= 1 and own.visibility[1] == 0 and own.area[1] == 0
+    assert np.isfinite(own.visibility).all()

@@ -34,6 +34,11 @@ def _landmark_segmenter(models_dir: str | None):
 
     def segment(camera: str, image: np.ndarray, roi):
         s = model.segment(image, roi)
+        h, w = image.shape[:2]
+        lm = s.landmarks[:, :2]
+        # A degenerate region can give landmarks that are not numbers or far off the image.
+        if not np.all(np.isfinite(lm)) or np.abs(lm).max() > 10 * max(h, w):
+            return None
         near = skeleton_support(s.landmarks, image.shape[:2], SKELETON_WIDTH * roi.side)
         return s.landmarks, s.presence, np.where(near, s.probability, 0.0)
 

@@ -121,6 +121,20 @@ def _rasterize(
     return Q, Z
 
 
+def _sane(seg, W: int, H: int):
+    """Keep the capsules that are numbers and lie near the image (a skeleton reaching around a
+    camera projects to huge coordinates); None when none is left."""
+    if seg is None:
+        return None
+    a, b, ra, rb, za, zb = seg
+    ok = np.all(np.isfinite(np.c_[a, b, ra, rb]), axis=1) & (ra > 0) & (rb > 0)
+    lim = 2.0 * max(W, H)
+    ok &= np.all((np.c_[a, b] > -lim) & (np.c_[a, b] < lim + max(W, H)), axis=1)
+    if not ok.any():
+        return None
+    return a[ok], b[ok], ra[ok], rb[ok], za[ok], zb[ok]
+
+
 def own_pixels(
     cam: Camera,
     foreground: np.ndarray,
@@ -175,6 +189,7 @@ def own_pixels(
             segs.append((ends[:, 0], ends[:, 1], r, r, far, far) if len(ends) else None)
         else:
             segs.append(None)
+    segs = [_sane(seg, W, H) for seg in segs]
     labels = np.zeros((H, W), np.int32)
     visibility, area = np.zeros(n), np.zeros(n)
     live = [k for k in range(n) if segs[k] is not None]

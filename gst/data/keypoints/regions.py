@@ -26,7 +26,8 @@ def roi_from_skeleton(cam: Camera, skeleton: np.ndarray, margin: float = 1.05) -
     """The landmark model's region for a (33, 3) world skeleton in `cam`: centred on the hips,
     its radius the farthest projected landmark from them times `margin`, turned so that the
     hips-to-shoulders direction points up (as BlazePose's own alignment points). None when the
-    hips or shoulders are unknown or behind the camera, or the hips fall outside the image."""
+    hips or shoulders are unknown or behind the camera, the hips fall outside the image, or the
+    region would be tiny or much larger than the image."""
     uv, _ = project(cam, np.asarray(skeleton, np.float64))
     ok = np.all(np.isfinite(uv), axis=1)
     if not ok[_HIPS + _SHOULDERS].all() or ok.sum() < 8:
@@ -35,6 +36,8 @@ def roi_from_skeleton(cam: Camera, skeleton: np.ndarray, margin: float = 1.05) -
     if not (0 <= hip[0] < cam.width and 0 <= hip[1] < cam.height):
         return None
     radius = float(np.linalg.norm(uv[ok] - hip, axis=1).max()) * margin
+    if not 4.0 <= radius <= 2.0 * max(cam.width, cam.height):
+        return None  # a speck, or a skeleton reaching behind the camera
     up = shoulder - hip
     up = up / max(float(np.linalg.norm(up)), 1e-6)
     return roi_from_alignment(hip, hip + radius * up)
