@@ -48,9 +48,11 @@ from gst.data.keypoints.ownership import OwnershipConfig, own_pixels
 from gst.data.keypoints.regions import roi_from_skeleton, skeleton_fit
 from gst.data.keypoints.tracking import PersonIdTracker, TrackerConfig, skeleton_distance
 from gst.detect.blazepose import BodyRoi
+from gst.detect.persons import same_person
 
 _BODY = np.asarray(BODY_LANDMARKS)
 PROJECTED_CONFIDENCE = 0.5  # confidence of landmarks projected from a skeleton (not detected)
+DUPLICATE_LANDMARKS = 0.1  # two answers whose limb joints are this close (share of size) agree
 ViewSource = Literal["detected", "refined", "projected", "single"]
 # segment(camera name, BGR image at work resolution, region in work pixels) ->
 # (landmarks (33, 3) in work pixels, presence, (H, W) person probability) or None.
@@ -69,6 +71,7 @@ class CrowdConfig:
     project_visibility: float = 0.3  # projected views for trusted people at least this visible
     trusted_views: int = 3  # cameras that must agree before a new person is trusted
     remembered_gap: float = 0.3  # a prior further than this (m) from every group is a candidate
+    duplicate_gap: float = 0.15  # two candidates this close (m) after refinement are one person
     min_mask_pixels: int = 20  # smaller masks are no view
 
     def __post_init__(self):
@@ -107,12 +110,17 @@ class FramePeople:
     notes: list[str]
 
 
+def _strict_views(group: PersonGroup | None) -> int:
+    return 0 if group is None else len(group.views) - len(group.loose)
+
+
 @dataclass
 class _Candidate:
     skeleton: np.ndarray
     remembered: bool
     group: PersonGroup | None
     refined: dict[str, tuple[PersonInstance, np.ndarray]] = field(default_factory=dict)
+    fits: dict[str, float] = field(default_factory=dict)  # landmark error of each refined view
 
 
 class CrowdTracker:
@@ -163,10 +171,23 @@ class CrowdTracker:
                 skeleton_distance(sk[_BODY], c.skeleton[_BODY]) > cfg.remembered_gap for c in cands
             ):
                 cands.append(_Candidate(sk, True, None))
+        # The foreground: the background model's, and wherever phase 1 found a person (a
+        # background learnt from the capture itself misses people who stand still).
+        foreground = dict(foreground)
+        for n, ms in (masks or {}).items():
+            if n in foreground and ms:
+                foreground[n] = foreground[n] | np.any([m for m in ms if m is not None], axis=0)
         can_refine = cfg.refine and self.segment is not None and images is not None
         if can_refine and cands:
             self._refine(cands, foreground, images, backgrounds)
-            cands = [c for c in cands if not c.remembered or len(c.refined) >= 2]
+            # A person needs two confirming cameras, unless three detections agreed on them.
+            cands = [
+                c
+                for c in cands
+                if len(c.refined) >= 2
+                or (not c.remembered and _strict_views(c.group) >= cfg.trusted_views)
+            ]
+            cands = self._distinct(cands)
         elif not can_refine:
             cands = [c for c in cands if not c.remembered]
         # Ids: one group per candidate (its refined views, else its matched ones) + singles.
@@ -214,6 +235,20 @@ class CrowdTracker:
             )
         return FramePeople(frame, people, list(match.notes))
 
+    def _distinct(self, cands: list[_Candidate]) -> list[_Candidate]:
+        """One candidate per person: two whose skeletons converged (two regions that found the
+        same person) keep the one more cameras confirmed."""
+        order = sorted(range(len(cands)), key=lambda k: (-len(cands[k].refined), k))
+        keep: list[int] = []
+        for k in order:
+            if all(
+                skeleton_distance(cands[k].skeleton[_BODY], cands[j].skeleton[_BODY])
+                >= self.config.duplicate_gap
+                for j in keep
+            ):
+                keep.append(k)
+        return [cands[k] for k in sorted(keep)]
+
     def _refine(self, cands, foreground, images, backgrounds) -> None:
         cfg = self.config
         skels = [c.skeleton for c in cands]
@@ -241,9 +276,22 @@ class CrowdTracker:
                 lm = np.asarray(lm, np.float64).copy()
                 lm[:, :2] /= s
                 inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
-                if skeleton_fit(cam, inst, c.skeleton, cfg.match) > cfg.refine_fit:
+                fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
+                if fit > cfg.refine_fit:
                     continue
                 c.refined[n] = (inst, prob)
+                c.fits[n] = fit
+            # Two regions that found the same person: the view goes to whoever it fits best
+            # (a candidate stitched from two people loses the views that are someone else's).
+            holders = [c for c in cands if n in c.refined]
+            for i, a in enumerate(holders):
+                for b in holders[i + 1 :]:
+                    if n not in a.refined or n not in b.refined:
+                        continue
+                    la, lb = a.refined[n][0].landmarks, b.refined[n][0].landmarks
+                    if same_person(la, lb, DUPLICATE_LANDMARKS):
+                        loser = b if a.fits[n] <= b.fits[n] else a
+                        del loser.refined[n], loser.fits[n]
         for c in cands:
             if len(c.refined) >= 2:
                 views = {
@@ -259,7 +307,8 @@ class CrowdTracker:
         landmarks), or projected (ownership, projected landmarks) for trusted people."""
         cfg = self.config
         own = own_pixels(cam, fg, [c.skeleton for c in cands], [], cfg.ownership, self.scale[n])
-        claims = [(c.refined[n][1] > 0.5) & fg if n in c.refined else None for c in cands]
+        # A refined view's mask is the landmark model's own segmentation of that person.
+        claims = [c.refined[n][1] > 0.5 if n in c.refined else None for c in cands]
         drawn = [m for m in claims if m is not None]
         contested = np.sum(drawn, axis=0) > 1 if drawn else np.zeros_like(fg)
         for k, (c, person) in enumerate(zip(cands, people, strict=True)):
@@ -270,7 +319,7 @@ class CrowdTracker:
                 mask = own.labels == k + 1
                 lm, source = instances[n][c.group.views[n]].landmarks, "detected"
             else:
-                strict = 0 if c.group is None else len(c.group.views) - len(c.group.loose)
+                strict = _strict_views(c.group)
                 trusted = (
                     c.remembered
                     or person.pid in remembered
