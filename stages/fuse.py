@@ -7,7 +7,6 @@ body fit over the clip). Writes `fused/` (bodies and landmarks Parquet, TRC, C3D
 
 from __future__ import annotations
 
-from calibration.formats import read_rig
 from gst.fuse import FitOptions, FuseOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
@@ -25,10 +24,11 @@ def run(ctx: StageContext) -> None:
     p = ctx.params
     result = fuse_scene(
         ctx.path("crops/crops.h5"),
-        read_rig(ctx.path("calibration/rig.json"), "rig"),
+        ctx.rig(),
         ctx.out("fused"),
         ctx.out("reports/fuse"),
         fps=ctx.scene.fps,
+        videos=ctx.camera_videos(),
         options=FuseOptions(
             body_model=p.body_model,
             markers=p.markers,

@@ -62,7 +62,7 @@ class GSTPredictor:
         body_model: str | None = None,
     ):
         ckpt = load_checkpoint(checkpoint, map_location=device)
-        self.network = network_from_checkpoint(ckpt).to(device).eval()
+        self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
         self.body = load_body_model(body_model or ckpt["body_model"], device=device)
         self.vertex_ids = ckpt["vertex_ids"].to(device)
         self.with_gaussians = with_gaussians

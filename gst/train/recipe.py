@@ -250,8 +250,6 @@ def fit_gst(
     return summary
 
 
-
-
 def make_task(
     body: BodyModel,
     vertex_ids,
