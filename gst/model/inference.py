@@ -81,7 +81,7 @@ class GSTPredictor:
     ) -> BodyPrediction:
         """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t."""
         want = self.with_gaussians if with_gaussians is None else with_gaussians
-        images = to_float_images(crops).to(self.device)
+        images = torch.as_tensor(crops).to(self.device)  # predict_bodies converts them
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=self.device)
         return predict_bodies(
             self.network, self.body, self.vertex_ids, images, K, self.network.cfg.image_size,
