@@ -318,15 +318,21 @@ class BatchedLandmarks:
     landmark visibility x landmark presence. Not thread-safe: one per worker."""
 
     def __init__(self, models_dir: str | Path | None = None, threads: int = 1):
-        self.interpreter = _interpreter(model_paths(models_dir)["landmarks"], threads)
-        self._input = self.interpreter.get_input_details()[0]["index"]
-        self._batch = 1
+        self._path, self._threads = model_paths(models_dir)["landmarks"], threads
+        # One interpreter per batch size seen: re-allocating one for every change of the number
+        # of regions (tracked people, then the detector's new ones) costs more than the memory.
+        self._by_batch: dict[int, object] = {}
 
-    def _resize(self, n: int) -> None:
-        if n != self._batch:
-            self.interpreter.resize_tensor_input(self._input, [n, LANDMARK_SIZE, LANDMARK_SIZE, 3])
-            self.interpreter.allocate_tensors()
-            self._batch = n
+    def _for_batch(self, n: int):
+        it = self._by_batch.get(n)
+        if it is None:
+            it = import_litert()(model_path=str(self._path), num_threads=self._threads)
+            index = it.get_input_details()[0]["index"]
+            if n != 1:
+                it.resize_tensor_input(index, [n, LANDMARK_SIZE, LANDMARK_SIZE, 3])
+            it.allocate_tensors()
+            self._by_batch[n] = it
+        return it
 
     def __call__(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
         """Landmarks of the person in each region of a BGR image (one call for all regions)."""
@@ -346,13 +352,13 @@ class BatchedLandmarks:
             ]
         )
         rgb = crops[..., ::-1].astype(np.float32) * np.float32(1 / 255)
-        self._resize(len(rois))
-        self.interpreter.set_tensor(self._input, rgb)
-        self.interpreter.invoke()
         n = len(rois)
+        it = self._for_batch(n)
+        it.set_tensor(it.get_input_details()[0]["index"], rgb)
+        it.invoke()
         out = {
-            tuple(int(v) for v in d["shape"][1:]): self.interpreter.get_tensor(d["index"])
-            for d in self.interpreter.get_output_details()
+            tuple(int(v) for v in d["shape"][1:]): it.get_tensor(d["index"])
+            for d in it.get_output_details()
         }
         raw = out[(195,)].reshape(n, 39, 5)
         presence = np.clip(out[(1,)][:, 0], 0.0, 1.0)

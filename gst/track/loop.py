@@ -23,7 +23,7 @@ from calibration import Camera
 from gst.data.camera_view import TrackingView
 from gst.prefetch import background
 from gst.track.appearance import DESCRIPTOR_SIZE
-from gst.track.detection import N_LANDMARKS, Detector
+from gst.track.detection import N_LANDMARKS, Detection, Detector
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
 from gst.track.rows import RowSet, rows_table
@@ -109,6 +109,12 @@ def _axes_json(calibrated: bool, world_up) -> dict:
             "description": "the rig's world frame (metres), X_cam = R X_world + t",
             "up": None if world_up is None else [float(v) for v in world_up],
         }
+    else:
+        axes["world"] = None
+        axes["world_note"] = (
+            "unavailable: the video is not a calibrated camera (default pinhole camera, "
+            "gst.calibration); joints3d and transl_cam are in the camera frame"
+        )
     return axes
 
 
@@ -171,6 +177,7 @@ class VideoRun:
     video_json: dict
     calibration: dict
     settings: dict  # everything that determines the output (hashed into the file)
+    detector: dict | None = None  # which person detector ran and why (gst.detector)
 
 
 def plan_run(
@@ -183,8 +190,10 @@ def plan_run(
     num_betas: int,
     world_up,
     extra_settings: dict | None = None,
+    detector_info: dict | None = None,
 ) -> VideoRun:
-    """Probe the video and fix the run's settings (`extra_settings` are added, e.g. chunking)."""
+    """Probe the video and fix the run's settings (`extra_settings` are added, e.g. chunking;
+    `detector_info` says which person detector runs, with its settings)."""
     for key in ("name", "version"):
         if key not in model:
             raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
@@ -213,9 +222,10 @@ def plan_run(
         "calibration": calibration,
         "num_betas": num_betas,
         "world_up": None if world_up is None else [float(v) for v in world_up],
+        "detector": detector_info,
         **(extra_settings or {}),
     }
-    return VideoRun(info, name, view, first, end, video_json, calibration, settings)
+    return VideoRun(info, name, view, first, end, video_json, calibration, settings, detector_info)
 
 
 def run_metadata(
@@ -240,6 +250,7 @@ def run_metadata(
             "crop": CROP_DESCRIPTION,
             **(tracking_extra or {}),
         },
+        detector=run.detector,
         smoothing=asdict(options.smoothing) if options.smoothing else None,
         stats=stats,
         settings_sha256=digest,
@@ -293,10 +304,11 @@ def tracked_groups(
         group = _Group(predictor, options.batch_size, num_betas)
         return done
 
-    def prepare(frame: Frame) -> tuple[PendingFrame, list[PreparedDetection]]:
-        dets = [
-            d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score
-        ]
+    def detect(frame: Frame) -> tuple[Frame, list[Detection]]:
+        dets = detector.detect(frame.image, frame.index)
+        return frame, [d for d in dets if d.score >= options.min_score]
+
+    def prepare(frame: Frame, dets: list[Detection]) -> tuple[PendingFrame, list]:
         cut = [prepare_detection(run.view, frame.image, d, options.crop_size) for d in dets]
         lms = np.full((len(dets), N_LANDMARKS, 3), np.nan, np.float32)
         for i, d in enumerate(dets):
@@ -312,7 +324,8 @@ def tracked_groups(
         )
         return pending, cut
 
-    # Three threads when prefetching: decoding, detection and cropping, the network.
+    # Three threads when prefetching: decoding; the person detector; crops, the network and the
+    # tracker (the detector is the heaviest per frame, so the crops are cut beside the network).
     frames = iter_frames(
         video_path,
         stride=options.stride,
@@ -322,12 +335,13 @@ def tracked_groups(
         end_frame=end_frame,
         prefetch=options.prefetch,
     )
-    prepared = (prepare(f) for f in frames)
+    detected = (detect(f) for f in frames)
     if options.prefetch > 0:
-        prepared = background(prepared, options.prefetch)
+        detected = background(detected, options.prefetch)
     last_index = None
     try:
-        for pending, cut in prepared:
+        for frame, dets in detected:
+            pending, cut = prepare(frame, dets)
             group.add(pending, cut)
             last_index = pending.index
             if on_frame is not None:
@@ -340,7 +354,7 @@ def tracked_groups(
             yield close(last_index + options.stride)
         raise
     finally:
-        close_prefetch = getattr(prepared, "close", None)
+        close_prefetch = getattr(detected, "close", None)
         if close_prefetch is not None:
             close_prefetch()
     if group.frames:
@@ -363,6 +377,7 @@ def track_video(
     staging_root: str | Path | None = None,
     on_frame: Callable[[int], None] | None = None,
     on_extra: Callable[[int, int, dict], None] | None = None,
+    detector_info: dict | None = None,
 ) -> TrackResult:
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
@@ -372,7 +387,8 @@ def track_video(
     settings is returned as is; without it, earlier output for this video is replaced. Raises
     VideoError (naming the file) for unreadable video; on a truncated video the frames before the
     damage are committed first (valid Parquet in the staging folder), then the error is raised.
-    `on_frame(frame)` is called for every processed frame (progress bars). `on_extra(frame,
+    `detector_info` (which person detector runs and why) is recorded as `gst.detector` and in
+    the settings digest. `on_frame(frame)` is called for every processed frame (progress bars). `on_extra(frame,
     person_id, extra)` receives, for every written row, the predictor's outputs beyond the body
     (e.g. Gaussians for a per-track splat), after the row group holding it is committed; frames
     committed by an earlier, interrupted run are not replayed.
@@ -389,6 +405,7 @@ def track_video(
         options=options,
         num_betas=num_betas,
         world_up=world_up,
+        detector_info=detector_info,
     )
     writer = TrackWriter(out_root, run.name, tracks_schema(num_betas), run.settings, staging_root)
     if resume and writer.finished_digest() == writer.digest:

@@ -23,7 +23,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
-from gst.detect.weights import model_paths
+from gst.detect.blazepose import import_litert
+from gst.detect.weights import BlazePoseModelsMissing, model_paths
+from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
@@ -32,7 +34,7 @@ from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
 from gst.track.loop import TrackOptions
-from gst.track.person_detector import PersonModelDetector
+from gst.track.person_detector import PersonModelConfig, PersonModelDetector
 from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
@@ -55,10 +57,12 @@ class TrackSettings(BaseModel):
     smoothing: bool = False  # One-Euro filter on joints and parameters
     min_cutoff: float = 1.0
     beta: float = 0.5
-    boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of the background detector
-    # 'blazepose': the learned person segmenter (gst.detect; finds people who stand still, needs
-    # the `detect` extra and `python -m gst.detect fetch`). 'background': static-camera model.
-    detector: Literal["background", "blazepose"] = "background"
+    boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of a detector
+    # 'auto': the learned person model (BlazePose, gst.detect) when it is installed (the `detect`
+    # extra and `python -m gst.detect fetch`), else the static-camera background model.
+    # 'blazepose' requires it; 'background' always uses the background model.
+    detector: Literal["auto", "background", "blazepose"] = "auto"
+    detect_every: int = Field(default=10, ge=1)  # blazepose: detector runs between tracked frames
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
@@ -86,17 +90,89 @@ class TrackRequest:
     truth_scene: Path | None = None
     combined_evaluation: Path | None = None
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # calibration.camera.fit_to_frames
+    scene: str | None = None  # the scene whose model (models/gst.pt) tracks the videos
 
 
-def _detector(s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None) -> Callable:
+def choose_detector(s: TrackSettings) -> tuple[str, str]:
+    """(detector, why): 'boxes', 'blazepose' or 'background', and the reason, for the log and
+    the file's `gst.detector`. A 'blazepose' that is not installed fails here, with the fix."""
+    if s.boxes:
+        return "boxes", f"boxes supplied in {s.boxes}"
+    if s.detector == "background":
+        return "background", "track.detector is 'background' (static-camera background model)"
+    try:
+        import_litert()
+        model_paths()
+    except (ImportError, BlazePoseModelsMissing) as exc:
+        if s.detector == "blazepose":
+            raise
+        first = str(exc).strip().splitlines()[0]
+        return "background", (
+            f"the learned person model is not installed ({first}); the static-camera background "
+            "model finds only people who move against a still background"
+        )
+    how = "track.detector is 'blazepose'" if s.detector == "blazepose" else "auto"
+    return "blazepose", f"{how}: the learned person model (BlazePose) is installed"
+
+
+def _detector(
+    kind: str, s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None
+) -> Callable:
     """A picklable factory of the video's person detector: supplied boxes, the learned person
     model, or the static-camera background model."""
-    if s.boxes:
+    if kind == "boxes":
         return functools.partial(SuppliedBoxes.from_file, s.boxes, video=video.stem)
-    if s.detector == "blazepose":
-        return PersonModelDetector
+    if kind == "blazepose":
+        return functools.partial(
+            PersonModelDetector, PersonModelConfig(detect_every=s.detect_every)
+        )
     up = tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)
     return functools.partial(StaticCameraDetector, video, camera=camera, up=up)
+
+
+def _detector_info(kind: str, why: str, s: TrackSettings) -> dict:
+    info = {"name": kind, "why": why}
+    if kind == "blazepose":
+        info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
+        info["config"] = PersonModelConfig(detect_every=s.detect_every).settings()
+    return info
+
+
+def model_provenance(checkpoint: Path, name: str, scene: str | None) -> dict:
+    """What the file and the log say about the model: name, checkpoint, and what it was trained
+    on as far as the checkpoint records it (`extra.trained_on`: scene, cameras, frames)."""
+    ckpt = load_checkpoint(checkpoint)
+    extra = ckpt.get("extra") or {}
+    trained_on = extra.get("trained_on")
+    if not isinstance(trained_on, dict):
+        trained_on = {"scene": scene, "recorded": False}
+    return {
+        "name": name,
+        "version": "1",
+        "checkpoint": "models/gst.pt",
+        "body_model": str(ckpt.get("body_model")),
+        "training_mode": extra.get("mode"),
+        "trained_on": trained_on,
+    }
+
+
+def _camera_seen(model: dict, camera: Camera | None) -> bool:
+    """Whether the model was trained on this video's camera (only a calibrated camera of the
+    scene can be, and only when the checkpoint records its cameras)."""
+    cams = model["trained_on"].get("cameras")
+    return camera is not None and isinstance(cams, list) and camera.name in cams
+
+
+def _describe_training(t: dict) -> str:
+    if not t.get("recorded", True):
+        scene = f"scene '{t['scene']}'" if t.get("scene") else "an unknown scene"
+        return f"{scene} (the checkpoint does not record which cameras and frames)"
+    parts = [f"scene '{t.get('scene')}'"]
+    if t.get("cameras") is not None:
+        parts.append(f"cameras {', '.join(map(str, t['cameras']))}")
+    if t.get("frames") is not None:
+        parts.append(f"frames {t['frames']}")
+    return ", ".join(parts)
 
 
 def track_scene(
@@ -114,8 +190,11 @@ def track_scene(
     name = GSTPredictor(
         request.checkpoint, with_gaussians=with_gaussians, batch_size=s.batch_size
     ).name
-    if s.detector == "blazepose" and not s.boxes:
-        model_paths()  # missing models fail here, with the fetch command, not in a worker
+    kind, why = choose_detector(s)  # a missing 'blazepose' fails here, not in a worker
+    log.info("person detector: %s (%s)", kind, why)
+    detector_info = _detector_info(kind, why, s)
+    model_info = model_provenance(request.checkpoint, name, request.scene)
+    log.info("model: %s, trained on %s", name, _describe_training(model_info["trained_on"]))
     options = TrackOptions(
         stride=s.stride,
         tracker=TrackerConfig(min_hits=s.min_hits, max_misses=s.max_misses),
@@ -124,7 +203,6 @@ def track_scene(
         batch_size=s.batch_size,
         smoothing=OneEuroConfig(min_cutoff=s.min_cutoff, beta=s.beta) if s.smoothing else None,
     )
-    model_info = {"name": name, "version": "1", "checkpoint": "models/gst.pt"}
     # Parallel workers share the cores: one torch thread each unless told otherwise.
     threads = s.threads or (1 if workers > 1 else None)
     predictor = functools.partial(
@@ -141,18 +219,29 @@ def track_scene(
             )
             if note:
                 log.warning("%s", note)
+        seen = _camera_seen(model_info, camera)
+        if camera is None:
+            log.info(
+                "%s: not a calibrated camera of the scene: default pinhole camera (focal length ="
+                " image diagonal), camera-frame coordinates only, no world coordinates; the model"
+                " has not seen this camera",
+                video.stem,
+            )
+        elif not seen:
+            log.info("%s: calibrated camera; the model's training does not record it", video.stem)
         jobs.append(
             VideoJob(
                 video,
-                _detector(s, video, camera, rig),
+                _detector(kind, s, video, camera, rig),
                 predictor,
-                model_info,
+                {**model_info, "seen_this_camera": seen},
                 name=video.stem,
                 camera=camera,
                 world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
                 options=options,
                 threads=threads,
                 keep_extras=with_gaussians,
+                detector_info=detector_info,
             )
         )
     chunking = ChunkingConfig(s.chunk_frames, s.chunk_overlap) if s.chunk_frames else None
