@@ -13,7 +13,7 @@ from gst.atomic import atomic_path, atomic_write
 from gst.detect.persons import BONES, TORSO
 from gst.track.read import column_array, read_metadata, read_tracks
 from gst.track.schema import SMPL_JOINT_NAMES
-from gst.video import iter_frames
+from gst.video import iter_frames, read_frames
 
 # SMPL kinematic tree: parent of each joint (-1 for the root).
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
@@ -137,6 +137,43 @@ def write_overlay(
         finally:
             writer.release()
     return out_path
+
+
+def contact_sheet(
+    video_path: str | Path,
+    tracks_path: str | Path,
+    frames: list[int],
+    height: int = 560,
+    label: str | None = None,
+    margin: float = 60.0,
+) -> np.ndarray:
+    """One column of overlay frames (`draw_people`), each cut to the region the tracks ever
+    cover (plus `margin` px) and resized to `height`: for looking at a run, and for docs."""
+    table = read_tracks(tracks_path)
+    fr = table.column("frame").to_numpy()
+    boxes = column_array(table, "bbox")
+    tiles = []
+    for f, img in read_frames(video_path, frames):
+        h, w = img.shape[:2]
+        if len(boxes):
+            x0, y0 = np.maximum(boxes[:, :2].min(0) - margin, 0).astype(int)
+            x1, y1 = np.minimum(boxes[:, 2:].max(0) + margin, [w, h]).astype(int)
+        else:
+            x0, y0, x1, y1 = 0, 0, w, h
+        im = draw_people(img, table.filter(pa.array(fr == f)))[y0:y1, x0:x1]
+        im = cv2.resize(
+            im, (round(im.shape[1] * height / im.shape[0]), height), interpolation=cv2.INTER_AREA
+        )
+        text = f"{label or Path(video_path).stem}, frame {f}"
+        for colour, weight in (((0, 0, 0), 4), ((255, 255, 255), 1)):
+            cv2.putText(
+                im, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, colour, weight, cv2.LINE_AA
+            )
+        tiles.append(cv2.copyMakeBorder(im, 2, 2, 2, 2, cv2.BORDER_CONSTANT))
+    width = max(t.shape[1] for t in tiles)
+    return np.concatenate(
+        [cv2.copyMakeBorder(t, 0, 0, 0, width - t.shape[1], cv2.BORDER_CONSTANT) for t in tiles]
+    )
 
 
 def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: int = 10) -> Path:

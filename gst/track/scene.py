@@ -18,16 +18,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import cv2
+import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
+from gst.atomic import atomic_write
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
+from gst.track.agreement import joints_vs_landmarks
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
@@ -35,7 +39,8 @@ from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
 from gst.track.loop import TrackOptions
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
-from gst.track.report import plot_joint_angles, write_overlay
+from gst.track.read import read_tracks
+from gst.track.report import contact_sheet, plot_joint_angles, write_overlay
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
@@ -294,6 +299,18 @@ def _evaluate(request: TrackRequest, outcome: VideoOutcome, report: Path) -> Tra
     return ev
 
 
+def _write_contact_sheet(video: Path, tracks: Path, out: Path, n: int = 6) -> None:
+    """Six processed frames with the tracks drawn on (boxes, ids, both skeletons), in a row."""
+    frames = sorted(set(read_tracks(tracks).column("frame").to_pylist()))
+    if not frames:
+        return
+    pick = [frames[round(i * (len(frames) - 1) / max(n - 1, 1))] for i in range(n)]
+    sheet = np.concatenate(
+        [contact_sheet(video, tracks, [f], height=480) for f in sorted(set(pick))], axis=1
+    )
+    atomic_write(out, lambda tmp: cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_JPEG_QUALITY, 85]))
+
+
 def write_video_report(
     s: TrackSettings, request: TrackRequest, outcome: VideoOutcome
 ) -> TrackEvaluation | None:
@@ -311,11 +328,23 @@ def write_video_report(
         "chunks": outcome.chunks,
     }
     log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons, fps)
+    agree = joints_vs_landmarks(read_tracks(result.path))
+    summary["joints2d_vs_landmarks"] = agree.to_dict()
+    if agree.median_px is not None:
+        log.info(
+            "%s: the network's joints lie a median %.1f px (90%%: %.1f px) from the landmark "
+            "model's (%d joints compared)",
+            name,
+            agree.median_px,
+            agree.p90_px,
+            agree.pairs,
+        )
     report = request.reports_dir / name
     report.mkdir(parents=True, exist_ok=True)
     (report / "summary.json").write_text(json.dumps(summary, indent=2))
     if s.overlay:
         write_overlay(outcome.job.video, result.path, report / "overlay.mp4")
+    _write_contact_sheet(outcome.job.video, result.path, report / "contact_sheet.jpg")
     plot_joint_angles(result.path, report / "joint_angles.png")
     evaluation = _evaluate(request, outcome, report)
     for person, g in outcome.extras.items():
