@@ -35,7 +35,14 @@ from gst.track.predictor import Predictor
 from gst.track.writer import PARQUET_OPTIONS, settings_digest
 
 CHUNK_META_KEY = b"gst.chunk"
-STAT_KEYS = ("frames", "rows", "detections", "dropped_nonfinite", "dropped_low_score")
+STAT_KEYS = (
+    "frames",
+    "rows",
+    "detections",
+    "dropped_nonfinite",
+    "dropped_low_score",
+    "dropped_parts",
+)
 
 
 @dataclass(frozen=True)
@@ -234,6 +241,6 @@ def stitch_chunks(chunks: list[tuple[pa.Table, dict]], min_agreement: float = 0.
         inherited.append(carried)
         previous = kept
         for k in STAT_KEYS:
-            stats[k] += record["stats"][k]
+            stats[k] += record["stats"].get(k, 0)
     stats["persons"] = next_id
     return Stitched(out, stats, inherited)
