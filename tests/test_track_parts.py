@@ -142,3 +142,40 @@ def test_unsure_joints_are_no_evidence():
     assert skeleton_share(far, outer, PartConfig()) == 1.0
     far[LIMB_JOINTS, 2] = 1.0
     assert skeleton_share(far, outer, PartConfig()) == 0.0
+
+
+class LandmarkPredictor(BoxDepthPredictor):
+    """A predictor that takes the crops' landmarks, and keeps what it was given."""
+
+    accepts_landmarks = True
+
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def __call__(self, crops, K_crop, landmarks=None):
+        self.seen.append((K_crop.copy(), landmarks.copy()))
+        return super().__call__(crops, K_crop)
+
+
+def test_a_landmark_predictor_gets_the_crops_landmarks(video, tmp_path):
+    path, boxes = video
+    pred = LandmarkPredictor()
+    track_video(
+        path,
+        tmp_path / "lm",
+        HandDetector(boxes, "none"),
+        pred,
+        model=MODEL,
+        options=TrackOptions(batch_size=4, frames_per_group=8),
+    )
+    K, lm = pred.seen[0]
+    assert lm.shape == (4, 33, 3)
+    # frame 0's person: the crop's landmarks map back to the frame's through K_crop and the
+    # default camera (uncalibrated video: no distortion, crop = scaled and shifted frame)
+    from gst.data.camera_view import default_camera
+
+    Kf = default_camera(W, H).K
+    frame_uv = (lm[0, :, :2] - K[0][:2, 2]) / K[0][0, 0] * Kf[0, 0] + Kf[:2, 2]
+    np.testing.assert_allclose(frame_uv, skeleton(boxes[0, 0])[:, :2], atol=1e-3)
+    np.testing.assert_array_equal(lm[..., 2], 1.0)
