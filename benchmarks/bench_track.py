@@ -13,8 +13,7 @@ a pinhole camera, a few px with distortion, and shows the lag that smoothing add
 
 Real footage (`--real`, when the lab capture and the BlazePose models are here): one lab camera
 (1088x1920 at 60 fps, 2 people), end to end with the learned person model and the stage's
-tracker settings (decode, person model, GST, tracker, Parquet); the stage's default person model
-runs the landmark model's own loop with 2 LiteRT threads when one worker tracks. The previous person model
+tracker settings (decode, person model, GST, tracker, Parquet). The previous person model
 (detector and segmentation on every frame, `SegmentEveryFrame` below) runs in the same process
 as the landmark-model loop (gst.track.person_detector) and its variants. Beside each speed: CPU
 time per video frame (all threads; less sensitive to other load than wall time), detector runs,
@@ -404,13 +403,13 @@ def real_footage(args) -> None:
         def opts(**kw):
             return TrackOptions(tracker=tracker, end_s=n / fps, **kw)
 
-        def new(**kw):  # the track stage's default with one worker: 2 LiteRT threads
-            return lambda: PersonModelDetector(PersonModelConfig(**{"threads": 2, **kw}))
+        def new(**kw):
+            return lambda: PersonModelDetector(PersonModelConfig(**kw))
 
         variants = [
             ("old: detector + masks every frame", SegmentEveryFrame, opts()),
             ("new: landmark loop (stage default)", new(), opts()),
-            ("new, 1 LiteRT thread", new(threads=1), opts()),
+            ("new, 2 LiteRT threads", new(threads=2), opts()),
             ("new, one landmark call per person", new(batch=False), opts()),
             ("new, no prefetch (one Python thread)", new(), opts(prefetch=0)),
             ("old, stride 2", SegmentEveryFrame, opts(stride=2)),

@@ -68,9 +68,9 @@ class TrackSettings(BaseModel):
     # 'blazepose' requires it; 'background' always uses the background model.
     detector: Literal["auto", "background", "blazepose"] = "auto"
     detect_every: int = Field(default=10, ge=1)  # blazepose: detector runs between tracked frames
-    # blazepose: LiteRT threads per interpreter; None: 2 when one worker tracks (the landmark
-    # model is the busiest part of a frame), 1 when several workers share the cores
-    detector_threads: int | None = Field(default=None, ge=1)
+    # blazepose: LiteRT threads per interpreter (results are identical for any number; 2 was
+    # not measurably faster than 1 on the shared 2-core machine, benchmarks/bench_track.py)
+    detector_threads: int = Field(default=1, ge=1)
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
@@ -123,25 +123,19 @@ def choose_detector(s: TrackSettings) -> tuple[str, str]:
     return "blazepose", f"{how}: the learned person model (BlazePose) is installed"
 
 
-def _person_model_config(s: TrackSettings, workers: int) -> PersonModelConfig:
-    threads = s.detector_threads or (2 if workers <= 1 else 1)
-    return PersonModelConfig(detect_every=s.detect_every, threads=threads)
+def _person_model_config(s: TrackSettings) -> PersonModelConfig:
+    return PersonModelConfig(detect_every=s.detect_every, threads=s.detector_threads)
 
 
 def _detector(
-    kind: str,
-    s: TrackSettings,
-    video: Path,
-    camera: Camera | None,
-    rig: Rig | None,
-    workers: int = 1,
+    kind: str, s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None
 ) -> Callable:
     """A picklable factory of the video's person detector: supplied boxes, the learned person
     model, or the static-camera background model."""
     if kind == "boxes":
         return functools.partial(SuppliedBoxes.from_file, s.boxes, video=video.stem)
     if kind == "blazepose":
-        return functools.partial(PersonModelDetector, _person_model_config(s, workers))
+        return functools.partial(PersonModelDetector, _person_model_config(s))
     up = tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)
     return functools.partial(StaticCameraDetector, video, camera=camera, up=up)
 
@@ -150,7 +144,7 @@ def _detector_info(kind: str, why: str, s: TrackSettings) -> dict:
     info = {"name": kind, "why": why}
     if kind == "blazepose":
         info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
-        info["config"] = _person_model_config(s, 1).settings()  # threads: same numbers
+        info["config"] = _person_model_config(s).settings()
     return info
 
 
@@ -248,7 +242,7 @@ def track_scene(
         jobs.append(
             VideoJob(
                 video,
-                _detector(kind, s, video, camera, rig, workers),
+                _detector(kind, s, video, camera, rig),
                 predictor,
                 {**model_info, "seen_this_camera": seen},
                 name=video.stem,
