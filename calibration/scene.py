@@ -170,7 +170,6 @@ def calibrate_scene(
             f"scene '{scene}': videos {missing} have no camera of that name in the "
             f"calibration (cameras: {rig.names}); rename the files or the cameras"
         )
-    rig, size_notes = fit_rig_to_videos(rig, videos, settings.frame_size_tolerance)
     problems = check_rig(rig)
     if problems and settings.strict_checks:
         raise ValueError(
@@ -178,6 +177,7 @@ def calibrate_scene(
             + "; ".join(problems)
             + " (set calibrate.strict_checks=false to accept it)"
         )
+    rig, size_notes = fit_rig_to_videos(rig, videos, settings.frame_size_tolerance)
     for problem in problems:
         log.warning("rig check: %s", problem)
     write_rig(rig, rig_path, "rig")

@@ -292,7 +292,9 @@ def main(argv: list[str] | None = None) -> int:
                 for note in notes:
                     console.print(f"[yellow]input problem:[/] {note}", highlight=False)
                 continue
-            targets = list(cfg.stages) if args.stage == "all" else [args.stage]
+            targets = (
+                [n for n in cfg.stages if stages[n].in_all] if args.stage == "all" else [args.stage]
+            )
             planned = runner.run(
                 targets,
                 force=args.force,

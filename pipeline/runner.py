@@ -261,6 +261,8 @@ class Runner:
         if record is None:
             interrupted = (self.meta / "staging" / name).exists()
             why = "a previous run was interrupted" if interrupted else "never run"
+            if not interrupted and not stage.in_all:
+                why += f" (on demand: `run {name}`; `run all` skips it)"
             return StageStatus(name, key, MISSING, why, fp)
         for rel, digest in record.get("outputs", {}).items():
             now = self.hashes.digest(self.workspace / rel)

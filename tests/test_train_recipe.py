@@ -164,12 +164,15 @@ def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
         return g.means.mean(1)
 
     before = centres()
-    crops.anchors = before + torch.tensor([0.5, 0.0, 0.0])  # half a metre to the side
+    # Half a metre to each input camera's right: one shift of the predicted body that every
+    # view can make (the crops are noise, so the network cannot tell the cameras apart).
+    right = crops.R.transpose(1, 2) @ torch.tensor([0.5, 0.0, 0.0])
+    crops.anchors = before + right
     fit_gst(
         net.train(),
         task,
         crops,
-        TrainConfig(steps=12, batch_size=4, lr=1e-2, warmup_steps=1, val_every=12, log_every=1),
+        TrainConfig(steps=12, batch_size=4, lr=2e-3, warmup_steps=1, val_every=12, log_every=1),
         tmp_path,
         FitOptions(mode="multiview", num_targets=2, render_size=16),
         body_spec="random",
@@ -180,4 +183,4 @@ def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
     assert all(math.isfinite(float(r["anchor"])) for r in rows)
     dist_before = (before - crops.anchors).norm(dim=1)
     dist_after = (centres() - crops.anchors).norm(dim=1)
-    assert float(dist_after.mean()) < 0.5 * float(dist_before.mean()), (dist_before, dist_after)
+    assert float(dist_after.max()) < 0.8 * float(dist_before.min()), (dist_before, dist_after)

@@ -207,6 +207,10 @@ class PersonSegment:
     probability: np.ndarray  # (H, W) float32 person probability in the image (0 outside the region)
     landmarks: np.ndarray  # (33, 3) x, y in image pixels and visibility in [0, 1]
     next_roi: BodyRoi  # where this person is expected in the next frame
+    # (33, 3) float32 metres, origin at the mid-hips, axes of the region of interest (x right,
+    # y down, z away from the camera, as in the crop; rotated with the ROI's angle): the model's
+    # (1, 117) output = 39 x 3, first 33 (docs/landmark_prior.md measures their accuracy).
+    world_landmarks: np.ndarray | None = None
 
 
 class BlazePose:
@@ -280,7 +284,10 @@ class BlazePose:
         xy = np.c_[raw[:, :2], np.ones(39)] @ to_image.T
         visibility = 1.0 / (1.0 + np.exp(-np.clip(raw[:N_BODY_LANDMARKS, 3], -30, 30)))
         landmarks = np.c_[xy[:N_BODY_LANDMARKS], visibility].astype(np.float32)
-        return PersonSegment(presence, prob, landmarks, roi_from_alignment(xy[33], xy[34]))
+        world = out[(1, 117)][0].reshape(39, 3)[:N_BODY_LANDMARKS].astype(np.float32)
+        return PersonSegment(
+            presence, prob, landmarks, roi_from_alignment(xy[33], xy[34]), world.copy()
+        )
 
 
 # --- batched landmarks in the region's own crop (tracking) ---------------------------------------

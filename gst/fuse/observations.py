@@ -30,21 +30,19 @@ def crop_landmarks(store: CropStore, rows: np.ndarray | None = None, progress=No
             return np.asarray(f["landmarks"][np.sort(rows)], np.float32)[
                 np.argsort(np.argsort(rows))
             ]
-    from gst.detect.blazepose import BlazePose, BodyRoi
+    from gst.detect.blazepose import BlazePose
+    from gst.detect.crops import detect_crop_landmarks
 
     model = BlazePose(threads=1)
-    s = store.crop_size
-    roi = BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0)
     out = np.zeros((len(rows), N_LANDMARKS, 3), np.float32)
     chunks = range(0, len(rows), 64)
     if progress is not None:
         chunks = progress(chunks, description="BlazePose landmarks in crops", total=len(chunks))
     for a in chunks:
-        batch = store.read(rows[a : a + 64])
-        for i, img in enumerate(batch.images):
-            seg = model.segment(np.ascontiguousarray(img), roi)
-            out[a + i, :, :2] = seg.landmarks[:, :2]
-            out[a + i, :, 2] = seg.landmarks[:, 2] * seg.presence
+        batch = store.read(rows[a : a + 64])  # store images are BGR
+        out[a : a + len(batch)] = detect_crop_landmarks(
+            batch.images, model, rgb=False
+        ).with_confidence()
     return out
 
 

@@ -32,13 +32,20 @@ def predict_bodies(
     with_gaussians: bool = True,
     with_vertices: bool = False,
     crop_size: int | None = None,
+    device: str | torch.device | None = None,
+    landmarks=None,
 ) -> BodyPrediction:
     """The network on a batch of crops (B, S, S, 3) RGB uint8 or float images, assembled into
     posed bodies (and Gaussians) in the crops' cameras (K (B, 3, 3); optional input-camera R, t
     for world coordinates). `image_size` is the network's input size; `crop_size` the crops' side
-    (default: the images' own). The one inference path of training, evaluation and tracking."""
+    (default: the images' own). `landmarks`: a `gst.model.landmarks.LandmarkInput` for networks
+    with landmark tokens (None: the image-only path). The one inference path of training,
+    evaluation and tracking."""
     x = to_float_images(images)
-    out = network(network_input(x, image_size), with_gaussians=with_gaussians)
+    if device is not None:
+        x = x.to(device)
+    extra = {} if landmarks is None else {"landmarks": landmarks}
+    out = network(network_input(x, image_size), with_gaussians=with_gaussians, **extra)
     return assemble(
         out,
         body,
@@ -81,11 +88,10 @@ class GSTPredictor:
     ) -> BodyPrediction:
         """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t."""
         want = self.with_gaussians if with_gaussians is None else with_gaussians
-        images = torch.as_tensor(crops).to(self.device)  # predict_bodies converts them
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=self.device)
         return predict_bodies(
-            self.network, self.body, self.vertex_ids, images, K, self.network.cfg.image_size,
-            R=R, t=t, with_gaussians=want, with_vertices=False,
+            self.network, self.body, self.vertex_ids, crops, K, self.network.cfg.image_size,
+            R=R, t=t, with_gaussians=want, with_vertices=False, device=self.device,
         )  # fmt: skip
 
     def __call__(self, crops: np.ndarray, K_crop: np.ndarray) -> dict[str, np.ndarray]:
