@@ -68,7 +68,7 @@ def _outputs(ctx: StageContext) -> list[str]:
 
 STAGE = Stage(
     name="track", run=run, params_model=TrackSettings, resumable=True, variant=_variant,
-    inputs=lambda ctx: _videos(ctx) if ctx.options.get("video") or not ctx.scene.is_synthetic else [],
+    inputs=lambda ctx: [] if _own_videos(ctx) else _videos(ctx),
     outputs=_outputs, cli_options=("video", "with_gaussians"),
     help="per-frame inference on videos -> tracks/video=<name>/tracks.parquet",
 )  # fmt: skip

@@ -74,9 +74,9 @@ def opencv_to_h36m(
         return np.array([k1, k2, k3]), np.array([2 * p1, 2 * p2]), 0.0
     if not approximate:
         raise RigFormatError(
-            f"camera '{camera.name}': its distortion {camera.dist.tolist()} has no exact equivalent "
-            "in H36M's model (it needs s1 = p2, s3 = p1 and no other rational/prism terms); pass "
-            "approximate_distortion=True to fit one"
+            f"camera '{camera.name}': its distortion {camera.dist.tolist()} has no exact "
+            "equivalent in H36M's model (it needs s1 = p2, s3 = p1 and no other rational/prism "
+            "terms); pass approximate_distortion=True to fit one"
         )
     return _fit_h36m(camera)
 

@@ -3,8 +3,9 @@ joints (`landmarks2d`) in the same rows: a check of the 3D body against the 2D e
 frame, available on any video (no truth needed).
 
 Thirteen joints have a landmark counterpart (as in gst.fuse.joint_map and
-gst.train.keypoints): pelvis (mid-hips), hips, knees, ankles, shoulders, elbows and wrists. A BlazePose hip is not exactly the body model's hip
-joint, so a perfect network still shows a few pixels of systematic offset there.
+gst.train.keypoints): pelvis (mid-hips), hips, knees, ankles, shoulders, elbows and wrists. A
+BlazePose hip is not exactly the body model's hip joint, so a perfect network still shows a few
+pixels of systematic offset there.
 """
 
 from __future__ import annotations

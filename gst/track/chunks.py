@@ -47,7 +47,8 @@ STAT_KEYS = (
 
 @dataclass(frozen=True)
 class ChunkingConfig:
-    """Split videos longer than `chunk_frames` processed frames; `overlap` frames are tracked twice."""
+    """Split videos longer than `chunk_frames` processed frames; `overlap` frames are tracked
+    twice."""
 
     chunk_frames: int = 3000
     overlap: int = 30
@@ -58,7 +59,8 @@ class ChunkingConfig:
     def __post_init__(self):
         if self.chunk_frames < 1 or self.overlap < 1:
             raise ValueError(
-                f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, {self.overlap}"
+                f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, "
+                f"{self.overlap}"
             )
         if not 0 < self.min_agreement <= 1:
             raise ValueError(f"min_agreement must be in (0, 1], got {self.min_agreement}")
@@ -121,7 +123,8 @@ class ChunkRecord:
 
 
 def read_chunk(path: Path, digest: str) -> tuple[pa.Table, ChunkRecord] | None:
-    """A finished chunk file's (rows, record), or None when absent or written under other settings."""
+    """A finished chunk file's (rows, record), or None when absent or written under other
+    settings."""
     if not path.is_file():
         return None
     try:
@@ -240,7 +243,8 @@ class Stitched:
 def stitch_chunks(
     chunks: list[tuple[pa.Table, ChunkRecord]], min_agreement: float = 0.5
 ) -> Stitched:
-    """Give the chunks' rows video-wide ids: carried over the borders, else new in creation order."""
+    """Give the chunks' rows video-wide ids: carried over the borders, else new in creation
+    order."""
     next_id = 0
     previous: pa.Table | None = None
     out, inherited = [], []

@@ -102,7 +102,10 @@ def _axes_json(calibrated: bool, world_up) -> dict:
     axes = {
         "camera": "OpenCV: x right, y down, z forward (metres)",
         "joints3d": "world" if calibrated else "camera",
-        "body": "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's frame",
+        "body": (
+            "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's "
+            "frame"
+        ),
     }
     if calibrated:
         axes["world"] = {
@@ -172,7 +175,8 @@ class VideoRun:
     info: VideoInfo
     name: str
     view: TrackingView
-    first: int  # first frame of the range; groups close on the grid first + k * frames_per_group * stride
+    # first frame of the range; groups close on the grid first + k * frames_per_group * stride
+    first: int
     end: int | None
     video_json: dict
     calibration: dict
@@ -388,10 +392,10 @@ def track_video(
     VideoError (naming the file) for unreadable video; on a truncated video the frames before the
     damage are committed first (valid Parquet in the staging folder), then the error is raised.
     `detector_info` (which person detector runs and why) is recorded as `gst.detector` and in
-    the settings digest. `on_frame(frame)` is called for every processed frame (progress bars). `on_extra(frame,
-    person_id, extra)` receives, for every written row, the predictor's outputs beyond the body
-    (e.g. Gaussians for a per-track splat), after the row group holding it is committed; frames
-    committed by an earlier, interrupted run are not replayed.
+    the settings digest. `on_frame(frame)` is called for every processed frame (progress bars).
+    `on_extra(frame, person_id, extra)` receives, for every written row, the predictor's outputs
+    beyond the body (e.g. Gaussians for a per-track splat), after the row group holding it is
+    committed; frames committed by an earlier, interrupted run are not replayed.
     Partial work lives in `staging_root` (default: the hidden sibling .<out_root name>.inprogress),
     never inside `out_root`, so readers of the dataset only ever see finished videos.
     """

@@ -21,7 +21,8 @@ SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17
 # BlazePose bones drawn for the landmark model's skeleton: limbs, torso outline, shoulders-nose.
 LANDMARK_BONES = BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)) + ((0, 11), (0, 12))
 
-# Angle at the middle joint between the segments to the first and last joint (degrees, 180 = straight).
+# Angle at the middle joint between the segments to the first and last joint
+# (degrees, 180 = straight).
 _J = {n: i for i, n in enumerate(SMPL_JOINT_NAMES)}
 ANGLES = {
     "left_knee": ("left_hip", "left_knee", "left_ankle"),
@@ -217,8 +218,8 @@ def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: in
     if people:
         axes[0, 0].legend(fontsize=8)
     fig.suptitle(
-        f"{meta['video']['name']}: joint angles ({meta['model']['name']} {meta['model']['version']}, "
-        f"joints3d in the {meta['axes']['joints3d']} frame)"
+        f"{meta['video']['name']}: joint angles ({meta['model']['name']} "
+        f"{meta['model']['version']}, joints3d in the {meta['axes']['joints3d']} frame)"
     )
     out_png = Path(out_png)
     try:

@@ -253,6 +253,7 @@ def parse_metadata(schema: pa.Schema) -> dict:
             out[key[4:]] = json.loads(v.decode())
     if out.get("format") != FORMAT_NAME:
         raise ValueError(
-            f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected {FORMAT_NAME!r}"
+            f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected "
+            f"{FORMAT_NAME!r}"
         )
     return out

@@ -12,13 +12,13 @@ A pair is allowed only if its cost is at most `max_cost`, the boxes overlap (IoU
 the 3D positions are within the gate, and the positions are within `hard_gate` gates (a
 generous bound, since monocular depth is noisy). scipy's linear_sum_assignment picks the cheapest
 allowed matching, confirmed tracks first and tentative ones among the detections left (a
-duplicate detection's tentative track cannot take a person over). Unmatched tracks coast on their velocity for up to `max_misses` processed
-frames (short occlusions), then end; unmatched detections start tentative tracks. A
-tentative track gets its id only once it has been matched in `min_hits` consecutive processed
-frames (until then its detections get id -1, and one miss ends it), so flickering fragments and
-false detections do not use up ids. Their detections are not lost: when a track is confirmed,
-`step` hands back the keys of the observations it made while tentative (`Assignment.backfill`),
-so the person's rows start where they appeared.
+duplicate detection's tentative track cannot take a person over). Unmatched tracks coast on
+their velocity for up to `max_misses` processed frames (short occlusions), then end; unmatched
+detections start tentative tracks. A tentative track gets its id only once it has been matched
+in `min_hits` consecutive processed frames (until then its detections get id -1, and one miss
+ends it), so flickering fragments and false detections do not use up ids. Their detections are
+not lost: when a track is confirmed, `step` hands back the keys of the observations it made while
+tentative (`Assignment.backfill`), so the person's rows start where they appeared.
 
 One person, one id (gst.track.parts): an observation left unmatched by the confirmed tracks that
 lies mostly inside the box of an observation a confirmed track took in the same frame, and is a
