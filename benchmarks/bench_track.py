@@ -150,8 +150,8 @@ def main() -> None:
         det = SuppliedBoxes.from_file(write_boxes_csv(tmp / "boxes.csv", boxes, "bench"))
         n = args.frames
         print(
-            f"video: {W}x{H} {args.codec}, {n} frames at {FPS:.0f} fps, {args.people} people per frame, "
-            f"median of {args.repeats} runs"
+            f"video: {W}x{H} {args.codec}, {n} frames at {FPS:.0f} fps, {args.people} people per "
+            f"frame, median of {args.repeats} runs"
         )
         print(
             f"{'variant':44s} {'s':>7s} {'frames/s':>9s} {'x realtime':>10s} {'ms/frame':>9s} "
@@ -162,7 +162,8 @@ def main() -> None:
             fps = n / seconds
             e = f"{err[0]:6d} {err[1]:9.3f}" if err else f"{'-':>6s} {'-':>9s}"
             print(
-                f"{name:44s} {seconds:7.2f} {fps:9.1f} {fps / FPS:10.2f} {1000 * seconds / n:9.2f} {e}",
+                f"{name:44s} {seconds:7.2f} {fps:9.1f} {fps / FPS:10.2f} {1000 * seconds / n:9.2f} "
+                f"{e}",
                 flush=True,
             )
 
@@ -180,7 +181,8 @@ def main() -> None:
 
         s, _ = timed(crops_only, args.repeats)
         print(
-            f"{'  crops alone (256 px, per detection)':44s} {1000 * s / (len(frames) * args.people):7.2f} ms"
+            f"{'  crops alone (256 px, per detection)':44s} "
+            f"{1000 * s / (len(frames) * args.people):7.2f} ms"
         )
 
         variants = [
@@ -374,10 +376,10 @@ def components(video: Path, camera, n: int, gst, fps: float) -> None:
     net = _cpu(lambda: [gst(images[i : i + 32], Ks[i : i + 32]) for i in range(0, len(cut), 32)])
     people = len(cut) / len(frames)
     print(
-        f"parts alone, CPU ms per frame ({people:.1f} people per frame): decode {1000 * decode / n:.1f}, "
-        f"person model {1000 * detect / n:.1f} ({det.detector_runs} detector runs, "
-        f"{det.regions} landmark regions), crops + appearance {1000 * crops / n:.1f}, "
-        f"{gst.name} {1000 * net / n:.1f}"
+        f"parts alone, CPU ms per frame ({people:.1f} people per frame): decode "
+        f"{1000 * decode / n:.1f}, person model {1000 * detect / n:.1f} ({det.detector_runs} "
+        f"detector runs, {det.regions} landmark regions), crops + appearance "
+        f"{1000 * crops / n:.1f}, {gst.name} {1000 * net / n:.1f}"
     )
 
 
