@@ -1,4 +1,5 @@
-"""Picklable item functions for the scale-out tests (workers import them as tests.scaleout_items)."""
+"""Picklable item functions for the scale-out tests (workers import them as
+tests.scaleout_items)."""
 
 from __future__ import annotations
 

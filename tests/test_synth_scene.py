@@ -283,7 +283,8 @@ def test_board_calibration_recovers_the_synthetic_rig(tmp_path):
 
 @pytest.mark.parametrize("kind", ["dome", "h36m", "hall"])
 def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
-    """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras exactly."""
+    """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras
+    exactly."""
     from synth.rigs import make_rig
 
     spec = _tiny(

@@ -333,7 +333,8 @@ def test_two_people_apart_keep_their_ids(walkers, tmp_path):
             cam,
             ev.persons,
         )
-        # a standing T-pose against walking people: a finite, person-sized error, placed in the world
+        # a standing T-pose against walking people: a finite, person-sized error, placed in the
+        # world
         assert ev.joints_frame == "world" and 50 < ev.mpjpe_mm < 600 and ev.root_error_mm < 1000
         # the metric is not blind on this file: swapping the two ids half-way is one switch each
         t = pq.read_table(res.path)

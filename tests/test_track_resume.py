@@ -130,7 +130,8 @@ KILL_SCRIPT = textwrap.dedent("""
 
     track_video(sys.argv[2], sys.argv[3], SuppliedBoxes.from_file(sys.argv[4]), KillingPredictor(),
                 model={"name": "test-double", "version": "0"},
-                options=TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0),
+                options=TrackOptions(frames_per_group=7, batch_size=5,
+                                     smoothing=OneEuroConfig(0.8, 0.2, 1.0),
                                      tracker=TrackerConfig(min_hits=3)))
 """)
 
