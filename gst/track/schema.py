@@ -17,37 +17,11 @@ from dataclasses import dataclass
 import pyarrow as pa
 
 from gst.body.markers import BLAZEPOSE_NAMES
+from gst.body.skeleton import SMPL_JOINT_NAMES
 
 # Version 2 added the landmark model's 2D joints (landmarks2d, landmarks_conf) and the
 # gst.landmark_names / gst.detector metadata; version-1 columns are unchanged.
 FORMAT_NAME, FORMAT_VERSION = "gst-capture/tracks", 2
-
-SMPL_JOINT_NAMES = (
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hand",
-    "right_hand",
-)
 
 
 @dataclass(frozen=True)
