@@ -57,14 +57,7 @@ def scene(tmp_path_factory):
 @pytest.fixture(scope="module")
 def reference(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref")
-    res = track_video(
-        scene["video"],
-        out,
-        SuppliedBoxes.from_file(scene["csv"]),
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=OPTIONS,
-    )
+    res = track(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]))
     t = read_tracks(res.path)
     late = t.filter(pc.equal(t.column("person_id"), 2)).column("frame").to_pylist()
     assert late == list(range(LATE, N))  # rows from the first frame, though confirmed later
@@ -73,6 +66,12 @@ def reference(scene, tmp_path_factory):
 
 def staging_of(out):
     return default_staging_root(out) / "video=clip"
+
+
+def track(video: Path, out: Path, det: SuppliedBoxes, predictor=None, **kwargs):
+    """track_video with the test model, OPTIONS unless given, BoxDepthPredictor by default."""
+    kwargs.setdefault("options", OPTIONS)
+    return track_video(video, out, det, predictor or BoxDepthPredictor(), model=MODEL, **kwargs)
 
 
 class FailingPredictor(BoxDepthPredictor):
@@ -87,18 +86,16 @@ class FailingPredictor(BoxDepthPredictor):
         return super().__call__(crops, K_crop)
 
 
+def crash_mid_run(scene, out: Path, det: SuppliedBoxes, fail_on_call: int) -> None:
+    """A run whose model crashes on call `fail_on_call`, leaving its committed rows staged."""
+    with pytest.raises(RuntimeError, match="model crashed"):
+        track(scene["video"], out, det, FailingPredictor(fail_on_call=fail_on_call))
+
+
 def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     out = tmp_path / "out"
-    with pytest.raises(RuntimeError, match="model crashed"):
-        track_video(
-            scene["video"],
-            out,
-            det,
-            FailingPredictor(fail_on_call=13),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, out, det, fail_on_call=13)
     assert not (out / "video=clip" / "tracks.parquet").exists()  # nothing presented as complete
     segments = sorted(staging_of(out).glob("seg-*.parquet"))
     assert 2 <= len(segments) < 6
@@ -107,7 +104,7 @@ def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
     progress = json.loads((staging_of(out) / "progress.json").read_text())
     before = progress["state"]["elapsed_s"]  # the killed part's time, kept beside the state
     assert before > 0
-    res = track_video(scene["video"], out, det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    res = track(scene["video"], out, det)
     assert res.resumed_from_frame == 7 * len(segments)
     assert res.path.read_bytes() == reference  # the time never enters the output
     assert res.seconds >= before  # frames/s of a resumed run count the earlier part's time too
@@ -160,14 +157,7 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path, 
     assert (staging / "progress.json").exists() and not (
         out / "video=clip" / "tracks.parquet"
     ).exists()
-    res = track_video(
-        scene["video"],
-        out,
-        SuppliedBoxes.from_file(scene["csv"]),
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=OPTIONS,
-    )
+    res = track(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]))
     # call 8 is the first batch of frames 14..20: the late person's rows of 12, 13 were held
     assert res.resumed_from_frame == (14 if kill_on_call == 8 else 21)
     assert res.path.read_bytes() == reference
@@ -178,69 +168,35 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path, 
 
 def test_orphan_segment_from_an_interrupted_commit_is_discarded(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(RuntimeError):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            FailingPredictor(fail_on_call=10),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, tmp_path / "out", det, fail_on_call=10)
     staging = staging_of(tmp_path / "out")
     segs = sorted(staging.glob("seg-*.parquet"))
     # a kill between writing a segment and recording it leaves an unrecorded segment behind
     (staging / f"seg-{len(segs):06d}.parquet").write_bytes(segs[0].read_bytes())
-    res = track_video(
-        scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
-    )
+    res = track(scene["video"], tmp_path / "out", det)
     assert res.path.read_bytes() == reference
 
 
 def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(RuntimeError):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            FailingPredictor(fail_on_call=10),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, tmp_path / "out", det, fail_on_call=10)
+    plain = TrackOptions(frames_per_group=7, batch_size=5)
     with pytest.raises(
         ResumeError,
         match=r"different settings exists \(changed: \['options.smoothing', "
         r"'options.tracker.min_hits'\]\)",
     ):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            BoxDepthPredictor(),
-            model=MODEL,
-            options=TrackOptions(frames_per_group=7, batch_size=5),
-        )
-    res = track_video(
-        scene["video"],
-        tmp_path / "out",
-        det,
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=TrackOptions(frames_per_group=7, batch_size=5),
-        resume=False,
-    )
+        track(scene["video"], tmp_path / "out", det, options=plain)
+    res = track(scene["video"], tmp_path / "out", det, options=plain, resume=False)
     assert res.resumed_from_frame is None and res.rows == ROWS
 
 
 def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    track_video(
-        scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
-    )
+    track(scene["video"], tmp_path / "out", det)
     staging_of(tmp_path / "out").mkdir(parents=True)  # as if killed after the final rename
     never = FailingPredictor(fail_on_call=1)
-    res = track_video(scene["video"], tmp_path / "out", det, never, model=MODEL, options=OPTIONS)
+    res = track(scene["video"], tmp_path / "out", det, never)
     assert never.calls == 0 and res.rows == ROWS and res.path.read_bytes() == reference
     assert not default_staging_root(tmp_path / "out").exists()
 
@@ -253,7 +209,7 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
     with pytest.raises(
         VideoTruncatedError, match=r"clip.avi: decoding failed at frame (\d+)"
     ) as err:
-        track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+        track(cut, tmp_path / "out", det)
     bad = err.value.frame
     staging = staging_of(tmp_path / "out")
     rows = pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None).read()
@@ -261,7 +217,7 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
     assert not (tmp_path / "out" / "video=clip" / "tracks.parquet").exists()
     # a rerun on the same damaged file resumes at the damage and stops there again
     with pytest.raises(VideoTruncatedError):
-        track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+        track(cut, tmp_path / "out", det)
     np.testing.assert_array_equal(
         pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None)
         .read()
@@ -273,19 +229,9 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
 
 def test_unreadable_progress_record_is_reported(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(RuntimeError):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            FailingPredictor(fail_on_call=10),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, tmp_path / "out", det, fail_on_call=10)
     progress = staging_of(tmp_path / "out") / "progress.json"
     progress.write_text("{not json")
     with pytest.raises(ResumeError, match="progress.json: unreadable progress record"):
-        track_video(
-            scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
-        )
+        track(scene["video"], tmp_path / "out", det)
     os.remove(progress)
