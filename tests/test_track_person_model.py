@@ -2,31 +2,13 @@
 own landmarks and the detector runs only when needed; batched landmark calls give the same
 numbers as one call per region; boxes and landmarks come back in full-frame pixels."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
-LAB = Path("/work/shared/real/pose2sim-multiperson")
+from tests.real_capture import LAB, NEEDS_MODELS_AND_LAB
 
-
-def _models_ready() -> bool:
-    try:
-        from gst.detect.blazepose import import_litert
-        from gst.detect.weights import model_paths
-
-        import_litert()
-        model_paths()
-        return True
-    except Exception:
-        return False
-
-
-pytestmark = [
-    pytest.mark.skipif(not _models_ready(), reason="BlazePose models or LiteRT not installed"),
-    pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine"),
-]
+pytestmark = NEEDS_MODELS_AND_LAB
 
 
 @pytest.fixture(scope="module")

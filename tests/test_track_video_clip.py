@@ -6,7 +6,6 @@ segmentation, and the file says what ran (detector, model, no world coordinates)
 
 import json
 import logging
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -15,28 +14,12 @@ import pytest
 
 from gst.detect.blazepose import BlazePose
 from gst.detect.persons import LIMB_JOINTS, PersonSegmenter, SegmenterConfig
+from tests.real_capture import LAB, NEEDS_MODELS_AND_LAB
 
-LAB = Path("/work/shared/real/pose2sim-multiperson")
 FIRST, N = 60, 20  # cam04 60..79: the man's arms over the woman, and a duplicate region (70-77)
 SCALE = 0.5  # 544 x 960: the person model's work resolution, quicker to decode and crop
 
-
-def _models_ready() -> bool:
-    try:
-        from gst.detect.blazepose import import_litert
-        from gst.detect.weights import model_paths
-
-        import_litert()
-        model_paths()
-        return True
-    except Exception:
-        return False
-
-
-pytestmark = [
-    pytest.mark.skipif(not _models_ready(), reason="BlazePose models or LiteRT not installed"),
-    pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine"),
-]
+pytestmark = NEEDS_MODELS_AND_LAB
 
 
 @pytest.fixture(scope="module")
