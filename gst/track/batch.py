@@ -104,7 +104,7 @@ def _run_settings(job: VideoJob) -> dict[str, Any]:
 
 
 def _chunked_run(job: VideoJob, chunking: ChunkingConfig) -> VideoRun:
-    """The job's run plan with the chunking in its settings (the caller's and the workers' agree)."""
+    """The job's run plan with the chunking in its settings (caller and workers agree)."""
     return plan_run(job.video, extra_settings=_chunk_settings(job, chunking), **_run_settings(job))
 
 
