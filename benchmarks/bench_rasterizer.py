@@ -19,9 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +28,7 @@ from torch.utils.checkpoint import checkpoint
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.timing import median_time  # noqa: E402
 from gst.render.conventions import (  # noqa: E402
     ALPHA_MAX,
     ALPHA_MIN,
@@ -145,15 +144,6 @@ def dense_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width
     return acc[..., :3], acc[..., 4], acc[..., 3]
 
 
-def _timed(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
-
-
 def _run(render, scene, size, loss_w, repeats, warmup=True):
     """(forward s, forward+backward s, rgb, alpha, grad of means) for one rasteriser."""
     inputs = [t.clone().requires_grad_(True) for t in scene]
@@ -171,8 +161,8 @@ def _run(render, scene, size, loss_w, repeats, warmup=True):
 
     if warmup:
         fwd()  # allocator, thread pool
-    t_f, _ = _timed(fwd, repeats)
-    t_fb, (rgb, alpha, gmeans) = _timed(fwd_bwd, repeats)
+    t_f, _ = median_time(fwd, repeats)
+    t_fb, (rgb, alpha, gmeans) = median_time(fwd_bwd, repeats)
     return t_f, t_fb, rgb, alpha, gmeans
 
 

@@ -41,6 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.timing import median_time  # noqa: E402
 from calibration import Camera  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.data.crop import crop_window, cut_crop  # noqa: E402
@@ -109,15 +110,6 @@ def tiny_checkpoint(path: Path) -> Path:
     return path
 
 
-def timed(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -167,9 +159,9 @@ def main() -> None:
                 flush=True,
             )
 
-        s, _ = timed(lambda: sum(1 for _ in iter_frames(video)), args.repeats)
+        s, _ = median_time(lambda: sum(1 for _ in iter_frames(video)), args.repeats)
         row("decode only", s)
-        s, _ = timed(lambda: sum(1 for _ in iter_frames(video, prefetch=4)), args.repeats)
+        s, _ = median_time(lambda: sum(1 for _ in iter_frames(video, prefetch=4)), args.repeats)
         row("decode only, prefetch thread", s)
 
         frames = [f.image for f in iter_frames(video, end_s=min(n, 30) / FPS)]
@@ -179,7 +171,7 @@ def main() -> None:
                 for b in boxes[i]:
                     cut_crop(img, crop_window(b, 256))
 
-        s, _ = timed(crops_only, args.repeats)
+        s, _ = median_time(crops_only, args.repeats)
         print(
             f"{'  crops alone (256 px, per detection)':44s} "
             f"{1000 * s / (len(frames) * args.people):7.2f} ms"
@@ -218,7 +210,7 @@ def main() -> None:
                     resume=False,
                 )
 
-            s, res = timed(run, args.repeats)
+            s, res = median_time(run, args.repeats)
             row(name, s, errors(res.path, boxes))
 
         checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
@@ -255,7 +247,7 @@ def main() -> None:
                     resume=False,
                 )
 
-            s, res = timed(run_gst, args.repeats)
+            s, res = median_time(run_gst, args.repeats)
             row(name, s, errors(res.path, boxes))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
