@@ -26,7 +26,7 @@ from gst.track import (
 )
 from gst.track.tracker import TrackerConfig
 from gst.track.writer import default_staging_root
-from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+from tests.track_synthetic import crossing_clip, write_boxes_csv
 
 W, H, N = 320, 240, 40
 MODEL = {"name": "test-double", "version": "0"}
@@ -46,9 +46,7 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("scene")
-    walkers = crossing_scene(N, W, H)
-    boxes = walker_boxes(walkers, N)
-    video = write_video(d / "clip.avi", render(walkers, boxes, W, H), W, H)
+    _, boxes, video = crossing_clip(d, N, W, H)
     visible = np.ones(boxes.shape[:2], bool)
     visible[:LATE, 2] = False
     return {"video": video, "csv": write_boxes_csv(d / "boxes.csv", boxes, "clip", visible)}
