@@ -29,6 +29,7 @@ from torch.utils.checkpoint import checkpoint
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.timing import median_time  # noqa: E402
+from calibration.camera import look_at_rotation  # noqa: E402
 from gst.render.conventions import (  # noqa: E402
     ALPHA_MAX,
     ALPHA_MIN,
@@ -74,11 +75,7 @@ def body_scene(n: int, size: int, seed: int = 0, dtype=torch.float32):
 
     # OpenCV camera at (0.3, -3, 0.1) looking at the origin: x right, y down (-z world), z in.
     eye = np.array([0.3, -3.0, 0.1])
-    fwd = -eye / np.linalg.norm(eye)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    rot = np.stack([right, down, fwd])
+    rot = look_at_rotation(eye, np.zeros(3))
     view = np.eye(4)
     view[:3, :3] = rot
     view[:3, 3] = -rot @ eye
