@@ -33,9 +33,10 @@ from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.data.store import CropStore
 from gst.fuse.export import write_c3d, write_trc
-from gst.fuse.fit import FitOptions, PersonFit, _dense_tri, fit_people
+from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import crop_landmarks, group_by_person
 from gst.fuse.report import FuseSummary, summarise, write_report
+from gst.fuse.start import dense_triangulation
 from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
 from gst.fuse.triangulate import TriangulationOptions, triangulate_person
 
@@ -200,7 +201,8 @@ def fuse_scene(
             log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
 
     dense_tris = [
-        _dense_tri(t, p.frames, f.frames) for t, p, f in zip(tris, people, fits, strict=True)
+        dense_triangulation(t, p.frames, f.frames)
+        for t, p, f in zip(tris, people, fits, strict=True)
     ]
     evidence = [joint_evidence(f, t) for f, t in zip(fits, dense_tris, strict=True)]
     n_frames = int(store.attrs.get("n_frames", 0)) or (
