@@ -1,22 +1,23 @@
 """fuse: one world-space body per person and frame from all cameras (docs/formats/fused_*.md).
 
-Library: `gst.fuse.fuse_scene` (robust triangulation of the crops' BlazePose landmarks, then a
-body fit over the clip). Writes `fused/` (bodies and landmarks Parquet, TRC, C3D) and
+Library: `gst.fuse.fuse_scene` (BlazePose landmarks per crop, view consensus, robust
+triangulation, then a body fit over the clip; docs/fuse.md). Writes `fused/` (bodies and landmarks Parquet, TRC, C3D) and
 `reports/fuse/` (report, overlay videos; on synthetic scenes the error against the truth).
 """
 
 from __future__ import annotations
 
 from calibration.formats import read_rig
-from gst.fuse import FitOptions, FuseOptions, fuse_scene
+from gst.fuse import ConsensusOptions, FitOptions, FuseOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
 
 class Params(StageParams):
     body_model: str = "anny"  # or "smpl", or a path to your SMPL file (docs/body_model.md)
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
-    iterations: int = 200  # L-BFGS iterations of the body fit
-    smoothness: float = 0.1  # weight of the temporal smoothness term
+    iterations: int = 15  # Levenberg-Marquardt iterations of the body fit
+    smoothness: float = 1.0  # weight of the temporal smoothness term
+    consensus: bool = True  # drop views that show another person (docs/fuse.md)
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -33,6 +34,7 @@ def run(ctx: StageContext) -> None:
             body_model=p.body_model,
             markers=p.markers,
             fit=FitOptions(iterations=p.iterations, w_smooth=p.smoothness),
+            consensus=ConsensusOptions() if p.consensus else None,
             people_per_batch=p.people_per_batch,
             overlay=p.overlay,
         ),

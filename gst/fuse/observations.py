@@ -3,8 +3,14 @@
 Input is the crop store (gst.data.store): per crop `K_crop`, `R`, `t`, `frame`, `person_id`,
 `camera`. Landmarks are BlazePose's 33 (MediaPipe order) in crop pixels with a confidence
 (visibility x presence). `crop_landmarks` is the one place they come from: the store's
-`landmarks` dataset when it has one, else BlazePose run on each crop with the whole crop as its
-region of interest.
+`landmarks` dataset when it has one, else BlazePose on each crop (`detect_crop`).
+
+`detect_crop` runs the landmark model as it was trained: a first pass on the whole crop gives
+the alignment keypoints (hip centre and full-body scale point), whose region (centred on the
+hips, rotated upright, 1.25 x the body circle) is where the second pass looks; the second pass
+also runs on the mirrored region (left and right exchanged back), and the two are averaged. On
+tuning worlds this lowers the median landmark error by about 8-10 % against the single
+whole-crop pass, and the fused body's MPJPE by 14 % (docs/fuse.md).
 """
 
 from __future__ import annotations
@@ -17,24 +23,54 @@ import numpy as np
 
 from gst.data.store import CropStore
 
-__all__ = ["PersonObservations", "crop_landmarks", "group_by_person", "N_LANDMARKS"]
+__all__ = ["PersonObservations", "crop_landmarks", "detect_crop", "group_by_person", "N_LANDMARKS"]
 
 N_LANDMARKS = 33
 
 
-def crop_landmarks(store: CropStore, rows: np.ndarray | None = None, progress=None) -> np.ndarray:
-    """(N, 33, 3) landmarks of the store's `rows` (default all): u, v in crop pixels, confidence."""
+def _mirror_index() -> np.ndarray:
+    from gst.body.markers import BLAZEPOSE_NAMES as names
+
+    flip = [n.replace("left", "@").replace("right", "left").replace("@", "right") for n in names]
+    return np.array([names.index(n) for n in flip])
+
+
+def detect_crop(model, image: np.ndarray, refine: bool = True) -> np.ndarray:
+    """(33, 3) landmarks of the person in a square BGR crop: u, v in crop pixels, confidence
+    (visibility x presence). `model`: a gst.detect.blazepose.BlazePose. `refine`: second pass on
+    the first pass's alignment region, averaged with its mirror image; else the first pass."""
+    from gst.detect.blazepose import BodyRoi
+
+    s = image.shape[0]
+    seg = model.segment(image, BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0))
+    if not refine:
+        return np.c_[seg.landmarks[:, :2], seg.landmarks[:, 2] * seg.presence]
+    roi = seg.next_roi
+    a = model.segment(image, roi)
+    w = image.shape[1]
+    mirrored = BodyRoi((w - 1 - roi.centre[0], roi.centre[1]), roi.side, -roi.angle)
+    b = model.segment(np.ascontiguousarray(image[:, ::-1]), mirrored)
+    lb = b.landmarks[_mirror_index()].copy()
+    lb[:, 0] = w - 1 - lb[:, 0]
+    xy = (a.landmarks[:, :2] + lb[:, :2]) / 2
+    conf = (a.landmarks[:, 2] * a.presence + lb[:, 2] * b.presence) / 2
+    return np.c_[xy, conf]
+
+
+def crop_landmarks(
+    store: CropStore, rows: np.ndarray | None = None, progress=None, refine: bool = True
+) -> np.ndarray:
+    """(N, 33, 3) landmarks of the store's `rows` (default all): u, v in crop pixels, confidence.
+    `refine`: see `detect_crop` (ignored when the store holds landmarks)."""
     rows = np.arange(len(store)) if rows is None else np.asarray(rows, np.int64)
     with h5py.File(store.path, "r") as f:
         if "landmarks" in f:  # written by the extraction (crowd helper's association)
             return np.asarray(f["landmarks"][np.sort(rows)], np.float32)[
                 np.argsort(np.argsort(rows))
             ]
-    from gst.detect.blazepose import BlazePose, BodyRoi
+    from gst.detect.blazepose import BlazePose
 
     model = BlazePose(threads=1)
-    s = store.crop_size
-    roi = BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0)
     out = np.zeros((len(rows), N_LANDMARKS, 3), np.float32)
     chunks = range(0, len(rows), 64)
     if progress is not None:
@@ -42,9 +78,7 @@ def crop_landmarks(store: CropStore, rows: np.ndarray | None = None, progress=No
     for a in chunks:
         batch = store.read(rows[a : a + 64])
         for i, img in enumerate(batch.images):
-            seg = model.segment(np.ascontiguousarray(img), roi)
-            out[a + i, :, :2] = seg.landmarks[:, :2]
-            out[a + i, :, 2] = seg.landmarks[:, 2] * seg.presence
+            out[a + i] = detect_crop(model, np.ascontiguousarray(img), refine)
     return out
 
 

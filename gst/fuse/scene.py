@@ -1,8 +1,9 @@
 """`fuse_scene`: from a scene's crop store to world-space bodies, marker files and a report.
 
-Steps: landmarks per crop (gst.fuse.observations) -> robust triangulation per person
-(gst.fuse.triangulate) -> body fit over the clip (gst.fuse.fit), people in fixed batches ->
-outputs (docs/formats/fused_*.md):
+Steps: landmarks per crop (gst.fuse.observations) -> per person-frame view consensus (views
+showing another person dropped, exchanged left/right limb groups put right: gst.fuse.consensus)
+-> robust triangulation per person (gst.fuse.triangulate) -> body fit over the clip
+(gst.fuse.fit), people in fixed batches -> outputs (docs/formats/fused_*.md):
 
     fused/bodies.parquet        the tracks schema in the world frame, + per-joint evidence
     fused/landmarks.parquet     triangulated BlazePose landmarks, views, errors, confidence
@@ -32,6 +33,7 @@ from gst.atomic import atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.data.store import CropStore
+from gst.fuse.consensus import ConsensusOptions, view_consensus
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import crop_landmarks, group_by_person
@@ -49,6 +51,8 @@ class FuseOptions:
     markers: str | None = None  # a markers JSON; None: the package's fitted table
     fit: FitOptions = FitOptions()
     triangulation: TriangulationOptions = TriangulationOptions()
+    consensus: ConsensusOptions | None = ConsensusOptions()  # None: keep every view
+    refine_landmarks: bool = True  # second BlazePose pass (gst.fuse.observations.detect_crop)
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     threads: int = 1
@@ -175,9 +179,11 @@ def fuse_scene(
         if lm_path.is_file():
             landmarks = np.load(lm_path)
         else:
-            landmarks = crop_landmarks(store, progress=progress)
+            landmarks = crop_landmarks(store, progress=progress, refine=o.refine_landmarks)
             _save_npy(lm_path, landmarks)
     people = group_by_person(store, landmarks)
+    if o.consensus is not None:
+        people = [view_consensus(p, o.consensus)[0] for p in people]
     tris = [triangulate_person(p, o.triangulation) for p in people]
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
