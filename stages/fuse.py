@@ -8,7 +8,7 @@ triangulation, then a body fit over the clip; docs/fuse.md). Writes `fused/` (bo
 from __future__ import annotations
 
 from calibration.formats import read_rig
-from gst.fuse import ConsensusOptions, FitOptions, FuseOptions, fuse_scene
+from gst.fuse import FitOptions, FuseOptions, RegroupOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
 
@@ -17,7 +17,7 @@ class Params(StageParams):
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
     iterations: int = 15  # Levenberg-Marquardt iterations of the body fit
     smoothness: float = 1.0  # weight of the temporal smoothness term
-    consensus: bool = True  # drop views that show another person (docs/fuse.md)
+    regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -34,7 +34,7 @@ def run(ctx: StageContext) -> None:
             body_model=p.body_model,
             markers=p.markers,
             fit=FitOptions(iterations=p.iterations, w_smooth=p.smoothness),
-            consensus=ConsensusOptions() if p.consensus else None,
+            regroup=RegroupOptions() if p.regroup else None,
             people_per_batch=p.people_per_batch,
             overlay=p.overlay,
         ),

@@ -60,6 +60,8 @@ class ConsensusReport:
     dropped: np.ndarray  # (T, C) bool: view dropped for this person-frame
     swapped: np.ndarray  # (T, C, 3) bool: limb group (arms, legs, torso) exchanged
     error: np.ndarray  # (T, C) median landmark error against the winning hypothesis, full px
+    points: np.ndarray  # (T, M, 3) the winner triangulated from its agreeing views (NaN: none)
+    agreeing: np.ndarray  # (T,) int: views that agreed with the winning pair
 
 
 def _view_errors(obs, X, uv, conf, min_conf):
@@ -116,8 +118,9 @@ def view_consensus(
     conf = np.where(conf >= o.min_confidence, conf, 0.0) * seen[..., None]
     pairs = np.array(list(itertools.combinations(range(C), 2)))  # (H, 2)
     report = ConsensusReport(
-        np.zeros((T, C), bool), np.zeros((T, C, 3), bool), np.full((T, C), np.nan)
-    )
+        np.zeros((T, C), bool), np.zeros((T, C, 3), bool), np.full((T, C), np.nan),
+        np.full((T, M, 3), np.nan), np.zeros(T, int),
+    )  # fmt: skip
     if len(pairs) == 0:
         return obs, report
     wpair = np.zeros((T, len(pairs), C))
@@ -159,7 +162,8 @@ def view_consensus(
     err2 = err2[:, 0]
     drop = decide & ~(err2 < limit)
     out_conf[drop] = 0.0
-    report = ConsensusReport(drop, swap, err2)
+    X = np.where((n_best >= 2)[:, None, None], X, np.nan)
+    report = ConsensusReport(drop, swap, err2, X, n_best)
     return replace(obs, uv=out_uv, confidence=out_conf), report
 
 

@@ -168,10 +168,8 @@ def _marker_information(X, ev: Views | Points):
     e3 = torch.tensor([0.0, 0.0, 1.0], dtype=X.dtype)
     Pc = (ev.K[:, :, None, :2, :] - uv[..., :, None] * e3) / z[..., None]
     P = Pc @ ev.Rt[:, :, None, :, :3] * sc[..., None]  # (B, C, M, 2, 3)
-    return (
-        torch.einsum("bcmki,bcm,bcmkj->bmij", P, wv, P),
-        torch.einsum("bcmki,bcm,bcmk->bmi", P, wv, res),
-    )
+    Pw = P * wv[..., None, None]
+    return torch.einsum("bcmki,bcmkj->bmij", Pw, P), torch.einsum("bcmki,bcmk->bmi", Pw, res)
 
 
 def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights):
@@ -195,8 +193,9 @@ def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights):
             wa[nb.prev] * (wp > 0)[..., None] - 2 * wa + wa[nb.next] * (wn > 0)[..., None]
         )
         Hm = Hm + (w.accel_scale**2 * (wp + 4 * ws * c[:, None] + wn))[..., None, None] * eye
-    H = torch.einsum("bmip,bmij,bmjq->bpq", dX, Hm, dX)
-    g = torch.einsum("bmip,bmi->bp", dX, gm)
+    J = dX.reshape(B, M * 3, -1)
+    H = J.transpose(1, 2) @ (Hm @ dX).reshape(B, M * 3, -1)
+    g = (J.transpose(1, 2) @ gm.reshape(B, M * 3, 1))[..., 0]
     # pose prior and joint limits act on theta (columns 6..75), one 3x3 block per joint
     idx = torch.arange(6, N_POSE_PARAMS)
     H[:, idx, idx] += w.pose

@@ -1,9 +1,10 @@
 """`fuse_scene`: from a scene's crop store to world-space bodies, marker files and a report.
 
-Steps: landmarks per crop (gst.fuse.observations) -> per person-frame view consensus (views
-showing another person dropped, exchanged left/right limb groups put right: gst.fuse.consensus)
--> robust triangulation per person (gst.fuse.triangulate) -> body fit over the clip
-(gst.fuse.fit), people in fixed batches -> outputs (docs/formats/fused_*.md):
+Steps: landmarks per crop (gst.fuse.observations) -> people regrouped by 3D agreement and
+tracked (gst.fuse.regroup, with the per person-frame view consensus of gst.fuse.consensus:
+views that show another person move to that person or are dropped, exchanged left/right limb
+groups are put right) -> robust triangulation per person (gst.fuse.triangulate) -> body fit
+over the clip (gst.fuse.fit), people in fixed batches -> outputs (docs/formats/fused_*.md):
 
     fused/bodies.parquet        the tracks schema in the world frame, + per-joint evidence
     fused/landmarks.parquet     triangulated BlazePose landmarks, views, errors, confidence
@@ -33,10 +34,10 @@ from gst.atomic import atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.data.store import CropStore
-from gst.fuse.consensus import ConsensusOptions, view_consensus
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import crop_landmarks, group_by_person
+from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.report import FuseSummary, summarise, write_report
 from gst.fuse.start import dense_triangulation
 from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
@@ -51,7 +52,7 @@ class FuseOptions:
     markers: str | None = None  # a markers JSON; None: the package's fitted table
     fit: FitOptions = FitOptions()
     triangulation: TriangulationOptions = TriangulationOptions()
-    consensus: ConsensusOptions | None = ConsensusOptions()  # None: keep every view
+    regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
     refine_landmarks: bool = True  # second BlazePose pass (gst.fuse.observations.detect_crop)
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
@@ -182,8 +183,13 @@ def fuse_scene(
             landmarks = crop_landmarks(store, progress=progress, refine=o.refine_landmarks)
             _save_npy(lm_path, landmarks)
     people = group_by_person(store, landmarks)
-    if o.consensus is not None:
-        people = [view_consensus(p, o.consensus)[0] for p in people]
+    if o.regroup is not None:
+        people, regrouped = regroup_people(people, o.regroup)
+        if log is not None:
+            log.info(
+                "fuse: %d people after regrouping (%d crops moved to another person)",
+                regrouped.tracks, regrouped.moved_crops,
+            )  # fmt: skip
     tris = [triangulate_person(p, o.triangulation) for p in people]
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
