@@ -207,10 +207,6 @@ class CameraDetections:
     frames_searched: int
     detections: list[FrameDetection] = field(default_factory=list)
 
-    @property
-    def n_detections(self) -> int:
-        return len(self.detections)
-
 
 class BoardDetector:
     """Finds board corners in grayscale or colour images. Build once per board, reuse per frame."""

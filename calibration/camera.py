@@ -223,6 +223,45 @@ class Camera:
         return cv2.undistort(image, self.K, self.dist)
 
 
+FRAME_PADDING_TOLERANCE = 16  # pixels; H.264 pads frame sizes to multiples of 16
+
+
+def fit_to_frames(
+    camera: Camera, width: int, height: int, tolerance: int = FRAME_PADDING_TOLERANCE, source=""
+) -> tuple[Camera, str | None]:
+    """The camera for decoded frames of `width` x `height`, and a note when they differ.
+
+    Encoders pad a frame to a multiple of 16 (1080 rows become 1088), and a calibration can
+    state the padded size while the video decodes to the real one, or the other way round. The
+    padding sits at the bottom and the right, so the intrinsics hold as they are: frames that
+    are smaller than the calibrated size by at most `tolerance` pixels in each direction give
+    the same camera with the frame size. Anything else (larger frames, a bigger difference, a
+    rotated frame) raises CameraError naming the camera, both sizes and the fix."""
+    if (width, height) == (camera.width, camera.height):
+        return camera, None
+    dw, dh = camera.width - width, camera.height - height
+    if 0 <= dw <= tolerance and 0 <= dh <= tolerance:
+        note = (
+            f"camera '{camera.name}': frames are {width}x{height}, the calibration says "
+            f"{camera.width}x{camera.height} (encoder padding of {dw} columns and {dh} rows at "
+            "the right and bottom); using the calibration's intrinsics with the frame size"
+        )
+        resized = Camera(
+            camera.name, camera.K, camera.dist, camera.R, camera.t, width, height,
+            {**camera.meta, "frame_size_note": note},
+        )  # fmt: skip
+        return resized, note
+    where = f" ({source})" if source else ""
+    raise CameraError(
+        f"camera '{camera.name}'{where}: frames are {width}x{height}, but the calibration says "
+        f"{camera.width}x{camera.height}; frames up to {tolerance} px smaller (encoder padding) "
+        "are accepted. Fix the camera's image size in the calibration file (rig.json "
+        "width/height; Qualisys fov_video; Panoptic resolution), or, if the difference is "
+        "padding, raise the scene's frame_size_tolerance, e.g. "
+        "--set scenes.NAME.frame_size_tolerance=32"
+    )
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
     """An ordered set of cameras sharing one world frame (metres, `up` is the world up axis)."""

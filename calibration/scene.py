@@ -17,14 +17,14 @@ from typing import Any
 import numpy as np
 
 from calibration.board import BoardSpec
-from calibration.camera import Rig
+from calibration.camera import FRAME_PADDING_TOLERANCE, Rig, fit_to_frames
 from calibration.checks import check_rig
 from calibration.compare import RigComparison, compare_rigs
 from calibration.formats import read_rig, write_rig
 from calibration.report import write_calibration_report
 from calibration.solve import BoardCalibration, calibrate_from_board
 from gst.atomic import atomic_write_json
-from gst.video import VideoError, read_frames
+from gst.video import VideoError, probe_video, read_frames
 
 log = logging.getLogger("calibration")
 
@@ -48,6 +48,7 @@ class SolveSettings:
     max_frames: int | None = None  # cap on board frames searched per camera
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
+    frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # encoder padding accepted, in pixels
 
 
 @dataclass
@@ -60,6 +61,7 @@ class SceneCalibration:
     solved: BoardCalibration | None = None
     problems: tuple[str, ...] = ()
     against_truth: RigComparison | None = None
+    frame_size_notes: tuple[str, ...] = ()  # cameras fitted to their videos' frame size
 
 
 def first_frames(videos: dict[str, Path]) -> dict[str, np.ndarray]:
@@ -72,6 +74,29 @@ def first_frames(videos: dict[str, Path]) -> dict[str, np.ndarray]:
         except VideoError as exc:
             log.warning("calibration report: no overlay for camera '%s': %s", name, exc)
     return frames
+
+
+def fit_rig_to_videos(
+    rig: Rig, videos: dict[str, Path], tolerance: int = FRAME_PADDING_TOLERANCE
+) -> tuple[Rig, list[str]]:
+    """Every camera fitted to its video's decoded frame size (`fit_to_frames`: encoder padding
+    within `tolerance` px is accepted and noted, anything else stops with the fix)."""
+    cams, notes = [], []
+    for cam in rig:
+        if cam.name in videos:
+            info = probe_video(videos[cam.name], cam.name)
+            cam, note = fit_to_frames(cam, info.width, info.height, tolerance, str(info.path))
+            if note:
+                log.warning("%s", note)
+                notes.append(note)
+        cams.append(cam)
+    return Rig(tuple(cams), rig.up, rig.units, rig.meta), notes
+
+
+def _size_section(notes: list[str]) -> list[str]:
+    if not notes:
+        return []
+    return ["", "## Frame sizes adjusted to the videos", ""] + [f"- {n}" for n in notes]
 
 
 def _truth_section(cmp: RigComparison) -> list[str]:
@@ -152,6 +177,7 @@ def calibrate_scene(
             + "; ".join(problems)
             + " (set calibrate.strict_checks=false to accept it)"
         )
+    rig, size_notes = fit_rig_to_videos(rig, videos, settings.frame_size_tolerance)
     for problem in problems:
         log.warning("rig check: %s", problem)
     write_rig(rig, rig_path, "rig")
@@ -169,8 +195,8 @@ def calibrate_scene(
         report_dir,
         calibration=solved,
         frames=first_frames(videos),
-        appendix=_truth_section(cmp) if cmp is not None else None,
+        appendix=_size_section(size_notes) + (_truth_section(cmp) if cmp is not None else []),
     )
     if cmp is not None:
         atomic_write_json(report_dir / "truth_comparison.json", cmp.as_rows())
-    return SceneCalibration(rig, rig_path, report, solved, tuple(problems), cmp)
+    return SceneCalibration(rig, rig_path, report, solved, tuple(problems), cmp, tuple(size_notes))

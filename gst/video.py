@@ -144,14 +144,12 @@ def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> 
     return VideoInfo(path, w, h, fps, n if n > 0 else None, camera)
 
 
-def check_videos(
-    videos: dict[str, Path], rig_names: Sequence[str], rig_sizes: dict[str, tuple[int, int]]
-) -> dict[str, VideoInfo]:
+def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str, VideoInfo]:
     """Probe every camera's video and check them against the rig and against each other.
 
-    `rig_sizes` maps camera name to (width, height). Errors name the camera and file: a video
-    whose camera is not in the rig, an image size that differs from the calibration, or frame
-    counts that differ across cameras (the cameras must be synchronised frame for frame).
+    Errors name the camera and file: a video whose camera is not in the rig, or frame counts
+    that differ across cameras (the cameras must be synchronised frame for frame). Frame sizes
+    against the calibration: `calibration.camera.fit_to_frames`.
     """
     if not videos:
         raise VideoError("no videos given: expected a mapping camera name -> video file")
@@ -162,13 +160,6 @@ def check_videos(
             f"but are missing from the rig (rig cameras: {list(rig_names)})"
         )
     infos = {name: probe_video(path, name, strict=True) for name, path in videos.items()}
-    for name, info in infos.items():
-        w, h = rig_sizes[name]
-        if (info.width, info.height) != (w, h):
-            raise VideoError(
-                f"camera '{name}' video {info.path}: frames are {info.width}x{info.height}, but the "
-                f"rig calibrates this camera at {w}x{h}"
-            )
     counts = {name: info.frames for name, info in infos.items()}
     if len(set(counts.values())) > 1:
         detail = ", ".join(f"{n}: {c} ({infos[n].path.name})" for n, c in counts.items())

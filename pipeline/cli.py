@@ -15,13 +15,13 @@ from pathlib import Path
 from rich.table import Table
 
 from gst.atomic import remove_path
-from pipeline.config import PipelineConfig, load_config
+from pipeline.config import PipelineConfig, load_config, scene_input_problems
 from pipeline.console import ProgressBars, make_console, print_error, setup_logging
 from pipeline.dag import upstream_closure
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.executors import make_executor
 from pipeline.registry import load_stages
-from pipeline.runner import MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
+from pipeline.runner import KEPT, MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
 
 EPILOG = """examples:
   python -m pipeline run all                      run every stale stage of the default scene
@@ -83,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--force-all", action="store_true", help="rerun every stage in the plan")
     run.add_argument("--dry-run", action="store_true", help="print the plan and why, run nothing")
+    run.add_argument(
+        "--upstream",
+        action="store_true",
+        help="also rerun stale upstream stages whose outputs exist (default: use those outputs "
+        "and say so; missing ones always run)",
+    )
     run.add_argument("--executor", choices=["local", "ray"], help="override executor.kind")
     run.add_argument("--workers", type=int, help="override executor.workers")
     run.add_argument("--ray-address", help="address of an existing Ray cluster")
@@ -102,6 +108,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_videos_option(videos: list[Path]) -> list[Path]:
+    """`--video` files must exist, and their names (file stems, which name the tracks) must
+    differ: two files called clip.mp4 would overwrite each other's tracks."""
+    missing = [str(v) for v in videos if not v.is_file()]
+    if missing:
+        raise ConfigError(f"--video: no such file: {', '.join(missing)}")
+    by_name: dict[str, list[str]] = {}
+    for v in videos:
+        by_name.setdefault(v.stem, []).append(str(v))
+    clashes = {n: paths for n, paths in by_name.items() if len(paths) > 1}
+    if clashes:
+        detail = "; ".join(f"'{n}': {', '.join(p)}" for n, p in clashes.items())
+        raise ConfigError(
+            f"--video: tracks are named after the file name, and these share one ({detail}); "
+            "rename or link one of them under another name"
+        )
+    return videos
+
+
 def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
     if requested and "all" in requested:
         return list(cfg.scenes)
@@ -119,7 +144,7 @@ def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
     )
 
 
-_STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim"}
+_STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim", KEPT: "yellow"}
 
 
 def _status_table(title: str, statuses) -> Table:
@@ -212,13 +237,23 @@ def main(argv: list[str] | None = None) -> int:
                 raise ConfigError(
                     f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')"
                 )
-            options = {"video": args.video or [], "with_gaussians": args.with_gaussians}
+            options = {
+                "video": [v.resolve() for v in _check_videos_option(args.video or [])],
+                "with_gaussians": args.with_gaussians,
+            }
             executor = make_executor(
                 args.executor or cfg.executor.kind,
                 args.workers or cfg.executor.workers,
                 progress,
                 ray_address=args.ray_address or cfg.executor.ray_address,
             )
+        # Declared inputs that cannot exist stop a run before anything is written (status and
+        # --dry-run show them instead: they are tools for a user whose inputs are broken).
+        problems = [
+            line for scene in scenes for line in scene_input_problems(scene, cfg.scenes[scene])
+        ]
+        if problems and args.command == "run" and not args.dry_run:
+            raise ConfigError("\n".join(problems))
         # Build every runner first: it validates all stage params before anything is written.
         runners = [
             Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
@@ -248,19 +283,30 @@ def main(argv: list[str] | None = None) -> int:
             setup_logging(console, None, args.command, args.quiet)
         for runner in runners:
             scene = runner.scene_name
+            notes = scene_input_problems(scene, cfg.scenes[scene])
             if args.command == "status":
                 console.quiet = False
                 console.print(
                     _status_table(f"scene '{scene}'  ({runner.workspace})", runner.status())
                 )
+                for note in notes:
+                    console.print(f"[yellow]input problem:[/] {note}", highlight=False)
                 continue
-            targets = list(cfg.stages) if args.stage == "all" else [args.stage]
+            targets = (
+                [n for n in cfg.stages if stages[n].in_all] if args.stage == "all" else [args.stage]
+            )
             planned = runner.run(
-                targets, force=args.force, force_all=args.force_all, dry_run=args.dry_run
+                targets,
+                force=args.force,
+                force_all=args.force_all,
+                dry_run=args.dry_run,
+                upstream=args.upstream,
             )
             if args.dry_run:
                 console.quiet = False
                 console.print(_status_table(f"plan for scene '{scene}' (dry run)", planned))
+                for note in notes:
+                    console.print(f"[yellow]input problem:[/] {note}", highlight=False)
             else:
                 _print_outputs(console, runner, planned)
         if log_path is not None and args.command == "run" and not args.quiet:

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
 from pipeline.errors import ConfigError
 
@@ -70,6 +70,9 @@ class SceneConfig(Strict):
     board: BoardSource | None = None
     masks: Path | None = None  # externally supplied masks/boxes (see docs/formats)
     fps: float | None = Field(default=None, gt=0)
+    # Decoded frames may be smaller than the calibration says by this many pixels (encoder
+    # padding, e.g. 1080 rows in a 1088-row calibration); calibration.camera.fit_to_frames.
+    frame_size_tolerance: int = Field(default=16, ge=0)
     # Stage parameters for this scene only: {stage: {key: value}}, over stages.STAGE.params.
     params: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
@@ -128,6 +131,25 @@ class PipelineConfig(Strict):
             )
         return self
 
+    # Where the config came from (set by `load_config`): relative paths resolve against its
+    # folder, fingerprints record paths relative to it, errors name the file and the --set
+    # options that changed a value.
+    _source: Path | None = PrivateAttr(None)
+    _overrides: dict[str, str] = PrivateAttr(default_factory=dict)
+
+    @property
+    def source(self) -> Path | None:
+        return self._source
+
+    @property
+    def base_dir(self) -> Path | None:
+        return self._source.parent if self._source is not None else None
+
+    @property
+    def overrides(self) -> dict[str, str]:
+        """Dotted key (as `--set` wrote it) -> the `--set` text that set it."""
+        return dict(self._overrides)
+
     def scene_workspace(self, scene: str) -> Path:
         return self.workspace / scene
 
@@ -138,6 +160,38 @@ def _expand(spec: list[Path] | str | None) -> list[Path]:
     if isinstance(spec, str):
         return sorted(Path(p) for p in glob.glob(spec))
     return list(spec)
+
+
+def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
+    """What is wrong with a scene's declared inputs, one line each naming the key: globs that
+    match nothing, listed files that do not exist, an unknown calibration format."""
+    from calibration.formats import FORMATS  # the library knows its formats
+
+    problems = []
+
+    def files(key: str, spec: list[Path] | str | None) -> None:
+        if isinstance(spec, str) and not _expand(spec):
+            problems.append(f"scenes.{name}.{key}: the pattern '{spec}' matches no file")
+        elif isinstance(spec, list):
+            missing = [str(p) for p in spec if not Path(p).is_file()]
+            if missing:
+                problems.append(f"scenes.{name}.{key}: no such file: {', '.join(missing)}")
+
+    files("videos", scene.videos)
+    if scene.board is not None:
+        files("board.videos", scene.board.videos)
+    c = scene.calibration
+    if c is not None:
+        if not Path(c.file).exists():
+            problems.append(f"scenes.{name}.calibration.file: no such file: {c.file}")
+        if c.format is not None and c.format not in FORMATS:
+            problems.append(
+                f"scenes.{name}.calibration.format: unknown format '{c.format}' "
+                f"(formats: {', '.join(sorted(FORMATS))}; omit it to detect it from the file)"
+            )
+    if scene.masks is not None and not Path(scene.masks).exists():
+        problems.append(f"scenes.{name}.masks: no such folder: {scene.masks}")
+    return problems
 
 
 def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
@@ -164,21 +218,22 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
     return cfg
 
 
+def format_error_line(err: dict, source: str) -> str:
+    """One pydantic error as `file: dotted.key: what was expected (got ...)`."""
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    if err["type"] == "extra_forbidden":
+        return f"{source}: {loc}: unknown key"
+    if err["type"] == "missing":
+        return f"{source}: {loc}: required key is missing"
+    msg = err["msg"].removeprefix("Value error, ")
+    got = err.get("input")
+    shown = "" if isinstance(got, dict) else f" (got {got!r})"
+    return f"{source}: {loc}: {msg}{shown}"
+
+
 def format_validation_error(exc: ValidationError, source: str) -> str:
     """One line per problem: file, dotted key, and what was expected."""
-    lines = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        if err["type"] == "extra_forbidden":
-            lines.append(f"{source}: {loc}: unknown key")
-        elif err["type"] == "missing":
-            lines.append(f"{source}: {loc}: required key is missing")
-        else:
-            msg = err["msg"].removeprefix("Value error, ")
-            got = err.get("input")
-            shown = "" if isinstance(got, dict) else f" (got {got!r})"
-            lines.append(f"{source}: {loc}: {msg}{shown}")
-    return "\n".join(lines)
+    return "\n".join(format_error_line(err, source) for err in exc.errors())
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -245,10 +300,29 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(raw).__name__}")
+    given: dict[str, str] = {}
     for text in overrides:
-        apply_override(raw, *parse_override(text))
+        parts, value = parse_override(text)
+        apply_override(raw, parts, value)
+        given[".".join(parts)] = text
     try:
         cfg = PipelineConfig.model_validate(raw)
     except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc, str(path))) from None
-    return _resolve_paths(cfg, path.resolve().parent)
+        raise ConfigError(_name_overrides(format_validation_error(exc, str(path)), given)) from None
+    cfg = _resolve_paths(cfg, path.resolve().parent)
+    cfg._source = path.resolve()
+    cfg._overrides = given
+    return cfg
+
+
+def _name_overrides(message: str, given: dict[str, str]) -> str:
+    """Say which error lines concern a value that came from `--set`."""
+    lines = []
+    for line in message.splitlines():
+        hit = [
+            t
+            for k, t in given.items()
+            if k in line or f"stages.{k.split('.')[0]}.params.{'.'.join(k.split('.')[1:])}" in line
+        ]
+        lines.append(line + (f" (set by --set {hit[0]})" if hit else ""))
+    return "\n".join(lines)

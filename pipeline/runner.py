@@ -16,6 +16,7 @@ import hashlib
 import inspect
 import json
 import logging
+import os
 import re
 import time
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from gst.atomic import atomic_write_text, remove_path, replace_path
-from pipeline.config import PipelineConfig, format_validation_error
+from pipeline.config import PipelineConfig, format_error_line
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import ConfigError, PipelineError, StageFailed
 from pipeline.fingerprint import HashCache, code_digests, stage_fingerprint
@@ -34,6 +35,7 @@ from pipeline.stage import Stage, StageContext
 log = logging.getLogger("pipeline")
 
 UP_TO_DATE, STALE, MISSING, SKIPPED = "up to date", "stale", "missing", "not needed"
+KEPT = "kept"  # stale, but an upstream stage nobody asked to run: its existing outputs are used
 
 
 @dataclass
@@ -47,6 +49,43 @@ class StageStatus:
     @property
     def needs_run(self) -> bool:
         return self.state in (STALE, MISSING)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def is_report(rel: str) -> bool:
+    """Outputs under `reports/` are written for people (markdown, plots, timings): downstream
+    stages never read them, so they do not enter downstream fingerprints."""
+    return Path(rel).parts[:1] == ("reports",)
+
+
+def _relative_paths(obj, base: Path | None):
+    """Every absolute path string in a JSON-like object, made relative to `base`."""
+    if base is None:
+        return obj
+    if isinstance(obj, dict):
+        return {k: _relative_paths(v, base) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_relative_paths(v, base) for v in obj]
+    if isinstance(obj, str) and os.path.isabs(obj):
+        return os.path.relpath(obj, base)
+    return obj
 
 
 def _safe_key(key: str) -> str:
@@ -115,17 +154,26 @@ class Runner:
                 {**self.cfg.stages[name].params, **self.scene.params.get(name, {})}
             )
         except ValidationError as exc:
-            # Prefix locations with the YAML path of the params block(s).
+            # Locations as YAML paths of the params block(s), in the file actually loaded, and
+            # which of the bad values came from --set.
+            source = self.cfg.source.name if self.cfg.source is not None else "pipeline.yaml"
             where = f"stages.{name}.params" + (
                 f" / scenes.{self.scene_name}.params.{name}" if name in self.scene.params else ""
             )
-            msg = format_validation_error(exc, "pipeline.yaml")
-            raise ConfigError(msg.replace("pipeline.yaml: ", f"pipeline.yaml: {where}.")) from None
+            lines = []
+            for err in exc.errors():
+                key = ".".join(str(x) for x in err["loc"])
+                line = format_error_line(err, source).replace(f"{source}: ", f"{source}: {where}.")
+                given = self.cfg.overrides.get(f"{name}.{key}")
+                lines.append(line + (f" (set by --set {given})" if given else ""))
+            raise ConfigError("\n".join(lines)) from None
 
     def _scene_record(self) -> dict:
         # Scene-level stage params reach each stage through its merged params; leaving them out
-        # here keeps a change for one stage from invalidating the others.
-        return self.scene.model_dump(mode="json", exclude={"params"})
+        # here keeps a change for one stage from invalidating the others. Paths are recorded
+        # relative to the config's folder (see `_shown`).
+        record = self.scene.model_dump(mode="json", exclude={"params"})
+        return _relative_paths(record, self.cfg.base_dir)
 
     def context(self, name: str) -> StageContext:
         return StageContext(
@@ -174,15 +222,21 @@ class Runner:
                 continue
             dep_ctx = self.context(dep)
             for rel in self.stages[dep].outputs(dep_ctx):
+                if is_report(rel):
+                    continue  # for people to read (timings change every run), never an input
                 digests[f"{dep}:{rel}"] = self.hashes.digest(self.workspace / rel)
         for path in self.stages[name].inputs(ctx):
-            d = self.hashes.digest(Path(path))
-            if d is None:
-                raise StageFailed(
-                    name, self.scene_name, FileNotFoundError(f"input file is missing: {path}")
-                )
-            digests[str(path)] = d
+            digests[self._shown(path)] = self.hashes.digest(Path(path))
         return digests
+
+    def _shown(self, path: str | Path) -> str:
+        """A path as fingerprints record it: relative to the config's folder, so a project
+        copied elsewhere (config, workspace and inputs together) keeps its fingerprints."""
+        base = self.cfg.base_dir
+        return os.path.relpath(Path(path).absolute(), base) if base is not None else str(path)
+
+    def _missing_inputs(self, name: str, ctx: StageContext) -> list[str]:
+        return [str(p) for p in self.stages[name].inputs(ctx) if not Path(p).exists()]
 
     # -- status ------------------------------------------------------------------------------
     def status_of(self, name: str, upstream: dict[str, StageStatus]) -> StageStatus:
@@ -197,6 +251,9 @@ class Runner:
         if pending:
             state = MISSING if record is None else STALE
             return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
+        missing = self._missing_inputs(name, ctx)
+        if missing:
+            return StageStatus(name, key, MISSING, f"input file is missing: {', '.join(missing)}")
         inputs = self._inputs(name, ctx)
         code, files = self._code(name)
         scene = self._scene_record()
@@ -204,6 +261,8 @@ class Runner:
         if record is None:
             interrupted = (self.meta / "staging" / name).exists()
             why = "a previous run was interrupted" if interrupted else "never run"
+            if not interrupted and not stage.in_all:
+                why += f" (on demand: `run {name}`; `run all` skips it)"
             return StageStatus(name, key, MISSING, why, fp)
         for rel, digest in record.get("outputs", {}).items():
             now = self.hashes.digest(self.workspace / rel)
@@ -243,21 +302,76 @@ class Runner:
         result: dict[str, StageStatus] = {}
         for name in names:
             result[name] = self.status_of(name, result)
+        out = list(result.values())
+        if not targets:
+            out += self._variant_statuses({st.key for st in out}, result)
         self.hashes.save()
-        return list(result.values())
+        return out
+
+    def _recorded_options(self, name: str) -> dict:
+        """The CLI options a stage reads (e.g. track's --video), as a record keeps them to let
+        `status` show that variant later; paths relative to the config's folder."""
+        opts = {k: self.options.get(k) for k in self.stages[name].cli_options}
+        return _relative_paths(json.loads(json.dumps(opts, default=str)), self.cfg.base_dir)
+
+    def _variant_statuses(self, shown: set[str], upstream: dict) -> list[StageStatus]:
+        """Statuses of the stage variants recorded earlier (e.g. `track@match` from a run with
+        --video match.mp4), re-evaluated with the options they ran with."""
+        out = []
+        state_dir = self.meta / "state"
+        for path in sorted(state_dir.glob("*@*.json")) if state_dir.is_dir() else []:
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            name, key = record.get("stage"), record.get("key")
+            if name not in self.stages or key in shown or "options" not in record:
+                continue
+            base = self.cfg.base_dir or Path.cwd()
+            options = {
+                k: [base / v for v in vals] if isinstance(vals, list) else vals
+                for k, vals in record["options"].items()
+            }
+            other = Runner(self.cfg, self.scene_name, self.stages, options=options)
+            out.append(other.status_of(name, upstream))
+        return out
 
     # -- running -----------------------------------------------------------------------------
     @contextlib.contextmanager
     def _lock(self):
+        """Hold the workspace lock for the run. The file records the owner's pid: the kernel
+        drops the lock when its owner dies, and a run that finds a dead owner's pid there says
+        it took over."""
         self.meta.mkdir(parents=True, exist_ok=True)
-        with open(self.meta / "lock", "w") as fh:
+        path = self.meta / "lock"
+        with open(path, "a+") as fh:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
+                fh.seek(0)
+                owner = fh.read().strip() or "?"
                 raise PipelineError(
-                    f"another pipeline run holds the workspace lock {self.meta / 'lock'}"
+                    f"another pipeline run (pid {owner}) holds the workspace lock {path}; wait "
+                    "for it to finish"
                 ) from None
-            yield
+            fh.seek(0)
+            previous = fh.read().strip()
+            if previous.isdigit() and int(previous) != os.getpid() and not _alive(int(previous)):
+                log.warning(
+                    "took over the workspace lock of run pid %s, which is gone (killed?); "
+                    "its unfinished stages resume or rerun",
+                    previous,
+                )
+            fh.seek(0)
+            fh.truncate()
+            fh.write(str(os.getpid()))
+            fh.flush()
+            try:
+                yield
+            finally:
+                fh.seek(0)
+                fh.truncate()
+                fh.flush()
 
     def run(
         self,
@@ -266,8 +380,14 @@ class Runner:
         force: bool = False,
         force_all: bool = False,
         dry_run: bool = False,
+        upstream: bool = False,
     ) -> list[StageStatus]:
-        """Run the targets and their stale upstream stages. Returns the statuses as planned."""
+        """Run the targets and the upstream stages they need. Returns the statuses as planned.
+
+        An upstream stage (not a target) that is stale but has its outputs is KEPT: the targets
+        run against those outputs and the log says what is stale and how long the stage took
+        last time, so an expensive rerun (a pretraining) never starts unasked. `upstream=True`
+        reruns such stages too; missing upstream outputs are always produced."""
         names = upstream_closure(self.needs, targets)
         planned: dict[str, StageStatus] = {}
         for name in names:
@@ -278,6 +398,13 @@ class Runner:
                 and not st.needs_run
             ):
                 st = StageStatus(name, st.key, STALE, "forced", st.fingerprint)
+            elif (
+                st.state == STALE
+                and name not in targets
+                and not (upstream or force_all)
+                and self._read_record(st.key) is not None
+            ):
+                st = self._kept(name, st)
             planned[name] = st
         self.hashes.save()
         if dry_run:
@@ -296,9 +423,34 @@ class Runner:
                 done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)
         return list(planned.values())
 
+    def _kept(self, name: str, st: StageStatus) -> StageStatus:
+        """An upstream stage that is stale but not rerun (see `run`), with the log line that
+        says so. Its downstream stages see its current outputs."""
+        record = self._read_record(st.key) or {}
+        took = record.get("seconds")
+        took_text = f"; its last run took {_duration(took)}" if took is not None else ""
+        reason = st.reason
+        if reason.startswith("upstream "):  # its own upstream is kept too: it is as it was
+            reason = "an upstream stage is stale"
+        log.warning(
+            "%s is stale (%s)%s; using its existing outputs. Run it, or pass --upstream, to "
+            "update it",
+            name,
+            reason,
+            took_text,
+        )
+        return StageStatus(name, st.key, KEPT, f"stale ({reason}), outputs kept{took_text}")
+
     def _execute(self, name: str, st: StageStatus) -> None:
         stage = self.stages[name]
         ctx = self.context(name)
+        missing = self._missing_inputs(name, ctx)
+        if missing:
+            raise StageFailed(
+                name,
+                self.scene_name,
+                FileNotFoundError(f"input file is missing: {', '.join(missing)}"),
+            )
         staging = ctx.staging
         marker = staging / ".fingerprint"
         if staging.exists() and not (
@@ -343,6 +495,7 @@ class Runner:
             "code_files": self._code(name)[1],
             "params": ctx.params.model_dump(mode="json"),
             "scene_config": self._scene_record(),
+            "options": self._recorded_options(name),
             "inputs": self._inputs(name, ctx),
             "outputs": digests,
             "finished": time.strftime("%Y-%m-%d %H:%M:%S"),

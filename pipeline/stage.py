@@ -90,3 +90,4 @@ class Stage:
     resumable: bool = False  # keep a killed run's staging folder and let `run` continue it
     help: str = ""
     cli_options: tuple[str, ...] = ()  # names of CLI options the stage reads from ctx.options
+    in_all: bool = True  # False: `run all` skips it; it runs when named (e.g. a benchmark sweep)

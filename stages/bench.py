@@ -30,5 +30,6 @@ STAGE = Stage(
     params_model=BenchSettings,
     applies=lambda scene: scene.is_synthetic,
     outputs=lambda ctx: ["reports/bench"],
+    in_all=False,  # a sweep over model variants: `python -m pipeline run bench` when wanted
     help="run time against error for model variants (needs a scene with truth)",
 )

@@ -58,7 +58,8 @@ def run(ctx: StageContext) -> None:
     calibrate_scene(
         ctx.camera_videos(), ctx.out("calibration/rig.json"), ctx.out("reports/calibrate"),
         file=file, footage=footage, truth_rig=truth, scene=ctx.scene_name,
-        settings=SolveSettings(p.frame_step, p.max_frames, p.floor_world, p.strict_checks),
+        settings=SolveSettings(p.frame_step, p.max_frames, p.floor_world, p.strict_checks,
+                               ctx.scene.frame_size_tolerance),
     )  # fmt: skip
 
 

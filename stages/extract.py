@@ -35,7 +35,9 @@ def run(ctx: StageContext) -> None:
     plates = p.background_videos
     if plates is None and ctx.scene.is_synthetic and p.use_board_clip_as_background:
         plates = {n: ctx.path(f"synth/board/{n}.mp4") for n in videos}
-    options = ExtractOptions.from_settings(plates, p.association, p.person_model, p.person_hints)
+    options = ExtractOptions.from_settings(
+        plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance
+    )
     report = extract_scene(
         videos, ctx.rig(), ctx.out("crops/crops.h5"), crop_size=p.crop_size, scale=p.scale,
         frame_stride=p.frame_stride, method=p.method, external=ctx.scene.masks,

@@ -1,13 +1,13 @@
 """fuse: one world-space body per person and frame from all cameras (docs/formats/fused_*.md).
 
-Library: `gst.fuse.fuse_scene` (BlazePose landmarks per crop, view consensus, robust
-triangulation, then a body fit over the clip; docs/fuse.md). Writes `fused/` (bodies and landmarks Parquet, TRC, C3D) and
-`reports/fuse/` (report, overlay videos; on synthetic scenes the error against the truth).
+Library: `gst.fuse.fuse_scene` (BlazePose landmarks per crop, people regrouped by 3D agreement,
+robust triangulation, then a body fit over the clip; docs/fuse.md). Writes `fused/` (bodies and
+landmarks Parquet, TRC, C3D) and `reports/fuse/` (report, overlay videos; on synthetic scenes
+the error against the truth).
 """
 
 from __future__ import annotations
 
-from calibration.formats import read_rig
 from gst.fuse import FitOptions, FuseOptions, RegroupOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
@@ -26,10 +26,11 @@ def run(ctx: StageContext) -> None:
     p = ctx.params
     result = fuse_scene(
         ctx.path("crops/crops.h5"),
-        read_rig(ctx.path("calibration/rig.json"), "rig"),
+        ctx.rig(),
         ctx.out("fused"),
         ctx.out("reports/fuse"),
         fps=ctx.scene.fps,
+        videos=ctx.camera_videos(),
         options=FuseOptions(
             body_model=p.body_model,
             markers=p.markers,

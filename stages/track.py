@@ -14,6 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from gst.track.scene import TrackRequest, TrackSettings, track_scene
+from gst.track.writer import partition_dir
 from pipeline.stage import Stage, StageContext
 
 
@@ -48,6 +49,7 @@ def run(ctx: StageContext) -> None:
         splats_dir=ctx.out("models/splats") if ctx.options.get("with_gaussians") else None,
         truth_scene=ctx.path("synth") if ctx.scene.is_synthetic else None,
         combined_evaluation=ctx.out("reports/track/evaluation.md") if _own_videos(ctx) else None,
+        frame_size_tolerance=ctx.scene.frame_size_tolerance,
     )
     executor = ctx.executor
     track_scene(ctx.params, request, map_fn=executor.map if executor is not None else None,
@@ -56,7 +58,8 @@ def run(ctx: StageContext) -> None:
 
 def _outputs(ctx: StageContext) -> list[str]:
     names = [v.stem for v in _videos(ctx)]
-    outs = [f"tracks/video={n}" for n in names] + [f"reports/track/{n}" for n in names]
+    outs = [partition_dir("tracks", n).as_posix() for n in names]
+    outs += [f"reports/track/{n}" for n in names]
     if ctx.options.get("with_gaussians"):
         outs += [f"models/splats/{n}" for n in names]
     return outs + (["reports/track/evaluation.md"] if _own_videos(ctx) else [])

@@ -8,7 +8,6 @@ global_orient including the SMPL-to-world rotation and the heading (see `synth.w
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -18,22 +17,6 @@ from scipy.spatial.transform import Rotation
 from synth.motions import MotionClip
 from synth.skeleton import NUM_JOINTS, local_rotations, rest_corrections
 from synth.world import heading_rotation
-
-
-class BodyModelLike(Protocol):
-    """What synth needs from a body model (gst.body.BodyModel satisfies it)."""
-
-    faces: np.ndarray
-    num_betas: int
-    joint_names: list[str]
-
-    def __call__(
-        self,
-        betas: torch.Tensor,
-        body_pose: torch.Tensor,
-        global_orient: torch.Tensor,
-        transl: torch.Tensor,
-    ) -> Any: ...
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from calibration.board import BoardSpec
 from synth.world import WORLD_UP
 
 _BOARD_KEYS = ("kind", "squares_x", "squares_y", "square_size", "marker_size", "dictionary")
@@ -116,12 +117,8 @@ class BoardTexture:
 
 
 def board_json(spec: ChArUcoSpec) -> dict:
-    """board.json dict, cross-checked with calibration.board.BoardSpec when it is installed."""
+    """board.json dict, cross-checked with calibration.board.BoardSpec, which reads it back."""
     d = spec.to_dict()
-    try:
-        from calibration.board import BoardSpec  # optional until feat/calib is merged
-    except ImportError:
-        return d
     other = BoardSpec(**d).to_dict()
     if set(other) != set(_BOARD_KEYS) or any(other[k] != d[k] for k in _BOARD_KEYS):
         raise ValueError(

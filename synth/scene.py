@@ -12,7 +12,6 @@ outputs are byte-identical run to run and do not change when unrelated settings 
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import time
@@ -26,7 +25,7 @@ from gst.atomic import atomic_dir
 from synth.animate import check_body_model, pose_person
 from synth.appearance import BodyAtlas
 from synth.board import board_json
-from synth.io import write_json, write_parquet, write_png
+from synth.io import write_json, write_png
 from synth.people import sample_people
 from synth.preview import contact_sheet, truth_overlay
 from synth.render import vertex_normals
@@ -44,7 +43,16 @@ from synth.shares import (
 )
 from synth.skeleton import JOINT_NAMES
 from synth.spec import PRESETS, SceneSpec, preset  # noqa: F401  (re-exported)
-from synth.truth import OCCLUSION_TOLERANCE, ViewRows, board_tables, people_table
+from synth.truth import (
+    BOARD_POSES_FILE,
+    BOARD_VIEWS_FILE,
+    PEOPLE_FILE,
+    VIEWS_FILE,
+    ViewRows,
+    board_tables,
+    write_board_truth,
+    write_truth_tables,
+)
 from synth.world import WORLD_CONVENTION
 
 ProgressFn = Callable[[str, int, int], None]
@@ -302,23 +310,12 @@ def _render_into(
         "body_model": body_meta,
         "format_version": SCENE_FORMAT_VERSION,
     }
-    write_parquet(out / "truth" / "people.parquet", people_table(tracks, meta))
-    write_parquet(
-        out / "truth" / "views.parquet",
-        views.table(
-            {
-                **meta,
-                "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
-                "pixel_convention": "OpenCV, pixel centres at integers",
-            }
-        ),
-    )
+    write_truth_tables(out, tracks, views, meta)
     if poses:
         bp, bv = board_tables(
             board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)}
         )
-        write_parquet(out / "truth" / "board_poses.parquet", bp)
-        write_parquet(out / "truth" / "board_views.parquet", bv)
+        write_board_truth(out, bp, bv)
         write_png(
             out / "preview" / "board_sheet.png",
             contact_sheet([board_preview[n] for n in names], names),
@@ -357,11 +354,11 @@ def _render_into(
             "board_videos": "board/<camera>.mp4",
             "board": "board.json",
             "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
-            "people": "truth/people.parquet",
-            "views": "truth/views.parquet",
+            "people": PEOPLE_FILE,
+            "views": VIEWS_FILE,
             "masks": "truth/masks/<camera>.h5",
-            "board_poses": "truth/board_poses.parquet",
-            "board_views": "truth/board_views.parquet",
+            "board_poses": BOARD_POSES_FILE,
+            "board_views": BOARD_VIEWS_FILE,
             "contact_sheet": "preview/contact_sheet.png",
         },
     }
@@ -378,11 +375,3 @@ def _render_into(
         joints_in_mask=on_person,
         joints_on_own_mask=on_own,
     )
-
-
-def scene_cameras(scene_dir: str | os.PathLike) -> Sequence[str]:
-    """Camera names of a rendered scene (from scene.json)."""
-    path = Path(scene_dir) / "scene.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found: not a synth scene folder")
-    return json.loads(path.read_text())["cameras"]

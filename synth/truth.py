@@ -24,6 +24,7 @@ import torch
 from calibration import Camera
 from synth.animate import PersonTrack
 from synth.board import BoardPose, ChArUcoSpec, visible_corners
+from synth.io import write_parquet
 from synth.projection import project_in_view
 from synth.skeleton import JOINT_NAMES, NUM_JOINTS
 
@@ -245,6 +246,29 @@ def joint_names() -> list[str]:
 
 PEOPLE_FILE = "truth/people.parquet"
 VIEWS_FILE = "truth/views.parquet"
+BOARD_POSES_FILE = "truth/board_poses.parquet"
+BOARD_VIEWS_FILE = "truth/board_views.parquet"
+
+
+def write_truth_tables(out: Path, tracks: list[PersonTrack], views: ViewRows, meta: dict) -> None:
+    """`truth/people.parquet` and `truth/views.parquet` of a scene folder, atomically."""
+    write_parquet(out / PEOPLE_FILE, people_table(tracks, meta))
+    write_parquet(
+        out / VIEWS_FILE,
+        views.table(
+            {
+                **meta,
+                "occlusion_tolerance_m": OCCLUSION_TOLERANCE,
+                "pixel_convention": "OpenCV, pixel centres at integers",
+            }
+        ),
+    )
+
+
+def write_board_truth(out: Path, poses: pa.Table, views: pa.Table) -> None:
+    """`truth/board_poses.parquet` and `truth/board_views.parquet` (from `board_tables`)."""
+    write_parquet(out / BOARD_POSES_FILE, poses)
+    write_parquet(out / BOARD_VIEWS_FILE, views)
 
 
 @dataclass

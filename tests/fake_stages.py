@@ -89,3 +89,33 @@ def _fail(ctx: StageContext) -> None:
 
 
 FAIL = Stage(name="fail", run=_fail, outputs=lambda ctx: ["fail"], params_model=FailParams)
+
+
+class FanOutParams(StageParams):
+    seconds: float = 0.0  # each item sleeps this long
+    marker_dir: str | None = None  # each item writes its pid here first
+
+
+def fan_out_item(item: tuple[int, float, str]) -> int:
+    """A worker's job: record its pid, sleep, return the item."""
+    k, seconds, marker_dir = item
+    if marker_dir:
+        Path(marker_dir, f"worker-{k}.pid").write_text(str(os.getpid()))
+    time.sleep(seconds)
+    return k
+
+
+def _fan_out(ctx: StageContext) -> None:
+    p = ctx.params
+    items = [(k, p.seconds, p.marker_dir) for k in range(2)]
+    done = ctx.executor.map(fan_out_item, items, description="fan out")
+    ctx.out("fanout/done.txt").write_text(",".join(map(str, done)))
+
+
+FANOUT = Stage(
+    name="fanout",
+    run=_fan_out,
+    outputs=lambda ctx: ["fanout"],
+    params_model=FanOutParams,
+    help="two items through the executor",
+)

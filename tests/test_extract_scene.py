@@ -295,7 +295,7 @@ def test_wrong_image_size_for_rig_is_named(short_scene, tmp_path):
         tuple(c.replace(width=640, height=480) if c.name == "cam0" else c for c in short_scene.rig)
     )
     assert cam.width == 320
-    with pytest.raises(VideoError, match=r"camera 'cam0'.*320x240.*640x480"):
+    with pytest.raises(ValueError, match=r"camera 'cam0'.*320x240.*640x480.*frame_size_tolerance"):
         extract_scene(short_scene.videos, rig, tmp_path / "crops.h5", options=_opts())
 
 

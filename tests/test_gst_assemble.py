@@ -88,13 +88,17 @@ def test_world_transform_matches_camera(body):
     np.testing.assert_allclose(back[0].numpy(), pts_world, atol=1e-12)
 
 
-def test_pose_only_output_has_no_gaussians(body):
+def test_pose_only_output_has_no_gaussians_and_the_same_body(body):
+    """A network output without Gaussians (the pose-only path) assembles into the same body as
+    the full output, with no splat."""
     rotmats = torch.eye(3, dtype=torch.float64).repeat(2, 24, 1, 1)
-    out = output(
-        rotmats,
-        torch.zeros(2, 500, 3, dtype=torch.float64),
-        torch.zeros(2, 500, 4, dtype=torch.float64),
-    )
-    out.gaussians = None
-    pred = assemble(out, body, K().expand(2, 3, 3), 256)
-    assert pred.gaussians_cam is None and pred.joints_cam.shape == (2, 24, 3)
+    rotmats[:, 18] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    offsets = 0.01 * torch.randn(2, 500, 3, dtype=torch.float64)
+    quats = torch.nn.functional.normalize(torch.randn(2, 500, 4, dtype=torch.float64), dim=-1)
+    full = assemble(output(rotmats, offsets, quats), body, K().expand(2, 3, 3), 256)
+    pose_only_out = output(rotmats, offsets, quats)
+    pose_only_out.gaussians = None
+    pose_only = assemble(pose_only_out, body, K().expand(2, 3, 3), 256)
+    assert full.gaussians_cam is not None and pose_only.gaussians_cam is None
+    assert torch.equal(pose_only.joints_cam, full.joints_cam)
+    assert torch.equal(pose_only.transl_cam, full.transl_cam)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ast
 import subprocess
 import sys
 from pathlib import Path
@@ -64,22 +63,3 @@ def test_repository_config_is_valid():
     cfg = load_config(REPO / "pipeline.yaml")
     assert cfg.default_scene in cfg.scenes
     assert cfg.workspace.is_absolute()
-
-
-def test_libraries_never_import_orchestration():
-    offenders = []
-    for lib in LIBRARIES:
-        for path in (REPO / lib).rglob("*.py"):
-            tree = ast.parse(path.read_text(), filename=str(path))
-            for node in ast.walk(tree):
-                names = []
-                if isinstance(node, ast.Import):
-                    names = [a.name for a in node.names]
-                elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                    names = [node.module]
-                offenders += [
-                    f"{path.relative_to(REPO)} imports {n}"
-                    for n in names
-                    if n.split(".")[0] in ("pipeline", "stages")
-                ]
-    assert offenders == []

@@ -83,6 +83,10 @@ def test_rig_below_floor_is_refused(tmp_path, capsys):
         for i in range(3)
     ]
     write_rig(Rig(tuple(cams)), tmp_path / "low.json", "rig")
-    cfg = config(tmp_path, tmp_path / "low.json", "rig", str(tmp_path / "none*.mp4"))
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for i in range(3):  # the rig is refused before its videos are read: any file will do
+        (videos / f"c{i}.mp4").write_bytes(b"")
+    cfg = config(tmp_path, tmp_path / "low.json", "rig", str(videos / "c*.mp4"))
     assert main(["run", "calibrate", "--config", str(cfg), "--quiet"]) == 1
     assert "below the floor" in capsys.readouterr().err

@@ -162,7 +162,7 @@ def test_box_on_raw_frame_maps_to_enclosing_undistorted_box():
 def test_default_camera_and_size_check():
     cam = default_camera(1920, 1080)
     assert cam.fx == pytest.approx(np.hypot(1920, 1080)) and cam.cx == 959.5 and cam.cy == 539.5
-    with pytest.raises(ValueError, match="calibrated for 1280x720"):
+    with pytest.raises(ValueError, match="1920x1080, but the calibration says 1280x720"):
         TrackingView.for_video(1920, 1080, distorted_camera(), video="match.mp4")
 
 

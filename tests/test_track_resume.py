@@ -1,6 +1,7 @@
 """A run killed or failing mid-way resumes from its last committed row group and writes the
 same bytes as an uninterrupted run; partial rows stay valid; bad partial state is refused."""
 
+import json
 import os
 import signal
 import subprocess
@@ -87,9 +88,13 @@ def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
     assert 2 <= len(segments) < 6
     committed = pq.read_table(segments[-1])  # committed rows are valid Parquet
     assert committed.num_rows > 0
+    progress = json.loads((staging_of(out) / "progress.json").read_text())
+    before = progress["state"]["elapsed_s"]  # the killed part's time, kept beside the state
+    assert before > 0
     res = track_video(scene["video"], out, det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
     assert res.resumed_from_frame == 7 * len(segments)
-    assert res.path.read_bytes() == reference
+    assert res.path.read_bytes() == reference  # the time never enters the output
+    assert res.seconds >= before  # frames/s of a resumed run count the earlier part's time too
     assert not default_staging_root(out).exists()
 
 

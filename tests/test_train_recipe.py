@@ -144,20 +144,35 @@ def test_augmented_3d_fit_validates_on_the_unseen_crops(tmp_path):
 
 
 def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
+    """With only the anchor term on, training pulls each body's centre towards its anchor."""
     import csv
+
+    from gst.train.steps import predict
 
     body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
     cfg = get_preset("tiny", vertex_preset="full")
     net, ids, groups = build_network(cfg, body)
     crops = crop_set()
-    crops.anchors = torch.zeros(len(crops), 3)
-    crops.anchors[::2] = float("nan")
-    task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
+    only_anchor = LossWeights(
+        mse=0.0, lpips=0.0, alpha=0.0, tightness=0.0, anchor=1.0, keypoints=0.0
+    )
+    task = make_task(body, ids, cfg, crops.crop_size, only_anchor)
+
+    def centres() -> torch.Tensor:
+        with torch.no_grad():
+            g = predict(net.eval(), task, crops.images, crops.K, crops.R, crops.t).gaussians_world
+        return g.means.mean(1)
+
+    before = centres()
+    # Half a metre to each input camera's right: one shift of the predicted body that every
+    # view can make (the crops are noise, so the network cannot tell the cameras apart).
+    right = crops.R.transpose(1, 2) @ torch.tensor([0.5, 0.0, 0.0])
+    crops.anchors = before + right
     fit_gst(
-        net,
+        net.train(),
         task,
         crops,
-        TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
+        TrainConfig(steps=12, batch_size=4, lr=2e-3, warmup_steps=1, val_every=12, log_every=1),
         tmp_path,
         FitOptions(mode="multiview", num_targets=2, render_size=16),
         body_spec="random",
@@ -166,3 +181,6 @@ def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
     )
     rows = list(csv.DictReader(open(tmp_path / "log.csv")))
     assert all(math.isfinite(float(r["anchor"])) for r in rows)
+    dist_before = (before - crops.anchors).norm(dim=1)
+    dist_after = (centres() - crops.anchors).norm(dim=1)
+    assert float(dist_after.max()) < 0.8 * float(dist_before.min()), (dist_before, dist_after)

@@ -58,6 +58,17 @@ def test_resume_after_kill_is_exact(tmp_path):
     trainer.fit()
     for a, b in zip(reference, model_c.parameters(), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # The log holds every step once, in order (the killed run had logged steps 6-7 past its
+    # last checkpoint), and its clock continues across the resume instead of restarting.
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "b" / "log.csv")))
+    assert [int(r["step"]) for r in rows] == list(range(1, 13))
+    seconds = [float(r["seconds"]) for r in rows]
+    assert seconds == sorted(seconds)
+    # and the model file does not depend on wall-clock time
+    a = torch.load(tmp_path / "a" / "last.pt", weights_only=True)["trainer"]
+    assert "seconds" not in a
 
 
 def test_nan_guard_skips_and_aborts(tmp_path):

@@ -55,21 +55,6 @@ def h36m_to_opencv(k, p) -> np.ndarray:
     return np.array([k[0], k[1], p[0] / 2, p[1] / 2, k[2], 0, 0, 0, p[1] / 2, 0, p[0] / 2, 0])
 
 
-def project_h36m(points, R, T, f, c, k, p) -> np.ndarray:
-    """H36M's own projection (world points in mm, R world-to-camera, T centre in mm)."""
-    X = (np.asarray(points, dtype=np.float64) - np.ravel(T)) @ np.asarray(R).T
-    x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
-    k, p = np.ravel(k), np.ravel(p)
-    r2 = x * x + y * y
-    radial = 1 + k[0] * r2 + k[1] * r2**2 + k[2] * r2**3
-    tan = p[0] * y + p[1] * x
-    xd = x * (radial + tan) + p[1] * r2
-    yd = y * (radial + tan) + p[0] * r2
-    return np.stack(
-        [np.ravel(f)[0] * xd + np.ravel(c)[0], np.ravel(f)[1] * yd + np.ravel(c)[1]], axis=1
-    )
-
-
 def opencv_to_h36m(
     camera: Camera, approximate: bool = False, tol: float = 1e-12
 ) -> tuple[np.ndarray, np.ndarray, float]:

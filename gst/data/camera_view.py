@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration import Camera
+from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
 from gst.data.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 
 
@@ -62,16 +63,19 @@ class TrackingView:
 
     @classmethod
     def for_video(
-        cls, width: int, height: int, camera: Camera | None = None, video: str = "video"
+        cls,
+        width: int,
+        height: int,
+        camera: Camera | None = None,
+        video: str = "video",
+        tolerance: int = FRAME_PADDING_TOLERANCE,
     ) -> TrackingView:
-        """The calibrated `camera` (checked against the frame size) or the default camera."""
+        """The calibrated `camera`, fitted to the frame size (encoder padding within
+        `tolerance` pixels is accepted, `calibration.camera.fit_to_frames`), or the default
+        camera."""
         if camera is None:
             return cls(default_camera(width, height), calibrated=False)
-        if (camera.width, camera.height) != (width, height):
-            raise ValueError(
-                f"{video}: frames are {width}x{height} but camera '{camera.name}' is calibrated "
-                f"for {camera.width}x{camera.height}"
-            )
+        camera, _ = fit_to_frames(camera, width, height, tolerance, video)
         return cls(camera, calibrated=True)
 
     @property

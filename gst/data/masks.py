@@ -103,26 +103,3 @@ def clean_mask(raw: np.ndarray, config: MaskConfig = MaskConfig()) -> tuple[np.n
         lut[old] = new
         blobs.append(Blob(new, area, box, cen))
     return lut[labels], blobs
-
-
-def blobs_of_labels(labels: np.ndarray) -> list[Blob]:
-    """Blobs of an existing label image (e.g. an external person-id mask): one per label value."""
-    blobs = []
-    for value in np.unique(labels):
-        if value == 0:
-            continue
-        ys, xs = np.nonzero(labels == value)
-        blobs.append(
-            Blob(
-                int(value),
-                len(xs),
-                (
-                    int(xs.min()),
-                    int(ys.min()),
-                    int(xs.max() - xs.min() + 1),
-                    int(ys.max() - ys.min() + 1),
-                ),
-                (float(xs.mean()), float(ys.mean())),
-            )
-        )
-    return blobs

@@ -45,7 +45,7 @@ def _model(path: Path, body_cache: dict):
     spec = ckpt["body_model"]
     if spec not in body_cache:
         body_cache[spec] = load_body_model(spec)
-    return network_from_checkpoint(ckpt).eval(), ckpt, body_cache[spec]
+    return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
 
 
 def evaluate_scene(

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gst.fuse.observations import N_LANDMARKS
+from synth.truth import has_scene_truth, read_scene_truth
 
 __all__ = ["MarkerData", "detect_world", "load_marker_data"]
 
@@ -54,8 +55,6 @@ def load_marker_data(paths: list[Path]) -> MarkerData:
 
 def detect_world(scene_dir: Path, seed: int) -> MarkerData:
     """Crops of a rendered world with truth, and BlazePose landmarks on each."""
-    import pyarrow.parquet as pq
-
     from gst.detect.blazepose import BlazePose
     from gst.fuse.observations import detect_crop
     from gst.train.synthetic_crops import crops_from_synth_scene
@@ -66,23 +65,8 @@ def detect_world(scene_dir: Path, seed: int) -> MarkerData:
     for i in range(len(crops)):
         bgr = np.ascontiguousarray(crops.images[i].numpy()[..., ::-1])  # CropSet images are RGB
         lm[i] = detect_crop(model, bgr)
-    people = pq.read_table(scene_dir / "truth" / "people.parquet")
-    key = {
-        (int(f), int(p)): k
-        for k, (f, p) in enumerate(
-            zip(
-                people.column("frame").to_numpy(),
-                people.column("person_id").to_numpy(),
-                strict=True,
-            )
-        )
-    }
-
-    def col(name: str, width: int) -> np.ndarray:
-        flat = people.column(name).combine_chunks().flatten().to_numpy(zero_copy_only=False)
-        return np.asarray(flat, np.float32).reshape(-1, width)
-
-    nb = people.schema.field("betas").type.list_size
+    people = read_scene_truth(scene_dir)
+    key = people.row_index()
     frame, person = crops.frame.numpy(), crops.person.numpy()
     rows = np.array([key[(int(f), int(p))] for f, p in zip(frame, person, strict=True)])
     K = crops.K.numpy().astype(np.float64)
@@ -97,10 +81,10 @@ def detect_world(scene_dir: Path, seed: int) -> MarkerData:
         person=person,
         camera=crops.camera.numpy(),
         world=np.full(len(crops), seed),
-        betas=col("betas", nb)[rows],
-        global_orient=col("global_orient", 3)[rows],
-        body_pose=col("body_pose", 69)[rows].reshape(-1, 23, 3),
-        transl=col("transl", 3)[rows],
+        betas=people.betas[rows],
+        global_orient=people.global_orient[rows],
+        body_pose=people.body_pose[rows],
+        transl=people.transl[rows],
     )
 
 
@@ -133,7 +117,7 @@ def main(argv: list[str] | None = None) -> None:
         motions=None,
         board={"n_frames": 0},
     )
-    if not (scene / "truth" / "people.parquet").is_file():
+    if not has_scene_truth(scene):
         render_scene(spec, scene)
     data = detect_world(scene, args.seed)
     data.save(args.out / f"detections_{args.seed}.npz")

@@ -65,7 +65,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # truncated, not a torch file, or pickled code weights_only refuses
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(
+            f"{path}: cannot be read as a GST checkpoint ({type(exc).__name__}: {first[:200]}); "
+            "expected a file written by the pretrain or train stage"
+        ) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"{path}: not a GST checkpoint (expected format '{FORMAT}')")
     if ckpt.get("version") != VERSION:
@@ -75,7 +82,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return ckpt
 
 
-def network_from_checkpoint(ckpt: dict) -> GSTNetwork:
-    net = GSTNetwork(config_from_dict(ckpt["config"]), ckpt["group_index"].numpy())
-    net.load_state_dict(ckpt["model"])
+def network_from_checkpoint(ckpt: dict, source: str | Path | None = None) -> GSTNetwork:
+    """The network a checkpoint holds; `source` names the file in errors."""
+    try:
+        net = GSTNetwork(config_from_dict(ckpt["config"]), ckpt["group_index"].numpy())
+        net.load_state_dict(ckpt["model"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+        where = f"{source}: " if source is not None else ""
+        raise ValueError(
+            f"{where}the checkpoint's weights do not fit its network ({exc})"
+        ) from None
     return net

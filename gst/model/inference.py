@@ -32,12 +32,15 @@ def predict_bodies(
     with_gaussians: bool = True,
     with_vertices: bool = False,
     crop_size: int | None = None,
+    device: str | torch.device | None = None,
 ) -> BodyPrediction:
     """The network on a batch of crops (B, S, S, 3) RGB uint8 or float images, assembled into
     posed bodies (and Gaussians) in the crops' cameras (K (B, 3, 3); optional input-camera R, t
     for world coordinates). `image_size` is the network's input size; `crop_size` the crops' side
     (default: the images' own). The one inference path of training, evaluation and tracking."""
     x = to_float_images(images)
+    if device is not None:
+        x = x.to(device)
     out = network(network_input(x, image_size), with_gaussians=with_gaussians)
     return assemble(
         out,
@@ -62,7 +65,7 @@ class GSTPredictor:
         body_model: str | None = None,
     ):
         ckpt = load_checkpoint(checkpoint, map_location=device)
-        self.network = network_from_checkpoint(ckpt).to(device).eval()
+        self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
         self.body = load_body_model(body_model or ckpt["body_model"], device=device)
         self.vertex_ids = ckpt["vertex_ids"].to(device)
         self.with_gaussians = with_gaussians
@@ -81,11 +84,10 @@ class GSTPredictor:
     ) -> BodyPrediction:
         """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t."""
         want = self.with_gaussians if with_gaussians is None else with_gaussians
-        images = to_float_images(crops).to(self.device)
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=self.device)
         return predict_bodies(
-            self.network, self.body, self.vertex_ids, images, K, self.network.cfg.image_size,
-            R=R, t=t, with_gaussians=want, with_vertices=False,
+            self.network, self.body, self.vertex_ids, crops, K, self.network.cfg.image_size,
+            R=R, t=t, with_gaussians=want, with_vertices=False, device=self.device,
         )  # fmt: skip
 
     def __call__(self, crops: np.ndarray, K_crop: np.ndarray) -> dict[str, np.ndarray]:

@@ -386,10 +386,12 @@ def track_video(
         )
     session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
-    start_frame, resumed_from = run.first, None
+    start_frame, resumed_from, seconds_before = run.first, None, 0.0
     if point is not None:
         session.load_state_dict(point.state)
         start_frame = resumed_from = point.next_frame
+        # time spent by the runs this one resumes (kept beside the state, never in the output)
+        seconds_before = float(point.state.get("elapsed_s", 0.0))
     for g in tracked_groups(
         video_path,
         run,
@@ -402,7 +404,8 @@ def track_video(
         start_frame=start_frame,
         on_frame=on_frame,
     ):
-        writer.commit(g.table, g.next_frame, session.state_dict())
+        elapsed = seconds_before + time.perf_counter() - t0
+        writer.commit(g.table, g.next_frame, {**session.state_dict(), "elapsed_s": elapsed})
         if on_extra is not None and g.poses.extra:
             _replay_extras(g, on_extra)
     stats = {**session.stats, "persons": session.tracker.next_id}
@@ -414,7 +417,7 @@ def track_video(
         stats["frames"],
         stats["persons"],
         resumed_from,
-        time.perf_counter() - t0,
+        seconds_before + time.perf_counter() - t0,
     )
 
 

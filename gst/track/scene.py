@@ -22,6 +22,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import Camera, Rig
+from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
 from gst.detect.weights import model_paths
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
@@ -36,6 +37,7 @@ from gst.track.report import plot_joint_angles, write_overlay
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
+from gst.video import probe_video
 from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.track")
@@ -83,6 +85,7 @@ class TrackRequest:
     splats_dir: Path | None = None  # per-person splat PLYs (`--with-gaussians`)
     truth_scene: Path | None = None
     combined_evaluation: Path | None = None
+    frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # calibration.camera.fit_to_frames
 
 
 def _detector(s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None) -> Callable:
@@ -131,6 +134,13 @@ def track_scene(
     jobs = []
     for video in request.videos:
         camera = rig[video.stem] if rig is not None and video.stem in rig.names else None
+        if camera is not None:  # fitted to the frames now: a size mismatch fails here, named
+            info = probe_video(video, camera.name)
+            camera, note = fit_to_frames(
+                camera, info.width, info.height, request.frame_size_tolerance, str(video)
+            )
+            if note:
+                log.warning("%s", note)
         jobs.append(
             VideoJob(
                 video,

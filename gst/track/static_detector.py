@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from calibration import Camera
+from calibration.camera import fit_to_frames
 from gst.data.background import BackgroundConfig, build_background, sample_indices
 from gst.data.ground import ground_seed
 from gst.data.masks import MaskConfig, clean_mask
@@ -90,11 +91,9 @@ class StaticCameraDetector:
         self.camera, self.up, self.floor = camera, np.asarray(up, dtype=np.float64), float(floor)
         self.height_range = height_range
         self.group = group
-        if camera is not None and (camera.width, camera.height) != (info.width, info.height):
-            raise ValueError(
-                f"{source}: frames are {info.width}x{info.height} but camera '{camera.name}' is "
-                f"calibrated for {camera.width}x{camera.height}"
-            )
+        if camera is not None:
+            camera, _ = fit_to_frames(camera, info.width, info.height, source=str(source))
+            self.camera = camera
         picks = sample_indices(info.frames, min(self.config.samples, info.frames))
         samples = np.stack(
             [img for _, img in read_frames(source, picks, source.stem, scale=self.work_scale)]

@@ -20,9 +20,6 @@ from gst.body import BodyModel
 from gst.body.subsets import partition_vertices, vertex_subset
 from gst.model.checkpoint import (
     config_to_dict,
-    load_checkpoint,
-    network_from_checkpoint,
-    save_checkpoint,
 )
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
@@ -71,11 +68,6 @@ def gaussian_parameter_groups(model: GSTNetwork, lr: float, body_lr: float) -> l
         {"params": [p for p in trainable if id(p) not in gaussian], "lr": body_lr, "name": "body"},
     ]
     return [g for g in groups if g["params"]]
-
-
-def load_network(path: str | Path) -> tuple[GSTNetwork, dict]:
-    ckpt = load_checkpoint(path)
-    return network_from_checkpoint(ckpt), ckpt
 
 
 @dataclass
@@ -256,12 +248,6 @@ def fit_gst(
         heldout=list(opts.heldout_cameras),
     )
     return summary
-
-
-def export_checkpoint(
-    model: GSTNetwork, path: Path, body_spec: str, vertex_ids, group_index, extra=None
-) -> None:
-    save_checkpoint(path, model, body_spec, vertex_ids, group_index, extra)
 
 
 def make_task(

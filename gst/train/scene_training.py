@@ -96,7 +96,11 @@ def _initial_network(p: TrainSettings, pretrained: Path, body):
             f"models/pretrain.pt was trained with body model '{ckpt['body_model']}', "
             f"train.body_model is '{p.body_model}'"
         )
-    return network_from_checkpoint(ckpt), ckpt["vertex_ids"].numpy(), ckpt["group_index"].numpy()
+    return (
+        network_from_checkpoint(ckpt, pretrained),
+        ckpt["vertex_ids"].numpy(),
+        ckpt["group_index"].numpy(),
+    )
 
 
 def _contact_sheet(images, path: Path, max_rows: int = 8) -> None:

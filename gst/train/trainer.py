@@ -14,6 +14,7 @@ writes checkpoints and logs.
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import math
 import os
@@ -27,7 +28,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from gst.atomic import atomic_torch_save, atomic_write
+from gst.atomic import atomic_torch_save, atomic_write, atomic_write_json
 
 log = logging.getLogger("gst.train")
 
@@ -109,9 +110,11 @@ class Trainer:
         self.best_value: float | None = None
         self.step = 0
         self.bad_steps = 0
+        self.seconds_before = 0.0  # training time of the runs this one resumes
         self.progress = progress
         self.checkpoint_extra = checkpoint_extra or (lambda: {})
         self.history: list[dict] = []
+        self._t0: float | None = None
 
     # -- checkpoints ------------------------------------------------------------------------
     @property
@@ -144,6 +147,15 @@ class Trainer:
                 },
                 path,
             )
+            if path == self.last_path:
+                # Wall-clock time stays out of the checkpoints (they are outputs and must not
+                # change from run to run); a resumed run reads it here to keep counting.
+                elapsed = self.seconds_before + (
+                    time.perf_counter() - self._t0 if self._t0 else 0.0
+                )
+                atomic_write_json(
+                    self.out_dir / "elapsed.json", {"step": self.step, "seconds": elapsed}
+                )
 
     def resume(self, path: Path | None = None) -> bool:
         """Continue from `last.pt` if it exists. Returns whether it resumed."""
@@ -158,8 +170,38 @@ class Trainer:
         self.generator.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
         self.step, self.bad_steps, self.best_value = st["step"], st["bad_steps"], st["best_value"]
+        self.seconds_before = self._elapsed_at(self.step)
+        self._forget_logged_after(self.step)
         log.info("resumed from %s at step %d", path, self.step)
         return True
+
+    def _elapsed_at(self, step: int) -> float:
+        try:
+            rec = json.loads((self.out_dir / "elapsed.json").read_text())
+        except (OSError, ValueError):
+            return 0.0
+        return float(rec.get("seconds", 0.0)) if rec.get("step") == step else 0.0
+
+    def _forget_logged_after(self, step: int) -> None:
+        """A killed run logged steps after its last checkpoint; the resumed run computes them
+        again, so those rows go (the log then holds every step once, in order)."""
+        path = self.out_dir / "log.csv"
+        if self.rank != 0 or not path.is_file():
+            return
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            fields, rows = reader.fieldnames or [], list(reader)
+        kept = [r for r in rows if int(float(r.get("step") or 0)) <= step]
+        if len(kept) == len(rows):
+            return
+
+        def write(tmp) -> None:
+            with open(tmp, "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=fields)
+                writer.writeheader()
+                writer.writerows(kept)
+
+        atomic_write(path, write)
 
     # -- loop -------------------------------------------------------------------------------
     def _log_row(self, row: dict) -> None:
@@ -240,7 +282,7 @@ class Trainer:
     def fit(self) -> dict:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.model.train()
-        t0 = time.perf_counter()
+        t0 = self._t0 = time.perf_counter()
         steps = range(self.step, self.cfg.steps)
         iterator = (
             self.progress(steps, description="training", total=len(steps))
@@ -251,9 +293,8 @@ class Trainer:
         for _ in iterator:
             row = self.train_step()
             self.step += 1
-            row.update(
-                step=self.step, lr=self.scheduler.get_last_lr()[0], seconds=time.perf_counter() - t0
-            )
+            elapsed = self.seconds_before + time.perf_counter() - t0
+            row.update(step=self.step, lr=self.scheduler.get_last_lr()[0], seconds=elapsed)
             if self.step % self.cfg.val_every == 0 or self.step == self.cfg.steps:
                 last_val = self.validate()
                 row.update({f"val_{k}": v for k, v in last_val.items()})
@@ -272,5 +313,5 @@ class Trainer:
             "steps": self.step,
             "bad_steps": self.bad_steps,
             "best": self.best_value,
-            "seconds": time.perf_counter() - t0,
+            "seconds": self.seconds_before + time.perf_counter() - t0,
         }

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from calibration.camera import FRAME_PADDING_TOLERANCE
 from gst.data.association import (
     AssociationConfig,
     CaptureVolume,
@@ -44,6 +45,9 @@ class ExtractOptions:
     persons_models_dir: str | None = None  # None: the default cache (python -m gst.detect fetch)
     # Also segment around moving background blobs (finds movers the detector misses).
     persons_hints: bool = True
+    # Frames smaller than the calibrated size by up to this many pixels are encoder padding
+    # (calibration.camera.fit_to_frames).
+    frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
 
     @classmethod
     def from_settings(
@@ -52,6 +56,7 @@ class ExtractOptions:
         association: dict[str, float | int] | None = None,
         person_model: str = "none",
         person_hints: bool = True,
+        frame_size_tolerance: int = FRAME_PADDING_TOLERANCE,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose') and whether to segment around moving blobs too."""
@@ -62,6 +67,7 @@ class ExtractOptions:
             association=AssociationConfig(**(association or {})),
             persons=SegmenterConfig() if person_model == "blazepose" else None,
             persons_hints=person_hints,
+            frame_size_tolerance=frame_size_tolerance,
         )
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 import time
@@ -29,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration import Camera, Rig
+from calibration.camera import fit_to_frames
 from gst.data.background import BackgroundConfig
 from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import ExternalDetections, find_mask_file, read_external
@@ -45,6 +47,8 @@ from gst.data.extract.options import (
 from gst.data.store import CropBatch, CropStore, CropStoreWriter, merge_part
 from gst.detect.weights import model_paths
 from gst.video import VideoError, VideoInfo, check_videos, probe_video, scaled_size
+
+log = logging.getLogger("gst.data")
 
 
 def _fingerprint(obj) -> str:
@@ -74,6 +78,19 @@ def _resolve_truth(truth: Path | str | None) -> Path | None:
             f"truth masks folder {p} does not exist (expected <scene>/truth or <scene>/truth/masks)"
         )
     return p
+
+
+def _fit_rig(rig: Rig, infos: dict[str, VideoInfo], tolerance: int) -> Rig:
+    """The rig with each filmed camera fitted to its video's frame size (padding tolerated)."""
+    cams = []
+    for cam in rig:
+        if cam.name in infos:
+            info = infos[cam.name]
+            cam, note = fit_to_frames(cam, info.width, info.height, tolerance, str(info.path))
+            if note:
+                log.warning("%s", note)
+        cams.append(cam)
+    return Rig(tuple(cams), rig.up, rig.units, rig.meta)
 
 
 def _map(executor_map, fn, items, description):
@@ -151,8 +168,9 @@ def plan_extraction(
         raise ExtractError(f"frame_stride must be >= 1, got {frame_stride}")
     bg_cfg = BackgroundConfig(**{**asdict(opts.background), "method": method})
     videos = {str(k): Path(v) for k, v in videos.items()}
-    infos = check_videos(videos, rig.names, {c.name: (c.width, c.height) for c in rig})
+    infos = check_videos(videos, rig.names)
     names = [n for n in rig.names if n in videos]  # rig order
+    rig = _fit_rig(rig, infos, opts.frame_size_tolerance)
     n_frames = next(iter(infos.values())).frames
     frames = list(range(0, n_frames, frame_stride))
     sizes = {n: (infos[n].width, infos[n].height) for n in names}
@@ -204,9 +222,9 @@ def plan_extraction(
                 None
                 if volume is None
                 else [volume.basis.tolist(), volume.lo.tolist(), volume.hi.tolist()],
-                str(getattr(ext, "root", None)),
+                Path(str(getattr(ext, "root", ""))).name,  # names: a moved workspace stays valid
                 [_camera_signature(rig[n]) for n in names],
-                {n: str(p) for n, p in sorted(plates.items())},
+                {n: p.name for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
             ]
         ),
@@ -448,7 +466,8 @@ def extract_scene(
         outcome = _run_phases(plan, writer, progress, executor_map)
         writer.finalize(
             {
-                "source_videos": json.dumps({n: str(p) for n, p in plan.videos.items()}),
+                # file names only: a workspace copied elsewhere keeps identical bytes
+                "source_videos": json.dumps({n: p.name for n, p in plan.videos.items()}),
                 "n_frames": plan.n_frames,
             }
         )

@@ -1,0 +1,37 @@
+"""`run X` never reruns an expensive upstream stage unasked: a stale upstream stage whose
+outputs exist is kept (and the log says so, with how long it took last time); `--upstream`
+reruns it; missing upstream outputs are always produced."""
+
+from __future__ import annotations
+
+from tests.test_pipeline_dag import counter, run, write_config  # noqa: F401  (fixture)
+
+
+def test_a_stale_upstream_stage_is_kept_unless_asked(tmp_path, counter):  # noqa: F811
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "report") == 0
+    assert counter() == ["source", "double", "report"]
+
+    # a parameter that changes the upstream stage (like `--set pretrain.reuse=...` once)
+    assert run(cfg, "run", "report", "--set", "source.value=2", "--force") == 0
+    assert counter()[3:] == ["report"]  # source and double kept, report forced
+    logs = sorted((tmp_path / "ws/.pipeline/logs").glob("*.log"))
+    text = logs[-1].read_text()
+    assert "source is stale (param value: 1 -> 2); its last run took" in text, text
+    assert "using its existing outputs. Run it, or pass --upstream" in text
+
+    assert run(cfg, "run", "report", "--set", "source.value=2", "--upstream") == 0
+    assert counter()[4:] == ["source", "double", "report"]
+
+
+def test_missing_upstream_outputs_are_always_produced(tmp_path, counter):  # noqa: F811
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "double") == 0
+    assert counter() == ["source", "double"]
+
+
+def test_run_all_runs_every_stale_stage(tmp_path, counter):  # noqa: F811
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "all", "--set", "source.value=3") == 0
+    assert counter() == ["source", "double", "report"] * 2
