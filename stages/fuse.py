@@ -15,7 +15,7 @@ from pipeline.stage import Stage, StageContext, StageParams
 class Params(StageParams):
     body_model: str = "anny"  # or "smpl", or a path to your SMPL file (docs/body_model.md)
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
-    iterations: int = 15  # Levenberg-Marquardt iterations of the body fit
+    iterations: int = 8  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
     smoothness: float = 1.0  # weight of the temporal smoothness term
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
     people_per_batch: int = 8

@@ -7,8 +7,10 @@ analytic Jacobian (gst.fuse.kinematics). Two stages:
 1. start: from the rigid start (gst.fuse.start), `init_iterations` steps against the
    triangulated landmarks (3D, robust): close to the answer in a few steps and free of the 2D
    stage's local minima (an arm fitted behind the body from one view's point of view);
-2. fit: `iterations` steps against every camera's landmarks (2D reprojection, robust), with
-   temporal smoothness, pose prior and joint limits.
+2. fit: `view_rounds` x `iterations` steps against every camera's landmarks (2D reprojection,
+   robust), with temporal smoothness, pose prior and joint limits; before each round, every
+   view of a person-frame is weighted by how well the current body explains it as a whole
+   (a partly occluded view, all of whose landmarks are a little off, counts less).
 
 Frames inserted into gaps (no evidence) are started from their neighbours and held by the
 smoothness; a person seen by one camera at a time is fitted by stage 2 alone and marked
@@ -44,10 +46,10 @@ euler_xyz_from_matrix = euler_xyz  # the joint-limit angles (kept under its old 
 @dataclass(frozen=True)
 class FitOptions:
     num_betas: int = 10
-    iterations: int = 15  # LM iterations against the 2D landmarks
+    iterations: int = 8  # LM iterations against the 2D landmarks, per view-weighting round
     init_iterations: int = 6  # LM iterations against the triangulated landmarks (the start)
     sigma_px: float | None = None  # Cauchy scale; None: sigma_factor x median triangulation error
-    sigma_factor: float = 1.5
+    sigma_factor: float = 1.0
     min_sigma_px: float = 2.0
     min_confidence: float = 0.1
     w_pose: float = 1.0  # per rad^2 of local rotation
@@ -57,6 +59,8 @@ class FitOptions:
     smooth_scale_m: float = 0.02  # the second difference (at 30 fps) counted as one unit
     sigma_3d_m: float = 0.03  # Cauchy scale of the start stage (triangulated landmarks)
     start_sigma_factor: float = 10.0  # 2D kernel scale of the start where nothing triangulates
+    view_weighting: bool = True  # reweigh whole views by their median residual (_weigh_views)
+    view_rounds: int = 2
     static_tol_m: float = 0.005
     max_gap: int = 15
 
@@ -132,6 +136,18 @@ def _fill_unobserved(state: BodyState, observed: np.ndarray, offsets: np.ndarray
         near = seen[np.abs(t[:, None] - seen[None]).argmin(1)]
         root[a:b] = root[a:b][torch.as_tensor(near)]
     return BodyState(root, transl, theta, state.betas)
+
+
+def _weigh_views(state: BodyState, views: Views, sk: MarkerSkeleton, person) -> Views:
+    """Views whose landmarks are broadly worse than the person's noise level (partly occluded,
+    blurred) count less: each (frame, camera) weight is scaled by sigma^2 / max(sigma, median
+    residual of the view)^2, a view-level reweighting beside the per-landmark kernel."""
+    X, *_ = sk.forward(state.betas[person], state.root, state.theta, state.transl)
+    r = views.residuals(X)
+    r = torch.where(views.weight > 0, r, torch.full_like(r, float("nan")))
+    med = torch.nanmedian(r, dim=-1).values.nan_to_num(0.0)  # (B, C)
+    s = views.sigma[:, None]
+    return replace(views, weight=views.weight * ((s / torch.maximum(med, s)) ** 2)[..., None])
 
 
 def fit_people(
@@ -260,7 +276,11 @@ def fit_people(
                 )
             state = solve(state, start_evidence, replace(weights, smooth=0.0), o.init_iterations)
             state = _fill_unobserved(state, observed, offsets)
-        state = solve(state, views, weights, o.iterations)
+        if o.view_weighting and o.view_rounds:
+            for _ in range(o.view_rounds):
+                state = solve(state, _weigh_views(state, views, sk, person), weights, o.iterations)
+        else:
+            state = solve(state, views, weights, o.iterations)
         X, J, _, _ = sk.forward(state.betas[person], state.root, state.theta, state.transl)
         r = views.residuals(X)
         reproj = torch.where(views.weight > 0, r, torch.full_like(r, float("nan")))
