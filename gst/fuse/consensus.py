@@ -145,7 +145,18 @@ def view_consensus(
     _, grp_sw = _view_errors(obs, X[:, None], sw_uv, sw_conf, o.min_confidence)
     grp_sw = grp_sw[:, 0]
     decide = (n_best >= o.min_agree)[:, None] & seen
-    swap = decide[..., None] & (grp_sw < o.swap_gain * grp) & (grp > limit[..., None] / 2)
+    # A limb group's left/right convention is the majority's: if the winning pair itself had
+    # the group exchanged, more views agree exchanged than as they are; then the hypothesis is
+    # mirrored for that group and the views that agreed with it as they are get exchanged.
+    clear = decide[..., None] & (np.fmax(grp, grp_sw) > limit[..., None] / 2)
+    want = clear & (grp_sw < o.swap_gain * grp)
+    keep = clear & (grp < o.swap_gain * grp_sw)
+    flip = want.sum(1) > keep.sum(1)  # (T, G)
+    swap = np.where(flip[:, None], keep, want)
+    for g, idx in enumerate(LIMB_GROUPS.values()):
+        idx = np.array(idx)
+        t = np.flatnonzero(flip[:, g])
+        X[t[:, None], idx] = X[t[:, None], SWAP[idx]]
     out_uv, out_conf = obs.uv.copy(), obs.confidence.copy()
     for g, idx in enumerate(LIMB_GROUPS.values()):
         t, c = np.nonzero(swap[..., g])
