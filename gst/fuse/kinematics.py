@@ -26,6 +26,7 @@ import torch
 
 from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
+from gst.body.skeleton import kinematic_levels
 
 __all__ = ["MarkerSkeleton", "rodrigues", "skew", "left_jacobian", "N_POSE_PARAMS"]
 
@@ -98,6 +99,12 @@ class MarkerSkeleton:
         # only joints 1..23 carry local rotations; (m, j) pairs where the marker depends on j
         self._pairs = np.argwhere(moves_anchor[:, 1:] | turns_offset[:, 1:])
         self._pa = torch.as_tensor(moves_anchor[:, 1:][tuple(self._pairs.T)], dtype=dtype)
+        self._parent_index = torch.as_tensor([max(p, 0) for p in self.parents])
+        self._levels = [
+            (torch.as_tensor(level), torch.as_tensor([self.parents[j] for j in level]))
+            for level in kinematic_levels(self.parents)[1:]
+        ]
+        self._dbone = self.S - self.S[self._parent_index]  # (24, 3, nb) rest bone per beta
         self._po = torch.as_tensor(turns_offset[:, 1:][tuple(self._pairs.T)], dtype=dtype)
 
     @property
@@ -121,16 +128,17 @@ class MarkerSkeleton:
         B = theta.shape[0]
         rest = self.rest_joints(betas)
         local = rodrigues(theta)
-        rots, pos = [root], [rest[:, 0]]
-        dshape = [self.S[0].expand(B, 3, self.nb)] if jacobian else []
-        for j in range(1, 24):
-            p = self.parents[j]
-            rots.append(rots[p] @ local[:, j - 1])
-            pos.append(pos[p] + (rots[p] @ (rest[:, j] - rest[:, p])[..., None])[..., 0])
+        bone = rest - rest[:, self._parent_index]  # (B, 24, 3), root row unused
+        G = root[:, None].expand(B, 24, 3, 3)
+        J = rest[:, :1].expand(B, 24, 3)
+        dshape = self.S[0].expand(B, 24, 3, self.nb) if jacobian else None
+        for level, par in self._levels:  # one batched product per depth of the tree
+            Rp = G[:, par]  # (B, n, 3, 3)
+            G = G.index_copy(1, level, Rp @ local[:, level - 1])
+            J = J.index_copy(1, level, J[:, par] + (Rp @ bone[:, level, :, None])[..., 0])
             if jacobian:
-                dshape.append(dshape[p] + rots[p] @ (self.S[j] - self.S[p]))
-        G = torch.stack(rots, 1)
-        J = torch.stack(pos, 1) + transl[:, None]
+                dshape = dshape.index_copy(1, level, dshape[:, par] + Rp @ self._dbone[level])
+        J = J + transl[:, None]
         turned = (G[:, self.frame] @ self.offsets[..., None])[..., 0]  # (B, M, 3)
         X = J[:, self.anchor] + turned
         if not jacobian:
@@ -149,5 +157,5 @@ class MarkerSkeleton:
         dpose = X.new_zeros(B, M, 3, 23, 3)
         dpose[:, m, :, j, :] = d.transpose(0, 1)  # advanced indices go first: (n, B, 3, 3)
         dX[..., 6:N_POSE_PARAMS] = dpose.reshape(B, M, 3, 69)
-        dX[..., N_POSE_PARAMS:] = torch.stack(dshape, 1)[:, self.anchor]
+        dX[..., N_POSE_PARAMS:] = dshape[:, self.anchor]
         return X, J, G, local, dX

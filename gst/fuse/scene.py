@@ -34,6 +34,7 @@ from gst.atomic import atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.data.store import CropStore
+from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import crop_landmarks, group_by_person
@@ -131,6 +132,12 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
     return fits
 
 
+def _on_frames(values: np.ndarray, frames: np.ndarray, dense: np.ndarray) -> np.ndarray:
+    out = np.full(len(dense), np.nan)
+    out[np.searchsorted(dense, frames)] = values
+    return out
+
+
 def fuse_scene(
     store_path: str | Path,
     rig,
@@ -226,7 +233,12 @@ def fuse_scene(
         from synth.truth import read_scene_truth
 
         truth = compare_with_truth(fits, read_scene_truth(truth_dir), body).as_dict()
-    summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth)
+    limbs = per_frame_limb_lengths(body, markers, people, tris, fps, o.fit)
+    limbs = [
+        {k: _on_frames(v, p.frames, f.frames) for k, v in per.items()}
+        for per, p, f in zip(limbs, people, fits, strict=True)
+    ]
+    summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth, limbs)
 
     bodies = out_dir / "bodies.parquet"
     write_bodies(
@@ -249,7 +261,7 @@ def fuse_scene(
         write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.gap_filled)
         trc.append(t_path)
         c3d.append(c_path)
-    write_report(summary, report_dir, fits, dense_tris)
+    write_report(summary, report_dir, fits, dense_tris, limbs)
     overlays: list[Path] = []
     if o.overlay and fits:
         from gst.fuse.overlay import write_overlays
