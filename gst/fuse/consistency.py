@@ -19,6 +19,7 @@ from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
 from gst.fuse.fit import FitOptions, fit_people
 from gst.fuse.observations import PersonObservations
+from gst.fuse.start import TORSO_LANDMARKS
 from gst.fuse.triangulate import PersonTriangulation
 
 __all__ = ["LIMB_SEGMENTS", "per_frame_limb_lengths"]
@@ -50,7 +51,10 @@ def per_frame_limb_lengths(
     o = replace(options or FitOptions(), w_smooth=0.0, w_betas=w_betas, max_gap=0)
     singles, singles_tri, where = [], [], []
     for k, (p, tri) in enumerate(zip(people, tris, strict=True)):
-        for t in np.flatnonzero((p.rows >= 0).sum(1) >= 2):
+        torso = (
+            tri.points[:, list(TORSO_LANDMARKS)] if tri is not None else np.full((1, 4, 3), np.nan)
+        )
+        for t in np.flatnonzero(np.isfinite(torso).all(-1).sum(-1) >= 3):  # a triangulated torso
             keep = np.zeros(len(p.frames), bool)
             keep[t] = True
             singles.append(replace(p.select(keep), person_id=len(singles)))

@@ -14,7 +14,8 @@ hypothesis backed by at least `min_agree` cameras. Here:
    best (median landmark error below `agree` x the person's size in that view; one crop per
    camera and track), so a crop that showed the other person joins that person;
 4. extraction person-frames without a hypothesis (fewer than `min_agree` agreeing views) keep
-   their crops with the track that last took a hypothesis of that extraction id.
+   their crops with the track that last took a hypothesis of that extraction id, and that track
+   continues when the id's next hypothesis comes, however long the wait.
 
 The result is one `PersonObservations` per track, with the view consensus applied (exchanged
 limb groups put right, unmatched views dropped).
@@ -130,11 +131,15 @@ def regroup_people(
             finite = np.where(np.isfinite(cost), cost, 1e6)
             r, c = linear_sum_assignment(finite)
             taken = {i: live[j] for i, j in zip(r, c, strict=True) if np.isfinite(cost[i, j])}
+        used = set(taken.values())
         for i, (k, X, _) in enumerate(keep):
             tid = taken.get(i)
+            if tid is None and holder.get(k) is not None and holder[k] not in used:
+                tid = holder[k]  # the track that kept this id's crops while it had no skeleton
             if tid is None:
-                tid = ids[k] if ids[k] not in tracks else next_id
+                tid = ids[k] if ids[k] not in tracks and ids[k] not in used else next_id
                 next_id = max(next_id, tid + 1)
+            used.add(tid)
             tracks[tid] = {"X": X, "frame": f, "source": k}
             holder[k] = tid
         # every crop of this frame to the track whose skeleton it matches best
@@ -182,6 +187,14 @@ def regroup_people(
                 obs.K[i, c], obs.Rt[i, c] = src.K[t, c], src.Rt[t, c]
                 obs.px_scale[i, c], obs.rows[i, c] = src.px_scale[t, c], src.rows[t, c]
                 sources.add(ids[k])
+        # views the consensus dropped (no usable landmark) are no observation at all
+        empty = (obs.rows >= 0) & ~(obs.confidence > 0).any(-1)
+        obs.rows[empty] = -1
+        obs.uv[empty] = np.nan
+        seen = (obs.rows >= 0).any(1)
+        if not seen.any():
+            continue
+        obs = obs.select(seen)
         track_of[tid] = sorted(sources)
         out.append(obs)
     return out, RegroupReport(len(out), moved, merged, track_of)

@@ -111,14 +111,12 @@ def _single_view_start(
     c = np.zeros((T, 3))
     last = None
     for i in range(T):
-        cams = np.flatnonzero(obs.rows[i] >= 0)
-        if not len(cams):
+        confident = (obs.confidence[i] > 0.3).sum(-1) * (obs.rows[i] >= 0)  # (C,)
+        k = int(confident.argmax())  # the view that sees most of the body
+        if confident[k] < 4:
             continue
-        k = cams[0]
         K, Rt = obs.K[i, k], obs.Rt[i, k]
         uv, w = obs.uv[i, k], obs.confidence[i, k] > 0.3
-        if w.sum() < 4:
-            continue
         height_px = np.ptp(uv[w, 1]) + 1e-6
         depth = K[1, 1] * 1.7 / height_px
         hips = uv[[23, 24]].mean(0)
