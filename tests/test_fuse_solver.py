@@ -133,6 +133,18 @@ def test_gradient_of_the_linearisation_equals_autograd(body, skeleton):
         np.testing.assert_allclose(2 * g, auto, rtol=1e-6, atol=1e-6 * auto.abs().max())
         assert torch.allclose(H, H.transpose(1, 2))
         assert torch.linalg.eigvalsh(H).min() > -1e-6 * H.abs().max()
+    # the person's own marker offsets as unknowns too (their columns come last)
+    off = torch.randn(B, 33, 3, dtype=D) * 0.02 + skeleton.offsets
+    X, _, G, local, dX = skeleton.forward(betas, root, theta, transl, True, off)
+    H, g = linearise(X, dX, theta, local, ev, nb, w, G[:, skeleton.frame])
+    o = off.clone().requires_grad_(True)
+    th = theta.clone().requires_grad_(True)
+    Xa, _, _, la = skeleton.forward(betas, root, th, transl, offsets=o)
+    cost(Xa, th, la, ev, nb, w).sum().backward()
+    auto = torch.cat([th.grad.reshape(B, 69), o.grad.reshape(B, 99)], 1)
+    mine = torch.cat([g[:, 6:75], g[:, 85:]], 1)
+    np.testing.assert_allclose(2 * mine, auto, rtol=1e-6, atol=1e-6 * auto.abs().max())
+    assert torch.allclose(H, H.transpose(1, 2))
 
 
 def test_schur_step_equals_the_dense_solve(body, skeleton):

@@ -45,11 +45,17 @@ def per_frame_limb_lengths(
     fps: float,
     options: FitOptions | None = None,
     w_betas: float = 0.1,
+    marker_offsets: list[np.ndarray | None] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Per person: segment name -> (T,) lengths in metres over the person's frames (NaN where
-    the frame was not seen by two cameras)."""
-    o = replace(options or FitOptions(), w_smooth=0.0, w_betas=w_betas, max_gap=0)
-    singles, singles_tri, where = [], [], []
+    the torso was not triangulated). `marker_offsets`: each person's own marker corrections
+    from the clip's fit (PersonFit.marker_offsets), held fixed: a frame's shape must not hide
+    in its markers."""
+    o = replace(
+        options or FitOptions(), w_smooth=0.0, w_betas=w_betas, max_gap=0, w_marker_offsets=0.0
+    )
+    own = marker_offsets or [None] * len(people)
+    singles, singles_tri, where, single_offsets = [], [], [], []
     for k, (p, tri) in enumerate(zip(people, tris, strict=True)):
         torso = (
             tri.points[:, list(TORSO_LANDMARKS)] if tri is not None else np.full((1, 4, 3), np.nan)
@@ -60,10 +66,11 @@ def per_frame_limb_lengths(
             singles.append(replace(p.select(keep), person_id=len(singles)))
             singles_tri.append(_select_tri(tri, keep) if tri is not None else None)
             where.append((k, t))
+            single_offsets.append(own[k])
     out = [{name: np.full(len(p.frames), np.nan) for name in LIMB_SEGMENTS} for p in people]
     if not singles:
         return out
-    fits = fit_people(body, markers, singles, singles_tri, fps, o)
+    fits = fit_people(body, markers, singles, singles_tri, fps, o, marker_offsets=single_offsets)
     for (k, t), f in zip(where, fits, strict=True):
         for name, (a, b) in LIMB_SEGMENTS.items():
             out[k][name][t] = np.linalg.norm(f.joints[0, a] - f.joints[0, b])

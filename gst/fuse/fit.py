@@ -61,6 +61,9 @@ class FitOptions:
     start_sigma_factor: float = 10.0  # 2D kernel scale of the start where nothing triangulates
     view_weighting: bool = True  # reweigh whole views by their median residual (_weigh_views)
     view_rounds: int = 2
+    # > 0: each person's own marker offsets are fitted over the clip (as MoSh does for mocap
+    # markers), pulled towards the table with this weight per m^2; 0: the table as it is
+    w_marker_offsets: float = 0.0
     static_tol_m: float = 0.005
     max_gap: int = 15
 
@@ -82,6 +85,7 @@ class PersonFit:
     static: np.ndarray  # (T,) bool: nobody moved since the previous frame
     single_view: bool  # never seen by two cameras at once
     sigma_px: float
+    marker_offsets: np.ndarray | None = None  # (M, 3) the person's own offsets minus the table's
 
 
 _ARM_JOINTS = ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow")
@@ -135,14 +139,14 @@ def _fill_unobserved(state: BodyState, observed: np.ndarray, offsets: np.ndarray
             x[a:b] = torch.as_tensor(filled.reshape(x[a:b].shape))
         near = seen[np.abs(t[:, None] - seen[None]).argmin(1)]
         root[a:b] = root[a:b][torch.as_tensor(near)]
-    return BodyState(root, transl, theta, state.betas)
+    return BodyState(root, transl, theta, state.betas, state.offsets)
 
 
-def _weigh_views(state: BodyState, views: Views, sk: MarkerSkeleton, person) -> Views:
+def _weigh_views(state: BodyState, views: Views, sk: MarkerSkeleton, person, table) -> Views:
     """Views whose landmarks are broadly worse than the person's noise level (partly occluded,
     blurred) count less: each (frame, camera) weight is scaled by sigma^2 / max(sigma, median
     residual of the view)^2, a view-level reweighting beside the per-landmark kernel."""
-    X, *_ = sk.forward(state.betas[person], state.root, state.theta, state.transl)
+    X, *_ = sk.forward(state.betas[person], state.root, state.theta, state.transl, offsets=table)
     r = views.residuals(X)
     r = torch.where(views.weight > 0, r, torch.full_like(r, float("nan")))
     med = torch.nanmedian(r, dim=-1).values.nan_to_num(0.0)  # (B, C)
@@ -158,11 +162,14 @@ def fit_people(
     fps: float,
     options: FitOptions | None = None,
     start: list[PersonFit] | None = None,
+    marker_offsets: list[np.ndarray | None] | None = None,
 ) -> list[PersonFit]:
     """Fit every person's body over the clip at once (one batch). Deterministic on CPU.
 
     `start`: earlier fits of the same people over the same frames (e.g. the previous window of
-    a long clip) to start from instead of the rigid start; the start stage is then skipped."""
+    a long clip) to start from instead of the rigid start; the start stage is then skipped.
+    `marker_offsets`: per person, (M, 3) corrections of the marker table (a person's offsets
+    from an earlier fit), held fixed unless `w_marker_offsets` > 0 fits them further."""
     o = options or FitOptions()
     if not people:
         return []
@@ -232,18 +239,34 @@ def fit_people(
             torch.zeros(len(dense), nb, dtype=DTYPE),
         )
 
+    M = len(sk.anchor)
+    fixed = torch.zeros(len(dense), M, 3, dtype=DTYPE)
+    for k, d in enumerate(marker_offsets or []):
+        if d is not None:
+            fixed[k] = torch.as_tensor(d, dtype=DTYPE)
+
+    def marker_table(s: BodyState) -> torch.Tensor:
+        own = fixed if s.offsets is None else fixed + s.offsets
+        return (sk.offsets + own)[person]  # (B, M, 3)
+
     def solve(state: BodyState, evidence, w: Weights, iterations: int) -> BodyState:
         def energy(s: BodyState) -> torch.Tensor:
-            X, _, _, local = sk.forward(s.betas[person], s.root, s.theta, s.transl)
+            X, _, _, local = sk.forward(
+                s.betas[person], s.root, s.theta, s.transl, offsets=marker_table(s)
+            )
             return cost(X, s.theta, local, evidence, nbrs, w)
 
         def lin(s: BodyState):
-            X, _, _, local, dX = sk.forward(
-                s.betas[person], s.root, s.theta, s.transl, jacobian=True
+            X, _, G, local, dX = sk.forward(
+                s.betas[person], s.root, s.theta, s.transl, True, marker_table(s)
             )
-            return linearise(X, dX, s.theta, local, evidence, nbrs, w)
+            turn = None if s.offsets is None else G[:, sk.frame]
+            return linearise(X, dX, s.theta, local, evidence, nbrs, w, turn)
 
-        return levenberg_marquardt(state, person, energy, lin, iterations, o.w_betas)
+        prior = torch.full((nb,), o.w_betas, dtype=DTYPE)
+        if state.offsets is not None:
+            prior = torch.cat([prior, torch.full((3 * M,), o.w_marker_offsets, dtype=DTYPE)])
+        return levenberg_marquardt(state, person, energy, lin, iterations, prior)
 
     with torch.no_grad():
         if start is None and o.init_iterations:
@@ -276,12 +299,19 @@ def fit_people(
                 )
             state = solve(state, start_evidence, replace(weights, smooth=0.0), o.init_iterations)
             state = _fill_unobserved(state, observed, offsets)
+        if o.w_marker_offsets > 0:  # the person's own markers, from the 2D evidence only
+            state = replace(state, offsets=torch.zeros(len(dense), M, 3, dtype=DTYPE))
         if o.view_weighting and o.view_rounds:
             for _ in range(o.view_rounds):
-                state = solve(state, _weigh_views(state, views, sk, person), weights, o.iterations)
+                weighed = _weigh_views(state, views, sk, person, marker_table(state))
+                state = solve(state, weighed, weights, o.iterations)
         else:
             state = solve(state, views, weights, o.iterations)
-        X, J, _, _ = sk.forward(state.betas[person], state.root, state.theta, state.transl)
+        X, J, _, _ = sk.forward(
+            state.betas[person], state.root, state.theta, state.transl,
+            offsets=marker_table(state),
+        )  # fmt: skip
+        own = fixed if state.offsets is None else fixed + state.offsets
         r = views.residuals(X)
         reproj = torch.where(views.weight > 0, r, torch.full_like(r, float("nan")))
         go = matrix_to_axis_angle(state.root)
@@ -304,6 +334,7 @@ def fit_people(
                 static=statics[k],
                 single_view=single[k],
                 sigma_px=sigmas[k],
+                marker_offsets=own[k].numpy(),
             )
         )
     return results

@@ -121,10 +121,13 @@ class MarkerSkeleton:
         theta: torch.Tensor,
         transl: torch.Tensor,
         jacobian: bool = False,
+        offsets: torch.Tensor | None = None,
     ):
         """betas (B, nb), root (B, 3, 3), theta (B, 23, 3), transl (B, 3) ->
         markers (B, M, 3), joints (B, 24, 3), world rotations (B, 24, 3, 3), local rotations
-        (B, 23, 3, 3), and with `jacobian` d markers / d params (B, M, 3, P)."""
+        (B, 23, 3, 3), and with `jacobian` d markers / d params (B, M, 3, P). `offsets` (B, M, 3)
+        replaces the table's offsets (a person's own markers); d markers / d offsets is
+        G[:, frame] (the marker's frame rotation), left to the caller."""
         B = theta.shape[0]
         rest = self.rest_joints(betas)
         local = rodrigues(theta)
@@ -139,7 +142,8 @@ class MarkerSkeleton:
             if jacobian:
                 dshape = dshape.index_copy(1, level, dshape[:, par] + Rp @ self._dbone[level])
         J = J + transl[:, None]
-        turned = (G[:, self.frame] @ self.offsets[..., None])[..., 0]  # (B, M, 3)
+        off = self.offsets if offsets is None else offsets
+        turned = (G[:, self.frame] @ off[..., None])[..., 0]  # (B, M, 3)
         X = J[:, self.anchor] + turned
         if not jacobian:
             return X, J, G, local

@@ -172,8 +172,11 @@ def _marker_information(X, ev: Views | Points):
     return torch.einsum("bcmki,bcmkj->bmij", Pw, P), torch.einsum("bcmki,bcmk->bmi", Pw, res)
 
 
-def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights):
-    """Normal equations H (B, P, P), g (B, P) (E ~ E0 + 2 g.dp + dp.H.dp) at the current state."""
+def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights, turn=None):
+    """Normal equations H (B, P, P), g (B, P) (E ~ E0 + 2 g.dp + dp.H.dp) at the current state.
+
+    `turn` (B, M, 3, 3): when the person's marker offsets are unknowns too, the rotation that
+    turns each marker's offset (d X_m / d offset_m); their 3 M columns come last."""
     B, M = X.shape[:2]
     eye = torch.eye(3, dtype=X.dtype)
     Hm = X.new_zeros(B, M, 3, 3)
@@ -194,7 +197,8 @@ def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights):
         )
         Hm = Hm + (w.accel_scale**2 * (wp + 4 * ws * c[:, None] + wn))[..., None, None] * eye
     J = dX.reshape(B, M * 3, -1)
-    H = J.transpose(1, 2) @ (Hm @ dX).reshape(B, M * 3, -1)
+    HJ = Hm @ dX  # (B, M, 3, P)
+    H = J.transpose(1, 2) @ HJ.reshape(B, M * 3, -1)
     g = (J.transpose(1, 2) @ gm.reshape(B, M * 3, 1))[..., 0]
     # pose prior and joint limits act on theta (columns 6..75), one 3x3 block per joint
     idx = torch.arange(6, N_POSE_PARAMS)
@@ -209,4 +213,18 @@ def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights):
     Hp[:, j, :, j, :] += blocks.transpose(0, 1)
     H[:, 6:N_POSE_PARAMS, 6:N_POSE_PARAMS] = Hp.reshape(B, 69, 69)
     g[:, 6:N_POSE_PARAMS] += gl.reshape(B, 69)
-    return H, g
+    if turn is None:
+        return H, g
+    # marker offsets: block-diagonal among themselves, coupled to every other column
+    P = H.shape[1]
+    Hpo = torch.einsum("bmjp,bmjk->bpmk", HJ, turn).reshape(B, P, M * 3)
+    Hoo = turn.transpose(-1, -2) @ Hm @ turn  # (B, M, 3, 3)
+    go = (turn.transpose(-1, -2) @ gm[..., None])[..., 0].reshape(B, M * 3)
+    full = H.new_zeros(B, P + 3 * M, P + 3 * M)
+    full[:, :P, :P] = H
+    full[:, :P, P:] = Hpo
+    full[:, P:, :P] = Hpo.transpose(1, 2)
+    blocks = full[:, P:, P:].view(B, M, 3, M, 3)
+    m = torch.arange(M)
+    blocks[:, m, :, m, :] = Hoo.transpose(0, 1)
+    return full, torch.cat([g, go], 1)

@@ -55,6 +55,7 @@ class FuseOptions:
     triangulation: TriangulationOptions = TriangulationOptions()
     regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
     refine_landmarks: bool = True  # second BlazePose pass (gst.fuse.observations.detect_crop)
+    mask_others: bool = False  # dim pixels outside the crop's person mask before BlazePose
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     threads: int = 1
@@ -187,7 +188,9 @@ def fuse_scene(
         if lm_path.is_file():
             landmarks = np.load(lm_path)
         else:
-            landmarks = crop_landmarks(store, progress=progress, refine=o.refine_landmarks)
+            landmarks = crop_landmarks(
+                store, progress=progress, refine=o.refine_landmarks, masked=o.mask_others
+            )
             _save_npy(lm_path, landmarks)
     people = group_by_person(store, landmarks)
     if o.regroup is not None:
@@ -233,7 +236,10 @@ def fuse_scene(
         from synth.truth import read_scene_truth
 
         truth = compare_with_truth(fits, read_scene_truth(truth_dir), body).as_dict()
-    limbs = per_frame_limb_lengths(body, markers, people, tris, fps, o.fit)
+    limbs = per_frame_limb_lengths(
+        body, markers, people, tris, fps, o.fit,
+        marker_offsets=[f.marker_offsets for f in fits],
+    )  # fmt: skip
     limbs = [
         {k: _on_frames(v, p.frames, f.frames) for k, v in per.items()}
         for per, p, f in zip(limbs, people, fits, strict=True)

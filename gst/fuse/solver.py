@@ -29,13 +29,22 @@ class BodyState:
     transl: torch.Tensor  # (B, 3)
     theta: torch.Tensor  # (B, 23, 3) local axis-angle
     betas: torch.Tensor  # (people, nb)
+    offsets: torch.Tensor | None = None  # (people, M, 3) the person's own marker offsets
 
-    def step(self, dp: torch.Tensor, db: torch.Tensor) -> BodyState:
+    def person_params(self) -> torch.Tensor:
+        """(people, Q): betas, then the marker offsets if they are unknowns."""
+        if self.offsets is None:
+            return self.betas
+        return torch.cat([self.betas, self.offsets.flatten(1)], 1)
+
+    def step(self, dp: torch.Tensor, dq: torch.Tensor) -> BodyState:
+        nb = self.betas.shape[1]
         return BodyState(
             rodrigues(dp[:, :3]) @ self.root,
             self.transl + dp[:, 3:6],
             self.theta + dp[:, 6:N_POSE_PARAMS].reshape(self.theta.shape),
-            self.betas + db,
+            self.betas + dq[:, :nb],
+            None if self.offsets is None else self.offsets + dq[:, nb:].reshape(self.offsets.shape),
         )
 
     def where(self, keep_frame: torch.Tensor, keep_person: torch.Tensor, other: BodyState):
@@ -46,6 +55,9 @@ class BodyState:
             torch.where(f[:, None], self.transl, other.transl),
             torch.where(f[:, None, None], self.theta, other.theta),
             torch.where(keep_person[:, None], self.betas, other.betas),
+            None
+            if self.offsets is None
+            else torch.where(keep_person[:, None, None], self.offsets, other.offsets),
         )
 
 
@@ -59,16 +71,18 @@ def schur_step(
     betas: torch.Tensor,
     person: torch.Tensor,
     lam: torch.Tensor,
-    w_betas: float,
+    w_betas: float | torch.Tensor,
     frozen_betas: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The damped Gauss-Newton step (dp (B, 75), db (people, nb)) of the whole problem
+    """The damped Gauss-Newton step (dp (B, 75), db (people, Q)) of the whole problem
 
         [blockdiag(A_t) + D    B      ] [dp]     [g_t                    ]
         [B^T                   S + D  ] [db] = - [sum_t g_b,t + w_b betas]
 
-    with each person's betas shared by their frames, by eliminating the frame blocks; D is
-    Marquardt's damping lam x diag. None if a damped frame block is not positive definite."""
+    with each person's parameters (`betas` (people, Q): the betas, and the marker offsets when
+    they are unknowns; prior weights `w_betas`, a number or (Q,)) shared by their frames, by
+    eliminating the frame blocks; D is Marquardt's damping lam x diag. None if a damped frame
+    block is not positive definite."""
     n, nb = betas.shape
     P = N_POSE_PARAMS
     A, Bm, C = H[:, :P, :P], H[:, :P, P:], H[:, P:, P:]
@@ -83,7 +97,7 @@ def schur_step(
         db = torch.zeros_like(betas)
     else:
         S = _per_person(C - Bm.transpose(1, 2) @ AiB, person, n)
-        S = S + w_betas * torch.eye(nb, dtype=H.dtype)
+        S = S + torch.diag_embed(torch.as_tensor(w_betas, dtype=H.dtype).expand(nb))
         rhs = _per_person(gb - (Bm.transpose(1, 2) @ Aig[..., None])[..., 0], person, n)
         rhs = rhs + w_betas * betas
         S = S + torch.diag_embed(lam[:, None] * torch.diagonal(S, dim1=1, dim2=2) + 1e-9)
@@ -98,20 +112,20 @@ def levenberg_marquardt(
     energy: Callable[[BodyState], torch.Tensor],
     linearise: Callable[[BodyState], tuple[torch.Tensor, torch.Tensor]],
     iterations: int,
-    w_betas: float,
+    w_betas: float | torch.Tensor,
     damping: float = 1e-3,
     retries: int = 6,
     frozen_betas: bool = False,
 ) -> BodyState:
-    """Minimise sum(energy(state)) + w_betas |betas|^2.
+    """Minimise sum(energy(state)) + sum(w_betas * person_params^2).
 
     energy(state) -> (B,) per person-frame; linearise(state) -> H (B, P, P), g (B, P) with
-    P = 75 + nb (betas last) in the E ~ E0 + 2 g.dp + dp.H.dp convention.
+    P = 75 + Q (the person's parameters last) in the E ~ E0 + 2 g.dp + dp.H.dp convention.
     """
     n = state.betas.shape[0]
 
     def total(s: BodyState) -> torch.Tensor:
-        return _per_person(energy(s), person, n) + w_betas * (s.betas**2).sum(-1)
+        return _per_person(energy(s), person, n) + (w_betas * s.person_params() ** 2).sum(-1)
 
     lam = torch.full((n,), damping, dtype=state.theta.dtype)
     current = total(state)
@@ -119,7 +133,7 @@ def levenberg_marquardt(
         H, g = linearise(state)
         pending = torch.ones(n, dtype=torch.bool)  # people still looking for a step
         for _ in range(retries):
-            step = schur_step(H, g, state.betas, person, lam, w_betas, frozen_betas)
+            step = schur_step(H, g, state.person_params(), person, lam, w_betas, frozen_betas)
             if step is None:  # a frame block is not positive definite: damp harder
                 lam = lam * 10
                 continue
