@@ -18,6 +18,7 @@ class Params(StageParams):
     iterations: int = 8  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
     smoothness: float = 1.0  # weight of the temporal smoothness term
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
+    refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -36,6 +37,7 @@ def run(ctx: StageContext) -> None:
             markers=p.markers,
             fit=FitOptions(iterations=p.iterations, w_smooth=p.smoothness),
             regroup=RegroupOptions() if p.regroup else None,
+            refine_rig_rounds=p.refine_rig,
             people_per_batch=p.people_per_batch,
             overlay=p.overlay,
         ),

@@ -60,6 +60,7 @@ class FuseSummary:
     gap_filled_share: float = float("nan")
     frames: int = 0
     truth: dict | None = None
+    camera_corrections_deg: dict = field(default_factory=dict)  # gst.fuse.rig, per camera
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -156,6 +157,13 @@ def write_report(
         f"Share of observable joint-frames filled by the fit (< 2 views): "
         f"{_fmt(100 * summary.gap_filled_share if summary.gap_filled_share is not None else None)} %."
     )
+    if summary.camera_corrections_deg:
+        corr = ", ".join(f"{c} {v:.2f}" for c, v in summary.camera_corrections_deg.items())
+        lines += [
+            "",
+            f"Camera rotations corrected from the fitted bodies (degrees): {corr}. A correction "
+            "of more than a few tenths of a degree says the calibration is worth redoing.",
+        ]
     if summary.truth:
         t = summary.truth
         lines += [

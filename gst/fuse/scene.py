@@ -40,6 +40,7 @@ from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import crop_landmarks, group_by_person
 from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.report import FuseSummary, summarise, write_report
+from gst.fuse.rig import apply_corrections, camera_corrections, corrected_rig, rotation_matrix
 from gst.fuse.start import dense_triangulation
 from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
 from gst.fuse.triangulate import TriangulationOptions, triangulate_person
@@ -56,6 +57,9 @@ class FuseOptions:
     regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
     refine_landmarks: bool = True  # second BlazePose pass (gst.fuse.observations.detect_crop)
     mask_others: bool = False  # dim pixels outside the crop's person mask before BlazePose
+    refine_rig_rounds: int = (
+        0  # rounds of camera rotations corrected from the bodies (gst.fuse.rig)
+    )
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     threads: int = 1
@@ -133,6 +137,34 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
     return fits
 
 
+def _fit_batches(body, markers, people, tris, fps, o, work: Path, rnd: int, progress, log):
+    """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
+    fits: list[PersonFit] = []
+    batches = range(0, len(people), o.people_per_batch)
+    if progress is not None:
+        batches = progress(batches, description="body fit (batches of people)", total=len(batches))
+    for a in batches:
+        path = work / f"fit_{rnd}_{a:06d}.npz"
+        if path.is_file():
+            fits += _fits_from_npz(path)
+            continue
+        part = fit_people(
+            body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
+            fps, o.fit,
+        )  # fmt: skip
+        _save_npz(path, **_fits_to_arrays(part))
+        fits += part
+        if log is not None:
+            log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
+    return fits
+
+
+def _log_rotation(R: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(R)[0].ravel()
+
+
 def _on_frames(values: np.ndarray, frames: np.ndarray, dense: np.ndarray) -> np.ndarray:
     out = np.full(len(dense), np.nan)
     out[np.searchsorted(dense, frames)] = values
@@ -204,24 +236,30 @@ def fuse_scene(
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
 
-    fits: list[PersonFit] = []
-    batches = range(0, len(people), o.people_per_batch)
-    if progress is not None:
-        batches = progress(batches, description="body fit (batches of people)", total=len(batches))
-    for a in batches:
-        path = work / f"fit_{a:06d}.npz"
+    corrections = np.zeros((len(cams), 3))
+    for rnd in range(o.refine_rig_rounds + 1):
+        fits = _fit_batches(body, markers, people, tris, fps, o, work, rnd, progress, log)
+        if rnd == o.refine_rig_rounds:
+            break
+        path = work / f"rig_{rnd}.npy"
         if path.is_file():
-            fits += _fits_from_npz(path)
-            continue
-        part = fit_people(
-            body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
-            fps, o.fit,
-        )  # fmt: skip
-        _save_npz(path, **_fits_to_arrays(part))
-        fits += part
+            w = np.load(path)
+        else:
+            w = camera_corrections(fits, people)
+            _save_npy(path, w)
+        apply_corrections(people, w)
+        corrections = np.stack(
+            [
+                _log_rotation(rotation_matrix(a) @ rotation_matrix(b))
+                for a, b in zip(w, corrections, strict=True)
+            ]
+        )
+        tris = [triangulate_person(p, o.triangulation) for p in people]
         if log is not None:
-            log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
-
+            log.info(
+                "fuse: camera corrections (deg) %s",
+                np.round(np.degrees(np.linalg.norm(w, axis=1)), 2).tolist(),
+            )
     dense_tris = [
         dense_triangulation(t, p.frames, f.frames)
         for t, p, f in zip(tris, people, fits, strict=True)
@@ -245,6 +283,10 @@ def fuse_scene(
         for per, p, f in zip(limbs, people, fits, strict=True)
     ]
     summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth, limbs)
+    summary.camera_corrections_deg = {
+        c: round(float(np.degrees(np.linalg.norm(w))), 3)
+        for c, w in zip(cams, corrections, strict=True)
+    }
 
     bodies = out_dir / "bodies.parquet"
     write_bodies(
@@ -278,7 +320,12 @@ def fuse_scene(
             }
         videos = {k: v for k, v in videos.items() if Path(v).is_file()}
         overlays = write_overlays(
-            fits, body, rig, videos, report_dir / "overlay", progress=progress
+            fits,
+            body,
+            corrected_rig(rig, cams, corrections),
+            videos,
+            report_dir / "overlay",
+            progress=progress,
         )
     shutil.rmtree(work)
     return FuseResult(bodies, lm_out, trc, c3d, overlays, summary, fits)
