@@ -54,9 +54,11 @@ def test_two_gloo_ranks_match_single_process_gradients(tmp_path, monkeypatch):
     half = Trainer(ddp_problem()[0], step, lambda gen, bs: (x[:4], y[:4]), cfg, tmp_path / "half")
     half.fit()
     assert not torch.allclose(next(half.model.parameters()).grad, reference["0.weight"])
-    # Rank 0 alone wrote the checkpoint and the log; both ranks took the same optimiser step.
+    # Rank 0 alone wrote the checkpoint, its elapsed time and the log; both ranks took the same
+    # optimiser step.
     assert sorted(p.name for p in out.iterdir()) == [
         "best.pt",
+        "elapsed.json",
         "grads-rank0.pt",
         "grads-rank1.pt",
         "last.pt",

@@ -123,6 +123,8 @@ def write_tracks(path, rows, world=True, stride=1, frames=N_FRAMES):
         "transl_world": _fixed(z.repeat(3, 1)),
         "joints3d": _fixed(np.stack([r[3] for r in rows])),
         "joints2d": _fixed(z.repeat(48, 1)),
+        "landmarks2d": pa.nulls(n, pa.list_(pa.float32(), 66)),
+        "landmarks_conf": pa.nulls(n, pa.list_(pa.float32(), 33)),
     }
     table = pa.table(cols, schema=tracks_schema(10, meta))
     path.parent.mkdir(parents=True, exist_ok=True)

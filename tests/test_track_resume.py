@@ -10,6 +10,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
@@ -23,12 +24,22 @@ from gst.track import (
     read_tracks,
     track_video,
 )
+from gst.track.tracker import TrackerConfig
 from gst.track.writer import default_staging_root
 from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
 
 W, H, N = 320, 240, 40
 MODEL = {"name": "test-double", "version": "0"}
-OPTIONS = TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0))
+# min_hits 3 and a third person who appears at frame 12: they are confirmed at frame 14, in the
+# next group, so their rows of frames 12 and 13 are held in the committed state across the border.
+OPTIONS = TrackOptions(
+    frames_per_group=7,
+    batch_size=5,
+    smoothing=OneEuroConfig(0.8, 0.2, 1.0),
+    tracker=TrackerConfig(min_hits=3),
+)
+LATE = 12
+ROWS = 2 * N + (N - LATE)
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -38,7 +49,9 @@ def scene(tmp_path_factory):
     walkers = crossing_scene(N, W, H)
     boxes = walker_boxes(walkers, N)
     video = write_video(d / "clip.avi", render(walkers, boxes, W, H), W, H)
-    return {"video": video, "csv": write_boxes_csv(d / "boxes.csv", boxes, "clip")}
+    visible = np.ones(boxes.shape[:2], bool)
+    visible[:LATE, 2] = False
+    return {"video": video, "csv": write_boxes_csv(d / "boxes.csv", boxes, "clip", visible)}
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +65,9 @@ def reference(scene, tmp_path_factory):
         model=MODEL,
         options=OPTIONS,
     )
+    t = read_tracks(res.path)
+    late = t.filter(pc.equal(t.column("person_id"), 2)).column("frame").to_pylist()
+    assert late == list(range(LATE, N))  # rows from the first frame, though confirmed later
     return res.path.read_bytes()
 
 
@@ -102,6 +118,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, sys.argv[1])
     from gst.track import BoxDepthPredictor, OneEuroConfig, SuppliedBoxes, TrackOptions, track_video
+    from gst.track.tracker import TrackerConfig
 
     class KillingPredictor(BoxDepthPredictor):
         calls = 0
@@ -113,11 +130,13 @@ KILL_SCRIPT = textwrap.dedent("""
 
     track_video(sys.argv[2], sys.argv[3], SuppliedBoxes.from_file(sys.argv[4]), KillingPredictor(),
                 model={"name": "test-double", "version": "0"},
-                options=TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0)))
+                options=TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0),
+                                     tracker=TrackerConfig(min_hits=3)))
 """)
 
 
-def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
+@pytest.mark.parametrize("kill_on_call", [8, 17])  # 8: while the late person's rows are held
+def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path, kill_on_call):
     script = tmp_path / "run.py"
     script.write_text(KILL_SCRIPT)
     out = tmp_path / "out"
@@ -129,7 +148,7 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
             str(scene["video"]),
             str(out),
             str(scene["csv"]),
-            "17",
+            str(kill_on_call),
         ],
         capture_output=True,
         text=True,
@@ -148,11 +167,12 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
         model=MODEL,
         options=OPTIONS,
     )
-    assert res.resumed_from_frame is not None and res.resumed_from_frame > 0
+    # call 8 is the first batch of frames 14..20: the late person's rows of 12, 13 were held
+    assert res.resumed_from_frame == (14 if kill_on_call == 8 else 21)
     assert res.path.read_bytes() == reference
     t = read_tracks(res.path)
     keys = list(zip(t.column("frame").to_pylist(), t.column("person_id").to_pylist(), strict=True))
-    assert len(keys) == len(set(keys)) == 3 * N  # no duplicates, nothing missing
+    assert len(keys) == len(set(keys)) == ROWS  # no duplicates, nothing missing
 
 
 def test_orphan_segment_from_an_interrupted_commit_is_discarded(scene, reference, tmp_path):
@@ -188,7 +208,9 @@ def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
             options=OPTIONS,
         )
     with pytest.raises(
-        ResumeError, match=r"different settings exists \(changed: \['options.smoothing'\]\)"
+        ResumeError,
+        match=r"different settings exists \(changed: \['options.smoothing', "
+        r"'options.tracker.min_hits'\]\)",
     ):
         track_video(
             scene["video"],
@@ -207,7 +229,7 @@ def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
         options=TrackOptions(frames_per_group=7, batch_size=5),
         resume=False,
     )
-    assert res.resumed_from_frame is None and res.rows == 3 * N
+    assert res.resumed_from_frame is None and res.rows == ROWS
 
 
 def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
@@ -218,7 +240,7 @@ def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
     staging_of(tmp_path / "out").mkdir(parents=True)  # as if killed after the final rename
     never = FailingPredictor(fail_on_call=1)
     res = track_video(scene["video"], tmp_path / "out", det, never, model=MODEL, options=OPTIONS)
-    assert never.calls == 0 and res.rows == 3 * N and res.path.read_bytes() == reference
+    assert never.calls == 0 and res.rows == ROWS and res.path.read_bytes() == reference
     assert not default_staging_root(tmp_path / "out").exists()
 
 

@@ -3,14 +3,10 @@
 Input is the crop store (gst.data.store): per crop `K_crop`, `R`, `t`, `frame`, `person_id`,
 `camera`. Landmarks are BlazePose's 33 (MediaPipe order) in crop pixels with a confidence
 (visibility x presence). `crop_landmarks` is the one place they come from: the store's
-`landmarks` dataset when it has one, else BlazePose on each crop (`detect_crop`).
-
-`detect_crop` runs the landmark model as it was trained: a first pass on the whole crop gives
-the alignment keypoints (hip centre and full-body scale point), whose region (centred on the
-hips, rotated upright, 1.25 x the body circle) is where the second pass looks; the second pass
-also runs on the mirrored region (left and right exchanged back), and the two are averaged. On
-tuning worlds this lowers the median landmark error by about 8-10 % against the single
-whole-crop pass, and the fused body's MPJPE by 14 % (docs/fuse.md).
+`landmarks` dataset when it has one, else BlazePose on each crop, refined
+(`gst.detect.crops.detect_crop_landmarks(refine=True)`: a second pass on the region the first
+pass's alignment keypoints give, averaged with its mirror; on the tuning workspaces it lowers the
+fused body's MPJPE by 14 %, docs/fuse.md).
 """
 
 from __future__ import annotations
@@ -26,61 +22,11 @@ from gst.data.store import CropStore
 __all__ = [
     "PersonObservations",
     "crop_landmarks",
-    "detect_crop",
     "group_by_person",
-    "suppress_others",
     "N_LANDMARKS",
 ]
 
 N_LANDMARKS = 33
-
-
-def _mirror_index() -> np.ndarray:
-    from gst.body.markers import BLAZEPOSE_NAMES as names
-
-    flip = [n.replace("left", "@").replace("right", "left").replace("@", "right") for n in names]
-    return np.array([names.index(n) for n in flip])
-
-
-def suppress_others(image: np.ndarray, mask: np.ndarray, dim: float = 0.25) -> np.ndarray:
-    """The crop with everything outside the person's mask (dilated by 4 % of the crop) dimmed
-    to `dim`: BlazePose then locks onto this person, not onto someone overlapping them."""
-    import cv2
-
-    k = max(3, int(0.04 * image.shape[0]) | 1)
-    keep = cv2.dilate((mask > (127 if mask.dtype == np.uint8 else 0.5)).astype(np.uint8),
-                      np.ones((k, k), np.uint8))  # fmt: skip
-    if not keep.any():
-        return image
-    scale = dim + (1.0 - dim) * keep[..., None].astype(np.float32)
-    return (image.astype(np.float32) * scale).astype(np.uint8)
-
-
-def detect_crop(
-    model, image: np.ndarray, refine: bool = True, mask: np.ndarray | None = None
-) -> np.ndarray:
-    """(33, 3) landmarks of the person in a square BGR crop: u, v in crop pixels, confidence
-    (visibility x presence). `model`: a gst.detect.blazepose.BlazePose. `refine`: second pass on
-    the first pass's alignment region, averaged with its mirror image; else the first pass.
-    `mask`: the person's mask in the crop; other pixels are dimmed (`suppress_others`)."""
-    from gst.detect.blazepose import BodyRoi
-
-    if mask is not None:
-        image = np.ascontiguousarray(suppress_others(image, mask))
-    s = image.shape[0]
-    seg = model.segment(image, BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0))
-    if not refine:
-        return np.c_[seg.landmarks[:, :2], seg.landmarks[:, 2] * seg.presence]
-    roi = seg.next_roi
-    a = model.segment(image, roi)
-    w = image.shape[1]
-    mirrored = BodyRoi((w - 1 - roi.centre[0], roi.centre[1]), roi.side, -roi.angle)
-    b = model.segment(np.ascontiguousarray(image[:, ::-1]), mirrored)
-    lb = b.landmarks[_mirror_index()].copy()
-    lb[:, 0] = w - 1 - lb[:, 0]
-    xy = (a.landmarks[:, :2] + lb[:, :2]) / 2
-    conf = (a.landmarks[:, 2] * a.presence + lb[:, 2] * b.presence) / 2
-    return np.c_[xy, conf]
 
 
 def crop_landmarks(
@@ -91,8 +37,8 @@ def crop_landmarks(
     masked: bool = False,
 ) -> np.ndarray:
     """(N, 33, 3) landmarks of the store's `rows` (default all): u, v in crop pixels, confidence.
-    `refine`, `masked` (dim what is outside the crop's person mask): see `detect_crop`; both
-    ignored when the store holds landmarks."""
+    `refine` and `masked` (dim what lies outside the crop's person mask): see
+    gst.detect.crops.detect_crop_landmarks; both ignored when the store holds landmarks."""
     rows = np.arange(len(store)) if rows is None else np.asarray(rows, np.int64)
     with h5py.File(store.path, "r") as f:
         if "landmarks" in f:  # written by the extraction (crowd helper's association)
@@ -100,6 +46,7 @@ def crop_landmarks(
                 np.argsort(np.argsort(rows))
             ]
     from gst.detect.blazepose import BlazePose
+    from gst.detect.crops import detect_crop_landmarks
 
     model = BlazePose(threads=1)
     out = np.zeros((len(rows), N_LANDMARKS, 3), np.float32)
@@ -107,10 +54,10 @@ def crop_landmarks(
     if progress is not None:
         chunks = progress(chunks, description="BlazePose landmarks in crops", total=len(chunks))
     for a in chunks:
-        batch = store.read(rows[a : a + 64])
-        for i, img in enumerate(batch.images):
-            mask = batch.masks[i] if masked else None
-            out[a + i] = detect_crop(model, np.ascontiguousarray(img), refine, mask)
+        batch = store.read(rows[a : a + 64])  # store images are BGR
+        out[a : a + len(batch)] = detect_crop_landmarks(
+            batch.images, model, rgb=False, refine=refine, masks=batch.masks if masked else None
+        ).with_confidence()
     return out
 
 

@@ -55,7 +55,7 @@ class FuseOptions:
     fit: FitOptions = FitOptions()
     triangulation: TriangulationOptions = TriangulationOptions()
     regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
-    refine_landmarks: bool = True  # second BlazePose pass (gst.fuse.observations.detect_crop)
+    refine_landmarks: bool = True  # second BlazePose pass (gst.detect.crops, refine=True)
     mask_others: bool = False  # dim pixels outside the crop's person mask before BlazePose
     refine_rig_rounds: int = (
         0  # rounds of camera rotations corrected from the bodies (gst.fuse.rig)

@@ -49,18 +49,22 @@ class SelfAttention(nn.Module):
 
 
 class CrossAttention(nn.Module):
-    def __init__(self, cfg: DecoderConfig):
+    def __init__(self, cfg: DecoderConfig, context_dim: int | None = None):
         super().__init__()
         inner = cfg.heads * cfg.dim_head
         self.heads = cfg.heads
         self.to_q = nn.Linear(cfg.dim, inner, bias=False)
-        self.to_kv = nn.Linear(cfg.context_dim, inner * 2, bias=False)
+        self.to_kv = nn.Linear(context_dim or cfg.context_dim, inner * 2, bias=False)
         self.to_out = nn.Sequential(nn.Linear(inner, cfg.dim), nn.Dropout(0.0))
 
-    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, context: torch.Tensor, key_mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """`key_mask` (B, T) bool: context tokens a query may attend to (every row needs one)."""
         k, v = (_split_heads(t, self.heads) for t in self.to_kv(context).chunk(2, dim=-1))
         q = _split_heads(self.to_q(x), self.heads)
-        return self.to_out(_merge_heads(F.scaled_dot_product_attention(q, k, v)))
+        mask = None if key_mask is None else key_mask[:, None, None, :]
+        return self.to_out(_merge_heads(F.scaled_dot_product_attention(q, k, v, attn_mask=mask)))
 
 
 class FeedForward(nn.Module):
@@ -88,8 +92,24 @@ class PreNorm(nn.Module):
         return self.fn(self.norm(x), **kwargs)
 
 
+@dataclass
+class LandmarkContext:
+    """Landmark tokens (B, T, dim) beside the image tokens, with the tokens each sample may
+    attend to (B, T) bool, the samples that have any landmark at all (B,) bool, and optionally
+    a query (B, dim) added to the SMPL token's input (a short path from the lifting MLP to the
+    pose: the decoder then refines it)."""
+
+    tokens: torch.Tensor
+    key_mask: torch.Tensor
+    active: torch.Tensor
+    query: torch.Tensor | None = None
+
+
 class CrossAttnStack(nn.Module):
-    def __init__(self, cfg: DecoderConfig):
+    """HMR2's stack; with `landmarks=True` each layer also cross-attends to landmark tokens
+    (`landmark_layers.L`, new keys: HMR2 checkpoints still load into `layers`)."""
+
+    def __init__(self, cfg: DecoderConfig, landmarks: bool = False):
         super().__init__()
         self.layers = nn.ModuleList(
             nn.ModuleList(
@@ -101,11 +121,36 @@ class CrossAttnStack(nn.Module):
             )
             for _ in range(cfg.depth)
         )
+        self.landmark_layers = (
+            nn.ModuleList(
+                PreNorm(cfg.dim, CrossAttention(cfg, context_dim=cfg.dim)) for _ in range(cfg.depth)
+            )
+            if landmarks
+            else None
+        )
 
-    def forward(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
-        for self_attn, cross_attn, ff in self.layers:
+    def forward(
+        self,
+        x: torch.Tensor,
+        context: torch.Tensor | None,
+        landmarks: LandmarkContext | None = None,
+    ) -> torch.Tensor:
+        """`context` None: no image tokens (the landmark-only mode). A sample without landmarks
+        (`landmarks.active` False) takes exactly the image-only path: its landmark update is
+        not added (selected away, not multiplied by zero)."""
+        if context is None and landmarks is None:
+            raise ValueError("the decoder needs image tokens, landmark tokens or both")
+        if landmarks is not None and self.landmark_layers is None:
+            raise ValueError("landmark tokens given to a decoder built without landmark layers")
+        for i, (self_attn, cross_attn, ff) in enumerate(self.layers):
             x = self_attn(x) + x
-            x = cross_attn(x, context=context) + x
+            if context is not None:
+                x = cross_attn(x, context=context) + x
+            if landmarks is not None:
+                upd = self.landmark_layers[i](
+                    x, context=landmarks.tokens, key_mask=landmarks.key_mask
+                )
+                x = torch.where(landmarks.active[:, None, None], upd + x, x)
             x = ff(x) + x
         return x
 
@@ -118,17 +163,27 @@ class TokenDecoder(nn.Module):
     never attends to them and pose-only inference can skip them exactly.
     """
 
-    def __init__(self, cfg: DecoderConfig):
+    def __init__(self, cfg: DecoderConfig, landmarks: bool = False):
         super().__init__()
         self.cfg = cfg
         self.to_token_embedding = nn.Linear(1, cfg.dim)
         self.pos_embedding = nn.Parameter(torch.randn(1, 1, cfg.dim))
-        self.transformer = CrossAttnStack(cfg)
+        self.transformer = CrossAttnStack(cfg, landmarks=landmarks)
 
-    def smpl_token(self, context: torch.Tensor) -> torch.Tensor:
-        zero = context.new_zeros(context.shape[0], 1, 1)
+    def smpl_token(
+        self, context: torch.Tensor | None, landmarks: LandmarkContext | None = None
+    ) -> torch.Tensor:
+        ref = context if context is not None else landmarks.tokens
+        zero = ref.new_zeros(ref.shape[0], 1, 1)
         x = self.to_token_embedding(zero) + self.pos_embedding
-        return self.transformer(x, context)[:, 0]
+        if landmarks is not None and landmarks.query is not None:
+            x = torch.where(landmarks.active[:, None, None], x + landmarks.query[:, None], x)
+        return self.transformer(x, context, landmarks)[:, 0]
 
-    def decode(self, tokens: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
-        return self.transformer(tokens, context)
+    def decode(
+        self,
+        tokens: torch.Tensor,
+        context: torch.Tensor | None,
+        landmarks: LandmarkContext | None = None,
+    ) -> torch.Tensor:
+        return self.transformer(tokens, context, landmarks)

@@ -33,15 +33,19 @@ def predict_bodies(
     with_vertices: bool = False,
     crop_size: int | None = None,
     device: str | torch.device | None = None,
+    landmarks=None,
 ) -> BodyPrediction:
     """The network on a batch of crops (B, S, S, 3) RGB uint8 or float images, assembled into
     posed bodies (and Gaussians) in the crops' cameras (K (B, 3, 3); optional input-camera R, t
     for world coordinates). `image_size` is the network's input size; `crop_size` the crops' side
-    (default: the images' own). The one inference path of training, evaluation and tracking."""
+    (default: the images' own). `landmarks`: a `gst.model.landmarks.LandmarkInput` for networks
+    with landmark tokens (None: the image-only path). The one inference path of training,
+    evaluation and tracking."""
     x = to_float_images(images)
     if device is not None:
         x = x.to(device)
-    out = network(network_input(x, image_size), with_gaussians=with_gaussians)
+    extra = {} if landmarks is None else {"landmarks": landmarks}
+    out = network(network_input(x, image_size), with_gaussians=with_gaussians, **extra)
     return assemble(
         out,
         body,

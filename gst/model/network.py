@@ -15,7 +15,8 @@ import torch
 from torch import nn
 
 from gst.body.rotations import rot6d_to_matrix
-from gst.model.decoder import TokenDecoder
+from gst.model.decoder import LandmarkContext, TokenDecoder
+from gst.model.landmarks import LandmarkEncoder, LandmarkInput
 from gst.model.presets import GSTConfig
 from gst.model.vit import ViT
 
@@ -57,7 +58,7 @@ class SMPLHead(nn.Module):
     def __init__(self, cfg: GSTConfig):
         super().__init__()
         dim = cfg.decoder.dim
-        self.transformer = TokenDecoder(cfg.decoder)
+        self.transformer = TokenDecoder(cfg.decoder, landmarks=cfg.landmark_tokens)
         self.decpose = nn.Linear(dim, 24 * 6)
         self.decshape = nn.Linear(dim, cfg.num_betas)
         self.deccam = nn.Linear(dim, 3)
@@ -68,8 +69,10 @@ class SMPLHead(nn.Module):
         self.register_buffer("init_betas", torch.zeros(1, cfg.num_betas))
         self.register_buffer("init_cam", torch.tensor([[0.9, 0.0, 0.0]]))
 
-    def forward(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        token = self.transformer.smpl_token(context)
+    def forward(
+        self, context: torch.Tensor | None, landmarks: LandmarkContext | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        token = self.transformer.smpl_token(context, landmarks)
         pose = self.decpose(token) + self.init_body_pose
         return (
             pose.view(-1, 24, 6),
@@ -124,9 +127,15 @@ class GaussianHead(nn.Module):
     def num_tokens(self) -> int:
         return self.tokens.shape[1]
 
-    def forward(self, decoder: TokenDecoder, context: torch.Tensor) -> GaussianParams:
-        b, k = context.shape[0], self.cfg.num_groups
-        out = decoder.decode(self.tokens.expand(b, -1, -1), context)  # (B, 5K, dim)
+    def forward(
+        self,
+        decoder: TokenDecoder,
+        context: torch.Tensor | None,
+        landmarks: LandmarkContext | None = None,
+    ) -> GaussianParams:
+        b = (context if context is not None else landmarks.tokens).shape[0]
+        k = self.cfg.num_groups
+        out = decoder.decode(self.tokens.expand(b, -1, -1), context, landmarks)  # (B, 5K, dim)
         per_attr = {}
         for i, a in enumerate(GAUSSIAN_ATTRIBUTES):
             raw = self.heads[a](out[:, i * k : (i + 1) * k])  # (B, K, G * d)
@@ -147,7 +156,12 @@ class GaussianHead(nn.Module):
 
 
 class GSTNetwork(nn.Module):
-    """`forward(images (B, 3, H, W) ImageNet-normalised, with_gaussians) -> GSTOutput`."""
+    """`forward(images (B, 3, H, W) ImageNet-normalised, with_gaussians, landmarks) -> GSTOutput`.
+
+    With `cfg.landmark_tokens` the decoder also attends to landmark tokens
+    (`gst.model.landmarks`); `images=None` is the landmark-only mode (no image tokens, for the
+    render-free pretraining), and landmarks that are None or masked give exactly the
+    image-only output."""
 
     def __init__(self, cfg: GSTConfig, group_index: np.ndarray):
         super().__init__()
@@ -155,6 +169,17 @@ class GSTNetwork(nn.Module):
         self.backbone = ViT(cfg.vit)
         self.smpl_head = SMPLHead(cfg)
         self.gaussian_head = GaussianHead(cfg, group_index)
+        self.landmark_encoder = (
+            LandmarkEncoder(
+                cfg.num_landmarks,
+                cfg.decoder.dim,
+                cfg.landmark_lift_tokens,
+                cfg.landmark_width,
+                point_tokens=cfg.landmark_point_tokens,
+            )
+            if cfg.landmark_tokens
+            else None
+        )
 
     @property
     def num_query_tokens(self) -> int:
@@ -165,11 +190,23 @@ class GSTNetwork(nn.Module):
         for p in self.backbone.parameters():
             p.requires_grad_(not frozen)
 
-    def forward(self, images: torch.Tensor, with_gaussians: bool = True) -> GSTOutput:
-        context = self.backbone(images)
-        pose6d, betas, cam = self.smpl_head(context)
+    def forward(
+        self,
+        images: torch.Tensor | None,
+        with_gaussians: bool = True,
+        landmarks: LandmarkInput | None = None,
+    ) -> GSTOutput:
+        if landmarks is not None and self.landmark_encoder is None:
+            raise ValueError("landmarks given to a network built without landmark_tokens")
+        if images is None and landmarks is None:
+            raise ValueError("the network needs images, landmarks or both")
+        context = self.backbone(images) if images is not None else None
+        lm = self.landmark_encoder(landmarks) if landmarks is not None else None
+        if images is None and not bool(lm.active.all()):
+            raise ValueError("landmark-only mode: every sample needs at least one landmark")
+        pose6d, betas, cam = self.smpl_head(context, lm)
         gaussians = (
-            self.gaussian_head(self.smpl_head.transformer, context) if with_gaussians else None
+            self.gaussian_head(self.smpl_head.transformer, context, lm) if with_gaussians else None
         )
         return GSTOutput(
             body_pose_6d=pose6d,

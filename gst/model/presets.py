@@ -21,6 +21,15 @@ class GSTConfig:
     max_offset: float = 0.10  # metres, |offset| per axis (tanh-bounded, then tightness-regularised)
     init_scale: float = 0.012
     init_opacity: float = 0.9
+    # Landmark tokens (gst.model.landmarks, ours): 2D landmarks as extra decoder context. Off:
+    # the paper's image-only network, parameter for parameter.
+    landmark_tokens: bool = False
+    num_landmarks: int = 12  # gst.model.landmarks.LIMB_LANDMARK_IDS
+    landmark_lift_tokens: int = 4
+    landmark_width: int = 512
+    # One token per landmark besides the lift tokens (local evidence for the Gaussian tokens);
+    # they are most of the landmark path's compute (docs/landmark_prior.md, "Speed").
+    landmark_point_tokens: bool = True
 
     @property
     def image_size(self) -> tuple[int, int]:

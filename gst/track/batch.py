@@ -55,6 +55,7 @@ class VideoJob:
     num_betas: int = 10
     threads: int | None = None  # torch threads inside the worker (None: leave as is)
     keep_extras: bool = False  # return each person's first extra outputs (e.g. Gaussians)
+    detector_info: dict | None = None  # which person detector runs and why (gst.detector)
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,7 @@ def run_item(item: _Item) -> Any:
             world_up=job.world_up,
             staging_root=item.staging_root,
             on_extra=keep if job.keep_extras else None,
+            detector_info=job.detector_info,
         )
         return VideoOutcome(job, result, extras)
     run = plan_run(
@@ -120,6 +122,7 @@ def run_item(item: _Item) -> Any:
         num_betas=job.num_betas,
         world_up=job.world_up,
         extra_settings=_chunk_settings(job, item.chunking),
+        detector_info=job.detector_info,
     )
     path = _chunk_path(item.staging_root, run.name, item.chunk.index)
     done = read_chunk(path, chunk_digest(run, item.chunk))
@@ -180,6 +183,7 @@ def track_videos(
                 num_betas=job.num_betas,
                 world_up=job.world_up,
                 extra_settings=_chunk_settings(job, chunking),
+                detector_info=job.detector_info,
             )
             if run.end is not None:
                 plans = plan_chunks(run.first, run.end, job.options, chunking)

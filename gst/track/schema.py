@@ -16,7 +16,11 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-FORMAT_NAME, FORMAT_VERSION = "gst-capture/tracks", 1
+from gst.body.markers import BLAZEPOSE_NAMES
+
+# Version 2 added the landmark model's 2D joints (landmarks2d, landmarks_conf) and the
+# gst.landmark_names / gst.detector metadata; version-1 columns are unchanged.
+FORMAT_NAME, FORMAT_VERSION = "gst-capture/tracks", 2
 
 SMPL_JOINT_NAMES = (
     "pelvis",
@@ -57,7 +61,7 @@ class ColumnSpec:
 
 
 def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
-    J = len(SMPL_JOINT_NAMES)
+    J, L = len(SMPL_JOINT_NAMES), len(BLAZEPOSE_NAMES)
     return [
         ColumnSpec("frame", None, "", "0-based frame index in the video"),
         ColumnSpec("time_s", None, "s", "frame / fps"),
@@ -104,6 +108,21 @@ def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
         ),
         ColumnSpec(
             "joints2d", (J, 2), "px", "joints projected into the raw frame, pixel-centre convention"
+        ),
+        ColumnSpec(
+            "landmarks2d",
+            (L, 2),
+            "px",
+            "the person model's 33 BlazePose landmarks on the raw frame, pixel-centre convention; "
+            "null when the detector gives none (supplied boxes, background model)",
+            nullable=True,
+        ),
+        ColumnSpec(
+            "landmarks_conf",
+            (L,),
+            "",
+            "confidence of each landmark in [0, 1] (visibility x presence); null with landmarks2d",
+            nullable=True,
         ),
     ]
 
@@ -161,6 +180,7 @@ METADATA_KEYS = (
     "gst.format",
     "gst.format_version",
     "gst.joint_names",
+    "gst.landmark_names",
     "gst.units",
     "gst.axes",
     "gst.fps",
@@ -168,6 +188,7 @@ METADATA_KEYS = (
     "gst.calibration",
     "gst.video",
     "gst.tracking",
+    "gst.detector",
     "gst.smoothing",
     "gst.columns",
     "gst.stats",
@@ -183,6 +204,7 @@ def file_metadata(
     axes: dict,
     video: dict,
     tracking: dict,
+    detector: dict | None = None,
     smoothing: dict | None,
     stats: dict,
     settings_sha256: str,
@@ -194,6 +216,7 @@ def file_metadata(
         "transl_cam": "m",
         "transl_world": "m",
         "joints2d": "px",
+        "landmarks2d": "px",
         "bbox": "px",
         "global_orient": "rad (axis-angle)",
         "body_pose": "rad (axis-angle)",
@@ -203,6 +226,7 @@ def file_metadata(
         "gst.format": FORMAT_NAME,
         "gst.format_version": FORMAT_VERSION,
         "gst.joint_names": list(SMPL_JOINT_NAMES),
+        "gst.landmark_names": list(BLAZEPOSE_NAMES),
         "gst.units": units,
         "gst.axes": axes,
         "gst.fps": fps,
@@ -210,6 +234,7 @@ def file_metadata(
         "gst.calibration": calibration,
         "gst.video": video,
         "gst.tracking": tracking,
+        "gst.detector": detector,
         "gst.smoothing": smoothing,
         "gst.columns": columns_description(num_betas),
         "gst.stats": stats,

@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gst.detect.blazepose import BlazePose, BodyRoi
+from gst.detect.blazepose import BlazePose
+from gst.detect.crops import detect_crop_landmarks
 
 # body-model joint (SMPL order) -> BlazePose landmarks averaged for it
 BODY_FROM_BLAZEPOSE: dict[int, tuple[int, ...]] = {
@@ -51,19 +52,18 @@ def landmarks_to_body(landmarks: np.ndarray, presence: float, n_joints: int = 24
 
 def crop_keypoints(images: torch.Tensor, model: BlazePose, progress=None) -> torch.Tensor:
     """(N, S, S, 3) uint8 RGB crops -> (N, 24, 3) detected joints: crop pixels and confidence."""
-    n, s = images.shape[0], images.shape[1]
-    roi = BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0)
-    out = np.zeros((n, 24, 3), np.float32)
-    rows = (
-        range(n)
-        if progress is None
-        else progress(range(n), description="detecting 2D joints in crops", total=n)
+    found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)
+    out = (
+        np.stack(
+            [
+                landmarks_to_body(lm, p)
+                for lm, p in zip(found.landmarks, found.presence, strict=True)
+            ]
+        )
+        if len(found)
+        else np.zeros((0, 24, 3), np.float32)
     )
-    for i in rows:
-        bgr = np.ascontiguousarray(images[i].numpy()[..., ::-1])
-        seg = model.segment(bgr, roi)
-        out[i] = landmarks_to_body(seg.landmarks, seg.presence)
-    return torch.from_numpy(out)
+    return torch.from_numpy(out.astype(np.float32))
 
 
 def keypoint_term(

@@ -1,0 +1,311 @@
+"""Render-free pretraining of GST's landmark -> body path, and its evaluation on detected crops.
+
+The network runs in its landmark-only mode (no image tokens): simulated BlazePose detections
+of sampled bodies (`gst.lift.sampler`) go in, SMPL pose, shape and the crop camera come out, and
+the same supervised terms as the rendered pretraining (`gst.train.losses.supervised_terms`: 3D
+joints root-relative in the camera, the root, 2D reprojection in the crop, rotation matrices and
+betas) pull them to the sampled truth. No image is rendered, so a step costs milliseconds and
+every step sees fresh bodies, cameras and detection errors.
+
+Trained here: the landmark encoder and the SMPL head's decoder (its landmark cross-attention,
+self-attention and feed-forward layers) and linear decoders. The image path (ViT, the image
+cross-attention) gets no gradient; the Gaussian head is left to a short rendered phase
+(`gst.train`), which this module does not run.
+
+`evaluate_world(net, body, world)` scores the single-image prediction from real BlazePose
+detections of rendered crops (`gst.lift.dataset.LandmarkWorld`) against the truth, as
+`gst.train.evaluation.pose_metrics` does: world joints, MPJPE root-aligned at the pelvis and
+PA-MPJPE, in millimetres.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gst.body import BodyModel
+from gst.lift.dataset import LandmarkWorld
+from gst.lift.errors import LANDMARK_SETS
+from gst.lift.noise import set_landmarks
+from gst.lift.sampler import LiftSampler
+from gst.metrics.pose import mpjpe, pa_mpjpe
+from gst.model.assemble import camera_translation, to_world
+from gst.model.landmarks import LandmarkInput
+from gst.model.network import GSTNetwork
+from gst.train.losses import LossWeights, combine, supervised_terms
+from gst.train.steps import project
+
+
+@dataclass(frozen=True)
+class LiftPretrainConfig:
+    steps: int = 4000
+    batch_size: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    warmup_steps: int = 100
+    grad_clip: float = 1.0
+    crop_size: int = 256
+    seed: int = 0
+    val_every: int = 500
+    weights: LossWeights = field(
+        default_factory=lambda: LossWeights(joints3d=1.0, joints2d=1.0, root=0.2, params=0.5)
+    )
+
+
+@dataclass
+class PoseScore:
+    mpjpe_mm: float
+    pa_mpjpe_mm: float
+    crops: int
+
+
+@dataclass
+class LiftPretrainResult:
+    steps: int
+    seconds: float
+    samples_per_s: float  # training throughput: sampling + forward + backward
+    sampler_samples_per_s: float  # the sampler alone
+    last_loss: float
+    train_mpjpe_mm: float  # root-relative, camera frame, on the last batches (simulated)
+    validation: list[dict] = field(default_factory=list)  # {step, name, mpjpe_mm, pa_mpjpe_mm}
+
+
+def body_joints(
+    net_out, body: BodyModel, K: torch.Tensor, crop_size: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(joints in the crop's camera (B, 24, 3), their 2D projection (B, 24, 2)) of an output;
+    only the joints are posed (one vertex is requested, the joints come from the full mesh)."""
+    transl = camera_translation(net_out.cam, K, crop_size)
+    one = torch.zeros(1, dtype=torch.long)
+    out = body(net_out.betas, net_out.rotmats[:, 1:], net_out.rotmats[:, 0], transl, vertex_ids=one)
+    return out.joints, project(out.joints, K)
+
+
+def trainable_parameters(net: GSTNetwork) -> list[torch.nn.Parameter]:
+    """The landmark path: the landmark encoder and the SMPL head, without its image
+    cross-attention (never used in the landmark-only mode)."""
+    skip = {
+        id(p)
+        for layer in net.smpl_head.transformer.transformer.layers
+        for p in layer[1].parameters()
+    }
+    params = list(net.landmark_encoder.parameters()) + [
+        p for p in net.smpl_head.parameters() if id(p) not in skip
+    ]
+    return [p for p in params if p.requires_grad]
+
+
+def _lr_factor(step: int, cfg: LiftPretrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return (step + 1) / cfg.warmup_steps
+    prog = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return 0.5 * (1 + math.cos(math.pi * min(1.0, prog)))
+
+
+def pretrain_landmark_path(
+    net: GSTNetwork,
+    body: BodyModel,
+    cfg: LiftPretrainConfig = LiftPretrainConfig(),
+    sampler: LiftSampler | None = None,
+    validation: dict[str, LandmarkWorld] | None = None,
+    log=print,
+) -> LiftPretrainResult:
+    """Train `net`'s landmark path in place on simulated detections; returns what it measured."""
+    if net.landmark_encoder is None:
+        raise ValueError("pretrain_landmark_path needs a network built with landmark_tokens")
+    torch.manual_seed(cfg.seed)
+    sampler = sampler or LiftSampler(
+        body, crop_size=cfg.crop_size, seed=cfg.seed, landmark_set=landmark_set_of(net).name
+    )
+    if len(sampler.lset) != net.cfg.num_landmarks:
+        raise ValueError(
+            f"the sampler simulates {len(sampler.lset)} landmarks, the network takes "
+            f"{net.cfg.num_landmarks}"
+        )
+    params = trainable_parameters(net)
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
+    nb = net.cfg.num_betas
+    result = LiftPretrainResult(0, 0.0, 0.0, 0.0, float("nan"), float("nan"))
+    t0, t_sample, recent = time.perf_counter(), 0.0, []
+    net.train()
+    for step in range(cfg.steps):
+        ts = time.perf_counter()
+        b = sampler.sample(cfg.batch_size)
+        t_sample += time.perf_counter() - ts
+        inp = LandmarkInput.from_pixels(b.landmarks, b.K, b.crop_size)
+        out = net(None, with_gaussians=False, landmarks=inp)
+        joints, joints2d = body_joints(out, body, b.K, b.crop_size)
+        parts = supervised_terms(
+            joints,
+            joints2d,
+            out.rotmats,
+            out.betas,
+            b.joints_cam,
+            b.joints2d,
+            b.rotmats_cam,
+            b.betas[:, :nb],
+            b.crop_size,
+            b.visible.float(),
+        )
+        terms = combine(parts, cfg.weights)
+        opt.zero_grad(set_to_none=True)
+        terms.total.backward()
+        torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+        opt.step()
+        sched.step()
+        with torch.no_grad():
+            rel = (joints - joints[:, :1]) - (b.joints_cam - b.joints_cam[:, :1])
+            recent.append(1000 * float(rel.norm(dim=-1).mean()))
+        recent = recent[-50:]
+        last = step + 1 == cfg.steps
+        if validation and ((step + 1) % cfg.val_every == 0 or last):
+            for name, world in validation.items():
+                s = evaluate_world(net, body, world)
+                result.validation.append(
+                    {
+                        "step": step + 1,
+                        "name": name,
+                        "mpjpe_mm": s.mpjpe_mm,
+                        "pa_mpjpe_mm": s.pa_mpjpe_mm,
+                    }
+                )
+                log(
+                    f"step {step + 1}: {name} MPJPE {s.mpjpe_mm:.1f} mm, PA {s.pa_mpjpe_mm:.1f} mm "
+                    f"(train batches {np.mean(recent):.1f} mm, {time.perf_counter() - t0:.0f} s)"
+                )
+            net.train()
+        elif (step + 1) % 100 == 0:
+            log(
+                f"step {step + 1}: loss {float(terms.total.detach()):.4f}, train {np.mean(recent):.1f} mm"
+            )
+    seconds = time.perf_counter() - t0
+    result.steps = cfg.steps
+    result.seconds = seconds
+    result.samples_per_s = cfg.steps * cfg.batch_size / seconds
+    result.sampler_samples_per_s = cfg.steps * cfg.batch_size / max(t_sample, 1e-9)
+    result.last_loss = float(terms.total.detach())
+    result.train_mpjpe_mm = float(np.mean(recent))
+    net.eval()
+    return result
+
+
+@torch.no_grad()
+def predict_world_joints(
+    net: GSTNetwork,
+    body: BodyModel,
+    landmarks: torch.Tensor,
+    K: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    crop_size: int,
+    images: torch.Tensor | None = None,
+    batch: int = 256,
+) -> torch.Tensor:
+    """World joints (N, 24, 3) predicted from limb landmarks (N, 12, 3) crop px + confidence
+    (and ImageNet-normalised network images, when given)."""
+    net.eval()
+    out = []
+    for i in range(0, len(landmarks), batch):
+        sl = slice(i, i + batch)
+        inp = LandmarkInput.from_pixels(landmarks[sl], K[sl], crop_size)
+        o = net(None if images is None else images[sl], with_gaussians=False, landmarks=inp)
+        joints, _ = body_joints(o, body, K[sl], crop_size)
+        out.append(to_world(joints, R[sl], t[sl]))
+    return torch.cat(out)
+
+
+def score(pred_world: torch.Tensor, gt_world: torch.Tensor) -> PoseScore:
+    """MPJPE root-aligned at the pelvis and PA-MPJPE over the 24 joints, millimetres."""
+    return PoseScore(
+        1000 * float(mpjpe(pred_world, gt_world, root=0).mean()),
+        1000 * float(pa_mpjpe(pred_world, gt_world).mean()),
+        int(len(gt_world)),
+    )
+
+
+def landmark_set_of(net: GSTNetwork):
+    """The landmark set a network takes (by its number of landmarks)."""
+    for lset in LANDMARK_SETS.values():
+        if len(lset) == net.cfg.num_landmarks:
+            return lset
+    raise ValueError(f"no landmark set has {net.cfg.num_landmarks} landmarks")
+
+
+def evaluate_world(net: GSTNetwork, body: BodyModel, world: LandmarkWorld) -> PoseScore:
+    """Single-image pose from the world's real BlazePose detections, landmark path only."""
+    f32 = torch.float32
+    lset = landmark_set_of(net)
+    lm = torch.as_tensor(set_landmarks(world.landmarks, world.presence, lset), dtype=f32)
+    pred = predict_world_joints(
+        net,
+        body,
+        lm,
+        torch.as_tensor(world.K_crop, dtype=f32),
+        torch.as_tensor(world.R, dtype=f32),
+        torch.as_tensor(world.t, dtype=f32),
+        world.crop_size,
+    )
+    return score(pred.double(), torch.as_tensor(world.joints_world, dtype=torch.float64))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Pretrain the landmark path of a tiny GST and score it on landmark worlds:
+
+    python -m gst.lift.pretrain --out lift.pt --steps 3000 --val held=world_7000.npz
+    """
+    import argparse
+    import json
+
+    from gst.body import load_body_model
+    from gst.model.checkpoint import save_checkpoint
+    from gst.model.presets import PRESETS, get_preset
+    from gst.train.recipe import build_network
+
+    ap = argparse.ArgumentParser(description="render-free pretraining of the landmark path")
+    ap.add_argument("--out", type=Path, required=True, help="checkpoint to write")
+    ap.add_argument("--preset", default="tiny", choices=sorted(PRESETS))
+    ap.add_argument("--steps", type=int, default=LiftPretrainConfig.steps)
+    ap.add_argument("--batch-size", type=int, default=LiftPretrainConfig.batch_size)
+    ap.add_argument("--lr", type=float, default=LiftPretrainConfig.lr)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--val", action="append", default=[], help="NAME=world.npz (repeatable)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--landmarks", default="limbs", choices=sorted(LANDMARK_SETS))
+    ap.add_argument("--no-point-tokens", action="store_true", help="lift tokens only")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    val = {}
+    for item in args.val:
+        name, _, path = item.partition("=")
+        if not path:
+            raise SystemExit(f"--val expects NAME=PATH, got {item!r}")
+        val[name] = LandmarkWorld.load(path)
+    body = load_body_model("anny")
+    n = len(LANDMARK_SETS[args.landmarks])
+    cfg_net = get_preset(
+        args.preset,
+        landmark_tokens=True,
+        num_landmarks=n,
+        landmark_point_tokens=not args.no_point_tokens,
+    )
+    net, ids, groups = build_network(cfg_net, body, args.seed)
+    cfg = LiftPretrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        seed=args.seed,
+        val_every=max(1, args.steps // 6),
+    )
+    res = pretrain_landmark_path(net, body, cfg, validation=val)
+    save_checkpoint(args.out, net, "anny", ids, groups, {"lift_pretrain": asdict(res)})
+    print(json.dumps(asdict(res), indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,132 @@
+"""Landmark tokens: a crop's 2D landmarks as extra context for GST's decoder (docs/landmark_prior.md).
+
+The SMPL token and the Gaussian tokens attend to the ViT's image tokens as in the paper and, in
+a second cross-attention per decoder layer, to these tokens: one per landmark (its normalised
+position and confidence, plus a learned identity) and `lift_tokens` more made by a residual MLP
+over all landmarks at once (a Martinez-style lifting network: the whole 2D skeleton is what
+tells the 3D pose) together with where the crop sits in its camera (so the orientation in the
+camera frame can be read from a crop cut off-centre). The same MLP also gives a query added to
+the SMPL token's input: a short path from the lifting MLP to the pose (measured: a transformer
+decoder reading only the lift tokens learns several times slower than an MLP,
+docs/landmark_prior.md). Landmarks come from BlazePose
+(`gst.detect`), in the simulated form during the render-free pretraining (`gst.lift`).
+
+`LandmarkInput.masked()` or `landmarks=None` gives exactly the image-only network's output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from gst.model.decoder import LandmarkContext
+
+# BlazePose landmarks fed by default: shoulders, elbows, wrists, hips, knees, ankles (left/right
+# alternating; gst.lift.errors.LIMB_LANDMARKS, the set the noise model is measured on).
+LIMB_LANDMARK_IDS: tuple[int, ...] = (11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28)
+
+
+@dataclass
+class LandmarkInput:
+    """Network-side landmarks: points (B, L, 3) = x, y in [-1, 1] over the crop and confidence;
+    camera (B, 3) = crop half-width over focal, and the crop centre's ray (x, y over focal);
+    mask (B, L) bool = landmarks the network may use."""
+
+    points: torch.Tensor
+    camera: torch.Tensor
+    mask: torch.Tensor
+
+    @classmethod
+    def from_pixels(
+        cls,
+        landmarks: torch.Tensor,
+        K_crop: torch.Tensor,
+        crop_size: int,
+        mask: torch.Tensor | None = None,
+    ) -> LandmarkInput:
+        """(B, L, 3) u, v in crop pixels (pixel centres at integers) + confidence, with the
+        crops' intrinsics (B, 3, 3)."""
+        if landmarks.ndim != 3 or landmarks.shape[-1] != 3:
+            raise ValueError(f"landmarks must be (B, L, 3), got {tuple(landmarks.shape)}")
+        if K_crop.shape != (landmarks.shape[0], 3, 3):
+            raise ValueError(
+                f"K_crop must be ({landmarks.shape[0]}, 3, 3), got {tuple(K_crop.shape)}"
+            )
+        xy = (landmarks[..., :2] + 0.5) / crop_size * 2 - 1
+        conf = landmarks[..., 2:].clamp(0, 1)
+        f = K_crop[:, 0, 0]
+        centre = (crop_size - 1) / 2
+        camera = torch.stack(
+            [crop_size / (2 * f), (centre - K_crop[:, 0, 2]) / f, (centre - K_crop[:, 1, 2]) / f],
+            -1,
+        )
+        if mask is None:
+            mask = torch.ones(landmarks.shape[:2], dtype=torch.bool, device=landmarks.device)
+        return cls(torch.cat([xy, conf], -1), camera, mask.bool())
+
+    def masked(self, samples: torch.Tensor | None = None) -> LandmarkInput:
+        """A copy with every landmark of `samples` (B,) bool (default: all) masked out."""
+        drop = (
+            torch.ones(self.mask.shape[0], dtype=torch.bool, device=self.mask.device)
+            if samples is None
+            else samples.bool()
+        )
+        return LandmarkInput(self.points, self.camera, self.mask & ~drop[:, None])
+
+
+class _Residual(nn.Module):
+    def __init__(self, width: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.LayerNorm(width), nn.Linear(width, width), nn.GELU(), nn.Linear(width, width)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.net(x)
+
+
+class LandmarkEncoder(nn.Module):
+    """LandmarkInput -> LandmarkContext (tokens of the decoder's width)."""
+
+    def __init__(
+        self,
+        num_landmarks: int,
+        dim: int,
+        lift_tokens: int = 4,
+        width: int = 512,
+        blocks: int = 2,
+        point_tokens: bool = True,
+    ):
+        super().__init__()
+        self.num_landmarks, self.lift_tokens, self.dim = num_landmarks, lift_tokens, dim
+        self.point_tokens = point_tokens
+        if point_tokens:
+            self.point = nn.Sequential(nn.Linear(3, dim), nn.GELU(), nn.Linear(dim, dim))
+            self.identity = nn.Parameter(torch.randn(1, num_landmarks, dim) * 0.02)
+        self.lift = nn.Sequential(
+            nn.Linear(num_landmarks * 3 + 3, width),
+            *[_Residual(width) for _ in range(blocks)],
+            nn.LayerNorm(width),
+        )
+        self.to_tokens = nn.Linear(width, lift_tokens * dim)
+        self.to_query = nn.Linear(width, dim)
+
+    def forward(self, inp: LandmarkInput) -> LandmarkContext:
+        B, L, _ = inp.points.shape
+        if L != self.num_landmarks:
+            raise ValueError(f"the network takes {self.num_landmarks} landmarks, got {L}")
+        # Landmarks the network may not use are zeroed before anything sees them, so the lift
+        # tokens cannot leak them either; confidence 0 means "not detected".
+        valid = inp.mask & (inp.points[..., 2] > 0)
+        pts = torch.where(valid[..., None], inp.points, torch.zeros_like(inp.points))
+        h = self.lift(torch.cat([pts.reshape(B, -1), inp.camera], -1))
+        lift = self.to_tokens(h).view(B, self.lift_tokens, self.dim)
+        # the lift tokens are always attendable, so no sample's attention is empty (no NaN)
+        key_mask = valid.new_ones(B, self.lift_tokens)
+        tokens = lift
+        if self.point_tokens:
+            tokens = torch.cat([self.point(pts) + self.identity, lift], 1)
+            key_mask = torch.cat([valid, key_mask], 1)
+        return LandmarkContext(tokens, key_mask, valid.any(1), self.to_query(h))

@@ -1,0 +1,76 @@
+"""The render-free pretraining of the landmark path: what it trains, what it leaves alone, and
+the scoring of single-image predictions."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from gst.body import load_body_model
+from gst.lift.pretrain import (
+    LiftPretrainConfig,
+    body_joints,
+    pretrain_landmark_path,
+    score,
+    trainable_parameters,
+)
+from gst.lift.sampler import LiftSampler
+from gst.model.landmarks import LandmarkInput
+from gst.model.presets import get_preset
+from gst.train.recipe import build_network
+
+
+@pytest.fixture(scope="module")
+def body():
+    return load_body_model("anny")
+
+
+def test_pretraining_moves_only_the_landmark_path(body):
+    torch.manual_seed(0)
+    net, _, _ = build_network(get_preset("tiny", landmark_tokens=True), body)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    sampler = LiftSampler(body, seed=2)
+    cfg = LiftPretrainConfig(steps=25, batch_size=16, warmup_steps=5, lr=2e-3)
+    res = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
+    assert res.steps == 25 and res.samples_per_s > 0 and res.last_loss == res.last_loss
+    after = net.state_dict()
+    moved = {k for k in after if not torch.equal(after[k], before[k])}
+    assert any(k.startswith("landmark_encoder.") for k in moved)
+    assert any(".landmark_layers." in k for k in moved)
+    assert any(k.startswith("smpl_head.decpose") for k in moved)
+    # the image path and the Gaussian head are untouched (image cross-attention included)
+    assert not any(k.startswith(("backbone.", "gaussian_head.")) for k in moved)
+    assert not any(".layers.0.1." in k or ".layers.1.1." in k for k in moved)
+    ids = {id(p) for p in trainable_parameters(net)}
+    assert all(id(p) not in ids for p in net.backbone.parameters())
+
+
+def test_a_few_hundred_samples_already_lower_the_error(body):
+    """Same batch before/after 40 steps: the 3D error on fresh simulated crops falls."""
+    torch.manual_seed(1)
+    net, _, _ = build_network(get_preset("tiny", landmark_tokens=True), body)
+    probe = LiftSampler(body, seed=99).sample(128)
+
+    def err():
+        with torch.no_grad():
+            inp = LandmarkInput.from_pixels(probe.landmarks, probe.K, probe.crop_size)
+            out = net.eval()(None, with_gaussians=False, landmarks=inp)
+            j, _ = body_joints(out, body, probe.K, probe.crop_size)
+            rel = (j - j[:, :1]) - (probe.joints_cam - probe.joints_cam[:, :1])
+            return float(rel.norm(dim=-1).mean())
+
+    e0 = err()
+    cfg = LiftPretrainConfig(steps=40, batch_size=32, warmup_steps=5, lr=2e-3)
+    pretrain_landmark_path(net, body, cfg, sampler=LiftSampler(body, seed=3), log=lambda *_: None)
+    assert err() < 0.85 * e0
+
+
+def test_score_is_zero_for_the_truth_and_rejects_plain_networks(body):
+    j = torch.randn(5, 24, 3, dtype=torch.float64)
+    s = score(j, j)
+    assert s.mpjpe_mm < 1e-9 and s.pa_mpjpe_mm < 1e-6 and s.crops == 5
+    shifted = score(j + torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64), j)
+    assert shifted.mpjpe_mm < 1e-9  # root-aligned
+    net, _, _ = build_network(get_preset("tiny"), body)
+    with pytest.raises(ValueError, match="landmark_tokens"):
+        pretrain_landmark_path(net, body, dataclasses.replace(LiftPretrainConfig(), steps=1))

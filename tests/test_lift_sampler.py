@@ -1,0 +1,90 @@
+"""The render-free sampler: the synthetic worlds' pose convention, exact crop geometry,
+visibility, determinism."""
+
+import numpy as np
+import pytest
+import torch
+
+from gst.body import load_body_model
+from gst.lift.errors import LIMB_LANDMARKS
+from gst.lift.sampler import LiftSampler
+from synth.animate import pose_person
+from synth.motions import generate_motion
+from synth.world import heading_rotation
+
+
+@pytest.fixture(scope="module")
+def body():
+    return load_body_model("anny")
+
+
+@pytest.fixture(scope="module")
+def sampler(body):
+    return LiftSampler(body, seed=3)
+
+
+def test_poses_follow_the_synthetic_worlds_convention(body, sampler):
+    """Authored angles -> local rotations as synth.animate poses a person (mean shape)."""
+    clip = generate_motion(["kick"], 12, 10.0, np.random.default_rng(0), heading=0.7)
+    betas = np.zeros(body.num_betas, np.float32)
+    track = pose_person(body, betas, clip, 1)
+    local = sampler.local_rotations(torch.as_tensor(clip.angles, dtype=torch.float32))
+    root = torch.as_tensor(heading_rotation(clip.heading), dtype=torch.float32) @ local[:, 0]
+    out = body(torch.zeros(12, body.num_betas), local[:, 1:], root, torch.zeros(12, 3))
+    ours = out.joints - out.joints[:, :1]
+    theirs = torch.as_tensor(track.joints - track.joints[:, :1], dtype=torch.float32)
+    assert (ours - theirs).norm(dim=-1).max() < 1e-4  # metres
+
+
+def test_batch_geometry_is_exact(sampler):
+    b = sampler.sample(64)
+    S = b.crop_size
+    proj = b.joints_cam / b.joints_cam[..., 2:]
+    uv = proj @ b.K.transpose(1, 2)
+    assert torch.allclose(uv[..., :2], b.joints2d, atol=1e-3)
+    assert (b.joints_cam[..., 2] > 0).all()
+    # the HMR2 window (1.2 x the body's box, jittered) keeps the pelvis near the middle
+    assert (b.joints2d[:, 0] - S / 2).abs().max() < 0.3 * S
+    # the global orientation is in the camera frame; body joints come from the local rotations
+    assert torch.allclose(
+        b.rotmats_cam @ b.rotmats_cam.transpose(-1, -2),
+        torch.eye(3).expand(64, 24, 3, 3),
+        atol=1e-4,
+    )
+    assert b.landmarks.shape == (64, 12, 3) and b.presence.shape == (64,)
+    assert ((b.landmarks[..., 2] >= 0) & (b.landmarks[..., 2] <= 1)).all()
+
+
+def test_visibility_rate_is_like_the_rendered_worlds(sampler):
+    """Rendered landmark worlds: 17% of limb joints occluded (docs/landmark_prior.md)."""
+    b = sampler.sample(2000)
+    ji = [j for _, j in LIMB_LANDMARKS]
+    occluded = 1 - b.visible[:, ji].float().mean().item()
+    assert 0.10 < occluded < 0.26
+    # joints outside the crop are never visible
+    out = ((b.joints2d < 0) | (b.joints2d > b.crop_size - 1)).any(-1)
+    assert not (b.visible & out).any()
+
+
+def test_sampler_is_deterministic_and_varied(body):
+    a = LiftSampler(body, seed=5).sample(16)
+    b = LiftSampler(body, seed=5).sample(16)
+    c = LiftSampler(body, seed=6).sample(16)
+    assert torch.equal(a.landmarks, b.landmarks) and torch.equal(a.rotmats_cam, b.rotmats_cam)
+    assert not torch.allclose(a.joints_cam, c.joints_cam)
+    assert a.betas[:, :10].std() > 0.3 and (a.betas[:, 10:] == 0).all()
+
+
+def test_all_33_landmarks_sit_on_the_virtual_markers(body):
+    s = LiftSampler(body, seed=4, landmark_set="all")
+    b = s.sample(64)
+    assert b.landmarks.shape == (64, 33, 3) and b.reference2d.shape == (64, 33, 2)
+    # the limb markers lie near their joints (a few cm: within 6% of the crop), the nose near
+    # the head joint, and every marker inherits its anchor joint's visibility
+    ji = [j for _, j in LIMB_LANDMARKS]
+    li = [m for m, _ in LIMB_LANDMARKS]
+    near = (b.reference2d[:, li] - b.joints2d[:, ji]).norm(dim=-1) / b.crop_size
+    assert near.median() < 0.03 and near.max() < 0.12
+    assert ((b.reference2d[:, 0] - b.joints2d[:, 15]).norm(dim=-1) / b.crop_size).max() < 0.15
+    anchors = s.markers.anchors
+    assert torch.equal(b.reference_visible, b.visible[:, anchors] & b.reference_visible)
