@@ -22,10 +22,12 @@ so that what the regrouping gives and what the fit gives can be told apart, for 
 MPJPE (mm, world frame, per-frame Hungarian matching to the truth) is over the 13 joints every
 method gives (hips, knees, ankles, shoulders, elbows, wrists, pelvis = mid-hips; a landmark
 stands for its joint), and for the body fit also over all 24 joints, with PA-MPJPE.
-Speed: ms per person-frame after the 2D detection (`--threads` torch threads, 2 by default:
-the 2 cores the acceptance names), medians over `--repeats`; the body fit is then timed on
-subsets and copies of the scene (frames x people x cameras) to show that its cost is linear in
-them (seconds per person-frame-camera stays flat).
+Speed: ms per person-frame after the 2D detection (`--threads` torch threads, 1 by default),
+medians over `--repeats`; the body fit is then timed on subsets and copies of the scene
+(frames x people x cameras) to show how its cost grows with them, and on the copies also in
+`--processes` worker processes of one thread each (people split between them: the fit of one
+person does not depend on another's), the way to use several cores. Machines shared with other
+work give noisy times; the ratios within one run are what to compare.
 """
 
 from __future__ import annotations
@@ -205,6 +207,22 @@ def _peers(people, store, rig, python: str, keep: Path | None) -> tuple[dict, di
     return peers, arr
 
 
+def _fit_part(args):
+    """Worker: fit some people on one core (torch threads 1)."""
+    people, tris, fps = args
+    torch.set_num_threads(1)
+    from gst.body import load_body_model
+    from gst.body.markers import MarkerModel
+    from gst.fuse.fit import FitOptions, fit_people
+
+    return fit_people(load_body_model("anny"), MarkerModel.load(), people, tris, fps, FitOptions())
+
+
+def _fit_in_processes(pool, people, tris, fps: float, n: int):
+    parts = [(people[k::n], tris[k::n], fps) for k in range(n) if people[k::n]]
+    return [f for part in pool.map(_fit_part, parts) for f in part]
+
+
 def _copy(p, person_id: int, frames_keep: int, cams_keep: int):
     from dataclasses import replace
 
@@ -221,7 +239,10 @@ def main() -> None:
     ap.add_argument("--workspace", type=Path, default=ROOT / "workspace" / "demo")
     ap.add_argument("--peers-python", default="/work/bench-venv/bin/python")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of the main process")
+    ap.add_argument(
+        "--processes", type=int, default=2, help="worker processes for the multi-core fit rows"
+    )
     ap.add_argument("--keep-input", type=Path, help="also save the exported peer input here")
     ap.add_argument("--skip-peers", action="store_true")
     args = ap.parse_args()
@@ -306,6 +327,9 @@ def main() -> None:
     print("\n| fit subset | person-frames | cameras | seconds | person-frames / s | "
           "us / (person-frame x camera) |")  # fmt: skip
     print("| --- | --- | --- | --- | --- | --- |")
+    import multiprocessing as mp
+
+    pool = mp.get_context("fork").Pool(args.processes) if args.processes > 1 else None
     C = len(store.camera_names)
     T = max(len(p.frames) for p in fits_for_speed)
     for frames_keep, cams_keep, copies in ((T // 4, C, 1), (T // 2, C, 1), (T, C, 1),
@@ -320,6 +344,15 @@ def main() -> None:
         pf = sum(len(q.frames) for q in sub)
         print(f"| {frames_keep} frames x {len(sub)} people | {pf} | {cams_keep} | {sec:.2f} | "
               f"{pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
+        if pool is not None and copies > 1:
+            _, sec = _median_time(
+                lambda s=sub, st=sub_tris: _fit_in_processes(pool, s, st, 30.0, args.processes),
+                args.repeats,
+            )
+            print(f"| same, {args.processes} processes x 1 thread | {pf} | {cams_keep} | "
+                  f"{sec:.2f} | {pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
+    if pool is not None:
+        pool.close()
 
 
 if __name__ == "__main__":
