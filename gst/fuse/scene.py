@@ -283,10 +283,14 @@ def fuse_scene(
         for per, p, f in zip(limbs, people, fits, strict=True)
     ]
     summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth, limbs)
-    summary.camera_corrections_deg = {
-        c: round(float(np.degrees(np.linalg.norm(w))), 3)
-        for c, w in zip(cams, corrections, strict=True)
-    }
+    summary.camera_corrections_deg = (
+        {}
+        if not o.refine_rig_rounds
+        else {
+            c: round(float(np.degrees(np.linalg.norm(w))), 3)
+            for c, w in zip(cams, corrections, strict=True)
+        }
+    )
 
     bodies = out_dir / "bodies.parquet"
     write_bodies(
