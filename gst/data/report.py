@@ -125,9 +125,10 @@ def write_extract_report(
     if len(support):
         q = np.percentile(support, [10, 50, 90])
         lines.append(
-            f"- mask support (hull: share of the person's 3D hull the mask covers; keypoints: share of "
-            f"the body not hidden by others; low = partial mask): "
-            f"10% {q[0]:.2f}, median {q[1]:.2f}, 90% {q[2]:.2f}; {int((support < 0.5).sum())} crops below 0.5"
+            "- mask support (hull: share of the person's 3D hull the mask covers; keypoints: "
+            "share of the body not hidden by others; low = partial mask): "
+            f"10% {q[0]:.3f}, median {q[1]:.3f}, 90% {q[2]:.3f}; "
+            f"{int((support < 0.5).sum())} crops below 0.5"
         )
     if r.short_tracks_dropped:
         lines.append(f"- ids seen too briefly to crop (dropped): {r.short_tracks_dropped}")
