@@ -24,13 +24,13 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 import torch
 
 from gst.atomic import atomic_path, atomic_write_text
 from gst.detect.blazepose import BlazePose
 from gst.detect.crops import detect_crop_landmarks
 from gst.train.synthetic_crops import crops_from_synth_scene
+from synth.truth import read_scene_truth
 
 DEFAULT_SEED = 5000
 WORLD_RIGS = ("dome", "h36m", "hall")
@@ -139,18 +139,16 @@ def world_spec(
 
 
 def _people_columns(scene_dir: Path) -> tuple[dict[tuple[int, int], int], dict[str, np.ndarray]]:
-    table = pq.read_table(scene_dir / "truth" / "people.parquet")
-
-    def col(name: str) -> np.ndarray:
-        c = table.column(name).combine_chunks()
-        flat = np.asarray(c.flatten().to_numpy(zero_copy_only=False), np.float32)
-        return flat.reshape(len(table), -1)
-
-    frames, pids = table.column("frame").to_numpy(), table.column("person_id").to_numpy()
-    index = {(int(f), int(p)): i for i, (f, p) in enumerate(zip(frames, pids, strict=True))}
-    cols = {k: col(k) for k in ("global_orient", "body_pose", "betas", "transl")}
-    cols["motion"] = np.asarray(table.column("motion").to_pylist())
-    return index, cols
+    """(frame, person) -> truth row, and the truth's parameter columns (`synth.truth`)."""
+    truth = read_scene_truth(scene_dir)
+    cols = {
+        "global_orient": truth.global_orient.astype(np.float32),
+        "body_pose": truth.body_pose.reshape(len(truth), -1).astype(np.float32),
+        "betas": truth.betas.astype(np.float32),
+        "transl": truth.transl.astype(np.float32),
+        "motion": np.asarray(truth.motion),
+    }
+    return truth.row_index(), cols
 
 
 def detect_crops(
