@@ -66,6 +66,8 @@ class FinetuneConfig:
     num_targets: int = 4
     render_size: int = 64
     weights: LossWeights = field(default_factory=LossWeights)
+    body_lr: float | None = None  # backbone + SMPL head rate (None: `lr` for everything)
+    landmark_dropout: float = 0.0  # multi-view samples trained without their landmarks
 
 
 def finetune(
@@ -102,7 +104,12 @@ def finetune(
         log_every=max(1, cfg.steps // 10),
     )
     opts = FitOptions(
-        mode=cfg.mode, num_targets=cfg.num_targets, render_size=cfg.render_size, val_pose_crops=0
+        mode=cfg.mode,
+        num_targets=cfg.num_targets,
+        render_size=cfg.render_size,
+        val_pose_crops=0,
+        body_lr=cfg.body_lr,
+        landmark_dropout=cfg.landmark_dropout if train.landmarks is not None else 0.0,
     )
     with tempfile.TemporaryDirectory(dir=run_dir) as tmp:
         t0 = time.perf_counter()

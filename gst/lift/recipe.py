@@ -8,9 +8,11 @@ short rendered phase. Modes `3d` / `pretrain` (the image-only network) are
 2. `rendered_phase`: the image path and the Gaussian head learn to work with the landmark
    tokens, on crops of a few rendered worlds with the landmarks BlazePose finds in them
    (`attach_landmarks`): 3D terms plus the multi-view image terms (`fit_gst` mode
-   `pretrain`), the Gaussian head at its own rate, everything else gently. Its image
-   cross-attention starts silent (`silence_image_path`: zero output projection), so the phase
-   starts from the lifting path's pose exactly and the image evidence is added as it is learnt.
+   `pretrain`), the Gaussian head at its own rate, the ViT and the image cross-attention gently,
+   the pose path frozen behind a closed image gate (`silence_image_path`): a crop with
+   landmarks keeps the lifting path's pose exactly (measured: training the pose path on a few
+   rendered worlds made it transfer worse, docs/landmark_prior.md), and scene training opens
+   the gate as far as the image helps.
 """
 
 from __future__ import annotations
@@ -97,13 +99,20 @@ def lift_phase(
 
 
 def silence_image_path(net: GSTNetwork) -> None:
-    """Zero the output projection of every image cross-attention of the decoder: the image
-    tokens then add nothing until the rendered phase teaches them something (a landmark-only
-    network's decoder never saw image tokens; random ones would disturb its pose)."""
-    for layer in net.smpl_head.transformer.transformer.layers:
-        out = layer[1].fn.to_out[0]
-        nn.init.zeros_(out.weight)
-        nn.init.zeros_(out.bias)
+    """Close the SMPL token's image gate (`TokenDecoder.smpl_image_gate` = 0): a crop with
+    landmarks then gets the lifting path's pose exactly, whatever the image path learns for the
+    Gaussian tokens; scene training opens it as far as the image helps."""
+    with torch.no_grad():
+        net.smpl_head.transformer.smpl_image_gate.zero_()
+
+
+def image_path_parameters(net: GSTNetwork) -> list[nn.Parameter]:
+    """What the rendered phase trains besides the Gaussian head: the ViT and the decoder's
+    image cross-attention (through which the Gaussian tokens see the crop)."""
+    cross = [
+        p for layer in net.smpl_head.transformer.transformer.layers for p in layer[1].parameters()
+    ]
+    return list(net.backbone.parameters()) + cross
 
 
 def attach_landmarks(crops: CropSet, progress=None) -> None:
@@ -131,8 +140,16 @@ def rendered_phase(
     group_index,
     progress=None,
 ) -> dict:
-    """Train in place on rendered crops with their landmarks (module doc); writes `out`/last.pt
-    and log.csv; returns fit_gst's summary (MPJPE before and after on `val`)."""
+    """Train in place on rendered crops with their landmarks (module doc): the Gaussian head at
+    `gaussian_lr`, the image path (`image_path_parameters`) at `body_lr`, the pose path frozen
+    (the SMPL token's image gate stays closed); writes `out`/last.pt and log.csv; returns
+    fit_gst's summary (MPJPE before and after on `val`)."""
+    keep = {id(p) for p in image_path_parameters(net)} | {
+        id(p) for p in net.gaussian_head.parameters()
+    }
+    frozen = [p for p in net.parameters() if id(p) not in keep and p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
     cfg = TrainConfig(
         steps=steps,
         batch_size=batch_size,
@@ -142,26 +159,30 @@ def rendered_phase(
         ckpt_every=25,
         log_every=5,
     )
-    return fit_gst(
-        net,
-        task,
-        crops,
-        cfg,
-        out,
-        FitOptions(
-            mode="pretrain",
-            num_targets=num_targets,
-            render_size=render_size,
-            val_pose_crops=256,
-            body_lr=body_lr,
-            landmark_dropout=landmark_dropout,
-        ),
-        body_spec=body_spec,
-        vertex_ids=vertex_ids,
-        group_index=group_index,
-        progress=progress,
-        val_crops=val,
-    )
+    try:
+        return fit_gst(
+            net,
+            task,
+            crops,
+            cfg,
+            out,
+            FitOptions(
+                mode="pretrain",
+                num_targets=num_targets,
+                render_size=render_size,
+                val_pose_crops=256,
+                body_lr=body_lr,
+                landmark_dropout=landmark_dropout,
+            ),
+            body_spec=body_spec,
+            vertex_ids=vertex_ids,
+            group_index=group_index,
+            progress=progress,
+            val_crops=val,
+        )
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
 
 
 def lift_summary(res: LiftPretrainResult) -> dict:

@@ -113,7 +113,9 @@ def world_specs(p: PretrainConfig) -> list[dict]:
     for k in range(p.worlds + 1):
         seed = p.world_seed + k
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x9E7]))
-        static = p.static_every > 0 and k % p.static_every == p.static_every - 1
+        # independent random poses in every `static_every`-th training world; the validation
+        # world plays motions, as the scenes the model is for do
+        static = p.static_every > 0 and k < p.worlds and k % p.static_every == p.static_every - 1
         spec = preset(
             "demo",
             seed=seed,

@@ -62,10 +62,14 @@ def gaussian_parameter_groups(model: GSTNetwork, lr: float, body_lr: float) -> l
     whatever the gradient's size, so one shared rate either leaves the Gaussians frozen or lets
     the weak, noisy photometric gradient on pose and shape drag a pretrained body off the image."""
     gaussian = {id(p) for p in model.gaussian_head.parameters()}
+    gate = model.smpl_head.transformer.smpl_image_gate
+    # the landmark network's image gate: a few scalars that Adam moves by about the rate per
+    # step; at the body's rate they could not open within a scene training's few hundred steps
+    fast = gaussian | ({id(gate)} if gate is not None else set())
     trainable = [p for p in model.parameters() if p.requires_grad]
     groups = [
-        {"params": [p for p in trainable if id(p) in gaussian], "lr": lr, "name": "gaussians"},
-        {"params": [p for p in trainable if id(p) not in gaussian], "lr": body_lr, "name": "body"},
+        {"params": [p for p in trainable if id(p) in fast], "lr": lr, "name": "gaussians"},
+        {"params": [p for p in trainable if id(p) not in fast], "lr": body_lr, "name": "body"},
     ]
     return [g for g in groups if g["params"]]
 
