@@ -68,7 +68,8 @@ def bench_speed(args, device) -> None:
 
     B = args.batch
     print(
-        f"\n== forward time, batch {B}, {device}, float32, torch threads {torch.get_num_threads()} =="
+        f"\n== forward time, batch {B}, {device}, float32, torch threads {torch.get_num_threads()} "
+        "=="
     )
     print(f"{'variant':58s} {'vertices':>8s} {'ms':>8s} {'ratio':>7s}  error")
     smpl_like = random_body_data(num_vertices=6890, seed=0)
@@ -99,7 +100,8 @@ def bench_speed(args, device) -> None:
             float((out.vertices - ref_v).abs().max()), float((out.joints - ref_j).abs().max())
         )
     print(
-        f"{'smplx.lbs (rotation matrices), SMPL-sized synthetic model':58s} {6890:8d} {t_ref:8.1f} {1.0:7.2f}"
+        f"{'smplx.lbs (rotation matrices), SMPL-sized synthetic model':58s} {6890:8d} {t_ref:8.1f} "
+        f"{1.0:7.2f}"
     )
     print(
         f"{'ours, same arrays':58s} {6890:8d} {t_ours:8.1f} {t_ours / t_ref:7.2f}  "
@@ -192,7 +194,8 @@ def bench_accuracy(args) -> None:
         dirs, (rest_v[:, ids] - body.v_template).reshape(n, -1).T
     ).solution.T
     print(
-        f"\n== Anny default vs Anny: {n} shapes (ages 12-80), random poses within joint limits, float64 =="
+        f"\n== Anny default vs Anny: {n} shapes (ages 12-80), random poses within joint limits, "
+        "float64 =="
     )
     print(
         f"shape space: {data.num_betas} betas; explained variance, first 10: "
@@ -200,8 +203,9 @@ def bench_accuracy(args) -> None:
         f"{100 * data.shape_variance_ratio.sum():.4f}%"
     )
     print(
-        f"{'betas':>5s} {'hands/feet':>10s} | {'joint mm: mean':>14s} {'median':>7s} {'p95':>7s} {'max':>7s} | "
-        f"{'vertex mm: median':>17s} {'p95':>7s} {'max':>7s} | {'rest joints mean/max':>20s}"
+        f"{'betas':>5s} {'hands/feet':>10s} | {'joint mm: mean':>14s} {'median':>7s} {'p95':>7s} "
+        f"{'max':>7s} | {'vertex mm: median':>17s} {'p95':>7s} {'max':>7s} | "
+        f"{'rest joints mean/max':>20s}"
     )
     fixed = [
         SMPL_JOINT_NAMES.index(n) - 1
@@ -221,9 +225,10 @@ def bench_accuracy(args) -> None:
             je = 1e3 * (out.joints - anny_heads).norm(dim=-1)
             ve = 1e3 * (out.vertices - anny_v[:, ids]).norm(dim=-1)
             print(
-                f"{nb:5d} {'posed' if posed_ends else 'at rest':>10s} | {je.mean():14.2f} {je.median():7.2f} "
-                f"{je.quantile(0.95):7.2f} {je.max():7.2f} | {ve.median():17.2f} {ve.flatten().quantile(0.95):7.2f} "
-                f"{ve.max():7.2f} | {rest_err.mean():9.2f} / {rest_err.max():.2f}"
+                f"{nb:5d} {'posed' if posed_ends else 'at rest':>10s} | {je.mean():14.2f} "
+                f"{je.median():7.2f} {je.quantile(0.95):7.2f} {je.max():7.2f} | "
+                f"{ve.median():17.2f} {ve.flatten().quantile(0.95):7.2f} {ve.max():7.2f} | "
+                f"{rest_err.mean():9.2f} / {rest_err.max():.2f}"
             )
     # float32 against float64 on the same inputs
     b32 = BodyModel(data, dtype=torch.float32)

@@ -109,8 +109,8 @@ def main(argv=None) -> int:
     t_init = time.perf_counter() - t0
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(
-        f"machine: {os.cpu_count()} CPUs, load average {load:.1f} (wall times grow with load; CPU s is "
-        "process CPU time, all threads)"
+        f"machine: {os.cpu_count()} CPUs, load average {load:.1f} (wall times grow with load; CPU "
+        "s is process CPU time, all threads)"
     )
     print(
         f"{args.cameras} cameras x {args.frames} board poses: {views} views, {corners} corners, "
@@ -122,8 +122,8 @@ def main(argv=None) -> int:
     )
     print()
     header = (
-        f"{'variant':36s} {'BA s (median)':>13s} {'ratio':>6s} {'CPU s':>6s} {'rounds':>6s} {'f err %':>8s} "
-        f"{'centre %':>8s} {'rot deg':>8s} {'RMS px':>7s} {'removed':>7s}"
+        f"{'variant':36s} {'BA s (median)':>13s} {'ratio':>6s} {'CPU s':>6s} {'rounds':>6s} "
+        f"{'f err %':>8s} {'centre %':>8s} {'rot deg':>8s} {'RMS px':>7s} {'removed':>7s}"
     )
     print(header)
     print("-" * len(header))
@@ -144,12 +144,14 @@ def main(argv=None) -> int:
         f_err, c_err, r_err, rms = accuracy(result, scene)
         removed = sum(r["removed"] for r in result.ba_rounds)
         print(
-            f"{name:36s} {med:13.2f} {med / base:6.2f} {statistics.median(cpu):6.2f} {len(result.ba_rounds):6d} {f_err:8.3f} "
-            f"{c_err:8.3f} {r_err:8.3f} {rms:7.3f} {removed:7d}"
+            f"{name:36s} {med:13.2f} {med / base:6.2f} {statistics.median(cpu):6.2f} "
+            f"{len(result.ba_rounds):6d} {f_err:8.3f} {c_err:8.3f} {r_err:8.3f} {rms:7.3f} "
+            f"{removed:7d}"
         )
     print()
     print(
-        "goal: BA under 10 s; acceptance: f err < 0.5 %, centre < 1 %, rotation < 0.3 deg, RMS < 0.5 px"
+        "goal: BA under 10 s; acceptance: f err < 0.5 %, centre < 1 %, rotation < 0.3 deg, RMS < "
+        "0.5 px"
     )
     return 0
 

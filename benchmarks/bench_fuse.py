@@ -2,24 +2,32 @@
 
     python benchmarks/bench_fuse.py --workspace workspace/demo [--peers-python /work/bench-venv/bin/python]
 
-Input: the scene's crop store and BlazePose landmarks per crop (computed once, cached beside
-the store as `fuse_bench_landmarks.npy`). Every method sees the same observations, exported to
-one .npz (per person-frame and camera: undistorted full-image pixels, confidence, and the
-cameras' K, R, t); the peers run in their own virtual environment (they are benchmark tools,
-never project dependencies) on that file:
+Input: the scene's crop store and BlazePose landmarks per crop, as the fuse stage computes
+them (`gst.fuse.observations.crop_landmarks`, refined second pass), cached beside the store as
+`fuse_landmarks_refined.npy`. Every method sees the same observations, exported to one .npz (per
+person-frame and camera: undistorted full-image pixels, confidence, and the cameras' K, R, t);
+the peers run in their own virtual environment (benchmark tools, never project dependencies):
 
 - ours, triangulation: gst.fuse.triangulate (weighted DLT + leave-one-out + Gauss-Newton);
-- ours, body fit: gst.fuse.fit (markers, all cameras, whole clip);
+- ours, body fit: gst.fuse.fit (markers, all cameras, whole clip, Levenberg-Marquardt);
 - Pose2Sim 0.10.49: its weighted DLT (`Pose2Sim.common.weighted_triangulation`) inside its
   camera-exclusion loop (drop views while the mean reprojection error exceeds 15 px);
 - aniposelib 0.8.0: `CameraGroup.triangulate`, and `optim_points` (its optim=True path:
   temporal smoothness and limb-length constraints).
 
+Two groupings of the same landmarks into people are scored: the extraction's person ids as
+they are, and the people regrouped by 3D agreement (gst.fuse.regroup, part of the fuse stage),
+so that what the regrouping gives and what the fit gives can be told apart, for every method.
+
 MPJPE (mm, world frame, per-frame Hungarian matching to the truth) is over the 13 joints every
 method gives (hips, knees, ankles, shoulders, elbows, wrists, pelvis = mid-hips; a landmark
 stands for its joint), and for the body fit also over all 24 joints, with PA-MPJPE.
-Speed: ms per person-frame after the 2D detection, single thread; the body fit is timed over
-subsets (frames x people x cameras) to show that its cost is linear in them.
+Speed: ms per person-frame after the 2D detection (`--threads` torch threads, 1 by default),
+medians over `--repeats`; the body fit is then timed on subsets and copies of the scene
+(frames x people x cameras) to show how its cost grows with them, and on the copies also in
+`--processes` worker processes of one thread each (people split between them: the fit of one
+person does not depend on another's), the way to use several cores. Machines shared with other
+work give noisy times; the ratios within one run are what to compare.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -35,6 +44,7 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 # SMPL joint -> BlazePose landmarks (gst.train.keypoints.BODY_FROM_BLAZEPOSE)
 JOINTS13 = {0: (23, 24), 1: (23,), 2: (24,), 4: (25,), 5: (26,), 7: (27,), 8: (28,),
             16: (11,), 17: (12,), 18: (13,), 19: (14,), 20: (15,), 21: (16,)}  # fmt: skip
@@ -170,14 +180,73 @@ def _score(pred, person, frame, truth, joints=None) -> tuple[float, float, int]:
     )
 
 
+def _median_time(fn, repeats: int):
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return out, float(np.median(times))
+
+
+def _peers(people, store, rig, python: str, keep: Path | None) -> tuple[dict, dict]:
+    with tempfile.TemporaryDirectory() as tmp:
+        inp, outp, script = Path(tmp) / "in.npz", Path(tmp) / "out.json", Path(tmp) / "peers.py"
+        arr = _export(people, store, rig, inp)
+        script.write_text(PEER_SCRIPT)
+        if keep is not None:
+            import shutil
+
+            shutil.copy(inp, keep)
+        proc = subprocess.run([python, str(script), str(inp), str(outp)],
+                              capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
+                              "NUMBA_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})  # fmt: skip
+        peers = json.loads(outp.read_text()) if outp.is_file() else {}
+        if proc.returncode:
+            print(proc.stderr[-3000:])
+    return peers, arr
+
+
+def _fit_part(args):
+    """Worker: fit some people on one core (torch threads 1)."""
+    people, tris, fps = args
+    torch.set_num_threads(1)
+    from gst.body import load_body_model
+    from gst.body.markers import MarkerModel
+    from gst.fuse.fit import FitOptions, fit_people
+
+    return fit_people(load_body_model("anny"), MarkerModel.load(), people, tris, fps, FitOptions())
+
+
+def _fit_in_processes(pool, people, tris, fps: float, n: int):
+    parts = [(people[k::n], tris[k::n], fps) for k in range(n) if people[k::n]]
+    return [f for part in pool.map(_fit_part, parts) for f in part]
+
+
+def _copy(p, person_id: int, frames_keep: int, cams_keep: int):
+    from dataclasses import replace
+
+    q = p.select(np.arange(len(p.frames)) < frames_keep)
+    drop = np.arange(q.rows.shape[1]) >= cams_keep
+    q.uv[:, drop] = np.nan
+    q.confidence[:, drop] = 0.0
+    q.rows[:, drop] = -1
+    return replace(q, person_id=person_id)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workspace", type=Path, default=ROOT / "workspace" / "demo")
     ap.add_argument("--peers-python", default="/work/bench-venv/bin/python")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of the main process")
+    ap.add_argument(
+        "--processes", type=int, default=2, help="worker processes for the multi-core fit rows"
+    )
     ap.add_argument("--keep-input", type=Path, help="also save the exported peer input here")
+    ap.add_argument("--skip-peers", action="store_true")
     args = ap.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
 
     from calibration.formats import read_rig
     from gst.body import load_body_model
@@ -185,6 +254,7 @@ def main() -> None:
     from gst.data.store import CropStore
     from gst.fuse.fit import FitOptions, fit_people
     from gst.fuse.observations import crop_landmarks, group_by_person
+    from gst.fuse.regroup import regroup_people
     from gst.fuse.triangulate import triangulate_person
     from synth.truth import read_scene_truth
 
@@ -192,109 +262,97 @@ def main() -> None:
     store = CropStore(ws / "crops" / "crops.h5")
     rig = read_rig(ws / "calibration" / "rig.json", "rig")
     truth = read_scene_truth(ws / "synth")
-    cache = ws / "crops" / "fuse_bench_landmarks.npy"
+    cache = ws / "crops" / "fuse_landmarks_refined.npy"
     if cache.is_file():
         lm = np.load(cache)
     else:
         lm = crop_landmarks(store)
         np.save(cache, lm)
-    people = group_by_person(store, lm)
-    n_pf = sum(len(p.frames) for p in people)
-    results = []
-
-    def row(name, mp, pa, n, sec, note=""):
-        results.append((name, mp, pa, n, 1000 * sec / n_pf, note))
-
-    # ours: triangulation
-    times = []
-    for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        tris = [triangulate_person(p) for p in people]
-        times.append(time.perf_counter() - t0)
-    X = np.concatenate([t.points for t in tris])
-    person = np.concatenate([np.full(len(p.frames), p.person_id) for p in people])
-    frame = np.concatenate([p.frames for p in people])
-    mp, pa, n = _score(_joints13(X), person, frame, truth, JOINTS13)
-    row("ours: triangulation", mp, pa, n, float(np.median(times)))
-
+    extracted = group_by_person(store, lm)
+    (regrouped, report), t_regroup = _median_time(lambda: regroup_people(extracted), 1)
     body = load_body_model("anny")
     markers = MarkerModel.load()
-    times = []
-    for _ in range(max(1, args.repeats - 1)):
-        t0 = time.perf_counter()
-        fits = fit_people(body, markers, people, tris, 30.0, FitOptions())
-        times.append(time.perf_counter() - t0)
-    J = np.concatenate(
-        [f.joints[np.isin(f.frames, p.frames)] for f, p in zip(fits, people, strict=True)]
-    )
-    mp, pa, n = _score(J, person, frame, truth, JOINTS13)
-    row(
-        "ours: body fit (13 joints)",
-        mp,
-        pa,
-        n,
-        float(np.median(times)),
-        "fit only, after triangulation",
-    )
-    mp, pa, n = _score(J, person, frame, truth)
-    row("ours: body fit (24 joints)", mp, pa, n, float(np.median(times)))
+    results = []
+    fits_for_speed = None
+    for grouping, people in (("extraction ids", extracted), ("regrouped", regrouped)):
+        n_pf = sum(len(p.frames) for p in people)
+        person = np.concatenate([np.full(len(p.frames), p.person_id) for p in people])
+        frame = np.concatenate([p.frames for p in people])
 
-    # peers, same input, in their own venv
-    with tempfile.TemporaryDirectory() as tmp:
-        inp, outp, script = Path(tmp) / "in.npz", Path(tmp) / "out.json", Path(tmp) / "peers.py"
-        arr = _export(people, store, rig, inp)
-        script.write_text(PEER_SCRIPT)
-        if args.keep_input:
-            import shutil
+        def row(name, scored, sec, note="", n_pf=n_pf, grouping=grouping):
+            mp, pa, n = scored
+            results.append((grouping, name, mp, pa, n, 1000 * sec / n_pf, note))
 
-            shutil.copy(inp, args.keep_input)
-        proc = subprocess.run([args.peers_python, str(script), str(inp), str(outp)],
-                              capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
-                              "NUMBA_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})  # fmt: skip
-        peers = json.loads(outp.read_text()) if outp.is_file() else {}
-        if proc.returncode:
-            print(proc.stderr[-3000:])
-    for key, name in (("pose2sim", "Pose2Sim 0.10.49: triangulation"),
-                      ("aniposelib", "aniposelib 0.8.0: triangulate"),
-                      ("aniposelib_optim", "aniposelib 0.8.0: optim_points")):  # fmt: skip
-        r = peers.get(key, {"error": "not run"})
-        if "error" in r:
-            results.append((name, float("nan"), float("nan"), 0, float("nan"), r["error"][:80]))
-            continue
-        Xp = np.array(r["points"], dtype=float)
-        mp, pa, n = _score(_joints13(Xp), arr["person"], arr["frame"], truth, JOINTS13)
-        row(name, mp, pa, n, r["seconds"])
-
-    print(f"\n{n_pf} person-frames, {len(store.camera_names)} cameras, detected 2D (BlazePose)\n")
-    print("| method | MPJPE mm | PA-MPJPE mm | person-frames | ms / person-frame | note |")
-    print("| --- | --- | --- | --- | --- | --- |")
-    for name, mp, pa, n, ms, note in results:
-        print(f"| {name} | {mp:.1f} | {pa:.1f} | {n} | {ms:.2f} | {note} |")
-
-    # linearity of the fit: subsets of frames and cameras, and the people replicated
-    print("\n| fit subset | person-frames | cameras | seconds | person-frames / s |")
-    print("| --- | --- | --- | --- | --- |")
-    C = len(store.camera_names)
-    for frames_keep, cams_keep, copies in ((12, C, 1), (24, C, 1), (48, C, 1), (48, C // 2, 1),
-                                           (48, C, 4)):  # fmt: skip
-        sub, sub_tris = [], []
-        for _ in range(copies):
-            for p in people:
-                keep = np.arange(len(p.frames)) < frames_keep
-                q = p.select(keep)
-                drop = np.arange(C) >= cams_keep
-                q.uv[:, drop] = np.nan
-                q.confidence[:, drop] = 0.0
-                q.rows[:, drop] = -1
-                sub.append(q)
-                sub_tris.append(triangulate_person(q))
-        t0 = time.perf_counter()
-        fit_people(body, markers, sub, sub_tris, 30.0, FitOptions())
-        sec = time.perf_counter() - t0
-        pf = sum(len(q.frames) for q in sub)
-        print(
-            f"| {frames_keep} frames x {len(sub)} people | {pf} | {cams_keep} | {sec:.2f} | {pf / sec:.1f} |"
+        tris, sec = _median_time(lambda ps=people: [triangulate_person(p) for p in ps],
+                                 args.repeats)  # fmt: skip
+        X = np.concatenate([t.points for t in tris])
+        row("ours: triangulation", _score(_joints13(X), person, frame, truth, JOINTS13), sec)
+        fits, sec = _median_time(
+            lambda ps=people, ts=tris: fit_people(body, markers, ps, ts, 30.0, FitOptions()),
+            args.repeats,
         )
+        fits_for_speed = people
+        J = np.concatenate(
+            [f.joints[np.isin(f.frames, p.frames)] for f, p in zip(fits, people, strict=True)]
+        )
+        row("ours: body fit (13 joints)", _score(J, person, frame, truth, JOINTS13), sec,
+            "after triangulation")  # fmt: skip
+        row("ours: body fit (24 joints)", _score(J, person, frame, truth), sec)
+        if args.skip_peers:
+            continue
+        peers, arr = _peers(people, store, rig, args.peers_python, args.keep_input)
+        for key, name in (("pose2sim", "Pose2Sim 0.10.49: triangulation"),
+                          ("aniposelib", "aniposelib 0.8.0: triangulate"),
+                          ("aniposelib_optim", "aniposelib 0.8.0: optim_points")):  # fmt: skip
+            r = peers.get(key, {"error": "not run"})
+            if "error" in r:
+                results.append((grouping, name, np.nan, np.nan, 0, np.nan, r["error"][:80]))
+                continue
+            Xp = np.array(r["points"], dtype=float)
+            scored = _score(_joints13(Xp), arr["person"], arr["frame"], truth, JOINTS13)
+            row(name, scored, r["seconds"])
+
+    n_pf = sum(len(p.frames) for p in extracted)
+    print(f"\n{n_pf} person-frames, {len(store.camera_names)} cameras, detected 2D (BlazePose), "
+          f"torch threads {args.threads}; regrouping: {report.tracks} people from "
+          f"{len(extracted)} extraction ids, {1000 * t_regroup / n_pf:.2f} ms / person-frame\n")  # fmt: skip
+    print(
+        "| grouping | method | MPJPE mm | PA-MPJPE mm | person-frames | ms / person-frame | note |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for grouping, name, mp, pa, n, ms, note in results:
+        print(f"| {grouping} | {name} | {mp:.1f} | {pa:.1f} | {n} | {ms:.2f} | {note} |")
+
+    # linearity of the fit: subsets of frames and cameras, and copies of the people
+    print("\n| fit subset | person-frames | cameras | seconds | person-frames / s | "
+          "us / (person-frame x camera) |")  # fmt: skip
+    print("| --- | --- | --- | --- | --- | --- |")
+    import multiprocessing as mp
+
+    pool = mp.get_context("fork").Pool(args.processes) if args.processes > 1 else None
+    C = len(store.camera_names)
+    T = max(len(p.frames) for p in fits_for_speed)
+    for frames_keep, cams_keep, copies in ((T // 4, C, 1), (T // 2, C, 1), (T, C, 1),
+                                           (T, C // 2, 1), (T, C, 2), (T, C, 4)):  # fmt: skip
+        sub = [_copy(p, 1000 * k + p.person_id, frames_keep, cams_keep)
+               for k in range(copies) for p in fits_for_speed]  # fmt: skip
+        sub_tris = [triangulate_person(q) for q in sub]
+        _, sec = _median_time(
+            lambda s=sub, st=sub_tris: fit_people(body, markers, s, st, 30.0, FitOptions()),
+            args.repeats,
+        )
+        pf = sum(len(q.frames) for q in sub)
+        print(f"| {frames_keep} frames x {len(sub)} people | {pf} | {cams_keep} | {sec:.2f} | "
+              f"{pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
+        if pool is not None and copies > 1:
+            _, sec = _median_time(
+                lambda s=sub, st=sub_tris: _fit_in_processes(pool, s, st, 30.0, args.processes),
+                args.repeats,
+            )
+            print(f"| same, {args.processes} processes x 1 thread | {pf} | {cams_keep} | "
+                  f"{sec:.2f} | {pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
+    if pool is not None:
+        pool.close()
 
 
 if __name__ == "__main__":

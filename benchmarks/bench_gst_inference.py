@@ -32,11 +32,12 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     body = load_body_model("anny")
     print(
-        f"device cpu, threads {torch.get_num_threads()}, batch {args.batch}, median of {args.repeats}"
+        f"device cpu, threads {torch.get_num_threads()}, batch {args.batch}, median of "
+        f"{args.repeats}"
     )
     print(
-        f"{'preset':<7} {'input':>8} {'gaussians':>9} {'pose ms':>9} {'pose fps':>9} {'full ms':>9} "
-        f"{'full fps':>9} {'full/pose':>9}"
+        f"{'preset':<7} {'input':>8} {'gaussians':>9} {'pose ms':>9} {'pose fps':>9} "
+        f"{'full ms':>9} {'full fps':>9} {'full/pose':>9}"
     )
     for name in args.presets:
         cfg = get_preset(name)
@@ -54,8 +55,9 @@ def main() -> None:
         t_pose = time_inference(lambda: run(False), args.repeats)
         t_full = time_inference(lambda: run(True), args.repeats)
         print(
-            f"{name:<7} {cfg.image_size[0]}x{cfg.image_size[1]:<4} {len(ids):>9} {1000 * t_pose:>9.1f} "
-            f"{args.batch / t_pose:>9.1f} {1000 * t_full:>9.1f} {args.batch / t_full:>9.1f} {t_full / t_pose:>9.2f}"
+            f"{name:<7} {cfg.image_size[0]}x{cfg.image_size[1]:<4} {len(ids):>9} "
+            f"{1000 * t_pose:>9.1f} {args.batch / t_pose:>9.1f} {1000 * t_full:>9.1f} "
+            f"{args.batch / t_full:>9.1f} {t_full / t_pose:>9.2f}"
         )
 
 

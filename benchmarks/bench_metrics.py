@@ -5,7 +5,8 @@
 2. PA-MPJPE: batched torch (float64 SVD) vs a per-sample numpy Umeyama loop: median time and
    the largest difference between the two.
 
-    python benchmarks/bench_metrics.py [--device cpu|cuda] [--batch 8] [--size 256] [--repeats 5] [--threads N]
+    python benchmarks/bench_metrics.py [--device cpu|cuda] [--batch 8] [--size 256]
+        [--repeats 5] [--threads N]
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ def bench_lpips(device: torch.device, batch: int, size: int, repeats: int) -> No
     y = (x + 0.1 * torch.randn(x.shape, generator=g).to(device)).clamp(0, 1)
     print(f"LPIPS, batch {batch} x 3 x {size} x {size}, {device}")
     print(
-        f"{'net':5} {'precision':9} {'forward ms':>11} {'fwd+bwd ms':>11} {'max |d - d_fp32|':>17} {'fwd+bwd vs alex fp32':>21}"
+        f"{'net':5} {'precision':9} {'forward ms':>11} {'fwd+bwd ms':>11} {'max |d - d_fp32|':>17} "
+        f"{'fwd+bwd vs alex fp32':>21}"
     )
     base = None
     for net in ("alex", "vgg"):
@@ -71,7 +73,8 @@ def bench_lpips(device: torch.device, batch: int, size: int, repeats: int) -> No
             err = (forward().float() - ref).abs().max().item()
             base = base or t_fb
             print(
-                f"{net:5} {precision:9} {t_f * 1e3:11.1f} {t_fb * 1e3:11.1f} {err:17.2e} {t_fb / base:20.2f}x"
+                f"{net:5} {precision:9} {t_f * 1e3:11.1f} {t_fb * 1e3:11.1f} {err:17.2e} "
+                f"{t_fb / base:20.2f}x"
             )
 
 
@@ -101,7 +104,8 @@ def bench_pa_mpjpe(device: torch.device, repeats: int, batch: int = 4096, joints
     print(f"{'variant':24} {'ms':>9} {'speed-up':>9} {'max |diff| (m)':>15}")
     print(f"{'numpy loop (reference)':24} {t_np * 1e3:9.1f} {1.0:8.1f}x {0.0:15.1e}")
     print(
-        f"{'torch batched ' + device.type:24} {t_torch * 1e3:9.1f} {t_np / t_torch:8.1f}x {diff:15.1e}"
+        f"{'torch batched ' + device.type:24} {t_torch * 1e3:9.1f} {t_np / t_torch:8.1f}x "
+        f"{diff:15.1e}"
     )
 
 

@@ -7,7 +7,8 @@ PSNR is on the training views (every view as input in turn, all views rendered, 
 black). Variants in one run: the Gaussian head and the body on separate learning rates (the
 default), one shared rate for everything, and a larger render size. Goal: >= 30 dB in < 3 min.
 
-    python benchmarks/bench_overfit.py [--steps 600] [--threads 2] [--variants split shared split128]
+    python benchmarks/bench_overfit.py [--steps 600] [--threads 2]
+        [--variants split shared split128]
 """
 
 from __future__ import annotations
@@ -62,12 +63,13 @@ def main() -> None:
     group = crops.groups(min_views=2)[0]
     body, lpips, cfg = load_body_model("anny"), load_lpips(), get_preset("tiny")
     print(
-        f"one sample, {len(group)} views, crops {crops.crop_size}px, tiny preset, {args.warm_steps} warm-start "
-        f"+ {args.steps} multi-view steps, torch threads {torch.get_num_threads()}"
+        f"one sample, {len(group)} views, crops {crops.crop_size}px, tiny preset, "
+        f"{args.warm_steps} warm-start + {args.steps} multi-view steps, torch threads "
+        f"{torch.get_num_threads()}"
     )
     print(
-        f"{'variant':<9} {'lr gauss':>8} {'lr body':>8} {'render':>6} {'warm mm':>7} {'PSNR dB':>7} "
-        f"{'s total':>7} {'s to 30 dB':>10}"
+        f"{'variant':<9} {'lr gauss':>8} {'lr body':>8} {'render':>6} {'warm mm':>7} "
+        f"{'PSNR dB':>7} {'s total':>7} {'s to 30 dB':>10}"
     )
     rows = {}
     for name in args.variants:
@@ -90,8 +92,10 @@ def main() -> None:
         reached = next((h["seconds"] for h in r.history if h["psnr"] >= 30), None)
         rows[name] = r
         print(
-            f"{name:<9} {lr:>8.0e} {body_lr:>8.0e} {size:>6} {r.warm_mpjpe_mm or float('nan'):>7.1f} "
-            f"{r.psnr:>7.2f} {time.perf_counter() - t0:>7.1f} {'never' if reached is None else f'{reached:.1f}':>10}"
+            f"{name:<9} {lr:>8.0e} {body_lr:>8.0e} {size:>6} "
+            f"{r.warm_mpjpe_mm or float('nan'):>7.1f} {r.psnr:>7.2f} "
+            f"{time.perf_counter() - t0:>7.1f} "
+            f"{'never' if reached is None else f'{reached:.1f}':>10}"
         )
         print(
             "          PSNR by step: "

@@ -19,9 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +28,8 @@ from torch.utils.checkpoint import checkpoint
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.timing import median_time  # noqa: E402
+from calibration.camera import look_at_rotation  # noqa: E402
 from gst.render.conventions import (  # noqa: E402
     ALPHA_MAX,
     ALPHA_MIN,
@@ -75,11 +75,7 @@ def body_scene(n: int, size: int, seed: int = 0, dtype=torch.float32):
 
     # OpenCV camera at (0.3, -3, 0.1) looking at the origin: x right, y down (-z world), z in.
     eye = np.array([0.3, -3.0, 0.1])
-    fwd = -eye / np.linalg.norm(eye)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    rot = np.stack([right, down, fwd])
+    rot = look_at_rotation(eye, np.zeros(3))
     view = np.eye(4)
     view[:3, :3] = rot
     view[:3, 3] = -rot @ eye
@@ -145,15 +141,6 @@ def dense_rasterize(means, quats, scales, opacities, colors, viewmats, Ks, width
     return acc[..., :3], acc[..., 4], acc[..., 3]
 
 
-def _timed(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
-
-
 def _run(render, scene, size, loss_w, repeats, warmup=True):
     """(forward s, forward+backward s, rgb, alpha, grad of means) for one rasteriser."""
     inputs = [t.clone().requires_grad_(True) for t in scene]
@@ -171,8 +158,8 @@ def _run(render, scene, size, loss_w, repeats, warmup=True):
 
     if warmup:
         fwd()  # allocator, thread pool
-    t_f, _ = _timed(fwd, repeats)
-    t_fb, (rgb, alpha, gmeans) = _timed(fwd_bwd, repeats)
+    t_f, _ = median_time(fwd, repeats)
+    t_fb, (rgb, alpha, gmeans) = median_time(fwd_bwd, repeats)
     return t_f, t_fb, rgb, alpha, gmeans
 
 

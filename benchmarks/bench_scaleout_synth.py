@@ -9,7 +9,8 @@ byte-identical to the serial one ("files identical"). Times are medians over `--
 is the CPU time of this process and the pool's workers together (the fan-out's overhead, which on
 a machine loaded by other users shows better than the wall time).
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_scaleout_synth.py [--preset demo] [--repeats 1] [--body anny|capsule]
+    OMP_NUM_THREADS=1 python benchmarks/bench_scaleout_synth.py [--preset demo] [--repeats 1]
+        [--body anny|capsule]
 """
 
 from __future__ import annotations
@@ -75,9 +76,9 @@ def main() -> None:
         (f"local-2 shares={n_cams}", LocalExecutor(2).map, n_cams),
     ]
     print(
-        f"preset {args.preset}: {spec.n_frames} frames + {spec.board.n_frames} board frames, {n_cams} cameras "
-        f"{spec.rig.width}x{spec.rig.height}, body {args.body}; os.cpu_count()={os.cpu_count()}, "
-        f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}"
+        f"preset {args.preset}: {spec.n_frames} frames + {spec.board.n_frames} board frames, "
+        f"{n_cams} cameras {spec.rig.width}x{spec.rig.height}, body {args.body}; "
+        f"os.cpu_count()={os.cpu_count()}, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}"
     )
     with tempfile.TemporaryDirectory() as tmp:
         reference = None
@@ -94,7 +95,8 @@ def main() -> None:
                 times.setdefault(name + ":same", []).append(files == reference)
         base = statistics.median(times["serial"])
         print(
-            f"{'variant':<18}{'median s':>10}{'speed-up':>10}{'cpu s':>8}  files identical to serial"
+            f"{'variant':<18}{'median s':>10}{'speed-up':>10}{'cpu s':>8}  files identical to "
+            "serial"
         )
         for name, _, _ in variants:
             t, cpu = statistics.median(times[name]), statistics.median(times[name + ":cpu"])

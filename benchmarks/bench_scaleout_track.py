@@ -110,7 +110,8 @@ def main() -> None:
             f"median of {args.repeats}"
         )
         print(
-            f"{'workload':<42} {'executor':<8} {'workers':>7} {'median s':>9} {'speed-up':>9}  consistency"
+            f"{'workload':<42} {'executor':<8} {'workers':>7} {'median s':>9} {'speed-up':>9}  "
+            "consistency"
         )
         executors = [("local", lambda n: LocalExecutor(n), None)]
         if not args.no_ray:
@@ -131,16 +132,17 @@ def main() -> None:
                     warm = [job(*make_clip(tmp, f"warm{i}", 5), options=options) for i in range(n)]
                     track_videos(warm, tmp / "warm", map_fn=ex.map)  # workers import gst once
                     print(
-                        f"(ray cluster with {n} worker(s): started in {started:.1f} s, workers warmed up in "
-                        f"{time.perf_counter() - t0 - started:.1f} s; neither is timed below)"
+                        f"(ray cluster with {n} worker(s): started in {started:.1f} s, workers "
+                        f"warmed up in {time.perf_counter() - t0 - started:.1f} s; neither is "
+                        "timed below)"
                     )
                 for name, (jobs, chunking) in workloads.items():
                     sec, same, persons = timed(ex.map, jobs, chunking)
                     results[(name, n)] = sec
                     ratio = results[(name, 1)] / sec
                     print(
-                        f"{name:<42} {kind:<8} {n:>7} {sec:>9.2f} {ratio:>8.2f}x  rows identical: {same}, "
-                        f"persons {sorted(persons)}"
+                        f"{name:<42} {kind:<8} {n:>7} {sec:>9.2f} {ratio:>8.2f}x  rows identical: "
+                        f"{same}, persons {sorted(persons)}"
                     )
                 if kind == "ray":
                     ex.shutdown()

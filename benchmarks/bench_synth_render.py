@@ -115,8 +115,9 @@ def main() -> None:
         radius = field_radius(cam)
         print(f"\n{width}x{height}  camera '{cam.name}'")
         print(
-            f"{'variant':<11} {'setup s':>8} {'shared ms':>10} {'render ms':>10} {'frame ms':>9} {'wall ms':>8} "
-            f"{'fps/cam':>8} {'fps lone':>9} {'ratio':>6} {'mask px vs ref':>15} {'joints on mask':>15} {'img diff':>9}"
+            f"{'variant':<11} {'setup s':>8} {'shared ms':>10} {'render ms':>10} {'frame ms':>9} "
+            f"{'wall ms':>8} {'fps/cam':>8} {'fps lone':>9} {'ratio':>6} {'mask px vs ref':>15} "
+            f"{'joints on mask':>15} {'img diff':>9}"
         )
         # Variants run interleaved frame by frame, so machine load hits them alike.
         results, renderers, sinks = {}, {}, {}
@@ -193,11 +194,11 @@ def main() -> None:
                 ]
             )
             print(
-                f"{name:<11} {r['setup']:>8.2f} {1000 * r['shared']:>10.1f} {1000 * r['render']:>10.1f} "
-                f"{1000 * r['frame']:>9.1f} {1000 * r['wall']:>8.1f} {1 / r['frame']:>8.2f} "
-                f"{1 / (r['shared'] + r['frame']):>9.2f} "
-                f"{r['frame'] / base['frame']:>6.2f} {diff_px:>15d} "
-                f"{100 * r['joints']:>14.1f}% {img_diff:>9.3f}"
+                f"{name:<11} {r['setup']:>8.2f} {1000 * r['shared']:>10.1f} "
+                f"{1000 * r['render']:>10.1f} {1000 * r['frame']:>9.1f} {1000 * r['wall']:>8.1f} "
+                f"{1 / r['frame']:>8.2f} {1 / (r['shared'] + r['frame']):>9.2f} "
+                f"{r['frame'] / base['frame']:>6.2f} {diff_px:>15d} {100 * r['joints']:>14.1f}% "
+                f"{img_diff:>9.3f}"
             )
 
 

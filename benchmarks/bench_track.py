@@ -1,4 +1,4 @@
-"""End-to-end tracking throughput on a synthetic 1080p video, with and without the GST network.
+"""End-to-end tracking throughput: a synthetic 1080p video, and the real lab capture.
 
 The whole loop (decode + detect + crop + predict + track + write Parquet) runs first with
 supplied boxes and the pixel-free BoxDepthPredictor (everything except the model), then end to
@@ -11,7 +11,18 @@ from the box centre. The baseline puts the pelvis on the ray through the centre 
 the box enclosing it in the undistorted image, with lens distortion), so the offset is 0 px for
 a pinhole camera, a few px with distortion, and shows the lag that smoothing adds.
 
+Real footage (`--real`, when the lab capture and the BlazePose models are here): one lab camera
+(1088x1920 at 60 fps, 2 people), end to end with the learned person model and the stage's
+tracker settings (decode, person model, GST, tracker, Parquet). The previous person model
+(detector and segmentation on every frame, `SegmentEveryFrame` below) runs in the same process
+as the landmark-model loop (gst.track.person_detector) and its variants. Beside each speed: CPU
+time per video frame (all threads; less sensitive to other load than wall time), detector runs,
+and against the previous model's tracks (the detector on every frame): id switches (a reference
+person's rows changing id) and drift (median and 95th percentile distance of the 12 limb
+landmarks, full-resolution pixels, people matched per frame by landmark distance).
+
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
+    python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -25,10 +36,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.timing import median_time  # noqa: E402
 from calibration import Camera  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.data.crop import crop_window, cut_crop  # noqa: E402
@@ -46,7 +59,7 @@ from gst.track import (  # noqa: E402
     track_video,
 )
 from gst.track.static_detector import StaticCameraDetector  # noqa: E402
-from gst.track.tracker import box_iou  # noqa: E402
+from gst.track.tracker import TrackerConfig, box_iou  # noqa: E402
 from gst.train.recipe import build_network  # noqa: E402
 from tests.track_synthetic import Walker, render, walker_boxes, write_boxes_csv, write_video  # noqa: E402
 
@@ -97,15 +110,6 @@ def tiny_checkpoint(path: Path) -> Path:
     return path
 
 
-def timed(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -120,9 +124,16 @@ def main() -> None:
         "--checkpoint", type=Path, help="a GST checkpoint (default: random-weight tiny preset)"
     )
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--real", action="store_true", help="the lab capture instead (see above)")
+    ap.add_argument("--camera", default="cam01", help="lab camera for --real")
+    ap.add_argument("--real-frames", type=int, default=100, help="frames of the lab video")
+    ap.add_argument("--only", default=None, help="--real: run variants whose name has this text")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.real:
+        real_footage(args)
+        return
     tmp = Path(tempfile.mkdtemp(prefix="bench_track_"))
     try:
         ws = walkers(args.people)
@@ -131,8 +142,8 @@ def main() -> None:
         det = SuppliedBoxes.from_file(write_boxes_csv(tmp / "boxes.csv", boxes, "bench"))
         n = args.frames
         print(
-            f"video: {W}x{H} {args.codec}, {n} frames at {FPS:.0f} fps, {args.people} people per frame, "
-            f"median of {args.repeats} runs"
+            f"video: {W}x{H} {args.codec}, {n} frames at {FPS:.0f} fps, {args.people} people per "
+            f"frame, median of {args.repeats} runs"
         )
         print(
             f"{'variant':44s} {'s':>7s} {'frames/s':>9s} {'x realtime':>10s} {'ms/frame':>9s} "
@@ -143,13 +154,14 @@ def main() -> None:
             fps = n / seconds
             e = f"{err[0]:6d} {err[1]:9.3f}" if err else f"{'-':>6s} {'-':>9s}"
             print(
-                f"{name:44s} {seconds:7.2f} {fps:9.1f} {fps / FPS:10.2f} {1000 * seconds / n:9.2f} {e}",
+                f"{name:44s} {seconds:7.2f} {fps:9.1f} {fps / FPS:10.2f} {1000 * seconds / n:9.2f} "
+                f"{e}",
                 flush=True,
             )
 
-        s, _ = timed(lambda: sum(1 for _ in iter_frames(video)), args.repeats)
+        s, _ = median_time(lambda: sum(1 for _ in iter_frames(video)), args.repeats)
         row("decode only", s)
-        s, _ = timed(lambda: sum(1 for _ in iter_frames(video, prefetch=4)), args.repeats)
+        s, _ = median_time(lambda: sum(1 for _ in iter_frames(video, prefetch=4)), args.repeats)
         row("decode only, prefetch thread", s)
 
         frames = [f.image for f in iter_frames(video, end_s=min(n, 30) / FPS)]
@@ -159,9 +171,10 @@ def main() -> None:
                 for b in boxes[i]:
                     cut_crop(img, crop_window(b, 256))
 
-        s, _ = timed(crops_only, args.repeats)
+        s, _ = median_time(crops_only, args.repeats)
         print(
-            f"{'  crops alone (256 px, per detection)':44s} {1000 * s / (len(frames) * args.people):7.2f} ms"
+            f"{'  crops alone (256 px, per detection)':44s} "
+            f"{1000 * s / (len(frames) * args.people):7.2f} ms"
         )
 
         variants = [
@@ -197,7 +210,7 @@ def main() -> None:
                     resume=False,
                 )
 
-            s, res = timed(run, args.repeats)
+            s, res = median_time(run, args.repeats)
             row(name, s, errors(res.path, boxes))
 
         checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
@@ -234,8 +247,213 @@ def main() -> None:
                     resume=False,
                 )
 
-            s, res = timed(run_gst, args.repeats)
+            s, res = median_time(run_gst, args.repeats)
             row(name, s, errors(res.path, boxes))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+LAB = Path("/work/shared/real/pose2sim-multiperson")
+
+
+class SegmentEveryFrame:
+    """The previous person model, kept here as the baseline: the detector on every frame, plus the
+    previous frame's regions, the landmark model and full-frame instance masks
+    (gst.detect.persons.PersonSegmenter) on every frame; boxes from the masks."""
+
+    def __init__(self, max_side: int = 960, min_height_frac: float = 0.08):
+        from gst.detect.blazepose import BlazePose
+        from gst.detect.persons import PersonSegmenter, SegmenterConfig
+
+        self.segmenter = PersonSegmenter(BlazePose(), SegmenterConfig())
+        self.max_side, self.min_height_frac = max_side, min_height_frac
+        self.detector_runs = 0
+
+    def detect(self, frame_bgr, frame_index):
+        import cv2
+
+        from gst.track.detection import Detection
+
+        h, w = frame_bgr.shape[:2]
+        s = min(1.0, self.max_side / max(h, w))
+        small = cv2.resize(frame_bgr, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+        labels, people = self.segmenter.segment(small)
+        self.detector_runs += 1
+        out = []
+        for k, person in enumerate(people, start=1):
+            ys, xs = np.nonzero(labels == k)
+            if len(xs) == 0:
+                continue
+            box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64) / s
+            if box[3] - box[1] < self.min_height_frac * h:
+                continue
+            if any(float(box_iou(box[None], d.box[None])[0, 0]) > 0.6 for d in out):
+                continue
+            lm = person.landmarks.copy()
+            lm[:, :2] = (lm[:, :2] + 0.5) / s - 0.5
+            lm[:, 2] *= person.presence
+            out.append(Detection(box=box, score=float(person.presence), landmarks=lm))
+        return out
+
+
+def _limb_landmarks(table) -> np.ndarray:
+    from gst.detect.persons import LIMB_JOINTS
+
+    return column_array(table, "landmarks2d")[:, LIMB_JOINTS]
+
+
+def compare_to_reference(
+    path: Path, reference: Path, stride: int = 1
+) -> tuple[int, float, float, int]:
+    """(id switches, median drift px, p95 drift px, reference rows unmatched) of a tracks file
+    against the reference run's, on the frames both processed, people matched per frame by
+    median limb-landmark distance."""
+    from scipy.optimize import linear_sum_assignment
+
+    t, r = read_tracks(path), read_tracks(reference)
+    r = r.filter(pa.array(r.column("frame").to_numpy() % stride == 0))
+    ft, fr = t.column("frame").to_numpy(), r.column("frame").to_numpy()
+    it, ir = t.column("person_id").to_numpy(), r.column("person_id").to_numpy()
+    lt, lr = _limb_landmarks(t), _limb_landmarks(r)
+    seq: dict[int, list[int]] = {}
+    drift, missed = [], 0
+    for f in np.unique(fr):
+        a, b = np.flatnonzero(fr == f), np.flatnonzero(ft == f)
+        if not len(b):
+            missed += len(a)
+            continue
+        d = np.array([[np.median(np.linalg.norm(lr[i] - lt[j], axis=1)) for j in b] for i in a])
+        rows, cols = linear_sum_assignment(d)
+        missed += len(a) - len(rows)
+        for i, j in zip(rows, cols, strict=True):
+            if d[i, j] > 100:  # not the same person
+                missed += 1
+                continue
+            drift.append(d[i, j])
+            seq.setdefault(int(ir[a[i]]), []).append(int(it[b[j]]))
+    switches = sum(sum(1 for x, y in zip(s, s[1:], strict=False) if x != y) for s in seq.values())
+    if not drift:
+        return switches, float("nan"), float("nan"), missed
+    return switches, float(np.median(drift)), float(np.percentile(drift, 95)), missed
+
+
+def _cpu(fn) -> float:
+    c0 = time.process_time()
+    fn()
+    return time.process_time() - c0
+
+
+def components(video: Path, camera, n: int, gst, fps: float) -> None:
+    """CPU ms per frame of the parts of the new loop, each alone (single-threaded)."""
+    from gst.data.camera_view import TrackingView
+    from gst.track.frames import prepare_detection
+    from gst.track.person_detector import PersonModelDetector
+
+    frames = []
+    decode = _cpu(lambda: frames.extend(f.image for f in iter_frames(video, end_s=n / fps)))
+    det = PersonModelDetector()
+    found = []
+    detect = _cpu(lambda: found.extend(det.detect(img, i) for i, img in enumerate(frames)))
+    view = TrackingView.for_video(camera.width, camera.height, camera)
+    cut = []
+    crops = _cpu(
+        lambda: cut.extend(
+            prepare_detection(view, img, d, 256)
+            for img, ds in zip(frames, found, strict=True)
+            for d in ds
+        )
+    )
+    images = np.stack([c.crop_rgb for c in cut])
+    Ks = np.stack([c.K_crop for c in cut])
+    net = _cpu(lambda: [gst(images[i : i + 32], Ks[i : i + 32]) for i in range(0, len(cut), 32)])
+    people = len(cut) / len(frames)
+    print(
+        f"parts alone, CPU ms per frame ({people:.1f} people per frame): decode "
+        f"{1000 * decode / n:.1f}, person model {1000 * detect / n:.1f} ({det.detector_runs} "
+        f"detector runs, {det.regions} landmark regions), crops + appearance "
+        f"{1000 * crops / n:.1f}, {gst.name} {1000 * net / n:.1f}"
+    )
+
+
+def real_footage(args) -> None:
+    from calibration.formats import read_rig
+    from gst.detect.weights import model_paths
+    from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+
+    video = LAB / f"{args.camera}.mp4"
+    if not video.is_file():
+        print(f"(no lab capture at {LAB}; nothing to do)")
+        return
+    model_paths()  # the learned person model must be installed
+    camera = read_rig(LAB / "Calib.qca.txt", "qualisys")[args.camera]
+    tmp = Path(tempfile.mkdtemp(prefix="bench_track_real_"))
+    try:
+        checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
+        gst = GSTPredictor(checkpoint)
+        fps = 60.0
+        n = args.real_frames
+        tracker = TrackerConfig(min_hits=3, max_misses=30)  # the track stage's defaults
+
+        def opts(**kw):
+            return TrackOptions(tracker=tracker, end_s=n / fps, **kw)
+
+        def new(**kw):
+            return lambda: PersonModelDetector(PersonModelConfig(**kw))
+
+        variants = [
+            ("old: detector + masks every frame", SegmentEveryFrame, opts()),
+            ("new: landmark loop (stage default)", new(), opts()),
+            ("new, 2 LiteRT threads", new(threads=2), opts()),
+            ("new, one landmark call per person", new(batch=False), opts()),
+            ("new, no prefetch (one Python thread)", new(), opts(prefetch=0)),
+            ("old, stride 2", SegmentEveryFrame, opts(stride=2)),
+            ("new, stride 2 (stage default)", new(), opts(stride=2)),
+        ]
+        if args.only:
+            keep = [v for v in variants if args.only in v[0]]
+            variants = [variants[0], *[v for v in keep if v is not variants[0]]]
+        print(
+            f"lab {args.camera}: {camera.width}x{camera.height} at {fps:.0f} fps, {n} frames, "
+            f"{gst.name} pose-only, calibrated camera, median of {args.repeats} runs; "
+            "reference for ids and drift: the first row"
+        )
+        print(
+            f"{'variant':40s} {'s':>6s} {'proc f/s':>8s} {'video f/s':>9s} {'x real':>6s} "
+            f"{'CPU ms/f':>8s} {'det runs':>8s} {'id sw.':>6s} {'drift px':>13s} {'missed':>6s}"
+        )
+        components(video, camera, n, gst, fps)
+        reference = None
+        for k, (name, make, options) in enumerate(variants):
+            walls, cpus, res, det = [], [], None, None
+            for _rep in range(args.repeats):
+                out = tmp / f"out{k}"
+                shutil.rmtree(out, ignore_errors=True)
+                det = make()
+                t0, c0 = time.perf_counter(), time.process_time()
+                res = track_video(
+                    video,
+                    out,
+                    det,
+                    gst,
+                    model={"name": gst.name, "version": "bench"},
+                    camera=camera,
+                    options=options,
+                    resume=False,
+                )
+                walls.append(time.perf_counter() - t0)
+                cpus.append(time.process_time() - c0)
+            wall, cpu = statistics.median(walls), statistics.median(cpus)
+            keep_path = tmp / f"tracks{k}.parquet"
+            shutil.copyfile(res.path, keep_path)
+            if reference is None:
+                reference = keep_path
+            sw, med, p95, missed = compare_to_reference(keep_path, reference, options.stride)
+            print(
+                f"{name:40s} {wall:6.2f} {res.frames / wall:8.1f} {n / wall:9.1f} "
+                f"{n / wall / fps:6.2f} {1000 * cpu / n:8.1f} {det.detector_runs:8d} {sw:6d} "
+                f"{med:6.1f}/{p95:6.1f} {missed:6d}",
+                flush=True,
+            )
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -82,8 +82,9 @@ class BoardSpec:
                 )
         elif (self.squares_x + self.squares_y) % 2 == 0:
             raise BoardError(
-                f"checkerboard {self.squares_x} x {self.squares_y}: use one odd and one even number of "
-                "squares, otherwise its orientation (and so which corner is which) is ambiguous"
+                f"checkerboard {self.squares_x} x {self.squares_y}: use one odd and one even "
+                "number of squares, otherwise its orientation (and so which corner is which) is "
+                "ambiguous"
             )
 
     # -- serialisation --------------------------------------------------------------------------
@@ -228,7 +229,8 @@ class BoardDetector:
             self._detector = None
 
     def detect(self, image: np.ndarray, frame: int = 0) -> FrameDetection | None:
-        """Corners in one image, or None when fewer than `min_corners` (or a degenerate set) show."""
+        """Corners in one image, or None when fewer than `min_corners` (or a degenerate set)
+        show."""
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if self.board.kind == "charuco":
             corners, ids, _, _ = self._detector.detectBoard(gray)

@@ -30,7 +30,10 @@ class BundleAdjustmentError(CalibrationError):
 
 @dataclass(frozen=True)
 class BAOptions:
-    """Bundle adjustment settings. `loss` in {'trivial', 'huber', 'soft_l1', 'cauchy'}, scale in px."""
+    """Bundle adjustment settings.
+
+    `loss` in {'trivial', 'huber', 'soft_l1', 'cauchy'}, scale in px.
+    """
 
     loss: str = "cauchy"
     loss_scale_px: float = 1.0

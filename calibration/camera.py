@@ -5,7 +5,8 @@ Conventions (used everywhere in this project):
 - Camera axes follow OpenCV: x right, y down, z forward (into the scene).
 - Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0), so pixel (u, v)
   covers [u - 0.5, u + 0.5] x [v - 0.5, v + 0.5].
-- Distortion coefficients are OpenCV's order: k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]].
+- Distortion coefficients are OpenCV's order:
+  k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]].
 """
 
 from __future__ import annotations

@@ -305,17 +305,18 @@ def write_calibration_report(
         d[: min(2, cam.dist.size)] = cam.dist[:2]
         c = cam.center
         row = (
-            f"| {cam.name} | {cam.width}x{cam.height} | {cam.fx:.1f} | {cam.fy:.1f} | {cam.cx:.1f} | "
-            f"{cam.cy:.1f} | {d[0]:.4f} | {d[1]:.4f} | {c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f} |"
+            f"| {cam.name} | {cam.width}x{cam.height} | {cam.fx:.1f} | {cam.fy:.1f} | {cam.cx:.1f} "
+            f"| {cam.cy:.1f} | {d[0]:.4f} | {d[1]:.4f} | {c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f} |"
         )
         if calibration is not None:
             n = cam.name
             obs = calibration.observations.get(n, np.zeros((0, 2)))
             cov = coverage_fraction(obs, cam.width, cam.height)
             row += (
-                f" {_fmt(calibration.rms_px.get(n, np.nan), 3)} | {_fmt(calibration.initial_rms_px.get(n, np.nan), 3)}"
-                f" | {calibration.detections.get(n, 0)} / {calibration.frames_searched.get(n, '?')}"
-                f" | {len(obs)} | {len(calibration.outliers.get(n, []))} | {100 * cov:.0f}% |"
+                f" {_fmt(calibration.rms_px.get(n, np.nan), 3)} | "
+                f"{_fmt(calibration.initial_rms_px.get(n, np.nan), 3)} | "
+                f"{calibration.detections.get(n, 0)} / {calibration.frames_searched.get(n, '?')} | "
+                f"{len(obs)} | {len(calibration.outliers.get(n, []))} | {100 * cov:.0f}% |"
             )
         lines.append(row)
     lines.append("")
@@ -337,8 +338,8 @@ def write_calibration_report(
             "",
             f"Board: {calibration.board.to_dict()}.",
             "",
-            f"Overall RMS {calibration.rms_px_overall:.3f} px; world from the board on the floor in "
-            f"frame {calibration.floor_frame}."
+            f"Overall RMS {calibration.rms_px_overall:.3f} px; world from the board on the floor "
+            f"in frame {calibration.floor_frame}."
             if calibration.floor_frame is not None
             else f"Overall RMS {calibration.rms_px_overall:.3f} px; world = first camera.",
             "",
@@ -375,8 +376,8 @@ def write_calibration_report(
         lines += [
             "## Floor grid drawn through each camera",
             "",
-            "Yellow: floor grid every 0.5 m; red/green/blue: world x/y/z (1 m); magenta: 1.8 m pole at "
-            "the origin. The grid should lie on the floor in every view.",
+            "Yellow: floor grid every 0.5 m; red/green/blue: world x/y/z (1 m); magenta: 1.8 m "
+            "pole at the origin. The grid should lie on the floor in every view.",
             "",
         ]
         for name, image in frames.items():

@@ -155,8 +155,9 @@ def initialise_from_detections(
             f"'{n}' ({searched[n]} frames searched)" if n in searched else f"'{n}'" for n in blind
         ]
         raise CalibrationError(
-            f"camera {', '.join(parts)} never saw the board with at least {opts.min_corners} corners; "
-            "check that the board is in view and in focus, and that the board spec matches it"
+            f"camera {', '.join(parts)} never saw the board with at least {opts.min_corners} "
+            "corners; check that the board is in view and in focus, and that the board spec "
+            "matches it"
         )
 
     # 1. Intrinsics per camera, then the board pose in every view.

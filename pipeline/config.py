@@ -116,7 +116,8 @@ class PipelineConfig(Strict):
             for dep in stage.needs:
                 if dep not in self.stages:
                     raise ValueError(
-                        f"stages.{name}.needs: unknown stage '{dep}' (declared stages: {sorted(self.stages)})"
+                        f"stages.{name}.needs: unknown stage '{dep}' (declared stages: "
+                        f"{sorted(self.stages)})"
                     )
         for scene_name, scene in self.scenes.items():
             for name in scene.params:
@@ -127,7 +128,8 @@ class PipelineConfig(Strict):
                     )
         if self.default_scene is not None and self.default_scene not in self.scenes:
             raise ValueError(
-                f"default_scene: '{self.default_scene}' is not a scene (scenes: {sorted(self.scenes)})"
+                f"default_scene: '{self.default_scene}' is not a scene (scenes: "
+                f"{sorted(self.scenes)})"
             )
         return self
 

@@ -98,9 +98,10 @@ def _module_file(root: Path, name: str) -> Path | None:
     return None
 
 
-def _imports_of(path: Path, name: str) -> set[str]:
-    """Every module name an import statement in `path` may load (function-level imports
-    included: they run when the stage runs), parents and `from X import y` submodules too."""
+def imported_names(path: Path, name: str) -> set[str]:
+    """The names every import statement in `path` (module `name`) names, anywhere in the file
+    (function-level and TYPE_CHECKING imports included), relative imports resolved: `import
+    a.b` gives a.b, `from a import b` gives a and a.b (b may be a submodule)."""
     is_package = path.name == "__init__.py"
     package = name.split(".") if is_package else name.split(".")[:-1]
     found: set[str] = set()
@@ -113,6 +114,13 @@ def _imports_of(path: Path, name: str) -> set[str]:
                 base = ".".join(package[: len(package) - node.level + 1] + ([base] if base else []))
             found.add(base)
             found |= {f"{base}.{a.name}" for a in node.names}
+    return found
+
+
+def _imports_of(path: Path, name: str) -> set[str]:
+    """Every module name an import statement in `path` may load (function-level imports
+    included: they run when the stage runs), parents and `from X import y` submodules too."""
+    found = imported_names(path, name)
     # Importing a.b.c runs a/__init__.py and a/b/__init__.py first.
     return {".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2)}
 

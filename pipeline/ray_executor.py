@@ -63,7 +63,8 @@ class RayExecutor:
     ):
         if max_retries < 0 or exception_retries < 0:
             raise ValueError(
-                f"retries must be >= 0, got max_retries={max_retries}, exception_retries={exception_retries}"
+                f"retries must be >= 0, got max_retries={max_retries}, "
+                f"exception_retries={exception_retries}"
             )
         self.workers = max(1, workers or os.cpu_count() or 1)
         self.address = address
@@ -96,7 +97,8 @@ class RayExecutor:
         atexit.register(self.shutdown)
 
     def shutdown(self) -> None:
-        """Stop the local cluster this executor started (a cluster it connected to is left alone)."""
+        """Stop the local cluster this executor started (a cluster it connected to is left
+        alone)."""
         if self._started_cluster and ray.is_initialized():
             ray.shutdown()
         self._started_cluster = False
@@ -145,16 +147,17 @@ class RayExecutor:
                         continue
                     self._cancel(pending)
                     raise ItemFailed(
-                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) failed after "
-                        f"{attempts[i]} attempt(s): {_cause(exc)}"
+                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) failed "
+                        f"after {attempts[i]} attempt(s): {_cause(exc)}"
                     ) from exc
                 except (
                     RayError
                 ) as exc:  # worker died more often than max_retries, or the node was lost
                     self._cancel(pending)
                     raise ItemFailed(
-                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) was lost: its "
-                        f"worker died {self.max_retries + 1} time(s) ({type(exc).__name__}: {exc})"
+                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) was lost: "
+                        f"its worker died {self.max_retries + 1} time(s) ({type(exc).__name__}: "
+                        f"{exc})"
                     ) from exc
                 yield i
 

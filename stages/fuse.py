@@ -1,21 +1,24 @@
 """fuse: one world-space body per person and frame from all cameras (docs/formats/fused_*.md).
 
-Library: `gst.fuse.fuse_scene` (robust triangulation of the crops' BlazePose landmarks, then a
-body fit over the clip). Writes `fused/` (bodies and landmarks Parquet, TRC, C3D) and
-`reports/fuse/` (report, overlay videos; on synthetic scenes the error against the truth).
+Library: `gst.fuse.fuse_scene` (BlazePose landmarks per crop, people regrouped by 3D agreement,
+robust triangulation, then a body fit over the clip; docs/fuse.md). Writes `fused/` (bodies and
+landmarks Parquet, TRC, C3D) and `reports/fuse/` (report, overlay videos; on synthetic scenes
+the error against the truth).
 """
 
 from __future__ import annotations
 
-from gst.fuse import FitOptions, FuseOptions, fuse_scene
+from gst.fuse import FitOptions, FuseOptions, RegroupOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
 
 class Params(StageParams):
     body_model: str = "anny"  # or "smpl", or a path to your SMPL file (docs/body_model.md)
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
-    iterations: int = 200  # L-BFGS iterations of the body fit
-    smoothness: float = 0.1  # weight of the temporal smoothness term
+    iterations: int = 8  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
+    smoothness: float = 1.0  # weight of the temporal smoothness term
+    regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
+    refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -33,6 +36,8 @@ def run(ctx: StageContext) -> None:
             body_model=p.body_model,
             markers=p.markers,
             fit=FitOptions(iterations=p.iterations, w_smooth=p.smoothness),
+            regroup=RegroupOptions() if p.regroup else None,
+            refine_rig_rounds=p.refine_rig,
             people_per_batch=p.people_per_batch,
             overlay=p.overlay,
         ),

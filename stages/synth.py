@@ -24,7 +24,8 @@ def run(ctx: StageContext) -> None:
             ctx.log.info("%s: %d/%d", step, done, total)
 
     # Camera shares fan out through the executor (--executor local|ray), one share per worker;
-    # the files are identical to a serial render either way. One worker renders inline (per-frame progress).
+    # the files are identical to a serial render either way. One worker renders inline
+    # (per-frame progress).
     workers = getattr(ctx.executor, "workers", 1)
     fan_out = ctx.executor is not None and workers > 1
     summary = render_scene(
@@ -35,7 +36,8 @@ def run(ctx: StageContext) -> None:
         shares=workers if fan_out else None,
     )
     ctx.log.info(
-        "rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their mask",
+        "rendered %d frames x %d cameras (%d people) in %.1f s; %.1f%% of GT joints inside their "
+        "mask",
         summary.n_frames,
         len(summary.cameras),
         summary.n_people,

@@ -50,6 +50,7 @@ def run(ctx: StageContext) -> None:
         truth_scene=ctx.path("synth") if ctx.scene.is_synthetic else None,
         combined_evaluation=ctx.out("reports/track/evaluation.md") if _own_videos(ctx) else None,
         frame_size_tolerance=ctx.scene.frame_size_tolerance,
+        scene=ctx.scene_name,
     )
     executor = ctx.executor
     track_scene(ctx.params, request, map_fn=executor.map if executor is not None else None,
@@ -67,7 +68,7 @@ def _outputs(ctx: StageContext) -> list[str]:
 
 STAGE = Stage(
     name="track", run=run, params_model=TrackSettings, resumable=True, variant=_variant,
-    inputs=lambda ctx: _videos(ctx) if ctx.options.get("video") or not ctx.scene.is_synthetic else [],
+    inputs=lambda ctx: [] if _own_videos(ctx) else _videos(ctx),
     outputs=_outputs, cli_options=("video", "with_gaussians"),
     help="per-frame inference on videos -> tracks/video=<name>/tracks.parquet",
 )  # fmt: skip

@@ -6,8 +6,8 @@
 Modules: `rigs` (camera rigs), `stage` (room), `motions` (procedural sports motions),
 `people` (shapes, outfits, placement), `animate` (posing through a body model), `appearance`
 (per-part colours), `render` (Embree mesh renderer), `board` (ChArUco clip), `imaging` (camera
-response), `truth` (Parquet tables), `shares` (camera shares, the unit of serial or fanned-out rendering),
-`scene` (specs, presets, `render_scene`).
+response), `truth` (Parquet tables), `shares` (camera shares, the unit of serial or fanned-out
+rendering), `scene` (specs, presets, `render_scene`).
 World convention: metres, Z up, floor z = 0 (see `synth.world`).
 """
 

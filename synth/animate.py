@@ -128,7 +128,8 @@ def pose_person(model, betas: np.ndarray, clip: MotionClip, person_id: int) -> P
     betas = np.asarray(betas, dtype=np.float32).ravel()
     if betas.size != model.num_betas:
         raise ValueError(
-            f"person {person_id}: betas has {betas.size} values, the body model expects {model.num_betas}"
+            f"person {person_id}: betas has {betas.size} values, the body model expects "
+            f"{model.num_betas}"
         )
     rest_v, rest_j = rest_pose(model, betas)
     C = rest_corrections(rest_j)

@@ -226,7 +226,8 @@ class BodyAtlas:
             labels = np.asarray(part_labels).ravel()
             if labels.shape[0] != rest.shape[0]:
                 raise ValueError(
-                    f"body model part_labels has {labels.shape[0]} entries for {rest.shape[0]} vertices"
+                    f"body model part_labels has {labels.shape[0]} entries for {rest.shape[0]} "
+                    "vertices"
                 )
             for reg, words in _PART_KEYWORDS.items():
                 ids = [

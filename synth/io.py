@@ -79,29 +79,24 @@ class MaskStore:
         self._f = h5py.File(self._file.path, "w", track_order=False)
         self._f.attrs["camera"] = camera
         self._f.attrs["mask_values"] = "0 = background, k = person_id k"
-        self.mask = self._f.create_dataset(
-            "mask",
+        self.mask = self._frames("mask", n_frames, height, width, np.uint8)
+        self.depth = None
+        if with_depth:
+            self.depth = self._frames("depth", n_frames, height, width, np.float32)
+            self.depth.attrs["units"] = "m, camera z; 0 where the mask is 0"
+
+    def _frames(self, name: str, n_frames: int, height: int, width: int, dtype) -> h5py.Dataset:
+        """A (T, H, W) dataset, one gzip chunk per frame."""
+        return self._f.create_dataset(
+            name,
             (n_frames, height, width),
-            np.uint8,
+            dtype,
             chunks=(1, height, width),
             compression="gzip",
             compression_opts=4,
             shuffle=True,
             track_times=False,
         )
-        self.depth = None
-        if with_depth:
-            self.depth = self._f.create_dataset(
-                "depth",
-                (n_frames, height, width),
-                np.float32,
-                chunks=(1, height, width),
-                compression="gzip",
-                compression_opts=4,
-                shuffle=True,
-                track_times=False,
-            )
-            self.depth.attrs["units"] = "m, camera z; 0 where the mask is 0"
 
     def write(self, frame: int, mask: np.ndarray, depth: np.ndarray | None) -> None:
         self.mask[frame] = mask

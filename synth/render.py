@@ -284,8 +284,8 @@ class ViewRenderer:
     def __init__(self, camera: Camera, stage: Stage, options: RenderOptions = RenderOptions()):
         if not stage.contains(camera.center[None])[0]:
             raise ValueError(
-                f"camera '{camera.name}' at {camera.center.round(2).tolist()} is outside the stage box "
-                f"(+-{stage.half_x} x +-{stage.half_y} x {stage.height} m)"
+                f"camera '{camera.name}' at {camera.center.round(2).tolist()} is outside the stage "
+                f"box (+-{stage.half_x} x +-{stage.half_y} x {stage.height} m)"
             )
         self.camera, self.stage, self.options = camera, stage, options
         self.h, self.w = camera.height, camera.width

@@ -118,7 +118,8 @@ def sample_distortion(spec, n: int, rng: np.random.Generator) -> np.ndarray:
         }
         if spec not in ranges:
             raise ValueError(
-                f"distortion '{spec}' is not known; use 'none', 'mild', 'strong' or 4-5 coefficients"
+                f"distortion '{spec}' is not known; use 'none', 'mild', 'strong' or 4-5 "
+                "coefficients"
             )
         (a, b), (c, d), (e, f) = ranges[spec]
         return np.stack(
@@ -134,7 +135,8 @@ def sample_distortion(spec, n: int, rng: np.random.Generator) -> np.ndarray:
     coeffs = np.asarray(spec, dtype=np.float64).ravel()
     if coeffs.size not in (4, 5) or not np.all(np.isfinite(coeffs)):
         raise ValueError(
-            f"distortion coefficients must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got {spec!r}"
+            "distortion coefficients must be 4 or 5 finite numbers (k1, k2, p1, p2[, k3]), got "
+            f"{spec!r}"
         )
     return np.tile(np.pad(coeffs, (0, 5 - coeffs.size)), (n, 1))
 

@@ -244,8 +244,9 @@ def _render_shares(
         shutil.rmtree(cast_files.folder, ignore_errors=True)
     if len(results) != len(jobs) or not all(isinstance(r, ShareResult) for r in results):
         raise RuntimeError(
-            f"map_fn returned {len(results)} results of types {sorted({type(r).__name__ for r in results})} "
-            f"for {len(jobs)} camera shares; expected one ShareResult per share, in order"
+            f"map_fn returned {len(results)} results of types "
+            f"{sorted({type(r).__name__ for r in results})} for {len(jobs)} camera shares; "
+            "expected one ShareResult per share, in order"
         )
     n_cams = sum(len(s) for s in shares)
     progress.step("render", n_cams * spec.n_frames)

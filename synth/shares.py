@@ -294,7 +294,8 @@ def _render_people_clip(
     try:
         for f in range(spec.n_frames):
             posed = cast.posed(f)
-            # One Embree scene and one set of floor shadows per frame, shared by the share's cameras.
+            # One Embree scene and one set of floor shadows per frame, shared by the share's
+            # cameras.
             caster = RayCaster([(p.vertices, p.faces) for p in posed], spec.imaging.backend)
             shadows = floor_shadow_maps(posed, caster, setup.stage, spec.imaging.shadow_samples)
             for ci, (cam_i, rend) in enumerate(zip(cameras, renderers, strict=True)):

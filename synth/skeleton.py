@@ -15,59 +15,12 @@ from __future__ import annotations
 
 import numpy as np
 
-JOINT_NAMES: tuple[str, ...] = (
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hand",
-    "right_hand",
-)
+from gst.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS
+
+# The SMPL layout is gst.body's; synth names it in its own terms.
+JOINT_NAMES: tuple[str, ...] = SMPL_JOINT_NAMES
 NUM_JOINTS = len(JOINT_NAMES)
-PARENTS: tuple[int, ...] = (
-    -1,
-    0,
-    0,
-    0,
-    1,
-    2,
-    3,
-    4,
-    5,
-    6,
-    7,
-    8,
-    9,
-    9,
-    9,
-    12,
-    13,
-    14,
-    16,
-    17,
-    18,
-    19,
-    20,
-    21,
-)
+PARENTS: tuple[int, ...] = SMPL_PARENTS
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 # Index of each joint's mirror image (left <-> right, central joints map to themselves).

@@ -63,7 +63,8 @@ class Stage:
             raise ValueError(f"stage style '{self.style}' is not one of court, studio, lab")
         if min(self.half_x, self.half_y, self.height) <= 0:
             raise ValueError(
-                f"stage box must have positive size, got {self.half_x}, {self.half_y}, {self.height}"
+                f"stage box must have positive size, got {self.half_x}, {self.half_y}, "
+                f"{self.height}"
             )
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x57A6E]))
         noise = rng.random((256, 256)).astype(np.float32)

@@ -79,29 +79,18 @@ def people_table(tracks: list[PersonTrack], metadata: dict) -> pa.Table:
     return table.replace_schema_metadata({k: json.dumps(v) for k, v in metadata.items()})
 
 
+# Columns of views.parquet, in file order.
+VIEW_COLUMNS = (
+    "frame", "person_id", "camera", "joints2d", "visible", "x0", "y0", "x1", "y1", "mask_area",
+    "full_x0", "full_y0", "full_x1", "full_y1",
+)  # fmt: skip
+
+
 class ViewRows:
     """Accumulates per (frame, person, camera) 2D truth rows."""
 
     def __init__(self):
-        self._cols: dict[str, list] = {
-            k: []
-            for k in (
-                "frame",
-                "person_id",
-                "camera",
-                "joints2d",
-                "visible",
-                "x0",
-                "y0",
-                "x1",
-                "y1",
-                "mask_area",
-                "full_x0",
-                "full_y0",
-                "full_x1",
-                "full_y1",
-            )
-        }
+        self._cols: dict[str, list] = {k: [] for k in VIEW_COLUMNS}
 
     def add(
         self,
@@ -183,23 +172,7 @@ class ViewRows:
         for k in ("x0", "y0", "x1", "y1", "full_x0", "full_y0", "full_x1", "full_y1"):
             arr[k] = pa.array(np.array(c[k], np.float32)[order])
         arr["mask_area"] = pa.array(np.array(c["mask_area"], np.int32)[order])
-        cols = [
-            "frame",
-            "person_id",
-            "camera",
-            "joints2d",
-            "visible",
-            "x0",
-            "y0",
-            "x1",
-            "y1",
-            "mask_area",
-            "full_x0",
-            "full_y0",
-            "full_x1",
-            "full_y1",
-        ]
-        return pa.table({k: arr[k] for k in cols}).replace_schema_metadata(
+        return pa.table({k: arr[k] for k in VIEW_COLUMNS}).replace_schema_metadata(
             {k: json.dumps(v) for k, v in metadata.items()}
         )
 

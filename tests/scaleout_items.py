@@ -1,4 +1,5 @@
-"""Picklable item functions for the scale-out tests (workers import them as tests.scaleout_items)."""
+"""Picklable item functions for the scale-out tests (workers import them as
+tests.scaleout_items)."""
 
 from __future__ import annotations
 
@@ -78,6 +79,29 @@ def ddp_problem():
     return model, x, y
 
 
+def ddp_step(m, batch):
+    """The regression's training step: mean squared error, no logged values."""
+    xb, yb = batch
+    return ((m(xb) - yb) ** 2).mean(), {}
+
+
+def ddp_config(batch_size: int):
+    """One optimiser step with a checkpoint and a log line, the same for the ranks and the
+    single-process reference."""
+    from gst.train.trainer import TrainConfig
+
+    return TrainConfig(
+        steps=1,
+        batch_size=batch_size,
+        lr=1e-3,
+        warmup_steps=0,
+        grad_clip=1e9,
+        ckpt_every=1,
+        val_every=100,
+        log_every=1,
+    )
+
+
 def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
     """One torchrun-like rank: a Trainer step on this rank's share of the combined batch."""
     import torch
@@ -90,7 +114,7 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
         LOCAL_RANK=str(rank),
     )
     torch.set_num_threads(1)
-    from gst.train.trainer import TrainConfig, Trainer
+    from gst.train.trainer import Trainer
 
     model, x, y = ddp_problem()
     share = COMBINED_BATCH // world
@@ -98,22 +122,7 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
     def sample(gen, bs):
         return x[rank * share : (rank + 1) * share], y[rank * share : (rank + 1) * share]
 
-    def step(m, batch):
-        xb, yb = batch
-        loss = ((m(xb) - yb) ** 2).mean()
-        return loss, {}
-
-    cfg = TrainConfig(
-        steps=1,
-        batch_size=share,
-        lr=1e-3,
-        warmup_steps=0,
-        grad_clip=1e9,
-        ckpt_every=1,
-        val_every=100,
-        log_every=1,
-    )
-    trainer = Trainer(model, step, sample, cfg, Path(out_dir))
+    trainer = Trainer(model, ddp_step, sample, ddp_config(share), Path(out_dir))
     assert trainer.world == world and trainer.rank == rank
     trainer.fit()
     grads = {n: p.grad.detach().clone() for n, p in model.named_parameters()}

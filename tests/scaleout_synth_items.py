@@ -1,4 +1,5 @@
-"""Picklable wrappers for the synth fan-out tests (workers import them as tests.scaleout_synth_items)."""
+"""Picklable wrappers for the synth fan-out tests (workers import them as
+tests.scaleout_synth_items)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ from typing import Any
 @dataclass(frozen=True)
 class DieOnceMidShare:
     """Calls `fn(job)`, except that the first attempt at the job rendering camera `camera` leaves
-    a half-written video behind (as a worker killed mid-write would) and SIGKILLs its own process."""
+    a half-written video behind (as a worker killed mid-write would) and SIGKILLs its own
+    process."""
 
     fn: Any
     marker_dir: Path

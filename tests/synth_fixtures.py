@@ -244,71 +244,6 @@ class CapsuleBody(torch.nn.Module):
         return BodyOutput(vertices=v, joints=jnt)
 
 
-# ------------------------------------------------------------------------------------------------
-# Stand-in rig writer (used only when calibration.formats is not installed)
-
-
-def standin_write_rig(rig, path, fmt: str, **_opts) -> None:
-    """Minimal writer for the three formats synth emits (rig JSON, CMU Panoptic, H36M h5)."""
-    import json
-
-    import h5py
-
-    path = Path(path)
-    if fmt == "rig":
-        data = {
-            "version": 1,
-            "units": "m",
-            "up": list(rig.up),
-            "cameras": [
-                {
-                    "name": c.name,
-                    "width": c.width,
-                    "height": c.height,
-                    "K": c.K.tolist(),
-                    "dist": c.dist.tolist(),
-                    "R": c.R.tolist(),
-                    "t": c.t.tolist(),
-                }
-                for c in rig.cameras
-            ],
-        }
-        path.write_text(json.dumps(data))
-    elif fmt == "panoptic":
-        data = {
-            "calibDataSource": "synth",
-            "cameras": [
-                {
-                    "name": c.name,
-                    "type": "hd",
-                    "resolution": [c.width, c.height],
-                    "panel": 0,
-                    "node": i,
-                    "K": c.K.tolist(),
-                    "distCoef": np.pad(c.dist, (0, max(0, 5 - c.dist.size)))[:5].tolist(),
-                    "R": c.R.tolist(),
-                    "t": (c.t * 100.0).reshape(3, 1).tolist(),
-                }
-                for i, c in enumerate(rig.cameras)
-            ],
-        }
-        path.write_text(json.dumps(data))
-    elif fmt == "h36m":
-        with h5py.File(path, "w") as f:
-            for c in rig.cameras:
-                g = f.create_group(f"subject1/camera_{c.name}")
-                g["R"] = c.R.T
-                g["T"] = (c.center * 1000.0).reshape(3, 1)
-                g["f"] = np.array([[c.fx], [c.fy]])
-                g["c"] = np.array([[c.cx], [c.cy]])
-                g["k"] = np.array(
-                    [[c.dist[0]], [c.dist[1]], [c.dist[4] if c.dist.size > 4 else 0.0]]
-                )
-                g["p"] = np.array([[c.dist[2]], [c.dist[3]]])
-    else:
-        raise ValueError(f"unknown rig format {fmt!r}")
-
-
 def read_panoptic(path) -> list:
     """Independent reader of a CMU Panoptic calibration JSON (t in centimetres)."""
     import json
@@ -331,14 +266,7 @@ def read_panoptic(path) -> list:
 
 
 def rig_io():
-    """(writer, reader-or-None) for calibration files: the real calibration.formats when
-    installed, else the stand-in above."""
-    try:
-        from calibration import camera, formats
-    except ImportError:
-        return standin_write_rig, None
-    # A checkout without calibration/formats can still import one from another install of the
-    # project (an editable install elsewhere); mixing the two packages is not a real setup.
-    if Path(formats.__file__).resolve().parents[1] != Path(camera.__file__).resolve().parent:
-        return standin_write_rig, None
-    return formats.write_rig, getattr(formats, "read_rig", None)
+    """(writer, reader) for calibration files: calibration.formats' write_rig and read_rig."""
+    from calibration import formats
+
+    return formats.write_rig, formats.read_rig

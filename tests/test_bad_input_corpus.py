@@ -126,16 +126,37 @@ def _assert_failed(code: int, err: str, want_code: int, names: str, workspace: P
 CONFIG_CASES = {
     "unknown top-level key": ("extra_top", "bogus_key: 1\n", r"bogus_key: unknown key"),
     "unknown stage parameter": ("set", "extract.crop_sise=64", r"crop_sise: unknown key.*--set"),
-    "wrong type by --set": ("set", "extract.crop_size=big", r"my-config.yaml: stages.extract.params.crop_size.*--set extract.crop_size=big"),
-    "videos pattern matches nothing": ("videos", "{videos}/nothing*.mp4", r"scenes.s.videos: the pattern .*nothing\*.mp4' matches no file"),
-    "listed video missing": ("videos", "[{videos}/c1.mp4, {videos}/gone.mp4]", r"scenes.s.videos: no such file: .*gone.mp4"),
-    "calibration format typo": ("calibration", "{{file: {rig}, format: qualysis}}", r"scenes.s.calibration.format: unknown format 'qualysis'"),
-    "calibration file missing": ("calibration", "{{file: {root}/nope.json, format: rig}}", r"scenes.s.calibration.file: no such file: .*nope.json"),
+    "wrong type by --set": (
+        "set", "extract.crop_size=big",
+        r"my-config.yaml: stages.extract.params.crop_size.*--set extract.crop_size=big",
+    ),
+    "videos pattern matches nothing": (
+        "videos", "{videos}/nothing*.mp4",
+        r"scenes.s.videos: the pattern .*nothing\*.mp4' matches no file",
+    ),
+    "listed video missing": (
+        "videos", "[{videos}/c1.mp4, {videos}/gone.mp4]",
+        r"scenes.s.videos: no such file: .*gone.mp4",
+    ),
+    "calibration format typo": (
+        "calibration", "{{file: {rig}, format: qualysis}}",
+        r"scenes.s.calibration.format: unknown format 'qualysis'",
+    ),
+    "calibration file missing": (
+        "calibration", "{{file: {root}/nope.json, format: rig}}",
+        r"scenes.s.calibration.file: no such file: .*nope.json",
+    ),
     "unknown scene": ("argv", "--scene nope", r"--scene: unknown scene"),
     "unknown stage": ("argv", "run nostage", r"unknown stage 'nostage'"),
     "yaml syntax": ("raw", "scenes: [unclosed\n", r"not valid YAML"),
-    "needs an unknown stage": ("stages", "a: {needs: [zz], module: 'tests.fake_stages:SOURCE'}\n", r"stages.a.needs: unknown stage 'zz'"),
-    "negative frame-size tolerance": ("extra_scene", "frame_size_tolerance: -1", r"scenes.s.frame_size_tolerance"),
+    "needs an unknown stage": (
+        "stages", "a: {needs: [zz], module: 'tests.fake_stages:SOURCE'}\n",
+        r"stages.a.needs: unknown stage 'zz'",
+    ),
+    "negative frame-size tolerance": (
+        "extra_scene", "frame_size_tolerance: -1",
+        r"scenes.s.frame_size_tolerance",
+    ),
 }  # fmt: skip
 
 
@@ -182,7 +203,10 @@ CALIBRATION_CASES = {
     "NaN focal length": (lambda d: d["cameras"][0]["K"][0].__setitem__(0, float("nan")), r"c1.*K"),
     "negative focal length": (lambda d: d["cameras"][1]["K"][1].__setitem__(1, -5.0), r"c2"),
     "rotation that is not one": (lambda d: d["cameras"][2]["R"][0].__setitem__(0, 3.0), r"c3.*R"),
-    "camera missing for a video": (lambda d: d["cameras"].pop(2), r"videos \['c3'\] have no camera"),
+    "camera missing for a video": (
+        lambda d: d["cameras"].pop(2),
+        r"videos \['c3'\] have no camera",
+    ),
     "wrong shape of t": (lambda d: d["cameras"][0].__setitem__("t", [1.0, 2.0]), r"c1.*t"),
     "missing key": (lambda d: d["cameras"][0].pop("K"), r"missing key 'K'"),
 }  # fmt: skip
@@ -221,12 +245,21 @@ def _videos_with(scene: Scene, tmp: Path, name: str, make) -> Path:
 
 
 VIDEO_CASES = {
-    "random bytes": ("c2", lambda p: p.write_bytes(np.random.default_rng(0).bytes(5000)), r"c2.*c2.mp4"),
+    "random bytes": (
+        "c2", lambda p: p.write_bytes(np.random.default_rng(0).bytes(5000)),
+        r"c2.*c2.mp4",
+    ),
     "empty file": ("c1", lambda p: p.write_bytes(b""), r"c1.*c1.mp4"),
     "text renamed .mp4": ("c3", lambda p: p.write_text("not a video\n"), r"c3.*c3.mp4"),
     "other frame count": ("c2", lambda p: _video(p, frames=7), r"different frame counts.*c2: 7"),
-    "100 rows short of the calibration": ("c1", lambda p: _video(p, size=(W, H - 100)), r"camera 'c1'.*160x20.*160x120.*frame_size_tolerance"),
-    "larger than the calibration": ("c3", lambda p: _video(p, size=(W + 32, H)), r"camera 'c3'.*192x120.*160x120"),
+    "100 rows short of the calibration": (
+        "c1", lambda p: _video(p, size=(W, H - 100)),
+        r"camera 'c1'.*160x20.*160x120.*frame_size_tolerance",
+    ),
+    "larger than the calibration": (
+        "c3", lambda p: _video(p, size=(W + 32, H)),
+        r"camera 'c3'.*192x120.*160x120",
+    ),
 }  # fmt: skip
 
 

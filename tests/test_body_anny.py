@@ -94,11 +94,11 @@ def test_matches_anny_posed_joints_and_vertices(anny_data, anny_reference):
     joint_err = (out.joints - anny_heads).norm(dim=-1)
     vert_err = (out.vertices - anny_v[:, ids]).norm(dim=-1)
     print(
-        f"\nrest joints: mean {1e3 * rest_err.mean():.2f} mm, max {1e3 * rest_err.max():.2f} mm"
-        f"\nposed joints: mean {1e3 * joint_err.mean():.2f} mm, median {1e3 * joint_err.median():.2f} mm, "
-        f"p95 {1e3 * joint_err.quantile(0.95):.2f} mm, max {1e3 * joint_err.max():.2f} mm"
-        f"\nvertices: median {1e3 * vert_err.median():.2f} mm, p95 {1e3 * vert_err.flatten().quantile(0.95):.2f} mm, "
-        f"max {1e3 * vert_err.max():.2f} mm"
+        f"\nrest joints: mean {1e3 * rest_err.mean():.2f} mm, max {1e3 * rest_err.max():.2f} "
+        f"mm\nposed joints: mean {1e3 * joint_err.mean():.2f} mm, median "
+        f"{1e3 * joint_err.median():.2f} mm, p95 {1e3 * joint_err.quantile(0.95):.2f} mm, max "
+        f"{1e3 * joint_err.max():.2f} mm\nvertices: median {1e3 * vert_err.median():.2f} mm, p95 "
+        f"{1e3 * vert_err.flatten().quantile(0.95):.2f} mm, max {1e3 * vert_err.max():.2f} mm"
     )
     assert joint_err.mean() < 5e-3
     assert joint_err.quantile(0.95) < 5e-3

@@ -49,16 +49,18 @@ def problem():
     return scene, cams, ref.name, rig_from_board, obs
 
 
-def test_bundle_adjustment_recovers_exact_truth(problem):
+def _adjuster(problem, observations=None, options: BAOptions | None = None):
+    """The adjuster started from the perturbed problem, on its own observations by default."""
     scene, cams, ref, rig_from_board, obs = problem
-    ba = BoardBundleAdjuster(
-        cams,
-        ref,
-        rig_from_board,
-        scene.board.object_points(),
-        obs,
-        options=BAOptions(loss="trivial", max_outlier_rounds=0),
+    points = scene.board.object_points()
+    return BoardBundleAdjuster(
+        cams, ref, rig_from_board, points, observations or obs, options=options
     )
+
+
+def test_bundle_adjustment_recovers_exact_truth(problem):
+    scene = problem[0]
+    ba = _adjuster(problem, options=BAOptions(loss="trivial", max_outlier_rounds=0))
     result = ba.result(ba.run())
     for c in scene.rig:
         s = result.cameras[c.name]
@@ -75,8 +77,7 @@ def test_bundle_adjustment_recovers_exact_truth(problem):
 
 
 def test_residuals_match_colmap_projection(problem):
-    scene, cams, ref, rig_from_board, obs = problem
-    ba = BoardBundleAdjuster(cams, ref, rig_from_board, scene.board.object_points(), obs)
+    ba = _adjuster(problem)
     ours = ba.residuals()
     for iid in list(ours)[:20]:
         img = ba.rec.image(iid)
@@ -89,7 +90,7 @@ def test_residuals_match_colmap_projection(problem):
 
 
 def test_outliers_are_removed_in_rounds(problem):
-    scene, cams, ref, rig_from_board, obs = problem
+    scene, obs = problem[0], problem[4]
     rng = np.random.default_rng(3)
     noisy = {}
     for n, views in obs.items():
@@ -99,7 +100,7 @@ def test_outliers_are_removed_in_rounds(problem):
             if rng.uniform() < 0.2:
                 px[0] += 15.0
             noisy[n][f] = (ids, px)
-    ba = BoardBundleAdjuster(cams, ref, rig_from_board, scene.board.object_points(), noisy)
+    ba = _adjuster(problem, noisy)
     rounds = ba.run()
     result = ba.result(rounds)
     assert rounds[0]["removed"] > 0 and rounds[-1]["removed"] == 0
@@ -109,15 +110,7 @@ def test_outliers_are_removed_in_rounds(problem):
 
 
 def test_unknown_solver_is_reported(problem):
-    scene, cams, ref, rig_from_board, obs = problem
-    ba = BoardBundleAdjuster(
-        cams,
-        ref,
-        rig_from_board,
-        scene.board.object_points(),
-        obs,
-        options=BAOptions(linear_solver="MAGIC"),
-    )
+    ba = _adjuster(problem, options=BAOptions(linear_solver="MAGIC"))
     with pytest.raises(BundleAdjustmentError, match="MAGIC"):
         ba.run()
 

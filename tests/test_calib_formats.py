@@ -320,13 +320,21 @@ QCA_SAMPLE = """<?xml version='1.0' encoding='ASCII'?>
   <cameras>
     <camera active="1" avg-residual="0.4" model="Miqus Video" serial="12345" viewrotation="0">
       <fov_video bottom="1087" left="16" right="1935" top="8"/>
-      <transform x="3000.0" y="-1200.0" z="2100.0" r11="{r11}" r12="{r12}" r13="{r13}" r21="{r21}" r22="{r22}" r23="{r23}" r31="{r31}" r32="{r32}" r33="{r33}"/>
-      <intrinsic focalLengthU="89600.0" focalLengthV="89536.0" centerPointU="62464.0" centerPointV="35264.0" radialDistortion1="-0.05" radialDistortion2="0.12" radialDistortion3="0.01" tangentalDistortion1="0.0004" tangentalDistortion2="-0.0003" skew="0"/>
+      <transform x="3000.0" y="-1200.0" z="2100.0"
+        r11="{r11}" r12="{r12}" r13="{r13}" r21="{r21}" r22="{r22}" r23="{r23}"
+        r31="{r31}" r32="{r32}" r33="{r33}"/>
+      <intrinsic focalLengthU="89600.0" focalLengthV="89536.0"
+        centerPointU="62464.0" centerPointV="35264.0"
+        radialDistortion1="-0.05" radialDistortion2="0.12" radialDistortion3="0.01"
+        tangentalDistortion1="0.0004" tangentalDistortion2="-0.0003" skew="0"/>
     </camera>
     <camera active="1" avg-residual="0.3" model="Miqus M3" serial="marker-only" viewrotation="0">
       <fov_video bottom="1087" left="0" right="1919" top="0"/>
-      <transform x="0" y="0" z="3000" r11="1" r12="0" r13="0" r21="0" r22="1" r23="0" r31="0" r32="0" r33="1"/>
-      <intrinsic focalLengthU="64000" focalLengthV="64000" centerPointU="61440" centerPointV="34560" radialDistortion1="0" radialDistortion2="0" radialDistortion3="0" tangentalDistortion1="0" tangentalDistortion2="0"/>
+      <transform x="0" y="0" z="3000"
+        r11="1" r12="0" r13="0" r21="0" r22="1" r23="0" r31="0" r32="0" r33="1"/>
+      <intrinsic focalLengthU="64000" focalLengthV="64000" centerPointU="61440" centerPointV="34560"
+        radialDistortion1="0" radialDistortion2="0" radialDistortion3="0"
+        tangentalDistortion1="0" tangentalDistortion2="0"/>
     </camera>
   </cameras>
 </calibration>
@@ -475,7 +483,7 @@ def test_formats_listing_and_options():
         read_rig(QCA, "qualisys", subject=1)
 
 
-# -- bad input --------------------------------------------------------------------------------------
+# -- bad input ------------------------------------------------------------------------------
 def test_invalid_rig_is_never_written(tmp_path):
     good = ring_cameras(2)
     c = good[1]

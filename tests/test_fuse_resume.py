@@ -86,7 +86,7 @@ def test_resume_after_kill_gives_identical_outputs(scene, tmp_path):
     proc = subprocess.run([sys.executable, "-c", child], cwd=ROOT, env=env, capture_output=True)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
     work = run_dir / "fused" / ".work"
-    assert (work / "fit_000000.npz").is_file() and not (work / "fit_000001.npz").exists()
+    assert (work / "fit_0_000000.npz").is_file() and not (work / "fit_0_000001.npz").exists()
     assert not (run_dir / "fused" / "bodies.parquet").exists()
     fuse_scene(tmp / "crops.h5", cap.rig, run_dir / "fused", run_dir / "report", fps=30.0,
                options=OPTS, landmarks=landmarks)  # fmt: skip

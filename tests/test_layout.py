@@ -7,6 +7,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+from pipeline.fingerprint import imported_names
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("pipeline", "stages", "calibration", "gst", "synth")
 LIBRARIES = ("calibration", "gst", "synth")
@@ -27,18 +29,7 @@ MODULES = _modules()
 def _imports(name: str, path: Path) -> set[str]:
     """Project modules imported anywhere in the file (function-level and TYPE_CHECKING
     imports included: they tie the files together all the same)."""
-    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
-    found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            found |= {a.name for a in node.names}
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                base = ".".join(package[: len(package) - node.level + 1] + ([base] if base else []))
-            found.add(base)
-            found |= {f"{base}.{a.name}" for a in node.names}
-    return {m for m in found if m in MODULES and m != name}
+    return {m for m in imported_names(path, name) if m in MODULES and m != name}
 
 
 GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}

@@ -1,4 +1,5 @@
-"""PSNR, SSIM and SHERF-style box metrics against independent formulas (numpy, brute force, ray casting)."""
+"""PSNR, SSIM and SHERF-style box metrics against independent formulas (numpy, brute force,
+ray casting)."""
 
 from __future__ import annotations
 
@@ -78,7 +79,10 @@ def test_psnr_is_differentiable():
 def _ssim_brute_force(
     x: np.ndarray, y: np.ndarray, win: int = 11, sigma: float = 1.5, pad: str = "same"
 ) -> float:
-    """Wang et al. 2004 SSIM, one Gaussian-weighted window at a time (float64). x, y: (C, H, W) in [0, 1]."""
+    """Wang et al. 2004 SSIM, one Gaussian-weighted window at a time (float64).
+
+    x, y: (C, H, W) in [0, 1].
+    """
     c1, c2 = 0.01**2, 0.03**2
     r = win // 2
     g = np.exp(-((np.arange(win) - r) ** 2) / (2 * sigma**2))
@@ -252,7 +256,8 @@ def test_bbox_metrics_with_lpips():
     path = default_weights_path("alex")
     if not path.is_file():
         pytest.skip(
-            f"LPIPS weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net alex`"
+            f"LPIPS weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net "
+            "alex`"
         )
     from gst.metrics.lpips import LPIPS
 

@@ -56,7 +56,8 @@ def _model(net: str) -> LPIPS:
     path = default_weights_path(net)
     if not path.is_file():
         pytest.skip(
-            f"LPIPS {net} weights not cached at {path}; run `python -m gst.metrics.lpips fetch --net {net}`"
+            f"LPIPS {net} weights not cached at {path}; run `python -m gst.metrics.lpips fetch "
+            f"--net {net}`"
         )
     return LPIPS(net)
 

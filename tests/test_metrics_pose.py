@@ -26,7 +26,8 @@ def _umeyama_numpy(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def _scipy_aligned(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Second reference: scipy's proper-rotation fit (align_vectors) of the centred sets, then the scale."""
+    """Second reference: scipy's proper-rotation fit (align_vectors) of the centred sets, then
+    the scale."""
     s_c, d_c = src - src.mean(0), dst - dst.mean(0)
     rot, _ = Rotation.align_vectors(d_c, s_c)
     r = rot.apply(s_c)

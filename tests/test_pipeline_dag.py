@@ -30,7 +30,8 @@ def write_config(tmp_path: Path, extra_params: str = "", input_file: Path | None
           demo: {{synthetic: {{preset: demo}}}}
         stages:
           source: {{module: "tests.fake_stages:SOURCE", params: {{{src_params}}}}}
-          double: {{module: "tests.fake_stages:DOUBLE", needs: [source], params: {{{extra_params}}}}}
+          double: {{module: "tests.fake_stages:DOUBLE", needs: [source],
+                   params: {{{extra_params}}}}}
           report: {{module: "tests.fake_stages:REPORT", needs: [double]}}
     """)
     )
@@ -226,7 +227,8 @@ def test_scene_params_apply_to_that_scene_only_and_set_wins(tmp_path, counter, c
     cfg.write_text(
         cfg.read_text().replace(
             "demo: {synthetic: {preset: demo}}",
-            "demo: {synthetic: {preset: demo}}\n  other: {synthetic: {preset: demo}, params: {double: {factor: 3}}}",
+            "demo: {synthetic: {preset: demo}}\n  other: "
+            "{synthetic: {preset: demo}, params: {double: {factor: 3}}}",
         )
     )
     assert run(cfg, "run", "all") == 0

@@ -35,7 +35,8 @@ def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_pa
         executor: {{kind: local, workers: 2}}
         scenes: {{demo: {{synthetic: {{preset: demo}}}}}}
         stages:
-          fanout: {{module: "tests.fake_stages:FANOUT", params: {{seconds: 60, marker_dir: "{markers}"}}}}
+          fanout: {{module: "tests.fake_stages:FANOUT",
+                   params: {{seconds: 60, marker_dir: "{markers}"}}}}
         """)
     )
     cmd = [sys.executable, "-m", "pipeline", "run", "fanout", "--config", str(cfg), "--quiet"]

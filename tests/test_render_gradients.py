@@ -27,6 +27,12 @@ def _intrinsics(ks):
     return torch.stack([ks[..., 0, 0], ks[..., 1, 1], ks[..., 0, 2], ks[..., 1, 2]], dim=-1)
 
 
+def _leaves(means, quats, scales, opac, colors, viewmats, ks, bgs):
+    """Fresh leaf copies (requires_grad) of the renderer's inputs, with ks as `_intrinsics`."""
+    tensors = (means, quats, scales, opac, colors, viewmats, _intrinsics(ks), bgs)
+    return [t.clone().requires_grad_(True) for t in tensors]
+
+
 def _render_all(width, height, near=0.01):
     def fn(means, quats, scales, opac, colors, viewmats, intr, bgs):
         fx, fy, cx, cy = intr.unbind(-1)
@@ -50,8 +56,7 @@ def test_gradcheck_small_scene(seed, cameras, fast_mode):
     opac = opac.clamp(0.05, 0.95)
     g = torch.Generator().manual_seed(seed)
     bgs = torch.rand(1, cameras, 3, dtype=torch.float64, generator=g)
-    inputs = [t.clone().requires_grad_(True)
-              for t in (means, quats, scales, opac, colors, viewmats, _intrinsics(ks), bgs)]  # fmt: skip
+    inputs = _leaves(means, quats, scales, opac, colors, viewmats, ks, bgs)
     out = _render_all(10, 8)(*inputs)
     assert out[1].max() > 0.3
     assert torch.autograd.gradcheck(
@@ -73,8 +78,7 @@ def test_gradcheck_occlusion_and_early_stop():
     viewmats = torch.tensor(look_at([0.05, 0.02, 0.0], [0.0, 0.0, 2.0]))[None, None]
     ks = torch.tensor([[[[30.0, 0, 4.5], [0, 30.0, 3.5], [0, 0, 1]]]], dtype=torch.float64)
     bgs = torch.rand(1, 1, 3, dtype=torch.float64, generator=g)
-    inputs = [t.clone().requires_grad_(True)
-              for t in (means, quats, scales, opac, colors, viewmats, _intrinsics(ks), bgs)]  # fmt: skip
+    inputs = _leaves(means, quats, scales, opac, colors, viewmats, ks, bgs)
     out = _render_all(10, 8)(*inputs)
     assert out[1].max() > 1 - 1e-3  # transmittance reached the stop somewhere
     assert torch.autograd.gradcheck(_render_all(10, 8), inputs, eps=1e-7, atol=1e-6, rtol=1e-4)

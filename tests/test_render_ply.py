@@ -116,7 +116,8 @@ def test_reads_other_tools_files_with_extra_properties(tmp_path):
             "binary_little_endian",
         ),
         (
-            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n",
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
+            b"property float x\nend_header\n",
             "lacks properties",
         ),
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n", "no end_header"),

@@ -8,8 +8,14 @@ import socket
 import torch
 import torch.multiprocessing as tmp
 
-from gst.train.trainer import TrainConfig, Trainer
-from tests.scaleout_items import COMBINED_BATCH, ddp_problem, ddp_rank_main
+from gst.train.trainer import Trainer
+from tests.scaleout_items import (
+    COMBINED_BATCH,
+    ddp_config,
+    ddp_problem,
+    ddp_rank_main,
+    ddp_step,
+)
 
 
 def _free_port() -> int:
@@ -26,20 +32,8 @@ def test_two_gloo_ranks_match_single_process_gradients(tmp_path, monkeypatch):
     monkeypatch.delenv("WORLD_SIZE", raising=False)
     model, x, y = ddp_problem()
 
-    def step(m, batch):
-        return ((m(batch[0]) - batch[1]) ** 2).mean(), {}
-
-    cfg = TrainConfig(
-        steps=1,
-        batch_size=COMBINED_BATCH,
-        lr=1e-3,
-        warmup_steps=0,
-        grad_clip=1e9,
-        ckpt_every=1,
-        val_every=100,
-        log_every=1,
-    )
-    single = Trainer(model, step, lambda gen, bs: (x, y), cfg, tmp_path / "single")
+    cfg = ddp_config(COMBINED_BATCH)
+    single = Trainer(model, ddp_step, lambda gen, bs: (x, y), cfg, tmp_path / "single")
     assert single.world == 1
     single.fit()
     reference = {n: p.grad for n, p in model.named_parameters()}
@@ -51,12 +45,16 @@ def test_two_gloo_ranks_match_single_process_gradients(tmp_path, monkeypatch):
                 g, reference[n], rtol=1e-5, atol=1e-7, msg=f"rank {rank}: {n}"
             )
     # The averaged gradient differs from either rank's own half-batch gradient (a real check).
-    half = Trainer(ddp_problem()[0], step, lambda gen, bs: (x[:4], y[:4]), cfg, tmp_path / "half")
+    half = Trainer(
+        ddp_problem()[0], ddp_step, lambda gen, bs: (x[:4], y[:4]), cfg, tmp_path / "half"
+    )
     half.fit()
     assert not torch.allclose(next(half.model.parameters()).grad, reference["0.weight"])
-    # Rank 0 alone wrote the checkpoint and the log; both ranks took the same optimiser step.
+    # Rank 0 alone wrote the checkpoint, its elapsed time and the log; both ranks took the same
+    # optimiser step.
     assert sorted(p.name for p in out.iterdir()) == [
         "best.pt",
+        "elapsed.json",
         "grads-rank0.pt",
         "grads-rank1.pt",
         "last.pt",

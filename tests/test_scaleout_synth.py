@@ -32,6 +32,11 @@ def _spec():
     )
 
 
+def _render(out: Path, **kwargs):
+    """render_scene of the test spec into `out`, capsule body and the project's rig writer."""
+    return render_scene(_spec(), out, body_model=BODY, rig_writer=WRITE_RIG, **kwargs)
+
+
 def _digest(folder: Path) -> dict[str, str]:
     return {
         str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
@@ -57,7 +62,7 @@ class _RecordingMap:
 @pytest.fixture(scope="module")
 def serial_scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial") / "scene"
-    summary = render_scene(_spec(), out, body_model=BODY, rig_writer=WRITE_RIG)
+    summary = _render(out)
     return out, summary
 
 
@@ -76,14 +81,7 @@ def test_camera_shares_split_groups_in_order():
 def test_pickled_shares_give_identical_files(serial_scene, tmp_path, n_shares):
     out, summary = serial_scene
     mapper = _RecordingMap()
-    fanned = render_scene(
-        _spec(),
-        tmp_path / "scene",
-        body_model=BODY,
-        rig_writer=WRITE_RIG,
-        map_fn=mapper,
-        shares=n_shares,
-    )
+    fanned = _render(tmp_path / "scene", map_fn=mapper, shares=n_shares)
     assert mapper.calls == [
         ("synth.shares", "render_share_job", n_shares or 1, "synth demo: render")
     ]
@@ -97,14 +95,7 @@ def test_pickled_shares_give_identical_files(serial_scene, tmp_path, n_shares):
 
 def test_two_local_worker_processes_give_identical_files(serial_scene, tmp_path):
     out, _ = serial_scene
-    render_scene(
-        _spec(),
-        tmp_path / "scene",
-        body_model=BODY,
-        rig_writer=WRITE_RIG,
-        map_fn=LocalExecutor(2).map,
-        shares=2,
-    )
+    _render(tmp_path / "scene", map_fn=LocalExecutor(2).map, shares=2)
     assert _digest(tmp_path / "scene") == _digest(out)
 
 
@@ -117,23 +108,18 @@ def _failing_map(fn, items, description=""):
 def test_failed_share_leaves_previous_scene_untouched(serial_scene, tmp_path):
     out, _ = serial_scene
     target = tmp_path / "scene"
-    render_scene(_spec(), target, body_model=BODY, rig_writer=WRITE_RIG)
+    _render(target)
     before = _digest(target)
     with pytest.raises(RuntimeError, match="worker lost"):
-        render_scene(
-            _spec(), target, body_model=BODY, rig_writer=WRITE_RIG, map_fn=_failing_map, shares=3
-        )
+        _render(target, map_fn=_failing_map, shares=3)
     assert _digest(target) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]  # no staging folder left behind
 
 
 def test_map_fn_that_drops_a_share_is_an_error(tmp_path):
     with pytest.raises(RuntimeError, match="3 camera shares"):
-        render_scene(
-            _spec(),
+        _render(
             tmp_path / "scene",
-            body_model=BODY,
-            rig_writer=WRITE_RIG,
             shares=3,
             map_fn=lambda fn, items, description="": [fn(x) for x in list(items)[:2]],
         )
@@ -152,14 +138,7 @@ def ray_executor():
 
 def test_two_worker_ray_cluster_gives_identical_files(serial_scene, ray_executor, tmp_path):
     out, _ = serial_scene
-    render_scene(
-        _spec(),
-        tmp_path / "scene",
-        body_model=BODY,
-        rig_writer=WRITE_RIG,
-        map_fn=ray_executor.map,
-        shares=2,
-    )
+    _render(tmp_path / "scene", map_fn=ray_executor.map, shares=2)
     assert _digest(tmp_path / "scene") == _digest(out)
 
 
@@ -176,13 +155,6 @@ def test_worker_killed_mid_share_is_retried_with_identical_files(
             DieOnceMidShare(fn, tmp_path / "markers", camera=0), items, description
         )
 
-    render_scene(
-        _spec(),
-        tmp_path / "scene",
-        body_model=BODY,
-        rig_writer=WRITE_RIG,
-        map_fn=dying_map,
-        shares=2,
-    )
+    _render(tmp_path / "scene", map_fn=dying_map, shares=2)
     assert (tmp_path / "markers" / "died-0").exists()  # the worker did die once
     assert _digest(tmp_path / "scene") == _digest(out)  # and the stale half-written video is gone

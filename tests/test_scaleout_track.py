@@ -11,7 +11,13 @@ import pytest
 
 from gst.track import OneEuroConfig, TrackOptions
 from gst.track.batch import track_videos
-from gst.track.chunks import ChunkingConfig, match_ids, plan_chunks, stitch_chunks
+from gst.track.chunks import (
+    ChunkingConfig,
+    ChunkRecord,
+    match_ids,
+    plan_chunks,
+    stitch_chunks,
+)
 from gst.track.schema import tracks_schema
 from tests.scaleout_scenes import job, write_clip
 
@@ -91,9 +97,7 @@ def test_stitch_gives_new_ids_in_creation_order_after_the_carried_ones():
     }
     c0 = _table([0, 1, 1], [0, 0, 1], [box[0], box[0], box[1]])
     c1 = _table([1, 1, 2, 2], [1, 0, 1, 0], [box[0], box[1], box[0], box[1]])  # ids swapped locally
-    s = stitch_chunks(
-        [(c0, {"keep_from": 0, "stats": stats}), (c1, {"keep_from": 2, "stats": stats})]
-    )
+    s = stitch_chunks([(c0, ChunkRecord("a", 0, stats)), (c1, ChunkRecord("b", 2, stats))])
     assert s.tables[1].column("person_id").to_pylist() == [0, 1]
     assert s.inherited[1] == {1: 0, 0: 1}
     assert s.stats["persons"] == 2 and s.stats["frames"] == 2

@@ -34,7 +34,8 @@ def synthetic():
 
 @pytest.fixture(scope="module")
 def anny():
-    """The default body (built once per machine, then read from the cache in a fraction of a second)."""
+    """The default body (built once per machine, then read from the cache in a fraction of a
+    second)."""
     return load_body_model("anny")
 
 
@@ -86,7 +87,8 @@ def test_every_joint_at_its_limits(request, which, corner):
         corner
     ]
     out = _assert_finite_lbs(body, _limit_corner(bits), torch.zeros(1, 3))
-    # Bent to its limits, the body stays body-sized (no joint flies off): within 2.5 m of the pelvis.
+    # Bent to its limits, the body stays body-sized (no joint flies off): within 2.5 m of the
+    # pelvis.
     assert (out.joints - out.joints[:, :1]).norm(dim=-1).max() < 2.5
 
 

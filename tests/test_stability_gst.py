@@ -214,7 +214,7 @@ def test_lpips_term_on_black_images_and_empty_masks(setup):
     assert abs(float(parts["mse"])) < 1e-12 and abs(float(parts["lpips"])) < 1e-6
 
 
-# --- bf16 training (TrainConfig.amp) ---------------------------------------------------------------
+# --- bf16 training (TrainConfig.amp) ----------------------------------------------------------
 
 
 def test_bf16_training_step_matches_fp32_and_trains(setup, tmp_path):

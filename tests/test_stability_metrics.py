@@ -199,8 +199,12 @@ VGG = [
 
 
 def lpips_by_formula(state: dict, layout, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """LPIPS v0.1 (Zhang et al. 2018, eq. 1) in float64: d = sum_l mean_hw || w_l * (f^l_x - f^l_y) ||^2
-    with f^l the channel-normalised ReLU features of the scaled images."""
+    """LPIPS v0.1 (Zhang et al. 2018, eq. 1) in float64:
+
+        d = sum_l mean_hw || w_l * (f^l_x - f^l_y) ||^2
+
+    with f^l the channel-normalised ReLU features of the scaled images.
+    """
     shift = torch.tensor([-0.030, -0.088, -0.188], dtype=torch.float64).view(1, 3, 1, 1)
     scale = torch.tensor([0.458, 0.448, 0.450], dtype=torch.float64).view(1, 3, 1, 1)
 
@@ -233,7 +237,8 @@ def lpips_by_formula(state: dict, layout, x: torch.Tensor, y: torch.Tensor) -> t
 
 
 def _pairs() -> tuple[torch.Tensor, torch.Tensor]:
-    """Sample pairs: smooth patterns, noise and its blur, a shift, black vs white, black vs noise."""
+    """Sample pairs: smooth patterns, noise and its blur, a shift, black vs white, black vs
+    noise."""
     g = torch.Generator().manual_seed(7)
     noise = torch.rand(1, 3, 64, 64, generator=g)
     blurred = F.avg_pool2d(F.pad(noise, (2, 2, 2, 2), mode="reflect"), 5, stride=1)
@@ -327,7 +332,8 @@ def test_lpips_matches_the_official_code(net, layout, tmp_path, monkeypatch):
     wheel = os.environ.get("GST_LPIPS_WHEEL")
     if not wheel:
         pytest.skip(
-            "set GST_LPIPS_WHEEL=/path/to/lpips-0.1.4-py3-none-any.whl to compare with the official code"
+            "set GST_LPIPS_WHEEL=/path/to/lpips-0.1.4-py3-none-any.whl to compare with the "
+            "official code"
         )
     data = Path(wheel).read_bytes()
     assert hashlib.sha256(data).hexdigest() == LPIPS_WHEEL.sha256, (

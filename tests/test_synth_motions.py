@@ -144,7 +144,8 @@ def test_a_pose_rest_gives_the_same_motion_as_t_pose():
     assert np.degrees(Rotation.from_matrix(C[J["left_shoulder"]]).magnitude()) == pytest.approx(
         45, abs=0.5
     )
-    # The stand-in T-pose has slightly tilted shins (6 degrees) and arms (2): only that is corrected.
+    # The stand-in T-pose has slightly tilted shins (6 degrees) and arms (2): only that is
+    # corrected.
     assert (
         np.degrees(Rotation.from_matrix(rest_corrections(t_pose.rest_joints)).magnitude()).max() < 7
     )

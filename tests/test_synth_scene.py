@@ -148,13 +148,12 @@ def test_ground_truth_projects_onto_the_rendered_people_through_written_calibrat
     out = tmp_path / "accept"
     render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
     rigs = {"panoptic": read_panoptic(out / "calibration" / "calibration_synth.json")}
-    if READ_RIG is not None:
-        for fmt, rel in (
-            ("rig", "rig.json"),
-            ("panoptic", "calibration_synth.json"),
-            ("h36m", "cameras.h5"),
-        ):
-            rigs[f"read_rig:{fmt}"] = list(READ_RIG(out / "calibration" / rel, fmt))
+    for fmt, rel in (
+        ("rig", "rig.json"),
+        ("panoptic", "calibration_synth.json"),
+        ("h36m", "cameras.h5"),
+    ):
+        rigs[f"read_rig:{fmt}"] = list(READ_RIG(out / "calibration" / rel, fmt))
     joints = np.asarray(
         pq.read_table(out / "truth" / "people.parquet").column("joints3d").to_pylist()
     ).reshape(-1, 24, 3)
@@ -265,8 +264,6 @@ def test_board_calibration_recovers_the_synthetic_rig(tmp_path):
     world (the clip's first pose lies on the floor at the origin)."""
     solve = pytest.importorskip("calibration.solve")
     board_mod = pytest.importorskip("calibration.board")
-    if READ_RIG is None:
-        pytest.skip("needs calibration.formats from this checkout")
     spec = preset("demo", n_frames=1, n_people=1, motions=[["idle"]])
     out = tmp_path / "scene"
     render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
@@ -283,7 +280,8 @@ def test_board_calibration_recovers_the_synthetic_rig(tmp_path):
 
 @pytest.mark.parametrize("kind", ["dome", "h36m", "hall"])
 def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
-    """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras exactly."""
+    """Sampled distortion is radial only, so rig.json, Panoptic and H36M hold the cameras
+    exactly."""
     from synth.rigs import make_rig
 
     spec = _tiny(
@@ -297,15 +295,14 @@ def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
     render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
     truth = make_rig(kind, n_cameras=2, width=64, height=48, distortion="strong", seed=spec.seed)
     readers = {"panoptic": lambda: read_panoptic(out / "calibration" / "calibration_synth.json")}
-    if READ_RIG is not None:
-        for fmt, rel in (
-            ("rig", "rig.json"),
-            ("panoptic", "calibration_synth.json"),
-            ("h36m", "cameras.h5"),
-        ):
-            readers[f"read_rig:{fmt}"] = lambda fmt=fmt, rel=rel: list(
-                READ_RIG(out / "calibration" / rel, fmt)
-            )
+    for fmt, rel in (
+        ("rig", "rig.json"),
+        ("panoptic", "calibration_synth.json"),
+        ("h36m", "cameras.h5"),
+    ):
+        readers[f"read_rig:{fmt}"] = lambda fmt=fmt, rel=rel: list(
+            READ_RIG(out / "calibration" / rel, fmt)
+        )
     pts = np.random.default_rng(0).uniform([-1.5, -1.5, 0], [1.5, 1.5, 2], (50, 3))
     for source, read in readers.items():
         cams = {c.name: c for c in read()}

@@ -123,6 +123,8 @@ def write_tracks(path, rows, world=True, stride=1, frames=N_FRAMES):
         "transl_world": _fixed(z.repeat(3, 1)),
         "joints3d": _fixed(np.stack([r[3] for r in rows])),
         "joints2d": _fixed(z.repeat(48, 1)),
+        "landmarks2d": pa.nulls(n, pa.list_(pa.float32(), 66)),
+        "landmarks_conf": pa.nulls(n, pa.list_(pa.float32(), 33)),
     }
     table = pa.table(cols, schema=tracks_schema(10, meta))
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -331,7 +333,8 @@ def test_two_people_apart_keep_their_ids(walkers, tmp_path):
             cam,
             ev.persons,
         )
-        # a standing T-pose against walking people: a finite, person-sized error, placed in the world
+        # a standing T-pose against walking people: a finite, person-sized error, placed in the
+        # world
         assert ev.joints_frame == "world" and 50 < ev.mpjpe_mm < 600 and ev.root_error_mm < 1000
         # the metric is not blind on this file: swapping the two ids half-way is one switch each
         t = pq.read_table(res.path)

@@ -23,7 +23,7 @@ from gst.track import (
 )
 from gst.track.schema import METADATA_KEYS, SMPL_JOINT_NAMES
 from gst.track.tracker import box_iou
-from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+from tests.track_synthetic import crossing_clip, write_boxes_csv
 
 W, H, N = 320, 240, 40
 MODEL = {"name": "test-double", "version": "0"}
@@ -49,9 +49,7 @@ def occlusion_visibility(boxes, walkers, min_visible=0.6):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("scene")
-    walkers = crossing_scene(N, W, H)
-    boxes = walker_boxes(walkers, N)
-    video = write_video(d / "clip.avi", render(walkers, boxes, W, H), W, H)
+    walkers, boxes, video = crossing_clip(d, N, W, H)
     vis = occlusion_visibility(boxes, walkers)
     csv = write_boxes_csv(d / "boxes.csv", boxes, "clip", vis)
     return {"dir": d, "video": video, "boxes": boxes, "visible": vis, "csv": csv}

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gst.track import BoxDepthPredictor, SuppliedBoxes, TrackOptions, track_video
-from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+from tests.track_synthetic import crossing_clip, write_boxes_csv
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "formats" / "tracks_parquet.md"
 N = 12
@@ -28,9 +28,7 @@ def blocks(lang: str) -> dict[str, str]:
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     d = tmp_path_factory.mktemp("readers")
-    walkers = crossing_scene(N, 320, 240)
-    boxes = walker_boxes(walkers, N)
-    video = write_video(d / "clip.avi", render(walkers, boxes, 320, 240), 320, 240)
+    _, boxes, video = crossing_clip(d, N)
     det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
     for name in ("match_cam1", "match cam2"):
         track_video(

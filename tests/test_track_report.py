@@ -22,7 +22,7 @@ from gst.track.report import (
 )
 from gst.track.schema import SMPL_JOINT_NAMES
 from gst.video import probe_video
-from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+from tests.track_synthetic import crossing_clip, write_boxes_csv
 
 N = 16
 
@@ -30,9 +30,7 @@ N = 16
 @pytest.fixture(scope="module")
 def tracked(tmp_path_factory):
     d = tmp_path_factory.mktemp("report")
-    walkers = crossing_scene(N, 320, 240)
-    boxes = walker_boxes(walkers, N)
-    video = write_video(d / "clip.avi", render(walkers, boxes, 320, 240), 320, 240)
+    _, boxes, video = crossing_clip(d, N)
     det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
     res = track_video(
         video,

@@ -10,6 +10,7 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
@@ -23,40 +24,52 @@ from gst.track import (
     read_tracks,
     track_video,
 )
+from gst.track.tracker import TrackerConfig
 from gst.track.writer import default_staging_root
-from tests.track_synthetic import crossing_scene, render, walker_boxes, write_boxes_csv, write_video
+from tests.track_synthetic import crossing_clip, write_boxes_csv
 
 W, H, N = 320, 240, 40
 MODEL = {"name": "test-double", "version": "0"}
-OPTIONS = TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0))
+# min_hits 3 and a third person who appears at frame 12: they are confirmed at frame 14, in the
+# next group, so their rows of frames 12 and 13 are held in the committed state across the border.
+OPTIONS = TrackOptions(
+    frames_per_group=7,
+    batch_size=5,
+    smoothing=OneEuroConfig(0.8, 0.2, 1.0),
+    tracker=TrackerConfig(min_hits=3),
+)
+LATE = 12
+ROWS = 2 * N + (N - LATE)
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("scene")
-    walkers = crossing_scene(N, W, H)
-    boxes = walker_boxes(walkers, N)
-    video = write_video(d / "clip.avi", render(walkers, boxes, W, H), W, H)
-    return {"video": video, "csv": write_boxes_csv(d / "boxes.csv", boxes, "clip")}
+    _, boxes, video = crossing_clip(d, N, W, H)
+    visible = np.ones(boxes.shape[:2], bool)
+    visible[:LATE, 2] = False
+    return {"video": video, "csv": write_boxes_csv(d / "boxes.csv", boxes, "clip", visible)}
 
 
 @pytest.fixture(scope="module")
 def reference(scene, tmp_path_factory):
     out = tmp_path_factory.mktemp("ref")
-    res = track_video(
-        scene["video"],
-        out,
-        SuppliedBoxes.from_file(scene["csv"]),
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=OPTIONS,
-    )
+    res = track(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]))
+    t = read_tracks(res.path)
+    late = t.filter(pc.equal(t.column("person_id"), 2)).column("frame").to_pylist()
+    assert late == list(range(LATE, N))  # rows from the first frame, though confirmed later
     return res.path.read_bytes()
 
 
 def staging_of(out):
     return default_staging_root(out) / "video=clip"
+
+
+def track(video: Path, out: Path, det: SuppliedBoxes, predictor=None, **kwargs):
+    """track_video with the test model, OPTIONS unless given, BoxDepthPredictor by default."""
+    kwargs.setdefault("options", OPTIONS)
+    return track_video(video, out, det, predictor or BoxDepthPredictor(), model=MODEL, **kwargs)
 
 
 class FailingPredictor(BoxDepthPredictor):
@@ -71,18 +84,16 @@ class FailingPredictor(BoxDepthPredictor):
         return super().__call__(crops, K_crop)
 
 
+def crash_mid_run(scene, out: Path, det: SuppliedBoxes, fail_on_call: int) -> None:
+    """A run whose model crashes on call `fail_on_call`, leaving its committed rows staged."""
+    with pytest.raises(RuntimeError, match="model crashed"):
+        track(scene["video"], out, det, FailingPredictor(fail_on_call=fail_on_call))
+
+
 def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     out = tmp_path / "out"
-    with pytest.raises(RuntimeError, match="model crashed"):
-        track_video(
-            scene["video"],
-            out,
-            det,
-            FailingPredictor(fail_on_call=13),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, out, det, fail_on_call=13)
     assert not (out / "video=clip" / "tracks.parquet").exists()  # nothing presented as complete
     segments = sorted(staging_of(out).glob("seg-*.parquet"))
     assert 2 <= len(segments) < 6
@@ -91,7 +102,7 @@ def test_exception_mid_run_then_resume_is_identical(scene, reference, tmp_path):
     progress = json.loads((staging_of(out) / "progress.json").read_text())
     before = progress["state"]["elapsed_s"]  # the killed part's time, kept beside the state
     assert before > 0
-    res = track_video(scene["video"], out, det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+    res = track(scene["video"], out, det)
     assert res.resumed_from_frame == 7 * len(segments)
     assert res.path.read_bytes() == reference  # the time never enters the output
     assert res.seconds >= before  # frames/s of a resumed run count the earlier part's time too
@@ -102,6 +113,7 @@ KILL_SCRIPT = textwrap.dedent("""
     import os, signal, sys
     sys.path.insert(0, sys.argv[1])
     from gst.track import BoxDepthPredictor, OneEuroConfig, SuppliedBoxes, TrackOptions, track_video
+    from gst.track.tracker import TrackerConfig
 
     class KillingPredictor(BoxDepthPredictor):
         calls = 0
@@ -113,11 +125,14 @@ KILL_SCRIPT = textwrap.dedent("""
 
     track_video(sys.argv[2], sys.argv[3], SuppliedBoxes.from_file(sys.argv[4]), KillingPredictor(),
                 model={"name": "test-double", "version": "0"},
-                options=TrackOptions(frames_per_group=7, batch_size=5, smoothing=OneEuroConfig(0.8, 0.2, 1.0)))
+                options=TrackOptions(frames_per_group=7, batch_size=5,
+                                     smoothing=OneEuroConfig(0.8, 0.2, 1.0),
+                                     tracker=TrackerConfig(min_hits=3)))
 """)
 
 
-def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
+@pytest.mark.parametrize("kill_on_call", [8, 17])  # 8: while the late person's rows are held
+def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path, kill_on_call):
     script = tmp_path / "run.py"
     script.write_text(KILL_SCRIPT)
     out = tmp_path / "out"
@@ -129,7 +144,7 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
             str(scene["video"]),
             str(out),
             str(scene["csv"]),
-            "17",
+            str(kill_on_call),
         ],
         capture_output=True,
         text=True,
@@ -140,85 +155,47 @@ def test_kill_9_then_rerun_gives_the_identical_file(scene, reference, tmp_path):
     assert (staging / "progress.json").exists() and not (
         out / "video=clip" / "tracks.parquet"
     ).exists()
-    res = track_video(
-        scene["video"],
-        out,
-        SuppliedBoxes.from_file(scene["csv"]),
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=OPTIONS,
-    )
-    assert res.resumed_from_frame is not None and res.resumed_from_frame > 0
+    res = track(scene["video"], out, SuppliedBoxes.from_file(scene["csv"]))
+    # call 8 is the first batch of frames 14..20: the late person's rows of 12, 13 were held
+    assert res.resumed_from_frame == (14 if kill_on_call == 8 else 21)
     assert res.path.read_bytes() == reference
     t = read_tracks(res.path)
     keys = list(zip(t.column("frame").to_pylist(), t.column("person_id").to_pylist(), strict=True))
-    assert len(keys) == len(set(keys)) == 3 * N  # no duplicates, nothing missing
+    assert len(keys) == len(set(keys)) == ROWS  # no duplicates, nothing missing
 
 
 def test_orphan_segment_from_an_interrupted_commit_is_discarded(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(RuntimeError):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            FailingPredictor(fail_on_call=10),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, tmp_path / "out", det, fail_on_call=10)
     staging = staging_of(tmp_path / "out")
     segs = sorted(staging.glob("seg-*.parquet"))
     # a kill between writing a segment and recording it leaves an unrecorded segment behind
     (staging / f"seg-{len(segs):06d}.parquet").write_bytes(segs[0].read_bytes())
-    res = track_video(
-        scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
-    )
+    res = track(scene["video"], tmp_path / "out", det)
     assert res.path.read_bytes() == reference
 
 
 def test_resume_with_other_settings_is_refused_with_the_reason(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(RuntimeError):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            FailingPredictor(fail_on_call=10),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, tmp_path / "out", det, fail_on_call=10)
+    plain = TrackOptions(frames_per_group=7, batch_size=5)
     with pytest.raises(
-        ResumeError, match=r"different settings exists \(changed: \['options.smoothing'\]\)"
+        ResumeError,
+        match=r"different settings exists \(changed: \['options.smoothing', "
+        r"'options.tracker.min_hits'\]\)",
     ):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            BoxDepthPredictor(),
-            model=MODEL,
-            options=TrackOptions(frames_per_group=7, batch_size=5),
-        )
-    res = track_video(
-        scene["video"],
-        tmp_path / "out",
-        det,
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=TrackOptions(frames_per_group=7, batch_size=5),
-        resume=False,
-    )
-    assert res.resumed_from_frame is None and res.rows == 3 * N
+        track(scene["video"], tmp_path / "out", det, options=plain)
+    res = track(scene["video"], tmp_path / "out", det, options=plain, resume=False)
+    assert res.resumed_from_frame is None and res.rows == ROWS
 
 
 def test_finished_output_is_not_recomputed(scene, reference, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    track_video(
-        scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
-    )
+    track(scene["video"], tmp_path / "out", det)
     staging_of(tmp_path / "out").mkdir(parents=True)  # as if killed after the final rename
     never = FailingPredictor(fail_on_call=1)
-    res = track_video(scene["video"], tmp_path / "out", det, never, model=MODEL, options=OPTIONS)
-    assert never.calls == 0 and res.rows == 3 * N and res.path.read_bytes() == reference
+    res = track(scene["video"], tmp_path / "out", det, never)
+    assert never.calls == 0 and res.rows == ROWS and res.path.read_bytes() == reference
     assert not default_staging_root(tmp_path / "out").exists()
 
 
@@ -230,7 +207,7 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
     with pytest.raises(
         VideoTruncatedError, match=r"clip.avi: decoding failed at frame (\d+)"
     ) as err:
-        track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+        track(cut, tmp_path / "out", det)
     bad = err.value.frame
     staging = staging_of(tmp_path / "out")
     rows = pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None).read()
@@ -238,7 +215,7 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
     assert not (tmp_path / "out" / "video=clip" / "tracks.parquet").exists()
     # a rerun on the same damaged file resumes at the damage and stops there again
     with pytest.raises(VideoTruncatedError):
-        track_video(cut, tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS)
+        track(cut, tmp_path / "out", det)
     np.testing.assert_array_equal(
         pq.ParquetDataset(sorted(staging.glob("seg-*.parquet")), partitioning=None)
         .read()
@@ -250,19 +227,9 @@ def test_truncated_video_errors_and_keeps_the_rows_before_it(scene, tmp_path):
 
 def test_unreadable_progress_record_is_reported(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
-    with pytest.raises(RuntimeError):
-        track_video(
-            scene["video"],
-            tmp_path / "out",
-            det,
-            FailingPredictor(fail_on_call=10),
-            model=MODEL,
-            options=OPTIONS,
-        )
+    crash_mid_run(scene, tmp_path / "out", det, fail_on_call=10)
     progress = staging_of(tmp_path / "out") / "progress.json"
     progress.write_text("{not json")
     with pytest.raises(ResumeError, match="progress.json: unreadable progress record"):
-        track_video(
-            scene["video"], tmp_path / "out", det, BoxDepthPredictor(), model=MODEL, options=OPTIONS
-        )
+        track(scene["video"], tmp_path / "out", det)
     os.remove(progress)

@@ -155,7 +155,8 @@ def test_a_duplicate_detection_cannot_take_a_person_over():
     assert ids[-1] == [0]
     # frame 4: the person (x=108) and a duplicate box ahead of them (x=116)
     assert tr.update(4 / 30, [obs(108.0), obs(116.0)]) == [0, -1]
-    # frame 5: one detection at x=117, nearer the duplicate's track than the person's (x=110 expected)
+    # frame 5: one detection at x=117, nearer the duplicate's track than the person's
+    # (x=110 expected)
     assert tr.update(5 / 30, [obs(117.0)]) == [0]
     assert [tr.update(k / 30, [obs(117.0 + 2 * (k - 5))]) for k in range(6, 9)] == [[0], [0], [0]]
     assert tr.next_id == 1

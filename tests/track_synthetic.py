@@ -86,3 +86,13 @@ def crossing_scene(frames: int = 40, width: int = 320, height: int = 240) -> lis
         Walker((220, 80, 40), (280.0, 125.0), (-6.0, 0.0), (36.0, 90.0), depth_order=1),
         Walker((60, 200, 60), (160.0, 40.0), (0.5, 3.0), (30.0, 80.0), depth_order=0),
     ]
+
+
+def crossing_clip(
+    folder: Path, frames: int, width: int = 320, height: int = 240
+) -> tuple[list[Walker], np.ndarray, Path]:
+    """The crossing scene written as `folder`/clip.avi: (walkers, true boxes, video path)."""
+    walkers = crossing_scene(frames, width, height)
+    boxes = walker_boxes(walkers, frames)
+    video = write_video(folder / "clip.avi", render(walkers, boxes, width, height), width, height)
+    return walkers, boxes, video

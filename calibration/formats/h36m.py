@@ -74,9 +74,9 @@ def opencv_to_h36m(
         return np.array([k1, k2, k3]), np.array([2 * p1, 2 * p2]), 0.0
     if not approximate:
         raise RigFormatError(
-            f"camera '{camera.name}': its distortion {camera.dist.tolist()} has no exact equivalent "
-            "in H36M's model (it needs s1 = p2, s3 = p1 and no other rational/prism terms); pass "
-            "approximate_distortion=True to fit one"
+            f"camera '{camera.name}': its distortion {camera.dist.tolist()} has no exact "
+            "equivalent in H36M's model (it needs s1 = p2, s3 = p1 and no other rational/prism "
+            "terms); pass approximate_distortion=True to fit one"
         )
     return _fit_h36m(camera)
 
@@ -103,12 +103,33 @@ def _fit_h36m(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 # -- file I/O -----------------------------------------------------------------------------------
-def _subject_key(subject) -> str:
+def subject_number(subject) -> int:
+    """H36M subject `subject` given as a number or 'S<number>'."""
     s = str(subject)
     s = s[1:] if s[:1] in "sS" else s
     if not s.isdigit():
         raise RigFormatError(f"H36M subject must be a number or 'S<number>', got {subject!r}")
-    return f"subject{int(s)}"
+    return int(s)
+
+
+def _subject_key(subject) -> str:
+    return f"subject{subject_number(subject)}"
+
+
+def image_size_of(
+    path: Path, where: str, name: str, stored, image_size: tuple[int, int] | None
+) -> tuple[int, int]:
+    """A camera's (width, height): `stored` with it (as we write it), else its known H36M size,
+    else the caller's `image_size`."""
+    if stored is not None:
+        return (int(stored[0]), int(stored[1]))
+    if name in KNOWN_SIZES:
+        return KNOWN_SIZES[name]
+    if image_size is not None:
+        return tuple(int(v) for v in image_size)
+    raise RigFormatError(
+        f"{path}: {where} has no known image size; pass image_size=(width, height)"
+    )
 
 
 def _decode_name(raw) -> str:
@@ -154,17 +175,9 @@ def read(path: str | Path, subject=None, image_size: tuple[int, int] | None = No
             f = np.asarray(g["f"][()], dtype=np.float64).ravel()
             c = np.asarray(g["c"][()], dtype=np.float64).ravel()
             name = _decode_name(g["Name"][()]) if "Name" in g else ck
-            if "width" in g.attrs and "height" in g.attrs:
-                size = (int(g.attrs["width"]), int(g.attrs["height"]))
-            elif name in KNOWN_SIZES:
-                size = KNOWN_SIZES[name]
-            elif image_size is not None:
-                size = tuple(int(v) for v in image_size)
-            else:
-                raise RigFormatError(
-                    f"{path}: {key}/{ck} (camera '{name}') has no known image size; "
-                    "pass image_size=(width, height)"
-                )
+            has_size = "width" in g.attrs and "height" in g.attrs
+            stored = (g.attrs["width"], g.attrs["height"]) if has_size else None
+            size = image_size_of(path, f"{key}/{ck} (camera '{name}')", name, stored, image_size)
             cameras.append(
                 make_camera(
                     path,

@@ -29,17 +29,19 @@ from calibration.formats._common import (
     require,
     trim_dist,
 )
-from calibration.formats.h36m import KNOWN_SIZES, MM_PER_M, h36m_to_opencv, opencv_to_h36m
+from calibration.formats.h36m import (
+    MM_PER_M,
+    h36m_to_opencv,
+    image_size_of,
+    opencv_to_h36m,
+    subject_number,
+)
 
 TANGENTIAL = ("opencv", "h36m")
 
 
 def _subject_name(subject) -> str:
-    s = str(subject)
-    s = s[1:] if s[:1] in "sS" else s
-    if not s.isdigit():
-        raise RigFormatError(f"H36M subject must be a number or 'S<number>', got {subject!r}")
-    return f"S{int(s)}"
+    return f"S{subject_number(subject)}"
 
 
 def read(
@@ -87,16 +89,8 @@ def read(
             dist = h36m_to_opencv(raw[[0, 1, 4]], raw[[2, 3]])
         else:
             dist = raw
-        if "width" in i and "height" in i:
-            size = (int(i["width"]), int(i["height"]))
-        elif name in KNOWN_SIZES:
-            size = KNOWN_SIZES[name]
-        elif image_size is not None:
-            size = tuple(int(v) for v in image_size)
-        else:
-            raise RigFormatError(
-                f"{path}: {where} has no known image size; pass image_size=(width, height)"
-            )
+        stored = (i["width"], i["height"]) if "width" in i and "height" in i else None
+        size = image_size_of(path, where, name, stored, image_size)
         cameras.append(
             make_camera(
                 path,

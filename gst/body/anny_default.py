@@ -433,8 +433,9 @@ def _build(
         posedirs=None,
         name="anny-default",
         source=(
-            f"anny {ref.anny_version} (rig 'anny', topology 'anny'), converter v{CONVERTER_VERSION}, "
-            f"PCA of {num_shape_samples} shapes, ages {age_range[0]:g}-{age_range[1]:g}"
+            f"anny {ref.anny_version} (rig 'anny', topology 'anny'), converter "
+            f"v{CONVERTER_VERSION}, PCA of {num_shape_samples} shapes, ages "
+            f"{age_range[0]:g}-{age_range[1]:g}"
         ),
         licence=ANNY_LICENCE,
         shape_variance=variances[:num_betas],
@@ -478,8 +479,8 @@ def build_anny_default(
     """The open default body in SMPL layout, built from Anny once and then read from the cache.
 
     Args:
-        cache_dir: folder for the cached .npz (default ``$GST_CACHE_DIR`` or ``~/.cache/gst-capture``;
-            the file goes to ``<cache_dir>/body/``).
+        cache_dir: folder for the cached .npz (default ``$GST_CACHE_DIR`` or
+            ``~/.cache/gst-capture``; the file goes to ``<cache_dir>/body/``).
         num_betas: PCA shape components kept (>= 10). SMPL and GST use the first 10; the
             components are nested, so passing fewer betas is the same as a smaller model.
         age_range: morphological ages (years) of the shape distribution the PCA is fitted to.

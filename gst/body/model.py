@@ -271,7 +271,8 @@ class BodyModel(torch.nn.Module):
         else:
             self.register_buffer("posedirs", None)
 
-        # Forward-kinematics plan: one batched product per tree level (see skeleton.kinematic_levels).
+        # Forward-kinematics plan: one batched product per tree level
+        # (see skeleton.kinematic_levels).
         levels = kinematic_levels(self.parents)
         order = np.concatenate(levels)
         self._level_slices: list[tuple[int, int]] = []
@@ -492,7 +493,8 @@ class BodyModel(torch.nn.Module):
         w_t = (self.weights if ids is None else self.weights[ids]).T  # (J, V')
         # Blend the joint transforms per vertex as (B, 12, V') rows and apply them with
         # elementwise products: on CPU this beats batched 3x3 matmuls over the vertices, forward
-        # and (twice over) backward, and avoids slicing a large tensor, whose backward zero-fills it.
+        # and (twice over) backward, and avoids slicing a large tensor, whose backward
+        # zero-fills it.
         a12 = torch.cat([g_rot.reshape(B, self.num_joints, 9), a_trans], dim=-1)  # (B, J, 12)
         r00, r01, r02, r10, r11, r12, r20, r21, r22, tx, ty, tz = (
             a12.transpose(1, 2) @ w_t

@@ -124,7 +124,7 @@ def write_extract_report(
         q = np.percentile(support, [10, 50, 90])
         lines.append(
             f"- mask support (share of the person's 3D hull this view's mask covers; low = partial mask): "
-            f"10% {q[0]:.2f}, median {q[1]:.2f}, 90% {q[2]:.2f}; {int((support < 0.5).sum())} crops below 0.5"
+            f"10% {q[0]:.3f}, median {q[1]:.3f}, 90% {q[2]:.3f}; {int((support < 0.5).sum())} crops below 0.5"
         )
     if r.short_tracks_dropped:
         lines.append(f"- ids seen too briefly to crop (dropped): {r.short_tracks_dropped}")

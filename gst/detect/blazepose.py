@@ -288,3 +288,106 @@ class BlazePose:
         return PersonSegment(
             presence, prob, landmarks, roi_from_alignment(xy[33], xy[34]), world.copy()
         )
+
+
+# --- batched landmarks in the region's own crop (tracking) ---------------------------------------
+
+
+@dataclass(frozen=True)
+class RegionLandmarks:
+    """The landmark model's answer for one region, kept in the region's crop: no full-frame
+    warp of the segmentation (what tracking needs is the landmarks and the mask's extent)."""
+
+    roi: BodyRoi
+    presence: float  # probability that a person is in the region
+    landmarks: np.ndarray  # (33, 3) float32: x, y in image pixels, confidence in [0, 1]
+    visibility: np.ndarray  # (33,) float32 landmark visibility
+    landmark_presence: np.ndarray  # (33,) float32 landmark presence (in the frame, not cut off)
+    world_landmarks: np.ndarray  # (33, 3) float32 metres, hip-centred, the region's axes
+    mask_logits: np.ndarray  # (S, S) float32 segmentation logits in the crop (S = LANDMARK_SIZE)
+    to_crop: np.ndarray  # (2, 3) affine: image pixels -> crop pixels
+    next_roi: BodyRoi  # where this person is expected in the next frame
+
+    def crop_points(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) image pixels -> crop pixels."""
+        return np.c_[xy, np.ones(len(xy))] @ self.to_crop.T
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-np.clip(x.astype(np.float64), -30, 30)))).astype(np.float32)
+
+
+class BatchedLandmarks:
+    """The landmark model over several regions of one image in one interpreter call.
+
+    The model accepts a batch dimension (LiteRT's `resize_tensor_input`); its answers are the
+    same numbers as one call per region. Each person's `confidence` is the project's convention,
+    landmark visibility x landmark presence. Not thread-safe: one per worker."""
+
+    def __init__(self, models_dir: str | Path | None = None, threads: int = 1):
+        self._path, self._threads = model_paths(models_dir)["landmarks"], threads
+        # One interpreter per batch size seen: re-allocating one for every change of the number
+        # of regions (tracked people, then the detector's new ones) costs more than the memory.
+        self._by_batch: dict[int, object] = {}
+
+    def _for_batch(self, n: int):
+        it = self._by_batch.get(n)
+        if it is None:
+            it = import_litert()(model_path=str(self._path), num_threads=self._threads)
+            index = it.get_input_details()[0]["index"]
+            if n != 1:
+                it.resize_tensor_input(index, [n, LANDMARK_SIZE, LANDMARK_SIZE, 3])
+            it.allocate_tensors()
+            self._by_batch[n] = it
+        return it
+
+    def __call__(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
+        """Landmarks of the person in each region of a BGR image (one call for all regions)."""
+        if not rois:
+            return []
+        mats = [roi.to_crop(LANDMARK_SIZE) for roi in rois]
+        crops = np.stack(
+            [
+                cv2.warpAffine(
+                    image,
+                    m,
+                    (LANDMARK_SIZE, LANDMARK_SIZE),
+                    flags=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT,
+                )
+                for m in mats
+            ]
+        )
+        rgb = crops[..., ::-1].astype(np.float32) * np.float32(1 / 255)
+        n = len(rois)
+        it = self._for_batch(n)
+        it.set_tensor(it.get_input_details()[0]["index"], rgb)
+        it.invoke()
+        out = {
+            tuple(int(v) for v in d["shape"][1:]): it.get_tensor(d["index"])
+            for d in it.get_output_details()
+        }
+        raw = out[(195,)].reshape(n, 39, 5)
+        presence = np.clip(out[(1,)][:, 0], 0.0, 1.0)
+        logits = out[(LANDMARK_SIZE, LANDMARK_SIZE, 1)][..., 0]
+        world = out[(117,)].reshape(n, 39, 3)[:, :N_BODY_LANDMARKS]
+        results = []
+        for k, (roi, m) in enumerate(zip(rois, mats, strict=True)):
+            to_image = cv2.invertAffineTransform(m)
+            xy = np.c_[raw[k, :, :2], np.ones(39)] @ to_image.T
+            vis = _sigmoid(raw[k, :N_BODY_LANDMARKS, 3])
+            pres = _sigmoid(raw[k, :N_BODY_LANDMARKS, 4])
+            results.append(
+                RegionLandmarks(
+                    roi,
+                    float(presence[k]),
+                    np.c_[xy[:N_BODY_LANDMARKS], vis * pres].astype(np.float32),
+                    vis,
+                    pres,
+                    world[k].astype(np.float32, copy=True),
+                    logits[k].astype(np.float32, copy=True),
+                    m,
+                    roi_from_alignment(xy[33], xy[34]),
+                )
+            )
+        return results

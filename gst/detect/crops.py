@@ -1,6 +1,14 @@
 """BlazePose's landmarks on crops that already frame one person (the extraction's, training's
 and tracking's square crops): the whole crop is the landmark model's region of interest.
 
+With `refine=True` (what the fusion uses), the model also runs as it was trained: the first
+pass's alignment keypoints (hip centre, full-body scale point) give a region centred on the
+hips, rotated upright, 1.25 x the body circle; the second pass runs there and on the same region
+mirrored (left and right exchanged back), and the two are averaged. On tuning worlds this lowers
+the median landmark error by 8-10 % (docs/fuse.md). With `masks`, pixels outside each crop's
+person mask are dimmed first (`suppress_others`), so the model does not lock onto someone
+overlapping the person.
+
 The one place the crop pipelines run the landmark model; training, fusion and the lifting
 dataset call it, and read the store's `landmarks` instead when the extraction wrote them.
 """
@@ -33,11 +41,58 @@ class CropLandmarks:
         return out
 
 
+def _mirror_index() -> np.ndarray:
+    from gst.body.markers import BLAZEPOSE_NAMES as names
+
+    flip = [n.replace("left", "@").replace("right", "left").replace("@", "right") for n in names]
+    return np.array([names.index(n) for n in flip])
+
+
+def suppress_others(image: np.ndarray, mask: np.ndarray, dim: float = 0.25) -> np.ndarray:
+    """The crop with everything outside the person's mask (dilated by 4 % of the crop) dimmed to
+    `dim` of its brightness."""
+    import cv2
+
+    k = max(3, int(0.04 * image.shape[0]) | 1)
+    thr = 127 if mask.dtype == np.uint8 else 0.5
+    keep = cv2.dilate((mask > thr).astype(np.uint8), np.ones((k, k), np.uint8))
+    if not keep.any():
+        return image
+    scale = dim + (1.0 - dim) * keep[..., None].astype(np.float32)
+    return (image.astype(np.float32) * scale).astype(np.uint8)
+
+
+def _refined(model: BlazePose, image: np.ndarray, first) -> tuple:
+    """Second pass on the first pass's alignment region, averaged with its mirror image."""
+    roi = first.next_roi
+    a = model.segment(image, roi)
+    w = image.shape[1]
+    mirrored = BodyRoi((w - 1 - roi.centre[0], roi.centre[1]), roi.side, -roi.angle)
+    b = model.segment(np.ascontiguousarray(image[:, ::-1]), mirrored)
+    flip = _mirror_index()
+    lb = b.landmarks[flip].copy()
+    lb[:, 0] = w - 1 - lb[:, 0]
+    lms = np.c_[(a.landmarks[:, :2] + lb[:, :2]) / 2, (a.landmarks[:, 2] + lb[:, 2]) / 2]
+    presence = (a.presence + b.presence) / 2
+    # confidence = mean over the two passes of visibility x presence, as the store keeps it
+    vis = (a.landmarks[:, 2] * a.presence + lb[:, 2] * b.presence) / 2 / max(presence, 1e-9)
+    lms[:, 2] = vis
+    return lms, a.world_landmarks, presence
+
+
 def detect_crop_landmarks(
-    images: np.ndarray, model: BlazePose | None = None, *, rgb: bool, progress=None
+    images: np.ndarray,
+    model: BlazePose | None = None,
+    *,
+    rgb: bool,
+    progress=None,
+    refine: bool = False,
+    masks: np.ndarray | None = None,
 ) -> CropLandmarks:
     """The landmark model on (N, S, S, 3) uint8 crops (`rgb` says the channel order: CropSet
-    images are RGB, store and video frames BGR), each crop as one upright region."""
+    images are RGB, store and video frames BGR), each crop as one upright region; `refine`: the
+    second pass on the alignment region (module docstring); `masks` (N, S, S): the person's
+    mask per crop, other pixels dimmed first. World landmarks are the (unmirrored) last pass's."""
     images = np.asarray(images)
     n, size = len(images), (images.shape[1] if len(images) else 0)
     model = model or BlazePose(threads=1)
@@ -52,6 +107,12 @@ def detect_crop_landmarks(
     )
     for i in rows:
         img = images[i][..., ::-1] if rgb else images[i]
-        seg = model.segment(np.ascontiguousarray(img), roi)
-        lms[i], world[i], presence[i] = seg.landmarks, seg.world_landmarks, seg.presence
+        if masks is not None:
+            img = suppress_others(img, masks[i])
+        img = np.ascontiguousarray(img)
+        seg = model.segment(img, roi)
+        if refine:
+            lms[i], world[i], presence[i] = _refined(model, img, seg)
+        else:
+            lms[i], world[i], presence[i] = seg.landmarks, seg.world_landmarks, seg.presence
     return CropLandmarks(lms, world, presence)

@@ -1,33 +1,26 @@
-"""A body fit over the whole clip: one shape per person, pose and translation per frame.
+"""The body fit over a clip: one shape per person; pose and translation per frame.
 
-All people and frames are one batch in torch (CPU), minimised with L-BFGS:
+All people and frames are one batch (CPU, float64), solved by Levenberg-Marquardt
+(gst.fuse.solver) on the energy of gst.fuse.objective, with the joints-only body forward and its
+analytic Jacobian (gst.fuse.kinematics). Two stages:
 
-    E = sum_frames [ reprojection + w_smooth * smoothness + w_limits * joint limits
-                     + w_pose * pose prior ] / frames  +  w_betas * |betas|^2 / people
+1. start: from the rigid start (gst.fuse.start), `init_iterations` steps against the
+   triangulated landmarks (3D, robust): close to the answer in a few steps and free of the 2D
+   stage's local minima (an arm fitted behind the body from one view's point of view);
+2. fit: `view_rounds` x `iterations` steps against every camera's landmarks (2D reprojection,
+   robust), with temporal smoothness, pose prior and joint limits; before each round, every
+   view of a person-frame is weighted by how well the current body explains it as a whole
+   (a partly occluded view, all of whose landmarks are a little off, counts less).
 
-- reprojection: the body's virtual markers (gst.body.markers) projected into EVERY camera that
-  has a crop of the person in that frame (each crop's K_crop, R, t), against the detected
-  landmarks, residuals in full-image pixels, confidence-weighted, through a Cauchy kernel
-  log(1 + (r / sigma)^2) so wrong detections (left/right swaps, the other person) saturate;
-  normalised per frame by the confidence mass;
-- smoothness: second differences of the markers over consecutive frames, in units of
-  `smooth_scale_m` at 30 fps (scaled by (30 / fps)^2, so a weight means the same at any rate),
-  through the same Cauchy kernel (real accelerations of a sprinting wrist are not noise);
-- joint limits: squared excess of each joint's X-Y-Z Euler angles over gst.body.joint_limits;
-- pose prior: squared axis-angle of the body pose (the rest pose is the mode).
-
-Initialisation: per frame, the rest-pose markers are rigidly aligned (Kabsch) to the
-triangulated shoulders and hips; a frame where nobody moved (triangulated landmarks within
-`static_tol_m` of the previous frame's) starts from the previous frame's start. Frames without
-any crop between two seen frames (gaps up to `max_gap` frames) are inserted and filled by the
-smoothness term alone; a person seen by one camera only is fitted with the same terms (there is
-no triangulation to start from: the start is placed on the camera ray at the depth that gives
-the landmarks a 1.7 m body) and marked single-view.
+Frames inserted into gaps (no evidence) are started from their neighbours and held by the
+smoothness; a person seen by one camera at a time is fitted by stage 2 alone and marked
+single-view. The cost of an iteration is linear in person-frames and cameras (see
+benchmarks/bench_fuse.py).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -35,34 +28,42 @@ import torch
 from gst.body.joint_limits import JOINT_LIMITS_DEG
 from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
-from gst.body.rotations import (
-    axis_angle_to_matrix,
-    matrix_to_axis_angle,
-    matrix_to_rot6d,
-    rot6d_to_matrix,
-)
+from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gst.body.skeleton import SMPL_JOINT_NAMES
+from gst.fuse.kinematics import MarkerSkeleton
+from gst.fuse.objective import Neighbours, Points, Views, Weights, cost, euler_xyz, linearise
 from gst.fuse.observations import PersonObservations
+from gst.fuse.solver import BodyState, levenberg_marquardt
+from gst.fuse.start import TORSO_LANDMARKS, dense_frames, dense_triangulation, rigid_start
 from gst.fuse.triangulate import PersonTriangulation
 
-__all__ = ["FitOptions", "PersonFit", "fit_people", "euler_xyz_from_matrix", "TORSO_LANDMARKS"]
+__all__ = ["FitOptions", "PersonFit", "fit_people", "euler_xyz_from_matrix"]
 
-TORSO_LANDMARKS = (11, 12, 23, 24)  # shoulders and hips: the rigid start
+DTYPE = torch.float32  # float64 gives the same answers (demo, tuning worlds), 20 % slower
+euler_xyz_from_matrix = euler_xyz  # the joint-limit angles (kept under its old name)
 
 
 @dataclass(frozen=True)
 class FitOptions:
     num_betas: int = 10
-    iterations: int = 200  # L-BFGS iterations of the full fit
-    init_iterations: int = 30  # L-BFGS iterations of the root-only start
-    sigma_px: float | None = None  # Cauchy scale; None: 2.5 x the median triangulation error
+    iterations: int = 8  # LM iterations against the 2D landmarks, per view-weighting round
+    init_iterations: int = 6  # LM iterations against the triangulated landmarks (the start)
+    sigma_px: float | None = None  # Cauchy scale; None: sigma_factor x median triangulation error
+    sigma_factor: float = 1.0
     min_sigma_px: float = 2.0
     min_confidence: float = 0.1
-    w_smooth: float = 0.1
-    smooth_scale_m: float = 0.05
-    w_limits: float = 10.0
-    w_pose: float = 0.02
-    w_betas: float = 0.001
+    w_pose: float = 1.0  # per rad^2 of local rotation
+    w_limits: float = 100.0  # per rad^2 of excess over the joint limits
+    w_betas: float = 1.0
+    w_smooth: float = 1.0  # Cauchy weight of each marker's second difference
+    smooth_scale_m: float = 0.02  # the second difference (at 30 fps) counted as one unit
+    sigma_3d_m: float = 0.03  # Cauchy scale of the start stage (triangulated landmarks)
+    start_sigma_factor: float = 10.0  # 2D kernel scale of the start where nothing triangulates
+    view_weighting: bool = True  # reweigh whole views by their median residual (_weigh_views)
+    view_rounds: int = 2
+    # > 0: each person's own marker offsets are fitted over the clip (as MoSh does for mocap
+    # markers), pulled towards the table with this weight per m^2; 0: the table as it is
+    w_marker_offsets: float = 0.0
     static_tol_m: float = 0.005
     max_gap: int = 15
 
@@ -81,17 +82,10 @@ class PersonFit:
     markers: np.ndarray  # (T, M, 3) world, metres
     reprojection: np.ndarray  # (T, C, M) full-image px of the fitted markers (NaN: no detection)
     observed: np.ndarray  # (T,) bool: the frame had at least one crop (else gap-filled)
-    static: np.ndarray  # (T,) bool: started from the previous frame (nobody moved)
+    static: np.ndarray  # (T,) bool: nobody moved since the previous frame
     single_view: bool  # never seen by two cameras at once
     sigma_px: float
-
-
-def euler_xyz_from_matrix(R: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) -> (..., 3) angles (a, b, c) with R = Rx(a) Ry(b) Rz(c) (joint_limits' order)."""
-    b = torch.asin(R[..., 0, 2].clamp(-1 + 1e-6, 1 - 1e-6))
-    a = torch.atan2(-R[..., 1, 2], R[..., 2, 2])
-    c = torch.atan2(-R[..., 0, 1], R[..., 0, 0])
-    return torch.stack([a, b, c], -1)
+    marker_offsets: np.ndarray | None = None  # (M, 3) the person's own offsets minus the table's
 
 
 _ARM_JOINTS = ("left_shoulder", "right_shoulder", "left_elbow", "right_elbow")
@@ -102,7 +96,7 @@ def _limits_tensor(body: BodyModel) -> tuple[torch.Tensor, torch.Tensor]:
     (arm along x, elbow flexion about y); a body whose rest arms hang down (the Anny default)
     flexes its elbows about x instead, so its shoulder and elbow limits are left open."""
     names = SMPL_JOINT_NAMES[1:]
-    lim = torch.tensor([JOINT_LIMITS_DEG[n] for n in names], dtype=torch.float64).deg2rad()
+    lim = torch.tensor([JOINT_LIMITS_DEG[n] for n in names], dtype=DTYPE).deg2rad()
     with torch.no_grad():
         rest = body.rest_joints(torch.zeros(1, 1, dtype=body.dtype, device=body.device))[0]
     j = {n: i for i, n in enumerate(SMPL_JOINT_NAMES)}
@@ -111,186 +105,53 @@ def _limits_tensor(body: BodyModel) -> tuple[torch.Tensor, torch.Tensor]:
         for n in _ARM_JOINTS:
             lim[names.index(n), :, 0] = -np.pi
             lim[names.index(n), :, 1] = np.pi
-    return lim[..., 0].to(body.dtype), lim[..., 1].to(body.dtype)
+    return lim[..., 0], lim[..., 1]
 
 
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, c with dst ~ R src + c (rotation only), src/dst (n, 3)."""
-    ms, md = src.mean(0), dst.mean(0)
-    H = (src - ms).T @ (dst - md)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    R = Vt.T @ np.diag([1, 1, d]) @ U.T
-    return R, md - R @ ms
+def _neighbours(frames: list[np.ndarray]) -> Neighbours:
+    prev, nxt, off = [], [], 0
+    for f in frames:
+        i = np.arange(len(f)) + off
+        step = np.diff(f) == 1
+        prev.append(np.where(np.r_[False, step], i - 1, i))
+        nxt.append(np.where(np.r_[step, False], i + 1, i))
+        off += len(f)
+    prev, nxt = np.concatenate(prev), np.concatenate(nxt)
+    idx = np.arange(off)
+    return Neighbours(
+        torch.as_tensor(prev), torch.as_tensor(nxt),
+        torch.as_tensor(prev != idx), torch.as_tensor(nxt != idx),
+    )  # fmt: skip
 
 
-@dataclass
-class _Batch:
-    """Everything the objective needs, for B person-frames in one batch."""
-
-    person: torch.Tensor  # (B,) index into the people list
-    K: torch.Tensor  # (B, C, 3, 3)
-    Rt: torch.Tensor  # (B, C, 3, 4)
-    uv: torch.Tensor  # (B, C, M, 2)
-    weight: torch.Tensor  # (B, C, M) confidence (0: unobserved)
-    scale: torch.Tensor  # (B, C) crop px -> full px
-    prev: torch.Tensor  # (B,) batch index of the previous frame of the same person, -1 if none
-    sigma: torch.Tensor  # (B,) Cauchy scale of this person, full px
-
-
-def _dense_frames(obs: PersonObservations, max_gap: int) -> PersonObservations:
-    """Insert unseen frames inside gaps of at most `max_gap` frames (filled by the fit)."""
-    f = obs.frames
-    if len(f) < 2:
-        return obs
-    full = np.concatenate(
-        [f[:1]]
-        + [
-            np.arange(a + 1, b + 1) if b - a - 1 <= max_gap else np.array([b])
-            for a, b in zip(f[:-1], f[1:], strict=True)
-        ]
-    )
-    if len(full) == len(f):
-        return obs
-    idx = np.searchsorted(f, full)
-    have = np.isin(full, f)
-    src = np.where(have, idx, 0)
-
-    def take(a: np.ndarray, fill) -> np.ndarray:
-        out = a[src].copy()
-        out[~have] = fill
-        return out
-
-    return PersonObservations(
-        obs.person_id,
-        full,
-        take(obs.uv, np.nan),
-        take(obs.confidence, 0.0),
-        take(obs.K, np.eye(3)),
-        take(obs.Rt, np.eye(3, 4)),
-        take(obs.px_scale, 1.0),
-        take(obs.rows, -1),
-    )
-
-
-def _start_pose(
-    obs: PersonObservations,
-    tri: PersonTriangulation | None,
-    rest_markers: np.ndarray,
-    pelvis: np.ndarray,
-    tol: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame: root rotation (T, 3, 3), translation (T, 3) and the static flag (T,)."""
-    T = len(obs.frames)
-    R = np.tile(np.eye(3), (T, 1, 1))
-    c = np.full((T, 3), np.nan)
-    static = np.zeros(T, bool)
-    torso = list(TORSO_LANDMARKS)
-    src = rest_markers[torso] - pelvis
-    if tri is not None:
-        for i in range(T):
-            X = tri.points[i, torso]
-            ok = np.isfinite(X).all(1)
-            if ok.sum() >= 3:
-                R[i], c[i] = _kabsch(src[ok], X[ok])
-        pts = tri.points
-        for i in range(1, T):
-            both = np.isfinite(pts[i]).all(1) & np.isfinite(pts[i - 1]).all(1)
-            if both.sum() >= 8 and np.abs(pts[i][both] - pts[i - 1][both]).max() < tol:
-                static[i] = True
-                R[i], c[i] = R[i - 1], c[i - 1]
-    missing = ~np.isfinite(c).all(1)
-    if missing.all():
-        R, c = _single_view_start(obs, rest_markers, pelvis)
-    elif missing.any():  # nearest frame with a start
-        good = np.flatnonzero(~missing)
-        near = good[np.abs(np.arange(T)[:, None] - good[None]).argmin(1)]
-        R[missing], c[missing] = R[near[missing]], c[near[missing]]
-    return R, c - pelvis[None], static
-
-
-def _single_view_start(
-    obs: PersonObservations, rest_markers: np.ndarray, pelvis: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """No triangulation: upright, facing the camera, at the depth that makes the body 1.7 m."""
-    T = len(obs.frames)
-    R = np.tile(np.eye(3), (T, 1, 1))
-    c = np.zeros((T, 3))
-    last = None
-    for i in range(T):
-        cams = np.flatnonzero(obs.rows[i] >= 0)
-        if not len(cams):
+def _fill_unobserved(state: BodyState, observed: np.ndarray, offsets: np.ndarray) -> BodyState:
+    """Start frames without evidence from their nearest observed neighbours (linear in the
+    translation and local rotations, nearest root rotation), per person."""
+    root, transl, theta = state.root.clone(), state.transl.clone(), state.theta.clone()
+    for a, b in zip(offsets[:-1], offsets[1:], strict=True):
+        seen = np.flatnonzero(observed[a:b])
+        if len(seen) == 0 or len(seen) == b - a:
             continue
-        k = cams[0]
-        K, Rt = obs.K[i, k], obs.Rt[i, k]
-        uv, w = obs.uv[i, k], obs.confidence[i, k] > 0.3
-        if w.sum() < 4:
-            continue
-        height_px = np.ptp(uv[w, 1]) + 1e-6
-        depth = K[1, 1] * 1.7 / height_px
-        hips = uv[[23, 24]].mean(0)
-        ray = np.linalg.solve(K, np.r_[hips, 1.0]) * depth  # camera frame
-        Rc, tc = Rt[:, :3], Rt[:, 3]
-        c[i] = Rc.T @ (ray - tc)
-        # body axes in world: up = world z, forward = towards the camera (horizontal)
-        to_cam = -Rc.T @ tc - c[i]
-        fwd = np.r_[to_cam[:2], 0.0]
-        fwd /= np.linalg.norm(fwd) + 1e-9
-        up = np.array([0.0, 0.0, 1.0])
-        left = np.cross(up, fwd)
-        R[i] = np.stack([left, up, fwd], 1)  # columns: model x, y, z in world
-        last = i
-    if last is None:
-        raise ValueError(f"person {obs.person_id}: no view with at least 4 confident landmarks")
-    seen = np.any(obs.rows >= 0, 1) & np.isfinite(c).all(1) & (np.abs(c).sum(1) > 0)
-    good = np.flatnonzero(seen)
-    near = good[np.abs(np.arange(T)[:, None] - good[None]).argmin(1)]
-    return R[near], c[near]
+        t = np.arange(b - a)
+        for x in (transl, theta):
+            flat = x[a:b].reshape(b - a, -1).numpy()
+            filled = np.stack([np.interp(t, seen, flat[seen, k]) for k in range(flat.shape[1])], 1)
+            x[a:b] = torch.as_tensor(filled.reshape(x[a:b].shape))
+        near = seen[np.abs(t[:, None] - seen[None]).argmin(1)]
+        root[a:b] = root[a:b][torch.as_tensor(near)]
+    return BodyState(root, transl, theta, state.betas, state.offsets)
 
 
-def _objective_terms(
-    body: BodyModel,
-    markers: MarkerModel,
-    batch: _Batch,
-    betas: torch.Tensor,
-    root6d: torch.Tensor,
-    pose: torch.Tensor,
-    transl: torch.Tensor,
-    opts: FitOptions,
-    fps: float,
-    lo: torch.Tensor,
-    hi: torch.Tensor,
-):
-    B = root6d.shape[0]
-    rot = axis_angle_to_matrix(pose.reshape(B, 23, 3))
-    out = body(
-        betas[batch.person],
-        rot,
-        rot6d_to_matrix(root6d),
-        transl,
-        vertex_ids=markers.vertex_ids,
-        return_transforms=True,
-    )
-    X = markers.positions(out)  # (B, M, 3)
-    cam = torch.einsum("bcij,bmj->bcmi", batch.Rt[..., :3], X) + batch.Rt[:, :, None, :, 3]
-    z = cam[..., 2:].clamp_min(1e-3)
-    uv = torch.einsum("bcij,bcmj->bcmi", batch.K, cam / z)[..., :2]
-    r = (uv - batch.uv).norm(dim=-1) * batch.scale[..., None]  # (B, C, M) full px
-    rho = torch.log1p((r / batch.sigma[:, None, None]) ** 2)
-    w = batch.weight
-    reproj = (w * rho).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
-    # smoothness on markers: second differences where both neighbours exist
-    has = batch.prev >= 0
-    prev = torch.where(has, batch.prev, torch.arange(B))
-    prev2 = torch.where(has & (batch.prev[prev] >= 0), batch.prev[prev], prev)
-    ok2 = (has & (batch.prev[prev] >= 0)).to(X.dtype)
-    acc = (X - 2 * X[prev] + X[prev2]) * (fps / 30.0) ** 2 / opts.smooth_scale_m
-    smooth = ok2 * torch.log1p((acc**2).sum(-1)).mean(-1)
-    ang = euler_xyz_from_matrix(rot)
-    excess = torch.relu(lo - ang) + torch.relu(ang - hi)
-    limits = (excess / 0.1).pow(2).sum((1, 2))
-    prior = pose.pow(2).sum(-1)
-    return out, X, r, reproj, smooth, limits, prior
+def _weigh_views(state: BodyState, views: Views, sk: MarkerSkeleton, person, table) -> Views:
+    """Views whose landmarks are broadly worse than the person's noise level (partly occluded,
+    blurred) count less: each (frame, camera) weight is scaled by sigma^2 / max(sigma, median
+    residual of the view)^2, a view-level reweighting beside the per-landmark kernel."""
+    X, *_ = sk.forward(state.betas[person], state.root, state.theta, state.transl, offsets=table)
+    r = views.residuals(X)
+    r = torch.where(views.weight > 0, r, torch.full_like(r, float("nan")))
+    med = torch.nanmedian(r, dim=-1).values.nan_to_num(0.0)  # (B, C)
+    s = views.sigma[:, None]
+    return replace(views, weight=views.weight * ((s / torch.maximum(med, s)) ** 2)[..., None])
 
 
 def fit_people(
@@ -301,126 +162,160 @@ def fit_people(
     fps: float,
     options: FitOptions | None = None,
     start: list[PersonFit] | None = None,
+    marker_offsets: list[np.ndarray | None] | None = None,
 ) -> list[PersonFit]:
     """Fit every person's body over the clip at once (one batch). Deterministic on CPU.
 
-    `start`: earlier fits of the same people over the same frames (e.g. a previous run) to
-    start from instead of the rigid start; the root-only stage is then skipped."""
+    `start`: earlier fits of the same people over the same frames (e.g. the previous window of
+    a long clip) to start from instead of the rigid start; the start stage is then skipped.
+    `marker_offsets`: per person, (M, 3) corrections of the marker table (a person's offsets
+    from an earlier fit), held fixed unless `w_marker_offsets` > 0 fits them further."""
     o = options or FitOptions()
     if not people:
         return []
-    dtype = body.dtype
-    zero_betas = torch.zeros(1, o.num_betas, dtype=dtype)
-    eye = torch.eye(3, dtype=dtype)[None]
+    sk = MarkerSkeleton(body, markers, o.num_betas, DTYPE)
+    nb = o.num_betas
     with torch.no_grad():
-        rest = body(
-            zero_betas,
-            eye.expand(23, 3, 3)[None],
-            eye,
-            vertex_ids=markers.vertex_ids,
-            return_transforms=True,
-        )
-        rest_markers = markers.positions(rest)[0].double().numpy()
-        pelvis = rest.joints[0, 0].double().numpy()
+        X0, J0, _, _ = sk.forward(
+            torch.zeros(1, nb, dtype=DTYPE), torch.eye(3, dtype=DTYPE)[None],
+            torch.zeros(1, 23, 3, dtype=DTYPE), torch.zeros(1, 3, dtype=DTYPE),
+        )  # fmt: skip
+    rest_markers, pelvis = X0[0].numpy(), J0[0, 0].numpy()
 
-    dense, starts, statics, sigmas, single = [], [], [], [], []
+    dense, dtris, starts, statics, sigmas, single = [], [], [], [], [], []
     for obs, tri in zip(people, tris, strict=True):
-        d = _dense_frames(obs, o.max_gap)
-        tri_d = _dense_tri(tri, obs.frames, d.frames) if tri is not None else None
-        R0, c0, static = _start_pose(d, tri_d, rest_markers, pelvis, o.static_tol_m)
+        d = dense_frames(obs, o.max_gap)
+        tri_d = dense_triangulation(tri, obs.frames, d.frames) if tri is not None else None
+        R0, c0, static = rigid_start(d, tri_d, rest_markers, pelvis, o.static_tol_m)
         dense.append(d)
+        dtris.append(tri_d)
         starts.append((R0, c0))
         statics.append(static)
         if o.sigma_px is not None:
             sigma = o.sigma_px
         else:
             med = np.nanmedian(tri.error) if tri is not None and np.isfinite(tri.error).any() else 0
-            sigma = 2.5 * float(np.nan_to_num(med))
+            sigma = o.sigma_factor * float(np.nan_to_num(med))
         sigmas.append(max(o.min_sigma_px, sigma))
         single.append(bool((np.asarray(obs.rows >= 0).sum(1) < 2).all()))
 
     lengths = [len(d.frames) for d in dense]
     offsets = np.cumsum([0] + lengths)
-    prev = np.concatenate(
-        [
-            np.where(np.r_[False, np.diff(d.frames) == 1], np.arange(len(d.frames)) - 1 + off, -1)
-            for d, off in zip(dense, offsets[:-1], strict=True)
-        ]
-    )
+    person = torch.as_tensor(np.repeat(np.arange(len(dense)), lengths))
+    observed = np.concatenate([(d.rows >= 0).any(1) for d in dense])
 
     def cat(name: str) -> torch.Tensor:
-        return torch.as_tensor(np.concatenate([getattr(d, name) for d in dense]), dtype=dtype)
+        return torch.as_tensor(np.concatenate([getattr(d, name) for d in dense]), dtype=DTYPE)
 
-    conf = cat("confidence")
-    uv = cat("uv")
-    weight = torch.where(
-        (conf >= o.min_confidence) & torch.isfinite(uv).all(-1), conf, torch.zeros_like(conf)
+    conf, uv = cat("confidence"), cat("uv")
+    usable = (conf >= o.min_confidence) & torch.isfinite(uv).all(-1)
+    views = Views(
+        cat("K"), cat("Rt"), torch.nan_to_num(uv), torch.where(usable, conf, 0 * conf),
+        cat("px_scale"), torch.as_tensor(np.repeat(sigmas, lengths), dtype=DTYPE),
+    )  # fmt: skip
+    lo, hi = _limits_tensor(body)
+    weights = Weights(
+        o.w_pose, o.w_limits, o.w_smooth, (fps / 30.0) ** 2 / o.smooth_scale_m, lo, hi
     )
-    batch = _Batch(
-        person=torch.as_tensor(np.repeat(np.arange(len(dense)), lengths)),
-        K=cat("K"),
-        Rt=cat("Rt"),
-        uv=torch.nan_to_num(uv),
-        weight=weight,
-        scale=cat("px_scale"),
-        prev=torch.as_tensor(prev),
-        sigma=torch.as_tensor(np.repeat(sigmas, lengths), dtype=dtype),
-    )
-    B = int(offsets[-1])
-    R0 = torch.as_tensor(np.concatenate([s[0] for s in starts]), dtype=dtype)
-    root6d = matrix_to_rot6d(R0).clone()
-    transl = torch.as_tensor(np.concatenate([s[1] for s in starts]), dtype=dtype).clone()
-    pose = torch.zeros(B, 69, dtype=dtype)
-    betas = torch.zeros(len(dense), o.num_betas, dtype=dtype)
+    nbrs = _neighbours([d.frames for d in dense])
+
     if start is not None:
         if [len(f.frames) for f in start] != lengths:
             raise ValueError("fit_people: `start` must cover the same people and frames")
-        betas = torch.as_tensor(np.stack([f.betas for f in start]), dtype=dtype).clone()
-        cat_start = lambda k: torch.as_tensor(  # noqa: E731
-            np.concatenate([getattr(f, k) for f in start]), dtype=dtype
+
+        def joined(k: str) -> torch.Tensor:
+            return torch.as_tensor(np.concatenate([getattr(f, k) for f in start]), dtype=DTYPE)
+
+        state = BodyState(
+            axis_angle_to_matrix(joined("global_orient")), joined("transl"),
+            joined("body_pose").reshape(-1, 23, 3),
+            torch.as_tensor(np.stack([f.betas for f in start]), dtype=DTYPE),
+        )  # fmt: skip
+    else:
+        state = BodyState(
+            torch.as_tensor(np.concatenate([s[0] for s in starts]), dtype=DTYPE),
+            torch.as_tensor(np.concatenate([s[1] for s in starts]), dtype=DTYPE),
+            torch.zeros(int(offsets[-1]), 23, 3, dtype=DTYPE),
+            torch.zeros(len(dense), nb, dtype=DTYPE),
         )
-        root6d = matrix_to_rot6d(axis_angle_to_matrix(cat_start("global_orient"))).clone()
-        pose = cat_start("body_pose").reshape(B, 69).clone()
-        transl = cat_start("transl").clone()
-    lo, hi = _limits_tensor(body)
 
-    def energy(params_betas, params_root, params_pose, params_transl):
-        _, _, _, reproj, smooth, limits, prior = _objective_terms(
-            body, markers, batch, params_betas, params_root, params_pose, params_transl,
-            o, fps, lo, hi,
-        )  # fmt: skip
-        frame = reproj + o.w_smooth * smooth + o.w_limits * limits + o.w_pose * prior
-        return frame.mean() + o.w_betas * params_betas.pow(2).sum(-1).mean()
+    M = len(sk.anchor)
+    fixed = torch.zeros(len(dense), M, 3, dtype=DTYPE)
+    for k, d in enumerate(marker_offsets or []):
+        if d is not None:
+            fixed[k] = torch.as_tensor(d, dtype=DTYPE)
 
-    def run(params: list[torch.Tensor], iterations: int) -> None:
-        for p in params:
-            p.requires_grad_(True)
-        opt = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=iterations, history_size=20,
-            line_search_fn="strong_wolfe", tolerance_grad=1e-7, tolerance_change=1e-10,
-        )  # fmt: skip
+    def marker_table(s: BodyState) -> torch.Tensor:
+        own = fixed if s.offsets is None else fixed + s.offsets
+        return (sk.offsets + own)[person]  # (B, M, 3)
 
-        def closure():
-            opt.zero_grad()
-            e = energy(betas, root6d, pose, transl)
-            e.backward()
-            return e
+    def solve(state: BodyState, evidence, w: Weights, iterations: int) -> BodyState:
+        def energy(s: BodyState) -> torch.Tensor:
+            X, _, _, local = sk.forward(
+                s.betas[person], s.root, s.theta, s.transl, offsets=marker_table(s)
+            )
+            return cost(X, s.theta, local, evidence, nbrs, w)
 
-        opt.step(closure)
-        for p in params:
-            p.requires_grad_(False)
+        def lin(s: BodyState):
+            X, _, G, local, dX = sk.forward(
+                s.betas[person], s.root, s.theta, s.transl, True, marker_table(s)
+            )
+            turn = None if s.offsets is None else G[:, sk.frame]
+            return linearise(X, dX, s.theta, local, evidence, nbrs, w, turn)
 
-    if o.init_iterations and start is None:
-        run([root6d, transl], o.init_iterations)
-    run([betas, root6d, pose, transl], o.iterations)
+        prior = torch.full((nb,), o.w_betas, dtype=DTYPE)
+        if state.offsets is not None:
+            prior = torch.cat([prior, torch.full((3 * M,), o.w_marker_offsets, dtype=DTYPE)])
+        return levenberg_marquardt(state, person, energy, lin, iterations, prior)
 
     with torch.no_grad():
-        out, X, r, *_ = _objective_terms(
-            body, markers, batch, betas, root6d, pose, transl, o, fps, lo, hi
-        )
-        root = rot6d_to_matrix(root6d)
-        go = matrix_to_axis_angle(root)
-        observed_px = torch.where(batch.weight > 0, r, torch.full_like(r, float("nan")))
+        if start is None and o.init_iterations:
+            pts = np.concatenate(
+                [t.points if t is not None else np.full((n, 33, 3), np.nan)
+                 for t, n in zip(dtris, lengths, strict=True)]
+            )  # fmt: skip
+            w3 = np.concatenate(
+                [t.confidence if t is not None else np.zeros((n, 33))
+                 for t, n in zip(dtris, lengths, strict=True)]
+            )  # fmt: skip
+            w3 = np.where(np.isfinite(pts).all(-1), w3, 0.0)
+            start_evidence = [
+                Points(
+                    torch.as_tensor(np.nan_to_num(pts), dtype=DTYPE),
+                    torch.as_tensor(w3, dtype=DTYPE),
+                    o.sigma_3d_m,
+                )
+            ]
+            # frames with no triangulated torso (one view at a time): the 2D landmarks with a
+            # wide kernel, so that a start far from the answer still feels all of them
+            no_tri = torch.as_tensor((w3[:, list(TORSO_LANDMARKS)] == 0).all(1) & observed)
+            if bool(no_tri.any()):
+                start_evidence.append(
+                    replace(
+                        views,
+                        weight=views.weight * no_tri[:, None, None],
+                        sigma=views.sigma * o.start_sigma_factor,
+                    )
+                )
+            state = solve(state, start_evidence, replace(weights, smooth=0.0), o.init_iterations)
+            state = _fill_unobserved(state, observed, offsets)
+        if o.w_marker_offsets > 0:  # the person's own markers, from the 2D evidence only
+            state = replace(state, offsets=torch.zeros(len(dense), M, 3, dtype=DTYPE))
+        if o.view_weighting and o.view_rounds:
+            for _ in range(o.view_rounds):
+                weighed = _weigh_views(state, views, sk, person, marker_table(state))
+                state = solve(state, weighed, weights, o.iterations)
+        else:
+            state = solve(state, views, weights, o.iterations)
+        X, J, _, _ = sk.forward(
+            state.betas[person], state.root, state.theta, state.transl,
+            offsets=marker_table(state),
+        )  # fmt: skip
+        own = fixed if state.offsets is None else fixed + state.offsets
+        r = views.residuals(X)
+        reproj = torch.where(views.weight > 0, r, torch.full_like(r, float("nan")))
+        go = matrix_to_axis_angle(state.root)
+
     results = []
     for k, d in enumerate(dense):
         a, b = offsets[k], offsets[k + 1]
@@ -428,40 +323,18 @@ def fit_people(
             PersonFit(
                 person_id=d.person_id,
                 frames=d.frames,
-                betas=betas[k].double().numpy(),
-                global_orient=go[a:b].double().numpy(),
-                body_pose=pose[a:b].reshape(-1, 23, 3).double().numpy(),
-                transl=transl[a:b].double().numpy(),
-                joints=out.joints[a:b].double().numpy(),
-                markers=X[a:b].double().numpy(),
-                reprojection=observed_px[a:b].double().numpy(),
+                betas=state.betas[k].numpy(),
+                global_orient=go[a:b].numpy(),
+                body_pose=state.theta[a:b].numpy().copy(),
+                transl=state.transl[a:b].numpy(),
+                joints=J[a:b].numpy(),
+                markers=X[a:b].numpy(),
+                reprojection=reproj[a:b].numpy(),
                 observed=(d.rows >= 0).any(1),
                 static=statics[k],
                 single_view=single[k],
                 sigma_px=sigmas[k],
+                marker_offsets=own[k].numpy(),
             )
         )
     return results
-
-
-def _dense_tri(
-    tri: PersonTriangulation, frames: np.ndarray, dense: np.ndarray
-) -> PersonTriangulation:
-    if len(frames) == len(dense):
-        return tri
-    idx = np.searchsorted(frames, dense)
-    have = np.isin(dense, frames)
-    src = np.where(have, idx, 0)
-
-    def take(a: np.ndarray, fill) -> np.ndarray:
-        out = a[src].copy()
-        out[~have] = fill
-        return out
-
-    return PersonTriangulation(
-        take(tri.points, np.nan),
-        take(tri.used, False),
-        take(tri.errors, np.nan),
-        take(tri.error, np.nan),
-        take(tri.confidence, 0.0),
-    )

@@ -3,8 +3,9 @@
 The data the virtual-marker model (gst.body.markers) is fitted on: a synthetic world is
 rendered (`synth.scene`, tuning seeds 5000+ only, never the demo seed 0 or reporting seeds),
 every truth person box is cropped (HMR2 square, undistorted, own K: the extraction's
-convention) and BlazePose runs on each crop with the whole crop as its region of interest,
-exactly as `gst.fuse.observations.crop_landmarks` does on extracted crops.
+convention) and BlazePose runs on each crop exactly as `gst.fuse.observations.crop_landmarks`
+does on extracted crops (`detect_crop_landmarks(refine=True)`: whole crop, then the alignment
+region and its mirror).
 
     python -m gst.fuse.marker_data --seed 5000 --out /work/data/fuse/worlds
 """
@@ -55,20 +56,11 @@ def load_marker_data(paths: list[Path]) -> MarkerData:
 
 def detect_world(scene_dir: Path, seed: int) -> MarkerData:
     """Crops of a rendered world with truth, and BlazePose landmarks on each."""
-
-    from gst.detect.blazepose import BlazePose, BodyRoi
+    from gst.detect.crops import detect_crop_landmarks
     from gst.train.synthetic_crops import crops_from_synth_scene
 
     crops = crops_from_synth_scene(scene_dir, crop_size=256)
-    model = BlazePose(threads=1)
-    s = crops.crop_size
-    roi = BodyRoi(((s - 1) / 2, (s - 1) / 2), float(s), 0.0)
-    lm = np.zeros((len(crops), N_LANDMARKS, 3), np.float32)
-    for i in range(len(crops)):
-        bgr = np.ascontiguousarray(crops.images[i].numpy()[..., ::-1])  # CropSet images are RGB
-        seg = model.segment(bgr, roi)
-        lm[i, :, :2] = seg.landmarks[:, :2]
-        lm[i, :, 2] = seg.landmarks[:, 2] * seg.presence
+    lm = detect_crop_landmarks(crops.images.numpy(), rgb=True, refine=True).with_confidence()
     people = read_scene_truth(scene_dir)
     key = people.row_index()
     frame, person = crops.frame.numpy(), crops.person.numpy()

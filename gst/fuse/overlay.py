@@ -68,9 +68,9 @@ def write_overlays(
             raise OSError(f"overlay: cannot open video {videos[name]} of camera '{name}'")
         fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
 
-        def write(tmp: str, cap=cap, cam=cam, fps=fps, name=name) -> None:
+        def write(tmp: Path, cap=cap, cam=cam, fps=fps, name=name) -> None:
             # OpenCV picks the container from the extension: encode to a .mp4 name, then move.
-            tmp_mp4 = tmp + ".mp4"
+            tmp_mp4 = f"{tmp}.mp4"
             writer = None
             frame_no = 0
             while True:

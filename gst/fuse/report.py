@@ -1,10 +1,12 @@
 """The fusion report: reprojection per camera and landmark, bone lengths, gap share, truth.
 
 `reports/fuse/summary.json` holds every number; `reports/fuse/report.md` the tables people
-read; `reports/fuse/bone_lengths.png` the triangulated segment lengths over time. Bone lengths
-are given twice: from the body fit (one shape per person, so constant by construction: a check
-of the pipeline, not of the data) and from the triangulated landmarks (the measurement: their
-coefficient of variation over the clip says how steady the rig's 3D is).
+read; `reports/fuse/bone_lengths.png` the limb lengths over time. Limb lengths are given three
+times: from the body fit (one shape per person, so constant by construction: a check of the
+pipeline, not of the data), from the triangulated landmarks (the distance between two noisy
+points), and from a fit of every frame on its own with the shape free (gst.fuse.consistency:
+the measurement of how steady the rig's 3D is). Coefficients of variation are given plain
+(std / mean) and robust (1.4826 MAD / median, which one wrong frame cannot dominate).
 """
 
 from __future__ import annotations
@@ -40,8 +42,14 @@ LANDMARK_SEGMENTS = {
 def _stats(x: np.ndarray) -> dict:
     x = x[np.isfinite(x)]
     if not len(x):
-        return {"mean_m": None, "cv": None, "frames": 0}
-    return {"mean_m": float(x.mean()), "cv": float(x.std() / x.mean()), "frames": int(len(x))}
+        return {"mean_m": None, "cv": None, "robust_cv": None, "frames": 0}
+    med = float(np.median(x))
+    return {
+        "mean_m": float(x.mean()),
+        "cv": float(x.std() / x.mean()),
+        "robust_cv": float(1.4826 * np.median(np.abs(x - med)) / med),
+        "frames": int(len(x)),
+    }
 
 
 @dataclass
@@ -52,6 +60,7 @@ class FuseSummary:
     gap_filled_share: float = float("nan")
     frames: int = 0
     truth: dict | None = None
+    camera_corrections_deg: dict = field(default_factory=dict)  # gst.fuse.rig, per camera
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -64,7 +73,9 @@ def summarise(
     camera_names: list[str],
     n_frames: int,
     truth: dict | None = None,
+    limb_lengths: list[dict[str, np.ndarray]] | None = None,
 ) -> FuseSummary:
+    """`limb_lengths`: per person, gst.fuse.consistency.per_frame_limb_lengths."""
     s = FuseSummary(frames=n_frames, truth=truth)
     allr = (
         np.concatenate([f.reprojection.reshape(-1, *f.reprojection.shape[1:]) for f in fits])
@@ -81,7 +92,9 @@ def summarise(
         s.median_reprojection_px = float(np.nanmedian(allr)) if np.isfinite(allr).any() else None
     gaps = [ev.gap_filled[:, ev.has_landmarks] for ev in evidence]
     s.gap_filled_share = float(np.concatenate(gaps).mean()) if gaps else None
-    for fit, tri, ev in zip(fits, tris, evidence, strict=True):
+    limbs_all = limb_lengths if limb_lengths is not None else [None] * len(fits)
+    for fit, tri, ev, limbs in zip(fits, tris, evidence, limbs_all, strict=True):
+        frame_fit = {k: _stats(v) for k, v in limbs.items()} if limbs is not None else {}
         bones = {}
         for j, p in enumerate(SMPL_PARENTS):
             if p >= 0:
@@ -114,6 +127,10 @@ def summarise(
                 "betas": [round(float(b), 4) for b in fit.betas],
                 "fit_bone_lengths": bones,
                 "triangulated_segments": segs,
+                "per_frame_fit_segments": frame_fit,
+                "max_per_frame_fit_cv": max(
+                    (v["cv"] for v in frame_fit.values() if v["cv"] is not None), default=None
+                ),
                 "max_fit_bone_cv": max((v["cv"] or 0.0) for v in bones.values()) if bones else None,
                 "max_triangulated_segment_cv": max(
                     (v["cv"] for v in segs.values() if v["cv"] is not None), default=None
@@ -128,6 +145,7 @@ def write_report(
     out_dir: Path,
     fits: list[PersonFit],
     tris: list[PersonTriangulation | None],
+    limb_lengths: list[dict[str, np.ndarray]] | None = None,
 ) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     doc = json.dumps(summary.as_dict(), indent=1, sort_keys=True, default=float) + "\n"
@@ -139,6 +157,13 @@ def write_report(
         f"Share of observable joint-frames filled by the fit (< 2 views): "
         f"{_fmt(100 * summary.gap_filled_share if summary.gap_filled_share is not None else None)} %."
     )
+    if summary.camera_corrections_deg:
+        corr = ", ".join(f"{c} {v:.2f}" for c, v in summary.camera_corrections_deg.items())
+        lines += [
+            "",
+            f"Camera rotations corrected from the fitted bodies (degrees): {corr}. A correction "
+            "of more than a few tenths of a degree says the calibration is worth redoing.",
+        ]
     if summary.truth:
         t = summary.truth
         lines += [
@@ -161,18 +186,22 @@ def write_report(
             f"{_fmt(p['median_reprojection_px'])} | {_fmt(100 * p['gap_filled_share'])} | "
             f"{_fmt(None if cv is None else 100 * cv)} |"
         )
-    lines += ["", "## Triangulated segment lengths (mean m, CV %)", ""]
     names = list(LANDMARK_SEGMENTS)
-    lines += ["| id | " + " | ".join(names) + " |", "| --- |" + " --- |" * len(names)]
-    for p in summary.people:
-        seg = p["triangulated_segments"]
-        cells = [
-            f"{_fmt(seg[n]['mean_m'], 3)} / {_fmt(None if seg[n]['cv'] is None else 100 * seg[n]['cv'])}"
-            if n in seg
-            else "-"
-            for n in names
-        ]
-        lines.append(f"| {p['person_id']} | " + " | ".join(cells) + " |")
+    for key, title in (
+        ("per_frame_fit_segments", "Limb lengths, each frame fitted with its own shape"),
+        ("triangulated_segments", "Limb lengths between triangulated landmarks"),
+    ):
+        lines += ["", f"## {title} (mean m / CV % / robust CV %)", ""]
+        lines += ["| id | " + " | ".join(names) + " |", "| --- |" + " --- |" * len(names)]
+        for p in summary.people:
+            seg = p[key]
+            cells = [
+                f"{_fmt(seg[n]['mean_m'], 3)} / {_pct(seg[n]['cv'])} / {_pct(seg[n]['robust_cv'])}"
+                if n in seg
+                else "-"
+                for n in names
+            ]
+            lines.append(f"| {p['person_id']} | " + " | ".join(cells) + " |")
     lines += ["", "## Median reprojection error per camera and landmark (px)", ""]
     short = [n for n in BLAZEPOSE_NAMES if "eye" not in n and "mouth" not in n]
     lines += ["| camera | " + " | ".join(short) + " |", "| --- |" + " --- |" * len(short)]
@@ -181,33 +210,45 @@ def write_report(
     lines += ["", "![segment lengths](bone_lengths.png)", ""]
     text = "\n".join(lines)
     atomic_write(out_dir / "report.md", lambda t: Path(t).write_text(text))
-    _plot(out_dir / "bone_lengths.png", fits, tris)
+    _plot(out_dir / "bone_lengths.png", fits, tris, limb_lengths)
+
+
+def _pct(v) -> str:
+    return _fmt(None if v is None else 100 * v)
 
 
 def _fmt(v, digits: int = 1) -> str:
     return "-" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
 
 
-def _plot(path: Path, fits: list[PersonFit], tris: list[PersonTriangulation | None]) -> None:
+def _plot(
+    path: Path,
+    fits: list[PersonFit],
+    tris: list[PersonTriangulation | None],
+    limbs: list[dict[str, np.ndarray]] | None = None,
+) -> None:
+    """Per person: limb lengths over time, each frame fitted with its own shape (solid) and
+    between triangulated landmarks (dotted)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = max(1, len(fits))
-    fig, axes = plt.subplots(n, 1, figsize=(8, 2.4 * n), squeeze=False)
-    for ax, fit, tri in zip(axes[:, 0], fits, tris, strict=False):
-        if tri is None:
-            continue
-        for name, (a, b) in LANDMARK_SEGMENTS.items():
-            ia, ib = BLAZEPOSE_NAMES.index(a), BLAZEPOSE_NAMES.index(b)
-            ax.plot(
-                fit.frames,
-                np.linalg.norm(tri.points[:, ia] - tri.points[:, ib], axis=-1),
-                lw=1,
-                label=name,
-            )
-        ax.set_title(f"person {fit.person_id}: triangulated segment lengths")
+    fig, axes = plt.subplots(n, 1, figsize=(8, 2.6 * n), squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, (ax, fit, tri) in enumerate(zip(axes[:, 0], fits, tris, strict=False)):
+        for i, (name, (a, b)) in enumerate(LANDMARK_SEGMENTS.items()):
+            col = colours[i % len(colours)]
+            if limbs is not None and name in limbs[k]:
+                ax.plot(fit.frames, limbs[k][name], lw=1.2, color=col, label=name)
+            if tri is not None:
+                ia, ib = BLAZEPOSE_NAMES.index(a), BLAZEPOSE_NAMES.index(b)
+                seg = np.linalg.norm(tri.points[:, ia] - tri.points[:, ib], axis=-1)
+                ax.plot(fit.frames, seg, lw=0.6, ls=":", color=col)
+        ax.set_ylim(0.1, 0.6)
+        ax.set_title(f"person {fit.person_id}: limb lengths (solid: per-frame fit, dotted: "
+                     "triangulated landmarks)", fontsize=8)  # fmt: skip
         ax.set_xlabel("frame")
         ax.set_ylabel("m")
     axes[0, 0].legend(fontsize=6, ncol=4)

@@ -1,8 +1,10 @@
 """`fuse_scene`: from a scene's crop store to world-space bodies, marker files and a report.
 
-Steps: landmarks per crop (gst.fuse.observations) -> robust triangulation per person
-(gst.fuse.triangulate) -> body fit over the clip (gst.fuse.fit), people in fixed batches ->
-outputs (docs/formats/fused_*.md):
+Steps: landmarks per crop (gst.fuse.observations) -> people regrouped by 3D agreement and
+tracked (gst.fuse.regroup, with the per person-frame view consensus of gst.fuse.consensus:
+views that show another person move to that person or are dropped, exchanged left/right limb
+groups are put right) -> robust triangulation per person (gst.fuse.triangulate) -> body fit
+over the clip (gst.fuse.fit), people in fixed batches -> outputs (docs/formats/fused_*.md):
 
     fused/bodies.parquet        the tracks schema in the world frame, + per-joint evidence
     fused/landmarks.parquet     triangulated BlazePose landmarks, views, errors, confidence
@@ -32,10 +34,14 @@ from gst.atomic import atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.data.store import CropStore
+from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
-from gst.fuse.fit import FitOptions, PersonFit, _dense_tri, fit_people
+from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import crop_landmarks, group_by_person
+from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.report import FuseSummary, summarise, write_report
+from gst.fuse.rig import apply_corrections, camera_corrections, corrected_rig, rotation_matrix
+from gst.fuse.start import dense_triangulation
 from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
 from gst.fuse.triangulate import TriangulationOptions, triangulate_person
 
@@ -48,6 +54,12 @@ class FuseOptions:
     markers: str | None = None  # a markers JSON; None: the package's fitted table
     fit: FitOptions = FitOptions()
     triangulation: TriangulationOptions = TriangulationOptions()
+    regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
+    refine_landmarks: bool = True  # second BlazePose pass (gst.detect.crops, refine=True)
+    mask_others: bool = False  # dim pixels outside the crop's person mask before BlazePose
+    refine_rig_rounds: int = (
+        0  # rounds of camera rotations corrected from the bodies (gst.fuse.rig)
+    )
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     threads: int = 1
@@ -125,6 +137,40 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
     return fits
 
 
+def _fit_batches(body, markers, people, tris, fps, o, work: Path, rnd: int, progress, log):
+    """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
+    fits: list[PersonFit] = []
+    batches = range(0, len(people), o.people_per_batch)
+    if progress is not None:
+        batches = progress(batches, description="body fit (batches of people)", total=len(batches))
+    for a in batches:
+        path = work / f"fit_{rnd}_{a:06d}.npz"
+        if path.is_file():
+            fits += _fits_from_npz(path)
+            continue
+        part = fit_people(
+            body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
+            fps, o.fit,
+        )  # fmt: skip
+        _save_npz(path, **_fits_to_arrays(part))
+        fits += part
+        if log is not None:
+            log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
+    return fits
+
+
+def _log_rotation(R: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(R)[0].ravel()
+
+
+def _on_frames(values: np.ndarray, frames: np.ndarray, dense: np.ndarray) -> np.ndarray:
+    out = np.full(len(dense), np.nan)
+    out[np.searchsorted(dense, frames)] = values
+    return out
+
+
 def fuse_scene(
     store_path: str | Path,
     rig,
@@ -174,33 +220,49 @@ def fuse_scene(
         if lm_path.is_file():
             landmarks = np.load(lm_path)
         else:
-            landmarks = crop_landmarks(store, progress=progress)
+            landmarks = crop_landmarks(
+                store, progress=progress, refine=o.refine_landmarks, masked=o.mask_others
+            )
             _save_npy(lm_path, landmarks)
     people = group_by_person(store, landmarks)
+    if o.regroup is not None:
+        people, regrouped = regroup_people(people, o.regroup)
+        if log is not None:
+            log.info(
+                "fuse: %d people after regrouping (%d crops moved to another person)",
+                regrouped.tracks, regrouped.moved_crops,
+            )  # fmt: skip
     tris = [triangulate_person(p, o.triangulation) for p in people]
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
 
-    fits: list[PersonFit] = []
-    batches = range(0, len(people), o.people_per_batch)
-    if progress is not None:
-        batches = progress(batches, description="body fit (batches of people)", total=len(batches))
-    for a in batches:
-        path = work / f"fit_{a:06d}.npz"
+    corrections = np.zeros((len(cams), 3))
+    for rnd in range(o.refine_rig_rounds + 1):
+        fits = _fit_batches(body, markers, people, tris, fps, o, work, rnd, progress, log)
+        if rnd == o.refine_rig_rounds:
+            break
+        path = work / f"rig_{rnd}.npy"
         if path.is_file():
-            fits += _fits_from_npz(path)
-            continue
-        part = fit_people(
-            body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
-            fps, o.fit,
-        )  # fmt: skip
-        _save_npz(path, **_fits_to_arrays(part))
-        fits += part
+            w = np.load(path)
+        else:
+            w = camera_corrections(fits, people)
+            _save_npy(path, w)
+        apply_corrections(people, w)
+        corrections = np.stack(
+            [
+                _log_rotation(rotation_matrix(a) @ rotation_matrix(b))
+                for a, b in zip(w, corrections, strict=True)
+            ]
+        )
+        tris = [triangulate_person(p, o.triangulation) for p in people]
         if log is not None:
-            log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
-
+            log.info(
+                "fuse: camera corrections (deg) %s",
+                np.round(np.degrees(np.linalg.norm(w, axis=1)), 2).tolist(),
+            )
     dense_tris = [
-        _dense_tri(t, p.frames, f.frames) for t, p, f in zip(tris, people, fits, strict=True)
+        dense_triangulation(t, p.frames, f.frames)
+        for t, p, f in zip(tris, people, fits, strict=True)
     ]
     evidence = [joint_evidence(f, t) for f, t in zip(fits, dense_tris, strict=True)]
     n_frames = int(store.attrs.get("n_frames", 0)) or (
@@ -212,7 +274,23 @@ def fuse_scene(
         from synth.truth import read_scene_truth
 
         truth = compare_with_truth(fits, read_scene_truth(truth_dir), body).as_dict()
-    summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth)
+    limbs = per_frame_limb_lengths(
+        body, markers, people, tris, fps, o.fit,
+        marker_offsets=[f.marker_offsets for f in fits],
+    )  # fmt: skip
+    limbs = [
+        {k: _on_frames(v, p.frames, f.frames) for k, v in per.items()}
+        for per, p, f in zip(limbs, people, fits, strict=True)
+    ]
+    summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth, limbs)
+    summary.camera_corrections_deg = (
+        {}
+        if not o.refine_rig_rounds
+        else {
+            c: round(float(np.degrees(np.linalg.norm(w))), 3)
+            for c, w in zip(cams, corrections, strict=True)
+        }
+    )
 
     bodies = out_dir / "bodies.parquet"
     write_bodies(
@@ -235,7 +313,7 @@ def fuse_scene(
         write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.gap_filled)
         trc.append(t_path)
         c3d.append(c_path)
-    write_report(summary, report_dir, fits, dense_tris)
+    write_report(summary, report_dir, fits, dense_tris, limbs)
     overlays: list[Path] = []
     if o.overlay and fits:
         from gst.fuse.overlay import write_overlays
@@ -246,7 +324,12 @@ def fuse_scene(
             }
         videos = {k: v for k, v in videos.items() if Path(v).is_file()}
         overlays = write_overlays(
-            fits, body, rig, videos, report_dir / "overlay", progress=progress
+            fits,
+            body,
+            corrected_rig(rig, cams, corrections),
+            videos,
+            report_dir / "overlay",
+            progress=progress,
         )
     shutil.rmtree(work)
     return FuseResult(bodies, lm_out, trc, c3d, overlays, summary, fits)

@@ -3,7 +3,7 @@
 `fused/bodies.parquet` has every column and every metadata key of a tracks file
 (gst.track.schema, docs/formats/tracks_parquet.md), one row per frame and person, with the
 world-frame values filled and the single-camera ones null (`bbox`, `global_orient_cam`,
-`transl_cam`, `joints2d`), plus per-joint evidence columns (docs/formats/fused_bodies.md).
+`transl_cam`, `joints2d`, `landmarks2d`, `landmarks_conf`), plus per-joint evidence columns (docs/formats/fused_bodies.md).
 `fused/landmarks.parquet` holds the robust triangulation of the 33 BlazePose landmarks
 (docs/formats/fused_landmarks.md).
 """
@@ -163,6 +163,8 @@ def write_bodies(
         "transl_world": fixed("transl_world", 3),
         "joints3d": fixed("joints3d", 72),
         "joints2d": nulls("joints2d"),
+        "landmarks2d": nulls("landmarks2d"),  # tracks format 2; fused/landmarks.parquet has 3D
+        "landmarks_conf": nulls("landmarks_conf"),
         "joint_views": fixed("joint_views", 24, np.uint8),
         "joint_view_mask": fixed("joint_view_mask", 24, np.int64),
         "joint_reprojection_px": fixed("joint_reprojection_px", 24),
@@ -193,7 +195,14 @@ def write_bodies(
             "extra_columns": {
                 k: {"unit": u, "description": d} for k, (_, u, d) in EXTRA_COLUMNS.items()
             },
-            "null_columns": ["bbox", "global_orient_cam", "transl_cam", "joints2d"],
+            "null_columns": [
+                "bbox",
+                "global_orient_cam",
+                "transl_cam",
+                "joints2d",
+                "landmarks2d",
+                "landmarks_conf",
+            ],
         },
         sort_keys=True,
     )

@@ -179,7 +179,9 @@ def triangulate_points(
         mean_conf = np.where(n_used > 0, (conf * used).sum(1) / np.maximum(n_used, 1), 0.0)
     # Confidence: the detections' own, discounted for few views and for a poor fit.
     confidence_out = mean_conf * np.clip((n_used - 1) / 2, 0, 1)
-    confidence_out *= np.exp(-np.square(np.nan_to_num(error, nan=np.inf) / o.outlier_px))
+    confidence_out *= np.exp(
+        -np.square(np.minimum(np.nan_to_num(error, nan=1e6), 1e6) / o.outlier_px)
+    )
     return Triangulated(X, used, errors, error, np.nan_to_num(confidence_out))
 
 

@@ -139,14 +139,13 @@ def world_spec(
 
 
 def _people_columns(scene_dir: Path) -> tuple[dict[tuple[int, int], int], dict[str, np.ndarray]]:
-    """(frame, person) -> truth row, and the truth's parameter columns (`synth.truth`)."""
     truth = read_scene_truth(scene_dir)
     cols = {
-        "global_orient": truth.global_orient.astype(np.float32),
-        "body_pose": truth.body_pose.reshape(len(truth), -1).astype(np.float32),
-        "betas": truth.betas.astype(np.float32),
-        "transl": truth.transl.astype(np.float32),
-        "motion": np.asarray(truth.motion),
+        "global_orient": truth.global_orient,
+        "body_pose": truth.body_pose.reshape(len(truth), -1),
+        "betas": truth.betas,
+        "transl": truth.transl,
+        "motion": np.asarray([str(m) for m in truth.motion]),
     }
     return truth.row_index(), cols
 

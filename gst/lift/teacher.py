@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gst.fuse import FitOptions, FuseOptions, TriangulationOptions, fuse_scene
+from gst.fuse import FuseOptions, fuse_scene
 from gst.train.distill import FusedBodies, read_fused_bodies, teacher_landmarks
 
 log = logging.getLogger("gst.train")
@@ -26,21 +26,26 @@ log = logging.getLogger("gst.train")
 __all__ = ["RigTeacher", "fuse_options"]
 
 
+def _build(cls, recorded: dict):
+    """An options dataclass from its recorded JSON: nested option dataclasses are rebuilt,
+    fields this version does not know are ignored, missing ones keep their defaults."""
+    defaults = cls()
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in recorded:
+            continue
+        value, default = recorded[f.name], getattr(defaults, f.name)
+        if dataclasses.is_dataclass(default) and isinstance(value, dict):
+            value = _build(type(default), value)
+        elif isinstance(default, tuple) and isinstance(value, list):
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
 def fuse_options(settings: dict) -> FuseOptions:
-    """FuseOptions from a fused file's recorded settings (fields this version does not know are
-    ignored, missing ones keep their defaults; no overlay videos)."""
-
-    def build(cls, d: dict | None):
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in (d or {}).items() if k in names})
-
-    top = {k: v for k, v in settings.items() if k not in ("fit", "triangulation")}
-    return dataclasses.replace(
-        build(FuseOptions, top),
-        fit=build(FitOptions, settings.get("fit")),
-        triangulation=build(TriangulationOptions, settings.get("triangulation")),
-        overlay=False,
-    )
+    """The fuse stage's FuseOptions from the settings its file records (no overlay videos)."""
+    return dataclasses.replace(_build(FuseOptions, settings), overlay=False)
 
 
 @dataclass(frozen=True)

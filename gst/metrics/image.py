@@ -1,4 +1,5 @@
-"""Image metrics for novel-view evaluation: PSNR, SSIM, and SHERF-style metrics inside the body's box.
+"""Image metrics for novel-view evaluation: PSNR, SSIM, and SHERF-style metrics inside the
+body's box.
 
 Images are float tensors (B, C, H, W) with values in [0, data_range] (default [0, 1]).
 All metrics return one value per image, shape (B,), so callers can break results down per
@@ -39,7 +40,8 @@ def _check_pair(pred: torch.Tensor, target: torch.Tensor, fn: str) -> None:
         raise ValueError(f"{fn}: pred has shape {tuple(pred.shape)}, expected (B, C, H, W)")
     if pred.shape != target.shape:
         raise ValueError(
-            f"{fn}: pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same shape"
+            f"{fn}: pred {tuple(pred.shape)} and target {tuple(target.shape)} must have the same "
+            "shape"
         )
 
 
@@ -86,16 +88,18 @@ def ssim(
     data_range: float = 1.0,
     padding: Literal["same", "valid"] = "same",
 ) -> torch.Tensor:
-    """Mean SSIM per image, (B,), from `kornia.metrics.ssim` (Gaussian window, sigma 1.5, K1 0.01, K2 0.03).
+    """Mean SSIM per image, (B,), from `kornia.metrics.ssim`.
 
-    `padding="same"` (default, kornia's) reflect-pads the borders and averages over every pixel,
-    as torchmetrics does (agrees to 2e-7); `"valid"` averages only where the window fits, the
-    MATLAB / scikit-image (gaussian_weights=True) convention. H and W must be at least `window_size`.
+    Gaussian window, sigma 1.5, K1 0.01, K2 0.03. `padding="same"` (default, kornia's)
+    reflect-pads the borders and averages over every pixel, as torchmetrics does (agrees to
+    2e-7); `"valid"` averages only where the window fits, the MATLAB / scikit-image
+    (gaussian_weights=True) convention. H and W must be at least `window_size`.
     """
     _check_pair(pred, target, "ssim")
     if min(pred.shape[-2:]) < window_size:
         raise ValueError(
-            f"ssim: images of {tuple(pred.shape[-2:])} px are smaller than the {window_size} px window"
+            f"ssim: images of {tuple(pred.shape[-2:])} px are smaller than the {window_size} px "
+            "window"
         )
     smap = kornia.metrics.ssim(
         pred, target, window_size, max_val=data_range, eps=0.0, padding=padding
@@ -138,7 +142,10 @@ def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0
 
 
 def box_corners(min_xyz: np.ndarray, max_xyz: np.ndarray) -> np.ndarray:
-    """The 8 corners (8, 3) of an axis-aligned box; corner i takes max on axis k when bit k of i is set."""
+    """The 8 corners (8, 3) of an axis-aligned box.
+
+    Corner i takes the max on axis k when bit k of i is set.
+    """
     lo, hi = np.asarray(min_xyz, dtype=np.float64), np.asarray(max_xyz, dtype=np.float64)
     if lo.shape != (3,) or hi.shape != (3,) or np.any(hi < lo):
         raise ValueError(f"box_corners: expected min_xyz <= max_xyz, both (3,), got {lo} and {hi}")
@@ -146,7 +153,8 @@ def box_corners(min_xyz: np.ndarray, max_xyz: np.ndarray) -> np.ndarray:
 
 
 def points_box_corners(points: np.ndarray, margin: float = 0.05) -> np.ndarray:
-    """Corners (8, 3) of the axis-aligned box around `points` (N, 3), padded by `margin` (SHERF: 0.05 m)."""
+    """Corners (8, 3) of the axis-aligned box around `points` (N, 3), padded by `margin`
+    (SHERF: 0.05 m)."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
         raise ValueError(f"points_box_corners: points has shape {pts.shape}, expected (N>0, 3)")
@@ -254,7 +262,8 @@ def _per_image(
     if name == "t" and a.shape in ((3, 1), (b, 3, 1)):
         return _per_image(a[..., 0], b, shape, name)
     raise ValueError(
-        f"masked_bbox_metrics: {name} has shape {a.shape}, expected {shape} or ({b}, {', '.join(map(str, shape))})"
+        f"masked_bbox_metrics: {name} has shape {a.shape}, expected {shape} or ({b}, "
+        f"{', '.join(map(str, shape))})"
     )
 
 

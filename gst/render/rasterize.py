@@ -149,61 +149,29 @@ def rasterize(
     # Rasterise in the inputs' own dtype even inside an autocast region (bf16 training): with
     # bf16 matmuls the projection and the transmittance sums lose far more than the image is worth.
     with torch.autocast(means.device.type, enabled=False):
-        return _rasterize(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            viewmats,
-            Ks,
-            width,
-            height,
-            backgrounds,
-            backend,
-            near,
-            batched,
-        )
+        if not batched:
+            means, quats, scales, opacities, colors, viewmats, Ks = (
+                t[None] for t in (means, quats, scales, opacities, colors, viewmats, Ks)
+            )
+            backgrounds = None if backgrounds is None else backgrounds[None]
 
+        chosen = _resolve_backend(backend, means.device)
+        if chosen == "gsplat":
+            from gst.render.gsplat_backend import rasterize_gsplat
 
-def _rasterize(
-    means,
-    quats,
-    scales,
-    opacities,
-    colors,
-    viewmats,
-    Ks,
-    width,
-    height,
-    backgrounds,
-    backend,
-    near,
-    batched,
-) -> RenderOutput:
-    if not batched:
-        means, quats, scales, opacities, colors, viewmats, Ks = (
-            t[None] for t in (means, quats, scales, opacities, colors, viewmats, Ks)
-        )
-        backgrounds = None if backgrounds is None else backgrounds[None]
+            color_sum, alpha, depth = rasterize_gsplat(
+                means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
+            )
+        else:
+            color_sum, alpha, depth_sum = rasterize_cpu(
+                means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
+            )
+            depth = depth_sum / alpha.clamp_min(1e-10)
 
-    chosen = _resolve_backend(backend, means.device)
-    if chosen == "gsplat":
-        from gst.render.gsplat_backend import rasterize_gsplat
-
-        color_sum, alpha, depth = rasterize_gsplat(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
-        )
-    else:
-        color_sum, alpha, depth_sum = rasterize_cpu(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
-        )
-        depth = depth_sum / alpha.clamp_min(1e-10)
-
-    rgb = color_sum
-    if backgrounds is not None:
-        rgb = rgb + (1.0 - alpha)[..., None] * backgrounds[:, :, None, None, :]
-    out = RenderOutput(rgb=rgb, alpha=alpha, depth=depth)
-    if not batched:
-        out = RenderOutput(rgb=out.rgb[0], alpha=out.alpha[0], depth=out.depth[0])
-    return out
+        rgb = color_sum
+        if backgrounds is not None:
+            rgb = rgb + (1.0 - alpha)[..., None] * backgrounds[:, :, None, None, :]
+        out = RenderOutput(rgb=rgb, alpha=alpha, depth=depth)
+        if not batched:
+            out = RenderOutput(rgb=out.rgb[0], alpha=out.alpha[0], depth=out.depth[0])
+        return out

@@ -32,7 +32,14 @@ from gst.track.chunks import (
     track_chunk,
 )
 from gst.track.detection import Detector
-from gst.track.loop import TrackOptions, TrackResult, plan_run, run_metadata, track_video
+from gst.track.loop import (
+    TrackOptions,
+    TrackResult,
+    VideoRun,
+    plan_run,
+    run_metadata,
+    track_video,
+)
 from gst.track.predictor import Predictor
 from gst.track.schema import tracks_schema
 from gst.track.writer import TrackWriter, default_staging_root, partition_dir
@@ -55,6 +62,7 @@ class VideoJob:
     num_betas: int = 10
     threads: int | None = None  # torch threads inside the worker (None: leave as is)
     keep_extras: bool = False  # return each person's first extra outputs (e.g. Gaussians)
+    detector_info: dict | None = None  # which person detector runs and why (gst.detector)
 
 
 @dataclass(frozen=True)
@@ -82,6 +90,24 @@ def _chunk_settings(job: VideoJob, chunking: ChunkingConfig) -> dict:
     return {"chunking": chunking.settings(job.options)}
 
 
+def _run_settings(job: VideoJob) -> dict[str, Any]:
+    """The job's settings as keywords of plan_run and track_video, written once."""
+    return {
+        "model": job.model,
+        "camera": job.camera,
+        "video_name": job.name,
+        "options": job.options,
+        "num_betas": job.num_betas,
+        "world_up": job.world_up,
+        "detector_info": job.detector_info,
+    }
+
+
+def _chunked_run(job: VideoJob, chunking: ChunkingConfig) -> VideoRun:
+    """The job's run plan with the chunking in its settings (caller and workers agree)."""
+    return plan_run(job.video, extra_settings=_chunk_settings(job, chunking), **_run_settings(job))
+
+
 def run_item(item: _Item) -> Any:
     """Worker side: track one whole video (-> VideoOutcome) or one chunk (-> its record)."""
     job = item.job
@@ -101,26 +127,12 @@ def run_item(item: _Item) -> Any:
             item.out_root,
             detector,
             predictor,
-            model=job.model,
-            camera=job.camera,
-            video_name=job.name,
-            options=job.options,
-            num_betas=job.num_betas,
-            world_up=job.world_up,
             staging_root=item.staging_root,
             on_extra=keep if job.keep_extras else None,
+            **_run_settings(job),
         )
         return VideoOutcome(job, result, extras)
-    run = plan_run(
-        job.video,
-        model=job.model,
-        camera=job.camera,
-        video_name=job.name,
-        options=job.options,
-        num_betas=job.num_betas,
-        world_up=job.world_up,
-        extra_settings=_chunk_settings(job, item.chunking),
-    )
+    run = _chunked_run(job, item.chunking)
     path = _chunk_path(item.staging_root, run.name, item.chunk.index)
     done = read_chunk(path, chunk_digest(run, item.chunk))
     if done is not None:  # a retry or a resumed stage run: the chunk is already there
@@ -171,16 +183,7 @@ def track_videos(
                 raise ValueError(
                     f"{job.video}: chunked tracking cannot smooth; turn smoothing or chunking off"
                 )
-            run = plan_run(
-                job.video,
-                model=job.model,
-                camera=job.camera,
-                video_name=job.name,
-                options=job.options,
-                num_betas=job.num_betas,
-                world_up=job.world_up,
-                extra_settings=_chunk_settings(job, chunking),
-            )
+            run = _chunked_run(job, chunking)
             if run.end is not None:
                 plans = plan_chunks(run.first, run.end, job.options, chunking)
         if len(plans) > 1:

@@ -35,12 +35,20 @@ from gst.track.predictor import Predictor
 from gst.track.writer import PARQUET_OPTIONS, settings_digest
 
 CHUNK_META_KEY = b"gst.chunk"
-STAT_KEYS = ("frames", "rows", "detections", "dropped_nonfinite", "dropped_low_score")
+STAT_KEYS = (
+    "frames",
+    "rows",
+    "detections",
+    "dropped_nonfinite",
+    "dropped_low_score",
+    "dropped_parts",
+)
 
 
 @dataclass(frozen=True)
 class ChunkingConfig:
-    """Split videos longer than `chunk_frames` processed frames; `overlap` frames are tracked twice."""
+    """Split videos longer than `chunk_frames` processed frames; `overlap` frames are tracked
+    twice."""
 
     chunk_frames: int = 3000
     overlap: int = 30
@@ -51,7 +59,8 @@ class ChunkingConfig:
     def __post_init__(self):
         if self.chunk_frames < 1 or self.overlap < 1:
             raise ValueError(
-                f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, {self.overlap}"
+                f"chunking needs chunk_frames >= 1 and overlap >= 1, got {self.chunk_frames}, "
+                f"{self.overlap}"
             )
         if not 0 < self.min_agreement <= 1:
             raise ValueError(f"min_agreement must be in (0, 1], got {self.min_agreement}")
@@ -92,16 +101,38 @@ def chunk_digest(run: VideoRun, plan: ChunkPlan) -> str:
     return settings_digest({"run": run.settings, "chunk": [plan.start, plan.keep_from, plan.end]})
 
 
-def read_chunk(path: Path, digest: str) -> tuple[pa.Table, dict] | None:
-    """A finished chunk file's (rows, record), or None when absent or written under other settings."""
+@dataclass(frozen=True)
+class ChunkRecord:
+    """What a finished chunk file records beside its rows (as JSON in its metadata): the digest
+    of the settings and range it was tracked with, the first frame it keeps (earlier ones are
+    the warm-up shared with the previous chunk), and the stats of the kept frames."""
+
+    digest: str
+    keep_from: int
+    stats: dict[str, int]
+
+    def to_json(self) -> str:
+        return json.dumps({"digest": self.digest, "keep_from": self.keep_from, "stats": self.stats})
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> ChunkRecord:
+        d = json.loads(text)
+        return cls(
+            str(d["digest"]), int(d["keep_from"]), {k: int(v) for k, v in d["stats"].items()}
+        )
+
+
+def read_chunk(path: Path, digest: str) -> tuple[pa.Table, ChunkRecord] | None:
+    """A finished chunk file's (rows, record), or None when absent or written under other
+    settings."""
     if not path.is_file():
         return None
     try:
         meta = pq.read_schema(path).metadata or {}
-        record = json.loads(meta[CHUNK_META_KEY])
-    except (OSError, KeyError, ValueError, pa.ArrowException):
+        record = ChunkRecord.from_json(meta[CHUNK_META_KEY])
+    except (OSError, KeyError, ValueError, TypeError, pa.ArrowException):
         return None
-    if record.get("digest") != digest:
+    if record.digest != digest:
         return None
     return pq.read_table(path).replace_schema_metadata(None), record
 
@@ -116,7 +147,7 @@ def track_chunk(
     options: TrackOptions,
     num_betas: int,
     out_path: Path,
-) -> dict:
+) -> ChunkRecord:
     """Track one chunk from a fresh tracker and write its rows (warm-up included, chunk-local
     ids) to `out_path` atomically. Returns the record stored with it: digest, keep_from and the
     stats of the kept frames only."""
@@ -144,15 +175,15 @@ def track_chunk(
         if g.next_frame == plan.keep_from:
             warm = {k: session.stats[k] for k in STAT_KEYS}
     table = pa.concat_tables(tables) if tables else schema.empty_table()
-    record = {
-        "digest": chunk_digest(run, plan),
-        "keep_from": plan.keep_from,
-        "stats": {k: session.stats[k] - warm[k] for k in STAT_KEYS},
-    }
+    record = ChunkRecord(
+        chunk_digest(run, plan),
+        plan.keep_from,
+        {k: int(session.stats[k] - warm[k]) for k in STAT_KEYS},
+    )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
         pq.write_table(
-            table.replace_schema_metadata({CHUNK_META_KEY: json.dumps(record)}),
+            table.replace_schema_metadata({CHUNK_META_KEY: record.to_json()}),
             tmp,
             row_group_size=max(len(table), 1),
             **PARQUET_OPTIONS,
@@ -209,15 +240,18 @@ class Stitched:
     inherited: list[dict[int, int]]  # per chunk: local id -> earlier id carried over the border
 
 
-def stitch_chunks(chunks: list[tuple[pa.Table, dict]], min_agreement: float = 0.5) -> Stitched:
-    """Give the chunks' rows video-wide ids: carried over the borders, else new in creation order."""
+def stitch_chunks(
+    chunks: list[tuple[pa.Table, ChunkRecord]], min_agreement: float = 0.5
+) -> Stitched:
+    """Give the chunks' rows video-wide ids: carried over the borders, else new in creation
+    order."""
     next_id = 0
     previous: pa.Table | None = None
     out, inherited = [], []
     stats = {k: 0 for k in STAT_KEYS}
     for table, record in chunks:
         frame = table.column("frame").to_numpy()
-        warm_mask = frame < record["keep_from"]
+        warm_mask = frame < record.keep_from
         warm, kept = table.filter(pa.array(warm_mask)), table.filter(pa.array(~warm_mask))
         carried = (
             match_ids(previous, warm, min_agreement) if previous is not None and len(warm) else {}
@@ -234,6 +268,6 @@ def stitch_chunks(chunks: list[tuple[pa.Table, dict]], min_agreement: float = 0.
         inherited.append(carried)
         previous = kept
         for k in STAT_KEYS:
-            stats[k] += record["stats"][k]
+            stats[k] += record.stats.get(k, 0)
     stats["persons"] = next_id
     return Stitched(out, stats, inherited)

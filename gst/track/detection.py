@@ -22,6 +22,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import pyarrow.parquet as pq
 
+N_LANDMARKS = 33  # BlazePose body landmarks (MediaPipe order)
+
 
 @dataclass(frozen=True, eq=False)
 class Detection:
@@ -31,6 +33,9 @@ class Detection:
     score: float = 1.0
     mask: np.ndarray | None = None  # optional (H, W) bool/uint8 full-frame mask of this person
     id_hint: int | None = None  # an id supplied with the box, if any
+    # optional (33, 3) BlazePose landmarks: u, v in frame pixels (pixel centres at integers) and
+    # confidence in [0, 1] (visibility x presence)
+    landmarks: np.ndarray | None = None
 
     def __post_init__(self):
         box = np.asarray(self.box, dtype=np.float64).reshape(-1)
@@ -39,6 +44,14 @@ class Detection:
                 f"detection box must be 4 finite numbers x0 < x1, y0 < y1, got {box.tolist()}"
             )
         object.__setattr__(self, "box", box)
+        if self.landmarks is not None:
+            lm = np.asarray(self.landmarks, dtype=np.float32)
+            if lm.shape != (N_LANDMARKS, 3):
+                raise ValueError(
+                    f"detection landmarks must be ({N_LANDMARKS}, 3) u, v, confidence, got "
+                    f"{lm.shape}"
+                )
+            object.__setattr__(self, "landmarks", lm)
 
 
 @runtime_checkable

@@ -201,8 +201,8 @@ def evaluate_tracks(
             if r is not None:
                 if (int(f), person) not in truth_row:
                     raise ValueError(
-                        f"{scene_dir}: views.parquet has frame {f} person {person} but people.parquet "
-                        "does not"
+                        f"{scene_dir}: views.parquet has frame {f} person {person} but "
+                        "people.parquet does not"
                     )
                 pairs.append((r, truth_row[(int(f), person)]))
 

@@ -45,19 +45,20 @@ def evaluation_markdown(
     lines = [
         f"# {title}",
         "",
-        "Tracked rows matched to the synthetic truth per frame (Hungarian on box IoU); definitions in "
-        "docs/track_evaluation.md. Errors in mm over matched rows; MPJPE is pelvis-aligned, root error "
-        "is the absolute world pelvis error.",
+        "Tracked rows matched to the synthetic truth per frame (Hungarian on box IoU); "
+        "definitions in docs/track_evaluation.md. Errors in mm over matched rows; MPJPE is "
+        "pelvis-aligned, root error is the absolute world pelvis error.",
         "",
-        "| video | frames | recall | precision | MOTA | id switches | fragments | ids/person | MPJPE | "
-        "PA-MPJPE | root mean | root median |",
+        "| video | frames | recall | precision | MOTA | id switches | fragments | ids/person | "
+        "MPJPE | PA-MPJPE | root mean | root median |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in evaluations:
         lines.append(
-            f"| {e.video} | {e.frames} | {_fmt(e.recall, 3)} | {_fmt(e.precision, 3)} | {_fmt(e.mota, 3)} | "
-            f"{e.id_switches} | {e.fragments} | {_fmt(e.ids_per_person, 2)} | {_fmt(e.mpjpe_mm)} | "
-            f"{_fmt(e.pa_mpjpe_mm)} | {_fmt(e.root_error_mm)} | {_fmt(e.root_error_median_mm)} |"
+            f"| {e.video} | {e.frames} | {_fmt(e.recall, 3)} | {_fmt(e.precision, 3)} | "
+            f"{_fmt(e.mota, 3)} | {e.id_switches} | {e.fragments} | {_fmt(e.ids_per_person, 2)} | "
+            f"{_fmt(e.mpjpe_mm)} | {_fmt(e.pa_mpjpe_mm)} | {_fmt(e.root_error_mm)} | "
+            f"{_fmt(e.root_error_median_mm)} |"
         )
     if evaluations:
         total_sw = sum(e.id_switches for e in evaluations)
@@ -66,16 +67,17 @@ def evaluation_markdown(
         "",
         "## Per truth person",
         "",
-        "| video | person | visible | matched | track ids | id switches | fragments | MPJPE | PA-MPJPE | root |",
+        "| video | person | visible | matched | track ids | id switches | fragments | MPJPE | "
+        "PA-MPJPE | root |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in evaluations:
         for p in e.persons:
             ids = ", ".join(str(i) for i in p.track_ids) or "-"
             lines.append(
-                f"| {e.video} | {p.truth_person_id} | {p.frames_visible} | {p.frames_matched} | {ids} | "
-                f"{p.id_switches} | {p.fragments} | {_fmt(p.mpjpe_mm)} | {_fmt(p.pa_mpjpe_mm)} | "
-                f"{_fmt(p.root_error_mm)} |"
+                f"| {e.video} | {p.truth_person_id} | {p.frames_visible} | {p.frames_matched} | "
+                f"{ids} | {p.id_switches} | {p.fragments} | {_fmt(p.mpjpe_mm)} | "
+                f"{_fmt(p.pa_mpjpe_mm)} | {_fmt(p.root_error_mm)} |"
             )
     return "\n".join(lines) + "\n"
 

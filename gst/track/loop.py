@@ -23,10 +23,10 @@ from calibration import Camera
 from gst.data.camera_view import TrackingView
 from gst.prefetch import background
 from gst.track.appearance import DESCRIPTOR_SIZE
-from gst.track.detection import Detector
-from gst.track.frames import PendingFrame, TrackingSession, prepare_detection
+from gst.track.detection import N_LANDMARKS, Detection, Detector
+from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
-from gst.track.rows import rows_table
+from gst.track.rows import RowSet, rows_table
 from gst.track.schema import FORMAT_VERSION, file_metadata, tracks_schema
 from gst.track.smoothing import OneEuroConfig
 from gst.track.tracker import TrackerConfig
@@ -102,14 +102,29 @@ def _axes_json(calibrated: bool, world_up) -> dict:
     axes = {
         "camera": "OpenCV: x right, y down, z forward (metres)",
         "joints3d": "world" if calibrated else "camera",
-        "body": "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's frame",
+        "body": (
+            "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's "
+            "frame"
+        ),
     }
     if calibrated:
         axes["world"] = {
             "description": "the rig's world frame (metres), X_cam = R X_world + t",
             "up": None if world_up is None else [float(v) for v in world_up],
         }
+    else:
+        axes["world"] = None
+        axes["world_note"] = (
+            "unavailable: the video is not a calibrated camera (default pinhole camera, "
+            "gst.calibration); joints3d and transl_cam are in the camera frame"
+        )
     return axes
+
+
+def accepts_landmarks(predictor: Predictor) -> bool:
+    """Whether the predictor takes the crops' 2D landmarks (`landmarks=` keyword, (B, 33, 3)
+    u, v in crop pixels + confidence, NaN rows where the detector gave none)."""
+    return bool(getattr(predictor, "accepts_landmarks", False))
 
 
 class _Group:
@@ -118,22 +133,28 @@ class _Group:
 
     def __init__(self, predictor: Predictor, batch_size: int, num_betas: int):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
+        self.with_landmarks = accepts_landmarks(predictor)
         self.frames: list[PendingFrame] = []
-        self.crops: list[np.ndarray] = []
-        self.Ks: list[np.ndarray] = []
+        self.cut: list[PreparedDetection] = []
         self.poses: list[PoseBatch] = []
 
-    def add(self, frame: PendingFrame, crops: list[np.ndarray], Ks: list[np.ndarray]) -> None:
+    def add(self, frame: PendingFrame, cut: list[PreparedDetection]) -> None:
         self.frames.append(frame)
-        self.crops.extend(crops)
-        self.Ks.extend(Ks)
-        while len(self.crops) >= self.batch_size:
+        self.cut.extend(cut)
+        while len(self.cut) >= self.batch_size:
             self._predict(self.batch_size)
 
     def _predict(self, n: int) -> None:
-        crops, Ks = np.stack(self.crops[:n]), np.stack(self.Ks[:n])
-        del self.crops[:n], self.Ks[:n]
-        pose = validate_prediction(self.predictor(crops, Ks), n)
+        part = self.cut[:n]
+        del self.cut[:n]
+        crops = np.stack([c.crop_rgb for c in part])
+        Ks = np.stack([c.K_crop for c in part])
+        if self.with_landmarks:
+            lms = np.stack([c.landmarks_crop for c in part])
+            out = self.predictor(crops, Ks, landmarks=lms)
+        else:
+            out = self.predictor(crops, Ks)
+        pose = validate_prediction(out, n)
         if pose.betas.shape[1] != self.num_betas:
             raise ValueError(
                 f"predictor returned {pose.betas.shape[1]} betas per person, expected "
@@ -142,8 +163,8 @@ class _Group:
         self.poses.append(pose)
 
     def predictions(self) -> PoseBatch:
-        if self.crops:
-            self._predict(len(self.crops))
+        if self.cut:
+            self._predict(len(self.cut))
         return PoseBatch.concat(self.poses, self.num_betas)
 
 
@@ -154,11 +175,13 @@ class VideoRun:
     info: VideoInfo
     name: str
     view: TrackingView
-    first: int  # first frame of the range; groups close on the grid first + k * frames_per_group * stride
+    # first frame of the range; groups close on the grid first + k * frames_per_group * stride
+    first: int
     end: int | None
     video_json: dict
     calibration: dict
     settings: dict  # everything that determines the output (hashed into the file)
+    detector: dict | None = None  # which person detector ran and why (gst.detector)
 
 
 def plan_run(
@@ -171,8 +194,10 @@ def plan_run(
     num_betas: int,
     world_up,
     extra_settings: dict | None = None,
+    detector_info: dict | None = None,
 ) -> VideoRun:
-    """Probe the video and fix the run's settings (`extra_settings` are added, e.g. chunking)."""
+    """Probe the video and fix the run's settings (`extra_settings` are added, e.g. chunking;
+    `detector_info` says which person detector runs, with its settings)."""
     for key in ("name", "version"):
         if key not in model:
             raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
@@ -201,9 +226,10 @@ def plan_run(
         "calibration": calibration,
         "num_betas": num_betas,
         "world_up": None if world_up is None else [float(v) for v in world_up],
+        "detector": detector_info,
         **(extra_settings or {}),
     }
-    return VideoRun(info, name, view, first, end, video_json, calibration, settings)
+    return VideoRun(info, name, view, first, end, video_json, calibration, settings, detector_info)
 
 
 def run_metadata(
@@ -228,6 +254,7 @@ def run_metadata(
             "crop": CROP_DESCRIPTION,
             **(tracking_extra or {}),
         },
+        detector=run.detector,
         smoothing=asdict(options.smoothing) if options.smoothing else None,
         stats=stats,
         settings_sha256=digest,
@@ -242,9 +269,8 @@ class TrackedGroup:
     table: pa.Table
     next_frame: int  # the frame after the group (where a resumed run continues)
     frames: list[PendingFrame]
-    ids: list[list[int]]
-    keep: np.ndarray
-    poses: PoseBatch
+    rows: RowSet  # the rows made final by this group (some may be of earlier frames)
+    poses: PoseBatch  # the group's predictions (RowSet.source indexes them)
 
 
 def tracked_groups(
@@ -276,26 +302,34 @@ def tracked_groups(
     def close(next_frame: int) -> TrackedGroup:
         nonlocal group
         poses = group.predictions()
-        ids, smoothed, keep = session.track_group(run.view, group.frames, poses)
-        table = rows_table(run.view, group.frames, ids, smoothed, keep, schema)
-        done = TrackedGroup(table, next_frame, group.frames, ids, keep, poses)
+        rows = session.track_group(run.view, group.frames, poses)
+        table = rows_table(run.view, rows, schema)
+        done = TrackedGroup(table, next_frame, group.frames, rows, poses)
         group = _Group(predictor, options.batch_size, num_betas)
         return done
 
-    def prepare(frame: Frame) -> tuple[PendingFrame, list[np.ndarray], list[np.ndarray]]:
-        dets = [
-            d for d in detector.detect(frame.image, frame.index) if d.score >= options.min_score
-        ]
+    def detect(frame: Frame) -> tuple[Frame, list[Detection]]:
+        dets = detector.detect(frame.image, frame.index)
+        return frame, [d for d in dets if d.score >= options.min_score]
+
+    def prepare(frame: Frame, dets: list[Detection]) -> tuple[PendingFrame, list]:
         cut = [prepare_detection(run.view, frame.image, d, options.crop_size) for d in dets]
+        lms = np.full((len(dets), N_LANDMARKS, 3), np.nan, np.float32)
+        for i, d in enumerate(dets):
+            if d.landmarks is not None:
+                lms[i] = d.landmarks
         pending = PendingFrame(
             frame.index,
             frame.time_s,
             np.array([d.box for d in dets]).reshape(-1, 4),
             np.array([d.score for d in dets], dtype=np.float64),
-            np.array([c[2] for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE),
+            np.array([c.appearance for c in cut]).reshape(len(dets), DESCRIPTOR_SIZE),
+            lms,
         )
-        return pending, [c[0] for c in cut], [c[1] for c in cut]
+        return pending, cut
 
+    # Three threads when prefetching: decoding; the person detector; crops, the network and the
+    # tracker (the detector is the heaviest per frame, so the crops are cut beside the network).
     frames = iter_frames(
         video_path,
         stride=options.stride,
@@ -303,14 +337,16 @@ def tracked_groups(
         end_s=options.end_s,
         start_frame=start_frame,
         end_frame=end_frame,
+        prefetch=options.prefetch,
     )
-    prepared = (prepare(f) for f in frames)
+    detected = (detect(f) for f in frames)
     if options.prefetch > 0:
-        prepared = background(prepared, options.prefetch)
+        detected = background(detected, options.prefetch)
     last_index = None
     try:
-        for pending, crops, Ks in prepared:
-            group.add(pending, crops, Ks)
+        for frame, dets in detected:
+            pending, cut = prepare(frame, dets)
+            group.add(pending, cut)
             last_index = pending.index
             if on_frame is not None:
                 on_frame(pending.index)
@@ -322,7 +358,7 @@ def tracked_groups(
             yield close(last_index + options.stride)
         raise
     finally:
-        close_prefetch = getattr(prepared, "close", None)
+        close_prefetch = getattr(detected, "close", None)
         if close_prefetch is not None:
             close_prefetch()
     if group.frames:
@@ -345,6 +381,7 @@ def track_video(
     staging_root: str | Path | None = None,
     on_frame: Callable[[int], None] | None = None,
     on_extra: Callable[[int, int, dict], None] | None = None,
+    detector_info: dict | None = None,
 ) -> TrackResult:
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
@@ -354,10 +391,11 @@ def track_video(
     settings is returned as is; without it, earlier output for this video is replaced. Raises
     VideoError (naming the file) for unreadable video; on a truncated video the frames before the
     damage are committed first (valid Parquet in the staging folder), then the error is raised.
-    `on_frame(frame)` is called for every processed frame (progress bars). `on_extra(frame,
-    person_id, extra)` receives, for every written row, the predictor's outputs beyond the body
-    (e.g. Gaussians for a per-track splat), after the row group holding it is committed; frames
-    committed by an earlier, interrupted run are not replayed.
+    `detector_info` (which person detector runs and why) is recorded as `gst.detector` and in
+    the settings digest. `on_frame(frame)` is called for every processed frame (progress bars).
+    `on_extra(frame, person_id, extra)` receives, for every written row, the predictor's outputs
+    beyond the body (e.g. Gaussians for a per-track splat), after the row group holding it is
+    committed; frames committed by an earlier, interrupted run are not replayed.
     Partial work lives in `staging_root` (default: the hidden sibling .<out_root name>.inprogress),
     never inside `out_root`, so readers of the dataset only ever see finished videos.
     """
@@ -371,6 +409,7 @@ def track_video(
         options=options,
         num_betas=num_betas,
         world_up=world_up,
+        detector_info=detector_info,
     )
     writer = TrackWriter(out_root, run.name, tracks_schema(num_betas), run.settings, staging_root)
     if resume and writer.finished_digest() == writer.digest:
@@ -422,12 +461,12 @@ def track_video(
 
 
 def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) -> None:
-    frame_of = np.array([f.index for f in g.frames for _ in range(len(f.scores))], dtype=np.int64)
-    flat_ids = np.array([i for frame_ids in g.ids for i in frame_ids], dtype=np.int64)
-    kept = np.flatnonzero(g.keep)
-    for j in kept[np.lexsort((flat_ids[kept], frame_of[kept]))]:  # the rows' order
-        on_extra(
-            int(frame_of[j]),
-            int(flat_ids[j]),
-            {k: np.asarray(v)[j] for k, v in g.poses.extra.items()},
-        )
+    """Extras of the group's rows, in the rows' order (held rows of earlier groups have none)."""
+    r = g.rows
+    for i in np.lexsort((r.person_id, r.frame)):
+        if r.source[i] >= 0:
+            on_extra(
+                int(r.frame[i]),
+                int(r.person_id[i]),
+                {k: np.asarray(v)[r.source[i]] for k, v in g.poses.extra.items()},
+            )

@@ -1,69 +1,183 @@
-"""`PersonModelDetector`: people from the learned BlazePose segmenter (gst.detect), for footage
-where the background model fails (people who stand still, cameras that move, no empty plate).
+"""`PersonModelDetector`: people from the learned BlazePose models (gst.detect), tracked with the
+landmark model's own loop, as MediaPipe does.
 
-It runs at a work resolution (longer side `max_side` px), keeps its own tracking state across
-frames (the previous frame's landmarks seed the next frame's regions), and returns each
-person's mask box at full resolution with the landmark model's presence as the score. Frames
-must come in order; a frame index that goes back (or repeats) resets the state, and a forward
-jump of more than `max_gap` frames does too.
+Each person found in one frame gives the next frame's region of interest (from their alignment
+landmarks), and the landmark model alone follows them there: one batched call per frame for
+everybody. The person detector (several windows over the frame, the expensive part) runs only
+when it is needed: on the first frame, when a tracked person is lost (presence below
+`min_presence`), when nobody is tracked, and every `detect_every` processed frames to find new
+arrivals. Its detections that repeat a tracked person are dropped before the landmark model
+(same region) or after it (same skeleton, `gst.detect.persons.same_person`).
+
+Every detection carries the person's 33 landmarks (full-frame pixels, pixel centres at
+integers, confidence = visibility x presence) and the box of their mask: the landmark model's
+segmentation in the region's own crop, kept within `skeleton_width` of the person's skeleton
+(the model segments everyone in its region), mapped back to the frame. Work happens at a work
+resolution (longer side `max_side`, one resize per frame). Frames must come in order; a frame
+index that goes back, or jumps forward by more than `max_gap`, restarts from the detector.
 """
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from gst.detect.blazepose import BlazePose
-from gst.detect.persons import PersonSegmenter, SegmenterConfig
-from gst.metrics.image import box_iou
+from gst.detect.blazepose import (
+    LANDMARK_SIZE,
+    BatchedLandmarks,
+    BlazePose,
+    BodyRoi,
+    RegionLandmarks,
+    roi_from_alignment,
+)
+from gst.detect.persons import same_person, skeleton_support
 from gst.track.detection import Detection
 
 
+@dataclass(frozen=True)
+class PersonModelConfig:
+    max_side: int = 960  # work resolution: longer side in pixels
+    detect_every: int = 10  # processed frames between detector runs while everyone is tracked
+    min_presence: float = 0.5  # landmark model presence needed to keep a person
+    duplicate_distance: float = 0.15  # same person: median limb-joint distance / body size
+    skeleton_width: float = 0.08  # mask pixels within this share of the region of the skeleton
+    min_height_frac: float = 0.08  # boxes shorter than this share of the frame height are dropped
+    same_region: float = 0.1  # a detector region this close to a kept person's (share of the
+    # side) is that person: not run through the landmark model again
+    max_gap: int = 5  # a forward jump of more frames than this restarts from the detector
+    batch: bool = True  # all regions of a frame in one landmark-model call
+    threads: int = 1  # LiteRT threads per interpreter
+
+    def __post_init__(self):
+        if self.detect_every < 1 or self.max_side < 64 or self.threads < 1:
+            raise ValueError(
+                f"person model: detect_every >= 1, max_side >= 64, threads >= 1 expected, got "
+                f"{self.detect_every}, {self.max_side}, {self.threads}"
+            )
+        if not 0 < self.min_presence < 1:
+            raise ValueError(
+                f"person model: min_presence must be in (0, 1), got {self.min_presence}"
+            )
+
+    def settings(self) -> dict:
+        """What determines the detections (`threads` and `batch` do not: same numbers)."""
+        d = asdict(self)
+        d.pop("threads")
+        d.pop("batch")
+        return d
+
+
+def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
+    """Corner-convention box (x0, y0, x1, y1) in the region's image of the person's mask (the
+    crop's segmentation within `skeleton_width` x crop side of their skeleton), or None."""
+    lm_crop = r.crop_points(r.landmarks[:, :2])
+    near = skeleton_support(lm_crop, r.mask_logits.shape, skeleton_width * LANDMARK_SIZE)
+    ys, xs = np.nonzero((r.mask_logits > 0) & near)
+    if len(xs) == 0:
+        return None
+    to_image = cv2.invertAffineTransform(r.to_crop)
+    u = to_image[0, 0] * xs + to_image[0, 1] * ys + to_image[0, 2]
+    v = to_image[1, 0] * xs + to_image[1, 1] * ys + to_image[1, 2]
+    half = 0.5 * r.roi.side / LANDMARK_SIZE  # half a crop pixel, in image pixels
+    # pixel centres at integers -> pixel-corner convention: + 0.5
+    return np.array([u.min() - half, v.min() - half, u.max() + half, v.max() + half]) + 0.5
+
+
 class PersonModelDetector:
+    """People in a stream of frames from one camera (keeps tracking state across frames)."""
+
     def __init__(
-        self,
-        *,
-        models_dir: str | Path | None = None,
-        max_side: int = 960,
-        config: SegmenterConfig | None = None,
-        min_height_frac: float = 0.08,
-        threads: int = 1,
-        duplicate_iou: float = 0.6,
-        max_gap: int = 5,
+        self, config: PersonModelConfig | None = None, *, models_dir: str | Path | None = None
     ):
-        self.segmenter = PersonSegmenter(
-            BlazePose(models_dir, threads=threads), config or SegmenterConfig()
-        )
-        self.max_side = max_side
-        self.min_height_frac = min_height_frac
-        self.duplicate_iou = duplicate_iou
-        self.max_gap = max_gap  # frames; a stride up to this keeps the tracked regions
+        self.config = config or PersonModelConfig()
+        c = self.config
+        self.model = BlazePose(models_dir, threads=c.threads)
+        self.landmarker = BatchedLandmarks(models_dir, threads=c.threads)
+        self._people: list[BodyRoi] = []  # next frame's regions, work pixels
         self._last: int | None = None
+        self._since_detect = 0
+        self.detector_runs = 0  # frames on which the person detector ran (for benchmarks)
+        self.regions = 0  # landmark-model regions evaluated
+
+    def reset(self) -> None:
+        self._people, self._last, self._since_detect = [], None, 0
+
+    def _landmarks(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
+        self.regions += len(rois)
+        if self.config.batch:
+            return self.landmarker(image, rois)
+        return [r for roi in rois for r in self.landmarker(image, [roi])]
+
+    def _accept(self, results: list[RegionLandmarks], image_h: int) -> list[tuple]:
+        """(result, box) of the regions holding a person tall enough, in order."""
+        c = self.config
+        out = []
+        for r in results:
+            if r.presence < c.min_presence:
+                continue
+            box = mask_box(r, c.skeleton_width)
+            if box is None or box[3] - box[1] < c.min_height_frac * image_h:
+                continue
+            out.append((r, box))
+        return out
+
+    def _new_regions(self, image: np.ndarray, kept: list[tuple]) -> list[BodyRoi]:
+        """Regions of detector hits that are not a person already kept (same region)."""
+        rois = []
+        for d in self.model.detect(image):
+            roi = roi_from_alignment(d.keypoints[0], d.keypoints[1])
+            if not any(same_region(roi, r.next_roi, self.config.same_region) for r, _ in kept):
+                rois.append(roi)
+        return rois
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
-        if self._last is not None and not 0 < frame_index - self._last <= self.max_gap:
-            self.segmenter.reset()
+        c = self.config
+        if self._last is not None and not 0 < frame_index - self._last <= c.max_gap:
+            self.reset()
         self._last = frame_index
         h, w = frame_bgr.shape[:2]
-        s = min(1.0, self.max_side / max(h, w))
+        s = min(1.0, c.max_side / max(h, w))
         small = (
             frame_bgr
             if s == 1.0
             else cv2.resize(frame_bgr, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
         )
-        labels, people = self.segmenter.segment(small)
+        sh = small.shape[0]
+        tracked = self._accept(self._landmarks(small, self._people), sh)
+        lost = len(tracked) < len(self._people)
+        if not self._people or lost or self._since_detect + 1 >= c.detect_every:
+            self.detector_runs += 1
+            self._since_detect = 0
+            found = self._accept(self._landmarks(small, self._new_regions(small, tracked)), sh)
+        else:
+            self._since_detect += 1
+            found = []
+        # Tracked people first (they keep their place), then new ones; a skeleton repeating a
+        # kept one's is the same person seen from a second region.
+        kept: list[tuple] = []
+        for r, box in tracked + found:
+            if not any(
+                same_person(r.landmarks, k.landmarks, c.duplicate_distance) for k, _ in kept
+            ):
+                kept.append((r, box))
+        self._people = [r.next_roi for r, _ in kept]
         out = []
-        for k, person in enumerate(people, start=1):
-            ys, xs = np.nonzero(labels == k)
-            if len(xs) == 0:
+        for r, box in kept:
+            lm = r.landmarks.copy()
+            lm[:, :2] = (lm[:, :2] + 0.5) / s - 0.5  # pixel centres at integers, both sizes
+            full = np.clip(box / s, 0, [w, h, w, h])
+            if full[2] <= full[0] or full[3] <= full[1]:
                 continue
-            box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64) / s
-            if box[3] - box[1] < self.min_height_frac * h:
-                continue
-            # One person found twice (a partial second region) overlaps its own box heavily.
-            if any(float(box_iou(box[None], d.box[None])[0, 0]) > self.duplicate_iou for d in out):
-                continue
-            out.append(Detection(box=box, score=float(person.presence)))
+            out.append(Detection(box=full, score=r.presence, landmarks=lm))
         return out
+
+
+def same_region(a: BodyRoi, b: BodyRoi, tolerance: float) -> bool:
+    """Whether two regions frame the same body: centres within `tolerance` x the larger side
+    and sides within that share of each other."""
+    side = max(a.side, b.side)
+    d = np.hypot(a.centre[0] - b.centre[0], a.centre[1] - b.centre[1])
+    return d < tolerance * side and abs(a.side - b.side) < tolerance * side

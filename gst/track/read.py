@@ -18,7 +18,8 @@ from gst.track.schema import SMPL_JOINT_NAMES, parse_metadata
 
 def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
     """A tracks file, or a folder of `video=<name>/tracks.parquet` partitions (optionally only
-    `videos`), as one table sorted by video, frame and person_id, with a `video` column either way."""
+    `videos`), as one table sorted by video, frame and person_id, with a `video` column either
+    way."""
     path = Path(path)
     if path.is_file():
         table = pq.read_table(path, partitioning=None)

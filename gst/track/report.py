@@ -10,14 +10,19 @@ import numpy as np
 import pyarrow as pa
 
 from gst.atomic import atomic_path, atomic_write
+from gst.detect.persons import BONES, TORSO
 from gst.track.read import column_array, read_metadata, read_tracks
 from gst.track.schema import SMPL_JOINT_NAMES
-from gst.video import iter_frames
+from gst.video import iter_frames, read_frames
 
 # SMPL kinematic tree: parent of each joint (-1 for the root).
 SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21)
 
-# Angle at the middle joint between the segments to the first and last joint (degrees, 180 = straight).
+# BlazePose bones drawn for the landmark model's skeleton: limbs, torso outline, shoulders-nose.
+LANDMARK_BONES = BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)) + ((0, 11), (0, 12))
+
+# Angle at the middle joint between the segments to the first and last joint
+# (degrees, 180 = straight).
 _J = {n: i for i, n in enumerate(SMPL_JOINT_NAMES)}
 ANGLES = {
     "left_knee": ("left_hip", "left_knee", "left_ankle"),
@@ -46,16 +51,34 @@ def _colour(person_id: int) -> tuple[int, int, int]:
     return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0])
 
 
+def _draw_landmarks(img: np.ndarray, lm: np.ndarray, conf: np.ndarray, thick: int) -> None:
+    """The landmark model's skeleton: white bones, joints shaded by confidence (dark = unsure)."""
+    pts = np.round(lm * 16).astype(np.int32)
+    for a, b in LANDMARK_BONES:
+        if min(conf[a], conf[b]) >= 0.3:
+            cv2.line(img, tuple(pts[a]), tuple(pts[b]), (255, 255, 255), 1, cv2.LINE_AA, shift=4)
+    for p, c in zip(pts, conf, strict=True):
+        shade = int(round(255 * float(np.clip(c, 0, 1))))
+        cv2.circle(img, tuple(p), thick * 16, (shade, shade, 255), -1, cv2.LINE_AA, shift=4)
+
+
 def draw_people(frame_bgr: np.ndarray, rows: pa.Table) -> np.ndarray:
-    """Draw each row's skeleton (joints2d), box and id on a copy of the frame."""
+    """Draw each row's box and id, the network's skeleton (joints2d, the id's colour, white
+    joints) and, where the row has them, the landmark model's 33 landmarks (white bones, joints
+    from red = unsure to white = sure), on a copy of the frame."""
     img = frame_bgr.copy()
     if rows.num_rows == 0:
         return img
     j2 = column_array(rows, "joints2d")
     boxes = column_array(rows, "bbox")
     ids = rows.column("person_id").to_pylist()
+    has_lm = "landmarks2d" in rows.column_names
+    lms = column_array(rows, "landmarks2d") if has_lm else None
+    confs = column_array(rows, "landmarks_conf") if has_lm else None
     thick = max(1, round(max(img.shape[:2]) / 500))
-    for pid, joints, box in zip(ids, j2, boxes, strict=True):
+    for k, (pid, joints, box) in enumerate(zip(ids, j2, boxes, strict=True)):
+        if lms is not None and np.isfinite(lms[k]).all():
+            _draw_landmarks(img, lms[k], confs[k], thick)
         col = _colour(pid)
         x0, y0, x1, y1 = box
         cv2.rectangle(img, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), col, thick)
@@ -117,6 +140,43 @@ def write_overlay(
     return out_path
 
 
+def contact_sheet(
+    video_path: str | Path,
+    tracks_path: str | Path,
+    frames: list[int],
+    height: int = 560,
+    label: str | None = None,
+    margin: float = 60.0,
+) -> np.ndarray:
+    """One column of overlay frames (`draw_people`), each cut to the region the tracks ever
+    cover (plus `margin` px) and resized to `height`: for looking at a run, and for docs."""
+    table = read_tracks(tracks_path)
+    fr = table.column("frame").to_numpy()
+    boxes = column_array(table, "bbox")
+    tiles = []
+    for f, img in read_frames(video_path, frames):
+        h, w = img.shape[:2]
+        if len(boxes):
+            x0, y0 = np.maximum(boxes[:, :2].min(0) - margin, 0).astype(int)
+            x1, y1 = np.minimum(boxes[:, 2:].max(0) + margin, [w, h]).astype(int)
+        else:
+            x0, y0, x1, y1 = 0, 0, w, h
+        im = draw_people(img, table.filter(pa.array(fr == f)))[y0:y1, x0:x1]
+        im = cv2.resize(
+            im, (round(im.shape[1] * height / im.shape[0]), height), interpolation=cv2.INTER_AREA
+        )
+        text = f"{label or Path(video_path).stem}, frame {f}"
+        for colour, weight in (((0, 0, 0), 4), ((255, 255, 255), 1)):
+            cv2.putText(
+                im, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, colour, weight, cv2.LINE_AA
+            )
+        tiles.append(cv2.copyMakeBorder(im, 2, 2, 2, 2, cv2.BORDER_CONSTANT))
+    width = max(t.shape[1] for t in tiles)
+    return np.concatenate(
+        [cv2.copyMakeBorder(t, 0, 0, 0, width - t.shape[1], cv2.BORDER_CONSTANT) for t in tiles]
+    )
+
+
 def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: int = 10) -> Path:
     """A PNG with knee, hip and elbow angles over time, one panel per joint pair, a line per person
     (people with fewer than `min_rows` rows are left out)."""
@@ -158,8 +218,8 @@ def plot_joint_angles(tracks_path: str | Path, out_png: str | Path, min_rows: in
     if people:
         axes[0, 0].legend(fontsize=8)
     fig.suptitle(
-        f"{meta['video']['name']}: joint angles ({meta['model']['name']} {meta['model']['version']}, "
-        f"joints3d in the {meta['axes']['joints3d']} frame)"
+        f"{meta['video']['name']}: joint angles ({meta['model']['name']} "
+        f"{meta['model']['version']}, joints3d in the {meta['axes']['joints3d']} frame)"
     )
     out_png = Path(out_png)
     try:

@@ -18,22 +18,29 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import cv2
+import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
-from gst.detect.weights import model_paths
+from gst.atomic import atomic_write
+from gst.detect.blazepose import import_litert
+from gst.detect.weights import BlazePoseModelsMissing, model_paths
+from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
+from gst.track.agreement import joints_vs_landmarks
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
 from gst.track.loop import TrackOptions
-from gst.track.person_detector import PersonModelDetector
-from gst.track.report import plot_joint_angles, write_overlay
+from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+from gst.track.read import read_tracks
+from gst.track.report import contact_sheet, plot_joint_angles, write_overlay
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
@@ -55,10 +62,15 @@ class TrackSettings(BaseModel):
     smoothing: bool = False  # One-Euro filter on joints and parameters
     min_cutoff: float = 1.0
     beta: float = 0.5
-    boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of the background detector
-    # 'blazepose': the learned person segmenter (gst.detect; finds people who stand still, needs
-    # the `detect` extra and `python -m gst.detect fetch`). 'background': static-camera model.
-    detector: Literal["background", "blazepose"] = "background"
+    boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of a detector
+    # 'auto': the learned person model (BlazePose, gst.detect) when it is installed (the `detect`
+    # extra and `python -m gst.detect fetch`), else the static-camera background model.
+    # 'blazepose' requires it; 'background' always uses the background model.
+    detector: Literal["auto", "background", "blazepose"] = "auto"
+    detect_every: int = Field(default=10, ge=1)  # blazepose: detector runs between tracked frames
+    # blazepose: LiteRT threads per interpreter (results are identical for any number; 2 was
+    # not measurably faster than 1 on the shared 2-core machine, benchmarks/bench_track.py)
+    detector_threads: int = Field(default=1, ge=1)
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
@@ -86,17 +98,91 @@ class TrackRequest:
     truth_scene: Path | None = None
     combined_evaluation: Path | None = None
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # calibration.camera.fit_to_frames
+    scene: str | None = None  # the scene whose model (models/gst.pt) tracks the videos
 
 
-def _detector(s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None) -> Callable:
+def choose_detector(s: TrackSettings) -> tuple[str, str]:
+    """(detector, why): 'boxes', 'blazepose' or 'background', and the reason, for the log and
+    the file's `gst.detector`. A 'blazepose' that is not installed fails here, with the fix."""
+    if s.boxes:
+        return "boxes", f"boxes supplied in {s.boxes}"
+    if s.detector == "background":
+        return "background", "track.detector is 'background' (static-camera background model)"
+    try:
+        import_litert()
+        model_paths()
+    except (ImportError, BlazePoseModelsMissing) as exc:
+        if s.detector == "blazepose":
+            raise
+        first = str(exc).strip().splitlines()[0]
+        return "background", (
+            f"the learned person model is not installed ({first}); the static-camera background "
+            "model finds only people who move against a still background"
+        )
+    how = "track.detector is 'blazepose'" if s.detector == "blazepose" else "auto"
+    return "blazepose", f"{how}: the learned person model (BlazePose) is installed"
+
+
+def _person_model_config(s: TrackSettings) -> PersonModelConfig:
+    return PersonModelConfig(detect_every=s.detect_every, threads=s.detector_threads)
+
+
+def _detector(
+    kind: str, s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None
+) -> Callable:
     """A picklable factory of the video's person detector: supplied boxes, the learned person
     model, or the static-camera background model."""
-    if s.boxes:
+    if kind == "boxes":
         return functools.partial(SuppliedBoxes.from_file, s.boxes, video=video.stem)
-    if s.detector == "blazepose":
-        return PersonModelDetector
+    if kind == "blazepose":
+        return functools.partial(PersonModelDetector, _person_model_config(s))
     up = tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)
     return functools.partial(StaticCameraDetector, video, camera=camera, up=up)
+
+
+def _detector_info(kind: str, why: str, s: TrackSettings) -> dict:
+    info = {"name": kind, "why": why}
+    if kind == "blazepose":
+        info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
+        info["config"] = _person_model_config(s).settings()
+    return info
+
+
+def model_provenance(checkpoint: Path, name: str, scene: str | None) -> dict:
+    """What the file and the log say about the model: name, checkpoint, and what it was trained
+    on as far as the checkpoint records it (`extra.trained_on`: scene, cameras, frames)."""
+    ckpt = load_checkpoint(checkpoint)
+    extra = ckpt.get("extra") or {}
+    trained_on = extra.get("trained_on")
+    if not isinstance(trained_on, dict):
+        trained_on = {"scene": scene, "recorded": False}
+    return {
+        "name": name,
+        "version": "1",
+        "checkpoint": "models/gst.pt",
+        "body_model": str(ckpt.get("body_model")),
+        "training_mode": extra.get("mode"),
+        "trained_on": trained_on,
+    }
+
+
+def _camera_seen(model: dict, camera: Camera | None) -> bool:
+    """Whether the model was trained on this video's camera (only a calibrated camera of the
+    scene can be, and only when the checkpoint records its cameras)."""
+    cams = model["trained_on"].get("cameras")
+    return camera is not None and isinstance(cams, list) and camera.name in cams
+
+
+def _describe_training(t: dict) -> str:
+    if not t.get("recorded", True):
+        scene = f"scene '{t['scene']}'" if t.get("scene") else "an unknown scene"
+        return f"{scene} (the checkpoint does not record which cameras and frames)"
+    parts = [f"scene '{t.get('scene')}'"]
+    if t.get("cameras") is not None:
+        parts.append(f"cameras {', '.join(map(str, t['cameras']))}")
+    if t.get("frames") is not None:
+        parts.append(f"frames {t['frames']}")
+    return ", ".join(parts)
 
 
 def track_scene(
@@ -114,8 +200,11 @@ def track_scene(
     name = GSTPredictor(
         request.checkpoint, with_gaussians=with_gaussians, batch_size=s.batch_size
     ).name
-    if s.detector == "blazepose" and not s.boxes:
-        model_paths()  # missing models fail here, with the fetch command, not in a worker
+    kind, why = choose_detector(s)  # a missing 'blazepose' fails here, not in a worker
+    log.info("person detector: %s (%s)", kind, why)
+    detector_info = _detector_info(kind, why, s)
+    model_info = model_provenance(request.checkpoint, name, request.scene)
+    log.info("model: %s, trained on %s", name, _describe_training(model_info["trained_on"]))
     options = TrackOptions(
         stride=s.stride,
         tracker=TrackerConfig(min_hits=s.min_hits, max_misses=s.max_misses),
@@ -124,7 +213,6 @@ def track_scene(
         batch_size=s.batch_size,
         smoothing=OneEuroConfig(min_cutoff=s.min_cutoff, beta=s.beta) if s.smoothing else None,
     )
-    model_info = {"name": name, "version": "1", "checkpoint": "models/gst.pt"}
     # Parallel workers share the cores: one torch thread each unless told otherwise.
     threads = s.threads or (1 if workers > 1 else None)
     predictor = functools.partial(
@@ -141,18 +229,29 @@ def track_scene(
             )
             if note:
                 log.warning("%s", note)
+        seen = _camera_seen(model_info, camera)
+        if camera is None:
+            log.info(
+                "%s: not a calibrated camera of the scene: default pinhole camera (focal length ="
+                " image diagonal), camera-frame coordinates only, no world coordinates; the model"
+                " has not seen this camera",
+                video.stem,
+            )
+        elif not seen:
+            log.info("%s: calibrated camera; the model's training does not record it", video.stem)
         jobs.append(
             VideoJob(
                 video,
-                _detector(s, video, camera, rig),
+                _detector(kind, s, video, camera, rig),
                 predictor,
-                model_info,
+                {**model_info, "seen_this_camera": seen},
                 name=video.stem,
                 camera=camera,
                 world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
                 options=options,
                 threads=threads,
                 keep_extras=with_gaussians,
+                detector_info=detector_info,
             )
         )
     chunking = ChunkingConfig(s.chunk_frames, s.chunk_overlap) if s.chunk_frames else None
@@ -205,6 +304,18 @@ def _evaluate(request: TrackRequest, outcome: VideoOutcome, report: Path) -> Tra
     return ev
 
 
+def _write_contact_sheet(video: Path, tracks: Path, out: Path, n: int = 6) -> None:
+    """Six processed frames with the tracks drawn on (boxes, ids, both skeletons), in a row."""
+    frames = sorted(set(read_tracks(tracks).column("frame").to_pylist()))
+    if not frames:
+        return
+    pick = [frames[round(i * (len(frames) - 1) / max(n - 1, 1))] for i in range(n)]
+    sheet = np.concatenate(
+        [contact_sheet(video, tracks, [f], height=480) for f in sorted(set(pick))], axis=1
+    )
+    atomic_write(out, lambda tmp: cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_JPEG_QUALITY, 85]))
+
+
 def write_video_report(
     s: TrackSettings, request: TrackRequest, outcome: VideoOutcome
 ) -> TrackEvaluation | None:
@@ -222,11 +333,23 @@ def write_video_report(
         "chunks": outcome.chunks,
     }
     log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons, fps)
+    agree = joints_vs_landmarks(read_tracks(result.path))
+    summary["joints2d_vs_landmarks"] = agree.to_dict()
+    if agree.median_px is not None:
+        log.info(
+            "%s: the network's joints lie a median %.1f px (90%%: %.1f px) from the landmark "
+            "model's (%d joints compared)",
+            name,
+            agree.median_px,
+            agree.p90_px,
+            agree.pairs,
+        )
     report = request.reports_dir / name
     report.mkdir(parents=True, exist_ok=True)
     (report / "summary.json").write_text(json.dumps(summary, indent=2))
     if s.overlay:
         write_overlay(outcome.job.video, result.path, report / "overlay.mp4")
+    _write_contact_sheet(outcome.job.video, result.path, report / "contact_sheet.jpg")
     plot_joint_angles(result.path, report / "joint_angles.png")
     evaluation = _evaluate(request, outcome, report)
     for person, g in outcome.extras.items():

@@ -16,34 +16,12 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-FORMAT_NAME, FORMAT_VERSION = "gst-capture/tracks", 1
+from gst.body.markers import BLAZEPOSE_NAMES
+from gst.body.skeleton import SMPL_JOINT_NAMES
 
-SMPL_JOINT_NAMES = (
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hand",
-    "right_hand",
-)
+# Version 2 added the landmark model's 2D joints (landmarks2d, landmarks_conf) and the
+# gst.landmark_names / gst.detector metadata; version-1 columns are unchanged.
+FORMAT_NAME, FORMAT_VERSION = "gst-capture/tracks", 2
 
 
 @dataclass(frozen=True)
@@ -57,7 +35,7 @@ class ColumnSpec:
 
 
 def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
-    J = len(SMPL_JOINT_NAMES)
+    J, L = len(SMPL_JOINT_NAMES), len(BLAZEPOSE_NAMES)
     return [
         ColumnSpec("frame", None, "", "0-based frame index in the video"),
         ColumnSpec("time_s", None, "s", "frame / fps"),
@@ -104,6 +82,21 @@ def column_specs(num_betas: int = 10) -> list[ColumnSpec]:
         ),
         ColumnSpec(
             "joints2d", (J, 2), "px", "joints projected into the raw frame, pixel-centre convention"
+        ),
+        ColumnSpec(
+            "landmarks2d",
+            (L, 2),
+            "px",
+            "the person model's 33 BlazePose landmarks on the raw frame, pixel-centre convention; "
+            "null when the detector gives none (supplied boxes, background model)",
+            nullable=True,
+        ),
+        ColumnSpec(
+            "landmarks_conf",
+            (L,),
+            "",
+            "confidence of each landmark in [0, 1] (visibility x presence); null with landmarks2d",
+            nullable=True,
         ),
     ]
 
@@ -161,6 +154,7 @@ METADATA_KEYS = (
     "gst.format",
     "gst.format_version",
     "gst.joint_names",
+    "gst.landmark_names",
     "gst.units",
     "gst.axes",
     "gst.fps",
@@ -168,6 +162,7 @@ METADATA_KEYS = (
     "gst.calibration",
     "gst.video",
     "gst.tracking",
+    "gst.detector",
     "gst.smoothing",
     "gst.columns",
     "gst.stats",
@@ -183,6 +178,7 @@ def file_metadata(
     axes: dict,
     video: dict,
     tracking: dict,
+    detector: dict | None = None,
     smoothing: dict | None,
     stats: dict,
     settings_sha256: str,
@@ -194,6 +190,7 @@ def file_metadata(
         "transl_cam": "m",
         "transl_world": "m",
         "joints2d": "px",
+        "landmarks2d": "px",
         "bbox": "px",
         "global_orient": "rad (axis-angle)",
         "body_pose": "rad (axis-angle)",
@@ -203,6 +200,7 @@ def file_metadata(
         "gst.format": FORMAT_NAME,
         "gst.format_version": FORMAT_VERSION,
         "gst.joint_names": list(SMPL_JOINT_NAMES),
+        "gst.landmark_names": list(BLAZEPOSE_NAMES),
         "gst.units": units,
         "gst.axes": axes,
         "gst.fps": fps,
@@ -210,6 +208,7 @@ def file_metadata(
         "gst.calibration": calibration,
         "gst.video": video,
         "gst.tracking": tracking,
+        "gst.detector": detector,
         "gst.smoothing": smoothing,
         "gst.columns": columns_description(num_betas),
         "gst.stats": stats,
@@ -228,6 +227,7 @@ def parse_metadata(schema: pa.Schema) -> dict:
             out[key[4:]] = json.loads(v.decode())
     if out.get("format") != FORMAT_NAME:
         raise ValueError(
-            f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected {FORMAT_NAME!r}"
+            f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected "
+            f"{FORMAT_NAME!r}"
         )
     return out

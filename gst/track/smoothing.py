@@ -2,7 +2,8 @@
 
 For each scalar x sampled at time t (te = t - t_prev):
     alpha(fc) = 1 / (1 + tau / te),  tau = 1 / (2 pi fc)
-    dx        = (x - x_hat_prev) / te,   dx_hat = alpha(d_cutoff) dx + (1 - alpha(d_cutoff)) dx_hat_prev
+    dx        = (x - x_hat_prev) / te
+    dx_hat    = alpha(d_cutoff) dx + (1 - alpha(d_cutoff)) dx_hat_prev
     fc        = min_cutoff + beta |dx_hat|
     x_hat     = alpha(fc) x + (1 - alpha(fc)) x_hat_prev
 The first sample passes through. Slow motion gets the low `min_cutoff` (less jitter), fast motion

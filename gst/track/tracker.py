@@ -12,11 +12,18 @@ A pair is allowed only if its cost is at most `max_cost`, the boxes overlap (IoU
 the 3D positions are within the gate, and the positions are within `hard_gate` gates (a
 generous bound, since monocular depth is noisy). scipy's linear_sum_assignment picks the cheapest
 allowed matching, confirmed tracks first and tentative ones among the detections left (a
-duplicate detection's tentative track cannot take a person over). Unmatched tracks coast on their velocity for up to `max_misses` processed
-frames (short occlusions), then end; unmatched detections start tentative tracks. A
-tentative track gets its id only once it has been matched in `min_hits` consecutive processed
-frames (until then its detections get id -1, and one miss ends it), so flickering fragments and
-false detections do not use up ids.
+duplicate detection's tentative track cannot take a person over). Unmatched tracks coast on
+their velocity for up to `max_misses` processed frames (short occlusions), then end; unmatched
+detections start tentative tracks. A tentative track gets its id only once it has been matched
+in `min_hits` consecutive processed frames (until then its detections get id -1, and one miss
+ends it), so flickering fragments and false detections do not use up ids. Their detections are
+not lost: when a track is confirmed, `step` hands back the keys of the observations it made while
+tentative (`Assignment.backfill`), so the person's rows start where they appeared.
+
+One person, one id (gst.track.parts): an observation left unmatched by the confirmed tracks that
+lies mostly inside the box of an observation a confirmed track took in the same frame, and is a
+part of that person (its skeleton lies on theirs; without landmarks, its appearance and 3D
+position do not both disagree), starts no track and extends no tentative one.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from scipy.optimize import linear_sum_assignment
 
 from gst.metrics.image import box_iou  # noqa: F401  (re-exported: gst.track.box_iou)
 from gst.track.appearance import hellinger
+from gst.track.parts import PartConfig, is_part
 
 _INFEASIBLE = 1e6
 
@@ -47,6 +55,7 @@ class TrackerConfig:
     appearance_weight: float = 0.2  # weight of the newest histogram in its running average
     min_score_new: float = 0.0  # detections scoring below this never start a track
     min_hits: int = 1  # consecutive matches before a new track gets an id (1: at once)
+    parts: PartConfig | None = field(default_factory=PartConfig)  # None: no part test
 
     def __post_init__(self):
         if (
@@ -74,6 +83,17 @@ class Observation:
     position: np.ndarray  # (3,) metres (pelvis; world frame when calibrated, else camera)
     appearance: np.ndarray  # (D,) histogram summing to 1
     score: float = 1.0
+    key: tuple | None = None  # the caller's name for it (handed back when a track is confirmed)
+    landmarks: np.ndarray | None = None  # (33, 3) u, v, confidence in frame pixels, if known
+
+
+@dataclass
+class Assignment:
+    """What `Tracker.step` decided for one frame."""
+
+    ids: list[int]  # per observation: its track's id, or -1 (tentative track, part, dropped)
+    backfill: list[tuple[tuple, int]]  # (key, id) of earlier observations of tracks confirmed now
+    parts: list[int]  # indices of observations found to be parts of a confirmed person
 
 
 @dataclass
@@ -88,6 +108,7 @@ class Track:
     hits: int = 1
     misses: int = 0
     confirmed: bool = True  # False while a new track has fewer than min_hits matches (id -1)
+    pending: list = field(default_factory=list)  # keys of its observations while tentative
 
     def predicted_box(self, time_s: float) -> np.ndarray:
         return self.box + self.box_velocity * (time_s - self.last_time)
@@ -103,9 +124,9 @@ class Track:
     @classmethod
     def from_dict(cls, d: dict) -> Track:
         arrays = ("box", "position", "appearance", "box_velocity", "position_velocity")
-        return cls(
-            **{k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()}
-        )
+        d = {k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()}
+        d["pending"] = [tuple(k) for k in d.get("pending", [])]
+        return cls(**d)
 
 
 def _publish(track: Track) -> int | None:
@@ -158,16 +179,57 @@ class Tracker:
 
     def update(self, time_s: float, observations: list[Observation]) -> list[int]:
         """Assign an id to each observation (same order) and advance every track."""
+        return self.step(time_s, observations).ids
+
+    def pending_keys(self) -> set:
+        """Keys of the observations of live tentative tracks (they may still get an id)."""
+        return {k for t in self.tracks if not t.confirmed for k in t.pending}
+
+    def _parts(
+        self, time_s: float, observations: list[Observation], taken: dict[int, int], free: list[int]
+    ) -> list[int]:
+        """Observations in `free` that are parts of a person a confirmed track took this frame
+        (`taken`: observation -> track row)."""
+        c = self.config
+        if c.parts is None or not taken:
+            return []
+        gate = c.position_noise_m
+        out = []
+        for j in free:
+            o = observations[j]
+            for i, r in taken.items():
+                t, outer = self.tracks[r], observations[i]
+                if is_part(
+                    o.box,
+                    outer.box,
+                    o.landmarks,
+                    outer.landmarks,
+                    float(hellinger(t.appearance, o.appearance)),
+                    float(np.linalg.norm(t.predicted_position(time_s) - o.position)) > gate,
+                    c.parts,
+                ):
+                    out.append(j)
+                    break
+        return out
+
+    def step(self, time_s: float, observations: list[Observation]) -> Assignment:
+        """Match one frame's observations to the tracks and advance every track."""
         c = self.config
         cost, allowed = self.cost_matrix(time_s, observations)
         ids: list[int | None] = [None] * len(observations)
         matched_tracks: set[int] = set()
         matched_obs: set[int] = set()
+        backfill: list[tuple[tuple, int]] = []
+        parts: list[int] = []
+        taken: dict[int, int] = {}  # observation -> confirmed track row that took it
         # Confirmed tracks choose first, tentative ones share what is left: a duplicate
         # detection's tentative track must not take a person over from their own track.
         for confirmed in (True, False):
             rows_in = [r for r, t in enumerate(self.tracks) if t.confirmed == confirmed]
             cols_in = [j for j in range(len(observations)) if j not in matched_obs]
+            if not confirmed:
+                parts = self._parts(time_s, observations, taken, cols_in)
+                cols_in = [j for j in cols_in if j not in parts]
             if not rows_in or not cols_in:
                 continue
             sub_cost = cost[np.ix_(rows_in, cols_in)]
@@ -179,12 +241,18 @@ class Tracker:
                 r, j = rows_in[a], cols_in[b]
                 t = self.tracks[r]
                 self._absorb(t, observations[j], time_s)
-                if not t.confirmed and t.hits >= c.min_hits:
-                    t.confirmed, t.id = True, self.next_id
-                    self.next_id += 1
+                if not t.confirmed:
+                    t.pending.append(observations[j].key)
+                    if t.hits >= c.min_hits:
+                        t.confirmed, t.id = True, self.next_id
+                        self.next_id += 1
+                        backfill += [(k, t.id) for k in t.pending[:-1] if k is not None]
+                        t.pending = []
                 ids[j] = _publish(t)
                 matched_tracks.add(r)
                 matched_obs.add(j)
+                if confirmed:
+                    taken[j] = r
         survivors = []
         for r, t in enumerate(self.tracks):
             if r not in matched_tracks:
@@ -195,7 +263,7 @@ class Tracker:
         unmatched = [
             j
             for j, obs in enumerate(observations)
-            if j not in matched_obs and obs.score >= c.min_score_new
+            if j not in matched_obs and j not in parts and obs.score >= c.min_score_new
         ]
         for j in unmatched:
             obs = observations[j]
@@ -207,12 +275,13 @@ class Tracker:
                 obs.appearance.copy(),
                 time_s,
                 confirmed=confirmed,
+                pending=[] if confirmed else [obs.key],
             )
             if confirmed:
                 self.next_id += 1
             self.tracks.append(t)
             ids[j] = _publish(t)
-        return [-1 if i is None else i for i in ids]
+        return Assignment([-1 if i is None else i for i in ids], backfill, parts)
 
     def _absorb(self, t: Track, obs: Observation, time_s: float) -> None:
         c = self.config

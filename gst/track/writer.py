@@ -17,7 +17,7 @@ progress.json the same way. A kill at any moment leaves progress.json naming onl
 segments; a segment file it does not name is an orphan and is deleted on resume. Resume reads
 progress.json, checks the run's settings are unchanged, and hands back the next frame and the
 tracker state saved with the last commit, so a resumed run writes the same bytes as an
-uninterrupted one. `finalize` concatenates the segments into tracks.parquet.
+uninterrupted one. `finalize` concatenates and sorts the segments into tracks.parquet.
 """
 
 from __future__ import annotations
@@ -212,9 +212,10 @@ class TrackWriter:
         return pa.concat_tables(tables) if tables else self.schema.empty_table()
 
     def finalize(self, metadata: dict[str, str], row_group_rows: int = 65536) -> Path:
-        """Write tracks.parquet (with `metadata`) from the committed segments, atomically, and
-        remove the staging folder."""
-        table = self.committed()
+        """Write tracks.parquet (with `metadata`) from the committed segments, sorted by frame
+        then person_id, atomically, and remove the staging folder. (A segment may hold rows of
+        earlier frames: the held rows of a person confirmed in it.)"""
+        table = self.committed().sort_by([("frame", "ascending"), ("person_id", "ascending")])
         schema = self.schema.with_metadata(metadata)
         self.dir.mkdir(parents=True, exist_ok=True)
         with (

@@ -311,10 +311,10 @@ def train_scene(
     b, a = summary["before"], summary["after"]
     log.info(
         "train: MPJPE %s -> %s mm; held-out PSNR %s -> %s dB",
-        _f(b.get("mpjpe_mm")),
-        _f(a.get("mpjpe_mm")),
-        _f(b.get("psnr")),
-        _f(a.get("psnr")),
+        _f(b.get("mpjpe_mm"), "mpjpe_mm"),
+        _f(a.get("mpjpe_mm"), "mpjpe_mm"),
+        _f(b.get("psnr"), "psnr"),
+        _f(a.get("psnr"), "psnr"),
     )
     return summary
 
@@ -350,8 +350,12 @@ def _write_reports(
     _write_markdown(reports / "summary.md", summary)
 
 
-def _f(v) -> str:
-    return "n/a" if v is None else f"{v:.1f}"
+def _f(v, key: str = "") -> str:
+    """mm with 1 decimal, dB with 2, fractions (IoU, SSIM, LPIPS, ...) with 3."""
+    if v is None:
+        return "n/a"
+    digits = 1 if key.endswith("_mm") else 2 if "psnr" in key else 3
+    return f"{v:.{digits}f}"
 
 
 def _write_markdown(path: Path, s: dict) -> None:
@@ -365,7 +369,7 @@ def _write_markdown(path: Path, s: dict) -> None:
         "| metric | before (pretrained) | after (GST) |",
         "|---|---|---|",
     ]
-    lines += [f"| {k} | {_f(s['before'].get(k))} | {_f(s['after'].get(k))} |" for k in keys]
+    lines += [f"| {k} | {_f(s['before'].get(k), k)} | {_f(s['after'].get(k), k)} |" for k in keys]
     lines += [
         "",
         "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), SSIM and "

@@ -1,0 +1,230 @@
+"""The body fit's energy, per person-frame, and its Gauss-Newton (IRLS) linearisation.
+
+    E = data + w_smooth * smoothness + w_pose * |theta|^2 + w_limits * (joint-limit excess)^2
+
+- data, 2D (`Views`): sum over cameras and landmarks of confidence * log(1 + (r/sigma)^2) with r
+  the full-image pixel distance between the projected marker and the landmark and sigma the
+  noise level (so noisier evidence leans more on the priors); the Cauchy kernel makes wrong
+  detections (the other person, a left/right swap) saturate;
+- data, 3D (`Points`, the start): the same kernel on the distance to triangulated landmarks;
+- smoothness: Cauchy of each marker's second difference over consecutive frames, in units of
+  `smooth_scale_m` at 30 fps (scaled by (30 / fps)^2, so a weight means the same at any rate);
+- pose prior (rest pose is the mode) and squared excess of the local rotations' X-Y-Z Euler
+  angles over gst.body.joint_limits.
+
+The linearisation is IRLS: Cauchy weights are frozen at the current residuals, so the normal
+equations of the weighted least squares are those of the robust energy at that point. Every data
+and smoothness term acts on markers, so it is summed first into a 3x3 information matrix and a
+gradient per marker (`Hm`, `gm`), then mapped through the marker Jacobian once:
+H = sum_m dX_m^T Hm dX_m: the cost is linear in cameras and in person-frames. Smoothness couples
+neighbouring frames; each frame's block holds its own exact gradient and the diagonal block of the
+Hessian, with the neighbours held (block Jacobi), and the solver's accept test uses the full
+energy, so the coupling is never trusted further than it helps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from gst.fuse.kinematics import N_POSE_PARAMS, left_jacobian, skew
+
+__all__ = ["Views", "Points", "Neighbours", "Weights", "euler_xyz", "data_cost", "linearise"]
+
+
+@dataclass
+class Views:
+    """2D evidence of B person-frames on C cameras, M landmarks."""
+
+    K: torch.Tensor  # (B, C, 3, 3) the crop's intrinsics (undistorted)
+    Rt: torch.Tensor  # (B, C, 3, 4) world -> camera
+    uv: torch.Tensor  # (B, C, M, 2) crop pixels (0 where unobserved)
+    weight: torch.Tensor  # (B, C, M) confidence, 0 where unobserved or dropped
+    scale: torch.Tensor  # (B, C) crop pixel -> full-image pixel
+    sigma: torch.Tensor  # (B,) Cauchy scale, full-image px
+
+    def project(self, X: torch.Tensor):
+        """Crop pixels (B, C, M, 2), camera points and depths of markers X (B, M, 3)."""
+        cam = torch.einsum("bcij,bmj->bcmi", self.Rt[..., :3], X) + self.Rt[:, :, None, :, 3]
+        z = cam[..., 2:].clamp_min(1e-3)
+        q = torch.einsum("bcij,bcmj->bcmi", self.K, cam)
+        return q[..., :2] / z, z
+
+    def residuals(self, X: torch.Tensor) -> torch.Tensor:
+        """(B, C, M) full-image pixel distances."""
+        uv, _ = self.project(X)
+        return (uv - self.uv).norm(dim=-1) * self.scale[..., None]
+
+
+@dataclass
+class Points:
+    """3D evidence: triangulated landmarks (B, M, 3) with weights (B, M)."""
+
+    X: torch.Tensor
+    weight: torch.Tensor
+    sigma_m: float
+
+
+@dataclass
+class Neighbours:
+    """Consecutive frames of the same person inside the batch (indices clamped to valid rows)."""
+
+    prev: torch.Tensor  # (B,) index of frame t-1 (self where none)
+    next: torch.Tensor  # (B,)
+    has_prev: torch.Tensor  # (B,) bool
+    has_next: torch.Tensor  # (B,) bool
+
+    @property
+    def centred(self) -> torch.Tensor:
+        """(B,) bool: a second difference is centred on this frame."""
+        return self.has_prev & self.has_next
+
+
+@dataclass(frozen=True)
+class Weights:
+    pose: float
+    limits: float
+    smooth: float
+    accel_scale: float  # 1 / (smoothing scale in metres), times (fps / 30)^2
+    limits_lo: torch.Tensor  # (23, 3) radians
+    limits_hi: torch.Tensor
+
+
+def euler_xyz(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) -> (..., 3) angles (a, b, c) with R = Rx(a) Ry(b) Rz(c) (joint_limits' order)."""
+    b = torch.asin(R[..., 0, 2].clamp(-1 + 1e-6, 1 - 1e-6))
+    a = torch.atan2(-R[..., 1, 2], R[..., 2, 2])
+    c = torch.atan2(-R[..., 0, 1], R[..., 0, 0])
+    return torch.stack([a, b, c], -1)
+
+
+def _euler_jacobian(local: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """d euler_xyz(exp(theta)) / d theta, (..., 3 angles, 3)."""
+    axes = left_jacobian(theta).transpose(-1, -2)  # row k: axis turned by d theta_k
+    dR = skew(axes) @ local[..., None, :, :]  # (..., 3 k, 3, 3)
+    R = local[..., None, :, :]
+    db = dR[..., 0, 2] / (1 - R[..., 0, 2] ** 2).clamp_min(1e-12).sqrt()
+    da = (R[..., 1, 2] * dR[..., 2, 2] - dR[..., 1, 2] * R[..., 2, 2]) / (
+        R[..., 1, 2] ** 2 + R[..., 2, 2] ** 2
+    ).clamp_min(1e-12)
+    dc = (R[..., 0, 1] * dR[..., 0, 0] - dR[..., 0, 1] * R[..., 0, 0]) / (
+        R[..., 0, 1] ** 2 + R[..., 0, 0] ** 2
+    ).clamp_min(1e-12)
+    return torch.stack([da, db, dc], -2)
+
+
+def _limit_excess(local: torch.Tensor, w: Weights) -> tuple[torch.Tensor, torch.Tensor]:
+    ang = euler_xyz(local)
+    lo, hi = w.limits_lo.to(ang), w.limits_hi.to(ang)
+    return torch.where(ang < lo, ang - lo, torch.where(ang > hi, ang - hi, 0 * ang)), ang
+
+
+def _second_difference(X: torch.Tensor, nb: Neighbours, w: Weights) -> torch.Tensor:
+    a = (X[nb.prev] - 2 * X + X[nb.next]) * w.accel_scale
+    return torch.where(nb.centred[:, None, None], a, torch.zeros_like(a))
+
+
+def data_cost(X: torch.Tensor, evidence: Views | Points) -> torch.Tensor:
+    """(B,) robust data term."""
+    if isinstance(evidence, Points):
+        r2 = ((X - evidence.X) ** 2).sum(-1) / evidence.sigma_m**2
+        return (evidence.weight * torch.log1p(r2)).sum(-1)
+    r2 = evidence.residuals(X) ** 2 / evidence.sigma[:, None, None] ** 2
+    return (evidence.weight * torch.log1p(r2)).sum((1, 2))
+
+
+def cost(X, theta, local, evidence, nb: Neighbours, w: Weights) -> torch.Tensor:
+    """(B,) energy per person-frame (the smoothness term counted at its centre frame).
+    `evidence`: Views, Points or a sequence of them (their data terms add up)."""
+    exc, _ = _limit_excess(local, w)
+    e = w.pose * (theta**2).sum((1, 2)) + w.limits * (exc**2).sum((1, 2))
+    for ev in _as_list(evidence):
+        e = e + data_cost(X, ev)
+    if w.smooth > 0:
+        a = _second_difference(X, nb, w)
+        e = e + w.smooth * torch.log1p((a**2).sum(-1)).sum(-1)
+    return e
+
+
+def _as_list(evidence) -> list:
+    return list(evidence) if isinstance(evidence, list | tuple) else [evidence]
+
+
+def _marker_information(X, ev: Views | Points):
+    """Per marker information matrix (B, M, 3, 3) and gradient (B, M, 3) of a data term."""
+    eye = torch.eye(3, dtype=X.dtype)
+    if isinstance(ev, Points):
+        d = X - ev.X
+        s2 = ev.sigma_m**2
+        wm = ev.weight / (1 + (d**2).sum(-1) / s2) / s2  # IRLS weights (B, M)
+        return wm[..., None, None] * eye, wm[..., None] * d
+    uv, z = ev.project(X)
+    sc = ev.scale[..., None, None]
+    res = (uv - ev.uv) * sc  # (B, C, M, 2) full px
+    s2 = ev.sigma[:, None, None] ** 2
+    wv = ev.weight / (1 + (res**2).sum(-1) / s2) / s2  # IRLS weights (B, C, M)
+    # d uv / d X = (K[:2] - uv e3^T) / z @ R, in full-image pixels
+    e3 = torch.tensor([0.0, 0.0, 1.0], dtype=X.dtype)
+    Pc = (ev.K[:, :, None, :2, :] - uv[..., :, None] * e3) / z[..., None]
+    P = Pc @ ev.Rt[:, :, None, :, :3] * sc[..., None]  # (B, C, M, 2, 3)
+    Pw = P * wv[..., None, None]
+    return torch.einsum("bcmki,bcmkj->bmij", Pw, P), torch.einsum("bcmki,bcmk->bmi", Pw, res)
+
+
+def linearise(X, dX, theta, local, evidence, nb: Neighbours, w: Weights, turn=None):
+    """Normal equations H (B, P, P), g (B, P) (E ~ E0 + 2 g.dp + dp.H.dp) at the current state.
+
+    `turn` (B, M, 3, 3): when the person's marker offsets are unknowns too, the rotation that
+    turns each marker's offset (d X_m / d offset_m); their 3 M columns come last."""
+    B, M = X.shape[:2]
+    eye = torch.eye(3, dtype=X.dtype)
+    Hm = X.new_zeros(B, M, 3, 3)
+    gm = X.new_zeros(B, M, 3)
+    for ev in _as_list(evidence):
+        h, g_ = _marker_information(X, ev)
+        Hm, gm = Hm + h, gm + g_
+    if w.smooth > 0:
+        a = _second_difference(X, nb, w)  # (B, M, 3), zero where not centred
+        ws = w.smooth / (1 + (a**2).sum(-1))  # IRLS weights (B, M)
+        wa = ws[..., None] * a
+        c = nb.centred
+        # frame t appears in the differences centred at t-1 (+1), t (-2) and t+1 (+1)
+        wp = torch.where((nb.has_prev & c[nb.prev])[:, None], ws[nb.prev], 0 * ws)
+        wn = torch.where((nb.has_next & c[nb.next])[:, None], ws[nb.next], 0 * ws)
+        gm = gm + w.accel_scale * (
+            wa[nb.prev] * (wp > 0)[..., None] - 2 * wa + wa[nb.next] * (wn > 0)[..., None]
+        )
+        Hm = Hm + (w.accel_scale**2 * (wp + 4 * ws * c[:, None] + wn))[..., None, None] * eye
+    J = dX.reshape(B, M * 3, -1)
+    HJ = Hm @ dX  # (B, M, 3, P)
+    H = J.transpose(1, 2) @ HJ.reshape(B, M * 3, -1)
+    g = (J.transpose(1, 2) @ gm.reshape(B, M * 3, 1))[..., 0]
+    # pose prior and joint limits act on theta (columns 6..75), one 3x3 block per joint
+    idx = torch.arange(6, N_POSE_PARAMS)
+    H[:, idx, idx] += w.pose
+    g[:, 6:N_POSE_PARAMS] += w.pose * theta.reshape(B, 69)
+    exc, _ = _limit_excess(local, w)
+    D = _euler_jacobian(local, theta) * (exc != 0).to(X.dtype)[..., None]  # (B, 23, 3, 3)
+    blocks = w.limits * D.transpose(-1, -2) @ D
+    gl = w.limits * (D.transpose(-1, -2) @ exc[..., None])[..., 0]
+    Hp = H[:, 6:N_POSE_PARAMS, 6:N_POSE_PARAMS].reshape(B, 23, 3, 23, 3)
+    j = torch.arange(23)
+    Hp[:, j, :, j, :] += blocks.transpose(0, 1)
+    H[:, 6:N_POSE_PARAMS, 6:N_POSE_PARAMS] = Hp.reshape(B, 69, 69)
+    g[:, 6:N_POSE_PARAMS] += gl.reshape(B, 69)
+    if turn is None:
+        return H, g
+    # marker offsets: block-diagonal among themselves, coupled to every other column
+    P = H.shape[1]
+    Hpo = torch.einsum("bmjp,bmjk->bpmk", HJ, turn).reshape(B, P, M * 3)
+    Hoo = turn.transpose(-1, -2) @ Hm @ turn  # (B, M, 3, 3)
+    go = (turn.transpose(-1, -2) @ gm[..., None])[..., 0].reshape(B, M * 3)
+    full = H.new_zeros(B, P + 3 * M, P + 3 * M)
+    full[:, :P, :P] = H
+    full[:, :P, P:] = Hpo
+    full[:, P:, :P] = Hpo.transpose(1, 2)
+    blocks = full[:, P:, P:].view(B, M, 3, M, 3)
+    m = torch.arange(M)
+    blocks[:, m, :, m, :] = Hoo.transpose(0, 1)
+    return full, torch.cat([g, go], 1)

@@ -1,0 +1,56 @@
+"""View consensus (gst.fuse.consensus): a view showing the other person is dropped, a view with
+its legs' left and right exchanged is put right, and clean views are left alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gst.body import load_body_model
+from gst.fuse.consensus import LIMB_GROUPS, SWAP, ConsensusOptions, view_consensus
+from tests.fuse_fixtures import make_capture, observations
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def capture():
+    return make_capture(load_body_model("anny"), n_people=2, n_frames=5, n_cams=6, seed=11)
+
+
+def test_wrong_person_view_is_dropped_and_swapped_legs_are_put_right(capture):
+    people = observations(capture, noise_px=1.0, seed=1)
+    clean = [p.uv.copy() for p in people]
+    p, other = people[0], people[1]
+    p.uv[2, 1] = other.uv[2, 1]  # frame 2, camera 1 shows the other person
+    p.uv[3, 4] = other.uv[3, 4]  # frame 3: two wrong views of six
+    p.uv[3, 5] = other.uv[3, 5]
+    legs = np.array(LIMB_GROUPS["legs"])
+    p.uv[4, 2, legs] = clean[0][4, 2, SWAP[legs]]  # frame 4, camera 2: legs exchanged
+    out, rep = view_consensus(p, ConsensusOptions())
+    expected = np.zeros(rep.dropped.shape, bool)
+    expected[2, 1] = expected[3, 4] = expected[3, 5] = True
+    np.testing.assert_array_equal(rep.dropped, expected)
+    assert (out.confidence[expected] == 0).all()
+    assert (out.confidence[~expected] == p.confidence[~expected]).all()
+    assert rep.swapped[4, 2, list(LIMB_GROUPS).index("legs")]
+    assert rep.swapped.sum() == 1
+    np.testing.assert_array_equal(out.uv[4, 2], clean[0][4, 2])
+    # clean people pass untouched
+    out1, rep1 = view_consensus(people[1], ConsensusOptions())
+    assert not rep1.dropped.any() and not rep1.swapped.any()
+    np.testing.assert_array_equal(out1.uv, people[1].uv)
+
+
+def test_too_few_agreeing_views_change_nothing(capture):
+    people = observations(capture, noise_px=1.0, seed=2)
+    p = people[0]
+    p.rows[:, 3:] = -1  # three cameras only
+    p.confidence[:, 3:] = 0
+    p.uv[:, 3:] = np.nan
+    p.uv[1, 0] = people[1].uv[1, 0]  # one of three is wrong: 2 agree < min_agree 3
+    _, rep = view_consensus(p, ConsensusOptions(min_agree=3))
+    assert not rep.dropped[1].any()
+    _, rep = view_consensus(p, ConsensusOptions(min_agree=2))
+    assert rep.dropped[1].tolist() == [True, False, False, False, False, False]

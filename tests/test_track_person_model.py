@@ -1,0 +1,60 @@
+"""The person model's tracking loop on real frames: the landmark model follows people from their
+own landmarks and the detector runs only when needed; batched landmark calls give the same
+numbers as one call per region; boxes and landmarks come back in full-frame pixels."""
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.real_capture import LAB, NEEDS_MODELS_AND_LAB
+
+pytestmark = NEEDS_MODELS_AND_LAB
+
+
+@pytest.fixture(scope="module")
+def frames():
+    cap = cv2.VideoCapture(str(LAB / "cam02.mp4"))
+    out = []
+    for _ in range(12):
+        ok, f = cap.read()
+        assert ok
+        out.append(f)
+    cap.release()
+    return out
+
+
+def test_landmark_loop_runs_the_detector_only_when_needed(frames):
+    from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+
+    det = PersonModelDetector(PersonModelConfig(detect_every=10))
+    found = [det.detect(f, i) for i, f in enumerate(frames)]
+    assert [len(d) for d in found] == [2] * len(frames)
+    assert det.detector_runs == 2  # frame 0 and frame 10: nobody was lost
+    # two regions per frame: frame 10's detector hits are the tracked people, not segmented again
+    assert det.regions == 2 * len(frames)
+    h, w = frames[0].shape[:2]
+    for d in found[5]:
+        x0, y0, x1, y1 = d.box
+        assert 0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h and y1 - y0 > 0.3 * h
+        sure = d.landmarks[:, 2] > 0.8
+        u, v = d.landmarks[sure, 0], d.landmarks[sure, 1]
+        assert sure.sum() > 15
+        assert ((u >= x0 - 20) & (u <= x1 + 20) & (v >= y0 - 20) & (v <= y1 + 20)).mean() > 0.9
+    # a jump back in the video restarts from the detector
+    det.detect(frames[0], 0)
+    assert det.detector_runs == 3
+
+
+def test_batched_landmarks_equal_one_call_per_region(frames):
+    from gst.detect.blazepose import BatchedLandmarks, BlazePose, roi_from_alignment
+
+    small = cv2.resize(frames[0], (544, 960), interpolation=cv2.INTER_AREA)
+    rois = [roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in BlazePose().detect(small)]
+    assert len(rois) >= 2
+    lm = BatchedLandmarks()
+    together = lm(small, rois)
+    alone = [lm(small, [r])[0] for r in rois]
+    for a, b in zip(together, alone, strict=True):
+        np.testing.assert_allclose(a.landmarks, b.landmarks, atol=1e-4)
+        np.testing.assert_allclose(a.mask_logits, b.mask_logits, atol=1e-3)
+        assert abs(a.presence - b.presence) < 1e-5
