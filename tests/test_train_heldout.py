@@ -43,7 +43,7 @@ def test_heldout_frames_and_cameras_never_reach_a_batch(tmp_path, monkeypatch):
         TrainConfig(steps=6, batch_size=4, warmup_steps=1, val_every=3, log_every=1),
         tmp_path,
         FitOptions(mode="multiview", num_targets=2, render_size=16, heldout_cameras=("c2",),
-                   first_heldout_frame=6, landmark_dropout=0.5),
+                   first_heldout_frame=6, landmark_dropout=0.5, scene="s"),
         body_spec="random", vertex_ids=ids, group_index=groups,
     )  # fmt: skip
     assert len(seen) == 6
@@ -56,6 +56,8 @@ def test_heldout_frames_and_cameras_never_reach_a_batch(tmp_path, monkeypatch):
     assert 0 < dropped.float().mean() < 1  # landmark dropout hides some inputs' landmarks
     extra = load_checkpoint(tmp_path / "best.pt")["extra"]
     assert extra["first_heldout_frame"] == 6 and extra["heldout_cameras"] == ["c2"]
+    assert extra["trained_on"] == {"scene": "s", "cameras": ["c0", "c1"], "frames": [0, 5],
+                                   "crops": 12}  # fmt: skip
     # the checkpoint is chosen on held-out-camera views of training frames only
     pairs = novel_view_pairs(crops, {2}, frames=(0, 6))
     assert len(pairs.inputs) and (crops.frame[pairs.targets] < 6).all()

@@ -92,6 +92,7 @@ class FitOptions:
     # share of multi-view samples whose input landmarks are hidden (a landmark network keeps an
     # image-only path for crops where the detector finds nobody)
     landmark_dropout: float = 0.0
+    scene: str | None = None  # recorded in the checkpoint (extra.trained_on.scene)
 
 
 def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
@@ -170,6 +171,13 @@ def fit_gst(
             f"no training samples: no (frame, person) seen by >= 2 training cameras "
             f"(held out: {sorted(opts.heldout_cameras)}; frames from {cut})"
         )
+    used = torch.cat(groups)
+    trained_on = {
+        "scene": opts.scene,
+        "cameras": [names[c] for c in sorted(set(crops.camera[used].tolist()))],
+        "frames": [int(crops.frame[used].min()), int(crops.frame[used].max())],
+        "crops": int(len(used)),
+    }
     pose_crops = crops if val_crops is None else val_crops
     has_truth = "joints_world" in pose_crops.truth
     truth_rows = (
@@ -242,6 +250,7 @@ def fit_gst(
                 "mode": opts.mode,
                 "heldout_cameras": list(opts.heldout_cameras),
                 "first_heldout_frame": -1 if cut is None else int(cut),
+                "trained_on": trained_on,  # read by gst.track (the Parquet's gst.model)
             },
         }
 

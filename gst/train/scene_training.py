@@ -293,6 +293,7 @@ def train_scene(
             heldout_cameras=tuple(heldout),
             body_lr=body_lr,
             first_heldout_frame=cut,
+            scene=scene,
             landmark_dropout=p.landmark_dropout if crops.landmarks is not None else 0.0,
         ),
         body_spec=p.body_model,
