@@ -11,8 +11,8 @@ import torch
 
 from gst.body import load_body_model
 from gst.fuse import FitOptions, FuseOptions, fuse_scene
-from gst.model.assemble import BodyPrediction
 from gst.lift.teacher import RigTeacher
+from gst.model.assemble import BodyPrediction
 from gst.train.distill import (
     distill_targets,
     distill_terms,
