@@ -1,11 +1,19 @@
-"""Render-free pretraining speed: sampler samples/s and training samples/s, per landmark set.
+"""Render-free pretraining speed, and single-image pose of checkpoints on a world they never saw.
 
-Times the sampler alone (batches of 64 and 256) and full training steps (sample, landmark-only
-forward, joints, loss, backward, AdamW) of the tiny preset's landmark path, medians of repeated
-runs, 1 torch thread unless --threads. Prints one table; compare numbers taken in one run only
-(the machine is shared).
+Speed (default): the sampler alone (batches of 64 and 256) and full training steps (sample,
+landmark-only forward, joints, loss, backward, AdamW) of the tiny preset's landmark path,
+medians of repeated runs, 1 torch thread unless --threads. Prints one table; compare numbers
+taken in one run only (the machine is shared).
 
     python benchmarks/bench_lift.py --repeats 5
+
+Score: each checkpoint's single-image pose (world joints, MPJPE root-aligned and PA-MPJPE,
+24 joints) on the crops of a rendered world (`gst.lift.dataset` world: the scene folder and its
+`world_<seed>.npz` with BlazePose's landmarks on exactly those crops), from image and landmarks
+(the pipeline's path), and from the landmarks alone; with the network's time per crop.
+
+    python benchmarks/bench_lift.py --score models/pretrain.pt other.pt \
+        --world /work/data/lift/heldout/scenes/world_7000 /work/data/lift/heldout/world_7000.npz
 """
 
 from __future__ import annotations
@@ -13,7 +21,9 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from gst.body import load_body_model
@@ -34,13 +44,61 @@ def _median_rate(fn, samples: int, repeats: int) -> float:
     return statistics.median(rates)
 
 
+def score(checkpoints: list[Path], scene: Path, npz: Path) -> None:
+    """Print one row per checkpoint (module doc)."""
+    from gst.eval.evaluator import evaluate_pose
+    from gst.lift.dataset import LandmarkWorld
+    from gst.lift.pretrain import evaluate_world
+    from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+    from gst.train.losses import LossWeights
+    from gst.train.recipe import make_task
+    from gst.train.synthetic_crops import crops_from_synth_scene
+
+    world = LandmarkWorld.load(npz)
+    crops = crops_from_synth_scene(scene, crop_size=world.crop_size)
+    same = len(crops) == len(world) and np.array_equal(crops.frame.numpy(), world.frame)
+    if not same or not np.allclose(crops.K.numpy(), world.K_crop, atol=1e-3):
+        raise SystemExit(f"{npz} does not hold the crops of {scene} (regenerate it)")
+    lm = world.landmarks.copy()
+    lm[..., 2] *= world.presence[:, None]
+    crops.landmarks = torch.from_numpy(lm)
+    print(f"world {world.seed} ({world.rig_kind}, {len(world)} crops)")
+    print("| checkpoint | image + landmarks MPJPE / PA (mm) | landmarks only | ms/crop |")
+    print("|---|---|---|---|")
+    rows = torch.arange(len(crops))
+    for path in checkpoints:
+        ck = load_checkpoint(path)
+        net = network_from_checkpoint(ck, path).eval()
+        body = load_body_model(ck["body_model"])
+        task = make_task(body, ck["vertex_ids"], net.cfg, crops.crop_size, LossWeights(lpips=0.0))
+        t0 = time.perf_counter()
+        rec = evaluate_pose(net, task, crops, rows)
+        ms = 1000 * (time.perf_counter() - t0) / len(rows)
+        only = "n/a"
+        if net.landmark_encoder is not None:
+            s = evaluate_world(net, body, world)
+            only = f"{s.mpjpe_mm:.1f} / {s.pa_mpjpe_mm:.1f}"
+        print(
+            f"| {path} | {1000 * rec.mpjpe.mean():.1f} / {1000 * rec.pa_mpjpe.mean():.1f} | "
+            f"{only} | {ms:.1f} |",
+            flush=True,
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--train-steps", type=int, default=20)
+    ap.add_argument("--score", nargs="+", type=Path, help="checkpoints to score (module doc)")
+    ap.add_argument("--world", nargs=2, type=Path, metavar=("SCENE", "NPZ"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.score:
+        if not args.world:
+            raise SystemExit("--score needs --world SCENE NPZ")
+        score(args.score, *args.world)
+        return
     body = load_body_model("anny")
     print("| set | sampler B=64 (samples/s) | sampler B=256 | training B=64 | training B=256 |")
     print("|---|---|---|---|---|")

@@ -1,9 +1,11 @@
-"""evaluate: score the trained GST model (and the pretrained start) against the scene's truth.
+"""evaluate: score the trained GST model (and the pretrained start) from single images.
 
-Library: `gst.eval.scene.evaluate_scene`. Pose (MPJPE, PA-MPJPE, vertex errors), novel views in
-held-out cameras (PSNR, SSIM, LPIPS, full crop and SHERF box), breakdowns per camera, motion and
-body part, and a side-by-side image. Only scenes with truth (synthetic ones) apply; the stage
-is skipped elsewhere. Writes `reports/evaluate/` (docs/evaluate.md).
+Library: `gst.eval.scene.evaluate_scene`. Pose (MPJPE, PA-MPJPE, vertex errors) of every crop
+from its own image and landmarks, against the synthetic truth or, on a real scene, the rig's
+fused bodies (agreement with the rig); novel views in held-out cameras (PSNR, SSIM, LPIPS, full
+crop and SHERF box, silhouette IoU); breakdowns per camera, motion and body part; a side-by-side
+image. The headline scores the frames `train` held out in time. Writes `reports/evaluate/`
+(docs/evaluate.md).
 """
 
 from __future__ import annotations
@@ -15,12 +17,14 @@ from pipeline.stage import Stage, StageContext
 def run(ctx: StageContext) -> None:
     models = {"pretrained": ctx.path("models/pretrain.pt")} if ctx.params.compare_pretrained else {}
     models["gst"] = ctx.path("models/gst.pt")
+    synthetic = ctx.scene.is_synthetic
     evaluate_scene(
         ctx.params,
         ctx.path("crops/crops.h5"),
-        ctx.path("synth"),
+        ctx.path("synth") if synthetic else None,
         models,
         ctx.out("reports/evaluate"),
+        fused=None if synthetic else ctx.path("fused/bodies.parquet"),
         scene=ctx.scene_name,
         workspace=ctx.workspace,
     )
@@ -30,7 +34,6 @@ STAGE = Stage(
     name="evaluate",
     run=run,
     params_model=EvaluateSettings,
-    applies=lambda scene: scene.is_synthetic,
     outputs=lambda ctx: ["reports/evaluate"],
-    help="pose and novel-view metrics against the synthetic truth (skipped on scenes without truth)",
+    help="single-image pose and novel-view metrics (synthetic truth, or the rig's fused bodies)",
 )

@@ -1,15 +1,17 @@
-"""pretrain: supervised pretraining on synthetic people, our stand-in for HMR2's 3D-labelled start.
+"""pretrain: pretraining on synthetic people, our stand-in for HMR2's 3D-labelled start.
 
-Library: `gst.train.pretrain.pretrain` (docs/training.md). It renders a corpus of small
-synthetic worlds, trains with 3D supervision, then briefly with the multi-view image terms so
-the Gaussian head learns to render; one more world, never trained on, validates. With
-`reuse: PATH` an existing GST checkpoint is used as it is. Writes `models/pretrain.pt` and
-`reports/pretrain/`.
+Library: `gst.lift.recipe.pretrain` (docs/training.md, docs/landmark_prior.md). Mode `lift`
+(default): the landmark path learns to lift BlazePose landmarks without rendering, then a short
+rendered phase on a few synthetic worlds teaches the image path and the Gaussian head to work
+with it; modes `3d` / `pretrain`: the image-only network on rendered worlds. One more world,
+never trained on, validates. With `reuse: PATH` an existing GST checkpoint is used as it is.
+Writes `models/pretrain.pt` and `reports/pretrain/`.
 """
 
 from __future__ import annotations
 
-from gst.train.pretrain import PretrainConfig, pretrain
+from gst.lift.recipe import pretrain
+from gst.train.pretrain import PretrainConfig
 from pipeline.stage import Stage, StageContext
 
 

@@ -2,13 +2,15 @@
 
 Library: `gst.train.scene_training.train_scene` (docs/training.md). Starts from
 `models/pretrain.pt` (or an HMR2 checkpoint with the `huge` preset), renders each prediction
-into the other views of the same person and compares with what those cameras saw. Held-out
-cameras are never trained on: they measure novel-view quality. Writes `models/gst.pt`,
+into the other views of the same person and compares with what those cameras saw; with
+`distill` the rig's fused bodies (`gst.lift.teacher.RigTeacher`, refitted without held-out
+data) are pseudo-3D targets. Held-out cameras and frames are never trained on. Writes `models/gst.pt`,
 `models/example.ply` (one predicted splat) and `reports/train/`.
 """
 
 from __future__ import annotations
 
+from gst.lift.teacher import RigTeacher
 from gst.train.scene_training import TrainOutputs, TrainSettings, train_scene
 from pipeline.stage import Stage, StageContext
 
@@ -26,6 +28,9 @@ def run(ctx: StageContext) -> None:
         ctx.path("models/pretrain.pt"),
         outputs,
         synth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
+        teacher=RigTeacher(ctx.path("fused/bodies.parquet"), ctx.path("crops/crops.h5"), ctx.rig())
+        if ctx.params.distill
+        else None,
         scene=ctx.scene_name,
         progress=ctx.progress,
     )

@@ -51,8 +51,12 @@ def test_two_variant_sweep_writes_table_and_plot(tmp_path):
     body.joint_names = JOINTS
     crops = crop_set(n_frames=4, n_cams=3)
     crops.truth["has_truth"] = torch.ones(len(crops), dtype=torch.bool)
+    crops.landmarks = torch.rand(len(crops), 33, 3) * torch.tensor([64.0, 64.0, 1.0])
     split = frame_split(crops, ("c2",), test_fraction=0.25)
-    variants = [Variant("a", "tiny", (64, 48), "full"), Variant("b", "tiny", (128, 96), "full")]
+    variants = [
+        Variant("a", "tiny", (64, 48), "full"),
+        Variant("b", "tiny", (128, 96), "full", landmarks=33),
+    ]
     train = FinetuneConfig(
         mode="pretrain",
         steps=2,
@@ -83,6 +87,8 @@ def test_two_variant_sweep_writes_table_and_plot(tmp_path):
     assert rows[0].mpjpe_mm == rows[1].mpjpe_mm  # same model, two outputs
     assert rows[0].psnr is None and rows[1].psnr is not None
     assert all(r.fps > 0 and r.ms_per_batch > 0 for r in rows)
+    assert [r.landmarks for r in rows] == [0, 0, 33, 33]
+    assert rows[2].ms_per_crop == pytest.approx(rows[2].ms_per_batch / 2)
     write_bench_table(tmp_path, rows, "# test")
     write_pareto_plot(tmp_path / "pareto.png", rows)
     with open(tmp_path / "table.csv") as f:

@@ -88,7 +88,10 @@ def test_hmr2_key_names_are_unchanged_and_plain_networks_refuse_landmarks():
     net, plain = _nets()
     new = {k for k in net.state_dict() if k not in plain.state_dict()}
     assert new and all(
-        k.startswith("landmark_encoder.") or ".transformer.landmark_layers." in k for k in new
+        k.startswith("landmark_encoder.")
+        or ".transformer.landmark_layers." in k
+        or k == "smpl_head.transformer.smpl_image_gate"
+        for k in new
     )
     assert set(plain.state_dict()) <= set(net.state_dict())
     images, lm = _inputs()
@@ -107,3 +110,22 @@ def test_landmark_input_checks_shapes_and_normalises():
     assert torch.allclose(inp.camera[0], torch.tensor([0.25, 0.0, 0.0]))
     with pytest.raises(ValueError, match="K_crop"):
         LandmarkInput.from_pixels(px, K[:1], 256)
+
+
+def test_a_closed_image_gate_keeps_the_landmark_pose_and_leaves_the_rest_alone():
+    """Gate 0: a crop with landmarks gets its landmark-only pose whatever the image; crops
+    without landmarks and the Gaussian tokens still see the image."""
+    net, plain = _nets(point_tokens=False)
+    with torch.no_grad():
+        net.smpl_head.transformer.smpl_image_gate.zero_()
+        images, lm = _inputs()
+        other = torch.randn_like(images)
+        a, b = net(images, landmarks=lm), net(other, landmarks=lm)
+        only = net(None, with_gaussians=False, landmarks=lm)
+        assert torch.equal(a.body_pose_6d, b.body_pose_6d)
+        assert torch.allclose(a.body_pose_6d, only.body_pose_6d, atol=1e-6)
+        assert not torch.equal(a.gaussians.colors, b.gaussians.colors)
+        drop = torch.tensor([True, False, False, True])
+        mixed = net(images, landmarks=lm.masked(drop))
+        ref = plain(images)
+        assert torch.equal(mixed.body_pose_6d[drop], ref.body_pose_6d[drop])

@@ -50,6 +50,10 @@ class Variant:
     checkpoint: str | None = (
         None  # use these weights as they are (no training); must match the variant
     )
+    # landmark tokens (gst.model.landmarks): 0 = none (the paper's image-only network), else
+    # the number of BlazePose landmarks taken (33 or the 12 limb ones); per-landmark tokens
+    landmarks: int = 0
+    landmark_point_tokens: bool = False
 
     def config(self):
         cfg = get_preset(self.preset)
@@ -57,6 +61,13 @@ class Variant:
             cfg = replace(cfg, vit=replace(cfg.vit, image_size=tuple(self.image_size)))
         if self.vertex_preset is not None:
             cfg = replace(cfg, vertex_preset=self.vertex_preset)
+        if self.landmarks:
+            cfg = replace(
+                cfg,
+                landmark_tokens=True,
+                num_landmarks=self.landmarks,
+                landmark_point_tokens=self.landmark_point_tokens,
+            )
         return cfg
 
 
@@ -67,9 +78,11 @@ class BenchRow:
     input_size: str
     gaussians: int
     output: str  # "pose-only" | "full"
+    landmarks: int  # landmarks the network takes (0: image only)
     params_m: float
     training: str  # how the weights were obtained
     ms_per_batch: float
+    ms_per_crop: float
     fps: float
     mpjpe_mm: float | None
     pa_mpjpe_mm: float | None
@@ -124,6 +137,7 @@ def run_bench(
     )[:, 0]
     timing_rows = test[:batch] if len(test) >= batch else torch.arange(min(batch, len(crops)))
     images, K = crops.images[timing_rows], crops.K[timing_rows]
+    landmarks = None if crops.landmarks is None else crops.landmarks[timing_rows]
     eval_cfg = EvalConfig(
         heldout_cameras=split.heldout_cameras,
         render_size=render_size,
@@ -166,7 +180,7 @@ def run_bench(
 
             def call(net=net, task=task, with_g=with_g):
                 with torch.no_grad():
-                    predict(net, task, images, K, with_gaussians=with_g)
+                    predict(net, task, images, K, with_gaussians=with_g, landmarks=landmarks)
 
             calls.append(call)
             pending.append(
@@ -176,8 +190,10 @@ def run_bench(
                     f"{net.cfg.image_size[0]}x{net.cfg.image_size[1]}",
                     len(ids),
                     output,
+                    net.cfg.num_landmarks if net.landmark_encoder is not None else 0,
                     params_m,
                     how,
+                    0.0,
                     0.0,
                     0.0,
                     pose["mpjpe_mm"],
@@ -187,6 +203,7 @@ def run_bench(
             )
     for row, sec in zip(pending, _interleaved_medians(calls, repeats), strict=True):
         row.ms_per_batch, row.fps = 1000 * sec, len(timing_rows) / sec
+        row.ms_per_crop = row.ms_per_batch / len(timing_rows)
         log(
             f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of {len(timing_rows)}"
         )
@@ -214,15 +231,16 @@ def write_bench_table(out: Path, rows: list[BenchRow], header: str) -> None:
     lines = [
         header,
         "",
-        "| variant | preset | input | Gaussians | output | params (M) | ms/batch | frames/s | "
-        "time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | PSNR held-out (dB) | weights |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| variant | preset | input | Gaussians | landmarks | output | params (M) | ms/crop | "
+        "crops/s | time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | PSNR held-out (dB) | weights |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.output} | {r.params_m:.2f} | "
-            f"{r.ms_per_batch:.1f} | {r.fps:.1f} | {r.ms_per_batch / ref:.2f}x | {_fmt(r.mpjpe_mm)} | "
-            f"{_fmt(r.pa_mpjpe_mm)} | {_fmt(r.psnr, 2)} | {r.training} |"
+            f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.landmarks or '-'} | "
+            f"{r.output} | {r.params_m:.2f} | {r.ms_per_crop:.2f} | {r.fps:.1f} | "
+            f"{r.ms_per_batch / ref:.2f}x | {_fmt(r.mpjpe_mm)} | {_fmt(r.pa_mpjpe_mm)} | "
+            f"{_fmt(r.psnr, 2)} | {r.training} |"
         )
     text = "\n".join(lines) + "\n\n![Pareto](pareto.png)\n"
     atomic_write(out / "table.md", lambda tmp: Path(tmp).write_text(text))
@@ -244,8 +262,8 @@ def _pareto(points: list[tuple[float, float]], lower_better: bool) -> list[int]:
 
 
 def write_pareto_plot(path: Path, rows: list[BenchRow]) -> None:
-    """Two panels: ms/batch against MPJPE (all rows) and against held-out PSNR (full rows);
-    the Pareto front of each is drawn as a line."""
+    """Two panels: ms per crop against MPJPE (all rows) and against held-out PSNR (full rows);
+    the Pareto front of each is drawn as a line; landmark models are drawn with a star."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -261,19 +279,21 @@ def write_pareto_plot(path: Path, rows: list[BenchRow]) -> None:
     ):
         pts = [(r, getattr(r, key)) for r in rows if getattr(r, key) is not None]
         for r, e in pts:
+            marker = ("*" if r.landmarks else "o") if r.output == "full" else "s"
             ax.scatter(
-                r.ms_per_batch,
+                r.ms_per_crop,
                 e,
                 color=colours[r.variant],
-                marker="o" if r.output == "full" else "s",
+                marker=marker,
+                s=80 if r.landmarks else 36,
                 label=f"{r.variant} ({r.output})",
             )
-        front = _pareto([(r.ms_per_batch, e) for r, e in pts], lower)
-        fr = sorted((pts[i][0].ms_per_batch, pts[i][1]) for i in front)
+        front = _pareto([(r.ms_per_crop, e) for r, e in pts], lower)
+        fr = sorted((pts[i][0].ms_per_crop, pts[i][1]) for i in front)
         if fr:
             ax.plot(*zip(*fr, strict=True), "k--", lw=1, label="Pareto front")
         ax.set_xscale("log")
-        ax.set_xlabel("run time per batch (ms, median, log scale)")
+        ax.set_xlabel("network run time per crop (ms, median over batches, log scale)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")

@@ -21,6 +21,7 @@ from gst.body import load_body_model
 from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
 from gst.eval.split import FinetuneConfig, frame_split
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.scene_truth import attach_scene_truth
 from gst.train.views import load_cropset
@@ -34,10 +35,16 @@ class VariantParams(BaseModel):
     preset: Literal["tiny", "small", "base", "huge"] = "tiny"
     image_size: tuple[int, int] | None = None
     vertex_preset: Literal["1723", "3445", "6890", "full"] | None = None
+    # landmark tokens: 0 = the paper's image-only network, 33 or 12 BlazePose landmarks
+    landmarks: Literal[0, 12, 33] = 0
+    landmark_point_tokens: bool = False  # a token per landmark besides the lift tokens
 
 
 _DEFAULT_VARIANTS = [
     VariantParams(name="tiny-128x96-1723"),
+    VariantParams(name="tiny-128x96-1723-lm33", landmarks=33),
+    VariantParams(name="tiny-128x96-1723-lm33-points", landmarks=33, landmark_point_tokens=True),
+    VariantParams(name="tiny-128x96-1723-lm12", landmarks=12),
     VariantParams(name="tiny-256x192-1723", image_size=(256, 192)),
     VariantParams(name="tiny-128x96-6890", vertex_preset="6890"),
     VariantParams(name="small-128x96-3445", preset="small", image_size=(128, 96)),
@@ -51,6 +58,8 @@ class BenchSettings(BaseModel):
 
     variants: list[VariantParams] = _DEFAULT_VARIANTS
     include_pretrained: bool = True  # also time and score models/pretrain.pt as it is
+    include_trained: bool = True  # and models/gst.pt (the train stage's model) when it exists
+    landmarks: bool = True  # feed crops' landmarks to landmark variants (store's, else BlazePose)
     steps: int = 40  # equal training budget of every variant
     batch_size: int = 8
     lr: float = 5e-4
@@ -85,23 +94,36 @@ def bench_scene(
     t0 = time.perf_counter()
     crops, boxes = load_cropset(crops_h5)
     attach_scene_truth(crops, boxes, synth)
+    if p.landmarks:
+        crops.landmarks, source = store_landmarks(crops_h5, crops.images)
+        log.info("bench: landmarks from %s", source)
     heldout = tuple(p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:])
     split = frame_split(crops, heldout, p.test_fraction)
     ckpt = load_checkpoint(pretrained)
     body_spec = ckpt["body_model"]
     body = load_body_model(body_spec)
     variants = []
-    if p.include_pretrained:
-        cfg = network_from_checkpoint(ckpt).cfg
+    kept = [("pretrained", "models/pretrain.pt")] if p.include_pretrained else []
+    if p.include_trained and (root / "models" / "gst.pt").is_file():
+        kept.append(("trained (models/gst.pt)", "models/gst.pt"))
+    for name, rel in kept:
+        cfg = network_from_checkpoint(load_checkpoint(root / rel)).cfg
         variants.append(
             Variant(
-                name="pretrained",
+                name=name,
                 preset=cfg.name,
                 image_size=cfg.image_size,
-                checkpoint="models/pretrain.pt",
+                checkpoint=rel,
+                landmarks=cfg.num_landmarks if cfg.landmark_tokens else 0,
             )
         )
-    variants += [Variant(v.name, v.preset, v.image_size, v.vertex_preset) for v in p.variants]
+    variants += [
+        Variant(
+            v.name, v.preset, v.image_size, v.vertex_preset,
+            landmarks=v.landmarks, landmark_point_tokens=v.landmark_point_tokens,
+        )
+        for v in p.variants
+    ]  # fmt: skip
 
     def load(rel: str):
         c = load_checkpoint(root / rel)
@@ -149,8 +171,11 @@ def bench_scene(
         f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras other than "
         f"{', '.join(heldout)}. MPJPE/PA-MPJPE on crops of frames {split.test_frames[0]}-{split.test_frames[1] - 1} "
         f"(all cameras); PSNR of those frames rendered at {p.render_size} px into the held-out camera(s). "
-        f"`pretrained` is models/pretrain.pt as it is (longer training, another synthetic world). "
-        f"Whole sweep: {seconds:.0f} s."
+        f"`pretrained` is models/pretrain.pt as it is (longer training, other synthetic worlds), "
+        f"`trained` models/gst.pt (the train stage's model: it trained on this scene's first "
+        f"frames without labels). Landmark variants take each crop's BlazePose landmarks "
+        f"({'the store' if p.landmarks else 'none'}); their time is the network's alone (BlazePose "
+        f"runs anyway in tracking). Whole sweep: {seconds:.0f} s."
     )
     write_bench_table(out, rows, header)
     write_pareto_plot(out / "pareto.png", rows)

@@ -109,6 +109,7 @@ def evaluate_pose(
             crops.t[r],
             with_gaussians=False,
             with_vertices=with_vertices,
+            landmarks=None if crops.landmarks is None else crops.landmarks[r],
         )
         gt = crops.truth["joints_world"][r].to(pred.joints_world)
         e, pa = per_joint_errors(pred.joints_world, gt)
@@ -231,6 +232,7 @@ def evaluate_views(
             crops.R[inp],
             crops.t[inp],
             with_gaussians=True,
+            landmarks=None if crops.landmarks is None else crops.landmarks[inp],
         )
         g = pred.gaussians_world
         view, K, image, mask = target_views(crops, tgt, size)

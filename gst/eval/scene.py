@@ -1,28 +1,37 @@
-"""Score trained GST models (and the pretrained start) on a scene's crops against its truth.
+"""Score trained GST models (and the pretrained start) on a scene's crops.
 
-Pose (MPJPE, PA-MPJPE, vertex errors), novel views in held-out cameras (PSNR, SSIM, LPIPS, full
-crop and SHERF box), breakdowns per camera, motion and body part, and a side-by-side image.
-Only scenes with truth (synthetic ones) can be scored.
-Writes `reports/evaluate/` (docs/evaluate.md).
+Single-image pose (MPJPE, PA-MPJPE, vertex errors) of every crop, each from its own image and
+landmarks, against the reference: the synthetic truth, or on a real scene the rig's fused bodies
+(`fused/bodies.parquet`: the numbers then measure agreement with the rig, not error); novel
+views in held-out cameras (PSNR, SSIM, LPIPS, full crop and SHERF box, silhouette IoU);
+breakdowns per camera, motion and body part; a side-by-side image. By default the headline
+scores the frames held out in time that `train` never saw (the trained checkpoint records
+them), the pose of all frames is given beside it. Writes `reports/evaluate/` (docs/evaluate.md).
 """
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Literal
 
+import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict
 
 from gst.body import load_body_model
-from gst.eval.evaluate import EvalConfig, evaluate_model
+from gst.eval.evaluate import EvalConfig, evaluate_model, truth_rows
+from gst.eval.evaluator import evaluate_pose
 from gst.eval.report import write_report
+from gst.eval.summary import pose_summary
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+from gst.train.distill import read_fused_bodies
+from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.recipe import make_task
 from gst.train.scene_truth import attach_scene_truth
-from gst.train.views import load_cropset
+from gst.train.views import heldout_frame_start, load_cropset
 
 log = logging.getLogger("gst.eval")
 
@@ -32,7 +41,13 @@ class EvaluateSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    heldout_cameras: list[str] | None = None  # default: the rig's last camera, as in train
+    heldout_cameras: list[str] | None = None  # default: the trained model's (train's default)
+    # Which frames the headline scores: "heldout" = those `train` held out in time (recorded
+    # in models/gst.pt; else the last `heldout_frames` share), "all" = every frame
+    frames: Literal["heldout", "all"] = "heldout"
+    heldout_frames: float = 0.25  # only for checkpoints that do not record their held-out frames
+    # Feed each crop's landmarks to models with landmark tokens (the store's, else BlazePose)
+    landmarks: bool = True
     render_size: int = 128  # novel views are rendered and scored at this size
     max_groups: int | None = None  # cap on (frame, person) groups for novel views (None: all)
     compare_pretrained: bool = True  # also evaluate models/pretrain.pt, side by side
@@ -48,74 +63,143 @@ def _model(path: Path, body_cache: dict):
     return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
 
 
+def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple[list, int | None]:
+    """Held-out cameras and first held-out frame: the settings', else what the trained model
+    (`gst`, else the last one) recorded, else train's defaults."""
+    extra = load_checkpoint(models.get("gst", list(models.values())[-1]))["extra"]
+    cams = p.heldout_cameras
+    if cams is None:
+        cams = extra.get("heldout_cameras") or crops.camera_names[-1:]
+    cut = extra.get("first_heldout_frame")
+    if cut is None:
+        cut = heldout_frame_start(crops.frame, p.heldout_frames)
+    return list(cams), (None if cut is None or cut < 0 else int(cut))
+
+
+def fused_reference(crops, bodies_parquet: Path) -> None:
+    """On a scene without truth, the rig's fused bodies stand in for it: `crops.truth` gets
+    joints_world and has_truth (a fused body of the crop's person and frame, seen by >= 2
+    cameras), so the evaluator measures single-image agreement with the rig."""
+    bodies = read_fused_bodies(bodies_parquet)
+    index = {
+        (int(f), int(q)): i
+        for i, (f, q) in enumerate(zip(bodies.frame, bodies.person_id, strict=True))
+    }
+    row = np.array(
+        [index.get((int(f), int(q)), -1) for f, q in zip(crops.frame, crops.person, strict=True)]
+    )
+    ok = row >= 0
+    ok[ok] &= bodies.observed[row[ok]] & ~bodies.single_view[row[ok]]
+    joints = np.zeros((len(crops), 24, 3), np.float32)
+    joints[ok] = bodies.joints[row[ok]]
+    crops.truth.update(has_truth=torch.from_numpy(ok), joints_world=torch.from_numpy(joints))
+
+
 def evaluate_scene(
     p: EvaluateSettings,
     crops_h5: Path,
-    synth: Path,
+    synth: Path | None,
     models: dict[str, Path],
     out: Path,
     *,
+    fused: Path | None = None,
     scene: str = "scene",
     workspace: Path | None = None,
 ) -> dict:
     """Evaluate each model of `models` (name -> GST checkpoint; `compare_pretrained` decides if
-    the caller includes the pretrained one) on the scene's crops against its truth and write
-    the report into `out`; returns the results by model name. Paths in the report are shown
-    relative to `workspace`."""
+    the caller includes the pretrained one) on the scene's crops against its truth (`synth`),
+    or, without truth, against the rig's fused bodies (`fused`), and write the report into
+    `out`; returns the results by model name. Paths in the report are shown relative to
+    `workspace`."""
     if p.threads:
         torch.set_num_threads(p.threads)
     crops, boxes = load_cropset(crops_h5)
-    truth = attach_scene_truth(crops, boxes, synth)
+    truth = None
+    if synth is not None:
+        truth = attach_scene_truth(crops, boxes, synth)
+        reference = "synthetic truth"
+    elif fused is not None:
+        fused_reference(crops, fused)
+        reference = "the rig's fused bodies (agreement, not error)"
+    else:
+        raise ValueError("evaluate needs the scene's truth or the fuse stage's bodies")
     matched = int(crops.truth["has_truth"].sum())
-    log.info("evaluate: truth matched for %d of %d crops", matched, len(crops))
-    heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
+    log.info("evaluate: a reference (%s) for %d of %d crops", reference, matched, len(crops))
+    heldout, cut = _heldout_setup(p, models, crops)
+    frames = None
+    if p.frames == "heldout" and cut is not None:
+        frames = (cut, int(crops.frame.max()) + 1)
     lpips = load_lpips() if p.lpips else None
     cfg = EvalConfig(
-        heldout_cameras=tuple(heldout), render_size=p.render_size, max_groups=p.max_groups
+        heldout_cameras=tuple(heldout),
+        render_size=p.render_size,
+        max_groups=p.max_groups,
+        frames=frames,
     )
     bodies: dict = {}
     results, meta_models = {}, {}
     vertices = None
     for name, path in models.items():
         net, ckpt, body = _model(path, bodies)
-        if vertices is None and ckpt["body_model"] == truth.body_model:
+        if p.landmarks and net.landmark_encoder is not None and crops.landmarks is None:
+            crops.landmarks, source = store_landmarks(crops_h5, crops.images)
+            log.info("evaluate: landmarks from %s", source)
+        if truth is not None and vertices is None and ckpt["body_model"] == truth.body_model:
             vertices = truth.vertices(body)
-        elif vertices is None:
-            log.info(
-                "evaluate: model body '%s' differs from the scene's '%s': no vertex error, SHERF box "
-                "from joints",
-                ckpt["body_model"],
-                truth.body_model,
-            )
         task = make_task(body, ckpt["vertex_ids"], net.cfg, crops.crop_size, LossWeights(lpips=0.0))
+        landmarks = crops.landmarks
+        if not p.landmarks:
+            crops.landmarks = None
         results[name] = evaluate_model(
             net,
             task,
             crops,
             cfg,
-            joint_names=truth.joint_names,
+            joint_names=truth.joint_names if truth is not None else body.joint_names,
             lpips=lpips,
             scene_vertices=vertices,
-            motions=truth.motion,
+            motions=truth.motion if truth is not None else None,
         )
+        if frames is not None:  # every frame too (pose only): how much the held-out ones differ
+            every = evaluate_pose(net, task, crops, truth_rows(crops), vertices)
+            results[name].summary["pose_all_frames"] = pose_summary(
+                every, crops.camera_names, np.full(len(every.rows), "all", dtype=object),
+                truth.joint_names if truth is not None else body.joint_names,
+            )["overall"]  # fmt: skip
+        crops.landmarks = landmarks
         shown = path.relative_to(workspace) if workspace is not None else path
-        meta_models[name] = f"{shown}, preset {net.cfg.name}"
+        uses = (
+            "with landmarks" if net.landmark_encoder is not None and p.landmarks else "image only"
+        )
+        meta_models[name] = f"{shown}, preset {net.cfg.name}, {uses}"
         s = results[name].summary
         log.info(
-            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm, held-out PSNR %s dB (%.0f s)",
+            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), held-out PSNR %s dB, IoU %s (%.0f s)",
             name,
             s["pose"]["overall"]["mpjpe_mm"],
             s["pose"]["overall"]["pa_mpjpe_mm"],
+            "held-out frames" if frames else "all frames",
             s.get("novel_view", {}).get("heldout", {}).get("psnr"),
+            s.get("novel_view", {}).get("heldout", {}).get("silhouette_iou"),
             results[name].seconds,
         )
     meta = {
         "scene": scene,
         "models": meta_models,
+        "reference": reference,
         "crops": len(crops),
-        "crops_with_truth": matched,
-        "note": "The frames evaluated here are the frames `train` trained on (self-supervised, no labels, "
-        "held-out cameras never used); for a split by frames see benchmarks/bench_paper_tables.py.",
+        "crops_with_reference": matched,
+        "frames": list(frames) if frames else "all",
+        "heldout_cameras": heldout,
+        "note": (
+            f"Headline: frames {frames[0]}-{frames[1] - 1}, held out in time (train never saw "
+            "them: no sample, no target, no checkpoint choice) and, for novel views, the held-out "
+            "cameras; `pose_all_frames` in summary.json scores every frame."
+            if frames
+            else "Every frame is scored, including those `train` trained on (self-supervised, no "
+            "labels; held-out cameras never used)."
+        )
+        + f" Reference: {reference}.",
     }
-    write_report(out, results, crops, meta, truth.motion)
+    write_report(out, results, crops, meta, truth.motion if truth is not None else None)
     return results

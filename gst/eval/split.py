@@ -17,7 +17,7 @@ from gst.train.losses import LossWeights
 from gst.train.recipe import FitOptions, fit_gst, make_task
 from gst.train.scene_truth import select_rows
 from gst.train.trainer import TrainConfig
-from gst.train.views import CropSet
+from gst.train.views import CropSet, heldout_frame_start
 
 __all__ = ["Split", "frame_split", "FinetuneConfig", "finetune"]
 
@@ -44,8 +44,7 @@ def frame_split(
     frames = torch.unique(crops.frame)
     if len(frames) < 2:
         raise ValueError(f"a frame split needs crops from >= 2 frames, got {len(frames)}")
-    n_test = max(1, round(test_fraction * len(frames)))
-    first_test = int(frames[len(frames) - n_test])
+    first_test = heldout_frame_start(crops.frame, test_fraction)
     held = torch.tensor([crops.camera_names.index(c) for c in heldout_cameras], dtype=torch.long)
     has = (
         crops.truth["has_truth"].bool()
@@ -67,6 +66,8 @@ class FinetuneConfig:
     num_targets: int = 4
     render_size: int = 64
     weights: LossWeights = field(default_factory=LossWeights)
+    body_lr: float | None = None  # backbone + SMPL head rate (None: `lr` for everything)
+    landmark_dropout: float = 0.0  # multi-view samples trained without their landmarks
 
 
 def finetune(
@@ -103,7 +104,12 @@ def finetune(
         log_every=max(1, cfg.steps // 10),
     )
     opts = FitOptions(
-        mode=cfg.mode, num_targets=cfg.num_targets, render_size=cfg.render_size, val_pose_crops=0
+        mode=cfg.mode,
+        num_targets=cfg.num_targets,
+        render_size=cfg.render_size,
+        val_pose_crops=0,
+        body_lr=cfg.body_lr,
+        landmark_dropout=cfg.landmark_dropout if train.landmarks is not None else 0.0,
     )
     with tempfile.TemporaryDirectory(dir=run_dir) as tmp:
         t0 = time.perf_counter()

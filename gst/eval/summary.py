@@ -48,11 +48,18 @@ def _mean(x: np.ndarray) -> float | None:
     return float(x.mean()) if len(x) else None
 
 
+def _median(x: np.ndarray) -> float | None:
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if len(x) else None
+
+
 def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
     block = {
         "n": int(sel.sum()),
         "mpjpe_mm": _mean(1000 * rec.mpjpe[sel]),
         "pa_mpjpe_mm": _mean(1000 * rec.pa_mpjpe[sel]),
+        "mpjpe_median_mm": _median(1000 * rec.mpjpe[sel]),
     }
     if rec.pve is not None:
         block.update(pve_mm=_mean(1000 * rec.pve[sel]), pa_pve_mm=_mean(1000 * rec.pa_pve[sel]))

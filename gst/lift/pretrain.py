@@ -37,6 +37,7 @@ from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.model.assemble import camera_translation, to_world
 from gst.model.landmarks import LandmarkInput
 from gst.model.network import GSTNetwork
+from gst.prefetch import background
 from gst.train.losses import LossWeights, combine, supervised_terms
 from gst.train.steps import project
 
@@ -52,6 +53,9 @@ class LiftPretrainConfig:
     crop_size: int = 256
     seed: int = 0
     val_every: int = 500
+    # batches sampled this many steps ahead in a background thread (0: in the loop); the
+    # sampler's generator runs in order either way, so the batches are the same
+    prefetch: int = 2
     weights: LossWeights = field(
         default_factory=lambda: LossWeights(joints3d=1.0, joints2d=1.0, root=0.2, params=0.5)
     )
@@ -132,12 +136,19 @@ def pretrain_landmark_path(
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
     nb = net.cfg.num_betas
     result = LiftPretrainResult(0, 0.0, 0.0, 0.0, float("nan"), float("nan"))
-    t0, t_sample, recent = time.perf_counter(), 0.0, []
+    t0, recent = time.perf_counter(), []
+    sample_seconds = [0.0]
+
+    def draw():
+        for _ in range(cfg.steps):
+            ts = time.perf_counter()
+            b = sampler.sample(cfg.batch_size)
+            sample_seconds[0] += time.perf_counter() - ts
+            yield b
+
+    batches = background(draw(), cfg.prefetch, "lift-sampler") if cfg.prefetch > 0 else draw()
     net.train()
-    for step in range(cfg.steps):
-        ts = time.perf_counter()
-        b = sampler.sample(cfg.batch_size)
-        t_sample += time.perf_counter() - ts
+    for step, b in enumerate(batches):
         inp = LandmarkInput.from_pixels(b.landmarks, b.K, b.crop_size)
         out = net(None, with_gaussians=False, landmarks=inp)
         joints, joints2d = body_joints(out, body, b.K, b.crop_size)
@@ -188,7 +199,7 @@ def pretrain_landmark_path(
     result.steps = cfg.steps
     result.seconds = seconds
     result.samples_per_s = cfg.steps * cfg.batch_size / seconds
-    result.sampler_samples_per_s = cfg.steps * cfg.batch_size / max(t_sample, 1e-9)
+    result.sampler_samples_per_s = cfg.steps * cfg.batch_size / max(sample_seconds[0], 1e-9)
     result.last_loss = float(terms.total.detach())
     result.train_mpjpe_mm = float(np.mean(recent))
     net.eval()

@@ -134,10 +134,12 @@ class CrossAttnStack(nn.Module):
         x: torch.Tensor,
         context: torch.Tensor | None,
         landmarks: LandmarkContext | None = None,
+        image_gate: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """`context` None: no image tokens (the landmark-only mode). A sample without landmarks
         (`landmarks.active` False) takes exactly the image-only path: its landmark update is
-        not added (selected away, not multiplied by zero)."""
+        not added (selected away, not multiplied by zero). `image_gate` (depth,): a factor on
+        each layer's image update of the samples that have landmarks (others: exactly 1)."""
         if context is None and landmarks is None:
             raise ValueError("the decoder needs image tokens, landmark tokens or both")
         if landmarks is not None and self.landmark_layers is None:
@@ -145,7 +147,10 @@ class CrossAttnStack(nn.Module):
         for i, (self_attn, cross_attn, ff) in enumerate(self.layers):
             x = self_attn(x) + x
             if context is not None:
-                x = cross_attn(x, context=context) + x
+                upd = cross_attn(x, context=context)
+                if image_gate is not None and landmarks is not None:
+                    upd = torch.where(landmarks.active[:, None, None], upd * image_gate[i], upd)
+                x = upd + x
             if landmarks is not None:
                 upd = self.landmark_layers[i](
                     x, context=landmarks.tokens, key_mask=landmarks.key_mask
@@ -169,6 +174,12 @@ class TokenDecoder(nn.Module):
         self.to_token_embedding = nn.Linear(1, cfg.dim)
         self.pos_embedding = nn.Parameter(torch.randn(1, 1, cfg.dim))
         self.transformer = CrossAttnStack(cfg, landmarks=landmarks)
+        # With landmark tokens: a factor per layer on the image evidence the SMPL token takes
+        # from crops that have landmarks (the Gaussian tokens and crops without landmarks always
+        # see the image fully). 1 at construction; the lift recipe starts it at 0 so a
+        # landmark-trained pose is kept until scene training learns how much to trust the image
+        # (docs/landmark_prior.md).
+        self.smpl_image_gate = nn.Parameter(torch.ones(cfg.depth)) if landmarks else None
 
     def smpl_token(
         self, context: torch.Tensor | None, landmarks: LandmarkContext | None = None
@@ -178,7 +189,7 @@ class TokenDecoder(nn.Module):
         x = self.to_token_embedding(zero) + self.pos_embedding
         if landmarks is not None and landmarks.query is not None:
             x = torch.where(landmarks.active[:, None, None], x + landmarks.query[:, None], x)
-        return self.transformer(x, context, landmarks)[:, 0]
+        return self.transformer(x, context, landmarks, self.smpl_image_gate)[:, 0]
 
     def decode(
         self,

@@ -1,9 +1,15 @@
 """Batched inference with a trained GST checkpoint.
 
-`GSTPredictor(checkpoint).predict(crops, K_crop)` returns a `BodyPrediction` (pose, shape,
-camera-frame translation and joints, optional Gaussians); calling the predictor returns plain
-numpy arrays in the layout `gst.track` consumes. The pose-only path skips the Gaussian tokens
-exactly (the SMPL token never attends to them).
+`GSTPredictor(checkpoint).predict(crops, K_crop, landmarks=...)` returns a `BodyPrediction`
+(pose, shape, camera-frame translation and joints, optional Gaussians); calling the predictor
+returns plain numpy arrays in the layout `gst.track` consumes. The pose-only path skips the
+Gaussian tokens exactly (the SMPL token never attends to them).
+
+Landmarks: a checkpoint with landmark tokens (`GSTConfig.landmark_tokens`) also takes each
+crop's 33 BlazePose landmarks, (B, 33, 3) = u, v in that crop's pixels (pixel centres at
+integers, the pixels `K_crop` describes) and confidence (visibility x presence) in [0, 1];
+NaN rows or points mean "not detected" and a crop without any takes the image-only path.
+`GSTPredictor.accepts_landmarks` says whether the checkpoint uses them.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import torch
 from gst.body import load_body_model
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+from gst.model.landmarks import LandmarkInput, landmark_input
 from gst.model.preprocess import network_input, to_float_images
 
 
@@ -33,24 +40,30 @@ def predict_bodies(
     with_vertices: bool = False,
     crop_size: int | None = None,
     device: str | torch.device | None = None,
-    landmarks=None,
+    landmarks: LandmarkInput | torch.Tensor | np.ndarray | None = None,
 ) -> BodyPrediction:
     """The network on a batch of crops (B, S, S, 3) RGB uint8 or float images, assembled into
     posed bodies (and Gaussians) in the crops' cameras (K (B, 3, 3); optional input-camera R, t
     for world coordinates). `image_size` is the network's input size; `crop_size` the crops' side
-    (default: the images' own). `landmarks`: a `gst.model.landmarks.LandmarkInput` for networks
-    with landmark tokens (None: the image-only path). The one inference path of training,
-    evaluation and tracking."""
+    (default: the images' own). `landmarks`: the crops' BlazePose landmarks (B, 33, 3) (module
+    doc) or a ready `gst.model.landmarks.LandmarkInput`; ignored by a network without landmark
+    tokens, None gives the image-only path. The one inference path of training, evaluation and
+    tracking."""
     x = to_float_images(images)
     if device is not None:
         x = x.to(device)
+    size = crop_size or x.shape[-1]
+    if landmarks is not None and not isinstance(landmarks, LandmarkInput):
+        landmarks = landmark_input(network, landmarks, K, size)
+    if landmarks is not None:
+        landmarks = landmarks.to(x.device)
     extra = {} if landmarks is None else {"landmarks": landmarks}
     out = network(network_input(x, image_size), with_gaussians=with_gaussians, **extra)
     return assemble(
         out,
         body,
         K,
-        crop_size or x.shape[-1],
+        size,
         vertex_ids=vertex_ids,
         R_in=R,
         t_in=t,
@@ -77,6 +90,11 @@ class GSTPredictor:
         self.name = f"gst-{self.network.cfg.name}"
         self.checkpoint = str(checkpoint)
 
+    @property
+    def accepts_landmarks(self) -> bool:
+        """Whether the checkpoint's network has landmark tokens (then pass `landmarks=`)."""
+        return self.network.landmark_encoder is not None
+
     @torch.no_grad()
     def predict(
         self,
@@ -85,19 +103,34 @@ class GSTPredictor:
         R: torch.Tensor | None = None,
         t: torch.Tensor | None = None,
         with_gaussians: bool | None = None,
+        landmarks: np.ndarray | torch.Tensor | None = None,
     ) -> BodyPrediction:
-        """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t."""
+        """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t;
+        `landmarks` (B, 33, 3) crop px + confidence, NaN where not detected (module doc)."""
         want = self.with_gaussians if with_gaussians is None else with_gaussians
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=self.device)
+        if landmarks is not None and len(landmarks) != len(K):
+            raise ValueError(f"{len(landmarks)} landmark rows for {len(K)} crops")
         return predict_bodies(
             self.network, self.body, self.vertex_ids, crops, K, self.network.cfg.image_size,
             R=R, t=t, with_gaussians=want, with_vertices=False, device=self.device,
+            landmarks=landmarks,
         )  # fmt: skip
 
-    def __call__(self, crops: np.ndarray, K_crop: np.ndarray) -> dict[str, np.ndarray]:
+    def __call__(
+        self,
+        crops: np.ndarray,
+        K_crop: np.ndarray,
+        landmarks: np.ndarray | None = None,
+    ) -> dict[str, np.ndarray]:
+        """Crops (N, S, S, 3) RGB uint8, K_crop (N, 3, 3) and, for a landmark checkpoint, the
+        crops' landmarks (N, 33, 3) -> numpy arrays (the `gst.track.predictor` contract)."""
         parts = []
         for s in range(0, len(crops), self.batch_size):
-            pred = self.predict(crops[s : s + self.batch_size], K_crop[s : s + self.batch_size])
+            sl = slice(s, s + self.batch_size)
+            pred = self.predict(
+                crops[sl], K_crop[sl], landmarks=None if landmarks is None else landmarks[sl]
+            )
             part = {
                 "rotmats": pred.rotmats,
                 "betas": pred.betas[:, :10],

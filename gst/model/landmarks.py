@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -26,6 +27,7 @@ from gst.model.decoder import LandmarkContext
 # BlazePose landmarks fed by default: shoulders, elbows, wrists, hips, knees, ankles (left/right
 # alternating; gst.lift.errors.LIMB_LANDMARKS, the set the noise model is measured on).
 LIMB_LANDMARK_IDS: tuple[int, ...] = (11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27, 28)
+N_BLAZEPOSE = 33  # BlazePose's landmarks, MediaPipe order (the crops' `landmarks`)
 
 
 @dataclass
@@ -66,6 +68,28 @@ class LandmarkInput:
             mask = torch.ones(landmarks.shape[:2], dtype=torch.bool, device=landmarks.device)
         return cls(torch.cat([xy, conf], -1), camera, mask.bool())
 
+    @classmethod
+    def from_detections(
+        cls,
+        landmarks: torch.Tensor | np.ndarray,
+        K_crop: torch.Tensor | np.ndarray,
+        crop_size: int,
+        num_landmarks: int,
+    ) -> LandmarkInput:
+        """BlazePose's 33 landmarks per crop, (B, 33, 3) u, v in crop pixels + confidence
+        (visibility x presence; NaN where the detector gave nothing), as the network's input:
+        the network's landmark set is picked (`select_landmarks`) and non-finite points are
+        masked (a crop without any landmark takes the image-only path exactly)."""
+        lm = torch.as_tensor(landmarks, dtype=torch.float32)
+        K = torch.as_tensor(K_crop, dtype=torch.float32, device=lm.device)
+        lm = select_landmarks(lm, num_landmarks)
+        finite = torch.isfinite(lm).all(-1)
+        lm = torch.where(finite[..., None], lm, torch.zeros_like(lm))
+        return cls.from_pixels(lm, K, crop_size, mask=finite)
+
+    def to(self, device) -> LandmarkInput:
+        return LandmarkInput(self.points.to(device), self.camera.to(device), self.mask.to(device))
+
     def masked(self, samples: torch.Tensor | None = None) -> LandmarkInput:
         """A copy with every landmark of `samples` (B,) bool (default: all) masked out."""
         drop = (
@@ -74,6 +98,39 @@ class LandmarkInput:
             else samples.bool()
         )
         return LandmarkInput(self.points, self.camera, self.mask & ~drop[:, None])
+
+
+def select_landmarks(landmarks: torch.Tensor, num_landmarks: int) -> torch.Tensor:
+    """(B, 33, C) BlazePose landmarks -> the (B, num_landmarks, C) a network takes: all 33, or
+    the 12 limb landmarks (`LIMB_LANDMARK_IDS`)."""
+    if landmarks.ndim != 3 or landmarks.shape[1] != N_BLAZEPOSE:
+        raise ValueError(
+            f"landmarks must be (B, {N_BLAZEPOSE}, C) BlazePose landmarks, "
+            f"got {tuple(landmarks.shape)}"
+        )
+    if num_landmarks == N_BLAZEPOSE:
+        return landmarks
+    if num_landmarks == len(LIMB_LANDMARK_IDS):
+        return landmarks[:, list(LIMB_LANDMARK_IDS)]
+    raise ValueError(
+        f"no landmark set of {num_landmarks} landmarks (networks take {N_BLAZEPOSE} or "
+        f"{len(LIMB_LANDMARK_IDS)})"
+    )
+
+
+def landmark_input(
+    network: nn.Module,
+    landmarks: torch.Tensor | np.ndarray | None,
+    K_crop: torch.Tensor | np.ndarray,
+    crop_size: int,
+) -> LandmarkInput | None:
+    """The input a network's landmark tokens take from (B, 33, 3) crop landmarks, or None when
+    there are none or the network has no landmark tokens (the paper's image-only network
+    ignores them). `network` may be wrapped (DistributedDataParallel)."""
+    net = getattr(network, "module", network)
+    if landmarks is None or getattr(net, "landmark_encoder", None) is None:
+        return None
+    return LandmarkInput.from_detections(landmarks, K_crop, crop_size, net.cfg.num_landmarks)
 
 
 class _Residual(nn.Module):

@@ -90,4 +90,11 @@ def jitter_batch(
     if visible is not None and joints2d is not None:
         inside = ((joints2d >= -0.5) & (joints2d <= size - 0.5)).all(-1)
         visible = visible * inside.to(visible.dtype)  # joints pushed off the crop are not seen
-    return replace(batch, images=images, K=K, joints2d=joints2d, visible=visible)
+    landmarks = batch.landmarks
+    if landmarks is not None:  # detections move with the pixels (NaN stays NaN)
+        landmarks = landmarks.clone()
+        uv = landmarks[..., :2].double() * zoom[:, None, None] + A[:, None, :2, 2]
+        landmarks[..., :2] = uv.to(landmarks.dtype)
+    return replace(
+        batch, images=images, K=K, joints2d=joints2d, visible=visible, landmarks=landmarks
+    )

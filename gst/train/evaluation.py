@@ -30,8 +30,9 @@ def pose_metrics(
     for s in range(0, len(rows), batch_size):
         r = rows[s : s + batch_size]
         pred = predict(
-            model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r], with_gaussians=False
-        )
+            model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r],
+            with_gaussians=False, landmarks=crop_landmarks(crops, r),
+        )  # fmt: skip
         gt = crops.truth["joints_world"][r].to(pred.joints_world)
         errs.append(mpjpe(pred.joints_world, gt, root=0))
         pa.append(pa_mpjpe(pred.joints_world, gt))
@@ -50,11 +51,19 @@ class NovelViewSet:
 
 
 def novel_view_pairs(
-    crops: CropSet, heldout: set[int], max_pairs: int = 64, seed: int = 0
+    crops: CropSet,
+    heldout: set[int],
+    max_pairs: int = 64,
+    seed: int = 0,
+    frames: tuple[int, int] | None = None,
 ) -> NovelViewSet:
+    """(training-camera input, held-out-camera target) pairs of one (frame, person), within
+    `frames` [lo, hi) when given."""
     gen = torch.Generator().manual_seed(seed)
     inputs, targets = [], []
     for g in crops.groups(min_views=2):
+        if frames is not None and not frames[0] <= int(crops.frame[g[0]]) < frames[1]:
+            continue
         held = [int(i) for i in g if int(crops.camera[i]) in heldout]
         train = [int(i) for i in g if int(crops.camera[i]) not in heldout]
         if held and train:
@@ -65,6 +74,11 @@ def novel_view_pairs(
         torch.tensor(inputs, dtype=torch.long)[order],
         torch.tensor(targets, dtype=torch.long)[order],
     )
+
+
+def crop_landmarks(crops: CropSet, rows: torch.Tensor) -> torch.Tensor | None:
+    """The crops' landmarks of `rows` (None when the crop set has none)."""
+    return None if crops.landmarks is None else crops.landmarks[rows]
 
 
 def _batch(crops: CropSet, inp: torch.Tensor, tgt: torch.Tensor, size: int) -> MultiViewBatch:
@@ -81,6 +95,7 @@ def _batch(crops: CropSet, inp: torch.Tensor, tgt: torch.Tensor, size: int) -> M
         K,
         view,
         torch.zeros(len(inp), 1, 3),
+        input_landmarks=crop_landmarks(crops, inp),
     )
 
 
@@ -102,7 +117,10 @@ def novel_view_metrics(
     ps, ss, ious, images = [], [], [], []
     for s in range(0, len(pairs.inputs), batch_size):
         b = _batch(crops, pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size], size)
-        pred = predict(model, task, b.input_images, b.K_in, b.R_in, b.t_in, with_gaussians=True)
+        pred = predict(
+            model, task, b.input_images, b.K_in, b.R_in, b.t_in, with_gaussians=True,
+            landmarks=b.input_landmarks,
+        )  # fmt: skip
         out = render_predictions(pred, b, size)
         rgb = out.rgb[:, 0].permute(0, 3, 1, 2).clamp(0, 1)
         target = (b.target_images[:, 0] * b.target_masks[:, 0, ..., None]).permute(0, 3, 1, 2)

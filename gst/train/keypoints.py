@@ -50,6 +50,33 @@ def landmarks_to_body(landmarks: np.ndarray, presence: float, n_joints: int = 24
     return out
 
 
+def keypoints_from_landmarks(landmarks: torch.Tensor) -> torch.Tensor:
+    """(N, 33, 3) crop landmarks (u, v, confidence = visibility x presence; NaN: none) ->
+    (N, 24, 3) joints (u, v, confidence), as `crop_keypoints` gives them."""
+    lm = torch.nan_to_num(torch.as_tensor(landmarks, dtype=torch.float32), nan=0.0)
+    out = torch.zeros(lm.shape[0], 24, 3)
+    for j, src in BODY_FROM_BLAZEPOSE.items():
+        pts = lm[:, list(src)]
+        out[:, j, :2] = pts[..., :2].mean(1)
+        out[:, j, 2] = pts[..., 2].amin(1)
+    return out
+
+
+def store_landmarks(
+    store_path, images: torch.Tensor, model: BlazePose | None = None, progress=None
+) -> tuple[torch.Tensor, str]:
+    """(N, 33, 3) landmarks of a crop store's rows, in order (u, v crop px, confidence =
+    visibility x presence): the store's `landmarks` dataset when the extraction wrote one, else
+    BlazePose on the crops (`images`, the store's rows as RGB). Returns them and their source."""
+    import h5py
+
+    with h5py.File(store_path, "r") as f:
+        if "landmarks" in f and f["landmarks"].shape[0] == len(images):
+            return torch.as_tensor(np.asarray(f["landmarks"][:], np.float32)), "store"
+    found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)
+    return torch.from_numpy(found.with_confidence().astype(np.float32)), "BlazePose"
+
+
 def crop_keypoints(images: torch.Tensor, model: BlazePose, progress=None) -> torch.Tensor:
     """(N, S, S, 3) uint8 RGB crops -> (N, 24, 3) detected joints: crop pixels and confidence."""
     found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)

@@ -33,6 +33,11 @@ class LossWeights(BaseModel):
     # Ours: predicted joints against 2D joints detected in the target views (gst.train.keypoints);
     # used when the crops carry detections (train.keypoints).
     keypoints: float = Field(10.0, ge=0)
+    # Ours: distillation from the rig's fused bodies (gst.train.distill; train.distill): the
+    # single-view prediction against the fused body of its person and frame.
+    distill_joints: float = Field(2.0, ge=0)  # root-relative joints, metres
+    distill_root: float = Field(0.5, ge=0)  # pelvis position in the world, metres
+    distill_params: float = Field(0.5, ge=0)  # rotation matrices and 0.1 x betas
 
 
 @dataclass

@@ -1,6 +1,14 @@
-"""Supervised pretraining on synthetic people, our stand-in for HMR2's 3D-labelled start.
+"""Pretraining on synthetic people, our stand-in for HMR2's 3D-labelled start.
 
-It renders its own corpus of small synthetic worlds, each with its own seed, rig (dome or H36M
+Mode `lift` (the default; docs/landmark_prior.md): a network with landmark tokens first learns
+to lift BlazePose landmarks to a body without rendering a single image (`gst.lift.pretrain`:
+simulated detections of sampled bodies, fresh every step), then a short rendered phase trains
+the image path and the Gaussian head to work with the landmark tokens, on crops of a few
+rendered worlds with the landmarks BlazePose finds in them (3D terms plus the multi-view image
+terms). The image cross-attention starts silent (zero output), so the rendered phase starts
+from the lifting path's pose exactly.
+
+Modes `3d` / `pretrain` (the image-only network): it renders its own corpus of small synthetic worlds, each with its own seed, rig (dome or H36M
 style, field of view drawn per world), person, outfit and motions (every third world holds
 independent random poses), cuts crops with exact truth, and trains the network with 3D joint and
 parameter supervision (optionally on jittered crops, `gst.train.augment`), then briefly adds the
@@ -31,7 +39,7 @@ from gst.train.losses import LossWeights
 from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
 from gst.train.synthetic_crops import crops_from_synth_scene
 from gst.train.trainer import TrainConfig
-from gst.train.views import concat_crop_sets
+from gst.train.views import CropSet, concat_crop_sets
 from synth.scene import SceneSpec, preset, render_scene
 
 log = logging.getLogger("gst.train")
@@ -68,9 +76,20 @@ class PretrainConfig(BaseModel):
     augment: bool = (
         False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     )
-    mode: Literal["3d", "pretrain"] = (
-        "3d"  # "pretrain" also trains the Gaussian head by rendering (slower)
-    )
+    # lift: landmark tokens, render-free lifting then a short rendered phase (module doc);
+    # 3d / pretrain: the image-only network on rendered worlds ("pretrain" also renders)
+    mode: Literal["lift", "3d", "pretrain"] = "lift"
+    # lift mode: the landmark set (all 33, or the 12 limb landmarks), per-landmark tokens (off:
+    # the lift tokens alone, as accurate at half the cost; docs/landmark_prior.md), the
+    # render-free phase's steps, batch and rate, the rendered phase's rate for everything but
+    # the Gaussian head (`gaussian_lr`), and the share of its samples trained without landmarks
+    landmarks: Literal["all", "limbs"] = "all"
+    landmark_point_tokens: bool = False
+    lift_steps: int = 1000
+    lift_batch_size: int = 64
+    lift_lr: float = 1e-3
+    lift_body_lr: float = 1e-4
+    landmark_dropout: float = 0.1
     # Then this many steps of mode "pretrain" from the kept 3d checkpoint: the Gaussian head learns
     # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
     # head and the demo's held-out renders come out as faint dots (docs/training.md).
@@ -94,7 +113,9 @@ def world_specs(p: PretrainConfig) -> list[dict]:
     for k in range(p.worlds + 1):
         seed = p.world_seed + k
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x9E7]))
-        static = p.static_every > 0 and k % p.static_every == p.static_every - 1
+        # independent random poses in every `static_every`-th training world; the validation
+        # world plays motions, as the scenes the model is for do
+        static = p.static_every > 0 and k < p.worlds and k % p.static_every == p.static_every - 1
         spec = preset(
             "demo",
             seed=seed,
@@ -127,7 +148,7 @@ def render_world(item: tuple[dict, str]) -> str:
     return out
 
 
-def _reuse(p: PretrainConfig, checkpoint: Path, reports: Path) -> dict:
+def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> dict:
     ckpt = load_checkpoint(p.reuse)  # weights_only: a GST checkpoint or a clear error
     if ckpt["body_model"] != p.body_model:
         raise ValueError(
@@ -142,7 +163,35 @@ def _reuse(p: PretrainConfig, checkpoint: Path, reports: Path) -> dict:
     return summary
 
 
-def pretrain(
+def render_corpus(p: PretrainConfig, work: Path, map_fn=None, progress=None) -> list[str]:
+    """Render every world of the corpus (the validation world last); returns their folders."""
+    specs = world_specs(p)
+    items = [(spec, str(work / "worlds" / spec["name"])) for spec in specs]
+    if map_fn is not None:
+        return map_fn(render_world, items, description="pretraining worlds")
+    return [render_world(x) for x in _track(progress, items, "pretraining worlds")]
+
+
+def corpus_crops(
+    p: PretrainConfig, dirs: list[str], crop_size: int, progress=None
+) -> tuple[CropSet, CropSet]:
+    """The training worlds' crops (one CropSet) and the validation world's."""
+    sets = [
+        crops_from_synth_scene(d, crop_size=crop_size)
+        for d in _track(progress, dirs, "synthetic crops")
+    ]
+    crops = concat_crop_sets(sets[:-1], [Path(d).name for d in dirs[:-1]])
+    log.info(
+        "pretraining corpus: %d worlds, %d crops (%d groups); validation world: %d crops",
+        p.worlds,
+        len(crops),
+        len(crops.groups(min_views=1)),
+        len(sets[-1]),
+    )
+    return crops, sets[-1]
+
+
+def pretrain_images(
     p: PretrainConfig,
     work: Path,
     checkpoint: Path,
@@ -151,33 +200,18 @@ def pretrain(
     map_fn=None,
     progress=None,
 ) -> dict:
-    """Render the corpus into `work/worlds` (finished worlds are kept: a rerun resumes), train,
+    """Modes `3d` / `pretrain` (the image-only network; mode `lift` is `gst.lift.recipe`):
+    render the corpus into `work/worlds` (finished worlds are kept: a rerun resumes), train,
     write the kept model to `checkpoint` and the logs and summary to `reports`; returns the
     summary (MPJPE before/after on the unseen validation world, corpus sizes). `map_fn` fans
     the world renders out (an executor's map); `progress` wraps loops with a progress bar."""
-    if p.reuse is not None:
-        return _reuse(p, checkpoint, reports)
+    if p.mode not in ("3d", "pretrain"):
+        raise ValueError(f"pretrain_images trains modes 3d / pretrain, not '{p.mode}'")
     if p.threads:
         torch.set_num_threads(p.threads)
     specs = world_specs(p)
-    items = [(spec, str(work / "worlds" / spec["name"])) for spec in specs]
-    if map_fn is not None:
-        dirs = map_fn(render_world, items, description="pretraining worlds")
-    else:
-        dirs = [render_world(x) for x in _track(progress, items, "pretraining worlds")]
-    sets = [
-        crops_from_synth_scene(d, crop_size=p.crop_size)
-        for d in _track(progress, dirs, "synthetic crops")
-    ]
-    crops = concat_crop_sets(sets[:-1], [Path(d).name for d in dirs[:-1]])
-    val = sets[-1]
-    log.info(
-        "pretraining corpus: %d worlds, %d crops (%d groups); validation world: %d crops",
-        p.worlds,
-        len(crops),
-        len(crops.groups(min_views=1)),
-        len(val),
-    )
+    dirs = render_corpus(p, work, map_fn, progress)
+    crops, val = corpus_crops(p, dirs, p.crop_size, progress)
     body = load_body_model(p.body_model)
     cfg = get_preset(p.preset)
     net, ids, groups = build_network(cfg, body)

@@ -62,10 +62,14 @@ def gaussian_parameter_groups(model: GSTNetwork, lr: float, body_lr: float) -> l
     whatever the gradient's size, so one shared rate either leaves the Gaussians frozen or lets
     the weak, noisy photometric gradient on pose and shape drag a pretrained body off the image."""
     gaussian = {id(p) for p in model.gaussian_head.parameters()}
+    gate = model.smpl_head.transformer.smpl_image_gate
+    # the landmark network's image gate: a few scalars that Adam moves by about the rate per
+    # step; at the body's rate they could not open within a scene training's few hundred steps
+    fast = gaussian | ({id(gate)} if gate is not None else set())
     trainable = [p for p in model.parameters() if p.requires_grad]
     groups = [
-        {"params": [p for p in trainable if id(p) in gaussian], "lr": lr, "name": "gaussians"},
-        {"params": [p for p in trainable if id(p) not in gaussian], "lr": body_lr, "name": "body"},
+        {"params": [p for p in trainable if id(p) in fast], "lr": lr, "name": "gaussians"},
+        {"params": [p for p in trainable if id(p) not in fast], "lr": body_lr, "name": "body"},
     ]
     return [g for g in groups if g["params"]]
 
@@ -82,6 +86,13 @@ class FitOptions:
         None  # backbone + SMPL head learning rate (None: the config's lr for all)
     )
     augment: CropJitter | None = None  # re-crop + colour jitter of supervised (2d/3d) batches
+    # Frames held out in time: no training term and no checkpoint choice sees frames >= this
+    # (None: every frame trains). Recorded in the checkpoint (extra.heldout_frames).
+    first_heldout_frame: int | None = None
+    # share of multi-view samples whose input landmarks are hidden (a landmark network keeps an
+    # image-only path for crops where the detector finds nobody)
+    landmark_dropout: float = 0.0
+    scene: str | None = None  # recorded in the checkpoint (extra.trained_on.scene)
 
 
 def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
@@ -95,6 +106,7 @@ def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
         visible=t["visible"][idx],
         rotmats=t["rotmats_cam"][idx],
         betas=t["betas"][idx][:, :10],
+        landmarks=None if crops.landmarks is None else crops.landmarks[idx],
     )
 
 
@@ -151,11 +163,21 @@ def fit_gst(
     groups = crops.groups(
         cameras=train_cams, min_views=2 if opts.mode in ("multiview", "pretrain") else 1
     )
+    cut = opts.first_heldout_frame
+    if cut is not None:  # held-out frames: no sample, no target, no checkpoint choice
+        groups = [g for g in groups if int(crops.frame[g[0]]) < cut]
     if not groups:
         raise ValueError(
             f"no training samples: no (frame, person) seen by >= 2 training cameras "
-            f"(held out: {sorted(opts.heldout_cameras)})"
+            f"(held out: {sorted(opts.heldout_cameras)}; frames from {cut})"
         )
+    used = torch.cat(groups)
+    trained_on = {
+        "scene": opts.scene,
+        "cameras": [names[c] for c in sorted(set(crops.camera[used].tolist()))],
+        "frames": [int(crops.frame[used].min()), int(crops.frame[used].max())],
+        "crops": int(len(used)),
+    }
     pose_crops = crops if val_crops is None else val_crops
     has_truth = "joints_world" in pose_crops.truth
     truth_rows = (
@@ -165,18 +187,30 @@ def fit_gst(
         if has_truth
         else torch.zeros(0, dtype=torch.long)
     )
+    if val_crops is None and cut is not None:  # validation (a checkpoint choice) never sees them
+        truth_rows = truth_rows[pose_crops.frame[truth_rows] < cut]
     if len(truth_rows):
         gen = torch.Generator().manual_seed(1)
         truth_rows = truth_rows[
             torch.randperm(len(truth_rows), generator=gen)[: opts.val_pose_crops]
         ]
-    pairs = novel_view_pairs(crops, heldout, max_pairs=opts.val_pairs) if heldout else None
+    # the checkpoint is chosen on held-out cameras in training frames only
+    pairs = (
+        novel_view_pairs(
+            crops, heldout, max_pairs=opts.val_pairs, frames=None if cut is None else (0, cut)
+        )
+        if heldout
+        else None
+    )
     single = torch.cat(groups)  # rows usable as single-view supervised samples
 
     if opts.mode in ("multiview", "pretrain"):
 
         def sample(gen, bs):
-            return sample_multiview(crops, groups, gen, bs, opts.num_targets, opts.render_size)
+            return sample_multiview(
+                crops, groups, gen, bs, opts.num_targets, opts.render_size,
+                landmark_dropout=opts.landmark_dropout,
+            )  # fmt: skip
 
         step = (
             (lambda m, b: multiview_step(m, b, task))
@@ -212,7 +246,12 @@ def fit_gst(
             "body_model": body_spec,
             "vertex_ids": torch.as_tensor(vertex_ids, dtype=torch.long),
             "group_index": torch.as_tensor(group_index, dtype=torch.long),
-            "extra": {"mode": opts.mode},
+            "extra": {
+                "mode": opts.mode,
+                "heldout_cameras": list(opts.heldout_cameras),
+                "first_heldout_frame": -1 if cut is None else int(cut),
+                "trained_on": trained_on,  # read by gst.track (the Parquet's gst.model)
+            },
         }
 
     # Held-out silhouette IoU, not PSNR, picks the best checkpoint: with the person on black, a

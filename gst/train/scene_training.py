@@ -19,7 +19,7 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
@@ -30,14 +30,16 @@ from gst.model.hmr2_import import import_hmr2
 from gst.model.presets import get_preset
 from gst.render.ply import write_gaussians_ply
 from gst.train.anchors import mask_centre_anchors
-from gst.train.evaluation import novel_view_metrics, novel_view_pairs
+from gst.train.distill import Teacher, distill_targets, training_rows
+from gst.train.evaluation import novel_view_metrics, novel_view_pairs, pose_metrics
+from gst.train.keypoints import keypoints_from_landmarks, store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.occlusion import occluder_masks
 from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
 from gst.train.scene_truth import attach_scene_truth, select_rows
 from gst.train.steps import predict
 from gst.train.trainer import TrainConfig
-from gst.train.views import CropSet, load_cropset
+from gst.train.views import CropSet, heldout_frame_start, load_cropset
 
 log = logging.getLogger("gst.train")
 
@@ -75,6 +77,16 @@ class TrainSettings(BaseModel):
     # detects in their crops (losses.keypoints; gst.train.keypoints). Needs the `detect` extra and
     # `python -m gst.detect fetch`. Ours, not the paper's; false gives its objective.
     keypoints: bool = True
+    # Frames held out in time: the last share of the clip's frames never enters any training
+    # term (distillation included) or the checkpoint choice; `evaluate` scores them (0: none).
+    heldout_frames: float = Field(0.25, ge=0, lt=1)
+    # Distillation from the rig (gst.train.distill): the fused bodies of the `fuse` stage, refitted
+    # without held-out cameras and frames, as pseudo-3D targets (losses.distill_*). Ours.
+    distill: bool = True
+    # Feed each input crop's BlazePose landmarks to a network with landmark tokens (the store's
+    # `landmarks`, else detected); false gives such a network the image-only path.
+    landmarks: bool = True
+    landmark_dropout: float = Field(0.1, ge=0, le=1)  # share of inputs trained without them
     losses: LossWeights = LossWeights()
     threads: int | None = None
 
@@ -122,32 +134,86 @@ def _contact_sheet(images, path: Path, max_rows: int = 8) -> None:
         cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
 
+@dataclass(frozen=True)
+class PreparedCrops:
+    """The crops training sees, the held-out cameras and the first held-out frame (None: none)."""
+
+    crops: CropSet
+    heldout_cameras: list[str]
+    first_heldout_frame: int | None
+
+
 def prepare_crops(
-    p: TrainSettings, crops_h5: Path, synth_dir: Path | None, scene: str = "scene", progress=None
-) -> tuple[CropSet, list[str]]:
+    p: TrainSettings,
+    crops_h5: Path,
+    synth_dir: Path | None,
+    scene: str = "scene",
+    progress=None,
+    *,
+    feed_landmarks: bool = False,
+    teacher: Teacher | None = None,
+    work: Path | None = None,
+) -> PreparedCrops:
     """The scene's crops with what training needs: truth on synthetic scenes (only rows with
-    truth for the 2d/3d baselines), occluder masks, label-free anchors and detected 2D joints
-    (multi-view), and the held-out cameras."""
+    truth for the 2d/3d baselines), occluder masks, label-free anchors, the crops' landmarks
+    (fed to landmark tokens when `feed_landmarks`) and the 2D joints they give, distillation
+    targets from the `teacher` (the rig: `gst.lift.teacher.RigTeacher`; `work`: a folder it may
+    write into), the held-out cameras and frames."""
     crops, boxes = load_cropset(crops_h5)
+    multiview = p.supervision == "multiview"
+    heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
+    unknown = [c for c in heldout if c not in crops.camera_names]
+    if unknown:
+        raise ValueError(
+            f"train.heldout_cameras {unknown} are not cameras of {crops_h5} ({crops.camera_names})"
+        )
+    cut = heldout_frame_start(crops.frame, p.heldout_frames)
+    landmarks = None
+    if feed_landmarks or (multiview and (p.keypoints or p.distill)):
+        landmarks, source = store_landmarks(crops_h5, crops.images, progress=progress)
+        log.info(
+            "landmarks (%s): %d of %d crops have one with confidence >= 0.5",
+            source,
+            int((torch.nan_to_num(landmarks[..., 2]).amax(1) >= 0.5).sum()),
+            len(crops),
+        )
+        if multiview and p.keypoints:
+            crops.keypoints = keypoints_from_landmarks(landmarks)
+        if feed_landmarks:
+            crops.landmarks = landmarks
+    if multiview and p.distill:
+        if teacher is None:
+            raise ValueError(
+                "train.distill needs a teacher: the fuse stage's bodies (pipeline.yaml: train "
+                "needs fuse), or distill=false"
+            )
+        held_idx = {crops.camera_names.index(c) for c in heldout}
+        allowed = training_rows(crops, held_idx, cut)
+        bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
+        crops.distill = distill_targets(crops, bodies, allowed)
+        log.info(
+            "distill: %d of %d crops have a fused-body target (training cameras and frames)",
+            int((crops.distill.weight > 0).sum()),
+            len(crops),
+        )
     if synth_dir is not None:
         attach_scene_truth(crops, boxes, synth_dir)
         has = crops.truth["has_truth"]
         log.info("truth matched for %d of %d crops", int(has.sum()), len(crops))
-        if p.supervision != "multiview":
+        if not multiview:
             crops = select_rows(crops, torch.nonzero(has)[:, 0])  # supervised rows need their truth
-    elif p.supervision != "multiview":
+    elif not multiview:
         raise ValueError(
             f"train.supervision={p.supervision} needs truth joints, which only synthetic scenes "
             f"have; scene '{scene}' is real: use supervision=multiview"
         )
-    if p.ignore_occluders and p.supervision == "multiview":
+    if p.ignore_occluders and multiview:
         crops.occluders = occluder_masks(crops)
         log.info(
             "occluders: %.1f%% of crop pixels belong to another person",
             100 * float(crops.occluders.mean()),
         )
-    heldout = p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:]
-    if p.anchor and p.supervision == "multiview":
+    if p.anchor and multiview:
         train_cams = {i for i, c in enumerate(crops.camera_names) if c not in heldout}
         crops.anchors = mask_centre_anchors(crops, cameras=train_cams)  # held-out masks never used
         log.info(
@@ -155,17 +221,7 @@ def prepare_crops(
             int(torch.isfinite(crops.anchors).all(1).sum()),
             len(crops),
         )
-    if p.keypoints and p.supervision == "multiview":
-        from gst.detect.blazepose import BlazePose
-        from gst.train.keypoints import crop_keypoints
-
-        crops.keypoints = crop_keypoints(crops.images, BlazePose(), progress)
-        log.info(
-            "keypoints: %d of %d crops have a joint detected with confidence >= 0.5",
-            int((crops.keypoints[..., 2].amax(1) >= 0.5).sum()),
-            len(crops),
-        )
-    return crops, list(heldout)
+    return PreparedCrops(crops, list(heldout), cut)
 
 
 @dataclass(frozen=True)
@@ -186,23 +242,31 @@ def train_scene(
     out: TrainOutputs,
     *,
     synth_dir: Path | None = None,
+    teacher: Teacher | None = None,
     scene: str = "scene",
     progress=None,
 ) -> dict | None:
     """Train GST on a scene's crops from the pretrained model (or HMR2); returns the summary
-    (None on torchrun ranks other than 0, which only contribute gradients)."""
+    (None on torchrun ranks other than 0, which only contribute gradients). `teacher`: fused
+    bodies for distillation (`gst.lift.teacher.RigTeacher`; needed when `p.distill`)."""
     if p.threads:
         torch.set_num_threads(p.threads)
-    if p.keypoints and p.supervision == "multiview":
+    multiview = p.supervision == "multiview"
+    if multiview and (p.keypoints or p.distill) or p.landmarks:
         model_paths()  # missing person models or LiteRT fail now, with the fix, not after loading
         import_litert()
-    crops, heldout = prepare_crops(p, crops_h5, synth_dir, scene, progress)
     body = load_body_model(p.body_model)
     net, ids, groups = _initial_network(p, pretrained, body)
     net.freeze_backbone(p.freeze_backbone)
+    out.run_dir.mkdir(parents=True, exist_ok=True)
+    prepared = prepare_crops(
+        p, crops_h5, synth_dir, scene, progress,
+        feed_landmarks=p.landmarks and net.landmark_encoder is not None,
+        teacher=teacher, work=out.run_dir / "teacher",
+    )  # fmt: skip
+    crops, heldout, cut = prepared.crops, prepared.heldout_cameras, prepared.first_heldout_frame
     lpips = load_lpips() if p.losses.lpips > 0 else None
     task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
-    multiview = p.supervision == "multiview"
     cfg = TrainConfig(
         steps=p.steps,
         batch_size=p.batch_size,
@@ -228,6 +292,9 @@ def train_scene(
             render_size=p.render_size,
             heldout_cameras=tuple(heldout),
             body_lr=body_lr,
+            first_heldout_frame=cut,
+            scene=scene,
+            landmark_dropout=p.landmark_dropout if crops.landmarks is not None else 0.0,
         ),
         body_spec=p.body_model,
         vertex_ids=ids,
@@ -240,7 +307,7 @@ def train_scene(
     out.model.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(best, out.model)
     net = network_from_checkpoint(load_checkpoint(best)).eval()
-    _write_reports(net, task, crops, heldout, summary, out)
+    _write_reports(net, task, crops, heldout, cut, summary, out)
     shutil.rmtree(run_dir)
     b, a = summary["before"], summary["after"]
     log.info(
@@ -253,18 +320,28 @@ def train_scene(
     return summary
 
 
-def _write_reports(net, task, crops: CropSet, heldout, summary: dict, out: TrainOutputs) -> None:
-    """Novel views of the kept model, an example splat, the log and the summary."""
+def _write_reports(
+    net, task, crops: CropSet, heldout, cut: int | None, summary: dict, out: TrainOutputs
+) -> None:
+    """Novel views of the kept model (held-out frames when there are any), an example splat,
+    the log and the summary (on synthetic scenes, MPJPE on the held-out frames: reported only,
+    never used to choose anything)."""
     reports = out.reports
     reports.mkdir(parents=True, exist_ok=True)
     heldout_idx = {crops.camera_names.index(c) for c in heldout}
-    nv = novel_view_metrics(
-        net, task, crops, novel_view_pairs(crops, heldout_idx, max_pairs=8), 128, return_images=True
-    )
+    frames = None if cut is None else (cut, int(crops.frame.max()) + 1)
+    pairs = novel_view_pairs(crops, heldout_idx, max_pairs=8, frames=frames)
+    nv = novel_view_metrics(net, task, crops, pairs, 128, return_images=True)
     _contact_sheet(nv.pop("images", []), reports / "novel_views.png")
+    if cut is not None and "has_truth" in crops.truth:
+        rows = torch.nonzero(crops.truth["has_truth"].bool() & (crops.frame >= cut))[:, 0]
+        summary["heldout_frames"] = {"first_frame": cut, **pose_metrics(net, task, crops, rows)}
     with torch.no_grad():
         i = torch.tensor([0])
-        g = predict(net, task, crops.images[i], crops.K[i], crops.R[i], crops.t[i]).gaussians_world
+        g = predict(
+            net, task, crops.images[i], crops.K[i], crops.R[i], crops.t[i],
+            landmarks=None if crops.landmarks is None else crops.landmarks[i],
+        ).gaussians_world  # fmt: skip
     write_gaussians_ply(
         out.example_ply, g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.colors[0]
     )

@@ -119,4 +119,7 @@ def select_rows(crops: CropSet, rows: torch.Tensor | np.ndarray) -> CropSet:
         truth={k: v[r] for k, v in crops.truth.items()},
         occluders=None if crops.occluders is None else crops.occluders[r],
         anchors=None if crops.anchors is None else crops.anchors[r],
+        keypoints=None if crops.keypoints is None else crops.keypoints[r],
+        landmarks=None if crops.landmarks is None else crops.landmarks[r],
+        distill=None if crops.distill is None else crops.distill.take(r),
     )

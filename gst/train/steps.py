@@ -18,6 +18,7 @@ from gst.model.assemble import BodyPrediction
 from gst.model.inference import predict_bodies
 from gst.render import rasterize
 from gst.train.anchors import anchor_term
+from gst.train.distill import distill_terms
 from gst.train.keypoints import keypoint_term
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
 from gst.train.occlusion import ignore_occluded
@@ -46,11 +47,14 @@ def predict(
     t: torch.Tensor | None = None,
     with_gaussians: bool = True,
     with_vertices: bool = False,
+    landmarks: torch.Tensor | None = None,
 ) -> BodyPrediction:
-    """`gst.model.inference.predict_bodies` with a training task's body and sizes."""
+    """`gst.model.inference.predict_bodies` with a training task's body and sizes; `landmarks`
+    (B, 33, 3) are the crops' (ignored by a network without landmark tokens)."""
     return predict_bodies(
         model, task.body, task.vertex_ids, images, K, task.image_size, R=R, t=t,
         with_gaussians=with_gaussians, with_vertices=with_vertices, crop_size=task.crop_size,
+        landmarks=landmarks,
     )  # fmt: skip
 
 
@@ -82,8 +86,9 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
     composited on the batch's random backgrounds; pixels where another person hides this one are
     not supervised when the batch knows them. Returns (prediction, render, target, terms)."""
     pred = predict(
-        model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True
-    )
+        model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True,
+        landmarks=batch.input_landmarks,
+    )  # fmt: skip
     out = render_predictions(pred, batch, batch.target_images.shape[-2])
     mask = batch.target_masks
     target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (
@@ -111,6 +116,9 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
             batch.target_keypoints,
             batch.target_images.shape[-2],
         )
+    w = task.weights
+    if batch.distill is not None and w.distill_joints + w.distill_root + w.distill_params > 0:
+        parts.update(distill_terms(pred, batch.R_in, batch.distill))
     return pred, out, target, parts
 
 
@@ -134,13 +142,16 @@ class SupervisedBatch:
     visible: torch.Tensor | None = None  # (B, 24)
     rotmats: torch.Tensor | None = None  # (B, 24, 3, 3) truth, global orient in camera frame
     betas: torch.Tensor | None = None
+    landmarks: torch.Tensor | None = None  # (B, 33, 3) the crops' detections (landmark tokens)
 
 
 def supervised_step(
     model: nn.Module, batch: SupervisedBatch, task: GSTTask
 ) -> tuple[torch.Tensor, dict]:
     """2D supervision uses only 2D joints; 3D uses 3D joints and parameters as well."""
-    pred = predict(model, task, batch.images, batch.K, with_gaussians=False)
+    pred = predict(
+        model, task, batch.images, batch.K, with_gaussians=False, landmarks=batch.landmarks
+    )
     joints2d = project(pred.joints_cam, batch.K)
     use3d = task.supervision == "3d"
     parts = supervised_terms(

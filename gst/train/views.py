@@ -15,6 +15,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gst.train.distill_targets import DistillTargets
+
 
 @dataclass
 class CropSet:
@@ -35,6 +37,11 @@ class CropSet:
     keypoints: torch.Tensor | None = (
         None  # (N, 24, 3) detected joints: crop px, confidence (gst.train.keypoints)
     )
+    # (N, 33, 3) BlazePose landmarks: crop px, confidence (x presence); the input of landmark
+    # tokens (gst.model.landmarks); NaN where none were detected
+    landmarks: torch.Tensor | None = None
+    # pseudo-3D targets from the rig's fused bodies, per crop (gst.train.distill)
+    distill: DistillTargets | None = None
 
     def __post_init__(self):
         n = self.images.shape[0]
@@ -62,6 +69,20 @@ class CropSet:
         idx, key = idx[order], key[order]
         _, counts = torch.unique_consecutive(key, return_counts=True)
         return [g for g in torch.split(idx, counts.tolist()) if len(g) >= min_views]
+
+
+def heldout_frame_start(frames: torch.Tensor, fraction: float) -> int | None:
+    """The first frame of the held-out time range: the last `fraction` of the distinct frames
+    that have crops (None when `fraction` is 0). Training never sees frames from it on."""
+    if not 0 <= fraction < 1:
+        raise ValueError(f"the held-out share of frames must lie in [0, 1), got {fraction}")
+    distinct = torch.unique(torch.as_tensor(frames))
+    if fraction == 0 or len(distinct) == 0:
+        return None
+    if len(distinct) < 2:
+        raise ValueError(f"holding out frames needs crops from >= 2 frames, got {len(distinct)}")
+    n_test = max(1, round(fraction * len(distinct)))
+    return int(distinct[len(distinct) - n_test])
 
 
 def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
@@ -109,6 +130,10 @@ def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
         occluders=cat("occluders"),
         anchors=cat("anchors"),
         keypoints=cat("keypoints"),
+        landmarks=cat("landmarks"),
+        distill=None
+        if all(s.distill is None for s in sets)
+        else DistillTargets.concat([s.distill for s in sets]),
     )
 
 
@@ -166,6 +191,8 @@ class MultiViewBatch:
     target_keypoints: torch.Tensor | None = (
         None  # (B, M, 24, 3) detected joints at render size, confidence
     )
+    input_landmarks: torch.Tensor | None = None  # (B, 33, 3) the input crops' landmarks
+    distill: DistillTargets | None = None  # the input crops' pseudo-3D targets
 
 
 def sample_multiview(
@@ -176,9 +203,12 @@ def sample_multiview(
     num_targets: int,
     render_size: int,
     include_input_view: bool = True,
+    landmark_dropout: float = 0.0,
 ) -> MultiViewBatch:
     """Random groups; random input view per group; `num_targets` views to render into (the
-    input view first when `include_input_view`, then others, with replacement if too few)."""
+    input view first when `include_input_view`, then others, with replacement if too few).
+    `landmark_dropout`: share of samples whose input landmarks are hidden (NaN), so a landmark
+    network keeps an image-only path for crops where the detector finds nothing."""
     pick = torch.randint(len(groups), (batch_size,), generator=gen)
     inputs, targets = [], []
     for gi in pick.tolist():
@@ -208,6 +238,12 @@ def sample_multiview(
         f = render_size / crops.crop_size
         keypoints = crops.keypoints[tgt].clone()
         keypoints[..., :2] = (keypoints[..., :2] + 0.5) * f - 0.5
+    landmarks = None
+    if crops.landmarks is not None:
+        landmarks = crops.landmarks[inp].clone()
+        if landmark_dropout > 0:
+            drop = torch.rand(len(inp), generator=gen) < landmark_dropout
+            landmarks[drop] = float("nan")
     return MultiViewBatch(
         inp,
         tgt,
@@ -223,6 +259,8 @@ def sample_multiview(
         occ,
         anchors,
         keypoints,
+        landmarks,
+        None if crops.distill is None else crops.distill.take(inp),
     )
 
 

@@ -1,0 +1,279 @@
+"""The `pretrain` stage's recipe (`pretrain`), and its mode `lift`: render-free lifting, then a
+short rendered phase. Modes `3d` / `pretrain` (the image-only network) are
+`gst.train.pretrain.pretrain_images`; `reuse` copies a checkpoint.
+
+1. `lift_phase`: a network with landmark tokens learns the landmark -> body path in its
+   landmark-only mode on simulated BlazePose detections of sampled bodies (`gst.lift`), no
+   image rendered; the image path and the Gaussian head are untouched.
+2. `rendered_phase`: the image path and the Gaussian head learn to work with the landmark
+   tokens, on crops of a few rendered worlds with the landmarks BlazePose finds in them
+   (`attach_landmarks`): 3D terms plus the multi-view image terms (`fit_gst` mode
+   `pretrain`), the Gaussian head at its own rate, the ViT and the image cross-attention gently,
+   the pose path frozen behind a closed image gate (`silence_image_path`): a crop with
+   landmarks keeps the lifting path's pose exactly (measured: training the pose path on a few
+   rendered worlds made it transfer worse, docs/landmark_prior.md), and scene training opens
+   the gate as far as the image helps.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from gst.body import BodyModel, load_body_model
+from gst.detect.crops import detect_crop_landmarks
+from gst.lift.errors import LANDMARK_SETS
+from gst.lift.pretrain import LiftPretrainConfig, LiftPretrainResult, pretrain_landmark_path
+from gst.metrics.lpips import load_lpips
+from gst.model.network import GSTNetwork
+from gst.model.presets import get_preset
+from gst.train.pretrain import (
+    PretrainConfig,
+    corpus_crops,
+    pretrain_images,
+    render_corpus,
+    reuse_checkpoint,
+    world_specs,
+)
+from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
+from gst.train.steps import GSTTask
+from gst.train.trainer import TrainConfig
+from gst.train.views import CropSet
+
+log = logging.getLogger("gst.train")
+
+__all__ = [
+    "pretrain",
+    "lift_network",
+    "lift_phase",
+    "silence_image_path",
+    "attach_landmarks",
+    "rendered_phase",
+]
+
+
+def lift_network(
+    preset: str, body: BodyModel, landmarks: str = "all", point_tokens: bool = False, seed: int = 0
+) -> tuple[GSTNetwork, object, object]:
+    """A fresh network of `preset` with landmark tokens for the landmark set `landmarks`."""
+    cfg = get_preset(
+        preset,
+        landmark_tokens=True,
+        num_landmarks=len(LANDMARK_SETS[landmarks]),
+        landmark_point_tokens=point_tokens,
+    )
+    return build_network(cfg, body, seed)
+
+
+def lift_phase(
+    net: GSTNetwork, body: BodyModel, steps: int, batch_size: int, lr: float, seed: int = 0
+) -> LiftPretrainResult:
+    """The render-free lifting phase (training throughput in the result: samples per second)."""
+    cfg = LiftPretrainConfig(
+        steps=steps,
+        batch_size=batch_size,
+        lr=lr,
+        seed=seed,
+        warmup_steps=min(100, max(1, steps // 10)),
+    )
+    res = pretrain_landmark_path(net, body, cfg, log=log.info)
+    log.info(
+        "pretrain (lift): %d steps x %d samples in %.0f s: %.0f samples/s (sampler alone %.0f/s), "
+        "simulated crops %.0f mm",
+        steps,
+        batch_size,
+        res.seconds,
+        res.samples_per_s,
+        res.sampler_samples_per_s,
+        res.train_mpjpe_mm,
+    )
+    return res
+
+
+def silence_image_path(net: GSTNetwork) -> None:
+    """Close the SMPL token's image gate (`TokenDecoder.smpl_image_gate` = 0): a crop with
+    landmarks then gets the lifting path's pose exactly, whatever the image path learns for the
+    Gaussian tokens; scene training opens it as far as the image helps."""
+    with torch.no_grad():
+        net.smpl_head.transformer.smpl_image_gate.zero_()
+
+
+def image_path_parameters(net: GSTNetwork) -> list[nn.Parameter]:
+    """What the rendered phase trains besides the Gaussian head: the ViT and the decoder's
+    image cross-attention (through which the Gaussian tokens see the crop)."""
+    cross = [
+        p for layer in net.smpl_head.transformer.transformer.layers for p in layer[1].parameters()
+    ]
+    return list(net.backbone.parameters()) + cross
+
+
+def attach_landmarks(crops: CropSet, progress=None) -> None:
+    """BlazePose on every crop (RGB), as the pipeline sees them: `crops.landmarks`."""
+    found = detect_crop_landmarks(crops.images.numpy(), rgb=True, progress=progress)
+    crops.landmarks = torch.from_numpy(found.with_confidence())
+
+
+def rendered_phase(
+    net: GSTNetwork,
+    task: GSTTask,
+    crops: CropSet,
+    val: CropSet | None,
+    out: Path,
+    *,
+    steps: int,
+    batch_size: int,
+    gaussian_lr: float,
+    body_lr: float,
+    num_targets: int,
+    render_size: int,
+    landmark_dropout: float,
+    body_spec: str,
+    vertex_ids,
+    group_index,
+    progress=None,
+) -> dict:
+    """Train in place on rendered crops with their landmarks (module doc): the Gaussian head at
+    `gaussian_lr`, the image path (`image_path_parameters`) at `body_lr`, the pose path frozen
+    (the SMPL token's image gate stays closed); writes `out`/last.pt and log.csv; returns
+    fit_gst's summary (MPJPE before and after on `val`)."""
+    keep = {id(p) for p in image_path_parameters(net)} | {
+        id(p) for p in net.gaussian_head.parameters()
+    }
+    frozen = [p for p in net.parameters() if id(p) not in keep and p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    cfg = TrainConfig(
+        steps=steps,
+        batch_size=batch_size,
+        lr=gaussian_lr,
+        warmup_steps=min(20, max(1, steps // 10)),
+        val_every=steps,
+        ckpt_every=25,
+        log_every=5,
+    )
+    try:
+        return fit_gst(
+            net,
+            task,
+            crops,
+            cfg,
+            out,
+            FitOptions(
+                mode="pretrain",
+                num_targets=num_targets,
+                render_size=render_size,
+                val_pose_crops=256,
+                body_lr=body_lr,
+                landmark_dropout=landmark_dropout,
+            ),
+            body_spec=body_spec,
+            vertex_ids=vertex_ids,
+            group_index=group_index,
+            progress=progress,
+            val_crops=val,
+        )
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
+
+
+def lift_summary(res: LiftPretrainResult) -> dict:
+    d = asdict(replace(res, validation=[]))
+    return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+# the lift mode's crops: the pipeline's crop size, so BlazePose sees what it sees in extraction
+LIFT_CROP_SIZE = 256
+
+
+def _pretrain_lift(
+    p: PretrainConfig, work: Path, checkpoint: Path, reports: Path, map_fn, progress
+) -> dict:
+    """Mode `lift` (module doc). The worlds render in the background while the landmark path
+    learns without them."""
+    t0 = time.perf_counter()
+    specs = world_specs(p)
+    body = load_body_model(p.body_model)
+    net, ids, groups = lift_network(p.preset, body, p.landmarks, p.landmark_point_tokens)
+    with ThreadPoolExecutor(1, thread_name_prefix="pretrain-render") as pool:
+        rendering = pool.submit(render_corpus, p, work, map_fn, None)
+        lift = lift_phase(net, body, p.lift_steps, p.lift_batch_size, p.lift_lr)
+        t_lift = time.perf_counter() - t0
+        dirs = rendering.result()
+    t_render = time.perf_counter() - t0
+    crops, val = corpus_crops(p, dirs, LIFT_CROP_SIZE, progress)
+    attach_landmarks(crops, progress)
+    attach_landmarks(val, progress)
+    t_detect = time.perf_counter() - t0
+    silence_image_path(net)
+    lpips = load_lpips() if p.losses.lpips > 0 else None
+    task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
+    out = work / "models" / "pretrain_rendered"
+    out.mkdir(parents=True, exist_ok=True)
+    summary = rendered_phase(
+        net, task, crops, val, out,
+        steps=p.gaussian_steps, batch_size=p.batch_size, gaussian_lr=p.gaussian_lr,
+        body_lr=p.lift_body_lr, num_targets=p.num_targets, render_size=p.render_size,
+        landmark_dropout=p.landmark_dropout, body_spec=p.body_model, vertex_ids=ids,
+        group_index=groups, progress=progress,
+    )  # fmt: skip
+    reports.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(out / "log.csv", reports / "log.csv")
+    shutil.copyfile(out / "last.pt", checkpoint)  # the head learns to the end; the pose is watched
+    summary.update(
+        mode="lift",
+        lift=lift_summary(lift),
+        corpus={
+            "worlds": [s["name"] for s in specs[:-1]],
+            "validation_world": specs[-1]["name"],
+            "train_crops": len(crops),
+            "validation_crops": len(val),
+        },
+        times_s={
+            "lift_phase": round(t_lift, 1),
+            "rendering_done": round(t_render, 1),
+            "crops_and_landmarks_done": round(t_detect, 1),
+            "total": round(time.perf_counter() - t0, 1),
+        },
+    )
+    (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    log.info(
+        "pretrain (lift): MPJPE on the unseen validation world %.1f mm after lifting, %.1f mm after "
+        "the rendered phase; %.0f s in all",
+        summary["before"].get("mpjpe_mm", float("nan")),
+        summary["after"].get("mpjpe_mm", float("nan")),
+        summary["times_s"]["total"],
+    )
+    shutil.rmtree(out)
+    shutil.rmtree(work / "worlds")
+    return summary
+
+
+def pretrain(
+    p: PretrainConfig,
+    work: Path,
+    checkpoint: Path,
+    reports: Path,
+    *,
+    map_fn=None,
+    progress=None,
+) -> dict:
+    """The pretrain stage: `p.reuse` copies a checked checkpoint; mode `lift` (module doc);
+    modes `3d` / `pretrain`: `gst.train.pretrain.pretrain_images`. Worlds render into
+    `work/worlds` (kept by an interrupted run); writes `checkpoint` and `reports`; returns the
+    summary. `map_fn` fans the world renders out (an executor's map)."""
+    if p.reuse is not None:
+        return reuse_checkpoint(p, checkpoint, reports)
+    if p.mode != "lift":
+        return pretrain_images(p, work, checkpoint, reports, map_fn=map_fn, progress=progress)
+    if p.threads:
+        torch.set_num_threads(p.threads)
+    return _pretrain_lift(p, work, checkpoint, reports, map_fn, progress)

@@ -1,0 +1,79 @@
+"""The rig as teacher: the fuse stage's fusion of the crops' landmarks, without held-out data.
+
+`RigTeacher(fused, crops_h5, rig)` is a `gst.train.distill.Teacher`: called with the crops'
+landmarks and the rows training may use, it returns the fuse stage's own bodies when every row
+may be used, else the same fusion (`gst.fuse.fuse_scene`, with the settings the fuse stage
+recorded in its file) run on the allowed rows' landmarks only: every other row's landmarks are
+removed (`gst.train.distill.teacher_landmarks`), so no held-out camera or frame informs a
+target (tests/test_train_distill.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gst.fuse import FuseOptions, fuse_scene
+from gst.train.distill import FusedBodies, read_fused_bodies, teacher_landmarks
+
+log = logging.getLogger("gst.train")
+
+__all__ = ["RigTeacher", "fuse_options"]
+
+
+def _build(cls, recorded: dict):
+    """An options dataclass from its recorded JSON: nested option dataclasses are rebuilt,
+    fields this version does not know are ignored, missing ones keep their defaults."""
+    defaults = cls()
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in recorded:
+            continue
+        value, default = recorded[f.name], getattr(defaults, f.name)
+        if dataclasses.is_dataclass(default) and isinstance(value, dict):
+            value = _build(type(default), value)
+        elif isinstance(default, tuple) and isinstance(value, list):
+            value = tuple(value)
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def fuse_options(settings: dict) -> FuseOptions:
+    """The fuse stage's FuseOptions from the settings its file records (no overlay videos)."""
+    return dataclasses.replace(_build(FuseOptions, settings), overlay=False)
+
+
+@dataclass(frozen=True)
+class RigTeacher:
+    fused: Path  # the fuse stage's fused/bodies.parquet
+    crops_h5: Path  # the crop store the landmarks' rows belong to
+    rig: object  # the calibration (calibration.camera.Rig)
+
+    def __call__(self, landmarks: np.ndarray, allowed: np.ndarray, work: Path) -> FusedBodies:
+        bodies = read_fused_bodies(self.fused)
+        if bool(np.all(allowed)):
+            return bodies
+        work = Path(work)
+        with warnings.catch_warnings():  # rows without landmarks: empty means in the report
+            warnings.simplefilter("ignore", RuntimeWarning)
+            warnings.simplefilter("ignore", UserWarning)
+            result = fuse_scene(
+                self.crops_h5,
+                self.rig,
+                work / "fused",
+                work / "report",
+                fps=bodies.fps,
+                options=fuse_options(bodies.settings),
+                landmarks=teacher_landmarks(landmarks, allowed),
+            )
+        log.info(
+            "distill: teacher refitted on %d of %d crops (held-out cameras and frames removed)",
+            int(np.sum(allowed)),
+            len(allowed),
+        )
+        return read_fused_bodies(result.bodies)

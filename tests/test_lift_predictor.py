@@ -1,0 +1,82 @@
+"""GSTPredictor with landmarks: what the track loop passes (N, 33, 3 crop px + confidence, NaN
+where none) reaches a landmark checkpoint's tokens; rows without landmarks take the image-only
+path exactly; image-only checkpoints say they take none."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gst.body import BodyModel
+from gst.body.random_model import random_body_data
+from gst.model.checkpoint import save_checkpoint
+from gst.model.inference import GSTPredictor
+from gst.model.landmarks import LIMB_LANDMARK_IDS, LandmarkInput
+from gst.model.presets import get_preset
+from gst.train.recipe import build_network
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("pred")
+    data = random_body_data(num_vertices=400, with_posedirs=False)
+    body_path = data.save_npz(tmp / "body.npz")
+    body = BodyModel(data)
+    out = {}
+    for name, kw in (
+        ("plain", {}),
+        ("all33", {"landmark_tokens": True, "num_landmarks": 33}),
+        ("limbs", {"landmark_tokens": True, "num_landmarks": 12}),
+    ):
+        net, ids, groups = build_network(get_preset("tiny", vertex_preset="full", **kw), body)
+        save_checkpoint(tmp / f"{name}.pt", net, str(body_path), ids, groups)
+        out[name] = tmp / f"{name}.pt"
+    return out
+
+
+def _inputs(n=5, seed=0):
+    rng = np.random.default_rng(seed)
+    crops = rng.integers(0, 255, (n, 64, 64, 3), dtype=np.uint8)
+    K = np.tile(np.array([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]], np.float32), (n, 1, 1))
+    lm = np.concatenate([rng.random((n, 33, 2)) * 64, rng.random((n, 33, 1))], -1)
+    return crops, K, lm.astype(np.float32)
+
+
+def test_landmark_checkpoints_use_the_landmarks_and_nan_rows_take_the_image_path(checkpoints):
+    crops, K, lm = _inputs()
+    for name in ("all33", "limbs"):
+        pred = GSTPredictor(checkpoints[name], batch_size=2)
+        assert pred.accepts_landmarks
+        bare = pred(crops, K)
+        with_lm = pred(crops, K, landmarks=lm)
+        assert set(with_lm) == {"rotmats", "betas", "transl_cam", "joints_cam"}
+        assert not np.allclose(bare["rotmats"], with_lm["rotmats"])
+        lm_none = lm.copy()
+        lm_none[[1, 3]] = np.nan  # the detector found nobody in crops 1 and 3
+        mixed = pred(crops, K, landmarks=lm_none)
+        for key in bare:
+            assert np.array_equal(mixed[key][[1, 3]], bare[key][[1, 3]]), key
+            assert np.array_equal(mixed[key][[0, 2, 4]], with_lm[key][[0, 2, 4]]), key
+        with pytest.raises(ValueError, match="landmark rows"):
+            pred.predict(crops, K, landmarks=lm[:2])
+
+
+def test_the_limb_network_reads_the_limb_landmarks_only(checkpoints):
+    crops, K, lm = _inputs(3, seed=1)
+    pred = GSTPredictor(checkpoints["limbs"])
+    other = lm.copy()
+    face = [i for i in range(33) if i not in LIMB_LANDMARK_IDS]
+    other[:, face] += 17.0  # landmarks the 12-landmark network does not take
+    assert np.array_equal(pred(crops, K, landmarks=lm)["joints_cam"],
+                          pred(crops, K, landmarks=other)["joints_cam"])  # fmt: skip
+    inp = LandmarkInput.from_detections(lm, K, 64, 12)
+    assert inp.points.shape == (3, 12, 3) and inp.mask.all()
+
+
+def test_image_only_checkpoints_take_no_landmarks(checkpoints):
+    crops, K, lm = _inputs(2)
+    pred = GSTPredictor(checkpoints["plain"])
+    assert not pred.accepts_landmarks
+    assert np.array_equal(pred(crops, K)["joints_cam"], pred(crops, K, landmarks=lm)["joints_cam"])
+    assert torch.is_tensor(pred.predict(crops, K).joints_cam)

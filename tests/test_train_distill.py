@@ -1,0 +1,135 @@
+"""Distillation from the rig (gst.train.distill): targets are never drawn from held-out cameras
+or frames, they follow the fused bodies where they are drawn, and the loss terms behave."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from gst.body import load_body_model
+from gst.fuse import FitOptions, FuseOptions, fuse_scene
+from gst.lift.teacher import RigTeacher
+from gst.model.assemble import BodyPrediction
+from gst.train.distill import (
+    distill_targets,
+    distill_terms,
+    read_fused_bodies,
+    teacher_landmarks,
+    training_rows,
+)
+from gst.train.views import heldout_frame_start, load_cropset
+from tests.fuse_fixtures import make_capture, write_store
+
+OPTS = FuseOptions(fit=FitOptions(iterations=40), overlay=False)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    torch.set_num_threads(1)
+    tmp = tmp_path_factory.mktemp("distill")
+    cap = make_capture(load_body_model("anny"), n_people=2, n_frames=6, n_cams=4, seed=3)
+    landmarks = write_store(tmp / "crops.h5", cap)
+    # the fuse stage's output: every camera and frame
+    fuse_scene(tmp / "crops.h5", cap.rig, tmp / "fused", tmp / "report", fps=30.0,
+               options=OPTS, landmarks=landmarks)  # fmt: skip
+    crops, _ = load_cropset(tmp / "crops.h5")
+    return tmp, cap, landmarks, crops, read_fused_bodies(tmp / "fused" / "bodies.parquet")
+
+
+def test_heldout_frames_are_the_last_share_of_the_frames():
+    frames = torch.tensor([0, 0, 1, 2, 3, 3, 5, 6, 7, 9])  # 8 distinct frames
+    assert heldout_frame_start(frames, 0.25) == 7  # the last 2 distinct frames: 7 and 9
+    assert heldout_frame_start(frames, 0.5) == 5  # 5, 6, 7, 9
+    assert heldout_frame_start(frames, 0.0) is None
+    assert heldout_frame_start(frames, 0.01) == 9  # at least one frame
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        heldout_frame_start(frames, 1.0)
+
+
+def test_teacher_landmarks_remove_everything_held_out():
+    lm = np.random.default_rng(0).random((5, 33, 3)).astype(np.float32)
+    allowed = np.array([True, False, True, False, True])
+    out = teacher_landmarks(lm, allowed)
+    assert np.isnan(out[~allowed, :, :2]).all() and (out[~allowed, :, 2] == 0).all()
+    assert np.array_equal(out[allowed], lm[allowed])
+    assert not np.isnan(lm).any()  # the input is left alone
+
+
+def test_targets_are_never_drawn_from_heldout_cameras_or_frames(scene, tmp_path):
+    tmp, cap, landmarks, crops, fused = scene
+    cut = heldout_frame_start(crops.frame, 1 / 3)
+    assert cut == 4
+    allowed = training_rows(crops, {3}, cut)  # camera 3 and frames 4-5 held out
+    assert allowed.sum() == 2 * 4 * 3  # 2 people x 4 frames x 3 cameras
+    teacher = RigTeacher(tmp / "fused" / "bodies.parquet", tmp / "crops.h5", cap.rig)
+    a = teacher(landmarks, allowed.numpy(), tmp_path / "a")
+    # anything at all in the held-out cameras and frames: the same teacher, the same targets
+    rng = np.random.default_rng(1)
+    garbage = landmarks.copy()
+    garbage[~allowed.numpy()] = rng.random(garbage[~allowed.numpy()].shape) * 300
+    b = teacher(garbage, allowed.numpy(), tmp_path / "b")
+    ta, tb = distill_targets(crops, a, allowed), distill_targets(crops, b, allowed)
+    for name in ("joints_world", "joint_weight", "global_orient", "body_pose", "betas", "weight"):
+        assert torch.equal(getattr(ta, name), getattr(tb, name)), name
+    # held-out crops carry no target; training crops do, close to the true joints
+    assert (ta.weight[~allowed] == 0).all() and (ta.joint_weight[~allowed] == 0).all()
+    assert (ta.weight[allowed] == 1).all()
+    truth = torch.as_tensor(cap.joints)[crops.person - 1, crops.frame].float()
+    err = (ta.joints_world - truth).norm(dim=-1).mean(1)[allowed]
+    assert err.max() < 0.1  # a 40-iteration fit of 3 cameras: a few centimetres
+    # the refit is not the fuse stage's fit (which saw the held-out views)...
+    first = np.flatnonzero((fused.frame == 0) & (fused.person_id == 1))[0]
+    second = np.flatnonzero((a.frame == 0) & (a.person_id == 1))[0]
+    assert not np.array_equal(fused.joints[first], a.joints[second])
+    # ...and with nothing held out the fuse stage's bodies are taken as they are
+    every = teacher(landmarks, np.ones(len(crops), bool), tmp_path / "c")
+    assert np.array_equal(every.joints, fused.joints) and not (tmp_path / "c").exists()
+
+
+def test_joint_weights_follow_the_views(scene):
+    _, _, _, crops, fused = scene
+    fused = dataclasses.replace(
+        fused, joint_views=fused.joint_views.copy(), gap_filled=fused.gap_filled.copy()
+    )
+    fused.joint_views[0] = 4
+    fused.joint_views[0, [1, 2]] = 2
+    fused.gap_filled[0] = False
+    fused.gap_filled[0, 4] = True
+    fused.joint_views[0, 4] = 1
+    row = int(np.flatnonzero(
+        (crops.frame.numpy() == fused.frame[0]) & (crops.person.numpy() == fused.person_id[0])
+    )[0])  # fmt: skip
+    t = distill_targets(crops, fused, torch.ones(len(crops), dtype=torch.bool))
+    w = t.joint_weight[row]
+    assert w[7] == 1 and abs(float(w[1]) - 2 / 3) < 1e-6 and abs(float(w[4]) - 0.1) < 1e-6
+    assert 0 < w[3] < 1  # spine1 has no landmark: its frame's mean
+
+
+def _prediction(t, R):
+    """A prediction that equals the targets, seen through cameras R."""
+    joints = t.joints_world.clone().requires_grad_(True)
+    go = R @ t.global_orient
+    rot = torch.cat([go[:, None], t.body_pose], 1).clone().requires_grad_(True)
+    n = len(t)
+    return BodyPrediction(rot, t.betas.clone(), torch.zeros(n, 3), joints, None, joints), joints
+
+
+def test_distill_terms_vanish_at_the_target_and_skip_unweighted_rows(scene):
+    _, _, _, crops, fused = scene
+    t = distill_targets(crops, fused, torch.ones(len(crops), dtype=torch.bool)).take(
+        torch.arange(6)
+    )
+    pred, joints = _prediction(t, crops.R[:6])
+    terms = distill_terms(pred, crops.R[:6], t)
+    assert all(float(v) < 1e-6 for v in terms.values())
+    t.weight[:3] = 0
+    pred.joints_world = (
+        joints + torch.randn_like(joints) * 0.05 * (torch.arange(6) < 3).float()[:, None, None]
+    )
+    terms = distill_terms(pred, crops.R[:6], t)
+    assert float(terms["distill_joints"]) < 1e-6  # only the unweighted rows were moved
+    sum(terms.values()).backward()
+    assert torch.isfinite(joints.grad).all()
