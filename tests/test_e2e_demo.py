@@ -37,7 +37,7 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
         "models/example.ply",
         "reports/train/summary.md",
         "reports/train/novel_views.png",
-        "reports/pretrain/log_gaussians.csv",
+        "reports/pretrain/log.csv",
     ):
         assert (ws / rel).is_file(), rel
     tables = [read_tracks(p) for p in sorted((ws / "tracks").glob("video=*/tracks.parquet"))]
