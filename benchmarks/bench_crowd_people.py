@@ -234,7 +234,8 @@ def main() -> None:
             print(
                 f"{scene.name:28s} {name:26s} {s['cam_frames_per_s']:8.2f} {s['views']:6d} "
                 f"{s['iou']:6.3f} {s['association']:6.3f} "
-                f"{s['missed']:5d}/{s['truth_views']:<5d} ({s['missed'] / max(s['truth_views'], 1):.3f}) "
+                f"{s['missed']:5d}/{s['truth_views']:<5d} "
+                f"({s['missed'] / max(s['truth_views'], 1):.3f}) "
                 f"{s['ids']:4d} {s['switches']:6d}",
                 flush=True,
             )

@@ -246,8 +246,10 @@ def main() -> None:
             )
             print(
                 f"{name:30s} {secs:8.1f} {n_cf / secs:12.2f} {base / secs:9.2f} | "
-                f"{ph.get('masks', 0):6.1f} {ph.get('association', 0):6.1f} {ph.get('crops', 0):6.1f} "
-                f"{ph.get('merge', 0):6.1f}                         | {iou:>8s} {acc:>9s} {rep.crops:6d} {rep.persons}"
+                f"{ph.get('masks', 0):6.1f} {ph.get('association', 0):6.1f} "
+                f"{ph.get('crops', 0):6.1f} "
+                f"{ph.get('merge', 0):6.1f}                         | {iou:>8s} {acc:>9s} "
+                f"{rep.crops:6d} {rep.persons}"
             )
         print(f"\n{n_cf} camera-frames per run; repeats: {args.repeats} (median shown)")
     finally:

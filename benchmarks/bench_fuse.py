@@ -1,6 +1,7 @@
 """Fusion accuracy and speed beside the peers, on the same DETECTED 2D input.
 
-    python benchmarks/bench_fuse.py --workspace workspace/demo [--peers-python /work/bench-venv/bin/python]
+    python benchmarks/bench_fuse.py --workspace workspace/demo \\
+        [--peers-python /work/bench-venv/bin/python]
 
 Input: the scene's crop store and BlazePose landmarks per crop, as the fuse stage computes
 them (`gst.fuse.observations.crop_landmarks`, refined second pass), cached beside the store as
@@ -315,7 +316,8 @@ def main() -> None:
     n_pf = sum(len(p.frames) for p in extracted)
     print(f"\n{n_pf} person-frames, {len(store.camera_names)} cameras, detected 2D (BlazePose), "
           f"torch threads {args.threads}; regrouping: {report.tracks} people from "
-          f"{len(extracted)} extraction ids, {1000 * t_regroup / n_pf:.2f} ms / person-frame\n")  # fmt: skip
+          f"{len(extracted)} extraction ids, "
+          f"{1000 * t_regroup / n_pf:.2f} ms / person-frame\n")  # fmt: skip
     print(
         "| grouping | method | MPJPE mm | PA-MPJPE mm | person-frames | ms / person-frame | note |"
     )

@@ -126,9 +126,11 @@ def main() -> None:
         side_by_side_groups=0,
     )
     print(
-        f"preset {base.cfg.name} (landmarks: {base.cfg.num_landmarks if base.cfg.landmark_tokens else 'none'}), "
+        f"preset {base.cfg.name} (landmarks: "
+        f"{base.cfg.num_landmarks if base.cfg.landmark_tokens else 'none'}), "
         f"{torch.get_num_threads()} threads; {args.steps} steps x batch {args.batch} per row; "
-        f"train: {len(split.train_rows)} crops of frames < {split.test_frames[0]} outside {heldout}; "
+        f"train: {len(split.train_rows)} crops of frames < {split.test_frames[0]} "
+        f"outside {heldout}; "
         f"test: frames {split.test_frames[0]}-{split.test_frames[1] - 1}; novel views at "
         f"{args.render_size} px",
         flush=True,
@@ -182,8 +184,8 @@ def main() -> None:
         f"{split.test_frames[1] - 1}, never trained on); novel views: {v['n']} held-out-camera "
         "pairs.",
         "",
-        "| table | row | MPJPE (mm) | PA-MPJPE (mm) | PSNR (dB) | IoU | SSIM | LPIPS | box PSNR (dB) "
-        "| train s | total s |",
+        "| table | row | MPJPE (mm) | PA-MPJPE (mm) | PSNR (dB) | IoU | SSIM | LPIPS "
+        "| box PSNR (dB) | train s | total s |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for table, name, p, v, train_s, total in results:

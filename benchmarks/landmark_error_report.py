@@ -120,8 +120,10 @@ def main() -> None:
         sk = detection_stats(w.landmarks, w.presence, w.joints2d, w.visible, w.crop_size)
         print(
             f"  {w.seed} {w.rig_kind} {pose_kind(w.motion)[0]}: "
-            f"{100 * np.median(sk.err_median_visible):.2f}%, swaps {100 * np.mean(sk.swap_rate):.1f}%,"
-            f" flips {100 * sk.flip_rate:.1f}%, dropped (visible) {100 * np.mean(sk.drop_visible):.1f}%"
+            f"{100 * np.median(sk.err_median_visible):.2f}%, "
+            f"swaps {100 * np.mean(sk.swap_rate):.1f}%,"
+            f" flips {100 * sk.flip_rate:.1f}%, "
+            f"dropped (visible) {100 * np.mean(sk.drop_visible):.1f}%"
         )
     for kind in POSE_KINDS:
         sub = [w for w in worlds if pose_kind(w.motion)[0] == kind]

@@ -1,4 +1,5 @@
-"""The HDF5 crop store: append, commit, resume, selection, multi-view groups, refusal of bad stores."""
+"""The HDF5 crop store: append, commit, resume, selection, multi-view groups, refusal of bad
+stores."""
 
 import pickle
 

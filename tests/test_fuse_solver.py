@@ -102,7 +102,8 @@ def _problem(body, skeleton, B=4, C=3, seed=0):
         Rts.append(torch.cat([R, (-R @ pos)[:, None]], 1))
     Rt = torch.stack(Rts)[None].expand(B, C, 3, 4)
     Kb = K.expand(B, C, 3, 3)
-    ev = Views(Kb, Rt, torch.zeros(B, C, X.shape[1], 2, dtype=D), torch.ones(B, C, X.shape[1], dtype=D),
+    ev = Views(Kb, Rt, torch.zeros(B, C, X.shape[1], 2, dtype=D),
+               torch.ones(B, C, X.shape[1], dtype=D),
                torch.full((B, C), 1.5, dtype=D), torch.full((B,), 3.0, dtype=D))  # fmt: skip
     uv, _ = ev.project(X)
     ev.uv = uv + torch.randn(uv.shape, generator=g, dtype=D) * 2.0

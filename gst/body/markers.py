@@ -134,7 +134,8 @@ class MarkerModel(torch.nn.Module):
         return len(self.names)
 
     def positions(self, out: BodyOutput) -> torch.Tensor:
-        """(B, M, 3) world positions; `out` must come from `forward(..., return_transforms=True)`."""
+        """(B, M, 3) world positions; `out` must come from
+        `forward(..., return_transforms=True)`."""
         if out.joint_transforms is None:
             raise ValueError(
                 "MarkerModel.positions needs the body's joint transforms "

@@ -228,7 +228,8 @@ def resample(
     Only the source region the maps touch is filtered, so a small crop of a 4K frame stays
     cheap. "gaussian" blurs it with sigma = (k - 1) / 2 for a shrink factor k (as scikit-image
     does; the most faithful); "pyramid" halves it with cv2.pyrDown until the shrink is at most
-    2 (several times cheaper for big shrinks; tracking uses it). Samples outside the source are zero.
+    2 (several times cheaper for big shrinks; tracking uses it). Samples outside the source are
+    zero.
     """
     if antialias == "pyramid":
         return _resample_pyramid(image, mapx, mapy, src_per_dst, interpolation)

@@ -2,9 +2,9 @@
 
 Format (docs/formats/external_masks.md), one folder:
 
-    <root>/<camera>.h5 or <camera>.npz   person-id masks: `masks` (or `mask`) uint8 (F, H, W), 0 = nobody,
-                                         1..254 = a person; optional `frames` int (F,) frame
-                                         numbers (default 0..F-1)
+    <root>/<camera>.h5 or <camera>.npz   person-id masks: `masks` (or `mask`) uint8
+                                         (F, H, W), 0 = nobody, 1..254 = a person; optional
+                                         `frames` int (F,) frame numbers (default 0..F-1)
     <root>/boxes.parquet                 optional boxes: frame, camera, x0, y0, x1, y1
                                          (pixel edges in the distorted image), optional person_id
     <root>/meta.json                     optional {"global_ids": true} when the same id means the

@@ -15,7 +15,8 @@ import numpy as np
 
 @dataclass(frozen=True)
 class MaskConfig:
-    """Clean-up of foreground masks. Lengths are fractions of the image height, areas of its area."""
+    """Clean-up of foreground masks. Lengths are fractions of the image height, areas of its
+    area."""
 
     open_radius: float = 0.002  # removes speckle
     close_radius: float = 0.004  # bridges thin seams inside a silhouette

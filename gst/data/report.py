@@ -113,9 +113,11 @@ def write_extract_report(
     lines = [
         f"# Extraction report: {Path(r.store).name}",
         "",
-        f"- frames: {r.frames_total} in the videos, {r.frames_considered} considered (stride {r.frame_stride}), "
+        f"- frames: {r.frames_total} in the videos, {r.frames_considered} considered "
+        f"(stride {r.frame_stride}), "
         f"{r.frames_with_people} with people, {r.frames_skipped_empty} skipped (nobody found)",
-        f"- crops: {r.crops}; distinct person ids: {r.persons}; (frame, person) groups seen by >= 2 cameras: "
+        f"- crops: {r.crops}; distinct person ids: {r.persons}; "
+        "(frame, person) groups seen by >= 2 cameras: "
         f"{r.multiview_groups}",
         f"- cameras that saw no one (skipped): {', '.join(r.cameras_skipped) or 'none'}",
         f"- (frame, camera) pairs already done and resumed: {r.pairs_resumed}",
@@ -134,8 +136,10 @@ def write_extract_report(
         lines.append(f"- ids seen too briefly to crop (dropped): {r.short_tracks_dropped}")
     if r.crops_scored:
         lines += [
-            f"- truth: mean mask IoU {_fmt(r.mask_iou)}, association accuracy {_fmt(r.association_accuracy)} "
-            f"over {r.crops_scored} crops; truth views {r.truth_views}, missed {r.truth_views_missed}",
+            f"- truth: mean mask IoU {_fmt(r.mask_iou)}, "
+            f"association accuracy {_fmt(r.association_accuracy)} "
+            f"over {r.crops_scored} crops; truth views {r.truth_views}, "
+            f"missed {r.truth_views_missed}",
         ]
         if r.visible_views:
             lines.append(

@@ -1,4 +1,5 @@
-"""BlazePose on CPU through LiteRT: person detection, 33 landmarks and a segmentation mask per person.
+"""BlazePose on CPU through LiteRT: person detection, 33 landmarks and a segmentation mask
+per person.
 
 Two TFLite models (see `gst.detect.weights`) run in the `ai-edge-litert` interpreter:
 
@@ -166,7 +167,8 @@ def roi_from_alignment(centre: np.ndarray, scale_point: np.ndarray) -> BodyRoi:
 
 
 def roi_from_box(box: tuple[float, float, float, float]) -> BodyRoi:
-    """Upright region around an x, y, w, h person box (a whole body): side 1.25 x its longer side."""
+    """Upright region around an x, y, w, h person box (a whole body): side 1.25 x its longer
+    side."""
     x, y, w, h = box
     return BodyRoi((x + w / 2, y + h / 2), ROI_SCALE * max(w, h), 0.0)
 

@@ -67,9 +67,12 @@ def model_paths(models_dir: str | Path | None = None) -> dict[str, Path]:
     missing = [str(p) for p in paths.values() if not p.is_file()]
     if missing:
         raise BlazePoseModelsMissing(
-            f"BlazePose model files missing: {', '.join(missing)}. Fetch them once with `{FETCH_COMMAND}` "
-            f"(downloads {MEDIAPIPE_WHEEL.requirement}'s wheel, about 35 MB, from PyPI; nothing is installed), "
-            f"or on an offline machine `{FETCH_COMMAND} --from DIR` with {MEDIAPIPE_WHEEL.filename} in DIR."
+            f"BlazePose model files missing: {', '.join(missing)}. "
+            f"Fetch them once with `{FETCH_COMMAND}` "
+            f"(downloads {MEDIAPIPE_WHEEL.requirement}'s wheel, about 35 MB, from PyPI; "
+            "nothing is installed), "
+            f"or on an offline machine `{FETCH_COMMAND} --from DIR` "
+            f"with {MEDIAPIPE_WHEEL.filename} in DIR."
         )
     return paths
 

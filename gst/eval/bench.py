@@ -156,7 +156,8 @@ def run_bench(
             ):
                 raise ValueError(
                     f"variant {v.name}: checkpoint {v.checkpoint} is preset {net.cfg.name} at "
-                    f"{net.cfg.image_size}, the variant asks for {v.preset} at {v.config().image_size}"
+                    f"{net.cfg.image_size}, the variant asks for {v.preset} at "
+                    f"{v.config().image_size}"
                 )
             how = "checkpoint as is"
         else:
@@ -173,7 +174,8 @@ def run_bench(
             res.summary.get("novel_view", {}).get("heldout", {}),
         )
         log(
-            f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, held-out PSNR {nv.get('psnr')} ({how})"
+            f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, "
+            f"held-out PSNR {nv.get('psnr')} ({how})"
         )
         params_m = round(sum(p.numel() for p in net.parameters()) / 1e6, 2)
         for output, with_g in (("pose-only", False), ("full", True)):
@@ -205,7 +207,8 @@ def run_bench(
         row.ms_per_batch, row.fps = 1000 * sec, len(timing_rows) / sec
         row.ms_per_crop = row.ms_per_batch / len(timing_rows)
         log(
-            f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of {len(timing_rows)}"
+            f"bench {row.variant} {row.output}: {row.ms_per_batch:.1f} ms per batch of "
+            f"{len(timing_rows)}"
         )
     return pending
 

@@ -77,7 +77,8 @@ def evaluate_model(
     motions: np.ndarray | None = None,
 ) -> EvalResult:
     """Evaluate `model` on the crops with truth (see module doc). `motions` (P,) labels the
-    truth rows (SceneTruth.motion); `scene_vertices` (P, V, 3) enables vertex and SHERF box metrics."""
+    truth rows (SceneTruth.motion); `scene_vertices` (P, V, 3) enables vertex and SHERF box
+    metrics."""
     unknown = [c for c in cfg.heldout_cameras if c not in crops.camera_names]
     if unknown:
         raise ValueError(

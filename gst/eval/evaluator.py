@@ -94,8 +94,8 @@ def evaluate_pose(
             )
         if scene_vertices.shape[1] != task.body.num_vertices:
             raise ValueError(
-                f"evaluate_pose: truth meshes have {scene_vertices.shape[1]} vertices, the model's body "
-                f"{task.body.num_vertices}: vertex error needs the same topology"
+                f"evaluate_pose: truth meshes have {scene_vertices.shape[1]} vertices, "
+                f"the model's body {task.body.num_vertices}: vertex error needs the same topology"
             )
     je, jpa, pve, papve = [], [], [], []
     for s in range(0, len(rows), batch_size):

@@ -297,7 +297,8 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
         "# Evaluation against the synthetic truth",
         "",
         f"Scene `{meta.get('scene', '?')}`; models: {models}. "
-        f"{first['counts']['pose_crops']} crops with truth; {first['counts']['view_pairs']} novel-view pairs "
+        f"{first['counts']['pose_crops']} crops with truth; "
+        f"{first['counts']['view_pairs']} novel-view pairs "
         f"rendered at {first['counts']['render_size']} px; held-out cameras: "
         f"{', '.join(first['counts']['heldout_cameras']) or 'none'}.",
         "",
@@ -323,7 +324,8 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
     ]
     for cam, v in s["pose"]["per_camera"].items():
         lines.append(
-            f"| {cam} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | {_f(v.get('pve_mm'))} |"
+            f"| {cam} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | "
+            f"{_f(v.get('pve_mm'))} |"
         )
     lines += [
         "",
@@ -335,8 +337,8 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
     for m, v in s["pose"]["per_motion"].items():
         nv = s.get("novel_view", {}).get("per_motion", {}).get(m, {})
         lines.append(
-            f"| {m} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | {_f(nv.get('psnr'), 2)} | "
-            f"{_f(nv.get('lpips'), 3)} |"
+            f"| {m} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | "
+            f"{_f(nv.get('psnr'), 2)} | {_f(nv.get('lpips'), 3)} |"
         )
     lines += ["", "### Per body part", "", "| part | MPJPE | PA-MPJPE |", "|---|---|---|"]
     for part, v in s["pose"]["per_part"].items():
@@ -346,13 +348,15 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
             "",
             "### Per target camera (novel views)",
             "",
-            "| camera | held out | n | PSNR | SSIM | LPIPS | box PSNR | box SSIM | box LPIPS | IoU |",
+            "| camera | held out | n | PSNR | SSIM | LPIPS "
+            "| box PSNR | box SSIM | box LPIPS | IoU |",
             "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for cam, v in s["novel_view"]["per_target_camera"].items():
             lines.append(
                 f"| {cam} | {'yes' if v['heldout'] else 'no'} | {v['n']} | {_f(v['psnr'], 2)} | "
-                f"{_f(v['ssim'], 3)} | {_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | {_f(v['box_ssim'], 3)} | "
+                f"{_f(v['ssim'], 3)} | {_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | "
+                f"{_f(v['box_ssim'], 3)} | "
                 f"{_f(v['box_lpips'], 3)} | {_f(v['silhouette_iou'], 3)} |"
             )
     lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
@@ -363,17 +367,17 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
             "",
             "![side by side](side_by_side.png)",
             "",
-            f"Model `{last}`. Per input: top row the input crop, then the prediction rendered into every other "
-            "camera of the same frame ([H] = held-out camera); bottom row what those cameras saw, background "
-            "removed.",
+            f"Model `{last}`. Per input: top row the input crop, then the prediction rendered "
+            "into every other camera of the same frame ([H] = held-out camera); bottom row what "
+            "those cameras saw, background removed.",
         ]
     lines += [
         "",
-        "MPJPE is pelvis-aligned, PA-MPJPE after a similarity Procrustes fit, PVE/PA-PVE the same on all mesh "
-        "vertices; all in the world frame through the input camera. Novel views: prediction rendered on black "
-        "vs image x mask; full crop = the whole rendered crop, SHERF box = inside the truth body's projected 3D "
-        "box (5 cm margin) for PSNR and its 2D bounding rectangle for SSIM/LPIPS (LPIPS v0.1 AlexNet). "
-        "Formats: docs/evaluate.md.",
+        "MPJPE is pelvis-aligned, PA-MPJPE after a similarity Procrustes fit, PVE/PA-PVE the "
+        "same on all mesh vertices; all in the world frame through the input camera. Novel views: "
+        "prediction rendered on black vs image x mask; full crop = the whole rendered crop, SHERF "
+        "box = inside the truth body's projected 3D box (5 cm margin) for PSNR and its 2D "
+        "bounding rectangle for SSIM/LPIPS (LPIPS v0.1 AlexNet). Formats: docs/evaluate.md.",
     ]
     return "\n".join(lines) + "\n"
 

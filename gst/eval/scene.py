@@ -174,7 +174,8 @@ def evaluate_scene(
         meta_models[name] = f"{shown}, preset {net.cfg.name}, {uses}"
         s = results[name].summary
         log.info(
-            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), held-out PSNR %s dB, IoU %s (%.0f s)",
+            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), held-out PSNR %s dB, "
+            "IoU %s (%.0f s)",
             name,
             s["pose"]["overall"]["mpjpe_mm"],
             s["pose"]["overall"]["pa_mpjpe_mm"],

@@ -155,7 +155,8 @@ def write_report(
         f"{len(summary.people)} people over {summary.frames} frames. Median reprojection error "
         f"of the fitted markers: {_fmt(summary.median_reprojection_px)} px (full image). "
         f"Share of observable joint-frames filled by the fit (< 2 views): "
-        f"{_fmt(100 * summary.gap_filled_share if summary.gap_filled_share is not None else None)} %."
+        f"{_fmt(100 * summary.gap_filled_share if summary.gap_filled_share is not None else None)}"
+        " %."
     )
     if summary.camera_corrections_deg:
         corr = ", ".join(f"{c} {v:.2f}" for c, v in summary.camera_corrections_deg.items())

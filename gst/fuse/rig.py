@@ -43,7 +43,8 @@ def camera_corrections(
     """(C, 3) rotation corrections (axis-angle, camera frame) that best align every camera's
     landmarks with the fitted markers; zero for a camera with fewer than 50 landmarks."""
     C = people[0].rows.shape[1]
-    cam_pts, uvs, Ks, scales = [[] for _ in range(C)], [[] for _ in range(C)], [[] for _ in range(C)], [[] for _ in range(C)]  # fmt: skip
+    cam_pts, uvs, Ks, scales = ([[] for _ in range(C)], [[] for _ in range(C)],
+                                [[] for _ in range(C)], [[] for _ in range(C)])  # fmt: skip
     for f, p in zip(fits, people, strict=True):
         X = f.markers[np.isin(f.frames, p.frames)]  # (T, M, 3) on the observed frames
         cam = np.einsum("tcij,tmj->tcmi", p.Rt[..., :3], X) + p.Rt[:, :, None, :, 3]

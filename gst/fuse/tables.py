@@ -3,7 +3,8 @@
 `fused/bodies.parquet` has every column and every metadata key of a tracks file
 (gst.track.schema, docs/formats/tracks_parquet.md), one row per frame and person, with the
 world-frame values filled and the single-camera ones null (`bbox`, `global_orient_cam`,
-`transl_cam`, `joints2d`, `landmarks2d`, `landmarks_conf`), plus per-joint evidence columns (docs/formats/fused_bodies.md).
+`transl_cam`, `joints2d`, `landmarks2d`, `landmarks_conf`), plus per-joint evidence columns
+(docs/formats/fused_bodies.md).
 `fused/landmarks.parquet` holds the robust triangulation of the 33 BlazePose landmarks
 (docs/formats/fused_landmarks.md).
 """

@@ -1,7 +1,8 @@
 """Robust, batched N-view triangulation of 2D landmarks, each view with its own camera.
 
 Every observation carries its own camera (a crop's `K_crop` with the camera's R, t), so the
-cameras are per point: `K (N, C, 3, 3)` and `Rt (N, C, 3, 4)`. The steps, all batched over the N points (numpy):
+cameras are per point: `K (N, C, 3, 3)` and `Rt (N, C, 3, 4)`. The steps, all batched over the
+N points (numpy):
 
 1. confidence-weighted DLT in normalised coordinates (x = K^-1 [u, v, 1] against [R | t]),
    which keeps the homogeneous system well conditioned whatever the pixel scale;

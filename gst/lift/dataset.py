@@ -259,19 +259,27 @@ region (centre (127.5, 127.5), side 256, angle 0), as `gst.train.keypoints.crop_
 | `person` | (N,) int16 | person id (1..2, the value in the scene's masks) |
 | `camera` | (N,) int16 | index into `camera_names` |
 | `camera_names` | (C,) str | the scene's camera names |
-| `K_crop` | (N, 3, 3) float32 | crop intrinsics; with `R`, `t` and zero distortion it describes the crop exactly (pixel centres at integers) |
+| `K_crop` | (N, 3, 3) float32 | crop intrinsics; with `R`, `t` and zero distortion it describes \
+the crop exactly (pixel centres at integers) |
 | `R`, `t` | (N, 3, 3), (N, 3) float32 | world -> camera (OpenCV, `X_cam = R X + t`), metres |
-| `landmarks` | (N, 33, 3) float32 | BlazePose landmarks (MediaPipe order): u, v in crop pixels, visibility in [0, 1] (sigmoid of the model's logit) |
-| `presence` | (N,) float32 | the landmark model's person presence score in [0, 1]; the per-landmark confidence of the project's convention is `visibility * presence` |
-| `world_landmarks` | (N, 33, 3) float32 | the model's (1, 117) output = 39 x 3, first 33: metres, origin at the mid-point of the hips (landmarks 23, 24), axes of the region = the crop's camera axes (x right, y down, z away from the camera); measured in docs/landmark_prior.md |
+| `landmarks` | (N, 33, 3) float32 | BlazePose landmarks (MediaPipe order): u, v in crop pixels, \
+visibility in [0, 1] (sigmoid of the model's logit) |
+| `presence` | (N,) float32 | the landmark model's person presence score in [0, 1]; the \
+per-landmark confidence of the project's convention is `visibility * presence` |
+| `world_landmarks` | (N, 33, 3) float32 | the model's (1, 117) output = 39 x 3, first 33: \
+metres, origin at the mid-point of the hips (landmarks 23, 24), axes of the region = the crop's \
+camera axes (x right, y down, z away from the camera); measured in docs/landmark_prior.md |
 | `joints_world` | (N, 24, 3) float32 | true SMPL-layout joints, world frame, metres (Z up) |
 | `joints2d` | (N, 24, 2) float32 | their projection with `K_crop`, `R`, `t`, crop pixels |
-| `visible` | (N, 24) bool | truth visibility in the camera (in the image, on the person's own mask, not occluded by anything more than 0.25 m in front; docs/formats/synth_scene.md) |
-| `global_orient` | (N, 3) float32 | axis-angle, body-model (SMPL) axes -> world, as in `truth/people.parquet` |
+| `visible` | (N, 24) bool | truth visibility in the camera (in the image, on the person's own \
+mask, not occluded by anything more than 0.25 m in front; docs/formats/synth_scene.md) |
+| `global_orient` | (N, 3) float32 | axis-angle, body-model (SMPL) axes -> world, as in \
+`truth/people.parquet` |
 | `body_pose` | (N, 23, 3) float32 | axis-angle local rotations (the body model's parameters) |
 | `betas` | (N, B) float32 | shape coefficients of the body model that rendered the scene (`anny`) |
 | `transl` | (N, 3) float32 | world translation, metres |
-| `motion` | (N,) str | the motion playing (`run`, `jump`, ...; `random_static` = independent random poses, where BlazePose is much worse: docs/landmark_prior.md) |
+| `motion` | (N,) str | the motion playing (`run`, `jump`, ...; `random_static` = independent \
+random poses, where BlazePose is much worse: docs/landmark_prior.md) |
 | `crop_size`, `seed`, `rig_kind`, `fov_deg`, `format_version` | scalars | |
 
 `gst.body.load_body_model("anny")(betas, body_pose, global_orient, transl)` reproduces

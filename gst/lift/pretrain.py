@@ -193,7 +193,8 @@ def pretrain_landmark_path(
             net.train()
         elif (step + 1) % 100 == 0:
             log(
-                f"step {step + 1}: loss {float(terms.total.detach()):.4f}, train {np.mean(recent):.1f} mm"
+                f"step {step + 1}: loss {float(terms.total.detach()):.4f}, "
+                f"train {np.mean(recent):.1f} mm"
             )
     seconds = time.perf_counter() - t0
     result.steps = cfg.steps

@@ -246,8 +246,8 @@ def _pretrain_lift(
     )
     (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     log.info(
-        "pretrain (lift): MPJPE on the unseen validation world %.1f mm after lifting, %.1f mm after "
-        "the rendered phase; %.0f s in all",
+        "pretrain (lift): MPJPE on the unseen validation world %.1f mm after lifting, "
+        "%.1f mm after the rendered phase; %.0f s in all",
         summary["before"].get("mpjpe_mm", float("nan")),
         summary["after"].get("mpjpe_mm", float("nan")),
         summary["times_s"]["total"],

@@ -77,7 +77,8 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise ValueError(f"{path}: not a GST checkpoint (expected format '{FORMAT}')")
     if ckpt.get("version") != VERSION:
         raise ValueError(
-            f"{path}: checkpoint version {ckpt.get('version')} is not supported (expected {VERSION})"
+            f"{path}: checkpoint version {ckpt.get('version')} is not supported "
+            f"(expected {VERSION})"
         )
     return ckpt
 

@@ -27,8 +27,10 @@ class ImportReport:
 
     def summary(self) -> str:
         return (
-            f"loaded {len(self.loaded)} tensors; {len(self.unmatched_checkpoint_keys)} checkpoint keys unused; "
-            f"{len(self.missing_model_keys)} model keys kept at init; {len(self.shape_mismatches)} shape mismatches"
+            f"loaded {len(self.loaded)} tensors; "
+            f"{len(self.unmatched_checkpoint_keys)} checkpoint keys unused; "
+            f"{len(self.missing_model_keys)} model keys kept at init; "
+            f"{len(self.shape_mismatches)} shape mismatches"
         )
 
 
@@ -42,14 +44,15 @@ def read_checkpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError) as exc:
         raise ValueError(
-            f"{path}: cannot be loaded with weights_only=True ({exc}). It pickles Python objects besides "
-            "tensors; in a trusted environment re-save just its tensors: "
+            f"{path}: cannot be loaded with weights_only=True ({exc}). It pickles Python "
+            "objects besides tensors; in a trusted environment re-save just its tensors: "
             "torch.save(torch.load(p, weights_only=False)['state_dict'], 'hmr2_state.pt')"
         ) from None
     state = obj.get("state_dict", obj) if isinstance(obj, dict) else None
     if not isinstance(state, dict):
         raise ValueError(
-            f"{path}: expected a dict of tensors (or a dict with 'state_dict'), got {type(obj).__name__}"
+            f"{path}: expected a dict of tensors (or a dict with 'state_dict'), "
+            f"got {type(obj).__name__}"
         )
     return {k: v for k, v in state.items() if isinstance(v, torch.Tensor)}
 

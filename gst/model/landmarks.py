@@ -1,4 +1,5 @@
-"""Landmark tokens: a crop's 2D landmarks as extra context for GST's decoder (docs/landmark_prior.md).
+"""Landmark tokens: a crop's 2D landmarks as extra context for GST's decoder
+(docs/landmark_prior.md).
 
 The SMPL token and the Gaussian tokens attend to the ViT's image tokens as in the paper and, in
 a second cross-attention per decoder layer, to these tokens: one per landmark (its normalised

@@ -106,7 +106,8 @@ class ViT(nn.Module):
         expected = (3, *self.cfg.image_size)
         if images.ndim != 4 or tuple(images.shape[1:]) != expected:
             raise ValueError(
-                f"ViT input must be (B, {expected[0]}, {expected[1]}, {expected[2]}), got {tuple(images.shape)}"
+                f"ViT input must be (B, {expected[0]}, {expected[1]}, {expected[2]}), "
+                f"got {tuple(images.shape)}"
             )
         x = self.patch_embed(images)
         x = x + self.pos_embed[:, 1:] + self.pos_embed[:, :1]

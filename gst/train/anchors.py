@@ -21,7 +21,8 @@ from gst.train.views import CropSet
 def mask_centroids(
     masks: torch.Tensor, min_pixels: float = 50.0
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, S, S) masks -> (N, 2) centroids in crop pixels (pixel centres at integers) and (N,) ok."""
+    """(N, S, S) masks -> (N, 2) centroids in crop pixels (pixel centres at integers) and (N,)
+    ok."""
     s = masks.shape[-1]
     grid = torch.arange(s, dtype=torch.float64)
     w = masks.double()

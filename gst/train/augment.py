@@ -50,7 +50,8 @@ def similarity(zoom: torch.Tensor, shift: torch.Tensor, size: int) -> torch.Tens
 
 
 def warp_crops(images: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
-    """Warp (B, S, S, 3) uint8 crops by A (old px -> new px); outside is black, like crop padding."""
+    """Warp (B, S, S, 3) uint8 crops by A (old px -> new px); outside is black, like crop
+    padding."""
     size = images.shape[1]
     x = images.permute(0, 3, 1, 2).float()
     out = warp_affine(

@@ -8,14 +8,15 @@ rendered worlds with the landmarks BlazePose finds in them (3D terms plus the mu
 terms). The image cross-attention starts silent (zero output), so the rendered phase starts
 from the lifting path's pose exactly.
 
-Modes `3d` / `pretrain` (the image-only network): it renders its own corpus of small synthetic worlds, each with its own seed, rig (dome or H36M
-style, field of view drawn per world), person, outfit and motions (every third world holds
-independent random poses), cuts crops with exact truth, and trains the network with 3D joint and
-parameter supervision (optionally on jittered crops, `gst.train.augment`), then briefly adds the
-multi-view image terms so the Gaussian head learns to render (`gaussian_steps`). One more world is rendered and
-never trained on: pose validation, the reported MPJPE and the choice of the kept checkpoint
-use it, so the number says how the model does on people and cameras it has not seen. Writes
-`models/pretrain.pt` (a GST checkpoint) and `reports/pretrain/`.
+Modes `3d` / `pretrain` (the image-only network): it renders its own corpus of small synthetic
+worlds, each with its own seed, rig (dome or H36M style, field of view drawn per world), person,
+outfit and motions (every third world holds independent random poses), cuts crops with exact
+truth, and trains the network with 3D joint and parameter supervision (optionally on jittered
+crops, `gst.train.augment`), then briefly adds the multi-view image terms so the Gaussian head
+learns to render (`gaussian_steps`). One more world is rendered and never trained on: pose
+validation, the reported MPJPE and the choice of the kept checkpoint use it, so the number says
+how the model does on people and cameras it has not seen. Writes `models/pretrain.pt` (a GST
+checkpoint) and `reports/pretrain/`.
 """
 
 from __future__ import annotations
@@ -103,7 +104,8 @@ class PretrainConfig(BaseModel):
     losses: LossWeights = LossWeights()
     threads: int | None = None  # torch CPU threads (default: torch's choice)
     # An existing GST checkpoint to use as is instead of pretraining (e.g. another scene's
-    # models/pretrain.pt: one pretraining serves every scene). Its content is part of the fingerprint.
+    # models/pretrain.pt: one pretraining serves every scene). Its content is part of the
+    # fingerprint.
     reuse: Path | None = None
 
 

@@ -365,7 +365,8 @@ def _write_markdown(path: Path, s: dict) -> None:
         "# GST training",
         "",
         f"{s['steps']} steps, {s['bad_steps']} skipped, {s['seconds']:.0f} s; "
-        f"{s['train_groups']} multi-view training samples; held-out cameras: {', '.join(s['heldout'])}.",
+        f"{s['train_groups']} multi-view training samples; "
+        f"held-out cameras: {', '.join(s['heldout'])}.",
         "",
         "| metric | before (pretrained) | after (GST) |",
         "|---|---|---|",
@@ -373,12 +374,13 @@ def _write_markdown(path: Path, s: dict) -> None:
     lines += [f"| {k} | {_f(s['before'].get(k), k)} | {_f(s['after'].get(k), k)} |" for k in keys]
     lines += [
         "",
-        "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), SSIM and "
-        "silhouette IoU on held-out cameras, person composited on black, rendered at the training size.",
+        "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), "
+        "SSIM and silhouette IoU on held-out cameras, person composited on black, rendered at "
+        "the training size.",
         "",
         "![novel views](novel_views.png)",
         "",
-        "Each row: the input crop (a training camera), the prediction rendered into a held-out camera, "
-        "what that camera saw.",
+        "Each row: the input crop (a training camera), the prediction rendered into a held-out "
+        "camera, what that camera saw.",
     ]
     path.write_text("\n".join(lines) + "\n")

@@ -90,14 +90,15 @@ def concat_crop_sets(sets: list[CropSet], prefixes: list[str]) -> CropSet:
     offset so (frame, person) groups of different worlds never merge. Truth keys must agree."""
     if not sets or len(sets) != len(prefixes):
         raise ValueError(
-            f"concat_crop_sets needs one prefix per set, got {len(sets)} sets, {len(prefixes)} prefixes"
+            f"concat_crop_sets needs one prefix per set, got {len(sets)} sets, "
+            f"{len(prefixes)} prefixes"
         )
     keys = set(sets[0].truth)
     for prefix, s in zip(prefixes, sets, strict=True):
         if set(s.truth) != keys or s.crop_size != sets[0].crop_size:
             raise ValueError(
-                f"crop set '{prefix}': truth keys {sorted(s.truth)} / crop size {s.crop_size} differ "
-                f"from the first set's {sorted(keys)} / {sets[0].crop_size}"
+                f"crop set '{prefix}': truth keys {sorted(s.truth)} / crop size {s.crop_size} "
+                f"differ from the first set's {sorted(keys)} / {sets[0].crop_size}"
             )
     cams, frames, names = [], [], []
     cam_offset = frame_offset = 0

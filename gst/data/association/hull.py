@@ -61,7 +61,8 @@ class AssociationConfig:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
         if self.min_views < 2:
             raise ValueError(
-                f"min_views must be >= 2 (one view cannot place a person in 3D), got {self.min_views}"
+                "min_views must be >= 2 (one view cannot place a person in 3D), "
+                f"got {self.min_views}"
             )
         if self.max_misses < 0:
             raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")

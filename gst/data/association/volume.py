@@ -52,7 +52,8 @@ class CaptureVolume:
             b += P @ cam.center
         if np.linalg.cond(A) > 1e8:
             raise ValueError(
-                f"cameras {rig.names} have parallel optical axes; give the capture volume explicitly"
+                f"cameras {rig.names} have parallel optical axes; "
+                "give the capture volume explicitly"
             )
         center = np.linalg.solve(A, b)
         dist = np.median([np.linalg.norm(cam.center - center) for cam in rig])
