@@ -276,10 +276,18 @@ def test_video_8_rows_short_is_encoder_padding(scene, tmp_path, capsys):
     """Frames 8 rows shorter than the calibration (1080 in a 1088 calibration) pass with a
     warning: the same check that refuses 100 rows accepts padding."""
     folder = _videos_with(scene, tmp_path, "c2", lambda p: _video(p, size=(W, H - 8)))
-    cfg = _config(tmp_path, scene, videos=f"{folder}/c*.mp4")
-    code, err = _cli(capsys, "run", "extract", "--config", str(cfg))
+    stages = """
+          calibrate: {}
+          extract: {needs: [calibrate], params: {crop_size: 64}}
+          fuse: {needs: [extract], params: {overlay: true}}
+          pretrain: {}
+          track: {needs: [], params: {detector: background, overlay: false}}
+    """
+    cfg = _config(tmp_path, scene, videos=f"{folder}/c*.mp4", stages=stages)
+    code, err = _cli(capsys, "run", "fuse", "--config", str(cfg))
     assert code == 0, err
     assert (tmp_path / "ws/s/crops/crops.h5").is_file()
+    assert (tmp_path / "ws/s/fused/bodies.parquet").is_file()
     report = (tmp_path / "ws/s/reports/calibrate/calibration.md").read_text()
     assert "camera 'c2': frames are 160x112, the calibration says 160x120" in report
     models = tmp_path / "ws/s/models"
