@@ -112,19 +112,13 @@ class PipelineConfig(Strict):
 
     @model_validator(mode="after")
     def _check_graph(self):
-        for name, stage in self.stages.items():
-            for dep in stage.needs:
-                if dep not in self.stages:
-                    raise ValueError(
-                        f"stages.{name}.needs: unknown stage '{dep}' (declared stages: "
-                        f"{sorted(self.stages)})"
-                    )
-        for scene_name, scene in self.scenes.items():
-            for name in scene.params:
+        references = [(f"stages.{n}.needs", stage.needs) for n, stage in self.stages.items()]
+        references += [(f"scenes.{n}.params", scene.params) for n, scene in self.scenes.items()]
+        for where, names in references:
+            for name in names:
                 if name not in self.stages:
                     raise ValueError(
-                        f"scenes.{scene_name}.params: unknown stage '{name}' "
-                        f"(declared stages: {sorted(self.stages)})"
+                        f"{where}: unknown stage '{name}' (declared stages: {sorted(self.stages)})"
                     )
         if self.default_scene is not None and self.default_scene not in self.scenes:
             raise ValueError(

@@ -202,51 +202,64 @@ def _gait(t: np.ndarray, cadence: np.ndarray, style: dict) -> tuple[np.ndarray, 
 # Motion generators: f(t, rng) -> _Segment, anatomical degrees, mover's frame
 
 
+# Steady gaits: cadence (strides/s), speed (m/s) and the `_gait` style of a clip; a (low, high)
+# pair is drawn uniformly per clip, in this order, a number is used as is.
+_WALK = dict(
+    cadence=(0.85, 1.0),
+    speed=(1.1, 1.5),
+    hip_bias=-5,
+    hip_amp=(20, 26),
+    knee_stance=15,
+    knee_swing=(50, 60),
+    swing_peak=4.5,
+    ankle_push=15,
+    ankle_dorsi=8,
+    arm_amp=(12, 22),
+    arm_bias=0,
+    arm_abduction=-80,
+    elbow=(12, 25),
+    elbow_amp=6,
+    twist=5,
+    lean=(1, 4),
+    phase0=(0, 2 * np.pi),
+)
+_RUN = dict(
+    cadence=(1.3, 1.5),
+    speed=(2.6, 3.6),
+    hip_bias=-12,
+    hip_amp=(30, 38),
+    knee_stance=22,
+    knee_swing=(75, 95),
+    swing_peak=4.4,
+    ankle_push=25,
+    ankle_dorsi=10,
+    arm_amp=(35, 50),
+    arm_bias=-5,
+    arm_abduction=-75,
+    elbow=(80, 95),
+    elbow_amp=12,
+    twist=9,
+    lean=(5, 10),
+    phase0=(0, 2 * np.pi),
+)
+
+
+def _steady_gait(
+    t: np.ndarray, rng: np.random.Generator, table: dict
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Gait angles and phase (`_gait`) at a constant cadence, and the speed, drawn from `table`."""
+    style = {k: rng.uniform(*v) if isinstance(v, tuple) else v for k, v in table.items()}
+    ang, phase = _gait(t, np.full_like(t, style["cadence"]), style)
+    return ang, phase, style["speed"]
+
+
 def _walk(t: np.ndarray, rng: np.random.Generator) -> _Segment:
-    cad = rng.uniform(0.85, 1.0)
-    speed = rng.uniform(1.1, 1.5)
-    style = dict(
-        hip_bias=-5,
-        hip_amp=rng.uniform(20, 26),
-        knee_stance=15,
-        knee_swing=rng.uniform(50, 60),
-        swing_peak=4.5,
-        ankle_push=15,
-        ankle_dorsi=8,
-        arm_amp=rng.uniform(12, 22),
-        arm_bias=0,
-        arm_abduction=-80,
-        elbow=rng.uniform(12, 25),
-        elbow_amp=6,
-        twist=5,
-        lean=rng.uniform(1, 4),
-        phase0=rng.uniform(0, 2 * np.pi),
-    )
-    ang, _ = _gait(t, np.full_like(t, cad), style)
+    ang, _, speed = _steady_gait(t, rng, _WALK)
     return _Segment(ang, speed * t, np.zeros_like(t), np.zeros_like(t))
 
 
 def _run(t: np.ndarray, rng: np.random.Generator) -> _Segment:
-    cad = rng.uniform(1.3, 1.5)
-    speed = rng.uniform(2.6, 3.6)
-    style = dict(
-        hip_bias=-12,
-        hip_amp=rng.uniform(30, 38),
-        knee_stance=22,
-        knee_swing=rng.uniform(75, 95),
-        swing_peak=4.4,
-        ankle_push=25,
-        ankle_dorsi=10,
-        arm_amp=rng.uniform(35, 50),
-        arm_bias=-5,
-        arm_abduction=-75,
-        elbow=rng.uniform(80, 95),
-        elbow_amp=12,
-        twist=9,
-        lean=rng.uniform(5, 10),
-        phase0=rng.uniform(0, 2 * np.pi),
-    )
-    ang, phase = _gait(t, np.full_like(t, cad), style)
+    ang, phase, speed = _steady_gait(t, rng, _RUN)
     flight = GRAVITY * 0.1**2 / 8  # peak height of a ~0.1 s flight phase, twice per stride
     lift = flight * np.clip(np.sin(2 * phase - 0.6), 0, None) ** 2
     return _Segment(ang, speed * t, np.zeros_like(t), lift)

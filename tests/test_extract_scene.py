@@ -68,6 +68,11 @@ def _opts(**kw):
     )
 
 
+def _extract_short(scene, out, **kw):
+    """`extract_scene` on a short scene: 64-pixel crops, the short-scene options (`_opts`)."""
+    return extract_scene(scene.videos, scene.rig, out, crop_size=64, options=_opts(), **kw)
+
+
 HULL = ExtractOptions(association_method="hull")
 
 
@@ -130,14 +135,7 @@ def test_crop_content_and_geometry(one_person, one_person_run):
 
 
 def test_skips_empty_frames_idle_cameras_and_honours_stride(short_scene, tmp_path):
-    rep = extract_scene(
-        short_scene.videos,
-        short_scene.rig,
-        tmp_path / "crops.h5",
-        crop_size=64,
-        frame_stride=2,
-        options=_opts(),
-    )
+    rep = _extract_short(short_scene, tmp_path / "crops.h5", frame_stride=2)
     assert rep.frames_considered == 6  # frames 0, 2, ..., 10
     assert rep.frames_with_people == 3  # 4, 6, 8
     assert rep.frames_skipped_empty == 3
@@ -161,11 +159,11 @@ def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
 
     monkeypatch.setattr(scene_phase, "merge_part", merge_then_crash)
     with pytest.raises(RuntimeError, match="simulated"):
-        extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+        _extract_short(short_scene, out)
     with pytest.raises(StoreError, match="incomplete"):
         CropStore(out)
     monkeypatch.setattr(scene_phase, "merge_part", real_merge)
-    rep = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+    rep = _extract_short(short_scene, out)
     assert rep.pairs_resumed == 12  # the first camera's 12 (frame, camera) pairs were kept
     store = CropStore(out)
     keys = list(
@@ -179,7 +177,7 @@ def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
     assert len(keys) == len(set(keys)) == 6 * 4  # no duplicates, nothing lost
     assert not (tmp_path / "crops.h5.work").exists()
     # A complete store is not redone.
-    again = extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+    again = _extract_short(short_scene, out)
     assert again.pairs_resumed == 12 * 5 and again.crops == 24
 
 
@@ -190,14 +188,7 @@ def test_process_pool_executor_map(short_scene, tmp_path):
         def pool_map(fn, items, description):
             return list(pool.map(fn, items))
 
-        rep = extract_scene(
-            short_scene.videos,
-            short_scene.rig,
-            tmp_path / "crops.h5",
-            crop_size=64,
-            options=_opts(),
-            executor_map=pool_map,
-        )
+        rep = _extract_short(short_scene, tmp_path / "crops.h5", executor_map=pool_map)
     assert rep.crops == 24
 
 
@@ -206,15 +197,7 @@ def test_external_masks_take_precedence(short_scene, tmp_path):
     ext = tmp_path / "external"
     shutil.copytree(short_scene.truth / "masks", ext)
     (ext / "meta.json").write_text(json.dumps({"global_ids": True}))
-    rep = extract_scene(
-        short_scene.videos,
-        short_scene.rig,
-        tmp_path / "crops.h5",
-        crop_size=64,
-        external=ext,
-        truth=short_scene.truth,
-        options=_opts(),
-    )
+    rep = _extract_short(short_scene, tmp_path / "crops.h5", external=ext, truth=short_scene.truth)
     assert rep.mask_iou > 0.999
     assert rep.association_accuracy == 1.0
     assert set(CropStore(tmp_path / "crops.h5").index.column("person_id").to_pylist()) == {1}
@@ -222,14 +205,7 @@ def test_external_masks_take_precedence(short_scene, tmp_path):
 
 def test_report_files(short_scene, tmp_path):
     out = tmp_path / "crops.h5"
-    rep = extract_scene(
-        short_scene.videos,
-        short_scene.rig,
-        out,
-        crop_size=64,
-        truth=short_scene.truth,
-        options=_opts(),
-    )
+    rep = _extract_short(short_scene, out, truth=short_scene.truth)
     files = write_extract_report(rep, out, tmp_path / "reports")
     text = files["markdown"].read_text()
     assert "| away | 0 |" in text and "mask IoU" in text
@@ -292,7 +268,7 @@ def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, m
     monkeypatch.setattr(crops_phase, "read_frames", failing)
     out = tmp_path / "crops.h5"
     with pytest.raises(VideoError, match="camera 'cam2'"):
-        extract_scene(short_scene.videos, short_scene.rig, out, crop_size=64, options=_opts())
+        _extract_short(short_scene, out)
     with h5py.File(out, "r") as f:
         assert not f.attrs["complete"]
     with pytest.raises(StoreError, match="incomplete"):
@@ -374,15 +350,7 @@ def test_external_boxes_drive_extraction(short_scene, tmp_path):
     ext = tmp_path / "ext"
     ext.mkdir()
     pq.write_table(pa.table(rows), ext / "boxes.parquet")
-    rep = extract_scene(
-        short_scene.videos,
-        short_scene.rig,
-        tmp_path / "crops.h5",
-        crop_size=64,
-        external=ext,
-        truth=short_scene.truth,
-        options=_opts(),
-    )
+    rep = _extract_short(short_scene, tmp_path / "crops.h5", external=ext, truth=short_scene.truth)
     assert rep.crops == 6 * 4
     assert rep.mask_iou > 0.85
     assert rep.association_accuracy == 1.0

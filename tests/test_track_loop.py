@@ -23,10 +23,9 @@ from gst.track import (
 )
 from gst.track.schema import METADATA_KEYS, SMPL_JOINT_NAMES
 from gst.track.tracker import box_iou
-from tests.track_synthetic import crossing_clip, write_boxes_csv
+from tests.track_synthetic import MODEL, H, W, crossing_clip, write_boxes_csv
 
-W, H, N = 320, 240, 40
-MODEL = {"name": "test-double", "version": "0"}
+N = 40
 
 
 def occlusion_visibility(boxes, walkers, min_visible=0.6):

@@ -11,10 +11,9 @@ from gst.track import BoxDepthPredictor, Detection, TrackOptions, column_array, 
 from gst.track.parts import PartConfig, containment, is_part, skeleton_share
 from gst.track.read import read_tracks
 from gst.track.tracker import TrackerConfig
-from tests.track_synthetic import Walker, render, walker_boxes, write_video
+from tests.track_synthetic import MODEL, H, W, Walker, render, walker_boxes, write_video
 
-W, H, N = 320, 240, 30
-MODEL = {"name": "test-double", "version": "0"}
+N = 30
 
 # Standing skeleton in box-relative coordinates (x, y in [0, 1]) for the 33 BlazePose landmarks.
 _ANCHORS = {

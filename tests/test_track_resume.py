@@ -26,10 +26,9 @@ from gst.track import (
 )
 from gst.track.tracker import TrackerConfig
 from gst.track.writer import default_staging_root
-from tests.track_synthetic import crossing_clip, write_boxes_csv
+from tests.track_synthetic import MODEL, H, W, crossing_clip, write_boxes_csv
 
-W, H, N = 320, 240, 40
-MODEL = {"name": "test-double", "version": "0"}
+N = 40
 # min_hits 3 and a third person who appears at frame 12: they are confirmed at frame 14, in the
 # next group, so their rows of frames 12 and 13 are held in the committed state across the border.
 OPTIONS = TrackOptions(

@@ -10,6 +10,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+W, H = 320, 240  # the crossing scene's frame size
+MODEL = {"name": "test-double", "version": "0"}  # the test predictors' model identity in outputs
+
 
 @dataclass(frozen=True)
 class Walker:
@@ -89,7 +92,7 @@ def crossing_scene(frames: int = 40, width: int = 320, height: int = 240) -> lis
 
 
 def crossing_clip(
-    folder: Path, frames: int, width: int = 320, height: int = 240
+    folder: Path, frames: int, width: int = W, height: int = H
 ) -> tuple[list[Walker], np.ndarray, Path]:
     """The crossing scene written as `folder`/clip.avi: (walkers, true boxes, video path)."""
     walkers = crossing_scene(frames, width, height)

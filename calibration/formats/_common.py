@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -76,6 +77,14 @@ def require(data: dict, key: str, path: Path, where: str = ""):
     if not isinstance(data, dict) or key not in data:
         raise RigFormatError(f"{path}: missing key '{key}'{' in ' + where if where else ''}")
     return data[key]
+
+
+def load_json(path: Path):
+    """The parsed JSON document at `path`; a syntax error becomes a RigFormatError."""
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
 
 
 def as_float_array(value, shape: tuple[int, ...], path: Path, what: str) -> np.ndarray:

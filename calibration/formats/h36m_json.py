@@ -24,6 +24,7 @@ from calibration.formats._common import (
     RigFormatError,
     as_float_array,
     atomic_write_text,
+    load_json,
     make_camera,
     make_rig,
     require,
@@ -54,10 +55,7 @@ def read(
     path = Path(path)
     if tangential not in TANGENTIAL:
         raise RigFormatError(f"tangential must be one of {TANGENTIAL}, got {tangential!r}")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
+    data = load_json(path)
     intr = require(data, "intrinsics", path)
     extr = require(data, "extrinsics", path)
     if subject is None:

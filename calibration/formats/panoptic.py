@@ -19,6 +19,7 @@ from calibration.formats._common import (
     RigFormatError,
     as_float_array,
     atomic_write_text,
+    load_json,
     make_camera,
     make_rig,
     require,
@@ -31,10 +32,7 @@ CM_PER_M = 100.0  # multiply/divide by 100 (exact for more values than scaling b
 def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
     """All cameras, or only those whose `type` is in `camera_types` (e.g. ("hd",))."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
+    data = load_json(path)
     cams_data = require(data, "cameras", path)
     cameras = []
     for i, cd in enumerate(cams_data):

@@ -16,6 +16,7 @@ from calibration.formats._common import (
     as_float_array,
     atomic_write_text,
     json_safe,
+    load_json,
     make_camera,
     make_rig,
     require,
@@ -103,10 +104,7 @@ def from_dict(data: dict, path: Path) -> Rig:
 
 def read(path: str | Path) -> Rig:
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
+    data = load_json(path)
     return from_dict(data, path)
 
 

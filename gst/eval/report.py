@@ -62,29 +62,39 @@ def _grouped_bars(ax, groups: list[str], series: dict[str, list], ylabel: str, t
         ax.legend(fontsize=8)
 
 
+def _series(summaries: dict[str, dict], section: str, table: str, keys: list[str], metric: str):
+    """{run: [summary[section][table][key][metric] per key, None where the run lacks it]}."""
+    return {
+        n: [s[section][table].get(k, {}).get(metric) for k in keys] for n, s in summaries.items()
+    }
+
+
+def _bar_figure(path: Path, panels: list[tuple]) -> None:
+    """A row of `_grouped_bars` panels (each given as its arguments after the axes)."""
+    import matplotlib.pyplot as plt
+
+    wide = len(panels) > 1
+    fig, axes = plt.subplots(1, len(panels), figsize=(11 if wide else 6, 3.6), squeeze=False)
+    for ax, panel in zip(axes[0], panels, strict=True):
+        _grouped_bars(ax, *panel)
+    _save_figure(fig, path)
+
+
 def _plots(out: Path, summaries: dict[str, dict]) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    names = list(summaries)
-    written = []
     cams = sorted({c for s in summaries.values() for c in s["pose"]["per_camera"]})
     has_views = all("novel_view" in s for s in summaries.values())
-    fig, axes = plt.subplots(
-        1, 2 if has_views else 1, figsize=(11 if has_views else 6, 3.6), squeeze=False
-    )
-    _grouped_bars(
-        axes[0, 0],
-        cams,
-        {
-            n: [summaries[n]["pose"]["per_camera"].get(c, {}).get("mpjpe_mm") for c in cams]
-            for n in names
-        },
-        "MPJPE (mm)",
-        "pose error per input camera",
-    )
+    panels = [
+        (
+            cams,
+            _series(summaries, "pose", "per_camera", cams, "mpjpe_mm"),
+            "MPJPE (mm)",
+            "pose error per input camera",
+        )
+    ]
     if has_views:
         tcams = sorted(
             {c for s in summaries.values() for c in s["novel_view"]["per_target_camera"]}
@@ -95,71 +105,55 @@ def _plots(out: Path, summaries: dict[str, dict]) -> list[str]:
             for c, v in s["novel_view"]["per_target_camera"].items()
             if v["heldout"]
         }
-        _grouped_bars(
-            axes[0, 1],
-            [c + (" (held out)" if c in held else "") for c in tcams],
-            {
-                n: [
-                    summaries[n]["novel_view"]["per_target_camera"].get(c, {}).get("psnr")
-                    for c in tcams
-                ]
-                for n in names
-            },
-            "PSNR (dB)",
-            "novel-view PSNR per target camera",
+        panels.append(
+            (
+                [c + (" (held out)" if c in held else "") for c in tcams],
+                _series(summaries, "novel_view", "per_target_camera", tcams, "psnr"),
+                "PSNR (dB)",
+                "novel-view PSNR per target camera",
+            )
         )
-    _save_figure(fig, out / "per_camera.png")
-    written.append("per_camera.png")
+    _bar_figure(out / "per_camera.png", panels)
 
     parts = list(next(iter(summaries.values()))["pose"]["per_part"])
-    fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
-    _grouped_bars(
-        ax[0],
-        parts,
-        {n: [summaries[n]["pose"]["per_part"][p]["mpjpe_mm"] for p in parts] for n in names},
-        "MPJPE (mm)",
-        "per body part (root-aligned)",
+    _bar_figure(
+        out / "per_part.png",
+        [
+            (
+                parts,
+                _series(summaries, "pose", "per_part", parts, "mpjpe_mm"),
+                "MPJPE (mm)",
+                "per body part (root-aligned)",
+            ),
+            (
+                parts,
+                _series(summaries, "pose", "per_part", parts, "pa_mpjpe_mm"),
+                "PA-MPJPE (mm)",
+                "per body part (Procrustes-aligned)",
+            ),
+        ],
     )
-    _grouped_bars(
-        ax[1],
-        parts,
-        {n: [summaries[n]["pose"]["per_part"][p]["pa_mpjpe_mm"] for p in parts] for n in names},
-        "PA-MPJPE (mm)",
-        "per body part (Procrustes-aligned)",
-    )
-    _save_figure(fig, out / "per_part.png")
-    written.append("per_part.png")
 
     motions = sorted({m for s in summaries.values() for m in s["pose"]["per_motion"]})
-    fig, axes = plt.subplots(
-        1, 2 if has_views else 1, figsize=(11 if has_views else 6, 3.6), squeeze=False
-    )
-    _grouped_bars(
-        axes[0, 0],
-        motions,
-        {
-            n: [summaries[n]["pose"]["per_motion"].get(m, {}).get("mpjpe_mm") for m in motions]
-            for n in names
-        },
-        "MPJPE (mm)",
-        "pose error per motion",
-    )
-    if has_views:
-        _grouped_bars(
-            axes[0, 1],
+    panels = [
+        (
             motions,
-            {
-                n: [
-                    summaries[n]["novel_view"]["per_motion"].get(m, {}).get("psnr") for m in motions
-                ]
-                for n in names
-            },
-            "PSNR (dB)",
-            "held-out-view PSNR per motion",
+            _series(summaries, "pose", "per_motion", motions, "mpjpe_mm"),
+            "MPJPE (mm)",
+            "pose error per motion",
         )
-    _save_figure(fig, out / "per_motion.png")
-    written.append("per_motion.png")
-    return written
+    ]
+    if has_views:
+        panels.append(
+            (
+                motions,
+                _series(summaries, "novel_view", "per_motion", motions, "psnr"),
+                "PSNR (dB)",
+                "held-out-view PSNR per motion",
+            )
+        )
+    _bar_figure(out / "per_motion.png", panels)
+    return ["per_camera.png", "per_part.png", "per_motion.png"]
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:

@@ -34,7 +34,13 @@ from gst.fuse.kinematics import MarkerSkeleton
 from gst.fuse.objective import Neighbours, Points, Views, Weights, cost, euler_xyz, linearise
 from gst.fuse.observations import PersonObservations
 from gst.fuse.solver import BodyState, levenberg_marquardt
-from gst.fuse.start import TORSO_LANDMARKS, dense_frames, dense_triangulation, rigid_start
+from gst.fuse.start import (
+    TORSO_LANDMARKS,
+    dense_frames,
+    dense_triangulation,
+    nearest,
+    rigid_start,
+)
 from gst.fuse.triangulate import PersonTriangulation
 
 __all__ = ["FitOptions", "PersonFit", "fit_people", "euler_xyz_from_matrix"]
@@ -137,7 +143,7 @@ def _fill_unobserved(state: BodyState, observed: np.ndarray, offsets: np.ndarray
             flat = x[a:b].reshape(b - a, -1).numpy()
             filled = np.stack([np.interp(t, seen, flat[seen, k]) for k in range(flat.shape[1])], 1)
             x[a:b] = torch.as_tensor(filled.reshape(x[a:b].shape))
-        near = seen[np.abs(t[:, None] - seen[None]).argmin(1)]
+        near = nearest(seen, b - a)
         root[a:b] = root[a:b][torch.as_tensor(near)]
     return BodyState(root, transl, theta, state.betas, state.offsets)
 

@@ -16,7 +16,7 @@ import numpy as np
 from gst.fuse.observations import PersonObservations
 from gst.fuse.triangulate import PersonTriangulation
 
-__all__ = ["TORSO_LANDMARKS", "dense_frames", "dense_triangulation", "rigid_start"]
+__all__ = ["TORSO_LANDMARKS", "dense_frames", "dense_triangulation", "nearest", "rigid_start"]
 
 TORSO_LANDMARKS = (11, 12, 23, 24)  # shoulders and hips: the rigid start
 
@@ -29,6 +29,26 @@ def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1, 1, d]) @ U.T
     return R, md - R @ ms
+
+
+def _spread(frames: np.ndarray, dense: np.ndarray):
+    """`take(a, fill)`: per-frame rows `a` (one per frame of sorted `frames`) laid out over the
+    sorted superset `dense`, with `fill` in the frames `frames` lacks."""
+    have = np.isin(dense, frames)
+    src = np.where(have, np.searchsorted(frames, dense), 0)
+
+    def take(a: np.ndarray, fill) -> np.ndarray:
+        out = a[src].copy()
+        out[~have] = fill
+        return out
+
+    return take
+
+
+def nearest(good: np.ndarray, n: int) -> np.ndarray:
+    """For each of the indices 0..n-1, the nearest of the sorted indices `good` (the first
+    of two at the same distance)."""
+    return good[np.abs(np.arange(n)[:, None] - good[None]).argmin(1)]
 
 
 def dense_frames(obs: PersonObservations, max_gap: int) -> PersonObservations:
@@ -45,15 +65,7 @@ def dense_frames(obs: PersonObservations, max_gap: int) -> PersonObservations:
     )
     if len(full) == len(f):
         return obs
-    idx = np.searchsorted(f, full)
-    have = np.isin(full, f)
-    src = np.where(have, idx, 0)
-
-    def take(a: np.ndarray, fill) -> np.ndarray:
-        out = a[src].copy()
-        out[~have] = fill
-        return out
-
+    take = _spread(f, full)
     return PersonObservations(
         obs.person_id,
         full,
@@ -97,7 +109,7 @@ def rigid_start(
         R, c = _single_view_start(obs, rest_markers, pelvis)
     elif missing.any():  # nearest frame with a start
         good = np.flatnonzero(~missing)
-        near = good[np.abs(np.arange(T)[:, None] - good[None]).argmin(1)]
+        near = nearest(good, T)
         R[missing], c[missing] = R[near[missing]], c[near[missing]]
     return R, c - pelvis[None], static
 
@@ -135,7 +147,7 @@ def _single_view_start(
         raise ValueError(f"person {obs.person_id}: no view with at least 4 confident landmarks")
     seen = np.any(obs.rows >= 0, 1) & np.isfinite(c).all(1) & (np.abs(c).sum(1) > 0)
     good = np.flatnonzero(seen)
-    near = good[np.abs(np.arange(T)[:, None] - good[None]).argmin(1)]
+    near = nearest(good, T)
     return R[near], c[near]
 
 
@@ -144,15 +156,7 @@ def dense_triangulation(
 ) -> PersonTriangulation:
     if len(frames) == len(dense):
         return tri
-    idx = np.searchsorted(frames, dense)
-    have = np.isin(dense, frames)
-    src = np.where(have, idx, 0)
-
-    def take(a: np.ndarray, fill) -> np.ndarray:
-        out = a[src].copy()
-        out[~have] = fill
-        return out
-
+    take = _spread(frames, dense)
     return PersonTriangulation(
         take(tri.points, np.nan),
         take(tri.used, False),

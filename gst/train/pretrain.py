@@ -228,12 +228,27 @@ def pretrain_images(
         ckpt_every=25,
         log_every=5,
     )
+
+    def fit(task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions) -> dict:
+        """One fit_gst run on the corpus (pose validation on the unseen world)."""
+        run_dir.mkdir(parents=True, exist_ok=True)
+        return fit_gst(
+            net,
+            task,
+            crops,
+            train_cfg,
+            run_dir,
+            options,
+            body_spec=p.body_model,
+            vertex_ids=ids,
+            group_index=groups,
+            progress=progress,
+            val_crops=val,
+        )
+
     out = work / "models" / "pretrain_run"
-    out.mkdir(parents=True, exist_ok=True)
-    summary = fit_gst(
-        net,
+    summary = fit(
         task,
-        crops,
         train_cfg,
         out,
         FitOptions(
@@ -243,11 +258,6 @@ def pretrain_images(
             augment=CropJitter() if p.augment else None,
             val_pose_crops=256,
         ),
-        body_spec=p.body_model,
-        vertex_ids=ids,
-        group_index=groups,
-        progress=progress,
-        val_crops=val,
     )
     # best.pt: the lowest MPJPE on the unseen world (early stopping against memorising the corpus).
     kept = out / ("best.pt" if (out / "best.pt").is_file() else "last.pt")
@@ -259,7 +269,6 @@ def pretrain_images(
             body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None
         )
         gauss_out = work / "models" / "pretrain_gaussians"
-        gauss_out.mkdir(parents=True, exist_ok=True)
         gcfg = TrainConfig(
             steps=p.gaussian_steps,
             batch_size=p.batch_size,
@@ -269,10 +278,8 @@ def pretrain_images(
             ckpt_every=25,
             log_every=5,
         )
-        summary["gaussians"] = fit_gst(
-            net,
+        summary["gaussians"] = fit(
             task,
-            crops,
             gcfg,
             gauss_out,
             FitOptions(
@@ -281,11 +288,6 @@ def pretrain_images(
                 render_size=p.render_size,
                 val_pose_crops=256,
             ),
-            body_spec=p.body_model,
-            vertex_ids=ids,
-            group_index=groups,
-            progress=progress,
-            val_crops=val,
         )
         kept = (
             gauss_out / "last.pt"

@@ -260,15 +260,19 @@ def _oriented(view: CameraView, k: int, mirrored: bool) -> tuple[np.ndarray, np.
     return view.xy[k, order], view.conf[k, order]
 
 
-def _triangulate_group(
-    views: dict[str, CameraView], members: dict[str, tuple[int, bool]], config: MatchConfig
+def _triangulate_rejecting(
+    views: dict[str, CameraView],
+    members: dict[str, tuple[int, bool]],
+    xy: np.ndarray,
+    w: np.ndarray,
+    config: MatchConfig,
 ) -> np.ndarray:
-    """(B, 3) body landmarks from the group's views; a view's landmark far from the first
-    estimate is left out and the point solved again."""
+    """Weighted triangulation of the members' (V, L, 2) landmarks `xy`, weights `w` (V, L);
+    a view's landmark farther than `config.outlier_error` (in the person's scale) from the
+    first estimate is left out and the point solved again (the first estimate where that fails)."""
     names = list(members)
     cams = [views[n].cam for n in names]
-    xy = np.stack([_oriented(views[n], *members[n])[0] for n in names])
-    w = np.stack([_oriented(views[n], *members[n])[1] for n in names])
+    w = w.copy()
     X = triangulate_weighted(cams, xy, w)
     for v, n in enumerate(names):
         uv, _ = project(cams[v], X)
@@ -276,6 +280,16 @@ def _triangulate_group(
         w[v, ~(err <= config.outlier_error)] = 0.0
     X2 = triangulate_weighted(cams, xy, w)
     return np.where(np.isfinite(X2), X2, X)
+
+
+def _triangulate_group(
+    views: dict[str, CameraView], members: dict[str, tuple[int, bool]], config: MatchConfig
+) -> np.ndarray:
+    """(B, 3) body landmarks from the group's views; a view's landmark far from the first
+    estimate is left out and the point solved again."""
+    xy = np.stack([_oriented(views[n], *members[n])[0] for n in members])
+    w = np.stack([_oriented(views[n], *members[n])[1] for n in members])
+    return _triangulate_rejecting(views, members, xy, w, config)
 
 
 def _triangulate_all(
@@ -283,19 +297,10 @@ def _triangulate_all(
 ) -> np.ndarray:
     """(33, 3) world landmarks of a group from all 33 of each view's landmarks (mirrored views
     read mirrored), with the same outlier rejection as `_triangulate_group`."""
-    names = list(members)
-    cams = [views[n].cam for n in names]
     lm = np.stack(
         [views[n].full[k][MIRROR] if fl else views[n].full[k] for n, (k, fl) in members.items()]
     )
-    xy, w = lm[..., :2], lm[..., 2].copy()
-    X = triangulate_weighted(cams, xy, w)
-    for v, n in enumerate(names):
-        uv, _ = project(cams[v], X)
-        err = np.linalg.norm(uv - xy[v], axis=-1) / views[n].scale[members[n][0]]
-        w[v, ~(err <= config.outlier_error)] = 0.0
-    X2 = triangulate_weighted(cams, xy, w)
-    return np.where(np.isfinite(X2), X2, X)
+    return _triangulate_rejecting(views, members, lm[..., :2], lm[..., 2], config)
 
 
 def _full_skeleton(body: np.ndarray) -> np.ndarray:
