@@ -33,6 +33,7 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -378,7 +379,8 @@ def components(video: Path, camera, n: int, gst, fps: float) -> None:
 def real_footage(args) -> None:
     from calibration.formats import read_rig
     from gst.detect.weights import model_paths
-    from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+    from gst.track.person_detector import PersonModelDetector
+    from gst.track.scene import TrackSettings, person_model_config
 
     video = LAB / f"{args.camera}.mp4"
     if not video.is_file():
@@ -398,12 +400,13 @@ def real_footage(args) -> None:
             return TrackOptions(tracker=tracker, end_s=n / fps, **kw)
 
         def new(**kw):
-            return lambda: PersonModelDetector(PersonModelConfig(**kw))
+            return lambda: PersonModelDetector(replace(default, **kw))
 
+        default = person_model_config(TrackSettings())  # what `run track` uses for one video
         variants = [
             ("old: detector + masks every frame", SegmentEveryFrame, opts()),
-            ("new: landmark loop (stage default)", new(), opts()),
-            ("new, 2 LiteRT threads", new(threads=2), opts()),
+            (f"new: stage default ({default.threads} LiteRT threads)", new(), opts()),
+            ("new, 1 LiteRT thread", new(threads=1), opts()),
             ("new, one landmark call per person", new(batch=False), opts()),
             ("new, no prefetch (one Python thread)", new(), opts(prefetch=0)),
             ("old, stride 2", SegmentEveryFrame, opts(stride=2)),

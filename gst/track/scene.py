@@ -13,6 +13,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,9 +69,10 @@ class TrackSettings(BaseModel):
     # 'blazepose' requires it; 'background' always uses the background model.
     detector: Literal["auto", "background", "blazepose"] = "auto"
     detect_every: int = Field(default=10, ge=1)  # blazepose: detector runs between tracked frames
-    # blazepose: LiteRT threads per interpreter (results are identical for any number; 2 was
-    # not measurably faster than 1 on the shared 2-core machine, benchmarks/bench_track.py)
-    detector_threads: int = Field(default=1, ge=1)
+    # blazepose: LiteRT threads per interpreter (results are identical for any number). None:
+    # the cores each video tracked at once gets, at most 4 (one lab camera on 2 quiet cores:
+    # 26.3 frames/s with 2 threads, 21.8 with 1; benchmarks/bench_track.py --real)
+    detector_threads: int | None = Field(default=None, ge=1)
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
@@ -123,19 +125,26 @@ def choose_detector(s: TrackSettings) -> tuple[str, str]:
     return "blazepose", f"{how}: the learned person model (BlazePose) is installed"
 
 
-def _person_model_config(s: TrackSettings) -> PersonModelConfig:
-    return PersonModelConfig(detect_every=s.detect_every, threads=s.detector_threads)
+def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:
+    """The learned person model's settings for `s`, with `parallel_videos` tracked at once."""
+    threads = s.detector_threads or max(1, min(4, (os.cpu_count() or 1) // parallel_videos))
+    return PersonModelConfig(detect_every=s.detect_every, threads=threads)
 
 
 def _detector(
-    kind: str, s: TrackSettings, video: Path, camera: Camera | None, rig: Rig | None
+    kind: str,
+    s: TrackSettings,
+    video: Path,
+    camera: Camera | None,
+    rig: Rig | None,
+    parallel_videos: int = 1,
 ) -> Callable:
     """A picklable factory of the video's person detector: supplied boxes, the learned person
     model, or the static-camera background model."""
     if kind == "boxes":
         return functools.partial(SuppliedBoxes.from_file, s.boxes, video=video.stem)
     if kind == "blazepose":
-        return functools.partial(PersonModelDetector, _person_model_config(s))
+        return functools.partial(PersonModelDetector, person_model_config(s, parallel_videos))
     up = tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)
     return functools.partial(StaticCameraDetector, video, camera=camera, up=up)
 
@@ -144,7 +153,7 @@ def _detector_info(kind: str, why: str, s: TrackSettings) -> dict:
     info = {"name": kind, "why": why}
     if kind == "blazepose":
         info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
-        info["config"] = _person_model_config(s).settings()
+        info["config"] = person_model_config(s).settings()
     return info
 
 
@@ -215,6 +224,7 @@ def track_scene(
     )
     # Parallel workers share the cores: one torch thread each unless told otherwise.
     threads = s.threads or (1 if workers > 1 else None)
+    parallel_videos = max(1, min(workers, len(request.videos)))
     predictor = functools.partial(
         GSTPredictor, request.checkpoint, with_gaussians=with_gaussians, batch_size=s.batch_size
     )
@@ -242,7 +252,7 @@ def track_scene(
         jobs.append(
             VideoJob(
                 video,
-                _detector(kind, s, video, camera, rig),
+                _detector(kind, s, video, camera, rig, parallel_videos),
                 predictor,
                 {**model_info, "seen_this_camera": seen},
                 name=video.stem,
