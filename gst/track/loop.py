@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 from calibration import Camera
 from gst.data.camera_view import TrackingView
 from gst.prefetch import background
+from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.detection import N_LANDMARKS, Detection, Detector
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
@@ -56,6 +57,8 @@ class TrackOptions:
         4  # frames decoded, detected and cropped ahead in a thread (0: inline); same output
     )
     row_group_rows: int = 65536  # row-group size of the finished file
+    # move each body onto its crop's confident landmarks (gst.track.align); None: the network's
+    align: AlignmentConfig | None = field(default_factory=AlignmentConfig)
 
     def __post_init__(self):
         for name in ("stride", "crop_size", "batch_size", "frames_per_group", "row_group_rows"):
@@ -131,8 +134,15 @@ class _Group:
     """Crops and predictions of one row group: crops are pooled across frames and predicted
     `batch_size` at a time; the last batch of a group may be smaller."""
 
-    def __init__(self, predictor: Predictor, batch_size: int, num_betas: int):
+    def __init__(
+        self,
+        predictor: Predictor,
+        batch_size: int,
+        num_betas: int,
+        align: AlignmentConfig | None = None,
+    ):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
+        self.align = align
         self.with_landmarks = accepts_landmarks(predictor)
         self.frames: list[PendingFrame] = []
         self.cut: list[PreparedDetection] = []
@@ -155,6 +165,11 @@ class _Group:
         else:
             out = self.predictor(crops, Ks)
         pose = validate_prediction(out, n)
+        if self.align is not None:
+            lms = np.stack([c.landmarks_crop for c in part])
+            shift = align_translation(pose.joints_cam, Ks, lms, self.align)
+            pose.transl_cam = pose.transl_cam + shift
+            pose.joints_cam = pose.joints_cam + shift[:, None]
         if pose.betas.shape[1] != self.num_betas:
             raise ValueError(
                 f"predictor returned {pose.betas.shape[1]} betas per person, expected "
@@ -297,7 +312,7 @@ def tracked_groups(
     then VideoTruncatedError is raised.
     """
     group_span = options.frames_per_group * options.stride
-    group = _Group(predictor, options.batch_size, num_betas)
+    group = _Group(predictor, options.batch_size, num_betas, options.align)
 
     def close(next_frame: int) -> TrackedGroup:
         nonlocal group
@@ -305,7 +320,7 @@ def tracked_groups(
         rows = session.track_group(run.view, group.frames, poses)
         table = rows_table(run.view, rows, schema)
         done = TrackedGroup(table, next_frame, group.frames, rows, poses)
-        group = _Group(predictor, options.batch_size, num_betas)
+        group = _Group(predictor, options.batch_size, num_betas, options.align)
         return done
 
     def detect(frame: Frame) -> tuple[Frame, list[Detection]]:

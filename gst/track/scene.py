@@ -33,6 +33,7 @@ from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
 from gst.track.agreement import joints_vs_landmarks
+from gst.track.align import AlignmentConfig
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
@@ -74,6 +75,8 @@ class TrackSettings(BaseModel):
     # 26.3 frames/s with 2 threads, 21.8 with 1; benchmarks/bench_track.py --real)
     detector_threads: int | None = Field(default=None, ge=1)
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
+    # move each body onto its confident 2D landmarks (translation only, gst.track.align)
+    align_to_landmarks: bool = True
     threads: int | None = None
     min_hits: int = 3  # consecutive detections before a new person gets an id
     max_misses: int = 30  # processed frames a person may go undetected and keep the id
@@ -221,6 +224,7 @@ def track_scene(
         end_s=s.end_s,
         batch_size=s.batch_size,
         smoothing=OneEuroConfig(min_cutoff=s.min_cutoff, beta=s.beta) if s.smoothing else None,
+        align=AlignmentConfig() if s.align_to_landmarks else None,
     )
     # Parallel workers share the cores: one torch thread each unless told otherwise.
     threads = s.threads or (1 if workers > 1 else None)
