@@ -136,3 +136,34 @@ def test_without_blazepose_the_hull_runs_and_says_so(scene, tmp_path, caplog):
         )  # fmt: skip
     with pytest.raises(ExtractError, match="association_method"):
         ExtractOptions(association_method="voxels")
+
+
+def test_brief_ids_are_not_trusted_single_view_or_not(tmp_path):
+    """An id seen in fewer than `min_track_frames` frames gets no crops: multi-view ids counted
+    in their multi-view frames, ids no two cameras ever saw together in all their frames (the
+    lab's 1-2 frame single-view ids are duplicates of a tracked person's body or legs)."""
+    from gst.data.extract.keypoint_association import _write
+    from gst.data.keypoints.people import FramePeople, FramePerson, PersonView
+
+    def view():
+        lm = np.zeros((33, 3))
+        lm[:, :2], lm[:, 2] = [4.0, 4.0], 1.0
+        return PersonView(lm, np.ones((8, 8), bool), "detected", 1.0)
+
+    skeleton = np.zeros((33, 3))
+    results = []
+    for f in range(8):
+        people = [FramePerson(1, skeleton, {"a": view(), "b": view()})]  # 8 multi-view frames
+        if f < 2:
+            people.append(FramePerson(2, None, {"a": view()}))  # single view, 2 frames
+        people.append(FramePerson(3, None, {"b": view()}))  # single view, 8 frames
+        if f < 3:
+            people.append(FramePerson(4, skeleton, {"a": view(), "b": view()}))  # 3 frames
+        results.append(FramePeople(f, people, []))
+    out = tmp_path / "persons"
+    out.mkdir()
+    summary = _write(
+        results, ["a", "b"], {"a": (8, 8), "b": (8, 8)}, list(range(8)), out,
+        {"a": (1.0, 1.0), "b": (1.0, 1.0)}, 5,
+    )  # fmt: skip
+    assert summary.short_tracks == [2, 4]

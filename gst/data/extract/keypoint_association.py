@@ -140,13 +140,19 @@ def _run(tracker, inputs, streams, backgrounds, frames, sxy, progress) -> list[F
 
 
 def _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames):
-    # Offline: multi-view ids seen in too few frames are not trusted (single-view ids stay).
+    # Offline: ids seen in too few frames are not trusted: multi-view ids counted in their
+    # multi-view frames; an id no two cameras ever saw together in all its frames (on the lab,
+    # 1-2 frame single-view ids are duplicates of a tracked person's body or legs).
     frames_of: dict[int, int] = {}
+    single_frames: dict[int, int] = {}
     for res in results:
         for p in res.people:
-            if not p.single_view:
-                frames_of[p.pid] = frames_of.get(p.pid, 0) + 1
-    short = sorted(pid for pid, c in frames_of.items() if c < min_track_frames)
+            counts = single_frames if p.single_view else frames_of
+            counts[p.pid] = counts.get(p.pid, 0) + 1
+    short = sorted(
+        {pid for pid, c in frames_of.items() if c < min_track_frames}
+        | {pid for pid, c in single_frames.items() if pid not in frames_of and c < min_track_frames}
+    )
     pending = {n: PendingFile(out_dir / f"persons_{n}.h5") for n in names}
     per_frame = []
     try:
