@@ -42,7 +42,6 @@ _BODY = np.asarray(BODY_LANDMARKS)
 # Mirror map restricted to the body landmarks (positions within _BODY).
 _BODY_MIRROR = np.array([BODY_LANDMARKS.index(int(MIRROR[k])) for k in BODY_LANDMARKS])
 FRONT_MARGIN = 0.2  # metres: people this far behind the front one are hidden by them
-FRONT_ERROR_RATIO = 2.0  # ... when the front one fits the instance at least 1/2 as well
 PRIOR_BONUS = 0.5  # a prior beats a pair that the same number of cameras fit
 # Bones whose length tells a real skeleton from one stitched from two people (metres; adult
 # ranges with room for triangulation noise): shoulders, hips, upper arms, forearms, thighs,
@@ -471,9 +470,8 @@ def _assign(
     rounds: int = 2,
 ) -> list[PersonGroup]:
     """Per camera, Hungarian between the people found and that camera's instances by landmark
-    error; an instance that several people fit about as well goes to the nearest of them
-    (people more than `FRONT_MARGIN` behind the front one pay `view_error`, unless the front one
-    fits it more than `FRONT_ERROR_RATIO` times worse). Views fitting below `view_error` are
+    error; an instance that several people fit goes to the nearest of them (people more than
+    `FRONT_MARGIN` behind the front one pay `view_error`). Views fitting below `view_error` are
     triangulated, those below `loose_error` only attached. Repeated `rounds` times with the new
     skeletons; a person left with fewer than two triangulated views is dissolved."""
     members = [dict(m) for m in found]
@@ -490,16 +488,8 @@ def _assign(
             e, f = fit_errors(bodies, views[n], config)  # (G, n)
             z = _depths(views[n].cam, bodies)
             fits = e < config.view_error
-            zf = np.where(fits, z[:, None], np.inf)  # (G, n)
-            front = zf.min(axis=0)  # (n,) depth of the nearest person each instance fits
-            front_err = e[zf.argmin(axis=0), np.arange(e.shape[1])]  # (n,) and their error
-            # Behind the front person, and the front person explains the instance about as
-            # well: the detector saw them, not this one. A person whose own instance fits far
-            # better than the front one's does is not hidden by them (a third person in front
-            # who fits loosely must not move two people's views onto each other).
-            behind = (z[:, None] > front[None] + FRONT_MARGIN) & (
-                front_err[None] <= FRONT_ERROR_RATIO * e
-            )
+            front = np.where(fits, z[:, None], np.inf).min(axis=0)  # (n,)
+            behind = z[:, None] > front[None] + FRONT_MARGIN
             cost = e + np.where(behind & fits, config.view_error, 0.0)
             cost = np.where(e < config.loose_error, cost, 1e6)
             rows, cols = linear_sum_assignment(cost)
