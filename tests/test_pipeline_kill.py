@@ -64,7 +64,7 @@ def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_pa
     assert (tmp_path / "ws/demo/fanout/done.txt").read_text() == "0,1"
 
 
-@pytest.mark.slow  # tracks 2 x 150 frames three times (about a minute on 2 cores)
+@pytest.mark.slow  # tracks 2 x 900 frames three times (about 20 s on 2 idle cores)
 def test_kill_9_of_a_two_worker_track_run_then_rerun_gives_identical_tracks(tmp_path):
     """The acceptance case: `run track --workers 2` killed mid-run; no process of it is alive
     2 s later, and an immediate rerun writes the same Parquet as an uninterrupted run."""
@@ -79,7 +79,9 @@ def test_kill_9_of_a_two_worker_track_run_then_rerun_gives_identical_tracks(tmp_
     videos = tmp_path / "videos"
     videos.mkdir()
     for name in ("c1", "c2"):
-        _video(videos / f"{name}.mp4", frames=150)
+        # long enough that the kill lands mid-run: on an idle machine 150 frames took 0.3 s,
+        # less than the time between the first committed rows and the end of the run
+        _video(videos / f"{name}.mp4", frames=900)
     write_rig(_rig(), tmp_path / "rig.json", "rig")
     data = random_body_data(num_vertices=400, with_posedirs=False)
     body = data.save_npz(tmp_path / "body.npz")
@@ -114,7 +116,7 @@ def test_kill_9_of_a_two_worker_track_run_then_rerun_gives_identical_tracks(tmp_
     deadline = time.time() + 300
     while not list(staging.rglob("seg-*.parquet")):  # a worker has committed rows
         assert time.time() < deadline and run.poll() is None, "no rows committed in time"
-        time.sleep(0.1)
+        time.sleep(0.02)
     children = [
         int(p) for p in Path(f"/proc/{run.pid}/task/{run.pid}/children").read_text().split()
     ]
