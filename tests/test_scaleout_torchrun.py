@@ -47,7 +47,7 @@ def test_torchrun_two_cpu_ranks_train_and_rank0_commits(tmp_path):
     ]
     early = _run(torchrun, tmp_path)
     assert early.returncode != 0 and "upstream stages must be up to date" in early.stderr
-    for stage in ("extract", "pretrain"):
+    for stage in ("extract", "fuse", "pretrain"):
         done = _run([sys.executable, "-m", "pipeline", "run", stage, "--quiet"], tmp_path)
         assert done.returncode == 0, done.stderr
     res = _run(torchrun, tmp_path)
