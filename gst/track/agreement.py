@@ -30,6 +30,10 @@ COMPARED_JOINTS: dict[str, tuple[str, ...]] = {
 }
 
 
+COMPARED_INDEX = np.array([SMPL_JOINT_NAMES.index(j) for j in COMPARED_JOINTS])
+_LANDMARKS = [[BLAZEPOSE_NAMES.index(n) for n in lms] for lms in COMPARED_JOINTS.values()]
+
+
 @dataclass(frozen=True)
 class LandmarkAgreement:
     median_px: float | None  # over every compared (row, joint) pair; None when there is none
@@ -46,6 +50,17 @@ class LandmarkAgreement:
         }
 
 
+def landmark_targets(landmarks: np.ndarray, min_confidence: float) -> tuple:
+    """(N, 13, 2) landmark positions of the COMPARED_JOINTS (the mean of their landmarks) from
+    (N, 33, 3) landmarks, and (N, 13) weights: the least confidence among them, 0 where any is
+    below `min_confidence` or not a number."""
+    lm = np.asarray(landmarks, np.float64)
+    uv = np.stack([lm[:, idx, :2].mean(axis=1) for idx in _LANDMARKS], axis=1)
+    conf = np.stack([lm[:, idx, 2].min(axis=1) for idx in _LANDMARKS], axis=1)
+    ok = np.isfinite(uv).all(-1) & np.isfinite(conf) & (conf >= min_confidence)
+    return np.where(ok[..., None], uv, 0.0), np.where(ok, conf, 0.0)
+
+
 def joints_vs_landmarks(table: pa.Table, min_confidence: float = 0.5) -> LandmarkAgreement:
     """Distances (px) between `joints2d` and the landmarks of the same joints, over the rows
     that have landmarks, counting landmarks at least `min_confidence` sure."""
@@ -53,19 +68,17 @@ def joints_vs_landmarks(table: pa.Table, min_confidence: float = 0.5) -> Landmar
     if "landmarks2d" not in table.column_names or table.num_rows == 0:
         return empty
     j2 = column_array(table, "joints2d")
-    lm = column_array(table, "landmarks2d")
-    conf = column_array(table, "landmarks_conf")
+    lm = np.concatenate(
+        [column_array(table, "landmarks2d"), column_array(table, "landmarks_conf")[..., None]], -1
+    )
+    target, w = landmark_targets(lm, min_confidence)
+    d = np.linalg.norm(j2[:, COMPARED_INDEX] - target, axis=-1)  # (N, 13)
+    usable = (w > 0) & np.isfinite(d)
     all_d, per = [], {}
-    for name, landmarks in COMPARED_JOINTS.items():
-        j = SMPL_JOINT_NAMES.index(name)
-        idx = [BLAZEPOSE_NAMES.index(n) for n in landmarks]
-        target = lm[:, idx].mean(axis=1)
-        sure = np.nan_to_num(conf[:, idx], nan=0.0).min(axis=1) >= min_confidence
-        d = np.linalg.norm(j2[:, j] - target, axis=1)
-        d = d[sure & np.isfinite(d)]
-        if len(d):
-            per[name] = float(np.median(d))
-            all_d.append(d)
+    for k, name in enumerate(COMPARED_JOINTS):
+        if usable[:, k].any():
+            per[name] = float(np.median(d[usable[:, k], k]))
+            all_d.append(d[usable[:, k], k])
     if not all_d:
         return empty
     d = np.concatenate(all_d)

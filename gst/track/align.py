@@ -23,12 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gst.body.markers import BLAZEPOSE_NAMES
-from gst.track.agreement import COMPARED_JOINTS
-from gst.track.schema import SMPL_JOINT_NAMES
-
-_JOINTS = np.array([SMPL_JOINT_NAMES.index(j) for j in COMPARED_JOINTS])
-_LANDMARKS = [[BLAZEPOSE_NAMES.index(n) for n in lms] for lms in COMPARED_JOINTS.values()]
+from gst.track.agreement import COMPARED_INDEX, landmark_targets
 
 
 @dataclass(frozen=True)
@@ -37,15 +32,6 @@ class AlignmentConfig:
     min_joints: int = 4  # fewer confident joints: the body keeps the network's place
     huber_fraction: float = 0.05  # Huber scale: this share of the landmarks' extent (px)
     iterations: int = 8
-
-
-def landmark_targets(landmarks: np.ndarray, min_confidence: float) -> tuple:
-    """(B, 13, 2) landmark positions of the compared joints and (B, 13) weights (0: none)."""
-    lm = np.asarray(landmarks, np.float64)
-    uv = np.stack([lm[:, idx, :2].mean(axis=1) for idx in _LANDMARKS], axis=1)
-    conf = np.stack([lm[:, idx, 2].min(axis=1) for idx in _LANDMARKS], axis=1)
-    ok = np.isfinite(uv).all(-1) & np.isfinite(conf) & (conf >= min_confidence)
-    return np.where(ok[..., None], uv, 0.0), np.where(ok, conf, 0.0)
 
 
 def align_translation(
@@ -57,7 +43,7 @@ def align_translation(
     """(B, 3) camera-frame shifts (z = 0) that put each body (B, 24, 3 camera-frame joints) on
     the crop's landmarks (B, 33, 3: u, v crop px + confidence, NaN rows where none); zero where
     there is too little evidence or the solve is not sane."""
-    X0 = np.asarray(joints_cam, np.float64)[:, _JOINTS]  # (B, 13, 3)
+    X0 = np.asarray(joints_cam, np.float64)[:, COMPARED_INDEX]  # (B, 13, 3)
     K = np.asarray(K_crop, np.float64)
     target, w = landmark_targets(landmarks_crop, config.min_confidence)
     B = len(X0)

@@ -159,14 +159,13 @@ class _Group:
         del self.cut[:n]
         crops = np.stack([c.crop_rgb for c in part])
         Ks = np.stack([c.K_crop for c in part])
+        lms = np.stack([c.landmarks_crop for c in part])
         if self.with_landmarks:
-            lms = np.stack([c.landmarks_crop for c in part])
             out = self.predictor(crops, Ks, landmarks=lms)
         else:
             out = self.predictor(crops, Ks)
         pose = validate_prediction(out, n)
         if self.align is not None:
-            lms = np.stack([c.landmarks_crop for c in part])
             shift = align_translation(pose.joints_cam, Ks, lms, self.align)
             pose.transl_cam = pose.transl_cam + shift
             pose.joints_cam = pose.joints_cam + shift[:, None]
