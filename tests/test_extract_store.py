@@ -136,3 +136,23 @@ def test_stale_index_is_rebuilt(tmp_path):
     index_path_for(path).unlink()
     store = CropStore(path)
     assert store.index.column("person_id").to_pylist() == [3, 3]
+
+
+def test_read_landmarks_matches_read_without_images(tmp_path):
+    """`read_landmarks` gives what `read(rows).landmarks` gives (any order, repeats), and None
+    for a store without landmarks."""
+    path = tmp_path / "crops.h5"
+    b = _batch([0, 0, 1, 1], [0, 1, 0, 1], [7, 7, 7, 7], seed=3)
+    b.landmarks = np.random.default_rng(4).uniform(0, S, (4, 33, 3)).astype(np.float32)
+    with CropStoreWriter(path, CAMS, S, landmarks=True) as w:
+        w.commit(b, [(0, 0), (0, 1), (1, 0), (1, 1)])
+        w.finalize()
+    store = CropStore(path)
+    rows = [3, 0, 3, 1]
+    np.testing.assert_array_equal(store.read_landmarks(rows), store.read(rows).landmarks)
+    np.testing.assert_array_equal(store.read_landmarks(), store.read([0, 1, 2, 3]).landmarks)
+    plain = tmp_path / "plain.h5"
+    with CropStoreWriter(plain, CAMS, S) as w:
+        w.commit(_batch([0], [0], [7]), [(0, 0)])
+        w.finalize()
+    assert CropStore(plain).read_landmarks() is None

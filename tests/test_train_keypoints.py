@@ -6,7 +6,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gst.train.keypoints import BODY_FROM_BLAZEPOSE, keypoint_term, landmarks_to_body
+from gst.train.keypoints import BODY_FROM_BLAZEPOSE, keypoint_term, keypoints_from_landmarks
 
 
 def _views(b: int, m: int, seed: int = 0):
@@ -60,7 +60,8 @@ def test_landmark_mapping():
     lm[:, 1] = 100 + np.arange(33)
     lm[:, 2] = 0.9
     lm[24, 2] = 0.3
-    out = landmarks_to_body(lm, presence=0.8)
+    lm[:, 2] *= 0.8  # confidence = visibility x presence (0.8)
+    out = keypoints_from_landmarks(lm[None])[0].numpy()
     assert out.shape == (24, 3)
     assert np.allclose(out[0, :2], [23.5, 123.5]) and np.isclose(
         out[0, 2], 0.8 * 0.3

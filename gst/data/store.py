@@ -474,6 +474,21 @@ class CropStore:
                 )
         return groups
 
+    def read_landmarks(self, rows=None) -> np.ndarray | None:
+        """(n, 33, 3) float32 landmarks of `rows` (default all, in the given order), or None
+        when the store holds none; no image is read."""
+        f = self._file()
+        if "landmarks" not in f:
+            return None
+        if rows is None:
+            return np.asarray(f["landmarks"][:], np.float32)
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        order = np.argsort(rows, kind="stable")
+        uniq, inv = np.unique(rows[order], return_inverse=True)
+        out = np.empty((len(rows), N_LANDMARKS, 3), np.float32)
+        out[order] = np.asarray(f["landmarks"][uniq], np.float32)[inv]
+        return out
+
     def read(self, rows) -> CropBatch:
         """Load the given rows (any order; returned in that order)."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)

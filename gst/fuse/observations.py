@@ -40,11 +40,9 @@ def crop_landmarks(
     `refine` and `masked` (dim what lies outside the crop's person mask): see
     gst.detect.crops.detect_crop_landmarks; both ignored when the store holds landmarks."""
     rows = np.arange(len(store)) if rows is None else np.asarray(rows, np.int64)
-    with h5py.File(store.path, "r") as f:
-        if "landmarks" in f:  # written by the extraction (crowd helper's association)
-            return np.asarray(f["landmarks"][np.sort(rows)], np.float32)[
-                np.argsort(np.argsort(rows))
-            ]
+    stored = store.read_landmarks(rows)  # written by the keypoint extraction
+    if stored is not None:
+        return stored
     from gst.detect.blazepose import BlazePose
     from gst.detect.crops import detect_crop_landmarks
 

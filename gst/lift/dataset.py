@@ -245,7 +245,7 @@ world (k % 4 == 3) holding independent random poses (`random_static`) instead of
 Crops: `gst.train.synthetic_crops.crops_from_synth_scene(scene, crop_size=256)` (square HMR2
 box around the truth mask, undistorted; filters: mask area >= 200 px, >= 8 visible joints).
 Detections: `gst.detect.blazepose.BlazePose().segment(crop_bgr, roi)` with the whole crop as the
-region (centre (127.5, 127.5), side 256, angle 0), as `gst.train.keypoints.crop_keypoints` does.
+region (centre (127.5, 127.5), side 256, angle 0), as `gst.detect.crops.detect_crop_landmarks` does.
 
 | world | rig | fov (deg) | crops |
 |---|---|---|---|

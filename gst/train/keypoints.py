@@ -40,19 +40,10 @@ BODY_FROM_BLAZEPOSE: dict[int, tuple[int, ...]] = {
 }
 
 
-def landmarks_to_body(landmarks: np.ndarray, presence: float, n_joints: int = 24) -> np.ndarray:
-    """(33, 3) BlazePose x, y, visibility -> (n_joints, 3) u, v, confidence."""
-    out = np.zeros((n_joints, 3), np.float32)
-    for j, src in BODY_FROM_BLAZEPOSE.items():
-        pts = landmarks[list(src)]
-        out[j, :2] = pts[:, :2].mean(axis=0)
-        out[j, 2] = presence * float(pts[:, 2].min())
-    return out
-
-
 def keypoints_from_landmarks(landmarks: torch.Tensor) -> torch.Tensor:
     """(N, 33, 3) crop landmarks (u, v, confidence = visibility x presence; NaN: none) ->
-    (N, 24, 3) joints (u, v, confidence), as `crop_keypoints` gives them."""
+    (N, 24, 3) joints (u, v, confidence): each joint is the mean of its landmarks
+    (BODY_FROM_BLAZEPOSE), with their least confidence; unmapped joints stay 0."""
     lm = torch.nan_to_num(torch.as_tensor(landmarks, dtype=torch.float32), nan=0.0)
     out = torch.zeros(lm.shape[0], 24, 3)
     for j, src in BODY_FROM_BLAZEPOSE.items():
@@ -68,29 +59,17 @@ def store_landmarks(
     """(N, 33, 3) landmarks of a crop store's rows, in order (u, v crop px, confidence =
     visibility x presence): the store's `landmarks` dataset when the extraction wrote one, else
     BlazePose on the crops (`images`, the store's rows as RGB). Returns them and their source."""
-    import h5py
+    from gst.data.store import CropStore
 
-    with h5py.File(store_path, "r") as f:
-        if "landmarks" in f and f["landmarks"].shape[0] == len(images):
-            return torch.as_tensor(np.asarray(f["landmarks"][:], np.float32)), "store"
+    store = CropStore(store_path)
+    try:
+        stored = store.read_landmarks()
+    finally:
+        store.close()
+    if stored is not None and len(stored) == len(images):
+        return torch.from_numpy(stored), "store"
     found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)
     return torch.from_numpy(found.with_confidence().astype(np.float32)), "BlazePose"
-
-
-def crop_keypoints(images: torch.Tensor, model: BlazePose, progress=None) -> torch.Tensor:
-    """(N, S, S, 3) uint8 RGB crops -> (N, 24, 3) detected joints: crop pixels and confidence."""
-    found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)
-    out = (
-        np.stack(
-            [
-                landmarks_to_body(lm, p)
-                for lm, p in zip(found.landmarks, found.presence, strict=True)
-            ]
-        )
-        if len(found)
-        else np.zeros((0, 24, 3), np.float32)
-    )
-    return torch.from_numpy(out.astype(np.float32))
 
 
 def keypoint_term(
