@@ -7,6 +7,7 @@ import ast
 import hashlib
 import json
 import os
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -120,9 +121,19 @@ def imported_names(path: Path, name: str) -> set[str]:
 def _imports_of(path: Path, name: str) -> set[str]:
     """Every module name an import statement in `path` may load (function-level imports
     included: they run when the stage runs), parents and `from X import y` submodules too."""
+    st = path.stat()
+    return set(_imports_of_version(path, name, st.st_mtime_ns, st.st_size))
+
+
+@lru_cache(maxsize=4096)
+def _imports_of_version(path: Path, name: str, mtime_ns: int, size: int) -> frozenset[str]:
+    # One parse per file version and process: every stage's closure shares most modules, and
+    # the file's stat in the key makes an edit between two calls parse again.
     found = imported_names(path, name)
     # Importing a.b.c runs a/__init__.py and a/b/__init__.py first.
-    return {".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2)}
+    return frozenset(
+        ".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2)
+    )
 
 
 def code_closure(module: str, path: Path, root: Path) -> dict[str, Path]:
