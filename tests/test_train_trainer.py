@@ -87,7 +87,7 @@ def test_nan_guard_skips_and_aborts(tmp_path):
 
 def test_schedule_warms_up_then_decays():
     cfg = TrainConfig(steps=100, warmup_steps=10, min_lr_ratio=0.1)
-    values = [warmup_cosine(s, cfg) for s in range(100)]
+    values = [warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio) for s in range(100)]
     assert values[0] == pytest.approx(0.1) and values[9] == pytest.approx(1.0)
     assert all(b <= a + 1e-12 for a, b in zip(values[10:], values[11:], strict=False))
     assert values[-1] == pytest.approx(0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 89 / 90)))

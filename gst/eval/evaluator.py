@@ -23,6 +23,7 @@ import torch
 from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, silhouette_iou, ssim
 from gst.metrics.pose import procrustes_align, vertex_error
 from gst.model.assemble import to_world
+from gst.train.evaluation import ViewPairs
 from gst.train.steps import GSTTask, predict
 from gst.train.views import CropSet, target_views
 
@@ -131,14 +132,6 @@ def evaluate_pose(
         pve=cat(pve) if with_vertices else None,
         pa_pve=cat(papve) if with_vertices else None,
     )
-
-
-@dataclass
-class ViewPairs:
-    """(input crop, target crop) rows: the target is another view of the same person and frame."""
-
-    inputs: torch.Tensor  # (P,)
-    targets: torch.Tensor  # (P,)
 
 
 def view_pairs(

@@ -20,7 +20,6 @@ PA-MPJPE, in millimetres.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -40,6 +39,7 @@ from gst.model.network import GSTNetwork
 from gst.prefetch import background
 from gst.train.losses import LossWeights, combine, supervised_terms
 from gst.train.steps import project
+from gst.train.trainer import warmup_cosine
 
 
 @dataclass(frozen=True)
@@ -104,13 +104,6 @@ def trainable_parameters(net: GSTNetwork) -> list[torch.nn.Parameter]:
     return [p for p in params if p.requires_grad]
 
 
-def _lr_factor(step: int, cfg: LiftPretrainConfig) -> float:
-    if step < cfg.warmup_steps:
-        return (step + 1) / cfg.warmup_steps
-    prog = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return 0.5 * (1 + math.cos(math.pi * min(1.0, prog)))
-
-
 def pretrain_landmark_path(
     net: GSTNetwork,
     body: BodyModel,
@@ -133,7 +126,9 @@ def pretrain_landmark_path(
         )
     params = trainable_parameters(net)
     opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, cfg))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: warmup_cosine(s, cfg.steps, cfg.warmup_steps)
+    )
     nb = net.cfg.num_betas
     result = LiftPretrainResult(0, 0.0, 0.0, 0.0, float("nan"), float("nan"))
     t0, recent = time.perf_counter(), []

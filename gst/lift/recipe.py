@@ -38,6 +38,7 @@ from gst.model.presets import get_preset
 from gst.train.pretrain import (
     PretrainConfig,
     corpus_crops,
+    corpus_summary,
     pretrain_images,
     render_corpus,
     reuse_checkpoint,
@@ -231,12 +232,7 @@ def _pretrain_lift(
     summary.update(
         mode="lift",
         lift=lift_summary(lift),
-        corpus={
-            "worlds": [s["name"] for s in specs[:-1]],
-            "validation_world": specs[-1]["name"],
-            "train_crops": len(crops),
-            "validation_crops": len(val),
-        },
+        corpus=corpus_summary(specs, crops, val),
         times_s={
             "lift_phase": round(t_lift, 1),
             "rendering_done": round(t_render, 1),

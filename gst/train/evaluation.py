@@ -43,8 +43,9 @@ def pose_metrics(
 
 
 @dataclass
-class NovelViewSet:
-    """Fixed (input crop, held-out target crop) pairs."""
+class ViewPairs:
+    """Fixed (input crop, target crop) rows: each target is another view of its input's person
+    and frame (`novel_view_pairs` here, `gst.eval.evaluator.view_pairs` for the evaluation)."""
 
     inputs: torch.Tensor  # (P,)
     targets: torch.Tensor  # (P,)
@@ -56,7 +57,7 @@ def novel_view_pairs(
     max_pairs: int = 64,
     seed: int = 0,
     frames: tuple[int, int] | None = None,
-) -> NovelViewSet:
+) -> ViewPairs:
     """(training-camera input, held-out-camera target) pairs of one (frame, person), within
     `frames` [lo, hi) when given."""
     gen = torch.Generator().manual_seed(seed)
@@ -70,7 +71,7 @@ def novel_view_pairs(
             inputs.append(train[int(torch.randint(len(train), (1,), generator=gen))])
             targets.append(held[0])
     order = torch.randperm(len(inputs), generator=gen)[:max_pairs]
-    return NovelViewSet(
+    return ViewPairs(
         torch.tensor(inputs, dtype=torch.long)[order],
         torch.tensor(targets, dtype=torch.long)[order],
     )
@@ -104,7 +105,7 @@ def novel_view_metrics(
     model,
     task: GSTTask,
     crops: CropSet,
-    pairs: NovelViewSet,
+    pairs: ViewPairs,
     size: int,
     batch_size: int = 16,
     return_images: bool = False,

@@ -193,6 +193,16 @@ def corpus_crops(
     return crops, sets[-1]
 
 
+def corpus_summary(specs: list[dict], crops: CropSet, val: CropSet) -> dict:
+    """The summary's `corpus` entry: the worlds trained on, the validation world, crop counts."""
+    return {
+        "worlds": [s["name"] for s in specs[:-1]],
+        "validation_world": specs[-1]["name"],
+        "train_crops": len(crops),
+        "validation_crops": len(val),
+    }
+
+
 def pretrain_images(
     p: PretrainConfig,
     work: Path,
@@ -294,14 +304,7 @@ def pretrain_images(
         )  # the pose barely moves here; the head keeps learning to the end
         shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
     shutil.copyfile(kept, checkpoint)
-    summary.update(
-        corpus={
-            "worlds": [s["name"] for s in specs[:-1]],
-            "validation_world": specs[-1]["name"],
-            "train_crops": len(crops),
-            "validation_crops": len(val),
-        }
-    )
+    summary.update(corpus=corpus_summary(specs, crops, val))
     (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
     kept_metrics = summary["gaussians"]["after"] if "gaussians" in summary else summary["after"]
     log.info(

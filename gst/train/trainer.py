@@ -54,13 +54,13 @@ class NonFiniteLossError(RuntimeError):
     pass
 
 
-def warmup_cosine(step: int, cfg: TrainConfig) -> float:
-    if step < cfg.warmup_steps:
-        return (step + 1) / max(1, cfg.warmup_steps)
-    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
-    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (
-        1 + math.cos(math.pi * min(1.0, progress))
-    )
+def warmup_cosine(step: int, steps: int, warmup_steps: int, min_lr_ratio: float = 0.0) -> float:
+    """Learning-rate factor of `step`: linear warmup over `warmup_steps`, then a cosine decay
+    to `min_lr_ratio` at `steps` (the lift pretraining's schedule too, with a ratio of 0)."""
+    if step < warmup_steps:
+        return (step + 1) / max(1, warmup_steps)
+    progress = (step - warmup_steps) / max(1, steps - warmup_steps)
+    return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
 
 
 def distributed_env() -> tuple[int, int]:
@@ -103,7 +103,8 @@ class Trainer:
         params = param_groups or [{"params": [p for p in model.parameters() if p.requires_grad]}]
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
-            self.optimizer, lambda s: warmup_cosine(s, cfg)
+            self.optimizer,
+            lambda s: warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio),
         )
         self.generator = torch.Generator().manual_seed(cfg.seed + 1000 * self.rank)
         self.best_key, self.best_mode = best_key, best_mode
