@@ -343,22 +343,6 @@ class BoardBundleAdjuster:
         )
 
 
-def bundle_adjust_board(
-    cameras: dict[str, CameraState],
-    reference: str,
-    rig_from_board: dict[int, np.ndarray],
-    object_points: np.ndarray,
-    observations: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]],
-    lens_model: str = "opencv",
-    options: BAOptions | None = None,
-) -> BAResult:
-    """Jointly refine intrinsics, camera-in-rig poses and board poses; see BoardBundleAdjuster."""
-    ba = BoardBundleAdjuster(
-        cameras, reference, rig_from_board, object_points, observations, lens_model, options
-    )
-    return ba.result(ba.run())
-
-
 def reprojection_errors(
     K: np.ndarray,
     dist: np.ndarray,

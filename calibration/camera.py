@@ -11,7 +11,7 @@ Conventions (used everywhere in this project):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 
 import cv2
 import numpy as np
@@ -145,18 +145,8 @@ class Camera:
 
     def replace(self, **changes) -> Camera:
         """A validated copy with some fields changed."""
-        fields = dict(
-            name=self.name,
-            K=self.K,
-            dist=self.dist,
-            R=self.R,
-            t=self.t,
-            width=self.width,
-            height=self.height,
-            meta=self.meta,
-        )
-        fields.update(changes)
-        return Camera.create(**fields)
+        current = {f.name: getattr(self, f.name) for f in fields(self)}
+        return Camera.create(**{**current, **changes})
 
     # -- geometry through OpenCV --------------------------------------------------------------
     def to_camera(self, points_world: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from calibration.board import (
     detect_in_sources,
     spans_plane,
 )
-from calibration.bundle import BAOptions, BAResult, CameraState, bundle_adjust_board
+from calibration.bundle import BAOptions, BAResult, BoardBundleAdjuster, CameraState
 from calibration.camera import Camera, Rig
 from calibration.errors import CalibrationError
 from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
@@ -227,7 +227,7 @@ def initialise_from_detections(
 def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) -> BAResult:
     """Joint bundle adjustment (pycolmap) of an initial solution."""
     opts = options or SolveOptions()
-    return bundle_adjust_board(
+    ba = BoardBundleAdjuster(
         init.cameras,
         init.reference,
         init.rig_from_board,
@@ -236,6 +236,7 @@ def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) ->
         opts.lens_model,
         opts.ba,
     )
+    return ba.result(ba.run())
 
 
 def finish_calibration(

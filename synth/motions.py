@@ -105,6 +105,19 @@ def _with(base: dict, **changes) -> dict:
     return pose
 
 
+def _swap_sides(pose: dict) -> dict:
+    """The pose with its left and right joints exchanged, central joints kept as they are (not
+    a mirror image: their twist and lean stay). Anatomical signs are alike on both sides, so
+    the angles move over unchanged."""
+    out = {}
+    for name, xyz in pose.items():
+        side, _, joint = name.partition("_")
+        if side in ("left", "right"):
+            name = f"{'right' if side == 'left' else 'left'}_{joint}"
+        out[name] = xyz
+    return out
+
+
 def _to_array(pose: dict) -> np.ndarray:
     arr = np.zeros((NUM_JOINTS, 3))
     for name, xyz in pose.items():
@@ -202,64 +215,55 @@ def _gait(t: np.ndarray, cadence: np.ndarray, style: dict) -> tuple[np.ndarray, 
 # Motion generators: f(t, rng) -> _Segment, anatomical degrees, mover's frame
 
 
-# Steady gaits: cadence (strides/s), speed (m/s) and the `_gait` style of a clip; a (low, high)
-# pair is drawn uniformly per clip, in this order, a number is used as is.
-_WALK = dict(
-    cadence=(0.85, 1.0),
-    speed=(1.1, 1.5),
-    hip_bias=-5,
-    hip_amp=(20, 26),
-    knee_stance=15,
-    knee_swing=(50, 60),
-    swing_peak=4.5,
-    ankle_push=15,
-    ankle_dorsi=8,
-    arm_amp=(12, 22),
-    arm_bias=0,
-    arm_abduction=-80,
-    elbow=(12, 25),
-    elbow_amp=6,
-    twist=5,
-    lean=(1, 4),
-    phase0=(0, 2 * np.pi),
-)
-_RUN = dict(
-    cadence=(1.3, 1.5),
-    speed=(2.6, 3.6),
-    hip_bias=-12,
-    hip_amp=(30, 38),
-    knee_stance=22,
-    knee_swing=(75, 95),
-    swing_peak=4.4,
-    ankle_push=25,
-    ankle_dorsi=10,
-    arm_amp=(35, 50),
-    arm_bias=-5,
-    arm_abduction=-75,
-    elbow=(80, 95),
-    elbow_amp=12,
-    twist=9,
-    lean=(5, 10),
-    phase0=(0, 2 * np.pi),
-)
+# `_gait` styles, one column per gait. A (low, high) pair is drawn uniformly per clip, row by
+# row in this order; a number is used as is. Walk and run keep a steady cadence (strides/s) and
+# speed (m/s); a sprint start accelerates (`_sprint_start`), so it has neither.
+_GAIT_NAMES = ("walk", "run", "sprint")
+# fmt: off
+_GAIT_TABLE = {
+    #                walk             run              sprint
+    "cadence":       ((0.85, 1.0),    (1.3, 1.5),      None),
+    "speed":         ((1.1, 1.5),     (2.6, 3.6),      None),
+    "hip_bias":      (-5,             -12,             -22),
+    "hip_amp":       ((20, 26),       (30, 38),        40),
+    "knee_stance":   (15,             22,              40),
+    "knee_swing":    ((50, 60),       (75, 95),        105),
+    "swing_peak":    (4.5,            4.4,             4.4),
+    "ankle_push":    (15,             25,              30),
+    "ankle_dorsi":   (8,              10,              8),
+    "arm_amp":       ((12, 22),       (35, 50),        55),
+    "arm_bias":      (0,              -5,              -5),
+    "arm_abduction": (-80,            -75,             -78),
+    "elbow":         ((12, 25),       (80, 95),        85),
+    "elbow_amp":     (6,              12,              15),
+    "twist":         (5,              9,               8),
+    "lean":          ((1, 4),         (5, 10),         0),
+    "phase0":        ((0, 2 * np.pi), (0, 2 * np.pi),  np.pi),
+}
+# fmt: on
+_GAITS = {
+    gait: {key: row[col] for key, row in _GAIT_TABLE.items()}
+    for col, gait in enumerate(_GAIT_NAMES)
+}
 
 
 def _steady_gait(
-    t: np.ndarray, rng: np.random.Generator, table: dict
+    t: np.ndarray, rng: np.random.Generator, gait: dict
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Gait angles and phase (`_gait`) at a constant cadence, and the speed, drawn from `table`."""
-    style = {k: rng.uniform(*v) if isinstance(v, tuple) else v for k, v in table.items()}
+    """Gait angles and phase (`_gait`) at a constant cadence, and the speed, drawn from `gait`
+    (a column of `_GAIT_TABLE`)."""
+    style = {k: rng.uniform(*v) if isinstance(v, tuple) else v for k, v in gait.items()}
     ang, phase = _gait(t, np.full_like(t, style["cadence"]), style)
     return ang, phase, style["speed"]
 
 
 def _walk(t: np.ndarray, rng: np.random.Generator) -> _Segment:
-    ang, _, speed = _steady_gait(t, rng, _WALK)
+    ang, _, speed = _steady_gait(t, rng, _GAITS["walk"])
     return _Segment(ang, speed * t, np.zeros_like(t), np.zeros_like(t))
 
 
 def _run(t: np.ndarray, rng: np.random.Generator) -> _Segment:
-    ang, phase, speed = _steady_gait(t, rng, _RUN)
+    ang, phase, speed = _steady_gait(t, rng, _GAITS["run"])
     flight = GRAVITY * 0.1**2 / 8  # peak height of a ~0.1 s flight phase, twice per stride
     lift = flight * np.clip(np.sin(2 * phase - 0.6), 0, None) ** 2
     return _Segment(ang, speed * t, np.zeros_like(t), lift)
@@ -287,24 +291,7 @@ def _sprint_start(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     drive = np.clip(t - t_set, 0, None)
     speed = vmax * (1 - np.exp(-drive / tau))
     cadence = 1.2 + 0.6 * (1 - np.exp(-drive / tau))
-    style = dict(
-        hip_bias=-22,
-        hip_amp=40,
-        knee_stance=40,
-        knee_swing=105,
-        swing_peak=4.4,
-        ankle_push=30,
-        ankle_dorsi=8,
-        arm_amp=55,
-        arm_bias=-5,
-        arm_abduction=-78,
-        elbow=85,
-        elbow_amp=15,
-        twist=8,
-        lean=0,
-        phase0=np.pi,
-    )
-    gait, _ = _gait(t, cadence, style)
+    gait, _ = _gait(t, cadence, _GAITS["sprint"])
     gait[:, 0, 0] = 12 + 38 * np.exp(-drive / 0.6)  # body lean decays while accelerating
     w = _smoothstep((t - t_set) / 0.35)[:, None, None]
     ang = (1 - w) * crouch[None] + w * gait
@@ -420,15 +407,7 @@ def _lunge(t: np.ndarray, rng: np.random.Generator) -> _Segment:
         right_ankle=(35, 0, 0),
         **hands,
     )
-    low_r = _with(
-        STAND,
-        right_hip=(-85, 0, 3),
-        right_knee=(92, 0, 0),
-        left_hip=(22, 0, 3),
-        left_knee=(80, 0, 0),
-        left_ankle=(35, 0, 0),
-        **hands,
-    )
+    low_r = _swap_sides(low_l)
     up = _with(STAND, **hands)
     keys = [
         _Key(0.0, up),
@@ -577,9 +556,7 @@ def _turn(t: np.ndarray, rng: np.random.Generator) -> _Segment:
     step_l = _with(
         STAND, left_hip=(-22, 0, 6), left_knee=(40, 0, 0), spine2=(0, 10 * np.sign(angle), 0)
     )
-    step_r = _with(
-        STAND, right_hip=(-22, 0, 6), right_knee=(40, 0, 0), spine2=(0, 10 * np.sign(angle), 0)
-    )
+    step_r = _swap_sides(step_l)
     keys = [
         _Key(0.0, STAND),
         _Key(0.25, step_l, turn=0.25 * angle, planted=("right",)),

@@ -52,18 +52,7 @@ class SceneSetup:
 
     @classmethod
     def build(cls, spec: SceneSpec) -> SceneSetup:
-        r = spec.rig
-        rig = make_rig(
-            r.kind,
-            n_cameras=r.n_cameras,
-            width=r.width,
-            height=r.height,
-            fov_deg=r.fov_deg,
-            focal_mm=r.focal_mm,
-            distortion=r.distortion,
-            fps=r.fps,
-            seed=spec.seed,
-        )
+        rig = make_rig(**spec.rig.model_dump(), seed=spec.seed)
         board = spec.board.board()
         poses = board_clip(
             board,
@@ -83,7 +72,7 @@ class SceneSetup:
         return cls(
             rig=rig,
             fps=float(rig.meta["fps"]),
-            stage=stage_for_rig(r.kind, spec.seed),
+            stage=stage_for_rig(spec.rig.kind, spec.seed),
             board=board,
             texture=board.texture(),
             board_poses=poses,

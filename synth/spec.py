@@ -17,6 +17,8 @@ class _Spec(BaseModel):
 
 
 class RigSpec(_Spec):
+    """`synth.rigs.make_rig`'s arguments, bar the seed (None: the rig kind's default)."""
+
     kind: Literal["dome", "h36m", "hall"] = "dome"
     n_cameras: int | None = Field(None, ge=1, le=256)
     width: int | None = Field(None, ge=16, le=8192)
