@@ -254,3 +254,17 @@ def make_scene(
         np.savez_compressed(root / "truth" / "masks" / f"{cam.name}.npz", masks=masks)
         videos[cam.name] = path
     return SynthScene(root, rig, videos, root / "truth", n_frames, n_people)
+
+
+def make_short_scene(root: Path, with_away_camera: bool = False) -> SynthScene:
+    """The short scene of the extraction tests: 12 frames, one person present only in frames
+    3..8 (a few frames are empty); `with_away_camera` adds a camera that sees no one."""
+    return make_scene(
+        root,
+        n_people=1,
+        n_frames=12,
+        present=(3, 8),
+        with_away_camera=with_away_camera,
+        seed=2,
+        laps=0.4,
+    )

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from calibration.camera import Camera, Rig, look_at_rotation
+from gst.body import load_body_model
 from gst.body.joint_limits import sample_body_pose
 from gst.body.markers import MarkerModel
 from gst.body.rotations import matrix_to_axis_angle
@@ -136,3 +137,10 @@ def write_store(path: Path, cap: Capture, noise_px=0.5, seed=0) -> np.ndarray:
         w.commit(batch, [(f, c) for f in range(T) for c in range(len(cap.rig))])
         w.finalize({"n_frames": T})
     return np.stack(lms).astype(np.float32)
+
+
+def capture_in_store(folder: Path, **capture) -> tuple[Capture, np.ndarray]:
+    """A capture of the open body model (`make_capture(**capture)`) written to folder/crops.h5;
+    the capture and the store's landmarks."""
+    cap = make_capture(load_body_model("anny"), **capture)
+    return cap, write_store(folder / "crops.h5", cap)

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 import trimesh
 
+from synth.scene import SceneSpec, preset
 from synth.skeleton import JOINT_NAMES, PARENTS
 
 # Rest joints of a ~1.68 m person in SMPL axes (x left, y up, z facing), pelvis at the origin.
@@ -270,3 +271,28 @@ def rig_io():
     from calibration import formats
 
     return formats.write_rig, formats.read_rig
+
+
+# The test scene before overrides, in `preset`'s double-underscore keys so that a nested override
+# (`rig=dict(width=160)`) changes only the fields it names.
+_SMALL_SCENE = {
+    "n_frames": 4,
+    "n_people": 2,
+    "motions": [["run"], ["squat"]],
+    "rig__kind": "dome",
+    "rig__n_cameras": 2,
+    "rig__width": 96,
+    "rig__height": 72,
+    "rig__distortion": "none",
+    "board__n_frames": 1,
+    "imaging__antialias": 1,
+    "imaging__background_samples": 1,
+    "imaging__shadow_samples": 1,
+}
+
+
+def small_scene_spec(**overrides) -> SceneSpec:
+    """The 'demo' preset cut down to a test scene: 4 frames of two people (run, squat), a dome of
+    two undistorted 96x72 cameras, a one-frame board clip and one sample per pixel, background
+    and shadow. `overrides` as `synth.scene.preset` takes them."""
+    return preset("demo", **{**_SMALL_SCENE, **overrides})

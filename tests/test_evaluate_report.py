@@ -11,7 +11,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
-from synth_fixtures import CapsuleBody, rig_io
+from synth_fixtures import CapsuleBody, rig_io, small_scene_spec
 from test_evaluate_metrics import JOINTS
 from test_train_recipe import crop_set
 
@@ -24,7 +24,7 @@ from gst.train.losses import LossWeights
 from gst.train.recipe import build_network, make_task
 from gst.train.scene_truth import attach_scene_truth
 from gst.train.synthetic_crops import crops_from_synth_scene
-from synth.scene import preset, render_scene
+from synth.scene import render_scene
 from synth.truth import has_scene_truth, read_scene_truth
 
 BODY = CapsuleBody()
@@ -33,16 +33,7 @@ BODY = CapsuleBody()
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("scene") / "tiny"
-    spec = preset(
-        "demo",
-        n_frames=4,
-        n_people=2,
-        motions=[["run"], ["squat"]],
-        rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="none"),
-        board=dict(n_frames=1),
-        imaging=dict(antialias=1, background_samples=1, shadow_samples=1),
-    )
-    render_scene(spec, out, body_model=BODY, rig_writer=rig_io()[0])
+    render_scene(small_scene_spec(), out, body_model=BODY, rig_writer=rig_io()[0])
     return out
 
 

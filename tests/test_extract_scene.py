@@ -26,7 +26,7 @@ from gst.data import (
     write_extract_report,
 )
 from gst.data.crop import CropBox
-from tests.extract_scenes import make_scene
+from tests.extract_scenes import make_scene, make_short_scene
 
 SMALL_VOLUME = CaptureVolume.around((0.0, 0.0, 1.0), (2.6, 2.6, 1.2))
 
@@ -44,15 +44,7 @@ def two_people(tmp_path_factory):
 @pytest.fixture(scope="module")
 def short_scene(tmp_path_factory):
     """12 frames, people present only in frames 3..8, plus a camera that sees no one."""
-    return make_scene(
-        tmp_path_factory.mktemp("short"),
-        n_people=1,
-        n_frames=12,
-        present=(3, 8),
-        with_away_camera=True,
-        seed=2,
-        laps=0.4,
-    )
+    return make_short_scene(tmp_path_factory.mktemp("short"), with_away_camera=True)
 
 
 def _opts(**kw):
@@ -68,20 +60,32 @@ def _opts(**kw):
     )
 
 
-def _extract_short(scene, out, **kw):
-    """`extract_scene` on a short scene: 64-pixel crops, the short-scene options (`_opts`)."""
-    return extract_scene(scene.videos, scene.rig, out, crop_size=64, options=_opts(), **kw)
+def _extract_short(scene, out, options=None, **kw):
+    """`extract_scene` on a short scene: 64-pixel crops, the short-scene options (`_opts`) unless
+    `options` are given."""
+    return extract_scene(
+        scene.videos,
+        scene.rig,
+        out,
+        crop_size=64,
+        options=_opts() if options is None else options,
+        **kw,
+    )
 
 
-HULL = ExtractOptions(association_method="hull")
+def _extract_with_hull(scene, out):
+    """`extract_scene` of a 30-frame scene: the visual-hull association, 96-pixel crops, scored
+    against the scene's truth."""
+    options = ExtractOptions(association_method="hull")
+    return extract_scene(
+        scene.videos, scene.rig, out, crop_size=96, truth=scene.truth, options=options
+    )
 
 
 @pytest.fixture(scope="module")
 def one_person_run(one_person, tmp_path_factory):
     out = tmp_path_factory.mktemp("one_run") / "crops.h5"
-    return extract_scene(
-        one_person.videos, one_person.rig, out, crop_size=96, truth=one_person.truth, options=HULL
-    ), out
+    return _extract_with_hull(one_person, out), out
 
 
 def test_single_person_masks_match_truth(one_person_run):
@@ -96,14 +100,7 @@ def test_single_person_masks_match_truth(one_person_run):
 
 
 def test_two_people_are_associated_across_cameras(two_people, tmp_path):
-    rep = extract_scene(
-        two_people.videos,
-        two_people.rig,
-        tmp_path / "crops.h5",
-        crop_size=96,
-        truth=two_people.truth,
-        options=HULL,
-    )
+    rep = _extract_with_hull(two_people, tmp_path / "crops.h5")
     assert rep.association_accuracy >= 0.98, rep.association_accuracy
     assert rep.persons == 2
     # Nearly every truth view (a person visible in a camera) produced a crop.
@@ -304,16 +301,9 @@ def test_clean_plate_reveals_a_person_standing_still(tmp_path_factory, tmp_path)
     a short video of the empty scene per camera (`background_videos`) fixes that."""
     still = make_scene(tmp_path_factory.mktemp("still"), n_people=1, n_frames=12, laps=0.0, seed=4)
     empty = make_scene(tmp_path_factory.mktemp("empty"), n_people=0, n_frames=8, seed=5)
-    without = extract_scene(
-        still.videos, still.rig, tmp_path / "a.h5", crop_size=64, truth=still.truth, options=_opts()
-    )
-    with_plate = extract_scene(
-        still.videos,
-        still.rig,
-        tmp_path / "b.h5",
-        crop_size=64,
-        truth=still.truth,
-        options=_opts(background_videos=empty.videos),
+    without = _extract_short(still, tmp_path / "a.h5", truth=still.truth)
+    with_plate = _extract_short(
+        still, tmp_path / "b.h5", _opts(background_videos=empty.videos), truth=still.truth
     )
     assert with_plate.mask_iou >= 0.9, with_plate.mask_iou
     assert with_plate.crops == 4 * 12

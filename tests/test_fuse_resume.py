@@ -15,9 +15,8 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from gst.body import load_body_model
 from gst.fuse import FitOptions, FuseOptions, fuse_scene
-from tests.fuse_fixtures import make_capture, write_store
+from tests.fuse_fixtures import capture_in_store
 
 ROOT = Path(__file__).resolve().parents[1]
 OPTS = FuseOptions(fit=FitOptions(iterations=60), people_per_batch=1, overlay=False)
@@ -27,8 +26,7 @@ OPTS = FuseOptions(fit=FitOptions(iterations=60), people_per_batch=1, overlay=Fa
 def scene(tmp_path_factory):
     torch.set_num_threads(1)
     tmp = tmp_path_factory.mktemp("fuse")
-    cap = make_capture(load_body_model("anny"), n_people=3, n_frames=4, n_cams=3, seed=7)
-    landmarks = write_store(tmp / "crops.h5", cap)
+    cap, landmarks = capture_in_store(tmp, n_people=3, n_frames=4, n_cams=3, seed=7)
     np.save(tmp / "landmarks.npy", landmarks)
     return tmp, cap, landmarks
 

@@ -19,7 +19,7 @@ from gst.track.batch import track_videos  # noqa: E402
 from gst.track.chunks import ChunkingConfig  # noqa: E402
 from pipeline.executors import LocalExecutor, make_executor  # noqa: E402
 from pipeline.ray_executor import ItemFailed, RayExecutor  # noqa: E402
-from tests.extract_scenes import make_scene  # noqa: E402
+from tests.extract_scenes import make_short_scene  # noqa: E402
 from tests.scaleout_items import KillOnceDetector, MarkedItem, always_fails, square_and_record  # noqa: E402
 from tests.scaleout_scenes import job, write_clip  # noqa: E402
 from tests.test_extract_scene import _opts  # noqa: E402
@@ -138,14 +138,7 @@ def _h5_contents(path):
 
 @pytest.fixture(scope="module")
 def small_scene(tmp_path_factory):
-    return make_scene(
-        tmp_path_factory.mktemp("extract"),
-        n_people=1,
-        n_frames=12,
-        present=(3, 8),
-        seed=2,
-        laps=0.4,
-    )
+    return make_short_scene(tmp_path_factory.mktemp("extract"))
 
 
 def test_extract_ray_equals_local(ray_executor, local_executor, small_scene, tmp_path):

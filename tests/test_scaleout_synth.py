@@ -9,10 +9,10 @@ import importlib.util
 from pathlib import Path
 
 import pytest
-from synth_fixtures import CapsuleBody, rig_io
+from synth_fixtures import CapsuleBody, rig_io, small_scene_spec
 
 from pipeline.executors import LocalExecutor
-from synth.scene import preset, render_scene
+from synth.scene import render_scene
 from synth.shares import camera_shares
 
 BODY = CapsuleBody()
@@ -21,14 +21,11 @@ HAVE_RAY = importlib.util.find_spec("ray") is not None
 
 
 def _spec():
-    return preset(
-        "demo",
+    return small_scene_spec(
         n_frames=5,
-        n_people=2,
-        motions=[["run"], ["squat"]],
-        rig=dict(kind="dome", n_cameras=3, width=80, height=60, distortion="mild"),
+        rig=dict(n_cameras=3, width=80, height=60, distortion="mild"),
         board=dict(n_frames=2),
-        imaging=dict(antialias=1, background_samples=1, shadow_samples=2),
+        imaging=dict(shadow_samples=2),
     )
 
 

@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 from pydantic import ValidationError
-from synth_fixtures import CapsuleBody, read_panoptic, rig_io
+from synth_fixtures import CapsuleBody, read_panoptic, rig_io, small_scene_spec
 
 from synth.io import read_masks
 from synth.scene import PRESETS, SceneSpec, preset, render_scene
@@ -23,13 +23,12 @@ WRITE_RIG, READ_RIG = rig_io()
 def _tiny(**overrides) -> SceneSpec:
     base = dict(
         n_frames=6,
-        n_people=2,
-        motions=[["run"], ["squat"]],
-        rig=dict(kind="dome", n_cameras=2, width=96, height=72, distortion="mild"),
-        board=dict(n_frames=3),
-        imaging=dict(antialias=2, background_samples=1, shadow_samples=2),
+        rig__distortion="mild",
+        board__n_frames=3,
+        imaging__antialias=2,
+        imaging__shadow_samples=2,
     )
-    return preset("demo", **{**base, **overrides})
+    return small_scene_spec(**{**base, **overrides})
 
 
 @pytest.fixture(scope="module")

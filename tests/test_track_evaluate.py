@@ -10,7 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from synth_fixtures import CapsuleBody, rig_io
+from synth_fixtures import CapsuleBody, rig_io, small_scene_spec
 
 from calibration.formats import read_rig
 from gst.track import BoxDepthPredictor, track_video
@@ -19,7 +19,7 @@ from gst.track.evaluation_report import evaluation_markdown, write_evaluation_js
 from gst.track.schema import SMPL_JOINT_NAMES, file_metadata, tracks_schema
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import box_iou
-from synth.scene import preset, render_scene
+from synth.scene import render_scene
 
 CAM = "cam0"
 N_FRAMES = 10
@@ -281,15 +281,11 @@ def test_identity_counts_match_a_run_length_reference(ids):
 @pytest.fixture(scope="module")
 def walkers(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "two"
-    spec = preset(
-        "demo",
+    spec = small_scene_spec(
         n_frames=20,
-        n_people=2,
         motions=[["walk"], ["walk"]],
         seed=0,
-        rig=dict(kind="dome", n_cameras=3, width=160, height=120, distortion="none"),
-        board=dict(n_frames=1),
-        imaging=dict(antialias=1, background_samples=1, shadow_samples=1),
+        rig=dict(n_cameras=3, width=160, height=120),
     )
     render_scene(spec, out, body_model=CapsuleBody(), rig_writer=rig_io()[0])
     return out

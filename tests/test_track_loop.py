@@ -54,6 +54,16 @@ def scene(tmp_path_factory):
     return {"dir": d, "video": video, "boxes": boxes, "visible": vis, "csv": csv}
 
 
+def track_scene(scene, out, detector=None, predictor=None, model=MODEL, **kwargs):
+    """`track_video` of the scene's clip into `out`; by default with its truth boxes (boxes.csv)
+    and the box-depth baseline predictor."""
+    if detector is None:
+        detector = SuppliedBoxes.from_file(scene["csv"])
+    if predictor is None:
+        predictor = BoxDepthPredictor()
+    return track_video(scene["video"], out, detector, predictor, model=model, **kwargs)
+
+
 def truth_identity(table, boxes):
     """The walker each row's box belongs to (boxes come straight from the truth file)."""
     frames = table.column("frame").to_numpy()
@@ -65,12 +75,10 @@ def truth_identity(table, boxes):
 
 def test_crossing_people_keep_their_ids(scene, tmp_path):
     assert (~scene["visible"]).sum() >= 3, "the scene must contain occluded frames"
-    res = track_video(
-        scene["video"],
+    res = track_scene(
+        scene,
         tmp_path,
         SuppliedBoxes.from_file(scene["csv"], "clip"),
-        BoxDepthPredictor(),
-        model=MODEL,
         options=TrackOptions(frames_per_group=9, batch_size=4),
     )
     t = read_tracks(res.path)
@@ -108,13 +116,8 @@ def naive_iou_switches(table, who):
 
 
 def test_metadata_is_complete_and_self_describing(scene, tmp_path):
-    res = track_video(
-        scene["video"],
-        tmp_path,
-        SuppliedBoxes.from_file(scene["csv"]),
-        BoxDepthPredictor(),
-        model={**MODEL, "preset": "tiny"},
-        options=TrackOptions(stride=2),
+    res = track_scene(
+        scene, tmp_path, model={**MODEL, "preset": "tiny"}, options=TrackOptions(stride=2)
     )
     schema = pq.read_schema(res.path)
     assert {k.decode() for k in schema.metadata} >= set(METADATA_KEYS)
@@ -178,14 +181,8 @@ def tilted_camera():
 
 def test_calibrated_camera_gives_consistent_world_values(scene, tmp_path):
     cam = tilted_camera()
-    res = track_video(
-        scene["video"],
-        tmp_path,
-        SuppliedBoxes.from_file(scene["csv"]),
-        RigidBodyPredictor(),
-        model=MODEL,
-        camera=cam,
-        world_up=[0, 0, 1],
+    res = track_scene(
+        scene, tmp_path, predictor=RigidBodyPredictor(), camera=cam, world_up=[0, 0, 1]
     )
     t = read_tracks(res.path)
     meta = read_metadata(res.path)
@@ -234,12 +231,10 @@ class JitteryPredictor:
 
 def test_smoothing_reduces_jitter(scene, tmp_path):
     def run(smoothing, sub):
-        res = track_video(
-            scene["video"],
+        res = track_scene(
+            scene,
             tmp_path / sub,
-            SuppliedBoxes.from_file(scene["csv"]),
-            JitteryPredictor(),
-            model=MODEL,
+            predictor=JitteryPredictor(),
             options=TrackOptions(smoothing=smoothing),
         )
         t = read_tracks(res.path)
@@ -258,15 +253,7 @@ def test_smoothing_reduces_jitter(scene, tmp_path):
 def test_many_videos_form_a_hive_dataset(scene, tmp_path):
     det = SuppliedBoxes.from_file(scene["csv"])
     for name in ("cam 1", "cam2"):  # a space must survive the partition path
-        track_video(
-            scene["video"],
-            tmp_path,
-            det,
-            BoxDepthPredictor(),
-            model=MODEL,
-            video_name=name,
-            options=TrackOptions(end_s=0.5),
-        )
+        track_scene(scene, tmp_path, det, video_name=name, options=TrackOptions(end_s=0.5))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["video=cam%201", "video=cam2"]
     dataset = ds.dataset(tmp_path, format="parquet", partitioning="hive")
     t = dataset.to_table()
@@ -294,7 +281,7 @@ class MaskingDetector:
 
 def test_detections_with_masks_track_the_same(scene, tmp_path):
     det = MaskingDetector(SuppliedBoxes.from_file(scene["csv"]))
-    res = track_video(scene["video"], tmp_path, det, BoxDepthPredictor(), model=MODEL)
+    res = track_scene(scene, tmp_path, det)
     t = read_tracks(res.path)
     who = truth_identity(t, scene["boxes"])
     pid = t.column("person_id").to_numpy()
@@ -312,12 +299,10 @@ class EveryThirdFrame:
 
 
 def test_frames_without_detections(scene, tmp_path):
-    res = track_video(
-        scene["video"],
+    res = track_scene(
+        scene,
         tmp_path,
         EveryThirdFrame(SuppliedBoxes.from_file(scene["csv"])),
-        BoxDepthPredictor(),
-        model=MODEL,
         options=TrackOptions(frames_per_group=4),
     )
     t = read_tracks(res.path)
@@ -338,14 +323,7 @@ def test_non_finite_predictions_are_dropped_and_counted(scene, tmp_path):
                 out["joints_cam"][0, 5, 1] = np.nan
             return out
 
-    res = track_video(
-        scene["video"],
-        tmp_path,
-        SuppliedBoxes.from_file(scene["csv"]),
-        SometimesNaN(),
-        model=MODEL,
-        options=TrackOptions(batch_size=4),
-    )
+    res = track_scene(scene, tmp_path, predictor=SometimesNaN(), options=TrackOptions(batch_size=4))
     stats = read_metadata(res.path)["stats"]
     assert stats["dropped_nonfinite"] > 0
     assert (
@@ -371,12 +349,11 @@ def test_extra_outputs_reach_the_callback_per_row(scene, tmp_path):
             return d[::-1] if frame_index >= 10 else d
 
     got = []
-    res = track_video(
-        scene["video"],
+    res = track_scene(
+        scene,
         tmp_path,
         Shuffled(),
         WithGaussians(),
-        model=MODEL,
         options=TrackOptions(batch_size=4, frames_per_group=6),
         on_extra=lambda f, p, extra: got.append((f, p, extra["gaussian_means"])),
     )
@@ -393,14 +370,7 @@ def test_video_with_nobody_gives_an_empty_valid_file(scene, tmp_path):
         def detect(self, frame_bgr, frame_index):
             return []
 
-    res = track_video(
-        scene["video"],
-        tmp_path,
-        Nobody(),
-        BoxDepthPredictor(),
-        model=MODEL,
-        options=TrackOptions(frames_per_group=16),
-    )
+    res = track_scene(scene, tmp_path, Nobody(), options=TrackOptions(frames_per_group=16))
     t = read_tracks(res.path)
     assert t.num_rows == 0 and res.frames == N and read_metadata(res.path)["stats"]["frames"] == N
     assert column_array(t, "joints3d").shape == (0, 24, 3)
@@ -412,6 +382,4 @@ def test_predictor_with_wrong_betas_count_is_named(scene, tmp_path):
             super().__init__(num_betas=11)
 
     with pytest.raises(ValueError, match="returned 11 betas per person, expected num_betas = 10"):
-        track_video(
-            scene["video"], tmp_path, SuppliedBoxes.from_file(scene["csv"]), Eleven(), model=MODEL
-        )
+        track_scene(scene, tmp_path, predictor=Eleven())

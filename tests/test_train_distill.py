@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from gst.body import load_body_model
 from gst.fuse import FitOptions, FuseOptions, fuse_scene
 from gst.lift.teacher import RigTeacher
 from gst.model.assemble import BodyPrediction
@@ -21,7 +20,7 @@ from gst.train.distill import (
     training_rows,
 )
 from gst.train.views import heldout_frame_start, load_cropset
-from tests.fuse_fixtures import make_capture, write_store
+from tests.fuse_fixtures import capture_in_store
 
 OPTS = FuseOptions(fit=FitOptions(iterations=40), overlay=False)
 
@@ -30,8 +29,7 @@ OPTS = FuseOptions(fit=FitOptions(iterations=40), overlay=False)
 def scene(tmp_path_factory):
     torch.set_num_threads(1)
     tmp = tmp_path_factory.mktemp("distill")
-    cap = make_capture(load_body_model("anny"), n_people=2, n_frames=6, n_cams=4, seed=3)
-    landmarks = write_store(tmp / "crops.h5", cap)
+    cap, landmarks = capture_in_store(tmp, n_people=2, n_frames=6, n_cams=4, seed=3)
     # the fuse stage's output: every camera and frame
     fuse_scene(tmp / "crops.h5", cap.rig, tmp / "fused", tmp / "report", fps=30.0,
                options=OPTS, landmarks=landmarks)  # fmt: skip
