@@ -380,7 +380,7 @@ def real_footage(args) -> None:
     from calibration.formats import read_rig
     from gst.detect.weights import model_paths
     from gst.track.person_detector import PersonModelDetector
-    from gst.track.scene import TrackSettings, person_model_config
+    from gst.track.scene import TrackSettings, network_threads, person_model_config
 
     video = LAB / f"{args.camera}.mp4"
     if not video.is_file():
@@ -403,14 +403,22 @@ def real_footage(args) -> None:
             return lambda: PersonModelDetector(replace(default, **kw))
 
         default = person_model_config(TrackSettings())  # what `run track` uses for one video
-        variants = [
-            ("old: detector + masks every frame", SegmentEveryFrame, opts()),
-            (f"new: stage default ({default.threads} LiteRT threads)", new(), opts()),
-            ("new, 1 LiteRT thread", new(threads=1), opts()),
-            ("new, one landmark call per person", new(batch=False), opts()),
-            ("new, no prefetch (one Python thread)", new(), opts(prefetch=0)),
-            ("old, stride 2", SegmentEveryFrame, opts(stride=2)),
-            ("new, stride 2 (stage default)", new(), opts(stride=2)),
+        torch_default = torch.get_num_threads()
+        stage_torch = network_threads(TrackSettings(), "blazepose", 1, 1) or torch_default
+        variants = [  # (name, detector factory, options, torch threads for the network)
+            ("old: detector + masks every frame", SegmentEveryFrame, opts(), torch_default),
+            (
+                f"new: stage default ({default.threads} LiteRT, {stage_torch} torch threads)",
+                new(),
+                opts(),
+                stage_torch,
+            ),
+            (f"new, {torch_default} torch threads", new(), opts(), torch_default),
+            ("new, 1 LiteRT thread", new(threads=1), opts(), stage_torch),
+            ("new, one landmark call per person", new(batch=False), opts(), stage_torch),
+            ("new, no prefetch (one Python thread)", new(), opts(prefetch=0), torch_default),
+            ("old, stride 2", SegmentEveryFrame, opts(stride=2), torch_default),
+            ("new, stride 2 (stage default)", new(), opts(stride=2), stage_torch),
         ]
         if args.only:
             keep = [v for v in variants if args.only in v[0]]
@@ -426,8 +434,9 @@ def real_footage(args) -> None:
         )
         components(video, camera, n, gst, fps)
         reference = None
-        for k, (name, make, options) in enumerate(variants):
+        for k, (name, make, options, torch_threads) in enumerate(variants):
             walls, cpus, res, det = [], [], None, None
+            torch.set_num_threads(torch_threads)
             for _rep in range(args.repeats):
                 out = tmp / f"out{k}"
                 shutil.rmtree(out, ignore_errors=True)

@@ -8,7 +8,7 @@ the error against the truth).
 
 from __future__ import annotations
 
-from gst.fuse import FitOptions, FuseOptions, RegroupOptions, fuse_scene
+from gst.fuse import FitOptions, FuseOptions, RegroupOptions, TriangulationOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
 
@@ -19,6 +19,7 @@ class Params(StageParams):
     smoothness: float = 1.0  # weight of the temporal smoothness term
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
     refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
+    pair_consensus: int = 0  # > 0: RANSAC over view pairs per landmark, among this many views
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -36,6 +37,7 @@ def run(ctx: StageContext) -> None:
             body_model=p.body_model,
             markers=p.markers,
             fit=FitOptions(iterations=p.iterations, w_smooth=p.smoothness),
+            triangulation=TriangulationOptions(consensus_views=p.pair_consensus),
             regroup=RegroupOptions() if p.regroup else None,
             refine_rig_rounds=p.refine_rig,
             people_per_batch=p.people_per_batch,

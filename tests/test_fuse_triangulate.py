@@ -81,6 +81,28 @@ def test_one_corrupted_view_is_rejected():
     assert robust.error.max() < 2.0  # px, over the kept views
 
 
+def test_two_wrong_views_of_six_are_rejected_by_pair_consensus():
+    """Two views agreeing on nothing drag the all-view point so that leaving one out cannot
+    recover it; the pair hypotheses find the four that agree."""
+    rng = np.random.default_rng(11)
+    K, Rt = _rig(6, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (60, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    uv = uv + rng.normal(0, 0.5, uv.shape)
+    bad = np.stack([rng.choice(6, 2, replace=False) for _ in X])  # (N, 2) distinct views
+    rows = np.arange(len(X))[:, None]
+    uv[rows, bad] += rng.uniform(40, 120, (len(X), 2, 2)) * rng.choice([-1, 1], (len(X), 2, 2))
+    conf = rng.uniform(0.6, 1.0, (len(X), 6))
+    loo = triangulate_points(Kb, Rtb, uv, conf)  # the default: leave-one-out only
+    robust = triangulate_points(Kb, Rtb, uv, conf, options=TriangulationOptions(consensus_views=8))
+    assert not robust.used[rows, bad].any()  # both wrong views dropped
+    assert (robust.used.sum(1) == 4).all()  # and only they
+    err_loo = np.linalg.norm(loo.points - X, axis=1)
+    err_robust = np.linalg.norm(robust.points - X, axis=1)
+    assert err_robust.max() < 0.01
+    assert (err_loo > 0.02).sum() >= 3  # leave-one-out alone misses some (7 of these 60)
+
+
 def test_points_with_fewer_than_two_views_are_flagged():
     rng = np.random.default_rng(5)
     K, Rt = _rig(4, rng)

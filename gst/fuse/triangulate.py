@@ -6,11 +6,18 @@ N points (numpy):
 
 1. confidence-weighted DLT in normalised coordinates (x = K^-1 [u, v, 1] against [R | t]),
    which keeps the homogeneous system well conditioned whatever the pixel scale;
-2. leave-one-out rejection: while a point's worst used view misses by more than
+2. pair consensus (optional, `consensus_views`; a RANSAC that tries every hypothesis): for a
+   point seen by 3 or more views, every pair of its `consensus_views` most confident views is
+   triangulated alone, and the pair whose point the most views see within `outlier_px` wins
+   (ties: more confidence, then smaller errors); its agreeing views are kept. Leave-one-out
+   alone cannot undo two wrong views out of six: the all-view point is dragged by both, and
+   dropping either one still leaves the other (on the demo, a kicking leg's ankle wrong in 2 of
+   6 views landed 0.5 m off);
+3. leave-one-out rejection: while a point's worst used view misses by more than
    `outlier_px` and more than 2 views remain, every subset that drops one view is solved and
    the one whose own worst error is smallest is kept (an outlier view drags the all-view DLT
    towards itself, so the view with the largest residual is not necessarily the bad one);
-3. Gauss-Newton refinement of the confidence-weighted reprojection error over the kept views.
+4. Gauss-Newton refinement of the confidence-weighted reprojection error over the kept views.
 
 Per point it records the views used, the reprojection error (in the observation's `px_scale`
 units: full-image pixels when `px_scale` = crop side / crop size) and a confidence.
@@ -18,6 +25,7 @@ units: full-image pixels when `px_scale` = crop side / crop size) and a confiden
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +46,11 @@ class TriangulationOptions:
     outlier_px: float = 12.0  # worst-view error (px_scale units) above which a view is dropped
     max_rejections: int = 2  # leave-one-out rounds
     refine_iterations: int = 5  # Gauss-Newton steps
+    # pair hypotheses among this many most confident views of a point (0: no pair consensus).
+    # Off by default: on the demo it halves a kicking ankle's error (fused MPJPE 35.7 -> 35.1
+    # mm), on the six crowd scenes it is no better on average (84.7 -> 85.5 mm; 4.8 mm worse on
+    # one, where wrongly associated views of another person outnumber the right ones)
+    consensus_views: int = 0
 
 
 @dataclass
@@ -82,6 +95,44 @@ def _errors(P: np.ndarray, uv: np.ndarray, X: np.ndarray, scale: np.ndarray) -> 
     proj, z = project(P, X)
     err = np.linalg.norm(proj - uv, axis=-1) * scale
     return np.where(z > 0, err, np.inf)  # behind a camera: never acceptable
+
+
+def _pair_consensus(
+    P, Pn, xn, uv, conf, seen, scale, outlier_px: float, max_views: int, chunk: int = 4096
+) -> np.ndarray:
+    """(N, C) views to keep: those that agree with the best two-view hypothesis of each point
+    seen by 3 or more views (the rest keep every seen view)."""
+    used = seen.copy()
+    todo = np.flatnonzero(seen.sum(1) >= 3)
+    V = min(max_views, seen.shape[1])
+    if not len(todo) or V < 3:
+        return used
+    C = seen.shape[1]
+    pairs = np.array(list(itertools.combinations(range(V), 2)))  # (Q, 2) ranks
+    for start in range(0, len(todo), chunk):
+        idx = todo[start : start + chunk]
+        n = np.arange(len(idx))[:, None, None]
+        rank = np.argsort(-np.where(seen[idx], conf[idx], -1.0), axis=1, kind="stable")[:, :V]
+        views = rank[:, pairs]  # (n, Q, 2) view indices of each hypothesis
+        ok = seen[idx][n, views].all(-1)  # (n, Q): both views really seen
+        X = _dlt(Pn[idx][n, views], xn[idx][n, views], conf[idx][n, views] * ok[..., None])
+        err = _errors(P[idx][:, None], uv[idx][:, None], X, scale[idx][:, None])
+        agree = (err <= outlier_px) & seen[idx][:, None] & ok[..., None]  # (n, Q, C)
+        count = agree.sum(-1)
+        # most agreeing views; then the most confidence (< 1 view's worth); then small errors
+        key = (
+            count
+            + 0.5 * (agree * conf[idx][:, None]).sum(-1) / C
+            - 0.01
+            * np.where(seen[idx][:, None], np.minimum(err, outlier_px), 0).sum(-1)
+            / (C * outlier_px)
+        )
+        key = np.where(ok & np.isfinite(X).all(-1), key, -np.inf)
+        best = key.argmax(1)
+        win = agree[np.arange(len(idx)), best]  # (n, C)
+        good = win.sum(1) >= 2
+        used[idx[good]] = win[good]
+    return used
 
 
 def _refine(P, uv, w, X, iterations: int) -> np.ndarray:
@@ -143,6 +194,8 @@ def triangulate_points(
     xh = np.linalg.solve(safe_K, np.concatenate([uv0, np.ones((N, C, 1))], -1)[..., None])[..., 0]
     Pn, xn = np.nan_to_num(Rt), xh[..., :2] / xh[..., 2:3]
     used = seen.copy()
+    if o.consensus_views:
+        used = _pair_consensus(P, Pn, xn, uv0, conf, seen, scale, o.outlier_px, o.consensus_views)
     X = _dlt(Pn, xn, np.where(used, conf, 0.0))
     for _ in range(o.max_rejections):
         err = np.where(used, _errors(P, uv0, X, scale), 0.0)

@@ -110,11 +110,22 @@ def _chunked_run(job: VideoJob, chunking: ChunkingConfig) -> VideoRun:
 
 def run_item(item: _Item) -> Any:
     """Worker side: track one whole video (-> VideoOutcome) or one chunk (-> its record)."""
-    job = item.job
-    if job.threads:
-        import torch  # only the worker's own pool; the caller's is untouched
+    if not item.job.threads:
+        return _run_item(item)
+    import torch
 
-        torch.set_num_threads(job.threads)
+    # The job's own torch pool; put back afterwards, since an in-process executor shares the
+    # caller's (a worker process's pool is its own anyway).
+    before = torch.get_num_threads()
+    torch.set_num_threads(item.job.threads)
+    try:
+        return _run_item(item)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _run_item(item: _Item) -> Any:
+    job = item.job
     detector, predictor = job.detector(), job.predictor()
     if item.chunk is None:
         extras: dict[int, dict] = {}

@@ -128,10 +128,32 @@ def choose_detector(s: TrackSettings) -> tuple[str, str]:
     return "blazepose", f"{how}: the learned person model (BlazePose) is installed"
 
 
+def _cores_per_video(parallel_videos: int) -> int:
+    return max(1, (os.cpu_count() or 1) // parallel_videos)
+
+
 def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:
     """The learned person model's settings for `s`, with `parallel_videos` tracked at once."""
-    threads = s.detector_threads or max(1, min(4, (os.cpu_count() or 1) // parallel_videos))
+    threads = s.detector_threads or min(4, _cores_per_video(parallel_videos))
     return PersonModelConfig(detect_every=s.detect_every, threads=threads)
+
+
+def network_threads(s: TrackSettings, kind: str, workers: int, parallel_videos: int) -> int | None:
+    """torch threads for each video's network (None: leave torch's pool as it is).
+
+    `track.threads` when set; one per worker when several videos share the cores. With the
+    learned person model, which runs in its own thread beside the network, the network gets the
+    cores the person model's LiteRT threads leave, at least one: on 2 cores two torch threads
+    fighting the two LiteRT threads cost ~10 % of the frame rate on the lab capture (25.2 against
+    23.1, 28.5 against 26.1 and 26.4 against 23.8 frames/s on cam01, cam02 and cam04)."""
+    if s.threads:
+        return s.threads
+    if workers > 1:
+        return 1
+    if kind == "blazepose":
+        cores = _cores_per_video(parallel_videos)
+        return max(1, cores - person_model_config(s, parallel_videos).threads)
+    return None
 
 
 def _detector(
@@ -226,9 +248,8 @@ def track_scene(
         smoothing=OneEuroConfig(min_cutoff=s.min_cutoff, beta=s.beta) if s.smoothing else None,
         align=AlignmentConfig() if s.align_to_landmarks else None,
     )
-    # Parallel workers share the cores: one torch thread each unless told otherwise.
-    threads = s.threads or (1 if workers > 1 else None)
     parallel_videos = max(1, min(workers, len(request.videos)))
+    threads = network_threads(s, kind, workers, parallel_videos)
     predictor = functools.partial(
         GSTPredictor, request.checkpoint, with_gaussians=with_gaussians, batch_size=s.batch_size
     )

@@ -1,0 +1,64 @@
+"""How `track` shares the cores between the person model's LiteRT threads and the network's
+torch threads, and that a job's torch threads do not leak into the caller's process."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gst.track import batch
+from gst.track.scene import TrackSettings, network_threads, person_model_config
+
+
+@pytest.fixture
+def cores(monkeypatch):
+    def set_cores(n: int) -> None:
+        monkeypatch.setattr("gst.track.scene.os.cpu_count", lambda: n)
+
+    return set_cores
+
+
+def test_network_gets_the_cores_the_person_model_leaves(cores):
+    cores(2)
+    s = TrackSettings()
+    assert person_model_config(s).threads == 2
+    assert network_threads(s, "blazepose", workers=1, parallel_videos=1) == 1
+    cores(16)
+    assert person_model_config(s).threads == 4  # LiteRT is capped at 4
+    assert network_threads(s, "blazepose", workers=1, parallel_videos=1) == 12
+    # two videos at once on 16 cores: 8 each, 4 of them to LiteRT
+    assert network_threads(s, "blazepose", workers=1, parallel_videos=2) == 4
+    cores(1)
+    assert network_threads(s, "blazepose", workers=1, parallel_videos=1) == 1
+
+
+def test_explicit_settings_and_other_detectors(cores):
+    cores(2)
+    assert network_threads(TrackSettings(threads=3), "blazepose", 1, 1) == 3
+    assert network_threads(TrackSettings(), "blazepose", workers=2, parallel_videos=2) == 1
+    # without the person model's thread, torch keeps its own pool
+    assert network_threads(TrackSettings(), "background", 1, 1) is None
+    assert network_threads(TrackSettings(), "boxes", 1, 1) is None
+    s = TrackSettings(detector_threads=1)
+    assert network_threads(s, "blazepose", 1, 1) == 1  # 2 cores - 1 LiteRT thread
+
+
+def test_a_jobs_torch_threads_are_put_back(monkeypatch):
+    seen = []
+
+    def fake_run(item):
+        seen.append(torch.get_num_threads())
+        raise RuntimeError("the job failed")
+
+    monkeypatch.setattr(batch, "_run_item", fake_run)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)  # the caller's pool, different from the job's
+    try:
+        job = batch.VideoJob(video=None, detector=None, predictor=None, model={}, threads=1)
+        item = batch._Item(job, out_root=None, staging_root=None)
+        with pytest.raises(RuntimeError, match="the job failed"):
+            batch.run_item(item)
+        assert seen == [1]
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
