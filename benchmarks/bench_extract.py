@@ -28,6 +28,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -92,14 +93,17 @@ VARIANTS = [
     ("blazepose masks, work 1/2", "median", None, "gzip", True),
     # Keypoint association (BlazePose instances, landmarks matched across views).
     ("keypoints, work 1/2", "median", None, "gzip", "keypoints"),
+    # ... with the person detector every 10 frames, people followed by their landmark regions
+    ("keypoints, detector every 10", "median", None, "gzip", "keypoints-10"),
 ]
 
 
 SCENE_VARIANTS = [
-    # name, association method, person model
-    ("background + hull (old)", "hull", "none"),
-    ("blazepose masks + hull", "hull", "blazepose"),
-    ("keypoints (new)", "keypoints", "none"),
+    # name, association method, person model, person detector every N frames (keypoints)
+    ("background + hull (old)", "hull", "none", 1),
+    ("blazepose masks + hull", "hull", "blazepose", 1),
+    ("keypoints (new)", "keypoints", "none", 1),
+    ("keypoints, detector every 10", "keypoints", "none", 10),
 ]
 
 
@@ -118,10 +122,12 @@ def compare_on_scenes(scenes: list[Path], chosen: list[int]) -> None:
         names = [c.name for c in rig]
         videos = {n: scene / "videos" / f"{n}.mp4" for n in names}
         plates = {n: scene / "board" / f"{n}.mp4" for n in names}
-        for name, method, person in [SCENE_VARIANTS[i] for i in chosen]:
+        for name, method, person, every in [SCENE_VARIANTS[i] for i in chosen]:
             work = Path(tempfile.mkdtemp(prefix="bench_extract_"))
             try:
                 opts = Options.from_settings(plates, None, person, association_method=method)
+                if method == "keypoints":
+                    opts = replace(opts, persons=SegmenterConfig(detect_every=every))
                 t = time.perf_counter()
                 rep = extract_scene(
                     videos, rig, work / "crops.h5", truth=scene / "truth", options=opts
@@ -212,6 +218,12 @@ def main() -> None:
                 out = work / f"v{vi}" / "crops.h5"
                 if out.parent.exists():
                     shutil.rmtree(out.parent)
+                if persons is True:
+                    segmenter = SegmenterConfig()
+                elif persons == "keypoints-10":
+                    segmenter = SegmenterConfig(detect_every=10)
+                else:
+                    segmenter = None  # hull without person model; keypoints: its default
                 t = time.perf_counter()
                 rep = extract_scene(
                     videos,
@@ -222,8 +234,8 @@ def main() -> None:
                     options=ExtractOptions(
                         work_scale=ws,
                         compression=comp,
-                        persons=SegmenterConfig() if persons is True else None,
-                        association_method="keypoints" if persons == "keypoints" else "hull",
+                        persons=segmenter,
+                        association_method="hull" if persons in (True, False) else "keypoints",
                     ),
                 )
                 times.append(time.perf_counter() - t)

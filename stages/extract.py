@@ -12,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
+from pydantic import Field
+
 from gst.data import ExtractOptions, extract_scene, write_extract_report
 from pipeline.stage import Stage, StageContext, StageParams
 
@@ -28,6 +30,7 @@ class Params(StageParams):
     # 'blazepose': learned person masks (the `detect` extra; docs/person_models.md).
     person_model: Literal["none", "blazepose"] = "none"
     person_hints: bool = True  # also segment around moving background blobs
+    person_detect_every: int = Field(1, ge=1)  # BlazePose detector every N frames (tracked)
     # 'auto': keypoint association when BlazePose is installed, else the visual hull
     association_method: Literal["auto", "keypoints", "hull"] = "auto"
 
@@ -39,7 +42,7 @@ def run(ctx: StageContext) -> None:
         plates = {n: ctx.path(f"synth/board/{n}.mp4") for n in videos}
     options = ExtractOptions.from_settings(
         plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance,
-        p.association_method,
+        p.association_method, p.person_detect_every,
     )  # fmt: skip
     report = extract_scene(
         videos, ctx.rig(), ctx.out("crops/crops.h5"), crop_size=p.crop_size, scale=p.scale,

@@ -58,3 +58,38 @@ def test_batched_landmarks_equal_one_call_per_region(frames):
         np.testing.assert_allclose(a.landmarks, b.landmarks, atol=1e-4)
         np.testing.assert_allclose(a.mask_logits, b.mask_logits, atol=1e-3)
         assert abs(a.presence - b.presence) < 1e-5
+
+
+def test_segmenter_follows_people_between_detector_runs(frames):
+    """Extraction's phase 1 (gst.detect.persons.PersonSegmenter) with the detector every 10
+    frames: the same two people in every frame as with the detector on every frame, one
+    landmark-model call per person and frame, and the detector on frames 0 and 10 only."""
+    from gst.detect.blazepose import BlazePose
+    from gst.detect.persons import LIMB_JOINTS, PersonSegmenter, SegmenterConfig
+
+    small = [cv2.resize(f, (544, 960), interpolation=cv2.INTER_AREA) for f in frames]
+    model = BlazePose()
+    calls = []
+    segment = model.segment
+    model.segment = lambda image, roi: calls.append(roi) or segment(image, roi)
+    every = PersonSegmenter(model, SegmenterConfig(detect_every=1))
+    sparse = PersonSegmenter(model, SegmenterConfig(detect_every=10))
+    for f in small:
+        _, reference = every.segment(f)
+        n = len(calls)
+        labels, people = sparse.segment(f)
+        assert len(calls) - n == 2  # one call per person: detections of them are not repeated
+        assert len(people) == len(reference) == 2
+        assert set(np.unique(labels)) == {0, 1, 2}
+        for p in people:  # the same people: a tracked person's region is the same in both runs
+            d = min(
+                np.median(
+                    np.linalg.norm(
+                        p.landmarks[LIMB_JOINTS, :2] - r.landmarks[LIMB_JOINTS, :2], axis=1
+                    )
+                )
+                for r in reference
+            )
+            assert d < 1e-3
+    assert every.detector_runs == len(small)
+    assert sparse.detector_runs == 2

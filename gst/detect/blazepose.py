@@ -173,6 +173,14 @@ def roi_from_box(box: tuple[float, float, float, float]) -> BodyRoi:
     return BodyRoi((x + w / 2, y + h / 2), ROI_SCALE * max(w, h), 0.0)
 
 
+def same_region(a: BodyRoi, b: BodyRoi, tolerance: float) -> bool:
+    """Whether two regions frame the same body: centres within `tolerance` x the larger side
+    and sides within that share of each other."""
+    side = max(a.side, b.side)
+    d = np.hypot(a.centre[0] - b.centre[0], a.centre[1] - b.centre[1])
+    return d < tolerance * side and abs(a.side - b.side) < tolerance * side
+
+
 # --- the models ------------------------------------------------------------------------------
 
 

@@ -32,6 +32,7 @@ from gst.detect.blazepose import (
     BodyRoi,
     RegionLandmarks,
     roi_from_alignment,
+    same_region,
 )
 from gst.detect.persons import same_person, skeleton_support
 from gst.track.detection import Detection
@@ -173,11 +174,3 @@ class PersonModelDetector:
                 continue
             out.append(Detection(box=full, score=r.presence, landmarks=lm))
         return out
-
-
-def same_region(a: BodyRoi, b: BodyRoi, tolerance: float) -> bool:
-    """Whether two regions frame the same body: centres within `tolerance` x the larger side
-    and sides within that share of each other."""
-    side = max(a.side, b.side)
-    d = np.hypot(a.centre[0] - b.centre[0], a.centre[1] - b.centre[1])
-    return d < tolerance * side and abs(a.side - b.side) < tolerance * side

@@ -47,6 +47,8 @@ class ExtractOptions:
     persons_models_dir: str | None = None  # None: the default cache (python -m gst.detect fetch)
     # Also segment around moving background blobs (finds movers the detector misses).
     persons_hints: bool = True
+    # The person detector every this many frames while everyone is tracked (SegmenterConfig)
+    person_detect_every: int = 1
     # Frames smaller than the calibrated size by up to this many pixels are encoder padding
     # (calibration.camera.fit_to_frames).
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
@@ -73,17 +75,24 @@ class ExtractOptions:
         person_hints: bool = True,
         frame_size_tolerance: int = FRAME_PADDING_TOLERANCE,
         association_method: str = "auto",
+        person_detect_every: int = 1,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
-        model ('none' or 'blazepose'), whether to segment around moving blobs too, and the
-        association method ('auto', 'keypoints' or 'hull')."""
+        model ('none' or 'blazepose'), whether to segment around moving blobs too, the
+        association method ('auto', 'keypoints' or 'hull') and how often the person detector
+        runs while everyone is tracked."""
         if person_model not in ("none", "blazepose"):
             raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
         return cls(
             background_videos=background_videos,
             association=AssociationConfig(**(association or {})),
-            persons=SegmenterConfig() if person_model == "blazepose" else None,
+            persons=(
+                SegmenterConfig(detect_every=person_detect_every)
+                if person_model == "blazepose"
+                else None
+            ),
             persons_hints=person_hints,
+            person_detect_every=person_detect_every,
             frame_size_tolerance=frame_size_tolerance,
             association_method=association_method,
         )
