@@ -7,6 +7,7 @@ visual-hull path, plus each slot's landmarks and whether one camera only saw tha
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -29,8 +30,10 @@ SKELETON_WIDTH = 0.08  # a region's mask stays within this share of its side of 
 
 def _landmark_segmenter(models_dir: str | None):
     """The landmark model as `CrowdTracker` calls it: landmarks, presence and the person
-    probability near that person's own skeleton (as `PersonSegmenter` keeps it)."""
-    model = BlazePose(models_dir)
+    probability near that person's own skeleton (as `PersonSegmenter` keeps it). The
+    association runs alone in this process after phase 1, so LiteRT gets the cores (same
+    numbers for any thread count)."""
+    model = BlazePose(models_dir, threads=max(1, min(4, os.cpu_count() or 1)))
 
     def segment(camera: str, image: np.ndarray, roi):
         s = model.segment(image, roi)
