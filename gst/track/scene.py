@@ -77,7 +77,7 @@ class TrackSettings(BaseModel):
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     # move each body onto its confident 2D landmarks (translation only, gst.track.align)
     align_to_landmarks: bool = True
-    threads: int | None = None
+    threads: int | None = None  # torch threads; None: gst.track.scene.network_threads
     min_hits: int = 3  # consecutive detections before a new person gets an id
     max_misses: int = 30  # processed frames a person may go undetected and keep the id
     # Split videos longer than this many processed frames into chunks tracked in parallel and
