@@ -14,6 +14,8 @@ from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Protocol
 
+from gst.cores import available_cores
+
 
 class Executor(Protocol):
     workers: int
@@ -48,7 +50,7 @@ class LocalExecutor:
     """Runs items in a process pool (or inline for one worker or one item)."""
 
     def __init__(self, workers: int | None = None, progress: ProgressFactory | None = None):
-        self.workers = max(1, workers or os.cpu_count() or 1)
+        self.workers = max(1, workers or available_cores())
         self._progress = progress
 
     def map(self, fn, items, description: str = "") -> list:

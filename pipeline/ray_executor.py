@@ -23,6 +23,8 @@ from typing import Any
 import ray
 from ray.exceptions import RayError, RayTaskError
 
+from gst.cores import available_cores
+
 ProgressFactory = Callable[..., Any]
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,7 +68,7 @@ class RayExecutor:
                 f"retries must be >= 0, got max_retries={max_retries}, "
                 f"exception_retries={exception_retries}"
             )
-        self.workers = max(1, workers or os.cpu_count() or 1)
+        self.workers = max(1, workers or available_cores())
         self.address = address
         self.max_retries = max_retries
         self.exception_retries = exception_retries

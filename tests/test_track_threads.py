@@ -13,7 +13,7 @@ from gst.track.scene import TrackSettings, network_threads, person_model_config
 @pytest.fixture
 def cores(monkeypatch):
     def set_cores(n: int) -> None:
-        monkeypatch.setattr("gst.track.scene.os.cpu_count", lambda: n)
+        monkeypatch.setattr("gst.track.scene.available_cores", lambda: n)
 
     return set_cores
 
@@ -62,3 +62,19 @@ def test_a_jobs_torch_threads_are_put_back(monkeypatch):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_available_cores_follow_the_process_affinity(monkeypatch):
+    import gst.cores as cores
+
+    monkeypatch.setattr(cores.os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 3}, raising=False)
+    assert cores.available_cores() == 2  # a container allowed 2 of the machine's 64
+
+    def no_affinity(pid):
+        raise AttributeError("no sched_getaffinity here")
+
+    monkeypatch.setattr(cores.os, "sched_getaffinity", no_affinity, raising=False)
+    assert cores.available_cores() == 64
+    monkeypatch.setattr(cores.os, "cpu_count", lambda: None)
+    assert cores.available_cores() == 1

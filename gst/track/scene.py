@@ -13,7 +13,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
 from gst.atomic import atomic_write
+from gst.cores import available_cores
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
 from gst.model.checkpoint import load_checkpoint
@@ -129,7 +129,7 @@ def choose_detector(s: TrackSettings) -> tuple[str, str]:
 
 
 def _cores_per_video(parallel_videos: int) -> int:
-    return max(1, (os.cpu_count() or 1) // parallel_videos)
+    return max(1, available_cores() // parallel_videos)
 
 
 def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:

@@ -7,7 +7,6 @@ visual-hull path, plus each slot's landmarks and whether one camera only saw tha
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import numpy as np
 
 from calibration import Camera
 from gst.atomic import PendingFile
+from gst.cores import available_cores
 from gst.data.extract.association import AssociationSummary
 from gst.data.extract.options import ExtractError
 from gst.data.keypoints import PersonInstance
@@ -33,7 +33,7 @@ def _landmark_segmenter(models_dir: str | None):
     probability near that person's own skeleton (as `PersonSegmenter` keeps it). The
     association runs alone in this process after phase 1, so LiteRT gets the cores (same
     numbers for any thread count)."""
-    model = BlazePose(models_dir, threads=max(1, min(4, os.cpu_count() or 1)))
+    model = BlazePose(models_dir, threads=min(4, available_cores()))
 
     def segment(camera: str, image: np.ndarray, roi):
         s = model.segment(image, roi)
