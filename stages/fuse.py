@@ -8,6 +8,8 @@ the error against the truth).
 
 from __future__ import annotations
 
+from pydantic import Field
+
 from gst.fuse import FitOptions, FuseOptions, RegroupOptions, TriangulationOptions, fuse_scene
 from pipeline.stage import Stage, StageContext, StageParams
 
@@ -19,7 +21,8 @@ class Params(StageParams):
     smoothness: float = 1.0  # weight of the temporal smoothness term
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
     refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
-    pair_consensus: int = 0  # > 0: RANSAC over view pairs per landmark, among this many views
+    # > 0: RANSAC over view pairs per landmark, among this many views (docs/fuse.md)
+    pair_consensus: int = Field(0, ge=0)
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
