@@ -74,3 +74,30 @@ def test_score_is_zero_for_the_truth_and_rejects_plain_networks(body):
     net, _, _ = build_network(get_preset("tiny"), body)
     with pytest.raises(ValueError, match="landmark_tokens"):
         pretrain_landmark_path(net, body, dataclasses.replace(LiftPretrainConfig(), steps=1))
+
+
+def test_the_loop_runs_on_its_own_threads_and_puts_the_callers_back(body, monkeypatch):
+    import gst.lift.pretrain as lp
+
+    net, _, _ = build_network(get_preset("tiny", landmark_tokens=True), body)
+    seen = []
+    real = lp._pretrain
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(lp, "_pretrain", spy)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        cfg = LiftPretrainConfig(steps=2, batch_size=4, warmup_steps=1, threads=1)
+        pretrain_landmark_path(net, body, cfg, sampler=LiftSampler(body), log=lambda *_: None)
+        assert seen == [1] and torch.get_num_threads() == 3
+        # default: the cores the background sampler leaves
+        monkeypatch.setattr(lp, "available_cores", lambda: 4)
+        cfg = dataclasses.replace(cfg, threads=None)
+        pretrain_landmark_path(net, body, cfg, sampler=LiftSampler(body), log=lambda *_: None)
+        assert seen == [1, 3] and torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)

@@ -88,3 +88,37 @@ def test_all_33_landmarks_sit_on_the_virtual_markers(body):
     assert ((b.reference2d[:, 0] - b.joints2d[:, 15]).norm(dim=-1) / b.crop_size).max() < 0.15
     anchors = s.markers.anchors
     assert torch.equal(b.reference_visible, b.visible[:, anchors] & b.reference_visible)
+
+
+def _flip_rate(s: LiftSampler, n: int = 512) -> float:
+    from gst.lift.errors import flipped_crops, pair_swaps
+
+    b = s.sample(n)
+    det = b.landmarks[..., :2].numpy() / b.crop_size
+    ref = b.reference2d.numpy() / b.crop_size
+    inside = b.reference_visible.numpy() & (b.landmarks[..., 2] > 0.5).numpy()
+    swapped, countable = pair_swaps(det, ref, inside, s.lset.pairs)
+    return float(flipped_crops(swapped, countable).mean())
+
+
+def test_whole_body_flips_can_be_left_out(body):
+    # the measured noise model flips about 6 % of motion crops as a whole; without the flips
+    # only the independent per-group swaps remain (a crop rarely has most pairs swapped)
+    with_flips = _flip_rate(LiftSampler(body, seed=7))
+    without = _flip_rate(LiftSampler(body, seed=7, whole_body_flips=False))
+    assert with_flips > 0.04
+    assert without < with_flips / 3
+
+
+def test_random_share_sets_the_bank(body):
+    none = LiftSampler(body, seed=2, random_share=0.0)
+    some = LiftSampler(body, seed=2, random_share=0.2)
+    default = LiftSampler(body, seed=2)
+    assert not none.bank_random.any()
+    assert some.bank_random.float().mean().item() == pytest.approx(0.2, abs=0.01)
+    assert default.bank_random.float().mean().item() == pytest.approx(1 / 3, abs=0.01)
+    motion_only = LiftSampler(body, seed=2, random_share=0.0, uniform_p=0.0).sample(64)
+    assert not motion_only.random_pose.any()
+    assert default.sample(256).random_pose.float().mean() > 0.2
+    with pytest.raises(ValueError, match="random_share"):
+        LiftSampler(body, random_share=1.0)

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from gst.body import BodyModel
+from gst.cores import available_cores, torch_threads
 from gst.lift.dataset import LandmarkWorld
 from gst.lift.errors import LANDMARK_SETS
 from gst.lift.noise import set_landmarks
@@ -56,6 +57,16 @@ class LiftPretrainConfig:
     # batches sampled this many steps ahead in a background thread (0: in the loop); the
     # sampler's generator runs in order either way, so the batches are the same
     prefetch: int = 2
+    # the sampled bodies (gst.lift.sampler, docs/landmark_prior.md "Pose mix and flips"): the
+    # share of joint-limited random poses in the bank, the share drawn uniformly within the
+    # joint limits, and whether BlazePose's whole-body flips are simulated (no: a flipped
+    # sample cannot be told from its landmarks, so it only teaches the network to hedge)
+    random_share: float = 0.15
+    uniform_p: float = 0.03
+    whole_body_flips: bool = False
+    # torch threads of the training loop (None: leave them); the sampler runs beside it in a
+    # background thread, so the loop takes the cores that leaves (gst.lift.recipe.lift_phase)
+    threads: int | None = None
     weights: LossWeights = field(
         default_factory=lambda: LossWeights(joints3d=1.0, joints2d=1.0, root=0.2, params=0.5)
     )
@@ -112,12 +123,28 @@ def pretrain_landmark_path(
     validation: dict[str, LandmarkWorld] | None = None,
     log=print,
 ) -> LiftPretrainResult:
-    """Train `net`'s landmark path in place on simulated detections; returns what it measured."""
+    """Train `net`'s landmark path in place on simulated detections; returns what it measured.
+    The loop runs on `cfg.threads` torch threads (None: the cores the background sampler
+    leaves, when it prefetches) and puts the caller's back."""
+    threads = cfg.threads
+    if threads is None and cfg.prefetch > 0:
+        threads = max(1, available_cores() - 1)
+    with torch_threads(threads):
+        return _pretrain(net, body, cfg, sampler, validation, log)
+
+
+def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
     if net.landmark_encoder is None:
         raise ValueError("pretrain_landmark_path needs a network built with landmark_tokens")
     torch.manual_seed(cfg.seed)
     sampler = sampler or LiftSampler(
-        body, crop_size=cfg.crop_size, seed=cfg.seed, landmark_set=landmark_set_of(net).name
+        body,
+        crop_size=cfg.crop_size,
+        seed=cfg.seed,
+        landmark_set=landmark_set_of(net).name,
+        random_share=cfg.random_share,
+        uniform_p=cfg.uniform_p,
+        whole_body_flips=cfg.whole_body_flips,
     )
     if len(sampler.lset) != net.cfg.num_landmarks:
         raise ValueError(
@@ -282,11 +309,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--lr", type=float, default=LiftPretrainConfig.lr)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--val", action="append", default=[], help="NAME=world.npz (repeatable)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: cores - 1)")
     ap.add_argument("--landmarks", default="limbs", choices=sorted(LANDMARK_SETS))
     ap.add_argument("--no-point-tokens", action="store_true", help="lift tokens only")
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
     val = {}
     for item in args.val:
         name, _, path = item.partition("=")
@@ -308,6 +334,7 @@ def main(argv: list[str] | None = None) -> None:
         lr=args.lr,
         seed=args.seed,
         val_every=max(1, args.steps // 6),
+        threads=args.threads,
     )
     res = pretrain_landmark_path(net, body, cfg, validation=val)
     save_checkpoint(args.out, net, "anny", ids, groups, {"lift_pretrain": asdict(res)})

@@ -5,9 +5,10 @@ Everything is batched torch after a one-off setup (about a second):
 
 - poses: a bank of authored joint angles (`synth.motions`: every motion of the library under
   several seeds, plus programmes of two to three crossfaded motions, plus `random_static_poses`
-  drawn within the joint limits), each mirrored with probability 1/2 and blended with a second
-  pose with probability `blend_p`; a fraction `uniform_p` comes from
-  `gst.body.joint_limits.sample_body_pose` (every angle uniform in its limits, scaled) instead;
+  drawn within the joint limits, `random_share` of the bank), each mirrored with probability
+  1/2 and blended with a second pose with probability `blend_p`; a fraction `uniform_p` comes
+  from `gst.body.joint_limits.sample_body_pose` (every angle uniform in its limits, scaled)
+  instead;
 - shapes: the first 10 betas ~ N(0, 0.9^2) clipped to +-2.5 (as `synth.people.sample_betas`);
 - cameras: a pool of rigs of every kind (`synth.rigs.make_rig`: dome, h36m, hall; horizontal
   field of view 40-75 degrees), the person standing on the floor at a uniform spot of the
@@ -21,7 +22,10 @@ Everything is batched torch after a one-off setup (about a second):
   person in front;
 - detections: `gst.lift.noise.LandmarkNoise.simulate` on the true landmark positions (the
   joints for the 12 limb landmarks, `landmark_set="limbs"`; the virtual markers of
-  `gst.body.markers` for all 33, `landmark_set="all"`) and their visibility.
+  `gst.body.markers` for all 33, `landmark_set="all"`) and their visibility;
+  `whole_body_flips=False` leaves out the whole-body left/right flips (a person read as facing
+  the other way): from landmarks alone such a sample's answer cannot be told, so training on it
+  teaches the network to hedge (docs/landmark_prior.md).
 
 The body pose follows the synthetic worlds' convention: angles authored against the T-pose are
 turned into the body model's local rotations with its rest corrections at the mean shape
@@ -30,7 +34,7 @@ turned into the body model's local rotations with its rest corrections at the me
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -74,10 +78,14 @@ class LiftBatch:
 
 
 def _pose_bank(
-    rng: np.random.Generator, fps: float = 10.0, seconds: float = 6.0
+    rng: np.random.Generator,
+    fps: float = 10.0,
+    seconds: float = 6.0,
+    random_share: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(P, 24, 3) authored Euler angles (radians, model signs) of the library's motions and of
-    random poses, and (P,) True for the random ones."""
+    random poses (`random_share` of the bank; None: one third), and (P,) True for the random
+    ones."""
     n = int(fps * seconds)
     clips = []
     names = list(MOTIONS)
@@ -88,7 +96,14 @@ def _pose_bank(
         prog = list(rng.choice(names, size=int(rng.integers(2, 4)), replace=False))
         clips.append(generate_motion(prog, n, fps, rng).angles)
     n_motion = sum(len(c) for c in clips)
-    clips.append(random_static_poses(n_motion // 2, rng).angles)
+    if random_share is None:
+        n_random = n_motion // 2
+    elif 0 <= random_share < 1:
+        n_random = int(round(random_share / (1 - random_share) * n_motion))
+    else:
+        raise ValueError(f"random_share must be in [0, 1), got {random_share}")
+    if n_random:
+        clips.append(random_static_poses(n_random, rng).angles)
     bank = np.concatenate(clips).astype(np.float32)
     return bank, np.arange(len(bank)) >= n_motion
 
@@ -157,6 +172,8 @@ class LiftSampler:
         occluder_p: float = 0.1,
         box_jitter: float = 0.05,
         zbuffer: int = 64,
+        random_share: float | None = None,
+        whole_body_flips: bool = True,
     ):
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x11F7]))
         self.body = body
@@ -165,6 +182,8 @@ class LiftSampler:
         self.lset = LANDMARK_SETS[landmark_set]
         noise = load_models(set_name=landmark_set) if noise is None else noise
         self.noise = noise if isinstance(noise, dict) else {"motion": noise, "random": noise}
+        if not whole_body_flips:  # the person read as facing the other way: not simulated
+            self.noise = {k: replace(m, flip=0.0) for k, m in self.noise.items()}
         for m in self.noise.values():
             if m.set_name != landmark_set:
                 raise ValueError(
@@ -175,7 +194,7 @@ class LiftSampler:
         self.blend_p, self.uniform_p, self.occluder_p = blend_p, uniform_p, occluder_p
         self.box_jitter, self.zbuffer = box_jitter, zbuffer
         self.gen = torch.Generator().manual_seed(int(rng.integers(1 << 62)))
-        bank, random = _pose_bank(rng)
+        bank, random = _pose_bank(rng, random_share=random_share)
         self.bank, self.bank_random = torch.from_numpy(bank), torch.from_numpy(random)
         self.cams = _camera_pool(rng)
         self.vids = torch.from_numpy(vertex_subset(body, "1723")).long()

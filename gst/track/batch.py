@@ -22,6 +22,7 @@ from typing import Any
 import pyarrow.parquet as pq
 
 from calibration import Camera
+from gst.cores import torch_threads
 from gst.track.chunks import (
     ChunkingConfig,
     ChunkPlan,
@@ -110,18 +111,10 @@ def _chunked_run(job: VideoJob, chunking: ChunkingConfig) -> VideoRun:
 
 def run_item(item: _Item) -> Any:
     """Worker side: track one whole video (-> VideoOutcome) or one chunk (-> its record)."""
-    if not item.job.threads:
+    # The job's own torch pool (None: leave it); put back afterwards, since an in-process
+    # executor shares the caller's (a worker process's pool is its own anyway).
+    with torch_threads(item.job.threads or None):
         return _run_item(item)
-    import torch
-
-    # The job's own torch pool; put back afterwards, since an in-process executor shares the
-    # caller's (a worker process's pool is its own anyway).
-    before = torch.get_num_threads()
-    torch.set_num_threads(item.job.threads)
-    try:
-        return _run_item(item)
-    finally:
-        torch.set_num_threads(before)
 
 
 def _run_item(item: _Item) -> Any:
