@@ -168,7 +168,7 @@ def main() -> None:
             scene_vertices=vertices,
             motions=truth.motion,
         )
-        p, v = res.summary["pose"]["overall"], res.summary["novel_view"]["heldout"]
+        p, v = res.summary.pose.overall, res.summary.novel_view.heldout
         results.append((table, name, p, v, train_s, time.perf_counter() - t0))
         print(
             f"{table} {name}: MPJPE {_f(p['mpjpe_mm'])} PA-MPJPE {_f(p['pa_mpjpe_mm'])} "
@@ -180,7 +180,7 @@ def main() -> None:
     lines = [
         f"Fine-tuning budget per row: {args.steps} steps x batch {args.batch}; total "
         f"{time.perf_counter() - t_all:.0f} s on CPU ({torch.get_num_threads()} threads). Pose on "
-        f"{res.summary['counts']['pose_crops']} test crops (frames {split.test_frames[0]}-"
+        f"{res.summary.counts.pose_crops} test crops (frames {split.test_frames[0]}-"
         f"{split.test_frames[1] - 1}, never trained on); novel views: {v['n']} held-out-camera "
         "pairs.",
         "",

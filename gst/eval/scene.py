@@ -12,6 +12,7 @@ them), the pose of all frames is given beside it. Writes `reports/evaluate/` (do
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -162,10 +163,10 @@ def evaluate_scene(
         )
         if frames is not None:  # every frame too (pose only): how much the held-out ones differ
             every = evaluate_pose(net, task, crops, truth_rows(crops), vertices)
-            results[name].summary["pose_all_frames"] = pose_summary(
+            results[name].summary = replace(results[name].summary, pose_all_frames=pose_summary(
                 every, crops.camera_names, np.full(len(every.rows), "all", dtype=object),
                 truth.joint_names if truth is not None else body.joint_names,
-            )["overall"]  # fmt: skip
+            ).overall)  # fmt: skip
         crops.landmarks = landmarks
         shown = path.relative_to(workspace) if workspace is not None else path
         uses = (
@@ -177,11 +178,11 @@ def evaluate_scene(
             "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), held-out PSNR %s dB, "
             "IoU %s (%.0f s)",
             name,
-            s["pose"]["overall"]["mpjpe_mm"],
-            s["pose"]["overall"]["pa_mpjpe_mm"],
+            s.pose.overall["mpjpe_mm"],
+            s.pose.overall["pa_mpjpe_mm"],
             "held-out frames" if frames else "all frames",
-            s.get("novel_view", {}).get("heldout", {}).get("psnr"),
-            s.get("novel_view", {}).get("heldout", {}).get("silhouette_iou"),
+            s.novel_view.heldout.get("psnr") if s.novel_view else None,
+            s.novel_view.heldout.get("silhouette_iou") if s.novel_view else None,
             results[name].seconds,
         )
     meta = {
