@@ -21,7 +21,7 @@ import torch
 from pydantic import BaseModel, ConfigDict
 
 from gst.body import load_body_model
-from gst.eval.evaluate import EvalConfig, evaluate_model, truth_rows
+from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
 from gst.eval.evaluator import evaluate_pose
 from gst.eval.report import write_report
 from gst.eval.summary import pose_summary
@@ -106,7 +106,7 @@ def evaluate_scene(
     fused: Path | None = None,
     scene: str = "scene",
     workspace: Path | None = None,
-) -> dict:
+) -> dict[str, EvalResult]:
     """Evaluate each model of `models` (name -> GST checkpoint; `compare_pretrained` decides if
     the caller includes the pretrained one) on the scene's crops against its truth (`synth`),
     or, without truth, against the rig's fused bodies (`fused`), and write the report into
@@ -138,7 +138,8 @@ def evaluate_scene(
         frames=frames,
     )
     bodies: dict = {}
-    results, meta_models = {}, {}
+    results: dict[str, EvalResult] = {}
+    meta_models: dict[str, str] = {}
     vertices = None
     for name, path in models.items():
         net, ckpt, body = _model(path, bodies)
