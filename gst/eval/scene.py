@@ -58,7 +58,7 @@ class EvaluateSettings(BaseModel):
 
 def _model(path: Path, body_cache: dict):
     ckpt = load_checkpoint(path)
-    spec = ckpt["body_model"]
+    spec = ckpt.body_model
     if spec not in body_cache:
         body_cache[spec] = load_body_model(spec)
     return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
@@ -67,7 +67,7 @@ def _model(path: Path, body_cache: dict):
 def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple[list, int | None]:
     """Held-out cameras and first held-out frame: the settings', else what the trained model
     (`gst`, else the last one) recorded, else train's defaults."""
-    extra = load_checkpoint(models.get("gst", list(models.values())[-1]))["extra"]
+    extra = load_checkpoint(models.get("gst", list(models.values())[-1])).extra
     cams = p.heldout_cameras
     if cams is None:
         cams = extra.get("heldout_cameras") or crops.camera_names[-1:]
@@ -146,9 +146,9 @@ def evaluate_scene(
         if p.landmarks and net.landmark_encoder is not None and crops.landmarks is None:
             crops.landmarks, source = store_landmarks(crops_h5, crops.images)
             log.info("evaluate: landmarks from %s", source)
-        if truth is not None and vertices is None and ckpt["body_model"] == truth.body_model:
+        if truth is not None and vertices is None and ckpt.body_model == truth.body_model:
             vertices = truth.vertices(body)
-        task = make_task(body, ckpt["vertex_ids"], net.cfg, crops.crop_size, LossWeights(lpips=0.0))
+        task = make_task(body, ckpt.vertex_ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
         landmarks = crops.landmarks
         if not p.landmarks:
             crops.landmarks = None

@@ -212,7 +212,7 @@ def model_provenance(checkpoint: Path, name: str, scene: str | None) -> ModelPro
     """What the file and the log say about the model: name, checkpoint, and what it was trained
     on as far as the checkpoint records it (`extra.trained_on`: scene, cameras, frames)."""
     ckpt = load_checkpoint(checkpoint)
-    extra = ckpt.get("extra") or {}
+    extra = ckpt.extra
     trained_on = extra.get("trained_on")
     if not isinstance(trained_on, dict):
         trained_on = {"scene": scene, "recorded": False}
@@ -220,7 +220,7 @@ def model_provenance(checkpoint: Path, name: str, scene: str | None) -> ModelPro
         name=name,
         version="1",
         checkpoint="models/gst.pt",
-        body_model=str(ckpt.get("body_model")),
+        body_model=str(ckpt.body_model),
         training_mode=extra.get("mode"),
         trained_on=trained_on,
     )

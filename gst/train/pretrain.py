@@ -199,9 +199,9 @@ class ImagePretrainSummary:
 
 def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> ReusedCheckpoint:
     ckpt = load_checkpoint(p.reuse)  # weights_only: a GST checkpoint or a clear error
-    if ckpt["body_model"] != p.body_model:
+    if ckpt.body_model != p.body_model:
         raise ValueError(
-            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt['body_model']}', "
+            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt.body_model}', "
             f"pretrain.body_model is '{p.body_model}'"
         )
     shutil.copyfile(p.reuse, checkpoint)
@@ -322,7 +322,7 @@ def pretrain_images(
     shutil.copyfile(out / "log.csv", reports / "log.csv")
     gaussians = None
     if p.mode == "3d" and p.gaussian_steps > 0:
-        net.load_state_dict(load_checkpoint(kept)["model"])
+        net.load_state_dict(load_checkpoint(kept).model)
         task = make_task(
             body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None
         )

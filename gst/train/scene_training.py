@@ -109,15 +109,15 @@ def _initial_network(p: TrainSettings, pretrained: Path, body):
         log.info("HMR2 import: %s", report.summary())
         return net, ids, groups
     ckpt = load_checkpoint(pretrained)
-    if ckpt["body_model"] != p.body_model:
+    if ckpt.body_model != p.body_model:
         raise ValueError(
-            f"models/pretrain.pt was trained with body model '{ckpt['body_model']}', "
+            f"models/pretrain.pt was trained with body model '{ckpt.body_model}', "
             f"train.body_model is '{p.body_model}'"
         )
     return (
         network_from_checkpoint(ckpt, pretrained),
-        ckpt["vertex_ids"].numpy(),
-        ckpt["group_index"].numpy(),
+        ckpt.vertex_ids.numpy(),
+        ckpt.group_index.numpy(),
     )
 
 
