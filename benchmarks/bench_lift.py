@@ -69,8 +69,8 @@ def score(checkpoints: list[Path], scene: Path, npz: Path) -> None:
     for path in checkpoints:
         ck = load_checkpoint(path)
         net = network_from_checkpoint(ck, path).eval()
-        body = load_body_model(ck["body_model"])
-        task = make_task(body, ck["vertex_ids"], net.cfg, crops.crop_size, LossWeights(lpips=0.0))
+        body = load_body_model(ck.body_model)
+        task = make_task(body, ck.vertex_ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
         t0 = time.perf_counter()
         rec = evaluate_pose(net, task, crops, rows)
         ms = 1000 * (time.perf_counter() - t0) / len(rows)

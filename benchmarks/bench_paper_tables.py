@@ -99,7 +99,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     ws = args.workspace
     ckpt = load_checkpoint(ws / "models" / "pretrain.pt")
-    body = load_body_model(ckpt["body_model"])
+    body = load_body_model(ckpt.body_model)
     base = network_from_checkpoint(ckpt)
     settings = TrainSettings(heldout_frames=args.test_fraction)
     teacher = RigTeacher(
@@ -116,9 +116,9 @@ def main() -> None:
     truth = read_scene_truth(ws / "synth")
     split = frame_split(crops, heldout, args.test_fraction)
     assert split.test_frames[0] == prepared.first_heldout_frame  # one split for every term
-    ids, groups = ckpt["vertex_ids"].numpy(), ckpt["group_index"].numpy()
+    ids, groups = ckpt.vertex_ids.numpy(), ckpt.group_index.numpy()
     lpips = load_lpips()
-    vertices = truth.vertices(body) if ckpt["body_model"] == truth.body_model else None
+    vertices = truth.vertices(body) if ckpt.body_model == truth.body_model else None
     eval_cfg = EvalConfig(
         heldout_cameras=heldout,
         render_size=args.render_size,
@@ -155,7 +155,7 @@ def main() -> None:
                 landmark_dropout=settings.landmark_dropout if multiview else 0.0,
             )
             train_s = finetune(
-                net, body, ids, groups, crops, split, cfg, body_spec=ckpt["body_model"], lpips=lpips
+                net, body, ids, groups, crops, split, cfg, body_spec=ckpt.body_model, lpips=lpips
             )
         task = make_task(body, ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
         res = evaluate_model(
@@ -168,7 +168,7 @@ def main() -> None:
             scene_vertices=vertices,
             motions=truth.motion,
         )
-        p, v = res.summary["pose"]["overall"], res.summary["novel_view"]["heldout"]
+        p, v = res.summary.pose.overall, res.summary.novel_view.heldout
         results.append((table, name, p, v, train_s, time.perf_counter() - t0))
         print(
             f"{table} {name}: MPJPE {_f(p['mpjpe_mm'])} PA-MPJPE {_f(p['pa_mpjpe_mm'])} "
@@ -180,7 +180,7 @@ def main() -> None:
     lines = [
         f"Fine-tuning budget per row: {args.steps} steps x batch {args.batch}; total "
         f"{time.perf_counter() - t_all:.0f} s on CPU ({torch.get_num_threads()} threads). Pose on "
-        f"{res.summary['counts']['pose_crops']} test crops (frames {split.test_frames[0]}-"
+        f"{res.summary.counts.pose_crops} test crops (frames {split.test_frames[0]}-"
         f"{split.test_frames[1] - 1}, never trained on); novel views: {v['n']} held-out-camera "
         "pairs.",
         "",

@@ -254,6 +254,18 @@ def fit_to_frames(
 
 
 @dataclass(frozen=True, eq=False)
+class RigArrays:
+    """A rig's cameras as arrays stacked in rig order (`Rig.stacked`): K (C, 3, 3), R (C, 3, 3),
+    t (C, 3), dist (C, D) zero-padded to the longest model, size (C, 2) as (width, height)."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    dist: np.ndarray
+    size: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class Rig:
     """An ordered set of cameras sharing one world frame (metres, `up` is the world up axis)."""
 
@@ -318,20 +330,19 @@ class Rig:
             self, cameras=cams, up=tuple(float(v) for v in new_up / np.linalg.norm(new_up))
         )
 
-    def stacked(self) -> dict[str, np.ndarray]:
-        """Per-camera arrays stacked in rig order, for batched code: K (C, 3, 3), R (C, 3, 3),
-        t (C, 3), dist (C, D) zero-padded to the longest model, size (C, 2) as (width, height)."""
+    def stacked(self) -> RigArrays:
+        """Per-camera arrays stacked in rig order, for batched code (`RigArrays`)."""
         n_dist = max([5] + [c.dist.size for c in self.cameras])
         dist = np.zeros((len(self.cameras), n_dist))
         for i, c in enumerate(self.cameras):
             dist[i, : c.dist.size] = c.dist
-        return {
-            "K": np.stack([c.K for c in self.cameras]),
-            "R": np.stack([c.R for c in self.cameras]),
-            "t": np.stack([c.t for c in self.cameras]),
-            "dist": dist,
-            "size": np.array([[c.width, c.height] for c in self.cameras]),
-        }
+        return RigArrays(
+            K=np.stack([c.K for c in self.cameras]),
+            R=np.stack([c.R for c in self.cameras]),
+            t=np.stack([c.t for c in self.cameras]),
+            dist=dist,
+            size=np.array([[c.width, c.height] for c in self.cameras]),
+        )
 
 
 def look_at_rotation(position, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:

@@ -92,6 +92,23 @@ def _scatter_sum(values: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
 # Ray casting backends
 
 
+@dataclass(frozen=True)
+class RayHits:
+    """Nearest hits of N rays (`RayCaster.cast`): geom (N,) int32 mesh index (-1 = miss), prim
+    (N,) int32 triangle of that mesh, u, v (N,) float32 barycentric of vertices 1 and 2, t (N,)
+    float32 distance along the unit direction (inf on a miss)."""
+
+    geom: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    t: np.ndarray
+
+    def select(self, keep: np.ndarray) -> RayHits:
+        """The hits of the rays `keep` selects (a boolean mask or indices)."""
+        return RayHits(self.geom[keep], self.prim[keep], self.u[keep], self.v[keep], self.t[keep])
+
+
 class RayCaster:
     """Nearest-hit ray casting against a list of meshes (one geometry id per mesh).
 
@@ -128,17 +145,17 @@ class RayCaster:
         self._mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
         self._tm = self._mesh.ray
 
-    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
-        """Nearest hits: dict with geom (N,) (-1 = miss), prim (N,), u, v (barycentric of
-        vertices 1 and 2) and t (distance along the unit direction, inf on a miss)."""
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> RayHits:
+        """Nearest hits (`RayHits`: geom (N,) (-1 = miss), prim (N,), u, v (barycentric of
+        vertices 1 and 2) and t (distance along the unit direction, inf on a miss))."""
         n = len(dirs)
-        out = {
-            "geom": np.full(n, -1, np.int32),
-            "prim": np.full(n, -1, np.int32),
-            "u": np.zeros(n, np.float32),
-            "v": np.zeros(n, np.float32),
-            "t": np.full(n, np.inf, np.float32),
-        }
+        out = RayHits(
+            geom=np.full(n, -1, np.int32),
+            prim=np.full(n, -1, np.int32),
+            u=np.zeros(n, np.float32),
+            v=np.zeros(n, np.float32),
+            t=np.full(n, np.inf, np.float32),
+        )
         if n == 0 or not self.meshes:
             return out
         o = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
@@ -146,13 +163,13 @@ class RayCaster:
         if self.backend == "embree":
             r = self._scene.run(o, d, output=1)
             geom = np.where(r["primID"] >= 0, r["geomID"], -1).astype(np.int32)
-            return {
-                "geom": geom,
-                "prim": r["primID"].astype(np.int32),
-                "u": r["u"],
-                "v": r["v"],
-                "t": np.where(geom >= 0, r["tfar"], np.inf).astype(np.float32),
-            }
+            return RayHits(
+                geom=geom,
+                prim=r["primID"].astype(np.int32),
+                u=r["u"],
+                v=r["v"],
+                t=np.where(geom >= 0, r["tfar"], np.inf).astype(np.float32),
+            )
         import trimesh
 
         o64, d64 = o.astype(np.float64), d.astype(np.float64)
@@ -165,15 +182,15 @@ class RayCaster:
             loc, ray, tri, dist = loc[first], ray[first], tri[first], dist[first]
             g = np.searchsorted(self._offsets, tri, side="right") - 1
             bary = trimesh.triangles.points_to_barycentric(self._mesh.triangles[tri], loc)
-            out["geom"][ray] = g
-            out["prim"][ray] = tri - self._offsets[g]
-            out["u"][ray], out["v"][ray] = bary[:, 1], bary[:, 2]
-            out["t"][ray] = dist
+            out.geom[ray] = g
+            out.prim[ray] = tri - self._offsets[g]
+            out.u[ray], out.v[ray] = bary[:, 1], bary[:, 2]
+            out.t[ray] = dist
         return out
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """True where a ray hits any mesh."""
-        return self.cast(origins, dirs)["geom"] >= 0
+        return self.cast(origins, dirs).geom >= 0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -365,25 +382,25 @@ class ViewRenderer:
         return np.flatnonzero(sel)
 
     def _shade_hits(
-        self, hits: dict, dirs: np.ndarray, people: list[PosedPerson], caster: RayCaster
+        self, hits: RayHits, dirs: np.ndarray, people: list[PosedPerson], caster: RayCaster
     ) -> np.ndarray:
         """Radiance (N, 3) of person hits (all entries of `hits` must be hits)."""
         n = len(dirs)
         rgb = np.zeros((n, 3))
         normal = np.zeros((n, 3))
-        bary = np.stack([1 - hits["u"] - hits["v"], hits["u"], hits["v"]], -1).astype(np.float64)
+        bary = np.stack([1 - hits.u - hits.v, hits.u, hits.v], -1).astype(np.float64)
         for g, person in enumerate(people):
-            sel = hits["geom"] == g
+            sel = hits.geom == g
             if not sel.any():
                 continue
-            tri = person.faces[hits["prim"][sel]]
+            tri = person.faces[hits.prim[sel]]
             nrm = (person.normals[tri] * bary[sel][..., None]).sum(1)
             normal[sel] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
             rgb[sel] = albedo(person.outfit, person.atlas, tri, bary[sel])
         # Face the viewer: interpolated normals can point away at silhouettes.
         flip = (normal * dirs).sum(1) > 0
         normal[flip] *= -1
-        points = self.origin + dirs * hits["t"][:, None].astype(np.float64)
+        points = self.origin + dirs * hits.t[:, None].astype(np.float64)
         # Half the light samples on bodies: self-shadows are small and seen up close less often.
         lights = self._body_lights
         # Surfaces facing away from a light sample are unlit by it: no shadow ray needed.
@@ -448,12 +465,12 @@ class ViewRenderer:
         roi = self._roi(np.concatenate([p.vertices for p in people]))
         dirs = self.dirs_from_xy(self.xy[roi])
         hits = caster.cast(self.origin[None], dirs)
-        hit = (hits["geom"] >= 0) & (hits["t"] * self.zfac[roi] < self.bg_depth[roi])
+        hit = (hits.geom >= 0) & (hits.t * self.zfac[roi] < self.bg_depth[roi])
         pix = roi[hit]
-        h_sel = {k: v[hit] for k, v in hits.items()}
+        h_sel = hits.select(hit)
         ids = np.array([p.person_id for p in people], np.uint8)
-        mask[pix] = ids[h_sel["geom"]]
-        depth[pix] = h_sel["t"] * self.zfac[pix]
+        mask[pix] = ids[h_sel.geom]
+        depth[pix] = h_sel.t * self.zfac[pix]
         radiance[pix] = self._shade_hits(h_sel, dirs[hit], people, caster)
         covered = mask > 0
         sh_idx, sh_factor = self._floor_shadows(shadows, covered)
@@ -484,7 +501,7 @@ class ViewRenderer:
         owner = np.repeat(pix, n * n)
         bg_depth = self.bg_depth[owner]
         zf = np.repeat(self.zfac[pix], n * n)
-        hit = (hits["geom"] >= 0) & (hits["t"] * zf < bg_depth)
+        hit = (hits.geom >= 0) & (hits.t * zf < bg_depth)
         # Misses show the room as the pixel centre sees it (with its shadow).
         bg = self.bg_radiance[owner].astype(np.float64)
         shadow = np.ones(self.h * self.w)
@@ -492,9 +509,7 @@ class ViewRenderer:
         bg *= shadow[owner][:, None]
         samples = bg
         if hit.any():
-            samples[hit] = self._shade_hits(
-                {k: v[hit] for k, v in hits.items()}, dirs[hit], people, caster
-            )
+            samples[hit] = self._shade_hits(hits.select(hit), dirs[hit], people, caster)
         radiance[pix] = samples.reshape(len(pix), n * n, 3).mean(1)
 
     # -- calibration board ----------------------------------------------------------------------

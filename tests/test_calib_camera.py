@@ -141,9 +141,9 @@ def test_rig_transformed_keeps_projections_and_stacked_arrays():
     np.testing.assert_allclose(new.up, Rw @ np.array([0, 0, 1.0]), atol=1e-12)
     arrays = rig.stacked()
     assert (
-        arrays["K"].shape == (3, 3, 3)
-        and arrays["dist"].shape == (3, 5)
-        and arrays["size"].tolist()[0] == [640, 480]
+        arrays.K.shape == (3, 3, 3)
+        and arrays.dist.shape == (3, 5)
+        and arrays.size.tolist()[0] == [640, 480]
     )
 
 

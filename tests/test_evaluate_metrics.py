@@ -61,13 +61,11 @@ def test_pose_summary_groups_and_breakdowns_by_hand():
         joint_error_pa=err / 2,
     )
     s = pose_summary(rec, ["a", "b"], np.array(["run", "jump"], dtype=object), JOINTS)
-    assert s["overall"]["mpjpe_mm"] == pytest.approx(err.mean() * 1000)
-    assert s["per_camera"]["b"]["mpjpe_mm"] == pytest.approx(err[1].mean() * 1000)
-    assert s["per_motion"]["run"]["n"] == 1 and s["per_motion"]["run"]["mpjpe_mm"] == pytest.approx(
-        11.5
-    )
+    assert s.overall["mpjpe_mm"] == pytest.approx(err.mean() * 1000)
+    assert s.per_camera["b"]["mpjpe_mm"] == pytest.approx(err[1].mean() * 1000)
+    assert s.per_motion["run"]["n"] == 1 and s.per_motion["run"]["mpjpe_mm"] == pytest.approx(11.5)
     idx = joint_group_indices(JOINTS)["hands"]
-    assert s["per_part"]["hands"]["pa_mpjpe_mm"] == pytest.approx(err[:, idx].mean() * 500)
+    assert s.per_part["hands"]["pa_mpjpe_mm"] == pytest.approx(err[:, idx].mean() * 500)
     with pytest.raises(ValueError, match="lack"):
         joint_group_indices(JOINTS[:-1])
 
@@ -109,13 +107,11 @@ def test_evaluate_model_matches_the_training_validation(tiny_model):
         net, task, crops, EvalConfig(heldout_cameras=("c2",), render_size=32), joint_names=JOINTS
     )
     ref = pose_metrics(net, task, crops, torch.arange(len(crops)))  # gst.train's own implementation
-    assert res.summary["pose"]["overall"]["mpjpe_mm"] == pytest.approx(ref["mpjpe_mm"], rel=1e-4)
-    assert res.summary["pose"]["overall"]["pa_mpjpe_mm"] == pytest.approx(
-        ref["pa_mpjpe_mm"], rel=1e-4
-    )
-    nv = res.summary["novel_view"]
-    assert nv["heldout"]["n"] == 4 and nv["trained_views"]["n"] == 4
-    assert nv["per_target_camera"]["c2"]["heldout"] and not nv["per_target_camera"]["c0"]["heldout"]
+    assert res.summary.pose.overall["mpjpe_mm"] == pytest.approx(ref.mpjpe_mm, rel=1e-4)
+    assert res.summary.pose.overall["pa_mpjpe_mm"] == pytest.approx(ref.pa_mpjpe_mm, rel=1e-4)
+    nv = res.summary.novel_view
+    assert nv.heldout["n"] == 4 and nv.trained_views["n"] == 4
+    assert nv.per_target_camera["c2"]["heldout"] and not nv.per_target_camera["c0"]["heldout"]
 
 
 def test_view_scores_recomputed_from_kept_images(tiny_model):

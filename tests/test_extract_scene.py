@@ -204,11 +204,11 @@ def test_report_files(short_scene, tmp_path):
     out = tmp_path / "crops.h5"
     rep = _extract_short(short_scene, out, truth=short_scene.truth)
     files = write_extract_report(rep, out, tmp_path / "reports")
-    text = files["markdown"].read_text()
+    text = files.markdown.read_text()
     assert "| away | 0 |" in text and "mask IoU" in text
-    sheet = cv2.imread(str(files["contact_sheet"]))
+    sheet = cv2.imread(str(files.contact_sheet))
     assert sheet is not None and sheet.shape[0] > 64 and sheet.shape[1] > 5 * 64
-    assert json.loads(files["json"].read_text())["crops"] == rep.crops
+    assert json.loads(files.json.read_text())["crops"] == rep.crops
 
 
 # -- bad input --------------------------------------------------------------------------------

@@ -240,6 +240,6 @@ def test_bf16_training_step_matches_fp32_and_trains(setup, tmp_path):
         vertex_ids=ids,
         group_index=groups,
     )
-    assert summary["steps"] == 2 and summary["bad_steps"] == 0
-    assert all(math.isfinite(v) for v in summary["after"].values())
+    assert summary.steps == 2 and summary.bad_steps == 0
+    assert all(math.isfinite(v) for v in summary.after.values())
     assert all(torch.isfinite(p).all() for p in model.parameters())

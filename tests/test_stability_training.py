@@ -127,7 +127,7 @@ def test_long_run_survives_injected_nan_and_inf(tmp_path):
     summary = trainer.fit()
 
     bad = len(nan_steps) + len(inf_steps)
-    assert summary["steps"] == steps and summary["bad_steps"] == bad
+    assert summary.steps == steps and summary.bad_steps == bad
     assert all(torch.isfinite(p).all() for p in problem.model.parameters())
     # Skipped steps do not reach the optimiser: Adam counted only the good ones.
     adam_steps = {int(s["step"]) for s in trainer.optimizer.state_dict()["state"].values()}
@@ -186,7 +186,7 @@ def test_one_bad_step_short_of_the_limit_finishes(tmp_path):
         steps=12, batch_size=1, lr=0.02, warmup_steps=2, max_bad_steps=limit, val_every=10**6
     )
     summary = Trainer(problem.model, problem.step, problem.sample, cfg, tmp_path).fit()
-    assert summary["steps"] == 12 and summary["bad_steps"] == limit - 1
+    assert summary.steps == 12 and summary.bad_steps == limit - 1
 
 
 def test_log_keeps_columns_that_appear_later(tmp_path):

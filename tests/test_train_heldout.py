@@ -54,7 +54,7 @@ def test_heldout_frames_and_cameras_never_reach_a_batch(tmp_path, monkeypatch):
         assert torch.equal(b.distill.joints_world, crops.distill.joints_world[b.input_index])
     dropped = torch.cat([torch.isnan(b.input_landmarks).all(-1).all(-1) for b in seen])
     assert 0 < dropped.float().mean() < 1  # landmark dropout hides some inputs' landmarks
-    extra = load_checkpoint(tmp_path / "best.pt")["extra"]
+    extra = load_checkpoint(tmp_path / "best.pt").extra
     assert extra["first_heldout_frame"] == 6 and extra["heldout_cameras"] == ["c2"]
     assert extra["trained_on"] == {"scene": "s", "cameras": ["c0", "c1"], "frames": [0, 5],
                                    "crops": 12}  # fmt: skip

@@ -73,10 +73,10 @@ def test_fit_gst_modes(tmp_path, mode, heldout):
         vertex_ids=ids,
         group_index=groups,
     )
-    assert summary["steps"] == 2 and summary["bad_steps"] == 0
-    assert all(math.isfinite(v) for v in summary["after"].values())
+    assert summary.steps == 2 and summary.bad_steps == 0
+    assert all(math.isfinite(v) for v in summary.after.values())
     if heldout:
-        assert {"psnr", "ssim", "silhouette_iou"} <= set(summary["after"])
+        assert {"psnr", "ssim", "silhouette_iou"} <= set(summary.after)
         import csv
 
         vals = [
@@ -84,8 +84,8 @@ def test_fit_gst_modes(tmp_path, mode, heldout):
             for r in csv.DictReader(open(tmp_path / "log.csv"))
             if r.get("val_silhouette_iou")
         ]
-        assert vals and summary["best"] == max(vals)  # IoU, not PSNR: fading to black must not win
-    assert "mpjpe_mm" in summary["after"]
+        assert vals and summary.best == max(vals)  # IoU, not PSNR: fading to black must not win
+    assert "mpjpe_mm" in summary.after
     reloaded = network_from_checkpoint(load_checkpoint(tmp_path / "best.pt"))
     assert reloaded.num_query_tokens == 5 * 26 + 1
 
@@ -139,8 +139,8 @@ def test_augmented_3d_fit_validates_on_the_unseen_crops(tmp_path):
         )
 
     own, unseen = fit(None, tmp_path / "a"), fit(val, tmp_path / "b")
-    assert unseen["bad_steps"] == 0 and math.isfinite(unseen["after"]["mpjpe_mm"])
-    assert abs(unseen["after"]["mpjpe_mm"] - own["after"]["mpjpe_mm"]) > 50
+    assert unseen.bad_steps == 0 and math.isfinite(unseen.after["mpjpe_mm"])
+    assert abs(unseen.after["mpjpe_mm"] - own.after["mpjpe_mm"]) > 50
 
 
 def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):

@@ -77,7 +77,7 @@ def test_nan_guard_skips_and_aborts(tmp_path):
     )
     model, step, sample = make_problem(nan_every=3)
     summary = Trainer(model, step, sample, cfg, tmp_path).fit()
-    assert summary["bad_steps"] == 3
+    assert summary.bad_steps == 3
     assert all(torch.isfinite(p).all() for p in model.parameters())
     cfg.max_bad_steps = 2
     model, step, sample = make_problem(nan_every=2)

@@ -22,7 +22,7 @@ from gst.data.extract import (
     extract_scene,
 )
 from gst.data.masks import MaskConfig, clean_mask
-from gst.data.report import contact_sheet, write_extract_report
+from gst.data.report import ExtractReportFiles, contact_sheet, write_extract_report
 from gst.data.store import CropBatch, CropStore, CropStoreWriter, MultiViewGroup, StoreError
 from gst.video import VideoError, VideoInfo, check_videos, probe_video, read_frames
 
@@ -40,6 +40,7 @@ __all__ = [
     "ExtractError",
     "ExtractOptions",
     "ExtractReport",
+    "ExtractReportFiles",
     "IdMaskFile",
     "MaskConfig",
     "MultiViewGroup",

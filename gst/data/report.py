@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -94,9 +95,18 @@ def _fmt(v) -> str:
     return str(v)
 
 
+@dataclass(frozen=True)
+class ExtractReportFiles:
+    """The files `write_extract_report` wrote."""
+
+    markdown: Path
+    json: Path
+    contact_sheet: Path
+
+
 def write_extract_report(
     report: ExtractReport, store_path: Path | str, out_dir: Path | str, name: str = "extract"
-) -> dict[str, Path]:
+) -> ExtractReportFiles:
     """Write `<name>.md`, `<name>.json` and `<name>_contact_sheet.png` into `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -170,4 +180,4 @@ def write_extract_report(
         (json_path, json.dumps(r.to_dict(), indent=1, default=str)),
     ):
         atomic_write_text(path, text)
-    return {"markdown": md_path, "json": json_path, "contact_sheet": sheet_path}
+    return ExtractReportFiles(markdown=md_path, json=json_path, contact_sheet=sheet_path)

@@ -169,10 +169,8 @@ def run_bench(
         net.eval()
         task = make_task(body, ids, net.cfg, crops.crop_size, train.weights)
         res = evaluate_model(net, task, crops, eval_cfg, joint_names=body.joint_names, lpips=None)
-        pose, nv = (
-            res.summary["pose"]["overall"],
-            res.summary.get("novel_view", {}).get("heldout", {}),
-        )
+        nv_summary = res.summary.novel_view
+        pose, nv = res.summary.pose.overall, nv_summary.heldout if nv_summary else {}
         log(
             f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, "
             f"held-out PSNR {nv.get('psnr')} ({how})"

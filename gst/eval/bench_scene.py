@@ -100,7 +100,7 @@ def bench_scene(
     heldout = tuple(p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:])
     split = frame_split(crops, heldout, p.test_fraction)
     ckpt = load_checkpoint(pretrained)
-    body_spec = ckpt["body_model"]
+    body_spec = ckpt.body_model
     body = load_body_model(body_spec)
     variants = []
     kept = [("pretrained", "models/pretrain.pt")] if p.include_pretrained else []
@@ -127,7 +127,7 @@ def bench_scene(
 
     def load(rel: str):
         c = load_checkpoint(root / rel)
-        return network_from_checkpoint(c), c["vertex_ids"].numpy(), c["group_index"].numpy()
+        return network_from_checkpoint(c), c.vertex_ids.numpy(), c.group_index.numpy()
 
     # LPIPS is left out of the short runs (equal for every variant) to keep the sweep on budget.
     train = FinetuneConfig(

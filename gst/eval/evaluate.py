@@ -4,7 +4,7 @@ their summary (see `gst.eval.evaluator` for the metrics and `gst.eval.summary` f
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
@@ -17,11 +17,18 @@ from gst.eval.evaluator import (
     evaluate_views,
     view_pairs,
 )
-from gst.eval.summary import pose_summary, view_summary
+from gst.eval.summary import PoseSummary, ViewSummary, pose_summary, view_summary
 from gst.train.steps import GSTTask
 from gst.train.views import CropSet
 
-__all__ = ["EvalConfig", "EvalResult", "evaluate_model", "truth_rows"]
+__all__ = [
+    "EvalConfig",
+    "EvalCounts",
+    "EvalResult",
+    "EvalSummary",
+    "evaluate_model",
+    "truth_rows",
+]
 
 
 @dataclass(frozen=True)
@@ -35,9 +42,48 @@ class EvalConfig:
     seed: int = 0
 
 
+@dataclass(frozen=True)
+class EvalCounts:
+    """What one evaluation scored: crops (pose), view pairs, render size, frames ([lo, hi) or
+    None for all), held-out cameras, and the seconds it took."""
+
+    pose_crops: int
+    view_pairs: int
+    render_size: int
+    frames: list[int] | None
+    heldout_cameras: list[str]
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class EvalSummary:
+    """One model's evaluation summary (a model's entry in summary.json): pose, novel views
+    (None when not rendered), counts, and `pose_all_frames` (the overall pose block over every
+    frame, set by `gst.eval.scene` when the headline is on held-out frames only)."""
+
+    pose: PoseSummary
+    counts: EvalCounts
+    novel_view: ViewSummary | None = None
+    pose_all_frames: dict | None = None
+
+    def to_dict(self) -> dict:
+        """The summary.json layout: pose, novel_view (when rendered), counts, pose_all_frames
+        (when set)."""
+        out: dict = {"pose": self.pose.to_dict()}
+        if self.novel_view is not None:
+            out["novel_view"] = self.novel_view.to_dict()
+        out["counts"] = self.counts.to_dict()
+        if self.pose_all_frames is not None:
+            out["pose_all_frames"] = self.pose_all_frames
+        return out
+
+
 @dataclass
 class EvalResult:
-    summary: dict
+    summary: EvalSummary
     pose: PoseRecords
     views: ViewRecords | None
     pairs: ViewPairs | None
@@ -92,12 +138,10 @@ def evaluate_model(
             f"no crop with truth to evaluate (frames {cfg.frames}, {len(crops)} crops)"
         )
     pose = evaluate_pose(model, task, crops, rows, scene_vertices)
-    summary = {
-        "pose": pose_summary(
-            pose, crops.camera_names, _labels(motions, crops, pose.rows), joint_names
-        )
-    }
-    views = pairs = None
+    pose_table = pose_summary(
+        pose, crops.camera_names, _labels(motions, crops, pose.rows), joint_names
+    )
+    view_table = views = pairs = None
     kept: list[int] = []
     if cfg.with_views:
         heldout = {crops.camera_names.index(c) for c in cfg.heldout_cameras}
@@ -116,16 +160,17 @@ def evaluate_model(
                 scene_vertices,
                 keep_images=set(kept),
             )
-            summary["novel_view"] = view_summary(
+            view_table = view_summary(
                 views, crops.camera_names, _labels(motions, crops, views.targets)
             )
     seconds = time.perf_counter() - t0
-    summary["counts"] = {
-        "pose_crops": int(len(rows)),
-        "view_pairs": int(len(pairs.inputs)) if pairs else 0,
-        "render_size": cfg.render_size,
-        "frames": list(cfg.frames) if cfg.frames else None,
-        "heldout_cameras": list(cfg.heldout_cameras),
-        "seconds": seconds,
-    }
+    counts = EvalCounts(
+        pose_crops=int(len(rows)),
+        view_pairs=int(len(pairs.inputs)) if pairs else 0,
+        render_size=cfg.render_size,
+        frames=list(cfg.frames) if cfg.frames else None,
+        heldout_cameras=list(cfg.heldout_cameras),
+        seconds=seconds,
+    )
+    summary = EvalSummary(pose=pose_table, counts=counts, novel_view=view_table)
     return EvalResult(summary, pose, views, pairs, kept, seconds)

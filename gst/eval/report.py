@@ -387,7 +387,7 @@ def write_report(
     summary.json content: {"meta": ..., "models": {name: summary}}."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    summaries = {n: r.summary for n, r in results.items()}
+    summaries = {n: r.summary.to_dict() for n, r in results.items()}
     plots = _plots(out, summaries)
     last = list(results)[-1]
     sbs = side_by_side_image(results[last], crops)

@@ -12,6 +12,7 @@ them), the pose of all frames is given beside it. Writes `reports/evaluate/` (do
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
@@ -20,7 +21,7 @@ import torch
 from pydantic import BaseModel, ConfigDict
 
 from gst.body import load_body_model
-from gst.eval.evaluate import EvalConfig, evaluate_model, truth_rows
+from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
 from gst.eval.evaluator import evaluate_pose
 from gst.eval.report import write_report
 from gst.eval.summary import pose_summary
@@ -57,7 +58,7 @@ class EvaluateSettings(BaseModel):
 
 def _model(path: Path, body_cache: dict):
     ckpt = load_checkpoint(path)
-    spec = ckpt["body_model"]
+    spec = ckpt.body_model
     if spec not in body_cache:
         body_cache[spec] = load_body_model(spec)
     return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
@@ -66,7 +67,7 @@ def _model(path: Path, body_cache: dict):
 def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple[list, int | None]:
     """Held-out cameras and first held-out frame: the settings', else what the trained model
     (`gst`, else the last one) recorded, else train's defaults."""
-    extra = load_checkpoint(models.get("gst", list(models.values())[-1]))["extra"]
+    extra = load_checkpoint(models.get("gst", list(models.values())[-1])).extra
     cams = p.heldout_cameras
     if cams is None:
         cams = extra.get("heldout_cameras") or crops.camera_names[-1:]
@@ -105,7 +106,7 @@ def evaluate_scene(
     fused: Path | None = None,
     scene: str = "scene",
     workspace: Path | None = None,
-) -> dict:
+) -> dict[str, EvalResult]:
     """Evaluate each model of `models` (name -> GST checkpoint; `compare_pretrained` decides if
     the caller includes the pretrained one) on the scene's crops against its truth (`synth`),
     or, without truth, against the rig's fused bodies (`fused`), and write the report into
@@ -137,16 +138,17 @@ def evaluate_scene(
         frames=frames,
     )
     bodies: dict = {}
-    results, meta_models = {}, {}
+    results: dict[str, EvalResult] = {}
+    meta_models: dict[str, str] = {}
     vertices = None
     for name, path in models.items():
         net, ckpt, body = _model(path, bodies)
         if p.landmarks and net.landmark_encoder is not None and crops.landmarks is None:
             crops.landmarks, source = store_landmarks(crops_h5, crops.images)
             log.info("evaluate: landmarks from %s", source)
-        if truth is not None and vertices is None and ckpt["body_model"] == truth.body_model:
+        if truth is not None and vertices is None and ckpt.body_model == truth.body_model:
             vertices = truth.vertices(body)
-        task = make_task(body, ckpt["vertex_ids"], net.cfg, crops.crop_size, LossWeights(lpips=0.0))
+        task = make_task(body, ckpt.vertex_ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
         landmarks = crops.landmarks
         if not p.landmarks:
             crops.landmarks = None
@@ -162,10 +164,10 @@ def evaluate_scene(
         )
         if frames is not None:  # every frame too (pose only): how much the held-out ones differ
             every = evaluate_pose(net, task, crops, truth_rows(crops), vertices)
-            results[name].summary["pose_all_frames"] = pose_summary(
+            results[name].summary = replace(results[name].summary, pose_all_frames=pose_summary(
                 every, crops.camera_names, np.full(len(every.rows), "all", dtype=object),
                 truth.joint_names if truth is not None else body.joint_names,
-            )["overall"]  # fmt: skip
+            ).overall)  # fmt: skip
         crops.landmarks = landmarks
         shown = path.relative_to(workspace) if workspace is not None else path
         uses = (
@@ -177,11 +179,11 @@ def evaluate_scene(
             "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), held-out PSNR %s dB, "
             "IoU %s (%.0f s)",
             name,
-            s["pose"]["overall"]["mpjpe_mm"],
-            s["pose"]["overall"]["pa_mpjpe_mm"],
+            s.pose.overall["mpjpe_mm"],
+            s.pose.overall["pa_mpjpe_mm"],
             "held-out frames" if frames else "all frames",
-            s.get("novel_view", {}).get("heldout", {}).get("psnr"),
-            s.get("novel_view", {}).get("heldout", {}).get("silhouette_iou"),
+            s.novel_view.heldout.get("psnr") if s.novel_view else None,
+            s.novel_view.heldout.get("silhouette_iou") if s.novel_view else None,
             results[name].seconds,
         )
     meta = {

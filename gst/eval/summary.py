@@ -6,11 +6,20 @@ Pose errors are reported in millimetres; image scores as they are (PSNR in dB). 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from gst.eval.evaluator import PoseRecords, ViewRecords
 
-__all__ = ["JOINT_GROUPS", "joint_group_indices", "pose_summary", "view_summary"]
+__all__ = [
+    "JOINT_GROUPS",
+    "PoseSummary",
+    "ViewSummary",
+    "joint_group_indices",
+    "pose_summary",
+    "view_summary",
+]
 
 # Body parts as groups of SMPL-layout joints (names as in the scene's truth).
 JOINT_GROUPS: dict[str, tuple[str, ...]] = {
@@ -66,14 +75,60 @@ def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
     return block
 
 
+@dataclass(frozen=True)
+class PoseSummary:
+    """Pose errors (mm): `overall`, then by camera, by motion, by body part and by joint (each
+    table keyed by its name). A block is metric name -> value ("n", "mpjpe_mm", "pa_mpjpe_mm",
+    "mpjpe_median_mm", and "pve_mm", "pa_pve_mm" when vertices were scored; None where nothing
+    finite was averaged), as written to summary.json."""
+
+    overall: dict
+    per_camera: dict[str, dict]
+    per_motion: dict[str, dict]
+    per_part: dict[str, dict]
+    per_joint: dict[str, dict]
+
+    def to_dict(self) -> dict:
+        """The summary.json layout (the fields in order)."""
+        return {
+            "overall": self.overall,
+            "per_camera": self.per_camera,
+            "per_motion": self.per_motion,
+            "per_part": self.per_part,
+            "per_joint": self.per_joint,
+        }
+
+
+@dataclass(frozen=True)
+class ViewSummary:
+    """Novel-view scores: `heldout` (the headline: targets in cameras never trained on),
+    `trained_views` (other training cameras than the input's), then by target camera (with its
+    "heldout" flag) and by motion (held-out targets). A block is metric name -> value ("n" and
+    VIEW_KEYS), as written to summary.json."""
+
+    heldout: dict
+    trained_views: dict
+    per_target_camera: dict[str, dict]
+    per_motion: dict[str, dict]
+
+    def to_dict(self) -> dict:
+        """The summary.json layout (the fields in order)."""
+        return {
+            "heldout": self.heldout,
+            "trained_views": self.trained_views,
+            "per_target_camera": self.per_target_camera,
+            "per_motion": self.per_motion,
+        }
+
+
 def pose_summary(
     rec: PoseRecords,
     camera_names: list[str],
     motions: np.ndarray,
     joint_names: tuple[str, ...] | list[str],
-) -> dict:
-    """{"overall", "per_camera", "per_motion", "per_part", "per_joint"} of pose errors (mm).
-    `motions` (N,) is the motion label of each record."""
+) -> PoseSummary:
+    """Pose errors (mm) overall, per camera, motion, body part and joint. `motions` (N,) is the
+    motion label of each record."""
     every = np.ones(len(rec.rows), dtype=bool)
     motions = np.asarray(motions, dtype=object)
     per_part = {}
@@ -82,24 +137,22 @@ def pose_summary(
             "mpjpe_mm": _mean(1000 * rec.joint_error[:, idx].mean(1)),
             "pa_mpjpe_mm": _mean(1000 * rec.joint_error_pa[:, idx].mean(1)),
         }
-    return {
-        "overall": _pose_block(rec, every),
-        "per_camera": {
+    return PoseSummary(
+        overall=_pose_block(rec, every),
+        per_camera={
             camera_names[c]: _pose_block(rec, rec.camera == c)
             for c in sorted(set(rec.camera.tolist()))
         },
-        "per_motion": {
-            str(m): _pose_block(rec, motions == m) for m in sorted(set(motions.tolist()))
-        },
-        "per_part": per_part,
-        "per_joint": {
+        per_motion={str(m): _pose_block(rec, motions == m) for m in sorted(set(motions.tolist()))},
+        per_part=per_part,
+        per_joint={
             name: {
                 "mpjpe_mm": _mean(1000 * rec.joint_error[:, j]),
                 "pa_mpjpe_mm": _mean(1000 * rec.joint_error_pa[:, j]),
             }
             for j, name in enumerate(joint_names)
         },
-    }
+    )
 
 
 VIEW_KEYS = ("psnr", "ssim", "lpips", "silhouette_iou", "box_psnr", "box_ssim", "box_lpips")
@@ -109,23 +162,23 @@ def _view_block(rec: ViewRecords, sel: np.ndarray) -> dict:
     return {"n": int(sel.sum()), **{k: _mean(getattr(rec, k)[sel]) for k in VIEW_KEYS}}
 
 
-def view_summary(rec: ViewRecords, camera_names: list[str], motions: np.ndarray) -> dict:
-    """{"heldout", "trained_views", "per_target_camera", "per_motion"} of novel-view scores.
+def view_summary(rec: ViewRecords, camera_names: list[str], motions: np.ndarray) -> ViewSummary:
+    """Novel-view scores: held-out targets, trained views, per target camera, per motion.
     `motions` (P,) is the motion label of each pair. "heldout" is the headline: targets in
     cameras never trained on; "trained_views": other training cameras than the input's."""
     motions = np.asarray(motions, dtype=object)
     held = rec.heldout.astype(bool)
-    return {
-        "heldout": _view_block(rec, held),
-        "trained_views": _view_block(rec, ~held),
-        "per_target_camera": {
+    return ViewSummary(
+        heldout=_view_block(rec, held),
+        trained_views=_view_block(rec, ~held),
+        per_target_camera={
             camera_names[c]: {
                 **_view_block(rec, rec.camera == c),
                 "heldout": bool(held[rec.camera == c].any()),
             }
             for c in sorted(set(rec.camera.tolist()))
         },
-        "per_motion": {
+        per_motion={
             str(m): _view_block(rec, held & (motions == m)) for m in sorted(set(motions.tolist()))
         },
-    }
+    )

@@ -22,7 +22,7 @@ import logging
 import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -36,7 +36,10 @@ from gst.metrics.lpips import load_lpips
 from gst.model.network import GSTNetwork
 from gst.model.presets import get_preset
 from gst.train.pretrain import (
+    CorpusSummary,
+    ImagePretrainSummary,
     PretrainConfig,
+    ReusedCheckpoint,
     corpus_crops,
     corpus_summary,
     pretrain_images,
@@ -44,7 +47,7 @@ from gst.train.pretrain import (
     reuse_checkpoint,
     world_specs,
 )
-from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
+from gst.train.recipe import FitOptions, FitSummary, build_network, fit_gst, make_task
 from gst.train.steps import GSTTask
 from gst.train.trainer import TrainConfig
 from gst.train.views import CropSet
@@ -53,6 +56,8 @@ log = logging.getLogger("gst.train")
 
 __all__ = [
     "pretrain",
+    "LiftPretrainSummary",
+    "LiftTimes",
     "lift_network",
     "lift_phase",
     "silence_image_path",
@@ -140,7 +145,7 @@ def rendered_phase(
     vertex_ids,
     group_index,
     progress=None,
-) -> dict:
+) -> FitSummary:
     """Train in place on rendered crops with their landmarks (module doc): the Gaussian head at
     `gaussian_lr`, the image path (`image_path_parameters`) at `body_lr`, the pose path frozen
     (the SMPL token's image gate stays closed); writes `out`/last.pt and log.csv; returns
@@ -186,6 +191,41 @@ def rendered_phase(
             p.requires_grad_(True)
 
 
+@dataclass(frozen=True)
+class LiftTimes:
+    """Seconds since mode `lift` started (rounded to 0.1 s) at which each part was done."""
+
+    lift_phase: float
+    rendering_done: float
+    crops_and_landmarks_done: float
+    total: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class LiftPretrainSummary:
+    """What mode `lift` returns (and writes as summary.json): the rendered phase's fit, the
+    lift phase (`lift_summary`'s JSON form), the corpus and the times."""
+
+    fit: FitSummary
+    lift: dict
+    corpus: CorpusSummary
+    times_s: LiftTimes
+    mode: str = "lift"
+
+    def to_dict(self) -> dict:
+        """summary.json: the fit's fields, then mode, lift, corpus, times_s."""
+        return {
+            **self.fit.to_dict(),
+            "mode": self.mode,
+            "lift": self.lift,
+            "corpus": self.corpus.to_dict(),
+            "times_s": self.times_s.to_dict(),
+        }
+
+
 def lift_summary(res: LiftPretrainResult) -> dict:
     d = asdict(replace(res, validation=[]))
     return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
@@ -197,7 +237,7 @@ LIFT_CROP_SIZE = 256
 
 def _pretrain_lift(
     p: PretrainConfig, work: Path, checkpoint: Path, reports: Path, map_fn, progress
-) -> dict:
+) -> LiftPretrainSummary:
     """Mode `lift` (module doc). The worlds render in the background while the landmark path
     learns without them."""
     t0 = time.perf_counter()
@@ -219,7 +259,7 @@ def _pretrain_lift(
     task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
     out = work / "models" / "pretrain_rendered"
     out.mkdir(parents=True, exist_ok=True)
-    summary = rendered_phase(
+    fit = rendered_phase(
         net, task, crops, val, out,
         steps=p.gaussian_steps, batch_size=p.batch_size, gaussian_lr=p.gaussian_lr,
         body_lr=p.lift_body_lr, num_targets=p.num_targets, render_size=p.render_size,
@@ -229,24 +269,24 @@ def _pretrain_lift(
     reports.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "log.csv", reports / "log.csv")
     shutil.copyfile(out / "last.pt", checkpoint)  # the head learns to the end; the pose is watched
-    summary.update(
-        mode="lift",
+    summary = LiftPretrainSummary(
+        fit=fit,
         lift=lift_summary(lift),
         corpus=corpus_summary(specs, crops, val),
-        times_s={
-            "lift_phase": round(t_lift, 1),
-            "rendering_done": round(t_render, 1),
-            "crops_and_landmarks_done": round(t_detect, 1),
-            "total": round(time.perf_counter() - t0, 1),
-        },
+        times_s=LiftTimes(
+            lift_phase=round(t_lift, 1),
+            rendering_done=round(t_render, 1),
+            crops_and_landmarks_done=round(t_detect, 1),
+            total=round(time.perf_counter() - t0, 1),
+        ),
     )
-    (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    (reports / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2, default=float))
     log.info(
         "pretrain (lift): MPJPE on the unseen validation world %.1f mm after lifting, "
         "%.1f mm after the rendered phase; %.0f s in all",
-        summary["before"].get("mpjpe_mm", float("nan")),
-        summary["after"].get("mpjpe_mm", float("nan")),
-        summary["times_s"]["total"],
+        fit.before.get("mpjpe_mm", float("nan")),
+        fit.after.get("mpjpe_mm", float("nan")),
+        summary.times_s.total,
     )
     shutil.rmtree(out)
     shutil.rmtree(work / "worlds")
@@ -261,7 +301,7 @@ def pretrain(
     *,
     map_fn=None,
     progress=None,
-) -> dict:
+) -> ReusedCheckpoint | ImagePretrainSummary | LiftPretrainSummary:
     """The pretrain stage: `p.reuse` copies a checked checkpoint; mode `lift` (module doc);
     modes `3d` / `pretrain`: `gst.train.pretrain.pretrain_images`. Worlds render into
     `work/worlds` (kept by an interrupted run); writes `checkpoint` and `reports`; returns the

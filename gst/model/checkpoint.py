@@ -8,6 +8,7 @@ Layout (`torch.save` of a dict):
     model: network state_dict
     extra: dict of primitives/tensors (training step, optimiser state, metrics...)
 Writes go to a temporary file that is renamed, so a killed save never leaves a truncated file.
+`load_checkpoint` checks a file and returns its fields as a `GSTCheckpoint`.
 """
 
 from __future__ import annotations
@@ -60,7 +61,25 @@ def save_checkpoint(
     )
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+@dataclasses.dataclass(frozen=True, eq=False)
+class GSTCheckpoint:
+    """A checkpoint as `load_checkpoint` reads it (the file's layout: module doc). `trainer`:
+    the training loop's state in checkpoints written during training (`gst.train.trainer`),
+    None in the kept models."""
+
+    config: dict
+    body_model: str
+    vertex_ids: torch.Tensor
+    group_index: torch.Tensor
+    model: dict[str, torch.Tensor]
+    extra: dict = dataclasses.field(default_factory=dict)
+    trainer: dict | None = None
+
+
+_REQUIRED = ("config", "body_model", "vertex_ids", "group_index", "model")
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> GSTCheckpoint:
     """Read and check a checkpoint (weights_only=True: no code runs while loading)."""
     path = Path(path)
     if not path.is_file():
@@ -80,14 +99,25 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             f"{path}: checkpoint version {ckpt.get('version')} is not supported "
             f"(expected {VERSION})"
         )
-    return ckpt
+    missing = [k for k in _REQUIRED if k not in ckpt]
+    if missing:
+        raise ValueError(f"{path}: a GST checkpoint without {missing}")
+    return GSTCheckpoint(
+        config=ckpt["config"],
+        body_model=ckpt["body_model"],
+        vertex_ids=ckpt["vertex_ids"],
+        group_index=ckpt["group_index"],
+        model=ckpt["model"],
+        extra=ckpt.get("extra") or {},
+        trainer=ckpt.get("trainer"),
+    )
 
 
-def network_from_checkpoint(ckpt: dict, source: str | Path | None = None) -> GSTNetwork:
+def network_from_checkpoint(ckpt: GSTCheckpoint, source: str | Path | None = None) -> GSTNetwork:
     """The network a checkpoint holds; `source` names the file in errors."""
     try:
-        net = GSTNetwork(config_from_dict(ckpt["config"]), ckpt["group_index"].numpy())
-        net.load_state_dict(ckpt["model"])
+        net = GSTNetwork(config_from_dict(ckpt.config), ckpt.group_index.numpy())
+        net.load_state_dict(ckpt.model)
     except (KeyError, RuntimeError, TypeError, ValueError) as exc:
         where = f"{source}: " if source is not None else ""
         raise ValueError(

@@ -83,8 +83,8 @@ class GSTPredictor:
     ):
         ckpt = load_checkpoint(checkpoint, map_location=device)
         self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
-        self.body = load_body_model(body_model or ckpt["body_model"], device=device)
-        self.vertex_ids = ckpt["vertex_ids"].to(device)
+        self.body = load_body_model(body_model or ckpt.body_model, device=device)
+        self.vertex_ids = ckpt.vertex_ids.to(device)
         self.with_gaussians = with_gaussians
         self.device, self.batch_size = device, batch_size
         self.name = f"gst-{self.network.cfg.name}"

@@ -182,28 +182,54 @@ def _detector_info(kind: str, why: str, s: TrackSettings) -> dict:
     return info
 
 
-def model_provenance(checkpoint: Path, name: str, scene: str | None) -> dict:
+@dataclass(frozen=True)
+class ModelProvenance:
+    """What the tracks file (metadata `gst.model`) and the log say about the model: its name,
+    checkpoint, body model, training mode, and what it was trained on as far as the checkpoint
+    records it (`trained_on`: the checkpoint's own record, e.g. scene, cameras, frames, crops;
+    {"scene", "recorded": False} when it has none)."""
+
+    name: str
+    version: str
+    checkpoint: str
+    body_model: str
+    training_mode: str | None
+    trained_on: dict
+
+    def to_dict(self) -> dict:
+        """The metadata's layout (the fields in order)."""
+        return {
+            "name": self.name,
+            "version": self.version,
+            "checkpoint": self.checkpoint,
+            "body_model": self.body_model,
+            "training_mode": self.training_mode,
+            "trained_on": self.trained_on,
+        }
+
+
+def model_provenance(checkpoint: Path, name: str, scene: str | None) -> ModelProvenance:
     """What the file and the log say about the model: name, checkpoint, and what it was trained
     on as far as the checkpoint records it (`extra.trained_on`: scene, cameras, frames)."""
     ckpt = load_checkpoint(checkpoint)
-    extra = ckpt.get("extra") or {}
+    extra = ckpt.extra
     trained_on = extra.get("trained_on")
     if not isinstance(trained_on, dict):
         trained_on = {"scene": scene, "recorded": False}
-    return {
-        "name": name,
-        "version": "1",
-        "checkpoint": "models/gst.pt",
-        "body_model": str(ckpt.get("body_model")),
-        "training_mode": extra.get("mode"),
-        "trained_on": trained_on,
-    }
+    return ModelProvenance(
+        name=name,
+        version="1",
+        checkpoint="models/gst.pt",
+        body_model=str(ckpt.body_model),
+        training_mode=extra.get("mode"),
+        trained_on=trained_on,
+    )
 
 
-def _camera_seen(model: dict, camera: Camera | None) -> bool:
+def _camera_seen(model: ModelProvenance, camera: Camera | None) -> bool:
     """Whether the model was trained on this video's camera (only a calibrated camera of the
     scene can be, and only when the checkpoint records its cameras)."""
-    cams = model["trained_on"].get("cameras")
+    cams = model.trained_on.get("cameras")
     return camera is not None and isinstance(cams, list) and camera.name in cams
 
 
@@ -238,7 +264,7 @@ def track_scene(
     log.info("person detector: %s (%s)", kind, why)
     detector_info = _detector_info(kind, why, s)
     model_info = model_provenance(request.checkpoint, name, request.scene)
-    log.info("model: %s, trained on %s", name, _describe_training(model_info["trained_on"]))
+    log.info("model: %s, trained on %s", name, _describe_training(model_info.trained_on))
     options = TrackOptions(
         stride=s.stride,
         tracker=TrackerConfig(min_hits=s.min_hits, max_misses=s.max_misses),
@@ -279,7 +305,7 @@ def track_scene(
                 video,
                 _detector(kind, s, video, camera, rig, parallel_videos),
                 predictor,
-                {**model_info, "seen_this_camera": seen},
+                {**model_info.to_dict(), "seen_this_camera": seen},
                 name=video.stem,
                 camera=camera,
                 world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,

@@ -9,7 +9,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -19,13 +19,43 @@ from gst.train.steps import GSTTask, predict
 from gst.train.views import CropSet, MultiViewBatch, target_views
 
 
+@dataclass(frozen=True)
+class PoseMetrics:
+    """MPJPE (pelvis-aligned) and PA-MPJPE in mm, means over the crops scored."""
+
+    mpjpe_mm: float
+    pa_mpjpe_mm: float
+
+    def to_dict(self) -> dict[str, float]:
+        """The metrics by name (validation rows, log.csv columns, summary.json)."""
+        return {"mpjpe_mm": self.mpjpe_mm, "pa_mpjpe_mm": self.pa_mpjpe_mm}
+
+
+@dataclass(frozen=True)
+class ViewMetrics:
+    """Novel-view PSNR (dB), SSIM and silhouette IoU, means over the pairs scored; `images`:
+    (input, rendered, target) batches when asked for (never serialised)."""
+
+    psnr: float
+    ssim: float
+    silhouette_iou: float
+    images: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = field(
+        default=None, repr=False, compare=False
+    )
+
+    def to_dict(self) -> dict[str, float]:
+        """The metrics by name, without the images."""
+        return {"psnr": self.psnr, "ssim": self.ssim, "silhouette_iou": self.silhouette_iou}
+
+
 @torch.no_grad()
 def pose_metrics(
     model, task: GSTTask, crops: CropSet, rows: torch.Tensor, batch_size: int = 32
-) -> dict:
-    """MPJPE and PA-MPJPE (mm) over `rows` (crops that have truth joints_world)."""
+) -> PoseMetrics | None:
+    """MPJPE and PA-MPJPE (mm) over `rows` (crops that have truth joints_world); None when
+    `rows` is empty."""
     if len(rows) == 0:
-        return {}
+        return None
     errs, pa = [], []
     for s in range(0, len(rows), batch_size):
         r = rows[s : s + batch_size]
@@ -36,10 +66,10 @@ def pose_metrics(
         gt = crops.truth["joints_world"][r].to(pred.joints_world)
         errs.append(mpjpe(pred.joints_world, gt, root=0))
         pa.append(pa_mpjpe(pred.joints_world, gt))
-    return {
-        "mpjpe_mm": 1000 * float(torch.cat(errs).mean()),
-        "pa_mpjpe_mm": 1000 * float(torch.cat(pa).mean()),
-    }
+    return PoseMetrics(
+        mpjpe_mm=1000 * float(torch.cat(errs).mean()),
+        pa_mpjpe_mm=1000 * float(torch.cat(pa).mean()),
+    )
 
 
 @dataclass
@@ -109,12 +139,13 @@ def novel_view_metrics(
     size: int,
     batch_size: int = 16,
     return_images: bool = False,
-) -> dict:
-    """PSNR/SSIM of the person (composited on black) and silhouette IoU in held-out views."""
+) -> ViewMetrics | None:
+    """PSNR/SSIM of the person (composited on black) and silhouette IoU in held-out views;
+    None without pairs. `return_images`: the metrics keep the compared images."""
     from gst.train.steps import render_predictions
 
     if len(pairs.inputs) == 0:
-        return {}
+        return None
     ps, ss, ious, images = [], [], [], []
     for s in range(0, len(pairs.inputs), batch_size):
         b = _batch(crops, pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size], size)
@@ -130,11 +161,9 @@ def novel_view_metrics(
         ious.append(silhouette_iou(out.alpha[:, 0], b.target_masks[:, 0]))
         if return_images:
             images.append((b.input_images, rgb, target))
-    result = {
-        "psnr": float(torch.cat(ps).mean()),
-        "ssim": float(torch.cat(ss).mean()),
-        "silhouette_iou": float(torch.cat(ious).mean()),
-    }
-    if return_images:
-        result["images"] = images
-    return result
+    return ViewMetrics(
+        psnr=float(torch.cat(ps).mean()),
+        ssim=float(torch.cat(ss).mean()),
+        silhouette_iou=float(torch.cat(ious).mean()),
+        images=images if return_images else None,
+    )

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -37,7 +38,7 @@ from gst.model.checkpoint import load_checkpoint
 from gst.model.presets import PRESETS, get_preset
 from gst.train.augment import CropJitter
 from gst.train.losses import LossWeights
-from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
+from gst.train.recipe import FitOptions, FitSummary, build_network, fit_gst, make_task
 from gst.train.synthetic_crops import crops_from_synth_scene
 from gst.train.trainer import TrainConfig
 from gst.train.views import CropSet, concat_crop_sets
@@ -150,17 +151,63 @@ def render_world(item: tuple[dict, str]) -> str:
     return out
 
 
-def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> dict:
+@dataclass(frozen=True)
+class ReusedCheckpoint:
+    """The pretrain summary when `pretrain.reuse` copies an existing checkpoint."""
+
+    reused: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class CorpusSummary:
+    """The summary's `corpus` entry: the worlds trained on, the validation world, crop counts."""
+
+    worlds: list[str]
+    validation_world: str
+    train_crops: int
+    validation_crops: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class ImagePretrainSummary:
+    """What `pretrain_images` returns (and writes as summary.json): the corpus run, the
+    Gaussian-head run when mode `3d` has `gaussian_steps`, and the corpus."""
+
+    fit: FitSummary
+    corpus: CorpusSummary
+    gaussians: FitSummary | None = None
+
+    @property
+    def kept(self) -> FitSummary:
+        """The run whose model is kept: the Gaussian-head run when there is one."""
+        return self.fit if self.gaussians is None else self.gaussians
+
+    def to_dict(self) -> dict:
+        """summary.json: the corpus run's fields, then `gaussians` (when run) and `corpus`."""
+        out = self.fit.to_dict()
+        if self.gaussians is not None:
+            out["gaussians"] = self.gaussians.to_dict()
+        out["corpus"] = self.corpus.to_dict()
+        return out
+
+
+def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> ReusedCheckpoint:
     ckpt = load_checkpoint(p.reuse)  # weights_only: a GST checkpoint or a clear error
-    if ckpt["body_model"] != p.body_model:
+    if ckpt.body_model != p.body_model:
         raise ValueError(
-            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt['body_model']}', "
+            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt.body_model}', "
             f"pretrain.body_model is '{p.body_model}'"
         )
     shutil.copyfile(p.reuse, checkpoint)
     reports.mkdir(parents=True, exist_ok=True)
-    summary = {"reused": str(p.reuse)}
-    (reports / "summary.json").write_text(json.dumps(summary, indent=2))
+    summary = ReusedCheckpoint(reused=str(p.reuse))
+    (reports / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2))
     log.info("pretrain: reusing %s", p.reuse)
     return summary
 
@@ -193,14 +240,14 @@ def corpus_crops(
     return crops, sets[-1]
 
 
-def corpus_summary(specs: list[dict], crops: CropSet, val: CropSet) -> dict:
+def corpus_summary(specs: list[dict], crops: CropSet, val: CropSet) -> CorpusSummary:
     """The summary's `corpus` entry: the worlds trained on, the validation world, crop counts."""
-    return {
-        "worlds": [s["name"] for s in specs[:-1]],
-        "validation_world": specs[-1]["name"],
-        "train_crops": len(crops),
-        "validation_crops": len(val),
-    }
+    return CorpusSummary(
+        worlds=[s["name"] for s in specs[:-1]],
+        validation_world=specs[-1]["name"],
+        train_crops=len(crops),
+        validation_crops=len(val),
+    )
 
 
 def pretrain_images(
@@ -211,7 +258,7 @@ def pretrain_images(
     *,
     map_fn=None,
     progress=None,
-) -> dict:
+) -> ImagePretrainSummary:
     """Modes `3d` / `pretrain` (the image-only network; mode `lift` is `gst.lift.recipe`):
     render the corpus into `work/worlds` (finished worlds are kept: a rerun resumes), train,
     write the kept model to `checkpoint` and the logs and summary to `reports`; returns the
@@ -239,7 +286,7 @@ def pretrain_images(
         log_every=5,
     )
 
-    def fit(task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions) -> dict:
+    def fit(task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions) -> FitSummary:
         """One fit_gst run on the corpus (pose validation on the unseen world)."""
         run_dir.mkdir(parents=True, exist_ok=True)
         return fit_gst(
@@ -257,7 +304,7 @@ def pretrain_images(
         )
 
     out = work / "models" / "pretrain_run"
-    summary = fit(
+    first = fit(
         task,
         train_cfg,
         out,
@@ -273,8 +320,9 @@ def pretrain_images(
     kept = out / ("best.pt" if (out / "best.pt").is_file() else "last.pt")
     reports.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "log.csv", reports / "log.csv")
+    gaussians = None
     if p.mode == "3d" and p.gaussian_steps > 0:
-        net.load_state_dict(load_checkpoint(kept)["model"])
+        net.load_state_dict(load_checkpoint(kept).model)
         task = make_task(
             body, ids, cfg, crops.crop_size, p.losses, load_lpips() if p.losses.lpips > 0 else None
         )
@@ -288,7 +336,7 @@ def pretrain_images(
             ckpt_every=25,
             log_every=5,
         )
-        summary["gaussians"] = fit(
+        gaussians = fit(
             task,
             gcfg,
             gauss_out,
@@ -304,13 +352,12 @@ def pretrain_images(
         )  # the pose barely moves here; the head keeps learning to the end
         shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
     shutil.copyfile(kept, checkpoint)
-    summary.update(corpus=corpus_summary(specs, crops, val))
-    (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    kept_metrics = summary["gaussians"]["after"] if "gaussians" in summary else summary["after"]
+    summary = ImagePretrainSummary(first, corpus_summary(specs, crops, val), gaussians)
+    (reports / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2, default=float))
     log.info(
         "pretrain: MPJPE on the unseen validation world %.1f -> %.1f mm (the kept model)",
-        summary["before"].get("mpjpe_mm", float("nan")),
-        kept_metrics.get("mpjpe_mm", float("nan")),
+        summary.fit.before.get("mpjpe_mm", float("nan")),
+        summary.kept.after.get("mpjpe_mm", float("nan")),
     )
     shutil.rmtree(out)
     shutil.rmtree(work / "models" / "pretrain_gaussians", ignore_errors=True)

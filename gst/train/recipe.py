@@ -10,7 +10,7 @@ the 2D / 3D fine-tuning baselines; `mode` picks the loss:
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +135,27 @@ def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
     return terms.total, terms.parts
 
 
+@dataclass(frozen=True)
+class FitSummary:
+    """What `fit_gst` returns: the training run (`TrainRunSummary`'s fields), the validation
+    metrics before and after training (metric name -> value: pose on the validation crops,
+    novel views on the held-out cameras, whichever apply), the number of training groups and
+    the held-out cameras."""
+
+    steps: int
+    bad_steps: int
+    best: float | None
+    seconds: float
+    before: dict[str, float]
+    after: dict[str, float]
+    train_groups: int
+    heldout: list[str]
+
+    def to_dict(self) -> dict:
+        """The summary.json layout (the fields in order)."""
+        return asdict(self)
+
+
 def fit_gst(
     model: GSTNetwork,
     task: GSTTask,
@@ -149,7 +170,7 @@ def fit_gst(
     progress=None,
     resume: bool = True,
     val_crops: CropSet | None = None,
-) -> dict:
+) -> FitSummary:
     """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`.
 
     `val_crops`: crops with truth that training never sees (e.g. another world); pose validation
@@ -233,9 +254,11 @@ def fit_gst(
             return supervised_step(m, b, task)
 
     def validate(m) -> dict:
-        metrics = pose_metrics(m, task, pose_crops, truth_rows) if len(truth_rows) else {}
+        pose = pose_metrics(m, task, pose_crops, truth_rows) if len(truth_rows) else None
+        metrics = {} if pose is None else pose.to_dict()
         if pairs is not None and len(pairs.inputs):
-            metrics.update(novel_view_metrics(m, task, crops, pairs, opts.render_size))
+            views = novel_view_metrics(m, task, crops, pairs, opts.render_size)
+            metrics.update({} if views is None else views.to_dict())
         return metrics
 
     def extra() -> dict:
@@ -277,16 +300,16 @@ def fit_gst(
     model.train()
     if resume:
         trainer.resume()
-    summary = trainer.fit()
+    run = trainer.fit()
     model.eval()
     after = validate(model)
-    summary.update(
-        before={k: v for k, v in before.items() if k != "images"},
-        after={k: v for k, v in after.items() if k != "images"},
+    return FitSummary(
+        **run.to_dict(),
+        before=before,
+        after=after,
         train_groups=len(groups),
         heldout=list(opts.heldout_cameras),
     )
-    return summary
 
 
 def make_task(

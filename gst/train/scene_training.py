@@ -31,11 +31,17 @@ from gst.model.presets import get_preset
 from gst.render.ply import write_gaussians_ply
 from gst.train.anchors import mask_centre_anchors
 from gst.train.distill import Teacher, distill_targets, training_rows
-from gst.train.evaluation import novel_view_metrics, novel_view_pairs, pose_metrics
+from gst.train.evaluation import (
+    PoseMetrics,
+    ViewMetrics,
+    novel_view_metrics,
+    novel_view_pairs,
+    pose_metrics,
+)
 from gst.train.keypoints import keypoints_from_landmarks, store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.occlusion import occluder_masks
-from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
+from gst.train.recipe import FitOptions, FitSummary, build_network, fit_gst, make_task
 from gst.train.scene_truth import attach_scene_truth, select_rows
 from gst.train.steps import predict
 from gst.train.trainer import TrainConfig
@@ -103,15 +109,15 @@ def _initial_network(p: TrainSettings, pretrained: Path, body):
         log.info("HMR2 import: %s", report.summary())
         return net, ids, groups
     ckpt = load_checkpoint(pretrained)
-    if ckpt["body_model"] != p.body_model:
+    if ckpt.body_model != p.body_model:
         raise ValueError(
-            f"models/pretrain.pt was trained with body model '{ckpt['body_model']}', "
+            f"models/pretrain.pt was trained with body model '{ckpt.body_model}', "
             f"train.body_model is '{p.body_model}'"
         )
     return (
         network_from_checkpoint(ckpt, pretrained),
-        ckpt["vertex_ids"].numpy(),
-        ckpt["group_index"].numpy(),
+        ckpt.vertex_ids.numpy(),
+        ckpt.group_index.numpy(),
     )
 
 
@@ -235,6 +241,30 @@ class TrainOutputs:
     run_dir: Path
 
 
+@dataclass(frozen=True)
+class SceneTrainingSummary:
+    """What `train_scene` returns (and writes as reports/train/summary.json): the fit, the
+    kept model's pose on the held-out frames (synthetic scenes with held-out frames only:
+    `heldout_first_frame` is then set; the pose is None without a crop to score) and its novel
+    views at 128 px on the held-out cameras (None without a pair)."""
+
+    fit: FitSummary
+    novel_view_128px: ViewMetrics | None
+    heldout_first_frame: int | None = None
+    heldout_pose: PoseMetrics | None = None
+
+    def to_dict(self) -> dict:
+        """summary.json: the fit's fields, then `heldout_frames` (when scored) and
+        `best_checkpoint_novel_view_128px`."""
+        out = self.fit.to_dict()
+        if self.heldout_first_frame is not None:
+            pose = {} if self.heldout_pose is None else self.heldout_pose.to_dict()
+            out["heldout_frames"] = {"first_frame": self.heldout_first_frame, **pose}
+        nv = self.novel_view_128px
+        out["best_checkpoint_novel_view_128px"] = {} if nv is None else nv.to_dict()
+        return out
+
+
 def train_scene(
     p: TrainSettings,
     crops_h5: Path,
@@ -245,7 +275,7 @@ def train_scene(
     teacher: Teacher | None = None,
     scene: str = "scene",
     progress=None,
-) -> dict | None:
+) -> SceneTrainingSummary | None:
     """Train GST on a scene's crops from the pretrained model (or HMR2); returns the summary
     (None on torchrun ranks other than 0, which only contribute gradients). `teacher`: fused
     bodies for distillation (`gst.lift.teacher.RigTeacher`; needed when `p.distill`)."""
@@ -280,7 +310,7 @@ def train_scene(
     run_dir.mkdir(parents=True, exist_ok=True)
     # the 2d/3d baselines train everything at supervised_lr
     body_lr = p.body_lr if multiview else None
-    summary = fit_gst(
+    fit = fit_gst(
         net,
         task,
         crops,
@@ -307,9 +337,9 @@ def train_scene(
     out.model.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(best, out.model)
     net = network_from_checkpoint(load_checkpoint(best)).eval()
-    _write_reports(net, task, crops, heldout, cut, summary, out)
+    summary = _write_reports(net, task, crops, heldout, cut, fit, out)
     shutil.rmtree(run_dir)
-    b, a = summary["before"], summary["after"]
+    b, a = fit.before, fit.after
     log.info(
         "train: MPJPE %s -> %s mm; held-out PSNR %s -> %s dB",
         _f(b.get("mpjpe_mm"), "mpjpe_mm"),
@@ -321,8 +351,8 @@ def train_scene(
 
 
 def _write_reports(
-    net, task, crops: CropSet, heldout, cut: int | None, summary: dict, out: TrainOutputs
-) -> None:
+    net, task, crops: CropSet, heldout, cut: int | None, fit: FitSummary, out: TrainOutputs
+) -> SceneTrainingSummary:
     """Novel views of the kept model (held-out frames when there are any), an example splat,
     the log and the summary (on synthetic scenes, MPJPE on the held-out frames: reported only,
     never used to choose anything)."""
@@ -332,10 +362,11 @@ def _write_reports(
     frames = None if cut is None else (cut, int(crops.frame.max()) + 1)
     pairs = novel_view_pairs(crops, heldout_idx, max_pairs=8, frames=frames)
     nv = novel_view_metrics(net, task, crops, pairs, 128, return_images=True)
-    _contact_sheet(nv.pop("images", []), reports / "novel_views.png")
+    _contact_sheet([] if nv is None else nv.images or [], reports / "novel_views.png")
+    first_frame = heldout_pose = None
     if cut is not None and "has_truth" in crops.truth:
         rows = torch.nonzero(crops.truth["has_truth"].bool() & (crops.frame >= cut))[:, 0]
-        summary["heldout_frames"] = {"first_frame": cut, **pose_metrics(net, task, crops, rows)}
+        first_frame, heldout_pose = cut, pose_metrics(net, task, crops, rows)
     with torch.no_grad():
         i = torch.tensor([0])
         g = predict(
@@ -346,9 +377,10 @@ def _write_reports(
         out.example_ply, g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.colors[0]
     )
     shutil.copyfile(out.run_dir / "log.csv", reports / "log.csv")
-    summary["best_checkpoint_novel_view_128px"] = nv
-    (reports / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
-    _write_markdown(reports / "summary.md", summary)
+    summary = SceneTrainingSummary(fit, nv, first_frame, heldout_pose)
+    (reports / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2, default=float))
+    _write_markdown(reports / "summary.md", fit)
+    return summary
 
 
 def _f(v, key: str = "") -> str:
@@ -359,19 +391,19 @@ def _f(v, key: str = "") -> str:
     return f"{v:.{digits}f}"
 
 
-def _write_markdown(path: Path, s: dict) -> None:
-    keys = sorted(set(s["before"]) | set(s["after"]))
+def _write_markdown(path: Path, s: FitSummary) -> None:
+    keys = sorted(set(s.before) | set(s.after))
     lines = [
         "# GST training",
         "",
-        f"{s['steps']} steps, {s['bad_steps']} skipped, {s['seconds']:.0f} s; "
-        f"{s['train_groups']} multi-view training samples; "
-        f"held-out cameras: {', '.join(s['heldout'])}.",
+        f"{s.steps} steps, {s.bad_steps} skipped, {s.seconds:.0f} s; "
+        f"{s.train_groups} multi-view training samples; "
+        f"held-out cameras: {', '.join(s.heldout)}.",
         "",
         "| metric | before (pretrained) | after (GST) |",
         "|---|---|---|",
     ]
-    lines += [f"| {k} | {_f(s['before'].get(k), k)} | {_f(s['after'].get(k), k)} |" for k in keys]
+    lines += [f"| {k} | {_f(s.before.get(k), k)} | {_f(s.after.get(k), k)} |" for k in keys]
     lines += [
         "",
         "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), "

@@ -54,6 +54,21 @@ class NonFiniteLossError(RuntimeError):
     pass
 
 
+@dataclass(frozen=True)
+class TrainRunSummary:
+    """What `Trainer.fit` returns: the step reached, the skipped (non-finite) steps, the best
+    validation value of `best_key` (None without one) and the training seconds (resumed runs
+    included)."""
+
+    steps: int
+    bad_steps: int
+    best: float | None
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
 def warmup_cosine(step: int, steps: int, warmup_steps: int, min_lr_ratio: float = 0.0) -> float:
     """Learning-rate factor of `step`: linear warmup over `warmup_steps`, then a cosine decay
     to `min_lr_ratio` at `steps` (the lift pretraining's schedule too, with a ratio of 0)."""
@@ -280,7 +295,7 @@ class Trainer:
         self.scheduler.step()
         return {"loss": float(loss.detach()), **{k: float(v) for k, v in metrics.items()}}
 
-    def fit(self) -> dict:
+    def fit(self) -> TrainRunSummary:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.model.train()
         t0 = self._t0 = time.perf_counter()
@@ -310,9 +325,9 @@ class Trainer:
             last_val = {}
         if self.best_key is None or not self.best_path.exists():
             self.save(self.best_path)
-        return {
-            "steps": self.step,
-            "bad_steps": self.bad_steps,
-            "best": self.best_value,
-            "seconds": self.seconds_before + time.perf_counter() - t0,
-        }
+        return TrainRunSummary(
+            steps=self.step,
+            bad_steps=self.bad_steps,
+            best=self.best_value,
+            seconds=self.seconds_before + time.perf_counter() - t0,
+        )
