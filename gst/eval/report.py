@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
@@ -180,6 +181,18 @@ def side_by_side_image(result: EvalResult, crops: CropSet) -> np.ndarray | None:
     return np.concatenate(rows, 0)
 
 
+def _write_csv(path: Path, header: list[str], rows: Iterable[list]) -> None:
+    """A CSV file of `header` then `rows`, written atomically."""
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(rows)
+
+    atomic_write(path, write)
+
+
 def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
     p = result.pose
     motion_of = (
@@ -187,70 +200,43 @@ def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
         if motions is not None and "truth_row" in crops.truth
         else (lambda r: "all")
     )
-
-    def pose_csv(tmp: str) -> None:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(
-                [
-                    "row",
-                    "camera",
-                    "frame",
-                    "motion",
-                    "mpjpe_mm",
-                    "pa_mpjpe_mm",
-                    "pve_mm",
-                    "pa_pve_mm",
-                ]
-            )
-            for i, r in enumerate(p.rows):
-                w.writerow(
-                    [
-                        int(r),
-                        crops.camera_names[int(p.camera[i])],
-                        int(p.frame[i]),
-                        motion_of(int(r)),
-                        f"{1000 * p.mpjpe[i]:.3f}",
-                        f"{1000 * p.pa_mpjpe[i]:.3f}",
-                        "" if p.pve is None else f"{1000 * p.pve[i]:.3f}",
-                        "" if p.pa_pve is None else f"{1000 * p.pa_pve[i]:.3f}",
-                    ]
-                )
-
-    atomic_write(out / "per_crop.csv", pose_csv)
+    _write_csv(
+        out / "per_crop.csv",
+        ["row", "camera", "frame", "motion", "mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pa_pve_mm"],
+        (
+            [
+                int(r),
+                crops.camera_names[int(p.camera[i])],
+                int(p.frame[i]),
+                motion_of(int(r)),
+                f"{1000 * p.mpjpe[i]:.3f}",
+                f"{1000 * p.pa_mpjpe[i]:.3f}",
+                "" if p.pve is None else f"{1000 * p.pve[i]:.3f}",
+                "" if p.pa_pve is None else f"{1000 * p.pa_pve[i]:.3f}",
+            ]
+            for i, r in enumerate(p.rows)
+        ),
+    )
     if result.views is None:
         return
     v = result.views
     keys = ("psnr", "ssim", "lpips", "silhouette_iou", "box_psnr", "box_ssim", "box_lpips")
-
-    def view_csv(tmp: str) -> None:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(
-                [
-                    "input_row",
-                    "target_row",
-                    "input_camera",
-                    "target_camera",
-                    "heldout",
-                    "frame",
-                    *keys,
-                ]
-            )
-            for i in range(len(v.inputs)):
-                w.writerow(
-                    [
-                        int(v.inputs[i]),
-                        int(v.targets[i]),
-                        crops.camera_names[int(crops.camera[v.inputs[i]])],
-                        crops.camera_names[int(v.camera[i])],
-                        bool(v.heldout[i]),
-                        int(crops.frame[v.targets[i]]),
-                        *(f"{getattr(v, k)[i]:.5f}" for k in keys),
-                    ]
-                )
-
-    atomic_write(out / "per_view.csv", view_csv)
+    _write_csv(
+        out / "per_view.csv",
+        ["input_row", "target_row", "input_camera", "target_camera", "heldout", "frame", *keys],
+        (
+            [
+                int(v.inputs[i]),
+                int(v.targets[i]),
+                crops.camera_names[int(crops.camera[v.inputs[i]])],
+                crops.camera_names[int(v.camera[i])],
+                bool(v.heldout[i]),
+                int(crops.frame[v.targets[i]]),
+                *(f"{getattr(v, k)[i]:.5f}" for k in keys),
+            ]
+            for i in range(len(v.inputs))
+        ),
+    )
 
 
 _HEADLINE = [
