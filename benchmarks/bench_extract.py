@@ -157,6 +157,11 @@ def compare_on_scenes(scenes: list[Path], chosen: list[int]) -> None:
         )
 
 
+def _chosen(variants: str, n: int) -> list[int]:
+    """The variant numbers of `--variants`: comma-separated (0-based) or 'all' (the n of them)."""
+    return list(range(n)) if variants == "all" else [int(v) for v in variants.split(",")]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -181,9 +186,7 @@ def main() -> None:
     if args.scenes:
         compare_on_scenes(
             args.scenes,
-            list(range(len(SCENE_VARIANTS)))
-            if args.variants == "all"
-            else [int(v) for v in args.variants.split(",")],
+            _chosen(args.variants, len(SCENE_VARIANTS)),
         )
         return
 
@@ -205,11 +208,7 @@ def main() -> None:
             f"input: {what}; {len(videos)} cameras at {cam0.width}x{cam0.height} "
             f"(prepared in {time.perf_counter() - t0:.1f} s)"
         )
-        chosen = (
-            range(len(VARIANTS))
-            if args.variants == "all"
-            else [int(v) for v in args.variants.split(",")]
-        )
+        chosen = _chosen(args.variants, len(VARIANTS))
         rows = []
         for vi in chosen:
             name, method, ws, comp, persons = VARIANTS[vi]

@@ -51,24 +51,12 @@ def plot_coverage(camera: Camera, inliers: np.ndarray, outliers: np.ndarray, pat
     fig = Figure(figsize=(6, max(2.5, 6 * aspect)))
     ax = fig.add_subplot(1, 1, 1)
     ax.add_patch(_rect(camera.width, camera.height))
-    if len(inliers):
-        ax.scatter(
-            inliers[:, 0],
-            inliers[:, 1],
-            s=2,
-            c="tab:blue",
-            alpha=0.5,
-            label=f"corners ({len(inliers)})",
-        )
-    if len(outliers):
-        ax.scatter(
-            outliers[:, 0],
-            outliers[:, 1],
-            s=8,
-            c="tab:red",
-            marker="x",
-            label=f"outliers ({len(outliers)})",
-        )
+    for points, what, style in (
+        (inliers, "corners", dict(s=2, c="tab:blue", alpha=0.5)),
+        (outliers, "outliers", dict(s=8, c="tab:red", marker="x")),
+    ):
+        if len(points):
+            ax.scatter(points[:, 0], points[:, 1], label=f"{what} ({len(points)})", **style)
     ax.set_xlim(-0.02 * camera.width, 1.02 * camera.width)
     ax.set_ylim(1.02 * camera.height, -0.02 * camera.height)  # image y down
     ax.set_aspect("equal")

@@ -9,19 +9,7 @@ import pytest
 from extract_scenes import make_scene
 
 from gst.data import AssociationConfig, CropStore, ExtractError, ExtractOptions, extract_scene
-from gst.detect.blazepose import import_litert
-from gst.detect.weights import model_paths
-
-try:
-    import_litert()
-    model_paths()
-    HAVE_BLAZEPOSE = True
-except (ImportError, FileNotFoundError):
-    HAVE_BLAZEPOSE = False
-needs_blazepose = pytest.mark.skipif(
-    not HAVE_BLAZEPOSE,
-    reason="BlazePose missing: pip install -e '.[detect]' && python -m gst.detect fetch",
-)
+from tests.real_capture import NEEDS_MODELS
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +30,7 @@ def run(scene, tmp_path_factory):
     return rep, out
 
 
-@needs_blazepose
+@NEEDS_MODELS
 def test_keypoint_extraction_finds_both_people_everywhere(run, scene):
     rep, out = run
     assert rep.association_method == "keypoints"
@@ -56,7 +44,7 @@ def test_keypoint_extraction_finds_both_people_everywhere(run, scene):
     assert len(store.multiview_groups(min_views=3)) >= 15  # 10 frames x 2 people
 
 
-@needs_blazepose
+@NEEDS_MODELS
 def test_store_landmarks_are_in_crop_pixels(run):
     """Each crop's landmarks, through its own K_crop, R, t, agree with the other views of the
     same person: triangulated from two crops, a landmark reprojects into a third crop close

@@ -32,24 +32,7 @@ from gst.detect.weights import (
     fetch_blazepose_models,
     model_paths,
 )
-
-LAB = Path("/work/shared/real/pose2sim-multiperson")
-
-
-def _models_ready() -> bool:
-    try:
-        import ai_edge_litert.interpreter  # noqa: F401
-
-        model_paths()
-    except (ImportError, BlazePoseModelsMissing):
-        return False
-    return True
-
-
-needs_models = pytest.mark.skipif(
-    not _models_ready(),
-    reason="BlazePose models not fetched (python -m gst.detect fetch) or ai-edge-litert missing",
-)
+from tests.real_capture import LAB, NEEDS_LAB, NEEDS_MODELS
 
 
 def test_anchor_layout_matches_the_detector():
@@ -279,14 +262,14 @@ def test_pinned_model_hashes_are_well_formed():
     assert len(MEDIAPIPE_WHEEL.sha256) == 64 and MEDIAPIPE_WHEEL.platform
 
 
-@needs_models
+@NEEDS_MODELS
 def test_cached_models_match_their_pins():
     for role, p in model_paths().items():
         assert hashlib.sha256(p.read_bytes()).hexdigest() == MODELS[role].sha256
 
 
-@needs_models
-@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+@NEEDS_MODELS
+@NEEDS_LAB
 def test_lab_frames_show_both_subjects_with_separate_full_masks():
     from gst.detect.blazepose import BlazePose
     from gst.detect.persons import PersonSegmenter
@@ -308,8 +291,8 @@ def test_lab_frames_show_both_subjects_with_separate_full_masks():
         assert p.landmarks.shape == (33, 3) and 0.5 <= p.presence <= 1.0
 
 
-@needs_models
-@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+@NEEDS_MODELS
+@NEEDS_LAB
 def test_lab_extraction_with_person_masks_keeps_two_ids(tmp_path):
     """Every 10th frame of the real capture: the man and the still woman, one id each, seen by
     at least two cameras in (nearly) every frame; masks cover most of each person's hull."""
@@ -334,8 +317,8 @@ def test_lab_extraction_with_person_masks_keeps_two_ids(tmp_path):
     assert np.nanmedian(support) > 0.6
 
 
-@needs_models
-@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+@NEEDS_MODELS
+@NEEDS_LAB
 def test_person_detector_boxes_on_lab_video():
     from gst.track.person_detector import PersonModelDetector
 

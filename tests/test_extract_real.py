@@ -1,10 +1,7 @@
 """Id linking, standing-height geometry, truthless proxies, and (when the real lab capture is
 on this machine) id stability of single-camera tracking on it."""
 
-from pathlib import Path
-
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -15,8 +12,7 @@ from gst.data.association import link_tracklets
 from gst.data.ground import ground_seed
 from gst.track.static_detector import group_boxes
 from gst.track.tracker import Observation, Tracker, TrackerConfig
-
-LAB = Path("/work/shared/real/pose2sim-multiperson")
+from tests.real_capture import LAB, NEEDS_LAB
 
 
 def _walk(steps, start, velocity):
@@ -123,7 +119,7 @@ def test_tentative_tracks_do_not_use_up_ids():
     assert again.update(8 / 30, [_obs(108)]) == tr.update(8 / 30, [_obs(108)]) == [0]
 
 
-@pytest.mark.skipif(not LAB.is_dir(), reason=f"real lab capture not on this machine ({LAB})")
+@NEEDS_LAB
 def test_lab_camera_tracking_keeps_few_ids(tmp_path):
     """cam03 of the real capture, every 2nd frame: with the calibrated height check, blob
     grouping and tentative tracks, the two subjects keep a handful of ids (65..20 before)."""

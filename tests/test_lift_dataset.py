@@ -1,26 +1,11 @@
 """The landmark-world dataset: BlazePose's world landmarks, the .npz round trip, the world specs."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
 from gst.lift.dataset import FORMAT_VERSION, LandmarkWorld, world_spec
-
-LAB = Path("/work/shared/real/pose2sim-multiperson")
-
-
-def _models_ready() -> bool:
-    try:
-        import ai_edge_litert.interpreter  # noqa: F401
-
-        from gst.detect.weights import model_paths
-
-        model_paths()
-    except (ImportError, FileNotFoundError):
-        return False
-    return True
+from tests.real_capture import LAB, NEEDS_LAB, NEEDS_MODELS
 
 
 def _world(n: int = 5) -> LandmarkWorld:
@@ -88,8 +73,8 @@ def test_world_specs_cycle_rigs_and_differ_by_seed():
     assert world_spec(2) == specs[2]  # deterministic
 
 
-@pytest.mark.skipif(not _models_ready(), reason="BlazePose models or ai-edge-litert missing")
-@pytest.mark.skipif(not LAB.is_dir(), reason="the real lab capture is not on this machine")
+@NEEDS_MODELS
+@NEEDS_LAB
 def test_world_landmarks_are_hip_centred_metres_in_image_axes():
     from gst.detect.blazepose import BlazePose, roi_from_alignment
 

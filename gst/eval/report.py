@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from collections.abc import Iterable
 from pathlib import Path
 
 import cv2
@@ -69,6 +70,28 @@ def _series(summaries: dict[str, dict], section: str, table: str, keys: list[str
     }
 
 
+# metric of a bar panel -> (the summaries' section that holds it, its axis label)
+_BAR_METRICS = {
+    "mpjpe_mm": ("pose", "MPJPE (mm)"),
+    "pa_mpjpe_mm": ("pose", "PA-MPJPE (mm)"),
+    "psnr": ("novel_view", "PSNR (dB)"),
+}
+
+
+def _panel(
+    summaries: dict[str, dict], table: str, keys: list[str], metric: str, title: str, labels=None
+):
+    """One `_grouped_bars` panel (its arguments after the axes): `metric` of each run's
+    table[key] per key, the groups named by `labels` (default: the keys)."""
+    section, ylabel = _BAR_METRICS[metric]
+    return (
+        keys if labels is None else labels,
+        _series(summaries, section, table, keys, metric),
+        ylabel,
+        title,
+    )
+
+
 def _bar_figure(path: Path, panels: list[tuple]) -> None:
     """A row of `_grouped_bars` panels (each given as its arguments after the axes)."""
     import matplotlib.pyplot as plt
@@ -87,14 +110,7 @@ def _plots(out: Path, summaries: dict[str, dict]) -> list[str]:
 
     cams = sorted({c for s in summaries.values() for c in s["pose"]["per_camera"]})
     has_views = all("novel_view" in s for s in summaries.values())
-    panels = [
-        (
-            cams,
-            _series(summaries, "pose", "per_camera", cams, "mpjpe_mm"),
-            "MPJPE (mm)",
-            "pose error per input camera",
-        )
-    ]
+    panels = [_panel(summaries, "per_camera", cams, "mpjpe_mm", "pose error per input camera")]
     if has_views:
         tcams = sorted(
             {c for s in summaries.values() for c in s["novel_view"]["per_target_camera"]}
@@ -105,52 +121,27 @@ def _plots(out: Path, summaries: dict[str, dict]) -> list[str]:
             for c, v in s["novel_view"]["per_target_camera"].items()
             if v["heldout"]
         }
-        panels.append(
-            (
-                [c + (" (held out)" if c in held else "") for c in tcams],
-                _series(summaries, "novel_view", "per_target_camera", tcams, "psnr"),
-                "PSNR (dB)",
-                "novel-view PSNR per target camera",
-            )
-        )
+        labels = [c + (" (held out)" if c in held else "") for c in tcams]
+        title = "novel-view PSNR per target camera"
+        panels.append(_panel(summaries, "per_target_camera", tcams, "psnr", title, labels))
     _bar_figure(out / "per_camera.png", panels)
 
     parts = list(next(iter(summaries.values()))["pose"]["per_part"])
     _bar_figure(
         out / "per_part.png",
         [
-            (
-                parts,
-                _series(summaries, "pose", "per_part", parts, "mpjpe_mm"),
-                "MPJPE (mm)",
-                "per body part (root-aligned)",
-            ),
-            (
-                parts,
-                _series(summaries, "pose", "per_part", parts, "pa_mpjpe_mm"),
-                "PA-MPJPE (mm)",
-                "per body part (Procrustes-aligned)",
+            _panel(summaries, "per_part", parts, "mpjpe_mm", "per body part (root-aligned)"),
+            _panel(
+                summaries, "per_part", parts, "pa_mpjpe_mm", "per body part (Procrustes-aligned)"
             ),
         ],
     )
 
     motions = sorted({m for s in summaries.values() for m in s["pose"]["per_motion"]})
-    panels = [
-        (
-            motions,
-            _series(summaries, "pose", "per_motion", motions, "mpjpe_mm"),
-            "MPJPE (mm)",
-            "pose error per motion",
-        )
-    ]
+    panels = [_panel(summaries, "per_motion", motions, "mpjpe_mm", "pose error per motion")]
     if has_views:
         panels.append(
-            (
-                motions,
-                _series(summaries, "novel_view", "per_motion", motions, "psnr"),
-                "PSNR (dB)",
-                "held-out-view PSNR per motion",
-            )
+            _panel(summaries, "per_motion", motions, "psnr", "held-out-view PSNR per motion")
         )
     _bar_figure(out / "per_motion.png", panels)
     return ["per_camera.png", "per_part.png", "per_motion.png"]
@@ -190,6 +181,18 @@ def side_by_side_image(result: EvalResult, crops: CropSet) -> np.ndarray | None:
     return np.concatenate(rows, 0)
 
 
+def _write_csv(path: Path, header: list[str], rows: Iterable[list]) -> None:
+    """A CSV file of `header` then `rows`, written atomically."""
+
+    def write(tmp: str) -> None:
+        with open(tmp, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(rows)
+
+    atomic_write(path, write)
+
+
 def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
     p = result.pose
     motion_of = (
@@ -197,70 +200,43 @@ def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
         if motions is not None and "truth_row" in crops.truth
         else (lambda r: "all")
     )
-
-    def pose_csv(tmp: str) -> None:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(
-                [
-                    "row",
-                    "camera",
-                    "frame",
-                    "motion",
-                    "mpjpe_mm",
-                    "pa_mpjpe_mm",
-                    "pve_mm",
-                    "pa_pve_mm",
-                ]
-            )
-            for i, r in enumerate(p.rows):
-                w.writerow(
-                    [
-                        int(r),
-                        crops.camera_names[int(p.camera[i])],
-                        int(p.frame[i]),
-                        motion_of(int(r)),
-                        f"{1000 * p.mpjpe[i]:.3f}",
-                        f"{1000 * p.pa_mpjpe[i]:.3f}",
-                        "" if p.pve is None else f"{1000 * p.pve[i]:.3f}",
-                        "" if p.pa_pve is None else f"{1000 * p.pa_pve[i]:.3f}",
-                    ]
-                )
-
-    atomic_write(out / "per_crop.csv", pose_csv)
+    _write_csv(
+        out / "per_crop.csv",
+        ["row", "camera", "frame", "motion", "mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pa_pve_mm"],
+        (
+            [
+                int(r),
+                crops.camera_names[int(p.camera[i])],
+                int(p.frame[i]),
+                motion_of(int(r)),
+                f"{1000 * p.mpjpe[i]:.3f}",
+                f"{1000 * p.pa_mpjpe[i]:.3f}",
+                "" if p.pve is None else f"{1000 * p.pve[i]:.3f}",
+                "" if p.pa_pve is None else f"{1000 * p.pa_pve[i]:.3f}",
+            ]
+            for i, r in enumerate(p.rows)
+        ),
+    )
     if result.views is None:
         return
     v = result.views
     keys = ("psnr", "ssim", "lpips", "silhouette_iou", "box_psnr", "box_ssim", "box_lpips")
-
-    def view_csv(tmp: str) -> None:
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(
-                [
-                    "input_row",
-                    "target_row",
-                    "input_camera",
-                    "target_camera",
-                    "heldout",
-                    "frame",
-                    *keys,
-                ]
-            )
-            for i in range(len(v.inputs)):
-                w.writerow(
-                    [
-                        int(v.inputs[i]),
-                        int(v.targets[i]),
-                        crops.camera_names[int(crops.camera[v.inputs[i]])],
-                        crops.camera_names[int(v.camera[i])],
-                        bool(v.heldout[i]),
-                        int(crops.frame[v.targets[i]]),
-                        *(f"{getattr(v, k)[i]:.5f}" for k in keys),
-                    ]
-                )
-
-    atomic_write(out / "per_view.csv", view_csv)
+    _write_csv(
+        out / "per_view.csv",
+        ["input_row", "target_row", "input_camera", "target_camera", "heldout", "frame", *keys],
+        (
+            [
+                int(v.inputs[i]),
+                int(v.targets[i]),
+                crops.camera_names[int(crops.camera[v.inputs[i]])],
+                crops.camera_names[int(v.camera[i])],
+                bool(v.heldout[i]),
+                int(crops.frame[v.targets[i]]),
+                *(f"{getattr(v, k)[i]:.5f}" for k in keys),
+            ]
+            for i in range(len(v.inputs))
+        ),
+    )
 
 
 _HEADLINE = [
