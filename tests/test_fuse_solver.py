@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gst.body import load_body_model
+from gst.body.kinematics import MarkerSkeleton, left_jacobian, rodrigues
 from gst.body.markers import MarkerModel
 from gst.body.rotations import axis_angle_to_matrix
 from gst.fuse.fit import _limits_tensor, _neighbours
-from gst.fuse.kinematics import MarkerSkeleton, left_jacobian, rodrigues
 from gst.fuse.objective import Points, Views, Weights, cost, linearise
 from gst.fuse.solver import BodyState, levenberg_marquardt, schur_step
 

@@ -2,7 +2,7 @@
 
 All people and frames are one batch (CPU, float64), solved by Levenberg-Marquardt
 (gst.fuse.solver) on the energy of gst.fuse.objective, with the joints-only body forward and its
-analytic Jacobian (gst.fuse.kinematics). Two stages:
+analytic Jacobian (gst.body.kinematics). Two stages:
 
 1. start: from the rigid start (gst.fuse.start), `init_iterations` steps against the
    triangulated landmarks (3D, robust): close to the answer in a few steps and free of the 2D
@@ -26,11 +26,11 @@ import numpy as np
 import torch
 
 from gst.body.joint_limits import JOINT_LIMITS_DEG
+from gst.body.kinematics import MarkerSkeleton
 from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
 from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gst.body.skeleton import SMPL_JOINT_NAMES
-from gst.fuse.kinematics import MarkerSkeleton
 from gst.fuse.objective import Neighbours, Points, Views, Weights, cost, euler_xyz, linearise
 from gst.fuse.observations import PersonObservations
 from gst.fuse.solver import BodyState, levenberg_marquardt

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gst.fuse.kinematics import N_POSE_PARAMS, left_jacobian, skew
+from gst.body.kinematics import N_POSE_PARAMS, left_jacobian, skew
 
 __all__ = ["Views", "Points", "Neighbours", "Weights", "euler_xyz", "data_cost", "linearise"]
 

@@ -1,7 +1,7 @@
 """Batched Levenberg-Marquardt over person-frames with per-person shape (Schur complement).
 
 The unknowns are, per person-frame, the root rotation, translation and 23 local rotations
-(gst.fuse.kinematics), and per person the betas. The normal equations of one person are block
+(gst.body.kinematics), and per person the betas. The normal equations of one person are block
 arrowhead: one 75 x 75 block per frame, coupled only through the betas. Eliminating the frames
 (Schur complement) leaves an nb x nb system per person, so one iteration costs a batched Cholesky
 of the frame blocks plus a tiny solve per person: linear in frames x people.
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gst.fuse.kinematics import N_POSE_PARAMS, rodrigues
+from gst.body.kinematics import N_POSE_PARAMS, rodrigues
 
 __all__ = ["BodyState", "levenberg_marquardt", "schur_step"]
 

@@ -26,6 +26,7 @@ from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.detection import N_LANDMARKS, Detection, Detector
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
+from gst.track.pose_fit import PoseFitConfig, PoseFitter
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
 from gst.track.rows import RowSet, rows_table
 from gst.track.schema import FORMAT_VERSION, file_metadata, tracks_schema
@@ -59,6 +60,9 @@ class TrackOptions:
     row_group_rows: int = 65536  # row-group size of the finished file
     # move each body onto its crop's confident landmarks (gst.track.align); None: the network's
     align: AlignmentConfig | None = field(default_factory=AlignmentConfig)
+    # then bend each body's pose onto its landmarks where it disagrees with them
+    # (gst.track.pose_fit; needs a predictor with a `body` model); None: the network's pose
+    pose_fit: PoseFitConfig | None = None
 
     def __post_init__(self):
         for name in ("stride", "crop_size", "batch_size", "frames_per_group", "row_group_rows"):
@@ -140,9 +144,17 @@ class _Group:
         batch_size: int,
         num_betas: int,
         align: AlignmentConfig | None = None,
+        pose_fit: PoseFitConfig | None = None,
     ):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
         self.align = align
+        body = getattr(predictor, "body", None)
+        if pose_fit is not None and body is None:
+            raise ValueError(
+                "TrackOptions.pose_fit needs a predictor with a body model (`.body`), "
+                f"{type(predictor).__name__} has none"
+            )
+        self.fitter = None if pose_fit is None else PoseFitter(body, pose_fit, num_betas)
         self.with_landmarks = accepts_landmarks(predictor)
         self.frames: list[PendingFrame] = []
         self.cut: list[PreparedDetection] = []
@@ -169,6 +181,14 @@ class _Group:
             shift = align_translation(pose.joints_cam, Ks, lms, self.align)
             pose.transl_cam = pose.transl_cam + shift
             pose.joints_cam = pose.joints_cam + shift[:, None]
+        if self.fitter is not None:
+            fit = self.fitter(
+                pose.rotmats, pose.betas, pose.transl_cam, pose.joints_cam, Ks, lms,
+                crops.shape[1],
+            )  # fmt: skip
+            pose.rotmats = fit.rotmats.astype(pose.rotmats.dtype)
+            pose.transl_cam = fit.transl_cam.astype(pose.transl_cam.dtype)
+            pose.joints_cam = fit.joints_cam.astype(pose.joints_cam.dtype)
         if pose.betas.shape[1] != self.num_betas:
             raise ValueError(
                 f"predictor returned {pose.betas.shape[1]} betas per person, expected "
@@ -311,7 +331,7 @@ def tracked_groups(
     then VideoTruncatedError is raised.
     """
     group_span = options.frames_per_group * options.stride
-    group = _Group(predictor, options.batch_size, num_betas, options.align)
+    group = _Group(predictor, options.batch_size, num_betas, options.align, options.pose_fit)
 
     def close(next_frame: int) -> TrackedGroup:
         nonlocal group
@@ -319,7 +339,7 @@ def tracked_groups(
         rows = session.track_group(run.view, group.frames, poses)
         table = rows_table(run.view, rows, schema)
         done = TrackedGroup(table, next_frame, group.frames, rows, poses)
-        group = _Group(predictor, options.batch_size, num_betas, options.align)
+        group = _Group(predictor, options.batch_size, num_betas, options.align, options.pose_fit)
         return done
 
     def detect(frame: Frame) -> tuple[Frame, list[Detection]]:

@@ -14,7 +14,7 @@ import functools
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -41,6 +41,7 @@ from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
 from gst.track.loop import TrackOptions
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+from gst.track.pose_fit import PoseFitConfig
 from gst.track.read import read_tracks
 from gst.track.report import contact_sheet, plot_joint_angles, write_overlay
 from gst.track.smoothing import OneEuroConfig
@@ -77,6 +78,11 @@ class TrackSettings(BaseModel):
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     # move each body onto its confident 2D landmarks (translation only, gst.track.align)
     align_to_landmarks: bool = True
+    # then fit each body's pose to its landmarks where its joints lie more than 3% of the crop
+    # from them (gst.track.pose_fit; docs/track_evaluation.md "Pose fit"). 'auto': for videos
+    # that are no calibrated camera of the scene (`--video`), where the model has not seen the
+    # camera; true / false: every video / none.
+    fit_pose: Literal["auto"] | bool = "auto"
     threads: int | None = None  # torch threads; None: gst.track.scene.network_threads
     min_hits: int = 3  # consecutive detections before a new person gets an id
     max_misses: int = 30  # processed frames a person may go undetected and keep the id
@@ -300,6 +306,9 @@ def track_scene(
             )
         elif not seen:
             log.info("%s: calibrated camera; the model's training does not record it", video.stem)
+        fit = camera is None if s.fit_pose == "auto" else bool(s.fit_pose)
+        if fit:
+            log.info("%s: poses are fitted to the landmarks where they disagree", video.stem)
         jobs.append(
             VideoJob(
                 video,
@@ -309,7 +318,7 @@ def track_scene(
                 name=video.stem,
                 camera=camera,
                 world_up=tuple(rig.up) if (rig is not None and camera is not None) else None,
-                options=options,
+                options=replace(options, pose_fit=PoseFitConfig() if fit else None),
                 threads=threads,
                 keep_extras=with_gaussians,
                 detector_info=detector_info,
