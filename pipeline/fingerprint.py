@@ -131,9 +131,7 @@ def _imports_of_version(path: Path, name: str, mtime_ns: int, size: int) -> froz
     # the file's stat in the key makes an edit between two calls parse again.
     found = imported_names(path, name)
     # Importing a.b.c runs a/__init__.py and a/b/__init__.py first.
-    return frozenset(
-        ".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2)
-    )
+    return frozenset(".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2))
 
 
 def code_closure(module: str, path: Path, root: Path) -> dict[str, Path]:
