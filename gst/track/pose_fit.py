@@ -10,14 +10,14 @@ landmarks: robust (Geman-McClure) reprojection in crop pixels, weighted by confi
 prior that keeps every local joint rotation near the network's (`pose_prior` per rad^2), over
 the global orientation, the local rotations and the translation (the shape stays the
 network's). Levenberg-Marquardt with the skeleton's analytic Jacobian (gst.body.kinematics),
-batched over the crops: about 2-6 ms per crop on one core. Depth comes from the network and the
+batched over the crops: about 2-7 ms per crop on one core. Depth comes from the network and the
 prior, as in SPIN-style refinement; the prior decides how far 2D evidence may bend a limb.
 
 Measured (docs/track_evaluation.md, "Pose fit"): on the lab capture the demo's model agrees with
-the rig's fused bodies 166.5 / 101.2 -> 142.9 / 93.1 mm (MPJPE / PA-MPJPE, root-aligned, 800
-crops) and its joints lie 15.0 -> 5.0 crop px from the landmarks; on the demo's held-out frames
-109.0 / 62.8 -> 102.8 / 63.1 mm; on synthetic crowds of 3-5 people it moves MPJPE by -1.7 to
-+6.1 mm (occluded people's landmarks mislead it as often as they help), so `track` fits by
+the rig's fused bodies 166.5 / 101.2 -> 132.5 / 87.4 mm (MPJPE / PA-MPJPE, root-aligned, 800
+crops) and its joints lie 15.0 -> 4.2 crop px from the landmarks; on the demo's held-out frames
+109.0 / 62.8 -> 104.4 / 65.9 mm; on synthetic crowds of 3-5 people it moves MPJPE by -1.4 to
++8.1 mm (occluded people's landmarks mislead it as often as they help), so `track` fits by
 default only videos that are no calibrated camera of the scene (`track.fit_pose`).
 """
 
@@ -39,7 +39,7 @@ __all__ = ["PoseFitConfig", "PoseFitter", "FittedPoses", "disagreement"]
 @dataclass(frozen=True)
 class PoseFitConfig:
     iterations: int = 8  # Levenberg-Marquardt steps
-    pose_prior: float = 30.0  # per rad^2 of change of each local joint rotation
+    pose_prior: float = 10.0  # per rad^2 of change of each local joint rotation
     sigma: float = 0.03  # robust scale: this share of the crop size
     min_confidence: float = 0.5  # landmarks below this are no evidence
     min_landmarks: int = 8  # fewer confident landmarks: the body stays the network's
