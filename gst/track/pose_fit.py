@@ -118,27 +118,27 @@ class PoseFitter:
         out = FittedPoses(
             np.asarray(rotmats, np.float32).copy(),
             np.asarray(transl_cam, np.float32).copy(),
-            np.zeros((B, 24, 3), np.float32),
+            np.asarray(joints_cam, np.float32).copy(),
             use,
         )
+        if not use.any():
+            return out
         with torch.inference_mode(False), torch.no_grad():
-            beta = torch.as_tensor(np.asarray(betas, np.float32)[:, : self.num_betas])
-            R0 = torch.as_tensor(out.rotmats)
-            t0 = torch.as_tensor(out.transl_cam)
-            zero = torch.zeros(B, 3)
-            if use.any():
-                i = torch.as_tensor(np.flatnonzero(use))
-                R, t = self._fit(
-                    R0[i], beta[i], t0[i], torch.as_tensor(np.asarray(K_crop, np.float32))[i],
-                    torch.as_tensor(np.nan_to_num(lm[use, :, :2])), torch.as_tensor(conf[use]),
-                    crop_size,
-                )  # fmt: skip
-                R0, t0 = R0.index_copy(0, i, R), t0.index_copy(0, i, t)
-            theta = matrix_to_axis_angle(R0[:, 1:])
-            _, J, _, _ = self.skeleton.forward(beta, R0[:, 0], theta, zero)
-        out.rotmats = R0.numpy()
-        out.transl_cam = t0.numpy()
-        out.joints_cam = (J + t0[:, None]).numpy()
+            i = np.flatnonzero(use)
+            beta = torch.as_tensor(np.asarray(betas, np.float32)[i, : self.num_betas])
+            R, t = self._fit(
+                torch.as_tensor(out.rotmats[i]), beta, torch.as_tensor(out.transl_cam[i]),
+                torch.as_tensor(np.asarray(K_crop, np.float32)[i]),
+                torch.as_tensor(np.nan_to_num(lm[i, :, :2])), torch.as_tensor(conf[i]), crop_size,
+            )  # fmt: skip
+            _, J, _, _ = self.skeleton.forward(beta, R[:, 0], matrix_to_axis_angle(R[:, 1:]), t)
+        R, t, J = R.numpy(), t.numpy(), J.numpy()
+        # a body the solve could not keep finite stays the network's
+        ok = np.isfinite(R).all((1, 2, 3)) & np.isfinite(t).all(1) & np.isfinite(J).all((1, 2))
+        i = i[ok]
+        out.rotmats[i], out.transl_cam[i], out.joints_cam[i] = R[ok], t[ok], J[ok]
+        out.fitted = use.copy()
+        out.fitted[np.flatnonzero(use)[~ok]] = False
         return out
 
     def _cost(self, X, theta, theta0, K, uv, conf, sigma):
