@@ -8,7 +8,7 @@ import torch
 
 from gst.body import load_body_model
 from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
-from gst.track.loop import TrackOptions, _Group
+from gst.track.loop import TrackOptions, pose_fitter
 from gst.track.pose_fit import PoseFitConfig, PoseFitter, disagreement
 
 S = 256
@@ -94,7 +94,8 @@ def test_track_refuses_a_pose_fit_without_a_body_model():
 
     options = TrackOptions(pose_fit=PoseFitConfig())
     with pytest.raises(ValueError, match="body model"):
-        _Group(NoBody(), options.batch_size, 10, options.align, options.pose_fit)
+        pose_fitter(NoBody(), options.pose_fit, 10)
+    assert pose_fitter(NoBody(), None, 10) is None
 
 
 def test_a_body_the_solve_cannot_keep_finite_stays_the_networks(fitter):

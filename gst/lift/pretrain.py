@@ -64,8 +64,8 @@ class LiftPretrainConfig:
     random_share: float = 0.15
     uniform_p: float = 0.03
     whole_body_flips: bool = False
-    # torch threads of the training loop (None: leave them); the sampler runs beside it in a
-    # background thread, so the loop takes the cores that leaves (gst.lift.recipe.lift_phase)
+    # torch threads of the training loop; None: with `prefetch` the sampler runs beside it in a
+    # background thread, so the loop takes the cores that leaves (without: left as they are)
     threads: int | None = None
     weights: LossWeights = field(
         default_factory=lambda: LossWeights(joints3d=1.0, joints2d=1.0, root=0.2, params=0.5)

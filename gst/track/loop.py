@@ -134,6 +134,21 @@ def accepts_landmarks(predictor: Predictor) -> bool:
     return bool(getattr(predictor, "accepts_landmarks", False))
 
 
+def pose_fitter(
+    predictor: Predictor, config: PoseFitConfig | None, num_betas: int
+) -> PoseFitter | None:
+    """The pose fit of `TrackOptions.pose_fit` for this predictor's body model (None: off)."""
+    if config is None:
+        return None
+    body = getattr(predictor, "body", None)
+    if body is None:
+        raise ValueError(
+            "TrackOptions.pose_fit needs a predictor with a body model (`.body`), "
+            f"{type(predictor).__name__} has none"
+        )
+    return PoseFitter(body, config, num_betas)
+
+
 class _Group:
     """Crops and predictions of one row group: crops are pooled across frames and predicted
     `batch_size` at a time; the last batch of a group may be smaller."""
@@ -144,17 +159,11 @@ class _Group:
         batch_size: int,
         num_betas: int,
         align: AlignmentConfig | None = None,
-        pose_fit: PoseFitConfig | None = None,
+        fitter: PoseFitter | None = None,
     ):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
         self.align = align
-        body = getattr(predictor, "body", None)
-        if pose_fit is not None and body is None:
-            raise ValueError(
-                "TrackOptions.pose_fit needs a predictor with a body model (`.body`), "
-                f"{type(predictor).__name__} has none"
-            )
-        self.fitter = None if pose_fit is None else PoseFitter(body, pose_fit, num_betas)
+        self.fitter = fitter
         self.with_landmarks = accepts_landmarks(predictor)
         self.frames: list[PendingFrame] = []
         self.cut: list[PreparedDetection] = []
@@ -331,7 +340,8 @@ def tracked_groups(
     then VideoTruncatedError is raised.
     """
     group_span = options.frames_per_group * options.stride
-    group = _Group(predictor, options.batch_size, num_betas, options.align, options.pose_fit)
+    fitter = pose_fitter(predictor, options.pose_fit, num_betas)
+    group = _Group(predictor, options.batch_size, num_betas, options.align, fitter)
 
     def close(next_frame: int) -> TrackedGroup:
         nonlocal group
@@ -339,7 +349,7 @@ def tracked_groups(
         rows = session.track_group(run.view, group.frames, poses)
         table = rows_table(run.view, rows, schema)
         done = TrackedGroup(table, next_frame, group.frames, rows, poses)
-        group = _Group(predictor, options.batch_size, num_betas, options.align, options.pose_fit)
+        group = _Group(predictor, options.batch_size, num_betas, options.align, fitter)
         return done
 
     def detect(frame: Frame) -> tuple[Frame, list[Detection]]:
