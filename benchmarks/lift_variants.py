@@ -1,0 +1,100 @@
+"""What the render-free pretraining samples, against single-image error (docs/landmark_prior.md,
+"Pose mix and flips").
+
+Each variant trains a fresh tiny network's landmark path (33 landmarks, lift tokens only) from
+the same seed on simulated detections, then scores it on rendered worlds with BlazePose's real
+detections (`gst.lift.dataset` worlds, `NAME=world.npz`), printing wall time and samples per
+second beside MPJPE / PA-MPJPE. Variants are named `key=value,...` over the sampler's
+`random_share`, `uniform_p`, `whole_body_flips` and the run's `steps`, `lr`:
+
+    python benchmarks/lift_variants.py --steps 1500 \\
+        --val demo=/work/data/lift/demo_crops.npz \\
+        --val heldout=/work/data/lift/heldout/world_7000.npz \\
+        --variant "random_share=0.3333,uniform_p=0.1,whole_body_flips=1" \\
+        --variant "random_share=0.15,uniform_p=0.03,whole_body_flips=0"
+
+One variant runs after another in this process (compare rows of one run only; the machine is
+shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from gst.body import load_body_model
+from gst.lift.dataset import LandmarkWorld
+from gst.lift.pretrain import LiftPretrainConfig, evaluate_world, pretrain_landmark_path
+from gst.lift.sampler import LiftSampler
+from gst.model.presets import get_preset
+from gst.train.recipe import build_network
+
+SAMPLER_KEYS = {"random_share": float, "uniform_p": float, "whole_body_flips": lambda v: v != "0"}
+RUN_KEYS = {"steps": int, "lr": float}
+
+
+def parse_variant(text: str) -> tuple[dict, dict]:
+    """'key=value,...' -> (sampler arguments, run arguments)."""
+    sampler, run = {}, {}
+    for item in filter(None, text.split(",")):
+        key, _, value = item.partition("=")
+        key = key.strip()
+        if key in SAMPLER_KEYS:
+            sampler[key] = SAMPLER_KEYS[key](value.strip())
+        elif key in RUN_KEYS:
+            run[key] = RUN_KEYS[key](value.strip())
+        else:
+            raise SystemExit(
+                f"unknown variant key {key!r} in {text!r}; keys: {sorted(SAMPLER_KEYS | RUN_KEYS)}"
+            )
+    return sampler, run
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--variant", action="append", required=True, help="key=value,... (repeat)")
+    ap.add_argument("--val", action="append", required=True, help="NAME=world.npz (repeat)")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--batch-size", type=int, default=64)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    worlds = {}
+    for item in args.val:
+        name, _, path = item.partition("=")
+        if not path:
+            raise SystemExit(f"--val expects NAME=PATH, got {item!r}")
+        worlds[name] = LandmarkWorld.load(path)
+    body = load_body_model("anny")
+    for text in args.variant:
+        sampler_args, run_args = parse_variant(text)
+        torch.manual_seed(args.seed)
+        cfg_net = get_preset(
+            "tiny", landmark_tokens=True, num_landmarks=33, landmark_point_tokens=False
+        )
+        net, _, _ = build_network(cfg_net, body, args.seed)
+        sampler = LiftSampler(body, landmark_set="all", seed=args.seed, **sampler_args)
+        cfg = LiftPretrainConfig(
+            steps=run_args.get("steps", args.steps),
+            batch_size=args.batch_size,
+            lr=run_args.get("lr", LiftPretrainConfig.lr),
+            seed=args.seed,
+        )
+        t0 = time.perf_counter()
+        res = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
+        wall = time.perf_counter() - t0
+        scores = [
+            f"{name} {s.mpjpe_mm:.1f} / {s.pa_mpjpe_mm:.1f}"
+            for name, s in ((n, evaluate_world(net, body, w)) for n, w in worlds.items())
+        ]
+        print(
+            f"{text}: {cfg.steps} steps in {wall:.0f} s ({res.samples_per_s:.0f} samples/s), "
+            f"training batches {res.train_mpjpe_mm:.0f} mm; MPJPE / PA-MPJPE mm: "
+            + "; ".join(scores),
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
