@@ -25,7 +25,7 @@ import time
 import torch
 
 from gst.body import load_body_model
-from gst.lift.dataset import LandmarkWorld
+from gst.lift.dataset import named_worlds
 from gst.lift.pretrain import LiftPretrainConfig, evaluate_world, pretrain_landmark_path
 from gst.lift.sampler import LiftSampler
 from gst.model.presets import get_preset
@@ -60,12 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
-    worlds = {}
-    for item in args.val:
-        name, _, path = item.partition("=")
-        if not path:
-            raise SystemExit(f"--val expects NAME=PATH, got {item!r}")
-        worlds[name] = LandmarkWorld.load(path)
+    worlds = named_worlds(args.val)
     body = load_body_model("anny")
     for text in args.variant:
         sampler_args, run_args = parse_variant(text)

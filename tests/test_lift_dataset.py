@@ -95,3 +95,11 @@ def test_world_landmarks_are_hip_centred_metres_in_image_axes():
     # the same person as the image landmarks: left-right along image x agrees in sign
     du_img = seg.landmarks[11, 0] - seg.landmarks[12, 0]
     assert np.sign(wl[11, 0] - wl[12, 0]) == np.sign(du_img)
+
+
+def test_named_worlds_names_a_malformed_item():
+    from gst.lift.dataset import named_worlds
+
+    assert named_worlds([]) == {}
+    with pytest.raises(SystemExit, match="NAME=PATH, got 'demo'"):
+        named_worlds(["demo"])

@@ -106,6 +106,18 @@ def load_worlds(root: str | Path) -> list[LandmarkWorld]:
     return [LandmarkWorld.load(p) for p in paths]
 
 
+def named_worlds(items: list[str]) -> dict[str, LandmarkWorld]:
+    """Command-line `NAME=world.npz` items -> the loaded worlds by name (a clear exit on a
+    malformed item)."""
+    worlds = {}
+    for item in items:
+        name, _, path = item.partition("=")
+        if not path:
+            raise SystemExit(f"--val expects NAME=PATH, got {item!r}")
+        worlds[name] = LandmarkWorld.load(path)
+    return worlds
+
+
 def world_spec(
     k: int,
     seed0: int = DEFAULT_SEED,

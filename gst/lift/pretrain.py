@@ -29,7 +29,7 @@ import torch
 
 from gst.body import BodyModel
 from gst.cores import available_cores, torch_threads
-from gst.lift.dataset import LandmarkWorld
+from gst.lift.dataset import LandmarkWorld, named_worlds
 from gst.lift.errors import LANDMARK_SETS
 from gst.lift.noise import set_landmarks
 from gst.lift.sampler import LiftSampler
@@ -313,12 +313,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--landmarks", default="limbs", choices=sorted(LANDMARK_SETS))
     ap.add_argument("--no-point-tokens", action="store_true", help="lift tokens only")
     args = ap.parse_args(argv)
-    val = {}
-    for item in args.val:
-        name, _, path = item.partition("=")
-        if not path:
-            raise SystemExit(f"--val expects NAME=PATH, got {item!r}")
-        val[name] = LandmarkWorld.load(path)
+    val = named_worlds(args.val)
     body = load_body_model("anny")
     n = len(LANDMARK_SETS[args.landmarks])
     cfg_net = get_preset(
