@@ -6,7 +6,7 @@ Pose errors are reported in millimetres; image scores as they are (PSNR in dB). 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -90,13 +90,7 @@ class PoseSummary:
 
     def to_dict(self) -> dict:
         """The summary.json layout (the fields in order)."""
-        return {
-            "overall": self.overall,
-            "per_camera": self.per_camera,
-            "per_motion": self.per_motion,
-            "per_part": self.per_part,
-            "per_joint": self.per_joint,
-        }
+        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -113,12 +107,7 @@ class ViewSummary:
 
     def to_dict(self) -> dict:
         """The summary.json layout (the fields in order)."""
-        return {
-            "heldout": self.heldout,
-            "trained_views": self.trained_views,
-            "per_target_camera": self.per_target_camera,
-            "per_motion": self.per_motion,
-        }
+        return asdict(self)
 
 
 def pose_summary(

@@ -45,8 +45,8 @@ class PoseFitConfig:
     min_landmarks: int = 8  # fewer confident landmarks: the body stays the network's
     # only bodies whose compared joints lie a median of more than this share of the crop from
     # the landmarks are fitted (0: every body). Where the network already agrees with them the
-    # fit has little to gain and occluded landmarks to lose by: 0.03 halves its cost on
-    # synthetic crowds and keeps most of its gain on the lab (docs/track_evaluation.md).
+    # fit has little to gain and occluded landmarks to lose by: 0.03 (at prior 30) halves its
+    # loss on synthetic crowds and keeps most of its gain on the lab (docs/track_evaluation.md).
     min_disagreement: float = 0.0
 
     def __post_init__(self):
@@ -68,10 +68,13 @@ class FittedPoses:
     fitted: np.ndarray  # (B,)
 
 
-def disagreement(joints_cam: np.ndarray, K_crop: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
-    """(B,) median distance (crop px) of each body's projected joints from the confident
-    landmarks of the same joints (gst.track.agreement's 13 pairs); 0 with fewer than 4."""
-    target, w = landmark_targets(landmarks, 0.5)
+def disagreement(
+    joints_cam: np.ndarray, K_crop: np.ndarray, landmarks: np.ndarray, min_confidence: float = 0.5
+) -> np.ndarray:
+    """(B,) median distance (crop px) of each body's projected joints from the landmarks of the
+    same joints at least `min_confidence` sure (gst.track.agreement's 13 pairs); 0 with fewer
+    than 4."""
+    target, w = landmark_targets(landmarks, min_confidence)
     X = np.asarray(joints_cam, np.float64)[:, COMPARED_INDEX]
     z = np.maximum(X[..., 2:], 1e-3)
     uv = np.einsum("bij,bnj->bni", np.asarray(K_crop, np.float64), X / z)[..., :2]
@@ -113,7 +116,7 @@ class PoseFitter:
         conf = np.nan_to_num(lm[..., 2], nan=0.0)
         conf = np.where(np.isfinite(lm[..., :2]).all(-1) & (conf >= c.min_confidence), conf, 0.0)
         use = ((conf > 0).sum(1) >= c.min_landmarks) & (
-            disagreement(joints_cam, K_crop, lm) > c.min_disagreement * crop_size
+            disagreement(joints_cam, K_crop, lm, c.min_confidence) > c.min_disagreement * crop_size
         )
         out = FittedPoses(
             np.asarray(rotmats, np.float32).copy(),

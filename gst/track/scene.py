@@ -14,7 +14,7 @@ import functools
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -78,10 +78,10 @@ class TrackSettings(BaseModel):
     overlay: bool = True  # write an overlay video per track (skeletons, boxes, ids)
     # move each body onto its confident 2D landmarks (translation only, gst.track.align)
     align_to_landmarks: bool = True
-    # then fit each body's pose to its landmarks where its joints lie more than 3% of the crop
-    # from them (gst.track.pose_fit; docs/track_evaluation.md "Pose fit"). 'auto': for videos
-    # that are no calibrated camera of the scene (`--video`), where the model has not seen the
-    # camera; true / false: every video / none.
+    # then fit each body's pose to its confident landmarks (gst.track.pose_fit;
+    # docs/track_evaluation.md "Pose fit"). 'auto': for videos that are no calibrated camera of
+    # the scene (`--video`), where the model has not seen the camera; true / false: every video
+    # / none.
     fit_pose: Literal["auto"] | bool = "auto"
     threads: int | None = None  # torch threads; None: gst.track.scene.network_threads
     min_hits: int = 3  # consecutive detections before a new person gets an id
@@ -204,14 +204,7 @@ class ModelProvenance:
 
     def to_dict(self) -> dict:
         """The metadata's layout (the fields in order)."""
-        return {
-            "name": self.name,
-            "version": self.version,
-            "checkpoint": self.checkpoint,
-            "body_model": self.body_model,
-            "training_mode": self.training_mode,
-            "trained_on": self.trained_on,
-        }
+        return asdict(self)
 
 
 def model_provenance(checkpoint: Path, name: str, scene: str | None) -> ModelProvenance:

@@ -9,7 +9,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import torch
 
@@ -28,7 +28,7 @@ class PoseMetrics:
 
     def to_dict(self) -> dict[str, float]:
         """The metrics by name (validation rows, log.csv columns, summary.json)."""
-        return {"mpjpe_mm": self.mpjpe_mm, "pa_mpjpe_mm": self.pa_mpjpe_mm}
+        return asdict(self)
 
 
 @dataclass(frozen=True)
