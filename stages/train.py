@@ -10,6 +10,7 @@ data) are pseudo-3D targets. Held-out cameras and frames are never trained on. W
 
 from __future__ import annotations
 
+from gst.lift.rehearsal import PriorRehearsal
 from gst.lift.teacher import RigTeacher
 from gst.train.scene_training import TrainOutputs, TrainSettings, train_scene
 from pipeline.stage import Stage, StageContext
@@ -33,6 +34,7 @@ def run(ctx: StageContext) -> None:
         else None,
         scene=ctx.scene_name,
         progress=ctx.progress,
+        rehearse=PriorRehearsal,
     )
 
 

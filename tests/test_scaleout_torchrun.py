@@ -53,6 +53,8 @@ def test_torchrun_two_cpu_ranks_train_and_rank0_commits(tmp_path):
     res = _run(torchrun, tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "[rank1]" in res.stderr  # the second rank really joined the DDP group
+    # the landmark prior is rehearsed beside the DDP steps (its own backward outside the sync)
+    assert "rehearsing the landmark prior" in res.stderr
     ws = tmp_path / "ws" / "tiny"
     assert (ws / "models" / "gst.pt").is_file() and (ws / "reports" / "train").is_dir()
     assert not (ws / ".pipeline" / "staging").exists() or not any(

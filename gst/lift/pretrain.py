@@ -32,7 +32,7 @@ from gst.cores import available_cores, torch_threads
 from gst.lift.dataset import LandmarkWorld, named_worlds
 from gst.lift.errors import LANDMARK_SETS
 from gst.lift.noise import set_landmarks
-from gst.lift.sampler import LiftSampler
+from gst.lift.sampler import LiftBatch, LiftSampler
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.model.assemble import camera_translation, to_world
 from gst.model.landmarks import LandmarkInput
@@ -101,6 +101,19 @@ def body_joints(
     return out.joints, project(out.joints, K)
 
 
+def lift_terms(net, body: BodyModel, b: LiftBatch, weights: LossWeights):
+    """(the weighted supervised terms, the predicted camera-frame joints) of one simulated batch
+    through `net`'s landmark-only mode (no image tokens)."""
+    inp = LandmarkInput.from_pixels(b.landmarks, b.K, b.crop_size)
+    out = net(None, with_gaussians=False, landmarks=inp)
+    joints, joints2d = body_joints(out, body, b.K, b.crop_size)
+    parts = supervised_terms(
+        joints, joints2d, out.rotmats, out.betas, b.joints_cam, b.joints2d, b.rotmats_cam,
+        b.betas[:, : out.betas.shape[1]], b.crop_size, b.visible.float(),
+    )  # fmt: skip
+    return combine(parts, weights), joints
+
+
 def trainable_parameters(net: GSTNetwork) -> list[torch.nn.Parameter]:
     """The landmark path: the landmark encoder and the SMPL head, without its image
     cross-attention (never used in the landmark-only mode)."""
@@ -156,7 +169,6 @@ def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: warmup_cosine(s, cfg.steps, cfg.warmup_steps)
     )
-    nb = net.cfg.num_betas
     result = LiftPretrainResult(0, 0.0, 0.0, 0.0, float("nan"), float("nan"))
     t0, recent = time.perf_counter(), []
     sample_seconds = [0.0]
@@ -171,22 +183,7 @@ def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
     batches = background(draw(), cfg.prefetch, "lift-sampler") if cfg.prefetch > 0 else draw()
     net.train()
     for step, b in enumerate(batches):
-        inp = LandmarkInput.from_pixels(b.landmarks, b.K, b.crop_size)
-        out = net(None, with_gaussians=False, landmarks=inp)
-        joints, joints2d = body_joints(out, body, b.K, b.crop_size)
-        parts = supervised_terms(
-            joints,
-            joints2d,
-            out.rotmats,
-            out.betas,
-            b.joints_cam,
-            b.joints2d,
-            b.rotmats_cam,
-            b.betas[:, :nb],
-            b.crop_size,
-            b.visible.float(),
-        )
-        terms = combine(parts, cfg.weights)
+        terms, joints = lift_terms(net, body, b, cfg.weights)
         opt.zero_grad(set_to_none=True)
         terms.total.backward()
         torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)

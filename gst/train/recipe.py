@@ -10,11 +10,14 @@ the 2D / 3D fine-tuning baselines; `mode` picks the loss:
 from __future__ import annotations
 
 import logging
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
+from torch.nn.parallel import DistributedDataParallel
 
 from gst.body import BodyModel
 from gst.body.subsets import partition_vertices, vertex_subset
@@ -95,6 +98,39 @@ class FitOptions:
     scene: str | None = None  # recorded in the checkpoint (extra.trained_on.scene)
 
 
+class Rehearsal(Protocol):
+    """Something rehearsed beside every multi-view step (gst.lift.rehearsal.PriorRehearsal):
+    `draw(generator)` its batch, from the trainer's generator (so a resumed run draws the same);
+    `terms(model, drawn)` -> (weighted loss, metrics)."""
+
+    def draw(self, generator: torch.Generator) -> object: ...
+
+    def terms(self, model, drawn) -> tuple[torch.Tensor, dict]: ...
+
+
+@dataclass
+class RehearsedBatch:
+    """A training batch with the rehearsal's batch beside it."""
+
+    batch: object
+    drawn: object
+
+
+def _rehearsing(step, rehearsal: Rehearsal):
+    """`step` on the scene's batch plus the rehearsed prior on its simulated batch."""
+
+    def rehearsed(model, b: RehearsedBatch):
+        extra, more = rehearsal.terms(model, b.drawn)
+        # its own backward first, outside DDP's gradient sync: DDP refuses two forward passes
+        # before one backward; the scene's backward (by the trainer) then reduces the sum
+        with model.no_sync() if isinstance(model, DistributedDataParallel) else nullcontext():
+            extra.backward()
+        loss, parts = step(model, b.batch)
+        return loss + extra.detach(), {**parts, **more}
+
+    return rehearsed
+
+
 def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
     """A supervised batch of crop rows `idx` from their truth (joints, 2D joints, parameters)."""
     t = crops.truth
@@ -170,11 +206,13 @@ def fit_gst(
     progress=None,
     resume: bool = True,
     val_crops: CropSet | None = None,
+    rehearsal: Rehearsal | None = None,
 ) -> FitSummary:
     """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`.
 
     `val_crops`: crops with truth that training never sees (e.g. another world); pose validation
-    (and so the best checkpoint) uses them instead of the training crops."""
+    (and so the best checkpoint) uses them instead of the training crops. `rehearsal`: the
+    landmark prior rehearsed beside every multi-view step (gst.lift.rehearsal)."""
     names = crops.camera_names
     unknown = [c for c in opts.heldout_cameras if c not in names]
     if unknown:
@@ -228,16 +266,19 @@ def fit_gst(
     if opts.mode in ("multiview", "pretrain"):
 
         def sample(gen, bs):
-            return sample_multiview(
+            batch = sample_multiview(
                 crops, groups, gen, bs, opts.num_targets, opts.render_size,
                 landmark_dropout=opts.landmark_dropout,
             )  # fmt: skip
+            return batch if rehearsal is None else RehearsedBatch(batch, rehearsal.draw(gen))
 
         step = (
             (lambda m, b: multiview_step(m, b, task))
             if opts.mode == "multiview"
             else (lambda m, b: _pretrain_step(m, b, task, crops))
         )
+        if rehearsal is not None:
+            step = _rehearsing(step, rehearsal)
     else:
         if "joints2d" not in crops.truth:
             raise ValueError(f"mode '{opts.mode}' needs truth joints on the crops")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -41,7 +42,14 @@ from gst.train.evaluation import (
 from gst.train.keypoints import keypoints_from_landmarks, store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.occlusion import occluder_masks
-from gst.train.recipe import FitOptions, FitSummary, build_network, fit_gst, make_task
+from gst.train.recipe import (
+    FitOptions,
+    FitSummary,
+    Rehearsal,
+    build_network,
+    fit_gst,
+    make_task,
+)
 from gst.train.scene_truth import attach_scene_truth, select_rows
 from gst.train.steps import predict
 from gst.train.trainer import TrainConfig
@@ -93,6 +101,14 @@ class TrainSettings(BaseModel):
     # `landmarks`, else detected); false gives such a network the image-only path.
     landmarks: bool = True
     landmark_dropout: float = Field(0.1, ge=0, le=1)  # share of inputs trained without them
+    # Rehearse the render-free landmark prior beside every multi-view step (gst.lift.rehearsal):
+    # the pretraining's supervised terms on `rehearsal_batch` simulated detections, weighted by
+    # `rehearsal`, so that the scene's few people do not overwrite what it learnt of everyone
+    # else (0: off; networks without landmark tokens have nothing to rehearse; docs/training.md
+    # "Prior rehearsal": on unseen people the trained demo model stays at the pretrained one's
+    # error instead of losing 5-15 mm, on the demo's own held-out frames within noise).
+    rehearsal: float = Field(10.0, ge=0)
+    rehearsal_batch: int = Field(32, ge=1)
     losses: LossWeights = LossWeights()
     threads: int | None = None
 
@@ -275,10 +291,13 @@ def train_scene(
     teacher: Teacher | None = None,
     scene: str = "scene",
     progress=None,
+    rehearse: Callable[..., Rehearsal] | None = None,
 ) -> SceneTrainingSummary | None:
     """Train GST on a scene's crops from the pretrained model (or HMR2); returns the summary
     (None on torchrun ranks other than 0, which only contribute gradients). `teacher`: fused
-    bodies for distillation (`gst.lift.teacher.RigTeacher`; needed when `p.distill`)."""
+    bodies for distillation (`gst.lift.teacher.RigTeacher`; needed when `p.distill`).
+    `rehearse(body=, net=, weight=, batch_size=, crop_size=)` builds what is rehearsed beside
+    each multi-view step when `p.rehearsal > 0` (`gst.lift.rehearsal.PriorRehearsal`)."""
     if p.threads:
         torch.set_num_threads(p.threads)
     multiview = p.supervision == "multiview"
@@ -310,6 +329,21 @@ def train_scene(
     run_dir.mkdir(parents=True, exist_ok=True)
     # the 2d/3d baselines train everything at supervised_lr
     body_lr = p.body_lr if multiview else None
+    rehearsal = None
+    if multiview and p.rehearsal > 0 and net.landmark_encoder is None:
+        log.info("train: the network has no landmark tokens: no landmark prior to rehearse")
+    elif multiview and p.rehearsal > 0:
+        if rehearse is None:
+            raise ValueError("train.rehearsal > 0 needs a rehearsal (gst.lift.rehearsal)")
+        rehearsal = rehearse(
+            body=body, net=net, weight=p.rehearsal, batch_size=p.rehearsal_batch,
+            crop_size=crops.crop_size,
+        )  # fmt: skip
+        log.info(
+            "train: rehearsing the landmark prior (weight %g, %d simulated crops a step)",
+            p.rehearsal,
+            p.rehearsal_batch,
+        )
     fit = fit_gst(
         net,
         task,
@@ -330,6 +364,7 @@ def train_scene(
         vertex_ids=ids,
         group_index=groups,
         progress=progress,
+        rehearsal=rehearsal,
     )
     if torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
         return None  # under torchrun the other ranks only contribute gradients
