@@ -35,6 +35,7 @@ from calibration.formats import read_rig
 from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, evaluate_model
 from gst.eval.split import FinetuneConfig, finetune, frame_split
+from gst.lift.rehearsal import PriorRehearsal
 from gst.lift.teacher import RigTeacher
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
@@ -54,19 +55,28 @@ def _without(**zero) -> LossWeights:
     return DEFAULT.model_copy(update=zero)
 
 
+# (table, row, fit_gst mode, loss weights, whether the landmark prior is rehearsed beside each
+# step as the train stage does by default: train.rehearsal, gst.lift.rehearsal)
 ROWS = [
-    ("Table 1", "pretrained only", None, DEFAULT),
-    ("Table 1", "2D fine-tuned", "2d", DEFAULT),
-    ("Table 1", "3D fine-tuned", "3d", DEFAULT),
-    ("Table 1", "GST multi-view (paper objective)", "multiview", PAPER),
-    ("Table 1", "GST + anchors + detected joints", "multiview", NO_DISTILL),
-    ("Table 1", "GST + anchors + joints + distillation (default)", "multiview", DEFAULT),
-    ("Table 5", "default w/o LPIPS", "multiview", _without(lpips=0.0)),
-    ("Table 5", "default w/o tightness", "multiview", _without(tightness=0.0)),
-    ("Table 5", "default w/o alpha", "multiview", _without(alpha=0.0)),
-    ("Table 5", "default w/o detected joints", "multiview", _without(keypoints=0.0)),
-    ("Table 5", "default w/o anchors", "multiview", _without(anchor=0.0)),
-    ("Table 5", "distillation alone", "multiview", _without(anchor=0.0, keypoints=0.0)),
+    ("Table 1", "pretrained only", None, DEFAULT, False),
+    ("Table 1", "2D fine-tuned", "2d", DEFAULT, False),
+    ("Table 1", "3D fine-tuned", "3d", DEFAULT, False),
+    ("Table 1", "GST multi-view (paper objective)", "multiview", PAPER, False),
+    ("Table 1", "GST + anchors + detected joints", "multiview", NO_DISTILL, False),
+    ("Table 1", "GST + anchors + joints + distillation", "multiview", DEFAULT, False),
+    ("Table 1", "the same + prior rehearsal (default)", "multiview", DEFAULT, True),
+    ("Table 5", "default w/o LPIPS", "multiview", _without(lpips=0.0), True),
+    ("Table 5", "default w/o tightness", "multiview", _without(tightness=0.0), True),
+    ("Table 5", "default w/o alpha", "multiview", _without(alpha=0.0), True),
+    ("Table 5", "default w/o detected joints", "multiview", _without(keypoints=0.0), True),
+    ("Table 5", "default w/o anchors", "multiview", _without(anchor=0.0), True),
+    (
+        "Table 5",
+        "distillation and rehearsal alone",
+        "multiview",
+        _without(anchor=0.0, keypoints=0.0),
+        True,
+    ),
 ]
 
 
@@ -137,7 +147,7 @@ def main() -> None:
     )
     results = []
     t_all = time.perf_counter()
-    for table, name, mode, weights in ROWS:
+    for table, name, mode, weights, rehearse in ROWS:
         if args.rows and name not in args.rows:
             continue
         t0 = time.perf_counter()
@@ -154,9 +164,18 @@ def main() -> None:
                 weights=weights,
                 landmark_dropout=settings.landmark_dropout if multiview else 0.0,
             )
+            rehearsal = (
+                PriorRehearsal(
+                    body, net, weight=settings.rehearsal, batch_size=settings.rehearsal_batch,
+                    crop_size=crops.crop_size,
+                )
+                if rehearse and net.landmark_encoder is not None
+                else None
+            )  # fmt: skip
             train_s = finetune(
-                net, body, ids, groups, crops, split, cfg, body_spec=ckpt.body_model, lpips=lpips
-            )
+                net, body, ids, groups, crops, split, cfg, body_spec=ckpt.body_model,
+                lpips=lpips, rehearsal=rehearsal,
+            )  # fmt: skip
         task = make_task(body, ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
         res = evaluate_model(
             net,

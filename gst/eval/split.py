@@ -82,9 +82,11 @@ def finetune(
     body_spec: str,
     lpips=None,
     run_dir: Path | None = None,
+    rehearsal=None,
 ) -> float:
     """Train `net` in place on the split's training rows for exactly `cfg.steps` steps (no
-    validation inside the loop, the final weights are kept). Returns the training seconds."""
+    validation inside the loop, the final weights are kept). Returns the training seconds.
+    `rehearsal`: rehearsed beside every multi-view step (gst.train.recipe.Rehearsal)."""
     train = select_rows(crops, split.train_rows)
     task = make_task(
         body,
@@ -124,6 +126,7 @@ def finetune(
             vertex_ids=vertex_ids,
             group_index=group_index,
             resume=False,
+            rehearsal=rehearsal,
         )
         seconds = time.perf_counter() - t0
     net.eval()
