@@ -7,7 +7,7 @@ import torch
 
 from gst.body import load_body_model
 from gst.lift.errors import LIMB_LANDMARKS
-from gst.lift.sampler import LiftSampler
+from gst.lift.sampler import LiftSampler, lean_rotations
 from synth.animate import pose_person
 from synth.motions import generate_motion
 from synth.world import heading_rotation
@@ -122,3 +122,23 @@ def test_random_share_sets_the_bank(body):
     assert default.sample(256).random_pose.float().mean() > 0.2
     with pytest.raises(ValueError, match="random_share"):
         LiftSampler(body, random_share=1.0)
+
+
+def test_lean_tilts_the_whole_body_about_horizontal_axes(body):
+    R = lean_rotations(4000, np.radians(12.0), torch.Generator().manual_seed(0))
+    up = torch.tensor([0.0, 0.0, 1.0])
+    tilt = torch.rad2deg(torch.arccos((R @ up)[:, 2].clamp(-1, 1)))
+    # |N(0, 12 deg)|: median 0.674 x 12 = 8.1 deg
+    assert abs(float(tilt.median()) - 8.1) < 0.5
+    # about a horizontal axis: no turn about the vertical (a point on the up axis' side stays
+    # in the plane through the up axis and itself)
+    side = torch.tensor([1.0, 0.0, 0.0])
+    assert torch.allclose(torch.linalg.det(R), torch.ones(4000), atol=1e-5)
+    axis_z = torch.stack([R[:, 1, 0] - R[:, 0, 1]], -1)  # z of the rotation axis x 2 sin(angle)
+    assert axis_z.abs().max() < 1e-5 and (R @ side).norm(dim=-1).sub(1).abs().max() < 1e-5
+    # and the sampler's bodies change only when asked to lean
+    same = LiftSampler(body, seed=5).sample(8)
+    again = LiftSampler(body, seed=5, lean_deg=0.0).sample(8)
+    leant = LiftSampler(body, seed=5, lean_deg=12.0).sample(8)
+    assert torch.equal(same.joints_cam, again.joints_cam)
+    assert not torch.allclose(same.rotmats_cam[:, 0], leant.rotmats_cam[:, 0])

@@ -64,6 +64,10 @@ class LiftPretrainConfig:
     random_share: float = 0.15
     uniform_p: float = 0.03
     whole_body_flips: bool = False
+    # spread (deg, normal) of a whole-body lean about a random horizontal axis: the motion
+    # library's people stand straighter (pelvis-neck tilt median 2.6-6.8 deg) than real ones
+    # (the lab's fused bodies: 12.1, p90 26.8); docs/landmark_prior.md "Lean"
+    lean_deg: float = 12.0
     # torch threads of the training loop; None: with `prefetch` the sampler runs beside it in a
     # background thread, so the loop takes the cores that leaves (without: left as they are)
     threads: int | None = None
@@ -158,6 +162,7 @@ def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
         random_share=cfg.random_share,
         uniform_p=cfg.uniform_p,
         whole_body_flips=cfg.whole_body_flips,
+        lean_deg=cfg.lean_deg,
     )
     if len(sampler.lset) != net.cfg.num_landmarks:
         raise ValueError(

@@ -42,6 +42,7 @@ import torch
 from gst.body import BodyModel
 from gst.body.joint_limits import sample_body_pose
 from gst.body.markers import MarkerModel
+from gst.body.rotations import axis_angle_to_matrix
 from gst.body.subsets import vertex_subset
 from gst.data.crop import CROP_ENLARGE
 from gst.lift.errors import LANDMARK_SETS
@@ -157,8 +158,19 @@ def _camera_pool(rng: np.random.Generator, rigs_per_kind: int = 40) -> _CameraPo
     return _CameraPool(f(Rs), f(ts), f(Ks), f(cs), f(rs))
 
 
+def lean_rotations(B: int, spread: float, gen: torch.Generator) -> torch.Tensor:
+    """(B, 3, 3) world rotations (z up) by an angle ~ N(0, spread) (radians) about a uniformly
+    random horizontal axis: a body turned by one leans that far from upright."""
+    psi = torch.rand(B, generator=gen) * (2 * np.pi)
+    axis = torch.stack([psi.cos(), psi.sin(), torch.zeros(B)], -1)
+    theta = spread * torch.randn(B, generator=gen)
+    return axis_angle_to_matrix(axis * theta[:, None])
+
+
 class LiftSampler:
-    """`sample(batch_size) -> LiftBatch`; deterministic from `seed`."""
+    """`sample(batch_size) -> LiftBatch`; deterministic from `seed`. `lean_deg`: the spread
+    (normal, degrees) of a lean of the whole body about a random horizontal axis (0: bodies
+    stand as the motion library authored them)."""
 
     def __init__(
         self,
@@ -174,6 +186,7 @@ class LiftSampler:
         zbuffer: int = 64,
         random_share: float | None = None,
         whole_body_flips: bool = True,
+        lean_deg: float = 0.0,
     ):
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x11F7]))
         self.body = body
@@ -193,6 +206,7 @@ class LiftSampler:
         self.crop_size = int(crop_size)
         self.blend_p, self.uniform_p, self.occluder_p = blend_p, uniform_p, occluder_p
         self.box_jitter, self.zbuffer = box_jitter, zbuffer
+        self.lean = float(np.radians(lean_deg))
         self.gen = torch.Generator().manual_seed(int(rng.integers(1 << 62)))
         bank, random = _pose_bank(rng, random_share=random_share)
         self.bank, self.bank_random = torch.from_numpy(bank), torch.from_numpy(random)
@@ -257,6 +271,8 @@ class LiftSampler:
         heading = self._rand(B) * (2 * np.pi) - np.pi
         H = torch.as_tensor(heading_rotation(heading.double().numpy()), dtype=torch.float32)
         root_world = H @ local[:, 0]
+        if self.lean > 0:  # the whole body leans about a random horizontal axis
+            root_world = lean_rotations(B, self.lean, self.gen) @ root_world
         # camera and position in its capture volume
         ci = torch.randint(len(self.cams.R), (B,), generator=self.gen)
         R, t, K = self.cams.R[ci], self.cams.t[ci], self.cams.K[ci]
