@@ -4,8 +4,10 @@ Library: `gst.train.scene_training.train_scene` (docs/training.md). Starts from
 `models/pretrain.pt` (or an HMR2 checkpoint with the `huge` preset), renders each prediction
 into the other views of the same person and compares with what those cameras saw; with
 `distill` the rig's fused bodies (`gst.lift.teacher.RigTeacher`, refitted without held-out
-data) are pseudo-3D targets. Held-out cameras and frames are never trained on. Writes
-`models/gst.pt`, `models/example.ply` (one predicted splat) and `reports/train/`.
+data) are pseudo-3D targets; with `rehearsal` the render-free landmark prior is rehearsed
+beside every step (`gst.lift.rehearsal.PriorRehearsal`). Held-out cameras and frames are never
+trained on. Writes `models/gst.pt`, `models/example.ply` (one predicted splat) and
+`reports/train/`.
 """
 
 from __future__ import annotations
