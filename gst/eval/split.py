@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 from gst.train.losses import LossWeights
-from gst.train.recipe import FitOptions, fit_gst, make_task
+from gst.train.recipe import FitOptions, Rehearsal, fit_gst, make_task
 from gst.train.scene_truth import select_rows
 from gst.train.trainer import TrainConfig
 from gst.train.views import CropSet, heldout_frame_start
@@ -82,7 +82,7 @@ def finetune(
     body_spec: str,
     lpips=None,
     run_dir: Path | None = None,
-    rehearsal=None,
+    rehearsal: Rehearsal | None = None,
 ) -> float:
     """Train `net` in place on the split's training rows for exactly `cfg.steps` steps (no
     validation inside the loop, the final weights are kept). Returns the training seconds.
