@@ -27,6 +27,7 @@ def run(ctx: StageContext) -> None:
         fused=None if synthetic else ctx.path("fused/bodies.parquet"),
         scene=ctx.scene_name,
         workspace=ctx.workspace,
+        world_up=ctx.rig().up,
     )
 
 

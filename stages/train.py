@@ -37,6 +37,7 @@ def run(ctx: StageContext) -> None:
         scene=ctx.scene_name,
         progress=ctx.progress,
         rehearse=PriorRehearsal,
+        world_up=ctx.rig().up,
     )
 
 

@@ -178,3 +178,44 @@ def test_a_landmark_predictor_gets_the_crops_landmarks(video, tmp_path):
     frame_uv = (lm[0, :, :2] - K[0][:2, 2]) / K[0][0, 0] * Kf[0, 0] + Kf[:2, 2]
     np.testing.assert_allclose(frame_uv, skeleton(boxes[0, 0])[:, :2], atol=1e-3)
     np.testing.assert_array_equal(lm[..., 2], 1.0)
+
+
+class UpPredictor(LandmarkPredictor):
+    """A landmark predictor that also reads the camera's up direction, and keeps it."""
+
+    accepts_up = True
+
+    def __init__(self):
+        super().__init__()
+        self.ups = []
+
+    def __call__(self, crops, K_crop, landmarks=None, up=None):
+        self.ups.append(None if up is None else up.copy())
+        return super().__call__(crops, K_crop, landmarks)
+
+
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_the_camera_up_reaches_predictors_that_read_it_only_when_calibrated(
+    video, tmp_path, calibrated
+):
+    from calibration.camera import Camera, look_at_rotation
+
+    path, boxes = video
+    R = look_at_rotation((0.0, -4.0, 3.0), (0.0, 0.0, 1.0))  # looks down at the floor's middle
+    cam = Camera.create("c", [[300.0, 0, W / 2], [0, 300.0, H / 2], [0, 0, 1]], [], R,
+                        -R @ np.array([0.0, -4.0, 3.0]), W, H)  # fmt: skip
+    pred, plain = UpPredictor(), LandmarkPredictor()
+    for p, name in ((pred, "up"), (plain, "plain")):  # the plain one is never handed `up`
+        track_video(
+            path, tmp_path / name, HandDetector(boxes, "none"), p, model=MODEL,
+            camera=cam if calibrated else None, world_up=(0.0, 0.0, 1.0) if calibrated else None,
+            options=TrackOptions(batch_size=4, frames_per_group=8),
+        )  # fmt: skip
+    assert plain.seen
+    if not calibrated:
+        assert pred.ups and all(u is None for u in pred.ups)
+        return
+    up = pred.ups[0]
+    assert up.shape == (4, 3)
+    np.testing.assert_allclose(up, np.repeat((R @ [0.0, 0.0, 1.0])[None], 4, 0), atol=1e-6)
+    assert up[0, 1] < -0.5  # the world's up points up the image (-y) for this camera

@@ -106,12 +106,13 @@ def evaluate_scene(
     fused: Path | None = None,
     scene: str = "scene",
     workspace: Path | None = None,
+    world_up: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> dict[str, EvalResult]:
     """Evaluate each model of `models` (name -> GST checkpoint; `compare_pretrained` decides if
     the caller includes the pretrained one) on the scene's crops against its truth (`synth`),
     or, without truth, against the rig's fused bodies (`fused`), and write the report into
     `out`; returns the results by model name. Paths in the report are shown relative to
-    `workspace`."""
+    `workspace`. `world_up`: the rig's up axis (read by gravity-aware networks)."""
     if p.threads:
         torch.set_num_threads(p.threads)
     crops, boxes = load_cropset(crops_h5)
@@ -148,7 +149,14 @@ def evaluate_scene(
             log.info("evaluate: landmarks from %s", source)
         if truth is not None and vertices is None and ckpt.body_model == truth.body_model:
             vertices = truth.vertices(body)
-        task = make_task(body, ckpt.vertex_ids, net.cfg, crops.crop_size, LossWeights(lpips=0.0))
+        task = make_task(
+            body,
+            ckpt.vertex_ids,
+            net.cfg,
+            crops.crop_size,
+            LossWeights(lpips=0.0),
+            world_up=world_up,
+        )
         landmarks = crops.landmarks
         if not p.landmarks:
             crops.landmarks = None

@@ -35,7 +35,7 @@ from gst.lift.noise import set_landmarks
 from gst.lift.sampler import LiftBatch, LiftSampler
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.model.assemble import camera_translation, to_world
-from gst.model.landmarks import LandmarkInput
+from gst.model.landmarks import LandmarkInput, camera_up, hide_up
 from gst.model.network import GSTNetwork
 from gst.prefetch import background
 from gst.train.losses import LossWeights, combine, supervised_terms
@@ -105,10 +105,16 @@ def body_joints(
     return out.joints, project(out.joints, K)
 
 
+def simulated_up(b: LiftBatch) -> torch.Tensor:
+    """The sampled world's up (+z) in each sample's camera, hidden (zero) for every
+    `UNCALIBRATED_EVERY`-th sample (gst.model.landmarks.hide_up)."""
+    return hide_up(camera_up(b.R))
+
+
 def lift_terms(net, body: BodyModel, b: LiftBatch, weights: LossWeights):
     """(the weighted supervised terms, the root-relative joint error in mm) of one simulated
     batch through `net`'s landmark-only mode (no image tokens)."""
-    inp = LandmarkInput.from_pixels(b.landmarks, b.K, b.crop_size)
+    inp = LandmarkInput.from_pixels(b.landmarks, b.K, b.crop_size, up=simulated_up(b))
     out = net(None, with_gaussians=False, landmarks=inp)
     joints, joints2d = body_joints(out, body, b.K, b.crop_size)
     parts = supervised_terms(
@@ -249,7 +255,7 @@ def predict_world_joints(
     out = []
     for i in range(0, len(landmarks), batch):
         sl = slice(i, i + batch)
-        inp = LandmarkInput.from_pixels(landmarks[sl], K[sl], crop_size)
+        inp = LandmarkInput.from_pixels(landmarks[sl], K[sl], crop_size, up=camera_up(R[sl]))
         o = net(None if images is None else images[sl], with_gaussians=False, landmarks=inp)
         joints, _ = body_joints(o, body, K[sl], crop_size)
         out.append(to_world(joints, R[sl], t[sl]))
@@ -323,6 +329,7 @@ def main(argv: list[str] | None = None) -> None:
         landmark_tokens=True,
         num_landmarks=n,
         landmark_point_tokens=not args.no_point_tokens,
+        landmark_gravity=True,
     )
     net, ids, groups = build_network(cfg_net, body, args.seed)
     cfg = LiftPretrainConfig(

@@ -69,12 +69,14 @@ __all__ = [
 def lift_network(
     preset: str, body: BodyModel, landmarks: str = "all", point_tokens: bool = False, seed: int = 0
 ) -> tuple[GSTNetwork, object, object]:
-    """A fresh network of `preset` with landmark tokens for the landmark set `landmarks`."""
+    """A fresh network of `preset` with landmark tokens for the landmark set `landmarks`, which
+    reads the camera's up direction where the camera is calibrated."""
     cfg = get_preset(
         preset,
         landmark_tokens=True,
         num_landmarks=len(LANDMARK_SETS[landmarks]),
         landmark_point_tokens=point_tokens,
+        landmark_gravity=True,
     )
     return build_network(cfg, body, seed)
 

@@ -9,7 +9,10 @@ Landmarks: a checkpoint with landmark tokens (`GSTConfig.landmark_tokens`) also 
 crop's 33 BlazePose landmarks, (B, 33, 3) = u, v in that crop's pixels (pixel centres at
 integers, the pixels `K_crop` describes) and confidence (visibility x presence) in [0, 1];
 NaN rows or points mean "not detected" and a crop without any takes the image-only path.
-`GSTPredictor.accepts_landmarks` says whether the checkpoint uses them.
+`GSTPredictor.accepts_landmarks` says whether the checkpoint uses them. A checkpoint built
+with `GSTConfig.landmark_gravity` also reads `up`, (B, 3): the world's up direction in each
+crop's camera frame (`gst.model.landmarks.camera_up` of the camera's rotation and the rig's up
+axis) where the camera is calibrated; leave it out (or give zero rows) where it is not.
 """
 
 from __future__ import annotations
@@ -41,20 +44,22 @@ def predict_bodies(
     crop_size: int | None = None,
     device: str | torch.device | None = None,
     landmarks: LandmarkInput | torch.Tensor | np.ndarray | None = None,
+    up: torch.Tensor | np.ndarray | None = None,
 ) -> BodyPrediction:
     """The network on a batch of crops (B, S, S, 3) RGB uint8 or float images, assembled into
     posed bodies (and Gaussians) in the crops' cameras (K (B, 3, 3); optional input-camera R, t
     for world coordinates). `image_size` is the network's input size; `crop_size` the crops' side
     (default: the images' own). `landmarks`: the crops' BlazePose landmarks (B, 33, 3) (module
     doc) or a ready `gst.model.landmarks.LandmarkInput`; ignored by a network without landmark
-    tokens, None gives the image-only path. The one inference path of training, evaluation and
+    tokens, None gives the image-only path. `up` (B, 3): the world's up direction in the crops'
+    cameras where calibrated (module doc). The one inference path of training, evaluation and
     tracking."""
     x = to_float_images(images)
     if device is not None:
         x = x.to(device)
     size = crop_size or x.shape[-1]
     if landmarks is not None and not isinstance(landmarks, LandmarkInput):
-        landmarks = landmark_input(network, landmarks, K, size)
+        landmarks = landmark_input(network, landmarks, K, size, up=up)
     if landmarks is not None:
         landmarks = landmarks.to(x.device)
     extra = {} if landmarks is None else {"landmarks": landmarks}
@@ -95,6 +100,12 @@ class GSTPredictor:
         """Whether the checkpoint's network has landmark tokens (then pass `landmarks=`)."""
         return self.network.landmark_encoder is not None
 
+    @property
+    def accepts_up(self) -> bool:
+        """Whether the checkpoint's network reads the camera's up direction (then pass `up=`
+        for calibrated cameras)."""
+        return self.accepts_landmarks and self.network.cfg.landmark_gravity
+
     @torch.no_grad()
     def predict(
         self,
@@ -104,9 +115,11 @@ class GSTPredictor:
         t: torch.Tensor | None = None,
         with_gaussians: bool | None = None,
         landmarks: np.ndarray | torch.Tensor | None = None,
+        up: np.ndarray | torch.Tensor | None = None,
     ) -> BodyPrediction:
         """One batch: crops (B, S, S, 3) RGB uint8, K_crop (B, 3, 3); optional input-camera R, t;
-        `landmarks` (B, 33, 3) crop px + confidence, NaN where not detected (module doc)."""
+        `landmarks` (B, 33, 3) crop px + confidence, NaN where not detected; `up` (B, 3) the
+        world's up in the crops' cameras where calibrated (module doc)."""
         want = self.with_gaussians if with_gaussians is None else with_gaussians
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=self.device)
         if landmarks is not None and len(landmarks) != len(K):
@@ -114,7 +127,7 @@ class GSTPredictor:
         return predict_bodies(
             self.network, self.body, self.vertex_ids, crops, K, self.network.cfg.image_size,
             R=R, t=t, with_gaussians=want, with_vertices=False, device=self.device,
-            landmarks=landmarks,
+            landmarks=landmarks, up=up,
         )  # fmt: skip
 
     def __call__(
@@ -122,14 +135,19 @@ class GSTPredictor:
         crops: np.ndarray,
         K_crop: np.ndarray,
         landmarks: np.ndarray | None = None,
+        up: np.ndarray | None = None,
     ) -> dict[str, np.ndarray]:
         """Crops (N, S, S, 3) RGB uint8, K_crop (N, 3, 3) and, for a landmark checkpoint, the
-        crops' landmarks (N, 33, 3) -> numpy arrays (the `gst.track.predictor` contract)."""
+        crops' landmarks (N, 33, 3) and, for calibrated cameras, the world's up in each crop's
+        camera (N, 3) -> numpy arrays (the `gst.track.predictor` contract)."""
         parts = []
         for s in range(0, len(crops), self.batch_size):
             sl = slice(s, s + self.batch_size)
             pred = self.predict(
-                crops[sl], K_crop[sl], landmarks=None if landmarks is None else landmarks[sl]
+                crops[sl],
+                K_crop[sl],
+                landmarks=None if landmarks is None else landmarks[sl],
+                up=None if up is None else up[sl],
             )
             part = {
                 "rotmats": pred.rotmats,

@@ -35,11 +35,14 @@ N_BLAZEPOSE = 33  # BlazePose's landmarks, MediaPipe order (the crops' `landmark
 class LandmarkInput:
     """Network-side landmarks: points (B, L, 3) = x, y in [-1, 1] over the crop and confidence;
     camera (B, 3) = crop half-width over focal, and the crop centre's ray (x, y over focal);
-    mask (B, L) bool = landmarks the network may use."""
+    mask (B, L) bool = landmarks the network may use; up (B, 3) = the world's up direction in the
+    crop's camera frame (unit; a zero row where the camera is not calibrated), or None for none
+    known (read only by networks built with `landmark_gravity`)."""
 
     points: torch.Tensor
     camera: torch.Tensor
     mask: torch.Tensor
+    up: torch.Tensor | None = None
 
     @classmethod
     def from_pixels(
@@ -48,9 +51,11 @@ class LandmarkInput:
         K_crop: torch.Tensor,
         crop_size: int,
         mask: torch.Tensor | None = None,
+        up: torch.Tensor | None = None,
     ) -> LandmarkInput:
         """(B, L, 3) u, v in crop pixels (pixel centres at integers) + confidence, with the
-        crops' intrinsics (B, 3, 3)."""
+        crops' intrinsics (B, 3, 3) and, where known, the world's up direction in each crop's
+        camera frame (B, 3) (`camera_up`)."""
         if landmarks.ndim != 3 or landmarks.shape[-1] != 3:
             raise ValueError(f"landmarks must be (B, L, 3), got {tuple(landmarks.shape)}")
         if K_crop.shape != (landmarks.shape[0], 3, 3):
@@ -67,7 +72,12 @@ class LandmarkInput:
         )
         if mask is None:
             mask = torch.ones(landmarks.shape[:2], dtype=torch.bool, device=landmarks.device)
-        return cls(torch.cat([xy, conf], -1), camera, mask.bool())
+        if up is not None:
+            up = torch.as_tensor(up, dtype=torch.float32, device=landmarks.device)
+            if up.shape != (landmarks.shape[0], 3):
+                raise ValueError(f"up must be ({landmarks.shape[0]}, 3), got {tuple(up.shape)}")
+            up = torch.nan_to_num(up)  # a non-finite row: not known
+        return cls(torch.cat([xy, conf], -1), camera, mask.bool(), up)
 
     @classmethod
     def from_detections(
@@ -76,20 +86,25 @@ class LandmarkInput:
         K_crop: torch.Tensor | np.ndarray,
         crop_size: int,
         num_landmarks: int,
+        up: torch.Tensor | np.ndarray | None = None,
     ) -> LandmarkInput:
         """BlazePose's 33 landmarks per crop, (B, 33, 3) u, v in crop pixels + confidence
         (visibility x presence; NaN where the detector gave nothing), as the network's input:
         the network's landmark set is picked (`select_landmarks`) and non-finite points are
-        masked (a crop without any landmark takes the image-only path exactly)."""
+        masked (a crop without any landmark takes the image-only path exactly); `up` as in
+        `from_pixels`."""
         lm = torch.as_tensor(landmarks, dtype=torch.float32)
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=lm.device)
         lm = select_landmarks(lm, num_landmarks)
         finite = torch.isfinite(lm).all(-1)
         lm = torch.where(finite[..., None], lm, torch.zeros_like(lm))
-        return cls.from_pixels(lm, K, crop_size, mask=finite)
+        return cls.from_pixels(lm, K, crop_size, mask=finite, up=up)
 
     def to(self, device) -> LandmarkInput:
-        return LandmarkInput(self.points.to(device), self.camera.to(device), self.mask.to(device))
+        up = None if self.up is None else self.up.to(device)
+        return LandmarkInput(
+            self.points.to(device), self.camera.to(device), self.mask.to(device), up
+        )
 
     def masked(self, samples: torch.Tensor | None = None) -> LandmarkInput:
         """A copy with every landmark of `samples` (B,) bool (default: all) masked out."""
@@ -98,7 +113,26 @@ class LandmarkInput:
             if samples is None
             else samples.bool()
         )
-        return LandmarkInput(self.points, self.camera, self.mask & ~drop[:, None])
+        return LandmarkInput(self.points, self.camera, self.mask & ~drop[:, None], self.up)
+
+
+# Training hides the camera's up direction of every this-many-th sample, so that a gravity-aware
+# network also serves uncalibrated video.
+UNCALIBRATED_EVERY = 5
+
+
+def hide_up(up: torch.Tensor, every: int = UNCALIBRATED_EVERY) -> torch.Tensor:
+    """A copy of (B, 3) up directions with every `every`-th row zeroed (not known)."""
+    up = up.clone()
+    up[every - 1 :: every] = 0.0
+    return up
+
+
+def camera_up(R: torch.Tensor, world_up=(0.0, 0.0, 1.0)) -> torch.Tensor:
+    """The world's up axis in each camera's frame: (B, 3, 3) world-to-camera rotations -> (B, 3)
+    unit vectors (`world_up`: the rig's up axis, `calibration.Rig.up`)."""
+    w = torch.as_tensor(world_up, dtype=R.dtype, device=R.device)
+    return R @ (w / w.norm())
 
 
 def select_landmarks(landmarks: torch.Tensor, num_landmarks: int) -> torch.Tensor:
@@ -124,14 +158,16 @@ def landmark_input(
     landmarks: torch.Tensor | np.ndarray | None,
     K_crop: torch.Tensor | np.ndarray,
     crop_size: int,
+    up: torch.Tensor | np.ndarray | None = None,
 ) -> LandmarkInput | None:
-    """The input a network's landmark tokens take from (B, 33, 3) crop landmarks, or None when
-    there are none or the network has no landmark tokens (the paper's image-only network
-    ignores them). `network` may be wrapped (DistributedDataParallel)."""
+    """The input a network's landmark tokens take from (B, 33, 3) crop landmarks (and the
+    cameras' up directions where known), or None when there are none or the network has no
+    landmark tokens (the paper's image-only network ignores them). `network` may be wrapped
+    (DistributedDataParallel)."""
     net = getattr(network, "module", network)
     if landmarks is None or getattr(net, "landmark_encoder", None) is None:
         return None
-    return LandmarkInput.from_detections(landmarks, K_crop, crop_size, net.cfg.num_landmarks)
+    return LandmarkInput.from_detections(landmarks, K_crop, crop_size, net.cfg.num_landmarks, up=up)
 
 
 class _Residual(nn.Module):
@@ -156,15 +192,17 @@ class LandmarkEncoder(nn.Module):
         width: int = 512,
         blocks: int = 2,
         point_tokens: bool = True,
+        gravity: bool = False,
     ):
         super().__init__()
         self.num_landmarks, self.lift_tokens, self.dim = num_landmarks, lift_tokens, dim
-        self.point_tokens = point_tokens
+        self.point_tokens, self.gravity = point_tokens, gravity
         if point_tokens:
             self.point = nn.Sequential(nn.Linear(3, dim), nn.GELU(), nn.Linear(dim, dim))
             self.identity = nn.Parameter(torch.randn(1, num_landmarks, dim) * 0.02)
         self.lift = nn.Sequential(
-            nn.Linear(num_landmarks * 3 + 3, width),
+            # the landmarks, the crop's camera and, with `gravity`, the up vector and its flag
+            nn.Linear(num_landmarks * 3 + 3 + (4 if gravity else 0), width),
             *[_Residual(width) for _ in range(blocks)],
             nn.LayerNorm(width),
         )
@@ -179,7 +217,12 @@ class LandmarkEncoder(nn.Module):
         # tokens cannot leak them either; confidence 0 means "not detected".
         valid = inp.mask & (inp.points[..., 2] > 0)
         pts = torch.where(valid[..., None], inp.points, torch.zeros_like(inp.points))
-        h = self.lift(torch.cat([pts.reshape(B, -1), inp.camera], -1))
+        features = [pts.reshape(B, -1), inp.camera]
+        if self.gravity:
+            up = inp.points.new_zeros(B, 3) if inp.up is None else inp.up
+            known = (up.norm(dim=-1, keepdim=True) > 0.5).to(up.dtype)
+            features += [up * known, known]
+        h = self.lift(torch.cat(features, -1))
         lift = self.to_tokens(h).view(B, self.lift_tokens, self.dim)
         # the lift tokens are always attendable, so no sample's attention is empty (no NaN)
         key_mask = valid.new_ones(B, self.lift_tokens)

@@ -176,6 +176,7 @@ class GSTNetwork(nn.Module):
                 cfg.landmark_lift_tokens,
                 cfg.landmark_width,
                 point_tokens=cfg.landmark_point_tokens,
+                gravity=cfg.landmark_gravity,
             )
             if cfg.landmark_tokens
             else None

@@ -30,6 +30,12 @@ class GSTConfig:
     # One token per landmark besides the lift tokens (local evidence for the Gaussian tokens);
     # they are most of the landmark path's compute (docs/landmark_prior.md, "Speed").
     landmark_point_tokens: bool = True
+    # The world's up direction in the crop's camera frame as one more input of the lifting MLP,
+    # when the camera is calibrated (zeros and a flag when not): without it a person below a
+    # camera that looks down cannot be told from a leaning person seen level, and the network
+    # took a camera's downward pitch only halfway into the body's orientation
+    # (docs/landmark_prior.md, "Gravity"). Off in checkpoints written before it existed.
+    landmark_gravity: bool = False
 
     @property
     def image_size(self) -> tuple[int, int]:

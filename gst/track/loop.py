@@ -134,6 +134,22 @@ def accepts_landmarks(predictor: Predictor) -> bool:
     return bool(getattr(predictor, "accepts_landmarks", False))
 
 
+def accepts_up(predictor: Predictor) -> bool:
+    """Whether the predictor reads the world's up direction in the camera (`up=` keyword,
+    (B, 3); a gravity-aware GST checkpoint, `GSTConfig.landmark_gravity`)."""
+    return bool(getattr(predictor, "accepts_up", False))
+
+
+def camera_frame_up(run: VideoRun) -> np.ndarray | None:
+    """The world's up axis in the run's camera frame, or None for an uncalibrated video (or a
+    calibrated camera without a world up)."""
+    world_up = run.settings.get("world_up")
+    if not run.view.calibrated or world_up is None:
+        return None
+    w = np.asarray(world_up, np.float64)
+    return (np.asarray(run.view.camera.R, np.float64) @ (w / np.linalg.norm(w))).astype(np.float32)
+
+
 def pose_fitter(
     predictor: Predictor, config: PoseFitConfig | None, num_betas: int
 ) -> PoseFitter | None:
@@ -160,11 +176,14 @@ class _Group:
         num_betas: int,
         align: AlignmentConfig | None = None,
         fitter: PoseFitter | None = None,
+        up: np.ndarray | None = None,
     ):
         self.predictor, self.batch_size, self.num_betas = predictor, batch_size, num_betas
         self.align = align
         self.fitter = fitter
         self.with_landmarks = accepts_landmarks(predictor)
+        # the camera's up direction (3,), for a predictor that reads it; None: not known
+        self.up = up if accepts_up(predictor) else None
         self.frames: list[PendingFrame] = []
         self.cut: list[PreparedDetection] = []
         self.poses: list[PoseBatch] = []
@@ -181,10 +200,10 @@ class _Group:
         crops = np.stack([c.crop_rgb for c in part])
         Ks = np.stack([c.K_crop for c in part])
         lms = np.stack([c.landmarks_crop for c in part])
-        if self.with_landmarks:
-            out = self.predictor(crops, Ks, landmarks=lms)
-        else:
-            out = self.predictor(crops, Ks)
+        extra = {"landmarks": lms} if self.with_landmarks else {}
+        if self.up is not None:
+            extra["up"] = np.repeat(self.up[None], n, axis=0)
+        out = self.predictor(crops, Ks, **extra)
         pose = validate_prediction(out, n)
         if self.align is not None:
             shift = align_translation(pose.joints_cam, Ks, lms, self.align)
@@ -341,7 +360,8 @@ def tracked_groups(
     """
     group_span = options.frames_per_group * options.stride
     fitter = pose_fitter(predictor, options.pose_fit, num_betas)
-    group = _Group(predictor, options.batch_size, num_betas, options.align, fitter)
+    up = camera_frame_up(run)
+    group = _Group(predictor, options.batch_size, num_betas, options.align, fitter, up)
 
     def close(next_frame: int) -> TrackedGroup:
         nonlocal group
@@ -349,7 +369,7 @@ def tracked_groups(
         rows = session.track_group(run.view, group.frames, poses)
         table = rows_table(run.view, rows, schema)
         done = TrackedGroup(table, next_frame, group.frames, rows, poses)
-        group = _Group(predictor, options.batch_size, num_betas, options.align, fitter)
+        group = _Group(predictor, options.batch_size, num_betas, options.align, fitter, up)
         return done
 
     def detect(frame: Frame) -> tuple[Frame, list[Detection]]:

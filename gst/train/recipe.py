@@ -24,6 +24,7 @@ from gst.body.subsets import partition_vertices, vertex_subset
 from gst.model.checkpoint import (
     config_to_dict,
 )
+from gst.model.landmarks import camera_up
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
 from gst.train.augment import CropJitter, jitter_batch
@@ -143,6 +144,7 @@ def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
         rotmats=t["rotmats_cam"][idx],
         betas=t["betas"][idx][:, :10],
         landmarks=None if crops.landmarks is None else crops.landmarks[idx],
+        up=camera_up(crops.R[idx]),  # pretraining worlds are z-up
     )
 
 
@@ -361,6 +363,7 @@ def make_task(
     weights: LossWeights,
     lpips=None,
     supervision: str = "multiview",
+    world_up: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> GSTTask:
     return GSTTask(
         body=body,
@@ -370,4 +373,5 @@ def make_task(
         weights=weights,
         lpips=lpips,
         supervision=supervision,
+        world_up=tuple(float(v) for v in world_up),
     )

@@ -292,12 +292,14 @@ def train_scene(
     scene: str = "scene",
     progress=None,
     rehearse: Callable[..., Rehearsal] | None = None,
+    world_up: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> SceneTrainingSummary | None:
     """Train GST on a scene's crops from the pretrained model (or HMR2); returns the summary
     (None on torchrun ranks other than 0, which only contribute gradients). `teacher`: fused
     bodies for distillation (`gst.lift.teacher.RigTeacher`; needed when `p.distill`).
     `rehearse(body=, net=, weight=, batch_size=, crop_size=)` builds what is rehearsed beside
-    each multi-view step when `p.rehearsal > 0` (`gst.lift.rehearsal.PriorRehearsal`)."""
+    each multi-view step when `p.rehearsal > 0` (`gst.lift.rehearsal.PriorRehearsal`).
+    `world_up`: the rig's up axis (a gravity-aware network reads it in each crop's camera)."""
     if p.threads:
         torch.set_num_threads(p.threads)
     multiview = p.supervision == "multiview"
@@ -315,7 +317,7 @@ def train_scene(
     )  # fmt: skip
     crops, heldout, cut = prepared.crops, prepared.heldout_cameras, prepared.first_heldout_frame
     lpips = load_lpips() if p.losses.lpips > 0 else None
-    task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
+    task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips, world_up=world_up)
     cfg = TrainConfig(
         steps=p.steps,
         batch_size=p.batch_size,

@@ -16,6 +16,7 @@ from torch import nn
 from gst.body import BodyModel
 from gst.model.assemble import BodyPrediction
 from gst.model.inference import predict_bodies
+from gst.model.landmarks import camera_up, hide_up
 from gst.render import rasterize
 from gst.train.anchors import anchor_term
 from gst.train.distill import distill_terms
@@ -36,6 +37,9 @@ class GSTTask:
     weights: LossWeights
     lpips: nn.Module | None = None
     supervision: Supervision = "multiview"
+    # the world's up axis of the crops' cameras (`calibration.Rig.up`): with a camera rotation
+    # it gives a gravity-aware network (GSTConfig.landmark_gravity) the up direction in the crop
+    world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
 
 def predict(
@@ -48,13 +52,17 @@ def predict(
     with_gaussians: bool = True,
     with_vertices: bool = False,
     landmarks: torch.Tensor | None = None,
+    up: torch.Tensor | None = None,
 ) -> BodyPrediction:
     """`gst.model.inference.predict_bodies` with a training task's body and sizes; `landmarks`
-    (B, 33, 3) are the crops' (ignored by a network without landmark tokens)."""
+    (B, 33, 3) are the crops' (ignored by a network without landmark tokens); the cameras' up
+    direction is `up`, or else comes from `R` and the task's world up."""
+    if up is None and R is not None:
+        up = camera_up(R, task.world_up)
     return predict_bodies(
         model, task.body, task.vertex_ids, images, K, task.image_size, R=R, t=t,
         with_gaussians=with_gaussians, with_vertices=with_vertices, crop_size=task.crop_size,
-        landmarks=landmarks,
+        landmarks=landmarks, up=up,
     )  # fmt: skip
 
 
@@ -85,9 +93,11 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
     """Predict from the input view, render into the target views, and compare with the targets
     composited on the batch's random backgrounds; pixels where another person hides this one are
     not supervised when the batch knows them. Returns (prediction, render, target, terms)."""
+    # a share of the inputs is seen as from an uncalibrated camera (gst.model.landmarks.hide_up)
+    up = hide_up(camera_up(batch.R_in, task.world_up))
     pred = predict(
         model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True,
-        landmarks=batch.input_landmarks,
+        landmarks=batch.input_landmarks, up=up,
     )  # fmt: skip
     out = render_predictions(pred, batch, batch.target_images.shape[-2])
     mask = batch.target_masks
@@ -143,6 +153,7 @@ class SupervisedBatch:
     rotmats: torch.Tensor | None = None  # (B, 24, 3, 3) truth, global orient in camera frame
     betas: torch.Tensor | None = None
     landmarks: torch.Tensor | None = None  # (B, 33, 3) the crops' detections (landmark tokens)
+    up: torch.Tensor | None = None  # (B, 3) the world's up in each crop's camera, where known
 
 
 def supervised_step(
@@ -150,7 +161,13 @@ def supervised_step(
 ) -> tuple[torch.Tensor, dict]:
     """2D supervision uses only 2D joints; 3D uses 3D joints and parameters as well."""
     pred = predict(
-        model, task, batch.images, batch.K, with_gaussians=False, landmarks=batch.landmarks
+        model,
+        task,
+        batch.images,
+        batch.K,
+        with_gaussians=False,
+        landmarks=batch.landmarks,
+        up=batch.up,
     )
     joints2d = project(pred.joints_cam, batch.K)
     use3d = task.supervision == "3d"
