@@ -11,6 +11,11 @@ A predictor is any callable
 
 The crop camera has the same axes and origin as the full-frame camera (K_crop only rescales and
 shifts K), so these are also full-camera-frame values.
+
+Optional inputs, passed as keywords only to predictors that declare them: `landmarks=` (B, 33,
+3) the crops' BlazePose landmarks, when `predictor.accepts_landmarks` is true; `up=` (B, 3) the
+world's up direction in the camera frame, for calibrated cameras only, when
+`predictor.accepts_up` is true (`gst.model.inference.GSTPredictor` declares both).
 """
 
 from __future__ import annotations
