@@ -56,6 +56,8 @@ def test_a_known_up_changes_the_pose_and_a_zero_row_means_unknown():
     assert (unknown - a).abs().max() > 1e-3
     nan = _pose(net, _landmarks(up=torch.full((3, 3), float("nan"))))
     assert torch.equal(nan, none)  # a non-finite row is "not known", not NaN poses
+    scaled = _pose(net, _landmarks(up=3.0 * level))
+    assert torch.allclose(scaled, a, atol=1e-6)  # only the direction counts
 
 
 def test_networks_without_gravity_ignore_the_up_vector():

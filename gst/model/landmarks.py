@@ -77,6 +77,8 @@ class LandmarkInput:
             if up.shape != (landmarks.shape[0], 3):
                 raise ValueError(f"up must be ({landmarks.shape[0]}, 3), got {tuple(up.shape)}")
             up = torch.nan_to_num(up)  # a non-finite row: not known
+            norm = up.norm(dim=-1, keepdim=True)
+            up = torch.where(norm > 1e-6, up / norm.clamp_min(1e-6), torch.zeros_like(up))
         return cls(torch.cat([xy, conf], -1), camera, mask.bool(), up)
 
     @classmethod
