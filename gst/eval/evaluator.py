@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from gst.eval.flips import mirrored_landmarks, reference_in_crops
 from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, silhouette_iou, ssim
 from gst.metrics.pose import procrustes_align, vertex_error
 from gst.model.assemble import to_world
@@ -59,6 +60,9 @@ class PoseRecords:
     joint_error_pa: np.ndarray  # (N, 24) after Procrustes
     pve: np.ndarray | None = None  # (N,) vertex error, pelvis-aligned
     pa_pve: np.ndarray | None = None  # (N,)
+    # (N,) the crop's input landmarks are left/right mirrored against the reference
+    # (gst.eval.flips); None when the crops carry no landmarks
+    mirrored: np.ndarray | None = None
 
     @property
     def mpjpe(self) -> np.ndarray:
@@ -123,6 +127,12 @@ def evaluate_pose(
             pve.append(vertex_error(v_pred - pred.joints_world[:, :1], v_gt - gt[:, :1]))
             papve.append(vertex_error(v_pred, v_gt, align="procrustes"))
     cat = lambda xs: torch.cat(xs).double().numpy() if xs else np.zeros((0,))  # noqa: E731
+    mirrored = None
+    if crops.landmarks is not None:
+        reference = reference_in_crops(
+            crops.truth["joints_world"][rows], crops.R[rows], crops.t[rows], crops.K[rows]
+        )
+        mirrored = mirrored_landmarks(np.asarray(crops.landmarks[rows]), reference)
     return PoseRecords(
         rows=rows.numpy(),
         camera=crops.camera[rows].numpy(),
@@ -131,6 +141,7 @@ def evaluate_pose(
         joint_error_pa=cat(jpa).reshape(len(rows), -1),
         pve=cat(pve) if with_vertices else None,
         pa_pve=cat(papve) if with_vertices else None,
+        mirrored=mirrored,
     )
 
 

@@ -244,6 +244,8 @@ _HEADLINE = [
     ("PA-MPJPE (mm)", "pose", "overall", "pa_mpjpe_mm", 1),
     ("PVE (mm)", "pose", "overall", "pve_mm", 1),
     ("PA-PVE (mm)", "pose", "overall", "pa_pve_mm", 1),
+    ("crops with left/right mirrored landmarks", "pose", "overall", "mirrored_landmarks", 0),
+    ("MPJPE (mm) without those crops", "pose", "overall", "mpjpe_mm_not_mirrored", 1),
     ("PSNR (dB), held-out, full crop", "novel_view", "heldout", "psnr", 2),
     ("SSIM, held-out, full crop", "novel_view", "heldout", "ssim", 3),
     ("LPIPS, held-out, full crop", "novel_view", "heldout", "lpips", 3),

@@ -72,6 +72,12 @@ def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
     }
     if rec.pve is not None:
         block.update(pve_mm=_mean(1000 * rec.pve[sel]), pa_pve_mm=_mean(1000 * rec.pa_pve[sel]))
+    if rec.mirrored is not None:  # how much of the error is the detector's left/right reading
+        kept = sel & ~rec.mirrored
+        block.update(
+            mirrored_landmarks=int((sel & rec.mirrored).sum()),
+            mpjpe_mm_not_mirrored=_mean(1000 * rec.mpjpe[kept]),
+        )
     return block
 
 
@@ -79,8 +85,10 @@ def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
 class PoseSummary:
     """Pose errors (mm): `overall`, then by camera, by motion, by body part and by joint (each
     table keyed by its name). A block is metric name -> value ("n", "mpjpe_mm", "pa_mpjpe_mm",
-    "mpjpe_median_mm", and "pve_mm", "pa_pve_mm" when vertices were scored; None where nothing
-    finite was averaged), as written to summary.json."""
+    "mpjpe_median_mm", and "pve_mm", "pa_pve_mm" when vertices were scored; with landmark input,
+    "mirrored_landmarks" (crops whose landmarks are left/right mirrored against the reference,
+    gst.eval.flips) and "mpjpe_mm_not_mirrored"; None where nothing finite was averaged), as
+    written to summary.json."""
 
     overall: dict
     per_camera: dict[str, dict]

@@ -1,0 +1,61 @@
+"""Whole-body left/right flips of the input landmarks, found against the reference.
+
+BlazePose sometimes labels a person's left side as right and vice versa for the whole body
+(mostly in side-on views). A network fed those landmarks turns the body the other way, and such
+crops score several times the error of the others (docs/landmark_prior.md, "Gravity": 15 of 144
+demo crops at 241 mm; 55-61 of the lab's 800 at 334 mm). The evaluation counts them, so a user
+sees how much of the error is the detector's reading rather than the network's.
+
+A crop's landmarks are mirrored when both its hip pair and its shoulder pair lie nearer the
+opposite side's reference joints (projected into the crop) than their own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+# (left, right) BlazePose landmark and body-model joint indices of the pairs that are compared
+_LANDMARK_PAIRS = ((23, 24), (11, 12))  # hips, shoulders
+_JOINT_PAIRS = ((1, 2), (16, 17))  # SMPL layout: left/right hip, left/right shoulder
+
+
+def mirrored_landmarks(
+    landmarks: np.ndarray, reference2d: np.ndarray, min_confidence: float = 0.5
+) -> np.ndarray:
+    """(N,) bool: the (N, 33, 3) landmarks (u, v, confidence) are left/right mirrored against
+    the reference joints (N, 24, 2) in the same pixels. False where a compared landmark is
+    missing or below `min_confidence`."""
+    lm = np.asarray(landmarks, np.float64)
+    ref = np.asarray(reference2d, np.float64)
+    if lm.ndim != 3 or lm.shape[1:] != (33, 3) or ref.shape != (len(lm), 24, 2):
+        raise ValueError(
+            f"mirrored_landmarks: landmarks (N, 33, 3) and reference (N, 24, 2) expected, got "
+            f"{lm.shape} and {ref.shape}"
+        )
+    flipped = np.ones(len(lm), dtype=bool)
+    for (ll, lr), (jl, jr) in zip(_LANDMARK_PAIRS, _JOINT_PAIRS, strict=True):
+        a, b = lm[:, ll], lm[:, lr]
+        usable = (
+            np.isfinite(a).all(1)
+            & np.isfinite(b).all(1)
+            & (np.minimum(a[:, 2], b[:, 2]) >= min_confidence)
+        )
+        same = np.linalg.norm(a[:, :2] - ref[:, jl], axis=1) + np.linalg.norm(
+            b[:, :2] - ref[:, jr], axis=1
+        )
+        crossed = np.linalg.norm(a[:, :2] - ref[:, jr], axis=1) + np.linalg.norm(
+            b[:, :2] - ref[:, jl], axis=1
+        )
+        flipped &= usable & (crossed < same)
+    return flipped
+
+
+def reference_in_crops(
+    joints_world: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor
+) -> np.ndarray:
+    """(N, 24, 2) crop pixels of the reference joints (N, 24, 3) in world coordinates, through
+    each crop's camera (R, t world-to-camera; K the crop's intrinsics)."""
+    cam = joints_world.double() @ R.double().transpose(1, 2) + t.double()[:, None]
+    uv = (cam / cam[..., 2:].clamp_min(1e-6)) @ K.double().transpose(1, 2)
+    return uv[..., :2].numpy()

@@ -1,0 +1,92 @@
+"""Left/right mirrored input landmarks are counted by the evaluation (gst.eval.flips)."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gst.body.skeleton import SMPL_JOINT_NAMES
+from gst.eval.evaluator import PoseRecords
+from gst.eval.flips import mirrored_landmarks, reference_in_crops
+from gst.eval.summary import pose_summary
+
+HIPS, SHOULDERS = (23, 24), (11, 12)
+
+
+def _pair(rng, width):
+    """Reference joints (24, 2) of an upright person `width` px wide at the hips, and landmarks
+    (33, 3) on them, confidence 1."""
+    ref = rng.uniform(50, 200, (24, 2))
+    cx, cy = rng.uniform(80, 170, 2)
+    ref[1], ref[2] = (cx + width / 2, cy), (cx - width / 2, cy)  # left hip on the image right
+    ref[16], ref[17] = (cx + width / 2 + 5, cy - 60), (cx - width / 2 - 5, cy - 60)
+    lm = np.full((33, 3), np.nan)
+    for (ll, lr), (jl, jr) in zip((HIPS, SHOULDERS), ((1, 2), (16, 17)), strict=True):
+        lm[ll] = (*ref[jl], 1.0)
+        lm[lr] = (*ref[jr], 1.0)
+    return ref, lm
+
+
+def _mirror(lm):
+    out = lm.copy()
+    for a, b in (HIPS, SHOULDERS):
+        out[[a, b]] = lm[[b, a]]
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.floats(4.0, 60.0), st.floats(0.0, 1.5))
+def test_mirrored_readings_are_found_and_true_ones_are_not(seed, width, noise):
+    rng = np.random.default_rng(seed)
+    ref, lm = _pair(rng, width)
+    lm[:, :2] += rng.normal(0, noise, (33, 2))
+    refs, lms = np.stack([ref, ref]), np.stack([lm, _mirror(lm)])
+    assert mirrored_landmarks(lms, refs).tolist() == [False, True]
+
+
+def test_one_mirrored_pair_is_not_a_whole_body_flip_and_unsure_landmarks_never_count():
+    ref, lm = _pair(np.random.default_rng(0), 30.0)
+    hips_only = lm.copy()
+    hips_only[[23, 24]] = lm[[24, 23]]
+    unsure, missing = _mirror(lm), _mirror(lm)
+    unsure[11, 2] = 0.2
+    missing[24] = np.nan
+    got = mirrored_landmarks(np.stack([hips_only, unsure, missing]), np.stack([ref] * 3))
+    assert got.tolist() == [False, False, False]
+
+
+def test_wrong_shapes_are_refused():
+    with pytest.raises(ValueError, match=r"\(N, 33, 3\)"):
+        mirrored_landmarks(np.zeros((2, 12, 3)), np.zeros((2, 24, 2)))
+
+
+def test_reference_projection_matches_opencv():
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-1, 1, (3, 24, 3)) + [0, 0, 6]
+    R = np.stack([cv2.Rodrigues(rng.normal(0, 0.2, 3))[0] for _ in range(3)])
+    t = rng.normal(0, 0.3, (3, 3))
+    K = np.array([[[500.0, 0, 128], [0, 510, 120], [0, 0, 1]]] * 3)
+    got = reference_in_crops(*(torch.as_tensor(a) for a in (X, R, t, K)))
+    for i in range(3):
+        want, _ = cv2.projectPoints(X[i], cv2.Rodrigues(R[i])[0], t[i], K[i], None)
+        np.testing.assert_allclose(got[i], want[:, 0], atol=1e-9)
+
+
+def test_the_summary_counts_mirrored_crops_and_scores_the_rest():
+    err = np.array([0.1, 0.3, 0.1, 0.5])[:, None].repeat(24, 1)
+    rec = PoseRecords(
+        rows=np.arange(4), camera=np.array([0, 0, 1, 1]), frame=np.zeros(4, int),
+        joint_error=err, joint_error_pa=err, mirrored=np.array([False, True, False, True]),
+    )  # fmt: skip
+    s = pose_summary(rec, ["a", "b"], np.array(["m"] * 4), SMPL_JOINT_NAMES)
+    assert s.overall["mirrored_landmarks"] == 2
+    assert s.overall["mpjpe_mm"] == pytest.approx(250.0)
+    assert s.overall["mpjpe_mm_not_mirrored"] == pytest.approx(100.0)
+    assert s.per_camera["b"]["mirrored_landmarks"] == 1
+    plain = PoseRecords(rec.rows, rec.camera, rec.frame, err, err)
+    assert (
+        "mirrored_landmarks"
+        not in pose_summary(plain, ["a", "b"], np.array(["m"] * 4), SMPL_JOINT_NAMES).overall
+    )
