@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 
 from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.eval.evaluator import PoseRecords
-from gst.eval.flips import mirrored_landmarks, reference_in_crops
 from gst.eval.summary import pose_summary
+from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 
 HIPS, SHOULDERS = (23, 24), (11, 12)
 
@@ -90,3 +90,34 @@ def test_the_summary_counts_mirrored_crops_and_scores_the_rest():
         "mirrored_landmarks"
         not in pose_summary(plain, ["a", "b"], np.array(["m"] * 4), SMPL_JOINT_NAMES).overall
     )
+
+
+def test_unmirror_exchanges_the_labels_of_the_chosen_rows_only():
+    lm = np.random.default_rng(2).normal(size=(3, 33, 3))
+    for arr in (lm, torch.as_tensor(lm)):
+        out = unmirror(arr, np.array([False, True, False]))
+        assert type(out) is type(arr)
+        np.testing.assert_array_equal(np.asarray(out)[[0, 2]], lm[[0, 2]])
+        np.testing.assert_array_equal(np.asarray(out)[1, [11, 12, 23, 24]], lm[1, [12, 11, 24, 23]])
+        np.testing.assert_array_equal(np.asarray(out)[1, 0], lm[1, 0])  # the nose stays
+        assert np.array_equal(np.asarray(unmirror(out, [False, True, False])), lm)
+    assert np.array_equal(lm, np.random.default_rng(2).normal(size=(3, 33, 3)))  # input intact
+
+
+def test_training_crops_are_unmirrored_against_their_fused_body_only():
+    from types import SimpleNamespace
+
+    from gst.train.scene_training import _unmirrored
+
+    rng = np.random.default_rng(3)
+    ref, lm = _pair(rng, 30.0)
+    K = torch.tensor([[[100.0, 0, 0], [0, 100, 0], [0, 0, 1]]]).repeat(3, 1, 1)
+    world = torch.zeros(3, 24, 3)  # camera = world, depth 1: pixels = 100 * (x, y)
+    world[..., :2], world[..., 2] = torch.as_tensor(ref / 100.0), 1.0
+    crops = SimpleNamespace(R=torch.eye(3).repeat(3, 1, 1), t=torch.zeros(3, 3), K=K)
+    targets = SimpleNamespace(weight=torch.tensor([1.0, 1.0, 0.0]), joints_world=world)
+    lms = torch.as_tensor(np.stack([lm, _mirror(lm), _mirror(lm)]))  # the third: no target
+    out = _unmirrored(crops, lms, targets)
+    same = lambda a, b: np.array_equal(a.numpy(), b.numpy(), equal_nan=True)  # noqa: E731
+    assert same(out[0], lms[0]) and same(out[2], lms[2])
+    assert same(out[1], lms[0])

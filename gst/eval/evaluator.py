@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from gst.eval.flips import mirrored_landmarks, reference_in_crops
+from gst.metrics.flips import mirrored_landmarks, reference_in_crops
 from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, silhouette_iou, ssim
 from gst.metrics.pose import procrustes_align, vertex_error
 from gst.model.assemble import to_world
@@ -61,7 +61,7 @@ class PoseRecords:
     pve: np.ndarray | None = None  # (N,) vertex error, pelvis-aligned
     pa_pve: np.ndarray | None = None  # (N,)
     # (N,) the crop's input landmarks are left/right mirrored against the reference
-    # (gst.eval.flips); None when the crops carry no landmarks
+    # (gst.metrics.flips); None when the crops carry no landmarks
     mirrored: np.ndarray | None = None
 
     @property

@@ -87,7 +87,7 @@ class PoseSummary:
     table keyed by its name). A block is metric name -> value ("n", "mpjpe_mm", "pa_mpjpe_mm",
     "mpjpe_median_mm", and "pve_mm", "pa_pve_mm" when vertices were scored; with landmark input,
     "mirrored_landmarks" (crops whose landmarks are left/right mirrored against the reference,
-    gst.eval.flips) and "mpjpe_mm_not_mirrored"; None where nothing finite was averaged), as
+    gst.metrics.flips) and "mpjpe_mm_not_mirrored"; None where nothing finite was averaged), as
     written to summary.json."""
 
     overall: dict

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
+from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
@@ -101,6 +102,11 @@ class TrainSettings(BaseModel):
     # `landmarks`, else detected); false gives such a network the image-only path.
     landmarks: bool = True
     landmark_dropout: float = Field(0.1, ge=0, le=1)  # share of inputs trained without them
+    # With distillation: a training crop whose landmarks the rig's fused body shows left/right
+    # mirrored (BlazePose's whole-body flips, gst.metrics.flips) is trained on them un-mirrored,
+    # so the network learns the body its landmarks describe (docs/training.md, "Mirrored
+    # landmarks"); held-out crops are never touched.
+    unmirror_landmarks: bool = True
     # Rehearse the render-free landmark prior beside every multi-view step (gst.lift.rehearsal):
     # the pretraining's supervised terms on `rehearsal_batch` simulated detections, weighted by
     # `rehearsal`, so that the scene's few people do not overwrite what it learnt of everyone
@@ -165,6 +171,26 @@ class PreparedCrops:
     first_heldout_frame: int | None
 
 
+def _unmirrored(crops: CropSet, landmarks: torch.Tensor, targets) -> torch.Tensor:
+    """`landmarks` with the left/right labels exchanged on the crops that have a fused-body
+    target (`targets`, gst.train.distill.DistillTargets) and whose hips and shoulders that body
+    shows mirrored."""
+    rows = torch.nonzero(targets.weight > 0)[:, 0]
+    if len(rows) == 0:
+        return landmarks
+    reference = reference_in_crops(
+        targets.joints_world[rows], crops.R[rows], crops.t[rows], crops.K[rows]
+    )
+    flags = np.zeros(len(landmarks), dtype=bool)
+    flags[rows.numpy()] = mirrored_landmarks(landmarks[rows].numpy(), reference)
+    log.info(
+        "distill: %d of %d training crops have left/right mirrored landmarks; trained un-mirrored",
+        int(flags.sum()),
+        len(rows),
+    )
+    return unmirror(landmarks, flags)
+
+
 def prepare_crops(
     p: TrainSettings,
     crops_h5: Path,
@@ -211,6 +237,15 @@ def prepare_crops(
             )
         held_idx = {crops.camera_names.index(c) for c in heldout}
         allowed = training_rows(crops, held_idx, cut)
+        if p.unmirror_landmarks:
+            # the rig's bodies (every crop allowed: the fuse stage's own) say which training
+            # crops are mirrored; the teacher is then refitted on the corrected landmarks
+            rig = teacher(landmarks.numpy(), np.ones(len(crops), dtype=bool), work)
+            landmarks = _unmirrored(crops, landmarks, distill_targets(crops, rig, allowed))
+            if p.keypoints:
+                crops.keypoints = keypoints_from_landmarks(landmarks)
+            if feed_landmarks:
+                crops.landmarks = landmarks
         bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
         crops.distill = distill_targets(crops, bodies, allowed)
         log.info(

@@ -15,6 +15,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from gst.body.markers import BLAZEPOSE_NAMES
+
+# every BlazePose landmark's mirror partner (left <-> right; the nose is its own)
+MIRROR = tuple(
+    BLAZEPOSE_NAMES.index(n.replace("left", "@").replace("right", "left").replace("@", "right"))
+    for n in BLAZEPOSE_NAMES
+)
+
 # (left, right) BlazePose landmark and body-model joint indices of the pairs that are compared
 _LANDMARK_PAIRS = ((23, 24), (11, 12))  # hips, shoulders
 _JOINT_PAIRS = ((1, 2), (16, 17))  # SMPL layout: left/right hip, left/right shoulder
@@ -59,3 +67,13 @@ def reference_in_crops(
     cam = joints_world.double() @ R.double().transpose(1, 2) + t.double()[:, None]
     uv = (cam / cam[..., 2:].clamp_min(1e-6)) @ K.double().transpose(1, 2)
     return uv[..., :2].numpy()
+
+
+def unmirror(landmarks, mirrored):
+    """A copy of (N, 33, C) landmarks (numpy or torch) with the left/right labels of the rows
+    `mirrored` (N,) bool exchanged."""
+    out = landmarks.clone() if isinstance(landmarks, torch.Tensor) else np.array(landmarks)
+    rows = np.flatnonzero(np.asarray(mirrored, dtype=bool))
+    if len(rows):
+        out[rows] = landmarks[rows][:, list(MIRROR)]
+    return out
