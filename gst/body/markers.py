@@ -39,7 +39,13 @@ import torch
 from gst.body.model import BodyOutput
 from gst.body.skeleton import SMPL_JOINT_NAMES
 
-__all__ = ["BLAZEPOSE_NAMES", "MarkerModel", "DEFAULT_PARENTS", "default_markers_path"]
+__all__ = [
+    "BLAZEPOSE_NAMES",
+    "BLAZEPOSE_MIRROR",
+    "MarkerModel",
+    "DEFAULT_PARENTS",
+    "default_markers_path",
+]
 
 BLAZEPOSE_NAMES: tuple[str, ...] = (
     "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
@@ -49,6 +55,17 @@ BLAZEPOSE_NAMES: tuple[str, ...] = (
     "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel",
     "right_heel", "left_foot_index", "right_foot_index",
 )  # fmt: skip
+
+
+def _mirror_partner(name: str) -> int:
+    return BLAZEPOSE_NAMES.index(
+        name.replace("left", "@").replace("right", "left").replace("@", "right")
+    )
+
+
+# each landmark's index with left and right exchanged (the nose is its own); read-only
+BLAZEPOSE_MIRROR = np.array([_mirror_partner(n) for n in BLAZEPOSE_NAMES])
+BLAZEPOSE_MIRROR.flags.writeable = False
 
 # landmark -> (parent joint, rough rest-frame offset in metres): the fallback table.
 _J = {n: i for i, n in enumerate(SMPL_JOINT_NAMES)}

@@ -42,10 +42,9 @@ class CropLandmarks:
 
 
 def _mirror_index() -> np.ndarray:
-    from gst.body.markers import BLAZEPOSE_NAMES as names
+    from gst.body.markers import BLAZEPOSE_MIRROR  # imported late: gst.body loads torch
 
-    flip = [n.replace("left", "@").replace("right", "left").replace("@", "right") for n in names]
-    return np.array([names.index(n) for n in flip])
+    return BLAZEPOSE_MIRROR
 
 
 def suppress_others(image: np.ndarray, mask: np.ndarray, dim: float = 0.25) -> np.ndarray:

@@ -28,18 +28,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from gst.body.markers import BLAZEPOSE_NAMES
+from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.fuse.observations import PersonObservations
 from gst.fuse.triangulate import TriangulationOptions, triangulate_points
 
 __all__ = ["ConsensusOptions", "ConsensusReport", "view_consensus", "SWAP", "LIMB_GROUPS"]
 
-SWAP = np.array(
-    [
-        BLAZEPOSE_NAMES.index(n.replace("left", "@").replace("right", "left").replace("@", "right"))
-        for n in BLAZEPOSE_NAMES
-    ]
-)  # landmark index with left and right exchanged
+SWAP = BLAZEPOSE_MIRROR  # landmark index with left and right exchanged
 LIMB_GROUPS: dict[str, tuple[int, ...]] = {
     "arms": tuple(range(13, 23)),  # elbows, wrists, fingers
     "legs": tuple(range(25, 33)),  # knees, ankles, heels, toes

@@ -15,13 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gst.body.markers import BLAZEPOSE_NAMES
-
-# every BlazePose landmark's mirror partner (left <-> right; the nose is its own)
-MIRROR = tuple(
-    BLAZEPOSE_NAMES.index(n.replace("left", "@").replace("right", "left").replace("@", "right"))
-    for n in BLAZEPOSE_NAMES
-)
+from gst.body.markers import BLAZEPOSE_MIRROR
 
 # (left, right) BlazePose landmark and body-model joint indices of the pairs that are compared
 _LANDMARK_PAIRS = ((23, 24), (11, 12))  # hips, shoulders
@@ -75,5 +69,5 @@ def unmirror(landmarks, mirrored):
     out = landmarks.clone() if isinstance(landmarks, torch.Tensor) else np.array(landmarks)
     rows = np.flatnonzero(np.asarray(mirrored, dtype=bool))
     if len(rows):
-        out[rows] = landmarks[rows][:, list(MIRROR)]
+        out[rows] = landmarks[rows][:, BLAZEPOSE_MIRROR]
     return out

@@ -18,9 +18,11 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import torch
 
 from calibration import Camera
 from gst.data.camera_view import TrackingView
+from gst.model.landmarks import camera_up
 from gst.prefetch import background
 from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
@@ -146,8 +148,8 @@ def camera_frame_up(run: VideoRun) -> np.ndarray | None:
     world_up = run.settings.get("world_up")
     if not run.view.calibrated or world_up is None:
         return None
-    w = np.asarray(world_up, np.float64)
-    return (np.asarray(run.view.camera.R, np.float64) @ (w / np.linalg.norm(w))).astype(np.float32)
+    R = torch.as_tensor(run.view.camera.R, dtype=torch.float64)[None]
+    return camera_up(R, world_up)[0].numpy().astype(np.float32)
 
 
 def pose_fitter(

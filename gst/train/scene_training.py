@@ -225,10 +225,6 @@ def prepare_crops(
             int((torch.nan_to_num(landmarks[..., 2]).amax(1) >= 0.5).sum()),
             len(crops),
         )
-        if multiview and p.keypoints:
-            crops.keypoints = keypoints_from_landmarks(landmarks)
-        if feed_landmarks:
-            crops.landmarks = landmarks
     if multiview and p.distill:
         if teacher is None:
             raise ValueError(
@@ -242,10 +238,6 @@ def prepare_crops(
             # crops are mirrored; the teacher is then refitted on the corrected landmarks
             rig = teacher(landmarks.numpy(), np.ones(len(crops), dtype=bool), work)
             landmarks = _unmirrored(crops, landmarks, distill_targets(crops, rig, allowed))
-            if p.keypoints:
-                crops.keypoints = keypoints_from_landmarks(landmarks)
-            if feed_landmarks:
-                crops.landmarks = landmarks
         bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
         crops.distill = distill_targets(crops, bodies, allowed)
         log.info(
@@ -253,6 +245,11 @@ def prepare_crops(
             int((crops.distill.weight > 0).sum()),
             len(crops),
         )
+    if landmarks is not None:  # as read, or un-mirrored by the rig above
+        if multiview and p.keypoints:
+            crops.keypoints = keypoints_from_landmarks(landmarks)
+        if feed_landmarks:
+            crops.landmarks = landmarks
     if synth_dir is not None:
         attach_scene_truth(crops, boxes, synth_dir)
         has = crops.truth["has_truth"]
