@@ -4,7 +4,7 @@ their summary (see `gst.eval.evaluator` for the metrics and `gst.eval.summary` f
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -18,6 +18,7 @@ from gst.eval.evaluator import (
     view_pairs,
 )
 from gst.eval.summary import PoseSummary, ViewSummary, pose_summary, view_summary
+from gst.records import Record
 from gst.train.steps import GSTTask
 from gst.train.views import CropSet
 
@@ -43,7 +44,7 @@ class EvalConfig:
 
 
 @dataclass(frozen=True)
-class EvalCounts:
+class EvalCounts(Record):
     """What one evaluation scored: crops (pose), view pairs, render size, frames ([lo, hi) or
     None for all), held-out cameras, and the seconds it took."""
 
@@ -53,9 +54,6 @@ class EvalCounts:
     frames: list[int] | None
     heldout_cameras: list[str]
     seconds: float
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass(frozen=True)

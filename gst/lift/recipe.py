@@ -35,6 +35,7 @@ from gst.lift.pretrain import LiftPretrainConfig, LiftPretrainResult, pretrain_l
 from gst.metrics.lpips import load_lpips
 from gst.model.network import GSTNetwork
 from gst.model.presets import get_preset
+from gst.records import Record
 from gst.train.pretrain import (
     CorpusSummary,
     ImagePretrainSummary,
@@ -194,16 +195,13 @@ def rendered_phase(
 
 
 @dataclass(frozen=True)
-class LiftTimes:
+class LiftTimes(Record):
     """Seconds since mode `lift` started (rounded to 0.1 s) at which each part was done."""
 
     lift_phase: float
     rendering_done: float
     crops_and_landmarks_done: float
     total: float
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass(frozen=True)

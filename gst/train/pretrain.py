@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -36,6 +36,7 @@ from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint
 from gst.model.presets import PRESETS, get_preset
+from gst.records import Record
 from gst.train.augment import CropJitter
 from gst.train.losses import LossWeights
 from gst.train.recipe import FitOptions, FitSummary, build_network, fit_gst, make_task
@@ -152,26 +153,20 @@ def render_world(item: tuple[dict, str]) -> str:
 
 
 @dataclass(frozen=True)
-class ReusedCheckpoint:
+class ReusedCheckpoint(Record):
     """The pretrain summary when `pretrain.reuse` copies an existing checkpoint."""
 
     reused: str
 
-    def to_dict(self) -> dict:
-        return asdict(self)
-
 
 @dataclass(frozen=True)
-class CorpusSummary:
+class CorpusSummary(Record):
     """The summary's `corpus` entry: the worlds trained on, the validation world, crop counts."""
 
     worlds: list[str]
     validation_world: str
     train_crops: int
     validation_crops: int
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ import torch.distributed as dist
 from torch import nn
 
 from gst.atomic import atomic_torch_save, atomic_write, atomic_write_json
+from gst.records import Record
 
 log = logging.getLogger("gst.train")
 
@@ -55,7 +56,7 @@ class NonFiniteLossError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class TrainRunSummary:
+class TrainRunSummary(Record):
     """What `Trainer.fit` returns: the step reached, the skipped (non-finite) steps, the best
     validation value of `best_key` (None without one) and the training seconds (resumed runs
     included)."""
@@ -64,9 +65,6 @@ class TrainRunSummary:
     bad_steps: int
     best: float | None
     seconds: float
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def warmup_cosine(step: int, steps: int, warmup_steps: int, min_lr_ratio: float = 0.0) -> float:

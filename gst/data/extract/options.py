@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from calibration.camera import FRAME_PADDING_TOLERANCE
@@ -14,6 +14,7 @@ from gst.data.background import BackgroundConfig
 from gst.data.keypoints.people import CrowdConfig
 from gst.data.masks import MaskConfig
 from gst.detect.persons import SegmenterConfig
+from gst.records import Record
 
 WORK_MAX_SIDE = 960  # default work resolution: longer image side in pixels
 ASSOCIATION_METHODS = ("auto", "keypoints", "hull")
@@ -111,7 +112,7 @@ class CameraReport:
 
 
 @dataclass
-class ExtractReport:
+class ExtractReport(Record):
     """What `extract_scene` did. Counts cover the whole store; truth scores this run's crops."""
 
     store: str
@@ -141,9 +142,6 @@ class ExtractReport:
     settings: dict = field(default_factory=dict)
     association_method: str = "hull"  # the path that ran: 'keypoints' or 'hull'
     single_view_crops: int = 0  # crops of people only one camera saw (keypoint path)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
     def summary_line(self) -> str:
         return (
