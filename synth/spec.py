@@ -106,34 +106,28 @@ class SceneSpec(_Spec):
         return self
 
 
-PRESETS: dict[str, dict] = {
+def _dome_rig(n_cameras: int, width: int, height: int) -> dict:
+    """The small presets' rig: a dome of mildly distorted 30 fps cameras."""
+    return dict(
+        kind="dome", n_cameras=n_cameras, width=width, height=height, distortion="mild", fps=30.0
+    )
+
+
+_PRESET_FIELDS: dict[str, dict] = {
     # Small enough to render in well under 2 minutes on 2 CPU cores, board clip included.
     "demo": dict(
-        name="demo",
         n_frames=48,
         n_people=2,
         motions=[["run"], ["jump"]],
-        rig=dict(kind="dome", n_cameras=6, width=480, height=360, distortion="mild", fps=30.0),
+        rig=_dome_rig(6, 480, 360),
         board=dict(n_frames=40),
     ),
     # People who come within 0.5 m of each other, walkers crossing and hiding the others.
     "crowd": dict(
-        name="crowd",
-        n_frames=48,
-        n_people=4,
-        layout="crowd",
-        rig=dict(kind="dome", n_cameras=7, width=480, height=360, distortion="mild", fps=30.0),
-        board=dict(n_frames=40),
+        n_frames=48, n_people=4, layout="crowd", rig=_dome_rig(7, 480, 360), board=dict(n_frames=40)
     ),
-    "small": dict(
-        name="small",
-        n_frames=120,
-        n_people=2,
-        rig=dict(kind="dome", n_cameras=8, width=640, height=480, distortion="mild", fps=30.0),
-        board=dict(n_frames=80),
-    ),
+    "small": dict(n_frames=120, n_people=2, rig=_dome_rig(8, 640, 480), board=dict(n_frames=80)),
     "full": dict(
-        name="full",
         n_frames=300,
         n_people=4,
         rig=dict(kind="hall", n_cameras=8, width=1920, height=1080, distortion="mild"),
@@ -141,6 +135,8 @@ PRESETS: dict[str, dict] = {
         imaging=dict(antialias=3),
     ),
 }
+# Each preset's scene is named after it.
+PRESETS: dict[str, dict] = {name: dict(name=name, **f) for name, f in _PRESET_FIELDS.items()}
 
 
 def _merge(base: dict, overrides: dict) -> dict:
