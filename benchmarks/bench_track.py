@@ -50,7 +50,6 @@ from gst.model.checkpoint import save_checkpoint  # noqa: E402
 from gst.model.inference import GSTPredictor  # noqa: E402
 from gst.model.presets import get_preset  # noqa: E402
 from gst.track import (  # noqa: E402
-    BoxDepthPredictor,
     OneEuroConfig,
     SuppliedBoxes,
     TrackOptions,
@@ -62,7 +61,14 @@ from gst.track import (  # noqa: E402
 from gst.track.static_detector import StaticCameraDetector  # noqa: E402
 from gst.track.tracker import TrackerConfig, box_iou  # noqa: E402
 from gst.train.recipe import build_network  # noqa: E402
-from tests.track_synthetic import Walker, render, walker_boxes, write_boxes_csv, write_video  # noqa: E402
+from tests.track_synthetic import (  # noqa: E402
+    Walker,
+    render,
+    track_boxes,
+    walker_boxes,
+    write_boxes_csv,
+    write_video,
+)
 
 W, H, FPS = 1920, 1080, 30.0
 
@@ -200,16 +206,7 @@ def main() -> None:
             def run(options=options, camera=camera):
                 out = tmp / "out"
                 shutil.rmtree(out, ignore_errors=True)
-                return track_video(
-                    video,
-                    out,
-                    det,
-                    BoxDepthPredictor(),
-                    model={"name": "box-depth", "version": "0"},
-                    camera=camera,
-                    options=options,
-                    resume=False,
-                )
+                return track_boxes(video, out, det, camera=camera, options=options, resume=False)
 
             s, res = median_time(run, args.repeats)
             row(name, s, errors(res.path, boxes))

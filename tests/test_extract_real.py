@@ -126,19 +126,18 @@ def test_lab_camera_tracking_keeps_few_ids(tmp_path):
     import pyarrow.parquet as pq
 
     from calibration.formats import read_rig
-    from gst.track import BoxDepthPredictor, TrackOptions, track_video
+    from gst.track import TrackOptions
     from gst.track.static_detector import StaticCameraDetector
+    from tests.track_synthetic import track_boxes
 
     rig = read_rig(LAB / "Calib.qca.txt", "qualisys")
     cam = rig["cam03"]
     video = LAB / "cam03.mp4"
     det = StaticCameraDetector(video, camera=cam, up=rig.up, background=None)
-    res = track_video(
+    res = track_boxes(
         video,
         tmp_path,
         det,
-        BoxDepthPredictor(),
-        model={"name": "box", "version": "1"},
         camera=cam,
         options=TrackOptions(
             stride=2, prefetch=0, tracker=TrackerConfig(min_hits=3, max_misses=15)

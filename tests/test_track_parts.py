@@ -11,7 +11,16 @@ from gst.track import BoxDepthPredictor, Detection, TrackOptions, column_array, 
 from gst.track.parts import PartConfig, containment, is_part, skeleton_share
 from gst.track.read import read_tracks
 from gst.track.tracker import TrackerConfig
-from tests.track_synthetic import MODEL, H, W, Walker, render, walker_boxes, write_video
+from tests.track_synthetic import (
+    MODEL,
+    H,
+    W,
+    Walker,
+    render,
+    track_boxes,
+    walker_boxes,
+    write_video,
+)
 
 N = 30
 
@@ -81,12 +90,10 @@ PARTS = PartConfig()
 
 def _track(video, case, tmp_path, parts=PARTS):
     path, boxes = video
-    res = track_video(
+    res = track_boxes(
         path,
         tmp_path / case,
         HandDetector(boxes, case),
-        BoxDepthPredictor(),
-        model=MODEL,
         options=TrackOptions(tracker=TrackerConfig(min_hits=3, parts=parts), frames_per_group=8),
     )
     t = read_tracks(res.path)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gst.track import BoxDepthPredictor, SuppliedBoxes, TrackOptions, track_video
-from tests.track_synthetic import crossing_clip, write_boxes_csv
+from gst.track import SuppliedBoxes, TrackOptions
+from tests.track_synthetic import crossing_clip, track_boxes, write_boxes_csv
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "formats" / "tracks_parquet.md"
 N = 12
@@ -31,15 +31,7 @@ def dataset(tmp_path_factory):
     _, boxes, video = crossing_clip(d, N)
     det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
     for name in ("match_cam1", "match cam2"):
-        track_video(
-            video,
-            d / "tracks",
-            det,
-            BoxDepthPredictor(),
-            model={"name": "t", "version": "0"},
-            video_name=name,
-            options=TrackOptions(prefetch=0),
-        )
+        track_boxes(video, d / "tracks", det, video_name=name, options=TrackOptions(prefetch=0))
     return d
 
 

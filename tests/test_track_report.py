@@ -5,12 +5,10 @@ import numpy as np
 import pytest
 
 from gst.track import (
-    BoxDepthPredictor,
     SuppliedBoxes,
     TrackOptions,
     column_array,
     read_tracks,
-    track_video,
 )
 from gst.track.baseline import REST_JOINTS
 from gst.track.report import (
@@ -22,7 +20,7 @@ from gst.track.report import (
 )
 from gst.track.schema import SMPL_JOINT_NAMES
 from gst.video import probe_video
-from tests.track_synthetic import crossing_clip, write_boxes_csv
+from tests.track_synthetic import crossing_clip, track_boxes, write_boxes_csv
 
 N = 16
 
@@ -32,14 +30,7 @@ def tracked(tmp_path_factory):
     d = tmp_path_factory.mktemp("report")
     _, boxes, video = crossing_clip(d, N)
     det = SuppliedBoxes.from_file(write_boxes_csv(d / "boxes.csv", boxes, "clip"))
-    res = track_video(
-        video,
-        d / "tracks",
-        det,
-        BoxDepthPredictor(),
-        model={"name": "t", "version": "0"},
-        options=TrackOptions(stride=2),
-    )
+    res = track_boxes(video, d / "tracks", det, options=TrackOptions(stride=2))
     return d, video, res.path
 
 

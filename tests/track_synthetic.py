@@ -1,5 +1,6 @@
 """Synthetic scenes for the tracking tests: coloured 'people' (rectangles) moving on a textured
-background, written as a real video with cv2.VideoWriter, with their true boxes."""
+background, written as a real video with cv2.VideoWriter, with their true boxes; and tracking
+them with the pixel-free test predictor."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from gst.track import BoxDepthPredictor, TrackResult, track_video
 
 W, H = 320, 240  # the crossing scene's frame size
 MODEL = {"name": "test-double", "version": "0"}  # the test predictors' model identity in outputs
@@ -99,3 +102,10 @@ def crossing_clip(
     boxes = walker_boxes(walkers, frames)
     video = write_video(folder / "clip.avi", render(walkers, boxes, width, height), width, height)
     return walkers, boxes, video
+
+
+def track_boxes(video: Path, out: Path, detector, **kwargs) -> TrackResult:
+    """`track_video` with the pixel-free BoxDepthPredictor (the whole loop but the network) and
+    the test model identity; `kwargs` go to `track_video`."""
+    kwargs.setdefault("model", MODEL)
+    return track_video(video, out, detector, BoxDepthPredictor(), **kwargs)
