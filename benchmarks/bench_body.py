@@ -15,7 +15,6 @@ from Anny's distribution and random poses within the joint limits (gst.body.join
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -26,6 +25,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from gst.body import BodyModel  # noqa: E402
 from gst.body.anny_default import AnnyReference, build_anny_default  # noqa: E402
 from gst.body.joint_limits import sample_body_pose  # noqa: E402
@@ -245,9 +245,7 @@ def bench_accuracy(args) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument(

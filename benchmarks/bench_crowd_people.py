@@ -23,7 +23,6 @@ per second of each phase on one core.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -40,6 +39,7 @@ import pyarrow.parquet as pq  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from calibration.formats import read_rig  # noqa: E402
 from gst.data.background import BackgroundConfig, build_background  # noqa: E402
 from gst.data.evaluate import CropTruth, association_accuracy, match_truth  # noqa: E402
@@ -216,9 +216,7 @@ def run_scene(scene: Path, n_frames: int | None, old: bool) -> list[tuple[str, d
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    ap = bench_parser(__doc__)
     ap.add_argument("scenes", nargs="+", type=Path)
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--old", action="store_true", help="also run the old extraction")

@@ -23,7 +23,6 @@ ratios against the default variant measured in the same run.
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import sys
 import tempfile
@@ -36,6 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import add_scene_size, bench_parser  # noqa: E402
 from calibration import Camera, Rig  # noqa: E402
 from gst.data import ExtractOptions, extract_scene  # noqa: E402
 from gst.detect.persons import SegmenterConfig  # noqa: E402
@@ -163,11 +163,8 @@ def _chosen(variants: str, n: int) -> list[int]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("--frames", type=int, default=30)
-    ap.add_argument("--people", type=int, default=2)
+    ap = bench_parser(__doc__)
+    add_scene_size(ap, frames=30, people=2)
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument(
         "--variants", default="all", help="comma-separated variant numbers (0-based) or 'all'"

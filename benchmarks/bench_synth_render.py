@@ -24,7 +24,6 @@ tests/synth_fixtures.py (printed in the header).
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -34,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import add_scene_size, bench_parser  # noqa: E402
 from synth.animate import pose_person  # noqa: E402
 from synth.appearance import BodyAtlas  # noqa: E402
 from synth.imaging import CameraResponse, develop  # noqa: E402
@@ -72,11 +72,8 @@ def load_body():
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("--frames", type=int, default=8)
-    ap.add_argument("--people", type=int, default=2)
+    ap = bench_parser(__doc__)
+    add_scene_size(ap, frames=8, people=2)
     args = ap.parse_args()
     model, body_name = load_body()
     faces = np.asarray(model.faces, np.int32)

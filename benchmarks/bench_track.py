@@ -27,7 +27,6 @@ landmarks, full-resolution pixels, people matched per frame by landmark distance
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import statistics
 import sys
@@ -42,6 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import add_scene_size, bench_parser  # noqa: E402
 from benchmarks.timing import median_time  # noqa: E402
 from calibration import Camera  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
@@ -118,12 +118,9 @@ def tiny_checkpoint(path: Path) -> Path:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("--frames", type=int, default=150)
+    ap = bench_parser(__doc__)
+    add_scene_size(ap, frames=150, people=3)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--people", type=int, default=3)
     ap.add_argument(
         "--codec", default="mp4v", help="fourcc of the test video (mp4v: MPEG-4 part 2 in .mp4)"
     )
