@@ -15,6 +15,11 @@ class SourceParams(StageParams):
     input_file: str | None = None
 
 
+def _own_folder_stage(name: str, run, **kwargs) -> Stage:
+    """A stage whose one output is the folder named after it."""
+    return Stage(name=name, run=run, outputs=lambda ctx: [name], **kwargs)
+
+
 def _source(ctx: StageContext) -> None:
     text = f"value={ctx.params.value}\n"
     if ctx.params.input_file:
@@ -30,10 +35,9 @@ def _bump_counter(ctx: StageContext, name: str) -> None:
             f.write(name + "\n")
 
 
-SOURCE = Stage(
-    name="source",
-    run=_source,
-    outputs=lambda ctx: ["source"],
+SOURCE = _own_folder_stage(
+    "source",
+    _source,
     params_model=SourceParams,
     inputs=lambda ctx: [Path(ctx.params.input_file)] if ctx.params.input_file else [],
     help="writes source/data.txt",
@@ -57,12 +61,8 @@ def _double(ctx: StageContext) -> None:
     _bump_counter(ctx, "double")
 
 
-DOUBLE = Stage(
-    name="double",
-    run=_double,
-    outputs=lambda ctx: ["double"],
-    params_model=DoubleParams,
-    help="repeats the source text",
+DOUBLE = _own_folder_stage(
+    "double", _double, params_model=DoubleParams, help="repeats the source text"
 )
 
 
@@ -88,7 +88,7 @@ def _fail(ctx: StageContext) -> None:
     raise RuntimeError(ctx.params.message)
 
 
-FAIL = Stage(name="fail", run=_fail, outputs=lambda ctx: ["fail"], params_model=FailParams)
+FAIL = _own_folder_stage("fail", _fail, params_model=FailParams)
 
 
 class FanOutParams(StageParams):
@@ -112,10 +112,6 @@ def _fan_out(ctx: StageContext) -> None:
     ctx.out("fanout/done.txt").write_text(",".join(map(str, done)))
 
 
-FANOUT = Stage(
-    name="fanout",
-    run=_fan_out,
-    outputs=lambda ctx: ["fanout"],
-    params_model=FanOutParams,
-    help="two items through the executor",
+FANOUT = _own_folder_stage(
+    "fanout", _fan_out, params_model=FanOutParams, help="two items through the executor"
 )
