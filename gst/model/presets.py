@@ -42,32 +42,39 @@ class GSTConfig:
         return self.vit.image_size
 
 
-# One row per preset: the ViT (input size, width, depth, heads), the SMPL head's decoder (width,
-# depth, heads, head width, MLP width: `DecoderConfig`'s field order; its context width is the
-# ViT's) and the vertex preset. `huge` is HMR2 / ViTPose-H: width 1280, depth 32, 16 heads; SMPL
-# head width 1024, depth 6, 8x64 heads.
-# fmt: off
-_PRESET_TABLE = {
-    #          ViT                          decoder                 vertices
-    "tiny":  (((128, 96), 192, 6, 3),      (256, 2, 4, 64, 512),   "1723"),
-    "small": (((256, 192), 384, 12, 6),    (512, 4, 8, 64, 1024),  "3445"),
-    "base":  (((256, 192), 768, 12, 12),   (1024, 6, 8, 64, 1024), "6890"),
-    "huge":  (((256, 192), 1280, 32, 16),  (1024, 6, 8, 64, 1024), "6890"),
-}
-# fmt: on
-
-
-def _preset(name: str, vit: tuple, decoder: tuple, vertices: str) -> GSTConfig:
-    size, width, depth, heads = vit
+def _preset(name, vit, dec, vertex_preset) -> GSTConfig:
     return GSTConfig(
-        name=name,
-        vit=ViTConfig(image_size=size, dim=width, depth=depth, heads=heads),
-        decoder=DecoderConfig(*decoder, context_dim=width),
-        vertex_preset=vertices,
+        name=name, vit=vit, decoder=replace(dec, context_dim=vit.dim), vertex_preset=vertex_preset
     )
 
 
-PRESETS: dict[str, GSTConfig] = {name: _preset(name, *row) for name, row in _PRESET_TABLE.items()}
+PRESETS: dict[str, GSTConfig] = {
+    "tiny": _preset(
+        "tiny",
+        ViTConfig(image_size=(128, 96), dim=192, depth=6, heads=3),
+        DecoderConfig(dim=256, depth=2, heads=4, dim_head=64, mlp_dim=512),
+        "1723",
+    ),
+    "small": _preset(
+        "small",
+        ViTConfig(image_size=(256, 192), dim=384, depth=12, heads=6),
+        DecoderConfig(dim=512, depth=4, heads=8, dim_head=64, mlp_dim=1024),
+        "3445",
+    ),
+    "base": _preset(
+        "base",
+        ViTConfig(image_size=(256, 192), dim=768, depth=12, heads=12),
+        DecoderConfig(dim=1024, depth=6, heads=8, dim_head=64, mlp_dim=1024),
+        "6890",
+    ),
+    # HMR2 / ViTPose-H: width 1280, depth 32, 16 heads; SMPL head width 1024, depth 6, 8x64 heads.
+    "huge": _preset(
+        "huge",
+        ViTConfig(image_size=(256, 192), dim=1280, depth=32, heads=16),
+        DecoderConfig(dim=1024, depth=6, heads=8, dim_head=64, mlp_dim=1024),
+        "6890",
+    ),
+}
 
 
 def get_preset(name: str, **overrides) -> GSTConfig:
