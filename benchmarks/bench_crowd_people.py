@@ -88,7 +88,7 @@ def phase1(model: BlazePose, frames: list[np.ndarray]) -> tuple[list, float]:
 
 
 def make_segment(model: BlazePose, width: float = 0.08):
-    def segment(camera: str, image: np.ndarray, roi):
+    def segment(camera: str, image: np.ndarray, roi, origin=(0, 0)):
         s = model.segment(image, roi)
         near = skeleton_support(s.landmarks, image.shape[:2], width * roi.side)
         return s.landmarks, s.presence, np.where(near, s.probability, 0.0)

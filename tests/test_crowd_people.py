@@ -2,11 +2,15 @@
 cameras (refined with a landmark model, or projected), ids hold over frames, a person one camera
 sees keeps a single-view crop, and frames or cameras with nobody are fine."""
 
+import cv2
 import numpy as np
 from crowd_people import instances, person, rig
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gst.data.keypoints.ownership import own_pixels
-from gst.data.keypoints.people import CrowdConfig, CrowdTracker
+from gst.data.keypoints.people import CrowdConfig, CrowdTracker, _window
+from gst.detect.blazepose import LANDMARK_SIZE, BodyRoi
 from gst.detect.persons import skeleton_support
 
 RIG = rig("dome", 5, seed=2)
@@ -34,25 +38,25 @@ def _foreground(cam, people):
 def _fake_model(frames, calls):
     """A landmark model that answers with the true person nearest the region's centre."""
 
-    def segment(camera, image, roi):
+    def segment(camera, image, roi, origin):
         cam = RIG[camera]
         people = frames[calls["frame"]]
-        hips = [cam.project(p[[23, 24]]).mean(axis=0) for p in people]
+        # the image is the window of the frame at `origin`: its pixels are the frame's - origin
+        hips = [cam.project(p[[23, 24]]).mean(axis=0) - origin for p in people]
         k = int(np.argmin([np.linalg.norm(h - roi.centre) for h in hips]))
         calls["n"] += 1
-        lm = np.c_[cam.project(people[k]), np.ones(33)]
+        lm = np.c_[cam.project(people[k]) - origin, np.ones(33)]
         prob = skeleton_support(lm, image.shape[:2], 6).astype(np.float32)
         return lm, 1.0, prob
 
     return segment
 
 
-def _run(refine: bool, hide: tuple[str, int] | None, single: int | None = None):
+def _run(refine: bool, hide: tuple[str, int] | None, single: int | None = None, workers: int = 1):
     frames = _scene()
     calls = {"frame": 0, "n": 0}
-    tracker = CrowdTracker(
-        RIG, 1 / 30, CrowdConfig(refine=refine), _fake_model(frames, calls) if refine else None
-    )
+    model = _fake_model(frames, calls) if refine else None
+    tracker = CrowdTracker(RIG, 1 / 30, CrowdConfig(refine=refine), model, workers=workers)
     outs = []
     for f, people in enumerate(frames):
         calls["frame"] = f
@@ -77,6 +81,7 @@ def _run(refine: bool, hide: tuple[str, int] | None, single: int | None = None):
             masks[c] = [skeleton_support(inst.landmarks, fg[c].shape, 6) for inst in lst]
         out = tracker.process(f, found, fg, images, {c: images[c] for c in images}, masks)
         outs.append((out, truth, people))
+    tracker.close()
     return outs, calls
 
 
@@ -141,3 +146,41 @@ def test_single_view_person_keeps_a_crop_and_empty_frames_are_fine():
     )
     assert empty.people == [] and any("nobody" in n for n in empty.notes)
     assert tracker.process(1, {}, {}).people == []
+
+
+def test_cameras_on_worker_threads_give_the_same_people():
+    """The cameras of a frame refined and masked on two threads: the same ids, views, sources,
+    landmarks and masks as one after the other, views in the same (camera) order."""
+    serial, _ = _run(refine=True, hide=(RIG.names[3], 0))
+    threaded, _ = _run(refine=True, hide=(RIG.names[3], 0), workers=2)
+    for (a, *_), (b, *_) in zip(serial, threaded, strict=True):
+        assert [p.pid for p in a.people] == [p.pid for p in b.people]
+        for p, q in zip(a.people, b.people, strict=True):
+            assert list(p.views) == list(q.views)
+            for cam in p.views:
+                assert p.views[cam].source == q.views[cam].source
+                np.testing.assert_array_equal(p.views[cam].landmarks, q.views[cam].landmarks)
+                np.testing.assert_array_equal(p.views[cam].mask, q.views[cam].mask)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    cx=st.floats(-100, 700),
+    cy=st.floats(-100, 500),
+    side=st.floats(4, 900),
+    angle=st.floats(-np.pi, np.pi),
+)
+def test_the_window_holds_every_pixel_the_region_samples(cx, cy, side, angle):
+    """The window passed to the landmark model holds the whole region: every crop pixel maps
+    into it (or off the image), with a pixel to spare for the interpolation."""
+    roi = BodyRoi((cx, cy), side, angle)
+    x0, y0, x1, y1 = _window(roi, (480, 640, 3), 2)
+    to_image = cv2.invertAffineTransform(roi.to_crop(LANDMARK_SIZE))
+    u, v = np.meshgrid([0, LANDMARK_SIZE - 1], [0, LANDMARK_SIZE - 1])
+    xy = np.c_[u.ravel(), v.ravel(), np.ones(4)] @ to_image.T
+    # the pixels bilinear sampling reads at each corner, where they are in the image
+    for axis, lo, hi, n in ((0, x0, x1, 640), (1, y0, y1, 480)):
+        first = np.floor(xy[:, axis])
+        read = np.r_[first, first + 1]
+        read = read[(read >= 0) & (read < n)]
+        assert np.all((read >= lo) & (read < hi))

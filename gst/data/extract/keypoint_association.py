@@ -7,6 +7,7 @@ visual-hull path, plus each slot's landmarks and whether one camera only saw tha
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -28,14 +29,19 @@ SOURCES = {"detected": 0, "refined": 1, "projected": 2, "single": 3}
 SKELETON_WIDTH = 0.08  # a region's mask stays within this share of its side of the skeleton
 
 
-def _landmark_segmenter(models_dir: str | None):
-    """The landmark model as `CrowdTracker` calls it: landmarks, presence and the person
-    probability near that person's own skeleton (as `PersonSegmenter` keeps it). The
-    association runs alone in this process after phase 1, so LiteRT gets the cores (same
+def _landmark_segmenter(models_dir: str | None, workers: int):
+    """The landmark model as `CrowdTracker` calls it from its `workers` threads: landmarks,
+    presence and the person probability near that person's own skeleton (as
+    `PersonSegmenter` keeps it). One interpreter per thread (they are not thread-safe); the
+    association runs alone in this process after phase 1, so they share the cores (same
     numbers for any thread count)."""
-    model = BlazePose(models_dir, threads=min(4, available_cores()))
+    local = threading.local()
+    threads = max(1, min(4, available_cores()) // workers)
 
-    def segment(camera: str, image: np.ndarray, roi):
+    def segment(camera: str, image: np.ndarray, roi, origin=(0, 0)):
+        model = getattr(local, "model", None)
+        if model is None:
+            model = local.model = BlazePose(models_dir, threads=threads)
         s = model.segment(image, roi)
         h, w = image.shape[:2]
         lm = s.landmarks[:, :2]
@@ -107,16 +113,21 @@ def associate_scene_keypoints(
             c.name: (work_sizes[c.name][0] / c.width, work_sizes[c.name][1] / c.height)
             for c in cameras
         }
-        segment = _landmark_segmenter(models_dir) if config.refine else None
+        # The cameras of a frame are refined on threads: the phase runs alone in this process.
+        workers = min(len(names), available_cores())
+        segment = _landmark_segmenter(models_dir, workers) if config.refine else None
         tracker = CrowdTracker(
-            cameras, step_seconds, config, segment, {n: sxy[n][0] for n in names}
+            cameras, step_seconds, config, segment, {n: sxy[n][0] for n in names}, workers
         )
         backgrounds = {n: inputs[n]["background"][()] for n in names}
         streams = {
             n: iter(read_frames(videos[n], frames, n, sxy[n][0])) if config.refine else None
             for n in names
         }
-        results = _run(tracker, inputs, streams, backgrounds, frames, sxy, progress)
+        try:
+            results = _run(tracker, inputs, streams, backgrounds, frames, sxy, progress)
+        finally:
+            tracker.close()
     finally:
         for f in inputs.values():
             f.close()

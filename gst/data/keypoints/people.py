@@ -27,6 +27,7 @@ Single-view instances (one camera only) keep their own detection and mask.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -54,9 +55,12 @@ _BODY = np.asarray(BODY_LANDMARKS)
 PROJECTED_CONFIDENCE = 0.5  # confidence of landmarks projected from a skeleton (not detected)
 DUPLICATE_LANDMARKS = 0.1  # two answers whose limb joints are this close (share of size) agree
 ViewSource = Literal["detected", "refined", "projected", "single"]
-# segment(camera name, BGR image at work resolution, region in work pixels) ->
-# (landmarks (33, 3) in work pixels, presence, (H, W) person probability) or None.
-SegmentFn = Callable[[str, np.ndarray, BodyRoi], tuple[np.ndarray, float, np.ndarray] | None]
+# segment(camera name, BGR image, region in its pixels, origin) -> (landmarks (33, 3) in the
+# image's pixels, presence, (h, w) person probability) or None. The image is the window of the
+# work-resolution frame that holds the region; origin = (x0, y0), its top-left pixel in the frame.
+SegmentFn = Callable[
+    [str, np.ndarray, BodyRoi, tuple[int, int]], tuple[np.ndarray, float, np.ndarray] | None
+]
 
 
 @dataclass(frozen=True)
@@ -110,6 +114,19 @@ class FramePeople:
     notes: list[str]
 
 
+def _window(roi: BodyRoi, shape: tuple[int, ...], margin: int) -> tuple[int, int, int, int]:
+    """Pixel bounds (x0, y0, x1, y1) within an image of `shape` of everything a (rotated)
+    region can sample, `margin` pixels more for the interpolation."""
+    half = 0.5 * roi.side * (abs(np.cos(roi.angle)) + abs(np.sin(roi.angle))) + margin
+    cx, cy = roi.centre
+    h, w = shape[:2]
+    x0 = int(np.clip(np.floor(cx - half), 0, w))
+    y0 = int(np.clip(np.floor(cy - half), 0, h))
+    x1 = int(np.clip(np.ceil(cx + half) + 1, x0, w))
+    y1 = int(np.clip(np.ceil(cy + half) + 1, y0, h))
+    return x0, y0, x1, y1
+
+
 def _strict_views(group: PersonGroup | None) -> int:
     return 0 if group is None else len(group.views) - len(group.loose)
 
@@ -124,11 +141,13 @@ class _Candidate:
 
 
 class CrowdTracker:
-    """People of consecutive frames of one capture (keeps tracking state; not thread-safe).
+    """People of consecutive frames of one capture (keeps tracking state; one caller at a time).
 
     `scale` is the work resolution over the calibration's, one number or per camera (images,
     foregrounds and masks are at work resolution; landmarks and skeletons in full-resolution
-    pixels and metres). `segment` runs the landmark model (None: no refinement).
+    pixels and metres). `segment` runs the landmark model (None: no refinement); with
+    `workers` > 1 the cameras of a frame are refined and masked on that many threads, so
+    `segment` must then be thread-safe. The results do not depend on `workers`.
     """
 
     def __init__(
@@ -138,10 +157,13 @@ class CrowdTracker:
         config: CrowdConfig = CrowdConfig(),
         segment: SegmentFn | None = None,
         scale: float | Mapping[str, float] = 1.0,
+        workers: int = 1,
     ):
         self.cams = {c.name: c for c in (rig.cameras if isinstance(rig, Rig) else rig)}
         self.config = config
         self.segment = segment
+        self.workers = max(1, int(workers))
+        self._pool: ThreadPoolExecutor | None = None
         self.scale = {
             n: float(scale[n] if isinstance(scale, Mapping) else scale) for n in self.cams
         }
@@ -214,10 +236,14 @@ class CrowdTracker:
             FramePerson(pid, c.skeleton, {})
             for c, pid in zip(cands, pids[: len(cands)], strict=True)
         ]
-        for n, cam in self.cams.items():
-            if n not in foreground:
-                continue
-            self._views(n, cam, cands, people, foreground[n], remembered, instances)
+        names = [n for n in self.cams if n in foreground]
+
+        def views_in(n: str) -> list[tuple[int, PersonView]]:
+            return self._views(n, cands, people, foreground[n], remembered, instances)
+
+        for n, views in zip(names, self._map_cameras(views_in, names), strict=True):
+            for k, view in views:
+                people[k].views[n] = view
         for g, pid in zip(singles, pids[len(cands) :], strict=True):
             n, k = next(iter(g.views.items()))
             m = masks[n][k] if masks is not None and masks.get(n) is not None else None
@@ -249,49 +275,34 @@ class CrowdTracker:
                 keep.append(k)
         return [cands[k] for k in sorted(keep)]
 
+    def _map_cameras(self, fn, names: list[str]) -> list:
+        """fn(name) for every camera, in order: on the worker threads when there are several
+        (each camera's work is independent; numpy, OpenCV and LiteRT release the GIL)."""
+        if self.workers <= 1 or len(names) <= 1:
+            return [fn(n) for n in names]
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.workers, thread_name_prefix="crowd")
+        return list(self._pool.map(fn, names))
+
+    def close(self) -> None:
+        """Stop the worker threads (the tracker stays usable: they restart on demand)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
     def _refine(self, cands, foreground, images, backgrounds) -> None:
         cfg = self.config
         skels = [c.skeleton for c in cands]
-        for n, cam in self.cams.items():
-            if n not in images or n not in foreground:
-                continue
-            own = own_pixels(cam, foreground[n], skels, [], cfg.ownership, self.scale[n])
-            img, bg = images[n], (backgrounds or {}).get(n)
-            for k, c in enumerate(cands):
-                roi = roi_from_skeleton(cam, c.skeleton)
-                if roi is None:
-                    continue
-                others = (own.labels > 0) & (own.labels != k + 1)
-                others = cv2.dilate(others.astype(np.uint8), self._kernel) > 0
-                fill = bg if bg is not None else np.full_like(img, 128)
-                painted = np.where(others[..., None], fill, img)
-                s = self.scale[n]
-                work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
-                got = self.segment(n, painted, work_roi)
-                if got is None:
-                    continue
-                lm, presence, prob = got
-                if presence < cfg.min_presence:
-                    continue
-                lm = np.asarray(lm, np.float64).copy()
-                lm[:, :2] /= s
-                inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
-                fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
-                if fit > cfg.refine_fit:
-                    continue
-                c.refined[n] = (inst, prob)
-                c.fits[n] = fit
-            # Two regions that found the same person: the view goes to whoever it fits best
-            # (a candidate stitched from two people loses the views that are someone else's).
-            holders = [c for c in cands if n in c.refined]
-            for i, a in enumerate(holders):
-                for b in holders[i + 1 :]:
-                    if n not in a.refined or n not in b.refined:
-                        continue
-                    la, lb = a.refined[n][0].landmarks, b.refined[n][0].landmarks
-                    if same_person(la, lb, DUPLICATE_LANDMARKS):
-                        loser = b if a.fits[n] <= b.fits[n] else a
-                        del loser.refined[n], loser.fits[n]
+        names = [n for n in self.cams if n in images and n in foreground]
+
+        def one_camera(n: str) -> dict[int, tuple]:
+            return self._refine_camera(n, cands, skels, foreground[n], images[n], backgrounds)
+
+        # Merged in camera order, whatever order the threads finished in.
+        for n, found in zip(names, self._map_cameras(one_camera, names), strict=True):
+            for k, (inst, prob, fit) in found.items():
+                cands[k].refined[n] = (inst, prob)
+                cands[k].fits[n] = fit
         for c in cands:
             if len(c.refined) >= 2:
                 views = {
@@ -301,11 +312,68 @@ class CrowdTracker:
                 X = _triangulate_all(views, {n: (0, False) for n in c.refined}, cfg.match)
                 c.skeleton = np.where(np.isfinite(X), X, c.skeleton)
 
-    def _views(self, n, cam, cands, people, fg, remembered, instances) -> None:
-        """Each person's view in camera `n`: refined (their region's segmentation, contested
-        pixels to the one in front), detected (ownership of the foreground, the detector's
-        landmarks), or projected (ownership, projected landmarks) for trusted people."""
+    def _refine_camera(self, n, cands, skels, fg, img, backgrounds) -> dict[int, tuple]:
+        """Camera `n`'s refined views: candidate index -> (instance, probability, fit)."""
         cfg = self.config
+        cam, s = self.cams[n], self.scale[n]
+        own = own_pixels(cam, fg, skels, [], cfg.ownership, s)
+        bg = (backgrounds or {}).get(n)
+        found: dict[int, tuple] = {}
+        for k, c in enumerate(cands):
+            roi = roi_from_skeleton(cam, c.skeleton)
+            if roi is None:
+                continue
+            work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
+            # The model sees only the region: paint and pass the window that holds it (far
+            # cheaper than a painted copy of the whole frame per person and camera).
+            x0, y0, x1, y1 = _window(work_roi, img.shape, 2)
+            if x1 - x0 < 2 or y1 - y0 < 2:  # the region lies outside the image
+                continue
+            m = cfg.occluder_margin
+            g0, h0 = max(x0 - m, 0), max(y0 - m, 0)
+            grown = own.labels[h0 : y1 + m, g0 : x1 + m]
+            others = cv2.dilate(((grown > 0) & (grown != k + 1)).astype(np.uint8), self._kernel)
+            others = others[y0 - h0 : y0 - h0 + y1 - y0, x0 - g0 : x0 - g0 + x1 - x0] > 0
+            window = img[y0:y1, x0:x1]
+            fill = bg[y0:y1, x0:x1] if bg is not None else np.full_like(window, 128)
+            painted = np.where(others[..., None], fill, window)
+            cx, cy = work_roi.centre
+            got = self.segment(
+                n, painted, BodyRoi((cx - x0, cy - y0), work_roi.side, roi.angle), (x0, y0)
+            )
+            if got is None:
+                continue
+            lm, presence, prob_window = got
+            if presence < cfg.min_presence:
+                continue
+            prob = np.zeros(img.shape[:2], np.float32)
+            prob[y0:y1, x0:x1] = prob_window
+            lm = np.asarray(lm, np.float64).copy()
+            lm[:, :2] += (x0, y0)
+            lm[:, :2] /= s
+            inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
+            fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
+            if fit > cfg.refine_fit:
+                continue
+            found[k] = (inst, prob, fit)
+        # Two regions that found the same person: the view goes to whoever it fits best
+        # (a candidate stitched from two people loses the views that are someone else's).
+        holders = list(found)
+        for i, a in enumerate(holders):
+            for b in holders[i + 1 :]:
+                if a not in found or b not in found:
+                    continue
+                if same_person(found[a][0].landmarks, found[b][0].landmarks, DUPLICATE_LANDMARKS):
+                    del found[b if found[a][2] <= found[b][2] else a]
+        return found
+
+    def _views(self, n, cands, people, fg, remembered, instances) -> list[tuple[int, PersonView]]:
+        """Each person's view in camera `n`, as (person index, view): refined (their region's
+        segmentation, contested pixels to the one in front), detected (ownership of the
+        foreground, the detector's landmarks), or projected (ownership, projected landmarks)
+        for trusted people."""
+        cfg, cam = self.config, self.cams[n]
+        out = []
         own = own_pixels(cam, fg, [c.skeleton for c in cands], [], cfg.ownership, self.scale[n])
         # A refined view's mask is the landmark model's own segmentation of that person.
         claims = [c.refined[n][1] > 0.5 if n in c.refined else None for c in cands]
@@ -332,4 +400,5 @@ class CrowdTracker:
                 conf = np.where(np.all(np.isfinite(uv), axis=1), PROJECTED_CONFIDENCE, 0.0)
                 lm, source = np.c_[np.nan_to_num(uv), conf], "projected"
             if np.count_nonzero(mask) >= cfg.min_mask_pixels:
-                person.views[n] = PersonView(lm, mask, source, float(own.visibility[k]))
+                out.append((k, PersonView(lm, mask, source, float(own.visibility[k]))))
+        return out
