@@ -23,6 +23,11 @@ landmarks, full-resolution pixels, people matched per frame by landmark distance
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
+    python benchmarks/bench_track.py --real --checkpoint WS/demo/models/gst.pt --demo WS
+
+With `--demo WS` (a workspace after `run all`) every variant also tracks the demo scene's
+camera videos with the demo's own network, and prints MPJPE / PA-MPJPE against the truth,
+recall and id switches beside its time: the accuracy of each speed-up in the same run.
 """
 
 from __future__ import annotations
@@ -132,6 +137,13 @@ def main() -> None:
     ap.add_argument("--camera", default="cam01", help="lab camera for --real")
     ap.add_argument("--real-frames", type=int, default=100, help="frames of the lab video")
     ap.add_argument("--only", default=None, help="--real: run variants whose name has this text")
+    ap.add_argument(
+        "--demo",
+        type=Path,
+        default=None,
+        help="--real: also track the demo scene of this workspace (after `run all`) with each "
+        "variant and print its MPJPE against the truth",
+    )
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -381,7 +393,9 @@ def real_footage(args) -> None:
         print(f"(no lab capture at {LAB}; nothing to do)")
         return
     model_paths()  # the learned person model must be installed
-    camera = read_rig(LAB / "Calib.qca.txt", "qualisys")[args.camera]
+    lab_rig = read_rig(LAB / "Calib.qca.txt", "qualisys")
+    # the stage passes the rig's up with a calibrated camera (the network's gravity input)
+    camera, rig_up = lab_rig[args.camera], tuple(lab_rig.up)
     tmp = Path(tempfile.mkdtemp(prefix="bench_track_real_"))
     try:
         checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
@@ -444,6 +458,7 @@ def real_footage(args) -> None:
                     model={"name": gst.name, "version": "bench"},
                     camera=camera,
                     options=options,
+                    world_up=rig_up,
                     resume=False,
                 )
                 walls.append(time.perf_counter() - t0)
@@ -460,8 +475,62 @@ def real_footage(args) -> None:
                 f"{med:6.1f}/{p95:6.1f} {missed:6d}",
                 flush=True,
             )
+        if args.demo is not None:
+            demo_accuracy(args.demo, variants, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
+    """The demo's own network on the demo's camera videos (calibrated, the rig's up known, as
+    `run track` does), with each variant's person model: MPJPE / PA-MPJPE against the truth
+    (matched rows, gst.track.evaluate), recall and id switches over all cameras, beside the
+    time. Accuracy of the person model's speed-ups in the same run as their speed."""
+    from calibration.formats import read_rig
+    from gst.track.evaluate import evaluate_tracks
+
+    scene = workspace / "demo"
+    needed = [scene / "calibration" / "rig.json", scene / "models" / "gst.pt", scene / "synth"]
+    missing = [str(p) for p in needed if not p.exists()]
+    if missing:
+        raise SystemExit(f"--demo {workspace}: missing {missing} (run `run all` there first)")
+    rig = read_rig(scene / "calibration" / "rig.json")
+    gst = GSTPredictor(scene / "models" / "gst.pt")
+    videos = sorted(p for p in (scene / "synth" / "videos").glob("*.mp4") if p.stem in rig.names)
+    print(
+        f"\ndemo: {len(videos)} calibrated cameras, {gst.name} ({scene / 'models' / 'gst.pt'}); "
+        "MPJPE / PA-MPJPE mm over matched rows (pelvis-aligned), all cameras"
+    )
+    print(f"{'variant':40s} {'s':>6s} {'MPJPE':>6s} {'PA':>6s} {'recall':>6s} {'id sw.':>6s}")
+    for k, (name, make, options, torch_threads) in enumerate(variants):
+        torch.set_num_threads(torch_threads)
+        evals, t0 = [], time.perf_counter()
+        for v in videos:
+            res = track_video(
+                v,
+                tmp / f"demo{k}",
+                make(),
+                gst,
+                model={"name": gst.name, "version": "bench"},
+                camera=rig[v.stem],
+                options=replace(options, end_s=None),
+                world_up=tuple(rig.up),
+                resume=False,
+            )
+            evals.append(evaluate_tracks(res.path, scene / "synth", v.stem))
+        secs = time.perf_counter() - t0
+        n = sum(e.matches for e in evals)
+        scored = [e for e in evals if e.matches and e.mpjpe_mm is not None]
+
+        def mean(attr: str, scored=scored, n=n) -> float:
+            return sum(getattr(e, attr) * e.matches for e in scored) / max(n, 1)
+
+        recall = n / max(sum(e.truth_instances for e in evals), 1)
+        print(
+            f"{name:40s} {secs:6.1f} {mean('mpjpe_mm'):6.1f} {mean('pa_mpjpe_mm'):6.1f} "
+            f"{recall:6.3f} {sum(e.id_switches for e in evals):6d}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
