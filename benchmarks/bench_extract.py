@@ -157,6 +157,19 @@ def compare_on_scenes(scenes: list[Path], chosen: list[int]) -> None:
         )
 
 
+def mask_support(store_path: Path) -> str:
+    """Median and 5th percentile of a store's `mask_support` (keypoint association), or n/a."""
+    from gst.data.store import CropStore
+
+    store = CropStore(store_path)
+    try:
+        v = store.index.column("mask_support").to_numpy() if len(store) else np.zeros(0)
+    finally:
+        store.close()
+    v = v[np.isfinite(v)]
+    return f"{np.median(v):.3f} / {np.percentile(v, 5):.3f}" if len(v) else "n/a"
+
+
 def _chosen(variants: str, n: int) -> list[int]:
     """The variant numbers of `--variants`: comma-separated (0-based) or 'all' (the n of them)."""
     return list(range(n)) if variants == "all" else [int(v) for v in variants.split(",")]
@@ -237,15 +250,15 @@ def main() -> None:
                 times.append(time.perf_counter() - t)
                 reports.append(rep)
             rep = reports[int(np.argsort(times)[len(times) // 2])]
-            rows.append((name, float(np.median(times)), rep))
+            rows.append((name, float(np.median(times)), rep, mask_support(out)))
         base = rows[0][1]
         n_cf = None
         print(
             f"\n{'variant':30s} {'total s':>8s} {'cam-frames/s':>12s} {'x default':>9s} | "
             f"{'masks':>6s} {'assoc':>6s} {'crops':>6s} {'merge':>6s} (cam-frames/s per phase) | "
-            f"{'mask IoU':>8s} {'assoc acc':>9s} {'crops':>6s} ids"
+            f"{'mask IoU':>8s} {'assoc acc':>9s} {'crops':>6s} ids  support median / p5"
         )
-        for name, secs, rep in rows:
+        for name, secs, rep, support in rows:
             n_cf = rep.frames_considered * len(rep.cameras)
             ph = {k: (n_cf / v if v > 0 else float("inf")) for k, v in rep.timings.items()}
             iou = f"{rep.mask_iou:.3f}" if rep.mask_iou is not None else "n/a"
@@ -257,9 +270,13 @@ def main() -> None:
                 f"{ph.get('masks', 0):6.1f} {ph.get('association', 0):6.1f} "
                 f"{ph.get('crops', 0):6.1f} "
                 f"{ph.get('merge', 0):6.1f}                         | {iou:>8s} {acc:>9s} "
-                f"{rep.crops:6d} {rep.persons}"
+                f"{rep.crops:6d} {rep.persons:3d}  {support}"
             )
         print(f"\n{n_cf} camera-frames per run; repeats: {args.repeats} (median shown)")
+        print(
+            "support: the crops' mask_support, the share of the person's unhidden body (capsules "
+            "around the triangulated skeleton) their mask covers: mask quality without truth"
+        )
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
