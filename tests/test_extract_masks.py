@@ -10,7 +10,13 @@ import pyarrow.parquet as pq
 import pytest
 
 from gst.data.association import PersonTracker
-from gst.data.background import BackgroundConfig, build_background, hysteresis, temporal_median
+from gst.data.background import (
+    BackgroundConfig,
+    build_background,
+    hysteresis,
+    temporal_median,
+    temporal_medians,
+)
 from gst.data.evaluate import CropTruth, association_accuracy, match_truth
 from gst.data.external import ExternalError, IdMaskFile, boxes_to_labels, read_external
 from gst.data.masks import MaskConfig, clean_mask, fill_small_holes
@@ -67,6 +73,17 @@ def test_median_background_ignores_shadows_and_recovers_the_empty_scene():
 def test_temporal_median_matches_numpy():
     x = np.random.default_rng(0).integers(0, 255, (9, 7, 5, 3), dtype=np.uint8)
     assert np.array_equal(temporal_median(x), np.median(x, axis=0).astype(np.uint8))
+
+
+@pytest.mark.parametrize("n", [1, 2, 9, 60])
+def test_one_partial_sort_gives_both_medians(n):
+    """`temporal_medians`: the lower middle of `temporal_median` and numpy's median (the mean
+    of the two middles for an even count), bit for bit."""
+    x = np.random.default_rng(n).integers(0, 255, (n, 7, 5, 3), dtype=np.uint8)
+    lower, middle = temporal_medians(x)
+    assert np.array_equal(lower, temporal_median(x))
+    assert np.array_equal(middle, np.median(x, axis=0))
+    assert np.array_equal(middle.astype(np.uint8), np.median(x, axis=0).astype(np.uint8))
 
 
 def test_hysteresis_keeps_weak_pixels_connected_to_strong_ones():

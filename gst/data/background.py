@@ -100,11 +100,14 @@ class MedianBackground:
     scaling, |I - alpha B|, is small (Horprasert et al. 1999).
     """
 
-    def __init__(self, samples: np.ndarray, config: BackgroundConfig):
+    def __init__(
+        self, samples: np.ndarray, config: BackgroundConfig, median: np.ndarray | None = None
+    ):
         if samples.ndim != 4 or samples.shape[-1] != 3:
             raise ValueError(f"background samples must be (N, H, W, 3), got {samples.shape}")
         self.config = config
-        self.background = temporal_median(samples).astype(np.float32)
+        median = temporal_median(samples) if median is None else median
+        self.background = median.astype(np.float32)
         self._inv_bg_norm2 = 1.0 / np.maximum(_channel_sum(self.background * self.background), 1.0)
 
     def foreground(self, frame: np.ndarray) -> np.ndarray:
@@ -133,6 +136,14 @@ def temporal_median(samples: np.ndarray) -> np.ndarray:
     return np.partition(samples, k, axis=0)[k]
 
 
+def temporal_medians(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """From one partial sort over axis 0: `temporal_median` (the lower middle value) and
+    `np.median`'s answer (float64, the mean of the two middle values for an even count)."""
+    lo, hi = (len(samples) - 1) // 2, len(samples) // 2
+    part = np.partition(samples, [lo, hi] if hi != lo else lo, axis=0)
+    return part[lo], (part[lo].astype(np.float64) + part[hi]) / 2
+
+
 def _channel_sum(img: np.ndarray) -> np.ndarray:
     """Sum over the colour channels of an (H, W, 3) float32 image, via OpenCV (fast)."""
     return cv2.transform(img, np.ones((1, 3), np.float32))
@@ -141,7 +152,9 @@ def _channel_sum(img: np.ndarray) -> np.ndarray:
 class OpenCVBackground:
     """cv2 MOG2 or KNN subtractor with shadow detection, trained on the samples then frozen."""
 
-    def __init__(self, samples: np.ndarray, config: BackgroundConfig):
+    def __init__(
+        self, samples: np.ndarray, config: BackgroundConfig, median: np.ndarray | None = None
+    ):
         self.config = config
         n = len(samples)
         if config.method == "mog2":
@@ -162,7 +175,8 @@ class OpenCVBackground:
         cv2.setRNGSeed(0)  # KNN samples at random: make runs repeatable
         # The subtractors trust their first frame most; start them from the temporal median
         # (the best single guess of the empty scene) rather than from whoever is in frame 0.
-        self.sub.apply(np.ascontiguousarray(temporal_median(samples)), learningRate=1.0)
+        median = temporal_median(samples) if median is None else median
+        self.sub.apply(np.ascontiguousarray(median), learningRate=1.0)
         for frame in samples:
             self.sub.apply(frame, learningRate=-1)
 
@@ -171,10 +185,13 @@ class OpenCVBackground:
         return self.sub.apply(frame, learningRate=0) == 255
 
 
-def build_background(samples: np.ndarray, config: BackgroundConfig) -> BackgroundModel:
-    """Learn the background model named by `config.method` from (N, H, W, 3) BGR samples."""
+def build_background(
+    samples: np.ndarray, config: BackgroundConfig, median: np.ndarray | None = None
+) -> BackgroundModel:
+    """Learn the background model named by `config.method` from (N, H, W, 3) BGR samples.
+    `median`: their `temporal_median`, when the caller has it already (it is not recomputed)."""
     if len(samples) == 0:
         raise ValueError("no background samples")
     if config.method == "median":
-        return MedianBackground(samples, config)
-    return OpenCVBackground(samples, config)
+        return MedianBackground(samples, config, median)
+    return OpenCVBackground(samples, config, median)

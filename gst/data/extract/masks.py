@@ -20,7 +20,12 @@ import h5py
 import numpy as np
 
 from gst.atomic import atomic_path
-from gst.data.background import BackgroundConfig, build_background, sample_indices
+from gst.data.background import (
+    BackgroundConfig,
+    build_background,
+    sample_indices,
+    temporal_medians,
+)
 from gst.data.external import (
     IdMaskFile,
     boxes_to_labels,
@@ -128,9 +133,11 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         else:
             idx = sample_indices(job.n_frames, job.background.samples)
             samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
-        model = build_background(samples, job.background)
+        # The model's median and the stored empty scene (numpy's median) from one partial sort.
+        lower, middle = temporal_medians(samples) if keep else (None, None)
+        model = build_background(samples, job.background, lower)
         if keep:
-            background = np.median(samples, axis=0).astype(np.uint8)
+            background = middle.astype(np.uint8)
         del samples
         segmenter = None
         if job.persons is not None:
