@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from calibration.camera import project_points_torch
 from gst.body.markers import BLAZEPOSE_MIRROR
 
 # (left, right) BlazePose landmark and body-model joint indices of the pairs that are compared
@@ -57,10 +58,9 @@ def reference_in_crops(
     joints_world: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor
 ) -> np.ndarray:
     """(N, 24, 2) crop pixels of the reference joints (N, 24, 3) in world coordinates, through
-    each crop's camera (R, t world-to-camera; K the crop's intrinsics)."""
-    cam = joints_world.double() @ R.double().transpose(1, 2) + t.double()[:, None]
-    uv = (cam / cam[..., 2:].clamp_min(1e-6)) @ K.double().transpose(1, 2)
-    return uv[..., :2].numpy()
+    each crop's camera (R, t world-to-camera; K the crop's intrinsics; crops are undistorted)."""
+    d = torch.float64
+    return project_points_torch(joints_world.to(d), K.to(d), R.to(d), t.to(d)).numpy()
 
 
 def unmirror(landmarks, mirrored):
