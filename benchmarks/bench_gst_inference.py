@@ -6,6 +6,7 @@ and the ratio between them, all in one run. Weights are random (speed does not d
 the body model is the open default.
 
     python benchmarks/bench_gst_inference.py [--presets tiny small base] [--batch 8] [--repeats 5]
+        [--device cpu|cuda|auto] [--amp]     # --amp: bf16 autocast (CUDA)
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import argparse
 import torch
 
 from gst.body import load_body_model
+from gst.device import module_on, resolve_device
 from gst.eval.bench import time_inference
 from gst.model.assemble import assemble
 from gst.model.presets import get_preset
@@ -27,13 +29,18 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--amp", action="store_true")
     args = ap.parse_args()
+    device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    body = load_body_model("anny")
+    cpu_body = load_body_model("anny")  # networks are built on the CPU, then moved
+    body = module_on(cpu_body, device)
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
     print(
-        f"device cpu, threads {torch.get_num_threads()}, batch {args.batch}, median of "
-        f"{args.repeats}"
+        f"device {name}, threads {torch.get_num_threads()}, batch {args.batch}, "
+        f"{'bf16 autocast, ' if args.amp else ''}median of {args.repeats}"
     )
     print(
         f"{'preset':<7} {'input':>8} {'gaussians':>9} {'pose ms':>9} {'pose fps':>9} "
@@ -41,16 +48,19 @@ def main() -> None:
     )
     for name in args.presets:
         cfg = get_preset(name)
-        net, ids, _ = build_network(cfg, body)
-        net.eval()
-        vid = torch.as_tensor(ids)
-        x = torch.randn(args.batch, 3, *cfg.image_size)
-        K = torch.tensor([[500.0, 0, 128], [0, 500.0, 128], [0, 0, 1]]).expand(args.batch, 3, 3)
+        net, ids, _ = build_network(cfg, cpu_body)
+        net.to(device).eval()
+        vid = torch.as_tensor(ids, device=device)
+        x = torch.randn(args.batch, 3, *cfg.image_size, device=device)
+        K = torch.tensor([[500.0, 0, 128], [0, 500.0, 128], [0, 0, 1]], device=device)
+        K = K.expand(args.batch, 3, 3)
 
         def run(with_gaussians: bool, net=net, x=x, K=K, vid=vid):
-            with torch.no_grad():
+            with torch.no_grad(), torch.autocast(device.type, torch.bfloat16, enabled=args.amp):
                 out = net(x, with_gaussians=with_gaussians)
                 assemble(out, body, K, 256, vertex_ids=vid)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
 
         t_pose = time_inference(lambda: run(False), args.repeats)
         t_full = time_inference(lambda: run(True), args.repeats)

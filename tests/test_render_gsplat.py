@@ -90,3 +90,16 @@ def test_default_conventions_differ_from_gsplat_only_by_the_faint_ring():
     diff = (g_alpha - c_alpha).abs()
     assert diff.max() < 0.05
     assert diff.mean() < 2e-3
+
+
+def test_the_environment_chooses_what_auto_means(monkeypatch):
+    scene = random_scene(2, s=1, n=20, c=2, width=12, height=10, dtype=torch.float32)
+    monkeypatch.setenv("GST_RENDER_BACKEND", "bogus")
+    with pytest.raises(ValueError, match="GST_RENDER_BACKEND"):
+        rasterize(*scene, 12, 10)
+    monkeypatch.setenv("GST_RENDER_BACKEND", "torch")
+    forced = rasterize(*scene, 12, 10)
+    torch.testing.assert_close(forced.rgb, rasterize(*scene, 12, 10, backend="torch").rgb)
+    monkeypatch.setenv("GST_RENDER_BACKEND", "gsplat")  # CPU tensors: gsplat cannot take them
+    with pytest.raises(RuntimeError, match="gsplat"):
+        rasterize(*scene, 12, 10)

@@ -80,3 +80,15 @@ def test_duckdb_snippet(dataset, monkeypatch):
     assert len(duckdb.sql(statements[1]).fetchall()) == 2 * 24 * 3 * N
     kv = dict(duckdb.sql(statements[2]).fetchall())
     assert kv["gst.fps"] == "30.0"
+
+
+def test_the_installed_pyarrow_reads_null_fixed_size_lists(tmp_path):
+    """The floor in pyproject (pyarrow >= 26): older readers refuse the null rows that
+    `transl_world` and the landmark columns use (docs/formats/tracks_parquet.md)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    col = pa.array([[1.0, 2.0, 3.0], None, [4.0, 5.0, 6.0]], type=pa.list_(pa.float32(), 3))
+    pq.write_table(pa.table({"transl_world": col}), tmp_path / "t.parquet")
+    back = pq.read_table(tmp_path / "t.parquet").column("transl_world").to_pylist()
+    assert back == [[1.0, 2.0, 3.0], None, [4.0, 5.0, 6.0]]

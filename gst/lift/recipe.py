@@ -148,6 +148,8 @@ def rendered_phase(
     vertex_ids,
     group_index,
     progress=None,
+    device: str = "cpu",
+    amp: bool = False,
 ) -> FitSummary:
     """Train in place on rendered crops with their landmarks (module doc): the Gaussian head at
     `gaussian_lr`, the image path (`image_path_parameters`) at `body_lr`, the pose path frozen
@@ -167,6 +169,8 @@ def rendered_phase(
         val_every=steps,
         ckpt_every=25,
         log_every=5,
+        device=device,
+        amp=amp,
     )
     try:
         return fit_gst(
@@ -264,7 +268,7 @@ def _pretrain_lift(
         steps=p.gaussian_steps, batch_size=p.batch_size, gaussian_lr=p.gaussian_lr,
         body_lr=p.lift_body_lr, num_targets=p.num_targets, render_size=p.render_size,
         landmark_dropout=p.landmark_dropout, body_spec=p.body_model, vertex_ids=ids,
-        group_index=groups, progress=progress,
+        group_index=groups, progress=progress, device=p.device, amp=p.amp,
     )  # fmt: skip
     reports.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "log.csv", reports / "log.csv")

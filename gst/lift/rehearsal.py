@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import torch
 
 from gst.body import BodyModel
+from gst.device import model_device, module_on
 from gst.lift.pretrain import LiftPretrainConfig, landmark_set_of, lift_terms
 from gst.lift.sampler import LiftBatch, LiftSampler
 from gst.model.network import GSTNetwork
@@ -41,6 +42,7 @@ class PriorRehearsal:
     crop_size: int = 256
     # the pretraining's sampled bodies and loss weights (the same prior is rehearsed)
     recipe: LiftPretrainConfig = field(default_factory=LiftPretrainConfig)
+    _bodies: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self):
         if self.net.landmark_encoder is None:
@@ -71,7 +73,11 @@ class PriorRehearsal:
         return self.sampler.sample(self.batch_size)
 
     def terms(self, model, lift: LiftBatch) -> tuple[torch.Tensor, dict]:
-        terms, error_mm = lift_terms(model, self.body, lift, self.recipe.weights)
+        # the sampler keeps its CPU body; the terms need one where the model trains (one copy)
+        device = model_device(model)
+        if device not in self._bodies:
+            self._bodies[device] = module_on(self.body, device)
+        terms, error_mm = lift_terms(model, self._bodies[device], lift, self.recipe.weights)
         return self.weight * terms.total, {
             "rehearsal": terms.total.detach(),
             "rehearsal_mpjpe_mm": error_mm,

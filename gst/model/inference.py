@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from gst.body import load_body_model
+from gst.device import model_device
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.landmarks import LandmarkInput, landmark_input
@@ -54,14 +55,19 @@ def predict_bodies(
     tokens, None gives the image-only path. `up` (B, 3): the world's up direction in the crops'
     cameras where calibrated (module doc). The one inference path of training, evaluation and
     tracking."""
-    x = to_float_images(images)
-    if device is not None:
-        x = x.to(device)
+    # inputs follow the network (a GPU-trained model validated on CPU crop stores, say)
+    device = torch.device(device) if device is not None else model_device(network)
+    if isinstance(images, torch.Tensor):
+        images = images.to(device)  # uint8 travels, not its float copy
+    x = to_float_images(images).to(device)
     size = crop_size or x.shape[-1]
     if landmarks is not None and not isinstance(landmarks, LandmarkInput):
         landmarks = landmark_input(network, landmarks, K, size, up=up)
     if landmarks is not None:
-        landmarks = landmarks.to(x.device)
+        landmarks = landmarks.to(device)
+    K = torch.as_tensor(K).to(device)
+    R = None if R is None else torch.as_tensor(R).to(device)
+    t = None if t is None else torch.as_tensor(t).to(device)
     extra = {} if landmarks is None else {"landmarks": landmarks}
     out = network(network_input(x, image_size), with_gaussians=with_gaussians, **extra)
     return assemble(
@@ -86,7 +92,8 @@ class GSTPredictor:
         batch_size: int = 32,
         body_model: str | None = None,
     ):
-        ckpt = load_checkpoint(checkpoint, map_location=device)
+        # built on the CPU (the checkpoint's arrays feed numpy), then moved
+        ckpt = load_checkpoint(checkpoint, map_location="cpu")
         self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
         self.body = load_body_model(body_model or ckpt.body_model, device=device)
         self.vertex_ids = ckpt.vertex_ids.to(device)

@@ -21,12 +21,15 @@ Conventions (identical on both backends):
 
 Backends: "torch" (pure torch, tile-binned, any device; `gst.render.cpu_backend`) and
 "gsplat" (CUDA, optional `cuda` extra; `gst.render.gsplat_backend`). "auto" picks gsplat for
-CUDA tensors when it is importable, else torch. Known gsplat differences are listed in
-`gst.render.gsplat_backend`.
+CUDA tensors when it is importable, else torch; the environment variable
+`GST_RENDER_BACKEND=torch|gsplat` makes "auto" mean that backend instead (training and evaluation
+call "auto": compare the two, or step around a gsplat build that misbehaves). Known gsplat
+differences are listed in `gst.render.gsplat_backend`.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import torch
@@ -68,6 +71,13 @@ def _resolve_backend(backend: str, device: torch.device) -> str:
     if backend == "cpu":
         return "torch"
     if backend == "auto":
+        forced = os.environ.get("GST_RENDER_BACKEND", "").strip().lower()
+        if forced:
+            if forced not in ("torch", "gsplat"):
+                raise ValueError(
+                    f"GST_RENDER_BACKEND={forced!r}: expected 'torch' or 'gsplat' (or unset)"
+                )
+            return forced
         return "gsplat" if device.type == "cuda" and _gsplat_available() else "torch"
     return backend
 

@@ -22,6 +22,7 @@ import torch
 
 from calibration import Camera
 from gst.data.camera_view import TrackingView
+from gst.device import module_on
 from gst.model.landmarks import camera_up
 from gst.prefetch import background
 from gst.track.align import AlignmentConfig, align_translation
@@ -164,7 +165,7 @@ def pose_fitter(
             "TrackOptions.pose_fit needs a predictor with a body model (`.body`), "
             f"{type(predictor).__name__} has none"
         )
-    return PoseFitter(body, config, num_betas)
+    return PoseFitter(module_on(body, "cpu"), config, num_betas)  # small solves: CPU numpy
 
 
 class _Group:

@@ -29,6 +29,7 @@ from gst.atomic import atomic_write
 from gst.cores import available_cores
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
+from gst.device import resolve_device
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
@@ -91,6 +92,9 @@ class TrackSettings(BaseModel):
     # ambiguous at a border. Not with smoothing or --with-gaussians.
     chunk_frames: int | None = Field(default=None, ge=1)
     chunk_overlap: int = Field(default=30, ge=1)
+    # where the network runs (gst.device): auto is the GPU when PyTorch sees one, else the CPU;
+    # decoding, the person model and the pose fit stay on the CPU
+    device: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -275,8 +279,14 @@ def track_scene(
     )
     parallel_videos = max(1, min(workers, len(request.videos)))
     threads = network_threads(s, kind, workers, parallel_videos)
+    device = str(resolve_device(s.device))
+    log.info("network on %s (track.device: %s)", device, s.device)
     predictor = functools.partial(
-        GSTPredictor, request.checkpoint, with_gaussians=with_gaussians, batch_size=s.batch_size
+        GSTPredictor,
+        request.checkpoint,
+        with_gaussians=with_gaussians,
+        batch_size=s.batch_size,
+        device=device,
     )
     rig = request.rig
     jobs = []

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
+from gst.device import model_device, move_to
 from gst.metrics.image import psnr, silhouette_iou, ssim
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.train.steps import GSTTask, predict
@@ -149,6 +150,7 @@ def novel_view_metrics(
     ps, ss, ious, images = [], [], [], []
     for s in range(0, len(pairs.inputs), batch_size):
         b = _batch(crops, pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size], size)
+        b = move_to(b, model_device(model))
         pred = predict(
             model, task, b.input_images, b.K_in, b.R_in, b.t_in, with_gaussians=True,
             landmarks=b.input_landmarks,

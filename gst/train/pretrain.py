@@ -105,6 +105,10 @@ class PretrainConfig(BaseModel):
     render_size: int = 64
     losses: LossWeights = LossWeights()
     threads: int | None = None  # torch CPU threads (default: torch's choice)
+    # where the rendered phases train (gst.device; auto: the GPU when PyTorch sees one). The
+    # render-free lift phase and the world renders stay on the CPU.
+    device: str = "auto"
+    amp: bool = False  # bf16 autocast in the rendered phases (GPUs; docs/gpu.md)
     # An existing GST checkpoint to use as is instead of pretraining (e.g. another scene's
     # models/pretrain.pt: one pretraining serves every scene). Its content is part of the
     # fingerprint.
@@ -279,6 +283,8 @@ def pretrain_images(
         val_every=max(1, p.steps // 10),
         ckpt_every=25,
         log_every=5,
+        device=p.device,
+        amp=p.amp,
     )
 
     def fit(task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions) -> FitSummary:
@@ -330,6 +336,8 @@ def pretrain_images(
             val_every=p.gaussian_steps,
             ckpt_every=25,
             log_every=5,
+            device=p.device,
+            amp=p.amp,
         )
         gaussians = fit(
             task,

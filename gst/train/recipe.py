@@ -21,6 +21,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from gst.body import BodyModel
 from gst.body.subsets import partition_vertices, vertex_subset
+from gst.device import move_to, resolve_device
 from gst.model.checkpoint import (
     config_to_dict,
 )
@@ -151,7 +152,7 @@ def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
 def _pretrain_step(model, batch, task: GSTTask, crops: CropSet):
     """Supervised 3D terms on the input view plus image terms on the rendered views."""
     pred, _, _, parts = multiview_image_terms(model, batch, task)
-    sup = supervised_batch(crops, batch.input_index)
+    sup = move_to(supervised_batch(crops, batch.input_index.cpu()), pred.joints_cam.device)
     parts.update(
         supervised_terms(
             pred.joints_cam,
@@ -215,6 +216,9 @@ def fit_gst(
     `val_crops`: crops with truth that training never sees (e.g. another world); pose validation
     (and so the best checkpoint) uses them instead of the training crops. `rehearsal`: the
     landmark prior rehearsed beside every multi-view step (gst.lift.rehearsal)."""
+    device = resolve_device(cfg.device)  # the Trainer keeps the model there
+    model.to(device)
+    task = task.to(device)
     names = crops.camera_names
     unknown = [c for c in opts.heldout_cameras if c not in names]
     if unknown:

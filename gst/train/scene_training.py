@@ -117,6 +117,9 @@ class TrainSettings(BaseModel):
     rehearsal_batch: int = Field(32, ge=1)
     losses: LossWeights = LossWeights()
     threads: int | None = None
+    # where the network trains (gst.device): auto is the GPU when PyTorch sees one, else the CPU
+    device: str = "auto"
+    amp: bool = False  # bf16 autocast (GPUs; huge preset with gsplat: 1.9x a step, docs/gpu.md)
 
 
 def _initial_network(p: TrainSettings, pretrained: Path, body):
@@ -358,6 +361,8 @@ def train_scene(
         val_every=max(1, p.steps // 5),
         ckpt_every=25,
         log_every=5,
+        device=p.device,
+        amp=p.amp,
     )
     run_dir = out.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -7,13 +7,14 @@ fine-tuning baselines. Both return (loss, metrics) for `gst.train.trainer.Traine
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import torch
 from torch import nn
 
 from gst.body import BodyModel
+from gst.device import module_on
 from gst.model.assemble import BodyPrediction
 from gst.model.inference import predict_bodies
 from gst.model.landmarks import camera_up, hide_up
@@ -40,6 +41,16 @@ class GSTTask:
     # the world's up axis of the crops' cameras (`calibration.Rig.up`): with a camera rotation
     # it gives a gravity-aware network (GSTConfig.landmark_gravity) the up direction in the crop
     world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def to(self, device: torch.device | str) -> GSTTask:
+        """This task on `device` (its body model and LPIPS network copied there when they
+        live elsewhere; the caller's stay where they are)."""
+        return replace(
+            self,
+            body=module_on(self.body, device),
+            vertex_ids=self.vertex_ids.to(device),
+            lpips=None if self.lpips is None else module_on(self.lpips, device),
+        )
 
 
 def predict(

@@ -9,6 +9,10 @@ continues with the same step, the same optimiser state and the same next batch.
 Under `torchrun` (WORLD_SIZE > 1) the model is wrapped in DistributedDataParallel (gloo on CPU,
 nccl on CUDA); each rank draws its own batches from a rank-offset generator, rank 0 alone
 writes checkpoints and logs.
+
+`TrainConfig.device` places the model (`gst.device`: auto, cpu, cuda); batches are drawn on the
+CPU, from the same generator on every device, and moved to the model's device before each step.
+Checkpoints hold CPU tensors, so a GPU-trained model loads anywhere.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import torch.distributed as dist
 from torch import nn
 
 from gst.atomic import atomic_torch_save, atomic_write, atomic_write_json
+from gst.device import move_to, resolve_device
 from gst.records import Record
 
 log = logging.getLogger("gst.train")
@@ -49,6 +54,7 @@ class TrainConfig:
     max_bad_steps: int = 20  # abort after this many skipped (non-finite) steps
     amp: bool = False  # bf16 autocast; helps on GPUs, usually not on CPU
     seed: int = 0
+    device: str = "cpu"  # where the model trains: auto, cpu, cuda, cuda:N (gst.device)
 
 
 class NonFiniteLossError(RuntimeError):
@@ -76,11 +82,13 @@ def warmup_cosine(step: int, steps: int, warmup_steps: int, min_lr_ratio: float 
     return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
 
 
-def distributed_env() -> tuple[int, int]:
-    """(rank, world size), initialising the process group when launched by torchrun."""
+def distributed_env(device: torch.device | None = None) -> tuple[int, int]:
+    """(rank, world size), initialising the process group when launched by torchrun: nccl when
+    the model trains on CUDA, gloo on the CPU (also on a machine that has a GPU)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world > 1 and not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        on_cuda = device.type == "cuda" if device is not None else torch.cuda.is_available()
+        dist.init_process_group("nccl" if on_cuda else "gloo")
     if dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
@@ -103,12 +111,14 @@ class Trainer:
         param_groups: list[dict] | None = None,
     ):
         self.cfg, self.out_dir = cfg, Path(out_dir)
-        self.rank, self.world = distributed_env()
-        self.model = model
+        self.device = resolve_device(cfg.device)
+        self.rank, self.world = distributed_env(self.device)
+        # moved before the optimiser is built (param_groups keep the same Parameter objects)
+        self.model = model.to(self.device)
         self.train_model = model
         if self.world > 1:
             self.train_model = nn.parallel.DistributedDataParallel(
-                model, find_unused_parameters=True
+                self.model, find_unused_parameters=True
             )
         self.step_fn, self.sample_fn, self.val_fn = step_fn, sample_fn, val_fn
         # param_groups: optimizer groups with their own "lr" (e.g. Gaussian head vs body); the
@@ -144,7 +154,7 @@ class Trainer:
             "step": self.step,
             "bad_steps": self.bad_steps,
             "best_value": self.best_value,
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": move_to(self.optimizer.state_dict(), "cpu"),
             "scheduler": self.scheduler.state_dict(),
             "generator": self.generator.get_state(),
             "torch_rng": torch.get_rng_state(),
@@ -155,7 +165,7 @@ class Trainer:
         if self.rank == 0:
             atomic_torch_save(
                 {
-                    "model": self.model.state_dict(),
+                    "model": move_to(self.model.state_dict(), "cpu"),
                     "trainer": self.state(),
                     **self.checkpoint_extra(),
                 },
@@ -262,10 +272,9 @@ class Trainer:
         return metrics
 
     def train_step(self) -> dict:
-        batch = self.sample_fn(self.generator, self.cfg.batch_size)
+        batch = move_to(self.sample_fn(self.generator, self.cfg.batch_size), self.device)
         self.optimizer.zero_grad(set_to_none=True)
-        device_type = "cuda" if next(self.model.parameters()).is_cuda else "cpu"
-        with torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.amp):
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cfg.amp):
             loss, metrics = self.step_fn(self.train_model, batch)
         finite = bool(torch.isfinite(loss))
         if finite:
