@@ -15,17 +15,10 @@ import numpy as np
 import pytest
 import torch
 
-from gst.body import BodyModel, load_body_model
-from gst.body.random_model import random_body_data
 from gst.device import model_device, module_on, move_to, resolve_device
-from gst.lift.rehearsal import PriorRehearsal
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
-from gst.model.presets import get_preset
-from gst.train.losses import LossWeights
-from gst.train.recipe import FitOptions, build_network, fit_gst, make_task
-from gst.train.trainer import TrainConfig
-from tests.test_train_recipe import crop_set
+from tests.test_train_recipe import crop_set, small_fit
 
 HAS_CUDA = torch.cuda.is_available()
 needs_cuda = pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
@@ -98,36 +91,8 @@ def test_module_on_copies_only_when_it_must():
     assert model_device(torch.nn.Module()) == torch.device("cpu")
 
 
-def _fit(tmp_path, device, mode="multiview", heldout=("c2",), rehearse=False, steps=3):
-    torch.manual_seed(0)
-    if rehearse:
-        body = load_body_model("anny")
-        cfg = get_preset("tiny", landmark_tokens=True)
-    else:
-        body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
-        cfg = get_preset("tiny", vertex_preset="full")
-    net, ids, groups = build_network(cfg, body)
-    crops = crop_set()
-    task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
-    summary = fit_gst(
-        net,
-        task,
-        crops,
-        TrainConfig(
-            steps=steps, batch_size=2, warmup_steps=1, val_every=steps, log_every=1, device=device
-        ),
-        tmp_path,
-        FitOptions(mode=mode, num_targets=2, render_size=16, heldout_cameras=heldout),
-        body_spec="anny" if rehearse else "random",
-        vertex_ids=ids,
-        group_index=groups,
-        rehearsal=PriorRehearsal(body, net, batch_size=2) if rehearse else None,
-    )
-    return net, body, summary
-
-
 def test_cpu_training_writes_cpu_checkpoints_and_keeps_the_callers_body(tmp_path):
-    net, body, summary = _fit(tmp_path, "cpu", steps=2)
+    net, body, summary = small_fit(tmp_path, device="cpu", steps=2)
     assert summary.steps == 2 and model_device(net).type == "cpu"
     ckpt = load_checkpoint(tmp_path / "last.pt")
     assert all(v.device.type == "cpu" for v in ckpt.model.values())
@@ -139,8 +104,8 @@ def test_cpu_training_writes_cpu_checkpoints_and_keeps_the_callers_body(tmp_path
 def test_cuda_training_matches_the_cpu_before_the_first_step(tmp_path, mode):
     """Same seed, same batches (drawn on the CPU): validation before training agrees between
     the devices; training runs, stays finite, and writes CPU checkpoints."""
-    _, _, cpu = _fit(tmp_path / "cpu", "cpu", mode=mode)
-    net, body, gpu = _fit(tmp_path / "cuda", "cuda", mode=mode)
+    _, _, cpu = small_fit(tmp_path / "cpu", mode, device="cpu", steps=3)
+    net, body, gpu = small_fit(tmp_path / "cuda", mode, device="cuda", steps=3)
     assert model_device(net).type == "cuda"
     assert model_device(body).type == "cpu"  # the task got a copy; the caller's body stays
     for key, value in cpu.before.items():
@@ -156,9 +121,9 @@ def test_cuda_training_matches_the_cpu_before_the_first_step(tmp_path, mode):
 def test_cuda_training_with_rehearsal_and_resume(tmp_path):
     """The landmark prior rehearsed on the GPU while its sampler stays on the CPU, and a run
     resumed on the GPU from a GPU run's checkpoint."""
-    net, body, first = _fit(tmp_path, "cuda", rehearse=True, steps=2)
+    net, body, first = small_fit(tmp_path, device="cuda", rehearse=True, steps=2)
     assert first.steps == 2 and first.bad_steps == 0
-    _, _, resumed = _fit(tmp_path, "cuda", rehearse=True, steps=4)
+    _, _, resumed = small_fit(tmp_path, device="cuda", rehearse=True, steps=4)
     assert resumed.steps == 4 and all(math.isfinite(v) for v in resumed.after.values())
 
 
@@ -167,7 +132,7 @@ def test_cuda_training_with_rehearsal_and_resume(tmp_path):
 def test_a_gpu_predictor_gives_the_cpu_predictors_bodies(tmp_path):
     """What `track` runs with device: cuda (GSTPredictor built on the CPU, then moved) against
     the same checkpoint on the CPU, on the same crops and landmarks."""
-    _fit(tmp_path, "cuda", rehearse=True, steps=1)
+    small_fit(tmp_path, device="cuda", rehearse=True, steps=1)
     crops = crop_set()
     lm = torch.rand(len(crops), 33, 3) * torch.tensor([64.0, 64.0, 1.0])
     out = {

@@ -53,12 +53,21 @@ def crop_set(n_frames=4, n_cams=3, size=64) -> CropSet:
     )
 
 
-@pytest.mark.parametrize(
-    "mode, heldout", [("multiview", ("c2",)), ("pretrain", ()), ("3d", ()), ("2d", ())]
-)
-def test_fit_gst_modes(tmp_path, mode, heldout):
-    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
-    cfg = get_preset("tiny", vertex_preset="full")
+def small_fit(
+    tmp_path, mode="multiview", heldout=("c2",), *, steps=2, device="cpu", rehearse=False
+):
+    """fit_gst on `crop_set()` with the tiny preset: (network, body, summary). `rehearse`: the
+    open body, landmark tokens and the landmark prior rehearsed beside each step."""
+    torch.manual_seed(0)
+    if rehearse:
+        from gst.body import load_body_model
+        from gst.lift.rehearsal import PriorRehearsal
+
+        body = load_body_model("anny")
+        cfg = get_preset("tiny", landmark_tokens=True)
+    else:
+        body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+        cfg = get_preset("tiny", vertex_preset="full")
     net, ids, groups = build_network(cfg, body)
     crops = crop_set()
     task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
@@ -66,13 +75,24 @@ def test_fit_gst_modes(tmp_path, mode, heldout):
         net,
         task,
         crops,
-        TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_every=2, log_every=1),
+        TrainConfig(
+            steps=steps, batch_size=2, warmup_steps=1, val_every=steps, log_every=1, device=device
+        ),
         tmp_path,
         FitOptions(mode=mode, num_targets=2, render_size=16, heldout_cameras=heldout),
-        body_spec="random",
+        body_spec="anny" if rehearse else "random",
         vertex_ids=ids,
         group_index=groups,
+        rehearsal=PriorRehearsal(body, net, batch_size=2) if rehearse else None,
     )
+    return net, body, summary
+
+
+@pytest.mark.parametrize(
+    "mode, heldout", [("multiview", ("c2",)), ("pretrain", ()), ("3d", ()), ("2d", ())]
+)
+def test_fit_gst_modes(tmp_path, mode, heldout):
+    _, _, summary = small_fit(tmp_path, mode, heldout)
     assert summary.steps == 2 and summary.bad_steps == 0
     assert all(math.isfinite(v) for v in summary.after.values())
     if heldout:
