@@ -399,7 +399,12 @@ def real_footage(args) -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_track_real_"))
     try:
         checkpoint = args.checkpoint or tiny_checkpoint(tmp / "tiny.pt")
-        gst = GSTPredictor(checkpoint)
+        # image_path "always": the network's image path for every crop (before "auto" skipped
+        # it for pose-only crops with landmarks when the network's image gate is negligible)
+        predictors = {
+            mode: GSTPredictor(checkpoint, image_path=mode) for mode in ("auto", "always")
+        }
+        gst = predictors["auto"]
         fps = 60.0
         n = args.real_frames
         tracker = TrackerConfig(min_hits=3, max_misses=30)  # the track stage's defaults
@@ -413,27 +418,37 @@ def real_footage(args) -> None:
         default = person_model_config(TrackSettings())  # what `run track` uses for one video
         torch_default = torch.get_num_threads()
         stage_torch = network_threads(TrackSettings(), "blazepose", 1, 1) or torch_default
-        variants = [  # (name, detector factory, options, torch threads for the network)
-            ("old: detector + masks every frame", SegmentEveryFrame, opts(), torch_default),
+        variants = [  # (name, detector factory, options, torch threads, network image path)
+            ("old: detector + masks every frame", SegmentEveryFrame, opts(), torch_default, "auto"),
             (
                 f"new: stage default ({default.threads} LiteRT, {stage_torch} torch threads)",
                 new(),
                 opts(),
                 stage_torch,
+                "auto",
             ),
-            (f"new, {torch_default} torch threads", new(), opts(), torch_default),
-            ("new, 1 LiteRT thread", new(threads=1), opts(), stage_torch),
-            ("new, one landmark call per person", new(batch=False), opts(), stage_torch),
-            ("new, no prefetch (one Python thread)", new(), opts(prefetch=0), torch_default),
-            ("old, stride 2", SegmentEveryFrame, opts(stride=2), torch_default),
-            ("new, stride 2 (stage default)", new(), opts(stride=2), stage_torch),
+            ("new, image path for every crop", new(), opts(), stage_torch, "always"),
+            (f"new, {torch_default} torch threads", new(), opts(), torch_default, "auto"),
+            ("new, 1 LiteRT thread", new(threads=1), opts(), stage_torch, "auto"),
+            ("new, one landmark call per person", new(batch=False), opts(), stage_torch, "auto"),
+            (
+                "new, no prefetch (one Python thread)",
+                new(),
+                opts(prefetch=0),
+                torch_default,
+                "auto",
+            ),
+            ("old, stride 2", SegmentEveryFrame, opts(stride=2), torch_default, "auto"),
+            ("new, stride 2 (stage default)", new(), opts(stride=2), stage_torch, "auto"),
+            ("new, stride 2, image path every crop", new(), opts(stride=2), stage_torch, "always"),
         ]
         if args.only:
             keep = [v for v in variants if args.only in v[0]]
             variants = [variants[0], *[v for v in keep if v is not variants[0]]]
         print(
             f"lab {args.camera}: {camera.width}x{camera.height} at {fps:.0f} fps, {n} frames, "
-            f"{gst.name} pose-only, calibrated camera, median of {args.repeats} runs; "
+            f"{gst.name} pose-only (pose from landmarks where the image gate allows: "
+            f"{gst.pose_from_landmarks}), calibrated camera, median of {args.repeats} runs; "
             "reference for ids and drift: the first row"
         )
         print(
@@ -442,7 +457,7 @@ def real_footage(args) -> None:
         )
         components(video, camera, n, gst, fps)
         reference = None
-        for k, (name, make, options, torch_threads) in enumerate(variants):
+        for k, (name, make, options, torch_threads, image_path) in enumerate(variants):
             walls, cpus, res, det = [], [], None, None
             torch.set_num_threads(torch_threads)
             for _rep in range(args.repeats):
@@ -454,7 +469,7 @@ def real_footage(args) -> None:
                     video,
                     out,
                     det,
-                    gst,
+                    predictors[image_path],
                     model={"name": gst.name, "version": "bench"},
                     camera=camera,
                     options=options,
@@ -495,14 +510,18 @@ def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
     if missing:
         raise SystemExit(f"--demo {workspace}: missing {missing} (run `run all` there first)")
     rig = read_rig(scene / "calibration" / "rig.json")
-    gst = GSTPredictor(scene / "models" / "gst.pt")
+    predictors = {
+        mode: GSTPredictor(scene / "models" / "gst.pt", image_path=mode)
+        for mode in ("auto", "always")
+    }
+    gst = predictors["auto"]
     videos = sorted(p for p in (scene / "synth" / "videos").glob("*.mp4") if p.stem in rig.names)
     print(
         f"\ndemo: {len(videos)} calibrated cameras, {gst.name} ({scene / 'models' / 'gst.pt'}); "
         "MPJPE / PA-MPJPE mm over matched rows (pelvis-aligned), all cameras"
     )
     print(f"{'variant':40s} {'s':>6s} {'MPJPE':>6s} {'PA':>6s} {'recall':>6s} {'id sw.':>6s}")
-    for k, (name, make, options, torch_threads) in enumerate(variants):
+    for k, (name, make, options, torch_threads, image_path) in enumerate(variants):
         torch.set_num_threads(torch_threads)
         evals, t0 = [], time.perf_counter()
         for v in videos:
@@ -510,7 +529,7 @@ def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
                 v,
                 tmp / f"demo{k}",
                 make(),
-                gst,
+                predictors[image_path],
                 model={"name": gst.name, "version": "bench"},
                 camera=rig[v.stem],
                 options=replace(options, end_s=None),

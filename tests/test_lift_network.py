@@ -129,3 +129,51 @@ def test_a_closed_image_gate_keeps_the_landmark_pose_and_leaves_the_rest_alone()
         mixed = net(images, landmarks=lm.masked(drop))
         ref = plain(images)
         assert torch.equal(mixed.body_pose_6d[drop], ref.body_pose_6d[drop])
+
+
+def _pose(out):
+    return [out.body_pose_6d, out.rotmats, out.betas, out.cam]
+
+
+def test_pose_from_landmarks_skips_the_image_path_only_where_there_are_landmarks():
+    """`image_for_pose=False`: samples with a usable landmark get the landmark-only mode's
+    pose exactly and never reach the ViT; samples without keep the image path exactly."""
+    net, _ = _nets()
+    images, lm = _inputs(B=5)
+    lm = lm.masked(torch.tensor([False, True, False, False, True]))  # 1 and 4: no landmarks
+    calls = []
+    hook = net.backbone.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    with torch.no_grad():
+        fast = net(images, with_gaussians=False, landmarks=lm, image_for_pose=False)
+        full = net(images, with_gaussians=False, landmarks=lm)
+        alone = net(None, with_gaussians=False, landmarks=lm.rows(torch.tensor([0, 2, 3])))
+        all_lm = net(
+            images[[0, 2, 3]],
+            with_gaussians=False,
+            landmarks=lm.rows(torch.tensor([0, 2, 3])),
+            image_for_pose=False,
+        )  # noqa: E501
+    hook.remove()
+    assert calls == [2, 5]  # the fast call ran the ViT on the two crops without landmarks only
+    for f, a, o in zip(_pose(fast), _pose(full), _pose(alone), strict=True):
+        torch.testing.assert_close(f[[1, 4]], a[[1, 4]], rtol=0, atol=1e-6)
+        torch.testing.assert_close(f[[0, 2, 3]], o, rtol=0, atol=1e-6)
+    for f, o in zip(_pose(all_lm), _pose(alone), strict=True):
+        torch.testing.assert_close(f, o, rtol=0, atol=0)
+    with torch.no_grad():  # with Gaussians the image is needed: the flag changes nothing
+        g = net(images, landmarks=lm, image_for_pose=False)
+        h = net(images, landmarks=lm)
+    for a, b in zip(_fields(g), _fields(h), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("gate, skips", [(0.0, True), (-0.04, True), (0.06, False), (1.0, False)])
+def test_the_image_gate_decides_whether_pose_needs_the_image(gate, skips):
+    from gst.model.inference import image_shapes_pose
+
+    net, plain = _nets()
+    with torch.no_grad():
+        net.smpl_head.transformer.smpl_image_gate.fill_(gate)
+        net.smpl_head.transformer.smpl_image_gate[0] = gate / 2  # the largest magnitude counts
+    assert image_shapes_pose(net) is not skips
+    assert image_shapes_pose(plain) is True  # no landmark tokens: the image is the only input

@@ -84,6 +84,9 @@ def test_learned_person_model_by_default_and_said_so(tracked):
     # a model that has not seen this camera does not pretend
     assert meta["gst.model"]["seen_this_camera"] is False
     assert meta["gst.model"]["trained_on"]["scene"] == "lab"
+    # an image-only network (no landmark tokens) takes its pose from the image, and says so
+    assert meta["gst.model"]["pose_input"] == "image"
+    assert any("pose from image" in m for m in log)
     assert meta["gst.calibration"]["calibrated"] is False
     assert meta["gst.axes"]["joints3d"] == "camera" and meta["gst.axes"]["world"] is None
     assert any("no world coordinates" in m for m in log)

@@ -46,6 +46,7 @@ def predict_bodies(
     device: str | torch.device | None = None,
     landmarks: LandmarkInput | torch.Tensor | np.ndarray | None = None,
     up: torch.Tensor | np.ndarray | None = None,
+    image_for_pose: bool = True,
 ) -> BodyPrediction:
     """The network on a batch of crops (B, S, S, 3) RGB uint8 or float images, assembled into
     posed bodies (and Gaussians) in the crops' cameras (K (B, 3, 3); optional input-camera R, t
@@ -53,8 +54,9 @@ def predict_bodies(
     (default: the images' own). `landmarks`: the crops' BlazePose landmarks (B, 33, 3) (module
     doc) or a ready `gst.model.landmarks.LandmarkInput`; ignored by a network without landmark
     tokens, None gives the image-only path. `up` (B, 3): the world's up direction in the crops'
-    cameras where calibrated (module doc). The one inference path of training, evaluation and
-    tracking."""
+    cameras where calibrated (module doc). `image_for_pose` False: pose-only crops with landmarks
+    skip the image path (`GSTNetwork.forward`). The one inference path of training, evaluation
+    and tracking."""
     # inputs follow the network (a GPU-trained model validated on CPU crop stores, say)
     device = torch.device(device) if device is not None else model_device(network)
     if isinstance(images, torch.Tensor):
@@ -69,6 +71,8 @@ def predict_bodies(
     R = None if R is None else torch.as_tensor(R).to(device)
     t = None if t is None else torch.as_tensor(t).to(device)
     extra = {} if landmarks is None else {"landmarks": landmarks}
+    if not image_for_pose:
+        extra["image_for_pose"] = False
     out = network(network_input(x, image_size), with_gaussians=with_gaussians, **extra)
     return assemble(
         out,
@@ -82,7 +86,31 @@ def predict_bodies(
     )
 
 
+# A landmark network whose SMPL token lets the image in by at most this factor in every decoder
+# layer (`TokenDecoder.smpl_image_gate`, learnt in `train`) takes its pose from the landmarks:
+# the image's share is negligible. Measured with the README demo's model (gate 0.021), skipping
+# the image path for pose changed single-image MPJPE by at most 0.3 mm on the demo's held-out
+# crops, the lab's 800 crops and two crowd scenes, at a quarter of the time per crop
+# (docs/track_evaluation.md, "Pose from the landmarks").
+NEGLIGIBLE_IMAGE_GATE = 0.05
+
+
+def image_shapes_pose(network: torch.nn.Module) -> bool:
+    """Whether the image path changes a landmark network's pose more than negligibly (always
+    True for networks without landmark tokens or without an image gate)."""
+    gate = getattr(getattr(network, "smpl_head", None), "transformer", None)
+    gate = getattr(gate, "smpl_image_gate", None)
+    if getattr(network, "landmark_encoder", None) is None or gate is None:
+        return True
+    return float(gate.detach().abs().max()) > NEGLIGIBLE_IMAGE_GATE
+
+
 class GSTPredictor:
+    """A checkpoint ready for inference. `image_path`: "auto" lets pose-only crops that have
+    landmarks skip the image path when the network's image gate is negligible
+    (`image_shapes_pose`; crops without landmarks and Gaussian outputs always use the image);
+    "always" runs the image path for every crop."""
+
     def __init__(
         self,
         checkpoint: str | Path,
@@ -91,7 +119,10 @@ class GSTPredictor:
         device: str = "cpu",
         batch_size: int = 32,
         body_model: str | None = None,
+        image_path: str = "auto",
     ):
+        if image_path not in ("auto", "always"):
+            raise ValueError(f"image_path must be 'auto' or 'always', got {image_path!r}")
         # built on the CPU (the checkpoint's arrays feed numpy), then moved
         ckpt = load_checkpoint(checkpoint, map_location="cpu")
         self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
@@ -101,6 +132,7 @@ class GSTPredictor:
         self.device, self.batch_size = device, batch_size
         self.name = f"gst-{self.network.cfg.name}"
         self.checkpoint = str(checkpoint)
+        self.pose_from_landmarks = image_path == "auto" and not image_shapes_pose(self.network)
 
     @property
     def accepts_landmarks(self) -> bool:
@@ -134,7 +166,7 @@ class GSTPredictor:
         return predict_bodies(
             self.network, self.body, self.vertex_ids, crops, K, self.network.cfg.image_size,
             R=R, t=t, with_gaussians=want, with_vertices=False, device=self.device,
-            landmarks=landmarks, up=up,
+            landmarks=landmarks, up=up, image_for_pose=not self.pose_from_landmarks,
         )  # fmt: skip
 
     def __call__(

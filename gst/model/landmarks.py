@@ -108,6 +108,16 @@ class LandmarkInput:
             self.points.to(device), self.camera.to(device), self.mask.to(device), up
         )
 
+    @property
+    def usable(self) -> torch.Tensor:
+        """(B, L) bool: landmarks the network may use and that were detected (confidence > 0)."""
+        return self.mask & (self.points[..., 2] > 0)
+
+    def rows(self, index: torch.Tensor) -> LandmarkInput:
+        """The samples `index` (a (B,) bool mask or integer indices) of this input."""
+        up = None if self.up is None else self.up[index]
+        return LandmarkInput(self.points[index], self.camera[index], self.mask[index], up)
+
     def masked(self, samples: torch.Tensor | None = None) -> LandmarkInput:
         """A copy with every landmark of `samples` (B,) bool (default: all) masked out."""
         drop = (
@@ -217,7 +227,7 @@ class LandmarkEncoder(nn.Module):
             raise ValueError(f"the network takes {self.num_landmarks} landmarks, got {L}")
         # Landmarks the network may not use are zeroed before anything sees them, so the lift
         # tokens cannot leak them either; confidence 0 means "not detected".
-        valid = inp.mask & (inp.points[..., 2] > 0)
+        valid = inp.usable
         pts = torch.where(valid[..., None], inp.points, torch.zeros_like(inp.points))
         features = [pts.reshape(B, -1), inp.camera]
         if self.gravity:

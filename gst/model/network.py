@@ -196,7 +196,18 @@ class GSTNetwork(nn.Module):
         images: torch.Tensor | None,
         with_gaussians: bool = True,
         landmarks: LandmarkInput | None = None,
+        image_for_pose: bool = True,
     ) -> GSTOutput:
+        """`image_for_pose` False (pose only, with landmarks): samples that have a usable landmark
+        skip the image path (the ViT and the SMPL token's image cross-attention) and take the
+        landmark-only mode; the others take the image path as usual (gst.model.inference)."""
+        if (
+            not image_for_pose
+            and not with_gaussians
+            and images is not None
+            and landmarks is not None
+        ):
+            return self._pose_from_landmarks_where_possible(images, landmarks)
         if landmarks is not None and self.landmark_encoder is None:
             raise ValueError("landmarks given to a network built without landmark_tokens")
         if images is None and landmarks is None:
@@ -216,3 +227,26 @@ class GSTNetwork(nn.Module):
             cam=cam,
             gaussians=gaussians,
         )
+
+    def _pose_from_landmarks_where_possible(
+        self, images: torch.Tensor, landmarks: LandmarkInput
+    ) -> GSTOutput:
+        if self.landmark_encoder is None:
+            raise ValueError("landmarks given to a network built without landmark_tokens")
+        has = landmarks.usable.any(1)
+        if bool(has.all()):
+            return self(None, with_gaussians=False, landmarks=landmarks)
+        if not bool(has.any()):
+            return self(images, with_gaussians=False, landmarks=landmarks)
+        parts = [
+            (has, self(None, with_gaussians=False, landmarks=landmarks.rows(has))),
+            (~has, self(images[~has], with_gaussians=False, landmarks=landmarks.rows(~has))),
+        ]
+        merged = {}
+        for name in ("body_pose_6d", "rotmats", "betas", "cam"):
+            first = getattr(parts[0][1], name)
+            out = first.new_empty((len(has), *first.shape[1:]))
+            for rows, part in parts:
+                out[rows] = getattr(part, name)
+            merged[name] = out
+        return GSTOutput(**merged)

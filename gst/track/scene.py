@@ -92,6 +92,10 @@ class TrackSettings(BaseModel):
     # ambiguous at a border. Not with smoothing or --with-gaussians.
     chunk_frames: int | None = Field(default=None, ge=1)
     chunk_overlap: int = Field(default=30, ge=1)
+    # 'auto': pose-only crops with landmarks skip the network's image path when its learnt image
+    # gate shows the image's share negligible (gst.model.inference.image_shapes_pose; same
+    # accuracy at a quarter of the network's time, docs/track_evaluation.md); 'always': never skip
+    image_path: Literal["auto", "always"] = "auto"
     # where the network runs (gst.device): auto is the GPU when PyTorch sees one, else the CPU;
     # decoding, the person model and the pose fit stay on the CPU
     device: str = "auto"
@@ -205,13 +209,18 @@ class ModelProvenance:
     body_model: str
     training_mode: str | None
     trained_on: dict
+    # where the pose comes from: "landmarks" (crops with landmarks skip the image path, whose
+    # share the network's image gate shows negligible; others use it) or "image and landmarks"
+    pose_input: str = "image and landmarks"
 
     def to_dict(self) -> dict:
         """The metadata's layout (the fields in order)."""
         return asdict(self)
 
 
-def model_provenance(checkpoint: Path, name: str, scene: str | None) -> ModelProvenance:
+def model_provenance(
+    checkpoint: Path, name: str, scene: str | None, pose_input: str = "image and landmarks"
+) -> ModelProvenance:
     """What the file and the log say about the model: name, checkpoint, and what it was trained
     on as far as the checkpoint records it (`extra.trained_on`: scene, cameras, frames)."""
     ckpt = load_checkpoint(checkpoint)
@@ -226,6 +235,7 @@ def model_provenance(checkpoint: Path, name: str, scene: str | None) -> ModelPro
         body_model=str(ckpt.body_model),
         training_mode=extra.get("mode"),
         trained_on=trained_on,
+        pose_input=pose_input,
     )
 
 
@@ -260,14 +270,29 @@ def track_scene(
         torch.set_num_threads(s.threads)
     with_gaussians = request.splats_dir is not None
     # Load the model once here: a bad checkpoint fails now, naming the file, not in a worker.
-    name = GSTPredictor(
-        request.checkpoint, with_gaussians=with_gaussians, batch_size=s.batch_size
-    ).name
+    loaded = GSTPredictor(
+        request.checkpoint,
+        with_gaussians=with_gaussians,
+        batch_size=s.batch_size,
+        image_path=s.image_path,
+    )
+    name = loaded.name
+    pose_input = (
+        "landmarks"
+        if loaded.pose_from_landmarks and not with_gaussians
+        else ("image and landmarks" if loaded.accepts_landmarks else "image")
+    )
     kind, why = choose_detector(s)  # a missing 'blazepose' fails here, not in a worker
     log.info("person detector: %s (%s)", kind, why)
     detector_info = _detector_info(kind, why, s)
-    model_info = model_provenance(request.checkpoint, name, request.scene)
-    log.info("model: %s, trained on %s", name, _describe_training(model_info.trained_on))
+    model_info = model_provenance(request.checkpoint, name, request.scene, pose_input)
+    log.info(
+        "model: %s, trained on %s; pose from %s (track.image_path: %s)",
+        name,
+        _describe_training(model_info.trained_on),
+        pose_input,
+        s.image_path,
+    )
     options = TrackOptions(
         stride=s.stride,
         tracker=TrackerConfig(min_hits=s.min_hits, max_misses=s.max_misses),
@@ -287,6 +312,7 @@ def track_scene(
         with_gaussians=with_gaussians,
         batch_size=s.batch_size,
         device=device,
+        image_path=s.image_path,
     )
     rig = request.rig
     jobs = []
