@@ -139,6 +139,18 @@ class GSTPredictor:
         """Whether the checkpoint's network has landmark tokens (then pass `landmarks=`)."""
         return self.network.landmark_encoder is not None
 
+    def needs_pixels(self, landmarks: np.ndarray | torch.Tensor) -> np.ndarray:
+        """(B,) bool: whether pose-only prediction reads each crop's pixels, given the crops'
+        (B, 33, 3) landmarks: False for crops whose pose comes from their landmarks alone
+        (`image_path` auto, a negligible image gate, at least one landmark the network uses).
+        A caller may hand those crops in blank (tracking skips cutting them)."""
+        n = len(landmarks)
+        if not self.pose_from_landmarks or self.with_gaussians or n == 0:
+            return np.ones(n, bool)
+        K = torch.eye(3).expand(n, 3, 3)  # the camera does not decide what is usable
+        li = LandmarkInput.from_detections(landmarks, K, 256, self.network.cfg.num_landmarks)
+        return ~li.usable.any(1).numpy()
+
     @property
     def accepts_up(self) -> bool:
         """Whether the checkpoint's network reads the camera's up direction (then pass `up=`

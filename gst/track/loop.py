@@ -131,6 +131,13 @@ def _axes_json(calibrated: bool, world_up) -> dict:
     return axes
 
 
+def needs_pixels(predictor: Predictor, landmarks: np.ndarray) -> np.ndarray:
+    """(N,) bool: which detections' crops the predictor reads (every one, unless it declares
+    `needs_pixels(landmarks)`, as `GSTPredictor` does for pose from the landmarks)."""
+    ask = getattr(predictor, "needs_pixels", None)
+    return np.ones(len(landmarks), bool) if ask is None else np.asarray(ask(landmarks), bool)
+
+
 def accepts_landmarks(predictor: Predictor) -> bool:
     """Whether the predictor takes the crops' 2D landmarks (`landmarks=` keyword, (B, 33, 3)
     u, v in crop pixels + confidence, NaN rows where the detector gave none)."""
@@ -380,11 +387,15 @@ def tracked_groups(
         return frame, [d for d in dets if d.score >= options.min_score]
 
     def prepare(frame: Frame, dets: list[Detection]) -> tuple[PendingFrame, list]:
-        cut = [prepare_detection(run.view, frame.image, d, options.crop_size) for d in dets]
         lms = np.full((len(dets), N_LANDMARKS, 3), np.nan, np.float32)
         for i, d in enumerate(dets):
             if d.landmarks is not None:
                 lms[i] = d.landmarks
+        pixels = needs_pixels(predictor, lms)  # crops whose pose comes from landmarks: not cut
+        cut = [
+            prepare_detection(run.view, frame.image, d, options.crop_size, bool(p))
+            for d, p in zip(dets, pixels, strict=True)
+        ]
         pending = PendingFrame(
             frame.index,
             frame.time_s,

@@ -16,6 +16,10 @@ Optional inputs, passed as keywords only to predictors that declare them: `landm
 3) the crops' BlazePose landmarks, when `predictor.accepts_landmarks` is true; `up=` (B, 3) the
 world's up direction in the camera frame, for calibrated cameras only, when
 `predictor.accepts_up` is true (`gst.model.inference.GSTPredictor` declares both).
+
+Optional method: `predictor.needs_pixels(landmarks (N, 33, 3)) -> (N,) bool`; the loop hands
+crops for which it says False in blank, without cutting them (a predictor that takes those
+crops' pose from their landmarks alone).
 """
 
 from __future__ import annotations
