@@ -305,6 +305,13 @@ class Trainer:
     def fit(self) -> TrainRunSummary:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.model.train()
+        if self.rank == 0:
+            log.info(
+                "training on %s (device: %s%s)",
+                torch.cuda.get_device_name(self.device) if self.device.type == "cuda" else "cpu",
+                self.cfg.device,
+                ", bf16 autocast" if self.cfg.amp else "",
+            )
         t0 = self._t0 = time.perf_counter()
         steps = range(self.step, self.cfg.steps)
         iterator = (
