@@ -143,3 +143,18 @@ def test_a_gpu_predictor_gives_the_cpu_predictors_bodies(tmp_path):
     }
     for key in ("joints_cam", "transl_cam", "rotmats"):
         np.testing.assert_allclose(out["cuda"][key], out["cpu"][key], atol=2e-3, err_msg=key)
+
+
+@pytest.mark.skipif(HAS_CUDA, reason="checks a machine without CUDA")
+def test_stages_refuse_a_missing_gpu_before_any_work(tmp_path):
+    """`device: cuda` on a machine without CUDA fails at once, naming the setting's values,
+    before crops load or worlds render (the inputs here do not even exist)."""
+    from gst.lift.recipe import pretrain
+    from gst.train.pretrain import PretrainConfig
+    from gst.train.scene_training import TrainSettings, train_scene
+
+    with pytest.raises(ValueError, match="no CUDA device.*auto or cpu"):
+        train_scene(TrainSettings(device="cuda"), tmp_path / "no.h5", tmp_path / "no.pt", None)
+    with pytest.raises(ValueError, match="no CUDA device"):
+        pretrain(PretrainConfig(device="cuda"), tmp_path, tmp_path / "p.pt", tmp_path / "r")
+    assert not any(tmp_path.iterdir())  # nothing was written

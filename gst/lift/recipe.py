@@ -30,6 +30,7 @@ from torch import nn
 
 from gst.body import BodyModel, load_body_model
 from gst.detect.crops import detect_crop_landmarks
+from gst.device import resolve_device
 from gst.lift.errors import LANDMARK_SETS
 from gst.lift.pretrain import LiftPretrainConfig, LiftPretrainResult, pretrain_landmark_path
 from gst.metrics.lpips import load_lpips
@@ -312,6 +313,7 @@ def pretrain(
     summary. `map_fn` fans the world renders out (an executor's map)."""
     if p.reuse is not None:
         return reuse_checkpoint(p, checkpoint, reports)
+    resolve_device(p.device)  # `device: cuda` without CUDA fails now, not after the renders
     if p.mode != "lift":
         return pretrain_images(p, work, checkpoint, reports, map_fn=map_fn, progress=progress)
     if p.threads:

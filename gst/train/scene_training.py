@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
+from gst.device import resolve_device
 from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
@@ -337,6 +338,7 @@ def train_scene(
     `world_up`: the rig's up axis (a gravity-aware network reads it in each crop's camera)."""
     if p.threads:
         torch.set_num_threads(p.threads)
+    resolve_device(p.device)  # `device: cuda` without CUDA fails now, not after the crops load
     multiview = p.supervision == "multiview"
     if multiview and (p.keypoints or p.distill) or p.landmarks:
         model_paths()  # missing person models or LiteRT fail now, with the fix, not after loading
