@@ -19,7 +19,10 @@ as the landmark-model loop (gst.track.person_detector) and its variants. Beside 
 time per video frame (all threads; less sensitive to other load than wall time), detector runs,
 and against the previous model's tracks (the detector on every frame): id switches (a reference
 person's rows changing id) and drift (median and 95th percentile distance of the 12 limb
-landmarks, full-resolution pixels, people matched per frame by landmark distance).
+landmarks, full-resolution pixels, people matched per frame by landmark distance). Variants
+named "image path for every crop" run the network's image path for every crop (`image_path:
+always`, the behaviour before pose from the landmarks); "every crop cut" takes the pose from the
+landmarks but still cuts every crop (what not cutting them saves).
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
