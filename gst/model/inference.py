@@ -139,13 +139,22 @@ class GSTPredictor:
         """Whether the checkpoint's network has landmark tokens (then pass `landmarks=`)."""
         return self.network.landmark_encoder is not None
 
+    @property
+    def pose_input(self) -> str:
+        """Where pose-only prediction takes the pose from: "landmarks" (crops with landmarks skip
+        the image path; `image_path` auto and a negligible image gate), "image and landmarks",
+        or "image" (a network without landmark tokens). With Gaussians the image is always read."""
+        if self.pose_from_landmarks and not self.with_gaussians:
+            return "landmarks"
+        return "image and landmarks" if self.accepts_landmarks else "image"
+
     def needs_pixels(self, landmarks: np.ndarray | torch.Tensor) -> np.ndarray:
         """(B,) bool: whether pose-only prediction reads each crop's pixels, given the crops'
         (B, 33, 3) landmarks: False for crops whose pose comes from their landmarks alone
         (`image_path` auto, a negligible image gate, at least one landmark the network uses).
         A caller may hand those crops in blank (tracking skips cutting them)."""
         n = len(landmarks)
-        if not self.pose_from_landmarks or self.with_gaussians or n == 0:
+        if self.pose_input != "landmarks" or n == 0:
             return np.ones(n, bool)
         K = torch.eye(3).expand(n, 3, 3)  # the camera does not decide what is usable
         li = LandmarkInput.from_detections(landmarks, K, 256, self.network.cfg.num_landmarks)

@@ -201,15 +201,10 @@ class GSTNetwork(nn.Module):
         """`image_for_pose` False (pose only, with landmarks): samples that have a usable landmark
         skip the image path (the ViT and the SMPL token's image cross-attention) and take the
         landmark-only mode; the others take the image path as usual (gst.model.inference)."""
-        if (
-            not image_for_pose
-            and not with_gaussians
-            and images is not None
-            and landmarks is not None
-        ):
-            return self._pose_from_landmarks_where_possible(images, landmarks)
         if landmarks is not None and self.landmark_encoder is None:
             raise ValueError("landmarks given to a network built without landmark_tokens")
+        if not (image_for_pose or with_gaussians or images is None or landmarks is None):
+            return self._pose_from_landmarks_where_possible(images, landmarks)
         if images is None and landmarks is None:
             raise ValueError("the network needs images, landmarks or both")
         context = self.backbone(images) if images is not None else None
@@ -231,8 +226,6 @@ class GSTNetwork(nn.Module):
     def _pose_from_landmarks_where_possible(
         self, images: torch.Tensor, landmarks: LandmarkInput
     ) -> GSTOutput:
-        if self.landmark_encoder is None:
-            raise ValueError("landmarks given to a network built without landmark_tokens")
         has = landmarks.usable.any(1)
         if bool(has.all()):
             return self(None, with_gaussians=False, landmarks=landmarks)

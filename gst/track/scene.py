@@ -276,12 +276,7 @@ def track_scene(
         batch_size=s.batch_size,
         image_path=s.image_path,
     )
-    name = loaded.name
-    pose_input = (
-        "landmarks"
-        if loaded.pose_from_landmarks and not with_gaussians
-        else ("image and landmarks" if loaded.accepts_landmarks else "image")
-    )
+    name, pose_input = loaded.name, loaded.pose_input
     kind, why = choose_detector(s)  # a missing 'blazepose' fails here, not in a worker
     log.info("person detector: %s (%s)", kind, why)
     detector_info = _detector_info(kind, why, s)
