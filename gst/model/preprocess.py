@@ -15,13 +15,17 @@ IMAGENET_MEAN = torch.tensor([0.485, 0.456, 0.406])
 IMAGENET_STD = torch.tensor([0.229, 0.224, 0.225])
 
 
+def check_crops(crops: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """`crops` itself, after checking that it is (B, S, S, 3): square RGB images."""
+    shape = tuple(crops.shape)
+    if len(shape) != 4 or shape[-1] != 3 or shape[1] != shape[2]:
+        raise ValueError(f"crops must be (B, S, S, 3) square RGB images, got shape {shape}")
+    return crops
+
+
 def to_float_images(crops: np.ndarray | torch.Tensor) -> torch.Tensor:
     """(B, S, S, 3) uint8 or float in [0, 1] -> (B, 3, S, S) float32 in [0, 1]."""
-    x = torch.as_tensor(crops)
-    if x.ndim != 4 or x.shape[-1] != 3 or x.shape[1] != x.shape[2]:
-        raise ValueError(
-            f"crops must be (B, S, S, 3) square RGB images, got shape {tuple(x.shape)}"
-        )
+    x = torch.as_tensor(check_crops(crops))
     # Convert in the stored (channels-last) layout, then permute as a view: converting through
     # the permuted strides was ~10x slower on CPU.
     x = x.to(torch.float32).div_(255.0) if x.dtype == torch.uint8 else x.float()
