@@ -26,14 +26,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
 from gst.atomic import atomic_write
+from gst.body import BodyModel, load_body_model
+from gst.body.markers import MarkerModel
 from gst.cores import available_cores
+from gst.data.camera_view import TrackingView
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
 from gst.device import resolve_device
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
-from gst.track.agreement import joints_vs_landmarks
+from gst.track.agreement import joints_vs_landmarks, markers_vs_landmarks
 from gst.track.align import AlignmentConfig
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
@@ -45,6 +48,7 @@ from gst.track.person_detector import PersonModelConfig, PersonModelDetector
 from gst.track.pose_fit import PoseFitConfig
 from gst.track.read import read_tracks
 from gst.track.report import contact_sheet, plot_joint_angles, write_overlay
+from gst.track.schema import parse_metadata
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
@@ -410,6 +414,32 @@ def _write_contact_sheet(video: Path, tracks: Path, out: Path, n: int = 6) -> No
     atomic_write(out, lambda tmp: cv2.imwrite(str(tmp), sheet, [cv2.IMWRITE_JPEG_QUALITY, 85]))
 
 
+@functools.lru_cache(maxsize=2)
+def _body_and_markers(body_model: str) -> tuple[BodyModel, MarkerModel]:
+    return load_body_model(body_model), MarkerModel.load()
+
+
+def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
+    """The summary's two checks of the body against the landmark model's joints: its joints
+    (`joints2d`), and its own BlazePose points (like with like; gst.track.agreement)."""
+    agree = joints_vs_landmarks(table)
+    out = {"joints2d_vs_landmarks": agree.to_dict()}
+    if agree.median_px is None:
+        return out
+    meta = parse_metadata(table.schema)
+    video = meta["video"]
+    view = TrackingView.for_video(video["width"], video["height"], camera, video["name"])
+    body, markers = _body_and_markers(meta["model"].get("body_model", "anny"))
+    same = markers_vs_landmarks(table, body, markers, view.project)
+    out["body_landmarks_vs_landmarks"] = same.to_dict()
+    log.info(
+        "%s: the body's joints lie a median %.1f px (90%%: %.1f px) from the landmark model's, "
+        "its own BlazePose points %.1f px (%d joints compared)",
+        name, agree.median_px, agree.p90_px, same.median_px, agree.pairs,
+    )  # fmt: skip
+    return out
+
+
 def write_video_report(
     s: TrackSettings, request: TrackRequest, outcome: VideoOutcome
 ) -> TrackEvaluation | None:
@@ -427,17 +457,7 @@ def write_video_report(
         "chunks": outcome.chunks,
     }
     log.info("%s: %d frames, %d people, %.1f frames/s", name, result.frames, result.persons, fps)
-    agree = joints_vs_landmarks(read_tracks(result.path))
-    summary["joints2d_vs_landmarks"] = agree.to_dict()
-    if agree.median_px is not None:
-        log.info(
-            "%s: the network's joints lie a median %.1f px (90%%: %.1f px) from the landmark "
-            "model's (%d joints compared)",
-            name,
-            agree.median_px,
-            agree.p90_px,
-            agree.pairs,
-        )
+    summary.update(_landmark_agreement(read_tracks(result.path), outcome.job.camera, name))
     report = request.reports_dir / name
     report.mkdir(parents=True, exist_ok=True)
     (report / "summary.json").write_text(json.dumps(summary, indent=2))
