@@ -41,6 +41,10 @@ def _project(points: np.ndarray) -> np.ndarray:
     return points[..., :2] / points[..., 2:] @ K[:2, :2].T + K[:2, 2]
 
 
+def _own_points(table, body, markers, **kw):
+    return markers_vs_landmarks(table, body_markers_2d(table, body, markers, _project), **kw)
+
+
 def _table(body, markers, n: int = 6, seed: int = 0, shift=(0.0, 0.0), conf: float = 0.9):
     """`n` rows of random people facing the camera 4 m away; landmarks = the body's own
     BlazePose points projected, moved by `shift` px, with confidence `conf`."""
@@ -99,7 +103,7 @@ def test_the_bodys_own_points_agree_exactly_where_its_joints_show_the_definition
     body, markers
 ):
     table = _table(body, markers)
-    same = markers_vs_landmarks(table, body, markers, _project)
+    same = _own_points(table, body, markers)
     joints = joints_vs_landmarks(table)
     assert same.pairs == joints.pairs == 6 * len(COMPARED_INDEX)
     assert same.median_px < 1e-3
@@ -109,15 +113,15 @@ def test_the_bodys_own_points_agree_exactly_where_its_joints_show_the_definition
 
 
 def test_a_shift_of_the_landmarks_is_measured_as_that_shift(body, markers):
-    same = markers_vs_landmarks(_table(body, markers, shift=(3.0, 4.0)), body, markers, _project)
+    same = _own_points(_table(body, markers, shift=(3.0, 4.0)), body, markers)
     assert same.median_px == pytest.approx(5.0, abs=1e-3)
     assert same.p90_px == pytest.approx(5.0, abs=1e-3)
 
 
 def test_unsure_landmarks_are_not_compared(body, markers):
     table = _table(body, markers, conf=0.3)
-    assert markers_vs_landmarks(table, body, markers, _project).pairs == 0
-    assert markers_vs_landmarks(table, body, markers, _project, min_confidence=0.2).pairs > 0
+    assert _own_points(table, body, markers).pairs == 0
+    assert _own_points(table, body, markers, min_confidence=0.2).pairs > 0
     assert joints_vs_landmarks(table).median_px is None
 
 
@@ -130,4 +134,4 @@ def test_the_table_is_read_as_it_was_posed(body, markers):
 
 def test_a_table_without_rows_has_no_figure(body, markers):
     empty = _table(body, markers).slice(0, 0)
-    assert markers_vs_landmarks(empty, body, markers, _project).median_px is None
+    assert _own_points(empty, body, markers).median_px is None

@@ -117,19 +117,15 @@ def body_markers_2d(
 
 
 def markers_vs_landmarks(
-    table: pa.Table,
-    body: BodyModel,
-    markers: MarkerModel,
-    project: Callable[[np.ndarray], np.ndarray],
-    min_confidence: float = 0.5,
+    table: pa.Table, markers_2d: np.ndarray, min_confidence: float = 0.5
 ) -> LandmarkAgreement:
-    """Like `joints_vs_landmarks`, with the body's own BlazePose points (`body_markers_2d`) in
-    place of its joints: no systematic offset between two definitions of a joint."""
+    """Like `joints_vs_landmarks`, with the body's own BlazePose points (`markers_2d`, (N, 33, 2)
+    from `body_markers_2d`) in place of its joints: no offset between two definitions of a
+    joint."""
     lm = _landmarks(table)
     if lm is None:
         return LandmarkAgreement(None, None, 0, {})
-    m2 = body_markers_2d(table, body, markers, project)
-    points = np.stack([m2[:, idx].mean(axis=1) for idx in _LANDMARKS], axis=1)
+    points = np.stack([markers_2d[:, idx].mean(axis=1) for idx in _LANDMARKS], axis=1)
     return _agreement(points, lm, min_confidence)
 
 

@@ -36,7 +36,7 @@ from gst.device import resolve_device
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
-from gst.track.agreement import joints_vs_landmarks, markers_vs_landmarks
+from gst.track.agreement import body_markers_2d, joints_vs_landmarks, markers_vs_landmarks
 from gst.track.align import AlignmentConfig
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
@@ -430,7 +430,7 @@ def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
     video = meta["video"]
     view = TrackingView.for_video(video["width"], video["height"], camera, video["name"])
     body, markers = _body_and_markers(meta["model"].get("body_model", "anny"))
-    same = markers_vs_landmarks(table, body, markers, view.project)
+    same = markers_vs_landmarks(table, body_markers_2d(table, body, markers, view.project))
     out["body_landmarks_vs_landmarks"] = same.to_dict()
     log.info(
         "%s: the body's joints lie a median %.1f px (90%%: %.1f px) from the landmark model's, "
