@@ -91,8 +91,7 @@ def predict_bodies(
     # (GSTNetwork.forward): converting and resizing them cost a tenth of tracking's network time.
     skip = None
     if landmarks is not None and not (image_for_pose or with_gaussians):
-        if getattr(network, "landmark_encoder", None) is not None:
-            skip = landmarks.usable.any(1).cpu()
+        skip = landmarks.has_landmarks.cpu()
     K = torch.as_tensor(K).to(device)
     R = None if R is None else torch.as_tensor(R).to(device)
     t = None if t is None else torch.as_tensor(t).to(device)
@@ -186,7 +185,7 @@ class GSTPredictor:
             return np.ones(n, bool)
         K = torch.eye(3).expand(n, 3, 3)  # the camera does not decide what is usable
         li = LandmarkInput.from_detections(landmarks, K, 256, self.network.cfg.num_landmarks)
-        return ~li.usable.any(1).numpy()
+        return ~li.has_landmarks.numpy()
 
     @property
     def accepts_up(self) -> bool:

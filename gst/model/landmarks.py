@@ -113,6 +113,12 @@ class LandmarkInput:
         """(B, L) bool: landmarks the network may use and that were detected (confidence > 0)."""
         return self.mask & (self.points[..., 2] > 0)
 
+    @property
+    def has_landmarks(self) -> torch.Tensor:
+        """(B,) bool: samples with at least one usable landmark, the ones whose pose can come from
+        the landmarks alone (`GSTNetwork.forward` with `image_for_pose` False)."""
+        return self.usable.any(1)
+
     def rows(self, index: torch.Tensor) -> LandmarkInput:
         """The samples `index` (a (B,) bool mask or integer indices) of this input."""
         up = None if self.up is None else self.up[index]
@@ -242,4 +248,4 @@ class LandmarkEncoder(nn.Module):
         if self.point_tokens:
             tokens = torch.cat([self.point(pts) + self.identity, lift], 1)
             key_mask = torch.cat([valid, key_mask], 1)
-        return LandmarkContext(tokens, key_mask, valid.any(1), self.to_query(h))
+        return LandmarkContext(tokens, key_mask, inp.has_landmarks, self.to_query(h))

@@ -226,7 +226,7 @@ class GSTNetwork(nn.Module):
     def _pose_from_landmarks_where_possible(
         self, images: torch.Tensor, landmarks: LandmarkInput
     ) -> GSTOutput:
-        has = landmarks.usable.any(1)
+        has = landmarks.has_landmarks
         if bool(has.all()):
             return self(None, with_gaussians=False, landmarks=landmarks)
         if not bool(has.any()):

@@ -90,7 +90,8 @@ FUSED_ADAMW_DEVICES = ("cpu", "cuda")
 def adamw(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
     """AdamW over `params` (tensors or param groups), fused where the parameters' device has the
     kernel; same update rule either way (results agree to float rounding)."""
-    groups = list(params)
+    # a group's params may come as an iterator: read once, handed on as a list
+    groups = [dict(g, params=list(g["params"])) if isinstance(g, dict) else g for g in params]
     tensors = [p for g in groups for p in (g["params"] if isinstance(g, dict) else [g])]
     fused = bool(tensors) and all(p.device.type in FUSED_ADAMW_DEVICES for p in tensors)
     return torch.optim.AdamW(groups, lr=lr, weight_decay=weight_decay, fused=fused or None)
