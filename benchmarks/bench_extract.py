@@ -91,10 +91,11 @@ VARIANTS = [
     ("median, work 1/2, lzf store", "median", None, "lzf", False),
     # Learned person masks (gst.detect; needs the detect extra and `python -m gst.detect fetch`).
     ("blazepose masks, work 1/2", "median", None, "gzip", True),
-    # Keypoint association (BlazePose instances, landmarks matched across views).
+    # Keypoint association (BlazePose instances, landmarks matched across views), the default:
+    # the person detector every 10 frames, people followed by their landmark regions between.
     ("keypoints, work 1/2", "median", None, "gzip", "keypoints"),
-    # ... with the person detector every 10 frames, people followed by their landmark regions
-    ("keypoints, detector every 10", "median", None, "gzip", "keypoints-10"),
+    # ... with the person detector on every frame (the default before 2026-11-25)
+    ("keypoints, detector every frame", "median", None, "gzip", "keypoints-1"),
 ]
 
 
@@ -102,8 +103,8 @@ SCENE_VARIANTS = [
     # name, association method, person model, person detector every N frames (keypoints)
     ("background + hull (old)", "hull", "none", 1),
     ("blazepose masks + hull", "hull", "blazepose", 1),
-    ("keypoints (new)", "keypoints", "none", 1),
-    ("keypoints, detector every 10", "keypoints", "none", 10),
+    ("keypoints (default)", "keypoints", "none", 10),
+    ("keypoints, detector every frame", "keypoints", "none", 1),
 ]
 
 
@@ -229,8 +230,8 @@ def main() -> None:
                     shutil.rmtree(out.parent)
                 if persons is True:
                     segmenter = SegmenterConfig()
-                elif persons == "keypoints-10":
-                    segmenter = SegmenterConfig(detect_every=10)
+                elif persons == "keypoints-1":
+                    segmenter = SegmenterConfig(detect_every=1)
                 else:
                     segmenter = None  # hull without person model; keypoints: its default
                 t = time.perf_counter()

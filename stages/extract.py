@@ -30,7 +30,7 @@ class Params(StageParams):
     # 'blazepose': learned person masks (the `detect` extra; docs/person_models.md).
     person_model: Literal["none", "blazepose"] = "none"
     person_hints: bool = True  # also segment around moving background blobs
-    person_detect_every: int = Field(1, ge=1)  # BlazePose detector every N frames (tracked)
+    person_detect_every: int = Field(10, ge=1)  # BlazePose detector every N frames (tracked)
     # 'auto': keypoint association when BlazePose is installed, else the visual hull
     association_method: Literal["auto", "keypoints", "hull"] = "auto"
 

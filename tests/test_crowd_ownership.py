@@ -3,8 +3,11 @@ no capsule covers goes to the nearest one) and regions from projected skeletons.
 
 import numpy as np
 from crowd_people import person, rig
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gst.data.keypoints import MatchConfig, PersonInstance
+from gst.data.keypoints.geometry import project
 from gst.data.keypoints.ownership import OwnershipConfig, capsules, own_pixels
 from gst.data.keypoints.regions import roi_from_skeleton, skeleton_fit
 
@@ -102,3 +105,56 @@ def test_skeletons_around_or_behind_the_camera_do_not_break_ownership():
     own = own_pixels(cam, fg, [good, behind, around])
     assert own.labels.max() >= 1 and own.visibility[1] == 0 and own.area[1] == 0
     assert np.isfinite(own.visibility).all()
+
+
+def _brute_force_labels(cam, fg, people, config):
+    """The ownership rule evaluated at every pixel against every capsule (no boxes, no grid):
+    the reference for `own_pixels` with step 1."""
+    h, w = fg.shape
+    px, py = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    q_all, z_all = [], []
+    for sk in people:
+        ends, radii, _ = capsules(sk)
+        radii = radii * config.radius_scale
+        q_p = np.full((h, w), np.inf)
+        z_p = np.full((h, w), np.inf)
+        for (a3, b3), r in zip(ends, radii, strict=True):
+            (a, b), _ = project(cam, np.stack([a3, b3]))
+            za, zb = cam.to_camera(np.stack([a3, b3]))[:, 2]
+            ra, rb = r * cam.fx / za, r * cam.fx / zb
+            ab = b - a
+            t = np.clip(((px - a[0]) * ab[0] + (py - a[1]) * ab[1]) / max(ab @ ab, 1e-9), 0, 1)
+            d = np.hypot(px - a[0] - t * ab[0], py - a[1] - t * ab[1])
+            q = d / (ra + t * (rb - ra))
+            q_p = np.minimum(q_p, q)
+            z_p = np.minimum(z_p, np.where(q < 1, za - r + t * (zb - za), np.inf))
+        q_all.append(q_p)
+        z_all.append(z_p)
+    Q, Z = np.stack(q_all), np.stack(z_all)
+    covered = Q < 1
+    tie = covered & (Z == Z.min(axis=0))
+    owner = np.where(covered.any(0), np.where(tie, Q, np.inf).argmin(0), Q.argmin(0))
+    return np.where(fg & (Q.min(0) < config.reach), owner + 1, 0)
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 3), st.floats(-0.6, 0.6), st.floats(-0.6, 0.6), st.floats(0.2, 1.0))
+def test_ownership_equals_the_rule_at_every_pixel_and_a_coarser_grid_keeps_it(cam_i, x, y, gap):
+    """`own_pixels` (boxes per capsule, step 1) gives the brute-force labels of the ownership
+    rule at all but a handful of float32-rounding pixels; step 2 (the default: fields on every
+    second pixel) keeps the label of almost every foreground pixel and each person's visibility."""
+    cam = RIG[cam_i]
+    people = [person(x, y), person(x + gap, y + 0.3 * gap)]
+    fg = np.zeros((cam.height, cam.width), bool)
+    for sk in people:  # the foreground: around each person's projected skeleton
+        uv, _ = project(cam, sk)
+        lo, hi = np.floor(uv.min(0) - 8).astype(int), np.ceil(uv.max(0) + 8).astype(int)
+        fg[max(lo[1], 0) : max(hi[1], 0), max(lo[0], 0) : max(hi[0], 0)] = True
+    fine = own_pixels(cam, fg, people, config=OwnershipConfig(step=1))
+    want = _brute_force_labels(cam, fg, people, OwnershipConfig())
+    assert np.count_nonzero(fine.labels != want) <= max(3, 1e-4 * np.count_nonzero(fg))
+    coarse = own_pixels(cam, fg, people, config=OwnershipConfig(step=2))
+    labelled = (fine.labels > 0) | (coarse.labels > 0)
+    if labelled.any():
+        assert np.mean(coarse.labels[labelled] == fine.labels[labelled]) > 0.97
+    assert np.allclose(coarse.visibility, fine.visibility, atol=0.03)

@@ -24,7 +24,18 @@ from gst.detect.blazepose import (
     ssd_anchors,
     weighted_nms,
 )
-from gst.detect.persons import SegmenterConfig, compose_instances, same_person, skeleton_support
+from gst.detect.persons import (
+    BONES as PERSON_BONES,
+)
+from gst.detect.persons import (
+    HEAD,
+    TORSO,
+    PersonSegmenter,
+    SegmenterConfig,
+    compose_instances,
+    same_person,
+    skeleton_support,
+)
 from gst.detect.weights import (
     MEDIAPIPE_WHEEL,
     MODELS,
@@ -217,6 +228,116 @@ def test_compose_splits_overlapping_people_by_nearest_skeleton_and_drops_duplica
     # the boundary lies half-way between the two skeletons' nearest lines
     assert labels[120, 185] == lab_left and labels[120, 195] == lab_right
     assert labels[5, 5] == 0
+
+
+def _compose_whole_image(segs, config, area):
+    """compose_instances as first written: skeleton distances over the whole image (the
+    reference for the windowed one)."""
+    cands = [s for s in segs if s.presence >= config.min_presence]
+    masks = [s.probability > config.threshold for s in cands]
+    order = sorted(
+        range(len(cands)),
+        key=lambda i: (-round(cands[i].presence, 2), -int(np.count_nonzero(masks[i]))),
+    )
+    kept = []
+    for i in order:
+        if np.count_nonzero(masks[i]) < config.min_area * area or any(
+            same_person(cands[i].landmarks, cands[j].landmarks, config.duplicate_distance)
+            for j in kept
+        ):
+            continue
+        kept.append(i)
+    if not kept:
+        return None, []
+    dist = []
+    for i in kept:
+        lines = np.full(masks[i].shape, 255, np.uint8)
+        pts = np.round(cands[i].landmarks[:, :2]).astype(np.int32)
+        for a, b in PERSON_BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)):
+            cv2.line(lines, tuple(map(int, pts[a])), tuple(map(int, pts[b])), 0, thickness=1)
+        head = tuple(map(int, pts[list(HEAD)].mean(axis=0)))
+        cv2.line(lines, head, tuple(map(int, (pts[11] + pts[12]) // 2)), 0, thickness=1)
+        dist.append(cv2.distanceTransform(lines, cv2.DIST_L2, 3))
+    claimed = np.stack([masks[i] for i in kept])
+    best = np.where(claimed, np.stack(dist), np.inf).argmin(axis=0)
+    owned = claimed.any(axis=0)
+    areas = np.bincount(best[owned], minlength=len(kept))
+    rank = np.argsort(-areas, kind="stable")
+    lut = np.zeros(len(kept), np.uint8)
+    lut[rank] = np.arange(1, len(kept) + 1, dtype=np.uint8)
+    return np.where(owned, lut[best], 0).astype(np.uint8), [
+        cands[kept[r]] for r in rank if areas[r] > 0
+    ]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.floats(-150, 550),  # skeleton centre x: people partly or wholly off the image
+            st.floats(-100, 200),  # top
+            st.floats(40, 400),  # height
+            st.integers(0, 380),  # mask box x0
+            st.integers(0, 240),  # y0
+            st.integers(1, 200),  # width
+            st.integers(1, 200),  # height
+            st.floats(0.3, 1.0),  # presence
+        ),
+        min_size=1,
+        max_size=4,
+    )
+)
+def test_windowed_composition_equals_the_whole_image_one(people):
+    """compose_instances works in the window of the claimed pixels and the skeletons: the same
+    labels and people as over the whole image, also for skeletons reaching off the image."""
+    h, w = 260, 400
+    segs = []
+    for cx, top, size, x0, y0, bw, bh, presence in people:
+        prob = np.zeros((h, w), np.float32)
+        prob[y0 : y0 + bh, x0 : x0 + bw] = 0.9
+        segs.append(_segment(_stick(cx, top, size), prob, presence))
+    config = SegmenterConfig(min_area=1e-4)
+    want_labels, want_people = _compose_whole_image(segs, config, h * w)
+    labels, got_people = compose_instances(segs, config, h * w)
+    assert [id(p) for p in got_people] == [id(p) for p in want_people]
+    if want_labels is None:
+        assert labels is None
+    else:
+        assert np.array_equal(labels, want_labels)
+
+
+class _HintModel:
+    """A stand-in landmark model: nobody in any region, and no detections (counts the regions)."""
+
+    def __init__(self):
+        self.regions = 0
+
+    def detect(self, image):
+        return []
+
+    def segment(self, image, roi):
+        self.regions += 1
+        h, w = image.shape[:2]
+        return _segment(_stick(roi.centre[0], 0, 100), np.zeros((h, w)), presence=0.1)
+
+
+def test_a_fruitless_hint_is_looked_at_again_only_after_hint_retry_frames_or_when_it_moves():
+    model = _HintModel()
+    seg = PersonSegmenter(model, SegmenterConfig(hint_retry=4))
+    frame = np.zeros((200, 300, 3), np.uint8)
+    still = (50.0, 40.0, 30.0, 80.0)  # a shadow: the same blob in every frame
+    for _ in range(9):
+        seg.segment(frame, [still])
+    assert seg.hint_regions == 3  # frames 0, 4 and 8
+    moved = (150.0, 40.0, 30.0, 80.0)
+    seg.segment(frame, [still, moved])  # frame 9: the moved blob at once, the still one not
+    assert seg.hint_regions == 4
+    every = PersonSegmenter(_HintModel(), SegmenterConfig(hint_retry=1))
+    for _ in range(5):
+        every.segment(frame, [still])
+    assert every.hint_regions == 5
+    with pytest.raises(ValueError, match="hint_retry"):
+        SegmenterConfig(hint_retry=0)
 
 
 def test_compose_with_nobody():

@@ -25,6 +25,7 @@ from gst.detect.blazepose import (
     roi_from_box,
     same_region,
 )
+from gst.metrics.image import box_iou
 
 # BlazePose's 33 landmarks: the bones drawn to bound a person's mask (limbs, hands, feet).
 BONES = (
@@ -104,13 +105,22 @@ class SegmenterConfig:
     detect_every: int = 1
     # a detector region this close to a tracked person's (share of the side) is that person
     same_region: float = 0.1
+    # frames before a hint box where the landmark model found nobody is looked at again (1:
+    # every frame). A still shadow or reflection stays a background blob for the whole clip; a
+    # person the detector missed moves, and a moved box is a new hint at once.
+    hint_retry: int = 10
+    # a hint box overlapping a fruitless one by this intersection over union is the same box
+    same_hint: float = 0.5
 
     def __post_init__(self):
         for name in ("min_presence", "threshold", "hint_covered"):
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"segmenter {name} must be in (0, 1), got {getattr(self, name)}")
-        if self.detect_every < 1:
-            raise ValueError(f"segmenter detect_every must be >= 1, got {self.detect_every}")
+        for name in ("detect_every", "hint_retry"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"segmenter {name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.same_hint <= 1:
+            raise ValueError(f"segmenter same_hint must be in (0, 1], got {self.same_hint}")
         if self.duplicate_distance <= 0:
             raise ValueError(
                 f"segmenter duplicate_distance must be > 0, got {self.duplicate_distance}"
@@ -134,11 +144,30 @@ def same_person(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
     return float(np.median(d)) < distance * max(min(body_size(a), body_size(b)), 1.0)
 
 
-def _skeleton_distance(landmarks: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Distance (px) of every pixel to a person's skeleton lines."""
+def _skeleton_distance(
+    landmarks: np.ndarray, shape: tuple[int, int], origin: tuple[int, int] = (0, 0)
+) -> np.ndarray:
+    """Distance (px) of every pixel of the (H, W) `shape` window at `origin` (x, y) of the image
+    to a person's skeleton lines."""
     lines = np.full(shape, 255, np.uint8)
-    _draw_skeleton(lines, np.round(landmarks[:, :2]).astype(np.int32), 0, 1)
+    pts = np.round(landmarks[:, :2] - np.asarray(origin, np.float64)).astype(np.int32)
+    _draw_skeleton(lines, pts, 0, 1)
     return cv2.distanceTransform(lines, cv2.DIST_L2, 3)
+
+
+def _window(masks: Sequence[np.ndarray], skeletons: Sequence[np.ndarray]) -> tuple[slice, slice]:
+    """The image window (rows, columns) that holds every mask pixel and every in-image pixel of
+    the skeletons' lines. A line lies within its ends' box, so the box of the ends clipped to
+    the image holds its in-image pixels: the skeleton distances computed in the window are those
+    of the whole image wherever a mask is."""
+    h, w = masks[0].shape
+    rows = np.flatnonzero(np.any(masks, axis=(0, 2)))
+    cols = np.flatnonzero(np.any(masks, axis=(0, 1)))
+    pts = np.concatenate([np.round(s[:, :2]) for s in skeletons])
+    pts = np.clip(np.nan_to_num(pts), 0, (w - 1, h - 1)).astype(int)
+    y0, y1 = min(rows[0], pts[:, 1].min()), max(rows[-1], pts[:, 1].max()) + 1
+    x0, x1 = min(cols[0], pts[:, 0].min()), max(cols[-1], pts[:, 0].max()) + 1
+    return slice(int(y0), int(y1)), slice(int(x0), int(x1))
 
 
 def compose_instances(
@@ -169,19 +198,32 @@ def compose_instances(
         kept.append(i)
     if not kept:
         return None, []
-    claimed = np.stack([masks[i] for i in kept])
-    dist = np.stack([_skeleton_distance(cands[i].landmarks, masks[i].shape) for i in kept])
+    if not any(masks[i].any() for i in kept):  # (only with min_area 0)
+        return np.zeros(masks[kept[0]].shape, np.uint8), []
+    # Only the pixels that someone claims get a label: work in the window that holds them.
+    rows, cols = _window([masks[i] for i in kept], [cands[i].landmarks for i in kept])
+    claimed = np.stack([masks[i][rows, cols] for i in kept])
+    origin = (cols.start, rows.start)
+    shape = claimed.shape[1:]
+    dist = np.stack([_skeleton_distance(cands[i].landmarks, shape, origin) for i in kept])
     best = np.where(claimed, dist, np.inf).argmin(axis=0)
     owned = claimed.any(axis=0)
     areas = np.bincount(best[owned], minlength=len(kept))
     rank = np.argsort(-areas, kind="stable")  # label 1 = largest person
     lut = np.zeros(len(kept), dtype=np.uint8)
     lut[rank] = np.arange(1, len(kept) + 1, dtype=np.uint8)
-    labels = np.where(owned, lut[best], 0).astype(np.uint8)
+    labels = np.zeros(masks[0].shape, np.uint8)
+    labels[rows, cols] = np.where(owned, lut[best], 0)
     # A person whose whole mask went to others is not in the image. Their area is 0, so they
     # rank last and the labels of the others are already 1..m.
     people = [cands[kept[r]] for r in rank if areas[r] > 0]
     return labels, people
+
+
+def _corners(boxes) -> np.ndarray:
+    """(N, 4) x, y, w, h boxes -> (N, 4) x0, y0, x1, y1."""
+    b = np.asarray(boxes, np.float64).reshape(-1, 4)
+    return np.c_[b[:, :2], b[:, :2] + b[:, 2:]]
 
 
 class PersonSegmenter:
@@ -192,10 +234,13 @@ class PersonSegmenter:
         self.config = config
         self._tracked: list[BodyRoi] = []
         self._since_detect = 0
+        # hint boxes where nobody was found: (x, y, w, h) -> frames until they are looked at again
+        self._fruitless: dict[tuple[float, float, float, float], int] = {}
         self.detector_runs = 0  # frames on which the person detector ran (for benchmarks)
+        self.hint_regions = 0  # hint regions given to the landmark model (for benchmarks)
 
     def reset(self) -> None:
-        self._tracked, self._since_detect = [], 0
+        self._tracked, self._since_detect, self._fruitless = [], 0, {}
 
     def _segment_rois(self, frame: np.ndarray, rois: Sequence[BodyRoi]) -> list[PersonSegment]:
         h, w = frame.shape[:2]
@@ -253,16 +298,26 @@ class PersonSegmenter:
         else:
             self._since_detect += 1
         labels, people = compose_instances(segments, self.config, h * w)
+        self._fruitless = {b: n - 1 for b, n in self._fruitless.items() if n > 1}
         if hints:
             sides = [r.side for r in rois]
             floor = float(np.median(sides)) if sides else 0.0
+            boxes = self._uncovered(labels, hints, (h, w))
+            if boxes and self._fruitless:
+                seen = box_iou(_corners(boxes), _corners(list(self._fruitless))).max(axis=1)
+                boxes = [b for b, v in zip(boxes, seen, strict=True) if v < c.same_hint]
             extra = []
-            for x, y, bw, bh in self._uncovered(labels, hints, (h, w)):
-                roi = roi_from_box((x, y, bw, bh))
+            for box in boxes:
+                roi = roi_from_box(box)
                 extra.append(replace(roi, side=max(roi.side, floor)))
             if extra:
-                segments += self._segment_rois(frame, extra)
-                labels, people = compose_instances(segments, self.config, h * w)
+                self.hint_regions += len(extra)
+                found = self._segment_rois(frame, extra)
+                labels, people = compose_instances(segments + found, self.config, h * w)
+                kept = {id(p) for p in people}
+                for box, seg in zip(boxes, found, strict=True):
+                    if id(seg) not in kept and c.hint_retry > 1:
+                        self._fruitless[tuple(box)] = c.hint_retry
         self._tracked = [p.next_roi for p in people]
         if labels is None:
             return np.zeros((h, w), np.uint8), []

@@ -49,7 +49,7 @@ class ExtractOptions:
     # Also segment around moving background blobs (finds movers the detector misses).
     persons_hints: bool = True
     # The person detector every this many frames while everyone is tracked (SegmenterConfig)
-    person_detect_every: int = 1
+    person_detect_every: int = 10
     # Frames smaller than the calibrated size by up to this many pixels are encoder padding
     # (calibration.camera.fit_to_frames).
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
@@ -76,7 +76,7 @@ class ExtractOptions:
         person_hints: bool = True,
         frame_size_tolerance: int = FRAME_PADDING_TOLERANCE,
         association_method: str = "auto",
-        person_detect_every: int = 1,
+        person_detect_every: int = 10,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose'), whether to segment around moving blobs too, the
