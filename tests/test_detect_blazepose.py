@@ -33,6 +33,7 @@ from gst.detect.persons import (
     PersonSegmenter,
     SegmenterConfig,
     compose_instances,
+    distinct_people,
     same_person,
     skeleton_support,
 )
@@ -231,43 +232,29 @@ def test_compose_splits_overlapping_people_by_nearest_skeleton_and_drops_duplica
 
 
 def _compose_whole_image(segs, config, area):
-    """compose_instances as first written: skeleton distances over the whole image (the
-    reference for the windowed one)."""
-    cands = [s for s in segs if s.presence >= config.min_presence]
-    masks = [s.probability > config.threshold for s in cands]
-    order = sorted(
-        range(len(cands)),
-        key=lambda i: (-round(cands[i].presence, 2), -int(np.count_nonzero(masks[i]))),
-    )
-    kept = []
-    for i in order:
-        if np.count_nonzero(masks[i]) < config.min_area * area or any(
-            same_person(cands[i].landmarks, cands[j].landmarks, config.duplicate_distance)
-            for j in kept
-        ):
-            continue
-        kept.append(i)
+    """The labelling of compose_instances with skeleton distances over the whole image (the
+    reference for the windowed one); the same distinct people."""
+    kept = distinct_people(segs, config, area)
     if not kept:
         return None, []
     dist = []
-    for i in kept:
-        lines = np.full(masks[i].shape, 255, np.uint8)
-        pts = np.round(cands[i].landmarks[:, :2]).astype(np.int32)
+    for k in kept:
+        lines = np.full(k.probability.shape, 255, np.uint8)
+        pts = np.round(k.landmarks[:, :2]).astype(np.int32)
         for a, b in PERSON_BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)):
             cv2.line(lines, tuple(map(int, pts[a])), tuple(map(int, pts[b])), 0, thickness=1)
         head = tuple(map(int, pts[list(HEAD)].mean(axis=0)))
         cv2.line(lines, head, tuple(map(int, (pts[11] + pts[12]) // 2)), 0, thickness=1)
         dist.append(cv2.distanceTransform(lines, cv2.DIST_L2, 3))
-    claimed = np.stack([masks[i] for i in kept])
+    claimed = np.stack([k.probability > config.threshold for k in kept])
     best = np.where(claimed, np.stack(dist), np.inf).argmin(axis=0)
     owned = claimed.any(axis=0)
     areas = np.bincount(best[owned], minlength=len(kept))
     rank = np.argsort(-areas, kind="stable")
     lut = np.zeros(len(kept), np.uint8)
     lut[rank] = np.arange(1, len(kept) + 1, dtype=np.uint8)
-    return np.where(owned, lut[best], 0).astype(np.uint8), [
-        cands[kept[r]] for r in rank if areas[r] > 0
-    ]
+    labels = np.where(owned, lut[best], 0).astype(np.uint8)
+    return labels, [kept[r] for r in rank if areas[r] > 0]
 
 
 @settings(max_examples=40, deadline=None)

@@ -170,42 +170,44 @@ def _window(masks: Sequence[np.ndarray], skeletons: Sequence[np.ndarray]) -> tup
     return slice(int(y0), int(y1)), slice(int(x0), int(x1))
 
 
+def distinct_people(
+    segments: Sequence[PersonSegment], config: SegmenterConfig, image_area: int
+) -> list[PersonSegment]:
+    """The segments that are distinct people, most confident first: the person is present,
+    the mask is big enough and the skeleton does not repeat a kept, more confident one."""
+    cands = [s for s in segments if s.presence >= config.min_presence]
+    areas = [int(np.count_nonzero(s.probability > config.threshold)) for s in cands]
+    order = sorted(range(len(cands)), key=lambda i: (-round(cands[i].presence, 2), -areas[i]))
+    kept: list[PersonSegment] = []
+    for i in order:
+        if areas[i] < config.min_area * image_area or any(
+            same_person(cands[i].landmarks, k.landmarks, config.duplicate_distance) for k in kept
+        ):
+            continue
+        kept.append(cands[i])
+    return kept
+
+
 def compose_instances(
     segments: Sequence[PersonSegment], config: SegmenterConfig, image_area: int
 ) -> tuple[np.ndarray | None, list[PersonSegment]]:
-    """Label image (1..n, largest first) of the distinct people among `segments`, and those people.
+    """Label image (1..n, largest first) of the distinct people among `segments`
+    (`distinct_people`), and those people.
 
-    A segment is kept when its person is present, its mask is big enough and its skeleton does
-    not repeat a kept, more confident one. A pixel that some kept person's mask claims goes to
-    the claimant whose skeleton is nearest, which splits people who overlap in the image.
-    Returns (None, []) when nobody is kept.
+    A pixel that some kept person's mask claims goes to the claimant whose skeleton is nearest,
+    which splits people who overlap in the image. Returns (None, []) when nobody is kept.
     """
-    cands = [s for s in segments if s.presence >= config.min_presence]
-    masks = [s.probability > config.threshold for s in cands]
-    order = sorted(
-        range(len(cands)),
-        key=lambda i: (-round(cands[i].presence, 2), -int(np.count_nonzero(masks[i]))),
-    )
-    kept: list[int] = []
-    for i in order:
-        if np.count_nonzero(masks[i]) < config.min_area * image_area:
-            continue
-        if any(
-            same_person(cands[i].landmarks, cands[j].landmarks, config.duplicate_distance)
-            for j in kept
-        ):
-            continue
-        kept.append(i)
+    kept = distinct_people(segments, config, image_area)
     if not kept:
         return None, []
-    if not any(masks[i].any() for i in kept):  # (only with min_area 0)
-        return np.zeros(masks[kept[0]].shape, np.uint8), []
+    masks = [k.probability > config.threshold for k in kept]
+    if not any(m.any() for m in masks):  # (only with min_area 0)
+        return np.zeros(masks[0].shape, np.uint8), []
     # Only the pixels that someone claims get a label: work in the window that holds them.
-    rows, cols = _window([masks[i] for i in kept], [cands[i].landmarks for i in kept])
-    claimed = np.stack([masks[i][rows, cols] for i in kept])
+    rows, cols = _window(masks, [k.landmarks for k in kept])
+    claimed = np.stack([m[rows, cols] for m in masks])
     origin = (cols.start, rows.start)
-    shape = claimed.shape[1:]
-    dist = np.stack([_skeleton_distance(cands[i].landmarks, shape, origin) for i in kept])
+    dist = np.stack([_skeleton_distance(k.landmarks, claimed.shape[1:], origin) for k in kept])
     best = np.where(claimed, dist, np.inf).argmin(axis=0)
     owned = claimed.any(axis=0)
     areas = np.bincount(best[owned], minlength=len(kept))
@@ -216,7 +218,7 @@ def compose_instances(
     labels[rows, cols] = np.where(owned, lut[best], 0)
     # A person whose whole mask went to others is not in the image. Their area is 0, so they
     # rank last and the labels of the others are already 1..m.
-    people = [cands[kept[r]] for r in rank if areas[r] > 0]
+    people = [kept[r] for r in rank if areas[r] > 0]
     return labels, people
 
 
