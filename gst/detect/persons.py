@@ -100,8 +100,9 @@ class SegmenterConfig:
     hint_covered: float = 0.3
     # With tracking: frames between runs of the person detector while every tracked person is
     # still found (it runs at once when one is lost, and when nobody is tracked); 1: every
-    # frame. On the lab capture 10 gives the same 800 crops and 2 ids, 25 % faster; on crowd
-    # scenes people who were never tracked are found later (docs/person_models.md).
+    # frame. Extraction passes 10 (`extract.person_detect_every`): on the lab capture the same
+    # 800 crops and 2 ids, and as accurate on the demo and crowd scenes together with the hint
+    # memory below (docs/person_models.md).
     detect_every: int = 1
     # a detector region this close to a tracked person's (share of the side) is that person
     same_region: float = 0.1
