@@ -8,7 +8,14 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from gst.data.store import CropBatch, CropStore, CropStoreWriter, StoreError, index_path_for
+from gst.data.store import (
+    CropBatch,
+    CropStore,
+    CropStoreWriter,
+    StoreError,
+    index_path_for,
+    merge_part,
+)
 
 S = 16
 CAMS = ["a", "b", "c"]
@@ -156,3 +163,33 @@ def test_read_landmarks_matches_read_without_images(tmp_path):
         w.commit(_batch([0], [0], [7]), [(0, 0)])
         w.finalize()
     assert CropStore(plain).read_landmarks() is None
+
+
+@pytest.mark.parametrize("main_compression", ["gzip", "lzf"])
+def test_merging_a_part_copies_its_rows_exactly(tmp_path, main_compression):
+    """`merge_part` appends a camera's part store: the same rows as the part holds, whether the
+    crops go over as compressed chunks (same settings) or are recompressed (lzf main store)."""
+    part = tmp_path / "part.h5"
+    b = _batch([0, 0, 1, 2], [1, 1, 1, 1], [7, 8, 7, 7], seed=3)
+    with CropStoreWriter(part, CAMS, S) as w:
+        w.commit(_rows(b, 0, 2), [(0, 1)])
+        w.commit(_rows(b, 2, 4), [(1, 1), (2, 1), (3, 1)])  # frame 3: nobody
+    main = tmp_path / "crops.h5"
+    with CropStoreWriter(main, CAMS, S, compression=main_compression) as w:
+        w.commit(_batch([0], [0], [7], seed=4), [(0, 0)])
+        assert merge_part(w, part, 1, commit_frames=2) == 4
+        assert merge_part(w, part, 1, commit_frames=2) == 0  # already there
+        w.finalize()
+    store = CropStore(main)
+    got = store.read(np.arange(1, 5))
+    for name in ("images", "masks", "K_crop", "t", "frame", "person_id", "mask_support"):
+        assert np.array_equal(getattr(got, name), getattr(b, name)), name
+    with h5py.File(main, "r") as f:
+        assert f["images"].compression == main_compression
+        assert sorted(map(tuple, f["done"][:].tolist())) == [(0, 0), (0, 1), (1, 1), (2, 1), (3, 1)]
+
+
+def _rows(b: CropBatch, a: int, e: int) -> CropBatch:
+    return CropBatch(
+        **{k: (v[a:e] if isinstance(v, np.ndarray) else v) for k, v in vars(b).items()}
+    )

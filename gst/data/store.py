@@ -285,6 +285,40 @@ class CropStoreWriter:
                 ds = f[name]
                 ds.resize(n0 + n, axis=0)
                 ds[n0 : n0 + n] = getattr(batch, name)
+        self._mark_done(done, n0 + n)
+
+    def commit_rows(
+        self, src: h5py.File, a: int, b: int, done: list[tuple[int, int]] | np.ndarray
+    ) -> None:
+        """`commit` of rows a..b-1 of another store's file (a part store written with the same
+        settings). The crops and masks (one row per chunk) are copied as their compressed
+        chunks, without decompressing and compressing them again, where both layouts agree."""
+        f = self._h5
+        n0, n = self.n_committed, b - a
+        S = self.crop_size
+        if n:
+            if src["images"].shape[1:] != (S, S, 3):
+                raise StoreError(
+                    f"{src.filename}: crops are {src['images'].shape[1:]}, store holds {S}x{S}"
+                )
+            if self.landmarks and "landmarks" not in src:
+                raise StoreError(f"{src.filename}: the store holds landmarks, the part has none")
+            for name in _row_specs(S, self.landmarks):
+                if name not in src:
+                    raise StoreError(f"{src.filename}: has no '{name}' rows to copy")
+                ds, part = f[name], src[name]
+                ds.resize(n0 + n, axis=0)
+                if _same_row_chunks(part, ds):
+                    tail = (0,) * (ds.ndim - 1)
+                    for r in range(n):
+                        mask, chunk = part.id.read_direct_chunk((a + r, *tail))
+                        ds.id.write_direct_chunk((n0 + r, *tail), chunk, mask)
+                else:
+                    ds[n0 : n0 + n] = part[a:b]
+        self._mark_done(done, n0 + n)
+
+    def _mark_done(self, done: list[tuple[int, int]] | np.ndarray, n_committed: int) -> None:
+        f = self._h5
         done = np.asarray(done, dtype=np.int64).reshape(-1, 2)
         d0 = int(f.attrs["n_done"])
         if len(done):
@@ -292,7 +326,7 @@ class CropStoreWriter:
             f["done"][d0:] = done
         f.flush()  # data on disk before the counters that make it visible
         f.attrs["n_done"] = d0 + len(done)
-        f.attrs["n_committed"] = n0 + n
+        f.attrs["n_committed"] = n_committed
         f.flush()
 
     def finalize(self, extra_attrs: dict | None = None) -> Path:
@@ -510,6 +544,22 @@ class CropStore:
         return CropBatch(**out)
 
 
+def _same_row_chunks(a: h5py.Dataset, b: h5py.Dataset) -> bool:
+    """Whether two datasets store one row per chunk with the same type and filters, so a
+    compressed chunk of one is a valid chunk of the other."""
+    return (
+        a.chunks is not None
+        and a.chunks[0] == 1
+        and a.chunks == b.chunks
+        and a.dtype == b.dtype
+        and a.compression == b.compression
+        and a.compression_opts == b.compression_opts
+        and a.shuffle == b.shuffle
+        and a.fletcher32 == b.fletcher32
+        and a.scaleoffset == b.scaleoffset
+    )
+
+
 def merge_part(
     writer: CropStoreWriter, part_path: Path, camera_index: int, commit_frames: int
 ) -> int:
@@ -526,17 +576,13 @@ def merge_part(
         for i0 in range(0, len(todo), commit_frames):
             chunk = todo[i0 : i0 + commit_frames]
             rows = np.nonzero(np.isin(frames_col, chunk))[0]
+            a = b = 0
             if len(rows):
                 a, b = int(rows.min()), int(rows.max()) + 1
                 if b - a != len(rows):
                     raise StoreError(
                         f"{part_path}: rows of frames {chunk[0]}..{chunk[-1]} are not contiguous"
                     )
-                batch = CropBatch(
-                    **{k: f[k][a:b] for k in CropBatch.__dataclass_fields__ if k in f}
-                )
-            else:
-                batch = CropBatch.empty(writer.crop_size, writer.landmarks)
-            writer.commit(batch, [(fr, camera_index) for fr in chunk])
+            writer.commit_rows(f, a, b, [(fr, camera_index) for fr in chunk])
             added += len(chunk)
     return added
