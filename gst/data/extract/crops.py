@@ -48,6 +48,11 @@ class CropJob:
     # Synthetic truth: (frame, person) views of this camera where the person is at least
     # `MIN_VISIBLE_JOINTS` visible (their joints); the ones no crop covers are counted missed.
     visible_views: tuple[tuple[int, int], ...] | None = None
+    # The part store's compression: the scene store's, so that merging it copies the compressed
+    # crops as they are (gst.data.store.CropStoreWriter.commit_rows) and the compressing is
+    # done here, one process per camera, instead of in the merging process.
+    compression: str = "gzip"
+    compression_level: int = 1
 
 
 MIN_VISIBLE_JOINTS = 0.3  # share of a person's joints visible for a truth view to count
@@ -194,13 +199,13 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
             for f, p in job.visible_views:
                 visible.setdefault(int(f), set()).add(int(p))
         truth = IdMaskFile(job.truth_masks, cam.name) if job.truth_masks else None
-        # The part store is temporary: no compression (the scene store compresses once).
         with CropStoreWriter(
             job.part,
             list(job.camera_names),
             job.crop_size,
             job.settings,
-            compression="none",
+            compression=job.compression,
+            compression_level=job.compression_level,
             landmarks=lm_rows is not None,
         ) as part:
             done = {f for f, c in part.done_pairs() if c == job.camera_index}

@@ -10,9 +10,11 @@ Four phases, resumable through a work folder next to the store (`<store>.work/`)
    others painted out) when BlazePose is installed, else by the visual hull (`association`:
    hull -> people -> ids); both write per-camera person label images. The log says which ran.
 3. crops (`crops`, per camera, parallel): undistorted square crops of image and mask with their
-   own intrinsics, into a per-camera part store; scored against truth masks when given.
+   own intrinsics, into a per-camera part store compressed as the scene store is; scored
+   against truth masks when given.
 4. merge (`gst.data.store.merge_part`): the part stores are appended to the scene store frame
-   by frame, then the Parquet index is written and the store marked complete.
+   by frame (crops and masks as their compressed chunks), then the Parquet index is written and
+   the store marked complete.
 
 Per-camera work lives in module-level functions taking one picklable job, so `executor_map`
 can be a process pool's `map`.
@@ -412,6 +414,8 @@ def _crop_jobs(
                 plan.options.association.min_mask_fraction,
                 tuple(summary.short_tracks),
                 visible.get(n) if visible is not None else None,
+                compression=plan.options.compression,
+                compression_level=plan.options.compression_level,
             )
         )
     return jobs
