@@ -88,16 +88,16 @@ def skeleton_support(landmarks: np.ndarray, shape: tuple[int, int], width: float
 
 @dataclass(frozen=True)
 class SegmenterConfig:
+    # What a region's answer must be to count as a person, and their mask.
     min_presence: float = 0.5  # landmark model's presence score needed to keep a region
     threshold: float = 0.5  # person probability for a pixel to belong to someone
     # Two regions found the same person when their limb joints lie this close (share of body size).
     duplicate_distance: float = 0.15
     min_area: float = 0.001  # smallest person mask, as a share of the image area
-    track: bool = True  # seed each frame with the previous frame's people
     # Mask pixels must lie within this share of the region's side of the person's own skeleton.
     skeleton_width: float = 0.08
-    # A hint box is segmented only if people found without hints cover less than this share of it.
-    hint_covered: float = 0.3
+    # Where regions come from: the previous frame's people, the detector, and hint boxes.
+    track: bool = True  # seed each frame with the previous frame's people
     # With tracking: frames between runs of the person detector while every tracked person is
     # still found (it runs at once when one is lost, and when nobody is tracked); 1: every
     # frame. Extraction passes 10 (`extract.person_detect_every`): on the lab capture the same
@@ -106,6 +106,8 @@ class SegmenterConfig:
     detect_every: int = 1
     # a detector region this close to a tracked person's (share of the side) is that person
     same_region: float = 0.1
+    # A hint box is segmented only if people found without hints cover less than this share of it.
+    hint_covered: float = 0.3
     # frames before a hint box where the landmark model found nobody is looked at again (1:
     # every frame). A still shadow or reflection stays a background blob for the whole clip; a
     # person the detector missed moves, and a moved box is a new hint at once.
