@@ -301,10 +301,8 @@ class CropStoreWriter:
                 raise StoreError(
                     f"{src.filename}: crops are {src['images'].shape[1:]}, store holds {S}x{S}"
                 )
-            if self.landmarks and "landmarks" not in src:
-                raise StoreError(f"{src.filename}: the store holds landmarks, the part has none")
             for name in _row_specs(S, self.landmarks):
-                if name not in src:
+                if name not in src:  # e.g. the store holds landmarks, the part none
                     raise StoreError(f"{src.filename}: has no '{name}' rows to copy")
                 ds, part = f[name], src[name]
                 ds.resize(n0 + n, axis=0)

@@ -164,8 +164,8 @@ def _window(masks: Sequence[np.ndarray], skeletons: Sequence[np.ndarray]) -> tup
     the image holds its in-image pixels: the skeleton distances computed in the window are those
     of the whole image wherever a mask is."""
     h, w = masks[0].shape
-    rows = np.flatnonzero(np.any(masks, axis=(0, 2)))
-    cols = np.flatnonzero(np.any(masks, axis=(0, 1)))
+    union = np.logical_or.reduce(masks)
+    rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
     pts = np.concatenate([np.round(s[:, :2]) for s in skeletons])
     pts = np.clip(np.nan_to_num(pts), 0, (w - 1, h - 1)).astype(int)
     y0, y1 = min(rows[0], pts[:, 1].min()), max(rows[-1], pts[:, 1].max()) + 1

@@ -232,10 +232,7 @@ def own_pixels(
         near = np.repeat(np.repeat(near, st, axis=0), st, axis=1)[: y1 - y0, : x1 - x0]
     labels[y0:y1, x0:x1] = np.where(foreground[y0:y1, x0:x1], near, 0)
     for k in live:
-        area[k] = np.count_nonzero(covered[k]) * st * st
-        visibility[k] = (
-            np.count_nonzero(covered[k] & (owner == k)) / np.count_nonzero(covered[k])
-            if area[k]
-            else 0.0
-        )
+        samples = np.count_nonzero(covered[k])
+        area[k] = samples * st * st
+        visibility[k] = np.count_nonzero(covered[k] & (owner == k)) / samples if samples else 0.0
     return Ownership(labels, visibility, area)
