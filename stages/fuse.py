@@ -23,6 +23,8 @@ class Params(StageParams):
     refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
     # > 0: RANSAC over view pairs per landmark, among this many views (docs/fuse.md)
     pair_consensus: int = Field(0, ge=0)
+    # rounds of view limb groups exchanged where the fitted body says they were read mirrored
+    exchange_rounds: int = Field(1, ge=0)
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -43,6 +45,7 @@ def run(ctx: StageContext) -> None:
             triangulation=TriangulationOptions(consensus_views=p.pair_consensus),
             regroup=RegroupOptions() if p.regroup else None,
             refine_rig_rounds=p.refine_rig,
+            exchange_rounds=p.exchange_rounds,
             people_per_batch=p.people_per_batch,
             overlay=p.overlay,
         ),

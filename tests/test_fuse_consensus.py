@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from gst.body import load_body_model
-from gst.fuse.consensus import LIMB_GROUPS, SWAP, ConsensusOptions, view_consensus
+from gst.fuse.consensus import (
+    LIMB_GROUPS,
+    SWAP,
+    ConsensusOptions,
+    exchange_groups,
+    exchanges_against_body,
+    view_consensus,
+)
 from tests.fuse_fixtures import make_capture, observations
 
 torch.set_num_threads(1)
@@ -54,3 +61,31 @@ def test_too_few_agreeing_views_change_nothing(capture):
     assert not rep.dropped[1].any()
     _, rep = view_consensus(p, ConsensusOptions(min_agree=2))
     assert rep.dropped[1].tolist() == [True, False, False, False, False, False]
+
+
+def test_fitted_body_settles_an_even_split(capture):
+    """Two of four views read the person mirrored (arms and legs in one, the arms in the
+    other): the pair hypotheses of view_consensus cannot outvote them (2 against 2), the body
+    can. Exactly those groups are flagged; exchanging them restores the clean landmarks."""
+    people = observations(capture, noise_px=1.0, seed=3)
+    p = people[0]
+    p.rows[:, 4:] = -1  # four cameras
+    p.confidence[:, 4:] = 0
+    p.uv[:, 4:] = np.nan
+    clean = p.uv.copy()
+    arms = np.array(LIMB_GROUPS["arms"])
+    limbs = np.array(LIMB_GROUPS["arms"] + LIMB_GROUPS["legs"])
+    p.uv[2, 1, limbs] = clean[2, 1, SWAP[limbs]]  # frame 2, camera 1: arms and legs mirrored
+    p.uv[2, 3, arms] = clean[2, 3, SWAP[arms]]  # frame 2, camera 3: the arms
+    swap = exchanges_against_body(p, capture.markers[0], ConsensusOptions())
+    expected = np.zeros(swap.shape, bool)
+    expected[2, 1, [list(LIMB_GROUPS).index("arms"), list(LIMB_GROUPS).index("legs")]] = True
+    expected[2, 3, list(LIMB_GROUPS).index("arms")] = True
+    np.testing.assert_array_equal(swap, expected)
+    fixed = exchange_groups(p, swap)
+    np.testing.assert_array_equal(fixed.uv[:, :4], clean[:, :4])
+    # a clean person, and a body missing for a frame (NaN markers), exchange nothing
+    assert not exchanges_against_body(people[1], capture.markers[1]).any()
+    gone = capture.markers[0].copy()
+    gone[2] = np.nan
+    assert not exchanges_against_body(p, gone)[2].any()

@@ -32,7 +32,15 @@ from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.fuse.observations import PersonObservations
 from gst.fuse.triangulate import TriangulationOptions, triangulate_points
 
-__all__ = ["ConsensusOptions", "ConsensusReport", "view_consensus", "SWAP", "LIMB_GROUPS"]
+__all__ = [
+    "ConsensusOptions",
+    "ConsensusReport",
+    "view_consensus",
+    "exchange_groups",
+    "exchanges_against_body",
+    "SWAP",
+    "LIMB_GROUPS",
+]
 
 SWAP = BLAZEPOSE_MIRROR  # landmark index with left and right exchanged
 LIMB_GROUPS: dict[str, tuple[int, ...]] = {
@@ -152,6 +160,22 @@ def view_consensus(
         idx = np.array(idx)
         t = np.flatnonzero(flip[:, g])
         X[t[:, None], idx] = X[t[:, None], SWAP[idx]]
+    fixed = exchange_groups(obs, swap)
+    out_uv, out_conf = fixed.uv, fixed.confidence
+    # errors after the exchanges decide the drops
+    conf2 = np.where(np.isfinite(out_uv).all(-1), out_conf, 0.0)
+    err2, _ = _view_errors(fixed, X[:, None], np.nan_to_num(out_uv), conf2, o.min_confidence)
+    err2 = err2[:, 0]
+    drop = decide & ~(err2 < limit)
+    out_conf[drop] = 0.0
+    X = np.where((n_best >= 2)[:, None, None], X, np.nan)
+    report = ConsensusReport(drop, swap, err2, X, n_best)
+    return replace(obs, uv=out_uv, confidence=out_conf), report
+
+
+def exchange_groups(obs: PersonObservations, swap: np.ndarray) -> PersonObservations:
+    """A copy of `obs` with the left and right landmarks of each limb group exchanged where
+    `swap` (T, C, G) is set (groups in LIMB_GROUPS order)."""
     out_uv, out_conf = obs.uv.copy(), obs.confidence.copy()
     for g, idx in enumerate(LIMB_GROUPS.values()):
         t, c = np.nonzero(swap[..., g])
@@ -161,16 +185,34 @@ def view_consensus(
             out_conf[t[:, None], c[:, None], idx] = obs.confidence[
                 t[:, None], c[:, None], SWAP[idx]
             ]
-    # errors after the exchanges decide the drops
-    fixed = replace(obs, uv=out_uv, confidence=out_conf)
-    conf2 = np.where(np.isfinite(out_uv).all(-1), out_conf, 0.0)
-    err2, _ = _view_errors(fixed, X[:, None], np.nan_to_num(out_uv), conf2, o.min_confidence)
-    err2 = err2[:, 0]
-    drop = decide & ~(err2 < limit)
-    out_conf[drop] = 0.0
-    X = np.where((n_best >= 2)[:, None, None], X, np.nan)
-    report = ConsensusReport(drop, swap, err2, X, n_best)
-    return replace(obs, uv=out_uv, confidence=out_conf), report
+    return replace(obs, uv=out_uv, confidence=out_conf)
+
+
+def exchanges_against_body(
+    obs: PersonObservations, markers: np.ndarray, options: ConsensusOptions | None = None
+) -> np.ndarray:
+    """(T, C, G) bool: the limb groups of each view whose left and right landmarks lie much
+    nearer the fitted body's opposite side (`markers` (T, M, 3) world, the body's landmark
+    markers on `obs.frames`) than their own, by the consensus rule (the exchanged error below
+    `swap_gain` x the error as detected, the larger of the two above half the agreement limit).
+
+    The fitted body is a better judge than the pair hypotheses of `view_consensus`: it has
+    every view, the neighbouring frames and the body's shape behind it, so it settles the
+    frames where the views split evenly (the lab's man seen from behind by cam02 during a fast
+    turn, read as facing it for 20 frames)."""
+    o = options or ConsensusOptions()
+    seen = obs.rows >= 0
+    conf = np.where(np.isfinite(obs.uv).all(-1), obs.confidence, 0.0)
+    conf = np.where(conf >= o.min_confidence, conf, 0.0) * seen[..., None]
+    uv = np.nan_to_num(obs.uv)
+    X = np.asarray(markers, np.float64)[:, None]
+    _, grp = _view_errors(obs, X, uv, conf, o.min_confidence)
+    _, grp_sw = _view_errors(obs, X, uv[:, :, SWAP], conf[:, :, SWAP], o.min_confidence)
+    grp, grp_sw = grp[:, 0], grp_sw[:, 0]
+    limit = o.agree * _extent_px(obs, conf)
+    with np.errstate(invalid="ignore"):
+        clear = np.fmax(grp, grp_sw) > limit[..., None] / 2
+        return seen[..., None] & clear & (grp_sw < o.swap_gain * grp)
 
 
 def _extent_px(obs: PersonObservations, conf: np.ndarray) -> np.ndarray:

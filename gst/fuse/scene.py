@@ -34,10 +34,11 @@ from gst.atomic import atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.data.store import CropStore
+from gst.fuse.consensus import ConsensusOptions, exchange_groups, exchanges_against_body
 from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
-from gst.fuse.observations import crop_landmarks, group_by_person
+from gst.fuse.observations import PersonObservations, crop_landmarks, group_by_person
 from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.report import FuseSummary, summarise, write_report
 from gst.fuse.rig import apply_corrections, camera_corrections, corrected_rig, rotation_matrix
@@ -60,6 +61,9 @@ class FuseOptions:
     refine_rig_rounds: int = (
         0  # rounds of camera rotations corrected from the bodies (gst.fuse.rig)
     )
+    # rounds of limb groups exchanged left for right where the fitted body says a view read
+    # them mirrored (gst.fuse.consensus.exchanges_against_body), each followed by a refit
+    exchange_rounds: int = 1
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     threads: int = 1
@@ -157,6 +161,24 @@ def _fit_batches(body, markers, people, tris, fps, o, work: Path, rnd: int, prog
         if log is not None:
             log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
     return fits
+
+
+def _exchange_against_fits(
+    people: list[PersonObservations], fits: list[PersonFit], o: FuseOptions
+) -> tuple[list[PersonObservations], int]:
+    """Each person's views with the limb groups the fitted body says were read mirrored
+    exchanged; and how many (view, group) pairs that was."""
+    consensus = o.regroup.consensus if o.regroup is not None else ConsensusOptions()
+    out, total = [], 0
+    for p, f in zip(people, fits, strict=True):
+        at = np.minimum(np.searchsorted(f.frames, p.frames), len(f.frames) - 1)
+        markers = np.where(
+            (f.frames[at] == p.frames)[:, None, None], f.markers[at], np.nan
+        )  # a frame the fit lacks exchanges nothing
+        swap = exchanges_against_body(p, markers, consensus)
+        total += int(swap.sum())
+        out.append(exchange_groups(p, swap) if swap.any() else p)
+    return out, total
 
 
 def _log_rotation(R: np.ndarray) -> np.ndarray:
@@ -260,6 +282,18 @@ def fuse_scene(
                 "fuse: camera corrections (deg) %s",
                 np.round(np.degrees(np.linalg.norm(w, axis=1)), 2).tolist(),
             )
+    exchanged = 0
+    for k in range(o.exchange_rounds):
+        people, n = _exchange_against_fits(people, fits, o)
+        if not n:
+            break
+        exchanged += n
+        tris = [triangulate_person(p, o.triangulation) for p in people]
+        fits = _fit_batches(
+            body, markers, people, tris, fps, o, work, o.refine_rig_rounds + 1 + k, progress, log
+        )
+        if log is not None:
+            log.info("fuse: %d view limb groups read mirrored, exchanged and refitted", n)
     dense_tris = [
         dense_triangulation(t, p.frames, f.frames)
         for t, p, f in zip(tris, people, fits, strict=True)
