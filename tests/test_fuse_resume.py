@@ -54,6 +54,7 @@ def test_fuse_scene_writes_every_output(scene):
     err = [np.linalg.norm(f.joints - cap.joints[k], axis=-1).mean() for k, f in enumerate(res.fits)]
     assert max(err) < 0.05  # few iterations, few frames; the accuracy test is test_fuse_fit
     assert res.summary.gap_filled_share == 0.0
+    assert res.summary.exchanged_view_groups == 0  # clean landmarks: no view read mirrored
 
 
 def test_resume_after_kill_gives_identical_outputs(scene, tmp_path):

@@ -61,6 +61,8 @@ class FuseSummary:
     frames: int = 0
     truth: dict | None = None
     camera_corrections_deg: dict = field(default_factory=dict)  # gst.fuse.rig, per camera
+    # (view, limb group) pairs the fitted body said were read mirrored, exchanged and refitted
+    exchanged_view_groups: int = 0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -164,6 +166,12 @@ def write_report(
             "",
             f"Camera rotations corrected from the fitted bodies (degrees): {corr}. A correction "
             "of more than a few tenths of a degree says the calibration is worth redoing.",
+        ]
+    if summary.exchanged_view_groups:
+        lines += [
+            "",
+            f"Limb groups of single views read mirrored (left for right) and exchanged after the "
+            f"fit: {summary.exchanged_view_groups} (gst.fuse.consensus.exchanges_against_body).",
         ]
     if summary.truth:
         t = summary.truth

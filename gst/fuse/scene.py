@@ -317,6 +317,7 @@ def fuse_scene(
         for per, p, f in zip(limbs, people, fits, strict=True)
     ]
     summary = summarise(fits, dense_tris, evidence, cams, n_frames, truth, limbs)
+    summary.exchanged_view_groups = exchanged
     summary.camera_corrections_deg = (
         {}
         if not o.refine_rig_rounds
