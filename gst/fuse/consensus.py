@@ -67,6 +67,15 @@ class ConsensusReport:
     agreeing: np.ndarray  # (T,) int: views that agreed with the winning pair
 
 
+def _evidence(obs: PersonObservations, o: ConsensusOptions):
+    """(T, C) views seen, (T, C, M, 2) landmarks with NaN as 0, and (T, C, M) their confidence,
+    0 where missing, below `o.min_confidence` or in an unseen view."""
+    seen = obs.rows >= 0
+    conf = np.where(np.isfinite(obs.uv).all(-1), obs.confidence, 0.0)
+    conf = np.where(conf >= o.min_confidence, conf, 0.0) * seen[..., None]
+    return seen, np.nan_to_num(obs.uv), conf
+
+
 def _view_errors(obs, X, uv, conf, min_conf):
     """Median error (..., C) of every view's landmarks against points X (..., M, 3), per limb
     group too (..., C, G), in full-image pixels."""
@@ -115,10 +124,7 @@ def view_consensus(
     """A copy of `obs` with disagreeing views dropped and exchanged limb groups put right."""
     o = options or ConsensusOptions()
     T, C, M = obs.confidence.shape
-    seen = obs.rows >= 0
-    uv = np.nan_to_num(obs.uv)
-    conf = np.where(np.isfinite(obs.uv).all(-1), obs.confidence, 0.0)
-    conf = np.where(conf >= o.min_confidence, conf, 0.0) * seen[..., None]
+    seen, uv, conf = _evidence(obs, o)
     pairs = np.array(list(itertools.combinations(range(C), 2)))  # (H, 2)
     report = ConsensusReport(
         np.zeros((T, C), bool), np.zeros((T, C, 3), bool), np.full((T, C), np.nan),
@@ -201,10 +207,7 @@ def exchanges_against_body(
     frames where the views split evenly (the lab's man seen from behind by cam02 during a fast
     turn, read as facing it for 20 frames)."""
     o = options or ConsensusOptions()
-    seen = obs.rows >= 0
-    conf = np.where(np.isfinite(obs.uv).all(-1), obs.confidence, 0.0)
-    conf = np.where(conf >= o.min_confidence, conf, 0.0) * seen[..., None]
-    uv = np.nan_to_num(obs.uv)
+    seen, uv, conf = _evidence(obs, o)
     X = np.asarray(markers, np.float64)[:, None]
     _, grp = _view_errors(obs, X, uv, conf, o.min_confidence)
     _, grp_sw = _view_errors(obs, X, uv[:, :, SWAP], conf[:, :, SWAP], o.min_confidence)

@@ -171,10 +171,8 @@ def _exchange_against_fits(
     consensus = o.regroup.consensus if o.regroup is not None else ConsensusOptions()
     out, total = [], 0
     for p, f in zip(people, fits, strict=True):
-        at = np.minimum(np.searchsorted(f.frames, p.frames), len(f.frames) - 1)
-        markers = np.where(
-            (f.frames[at] == p.frames)[:, None, None], f.markers[at], np.nan
-        )  # a frame the fit lacks exchanges nothing
+        # the fit's frames hold every observed frame (gst.fuse.start.dense_frames)
+        markers = f.markers[np.searchsorted(f.frames, p.frames)]
         swap = exchanges_against_body(p, markers, consensus)
         total += int(swap.sum())
         out.append(exchange_groups(p, swap) if swap.any() else p)
