@@ -1,6 +1,7 @@
 """Pixels between people: capsule ownership (the person in front keeps what they hide; a pixel
 no capsule covers goes to the nearest one) and regions from projected skeletons."""
 
+import cv2
 import numpy as np
 from crowd_people import person, rig
 from hypothesis import given, settings
@@ -142,7 +143,7 @@ def _brute_force_labels(cam, fg, people, config):
 def test_ownership_equals_the_rule_at_every_pixel_and_a_coarser_grid_keeps_it(cam_i, x, y, gap):
     """`own_pixels` (boxes per capsule, step 1) gives the brute-force labels of the ownership
     rule at all but a handful of float32-rounding pixels; step 2 (the default: fields on every
-    second pixel) keeps the label of almost every foreground pixel and each person's visibility."""
+    second pixel) changes labels only next to label edges and keeps each person's visibility."""
     cam = RIG[cam_i]
     people = [person(x, y), person(x + gap, y + 0.3 * gap)]
     fg = np.zeros((cam.height, cam.width), bool)
@@ -154,7 +155,14 @@ def test_ownership_equals_the_rule_at_every_pixel_and_a_coarser_grid_keeps_it(ca
     want = _brute_force_labels(cam, fg, people, OwnershipConfig())
     assert np.count_nonzero(fine.labels != want) <= max(3, 1e-4 * np.count_nonzero(fg))
     coarse = own_pixels(cam, fg, people, config=OwnershipConfig(step=2))
+    # A 2 x 2 block takes its centre's label, so the grids may disagree only next to a label
+    # edge of the fine labels (within 3 px); how many such pixels there are depends on how long
+    # the edges are against the people's size.
+    k = np.ones((7, 7), np.uint8)
+    fine8 = fine.labels.astype(np.uint8)
+    near_edge = cv2.dilate(fine8, k) != cv2.erode(fine8, k)
+    assert not np.any((coarse.labels != fine.labels) & ~near_edge)
     labelled = (fine.labels > 0) | (coarse.labels > 0)
     if labelled.any():
-        assert np.mean(coarse.labels[labelled] == fine.labels[labelled]) > 0.97
+        assert np.mean(coarse.labels[labelled] == fine.labels[labelled]) > 0.95
     assert np.allclose(coarse.visibility, fine.visibility, atol=0.03)

@@ -9,22 +9,27 @@ Entry points:
   (`external`), truth scores (`evaluate`).
 """
 
-from gst.data.association import AssociationConfig, CaptureVolume, PersonTracker, VoxelGrid
-from gst.data.background import BackgroundConfig, build_background
-from gst.data.crop import CropBox, crop_camera, crop_intrinsics, extract_crop, hmr_crop_box
-from gst.data.external import ExternalDetections, ExternalError, IdMaskFile, read_external
-from gst.data.extract import (
-    CameraReport,
-    ExtractError,
-    ExtractOptions,
-    ExtractReport,
-    crop_person,
-    extract_scene,
-)
-from gst.data.masks import MaskConfig, clean_mask
-from gst.data.report import ExtractReportFiles, contact_sheet, write_extract_report
-from gst.data.store import CropBatch, CropStore, CropStoreWriter, MultiViewGroup, StoreError
-from gst.video import VideoError, VideoInfo, check_videos, probe_video, read_frames
+from typing import TYPE_CHECKING
+
+from gst.lazy import lazy_exports
+
+if TYPE_CHECKING:  # imported on first use (gst.lazy): worker processes stay light
+    from gst.data.association import AssociationConfig, CaptureVolume, PersonTracker, VoxelGrid
+    from gst.data.background import BackgroundConfig, build_background
+    from gst.data.crop import CropBox, crop_camera, crop_intrinsics, extract_crop, hmr_crop_box
+    from gst.data.external import ExternalDetections, ExternalError, IdMaskFile, read_external
+    from gst.data.extract import (
+        CameraReport,
+        ExtractError,
+        ExtractOptions,
+        ExtractReport,
+        crop_person,
+        extract_scene,
+    )
+    from gst.data.masks import MaskConfig, clean_mask
+    from gst.data.report import ExtractReportFiles, contact_sheet, write_extract_report
+    from gst.data.store import CropBatch, CropStore, CropStoreWriter, MultiViewGroup, StoreError
+    from gst.video import VideoError, VideoInfo, check_videos, probe_video, read_frames
 
 __all__ = [
     "AssociationConfig",
@@ -64,3 +69,5 @@ __all__ = [
     "read_frames",
     "write_extract_report",
 ]
+
+__getattr__, __dir__ = lazy_exports(__name__, __file__)

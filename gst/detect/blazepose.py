@@ -28,8 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gst.detect.boxes import box_iou
 from gst.detect.weights import model_paths
-from gst.metrics.image import box_iou
 
 DETECTOR_SIZE = 224
 LANDMARK_SIZE = 256

@@ -25,7 +25,7 @@ from gst.detect.blazepose import (
     roi_from_box,
     same_region,
 )
-from gst.metrics.image import box_iou
+from gst.detect.boxes import box_iou
 
 # BlazePose's 33 landmarks: the bones drawn to bound a person's mask (limbs, hands, feet).
 BONES = (

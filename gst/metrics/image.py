@@ -25,7 +25,6 @@ __all__ = [
     "BoxMetrics",
     "BoxRegion",
     "box_corners",
-    "box_iou",
     "masked_bbox_metrics",
     "points_box_corners",
     "project_box_region",
@@ -112,25 +111,6 @@ def ssim(
 # Corner order: bit 0 -> x, bit 1 -> y, bit 2 -> z (0 = min, 1 = max).
 _CORNER_BITS = np.array([[(i >> 0) & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)])
 _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N, 4) x (M, 4) corner-convention boxes -> (N, M) intersection over union."""
-    a, b = (
-        np.asarray(a, dtype=np.float64).reshape(-1, 4),
-        np.asarray(b, dtype=np.float64).reshape(-1, 4),
-    )
-    iw = np.clip(
-        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
-    )
-    ih = np.clip(
-        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
-    )
-    inter = iw * ih
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    union = area_a[:, None] + area_b[None, :] - inter
-    return np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
 
 
 def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:

@@ -17,7 +17,7 @@ import pyarrow.parquet as pq
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from gst.metrics.image import box_iou
+from gst.detect.boxes import box_iou
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.track.read import column_array, read_metadata
 from synth.truth import TruthViews, read_scene_truth, read_truth_views

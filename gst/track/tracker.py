@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from gst.metrics.image import box_iou  # noqa: F401  (re-exported: gst.track.box_iou)
+from gst.detect.boxes import box_iou  # noqa: F401  (re-exported: gst.track.box_iou)
 from gst.track.appearance import hellinger
 from gst.track.parts import PartConfig, is_part
 

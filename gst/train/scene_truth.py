@@ -18,7 +18,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from calibration.formats import read_rig
-from gst.metrics.image import box_iou
+from gst.detect.boxes import box_iou
 from gst.train.views import CropSet
 from synth.truth import SceneTruth, read_scene_truth, read_truth_views
 

@@ -76,17 +76,33 @@ class OwnershipConfig:
             raise ValueError(f"OwnershipConfig step must be >= 1, got {self.step}")
 
 
-def _end(points: np.ndarray, spec) -> np.ndarray:
-    idx = list(spec) if isinstance(spec, tuple) else [spec]
-    return points[idx].mean(axis=0)
+def _end_groups() -> list[tuple[np.ndarray, np.ndarray]]:
+    """The capsule ends of CAPSULES grouped by how many landmarks they average: per group the
+    ends' flat positions (capsule * 2 + end) and their (K, m) landmark indices."""
+    ends = [e if isinstance(e, tuple) else (e,) for a, b, _ in CAPSULES for e in (a, b)]
+    sizes = sorted({len(e) for e in ends})
+    return [
+        (
+            np.array([i for i, e in enumerate(ends) if len(e) == m]),
+            np.array([e for e in ends if len(e) == m]),
+        )
+        for m in sizes
+    ]
+
+
+_END_GROUPS = _end_groups()
+_RADII = np.array([r for _, _, r in CAPSULES])
 
 
 def capsules(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Capsule ends (S, 2, D) and radii (S,) of a (33, D) skeleton (metres for 3D), and the
-    (S,) bool of capsules whose ends are known (finite)."""
-    ends = np.stack([np.stack([_end(points, a), _end(points, b)]) for a, b, _ in CAPSULES])
-    radii = np.array([r for _, _, r in CAPSULES])
-    return ends, radii, np.all(np.isfinite(ends), axis=(1, 2))
+    (S,) bool of capsules whose ends are known (finite). An end that names several landmarks
+    is their mean."""
+    flat = np.empty((2 * len(CAPSULES), points.shape[1]))
+    for where, index in _END_GROUPS:
+        flat[where] = points[index].mean(axis=1)
+    ends = flat.reshape(len(CAPSULES), 2, -1)
+    return ends, _RADII.copy(), np.all(np.isfinite(ends), axis=(1, 2))
 
 
 @dataclass(frozen=True)
@@ -97,33 +113,51 @@ class Ownership:
 
 
 def _rasterize(
-    seg: tuple, xs: np.ndarray, ys: np.ndarray, reach: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """One person's fields on the grid of pixel coordinates `xs` x `ys` (increasing): per
-    sample the smallest distance/radius over their capsules (ends a, b (S, 2), radii ra, rb at
-    the ends in pixels, depths za, zb), and the depth of the front covering capsule (inf where
-    none covers). Each capsule is evaluated only over its own box grown by `reach` radii."""
-    Q = np.full((len(ys), len(xs)), np.inf, np.float32)
-    Z = np.full((len(ys), len(xs)), np.inf, np.float32)
-    for a, b, ra, rb, za, zb in zip(*seg, strict=True):
-        grow = reach * max(ra, rb)
-        lo, hi = np.minimum(a, b) - grow - 1, np.maximum(a, b) + grow + 1
-        cx0, cx1 = np.searchsorted(xs, lo[0]), np.searchsorted(xs, hi[0], side="right")
-        cy0, cy1 = np.searchsorted(ys, lo[1]), np.searchsorted(ys, hi[1], side="right")
-        if cx1 <= cx0 or cy1 <= cy0:
+    seg: tuple, xs: np.ndarray, ys: np.ndarray, reach: float, Q: np.ndarray, Z: np.ndarray
+) -> None:
+    """One person's fields on the grid of pixel coordinates `xs` x `ys` (increasing), written
+    into `Q` and `Z` (len(ys), len(xs), filled with inf): per sample the smallest
+    distance/radius over their capsules (ends a, b (S, 2), radii ra, rb at the ends in pixels,
+    depths za, zb), and the depth of the front covering capsule (inf where none covers). Each
+    capsule is evaluated only over its own box grown by `reach` radii, in float32 with
+    in-place arithmetic (the grid is large, the capsules many)."""
+    a, b, ra, rb, za, zb = seg
+    grow = reach * np.maximum(ra, rb)
+    lo = np.minimum(a, b) - grow[:, None] - 1
+    hi = np.maximum(a, b) + grow[:, None] + 1
+    cx0, cx1 = np.searchsorted(xs, lo[:, 0]), np.searchsorted(xs, hi[:, 0], side="right")
+    cy0, cy1 = np.searchsorted(ys, lo[:, 1]), np.searchsorted(ys, hi[:, 1], side="right")
+    f32 = np.float32
+    for i in range(len(a)):
+        if cx1[i] <= cx0[i] or cy1[i] <= cy0[i]:
             continue
-        px = (xs[cx0:cx1] - np.float32(a[0]))[None, :]
-        py = (ys[cy0:cy1] - np.float32(a[1]))[:, None]
-        ab = b - a
-        l2 = max(float(ab @ ab), 1e-9)
-        t = np.clip((px * ab[0] + py * ab[1]) / l2, 0.0, 1.0)
-        dx, dy = px - t * ab[0], py - t * ab[1]
-        q = np.sqrt(dx * dx + dy * dy) / np.maximum(ra + t * (rb - ra), 1e-6)
-        z = za + t * (zb - za)
-        sq, sz = Q[cy0:cy1, cx0:cx1], Z[cy0:cy1, cx0:cx1]
-        np.minimum(sq, q, out=sq)
-        np.minimum(sz, np.where(q < 1.0, z, np.inf), out=sz)
-    return Q, Z
+        px = xs[cx0[i] : cx1[i]] - f32(a[i, 0])
+        py = (ys[cy0[i] : cy1[i]] - f32(a[i, 1]))[:, None]
+        abx, aby = f32(b[i, 0] - a[i, 0]), f32(b[i, 1] - a[i, 1])
+        l2 = f32(max(float(abx) ** 2 + float(aby) ** 2, 1e-9))
+        t = py * (aby / l2) + px * (abx / l2)
+        np.clip(t, 0.0, 1.0, out=t)
+        dx = px - t * abx
+        dy = py - t * aby
+        dx *= dx
+        dy *= dy
+        dx += dy
+        np.sqrt(dx, out=dx)  # distance to the axis
+        if ra[i] == rb[i]:
+            dx /= f32(max(ra[i], 1e-6))
+        else:
+            r = t * f32(rb[i] - ra[i])
+            r += f32(ra[i])
+            np.maximum(r, f32(1e-6), out=r)
+            dx /= r
+        sq, sz = Q[cy0[i] : cy1[i], cx0[i] : cx1[i]], Z[cy0[i] : cy1[i], cx0[i] : cx1[i]]
+        np.minimum(sq, dx, out=sq)
+        if za[i] == zb[i]:
+            np.putmask(sz, (dx < 1.0) & (sz > f32(za[i])), f32(za[i]))
+        else:
+            t *= f32(zb[i] - za[i])
+            t += f32(za[i])
+            np.minimum(sz, np.where(dx < 1.0, t, np.inf), out=sz)
 
 
 def _sane(seg, W: int, H: int):
@@ -138,6 +172,17 @@ def _sane(seg, W: int, H: int):
     if not ok.any():
         return None
     return a[ok], b[ok], ra[ok], rb[ok], za[ok], zb[ok]
+
+
+def _min_first(fields: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum over axis 0 of (n, H, W) and its first index (`argmin`'s answer, without its slow
+    strided pass over a short first axis)."""
+    low, index = fields[0].copy(), np.zeros(fields.shape[1:], np.intp)
+    for k in range(1, len(fields)):
+        better = fields[k] < low
+        index[better] = k
+        np.minimum(low, fields[k], out=low)
+    return low, index
 
 
 def own_pixels(
@@ -220,16 +265,19 @@ def own_pixels(
     Q = np.full((n, len(ys), len(xs)), np.inf, np.float32)
     Z = np.full((n, len(ys), len(xs)), np.inf, np.float32)
     for k in live:
-        Q[k], Z[k] = _rasterize(segs[k], xs, ys, config.reach)
+        _rasterize(segs[k], xs, ys, config.reach, Q[k], Z[k])
     covered = Q < 1.0
     # 2D-only people are behind every 3D person (depth 1e9); among people at the same depth
     # the nearer skeleton (smaller q) wins. (Z is finite exactly where a capsule covers.)
-    tie = covered & (Z == Z.min(axis=0)[None])
-    front = np.where(tie, Q, np.inf).argmin(axis=0)
-    owner = np.where(covered.any(axis=0), front, Q.argmin(axis=0))
-    near = np.where(Q.min(axis=0) < config.reach, owner + 1, 0).astype(np.int32)
+    tie = covered & (Z == _min_first(Z)[0][None])
+    front = _min_first(np.where(tie, Q, np.inf))[1]
+    q_min, nearest = _min_first(Q)
+    owner = np.where(covered.any(axis=0), front, nearest)
+    near = np.where(q_min < config.reach, owner + 1, 0).astype(np.int32)
     if st > 1:
-        near = np.repeat(np.repeat(near, st, axis=0), st, axis=1)[: y1 - y0, : x1 - x0]
+        h, w = near.shape
+        near = np.broadcast_to(near[:, None, :, None], (h, st, w, st)).reshape(h * st, w * st)
+        near = near[: y1 - y0, : x1 - x0]
     labels[y0:y1, x0:x1] = np.where(foreground[y0:y1, x0:x1], near, 0)
     for k in live:
         samples = np.count_nonzero(covered[k])

@@ -31,7 +31,7 @@ from gst.data.keypoints.matching import (
     camera_view,
     fit_errors,
 )
-from gst.metrics.image import box_iou
+from gst.detect.boxes import box_iou
 
 _BODY = np.asarray(BODY_LANDMARKS)
 _FAR = 1e6
