@@ -23,6 +23,10 @@ class Params(StageParams):
     refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
     # > 0: RANSAC over view pairs per landmark, among this many views (docs/fuse.md)
     pair_consensus: int = Field(0, ge=0)
+    # where people are in each view (docs/fuse.md): a view covering a pair hypothesis counts
+    # this much beside a view whose landmark agrees (0: landmarks only)
+    silhouette_votes: float = Field(2.0, ge=0)
+    silhouette_fit: float = Field(0.0, ge=0)  # > 0: the fit pulls markers onto the people
     # rounds of view limb groups exchanged where the fitted body says they were read mirrored
     exchange_rounds: int = Field(1, ge=0)
     people_per_batch: int = 8
@@ -41,8 +45,13 @@ def run(ctx: StageContext) -> None:
         options=FuseOptions(
             body_model=p.body_model,
             markers=p.markers,
-            fit=FitOptions(iterations=p.iterations, w_smooth=p.smoothness),
-            triangulation=TriangulationOptions(consensus_views=p.pair_consensus),
+            fit=FitOptions(
+                iterations=p.iterations, w_smooth=p.smoothness, w_silhouette=p.silhouette_fit
+            ),
+            triangulation=TriangulationOptions(
+                consensus_views=p.pair_consensus, silhouette_weight=p.silhouette_votes
+            ),
+            silhouettes=p.silhouette_votes > 0 or p.silhouette_fit > 0,
             regroup=RegroupOptions() if p.regroup else None,
             refine_rig_rounds=p.refine_rig,
             exchange_rounds=p.exchange_rounds,
@@ -53,16 +62,7 @@ def run(ctx: StageContext) -> None:
         progress=ctx.progress,
         log=ctx.log,
     )
-    s = result.summary
-    ctx.log.info(
-        "fuse: %d people, median reprojection %.1f px, gap-filled %.1f%%%s",
-        len(s.people),
-        s.median_reprojection_px or float("nan"),
-        100 * (s.gap_filled_share or 0.0),
-        f"; MPJPE {s.truth['mpjpe_mm']:.1f} mm, PA-MPJPE {s.truth['pa_mpjpe_mm']:.1f} mm"
-        if s.truth
-        else "",
-    )
+    ctx.log.info("%s", result.summary.headline())
 
 
 STAGE = Stage(

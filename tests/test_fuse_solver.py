@@ -15,7 +15,7 @@ from gst.body.kinematics import MarkerSkeleton, left_jacobian, rodrigues
 from gst.body.markers import MarkerModel
 from gst.body.rotations import axis_angle_to_matrix
 from gst.fuse.fit import _limits_tensor, _neighbours
-from gst.fuse.objective import Points, Views, Weights, cost, linearise
+from gst.fuse.objective import Coverage, Points, Views, Weights, cost, linearise
 from gst.fuse.solver import BodyState, levenberg_marquardt, schur_step
 
 torch.set_num_threads(1)
@@ -146,6 +146,33 @@ def test_gradient_of_the_linearisation_equals_autograd(body, skeleton):
     mine = torch.cat([g[:, 6:75], g[:, 85:]], 1)
     np.testing.assert_allclose(2 * mine, auto, rtol=1e-6, atol=1e-6 * auto.abs().max())
     assert torch.allclose(H, H.transpose(1, 2))
+
+
+def test_gradient_of_the_silhouette_term_equals_autograd(body, skeleton):
+    """The coverage term's linearisation (distance and its gradient sampled from the fields)
+    against autograd through the sampling, on a field whose bilinear interpolation is exact (a
+    plane): the gradient channels are then the interpolant's true derivatives."""
+    ev, w, nb, person, (betas, root, theta, transl) = _problem(body, skeleton, B=6)
+    ev.K = ev.K + torch.tensor([[0, 0, 256.0], [0, 0, 256.0], [0, 0, 0]], dtype=D)
+    B, C, s, crop = 6, 3, 32, 768  # every projection well inside the crop
+    centres = (torch.arange(s, dtype=D) + 0.5) * crop / s
+    plane = 0.3 * centres[None, :] + 0.2 * centres[:, None] + 5.0  # crop px, u along columns
+    fields = torch.stack([plane, torch.full_like(plane, 0.3), torch.full_like(plane, 0.2)])
+    weight = torch.rand(B, C, generator=torch.Generator().manual_seed(3), dtype=D)
+    cov = Coverage(ev, fields.expand(B * C, 3, s, s), weight, torch.full((B,), 4.0, dtype=D), crop)
+    X, _, _, local, dX = skeleton.forward(betas, root, theta, transl, jacobian=True)
+    uv, _ = ev.project(X)
+    assert uv.min() > crop / s and uv.max() < crop * (1 - 1 / s)  # inside the field's cells
+    for evidence in (cov, [ev, cov]):
+        H, g = linearise(X, dX, theta, local, evidence, nb, w)
+        d = torch.zeros(B, 3, dtype=D, requires_grad=True)
+        tr = transl.clone().requires_grad_(True)
+        th = theta.clone().requires_grad_(True)
+        Xa, _, _, la = skeleton.forward(betas, rodrigues(d) @ root, th, tr)
+        cost(Xa, th, la, evidence, nb, w).sum().backward()
+        auto = torch.cat([d.grad, tr.grad, th.grad.reshape(B, 69)], 1)
+        np.testing.assert_allclose(2 * g[:, :75], auto, rtol=1e-6, atol=1e-6 * auto.abs().max())
+        assert torch.linalg.eigvalsh(H).min() > -1e-6 * H.abs().max()
 
 
 def test_schur_step_equals_the_dense_solve(body, skeleton):

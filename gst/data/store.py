@@ -513,13 +513,16 @@ class CropStore:
         if "landmarks" not in f:
             return None
         if rows is None:
-            return np.asarray(f["landmarks"][:], np.float32)
-        rows = np.asarray(rows, np.int64).reshape(-1)
-        order = np.argsort(rows, kind="stable")
-        uniq, inv = np.unique(rows[order], return_inverse=True)
-        out = np.empty((len(rows), N_LANDMARKS, 3), np.float32)
-        out[order] = np.asarray(f["landmarks"][uniq], np.float32)[inv]
-        return out
+            return np.asarray(f["landmarks"][: self.n], np.float32)
+        return _read_rows(f["landmarks"], rows).astype(np.float32, copy=False)
+
+    def read_masks(self, rows=None) -> np.ndarray:
+        """(n, S, S) uint8 person masks of `rows` (default all, in the given order); no image
+        is read."""
+        f = self._file()
+        if rows is None:
+            return np.asarray(f["masks"][: self.n])
+        return _read_rows(f["masks"], rows)
 
     def read(self, rows) -> CropBatch:
         """Load the given rows (any order; returned in that order)."""
@@ -527,19 +530,23 @@ class CropStore:
         if len(rows) and (rows.min() < 0 or rows.max() >= self.n):
             raise IndexError(f"rows must be in [0, {self.n}), got {rows.min()}..{rows.max()}")
         f = self._file()
-        order = np.argsort(rows, kind="stable")
-        srt = rows[order]
-        uniq, inv = np.unique(srt, return_inverse=True)
-        out = {}
-        for name in CropBatch.__dataclass_fields__:
-            if name in OPTIONAL_ROWS and name not in f:
-                continue  # a version 1 store, or one without landmarks
-            data = f[name][uniq] if len(uniq) else f[name][:0]
-            vals = data[inv]
-            res = np.empty_like(vals)
-            res[order] = vals
-            out[name] = res
+        out = {
+            name: _read_rows(f[name], rows)
+            for name in CropBatch.__dataclass_fields__
+            if name not in OPTIONAL_ROWS or name in f  # a version 1 store, or no landmarks
+        }
         return CropBatch(**out)
+
+
+def _read_rows(dataset: h5py.Dataset, rows) -> np.ndarray:
+    """`dataset[rows]` for any order and repeats (HDF5 reads want increasing unique rows)."""
+    rows = np.asarray(rows, np.int64).reshape(-1)
+    order = np.argsort(rows, kind="stable")
+    uniq, inv = np.unique(rows[order], return_inverse=True)
+    data = np.asarray(dataset[uniq] if len(uniq) else dataset[:0])
+    out = np.empty((len(rows), *dataset.shape[1:]), data.dtype)
+    out[order] = data[inv]
+    return out
 
 
 def _same_row_chunks(a: h5py.Dataset, b: h5py.Dataset) -> bool:

@@ -31,8 +31,18 @@ from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
 from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gst.body.skeleton import SMPL_JOINT_NAMES
-from gst.fuse.objective import Neighbours, Points, Views, Weights, cost, euler_xyz, linearise
+from gst.fuse.objective import (
+    Coverage,
+    Neighbours,
+    Points,
+    Views,
+    Weights,
+    cost,
+    euler_xyz,
+    linearise,
+)
 from gst.fuse.observations import PersonObservations
+from gst.fuse.silhouettes import CropSilhouettes
 from gst.fuse.solver import BodyState, levenberg_marquardt
 from gst.fuse.start import (
     TORSO_LANDMARKS,
@@ -70,6 +80,10 @@ class FitOptions:
     # > 0: each person's own marker offsets are fitted over the clip (as MoSh does for mocap
     # markers), pulled towards the table with this weight per m^2; 0: the table as it is
     w_marker_offsets: float = 0.0
+    # > 0: every marker, in every view with a crop, is pulled onto the people of that view
+    # (gst.fuse.silhouettes; Cauchy scale silhouette_sigma_factor x the landmark kernel's)
+    w_silhouette: float = 0.0
+    silhouette_sigma_factor: float = 3.0
     static_tol_m: float = 0.005
     max_gap: int = 15
 
@@ -169,13 +183,15 @@ def fit_people(
     options: FitOptions | None = None,
     start: list[PersonFit] | None = None,
     marker_offsets: list[np.ndarray | None] | None = None,
+    silhouettes: CropSilhouettes | None = None,
 ) -> list[PersonFit]:
     """Fit every person's body over the clip at once (one batch). Deterministic on CPU.
 
     `start`: earlier fits of the same people over the same frames (e.g. the previous window of
     a long clip) to start from instead of the rigid start; the start stage is then skipped.
     `marker_offsets`: per person, (M, 3) corrections of the marker table (a person's offsets
-    from an earlier fit), held fixed unless `w_marker_offsets` > 0 fits them further."""
+    from an earlier fit), held fixed unless `w_marker_offsets` > 0 fits them further.
+    `silhouettes`: the store's people per crop (gst.fuse.silhouettes), for `w_silhouette`."""
     o = options or FitOptions()
     if not people:
         return []
@@ -219,6 +235,15 @@ def fit_people(
         cat("K"), cat("Rt"), torch.nan_to_num(uv), torch.where(usable, conf, 0 * conf),
         cat("px_scale"), torch.as_tensor(np.repeat(sigmas, lengths), dtype=DTYPE),
     )  # fmt: skip
+    coverage = None
+    if silhouettes is not None and o.w_silhouette > 0:
+        rows = np.concatenate([d.rows for d in dense])  # (B, C)
+        fields = silhouettes.fields()[np.clip(rows, 0, None)]  # (B, C, 3, s, s)
+        coverage = Coverage(
+            views, torch.as_tensor(fields.reshape(-1, *fields.shape[2:])),
+            torch.as_tensor((rows >= 0) * o.w_silhouette, dtype=DTYPE),
+            views.sigma * o.silhouette_sigma_factor, silhouettes.crop_size,
+        )  # fmt: skip
     lo, hi = _limits_tensor(body)
     weights = Weights(
         o.w_pose, o.w_limits, o.w_smooth, (fps / 30.0) ** 2 / o.smooth_scale_m, lo, hi
@@ -310,9 +335,11 @@ def fit_people(
         if o.view_weighting and o.view_rounds:
             for _ in range(o.view_rounds):
                 weighed = _weigh_views(state, views, sk, person, marker_table(state))
-                state = solve(state, weighed, weights, o.iterations)
+                evidence = [weighed] if coverage is None else [weighed, coverage]
+                state = solve(state, evidence, weights, o.iterations)
         else:
-            state = solve(state, views, weights, o.iterations)
+            evidence = [views] if coverage is None else [views, coverage]
+            state = solve(state, evidence, weights, o.iterations)
         X, J, _, _ = sk.forward(
             state.betas[person], state.root, state.theta, state.transl,
             offsets=marker_table(state),

@@ -7,6 +7,10 @@
   noise level (so noisier evidence leans more on the priors); the Cauchy kernel makes wrong
   detections (the other person, a left/right swap) saturate;
 - data, 3D (`Points`, the start): the same kernel on the distance to triangulated landmarks;
+- silhouettes (`Coverage`, optional): the same kernel on how far (full-image px) each marker
+  projects outside the people of every view that has a crop (gst.fuse.silhouettes), whatever
+  its landmarks say: a limb that half the views read somewhere else still has to lie on
+  someone in all of them;
 - smoothness: Cauchy of each marker's second difference over consecutive frames, in units of
   `smooth_scale_m` at 30 fps (scaled by (30 / fps)^2, so a weight means the same at any rate);
 - pose prior (rest pose is the mode) and squared excess of the local rotations' X-Y-Z Euler
@@ -30,7 +34,9 @@ import torch
 
 from gst.body.kinematics import N_POSE_PARAMS, left_jacobian, skew
 
-__all__ = ["Views", "Points", "Neighbours", "Weights", "euler_xyz", "data_cost", "linearise"]
+__all__ = [
+    "Views", "Points", "Coverage", "Neighbours", "Weights", "euler_xyz", "data_cost", "linearise",
+]  # fmt: skip
 
 
 @dataclass
@@ -55,6 +61,41 @@ class Views:
         """(B, C, M) full-image pixel distances."""
         uv, _ = self.project(X)
         return (uv - self.uv).norm(dim=-1) * self.scale[..., None]
+
+    def jacobian(self, uv: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """d uv / d X (B, C, M, 2, 3) in full-image pixels per metre, at projections uv (crop
+        pixels) of depth z: (K[:2] - uv e3^T) / z @ R, times the crop's pixel scale."""
+        e3 = torch.tensor([0.0, 0.0, 1.0], dtype=uv.dtype)
+        Pc = (self.K[:, :, None, :2, :] - uv[..., :, None] * e3) / z[..., None]
+        return Pc @ self.Rt[:, :, None, :, :3] * self.scale[..., None, None, None]
+
+
+@dataclass
+class Coverage:
+    """Silhouette evidence of B person-frames on the C cameras of `views` (whose K, Rt and scale
+    it uses): per view a distance field over the crop, crop pixels from each cell to the nearest
+    cell covered by a person, and its gradient (gst.fuse.silhouettes)."""
+
+    views: Views
+    fields: torch.Tensor  # (B * C, 3, s, s): distance (crop px), d/du, d/dv
+    weight: torch.Tensor  # (B, C) 0 where the view has no crop
+    sigma: torch.Tensor  # (B,) Cauchy scale, full-image px
+    crop_size: int  # crop pixels across a crop (the fields span it)
+
+    def sample(self, X: torch.Tensor):
+        """For markers X (B, M, 3): distances (B, C, M) in full-image px, their gradients
+        (B, C, M, 2) per crop pixel of projection, the projections (crop px) and depths."""
+        uv, z = self.views.project(X)
+        B, C, M = uv.shape[:3]
+        grid = (uv / self.crop_size * 2 - 1).reshape(B * C, 1, M, 2).to(self.fields.dtype)
+        at = (
+            torch.nn.functional.grid_sample(
+                self.fields, grid, mode="bilinear", padding_mode="border", align_corners=False
+            )[:, :, 0]
+            .reshape(B, C, 3, M)
+            .to(X.dtype)
+        )
+        return at[:, :, 0] * self.views.scale[..., None], at[:, :, 1:].transpose(-1, -2), uv, z
 
 
 @dataclass
@@ -125,11 +166,14 @@ def _second_difference(X: torch.Tensor, nb: Neighbours, w: Weights) -> torch.Ten
     return torch.where(nb.centred[:, None, None], a, torch.zeros_like(a))
 
 
-def data_cost(X: torch.Tensor, evidence: Views | Points) -> torch.Tensor:
+def data_cost(X: torch.Tensor, evidence: Views | Points | Coverage) -> torch.Tensor:
     """(B,) robust data term."""
     if isinstance(evidence, Points):
         r2 = ((X - evidence.X) ** 2).sum(-1) / evidence.sigma_m**2
         return (evidence.weight * torch.log1p(r2)).sum(-1)
+    if isinstance(evidence, Coverage):
+        r2 = evidence.sample(X)[0] ** 2 / evidence.sigma[:, None, None] ** 2
+        return (evidence.weight[..., None] * torch.log1p(r2)).sum((1, 2))
     r2 = evidence.residuals(X) ** 2 / evidence.sigma[:, None, None] ** 2
     return (evidence.weight * torch.log1p(r2)).sum((1, 2))
 
@@ -151,7 +195,7 @@ def _as_list(evidence) -> list:
     return list(evidence) if isinstance(evidence, list | tuple) else [evidence]
 
 
-def _marker_information(X, ev: Views | Points):
+def _marker_information(X, ev: Views | Points | Coverage):
     """Per marker information matrix (B, M, 3, 3) and gradient (B, M, 3) of a data term."""
     eye = torch.eye(3, dtype=X.dtype)
     if isinstance(ev, Points):
@@ -159,15 +203,18 @@ def _marker_information(X, ev: Views | Points):
         s2 = ev.sigma_m**2
         wm = ev.weight / (1 + (d**2).sum(-1) / s2) / s2  # IRLS weights (B, M)
         return wm[..., None, None] * eye, wm[..., None] * d
+    if isinstance(ev, Coverage):
+        r, grad, uv, z = ev.sample(X)  # (B, C, M) full px, (B, C, M, 2)
+        s2 = ev.sigma[:, None, None] ** 2
+        wv = ev.weight[..., None] / (1 + r**2 / s2) / s2
+        J = (grad[..., None, :] @ ev.views.jacobian(uv, z))[..., 0, :]  # (B, C, M, 3)
+        Jw = J * wv[..., None]
+        return torch.einsum("bcmi,bcmj->bmij", Jw, J), torch.einsum("bcmi,bcm->bmi", Jw, r)
     uv, z = ev.project(X)
-    sc = ev.scale[..., None, None]
-    res = (uv - ev.uv) * sc  # (B, C, M, 2) full px
+    res = (uv - ev.uv) * ev.scale[..., None, None]  # (B, C, M, 2) full px
     s2 = ev.sigma[:, None, None] ** 2
     wv = ev.weight / (1 + (res**2).sum(-1) / s2) / s2  # IRLS weights (B, C, M)
-    # d uv / d X = (K[:2] - uv e3^T) / z @ R, in full-image pixels
-    e3 = torch.tensor([0.0, 0.0, 1.0], dtype=X.dtype)
-    Pc = (ev.K[:, :, None, :2, :] - uv[..., :, None] * e3) / z[..., None]
-    P = Pc @ ev.Rt[:, :, None, :, :3] * sc[..., None]  # (B, C, M, 2, 3)
+    P = ev.jacobian(uv, z)  # (B, C, M, 2, 3)
     Pw = P * wv[..., None, None]
     return torch.einsum("bcmki,bcmkj->bmij", Pw, P), torch.einsum("bcmki,bcmk->bmi", Pw, res)
 

@@ -64,6 +64,20 @@ class FuseSummary:
     # (view, limb group) pairs the fitted body said were read mirrored, exchanged and refitted
     exchanged_view_groups: int = 0
 
+    def headline(self) -> str:
+        """One line for the log: people, reprojection, gap share and, on synthetic scenes, the
+        error against the truth."""
+        truth = (
+            f"; MPJPE {self.truth['mpjpe_mm']:.1f} mm, PA-MPJPE {self.truth['pa_mpjpe_mm']:.1f} mm"
+            if self.truth
+            else ""
+        )
+        reprojection = self.median_reprojection_px or float("nan")
+        return (
+            f"fuse: {len(self.people)} people, median reprojection {reprojection:.1f} px, "
+            f"gap-filled {100 * (self.gap_filled_share or 0.0):.1f}%{truth}"
+        )
+
     def as_dict(self) -> dict:
         return dict(self.__dict__)
 

@@ -42,6 +42,7 @@ from gst.fuse.observations import PersonObservations, crop_landmarks, group_by_p
 from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.report import FuseSummary, summarise, write_report
 from gst.fuse.rig import apply_corrections, camera_corrections, corrected_rig, rotation_matrix
+from gst.fuse.silhouettes import crop_silhouettes
 from gst.fuse.start import dense_triangulation
 from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
 from gst.fuse.triangulate import TriangulationOptions, triangulate_person
@@ -64,6 +65,9 @@ class FuseOptions:
     # rounds of limb groups exchanged left for right where the fitted body says a view read
     # them mirrored (gst.fuse.consensus.exchanges_against_body), each followed by a refit
     exchange_rounds: int = 1
+    # the people's coverage of every view (gst.fuse.silhouettes): votes in the triangulation's
+    # pair consensus (triangulation.consensus_views > 0) and the fit's term (fit.w_silhouette)
+    silhouettes: bool = True
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     threads: int = 1
@@ -141,7 +145,9 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
     return fits
 
 
-def _fit_batches(body, markers, people, tris, fps, o, work: Path, rnd: int, progress, log):
+def _fit_batches(
+    body, markers, people, tris, fps, o, work: Path, rnd: int, progress, log, silhouettes=None
+):
     """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
     fits: list[PersonFit] = []
     batches = range(0, len(people), o.people_per_batch)
@@ -154,7 +160,7 @@ def _fit_batches(body, markers, people, tris, fps, o, work: Path, rnd: int, prog
             continue
         part = fit_people(
             body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
-            fps, o.fit,
+            fps, o.fit, silhouettes=silhouettes,
         )  # fmt: skip
         _save_npz(path, **_fits_to_arrays(part))
         fits += part
@@ -252,13 +258,23 @@ def fuse_scene(
                 "fuse: %d people after regrouping (%d crops moved to another person)",
                 regrouped.tracks, regrouped.moved_crops,
             )  # fmt: skip
-    tris = [triangulate_person(p, o.triangulation) for p in people]
+    silhouettes = None
+    if o.silhouettes and (o.triangulation.consensus_views or o.fit.w_silhouette > 0):
+        sizes = {c.name: (c.width, c.height) for c in rig.cameras}
+        silhouettes = crop_silhouettes(store, sizes)
+
+    def triangulate(people: list[PersonObservations]) -> list:
+        return [triangulate_person(p, o.triangulation, silhouettes) for p in people]
+
+    tris = triangulate(people)
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
 
     corrections = np.zeros((len(cams), 3))
     for rnd in range(o.refine_rig_rounds + 1):
-        fits = _fit_batches(body, markers, people, tris, fps, o, work, rnd, progress, log)
+        fits = _fit_batches(
+            body, markers, people, tris, fps, o, work, rnd, progress, log, silhouettes
+        )
         if rnd == o.refine_rig_rounds:
             break
         path = work / f"rig_{rnd}.npy"
@@ -274,7 +290,7 @@ def fuse_scene(
                 for a, b in zip(w, corrections, strict=True)
             ]
         )
-        tris = [triangulate_person(p, o.triangulation) for p in people]
+        tris = triangulate(people)
         if log is not None:
             log.info(
                 "fuse: camera corrections (deg) %s",
@@ -286,10 +302,11 @@ def fuse_scene(
         if not n:
             break
         exchanged += n
-        tris = [triangulate_person(p, o.triangulation) for p in people]
+        tris = triangulate(people)
         fits = _fit_batches(
-            body, markers, people, tris, fps, o, work, o.refine_rig_rounds + 1 + k, progress, log
-        )
+            body, markers, people, tris, fps, o, work, o.refine_rig_rounds + 1 + k, progress, log,
+            silhouettes,
+        )  # fmt: skip
         if log is not None:
             log.info("fuse: %d view limb groups read mirrored, exchanged and refitted", n)
     dense_tris = [

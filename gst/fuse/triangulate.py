@@ -52,6 +52,9 @@ class TriangulationOptions:
     # (84.7 -> 85.5 mm; 4.8 mm worse on one, where wrongly associated views of another person
     # outnumber the right ones). Weighing the agreeing views by confidence changes neither.
     consensus_views: int = 0
+    # with silhouettes (gst.fuse.silhouettes): each view whose people cover a hypothesis's
+    # projection counts this much beside each view whose landmark agrees with it
+    silhouette_weight: float = 1.0
 
 
 @dataclass
@@ -99,10 +102,13 @@ def _errors(P: np.ndarray, uv: np.ndarray, X: np.ndarray, scale: np.ndarray) -> 
 
 
 def _pair_consensus(
-    P, Pn, xn, uv, conf, seen, scale, outlier_px: float, max_views: int, chunk: int = 4096
+    P, Pn, xn, uv, conf, seen, scale, o: TriangulationOptions, silhouettes=None, chunk=4096
 ) -> np.ndarray:
     """(N, C) views to keep: those that agree with the best two-view hypothesis of each point
-    seen by 3 or more views (the rest keep every seen view)."""
+    seen by 3 or more views (the rest keep every seen view). With `silhouettes`
+    (ViewSilhouettes of the N points), the views whose people cover a hypothesis vote for it
+    too (`o.silhouette_weight` each): evidence that does not come from the landmarks."""
+    outlier_px, max_views = o.outlier_px, o.consensus_views
     used = seen.copy()
     todo = np.flatnonzero(seen.sum(1) >= 3)
     V = min(max_views, seen.shape[1])
@@ -119,7 +125,11 @@ def _pair_consensus(
         X = _dlt(Pn[idx][n, views], xn[idx][n, views], conf[idx][n, views] * ok[..., None])
         err = _errors(P[idx][:, None], uv[idx][:, None], X, scale[idx][:, None])
         agree = (err <= outlier_px) & seen[idx][:, None] & ok[..., None]  # (n, Q, C)
-        count = agree.sum(-1)
+        count = agree.sum(-1).astype(np.float64)
+        if silhouettes is not None:
+            at, z = project(P[idx][:, None], X)
+            covered = silhouettes.covered(idx, at) & (z > 0)
+            count += o.silhouette_weight * covered.sum(-1)
         # most agreeing views; then the most confidence (< 1 view's worth); then small errors
         key = (
             count
@@ -164,6 +174,7 @@ def triangulate_points(
     confidence: np.ndarray,
     px_scale: np.ndarray | None = None,
     options: TriangulationOptions | None = None,
+    silhouettes=None,
 ) -> Triangulated:
     """Triangulate N points from C views.
 
@@ -174,6 +185,8 @@ def triangulate_points(
         confidence: (N, C) detection confidence in [0, 1]; 0 or NaN where unobserved.
         px_scale: (N, C) factor turning those pixels into reported pixels (e.g. a crop's
             side / size gives full-image pixels); default 1.
+        silhouettes: a gst.fuse.silhouettes.ViewSilhouettes of the N points (their views'
+            coverage by people, in the pixels of `uv`): votes in the pair consensus.
     """
     o = options or TriangulationOptions()
     K = np.asarray(K, np.float64)
@@ -196,7 +209,7 @@ def triangulate_points(
     Pn, xn = np.nan_to_num(Rt), xh[..., :2] / xh[..., 2:3]
     used = seen.copy()
     if o.consensus_views:
-        used = _pair_consensus(P, Pn, xn, uv0, conf, seen, scale, o.outlier_px, o.consensus_views)
+        used = _pair_consensus(P, Pn, xn, uv0, conf, seen, scale, o, silhouettes)
     X = _dlt(Pn, xn, np.where(used, conf, 0.0))
     for _ in range(o.max_rejections):
         err = np.where(used, _errors(P, uv0, X, scale), 0.0)
@@ -255,8 +268,12 @@ class PersonTriangulation:
         return self.used.sum(-1)
 
 
-def triangulate_person(obs, options: TriangulationOptions | None = None) -> PersonTriangulation:
-    """Triangulate every landmark of a `gst.fuse.observations.PersonObservations`."""
+def triangulate_person(
+    obs, options: TriangulationOptions | None = None, silhouettes=None
+) -> PersonTriangulation:
+    """Triangulate every landmark of a `gst.fuse.observations.PersonObservations`;
+    `silhouettes`: the store's gst.fuse.silhouettes.CropSilhouettes (votes in the pair
+    consensus), or None."""
     T, C, M = obs.uv.shape[:3]
 
     def per_point(a: np.ndarray) -> np.ndarray:  # (T, C, ...) camera -> (T * M, C, ...)
@@ -266,7 +283,8 @@ def triangulate_person(obs, options: TriangulationOptions | None = None) -> Pers
     uv = np.moveaxis(obs.uv, 2, 1).reshape(T * M, C, 2)
     conf = np.moveaxis(obs.confidence, 2, 1).reshape(T * M, C)
     scale = np.repeat(obs.px_scale[:, None], M, 1).reshape(T * M, C)
-    tri = triangulate_points(K, Rt, uv, conf, scale, options)
+    views = None if silhouettes is None else silhouettes.for_views(obs.rows, M)
+    tri = triangulate_points(K, Rt, uv, conf, scale, options, views)
     return PersonTriangulation(
         tri.points.reshape(T, M, 3),
         tri.used.reshape(T, M, C),

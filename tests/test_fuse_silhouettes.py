@@ -1,0 +1,118 @@
+"""Where people are in each crop (gst.fuse.silhouettes) and its votes in the triangulation's pair
+consensus: a point half the views agree on but that lands on nobody in the other half loses to
+the point that lies on the person in every view."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_fuse_triangulate import _observe, _rig
+
+from gst.data.store import CropBatch, CropStore, CropStoreWriter
+from gst.fuse.silhouettes import CropSilhouettes, ViewSilhouettes, crop_silhouettes
+from gst.fuse.triangulate import TriangulationOptions, project, triangulate_points
+
+S = 64  # crop pixels
+
+
+def _store(path, windows, masks, camera, frame, names=("a", "b")):
+    n = len(windows)
+    batch = CropBatch(
+        images=np.zeros((n, S, S, 3), np.uint8),
+        masks=np.asarray(masks, np.uint8),
+        K_crop=np.tile(np.eye(3), (n, 1, 1)),
+        R=np.tile(np.eye(3), (n, 1, 1)),
+        t=np.zeros((n, 3)),
+        box=np.zeros((n, 4)),
+        crop_box=np.asarray(windows, np.float64),
+        camera=np.asarray(camera, np.int32),
+        frame=np.asarray(frame, np.int64),
+        person_id=np.arange(1, n + 1),
+        mask_support=np.full(n, np.nan, np.float32),
+    )
+    with CropStoreWriter(path, list(names), S) as w:
+        w.commit(batch, sorted({(int(f), int(c)) for f, c in zip(frame, camera, strict=True)}))
+        w.finalize({"n_frames": int(max(frame)) + 1})
+    return CropStore(path)
+
+
+def test_a_crop_is_covered_where_anyone_of_its_camera_and_frame_is_or_outside_the_image(tmp_path):
+    """Crop 0 (window x 0-64) sees its own block and crop 1's person (window x 32-96, twice the
+    pixels per cell) pasted where they are in the image; crop 2 (another frame) and crop 3
+    (another camera) are not pasted into it; a window hanging over the image's right edge is
+    covered there."""
+    masks = np.zeros((4, S, S), np.uint8)
+    masks[0, 8:24, 8:24] = 255  # image x 8-24, y 8-24
+    masks[1, 40:56, 40:56] = 255  # window (32, 0, 64): image x 52-60, y 20-28
+    masks[2, 40:56, 8:24] = 255
+    masks[3, 40:56, 8:24] = 255
+    windows = [(0, 0, 64), (32, 0, 32), (0, 0, 64), (40, 0, 64)]
+    store = _store(tmp_path / "c.h5", windows, masks, camera=[0, 0, 0, 1], frame=[0, 0, 1, 0])
+    sil = crop_silhouettes(store, {"a": (80, 64), "b": (80, 64)}, size=16)
+    assert isinstance(sil, CropSilhouettes) and sil.masks.shape == (4, 16, 16)
+    want = np.zeros((16, 16), bool)
+    want[2:6, 2:6] = True  # its own person
+    want[5:7, 13:15] = True  # crop 1's person, image x 52-60, y 20-28 (cells of 4 px)
+    np.testing.assert_array_equal(sil.masks[0], want)
+    want = np.zeros((16, 16), bool)
+    want[10:14, 2:6] = True
+    np.testing.assert_array_equal(sil.masks[2], want)  # frame 1: nobody else
+    want = np.zeros((16, 16), bool)
+    want[10:14, 2:6] = True
+    want[:, 10:] = True  # camera b's window spans x 40-104: past the image from x 80
+    np.testing.assert_array_equal(sil.masks[3], want)
+
+
+def test_silhouette_votes_settle_an_even_split():
+    """Three views read a point where it is, three read it somewhere else and agree with each
+    other, more confidently. The pair consensus alone cannot tell them apart (it keeps the
+    confident three); with the people's coverage of every view, the point that lies on someone
+    in all six views wins."""
+    rng = np.random.default_rng(4)
+    K, Rt = _rig(6, rng)
+    K[:, :2, 2] += 2000  # every projection inside the (large) crop
+    N = 30
+    X = rng.uniform([-1, -1, 0.5], [1, 1, 2], (N, 3))
+    Y = X + rng.uniform(0.3, 0.5, (N, 3)) * rng.choice([-1, 1], (N, 3))  # the wrong reading
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    _, _, uv_wrong = _observe(K, Rt, Y)
+    bad = np.stack([rng.choice(6, 3, replace=False) for _ in range(N)])
+    rows = np.arange(N)[:, None]
+    uv = uv + rng.normal(0, 0.3, uv.shape)
+    uv[rows, bad] = uv_wrong[rows, bad] + rng.normal(0, 0.3, (N, 3, 2))
+    conf = np.full((N, 6), 0.7)
+    conf[rows, bad] = 0.95
+    size, crop = 64, 4096  # cells of 64 px
+    masks = np.zeros((N, 6, size, size), bool)
+
+    def cover(points, views):
+        at, _ = project(np.broadcast_to(K @ Rt, (len(points), 6, 3, 4)), points)
+        cells = np.floor(at * size / crop).astype(int)
+        for n in range(N):
+            for c in views[n]:
+                masks[n, c, cells[n, c, 1], cells[n, c, 0]] = True
+
+    cover(X, np.tile(np.arange(6), (N, 1)))  # the person is where X projects, in every view
+    cover(Y, bad)  # and where the wrong views put it (they read it on someone)
+    views = ViewSilhouettes(masks, np.ones((N, 6), bool), np.arange(N), crop)
+    o = TriangulationOptions(consensus_views=8)
+    plain = triangulate_points(Kb, Rtb, uv, conf, options=o)
+    voted = triangulate_points(Kb, Rtb, uv, conf, options=o, silhouettes=views)
+    assert plain.used[rows, bad].all(1).mean() > 0.8  # the confident wrong three win
+    assert not voted.used[rows, bad].any()  # every wrong view dropped
+    assert (voted.used.sum(1) == 3).all()
+    assert np.linalg.norm(voted.points - X, axis=1).max() < 0.02
+    nobody = ViewSilhouettes(np.zeros_like(masks), np.ones((N, 6), bool), np.arange(N), crop)
+    same = triangulate_points(Kb, Rtb, uv, conf, options=o, silhouettes=nobody)
+    np.testing.assert_array_equal(same.used, plain.used)  # no coverage: no votes
+
+
+def test_views_without_a_crop_or_pixels_never_vote_and_the_outside_is_unknown():
+    masks = np.zeros((1, 3, 8, 8), bool)
+    masks[0, :, 2, 3] = True
+    views = ViewSilhouettes(masks, np.array([[True, True, False]]), np.array([0]), crop_size=80)
+    uv = np.array([[[35.0, 25.0], [35.0, 25.0], [35.0, 25.0]]])  # cell (3, 2) in every view
+    assert views.covered(np.array([0]), uv).tolist() == [[True, True, False]]
+    uv = np.array([[[5.0, 5.0], [np.nan, np.nan], [500.0, 5.0]]])
+    assert views.covered(np.array([0]), uv).tolist() == [[False, False, False]]
+    outside = np.array([[[-5.0, 5.0], [85.0, 5.0], [5.0, 5.0]]])
+    assert views.covered(np.array([0]), outside).tolist() == [[True, True, False]]
