@@ -21,11 +21,11 @@ class Params(StageParams):
     smoothness: float = 1.0  # weight of the temporal smoothness term
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
     refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
-    # > 0: RANSAC over view pairs per landmark, among this many views (docs/fuse.md)
-    pair_consensus: int = Field(0, ge=0)
+    # > 0: RANSAC over view pairs per landmark, among this many views (0: leave-one-out only)
+    pair_consensus: int = Field(8, ge=0)
     # where people are in each view (docs/fuse.md): a view covering a pair hypothesis counts
     # this much beside a view whose landmark agrees (0: landmarks only)
-    silhouette_votes: float = Field(2.0, ge=0)
+    silhouette_votes: float = Field(1.0, ge=0)
     silhouette_fit: float = Field(0.0, ge=0)  # > 0: the fit pulls markers onto the people
     # rounds of view limb groups exchanged where the fitted body says they were read mirrored
     exchange_rounds: int = Field(1, ge=0)

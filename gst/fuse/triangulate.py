@@ -47,10 +47,9 @@ class TriangulationOptions:
     max_rejections: int = 2  # leave-one-out rounds
     refine_iterations: int = 5  # Gauss-Newton steps
     # pair hypotheses among this many most confident views of a point (0: no pair consensus).
-    # Off by default: on the demo it halves a kicking ankle's error (fused MPJPE / PA 33.4 /
-    # 31.2 -> 32.7 / 29.9 mm, 2026-11-24), on the six crowd scenes it is no better on average
-    # (84.7 -> 85.5 mm; 4.8 mm worse on one, where wrongly associated views of another person
-    # outnumber the right ones). Weighing the agreeing views by confidence changes neither.
+    # Off here; the fusion turns it on with the people's silhouettes as votes
+    # (gst.fuse.scene.FuseOptions, docs/fuse.md "Silhouettes"): alone it is no better on the
+    # crowd scenes on average, with the silhouettes it is better on every scene measured.
     consensus_views: int = 0
     # with silhouettes (gst.fuse.silhouettes): each view whose people cover a hypothesis's
     # projection counts this much beside each view whose landmark agrees with it
