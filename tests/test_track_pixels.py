@@ -14,9 +14,9 @@ from gst.data.camera_view import TrackingView
 from gst.model.checkpoint import save_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.model.presets import get_preset
-from gst.track.appearance import colour_histogram
+from gst.track.appearance import box_histogram, colour_histogram
 from gst.track.detection import Detection
-from gst.track.frames import APPEARANCE_SIZE, prepare_detection
+from gst.track.frames import prepare_detection
 from gst.train.recipe import build_network
 
 
@@ -77,8 +77,32 @@ def test_a_detection_without_pixels_keeps_camera_landmarks_and_appearance():
     np.testing.assert_array_equal(fast.K_crop, full.K_crop)
     np.testing.assert_array_equal(fast.landmarks_crop, full.landmarks_crop)
     assert fast.crop_rgb.shape == full.crop_rgb.shape and not fast.crop_rgb.any()
-    # L1 of two unit-sum histograms (at most 2): the small crop blends more colours at the edges
-    assert np.abs(fast.appearance - full.appearance).sum() < 0.3
+    # the histogram comes from the frame, whether or not the crop is cut
+    np.testing.assert_array_equal(fast.appearance, full.appearance)
     other = colour_histogram(np.full((64, 64, 3), (200, 30, 30), np.uint8))  # RGB: red
     assert np.abs(fast.appearance - other).sum() > 1.0  # and still tells a red shirt apart
-    assert APPEARANCE_SIZE < 256
+
+
+def test_the_frame_sampled_histogram_is_the_core_of_the_box_or_its_mask():
+    """`box_histogram` reads every few pixels of the box's core: about the histogram of all
+    of them; with a mask, only the person's pixels of the whole box count."""
+    rng = np.random.default_rng(0)
+    frame = np.zeros((1088, 1920, 3), np.uint8)
+    frame[:] = (40, 120, 40)  # grass
+    box = np.array([700.0, 100, 1100, 1000])  # x0, y0, x1, y1
+    frame[100:1000, 700:1100] = rng.choice(
+        [(200, 30, 30), (30, 30, 200), (230, 230, 230)], (900, 400)
+    )
+    core = frame[190:910, 800:1000, ::-1]  # shrunk 25 % in x and 10 % in y, RGB
+    exact = colour_histogram(core)
+    sampled = box_histogram(frame, box)
+    assert np.abs(sampled - exact).sum() < 0.05  # L1 of unit-sum histograms (at most 2)
+    mask = np.zeros(frame.shape[:2], bool)
+    mask[100:1000, 700:1100] = True
+    frame[100:1000, 1000:1100] = (40, 120, 40)  # grass inside the box, outside the mask
+    mask[:, 1000:] = False
+    with_mask = box_histogram(frame, box, mask)
+    want = colour_histogram(frame[100:1000, 700:1000, ::-1])
+    assert np.abs(with_mask - want).sum() < 0.05
+    grass = colour_histogram(np.full((8, 8, 3), (40, 120, 40), np.uint8))
+    assert (with_mask * grass).sum() < 1e-3  # no grass counted

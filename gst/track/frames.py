@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 
 from gst.data.camera_view import TrackingView
-from gst.data.crop import crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
-from gst.track.appearance import colour_histogram, core_region
+from gst.data.crop import crop_intrinsics, crop_window
+from gst.track.appearance import box_histogram
 from gst.track.detection import N_LANDMARKS, Detection
 from gst.track.predictor import PoseBatch
 from gst.track.rows import RowSet
@@ -51,12 +51,6 @@ def _landmarks_in_crop(view: TrackingView, window, landmarks: np.ndarray | None)
     return np.c_[window.to_crop(uv), landmarks[:, 2]].astype(np.float32)
 
 
-# Side of the crop the appearance histogram is taken from when the network will not read the
-# detection's pixels (pose from its landmarks): colours, not detail, and 4 times fewer pixels.
-# At 64 px the blended colours at the edges added an id switch on the demo; 128 keeps its 2.
-APPEARANCE_SIZE = 128
-
-
 @functools.lru_cache(maxsize=4)
 def _blank(size: int) -> np.ndarray:
     blank = np.zeros((size, size, 3), np.uint8)
@@ -70,36 +64,25 @@ def prepare_detection(
     """Crop, K_crop, appearance histogram and crop-space landmarks of one detection.
 
     `pixels` False: the network will not read this crop (its pose comes from the landmarks,
-    `GSTPredictor.needs_pixels`), so `crop_rgb` is blank and the histogram comes from an
-    `APPEARANCE_SIZE` crop of the same window."""
+    `GSTPredictor.needs_pixels`), so no crop is cut and `crop_rgb` is blank. The histogram is
+    read from the frame itself either way (`box_histogram`), so that every detection of a video
+    is described alike."""
     box = view.model_box(det.box)  # in the undistorted image when the lens distorts
     window = crop_window(box, size)
     K_crop = crop_intrinsics(view.camera.K, window)
-    look = window if pixels else crop_window(box, APPEARANCE_SIZE)
-    crop_bgr, _ = view.crop(frame_bgr, look)
-    crop_rgb = cv2.cvtColor(crop_bgr, cv2.COLOR_BGR2RGB)
-    box_in_crop = (box - [look.x0, look.y0, look.x0, look.y0]) * look.scale
-    if det.mask is not None:
-        m = np.asarray(det.mask, dtype=np.uint8)
-        if m.shape != frame_bgr.shape[:2]:
-            raise ValueError(
-                f"detection mask has shape {m.shape}, expected the frame's {frame_bgr.shape[:2]}"
-            )
-        mc = (
-            cut_undistorted_crop(m, view.camera, look, cv2.INTER_NEAREST)
-            if view.has_distortion
-            else cut_crop(m, look, cv2.INTER_NEAREST)
+    if det.mask is not None and np.shape(det.mask) != frame_bgr.shape[:2]:
+        raise ValueError(
+            f"detection mask has shape {np.shape(det.mask)}, expected the frame's "
+            f"{frame_bgr.shape[:2]}"
         )
-        rows, cols = core_region(look.size, box_in_crop, 0.0, 0.0)
-        hist = colour_histogram(crop_rgb[rows, cols], (mc[rows, cols] > 0).astype(np.uint8))
+    hist = box_histogram(frame_bgr, det.box, det.mask)
+    if pixels:
+        crop_bgr, _ = view.crop(frame_bgr, window)
+        crop_rgb = cv2.cvtColor(crop_bgr, cv2.COLOR_BGR2RGB)
     else:
-        rows, cols = core_region(look.size, box_in_crop)
-        hist = colour_histogram(crop_rgb[rows, cols])
+        crop_rgb = _blank(size)
     return PreparedDetection(
-        crop_rgb if pixels else _blank(size),
-        K_crop,
-        hist,
-        _landmarks_in_crop(view, window, det.landmarks),
+        crop_rgb, K_crop, hist, _landmarks_in_crop(view, window, det.landmarks)
     )
 
 
