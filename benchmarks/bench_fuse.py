@@ -9,7 +9,9 @@ them (`gst.fuse.observations.crop_landmarks`, refined second pass), cached besid
 person-frame and camera: undistorted full-image pixels, confidence, and the cameras' K, R, t);
 the peers run in their own virtual environment (benchmark tools, never project dependencies):
 
-- ours, triangulation: gst.fuse.triangulate (weighted DLT + leave-one-out + Gauss-Newton);
+- ours, triangulation: gst.fuse.triangulate with the fuse stage's defaults (pair consensus over
+  the 8 most confident views with the people's silhouettes voting, weighted DLT, leave-one-out,
+  Gauss-Newton);
 - ours, body fit: gst.fuse.fit (markers, all cameras, whole clip, Levenberg-Marquardt);
 - Pose2Sim 0.10.49: its weighted DLT (`Pose2Sim.common.weighted_triangulation`) inside its
   camera-exclusion loop (drop views while the mean reprojection error exceeds 15 px);
@@ -256,6 +258,8 @@ def main() -> None:
     from gst.fuse.fit import FitOptions, fit_people
     from gst.fuse.observations import crop_landmarks, group_by_person
     from gst.fuse.regroup import regroup_people
+    from gst.fuse.scene import FuseOptions
+    from gst.fuse.silhouettes import crop_silhouettes
     from gst.fuse.triangulate import triangulate_person
     from synth.truth import read_scene_truth
 
@@ -270,6 +274,12 @@ def main() -> None:
         lm = crop_landmarks(store)
         np.save(cache, lm)
     extracted = group_by_person(store, lm)
+    tri_options = FuseOptions().triangulation  # what the fuse stage triangulates with
+    silhouettes = crop_silhouettes(store, {c.name: (c.width, c.height) for c in rig.cameras})
+
+    def triangulate(p):
+        return triangulate_person(p, tri_options, silhouettes)
+
     (regrouped, report), t_regroup = _median_time(lambda: regroup_people(extracted), 1)
     body = load_body_model("anny")
     markers = MarkerModel.load()
@@ -284,7 +294,7 @@ def main() -> None:
             mp, pa, n = scored
             results.append((grouping, name, mp, pa, n, 1000 * sec / n_pf, note))
 
-        tris, sec = _median_time(lambda ps=people: [triangulate_person(p) for p in ps],
+        tris, sec = _median_time(lambda ps=people: [triangulate(p) for p in ps],
                                  args.repeats)  # fmt: skip
         X = np.concatenate([t.points for t in tris])
         row("ours: triangulation", _score(_joints13(X), person, frame, truth, JOINTS13), sec)
@@ -338,7 +348,7 @@ def main() -> None:
                                            (T, C // 2, 1), (T, C, 2), (T, C, 4)):  # fmt: skip
         sub = [_copy(p, 1000 * k + p.person_id, frames_keep, cams_keep)
                for k in range(copies) for p in fits_for_speed]  # fmt: skip
-        sub_tris = [triangulate_person(q) for q in sub]
+        sub_tris = [triangulate(q) for q in sub]
         _, sec = _median_time(
             lambda s=sub, st=sub_tris: fit_people(body, markers, s, st, 30.0, FitOptions()),
             args.repeats,
