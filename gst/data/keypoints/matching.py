@@ -200,30 +200,6 @@ def pair_costs(a: CameraView, b: CameraView, config: MatchConfig) -> tuple[np.nd
         flip = np.isfinite(costs[1]) & ~(costs[0] <= costs[1])
         cost = np.where(flip, costs[1], costs[0])
     return cost, flip
-    ca, cb = a.cam.center, b.cam.center
-    zlo, zhi = config.z_range
-    readings = [(False, np.arange(len(_BODY)))] + ([(True, _BODY_MIRROR)] if config.mirror else [])
-    best = np.full((na, nb), np.inf)
-    for mirrored, order in readings:
-        rb, wb = b.rays[:, order], b.conf[:, order]
-        gap, mid, s, t = ray_gaps(ca, a.rays[:, None], cb, rb[None])  # (na, nb, B)
-        w = np.minimum(a.conf[:, None], wb[None])
-        seen = w > 0
-        n_seen = seen.sum(axis=-1)
-        ok = (s > 0.05) & (t > 0.05) & (mid[..., 2] > zlo) & (mid[..., 2] < zhi)
-        wsum = np.maximum(w.sum(axis=-1), 1e-12)
-        front = (w * ok).sum(axis=-1) / wsum
-        mean_gap = (w * np.minimum(gap, config.gap_truncate)).sum(axis=-1) / wsum
-        c = np.where(n_seen < config.min_shared, np.nan, mean_gap)
-        c = np.where((n_seen >= config.min_shared) & (front < config.min_front), np.inf, c)
-        better = np.isfinite(c) & (c < best)
-        best = np.where(better, c, best)
-        flip |= better & mirrored
-        flip &= ~(better & ~mirrored)
-        cost = np.where(better, c, cost)
-        # keep "impossible" when no reading was possible
-        cost = np.where(np.isnan(cost) & np.isinf(c), np.inf, cost)
-    return cost, flip
 
 
 def fit_errors(
