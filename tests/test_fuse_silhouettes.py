@@ -5,6 +5,8 @@ the point that lies on the person in every view."""
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_fuse_triangulate import _observe, _rig
 
 from gst.data.store import CropBatch, CropStore, CropStoreWriter
@@ -93,7 +95,7 @@ def test_silhouette_votes_settle_an_even_split():
 
     cover(X, np.tile(np.arange(6), (N, 1)))  # the person is where X projects, in every view
     cover(Y, bad)  # and where the wrong views put it (they read it on someone)
-    views = ViewSilhouettes(masks, np.ones((N, 6), bool), np.arange(N), crop)
+    views = ViewSilhouettes.from_masks(masks, np.ones((N, 6), bool), np.arange(N), crop)
     o = TriangulationOptions(consensus_views=8)
     plain = triangulate_points(Kb, Rtb, uv, conf, options=o)
     voted = triangulate_points(Kb, Rtb, uv, conf, options=o, silhouettes=views)
@@ -101,7 +103,9 @@ def test_silhouette_votes_settle_an_even_split():
     assert not voted.used[rows, bad].any()  # every wrong view dropped
     assert (voted.used.sum(1) == 3).all()
     assert np.linalg.norm(voted.points - X, axis=1).max() < 0.02
-    nobody = ViewSilhouettes(np.zeros_like(masks), np.ones((N, 6), bool), np.arange(N), crop)
+    nobody = ViewSilhouettes.from_masks(
+        np.zeros_like(masks), np.ones((N, 6), bool), np.arange(N), crop
+    )
     same = triangulate_points(Kb, Rtb, uv, conf, options=o, silhouettes=nobody)
     np.testing.assert_array_equal(same.used, plain.used)  # no coverage: no votes
 
@@ -109,10 +113,28 @@ def test_silhouette_votes_settle_an_even_split():
 def test_views_without_a_crop_or_pixels_never_vote_and_the_outside_is_unknown():
     masks = np.zeros((1, 3, 8, 8), bool)
     masks[0, :, 2, 3] = True
-    views = ViewSilhouettes(masks, np.array([[True, True, False]]), np.array([0]), crop_size=80)
+    views = ViewSilhouettes.from_masks(masks, np.array([[True, True, False]]), np.array([0]), 80)
     uv = np.array([[[35.0, 25.0], [35.0, 25.0], [35.0, 25.0]]])  # cell (3, 2) in every view
     assert views.covered(np.array([0]), uv).tolist() == [[True, True, False]]
     uv = np.array([[[5.0, 5.0], [np.nan, np.nan], [500.0, 5.0]]])
     assert views.covered(np.array([0]), uv).tolist() == [[False, False, False]]
     outside = np.array([[[-5.0, 5.0], [85.0, 5.0], [5.0, 5.0]]])
     assert views.covered(np.array([0]), outside).tolist() == [[True, True, False]]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), size=st.sampled_from([8, 16, 64]))
+def test_the_packed_lookup_reads_the_cell_each_pixel_falls_in(seed, size):
+    """Silhouettes are kept as bits; `covered` must read the same cell as plain indexing."""
+    rng = np.random.default_rng(seed)
+    T, C, crop = 3, 4, 96
+    masks = rng.random((T, C, size, size)) < 0.4
+    has = rng.random((T, C)) < 0.8
+    views = ViewSilhouettes.from_masks(masks, has, np.arange(T), crop)
+    uv = rng.uniform(0, crop, (T, 5, C, 2))  # 5 hypotheses a point, inside the crop
+    cell = np.floor(uv * size / crop).astype(int)
+    t, c = np.arange(T)[:, None, None], np.arange(C)[None, None, :]
+    want = masks[t, c, cell[..., 1], cell[..., 0]] & has[t, c]
+    np.testing.assert_array_equal(views.covered(np.arange(T), uv), want)
+    crops = CropSilhouettes.from_masks(masks.reshape(-1, size, size), crop)
+    np.testing.assert_array_equal(crops.masks, masks.reshape(-1, size, size))

@@ -262,7 +262,7 @@ def fuse_scene(
     silhouettes = None
     if o.silhouettes and (o.triangulation.consensus_views or o.fit.w_silhouette > 0):
         sizes = {c.name: (c.width, c.height) for c in rig.cameras}
-        silhouettes = crop_silhouettes(store, sizes)
+        silhouettes = crop_silhouettes(store, sizes, progress=progress)
 
     def triangulate(people: list[PersonObservations]) -> list:
         return [triangulate_person(p, o.triangulation, silhouettes) for p in people]

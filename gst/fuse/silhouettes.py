@@ -29,18 +29,22 @@ def crop_silhouettes(
     image_sizes: dict[str, tuple[int, int]],
     size: int = SILHOUETTE_SIZE,
     coverage: float = 0.25,
+    progress=None,
 ) -> CropSilhouettes:
     """Per crop row of the store, (size, size) bool: the cells of its window covered by any
     person of its camera and frame (a cell counts when `coverage` of it is masked), or outside
     the image. `image_sizes`: camera name -> (width, height) of the undistorted image the crop
-    boxes are in."""
+    boxes are in. Kept as bits: 512 bytes a crop at the default size. `progress`: an optional
+    wrapper of iterables (description=, total=), as the pipeline's."""
+    if size % 8:
+        raise ValueError(f"crop_silhouettes: size must be a multiple of 8, got {size}")
     missing = sorted(set(store.camera_names) - set(image_sizes))
     if missing:
         raise ValueError(f"{store.path}: no image size for camera(s) {missing}")
     n = len(store)
-    out = np.zeros((n, size, size), bool)
+    out = np.zeros((n, size, size // 8), np.uint8)
     if n == 0:
-        return CropSilhouettes(out, store.crop_size)
+        return CropSilhouettes(out, size, store.crop_size)
     with h5py.File(store.path, "r") as f:
         boxes = np.asarray(f["crop_box"][:n], np.float64)  # x0, y0, side (full-image px)
     frame = store.index.column("frame").to_numpy()
@@ -49,7 +53,10 @@ def crop_silhouettes(
     key = np.stack([cam[order], frame[order]], 1)
     starts = np.flatnonzero(np.r_[True, np.any(key[1:] != key[:-1], axis=1), True])
     centres = (np.arange(size) + 0.5) / size  # cell centres as a share of the window
-    for a, b in zip(starts[:-1], starts[1:], strict=True):
+    groups = zip(starts[:-1], starts[1:], strict=True)
+    if progress is not None:
+        groups = progress(groups, description="people per view", total=len(starts) - 1)
+    for a, b in groups:
         rows = order[a:b]
         width, height = image_sizes[store.camera_names[int(cam[rows[0]])]]
         # each mask's coverage on its own coarse grid, then resampled into the others' windows
@@ -73,17 +80,29 @@ def crop_silhouettes(
                 np.maximum(union, warped, out=union)
             xs, ys = x0 + centres * side, y0 + centres * side
             outside = ((ys < 0) | (ys >= height))[:, None] | ((xs < 0) | (xs >= width))[None, :]
-            out[i] = (union >= coverage) | outside
-    return CropSilhouettes(out, store.crop_size)
+            out[i] = np.packbits((union >= coverage) | outside, axis=-1)
+    return CropSilhouettes(out, size, store.crop_size)
 
 
 @dataclass
 class CropSilhouettes:
-    """`masks[row]`: the coarse silhouette of the store's crop `row` (see crop_silhouettes)."""
+    """The coarse silhouette of each crop row of a store (see crop_silhouettes), as bits."""
 
-    masks: np.ndarray  # (N, size, size) bool
+    bits: np.ndarray  # (N, size, size // 8) uint8, np.packbits along the last axis
+    size: int  # cells across a crop
     crop_size: int  # pixels across a crop
     _fields: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+
+    @classmethod
+    def from_masks(cls, masks: np.ndarray, crop_size: int) -> CropSilhouettes:
+        """From (N, size, size) bool silhouettes."""
+        masks = np.asarray(masks, bool)
+        return cls(np.packbits(masks, axis=-1), masks.shape[-1], crop_size)
+
+    @property
+    def masks(self) -> np.ndarray:
+        """(N, size, size) bool (unpacked: 8 times the memory of `bits`)."""
+        return np.unpackbits(self.bits, axis=-1, count=self.size).astype(bool)
 
     def fields(self) -> np.ndarray:
         """`distance_fields()`, computed once."""
@@ -95,10 +114,10 @@ class CropSilhouettes:
         """(N, 3, size, size) float32 per crop: crop pixels from each cell centre to the nearest
         covered cell (0 on people), and its derivatives along u and v. Coarser than the masks:
         a distance is smooth, and the body fit holds one field per person-frame and camera."""
-        n, s = len(self.masks), self.masks.shape[-1] if len(self.masks) else size
-        out = np.zeros((n, 3, size, size), np.float32)
-        cell = self.crop_size / s  # crop px per mask cell
-        for k, m in enumerate(self.masks):
+        out = np.zeros((len(self.bits), 3, size, size), np.float32)
+        cell = self.crop_size / self.size  # crop px per mask cell
+        for k, packed in enumerate(self.bits):
+            m = np.unpackbits(packed, axis=-1, count=self.size).astype(bool)
             if not m.any():
                 continue  # nobody to measure from: no evidence
             d = cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 5) * cell
@@ -111,31 +130,37 @@ class CropSilhouettes:
         """The silhouettes of one person's views, `rows` (T, C) store rows (-1: no crop), for
         T x `points_per_frame` points ordered frame by frame."""
         rows = np.asarray(rows, np.int64)
+        bits = self.bits if len(self.bits) else np.zeros((1, self.size, self.size // 8), np.uint8)
         return ViewSilhouettes(
-            self.masks[np.clip(rows, 0, None)] if len(self.masks) else
-            np.zeros((*rows.shape, 1, 1), bool),
+            bits[np.clip(rows, 0, len(bits) - 1)],
             rows >= 0,
             np.repeat(np.arange(len(rows)), points_per_frame),
             self.crop_size,
-        )  # fmt: skip
+        )
 
 
 @dataclass
 class ViewSilhouettes:
     """Silhouettes of the views of a batch of points: point k is seen from the views of frame
-    `frame_of[k]`, whose silhouettes are `masks[frame_of[k]]` (C views, size x size cells of
-    a crop of `crop_size` pixels); `has[t, c]` is False where that view has no crop."""
+    `frame_of[k]`, whose silhouettes are `bits[frame_of[k]]` (C views, size x size cells of a
+    crop of `crop_size` pixels, packed along u); `has[t, c]` is False where that view has no
+    crop."""
 
-    masks: np.ndarray  # (T, C, size, size) bool
+    bits: np.ndarray  # (T, C, size, size // 8) uint8
     has: np.ndarray  # (T, C) bool
     frame_of: np.ndarray  # (N,) int
     crop_size: int
+
+    @classmethod
+    def from_masks(cls, masks, has, frame_of, crop_size: int) -> ViewSilhouettes:
+        """From (T, C, size, size) bool silhouettes."""
+        return cls(np.packbits(np.asarray(masks, bool), axis=-1), has, frame_of, crop_size)
 
     def covered(self, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(n, ..., C) bool: the view has a crop and its silhouette covers the crop pixels `uv`
         (n, ..., C, 2) of points `points` (n,); NaN pixels are never covered, pixels outside
         the crop always are (nothing is known there)."""
-        size = self.masks.shape[-1]
+        size = 8 * self.bits.shape[-1]
         t = self.frame_of[np.asarray(points)]
         t = t.reshape(t.shape + (1,) * (uv.ndim - 2))
         c = np.arange(uv.shape[-2])
@@ -143,6 +168,6 @@ class ViewSilhouettes:
         cell = np.clip(cell, -1, size).astype(np.int64)
         inside = ((cell >= 0) & (cell < size)).all(-1)
         u, v = np.clip(cell[..., 0], 0, size - 1), np.clip(cell[..., 1], 0, size - 1)
-        hit = self.masks[t, c, v, u]
+        hit = (self.bits[t, c, v, u >> 3] >> (7 - (u & 7))) & 1 > 0
         finite = np.isfinite(uv).all(-1)
         return self.has[t, c] & finite & np.where(inside, hit, True)
