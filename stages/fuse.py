@@ -27,6 +27,7 @@ class Params(StageParams):
     # this much beside a view whose landmark agrees (0: landmarks only)
     silhouette_votes: float = Field(1.0, ge=0)
     silhouette_fit: float = Field(0.0, ge=0)  # > 0: the fit pulls markers onto the people
+    temporal_votes: float = Field(2.0, ge=0)  # a hypothesis near its neighbours in time
     # rounds of view limb groups exchanged where the fitted body says they were read mirrored
     exchange_rounds: int = Field(1, ge=0)
     people_per_batch: int = 8
@@ -49,7 +50,9 @@ def run(ctx: StageContext) -> None:
                 iterations=p.iterations, w_smooth=p.smoothness, w_silhouette=p.silhouette_fit
             ),
             triangulation=TriangulationOptions(
-                consensus_views=p.pair_consensus, silhouette_weight=p.silhouette_votes
+                consensus_views=p.pair_consensus,
+                silhouette_weight=p.silhouette_votes,
+                temporal_weight=p.temporal_votes,
             ),
             silhouettes=p.silhouette_votes > 0 or p.silhouette_fit > 0,
             regroup=RegroupOptions() if p.regroup else None,

@@ -138,3 +138,35 @@ def test_the_packed_lookup_reads_the_cell_each_pixel_falls_in(seed, size):
     np.testing.assert_array_equal(views.covered(np.arange(T), uv), want)
     crops = CropSilhouettes.from_masks(masks.reshape(-1, size, size), crop)
     np.testing.assert_array_equal(crops.masks, masks.reshape(-1, size, size))
+
+
+def test_an_even_split_follows_the_frames_around_it():
+    """Five frames of one point: at the middle frame three views read it where it is and three
+    more confident ones agree on a point 0.4 m away; the frames around it are clean. The
+    temporal vote (the mean of the first pass at t - 1 and t + 1) settles the tie."""
+    from gst.fuse.observations import PersonObservations
+    from gst.fuse.triangulate import triangulate_person
+
+    rng = np.random.default_rng(7)
+    K, Rt = _rig(6, rng)
+    T, C, M = 5, 6, 33
+    X = np.array([0.2, -0.1, 1.0]) + np.linspace(0, 0.08, T)[:, None] * [1, 0.5, 0]  # (T, 3)
+    uv = np.full((T, C, M, 2), np.nan)
+    conf = np.zeros((T, C, M))
+    for t in range(T):
+        uv[t, :, 0] = _observe(K, Rt, X[t : t + 1])[2][0] + rng.normal(0, 0.3, (C, 2))
+        conf[t, :, 0] = 0.7
+    wrong = X[2] + [0.4, 0.0, -0.3]
+    bad = [1, 3, 5]
+    uv[2, bad, 0] = _observe(K, Rt, wrong[None])[2][0, bad]
+    conf[2, bad, 0] = 0.95
+    obs = PersonObservations(
+        1, np.arange(T), uv, conf, np.broadcast_to(K, (T, C, 3, 3)).copy(),
+        np.broadcast_to(Rt, (T, C, 3, 4)).copy(), np.ones((T, C)), np.arange(T * C).reshape(T, C),
+    )  # fmt: skip
+    plain = triangulate_person(obs, TriangulationOptions(consensus_views=8))
+    voted = triangulate_person(obs, TriangulationOptions(consensus_views=8, temporal_weight=1.0))
+    assert np.linalg.norm(plain.points[2, 0] - wrong) < 0.02  # the confident three win alone
+    assert np.linalg.norm(voted.points[2, 0] - X[2]) < 0.02
+    assert voted.used[2, 0].tolist() == [True, False, True, False, True, False]
+    np.testing.assert_allclose(voted.points[[0, 1, 3, 4], 0], plain.points[[0, 1, 3, 4], 0])

@@ -55,8 +55,11 @@ class FuseOptions:
     body_model: str = "anny"
     markers: str | None = None  # a markers JSON; None: the package's fitted table
     fit: FitOptions = FitOptions()
-    # pair consensus over the 8 most confident views, the silhouettes voting (docs/fuse.md)
-    triangulation: TriangulationOptions = TriangulationOptions(consensus_views=8)
+    # pair consensus over the 8 most confident views, the silhouettes and the neighbouring
+    # frames voting (docs/fuse.md "Silhouettes")
+    triangulation: TriangulationOptions = TriangulationOptions(
+        consensus_views=8, temporal_weight=2.0
+    )
     regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
     refine_landmarks: bool = True  # second BlazePose pass (gst.detect.crops, refine=True)
     mask_others: bool = False  # dim pixels outside the crop's person mask before BlazePose

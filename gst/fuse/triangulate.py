@@ -54,6 +54,12 @@ class TriangulationOptions:
     # with silhouettes (gst.fuse.silhouettes): each view whose people cover a hypothesis's
     # projection counts this much beside each view whose landmark agrees with it
     silhouette_weight: float = 1.0
+    # > 0 (with triangulate_person): a second pass in which a hypothesis at the mean of the
+    # point's neighbours in time (the first pass's, at frames t - 1 and t + 1) counts this much
+    # more, less the farther it lies, nothing from `temporal_radius_m` on: a frame whose views
+    # split evenly follows the frames around it
+    temporal_weight: float = 0.0
+    temporal_radius_m: float = 0.15
 
 
 @dataclass
@@ -101,7 +107,17 @@ def _errors(P: np.ndarray, uv: np.ndarray, X: np.ndarray, scale: np.ndarray) -> 
 
 
 def _pair_consensus(
-    P, Pn, xn, uv, conf, seen, scale, o: TriangulationOptions, silhouettes=None, chunk=4096
+    P,
+    Pn,
+    xn,
+    uv,
+    conf,
+    seen,
+    scale,
+    o: TriangulationOptions,
+    silhouettes=None,
+    expected=None,
+    chunk=4096,
 ) -> np.ndarray:
     """(N, C) views to keep: those that agree with the best two-view hypothesis of each point
     seen by 3 or more views (the rest keep every seen view). With `silhouettes`
@@ -129,6 +145,9 @@ def _pair_consensus(
             at, z = project(P[idx][:, None], X)
             covered = silhouettes.covered(idx, at) & (z > 0)
             count += o.silhouette_weight * covered.sum(-1)
+        if expected is not None:  # a soft vote: whole at the expectation, none at the radius
+            d = np.linalg.norm(X - expected[idx][:, None], axis=-1) / o.temporal_radius_m
+            count += o.temporal_weight * np.nan_to_num(np.clip(1 - d, 0, 1))  # NaN: no idea
         # most agreeing views; then the most confidence (< 1 view's worth); then small errors
         key = (
             count
@@ -174,6 +193,7 @@ def triangulate_points(
     px_scale: np.ndarray | None = None,
     options: TriangulationOptions | None = None,
     silhouettes=None,
+    expected: np.ndarray | None = None,
 ) -> Triangulated:
     """Triangulate N points from C views.
 
@@ -186,6 +206,8 @@ def triangulate_points(
             side / size gives full-image pixels); default 1.
         silhouettes: a gst.fuse.silhouettes.ViewSilhouettes of the N points (their views'
             coverage by people, in the pixels of `uv`): votes in the pair consensus.
+        expected: (N, 3) where each point is expected (NaN: no idea), e.g. from its neighbours
+            in time: a vote of `temporal_weight` in the pair consensus.
     """
     o = options or TriangulationOptions()
     K = np.asarray(K, np.float64)
@@ -208,7 +230,7 @@ def triangulate_points(
     Pn, xn = np.nan_to_num(Rt), xh[..., :2] / xh[..., 2:3]
     used = seen.copy()
     if o.consensus_views:
-        used = _pair_consensus(P, Pn, xn, uv0, conf, seen, scale, o, silhouettes)
+        used = _pair_consensus(P, Pn, xn, uv0, conf, seen, scale, o, silhouettes, expected)
     X = _dlt(Pn, xn, np.where(used, conf, 0.0))
     for _ in range(o.max_rejections):
         err = np.where(used, _errors(P, uv0, X, scale), 0.0)
@@ -284,6 +306,10 @@ def triangulate_person(
     scale = np.repeat(obs.px_scale[:, None], M, 1).reshape(T * M, C)
     views = None if silhouettes is None else silhouettes.for_views(obs.rows, M)
     tri = triangulate_points(K, Rt, uv, conf, scale, options, views)
+    o = options or TriangulationOptions()
+    if o.temporal_weight > 0 and o.consensus_views and T >= 3:
+        expected = _neighbour_mean(tri.points.reshape(T, M, 3), np.asarray(obs.frames))
+        tri = triangulate_points(K, Rt, uv, conf, scale, o, views, expected.reshape(T * M, 3))
     return PersonTriangulation(
         tri.points.reshape(T, M, 3),
         tri.used.reshape(T, M, C),
@@ -291,3 +317,13 @@ def triangulate_person(
         tri.error.reshape(T, M),
         tri.confidence.reshape(T, M),
     )
+
+
+def _neighbour_mean(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(T, M, 3): the mean of each point at the frames just before and after (consecutive
+    frames only), NaN where either is missing."""
+    out = np.full_like(points, np.nan)
+    both = (np.diff(frames)[:-1] == 1) & (np.diff(frames)[1:] == 1)  # t - 1 and t + 1 exist
+    mid = np.flatnonzero(both) + 1
+    out[mid] = 0.5 * (points[mid - 1] + points[mid + 1])
+    return out
