@@ -89,3 +89,19 @@ def test_fitted_body_settles_an_even_split(capture):
     gone = capture.markers[0].copy()
     gone[2] = np.nan
     assert not exchanges_against_body(p, gone)[2].any()
+
+
+def test_an_even_split_between_two_people_follows_the_frames_around_it(capture):
+    """At frame 2 three of six views show the other person: the pairs cannot tell who is who
+    (3 against 3); the person's skeleton at frames 1 and 3 can, so the temporal vote keeps the
+    person's own three views and drops the other's."""
+    people = observations(capture, noise_px=1.0, seed=4)
+    p, other = people[0], people[1]
+    wrong = [0, 2, 4]
+    p.uv[2, wrong] = other.uv[2, wrong]
+    without = view_consensus(p, ConsensusOptions(temporal_weight=0.0))[1]
+    _, rep = view_consensus(p, ConsensusOptions(temporal_weight=1.0))
+    assert rep.dropped[2].tolist() == [True, False, True, False, True, False]
+    assert not rep.dropped[[0, 1, 3, 4]].any()
+    # without the vote the even split is decided by the errors alone: here for the other person
+    assert without.dropped[2].tolist() == [False, True, False, True, False, True]

@@ -30,7 +30,7 @@ import numpy as np
 
 from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.fuse.observations import PersonObservations
-from gst.fuse.triangulate import TriangulationOptions, triangulate_points
+from gst.fuse.triangulate import TriangulationOptions, neighbour_mean, triangulate_points
 
 __all__ = [
     "ConsensusOptions",
@@ -56,6 +56,11 @@ class ConsensusOptions:
     min_agree: int = 3  # views a hypothesis needs before any view is dropped
     min_confidence: float = 0.3
     swap_gain: float = 0.5  # exchange a limb group when that scales its error by less than this
+    # > 0: a second pass in which a pair hypothesis whose skeleton lies at the mean of the
+    # first pass's winners at frames t - 1 and t + 1 scores this much more (less the farther,
+    # median landmark distance; nothing from `temporal_radius_m` on): docs/fuse.md
+    temporal_weight: float = 1.0
+    temporal_radius_m: float = 0.15
 
 
 @dataclass
@@ -144,6 +149,10 @@ def view_consensus(
     score = agree.sum(-1) - np.nansum(np.where(agree, err / limit[:, None], 0), -1) / (C + 1)
     score = np.where(ok_pair, score, -np.inf)
     best = score.argmax(1)
+    if o.temporal_weight > 0 and T >= 3:
+        first = _triangulate(obs, uv, conf, agree[np.arange(T), best].astype(float)[:, None])
+        score = score + o.temporal_weight * _near_neighbours(Xh, first[:, 0], obs.frames, o)
+        best = score.argmax(1)
     n_best = agree[np.arange(T), best].sum(-1)
     # refine the winner with all its agreeing views, then judge every view against it
     w_in = agree[np.arange(T), best].astype(float)[:, None]
@@ -177,6 +186,17 @@ def view_consensus(
     X = np.where((n_best >= 2)[:, None, None], X, np.nan)
     report = ConsensusReport(drop, swap, err2, X, n_best)
     return replace(obs, uv=out_uv, confidence=out_conf), report
+
+
+def _near_neighbours(Xh, first, frames, o: ConsensusOptions) -> np.ndarray:
+    """(T, H) in [0, 1]: how near each hypothesis skeleton Xh (T, H, M, 3) lies to the mean of
+    the winners `first` (T, M, 3) at the frames just before and after (consecutive frames
+    only; 0 where either is missing), by the median distance over their common landmarks."""
+    expected = neighbour_mean(first, np.asarray(frames))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN: nothing to compare
+        d = np.nanmedian(np.linalg.norm(Xh - expected[:, None], axis=-1), -1)
+    return np.nan_to_num(np.clip(1 - d / o.temporal_radius_m, 0, 1))
 
 
 def exchange_groups(obs: PersonObservations, swap: np.ndarray) -> PersonObservations:

@@ -37,6 +37,7 @@ __all__ = [
     "triangulate_points",
     "triangulate_person",
     "project",
+    "neighbour_mean",
 ]
 
 
@@ -308,7 +309,7 @@ def triangulate_person(
     tri = triangulate_points(K, Rt, uv, conf, scale, options, views)
     o = options or TriangulationOptions()
     if o.temporal_weight > 0 and o.consensus_views and T >= 3:
-        expected = _neighbour_mean(tri.points.reshape(T, M, 3), np.asarray(obs.frames))
+        expected = neighbour_mean(tri.points.reshape(T, M, 3), np.asarray(obs.frames))
         tri = triangulate_points(K, Rt, uv, conf, scale, o, views, expected.reshape(T * M, 3))
     return PersonTriangulation(
         tri.points.reshape(T, M, 3),
@@ -319,7 +320,7 @@ def triangulate_person(
     )
 
 
-def _neighbour_mean(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
+def neighbour_mean(points: np.ndarray, frames: np.ndarray) -> np.ndarray:
     """(T, M, 3): the mean of each point at the frames just before and after (consecutive
     frames only), NaN where either is missing."""
     out = np.full_like(points, np.nan)
