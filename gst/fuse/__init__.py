@@ -5,7 +5,8 @@
 
 Modules: observations (landmarks per crop, grouped per person), consensus (which views show
 the person), regroup (people regrouped by 3D agreement and tracked), triangulate (robust
-N-view triangulation), start (the fit's starting pose), fit (the body fit over the clip) with
+N-view triangulation), silhouettes (where people are in each crop: votes in the triangulation
+and an optional fit term), start (the fit's starting pose), fit (the body fit over the clip) with
 gst.body.kinematics (joints-only body forward and its Jacobian), objective (the energy and its
 linearisation) and solver (batched Levenberg-Marquardt), joint_map (landmark -> joint table),
 tables (Parquet), export (TRC, C3D), overlay, report, evaluate (against synthetic truth),
