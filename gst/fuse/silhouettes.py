@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import cv2
-import h5py
 import numpy as np
 
 from gst.data.store import CropStore
@@ -45,8 +44,14 @@ def crop_silhouettes(
     out = np.zeros((n, size, size // 8), np.uint8)
     if n == 0:
         return CropSilhouettes(out, size, store.crop_size)
-    with h5py.File(store.path, "r") as f:
-        boxes = np.asarray(f["crop_box"][:n], np.float64)  # x0, y0, side (full-image px)
+    index = store.index
+    boxes = np.stack(  # x0, y0, side (full-image px)
+        [
+            index.column(k).to_numpy().astype(np.float64)
+            for k in ("crop_x0", "crop_y0", "crop_side")
+        ],
+        axis=1,
+    )
     frame = store.index.column("frame").to_numpy()
     cam = store.index.column("camera_index").to_numpy()
     order = np.lexsort((frame, cam))

@@ -102,7 +102,11 @@ def _dlt(Pn: np.ndarray, xn: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _errors(P: np.ndarray, uv: np.ndarray, X: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    proj, z = project(P, X)
+    return _errors_at(*project(P, X), uv, scale)
+
+
+def _errors_at(proj, z, uv, scale) -> np.ndarray:
+    """Reprojection errors of projections `proj` at depths `z` against `uv`, times `scale`."""
     err = np.linalg.norm(proj - uv, axis=-1) * scale
     return np.where(z > 0, err, np.inf)  # behind a camera: never acceptable
 
@@ -139,11 +143,11 @@ def _pair_consensus(
         views = rank[:, pairs]  # (n, Q, 2) view indices of each hypothesis
         ok = seen[idx][n, views].all(-1)  # (n, Q): both views really seen
         X = _dlt(Pn[idx][n, views], xn[idx][n, views], conf[idx][n, views] * ok[..., None])
-        err = _errors(P[idx][:, None], uv[idx][:, None], X, scale[idx][:, None])
+        at, z = project(P[idx][:, None], X)  # (n, Q, C, 2), (n, Q, C)
+        err = _errors_at(at, z, uv[idx][:, None], scale[idx][:, None])
         agree = (err <= outlier_px) & seen[idx][:, None] & ok[..., None]  # (n, Q, C)
         count = agree.sum(-1).astype(np.float64)
         if silhouettes is not None:
-            at, z = project(P[idx][:, None], X)
             covered = silhouettes.covered(idx, at) & (z > 0)
             count += o.silhouette_weight * covered.sum(-1)
         if expected is not None:  # a soft vote: whole at the expectation, none at the radius

@@ -13,16 +13,18 @@ APPEARANCE_SAMPLES = 96  # pixels read along the longer side of a box (`box_hist
 
 
 def core_region(
-    size: int, box_in_crop: np.ndarray, shrink_x: float = 0.25, shrink_y: float = 0.1
+    shape: tuple[int, int], box: np.ndarray, shrink_x: float = 0.25, shrink_y: float = 0.1
 ) -> tuple[slice, slice]:
-    """(rows, cols) slices of the crop covering the box shrunk by `shrink_x`/`shrink_y` of its
-    width/height on each side, clipped to the crop."""
-    x0, y0, x1, y1 = box_in_crop
+    """(rows, cols) slices of an image of `shape` (height, width) covering `box` (x0, y0, x1,
+    y1) shrunk by `shrink_x`/`shrink_y` of its width/height on each side, clipped to the image."""
+    x0, y0, x1, y1 = np.asarray(box, np.float64)
     w, h = x1 - x0, y1 - y0
     c0, c1 = int(round(x0 + shrink_x * w)), int(round(x1 - shrink_x * w))
     r0, r1 = int(round(y0 + shrink_y * h)), int(round(y1 - shrink_y * h))
-    clip = lambda v: min(max(v, 0), size)  # noqa: E731
-    return slice(clip(r0), max(clip(r1), clip(r0))), slice(clip(c0), max(clip(c1), clip(c0)))
+    rows, cols = shape[:2]
+    clip = lambda v, n: min(max(v, 0), n)  # noqa: E731
+    r0, r1, c0, c1 = clip(r0, rows), clip(r1, rows), clip(c0, cols), clip(c1, cols)
+    return slice(r0, max(r1, r0)), slice(c0, max(c1, c0))
 
 
 def colour_histogram(crop_rgb: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -51,18 +53,14 @@ def box_histogram(
     pixels are the person), read every few pixels so that its longer side gives about `samples`
     of them. No crop is cut: tracking's appearance needs colours, not an undistorted, anti-
     aliased image, and cutting one cost more than the landmark model on 1088 x 1920 footage."""
-    h, w = frame_bgr.shape[:2]
-    x0, y0, x1, y1 = np.asarray(box, np.float64)
-    if mask is None:
-        bw, bh = x1 - x0, y1 - y0
-        x0, x1, y0, y1 = x0 + 0.25 * bw, x1 - 0.25 * bw, y0 + 0.1 * bh, y1 - 0.1 * bh
-    c0, c1 = (int(np.clip(round(v), 0, w)) for v in (x0, x1))
-    r0, r1 = (int(np.clip(round(v), 0, h)) for v in (y0, y1))
-    step = max(1, round(max(c1 - c0, r1 - r0) / max(samples, 1)))
-    patch = frame_bgr[r0:r1:step, c0:c1:step, ::-1]  # RGB
+    shrink = (0.25, 0.1) if mask is None else (0.0, 0.0)
+    rows, cols = core_region(frame_bgr.shape, box, *shrink)
+    step = max(1, round(max(rows.stop - rows.start, cols.stop - cols.start) / max(samples, 1)))
+    rows, cols = slice(rows.start, rows.stop, step), slice(cols.start, cols.stop, step)
+    patch = frame_bgr[rows, cols, ::-1]  # RGB
     if mask is None:
         return colour_histogram(patch)
-    return colour_histogram(patch, (np.asarray(mask)[r0:r1:step, c0:c1:step] > 0).astype(np.uint8))
+    return colour_histogram(patch, (np.asarray(mask)[rows, cols] > 0).astype(np.uint8))
 
 
 def hellinger(p: np.ndarray, q: np.ndarray) -> np.ndarray:
