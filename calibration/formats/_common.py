@@ -97,6 +97,15 @@ def as_float_array(value, shape: tuple[int, ...], path: Path, what: str) -> np.n
     return arr.reshape(shape)
 
 
+def require_array(
+    data: dict, key: str, shape: tuple[int, ...], path: Path, where: str
+) -> np.ndarray:
+    """`data[key]` as a float64 array of `shape`; a missing or malformed value is a
+    RigFormatError naming the file, `where` and the key (the readers' usual pairing of
+    `require` and `as_float_array`)."""
+    return as_float_array(require(data, key, path, where), shape, path, f"{where} {key}")
+
+
 def trim_dist(dist: np.ndarray, min_len: int = 5) -> np.ndarray:
     """Shortest valid OpenCV distortion vector (length 4, 5, 8, 12 or 14, at least `min_len`)
     holding all non-zero terms of `dist`."""

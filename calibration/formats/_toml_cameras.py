@@ -17,11 +17,10 @@ import tomllib
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
-    as_float_array,
     atomic_write_text,
     make_camera,
     make_rig,
-    require,
+    require_array,
     toml_dumps,
 )
 
@@ -47,20 +46,14 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
             raise RigFormatError(
                 f"{path}: {where} is a fisheye camera, which this project does not model"
             )
-        w, h = as_float_array(require(table, "size", path, where), (2,), path, f"{where} size")
-        rvec = as_float_array(
-            require(table, "rotation", path, where), (3,), path, f"{where} rotation"
-        )
-        t = as_float_array(
-            require(table, "translation", path, where), (3,), path, f"{where} translation"
-        )
+        w, h = require_array(table, "size", (2,), path, where)
+        rvec = require_array(table, "rotation", (3,), path, where)
+        t = require_array(table, "translation", (3,), path, where)
         cameras.append(
             make_camera(
                 path,
                 str(table.get("name", key)),
-                K=as_float_array(
-                    require(table, "matrix", path, where), (3, 3), path, f"{where} matrix"
-                ),
+                K=require_array(table, "matrix", (3, 3), path, where),
                 dist=np.asarray(table.get("distortions", []), dtype=np.float64),
                 R=cv2.Rodrigues(rvec)[0],
                 t=t * metres_per_unit,

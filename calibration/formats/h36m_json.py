@@ -28,6 +28,7 @@ from calibration.formats._common import (
     make_camera,
     make_rig,
     require,
+    require_array,
     trim_dist,
 )
 from calibration.formats.h36m import (
@@ -95,8 +96,8 @@ def read(
                 name,
                 K=K,
                 dist=dist,
-                R=as_float_array(require(e, "R", path, where), (3, 3), path, f"{where} R"),
-                t=as_float_array(require(e, "t", path, where), (3,), path, f"{where} t") / MM_PER_M,
+                R=require_array(e, "R", (3, 3), path, where),
+                t=require_array(e, "t", (3,), path, where) / MM_PER_M,
                 width=size[0],
                 height=size[1],
                 meta={"source": "h36m-json", "subject": subj},

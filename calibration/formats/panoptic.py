@@ -17,12 +17,12 @@ import numpy as np
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
-    as_float_array,
     atomic_write_text,
     load_json,
     make_camera,
     make_rig,
     require,
+    require_array,
     trim_dist,
 )
 
@@ -41,9 +41,7 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
         ctype = cd.get("type", "")
         if camera_types is not None and ctype not in camera_types:
             continue
-        w, h = as_float_array(
-            require(cd, "resolution", path, where), (2,), path, f"{where} resolution"
-        )
+        w, h = require_array(cd, "resolution", (2,), path, where)
         dist = np.asarray(cd.get("distCoef", []), dtype=np.float64).ravel()
         meta = {"source": "panoptic", "type": ctype}
         for key in ("panel", "node"):
@@ -53,11 +51,10 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
             make_camera(
                 path,
                 name,
-                K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
+                K=require_array(cd, "K", (3, 3), path, where),
                 dist=dist,
-                R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
-                t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t")
-                / CM_PER_M,
+                R=require_array(cd, "R", (3, 3), path, where),
+                t=require_array(cd, "t", (3,), path, where) / CM_PER_M,
                 width=int(w),
                 height=int(h),
                 meta=meta,

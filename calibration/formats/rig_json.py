@@ -13,13 +13,13 @@ from pathlib import Path
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
-    as_float_array,
     atomic_write_text,
     json_safe,
     load_json,
     make_camera,
     make_rig,
     require,
+    require_array,
 )
 
 SCHEMA = "gst-capture/rig"
@@ -89,10 +89,10 @@ def from_dict(data: dict, path: Path) -> Rig:
             make_camera(
                 path,
                 name,
-                K=as_float_array(require(cd, "K", path, where), (3, 3), path, f"{where} K"),
+                K=require_array(cd, "K", (3, 3), path, where),
                 dist=require(cd, "dist", path, where),
-                R=as_float_array(require(cd, "R", path, where), (3, 3), path, f"{where} R"),
-                t=as_float_array(require(cd, "t", path, where), (3,), path, f"{where} t"),
+                R=require_array(cd, "R", (3, 3), path, where),
+                t=require_array(cd, "t", (3,), path, where),
                 width=require(cd, "width", path, where),
                 height=require(cd, "height", path, where),
                 meta=cd.get("meta") or {},
