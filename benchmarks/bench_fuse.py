@@ -40,7 +40,6 @@ import json
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +47,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from benchmarks.timing import median_time  # noqa: E402
+
 # SMPL joint -> BlazePose landmarks (gst.train.keypoints.BODY_FROM_BLAZEPOSE)
 JOINTS13 = {0: (23, 24), 1: (23,), 2: (24,), 4: (25,), 5: (26,), 7: (27,), 8: (28,),
             16: (11,), 17: (12,), 18: (13,), 19: (14,), 20: (15,), 21: (16,)}  # fmt: skip
@@ -183,15 +185,6 @@ def _score(pred, person, frame, truth, joints=None) -> tuple[float, float, int]:
     )
 
 
-def _median_time(fn, repeats: int):
-    times, out = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, float(np.median(times))
-
-
 def _peers(people, store, rig, python: str, keep: Path | None) -> tuple[dict, dict]:
     with tempfile.TemporaryDirectory() as tmp:
         inp, outp, script = Path(tmp) / "in.npz", Path(tmp) / "out.json", Path(tmp) / "peers.py"
@@ -280,7 +273,7 @@ def main() -> None:
     def triangulate(p):
         return triangulate_person(p, tri_options, silhouettes)
 
-    (regrouped, report), t_regroup = _median_time(lambda: regroup_people(extracted), 1)
+    t_regroup, (regrouped, report) = median_time(lambda: regroup_people(extracted), 1)
     body = load_body_model("anny")
     markers = MarkerModel.load()
     results = []
@@ -294,11 +287,10 @@ def main() -> None:
             mp, pa, n = scored
             results.append((grouping, name, mp, pa, n, 1000 * sec / n_pf, note))
 
-        tris, sec = _median_time(lambda ps=people: [triangulate(p) for p in ps],
-                                 args.repeats)  # fmt: skip
+        sec, tris = median_time(lambda ps=people: [triangulate(p) for p in ps], args.repeats)
         X = np.concatenate([t.points for t in tris])
         row("ours: triangulation", _score(_joints13(X), person, frame, truth, JOINTS13), sec)
-        fits, sec = _median_time(
+        sec, fits = median_time(
             lambda ps=people, ts=tris: fit_people(body, markers, ps, ts, 30.0, FitOptions()),
             args.repeats,
         )
@@ -349,7 +341,7 @@ def main() -> None:
         sub = [_copy(p, 1000 * k + p.person_id, frames_keep, cams_keep)
                for k in range(copies) for p in fits_for_speed]  # fmt: skip
         sub_tris = [triangulate(q) for q in sub]
-        _, sec = _median_time(
+        sec, _ = median_time(
             lambda s=sub, st=sub_tris: fit_people(body, markers, s, st, 30.0, FitOptions()),
             args.repeats,
         )
@@ -357,7 +349,7 @@ def main() -> None:
         print(f"| {frames_keep} frames x {len(sub)} people | {pf} | {cams_keep} | {sec:.2f} | "
               f"{pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
         if pool is not None and copies > 1:
-            _, sec = _median_time(
+            sec, _ = median_time(
                 lambda s=sub, st=sub_tris: _fit_in_processes(pool, s, st, 30.0, args.processes),
                 args.repeats,
             )
