@@ -49,10 +49,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
 from benchmarks.timing import median_time  # noqa: E402
+from gst.train.keypoints import BODY_FROM_BLAZEPOSE  # noqa: E402
 
-# SMPL joint -> BlazePose landmarks (gst.train.keypoints.BODY_FROM_BLAZEPOSE)
-JOINTS13 = {0: (23, 24), 1: (23,), 2: (24,), 4: (25,), 5: (26,), 7: (27,), 8: (28,),
-            16: (11,), 17: (12,), 18: (13,), 19: (14,), 20: (15,), 21: (16,)}  # fmt: skip
+# SMPL joint -> BlazePose landmarks: the 13 joints scored here are those the training's
+# keypoint term uses
+JOINTS13 = BODY_FROM_BLAZEPOSE
 
 PEER_SCRIPT = r"""
 import json, sys, time, numpy as np
