@@ -358,6 +358,7 @@ def main() -> None:
                   f"{sec:.2f} | {pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
     if pool is not None:
         pool.close()
+        pool.join()  # workers left to the interpreter's exit are killed mid-teardown
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import json
 import logging
 import os
 import re
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -116,6 +117,21 @@ def _diff_params(old: dict, new: dict, prefix: str = "") -> list[str]:
         elif a != b:
             changes.append(f"{prefix}{k}: {a!r} -> {b!r}")
     return changes
+
+
+@contextlib.contextmanager
+def _same_torch_threads():
+    """torch's intra-op thread count as it was before a stage, after it: it is process-wide, and
+    a stage that sets it must not decide it for the stages after it in one `run` (their results
+    would depend on which stages ran before them in the same process). Only when torch is
+    already loaded: a stage that does not use it does not pay for the import."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    try:
+        yield
+    finally:
+        if before is not None:
+            torch.set_num_threads(before)
 
 
 class Runner:
@@ -463,7 +479,8 @@ class Runner:
         log.info("%s: running (%s)", name, st.reason)
         t0 = time.perf_counter()
         try:
-            stage.run(ctx)
+            with _same_torch_threads():
+                stage.run(ctx)
         except PipelineError:
             raise
         except BaseException as exc:

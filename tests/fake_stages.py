@@ -13,6 +13,7 @@ from pipeline.stage import Stage, StageContext, StageParams
 class SourceParams(StageParams):
     value: int = 1
     input_file: str | None = None
+    torch_threads: int = 0  # > 0: set torch's (process-wide) thread count, as some stages do
 
 
 def _own_folder_stage(name: str, run, **kwargs) -> Stage:
@@ -21,6 +22,10 @@ def _own_folder_stage(name: str, run, **kwargs) -> Stage:
 
 
 def _source(ctx: StageContext) -> None:
+    if ctx.params.torch_threads:
+        import torch
+
+        torch.set_num_threads(ctx.params.torch_threads)
     text = f"value={ctx.params.value}\n"
     if ctx.params.input_file:
         text += Path(ctx.params.input_file).read_text()

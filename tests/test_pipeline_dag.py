@@ -71,6 +71,23 @@ def test_cycle_is_a_config_error():
         topological_order({"a": ["b"], "b": ["a"]})
 
 
+def test_a_stage_that_sets_torch_threads_does_not_set_them_for_the_next(tmp_path):
+    """torch's thread count is process-wide: the stages after one that changes it (in one `run`)
+    see it as it was, so their results do not depend on what ran before them."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        cfg = write_config(tmp_path, input_file=None)
+        cfg.write_text(cfg.read_text().replace("params: {}}", "params: {torch_threads: 1}}", 1))
+        assert "torch_threads: 1" in cfg.read_text()
+        assert run(cfg, "run", "report") == 0
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_runs_in_order_then_skips_when_up_to_date(tmp_path, counter):
     cfg = write_config(tmp_path)
     assert run(cfg, "run", "report") == 0
