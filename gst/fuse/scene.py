@@ -164,10 +164,12 @@ def _fit_batches(
         if path.is_file():
             fits += _fits_from_npz(path)
             continue
-        part = fit_people(
-            body, markers, people[a : a + o.people_per_batch], tris[a : a + o.people_per_batch],
-            fps, o.fit, silhouettes=silhouettes,
-        )  # fmt: skip
+        # torch's thread count is process-wide: `torch_threads` puts it back after the fit
+        with torch_threads(o.threads):
+            part = fit_people(
+                body, markers, people[a : a + o.people_per_batch],
+                tris[a : a + o.people_per_batch], fps, o.fit, silhouettes=silhouettes,
+            )  # fmt: skip
         _save_npz(path, **_fits_to_arrays(part))
         fits += part
         if log is not None:
@@ -225,20 +227,6 @@ def fuse_scene(
     `source_videos`). `fps`: the capture's frame rate (default: the first source video's).
     """
     o = options or FuseOptions()
-    # torch's thread count is process-wide: put it back for the stages that run after this one
-    # in the same process (`run all`), whatever this one used.
-    with torch_threads(o.threads):
-        return _fuse_scene(
-            store_path, rig, out_dir, report_dir, fps=fps, options=o, landmarks=landmarks,
-            truth_dir=truth_dir, videos=videos, progress=progress, log=log,
-        )  # fmt: skip
-
-
-def _fuse_scene(
-    store_path, rig, out_dir, report_dir, *, fps, options, landmarks, truth_dir, videos, progress,
-    log,
-) -> FuseResult:  # fmt: skip
-    o = options
     out_dir, report_dir = Path(out_dir), Path(report_dir)
     work = out_dir / ".work"
     work.mkdir(parents=True, exist_ok=True)
