@@ -10,11 +10,14 @@ the wrong person), with a nonlinear refinement of the inliers.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pycolmap
 
 from calibration.camera import Rig
+
+if TYPE_CHECKING:
+    import pycolmap
 
 
 @dataclass
@@ -104,6 +107,8 @@ def triangulate_dlt(
 
 
 def _colmap_camera(cam) -> pycolmap.Camera:
+    import pycolmap
+
     d = np.zeros(8)
     d[: min(cam.dist.size, 8)] = cam.dist[:8]
     if cam.dist.size > 8 and np.any(cam.dist[8:]):
@@ -124,6 +129,8 @@ def triangulate_robust(
 ) -> Triangulation:
     """Per point, pycolmap's LO-RANSAC triangulation: views whose ray misses the point by more
     than `max_angle_error_deg` are outliers and left out. Slower than DLT (a Python loop)."""
+    import pycolmap  # here, not at the top: the DLT path (training, fusion) needs no COLMAP
+
     pixels, vis = _check(rig, pixels, visible)
     cams = [_colmap_camera(c) for c in rig]
     poses = [pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t) for c in rig]

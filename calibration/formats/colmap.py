@@ -17,12 +17,15 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pycolmap
 
 from calibration.camera import Rig
 from calibration.formats._common import RigFormatError, make_camera, make_rig
+
+if TYPE_CHECKING:
+    import pycolmap  # imported where used: 0.2 s that readers of other formats need not pay
 
 
 def _model_dir(path: Path) -> Path:
@@ -66,6 +69,8 @@ def _intrinsics(cam: pycolmap.Camera, path: Path, name: str) -> tuple[list, np.n
 
 def read(path: str | Path, metres_per_unit: float = 1.0, up=(0.0, 0.0, 1.0)) -> Rig:
     path = Path(path)
+    import pycolmap
+
     model_dir = _model_dir(path)
     rec = pycolmap.Reconstruction()
     try:
@@ -98,6 +103,8 @@ def read(path: str | Path, metres_per_unit: float = 1.0, up=(0.0, 0.0, 1.0)) -> 
 
 
 def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
+    import pycolmap
+
     if cam.skew:
         raise RigFormatError(
             f"camera '{cam.name}': COLMAP models have no skew (K[0, 1] = {cam.skew})"
@@ -124,6 +131,8 @@ def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
 def write(rig: Rig, path: str | Path, metres_per_unit: float = 1.0) -> None:
     """A binary COLMAP model in the folder `path` (model files replaced one by one, atomically;
     anything else in the folder is kept)."""
+    import pycolmap
+
     rec = pycolmap.Reconstruction()
     for i, cam in enumerate(rig):
         rec.add_camera_with_trivial_rig(_colmap_camera(cam, i + 1))
