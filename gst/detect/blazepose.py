@@ -196,17 +196,27 @@ def import_litert():
     return Interpreter
 
 
-def _interpreter(path: Path, threads: int):
-    it = import_litert()(model_path=str(path), num_threads=threads)
-    it.allocate_tensors()
-    return it
+class _Model:
+    """A LiteRT interpreter with its tensor indices read once: `get_input_details` and
+    `get_output_details` build fresh dicts on every call, a measurable share of the tracking
+    loop's person-model thread when asked for every frame."""
 
+    def __init__(self, path: Path, threads: int, batch: int = 1, size: int | None = None):
+        self.interpreter = it = import_litert()(model_path=str(path), num_threads=threads)
+        self.input = it.get_input_details()[0]["index"]
+        if batch != 1:
+            it.resize_tensor_input(self.input, [batch, size, size, 3])
+        it.allocate_tensors()
+        # outputs keyed by their shape without the batch dimension (each one's is unique)
+        self.outputs = [
+            (tuple(int(v) for v in d["shape"][1:]), d["index"]) for d in it.get_output_details()
+        ]
 
-def _outputs_by_shape(it) -> dict[tuple[int, ...], np.ndarray]:
-    return {
-        tuple(int(v) for v in d["shape"]): it.get_tensor(d["index"])
-        for d in it.get_output_details()
-    }
+    def __call__(self, x: np.ndarray) -> dict[tuple[int, ...], np.ndarray]:
+        it = self.interpreter
+        it.set_tensor(self.input, x)
+        it.invoke()
+        return {shape: it.get_tensor(index) for shape, index in self.outputs}
 
 
 @dataclass(frozen=True)
@@ -230,8 +240,8 @@ class BlazePose:
         self, models_dir: str | Path | None = None, threads: int = 1, min_score: float = 0.5
     ):
         paths = model_paths(models_dir)
-        self.detector = _interpreter(paths["detector"], threads)
-        self.landmarker = _interpreter(paths["landmarks"], threads)
+        self.detector = _Model(paths["detector"], threads)
+        self.landmarker = _Model(paths["landmarks"], threads)
         self.min_score = min_score
 
     def detect(self, image: np.ndarray) -> list[PoseDetection]:
@@ -239,7 +249,6 @@ class BlazePose:
         h, w = image.shape[:2]
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
         scores, boxes, kps = [], [], []
-        inp = self.detector.get_input_details()[0]["index"]
         for x0, y0, side in square_windows(w, h):
             # Cut the window out of a zero-padded frame (the full-frame window is a letterbox).
             m = np.float32(
@@ -256,11 +265,9 @@ class BlazePose:
                 flags=cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_CONSTANT,
             )
-            self.detector.set_tensor(inp, (win.astype(np.float32) / 127.5 - 1.0)[None])
-            self.detector.invoke()
-            out = _outputs_by_shape(self.detector)
+            out = self.detector((win.astype(np.float32) / 127.5 - 1.0)[None])
             s, b, k = decode_detections(
-                out[(1, len(_ANCHORS), 12)][0], out[(1, len(_ANCHORS), 1)][0, :, 0], self.min_score
+                out[(len(_ANCHORS), 12)][0], out[(len(_ANCHORS), 1)][0, :, 0], self.min_score
             )
             offset = np.array([x0, y0], np.float32)
             scores.append(s)
@@ -280,12 +287,10 @@ class BlazePose:
             borderMode=cv2.BORDER_CONSTANT,
         )
         rgb = cv2.cvtColor(crop, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-        self.landmarker.set_tensor(self.landmarker.get_input_details()[0]["index"], rgb[None])
-        self.landmarker.invoke()
-        out = _outputs_by_shape(self.landmarker)
-        raw = out[(1, 195)][0].reshape(39, 5)
-        presence = float(np.clip(out[(1, 1)][0, 0], 0.0, 1.0))
-        logits = out[(1, LANDMARK_SIZE, LANDMARK_SIZE, 1)][0, :, :, 0]
+        out = self.landmarker(rgb[None])
+        raw = out[(195,)][0].reshape(39, 5)
+        presence = float(np.clip(out[(1,)][0, 0], 0.0, 1.0))
+        logits = out[(LANDMARK_SIZE, LANDMARK_SIZE, 1)][0, :, :, 0]
         prob_crop = (1.0 / (1.0 + np.exp(-np.clip(logits, -30, 30)))).astype(np.float32)
         to_image = cv2.invertAffineTransform(to_crop)
         prob = cv2.warpAffine(
@@ -294,7 +299,7 @@ class BlazePose:
         xy = np.c_[raw[:, :2], np.ones(39)] @ to_image.T
         visibility = 1.0 / (1.0 + np.exp(-np.clip(raw[:N_BODY_LANDMARKS, 3], -30, 30)))
         landmarks = np.c_[xy[:N_BODY_LANDMARKS], visibility].astype(np.float32)
-        world = out[(1, 117)][0].reshape(39, 3)[:N_BODY_LANDMARKS].astype(np.float32)
+        world = out[(117,)][0].reshape(39, 3)[:N_BODY_LANDMARKS].astype(np.float32)
         return PersonSegment(
             presence, prob, landmarks, roi_from_alignment(xy[33], xy[34]), world.copy()
         )
@@ -340,16 +345,12 @@ class BatchedLandmarks:
         # of regions (tracked people, then the detector's new ones) costs more than the memory.
         self._by_batch: dict[int, object] = {}
 
-    def _for_batch(self, n: int):
-        it = self._by_batch.get(n)
-        if it is None:
-            it = import_litert()(model_path=str(self._path), num_threads=self._threads)
-            index = it.get_input_details()[0]["index"]
-            if n != 1:
-                it.resize_tensor_input(index, [n, LANDMARK_SIZE, LANDMARK_SIZE, 3])
-            it.allocate_tensors()
-            self._by_batch[n] = it
-        return it
+    def _for_batch(self, n: int) -> _Model:
+        model = self._by_batch.get(n)
+        if model is None:
+            model = _Model(self._path, self._threads, batch=n, size=LANDMARK_SIZE)
+            self._by_batch[n] = model
+        return model
 
     def __call__(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
         """Landmarks of the person in each region of a BGR image (one call for all regions)."""
@@ -370,13 +371,7 @@ class BatchedLandmarks:
         )
         rgb = crops[..., ::-1].astype(np.float32) * np.float32(1 / 255)
         n = len(rois)
-        it = self._for_batch(n)
-        it.set_tensor(it.get_input_details()[0]["index"], rgb)
-        it.invoke()
-        out = {
-            tuple(int(v) for v in d["shape"][1:]): it.get_tensor(d["index"])
-            for d in it.get_output_details()
-        }
+        out = self._for_batch(n)(rgb)
         raw = out[(195,)].reshape(n, 39, 5)
         presence = np.clip(out[(1,)][:, 0], 0.0, 1.0)
         logits = out[(LANDMARK_SIZE, LANDMARK_SIZE, 1)][..., 0]

@@ -26,7 +26,7 @@ from gst.body import load_body_model
 from gst.device import model_device
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.model.landmarks import LandmarkInput, landmark_input
+from gst.model.landmarks import LandmarkInput, landmark_input, select_landmarks
 from gst.model.preprocess import check_crops, network_input, to_float_images
 
 
@@ -183,9 +183,11 @@ class GSTPredictor:
         n = len(landmarks)
         if self.pose_input != "landmarks" or n == 0:
             return np.ones(n, bool)
-        K = torch.eye(3).expand(n, 3, 3)  # the camera does not decide what is usable
-        li = LandmarkInput.from_detections(landmarks, K, 256, self.network.cfg.num_landmarks)
-        return ~li.has_landmarks.numpy()
+        # LandmarkInput.has_landmarks in numpy (the tracking loop asks for every frame): a crop
+        # has landmarks when one of the network's set is finite with a confidence above 0
+        lm = select_landmarks(torch.as_tensor(landmarks), self.network.cfg.num_landmarks).numpy()
+        usable = np.isfinite(lm).all(-1) & (np.nan_to_num(lm[..., 2]) > 0)
+        return ~usable.any(1)
 
     @property
     def accepts_up(self) -> bool:
