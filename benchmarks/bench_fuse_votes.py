@@ -1,4 +1,5 @@
-"""What the triangulation's votes and the fit's silhouette term do, per scene, on one extraction.
+"""What the triangulation's votes, the fit's silhouette term and the second look at crowded crops
+do, per scene, on one extraction.
 
     python benchmarks/bench_fuse_votes.py WS/demo WS/t5000 WS/crowd_dome_7000 [--variants ...]
     python benchmarks/bench_fuse_votes.py WS/lab --fps 60 --refine-rig 2
@@ -13,7 +14,12 @@ median reprojection (full-image px) and each person's largest per-frame limb CV.
 - `before`: leave-one-out triangulation only (the default until 2026-11-27);
 - `pairs`: the pair consensus over the 8 most confident views, landmarks only;
 - `silhouettes`: + the people's coverage of every view voting;
-- `default`: + the temporal votes (the fuse stage's defaults);
+- `no_relook`: + the temporal votes (the fuse stage's defaults until crowded crops were read
+  again, docs/fuse.md "Crowded crops");
+- `default`: + crowded crops read again with the other people painted over, the fitted body
+  judging between the two readings of each (the fuse stage's defaults);
+- `relook_blind`: the second readings taken without the body's judgement;
+- `relook_unpainted`: crowded crops read again as they are (the painting's ablation);
 - `fit_term`: the default + the silhouette term in the body fit (weight 1).
 
 Tune on the tuning worlds (benchmarks/tuning_scenes.yaml) and report on the others.
@@ -32,15 +38,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.cli import bench_parser  # noqa: E402
 from calibration.formats import read_rig  # noqa: E402
 from gst.fuse import FitOptions, FuseOptions, TriangulationOptions, fuse_scene  # noqa: E402
+from gst.fuse.relook import RelookOptions  # noqa: E402
 
 DEFAULT = FuseOptions()
+PREVIOUS = replace(DEFAULT, relook=None)
 VARIANTS = {
-    "before": replace(DEFAULT, triangulation=TriangulationOptions(), silhouettes=False),
+    "before": replace(PREVIOUS, triangulation=TriangulationOptions(), silhouettes=False),
     "pairs": replace(
-        DEFAULT, triangulation=TriangulationOptions(consensus_views=8), silhouettes=False
+        PREVIOUS, triangulation=TriangulationOptions(consensus_views=8), silhouettes=False
     ),
-    "silhouettes": replace(DEFAULT, triangulation=TriangulationOptions(consensus_views=8)),
+    "silhouettes": replace(PREVIOUS, triangulation=TriangulationOptions(consensus_views=8)),
+    "no_relook": PREVIOUS,
     "default": DEFAULT,
+    "relook_blind": replace(DEFAULT, relook=RelookOptions(judge=False)),
+    "relook_unpainted": replace(DEFAULT, relook=RelookOptions(paint=False)),
     "fit_term": replace(DEFAULT, fit=FitOptions(w_silhouette=1.0)),
 }
 

@@ -1,9 +1,8 @@
-"""fuse: one world-space body per person and frame from all cameras (docs/formats/fused_*.md).
+"""fuse: one world-space body per person and frame from all cameras (docs/fuse.md).
 
-Library: `gst.fuse.fuse_scene` (BlazePose landmarks per crop, people regrouped by 3D agreement,
-robust triangulation, then a body fit over the clip; docs/fuse.md). Writes `fused/` (bodies and
-landmarks Parquet, TRC, C3D) and `reports/fuse/` (report, overlay videos; on synthetic scenes
-the error against the truth).
+Library: `gst.fuse.fuse_scene` (landmarks per crop, crowded crops read again, people regrouped,
+robust triangulation, a body fit over the clip). Writes `fused/` (Parquet, TRC, C3D;
+docs/formats/fused_*.md) and `reports/fuse/` (report, overlays; synthetic scenes: the error).
 """
 
 from __future__ import annotations
@@ -30,6 +29,7 @@ class Params(StageParams):
     temporal_votes: float = Field(2.0, ge=0)  # a hypothesis near its neighbours in time
     # rounds of view limb groups exchanged where the fitted body says they were read mirrored
     exchange_rounds: int = Field(1, ge=0)
+    relook: bool = True  # crowded crops read again with the other people painted over
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -58,6 +58,7 @@ def run(ctx: StageContext) -> None:
             regroup=RegroupOptions() if p.regroup else None,
             refine_rig_rounds=p.refine_rig,
             exchange_rounds=p.exchange_rounds,
+            relook=FuseOptions().relook if p.relook else None,
             people_per_batch=p.people_per_batch,
             overlay=p.overlay,
         ),

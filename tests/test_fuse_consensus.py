@@ -14,6 +14,7 @@ from gst.fuse.consensus import (
     ConsensusOptions,
     exchange_groups,
     exchanges_against_body,
+    readings_against_body,
     view_consensus,
 )
 from tests.fuse_fixtures import make_capture, observations
@@ -89,6 +90,32 @@ def test_fitted_body_settles_an_even_split(capture):
     gone = capture.markers[0].copy()
     gone[2] = np.nan
     assert not exchanges_against_body(p, gone)[2].any()
+
+
+def test_the_fitted_body_chooses_between_two_readings_of_a_view(capture):
+    """Two readings of some views (gst.fuse.relook): the view's own one and another. The other
+    wins where it lies nearer the body: the views whose own reading showed the other person,
+    never a view whose other reading is that person, or one without another reading."""
+    people = observations(capture, noise_px=1.0, seed=5)
+    p, someone = people[0], people[1]
+    clean = p.uv.copy()
+    p.uv[1, 2] = someone.uv[1, 2]  # frame 1, camera 2 read the other person
+    other = np.full(p.uv.shape[:3] + (3,), np.nan)
+    other[1, 2, :, :2] = clean[1, 2]  # ... and its second reading is right
+    other[3, 4, :, :2] = someone.uv[3, 4]  # a second reading that is the other person
+    other[..., 2] = np.where(np.isfinite(other[..., 0]), 0.9, np.nan)
+    choose = readings_against_body(p, other, capture.markers[0], ConsensusOptions())
+    expected = np.zeros(choose.shape, bool)
+    expected[1, 2] = True
+    np.testing.assert_array_equal(choose, expected)
+    # a gain below 1 asks for a clearer win: second readings as good as the own ones (other
+    # noise) are not taken, the right reading of the view that showed someone else still is
+    rng = np.random.default_rng(6)
+    again = np.concatenate(
+        [clean + rng.normal(0, 1.0, clean.shape), np.full(clean.shape[:3] + (1,), 0.9)], -1
+    )
+    choose = readings_against_body(p, again, capture.markers[0], gain=0.5)
+    np.testing.assert_array_equal(choose, expected)
 
 
 def test_an_even_split_between_two_people_follows_the_frames_around_it(capture):

@@ -238,6 +238,30 @@ def exchanges_against_body(
         return seen[..., None] & clear & (grp_sw < o.swap_gain * grp)
 
 
+def readings_against_body(
+    obs: PersonObservations,
+    other: np.ndarray,
+    markers: np.ndarray,
+    options: ConsensusOptions | None = None,
+    gain: float = 1.0,
+) -> np.ndarray:
+    """(T, C) bool: the views whose `other` reading of the landmarks ((T, C, M, 3) u, v crop
+    pixels and confidence; NaN where there is none) lies nearer the fitted body (`markers`
+    (T, M, 3) world, on `obs.frames`) than the view's own, by more than `gain` (median error in
+    full-image pixels, other < gain x own). The fitted body has every view behind it, so it can
+    judge between two readings of one crop (gst.fuse.relook)."""
+    o = options or ConsensusOptions()
+    seen, uv, conf = _evidence(obs, o)
+    other = np.asarray(other, np.float64)
+    alt = replace(obs, uv=other[..., :2], confidence=np.nan_to_num(other[..., 2]))
+    _, uv_alt, conf_alt = _evidence(alt, o)
+    X = np.asarray(markers, np.float64)[:, None]
+    own, _ = _view_errors(obs, X, uv, conf, o.min_confidence)
+    theirs, _ = _view_errors(obs, X, uv_alt, conf_alt, o.min_confidence)
+    with np.errstate(invalid="ignore"):
+        return seen & (theirs[:, 0] < gain * np.where(np.isnan(own[:, 0]), np.inf, own[:, 0]))
+
+
 def _extent_px(obs: PersonObservations, conf: np.ndarray) -> np.ndarray:
     """(T, C) the person's size in each view: the larger side of its confident landmarks' box,
     in full-image pixels (NaN where the view has fewer than 4 confident landmarks)."""

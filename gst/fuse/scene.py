@@ -34,12 +34,18 @@ from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.cores import torch_threads
 from gst.data.store import CropStore
-from gst.fuse.consensus import ConsensusOptions, exchange_groups, exchanges_against_body
+from gst.fuse.consensus import (
+    ConsensusOptions,
+    exchange_groups,
+    exchanges_against_body,
+    readings_against_body,
+)
 from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.observations import PersonObservations, crop_landmarks, group_by_person
 from gst.fuse.regroup import RegroupOptions, regroup_people
+from gst.fuse.relook import RelookOptions, relook_crowded
 from gst.fuse.report import FuseSummary, summarise, write_report
 from gst.fuse.rig import apply_corrections, camera_corrections, corrected_rig, rotation_matrix
 from gst.fuse.silhouettes import crop_silhouettes
@@ -63,6 +69,9 @@ class FuseOptions:
     regroup: RegroupOptions | None = RegroupOptions()  # None: the extraction's people as they are
     refine_landmarks: bool = True  # second BlazePose pass (gst.detect.crops, refine=True)
     mask_others: bool = False  # dim pixels outside the crop's person mask before BlazePose
+    # crops that other people crowd read again with those people painted over, the fitted body
+    # choosing between the two readings of each (gst.fuse.relook; None: off)
+    relook: RelookOptions | None = RelookOptions()
     refine_rig_rounds: int = (
         0  # rounds of camera rotations corrected from the bodies (gst.fuse.rig)
     )
@@ -152,7 +161,7 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
 
 
 def _fit_batches(
-    body, markers, people, tris, fps, o, work: Path, rnd: int, progress, log, silhouettes=None
+    body, markers, people, tris, fps, o, work: Path, rnd: int | str, progress, log, silhouettes=None
 ):
     """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
     fits: list[PersonFit] = []
@@ -190,6 +199,36 @@ def _exchange_against_fits(
         swap = exchanges_against_body(p, markers, consensus)
         total += int(swap.sum())
         out.append(exchange_groups(p, swap) if swap.any() else p)
+    return out, total
+
+
+def _judge_readings(
+    people: list[PersonObservations],
+    fits: list[PersonFit],
+    stored: np.ndarray,
+    read_again: np.ndarray,
+    o: FuseOptions,
+) -> tuple[list[PersonObservations], int]:
+    """Each person's views read again (gst.fuse.relook) given back their first reading,
+    `stored`, where the fitted body says that one was the better; and how many views that was."""
+    consensus = o.regroup.consensus if o.regroup is not None else ConsensusOptions()
+    again = np.zeros(len(stored), bool)
+    again[read_again] = True
+    out, total = [], 0
+    for p, f in zip(people, fits, strict=True):
+        rows = p.rows
+        candidates = (rows >= 0) & again[np.clip(rows, 0, None)]
+        other = np.full(p.uv.shape[:3] + (3,), np.nan)
+        other[candidates] = stored[rows[candidates]]
+        markers = f.markers[np.searchsorted(f.frames, p.frames)]
+        back = candidates & readings_against_body(p, other, markers, consensus, o.relook.gain)
+        total += int(back.sum())
+        if back.any():
+            uv, conf = p.uv.copy(), p.confidence.copy()
+            uv[back] = other[back][..., :2]
+            conf[back] = np.clip(np.nan_to_num(other[back][..., 2]), 0, 1)
+            p = dataclasses.replace(p, uv=uv, confidence=conf)
+        out.append(p)
     return out, total
 
 
@@ -257,6 +296,21 @@ def fuse_scene(
                 store, progress=progress, refine=o.refine_landmarks, masked=o.mask_others
             )
             _save_npy(lm_path, landmarks)
+    stored, read_again = landmarks, np.zeros(0, np.int64)
+    if o.relook is not None and not callable(landmarks):
+        relook_path = work / "landmarks_relook.npz"
+        if relook_path.is_file():
+            with np.load(relook_path) as z:
+                landmarks, read_again = z["landmarks"], z["rows"]
+        else:
+            relooked = relook_crowded(store, landmarks, o.relook, progress=progress)
+            landmarks, read_again = relooked.landmarks, relooked.rows
+            _save_npz(relook_path, landmarks=landmarks, rows=read_again)
+        if log is not None:
+            log.info(
+                "fuse: %d of %d crops crowded by other people, read again with them painted over",
+                len(read_again), len(store),
+            )  # fmt: skip
     people = group_by_person(store, landmarks)
     if o.regroup is not None:
         people, regrouped = regroup_people(people, o.regroup)
@@ -303,6 +357,15 @@ def fuse_scene(
                 "fuse: camera corrections (deg) %s",
                 np.round(np.degrees(np.linalg.norm(w, axis=1)), 2).tolist(),
             )
+    if len(read_again) and o.relook.judge:
+        people, n = _judge_readings(people, fits, stored, read_again, o)
+        if n:
+            tris = triangulate(people)
+            fits = _fit_batches(
+                body, markers, people, tris, fps, o, work, "readings", progress, log, silhouettes
+            )
+        if log is not None:
+            log.info("fuse: %d views read again kept their first reading (the body's choice)", n)
     exchanged = 0
     for k in range(o.exchange_rounds):
         people, n = _exchange_against_fits(people, fits, o)

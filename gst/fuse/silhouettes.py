@@ -18,9 +18,52 @@ import numpy as np
 
 from gst.data.store import CropStore
 
-__all__ = ["SILHOUETTE_SIZE", "CropSilhouettes", "ViewSilhouettes", "crop_silhouettes"]
+__all__ = [
+    "SILHOUETTE_SIZE",
+    "CropSilhouettes",
+    "ViewSilhouettes",
+    "crop_silhouettes",
+    "crop_windows",
+    "into_window",
+    "view_groups",
+]
 
 SILHOUETTE_SIZE = 64  # grid cells across a crop (a 256-px crop: 4 px a cell)
+
+
+def crop_windows(store: CropStore) -> np.ndarray:
+    """(N, 3) each crop row's window in its undistorted image: x0, y0, side (full-image px)."""
+    index = store.index
+    return np.stack(
+        [
+            index.column(k).to_numpy().astype(np.float64)
+            for k in ("crop_x0", "crop_y0", "crop_side")
+        ],
+        axis=1,
+    )
+
+
+def view_groups(store: CropStore) -> list[np.ndarray]:
+    """The store's rows grouped by camera and frame (one array of rows per view of a frame)."""
+    frame = store.index.column("frame").to_numpy()
+    cam = store.index.column("camera_index").to_numpy()
+    order = np.lexsort((frame, cam))
+    key = np.stack([cam[order], frame[order]], 1)
+    starts = np.flatnonzero(np.r_[True, np.any(key[1:] != key[:-1], axis=1), True])
+    return [order[a:b] for a, b in zip(starts[:-1], starts[1:], strict=True)]
+
+
+def into_window(image: np.ndarray, source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """A (size, size) image of the crop window `source` (x0, y0, side) resampled into the window
+    `target` of the same camera and frame, at the same size (0 where `source` does not reach)."""
+    size = image.shape[0]
+    s = target[2] / source[2]  # target's pixels in source's pixels
+    du = (target[0] - source[0]) / source[2] * size + 0.5 * s - 0.5
+    dv = (target[1] - source[1]) / source[2] * size + 0.5 * s - 0.5
+    inverse = np.array([[s, 0.0, du], [0.0, s, dv]])
+    return cv2.warpAffine(
+        image, inverse, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=0
+    )
 
 
 def crop_silhouettes(
@@ -44,25 +87,13 @@ def crop_silhouettes(
     out = np.zeros((n, size, size // 8), np.uint8)
     if n == 0:
         return CropSilhouettes(out, size, store.crop_size)
-    index = store.index
-    boxes = np.stack(  # x0, y0, side (full-image px)
-        [
-            index.column(k).to_numpy().astype(np.float64)
-            for k in ("crop_x0", "crop_y0", "crop_side")
-        ],
-        axis=1,
-    )
-    frame = store.index.column("frame").to_numpy()
+    boxes = crop_windows(store)
     cam = store.index.column("camera_index").to_numpy()
-    order = np.lexsort((frame, cam))
-    key = np.stack([cam[order], frame[order]], 1)
-    starts = np.flatnonzero(np.r_[True, np.any(key[1:] != key[:-1], axis=1), True])
     centres = (np.arange(size) + 0.5) / size  # cell centres as a share of the window
-    groups = zip(starts[:-1], starts[1:], strict=True)
+    groups = view_groups(store)
     if progress is not None:
-        groups = progress(groups, description="people per view", total=len(starts) - 1)
-    for a, b in groups:
-        rows = order[a:b]
+        groups = progress(groups, description="people per view", total=len(groups))
+    for rows in groups:
         width, height = image_sizes[store.camera_names[int(cam[rows[0]])]]
         # each mask's coverage on its own coarse grid, then resampled into the others' windows
         coarse = [
@@ -73,16 +104,7 @@ def crop_silhouettes(
             x0, y0, side = boxes[i]
             union = np.zeros((size, size), np.float32)
             for j, cov in zip(rows, coarse, strict=True):
-                xj, yj, sj = boxes[j]
-                s = side / sj  # i's cells in j's cells
-                du = (x0 - xj) / sj * size + 0.5 * s - 0.5
-                dv = (y0 - yj) / sj * size + 0.5 * s - 0.5
-                inverse = np.array([[s, 0.0, du], [0.0, s, dv]])
-                warped = cv2.warpAffine(
-                    cov, inverse, (size, size),
-                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=0.0,
-                )  # fmt: skip
-                np.maximum(union, warped, out=union)
+                np.maximum(union, into_window(cov, boxes[j], boxes[i]), out=union)
             xs, ys = x0 + centres * side, y0 + centres * side
             outside = ((ys < 0) | (ys >= height))[:, None] | ((xs < 0) | (xs >= width))[None, :]
             out[i] = np.packbits((union >= coverage) | outside, axis=-1)

@@ -1,0 +1,109 @@
+"""A second look at crowded crops (gst.fuse.relook): which pixels belong to the other people of
+a crop's camera and frame, and that only crowded crops are read again, with those people painted
+over and the person's own pixels untouched."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from gst.data.store import CropBatch, CropStore, CropStoreWriter
+from gst.fuse.relook import RelookOptions, others_masks, relook_crowded
+
+S = 64  # crop pixels
+RED, GREEN = (0, 0, 255), (0, 255, 0)  # BGR
+
+
+def _store(path, windows, masks, images, camera, frame) -> CropStore:
+    n = len(windows)
+    batch = CropBatch(
+        images=np.asarray(images, np.uint8),
+        masks=np.asarray(masks, np.uint8),
+        K_crop=np.tile(np.eye(3), (n, 1, 1)),
+        R=np.tile(np.eye(3), (n, 1, 1)),
+        t=np.zeros((n, 3)),
+        box=np.zeros((n, 4)),
+        crop_box=np.asarray(windows, np.float64),
+        camera=np.asarray(camera, np.int32),
+        frame=np.asarray(frame, np.int64),
+        person_id=np.arange(1, n + 1),
+        mask_support=np.full(n, np.nan, np.float32),
+    )
+    with CropStoreWriter(path, ["a", "b"], S) as w:
+        w.commit(batch, sorted({(int(f), int(c)) for f, c in zip(frame, camera, strict=True)}))
+        w.finalize({"n_frames": int(max(frame)) + 1})
+    return CropStore(path)
+
+
+def _scene(tmp_path) -> CropStore:
+    """Two people side by side in camera a, frame 0: person 1 (green, image x 8-24) and person 2
+    (red, image x 28-44), each window reaching into the other's; a third crop alone in camera
+    b."""
+    windows = [(0, 0, 64), (16, 0, 64), (0, 0, 64)]
+    masks = np.zeros((3, S, S), np.uint8)
+    images = np.full((3, S, S, 3), 90, np.uint8)
+    masks[0, 8:56, 8:24] = 255
+    images[0, 8:56, 8:24] = GREEN
+    images[0, 8:56, 28:44] = RED  # person 2, as crop 0 sees them
+    masks[1, 8:56, 12:28] = 255  # person 2 in their own window (x0 = 16)
+    images[1, 8:56, 12:28] = RED
+    images[1, 8:56, 0:8] = GREEN  # the edge of person 1
+    masks[2, 8:56, 8:24] = 255
+    return _store(tmp_path / "c.h5", windows, masks, images, camera=[0, 0, 1], frame=[0, 0, 0])
+
+
+def test_the_other_people_are_the_pixels_of_their_masks_outside_ones_own(tmp_path):
+    store = _scene(tmp_path)
+    others, share = others_masks(store, np.array([0, 1]))
+    want = np.zeros((S, S), bool)
+    want[8:56, 28:44] = True  # person 2's mask, moved into crop 0's window
+    np.testing.assert_array_equal(others[0], want)
+    want_1 = np.zeros((S, S), bool)
+    want_1[8:56, 0:8] = True  # person 1's right edge (image x 16-24) in person 2's window
+    np.testing.assert_array_equal(others[1], want_1)
+    np.testing.assert_allclose(share, [want.mean(), want_1.mean()])
+
+
+class _Recorder:
+    """A stand-in for the landmark model that remembers the crops it was given."""
+
+    def __init__(self):
+        self.images = []
+
+    def segment(self, image, roi):
+        self.images.append(image.copy())
+        lm = np.full((33, 3), 7.0, np.float32)
+        return SimpleNamespace(landmarks=lm, world_landmarks=np.zeros((33, 3)), presence=1.0)
+
+
+def test_only_crowded_crops_are_read_again_with_the_others_painted_over(tmp_path):
+    """Person 2 covers 19 % of crop 0's window and person 1 9 % of crop 1's: with a threshold of
+    12 % only crop 0 is read again, with person 2 painted over and person 1's pixels untouched."""
+    store = _scene(tmp_path)
+    before = np.zeros((3, 33, 3), np.float32)
+    model = _Recorder()
+    options = RelookOptions(min_share=0.12, refine=False)
+    out = relook_crowded(store, before, options, model=model)
+    np.testing.assert_array_equal(out.rows, [0])  # crop 1 is not crowded, crop 2 is alone
+    np.testing.assert_allclose(out.shares, [48 * 16 / S**2, 48 * 8 / S**2, 0.0])
+    np.testing.assert_array_equal(out.landmarks[0], np.full((33, 3), 7.0))
+    np.testing.assert_array_equal(out.landmarks[1:], before[1:])
+    (seen,) = model.images
+    red = np.all(seen == RED, axis=-1)
+    assert not red.any()  # person 2 painted over from the surroundings
+    np.testing.assert_array_equal(seen[8:56, 8:24], np.broadcast_to(GREEN, (48, 16, 3)))
+    # the ablation reads the same crop again as it is
+    model = _Recorder()
+    relook_crowded(store, before, replace(options, paint=False), model=model)
+    assert np.all(model.images[0][8:56, 28:44] == RED)
+    # nobody crowded enough: nothing is read again, and no model is even made
+    quiet = relook_crowded(store, before, replace(options, min_share=0.5))
+    assert len(quiet.rows) == 0
+
+
+def test_wrong_landmark_shapes_are_refused(tmp_path):
+    with pytest.raises(ValueError, match=r"expected \(3, 33, 3\)"):
+        relook_crowded(_scene(tmp_path), np.zeros((2, 33, 3)))
