@@ -14,7 +14,7 @@ from gst.body import load_body_model
 from gst.body.joint_limits import sample_body_pose
 from gst.body.markers import MarkerModel
 from gst.body.rotations import matrix_to_axis_angle
-from gst.data.store import CropBatch, CropStoreWriter
+from gst.data.store import CropBatch, CropStore, CropStoreWriter
 from gst.fuse.observations import PersonObservations
 
 S = 32  # crop images are dummies; K_crop is the camera's own K
@@ -144,3 +144,28 @@ def capture_in_store(folder: Path, **capture) -> tuple[Capture, np.ndarray]:
     the capture and the store's landmarks."""
     cap = make_capture(load_body_model("anny"), **capture)
     return cap, write_store(folder / "crops.h5", cap)
+
+
+def windows_store(path, windows, masks, camera, frame, images=None, names=("a", "b")) -> CropStore:
+    """A crop store of square crops: each row's window (x0, y0, side) in its camera's image, its
+    person mask, camera index and frame (person ids 1, 2, ...); images black unless given."""
+    n, size = len(windows), np.asarray(masks).shape[1]
+    batch = CropBatch(
+        images=np.zeros((n, size, size, 3), np.uint8)
+        if images is None
+        else np.asarray(images, np.uint8),
+        masks=np.asarray(masks, np.uint8),
+        K_crop=np.tile(np.eye(3), (n, 1, 1)),
+        R=np.tile(np.eye(3), (n, 1, 1)),
+        t=np.zeros((n, 3)),
+        box=np.zeros((n, 4)),
+        crop_box=np.asarray(windows, np.float64),
+        camera=np.asarray(camera, np.int32),
+        frame=np.asarray(frame, np.int64),
+        person_id=np.arange(1, n + 1),
+        mask_support=np.full(n, np.nan, np.float32),
+    )
+    with CropStoreWriter(path, list(names), size) as w:
+        w.commit(batch, sorted({(int(f), int(c)) for f, c in zip(frame, camera, strict=True)}))
+        w.finalize({"n_frames": int(max(frame)) + 1})
+    return CropStore(path)

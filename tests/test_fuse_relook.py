@@ -10,32 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from gst.data.store import CropBatch, CropStore, CropStoreWriter
+from gst.data.store import CropStore
 from gst.fuse.relook import RelookOptions, others_masks, relook_crowded
+from tests.fuse_fixtures import windows_store
 
 S = 64  # crop pixels
 RED, GREEN = (0, 0, 255), (0, 255, 0)  # BGR
-
-
-def _store(path, windows, masks, images, camera, frame) -> CropStore:
-    n = len(windows)
-    batch = CropBatch(
-        images=np.asarray(images, np.uint8),
-        masks=np.asarray(masks, np.uint8),
-        K_crop=np.tile(np.eye(3), (n, 1, 1)),
-        R=np.tile(np.eye(3), (n, 1, 1)),
-        t=np.zeros((n, 3)),
-        box=np.zeros((n, 4)),
-        crop_box=np.asarray(windows, np.float64),
-        camera=np.asarray(camera, np.int32),
-        frame=np.asarray(frame, np.int64),
-        person_id=np.arange(1, n + 1),
-        mask_support=np.full(n, np.nan, np.float32),
-    )
-    with CropStoreWriter(path, ["a", "b"], S) as w:
-        w.commit(batch, sorted({(int(f), int(c)) for f, c in zip(frame, camera, strict=True)}))
-        w.finalize({"n_frames": int(max(frame)) + 1})
-    return CropStore(path)
 
 
 def _scene(tmp_path) -> CropStore:
@@ -52,7 +32,9 @@ def _scene(tmp_path) -> CropStore:
     images[1, 8:56, 12:28] = RED
     images[1, 8:56, 0:8] = GREEN  # the edge of person 1
     masks[2, 8:56, 8:24] = 255
-    return _store(tmp_path / "c.h5", windows, masks, images, camera=[0, 0, 1], frame=[0, 0, 0])
+    return windows_store(
+        tmp_path / "c.h5", windows, masks, camera=[0, 0, 1], frame=[0, 0, 0], images=images
+    )
 
 
 def test_the_other_people_are_the_pixels_of_their_masks_outside_ones_own(tmp_path):

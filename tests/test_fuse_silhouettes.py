@@ -9,32 +9,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_fuse_triangulate import _observe, _rig
 
-from gst.data.store import CropBatch, CropStore, CropStoreWriter
 from gst.fuse.silhouettes import CropSilhouettes, ViewSilhouettes, crop_silhouettes
 from gst.fuse.triangulate import TriangulationOptions, project, triangulate_points
+from tests.fuse_fixtures import windows_store
 
 S = 64  # crop pixels
-
-
-def _store(path, windows, masks, camera, frame, names=("a", "b")):
-    n = len(windows)
-    batch = CropBatch(
-        images=np.zeros((n, S, S, 3), np.uint8),
-        masks=np.asarray(masks, np.uint8),
-        K_crop=np.tile(np.eye(3), (n, 1, 1)),
-        R=np.tile(np.eye(3), (n, 1, 1)),
-        t=np.zeros((n, 3)),
-        box=np.zeros((n, 4)),
-        crop_box=np.asarray(windows, np.float64),
-        camera=np.asarray(camera, np.int32),
-        frame=np.asarray(frame, np.int64),
-        person_id=np.arange(1, n + 1),
-        mask_support=np.full(n, np.nan, np.float32),
-    )
-    with CropStoreWriter(path, list(names), S) as w:
-        w.commit(batch, sorted({(int(f), int(c)) for f, c in zip(frame, camera, strict=True)}))
-        w.finalize({"n_frames": int(max(frame)) + 1})
-    return CropStore(path)
 
 
 def test_a_crop_is_covered_where_anyone_of_its_camera_and_frame_is_or_outside_the_image(tmp_path):
@@ -48,7 +27,9 @@ def test_a_crop_is_covered_where_anyone_of_its_camera_and_frame_is_or_outside_th
     masks[2, 40:56, 8:24] = 255
     masks[3, 40:56, 8:24] = 255
     windows = [(0, 0, 64), (32, 0, 32), (0, 0, 64), (40, 0, 64)]
-    store = _store(tmp_path / "c.h5", windows, masks, camera=[0, 0, 0, 1], frame=[0, 0, 1, 0])
+    store = windows_store(
+        tmp_path / "c.h5", windows, masks, camera=[0, 0, 0, 1], frame=[0, 0, 1, 0]
+    )
     sil = crop_silhouettes(store, {"a": (80, 64), "b": (80, 64)}, size=16)
     assert isinstance(sil, CropSilhouettes) and sil.masks.shape == (4, 16, 16)
     want = np.zeros((16, 16), bool)
