@@ -311,6 +311,8 @@ def fuse_scene(
                 "fuse: %d of %d crops crowded by other people, read again with them painted over",
                 len(read_again), len(store),
             )  # fmt: skip
+        if o.relook.first == "stored":  # fit the extraction's readings, then judge the others
+            landmarks, stored = stored, landmarks
     people = group_by_person(store, landmarks)
     if o.regroup is not None:
         people, regrouped = regroup_people(people, o.regroup)
