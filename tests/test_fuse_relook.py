@@ -13,6 +13,7 @@ import pytest
 from gst.data.store import CropStore
 from gst.fuse.relook import RelookOptions, others_masks, relook_crowded
 from tests.fuse_fixtures import windows_store
+from tests.real_capture import NEEDS_MODELS
 
 S = 64  # crop pixels
 RED, GREEN = (0, 0, 255), (0, 255, 0)  # BGR
@@ -89,3 +90,25 @@ def test_only_crowded_crops_are_read_again_with_the_others_painted_over(tmp_path
 def test_wrong_landmark_shapes_are_refused(tmp_path):
     with pytest.raises(ValueError, match=r"expected \(3, 33, 3\)"):
         relook_crowded(_scene(tmp_path), np.zeros((2, 33, 3)))
+
+
+@NEEDS_MODELS
+def test_threads_read_the_same_landmarks_as_one(tmp_path):
+    """The crowded crops are read on a pool of threads (a camera and frame per task), one
+    landmark model each: the same numbers as one thread."""
+    one_frame = _scene(tmp_path).read(np.arange(2))
+    frames = 4
+    rng = np.random.default_rng(0)
+    images = np.concatenate([one_frame.images] * frames)
+    images = np.clip(images + rng.integers(-20, 20, images.shape), 0, 255)  # frames differ
+    store = windows_store(
+        tmp_path / "frames.h5", np.concatenate([one_frame.crop_box] * frames),
+        np.concatenate([one_frame.masks] * frames), camera=[0] * 2 * frames,
+        frame=np.repeat(np.arange(frames), 2), images=images,
+    )  # fmt: skip
+    before = np.zeros((2 * frames, 33, 3), np.float32)
+    one = relook_crowded(store, before, RelookOptions(min_share=0.05), threads=1)
+    two = relook_crowded(store, before, RelookOptions(min_share=0.05), threads=2)
+    np.testing.assert_array_equal(one.rows, np.arange(2 * frames))
+    np.testing.assert_array_equal(one.landmarks, two.landmarks)
+    assert np.isfinite(one.landmarks).all() and len(np.unique(one.landmarks[:, 0, 0])) > 1

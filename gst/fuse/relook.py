@@ -19,11 +19,14 @@ the two readings the body is fitted from before it judges.
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
+from gst.cores import available_cores
 from gst.data.store import CropStore
 from gst.fuse.silhouettes import crop_windows, into_window, view_groups
 
@@ -76,9 +79,12 @@ def relook_crowded(
     options: RelookOptions | None = None,
     model=None,
     progress=None,
+    threads: int | None = None,
 ) -> RelookResult:
     """The store's `landmarks` (N, 33, 3), with the crowded crops read again (module doc).
-    `model`: a gst.detect.blazepose.BlazePose (default: one on one thread)."""
+    `model`: a gst.detect.blazepose.BlazePose to use (then one thread); default: one per
+    thread, on `threads` threads (default: the cores; the landmark model and the inpainting
+    release Python's lock)."""
     import cv2
 
     from gst.detect.blazepose import BlazePose
@@ -90,24 +96,38 @@ def relook_crowded(
         raise ValueError(
             f"{store.path}: landmarks have shape {landmarks.shape}, expected ({len(store)}, 33, 3)"
         )
-    shares = np.zeros(len(store))
-    read_again: list[np.ndarray] = []
-    groups = [g for g in view_groups(store) if len(g) > 1]
-    if progress is not None:
-        groups = progress(groups, description="crowded crops read again", total=len(groups))
     kernel = np.ones((2 * o.grow + 1, 2 * o.grow + 1), np.uint8)
-    for rows in groups:  # one camera and frame at a time: memory does not grow with the clip
-        others, shares[rows] = others_masks(store, rows)
-        crowded = shares[rows] >= o.min_share
+    local = threading.local()
+
+    def read(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """One camera and frame: its crops' shares of other people, and the crowded crops'
+        landmarks read again (None: none crowded)."""
+        others, shares = others_masks(store, rows)
+        crowded = shares >= o.min_share
         if not crowded.any():
-            continue
-        model = model or BlazePose(threads=1)
+            return shares, crowded, None
+        if model is None and not hasattr(local, "model"):
+            local.model = BlazePose(threads=1)
         images = store.read(rows[crowded]).images  # BGR
         for k, mask in enumerate(others[crowded] if o.paint else []):
             grown = cv2.dilate(mask.astype(np.uint8), kernel)
             images[k] = cv2.inpaint(images[k], grown, 5, cv2.INPAINT_TELEA)
-        found = detect_crop_landmarks(images, model, rgb=False, refine=o.refine)
-        landmarks[rows[crowded]] = found.with_confidence()
-        read_again.append(rows[crowded])
+        found = detect_crop_landmarks(images, model or local.model, rgb=False, refine=o.refine)
+        return shares, crowded, found.with_confidence()
+
+    shares = np.zeros(len(store))
+    read_again: list[np.ndarray] = []
+    groups = [g for g in view_groups(store) if len(g) > 1]
+    workers = 1 if model is not None else (threads or available_cores())
+    # one camera and frame per task, consumed in order: memory does not grow with the clip
+    with ThreadPoolExecutor(workers) as pool:
+        results = zip(groups, pool.map(read, groups), strict=True)
+        if progress is not None:
+            results = progress(results, description="crowded crops read again", total=len(groups))
+        for rows, (share, crowded, found) in results:
+            shares[rows] = share
+            if found is not None:
+                landmarks[rows[crowded]] = found
+                read_again.append(rows[crowded])
     rows = np.sort(np.concatenate(read_again)) if read_again else np.zeros(0, np.int64)
     return RelookResult(landmarks, rows, shares)
