@@ -519,10 +519,18 @@ class CropStore:
     def read_masks(self, rows=None) -> np.ndarray:
         """(n, S, S) uint8 person masks of `rows` (default all, in the given order); no image
         is read."""
+        return self._read_column("masks", rows)
+
+    def read_images(self, rows=None) -> np.ndarray:
+        """(n, S, S, 3) uint8 BGR crops of `rows` (default all, in the given order); nothing
+        else is read."""
+        return self._read_column("images", rows)
+
+    def _read_column(self, name: str, rows=None) -> np.ndarray:
         f = self._file()
         if rows is None:
-            return np.asarray(f["masks"][: self.n])
-        return _read_rows(f["masks"], rows)
+            return np.asarray(f[name][: self.n])
+        return _read_rows(f[name], rows)
 
     def read(self, rows) -> CropBatch:
         """Load the given rows (any order; returned in that order)."""

@@ -41,11 +41,11 @@ class RelookOptions:
     # after the fit, the body judges: a view read again gets its first reading back where that
     # one lies nearer the fitted body, by a factor `gain` (gst.fuse.consensus.readings_against_body)
     judge: bool = True
+    gain: float = 1.0
     # the readings the first fit uses, the others then judged against it: "again" (default:
     # far better in crowds) or "stored", the extraction's (better where people seldom overlap:
     # the demo 29.2 / 25.5 mm against 30.8 / 28.9, crowd_dome_7000 59.7 against 36.3)
     first: Literal["again", "stored"] = "again"
-    gain: float = 1.0
     paint: bool = True  # paint the other people over (False: read the crowded crops again as
     # they are, the ablation that tells the painting from the second reading)
 
@@ -57,11 +57,15 @@ class RelookResult:
     shares: np.ndarray  # (N,) other people's share of each crop window
 
 
-def others_masks(store: CropStore, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def others_masks(
+    store: CropStore, rows: np.ndarray, windows: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """For one camera and frame (`rows` of the store): (M, S, S) bool, per crop, the pixels of
-    its window that belong to another person's mask and not to its own, and (M,) their share."""
+    its window that belong to another person's mask and not to its own, and (M,) their share.
+    `windows`: the rows' crop windows (gst.fuse.silhouettes.crop_windows; default: read from
+    the store's index, which a caller looping over every view should do once)."""
     masks = store.read_masks(rows)
-    windows = crop_windows(store)[rows]
+    windows = crop_windows(store)[rows] if windows is None else windows
     own = masks > 127
     out = np.zeros_like(own)
     for i in range(len(rows)):
@@ -97,18 +101,19 @@ def relook_crowded(
             f"{store.path}: landmarks have shape {landmarks.shape}, expected ({len(store)}, 33, 3)"
         )
     kernel = np.ones((2 * o.grow + 1, 2 * o.grow + 1), np.uint8)
+    windows = crop_windows(store)
     local = threading.local()
 
     def read(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """One camera and frame: its crops' shares of other people, and the crowded crops'
         landmarks read again (None: none crowded)."""
-        others, shares = others_masks(store, rows)
+        others, shares = others_masks(store, rows, windows[rows])
         crowded = shares >= o.min_share
         if not crowded.any():
             return shares, crowded, None
         if model is None and not hasattr(local, "model"):
             local.model = BlazePose(threads=1)
-        images = store.read(rows[crowded]).images  # BGR
+        images = store.read_images(rows[crowded])  # BGR
         for k, mask in enumerate(others[crowded] if o.paint else []):
             grown = cv2.dilate(mask.astype(np.uint8), kernel)
             images[k] = cv2.inpaint(images[k], grown, 5, cv2.INPAINT_TELEA)
