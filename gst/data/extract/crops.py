@@ -24,6 +24,7 @@ from gst.data.evaluate import CropTruth
 from gst.data.external import (
     IdMaskFile,
 )
+from gst.data.keypoints.geometry import FIELD_MARGIN
 from gst.data.store import CropBatch, CropStoreWriter
 from gst.video import read_frames
 
@@ -92,8 +93,11 @@ def crop_person(
     if len(pts) == 0:
         return None
     if extra_box is not None and np.all(np.isfinite(extra_box)):
-        # Box edges to full-resolution pixel centres along its outline (the lens bends it).
-        ex0, ey0, ex1, ey1 = extra_box
+        # Box edges to full-resolution pixel centres along its outline (the lens bends it),
+        # within the field the lens model holds (landmarks far outside it are no evidence).
+        mh, mw = person_mask.shape
+        lo = -FIELD_MARGIN * np.array([mw, mh, mw, mh])
+        ex0, ey0, ex1, ey1 = np.clip(extra_box, lo, np.array([mw, mh, mw, mh]) - lo)
         t = np.linspace(0.0, 1.0, 9)
         xs = ex0 + (ex1 - ex0) * t
         ys = ey0 + (ey1 - ey0) * t

@@ -78,16 +78,33 @@ def triangulate_weighted(
     return X
 
 
-def project(cam: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+# How far outside the image (a share of its width and height) a point may lie and still be
+# projected: beyond that the lens model is extrapolated, and a polynomial distortion can send a
+# point far outside the field of view anywhere (a skeleton point beside the camera landed
+# millions of pixels away, and its view's crop with it: docs/extract.md "Crowd scenes").
+FIELD_MARGIN = 0.5
+
+
+def project(
+    cam: Camera, points: np.ndarray, margin: float = FIELD_MARGIN
+) -> tuple[np.ndarray, np.ndarray]:
     """(L, 3) world points (NaN allowed) -> ((L, 2) distorted pixels, (L,) in front of the
-    camera). Points that are NaN or behind the camera give NaN pixels."""
+    camera). Points that are NaN, behind the camera, or whose pinhole projection lies more than
+    `margin` x the image's size outside it give NaN pixels."""
     out = np.full((len(points), 2), np.nan)
     ok = np.all(np.isfinite(points), axis=1)
     if ok.any():
-        depth = cam.to_camera(points[ok])[:, 2]
+        xyz = cam.to_camera(points[ok])
+        depth = xyz[:, 2]
         front = np.zeros(len(points), bool)
         front[np.flatnonzero(ok)[depth > 1e-3]] = True
         if front.any():
             out[front] = cam.project(points[front])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pin = (xyz[:, :2] / depth[:, None]) @ cam.K[:2, :2].T + cam.K[:2, 2]
+            size = np.array([cam.width, cam.height], np.float64)
+            inside = np.all((pin > -margin * size) & (pin < (1 + margin) * size), axis=1)
+            far = np.flatnonzero(ok)[(depth > 1e-3) & ~inside]
+            out[far] = np.nan
         return out, front
     return out, ok
