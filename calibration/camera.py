@@ -153,11 +153,26 @@ class Camera:
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         return pts @ self.R.T + self.t
 
+    def in_field(
+        self, points_world: np.ndarray, margin: float = 0.5, min_depth: float = 1e-3
+    ) -> np.ndarray:
+        """(N,) bool: the points at least `min_depth` in front of the camera whose pinhole
+        projection lies within `margin` x the image's width and height of the image. Beyond
+        that the lens model is extrapolated: a distortion polynomial evaluated far outside the
+        field it was calibrated on can put a point anywhere, even back inside the image."""
+        xyz = self.to_camera(points_world)
+        z = xyz[:, 2]
+        front = np.isfinite(xyz).all(axis=1) & (z > min_depth)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pin = (xyz[:, :2] / z[:, None]) @ self.K[:2, :2].T + self.K[:2, 2]
+        size = np.array([self.width, self.height], np.float64)
+        return front & np.all((pin > -margin * size) & (pin < (1 + margin) * size), axis=1)
+
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """Project (N, 3) world points to (N, 2) distorted pixels with cv2.projectPoints.
 
-        Points behind the camera are projected too (OpenCV does not clip); check depth with
-        `to_camera` when it matters.
+        Points behind the camera or far outside its field are projected too (OpenCV does not
+        clip); check them with `in_field` when it matters.
         """
         pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:

@@ -76,3 +76,21 @@ def test_a_crop_ignores_landmarks_far_outside_the_image():
     wild = crop_person(frame, mask, cam, 64, 1.0, np.array([-5.9e6, 134.0, 338.0, 1.7e6]))
     side = (1 + 2 * FIELD_MARGIN) * max(cam.width, cam.height) * 1.25  # the crop's enlargement
     assert sane[4][2] < 100 and wild[4][2] < side
+
+
+def test_a_distortion_polynomial_folds_far_points_back_into_the_image():
+    """Why the field check exists: with barrel distortion (k1 < 0) a point beside the camera,
+    twice the focal length off-axis, lands back inside the image on the other side. Camera.
+    in_field says it is not in the field; geometry.project and the fuse overlay skip it."""
+    from calibration import Camera
+
+    K = np.array([[500.0, 0, 240], [0, 500.0, 180], [0, 0, 1]])
+    cam = Camera.create("wide", K, np.array([-0.3, 0, 0, 0, 0]), np.eye(3), np.zeros(3), 480, 360)
+    beside = np.array([[2.0, 0.0, 1.0]])  # normalised x = 2: pinhole u = 1240 on a 480 px image
+    u, v = cam.project(beside)[0]
+    assert 0 <= u < 480 and 0 <= v < 360  # folded back: drawn at u = 40
+    assert not cam.in_field(beside).any()
+    assert np.isnan(project(cam, beside)[0]).all()
+    near = np.array([[0.2, 0.1, 1.0]])
+    assert cam.in_field(near).all()
+    np.testing.assert_allclose(project(cam, near)[0], cam.project(near))

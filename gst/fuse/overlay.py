@@ -105,7 +105,10 @@ def write_overlays(
 
 
 def _in_front(cam, X: np.ndarray) -> np.ndarray:
-    return (X @ cam.R.T + cam.t)[:, 2] > 0.05
+    """Points the camera's lens model can place: in front of it and near its image
+    (calibration.Camera.in_field; a body beside a wide-angle camera is drawn nowhere rather
+    than folded back into the picture by the distortion)."""
+    return cam.in_field(X, min_depth=0.05)
 
 
 def _draw(img, cam, fit: PersonFit, i: int, verts: np.ndarray, colour) -> None:

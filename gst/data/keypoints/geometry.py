@@ -93,18 +93,11 @@ def project(
     `margin` x the image's size outside it give NaN pixels."""
     out = np.full((len(points), 2), np.nan)
     ok = np.all(np.isfinite(points), axis=1)
+    front = np.zeros(len(points), bool)
     if ok.any():
-        xyz = cam.to_camera(points[ok])
-        depth = xyz[:, 2]
-        front = np.zeros(len(points), bool)
-        front[np.flatnonzero(ok)[depth > 1e-3]] = True
-        if front.any():
-            out[front] = cam.project(points[front])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                pin = (xyz[:, :2] / depth[:, None]) @ cam.K[:2, :2].T + cam.K[:2, 2]
-            size = np.array([cam.width, cam.height], np.float64)
-            inside = np.all((pin > -margin * size) & (pin < (1 + margin) * size), axis=1)
-            far = np.flatnonzero(ok)[(depth > 1e-3) & ~inside]
-            out[far] = np.nan
-        return out, front
-    return out, ok
+        front[ok] = cam.to_camera(points[ok])[:, 2] > 1e-3
+        seen = np.zeros(len(points), bool)
+        seen[ok] = cam.in_field(points[ok], margin)
+        if seen.any():
+            out[seen] = cam.project(points[seen])
+    return out, front
