@@ -18,6 +18,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 _VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
+# How far outside the image (a share of its width and height) a point may lie for the lens model
+# to place it (Camera.in_field): beyond that a distortion polynomial is extrapolated and can put
+# a point anywhere (a wrong skeleton's limb beside a camera landed millions of pixels away, and
+# its view's crop with it: docs/extract.md "Points beside a camera").
+FIELD_MARGIN = 0.5
 
 
 class CameraError(ValueError):
@@ -154,7 +159,7 @@ class Camera:
         return pts @ self.R.T + self.t
 
     def in_field(
-        self, points_world: np.ndarray, margin: float = 0.5, min_depth: float = 1e-3
+        self, points_world: np.ndarray, margin: float = FIELD_MARGIN, min_depth: float = 1e-3
     ) -> np.ndarray:
         """(N,) bool: the points at least `min_depth` in front of the camera whose pinhole
         projection lies within `margin` x the image's width and height of the image. Beyond

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibration.camera import Camera
+from calibration.camera import FIELD_MARGIN, Camera
 
 
 def viewing_rays(cam: Camera, pixels: np.ndarray) -> np.ndarray:
@@ -76,13 +76,6 @@ def triangulate_weighted(
         X = Xh[:, :3] / Xh[:, 3:4]
     X[(weights > 0).sum(axis=0) < 2] = np.nan
     return X
-
-
-# How far outside the image (a share of its width and height) a point may lie and still be
-# projected: beyond that the lens model is extrapolated, and a polynomial distortion can send a
-# point far outside the field of view anywhere (a skeleton point beside the camera landed
-# millions of pixels away, and its view's crop with it: docs/extract.md "Crowd scenes").
-FIELD_MARGIN = 0.5
 
 
 def project(
