@@ -74,6 +74,24 @@ def test_store_landmarks_are_in_crop_pixels(run):
     assert inside[seen].mean() > 0.95
 
 
+@NEEDS_MODELS
+def test_projected_landmarks_are_flagged_in_the_store(run):
+    """Every crop says whether its landmarks were read by the landmark model or projected from
+    the rig's skeleton (where the model did not confirm the person): the flag is set exactly on
+    the crops whose confident landmarks all carry the projection's confidence, 0.5."""
+    from gst.data.keypoints.people import PROJECTED_CONFIDENCE
+
+    _, out = run
+    store = CropStore(out)
+    flag = store.read_landmarks_projected()
+    assert flag is not None and len(flag) == len(store)
+    conf = store.read_landmarks()[..., 2]
+    looks = np.all((conf == np.float32(PROJECTED_CONFIDENCE)) | (conf == 0), axis=1) & (
+        conf > 0
+    ).any(axis=1)
+    np.testing.assert_array_equal(flag, looks)
+
+
 def test_landmarks_to_crop_is_the_crop_camera():
     """A world point's distorted image pixel, moved into the crop, is where the crop's own
     pinhole camera (K_crop, R, t, no distortion) sees it."""

@@ -193,3 +193,36 @@ def _rows(b: CropBatch, a: int, e: int) -> CropBatch:
     return CropBatch(
         **{k: (v[a:e] if isinstance(v, np.ndarray) else v) for k, v in vars(b).items()}
     )
+
+
+def test_projected_landmarks_are_flagged_and_older_stores_say_nothing(tmp_path):
+    """A store with landmarks says per crop whether they were projected from the rig's skeleton
+    (`landmarks_projected`, version 3); batches that leave it out mean "all read"; a store
+    written without the dataset (version 2) reads None, and so does one without landmarks."""
+    path = tmp_path / "crops.h5"
+    b = _batch([0, 0, 1, 1], [0, 1, 0, 1], [7, 7, 7, 7], seed=3)
+    b.landmarks = np.random.default_rng(4).uniform(0, S, (4, 33, 3)).astype(np.float32)
+    b.landmarks_projected = np.array([False, True, False, True])
+    c = _batch([2], [0], [7], seed=5)
+    c.landmarks = np.zeros((1, 33, 3), np.float32)  # no flag given: read
+    with CropStoreWriter(path, CAMS, S, landmarks=True) as w:
+        w.commit(b, [(0, 0), (0, 1), (1, 0), (1, 1)])
+        w.commit(c, [(2, 0)])
+        w.finalize()
+    store = CropStore(path)
+    assert store.attrs["version"] == 3
+    assert store.read_landmarks_projected().tolist() == [False, True, False, True, False]
+    assert store.read_landmarks_projected([3, 0]).tolist() == [True, False]
+    assert store.read([1, 2]).landmarks_projected.tolist() == [True, False]
+    store.close()
+    with h5py.File(path, "a") as f:  # as a version 2 store was written
+        del f["landmarks_projected"]
+        f.attrs["version"] = 2
+    old = CropStore(path)
+    assert old.read_landmarks_projected() is None
+    assert old.read([1]).landmarks_projected.tolist() == [False]  # read as "all read"
+    plain = tmp_path / "plain.h5"
+    with CropStoreWriter(plain, CAMS, S) as w:
+        w.commit(_batch([0], [0], [7]), [(0, 0)])
+        w.finalize()
+    assert CropStore(plain).read_landmarks_projected() is None

@@ -112,3 +112,31 @@ def test_threads_read_the_same_landmarks_as_one(tmp_path):
     np.testing.assert_array_equal(one.rows, np.arange(2 * frames))
     np.testing.assert_array_equal(one.landmarks, two.landmarks)
     assert np.isfinite(one.landmarks).all() and len(np.unique(one.landmarks[:, 0, 0])) > 1
+
+
+def test_projected_landmarks_are_no_reading(tmp_path):
+    """The extraction's landmarks of a view where the landmark model did not confirm the person
+    are its skeleton projected (`landmarks_projected`): the fuse stage takes them with no
+    confidence, so they cannot outvote real readings; read landmarks pass unchanged."""
+    from gst.data.store import CropBatch, CropStoreWriter
+    from gst.fuse.observations import crop_landmarks
+
+    n = 3
+    lm = np.random.default_rng(0).uniform(0, S, (n, 33, 3)).astype(np.float32)
+    lm[..., 2] = 0.8
+    lm[1, :, 2] = 0.5  # the projected one (the extraction's PROJECTED_CONFIDENCE)
+    batch = CropBatch(
+        images=np.zeros((n, S, S, 3), np.uint8), masks=np.zeros((n, S, S), np.uint8),
+        K_crop=np.tile(np.eye(3), (n, 1, 1)), R=np.tile(np.eye(3), (n, 1, 1)),
+        t=np.zeros((n, 3)), box=np.zeros((n, 4)), crop_box=np.tile([0.0, 0.0, S], (n, 1)),
+        camera=np.array([0, 1, 0], np.int32), frame=np.array([0, 0, 1]),
+        person_id=np.ones(n, np.int64), mask_support=np.ones(n, np.float32),
+        landmarks=lm, landmarks_projected=np.array([False, True, False]),
+    )  # fmt: skip
+    with CropStoreWriter(tmp_path / "crops.h5", ["a", "b"], S, landmarks=True) as w:
+        w.commit(batch, [(0, 0), (0, 1), (1, 0)])
+        w.finalize()
+    got = crop_landmarks(CropStore(tmp_path / "crops.h5"))
+    np.testing.assert_array_equal(got[[0, 2]], lm[[0, 2]])
+    np.testing.assert_array_equal(got[1, :, :2], lm[1, :, :2])
+    assert (got[1, :, 2] == 0).all()

@@ -21,9 +21,11 @@ import pyarrow.parquet as pq
 from gst.atomic import atomic_path
 
 FORMAT = "gst-crops"
-VERSION = 2  # 2: single_view per crop, optional landmarks (version 1 stores read as before)
+# 2: single_view per crop, optional landmarks; 3: with landmarks, whether they were projected
+# from the rig's skeleton rather than read (older stores read as before)
+VERSION = 3
 N_LANDMARKS = 33
-OPTIONAL_ROWS = ("landmarks", "single_view")  # absent from version 1 stores
+OPTIONAL_ROWS = ("landmarks", "landmarks_projected", "single_view")  # absent from older stores
 
 
 # name -> (per-row shape given crop size S, dtype)
@@ -44,6 +46,7 @@ def _row_specs(size: int, landmarks: bool = False) -> dict[str, tuple[tuple[int,
     }
     if landmarks:
         specs["landmarks"] = ((N_LANDMARKS, 3), "float32")
+        specs["landmarks_projected"] = ((), "bool")
     return specs
 
 
@@ -72,10 +75,15 @@ class CropBatch:
     single_view: np.ndarray | None = None
     # (n, 33, 3) float32 BlazePose landmarks: u, v in crop pixels, confidence (None: not known)
     landmarks: np.ndarray | None = None
+    # (n,) bool: the landmarks are the rig's skeleton projected into this view, not read from
+    # its pixels (the landmark model did not confirm the person there); None: all read
+    landmarks_projected: np.ndarray | None = None
 
     def __post_init__(self):
         if self.single_view is None:
             self.single_view = np.zeros(len(self.frame), bool)
+        if self.landmarks is not None and self.landmarks_projected is None:
+            self.landmarks_projected = np.zeros(len(self.frame), bool)
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -89,7 +97,7 @@ class CropBatch:
         out = {}
         for k in CropBatch.__dataclass_fields__:
             parts = [getattr(b, k) for b in batches]
-            if k == "landmarks" and any(p is None for p in parts):
+            if k in ("landmarks", "landmarks_projected") and any(p is None for p in parts):
                 if any(p is not None for p in parts):
                     raise StoreError("cannot join crop batches with and without landmarks")
                 out[k] = None
@@ -284,7 +292,10 @@ class CropStoreWriter:
             for name in _row_specs(S, self.landmarks):
                 ds = f[name]
                 ds.resize(n0 + n, axis=0)
-                ds[n0 : n0 + n] = getattr(batch, name)
+                value = getattr(batch, name)
+                if name == "landmarks_projected" and value is None:  # all read
+                    value = np.zeros(n, bool)
+                ds[n0 : n0 + n] = value
         self._mark_done(done, n0 + n)
 
     def commit_rows(
@@ -515,6 +526,14 @@ class CropStore:
         if rows is None:
             return np.asarray(f["landmarks"][: self.n], np.float32)
         return _read_rows(f["landmarks"], rows).astype(np.float32, copy=False)
+
+    def read_landmarks_projected(self, rows=None) -> np.ndarray | None:
+        """(n,) bool of `rows` (default all): the crop's landmarks are the rig's skeleton
+        projected into the view, not a reading of its pixels; None when the store does not say
+        (no landmarks, or written before version 3)."""
+        if "landmarks_projected" not in self._file():
+            return None
+        return self._read_column("landmarks_projected", rows).astype(bool, copy=False)
 
     def read_masks(self, rows=None) -> np.ndarray:
         """(n, S, S) uint8 person masks of `rows` (default all, in the given order); no image

@@ -36,12 +36,21 @@ def crop_landmarks(
     refine: bool = True,
     masked: bool = False,
 ) -> np.ndarray:
-    """(N, 33, 3) landmarks of the store's `rows` (default all): u, v in crop pixels, confidence.
+    """(N, 33, 3) landmarks of the store's `rows` (default all): u, v in crop pixels, confidence
+    (0 where the store says they were projected from the rig's skeleton, not read).
     `refine` and `masked` (dim what lies outside the crop's person mask): see
     gst.detect.crops.detect_crop_landmarks; both ignored when the store holds landmarks."""
     rows = np.arange(len(store)) if rows is None else np.asarray(rows, np.int64)
     stored = store.read_landmarks(rows)  # written by the keypoint extraction
     if stored is not None:
+        # Where the landmark model did not confirm a person, the extraction projected its
+        # skeleton into the view: no reading of the crop, and projections of one skeleton agree
+        # with each other perfectly, so they would outvote every real reading
+        # (docs/fuse.md "Five-person crowds"). No confidence here; crowded crops are read again.
+        projected = store.read_landmarks_projected(rows)
+        if projected is not None and projected.any():
+            stored = stored.copy()
+            stored[projected, :, 2] = 0.0
         return stored
     from gst.detect.blazepose import BlazePose
     from gst.detect.crops import detect_crop_landmarks

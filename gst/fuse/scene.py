@@ -279,7 +279,14 @@ def fuse_scene(
     missing = [c for c in cams if c not in rig.names]
     if missing:
         raise ValueError(f"{store_path}: cameras {missing} are not in the rig ({rig.names})")
-    settings = {"options": o.settings(), "store_rows": len(store), "fps": fps}
+    # the store's file stat too: an extraction run again (same row count or not) must not meet
+    # the landmarks cached from the previous one
+    stat = store.path.stat()
+    settings = {
+        "options": o.settings(),
+        "store": [len(store), stat.st_size, stat.st_mtime_ns],
+        "fps": fps,
+    }
     key = _digest(settings)
     stamp = work / "settings.json"
     if stamp.is_file() and json.loads(stamp.read_text()).get("key") != key:

@@ -188,6 +188,12 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
         # The keypoint association also gives each slot's landmarks and single-view flag.
         lm_rows = pf["landmarks"][()] if "landmarks" in pf else None
         sv_rows = pf["single_view"][()] if "single_view" in pf else np.zeros(len(slot_rows), bool)
+        # which slots' landmarks are the skeleton projected, not read (the file names its
+        # source codes: keypoint_association.SOURCES)
+        projected = np.zeros(len(slot_rows), bool)
+        if "source" in pf:
+            code = str(pf.attrs["sources"]).split(",").index("projected")
+            projected = pf["source"][()] == code
         by_frame: dict[int, list[tuple[int, int, np.ndarray, float, int]]] = {}
         drop = set(job.drop_ids)
         for r, ((f, slot, pid), view) in enumerate(zip(slot_rows, view_rows, strict=True)):
@@ -263,6 +269,7 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                                 None
                                 if lm_rows is None
                                 else landmarks_to_crop(cam, lm_rows[r], Kc)[None],
+                                None if lm_rows is None else projected[r : r + 1],
                             )
                         )
                         if gt is not None:
