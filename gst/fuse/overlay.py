@@ -104,7 +104,7 @@ def write_overlays(
     return written
 
 
-def _in_front(cam, X: np.ndarray) -> np.ndarray:
+def _in_field(cam, X: np.ndarray) -> np.ndarray:
     """Points the camera's lens model can place: in front of it and near its image
     (calibration.Camera.in_field; a body beside a wide-angle camera is drawn nowhere rather
     than folded back into the picture by the distortion)."""
@@ -113,13 +113,13 @@ def _in_front(cam, X: np.ndarray) -> np.ndarray:
 
 def _draw(img, cam, fit: PersonFit, i: int, verts: np.ndarray, colour) -> None:
     h, w = img.shape[:2]
-    ok = _in_front(cam, verts)
+    ok = _in_field(cam, verts)
     if ok.any():
         for u, v in cam.project(verts[ok]).round().astype(int):
             if 0 <= u < w and 0 <= v < h:
                 img[v, u] = colour
     joints = fit.joints[i]
-    if not _in_front(cam, joints).all():
+    if not _in_field(cam, joints).all():
         return
     uv = cam.project(joints)
     line = colour if fit.observed[i] else (160, 160, 160)
@@ -128,6 +128,6 @@ def _draw(img, cam, fit: PersonFit, i: int, verts: np.ndarray, colour) -> None:
         if p >= 0:
             a, b = tuple(uv[j].round().astype(int)), tuple(uv[p].round().astype(int))
             cv2.line(img, a, b, line, scale, cv2.LINE_AA)
-    if _in_front(cam, fit.markers[i]).all():
+    if _in_field(cam, fit.markers[i]).all():
         for u, v in cam.project(fit.markers[i]).round().astype(int):
             cv2.circle(img, (int(u), int(v)), 2 * scale, (255, 255, 255), 1, cv2.LINE_AA)

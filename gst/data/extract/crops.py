@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 
 from calibration import Camera
+from calibration.camera import FIELD_MARGIN
 from gst.data.crop import (
     crop_intrinsics,
     crop_maps,
@@ -24,7 +25,6 @@ from gst.data.evaluate import CropTruth
 from gst.data.external import (
     IdMaskFile,
 )
-from gst.data.keypoints.geometry import FIELD_MARGIN
 from gst.data.store import CropBatch, CropStoreWriter
 from gst.video import read_frames
 
