@@ -7,6 +7,8 @@ docs/formats/fused_*.md) and `reports/fuse/` (report, overlays; synthetic scenes
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from gst.fuse import FitOptions, FuseOptions, RegroupOptions, TriangulationOptions, fuse_scene
@@ -30,6 +32,9 @@ class Params(StageParams):
     # rounds of view limb groups exchanged where the fitted body says they were read mirrored
     exchange_rounds: int = Field(1, ge=0)
     relook: bool = True  # crowded crops read again with the other people painted over
+    # the floor (height along the rig's up axis, m) that feet do not sink into; auto: 0 where the
+    # feet stand near it; null: none (docs/fuse.md "Floor")
+    floor: float | Literal["auto"] | None = "auto"
     people_per_batch: int = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
 
@@ -37,12 +42,8 @@ class Params(StageParams):
 def run(ctx: StageContext) -> None:
     p = ctx.params
     result = fuse_scene(
-        ctx.path("crops/crops.h5"),
-        ctx.rig(),
-        ctx.out("fused"),
-        ctx.out("reports/fuse"),
-        fps=ctx.scene.fps,
-        videos=ctx.camera_videos(),
+        ctx.path("crops/crops.h5"), ctx.rig(), ctx.out("fused"), ctx.out("reports/fuse"),
+        fps=ctx.scene.fps, videos=ctx.camera_videos(),
         options=FuseOptions(
             body_model=p.body_model,
             markers=p.markers,
@@ -59,13 +60,11 @@ def run(ctx: StageContext) -> None:
             refine_rig_rounds=p.refine_rig,
             exchange_rounds=p.exchange_rounds,
             relook=FuseOptions().relook if p.relook else None,
-            people_per_batch=p.people_per_batch,
-            overlay=p.overlay,
+            floor=p.floor, people_per_batch=p.people_per_batch, overlay=p.overlay,
         ),
         truth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
-        progress=ctx.progress,
-        log=ctx.log,
-    )
+        progress=ctx.progress, log=ctx.log,
+    )  # fmt: skip
     ctx.log.info("%s", result.summary.headline())
 
 

@@ -15,7 +15,7 @@ from gst.body.kinematics import MarkerSkeleton, left_jacobian, rodrigues
 from gst.body.markers import MarkerModel
 from gst.body.rotations import axis_angle_to_matrix
 from gst.fuse.fit import _limits_tensor, _neighbours
-from gst.fuse.objective import Coverage, Points, Views, Weights, cost, linearise
+from gst.fuse.objective import Coverage, Floor, Points, Views, Weights, cost, linearise
 from gst.fuse.solver import BodyState, levenberg_marquardt, schur_step
 
 torch.set_num_threads(1)
@@ -121,7 +121,13 @@ def test_gradient_of_the_linearisation_equals_autograd(body, skeleton):
     pts = Points(
         torch.randn(B, 33, 3, dtype=D) * 0.1 + transl[:, None], torch.rand(B, 33, dtype=D), 0.05
     )
-    for evidence in (ev, [ev, pts]):
+    X0, *_ = skeleton.forward(betas, root, theta, transl)
+    up = torch.tensor([0.3, -0.2, 0.9], dtype=D)
+    up = up / up.norm()
+    clearance = torch.rand(33, generator=torch.Generator().manual_seed(5), dtype=D) * 0.1
+    floor = Floor(up, float((X0 @ up).median()), clearance, 1e4)  # about half the markers below
+    assert 0 < (floor.depth(X0) > 0).float().mean() < 1
+    for evidence in (ev, [ev, pts], [ev, floor]):
         X, _, _, local, dX = skeleton.forward(betas, root, theta, transl, jacobian=True)
         H, g = linearise(X, dX, theta, local, evidence, nb, w)
         d = torch.zeros(B, 3, dtype=D, requires_grad=True)

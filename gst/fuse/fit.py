@@ -31,8 +31,10 @@ from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
 from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gst.body.skeleton import SMPL_JOINT_NAMES
+from gst.fuse.floor import floor_clearance
 from gst.fuse.objective import (
     Coverage,
+    Floor,
     Neighbours,
     Points,
     Views,
@@ -86,6 +88,11 @@ class FitOptions:
     silhouette_sigma_factor: float = 3.0
     static_tol_m: float = 0.005
     max_gap: int = 15
+    # with a floor (fit_people's `floor`; not in the start, whose rigid guess may lie anywhere):
+    # energy per m^2 of a foot marker below its rest height above the soles (less
+    # `floor_tolerance_m`), or of any other marker below the floor (gst.fuse.floor)
+    w_floor: float = 1e5
+    floor_tolerance_m: float = 0.01
 
 
 @dataclass
@@ -184,6 +191,7 @@ def fit_people(
     start: list[PersonFit] | None = None,
     marker_offsets: list[np.ndarray | None] | None = None,
     silhouettes: CropSilhouettes | None = None,
+    floor: tuple[np.ndarray, float] | None = None,
 ) -> list[PersonFit]:
     """Fit every person's body over the clip at once (one batch). Deterministic on CPU.
 
@@ -191,7 +199,8 @@ def fit_people(
     a long clip) to start from instead of the rigid start; the start stage is then skipped.
     `marker_offsets`: per person, (M, 3) corrections of the marker table (a person's offsets
     from an earlier fit), held fixed unless `w_marker_offsets` > 0 fits them further.
-    `silhouettes`: the store's people per crop (gst.fuse.silhouettes), for `w_silhouette`."""
+    `silhouettes`: the store's people per crop (gst.fuse.silhouettes), for `w_silhouette`.
+    `floor`: (world up, height along it) of the ground nobody sinks into (`w_floor`)."""
     o = options or FitOptions()
     if not people:
         return []
@@ -203,6 +212,11 @@ def fit_people(
             torch.zeros(1, 23, 3, dtype=DTYPE), torch.zeros(1, 3, dtype=DTYPE),
         )  # fmt: skip
     rest_markers, pelvis = X0[0].numpy(), J0[0, 0].numpy()
+    ground = None
+    if floor is not None and o.w_floor > 0:
+        up, height = floor
+        clearance = floor_clearance(body, markers, rest_markers, o.floor_tolerance_m)
+        ground = Floor(torch.as_tensor(up, dtype=DTYPE), float(height), clearance, o.w_floor)
 
     dense, dtris, starts, statics, sigmas, single = [], [], [], [], [], []
     for obs, tri in zip(people, tris, strict=True):
@@ -335,10 +349,10 @@ def fit_people(
         if o.view_weighting and o.view_rounds:
             for _ in range(o.view_rounds):
                 weighed = _weigh_views(state, views, sk, person, marker_table(state))
-                evidence = [weighed] if coverage is None else [weighed, coverage]
+                evidence = [e for e in (weighed, coverage, ground) if e is not None]
                 state = solve(state, evidence, weights, o.iterations)
         else:
-            evidence = [views] if coverage is None else [views, coverage]
+            evidence = [e for e in (views, coverage, ground) if e is not None]
             state = solve(state, evidence, weights, o.iterations)
         X, J, _, _ = sk.forward(
             state.betas[person], state.root, state.theta, state.transl,

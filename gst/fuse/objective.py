@@ -11,6 +11,8 @@
   projects outside the people of every view that has a crop (gst.fuse.silhouettes), whatever
   its landmarks say: a limb that half the views read somewhere else still has to lie on
   someone in all of them;
+- floor (`Floor`, optional): the squared depth of each marker below its lowest possible height
+  above the floor plane (a heel cannot sink into the ground; one-sided, zero above it);
 - smoothness: Cauchy of each marker's second difference over consecutive frames, in units of
   `smooth_scale_m` at 30 fps (scaled by (30 / fps)^2, so a weight means the same at any rate);
 - pose prior (rest pose is the mode) and squared excess of the local rotations' X-Y-Z Euler
@@ -35,7 +37,8 @@ import torch
 from gst.body.kinematics import N_POSE_PARAMS, left_jacobian, skew
 
 __all__ = [
-    "Views", "Points", "Coverage", "Neighbours", "Weights", "euler_xyz", "data_cost", "linearise",
+    "Views", "Points", "Coverage", "Floor", "Neighbours", "Weights", "euler_xyz", "data_cost",
+    "linearise",
 ]  # fmt: skip
 
 
@@ -108,6 +111,21 @@ class Points:
 
 
 @dataclass
+class Floor:
+    """The ground: no marker m may lie lower than `height + clearance[m]` along `up` (world);
+    energy `weight` per m^2 of the depth below that."""
+
+    up: torch.Tensor  # (3,) unit
+    height: float  # metres along `up`
+    clearance: torch.Tensor  # (M,) metres: each marker's lowest height above the floor
+    weight: float
+
+    def depth(self, X: torch.Tensor) -> torch.Tensor:
+        """(B, M) metres below the allowed height (0 where above it)."""
+        return (self.height + self.clearance - X @ self.up.to(X)).clamp_min(0)
+
+
+@dataclass
 class Neighbours:
     """Consecutive frames of the same person inside the batch (indices clamped to valid rows)."""
 
@@ -166,8 +184,10 @@ def _second_difference(X: torch.Tensor, nb: Neighbours, w: Weights) -> torch.Ten
     return torch.where(nb.centred[:, None, None], a, torch.zeros_like(a))
 
 
-def data_cost(X: torch.Tensor, evidence: Views | Points | Coverage) -> torch.Tensor:
+def data_cost(X: torch.Tensor, evidence: Views | Points | Coverage | Floor) -> torch.Tensor:
     """(B,) robust data term."""
+    if isinstance(evidence, Floor):
+        return evidence.weight * (evidence.depth(X) ** 2).sum(-1)
     if isinstance(evidence, Points):
         r2 = ((X - evidence.X) ** 2).sum(-1) / evidence.sigma_m**2
         return (evidence.weight * torch.log1p(r2)).sum(-1)
@@ -195,9 +215,14 @@ def _as_list(evidence) -> list:
     return list(evidence) if isinstance(evidence, list | tuple) else [evidence]
 
 
-def _marker_information(X, ev: Views | Points | Coverage):
+def _marker_information(X, ev: Views | Points | Coverage | Floor):
     """Per marker information matrix (B, M, 3, 3) and gradient (B, M, 3) of a data term."""
     eye = torch.eye(3, dtype=X.dtype)
+    if isinstance(ev, Floor):
+        d = ev.depth(X)  # E = w d^2 with d(X) = const - up.X where positive
+        up = ev.up.to(X)
+        w = ev.weight * (d > 0).to(X.dtype)
+        return w[..., None, None] * torch.outer(up, up), -(ev.weight * d)[..., None] * up
     if isinstance(ev, Points):
         d = X - ev.X
         s2 = ev.sigma_m**2

@@ -26,6 +26,7 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -43,6 +44,7 @@ from gst.fuse.consensus import (
 from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
+from gst.fuse.floor import world_floor
 from gst.fuse.observations import PersonObservations, crop_landmarks, group_by_person
 from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.relook import RelookOptions, relook_crowded
@@ -81,6 +83,9 @@ class FuseOptions:
     # the people's coverage of every view (gst.fuse.silhouettes): votes in the triangulation's
     # pair consensus (triangulation.consensus_views > 0) and the fit's term (fit.w_silhouette)
     silhouettes: bool = True
+    # height of the floor along the rig's up axis, metres, that the fitted feet do not sink into;
+    # "auto": 0 where the triangulated feet stand near it (gst.fuse.floor); None: no floor
+    floor: float | Literal["auto"] | None = "auto"
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     # torch threads of the fit, for this call only (None: the process's; on 2 cores the fit runs
@@ -161,8 +166,9 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
 
 
 def _fit_batches(
-    body, markers, people, tris, fps, o, work: Path, rnd: int | str, progress, log, silhouettes=None
-):
+    body, markers, people, tris, fps, o, work: Path, rnd: int | str, progress, log,
+    silhouettes=None, floor=None,
+):  # fmt: skip
     """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
     fits: list[PersonFit] = []
     batches = range(0, len(people), o.people_per_batch)
@@ -178,6 +184,7 @@ def _fit_batches(
             part = fit_people(
                 body, markers, people[a : a + o.people_per_batch],
                 tris[a : a + o.people_per_batch], fps, o.fit, silhouettes=silhouettes,
+                floor=floor,
             )  # fmt: skip
         _save_npz(path, **_fits_to_arrays(part))
         fits += part
@@ -339,11 +346,21 @@ def fuse_scene(
     tris = triangulate(people)
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
+    up = np.asarray(rig.up, np.float64)
+    height = o.floor
+    if height == "auto":
+        height, contact = world_floor([t.points if t is not None else None for t in tris], up)
+        if log is not None:
+            log.info(
+                "fuse: feet stand a median %.3f m above the world's height 0: %s", contact,
+                "the floor term holds them above it" if height is not None else "no floor term",
+            )  # fmt: skip
+    floor = None if height is None else (up, float(height))
 
     corrections = np.zeros((len(cams), 3))
     for rnd in range(o.refine_rig_rounds + 1):
         fits = _fit_batches(
-            body, markers, people, tris, fps, o, work, rnd, progress, log, silhouettes
+            body, markers, people, tris, fps, o, work, rnd, progress, log, silhouettes, floor
         )
         if rnd == o.refine_rig_rounds:
             break
@@ -371,8 +388,9 @@ def fuse_scene(
         if n:
             tris = triangulate(people)
             fits = _fit_batches(
-                body, markers, people, tris, fps, o, work, "readings", progress, log, silhouettes
-            )
+                body, markers, people, tris, fps, o, work, "readings", progress, log, silhouettes,
+                floor,
+            )  # fmt: skip
         if log is not None:
             log.info("fuse: %d views read again kept their first reading (the body's choice)", n)
     exchanged = 0
@@ -384,7 +402,7 @@ def fuse_scene(
         tris = triangulate(people)
         fits = _fit_batches(
             body, markers, people, tris, fps, o, work, o.refine_rig_rounds + 1 + k, progress, log,
-            silhouettes,
+            silhouettes, floor,
         )  # fmt: skip
         if log is not None:
             log.info("fuse: %d view limb groups read mirrored, exchanged and refitted", n)

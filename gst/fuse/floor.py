@@ -1,0 +1,61 @@
+"""The ground under the fitted bodies: how high each marker must stay above it, and whether the
+rig's world has its floor at height 0.
+
+Nobody's heel sinks into the floor, yet 2D landmarks alone let a fitted foot dip a few cm below
+it where the views disagree (on the tuning worlds 5 % of the fitted foot joints lay below the
+ground). The fit's floor term (gst.fuse.objective.Floor) holds each foot marker at least its rest
+height above the soles, every other marker above the floor itself. Worlds made by the calibrate
+stage, and the z-up worlds of the imported formats (H36M, Qualisys, Pose2Sim), put the floor at
+height 0 along the rig's up axis; others (a world centred on a camera) do not, so by default the
+floor is used only where the people's triangulated feet stand near height 0 (`world_floor`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from gst.body.markers import MarkerModel
+from gst.body.model import BodyModel
+
+__all__ = ["FOOT_MARKERS", "FLOOR_SEARCH_M", "floor_clearance", "world_floor"]
+
+FOOT_MARKERS = ("ankle", "heel", "foot_index")  # marker name endings held at their rest height
+FLOOR_SEARCH_M = 0.15  # the feet must stand this close to height 0 for it to be the floor
+_SOLE_LANDMARKS = (29, 30, 31, 32)  # BlazePose heels and foot indices
+
+
+def floor_clearance(
+    body: BodyModel, markers: MarkerModel, rest_markers: np.ndarray, tolerance: float
+) -> torch.Tensor:
+    """(M,) each marker's lowest height above the floor: for the feet's markers their height
+    above the soles when the mean body stands (`rest_markers`, body frame; SMPL-layout bodies
+    stand along +Y), less `tolerance`; every other marker just stays above the floor."""
+    sole = float(body.v_template[:, 1].min())
+    feet = np.array([any(n.endswith(f) for f in FOOT_MARKERS) for n in markers.names])
+    c = np.where(feet, np.maximum(rest_markers[:, 1] - sole - tolerance, 0.0), 0.0)
+    return torch.as_tensor(c, dtype=torch.float32)
+
+
+def contact_height(points: Sequence[np.ndarray | None], up: np.ndarray) -> float:
+    """Median over person-frames of the lowest triangulated heel or foot index along `up`
+    (metres; NaN when no foot was triangulated). `points`: per person (T, 33, 3) world."""
+    lows = []
+    for p in points:
+        if p is None or not len(p):
+            continue
+        h = np.asarray(p, np.float64)[:, _SOLE_LANDMARKS] @ np.asarray(up, np.float64)
+        seen = np.isfinite(h).any(1)
+        lows.append(np.nanmin(h[seen], axis=1))
+    lows = np.concatenate(lows) if lows else np.zeros(0)
+    return float(np.median(lows)) if len(lows) else float("nan")
+
+
+def world_floor(points: Sequence[np.ndarray | None], up: np.ndarray) -> tuple[float | None, float]:
+    """(0.0 if the world's height 0 is where the people stand, else None; the measured median
+    contact height). Feet are a few cm above the floor at most when planted, so a median within
+    FLOOR_SEARCH_M of 0 says the floor is there."""
+    h = contact_height(points, up)
+    return (0.0 if np.isfinite(h) and abs(h) <= FLOOR_SEARCH_M else None), h
