@@ -51,6 +51,7 @@ from gst.fuse.relook import RelookOptions, relook_crowded
 from gst.fuse.report import FuseSummary, summarise, write_report
 from gst.fuse.rig import apply_corrections, camera_corrections, corrected_rig, rotation_matrix
 from gst.fuse.silhouettes import crop_silhouettes
+from gst.fuse.spikes import drop_spikes
 from gst.fuse.start import dense_triangulation
 from gst.fuse.tables import joint_evidence, write_bodies, write_landmarks
 from gst.fuse.triangulate import TriangulationOptions, triangulate_person
@@ -86,6 +87,10 @@ class FuseOptions:
     # height of the floor along the rig's up axis, metres, that the fitted feet do not sink into;
     # "auto": 0 where the triangulated feet stand near it (gst.fuse.floor); None: no floor
     floor: float | Literal["auto"] | None = "auto"
+    # a fitted marker this far (m, at 30 fps) from its neighbouring frames' midpoint is a
+    # misreading: its landmarks in that frame are dropped and everyone refitted (gst.fuse.spikes)
+    spike_m: float | None = 0.25
+    spike_rounds: int = 1
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     # torch threads of the fit, for this call only (None: the process's; on 2 cores the fit runs
@@ -406,6 +411,17 @@ def fuse_scene(
         )  # fmt: skip
         if log is not None:
             log.info("fuse: %d view limb groups read mirrored, exchanged and refitted", n)
+    for k in range(o.spike_rounds if o.spike_m is not None else 0):
+        people, n = drop_spikes(people, fits, o.spike_m, fps)
+        if log is not None:
+            log.info("fuse: %d landmark-frames jumped away from their neighbours", n)
+        if not n:
+            break
+        tris = triangulate(people)
+        fits = _fit_batches(
+            body, markers, people, tris, fps, o, work, f"spikes_{k}", progress, log, silhouettes,
+            floor,
+        )  # fmt: skip
     dense_tris = [
         dense_triangulation(t, p.frames, f.frames)
         for t, p, f in zip(tris, people, fits, strict=True)
