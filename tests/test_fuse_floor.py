@@ -28,13 +28,9 @@ UP = np.array([0.0, 0.0, 1.0])
 
 
 @pytest.fixture(scope="module")
-def body():
-    return load_body_model("anny")
-
-
-@pytest.fixture(scope="module")
-def capture(body):
-    return make_capture(body, n_people=2, n_frames=6, n_cams=4, seed=1)
+def capture_and_body():
+    body = load_body_model("anny")
+    return make_capture(body, n_people=2, n_frames=6, n_cams=4, seed=1), body
 
 
 def _feet(markers: MarkerModel) -> np.ndarray:
@@ -68,19 +64,20 @@ def test_no_feet_no_floor():
     assert world_floor([], UP)[0] is None
 
 
-def test_a_world_centred_on_a_camera_has_no_floor_at_zero(capture):
+def test_a_world_centred_on_a_camera_has_no_floor_at_zero(capture_and_body):
     """Feet triangulated 2 m below the origin (a world whose origin is a camera) are no floor at
     height 0; the same feet in the capture's z-up world are."""
-    feet = capture.markers.reshape(-1, 33, 3)
+    feet = capture_and_body[0].markers.reshape(-1, 33, 3)
     assert world_floor([feet], UP)[0] == 0.0
     floor, h = world_floor([feet - [0, 0, 2.0]], UP)
     assert floor is None and h < -1.5
 
 
-def test_fit_keeps_the_feet_above_the_floor(body, capture):
+def test_fit_keeps_the_feet_above_the_floor(capture_and_body):
     """Landmarks that put every foot 6 cm too low (the views' feet bias): without a floor the
     fitted foot markers sink below their rest height above the ground; with it they stay within
     the tolerance. A floor nobody comes near changes nothing."""
+    capture, body = capture_and_body
     markers = MarkerModel.load()
     feet = _feet(markers)
     sunk = capture.markers.copy()
