@@ -35,9 +35,9 @@ def spiking_landmarks(fit: PersonFit, spike_m: float, fps: float) -> np.ndarray:
     centred = np.zeros(len(f), bool)
     centred[1:-1] = (f[1:-1] - f[:-2] == 1) & (f[2:] - f[1:-1] == 1)
     dev[~centred] = 0.0
-    # the frame that jumped, not its neighbours (whose midpoints hold the jump too): judged
-    # only where both neighbours are judged as well (next to a clip's end or a gap, a jump of
-    # the unjudged frame would look like one of its neighbour's)
+    # the frame that jumped, not its neighbours (whose midpoints hold the jump too); judged only
+    # where both neighbours have both of theirs as well (next to a clip's end or a gap, a jump
+    # of the frame that cannot be judged would look like its neighbour's)
     judged = np.zeros(len(f), bool)
     judged[1:-1] = centred[:-2] & centred[1:-1] & centred[2:]
     peak = np.zeros_like(out)
