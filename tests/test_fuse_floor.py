@@ -86,7 +86,7 @@ def test_fit_keeps_the_feet_above_the_floor(capture_and_body):
     tris = [triangulate_person(p) for p in people]
     # the ground under the true feet: the lowest true foot marker less its rest clearance
     rest = _rest_markers(body, markers)
-    clearance = floor_clearance(body, markers, rest, 0.0).numpy()
+    clearance = floor_clearance(body, markers, rest, 0.0)
     ground = float((capture.markers[..., 2] - clearance).min())
 
     def depth(fits, tolerance):

@@ -216,7 +216,10 @@ def fit_people(
     if floor is not None and o.w_floor > 0:
         up, height = floor
         clearance = floor_clearance(body, markers, rest_markers, o.floor_tolerance_m)
-        ground = Floor(torch.as_tensor(up, dtype=DTYPE), float(height), clearance, o.w_floor)
+        ground = Floor(
+            torch.as_tensor(up, dtype=DTYPE), float(height),
+            torch.as_tensor(clearance, dtype=DTYPE), o.w_floor,
+        )  # fmt: skip
 
     dense, dtris, starts, statics, sigmas, single = [], [], [], [], [], []
     for obs, tri in zip(people, tris, strict=True):

@@ -15,28 +15,28 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import torch
 
-from gst.body.markers import MarkerModel
+from gst.body.markers import BLAZEPOSE_NAMES, MarkerModel
 from gst.body.model import BodyModel
 
 __all__ = ["FOOT_MARKERS", "FLOOR_SEARCH_M", "floor_clearance", "world_floor"]
 
 FOOT_MARKERS = ("ankle", "heel", "foot_index")  # marker name endings held at their rest height
 FLOOR_SEARCH_M = 0.15  # the feet must stand this close to height 0 for it to be the floor
-_SOLE_LANDMARKS = (29, 30, 31, 32)  # BlazePose heels and foot indices
+_SOLES = [  # the landmarks of the soles: heels and foot indices
+    BLAZEPOSE_NAMES.index(f"{s}_{p}") for s in ("left", "right") for p in ("heel", "foot_index")
+]
 
 
 def floor_clearance(
     body: BodyModel, markers: MarkerModel, rest_markers: np.ndarray, tolerance: float
-) -> torch.Tensor:
+) -> np.ndarray:
     """(M,) each marker's lowest height above the floor: for the feet's markers their height
     above the soles when the mean body stands (`rest_markers`, body frame; SMPL-layout bodies
     stand along +Y), less `tolerance`; every other marker just stays above the floor."""
     sole = float(body.v_template[:, 1].min())
     feet = np.array([any(n.endswith(f) for f in FOOT_MARKERS) for n in markers.names])
-    c = np.where(feet, np.maximum(rest_markers[:, 1] - sole - tolerance, 0.0), 0.0)
-    return torch.as_tensor(c, dtype=torch.float32)
+    return np.where(feet, np.maximum(rest_markers[:, 1] - sole - tolerance, 0.0), 0.0)
 
 
 def contact_height(points: Sequence[np.ndarray | None], up: np.ndarray) -> float:
@@ -46,7 +46,7 @@ def contact_height(points: Sequence[np.ndarray | None], up: np.ndarray) -> float
     for p in points:
         if p is None or not len(p):
             continue
-        h = np.asarray(p, np.float64)[:, _SOLE_LANDMARKS] @ np.asarray(up, np.float64)
+        h = np.asarray(p, np.float64)[:, _SOLES] @ np.asarray(up, np.float64)
         seen = np.isfinite(h).any(1)
         lows.append(np.nanmin(h[seen], axis=1))
     lows = np.concatenate(lows) if lows else np.zeros(0)

@@ -171,8 +171,8 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
 
 
 def _fit_batches(
-    body, markers, people, tris, fps, o, work: Path, rnd: int | str, progress, log,
-    silhouettes=None, floor=None,
+    body, markers, people, tris, fps, o, work: Path, rnd: int | str, progress, log, silhouettes,
+    floor,
 ):  # fmt: skip
     """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
     fits: list[PersonFit] = []
@@ -362,11 +362,14 @@ def fuse_scene(
             )  # fmt: skip
     floor = None if height is None else (up, float(height))
 
-    corrections = np.zeros((len(cams), 3))
-    for rnd in range(o.refine_rig_rounds + 1):
-        fits = _fit_batches(
+    def fit_all(people: list[PersonObservations], tris: list, rnd: int | str) -> list[PersonFit]:
+        return _fit_batches(
             body, markers, people, tris, fps, o, work, rnd, progress, log, silhouettes, floor
         )
+
+    corrections = np.zeros((len(cams), 3))
+    for rnd in range(o.refine_rig_rounds + 1):
+        fits = fit_all(people, tris, rnd)
         if rnd == o.refine_rig_rounds:
             break
         path = work / f"rig_{rnd}.npy"
@@ -392,10 +395,7 @@ def fuse_scene(
         people, n = _judge_readings(people, fits, stored, read_again, o)
         if n:
             tris = triangulate(people)
-            fits = _fit_batches(
-                body, markers, people, tris, fps, o, work, "readings", progress, log, silhouettes,
-                floor,
-            )  # fmt: skip
+            fits = fit_all(people, tris, "readings")
         if log is not None:
             log.info("fuse: %d views read again kept their first reading (the body's choice)", n)
     exchanged = 0
@@ -405,10 +405,7 @@ def fuse_scene(
             break
         exchanged += n
         tris = triangulate(people)
-        fits = _fit_batches(
-            body, markers, people, tris, fps, o, work, o.refine_rig_rounds + 1 + k, progress, log,
-            silhouettes, floor,
-        )  # fmt: skip
+        fits = fit_all(people, tris, o.refine_rig_rounds + 1 + k)
         if log is not None:
             log.info("fuse: %d view limb groups read mirrored, exchanged and refitted", n)
     for k in range(o.spike_rounds if o.spike_m is not None else 0):
@@ -418,10 +415,7 @@ def fuse_scene(
         if not n:
             break
         tris = triangulate(people)
-        fits = _fit_batches(
-            body, markers, people, tris, fps, o, work, f"spikes_{k}", progress, log, silhouettes,
-            floor,
-        )  # fmt: skip
+        fits = fit_all(people, tris, f"spikes_{k}")
     dense_tris = [
         dense_triangulation(t, p.frames, f.frames)
         for t, p, f in zip(tris, people, fits, strict=True)
