@@ -135,3 +135,28 @@ def test_the_fitted_body_gives_views_read_again_their_first_reading_back(scene, 
         err[name] = np.linalg.norm(res.fits[0].joints - cap.joints[0], axis=-1).mean()
     assert err["judged"] < err["none"] + 2e-4 and err["blind"] > err["judged"] + 1e-3, err
     assert err["judged, fitted from the first readings"] < err["none"] + 2e-4, err
+
+
+def test_a_person_with_nothing_readable_is_left_out_and_named(scene, tmp_path, caplog):
+    """Person 3's every landmark has confidence 0 (projected from a skeleton, not read): the
+    others are fused, person 3 is not, and the log says so (it used to stop the stage). The
+    extraction's people as they are (no regrouping, which would drop person 3 on its own)."""
+    import logging
+    from dataclasses import replace
+
+    from gst.data.store import CropStore
+
+    tmp, cap, landmarks = scene
+    person = CropStore(tmp / "crops.h5").index.column("person_id").to_numpy()
+    blind = np.array(landmarks, np.float32)
+    blind[person == 3, :, 2] = 0.0
+    log = logging.getLogger("test_fuse_unreadable")
+    with caplog.at_level(logging.WARNING, logger=log.name):
+        res = fuse_scene(
+            tmp / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report", fps=30.0,
+            options=replace(OPTS, regroup=None), landmarks=blind, log=log,
+        )  # fmt: skip
+    assert [f.person_id for f in res.fits] == [1, 2]
+    assert "people [3] left out" in caplog.text
+    t = pq.read_table(tmp_path / "fused" / "bodies.parquet")
+    assert sorted(set(t.column("person_id").to_pylist())) == [1, 2]

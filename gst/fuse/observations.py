@@ -21,12 +21,17 @@ from gst.data.store import CropStore
 
 __all__ = [
     "PersonObservations",
+    "READABLE_CONFIDENCE",
+    "READABLE_LANDMARKS",
     "crop_landmarks",
     "group_by_person",
     "N_LANDMARKS",
 ]
 
 N_LANDMARKS = 33
+# a view the fit can start from shows at least this many landmarks above this confidence
+READABLE_LANDMARKS = 4
+READABLE_CONFIDENCE = 0.3
 
 
 def crop_landmarks(
@@ -87,6 +92,14 @@ class PersonObservations:
     def seen(self) -> np.ndarray:
         """(T, C) bool: the camera has a crop of this person in that frame."""
         return self.rows >= 0
+
+    @property
+    def readable(self) -> bool:
+        """Some view in some frame shows READABLE_LANDMARKS landmarks above READABLE_CONFIDENCE:
+        something to fit. People whose every landmark was projected from a skeleton, or read
+        with no confidence, are not."""
+        confident = ((self.confidence > READABLE_CONFIDENCE).sum(-1) * self.seen).max(initial=0)
+        return bool(confident >= READABLE_LANDMARKS)
 
     def select(self, keep: np.ndarray) -> PersonObservations:
         return PersonObservations(

@@ -45,7 +45,13 @@ from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
 from gst.fuse.floor import world_floor
-from gst.fuse.observations import PersonObservations, crop_landmarks, group_by_person
+from gst.fuse.observations import (
+    READABLE_CONFIDENCE,
+    READABLE_LANDMARKS,
+    PersonObservations,
+    crop_landmarks,
+    group_by_person,
+)
 from gst.fuse.regroup import RegroupOptions, regroup_people
 from gst.fuse.relook import RelookOptions, relook_crowded
 from gst.fuse.report import FuseSummary, summarise, write_report
@@ -244,6 +250,20 @@ def _judge_readings(
     return out, total
 
 
+def _readable_only(people: list[PersonObservations], log) -> list[PersonObservations]:
+    """The people the fit has something to work with (PersonObservations.readable); the others,
+    e.g. a person whose every view was projected from the extraction's skeleton, not read, are
+    left out and the log names them."""
+    kept = [p for p in people if p.readable]
+    if len(kept) < len(people) and log is not None:
+        log.warning(
+            "fuse: people %s left out: no view shows %d landmarks above confidence %.1f",
+            [p.person_id for p in people if not p.readable], READABLE_LANDMARKS,
+            READABLE_CONFIDENCE,
+        )  # fmt: skip
+    return kept
+
+
 def _log_rotation(R: np.ndarray) -> np.ndarray:
     import cv2
 
@@ -340,6 +360,7 @@ def fuse_scene(
                 "fuse: %d people after regrouping (%d crops moved to another person)",
                 regrouped.tracks, regrouped.moved_crops,
             )  # fmt: skip
+    people = _readable_only(people, log)
     silhouettes = None
     if o.silhouettes and (o.triangulation.consensus_views or o.fit.w_silhouette > 0):
         sizes = {c.name: (c.width, c.height) for c in rig.cameras}
@@ -414,6 +435,7 @@ def fuse_scene(
             log.info("fuse: %d landmark-frames jumped away from their neighbours", n)
         if not n:
             break
+        people = _readable_only(people, log)  # a person seen in one frame may have lost it
         tris = triangulate(people)
         fits = fit_all(people, tris, f"spikes_{k}")
     dense_tris = [

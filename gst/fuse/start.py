@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gst.fuse.observations import PersonObservations
+from gst.fuse.observations import READABLE_CONFIDENCE, READABLE_LANDMARKS, PersonObservations
 from gst.fuse.triangulate import PersonTriangulation
 
 __all__ = ["TORSO_LANDMARKS", "dense_frames", "dense_triangulation", "nearest", "rigid_start"]
@@ -123,12 +123,12 @@ def _single_view_start(
     c = np.zeros((T, 3))
     last = None
     for i in range(T):
-        confident = (obs.confidence[i] > 0.3).sum(-1) * (obs.rows[i] >= 0)  # (C,)
+        confident = (obs.confidence[i] > READABLE_CONFIDENCE).sum(-1) * (obs.rows[i] >= 0)  # (C,)
         k = int(confident.argmax())  # the view that sees most of the body
-        if confident[k] < 4:
+        if confident[k] < READABLE_LANDMARKS:
             continue
         K, Rt = obs.K[i, k], obs.Rt[i, k]
-        uv, w = obs.uv[i, k], obs.confidence[i, k] > 0.3
+        uv, w = obs.uv[i, k], obs.confidence[i, k] > READABLE_CONFIDENCE
         height_px = np.ptp(uv[w, 1]) + 1e-6
         depth = K[1, 1] * 1.7 / height_px
         hips = uv[[23, 24]].mean(0)
@@ -144,7 +144,10 @@ def _single_view_start(
         R[i] = np.stack([left, up, fwd], 1)  # columns: model x, y, z in world
         last = i
     if last is None:
-        raise ValueError(f"person {obs.person_id}: no view with at least 4 confident landmarks")
+        raise ValueError(
+            f"person {obs.person_id}: no view with at least {READABLE_LANDMARKS} landmarks above "
+            f"confidence {READABLE_CONFIDENCE} (PersonObservations.readable is False)"
+        )
     seen = np.any(obs.rows >= 0, 1) & np.isfinite(c).all(1) & (np.abs(c).sum(1) > 0)
     good = np.flatnonzero(seen)
     near = nearest(good, T)
