@@ -17,6 +17,7 @@ residual 0 marks a joint observed by >= 2 cameras, residual 1 a joint filled by 
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +101,9 @@ def write_c3d(
     writer.add_frames([(pts[i], np.zeros((0, 0), np.float32)) for i in range(T)])
 
     def write(tmp: str) -> None:
-        with open(tmp, "wb") as fh:
+        with open(tmp, "wb") as fh, warnings.catch_warnings():
+            # markers only, by design: the library's notice that there are no analog channels
+            warnings.filterwarnings("ignore", message="No analog data found")
             writer.write(fh)
 
     atomic_write(Path(path), write)
@@ -110,7 +113,8 @@ def read_c3d(path: str | Path) -> tuple[list[str], float, np.ndarray, np.ndarray
     """(marker names, rate, frame numbers (T,), points (T, M, 4): x, y, z in mm, residual)."""
     import c3d
 
-    with open(path, "rb") as fh:
+    with open(path, "rb") as fh, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="No analog data found")
         reader = c3d.Reader(fh)
         names = [s.strip() for s in reader.point_labels]
         rate = float(reader.point_rate)

@@ -12,6 +12,7 @@ world-frame values filled and the single-camera ones null (`bbox`, `global_orien
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,7 +84,8 @@ def joint_evidence(fit: PersonFit, tri: PersonTriangulation | None) -> JointEvid
         both = used[:, lms].all(1)  # (T, C)
         views[:, j] = both.sum(1)
         mask[:, j] = (both * bits).sum(1)
-        with np.errstate(invalid="ignore"):
+        with warnings.catch_warnings():  # a gap frame has no reading: NaN, not a warning
+            warnings.simplefilter("ignore", RuntimeWarning)
             per_lm = np.nanmean(fit.reprojection[:, :, lms], axis=1)  # (T, len(lms))
             reproj[:, j] = np.nanmean(per_lm, axis=1)
     has = np.array([bool(x) for x in idx])
