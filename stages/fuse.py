@@ -20,6 +20,7 @@ class Params(StageParams):
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
     iterations: int = 8  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
     smoothness: float = 1.0  # weight of the temporal smoothness term
+    fill_gaps_s: float = Field(0.1, ge=0)  # unseen frames filled in gaps up to this long
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
     refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
     # > 0: RANSAC over view pairs per landmark, among this many views (0: leave-one-out only)
@@ -45,10 +46,10 @@ def run(ctx: StageContext) -> None:
         ctx.path("crops/crops.h5"), ctx.rig(), ctx.out("fused"), ctx.out("reports/fuse"),
         fps=ctx.scene.fps, videos=ctx.camera_videos(),
         options=FuseOptions(
-            body_model=p.body_model,
-            markers=p.markers,
+            body_model=p.body_model, markers=p.markers,
             fit=FitOptions(
-                iterations=p.iterations, w_smooth=p.smoothness, w_silhouette=p.silhouette_fit
+                iterations=p.iterations, w_smooth=p.smoothness, w_silhouette=p.silhouette_fit,
+                max_gap_s=p.fill_gaps_s,
             ),
             triangulation=TriangulationOptions(
                 consensus_views=p.pair_consensus,
@@ -57,8 +58,7 @@ def run(ctx: StageContext) -> None:
             ),
             silhouettes=p.silhouette_votes > 0 or p.silhouette_fit > 0,
             regroup=RegroupOptions() if p.regroup else None,
-            refine_rig_rounds=p.refine_rig,
-            exchange_rounds=p.exchange_rounds,
+            refine_rig_rounds=p.refine_rig, exchange_rounds=p.exchange_rounds,
             relook=FuseOptions().relook if p.relook else None,
             floor=p.floor, people_per_batch=p.people_per_batch, overlay=p.overlay,
         ),

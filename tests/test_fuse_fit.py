@@ -93,6 +93,20 @@ def test_gap_frames_are_inserted_and_static_frames_start_from_the_previous(body,
     assert np.linalg.norm(fit.joints[2] - mid, axis=-1).mean() < 0.05
 
 
+def test_gaps_longer_than_max_gap_s_are_left_out(body, capture):
+    """Frames 2-4 unseen: at 30 fps (0.1 s = 3 frames) the fit fills them; at 20 fps (2 frames)
+    the gap is too long, it has no frames and frames 1 and 5 are not neighbours."""
+    p = observations(capture, noise_px=0.0, seed=5)[0].select(np.array([0, 1, 5]))
+    tris = [triangulate_person(p)]
+    filled = fit_people(body, MarkerModel.load(), [p], tris, fps=30.0)[0]
+    assert filled.frames.tolist() == [0, 1, 2, 3, 4, 5]
+    assert filled.observed.tolist() == [True, True, False, False, False, True]
+    left = fit_people(body, MarkerModel.load(), [p], tris, fps=20.0)[0]
+    assert left.frames.tolist() == [0, 1, 5] and left.observed.all()
+    truth = capture.joints[0, [0, 1, 5]]
+    assert np.linalg.norm(left.joints - truth, axis=-1).mean() < 0.03
+
+
 def test_per_frame_limb_lengths_measure_the_data(body, capture):
     """Each frame fitted with its own shape: lengths match the true limbs on clean 2D, and a
     frame whose landmarks come from a body 8 % larger reads 8 % longer limbs, alone."""

@@ -52,7 +52,7 @@ def per_frame_limb_lengths(
     from the clip's fit (PersonFit.marker_offsets), held fixed: a frame's shape must not hide
     in its markers."""
     o = replace(
-        options or FitOptions(), w_smooth=0.0, w_betas=w_betas, max_gap=0, w_marker_offsets=0.0
+        options or FitOptions(), w_smooth=0.0, w_betas=w_betas, max_gap_s=0.0, w_marker_offsets=0.0
     )
     own = marker_offsets or [None] * len(people)
     singles, singles_tri, where, single_offsets = [], [], [], []

@@ -87,7 +87,10 @@ class FitOptions:
     w_silhouette: float = 0.0
     silhouette_sigma_factor: float = 3.0
     static_tol_m: float = 0.005
-    max_gap: int = 15
+    # frames where nobody saw the person, inside a gap of at most this long (seconds), are
+    # filled by the fit (observed False); longer gaps are left out, the track resumes after them
+    # (in crowds, frames filled over longer gaps were 150-400 mm off the truth: docs/fuse.md)
+    max_gap_s: float = 0.1
     # with a floor (fit_people's `floor`; not in the start, whose rigid guess may lie anywhere):
     # energy per m^2 of a foot marker below its rest height above the soles (less
     # `floor_tolerance_m`), or of any other marker below the floor (gst.fuse.floor)
@@ -223,7 +226,7 @@ def fit_people(
 
     dense, dtris, starts, statics, sigmas, single = [], [], [], [], [], []
     for obs, tri in zip(people, tris, strict=True):
-        d = dense_frames(obs, o.max_gap)
+        d = dense_frames(obs, int(round(o.max_gap_s * fps)))
         tri_d = dense_triangulation(tri, obs.frames, d.frames) if tri is not None else None
         R0, c0, static = rigid_start(d, tri_d, rest_markers, pelvis, o.static_tol_m)
         dense.append(d)
