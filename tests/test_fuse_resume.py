@@ -160,3 +160,29 @@ def test_a_person_with_nothing_readable_is_left_out_and_named(scene, tmp_path, c
     assert "people [3] left out" in caplog.text
     t = pq.read_table(tmp_path / "fused" / "bodies.parquet")
     assert sorted(set(t.column("person_id").to_pylist())) == [1, 2]
+
+
+def test_reprojection_is_reported_over_every_reading_and_over_the_views_used(scene, tmp_path):
+    """Camera 0's landmarks of person 1 moved 40 px: the triangulation leaves them out, so the
+    reprojection over the views it used stays that of clean data, while the one over every
+    reading takes them in."""
+    from dataclasses import replace
+
+    from gst.data.store import CropStore
+
+    tmp, cap, landmarks = scene
+    index = CropStore(tmp / "crops.h5").index
+    person, camera = (index.column(k).to_numpy() for k in ("person_id", "camera_index"))
+    moved = np.array(landmarks, np.float32)
+    moved[(person == 1) & (camera == 0), :, 0] += 40.0
+    res = fuse_scene(
+        tmp / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report", fps=30.0,
+        options=replace(OPTS, regroup=None, relook=None), landmarks=moved,
+    )  # fmt: skip
+    one = res.summary.people[0]
+    assert np.nanmedian(res.fits[0].reprojection[:, 0]) > 30.0  # the moved readings, unexplained
+    assert one["median_reprojection_used_px"] < 2.0  # ... and not among the views used
+    assert one["median_reprojection_px"] > one["median_reprojection_used_px"] + 0.2
+    s = res.summary
+    assert s.median_reprojection_used_px <= s.median_reprojection_px
+    assert "over the readings the triangulation used" in (tmp_path / "report/report.md").read_text()

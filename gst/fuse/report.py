@@ -56,7 +56,10 @@ def _stats(x: np.ndarray) -> dict:
 class FuseSummary:
     people: list[dict] = field(default_factory=list)
     reprojection_px: dict = field(default_factory=dict)  # camera -> landmark -> median
-    median_reprojection_px: float = float("nan")
+    median_reprojection_px: float = float("nan")  # every reading of every view
+    # only the readings the triangulation took as showing the landmark (its inlier views; as
+    # Pose2Sim reports its reprojection error): what the fit explains, without the misreadings
+    median_reprojection_used_px: float | None = None
     gap_filled_share: float = float("nan")
     frames: int = 0
     truth: dict | None = None
@@ -73,13 +76,23 @@ class FuseSummary:
             else ""
         )
         reprojection = self.median_reprojection_px or float("nan")
+        used = self.median_reprojection_used_px or float("nan")
         return (
-            f"fuse: {len(self.people)} people, median reprojection {reprojection:.1f} px, "
+            f"fuse: {len(self.people)} people, median reprojection {reprojection:.1f} px "
+            f"({used:.1f} px in the views used), "
             f"gap-filled {100 * (self.gap_filled_share or 0.0):.1f}%{truth}"
         )
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+def _used_readings(fit: PersonFit, tri: PersonTriangulation | None) -> np.ndarray:
+    """The fit's reprojection errors (px) of the readings the triangulation used (1-D)."""
+    if tri is None:
+        return np.zeros(0)
+    used = np.transpose(tri.used, (0, 2, 1)) & np.isfinite(fit.reprojection)  # (T, C, 33)
+    return fit.reprojection[used]
 
 
 def summarise(
@@ -106,10 +119,13 @@ def summarise(
                 for n, v in zip(BLAZEPOSE_NAMES, med, strict=True)
             }
         s.median_reprojection_px = float(np.nanmedian(allr)) if np.isfinite(allr).any() else None
+    used = [_used_readings(f, t) for f, t in zip(fits, tris, strict=True)]
+    every_used = np.concatenate(used) if used else np.zeros(0)
+    s.median_reprojection_used_px = float(np.median(every_used)) if len(every_used) else None
     gaps = [ev.gap_filled[:, ev.has_landmarks] for ev in evidence]
     s.gap_filled_share = float(np.concatenate(gaps).mean()) if gaps else None
     limbs_all = limb_lengths if limb_lengths is not None else [None] * len(fits)
-    for fit, tri, ev, limbs in zip(fits, tris, evidence, limbs_all, strict=True):
+    for fit, tri, ev, limbs, mine in zip(fits, tris, evidence, limbs_all, used, strict=True):
         frame_fit = {k: _stats(v) for k, v in limbs.items()} if limbs is not None else {}
         bones = {}
         for j, p in enumerate(SMPL_PARENTS):
@@ -138,6 +154,7 @@ def summarise(
                 "static_frames": int(fit.static.sum()),
                 "single_view": fit.single_view,
                 "median_reprojection_px": reproj,
+                "median_reprojection_used_px": float(np.median(mine)) if len(mine) else None,
                 "gap_filled_share": float(ev.gap_filled[:, ev.has_landmarks].mean()),
                 "cauchy_sigma_px": fit.sigma_px,
                 "betas": [round(float(b), 4) for b in fit.betas],
@@ -169,7 +186,9 @@ def write_report(
     lines = ["# Fusion report", ""]
     lines.append(
         f"{len(summary.people)} people over {summary.frames} frames. Median reprojection error "
-        f"of the fitted markers: {_fmt(summary.median_reprojection_px)} px (full image). "
+        f"of the fitted markers: {_fmt(summary.median_reprojection_px)} px (full image) over "
+        f"every reading, {_fmt(summary.median_reprojection_used_px)} px over the readings the "
+        "triangulation used (its inlier views, as Pose2Sim reports it). "
         f"Share of observable joint-frames filled by the fit (< 2 views): "
         f"{_fmt(100 * summary.gap_filled_share if summary.gap_filled_share is not None else None)}"
         " %."
@@ -199,14 +218,15 @@ def write_report(
             f"| {t['matched']} | {t['unmatched']} |",
         ]
     lines += ["", "## People", "", "| id | frames | first-last | observed | static | single view "
-              "| reprojection px | gap-filled % | max triangulated segment CV % |",
+              "| reprojection px (all / used) | gap-filled % | max triangulated segment CV % |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for p in summary.people:
         cv = p["max_triangulated_segment_cv"]
         lines.append(
             f"| {p['person_id']} | {p['frames']} | {p['first_frame']}-{p['last_frame']} | "
             f"{p['observed_frames']} | {p['static_frames']} | {p['single_view']} | "
-            f"{_fmt(p['median_reprojection_px'])} | {_fmt(100 * p['gap_filled_share'])} | "
+            f"{_fmt(p['median_reprojection_px'])} / {_fmt(p['median_reprojection_used_px'])} | "
+            f"{_fmt(100 * p['gap_filled_share'])} | "
             f"{_fmt(None if cv is None else 100 * cv)} |"
         )
     names = list(LANDMARK_SEGMENTS)
