@@ -186,3 +186,19 @@ def test_reprojection_is_reported_over_every_reading_and_over_the_views_used(sce
     s = res.summary
     assert s.median_reprojection_used_px <= s.median_reprojection_px
     assert "over the readings the triangulation used" in (tmp_path / "report/report.md").read_text()
+
+
+def test_nobody_readable_writes_empty_outputs(scene, tmp_path):
+    """Every landmark without confidence: no person is fused, and the stage still writes its
+    (empty) Parquet files and report instead of stopping."""
+    from dataclasses import replace
+
+    tmp, cap, landmarks = scene
+    blind = np.array(landmarks, np.float32)
+    blind[..., 2] = 0.0
+    res = fuse_scene(
+        tmp / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report", fps=30.0,
+        options=replace(OPTS, regroup=None), landmarks=blind,
+    )  # fmt: skip
+    assert res.fits == [] and pq.read_table(tmp_path / "fused" / "bodies.parquet").num_rows == 0
+    assert (tmp_path / "report" / "report.md").is_file()

@@ -294,7 +294,8 @@ def _plot(
                      "triangulated landmarks)", fontsize=8)  # fmt: skip
         ax.set_xlabel("frame")
         ax.set_ylabel("m")
-    axes[0, 0].legend(fontsize=6, ncol=4)
+    if fits:  # nobody fused: an empty figure, no legend to draw
+        axes[0, 0].legend(fontsize=6, ncol=4)
     fig.tight_layout()
     atomic_write(path, lambda t: fig.savefig(t, format="png", dpi=90))
     plt.close(fig)
