@@ -376,7 +376,9 @@ def fuse_scene(
     height = o.floor
     if height == "auto":
         height, contact = world_floor([t.points if t is not None else None for t in tris], up)
-        if log is not None:
+        if log is not None and not np.isfinite(contact):
+            log.info("fuse: no triangulated feet to find the floor by: no floor term")
+        elif log is not None:
             log.info(
                 "fuse: feet stand a median %.3f m above the world's height 0: %s", contact,
                 "the floor term holds them above it" if height is not None else "no floor term",
