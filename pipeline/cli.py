@@ -12,6 +12,7 @@ import os
 import sys
 from pathlib import Path
 
+from rich.console import Console
 from rich.table import Table
 
 from gst.atomic import remove_path
@@ -105,8 +106,27 @@ def build_parser() -> argparse.ArgumentParser:
     _common(status)
 
     stages = sub.add_parser("stages", help="list the declared stages and what they do")
+    stages.add_argument(
+        "--params", action="store_true",
+        help="also list each stage's parameters: default, and the value pipeline.yaml sets",
+    )  # fmt: skip
     _common(stages)
     return parser
+
+
+def _param_lines(model, configured: dict) -> list[str]:
+    """One line per parameter of a stage's params model: name, type, default, and the value
+    the pipeline file sets (scene-level params and --set are not shown)."""
+    lines = []
+    for key, field in model.model_fields.items():
+        t = field.annotation
+        kind = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
+        default = field.get_default(call_default_factory=True)
+        line = f"{key}: {kind} = {default!r}"
+        if key in configured:
+            line += f"  (pipeline file: {configured[key]!r})"
+        lines.append(line)
+    return lines
 
 
 def _check_videos_option(videos: list[Path]) -> list[Path]:
@@ -225,13 +245,17 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(args.config, args.overrides)
         stages = load_stages(cfg)
         scenes = _scenes(cfg, args.scene)
-        if args.command == "stages":
+        if args.command == "stages":  # the listing is the command's output: stdout
+            out = Console(quiet=args.quiet)
             for name, st in stages.items():
-                console.print(
+                out.print(
                     f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    "
                     f"{st.help}",
                     highlight=False,
                 )
+                if args.params:
+                    for line in _param_lines(st.params_model, cfg.stages[name].params):
+                        out.print(f"      {line}", highlight=False, markup=False, soft_wrap=True)
             return 0
         progress = ProgressBars(console, enabled=not args.quiet)
         options, executor = {}, None

@@ -48,6 +48,18 @@ def test_module_help_and_status_run():
     assert out.returncode == 0, out.stderr
 
 
+def test_stages_params_lists_defaults_and_the_pipeline_files_values():
+    out = subprocess.run(
+        [sys.executable, "-m", "pipeline", "stages", "--params"],
+        cwd=REPO, capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    lines = [line.strip() for line in out.stdout.splitlines()]
+    assert "fill_gaps_s: float = 0.1" in lines  # a fuse default pipeline.yaml leaves alone
+    assert "overlay: bool = True  (pipeline file: True)" in lines  # one it sets
+    assert "floor: Union[float, Literal['auto'], NoneType] = 'auto'" in lines
+
+
 def test_override_parsing():
     assert parse_override("train.lr=1e-4") == (["train", "lr"], 1e-4)
     raw = {"stages": {"train": {"params": {}}}}
