@@ -108,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     stages = sub.add_parser("stages", help="list the declared stages and what they do")
     stages.add_argument(
         "--params", action="store_true",
-        help="also list each stage's parameters: default, and the value pipeline.yaml sets",
+        help="also list each stage's parameters: default, and the value the pipeline file (or "
+        "--set) gives the stage; a scene's own params are not shown",
     )  # fmt: skip
     _common(stages)
     return parser
@@ -116,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _param_lines(model, configured: dict) -> list[str]:
     """One line per parameter of a stage's params model: name, type, default, and the value
-    the pipeline file sets (scene-level params and --set are not shown)."""
+    the pipeline file (with any --set) gives the stage; scene-level params are not shown."""
     lines = []
     for key, field in model.model_fields.items():
         t = field.annotation
