@@ -12,7 +12,6 @@ import os
 import sys
 from pathlib import Path
 
-from rich.console import Console
 from rich.table import Table
 
 from gst.atomic import remove_path
@@ -247,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         stages = load_stages(cfg)
         scenes = _scenes(cfg, args.scene)
         if args.command == "stages":  # the listing is the command's output: stdout
-            out = Console(quiet=args.quiet)
+            out = make_console(args.quiet, stderr=False)
             for name, st in stages.items():
                 out.print(
                     f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    "

@@ -23,8 +23,9 @@ from rich.text import Text
 LOGGER_NAME = "pipeline"
 
 
-def make_console(quiet: bool) -> Console:
-    return Console(stderr=True, quiet=quiet)
+def make_console(quiet: bool, stderr: bool = True) -> Console:
+    """Logs and progress go to stderr; a command's own output (the `stages` listing) to stdout."""
+    return Console(stderr=stderr, quiet=quiet)
 
 
 def setup_logging(console: Console, log_dir: Path | None, command: str, quiet: bool) -> Path | None:

@@ -78,6 +78,10 @@ def read_trc(path: str | Path) -> tuple[dict[str, str], list[str], np.ndarray, n
     return header, names, frames, pts
 
 
+# the c3d library's notice that a file has no analog channels: ours hold markers only, by design
+_NO_ANALOG = "No analog data found"
+
+
 def write_c3d(
     path: str | Path,
     frames: np.ndarray,
@@ -102,8 +106,7 @@ def write_c3d(
 
     def write(tmp: str) -> None:
         with open(tmp, "wb") as fh, warnings.catch_warnings():
-            # markers only, by design: the library's notice that there are no analog channels
-            warnings.filterwarnings("ignore", message="No analog data found")
+            warnings.filterwarnings("ignore", message=_NO_ANALOG)
             writer.write(fh)
 
     atomic_write(Path(path), write)
@@ -114,7 +117,7 @@ def read_c3d(path: str | Path) -> tuple[list[str], float, np.ndarray, np.ndarray
     import c3d
 
     with open(path, "rb") as fh, warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="No analog data found")
+        warnings.filterwarnings("ignore", message=_NO_ANALOG)
         reader = c3d.Reader(fh)
         names = [s.strip() for s in reader.point_labels]
         rate = float(reader.point_rate)

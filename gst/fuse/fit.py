@@ -352,14 +352,13 @@ def fit_people(
             state = _fill_unobserved(state, observed, offsets)
         if o.w_marker_offsets > 0:  # the person's own markers, from the 2D evidence only
             state = replace(state, offsets=torch.zeros(len(dense), M, 3, dtype=DTYPE))
+        others = [e for e in (coverage, ground) if e is not None]  # beside the 2D landmarks
         if o.view_weighting and o.view_rounds:
             for _ in range(o.view_rounds):
                 weighed = _weigh_views(state, views, sk, person, marker_table(state))
-                evidence = [e for e in (weighed, coverage, ground) if e is not None]
-                state = solve(state, evidence, weights, o.iterations)
+                state = solve(state, [weighed, *others], weights, o.iterations)
         else:
-            evidence = [e for e in (views, coverage, ground) if e is not None]
-            state = solve(state, evidence, weights, o.iterations)
+            state = solve(state, [views, *others], weights, o.iterations)
         X, J, _, _ = sk.forward(
             state.betas[person], state.root, state.theta, state.transl,
             offsets=marker_table(state),

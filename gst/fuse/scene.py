@@ -256,10 +256,10 @@ def _readable_only(people: list[PersonObservations], log) -> list[PersonObservat
     left out and the log names them."""
     kept = [p for p in people if p.readable]
     if len(kept) < len(people) and log is not None:
+        ids = sorted({p.person_id for p in people} - {p.person_id for p in kept})
         log.warning(
             "fuse: people %s left out: no view shows %d landmarks above confidence %.1f",
-            [p.person_id for p in people if not p.readable], READABLE_LANDMARKS,
-            READABLE_CONFIDENCE,
+            ids, READABLE_LANDMARKS, READABLE_CONFIDENCE,
         )  # fmt: skip
     return kept
 
