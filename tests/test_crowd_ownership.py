@@ -39,6 +39,25 @@ def test_the_person_in_front_keeps_the_pixels_they_hide():
     assert own2.labels[int(torso[1]), int(torso[0])] == 1
 
 
+def test_people_whose_capsules_meet_are_not_alone():
+    """`alone`: no one else's capsules overlap the person's in the image. One person in front
+    of another: neither is alone; the same two people 3 m apart sideways: both are; a third
+    person far off stays alone beside the overlapping pair."""
+    cam = RIG[0]
+    near, far = _towards(cam, 2.6, 0.1), _towards(cam, 3.4, -0.1)
+    aside = _towards(cam, 3.0, 1.6)
+    fg = np.ones((cam.height, cam.width), bool)
+    pair = own_pixels(cam, fg, [person(far[0], far[1]), person(near[0], near[1])])
+    assert not pair.alone.any()
+    apart = own_pixels(cam, fg, [person(near[0], near[1]), person(aside[0], aside[1])])
+    assert apart.alone.all() and (apart.area > 0).all()  # both in the picture
+    three = own_pixels(
+        cam, fg, [person(far[0], far[1]), person(near[0], near[1]), person(aside[0], aside[1])]
+    )
+    assert three.alone.tolist() == [False, False, True]
+    assert own_pixels(cam, fg, [None]).alone.tolist() == [True]
+
+
 def test_foreground_far_from_everyone_is_nobodys():
     cam = RIG[1]
     p = person(0.0, 0.0)

@@ -8,6 +8,7 @@ from crowd_people import instances, person, rig
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gst.data.keypoints.instances import PersonInstance
 from gst.data.keypoints.ownership import own_pixels
 from gst.data.keypoints.people import CrowdConfig, CrowdTracker, _window
 from gst.detect.blazepose import LANDMARK_SIZE, BodyRoi
@@ -36,7 +37,9 @@ def _foreground(cam, people):
 
 
 def _fake_model(frames, calls):
-    """A landmark model that answers with the true person nearest the region's centre."""
+    """A landmark model that answers with the true person nearest the region's centre; its
+    segmentation is that person's support where the image shows someone (pixels painted out
+    with the empty background are nobody's, as the real model sees them)."""
 
     def segment(camera, image, roi, origin):
         cam = RIG[camera]
@@ -46,17 +49,28 @@ def _fake_model(frames, calls):
         k = int(np.argmin([np.linalg.norm(h - roi.centre) for h in hips]))
         calls["n"] += 1
         lm = np.c_[cam.project(people[k]) - origin, np.ones(33)]
-        prob = skeleton_support(lm, image.shape[:2], 6).astype(np.float32)
-        return lm, 1.0, prob
+        prob = skeleton_support(lm, image.shape[:2], 6) & np.any(image > 0, axis=2)
+        return lm, 1.0, prob.astype(np.float32)
 
     return segment
 
 
-def _run(refine: bool, hide: tuple[str, int] | None, single: int | None = None, workers: int = 1):
+def _run(
+    refine: bool,
+    hide: tuple[str, int] | None,
+    single: int | None = None,
+    workers: int = 1,
+    stray: tuple[str, int] | None = None,
+    **config,
+):
+    """Track the scene. `hide` = (camera, person) drops that detection; `stray` adds in that
+    camera a detection of a fragment of that person (their lower body); `config` overrides
+    CrowdConfig fields."""
     frames = _scene()
     calls = {"frame": 0, "n": 0}
     model = _fake_model(frames, calls) if refine else None
-    tracker = CrowdTracker(RIG, 1 / 30, CrowdConfig(refine=refine), model, workers=workers)
+    cfg = CrowdConfig(refine=refine, **config)
+    tracker = CrowdTracker(RIG, 1 / 30, cfg, model, workers=workers)
     outs = []
     for f, people in enumerate(frames):
         calls["frame"] = f
@@ -68,18 +82,26 @@ def _run(refine: bool, hide: tuple[str, int] | None, single: int | None = None, 
             keep = [i for i, t in enumerate(truth[cam]) if t != k]
             found[cam] = [found[cam][i] for i in keep]
             truth[cam] = [truth[cam][i] for i in keep]
+        if stray is not None:
+            cam, k = stray
+            legs = found[cam][truth[cam].index(k)].landmarks.copy()
+            legs[:23, 2] = 0.0  # only the hips and legs were found
+            found[cam].append(PersonInstance.create(legs))
+            truth[cam].append(-1)
         # The single-view person is only in camera 1's picture.
         seen = {
             c.name: [p for k, p in enumerate(people) if k != only or c.name == RIG.names[1]]
             for c in RIG
         }
         fg = {c.name: _foreground(c, seen[c.name]) for c in RIG}
-        images = {c.name: np.zeros((c.height, c.width, 3), np.uint8) for c in RIG}
+        # The picture: someone wherever the foreground is; the empty scene is black.
+        images = {c.name: np.where(fg[c.name][..., None], 200, 0).astype(np.uint8) for c in RIG}
+        empty = {c.name: np.zeros((c.height, c.width, 3), np.uint8) for c in RIG}
         masks = {c: [i.mask for i in found[c]] for c in found}
         # instance masks for single-view people: their support in that camera
         for c, lst in found.items():
             masks[c] = [skeleton_support(inst.landmarks, fg[c].shape, 6) for inst in lst]
-        out = tracker.process(f, found, fg, images, {c: images[c] for c in images}, masks)
+        out = tracker.process(f, found, fg, images, empty, masks)
         outs.append((out, truth, people))
     tracker.close()
     return outs, calls
@@ -161,6 +183,39 @@ def test_cameras_on_worker_threads_give_the_same_people():
                 assert p.views[cam].source == q.views[cam].source
                 np.testing.assert_array_equal(p.views[cam].landmarks, q.views[cam].landmarks)
                 np.testing.assert_array_equal(p.views[cam].mask, q.views[cam].mask)
+
+
+def _views(outs):
+    return [{(p.pid, cam): v for p in out.people for cam, v in p.views.items()} for out, *_ in outs]
+
+
+def test_views_of_people_standing_alone_keep_their_detection():
+    """The default reuses a detection that fits its skeleton where no one overlaps the person: the
+    same people, ids and views as looking again at every view, fewer model calls, and the
+    missed view is still refound by the model."""
+    hidden = RIG.names[3]
+    every, every_calls = _run(refine=True, hide=(hidden, 0), reuse_fit=0.0)
+    reused, reused_calls = _run(refine=True, hide=(hidden, 0))
+    assert 0 < reused_calls["n"] < every_calls["n"]
+    for a, b, (_, _, people) in zip(_views(every), _views(reused), reused, strict=True):
+        assert a.keys() == b.keys()
+        for key, view in b.items():
+            assert view.source == a[key].source
+            who = _who(view, RIG[key[1]], people)
+            assert who == _who(a[key], RIG[key[1]], people)
+        assert any(cam == hidden and v.source == "refined" for (_, cam), v in b.items())
+
+
+def test_a_stray_detection_beside_a_person_makes_the_model_look_again():
+    """A fragment of person 2 detected in camera 2, where no one overlaps them (that no
+    candidate takes): their view there is not reused, so the fragment does not become a
+    second, single-view person."""
+    cam = RIG.names[2]
+    clean, clean_calls = _run(refine=True, hide=None, single=0)
+    strayed, stray_calls = _run(refine=True, hide=None, single=0, stray=(cam, 2))
+    assert stray_calls["n"] > clean_calls["n"]
+    for out, *_ in strayed:
+        assert [p for p in out.people if p.single_view and cam in p.views] == []
 
 
 @settings(max_examples=200, deadline=None)

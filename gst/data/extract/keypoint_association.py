@@ -7,6 +7,7 @@ visual-hull path, plus each slot's landmarks and whether one camera only saw tha
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -25,6 +26,7 @@ from gst.detect.blazepose import BlazePose
 from gst.detect.persons import skeleton_support
 from gst.video import read_frames
 
+log = logging.getLogger("gst.data")
 SOURCES = {"detected": 0, "refined": 1, "projected": 2, "single": 3}
 SKELETON_WIDTH = 0.08  # a region's mask stays within this share of its side of the skeleton
 
@@ -128,6 +130,12 @@ def associate_scene_keypoints(
             results = _run(tracker, inputs, streams, backgrounds, frames, sxy, progress)
         finally:
             tracker.close()
+        if config.refine:
+            log.info(
+                "keypoint association: %d views looked at again by the landmark model; %d views "
+                "of people no one overlaps kept their detection",
+                tracker.views_refined, tracker.views_reused,
+            )  # fmt: skip
     finally:
         for f in inputs.values():
             f.close()

@@ -110,6 +110,7 @@ class Ownership:
     labels: np.ndarray  # (H, W) int32: person index + 1, 0 = nobody
     visibility: np.ndarray  # (P,) share of each person's capsule pixels not hidden by others
     area: np.ndarray  # (P,) capsule pixels of each person in the image
+    alone: np.ndarray  # (P,) bool: no one else's capsules overlap this person's in the image
 
 
 def _rasterize(
@@ -244,7 +245,7 @@ def own_pixels(
     visibility, area = np.zeros(n), np.zeros(n)
     live = [k for k in range(n) if segs[k] is not None]
     if not live:
-        return Ownership(labels, visibility, area)
+        return Ownership(labels, visibility, area, np.ones(n, bool))
     # Work on the pixels near someone: the union of the capsules' boxes grown by `reach`.
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
@@ -256,7 +257,7 @@ def own_pixels(
     x0, y0 = (max(0, int(np.floor(v))) for v in lo)
     x1, y1 = min(W, int(np.ceil(hi[0])) + 1), min(H, int(np.ceil(hi[1])) + 1)
     if x1 <= x0 or y1 <= y0:
-        return Ownership(labels, visibility, area)
+        return Ownership(labels, visibility, area, np.ones(n, bool))
 
     # Samples at the centres of step x step blocks from (x0, y0); a block's pixels share them.
     st = config.step
@@ -279,8 +280,11 @@ def own_pixels(
         near = np.broadcast_to(near[:, None, :, None], (h, st, w, st)).reshape(h * st, w * st)
         near = near[: y1 - y0, : x1 - x0]
     labels[y0:y1, x0:x1] = np.where(foreground[y0:y1, x0:x1], near, 0)
+    shared = np.count_nonzero(covered, axis=0) > 1
+    alone = np.ones(n, bool)
     for k in live:
         samples = np.count_nonzero(covered[k])
         area[k] = samples * st * st
         visibility[k] = np.count_nonzero(covered[k] & (owner == k)) / samples if samples else 0.0
-    return Ownership(labels, visibility, area)
+        alone[k] = not np.any(covered[k] & shared)
+    return Ownership(labels, visibility, area, alone)

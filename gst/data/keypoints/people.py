@@ -14,7 +14,10 @@ camera that sees them their landmarks and their own mask.
    hidden (on the crowd preset: 98% of views at least 30% visible instead of 32% when the
    view is under 60% visible; truth occluders). Answers whose landmarks do not fit the
    projected skeleton are dropped; the rest re-triangulate the skeleton. Remembered people
-   that fewer than two cameras confirm are let go for this frame.
+   that fewer than two cameras confirm are let go for this frame. Where no one else overlaps
+   the person in a camera and their detection there fits the skeleton, that detection is
+   their answer (`reuse_fit`): looking again would show the model the same pixels (on the lab
+   capture 373 of 796 views, on the crowd scenes fewer).
 4. Ids (`PersonIdTracker`), then per camera each person's mask: their region's segmentation
    within the foreground, pixels claimed by several people going to the one in front
    (capsule ownership). A trusted person (seen by `trusted_views` cameras, or remembered)
@@ -53,6 +56,7 @@ from gst.detect.persons import same_person
 
 _BODY = np.asarray(BODY_LANDMARKS)
 PROJECTED_CONFIDENCE = 0.5  # confidence of landmarks projected from a skeleton (not detected)
+STRAY_OVERLAP = 0.3  # a detection this much inside a person's box is near them
 DUPLICATE_LANDMARKS = 0.1  # two answers whose limb joints are this close (share of size) agree
 ViewSource = Literal["detected", "refined", "projected", "single"]
 # segment(camera name, BGR image, region in its pixels, origin) -> (landmarks (33, 3) in the
@@ -70,6 +74,11 @@ class CrowdConfig:
     ownership: OwnershipConfig = field(default_factory=OwnershipConfig)
     refine: bool = True  # look again at every person with the others painted out
     refine_fit: float = 0.15  # landmark error (share of size) for a refined view to count
+    # A view in which no one else overlaps the person (their capsules, `Ownership.alone`) and
+    # whose detection fits the skeleton within reuse_fit (share of size) keeps its detection as
+    # its refined view: the model is not run again there (docs/extract.md, "Speed").
+    # reuse_fit 0: look again at every view.
+    reuse_fit: float = 0.05
     min_presence: float = 0.5  # landmark model's presence score for a refined view
     occluder_margin: int = 2  # pixels the painted-out people are grown by
     project_visibility: float = 0.3  # projected views for trusted people at least this visible
@@ -127,6 +136,34 @@ def _window(roi: BodyRoi, shape: tuple[int, ...], margin: int) -> tuple[int, int
     return x0, y0, x1, y1
 
 
+def _detections(cands, n: str, instances, masks) -> dict[int, tuple[PersonInstance, np.ndarray]]:
+    """Candidate index -> (their detection in camera `n`, its mask) for candidates matched
+    there whose detection has a mask and holds no other detection that no candidate took (a
+    stray fragment beside a person is told apart by looking again, as for everyone else)."""
+    ms = (masks or {}).get(n)
+    if ms is None:
+        return {}
+    taken = {c.group.views[n] for c in cands if c.group is not None and n in c.group.views}
+    stray = [inst.box for i, inst in enumerate(instances[n]) if i not in taken]
+    out = {}
+    for k, c in enumerate(cands):
+        i = None if c.group is None else c.group.views.get(n)
+        if i is None or i >= len(ms) or ms[i] is None:
+            continue
+        box = instances[n][i].box
+        if not any(_overlap(b, box) > STRAY_OVERLAP for b in stray):
+            out[k] = (instances[n][i], ms[i])
+    return out
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> float:
+    """Share of box `a` (x0, y0, x1, y1) inside box `b`."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    area = (a[2] - a[0]) * (a[3] - a[1])
+    return float(max(w, 0) * max(h, 0) / area) if area > 0 else 0.0
+
+
 def _strict_views(group: PersonGroup | None) -> int:
     return 0 if group is None else len(group.views) - len(group.loose)
 
@@ -171,6 +208,8 @@ class CrowdTracker:
             list(self.cams.values()), step_seconds, config.tracker, config.match
         )
         self._kernel = np.ones((2 * config.occluder_margin + 1,) * 2, np.uint8)
+        # refined views: the landmark model's new answer / the detection reused (`reuse_fit`)
+        self.views_refined = self.views_reused = 0
 
     def process(
         self,
@@ -201,7 +240,7 @@ class CrowdTracker:
                 foreground[n] = foreground[n] | np.any([m for m in ms if m is not None], axis=0)
         can_refine = cfg.refine and self.segment is not None and images is not None
         if can_refine and cands:
-            self._refine(cands, foreground, images, backgrounds)
+            self._refine(cands, foreground, images, backgrounds, instances, masks)
             # A person needs two confirming cameras, unless three detections agreed on them.
             cands = [
                 c
@@ -290,16 +329,21 @@ class CrowdTracker:
             self._pool.shutdown()
             self._pool = None
 
-    def _refine(self, cands, foreground, images, backgrounds) -> None:
+    def _refine(self, cands, foreground, images, backgrounds, instances, masks) -> None:
         cfg = self.config
         skels = [c.skeleton for c in cands]
         names = [n for n in self.cams if n in images and n in foreground]
 
-        def one_camera(n: str) -> dict[int, tuple]:
-            return self._refine_camera(n, cands, skels, foreground[n], images[n], backgrounds)
+        def one_camera(n: str) -> tuple[dict[int, tuple], int]:
+            detected = _detections(cands, n, instances, masks)
+            return self._refine_camera(
+                n, cands, skels, foreground[n], images[n], backgrounds, detected
+            )
 
         # Merged in camera order, whatever order the threads finished in.
-        for n, found in zip(names, self._map_cameras(one_camera, names), strict=True):
+        for n, (found, reused) in zip(names, self._map_cameras(one_camera, names), strict=True):
+            self.views_reused += reused
+            self.views_refined += len(found) - reused
             for k, (inst, prob, fit) in found.items():
                 cands[k].refined[n] = (inst, prob)
                 cands[k].fits[n] = fit
@@ -312,14 +356,26 @@ class CrowdTracker:
                 X = _triangulate_all(views, {n: (0, False) for n in c.refined}, cfg.match)
                 c.skeleton = np.where(np.isfinite(X), X, c.skeleton)
 
-    def _refine_camera(self, n, cands, skels, fg, img, backgrounds) -> dict[int, tuple]:
-        """Camera `n`'s refined views: candidate index -> (instance, probability, fit)."""
+    def _refine_camera(
+        self, n, cands, skels, fg, img, backgrounds, detected
+    ) -> tuple[dict[int, tuple], int]:
+        """Camera `n`'s refined views (candidate index -> (instance, probability, fit)) and
+        how many of them reuse the candidate's detection (`detected[k]`: their detection here
+        and its mask) instead of running the model again."""
         cfg = self.config
         cam, s = self.cams[n], self.scale[n]
         own = own_pixels(cam, fg, skels, [], cfg.ownership, s)
         bg = (backgrounds or {}).get(n)
         found: dict[int, tuple] = {}
+        reused: set[int] = set()
         for k, c in enumerate(cands):
+            if k in detected and own.alone[k]:
+                inst, mask = detected[k]
+                fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
+                if fit <= cfg.reuse_fit and inst.score >= cfg.min_presence:
+                    found[k] = (inst, mask.astype(np.float32), fit)
+                    reused.add(k)
+                    continue
             roi = roi_from_skeleton(cam, c.skeleton)
             if roi is None:
                 continue
@@ -365,7 +421,7 @@ class CrowdTracker:
                     continue
                 if same_person(found[a][0].landmarks, found[b][0].landmarks, DUPLICATE_LANDMARKS):
                     del found[b if found[a][2] <= found[b][2] else a]
-        return found
+        return found, len(reused & set(found))
 
     def _views(self, n, cands, people, fg, remembered, instances) -> list[tuple[int, PersonView]]:
         """Each person's view in camera `n`, as (person index, view): refined (their region's
