@@ -190,12 +190,12 @@ def _views(outs):
 
 
 def test_views_of_people_standing_alone_keep_their_detection():
-    """The default reuses a detection that fits its skeleton where no one overlaps the person: the
-    same people, ids and views as looking again at every view, fewer model calls, and the
-    missed view is still refound by the model."""
+    """reuse_detections keeps a detection that fits its skeleton where no one overlaps the
+    person: the same people, ids and views as looking again at every view (the default), fewer
+    model calls, and the missed view is still refound by the model."""
     hidden = RIG.names[3]
-    every, every_calls = _run(refine=True, hide=(hidden, 0), reuse_fit=0.0)
-    reused, reused_calls = _run(refine=True, hide=(hidden, 0))
+    every, every_calls = _run(refine=True, hide=(hidden, 0))
+    reused, reused_calls = _run(refine=True, hide=(hidden, 0), reuse_detections=True)
     assert 0 < reused_calls["n"] < every_calls["n"]
     for a, b, (_, _, people) in zip(_views(every), _views(reused), reused, strict=True):
         assert a.keys() == b.keys()
@@ -211,8 +211,10 @@ def test_a_stray_detection_beside_a_person_makes_the_model_look_again():
     candidate takes): their view there is not reused, so the fragment does not become a
     second, single-view person."""
     cam = RIG.names[2]
-    clean, clean_calls = _run(refine=True, hide=None, single=0)
-    strayed, stray_calls = _run(refine=True, hide=None, single=0, stray=(cam, 2))
+    clean, clean_calls = _run(refine=True, hide=None, single=0, reuse_detections=True)
+    strayed, stray_calls = _run(
+        refine=True, hide=None, single=0, stray=(cam, 2), reuse_detections=True
+    )
     assert stray_calls["n"] > clean_calls["n"]
     for out, *_ in strayed:
         assert [p for p in out.people if p.single_view and cam in p.views] == []

@@ -77,11 +77,14 @@ class ExtractOptions:
         frame_size_tolerance: int = FRAME_PADDING_TOLERANCE,
         association_method: str = "auto",
         person_detect_every: int = 10,
+        reuse_detections: bool = False,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose'), whether to segment around moving blobs too, the
-        association method ('auto', 'keypoints' or 'hull') and how often the person detector
-        runs while everyone is tracked."""
+        association method ('auto', 'keypoints' or 'hull'), how often the person detector
+        runs while everyone is tracked, and whether the keypoint association keeps the
+        detections of people no one overlaps instead of looking at them again
+        (`CrowdConfig.reuse_detections`)."""
         if person_model not in ("none", "blazepose"):
             raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
         return cls(
@@ -96,6 +99,7 @@ class ExtractOptions:
             person_detect_every=person_detect_every,
             frame_size_tolerance=frame_size_tolerance,
             association_method=association_method,
+            crowd=CrowdConfig(reuse_detections=reuse_detections),
         )
 
 

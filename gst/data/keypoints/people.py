@@ -14,10 +14,9 @@ camera that sees them their landmarks and their own mask.
    hidden (on the crowd preset: 98% of views at least 30% visible instead of 32% when the
    view is under 60% visible; truth occluders). Answers whose landmarks do not fit the
    projected skeleton are dropped; the rest re-triangulate the skeleton. Remembered people
-   that fewer than two cameras confirm are let go for this frame. Where no one else overlaps
-   the person in a camera and their detection there fits the skeleton, that detection is
-   their answer (`reuse_fit`): looking again would show the model the same pixels (on the lab
-   capture 373 of 796 views, on the crowd scenes fewer).
+   that fewer than two cameras confirm are let go for this frame. With `reuse_detections`,
+   where no one else overlaps the person in a camera and their detection there fits the
+   skeleton, that detection is their answer (on the lab capture 373 of 796 views).
 4. Ids (`PersonIdTracker`), then per camera each person's mask: their region's segmentation
    within the foreground, pixels claimed by several people going to the one in front
    (capsule ownership). A trusted person (seen by `trusted_views` cameras, or remembered)
@@ -74,10 +73,12 @@ class CrowdConfig:
     ownership: OwnershipConfig = field(default_factory=OwnershipConfig)
     refine: bool = True  # look again at every person with the others painted out
     refine_fit: float = 0.15  # landmark error (share of size) for a refined view to count
-    # A view in which no one else overlaps the person (their capsules, `Ownership.alone`) and
-    # whose detection fits the skeleton within reuse_fit (share of size) keeps its detection as
-    # its refined view: the model is not run again there (docs/extract.md, "Speed").
-    # reuse_fit 0: look again at every view.
+    # With reuse_detections, a view in which no one else overlaps the person (their capsules,
+    # `Ownership.alone`) and whose detection fits the skeleton within reuse_fit (share of size)
+    # keeps its detection as its refined view: the model is not run again there. Faster (lab
+    # extraction 9 % less time), but in crowds it moves results both ways (docs/extract.md,
+    # "Speed"), so it is off by default.
+    reuse_detections: bool = False
     reuse_fit: float = 0.05
     min_presence: float = 0.5  # landmark model's presence score for a refined view
     occluder_margin: int = 2  # pixels the painted-out people are grown by
@@ -335,7 +336,7 @@ class CrowdTracker:
         names = [n for n in self.cams if n in images and n in foreground]
 
         def one_camera(n: str) -> tuple[dict[int, tuple], int]:
-            detected = _detections(cands, n, instances, masks)
+            detected = _detections(cands, n, instances, masks) if cfg.reuse_detections else {}
             return self._refine_camera(
                 n, cands, skels, foreground[n], images[n], backgrounds, detected
             )
