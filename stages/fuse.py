@@ -18,7 +18,7 @@ from pipeline.stage import Stage, StageContext, StageParams
 class Params(StageParams):
     body_model: str = "anny"  # or "smpl", or a path to your SMPL file (docs/body_model.md)
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
-    iterations: int = 8  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
+    iterations: int = 12  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
     smoothness: float = 1.0  # weight of the temporal smoothness term
     fill_gaps_s: float = Field(0.1, ge=0)  # unseen frames filled in gaps up to this long
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)

@@ -64,7 +64,7 @@ euler_xyz_from_matrix = euler_xyz  # the joint-limit angles (kept under its old 
 @dataclass(frozen=True)
 class FitOptions:
     num_betas: int = 10
-    iterations: int = 8  # LM iterations against the 2D landmarks, per view-weighting round
+    iterations: int = 12  # LM iterations against the 2D landmarks, per view-weighting round
     init_iterations: int = 6  # LM iterations against the triangulated landmarks (the start)
     sigma_px: float | None = None  # Cauchy scale; None: sigma_factor x median triangulation error
     sigma_factor: float = 1.0
