@@ -4,10 +4,12 @@ sees keeps a single-view crop, and frames or cameras with nobody are fine."""
 
 import cv2
 import numpy as np
+import pytest
 from crowd_people import instances, person, rig
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from gst.data.extract.options import ExtractOptions
 from gst.data.keypoints.instances import PersonInstance
 from gst.data.keypoints.ownership import own_pixels
 from gst.data.keypoints.people import CrowdConfig, CrowdTracker, _window
@@ -204,6 +206,13 @@ def test_views_of_people_standing_alone_keep_their_detection():
             who = _who(view, RIG[key[1]], people)
             assert who == _who(a[key], RIG[key[1]], people)
         assert any(cam == hidden and v.source == "refined" for (_, cam), v in b.items())
+
+
+def test_reuse_is_a_stage_setting_and_checked():
+    assert not ExtractOptions.from_settings().crowd.reuse_detections
+    assert ExtractOptions.from_settings(reuse_detections=True).crowd.reuse_detections
+    with pytest.raises(ValueError, match="reuse_fit"):
+        CrowdConfig(reuse_fit=0.2)
 
 
 def test_a_stray_detection_beside_a_person_makes_the_model_look_again():

@@ -130,10 +130,10 @@ def associate_scene_keypoints(
             results = _run(tracker, inputs, streams, backgrounds, frames, sxy, progress)
         finally:
             tracker.close()
-        if config.refine:
+        if config.refine and config.reuse_detections:
             log.info(
-                "keypoint association: %d views looked at again by the landmark model; %d views "
-                "of people no one overlaps kept their detection",
+                "keypoint association: %d views from the landmark model's second look; %d views "
+                "of people no one overlaps kept their detection (reuse_detections)",
                 tracker.views_refined, tracker.views_reused,
             )  # fmt: skip
     finally:

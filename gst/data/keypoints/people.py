@@ -89,6 +89,11 @@ class CrowdConfig:
     min_mask_pixels: int = 20  # smaller masks are no view
 
     def __post_init__(self):
+        if not 0 <= self.reuse_fit < self.refine_fit:
+            raise ValueError(
+                f"CrowdConfig needs 0 <= reuse_fit < refine_fit, got {self.reuse_fit}, "
+                f"{self.refine_fit}"
+            )
         if not 0 < self.project_visibility <= 1 or self.trusted_views < 2:
             raise ValueError(
                 "CrowdConfig needs 0 < project_visibility <= 1 and trusted_views >= 2, got "
