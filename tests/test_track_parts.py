@@ -6,9 +6,10 @@ Hand-built detections with skeletons on a real video file, through the whole loo
 import numpy as np
 import pytest
 
+from gst.detect.boxes import containment
 from gst.detect.persons import LIMB_JOINTS
 from gst.track import BoxDepthPredictor, Detection, TrackOptions, column_array, track_video
-from gst.track.parts import PartConfig, containment, is_part, skeleton_share
+from gst.track.parts import PartConfig, is_part, skeleton_share
 from gst.track.read import read_tracks
 from gst.track.tracker import TrackerConfig
 from tests.track_synthetic import (

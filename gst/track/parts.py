@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gst.detect.boxes import containment
 from gst.detect.persons import BONES, LIMB_JOINTS, TORSO, body_size
 
 # Segments a point is compared with: the limb bones and the torso outline.
@@ -48,14 +49,6 @@ class PartConfig:
                 f"parts: width > 0 and appearance in (0, 1] expected, got {self.width}, "
                 f"{self.appearance}"
             )
-
-
-def containment(inner: np.ndarray, outer: np.ndarray) -> float:
-    """Share of the `inner` box's area inside the `outer` box (corner-convention boxes)."""
-    iw = min(inner[2], outer[2]) - max(inner[0], outer[0])
-    ih = min(inner[3], outer[3]) - max(inner[1], outer[1])
-    area = (inner[2] - inner[0]) * (inner[3] - inner[1])
-    return float(max(iw, 0) * max(ih, 0) / area) if area > 0 else 0.0
 
 
 def distance_to_skeleton(points: np.ndarray, landmarks: np.ndarray) -> np.ndarray:

@@ -51,6 +51,7 @@ from gst.data.keypoints.ownership import OwnershipConfig, own_pixels
 from gst.data.keypoints.regions import roi_from_skeleton, skeleton_fit
 from gst.data.keypoints.tracking import PersonIdTracker, TrackerConfig, skeleton_distance
 from gst.detect.blazepose import BodyRoi
+from gst.detect.boxes import containment
 from gst.detect.persons import same_person
 
 _BODY = np.asarray(BODY_LANDMARKS)
@@ -157,17 +158,9 @@ def _detections(cands, n: str, instances, masks) -> dict[int, tuple[PersonInstan
         if i is None or i >= len(ms) or ms[i] is None:
             continue
         box = instances[n][i].box
-        if not any(_overlap(b, box) > STRAY_OVERLAP for b in stray):
+        if not any(containment(b, box) > STRAY_OVERLAP for b in stray):
             out[k] = (instances[n][i], ms[i])
     return out
-
-
-def _overlap(a: np.ndarray, b: np.ndarray) -> float:
-    """Share of box `a` (x0, y0, x1, y1) inside box `b`."""
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    area = (a[2] - a[0]) * (a[3] - a[1])
-    return float(max(w, 0) * max(h, 0) / area) if area > 0 else 0.0
 
 
 def _strict_views(group: PersonGroup | None) -> int:
