@@ -4,8 +4,10 @@
 Each variant trains a fresh tiny network's landmark path (33 landmarks, lift tokens only) from
 the same seed on simulated detections, then scores it on rendered worlds with BlazePose's real
 detections (`gst.lift.dataset` worlds, `NAME=world.npz`), printing wall time and samples per
-second beside MPJPE / PA-MPJPE. Variants are named `key=value,...` over the sampler's
-`random_share`, `uniform_p`, `whole_body_flips` and the run's `steps`, `lr`:
+second beside MPJPE / PA-MPJPE and the 2D agreement of the projected limb joints with the
+detected limb landmarks (% of the crop, `gst.lift.pretrain.limb_agreement`). Variants are named
+`key=value,...` over the sampler's `random_share`, `uniform_p`, `whole_body_flips` and the run's
+`steps`, `lr`, `refine` (rounds of reprojection feedback, gst.model.refine):
 
     python benchmarks/lift_variants.py --steps 1500 \\
         --val demo=/work/data/lift/demo_crops.npz \\
@@ -29,10 +31,11 @@ from gst.lift.dataset import named_worlds
 from gst.lift.pretrain import LiftPretrainConfig, evaluate_world, pretrain_landmark_path
 from gst.lift.sampler import LiftSampler
 from gst.model.presets import get_preset
+from gst.model.refine import DEFAULT_ROUNDS
 from gst.train.recipe import build_network
 
 SAMPLER_KEYS = {"random_share": float, "uniform_p": float, "whole_body_flips": lambda v: v != "0"}
-RUN_KEYS = {"steps": int, "lr": float}
+RUN_KEYS = {"steps": int, "lr": float, "refine": int}
 
 
 def parse_variant(text: str) -> tuple[dict, dict]:
@@ -66,7 +69,11 @@ def main(argv: list[str] | None = None) -> None:
         sampler_args, run_args = parse_variant(text)
         torch.manual_seed(args.seed)
         cfg_net = get_preset(
-            "tiny", landmark_tokens=True, num_landmarks=33, landmark_point_tokens=False
+            "tiny",
+            landmark_tokens=True,
+            num_landmarks=33,
+            landmark_point_tokens=False,
+            landmark_refine=run_args.get("refine", DEFAULT_ROUNDS),
         )
         net, _, _ = build_network(cfg_net, body, args.seed)
         sampler = LiftSampler(body, landmark_set="all", seed=args.seed, **sampler_args)
@@ -80,7 +87,7 @@ def main(argv: list[str] | None = None) -> None:
         res = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
         wall = time.perf_counter() - t0
         scores = [
-            f"{name} {s.mpjpe_mm:.1f} / {s.pa_mpjpe_mm:.1f}"
+            f"{name} {s.mpjpe_mm:.1f} / {s.pa_mpjpe_mm:.1f} (2D {s.limb_landmarks_pct:.2f} %)"
             for name, s in ((n, evaluate_world(net, body, w)) for n, w in worlds.items())
         ]
         print(

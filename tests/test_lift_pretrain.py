@@ -3,13 +3,16 @@ the scoring of single-image predictions."""
 
 import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
 from gst.body import load_body_model
+from gst.lift.errors import LIMBS
 from gst.lift.pretrain import (
     LiftPretrainConfig,
     body_joints,
+    limb_agreement,
     pretrain_landmark_path,
     score,
     trainable_parameters,
@@ -101,3 +104,35 @@ def test_the_loop_runs_on_its_own_threads_and_puts_the_callers_back(body, monkey
         assert seen == [1, 3] and torch.get_num_threads() == 3
     finally:
         torch.set_num_threads(before)
+
+
+def test_pretraining_trains_the_reprojection_refiner_too(body):
+    torch.manual_seed(0)
+    cfg = get_preset("tiny", landmark_tokens=True, num_landmarks=33, landmark_refine=2)
+    net, _, _ = build_network(cfg, body)
+    ids = {id(p) for p in trainable_parameters(net)}
+    assert all(id(p) in ids for p in net.refiner.parameters())
+    before = net.refiner.out.weight.clone()
+    sampler = LiftSampler(body, seed=2, landmark_set="all")
+    run = LiftPretrainConfig(steps=5, batch_size=8, warmup_steps=1, lr=2e-3)
+    pretrain_landmark_path(net, body, run, sampler=sampler, log=lambda *_: None)
+    assert not torch.equal(net.refiner.out.weight, before)
+
+
+def test_limb_agreement_ignores_a_shift_and_unsure_landmarks():
+    rng = np.random.default_rng(0)
+    joints2d = rng.uniform(0, 256, (4, 24, 2))
+    lm = np.full((4, 33, 3), np.nan)
+    lm[:, list(LIMBS.ids), :2] = joints2d[:, list(LIMBS.joints)] + [7.0, -3.0]  # a shift only
+    lm[:, list(LIMBS.ids), 2] = 0.9
+    assert limb_agreement(joints2d, lm, 256) == pytest.approx(0.0, abs=1e-9)
+    # every right-side limb landmark 2.56 px (1 % of the crop) off: half of the 12 -> median
+    # between 0 and about 1 %; with those unsure, 0 again
+    off = lm.copy()
+    right = [i for i in LIMBS.ids if i % 2 == 0]
+    off[:, right, 0] += 2.56
+    assert 0.0 < limb_agreement(joints2d, off, 256) < 1.0
+    off[:, right, 2] = 0.2
+    assert limb_agreement(joints2d, off, 256) == pytest.approx(0.0, abs=1e-9)
+    lm[..., 2] = 0.1
+    assert limb_agreement(joints2d, lm, 256) is None

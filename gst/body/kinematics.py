@@ -28,7 +28,15 @@ from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
 from gst.body.skeleton import kinematic_levels
 
-__all__ = ["MarkerSkeleton", "rodrigues", "skew", "left_jacobian", "N_POSE_PARAMS"]
+__all__ = [
+    "MarkerSkeleton",
+    "pose_markers",
+    "tree_levels",
+    "rodrigues",
+    "skew",
+    "left_jacobian",
+    "N_POSE_PARAMS",
+]
 
 N_POSE_PARAMS = 75  # root increment 3 + translation 3 + 23 x 3 local rotations
 
@@ -63,6 +71,43 @@ def left_jacobian(v: torch.Tensor) -> torch.Tensor:
     b = torch.where(small, 1.0 / 6 - t2 / 120, (t - torch.sin(t)) / (t2 * t + 1e-30))
     K = skew(v)
     return torch.eye(3, dtype=v.dtype, device=v.device) + a * K + b * (K @ K)
+
+
+def tree_levels(parents: list[int] | np.ndarray) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(joints, their parents) per depth of a kinematic tree below the root, for `pose_markers`."""
+    parents = [int(p) for p in parents]
+    return [
+        (torch.as_tensor(level), torch.as_tensor([parents[j] for j in level]))
+        for level in kinematic_levels(parents)[1:]
+    ]
+
+
+def pose_markers(
+    rest: torch.Tensor,
+    root: torch.Tensor,
+    local: torch.Tensor,
+    transl: torch.Tensor,
+    levels: list[tuple[torch.Tensor, torch.Tensor]],
+    parent_index: torch.Tensor,
+    anchor: torch.Tensor,
+    frame: torch.Tensor,
+    offsets: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Joints-only forward kinematics and the markers on them: rest joints (B, J, 3), root
+    rotation (B, 3, 3), local rotations of joints 1.. (B, J-1, 3, 3), translation (B, 3) ->
+    markers (B, M, 3) = J[anchor] + G[frame] @ offset, joints (B, J, 3) and world rotations
+    (B, J, 3, 3); one batched product per depth of the tree (`tree_levels`)."""
+    B, n = local.shape[0], rest.shape[1]
+    bone = rest - rest[:, parent_index]  # (B, J, 3), root row unused
+    G = root[:, None].expand(B, n, 3, 3)
+    J = rest[:, :1].expand(B, n, 3)
+    for level, par in levels:
+        Rp = G[:, par]  # (B, k, 3, 3)
+        G = G.index_copy(1, level, Rp @ local[:, level - 1])
+        J = J.index_copy(1, level, J[:, par] + (Rp @ bone[:, level, :, None])[..., 0])
+    J = J + transl[:, None]
+    X = J[:, anchor] + (G[:, frame] @ offsets[..., None])[..., 0]
+    return X, J, G
 
 
 class MarkerSkeleton:
@@ -100,10 +145,7 @@ class MarkerSkeleton:
         self._pairs = np.argwhere(moves_anchor[:, 1:] | turns_offset[:, 1:])
         self._pa = torch.as_tensor(moves_anchor[:, 1:][tuple(self._pairs.T)], dtype=dtype)
         self._parent_index = torch.as_tensor([max(p, 0) for p in self.parents])
-        self._levels = [
-            (torch.as_tensor(level), torch.as_tensor([self.parents[j] for j in level]))
-            for level in kinematic_levels(self.parents)[1:]
-        ]
+        self._levels = tree_levels(self.parents)
         self._dbone = self.S - self.S[self._parent_index]  # (24, 3, nb) rest bone per beta
         self._po = torch.as_tensor(turns_offset[:, 1:][tuple(self._pairs.T)], dtype=dtype)
 
@@ -129,24 +171,18 @@ class MarkerSkeleton:
         replaces the table's offsets (a person's own markers); d markers / d offsets is
         G[:, frame] (the marker's frame rotation), left to the caller."""
         B = theta.shape[0]
-        rest = self.rest_joints(betas)
         local = rodrigues(theta)
-        bone = rest - rest[:, self._parent_index]  # (B, 24, 3), root row unused
-        G = root[:, None].expand(B, 24, 3, 3)
-        J = rest[:, :1].expand(B, 24, 3)
-        dshape = self.S[0].expand(B, 24, 3, self.nb) if jacobian else None
-        for level, par in self._levels:  # one batched product per depth of the tree
-            Rp = G[:, par]  # (B, n, 3, 3)
-            G = G.index_copy(1, level, Rp @ local[:, level - 1])
-            J = J.index_copy(1, level, J[:, par] + (Rp @ bone[:, level, :, None])[..., 0])
-            if jacobian:
-                dshape = dshape.index_copy(1, level, dshape[:, par] + Rp @ self._dbone[level])
-        J = J + transl[:, None]
         off = self.offsets if offsets is None else offsets
-        turned = (G[:, self.frame] @ off[..., None])[..., 0]  # (B, M, 3)
-        X = J[:, self.anchor] + turned
+        X, J, G = pose_markers(
+            self.rest_joints(betas), root, local, transl, self._levels, self._parent_index,
+            self.anchor, self.frame, off,
+        )  # fmt: skip
         if not jacobian:
             return X, J, G, local
+        turned = X - J[:, self.anchor]
+        dshape = self.S[0].expand(B, 24, 3, self.nb)
+        for level, par in self._levels:  # the rest bones' shape derivatives, down the tree
+            dshape = dshape.index_copy(1, level, dshape[:, par] + G[:, par] @ self._dbone[level])
         M = X.shape[1]
         dX = X.new_zeros(B, M, 3, self.num_params)
         dX[..., 0:3] = -skew(X - J[:, :1])

@@ -54,6 +54,8 @@ class Variant:
     # the number of BlazePose landmarks taken (33 or the 12 limb ones); per-landmark tokens
     landmarks: int = 0
     landmark_point_tokens: bool = False
+    # rounds of reprojection feedback after the SMPL head (gst.model.refine), with landmarks
+    landmark_refine: int = 0
 
     def config(self):
         cfg = get_preset(self.preset)
@@ -67,6 +69,7 @@ class Variant:
                 landmark_tokens=True,
                 num_landmarks=self.landmarks,
                 landmark_point_tokens=self.landmark_point_tokens,
+                landmark_refine=self.landmark_refine,
             )
         return cfg
 

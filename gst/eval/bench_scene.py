@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, NonNegativeInt
 
 from gst.body import load_body_model
 from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
@@ -38,12 +38,15 @@ class VariantParams(BaseModel):
     # landmark tokens: 0 = the paper's image-only network, 33 or 12 BlazePose landmarks
     landmarks: Literal[0, 12, 33] = 0
     landmark_point_tokens: bool = False  # a token per landmark besides the lift tokens
+    # rounds of reprojection feedback after the SMPL head (gst.model.refine; needs landmarks)
+    landmark_refine: NonNegativeInt = 0
 
 
 _DEFAULT_VARIANTS = [
     VariantParams(name="tiny-128x96-1723"),
     VariantParams(name="tiny-128x96-1723-lm33", landmarks=33),
     VariantParams(name="tiny-128x96-1723-lm33-points", landmarks=33, landmark_point_tokens=True),
+    VariantParams(name="tiny-128x96-1723-lm33-refine2", landmarks=33, landmark_refine=2),
     VariantParams(name="tiny-128x96-1723-lm12", landmarks=12),
     VariantParams(name="tiny-256x192-1723", image_size=(256, 192)),
     VariantParams(name="tiny-128x96-6890", vertex_preset="6890"),
@@ -121,6 +124,7 @@ def bench_scene(
         Variant(
             v.name, v.preset, v.image_size, v.vertex_preset,
             landmarks=v.landmarks, landmark_point_tokens=v.landmark_point_tokens,
+            landmark_refine=v.landmark_refine,
         )
         for v in p.variants
     ]  # fmt: skip

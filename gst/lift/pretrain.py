@@ -30,13 +30,14 @@ import torch
 from gst.body import BodyModel
 from gst.cores import available_cores, torch_threads
 from gst.lift.dataset import LandmarkWorld, named_worlds
-from gst.lift.errors import LANDMARK_SETS
+from gst.lift.errors import LANDMARK_SETS, LIMBS
 from gst.lift.noise import set_landmarks
 from gst.lift.sampler import LiftBatch, LiftSampler
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.model.assemble import camera_translation, to_world
 from gst.model.landmarks import LandmarkInput, camera_up, hide_up
 from gst.model.network import GSTNetwork
+from gst.model.refine import DEFAULT_ROUNDS
 from gst.prefetch import background
 from gst.train.losses import LossWeights, combine, supervised_terms
 from gst.train.steps import project
@@ -81,6 +82,8 @@ class PoseScore:
     mpjpe_mm: float
     pa_mpjpe_mm: float
     crops: int
+    # the predicted limb joints, projected, against the detected limb landmarks (`limb_agreement`)
+    limb_landmarks_pct: float | None = None
 
 
 @dataclass
@@ -127,8 +130,8 @@ def lift_terms(net, body: BodyModel, b: LiftBatch, weights: LossWeights):
 
 
 def trainable_parameters(net: GSTNetwork) -> list[torch.nn.Parameter]:
-    """The landmark path: the landmark encoder and the SMPL head, without its image
-    cross-attention (never used in the landmark-only mode)."""
+    """The landmark path: the landmark encoder, the SMPL head without its image
+    cross-attention (never used in the landmark-only mode), and the reprojection refiner."""
     skip = {
         id(p)
         for layer in net.smpl_head.transformer.transformer.layers
@@ -137,6 +140,8 @@ def trainable_parameters(net: GSTNetwork) -> list[torch.nn.Parameter]:
     params = list(net.landmark_encoder.parameters()) + [
         p for p in net.smpl_head.parameters() if id(p) not in skip
     ]
+    if net.refiner is not None:
+        params += list(net.refiner.parameters())
     return [p for p in params if p.requires_grad]
 
 
@@ -271,6 +276,25 @@ def score(pred_world: torch.Tensor, gt_world: torch.Tensor) -> PoseScore:
     )
 
 
+def limb_agreement(
+    joints2d: np.ndarray, landmarks: np.ndarray, crop_size: int, min_confidence: float = 0.5
+) -> float | None:
+    """Median distance, in % of the crop, from the body's limb joints projected into the crop
+    (N, 24, 2) to BlazePose's limb landmarks (N, 33, 3: u, v, confidence) at least
+    `min_confidence` sure, after shifting each crop's joints by their mean offset (as `track`
+    moves a body onto its landmarks, gst.track.align): the 2D agreement that track's summary
+    reports on video (gst.track.agreement), on crops. None when no landmark is sure enough."""
+    lm = np.asarray(landmarks, np.float64)[:, list(LIMBS.ids)]
+    pred = np.asarray(joints2d, np.float64)[:, list(LIMBS.joints)]
+    ok = np.isfinite(lm).all(-1) & (lm[..., 2] >= min_confidence)
+    if not ok.any():
+        return None
+    diff = np.where(ok[..., None], lm[..., :2] - pred, 0.0)
+    shift = diff.sum(1) / np.maximum(ok.sum(1), 1)[:, None]
+    dist = np.linalg.norm(diff - shift[:, None], axis=-1)[ok]
+    return float(100 * np.median(dist) / crop_size)
+
+
 def landmark_set_of(net: GSTNetwork):
     """The landmark set a network takes (by its number of landmarks)."""
     for lset in LANDMARK_SETS.values():
@@ -280,20 +304,18 @@ def landmark_set_of(net: GSTNetwork):
 
 
 def evaluate_world(net: GSTNetwork, body: BodyModel, world: LandmarkWorld) -> PoseScore:
-    """Single-image pose from the world's real BlazePose detections, landmark path only."""
+    """Single-image pose from the world's real BlazePose detections, landmark path only: 3D
+    against the truth, and 2D against the detections (`limb_agreement`)."""
     f32 = torch.float32
     lset = landmark_set_of(net)
     lm = torch.as_tensor(set_landmarks(world.landmarks, world.presence, lset), dtype=f32)
-    pred = predict_world_joints(
-        net,
-        body,
-        lm,
-        torch.as_tensor(world.K_crop, dtype=f32),
-        torch.as_tensor(world.R, dtype=f32),
-        torch.as_tensor(world.t, dtype=f32),
-        world.crop_size,
-    )
-    return score(pred.double(), torch.as_tensor(world.joints_world, dtype=torch.float64))
+    K = torch.as_tensor(world.K_crop, dtype=f32)
+    R, t = torch.as_tensor(world.R, dtype=f32), torch.as_tensor(world.t, dtype=f32)
+    pred = predict_world_joints(net, body, lm, K, R, t, world.crop_size)
+    result = score(pred.double(), torch.as_tensor(world.joints_world, dtype=torch.float64))
+    joints2d = project(pred @ R.transpose(1, 2) + t[:, None], K).numpy()
+    result.limb_landmarks_pct = limb_agreement(joints2d, world.landmarks, world.crop_size)
+    return result
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -320,6 +342,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: cores - 1)")
     ap.add_argument("--landmarks", default="limbs", choices=sorted(LANDMARK_SETS))
     ap.add_argument("--no-point-tokens", action="store_true", help="lift tokens only")
+    ap.add_argument(
+        "--refine",
+        type=int,
+        default=DEFAULT_ROUNDS,
+        help=f"rounds of reprojection feedback (gst.model.refine; {DEFAULT_ROUNDS}; 0: none)",
+    )
     args = ap.parse_args(argv)
     val = named_worlds(args.val)
     body = load_body_model("anny")
@@ -330,6 +358,7 @@ def main(argv: list[str] | None = None) -> None:
         num_landmarks=n,
         landmark_point_tokens=not args.no_point_tokens,
         landmark_gravity=True,
+        landmark_refine=args.refine,
     )
     net, ids, groups = build_network(cfg_net, body, args.seed)
     cfg = LiftPretrainConfig(

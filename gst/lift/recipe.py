@@ -36,6 +36,7 @@ from gst.lift.pretrain import LiftPretrainConfig, LiftPretrainResult, pretrain_l
 from gst.metrics.lpips import load_lpips
 from gst.model.network import GSTNetwork
 from gst.model.presets import get_preset
+from gst.model.refine import DEFAULT_ROUNDS
 from gst.records import Record
 from gst.train.pretrain import (
     CorpusSummary,
@@ -69,16 +70,23 @@ __all__ = [
 
 
 def lift_network(
-    preset: str, body: BodyModel, landmarks: str = "all", point_tokens: bool = False, seed: int = 0
+    preset: str,
+    body: BodyModel,
+    landmarks: str = "all",
+    point_tokens: bool = False,
+    seed: int = 0,
+    refine: int = DEFAULT_ROUNDS,
 ) -> tuple[GSTNetwork, object, object]:
     """A fresh network of `preset` with landmark tokens for the landmark set `landmarks`, which
-    reads the camera's up direction where the camera is calibrated."""
+    reads the camera's up direction where the camera is calibrated, with `refine` rounds of
+    reprojection feedback (gst.model.refine; 0: none)."""
     cfg = get_preset(
         preset,
         landmark_tokens=True,
         num_landmarks=len(LANDMARK_SETS[landmarks]),
         landmark_point_tokens=point_tokens,
         landmark_gravity=True,
+        landmark_refine=refine,
     )
     return build_network(cfg, body, seed)
 
@@ -248,7 +256,9 @@ def _pretrain_lift(
     t0 = time.perf_counter()
     specs = world_specs(p)
     body = load_body_model(p.body_model)
-    net, ids, groups = lift_network(p.preset, body, p.landmarks, p.landmark_point_tokens)
+    net, ids, groups = lift_network(
+        p.preset, body, p.landmarks, p.landmark_point_tokens, refine=p.landmark_refine
+    )
     with ThreadPoolExecutor(1, thread_name_prefix="pretrain-render") as pool:
         rendering = pool.submit(render_corpus, p, work, map_fn, None)
         lift = lift_phase(net, body, p.lift_steps, p.lift_batch_size, p.lift_lr)

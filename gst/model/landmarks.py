@@ -153,22 +153,29 @@ def camera_up(R: torch.Tensor, world_up=(0.0, 0.0, 1.0)) -> torch.Tensor:
     return R @ (w / w.norm())
 
 
-def select_landmarks(landmarks: torch.Tensor, num_landmarks: int) -> torch.Tensor:
-    """(B, 33, C) BlazePose landmarks -> the (B, num_landmarks, C) a network takes: all 33, or
+def landmark_ids(num_landmarks: int) -> tuple[int, ...]:
+    """The BlazePose landmarks (MediaPipe ids) a network of `num_landmarks` takes: all 33, or
     the 12 limb landmarks (`LIMB_LANDMARK_IDS`)."""
+    if num_landmarks == N_BLAZEPOSE:
+        return tuple(range(N_BLAZEPOSE))
+    if num_landmarks == len(LIMB_LANDMARK_IDS):
+        return LIMB_LANDMARK_IDS
+    raise ValueError(
+        f"no landmark set of {num_landmarks} landmarks (networks take {N_BLAZEPOSE} or "
+        f"{len(LIMB_LANDMARK_IDS)})"
+    )
+
+
+def select_landmarks(landmarks: torch.Tensor, num_landmarks: int) -> torch.Tensor:
+    """(B, 33, C) BlazePose landmarks -> the (B, num_landmarks, C) a network takes
+    (`landmark_ids`)."""
     if landmarks.ndim != 3 or landmarks.shape[1] != N_BLAZEPOSE:
         raise ValueError(
             f"landmarks must be (B, {N_BLAZEPOSE}, C) BlazePose landmarks, "
             f"got {tuple(landmarks.shape)}"
         )
-    if num_landmarks == N_BLAZEPOSE:
-        return landmarks
-    if num_landmarks == len(LIMB_LANDMARK_IDS):
-        return landmarks[:, list(LIMB_LANDMARK_IDS)]
-    raise ValueError(
-        f"no landmark set of {num_landmarks} landmarks (networks take {N_BLAZEPOSE} or "
-        f"{len(LIMB_LANDMARK_IDS)})"
-    )
+    ids = landmark_ids(num_landmarks)
+    return landmarks if num_landmarks == N_BLAZEPOSE else landmarks[:, list(ids)]
 
 
 def landmark_input(

@@ -18,6 +18,7 @@ from gst.body.rotations import rot6d_to_matrix
 from gst.model.decoder import LandmarkContext, TokenDecoder
 from gst.model.landmarks import LandmarkEncoder, LandmarkInput
 from gst.model.presets import GSTConfig
+from gst.model.refine import ReprojectionRefiner
 from gst.model.vit import ViT
 
 GAUSSIAN_ATTRIBUTES = ("color", "rotation", "opacity", "scale", "offset")
@@ -161,7 +162,8 @@ class GSTNetwork(nn.Module):
     With `cfg.landmark_tokens` the decoder also attends to landmark tokens
     (`gst.model.landmarks`); `images=None` is the landmark-only mode (no image tokens, for the
     render-free pretraining), and landmarks that are None or masked give exactly the
-    image-only output."""
+    image-only output. With `cfg.landmark_refine` the head's answer goes through that many
+    rounds of reprojection feedback (`gst.model.refine`) for samples that have landmarks."""
 
     def __init__(self, cfg: GSTConfig, group_index: np.ndarray):
         super().__init__()
@@ -179,6 +181,11 @@ class GSTNetwork(nn.Module):
                 gravity=cfg.landmark_gravity,
             )
             if cfg.landmark_tokens
+            else None
+        )
+        self.refiner = (
+            ReprojectionRefiner(cfg.num_landmarks, cfg.num_betas, cfg.landmark_refine)
+            if cfg.landmark_tokens and cfg.landmark_refine > 0
             else None
         )
 
@@ -212,6 +219,8 @@ class GSTNetwork(nn.Module):
         if images is None and not bool(lm.active.all()):
             raise ValueError("landmark-only mode: every sample needs at least one landmark")
         pose6d, betas, cam = self.smpl_head(context, lm)
+        if self.refiner is not None and landmarks is not None:
+            pose6d, betas, cam = self._refine(pose6d, betas, cam, landmarks)
         gaussians = (
             self.gaussian_head(self.smpl_head.transformer, context, lm) if with_gaussians else None
         )
@@ -221,6 +230,21 @@ class GSTNetwork(nn.Module):
             betas=betas,
             cam=cam,
             gaussians=gaussians,
+        )
+
+    def _refine(self, pose6d, betas, cam, landmarks: LandmarkInput):
+        """The refiner's answer for the samples with a usable landmark; the others keep the
+        head's output exactly (the image-only path stays bit for bit)."""
+        has = landmarks.has_landmarks
+        if bool(has.all()):
+            return self.refiner(pose6d, betas, cam, landmarks)
+        if not bool(has.any()):
+            return pose6d, betas, cam
+        idx = has.nonzero()[:, 0]
+        refined = self.refiner(pose6d[idx], betas[idx], cam[idx], landmarks.rows(idx))
+        return tuple(
+            full.index_put((idx,), part)
+            for full, part in zip((pose6d, betas, cam), refined, strict=True)
         )
 
     def _pose_from_landmarks_where_possible(

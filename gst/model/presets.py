@@ -36,6 +36,11 @@ class GSTConfig:
     # took a camera's downward pitch only halfway into the body's orientation
     # (docs/landmark_prior.md, "Gravity"). Off in checkpoints written before it existed.
     landmark_gravity: bool = False
+    # Rounds of reprojection feedback after the SMPL head (gst.model.refine, ours): the body's
+    # virtual markers projected into the crop against the input landmarks, read by a residual
+    # MLP that corrects pose, shape and camera (docs/landmark_prior.md, "Reprojection
+    # feedback"). 0: none (the head's answer, as in checkpoints written before it existed).
+    landmark_refine: int = 0
 
     @property
     def image_size(self) -> tuple[int, int]:

@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, NonNegativeInt
 
 from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
@@ -88,6 +88,8 @@ class PretrainConfig(BaseModel):
     # the Gaussian head (`gaussian_lr`), and the share of its samples trained without landmarks
     landmarks: Literal["all", "limbs"] = "all"
     landmark_point_tokens: bool = False
+    # rounds of reprojection feedback after the SMPL head (gst.model.refine; 0: none)
+    landmark_refine: NonNegativeInt = 2
     lift_steps: int = 1000
     lift_batch_size: int = 64
     lift_lr: float = 1e-3

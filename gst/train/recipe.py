@@ -58,7 +58,10 @@ def build_network(
         .numpy()
     )
     groups = partition_vertices(rest, K=cfg.num_groups, seed=seed)
-    return GSTNetwork(cfg, groups), ids, groups
+    net = GSTNetwork(cfg, groups)
+    if net.refiner is not None:
+        net.refiner.set_body(body)
+    return net, ids, groups
 
 
 def gaussian_parameter_groups(model: GSTNetwork, lr: float, body_lr: float) -> list[dict]:
