@@ -36,6 +36,7 @@ from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint
 from gst.model.presets import PRESETS, get_preset
+from gst.model.refine import DEFAULT_ROUNDS
 from gst.records import Record
 from gst.train.augment import CropJitter
 from gst.train.losses import LossWeights
@@ -89,7 +90,7 @@ class PretrainConfig(BaseModel):
     landmarks: Literal["all", "limbs"] = "all"
     landmark_point_tokens: bool = False
     # rounds of reprojection feedback after the SMPL head (gst.model.refine; 0: none)
-    landmark_refine: NonNegativeInt = 2
+    landmark_refine: NonNegativeInt = DEFAULT_ROUNDS
     lift_steps: int = 1000
     lift_batch_size: int = 64
     lift_lr: float = 1e-3
