@@ -178,3 +178,14 @@ def test_training_the_refiner_pulls_the_markers_onto_the_landmarks(body):
     with torch.no_grad():
         after = float(error())
     assert after < 0.7 * before, (before, after)
+
+
+def test_the_tracks_metadata_names_the_rounds(body, tmp_path):
+    from gst.track.scene import model_provenance
+
+    net, ids, groups = _trained_refiner_net(body)
+    save_checkpoint(tmp_path / "n.pt", net, "anny", ids, groups)
+    assert model_provenance(tmp_path / "n.pt", "gst-tiny", "demo").reprojection_feedback == 2
+    plain, ids, groups = build_network(get_preset("tiny"), body)
+    save_checkpoint(tmp_path / "p.pt", plain, "anny", ids, groups)
+    assert model_provenance(tmp_path / "p.pt", "gst-tiny", "demo").reprojection_feedback == 0

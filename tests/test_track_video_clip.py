@@ -86,6 +86,7 @@ def test_learned_person_model_by_default_and_said_so(tracked):
     assert meta["gst.model"]["trained_on"]["scene"] == "lab"
     # an image-only network (no landmark tokens) takes its pose from the image, and says so
     assert meta["gst.model"]["pose_input"] == "image"
+    assert meta["gst.model"]["reprojection_feedback"] == 0
     assert any("pose from image" in m for m in log)
     assert meta["gst.calibration"]["calibrated"] is False
     assert meta["gst.axes"]["joints3d"] == "camera" and meta["gst.axes"]["world"] is None

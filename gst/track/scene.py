@@ -216,6 +216,8 @@ class ModelProvenance:
     # where the pose comes from: "landmarks" (crops with landmarks skip the image path, whose
     # share the network's image gate shows negligible; others use it) or "image and landmarks"
     pose_input: str = "image and landmarks"
+    # rounds of reprojection feedback after the network's SMPL head (gst.model.refine; 0: none)
+    reprojection_feedback: int = 0
 
     def to_dict(self) -> dict:
         """The metadata's layout (the fields in order)."""
@@ -240,6 +242,9 @@ def model_provenance(
         training_mode=extra.get("mode"),
         trained_on=trained_on,
         pose_input=pose_input,
+        reprojection_feedback=int(
+            ckpt.config.get("landmark_refine", 0) if ckpt.config.get("landmark_tokens") else 0
+        ),
     )
 
 
@@ -286,11 +291,14 @@ def track_scene(
     detector_info = _detector_info(kind, why, s)
     model_info = model_provenance(request.checkpoint, name, request.scene, pose_input)
     log.info(
-        "model: %s, trained on %s; pose from %s (track.image_path: %s)",
+        "model: %s, trained on %s; pose from %s (track.image_path: %s)%s",
         name,
         _describe_training(model_info.trained_on),
         pose_input,
         s.image_path,
+        f", {model_info.reprojection_feedback} rounds of reprojection feedback"
+        if model_info.reprojection_feedback
+        else "",
     )
     options = TrackOptions(
         stride=s.stride,
