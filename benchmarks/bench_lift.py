@@ -102,7 +102,8 @@ def main() -> None:
     body = load_body_model("anny")
     print("| set | sampler B=64 (samples/s) | sampler B=256 | training B=64 | training B=256 |")
     print("|---|---|---|---|---|")
-    for name, points in (("limbs", True), ("all", True), ("all", False)):
+    variants = (("limbs", True, 0), ("all", True, 0), ("all", False, 0), ("all", False, 2))
+    for name, points, refine in variants:
         lset = LANDMARK_SETS[name]
         sampler = LiftSampler(body, landmark_set=name, seed=1)
         s64 = _median_rate(lambda s=sampler: s.sample(64), 64, args.repeats)
@@ -113,6 +114,7 @@ def main() -> None:
                 landmark_tokens=True,
                 num_landmarks=len(lset),
                 landmark_point_tokens=points,
+                landmark_refine=refine,
             ),
             body,
         )
@@ -128,7 +130,8 @@ def main() -> None:
             ]
             train.append(statistics.median(rates))
         print(
-            f"| {name} ({len(lset)}){'' if points else ', lift tokens only'} | {s64:.0f} "
+            f"| {name} ({len(lset)}){'' if points else ', lift tokens only'}"
+            f"{f', {refine} rounds of reprojection feedback' if refine else ''} | {s64:.0f} "
             f"| {s256:.0f} | {train[0]:.0f} | {train[1]:.0f} |"
         )
 
