@@ -189,3 +189,19 @@ def test_the_tracks_metadata_names_the_rounds(body, tmp_path):
     plain, ids, groups = build_network(get_preset("tiny"), body)
     save_checkpoint(tmp_path / "p.pt", plain, "anny", ids, groups)
     assert model_provenance(tmp_path / "p.pt", "gst-tiny", "demo").reprojection_feedback == 0
+
+
+@pytest.mark.parametrize("gravity", [False, True])
+def test_the_up_direction_is_read_only_by_a_gravity_aware_refiner(body, gravity):
+    torch.manual_seed(0)
+    refiner = ReprojectionRefiner(33, 10, 1, gravity=gravity)
+    refiner.set_body(body)
+    with torch.no_grad():
+        refiner.out.weight.normal_(0, 0.01)
+    lm, K = _landmarks(2)
+    up = torch.tensor([[0.0, -1.0, 0.0], [0.0, -0.8, 0.6]])
+    pose = _pose(2)
+    with torch.no_grad():
+        a = refiner(*pose, LandmarkInput.from_pixels(lm, K, CROP, up=up))[0]
+        b = refiner(*pose, LandmarkInput.from_pixels(lm, K, CROP))[0]
+    assert torch.equal(a, b) != gravity

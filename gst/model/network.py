@@ -184,7 +184,12 @@ class GSTNetwork(nn.Module):
             else None
         )
         self.refiner = (
-            ReprojectionRefiner(cfg.num_landmarks, cfg.num_betas, cfg.landmark_refine)
+            ReprojectionRefiner(
+                cfg.num_landmarks,
+                cfg.num_betas,
+                cfg.landmark_refine,
+                gravity=cfg.landmark_gravity,
+            )
             if cfg.landmark_tokens and cfg.landmark_refine > 0
             else None
         )

@@ -44,12 +44,21 @@ class ReprojectionRefiner(nn.Module):
     """`forward(pose6d (B, 24, 6), betas (B, nb), cam (B, 3), landmarks) -> the same, refined`."""
 
     def __init__(
-        self, num_landmarks: int, num_betas: int, iterations: int, width: int = 256, blocks: int = 2
+        self,
+        num_landmarks: int,
+        num_betas: int,
+        iterations: int,
+        width: int = 256,
+        blocks: int = 2,
+        gravity: bool = True,
     ):
         super().__init__()
         if iterations < 1:
             raise ValueError(f"iterations must be >= 1, got {iterations}")
         self.iterations = iterations
+        # read the camera's up direction only where the network does (`landmark_gravity`):
+        # callers pass it only to networks that read it (gst.model.inference.accepts_up)
+        self.gravity = gravity
         self.num_betas = num_betas
         ids = landmark_ids(num_landmarks)
         n = len(ids)
@@ -137,7 +146,8 @@ class ReprojectionRefiner(nn.Module):
         B = pose6d.shape[0]
         target = landmarks.points[..., :2]
         weight = landmarks.points[..., 2] * landmarks.usable.float()
-        up = landmarks.up if landmarks.up is not None else pose6d.new_zeros(B, 3)
+        up = landmarks.up if self.gravity and landmarks.up is not None else None
+        up = up if up is not None else pose6d.new_zeros(B, 3)
         known = (up.norm(dim=-1, keepdim=True) > 0).to(pose6d.dtype)
         fixed = torch.cat(
             [
