@@ -92,11 +92,12 @@ def pose_markers(
     anchor: torch.Tensor,
     frame: torch.Tensor,
     offsets: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Joints-only forward kinematics and the markers on them: rest joints (B, J, 3), root
     rotation (B, 3, 3), local rotations of joints 1.. (B, J-1, 3, 3), translation (B, 3) ->
-    markers (B, M, 3) = J[anchor] + G[frame] @ offset, joints (B, J, 3) and world rotations
-    (B, J, 3, 3); one batched product per depth of the tree (`tree_levels`)."""
+    markers (B, M, 3) = J[anchor] + G[frame] @ offset, joints (B, J, 3), world rotations
+    (B, J, 3, 3) and the turned offsets G[frame] @ offset (B, M, 3); one batched product per
+    depth of the tree (`tree_levels`)."""
     B, n = local.shape[0], rest.shape[1]
     bone = rest - rest[:, parent_index]  # (B, J, 3), root row unused
     G = root[:, None].expand(B, n, 3, 3)
@@ -106,8 +107,8 @@ def pose_markers(
         G = G.index_copy(1, level, Rp @ local[:, level - 1])
         J = J.index_copy(1, level, J[:, par] + (Rp @ bone[:, level, :, None])[..., 0])
     J = J + transl[:, None]
-    X = J[:, anchor] + (G[:, frame] @ offsets[..., None])[..., 0]
-    return X, J, G
+    turned = (G[:, frame] @ offsets[..., None])[..., 0]
+    return J[:, anchor] + turned, J, G, turned
 
 
 class MarkerSkeleton:
@@ -173,13 +174,12 @@ class MarkerSkeleton:
         B = theta.shape[0]
         local = rodrigues(theta)
         off = self.offsets if offsets is None else offsets
-        X, J, G = pose_markers(
+        X, J, G, turned = pose_markers(
             self.rest_joints(betas), root, local, transl, self._levels, self._parent_index,
             self.anchor, self.frame, off,
         )  # fmt: skip
         if not jacobian:
             return X, J, G, local
-        turned = X - J[:, self.anchor]
         dshape = self.S[0].expand(B, 24, 3, self.nb)
         for level, par in self._levels:  # the rest bones' shape derivatives, down the tree
             dshape = dshape.index_copy(1, level, dshape[:, par] + G[:, par] @ self._dbone[level])

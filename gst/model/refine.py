@@ -128,7 +128,7 @@ class ReprojectionRefiner(nn.Module):
         levels = [
             (getattr(self, f"_level{k}"), getattr(self, f"_par{k}")) for k in range(self._depth)
         ]
-        X, _, _ = pose_markers(
+        X, _, _, _ = pose_markers(
             rest, R[:, 0], R[:, 1:], transl, levels, self._parent_index,
             self.marker_anchor, self.marker_frame, self.marker_offset,
         )  # fmt: skip
