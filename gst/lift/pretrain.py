@@ -281,9 +281,11 @@ def limb_agreement(
 ) -> float | None:
     """Median distance, in % of the crop, from the body's limb joints projected into the crop
     (N, 24, 2) to BlazePose's limb landmarks (N, 33, 3: u, v, confidence) at least
-    `min_confidence` sure, after shifting each crop's joints by their mean offset (as `track`
-    moves a body onto its landmarks, gst.track.align): the 2D agreement that track's summary
-    reports on video (gst.track.agreement), on crops. None when no landmark is sure enough."""
+    `min_confidence` sure, after shifting each crop's joints by their mean offset (`track`
+    shifts a body onto its landmarks too, with a robust fit over 13 joints, gst.track.align):
+    close to, not the same as, the agreement track's summary reports on video
+    (gst.track.agreement, which the training library does not import). None when no landmark
+    is sure enough."""
     lm = np.asarray(landmarks, np.float64)[:, list(LIMBS.ids)]
     pred = np.asarray(joints2d, np.float64)[:, list(LIMBS.joints)]
     ok = np.isfinite(lm).all(-1) & (lm[..., 2] >= min_confidence)
