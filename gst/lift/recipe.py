@@ -52,6 +52,7 @@ from gst.train.pretrain import (
 )
 from gst.train.recipe import FitOptions, FitSummary, build_network, fit_gst, make_task
 from gst.train.steps import GSTTask
+from gst.train.teacher_render import truth_targets
 from gst.train.trainer import TrainConfig
 from gst.train.views import CropSet
 
@@ -271,7 +272,18 @@ def _pretrain_lift(
     t_detect = time.perf_counter() - t0
     silence_image_path(net)
     lpips = load_lpips() if p.losses.lpips > 0 else None
-    task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips)
+    losses = p.losses
+    if p.appearance_on_truth:
+        # the truth only poses the Gaussians: its distillation terms stay off (the phase's
+        # supervised terms are the pose's)
+        crops.distill = truth_targets(crops)
+        losses = losses.model_copy(
+            update={"distill_joints": 0.0, "distill_root": 0.0, "distill_params": 0.0}
+        )
+    task = make_task(
+        body, ids, net.cfg, crops.crop_size, losses, lpips,
+        appearance_on_teacher=p.appearance_on_truth,
+    )  # fmt: skip
     out = work / "models" / "pretrain_rendered"
     out.mkdir(parents=True, exist_ok=True)
     fit = rendered_phase(

@@ -43,6 +43,9 @@ class BodyPrediction:
     joints_world: torch.Tensor | None = None  # (B, 24, 3) when the input camera's pose is known
     gaussians_cam: PosedGaussians | None = None
     gaussians_world: PosedGaussians | None = None
+    # the network's Gaussians before posing (rest-frame offsets and rotations), so that they can
+    # be posed on another body (gst.train.teacher_render)
+    gaussian_params: GaussianParams | None = None
 
 
 def camera_translation(cam: torch.Tensor, K_crop: torch.Tensor, crop_size: int) -> torch.Tensor:
@@ -61,6 +64,24 @@ def _orthonormalise(m: torch.Tensor) -> torch.Tensor:
 def to_world(points_cam: torch.Tensor, R_in: torch.Tensor, t_in: torch.Tensor) -> torch.Tensor:
     """(B, N, 3) camera points -> world, with world-to-camera R_in (B, 3, 3), t_in (B, 3)."""
     return (points_cam - t_in[:, None]) @ R_in
+
+
+def pose_gaussians(
+    g: GaussianParams, vertices: torch.Tensor, vertex_transforms: torch.Tensor
+) -> PosedGaussians:
+    """Gaussians on posed vertices (B, V, 3) with their skinning transforms (B, V, 4, 4): the
+    rest-frame offset and rotation of each go through its vertex's skinning (module doc)."""
+    skin = vertex_transforms[..., :3, :3]
+    means = vertices + (skin @ g.offsets[..., None])[..., 0]
+    rot = _orthonormalise(skin) @ quaternion_to_rotation_matrix(g.quats)
+    return PosedGaussians(
+        means,
+        rotation_matrix_to_quaternion(rot, eps=1e-12),
+        g.scales,
+        g.opacities,
+        g.colors,
+        g.offsets,
+    )
 
 
 def _gaussians_to_world(
@@ -151,17 +172,9 @@ def _assemble(
         vertices_cam=body_out.vertices if (with_vertices or want_gaussians) else None,
     )
     if want_gaussians:
-        g = out.gaussians
-        skin = body_out.vertex_transforms[..., :3, :3]
-        means = body_out.vertices + (skin @ g.offsets[..., None])[..., 0]
-        rot = _orthonormalise(skin) @ quaternion_to_rotation_matrix(g.quats)
-        pred.gaussians_cam = PosedGaussians(
-            means,
-            rotation_matrix_to_quaternion(rot, eps=1e-12),
-            g.scales,
-            g.opacities,
-            g.colors,
-            g.offsets,
+        pred.gaussian_params = out.gaussians
+        pred.gaussians_cam = pose_gaussians(
+            out.gaussians, body_out.vertices, body_out.vertex_transforms
         )
     if R_in is not None and t_in is not None:
         pred.joints_world = to_world(pred.joints_cam, R_in, t_in)

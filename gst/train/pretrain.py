@@ -101,6 +101,10 @@ class PretrainConfig(BaseModel):
     # head and the demo's held-out renders come out as faint dots (docs/training.md).
     gaussian_steps: int = 800
     gaussian_lr: float = 2e-4
+    # lift mode: the rendered phase renders the Gaussians posed on each crop's true body (the
+    # worlds' exact truth) instead of on the network's pose (gst.train.teacher_render), so that
+    # the pose error does not teach them to shrink and fade (docs/training.md)
+    appearance_on_truth: bool = False
     steps: int = 1000
     batch_size: int = 8
     lr: float = 5e-4

@@ -371,6 +371,7 @@ def make_task(
     lpips=None,
     supervision: str = "multiview",
     world_up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    appearance_on_teacher: bool = False,
 ) -> GSTTask:
     return GSTTask(
         body=body,
@@ -381,4 +382,5 @@ def make_task(
         lpips=lpips,
         supervision=supervision,
         world_up=tuple(float(v) for v in world_up),
+        appearance_on_teacher=appearance_on_teacher,
     )

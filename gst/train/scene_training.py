@@ -116,6 +116,11 @@ class TrainSettings(BaseModel):
     # error instead of losing 5-15 mm, on the demo's own held-out frames within noise).
     rehearsal: float = Field(10.0, ge=0)
     rehearsal_batch: int = Field(32, ge=1)
+    # With distillation: the multi-view image terms render the network's Gaussians posed on the
+    # rig's fused body of each crop's person and frame instead of on the network's own pose, so
+    # that its pose error does not teach the Gaussians to shrink and fade
+    # (gst.train.teacher_render; docs/training.md "Appearance on the rig's body").
+    appearance_on_teacher: bool = False
     losses: LossWeights = LossWeights()
     threads: int | None = None
     # where the network trains (gst.device): auto is the GPU when PyTorch sees one, else the CPU
@@ -354,7 +359,10 @@ def train_scene(
     )  # fmt: skip
     crops, heldout, cut = prepared.crops, prepared.heldout_cameras, prepared.first_heldout_frame
     lpips = load_lpips() if p.losses.lpips > 0 else None
-    task = make_task(body, ids, net.cfg, crops.crop_size, p.losses, lpips, world_up=world_up)
+    task = make_task(
+        body, ids, net.cfg, crops.crop_size, p.losses, lpips, world_up=world_up,
+        appearance_on_teacher=p.distill and p.appearance_on_teacher,
+    )  # fmt: skip
     cfg = TrainConfig(
         steps=p.steps,
         batch_size=p.batch_size,

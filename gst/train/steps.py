@@ -15,7 +15,7 @@ from torch import nn
 
 from gst.body import BodyModel
 from gst.device import module_on
-from gst.model.assemble import BodyPrediction
+from gst.model.assemble import BodyPrediction, PosedGaussians
 from gst.model.inference import predict_bodies
 from gst.model.landmarks import camera_up, hide_up
 from gst.render import rasterize
@@ -24,6 +24,7 @@ from gst.train.distill import distill_terms
 from gst.train.keypoints import keypoint_term
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
 from gst.train.occlusion import ignore_occluded
+from gst.train.teacher_render import teacher_posed_gaussians
 from gst.train.views import MultiViewBatch
 
 Supervision = Literal["multiview", "2d", "3d"]
@@ -41,6 +42,9 @@ class GSTTask:
     # the world's up axis of the crops' cameras (`calibration.Rig.up`): with a camera rotation
     # it gives a gravity-aware network (GSTConfig.landmark_gravity) the up direction in the crop
     world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    # multi-view image terms on the network's Gaussians posed on the batch's fused bodies where
+    # it has them (gst.train.teacher_render), not on the network's own pose
+    appearance_on_teacher: bool = False
 
     def to(self, device: torch.device | str) -> GSTTask:
         """This task on `device` (its body model and LPIPS network copied there when they
@@ -84,8 +88,11 @@ def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return uv1[..., :2]
 
 
-def render_predictions(pred: BodyPrediction, batch: MultiViewBatch, size: int):
-    g = pred.gaussians_world
+def render_predictions(
+    pred: BodyPrediction, batch: MultiViewBatch, size: int, gaussians: PosedGaussians | None = None
+):
+    """Render the prediction's world Gaussians (or `gaussians`) into the batch's target views."""
+    g = pred.gaussians_world if gaussians is None else gaussians
     return rasterize(
         g.means,
         g.quats,
@@ -110,7 +117,10 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
         model, task, batch.input_images, batch.K_in, batch.R_in, batch.t_in, with_gaussians=True,
         landmarks=batch.input_landmarks, up=up,
     )  # fmt: skip
-    out = render_predictions(pred, batch, batch.target_images.shape[-2])
+    gaussians = pred.gaussians_world
+    if task.appearance_on_teacher and batch.distill is not None:
+        gaussians = teacher_posed_gaussians(pred, batch.distill, task.body, task.vertex_ids)
+    out = render_predictions(pred, batch, batch.target_images.shape[-2], gaussians)
     mask = batch.target_masks
     target = batch.target_images * mask[..., None] + batch.backgrounds[:, :, None, None, :] * (
         1 - mask[..., None]
@@ -122,7 +132,7 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
         out.alpha,
         target,
         mask,
-        pred.gaussians_world.offsets,
+        gaussians.offsets,
         pred.betas,
         task.weights,
         task.lpips,
