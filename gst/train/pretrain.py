@@ -103,8 +103,9 @@ class PretrainConfig(BaseModel):
     gaussian_lr: float = 2e-4
     # lift mode: the rendered phase renders the Gaussians posed on each crop's true body (the
     # worlds' exact truth) instead of on the network's pose (gst.train.teacher_render), so that
-    # the pose error does not teach them to shrink and fade (docs/training.md)
-    appearance_on_truth: bool = False
+    # the pose error does not teach them to shrink and fade (docs/training.md "Appearance on
+    # the rig's body")
+    appearance_on_truth: bool = True
     steps: int = 1000
     batch_size: int = 8
     lr: float = 5e-4

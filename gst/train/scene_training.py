@@ -120,7 +120,7 @@ class TrainSettings(BaseModel):
     # rig's fused body of each crop's person and frame instead of on the network's own pose, so
     # that its pose error does not teach the Gaussians to shrink and fade
     # (gst.train.teacher_render; docs/training.md "Appearance on the rig's body").
-    appearance_on_teacher: bool = False
+    appearance_on_teacher: bool = True
     losses: LossWeights = LossWeights()
     threads: int | None = None
     # where the network trains (gst.device): auto is the GPU when PyTorch sees one, else the CPU
