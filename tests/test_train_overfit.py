@@ -6,31 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gst.body import load_body_model
 from gst.model.presets import get_preset
 from gst.train.losses import LossWeights
 from gst.train.overfit import overfit_sample, training_view_psnr
 from gst.train.recipe import build_network, gaussian_parameter_groups, make_task
-from gst.train.synthetic_crops import crops_from_synth_scene
-from synth.scene import preset, render_scene
-
-
-@pytest.fixture(scope="module")
-def one_sample(tmp_path_factory):
-    out = tmp_path_factory.mktemp("one_person")
-    spec = preset(
-        "demo",
-        seed=7,
-        n_frames=2,
-        n_people=1,
-        motions=[["jump"]],
-        rig={"kind": "dome", "n_cameras": 4, "width": 320, "height": 240},
-        board={"n_frames": 1},
-    )
-    render_scene(spec, out)
-    crops = crops_from_synth_scene(out, crop_size=128)
-    body = load_body_model("anny")
-    return crops, crops.groups(min_views=2)[0], body
 
 
 def _network(body, crop_size):

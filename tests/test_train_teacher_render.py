@@ -6,32 +6,19 @@ from __future__ import annotations
 import pytest
 import torch
 
-from gst.body import load_body_model
 from gst.model.presets import get_preset
 from gst.train.distill_targets import DistillTargets
 from gst.train.losses import LossWeights
 from gst.train.recipe import build_network, make_task
 from gst.train.steps import predict
-from gst.train.synthetic_crops import crops_from_synth_scene
 from gst.train.teacher_render import teacher_posed_gaussians, truth_targets
-from synth.scene import preset, render_scene
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    out = tmp_path_factory.mktemp("teacher_render")
-    spec = preset(
-        "demo",
-        seed=11,
-        n_frames=2,
-        n_people=1,
-        motions=[["jump"]],
-        rig={"kind": "dome", "n_cameras": 3, "width": 320, "height": 240},
-        board={"n_frames": 1},
-    )
-    render_scene(spec, out)
-    crops = crops_from_synth_scene(out, crop_size=128)
-    body = load_body_model("anny")
+def scene(one_sample):
+    """The shared one-person scene (tests/conftest.py (4 cameras, 2 frames) and a tiny network's
+    prediction on every crop."""
+    crops, _, body = one_sample
     net, ids, _ = build_network(get_preset("tiny"), body, seed=0)
     task = make_task(body, ids, net.cfg, 128, LossWeights(lpips=0.0))
     with torch.no_grad():
