@@ -14,10 +14,13 @@ bodies come from 2D landmarks and the calibration.
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import torch
 
 from gst.body import BodyModel
 from gst.model.assemble import BodyPrediction, PosedGaussians, pose_gaussians
+from gst.model.network import GaussianParams
 from gst.train.distill_targets import DistillTargets
 
 __all__ = ["teacher_posed_gaussians", "truth_targets"]
@@ -53,15 +56,15 @@ def teacher_posed_gaussians(
     g = pred.gaussian_params
     rows = has.to(device)
     mine = pose_gaussians(
-        type(g)(**{f: getattr(g, f)[rows] for f in g.__dataclass_fields__}),
+        GaussianParams(**{f.name: getattr(g, f.name)[rows] for f in fields(g)}),
         posed.vertices + shift[:, None],
         posed.vertex_transforms,
     )
     out = {}
-    for name in PosedGaussians.__dataclass_fields__:
-        field = getattr(own, name).clone()
-        field[rows] = getattr(mine, name).to(field.dtype)
-        out[name] = field
+    for f in fields(own):
+        merged = getattr(own, f.name).clone()
+        merged[rows] = getattr(mine, f.name).to(merged.dtype)
+        out[f.name] = merged
     return PosedGaussians(**out)
 
 
