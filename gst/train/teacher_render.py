@@ -22,6 +22,7 @@ from gst.body import BodyModel
 from gst.model.assemble import BodyPrediction, PosedGaussians, pose_gaussians
 from gst.model.network import GaussianParams
 from gst.train.distill_targets import DistillTargets
+from gst.train.views import CropSet
 
 __all__ = ["teacher_posed_gaussians", "truth_targets"]
 
@@ -60,6 +61,8 @@ def teacher_posed_gaussians(
         posed.vertices + shift[:, None],
         posed.vertex_transforms,
     )
+    if bool(has.all()):  # every row has its body (the pretraining; most scene batches)
+        return mine
     out = {}
     for f in fields(own):
         merged = getattr(own, f.name).clone()
@@ -68,7 +71,7 @@ def teacher_posed_gaussians(
     return PosedGaussians(**out)
 
 
-def truth_targets(crops) -> DistillTargets:
+def truth_targets(crops: CropSet) -> DistillTargets:
     """Targets from a synthetic crop set's exact truth (`gst.train.synthetic_crops`: rotations
     with the global one in the crop's camera, betas, world joints), every row weight 1: the
     rendered pretraining poses the Gaussians on the true body with them."""
