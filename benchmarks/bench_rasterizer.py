@@ -36,8 +36,14 @@ from gst.render.conventions import (  # noqa: E402
     LOG_TRANSMITTANCE_MIN,
     SIGMA_CUTOFF,
 )
-from gst.render.cpu_backend import DEFAULT_CHUNK_ELEMENTS, DEFAULT_TILE, rasterize_cpu  # noqa: E402
+from gst.render.cpu_backend import (  # noqa: E402
+    DEFAULT_CHUNK_ELEMENTS,
+    DEFAULT_TILE,
+    CompositeSettings,
+    rasterize_cpu,
+)
 from gst.render.projection import project_gaussians  # noqa: E402
+from gst.render.scenes import SplatScenes  # noqa: E402
 
 # (centre a, centre b, radius) capsules of a person in an athletic stance in loose sports
 # kit, metres, z up, facing -y: legs apart, arms away from the body.
@@ -204,7 +210,10 @@ def main() -> None:
             for tile in args.tiles:
 
                 def ours(*a, tile=tile):
-                    return rasterize_cpu(*a, near=0.01, tile=tile, chunk_elements=args.chunk)
+                    return rasterize_cpu(
+                        SplatScenes(*a, near=0.01),
+                        CompositeSettings(tile=tile, chunk_elements=args.chunk),
+                    )
 
                 t_f, t_fb, rgb, alpha, gm = _run(ours, scene, size, loss_w, args.repeats)
                 cover = float((alpha > 0.5).float().mean())
@@ -235,7 +244,9 @@ def main() -> None:
     loss_w = torch.rand(4, 4, size, size, 4, generator=torch.Generator().manual_seed(0))
 
     def ours_batch(*a):
-        return rasterize_cpu(*a, near=0.01, chunk_elements=args.chunk)
+        return rasterize_cpu(
+            SplatScenes(*a, near=0.01), CompositeSettings(chunk_elements=args.chunk)
+        )
 
     t_f, t_fb, _, alpha, _ = _run(ours_batch, batch, size, loss_w, max(1, args.repeats // 2))
     print(f"batch S=4 x C=4 views at {size}^2, N={n}: ours fwd {t_f * 1e3:.0f} ms, "

@@ -8,8 +8,9 @@ import math
 import pytest
 import torch
 
-from gst.render.cpu_backend import rasterize_cpu
+from gst.render.cpu_backend import CompositeSettings, rasterize_cpu
 from gst.render.rasterize import rasterize
+from gst.render.scenes import SplatScenes
 from tests.test_render_rasterize import random_scene
 
 HAS_CUDA_GSPLAT = torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
@@ -39,9 +40,9 @@ def test_gsplat_matches_torch_with_gsplat_footprint_and_clamp():
     from gst.render.gsplat_backend import rasterize_gsplat
 
     scene = _scene_cuda(0, max_opacity=1.0)
-    g_rgb, g_alpha, g_depth = rasterize_gsplat(*scene, 96, 80, 0.01)
+    g_rgb, g_alpha, g_depth = rasterize_gsplat(SplatScenes(*scene, 96, 80, 0.01))
     c_rgb, c_alpha, c_dsum = rasterize_cpu(
-        *scene, 96, 80, 0.01, sigma_cutoff=math.inf, alpha_max=0.999
+        SplatScenes(*scene, 96, 80, 0.01), CompositeSettings(sigma_cutoff=math.inf, alpha_max=0.999)
     )
     c_depth = c_dsum / c_alpha.clamp_min(1e-10)
     torch.testing.assert_close(g_rgb, c_rgb, atol=2e-4, rtol=0)
@@ -85,8 +86,8 @@ def test_default_conventions_differ_from_gsplat_only_by_the_faint_ring():
     from gst.render.gsplat_backend import rasterize_gsplat
 
     scene = _scene_cuda(2, max_opacity=0.98)
-    g_rgb, g_alpha, _ = rasterize_gsplat(*scene, 96, 80, 0.01)
-    c_rgb, c_alpha, _ = rasterize_cpu(*scene, 96, 80, 0.01)
+    g_rgb, g_alpha, _ = rasterize_gsplat(SplatScenes(*scene, 96, 80, 0.01))
+    c_rgb, c_alpha, _ = rasterize_cpu(SplatScenes(*scene, 96, 80, 0.01))
     diff = (g_alpha - c_alpha).abs()
     assert diff.max() < 0.05
     assert diff.mean() < 2e-3

@@ -194,7 +194,8 @@ def test_unbatched_matches_batched():
 def test_tile_block_and_chunk_settings_change_nothing():
     """Images and gradients are the same for any tiling, compositing block and chunk size
     (small blocks exercise the carried transmittance and gradient prefix sums)."""
-    from gst.render.cpu_backend import rasterize_cpu
+    from gst.render.cpu_backend import CompositeSettings, rasterize_cpu
+    from gst.render.scenes import SplatScenes
 
     scene = random_scene(7, s=2, n=70, c=2, width=45, height=31)
     scene[3][:] = scene[3].clamp_min(0.6)  # opaque enough to stop compositing early
@@ -202,7 +203,9 @@ def test_tile_block_and_chunk_settings_change_nothing():
 
     def run(**kw):
         inputs = [t.clone().requires_grad_(True) for t in scene]
-        rgb, alpha, dsum = rasterize_cpu(*inputs, 45, 31, 0.01, **kw)
+        rgb, alpha, dsum = rasterize_cpu(
+            SplatScenes(*inputs, 45, 31, 0.01), CompositeSettings(**kw)
+        )
         loss = (rgb * w[..., :3]).sum() + (alpha * w[..., 3]).sum() + (dsum * w[..., 4]).sum()
         loss.backward()
         return [rgb, alpha, dsum] + [t.grad for t in inputs]

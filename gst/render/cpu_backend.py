@@ -39,6 +39,7 @@ from gst.render.conventions import (
     SIGMA_CUTOFF,
 )
 from gst.render.projection import project_gaussians
+from gst.render.scenes import SplatScenes
 
 #: Tile edge in pixels (benchmarks/bench_rasterizer.py --tiles compares sizes).
 DEFAULT_TILE = 4
@@ -431,6 +432,18 @@ def _block_backward(
     return g_entry, g_feats, h_incl[:, -1]
 
 
+@dataclass(frozen=True)
+class CompositeSettings:
+    """The compositor's footprint, clamp and work sizes (the conventions by default; tiling,
+    block and chunk sizes change speed only, never the images or gradients)."""
+
+    sigma_cutoff: float = SIGMA_CUTOFF
+    alpha_max: float = ALPHA_MAX
+    tile: int = DEFAULT_TILE
+    block: int = DEFAULT_BLOCK
+    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS
+
+
 def composite(
     means2d: Tensor,
     conics: Tensor,
@@ -442,74 +455,53 @@ def composite(
     num_images: int,
     width: int,
     height: int,
-    *,
-    sigma_cutoff: float = SIGMA_CUTOFF,
-    alpha_max: float = ALPHA_MAX,
-    tile: int = DEFAULT_TILE,
-    block: int = DEFAULT_BLOCK,
-    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+    settings: CompositeSettings = CompositeSettings(),
 ) -> Tensor:
     """Composite G = num_images * N flattened splats into (num_images, H, W, D + 1).
 
     The last channel is alpha (1 - final transmittance); the first D channels are the
     alpha-weighted sums of `feats` (no background).
     """
-    thresholds = _footprint_threshold(opacities, sigma_cutoff)
+    thresholds = _footprint_threshold(opacities, settings.sigma_cutoff)
     thresholds = torch.where(valid, thresholds, torch.full_like(thresholds, -math.inf))
     bins = bin_splats(
         means2d.detach(), radii, depths.detach(), thresholds, num_images, width, height,
-        tile=tile, block=block, chunk_elements=chunk_elements,
+        tile=settings.tile, block=settings.block, chunk_elements=settings.chunk_elements,
     )  # fmt: skip
     return _Composite.apply(
-        means2d, conics, opacities, feats, thresholds, bins, width, height, alpha_max
+        means2d, conics, opacities, feats, thresholds, bins, width, height, settings.alpha_max
     )
 
 
 def rasterize_cpu(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    near: float,
-    *,
-    sigma_cutoff: float = SIGMA_CUTOFF,
-    alpha_max: float = ALPHA_MAX,
-    tile: int = DEFAULT_TILE,
-    block: int = DEFAULT_BLOCK,
-    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+    scenes: SplatScenes, settings: CompositeSettings = CompositeSettings()
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Render batched, validated inputs (S, N, ...) x (S, C, ...) on any torch device.
+    """Render batched, validated inputs on any torch device.
 
     Returns (colour sum (S, C, H, W, 3) without background, alpha (S, C, H, W),
     alpha-weighted depth sum (S, C, H, W)).
     """
-    s, n = means.shape[:2]
-    c = viewmats.shape[1]
-    proj = project_gaussians(means, quats, scales, viewmats, Ks, width, height, near)
+    sc = scenes
+    s, n = sc.means.shape[:2]
+    c = sc.viewmats.shape[1]
+    proj = project_gaussians(
+        sc.means, sc.quats, sc.scales, sc.viewmats, sc.Ks, sc.width, sc.height, sc.near
+    )
     g = s * c * n
     feats = torch.cat(
-        [colors[:, None].expand(s, c, n, colors.shape[-1]), proj.depths[..., None]], dim=-1
+        [sc.colors[:, None].expand(s, c, n, sc.colors.shape[-1]), proj.depths[..., None]], dim=-1
     )
     acc = composite(
         proj.means2d.reshape(g, 2),
         proj.conics.reshape(g, 3),
-        opacities[:, None].expand(s, c, n).reshape(g),
+        sc.opacities[:, None].expand(s, c, n).reshape(g),
         feats.reshape(g, feats.shape[-1]),
         proj.radii.reshape(g, 2),
         proj.depths.reshape(g),
         proj.valid.reshape(g),
         s * c,
-        width,
-        height,
-        sigma_cutoff=sigma_cutoff,
-        alpha_max=alpha_max,
-        tile=tile,
-        block=block,
-        chunk_elements=chunk_elements,
-    ).reshape(s, c, height, width, -1)
+        sc.width,
+        sc.height,
+        settings,
+    ).reshape(s, c, sc.height, sc.width, -1)
     return acc[..., :3], acc[..., 4], acc[..., 3]

@@ -18,8 +18,8 @@ Known differences from the torch backend (inherent to gsplat's kernels):
 - gsplat has no per-pixel 3-sigma cut: inside a touched 16x16 tile it keeps every pixel with
   alpha >= 1/255, which reaches sqrt(2 ln(255 o)) sigma (up to 3.33 sigma). For opacities
   above exp(4.5) / 255 ~= 0.353 it therefore adds a faint ring (alpha <= o e^-4.5 <= 0.011)
-  between 3 and 3.33 sigma. `rasterize_cpu(..., sigma_cutoff=inf, alpha_max=0.999)`
-  reproduces gsplat exactly; the parity test checks both ways.
+  between 3 and 3.33 sigma. The torch backend with `CompositeSettings(sigma_cutoff=inf,
+  alpha_max=0.999)` reproduces gsplat exactly; the parity test checks both ways.
 - gsplat stops at transmittance <= 1e-4, we at < 1e-4 (a measure-zero difference).
 """
 
@@ -29,22 +29,10 @@ import torch
 from torch import Tensor
 
 from gst.render.conventions import LOWPASS_EPS2D, QUAT_EPS, SCALE_MAX
+from gst.render.scenes import SplatScenes
 
 
-def rasterize_gsplat(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    viewmats: Tensor,
-    Ks: Tensor,
-    width: int,
-    height: int,
-    near: float,
-    *,
-    packed: bool = True,
-) -> tuple[Tensor, Tensor, Tensor]:
+def rasterize_gsplat(scenes: SplatScenes, *, packed: bool = True) -> tuple[Tensor, Tensor, Tensor]:
     """Render validated batched inputs with gsplat.
 
     Returns (colour sum (S, C, H, W, 3) without background, alpha (S, C, H, W),
@@ -57,6 +45,7 @@ def rasterize_gsplat(
             "rasterize(backend='gsplat') needs gsplat (pip install 'gst-capture[cuda]') and a "
             "CUDA device"
         ) from exc
+    means, quats, scales, Ks = scenes.means, scenes.quats, scenes.scales, scenes.Ks
     if means.device.type != "cuda":
         raise RuntimeError(f"rasterize(backend='gsplat') needs CUDA tensors, got {means.device}")
 
@@ -77,13 +66,13 @@ def rasterize_gsplat(
             means=means[s].contiguous(),
             quats=safe_quats[s].contiguous(),
             scales=safe_scales[s].contiguous(),
-            opacities=opacities[s].contiguous(),
-            colors=colors[s].contiguous(),
-            viewmats=viewmats[s].contiguous(),
+            opacities=scenes.opacities[s].contiguous(),
+            colors=scenes.colors[s].contiguous(),
+            viewmats=scenes.viewmats[s].contiguous(),
             Ks=Ks_half[s].contiguous(),
-            width=width,
-            height=height,
-            near_plane=near,
+            width=scenes.width,
+            height=scenes.height,
+            near_plane=scenes.near,
             eps2d=LOWPASS_EPS2D,
             packed=packed,
             render_mode="RGB+ED",

@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 
 from gst.render.cpu_backend import rasterize_cpu
+from gst.render.scenes import SplatScenes
 
 BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
@@ -165,17 +166,16 @@ def rasterize(
             )
             backgrounds = None if backgrounds is None else backgrounds[None]
 
+        scenes = SplatScenes(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
+        )
         chosen = _resolve_backend(backend, means.device)
         if chosen == "gsplat":
             from gst.render.gsplat_backend import rasterize_gsplat
 
-            color_sum, alpha, depth = rasterize_gsplat(
-                means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
-            )
+            color_sum, alpha, depth = rasterize_gsplat(scenes)
         else:
-            color_sum, alpha, depth_sum = rasterize_cpu(
-                means, quats, scales, opacities, colors, viewmats, Ks, width, height, near
-            )
+            color_sum, alpha, depth_sum = rasterize_cpu(scenes)
             depth = depth_sum / alpha.clamp_min(1e-10)
 
         rgb = color_sum
