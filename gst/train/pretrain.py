@@ -283,17 +283,7 @@ def pretrain_images(
     net, ids, groups = build_network(cfg, body)
     lpips = load_lpips() if p.losses.lpips > 0 and p.mode == "pretrain" else None
     task = make_task(body, ids, cfg, crops.crop_size, p.losses, lpips)
-    train_cfg = TrainConfig(
-        steps=p.steps,
-        batch_size=p.batch_size,
-        lr=p.lr,
-        warmup_steps=min(30, p.steps // 10),
-        val_every=max(1, p.steps // 10),
-        ckpt_every=25,
-        log_every=5,
-        device=p.device,
-        amp=p.amp,
-    )
+    train_cfg = TrainConfig.for_stage(p.steps, p.batch_size, p.lr, p.device, p.amp, validations=10)
 
     def fit(task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions) -> FitSummary:
         """One fit_gst run on the corpus (pose validation on the unseen world)."""

@@ -363,17 +363,8 @@ def train_scene(
         body, ids, net.cfg, crops.crop_size, p.losses, lpips, world_up=world_up,
         appearance_on_teacher=p.distill and p.appearance_on_teacher,
     )  # fmt: skip
-    cfg = TrainConfig(
-        steps=p.steps,
-        batch_size=p.batch_size,
-        lr=p.lr if multiview else p.supervised_lr,
-        warmup_steps=min(30, p.steps // 10),
-        val_every=max(1, p.steps // 5),
-        ckpt_every=25,
-        log_every=5,
-        device=p.device,
-        amp=p.amp,
-    )
+    lr = p.lr if multiview else p.supervised_lr
+    cfg = TrainConfig.for_stage(p.steps, p.batch_size, lr, p.device, p.amp, validations=5)
     run_dir = out.run_dir
     run_dir.mkdir(parents=True, exist_ok=True)
     # the 2d/3d baselines train everything at supervised_lr

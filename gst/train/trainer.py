@@ -56,6 +56,24 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"  # where the model trains: auto, cpu, cuda, cuda:N (gst.device)
 
+    @classmethod
+    def for_stage(
+        cls, steps: int, batch_size: int, lr: float, device: str, amp: bool, validations: int
+    ) -> TrainConfig:
+        """The pipeline stages' schedule: warm-up over a tenth of the run (at most 30 steps),
+        `validations` checks spread over it, a checkpoint every 25 steps."""
+        return cls(
+            steps=steps,
+            batch_size=batch_size,
+            lr=lr,
+            warmup_steps=min(30, steps // 10),
+            val_every=max(1, steps // validations),
+            ckpt_every=25,
+            log_every=5,
+            device=device,
+            amp=amp,
+        )
+
 
 class NonFiniteLossError(RuntimeError):
     pass
