@@ -104,3 +104,29 @@ def test_a_resumed_fit_rehearses_what_an_uninterrupted_one_does(body, tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "whole" / "log.csv")))
     assert len(rows) == 3 and all(float(r["rehearsal"]) > 0 for r in rows)
     assert all(float(r["rehearsal_mpjpe_mm"]) > 0 for r in rows)
+
+
+def _median_tilt_deg(lift) -> float:
+    """Median angle between each body's pelvis-to-neck axis and the world's up (+z)."""
+    up = lift.R[:, :, 2]  # the world's +z in each camera
+    axis = lift.joints_cam[:, 12] - lift.joints_cam[:, 0]
+    cos = (axis * up).sum(-1) / axis.norm(dim=-1)
+    return float(torch.rad2deg(torch.arccos(cos.clamp(-1, 1))).median())
+
+
+def test_rehearsal_leans_bodies_as_the_pretraining_did(body):
+    """The rehearsed prior is the pretrained one: its bodies lean with the recipe's spread."""
+    from dataclasses import replace
+
+    from gst.lift.pretrain import LiftPretrainConfig
+
+    net, _, _ = _net(body)
+    tilt = {
+        lean: _median_tilt_deg(
+            PriorRehearsal(
+                body, net, batch_size=64, recipe=replace(LiftPretrainConfig(), lean_deg=lean)
+            ).draw(torch.Generator().manual_seed(2))
+        )
+        for lean in (0.0, 40.0)
+    }
+    assert tilt[40.0] > tilt[0.0] + 15.0, tilt

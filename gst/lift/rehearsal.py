@@ -61,6 +61,7 @@ class PriorRehearsal:
             random_share=r.random_share,
             uniform_p=r.uniform_p,
             whole_body_flips=r.whole_body_flips,
+            lean_deg=r.lean_deg,
         )
 
     def draw(self, generator: torch.Generator) -> LiftBatch:
