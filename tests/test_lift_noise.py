@@ -223,3 +223,29 @@ def test_held_out_world_pooled_over_landmarks():
     assert abs(sim.outlier_visible.mean() - real.outlier_visible.mean()) < 0.04
     assert abs(sim.swap_rate.mean() - real.swap_rate.mean()) < 0.04
     assert abs(sim.flip_rate - real.flip_rate) < 0.05
+
+
+def test_scaled_noise_scales_the_scatter_and_gross_rates_only():
+    from gst.lift.noise import load_models
+
+    m = load_models(set_name="limbs")["motion"]
+    half = m.scaled(0.5)
+    np.testing.assert_allclose(half.sigma, m.sigma * 0.5)
+    np.testing.assert_allclose(half.gross, m.gross * 0.5)
+    np.testing.assert_array_equal(half.offset, m.offset)
+    np.testing.assert_array_equal(half.pair_swap, m.pair_swap)
+    assert half.flip == m.flip
+    with pytest.raises(ValueError, match="factor"):
+        m.scaled(-1.0)
+
+
+def test_the_sampler_simulates_smaller_errors_with_a_smaller_noise_scale():
+    from gst.lift.sampler import LiftSampler
+
+    body = load_body_model("anny")
+    err = {}
+    for scale in (1.0, 0.3):
+        b = LiftSampler(body, seed=4, noise_scale=scale, whole_body_flips=False).sample(256)
+        d = (b.landmarks[..., :2] - b.reference2d).norm(dim=-1)
+        err[scale] = float(d.median())
+    assert err[0.3] < 0.6 * err[1.0], err

@@ -28,7 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +100,13 @@ class LandmarkNoise:
     @property
     def lset(self) -> LandmarkSet:
         return LANDMARK_SETS[self.set_name]
+
+    def scaled(self, factor: float) -> LandmarkNoise:
+        """The model with its scatter and gross-error probabilities times `factor` (offsets,
+        swaps, flips, confidences and presence as measured)."""
+        if not factor >= 0:
+            raise ValueError(f"LandmarkNoise.scaled: factor must be >= 0, got {factor}")
+        return replace(self, sigma=self.sigma * factor, gross=np.clip(self.gross * factor, 0, 1))
 
     # -- fitting ---------------------------------------------------------------------------
 

@@ -69,6 +69,8 @@ class LiftPretrainConfig:
     # library's people stand straighter (pelvis-neck tilt median 2.6-6.8 deg) than real ones
     # (the lab's fused bodies: 12.1, p90 26.8); docs/landmark_prior.md "Lean"
     lean_deg: float = 12.0
+    # factor on the simulated detections' scatter and gross-error rates (gst.lift.noise)
+    noise_scale: float = 1.0
     # torch threads of the training loop; None: with `prefetch` the sampler runs beside it in a
     # background thread, so the loop takes the cores that leaves (without: left as they are)
     threads: int | None = None
@@ -176,6 +178,7 @@ def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
         uniform_p=cfg.uniform_p,
         whole_body_flips=cfg.whole_body_flips,
         lean_deg=cfg.lean_deg,
+        noise_scale=cfg.noise_scale,
     )
     if len(sampler.lset) != net.cfg.num_landmarks:
         raise ValueError(

@@ -62,6 +62,7 @@ class PriorRehearsal:
             uniform_p=r.uniform_p,
             whole_body_flips=r.whole_body_flips,
             lean_deg=r.lean_deg,
+            noise_scale=r.noise_scale,
         )
 
     def draw(self, generator: torch.Generator) -> LiftBatch:

@@ -170,7 +170,8 @@ def lean_rotations(B: int, spread: float, gen: torch.Generator) -> torch.Tensor:
 class LiftSampler:
     """`sample(batch_size) -> LiftBatch`; deterministic from `seed`. `lean_deg`: the spread
     (normal, degrees) of a lean of the whole body about a random horizontal axis (0: bodies
-    stand as the motion library authored them)."""
+    stand as the motion library authored them). `noise_scale`: a factor on the noise model's
+    scatter and gross-error rates (1: BlazePose as measured on our rendered crops)."""
 
     def __init__(
         self,
@@ -187,6 +188,7 @@ class LiftSampler:
         random_share: float | None = None,
         whole_body_flips: bool = True,
         lean_deg: float = 0.0,
+        noise_scale: float = 1.0,
     ):
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x11F7]))
         self.body = body
@@ -197,6 +199,8 @@ class LiftSampler:
         self.noise = noise if isinstance(noise, dict) else {"motion": noise, "random": noise}
         if not whole_body_flips:  # the person read as facing the other way: not simulated
             self.noise = {k: replace(m, flip=0.0) for k, m in self.noise.items()}
+        if noise_scale != 1.0:  # scatter and gross-error rates of the measured model, scaled
+            self.noise = {k: m.scaled(noise_scale) for k, m in self.noise.items()}
         for m in self.noise.values():
             if m.set_name != landmark_set:
                 raise ValueError(
