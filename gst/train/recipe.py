@@ -100,9 +100,6 @@ class FitOptions:
     # share of multi-view samples whose input landmarks are hidden (a landmark network keeps an
     # image-only path for crops where the detector finds nobody)
     landmark_dropout: float = 0.0
-    # share of multi-view samples whose input landmarks are left/right mirrored while the targets
-    # are not (views.sample_multiview): the pixels must tell which way the person faces
-    landmark_flips: float = 0.0
     scene: str | None = None  # recorded in the checkpoint (extra.trained_on.scene)
 
 
@@ -280,7 +277,7 @@ def fit_gst(
         def sample(gen, bs):
             batch = sample_multiview(
                 crops, groups, gen, bs, opts.num_targets, opts.render_size,
-                landmark_dropout=opts.landmark_dropout, landmark_flips=opts.landmark_flips,
+                landmark_dropout=opts.landmark_dropout,
             )  # fmt: skip
             return batch if rehearsal is None else RehearsedBatch(batch, rehearsal.draw(gen))
 

@@ -108,11 +108,6 @@ class TrainSettings(BaseModel):
     # so the network learns the body its landmarks describe (docs/training.md, "Mirrored
     # landmarks"); held-out crops are never touched.
     unmirror_landmarks: bool = True
-    # Share of multi-view inputs whose landmarks are mirrored on purpose (a simulated whole-body
-    # flip; the targets stay the body's own), so that the image tokens learn which way the
-    # person faces and a held-out crop that BlazePose flipped is not read as its mirror image
-    # (docs/training.md, "Mirrored landmarks").
-    landmark_flips: float = Field(0.0, ge=0, le=1)
     # Rehearse the render-free landmark prior beside every multi-view step (gst.lift.rehearsal):
     # the pretraining's supervised terms on `rehearsal_batch` simulated detections, weighted by
     # `rehearsal`, so that the scene's few people do not overwrite what it learnt of everyone
@@ -404,7 +399,6 @@ def train_scene(
             first_heldout_frame=cut,
             scene=scene,
             landmark_dropout=p.landmark_dropout if crops.landmarks is not None else 0.0,
-            landmark_flips=p.landmark_flips if crops.landmarks is not None else 0.0,
         ),
         body_spec=p.body_model,
         vertex_ids=ids,

@@ -15,7 +15,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gst.metrics.flips import unmirror
 from gst.train.distill_targets import DistillTargets
 
 
@@ -206,16 +205,11 @@ def sample_multiview(
     render_size: int,
     include_input_view: bool = True,
     landmark_dropout: float = 0.0,
-    landmark_flips: float = 0.0,
 ) -> MultiViewBatch:
     """Random groups; random input view per group; `num_targets` views to render into (the
     input view first when `include_input_view`, then others, with replacement if too few).
     `landmark_dropout`: share of samples whose input landmarks are hidden (NaN), so a landmark
-    network keeps an image-only path for crops where the detector finds nothing.
-    `landmark_flips`: share of samples whose input landmarks have their left/right labels
-    exchanged (BlazePose's whole-body flip, simulated), while every target stays the body's own:
-    the landmarks of a flip describe the mirrored body equally well, so only the pixels can
-    tell the network which way the person faces."""
+    network keeps an image-only path for crops where the detector finds nothing."""
     pick = torch.randint(len(groups), (batch_size,), generator=gen)
     inputs, targets = [], []
     for gi in pick.tolist():
@@ -251,8 +245,6 @@ def sample_multiview(
         if landmark_dropout > 0:
             drop = torch.rand(len(inp), generator=gen) < landmark_dropout
             landmarks[drop] = float("nan")
-        if landmark_flips > 0:
-            landmarks = unmirror(landmarks, torch.rand(len(inp), generator=gen) < landmark_flips)
     return MultiViewBatch(
         inp,
         tgt,
