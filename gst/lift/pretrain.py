@@ -69,8 +69,11 @@ class LiftPretrainConfig:
     # library's people stand straighter (pelvis-neck tilt median 2.6-6.8 deg) than real ones
     # (the lab's fused bodies: 12.1, p90 26.8); docs/landmark_prior.md "Lean"
     lean_deg: float = 12.0
-    # factor on the simulated detections' scatter and gross-error rates (gst.lift.noise)
-    noise_scale: float = 1.0
+    # factor on the simulated detections' scatter and gross-error rates (gst.lift.noise): the
+    # model was measured on our renders; on real people BlazePose errs about half as much
+    # (docs/landmark_prior.md "Noise level"), and a lifter taught the renders' noise trusts
+    # real landmarks too little
+    noise_scale: float = 0.5
     # torch threads of the training loop; None: with `prefetch` the sampler runs beside it in a
     # background thread, so the loop takes the cores that leaves (without: left as they are)
     threads: int | None = None
