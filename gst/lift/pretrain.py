@@ -81,6 +81,22 @@ class LiftPretrainConfig:
         default_factory=lambda: LossWeights(joints3d=1.0, joints2d=1.0, root=0.2, params=0.5)
     )
 
+    def sampler(self, body: BodyModel, landmark_set: str, crop_size: int | None = None):
+        """The recipe's sampler: the bodies, leans and detection noise the pretraining draws and
+        the rehearsal of scene training (gst.lift.rehearsal) draws again; `crop_size` defaults
+        to the recipe's."""
+        return LiftSampler(
+            body,
+            crop_size=self.crop_size if crop_size is None else crop_size,
+            seed=self.seed,
+            landmark_set=landmark_set,
+            random_share=self.random_share,
+            uniform_p=self.uniform_p,
+            whole_body_flips=self.whole_body_flips,
+            lean_deg=self.lean_deg,
+            noise_scale=self.noise_scale,
+        )
+
 
 @dataclass
 class PoseScore:
@@ -172,17 +188,7 @@ def _pretrain(net, body, cfg, sampler, validation, log) -> LiftPretrainResult:
     if net.landmark_encoder is None:
         raise ValueError("pretrain_landmark_path needs a network built with landmark_tokens")
     torch.manual_seed(cfg.seed)
-    sampler = sampler or LiftSampler(
-        body,
-        crop_size=cfg.crop_size,
-        seed=cfg.seed,
-        landmark_set=landmark_set_of(net).name,
-        random_share=cfg.random_share,
-        uniform_p=cfg.uniform_p,
-        whole_body_flips=cfg.whole_body_flips,
-        lean_deg=cfg.lean_deg,
-        noise_scale=cfg.noise_scale,
-    )
+    sampler = sampler or cfg.sampler(body, landmark_set_of(net).name)
     if len(sampler.lset) != net.cfg.num_landmarks:
         raise ValueError(
             f"the sampler simulates {len(sampler.lset)} landmarks, the network takes "

@@ -24,7 +24,7 @@ import torch
 from gst.body import BodyModel
 from gst.device import model_device, module_on
 from gst.lift.pretrain import LiftPretrainConfig, landmark_set_of, lift_terms
-from gst.lift.sampler import LiftBatch, LiftSampler
+from gst.lift.sampler import LiftBatch
 from gst.model.network import GSTNetwork
 
 __all__ = ["PriorRehearsal"]
@@ -52,17 +52,8 @@ class PriorRehearsal:
                 f"prior rehearsal: weight > 0 and batch_size >= 1, got {self.weight}, "
                 f"{self.batch_size}"
             )
-        r = self.recipe
-        self.sampler = LiftSampler(
-            self.body,
-            crop_size=self.crop_size,
-            seed=r.seed,
-            landmark_set=landmark_set_of(self.net).name,
-            random_share=r.random_share,
-            uniform_p=r.uniform_p,
-            whole_body_flips=r.whole_body_flips,
-            lean_deg=r.lean_deg,
-            noise_scale=r.noise_scale,
+        self.sampler = self.recipe.sampler(
+            self.body, landmark_set_of(self.net).name, crop_size=self.crop_size
         )
 
     def draw(self, generator: torch.Generator) -> LiftBatch:

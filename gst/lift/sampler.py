@@ -199,8 +199,7 @@ class LiftSampler:
         self.noise = noise if isinstance(noise, dict) else {"motion": noise, "random": noise}
         if not whole_body_flips:  # the person read as facing the other way: not simulated
             self.noise = {k: replace(m, flip=0.0) for k, m in self.noise.items()}
-        if noise_scale != 1.0:  # scatter and gross-error rates of the measured model, scaled
-            self.noise = {k: m.scaled(noise_scale) for k, m in self.noise.items()}
+        self.noise = {k: m.scaled(noise_scale) for k, m in self.noise.items()}
         for m in self.noise.values():
             if m.set_name != landmark_set:
                 raise ValueError(

@@ -474,14 +474,13 @@ def composite(
 
 
 def rasterize_cpu(
-    scenes: SplatScenes, settings: CompositeSettings = CompositeSettings()
+    sc: SplatScenes, settings: CompositeSettings = CompositeSettings()
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Render batched, validated inputs on any torch device.
 
     Returns (colour sum (S, C, H, W, 3) without background, alpha (S, C, H, W),
     alpha-weighted depth sum (S, C, H, W)).
     """
-    sc = scenes
     s, n = sc.means.shape[:2]
     c = sc.viewmats.shape[1]
     proj = project_gaussians(

@@ -24,4 +24,4 @@ class SplatScenes:
     Ks: Tensor  # (S, C, 3, 3) intrinsics, integer pixel centres, no skew
     width: int
     height: int
-    near: float = 0.01  # Gaussians with camera z below this are culled (metres)
+    near: float  # Gaussians with camera z below this are culled (metres)
