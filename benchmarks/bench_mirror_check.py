@@ -13,6 +13,15 @@ test's mirrored and unmirrored crops score above 0.5 and 0.8, beside the time.
 
 2026-11-28 (docs in the closing note): test AUC up to 0.98 (demo) and 0.99 (lab), but it
 overfits within a few epochs; not yet part of the pipeline.
+
+2026-11-28, later: this split trains on every camera, so it measures a skill the pipeline cannot
+use. Built as `train` would (training cameras and frames only, labels from the fused bodies,
+early stopping on the last quarter of the training frames, a temperature and the training flip
+rate as prior; tried as this CNN, as frozen LPIPS-AlexNet features with a conv head, and as
+those features sampled at each landmark), the check called 30 of the lab's held-out camera's
+unmirrored crops mirrored while finding 3 of 19 flips, and on the demo's held-out crops found
+0 of 29 with 2-6 false (test AUC 0.65-0.70). A scene's 2 people in a few hundred crops teach
+camera-specific looks, not facing. Reverted (commit 53f9071's parent holds that code).
 """
 
 import sys

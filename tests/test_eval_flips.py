@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.eval.evaluator import PoseRecords
 from gst.eval.summary import pose_summary
-from gst.metrics.flips import landmark_sides, mirrored_landmarks, reference_in_crops, unmirror
+from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 
 HIPS, SHOULDERS = (23, 24), (11, 12)
 
@@ -55,8 +55,6 @@ def test_one_mirrored_pair_is_not_a_whole_body_flip_and_unsure_landmarks_never_c
     missing[24] = np.nan
     got = mirrored_landmarks(np.stack([hips_only, unsure, missing]), np.stack([ref] * 3))
     assert got.tolist() == [False, False, False]
-    sides = landmark_sides(np.stack([lm, _mirror(lm), hips_only, unsure]), np.stack([ref] * 4))
-    assert sides.tolist() == [1, -1, 0, 0]
 
 
 def test_wrong_shapes_are_refused():
@@ -109,7 +107,7 @@ def test_unmirror_exchanges_the_labels_of_the_chosen_rows_only():
 def test_training_crops_are_unmirrored_against_their_fused_body_only():
     from types import SimpleNamespace
 
-    from gst.train.scene_training import _landmark_sides, _unmirrored
+    from gst.train.scene_training import _unmirrored
 
     rng = np.random.default_rng(3)
     ref, lm = _pair(rng, 30.0)
@@ -119,9 +117,7 @@ def test_training_crops_are_unmirrored_against_their_fused_body_only():
     crops = SimpleNamespace(R=torch.eye(3).repeat(3, 1, 1), t=torch.zeros(3, 3), K=K)
     targets = SimpleNamespace(weight=torch.tensor([1.0, 1.0, 0.0]), joints_world=world)
     lms = torch.as_tensor(np.stack([lm, _mirror(lm), _mirror(lm)]))  # the third: no target
-    sides = _landmark_sides(crops, lms, targets)
-    assert sides.tolist() == [1, -1, 0]
-    out = _unmirrored(lms, sides)
+    out = _unmirrored(crops, lms, targets)
     same = lambda a, b: np.array_equal(a.numpy(), b.numpy(), equal_nan=True)  # noqa: E731
     assert same(out[0], lms[0]) and same(out[2], lms[2])
     assert same(out[1], lms[0])

@@ -6,7 +6,6 @@ Hand-built detections with skeletons on a real video file, through the whole loo
 import numpy as np
 import pytest
 
-from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.detect.boxes import containment
 from gst.detect.persons import LIMB_JOINTS
 from gst.track import BoxDepthPredictor, Detection, TrackOptions, column_array, track_video
@@ -187,38 +186,6 @@ def test_a_landmark_predictor_gets_the_crops_landmarks(video, tmp_path):
     frame_uv = (lm[0, :, :2] - K[0][:2, 2]) / K[0][0, 0] * Kf[0, 0] + Kf[:2, 2]
     np.testing.assert_allclose(frame_uv, skeleton(boxes[0, 0])[:, :2], atol=1e-3)
     np.testing.assert_array_equal(lm[..., 2], 1.0)
-
-
-class CorrectingPredictor(LandmarkPredictor):
-    """A landmark predictor with a flip check that calls every other crop mirrored."""
-
-    def __init__(self):
-        super().__init__()
-        self.checked = []
-
-    def correct_landmarks(self, crops, landmarks):
-        self.checked.append(landmarks.copy())
-        flags = np.arange(len(landmarks)) % 2 == 1
-        out = landmarks.copy()
-        out[flags] = landmarks[flags][:, BLAZEPOSE_MIRROR]
-        return out, flags
-
-
-def test_the_predictors_flip_check_puts_the_landmarks_right_before_the_network(video, tmp_path):
-    path, boxes = video
-    pred = CorrectingPredictor()
-    track_video(
-        path,
-        tmp_path / "flip",
-        HandDetector(boxes, "none"),
-        pred,
-        model=MODEL,
-        options=TrackOptions(batch_size=4, frames_per_group=8),
-    )
-    assert len(pred.checked) == len(pred.seen)
-    read, (_, given) = pred.checked[0], pred.seen[0]
-    np.testing.assert_array_equal(given[0], read[0])
-    np.testing.assert_array_equal(given[1], read[1][BLAZEPOSE_MIRROR])
 
 
 class UpPredictor(LandmarkPredictor):

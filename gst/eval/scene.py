@@ -27,7 +27,6 @@ from gst.eval.report import write_report
 from gst.eval.summary import pose_summary
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.model.flip_check import flip_check_of
 from gst.train.distill import read_fused_bodies
 from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
@@ -50,8 +49,6 @@ class EvaluateSettings(BaseModel):
     heldout_frames: float = 0.25  # only for checkpoints that do not record their held-out frames
     # Feed each crop's landmarks to models with landmark tokens (the store's, else BlazePose)
     landmarks: bool = True
-    # put right the landmarks the model's flip check calls left/right mirrored (as `track` does)
-    flip_check: bool = True
     render_size: int = 128  # novel views are rendered and scored at this size
     max_groups: int | None = None  # cap on (frame, person) groups for novel views (None: all)
     compare_pretrained: bool = True  # also evaluate models/pretrain.pt, side by side
@@ -65,17 +62,6 @@ def _model(path: Path, body_cache: dict):
     if spec not in body_cache:
         body_cache[spec] = load_body_model(spec)
     return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
-
-
-def _flip_checked(ckpt, path: Path, crops, name: str):
-    """The crops' landmarks with those the model's flip check (trained in `train`; none: as
-    read) calls left/right mirrored exchanged, as `track` feeds them."""
-    check = flip_check_of(ckpt.extra, str(path))
-    if check is None or crops.landmarks is None:
-        return crops.landmarks
-    landmarks, flags = check.correct(crops.images, crops.landmarks)
-    log.info("evaluate %s: the flip check exchanged left/right on %d crops", name, flags.sum())
-    return landmarks
 
 
 def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple[list, int | None]:
@@ -174,8 +160,6 @@ def evaluate_scene(
         landmarks = crops.landmarks
         if not p.landmarks:
             crops.landmarks = None
-        elif p.flip_check:
-            crops.landmarks = _flip_checked(ckpt, path, crops, name)
         results[name] = evaluate_model(
             net,
             task,

@@ -61,16 +61,6 @@ def save_checkpoint(
     )
 
 
-def add_checkpoint_extra(path: str | Path, **items) -> None:
-    """Add entries (tensors, numbers, strings, dicts of them) to a checkpoint's `extra`, in
-    place (atomically: a temporary file renamed)."""
-    ckpt = torch.load(Path(path), map_location="cpu", weights_only=True)
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise ValueError(f"{path}: not a GST checkpoint (expected format '{FORMAT}')")
-    ckpt["extra"] = {**(ckpt.get("extra") or {}), **items}
-    atomic_torch_save(ckpt, path)
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class GSTCheckpoint:
     """A checkpoint as `load_checkpoint` reads it (the file's layout: module doc). `trainer`:

@@ -26,7 +26,6 @@ from gst.body import load_body_model
 from gst.device import model_device
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.model.flip_check import flip_check_of
 from gst.model.landmarks import LandmarkInput, landmark_input, select_landmarks
 from gst.model.preprocess import check_crops, network_input, to_float_images
 
@@ -137,8 +136,7 @@ class GSTPredictor:
     """A checkpoint ready for inference. `image_path`: "auto" lets pose-only crops that have
     landmarks skip the image path when the network's image gate is negligible
     (`image_shapes_pose`; crops without landmarks and Gaussian outputs always use the image);
-    "always" runs the image path for every crop. `flip_check`: apply the checkpoint's check for
-    left/right-mirrored landmarks (`correct_landmarks`), when it holds one."""
+    "always" runs the image path for every crop."""
 
     def __init__(
         self,
@@ -149,7 +147,6 @@ class GSTPredictor:
         batch_size: int = 32,
         body_model: str | None = None,
         image_path: str = "auto",
-        flip_check: bool = True,
     ):
         if image_path not in ("auto", "always"):
             raise ValueError(f"image_path must be 'auto' or 'always', got {image_path!r}")
@@ -163,8 +160,6 @@ class GSTPredictor:
         self.name = f"gst-{self.network.cfg.name}"
         self.checkpoint = str(checkpoint)
         self.pose_from_landmarks = image_path == "auto" and not image_shapes_pose(self.network)
-        # the scene's check for BlazePose's left/right flips, trained in `train` (None: none)
-        self.flip_check = flip_check_of(ckpt.extra, str(checkpoint)) if flip_check else None
 
     @property
     def accepts_landmarks(self) -> bool:
@@ -183,25 +178,16 @@ class GSTPredictor:
     def needs_pixels(self, landmarks: np.ndarray | torch.Tensor) -> np.ndarray:
         """(B,) bool: whether pose-only prediction reads each crop's pixels, given the crops'
         (B, 33, 3) landmarks: False for crops whose pose comes from their landmarks alone
-        (`image_path` auto, a negligible image gate, at least one landmark the network uses, no
-        flip check: it reads the pixels). A caller may hand those crops in blank (tracking skips
-        cutting them)."""
+        (`image_path` auto, a negligible image gate, at least one landmark the network uses).
+        A caller may hand those crops in blank (tracking skips cutting them)."""
         n = len(landmarks)
-        if self.pose_input != "landmarks" or n == 0 or self.flip_check is not None:
+        if self.pose_input != "landmarks" or n == 0:
             return np.ones(n, bool)
         # LandmarkInput.has_landmarks in numpy (the tracking loop asks for every frame): a crop
         # has landmarks when one of the network's set is finite with a confidence above 0
         lm = select_landmarks(torch.as_tensor(landmarks), self.network.cfg.num_landmarks).numpy()
         usable = np.isfinite(lm).all(-1) & (np.nan_to_num(lm[..., 2]) > 0)
         return ~usable.any(1)
-
-    def correct_landmarks(self, crops, landmarks):
-        """(landmarks, (B,) bool): the crops' (B, 33, 3) landmarks with those the flip check
-        calls left/right mirrored exchanged, and which those are; unchanged without a check.
-        Callers apply it once, before `predict` and anything else that reads the landmarks."""
-        if self.flip_check is None or len(landmarks) == 0:
-            return landmarks, np.zeros(len(landmarks), dtype=bool)
-        return self.flip_check.correct(crops, landmarks)
 
     @property
     def accepts_up(self) -> bool:

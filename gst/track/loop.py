@@ -192,10 +192,6 @@ class _Group:
         self.align = align
         self.fitter = fitter
         self.with_landmarks = accepts_landmarks(predictor)
-        # optional predictor method: (crops, landmarks) -> (landmarks put right, flags)
-        self.correct = (
-            getattr(predictor, "correct_landmarks", None) if self.with_landmarks else None
-        )
         # the camera's up direction (3,), for a predictor that reads it; None: not known
         self.up = up if accepts_up(predictor) else None
         self.frames: list[PendingFrame] = []
@@ -214,8 +210,6 @@ class _Group:
         crops = np.stack([c.crop_rgb for c in part])
         Ks = np.stack([c.K_crop for c in part])
         lms = np.stack([c.landmarks_crop for c in part])
-        if self.correct is not None:  # BlazePose's left/right flips, before anything reads them
-            lms, _ = self.correct(crops, lms)
         extra = {"landmarks": lms} if self.with_landmarks else {}
         if self.up is not None:
             extra["up"] = np.repeat(self.up[None], n, axis=0)

@@ -20,11 +20,6 @@ world's up direction in the camera frame, for calibrated cameras only, when
 Optional method: `predictor.needs_pixels(landmarks (N, 33, 3)) -> (N,) bool`; the loop hands
 crops for which it says False in blank, without cutting them (a predictor that takes those
 crops' pose from their landmarks alone).
-
-Optional method, for predictors that accept landmarks: `predictor.correct_landmarks(crops,
-landmarks (B, 33, 3)) -> (landmarks, (B,) bool)`; the loop replaces the detector's landmarks by
-what it returns before the network, the alignment and the pose fit read them (GSTPredictor:
-its checkpoint's check for BlazePose's left/right flips, gst.model.flip_check).
 """
 
 from __future__ import annotations

@@ -100,9 +100,6 @@ class TrackSettings(BaseModel):
     # gate shows the image's share negligible (gst.model.inference.image_shapes_pose; same
     # accuracy at a quarter of the network's time, docs/track_evaluation.md); 'always': never skip
     image_path: Literal["auto", "always"] = "auto"
-    # apply the model's check for BlazePose's left/right flips (trained in `train` where the rig
-    # labelled them; gst.model.flip_check) to each crop's landmarks before the network reads them
-    flip_check: bool = True
     # where the network runs (gst.device): auto is the GPU when PyTorch sees one, else the CPU;
     # decoding, the person model and the pose fit stay on the CPU
     device: str = "auto"
@@ -287,7 +284,6 @@ def track_scene(
         with_gaussians=with_gaussians,
         batch_size=s.batch_size,
         image_path=s.image_path,
-        flip_check=s.flip_check,
     )
     name, pose_input = loaded.name, loaded.pose_input
     kind, why = choose_detector(s)  # a missing 'blazepose' fails here, not in a worker
@@ -295,12 +291,11 @@ def track_scene(
     detector_info = _detector_info(kind, why, s)
     model_info = model_provenance(request.checkpoint, name, request.scene, pose_input)
     log.info(
-        "model: %s, trained on %s; pose from %s (track.image_path: %s); flip check: %s%s",
+        "model: %s, trained on %s; pose from %s (track.image_path: %s)%s",
         name,
         _describe_training(model_info.trained_on),
         pose_input,
         s.image_path,
-        "on" if loaded.flip_check is not None else "none",
         f", {model_info.reprojection_feedback} rounds of reprojection feedback"
         if model_info.reprojection_feedback
         else "",
@@ -325,7 +320,6 @@ def track_scene(
         batch_size=s.batch_size,
         device=device,
         image_path=s.image_path,
-        flip_check=s.flip_check,
     )
     rig = request.rig
     jobs = []

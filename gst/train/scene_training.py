@@ -26,10 +26,9 @@ from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
 from gst.device import resolve_device
-from gst.metrics.flips import landmark_sides, reference_in_crops, unmirror
+from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import add_checkpoint_extra, load_checkpoint, network_from_checkpoint
-from gst.model.flip_check import FlipCheck
+from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
 from gst.model.presets import get_preset
 from gst.render.ply import write_gaussians_ply
@@ -42,7 +41,6 @@ from gst.train.evaluation import (
     novel_view_pairs,
     pose_metrics,
 )
-from gst.train.flip_check import FlipCheckReport, FlipCheckSettings, train_flip_check
 from gst.train.keypoints import keypoints_from_landmarks, store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.occlusion import occluder_masks
@@ -110,10 +108,6 @@ class TrainSettings(BaseModel):
     # so the network learns the body its landmarks describe (docs/training.md, "Mirrored
     # landmarks"); held-out crops are never touched.
     unmirror_landmarks: bool = True
-    # With unmirror_landmarks and landmark tokens: learn from the same training crops to see
-    # those flips in the pixels, and keep the check in the model, which `track` and `evaluate`
-    # apply before the network (gst.train.flip_check; docs/training.md, "Flip check").
-    flip_check: FlipCheckSettings = FlipCheckSettings()
     # Rehearse the render-free landmark prior beside every multi-view step (gst.lift.rehearsal):
     # the pretraining's supervised terms on `rehearsal_batch` simulated detections, weighted by
     # `rehearsal`, so that the scene's few people do not overwrite what it learnt of everyone
@@ -179,38 +173,29 @@ def _contact_sheet(images, path: Path, max_rows: int = 8) -> None:
 
 @dataclass(frozen=True)
 class PreparedCrops:
-    """The crops training sees, the held-out cameras and the first held-out frame (None: none),
-    and the flip check trained on them."""
+    """The crops training sees, the held-out cameras and the first held-out frame (None: none)."""
 
     crops: CropSet
     heldout_cameras: list[str]
     first_heldout_frame: int | None
-    # the per-scene check for BlazePose's left/right flips (None: not trained) and its report
-    flip_check: FlipCheck | None = None
-    flip_check_report: FlipCheckReport | None = None
 
 
-def _landmark_sides(crops: CropSet, landmarks: torch.Tensor, targets) -> np.ndarray:
-    """(N,) gst.metrics.flips.landmark_sides of each crop's landmarks against its fused-body
-    target (`targets`, gst.train.distill.DistillTargets); 0 where a crop has none."""
-    sides = np.zeros(len(landmarks), dtype=np.int8)
+def _unmirrored(crops: CropSet, landmarks: torch.Tensor, targets) -> torch.Tensor:
+    """`landmarks` with the left/right labels exchanged on the crops that have a fused-body
+    target (`targets`, gst.train.distill.DistillTargets) and whose hips and shoulders that body
+    shows mirrored."""
     rows = torch.nonzero(targets.weight > 0)[:, 0]
-    if len(rows):
-        reference = reference_in_crops(
-            targets.joints_world[rows], crops.R[rows], crops.t[rows], crops.K[rows]
-        )
-        sides[rows.numpy()] = landmark_sides(landmarks[rows].numpy(), reference)
-    return sides
-
-
-def _unmirrored(landmarks: torch.Tensor, sides: np.ndarray) -> torch.Tensor:
-    """`landmarks` with the left/right labels exchanged on the crops whose hips and shoulders
-    their fused body shows mirrored (`sides` -1, `_landmark_sides`)."""
-    flags = sides < 0
+    if len(rows) == 0:
+        return landmarks
+    reference = reference_in_crops(
+        targets.joints_world[rows], crops.R[rows], crops.t[rows], crops.K[rows]
+    )
+    flags = np.zeros(len(landmarks), dtype=bool)
+    flags[rows.numpy()] = mirrored_landmarks(landmarks[rows].numpy(), reference)
     log.info(
         "distill: %d of %d training crops have left/right mirrored landmarks; trained un-mirrored",
         int(flags.sum()),
-        int((sides != 0).sum()),
+        len(rows),
     )
     return unmirror(landmarks, flags)
 
@@ -240,7 +225,7 @@ def prepare_crops(
             f"train.heldout_cameras {unknown} are not cameras of {crops_h5} ({crops.camera_names})"
         )
     cut = heldout_frame_start(crops.frame, p.heldout_frames)
-    landmarks = check = check_report = None
+    landmarks = None
     if feed_landmarks or (multiview and (p.keypoints or p.distill)):
         landmarks, source = store_landmarks(crops_h5, crops.images, progress=progress)
         log.info(
@@ -261,12 +246,7 @@ def prepare_crops(
             # the rig's bodies (every crop allowed: the fuse stage's own) say which training
             # crops are mirrored; the teacher is then refitted on the corrected landmarks
             rig = teacher(landmarks.numpy(), np.ones(len(crops), dtype=bool), work)
-            sides = _landmark_sides(crops, landmarks, distill_targets(crops, rig, allowed))
-            if feed_landmarks and p.flip_check.enabled:
-                check, check_report = train_flip_check(
-                    crops.images, landmarks, sides, crops.frame.numpy(), p.flip_check
-                )
-            landmarks = _unmirrored(landmarks, sides)
+            landmarks = _unmirrored(crops, landmarks, distill_targets(crops, rig, allowed))
         bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
         crops.distill = distill_targets(crops, bodies, allowed)
         log.info(
@@ -304,7 +284,7 @@ def prepare_crops(
             int(torch.isfinite(crops.anchors).all(1).sum()),
             len(crops),
         )
-    return PreparedCrops(crops, list(heldout), cut, check, check_report)
+    return PreparedCrops(crops, list(heldout), cut)
 
 
 @dataclass(frozen=True)
@@ -431,12 +411,6 @@ def train_scene(
     best = run_dir / "best.pt"
     out.model.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(best, out.model)
-    if prepared.flip_check is not None:
-        add_checkpoint_extra(out.model, flip_check=prepared.flip_check.to_state())
-        out.reports.mkdir(parents=True, exist_ok=True)
-        (out.reports / "flip_check.json").write_text(
-            json.dumps(prepared.flip_check_report.to_dict(), indent=2)
-        )
     net = network_from_checkpoint(load_checkpoint(best)).eval()
     summary = _write_reports(net, task, crops, heldout, cut, fit, out)
     shutil.rmtree(run_dir)
