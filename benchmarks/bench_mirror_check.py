@@ -21,7 +21,7 @@ rate as prior; tried as this CNN, as frozen LPIPS-AlexNet features with a conv h
 those features sampled at each landmark), the check called 30 of the lab's held-out camera's
 unmirrored crops mirrored while finding 3 of 19 flips, and on the demo's held-out crops found
 0 of 29 with 2-6 false (test AUC 0.65-0.70). A scene's 2 people in a few hundred crops teach
-camera-specific looks, not facing. Reverted (commit 53f9071's parent holds that code).
+camera-specific looks, not facing. Reverted (commit 36c90ee holds the CNN version).
 """
 
 import sys
