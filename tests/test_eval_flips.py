@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.eval.evaluator import PoseRecords
 from gst.eval.summary import pose_summary
-from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
+from gst.metrics.flips import landmark_sides, mirrored_landmarks, reference_in_crops, unmirror
 
 HIPS, SHOULDERS = (23, 24), (11, 12)
 
@@ -55,6 +55,8 @@ def test_one_mirrored_pair_is_not_a_whole_body_flip_and_unsure_landmarks_never_c
     missing[24] = np.nan
     got = mirrored_landmarks(np.stack([hips_only, unsure, missing]), np.stack([ref] * 3))
     assert got.tolist() == [False, False, False]
+    sides = landmark_sides(np.stack([lm, _mirror(lm), hips_only, unsure]), np.stack([ref] * 4))
+    assert sides.tolist() == [1, -1, 0, 0]
 
 
 def test_wrong_shapes_are_refused():

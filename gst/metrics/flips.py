@@ -23,12 +23,13 @@ _LANDMARK_PAIRS = ((23, 24), (11, 12))  # hips, shoulders
 _JOINT_PAIRS = ((1, 2), (16, 17))  # SMPL layout: left/right hip, left/right shoulder
 
 
-def mirrored_landmarks(
+def landmark_sides(
     landmarks: np.ndarray, reference2d: np.ndarray, min_confidence: float = 0.5
 ) -> np.ndarray:
-    """(N,) bool: the (N, 33, 3) landmarks (u, v, confidence) are left/right mirrored against
-    the reference joints (N, 24, 2) in the same pixels. False where a compared landmark is
-    missing or below `min_confidence`."""
+    """(N,) int8: +1 where the (N, 33, 3) landmarks (u, v, confidence) put both the hip pair and
+    the shoulder pair on their own sides of the reference joints (N, 24, 2) in the same pixels,
+    -1 where both pairs lie nearer the opposite side's joints (mirrored), 0 otherwise (the pairs
+    disagree, or a compared landmark is missing or below `min_confidence`)."""
     lm = np.asarray(landmarks, np.float64)
     ref = np.asarray(reference2d, np.float64)
     if lm.ndim != 3 or lm.shape[1:] != (33, 3) or ref.shape != (len(lm), 24, 2):
@@ -36,7 +37,8 @@ def mirrored_landmarks(
             f"mirrored_landmarks: landmarks (N, 33, 3) and reference (N, 24, 2) expected, got "
             f"{lm.shape} and {ref.shape}"
         )
-    flipped = np.ones(len(lm), dtype=bool)
+    crossed_all = np.ones(len(lm), dtype=bool)
+    own_all = np.ones(len(lm), dtype=bool)
     for (ll, lr), (jl, jr) in zip(_LANDMARK_PAIRS, _JOINT_PAIRS, strict=True):
         a, b = lm[:, ll], lm[:, lr]
         usable = (
@@ -50,8 +52,18 @@ def mirrored_landmarks(
         crossed = np.linalg.norm(a[:, :2] - ref[:, jr], axis=1) + np.linalg.norm(
             b[:, :2] - ref[:, jl], axis=1
         )
-        flipped &= usable & (crossed < same)
-    return flipped
+        crossed_all &= usable & (crossed < same)
+        own_all &= usable & (same < crossed)
+    return own_all.astype(np.int8) - crossed_all.astype(np.int8)
+
+
+def mirrored_landmarks(
+    landmarks: np.ndarray, reference2d: np.ndarray, min_confidence: float = 0.5
+) -> np.ndarray:
+    """(N,) bool: the (N, 33, 3) landmarks (u, v, confidence) are left/right mirrored against
+    the reference joints (N, 24, 2) in the same pixels (`landmark_sides` -1). False where a
+    compared landmark is missing or below `min_confidence`."""
+    return landmark_sides(landmarks, reference2d, min_confidence) < 0
 
 
 def reference_in_crops(
