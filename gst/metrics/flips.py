@@ -81,5 +81,5 @@ def unmirror(landmarks, mirrored):
     out = landmarks.clone() if isinstance(landmarks, torch.Tensor) else np.array(landmarks)
     rows = np.flatnonzero(np.asarray(mirrored, dtype=bool))
     if len(rows):
-        out[rows] = landmarks[rows][:, BLAZEPOSE_MIRROR]
+        out[rows] = landmarks[rows][:, np.array(BLAZEPOSE_MIRROR)]  # a writable copy: torch warns
     return out
