@@ -47,6 +47,7 @@ import torch.nn as nn  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from benchmarks.cli import bench_parser  # noqa: E402
+from benchmarks.flip_data import labelled_scene_crops  # noqa: E402
 from gst.body.markers import BLAZEPOSE_MIRROR  # noqa: E402
 from gst.lift.recipe import attach_landmarks  # noqa: E402
 from gst.metrics.flips import landmark_sides, reference_in_crops, unmirror  # noqa: E402
@@ -217,21 +218,8 @@ def score_set(name, feat, head, temp, prior_lo, imgs, lms, sides, cams, cam_name
 
 
 def scene_set(ws: Path, reference: str):
-    from gst.eval.scene import fused_reference
-    from gst.train.keypoints import store_landmarks
-    from gst.train.scene_truth import attach_scene_truth
-    from gst.train.views import load_cropset
-
-    crops, boxes = load_cropset(ws / "crops" / "crops.h5")
-    lm, _ = store_landmarks(ws / "crops" / "crops.h5", crops.images)
-    if reference == "truth":
-        attach_scene_truth(crops, boxes, ws / "synth")
-    else:
-        fused_reference(crops, next((ws / "fused").glob("*.parquet")))
-    ok = crops.truth["has_truth"].numpy()
-    ref = reference_in_crops(crops.truth["joints_world"], crops.R, crops.t, crops.K)
-    sides = np.where(ok, landmark_sides(lm.numpy(), ref), 0)
-    return crops.images, lm.float(), sides, crops.camera.numpy(), crops.camera_names
+    crops, lm, sides = labelled_scene_crops(ws, reference)
+    return crops.images, lm, sides, crops.camera.numpy(), crops.camera_names
 
 
 def main() -> None:

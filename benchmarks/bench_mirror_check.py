@@ -36,27 +36,18 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from benchmarks.flip_data import labelled_scene_crops
 from gst.body.markers import BLAZEPOSE_MIRROR
-from gst.eval.scene import fused_reference
-from gst.metrics.flips import mirrored_landmarks, reference_in_crops
-from gst.train.keypoints import store_landmarks
-from gst.train.scene_truth import attach_scene_truth
-from gst.train.views import heldout_frame_start, load_cropset
+from gst.train.views import heldout_frame_start
 
 torch.manual_seed(0)
 np.random.seed(0)
 ws = Path(sys.argv[1])
 ref = sys.argv[2] if len(sys.argv) > 2 else "synth"
-crops, boxes = load_cropset(ws / "crops" / "crops.h5")
-crops.landmarks, src = store_landmarks(ws / "crops" / "crops.h5", crops.images)
-if ref == "synth":
-    attach_scene_truth(crops, boxes, ws / "synth")
-else:
-    fused_reference(crops, next((ws / "fused").glob("*.parquet")))
+crops, landmarks, sides = labelled_scene_crops(ws, "truth" if ref == "synth" else "fused")
 ok = crops.truth["has_truth"].numpy()
-ref2d = reference_in_crops(crops.truth["joints_world"], crops.R, crops.t, crops.K)
-lm = crops.landmarks.numpy()
-mir = mirrored_landmarks(lm, ref2d) & ok
+lm = landmarks.numpy()
+mir = sides < 0
 N = len(lm)
 frames = crops.frame.numpy()
 cut = heldout_frame_start(crops.frame, 0.25)
@@ -64,7 +55,7 @@ train = ok & (frames < cut)
 test = ok & (frames >= cut)
 print(
     f"crops {N}, with ref {ok.sum()}, mirrored {mir.sum()} (train {mir[train].sum()} of "
-    f"{train.sum()}, test {mir[test].sum()} of {test.sum()}), landmarks from {src}, cut {cut}"
+    f"{train.sum()}, test {mir[test].sum()} of {test.sum()}), cut {cut}"
 )
 
 imgs = crops.images.float()
