@@ -61,24 +61,19 @@ DECIDING = (11, 12, 23, 24)
 
 
 class Features(nn.Module):
-    """AlexNet's first three layers (LPIPS's weights), frozen: (N, S, S, 3) uint8 ->
-    (N, 576, 15, 15); layer 2 and layer 3 upsampled."""
+    """LPIPS's AlexNet, frozen, read at its second and third layers: (N, S, S, 3) uint8 ->
+    (N, 576, 15, 15), the third upsampled to the second's cells."""
 
     def __init__(self):
         super().__init__()
-        alex = load_lpips().backbone.convs
-        self.convs = nn.ModuleList([alex[0], alex[1], alex[2]]).requires_grad_(False)
-        self.shift = torch.tensor((-0.030, -0.088, -0.188)).view(1, 3, 1, 1)
-        self.scale = torch.tensor((0.458, 0.448, 0.450)).view(1, 3, 1, 1)
+        self.lpips = load_lpips()  # its input scaling and backbone, as the LPIPS distance uses
 
     @torch.no_grad()
     def forward(self, images) -> torch.Tensor:
         x = torch.as_tensor(images).permute(0, 3, 1, 2).float() / 255.0
         x = F.interpolate(x, size=(FEATURE_INPUT, FEATURE_INPUT), mode="area")
-        x = (x * 2 - 1 - self.shift) / self.scale
-        x = F.max_pool2d(F.relu(self.convs[0](x)), 3, 2)
-        second = F.relu(self.convs[1](x))
-        third = F.relu(self.convs[2](F.max_pool2d(second, 3, 2)))
+        x = (x * 2 - 1 - self.lpips.shift) / self.lpips.scale
+        _, second, third, *_ = self.lpips.backbone(x)
         third = F.interpolate(third, size=second.shape[-2:], mode="bilinear", align_corners=False)
         return torch.cat([second, third], 1)
 

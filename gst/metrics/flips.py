@@ -34,7 +34,7 @@ def landmark_sides(
     ref = np.asarray(reference2d, np.float64)
     if lm.ndim != 3 or lm.shape[1:] != (33, 3) or ref.shape != (len(lm), 24, 2):
         raise ValueError(
-            f"mirrored_landmarks: landmarks (N, 33, 3) and reference (N, 24, 2) expected, got "
+            f"landmark sides: landmarks (N, 33, 3) and reference (N, 24, 2) expected, got "
             f"{lm.shape} and {ref.shape}"
         )
     crossed_all = np.ones(len(lm), dtype=bool)
