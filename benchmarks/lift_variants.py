@@ -6,8 +6,9 @@ the same seed on simulated detections, then scores it on rendered worlds with Bl
 detections (`gst.lift.dataset` worlds, `NAME=world.npz`), printing wall time and samples per
 second beside MPJPE / PA-MPJPE and the 2D agreement of the projected limb joints with the
 detected limb landmarks (% of the crop, `gst.lift.pretrain.limb_agreement`). Variants are named
-`key=value,...` over the sampler's `random_share`, `uniform_p`, `whole_body_flips` and the run's
-`steps`, `lr`, `refine` (rounds of reprojection feedback, gst.model.refine):
+`key=value,...` over the sampler's `random_share`, `uniform_p`, `whole_body_flips`, `arm_mix_p`,
+`leg_mix_p` (limb mixing) and the run's `steps`, `lr`, `refine` (rounds of reprojection
+feedback, gst.model.refine):
 
     python benchmarks/lift_variants.py --steps 1500 \\
         --val demo=/work/data/lift/demo_crops.npz \\
@@ -34,7 +35,13 @@ from gst.model.presets import get_preset
 from gst.model.refine import DEFAULT_ROUNDS
 from gst.train.recipe import build_network
 
-SAMPLER_KEYS = {"random_share": float, "uniform_p": float, "whole_body_flips": lambda v: v != "0"}
+SAMPLER_KEYS = {
+    "random_share": float,
+    "uniform_p": float,
+    "whole_body_flips": lambda v: v != "0",
+    "arm_mix_p": float,
+    "leg_mix_p": float,
+}
 RUN_KEYS = {"steps": int, "lr": float, "refine": int}
 
 

@@ -142,3 +142,34 @@ def test_lean_tilts_the_whole_body_about_horizontal_axes(body):
     leant = LiftSampler(body, seed=5, lean_deg=12.0).sample(8)
     assert torch.equal(same.joints_cam, again.joints_cam)
     assert not torch.allclose(same.rotmats_cam[:, 0], leant.rotmats_cam[:, 0])
+
+
+def test_limb_mixing_swaps_whole_chains_from_other_bank_poses(body):
+    from gst.lift.sampler import ARM_CHAINS, LEG_CHAINS
+    from synth.skeleton import mirror_angles
+
+    B = 64
+    base, _ = LiftSampler(body, seed=4)._angles(B)
+    arms = LiftSampler(body, seed=4, arm_mix_p=1.0)
+    mixed, _ = arms._angles(B)
+    arm_joints = [j for chain in ARM_CHAINS for j in chain]
+    rest = [j for j in range(24) if j not in arm_joints]
+    # everything but the arms is the unmixed pose (the mixing draws come after it)
+    assert torch.equal(mixed[:, rest], base[:, rest])
+    # each arm is a whole chain of one bank pose, as authored or mirrored
+    bank = arms.bank.numpy()
+    donors = np.concatenate([bank, mirror_angles(bank.copy())])
+    for chain in ARM_CHAINS:
+        got = mixed[:, list(chain)].numpy()  # (B, 5, 3)
+        gap = np.abs(got[:, None] - donors[None, :, list(chain)]).max(axis=(2, 3))  # (B, 2P)
+        assert (gap.min(axis=1) < 1e-6).all()
+        assert (np.abs(got - base[:, list(chain)].numpy()).max(axis=(1, 2)) > 1e-3).mean() > 0.9
+    # legs likewise with leg_mix_p; off (the default) the batches are the unmixed sampler's
+    legs, _ = LiftSampler(body, seed=4, leg_mix_p=1.0)._angles(B)
+    leg_joints = [j for chain in LEG_CHAINS for j in chain]
+    assert not torch.equal(legs[:, leg_joints], base[:, leg_joints])
+    assert torch.equal(legs[:, arm_joints], base[:, arm_joints])
+    off = LiftSampler(body, seed=4, arm_mix_p=0.0, leg_mix_p=0.0).sample(8)
+    assert torch.equal(off.joints_cam, LiftSampler(body, seed=4).sample(8).joints_cam)
+    with pytest.raises(ValueError, match="arm_mix_p"):
+        LiftSampler(body, arm_mix_p=1.5)

@@ -74,6 +74,11 @@ class LiftPretrainConfig:
     # (docs/landmark_prior.md "Noise level"), and a lifter taught the renders' noise trusts
     # real landmarks too little
     noise_scale: float = 0.5
+    # limb mixing (gst.lift.sampler, docs/landmark_prior.md "Limb mixing"): the chance that an
+    # arm (a leg) of a sampled pose takes another pose's angles; the library's whole poses alone
+    # taught the lifter to pull real people's raised arms back down
+    arm_mix_p: float = 0.3
+    leg_mix_p: float = 0.0
     # torch threads of the training loop; None: with `prefetch` the sampler runs beside it in a
     # background thread, so the loop takes the cores that leaves (without: left as they are)
     threads: int | None = None
@@ -95,6 +100,8 @@ class LiftPretrainConfig:
             whole_body_flips=self.whole_body_flips,
             lean_deg=self.lean_deg,
             noise_scale=self.noise_scale,
+            arm_mix_p=self.arm_mix_p,
+            leg_mix_p=self.leg_mix_p,
         )
 
 

@@ -43,6 +43,7 @@ from gst.body import BodyModel
 from gst.body.joint_limits import sample_body_pose
 from gst.body.markers import MarkerModel
 from gst.body.rotations import axis_angle_to_matrix
+from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.body.subsets import vertex_subset
 from gst.data.crop import CROP_ENLARGE
 from gst.lift.errors import LANDMARK_SETS
@@ -53,6 +54,20 @@ from synth.skeleton import PARENTS, clip_to_limits, mirror_angles, rest_correcti
 from synth.world import heading_rotation
 
 OCCLUSION_DEPTH = 0.25  # metres, as the synthetic truth's visibility rule
+
+# the joints of each arm (collar to hand) and each leg (hip to foot): the chains `limb mixing`
+# swaps between poses
+ARM_CHAINS = tuple(
+    tuple(
+        SMPL_JOINT_NAMES.index(f"{side}_{part}")
+        for part in ("collar", "shoulder", "elbow", "wrist", "hand")
+    )
+    for side in ("left", "right")
+)
+LEG_CHAINS = tuple(
+    tuple(SMPL_JOINT_NAMES.index(f"{side}_{part}") for part in ("hip", "knee", "ankle", "foot"))
+    for side in ("left", "right")
+)
 
 
 @dataclass
@@ -189,6 +204,8 @@ class LiftSampler:
         whole_body_flips: bool = True,
         lean_deg: float = 0.0,
         noise_scale: float = 1.0,
+        arm_mix_p: float = 0.0,
+        leg_mix_p: float = 0.0,
     ):
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x11F7]))
         self.body = body
@@ -210,6 +227,10 @@ class LiftSampler:
         self.blend_p, self.uniform_p, self.occluder_p = blend_p, uniform_p, occluder_p
         self.box_jitter, self.zbuffer = box_jitter, zbuffer
         self.lean = float(np.radians(lean_deg))
+        for name, p in (("arm_mix_p", arm_mix_p), ("leg_mix_p", leg_mix_p)):
+            if not 0 <= p <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {p}")
+        self.arm_mix_p, self.leg_mix_p = float(arm_mix_p), float(leg_mix_p)
         self.gen = torch.Generator().manual_seed(int(rng.integers(1 << 62)))
         bank, random = _pose_bank(rng, random_share=random_share)
         self.bank, self.bank_random = torch.from_numpy(bank), torch.from_numpy(random)
@@ -238,10 +259,31 @@ class LiftSampler:
         w = self._rand(B).numpy() * (self._rand(B).numpy() < self.blend_p)
         # a convex blend of in-limit angles stays in the limits; clip anyway (soft, cheap)
         out = clip_to_limits((1 - w)[:, None, None] * a + w[:, None, None] * b)
+        if self.arm_mix_p > 0 or self.leg_mix_p > 0:  # no draws when off: batches as before
+            out = self._mix_limbs(out)
         rnd = torch.where(
             torch.from_numpy(w > 0.5), self.bank_random[idx[1]], self.bank_random[idx[0]]
         )
         return torch.as_tensor(out, dtype=torch.float32), rnd
+
+    def _mix_limbs(self, out: np.ndarray) -> np.ndarray:
+        """Each arm (leg) of each pose takes, with probability `arm_mix_p` (`leg_mix_p`), its
+        angles from another bank pose (mirrored half the time): combinations the library never
+        authored, such as an arm held out over a lunge, which real people make and a lifter
+        trained on whole authored poses pulls back towards the library's (the lab capture's
+        raised arms, docs/landmark_prior.md "Limb mixing"). Joint angles are local to their
+        parent, so a swapped chain stays within its joints' limits."""
+        B = len(out)
+        donor = self.bank[torch.randint(len(self.bank), (B,), generator=self.gen)].numpy()
+        flip = self._rand(B).numpy() < 0.5
+        donor[flip] = mirror_angles(donor[flip])
+        for chains, p in ((ARM_CHAINS, self.arm_mix_p), (LEG_CHAINS, self.leg_mix_p)):
+            if p <= 0:
+                continue
+            for chain in chains:
+                take = np.flatnonzero(self._rand(B).numpy() < p)
+                out[np.ix_(take, chain)] = donor[np.ix_(take, chain)]
+        return out
 
     def local_rotations(self, angles: torch.Tensor) -> torch.Tensor:
         """Authored angles -> the body model's local rotations (B, 24, 3, 3), root authored."""
