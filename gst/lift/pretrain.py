@@ -75,8 +75,8 @@ class LiftPretrainConfig:
     # real landmarks too little
     noise_scale: float = 0.5
     # limb mixing (gst.lift.sampler, docs/landmark_prior.md "Limb mixing"): the chance that an
-    # arm (a leg) of a sampled pose takes another pose's angles; the library's whole poses alone
-    # taught the lifter to pull real people's raised arms back down
+    # arm (a leg) of a sampled pose takes another pose's angles, for limb combinations the
+    # library never authored (the lab's single-image bodies follow their landmarks more closely)
     arm_mix_p: float = 0.3
     leg_mix_p: float = 0.0
     # torch threads of the training loop; None: with `prefetch` the sampler runs beside it in a

@@ -269,10 +269,9 @@ class LiftSampler:
     def _mix_limbs(self, out: np.ndarray) -> np.ndarray:
         """Each arm (leg) of each pose takes, with probability `arm_mix_p` (`leg_mix_p`), its
         angles from another bank pose (mirrored half the time): combinations the library never
-        authored, such as an arm held out over a lunge, which real people make and a lifter
-        trained on whole authored poses pulls back towards the library's (the lab capture's
-        raised arms, docs/landmark_prior.md "Limb mixing"). Joint angles are local to their
-        parent, so a swapped chain stays within its joints' limits."""
+        authored, which real people make (docs/landmark_prior.md "Limb mixing": the lab
+        capture's single-image bodies follow their landmarks more closely). Joint angles are
+        local to their parent, so a swapped chain stays within its joints' limits."""
         B = len(out)
         donor = self.bank[torch.randint(len(self.bank), (B,), generator=self.gen)].numpy()
         flip = self._rand(B).numpy() < 0.5
