@@ -7,9 +7,10 @@ import torch
 
 from gst.body import load_body_model
 from gst.lift.errors import LIMB_LANDMARKS
-from gst.lift.sampler import LiftSampler, lean_rotations
+from gst.lift.sampler import ARM_CHAINS, LEG_CHAINS, LiftSampler, lean_rotations
 from synth.animate import pose_person
 from synth.motions import generate_motion
+from synth.skeleton import mirror_angles
 from synth.world import heading_rotation
 
 
@@ -145,9 +146,6 @@ def test_lean_tilts_the_whole_body_about_horizontal_axes(body):
 
 
 def test_limb_mixing_swaps_whole_chains_from_other_bank_poses(body):
-    from gst.lift.sampler import ARM_CHAINS, LEG_CHAINS
-    from synth.skeleton import mirror_angles
-
     B = 64
     base, _ = LiftSampler(body, seed=4)._angles(B)
     arms = LiftSampler(body, seed=4, arm_mix_p=1.0)
