@@ -13,6 +13,7 @@ from gst.track import (
 from gst.track.baseline import REST_JOINTS
 from gst.track.report import (
     SMPL_PARENTS,
+    draw_key,
     draw_people,
     joint_angles,
     plot_joint_angles,
@@ -87,3 +88,14 @@ def test_joint_angle_png(tracked):
     png = plot_joint_angles(path, d / "angles.png", min_rows=2)
     img = cv2.imread(str(png))
     assert img is not None and img.shape[0] > 400 and img.shape[1] > 800
+
+
+def test_overlay_key_names_both_skeletons_in_the_bottom_left_corner():
+    blank = np.zeros((480, 640, 3), np.uint8)
+    both = draw_key(blank.copy())
+    network_only = draw_key(blank.copy(), with_landmarks=False)
+    rows = np.flatnonzero(both.any(axis=(1, 2)))
+    cols = np.flatnonzero(both.any(axis=(0, 2)))
+    assert rows.min() > 480 // 2 and cols.max() < 640 * 3 // 4  # a corner, not the picture
+    # without landmarks one line fewer: it starts lower
+    assert np.flatnonzero(network_only.any(axis=(1, 2))).min() > rows.min()

@@ -105,6 +105,23 @@ def draw_people(frame_bgr: np.ndarray, rows: pa.Table) -> np.ndarray:
     return img
 
 
+def draw_key(img: np.ndarray, with_landmarks: bool = True) -> np.ndarray:
+    """A two-line key in the frame's bottom-left corner, in place: which skeleton is the
+    network's body and which the landmark model's (the overlay carries no other legend)."""
+    scale = max(0.4, max(img.shape[:2]) / 1600)
+    thick = max(1, round(scale * 2))
+    lines = [("id colour: network body (joints2d)", (80, 200, 255))]
+    if with_landmarks:
+        lines.append(("white: landmark model (red = unsure)", (255, 255, 255)))
+    step = int(28 * scale) + 4
+    y = img.shape[0] - 10 - step * (len(lines) - 1)
+    for text, colour in lines:
+        for c, w in (((0, 0, 0), thick + 2), (colour, thick)):
+            cv2.putText(img, text, (10, y), cv2.FONT_HERSHEY_SIMPLEX, scale, c, w, cv2.LINE_AA)
+        y += step
+    return img
+
+
 def write_overlay(
     video_path: str | Path, tracks_path: str | Path, out_path: str | Path, fourcc: str = "mp4v"
 ) -> Path:
@@ -115,6 +132,7 @@ def write_overlay(
     v = meta["video"]
     stride = int(v["stride"])
     frames_col = table.column("frame").to_numpy()
+    has_landmarks = "landmarks2d" in table.column_names
     out_path = Path(out_path)
     with atomic_path(out_path) as tmp:
         writer = cv2.VideoWriter(
@@ -134,7 +152,7 @@ def write_overlay(
                 end_s=None if end is None else end / v["fps"],
             ):
                 rows = table.filter(pa.array(frames_col == f.index))
-                writer.write(draw_people(f.image, rows))
+                writer.write(draw_key(draw_people(f.image, rows), has_landmarks))
         finally:
             writer.release()
     return out_path
@@ -170,6 +188,7 @@ def contact_sheet(
             cv2.putText(
                 im, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, colour, weight, cv2.LINE_AA
             )
+        draw_key(im, "landmarks2d" in table.column_names)
         tiles.append(cv2.copyMakeBorder(im, 2, 2, 2, 2, cv2.BORDER_CONSTANT))
     width = max(t.shape[1] for t in tiles)
     return np.concatenate(
