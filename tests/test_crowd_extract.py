@@ -9,6 +9,8 @@ import pytest
 from extract_scenes import make_scene
 
 from gst.data import AssociationConfig, CropStore, ExtractError, ExtractOptions, extract_scene
+from gst.data.evaluate import CropTruth, association_accuracy
+from gst.data.extract.scene import scores_by_source
 from tests.real_capture import NEEDS_MODELS
 
 
@@ -42,6 +44,32 @@ def test_keypoint_extraction_finds_both_people_everywhere(run, scene):
     store = CropStore(out)
     assert store.attrs["setting.association"] == "keypoints"
     assert len(store.multiview_groups(min_views=3)) >= 15  # 10 frames x 2 people
+
+
+@NEEDS_MODELS
+def test_truth_scores_by_view_source_cover_every_scored_crop(run):
+    rep, _ = run
+    by = rep.truth_by_source
+    assert by and set(by) <= {"refined", "detected", "projected", "single"}
+    assert sum(s.crops for s in by.values()) == rep.crops_scored
+    mean = sum(s.crops * s.mask_iou for s in by.values()) / rep.crops_scored
+    assert mean == pytest.approx(rep.mask_iou)
+
+
+def test_scores_by_source_say_what_each_kind_of_view_costs():
+    # frame 0: person 1 is truth 7 in two refined views; a projected view of person 1 shows
+    # truth 8 (someone else), so it is the one wrong crop
+    rows = [
+        CropTruth(0, "a", 1, 7, 0.8, "refined"),
+        CropTruth(0, "b", 1, 7, 0.6, "refined"),
+        CropTruth(0, "c", 1, 8, 0.2, "projected"),
+    ]
+    assert association_accuracy(rows)[0] == pytest.approx(2 / 3)
+    by = scores_by_source(rows)
+    assert by["refined"].crops == 2 and by["refined"].mask_iou == pytest.approx(0.7)
+    assert by["projected"].association_without == 1.0  # without it every crop is right
+    assert by["refined"].association_without == 1.0  # the projected crop alone: its own partner
+    assert scores_by_source([]) == {}
 
 
 @NEEDS_MODELS

@@ -17,6 +17,9 @@ class CropTruth:
     person_id: int  # predicted (tracker) id
     truth_id: int  # majority truth id under the predicted mask, 0 if it covers no one
     iou: float  # IoU with the truth mask of `truth_id` (0 when truth_id is 0)
+    # where the view came from in the keypoint association (gst.data.keypoints.people:
+    # 'refined', 'detected', 'projected' or 'single'); '' for the visual hull
+    source: str = ""
 
 
 def match_truth(pred: np.ndarray, truth: np.ndarray) -> tuple[int, float]:

@@ -156,6 +156,17 @@ def write_extract_report(
                 f"- truth views with >= 30% of the person's joints visible: {r.visible_views}, "
                 f"missed {r.visible_views_missed}"
             )
+    if len(r.truth_by_source) > 1 or any(r.truth_by_source):
+        lines += [
+            "",
+            "| view source | crops | mask IoU | association of the other crops |",
+            "| --- | ---: | ---: | ---: |",
+        ]
+        for source, sc in r.truth_by_source.items():
+            lines.append(
+                f"| {source or 'hull'} | {sc.crops} | {sc.mask_iou:.3f} | "
+                f"{_fmt(sc.association_without)} |"
+            )
     lines += [
         "",
         "| camera | crops | frames with people | frames without | mask IoU | masks s | crops s |",

@@ -191,9 +191,12 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
         # which slots' landmarks are the skeleton projected, not read (the file names its
         # source codes: keypoint_association.SOURCES)
         projected = np.zeros(len(slot_rows), bool)
+        sources = np.full(len(slot_rows), "", dtype=object)
         if "source" in pf:
-            code = str(pf.attrs["sources"]).split(",").index("projected")
-            projected = pf["source"][()] == code
+            names = str(pf.attrs["sources"]).split(",")
+            codes = pf["source"][()]
+            projected = codes == names.index("projected")
+            sources = np.asarray(names, dtype=object)[codes]
         by_frame: dict[int, list[tuple[int, int, np.ndarray, float, int]]] = {}
         drop = set(job.drop_ids)
         for r, ((f, slot, pid), view) in enumerate(zip(slot_rows, view_rows, strict=True)):
@@ -274,7 +277,7 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
                         )
                         if gt is not None:
                             tid, iou = score_against_truth(pmask, gt, gt_areas)
-                            scored.append(CropTruth(f, cam.name, pid, tid, iou))
+                            scored.append(CropTruth(f, cam.name, pid, tid, iou, sources[r]))
                 if gt is not None:
                     big = set(
                         np.nonzero(gt_areas >= job.min_truth_fraction * gt.size)[0].tolist()

@@ -116,6 +116,18 @@ class CameraReport:
 
 
 @dataclass
+class SourceScore:
+    """Synthetic truth, per source of the views (the keypoint association's 'refined',
+    'detected', 'projected' and 'single'; '' for the visual hull): how good that kind of view is,
+    and what it costs the rest (docs/extract.md, "Where the crowd IoU and association are lost")."""
+
+    crops: int
+    mask_iou: float  # mean over these crops
+    # association accuracy of all the other scored crops (these left out); None when none remain
+    association_without: float | None
+
+
+@dataclass
 class ExtractReport(Record):
     """What `extract_scene` did. Counts cover the whole store; truth scores this run's crops."""
 
@@ -146,6 +158,7 @@ class ExtractReport(Record):
     settings: dict = field(default_factory=dict)
     association_method: str = "hull"  # the path that ran: 'keypoints' or 'hull'
     single_view_crops: int = 0  # crops of people only one camera saw (keypoint path)
+    truth_by_source: dict[str, SourceScore] = field(default_factory=dict)
 
     def summary_line(self) -> str:
         return (

@@ -49,6 +49,7 @@ from gst.data.extract.options import (
     ExtractError,
     ExtractOptions,
     ExtractReport,
+    SourceScore,
 )
 from gst.data.store import CropBatch, CropStore, CropStoreWriter, merge_part
 from gst.detect.blazepose import import_litert
@@ -467,6 +468,18 @@ def _run_phases(plan: ExtractPlan, writer: CropStoreWriter, progress, executor_m
     return outcome
 
 
+def scores_by_source(rows: list[CropTruth]) -> dict[str, SourceScore]:
+    """Truth scores of the crops grouped by where their views came from (`CropTruth.source`)."""
+    out = {}
+    for source in sorted({r.source for r in rows}):
+        own = [r for r in rows if r.source == source]
+        rest = [r for r in rows if r.source != source]
+        acc, n = association_accuracy(rest)
+        iou = float(np.mean([r.iou for r in own]))
+        out[source] = SourceScore(len(own), iou, acc if n else None)
+    return out
+
+
 def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
     store = CropStore(plan.out_h5)
     cam_col = store.index.column("camera_index").to_numpy()
@@ -518,6 +531,7 @@ def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
         },
         association_method=plan.method,
         single_view_crops=int(np.count_nonzero(single)),
+        truth_by_source=scores_by_source(truth_rows),
     )
 
 
