@@ -156,7 +156,7 @@ def write_extract_report(
                 f"- truth views with >= 30% of the person's joints visible: {r.visible_views}, "
                 f"missed {r.visible_views_missed}"
             )
-    if len(r.truth_by_source) > 1 or any(r.truth_by_source):
+    if any(r.truth_by_source):  # the keypoint path names its views' sources; the hull does not
         lines += [
             "",
             "| view source | crops | mask IoU | association of the other crops |",
