@@ -87,6 +87,13 @@ def contact_sheet(store: CropStore, rows: int = 10, tile: int = 144) -> np.ndarr
     return sheet
 
 
+def _table(header: tuple[str, ...], rows: list[tuple]) -> list[str]:
+    """Markdown lines of a table after a blank line: the first column left-aligned, the others
+    right-aligned, each value through `_fmt`."""
+    out = ["", "| " + " | ".join(header) + " |", "| --- |" + " ---: |" * (len(header) - 1)]
+    return out + ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in rows]
+
+
 def _fmt(v) -> str:
     if v is None:
         return "n/a"
@@ -157,26 +164,22 @@ def write_extract_report(
                 f"missed {r.visible_views_missed}"
             )
     if any(r.truth_by_source):  # the keypoint path names its views' sources; the hull does not
-        lines += [
-            "",
-            "| view source | crops | mask IoU | association of the other crops |",
-            "| --- | ---: | ---: | ---: |",
-        ]
-        for source, sc in r.truth_by_source.items():
-            lines.append(
-                f"| {source or 'hull'} | {sc.crops} | {sc.mask_iou:.3f} | "
-                f"{_fmt(sc.association_without)} |"
-            )
-    lines += [
-        "",
-        "| camera | crops | frames with people | frames without | mask IoU | masks s | crops s |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for cam, c in r.per_camera.items():
-        lines.append(
-            f"| {cam} | {c.crops} | {c.frames_with_people} | {c.frames_without_people} | "
-            f"{_fmt(c.mask_iou)} | {c.seconds_masks:.1f} | {c.seconds_crops:.1f} |"
+        lines += _table(
+            ("view source", "crops", "mask IoU", "association of the other crops"),
+            [
+                (source or "hull", sc.crops, sc.mask_iou, sc.association_without)
+                for source, sc in r.truth_by_source.items()
+            ],
         )
+    lines += _table(
+        ("camera", "crops", "frames with people", "frames without", "mask IoU", "masks s",
+         "crops s"),
+        [
+            (cam, c.crops, c.frames_with_people, c.frames_without_people, c.mask_iou,
+             f"{c.seconds_masks:.1f}", f"{c.seconds_crops:.1f}")
+            for cam, c in r.per_camera.items()
+        ],
+    )  # fmt: skip
     lines += [
         "",
         "Timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in r.timings.items()),
