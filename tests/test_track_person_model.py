@@ -93,3 +93,37 @@ def test_segmenter_follows_people_between_detector_runs(frames):
             assert d < 1e-3
     assert every.detector_runs == len(small)
     assert sparse.detector_runs == 2
+
+
+def test_looking_again_finds_the_bystander_the_detector_skips():
+    """cam01: the man, the woman and, at the left wall, a bystander. BlazePose's detector (made
+    for one person) returns the two in front; looking again with them painted out finds him,
+    on the first frame and every frame after, with the detector still run only twice."""
+    from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+
+    cap = cv2.VideoCapture(str(LAB / "cam01.mp4"))
+    frames = [cap.read()[1] for _ in range(12)]
+    cap.release()
+    counts = {}
+    for look_again in (False, True):
+        det = PersonModelDetector(PersonModelConfig(detect_every=10, look_again=look_again))
+        found = [det.detect(f, i) for i, f in enumerate(frames)]
+        counts[look_again] = [len(d) for d in found]
+        assert det.detector_runs == 2
+    assert counts[False] == [2] * 12 and counts[True] == [3] * 12
+    w = frames[0].shape[1]
+    assert min(d.box[0] for d in found[0]) < 0.15 * w  # the new one stands at the left wall
+
+
+def test_paint_out_hides_only_the_grown_boxes():
+    from gst.track.person_detector import paint_out
+
+    img = np.zeros((100, 200, 3), np.uint8)
+    img[:, 100:] = 200
+    out = paint_out(img, [np.array([20.0, 20.0, 40.0, 60.0])], grow=0.1)
+    # grown by 2 px across and 4 px down: columns 18-41, rows 16-63, in the image's mean colour
+    assert (out[16:64, 18:42] == 100).all()
+    changed = (out != img).any(axis=2)
+    assert not changed[:16].any() and not changed[64:].any()
+    assert not changed[:, :18].any() and not changed[:, 42:].any()
+    assert (img[40, 30] == 0).all()  # the input is untouched

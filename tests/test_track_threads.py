@@ -41,6 +41,10 @@ def test_explicit_settings_and_other_detectors(cores):
     assert network_threads(TrackSettings(), "boxes", 1, 1) is None
     s = TrackSettings(detector_threads=1)
     assert network_threads(s, "blazepose", 1, 1) == 1  # 2 cores - 1 LiteRT thread
+    # the person model's other settings reach it (and its fingerprint, `settings()`)
+    assert person_model_config(TrackSettings()).look_again
+    off = person_model_config(TrackSettings(look_again=False, detect_every=5))
+    assert not off.look_again and off.detect_every == 5 and not off.settings()["look_again"]
 
 
 def test_a_jobs_torch_threads_are_put_back(monkeypatch):

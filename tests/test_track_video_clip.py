@@ -99,7 +99,7 @@ def test_one_id_per_person_visible(tracked):
 
     t = read_tracks(tracked[0])
     frames, ids = t.column("frame").to_numpy(), t.column("person_id").to_numpy()
-    # two people are visible (the bystander at the back is never detected, docs/person_models.md)
+    # two people are visible (the bystander at the back is not found in cam04: small, hidden)
     assert sorted(set(ids.tolist())) == [0, 1]
     for p in (0, 1):
         np.testing.assert_array_equal(np.sort(frames[ids == p]), np.arange(N))

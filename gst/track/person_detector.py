@@ -7,7 +7,11 @@ everybody. The person detector (several windows over the frame, the expensive pa
 when it is needed: on the first frame, when a tracked person is lost (presence below
 `min_presence`), when nobody is tracked, and every `detect_every` processed frames to find new
 arrivals. Its detections that repeat a tracked person are dropped before the landmark model
-(same region) or after it (same skeleton, `gst.detect.persons.same_person`).
+(same region) or after it (same skeleton, `gst.detect.persons.same_person`). The detector was made
+for one person and returns few per call, so each time it runs it looks once more with everyone
+already found painted out (`look_again`); a person it finds then is kept only where their box
+barely overlaps anyone's (`look_again_overlap`): where two overlap, the landmark model's loop
+could not keep them apart (docs/track_evaluation.md, "Looking again").
 
 Every detection carries the person's 33 landmarks (full-frame pixels, pixel centres at
 integers, confidence = visibility x presence) and the box of their mask: the landmark model's
@@ -49,6 +53,11 @@ class PersonModelConfig:
     same_region: float = 0.1  # a detector region this close to a kept person's (share of the
     # side) is that person: not run through the landmark model again
     max_gap: int = 5  # a forward jump of more frames than this restarts from the detector
+    # The person detector returns few people per call (it was made for one): each time it runs,
+    # it looks once more with everyone already found painted out, so that a second person in
+    # plain view is not left waiting for a detector run that happens to pick them first
+    look_again: bool = True
+    look_again_overlap: float = 0.3  # ... keeping a person whose box shares at most this much
     batch: bool = True  # all regions of a frame in one landmark-model call
     threads: int = 1  # LiteRT threads per interpreter
 
@@ -85,6 +94,30 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
     half = 0.5 * r.roi.side / LANDMARK_SIZE  # half a crop pixel, in image pixels
     # pixel centres at integers -> pixel-corner convention: + 0.5
     return np.array([u.min() - half, v.min() - half, u.max() + half, v.max() + half]) + 0.5
+
+
+def paint_out(image: np.ndarray, boxes: list[np.ndarray], grow: float = 0.1) -> np.ndarray:
+    """A copy of `image` with each corner-convention box (grown by `grow` of its size on every
+    side) filled with the image's mean colour: the people in them hidden from the detector."""
+    out = image.copy()
+    fill = image.reshape(-1, image.shape[-1]).mean(axis=0)
+    h, w = image.shape[:2]
+    for x0, y0, x1, y1 in boxes:
+        gx, gy = grow * (x1 - x0), grow * (y1 - y0)
+        a, b = max(int(np.floor(x0 - gx)), 0), min(int(np.ceil(x1 + gx)), w)
+        c, d = max(int(np.floor(y0 - gy)), 0), min(int(np.ceil(y1 + gy)), h)
+        out[c:d, a:b] = fill
+    return out
+
+
+def _shared(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection of two corner-convention boxes over the smaller one's area."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    small = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
+    return float(w * h / max(small, 1e-9))
 
 
 class PersonModelDetector:
@@ -153,6 +186,16 @@ class PersonModelDetector:
             self.detector_runs += 1
             self._since_detect = 0
             found = self._accept(self._landmarks(small, self._new_regions(small, tracked)), sh)
+            if c.look_again and (tracked or found):
+                boxes = [box for _, box in tracked + found]
+                more = self._new_regions(paint_out(small, boxes), tracked + found)
+                # only people beside the ones already found: where two overlap, the landmark
+                # model's loop cannot keep them apart, and waiting for the detector is safer
+                found += [
+                    (r, box)
+                    for r, box in self._accept(self._landmarks(small, more), sh)
+                    if all(_shared(box, b) <= c.look_again_overlap for b in boxes)
+                ]
         else:
             self._since_detect += 1
             found = []

@@ -76,6 +76,10 @@ class TrackSettings(BaseModel):
     # 'blazepose' requires it; 'background' always uses the background model.
     detector: Literal["auto", "background", "blazepose"] = "auto"
     detect_every: int = Field(default=10, ge=1)  # blazepose: detector runs between tracked frames
+    # blazepose: each detector run looks once more with the people found painted out (finds
+    # people the one-person detector skips; one more detector call per run; docs/
+    # track_evaluation.md "Looking again")
+    look_again: bool = True
     # blazepose: LiteRT threads per interpreter (results are identical for any number). None:
     # the cores each video tracked at once gets, at most 4 (one lab camera on 2 quiet cores:
     # 26.3 frames/s with 2 threads, 21.8 with 1; benchmarks/bench_track.py --real)
@@ -153,7 +157,7 @@ def _cores_per_video(parallel_videos: int) -> int:
 def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:
     """The learned person model's settings for `s`, with `parallel_videos` tracked at once."""
     threads = s.detector_threads or min(4, _cores_per_video(parallel_videos))
-    return PersonModelConfig(detect_every=s.detect_every, threads=threads)
+    return PersonModelConfig(detect_every=s.detect_every, look_again=s.look_again, threads=threads)
 
 
 def network_threads(s: TrackSettings, kind: str, workers: int, parallel_videos: int) -> int | None:
