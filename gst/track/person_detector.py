@@ -67,6 +67,10 @@ class PersonModelConfig:
                 f"person model: detect_every >= 1, max_side >= 64, threads >= 1 expected, got "
                 f"{self.detect_every}, {self.max_side}, {self.threads}"
             )
+        if not 0 <= self.look_again_overlap <= 1:
+            raise ValueError(
+                f"person model: look_again_overlap must be in [0, 1], got {self.look_again_overlap}"
+            )
         if not 0 < self.min_presence < 1:
             raise ValueError(
                 f"person model: min_presence must be in (0, 1), got {self.min_presence}"
