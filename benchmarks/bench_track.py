@@ -12,17 +12,20 @@ the box enclosing it in the undistorted image, with lens distortion), so the off
 a pinhole camera, a few px with distortion, and shows the lag that smoothing adds.
 
 Real footage (`--real`, when the lab capture and the BlazePose models are here): one lab camera
-(1088x1920 at 60 fps, 2 people), end to end with the learned person model and the stage's
-tracker settings (decode, person model, GST, tracker, Parquet). The previous person model
-(detector and segmentation on every frame, `SegmentEveryFrame` below) runs in the same process
-as the landmark-model loop (gst.track.person_detector) and its variants. Beside each speed: CPU
-time per video frame (all threads; less sensitive to other load than wall time), detector runs,
-and against the previous model's tracks (the detector on every frame): id switches (a reference
-person's rows changing id) and drift (median and 95th percentile distance of the 12 limb
-landmarks, full-resolution pixels, people matched per frame by landmark distance). Variants
-named "image path for every crop" run the network's image path for every crop (`image_path:
-always`, the behaviour before pose from the landmarks); "every crop cut" takes the pose from the
-landmarks but still cuts every crop (what not cutting them saves).
+(1088x1920 at 60 fps, 2 people and, in cam01, a bystander), end to end with the learned person model
+and the stage's tracker settings (decode, person model, GST, tracker, Parquet). The previous person
+model (detector and segmentation on every frame, `SegmentEveryFrame` below) runs in the same process
+as the landmark-model loop (gst.track.person_detector) and its variants. Beside each speed: CPU time
+per video frame (all threads; less sensitive to other load than wall time), detector runs, and
+against the previous model's tracks (the detector on every frame): id switches (a reference person's
+rows changing id) and drift (median and 95th percentile distance of the 12 limb landmarks,
+full-resolution pixels, people matched per frame by landmark distance). Variants named "image path
+for every crop" run the network's image path for every crop (`image_path: always`, the behaviour
+before pose from the landmarks); "every crop cut" takes the pose from the landmarks but still cuts
+every crop (what not cutting them saves); "not looking again" leaves out the detector's second look
+with the people found painted out (`look_again`, docs/track_evaluation.md "Looking again"): on
+cam01 the stage default tracks 3 people (the bystander), without looking again 2: their speeds are
+per 3 and per 2 people.
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
@@ -447,6 +450,13 @@ def real_footage(args) -> None:
                 stage_torch,
                 "auto",
             ),
+            (
+                "new, not looking again (before 11-29)",
+                new(look_again=False),
+                opts(),
+                stage_torch,
+                "auto",
+            ),
             ("new, image path for every crop", new(), opts(), stage_torch, "always"),
             ("new, pose from landmarks, every crop cut", new(), opts(), stage_torch, "cut"),
             (f"new, {torch_default} torch threads", new(), opts(), torch_default, "auto"),
@@ -461,6 +471,13 @@ def real_footage(args) -> None:
             ),
             ("old, stride 2", SegmentEveryFrame, opts(stride=2), torch_default, "auto"),
             ("new, stride 2 (stage default)", new(), opts(stride=2), stage_torch, "auto"),
+            (
+                "new, stride 2, not looking again",
+                new(look_again=False),
+                opts(stride=2),
+                stage_torch,
+                "auto",
+            ),
             ("new, stride 2, image path every crop", new(), opts(stride=2), stage_torch, "always"),
         ]
         if args.only:
