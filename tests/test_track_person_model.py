@@ -116,7 +116,7 @@ def test_looking_again_finds_the_bystander_the_detector_skips():
 
 
 def test_paint_out_hides_only_the_grown_boxes():
-    from gst.track.person_detector import paint_out
+    from gst.detect.boxes import paint_out
 
     img = np.zeros((100, 200, 3), np.uint8)
     img[:, 100:] = 200
@@ -127,3 +127,12 @@ def test_paint_out_hides_only_the_grown_boxes():
     assert not changed[:16].any() and not changed[64:].any()
     assert not changed[:, :18].any() and not changed[:, 42:].any()
     assert (img[40, 30] == 0).all()  # the input is untouched
+
+
+def test_shared_is_the_overlap_over_the_smaller_box():
+    from gst.detect.boxes import shared
+
+    big, inside = np.array([0.0, 0, 10, 10]), np.array([2.0, 2, 4, 6])
+    assert shared(big, inside) == shared(inside, big) == 1.0
+    assert shared(big, np.array([20.0, 0, 30, 10])) == 0.0  # apart
+    assert shared(big, np.array([5.0, 0, 15, 10])) == pytest.approx(0.5)  # half of each

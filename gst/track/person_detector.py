@@ -38,6 +38,7 @@ from gst.detect.blazepose import (
     roi_from_alignment,
     same_region,
 )
+from gst.detect.boxes import paint_out, shared
 from gst.detect.persons import same_person, skeleton_support
 from gst.track.detection import Detection
 
@@ -98,30 +99,6 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
     half = 0.5 * r.roi.side / LANDMARK_SIZE  # half a crop pixel, in image pixels
     # pixel centres at integers -> pixel-corner convention: + 0.5
     return np.array([u.min() - half, v.min() - half, u.max() + half, v.max() + half]) + 0.5
-
-
-def paint_out(image: np.ndarray, boxes: list[np.ndarray], grow: float = 0.1) -> np.ndarray:
-    """A copy of `image` with each corner-convention box (grown by `grow` of its size on every
-    side) filled with the image's mean colour: the people in them hidden from the detector."""
-    out = image.copy()
-    fill = image.reshape(-1, image.shape[-1]).mean(axis=0)
-    h, w = image.shape[:2]
-    for x0, y0, x1, y1 in boxes:
-        gx, gy = grow * (x1 - x0), grow * (y1 - y0)
-        a, b = max(int(np.floor(x0 - gx)), 0), min(int(np.ceil(x1 + gx)), w)
-        c, d = max(int(np.floor(y0 - gy)), 0), min(int(np.ceil(y1 + gy)), h)
-        out[c:d, a:b] = fill
-    return out
-
-
-def _shared(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection of two corner-convention boxes over the smaller one's area."""
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    if w <= 0 or h <= 0:
-        return 0.0
-    small = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
-    return float(w * h / max(small, 1e-9))
 
 
 class PersonModelDetector:
@@ -198,7 +175,7 @@ class PersonModelDetector:
                 found += [
                     (r, box)
                     for r, box in self._accept(self._landmarks(small, more), sh)
-                    if all(_shared(box, b) <= c.look_again_overlap for b in boxes)
+                    if all(shared(box, b) <= c.look_again_overlap for b in boxes)
                 ]
         else:
             self._since_detect += 1
