@@ -113,26 +113,3 @@ def test_looking_again_finds_the_bystander_the_detector_skips():
     assert counts[False] == [2] * 12 and counts[True] == [3] * 12
     w = frames[0].shape[1]
     assert min(d.box[0] for d in found[0]) < 0.15 * w  # the new one stands at the left wall
-
-
-def test_paint_out_hides_only_the_grown_boxes():
-    from gst.detect.boxes import paint_out
-
-    img = np.zeros((100, 200, 3), np.uint8)
-    img[:, 100:] = 200
-    out = paint_out(img, [np.array([20.0, 20.0, 40.0, 60.0])], grow=0.1)
-    # grown by 2 px across and 4 px down: columns 18-41, rows 16-63, in the image's mean colour
-    assert (out[16:64, 18:42] == 100).all()
-    changed = (out != img).any(axis=2)
-    assert not changed[:16].any() and not changed[64:].any()
-    assert not changed[:, :18].any() and not changed[:, 42:].any()
-    assert (img[40, 30] == 0).all()  # the input is untouched
-
-
-def test_shared_is_the_overlap_over_the_smaller_box():
-    from gst.detect.boxes import shared
-
-    big, inside = np.array([0.0, 0, 10, 10]), np.array([2.0, 2, 4, 6])
-    assert shared(big, inside) == shared(inside, big) == 1.0
-    assert shared(big, np.array([20.0, 0, 30, 10])) == 0.0  # apart
-    assert shared(big, np.array([5.0, 0, 15, 10])) == pytest.approx(0.5)  # half of each

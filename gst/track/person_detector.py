@@ -148,6 +148,18 @@ class PersonModelDetector:
                 rois.append(roi)
         return rois
 
+    def _look_again(self, image: np.ndarray, known: list[tuple]) -> list[tuple]:
+        """(result, box) of the people the detector finds with the `known` ones painted out,
+        beside them: where two overlap, the landmark model's loop cannot keep them apart, and
+        waiting for the detector is safer."""
+        boxes = [box for _, box in known]
+        more = self._new_regions(paint_out(image, boxes), known)
+        return [
+            (r, box)
+            for r, box in self._accept(self._landmarks(image, more), image.shape[0])
+            if all(shared(box, b) <= self.config.look_again_overlap for b in boxes)
+        ]
+
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         c = self.config
         if self._last is not None and not 0 < frame_index - self._last <= c.max_gap:
@@ -168,15 +180,7 @@ class PersonModelDetector:
             self._since_detect = 0
             found = self._accept(self._landmarks(small, self._new_regions(small, tracked)), sh)
             if c.look_again and (tracked or found):
-                boxes = [box for _, box in tracked + found]
-                more = self._new_regions(paint_out(small, boxes), tracked + found)
-                # only people beside the ones already found: where two overlap, the landmark
-                # model's loop cannot keep them apart, and waiting for the detector is safer
-                found += [
-                    (r, box)
-                    for r, box in self._accept(self._landmarks(small, more), sh)
-                    if all(shared(box, b) <= c.look_again_overlap for b in boxes)
-                ]
+                found += self._look_again(small, tracked + found)
         else:
             self._since_detect += 1
             found = []

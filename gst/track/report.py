@@ -171,6 +171,7 @@ def contact_sheet(
     table = read_tracks(tracks_path)
     fr = table.column("frame").to_numpy()
     boxes = column_array(table, "bbox")
+    has_landmarks = "landmarks2d" in table.column_names
     tiles = []
     for f, img in read_frames(video_path, frames):
         h, w = img.shape[:2]
@@ -188,7 +189,7 @@ def contact_sheet(
             cv2.putText(
                 im, text, (8, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, colour, weight, cv2.LINE_AA
             )
-        draw_key(im, "landmarks2d" in table.column_names)
+        draw_key(im, has_landmarks)
         tiles.append(cv2.copyMakeBorder(im, 2, 2, 2, 2, cv2.BORDER_CONSTANT))
     width = max(t.shape[1] for t in tiles)
     return np.concatenate(

@@ -188,15 +188,14 @@ def extract_camera_crops(job: CropJob) -> CropJobResult:
         # The keypoint association also gives each slot's landmarks and single-view flag.
         lm_rows = pf["landmarks"][()] if "landmarks" in pf else None
         sv_rows = pf["single_view"][()] if "single_view" in pf else np.zeros(len(slot_rows), bool)
-        # which slots' landmarks are the skeleton projected, not read (the file names its
-        # source codes: keypoint_association.SOURCES)
-        projected = np.zeros(len(slot_rows), bool)
+        # where each slot's view came from (the file names its source codes:
+        # keypoint_association.SOURCES; '' for the hull); a projected view's landmarks are the
+        # skeleton projected, not read
         sources = np.full(len(slot_rows), "", dtype=object)
         if "source" in pf:
-            names = str(pf.attrs["sources"]).split(",")
-            codes = pf["source"][()]
-            projected = codes == names.index("projected")
-            sources = np.asarray(names, dtype=object)[codes]
+            names = np.asarray(str(pf.attrs["sources"]).split(","), dtype=object)
+            sources = names[pf["source"][()]]
+        projected = sources == "projected"
         by_frame: dict[int, list[tuple[int, int, np.ndarray, float, int]]] = {}
         drop = set(job.drop_ids)
         for r, ((f, slot, pid), view) in enumerate(zip(slot_rows, view_rows, strict=True)):
