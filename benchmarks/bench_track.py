@@ -25,7 +25,9 @@ before pose from the landmarks); "every crop cut" takes the pose from the landma
 every crop (what not cutting them saves); "not looking again" leaves out the detector's second look
 with the people found painted out (`look_again`, docs/track_evaluation.md "Looking again"): on
 cam01 the stage default tracks 3 people (the bystander), without looking again 2: their speeds are
-per 3 and per 2 people.
+per 3 and per 2 people. "still people computed" runs the landmark model for every tracked person
+in every frame (`still_change: 0`; the default keeps the landmarks of a person whose region has
+not changed, docs/track_evaluation.md "People who stand still").
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
@@ -399,7 +401,8 @@ def components(video: Path, camera, n: int, gst, fps: float) -> None:
     print(
         f"parts alone, CPU ms per frame ({people:.1f} people per frame): decode "
         f"{1000 * decode / n:.1f}, person model {1000 * detect / n:.1f} ({det.detector_runs} "
-        f"detector runs, {det.regions} landmark regions), crops + appearance "
+        f"detector runs, {det.regions} landmark regions, {det.still_kept} kept still), crops + "
+        "appearance "
         f"{1000 * crops / n:.1f}, {gst.name} {1000 * net / n:.1f}"
     )
 
@@ -457,6 +460,13 @@ def real_footage(args) -> None:
                 stage_torch,
                 "auto",
             ),
+            (
+                "new, still people computed too (before)",
+                new(still_change=0),
+                opts(),
+                stage_torch,
+                "auto",
+            ),
             ("new, image path for every crop", new(), opts(), stage_torch, "always"),
             ("new, pose from landmarks, every crop cut", new(), opts(), stage_torch, "cut"),
             (f"new, {torch_default} torch threads", new(), opts(), torch_default, "auto"),
@@ -474,6 +484,13 @@ def real_footage(args) -> None:
             (
                 "new, stride 2, not looking again",
                 new(look_again=False),
+                opts(stride=2),
+                stage_torch,
+                "auto",
+            ),
+            (
+                "new, stride 2, still people computed",
+                new(still_change=0),
                 opts(stride=2),
                 stage_torch,
                 "auto",

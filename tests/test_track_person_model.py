@@ -30,8 +30,9 @@ def test_landmark_loop_runs_the_detector_only_when_needed(frames):
     found = [det.detect(f, i) for i, f in enumerate(frames)]
     assert [len(d) for d in found] == [2] * len(frames)
     assert det.detector_runs == 2  # frame 0 and frame 10: nobody was lost
-    # two regions per frame: frame 10's detector hits are the tracked people, not segmented again
-    assert det.regions == 2 * len(frames)
+    # two regions per frame (computed, or kept for a person whose region did not change): frame
+    # 10's detector hits are the tracked people, not segmented again
+    assert det.regions + det.still_kept == 2 * len(frames)
     h, w = frames[0].shape[:2]
     for d in found[5]:
         x0, y0, x1, y1 = d.box
@@ -43,6 +44,46 @@ def test_landmark_loop_runs_the_detector_only_when_needed(frames):
     # a jump back in the video restarts from the detector
     det.detect(frames[0], 0)
     assert det.detector_runs == 3
+
+
+def test_a_still_person_keeps_their_landmarks_until_their_region_changes(frames):
+    from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+
+    det = PersonModelDetector(PersonModelConfig(detect_every=100, still_refresh=4))
+    found = det.detect(frames[0], 0)
+    # the detector's finds are confirmed in the regions their own landmarks give before they can
+    # be kept: a still object mistaken for a person once must not stay
+    first = det.detect(frames[0], 1)
+    assert len(found) == len(first) == 2 and det.regions == 4 and det.still_kept == 0
+    # the same picture again: nobody's region changed, so the landmark model does not run
+    again = [det.detect(frames[0], i) for i in (2, 3, 4, 5)]
+    assert det.regions == 4 and det.still_kept == 8
+    for d in again:
+        for a, b in zip(first, d, strict=True):
+            np.testing.assert_array_equal(a.landmarks, b.landmarks)
+            np.testing.assert_array_equal(a.box, b.box)
+    # ... but at most `still_refresh` frames in a row
+    det.detect(frames[0], 6)
+    assert det.regions == 6
+    # the part of one person's region that the other's does not hold is darkened: only the first
+    # is looked at again (regions in work pixels, the frame at full resolution)
+    scale = frames[0].shape[0] / 960
+    ys, xs = np.mgrid[: frames[0].shape[0], : frames[0].shape[1]] / scale
+    inside = []
+    for i, roi in enumerate(det._people):
+        half = roi.side / 2 + (0 if i == 0 else 8)  # a margin: resizing blurs the edge
+        inside.append((abs(xs - roi.centre[0]) <= half) & (abs(ys - roi.centre[1]) <= half))
+    only_first = inside[0] & ~np.logical_or.reduce(inside[1:])
+    assert only_first.sum() > 10_000
+    darker = frames[0].copy()
+    darker[only_first] //= 2
+    det.detect(darker, 7)
+    assert det.regions == 7 and det.still_kept == 9
+    # still_change 0: every frame computed
+    off = PersonModelDetector(PersonModelConfig(detect_every=100, still_change=0))
+    for i in range(3):
+        off.detect(frames[0], i)
+    assert off.regions == 6 and off.still_kept == 0
 
 
 def test_batched_landmarks_equal_one_call_per_region(frames):

@@ -13,6 +13,12 @@ already found painted out (`look_again`); a person it finds then is kept only wh
 barely overlaps anyone's (`look_again_overlap`): where two overlap, the landmark model's loop
 could not keep them apart (docs/track_evaluation.md, "Looking again").
 
+A person who stands still is not looked at again (`still_change`): where a 32 x 32 thumbnail of
+their next region has barely changed since the frame their landmarks were computed on (99 % of
+its pixels within `still_change` grey levels), those landmarks are theirs in this frame too, and
+the landmark model skips them, up to `still_refresh` frames in a row (docs/track_evaluation.md,
+"People who stand still").
+
 Every detection carries the person's 33 landmarks (full-frame pixels, pixel centres at
 integers, confidence = visibility x presence) and the box of their mask: the landmark model's
 segmentation in the region's own crop, kept within `skeleton_width` of the person's skeleton
@@ -59,14 +65,27 @@ class PersonModelConfig:
     # plain view is not left waiting for a detector run that happens to pick them first
     look_again: bool = True
     look_again_overlap: float = 0.3  # ... keeping a person whose box shares at most this much
+    # A tracked person whose region's thumbnail changed by at most this many grey levels (99th
+    # percentile) since their landmarks were computed keeps those landmarks (0: always compute);
+    # on the lab capture the bystander changes by 1-3.5 levels over 5 frames, the two people
+    # who move by 5-60 in one frame
+    still_change: float = 4.0
+    still_refresh: int = 30  # ... but at most this many frames in a row
     batch: bool = True  # all regions of a frame in one landmark-model call
     threads: int = 1  # LiteRT threads per interpreter
 
     def __post_init__(self):
-        if self.detect_every < 1 or self.max_side < 64 or self.threads < 1:
+        if (
+            self.detect_every < 1
+            or self.max_side < 64
+            or self.threads < 1
+            or self.still_change < 0
+            or self.still_refresh < 1
+        ):
             raise ValueError(
-                f"person model: detect_every >= 1, max_side >= 64, threads >= 1 expected, got "
-                f"{self.detect_every}, {self.max_side}, {self.threads}"
+                f"person model: detect_every >= 1, max_side >= 64, threads >= 1, still_change >= 0"
+                f" and still_refresh >= 1 expected, got {self.detect_every}, {self.max_side}, "
+                f"{self.threads}, {self.still_change}, {self.still_refresh}"
             )
         if not 0 <= self.look_again_overlap <= 1:
             raise ValueError(
@@ -101,6 +120,32 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
     return np.array([u.min() - half, v.min() - half, u.max() + half, v.max() + half]) + 0.5
 
 
+THUMB = 32  # side of the thumbnails that tell a still person's region from a changed one
+
+
+def region_thumbnail(image: np.ndarray, roi: BodyRoi) -> np.ndarray:
+    """Grey (THUMB, THUMB) float32 thumbnail of the part of `image` inside `roi`'s upright box
+    (area-averaged, so that a compressed video's pixel noise averages out)."""
+    h, w = image.shape[:2]
+    (cx, cy), half = roi.centre, 0.5 * roi.side
+    x0, y0 = max(0, int(cx - half)), max(0, int(cy - half))
+    x1, y1 = min(w, int(np.ceil(cx + half))), min(h, int(np.ceil(cy + half)))
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return np.zeros((THUMB, THUMB), np.float32)
+    patch = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY)
+    return cv2.resize(patch, (THUMB, THUMB), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+@dataclass
+class _Seen:
+    """A tracked person's last computed landmarks (result, mask box), the thumbnail of their next
+    region in the frame they were computed on, and the frames they have been kept since."""
+
+    found: tuple
+    thumbnail: np.ndarray
+    kept_for: int = 0
+
+
 class PersonModelDetector:
     """People in a stream of frames from one camera (keeps tracking state across frames)."""
 
@@ -112,13 +157,38 @@ class PersonModelDetector:
         self.model = BlazePose(models_dir, threads=c.threads)
         self.landmarker = BatchedLandmarks(models_dir, threads=c.threads)
         self._people: list[BodyRoi] = []  # next frame's regions, work pixels
+        self._seen: list[_Seen | None] = []  # per region: the still-person check's state
         self._last: int | None = None
         self._since_detect = 0
         self.detector_runs = 0  # frames on which the person detector ran (for benchmarks)
         self.regions = 0  # landmark-model regions evaluated
+        self.still_kept = 0  # regions whose landmarks were kept from an earlier frame
 
     def reset(self) -> None:
-        self._people, self._last, self._since_detect = [], None, 0
+        self._people, self._seen, self._last, self._since_detect = [], [], None, 0
+
+    def _still(self, image: np.ndarray, i: int) -> tuple | None:
+        """The kept (result, box) of tracked person `i` if their region has not changed."""
+        seen, c = self._seen[i], self.config
+        if seen is None or c.still_change <= 0 or seen.kept_for >= c.still_refresh:
+            return None
+        change = np.abs(region_thumbnail(image, self._people[i]) - seen.thumbnail)
+        if float(np.percentile(change, 99)) > c.still_change:
+            return None
+        seen.kept_for += 1
+        return seen.found
+
+    def _follow(self, image: np.ndarray) -> list[tuple | None]:
+        """Per tracked person: (result, box), or None where they are lost; the landmark model
+        runs in one call for those whose region changed."""
+        out = [self._still(image, i) for i in range(len(self._people))]
+        todo = [i for i, o in enumerate(out) if o is None]
+        self.still_kept += len(out) - len(todo)
+        results = self._landmarks(image, [self._people[i] for i in todo])
+        for i, r in zip(todo, results, strict=True):
+            accepted = self._accept([r], image.shape[0])
+            out[i] = accepted[0] if accepted else None
+        return out
 
     def _landmarks(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
         self.regions += len(rois)
@@ -173,7 +243,8 @@ class PersonModelDetector:
             else cv2.resize(frame_bgr, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
         )
         sh = small.shape[0]
-        tracked = self._accept(self._landmarks(small, self._people), sh)
+        followed = self._follow(small)
+        tracked = [f for f in followed if f is not None]
         lost = len(tracked) < len(self._people)
         if not self._people or lost or self._since_detect + 1 >= c.detect_every:
             self.detector_runs += 1
@@ -193,6 +264,23 @@ class PersonModelDetector:
             ):
                 kept.append((r, box))
         self._people = [r.next_roi for r, _ in kept]
+        # The still-person state: kept from the earlier frame, or fresh where the landmarks were
+        # just computed in the region their own landmarks gave. A detector's find is not kept
+        # before that has confirmed it: a still object the detector mistakes for a person once
+        # (cam02's anatomical skeleton) would otherwise stay for `still_refresh` frames.
+        earlier = {
+            id(f[0]): seen
+            for f, seen in zip(followed, self._seen, strict=True)
+            if seen is not None and f is seen.found
+        }
+        confirmed = {id(r) for r, _ in tracked}
+        self._seen = [
+            earlier.get(id(r))
+            or (
+                _Seen((r, box), region_thumbnail(small, r.next_roi)) if id(r) in confirmed else None
+            )
+            for r, box in kept
+        ]
         out = []
         for r, box in kept:
             lm = r.landmarks.copy()

@@ -80,6 +80,10 @@ class TrackSettings(BaseModel):
     # people the one-person detector skips; one more detector call per run; docs/
     # track_evaluation.md "Looking again")
     look_again: bool = True
+    # blazepose: a person whose region's 32 x 32 thumbnail changed by at most this many grey
+    # levels since their landmarks were computed keeps them (0: compute every frame; docs/
+    # track_evaluation.md "People who stand still")
+    still_change: float = Field(default=4.0, ge=0)
     # blazepose: LiteRT threads per interpreter (results are identical for any number). None:
     # the cores each video tracked at once gets, at most 4 (one lab camera on 2 quiet cores:
     # 26.3 frames/s with 2 threads, 21.8 with 1; benchmarks/bench_track.py --real)
@@ -157,7 +161,12 @@ def _cores_per_video(parallel_videos: int) -> int:
 def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:
     """The learned person model's settings for `s`, with `parallel_videos` tracked at once."""
     threads = s.detector_threads or min(4, _cores_per_video(parallel_videos))
-    return PersonModelConfig(detect_every=s.detect_every, look_again=s.look_again, threads=threads)
+    return PersonModelConfig(
+        detect_every=s.detect_every,
+        look_again=s.look_again,
+        still_change=s.still_change,
+        threads=threads,
+    )
 
 
 def network_threads(s: TrackSettings, kind: str, workers: int, parallel_videos: int) -> int | None:
