@@ -27,7 +27,9 @@ with the people found painted out (`look_again`, docs/track_evaluation.md "Looki
 cam01 the stage default tracks 3 people (the bystander), without looking again 2: their speeds are
 per 3 and per 2 people. "still people computed" runs the landmark model for every tracked person
 in every frame (`still_change: 0`; the default keeps the landmarks of a person whose region has
-not changed, docs/track_evaluation.md "People who stand still").
+not changed, docs/track_evaluation.md "People who stand still"). "without zoom" / "no zoom" looks
+again in the usual detector windows only (`look_again_zoom: 0`; docs/track_evaluation.md "Small
+people at the back").
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
@@ -144,7 +146,9 @@ def main() -> None:
     ap.add_argument("--real", action="store_true", help="the lab capture instead (see above)")
     ap.add_argument("--camera", default="cam01", help="lab camera for --real")
     ap.add_argument("--real-frames", type=int, default=100, help="frames of the lab video")
-    ap.add_argument("--only", default=None, help="--real: run variants whose name has this text")
+    ap.add_argument(
+        "--only", default=None, help="--real: run variants whose name has this text (several: a|b)"
+    )
     ap.add_argument(
         "--demo",
         type=Path,
@@ -461,6 +465,13 @@ def real_footage(args) -> None:
                 "auto",
             ),
             (
+                "new, looking again without zoom (before)",
+                new(look_again_zoom=0),
+                opts(),
+                stage_torch,
+                "auto",
+            ),
+            (
                 "new, still people computed too (before)",
                 new(still_change=0),
                 opts(),
@@ -489,6 +500,13 @@ def real_footage(args) -> None:
                 "auto",
             ),
             (
+                "new, stride 2, no zoom",
+                new(look_again_zoom=0),
+                opts(stride=2),
+                stage_torch,
+                "auto",
+            ),
+            (
                 "new, stride 2, still people computed",
                 new(still_change=0),
                 opts(stride=2),
@@ -498,7 +516,7 @@ def real_footage(args) -> None:
             ("new, stride 2, image path every crop", new(), opts(stride=2), stage_torch, "always"),
         ]
         if args.only:
-            keep = [v for v in variants if args.only in v[0]]
+            keep = [v for v in variants if any(o in v[0] for o in args.only.split("|"))]
             variants = [variants[0], *[v for v in keep if v is not variants[0]]]
         print(
             f"lab {args.camera}: {camera.width}x{camera.height} at {fps:.0f} fps, {n} frames, "

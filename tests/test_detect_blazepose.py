@@ -23,6 +23,7 @@ from gst.detect.blazepose import (
     square_windows,
     ssd_anchors,
     weighted_nms,
+    zoomed_windows,
 )
 from gst.detect.persons import (
     BONES as PERSON_BONES,
@@ -123,6 +124,25 @@ def test_square_windows_cover_the_frame(w, h):
         assert covered.all()
     else:
         assert tiles == []
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(16, 2000), st.integers(16, 2000), st.floats(0.2, 0.95))
+def test_zoomed_windows_cover_the_frame_with_half_overlap(w, h, fraction):
+    wins = zoomed_windows(w, h, fraction)
+    side = wins[0][2]
+    assert side == max(1, round(fraction * min(w, h)))
+    covered = np.zeros((h, w), bool)
+    for x0, y0, s in wins:
+        assert s == side and 0 <= x0 and 0 <= y0
+        assert x0 + side <= max(w, side) and y0 + side <= max(h, side)
+        covered[y0 : y0 + side, x0 : x0 + side] = True
+    assert covered.all()
+    # neighbours along an axis overlap by at least half a window (a person cut by one border
+    # lies whole in the next window)
+    for axis in (0, 1):
+        starts = sorted({win[axis] for win in wins})
+        assert all(b - a <= side / 2 + 1 for a, b in zip(starts[:-1], starts[1:], strict=True))
 
 
 @settings(max_examples=40, deadline=None)

@@ -43,8 +43,12 @@ def test_explicit_settings_and_other_detectors(cores):
     assert network_threads(s, "blazepose", 1, 1) == 1  # 2 cores - 1 LiteRT thread
     # the person model's other settings reach it (and its fingerprint, `settings()`)
     assert person_model_config(TrackSettings()).look_again
-    off = person_model_config(TrackSettings(look_again=False, detect_every=5))
+    off = person_model_config(
+        TrackSettings(look_again=False, detect_every=5, still_change=0, look_again_zoom=0)
+    )
     assert not off.look_again and off.detect_every == 5 and not off.settings()["look_again"]
+    assert off.still_change == 0 and off.settings()["still_change"] == 0
+    assert off.look_again_zoom == 0 and off.settings()["look_again_zoom"] == 0
 
 
 def test_a_jobs_torch_threads_are_put_back(monkeypatch):

@@ -130,6 +130,21 @@ def square_windows(width: int, height: int) -> list[tuple[int, int, int]]:
     return wins
 
 
+def zoomed_windows(width: int, height: int, fraction: float) -> list[tuple[int, int, int]]:
+    """(x0, y0, side) of squares `fraction` of the shorter side, overlapping by half along both
+    axes and reaching every edge: a person too small for `square_windows` (a bystander at the
+    back of a lab) is larger in them."""
+    side = max(1, round(fraction * min(width, height)))
+
+    def starts(extent: int) -> list[int]:
+        if extent <= side:
+            return [0]
+        n = math.ceil((extent - side) / (side / 2)) + 1
+        return [round(k * (extent - side) / (n - 1)) for k in range(n)]
+
+    return [(x0, y0, side) for y0 in starts(height) for x0 in starts(width)]
+
+
 # --- regions of interest ---------------------------------------------------------------------
 
 
@@ -244,12 +259,15 @@ class BlazePose:
         self.landmarker = _Model(paths["landmarks"], threads)
         self.min_score = min_score
 
-    def detect(self, image: np.ndarray) -> list[PoseDetection]:
-        """People in a BGR image: every scan window, merged by weighted NMS, in image pixels."""
+    def detect(
+        self, image: np.ndarray, windows: list[tuple[int, int, int]] | None = None
+    ) -> list[PoseDetection]:
+        """People in a BGR image: every scan window ((x0, y0, side) squares; default
+        `square_windows`), merged by weighted NMS, in image pixels."""
         h, w = image.shape[:2]
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
         scores, boxes, kps = [], [], []
-        for x0, y0, side in square_windows(w, h):
+        for x0, y0, side in square_windows(w, h) if windows is None else windows:
             # Cut the window out of a zero-padded frame (the full-frame window is a letterbox).
             m = np.float32(
                 [
@@ -273,6 +291,8 @@ class BlazePose:
             scores.append(s)
             boxes.append(b * side + np.tile(offset, 2))
             kps.append(k * side + offset)
+        if not scores:  # no windows
+            return []
         return weighted_nms(np.concatenate(scores), np.concatenate(boxes), np.concatenate(kps))
 
     def segment(self, image: np.ndarray, roi: BodyRoi) -> PersonSegment:

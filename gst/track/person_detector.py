@@ -43,9 +43,10 @@ from gst.detect.blazepose import (
     RegionLandmarks,
     roi_from_alignment,
     same_region,
+    zoomed_windows,
 )
 from gst.detect.boxes import paint_out, shared
-from gst.detect.persons import same_person, skeleton_support
+from gst.detect.persons import LIMB_JOINTS, same_person, skeleton_support
 from gst.track.detection import Detection
 
 
@@ -65,6 +66,16 @@ class PersonModelConfig:
     # plain view is not left waiting for a detector run that happens to pick them first
     look_again: bool = True
     look_again_overlap: float = 0.3  # ... keeping a person whose box shares at most this much
+    # ... and scanning, besides the usual windows, squares of this share of the shorter side
+    # (`gst.detect.blazepose.zoomed_windows`; 0: none), where people too small for the usual
+    # windows are larger (the lab's bystander at the back of cam02), `zoom_per_run` of them
+    # per run in turn (at 544x960, 10 windows: all of them every 4 runs, 40 processed frames)
+    look_again_zoom: float = 2 / 3
+    zoom_per_run: int = 3
+    # a person found in a zoomed window only: median confidence of their 12 limb landmarks at
+    # least this (the lab's people: 0.82-1.0; its anatomical skeleton model 0.57, a camera
+    # mount 0.01-0.09)
+    zoom_min_confidence: float = 0.75
     # A tracked person whose region's thumbnail changed by at most this many grey levels (99th
     # percentile) since their landmarks were computed keeps those landmarks (0: always compute);
     # on the lab capture the bystander changes by 1-3.5 levels over 5 frames, the two people
@@ -91,6 +102,16 @@ class PersonModelConfig:
             raise ValueError(
                 f"person model: look_again_overlap must be in [0, 1], got {self.look_again_overlap}"
             )
+        if (
+            not 0 <= self.look_again_zoom < 1
+            or self.zoom_per_run < 1
+            or not 0 <= self.zoom_min_confidence <= 1
+        ):
+            raise ValueError(
+                f"person model: look_again_zoom in [0, 1), zoom_per_run >= 1 and "
+                f"zoom_min_confidence in [0, 1] expected, got {self.look_again_zoom}, "
+                f"{self.zoom_per_run}, {self.zoom_min_confidence}"
+            )
         if not 0 < self.min_presence < 1:
             raise ValueError(
                 f"person model: min_presence must be in (0, 1), got {self.min_presence}"
@@ -102,6 +123,11 @@ class PersonModelConfig:
         d.pop("threads")
         d.pop("batch")
         return d
+
+
+def limb_confidence(r: RegionLandmarks) -> float:
+    """Median confidence of a region's 12 limb landmarks (shoulders to ankles)."""
+    return float(np.median(r.landmarks[LIMB_JOINTS, 2]))
 
 
 def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
@@ -163,9 +189,11 @@ class PersonModelDetector:
         self.detector_runs = 0  # frames on which the person detector ran (for benchmarks)
         self.regions = 0  # landmark-model regions evaluated
         self.still_kept = 0  # regions whose landmarks were kept from an earlier frame
+        self._zoom_next = 0  # the first zoomed window of the next look again
 
     def reset(self) -> None:
         self._people, self._seen, self._last, self._since_detect = [], [], None, 0
+        self._zoom_next = 0
 
     def _still(self, image: np.ndarray, i: int) -> tuple | None:
         """The kept (result, box) of tracked person `i` if their region has not changed."""
@@ -209,10 +237,13 @@ class PersonModelDetector:
             out.append((r, box))
         return out
 
-    def _new_regions(self, image: np.ndarray, kept: list[tuple]) -> list[BodyRoi]:
-        """Regions of detector hits that are not a person already kept (same region)."""
+    def _new_regions(
+        self, image: np.ndarray, kept: list[tuple], windows: list | None = None
+    ) -> list[BodyRoi]:
+        """Regions of detector hits (in `windows`, default the usual ones) that are not a person
+        already kept (same region)."""
         rois = []
-        for d in self.model.detect(image):
+        for d in self.model.detect(image, windows):
             roi = roi_from_alignment(d.keypoints[0], d.keypoints[1])
             if not any(same_region(roi, r.next_roi, self.config.same_region) for r, _ in kept):
                 rois.append(roi)
@@ -221,14 +252,39 @@ class PersonModelDetector:
     def _look_again(self, image: np.ndarray, known: list[tuple]) -> list[tuple]:
         """(result, box) of the people the detector finds with the `known` ones painted out,
         beside them: where two overlap, the landmark model's loop cannot keep them apart, and
-        waiting for the detector is safer."""
+        waiting for the detector is safer. Those found only in the zoomed windows must be sure
+        of their limbs (`zoom_min_confidence`): small things that look like a person up close
+        (the lab's anatomical skeleton model, a camera mount) are found there too."""
+        c = self.config
         boxes = [box for _, box in known]
-        more = self._new_regions(paint_out(image, boxes), known)
+        painted = paint_out(image, boxes)
+        usual = self._new_regions(painted, known)
+        windows = self._zoomed(*image.shape[1::-1])
+        zoomed = [
+            roi
+            for roi in (self._new_regions(painted, known, windows) if windows else [])
+            if not any(same_region(roi, u, c.same_region) for u in usual)
+        ]
+        found = self._accept(self._landmarks(image, usual + zoomed), image.shape[0])
         return [
             (r, box)
-            for r, box in self._accept(self._landmarks(image, more), image.shape[0])
-            if all(shared(box, b) <= self.config.look_again_overlap for b in boxes)
+            for r, box in found
+            if all(shared(box, b) <= c.look_again_overlap for b in boxes)
+            and (r.roi not in zoomed or limb_confidence(r) >= c.zoom_min_confidence)
         ]
+
+    def _zoomed(self, w: int, h: int) -> list[tuple[int, int, int]]:
+        """The next `zoom_per_run` zoomed windows, in turn over the frame."""
+        c = self.config
+        if c.look_again_zoom <= 0:
+            return []
+        every = zoomed_windows(w, h, c.look_again_zoom)
+        take = [
+            every[(self._zoom_next + k) % len(every)]
+            for k in range(min(c.zoom_per_run, len(every)))
+        ]
+        self._zoom_next = (self._zoom_next + len(take)) % len(every)
+        return take
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         c = self.config

@@ -80,6 +80,10 @@ class TrackSettings(BaseModel):
     # people the one-person detector skips; one more detector call per run; docs/
     # track_evaluation.md "Looking again")
     look_again: bool = True
+    # blazepose: the second look also scans squares of this share of the frame's shorter side,
+    # where people far at the back are larger (0: the usual windows only; docs/
+    # track_evaluation.md "Small people at the back")
+    look_again_zoom: float = Field(default=2 / 3, ge=0, lt=1)
     # blazepose: a person whose region's 32 x 32 thumbnail changed by at most this many grey
     # levels since their landmarks were computed keeps them (0: compute every frame; docs/
     # track_evaluation.md "People who stand still")
@@ -164,6 +168,7 @@ def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonMod
     return PersonModelConfig(
         detect_every=s.detect_every,
         look_again=s.look_again,
+        look_again_zoom=s.look_again_zoom,
         still_change=s.still_change,
         threads=threads,
     )
