@@ -31,6 +31,7 @@ class Params(StageParams):
     person_model: Literal["none", "blazepose"] = "none"
     person_hints: bool = True  # also segment around moving background blobs
     person_detect_every: int = Field(10, ge=1)  # BlazePose detector every N frames (tracked)
+    person_zoom: float = Field(0.0, ge=0, lt=1)  # look again zoomed in (SegmenterConfig.zoom)
     # 'auto': keypoint association when BlazePose is installed, else the visual hull
     association_method: Literal["auto", "keypoints", "hull"] = "auto"
     # keypoints: keep the detections of people no one overlaps instead of looking at them again
@@ -45,7 +46,7 @@ def run(ctx: StageContext) -> None:
         plates = {n: ctx.path(f"synth/board/{n}.mp4") for n in videos}
     options = ExtractOptions.from_settings(
         plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance,
-        p.association_method, p.person_detect_every, p.reuse_detections,
+        p.association_method, p.person_detect_every, p.reuse_detections, p.person_zoom,
     )  # fmt: skip
     report = extract_scene(
         videos, ctx.rig(), ctx.out("crops/crops.h5"), crop_size=p.crop_size, scale=p.scale,

@@ -145,6 +145,31 @@ def zoomed_windows(width: int, height: int, fraction: float) -> list[tuple[int, 
     return [(x0, y0, side) for y0 in starts(height) for x0 in starts(width)]
 
 
+class ZoomedScan:
+    """Zoomed windows handed out a few per detector run, in turn over the frame, and all of
+    them on the first run after `reset` (whoever stands at the back from the start is found at
+    once; later arrivals within a sweep)."""
+
+    def __init__(self, fraction: float, per_run: int):
+        self.fraction, self.per_run = fraction, per_run
+        self.reset()
+
+    def reset(self) -> None:
+        self._next, self._started = 0, False
+
+    def next(self, width: int, height: int) -> list[tuple[int, int, int]]:
+        """The windows of this run ([] when `fraction` is 0)."""
+        if self.fraction <= 0:
+            return []
+        every = zoomed_windows(width, height, self.fraction)
+        if not self._started:
+            self._started = True
+            return every
+        take = [every[(self._next + k) % len(every)] for k in range(min(self.per_run, len(every)))]
+        self._next = (self._next + len(take)) % len(every)
+        return take
+
+
 # --- regions of interest ---------------------------------------------------------------------
 
 

@@ -21,11 +21,12 @@ from gst.detect.blazepose import (
     BlazePose,
     BodyRoi,
     PersonSegment,
+    ZoomedScan,
     roi_from_alignment,
     roi_from_box,
     same_region,
 )
-from gst.detect.boxes import box_iou
+from gst.detect.boxes import box_iou, paint_out, shared
 
 # BlazePose's 33 landmarks: the bones drawn to bound a person's mask (limbs, hands, feet).
 BONES = (
@@ -114,6 +115,19 @@ class SegmenterConfig:
     hint_retry: int = 10
     # a hint box overlapping a fruitless one by this intersection over union is the same box
     same_hint: float = 0.5
+    # With each detector run, look once more with the people found painted out, in squares of
+    # this share of the shorter side (`blazepose.zoomed_windows`; 0: not), `zoom_per_run` of
+    # them in turn: people too small for the detector's usual windows are larger there (the
+    # lab's bystander at the back of cam02). What is found only there is kept when its limbs
+    # lie in the frame and are sure (`whole_and_sure`, `zoom_min_confidence`): up close, an
+    # anatomical skeleton model or a camera mount also looks like a person.
+    zoom: float = 0.0
+    zoom_per_run: int = 3
+    zoom_min_confidence: float = 0.75
+    # ... and when its landmarks' box shares at most this much (of the smaller box) with a
+    # person found before: where it overlaps one, it is a part of them (a raised arm reaching
+    # out of their painted box)
+    zoom_overlap: float = 0.3
 
     def __post_init__(self):
         for name in ("min_presence", "threshold", "hint_covered"):
@@ -122,6 +136,15 @@ class SegmenterConfig:
         for name in ("detect_every", "hint_retry"):
             if getattr(self, name) < 1:
                 raise ValueError(f"segmenter {name} must be >= 1, got {getattr(self, name)}")
+        if (
+            not 0 <= self.zoom < 1
+            or self.zoom_per_run < 1
+            or not 0 <= self.zoom_min_confidence <= 1
+        ):
+            raise ValueError(
+                f"segmenter zoom in [0, 1), zoom_per_run >= 1 and zoom_min_confidence in [0, 1] "
+                f"expected, got {self.zoom}, {self.zoom_per_run}, {self.zoom_min_confidence}"
+            )
         if not 0 < self.same_hint <= 1:
             raise ValueError(f"segmenter same_hint must be in (0, 1], got {self.same_hint}")
         if self.duplicate_distance <= 0:
@@ -137,6 +160,21 @@ def body_size(landmarks: np.ndarray) -> float:
     """Diagonal of the limb joints' box, in pixels: the scale for comparing two skeletons."""
     j = landmarks[LIMB_JOINTS, :2]
     return float(np.hypot(*(j.max(axis=0) - j.min(axis=0))))
+
+
+def whole_and_sure(landmarks: np.ndarray, shape: tuple[int, int], min_confidence: float) -> bool:
+    """Whether a person's 12 limb landmarks (x, y, confidence) all lie in the (H, W) image and
+    their median confidence is at least `min_confidence`: what a person found only in a
+    zoomed-in window must be. Up close, things that look like a person are found too, and on the
+    lab capture those were cut by the frame's edge (an anatomical skeleton model, a camera mount
+    on the wall: limb landmarks up to 160 px outside, confidence 0.01-0.94 depending on the
+    region), while the small people at the back it is for stand whole in the frame."""
+    h, w = shape
+    limbs = landmarks[LIMB_JOINTS]
+    inside = (
+        (limbs[:, 0] >= 0) & (limbs[:, 0] <= w - 1) & (limbs[:, 1] >= 0) & (limbs[:, 1] <= h - 1)
+    )
+    return bool(inside.all()) and float(np.median(limbs[:, 2])) >= min_confidence
 
 
 def same_person(a: np.ndarray, b: np.ndarray, distance: float) -> bool:
@@ -225,6 +263,12 @@ def compose_instances(
     return labels, people
 
 
+def _landmark_box(landmarks: np.ndarray) -> np.ndarray:
+    """Corner box (x0, y0, x1, y1) of a person's landmarks (`paint_out` grows it)."""
+    xy = landmarks[:, :2]
+    return np.r_[xy.min(axis=0), xy.max(axis=0)]
+
+
 def _corners(boxes) -> np.ndarray:
     """(N, 4) x, y, w, h boxes -> (N, 4) x0, y0, x1, y1."""
     b = np.asarray(boxes, np.float64).reshape(-1, 4)
@@ -243,9 +287,32 @@ class PersonSegmenter:
         self._fruitless: dict[tuple[float, float, float, float], int] = {}
         self.detector_runs = 0  # frames on which the person detector ran (for benchmarks)
         self.hint_regions = 0  # hint regions given to the landmark model (for benchmarks)
+        self.zoom_found = 0  # people kept from the zoomed look (for benchmarks)
+        self._zoom = ZoomedScan(config.zoom, config.zoom_per_run)
 
     def reset(self) -> None:
         self._tracked, self._since_detect, self._fruitless = [], 0, {}
+        self._zoom.reset()
+
+    def _zoomed_look(
+        self, frame: np.ndarray, segments: list[PersonSegment], rois: list[BodyRoi]
+    ) -> list[PersonSegment]:
+        """Segments of the people found in the next zoomed windows with everyone in `segments`
+        painted out (`SegmenterConfig.zoom`)."""
+        c = self.config
+        h, w = frame.shape[:2]
+        windows = self._zoom.next(w, h)
+        people = distinct_people(segments, c, h * w)
+        boxes = [_landmark_box(p.landmarks) for p in people]
+        hits = self.model.detect(paint_out(frame, boxes), windows)
+        found = [roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in hits]
+        new = [f for f in found if not any(same_region(f, r, c.same_region) for r in rois)]
+        return [
+            s
+            for s in self._segment_rois(frame, new)
+            if whole_and_sure(s.landmarks, (h, w), c.zoom_min_confidence)
+            and all(shared(_landmark_box(s.landmarks), b) <= c.zoom_overlap for b in boxes)
+        ]
 
     def _segment_rois(self, frame: np.ndarray, rois: Sequence[BodyRoi]) -> list[PersonSegment]:
         h, w = frame.shape[:2]
@@ -300,6 +367,11 @@ class PersonSegmenter:
             ]
             segments += self._segment_rois(frame, new)
             rois += new
+            if c.zoom > 0:
+                more = self._zoomed_look(frame, segments, rois)
+                self.zoom_found += len(more)
+                segments += more
+                rois += [m.next_roi for m in more]
         else:
             self._since_detect += 1
         labels, people = compose_instances(segments, self.config, h * w)

@@ -41,12 +41,12 @@ from gst.detect.blazepose import (
     BlazePose,
     BodyRoi,
     RegionLandmarks,
+    ZoomedScan,
     roi_from_alignment,
     same_region,
-    zoomed_windows,
 )
 from gst.detect.boxes import paint_out, shared
-from gst.detect.persons import LIMB_JOINTS, same_person, skeleton_support
+from gst.detect.persons import same_person, skeleton_support, whole_and_sure
 from gst.track.detection import Detection
 
 
@@ -69,12 +69,13 @@ class PersonModelConfig:
     # ... and scanning, besides the usual windows, squares of this share of the shorter side
     # (`gst.detect.blazepose.zoomed_windows`; 0: none), where people too small for the usual
     # windows are larger (the lab's bystander at the back of cam02), `zoom_per_run` of them
-    # per run in turn (at 544x960, 10 windows: all of them every 4 runs, 40 processed frames)
+    # per run in turn, all of them on the first run (`ZoomedScan`; at 544x960, 10 windows: all
+    # of them every 4 runs, 40 processed frames)
     look_again_zoom: float = 2 / 3
     zoom_per_run: int = 3
-    # a person found in a zoomed window only: median confidence of their 12 limb landmarks at
-    # least this (the lab's people: 0.82-1.0; its anatomical skeleton model 0.57, a camera
-    # mount 0.01-0.09)
+    # a person found in a zoomed window only: limb landmarks in the frame, and their median
+    # confidence at least this (the lab's people: 0.82-1.0; its anatomical skeleton model 0.57,
+    # a camera mount 0.01-0.09, both cut by the frame's edge)
     zoom_min_confidence: float = 0.75
     # A tracked person whose region's thumbnail changed by at most this many grey levels (99th
     # percentile) since their landmarks were computed keeps those landmarks (0: always compute);
@@ -123,11 +124,6 @@ class PersonModelConfig:
         d.pop("threads")
         d.pop("batch")
         return d
-
-
-def limb_confidence(r: RegionLandmarks) -> float:
-    """Median confidence of a region's 12 limb landmarks (shoulders to ankles)."""
-    return float(np.median(r.landmarks[LIMB_JOINTS, 2]))
 
 
 def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
@@ -189,11 +185,13 @@ class PersonModelDetector:
         self.detector_runs = 0  # frames on which the person detector ran (for benchmarks)
         self.regions = 0  # landmark-model regions evaluated
         self.still_kept = 0  # regions whose landmarks were kept from an earlier frame
-        self._zoom_next = 0  # the first zoomed window of the next look again
+        self._zoom = ZoomedScan(c.look_again_zoom, c.zoom_per_run)
+        self._probation: set[BodyRoi] = set()  # next regions of people just found zoomed in
 
     def reset(self) -> None:
         self._people, self._seen, self._last, self._since_detect = [], [], None, 0
-        self._zoom_next = 0
+        self._zoom.reset()
+        self._probation = set()
 
     def _still(self, image: np.ndarray, i: int) -> tuple | None:
         """The kept (result, box) of tracked person `i` if their region has not changed."""
@@ -215,6 +213,11 @@ class PersonModelDetector:
         results = self._landmarks(image, [self._people[i] for i in todo])
         for i, r in zip(todo, results, strict=True):
             accepted = self._accept([r], image.shape[0])
+            # someone found zoomed in is confirmed only where their own region still shows a
+            # whole person, sure of their limbs (the lab's skeleton model: 0.08-0.51 there)
+            if accepted and self._people[i] in self._probation:
+                ok = whole_and_sure(r.landmarks, image.shape[:2], self.config.zoom_min_confidence)
+                accepted = accepted if ok else []
             out[i] = accepted[0] if accepted else None
         return out
 
@@ -252,39 +255,32 @@ class PersonModelDetector:
     def _look_again(self, image: np.ndarray, known: list[tuple]) -> list[tuple]:
         """(result, box) of the people the detector finds with the `known` ones painted out,
         beside them: where two overlap, the landmark model's loop cannot keep them apart, and
-        waiting for the detector is safer. Those found only in the zoomed windows must be sure
-        of their limbs (`zoom_min_confidence`): small things that look like a person up close
-        (the lab's anatomical skeleton model, a camera mount) are found there too."""
+        waiting for the detector is safer. Those found only in the zoomed windows must stand
+        whole in the frame and be sure of their limbs (`gst.detect.persons.whole_and_sure`):
+        things that look like a person up close (the lab's anatomical skeleton model, a camera
+        mount) are found there too."""
         c = self.config
         boxes = [box for _, box in known]
         painted = paint_out(image, boxes)
         usual = self._new_regions(painted, known)
-        windows = self._zoomed(*image.shape[1::-1])
+        windows = self._zoom.next(*image.shape[1::-1])
         zoomed = [
             roi
             for roi in (self._new_regions(painted, known, windows) if windows else [])
             if not any(same_region(roi, u, c.same_region) for u in usual)
         ]
         found = self._accept(self._landmarks(image, usual + zoomed), image.shape[0])
-        return [
+        kept = [
             (r, box)
             for r, box in found
             if all(shared(box, b) <= c.look_again_overlap for b in boxes)
-            and (r.roi not in zoomed or limb_confidence(r) >= c.zoom_min_confidence)
+            and (
+                r.roi not in zoomed
+                or whole_and_sure(r.landmarks, image.shape[:2], c.zoom_min_confidence)
+            )
         ]
-
-    def _zoomed(self, w: int, h: int) -> list[tuple[int, int, int]]:
-        """The next `zoom_per_run` zoomed windows, in turn over the frame."""
-        c = self.config
-        if c.look_again_zoom <= 0:
-            return []
-        every = zoomed_windows(w, h, c.look_again_zoom)
-        take = [
-            every[(self._zoom_next + k) % len(every)]
-            for k in range(min(c.zoom_per_run, len(every)))
-        ]
-        self._zoom_next = (self._zoom_next + len(take)) % len(every)
-        return take
+        self._probation |= {r.next_roi for r, _ in kept}
+        return kept
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         c = self.config
@@ -320,6 +316,7 @@ class PersonModelDetector:
             ):
                 kept.append((r, box))
         self._people = [r.next_roi for r, _ in kept]
+        self._probation &= set(self._people)  # confirmed or dropped: off probation
         # The still-person state: kept from the earlier frame, or fresh where the landmarks were
         # just computed in the region their own landmarks gave. A detector's find is not kept
         # before that has confirmed it: a still object the detector mistakes for a person once

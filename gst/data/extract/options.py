@@ -50,6 +50,7 @@ class ExtractOptions:
     persons_hints: bool = True
     # The person detector every this many frames while everyone is tracked (SegmenterConfig)
     person_detect_every: int = 10
+    person_zoom: float = 0.0  # the detector looks again zoomed in (SegmenterConfig.zoom)
     # Frames smaller than the calibrated size by up to this many pixels are encoder padding
     # (calibration.camera.fit_to_frames).
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
@@ -78,25 +79,28 @@ class ExtractOptions:
         association_method: str = "auto",
         person_detect_every: int = 10,
         reuse_detections: bool = False,
+        person_zoom: float = 0.0,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose'), whether to segment around moving blobs too, the
         association method ('auto', 'keypoints' or 'hull'), how often the person detector
         runs while everyone is tracked, and whether the keypoint association keeps the
         detections of people no one overlaps instead of looking at them again
-        (`CrowdConfig.reuse_detections`)."""
+        (`CrowdConfig.reuse_detections`), and how much the detector zooms in when it looks
+        again (`SegmenterConfig.zoom`)."""
         if person_model not in ("none", "blazepose"):
             raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
         return cls(
             background_videos=background_videos,
             association=AssociationConfig(**(association or {})),
             persons=(
-                SegmenterConfig(detect_every=person_detect_every)
+                SegmenterConfig(detect_every=person_detect_every, zoom=person_zoom)
                 if person_model == "blazepose"
                 else None
             ),
             persons_hints=person_hints,
             person_detect_every=person_detect_every,
+            person_zoom=person_zoom,
             frame_size_tolerance=frame_size_tolerance,
             association_method=association_method,
             crowd=CrowdConfig(reuse_detections=reuse_detections),

@@ -239,7 +239,9 @@ def plan_extraction(
     log.info("extract: %s association (%s)", method, why)
     if method == "keypoints":
         # Person instances with landmarks on every camera (phase 1), matched by keypoints.
-        persons = opts.persons or SegmenterConfig(detect_every=opts.person_detect_every)
+        persons = opts.persons or SegmenterConfig(
+            detect_every=opts.person_detect_every, zoom=opts.person_zoom
+        )
         opts = replace(opts, persons=persons)
     elif opts.persons is not None:
         model_paths(opts.persons_models_dir)  # fail now, with the fix, rather than in a worker
