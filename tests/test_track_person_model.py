@@ -178,3 +178,24 @@ def test_looking_again_finds_the_bystander_the_detector_skips():
     assert counts[False] == [2] * 12 and counts[True] == [3] * 12
     w = frames[0].shape[1]
     assert min(d.box[0] for d in found[0]) < 0.15 * w  # the new one stands at the left wall
+
+
+def test_extraction_segmenter_zoomed_in_finds_the_bystander_and_confirms_her(frames):
+    """`SegmenterConfig.zoom` (extraction's person masks, off by default): the first detector run
+    scans every zoomed window, finds the bystander at the back of cam02 and keeps her once her
+    own region confirms her; without zoom only the two subjects are found."""
+    from gst.detect.blazepose import BlazePose
+    from gst.detect.persons import PersonSegmenter, SegmenterConfig
+
+    small = [cv2.resize(f, (544, 960), interpolation=cv2.INTER_AREA) for f in frames[:4]]
+    model = BlazePose()
+    zoomed = PersonSegmenter(model, SegmenterConfig(detect_every=10, zoom=2 / 3))
+    plain = PersonSegmenter(model, SegmenterConfig(detect_every=10))
+    for f in small:
+        _, found = zoomed.segment(f)
+        _, two = plain.segment(f)
+        assert len(two) == 2
+        assert len(found) == 3
+        back = [p for p in found if 350 < np.median(p.landmarks[:, 0]) < 450]
+        assert len(back) == 1 and np.ptp(back[0].landmarks[:, 1]) < 300  # small, at the back
+    assert zoomed.zoom_found == 1 and zoomed.detector_runs == 1

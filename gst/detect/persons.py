@@ -289,10 +289,12 @@ class PersonSegmenter:
         self.hint_regions = 0  # hint regions given to the landmark model (for benchmarks)
         self.zoom_found = 0  # people kept from the zoomed look (for benchmarks)
         self._zoom = ZoomedScan(config.zoom, config.zoom_per_run)
+        self._probation: set[BodyRoi] = set()  # next regions of people just found zoomed in
 
     def reset(self) -> None:
         self._tracked, self._since_detect, self._fruitless = [], 0, {}
         self._zoom.reset()
+        self._probation = set()
 
     def _zoomed_look(
         self, frame: np.ndarray, segments: list[PersonSegment], rois: list[BodyRoi]
@@ -353,8 +355,18 @@ class PersonSegmenter:
         c = self.config
         tracked = self._tracked if c.track else []
         segments = self._segment_rois(frame, tracked)
+        # someone found zoomed in is confirmed only where their own region still shows a whole
+        # person, sure of their limbs (an anatomical skeleton model is not, there)
+        segments = [
+            s
+            if r not in self._probation
+            or whole_and_sure(s.landmarks, (h, w), c.zoom_min_confidence)
+            else replace(s, presence=0.0)
+            for r, s in zip(tracked, segments, strict=True)
+        ]
         lost = sum(s.presence >= c.min_presence for s in segments) < len(tracked)
         rois = list(tracked)
+        zoomed: set[BodyRoi] = set()
         if not tracked or lost or self._since_detect + 1 >= c.detect_every:
             self._since_detect = 0
             self.detector_runs += 1
@@ -372,6 +384,7 @@ class PersonSegmenter:
                 self.zoom_found += len(more)
                 segments += more
                 rois += [m.next_roi for m in more]
+                zoomed = {m.next_roi for m in more}
         else:
             self._since_detect += 1
         labels, people = compose_instances(segments, self.config, h * w)
@@ -396,6 +409,7 @@ class PersonSegmenter:
                     if id(seg) not in kept and c.hint_retry > 1:
                         self._fruitless[tuple(box)] = c.hint_retry
         self._tracked = [p.next_roi for p in people]
+        self._probation = zoomed & set(self._tracked)
         if labels is None:
             return np.zeros((h, w), np.uint8), []
         return labels, people
