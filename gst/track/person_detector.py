@@ -14,10 +14,10 @@ barely overlaps anyone's (`look_again_overlap`): where two overlap, the landmark
 could not keep them apart (docs/track_evaluation.md, "Looking again").
 
 A person who stands still is not looked at again (`still_change`): where a 32 x 32 thumbnail of
-their next region has barely changed since the frame their landmarks were computed on (99 % of
-its pixels within `still_change` grey levels), those landmarks are theirs in this frame too, and
-the landmark model skips them, up to `still_refresh` frames in a row (docs/track_evaluation.md,
-"People who stand still").
+their mask's box (grown by a tenth) has barely changed since the frame their landmarks were
+computed on (99 % of its pixels within `still_change` grey levels), those landmarks are theirs in
+this frame too, and the landmark model skips them, up to `still_refresh` frames in a row
+(docs/track_evaluation.md, "People who stand still").
 
 Every detection carries the person's 33 landmarks (full-frame pixels, pixel centres at
 integers, confidence = visibility x presence) and the box of their mask: the landmark model's
@@ -145,13 +145,14 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
 THUMB = 32  # side of the thumbnails that tell a still person's region from a changed one
 
 
-def region_thumbnail(image: np.ndarray, roi: BodyRoi) -> np.ndarray:
-    """Grey (THUMB, THUMB) float32 thumbnail of the part of `image` inside `roi`'s upright box
-    (area-averaged, so that a compressed video's pixel noise averages out)."""
+def box_thumbnail(image: np.ndarray, box: np.ndarray, grow: float = 0.1) -> np.ndarray:
+    """Grey (THUMB, THUMB) float32 thumbnail of the part of `image` inside the corner-convention
+    `box` grown by `grow` of its size on every side (area-averaged, so that a compressed video's
+    pixel noise averages out)."""
     h, w = image.shape[:2]
-    (cx, cy), half = roi.centre, 0.5 * roi.side
-    x0, y0 = max(0, int(cx - half)), max(0, int(cy - half))
-    x1, y1 = min(w, int(np.ceil(cx + half))), min(h, int(np.ceil(cy + half)))
+    gx, gy = grow * (box[2] - box[0]), grow * (box[3] - box[1])
+    x0, y0 = max(0, int(box[0] - gx)), max(0, int(box[1] - gy))
+    x1, y1 = min(w, int(np.ceil(box[2] + gx))), min(h, int(np.ceil(box[3] + gy)))
     if x1 - x0 < 2 or y1 - y0 < 2:
         return np.zeros((THUMB, THUMB), np.float32)
     patch = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY)
@@ -160,8 +161,8 @@ def region_thumbnail(image: np.ndarray, roi: BodyRoi) -> np.ndarray:
 
 @dataclass
 class _Seen:
-    """A tracked person's last computed landmarks (result, mask box), the thumbnail of their next
-    region in the frame they were computed on, and the frames they have been kept since."""
+    """A tracked person's last computed landmarks (result, mask box), the thumbnail of their mask
+    box in the frame they were computed on, and the frames they have been kept since."""
 
     found: tuple
     thumbnail: np.ndarray
@@ -198,7 +199,7 @@ class PersonModelDetector:
         seen, c = self._seen[i], self.config
         if seen is None or c.still_change <= 0 or seen.kept_for >= c.still_refresh:
             return None
-        change = np.abs(region_thumbnail(image, self._people[i]) - seen.thumbnail)
+        change = np.abs(box_thumbnail(image, seen.found[1]) - seen.thumbnail)
         if float(np.percentile(change, 99)) > c.still_change:
             return None
         seen.kept_for += 1
@@ -329,9 +330,7 @@ class PersonModelDetector:
         confirmed = {id(r) for r, _ in tracked}
         self._seen = [
             earlier.get(id(r))
-            or (
-                _Seen((r, box), region_thumbnail(small, r.next_roi)) if id(r) in confirmed else None
-            )
+            or (_Seen((r, box), box_thumbnail(small, box)) if id(r) in confirmed else None)
             for r, box in kept
         ]
         out = []
