@@ -383,3 +383,37 @@ def test_predictor_with_wrong_betas_count_is_named(scene, tmp_path):
 
     with pytest.raises(ValueError, match="returned 11 betas per person, expected num_betas = 10"):
         track_scene(scene, tmp_path, predictor=Eleven())
+
+
+def test_a_group_answers_an_input_it_has_seen_without_the_network():
+    """A person who stands still keeps their landmarks, so their network input repeats: the
+    group predicts each distinct input once and gives repeats the same answer, in order."""
+    from gst.track.baseline import BoxDepthPredictor
+    from gst.track.frames import PreparedDetection
+    from gst.track.loop import _Group
+
+    calls = []
+    inner = BoxDepthPredictor()
+
+    def predictor(crops, K):
+        calls.append(len(crops))
+        return inner(crops, K)
+
+    def det(f):
+        K = np.array([[f, 0, 127.5], [0, f, 127.5], [0, 0, 1]])
+        lms = np.full((33, 3), np.nan, np.float32)
+        return PreparedDetection(np.zeros((256, 256, 3), np.uint8), K, np.zeros(8), lms)
+
+    group = _Group(predictor, batch_size=4, num_betas=10)
+    inputs = [det(500.0), det(600.0), det(500.0), det(500.0), det(700.0), det(600.0)]
+    group.add(None, inputs)
+    poses = group.predictions()
+    assert calls == [2, 1]  # batch 1: 500 and 600 (two repeats of 500); batch 2: 700 (600 seen)
+    assert group.reused == 3 and len(poses) == 6
+    alone = inner(np.stack([d.crop_rgb for d in inputs]), np.stack([d.K_crop for d in inputs]))
+    np.testing.assert_allclose(poses.transl_cam, alone["transl_cam"])
+    # a new group (a resume starts at one) remembers nothing
+    fresh = _Group(predictor, batch_size=4, num_betas=10)
+    fresh.add(None, [det(500.0)])
+    fresh.predictions()
+    assert calls == [2, 1, 1]

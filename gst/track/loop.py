@@ -9,6 +9,7 @@ groups, reproduces an uninterrupted run byte for byte.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Callable, Iterator
@@ -175,6 +176,15 @@ def pose_fitter(
     return PoseFitter(module_on(body, "cpu"), config, num_betas)  # small solves: CPU numpy
 
 
+def _input_key(c: PreparedDetection) -> bytes:
+    """A digest of everything the network reads from one detection (crop pixels, crop camera,
+    landmarks)."""
+    h = hashlib.blake2b(digest_size=16)
+    for a in (c.crop_rgb, c.K_crop, c.landmarks_crop):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
 class _Group:
     """Crops and predictions of one row group: crops are pooled across frames and predicted
     `batch_size` at a time; the last batch of a group may be smaller."""
@@ -197,6 +207,12 @@ class _Group:
         self.frames: list[PendingFrame] = []
         self.cut: list[PreparedDetection] = []
         self.poses: list[PoseBatch] = []
+        # The answer for an input seen before in this group: a person who stands still keeps
+        # their landmarks (gst.track.person_detector, `still_change`), so their network input is
+        # the same bytes as in the frame before. Per group, so that a run that starts at a group
+        # (a resume, a chunk) predicts what an uninterrupted run predicts.
+        self._seen: dict[bytes, PoseBatch] = {}
+        self.reused = 0  # rows answered from `_seen`
 
     def add(self, frame: PendingFrame, cut: list[PreparedDetection]) -> None:
         self.frames.append(frame)
@@ -207,6 +223,18 @@ class _Group:
     def _predict(self, n: int) -> None:
         part = self.cut[:n]
         del self.cut[:n]
+        keys = [_input_key(c) for c in part]
+        first = {k: i for i, k in reversed(list(enumerate(keys))) if k not in self._seen}
+        todo = sorted(first.values())  # each new input once, at its first place
+        if todo:
+            computed = self._compute([part[i] for i in todo])
+            for j, i in enumerate(todo):
+                self._seen[keys[i]] = computed.take([j])
+        self.reused += n - len(todo)
+        self.poses.append(PoseBatch.concat([self._seen[k] for k in keys], self.num_betas))
+
+    def _compute(self, part: list[PreparedDetection]) -> PoseBatch:
+        n = len(part)
         crops = np.stack([c.crop_rgb for c in part])
         Ks = np.stack([c.K_crop for c in part])
         lms = np.stack([c.landmarks_crop for c in part])
@@ -232,7 +260,7 @@ class _Group:
                 f"predictor returned {pose.betas.shape[1]} betas per person, expected "
                 f"num_betas = {self.num_betas}"
             )
-        self.poses.append(pose)
+        return pose
 
     def predictions(self) -> PoseBatch:
         if self.cut:
