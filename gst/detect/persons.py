@@ -140,10 +140,12 @@ class SegmenterConfig:
             not 0 <= self.zoom < 1
             or self.zoom_per_run < 1
             or not 0 <= self.zoom_min_confidence <= 1
+            or not 0 <= self.zoom_overlap <= 1
         ):
             raise ValueError(
-                f"segmenter zoom in [0, 1), zoom_per_run >= 1 and zoom_min_confidence in [0, 1] "
-                f"expected, got {self.zoom}, {self.zoom_per_run}, {self.zoom_min_confidence}"
+                f"segmenter zoom in [0, 1), zoom_per_run >= 1, zoom_min_confidence and "
+                f"zoom_overlap in [0, 1] expected, got {self.zoom}, {self.zoom_per_run}, "
+                f"{self.zoom_min_confidence}, {self.zoom_overlap}"
             )
         if not 0 < self.same_hint <= 1:
             raise ValueError(f"segmenter same_hint must be in (0, 1], got {self.same_hint}")
@@ -164,11 +166,13 @@ def body_size(landmarks: np.ndarray) -> float:
 
 def whole_and_sure(landmarks: np.ndarray, shape: tuple[int, int], min_confidence: float) -> bool:
     """Whether a person's 12 limb landmarks (x, y, confidence) all lie in the (H, W) image and
-    their median confidence is at least `min_confidence`: what a person found only in a
-    zoomed-in window must be. Up close, things that look like a person are found too, and on the
-    lab capture those were cut by the frame's edge (an anatomical skeleton model, a camera mount
-    on the wall: limb landmarks up to 160 px outside, confidence 0.01-0.94 depending on the
-    region), while the small people at the back it is for stand whole in the frame."""
+    their median confidence is at least `min_confidence`: what someone found by looking again
+    (zoomed in, or with the people found painted out) must be, when found and in their own region
+    the next frame. Up close, things that look like a person are found too, and on the lab
+    capture those were cut by the frame's edge in some regions (an anatomical skeleton model, a
+    camera mount on the wall: limb landmarks up to 160 px outside) or unsure in their own
+    (confidence 0.01-0.72), while the small people at the back it is for stand whole in the
+    frame and are sure of their limbs (0.82-1.0)."""
     h, w = shape
     limbs = landmarks[LIMB_JOINTS]
     inside = (
@@ -289,7 +293,7 @@ class PersonSegmenter:
         self.hint_regions = 0  # hint regions given to the landmark model (for benchmarks)
         self.zoom_found = 0  # people kept from the zoomed look (for benchmarks)
         self._zoom = ZoomedScan(config.zoom, config.zoom_per_run)
-        self._probation: set[BodyRoi] = set()  # next regions of people just found zoomed in
+        self._probation: set[BodyRoi] = set()  # next regions of the zoomed look's new finds
 
     def reset(self) -> None:
         self._tracked, self._since_detect, self._fruitless = [], 0, {}

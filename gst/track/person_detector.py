@@ -11,7 +11,10 @@ arrivals. Its detections that repeat a tracked person are dropped before the lan
 for one person and returns few per call, so each time it runs it looks once more with everyone
 already found painted out (`look_again`); a person it finds then is kept only where their box
 barely overlaps anyone's (`look_again_overlap`): where two overlap, the landmark model's loop
-could not keep them apart (docs/track_evaluation.md, "Looking again").
+could not keep them apart (docs/track_evaluation.md, "Looking again"). That second look also
+scans zoomed-in windows, where people far at the back are larger (`look_again_zoom`), and what it
+finds stays only once its own region, the next frame, shows a whole person sure of their limbs
+(docs/track_evaluation.md, "Small people at the back").
 
 A person who stands still is not looked at again (`still_change`): where a 32 x 32 thumbnail of
 their mask's box (grown by a tenth) has barely changed since the frame their landmarks were
@@ -77,7 +80,7 @@ class PersonModelConfig:
     # confidence at least this (the lab's people: 0.82-1.0; its anatomical skeleton model 0.57,
     # a camera mount 0.01-0.09, both cut by the frame's edge)
     zoom_min_confidence: float = 0.75
-    # A tracked person whose region's thumbnail changed by at most this many grey levels (99th
+    # A tracked person whose mask box's thumbnail changed by at most this many grey levels (99th
     # percentile) since their landmarks were computed keeps those landmarks (0: always compute);
     # on the lab capture the bystander changes by 1-3.5 levels over 5 frames, the two people
     # who move by 5-60 in one frame
@@ -142,7 +145,7 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
     return np.array([u.min() - half, v.min() - half, u.max() + half, v.max() + half]) + 0.5
 
 
-THUMB = 32  # side of the thumbnails that tell a still person's region from a changed one
+THUMB = 32  # side of the thumbnails that tell a still person from one who moved
 
 
 def box_thumbnail(image: np.ndarray, box: np.ndarray, grow: float = 0.1) -> np.ndarray:
@@ -187,7 +190,7 @@ class PersonModelDetector:
         self.regions = 0  # landmark-model regions evaluated
         self.still_kept = 0  # regions whose landmarks were kept from an earlier frame
         self._zoom = ZoomedScan(c.look_again_zoom, c.zoom_per_run)
-        self._probation: set[BodyRoi] = set()  # next regions of people just found zoomed in
+        self._probation: set[BodyRoi] = set()  # next regions of the second look's new finds
 
     def reset(self) -> None:
         self._people, self._seen, self._last, self._since_detect = [], [], None, 0
@@ -214,8 +217,8 @@ class PersonModelDetector:
         results = self._landmarks(image, [self._people[i] for i in todo])
         for i, r in zip(todo, results, strict=True):
             accepted = self._accept([r], image.shape[0])
-            # someone found zoomed in is confirmed only where their own region still shows a
-            # whole person, sure of their limbs (the lab's skeleton model: 0.08-0.51 there)
+            # someone the second look found is confirmed only where their own region still
+            # shows a whole person, sure of their limbs (the lab's skeleton model: 0.08-0.72)
             if accepted and self._people[i] in self._probation:
                 ok = whole_and_sure(r.landmarks, image.shape[:2], self.config.zoom_min_confidence)
                 accepted = accepted if ok else []
