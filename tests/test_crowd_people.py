@@ -250,3 +250,27 @@ def test_the_window_holds_every_pixel_the_region_samples(cx, cy, side, angle):
         read = np.r_[first, first + 1]
         read = read[(read >= 0) & (read < n)]
         assert np.all((read >= lo) & (read < hi))
+
+
+def test_two_candidates_sharing_their_hips_are_one_person():
+    """Two bodies cannot share their hips: candidates whose mid-hips lie within
+    `duplicate_hips` are one person, however far apart their limbs were triangulated (the lab's
+    kicking man, twice from different views: hips 2-4 cm apart, limbs 0.27-0.48 m); the one more
+    cameras confirmed stays. People 0.3 m apart stay two."""
+    from gst.data.keypoints.people import _Candidate
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(0, 0.3, (33, 3))
+    base[[23, 24]] = [[-0.1, 0.9, 0.0], [0.1, 0.9, 0.0]]
+    other_limbs = base + rng.normal(0, 0.5, (33, 3))
+    other_limbs[[23, 24]] = base[[23, 24]] + [0.03, 0.0, 0.0]  # hips 3 cm off, limbs far
+    beside = base + [0.3, 0.0, 0.0]  # another person, 0.3 m to the side
+    views = {n: (None, None) for n in RIG.names[:3]}
+    a = _Candidate(base, False, None, dict(views))
+    b = _Candidate(other_limbs, False, None, {RIG.names[0]: (None, None)})
+    c = _Candidate(beside, False, None, dict(views))
+    tracker = CrowdTracker(RIG, 1 / 30)
+    kept = tracker._distinct([b, a, c])
+    assert [k is a for k in kept] == [True, False] and kept[1] is c
+    off = CrowdTracker(RIG, 1 / 30, CrowdConfig(duplicate_hips=0.0))
+    assert len(off._distinct([b, a, c])) == 3

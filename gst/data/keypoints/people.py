@@ -87,6 +87,7 @@ class CrowdConfig:
     trusted_views: int = 3  # cameras that must agree before a new person is trusted
     remembered_gap: float = 0.3  # a prior further than this (m) from every group is a candidate
     duplicate_gap: float = 0.15  # two candidates this close (m) after refinement are one person
+    duplicate_hips: float = 0.1  # ... and two whose mid-hips lie this close (m; 0: not used)
     min_mask_pixels: int = 20  # smaller masks are no view
 
     def __post_init__(self):
@@ -100,6 +101,8 @@ class CrowdConfig:
                 "CrowdConfig needs 0 < project_visibility <= 1 and trusted_views >= 2, got "
                 f"{self.project_visibility}, {self.trusted_views}"
             )
+        if self.duplicate_hips < 0:
+            raise ValueError(f"CrowdConfig needs duplicate_hips >= 0, got {self.duplicate_hips}")
 
 
 @dataclass(frozen=True)
@@ -161,6 +164,11 @@ def _detections(cands, n: str, instances, masks) -> dict[int, tuple[PersonInstan
         if not any(containment(b, box) > STRAY_OVERLAP for b in stray):
             out[k] = (instances[n][i], ms[i])
     return out
+
+
+def _hips(skeleton: np.ndarray) -> np.ndarray:
+    """Mid-hip point (3,) of a (33, 3) world skeleton (NaN where a hip is unknown)."""
+    return skeleton[[23, 24]].mean(axis=0)
 
 
 def _strict_views(group: PersonGroup | None) -> int:
@@ -301,13 +309,19 @@ class CrowdTracker:
 
     def _distinct(self, cands: list[_Candidate]) -> list[_Candidate]:
         """One candidate per person: two whose skeletons converged (two regions that found the
-        same person) keep the one more cameras confirmed."""
+        same person), or whose hips lie within `duplicate_hips` (two bodies cannot share their
+        hips, whatever their limbs: the lab's man, kicking, was triangulated twice from different
+        views with hips 2-4 cm apart and limbs 0.27-0.48 m apart), keep the one more cameras
+        confirmed."""
+        cfg = self.config
         order = sorted(range(len(cands)), key=lambda k: (-len(cands[k].refined), k))
+        hips = [_hips(c.skeleton) for c in cands]
         keep: list[int] = []
         for k in order:
             if all(
                 skeleton_distance(cands[k].skeleton[_BODY], cands[j].skeleton[_BODY])
-                >= self.config.duplicate_gap
+                >= cfg.duplicate_gap
+                and not np.linalg.norm(hips[k] - hips[j]) < cfg.duplicate_hips
                 for j in keep
             ):
                 keep.append(k)
