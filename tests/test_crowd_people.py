@@ -274,3 +274,11 @@ def test_two_candidates_sharing_their_hips_are_one_person():
     assert [k is a for k in kept] == [True, False] and kept[1] is c
     off = CrowdTracker(RIG, 1 / 30, CrowdConfig(duplicate_hips=0.0))
     assert len(off._distinct([b, a, c])) == 3
+    # the kept one takes the views the other found in cameras it has none in, and is
+    # triangulated again from them all
+    b.refined[RIG.names[3]], b.fits[RIG.names[3]] = ("view", "mask"), 0.02
+    again = []
+    tracker._triangulate_refined = again.append
+    tracker._distinct([b, a, c])
+    assert a.refined[RIG.names[3]] == ("view", "mask") and a.fits[RIG.names[3]] == 0.02
+    assert again == [a] and RIG.names[3] not in c.refined

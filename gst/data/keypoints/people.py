@@ -88,6 +88,8 @@ class CrowdConfig:
     remembered_gap: float = 0.3  # a prior further than this (m) from every group is a candidate
     duplicate_gap: float = 0.15  # two candidates this close (m) after refinement are one person
     duplicate_hips: float = 0.1  # ... and two whose mid-hips lie this close (m; 0: not used)
+    # the kept one of two such candidates takes the other's views in cameras it has none in
+    merge_duplicates: bool = True
     min_mask_pixels: int = 20  # smaller masks are no view
 
     def __post_init__(self):
@@ -312,19 +314,33 @@ class CrowdTracker:
         same person), or whose hips lie within `duplicate_hips` (two bodies cannot share their
         hips, whatever their limbs: the lab's man, kicking, was triangulated twice from different
         views with hips 2-4 cm apart and limbs 0.27-0.48 m apart), keep the one more cameras
-        confirmed."""
+        confirmed, which takes the other's views in cameras it has none in and is triangulated
+        again from them all (`merge_duplicates`)."""
         cfg = self.config
         order = sorted(range(len(cands)), key=lambda k: (-len(cands[k].refined), k))
         hips = [_hips(c.skeleton) for c in cands]
-        keep: list[int] = []
-        for k in order:
-            if all(
+
+        def same(k: int, j: int) -> bool:
+            return bool(
                 skeleton_distance(cands[k].skeleton[_BODY], cands[j].skeleton[_BODY])
-                >= cfg.duplicate_gap
-                and not np.linalg.norm(hips[k] - hips[j]) < cfg.duplicate_hips
-                for j in keep
-            ):
+                < cfg.duplicate_gap
+                or np.linalg.norm(hips[k] - hips[j]) < cfg.duplicate_hips
+            )
+
+        keep: list[int] = []
+        merged: set[int] = set()
+        for k in order:
+            twin = next((j for j in keep if same(k, j)), None)
+            if twin is None:
                 keep.append(k)
+            elif cfg.merge_duplicates:
+                # the person is seen in the views either found: the kept one takes the others'
+                kept, other = cands[twin], cands[k]
+                for n in other.refined.keys() - kept.refined.keys():
+                    kept.refined[n], kept.fits[n] = other.refined[n], other.fits[n]
+                    merged.add(twin)
+        for j in merged:
+            self._triangulate_refined(cands[j])
         return [cands[k] for k in sorted(keep)]
 
     def _map_cameras(self, fn, names: list[str]) -> list:
@@ -361,13 +377,17 @@ class CrowdTracker:
                 cands[k].refined[n] = (inst, prob)
                 cands[k].fits[n] = fit
         for c in cands:
-            if len(c.refined) >= 2:
-                views = {
-                    n: camera_view(self.cams[n], [inst], cfg.match.min_confidence)
-                    for n, (inst, _) in c.refined.items()
-                }
-                X = _triangulate_all(views, {n: (0, False) for n in c.refined}, cfg.match)
-                c.skeleton = np.where(np.isfinite(X), X, c.skeleton)
+            self._triangulate_refined(c)
+
+    def _triangulate_refined(self, c: _Candidate) -> None:
+        """A candidate's skeleton from its refined views, where it has two or more."""
+        if len(c.refined) >= 2:
+            min_conf = self.config.match.min_confidence
+            views = {
+                n: camera_view(self.cams[n], [inst], min_conf) for n, (inst, _) in c.refined.items()
+            }
+            X = _triangulate_all(views, {n: (0, False) for n in c.refined}, self.config.match)
+            c.skeleton = np.where(np.isfinite(X), X, c.skeleton)
 
     def _refine_camera(
         self, n, cands, skels, fg, img, backgrounds, detected
