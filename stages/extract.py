@@ -31,7 +31,7 @@ class Params(StageParams):
     person_model: Literal["none", "blazepose"] = "none"
     person_hints: bool = True  # also segment around moving background blobs
     person_detect_every: int = Field(10, ge=1)  # BlazePose detector every N frames (tracked)
-    person_zoom: float = Field(0.0, ge=0, lt=1)  # look again zoomed in (SegmenterConfig.zoom)
+    person_zoom: float = Field(2 / 3, ge=0, lt=1)  # look again zoomed in (SegmenterConfig.zoom)
     # 'auto': keypoint association when BlazePose is installed, else the visual hull
     association_method: Literal["auto", "keypoints", "hull"] = "auto"
     # keypoints: keep the detections of people no one overlaps instead of looking at them again

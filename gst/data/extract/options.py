@@ -50,7 +50,9 @@ class ExtractOptions:
     persons_hints: bool = True
     # The person detector every this many frames while everyone is tracked (SegmenterConfig)
     person_detect_every: int = 10
-    person_zoom: float = 0.0  # the detector looks again zoomed in (SegmenterConfig.zoom)
+    # the person detector looks again zoomed in (SegmenterConfig.zoom; docs/extract.md "The
+    # bystander, zoomed in"); 0: not
+    person_zoom: float = 2 / 3
     # Frames smaller than the calibrated size by up to this many pixels are encoder padding
     # (calibration.camera.fit_to_frames).
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE
@@ -79,7 +81,7 @@ class ExtractOptions:
         association_method: str = "auto",
         person_detect_every: int = 10,
         reuse_detections: bool = False,
-        person_zoom: float = 0.0,
+        person_zoom: float = 2 / 3,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose'), whether to segment around moving blobs too, the
