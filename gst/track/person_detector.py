@@ -198,7 +198,7 @@ class PersonModelDetector:
         self._probation = set()
 
     def _still(self, image: np.ndarray, i: int) -> tuple | None:
-        """The kept (result, box) of tracked person `i` if their region has not changed."""
+        """The kept (result, box) of tracked person `i` if their mask box has not changed."""
         seen, c = self._seen[i], self.config
         if seen is None or c.still_change <= 0 or seen.kept_for >= c.still_refresh:
             return None
@@ -210,7 +210,7 @@ class PersonModelDetector:
 
     def _follow(self, image: np.ndarray) -> list[tuple | None]:
         """Per tracked person: (result, box), or None where they are lost; the landmark model
-        runs in one call for those whose region changed."""
+        runs in one call for those who moved."""
         out = [self._still(image, i) for i in range(len(self._people))]
         todo = [i for i, o in enumerate(out) if o is None]
         self.still_kept += len(out) - len(todo)

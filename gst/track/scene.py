@@ -84,7 +84,7 @@ class TrackSettings(BaseModel):
     # where people far at the back are larger (0: the usual windows only; docs/
     # track_evaluation.md "Small people at the back")
     look_again_zoom: float = Field(default=2 / 3, ge=0, lt=1)
-    # blazepose: a person whose region's 32 x 32 thumbnail changed by at most this many grey
+    # blazepose: a person whose mask box's 32 x 32 thumbnail changed by at most this many grey
     # levels since their landmarks were computed keeps them (0: compute every frame; docs/
     # track_evaluation.md "People who stand still")
     still_change: float = Field(default=4.0, ge=0)
