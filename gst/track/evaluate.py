@@ -33,7 +33,7 @@ __all__ = [
 PELVIS = 0
 
 
-def _mask_boxes(scene_dir: str | Path, camera_name: str, min_mask_area: int) -> TruthViews:
+def visible_truth_boxes(scene_dir: str | Path, camera_name: str, min_mask_area: int) -> TruthViews:
     """The truth people `camera_name` sees (rows with at least `min_mask_area` mask pixels), their
     mask boxes moved from views.parquet's pixel-centre edges (`min column - 0.5`) to the tracks'
     pixel corners (`min column`)."""
@@ -170,7 +170,7 @@ def evaluate_tracks(
     meta = read_metadata(tracks_parquet)
     table = pq.read_table(tracks_parquet, partitioning=None)
     truth = read_scene_truth(scene_dir)
-    views = _mask_boxes(scene_dir, camera_name, min_mask_area)
+    views = visible_truth_boxes(scene_dir, camera_name, min_mask_area)
     joints_frame = (meta.get("axes") or {}).get("joints3d", "camera")
 
     frames = _processed_frames(meta, truth.frame)

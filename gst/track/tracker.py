@@ -1,12 +1,18 @@
-"""Person ids across frames: Hungarian assignment on box overlap, 3D position and appearance.
+"""Person ids across frames: Hungarian assignment on box overlap, 3D position, appearance and
+skeleton.
 
-Each track keeps a constant-velocity model of its box (px/s) and of its 3D position (m/s), and an
-exponential average of its colour histogram. For a new frame the cost of giving detection j to
-track i is the weighted mean of three terms in [0, 1]:
+Each track keeps a constant-velocity model of its box (px/s) and of its 3D position (m/s), an
+exponential average of its colour histogram, and the landmarks of its last detection. For a new
+frame the cost of giving detection j to track i is the weighted mean of terms in [0, 1]:
 
     1 - IoU(predicted box_i, box_j)
     min(|predicted position_i - position_j| / gate_i, 1),  gate_i = noise + max_speed * dt_i
     Hellinger(appearance_i, appearance_j)
+    min(median |limb landmark_j - limb landmark_i moved with the box| / (scale * size_i), 1)
+
+The skeleton term counts only for pairs where both have landmarks (the learned person model's),
+over the limb joints both are sure of (at least 4): where two people overlap, their boxes and
+colours are alike but their limbs are not (docs/track_evaluation.md, "Crowds").
 
 A pair is allowed only if its cost is at most `max_cost`, the boxes overlap (IoU >= min_iou) or
 the 3D positions are within the gate, and the positions are within `hard_gate` gates (a
@@ -34,6 +40,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from gst.detect.boxes import box_iou  # noqa: F401  (re-exported: gst.track.box_iou)
+from gst.detect.persons import LIMB_JOINTS, body_size
 from gst.track.appearance import hellinger
 from gst.track.parts import PartConfig, is_part
 
@@ -45,6 +52,11 @@ class TrackerConfig:
     w_iou: float = 1.0
     w_position: float = 1.0
     w_appearance: float = 1.0
+    # pairs where both have landmarks: how far the detection's limb joints lie from the track's
+    # last ones (moved with its predicted box), per `skeleton_scale` of the track's body size
+    # (gst.detect.persons.body_size); on the synthetic crowd scenes 95 -> 75 id switches
+    w_skeleton: float = 1.0
+    skeleton_scale: float = 0.3
     max_cost: float = 0.75
     min_iou: float = 0.05  # below this overlap a pair must be close in 3D to match
     position_noise_m: float = 0.5  # 3D gate at zero elapsed time (monocular depth is noisy)
@@ -59,13 +71,15 @@ class TrackerConfig:
 
     def __post_init__(self):
         if (
-            min(self.w_iou, self.w_position, self.w_appearance) < 0
+            min(self.w_iou, self.w_position, self.w_appearance, self.w_skeleton) < 0
             or self.w_iou + self.w_position + self.w_appearance <= 0
         ):
             raise ValueError(
-                f"tracker weights must be >= 0 and not all 0, got {self.w_iou}, {self.w_position}, "
-                f"{self.w_appearance}"
+                "tracker weights must be >= 0 and those of box, position and appearance not all "
+                f"0, got {self.w_iou}, {self.w_position}, {self.w_appearance}, {self.w_skeleton}"
             )
+        if self.skeleton_scale <= 0:
+            raise ValueError(f"skeleton_scale must be > 0, got {self.skeleton_scale}")
         if self.max_misses < 0:
             raise ValueError(f"max_misses must be >= 0, got {self.max_misses}")
         if self.min_hits < 1:
@@ -109,6 +123,7 @@ class Track:
     misses: int = 0
     confirmed: bool = True  # False while a new track has fewer than min_hits matches (id -1)
     pending: list = field(default_factory=list)  # keys of its observations while tentative
+    landmarks: np.ndarray | None = None  # (33, 3) of its last observation, where it had them
 
     def predicted_box(self, time_s: float) -> np.ndarray:
         return self.box + self.box_velocity * (time_s - self.last_time)
@@ -125,6 +140,8 @@ class Track:
     def from_dict(cls, d: dict) -> Track:
         arrays = ("box", "position", "appearance", "box_velocity", "position_velocity")
         d = {k: (np.asarray(v, dtype=np.float64) if k in arrays else v) for k, v in d.items()}
+        if d.get("landmarks") is not None:
+            d["landmarks"] = np.asarray(d["landmarks"], dtype=np.float64)
         d["pending"] = [tuple(k) for k in d.get("pending", [])]
         return cls(**d)
 
@@ -165,17 +182,53 @@ class Tracker:
             np.stack([t.appearance for t in self.tracks])[:, None],
             np.stack([o.appearance for o in observations])[None],
         )
+        skeleton, has = self._skeleton_distances(time_s, observations)
+        w_skeleton = c.w_skeleton * has  # (T, N): the term counts where both have landmarks
         cost = (
             c.w_iou * (1 - iou)
             + c.w_position * np.minimum(dist / gates[:, None], 1.0)
             + c.w_appearance * app
-        ) / (c.w_iou + c.w_position + c.w_appearance)
+            + w_skeleton * skeleton
+        ) / (c.w_iou + c.w_position + c.w_appearance + w_skeleton)
         allowed = (
             (cost <= c.max_cost)
             & ((iou >= c.min_iou) | (dist <= gates[:, None]))
             & (dist <= c.hard_gate * gates[:, None])
         )
         return cost, allowed
+
+    def _skeleton_distances(
+        self, time_s: float, observations: list[Observation]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(T, N) skeleton term in [0, 1], and (T, N) 1.0 where it is defined: both have
+        landmarks, and at least 4 limb joints are sure (>= 0.5) on both sides."""
+        c = self.config
+        T, N = len(self.tracks), len(observations)
+        term, has = np.zeros((T, N)), np.zeros((T, N))
+        mine = [i for i, t in enumerate(self.tracks) if t.landmarks is not None]
+        theirs = [j for j, o in enumerate(observations) if o.landmarks is not None]
+        if c.w_skeleton <= 0 or not mine or not theirs:
+            return term, has
+        tracks = [self.tracks[i] for i in mine]
+        a = np.stack([t.landmarks[LIMB_JOINTS] for t in tracks])  # (T', 12, 3)
+        b = np.stack([np.asarray(observations[j].landmarks)[LIMB_JOINTS] for j in theirs])
+        # each track's skeleton moved as its box is predicted to move
+        shift = np.stack([t.predicted_box(time_s) - t.box for t in tracks])
+        moved = a[..., :2] + ((shift[:, :2] + shift[:, 2:]) / 2)[:, None]
+        d = np.linalg.norm(moved[:, None] - b[None, :, :, :2], axis=-1)  # (T', N', 12)
+        sure = (a[:, None, :, 2] >= 0.5) & (b[None, :, :, 2] >= 0.5)
+        count = sure.sum(-1)
+        enough = count >= 4
+        # median over the sure joints: unsure ones sorted to the end
+        ordered = np.sort(np.where(sure, d, np.inf), axis=-1)
+        lo = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, -1)[..., 0]
+        hi = np.take_along_axis(ordered, (count // 2)[..., None].clip(max=11), -1)[..., 0]
+        median = np.where(enough, (lo + hi) / 2, 0.0)
+        scale = c.skeleton_scale * np.maximum([body_size(t.landmarks) for t in tracks], 1.0)
+        value = np.minimum(median / scale[:, None], 1.0)
+        term[np.ix_(mine, theirs)] = value
+        has[np.ix_(mine, theirs)] = enough
+        return term, has
 
     def update(self, time_s: float, observations: list[Observation]) -> list[int]:
         """Assign an id to each observation (same order) and advance every track."""
@@ -276,6 +329,7 @@ class Tracker:
                 time_s,
                 confirmed=confirmed,
                 pending=[] if confirmed else [obs.key],
+                landmarks=None if obs.landmarks is None else np.asarray(obs.landmarks, np.float64),
             )
             if confirmed:
                 self.next_id += 1
@@ -293,6 +347,8 @@ class Tracker:
                 w * (obs.position - t.position) / dt + (1 - w) * t.position_velocity
             )
         t.box, t.position, t.last_time = obs.box.copy(), obs.position.copy(), time_s
+        if obs.landmarks is not None:
+            t.landmarks = np.asarray(obs.landmarks, np.float64).copy()
         a = c.appearance_weight
         t.appearance = a * obs.appearance + (1 - a) * t.appearance
         t.hits += 1

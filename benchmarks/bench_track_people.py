@@ -1,0 +1,168 @@
+"""Who the learned person model's loop keeps hold of: recall, MOTA and id switches of `track`'s
+person model (gst.track.person_detector) on synthetic scenes' videos, against their truth.
+
+Each scene's videos (`<workspace>/<scene>/synth/videos/*.mp4`, one per camera) are tracked with
+the stage's tracker settings and the pixel-free BoxDepthPredictor (the network does not decide
+who is tracked, so it is left out to keep the benchmark quick), then scored with
+gst.track.evaluate (truth boxes from the scene's masks, Hungarian on box IoU >= 0.3; a miss
+is a truth person with any visible pixel and no tracked box). Variants of the person model's
+settings run in one process on the same videos; beside the scores, CPU milliseconds per frame of
+the whole loop and detector runs per 100 frames.
+
+Scenes are named as in `--config`'s workspace (`synth` must have run for them): the demo, and
+e.g. the crowd scenes of benchmarks/crowd_scenes.yaml (3-5 people who often stand close). Tune
+on some scenes (`--tune`) and report the others: the means are printed for both groups.
+
+    python benchmarks/bench_track_people.py --workspace workspace \\
+        --tune demo,crowd_dome_7000,crowd_h36m_7000 \\
+        --report crowd_dome_7001,crowd_h36m_7001,crowd_dome_7002,crowd_h36m_7002
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from benchmarks.cli import bench_parser
+from gst.track.baseline import BoxDepthPredictor
+from gst.track.evaluate import evaluate_tracks, match_frame, visible_truth_boxes
+from gst.track.loop import TrackOptions, track_video
+from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+from gst.track.read import column_array
+from gst.track.scene import TrackSettings, person_model_config
+from gst.track.tracker import TrackerConfig
+
+
+@dataclass
+class Score:
+    frames: int
+    truth: int
+    matches: int
+    rows: int
+    switches: int
+    cpu_s: float
+    detector_runs: int
+    half_visible: int  # truth views with at least half their joints visible ...
+    half_matched: int  # ... and how many of them a tracked box matches
+
+    def __add__(self, o: Score) -> Score:
+        return Score(*(a + b for a, b in zip(vars(self).values(), vars(o).values(), strict=True)))
+
+    def line(self) -> str:
+        recall = self.matches / max(self.truth, 1)
+        precision = self.matches / max(self.rows, 1)
+        errors = (self.truth - self.matches) + (self.rows - self.matches) + self.switches
+        mota = 1 - errors / max(self.truth, 1)
+        half = self.half_matched / max(self.half_visible, 1)
+        cpu_ms = 1000 * self.cpu_s / max(self.frames, 1)
+        runs = 100 * self.detector_runs / max(self.frames, 1)
+        return (
+            f"recall {recall:.3f}  precision {precision:.3f}  MOTA {mota:.3f}  "
+            f"id switches {self.switches:3d}  half-visible recall {half:.3f}  "
+            f"{cpu_ms:5.1f} CPU ms/frame  {runs:5.1f} detector runs/100 frames"
+        )
+
+
+def _half_visible(tracks: Path, scene_dir: Path, camera: str) -> tuple[int, int]:
+    """(truth views with at least half their joints visible, how many of them are matched), with
+    evaluate_tracks' matching (Hungarian on box IoU >= 0.3 against every visible person)."""
+    table = pq.read_table(tracks, partitioning=None)
+    frame = table.column("frame").to_numpy()
+    boxes = column_array(table, "bbox").astype(np.float64)
+    views = visible_truth_boxes(scene_dir, camera, 1)
+    half = views.visible.mean(axis=1) >= 0.5
+    n = hit = 0
+    for f in np.unique(views.frame):
+        vrows = np.flatnonzero(views.frame == f)
+        rows = np.flatnonzero(frame == f)
+        matched = {int(vrows[c]) for _, c in match_frame(boxes[rows], views.box[vrows], 0.3)}
+        n += int(half[vrows].sum())
+        hit += sum(1 for v in vrows if half[v] and int(v) in matched)
+    return n, hit
+
+
+def track_scene(
+    scene_dir: Path, config: PersonModelConfig, tracker: TrackerConfig, tmp: Path
+) -> Score:
+    total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0)
+    videos = sorted((scene_dir / "videos").glob("*.mp4"))
+    if not videos:
+        raise SystemExit(f"{scene_dir}/videos: no videos (run the scene's synth stage first)")
+    options = TrackOptions(tracker=tracker, prefetch=0)
+    for video in videos:
+        out = tmp / "out"
+        shutil.rmtree(out, ignore_errors=True)
+        detector = PersonModelDetector(config)
+        t0 = time.process_time()
+        res = track_video(
+            video,
+            out,
+            detector,
+            BoxDepthPredictor(),
+            model={"name": "box-depth", "version": "bench"},
+            options=options,
+            resume=False,
+        )
+        cpu = time.process_time() - t0
+        ev = evaluate_tracks(res.path, scene_dir, video.stem)
+        half, half_matched = _half_visible(res.path, scene_dir, video.stem)
+        total = total + Score(
+            ev.frames, ev.truth_instances, ev.matches, ev.track_rows, ev.id_switches, cpu,
+            detector.detector_runs, half, half_matched,
+        )  # fmt: skip
+    return total
+
+
+def main() -> None:
+    ap = bench_parser(__doc__)
+    ap.add_argument("--workspace", type=Path, default=Path("workspace"))
+    ap.add_argument("--tune", default="demo", help="comma-separated scenes to tune on")
+    ap.add_argument("--report", default="", help="comma-separated scenes to report on")
+    ap.add_argument("--only", default=None, help="variants whose name has this text (a|b)")
+    args = ap.parse_args()
+    default = person_model_config(TrackSettings())
+    stage_tracker = TrackerConfig(min_hits=3, max_misses=30)  # the track stage's
+    variants = [  # (name, person model settings, tracker settings)
+        ("stage default", default, stage_tracker),
+        ("without the skeleton term (before)", default, replace(stage_tracker, w_skeleton=0.0)),
+        ("skeleton term x2", default, replace(stage_tracker, w_skeleton=2.0)),
+        ("skeleton term, scale 0.5", default, replace(stage_tracker, skeleton_scale=0.5)),
+        ("detector every 5 frames", replace(default, detect_every=5), stage_tracker),
+        ("detector every frame", replace(default, detect_every=1), stage_tracker),
+        ("look-again overlap 1.0", replace(default, look_again_overlap=1.0), stage_tracker),
+    ]
+    if args.only:
+        variants = [v for v in variants if any(o in v[0] for o in args.only.split("|"))]
+    groups = {
+        "tune": [s for s in args.tune.split(",") if s],
+        "report": [s for s in args.report.split(",") if s],
+    }
+    tmp = Path(tempfile.mkdtemp(prefix="bench_track_people_"))
+    try:
+        for name, config, tracker in variants:
+            print(f"\n{name}", flush=True)
+            for group, scenes in groups.items():
+                if not scenes:
+                    continue
+                total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0)
+                for scene in scenes:
+                    score = track_scene(args.workspace / scene / "synth", config, tracker, tmp)
+                    total = total + score
+                    print(f"  {scene:18s} {score.line()}", flush=True)
+                print(f"  {'= ' + group:18s} {total.line()}", flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
