@@ -478,6 +478,13 @@ def real_footage(args) -> None:
                 stage_torch,
                 "auto",
             ),
+            (
+                "new, tracker without the skeleton term (before)",
+                new(),
+                replace(opts(), tracker=replace(tracker, w_skeleton=0.0)),
+                stage_torch,
+                "auto",
+            ),
             ("new, image path for every crop", new(), opts(), stage_torch, "always"),
             ("new, pose from landmarks, every crop cut", new(), opts(), stage_torch, "cut"),
             (f"new, {torch_default} torch threads", new(), opts(), torch_default, "auto"),
