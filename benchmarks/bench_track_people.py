@@ -30,15 +30,11 @@ import tempfile
 import time
 from dataclasses import dataclass, replace
 
-import numpy as np
-import pyarrow.parquet as pq
-
 from benchmarks.cli import bench_parser
 from gst.track.baseline import BoxDepthPredictor
-from gst.track.evaluate import evaluate_tracks, match_frame, visible_truth_boxes
+from gst.track.evaluate import evaluate_tracks
 from gst.track.loop import TrackOptions, track_video
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
-from gst.track.read import column_array
 from gst.track.scene import TrackSettings, person_model_config
 from gst.track.tracker import TrackerConfig
 
@@ -73,24 +69,6 @@ class Score:
         )
 
 
-def _half_visible(tracks: Path, scene_dir: Path, camera: str) -> tuple[int, int]:
-    """(truth views with at least half their joints visible, how many of them are matched), with
-    evaluate_tracks' matching (Hungarian on box IoU >= 0.3 against every visible person)."""
-    table = pq.read_table(tracks, partitioning=None)
-    frame = table.column("frame").to_numpy()
-    boxes = column_array(table, "bbox").astype(np.float64)
-    views = visible_truth_boxes(scene_dir, camera, 1)
-    half = views.visible.mean(axis=1) >= 0.5
-    n = hit = 0
-    for f in np.unique(views.frame):
-        vrows = np.flatnonzero(views.frame == f)
-        rows = np.flatnonzero(frame == f)
-        matched = {int(vrows[c]) for _, c in match_frame(boxes[rows], views.box[vrows], 0.3)}
-        n += int(half[vrows].sum())
-        hit += sum(1 for v in vrows if half[v] and int(v) in matched)
-    return n, hit
-
-
 def track_scene(
     scene_dir: Path, config: PersonModelConfig, tracker: TrackerConfig, tmp: Path
 ) -> Score:
@@ -115,7 +93,8 @@ def track_scene(
         )
         cpu = time.process_time() - t0
         ev = evaluate_tracks(res.path, scene_dir, video.stem)
-        half, half_matched = _half_visible(res.path, scene_dir, video.stem)
+        half = ev.half_visible
+        half_matched = round(ev.recall_half_visible * half) if half else 0
         total = total + Score(
             ev.frames, ev.truth_instances, ev.matches, ev.track_rows, ev.id_switches, cpu,
             detector.detector_runs, half, half_matched,

@@ -34,8 +34,9 @@ def _fixed(a: np.ndarray) -> pa.FixedSizeListArray:
     return pa.FixedSizeListArray.from_arrays(pa.array(a.reshape(-1)), a.shape[1])
 
 
-def truth_scene(tmp_path, frames=N_FRAMES):
-    """Two people 2 m apart walking along x; person k's box in CAM is 40 x 100 px, far apart."""
+def truth_scene(tmp_path, frames=N_FRAMES, hidden=frozenset()):
+    """Two people 2 m apart walking along x; person k's box in CAM is 40 x 100 px, far apart.
+    In the (frame, person) views of `hidden` only 6 of the 24 joints are visible."""
     rng = np.random.default_rng(0)
     rest = rng.normal(0, 0.3, (24, 3))
     rest -= rest[0]
@@ -79,7 +80,14 @@ def truth_scene(tmp_path, frames=N_FRAMES):
                 "mask_area": pa.array([4000] * n, pa.int32()),
                 # the rest of the format (docs/formats/synth_scene.md), unused here
                 "joints2d": _fixed(np.zeros((n, 48))),
-                "visible": pa.FixedSizeListArray.from_arrays(pa.array(np.ones(n * 24, bool)), 24),
+                "visible": pa.FixedSizeListArray.from_arrays(
+                    pa.array(
+                        np.concatenate(
+                            [np.arange(24) < (6 if (v[0], v[1]) in hidden else 24) for v in views]
+                        )
+                    ),
+                    24,
+                ),
                 "full_x0": b[:, 0],
                 "full_y0": b[:, 1],
                 "full_x1": b[:, 2],
@@ -201,6 +209,19 @@ def test_a_missed_frame_counts_in_recall_not_as_a_switch(hand):
     assert ev.recall == pytest.approx(19 / 20) and ev.precision == 1.0
     assert ev.id_switches == 0 and ev.fragments == 1 and ev.ids_per_person == 1.0
     assert ev.persons[0].frames_visible == N_FRAMES and ev.persons[0].frames_matched == N_FRAMES - 1
+
+
+def test_recall_of_the_half_visible_leaves_out_people_mostly_hidden(tmp_path):
+    """A person mostly hidden in frame 4 and missed there lowers recall, not the recall over the
+    people at least half visible; missed where half visible, they lower both."""
+    scene, joints, boxes = truth_scene(tmp_path / "scene", hidden={(4, 1)})
+    rows = [r for r in perfect_rows(joints, boxes) if not (r[0] == 4 and r[1] == 0)]
+    ev = evaluate_tracks(write_tracks(tmp_path / "a", rows), scene, CAM)
+    assert ev.recall == pytest.approx(19 / 20)
+    assert ev.half_visible == 2 * N_FRAMES - 1 and ev.recall_half_visible == 1.0
+    rows = [r for r in perfect_rows(joints, boxes) if not (r[0] == 5 and r[1] == 0)]
+    ev = evaluate_tracks(write_tracks(tmp_path / "b", rows), scene, CAM)
+    assert ev.recall_half_visible == pytest.approx((2 * N_FRAMES - 2) / (2 * N_FRAMES - 1))
 
 
 def test_a_box_below_min_iou_is_a_false_row_and_a_miss(hand):

@@ -33,7 +33,7 @@ __all__ = [
 PELVIS = 0
 
 
-def visible_truth_boxes(scene_dir: str | Path, camera_name: str, min_mask_area: int) -> TruthViews:
+def _mask_boxes(scene_dir: str | Path, camera_name: str, min_mask_area: int) -> TruthViews:
     """The truth people `camera_name` sees (rows with at least `min_mask_area` mask pixels), their
     mask boxes moved from views.parquet's pixel-centre edges (`min column - 0.5`) to the tracks'
     pixel corners (`min column`)."""
@@ -106,6 +106,10 @@ class TrackEvaluation:
     track_rows: int  # tracked rows in those frames
     matches: int
     recall: float
+    # over the truth instances with at least half their 24 joints visible (`TruthViews.visible`):
+    # how many are matched; people mostly hidden behind others are the usual misses
+    half_visible: int
+    recall_half_visible: float
     precision: float
     mota: float
     id_switches: int
@@ -170,7 +174,7 @@ def evaluate_tracks(
     meta = read_metadata(tracks_parquet)
     table = pq.read_table(tracks_parquet, partitioning=None)
     truth = read_scene_truth(scene_dir)
-    views = visible_truth_boxes(scene_dir, camera_name, min_mask_area)
+    views = _mask_boxes(scene_dir, camera_name, min_mask_area)
     joints_frame = (meta.get("axes") or {}).get("joints3d", "camera")
 
     frames = _processed_frames(meta, truth.frame)
@@ -185,6 +189,8 @@ def evaluate_tracks(
     }
     v_in = np.isin(views.frame, frames)
 
+    half = views.visible.mean(axis=1) >= 0.5
+    half_matched = 0
     pairs: list[tuple[int, int]] = []  # (tracks row, scene truth row)
     history: dict[int, list[int | None]] = {int(p): [] for p in np.unique(views.person_id[v_in])}
     for f in frames:
@@ -198,6 +204,7 @@ def evaluate_tracks(
             person = int(views.person_id[v])
             r = matched.get(int(v))
             history[person].append(None if r is None else int(t_pid[r]))
+            half_matched += int(r is not None and half[v])
             if r is not None:
                 if (int(f), person) not in truth_row:
                     raise ValueError(
@@ -237,6 +244,7 @@ def evaluate_tracks(
         )
 
     n_truth, n_rows, n_match = int(v_in.sum()), int(in_eval.sum()), len(pairs)
+    n_half = int((half & v_in).sum())
     id_switches = sum(p.id_switches for p in persons)
     matched_persons = [p for p in persons if p.track_ids]
     return TrackEvaluation(
@@ -248,6 +256,8 @@ def evaluate_tracks(
         track_rows=n_rows,
         matches=n_match,
         recall=n_match / n_truth if n_truth else float("nan"),
+        half_visible=n_half,
+        recall_half_visible=half_matched / n_half if n_half else float("nan"),
         precision=n_match / n_rows if n_rows else float("nan"),
         mota=1.0 - ((n_truth - n_match) + (n_rows - n_match) + id_switches) / n_truth
         if n_truth
