@@ -48,6 +48,7 @@ class Score:
     switches: int
     cpu_s: float
     detector_runs: int
+    id_tp: float  # identity true positives (gst.track.evaluate IDF1)
     half_visible: int  # truth views with at least half their joints visible ...
     half_matched: int  # ... and how many of them a tracked box matches
 
@@ -60,10 +61,11 @@ class Score:
         errors = (self.truth - self.matches) + (self.rows - self.matches) + self.switches
         mota = 1 - errors / max(self.truth, 1)
         half = self.half_matched / max(self.half_visible, 1)
+        idf1 = 2 * self.id_tp / max(self.truth + self.rows, 1)
         cpu_ms = 1000 * self.cpu_s / max(self.frames, 1)
         runs = 100 * self.detector_runs / max(self.frames, 1)
         return (
-            f"recall {recall:.3f}  precision {precision:.3f}  MOTA {mota:.3f}  "
+            f"recall {recall:.3f}  precision {precision:.3f}  MOTA {mota:.3f}  IDF1 {idf1:.3f}  "
             f"id switches {self.switches:3d}  half-visible recall {half:.3f}  "
             f"{cpu_ms:5.1f} CPU ms/frame  {runs:5.1f} detector runs/100 frames"
         )
@@ -72,7 +74,7 @@ class Score:
 def track_scene(
     scene_dir: Path, config: PersonModelConfig, tracker: TrackerConfig, tmp: Path
 ) -> Score:
-    total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0)
+    total = Score(0, 0, 0, 0, 0, 0.0, 0, 0.0, 0, 0)
     videos = sorted((scene_dir / "videos").glob("*.mp4"))
     if not videos:
         raise SystemExit(f"{scene_dir}/videos: no videos (run the scene's synth stage first)")
@@ -97,7 +99,8 @@ def track_scene(
         half_matched = round(ev.recall_half_visible * half) if half else 0
         total = total + Score(
             ev.frames, ev.truth_instances, ev.matches, ev.track_rows, ev.id_switches, cpu,
-            detector.detector_runs, half, half_matched,
+            detector.detector_runs, ev.idf1 * (ev.truth_instances + ev.track_rows) / 2, half,
+            half_matched,
         )  # fmt: skip
     return total
 
@@ -133,7 +136,7 @@ def main() -> None:
             for group, scenes in groups.items():
                 if not scenes:
                     continue
-                total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0)
+                total = Score(0, 0, 0, 0, 0, 0.0, 0, 0.0, 0, 0)
                 for scene in scenes:
                     score = track_scene(args.workspace / scene / "synth", config, tracker, tmp)
                     total = total + score

@@ -157,7 +157,7 @@ def test_perfect_tracks_score_zero_error_and_no_switches(hand):
     assert (
         ev.frames == N_FRAMES and ev.truth_instances == ev.track_rows == ev.matches == 2 * N_FRAMES
     )
-    assert ev.recall == ev.precision == ev.mota == 1.0
+    assert ev.recall == ev.precision == ev.mota == ev.idf1 == 1.0
     assert ev.mpjpe_mm == pytest.approx(0, abs=1e-3) and ev.pa_mpjpe_mm == pytest.approx(
         0, abs=1e-2
     )
@@ -198,6 +198,8 @@ def test_an_id_swap_is_one_switch_per_person(hand):
     ev = evaluate_tracks(write_tracks(out, swapped), scene, CAM)
     assert [p.id_switches for p in ev.persons] == [1, 1] and ev.id_switches == 2
     assert [p.track_ids for p in ev.persons] == [(0, 1), (1, 0)] and ev.ids_per_person == 2.0
+    # each id follows each person for half the video: half the frames are identity-right
+    assert ev.idf1 == pytest.approx(0.5)
     assert ev.fragments == 0 and ev.recall == 1.0 and ev.mpjpe_mm == pytest.approx(0, abs=1e-3)
     assert ev.mota == pytest.approx(1 - 2 / 20)
 
@@ -207,6 +209,7 @@ def test_a_missed_frame_counts_in_recall_not_as_a_switch(hand):
     rows = [r for r in perfect_rows(joints, boxes) if not (r[0] == 4 and r[1] == 0)]
     ev = evaluate_tracks(write_tracks(out, rows), scene, CAM)
     assert ev.recall == pytest.approx(19 / 20) and ev.precision == 1.0
+    assert ev.idf1 == pytest.approx(2 * 19 / (20 + 19))
     assert ev.id_switches == 0 and ev.fragments == 1 and ev.ids_per_person == 1.0
     assert ev.persons[0].frames_visible == N_FRAMES and ev.persons[0].frames_matched == N_FRAMES - 1
 

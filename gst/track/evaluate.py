@@ -106,6 +106,9 @@ class TrackEvaluation:
     track_rows: int  # tracked rows in those frames
     matches: int
     recall: float
+    # identity F1 (Ristani et al. 2016): truth people and track ids paired one to one for the whole
+    # video so that the most frames overlap (box IoU >= min_iou); 2 IDTP / (truth + rows)
+    idf1: float
     # over the truth instances with at least half their 24 joints visible (`TruthViews.visible`):
     # how many are matched; people mostly hidden behind others are the usual misses
     half_visible: int
@@ -129,6 +132,20 @@ class TrackEvaluation:
         for p in d["persons"]:
             p["track_ids"] = list(p["track_ids"])
         return d
+
+
+def _identity_true_positives(overlaps: dict[tuple[int, int], int]) -> int:
+    """IDTP: the most frames of overlap under a one-to-one pairing of truth people and track
+    ids (`overlaps`: frames each (person, id) pair overlaps)."""
+    if not overlaps:
+        return 0
+    people = sorted({p for p, _ in overlaps})
+    ids = sorted({i for _, i in overlaps})
+    count = np.zeros((len(people), len(ids)))
+    for (p, i), n in overlaps.items():
+        count[people.index(p), ids.index(i)] = n
+    rows, cols = linear_sum_assignment(count, maximize=True)
+    return int(count[rows, cols].sum())
 
 
 def _processed_frames(meta: dict, truth_frames: np.ndarray) -> np.ndarray:
@@ -191,6 +208,7 @@ def evaluate_tracks(
 
     half = views.visible.mean(axis=1) >= 0.5
     half_matched = 0
+    overlaps: dict[tuple[int, int], int] = {}  # (truth person, track id) -> frames they overlap
     pairs: list[tuple[int, int]] = []  # (tracks row, scene truth row)
     history: dict[int, list[int | None]] = {int(p): [] for p in np.unique(views.person_id[v_in])}
     for f in frames:
@@ -200,6 +218,11 @@ def evaluate_tracks(
             (int(vrows[c]), int(rows[r]))
             for r, c in match_frame(t_box[rows], views.box[vrows], min_iou)
         )
+        if len(rows) and len(vrows):
+            iou = box_iou(t_box[rows].astype(np.float64), views.box[vrows].astype(np.float64))
+            for r, c in zip(*np.nonzero(iou >= min_iou), strict=True):
+                key = (int(views.person_id[vrows[c]]), int(t_pid[rows[r]]))
+                overlaps[key] = overlaps.get(key, 0) + 1
         for v in vrows:
             person = int(views.person_id[v])
             r = matched.get(int(v))
@@ -245,6 +268,7 @@ def evaluate_tracks(
 
     n_truth, n_rows, n_match = int(v_in.sum()), int(in_eval.sum()), len(pairs)
     n_half = int((half & v_in).sum())
+    id_tp = _identity_true_positives(overlaps)
     id_switches = sum(p.id_switches for p in persons)
     matched_persons = [p for p in persons if p.track_ids]
     return TrackEvaluation(
@@ -256,6 +280,7 @@ def evaluate_tracks(
         track_rows=n_rows,
         matches=n_match,
         recall=n_match / n_truth if n_truth else float("nan"),
+        idf1=2 * id_tp / (n_truth + n_rows) if n_truth + n_rows else float("nan"),
         half_visible=n_half,
         recall_half_visible=half_matched / n_half if n_half else float("nan"),
         precision=n_match / n_rows if n_rows else float("nan"),

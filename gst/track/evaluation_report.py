@@ -49,15 +49,15 @@ def evaluation_markdown(
         "definitions in docs/track_evaluation.md. Errors in mm over matched rows; MPJPE is "
         "pelvis-aligned, root error is the absolute world pelvis error.",
         "",
-        "| video | frames | recall | recall, half visible | precision | MOTA | id switches | "
-        "fragments | ids/person | MPJPE | PA-MPJPE | root mean | root median |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| video | frames | recall | recall, half visible | precision | MOTA | IDF1 | "
+        "id switches | fragments | ids/person | MPJPE | PA-MPJPE | root mean | root median |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in evaluations:
         lines.append(
             f"| {e.video} | {e.frames} | {_fmt(e.recall, 3)} | {_fmt(e.recall_half_visible, 3)} | "
-            f"{_fmt(e.precision, 3)} | "
-            f"{_fmt(e.mota, 3)} | {e.id_switches} | {e.fragments} | {_fmt(e.ids_per_person, 2)} | "
+            f"{_fmt(e.precision, 3)} | {_fmt(e.mota, 3)} | {_fmt(e.idf1, 3)} | {e.id_switches} | "
+            f"{e.fragments} | {_fmt(e.ids_per_person, 2)} | "
             f"{_fmt(e.mpjpe_mm)} | {_fmt(e.pa_mpjpe_mm)} | {_fmt(e.root_error_mm)} | "
             f"{_fmt(e.root_error_median_mm)} |"
         )
