@@ -48,7 +48,7 @@ class Score:
     switches: int
     cpu_s: float
     detector_runs: int
-    id_tp: float  # identity true positives (gst.track.evaluate IDF1)
+    id_tp: int  # identity true positives (gst.track.evaluate IDF1)
     half_visible: int  # truth views with at least half their joints visible ...
     half_matched: int  # ... and how many of them a tracked box matches
 
@@ -74,7 +74,7 @@ class Score:
 def track_scene(
     scene_dir: Path, config: PersonModelConfig, tracker: TrackerConfig, tmp: Path
 ) -> Score:
-    total = Score(0, 0, 0, 0, 0, 0.0, 0, 0.0, 0, 0)
+    total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0, 0)
     videos = sorted((scene_dir / "videos").glob("*.mp4"))
     if not videos:
         raise SystemExit(f"{scene_dir}/videos: no videos (run the scene's synth stage first)")
@@ -95,12 +95,10 @@ def track_scene(
         )
         cpu = time.process_time() - t0
         ev = evaluate_tracks(res.path, scene_dir, video.stem)
-        half = ev.half_visible
-        half_matched = round(ev.recall_half_visible * half) if half else 0
         total = total + Score(
             ev.frames, ev.truth_instances, ev.matches, ev.track_rows, ev.id_switches, cpu,
-            detector.detector_runs, ev.idf1 * (ev.truth_instances + ev.track_rows) / 2, half,
-            half_matched,
+            detector.detector_runs, ev.id_true_positives, ev.half_visible,
+            ev.half_visible_matched,
         )  # fmt: skip
     return total
 
@@ -136,7 +134,7 @@ def main() -> None:
             for group, scenes in groups.items():
                 if not scenes:
                     continue
-                total = Score(0, 0, 0, 0, 0, 0.0, 0, 0.0, 0, 0)
+                total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0, 0)
                 for scene in scenes:
                     score = track_scene(args.workspace / scene / "synth", config, tracker, tmp)
                     total = total + score

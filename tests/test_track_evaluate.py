@@ -199,7 +199,7 @@ def test_an_id_swap_is_one_switch_per_person(hand):
     assert [p.id_switches for p in ev.persons] == [1, 1] and ev.id_switches == 2
     assert [p.track_ids for p in ev.persons] == [(0, 1), (1, 0)] and ev.ids_per_person == 2.0
     # each id follows each person for half the video: half the frames are identity-right
-    assert ev.idf1 == pytest.approx(0.5)
+    assert ev.idf1 == pytest.approx(0.5) and ev.id_true_positives == N_FRAMES
     assert ev.fragments == 0 and ev.recall == 1.0 and ev.mpjpe_mm == pytest.approx(0, abs=1e-3)
     assert ev.mota == pytest.approx(1 - 2 / 20)
 
@@ -222,6 +222,7 @@ def test_recall_of_the_half_visible_leaves_out_people_mostly_hidden(tmp_path):
     ev = evaluate_tracks(write_tracks(tmp_path / "a", rows), scene, CAM)
     assert ev.recall == pytest.approx(19 / 20)
     assert ev.half_visible == 2 * N_FRAMES - 1 and ev.recall_half_visible == 1.0
+    assert ev.half_visible_matched == ev.half_visible
     rows = [r for r in perfect_rows(joints, boxes) if not (r[0] == 5 and r[1] == 0)]
     ev = evaluate_tracks(write_tracks(tmp_path / "b", rows), scene, CAM)
     assert ev.recall_half_visible == pytest.approx((2 * N_FRAMES - 2) / (2 * N_FRAMES - 1))

@@ -51,6 +51,11 @@ def match_frame(
     if len(track_boxes) == 0 or len(truth_boxes) == 0:
         return []
     iou = box_iou(np.asarray(track_boxes, np.float64), np.asarray(truth_boxes, np.float64))
+    return _assign(iou, min_iou)
+
+
+def _assign(iou: np.ndarray, min_iou: float) -> list[tuple[int, int]]:
+    """`match_frame` from the (tracks, truth) IoU matrix."""
     rows, cols = linear_sum_assignment(iou, maximize=True)
     return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] >= min_iou]
 
@@ -109,9 +114,12 @@ class TrackEvaluation:
     # identity F1 (Ristani et al. 2016): truth people and track ids paired one to one for the whole
     # video so that the most frames overlap (box IoU >= min_iou); 2 IDTP / (truth + rows)
     idf1: float
-    # over the truth instances with at least half their 24 joints visible (`TruthViews.visible`):
-    # how many are matched; people mostly hidden behind others are the usual misses
+    id_true_positives: int  # IDTP: frames of overlap under that pairing
+    # the truth instances with at least half their 24 joints visible (`TruthViews.visible`), how
+    # many of them are matched, and the share: people mostly hidden behind others are the usual
+    # misses
     half_visible: int
+    half_visible_matched: int
     recall_half_visible: float
     precision: float
     mota: float
@@ -214,12 +222,10 @@ def evaluate_tracks(
     for f in frames:
         rows = np.flatnonzero(t_frame == f)
         vrows = np.flatnonzero(views.frame == f)
-        matched = dict(
-            (int(vrows[c]), int(rows[r]))
-            for r, c in match_frame(t_box[rows], views.box[vrows], min_iou)
-        )
+        matched = {}
         if len(rows) and len(vrows):
             iou = box_iou(t_box[rows].astype(np.float64), views.box[vrows].astype(np.float64))
+            matched = {int(vrows[c]): int(rows[r]) for r, c in _assign(iou, min_iou)}
             for r, c in zip(*np.nonzero(iou >= min_iou), strict=True):
                 key = (int(views.person_id[vrows[c]]), int(t_pid[rows[r]]))
                 overlaps[key] = overlaps.get(key, 0) + 1
@@ -281,7 +287,9 @@ def evaluate_tracks(
         matches=n_match,
         recall=n_match / n_truth if n_truth else float("nan"),
         idf1=2 * id_tp / (n_truth + n_rows) if n_truth + n_rows else float("nan"),
+        id_true_positives=id_tp,
         half_visible=n_half,
+        half_visible_matched=half_matched,
         recall_half_visible=half_matched / n_half if n_half else float("nan"),
         precision=n_match / n_rows if n_rows else float("nan"),
         mota=1.0 - ((n_truth - n_match) + (n_rows - n_match) + id_switches) / n_truth

@@ -217,13 +217,9 @@ class Tracker:
         moved = a[..., :2] + ((shift[:, :2] + shift[:, 2:]) / 2)[:, None]
         d = np.linalg.norm(moved[:, None] - b[None, :, :, :2], axis=-1)  # (T', N', 12)
         sure = (a[:, None, :, 2] >= 0.5) & (b[None, :, :, 2] >= 0.5)
-        count = sure.sum(-1)
-        enough = count >= 4
-        # median over the sure joints: unsure ones sorted to the end
-        ordered = np.sort(np.where(sure, d, np.inf), axis=-1)
-        lo = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, -1)[..., 0]
-        hi = np.take_along_axis(ordered, (count // 2)[..., None].clip(max=11), -1)[..., 0]
-        median = np.where(enough, (lo + hi) / 2, 0.0)
+        enough = sure.sum(-1) >= 4
+        median = np.ma.median(np.ma.array(d, mask=~sure), axis=-1).filled(0.0)
+        median = np.where(enough, median, 0.0)
         scale = c.skeleton_scale * np.maximum([body_size(t.landmarks) for t in tracks], 1.0)
         value = np.minimum(median / scale[:, None], 1.0)
         term[np.ix_(mine, theirs)] = value
