@@ -30,6 +30,7 @@ from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.detection import N_LANDMARKS, Detection, Detector
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
+from gst.track.mirror import MirrorConfig, unmirror_stream
 from gst.track.pose_fit import PoseFitConfig, PoseFitter
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
 from gst.track.rows import RowSet, rows_table
@@ -67,6 +68,9 @@ class TrackOptions:
     # then bend each body's pose onto its landmarks where it disagrees with them
     # (gst.track.pose_fit; needs a predictor with a `body` model); None: the network's pose
     pose_fit: PoseFitConfig | None = None
+    # each person's landmark labels kept continuous in time, BlazePose's whole-body left/right
+    # flips undone (gst.track.mirror; output delayed by its lag); None: the labels as detected
+    unmirror: MirrorConfig | None = field(default_factory=MirrorConfig)
 
     def __post_init__(self):
         for name in ("stride", "crop_size", "batch_size", "frames_per_group", "row_group_rows"):
@@ -446,6 +450,8 @@ def tracked_groups(
         prefetch=options.prefetch,
     )
     detected = (detect(f) for f in frames)
+    if options.unmirror is not None:
+        detected = unmirror_stream(detected, options.unmirror, options.stride / run.info.fps)
     if options.prefetch > 0:
         detected = background(detected, options.prefetch)
     last_index = None

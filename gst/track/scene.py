@@ -44,6 +44,7 @@ from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
 from gst.track.loop import TrackOptions
+from gst.track.mirror import MirrorConfig
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
 from gst.track.pose_fit import PoseFitConfig
 from gst.track.read import read_tracks
@@ -100,6 +101,9 @@ class TrackSettings(BaseModel):
     # the scene (`--video`), where the model has not seen the camera; true / false: every video
     # / none.
     fit_pose: Literal["auto"] | bool = "auto"
+    # keep each person's left and right landmark labels continuous over time: BlazePose's
+    # whole-body flips undone (gst.track.mirror; docs/track_evaluation.md "Left and right")
+    unmirror: bool = True
     threads: int | None = None  # torch threads; None: gst.track.scene.network_threads
     min_hits: int = 3  # consecutive detections before a new person gets an id
     max_misses: int = 30  # processed frames a person may go undetected and keep the id
@@ -326,6 +330,7 @@ def track_scene(
         batch_size=s.batch_size,
         smoothing=OneEuroConfig(min_cutoff=s.min_cutoff, beta=s.beta) if s.smoothing else None,
         align=AlignmentConfig() if s.align_to_landmarks else None,
+        unmirror=MirrorConfig() if s.unmirror else None,
     )
     parallel_videos = max(1, min(workers, len(request.videos)))
     threads = network_threads(s, kind, workers, parallel_videos)

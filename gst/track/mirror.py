@@ -1,0 +1,202 @@
+"""Left/right labels kept continuous over time: BlazePose's whole-body flips undone in video.
+
+The landmark model sometimes labels a whole person's left side as right (mostly in side-on
+views: docs/landmark_prior.md measures 6 % of rendered crops). The network, fed those landmarks,
+turns the body to face the other way, and every left joint angle in the Parquet becomes the
+right one. In a video the flip shows itself: from one frame to the next the left landmarks jump
+to where the right ones were. A single image cannot tell (docs/training.md, "Mirrored
+landmarks"), a sequence can.
+
+Per person (detections linked from frame to frame by their mid-hips), two states per frame: the
+labels as given, or exchanged. The chosen sequence minimises
+- `prior_per_s` x seconds spent exchanged (the landmark model is right most of the time), plus
+- per pair of consecutive frames, the mean distance of the six limb pairs (shoulders, elbows,
+  wrists, hips, knees, ankles; sure on both sides) between the two frames' labels as the states
+  have them, after removing the body's own move, in torso lengths, divided by `sigma`.
+
+A fixed-lag smoother (Viterbi over the next `lag_s` seconds, the earlier frames' states fixed)
+decides each frame before it leaves, so tracking stays a stream with `lag_s` of look-ahead.
+Measured in docs/track_evaluation.md, "Left and right".
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from gst.body.markers import BLAZEPOSE_MIRROR
+from gst.track.detection import Detection
+from gst.video import Frame
+
+# (left, right) BlazePose landmarks compared between frames
+LIMB_PAIRS = ((11, 12), (13, 14), (15, 16), (23, 24), (25, 26), (27, 28))
+_LIMBS = np.array([i for pair in LIMB_PAIRS for i in pair])
+_LEFT = np.array([p[0] for p in LIMB_PAIRS])
+_RIGHT = np.array([p[1] for p in LIMB_PAIRS])
+_HIPS, _SHOULDERS = [23, 24], [11, 12]
+
+
+@dataclass(frozen=True)
+class MirrorConfig:
+    lag_s: float = 0.5  # look-ahead before a frame's labels are decided
+    prior_per_s: float = 15.0  # cost of one second with the labels exchanged
+    sigma: float = 0.1  # torso lengths of inter-frame distance per unit of cost
+    min_confidence: float = 0.5  # landmarks compared (both frames)
+    min_pairs: int = 3  # fewer sure pairs: the step carries no evidence
+    link_torso: float = 1.0  # mid-hips farther than this (torso lengths) start a new person
+    max_gap: int = 3  # processed frames a person may be missing and keep their history
+
+    def __post_init__(self):
+        if self.lag_s < 0 or self.prior_per_s <= 0 or self.sigma <= 0:
+            raise ValueError(
+                f"MirrorConfig: lag_s >= 0, prior_per_s > 0 and sigma > 0 expected, got "
+                f"{self.lag_s}, {self.prior_per_s}, {self.sigma}"
+            )
+
+
+def _torso(lm: np.ndarray) -> float:
+    return float(np.linalg.norm(lm[_SHOULDERS, :2].mean(0) - lm[_HIPS, :2].mean(0)))
+
+
+def step_costs(a: np.ndarray, b: np.ndarray, config: MirrorConfig) -> tuple[float, float]:
+    """(kept, exchanged): mean distance of the sure limb pairs from frame a's (33, 3) landmarks
+    to frame b's, b's labels as given or exchanged, b moved by the pairs' mean shift (which the
+    labels do not change), in a's torso lengths. (0, 0) where fewer than `min_pairs` pairs are
+    sure on both sides or the torso is degenerate: no evidence either way."""
+    conf = np.minimum.reduce([a[_LEFT, 2], a[_RIGHT, 2], b[_LEFT, 2], b[_RIGHT, 2]])
+    sure = np.isfinite(conf) & (conf >= config.min_confidence)
+    size = _torso(a)
+    if int(sure.sum()) < config.min_pairs or not size > 1e-6:
+        return 0.0, 0.0
+    shift = a[_LIMBS, :2].mean(0) - b[_LIMBS, :2].mean(0)
+    bl, br = b[_LEFT, :2] + shift, b[_RIGHT, :2] + shift
+    al, ar = a[_LEFT, :2], a[_RIGHT, :2]
+    kept = np.linalg.norm(bl - al, axis=1) + np.linalg.norm(br - ar, axis=1)
+    exchanged = np.linalg.norm(bl - ar, axis=1) + np.linalg.norm(br - al, axis=1)
+    n = 2 * sure.sum()
+    return float(kept[sure].sum() / n / size), float(exchanged[sure].sum() / n / size)
+
+
+def node_state(
+    start: int | None, steps: list[tuple[float, float]], prior: float, sigma: float
+) -> int:
+    """Viterbi over two states (0 labels kept, 1 exchanged) for nodes 0..len(steps) - 1 of a
+    chain; `steps[k]` = (kept, exchanged) costs from node k - 1 to node k, where node -1 is the
+    fixed, already decided `start` state (None: no such node, node 0 is free and steps[0] is not
+    read). Each exchanged node costs `prior`. Returns node 0's state."""
+    if start is None:
+        cost = [0.0, prior]
+    else:
+        kept, exchanged = steps[0][0] / sigma, steps[0][1] / sigma
+        cost = [kept, exchanged + prior] if start == 0 else [exchanged, kept + prior]
+    # only node 0's state is wanted: carry, per current state, the node-0 state of its best path
+    origin = [0, 1]
+    for kept, exchanged in steps[1:]:
+        same, cross = kept / sigma, exchanged / sigma
+        to0 = (cost[0] + same, cost[1] + cross)  # from a kept / exchanged node to a kept one
+        to1 = (cost[0] + cross + prior, cost[1] + same + prior)
+        k0, k1 = int(to0[1] < to0[0]), int(to1[1] < to1[0])
+        cost, origin = [to0[k0], to1[k1]], [origin[k0], origin[k1]]
+    return origin[int(cost[1] < cost[0])]
+
+
+@dataclass
+class _Node:
+    landmarks: np.ndarray  # raw (33, 3)
+    frame: int  # processed-frame count at which it was seen
+    step: tuple[float, float] | None  # costs from the previous node of the chain
+
+
+@dataclass
+class _Chain:
+    nodes: deque = field(default_factory=deque)  # undecided nodes, oldest first
+    last: np.ndarray | None = None  # newest raw landmarks
+    last_frame: int = -1
+    decided: int | None = None  # state of the newest decided node (None: none yet)
+
+
+def _link(chains: list[_Chain], lms: list[np.ndarray | None], now: int, c: MirrorConfig):
+    """Chain index per detection (None: no landmarks): nearest live chain by mid-hips, within
+    `link_torso` torso lengths, one-to-one; new chains for the rest."""
+    live = [k for k, ch in enumerate(chains) if now - ch.last_frame <= c.max_gap + 1]
+    cand = [i for i, lm in enumerate(lms) if lm is not None and np.isfinite(lm[_HIPS]).all()]
+    out: list[int | None] = [None] * len(lms)
+    if live and cand:
+        cost = np.full((len(live), len(cand)), np.inf)
+        for r, k in enumerate(live):
+            prev = chains[k].last
+            size = max(_torso(prev), 1e-6)
+            for col, i in enumerate(cand):
+                d = np.linalg.norm(lms[i][_HIPS, :2].mean(0) - prev[_HIPS, :2].mean(0)) / size
+                if d <= c.link_torso:
+                    cost[r, col] = d
+        big = 1e9
+        rows, cols = linear_sum_assignment(np.where(np.isfinite(cost), cost, big))
+        for r, col in zip(rows, cols, strict=True):
+            if cost[r, col] < big:
+                out[cand[col]] = live[r]
+    for i in cand:
+        if out[i] is None:
+            chains.append(_Chain())
+            out[i] = len(chains) - 1
+    return out
+
+
+def unmirror_stream(
+    detected: Iterator[tuple[Frame, list[Detection]]], config: MirrorConfig, frame_interval_s: float
+) -> Iterator[tuple[Frame, list[Detection]]]:
+    """The (frame, detections) stream with each person's landmark labels made continuous in
+    time (module docstring), delayed by `lag_s`. Detections without landmarks pass unchanged."""
+    c = config
+    lag = max(0, math.ceil(c.lag_s / frame_interval_s - 1e-9))
+    prior = c.prior_per_s * frame_interval_s
+    chains: list[_Chain] = []
+    buffer: deque = deque()  # (frame, detections, chain per detection)
+
+    def emit() -> tuple[Frame, list[Detection]]:
+        frame, dets, links = buffer.popleft()
+        out = []
+        for d, k in zip(dets, links, strict=True):
+            if k is None:
+                out.append(d)
+                continue
+            ch = chains[k]
+            node = ch.nodes.popleft()
+            # the node's state given the decided one before it (none at a chain's start)
+            start = None if node.step is None else ch.decided
+            steps = [node.step or (0.0, 0.0), *(n.step or (0.0, 0.0) for n in ch.nodes)]
+            state = node_state(start, steps, prior, c.sigma)
+            ch.decided = state
+            out.append(replace(d, landmarks=d.landmarks[BLAZEPOSE_MIRROR]) if state else d)
+        return frame, out
+
+    source, count = iter(detected), -1
+    while True:
+        try:
+            frame, dets = next(source)
+        except StopIteration:
+            break
+        except Exception:  # a damaged video: the frames before the damage still leave, decided
+            while buffer:
+                yield emit()
+            raise
+        count += 1
+        lms = [None if d.landmarks is None else np.asarray(d.landmarks, np.float64) for d in dets]
+        links = _link(chains, lms, count, c)
+        for lm, k in zip(lms, links, strict=True):
+            if k is None:
+                continue
+            ch = chains[k]
+            step = None if ch.last is None else step_costs(ch.last, lm, c)
+            ch.nodes.append(_Node(lm, count, step))
+            ch.last, ch.last_frame = lm, count
+        buffer.append((frame, dets, links))
+        if len(buffer) > lag:
+            yield emit()
+    while buffer:
+        yield emit()
