@@ -12,6 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from synth_fixtures import CapsuleBody, rig_io, small_scene_spec
 
+from calibration import Camera
 from calibration.formats import read_rig
 from gst.track import BoxDepthPredictor, track_video
 from gst.track.evaluate import evaluate_tracks, identity_counts, match_frame
@@ -101,8 +102,9 @@ def truth_scene(tmp_path, frames=N_FRAMES, hidden=frozenset()):
     return tmp_path, joints, boxes
 
 
-def write_tracks(path, rows, world=True, stride=1, frames=N_FRAMES):
-    """rows: (frame, person_id, bbox (4,), joints (24, 3)) -> a tracks file with real metadata."""
+def write_tracks(path, rows, world=True, stride=1, frames=N_FRAMES, landmarks=None):
+    """rows: (frame, person_id, bbox (4,), joints (24, 3)) -> a tracks file with real metadata;
+    `landmarks`: optional (frame, person_id) -> (33, 3) u, v, confidence."""
     rows = sorted(rows, key=lambda r: (r[0], r[1]))
     n = len(rows)
     meta = file_metadata(
@@ -134,6 +136,10 @@ def write_tracks(path, rows, world=True, stride=1, frames=N_FRAMES):
         "landmarks2d": pa.nulls(n, pa.list_(pa.float32(), 66)),
         "landmarks_conf": pa.nulls(n, pa.list_(pa.float32(), 33)),
     }
+    if landmarks is not None:
+        lm = np.stack([landmarks[(r[0], r[1])] for r in rows])
+        cols["landmarks2d"] = _fixed(lm[..., :2])
+        cols["landmarks_conf"] = _fixed(lm[..., 2])
     table = pa.table(cols, schema=tracks_schema(10, meta))
     path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(table, path)
@@ -226,6 +232,34 @@ def test_recall_of_the_half_visible_leaves_out_people_mostly_hidden(tmp_path):
     rows = [r for r in perfect_rows(joints, boxes) if not (r[0] == 5 and r[1] == 0)]
     ev = evaluate_tracks(write_tracks(tmp_path / "b", rows), scene, CAM)
     assert ev.recall_half_visible == pytest.approx((2 * N_FRAMES - 2) / (2 * N_FRAMES - 1))
+
+
+def test_rows_with_mirrored_landmarks_are_counted_and_left_out_of_the_second_mpjpe(hand):
+    """Landmarks at the truth's projected hips and shoulders, exchanged left for right in three
+    rows whose joints are also 100 mm off: those three are counted, and the MPJPE over the
+    others is 0."""
+    scene, joints, boxes, out = hand
+    camera = Camera.create(
+        CAM, [[500, 0, 320], [0, 500, 240], [0, 0, 1]], [], np.eye(3), [0, -3, 10], 640, 480
+    )
+    mirrored = {(2, 1), (3, 1), (7, 2)}
+    landmarks, rows = {}, []
+    for (f, p), j in joints.items():
+        lm = np.zeros((33, 3))
+        uv = camera.project(j)
+        for (left, right), (jl, jr) in (((23, 24), (1, 2)), ((11, 12), (16, 17))):
+            if (f, p) in mirrored:
+                jl, jr = jr, jl
+            lm[left], lm[right] = (*uv[jl], 1.0), (*uv[jr], 1.0)
+        landmarks[(f, p - 1)] = lm  # keyed by the row's track id
+        off = np.where(np.arange(24)[:, None] > 0, 0.1, 0.0) * [1, 0, 0] if (f, p) in mirrored else 0
+        rows.append((f, p - 1, boxes[(f, p)], j + off))
+    path = write_tracks(out, rows, landmarks=landmarks)
+    ev = evaluate_tracks(path, scene, CAM, camera=camera)
+    assert ev.mirrored_rows == 3
+    assert ev.mpjpe_mm_not_mirrored == pytest.approx(0, abs=1e-3)
+    assert ev.mpjpe_mm == pytest.approx(100 * 23 / 24 * 3 / (2 * N_FRAMES), rel=1e-4)
+    assert evaluate_tracks(path, scene, CAM).mirrored_rows == 0  # no camera: nothing to project
 
 
 def test_a_box_below_min_iou_is_a_false_row_and_a_miss(hand):

@@ -17,7 +17,9 @@ import pyarrow.parquet as pq
 import torch
 from scipy.optimize import linear_sum_assignment
 
+from calibration import Camera
 from gst.detect.boxes import box_iou
+from gst.metrics.flips import mirrored_landmarks
 from gst.metrics.pose import mpjpe, pa_mpjpe
 from gst.track.read import column_array, read_metadata
 from synth.truth import TruthViews, read_scene_truth, read_truth_views
@@ -133,6 +135,11 @@ class TrackEvaluation:
     root_error_mm: float | None  # world pelvis position error, mean over matched rows
     root_error_median_mm: float | None
     persons: tuple[PersonEvaluation, ...]
+    # matched rows whose landmarks are left/right mirrored against the truth (gst.metrics.flips,
+    # the truth joints projected with the file's calibrated camera; 0 without landmarks or
+    # calibration), and the pelvis-aligned MPJPE over the other matched rows
+    mirrored_rows: int = 0
+    mpjpe_mm_not_mirrored: float | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -175,6 +182,7 @@ def evaluate_tracks(
     camera_name: str,
     min_iou: float = 0.3,
     min_mask_area: int = 1,
+    camera: Camera | None = None,
 ) -> TrackEvaluation:
     """Score one tracks file of `camera_name`'s video against the synthetic scene in `scene_dir`.
 
@@ -190,6 +198,9 @@ def evaluate_tracks(
     an id switch is a change of matched track id between consecutive matched frames (unmatched
     frames in between are skipped: a miss is not a switch), a fragment is a match resumed after
     unmatched frames, and track_ids lists the distinct ids matched to them.
+    mirrored_rows counts the matched rows whose landmarks are left/right mirrored against the
+    truth joints projected with `camera` (default: the file's calibrated camera; 0 for an
+    uncalibrated video without one).
     """
     tracks_parquet = Path(tracks_parquet)
     if not tracks_parquet.is_file():
@@ -252,6 +263,7 @@ def evaluate_tracks(
             "root": (pred[:, PELVIS] - gt[:, PELVIS]).norm(dim=-1).numpy(),
         }
     pair_person = np.array([truth.person_id[g] for _, g in pairs], np.int64)
+    mirrored = _mirrored_rows(table, meta, truth.joints_world, pairs, camera)
 
     persons = []
     for person, ids in sorted(history.items()):
@@ -309,4 +321,30 @@ def evaluate_tracks(
         root_error_mm=_mean_mm(err["root"]),
         root_error_median_mm=float(np.median(err["root"]) * 1000.0) if len(err["root"]) else None,
         persons=tuple(persons),
+        mirrored_rows=int(mirrored.sum()),
+        mpjpe_mm_not_mirrored=_mean_mm(err["mpjpe"][~mirrored]) if len(err["mpjpe"]) else None,
     )
+
+
+def _mirrored_rows(
+    table, meta: dict, joints_world: np.ndarray, pairs: list, camera: Camera | None
+) -> np.ndarray:
+    """(len(pairs),) bool: the matched row's landmarks are mirrored against its truth person."""
+    cal = meta.get("calibration") or {}
+    if camera is None and cal.get("calibrated") and "K" in cal:
+        camera = Camera.create(
+            cal["name"], cal["K"], cal["dist"], cal["R"], cal["t"], cal["width"], cal["height"]
+        )
+    if not pairs or camera is None or "landmarks2d" not in table.column_names:
+        return np.zeros(len(pairs), bool)
+    rows = [r for r, _ in pairs]
+    landmarks = np.concatenate(
+        [
+            column_array(table, "landmarks2d")[rows],
+            column_array(table, "landmarks_conf")[rows][..., None],
+        ],
+        -1,
+    )
+    world = joints_world[[g for _, g in pairs]].astype(np.float64)
+    reference = camera.project(world.reshape(-1, 3)).reshape(len(pairs), -1, 2)
+    return mirrored_landmarks(landmarks, reference)

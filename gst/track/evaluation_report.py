@@ -50,8 +50,9 @@ def evaluation_markdown(
         "pelvis-aligned, root error is the absolute world pelvis error.",
         "",
         "| video | frames | recall | recall, half visible | precision | MOTA | IDF1 | "
-        "id switches | fragments | ids/person | MPJPE | PA-MPJPE | root mean | root median |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "id switches | fragments | ids/person | MPJPE | PA-MPJPE | root mean | root median | "
+        "mirrored rows | MPJPE, not mirrored |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in evaluations:
         lines.append(
@@ -59,7 +60,8 @@ def evaluation_markdown(
             f"{_fmt(e.precision, 3)} | {_fmt(e.mota, 3)} | {_fmt(e.idf1, 3)} | {e.id_switches} | "
             f"{e.fragments} | {_fmt(e.ids_per_person, 2)} | "
             f"{_fmt(e.mpjpe_mm)} | {_fmt(e.pa_mpjpe_mm)} | {_fmt(e.root_error_mm)} | "
-            f"{_fmt(e.root_error_median_mm)} |"
+            f"{_fmt(e.root_error_median_mm)} | {e.mirrored_rows} | "
+            f"{_fmt(e.mpjpe_mm_not_mirrored)} |"
         )
     if evaluations:
         total_sw = sum(e.id_switches for e in evaluations)

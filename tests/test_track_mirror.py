@@ -1,0 +1,182 @@
+"""Left/right landmark labels kept continuous in time (gst.track.mirror): BlazePose's whole-body
+flips undone on walking and turning stick figures, nothing exchanged where nothing flipped."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from gst.body.markers import BLAZEPOSE_MIRROR
+from gst.track.detection import Detection
+from gst.track.mirror import MirrorConfig, node_state, step_costs, unmirror_stream
+from gst.video import Frame
+
+FPS = 30.0
+# BlazePose indices: (left, right) of shoulders, elbows, wrists, hips, knees, ankles
+SHOULDER, ELBOW, WRIST, HIP, KNEE, ANKLE = (11, 12), (13, 14), (15, 16), (23, 24), (25, 26), (27, 28)
+
+
+def figure(t: float, heading_deg: float, x0: float = 0.0, speed: float = 1.2) -> np.ndarray:
+    """(33, 3) landmarks of a walking stick figure (metres: x lateral of the body, y up, z
+    forward), turned by `heading_deg` about the vertical, walking along its own forward axis,
+    seen by a pinhole camera 6 m away (1000 px focal); confidence 1."""
+    phase = 2 * np.pi * 0.9 * t  # strides per second
+    swing = 0.35 * np.sin(phase)
+    pts = np.zeros((33, 3))
+    pts[:] = (0.0, 1.6, 0.05)  # face and hands: near the head / wrists below
+    for side, sign in ((0, 1.0), (1, -1.0)):  # left is +x in the body frame
+        leg = swing if side == 0 else -swing
+        arm = -0.6 * leg
+        pts[SHOULDER[side]] = (0.18 * sign, 1.45, 0.0)
+        pts[ELBOW[side]] = (0.22 * sign, 1.15, 0.5 * arm)
+        pts[WRIST[side]] = (0.24 * sign, 0.9, arm)
+        pts[HIP[side]] = (0.1 * sign, 0.95, 0.0)
+        pts[KNEE[side]] = (0.11 * sign, 0.5, 0.5 * leg)
+        pts[ANKLE[side]] = (0.11 * sign, 0.08, leg)
+    h = np.radians(heading_deg)
+    rot = np.array([[np.cos(h), 0, np.sin(h)], [0, 1, 0], [-np.sin(h), 0, np.cos(h)]])
+    world = pts @ rot.T + np.array([x0, 0, 0]) + rot[:, 2] * speed * t
+    cam = world * [1, -1, 1] + [0, 1.0, 6.0]  # camera 6 m in front, y down
+    uv = 1000 * cam[:, :2] / cam[:, 2:] + [960, 540]
+    return np.c_[uv, np.ones(33)].astype(np.float32)
+
+
+def stream(frames: list[list[np.ndarray | None]]):
+    for i, people in enumerate(frames):
+        dets = [
+            Detection(
+                box=np.array([0.0, 0.0, 10.0, 10.0]) + k, landmarks=lm, id_hint=k
+            )  # id_hint: which person, for the checks
+            for k, lm in enumerate(people)
+        ]
+        yield Frame(i, i / FPS, np.zeros((1, 1, 3), np.uint8)), dets
+
+
+def run(frames, config=None) -> list[list[np.ndarray | None]]:
+    out = list(unmirror_stream(stream(frames), config or MirrorConfig(), 1 / FPS))
+    assert [f.index for f, _ in out] == list(range(len(frames)))
+    return [[d.landmarks for d in dets] for _, dets in out]
+
+
+def walk(n: int, heading_deg: float, **kw) -> list[np.ndarray]:
+    return [figure(i / FPS, heading_deg, **kw) for i in range(n)]
+
+
+def flipped(lms: list[np.ndarray], frames) -> list[np.ndarray]:
+    return [lm[BLAZEPOSE_MIRROR] if i in frames else lm for i, lm in enumerate(lms)]
+
+
+@pytest.mark.parametrize("heading", [20.0, 60.0, 150.0])
+@pytest.mark.parametrize("bad", [range(20, 30), [7], [7, 8, 40]])
+def test_a_flipped_run_is_restored(heading, bad):
+    truth = walk(60, heading)
+    got = run([[lm] for lm in flipped(truth, set(bad))])
+    for i, (lm,) in enumerate(got):
+        np.testing.assert_array_equal(lm, truth[i], err_msg=f"frame {i}")
+
+
+def test_without_the_smoother_the_flips_stay():
+    """The check can fail: the flipped frames differ from the truth until undone."""
+    truth = walk(40, 30.0)
+    bad = flipped(truth, {10, 11, 12})
+    assert not np.array_equal(bad[11], truth[11])
+    got = run([[lm] for lm in bad])
+    assert np.array_equal(got[11][0], truth[11])
+
+
+def test_a_person_turning_around_keeps_their_labels():
+    """A full turn in 2 s (left and right cross in the image twice): nothing is exchanged."""
+    truth = [figure(i / FPS, 360.0 * i / 60, speed=0.3) for i in range(60)]
+    got = run([[lm] for lm in truth])
+    for i, (lm,) in enumerate(got):
+        np.testing.assert_array_equal(lm, truth[i], err_msg=f"frame {i}")
+
+
+def test_a_track_that_starts_flipped_keeps_the_detected_labels_when_they_never_change():
+    """No jump, no evidence: the landmark model's labels stand (the prior)."""
+    truth = walk(30, 40.0)
+    mirrored_all = [lm[BLAZEPOSE_MIRROR] for lm in truth]
+    got = run([[lm] for lm in mirrored_all])
+    for i, (lm,) in enumerate(got):
+        np.testing.assert_array_equal(lm, mirrored_all[i])
+
+
+def test_two_people_only_the_flipped_one_is_corrected():
+    a = walk(50, 30.0, x0=-1.5)
+    b = walk(50, -30.0, x0=1.5)
+    got = run([[la, lb] for la, lb in zip(flipped(a, {15, 16, 17}), b, strict=True)])
+    for i, (la, lb) in enumerate(got):
+        np.testing.assert_array_equal(la, a[i], err_msg=f"frame {i}")
+        np.testing.assert_array_equal(lb, b[i], err_msg=f"frame {i}")
+
+
+def test_unsure_landmarks_carry_no_evidence():
+    truth = walk(30, 30.0)
+    unsure = [lm.copy() for lm in truth]
+    for lm in unsure:
+        lm[:, 2] = 0.2
+    got = run([[lm] for lm in flipped(unsure, {10, 11})])
+    # nothing could be compared, so nothing was exchanged: frames 10 and 11 stay as detected
+    np.testing.assert_array_equal(got[10][0], unsure[10][BLAZEPOSE_MIRROR])
+    np.testing.assert_array_equal(got[12][0], unsure[12])
+
+
+def test_detections_without_landmarks_and_short_streams_pass_unchanged():
+    frames = [[None], [None, walk(1, 0.0)[0]], []]
+    got = run(frames)  # three frames, fewer than the lag's 15: all flushed at the end
+    assert got[0] == [None] and got[1][0] is None and got[2] == []
+    np.testing.assert_array_equal(got[1][1], frames[1][1])
+
+
+def test_a_damaged_video_lets_the_buffered_frames_out_before_the_error():
+    truth = walk(10, 30.0)
+
+    def broken():
+        yield from stream([[lm] for lm in truth])
+        raise ValueError("decoding failed at frame 10")
+
+    seen = []
+    with pytest.raises(ValueError, match="frame 10"):
+        for frame, _ in unmirror_stream(broken(), MirrorConfig(), 1 / FPS):
+            seen.append(frame.index)
+    assert seen == list(range(10))
+
+
+def test_step_costs_are_symmetric_under_exchange_and_blind_to_translation():
+    a, b = walk(2, 30.0)
+    c = MirrorConfig()
+    kept, exchanged = step_costs(a, b, c)
+    assert kept < exchanged
+    assert step_costs(a, b[BLAZEPOSE_MIRROR], c) == pytest.approx((exchanged, kept), rel=1e-5)
+    moved = b.copy()
+    moved[:, :2] += (250.0, -40.0)
+    assert step_costs(a, moved, c) == pytest.approx((kept, exchanged), rel=1e-5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(st.floats(0, 1), st.floats(0, 1)).map(lambda p: (min(p), max(p))),
+        min_size=1,
+        max_size=20,
+    ),
+    prior=st.floats(0.01, 5.0),
+    start=st.sampled_from([None, 0]),
+)
+def test_no_evidence_of_a_jump_never_exchanges(steps, prior, start):
+    """Where every step is at least as cheap kept as exchanged, the first node stays as detected
+    (after a kept node, or free)."""
+    assert node_state(start, steps, prior, 0.1) == 0
+
+
+@given(st.floats(0.01, 1.0), st.integers(1, 10))
+def test_a_node_after_an_exchanged_one_follows_it_when_the_step_is_smooth(prior, n):
+    """Kept relative to an exchanged predecessor (cost 0) and a clear jump otherwise: exchanged,
+    unless the prior over the following nodes outweighs the jump (here it never does)."""
+    steps = [(0.0, 1.0)] + [(0.0, 1.0)] * (n - 1)
+    assert node_state(1, steps, prior * 0.01, 0.1) == 1
+
+
+def test_config_rejects_nonsense():
+    with pytest.raises(ValueError, match="sigma"):
+        MirrorConfig(sigma=0.0)
