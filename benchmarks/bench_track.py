@@ -485,6 +485,13 @@ def real_footage(args) -> None:
                 stage_torch,
                 "auto",
             ),
+            (
+                "new, left/right labels as detected (before)",
+                new(),
+                replace(opts(), unmirror=None),
+                stage_torch,
+                "auto",
+            ),
             ("new, image path for every crop", new(), opts(), stage_torch, "always"),
             ("new, pose from landmarks, every crop cut", new(), opts(), stage_torch, "cut"),
             (f"new, {torch_default} torch threads", new(), opts(), torch_default, "auto"),

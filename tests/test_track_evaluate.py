@@ -252,7 +252,9 @@ def test_rows_with_mirrored_landmarks_are_counted_and_left_out_of_the_second_mpj
                 jl, jr = jr, jl
             lm[left], lm[right] = (*uv[jl], 1.0), (*uv[jr], 1.0)
         landmarks[(f, p - 1)] = lm  # keyed by the row's track id
-        off = np.where(np.arange(24)[:, None] > 0, 0.1, 0.0) * [1, 0, 0] if (f, p) in mirrored else 0
+        off = np.zeros((24, 3))
+        if (f, p) in mirrored:
+            off[1:, 0] = 0.1  # every joint but the pelvis 100 mm off
         rows.append((f, p - 1, boxes[(f, p)], j + off))
     path = write_tracks(out, rows, landmarks=landmarks)
     ev = evaluate_tracks(path, scene, CAM, camera=camera)

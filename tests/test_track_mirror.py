@@ -13,7 +13,8 @@ from gst.video import Frame
 
 FPS = 30.0
 # BlazePose indices: (left, right) of shoulders, elbows, wrists, hips, knees, ankles
-SHOULDER, ELBOW, WRIST, HIP, KNEE, ANKLE = (11, 12), (13, 14), (15, 16), (23, 24), (25, 26), (27, 28)
+SHOULDER, ELBOW, WRIST = (11, 12), (13, 14), (15, 16)
+HIP, KNEE, ANKLE = (23, 24), (25, 26), (27, 28)
 
 
 def figure(t: float, heading_deg: float, x0: float = 0.0, speed: float = 1.2) -> np.ndarray:
@@ -180,3 +181,59 @@ def test_a_node_after_an_exchanged_one_follows_it_when_the_step_is_smooth(prior,
 def test_config_rejects_nonsense():
     with pytest.raises(ValueError, match="sigma"):
         MirrorConfig(sigma=0.0)
+
+
+class FigureDetector:
+    """One walking figure per frame, its labels exchanged in `flipped` frames."""
+
+    def __init__(self, flipped):
+        self.flipped = set(flipped)
+
+    def detect(self, frame_bgr, frame_index):
+        lm = figure(frame_index / FPS, 30.0)
+        if frame_index in self.flipped:
+            lm = lm[BLAZEPOSE_MIRROR]
+        (x0, y0), (x1, y1) = lm[:, :2].min(0) - 20, lm[:, :2].max(0) + 20
+        return [Detection(box=np.array([x0, y0, x1, y1]), landmarks=lm)]
+
+
+@pytest.fixture(scope="module")
+def figure_video(tmp_path_factory):
+    import cv2
+
+    path = tmp_path_factory.mktemp("mirror") / "walk.avi"
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (1920, 1080))
+    for _ in range(30):
+        out.write(np.full((1080, 1920, 3), 90, np.uint8))
+    out.release()
+    return path
+
+
+@pytest.mark.parametrize("unmirror", [MirrorConfig(), None])
+def test_the_track_loop_writes_continuous_labels_and_counts_the_exchanges(
+    figure_video, tmp_path, unmirror
+):
+    from gst.track import BoxDepthPredictor, TrackOptions, column_array, read_tracks, track_video
+    from gst.track.read import read_metadata
+
+    flipped = {10, 11, 12, 13}
+    res = track_video(
+        figure_video,
+        tmp_path / "out",
+        FigureDetector(flipped),
+        BoxDepthPredictor(),
+        model={"name": "box-depth", "version": "test"},
+        options=TrackOptions(unmirror=unmirror),
+        resume=False,
+    )
+    table = read_tracks(res.path)
+    frames = table.column("frame").to_numpy()
+    got = column_array(table, "landmarks2d")
+    exchanged = read_metadata(res.path)["stats"]["landmarks_exchanged"]
+    assert flipped <= set(frames.tolist())
+    for f, lm in zip(frames, got, strict=True):
+        truth = figure(f / FPS, 30.0)
+        if unmirror is None and f in flipped:
+            truth = truth[BLAZEPOSE_MIRROR]
+        np.testing.assert_allclose(lm, truth[:, :2], atol=1e-3, err_msg=f"frame {f}")
+    assert exchanged == (len(flipped) if unmirror else 0)

@@ -122,6 +122,7 @@ class TrackingSession:
             "dropped_nonfinite": 0,
             "dropped_low_score": 0,
             "dropped_parts": 0,
+            "landmarks_exchanged": 0,  # left/right labels exchanged (gst.track.mirror)
         }
 
     def state_dict(self) -> dict:

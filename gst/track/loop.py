@@ -419,6 +419,7 @@ def tracked_groups(
         return frame, [d for d in dets if d.score >= options.min_score]
 
     def prepare(frame: Frame, dets: list[Detection]) -> tuple[PendingFrame, list]:
+        session.stats["landmarks_exchanged"] += sum(d.labels_exchanged for d in dets)
         lms = np.full((len(dets), N_LANDMARKS, 3), np.nan, np.float32)
         for i, d in enumerate(dets):
             if d.landmarks is not None:

@@ -172,7 +172,9 @@ def unmirror_stream(
             steps = [node.step or (0.0, 0.0), *(n.step or (0.0, 0.0) for n in ch.nodes)]
             state = node_state(start, steps, prior, c.sigma)
             ch.decided = state
-            out.append(replace(d, landmarks=d.landmarks[BLAZEPOSE_MIRROR]) if state else d)
+            if state:
+                d = replace(d, landmarks=d.landmarks[BLAZEPOSE_MIRROR], labels_exchanged=True)
+            out.append(d)
         return frame, out
 
     source, count = iter(detected), -1
