@@ -83,6 +83,26 @@ def test_overlay_draws_skeletons_at_their_joints(tracked):
             assert drawn[v, u].max() > 0  # every visible joint is marked
 
 
+def test_overlay_tells_left_from_right(tracked):
+    """The network's right joints are dark dots, its left ones white: a body read the wrong way
+    round shows on the overlay."""
+    _, _, path = tracked
+    t = read_tracks(path)
+    first = t.filter(t.column("frame").to_numpy() == 0)
+    drawn = draw_people(np.zeros((240, 320, 3), np.uint8), first)
+    checked = {"left": 0, "right": 0}
+    for joints in column_array(first, "joints2d"):
+        for j, name in enumerate(SMPL_JOINT_NAMES):
+            side = name.split("_")[0]
+            u, v = np.round(joints[j]).astype(int)
+            apart = np.delete(np.linalg.norm(joints - joints[j], axis=1), j).min() > 6
+            if side not in checked or not apart or not (0 <= u < 320 and 0 <= v < 240):
+                continue
+            assert tuple(drawn[v, u]) == ((40, 40, 40) if side == "right" else (255, 255, 255))
+            checked[side] += 1
+    assert checked["left"] > 0 and checked["right"] > 0
+
+
 def test_joint_angle_png(tracked):
     d, _, path = tracked
     png = plot_joint_angles(path, d / "angles.png", min_rows=2)

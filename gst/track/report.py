@@ -20,6 +20,12 @@ SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17
 
 # BlazePose bones drawn for the landmark model's skeleton: limbs, torso outline, shoulders-nose.
 LANDMARK_BONES = BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)) + ((0, 11), (0, 12))
+# Left and right drawn apart, so that a person read the wrong way round shows: the landmark
+# model's right-side bones (even BlazePose indices from 12) light blue, the others white; the
+# network's right joints dark, the others white.
+_RIGHT_LANDMARKS = frozenset(range(12, 33, 2))
+_RIGHT_JOINTS = frozenset(i for i, n in enumerate(SMPL_JOINT_NAMES) if n.startswith("right_"))
+_LANDMARK_RIGHT_COLOUR = (255, 200, 120)  # BGR light blue
 
 # Angle at the middle joint between the segments to the first and last joint
 # (degrees, 180 = straight).
@@ -52,20 +58,24 @@ def _colour(person_id: int) -> tuple[int, int, int]:
 
 
 def _draw_landmarks(img: np.ndarray, lm: np.ndarray, conf: np.ndarray, thick: int) -> None:
-    """The landmark model's skeleton: white bones, joints shaded by confidence (dark = unsure)."""
+    """The landmark model's skeleton: white bones (light blue on the right side), joints shaded
+    by confidence (red = unsure)."""
     pts = np.round(lm * 16).astype(np.int32)
     for a, b in LANDMARK_BONES:
         if min(conf[a], conf[b]) >= 0.3:
-            cv2.line(img, tuple(pts[a]), tuple(pts[b]), (255, 255, 255), 1, cv2.LINE_AA, shift=4)
+            right = a in _RIGHT_LANDMARKS and b in _RIGHT_LANDMARKS
+            colour = _LANDMARK_RIGHT_COLOUR if right else (255, 255, 255)
+            cv2.line(img, tuple(pts[a]), tuple(pts[b]), colour, 1, cv2.LINE_AA, shift=4)
     for p, c in zip(pts, conf, strict=True):
         shade = int(round(255 * float(np.clip(c, 0, 1))))
         cv2.circle(img, tuple(p), thick * 16, (shade, shade, 255), -1, cv2.LINE_AA, shift=4)
 
 
 def draw_people(frame_bgr: np.ndarray, rows: pa.Table) -> np.ndarray:
-    """Draw each row's box and id, the network's skeleton (joints2d, the id's colour, white
-    joints) and, where the row has them, the landmark model's 33 landmarks (white bones, joints
-    from red = unsure to white = sure), on a copy of the frame."""
+    """Draw each row's box and id, the network's skeleton (joints2d, the id's colour; its right
+    joints dark, the others white) and, where the row has them, the landmark model's 33
+    landmarks (white bones, light blue on the right side; joints from red = unsure to white =
+    sure), on a copy of the frame."""
     img = frame_bgr.copy()
     if rows.num_rows == 0:
         return img
@@ -100,8 +110,9 @@ def draw_people(frame_bgr: np.ndarray, rows: pa.Table) -> np.ndarray:
                 cv2.line(
                     img, tuple(pts[parent]), tuple(pts[child]), col, thick, cv2.LINE_AA, shift=4
                 )
-        for p in pts:
-            cv2.circle(img, tuple(p), 2 * thick * 16, (255, 255, 255), -1, cv2.LINE_AA, shift=4)
+        for j, p in enumerate(pts):
+            dot = (40, 40, 40) if j in _RIGHT_JOINTS else (255, 255, 255)
+            cv2.circle(img, tuple(p), 2 * thick * 16, dot, -1, cv2.LINE_AA, shift=4)
     return img
 
 
@@ -110,9 +121,9 @@ def draw_key(img: np.ndarray, with_landmarks: bool = True) -> np.ndarray:
     network's body and which the landmark model's (the overlay carries no other legend)."""
     scale = max(0.4, max(img.shape[:2]) / 1600)
     thick = max(1, round(scale * 2))
-    lines = [("id colour: network body (joints2d)", (80, 200, 255))]
+    lines = [("id colour: network body (joints2d), right joints dark", (80, 200, 255))]
     if with_landmarks:
-        lines.append(("white: landmark model (red = unsure)", (255, 255, 255)))
+        lines.append(("white / blue: landmark model left / right (red = unsure)", (255, 255, 255)))
     step = int(28 * scale) + 4
     y = img.shape[0] - 10 - step * (len(lines) - 1)
     for text, colour in lines:
