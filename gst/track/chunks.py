@@ -29,20 +29,12 @@ from scipy.optimize import linear_sum_assignment
 
 from gst.atomic import atomic_path
 from gst.track.detection import Detector
-from gst.track.frames import TrackingSession
+from gst.track.frames import STAT_KEYS, TrackingSession
 from gst.track.loop import TrackOptions, VideoRun, tracked_groups
 from gst.track.predictor import Predictor
 from gst.track.writer import PARQUET_OPTIONS, settings_digest
 
 CHUNK_META_KEY = b"gst.chunk"
-STAT_KEYS = (
-    "frames",
-    "rows",
-    "detections",
-    "dropped_nonfinite",
-    "dropped_low_score",
-    "dropped_parts",
-)
 
 
 @dataclass(frozen=True)

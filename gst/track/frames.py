@@ -18,6 +18,17 @@ from gst.track.rows import RowSet
 from gst.track.smoothing import OneEuroConfig, PoseSmoother
 from gst.track.tracker import Observation, Tracker, TrackerConfig
 
+# the session's counters (`TrackingSession.stats`, written to gst.stats; summed over chunks)
+STAT_KEYS = (
+    "frames",
+    "rows",
+    "detections",
+    "dropped_nonfinite",
+    "dropped_low_score",
+    "dropped_parts",
+    "landmarks_exchanged",  # detections whose left/right labels gst.track.mirror exchanged
+)
+
 
 @dataclass
 class PendingFrame:
@@ -115,15 +126,7 @@ class TrackingSession:
         self.tracker = Tracker(tracker)
         self.smoother = PoseSmoother(smoothing) if smoothing else None
         self.pending: dict[tuple, dict] = {}
-        self.stats = {
-            "frames": 0,
-            "rows": 0,
-            "detections": 0,
-            "dropped_nonfinite": 0,
-            "dropped_low_score": 0,
-            "dropped_parts": 0,
-            "landmarks_exchanged": 0,  # left/right labels exchanged (gst.track.mirror)
-        }
+        self.stats = dict.fromkeys(STAT_KEYS, 0)
 
     def state_dict(self) -> dict:
         return {
