@@ -106,24 +106,20 @@ def node_state(
 
 
 @dataclass
-class _Node:
-    landmarks: np.ndarray  # raw (33, 3)
-    frame: int  # processed-frame count at which it was seen
-    step: tuple[float, float] | None  # costs from the previous node of the chain
-
-
-@dataclass
 class _Chain:
-    nodes: deque = field(default_factory=deque)  # undecided nodes, oldest first
-    last: np.ndarray | None = None  # newest raw landmarks
-    last_frame: int = -1
-    decided: int | None = None  # state of the newest decided node (None: none yet)
+    """One person's frames: the undecided ones' steps (costs from the frame before; None at the
+    chain's start), oldest first, and what the next frame is compared with."""
+
+    last: np.ndarray  # newest raw landmarks (33, 3)
+    last_frame: int  # processed-frame count at which they were seen
+    steps: deque = field(default_factory=deque)
+    decided: int | None = None  # state of the newest decided frame (None: none yet)
 
 
-def _link(chains: list[_Chain], lms: list[np.ndarray | None], now: int, c: MirrorConfig):
-    """Chain index per detection (None: no landmarks): nearest live chain by mid-hips, within
-    `link_torso` torso lengths, one-to-one; new chains for the rest."""
-    live = [k for k, ch in enumerate(chains) if now - ch.last_frame <= c.max_gap + 1]
+def _link(chains: dict[int, _Chain], lms: list[np.ndarray | None], now: int, c: MirrorConfig):
+    """Chain key per detection (None: no landmarks): nearest live chain by mid-hips, within
+    `link_torso` torso lengths, one-to-one; None for those that start a chain."""
+    live = [k for k, ch in chains.items() if now - ch.last_frame <= c.max_gap + 1]
     cand = [i for i, lm in enumerate(lms) if lm is not None and np.isfinite(lm[_HIPS]).all()]
     out: list[int | None] = [None] * len(lms)
     if live and cand:
@@ -140,10 +136,6 @@ def _link(chains: list[_Chain], lms: list[np.ndarray | None], now: int, c: Mirro
         for r, col in zip(rows, cols, strict=True):
             if cost[r, col] < big:
                 out[cand[col]] = live[r]
-    for i in cand:
-        if out[i] is None:
-            chains.append(_Chain())
-            out[i] = len(chains) - 1
     return out
 
 
@@ -155,8 +147,9 @@ def unmirror_stream(
     c = config
     lag = max(0, math.ceil(c.lag_s / frame_interval_s - 1e-9))
     prior = c.prior_per_s * frame_interval_s
-    chains: list[_Chain] = []
-    buffer: deque = deque()  # (frame, detections, chain per detection)
+    chains: dict[int, _Chain] = {}
+    new_key = 0
+    buffer: deque = deque()  # (frame, detections, chain key per detection)
 
     def emit() -> tuple[Frame, list[Detection]]:
         frame, dets, links = buffer.popleft()
@@ -166,10 +159,10 @@ def unmirror_stream(
                 out.append(d)
                 continue
             ch = chains[k]
-            node = ch.nodes.popleft()
-            # the node's state given the decided one before it (none at a chain's start)
-            start = None if node.step is None else ch.decided
-            steps = [node.step or (0.0, 0.0), *(n.step or (0.0, 0.0) for n in ch.nodes)]
+            step = ch.steps.popleft()
+            # this frame's state given the decided one before it (none at a chain's start)
+            start = None if step is None else ch.decided
+            steps = [step or (0.0, 0.0), *(s or (0.0, 0.0) for s in ch.steps)]
             state = node_state(start, steps, prior, c.sigma)
             ch.decided = state
             if state:
@@ -190,13 +183,18 @@ def unmirror_stream(
         count += 1
         lms = [None if d.landmarks is None else np.asarray(d.landmarks, np.float64) for d in dets]
         links = _link(chains, lms, count, c)
-        for lm, k in zip(lms, links, strict=True):
-            if k is None:
-                continue
-            ch = chains[k]
-            step = None if ch.last is None else step_costs(ch.last, lm, c)
-            ch.nodes.append(_Node(lm, count, step))
-            ch.last, ch.last_frame = lm, count
+        for i, (lm, k) in enumerate(zip(lms, links, strict=True)):
+            if k is not None:
+                ch = chains[k]
+                ch.steps.append(step_costs(ch.last, lm, c))
+                ch.last, ch.last_frame = lm, count
+            elif lm is not None and np.isfinite(lm[_HIPS]).all():
+                chains[new_key] = _Chain(lm, count, deque([None]))
+                links[i], new_key = new_key, new_key + 1
+        # people gone for good whose frames have all left are forgotten
+        for k in [k for k, ch in chains.items() if not ch.steps]:
+            if count - chains[k].last_frame > c.max_gap + 1:
+                del chains[k]
         buffer.append((frame, dets, links))
         if len(buffer) > lag:
             yield emit()
