@@ -122,6 +122,17 @@ def test_unsure_landmarks_carry_no_evidence():
     np.testing.assert_array_equal(got[12][0], unsure[12])
 
 
+def test_landmarks_without_a_position_are_not_compared():
+    """A sure wrist with no position (NaN) is left out of the comparison: the flips around it
+    are still undone, and the NaN stays where it was."""
+    truth = walk(40, 30.0)
+    for lm in truth[18:22]:
+        lm[15, :2] = np.nan
+    got = run([[lm] for lm in flipped(truth, {19, 20})])
+    for i, (lm,) in enumerate(got):
+        np.testing.assert_array_equal(lm, truth[i], err_msg=f"frame {i}")
+
+
 def test_detections_without_landmarks_and_short_streams_pass_unchanged():
     frames = [[None], [None, walk(1, 0.0)[0]], []]
     got = run(frames)  # three frames, fewer than the lag's 15: all flushed at the end

@@ -35,7 +35,6 @@ from gst.video import Frame
 
 # (left, right) BlazePose landmarks compared between frames
 LIMB_PAIRS = ((11, 12), (13, 14), (15, 16), (23, 24), (25, 26), (27, 28))
-_LIMBS = np.array([i for pair in LIMB_PAIRS for i in pair])
 _LEFT = np.array([p[0] for p in LIMB_PAIRS])
 _RIGHT = np.array([p[1] for p in LIMB_PAIRS])
 _HIPS, _SHOULDERS = [23, 24], [11, 12]
@@ -65,21 +64,22 @@ def _torso(lm: np.ndarray) -> float:
 
 def step_costs(a: np.ndarray, b: np.ndarray, config: MirrorConfig) -> tuple[float, float]:
     """(kept, exchanged): mean distance of the sure limb pairs from frame a's (33, 3) landmarks
-    to frame b's, b's labels as given or exchanged, b moved by the pairs' mean shift (which the
-    labels do not change), in a's torso lengths. (0, 0) where fewer than `min_pairs` pairs are
+    to frame b's, b's labels as given or exchanged, b moved by the sure pairs' mean shift (which
+    the labels do not change), in a's torso lengths. (0, 0) where fewer than `min_pairs` pairs are
     sure on both sides or the torso is degenerate: no evidence either way."""
     conf = np.minimum.reduce([a[_LEFT, 2], a[_RIGHT, 2], b[_LEFT, 2], b[_RIGHT, 2]])
-    sure = np.isfinite(conf) & (conf >= config.min_confidence)
+    placed = np.isfinite(np.concatenate([a[_LEFT], a[_RIGHT], b[_LEFT], b[_RIGHT]], 1)).all(1)
+    sure = placed & np.isfinite(conf) & (conf >= config.min_confidence)
     size = _torso(a)
     if int(sure.sum()) < config.min_pairs or not size > 1e-6:
         return 0.0, 0.0
-    shift = a[_LIMBS, :2].mean(0) - b[_LIMBS, :2].mean(0)
-    bl, br = b[_LEFT, :2] + shift, b[_RIGHT, :2] + shift
-    al, ar = a[_LEFT, :2], a[_RIGHT, :2]
+    al, ar = a[_LEFT, :2][sure], a[_RIGHT, :2][sure]
+    shift = (al + ar).mean(0) / 2 - (b[_LEFT, :2][sure] + b[_RIGHT, :2][sure]).mean(0) / 2
+    bl, br = b[_LEFT, :2][sure] + shift, b[_RIGHT, :2][sure] + shift
     kept = np.linalg.norm(bl - al, axis=1) + np.linalg.norm(br - ar, axis=1)
     exchanged = np.linalg.norm(bl - ar, axis=1) + np.linalg.norm(br - al, axis=1)
-    n = 2 * sure.sum()
-    return float(kept[sure].sum() / n / size), float(exchanged[sure].sum() / n / size)
+    n = 2 * len(al)
+    return float(kept.sum() / n / size), float(exchanged.sum() / n / size)
 
 
 def node_state(
