@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration import Camera
-from gst.data.camera_view import TrackingView, default_camera
+from gst.data.camera_view import TrackingView, default_camera, focal_from_35mm
 from gst.data.crop import (
     CropWindow,
     crop_intrinsics,
@@ -164,6 +164,20 @@ def test_default_camera_and_size_check():
     assert cam.fx == pytest.approx(np.hypot(1920, 1080)) and cam.cx == 959.5 and cam.cy == 539.5
     with pytest.raises(ValueError, match="1920x1080, but the calibration says 1280x720"):
         TrackingView.for_video(1920, 1080, distorted_camera(), video="match.mp4")
+
+
+def test_focal_length_from_its_35mm_equivalent():
+    """Diagonals matched: a 43.3 mm lens is the default's image diagonal; a phone's 26 mm main
+    camera is 0.6 of it; nonsense is refused."""
+    diagonal = np.hypot(1088, 1920)
+    assert focal_from_35mm(np.hypot(36, 24), 1088, 1920) == pytest.approx(diagonal)
+    assert focal_from_35mm(26.0, 1920, 1088) == pytest.approx(26.0 / 43.2666 * diagonal, rel=1e-4)
+    cam = TrackingView.for_video(1088, 1920, focal_px=1680.0).camera
+    assert cam.fx == cam.fy == 1680.0 and cam.cx == 543.5 and "given" in cam.meta["source"]
+    with pytest.raises(ValueError, match="must be > 0"):
+        focal_from_35mm(0.0, 1088, 1920)
+    with pytest.raises(ValueError, match="must be > 0 px"):
+        default_camera(1088, 1920, focal_px=-5.0)
 
 
 def test_bad_box_is_rejected():

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibration import Camera
+from gst.data.camera_view import TrackingView
 from gst.track import (
     BoxDepthPredictor,
     Detection,
@@ -71,6 +72,25 @@ def truth_identity(table, boxes):
     return np.array(
         [int(np.argmax(box_iou(b, boxes[f])[0])) for f, b in zip(frames, bb, strict=True)]
     )
+
+
+def test_a_known_lens_sets_the_uncalibrated_camera(scene, tmp_path):
+    """`focal_35mm` gives the default camera its focal length (diagonals matched): recorded in
+    the file, still uncalibrated, and the bodies are seen through it (other depths, other
+    projections); the agreement check rebuilds that camera from the file."""
+    plain = track_scene(scene, tmp_path / "plain")
+    lens = track_scene(scene, tmp_path / "lens", options=TrackOptions(focal_35mm=26.0))
+    cal = read_metadata(lens.path)["calibration"]
+    assert cal["calibrated"] is False
+    assert cal["K"][0][0] == pytest.approx(26.0 / np.hypot(36, 24) * np.hypot(W, H))
+    assert TrackingView.from_json(cal).camera.fx == pytest.approx(cal["K"][0][0])
+    a, b = read_tracks(plain.path), read_tracks(lens.path)
+    za = column_array(a, "transl_cam")[:, 2]
+    zb = column_array(b, "transl_cam")[:, 2]
+    # the same boxes at a shorter focal length: the same people stand nearer
+    np.testing.assert_allclose(zb / za, 26.0 / np.hypot(36, 24), rtol=1e-3)
+    with pytest.raises(ValueError, match="focal_35mm must be > 0"):
+        TrackOptions(focal_35mm=0.0)
 
 
 def test_crossing_people_keep_their_ids(scene, tmp_path):

@@ -8,7 +8,11 @@ Default focal length f = sqrt(W^2 + H^2) px (the image diagonal; the convention 
 for in-the-wild images): a 53 degree diagonal field of view, 47 degrees across a 16:9 frame, the
 same for portrait and landscape. It sits between a phone's main camera (about 65-75 degrees
 horizontal) and a zoomed broadcast camera. A wrong focal length mostly rescales depth (and so
-translation and world position); body pose and shape in the crop are nearly unaffected.
+translation and world position), and changes the perspective the body is seen in: on the lab
+capture (true focal 1680 px at 1088x1920, the default 2207) the network's projected joints lie
+22.9 instead of 24.2 px from the landmark model's on cam01 with the true focal (docs/
+track_evaluation.md, "The focal length of an uncalibrated video"). Where the focal length is
+known (a phone's spec sheet gives it as a 35 mm equivalent), `focal_from_35mm` converts it.
 """
 
 from __future__ import annotations
@@ -21,12 +25,28 @@ from calibration import Camera
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
 from gst.data.crop import CropWindow, crop_intrinsics, crop_window, cut_crop, cut_undistorted_crop
 
+# diagonal of the 36 x 24 mm frame that "35 mm equivalent" focal lengths refer to
+FILM_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
 
-def default_camera(width: int, height: int, name: str = "default") -> Camera:
-    """Pinhole camera with focal = image diagonal in px, principal point at the image centre,
-    no distortion, identity pose (world = camera)."""
-    f = float(np.hypot(width, height))
+
+def focal_from_35mm(focal_35mm: float, width: int, height: int) -> float:
+    """Focal length in pixels of a `width` x `height` frame from its 35 mm equivalent (mm),
+    the diagonals matched: the image diagonal (the default) is a 43.3 mm lens."""
+    if not focal_35mm > 0:
+        raise ValueError(f"35 mm equivalent focal length must be > 0 mm, got {focal_35mm}")
+    return float(focal_35mm / FILM_DIAGONAL_MM * np.hypot(width, height))
+
+
+def default_camera(
+    width: int, height: int, name: str = "default", focal_px: float | None = None
+) -> Camera:
+    """Pinhole camera with focal `focal_px` (default: the image diagonal in px), principal point
+    at the image centre, no distortion, identity pose (world = camera)."""
+    f = float(np.hypot(width, height)) if focal_px is None else float(focal_px)
+    if not f > 0:
+        raise ValueError(f"focal length must be > 0 px, got {focal_px}")
     K = [[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
+    source = "image diagonal (px)" if focal_px is None else "given"
     return Camera.create(
         name,
         K,
@@ -35,7 +55,7 @@ def default_camera(width: int, height: int, name: str = "default") -> Camera:
         np.zeros(3),
         width,
         height,
-        meta={"source": "default: focal = image diagonal (px), centred, no distortion"},
+        meta={"source": f"default: focal = {source}, centred, no distortion"},
     )
 
 
@@ -69,14 +89,30 @@ class TrackingView:
         camera: Camera | None = None,
         video: str = "video",
         tolerance: int = FRAME_PADDING_TOLERANCE,
+        focal_px: float | None = None,
     ) -> TrackingView:
         """The calibrated `camera`, fitted to the frame size (encoder padding within
         `tolerance` pixels is accepted, `calibration.camera.fit_to_frames`), or the default
-        camera."""
+        camera (with `focal_px` when given)."""
         if camera is None:
-            return cls(default_camera(width, height), calibrated=False)
+            return cls(default_camera(width, height, focal_px=focal_px), calibrated=False)
         camera, _ = fit_to_frames(camera, width, height, tolerance, video)
         return cls(camera, calibrated=True)
+
+    @classmethod
+    def from_json(cls, record: dict) -> TrackingView:
+        """The view a tracks file was made with, from its `gst.calibration` record (K, dist, R,
+        t, width, height, calibrated; gst.track.loop writes it)."""
+        camera = Camera.create(
+            record.get("name", "default"),
+            record["K"],
+            record["dist"],
+            record["R"],
+            record["t"],
+            record["width"],
+            record["height"],
+        )
+        return cls(camera, calibrated=bool(record["calibrated"]))
 
     @property
     def has_distortion(self) -> bool:

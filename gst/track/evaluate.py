@@ -18,6 +18,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from calibration import Camera
+from gst.data.camera_view import TrackingView
 from gst.detect.boxes import box_iou
 from gst.metrics.flips import mirrored_landmarks
 from gst.metrics.pose import mpjpe, pa_mpjpe
@@ -332,9 +333,7 @@ def _mirrored_rows(
     """(len(pairs),) bool: the matched row's landmarks are mirrored against its truth person."""
     cal = meta.get("calibration") or {}
     if camera is None and cal.get("calibrated") and "K" in cal:
-        camera = Camera.create(
-            cal["name"], cal["K"], cal["dist"], cal["R"], cal["t"], cal["width"], cal["height"]
-        )
+        camera = TrackingView.from_json(cal).camera
     if not pairs or camera is None or "landmarks2d" not in table.column_names:
         return np.zeros(len(pairs), bool)
     rows = [r for r, _ in pairs]

@@ -22,7 +22,7 @@ import pyarrow.parquet as pq
 import torch
 
 from calibration import Camera
-from gst.data.camera_view import TrackingView
+from gst.data.camera_view import TrackingView, focal_from_35mm
 from gst.device import module_on
 from gst.model.landmarks import camera_up
 from gst.prefetch import background
@@ -68,6 +68,9 @@ class TrackOptions:
     # then bend each body's pose onto its landmarks where it disagrees with them
     # (gst.track.pose_fit; needs a predictor with a `body` model); None: the network's pose
     pose_fit: PoseFitConfig | None = None
+    # a video that is no calibrated camera: its lens's 35 mm equivalent focal length (mm), where
+    # known; None: the image diagonal (gst.data.camera_view)
+    focal_35mm: float | None = None
     # each person's landmark labels kept continuous in time, BlazePose's whole-body left/right
     # flips undone (gst.track.mirror; output delayed by its lag); None: the labels as detected
     unmirror: MirrorConfig | None = field(default_factory=MirrorConfig)
@@ -76,6 +79,8 @@ class TrackOptions:
         for name in ("stride", "crop_size", "batch_size", "frames_per_group", "row_group_rows"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrackOptions.{name} must be >= 1, got {getattr(self, name)}")
+        if self.focal_35mm is not None and not self.focal_35mm > 0:
+            raise ValueError(f"TrackOptions.focal_35mm must be > 0 mm, got {self.focal_35mm}")
 
     def settings(self) -> dict:
         """What determines the output (prefetch does not)."""
@@ -307,7 +312,14 @@ def plan_run(
             raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
     info: VideoInfo = probe_video(video_path)
     name = video_name or info.name
-    view = TrackingView.for_video(info.width, info.height, camera, video=str(video_path))
+    focal = (
+        None
+        if camera is not None or options.focal_35mm is None
+        else focal_from_35mm(options.focal_35mm, info.width, info.height)
+    )
+    view = TrackingView.for_video(
+        info.width, info.height, camera, video=str(video_path), focal_px=focal
+    )
     first, end = frame_range(info, options.start_s, options.end_s)
     video_json = {
         "name": name,

@@ -101,6 +101,10 @@ class TrackSettings(BaseModel):
     # the scene (`--video`), where the model has not seen the camera; true / false: every video
     # / none.
     fit_pose: Literal["auto"] | bool = "auto"
+    # a video that is no calibrated camera of the scene: its lens's focal length as a 35 mm
+    # equivalent (mm; a phone's spec sheet gives it), else the image diagonal (a 43 mm lens;
+    # docs/track_evaluation.md "The focal length of an uncalibrated video")
+    focal_35mm: float | None = Field(default=None, gt=0)
     # keep each person's left and right landmark labels continuous over time: BlazePose's
     # whole-body flips undone (gst.track.mirror; docs/track_evaluation.md "Left and right")
     unmirror: bool = True
@@ -331,6 +335,7 @@ def track_scene(
         smoothing=OneEuroConfig(min_cutoff=s.min_cutoff, beta=s.beta) if s.smoothing else None,
         align=AlignmentConfig() if s.align_to_landmarks else None,
         unmirror=MirrorConfig() if s.unmirror else None,
+        focal_35mm=s.focal_35mm,
     )
     parallel_videos = max(1, min(workers, len(request.videos)))
     threads = network_threads(s, kind, workers, parallel_videos)
@@ -359,10 +364,15 @@ def track_scene(
         if camera is None:
             log.info(
                 "%s: not a calibrated camera of the scene: default pinhole camera (focal length ="
-                " image diagonal), camera-frame coordinates only, no world coordinates; the model"
-                " has not seen this camera",
+                " %s), camera-frame coordinates only, no world coordinates; the model has not "
+                "seen this camera",
                 video.stem,
+                "image diagonal; set track.focal_35mm if the lens is known"
+                if s.focal_35mm is None
+                else f"{s.focal_35mm:g} mm, 35 mm equivalent (track.focal_35mm)",
             )
+        elif s.focal_35mm is not None:
+            log.info("%s: calibrated camera: track.focal_35mm is not used", video.stem)
         elif not seen:
             log.info("%s: calibrated camera; the model's training does not record it", video.stem)
         fit = camera is None if s.fit_pose == "auto" else bool(s.fit_pose)
@@ -459,7 +469,10 @@ def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
         return out
     meta = parse_metadata(table.schema)
     video = meta["video"]
-    view = TrackingView.for_video(video["width"], video["height"], camera, video["name"])
+    if "K" in (meta.get("calibration") or {}):  # the camera the file was made with
+        view = TrackingView.from_json(meta["calibration"])
+    else:
+        view = TrackingView.for_video(video["width"], video["height"], camera, video["name"])
     body, markers = _body_and_markers(meta["model"].get("body_model", "anny"))
     same = markers_vs_landmarks(table, body_markers_2d(table, body, markers, view.project))
     out["body_landmarks_vs_landmarks"] = same.to_dict()
