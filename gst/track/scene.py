@@ -505,7 +505,7 @@ def write_video_report(
         ),
     }
     log.info(
-        "%s: %d frames, %d people, %.1f frames/s; left/right labels exchanged in %d detections",
+        "%s: %d frames, %d people, %.1f frames/s; left/right labels exchanged in %d detection(s)",
         name,
         result.frames,
         result.persons,
