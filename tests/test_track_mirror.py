@@ -8,8 +8,7 @@ from hypothesis import strategies as st
 
 from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.track.detection import Detection
-from gst.track.mirror import MirrorConfig, node_state, step_costs, unmirror_stream
-from gst.video import Frame
+from gst.track.mirror import LabelSmoother, MirrorConfig, node_state, step_costs
 
 FPS = 30.0
 # BlazePose indices: (left, right) of shoulders, elbows, wrists, hips, knees, ankles
@@ -42,21 +41,19 @@ def figure(t: float, heading_deg: float, x0: float = 0.0, speed: float = 1.2) ->
     return np.c_[uv, np.ones(33)].astype(np.float32)
 
 
-def stream(frames: list[list[np.ndarray | None]]):
-    for i, people in enumerate(frames):
-        dets = [
-            Detection(
-                box=np.array([0.0, 0.0, 10.0, 10.0]) + k, landmarks=lm, id_hint=k
-            )  # id_hint: which person, for the checks
-            for k, lm in enumerate(people)
-        ]
-        yield Frame(i, i / FPS, np.zeros((1, 1, 3), np.uint8)), dets
-
-
 def run(frames, config=None) -> list[list[np.ndarray | None]]:
-    out = list(unmirror_stream(stream(frames), config or MirrorConfig(), 1 / FPS))
-    assert [f.index for f, _ in out] == list(range(len(frames)))
-    return [[d.landmarks for d in dets] for _, dets in out]
+    """The frames' landmarks (per frame, per person) through a LabelSmoother, exchanged where
+    it decides; every frame comes back once, in order."""
+    smoother = LabelSmoother(config or MirrorConfig(), 1 / FPS)
+    out = []
+    for i, people in enumerate(frames):
+        out += smoother.push(i, people)
+    out += smoother.flush()
+    assert [i for i, _ in out] == list(range(len(frames)))
+    return [
+        [lm[BLAZEPOSE_MIRROR] if flag else lm for lm, flag in zip(frames[i], flags, strict=True)]
+        for i, flags in out
+    ]
 
 
 def walk(n: int, heading_deg: float, **kw) -> list[np.ndarray]:
@@ -133,25 +130,24 @@ def test_landmarks_without_a_position_are_not_compared():
         np.testing.assert_array_equal(lm, truth[i], err_msg=f"frame {i}")
 
 
-def test_detections_without_landmarks_and_short_streams_pass_unchanged():
-    frames = [[None], [None, walk(1, 0.0)[0]], []]
-    got = run(frames)  # three frames, fewer than the lag's 15: all flushed at the end
-    assert got[0] == [None] and got[1][0] is None and got[2] == []
-    np.testing.assert_array_equal(got[1][1], frames[1][1])
+def test_people_without_landmarks_and_short_streams_pass_unchanged():
+    smoother = LabelSmoother(MirrorConfig(), 1 / FPS)
+    lm = walk(1, 0.0)[0]
+    for i, people in enumerate([[None], [None, lm], []]):
+        assert smoother.push(i, people) == []  # fewer frames than the lag's 15
+    assert smoother.flush() == [(0, [False]), (1, [False, False]), (2, [])]
 
 
-def test_a_damaged_video_lets_the_buffered_frames_out_before_the_error():
-    truth = walk(10, 30.0)
-
-    def broken():
-        yield from stream([[lm] for lm in truth])
-        raise ValueError("decoding failed at frame 10")
-
-    seen = []
-    with pytest.raises(ValueError, match="frame 10"):
-        for frame, _ in unmirror_stream(broken(), MirrorConfig(), 1 / FPS):
-            seen.append(frame.index)
-    assert seen == list(range(10))
+def test_frames_wait_for_the_lag_and_flush_lets_them_all_out():
+    """At 30 fps a 0.5 s lag holds 15 frames: the first leaves with the 16th; `flush` (the
+    video's end, or a damaged video before its error is raised) decides the rest."""
+    truth = walk(20, 30.0)
+    smoother = LabelSmoother(MirrorConfig(), 1 / FPS)
+    released = [len(smoother.push(i, [lm])) for i, lm in enumerate(truth)]
+    assert released == [0] * 15 + [1] * 5
+    assert [i for i, _ in smoother.flush()] == list(range(5, 20))
+    with pytest.raises(ValueError, match="frame interval"):
+        LabelSmoother(MirrorConfig(), 0.0)
 
 
 def test_step_costs_are_symmetric_under_exchange_and_blind_to_translation():

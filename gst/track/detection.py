@@ -36,9 +36,6 @@ class Detection:
     # optional (33, 3) BlazePose landmarks: u, v in frame pixels (pixel centres at integers) and
     # confidence in [0, 1] (visibility x presence)
     landmarks: np.ndarray | None = None
-    # the landmarks' left and right labels were exchanged to keep them continuous over the
-    # person's frames (gst.track.mirror)
-    labels_exchanged: bool = False
 
     def __post_init__(self):
         box = np.asarray(self.box, dtype=np.float64).reshape(-1)

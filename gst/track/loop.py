@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 import torch
 
 from calibration import Camera
+from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.data.camera_view import TrackingView, focal_from_35mm
 from gst.device import module_on
 from gst.model.landmarks import camera_up
@@ -30,7 +31,7 @@ from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.detection import N_LANDMARKS, Detection, Detector
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
-from gst.track.mirror import MirrorConfig, unmirror_stream
+from gst.track.mirror import LabelSmoother, MirrorConfig
 from gst.track.pose_fit import PoseFitConfig, PoseFitter
 from gst.track.predictor import PoseBatch, Predictor, validate_prediction
 from gst.track.rows import RowSet, rows_table
@@ -431,7 +432,6 @@ def tracked_groups(
         return frame, [d for d in dets if d.score >= options.min_score]
 
     def prepare(frame: Frame, dets: list[Detection]) -> tuple[PendingFrame, list]:
-        session.stats["landmarks_exchanged"] += sum(d.labels_exchanged for d in dets)
         lms = np.full((len(dets), N_LANDMARKS, 3), np.nan, np.float32)
         for i, d in enumerate(dets):
             if d.landmarks is not None:
@@ -463,22 +463,54 @@ def tracked_groups(
         prefetch=options.prefetch,
     )
     detected = (detect(f) for f in frames)
-    if options.unmirror is not None:
-        detected = unmirror_stream(detected, options.unmirror, options.stride / run.info.fps)
     if options.prefetch > 0:
         detected = background(detected, options.prefetch)
+    # each person's left/right labels made continuous (gst.track.mirror): prepared frames wait
+    # `lag_s` for their decision; their images do not (the crops are cut first)
+    smoother = (
+        None
+        if options.unmirror is None
+        else LabelSmoother(options.unmirror, options.stride / run.info.fps)
+    )
+
+    def decided(released: list) -> list[tuple[PendingFrame, list]]:
+        out = []
+        for (pending, cut), flags in released:
+            for i in np.flatnonzero(flags):
+                pending.landmarks[i] = pending.landmarks[i][BLAZEPOSE_MIRROR]
+                cut[i].landmarks_crop = cut[i].landmarks_crop[BLAZEPOSE_MIRROR]
+            session.stats["landmarks_exchanged"] += int(np.count_nonzero(flags))
+            out.append((pending, cut))
+        return out
+
+    def release(pending: PendingFrame, cut: list) -> list[tuple[PendingFrame, list]]:
+        if smoother is None:
+            return [(pending, cut)]
+        people = [lm if np.isfinite(lm).any() else None for lm in pending.landmarks]
+        return decided(smoother.push((pending, cut), people))
+
+    def flush() -> list[tuple[PendingFrame, list]]:
+        return [] if smoother is None else decided(smoother.flush())
+
     last_index = None
+
+    def add(pending: PendingFrame, cut: list) -> Iterator[TrackedGroup]:
+        nonlocal last_index
+        group.add(pending, cut)
+        last_index = pending.index
+        if on_frame is not None:
+            on_frame(pending.index)
+        next_frame = pending.index + options.stride
+        if (next_frame - run.first) % group_span == 0:
+            yield close(next_frame)
+
     try:
         for frame, dets in detected:
-            pending, cut = prepare(frame, dets)
-            group.add(pending, cut)
-            last_index = pending.index
-            if on_frame is not None:
-                on_frame(pending.index)
-            next_frame = pending.index + options.stride
-            if (next_frame - run.first) % group_span == 0:
-                yield close(next_frame)
-    except VideoTruncatedError:
+            for pending, cut in release(*prepare(frame, dets)):
+                yield from add(pending, cut)
+    except VideoTruncatedError:  # the frames before the damage are decided and kept
+        for pending, cut in flush():
+            yield from add(pending, cut)
         if group.frames:
             yield close(last_index + options.stride)
         raise
@@ -486,6 +518,8 @@ def tracked_groups(
         close_prefetch = getattr(detected, "close", None)
         if close_prefetch is not None:
             close_prefetch()
+    for pending, cut in flush():
+        yield from add(pending, cut)
     if group.frames:
         yield close(last_index + options.stride)
 

@@ -15,7 +15,9 @@ labels as given, or exchanged. The chosen sequence minimises
   have them, after removing the body's own move, in torso lengths, divided by `sigma`.
 
 A fixed-lag smoother (Viterbi over the next `lag_s` seconds, the earlier frames' states fixed)
-decides each frame before it leaves, so tracking stays a stream with `lag_s` of look-ahead.
+decides each frame before it leaves, so tracking stays a stream with `lag_s` of look-ahead
+(`LabelSmoother`; the tracking loop holds back each frame's small per-person records for that
+long, after the crops are cut, never the frame itself).
 Measured in docs/track_evaluation.md, "Left and right".
 """
 
@@ -23,15 +25,10 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-
-from gst.body.markers import BLAZEPOSE_MIRROR
-from gst.track.detection import Detection
-from gst.video import Frame
 
 # (left, right) BlazePose landmarks compared between frames
 LIMB_PAIRS = ((11, 12), (13, 14), (15, 16), (23, 24), (25, 26), (27, 28))
@@ -139,64 +136,65 @@ def _link(chains: dict[int, _Chain], lms: list[np.ndarray | None], now: int, c: 
     return out
 
 
-def unmirror_stream(
-    detected: Iterator[tuple[Frame, list[Detection]]], config: MirrorConfig, frame_interval_s: float
-) -> Iterator[tuple[Frame, list[Detection]]]:
-    """The (frame, detections) stream with each person's landmark labels made continuous in
-    time (module docstring), delayed by `lag_s`. Detections without landmarks pass unchanged."""
-    c = config
-    lag = max(0, math.ceil(c.lag_s / frame_interval_s - 1e-9))
-    prior = c.prior_per_s * frame_interval_s
-    chains: dict[int, _Chain] = {}
-    new_key = 0
-    buffer: deque = deque()  # (frame, detections, chain key per detection)
+class LabelSmoother:
+    """The fixed-lag smoother over a stream of frames (module docstring).
 
-    def emit() -> tuple[Frame, list[Detection]]:
-        frame, dets, links = buffer.popleft()
+    `push(payload, landmarks)` takes one processed frame: anything the caller wants back
+    (`payload`) and each person's (33, 3) landmarks, u, v, confidence (None where a detection has
+    none). It returns the frames whose labels are now decided, oldest first, each as (payload,
+    flags): per person, True where their labels are to be exchanged. The caller exchanges them
+    (`BLAZEPOSE_MIRROR`). `flush()` decides and returns what is left (end of the video, or before
+    an error is raised). Only landmarks are held back, never images."""
+
+    def __init__(self, config: MirrorConfig, frame_interval_s: float):
+        if not frame_interval_s > 0:
+            raise ValueError(f"frame interval must be > 0 s, got {frame_interval_s}")
+        self.config = config
+        self.lag = max(0, math.ceil(config.lag_s / frame_interval_s - 1e-9))
+        self.prior = config.prior_per_s * frame_interval_s
+        self._chains: dict[int, _Chain] = {}
+        self._next_key = 0
+        self._count = -1
+        self._buffer: deque = deque()  # (payload, chain key per person)
+
+    def push(self, payload, landmarks) -> list[tuple[object, list[bool]]]:
+        c = self.config
+        self._count += 1
+        lms = [None if lm is None else np.asarray(lm, np.float64) for lm in landmarks]
+        links = _link(self._chains, lms, self._count, c)
+        for i, (lm, k) in enumerate(zip(lms, links, strict=True)):
+            if k is not None:
+                ch = self._chains[k]
+                ch.steps.append(step_costs(ch.last, lm, c))
+                ch.last, ch.last_frame = lm, self._count
+            elif lm is not None and np.isfinite(lm[_HIPS]).all():
+                self._chains[self._next_key] = _Chain(lm, self._count, deque([None]))
+                links[i], self._next_key = self._next_key, self._next_key + 1
+        # people gone for good whose frames have all been decided are forgotten
+        for k in [k for k, ch in self._chains.items() if not ch.steps]:
+            if self._count - self._chains[k].last_frame > c.max_gap + 1:
+                del self._chains[k]
+        self._buffer.append((payload, links))
         out = []
-        for d, k in zip(dets, links, strict=True):
+        while len(self._buffer) > self.lag:
+            out.append(self._decide())
+        return out
+
+    def flush(self) -> list[tuple[object, list[bool]]]:
+        return [self._decide() for _ in range(len(self._buffer))]
+
+    def _decide(self) -> tuple[object, list[bool]]:
+        payload, links = self._buffer.popleft()
+        flags = []
+        for k in links:
             if k is None:
-                out.append(d)
+                flags.append(False)
                 continue
-            ch = chains[k]
+            ch = self._chains[k]
             step = ch.steps.popleft()
             # this frame's state given the decided one before it (none at a chain's start)
             start = None if step is None else ch.decided
             steps = [step or (0.0, 0.0), *(s or (0.0, 0.0) for s in ch.steps)]
-            state = node_state(start, steps, prior, c.sigma)
-            ch.decided = state
-            if state:
-                d = replace(d, landmarks=d.landmarks[BLAZEPOSE_MIRROR], labels_exchanged=True)
-            out.append(d)
-        return frame, out
-
-    source, count = iter(detected), -1
-    while True:
-        try:
-            frame, dets = next(source)
-        except StopIteration:
-            break
-        except Exception:  # a damaged video: the frames before the damage still leave, decided
-            while buffer:
-                yield emit()
-            raise
-        count += 1
-        lms = [None if d.landmarks is None else np.asarray(d.landmarks, np.float64) for d in dets]
-        links = _link(chains, lms, count, c)
-        for i, (lm, k) in enumerate(zip(lms, links, strict=True)):
-            if k is not None:
-                ch = chains[k]
-                ch.steps.append(step_costs(ch.last, lm, c))
-                ch.last, ch.last_frame = lm, count
-            elif lm is not None and np.isfinite(lm[_HIPS]).all():
-                chains[new_key] = _Chain(lm, count, deque([None]))
-                links[i], new_key = new_key, new_key + 1
-        # people gone for good whose frames have all left are forgotten
-        for k in [k for k, ch in chains.items() if not ch.steps]:
-            if count - chains[k].last_frame > c.max_gap + 1:
-                del chains[k]
-        buffer.append((frame, dets, links))
-        if len(buffer) > lag:
-            yield emit()
-    while buffer:
-        yield emit()
+            ch.decided = node_state(start, steps, self.prior, self.config.sigma)
+            flags.append(bool(ch.decided))
+        return payload, flags
