@@ -29,7 +29,8 @@ per 3 and per 2 people. "still people computed" runs the landmark model for ever
 in every frame (`still_change: 0`; the default keeps the landmarks of a person whose region has
 not changed, docs/track_evaluation.md "People who stand still"). "without zoom" / "no zoom" looks
 again in the usual detector windows only (`look_again_zoom: 0`; docs/track_evaluation.md "Small
-people at the back").
+people at the back"). "left/right labels as detected" leaves out the smoother that keeps each
+person's left and right continuous (`unmirror`; docs/track_evaluation.md "Left and right").
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
