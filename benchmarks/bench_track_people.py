@@ -43,17 +43,17 @@ from gst.track.tracker import TrackerConfig
 
 @dataclass
 class Score:
-    frames: int
-    truth: int
-    matches: int
-    rows: int
-    switches: int
-    cpu_s: float
-    detector_runs: int
-    id_tp: int  # identity true positives (gst.track.evaluate IDF1)
-    half_visible: int  # truth views with at least half their joints visible ...
-    half_matched: int  # ... and how many of them a tracked box matches
-    mirrored: int  # matched rows whose landmarks are left/right mirrored against the truth
+    frames: int = 0
+    truth: int = 0
+    matches: int = 0
+    rows: int = 0
+    switches: int = 0
+    cpu_s: float = 0.0
+    detector_runs: int = 0
+    id_tp: int = 0  # identity true positives (gst.track.evaluate IDF1)
+    half_visible: int = 0  # truth views with at least half their joints visible ...
+    half_matched: int = 0  # ... and how many of them a tracked box matches
+    mirrored: int = 0  # matched rows whose landmarks are left/right mirrored against the truth
 
     def __add__(self, o: Score) -> Score:
         return Score(*(a + b for a, b in zip(vars(self).values(), vars(o).values(), strict=True)))
@@ -78,7 +78,7 @@ class Score:
 def track_scene(
     scene_dir: Path, config: PersonModelConfig, options: TrackOptions, tmp: Path
 ) -> Score:
-    total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0, 0, 0)
+    total = Score()
     videos = sorted((scene_dir / "videos").glob("*.mp4"))
     if not videos:
         raise SystemExit(f"{scene_dir}/videos: no videos (run the scene's synth stage first)")
@@ -156,7 +156,7 @@ def main() -> None:
             for group, scenes in groups.items():
                 if not scenes:
                     continue
-                total = Score(0, 0, 0, 0, 0, 0.0, 0, 0, 0, 0, 0)
+                total = Score()
                 for scene in scenes:
                     score = track_scene(args.workspace / scene / "synth", config, options, tmp)
                     total = total + score

@@ -99,10 +99,25 @@ class TrackingView:
         camera, _ = fit_to_frames(camera, width, height, tolerance, video)
         return cls(camera, calibrated=True)
 
+    def to_json(self) -> dict:
+        """The `gst.calibration` record of a tracks file (`from_json` reads it back)."""
+        cam = self.camera
+        return {
+            "calibrated": self.calibrated,
+            "name": cam.name,
+            "width": cam.width,
+            "height": cam.height,
+            "K": cam.K.tolist(),
+            "dist": cam.dist.tolist(),
+            "R": cam.R.tolist(),
+            "t": cam.t.tolist(),
+            "meta": {k: str(v) for k, v in cam.meta.items()},
+        }
+
     @classmethod
     def from_json(cls, record: dict) -> TrackingView:
         """The view a tracks file was made with, from its `gst.calibration` record (K, dist, R,
-        t, width, height, calibrated; gst.track.loop writes it)."""
+        t, width, height, calibrated; `to_json` writes it)."""
         camera = Camera.create(
             record.get("name", "default"),
             record["K"],

@@ -25,7 +25,7 @@ import torch
 
 from gst.body.markers import BLAZEPOSE_NAMES, MarkerModel
 from gst.body.model import BodyModel
-from gst.track.read import column_array
+from gst.track.read import column_array, landmark_array
 from gst.track.schema import SMPL_JOINT_NAMES
 
 # body-model joint -> the landmarks averaged for it (same names on both sides otherwise)
@@ -70,19 +70,10 @@ def landmark_targets(landmarks: np.ndarray, min_confidence: float) -> tuple:
     return np.where(ok[..., None], uv, 0.0), np.where(ok, conf, 0.0)
 
 
-def _landmarks(table: pa.Table) -> np.ndarray | None:
-    """(N, 33, 3) landmarks of a tracks table, or None when it has no rows or no landmarks."""
-    if "landmarks2d" not in table.column_names or table.num_rows == 0:
-        return None
-    return np.concatenate(
-        [column_array(table, "landmarks2d"), column_array(table, "landmarks_conf")[..., None]], -1
-    )
-
-
 def joints_vs_landmarks(table: pa.Table, min_confidence: float = 0.5) -> LandmarkAgreement:
     """Distances (px) between `joints2d` and the landmarks of the same joints, over the rows
     that have landmarks, counting landmarks at least `min_confidence` sure."""
-    lm = _landmarks(table)
+    lm = landmark_array(table)
     if lm is None:
         return LandmarkAgreement(None, None, 0, {})
     return _agreement(column_array(table, "joints2d")[:, COMPARED_INDEX], lm, min_confidence)
@@ -122,7 +113,7 @@ def markers_vs_landmarks(
     """Like `joints_vs_landmarks`, with the body's own BlazePose points (`markers_2d`, (N, 33, 2)
     from `body_markers_2d`) in place of its joints: no offset between two definitions of a
     joint."""
-    lm = _landmarks(table)
+    lm = landmark_array(table)
     if lm is None:
         return LandmarkAgreement(None, None, 0, {})
     points = np.stack([markers_2d[:, idx].mean(axis=1) for idx in _LANDMARKS], axis=1)

@@ -22,7 +22,7 @@ from gst.data.camera_view import TrackingView
 from gst.detect.boxes import box_iou
 from gst.metrics.flips import mirrored_landmarks
 from gst.metrics.pose import mpjpe, pa_mpjpe
-from gst.track.read import column_array, read_metadata
+from gst.track.read import column_array, landmark_array, read_metadata
 from synth.truth import TruthViews, read_scene_truth, read_truth_views
 
 __all__ = [
@@ -334,16 +334,10 @@ def _mirrored_rows(
     cal = meta.get("calibration") or {}
     if camera is None and cal.get("calibrated") and "K" in cal:
         camera = TrackingView.from_json(cal).camera
-    if not pairs or camera is None or "landmarks2d" not in table.column_names:
+    landmarks = landmark_array(table)
+    if not pairs or camera is None or landmarks is None:
         return np.zeros(len(pairs), bool)
-    rows = [r for r, _ in pairs]
-    landmarks = np.concatenate(
-        [
-            column_array(table, "landmarks2d")[rows],
-            column_array(table, "landmarks_conf")[rows][..., None],
-        ],
-        -1,
-    )
+    landmarks = landmarks[[r for r, _ in pairs]]
     world = joints_world[[g for _, g in pairs]].astype(np.float64)
     reference = camera.project(world.reshape(-1, 3)).reshape(len(pairs), -1, 2)
     return mirrored_landmarks(landmarks, reference)

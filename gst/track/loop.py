@@ -105,20 +105,6 @@ class TrackResult:
     seconds: float
 
 
-def _camera_json(cam: Camera, calibrated: bool) -> dict:
-    return {
-        "calibrated": calibrated,
-        "name": cam.name,
-        "width": cam.width,
-        "height": cam.height,
-        "K": cam.K.tolist(),
-        "dist": cam.dist.tolist(),
-        "R": cam.R.tolist(),
-        "t": cam.t.tolist(),
-        "meta": {k: str(v) for k, v in cam.meta.items()},
-    }
-
-
 def _axes_json(calibrated: bool, world_up) -> dict:
     axes = {
         "camera": "OpenCV: x right, y down, z forward (metres)",
@@ -334,7 +320,7 @@ def plan_run(
         "end_frame": end,
         "stride": options.stride,
     }
-    calibration = _camera_json(view.camera, view.calibrated)
+    calibration = view.to_json()
     settings = {
         "format_version": FORMAT_VERSION,
         "options": options.settings(),
@@ -504,24 +490,25 @@ def tracked_groups(
         if (next_frame - run.first) % group_span == 0:
             yield close(next_frame)
 
+    def finish() -> Iterator[TrackedGroup]:
+        """The frames still waiting for the smoother, then the last, partial group."""
+        for pending, cut in flush():
+            yield from add(pending, cut)
+        if group.frames:
+            yield close(last_index + options.stride)
+
     try:
         for frame, dets in detected:
             for pending, cut in release(*prepare(frame, dets)):
                 yield from add(pending, cut)
     except VideoTruncatedError:  # the frames before the damage are decided and kept
-        for pending, cut in flush():
-            yield from add(pending, cut)
-        if group.frames:
-            yield close(last_index + options.stride)
+        yield from finish()
         raise
     finally:
         close_prefetch = getattr(detected, "close", None)
         if close_prefetch is not None:
             close_prefetch()
-    for pending, cut in flush():
-        yield from add(pending, cut)
-    if group.frames:
-        yield close(last_index + options.stride)
+    yield from finish()
 
 
 def track_video(

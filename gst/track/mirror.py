@@ -128,10 +128,10 @@ def _link(chains: dict[int, _Chain], lms: list[np.ndarray | None], now: int, c: 
                 d = np.linalg.norm(lms[i][_HIPS, :2].mean(0) - prev[_HIPS, :2].mean(0)) / size
                 if d <= c.link_torso:
                     cost[r, col] = d
-        big = 1e9
-        rows, cols = linear_sum_assignment(np.where(np.isfinite(cost), cost, big))
+        # pairs beyond the gate cost more than any allowed one and are dropped after
+        rows, cols = linear_sum_assignment(np.where(np.isfinite(cost), cost, c.link_torso + 1))
         for r, col in zip(rows, cols, strict=True):
-            if cost[r, col] < big:
+            if np.isfinite(cost[r, col]):
                 out[cand[col]] = live[r]
     return out
 

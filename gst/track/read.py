@@ -46,6 +46,16 @@ def read_metadata(path: str | Path) -> dict:
     return parse_metadata(pq.read_schema(path))
 
 
+def landmark_array(table: pa.Table) -> np.ndarray | None:
+    """(N, 33, 3) landmarks (u, v, confidence) of a tracks table, or None when it has no rows
+    or no landmark columns."""
+    if "landmarks2d" not in table.column_names or table.num_rows == 0:
+        return None
+    return np.concatenate(
+        [column_array(table, "landmarks2d"), column_array(table, "landmarks_conf")[..., None]], -1
+    )
+
+
 def column_array(table: pa.Table, name: str) -> np.ndarray:
     """A fixed-size-list column as float32 numpy in its logical shape, e.g. joints3d -> (N, 24, 3).
     Null entries (transl_world when uncalibrated) become NaN."""

@@ -47,7 +47,7 @@ from gst.track.loop import TrackOptions
 from gst.track.mirror import MirrorConfig
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
 from gst.track.pose_fit import PoseFitConfig
-from gst.track.read import read_metadata, read_tracks
+from gst.track.read import read_tracks
 from gst.track.report import contact_sheet, plot_joint_angles, write_overlay
 from gst.track.schema import parse_metadata
 from gst.track.smoothing import OneEuroConfig
@@ -499,11 +499,11 @@ def write_video_report(
         "fps": round(fps, 2),
         "calibrated": outcome.job.camera is not None,
         "chunks": outcome.chunks,
-        # detections whose left/right labels were exchanged (track.unmirror, gst.track.mirror)
-        "landmarks_exchanged": int(
-            (read_metadata(result.path).get("stats") or {}).get("landmarks_exchanged", 0)
-        ),
     }
+    table = read_tracks(result.path)
+    # detections whose left/right labels were exchanged (track.unmirror, gst.track.mirror)
+    stats = parse_metadata(table.schema).get("stats") or {}
+    summary["landmarks_exchanged"] = int(stats.get("landmarks_exchanged", 0))
     log.info(
         "%s: %d frames, %d people, %.1f frames/s; left/right labels exchanged in %d detection(s)",
         name,
@@ -512,7 +512,7 @@ def write_video_report(
         fps,
         summary["landmarks_exchanged"],
     )
-    summary.update(_landmark_agreement(read_tracks(result.path), outcome.job.camera, name))
+    summary.update(_landmark_agreement(table, outcome.job.camera, name))
     report = request.reports_dir / name
     report.mkdir(parents=True, exist_ok=True)
     (report / "summary.json").write_text(json.dumps(summary, indent=2))
