@@ -10,6 +10,7 @@ import numpy as np
 import pyarrow as pa
 
 from gst.atomic import atomic_path, atomic_write
+from gst.body.markers import BLAZEPOSE_NAMES
 from gst.detect.persons import BONES, TORSO
 from gst.track.read import column_array, read_metadata, read_tracks
 from gst.track.schema import SMPL_JOINT_NAMES
@@ -21,9 +22,9 @@ SMPL_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17
 # BlazePose bones drawn for the landmark model's skeleton: limbs, torso outline, shoulders-nose.
 LANDMARK_BONES = BONES + tuple(zip(TORSO, TORSO[1:] + TORSO[:1], strict=True)) + ((0, 11), (0, 12))
 # Left and right drawn apart, so that a person read the wrong way round shows: the landmark
-# model's right-side bones (even BlazePose indices from 12) light blue, the others white; the
-# network's right joints dark, the others white.
-_RIGHT_LANDMARKS = frozenset(range(12, 33, 2))
+# model's right-side bones light blue, the others white; the network's right joints dark, the
+# others white.
+_RIGHT_LANDMARKS = frozenset(i for i, n in enumerate(BLAZEPOSE_NAMES) if n.startswith("right_"))
 _RIGHT_JOINTS = frozenset(i for i, n in enumerate(SMPL_JOINT_NAMES) if n.startswith("right_"))
 _LANDMARK_RIGHT_COLOUR = (255, 200, 120)  # BGR light blue
 
