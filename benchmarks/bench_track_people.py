@@ -131,6 +131,9 @@ def main() -> None:
         ("detector every 5 frames", replace(default, detect_every=5), stage),
         ("detector every frame", replace(default, detect_every=1), stage),
         ("look-again overlap 1.0", replace(default, look_again_overlap=1.0), stage),
+        ("lost people not looked for again (before)", replace(default, lost_retry=0), stage),
+        ("lost people looked for 5 frames", replace(default, lost_retry=5), stage),
+        ("lost people looked for 30 frames", replace(default, lost_retry=30), stage),
         ("left/right labels as detected (before)", default, replace(stage, unmirror=None)),
         (
             "left/right: prior 7.5/s (half)",

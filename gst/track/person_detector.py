@@ -32,7 +32,7 @@ index that goes back, or jumps forward by more than `max_gap`, restarts from the
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -49,7 +49,7 @@ from gst.detect.blazepose import (
     same_region,
 )
 from gst.detect.boxes import paint_out, shared
-from gst.detect.persons import same_person, skeleton_support, whole_and_sure
+from gst.detect.persons import LIMB_JOINTS, same_person, skeleton_support, whole_and_sure
 from gst.track.detection import Detection
 
 
@@ -86,6 +86,17 @@ class PersonModelConfig:
     # who move by 5-60 in one frame
     still_change: float = 4.0
     still_refresh: int = 30  # ... but at most this many frames in a row
+    # A tracked person the landmark model loses (presence below `min_presence`), or whose region
+    # slid onto someone else's skeleton, has their last region looked at again for this many
+    # processed frames (0: never): the detector finds people by the face, and one who walks
+    # behind another with their head hidden is found only where they were (docs/
+    # track_evaluation.md, "Lost behind someone")
+    lost_retry: int = 10
+    lost_grow: int = 9  # ... with everyone kept painted out, their masks grown by these pixels
+    # ... and kept where at most this share of their limb landmarks lies on the painted people:
+    # one who stands behind another is seen beside them (a grey silhouette is person-shaped;
+    # the lab's people found beside another: 8-33 %, silhouettes read as a person: 42-100 %)
+    lost_max_covered: float = 0.34
     batch: bool = True  # all regions of a frame in one landmark-model call
     threads: int = 1  # LiteRT threads per interpreter
 
@@ -96,11 +107,13 @@ class PersonModelConfig:
             or self.threads < 1
             or self.still_change < 0
             or self.still_refresh < 1
+            or self.lost_retry < 0
         ):
             raise ValueError(
-                f"person model: detect_every >= 1, max_side >= 64, threads >= 1, still_change >= 0"
-                f" and still_refresh >= 1 expected, got {self.detect_every}, {self.max_side}, "
-                f"{self.threads}, {self.still_change}, {self.still_refresh}"
+                f"person model: detect_every >= 1, max_side >= 64, threads >= 1, still_change >= "
+                f"0, still_refresh >= 1 and lost_retry >= 0 expected, got {self.detect_every}, "
+                f"{self.max_side}, {self.threads}, {self.still_change}, {self.still_refresh}, "
+                f"{self.lost_retry}"
             )
         if not 0 <= self.look_again_overlap <= 1:
             raise ValueError(
@@ -116,6 +129,11 @@ class PersonModelConfig:
                 f"zoom_min_confidence in [0, 1] expected, got {self.look_again_zoom}, "
                 f"{self.zoom_per_run}, {self.zoom_min_confidence}"
             )
+        if self.lost_grow < 0 or not 0 <= self.lost_max_covered <= 1:
+            raise ValueError(
+                f"person model: lost_grow >= 0 and lost_max_covered in [0, 1] expected, got "
+                f"{self.lost_grow}, {self.lost_max_covered}"
+            )
         if not 0 < self.min_presence < 1:
             raise ValueError(
                 f"person model: min_presence must be in (0, 1), got {self.min_presence}"
@@ -129,12 +147,18 @@ class PersonModelConfig:
         return d
 
 
+def _crop_mask(r: RegionLandmarks, skeleton_width: float) -> np.ndarray:
+    """(S, S) bool: the person's mask in the region's crop, within `skeleton_width` x crop side
+    of their skeleton (the model segments everyone in its region)."""
+    lm_crop = r.crop_points(r.landmarks[:, :2])
+    near = skeleton_support(lm_crop, r.mask_logits.shape, skeleton_width * LANDMARK_SIZE)
+    return (r.mask_logits > 0) & near
+
+
 def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
     """Corner-convention box (x0, y0, x1, y1) in the region's image of the person's mask (the
     crop's segmentation within `skeleton_width` x crop side of their skeleton), or None."""
-    lm_crop = r.crop_points(r.landmarks[:, :2])
-    near = skeleton_support(lm_crop, r.mask_logits.shape, skeleton_width * LANDMARK_SIZE)
-    ys, xs = np.nonzero((r.mask_logits > 0) & near)
+    ys, xs = np.nonzero(_crop_mask(r, skeleton_width))
     if len(xs) == 0:
         return None
     to_image = cv2.invertAffineTransform(r.to_crop)
@@ -143,6 +167,33 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
     half = 0.5 * r.roi.side / LANDMARK_SIZE  # half a crop pixel, in image pixels
     # pixel centres at integers -> pixel-corner convention: + 0.5
     return np.array([u.min() - half, v.min() - half, u.max() + half, v.max() + half]) + 0.5
+
+
+def paint_out_people(
+    image: np.ndarray, people: list[RegionLandmarks], skeleton_width: float, grow: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A copy of `image` with the people's masks (grown by `grow` pixels) filled with the
+    image's mean colour, and that (H, W) bool cover: what stands behind them is left for the
+    landmark model to see."""
+    h, w = image.shape[:2]
+    covered = np.zeros((h, w), np.uint8)
+    for r in people:
+        crop = _crop_mask(r, skeleton_width).astype(np.uint8)
+        to_image = cv2.invertAffineTransform(r.to_crop)
+        covered |= cv2.warpAffine(crop, to_image, (w, h), flags=cv2.INTER_NEAREST)
+    if grow > 0:
+        covered = cv2.dilate(covered, np.ones((grow, grow), np.uint8))
+    out = image.copy()
+    out[covered > 0] = image.reshape(-1, image.shape[-1]).mean(axis=0)
+    return out, covered > 0
+
+
+def share_covered(landmarks: np.ndarray, covered: np.ndarray) -> float:
+    """The share of a person's limb landmarks (LIMB_JOINTS) that lie on `covered` pixels."""
+    h, w = covered.shape
+    uv = np.round(landmarks[LIMB_JOINTS, :2]).astype(int)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    return float(covered[uv[inside, 1], uv[inside, 0]].sum() / len(uv))
 
 
 THUMB = 32  # side of the thumbnails that tell a still person from one who moved
@@ -160,6 +211,17 @@ def box_thumbnail(image: np.ndarray, box: np.ndarray, grow: float = 0.1) -> np.n
         return np.zeros((THUMB, THUMB), np.float32)
     patch = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY)
     return cv2.resize(patch, (THUMB, THUMB), interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class _Lost:
+    """A lost person's last region (work pixels), the processed frames it is still looked at,
+    and how many people were tracked before the loss: once as many are tracked again, the lost
+    one has been found (by the detector, or in another region) and is no longer looked for."""
+
+    roi: BodyRoi
+    frames_left: int
+    people: int
 
 
 @dataclass
@@ -191,9 +253,13 @@ class PersonModelDetector:
         self.still_kept = 0  # regions whose landmarks were kept from an earlier frame
         self._zoom = ZoomedScan(c.look_again_zoom, c.zoom_per_run)
         self._probation: set[BodyRoi] = set()  # next regions of the second look's new finds
+        self._lost: list[_Lost] = []  # lost people's last regions, looked at again
+        self._behind: set[BodyRoi] = set()  # next regions of people found behind others
+        self.found_again = 0  # people found again in their last region (for benchmarks)
 
     def reset(self) -> None:
         self._people, self._seen, self._last, self._since_detect = [], [], None, 0
+        self._lost, self._behind = [], set()
         self._zoom.reset()
         self._probation = set()
 
@@ -209,10 +275,10 @@ class PersonModelDetector:
         return seen.found
 
     def _follow(self, image: np.ndarray) -> list[tuple | None]:
-        """Per tracked person: (result, box), or None where they are lost; the landmark model
-        runs in one call for those who moved."""
+        """Per tracked person: (result, box), or None where they are lost or followed behind
+        others (`_behind`); the landmark model runs in one call for those who moved."""
         out = [self._still(image, i) for i in range(len(self._people))]
-        todo = [i for i, o in enumerate(out) if o is None]
+        todo = [i for i, o in enumerate(out) if o is None and self._people[i] not in self._behind]
         self.still_kept += len(out) - len(todo)
         results = self._landmarks(image, [self._people[i] for i in todo])
         for i, r in zip(todo, results, strict=True):
@@ -224,6 +290,22 @@ class PersonModelDetector:
                 accepted = accepted if ok else []
             out[i] = accepted[0] if accepted else None
         return out
+
+    def _look_behind(self, image: np.ndarray, kept: list[tuple], rois: list[BodyRoi]) -> list:
+        """The landmark model's accepted (result, box) or None in each of `rois`, with everyone
+        `kept` painted out by their masks: where one person walked behind another, their region
+        otherwise shows the one in front."""
+        c = self.config
+        painted, covered = paint_out_people(
+            image, [r for r, _ in kept], c.skeleton_width, c.lost_grow
+        )
+        return [
+            accepted[0]
+            if (accepted := self._accept([r], image.shape[0]))
+            and share_covered(r.landmarks, covered) <= c.lost_max_covered
+            else None
+            for r in self._landmarks(painted, rois)
+        ]
 
     def _landmarks(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
         self.regions += len(rois)
@@ -300,8 +382,9 @@ class PersonModelDetector:
         )
         sh = small.shape[0]
         followed = self._follow(small)
+        behind = [i for i, roi in enumerate(self._people) if roi in self._behind]
         tracked = [f for f in followed if f is not None]
-        lost = len(tracked) < len(self._people)
+        lost = len(tracked) + len(behind) < len(self._people)
         if not self._people or lost or self._since_detect + 1 >= c.detect_every:
             self.detector_runs += 1
             self._since_detect = 0
@@ -311,15 +394,49 @@ class PersonModelDetector:
         else:
             self._since_detect += 1
             found = []
-        # Tracked people first (they keep their place), then new ones; a skeleton repeating a
-        # kept one's is the same person seen from a second region.
+        # Tracked people first (they keep their place), then new ones, then those behind others
+        # and the lost ones found again where they were; a skeleton repeating a kept one's is
+        # the same person seen from a second region.
         kept: list[tuple] = []
-        for r, box in tracked + found:
-            if not any(
-                same_person(r.landmarks, k.landmarks, c.duplicate_distance) for k, _ in kept
-            ):
-                kept.append((r, box))
+        repeats: list[int] = []  # ids of the results dropped as a repeat
+
+        def keep(candidates) -> None:
+            for r, box in candidates:
+                if any(
+                    same_person(r.landmarks, k.landmarks, c.duplicate_distance) for k, _ in kept
+                ):
+                    repeats.append(id(r))
+                else:
+                    kept.append((r, box))
+
+        keep(tracked + found)
+        # a lost person is looked for while fewer people are kept than before the loss
+        self._lost = [m for m in self._lost if len(kept) + len(behind) < m.people]
+        second = [self._people[i] for i in behind] + [m.roi for m in self._lost]
+        looked = self._look_behind(small, kept, second) if second else []
+        for i, f in zip(behind, looked, strict=False):
+            followed[i] = f
+        again = [(k, f) for k, f in enumerate(looked[len(behind) :]) if f is not None]
+        before = len(kept)
+        keep([f for f in looked if f is not None])
+        kept_ids = {id(r) for r, _ in kept[before:]}
+        hits = {k for k, f in again if id(f[0]) in kept_ids}
+        self.found_again += len(hits)
+        # who is looked for again: the tracked people lost in this frame (not those the second
+        # look found and their own region did not confirm), and those whose region slid onto
+        # someone else's skeleton (dropped as a repeat)
+        gone = [
+            roi
+            for f, roi in zip(followed, self._people, strict=True)
+            if (f is None and roi not in self._probation) or (f and id(f[0]) in repeats)
+        ]
+        self._lost = [
+            replace(m, frames_left=m.frames_left - 1)
+            for k, m in enumerate(self._lost)
+            if k not in hits and m.frames_left > 1
+        ] + [_Lost(roi, c.lost_retry, len(self._people)) for roi in gone if c.lost_retry > 0]
         self._people = [r.next_roi for r, _ in kept]
+        self._behind = {r.next_roi for r, _ in kept[before:]}
         self._probation &= set(self._people)  # confirmed or dropped: off probation
         # The still-person state: kept from the earlier frame, or fresh where the landmarks were
         # just computed in the region their own landmarks gave. A detector's find is not kept
