@@ -89,6 +89,9 @@ class TrackSettings(BaseModel):
     # levels since their landmarks were computed keeps them (0: compute every frame; docs/
     # track_evaluation.md "People who stand still")
     still_change: float = Field(default=4.0, ge=0)
+    # blazepose: processed frames a lost person's last region is looked at again, with everyone
+    # tracked painted out (0: not; docs/track_evaluation.md "Lost behind someone")
+    lost_retry: int = Field(default=10, ge=0)
     # blazepose: LiteRT threads per interpreter (results are identical for any number). None:
     # the cores each video tracked at once gets, at most 4 (one lab camera on 2 quiet cores:
     # 26.3 frames/s with 2 threads, 21.8 with 1; benchmarks/bench_track.py --real)
@@ -178,6 +181,7 @@ def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonMod
         look_again=s.look_again,
         look_again_zoom=s.look_again_zoom,
         still_change=s.still_change,
+        lost_retry=s.lost_retry,
         threads=threads,
     )
 
