@@ -473,6 +473,13 @@ def real_footage(args) -> None:
                 "auto",
             ),
             (
+                "new, lost people not looked for again (before)",
+                new(lost_retry=0),
+                opts(),
+                stage_torch,
+                "auto",
+            ),
+            (
                 "new, still people computed too (before)",
                 new(still_change=0),
                 opts(),

@@ -464,3 +464,13 @@ def test_person_detector_boxes_on_lab_video():
             )
             assert d.box[3] - d.box[1] > 0.3 * frame.shape[0]
     assert counts == [2] * 6
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-500, 1500), st.floats(-500, 1500), st.floats(10, 900), st.floats(-3.2, 3.2))
+def test_roi_corners_map_to_the_crops_corners(cx, cy, side, angle):
+    roi = BodyRoi((cx, cy), side, angle)
+    corners = roi.corners()
+    crop = np.c_[corners, np.ones(4)] @ roi.to_crop(256).T
+    np.testing.assert_allclose(crop, [[0, 0], [256, 0], [0, 256], [256, 256]], atol=1e-2)
+    np.testing.assert_allclose(corners.mean(axis=0), (cx, cy), atol=1e-6 * (1 + abs(cx) + abs(cy)))

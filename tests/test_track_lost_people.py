@@ -6,8 +6,11 @@ woman is found again at once instead of at the detector's next run."""
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gst.detect.blazepose import LANDMARK_SIZE, BodyRoi, RegionLandmarks
+from gst.detect.boxes import fill_where, mean_colour
 from gst.detect.persons import LIMB_JOINTS
 from gst.track.person_detector import (
     PersonModelConfig,
@@ -93,3 +96,34 @@ def test_the_man_who_walks_behind_the_woman_is_found_again_at_once(lost_retry):
         if len(d) == 2:
             a, b = sorted(d, key=lambda p: p.landmarks[LIMB_JOINTS, 0].mean())
             assert b.landmarks[LIMB_JOINTS, 0].mean() > a.landmarks[LIMB_JOINTS, 0].mean() + 50
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(1, 40), st.integers(1, 40), st.integers(0, 2**32 - 1))
+def test_mean_colour_and_fill_match_numpy(h, w, seed):
+    rng = np.random.default_rng(seed)
+    image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    mask = rng.random((h, w)) < 0.4
+    colour = mean_colour(image)
+    np.testing.assert_allclose(colour, image.reshape(-1, 3).mean(axis=0), rtol=1e-12)
+    expected = image.copy()
+    expected[mask] = colour
+    np.testing.assert_array_equal(fill_where(image, mask, colour), expected)
+    np.testing.assert_array_equal(image, image.copy())  # the input is left as it was
+
+
+def test_painting_around_regions_paints_what_they_see_as_the_whole_frame_would():
+    image = np.random.default_rng(0).integers(0, 256, (400, 600, 3), dtype=np.uint8)
+    lm = _stick(cx=100.0, top=20.0, height=200.0)
+    logits = np.full((LANDMARK_SIZE, LANDMARK_SIZE), -5.0, np.float32)
+    logits[10:230, 60:140] = 5.0
+    person = _region(lm, logits)
+    whole, covered = paint_out_people(image, [person], 0.08, 9)
+    near = BodyRoi((150.0, 130.0), 120.0, 0.3)  # overlaps the person's mask
+    part, part_covered = paint_out_people(image, [person], 0.08, 9, around=[near])
+    corners = np.round(near.corners()).astype(int)
+    x0, y0 = corners.min(axis=0)
+    x1, y1 = corners.max(axis=0)
+    np.testing.assert_array_equal(part[y0:y1, x0:x1], whole[y0:y1, x0:x1])
+    np.testing.assert_array_equal(part_covered[y0:y1, x0:x1], covered[y0:y1, x0:x1])
+    assert not part_covered[:, 400:].any() and covered.sum() > part_covered.sum() > 0

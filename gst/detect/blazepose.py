@@ -181,16 +181,16 @@ class BodyRoi:
     side: float
     angle: float  # radians; the region's "up" is the image's up rotated by this angle
 
+    def corners(self) -> np.ndarray:
+        """(4, 2) image points of the crop's top-left, top-right, bottom-left and bottom-right
+        corners."""
+        c, s = math.cos(self.angle), math.sin(self.angle)
+        uv = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]]) * self.side
+        return np.c_[uv[:, 0] * c - uv[:, 1] * s, uv[:, 0] * s + uv[:, 1] * c] + self.centre
+
     def to_crop(self, size: int) -> np.ndarray:
         """2x3 affine matrix from image pixels to the size x size crop."""
-        c, s = math.cos(self.angle), math.sin(self.angle)
-        cx, cy = self.centre
-
-        def corner(u: float, v: float) -> list[float]:
-            x, y = u * self.side, v * self.side
-            return [cx + x * c - y * s, cy + x * s + y * c]
-
-        src = np.float32([corner(-0.5, -0.5), corner(0.5, -0.5), corner(-0.5, 0.5)])
+        src = self.corners()[:3].astype(np.float32)
         dst = np.float32([[0, 0], [size, 0], [0, size]])
         return cv2.getAffineTransform(src, dst)
 

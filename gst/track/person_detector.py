@@ -48,7 +48,7 @@ from gst.detect.blazepose import (
     roi_from_alignment,
     same_region,
 )
-from gst.detect.boxes import paint_out, shared
+from gst.detect.boxes import fill_where, mean_colour, paint_out, shared
 from gst.detect.persons import LIMB_JOINTS, same_person, skeleton_support, whole_and_sure
 from gst.track.detection import Detection
 
@@ -170,22 +170,34 @@ def mask_box(r: RegionLandmarks, skeleton_width: float) -> np.ndarray | None:
 
 
 def paint_out_people(
-    image: np.ndarray, people: list[RegionLandmarks], skeleton_width: float, grow: int
+    image: np.ndarray,
+    people: list[RegionLandmarks],
+    skeleton_width: float,
+    grow: int,
+    around: list[BodyRoi] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A copy of `image` with the people's masks (grown by `grow` pixels) filled with the
     image's mean colour, and that (H, W) bool cover: what stands behind them is left for the
-    landmark model to see."""
+    landmark model to see. With `around`, only the box that holds those regions is painted
+    (all a landmark model looking there sees; far cheaper than the whole frame)."""
     h, w = image.shape[:2]
-    covered = np.zeros((h, w), np.uint8)
+    x0, y0, x1, y1 = 0, 0, w, h
+    if around:
+        corners = np.concatenate([r.corners() for r in around])
+        x0, y0 = np.clip(np.floor(corners.min(axis=0)).astype(int) - grow, 0, [w, h])
+        x1, y1 = np.clip(np.ceil(corners.max(axis=0)).astype(int) + grow + 1, 0, [w, h])
+    covered = np.zeros((h, w), bool)
+    if x1 <= x0 or y1 <= y0:
+        return image.copy(), covered
+    window = np.zeros((y1 - y0, x1 - x0), np.uint8)
     for r in people:
         crop = _crop_mask(r, skeleton_width).astype(np.uint8)
-        to_image = cv2.invertAffineTransform(r.to_crop)
-        covered |= cv2.warpAffine(crop, to_image, (w, h), flags=cv2.INTER_NEAREST)
+        to_window = cv2.invertAffineTransform(r.to_crop) - [[0, 0, x0], [0, 0, y0]]
+        window |= cv2.warpAffine(crop, to_window, window.shape[::-1], flags=cv2.INTER_NEAREST)
     if grow > 0:
-        covered = cv2.dilate(covered, np.ones((grow, grow), np.uint8))
-    out = image.copy()
-    out[covered > 0] = image.reshape(-1, image.shape[-1]).mean(axis=0)
-    return out, covered > 0
+        window = cv2.dilate(window, np.ones((grow, grow), np.uint8))
+    covered[y0:y1, x0:x1] = window > 0
+    return fill_where(image, covered, mean_colour(image)), covered
 
 
 def share_covered(landmarks: np.ndarray, covered: np.ndarray) -> float:
@@ -297,7 +309,7 @@ class PersonModelDetector:
         otherwise shows the one in front."""
         c = self.config
         painted, covered = paint_out_people(
-            image, [r for r, _ in kept], c.skeleton_width, c.lost_grow
+            image, [r for r, _ in kept], c.skeleton_width, c.lost_grow, around=rois
         )
         return [
             accepted[0]
