@@ -448,7 +448,12 @@ class PersonModelDetector:
             if k not in hits and m.frames_left > 1
         ] + [_Lost(roi, c.lost_retry, len(self._people)) for roi in gone if c.lost_retry > 0]
         self._people = [r.next_roi for r, _ in kept]
-        self._behind = {r.next_roi for r, _ in kept[before:]}
+        # followed on the painted frame while their box still overlaps someone's
+        self._behind = {
+            r.next_roi
+            for k, (r, box) in enumerate(kept)
+            if k >= before and any(shared(box, b) > 0 for j, (_, b) in enumerate(kept) if j != k)
+        }
         self._probation &= set(self._people)  # confirmed or dropped: off probation
         # The still-person state: kept from the earlier frame, or fresh where the landmarks were
         # just computed in the region their own landmarks gave. A detector's find is not kept
