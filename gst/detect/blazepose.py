@@ -185,8 +185,9 @@ class BodyRoi:
         """(4, 2) image points of the crop's top-left, top-right, bottom-left and bottom-right
         corners."""
         c, s = math.cos(self.angle), math.sin(self.angle)
-        uv = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]]) * self.side
-        return np.c_[uv[:, 0] * c - uv[:, 1] * s, uv[:, 0] * s + uv[:, 1] * c] + self.centre
+        (cx, cy), side = self.centre, self.side
+        x, y = np.array([-0.5, 0.5, -0.5, 0.5]) * side, np.array([-0.5, -0.5, 0.5, 0.5]) * side
+        return np.c_[cx + x * c - y * s, cy + x * s + y * c]  # this order: to_crop's numbers
 
     def to_crop(self, size: int) -> np.ndarray:
         """2x3 affine matrix from image pixels to the size x size crop."""
