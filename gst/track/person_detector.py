@@ -16,6 +16,12 @@ scans zoomed-in windows, where people far at the back are larger (`look_again_zo
 finds stays only once its own region, the next frame, shows a whole person sure of their limbs
 (docs/track_evaluation.md, "Small people at the back").
 
+A person the landmark model loses, often one walking behind another with their head hidden (the
+detector finds people by the face), is looked for again in their last region for `lost_retry`
+frames, on a copy of the frame with everyone tracked painted out by their own masks; found there,
+they are followed on such a copy while they overlap someone (docs/track_evaluation.md, "Lost
+behind someone").
+
 A person who stands still is not looked at again (`still_change`): where a 32 x 32 thumbnail of
 their mask's box (grown by a tenth) has barely changed since the frame their landmarks were
 computed on (99 % of its pixels within `still_change` grey levels), those landmarks are theirs in
@@ -291,7 +297,7 @@ class PersonModelDetector:
         others (`_behind`); the landmark model runs in one call for those who moved."""
         out = [self._still(image, i) for i in range(len(self._people))]
         todo = [i for i, o in enumerate(out) if o is None and self._people[i] not in self._behind]
-        self.still_kept += len(out) - len(todo)
+        self.still_kept += sum(o is not None for o in out)
         results = self._landmarks(image, [self._people[i] for i in todo])
         for i, r in zip(todo, results, strict=True):
             accepted = self._accept([r], image.shape[0])
