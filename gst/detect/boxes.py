@@ -51,7 +51,7 @@ def paint_out(image: np.ndarray, boxes, grow: float = 0.1) -> np.ndarray:
 
 def mean_colour(image: np.ndarray) -> np.ndarray:
     """The (C,) mean colour of an (H, W, C) image, C <= 4 (OpenCV's: 50x quicker than numpy's
-    strided mean on a 544 x 960 frame, the same numbers)."""
+    strided mean on a 544 x 960 frame; equal to it within 1e-12)."""
     return np.asarray(cv2.mean(image)[: image.shape[-1]])
 
 
