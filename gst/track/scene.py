@@ -173,17 +173,20 @@ def _cores_per_video(parallel_videos: int) -> int:
     return max(1, available_cores() // parallel_videos)
 
 
+# track settings that are the learned person model's own, under the same names
+PERSON_MODEL_SETTINGS = (
+    "detect_every",
+    "look_again",
+    "look_again_zoom",
+    "still_change",
+    "lost_retry",
+)
+
+
 def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:
     """The learned person model's settings for `s`, with `parallel_videos` tracked at once."""
     threads = s.detector_threads or min(4, _cores_per_video(parallel_videos))
-    return PersonModelConfig(
-        detect_every=s.detect_every,
-        look_again=s.look_again,
-        look_again_zoom=s.look_again_zoom,
-        still_change=s.still_change,
-        lost_retry=s.lost_retry,
-        threads=threads,
-    )
+    return PersonModelConfig(threads=threads, **{k: getattr(s, k) for k in PERSON_MODEL_SETTINGS})
 
 
 def network_threads(s: TrackSettings, kind: str, workers: int, parallel_videos: int) -> int | None:
