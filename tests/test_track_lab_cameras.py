@@ -115,15 +115,12 @@ def test_one_id_per_person_in_view_and_none_on_the_floor(tracks, cam):
 
 @pytest.mark.parametrize("cam", list(VISIBLE))
 def test_the_network_body_agrees_with_the_landmark_model(tracks, cam):
-    from gst.body import load_body_model
-    from gst.body.markers import MarkerModel
-    from gst.data.camera_view import TrackingView
-    from gst.track.agreement import body_markers_2d, joints_vs_landmarks, markers_vs_landmarks
+    from gst.track.agreement import joints_vs_landmarks
     from gst.track.read import parse_metadata
+    from gst.track.scene import body_points_vs_landmarks
 
     table = tracks[cam]
-    meta = parse_metadata(table.schema)
-    assert meta["calibration"]["calibrated"] is False
+    assert parse_metadata(table.schema)["calibration"]["calibrated"] is False
     every = joints_vs_landmarks(table)
     assert every.median_px < 20.0, (cam, every)
     people = _people(table)
@@ -131,9 +128,7 @@ def test_the_network_body_agrees_with_the_landmark_model(tracks, cam):
     both = table.filter(
         pc.is_in(table.column("person_id"), pa.array(front, table.column("person_id").type))
     )
-    view = TrackingView.from_json(meta["calibration"])
-    body = load_body_model(meta["model"].get("body_model", "anny"))
-    own = markers_vs_landmarks(both, body_markers_2d(both, body, MarkerModel.load(), view.project))
+    own = body_points_vs_landmarks(both)
     joints = joints_vs_landmarks(both)
     print(
         f"{cam}: joints2d, every row {every.median_px:.1f} px; man and woman: joints "

@@ -416,14 +416,14 @@ class PersonModelDetector:
         # and the lost ones found again where they were; a skeleton repeating a kept one's is
         # the same person seen from a second region.
         kept: list[tuple] = []
-        repeats: list[int] = []  # ids of the results dropped as a repeat
+        repeats: set[int] = set()  # ids of the results dropped as a repeat
 
         def keep(candidates) -> None:
             for r, box in candidates:
                 if any(
                     same_person(r.landmarks, k.landmarks, c.duplicate_distance) for k, _ in kept
                 ):
-                    repeats.append(id(r))
+                    repeats.add(id(r))
                 else:
                     kept.append((r, box))
 

@@ -36,7 +36,12 @@ from gst.device import resolve_device
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.render.ply import write_gaussians_ply
-from gst.track.agreement import body_markers_2d, joints_vs_landmarks, markers_vs_landmarks
+from gst.track.agreement import (
+    LandmarkAgreement,
+    body_markers_2d,
+    joints_vs_landmarks,
+    markers_vs_landmarks,
+)
 from gst.track.align import AlignmentConfig
 from gst.track.batch import VideoJob, VideoOutcome, track_videos
 from gst.track.chunks import ChunkingConfig
@@ -467,13 +472,10 @@ def _body_and_markers(body_model: str) -> tuple[BodyModel, MarkerModel]:
     return load_body_model(body_model), MarkerModel.load()
 
 
-def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
-    """The summary's two checks of the body against the landmark model's joints: its joints
-    (`joints2d`), and its own BlazePose points (like with like; gst.track.agreement)."""
-    agree = joints_vs_landmarks(table)
-    out = {"joints2d_vs_landmarks": agree.to_dict()}
-    if agree.median_px is None:
-        return out
+def body_points_vs_landmarks(table, camera: Camera | None = None) -> LandmarkAgreement:
+    """The rows' bodies' own BlazePose points (posed and projected with the camera the file was
+    made with, else `camera` or the video's default one) against the landmarks: like with like
+    (gst.track.agreement.markers_vs_landmarks)."""
     meta = parse_metadata(table.schema)
     video = meta["video"]
     if "K" in (meta.get("calibration") or {}):  # the camera the file was made with
@@ -481,7 +483,17 @@ def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
     else:
         view = TrackingView.for_video(video["width"], video["height"], camera, video["name"])
     body, markers = _body_and_markers(meta["model"].get("body_model", "anny"))
-    same = markers_vs_landmarks(table, body_markers_2d(table, body, markers, view.project))
+    return markers_vs_landmarks(table, body_markers_2d(table, body, markers, view.project))
+
+
+def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
+    """The summary's two checks of the body against the landmark model's joints: its joints
+    (`joints2d`), and its own BlazePose points (like with like; gst.track.agreement)."""
+    agree = joints_vs_landmarks(table)
+    out = {"joints2d_vs_landmarks": agree.to_dict()}
+    if agree.median_px is None:
+        return out
+    same = body_points_vs_landmarks(table, camera)
     out["body_landmarks_vs_landmarks"] = same.to_dict()
     log.info(
         "%s: the body's joints lie a median %.1f px (90%%: %.1f px) from the landmark model's, "
