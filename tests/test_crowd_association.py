@@ -236,3 +236,35 @@ def test_bad_input_is_refused_or_skipped():
         t.update(2, empty, {})
     with pytest.raises(AssociationError, match="pair_gap"):
         MatchConfig(pair_gap=0)
+
+
+def _one_camera_then_all(frames: int, first_multi: int) -> list[tuple[dict, dict]]:
+    """Two players in every camera, and a third who stands at the back and is seen by one
+    camera only until `first_multi`, by every camera from then on."""
+    only = RIG5.names[0]
+    out = []
+    for f in range(frames):
+        people = [person(-0.6, 0.0, 0.0), person(0.6, 0.2, np.pi), person(0.1, -1.0, 1.5)]
+        cameras = {2: [only]} if f < first_multi else None
+        out.append(instances(RIG5, people, noise_px=1.0, seed=f, cameras=cameras))
+    return out
+
+
+@pytest.mark.parametrize("continuation", [True, False])
+def test_a_single_view_person_keeps_their_id_when_a_second_camera_sees_them(continuation):
+    """The lab's bystander: one camera shows him for the first frames, then two. His single-view
+    id goes on into 3D; without that continuation (the test's own check that it can fail) he
+    gets a second id when the second camera starts to see him."""
+    tracker = PersonIdTracker(RIG5, 1 / 30)
+    if not continuation:
+        tracker._continued_single_view = lambda *a: None
+    by_person: dict[int, set] = {}
+    for f, (found, truth) in enumerate(_one_camera_then_all(10, 5)):
+        m = match_frame(found, RIG5)
+        ids = tracker.update(f, m, found)
+        assert len(set(ids)) == len(ids)
+        for g, pid in zip(m.groups, ids, strict=True):
+            for cam, k in g.views.items():
+                by_person.setdefault(truth[cam][k], set()).add(pid)
+    assert len(by_person[0]) == 1 and len(by_person[1]) == 1
+    assert (len(by_person[2]) == 1) is continuation

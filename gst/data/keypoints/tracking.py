@@ -11,6 +11,9 @@
   predicted skeleton, projected into that camera, fits its landmarks (someone walking out of
   the other cameras keeps their id); otherwise it continues the single-view instance in the
   same camera's previous frame that its box overlaps; otherwise it gets a new id.
+- A person seen in 3D whom no remembered person explains continues, likewise, the single-view
+  instance of the previous frame that one of their views overlaps (someone at the back whom a
+  second camera starts to see keeps the id the first camera gave them).
 - People unseen for more than `max_gap` processed frames are forgotten.
 """
 
@@ -28,6 +31,7 @@ from gst.data.keypoints.matching import (
     AssociationError,
     FrameMatch,
     MatchConfig,
+    PersonGroup,
     camera_view,
     fit_errors,
 )
@@ -154,11 +158,40 @@ class PersonIdTracker:
         for g in multi:
             if not ids[g]:
                 sk = match.groups[g].skeleton.copy()
-                self._tracks.append(_Track(self._new_id(), sk, np.zeros(3), frame, frame))
-                ids[g] = self._tracks[-1].pid
-                matched.add(len(self._tracks) - 1)
+                pid = self._continued_single_view(match.groups[g], instances, ids)
+                known = [c for c, t in enumerate(self._tracks) if t.pid == pid]
+                if known:  # a remembered person whose single view went on: their 3D starts anew
+                    t = self._tracks[known[0]]
+                    t.skeleton, t.velocity, t.frame_3d, t.last_seen = sk, np.zeros(3), frame, frame
+                    t.hits += 1
+                    matched.add(known[0])
+                else:
+                    self._tracks.append(
+                        _Track(pid or self._new_id(), sk, np.zeros(3), frame, frame)
+                    )
+                    matched.add(len(self._tracks) - 1)
+                ids[g] = self._tracks[known[0] if known else -1].pid
         self._single_view_ids(frame, match, instances, ids, matched)
         return ids
+
+    def _continued_single_view(
+        self,
+        group: PersonGroup,
+        instances: Mapping[str, Sequence[PersonInstance]],
+        ids: list[int],
+    ) -> int | None:
+        """The id of the previous frame's single-view instance that one of `group`'s views
+        overlaps most (box IoU at least `box_iou`), if nobody has that id this frame."""
+        best, best_iou = None, self.config.box_iou
+        for cam_name, k in group.views.items():
+            prev = [(pid, box) for pid, box in self._single.get(cam_name, []) if pid not in ids]
+            if not prev:
+                continue
+            iou = box_iou(instances[cam_name][k].box[None], np.stack([b for _, b in prev]))[0]
+            j = int(np.argmax(iou))
+            if iou[j] >= best_iou:
+                best, best_iou = prev[j][0], float(iou[j])
+        return best
 
     def _update_track(self, t: _Track, skeleton: np.ndarray, frame: int) -> None:
         dt = (frame - t.frame_3d) * self.step_seconds
@@ -213,7 +246,7 @@ class PersonIdTracker:
                     )
                     cost = np.where(iou >= self.config.box_iou, -iou, _FAR)
                     for r, c in zip(*linear_sum_assignment(cost), strict=True):
-                        if cost[r, c] < _FAR and prev[c][0] not in {ids[g] for g in gs}:
+                        if cost[r, c] < _FAR and prev[c][0] not in ids:
                             ids[gs[todo[r]]] = prev[c][0]
                             taken[todo[r]] = True
             for k in np.flatnonzero(~taken):
