@@ -37,6 +37,8 @@ class Params(StageParams):
     # keypoints: keep the detections of people no one overlaps instead of looking at them again
     # (about 9 % faster; in crowds results move both ways: docs/extract.md "Speed")
     reuse_detections: bool = False
+    # keypoints: look for a single-view person where they would stand in the other cameras
+    single_view_search: bool = True
 
 
 def run(ctx: StageContext) -> None:
@@ -47,6 +49,7 @@ def run(ctx: StageContext) -> None:
     options = ExtractOptions.from_settings(
         plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance,
         p.association_method, p.person_detect_every, p.reuse_detections, p.person_zoom,
+        p.single_view_search,
     )  # fmt: skip
     report = extract_scene(
         videos, ctx.rig(), ctx.out("crops/crops.h5"), crop_size=p.crop_size, scale=p.scale,

@@ -41,14 +41,16 @@ def _foreground(cam, people):
 def _fake_model(frames, calls):
     """A landmark model that answers with the true person nearest the region's centre; its
     segmentation is that person's support where the image shows someone (pixels painted out
-    with the empty background are nobody's, as the real model sees them)."""
+    with the empty background are nobody's, as the real model sees them). It reads only the
+    people in that camera's picture (`calls["pictured"]`, camera -> person indices)."""
 
     def segment(camera, image, roi, origin):
         cam = RIG[camera]
         people = frames[calls["frame"]]
         # the image is the window of the frame at `origin`: its pixels are the frame's - origin
-        hips = [cam.project(p[[23, 24]]).mean(axis=0) - origin for p in people]
-        k = int(np.argmin([np.linalg.norm(h - roi.centre) for h in hips]))
+        pictured = calls.get("pictured", {}).get(camera, range(len(people)))
+        hips = {k: cam.project(people[k][[23, 24]]).mean(axis=0) - origin for k in pictured}
+        k = min(hips, key=lambda k: np.linalg.norm(hips[k] - roi.centre))
         calls["n"] += 1
         lm = np.c_[cam.project(people[k]) - origin, np.ones(33)]
         prob = skeleton_support(lm, image.shape[:2], 6) & np.any(image > 0, axis=2)
@@ -63,12 +65,15 @@ def _run(
     single: int | None = None,
     workers: int = 1,
     stray: tuple[str, int] | None = None,
+    scene: list | None = None,
+    pictured: bool = False,
     **config,
 ):
     """Track the scene. `hide` = (camera, person) drops that detection; `stray` adds in that
     camera a detection of a fragment of that person (their lower body); `config` overrides
-    CrowdConfig fields."""
-    frames = _scene()
+    CrowdConfig fields. `scene` replaces the three people's frames; with `pictured` the person
+    whom only camera 1's detector finds is in every camera's picture."""
+    frames = scene or _scene()
     calls = {"frame": 0, "n": 0}
     model = _fake_model(frames, calls) if refine else None
     cfg = CrowdConfig(refine=refine, **config)
@@ -92,7 +97,15 @@ def _run(
             truth[cam].append(-1)
         # The single-view person is only in camera 1's picture.
         seen = {
-            c.name: [p for k, p in enumerate(people) if k != only or c.name == RIG.names[1]]
+            c.name: [
+                p for k, p in enumerate(people) if k != only or c.name == RIG.names[1] or pictured
+            ]
+            for c in RIG
+        }
+        calls["pictured"] = {
+            c.name: [
+                k for k in range(len(people)) if k != only or c.name == RIG.names[1] or pictured
+            ]
             for c in RIG
         }
         fg = {c.name: _foreground(c, seen[c.name]) for c in RIG}
@@ -170,6 +183,36 @@ def test_single_view_person_keeps_a_crop_and_empty_frames_are_fine():
     )
     assert empty.people == [] and any("nobody" in n for n in empty.notes)
     assert tracker.process(1, {}, {}).people == []
+
+
+@pytest.mark.parametrize("search", [True, False])
+def test_someone_at_the_back_whom_one_detector_finds_is_looked_for_where_they_stand(search):
+    """The lab's bystander: he stands apart, every camera shows him, but only camera 1's
+    detector finds him. Read as standing where his ankles' ray meets the others' ankle height,
+    he is looked for in the other cameras and found: a person seen in 3D with one id. With the
+    search off (the test's own check that it can fail) he stays single-view."""
+    scene = [[person(0.02 * f, 0.0, 0.3), person(0.45, 0.1, 2.0), person(-1.2, 0.0, -1.0)]
+             for f in range(6)]  # fmt: skip
+    outs, _ = _run(refine=True, hide=None, scene=scene, pictured=True, single_view_search=search)
+    ids = set()
+    for out, _, people in outs:
+        him = [
+            p
+            for p in out.people
+            if all(
+                np.median(np.linalg.norm(v.landmarks[:, :2] - RIG[n].project(people[2]), axis=1))
+                < 5
+                for n, v in p.views.items()
+            )
+        ]
+        assert len(him) == 1
+        ids.add(him[0].pid)
+        if search:
+            assert not him[0].single_view and len(him[0].views) >= 2
+            np.testing.assert_allclose(him[0].skeleton[[23, 24]], people[2][[23, 24]], atol=0.02)
+        else:
+            assert him[0].single_view
+    assert len(ids) == 1
 
 
 def test_cameras_on_worker_threads_give_the_same_people():

@@ -15,7 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from calibration import Camera
+from calibration import Camera, Rig
 from gst.atomic import PendingFile
 from gst.cores import available_cores
 from gst.data.extract.association import AssociationSummary
@@ -88,7 +88,7 @@ def _extra_box(lm: np.ndarray, sx: float, sy: float) -> tuple[float, float, floa
 
 def associate_scene_keypoints(
     label_files: dict[str, Path],
-    cameras: list[Camera],
+    cameras: Rig | list[Camera],
     videos: dict[str, Path],
     work_sizes: dict[str, tuple[int, int]],
     frames: list[int],
@@ -135,6 +135,12 @@ def associate_scene_keypoints(
                 "keypoint association: %d views from the landmark model's second look; %d views "
                 "of people no one overlaps kept their detection (reuse_detections)",
                 tracker.views_refined, tracker.views_reused,
+            )  # fmt: skip
+        if config.refine and config.single_view_search:
+            log.info(
+                "keypoint association: %d of %d single-view people looked for where they would "
+                "stand were found by a second camera",
+                tracker.standing_found, tracker.standing_tried,
             )  # fmt: skip
     finally:
         for f in inputs.values():

@@ -82,14 +82,16 @@ class ExtractOptions:
         person_detect_every: int = 10,
         reuse_detections: bool = False,
         person_zoom: float = 2 / 3,
+        single_view_search: bool = True,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose'), whether to segment around moving blobs too, the
         association method ('auto', 'keypoints' or 'hull'), how often the person detector
         runs while everyone is tracked, and whether the keypoint association keeps the
         detections of people no one overlaps instead of looking at them again
-        (`CrowdConfig.reuse_detections`), and how much the detector zooms in when it looks
-        again (`SegmenterConfig.zoom`)."""
+        (`CrowdConfig.reuse_detections`), how much the detector zooms in when it looks
+        again (`SegmenterConfig.zoom`), and whether a single-view person is looked for where
+        they would stand in the other cameras (`CrowdConfig.single_view_search`)."""
         if person_model not in ("none", "blazepose"):
             raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
         return cls(
@@ -105,7 +107,9 @@ class ExtractOptions:
             person_zoom=person_zoom,
             frame_size_tolerance=frame_size_tolerance,
             association_method=association_method,
-            crowd=CrowdConfig(reuse_detections=reuse_detections),
+            crowd=CrowdConfig(
+                reuse_detections=reuse_detections, single_view_search=single_view_search
+            ),
         )
 
 

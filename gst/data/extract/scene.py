@@ -340,7 +340,7 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
     if plan.method == "keypoints":
         summary = associate_scene_keypoints(
             {n: plan.work / f"labels_{n}.h5" for n in active},
-            [plan.rig[n] for n in active],
+            plan.rig.subset(active),  # with the rig's up (where people stand)
             {n: plan.videos[n] for n in active},
             plan.work_sizes,
             plan.frames,

@@ -23,7 +23,11 @@ camera that sees them their landmarks and their own mask.
    that no camera's model confirmed but who is at least `project_visibility` visible there
    gets a mask from ownership alone and landmarks projected from the skeleton.
 
-Single-view instances (one camera only) keep their own detection and mask.
+Single-view instances (one camera only) keep their own detection and mask. Before that, each is
+read as someone standing where their ankles' ray meets the height of the triangulated people's
+ankles (`standing.standing_skeleton`), and looked for in every camera like a remembered person:
+found in two, they are a person seen in 3D (the lab's bystander at the back, whom one camera's
+detector finds and another's does not).
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from gst.data.keypoints.matching import (
 )
 from gst.data.keypoints.ownership import OwnershipConfig, own_pixels
 from gst.data.keypoints.regions import roi_from_skeleton, skeleton_fit
+from gst.data.keypoints.standing import AnkleHeight, standing_skeleton
 from gst.data.keypoints.tracking import PersonIdTracker, TrackerConfig, skeleton_distance
 from gst.detect.blazepose import BodyRoi
 from gst.detect.boxes import containment
@@ -91,6 +96,8 @@ class CrowdConfig:
     # the kept one of two such candidates takes the other's views in cameras it has none in
     merge_duplicates: bool = True
     min_mask_pixels: int = 20  # smaller masks are no view
+    # look for a single-view person in the other cameras, where they would stand (see above)
+    single_view_search: bool = True
 
     def __post_init__(self):
         if not 0 <= self.reuse_fit < self.refine_fit:
@@ -168,6 +175,13 @@ def _detections(cands, n: str, instances, masks) -> dict[int, tuple[PersonInstan
     return out
 
 
+def _projected_box(cam: Camera, skeleton: np.ndarray) -> np.ndarray | None:
+    """(4,) extent of a world skeleton's projection into `cam` (None if nothing projects)."""
+    uv, _ = project(cam, skeleton)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    return np.r_[uv.min(axis=0), uv.max(axis=0)] if len(uv) else None
+
+
 def _hips(skeleton: np.ndarray) -> np.ndarray:
     """Mid-hip point (3,) of a (33, 3) world skeleton (NaN where a hip is unknown)."""
     return skeleton[[23, 24]].mean(axis=0)
@@ -184,6 +198,7 @@ class _Candidate:
     group: PersonGroup | None
     refined: dict[str, tuple[PersonInstance, np.ndarray]] = field(default_factory=dict)
     fits: dict[str, float] = field(default_factory=dict)  # landmark error of each refined view
+    single: PersonGroup | None = None  # the single-view group this candidate stands for
 
 
 class CrowdTracker:
@@ -217,8 +232,11 @@ class CrowdTracker:
             list(self.cams.values()), step_seconds, config.tracker, config.match
         )
         self._kernel = np.ones((2 * config.occluder_margin + 1,) * 2, np.uint8)
+        self._ankles = AnkleHeight(rig.up if isinstance(rig, Rig) else (0.0, 0.0, 1.0))
         # refined views: the landmark model's new answer / the detection reused (`reuse_fit`)
         self.views_refined = self.views_reused = 0
+        # single-view people looked for where they would stand / found by a second camera
+        self.standing_tried = self.standing_found = 0
 
     def process(
         self,
@@ -248,6 +266,10 @@ class CrowdTracker:
             if n in foreground and ms:
                 foreground[n] = foreground[n] | np.any([m for m in ms if m is not None], axis=0)
         can_refine = cfg.refine and self.segment is not None and images is not None
+        if can_refine and cfg.single_view_search:
+            standing = self._standing(match, instances, cands)
+            self.standing_tried += len(standing)
+            cands += standing
         if can_refine and cands:
             self._refine(cands, foreground, images, backgrounds, instances, masks)
             # A person needs two confirming cameras, unless three detections agreed on them.
@@ -273,7 +295,11 @@ class CrowdTracker:
                     views[n] = len(view_inst[n])
                     view_inst[n].append(instances[n][k])
             groups.append(PersonGroup(views, c.skeleton, {}, {n: False for n in views}))
-        singles = [g for g in match.groups if g.skeleton is None]
+        for c in cands:
+            self._ankles.add(c.skeleton)
+        found = {id(c.single) for c in cands if c.single is not None}
+        self.standing_found += len(found)
+        singles = [g for g in match.groups if g.skeleton is None and id(g) not in found]
         for g in singles:
             n, k = next(iter(g.views.items()))
             groups.append(PersonGroup({n: len(view_inst[n])}, None, {}, {n: False}))
@@ -308,6 +334,37 @@ class CrowdTracker:
                 )
             )
         return FramePeople(frame, people, list(match.notes))
+
+    def _standing(self, match: FrameMatch, instances, cands) -> list[_Candidate]:
+        """A candidate for each single-view person, where they would stand (none until the
+        triangulated people have shown the ankles' height, nor for one near a candidate)."""
+        cfg = self.config
+        if self._ankles.value is None:  # the first frames: this frame's own triangulations
+            for c in cands:
+                self._ankles.add(c.skeleton)
+        height = self._ankles.value
+        if height is None:
+            return []
+        out = []
+        for g in match.groups:
+            if g.skeleton is not None:
+                continue
+            n, k = next(iter(g.views.items()))
+            cam, inst = self.cams[n], instances[n][k]
+            # Only someone standing apart: a single view beside or over a candidate is mostly a
+            # part or a poor reading of them, and looking there again would split their views.
+            if any(
+                containment(inst.box, box) > STRAY_OVERLAP
+                for box in (_projected_box(cam, c.skeleton) for c in cands)
+                if box is not None
+            ):
+                continue
+            sk = standing_skeleton(cam, inst, self._ankles.up, height, cfg.match.min_confidence)
+            if sk is not None and all(
+                skeleton_distance(sk[_BODY], c.skeleton[_BODY]) > cfg.remembered_gap for c in cands
+            ):
+                out.append(_Candidate(sk, False, None, single=g))
+        return out
 
     def _distinct(self, cands: list[_Candidate]) -> list[_Candidate]:
         """One candidate per person: two whose skeletons converged (two regions that found the
@@ -453,7 +510,12 @@ class CrowdTracker:
                 if a not in found or b not in found:
                     continue
                 if same_person(found[a][0].landmarks, found[b][0].landmarks, DUPLICATE_LANDMARKS):
-                    del found[b if found[a][2] <= found[b][2] else a]
+                    # a single-view person's guessed place never takes a view from the others
+                    guess_a, guess_b = cands[a].single is not None, cands[b].single is not None
+                    if guess_a != guess_b:
+                        del found[a if guess_a else b]
+                    else:
+                        del found[b if found[a][2] <= found[b][2] else a]
         return found, len(reused & set(found))
 
     def _views(self, n, cands, people, fg, remembered, instances) -> list[tuple[int, PersonView]]:
