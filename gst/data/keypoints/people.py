@@ -98,8 +98,14 @@ class CrowdConfig:
     min_mask_pixels: int = 20  # smaller masks are no view
     # look for a single-view person in the other cameras, where they would stand (see above)
     single_view_search: bool = True
+    standing_fit: float = 0.3  # refine_fit for a view of such a guess (checked again after)
 
     def __post_init__(self):
+        if self.standing_fit < self.refine_fit:
+            raise ValueError(
+                f"CrowdConfig needs standing_fit >= refine_fit, got {self.standing_fit}, "
+                f"{self.refine_fit}"
+            )
         if not 0 <= self.reuse_fit < self.refine_fit:
             raise ValueError(
                 f"CrowdConfig needs 0 <= reuse_fit < refine_fit, got {self.reuse_fit}, "
@@ -435,6 +441,11 @@ class CrowdTracker:
                 cands[k].fits[n] = fit
         for c in cands:
             self._triangulate_refined(c)
+            if c.single is not None and len(c.refined) >= 2:
+                for n in list(c.refined):  # each view against the triangulated skeleton
+                    c.fits[n] = skeleton_fit(self.cams[n], c.refined[n][0], c.skeleton, cfg.match)
+                    if c.fits[n] > cfg.refine_fit:
+                        del c.refined[n], c.fits[n]
 
     def _triangulate_refined(self, c: _Candidate) -> None:
         """A candidate's skeleton from its refined views, where it has two or more."""
@@ -499,7 +510,9 @@ class CrowdTracker:
             lm[:, :2] /= s
             inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
             fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
-            if fit > cfg.refine_fit:
+            # a standing guess is only as good as the body's depth: a looser gate to find them,
+            # the usual one against the skeleton triangulated from what was found (_refine)
+            if fit > (cfg.standing_fit if c.single is not None else cfg.refine_fit):
                 continue
             found[k] = (inst, prob, fit)
         # Two regions that found the same person: the view goes to whoever it fits best
