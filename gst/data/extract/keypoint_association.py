@@ -130,18 +130,8 @@ def associate_scene_keypoints(
             results = _run(tracker, inputs, streams, backgrounds, frames, sxy, progress)
         finally:
             tracker.close()
-        if config.refine and config.reuse_detections:
-            log.info(
-                "keypoint association: %d views from the landmark model's second look; %d views "
-                "of people no one overlaps kept their detection (reuse_detections)",
-                tracker.views_refined, tracker.views_reused,
-            )  # fmt: skip
-        if config.refine and config.single_view_search:
-            log.info(
-                "keypoint association: %d of %d single-view people looked for where they would "
-                "stand were found by a second camera",
-                tracker.standing_found, tracker.standing_tried,
-            )  # fmt: skip
+        for line in tracker.counts():
+            log.info("keypoint association: %s", line)
     finally:
         for f in inputs.values():
             f.close()

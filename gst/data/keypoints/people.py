@@ -341,6 +341,22 @@ class CrowdTracker:
             )
         return FramePeople(frame, people, list(match.notes))
 
+    def counts(self) -> list[str]:
+        """What the optional paths did so far, one line each (for the log)."""
+        cfg, lines = self.config, []
+        if cfg.refine and cfg.reuse_detections:
+            lines.append(
+                f"{self.views_refined} views from the landmark model's second look; "
+                f"{self.views_reused} views of people no one overlaps kept their detection "
+                "(reuse_detections)"
+            )
+        if cfg.refine and cfg.single_view_search:
+            lines.append(
+                f"{self.standing_found} of {self.standing_tried} single-view people looked for "
+                "where they would stand were found by a second camera"
+            )
+        return lines
+
     def _standing(self, match: FrameMatch, instances, cands) -> list[_Candidate]:
         """A candidate for each single-view person, where they would stand (none until the
         triangulated people have shown the ankles' height, nor for one near a candidate)."""
