@@ -187,11 +187,11 @@ def test_single_view_person_keeps_a_crop_and_empty_frames_are_fine():
 
 @pytest.mark.parametrize("search", [True, False])
 def test_someone_at_the_back_whom_one_detector_finds_is_looked_for_where_they_stand(search):
-    """The lab's bystander: he stands apart, every camera shows him, but only camera 1's
-    detector finds him. Read as standing where his ankles' ray meets the others' ankle height,
+    """The lab's bystander: he stands apart (1.7 m from the nearest), every camera shows him,
+    but only camera 1's detector finds him. Read as standing where his ankles' ray meets the others' ankle height,
     he is looked for in the other cameras and found: a person seen in 3D with one id. With the
     search off (the test's own check that it can fail) he stays single-view."""
-    scene = [[person(0.02 * f, 0.0, 0.3), person(0.45, 0.1, 2.0), person(-1.2, 0.0, -1.0)]
+    scene = [[person(0.5 + 0.02 * f, 0.3, 0.3), person(0.95, 0.4, 2.0), person(-1.2, 0.0, -1.0)]
              for f in range(6)]  # fmt: skip
     outs, _ = _run(refine=True, hide=None, scene=scene, pictured=True, single_view_search=search)
     ids = set()
@@ -213,6 +213,18 @@ def test_someone_at_the_back_whom_one_detector_finds_is_looked_for_where_they_st
         else:
             assert him[0].single_view
     assert len(ids) == 1
+
+
+def test_someone_one_detector_finds_among_others_is_not_looked_for_where_they_stand():
+    """Within `standing_apart` of someone else (the three people of `_scene` stand 0.5-0.7 m
+    apart) a single view is left as it is, even where every camera shows the person."""
+    outs, calls = _run(refine=True, hide=None, pictured=True)
+    for out, _, _ in outs:
+        single = [p for p in out.people if p.single_view]
+        assert len(single) == 1 and list(single[0].views) == [RIG.names[1]]
+    far, _ = _run(refine=True, hide=None, pictured=True, standing_apart=0.3)
+    # the gate is what keeps them single: at 0.3 m the search finds them in the other cameras
+    assert all(not p.single_view for out, _, _ in far for p in out.people)
 
 
 def test_cameras_on_worker_threads_give_the_same_people():

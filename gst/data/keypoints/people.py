@@ -99,6 +99,10 @@ class CrowdConfig:
     # look for a single-view person in the other cameras, where they would stand (see above)
     single_view_search: bool = True
     standing_fit: float = 0.3  # refine_fit for a view of such a guess (checked again after)
+    # ... only for someone this far (m, along the floor) from every other person: in a crowd a
+    # single view is mostly a part or a poor reading of someone, and the search there moved the
+    # crowd scenes both ways by chance (docs/extract.md); the lab's bystander stands 3-5 m away
+    standing_apart: float = 1.5
 
     def __post_init__(self):
         if self.standing_fit < self.refine_fit:
@@ -383,10 +387,18 @@ class CrowdTracker:
                 continue
             sk = standing_skeleton(cam, inst, self._ankles.up, height, cfg.match.min_confidence)
             if sk is not None and all(
-                skeleton_distance(sk[_BODY], c.skeleton[_BODY]) > cfg.remembered_gap for c in cands
+                self._floor_distance(_hips(sk), _hips(c.skeleton)) >= cfg.standing_apart
+                for c in cands
             ):
                 out.append(_Candidate(sk, False, None, single=g))
         return out
+
+    def _floor_distance(self, a: np.ndarray, b: np.ndarray) -> float:
+        """Distance (m) between two world points along the floor (NaN points: far)."""
+        d = a - b
+        d = d - (d @ self._ankles.up) * self._ankles.up
+        n = float(np.linalg.norm(d))
+        return n if np.isfinite(n) else np.inf
 
     def _distinct(self, cands: list[_Candidate]) -> list[_Candidate]:
         """One candidate per person: two whose skeletons converged (two regions that found the
