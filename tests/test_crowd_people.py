@@ -187,10 +187,11 @@ def test_single_view_person_keeps_a_crop_and_empty_frames_are_fine():
 
 @pytest.mark.parametrize("search", [True, False])
 def test_someone_at_the_back_whom_one_detector_finds_is_looked_for_where_they_stand(search):
-    """The lab's bystander: he stands apart (1.7 m from the nearest), every camera shows him,
-    but only camera 1's detector finds him. Read as standing where his ankles' ray meets the others' ankle height,
-    he is looked for in the other cameras and found: a person seen in 3D with one id. With the
-    search off (the test's own check that it can fail) he stays single-view."""
+    """The lab's bystander: they stand apart (1.7 m from the nearest), every camera shows them,
+    but only camera 1's detector finds them. Read as standing where their ankles' ray meets the
+    others' ankle height, they are looked for in the other cameras and found: a person seen in 3D
+    with one id. With the search off (the test's own check that it can fail) they stay
+    single-view."""
     scene = [[person(0.5 + 0.02 * f, 0.3, 0.3), person(0.95, 0.4, 2.0), person(-1.2, 0.0, -1.0)]
              for f in range(6)]  # fmt: skip
     outs, _ = _run(refine=True, hide=None, scene=scene, pictured=True, single_view_search=search)

@@ -36,9 +36,13 @@ def test_the_guess_stands_on_the_ankles_rays_and_within_the_bodys_depth(x, y, he
     np.testing.assert_allclose(
         guess[list(ANKLES)].mean(axis=0), truth[list(ANKLES)].mean(axis=0), atol=0.03
     )
-    # (a landmark off the plane moves along its ray: more for a camera looking down steeply)
-    off = np.linalg.norm(guess - truth, axis=1)
-    assert np.median(off) < 0.2 and off.max() < 0.5
+    # A landmark off the upright plane moves along its own ray, by more the steeper the camera
+    # looks down; measured in depth (along the camera's horizontal direction to the person) it
+    # stays within the body's half-depth around the ankles.
+    ankles = truth[list(ANKLES)].mean(axis=0)
+    towards = (ankles - camera.center) - ((ankles - camera.center) @ UP) * UP
+    towards /= np.linalg.norm(towards)
+    assert np.abs((guess - truth) @ towards).max() < 0.35
 
 
 def test_no_guess_without_ankles_or_above_the_horizon():
