@@ -23,11 +23,11 @@ camera that sees them their landmarks and their own mask.
    that no camera's model confirmed but who is at least `project_visibility` visible there
    gets a mask from ownership alone and landmarks projected from the skeleton.
 
-Single-view instances (one camera only) keep their own detection and mask. Before that, each is
-read as someone standing where their ankles' ray meets the height of the triangulated people's
-ankles (`standing.standing_skeleton`), and looked for in every camera like a remembered person:
-found in two, they are a person seen in 3D (the lab's bystander at the back, whom one camera's
-detector finds and another's does not).
+Single-view instances (one camera only) keep their own detection and mask. Before that, one who
+stands apart from everyone else (`standing_apart`) is read as someone standing where their
+ankles' ray meets the height of the triangulated people's ankles (`standing.standing_skeleton`)
+and looked for in every camera like a remembered person: found in two, they are a person seen in
+3D (the lab's bystander at the back, whom one camera's detector finds and another's does not).
 """
 
 from __future__ import annotations
@@ -362,8 +362,8 @@ class CrowdTracker:
         return lines
 
     def _standing(self, match: FrameMatch, instances, cands) -> list[_Candidate]:
-        """A candidate for each single-view person, where they would stand (none until the
-        triangulated people have shown the ankles' height, nor for one near a candidate)."""
+        """A candidate for each single-view person standing apart, where they would stand (none
+        until the triangulated people have shown the ankles' height)."""
         cfg = self.config
         if self._ankles.value is None:  # the first frames: this frame's own triangulations
             for c in cands:
