@@ -10,7 +10,7 @@ from extract_scenes import make_scene
 
 from gst.data import AssociationConfig, CropStore, ExtractError, ExtractOptions, extract_scene
 from gst.data.evaluate import CropTruth, association_accuracy
-from gst.data.extract.scene import scores_by_source
+from gst.data.extract.scene import ids_against_truth, scores_by_source
 from tests.real_capture import NEEDS_MODELS
 
 
@@ -201,3 +201,19 @@ def test_brief_ids_are_not_trusted_single_view_or_not(tmp_path):
         {"a": (1.0, 1.0), "b": (1.0, 1.0)}, 5,
     )  # fmt: skip
     assert summary.short_tracks == [2, 4]
+
+
+def test_ids_against_truth_show_a_split_person_and_a_ghost():
+    rows = [
+        CropTruth(0, "a", 1, 7, 0.8, "refined"),
+        CropTruth(1, "a", 1, 7, 0.8, "refined"),
+        CropTruth(2, "a", 2, 7, 0.8, "refined"),  # truth 7 again, under a second id
+        CropTruth(2, "b", 3, 0, 0.0, "projected"),  # nobody
+    ]
+    by = ids_against_truth(rows)
+    assert by == {
+        "1": {"frames": [0, 1], "truth": {"7": 2}},
+        "2": {"frames": [2, 2], "truth": {"7": 1}},
+        "3": {"frames": [2, 2], "truth": {"0": 1}},
+    }
+    assert sum(n for v in by.values() for n in v["truth"].values()) == len(rows)

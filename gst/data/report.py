@@ -171,6 +171,15 @@ def write_extract_report(
                 for source, sc in r.truth_by_source.items()
             ],
         )
+    if r.truth_by_id:
+        lines += _table(
+            ("id", "frames", "crops by truth person (0: nobody)"),
+            [
+                (pid, "-".join(map(str, v["frames"])),
+                 ", ".join(f"{t}: {n}" for t, n in v["truth"].items()))
+                for pid, v in r.truth_by_id.items()
+            ],
+        )  # fmt: skip
     lines += _table(
         ("camera", "crops", "frames with people", "frames without", "mask IoU", "masks s",
          "crops s"),

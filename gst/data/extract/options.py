@@ -169,6 +169,9 @@ class ExtractReport(Record):
     association_method: str = "hull"  # the path that ran: 'keypoints' or 'hull'
     single_view_crops: int = 0  # crops of people only one camera saw (keypoint path)
     truth_by_source: dict[str, SourceScore] = field(default_factory=dict)
+    # synthetic scenes: per extracted id, its frames and its crops per truth person
+    # (gst.data.extract.scene.ids_against_truth)
+    truth_by_id: dict[str, dict] = field(default_factory=dict)
 
     def summary_line(self) -> str:
         return (

@@ -482,6 +482,21 @@ def scores_by_source(rows: list[CropTruth]) -> dict[str, SourceScore]:
     return out
 
 
+def ids_against_truth(rows: list[CropTruth]) -> dict[str, dict]:
+    """Per extracted id, its first and last frame and how many of its crops show each truth
+    person (0: nobody), e.g. {"11": {"frames": [15, 47], "truth": {"2": 180}}}: a person split
+    into two ids, or a ghost, is plain to see."""
+    out: dict[str, dict] = {}
+    for pid in sorted({r.person_id for r in rows}):
+        own = [r for r in rows if r.person_id == pid]
+        tids = [r.truth_id for r in own]
+        out[str(pid)] = {
+            "frames": [min(r.frame for r in own), max(r.frame for r in own)],
+            "truth": {str(t): tids.count(t) for t in sorted(set(tids))},
+        }
+    return out
+
+
 def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
     store = CropStore(plan.out_h5)
     cam_col = store.index.column("camera_index").to_numpy()
@@ -534,6 +549,7 @@ def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
         association_method=plan.method,
         single_view_crops=int(np.count_nonzero(single)),
         truth_by_source=scores_by_source(truth_rows),
+        truth_by_id=ids_against_truth(truth_rows),
     )
 
 
