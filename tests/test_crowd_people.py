@@ -96,19 +96,13 @@ def _run(
             found[cam].append(PersonInstance.create(legs))
             truth[cam].append(-1)
         # The single-view person is only in camera 1's picture.
-        seen = {
-            c.name: [
-                p for k, p in enumerate(people) if k != only or c.name == RIG.names[1] or pictured
-            ]
-            for c in RIG
-        }
         calls["pictured"] = {
             c.name: [
                 k for k in range(len(people)) if k != only or c.name == RIG.names[1] or pictured
             ]
             for c in RIG
         }
-        fg = {c.name: _foreground(c, seen[c.name]) for c in RIG}
+        fg = {c.name: _foreground(c, [people[k] for k in calls["pictured"][c.name]]) for c in RIG}
         # The picture: someone wherever the foreground is; the empty scene is black.
         images = {c.name: np.where(fg[c.name][..., None], 200, 0).astype(np.uint8) for c in RIG}
         empty = {c.name: np.zeros((c.height, c.width, 3), np.uint8) for c in RIG}

@@ -28,6 +28,7 @@ import logging
 import os
 import shutil
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -486,15 +487,18 @@ def ids_against_truth(rows: list[CropTruth]) -> dict[str, dict]:
     """Per extracted id, its first and last frame and how many of its crops show each truth
     person (0: nobody), e.g. {"11": {"frames": [15, 47], "truth": {"2": 180}}}: a person split
     into two ids, or a ghost, is plain to see."""
-    out: dict[str, dict] = {}
-    for pid in sorted({r.person_id for r in rows}):
-        own = [r for r in rows if r.person_id == pid]
-        tids = [r.truth_id for r in own]
-        out[str(pid)] = {
-            "frames": [min(r.frame for r in own), max(r.frame for r in own)],
-            "truth": {str(t): tids.count(t) for t in sorted(set(tids))},
+    frames: dict[int, list[int]] = {}
+    truth: dict[int, Counter] = {}
+    for r in rows:
+        frames.setdefault(r.person_id, []).append(r.frame)
+        truth.setdefault(r.person_id, Counter())[r.truth_id] += 1
+    return {
+        str(pid): {
+            "frames": [min(frames[pid]), max(frames[pid])],
+            "truth": {str(t): n for t, n in sorted(truth[pid].items())},
         }
-    return out
+        for pid in sorted(frames)
+    }
 
 
 def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:

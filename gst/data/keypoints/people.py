@@ -305,8 +305,9 @@ class CrowdTracker:
                     views[n] = len(view_inst[n])
                     view_inst[n].append(instances[n][k])
             groups.append(PersonGroup(views, c.skeleton, {}, {n: False for n in views}))
-        for c in cands:
-            self._ankles.add(c.skeleton)
+        if cfg.single_view_search:
+            for c in cands:
+                self._ankles.add(c.skeleton)
         found = {id(c.single) for c in cands if c.single is not None}
         self.standing_found += len(found)
         singles = [g for g in match.groups if g.skeleton is None and id(g) not in found]
@@ -371,19 +372,17 @@ class CrowdTracker:
         height = self._ankles.value
         if height is None:
             return []
-        out = []
+        out, boxes = [], {}  # camera -> the candidates' projected boxes there
         for g in match.groups:
             if g.skeleton is not None:
                 continue
             n, k = next(iter(g.views.items()))
             cam, inst = self.cams[n], instances[n][k]
+            if n not in boxes:
+                boxes[n] = [b for c in cands if (b := _projected_box(cam, c.skeleton)) is not None]
             # Only someone standing apart: a single view beside or over a candidate is mostly a
             # part or a poor reading of them, and looking there again would split their views.
-            if any(
-                containment(inst.box, box) > STRAY_OVERLAP
-                for box in (_projected_box(cam, c.skeleton) for c in cands)
-                if box is not None
-            ):
+            if any(containment(inst.box, box) > STRAY_OVERLAP for box in boxes[n]):
                 continue
             sk = standing_skeleton(cam, inst, self._ankles.up, height, cfg.match.min_confidence)
             if sk is not None and all(

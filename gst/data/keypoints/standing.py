@@ -16,6 +16,7 @@ from collections import deque
 import numpy as np
 
 from calibration.camera import Camera
+from gst.data.keypoints.geometry import viewing_rays
 from gst.data.keypoints.instances import PersonInstance
 
 ANKLES = (27, 28)
@@ -38,13 +39,6 @@ class AnkleHeight:
         return float(np.median(self._heights)) if len(self._heights) >= 4 else None
 
 
-def _rays(cam: Camera, uv: np.ndarray) -> np.ndarray:
-    """Unit world directions (N, 3) of the rays through distorted pixels (N, 2)."""
-    xy = cam.undistort_points(uv)
-    d = np.c_[xy, np.ones(len(xy))] @ cam.R  # R^T d per row
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
 def standing_skeleton(
     cam: Camera, instance: PersonInstance, up, ankle_height: float, min_confidence: float
 ) -> np.ndarray | None:
@@ -58,7 +52,7 @@ def standing_skeleton(
     if not ankles or seen.sum() < 8:
         return None
     c = cam.center
-    feet = _rays(cam, lm[ankles, :2].mean(axis=0)[None])[0]
+    feet = viewing_rays(cam, lm[ankles, :2].mean(axis=0))
     down = feet @ up
     if down >= -1e-6:
         return None  # the ray does not come down to the floor
@@ -69,7 +63,7 @@ def standing_skeleton(
     # the upright plane through the ankles, facing the camera
     normal = (stand - c) - ((stand - c) @ up) * up
     normal /= max(float(np.linalg.norm(normal)), 1e-9)
-    rays = _rays(cam, lm[:, :2])
+    rays = viewing_rays(cam, lm[:, :2])
     along = rays @ normal
     t = np.where(along > 1e-6, ((stand - c) @ normal) / np.where(along > 1e-6, along, 1), np.nan)
     out = c + t[:, None] * rays
