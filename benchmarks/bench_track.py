@@ -443,17 +443,38 @@ def real_footage(args) -> None:
         def opts(**kw):
             return TrackOptions(tracker=tracker, end_s=n / fps, **kw)
 
+        # Factories of a video's person model from its frame rate: what `run track` uses for
+        # one video (the detector's interval in frames follows the rate and the stride,
+        # `track.detect_every_s`), with the variant's changes.
         def new(**kw):
-            return lambda: PersonModelDetector(replace(default, **kw))
+            return lambda rate: PersonModelDetector(
+                replace(person_model_config(TrackSettings(), fps=rate), **kw)
+            )
 
-        default = person_model_config(TrackSettings())  # what `run track` uses for one video
+        def new_stride2(**kw):
+            return lambda rate: PersonModelDetector(
+                replace(person_model_config(TrackSettings(stride=2), fps=rate), **kw)
+            )
+
+        def every_frame(rate):
+            return SegmentEveryFrame()
+
+        default = person_model_config(TrackSettings(), fps=fps)
+        before = person_model_config(TrackSettings(detect_every_s=1 / 6), fps=fps).detect_every
         torch_default = torch.get_num_threads()
         stage_torch = network_threads(TrackSettings(), "blazepose", 1, 1) or torch_default
         variants = [  # (name, detector factory, options, torch threads, network image path)
-            ("old: detector + masks every frame", SegmentEveryFrame, opts(), torch_default, "auto"),
+            ("old: detector + masks every frame", every_frame, opts(), torch_default, "auto"),
             (
                 f"new: stage default ({default.threads} LiteRT, {stage_torch} torch threads)",
                 new(),
+                opts(),
+                stage_torch,
+                "auto",
+            ),
+            (
+                f"new, detector every {before} frames (before 11-29)",
+                new(detect_every=before),
                 opts(),
                 stage_torch,
                 "auto",
@@ -512,30 +533,36 @@ def real_footage(args) -> None:
                 torch_default,
                 "auto",
             ),
-            ("old, stride 2", SegmentEveryFrame, opts(stride=2), torch_default, "auto"),
-            ("new, stride 2 (stage default)", new(), opts(stride=2), stage_torch, "auto"),
+            ("old, stride 2", every_frame, opts(stride=2), torch_default, "auto"),
+            ("new, stride 2 (stage default)", new_stride2(), opts(stride=2), stage_torch, "auto"),
             (
                 "new, stride 2, not looking again",
-                new(look_again=False),
+                new_stride2(look_again=False),
                 opts(stride=2),
                 stage_torch,
                 "auto",
             ),
             (
                 "new, stride 2, no zoom",
-                new(look_again_zoom=0),
+                new_stride2(look_again_zoom=0),
                 opts(stride=2),
                 stage_torch,
                 "auto",
             ),
             (
                 "new, stride 2, still people computed",
-                new(still_change=0),
+                new_stride2(still_change=0),
                 opts(stride=2),
                 stage_torch,
                 "auto",
             ),
-            ("new, stride 2, image path every crop", new(), opts(stride=2), stage_torch, "always"),
+            (
+                "new, stride 2, image path every crop",
+                new_stride2(),
+                opts(stride=2),
+                stage_torch,
+                "always",
+            ),
         ]
         if args.only:
             keep = [v for v in variants if any(o in v[0] for o in args.only.split("|"))]
@@ -558,7 +585,7 @@ def real_footage(args) -> None:
             for _rep in range(args.repeats):
                 out = tmp / f"out{k}"
                 shutil.rmtree(out, ignore_errors=True)
-                det = make()
+                det = make(fps)
                 t0, c0 = time.perf_counter(), time.process_time()
                 res = track_video(
                     video,
@@ -598,6 +625,7 @@ def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
     time. Accuracy of the person model's speed-ups in the same run as their speed."""
     from calibration.formats import read_rig
     from gst.track.evaluate import evaluate_tracks
+    from gst.video import probe_video
 
     scene = workspace / "demo"
     needed = [scene / "calibration" / "rig.json", scene / "models" / "gst.pt", scene / "synth"]
@@ -624,7 +652,7 @@ def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
             res = track_video(
                 v,
                 tmp / f"demo{k}",
-                make(),
+                make(probe_video(v).fps),
                 predictors[image_path],
                 model={"name": gst.name, "version": "bench"},
                 camera=rig[v.stem],

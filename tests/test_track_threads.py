@@ -5,9 +5,16 @@ from __future__ import annotations
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gst.track import batch
-from gst.track.scene import TrackSettings, network_threads, person_model_config
+from gst.track.scene import (
+    TrackSettings,
+    detector_interval,
+    network_threads,
+    person_model_config,
+)
 
 
 @pytest.fixture
@@ -49,6 +56,32 @@ def test_explicit_settings_and_other_detectors(cores):
     assert not off.look_again and off.detect_every == 5 and not off.settings()["look_again"]
     assert off.still_change == 0 and off.settings()["still_change"] == 0
     assert off.look_again_zoom == 0 and off.settings()["look_again_zoom"] == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.floats(1.0, 240.0),
+    st.integers(1, 4),
+    st.floats(0.01, 2.0),
+    st.one_of(st.none(), st.integers(1, 50)),
+)
+def test_the_detector_looks_for_newcomers_every_few_tenths_of_a_second(fps, stride, every_s, n):
+    """The person detector's interval in processed frames follows the video's rate and the
+    stride (`detect_every_s`): 10 frames at 30 frames/s, 20 at 60, 10 at 60 with stride 2; a
+    video whose rate is unknown counts as 30 frames/s; `detect_every` in frames overrides."""
+    assert detector_interval(TrackSettings(), 30.0) == 10
+    assert detector_interval(TrackSettings(), 60.0) == 20
+    assert detector_interval(TrackSettings(stride=2), 60.0) == 10
+    assert detector_interval(TrackSettings(), None) == detector_interval(TrackSettings(), 0.0) == 10
+    s = TrackSettings(stride=stride, detect_every_s=every_s, detect_every=n)
+    got = detector_interval(s, fps)
+    assert person_model_config(s, fps=fps).detect_every == got
+    if n is not None:
+        assert got == n
+    else:
+        assert got >= 1
+        # the run's period in seconds of video is the setting's, to half a processed frame
+        assert got == 1 or abs(got * stride / fps - every_s) <= 0.5 * stride / fps + 1e-9
 
 
 def test_a_jobs_torch_threads_are_put_back(monkeypatch):

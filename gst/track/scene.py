@@ -58,7 +58,7 @@ from gst.track.schema import parse_metadata
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
-from gst.video import probe_video
+from gst.video import VideoError, probe_video
 from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.track")
@@ -81,7 +81,11 @@ class TrackSettings(BaseModel):
     # extra and `python -m gst.detect fetch`), else the static-camera background model.
     # 'blazepose' requires it; 'background' always uses the background model.
     detector: Literal["auto", "background", "blazepose"] = "auto"
-    detect_every: int = Field(default=10, ge=1)  # blazepose: detector runs between tracked frames
+    # blazepose: while everyone is tracked, the detector looks for new arrivals every this many
+    # seconds of video (in processed frames: the video's rate / stride x this, rounded, at least
+    # 1; 10 at 30 frames/s, 20 at 60), so that a newcomer waits as long at any frame rate
+    detect_every_s: float = Field(default=1 / 3, gt=0)
+    detect_every: int | None = Field(default=None, ge=1)  # processed frames instead of seconds
     # blazepose: each detector run looks once more with the people found painted out (finds
     # people the one-person detector skips; one more detector call per run; docs/
     # track_evaluation.md "Looking again")
@@ -180,7 +184,6 @@ def _cores_per_video(parallel_videos: int) -> int:
 
 # track settings that are the learned person model's own, under the same names
 PERSON_MODEL_SETTINGS = (
-    "detect_every",
     "look_again",
     "look_again_zoom",
     "still_change",
@@ -188,10 +191,26 @@ PERSON_MODEL_SETTINGS = (
 )
 
 
-def person_model_config(s: TrackSettings, parallel_videos: int = 1) -> PersonModelConfig:
-    """The learned person model's settings for `s`, with `parallel_videos` tracked at once."""
+def detector_interval(s: TrackSettings, fps: float | None) -> int:
+    """Processed frames between the person detector's runs for new arrivals in a video of
+    `fps` frames per second (unknown: as at 30): `detect_every`, else `detect_every_s`."""
+    if s.detect_every is not None:
+        return s.detect_every
+    rate = fps if fps and fps > 0 else 30.0
+    return max(1, round(rate / s.stride * s.detect_every_s))
+
+
+def person_model_config(
+    s: TrackSettings, parallel_videos: int = 1, fps: float | None = None
+) -> PersonModelConfig:
+    """The learned person model's settings for `s` on a video of `fps` frames per second, with
+    `parallel_videos` tracked at once."""
     threads = s.detector_threads or min(4, _cores_per_video(parallel_videos))
-    return PersonModelConfig(threads=threads, **{k: getattr(s, k) for k in PERSON_MODEL_SETTINGS})
+    return PersonModelConfig(
+        threads=threads,
+        detect_every=detector_interval(s, fps),
+        **{k: getattr(s, k) for k in PERSON_MODEL_SETTINGS},
+    )
 
 
 def network_threads(s: TrackSettings, kind: str, workers: int, parallel_videos: int) -> int | None:
@@ -219,22 +238,32 @@ def _detector(
     camera: Camera | None,
     rig: Rig | None,
     parallel_videos: int = 1,
+    fps: float | None = None,
 ) -> Callable:
     """A picklable factory of the video's person detector: supplied boxes, the learned person
     model, or the static-camera background model."""
     if kind == "boxes":
         return functools.partial(SuppliedBoxes.from_file, s.boxes, video=video.stem)
     if kind == "blazepose":
-        return functools.partial(PersonModelDetector, person_model_config(s, parallel_videos))
+        return functools.partial(PersonModelDetector, person_model_config(s, parallel_videos, fps))
     up = tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)
     return functools.partial(StaticCameraDetector, video, camera=camera, up=up)
 
 
-def _detector_info(kind: str, why: str, s: TrackSettings) -> dict:
+def _video_rate(video: Path) -> float | None:
+    """The video's frame rate, or None where it cannot be read (the video's own job then
+    fails with the reason, naming it)."""
+    try:
+        return probe_video(video).fps
+    except VideoError:
+        return None
+
+
+def _detector_info(kind: str, why: str, s: TrackSettings, fps: float | None) -> dict:
     info = {"name": kind, "why": why}
     if kind == "blazepose":
         info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
-        info["config"] = person_model_config(s).settings()
+        info["config"] = person_model_config(s, fps=fps).settings()
     return info
 
 
@@ -326,7 +355,6 @@ def track_scene(
     name, pose_input = loaded.name, loaded.pose_input
     kind, why = choose_detector(s)  # a missing 'blazepose' fails here, not in a worker
     log.info("person detector: %s (%s)", kind, why)
-    detector_info = _detector_info(kind, why, s)
     model_info = model_provenance(request.checkpoint, name, request.scene, pose_input)
     log.info(
         "model: %s, trained on %s; pose from %s (track.image_path: %s)%s",
@@ -388,12 +416,13 @@ def track_scene(
         elif not seen:
             log.info("%s: calibrated camera; the model's training does not record it", video.stem)
         fit = camera is None if s.fit_pose == "auto" else bool(s.fit_pose)
+        rate = _video_rate(video) if kind == "blazepose" else None
         if fit:
             log.info("%s: poses are fitted to the landmarks where they disagree", video.stem)
         jobs.append(
             VideoJob(
                 video,
-                _detector(kind, s, video, camera, rig, parallel_videos),
+                _detector(kind, s, video, camera, rig, parallel_videos, rate),
                 predictor,
                 {**model_info.to_dict(), "seen_this_camera": seen},
                 name=video.stem,
@@ -402,7 +431,7 @@ def track_scene(
                 options=replace(options, pose_fit=PoseFitConfig() if fit else None),
                 threads=threads,
                 keep_extras=with_gaussians,
-                detector_info=detector_info,
+                detector_info=_detector_info(kind, why, s, rate),
             )
         )
     chunking = ChunkingConfig(s.chunk_frames, s.chunk_overlap) if s.chunk_frames else None
