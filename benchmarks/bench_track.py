@@ -612,10 +612,60 @@ def real_footage(args) -> None:
                 f"{med:6.1f}/{p95:6.1f} {missed:6d}",
                 flush=True,
             )
+        replayed_speed(video, camera, rig_up, gst, opts(), stage_torch, fps, args.repeats, tmp)
         if args.demo is not None:
             demo_accuracy(args.demo, variants, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def replayed_speed(video, camera, rig_up, gst, options, torch_threads, fps, repeats, tmp) -> None:
+    """`track` over a video whose person detections an earlier run kept (track.keep_detections,
+    gst.track.detection_cache): a first run that keeps them, then `repeats` runs that replay
+    them; their rows against the first run's."""
+    import pyarrow.parquet as pq
+
+    from gst.track.person_detector import PersonModelDetector
+    from gst.track.scene import TrackSettings, _detector_info, person_model_config
+
+    s = TrackSettings()
+    info = _detector_info("blazepose", "bench", s, fps)
+    torch.set_num_threads(torch_threads)
+    cache, walls, cpus, same = tmp / "kept_detections", [], [], True
+    first = None
+    for rep in range(repeats + 1):
+        out = tmp / f"replay{rep}"
+        shutil.rmtree(out, ignore_errors=True)
+        det = PersonModelDetector(person_model_config(s, fps=fps))
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = track_video(
+            video,
+            out,
+            det,
+            gst,
+            model={"name": gst.name, "version": "bench"},
+            camera=camera,
+            options=options,
+            world_up=rig_up,
+            resume=False,
+            detector_info=info,
+            detections_cache=cache,
+        )
+        rows = pq.read_table(res.path).drop_columns(["time_s"]).to_pydict()
+        if rep == 0:
+            first = rows
+            continue
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+        same &= rows == first
+    wall, n = statistics.median(walls), res.frames
+    print(
+        f"detections replayed (a second run over the video, track.keep_detections): "
+        f"{n / wall:.1f} frames/s ({n / wall / fps:.2f}x real time), CPU "
+        f"{1000 * statistics.median(cpus) / n:.1f} ms/frame, median of {len(walls)}; rows the "
+        f"same as the first run's: {same}",
+        flush=True,
+    )
 
 
 def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:

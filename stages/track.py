@@ -51,6 +51,7 @@ def run(ctx: StageContext) -> None:
         combined_evaluation=ctx.out("reports/track/evaluation.md") if _own_videos(ctx) else None,
         frame_size_tolerance=ctx.scene.frame_size_tolerance,
         scene=ctx.scene_name,
+        detections_cache=ctx.path(".pipeline/cache/detections"),
     )
     executor = ctx.executor
     track_scene(ctx.params, request, map_fn=executor.map if executor is not None else None,

@@ -64,6 +64,9 @@ class VideoJob:
     threads: int | None = None  # torch threads inside the worker (None: leave as is)
     keep_extras: bool = False  # return each person's first extra outputs (e.g. Gaussians)
     detector_info: dict | None = None  # which person detector runs and why (gst.detector)
+    # a folder where the detector's detections of the video are kept and replayed
+    # (gst.track.detection_cache; whole videos only, not chunks)
+    detections_cache: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,7 @@ def _run_item(item: _Item) -> Any:
             predictor,
             staging_root=item.staging_root,
             on_extra=keep if job.keep_extras else None,
+            detections_cache=job.detections_cache,
             **_run_settings(job),
         )
         return VideoOutcome(job, result, extras)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
@@ -30,6 +31,12 @@ from gst.prefetch import background
 from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.detection import N_LANDMARKS, Detection, Detector
+from gst.track.detection_cache import (
+    RecordingDetector,
+    ReplayedDetector,
+    detections_key,
+    load_detections,
+)
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
 from gst.track.mirror import LabelSmoother, MirrorConfig
 from gst.track.pose_fit import PoseFitConfig, PoseFitter
@@ -47,6 +54,8 @@ from gst.video import (
     iter_frames,
     probe_video,
 )
+
+log = logging.getLogger("gst.track")
 
 
 @dataclass(frozen=True)
@@ -528,6 +537,7 @@ def track_video(
     on_frame: Callable[[int], None] | None = None,
     on_extra: Callable[[int, int, dict], None] | None = None,
     detector_info: dict | None = None,
+    detections_cache: str | Path | None = None,
 ) -> TrackResult:
     """Track every person in `video_path` and write <out_root>/video=<name>/tracks.parquet.
 
@@ -539,6 +549,9 @@ def track_video(
     damage are committed first (valid Parquet in the staging folder), then the error is raised.
     `detector_info` (which person detector runs and why) is recorded as `gst.detector` and in
     the settings digest. `on_frame(frame)` is called for every processed frame (progress bars).
+    With `detections_cache` (a folder) and `detector_info`, a run from the first frame of a video
+    of known length replays the detections kept there by an earlier run with the same video,
+    detector and frames, or keeps its own for the next (gst.track.detection_cache).
     `on_extra(frame, person_id, extra)` receives, for every written row, the predictor's outputs
     beyond the body (e.g. Gaussians for a per-track splat), after the row group holding it is
     committed; frames committed by an earlier, interrupted run are not replayed.
@@ -577,6 +590,9 @@ def track_video(
         start_frame = resumed_from = point.next_frame
         # time spent by the runs this one resumes (kept beside the state, never in the output)
         seconds_before = float(point.state.get("elapsed_s", 0.0))
+    detector, keep_detections = _with_kept_detections(
+        detector, detections_cache, video_path, run, start_frame, options.stride
+    )
     for g in tracked_groups(
         video_path,
         run,
@@ -593,6 +609,8 @@ def track_video(
         writer.commit(g.table, g.next_frame, {**session.state_dict(), "elapsed_s": elapsed})
         if on_extra is not None and g.poses.extra:
             _replay_extras(g, on_extra)
+    if keep_detections is not None:
+        keep_detections()
     stats = {**session.stats, "persons": session.tracker.next_id}
     meta = run_metadata(run, options, model, world_up, stats, writer.digest, num_betas)
     path = writer.finalize(meta, options.row_group_rows)
@@ -604,6 +622,27 @@ def track_video(
         resumed_from,
         seconds_before + time.perf_counter() - t0,
     )
+
+
+def _with_kept_detections(
+    detector: Detector,
+    cache: str | Path | None,
+    video_path: str | Path,
+    run: VideoRun,
+    start_frame: int,
+    stride: int,
+) -> tuple[Detector, Callable[[], None] | None]:
+    """The detector to run (the kept detections replayed, or the given one recording them) and
+    what saves the recording at the end (None: nothing to save)."""
+    if cache is None or run.detector is None or run.end is None or start_frame != run.first:
+        return detector, None
+    path = Path(cache) / detections_key(video_path, run.detector, run.first, stride)
+    kept = load_detections(path, run.first, stride, run.end)
+    if kept is not None:
+        log.info("%s: person detections replayed from %s", run.name, path)
+        return ReplayedDetector(kept), None
+    recording = RecordingDetector(detector)
+    return recording, lambda: recording.save(path, run.end)
 
 
 def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) -> None:

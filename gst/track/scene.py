@@ -132,6 +132,10 @@ class TrackSettings(BaseModel):
     # gate shows the image's share negligible (gst.model.inference.image_shapes_pose; same
     # accuracy at a quarter of the network's time, docs/track_evaluation.md); 'always': never skip
     image_path: Literal["auto", "always"] = "auto"
+    # blazepose: keep the person model's detections of each video and replay them when the same
+    # video is tracked again from its start with the same person model and settings (a new
+    # network, other tracker settings): the model does not run again (gst.track.detection_cache)
+    keep_detections: bool = True
     # where the network runs (gst.device): auto is the GPU when PyTorch sees one, else the CPU;
     # decoding, the person model and the pose fit stay on the CPU
     device: str = "auto"
@@ -154,6 +158,8 @@ class TrackRequest:
     combined_evaluation: Path | None = None
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # calibration.camera.fit_to_frames
     scene: str | None = None  # the scene whose model (models/gst.pt) tracks the videos
+    # where the person model's detections are kept between runs (gst.track.detection_cache)
+    detections_cache: Path | None = None
 
 
 def choose_detector(s: TrackSettings) -> tuple[str, str]:
@@ -432,6 +438,9 @@ def track_scene(
                 threads=threads,
                 keep_extras=with_gaussians,
                 detector_info=_detector_info(kind, why, s, rate),
+                detections_cache=request.detections_cache
+                if kind == "blazepose" and s.keep_detections
+                else None,
             )
         )
     chunking = ChunkingConfig(s.chunk_frames, s.chunk_overlap) if s.chunk_frames else None
