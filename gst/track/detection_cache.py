@@ -151,6 +151,8 @@ class RecordingDetector:
         self._found: list[list[Detection]] = []
 
     def __getattr__(self, name: str):  # counters and settings of the detector (benchmarks)
+        if name == "inner":  # not set yet (a copy being made): no recursion
+            raise AttributeError(name)
         return getattr(self.inner, name)
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
