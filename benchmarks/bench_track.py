@@ -31,6 +31,11 @@ not changed, docs/track_evaluation.md "People who stand still"). "without zoom" 
 again in the usual detector windows only (`look_again_zoom: 0`; docs/track_evaluation.md "Small
 people at the back"). "left/right labels as detected" leaves out the smoother that keeps each
 person's left and right continuous (`unmirror`; docs/track_evaluation.md "Left and right").
+"detector every 10 frames (before 11-29)" runs the detector for new arrivals every 10 processed
+frames, as before its interval became 1/3 s of video (`detect_every_s`; 20 frames at 60 fps;
+docs/track_evaluation.md "The detector's interval in seconds"). Each variant's person model is
+made for the video's frame rate. The last line times a second run over the video that replays
+the detections the first one kept (`keep_detections`, gst.track.detection_cache).
 
     python benchmarks/bench_track.py [--frames 150] [--repeats 3] [--people 3]
     python benchmarks/bench_track.py --real [--camera cam01] [--real-frames 100] [--repeats 3]
