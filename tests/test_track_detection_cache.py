@@ -67,9 +67,10 @@ def test_a_second_run_replays_the_detections_and_writes_the_same_tracks(clip, tm
     first = CountingDetector(boxes)
     a = _track(video, tmp_path / "a", first, cache)
     assert first.calls == N and len(list(cache.glob("detections-*.npz"))) == 1
+    assert a.detections == "run and kept"
     again = CountingDetector(boxes)
     b = _track(video, tmp_path / "b", again, cache)
-    assert again.calls == 0  # replayed
+    assert again.calls == 0 and b.detections == "replayed"
     assert _rows(a.path) == _rows(b.path)
     # a shorter run replays the start of the longer one's file
     short = CountingDetector(boxes)

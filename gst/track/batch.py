@@ -232,7 +232,13 @@ def _finish_chunked(
     if writer.finished_digest() == writer.digest:
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
         result = TrackResult(
-            writer.final_path, stats["rows"], stats["frames"], stats["persons"], None, 0.0
+            writer.final_path,
+            stats["rows"],
+            stats["frames"],
+            stats["persons"],
+            None,
+            0.0,
+            "not needed (the finished file was kept)",
         )
         return VideoOutcome(job, result, chunks=len(plans))
     chunks = []

@@ -112,6 +112,9 @@ class TrackResult:
     persons: int
     resumed_from_frame: int | None
     seconds: float
+    # the person detector's work: "run", "run and kept" (for the next run over the video),
+    # "replayed" (kept by an earlier run; gst.track.detection_cache) or not needed
+    detections: str = "run"
 
 
 def _axes_json(calibrated: bool, world_up) -> dict:
@@ -581,6 +584,7 @@ def track_video(
             stats["persons"],
             None,
             time.perf_counter() - t0,
+            "not needed (the finished file was kept)",
         )
     session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
@@ -590,7 +594,7 @@ def track_video(
         start_frame = resumed_from = point.next_frame
         # time spent by the runs this one resumes (kept beside the state, never in the output)
         seconds_before = float(point.state.get("elapsed_s", 0.0))
-    detector, keep_detections = _with_kept_detections(
+    detector, keep_detections, detections = _with_kept_detections(
         detector, detections_cache, video_path, run, start_frame, options.stride
     )
     for g in tracked_groups(
@@ -621,6 +625,7 @@ def track_video(
         stats["persons"],
         resumed_from,
         seconds_before + time.perf_counter() - t0,
+        detections,
     )
 
 
@@ -631,18 +636,19 @@ def _with_kept_detections(
     run: VideoRun,
     start_frame: int,
     stride: int,
-) -> tuple[Detector, Callable[[], None] | None]:
+) -> tuple[Detector, Callable[[], None] | None, str]:
     """The detector to run (the kept detections replayed, or the given one recording them) and
-    what saves the recording at the end (None: nothing to save)."""
+    what saves the recording at the end (None: nothing to save), and which it was
+    (`TrackResult.detections`)."""
     if cache is None or run.detector is None or run.end is None or start_frame != run.first:
-        return detector, None
+        return detector, None, "run"
     path = Path(cache) / detections_key(video_path, run.detector, run.first, stride)
     kept = load_detections(path, run.first, stride, run.end)
     if kept is not None:
         log.info("%s: person detections replayed from %s", run.name, path)
-        return ReplayedDetector(kept), None
+        return ReplayedDetector(kept), None, "replayed"
     recording = RecordingDetector(detector)
-    return recording, lambda: recording.save(path, run.end)
+    return recording, lambda: recording.save(path, run.end), "run and kept"
 
 
 def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) -> None:

@@ -556,17 +556,20 @@ def write_video_report(
         "fps": round(fps, 2),
         "calibrated": outcome.job.camera is not None,
         "chunks": outcome.chunks,
+        "person_detections": result.detections,
     }
     table = read_tracks(result.path)
     # detections whose left/right labels were exchanged (track.unmirror, gst.track.mirror)
     stats = parse_metadata(table.schema).get("stats") or {}
     summary["landmarks_exchanged"] = int(stats.get("landmarks_exchanged", 0))
     log.info(
-        "%s: %d frames, %d people, %.1f frames/s; left/right labels exchanged in %d detection(s)",
+        "%s: %d frames, %d people, %.1f frames/s (person detector: %s); left/right labels "
+        "exchanged in %d detection(s)",
         name,
         result.frames,
         result.persons,
         fps,
+        result.detections,
         summary["landmarks_exchanged"],
     )
     summary.update(_landmark_agreement(table, outcome.job.camera, name))
