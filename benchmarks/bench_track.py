@@ -465,7 +465,7 @@ def real_footage(args) -> None:
             return SegmentEveryFrame()
 
         default = person_model_config(TrackSettings(), fps=fps)
-        before = person_model_config(TrackSettings(detect_every_s=1 / 6), fps=fps).detect_every
+        before = 10  # processed frames between detector runs before 11-29 evening, any rate
         torch_default = torch.get_num_threads()
         stage_torch = network_threads(TrackSettings(), "blazepose", 1, 1) or torch_default
         variants = [  # (name, detector factory, options, torch threads, network image path)
@@ -638,7 +638,7 @@ def replayed_speed(video, camera, rig_up, gst, options, torch_threads, fps, repe
     torch.set_num_threads(torch_threads)
     cache, walls, cpus, same = tmp / "kept_detections", [], [], True
     first = None
-    for rep in range(repeats + 1):
+    for rep in range(max(1, repeats) + 1):
         out = tmp / f"replay{rep}"
         shutil.rmtree(out, ignore_errors=True)
         det = PersonModelDetector(person_model_config(s, fps=fps))
@@ -660,6 +660,8 @@ def replayed_speed(video, camera, rig_up, gst, options, torch_threads, fps, repe
         if rep == 0:
             first = rows
             continue
+        if res.detections != "replayed":
+            raise SystemExit(f"the run after the first did not replay ({res.detections})")
         walls.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
         same &= rows == first

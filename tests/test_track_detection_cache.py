@@ -86,10 +86,10 @@ def test_the_kept_detections_are_those_found(clip, tmp_path):
     path = tmp_path / "kept.npz"
     rec.save(path, N)
     back = dc.load_detections(path, 0, 2, N)
-    assert sorted(back) == sorted(found)
+    assert sorted(back.starts) == sorted(found)
     for i, ds in found.items():
-        assert len(back[i]) == len(ds)
-        for d, e in zip(ds, back[i], strict=True):
+        assert len(back.at(i)) == len(ds)
+        for d, e in zip(ds, back.at(i), strict=True):
             np.testing.assert_array_equal(d.box, e.box)
             assert d.score == e.score
             if d.landmarks is None:
@@ -98,6 +98,36 @@ def test_the_kept_detections_are_those_found(clip, tmp_path):
                 np.testing.assert_array_equal(d.landmarks, e.landmarks)
     assert dc.load_detections(path, 0, 2, N + 2) is None  # the file does not reach that far
     assert dc.load_detections(path, 0, 1, N) is None  # other frames
+
+
+def test_a_run_whose_decoding_stopped_short_is_replayed_to_the_same_frame(clip, tmp_path):
+    """A container may count a frame or two more than it holds: the run planned to N stops
+    at N - 2, and so does every run over the same bytes; its file serves them."""
+    _, boxes = clip
+    rec = dc.RecordingDetector(CountingDetector(boxes))
+    for i in range(N - 2):
+        rec.detect(None, i)
+    path = tmp_path / "short.npz"
+    rec.save(path, N)
+    back = dc.load_detections(path, 0, 1, N)
+    assert back is not None and sorted(back.starts) == list(range(N - 2))
+    # a file with a frame missing inside the range serves nothing
+    gap = dc.RecordingDetector(CountingDetector(boxes))
+    for i in [*range(5), *range(6, N)]:
+        gap.detect(None, i)
+    gap.save(tmp_path / "gap.npz", N)
+    assert dc.load_detections(tmp_path / "gap.npz", 0, 1, N) is None
+
+
+def test_a_cache_that_cannot_be_written_leaves_the_run_as_it_is(clip, tmp_path, caplog):
+    video, boxes = clip
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file where the cache folder should be")
+    det = CountingDetector(boxes)
+    with caplog.at_level("WARNING", logger="gst.track"):
+        res = _track(video, tmp_path / "a", det, blocked)
+    assert det.calls == N and res.detections == "run" and "not kept" in caplog.text
+    assert res.rows > 0
 
 
 def test_another_video_settings_or_run_does_not_replay(clip, tmp_path):
@@ -134,13 +164,18 @@ def test_another_video_settings_or_run_does_not_replay(clip, tmp_path):
     assert not (tmp_path / "cache2").exists()
 
 
-def test_other_person_model_code_is_another_key(clip, monkeypatch):
+def test_other_person_model_code_frames_or_stride_is_another_key(clip, monkeypatch, tmp_path):
     video, _ = clip
+    module = tmp_path / "fake_person_model.py"
+    module.write_text("THRESHOLD = 0.5\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(dc, "DETECTOR_MODULES", ("fake_person_model",))
     key = dc.detections_key(video, INFO, 0, 1)
     assert key == dc.detections_key(video, INFO, 0, 1)
-    monkeypatch.setattr(dc, "DETECTOR_MODULES", (*dc.DETECTOR_MODULES, "gst.track.tracker"))
+    module.write_text("THRESHOLD = 0.6\n")  # the module's source changed
     assert dc.detections_key(video, INFO, 0, 1) != key
     assert dc.detections_key(video, INFO, 1, 1) != dc.detections_key(video, INFO, 0, 1)
+    assert dc.detections_key(video, INFO, 0, 2) != dc.detections_key(video, INFO, 0, 1)
 
 
 def test_a_damaged_file_is_not_used_and_is_written_again(clip, tmp_path, caplog):

@@ -26,8 +26,10 @@ import importlib.metadata
 import json
 import logging
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from gst.atomic import atomic_path
@@ -35,6 +37,7 @@ from gst.track.detection import N_LANDMARKS, Detection, Detector
 
 __all__ = [
     "DETECTOR_MODULES",
+    "KeptDetections",
     "RecordingDetector",
     "ReplayedDetector",
     "detections_key",
@@ -48,6 +51,7 @@ FORMAT = 1
 # the modules whose code decides what the learned person model finds
 # (gst.detect.weights pins the model files by their SHA-256)
 DETECTOR_MODULES = (
+    "gst.video",
     "gst.detect.blazepose",
     "gst.detect.boxes",
     "gst.detect.persons",
@@ -55,8 +59,8 @@ DETECTOR_MODULES = (
     "gst.track.detection",
     "gst.track.person_detector",
 )
-# the libraries that run them
-DETECTOR_PACKAGES = ("ai-edge-litert", "opencv-contrib-python-headless", "numpy")
+# the libraries that run them (OpenCV by its module's own version: any wheel may provide cv2)
+DETECTOR_PACKAGES = ("ai-edge-litert", "numpy")
 _CHUNK = 8 << 20
 
 
@@ -80,6 +84,7 @@ def _code_digest() -> str:
         except importlib.metadata.PackageNotFoundError:
             version = "not installed"
         h.update(f"{package}=={version}".encode())
+    h.update(f"opencv=={cv2.__version__}".encode())
     return h.hexdigest()
 
 
@@ -97,11 +102,37 @@ def detections_key(video: str | Path, detector_info: dict, first_frame: int, str
     return f"detections-{digest.hexdigest()}.npz"
 
 
+@dataclass(frozen=True)
+class KeptDetections:
+    """The detections of a run's frames, as arrays (`RecordingDetector.save` writes them):
+    frame f's are rows starts[f] .. starts[f] + counts[f] of the per-detection arrays."""
+
+    starts: dict[int, tuple[int, int]]  # frame -> (first row, number of rows)
+    boxes: np.ndarray  # (N, 4) float64
+    scores: np.ndarray  # (N,) float64
+    landmarks: np.ndarray  # (N, 33, 3) float32, NaN where has_landmarks is false
+    has_landmarks: np.ndarray  # (N,) bool
+
+    def at(self, frame: int) -> list[Detection]:
+        a, n = self.starts[frame]
+        return [
+            Detection(
+                self.boxes[i],
+                float(self.scores[i]),
+                landmarks=self.landmarks[i] if self.has_landmarks[i] else None,
+            )
+            for i in range(a, a + n)
+        ]
+
+
 def load_detections(
     path: Path, first_frame: int, stride: int, end_frame: int
-) -> dict[int, list[Detection]] | None:
+) -> KeptDetections | None:
     """The detections of frames first_frame, first_frame + stride, ... < end_frame from the file,
-    or None where it is missing, unreadable or does not reach that far."""
+    or None where it is missing, unreadable or does not reach that far. A file written by a run
+    planned to reach at least `end_frame` whose decoding stopped earlier (a container that
+    counts a frame or two more than it holds) serves the frames it has: the same bytes stop at
+    the same frame."""
     if not path.is_file():
         return None
     try:
@@ -109,46 +140,53 @@ def load_detections(
             if int(z["format"]) != FORMAT or int(z["end_frame"]) < end_frame:
                 return None
             frames, counts = z["frames"], z["counts"]
-            boxes, scores, landmarks = z["boxes"], z["scores"], z["landmarks"]
-            has = z["has_landmarks"]
+            kept = KeptDetections(
+                {},
+                z["boxes"],
+                z["scores"],
+                z["landmarks"],
+                z["has_landmarks"],
+            )
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         log.warning("%s: not read (%s); the person model runs again", path, exc)
         return None
-    wanted = set(range(first_frame, end_frame, stride))
-    starts = np.r_[0, np.cumsum(counts)]
-    out: dict[int, list[Detection]] = {}
-    for f, a, b in zip(frames.tolist(), starts[:-1], starts[1:], strict=True):
+    last = int(frames[-1]) if len(frames) else first_frame - 1
+    wanted = set(range(first_frame, min(end_frame, last + 1), stride))
+    starts = np.r_[0, np.cumsum(counts)].tolist()
+    for k, f in enumerate(frames.tolist()):
         if f in wanted:
-            out[f] = [
-                Detection(boxes[i], float(scores[i]), landmarks=landmarks[i] if has[i] else None)
-                for i in range(a, b)
-            ]
-    if set(out) != wanted:
+            kept.starts[f] = (starts[k], starts[k + 1] - starts[k])
+    if set(kept.starts) != wanted or not wanted:
         log.warning("%s: does not hold the run's frames; the person model runs again", path)
         return None
-    return out
+    return kept
 
 
 class ReplayedDetector:
     """A detector that gives the detections read from a file (`load_detections`)."""
 
-    def __init__(self, detections: dict[int, list[Detection]]):
+    def __init__(self, detections: KeptDetections):
         self._detections = detections
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         try:
-            return self._detections[frame_index]
+            return self._detections.at(frame_index)
         except KeyError:
             raise ValueError(f"no kept detections for frame {frame_index}") from None
 
 
 class RecordingDetector:
-    """A detector as given that also keeps what it found, frame by frame, to `save` them."""
+    """A detector as given that also keeps what it found, frame by frame, as arrays (a long
+    video's detections as objects would take several times the memory), to `save` them."""
 
     def __init__(self, inner: Detector):
         self.inner = inner
         self._frames: list[int] = []
-        self._found: list[list[Detection]] = []
+        self._counts: list[int] = []
+        self._boxes: list[np.ndarray] = []
+        self._scores: list[np.ndarray] = []
+        self._landmarks: list[np.ndarray] = []
+        self._has: list[np.ndarray] = []
 
     def __getattr__(self, name: str):  # counters and settings of the detector (benchmarks)
         if name == "inner":  # not set yet (a copy being made): no recursion
@@ -158,25 +196,33 @@ class RecordingDetector:
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         found = self.inner.detect(frame_bgr, frame_index)
         self._frames.append(int(frame_index))
-        self._found.append(list(found))
+        self._counts.append(len(found))
+        if found:
+            lms = np.full((len(found), N_LANDMARKS, 3), np.nan, np.float32)
+            for i, d in enumerate(found):
+                if d.landmarks is not None:
+                    lms[i] = d.landmarks
+            self._boxes.append(np.array([d.box for d in found], np.float64))
+            self._scores.append(np.array([d.score for d in found], np.float64))
+            self._landmarks.append(lms)
+            self._has.append(np.array([d.landmarks is not None for d in found], bool))
         return found
 
     def save(self, path: Path, end_frame: int) -> None:
-        """Write the kept detections, valid for runs that end at or before `end_frame`."""
-        flat = [d for ds in self._found for d in ds]
-        lms = np.full((len(flat), N_LANDMARKS, 3), np.nan, np.float32)
-        for i, d in enumerate(flat):
-            if d.landmarks is not None:
-                lms[i] = d.landmarks
+        """Write the kept detections, valid for runs planned to end at or before `end_frame`."""
+
+        def joined(parts: list[np.ndarray], shape: tuple, dtype) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
+
         with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(
                 f,
                 format=np.int64(FORMAT),
                 end_frame=np.int64(end_frame),
                 frames=np.asarray(self._frames, np.int64),
-                counts=np.asarray([len(ds) for ds in self._found], np.int64),
-                boxes=np.asarray([d.box for d in flat], np.float64).reshape(-1, 4),
-                scores=np.asarray([d.score for d in flat], np.float64),
-                landmarks=lms,
-                has_landmarks=np.asarray([d.landmarks is not None for d in flat], bool),
+                counts=np.asarray(self._counts, np.int64),
+                boxes=joined(self._boxes, (4,), np.float64),
+                scores=joined(self._scores, (), np.float64),
+                landmarks=joined(self._landmarks, (N_LANDMARKS, 3), np.float32),
+                has_landmarks=joined(self._has, (), bool),
             )

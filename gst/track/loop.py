@@ -613,8 +613,8 @@ def track_video(
         writer.commit(g.table, g.next_frame, {**session.state_dict(), "elapsed_s": elapsed})
         if on_extra is not None and g.poses.extra:
             _replay_extras(g, on_extra)
-    if keep_detections is not None:
-        keep_detections()
+    if keep_detections is not None and not keep_detections():
+        detections = "run"  # they could not be kept: the run's own result stands
     stats = {**session.stats, "persons": session.tracker.next_id}
     meta = run_metadata(run, options, model, world_up, stats, writer.digest, num_betas)
     path = writer.finalize(meta, options.row_group_rows)
@@ -636,9 +636,10 @@ def _with_kept_detections(
     run: VideoRun,
     start_frame: int,
     stride: int,
-) -> tuple[Detector, Callable[[], None] | None, str]:
+) -> tuple[Detector, Callable[[], bool] | None, str]:
     """The detector to run (the kept detections replayed, or the given one recording them) and
-    what saves the recording at the end (None: nothing to save), and which it was
+    what saves the recording at the end (None: nothing to save; False: it could not), and which
+    it was
     (`TrackResult.detections`)."""
     if cache is None or run.detector is None or run.end is None or start_frame != run.first:
         return detector, None, "run"
@@ -648,7 +649,16 @@ def _with_kept_detections(
         log.info("%s: person detections replayed from %s", run.name, path)
         return ReplayedDetector(kept), None, "replayed"
     recording = RecordingDetector(detector)
-    return recording, lambda: recording.save(path, run.end), "run and kept"
+
+    def keep() -> bool:
+        try:
+            recording.save(path, run.end)
+        except OSError as exc:  # a full disk or a read-only cache: the tracks do not need it
+            log.warning("%s: person detections not kept in %s (%s)", run.name, path, exc)
+            return False
+        return True
+
+    return recording, keep, "run and kept"
 
 
 def _replay_extras(g: TrackedGroup, on_extra: Callable[[int, int, dict], None]) -> None:

@@ -423,6 +423,13 @@ def track_scene(
             log.info("%s: calibrated camera; the model's training does not record it", video.stem)
         fit = camera is None if s.fit_pose == "auto" else bool(s.fit_pose)
         rate = _video_rate(video) if kind == "blazepose" else None
+        if kind == "blazepose":
+            every = detector_interval(s, rate)
+            log.info(
+                "%s: the person detector looks for new arrivals every %d processed frame(s) "
+                "(%s frames/s, stride %d; track.detect_every_s %.3g s)",
+                video.stem, every, f"{rate:g}" if rate else "unknown", s.stride, s.detect_every_s,
+            )  # fmt: skip
         if fit:
             log.info("%s: poses are fitted to the landmarks where they disagree", video.stem)
         jobs.append(
