@@ -425,10 +425,17 @@ def track_scene(
         rate = _video_rate(video) if kind == "blazepose" else None
         if kind == "blazepose":
             every = detector_interval(s, rate)
+            why = (
+                "track.detect_every"
+                if s.detect_every is not None
+                else f"{rate:g} frames/s"
+                if rate
+                else "rate unknown: as at 30 frames/s"
+            )
             log.info(
                 "%s: the person detector looks for new arrivals every %d processed frame(s) "
-                "(%s frames/s, stride %d; track.detect_every_s %.3g s)",
-                video.stem, every, f"{rate:g}" if rate else "unknown", s.stride, s.detect_every_s,
+                "(%s, stride %d, track.detect_every_s %.3g s)",
+                video.stem, every, why, s.stride, s.detect_every_s,
             )  # fmt: skip
         if fit:
             log.info("%s: poses are fitted to the landmarks where they disagree", video.stem)
