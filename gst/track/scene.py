@@ -425,7 +425,7 @@ def track_scene(
         rate = _video_rate(video) if kind == "blazepose" else None
         if kind == "blazepose":
             every = detector_interval(s, rate)
-            why = (
+            source = (
                 "track.detect_every"
                 if s.detect_every is not None
                 else f"{rate:g} frames/s"
@@ -435,7 +435,7 @@ def track_scene(
             log.info(
                 "%s: the person detector looks for new arrivals every %d processed frame(s) "
                 "(%s, stride %d, track.detect_every_s %.3g s)",
-                video.stem, every, why, s.stride, s.detect_every_s,
+                video.stem, every, source, s.stride, s.detect_every_s,
             )  # fmt: skip
         if fit:
             log.info("%s: poses are fitted to the landmarks where they disagree", video.stem)
