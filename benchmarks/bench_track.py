@@ -634,7 +634,7 @@ def replayed_speed(video, camera, rig_up, gst, options, torch_threads, fps, repe
     from gst.track.scene import TrackSettings, _detector_info, person_model_config
 
     s = TrackSettings()
-    info = _detector_info("blazepose", "bench", s, fps)
+    info = _detector_info("blazepose", "bench", person_model_config(s, fps=fps))
     torch.set_num_threads(torch_threads)
     cache, walls, cpus, same = tmp / "kept_detections", [], [], True
     first = None

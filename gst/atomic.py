@@ -6,7 +6,8 @@ suffix (so writers that key on the extension, like OpenCV's, keep working); when
 ends normally the file is fsynced and renamed over the target, and on any error it is removed.
 Folders: `with atomic_dir(target) as tmp:` does the same for a whole directory tree; the old
 folder is renamed aside first, so the target is at every moment either the old or the new one.
-The callback form `atomic_write(path, write)` and the text/JSON/torch helpers build on these.
+The callback form `atomic_write(path, write)` and the text/JSON/torch/NumPy helpers build on
+these.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = [
     "PendingFile",
     "atomic_dir",
     "atomic_path",
+    "atomic_save_npz",
     "atomic_torch_save",
     "atomic_write",
     "atomic_write_json",
@@ -115,6 +117,19 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 def atomic_write_json(path: str | Path, data: Any, indent: int | None = 2) -> None:
     atomic_write_text(path, json.dumps(data, indent=indent) + "\n")
+
+
+def atomic_save_npz(path: str | Path, compressed: bool = False, **arrays) -> None:
+    """NumPy's `.npz` of `arrays` written atomically (`np.savez`, or `np.savez_compressed`)."""
+    import numpy as np  # only the array writers need it
+
+    save = np.savez_compressed if compressed else np.savez
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:  # a file object: NumPy adds no ".npz" to the name
+            save(f, **arrays)
+
+    atomic_write(path, write)
 
 
 def atomic_torch_save(obj: Any, path: str | Path) -> None:

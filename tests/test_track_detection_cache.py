@@ -88,8 +88,8 @@ def test_the_kept_detections_are_those_found(clip, tmp_path):
     back = dc.load_detections(path, 0, 2, N)
     assert sorted(back.starts) == sorted(found)
     for i, ds in found.items():
-        assert len(back.at(i)) == len(ds)
-        for d, e in zip(ds, back.at(i), strict=True):
+        assert len(back.detect(None, i)) == len(ds)
+        for d, e in zip(ds, back.detect(None, i), strict=True):
             np.testing.assert_array_equal(d.box, e.box)
             assert d.score == e.score
             if d.landmarks is None:

@@ -31,7 +31,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
-from gst.atomic import atomic_write
+from gst.atomic import atomic_save_npz
 from gst.body.rotations import axis_angle_to_matrix
 from gst.body.skeleton import kinematic_levels
 
@@ -166,11 +166,7 @@ class BodyModelData:
                     np.array(list(value), dtype=str) if key == "part_names" else np.asarray(value)
                 )
 
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
-
-        atomic_write(path, write)
+        atomic_save_npz(path, **arrays)
         return path
 
     @classmethod

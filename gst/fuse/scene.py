@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 
-from gst.atomic import atomic_write
+from gst.atomic import atomic_save_npz, atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
 from gst.cores import torch_threads
@@ -122,14 +122,6 @@ def _digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _save_npz(path: Path, **arrays) -> None:
-    def write(tmp: str) -> None:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-
-    atomic_write(path, write)
-
-
 def _video_fps(videos: dict[str, Path]) -> float:
     import cv2
 
@@ -197,7 +189,7 @@ def _fit_batches(
                 tris[a : a + o.people_per_batch], fps, o.fit, silhouettes=silhouettes,
                 floor=floor,
             )  # fmt: skip
-        _save_npz(path, **_fits_to_arrays(part))
+        atomic_save_npz(path, **_fits_to_arrays(part))
         fits += part
         if log is not None:
             log.info("fuse: fitted people %d-%d of %d", a + 1, a + len(part), len(people))
@@ -344,7 +336,7 @@ def fuse_scene(
         else:
             relooked = relook_crowded(store, landmarks, o.relook, progress=progress)
             landmarks, read_again = relooked.landmarks, relooked.rows
-            _save_npz(relook_path, landmarks=landmarks, rows=read_again)
+            atomic_save_npz(relook_path, landmarks=landmarks, rows=read_again)
         if log is not None:
             log.info(
                 "fuse: %d of %d crops crowded by other people, read again with them painted over",

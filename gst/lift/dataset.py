@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gst.atomic import atomic_path, atomic_write_text
+from gst.atomic import atomic_save_npz, atomic_write_text
 from gst.detect.blazepose import BlazePose
 from gst.detect.crops import detect_crop_landmarks
 from gst.train.synthetic_crops import crops_from_synth_scene
@@ -74,8 +74,7 @@ class LandmarkWorld:
             if getattr(self, f.name) is not None
         }
         arrays["format_version"] = np.asarray(FORMAT_VERSION)
-        with atomic_path(path) as tmp:  # same suffix: savez keeps the name as given
-            np.savez_compressed(tmp, **arrays)
+        atomic_save_npz(path, compressed=True, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> LandmarkWorld:

@@ -34,6 +34,7 @@ from gst.track.chunks import (
 )
 from gst.track.detection import Detector
 from gst.track.loop import (
+    DETECTIONS_NOT_NEEDED,
     TrackOptions,
     TrackResult,
     VideoRun,
@@ -238,7 +239,7 @@ def _finish_chunked(
             stats["persons"],
             None,
             0.0,
-            "not needed (the finished file was kept)",
+            DETECTIONS_NOT_NEEDED,
         )
         return VideoOutcome(job, result, chunks=len(plans))
     chunks = []

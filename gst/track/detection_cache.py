@@ -20,10 +20,8 @@ not used: the model runs and the file is written again.
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import importlib.metadata
-import json
 import logging
 import zipfile
 from dataclasses import dataclass
@@ -32,17 +30,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from gst.atomic import atomic_path
+from gst.atomic import atomic_save_npz
+from gst.registry import sha256_of
 from gst.track.detection import N_LANDMARKS, Detection, Detector
+from gst.track.writer import settings_digest
 
 __all__ = [
     "DETECTOR_MODULES",
     "KeptDetections",
     "RecordingDetector",
-    "ReplayedDetector",
     "detections_key",
     "load_detections",
-    "video_digest",
 ]
 
 log = logging.getLogger("gst.track")
@@ -61,51 +59,40 @@ DETECTOR_MODULES = (
 )
 # the libraries that run them (OpenCV by its module's own version: any wheel may provide cv2)
 DETECTOR_PACKAGES = ("ai-edge-litert", "numpy")
-_CHUNK = 8 << 20
 
 
-def video_digest(path: str | Path) -> str:
-    """BLAKE2b of the video file's bytes (hex, 32 characters)."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as f:
-        while block := f.read(_CHUNK):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _code_digest() -> str:
-    h = hashlib.blake2b(digest_size=16)
-    for name in DETECTOR_MODULES:
-        h.update(name.encode())
-        h.update(Path(importlib.import_module(name).__file__).read_bytes())
+def _code() -> dict[str, str]:
+    """The SHA-256 of each detector module's source and the libraries' versions."""
+    out = {
+        name: sha256_of(Path(importlib.import_module(name).__file__)) for name in DETECTOR_MODULES
+    }
     for package in DETECTOR_PACKAGES:
         try:
-            version = importlib.metadata.version(package)
+            out[package] = importlib.metadata.version(package)
         except importlib.metadata.PackageNotFoundError:
-            version = "not installed"
-        h.update(f"{package}=={version}".encode())
-    h.update(f"opencv=={cv2.__version__}".encode())
-    return h.hexdigest()
+            out[package] = "not installed"
+    out["opencv"] = cv2.__version__
+    return out
 
 
 def detections_key(video: str | Path, detector_info: dict, first_frame: int, stride: int) -> str:
     """The file name (without folder) of the video's detections for this detector and run."""
     what = {
         "format": FORMAT,
-        "video": video_digest(video),
+        "video": sha256_of(Path(video)),
         "detector": detector_info,
-        "code": _code_digest(),
+        "code": _code(),
         "first_frame": int(first_frame),
         "stride": int(stride),
     }
-    digest = hashlib.blake2b(json.dumps(what, sort_keys=True).encode(), digest_size=16)
-    return f"detections-{digest.hexdigest()}.npz"
+    return f"detections-{settings_digest(what)[:32]}.npz"
 
 
 @dataclass(frozen=True)
 class KeptDetections:
     """The detections of a run's frames, as arrays (`RecordingDetector.save` writes them):
-    frame f's are rows starts[f] .. starts[f] + counts[f] of the per-detection arrays."""
+    frame f's are rows starts[f] .. starts[f] + counts[f] of the per-detection arrays. A
+    detector that replays them (`detect`)."""
 
     starts: dict[int, tuple[int, int]]  # frame -> (first row, number of rows)
     boxes: np.ndarray  # (N, 4) float64
@@ -113,8 +100,10 @@ class KeptDetections:
     landmarks: np.ndarray  # (N, 33, 3) float32, NaN where has_landmarks is false
     has_landmarks: np.ndarray  # (N,) bool
 
-    def at(self, frame: int) -> list[Detection]:
-        a, n = self.starts[frame]
+    def detect(self, frame_bgr: np.ndarray | None, frame_index: int) -> list[Detection]:
+        if frame_index not in self.starts:
+            raise ValueError(f"no kept detections for frame {frame_index}")
+        a, n = self.starts[frame_index]
         return [
             Detection(
                 self.boxes[i],
@@ -162,19 +151,6 @@ def load_detections(
     return kept
 
 
-class ReplayedDetector:
-    """A detector that gives the detections read from a file (`load_detections`)."""
-
-    def __init__(self, detections: KeptDetections):
-        self._detections = detections
-
-    def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
-        try:
-            return self._detections.at(frame_index)
-        except KeyError:
-            raise ValueError(f"no kept detections for frame {frame_index}") from None
-
-
 class RecordingDetector:
     """A detector as given that also keeps what it found, frame by frame, as arrays (a long
     video's detections as objects would take several times the memory), to `save` them."""
@@ -187,11 +163,6 @@ class RecordingDetector:
         self._scores: list[np.ndarray] = []
         self._landmarks: list[np.ndarray] = []
         self._has: list[np.ndarray] = []
-
-    def __getattr__(self, name: str):  # counters and settings of the detector (benchmarks)
-        if name == "inner":  # not set yet (a copy being made): no recursion
-            raise AttributeError(name)
-        return getattr(self.inner, name)
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         found = self.inner.detect(frame_bgr, frame_index)
@@ -214,15 +185,14 @@ class RecordingDetector:
         def joined(parts: list[np.ndarray], shape: tuple, dtype) -> np.ndarray:
             return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype)
 
-        with atomic_path(path) as tmp, open(tmp, "wb") as f:
-            np.savez(
-                f,
-                format=np.int64(FORMAT),
-                end_frame=np.int64(end_frame),
-                frames=np.asarray(self._frames, np.int64),
-                counts=np.asarray(self._counts, np.int64),
-                boxes=joined(self._boxes, (4,), np.float64),
-                scores=joined(self._scores, (), np.float64),
-                landmarks=joined(self._landmarks, (N_LANDMARKS, 3), np.float32),
-                has_landmarks=joined(self._has, (), bool),
-            )
+        atomic_save_npz(
+            path,
+            format=np.int64(FORMAT),
+            end_frame=np.int64(end_frame),
+            frames=np.asarray(self._frames, np.int64),
+            counts=np.asarray(self._counts, np.int64),
+            boxes=joined(self._boxes, (4,), np.float64),
+            scores=joined(self._scores, (), np.float64),
+            landmarks=joined(self._landmarks, (N_LANDMARKS, 3), np.float32),
+            has_landmarks=joined(self._has, (), bool),
+        )

@@ -31,12 +31,7 @@ from gst.prefetch import background
 from gst.track.align import AlignmentConfig, align_translation
 from gst.track.appearance import DESCRIPTOR_SIZE
 from gst.track.detection import N_LANDMARKS, Detection, Detector
-from gst.track.detection_cache import (
-    RecordingDetector,
-    ReplayedDetector,
-    detections_key,
-    load_detections,
-)
+from gst.track.detection_cache import RecordingDetector, detections_key, load_detections
 from gst.track.frames import PendingFrame, PreparedDetection, TrackingSession, prepare_detection
 from gst.track.mirror import LabelSmoother, MirrorConfig
 from gst.track.pose_fit import PoseFitConfig, PoseFitter
@@ -113,8 +108,11 @@ class TrackResult:
     resumed_from_frame: int | None
     seconds: float
     # the person detector's work: "run", "run and kept" (for the next run over the video),
-    # "replayed" (kept by an earlier run; gst.track.detection_cache) or not needed
+    # "replayed" (kept by an earlier run; gst.track.detection_cache) or DETECTIONS_NOT_NEEDED
     detections: str = "run"
+
+
+DETECTIONS_NOT_NEEDED = "not needed (the finished file was kept)"
 
 
 def _axes_json(calibrated: bool, world_up) -> dict:
@@ -584,7 +582,7 @@ def track_video(
             stats["persons"],
             None,
             time.perf_counter() - t0,
-            "not needed (the finished file was kept)",
+            DETECTIONS_NOT_NEEDED,
         )
     session = TrackingSession(options.tracker, options.smoothing)
     point = writer.start(resume=resume)
@@ -637,17 +635,16 @@ def _with_kept_detections(
     start_frame: int,
     stride: int,
 ) -> tuple[Detector, Callable[[], bool] | None, str]:
-    """The detector to run (the kept detections replayed, or the given one recording them) and
-    what saves the recording at the end (None: nothing to save; False: it could not), and which
-    it was
-    (`TrackResult.detections`)."""
+    """The detector to run (the kept detections replayed, or the given one recording them), what
+    saves the recording at the end (None: nothing to save; it returns False where it could
+    not), and which it was (`TrackResult.detections`)."""
     if cache is None or run.detector is None or run.end is None or start_frame != run.first:
         return detector, None, "run"
     path = Path(cache) / detections_key(video_path, run.detector, run.first, stride)
     kept = load_detections(path, run.first, stride, run.end)
     if kept is not None:
         log.info("%s: person detections replayed from %s", run.name, path)
-        return ReplayedDetector(kept), None, "replayed"
+        return kept, None, "replayed"
     recording = RecordingDetector(detector)
 
     def keep() -> bool:

@@ -243,15 +243,15 @@ def _detector(
     video: Path,
     camera: Camera | None,
     rig: Rig | None,
-    parallel_videos: int = 1,
-    fps: float | None = None,
+    person_model: PersonModelConfig | None = None,
 ) -> Callable:
     """A picklable factory of the video's person detector: supplied boxes, the learned person
-    model, or the static-camera background model."""
+    model (with its settings for this video, `person_model`), or the static-camera background
+    model."""
     if kind == "boxes":
         return functools.partial(SuppliedBoxes.from_file, s.boxes, video=video.stem)
     if kind == "blazepose":
-        return functools.partial(PersonModelDetector, person_model_config(s, parallel_videos, fps))
+        return functools.partial(PersonModelDetector, person_model)
     up = tuple(rig.up) if camera is not None else (0.0, 0.0, 1.0)
     return functools.partial(StaticCameraDetector, video, camera=camera, up=up)
 
@@ -265,11 +265,11 @@ def _video_rate(video: Path) -> float | None:
         return None
 
 
-def _detector_info(kind: str, why: str, s: TrackSettings, fps: float | None) -> dict:
+def _detector_info(kind: str, why: str, person_model: PersonModelConfig | None) -> dict:
     info = {"name": kind, "why": why}
-    if kind == "blazepose":
+    if person_model is not None:
         info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
-        info["config"] = person_model_config(s, fps=fps).settings()
+        info["config"] = person_model.settings()
     return info
 
 
@@ -399,6 +399,7 @@ def track_scene(
     jobs = []
     for video in request.videos:
         camera = rig[video.stem] if rig is not None and video.stem in rig.names else None
+        info = None
         if camera is not None:  # fitted to the frames now: a size mismatch fails here, named
             info = probe_video(video, camera.name)
             camera, note = fit_to_frames(
@@ -422,9 +423,10 @@ def track_scene(
         elif not seen:
             log.info("%s: calibrated camera; the model's training does not record it", video.stem)
         fit = camera is None if s.fit_pose == "auto" else bool(s.fit_pose)
-        rate = _video_rate(video) if kind == "blazepose" else None
+        person_model = None
         if kind == "blazepose":
-            every = detector_interval(s, rate)
+            rate = info.fps if info is not None else _video_rate(video)
+            person_model = person_model_config(s, parallel_videos, rate)
             source = (
                 "track.detect_every"
                 if s.detect_every is not None
@@ -435,14 +437,14 @@ def track_scene(
             log.info(
                 "%s: the person detector looks for new arrivals every %d processed frame(s) "
                 "(%s, stride %d, track.detect_every_s %.3g s)",
-                video.stem, every, source, s.stride, s.detect_every_s,
+                video.stem, person_model.detect_every, source, s.stride, s.detect_every_s,
             )  # fmt: skip
         if fit:
             log.info("%s: poses are fitted to the landmarks where they disagree", video.stem)
         jobs.append(
             VideoJob(
                 video,
-                _detector(kind, s, video, camera, rig, parallel_videos, rate),
+                _detector(kind, s, video, camera, rig, person_model),
                 predictor,
                 {**model_info.to_dict(), "seen_this_camera": seen},
                 name=video.stem,
@@ -451,7 +453,7 @@ def track_scene(
                 options=replace(options, pose_fit=PoseFitConfig() if fit else None),
                 threads=threads,
                 keep_extras=with_gaussians,
-                detector_info=_detector_info(kind, why, s, rate),
+                detector_info=_detector_info(kind, why, person_model),
                 detections_cache=request.detections_cache
                 if kind == "blazepose" and s.keep_detections
                 else None,
