@@ -63,6 +63,16 @@ class StageContext:
             files = self.scene.video_files()
         return {p.stem: p for p in files}
 
+    def background_plates(
+        self, videos: dict[str, Path] | None, use_board_clip: bool
+    ) -> dict[str, Path] | None:
+        """Clips of the empty scene per camera, to learn the background from: `videos` when
+        given, else a synthetic scene's board clips (an empty stage) when `use_board_clip`;
+        None: learn it from the camera videos themselves."""
+        if videos is None and self.scene.is_synthetic and use_board_clip:
+            return {n: self.path(f"synth/board/{n}.mp4") for n in self.camera_videos()}
+        return videos
+
     def rig(self) -> Rig:
         """The scene's calibrated rig (`calibration/rig.json`, written by the calibrate stage)."""
         return read_rig(self.path("calibration/rig.json"), "rig")

@@ -43,9 +43,7 @@ class Params(StageParams):
 
 def run(ctx: StageContext) -> None:
     p, videos = ctx.params, ctx.camera_videos()
-    plates = p.background_videos
-    if plates is None and ctx.scene.is_synthetic and p.use_board_clip_as_background:
-        plates = {n: ctx.path(f"synth/board/{n}.mp4") for n in videos}
+    plates = ctx.background_plates(p.background_videos, p.use_board_clip_as_background)
     options = ExtractOptions.from_settings(
         plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance,
         p.association_method, p.person_detect_every, p.reuse_detections, p.person_zoom,

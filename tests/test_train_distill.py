@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from gst.fuse import FitOptions, FuseOptions, fuse_scene
+from gst.fuse.tables import read_fused_bodies
 from gst.lift.teacher import RigTeacher
 from gst.model.assemble import BodyPrediction
 from gst.train.distill import (
     distill_targets,
     distill_terms,
-    read_fused_bodies,
     teacher_landmarks,
     training_rows,
 )

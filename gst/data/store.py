@@ -533,19 +533,20 @@ class CropStore:
         (no landmarks, or written before version 3)."""
         if "landmarks_projected" not in self._file():
             return None
-        return self._read_column("landmarks_projected", rows).astype(bool, copy=False)
+        return self.read_column("landmarks_projected", rows).astype(bool, copy=False)
 
     def read_masks(self, rows=None) -> np.ndarray:
         """(n, S, S) uint8 person masks of `rows` (default all, in the given order); no image
         is read."""
-        return self._read_column("masks", rows)
+        return self.read_column("masks", rows)
 
     def read_images(self, rows=None) -> np.ndarray:
         """(n, S, S, 3) uint8 BGR crops of `rows` (default all, in the given order); nothing
         else is read."""
-        return self._read_column("images", rows)
+        return self.read_column("images", rows)
 
-    def _read_column(self, name: str, rows=None) -> np.ndarray:
+    def read_column(self, name: str, rows=None) -> np.ndarray:
+        """One dataset's values of `rows` (default all, in the given order), e.g. `K_crop`."""
         f = self._file()
         if rows is None:
             return np.asarray(f[name][: self.n])

@@ -25,9 +25,9 @@ from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
 from gst.eval.evaluator import evaluate_pose
 from gst.eval.report import write_report
 from gst.eval.summary import pose_summary
+from gst.fuse.tables import read_fused_bodies
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.train.distill import read_fused_bodies
 from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.recipe import make_task

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from gst.fuse import FuseOptions, fuse_scene
-from gst.train.distill import FusedBodies, read_fused_bodies, teacher_landmarks
+from gst.fuse.tables import FusedBodies, read_fused_bodies
+from gst.train.distill import teacher_landmarks
 
 log = logging.getLogger("gst.train")
 

@@ -19,17 +19,15 @@ training frames only; only when nothing is held out does it take the fuse stage'
 
 from __future__ import annotations
 
-import json
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
-import pyarrow.parquet as pq
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from gst.fuse.tables import FusedBodies
 from gst.model.assemble import BodyPrediction
 from gst.train.distill_targets import DistillTargets
 from gst.train.views import CropSet
@@ -37,88 +35,12 @@ from gst.train.views import CropSet
 log = logging.getLogger("gst.train")
 
 __all__ = [
-    "FusedBodies",
-    "read_fused_bodies",
     "teacher_landmarks",
     "training_rows",
     "Teacher",
     "distill_targets",
     "distill_terms",
 ]
-
-
-@dataclass
-class FusedBodies:
-    """Rows of a fused bodies file (one per person and frame)."""
-
-    person_id: np.ndarray  # (R,)
-    frame: np.ndarray  # (R,)
-    joints: np.ndarray  # (R, 24, 3) world, metres
-    global_orient: np.ndarray  # (R, 3) axis-angle, body -> world
-    body_pose: np.ndarray  # (R, 23, 3) axis-angle
-    betas: np.ndarray  # (R, nb)
-    joint_views: np.ndarray  # (R, 24) cameras whose triangulation used the joint's landmarks
-    gap_filled: np.ndarray  # (R, 24) bool
-    observed: np.ndarray  # (R,) bool
-    single_view: np.ndarray  # (R,) bool
-    fps: float
-    settings: dict  # the fusion's settings (FuseOptions as JSON)
-    cameras: list[str]
-    has_landmarks: np.ndarray  # (24,) bool: joints some landmark observes (the file's table)
-
-    def __len__(self) -> int:
-        return len(self.frame)
-
-
-def read_fused_bodies(path: str | Path) -> FusedBodies:
-    """Read `fused/bodies.parquet` (docs/formats/fused_bodies.md)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"fused bodies not found: {path} (run `python -m pipeline run fuse`, or train with "
-            "distill=false)"
-        )
-    table = pq.read_table(path)
-    meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
-    missing = [
-        c
-        for c in ("frame", "person_id", "joints3d", "global_orient", "body_pose", "betas",
-                  "joint_views", "joint_gap_filled", "observed", "single_view")
-        if c not in table.column_names
-    ]  # fmt: skip
-    if missing or "gst.fused" not in meta:
-        raise ValueError(
-            f"{path}: not a fused bodies file (missing columns {missing} or 'gst.fused' metadata)"
-        )
-
-    def arr(name: str, width: int, dtype=np.float64) -> np.ndarray:
-        col = table.column(name).combine_chunks()
-        flat = np.asarray(col.flatten().to_numpy(zero_copy_only=False), dtype)
-        return flat.reshape(len(table), width) if width > 1 else flat
-
-    n = len(table)
-    nb = len(table.column("betas")[0]) if n else 10
-    fused_meta = json.loads(meta["gst.fused"])
-    joint_names = json.loads(meta.get("gst.joint_names", "[]"))
-    observed_by = fused_meta.get("joint_landmarks", {})
-    if len(joint_names) != 24:
-        raise ValueError(f"{path}: 'gst.joint_names' must list 24 joints")
-    return FusedBodies(
-        person_id=table.column("person_id").to_numpy(),
-        frame=table.column("frame").to_numpy(),
-        joints=arr("joints3d", 72).reshape(n, 24, 3),
-        global_orient=arr("global_orient", 3),
-        body_pose=arr("body_pose", 69).reshape(n, 23, 3),
-        betas=arr("betas", nb),
-        joint_views=arr("joint_views", 24, np.int64),
-        gap_filled=arr("joint_gap_filled", 24, bool),
-        observed=table.column("observed").to_numpy(zero_copy_only=False).astype(bool),
-        single_view=table.column("single_view").to_numpy(zero_copy_only=False).astype(bool),
-        fps=float(json.loads(meta.get("gst.fps", "30"))),
-        settings=json.loads(meta.get("gst.tracking", "{}")),
-        cameras=list(fused_meta.get("cameras", [])),
-        has_landmarks=np.array([bool(observed_by.get(j)) for j in joint_names]),
-    )
 
 
 def training_rows(
