@@ -11,7 +11,8 @@ gst.body.kinematics (joints-only body forward and its Jacobian), objective (the 
 linearisation) and solver (batched Levenberg-Marquardt), joint_map (landmark -> joint table),
 tables (Parquet), export (TRC, C3D), overlay, report, evaluate (against synthetic truth),
 scene (the entry point), marker_data and fit_markers (fitting gst.body.markers on synthetic
-worlds).
+worlds; the worlds' detections come from gst.lift.marker_worlds), body_labels and body_crops
+(crops cut again from the fitted bodies: stage `bodycrops`).
 """
 
 from gst.fuse.consensus import ConsensusOptions, view_consensus

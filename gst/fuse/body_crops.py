@@ -50,7 +50,14 @@ from gst.video import probe_video, read_frames
 from synth.render import RayCaster
 from synth.truth import read_truth_views, truth_mask_file
 
-__all__ = ["BodyCropOptions", "BodyCropReport", "recut_crops", "write_body_crop_report"]
+__all__ = [
+    "BodyCropOptions",
+    "BodyCropReport",
+    "lenders",
+    "move_landmarks",
+    "recut_crops",
+    "write_body_crop_report",
+]
 
 
 @dataclass(frozen=True)
@@ -141,7 +148,7 @@ class _CameraSource:
         return rows, masks
 
 
-def _moved_landmarks(lm: np.ndarray, K_from: np.ndarray, K_to: np.ndarray) -> np.ndarray:
+def move_landmarks(lm: np.ndarray, K_from: np.ndarray, K_to: np.ndarray) -> np.ndarray:
     """(33, 3) crop landmarks of one crop re-expressed in another crop of the same view."""
     out = np.zeros_like(lm)
     ok = lm[:, 2] > 0
@@ -152,7 +159,7 @@ def _moved_landmarks(lm: np.ndarray, K_from: np.ndarray, K_to: np.ndarray) -> np
     return out
 
 
-def _lenders(new: list[np.ndarray], old: list[np.ndarray], min_iou: float) -> dict[int, int]:
+def lenders(new: list[np.ndarray], old: list[np.ndarray], min_iou: float) -> dict[int, int]:
     """One-to-one: new mask index -> extraction mask index, by IoU (Hungarian)."""
     if not new or not old:
         return {}
@@ -297,7 +304,7 @@ def _cut_view(
     labels = body_labels(cam.rays, verts, caster, fg, o.max_distance_px)
     people = [k for k in range(len(rows)) if np.count_nonzero(labels == k) >= o.min_pixels]
     new_masks = [labels == k for k in people]
-    lend = _lenders(new_masks, old_masks, o.min_landmark_iou)
+    lend = lenders(new_masks, old_masks, o.min_landmark_iou)
     old_lm = source.read_landmarks(old_rows) if lm_source and len(old_rows) else None
     old_proj = source.read_landmarks_projected(old_rows) if old_lm is not None else None
     old_K = source.read_column("K_crop", old_rows) if old_lm is not None else None
@@ -317,7 +324,7 @@ def _cut_view(
             proj = True
             if j is not None:
                 lent += 1
-                lm = _moved_landmarks(old_lm[j], old_K[j], Kc).astype(np.float32)
+                lm = move_landmarks(old_lm[j], old_K[j], Kc).astype(np.float32)
                 proj = bool(old_proj[j]) if old_proj is not None else False
         pid = int(run.bodies.person_id[r])
         parts.append(CropBatch(

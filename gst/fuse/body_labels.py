@@ -20,7 +20,7 @@ from synth.render import RayCaster
 __all__ = ["CameraRays", "body_labels"]
 
 NOBODY = -1
-BOX_STRIDE = 4  # every 4th vertex bounds a body's box well within the margin
+BOX_STRIDE = 4  # every 4th vertex of a dense mesh bounds its box well within the margin
 
 
 class CameraRays:
@@ -45,7 +45,8 @@ class CameraRays:
         """Pixel box x0, y0, x1, y1 (exclusive ends) at the working size around the projection
         of `vertices` (N, 3) in front of the camera, grown by `margin` pixels and clipped to the
         image; None when nothing of them is in front of the camera or in the image."""
-        vertices = vertices[::BOX_STRIDE]
+        if len(vertices) > 1000:
+            vertices = vertices[::BOX_STRIDE]
         front = self.camera.to_camera(vertices)[:, 2] > 1e-3
         if not front.any():
             return None

@@ -1,6 +1,6 @@
 """Fit the virtual-marker table (gst.body.markers) on BlazePose detections in synthetic worlds.
 
-    python -m gst.fuse.marker_data --seed 5010 --out DATA  # once per tuning world (5000+)
+    python -m gst.lift.marker_worlds --seed 5010 --out DATA  # once per tuning world (5000+)
     python -m gst.fuse.fit_markers DATA/detections_5*.npz  # writes gst/body/markers_blazepose.json
 
 Every crop of a tuning world comes with the truth body that was rendered. For each landmark and

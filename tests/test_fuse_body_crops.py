@@ -1,0 +1,215 @@
+"""Crops cut again from the fitted bodies (gst.fuse.body_labels, gst.fuse.body_crops).
+
+The end-to-end test renders two known bodies with a brute-force painter's rasteriser written
+here (every triangle filled with OpenCV, far to near), writes those frames as videos, and checks
+the new crops against the rendered silhouettes: every visible person has a crop in every view,
+with the right id and a mask that matches them."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from calibration.camera import Camera
+from gst.body import load_body_model
+from gst.data.store import CropStore
+from gst.fuse.body_crops import lenders, move_landmarks, recut_crops
+from gst.fuse.body_labels import CameraRays, body_labels
+from gst.fuse.fit import PersonFit
+from gst.fuse.tables import joint_evidence, write_bodies
+from synth.render import RayCaster
+from tests.fuse_fixtures import make_capture, write_store
+
+BACKGROUND = (120, 120, 120)
+COLOURS = [(40, 40, 210), (210, 80, 40)]
+
+
+def _camera(dist=(), size=(320, 240)) -> Camera:
+    K = np.array([[300.0, 0, size[0] / 2], [0, 300.0, size[1] / 2], [0, 0, 1]])
+    return Camera.create("c", K, list(dist), np.eye(3), np.zeros(3), *size)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    k1=st.floats(-0.3, 0.3),
+    k2=st.floats(-0.1, 0.1),
+    u=st.floats(5, 315),
+    v=st.floats(5, 235),
+    depth=st.floats(0.5, 10.0),
+)
+def test_rays_project_back_onto_their_pixel_through_the_lens(k1, k2, u, v, depth):
+    cam = _camera((k1, k2, 0, 0, 0))
+    rays = CameraRays(cam, (cam.width, cam.height))
+    # the ray of the pixel nearest (u, v), walked to `depth` along the optical axis
+    i, j = int(round(v)), int(round(u))
+    d = rays.dirs[i, j].astype(np.float64)
+    point = rays.origin + d * depth / d[2]
+    assert np.allclose(cam.project(point[None])[0], (j, i), atol=1e-3)
+
+
+def test_rays_at_half_size_meet_the_full_size_pixel_centres():
+    cam = _camera((0.1, -0.05, 0, 0, 0))
+    rays = CameraRays(cam, (160, 120))
+    d = rays.dirs[10, 20].astype(np.float64)
+    # working pixel (20, 10) covers full pixels 40..41 x 20..21: its centre is (40.5, 20.5)
+    assert np.allclose(cam.project((d / d[2])[None])[0], (40.5, 20.5), atol=1e-3)
+
+
+def _box(centre, size) -> tuple[np.ndarray, np.ndarray]:
+    m = trimesh.creation.box(extents=size)
+    return np.asarray(m.vertices + centre, np.float32), np.asarray(m.faces, np.int32)
+
+
+def test_labels_follow_the_front_body_and_the_foreground():
+    cam = _camera()
+    (near, faces), (far, _) = _box([0.0, 0, 3], [0.4, 1, 0.2]), _box([0.2, 0, 5], [0.6, 1, 0.2])
+    meshes = [far, near]  # index 0 is the far box
+    caster = RayCaster([(m, faces) for m in meshes])
+    rays = CameraRays(cam, (cam.width, cam.height))
+    fg = np.ones((cam.height, cam.width), bool)
+    lab = body_labels(rays, meshes, caster, fg, max_distance_px=3)
+    cy = 120
+    # near box: x in [-0.2, 0.2] at z 2.9 -> u 160 +- 20.7; far box x in [-0.1, 0.5] at z 4.9
+    assert lab[cy, 160] == 1  # both cover it: the near one is in front
+    assert lab[cy, 190] == 0  # only the far box (u up to 160 + 300 * 0.5 / 4.9 = 190.6)
+    assert lab[cy, 192] == 0  # 1.4 px beyond it: foreground within 3 px
+    assert lab[cy, 196] == -1  # 5 px beyond: nobody's
+    assert lab[5, 5] == -1
+    fg[cy, 160] = False
+    assert body_labels(rays, meshes, caster, fg, 3)[cy, 160] == -1  # not foreground: nobody's
+    with pytest.raises(ValueError, match="meshes"):
+        body_labels(rays, meshes[:1], caster, fg)
+
+
+def test_landmarks_move_between_crops_of_one_view():
+    K_from = np.array([[2.0, 0.1, 30], [0, 2.1, 40], [0, 0, 1]])
+    K_to = np.array([[0.5, 0.0, -3], [0, 0.5, 7], [0, 0, 1]])
+    xy = np.random.default_rng(0).uniform(-1, 1, (33, 2))
+    lm = np.c_[(np.c_[xy, np.ones(33)] @ K_from.T)[:, :2], np.full(33, 0.8)]
+    lm[5, 2] = 0  # no reading: stays without one
+    out = move_landmarks(lm, K_from, K_to)
+    want = (np.c_[xy, np.ones(33)] @ K_to.T)[:, :2]
+    ok = np.arange(33) != 5
+    assert np.allclose(out[ok, :2], want[ok]) and np.allclose(out[ok, 2], 0.8)
+    assert out[5, 2] == 0
+
+
+def test_lenders_pair_masks_one_to_one_above_the_overlap():
+    a = np.zeros((10, 10), bool)
+    b = np.zeros((10, 10), bool)
+    a[:5] = True
+    b[5:] = True
+    small = np.zeros((10, 10), bool)
+    small[0, 0] = True
+    assert lenders([a, b], [b, a], 0.3) == {0: 1, 1: 0}
+    assert lenders([a], [small], 0.3) == {}  # overlap 0.02
+    assert lenders([], [a], 0.3) == {} and lenders([a], [], 0.3) == {}
+
+
+def _render(cam: Camera, meshes: list[np.ndarray], faces: np.ndarray) -> np.ndarray:
+    """(H, W) labels 0 (nobody), k + 1 for meshes[k]: every triangle filled far to near."""
+    tris, depth, who = [], [], []
+    for k, v in enumerate(meshes):
+        z = cam.to_camera(v)[:, 2]
+        uv = cam.project(v)
+        tris.append(uv[faces])
+        depth.append(z[faces].mean(1))
+        who.append(np.full(len(faces), k + 1))
+    tris, depth, who = np.concatenate(tris), np.concatenate(depth), np.concatenate(who)
+    out = np.zeros((cam.height, cam.width), np.uint8)
+    for i in np.argsort(-depth):
+        pts = np.round(tris[i] * 16).astype(np.int32)  # 4 fractional bits
+        cv2.fillPoly(out, [pts], int(who[i]), lineType=cv2.LINE_8, shift=4)
+    return out
+
+
+def _write_video(path, frames) -> None:
+    h, w = frames[0].shape[:2]
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (w, h))
+    for f in frames:
+        out.write(f)
+    out.release()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bodycrops")
+    body = load_body_model("anny")
+    faces = np.asarray(body.faces, np.int32)
+    cap = make_capture(body, n_people=2, n_frames=2, n_cams=3, seed=1)
+    T = cap.transl.shape[1]
+    with_verts = []
+    for k in range(2):
+        import torch
+
+        out = body(
+            torch.as_tensor(np.repeat(cap.betas[k : k + 1], T, 0), dtype=body.dtype),
+            torch.as_tensor(cap.body_pose[k], dtype=body.dtype),
+            torch.as_tensor(cap.global_orient[k], dtype=body.dtype),
+            torch.as_tensor(cap.transl[k], dtype=body.dtype),
+        )
+        with_verts.append(out.vertices.detach().numpy())
+    truth, videos, plates = {}, {}, {}
+    for cam in cap.rig:
+        frames = []
+        for f in range(T):
+            lab = _render(cam, [with_verts[0][f], with_verts[1][f]], faces)
+            truth[cam.name, f] = lab
+            img = np.zeros((cam.height, cam.width, 3), np.uint8)
+            img[:] = BACKGROUND
+            for k, colour in enumerate(COLOURS):
+                img[lab == k + 1] = colour
+            frames.append(img)
+        videos[cam.name] = tmp / f"{cam.name}.avi"
+        plates[cam.name] = tmp / f"{cam.name}_empty.avi"
+        _write_video(videos[cam.name], frames)
+        _write_video(plates[cam.name], [np.full_like(frames[0], BACKGROUND)] * 5)
+    write_store(tmp / "crops.h5", cap)
+    fits = [
+        PersonFit(
+            k + 1, np.arange(T), cap.betas[k], cap.global_orient[k], cap.body_pose[k],
+            cap.transl[k], cap.joints[k], cap.markers[k], np.full((T, len(cap.rig), 33), np.nan),
+            np.ones(T, bool), np.zeros(T, bool), False, 1.0,
+        )  # fmt: skip
+        for k in range(2)
+    ]
+    write_bodies(
+        tmp / "bodies.parquet", fits, [joint_evidence(f, None) for f in fits], fps=30.0,
+        camera_names=cap.rig.names, model={"body_model": "anny"}, settings={},
+        settings_sha256="0" * 64, stats={},
+    )  # fmt: skip
+    return tmp, cap, truth, videos, plates
+
+
+def test_every_visible_person_gets_their_own_crop_with_their_silhouette(scene):
+    tmp, cap, truth, videos, plates = scene
+    report = recut_crops(
+        tmp / "crops.h5", cap.rig, videos, tmp / "bodies.parquet", tmp / "out" / "crops.h5",
+        plates=plates,
+    )  # fmt: skip
+    store = CropStore(tmp / "out" / "crops.h5")
+    batch = store.read(np.arange(len(store)))
+    assert report.crops == len(store) > 0
+    assert store.attrs["setting.association"] == "bodies"
+    seen = set()
+    for i in range(len(store)):
+        cam = cap.rig[store.camera_names[batch.camera[i]]]
+        f, pid = int(batch.frame[i]), int(batch.person_id[i])
+        seen.add((cam.name, f, pid))
+        # the rendered silhouette, sampled into the crop through its K_crop (no lens here)
+        S = store.crop_size
+        jj, ii = np.meshgrid(np.arange(S), np.arange(S))
+        xy = np.linalg.solve(batch.K_crop[i], np.stack([jj, ii, np.ones_like(jj)]).reshape(3, -1))
+        uv = (cam.K @ (xy / xy[2])).T[:, :2].reshape(S, S, 2).astype(np.float32)
+        lab = cv2.remap(truth[cam.name, f], uv[..., 0], uv[..., 1], cv2.INTER_NEAREST)
+        want, got = lab == pid, batch.masks[i] >= 128
+        iou = np.count_nonzero(want & got) / np.count_nonzero(want | got)
+        assert iou > 0.85, (cam.name, f, pid, iou)
+    for (name, f), lab in truth.items():
+        for pid in (1, 2):
+            if np.count_nonzero(lab == pid) >= 200:
+                assert (name, f, pid) in seen, (name, f, pid)
