@@ -17,8 +17,16 @@ from gst.lift.teacher import RigTeacher
 from gst.train.scene_training import TrainOutputs, TrainSettings, train_scene
 from pipeline.stage import Stage, StageContext
 
+CROP_STORES = {"extract": "crops/crops.h5", "bodycrops": "bodycrops/crops.h5"}
+
 
 def run(ctx: StageContext) -> None:
+    crops = ctx.path(CROP_STORES[ctx.params.crops])
+    if not crops.is_file():
+        raise FileNotFoundError(
+            f"{crops} does not exist: train.crops is '{ctx.params.crops}'; run "
+            f"`python -m pipeline run {ctx.params.crops}` first"
+        )
     outputs = TrainOutputs(
         model=ctx.out("models/gst.pt"),
         example_ply=ctx.out("models/example.ply"),
@@ -27,11 +35,11 @@ def run(ctx: StageContext) -> None:
     )
     train_scene(
         ctx.params,
-        ctx.path("crops/crops.h5"),
+        crops,
         ctx.path("models/pretrain.pt"),
         outputs,
         synth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
-        teacher=RigTeacher(ctx.path("fused/bodies.parquet"), ctx.path("crops/crops.h5"), ctx.rig())
+        teacher=RigTeacher(ctx.path("fused/bodies.parquet"), crops, ctx.rig())
         if ctx.params.distill
         else None,
         scene=ctx.scene_name,

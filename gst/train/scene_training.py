@@ -68,6 +68,9 @@ class TrainSettings(BaseModel):
     # multiview: GST (no labels). 2d / 3d: the paper's Table 1 baselines, fine-tuned on the
     # synthetic truth's 2D joints / 3D joints and parameters (synthetic scenes only).
     supervision: Literal["multiview", "2d", "3d"] = "multiview"
+    # which crop store to train on: the extraction's (`crops/crops.h5`) or the crops cut again
+    # from the fitted bodies (`bodycrops/crops.h5`, stage `bodycrops`; docs/fuse.md)
+    crops: Literal["extract", "bodycrops"] = "extract"
     init: Literal["pretrain", "hmr2"] = "pretrain"
     hmr2_checkpoint: Path | None = (
         None  # with init=hmr2 (huge preset); loaded with weights_only=True
