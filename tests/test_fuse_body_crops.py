@@ -10,6 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+import torch
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -135,6 +136,18 @@ def _write_video(path, frames) -> None:
     out.release()
 
 
+def _truth_fit(cap, k: int) -> PersonFit:
+    """Person k's true body as the fuse stage's fit of it."""
+    T = cap.transl.shape[1]
+    return PersonFit(
+        person_id=k + 1, frames=np.arange(T), betas=cap.betas[k],
+        global_orient=cap.global_orient[k], body_pose=cap.body_pose[k], transl=cap.transl[k],
+        joints=cap.joints[k], markers=cap.markers[k],
+        reprojection=np.full((T, len(cap.rig), 33), np.nan), observed=np.ones(T, bool),
+        static=np.zeros(T, bool), single_view=False, sigma_px=1.0,
+    )  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("bodycrops")
@@ -144,8 +157,6 @@ def scene(tmp_path_factory):
     T = cap.transl.shape[1]
     with_verts = []
     for k in range(2):
-        import torch
-
         out = body(
             torch.as_tensor(np.repeat(cap.betas[k : k + 1], T, 0), dtype=body.dtype),
             torch.as_tensor(cap.body_pose[k], dtype=body.dtype),
@@ -169,14 +180,7 @@ def scene(tmp_path_factory):
         _write_video(videos[cam.name], frames)
         _write_video(plates[cam.name], [np.full_like(frames[0], BACKGROUND)] * 5)
     write_store(tmp / "crops.h5", cap)
-    fits = [
-        PersonFit(
-            k + 1, np.arange(T), cap.betas[k], cap.global_orient[k], cap.body_pose[k],
-            cap.transl[k], cap.joints[k], cap.markers[k], np.full((T, len(cap.rig), 33), np.nan),
-            np.ones(T, bool), np.zeros(T, bool), False, 1.0,
-        )  # fmt: skip
-        for k in range(2)
-    ]
+    fits = [_truth_fit(cap, k) for k in range(2)]
     write_bodies(
         tmp / "bodies.parquet", fits, [joint_evidence(f, None) for f in fits], fps=30.0,
         camera_names=cap.rig.names, model={"body_model": "anny"}, settings={},
