@@ -73,6 +73,12 @@ class StageContext:
             return {n: self.path(f"synth/board/{n}.mp4") for n in self.camera_videos()}
         return videos
 
+    def input_videos(self, background_videos: dict[str, Path] | None = None) -> list[Path]:
+        """The files outside the workspace a stage reads videos from (its fingerprint covers
+        them): a real scene's camera videos and the given clips of the empty scene."""
+        files = [] if self.scene.is_synthetic else list(self.scene.video_files())
+        return files + list((background_videos or {}).values())
+
     def rig(self) -> Rig:
         """The scene's calibrated rig (`calibration/rig.json`, written by the calibrate stage)."""
         return read_rig(self.path("calibration/rig.json"), "rig")

@@ -59,13 +59,9 @@ def run(ctx: StageContext) -> None:
     ctx.log.info("extract: %s", report.summary_line())
 
 
-def _inputs(ctx: StageContext) -> list[Path]:
-    files = [] if ctx.scene.is_synthetic else list(ctx.scene.video_files())
-    return files + list((ctx.params.background_videos or {}).values())
-
-
 STAGE = Stage(
-    name="extract", run=run, params_model=Params, inputs=_inputs,
+    inputs=lambda ctx: ctx.input_videos(ctx.params.background_videos),
+    name="extract", run=run, params_model=Params,
     outputs=lambda ctx: ["crops", "reports/extract"],
     help="person crops and masks from every camera (background model, multi-view association)",
 )  # fmt: skip

@@ -25,7 +25,7 @@ def run(ctx: StageContext) -> None:
     if not crops.is_file():
         raise FileNotFoundError(
             f"{crops} does not exist: train.crops is '{ctx.params.crops}'; run "
-            f"`python -m pipeline run {ctx.params.crops}` first"
+            f"`python -m pipeline run {'extract' if ctx.params.crops == 'extract' else 'fuse'}`"
         )
     outputs = TrainOutputs(
         model=ctx.out("models/gst.pt"),

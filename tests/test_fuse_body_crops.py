@@ -217,3 +217,21 @@ def test_every_visible_person_gets_their_own_crop_with_their_silhouette(scene):
         for pid in (1, 2):
             if np.count_nonzero(lab == pid) >= 200:
                 assert (name, f, pid) in seen, (name, f, pid)
+
+
+def test_nobody_fitted_gives_an_empty_complete_store(scene):
+    tmp, cap, _, videos, plates = scene
+    write_bodies(
+        tmp / "nobody.parquet", [], [], fps=30.0, camera_names=cap.rig.names,
+        model={"body_model": "anny"}, settings={}, settings_sha256="0" * 64, stats={},
+    )  # fmt: skip
+    out = tmp / "empty" / "crops.h5"
+    report = recut_crops(tmp / "crops.h5", cap.rig, videos, tmp / "nobody.parquet", out)
+    assert report.crops == 0 and len(CropStore(out)) == 0
+
+
+def test_a_camera_without_video_is_named(scene):
+    tmp, cap, _, videos, plates = scene
+    some = dict(list(videos.items())[1:])
+    with pytest.raises(ValueError, match=list(videos)[0]):
+        recut_crops(tmp / "crops.h5", cap.rig, some, tmp / "bodies.parquet", tmp / "x.h5")

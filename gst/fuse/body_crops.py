@@ -264,7 +264,7 @@ def recut_crops(
         writer.finalize(
             {
                 "source_videos": json.dumps({n: Path(videos[n]).name for n in names}),
-                "n_frames": int(source.attrs.get("n_frames", int(frames.max()) + 1)),
+                "n_frames": int(source.attrs.get("n_frames", frames.max(initial=-1) + 1)),
             }
         )
     report.crops = sum(report.crops_per_camera.values())

@@ -30,6 +30,7 @@ from typing import Literal
 
 import numpy as np
 
+from calibration.camera import Rig
 from gst.atomic import atomic_save_npz, atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
@@ -116,6 +117,7 @@ class FuseResult:
     overlays: list[Path]
     summary: FuseSummary
     fits: list[PersonFit]
+    rig: Rig  # the rig the bodies were fitted in (its rotations corrected with refine_rig_rounds)
 
 
 def _digest(obj) -> str:
@@ -487,6 +489,7 @@ def fuse_scene(
         trc.append(t_path)
         c3d.append(c_path)
     write_report(summary, report_dir, fits, dense_tris, limbs)
+    fitted_rig = corrected_rig(rig, cams, corrections)
     overlays: list[Path] = []
     if o.overlay and fits:
         from gst.fuse.overlay import write_overlays
@@ -499,10 +502,10 @@ def fuse_scene(
         overlays = write_overlays(
             fits,
             body,
-            corrected_rig(rig, cams, corrections),
+            fitted_rig,
             videos,
             report_dir / "overlay",
             progress=progress,
         )
     shutil.rmtree(work)
-    return FuseResult(bodies, lm_out, trc, c3d, overlays, summary, fits)
+    return FuseResult(bodies, lm_out, trc, c3d, overlays, summary, fits, fitted_rig)
