@@ -32,6 +32,9 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
     for rel in (
         "calibration/rig.json",
         "crops/crops.h5",
+        "fused/bodies.parquet",
+        "bodycrops/crops.h5",
+        "reports/bodycrops/summary.json",
         "models/pretrain.pt",
         "models/gst.pt",
         "models/example.ply",
