@@ -20,8 +20,8 @@ def run(ctx: StageContext) -> None:
     result = fuse_rounds(
         ctx.path("crops/crops.h5"), ctx.rig(), ctx.out("fused"), ctx.out("reports/fuse"),
         ctx.out("bodycrops/crops.h5"), ctx.out("reports/bodycrops"), rounds=p.recut_rounds,
-        fps=ctx.scene.fps, options=p.fuse_options(), crop_options=p.crop_options(),
-        videos=ctx.camera_videos(),
+        fps=ctx.scene.fps, options=p.fuse_options(),
+        crop_options=p.crop_options(ctx.scene.frame_size_tolerance), videos=ctx.camera_videos(),
         plates=ctx.background_plates(p.background_videos, p.use_board_clip_as_background),
         truth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
         progress=ctx.progress, log=ctx.log,

@@ -12,7 +12,8 @@ linearisation) and solver (batched Levenberg-Marquardt), joint_map (landmark -> 
 tables (Parquet), export (TRC, C3D), overlay, report, evaluate (against synthetic truth),
 scene (the entry point), marker_data and fit_markers (fitting gst.body.markers on synthetic
 worlds; the worlds' detections come from gst.lift.marker_worlds), body_labels and body_crops
-(crops cut again from the fitted bodies: stage `bodycrops`).
+(crops cut again from the fitted bodies) and rounds (the fuse stage's recipe: fuse, cut,
+fuse again, cut).
 """
 
 from gst.fuse.consensus import ConsensusOptions, view_consensus

@@ -1,5 +1,5 @@
-"""Person crops cut again from the fitted bodies (stage `bodycrops`; docs/fuse.md "Crops from
-the fitted bodies", docs/formats/crops_h5.md).
+"""Person crops cut again from the fitted bodies (the fuse stage's `bodycrops/`,
+`gst.fuse.rounds`; docs/fuse.md "Crops from the fitted bodies", docs/formats/crops_h5.md).
 
 The extraction decides in each view which pixels are whose from 2D evidence and per-frame
 skeletons; in crowds it gives views to the wrong person, splits ids and misses people whom
@@ -32,23 +32,23 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from calibration.camera import Camera, Rig
+from calibration.camera import FRAME_PADDING_TOLERANCE, Camera, Rig, fit_to_frames
 from gst.atomic import atomic_path, atomic_write_text
 from gst.body import load_body_model
 from gst.data.background import BackgroundConfig, build_background, sample_indices
 from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import IdMaskFile
-from gst.data.extract.crops import MIN_VISIBLE_JOINTS, crop_person, score_against_truth
+from gst.data.extract.crops import crop_person, score_against_truth, visible_truth_views
 from gst.data.extract.options import WORK_MAX_SIDE
 from gst.data.masks import MaskConfig, clean_mask
 from gst.data.report import contact_sheet
-from gst.data.store import CropBatch, CropStore, CropStoreWriter
+from gst.data.store import CropBatch, CropStore, CropStoreWriter, index_path_for
 from gst.fuse.body_labels import CameraRays, body_labels
 from gst.fuse.tables import FusedBodies, read_fused_bodies
 from gst.track.writer import settings_digest
 from gst.video import probe_video, read_frames
 from synth.render import RayCaster
-from synth.truth import read_truth_views, truth_mask_file
+from synth.truth import truth_mask_file
 
 __all__ = [
     "BodyCropOptions",
@@ -70,6 +70,7 @@ class BodyCropOptions:
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
     masks: MaskConfig = field(default_factory=MaskConfig)
     work_max_side: int = WORK_MAX_SIDE  # the extraction's working size (longer side, px)
+    frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # calibration.camera.fit_to_frames
 
 
 @dataclass
@@ -110,6 +111,11 @@ class _CameraSource:
 
     def __init__(self, camera: Camera, index: int, video: Path, plate: Path | None, source,
                  options: BodyCropOptions, truth_dir: Path | None):  # fmt: skip
+        info = probe_video(video, camera.name, strict=True)
+        # the extraction's camera for these frames (encoder padding tolerated)
+        camera, _ = fit_to_frames(
+            camera, info.width, info.height, options.frame_size_tolerance, str(video)
+        )
         self.camera, self.index, self.video = camera, index, video
         s = min(1.0, options.work_max_side / max(camera.width, camera.height))
         self.size = (max(1, round(camera.width * s)), max(1, round(camera.height * s)))
@@ -134,18 +140,20 @@ class _CameraSource:
             fg |= m
         return fg
 
-    def extraction_masks(self, source: CropStore, frame: int) -> tuple[np.ndarray, list]:
-        """The extraction's crops of this view: their rows and their masks at working size."""
+    def extraction_masks(
+        self, source: CropStore, frame: int
+    ) -> tuple[np.ndarray, np.ndarray, list]:
+        """The extraction's crops of this view: their rows, `K_crop`s and masks at working size."""
         rows = self.rows[self.frame_of_row == frame]
+        K_crop = source.read_column("K_crop", rows) if len(rows) else np.zeros((0, 3, 3))
         masks = []
         if len(rows):
             xy = self.rays.xy
-            for m, K in zip(source.read_masks(rows), source.read_column("K_crop", rows),
-                            strict=True):  # fmt: skip
+            for m, K in zip(source.read_masks(rows), K_crop, strict=True):
                 mx = (K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]).astype(np.float32)
                 my = (K[1, 1] * xy[..., 1] + K[1, 2]).astype(np.float32)
                 masks.append(cv2.remap(m, mx, my, cv2.INTER_LINEAR, borderValue=0) >= 128)
-        return rows, masks
+        return rows, K_crop, masks
 
 
 def move_landmarks(lm: np.ndarray, K_from: np.ndarray, K_to: np.ndarray) -> np.ndarray:
@@ -221,14 +229,19 @@ def recut_crops(
     ]
     frames = np.unique(bodies.frame)
     readers = [iter(read_frames(c.video, frames.tolist(), c.camera.name)) for c in cams]
-    visible = _visible_views(truth_dir, names) if truth_dir else None
+    visible: dict[tuple[str, int], set[int]] | None = None
+    if truth_dir is not None:
+        visible = {}
+        for name, views in visible_truth_views(truth_dir, names).items():
+            for f, p in views:
+                visible.setdefault((name, f), set()).add(p)
     S = source.crop_size
     scale = float(source.attrs.get("setting.scale", 1.2))
     lm_source = source.read_landmarks(np.zeros(0, np.int64)) is not None
     settings = {
         "scale": scale,
         "frame_stride": int(source.attrs.get("setting.frame_stride", 1)),
-        "method": str(source.attrs.get("setting.method", "median")),
+        "method": str(source.attrs.get("setting.method", "")),  # the extraction's, as it wrote it
         "association": "bodies",
         "config": settings_digest({"options": _as_json(options), "source": str(crops_h5.name)}),
     }
@@ -237,7 +250,7 @@ def recut_crops(
     run = _Run(source, bodies, S, scale, options, lm_source)
     scored: list[CropTruth] = []
     out_h5.parent.mkdir(parents=True, exist_ok=True)
-    for p in (out_h5, out_h5.with_name(out_h5.stem + ".index.parquet")):
+    for p in (out_h5, index_path_for(out_h5)):
         p.unlink(missing_ok=True)
     steps = progress(frames, description="crops from the fitted bodies", total=len(frames)) \
         if progress else frames  # fmt: skip
@@ -267,6 +280,13 @@ def recut_crops(
                 "n_frames": int(source.attrs.get("n_frames", frames.max(initial=-1) + 1)),
             }
         )
+    if visible is not None:  # frames the extraction considered where nobody was fitted
+        fitted = set(frames.tolist())
+        considered = range(0, int(source.attrs.get("n_frames", 0)), settings["frame_stride"])
+        for (_, f), want in visible.items():
+            if f not in fitted and f in considered:
+                report.visible_views += len(want)
+                report.visible_views_missed += len(want)
     report.crops = sum(report.crops_per_camera.values())
     if scored:
         report.mask_iou = float(np.mean([r.iou for r in scored]))
@@ -299,7 +319,7 @@ def _cut_view(
     """The crops of one camera and frame, their truth rows, and how many took an extraction
     crop's landmarks."""
     o, source, S, lm_source = run.options, run.source, run.crop_size, run.landmarks
-    old_rows, old_masks = cam.extraction_masks(source, f)
+    old_rows, old_K, old_masks = cam.extraction_masks(source, f)
     fg = cam.foreground(image, old_masks, o)
     labels = body_labels(cam.rays, verts, caster, fg, o.max_distance_px)
     people = [k for k in range(len(rows)) if np.count_nonzero(labels == k) >= o.min_pixels]
@@ -307,7 +327,6 @@ def _cut_view(
     lend = lenders(new_masks, old_masks, o.min_landmark_iou)
     old_lm = source.read_landmarks(old_rows) if lm_source and len(old_rows) else None
     old_proj = source.read_landmarks_projected(old_rows) if old_lm is not None else None
-    old_K = source.read_column("K_crop", old_rows) if old_lm is not None else None
     gt = cam.truth.get(f) if cam.truth is not None else None
     areas = np.bincount(gt.reshape(-1), minlength=256) if gt is not None else None
     parts, truth_rows, lent = [], [], 0
@@ -339,16 +358,6 @@ def _cut_view(
             truth_rows.append(CropTruth(f, cam.camera.name, pid, tid, iou, "body"))
     batch = CropBatch.concat(parts) if parts else CropBatch.empty(S, lm_source)
     return batch, truth_rows, lent
-
-
-def _visible_views(truth_dir: Path, names: list[str]) -> dict[tuple[str, int], set[int]]:
-    v = read_truth_views(truth_dir)
-    keep = v.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
-    out: dict[tuple[str, int], set[int]] = {}
-    for f, p, c in zip(v.frame[keep], v.person_id[keep], v.camera[keep], strict=True):
-        if c in names:
-            out.setdefault((str(c), int(f)), set()).add(int(p))
-    return out
 
 
 def _as_json(o: BodyCropOptions) -> dict:

@@ -8,6 +8,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from calibration.camera import FRAME_PADDING_TOLERANCE
 from gst.data.background import BackgroundConfig
 from gst.fuse.body_crops import BodyCropOptions
 from gst.fuse.fit import FitOptions
@@ -73,8 +74,10 @@ class FuseSettings(BaseModel):
             floor=self.floor, people_per_batch=self.people_per_batch, overlay=self.overlay,
         )  # fmt: skip
 
-    def crop_options(self) -> BodyCropOptions:
+    def crop_options(self, frame_size_tolerance: int = FRAME_PADDING_TOLERANCE) -> BodyCropOptions:
+        """The cut's options; `frame_size_tolerance`: the scene's (encoder padding)."""
         return BodyCropOptions(
             max_distance_px=self.max_distance_px, min_pixels=self.min_pixels,
             background=BackgroundConfig(method=self.method),
+            frame_size_tolerance=frame_size_tolerance,
         )  # fmt: skip

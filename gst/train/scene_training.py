@@ -68,8 +68,9 @@ class TrainSettings(BaseModel):
     # multiview: GST (no labels). 2d / 3d: the paper's Table 1 baselines, fine-tuned on the
     # synthetic truth's 2D joints / 3D joints and parameters (synthetic scenes only).
     supervision: Literal["multiview", "2d", "3d"] = "multiview"
-    # which crop store to train on: the extraction's (`crops/crops.h5`) or the crops cut again
-    # from the fitted bodies (`bodycrops/crops.h5`, stage `bodycrops`; docs/fuse.md)
+    # which crop store to train on: the extraction's (`crops/crops.h5`) or the crops the fuse
+    # stage cut again from the fitted bodies (`bodycrops/crops.h5`; docs/fuse.md: those come
+    # from bodies fitted on every camera and frame, held-out ones included)
     crops: Literal["extract", "bodycrops"] = "extract"
     init: Literal["pretrain", "hmr2"] = "pretrain"
     hmr2_checkpoint: Path | None = (

@@ -27,6 +27,7 @@ from gst.data.external import (
 )
 from gst.data.store import CropBatch, CropStoreWriter
 from gst.video import read_frames
+from synth.truth import read_truth_views
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,6 +72,19 @@ class CropJobResult:
     truth_views_missed: int = 0
     visible_views: int = 0
     visible_views_missed: int = 0
+
+
+def visible_truth_views(scene_dir, cameras) -> dict[str, list[tuple[int, int]]]:
+    """Per camera of `cameras`, the (frame, person) views of a synthetic scene's truth
+    (`truth/views.parquet`) in which at least `MIN_VISIBLE_JOINTS` of the person's joints are
+    visible: the views a person mask is expected in."""
+    v = read_truth_views(scene_dir)
+    keep = v.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
+    out: dict[str, list[tuple[int, int]]] = {str(n): [] for n in cameras}
+    for f, p, c in zip(v.frame[keep], v.person_id[keep], v.camera[keep], strict=True):
+        if c in out:
+            out[c].append((int(f), int(p)))
+    return out
 
 
 def crop_person(

@@ -41,7 +41,7 @@ from gst.data.background import BackgroundConfig
 from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import ExternalDetections, find_mask_file, read_external
 from gst.data.extract.association import AssociationSummary, associate_scene
-from gst.data.extract.crops import MIN_VISIBLE_JOINTS, CropJob, extract_camera_crops
+from gst.data.extract.crops import CropJob, extract_camera_crops, visible_truth_views
 from gst.data.extract.keypoint_association import associate_scene_keypoints
 from gst.data.extract.masks import MaskJob, compute_camera_masks
 from gst.data.extract.options import (
@@ -57,7 +57,7 @@ from gst.detect.blazepose import import_litert
 from gst.detect.persons import SegmenterConfig
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
 from gst.video import VideoError, VideoInfo, check_videos, probe_video, scaled_size
-from synth.truth import has_scene_truth, read_truth_views
+from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.data")
 
@@ -383,13 +383,8 @@ def _visible_views(plan: ExtractPlan) -> dict[str, tuple[tuple[int, int], ...]] 
     scene = next((d for d in Path(masks_dir).parents if has_scene_truth(d)), None)
     if scene is None:
         return None
-    v = read_truth_views(scene)
-    keep = v.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
-    out: dict[str, list] = {n: [] for n in plan.names}
-    for f, p, c in zip(v.frame[keep], v.person_id[keep], v.camera[keep], strict=True):
-        if c in out and int(f) in plan.frame_set:
-            out[c].append((int(f), int(p)))
-    return {n: tuple(x) for n, x in out.items()}
+    views = visible_truth_views(scene, plan.names)
+    return {n: tuple(fp for fp in x if fp[0] in plan.frame_set) for n, x in views.items()}
 
 
 def _crop_jobs(
