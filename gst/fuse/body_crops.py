@@ -182,13 +182,9 @@ def lenders(new: list[np.ndarray], old: list[np.ndarray], min_iou: float) -> dic
 
 @torch.no_grad()
 def _frame_vertices(body, bodies: FusedBodies, rows: np.ndarray) -> list[np.ndarray]:
-    nb = bodies.betas.shape[1]
-
-    def t(a):
-        return torch.as_tensor(a[rows], dtype=body.dtype)
-
-    out = body(t(bodies.betas)[:, :nb], t(bodies.body_pose), t(bodies.global_orient),
-               t(bodies.transl))  # fmt: skip
+    """World vertices (V, 3) of the fitted bodies in `rows`."""
+    params = (bodies.betas, bodies.body_pose, bodies.global_orient, bodies.transl)
+    out = body(*(torch.as_tensor(a[rows], dtype=body.dtype) for a in params))
     return list(out.vertices.float().numpy())
 
 
