@@ -27,7 +27,6 @@ from gst.data.external import (
 )
 from gst.data.store import CropBatch, CropStoreWriter
 from gst.video import read_frames
-from synth.truth import read_truth_views
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,6 +77,10 @@ def visible_truth_views(scene_dir, cameras) -> dict[str, list[tuple[int, int]]]:
     """Per camera of `cameras`, the (frame, person) views of a synthetic scene's truth
     (`truth/views.parquet`) in which at least `MIN_VISIBLE_JOINTS` of the person's joints are
     visible: the views a person mask is expected in."""
+    # here, not at the top: the extraction's worker processes import this module, and synth
+    # brings torch (tests/test_lazy_packages.py)
+    from synth.truth import read_truth_views
+
     v = read_truth_views(scene_dir)
     keep = v.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
     out: dict[str, list[tuple[int, int]]] = {str(n): [] for n in cameras}
