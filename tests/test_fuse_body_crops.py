@@ -256,3 +256,21 @@ def test_a_camera_without_video_is_named(scene):
     some = dict(list(videos.items())[1:])
     with pytest.raises(ValueError, match=list(videos)[0]):
         recut_crops(tmp / "crops.h5", cap.rig, some, tmp / "bodies.parquet", tmp / "x.h5")
+
+
+def test_bodies_are_projected_with_the_fitted_cameras_and_crops_keep_the_calibration(scene):
+    """A calibration 1 degree off (what the fit corrects, `FuseResult.rig`): the bodies are
+    projected with the fitted cameras, so the masks match, and the crops keep the calibration's
+    R, t as the extraction's do (every fusion corrects the rig from the calibration)."""
+    tmp, cap, truth, videos, plates = scene
+    turn = cv2.Rodrigues(np.array([0.0, np.deg2rad(1.0), 0.0]))[0]
+    calibrated = Rig([c.replace(R=turn @ c.R, t=turn @ c.t) for c in cap.rig])
+    out = tmp / "fitted" / "crops.h5"
+    recut_crops(tmp / "crops.h5", calibrated, videos, tmp / "bodies.parquet", out,
+                plates=plates, fitted_rig=cap.rig)  # fmt: skip
+    store = CropStore(out)
+    _check_crops(store, cap, truth)
+    batch = store.read(np.arange(len(store)))
+    for i in range(len(store)):
+        cam = calibrated[store.camera_names[batch.camera[i]]]
+        assert np.allclose(batch.R[i], cam.R) and np.allclose(batch.t[i], cam.t)

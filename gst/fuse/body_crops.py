@@ -109,19 +109,24 @@ class BodyCropReport:
 class _CameraSource:
     """One camera's input: its rays, background model, extraction crops and truth."""
 
-    def __init__(self, camera: Camera, index: int, video: Path, plate: Path | None, source,
-                 options: BodyCropOptions, truth_dir: Path | None):  # fmt: skip
+    def __init__(self, camera: Camera, fitted: Camera, index: int, video: Path,
+                 plate: Path | None, source, options: BodyCropOptions,
+                 truth_dir: Path | None):  # fmt: skip
         info = probe_video(video, camera.name, strict=True)
-        # the extraction's camera for these frames (encoder padding tolerated)
-        camera, _ = fit_to_frames(
-            camera, info.width, info.height, options.frame_size_tolerance, str(video)
-        )
+        tol = options.frame_size_tolerance
+
+        def framed(cam: Camera) -> Camera:  # the extraction's fit to these frames (padding)
+            return fit_to_frames(cam, info.width, info.height, tol, str(video))[0]
+
+        # crops keep the calibration's camera (as the extraction's); the bodies are projected
+        # with the camera they were fitted in
+        camera = framed(camera)
         self.camera, self.index, self.video = camera, index, video
         s = min(1.0, options.work_max_side / max(camera.width, camera.height))
         self.size = (max(1, round(camera.width * s)), max(1, round(camera.height * s)))
-        self.rays = CameraRays(camera, self.size)
+        self.rays = CameraRays(framed(fitted), self.size)
         clip = plate if plate is not None else video
-        n = probe_video(clip, camera.name, strict=True).frames
+        n = info.frames if plate is None else probe_video(plate, camera.name, strict=True).frames
         idx = sample_indices(n, options.background.samples)
         samples = np.stack([self._work(img) for _, img in read_frames(clip, idx, camera.name)])
         self.background = build_background(samples, options.background)
@@ -196,6 +201,7 @@ def recut_crops(
     out_h5: Path,
     *,
     plates: dict[str, Path] | None = None,
+    fitted_rig: Rig | None = None,
     options: BodyCropOptions = BodyCropOptions(),
     truth_dir: Path | None = None,
     progress: Callable | None = None,
@@ -204,7 +210,9 @@ def recut_crops(
     doc) into a new crop store `out_h5`. `crops_h5` is the extraction's store (its settings,
     masks and landmarks), `videos` and `plates` (clean plates; None: the background is learnt
     from each video, as the extraction does) are per camera, `truth_dir` a synthetic scene's
-    folder for the truth figures."""
+    folder for the truth figures. `fitted_rig`: the cameras the bodies were fitted in
+    (`FuseResult.rig`, rotations corrected by the fit), to project the bodies with; the crops
+    keep `rig`'s cameras, as the extraction's do (default: `rig` for both)."""
     t0 = time.perf_counter()
     source = CropStore(crops_h5)
     bodies = read_fused_bodies(bodies_parquet)
@@ -219,7 +227,14 @@ def recut_crops(
     faces = np.asarray(body.faces, np.int32)
     cams = [
         _CameraSource(
-            rig[n], i, Path(videos[n]), (plates or {}).get(n), source, options, truth_dir
+            rig[n],
+            (fitted_rig or rig)[n],
+            i,
+            Path(videos[n]),
+            (plates or {}).get(n),
+            source,
+            options,
+            truth_dir,
         )  # fmt: skip
         for i, n in enumerate(names)
     ]

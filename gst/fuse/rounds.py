@@ -66,12 +66,12 @@ def fuse_rounds(
         )  # fmt: skip
         if log is not None:
             log.info("fuse: round %d of %d: %s", r + 1, rounds + 1, result.summary.headline())
-        # the next cut projects the bodies with the cameras they were fitted in
-        rig = result.rig
+        # the cut projects the bodies with the cameras they were fitted in; its crops keep the
+        # calibration's, so every fusion corrects (and reports) the rig from the calibration
         target = crops_out if last else work / f"crops_{r + 1}.h5"
         report = recut_crops(
-            crops_h5, rig, videos, result.bodies, target, plates=plates, options=crop_options,
-            truth_dir=truth_dir if last else None, progress=progress,
+            crops_h5, rig, videos, result.bodies, target, plates=plates, fitted_rig=result.rig,
+            options=crop_options, truth_dir=truth_dir if last else None, progress=progress,
         )  # fmt: skip
         store = target
     write_body_crop_report(report, crops_out, crops_report_dir)
