@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from scipy.optimize import linear_sum_assignment
 from calibration.camera import FRAME_PADDING_TOLERANCE, Camera, Rig, fit_to_frames
 from gst.atomic import atomic_path, atomic_write_text
 from gst.body import load_body_model
+from gst.cores import available_cores
 from gst.data.background import BackgroundConfig, build_background, sample_indices
 from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import IdMaskFile
@@ -205,6 +207,7 @@ def recut_crops(
     options: BodyCropOptions = BodyCropOptions(),
     truth_dir: Path | None = None,
     progress: Callable | None = None,
+    threads: int | None = None,
 ) -> BodyCropReport:
     """Cut every fitted person's crop in every camera again from the fitted bodies (module
     doc) into a new crop store `out_h5`. `crops_h5` is the extraction's store (its settings,
@@ -212,7 +215,8 @@ def recut_crops(
     from each video, as the extraction does) are per camera, `truth_dir` a synthetic scene's
     folder for the truth figures. `fitted_rig`: the cameras the bodies were fitted in
     (`FuseResult.rig`, rotations corrected by the fit), to project the bodies with; the crops
-    keep `rig`'s cameras, as the extraction's do (default: `rig` for both)."""
+    keep `rig`'s cameras, as the extraction's do (default: `rig` for both). The cameras of a
+    frame are cut on `threads` threads (default: the cores)."""
     t0 = time.perf_counter()
     source = CropStore(crops_h5)
     bodies = read_fused_bodies(bodies_parquet)
@@ -224,22 +228,7 @@ def recut_crops(
             f"{sorted(videos)}, rig: {rig.names})"
         )
     body = load_body_model(bodies.body_model)
-    faces = np.asarray(body.faces, np.int32)
-    cams = [
-        _CameraSource(
-            rig[n],
-            (fitted_rig or rig)[n],
-            i,
-            Path(videos[n]),
-            (plates or {}).get(n),
-            source,
-            options,
-            truth_dir,
-        )  # fmt: skip
-        for i, n in enumerate(names)
-    ]
     frames = np.unique(bodies.frame)
-    readers = [iter(read_frames(c.video, frames.tolist(), c.camera.name)) for c in cams]
     visible: dict[tuple[str, int], set[int]] | None = None
     if truth_dir is not None:
         visible = {}
@@ -263,34 +252,16 @@ def recut_crops(
     out_h5.parent.mkdir(parents=True, exist_ok=True)
     for p in (out_h5, index_path_for(out_h5)):
         p.unlink(missing_ok=True)
-    steps = progress(frames, description="crops from the fitted bodies", total=len(frames)) \
-        if progress else frames  # fmt: skip
-    with CropStoreWriter(out_h5, names, S, settings, landmarks=lm_source) as writer:
-        for f in steps:
-            rows = np.flatnonzero(bodies.frame == f)
-            verts = _frame_vertices(body, bodies, rows)
-            caster = RayCaster([(v, faces) for v in verts])
-            batches = []
-            for cam, reader in zip(cams, readers, strict=True):
-                fi, image = next(reader)
-                if fi != f:
-                    raise RuntimeError(f"{cam.video}: expected frame {f}, decoded {fi}")
-                batch, truth_rows, lent = _cut_view(run, cam, image, int(f), rows, verts, caster)
-                report.crops_per_camera[cam.camera.name] += len(batch)
-                report.with_landmarks += lent
-                batches.append(batch)
-                scored += truth_rows
-                if visible is not None:
-                    want = visible.get((cam.camera.name, int(f)), set())
-                    report.visible_views += len(want)
-                    report.visible_views_missed += len(want - {r.truth_id for r in truth_rows})
-            writer.commit(CropBatch.concat(batches), [(int(f), c.index) for c in cams])
-        writer.finalize(
-            {
-                "source_videos": json.dumps({n: Path(videos[n]).name for n in names}),
-                "n_frames": int(source.attrs.get("n_frames", frames.max(initial=-1) + 1)),
-            }
-        )
+    fitted = fitted_rig or rig
+    # decoding, ray casting and OpenCV release Python's lock: the cameras run side by side
+    with ThreadPoolExecutor(max(1, min(len(names), threads or available_cores()))) as pool:
+        cams = list(pool.map(
+            lambda i: _CameraSource(rig[names[i]], fitted[names[i]], i, Path(videos[names[i]]),
+                                    (plates or {}).get(names[i]), source, options, truth_dir),
+            range(len(names)),
+        ))  # fmt: skip
+        _cut_frames(cams, pool, body, frames, out_h5, settings, report, visible, scored, run,
+                    progress)  # fmt: skip
     if visible is not None:  # frames the extraction considered where nobody was fitted
         fitted = set(frames.tolist())
         considered = range(0, int(source.attrs.get("n_frames", 0)), settings["frame_stride"])
@@ -304,6 +275,56 @@ def recut_crops(
         report.association_accuracy = association_accuracy(scored)[0]
     report.seconds = time.perf_counter() - t0
     return report
+
+
+def _cut_frames(cams, pool, body, frames, out_h5, settings, report, visible, scored, run,
+                progress) -> None:  # fmt: skip
+    """Every fitted frame's crops, camera by camera on `pool`, into the store `out_h5`. The
+    next frame's bodies are posed (and their ray-casting scene built) while this frame's views
+    are cut."""
+    source, bodies, S = run.source, run.bodies, run.crop_size
+    names = [c.camera.name for c in cams]
+    faces = np.asarray(body.faces, np.int32)
+    readers = [iter(read_frames(c.video, frames.tolist(), c.camera.name)) for c in cams]
+
+    def pose(f: int) -> tuple[np.ndarray, list, RayCaster]:
+        rows = np.flatnonzero(bodies.frame == f)
+        verts = _frame_vertices(body, bodies, rows)
+        return rows, verts, RayCaster([(v, faces) for v in verts])
+
+    def view(k: int, f: int, rows: np.ndarray, verts: list, caster: RayCaster):
+        cam = cams[k]
+        fi, image = next(readers[k])
+        if fi != f:
+            raise RuntimeError(f"{cam.video}: expected frame {f}, decoded {fi}")
+        return _cut_view(run, cam, image, f, rows, verts, caster)
+
+    steps = progress(frames, description="crops from the fitted bodies", total=len(frames)) \
+        if progress else frames  # fmt: skip
+    posed = pose(int(frames[0])) if len(frames) else None
+    with CropStoreWriter(out_h5, names, S, settings, landmarks=run.landmarks) as writer:
+        for i, f in enumerate(steps):
+            f = int(f)
+            views = [pool.submit(view, k, f, *posed) for k in range(len(cams))]
+            posed = pose(int(frames[i + 1])) if i + 1 < len(frames) else None
+            batches = []
+            for cam, job in zip(cams, views, strict=True):
+                batch, truth_rows, lent = job.result()
+                report.crops_per_camera[cam.camera.name] += len(batch)
+                report.with_landmarks += lent
+                batches.append(batch)
+                scored += truth_rows
+                if visible is not None:
+                    want = visible.get((cam.camera.name, f), set())
+                    report.visible_views += len(want)
+                    report.visible_views_missed += len(want - {r.truth_id for r in truth_rows})
+            writer.commit(CropBatch.concat(batches), [(f, c.index) for c in cams])
+        writer.finalize(
+            {
+                "source_videos": json.dumps({c.camera.name: c.video.name for c in cams}),
+                "n_frames": int(source.attrs.get("n_frames", frames.max(initial=-1) + 1)),
+            }
+        )
 
 
 @dataclass(frozen=True)
