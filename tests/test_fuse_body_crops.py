@@ -86,6 +86,51 @@ def test_labels_follow_the_front_body_and_the_foreground():
         body_labels(rays, meshes[:1], caster, fg)
 
 
+def _labels_casting_every_pixel(rays, caster, fg, max_distance_px) -> np.ndarray:
+    """The definition, brute force: every pixel cast, nearest owned pixel by scanning."""
+    owner = caster.cast(rays.origin[None], rays.dirs.reshape(-1, 3)).geom.reshape(fg.shape)
+    oy, ox = np.nonzero(owner >= 0)
+    out = np.full(fg.shape, -1, np.int16)
+    for y, x in zip(*np.nonzero(fg), strict=True):
+        d2 = (oy - y) ** 2 + (ox - x) ** 2
+        if len(d2) and d2.min() <= max_distance_px**2:
+            out[y, x] = owner[oy[d2.argmin()], ox[d2.argmin()]]
+    return out
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    max_distance=st.floats(0.5, 6.0),
+    x=st.floats(-0.6, 0.6),
+)
+def test_labels_equal_casting_every_pixel(seed, max_distance, x):
+    # only pixels near the foreground are cast (body_labels); a random foreground of blobs and
+    # noise, two bodies side by side: the labels must be those of casting them all (ties between
+    # two bodies at exactly one distance are left out: either answer is right)
+    cam = _camera(size=(96, 72))
+    cam = Camera.create("c", cam.K / np.array([[3.3], [3.3], [1]]), [], np.eye(3), np.zeros(3),
+                        96, 72)  # fmt: skip
+    (a, faces), (b, _) = _box([x, 0, 3], [0.5, 1, 0.2]), _box([x + 0.35, 0.1, 4], [0.5, 1, 0.2])
+    caster = RayCaster([(a, faces), (b, faces)])
+    rays = CameraRays(cam, (96, 72))
+    rng = np.random.default_rng(seed)
+    fg = rng.random((72, 96)) < 0.05
+    for _ in range(3):
+        cv2.circle(fg.view(np.uint8), (int(rng.integers(0, 96)), int(rng.integers(0, 72))),
+                   int(rng.integers(2, 15)), 1, -1)  # fmt: skip
+    got = body_labels(rays, [a, b], caster, fg, max_distance)
+    want = _labels_casting_every_pixel(rays, caster, fg, max_distance)
+    owner = caster.cast(rays.origin[None], rays.dirs.reshape(-1, 3)).geom.reshape(fg.shape)
+    oy, ox = np.nonzero(owner >= 0)
+    tie = np.zeros(fg.shape, bool)
+    for y, x_ in zip(*np.nonzero(got != want), strict=True):
+        d2 = (oy - y) ** 2 + (ox - x_) ** 2
+        tie[y, x_] = len(set(owner[oy, ox][d2 == d2.min()].tolist())) > 1
+    assert np.array_equal(got[~tie], want[~tie])
+    assert tie.sum() <= 2
+
+
 def test_landmarks_move_between_crops_of_one_view():
     K_from = np.array([[2.0, 0.1, 30], [0, 2.1, 40], [0, 0, 1]])
     K_to = np.array([[0.5, 0.0, -3], [0, 0.5, 7], [0, 0, 1]])
