@@ -2,10 +2,11 @@
 
 Library: `gst.fuse.rounds.fuse_rounds` over `gst.fuse.fuse_scene` (landmarks per crop, crowded
 crops read again, people regrouped, robust triangulation, a body fit over the clip), then the
-crops cut again from the fitted bodies and fused again (`fuse.recut_rounds`), and cut once more
-from the final bodies. Writes `fused/` (Parquet, TRC, C3D; docs/formats/fused_*.md),
-`reports/fuse/` (report, overlays; synthetic scenes: the error), `bodycrops/crops.h5` (the crops
-cut from the final bodies, docs/formats/crops_h5.md) and `reports/bodycrops/`.
+crops cut again from the fitted bodies and fused again (`fuse.recut_rounds`, unless the cut
+agrees with the extraction: `fuse.recut_agreement`), and cut from the final bodies. Writes
+`fused/` (Parquet, TRC, C3D; docs/formats/fused_*.md), `reports/fuse/` (report, overlays;
+synthetic scenes: the error), `bodycrops/crops.h5` (the crops cut from the final bodies,
+docs/formats/crops_h5.md) and `reports/bodycrops/`.
 """
 
 from __future__ import annotations
@@ -20,13 +21,13 @@ def run(ctx: StageContext) -> None:
     result = fuse_rounds(
         ctx.path("crops/crops.h5"), ctx.rig(), ctx.out("fused"), ctx.out("reports/fuse"),
         ctx.out("bodycrops/crops.h5"), ctx.out("reports/bodycrops"), rounds=p.recut_rounds,
-        fps=ctx.scene.fps, options=p.fuse_options(),
+        skip_agreement=p.recut_agreement, fps=ctx.scene.fps, options=p.fuse_options(),
         crop_options=p.crop_options(ctx.scene.frame_size_tolerance), videos=ctx.camera_videos(),
         plates=ctx.background_plates(p.background_videos, p.use_board_clip_as_background),
         truth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
         progress=ctx.progress, log=ctx.log,
     )  # fmt: skip
-    ctx.log.info("%s", result.fused.summary.headline())
+    ctx.log.info("%s (%d fusions)", result.fused.summary.headline(), result.fusions)
     ctx.log.info("bodycrops: %s", result.crops.summary_line())
 
 

@@ -107,8 +107,11 @@ def observations(cap: Capture, noise_px=0.0, seed=0) -> list[PersonObservations]
     return out
 
 
-def write_store(path: Path, cap: Capture, noise_px=0.5, seed=0) -> np.ndarray:
-    """A complete crop store of every (frame, person, camera); returns its landmarks (N, 33, 3)."""
+def write_store(
+    path: Path, cap: Capture, noise_px=0.5, seed=0, with_landmarks: bool = False
+) -> np.ndarray:
+    """A complete crop store of every (frame, person, camera); returns its landmarks (N, 33, 3),
+    which `with_landmarks` also stores in it (as the extraction does)."""
     rng = np.random.default_rng(seed)
     P, T = cap.markers.shape[:2]
     rows, lms = [], []
@@ -132,8 +135,9 @@ def write_store(path: Path, cap: Capture, noise_px=0.5, seed=0) -> np.ndarray:
         frame=np.array([r[0] for r in rows], np.int64),
         person_id=np.array([r[1] for r in rows], np.int64),
         mask_support=np.full(n, np.nan, np.float32),
+        landmarks=np.stack(lms).astype(np.float32) if with_landmarks else None,
     )
-    with CropStoreWriter(path, cap.rig.names, S) as w:
+    with CropStoreWriter(path, cap.rig.names, S, landmarks=with_landmarks) as w:
         w.commit(batch, [(f, c) for f in range(T) for c in range(len(cap.rig))])
         w.finalize({"n_frames": T})
     return np.stack(lms).astype(np.float32)

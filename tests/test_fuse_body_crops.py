@@ -7,6 +7,8 @@ with the right id and a mask that matches them."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -17,11 +19,15 @@ from hypothesis import strategies as st
 
 from calibration.camera import Camera, Rig
 from gst.body import load_body_model
-from gst.data.store import CropStore
+from gst.data.extract.crops import crop_person, landmarks_to_crop
+from gst.data.store import CropBatch, CropStore, CropStoreWriter
 from gst.fuse.body_crops import lenders, move_landmarks, recut_crops
 from gst.fuse.body_labels import CameraRays, body_labels
 from gst.fuse.fit import PersonFit
+from gst.fuse.rounds import fuse_rounds
+from gst.fuse.scene import FuseOptions
 from gst.fuse.tables import joint_evidence, write_bodies
+from gst.video import read_frames
 from synth.render import RayCaster
 from tests.fuse_fixtures import make_capture, write_store
 
@@ -319,3 +325,59 @@ def test_bodies_are_projected_with_the_fitted_cameras_and_crops_keep_the_calibra
     for i in range(len(store)):
         cam = calibrated[store.camera_names[batch.camera[i]]]
         assert np.allclose(batch.R[i], cam.R) and np.allclose(batch.t[i], cam.t)
+
+
+@pytest.fixture(scope="module")
+def extracted(scene):
+    """The scene's crops as the extraction would cut them: each person's rendered silhouette
+    (crop_person, the extraction's conventions) with their projected landmarks."""
+    tmp, cap, truth, videos, plates = scene
+    parts = []
+    for c, cam in enumerate(cap.rig):
+        for f, image in read_frames(videos[cam.name], range(cap.transl.shape[1])):
+            for k in range(2):
+                got = crop_person(image, truth[cam.name, f] == k + 1, cam, 64, 1.2)
+                if got is None:
+                    continue
+                img, msk, Kc, box, cbox = got
+                uv = cam.project(cap.markers[k, f])
+                lm = landmarks_to_crop(cam, np.c_[uv, np.full(len(uv), 0.9)], Kc)
+                parts.append(CropBatch(
+                    img[None], msk[None], Kc[None], cam.R[None], cam.t[None], box[None],
+                    cbox[None], np.array([c], np.int32), np.array([f], np.int64),
+                    np.array([k + 1], np.int64), np.array([np.nan], np.float32),
+                    landmarks=lm[None],
+                ))  # fmt: skip
+    path = tmp / "extracted.h5"
+    with CropStoreWriter(path, cap.rig.names, 64, {"scale": 1.2}, landmarks=True) as w:
+        T = cap.transl.shape[1]
+        w.commit(CropBatch.concat(parts), [(f, c) for f in range(T) for c in range(len(cap.rig))])
+        w.finalize({"n_frames": T})
+    return path
+
+
+@pytest.mark.parametrize("skip_agreement, fusions", [(0.0, 1), (None, 2), (1.01, 2)])
+def test_rounds_stop_where_the_cut_agrees_with_the_extraction(
+    scene, extracted, tmp_path, skip_agreement, fusions
+):
+    """A cut that agrees with the extraction at least `skip_agreement` ends the rounds: its
+    fusion's outputs (with the overlays an intermediate fusion does not draw) and its crops are
+    the stage's; otherwise the second fusion runs. Either way nothing is left in the work
+    folder, and the crops are those of the final bodies."""
+    tmp, cap, truth, videos, plates = scene
+    out, rep = tmp_path / "fused", tmp_path / "reports" / "fuse"
+    crops, crops_rep = tmp_path / "bodycrops" / "crops.h5", tmp_path / "reports" / "bodycrops"
+    result = fuse_rounds(
+        extracted, cap.rig, out, rep, crops, crops_rep, rounds=1,
+        skip_agreement=skip_agreement, fps=30.0,
+        options=dataclasses.replace(FuseOptions(), relook=None), videos=videos, plates=plates,
+    )  # fmt: skip
+    assert result.fusions == fusions
+    assert result.fused.bodies == out / "bodies.parquet" and result.fused.bodies.is_file()
+    assert all(p.is_file() and p.parent.parent == out for p in result.fused.trc)
+    assert sorted(p.name for p in result.fused.overlays) == [f"{n}.mp4" for n in cap.rig.names]
+    assert all(p.is_file() and p.parent == rep / "overlay" for p in result.fused.overlays)
+    assert (rep / "report.md").is_file() and (crops_rep / "summary.json").is_file()
+    assert not (tmp_path / ".fused.rounds").exists()
+    assert result.crops.agreement() > 0.9  # every crop paired with the extraction's
+    _check_crops(CropStore(crops), cap, truth)

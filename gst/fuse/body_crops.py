@@ -88,13 +88,26 @@ class BodyCropReport:
     association_accuracy: float | None = None
     visible_views: int = 0  # truth views with >= 30 % of the person's joints visible
     visible_views_missed: int = 0  # ... of which no crop shows that person
+    # how far the bodies' crops differ from the extraction's, in the frames with a fitted body:
+    # the extraction's crops there, how many crops were paired one to one with one of them
+    # (`lenders`, IoU >= min_landmark_iou) and the pairs' mean mask IoU
+    extraction_crops: int = 0
+    paired: int = 0
+    paired_mean_iou: float | None = None
+
+    def agreement(self) -> float:
+        """Pairs over the crops of either side (1: every crop of both has its partner)."""
+        return self.paired / max(self.crops, self.extraction_crops, 1)
 
     def summary_line(self) -> str:
         line = (
             f"{self.crops} crops of {self.people} people over {self.frames} frames cut from the "
             f"fitted bodies ({self.with_landmarks} with the extraction's landmarks) in "
-            f"{self.seconds:.1f} s"
-        )
+            f"{self.seconds:.1f} s; {self.paired} paired one to one with the extraction's "
+            f"{self.extraction_crops} (agreement {self.agreement():.3f}"
+            + (f", mask IoU {self.paired_mean_iou:.3f})" if self.paired_mean_iou is not None
+               else ")")
+        )  # fmt: skip
         if self.mask_iou is not None:
             missed = self.visible_views_missed / max(self.visible_views, 1)
             line += (
@@ -178,11 +191,7 @@ def lenders(new: list[np.ndarray], old: list[np.ndarray], min_iou: float) -> dic
     """One-to-one: new mask index -> extraction mask index, by IoU (Hungarian)."""
     if not new or not old:
         return {}
-    iou = np.zeros((len(new), len(old)))
-    for i, a in enumerate(new):
-        for j, b in enumerate(old):
-            union = np.count_nonzero(a | b)
-            iou[i, j] = np.count_nonzero(a & b) / union if union else 0.0
+    iou = np.array([[_iou(a, b) for b in old] for a in new])
     a, b = linear_sum_assignment(-iou)
     return {int(i): int(j) for i, j in zip(a, b, strict=True) if iou[i, j] >= min_iou}
 
@@ -302,6 +311,7 @@ def _cut_frames(cams, pool, body, frames, out_h5, settings, report, visible, sco
     steps = progress(frames, description="crops from the fitted bodies", total=len(frames)) \
         if progress else frames  # fmt: skip
     posed = pose(int(frames[0])) if len(frames) else None
+    paired_iou = 0.0
     with CropStoreWriter(out_h5, names, S, settings, landmarks=run.landmarks) as writer:
         for i, f in enumerate(steps):
             f = int(f)
@@ -309,16 +319,21 @@ def _cut_frames(cams, pool, body, frames, out_h5, settings, report, visible, sco
             posed = pose(int(frames[i + 1])) if i + 1 < len(frames) else None
             batches = []
             for cam, job in zip(cams, views, strict=True):
-                batch, truth_rows, lent = job.result()
-                report.crops_per_camera[cam.camera.name] += len(batch)
-                report.with_landmarks += lent
-                batches.append(batch)
-                scored += truth_rows
+                cut = job.result()
+                report.crops_per_camera[cam.camera.name] += len(cut.batch)
+                report.with_landmarks += cut.lent
+                report.extraction_crops += cut.extraction
+                report.paired += cut.paired
+                paired_iou += cut.paired_iou
+                batches.append(cut.batch)
+                scored += cut.truth
                 if visible is not None:
                     want = visible.get((cam.camera.name, f), set())
                     report.visible_views += len(want)
-                    report.visible_views_missed += len(want - {r.truth_id for r in truth_rows})
+                    report.visible_views_missed += len(want - {r.truth_id for r in cut.truth})
             writer.commit(CropBatch.concat(batches), [(f, c.index) for c in cams])
+        if report.paired:
+            report.paired_mean_iou = paired_iou / report.paired
         writer.finalize(
             {
                 "source_videos": json.dumps({c.camera.name: c.video.name for c in cams}),
@@ -339,6 +354,18 @@ class _Run:
     landmarks: bool  # the extraction's store holds landmarks (and so will this one)
 
 
+@dataclass
+class _ViewCut:
+    """The crops of one camera and frame, and how they compare with the extraction's."""
+
+    batch: CropBatch
+    truth: list[CropTruth]  # synthetic scenes: each crop against the truth ids
+    lent: int  # crops that took an extraction crop's landmarks
+    extraction: int  # the extraction's crops of this view
+    paired: int  # crops paired one to one with one of them (`lenders`)
+    paired_iou: float  # the sum of the pairs' mask IoU
+
+
 def _cut_view(
     run: _Run,
     cam: _CameraSource,
@@ -347,9 +374,8 @@ def _cut_view(
     rows: np.ndarray,
     verts: list,
     caster: RayCaster,
-) -> tuple[CropBatch, list[CropTruth], int]:
-    """The crops of one camera and frame, their truth rows, and how many took an extraction
-    crop's landmarks."""
+) -> _ViewCut:
+    """The crops of one camera and frame (module doc)."""
     o, source, S, lm_source = run.options, run.source, run.crop_size, run.landmarks
     old_rows, old_K, old_masks = cam.extraction_masks(source, f)
     fg = cam.foreground(image, old_masks, o)
@@ -389,7 +415,13 @@ def _cut_view(
             tid, iou = score_against_truth(mask, gt, areas)
             truth_rows.append(CropTruth(f, cam.camera.name, pid, tid, iou, "body"))
     batch = CropBatch.concat(parts) if parts else CropBatch.empty(S, lm_source)
-    return batch, truth_rows, lent
+    ious = [_iou(new_masks[i], old_masks[j]) for i, j in lend.items()]
+    return _ViewCut(batch, truth_rows, lent, len(old_rows), len(lend), float(sum(ious)))
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.count_nonzero(a | b)
+    return np.count_nonzero(a & b) / union if union else 0.0
 
 
 def _as_json(o: BodyCropOptions) -> dict:
