@@ -46,7 +46,7 @@ def fuse_rounds(
     crops_report_dir: Path,
     *,
     rounds: int = 1,
-    skip_agreement: float | None = 0.97,
+    skip_agreement: float | None = 0.98,
     fps: float | None = None,
     options: FuseOptions | None = None,
     crop_options: BodyCropOptions | None = None,
