@@ -15,6 +15,7 @@ from gst.data.store import (
     StoreError,
     index_path_for,
     merge_part,
+    write_subset,
 )
 
 S = 16
@@ -226,3 +227,27 @@ def test_projected_landmarks_are_flagged_and_older_stores_say_nothing(tmp_path):
         w.commit(_batch([0], [0], [7]), [(0, 0)])
         w.finalize()
     assert CropStore(plain).read_landmarks_projected() is None
+
+
+def test_a_subset_store_holds_those_rows_and_the_store_settings(tmp_path):
+    path = tmp_path / "crops.h5"
+    b = _batch([0, 0, 0, 1, 1, 2], [0, 1, 2, 0, 2, 1], [7, 7, 7, 7, 8, 7], seed=3)
+    b.landmarks = np.random.default_rng(4).random((6, 33, 3)).astype(np.float32)
+    done = [(0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
+    with CropStoreWriter(path, CAMS, S, {"scale": 1.2, "method": "x"}, landmarks=True) as w:
+        w.commit(b, done)
+        w.finalize({"n_frames": 3, "source_videos": '{"a": "a.mp4"}'})
+    keep = np.array([4, 0, 1])  # camera 2 of frame 0 and frames 1-2 but for one crop left out
+    sub = write_subset(CropStore(path), keep, tmp_path / "sub.h5", chunk=2)
+    assert len(sub) == 3 and sub.camera_names == CAMS and sub.crop_size == S
+    got, want = sub.read(np.arange(3)), CropStore(path).read(keep)
+    for name in ("images", "masks", "K_crop", "frame", "camera", "person_id", "landmarks"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    for key in ("setting.scale", "setting.method", "n_frames", "source_videos"):
+        assert sub.attrs[key] == CropStore(path).attrs[key], key
+    assert bool(sub.attrs["complete"]) and index_path_for(sub.path).is_file()
+    # the pairs whose crops were all kept, and the empty ones, stay processed; (0, 2), (1, 0)
+    # and (2, 1) lost crops
+    with h5py.File(sub.path, "r") as f:
+        pairs = {tuple(p) for p in f["done"][: int(f.attrs["n_done"])].tolist()}
+    assert pairs == set(done) - {(0, 2), (1, 0), (2, 1)}

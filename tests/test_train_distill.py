@@ -16,7 +16,6 @@ from gst.model.assemble import BodyPrediction
 from gst.train.distill import (
     distill_targets,
     distill_terms,
-    teacher_landmarks,
     training_rows,
 )
 from gst.train.views import heldout_frame_start, load_cropset
@@ -45,15 +44,6 @@ def test_heldout_frames_are_the_last_share_of_the_frames():
     assert heldout_frame_start(frames, 0.01) == 9  # at least one frame
     with pytest.raises(ValueError, match=r"\[0, 1\)"):
         heldout_frame_start(frames, 1.0)
-
-
-def test_teacher_landmarks_remove_everything_held_out():
-    lm = np.random.default_rng(0).random((5, 33, 3)).astype(np.float32)
-    allowed = np.array([True, False, True, False, True])
-    out = teacher_landmarks(lm, allowed)
-    assert np.isnan(out[~allowed, :, :2]).all() and (out[~allowed, :, 2] == 0).all()
-    assert np.array_equal(out[allowed], lm[allowed])
-    assert not np.isnan(lm).any()  # the input is left alone
 
 
 def test_targets_are_never_drawn_from_heldout_cameras_or_frames(scene, tmp_path):
@@ -85,6 +75,36 @@ def test_targets_are_never_drawn_from_heldout_cameras_or_frames(scene, tmp_path)
     # ...and with nothing held out the fuse stage's bodies are taken as they are
     every = teacher(landmarks, np.ones(len(crops), bool), tmp_path / "c")
     assert np.array_equal(every.joints, fused.joints) and not (tmp_path / "c").exists()
+
+
+def test_the_teacher_fuses_only_the_allowed_crops(scene, tmp_path, monkeypatch):
+    """The teacher's fusion is given a store of the training crops alone, so no part of the
+    fusion (the crowded crops read again from their pixels, the silhouettes that vote) can see
+    a held-out crop: until 2026-11-30 it got the whole store, and the second reading of crowded
+    crops gave the held-out crops their landmarks back."""
+    import gst.lift.teacher as teacher_module
+    from gst.data.store import CropStore
+
+    tmp, cap, landmarks, crops, fused = scene
+    allowed = training_rows(crops, {3}, heldout_frame_start(crops.frame, 1 / 3)).numpy()
+    seen = {}
+
+    def fake_fuse(store_path, rig, out, report, **kw):
+        store = CropStore(store_path)
+        seen["store"] = store.read(np.arange(len(store)))
+        seen["landmarks"] = kw["landmarks"]
+        return fuse_scene(store_path, rig, out, report, **kw)
+
+    monkeypatch.setattr(teacher_module, "fuse_scene", fake_fuse)
+    RigTeacher(tmp / "fused" / "bodies.parquet", tmp / "crops.h5", cap.rig)(
+        landmarks, allowed, tmp_path
+    )
+    want = CropStore(tmp / "crops.h5").read(np.flatnonzero(allowed))
+    got = seen["store"]
+    assert len(got) == allowed.sum()
+    for name in ("images", "masks", "frame", "camera", "person_id", "K_crop"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    assert np.array_equal(seen["landmarks"], landmarks[allowed])
 
 
 def test_joint_weights_follow_the_views(scene):

@@ -619,3 +619,38 @@ def merge_part(
             writer.commit_rows(f, a, b, [(fr, camera_index) for fr in chunk])
             added += len(chunk)
     return added
+
+
+_WRITER_ATTRS = ("format", "version", "crop_size", "n_done", "complete", "n_committed")
+
+
+def write_subset(store: CropStore, rows, out: Path | str, chunk: int = 256) -> CropStore:
+    """A complete store at `out` holding only `rows` of `store`, in that order, with the same
+    crop size, cameras, settings and attributes; the (frame, camera) pairs of `store` that none
+    of the other rows falls in are marked processed. For a fusion that must not see the rest
+    (the rig teacher without held-out cameras and frames: gst.lift.teacher)."""
+    rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+    out = Path(out)
+    settings, extra = {}, {}
+    for k, v in store.attrs.items():
+        if k.startswith("setting."):
+            settings[k[len("setting.") :]] = v
+        elif k not in _WRITER_ATTRS:
+            extra[k] = v
+    with h5py.File(store.path, "r") as f:
+        done = f["done"][: int(f.attrs["n_done"])]
+    frame, camera = store._column("frame"), store._column("camera_index")
+    left_out = np.ones(len(store), bool)
+    left_out[rows] = False
+    gone = set(zip(frame[left_out].tolist(), camera[left_out].tolist(), strict=True))
+    done = [tuple(p) for p in done.tolist() if tuple(p) not in gone]
+    has_landmarks = store.read_landmarks(np.zeros(0, np.int64)) is not None
+    for p in (out, index_path_for(out)):
+        p.unlink(missing_ok=True)
+    with CropStoreWriter(out, store.camera_names, store.crop_size, settings,
+                         landmarks=has_landmarks) as w:  # fmt: skip
+        for a in range(0, len(rows), chunk):
+            w.commit(store.read(rows[a : a + chunk]), [])
+        w.commit(CropBatch.empty(store.crop_size, has_landmarks), done)
+        w.finalize(extra)
+    return CropStore(out)

@@ -9,11 +9,10 @@ take their frame's mean; frames the fit filled alone (`observed` False) and peop
 by two cameras at once (`single_view`) get no target. No 3D label is used.
 
 Held-out data never reaches a target: the teacher (`Teacher`; the rig's is
-`gst.lift.teacher.RigTeacher`) fits the bodies with the fuse stage's own settings on the crops'
-landmarks after removing every held-out camera's and every held-out frame's landmarks
-(`teacher_landmarks`: confidence 0, position NaN), so the fit sees training cameras in
-training frames only; only when nothing is held out does it take the fuse stage's
-`fused/bodies.parquet` as it is. Targets are then attached to training crops only
+`gst.lift.teacher.RigTeacher`) fits the bodies with the fuse stage's own settings on the
+training cameras' crops in the training frames only (a copy of the store without the others:
+neither their landmarks nor their pixels); only when nothing is held out does it take the fuse
+stage's `fused/bodies.parquet` as it is. Targets are then attached to training crops only
 (`distill_targets(..., allowed=...)`).
 """
 
@@ -35,7 +34,6 @@ from gst.train.views import CropSet
 log = logging.getLogger("gst.train")
 
 __all__ = [
-    "teacher_landmarks",
     "training_rows",
     "Teacher",
     "distill_targets",
@@ -51,16 +49,6 @@ def training_rows(
     if first_heldout_frame is not None:
         keep &= crops.frame < first_heldout_frame
     return keep
-
-
-def teacher_landmarks(landmarks: np.ndarray, allowed: np.ndarray) -> np.ndarray:
-    """A copy of the crops' (N, 33, 3) landmarks with every row not `allowed` (held-out camera
-    or frame) removed: position NaN, confidence 0; the fusion then has no evidence there."""
-    out = np.array(landmarks, dtype=np.float32, copy=True)
-    drop = ~np.asarray(allowed, bool)
-    out[drop, :, :2] = np.nan
-    out[drop, :, 2] = 0.0
-    return out
 
 
 class Teacher(Protocol):
