@@ -151,3 +151,23 @@ def test_distill_terms_vanish_at_the_target_and_skip_unweighted_rows(scene):
     assert float(terms["distill_joints"].detach()) < 1e-6  # only the unweighted rows were moved
     sum(terms.values()).backward()
     assert torch.isfinite(joints.grad).all()
+
+
+def test_no_teacher_fit_sees_the_heldout_crops(scene, tmp_path):
+    """Both of training's teacher fits, the one that says which training crops are mirrored
+    and the one that gives the targets, are of the training crops only (the first used the fuse
+    stage's bodies, fitted on every crop, until 2026-11-30)."""
+    from gst.train.scene_training import TrainSettings, prepare_crops
+
+    tmp, cap, landmarks, crops, fused = scene
+    calls = []
+
+    def teacher(lm, allowed, work):
+        calls.append(np.asarray(allowed, bool).copy())
+        return fused
+
+    p = TrainSettings(heldout_frames=1 / 3, distill=True, unmirror_landmarks=True)
+    prepare_crops(p, tmp / "crops.h5", None, teacher=teacher, work=tmp_path)
+    want = training_rows(crops, {3}, heldout_frame_start(crops.frame, 1 / 3)).numpy()
+    assert len(calls) == 2
+    assert all(np.array_equal(c, want) for c in calls)

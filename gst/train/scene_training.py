@@ -247,10 +247,13 @@ def prepare_crops(
         held_idx = {crops.camera_names.index(c) for c in heldout}
         allowed = training_rows(crops, held_idx, cut)
         if p.unmirror_landmarks:
-            # the rig's bodies (every crop allowed: the fuse stage's own) say which training
-            # crops are mirrored; the teacher is then refitted on the corrected landmarks
-            rig = teacher(landmarks.numpy(), np.ones(len(crops), dtype=bool), work)
-            landmarks = _unmirrored(crops, landmarks, distill_targets(crops, rig, allowed))
+            # a first fit of the training crops alone says which of them are mirrored (the fuse
+            # stage's own bodies saw the held-out crops); the teacher is then refitted on the
+            # corrected landmarks
+            first = teacher(
+                landmarks.numpy(), allowed.numpy(), work / "mirrors" if work is not None else None
+            )
+            landmarks = _unmirrored(crops, landmarks, distill_targets(crops, first, allowed))
         bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
         crops.distill = distill_targets(crops, bodies, allowed)
         log.info(
