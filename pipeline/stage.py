@@ -22,6 +22,10 @@ from pipeline.config import PipelineConfig, SceneConfig
 
 T = TypeVar("T")
 
+# a scene's folder of the landmark model's readings of crowded crops, shared by the fuse stage
+# and train's rig teacher (gst.detect.reading_cache)
+READINGS = ".pipeline/cache/readings"
+
 
 class StageParams(BaseModel):
     """Base for a stage's parameters: unknown keys are errors."""

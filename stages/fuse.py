@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from gst.fuse.rounds import fuse_rounds
 from gst.fuse.settings import FuseSettings
-from pipeline.stage import Stage, StageContext
+from pipeline.stage import READINGS, Stage, StageContext
 
 
 def run(ctx: StageContext) -> None:
@@ -25,7 +25,7 @@ def run(ctx: StageContext) -> None:
         crop_options=p.crop_options(ctx.scene.frame_size_tolerance), videos=ctx.camera_videos(),
         plates=ctx.background_plates(p.background_videos, p.use_board_clip_as_background),
         truth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
-        progress=ctx.progress, log=ctx.log,
+        progress=ctx.progress, log=ctx.log, reading_cache=ctx.path(READINGS),
     )  # fmt: skip
     ctx.log.info("%s (%d fusions)", result.fused.summary.headline(), result.fusions)
     ctx.log.info("bodycrops: %s", result.crops.summary_line())

@@ -15,7 +15,7 @@ from __future__ import annotations
 from gst.lift.rehearsal import PriorRehearsal
 from gst.lift.teacher import RigTeacher
 from gst.train.scene_training import TrainOutputs, TrainSettings, train_scene
-from pipeline.stage import Stage, StageContext
+from pipeline.stage import READINGS, Stage, StageContext
 
 CROP_STORES = {"extract": "crops/crops.h5", "bodycrops": "bodycrops/crops.h5"}
 
@@ -39,7 +39,7 @@ def run(ctx: StageContext) -> None:
         ctx.path("models/pretrain.pt"),
         outputs,
         synth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
-        teacher=RigTeacher(ctx.path("fused/bodies.parquet"), crops, ctx.rig())
+        teacher=RigTeacher(ctx.path("fused/bodies.parquet"), crops, ctx.rig(), ctx.path(READINGS))
         if ctx.params.distill
         else None,
         scene=ctx.scene_name,

@@ -140,3 +140,42 @@ def test_projected_landmarks_are_no_reading(tmp_path):
     np.testing.assert_array_equal(got[[0, 2]], lm[[0, 2]])
     np.testing.assert_array_equal(got[1, :, :2], lm[1, :, :2])
     assert (got[1, :, 2] == 0).all()
+
+
+def test_readings_kept_by_content_are_not_read_again(tmp_path, caplog):
+    """With a reading cache the second run over the same crops runs the model on none of them
+    and gives the same landmarks; a crop whose pixels changed is read; a damaged cache file is
+    set aside (warning) and written again; the second pass (refine) has a file of its own."""
+    from gst.detect.reading_cache import ReadingCache
+
+    store = _scene(tmp_path)
+    before = np.zeros((3, 33, 3), np.float32)
+    options = RelookOptions(min_share=0.05, refine=False)
+    cache_dir = tmp_path / "readings"
+    first_model = _Recorder()
+    first = ReadingCache(cache_dir, refine=False)
+    a = relook_crowded(store, before, options, model=first_model, cache=first)
+    first.save()
+    assert len(first_model.images) == 2 and first.hits == 0
+    again_model = _Recorder()
+    again = ReadingCache(cache_dir, refine=False)
+    b = relook_crowded(store, before, options, model=again_model, cache=again)
+    assert again_model.images == [] and again.hits == 2
+    np.testing.assert_array_equal(a.landmarks, b.landmarks)
+    np.testing.assert_array_equal(a.rows, b.rows)
+    # other pixels: read
+    changed = windows_store(
+        tmp_path / "changed.h5", store.read(np.arange(3)).crop_box, store.read_masks(),
+        camera=[0, 0, 1], frame=[0, 0, 0], images=store.read_images() // 2,
+    )  # fmt: skip
+    model = _Recorder()
+    relook_crowded(changed, before, options, model=model, cache=ReadingCache(cache_dir, False))
+    assert len(model.images) == 2
+    assert ReadingCache(cache_dir, refine=True).path != again.path
+    again.path.write_bytes(b"not a zip")
+    damaged = ReadingCache(cache_dir, refine=False)
+    assert "not read" in caplog.text
+    assert damaged.get(ReadingCache.key(np.zeros((2, 2), np.uint8))) is None
+    damaged.put(ReadingCache.key(np.zeros((2, 2), np.uint8)), np.ones((33, 3)))
+    damaged.save()
+    assert len(np.load(again.path)["keys"]) == 1

@@ -84,11 +84,14 @@ def relook_crowded(
     model=None,
     progress=None,
     threads: int | None = None,
+    cache=None,
 ) -> RelookResult:
     """The store's `landmarks` (N, 33, 3), with the crowded crops read again (module doc).
     `model`: a gst.detect.blazepose.BlazePose to use (then one thread); default: one per
     thread, on `threads` threads (default: the cores; the landmark model and the inpainting
-    release Python's lock)."""
+    release Python's lock). `cache`: a gst.detect.reading_cache.ReadingCache (for
+    `options.refine`) that gives the readings of painted crops read before and keeps the new
+    ones (saved by the caller)."""
     import cv2
 
     from gst.detect.blazepose import BlazePose
@@ -111,14 +114,24 @@ def relook_crowded(
         crowded = shares >= o.min_share
         if not crowded.any():
             return shares, crowded, None
-        if model is None and not hasattr(local, "model"):
-            local.model = BlazePose(threads=1)
         images = store.read_images(rows[crowded])  # BGR
         for k, mask in enumerate(others[crowded] if o.paint else []):
             grown = cv2.dilate(mask.astype(np.uint8), kernel)
             images[k] = cv2.inpaint(images[k], grown, 5, cv2.INPAINT_TELEA)
-        found = detect_crop_landmarks(images, model or local.model, rgb=False, refine=o.refine)
-        return shares, crowded, found.with_confidence()
+        keys = [cache.key(img) for img in images] if cache is not None else []
+        readings = [cache.get(k) for k in keys] if cache is not None else [None] * len(images)
+        todo = [i for i, r in enumerate(readings) if r is None]
+        if todo:
+            if model is None and not hasattr(local, "model"):
+                local.model = BlazePose(threads=1)
+            found = detect_crop_landmarks(
+                images[todo], model or local.model, rgb=False, refine=o.refine
+            ).with_confidence()
+            for i, reading in zip(todo, found, strict=True):
+                readings[i] = reading
+                if cache is not None:
+                    cache.put(keys[i], reading)
+        return shares, crowded, np.stack(readings).astype(np.float32)
 
     shares = np.zeros(len(store))
     read_again: list[np.ndarray] = []

@@ -55,13 +55,14 @@ def fuse_rounds(
     truth_dir: Path | None = None,
     progress=None,
     log=None,
+    reading_cache: Path | None = None,
 ) -> FuseRounds:
     """Fuse `crops_h5` (the extraction's store) into `out_dir` / `report_dir` after up to
     `rounds` rounds of cutting the crops again from the bodies and fusing those; the crops cut
     from the final bodies go to `crops_out` (report in `crops_report_dir`). A cut whose
     agreement with the extraction (`BodyCropReport.agreement`) is at least `skip_agreement`
     ends the rounds (None: every round runs). `videos` and `plates` (clean plates, None: the
-    background is learnt from the videos) are per camera."""
+    background is learnt from the videos) are per camera; `reading_cache`: fuse_scene's."""
     options = options or FuseOptions()
     crop_options = crop_options or BodyCropOptions()
     work = out_dir.parent / f".{out_dir.name}.rounds"
@@ -73,6 +74,7 @@ def fuse_rounds(
         result = fuse_scene(
             store, rig, *where, fps=fps, options=options if last else quiet,
             truth_dir=truth_dir, videos=videos, progress=progress, log=log,
+            reading_cache=reading_cache,
         )  # fmt: skip
         if log is not None:
             log.info("fuse: fusion %d of at most %d: %s", r + 1, rounds + 1,

@@ -283,6 +283,7 @@ def fuse_scene(
     videos: dict[str, Path] | None = None,
     progress=None,
     log=None,
+    reading_cache: str | Path | None = None,
 ) -> FuseResult:
     """Fuse every person of the crop store at `store_path` (cameras of `rig`, a calibration Rig).
 
@@ -290,6 +291,8 @@ def fuse_scene(
     store's own, else BlazePose on the crops. `truth_dir`: a synthetic scene folder (`synth/`)
     to score against. `videos`: camera -> source video for the overlays (default: the store's
     `source_videos`). `fps`: the capture's frame rate (default: the first source video's).
+    `reading_cache`: a folder where the landmark model's readings of crowded crops are kept
+    between runs and stages (gst.detect.reading_cache; None: none kept).
     """
     o = options or FuseOptions()
     out_dir, report_dir = Path(out_dir), Path(report_dir)
@@ -336,9 +339,19 @@ def fuse_scene(
             with np.load(relook_path) as z:
                 landmarks, read_again = z["landmarks"], z["rows"]
         else:
-            relooked = relook_crowded(store, landmarks, o.relook, progress=progress)
+            cache = None
+            if reading_cache is not None:
+                from gst.detect.reading_cache import ReadingCache
+
+                cache = ReadingCache(reading_cache, o.relook.refine)
+            relooked = relook_crowded(store, landmarks, o.relook, progress=progress, cache=cache)
             landmarks, read_again = relooked.landmarks, relooked.rows
             atomic_save_npz(relook_path, landmarks=landmarks, rows=read_again)
+            if cache is not None:
+                cache.save()
+                if log is not None and cache.hits:
+                    log.info("fuse: %d crowded crops' readings kept from earlier runs (%s)",
+                             cache.hits, cache.path)  # fmt: skip
         if log is not None:
             log.info(
                 "fuse: %d of %d crops crowded by other people, read again with them painted over",

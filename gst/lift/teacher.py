@@ -58,6 +58,9 @@ class RigTeacher:
     fused: Path  # the fuse stage's fused/bodies.parquet
     crops_h5: Path  # the crop store the landmarks' rows belong to
     rig: object  # the calibration (calibration.camera.Rig)
+    # where the landmark model's readings of crowded crops are kept (gst.detect.reading_cache):
+    # the fuse stage read the same crops; None: read again
+    reading_cache: Path | None = None
 
     def __call__(self, landmarks: np.ndarray, allowed: np.ndarray, work: Path) -> FusedBodies:
         bodies = read_fused_bodies(self.fused)
@@ -78,6 +81,7 @@ class RigTeacher:
                 fps=bodies.fps,
                 options=fuse_options(bodies.settings),
                 landmarks=np.asarray(landmarks, np.float32)[rows],
+                reading_cache=self.reading_cache,
             )
         log.info(
             "distill: teacher refitted on %d of %d crops (held-out cameras and frames removed)",
