@@ -142,25 +142,34 @@ def test_projected_landmarks_are_no_reading(tmp_path):
     assert (got[1, :, 2] == 0).all()
 
 
-def test_readings_kept_by_content_are_not_read_again(tmp_path, caplog):
+@NEEDS_MODELS  # the cache's file is named by the model files' SHA-256
+def test_readings_kept_by_content_are_not_read_again(tmp_path, caplog, monkeypatch):
     """With a reading cache the second run over the same crops runs the model on none of them
-    and gives the same landmarks; a crop whose pixels changed is read; a damaged cache file is
-    set aside (warning) and written again; the second pass (refine) has a file of its own."""
+    and gives the same landmarks; a crop whose pixels changed is read; the second pass (refine)
+    has a file of its own; a caller's own model never meets the cache; a damaged cache file is
+    logged, removed and written again."""
+    import gst.detect.blazepose as blazepose
     from gst.detect.reading_cache import ReadingCache
 
+    made = []
+
+    def recorder(threads=1):
+        made.append(_Recorder())
+        return made[-1]
+
+    monkeypatch.setattr(blazepose, "BlazePose", recorder)  # relook makes its model from here
+    seen = lambda: sum(len(m.images) for m in made)  # noqa: E731
     store = _scene(tmp_path)
     before = np.zeros((3, 33, 3), np.float32)
     options = RelookOptions(min_share=0.05, refine=False)
     cache_dir = tmp_path / "readings"
-    first_model = _Recorder()
     first = ReadingCache(cache_dir, refine=False)
-    a = relook_crowded(store, before, options, model=first_model, cache=first)
+    a = relook_crowded(store, before, options, threads=1, cache=first)
     first.save()
-    assert len(first_model.images) == 2 and first.hits == 0
-    again_model = _Recorder()
+    assert seen() == 2 and first.hits == 0
     again = ReadingCache(cache_dir, refine=False)
-    b = relook_crowded(store, before, options, model=again_model, cache=again)
-    assert again_model.images == [] and again.hits == 2
+    b = relook_crowded(store, before, options, threads=1, cache=again)
+    assert seen() == 2 and again.hits == 2  # nothing read again
     np.testing.assert_array_equal(a.landmarks, b.landmarks)
     np.testing.assert_array_equal(a.rows, b.rows)
     # other pixels: read
@@ -168,14 +177,18 @@ def test_readings_kept_by_content_are_not_read_again(tmp_path, caplog):
         tmp_path / "changed.h5", store.read(np.arange(3)).crop_box, store.read_masks(),
         camera=[0, 0, 1], frame=[0, 0, 0], images=store.read_images() // 2,
     )  # fmt: skip
-    model = _Recorder()
-    relook_crowded(changed, before, options, model=model, cache=ReadingCache(cache_dir, False))
-    assert len(model.images) == 2
+    relook_crowded(changed, before, options, threads=1, cache=ReadingCache(cache_dir, False))
+    assert seen() == 4
+    # a caller's model: read, whatever the cache holds
+    own = _Recorder()
+    relook_crowded(store, before, options, model=own, cache=ReadingCache(cache_dir, False))
+    assert len(own.images) == 2
     assert ReadingCache(cache_dir, refine=True).path != again.path
     again.path.write_bytes(b"not a zip")
     damaged = ReadingCache(cache_dir, refine=False)
-    assert "not read" in caplog.text
-    assert damaged.get(ReadingCache.key(np.zeros((2, 2), np.uint8))) is None
-    damaged.put(ReadingCache.key(np.zeros((2, 2), np.uint8)), np.ones((33, 3)))
+    assert "not read" in caplog.text and not again.path.exists()
+    key = ReadingCache.key(np.zeros((2, 2), np.uint8))
+    assert damaged.get(key) is None
+    damaged.put(key, np.ones((33, 3)))
     damaged.save()
     assert len(np.load(again.path)["keys"]) == 1

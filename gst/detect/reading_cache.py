@@ -6,9 +6,10 @@ ones (gst.lift.teacher), which reads the same crowded crops the same way, twice;
 stage run again with other fit settings reads them once more. What the landmark model reads
 depends only on the pixels it is given (the crop after the painting) and on what runs it, so a
 reading is kept under the SHA-256 of those pixels, in a file whose name is a digest of the rest
-(`namespace`): the source of the modules that read (`READER_MODULES`; gst.detect.weights pins
-the model files by their SHA-256), the versions of the libraries that run them, whether the
-second pass runs (`refine`), and the file format. A file that cannot be read is not used (it is
+(`namespace`): the source of the modules that read (`READER_MODULES`, the left/right table of
+gst.body.markers among them), the SHA-256 of the model files as they are on disk, the versions
+of the libraries that run them (LiteRT, NumPy, OpenCV's own), whether the second pass runs
+(`refine`), and the file format. A file that cannot be read is not used (it is
 written again). The readings are those of a one-thread interpreter, which is what the fuse stage
 and the teacher run: the same pixels give the same numbers (tests/test_fuse_relook.py).
 
@@ -25,6 +26,7 @@ import importlib.metadata
 import logging
 import threading
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +39,26 @@ __all__ = ["READER_MODULES", "ReadingCache"]
 log = logging.getLogger("gst.detect")
 
 FORMAT = 1
-READER_MODULES = ("gst.detect.blazepose", "gst.detect.crops", "gst.detect.weights")
+READER_MODULES = (
+    "gst.detect.blazepose",
+    "gst.detect.crops",
+    "gst.detect.weights",
+    "gst.body.markers",  # the left/right table the second pass mirrors with
+)
 READER_PACKAGES = ("ai-edge-litert", "numpy")
 
 
 def namespace(refine: bool) -> str:
     """The digest of everything but the pixels that decides a reading."""
-    what: dict[str, object] = {"format": FORMAT, "refine": bool(refine)}
+    import cv2
+
+    from gst.detect.weights import model_paths
+
+    what: dict[str, object] = {"format": FORMAT, "refine": bool(refine), "opencv": cv2.__version__}
     for name in READER_MODULES:
         what[name] = sha256_of(Path(importlib.import_module(name).__file__))
+    for role, path in model_paths().items():
+        what[f"model.{role}"] = sha256_of(path)
     for package in READER_PACKAGES:
         try:
             what[package] = importlib.metadata.version(package)
@@ -71,8 +84,9 @@ class ReadingCache:
                 if readings.shape != (len(keys), 33, 3):
                     raise ValueError(f"readings have shape {readings.shape}")
                 self._known = {str(k): r for k, r in zip(keys, readings, strict=True)}
-            except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
-                log.warning("%s: not read (%s); the readings are made again", self.path, e)
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+                log.warning("%s: not read (%s); removed, the readings are made again", self.path, e)
+                self.path.unlink(missing_ok=True)
 
     @staticmethod
     def key(image: np.ndarray) -> str:

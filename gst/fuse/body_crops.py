@@ -88,9 +88,9 @@ class BodyCropReport:
     association_accuracy: float | None = None
     visible_views: int = 0  # truth views with >= 30 % of the person's joints visible
     visible_views_missed: int = 0  # ... of which no crop shows that person
-    # how far the bodies' crops differ from the extraction's, in the frames with a fitted body:
-    # the extraction's crops there, how many crops were paired one to one with one of them
-    # (`lenders`, IoU >= min_landmark_iou) and the pairs' mean mask IoU
+    # how far the bodies' crops differ from the extraction's: the extraction's crops (in every
+    # frame, those where nobody was fitted too), how many of the cut's crops were paired one to
+    # one with one of them (`lenders`, IoU >= min_landmark_iou) and the pairs' mean mask IoU
     extraction_crops: int = 0
     paired: int = 0
     paired_mean_iou: float | None = None
@@ -118,7 +118,7 @@ class BodyCropReport:
         return line
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        return {**asdict(self), "agreement": self.agreement()}
 
 
 class _CameraSource:
@@ -271,6 +271,10 @@ def recut_crops(
         ))  # fmt: skip
         _cut_frames(cams, pool, body, frames, out_h5, settings, report, visible, scored, run,
                     progress)  # fmt: skip
+    # the extraction's crops in frames where nobody was fitted pair with nothing
+    report.extraction_crops += int(
+        np.count_nonzero(~np.isin(source.index.column("frame").to_numpy(), frames))
+    )
     if visible is not None:  # frames the extraction considered where nobody was fitted
         fitted = set(frames.tolist())
         considered = range(0, int(source.attrs.get("n_frames", 0)), settings["frame_stride"])
@@ -387,11 +391,12 @@ def _cut_view(
     old_proj = source.read_landmarks_projected(old_rows) if old_lm is not None else None
     gt = cam.truth.get(f) if cam.truth is not None else None
     areas = np.bincount(gt.reshape(-1), minlength=256) if gt is not None else None
-    parts, truth_rows, lent = [], [], 0
+    parts, truth_rows, lent, written = [], [], 0, set()
     for i, (k, mask) in enumerate(zip(people, new_masks, strict=True)):
         got = crop_person(image, mask, cam.camera, S, run.scale)
         if got is None:
             continue
+        written.add(i)
         img, msk, Kc, box, cbox = got
         r = rows[k]
         lm = proj = None
@@ -415,8 +420,8 @@ def _cut_view(
             tid, iou = score_against_truth(mask, gt, areas)
             truth_rows.append(CropTruth(f, cam.camera.name, pid, tid, iou, "body"))
     batch = CropBatch.concat(parts) if parts else CropBatch.empty(S, lm_source)
-    ious = [_iou(new_masks[i], old_masks[j]) for i, j in lend.items()]
-    return _ViewCut(batch, truth_rows, lent, len(old_rows), len(lend), float(sum(ious)))
+    ious = [_iou(new_masks[i], old_masks[j]) for i, j in lend.items() if i in written]
+    return _ViewCut(batch, truth_rows, lent, len(old_rows), len(ious), float(sum(ious)))
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -91,7 +91,8 @@ def relook_crowded(
     thread, on `threads` threads (default: the cores; the landmark model and the inpainting
     release Python's lock). `cache`: a gst.detect.reading_cache.ReadingCache (for
     `options.refine`) that gives the readings of painted crops read before and keeps the new
-    ones (saved by the caller)."""
+    ones (saved by the caller); not used with a `model` of the caller's (its readings are not
+    the pipeline's model's)."""
     import cv2
 
     from gst.detect.blazepose import BlazePose
@@ -103,6 +104,8 @@ def relook_crowded(
         raise ValueError(
             f"{store.path}: landmarks have shape {landmarks.shape}, expected ({len(store)}, 33, 3)"
         )
+    if model is not None:
+        cache = None
     kernel = np.ones((2 * o.grow + 1, 2 * o.grow + 1), np.uint8)
     windows = crop_windows(store)
     local = threading.local()

@@ -6,9 +6,10 @@ Crops cut from the bodies carry the fused ids in every camera, a crop in every v
 the person (read again where others crowd it), and masks nearer the truth, so the second fusion
 sees its people more completely and paints the others out more exactly: on the six crowd
 scenes the fused error fell from 50.1 to 44.4 mm (docs/fuse.md). Where the cut agrees with the
-extraction (`agreement`: nearly every crop of either pairs one to one with one of the other's,
-as on the demo and the lab capture, whose people seldom hide each other), the extraction has
-already given every view to the right person, and fusing again changes little (the demo 0.8 mm
+extraction (`agreement`: nearly every crop of either pairs one to one with one of the other's
+by mask overlap, as on the demo and the lab capture, whose people seldom hide each other), the
+extraction already found each person's views with nearly the bodies' masks, and fusing again
+changes little (the demo 0.8 mm
 worse, the lab 0.1 px better): the fusion stops there and its cut is the last (`skip_agreement`).
 
 Every cut takes its landmarks and extra foreground from the extraction's store, never from an

@@ -49,9 +49,9 @@ class FuseSettings(BaseModel):
     # the extraction's crops only; the last cut is made either way).
     recut_rounds: int = Field(1, ge=0)
     # a cut that agrees with the extraction at least this much (the share of crops of either
-    # that pair one to one with one of the other's) ends the rounds: the extraction had already
-    # given every view to the right person (the demo 0.991, the lab capture 1.000; the six crowd
-    # scenes 0.80-0.955, where fusing again helped); null: every round runs
+    # that pair one to one with one of the other's by mask overlap) ends the rounds: the
+    # extraction had already found each person's views (the demo 0.991, the lab capture 1.000;
+    # the six crowd scenes 0.80-0.955, where fusing again helped); null: every round runs
     recut_agreement: float | None = Field(0.98, ge=0)
     # foreground this far (pixels at the extraction's working size) from every body is nobody's
     max_distance_px: float = Field(8.0, ge=0)

@@ -7,7 +7,9 @@ recorded in its file) run on a copy of the crop store that holds the allowed row
 (`gst.data.store.write_subset`), with their landmarks. Nothing of a held-out camera or frame
 reaches the fusion: not its landmarks, nor its pixels (the crowded crops read again, the
 people's silhouettes that vote in the triangulation), so none informs a target
-(tests/test_train_distill.py). Until 2026-11-30 the fusion ran on the whole store with the
+(tests/test_train_distill.py). Of the store it is given: crops cut from the fuse stage's bodies
+(`train.crops: bodycrops`) were shaped by bodies fitted on every camera and frame (docs/fuse.md).
+Until 2026-11-30 the fusion ran on the whole store with the
 held-out rows' landmarks removed, and its second reading of crowded crops read the held-out
 crops' pixels again (the demo: 190 of 216 held-out crops).
 """
