@@ -112,7 +112,7 @@ def test_the_fitted_body_gives_views_read_again_their_first_reading_back(scene, 
     person, camera = (index.column(k).to_numpy() for k in ("person_id", "camera_index"))
     rows = np.flatnonzero((person == 1) & (camera == 0))
 
-    def read_again(store, lm, options=None, model=None, progress=None):
+    def read_again(store, lm, options=None, model=None, progress=None, cache=None):
         off = np.array(lm, np.float32)
         off[rows, :, 0] += 80.0
         return RelookResult(off, rows, np.zeros(len(lm)))
