@@ -189,11 +189,20 @@ def move_landmarks(lm: np.ndarray, K_from: np.ndarray, K_to: np.ndarray) -> np.n
 
 def lenders(new: list[np.ndarray], old: list[np.ndarray], min_iou: float) -> dict[int, int]:
     """One-to-one: new mask index -> extraction mask index, by IoU (Hungarian)."""
+    return {i: j for i, (j, _) in _pairs(new, old, min_iou).items()}
+
+
+def _pairs(new, old, min_iou: float) -> dict[int, tuple[int, float]]:
+    """`lenders` with each pair's IoU: new index -> (extraction index, IoU)."""
     if not new or not old:
         return {}
     iou = np.array([[_iou(a, b) for b in old] for a in new])
     a, b = linear_sum_assignment(-iou)
-    return {int(i): int(j) for i, j in zip(a, b, strict=True) if iou[i, j] >= min_iou}
+    return {
+        int(i): (int(j), float(iou[i, j]))
+        for i, j in zip(a, b, strict=True)
+        if iou[i, j] >= min_iou
+    }
 
 
 @torch.no_grad()
@@ -386,7 +395,7 @@ def _cut_view(
     labels = body_labels(cam.rays, verts, caster, fg, o.max_distance_px)
     people = [k for k in range(len(rows)) if np.count_nonzero(labels == k) >= o.min_pixels]
     new_masks = [labels == k for k in people]
-    lend = lenders(new_masks, old_masks, o.min_landmark_iou)
+    pairs = _pairs(new_masks, old_masks, o.min_landmark_iou)
     old_lm = source.read_landmarks(old_rows) if lm_source and len(old_rows) else None
     old_proj = source.read_landmarks_projected(old_rows) if old_lm is not None else None
     gt = cam.truth.get(f) if cam.truth is not None else None
@@ -401,7 +410,7 @@ def _cut_view(
         r = rows[k]
         lm = proj = None
         if lm_source:
-            j = lend.get(i)
+            j = pairs[i][0] if i in pairs else None
             lm = np.zeros((33, 3), np.float32)
             proj = True
             if j is not None:
@@ -420,7 +429,7 @@ def _cut_view(
             tid, iou = score_against_truth(mask, gt, areas)
             truth_rows.append(CropTruth(f, cam.camera.name, pid, tid, iou, "body"))
     batch = CropBatch.concat(parts) if parts else CropBatch.empty(S, lm_source)
-    ious = [_iou(new_masks[i], old_masks[j]) for i, j in lend.items() if i in written]
+    ious = [iou for i, (_, iou) in pairs.items() if i in written]
     return _ViewCut(batch, truth_rows, lent, len(old_rows), len(ious), float(sum(ious)))
 
 

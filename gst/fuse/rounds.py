@@ -9,8 +9,8 @@ scenes the fused error fell from 50.1 to 44.4 mm (docs/fuse.md). Where the cut a
 extraction (`agreement`: nearly every crop of either pairs one to one with one of the other's
 by mask overlap, as on the demo and the lab capture, whose people seldom hide each other), the
 extraction already found each person's views with nearly the bodies' masks, and fusing again
-changes little (the demo 0.8 mm
-worse, the lab 0.1 px better): the fusion stops there and its cut is the last (`skip_agreement`).
+changes little (the demo 0.8 mm worse, the lab 0.1 px better): the fusion stops there and its
+cut is the last (`skip_agreement`).
 
 Every cut takes its landmarks and extra foreground from the extraction's store, never from an
 earlier cut. A resumed run starts again from the first fusion's fit (each fusion removes its
