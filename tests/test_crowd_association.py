@@ -193,7 +193,8 @@ def test_tracker_without_motion_model_would_swap():
     """The crossing test can fail: a tracker that forgets velocity (smoothing to zero speed
     by never updating it) swaps the two players across the hole."""
     frames, truths = _walk(20, range(7, 13))
-    tracker = PersonIdTracker(RIG5, 1 / 30, TrackerConfig(max_speed=20.0, smoothing=1e-9))
+    config = TrackerConfig(max_speed=20.0, smoothing=1e-9, velocity_time=None)
+    tracker = PersonIdTracker(RIG5, 1 / 30, config)
     by_person: dict[int, set] = {}
     for f, (found, truth) in enumerate(zip(frames, truths, strict=True)):
         m = match_frame(found, RIG5)
@@ -268,3 +269,52 @@ def test_a_single_view_person_keeps_their_id_when_a_second_camera_sees_them(cont
                 by_person.setdefault(truth[cam][k], set()).add(pid)
     assert len(by_person[0]) == 1 and len(by_person[1]) == 1
     assert (len(by_person[2]) == 1) is continuation
+
+
+def _priors_of_one_walker(config: TrackerConfig, seen: int, at: int, swing: float = 0.0):
+    """A tracker fed one person walking +x at 1 m/s for `seen` frames (30 fps; arms and legs
+    swinging `swing` metres forwards and back on alternate frames), then nobody: the person's
+    prior at frame `at`, and their last skeleton."""
+    tracker = PersonIdTracker(RIG5, 1 / 30, config)
+    limbs = np.zeros((33, 3))
+    limbs[13:23, 0] = limbs[25:33, 0] = swing
+    last = None
+    for f in range(at + 1):
+        if f < seen:
+            last = person(f / 30, 0.0, pose=limbs * (-1) ** f)
+            group = PersonGroup({}, last, {}, {})
+            tracker.update(f, FrameMatch([group]), {})
+        elif f == at:
+            (pid, prior), *others = tracker.predict(f)
+            assert not others
+            return prior, last
+        else:
+            tracker.update(f, FrameMatch([]), {})
+
+
+def test_a_lost_person_is_not_carried_away_by_their_last_velocity():
+    """Unseen for 10 frames after walking at 1 m/s, a person's prior moves on at most about
+    (a frame + `coast`) x their speed; with the velocity kept for ever it walks on 0.37 m."""
+    prior, last = _priors_of_one_walker(TrackerConfig(), seen=20, at=30)
+    moved = prior[23:25].mean(0) - last[23:25].mean(0)
+    assert 0.1 < moved[0] < 1.0 * (1 / 30 + 0.2) + 0.02
+    prior, last = _priors_of_one_walker(TrackerConfig(coast=None), seen=20, at=30)
+    assert (prior[23:25].mean(0) - last[23:25].mean(0))[0] > 0.3
+
+
+def test_swinging_limbs_do_not_read_as_speed():
+    """Arms and legs swinging 0.15 m forwards and back on alternate frames: the torso's velocity
+    averaged over 0.2 s stays near the walking speed, where the old estimate (the centre of
+    every body landmark, half the newest step) wobbles by metres per second."""
+    for config, ok in ((TrackerConfig(), True), (TrackerConfig(velocity_time=None), False)):
+        errors = []
+        for seen in (20, 21):  # a swing each way on the last frame seen
+            tracker = PersonIdTracker(RIG5, 1 / 30, config)
+            limbs = np.zeros((33, 3))
+            limbs[13:23, 0] = limbs[25:33, 0] = 0.15
+            for f in range(seen):
+                group = PersonGroup({}, person(f / 30, 0.0, pose=limbs * (-1) ** f), {}, {})
+                tracker.update(f, FrameMatch([group]), {})
+            (track,) = tracker._tracks  # one person all along
+            errors.append(np.linalg.norm(track.velocity - [1.0, 0.0, 0.0]))
+        assert (max(errors) < 0.35) == ok, (config, errors)

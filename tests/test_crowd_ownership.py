@@ -129,7 +129,8 @@ def test_skeletons_around_or_behind_the_camera_do_not_break_ownership():
 
 def _brute_force_labels(cam, fg, people, config):
     """The ownership rule evaluated at every pixel against every capsule (no boxes, no grid):
-    the reference for `own_pixels` with step 1."""
+    the reference for `own_pixels` with step 1: its labels, and its labels where a capsule
+    covers the pixel (0 elsewhere)."""
     h, w = fg.shape
     px, py = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     q_all, z_all = [], []
@@ -153,8 +154,10 @@ def _brute_force_labels(cam, fg, people, config):
     Q, Z = np.stack(q_all), np.stack(z_all)
     covered = Q < 1
     tie = covered & (Z == Z.min(axis=0))
-    owner = np.where(covered.any(0), np.where(tie, Q, np.inf).argmin(0), Q.argmin(0))
-    return np.where(fg & (Q.min(0) < config.reach), owner + 1, 0)
+    front = np.where(tie, Q, np.inf).argmin(0)
+    owner = np.where(covered.any(0), front, Q.argmin(0))
+    labels = np.where(fg & (Q.min(0) < config.reach), owner + 1, 0)
+    return labels, np.where(fg & covered.any(0), front + 1, 0)
 
 
 @settings(max_examples=10, deadline=None)
@@ -171,8 +174,11 @@ def test_ownership_equals_the_rule_at_every_pixel_and_a_coarser_grid_keeps_it(ca
         lo, hi = np.floor(uv.min(0) - 8).astype(int), np.ceil(uv.max(0) + 8).astype(int)
         fg[max(lo[1], 0) : max(hi[1], 0), max(lo[0], 0) : max(hi[0], 0)] = True
     fine = own_pixels(cam, fg, people, config=OwnershipConfig(step=1))
-    want = _brute_force_labels(cam, fg, people, OwnershipConfig())
+    want, want_covered = _brute_force_labels(cam, fg, people, OwnershipConfig())
     assert np.count_nonzero(fine.labels != want) <= max(3, 1e-4 * np.count_nonzero(fg))
+    assert np.count_nonzero(fine.covered != want_covered) <= max(3, 1e-4 * np.count_nonzero(fg))
+    # a covering owner is the pixel's owner, and only nearness labels the pixels left over
+    assert np.all((fine.covered == 0) | (fine.covered == fine.labels))
     coarse = own_pixels(cam, fg, people, config=OwnershipConfig(step=2))
     # A 2 x 2 block takes its centre's label, so the grids may disagree only next to a label
     # edge of the fine labels (within 3 px); how many such pixels there are depends on how long

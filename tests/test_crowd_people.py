@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from gst.data.extract.options import ExtractOptions
 from gst.data.keypoints.instances import PersonInstance
 from gst.data.keypoints.ownership import own_pixels
-from gst.data.keypoints.people import CrowdConfig, CrowdTracker, _window
+from gst.data.keypoints.people import CrowdConfig, CrowdTracker, _Candidate, _window
 from gst.detect.blazepose import LANDMARK_SIZE, BodyRoi
 from gst.detect.persons import skeleton_support
 
@@ -332,3 +332,37 @@ def test_two_candidates_sharing_their_hips_are_one_person():
     tracker._distinct([b, a, c])
     assert a.refined[RIG.names[3]] == ("view", "mask") and a.fits[RIG.names[3]] == 0.02
     assert again == [a] and RIG.names[3] not in c.refined
+
+
+@pytest.mark.parametrize("paint", ["covered", "owned"])
+def test_a_person_whose_skeleton_slid_off_them_is_not_painted_out(paint):
+    """Person A's remembered skeleton lies 0.25 m beside them, away from B (0.45 m on). Looking
+    again at A, the model must see A: "covered" paints out only the pixels inside B's capsules,
+    so A's own body stays in the picture; "owned" (before 2026-11-30) gives the side of A nearer
+    to B's capsules than to A's slid ones to B and paints it out, and the model then answers
+    where the slid skeleton already is (the crowd scenes' lost people)."""
+    cam = RIG[0]
+    a, b = person(0.0, 0.0, 0.3), person(0.45, 0.1, 2.0)
+    slid = a - [0.25, 0.0, 0.0]
+    fg = _foreground(cam, [a, b])
+    image = np.where(fg[..., None], 200, 0).astype(np.uint8)
+    seen = {}
+
+    def segment(camera, window, roi, origin):
+        seen[len(seen)] = (*origin, window.copy())
+        return None
+
+    tracker = CrowdTracker(RIG, 1 / 30, CrowdConfig(paint=paint), segment)
+    cands = [_Candidate(slid, True, None), _Candidate(b, False, None)]
+    tracker._refine_camera(cam.name, cands, [slid, b], fg, image, {}, {})
+    x0, y0, window = seen[0]  # the look at A
+    # A's own pixels: their support, away from B's (2 px margin)
+    near_b = cv2.dilate(_foreground(cam, [b]).astype(np.uint8), np.ones((5, 5), np.uint8))
+    only_a = _foreground(cam, [a]) & (near_b == 0)
+    h, w = window.shape[:2]
+    mine = only_a[y0 : y0 + h, x0 : x0 + w]
+    painted = np.count_nonzero(mine & (window[..., 0] == 128)) / max(np.count_nonzero(mine), 1)
+    if paint == "covered":
+        assert painted < 0.02
+    else:
+        assert painted > 0.1  # 0.19 measured

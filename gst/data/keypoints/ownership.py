@@ -111,6 +111,9 @@ class Ownership:
     visibility: np.ndarray  # (P,) share of each person's capsule pixels not hidden by others
     area: np.ndarray  # (P,) capsule pixels of each person in the image
     alone: np.ndarray  # (P,) bool: no one else's capsules overlap this person's in the image
+    # (H, W) int32: person index + 1 of the front capsule covering each foreground pixel, 0
+    # where no capsule covers it (pixels `labels` gives by nearness alone are 0 here)
+    covered: np.ndarray | None = None
 
 
 def _rasterize(
@@ -245,7 +248,7 @@ def own_pixels(
     visibility, area = np.zeros(n), np.zeros(n)
     live = [k for k in range(n) if segs[k] is not None]
     if not live:
-        return Ownership(labels, visibility, area, np.ones(n, bool))
+        return Ownership(labels, visibility, area, np.ones(n, bool), labels.copy())
     # Work on the pixels near someone: the union of the capsules' boxes grown by `reach`.
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
@@ -257,7 +260,7 @@ def own_pixels(
     x0, y0 = (max(0, int(np.floor(v))) for v in lo)
     x1, y1 = min(W, int(np.ceil(hi[0])) + 1), min(H, int(np.ceil(hi[1])) + 1)
     if x1 <= x0 or y1 <= y0:
-        return Ownership(labels, visibility, area, np.ones(n, bool))
+        return Ownership(labels, visibility, area, np.ones(n, bool), labels.copy())
 
     # Samples at the centres of step x step blocks from (x0, y0); a block's pixels share them.
     st = config.step
@@ -273,13 +276,14 @@ def own_pixels(
     tie = covered & (Z == _min_first(Z)[0][None])
     front = _min_first(np.where(tie, Q, np.inf))[1]
     q_min, nearest = _min_first(Q)
-    owner = np.where(covered.any(axis=0), front, nearest)
+    any_cover = covered.any(axis=0)
+    owner = np.where(any_cover, front, nearest)
     near = np.where(q_min < config.reach, owner + 1, 0).astype(np.int32)
-    if st > 1:
-        h, w = near.shape
-        near = np.broadcast_to(near[:, None, :, None], (h, st, w, st)).reshape(h * st, w * st)
-        near = near[: y1 - y0, : x1 - x0]
-    labels[y0:y1, x0:x1] = np.where(foreground[y0:y1, x0:x1], near, 0)
+    cover = np.where(any_cover, front + 1, 0).astype(np.int32)
+    fg = foreground[y0:y1, x0:x1]
+    labels[y0:y1, x0:x1] = np.where(fg, _blocks(near, st, y1 - y0, x1 - x0), 0)
+    cover_labels = np.zeros((H, W), np.int32)
+    cover_labels[y0:y1, x0:x1] = np.where(fg, _blocks(cover, st, y1 - y0, x1 - x0), 0)
     shared = np.count_nonzero(covered, axis=0) > 1
     alone = np.ones(n, bool)
     for k in live:
@@ -287,4 +291,14 @@ def own_pixels(
         area[k] = samples * st * st
         visibility[k] = np.count_nonzero(covered[k] & (owner == k)) / samples if samples else 0.0
         alone[k] = not np.any(covered[k] & shared)
-    return Ownership(labels, visibility, area, alone)
+    return Ownership(labels, visibility, area, alone, cover_labels)
+
+
+def _blocks(samples: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+    """(h, w) pixels from samples at the centres of step x step blocks (each block's pixels
+    take its sample)."""
+    if step == 1:
+        return samples
+    sh, sw = samples.shape
+    full = np.broadcast_to(samples[:, None, :, None], (sh, step, sw, step))
+    return full.reshape(sh * step, sw * step)[:h, :w]

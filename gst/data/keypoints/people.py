@@ -8,8 +8,8 @@ camera that sees them their landmarks and their own mask.
 2. Remembered people that no group explains are kept as candidates (a person the detectors
    all missed in this frame is still there).
 3. Look again at every person in every camera (`refine`): the landmark model is run on a
-   region around their projected skeleton in which the pixels of everyone else (capsule
-   ownership of the foreground, `ownership.own_pixels`) are replaced by the empty background.
+   region around their projected skeleton in which the pixels inside everyone else's capsules
+   (`ownership.own_pixels`, `Ownership.covered`) are replaced by the empty background.
    With its neighbours painted out, the model finds the intended person even when half
    hidden (on the crowd preset: 98% of views at least 30% visible instead of 32% when the
    view is under 60% visible; truth occluders). Answers whose landmarks do not fit the
@@ -88,6 +88,12 @@ class CrowdConfig:
     reuse_fit: float = 0.05
     min_presence: float = 0.5  # landmark model's presence score for a refined view
     occluder_margin: int = 2  # pixels the painted-out people are grown by
+    # Looking again at a person, whose pixels are painted out: "covered", those inside another
+    # person's capsules (`Ownership.covered`); "owned", every foreground pixel nearer to another
+    # person's capsules than to theirs (before 2026-11-30). Where a person's skeleton has slid
+    # off them, "owned" paints their own body out and the model answers where the skeleton
+    # already is, so it never comes back (docs/extract.md, "Lost in the middle of a crowd")
+    paint: Literal["covered", "owned"] = "covered"
     project_visibility: float = 0.3  # projected views for trusted people at least this visible
     trusted_views: int = 3  # cameras that must agree before a new person is trusted
     remembered_gap: float = 0.3  # a prior further than this (m) from every group is a candidate
@@ -515,7 +521,8 @@ class CrowdTracker:
                 continue
             m = cfg.occluder_margin
             g0, h0 = max(x0 - m, 0), max(y0 - m, 0)
-            grown = own.labels[h0 : y1 + m, g0 : x1 + m]
+            theirs = own.covered if cfg.paint == "covered" else own.labels
+            grown = theirs[h0 : y1 + m, g0 : x1 + m]
             others = cv2.dilate(((grown > 0) & (grown != k + 1)).astype(np.uint8), self._kernel)
             others = others[y0 - h0 : y0 - h0 + y1 - y0, x0 - g0 : x0 - g0 + x1 - x0] > 0
             window = img[y0:y1, x0:x1]

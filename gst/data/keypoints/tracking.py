@@ -37,6 +37,7 @@ from gst.data.keypoints.matching import (
 )
 from gst.detect.boxes import box_iou
 
+_TORSO = np.array([11, 12, 23, 24])
 _BODY = np.asarray(BODY_LANDMARKS)
 _FAR = 1e6
 
@@ -50,12 +51,28 @@ class TrackerConfig:
     box_iou: float = 0.3  # single-view instance against the previous frame's in that camera
     smoothing: float = 0.5  # weight of the newest velocity estimate
     confirm: int = 3  # frames seen in 3D before a person is used to predict (priors, 2D ids)
+    # A person unseen for more than a frame is moved on by a velocity that fades with this
+    # time constant (seconds; None: constant velocity): people in a crowd stop and turn, and a
+    # prior that walks on leaves the person it stands for (docs/extract.md, "Lost in the
+    # middle of a crowd")
+    coast: float | None = 0.2
+    # The velocity: of the torso's centre (shoulders and hips), averaged over about this many
+    # seconds (None: of all body landmarks' centre, `smoothing` per frame). Limbs swing: at 30
+    # fps a 3 cm wobble of the centre reads as 1 m/s
+    velocity_time: float | None = 0.2
 
     def __post_init__(self):
         if self.max_speed <= 0 or self.slack < 0 or self.max_gap < 0:
             raise AssociationError(
                 "TrackerConfig needs max_speed > 0, slack >= 0 and max_gap >= 0, got "
                 f"{self.max_speed}, {self.slack}, {self.max_gap}"
+            )
+        if (self.coast is not None and self.coast < 0) or (
+            self.velocity_time is not None and self.velocity_time <= 0
+        ):
+            raise AssociationError(
+                "TrackerConfig needs coast >= 0 and velocity_time > 0 (or None), got "
+                f"{self.coast}, {self.velocity_time}"
             )
         if not 0 < self.smoothing <= 1:
             raise AssociationError(
@@ -72,8 +89,14 @@ class _Track:
     last_seen: int  # last frame with any view (3D or single)
     hits: int = 1  # frames seen in 3D
 
-    def predict(self, frame: int, step: float) -> np.ndarray:
-        return self.skeleton + self.velocity * (frame - self.frame_3d) * step
+    def predict(self, frame: int, step: float, coast: float | None = None) -> np.ndarray:
+        """The skeleton moved on to `frame`: one frame step at the last velocity, and beyond it
+        (a person not seen since) a move that fades with time constant `coast` seconds, at most
+        `coast` x the velocity (None: the velocity kept for ever)."""
+        dt = (frame - self.frame_3d) * step
+        if coast is not None and dt > step:
+            dt = step + (coast * -np.expm1(-(dt - step) / coast) if coast > 0 else 0.0)
+        return self.skeleton + self.velocity * dt
 
 
 def _centre(body: np.ndarray) -> np.ndarray | None:
@@ -111,12 +134,15 @@ class PersonIdTracker:
         """(id, (33, 3) predicted world skeleton) of the people remembered at `frame` (those seen
         in 3D within `max_gap` frames), moved on by their velocity: priors for `match_frame`."""
         return [
-            (t.pid, t.predict(frame, self.step_seconds))
+            (t.pid, self._moved_on(t, frame))
             for t in self._tracks
             if frame - t.last_seen <= self.config.max_gap
             and frame > t.frame_3d
             and t.hits >= self.config.confirm
         ]
+
+    def _moved_on(self, t: _Track, frame: int) -> np.ndarray:
+        return t.predict(frame, self.step_seconds, self.config.coast)
 
     def _new_id(self) -> int:
         self._next_id += 1
@@ -146,7 +172,7 @@ class PersonIdTracker:
                 body = match.groups[g].skeleton[_BODY]
                 for c, t in enumerate(self._tracks):
                     dt = (frame - t.frame_3d) * step
-                    d = skeleton_distance(body, t.predict(frame, step)[_BODY])
+                    d = skeleton_distance(body, self._moved_on(t, frame)[_BODY])
                     if d <= self.config.max_speed * dt + self.config.slack:
                         cost[r, c] = d
             rows, cols = linear_sum_assignment(cost)
@@ -195,11 +221,13 @@ class PersonIdTracker:
 
     def _update_track(self, t: _Track, skeleton: np.ndarray, frame: int) -> None:
         dt = (frame - t.frame_3d) * self.step_seconds
-        old, new = _centre(t.skeleton[_BODY]), _centre(skeleton[_BODY])
+        c = self.config
+        part = _BODY if c.velocity_time is None else _TORSO
+        old, new = _centre(t.skeleton[part]), _centre(skeleton[part])
         if old is not None and new is not None and dt > 0:
-            a = self.config.smoothing
+            a = c.smoothing if c.velocity_time is None else -np.expm1(-dt / c.velocity_time)
             t.velocity = a * (new - old) / dt + (1 - a) * t.velocity
-        predicted = t.predict(frame, self.step_seconds)
+        predicted = self._moved_on(t, frame)
         t.skeleton = np.where(np.isfinite(skeleton), skeleton, predicted)
         t.frame_3d = t.last_seen = frame
         t.hits += 1
@@ -227,9 +255,7 @@ class PersonIdTracker:
             taken = np.zeros(len(gs), bool)
             if free:
                 view = camera_view(self._cams[cam_name], insts, self.match_config.min_confidence)
-                pred = np.stack(
-                    [self._tracks[c].predict(frame, self.step_seconds)[_BODY] for c in free]
-                )
+                pred = np.stack([self._moved_on(self._tracks[c], frame)[_BODY] for c in free])
                 e, _ = fit_errors(pred, view, self.match_config)
                 cost = np.where(e < self.config.view_error, e, _FAR)
                 for r, c in zip(*linear_sum_assignment(cost), strict=True):
