@@ -113,7 +113,7 @@ class Ownership:
     alone: np.ndarray  # (P,) bool: no one else's capsules overlap this person's in the image
     # (H, W) int32: person index + 1 of the front capsule covering each foreground pixel, 0
     # where no capsule covers it (pixels `labels` gives by nearness alone are 0 here)
-    covered: np.ndarray | None = None
+    covered: np.ndarray
 
 
 def _rasterize(
