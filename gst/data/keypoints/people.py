@@ -510,45 +510,10 @@ class CrowdTracker:
                     found[k] = (inst, mask.astype(np.float32), fit)
                     reused.add(k)
                     continue
-            roi = roi_from_skeleton(cam, c.skeleton)
-            if roi is None:
-                continue
-            work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
-            # The model sees only the region: paint and pass the window that holds it (far
-            # cheaper than a painted copy of the whole frame per person and camera).
-            x0, y0, x1, y1 = _window(work_roi, img.shape, 2)
-            if x1 - x0 < 2 or y1 - y0 < 2:  # the region lies outside the image
-                continue
-            m = cfg.occluder_margin
-            g0, h0 = max(x0 - m, 0), max(y0 - m, 0)
             theirs = own.covered if cfg.paint == "covered" else own.labels
-            grown = theirs[h0 : y1 + m, g0 : x1 + m]
-            others = cv2.dilate(((grown > 0) & (grown != k + 1)).astype(np.uint8), self._kernel)
-            others = others[y0 - h0 : y0 - h0 + y1 - y0, x0 - g0 : x0 - g0 + x1 - x0] > 0
-            window = img[y0:y1, x0:x1]
-            fill = bg[y0:y1, x0:x1] if bg is not None else np.full_like(window, 128)
-            painted = np.where(others[..., None], fill, window)
-            cx, cy = work_roi.centre
-            got = self.segment(
-                n, painted, BodyRoi((cx - x0, cy - y0), work_roi.side, roi.angle), (x0, y0)
-            )
-            if got is None:
-                continue
-            lm, presence, prob_window = got
-            if presence < cfg.min_presence:
-                continue
-            prob = np.zeros(img.shape[:2], np.float32)
-            prob[y0:y1, x0:x1] = prob_window
-            lm = np.asarray(lm, np.float64).copy()
-            lm[:, :2] += (x0, y0)
-            lm[:, :2] /= s
-            inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
-            fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
-            # a standing guess is only as good as the body's depth: a looser gate to find them,
-            # the usual one against the skeleton triangulated from what was found (_refine)
-            if fit > (cfg.standing_fit if c.single is not None else cfg.refine_fit):
-                continue
-            found[k] = (inst, prob, fit)
+            got = self._look(n, k, c, theirs, img, bg)
+            if got is not None:
+                found[k] = got
         # Two regions that found the same person: the view goes to whoever it fits best
         # (a candidate stitched from two people loses the views that are someone else's).
         holders = list(found)
@@ -564,6 +529,51 @@ class CrowdTracker:
                     else:
                         del found[b if found[a][2] <= found[b][2] else a]
         return found, len(reused & set(found))
+
+    def _look(self, n, k, c, theirs, img, bg) -> tuple | None:
+        """Candidate `k`'s answer (instance, probability, fit) from the landmark model in camera
+        `n` on the region around their projected skeleton, with the other people's pixels of
+        `theirs` (a label image: person index + 1) painted over with the empty scene `bg`, or
+        None where the model finds nobody there who fits the skeleton."""
+        cfg, cam, s = self.config, self.cams[n], self.scale[n]
+        roi = roi_from_skeleton(cam, c.skeleton)
+        if roi is None:
+            return None
+        work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
+        # The model sees only the region: paint and pass the window that holds it (far
+        # cheaper than a painted copy of the whole frame per person and camera).
+        x0, y0, x1, y1 = _window(work_roi, img.shape, 2)
+        if x1 - x0 < 2 or y1 - y0 < 2:  # the region lies outside the image
+            return None
+        m = cfg.occluder_margin
+        g0, h0 = max(x0 - m, 0), max(y0 - m, 0)
+        grown = theirs[h0 : y1 + m, g0 : x1 + m]
+        others = cv2.dilate(((grown > 0) & (grown != k + 1)).astype(np.uint8), self._kernel)
+        others = others[y0 - h0 : y0 - h0 + y1 - y0, x0 - g0 : x0 - g0 + x1 - x0] > 0
+        window = img[y0:y1, x0:x1]
+        fill = bg[y0:y1, x0:x1] if bg is not None else np.full_like(window, 128)
+        painted = np.where(others[..., None], fill, window)
+        cx, cy = work_roi.centre
+        got = self.segment(
+            n, painted, BodyRoi((cx - x0, cy - y0), work_roi.side, roi.angle), (x0, y0)
+        )
+        if got is None:
+            return None
+        lm, presence, prob_window = got
+        if presence < cfg.min_presence:
+            return None
+        prob = np.zeros(img.shape[:2], np.float32)
+        prob[y0:y1, x0:x1] = prob_window
+        lm = np.asarray(lm, np.float64).copy()
+        lm[:, :2] += (x0, y0)
+        lm[:, :2] /= s
+        inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
+        fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
+        # a standing guess is only as good as the body's depth: a looser gate to find them,
+        # the usual one against the skeleton triangulated from what was found (_refine)
+        if fit > (cfg.standing_fit if c.single is not None else cfg.refine_fit):
+            return None
+        return inst, prob, fit
 
     def _views(self, n, cands, people, fg, remembered, instances) -> list[tuple[int, PersonView]]:
         """Each person's view in camera `n`, as (person index, view): refined (their region's
