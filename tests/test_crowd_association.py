@@ -271,17 +271,14 @@ def test_a_single_view_person_keeps_their_id_when_a_second_camera_sees_them(cont
     assert (len(by_person[2]) == 1) is continuation
 
 
-def _priors_of_one_walker(config: TrackerConfig, seen: int, at: int, swing: float = 0.0):
-    """A tracker fed one person walking +x at 1 m/s for `seen` frames (30 fps; arms and legs
-    swinging `swing` metres forwards and back on alternate frames), then nobody: the person's
-    prior at frame `at`, and their last skeleton."""
+def _priors_of_one_walker(config: TrackerConfig, seen: int, at: int):
+    """A tracker fed one person walking +x at 1 m/s for `seen` frames (30 fps), then nobody:
+    the person's prior at frame `at`, and their last skeleton."""
     tracker = PersonIdTracker(RIG5, 1 / 30, config)
-    limbs = np.zeros((33, 3))
-    limbs[13:23, 0] = limbs[25:33, 0] = swing
     last = None
     for f in range(at + 1):
         if f < seen:
-            last = person(f / 30, 0.0, pose=limbs * (-1) ** f)
+            last = person(f / 30, 0.0)
             group = PersonGroup({}, last, {}, {})
             tracker.update(f, FrameMatch([group]), {})
         elif f == at:
