@@ -173,7 +173,7 @@ def test_ownership_equals_the_rule_at_every_pixel_and_a_coarser_grid_keeps_it(ca
         uv, _ = project(cam, sk)
         lo, hi = np.floor(uv.min(0) - 8).astype(int), np.ceil(uv.max(0) + 8).astype(int)
         fg[max(lo[1], 0) : max(hi[1], 0), max(lo[0], 0) : max(hi[0], 0)] = True
-    fine = own_pixels(cam, fg, people, config=OwnershipConfig(step=1))
+    fine = own_pixels(cam, fg, people, config=OwnershipConfig(step=1), with_covered=True)
     want, want_covered = _brute_force_labels(cam, fg, people, OwnershipConfig())
     assert np.count_nonzero(fine.labels != want) <= max(3, 1e-4 * np.count_nonzero(fg))
     assert np.count_nonzero(fine.covered != want_covered) <= max(3, 1e-4 * np.count_nonzero(fg))

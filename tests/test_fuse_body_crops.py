@@ -157,7 +157,8 @@ def test_lenders_pair_masks_one_to_one_above_the_overlap():
     b[5:] = True
     small = np.zeros((10, 10), bool)
     small[0, 0] = True
-    assert lenders([a, b], [b, a], 0.3) == {0: 1, 1: 0}
+    assert {i: j for i, (j, _) in lenders([a, b], [b, a], 0.3).items()} == {0: 1, 1: 0}
+    assert all(iou == 1.0 for _, iou in lenders([a, b], [b, a], 0.3).values())
     assert lenders([a], [small], 0.3) == {}  # overlap 0.02
     assert lenders([], [a], 0.3) == {} and lenders([a], [], 0.3) == {}
 

@@ -187,13 +187,11 @@ def move_landmarks(lm: np.ndarray, K_from: np.ndarray, K_to: np.ndarray) -> np.n
     return out
 
 
-def lenders(new: list[np.ndarray], old: list[np.ndarray], min_iou: float) -> dict[int, int]:
-    """One-to-one: new mask index -> extraction mask index, by IoU (Hungarian)."""
-    return {i: j for i, (j, _) in _pairs(new, old, min_iou).items()}
-
-
-def _pairs(new, old, min_iou: float) -> dict[int, tuple[int, float]]:
-    """`lenders` with each pair's IoU: new index -> (extraction index, IoU)."""
+def lenders(
+    new: list[np.ndarray], old: list[np.ndarray], min_iou: float
+) -> dict[int, tuple[int, float]]:
+    """One-to-one by IoU (Hungarian), pairs of at least `min_iou`: new mask index ->
+    (extraction mask index, the pair's IoU)."""
     if not new or not old:
         return {}
     iou = np.array([[_iou(a, b) for b in old] for a in new])
@@ -395,7 +393,7 @@ def _cut_view(
     labels = body_labels(cam.rays, verts, caster, fg, o.max_distance_px)
     people = [k for k in range(len(rows)) if np.count_nonzero(labels == k) >= o.min_pixels]
     new_masks = [labels == k for k in people]
-    pairs = _pairs(new_masks, old_masks, o.min_landmark_iou)
+    pairs = lenders(new_masks, old_masks, o.min_landmark_iou)
     old_lm = source.read_landmarks(old_rows) if lm_source and len(old_rows) else None
     old_proj = source.read_landmarks_projected(old_rows) if old_lm is not None else None
     gt = cam.truth.get(f) if cam.truth is not None else None

@@ -112,8 +112,9 @@ class Ownership:
     area: np.ndarray  # (P,) capsule pixels of each person in the image
     alone: np.ndarray  # (P,) bool: no one else's capsules overlap this person's in the image
     # (H, W) int32: person index + 1 of the front capsule covering each foreground pixel, 0
-    # where no capsule covers it (pixels `labels` gives by nearness alone are 0 here)
-    covered: np.ndarray
+    # where no capsule covers it (pixels `labels` gives by nearness alone are 0 here); None
+    # unless asked for (`own_pixels(with_covered=True)`: a second full image, on the hot path)
+    covered: np.ndarray | None = None
 
 
 def _rasterize(
@@ -196,13 +197,14 @@ def own_pixels(
     landmarks2d: Sequence[np.ndarray | None] = (),
     config: OwnershipConfig = OwnershipConfig(),
     scale: float = 1.0,
+    with_covered: bool = False,
 ) -> Ownership:
     """Person labels of the `foreground` (H, W) bool pixels of one camera.
 
     `skeletons[k]` is person k's (33, 3) world landmarks (NaN where unknown) or None; for a
     person without a skeleton, `landmarks2d[k]` gives (33, 3) u, v, confidence in this camera's
     distorted pixels. `scale` maps full-resolution pixels to the foreground's resolution (e.g.
-    0.5 for a half-size work image).
+    0.5 for a half-size work image). `with_covered`: also `Ownership.covered`.
     """
     H, W = foreground.shape
     n = len(skeletons)
@@ -248,7 +250,9 @@ def own_pixels(
     visibility, area = np.zeros(n), np.zeros(n)
     live = [k for k in range(n) if segs[k] is not None]
     if not live:
-        return Ownership(labels, visibility, area, np.ones(n, bool), labels.copy())
+        return Ownership(
+            labels, visibility, area, np.ones(n, bool), labels.copy() if with_covered else None
+        )
     # Work on the pixels near someone: the union of the capsules' boxes grown by `reach`.
     lo = np.full(2, np.inf)
     hi = np.full(2, -np.inf)
@@ -260,7 +264,9 @@ def own_pixels(
     x0, y0 = (max(0, int(np.floor(v))) for v in lo)
     x1, y1 = min(W, int(np.ceil(hi[0])) + 1), min(H, int(np.ceil(hi[1])) + 1)
     if x1 <= x0 or y1 <= y0:
-        return Ownership(labels, visibility, area, np.ones(n, bool), labels.copy())
+        return Ownership(
+            labels, visibility, area, np.ones(n, bool), labels.copy() if with_covered else None
+        )
 
     # Samples at the centres of step x step blocks from (x0, y0); a block's pixels share them.
     st = config.step
@@ -279,11 +285,13 @@ def own_pixels(
     any_cover = covered.any(axis=0)
     owner = np.where(any_cover, front, nearest)
     near = np.where(q_min < config.reach, owner + 1, 0).astype(np.int32)
-    cover = np.where(any_cover, front + 1, 0).astype(np.int32)
     fg = foreground[y0:y1, x0:x1]
     labels[y0:y1, x0:x1] = np.where(fg, _blocks(near, st, y1 - y0, x1 - x0), 0)
-    cover_labels = np.zeros((H, W), np.int32)
-    cover_labels[y0:y1, x0:x1] = np.where(fg, _blocks(cover, st, y1 - y0, x1 - x0), 0)
+    cover_labels = None
+    if with_covered:
+        cover = np.where(any_cover, front + 1, 0).astype(np.int32)
+        cover_labels = np.zeros((H, W), np.int32)
+        cover_labels[y0:y1, x0:x1] = np.where(fg, _blocks(cover, st, y1 - y0, x1 - x0), 0)
     shared = np.count_nonzero(covered, axis=0) > 1
     alone = np.ones(n, bool)
     for k in live:

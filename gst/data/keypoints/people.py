@@ -498,7 +498,7 @@ class CrowdTracker:
         and its mask) instead of running the model again."""
         cfg = self.config
         cam, s = self.cams[n], self.scale[n]
-        own = own_pixels(cam, fg, skels, [], cfg.ownership, s)
+        own = own_pixels(cam, fg, skels, [], cfg.ownership, s, with_covered=cfg.paint == "covered")
         bg = (backgrounds or {}).get(n)
         found: dict[int, tuple] = {}
         reused: set[int] = set()
