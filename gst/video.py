@@ -177,13 +177,18 @@ def scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
 
 
 def read_frames(
-    path: Path | str, frames: Sequence[int], camera: str = "", scale: float = 1.0
+    path: Path | str,
+    frames: Sequence[int],
+    camera: str = "",
+    scale: float = 1.0,
+    size: tuple[int, int] | None = None,
 ) -> Iterator[tuple[int, np.ndarray]]:
     """Yield (frame index, BGR image) for the sorted frame indices in `frames`.
 
     Decodes sequentially and skips unwanted frames with `grab` (cheaper than seeking in
-    compressed video). With `scale` < 1 the frames are shrunk with area averaging. Raises
-    `VideoError` naming the file if the video ends before a requested frame.
+    compressed video). With `scale` < 1, or a (width, height) `size` other than the frame's
+    (which wins over `scale`), the frames are shrunk with area averaging. Raises `VideoError`
+    naming the file if the video ends before a requested frame.
     """
     wanted = sorted(set(int(f) for f in frames))
     if not wanted:
@@ -204,9 +209,11 @@ def read_frames(
                     f"{who}: frame {f} could not be decoded (truncated or corrupt video)"
                 )
             pos += 1
-            if scale != 1.0:
-                size = scaled_size(image.shape[1], image.shape[0], scale)
-                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            to = size or (
+                scaled_size(image.shape[1], image.shape[0], scale) if scale != 1.0 else None
+            )
+            if to is not None and tuple(to) != (image.shape[1], image.shape[0]):
+                image = cv2.resize(image, tuple(to), interpolation=cv2.INTER_AREA)
             yield f, image
     finally:
         cap.release()

@@ -296,6 +296,19 @@ def test_bad_parameters(short_scene, tmp_path):
     assert _nothing_written(tmp_path)
 
 
+def test_work_scale_that_rounds_differently_per_axis(short_scene, tmp_path):
+    """At 320 x 240 and work scale 0.302 the work image is 97 x 72, while the width's own ratio
+    (97 / 320) would give 73 rows: the frames must be read at the work size itself (a portrait
+    1088 x 1920 video at a 640-pixel work size failed so, 363 x 640 against 641 rows)."""
+    w, h = 320, 240
+    assert round(h * round(w * 0.302) / w) != round(h * 0.302)  # the case this test is about
+    rep = _extract_short(short_scene, tmp_path / "crops.h5", options=_opts(work_scale=0.302))
+    assert rep.crops > 0
+    video = next(iter(short_scene.videos.values()))
+    frame = next(read_frames(video, [0], size=(97, 72)))[1]
+    assert frame.shape == (72, 97, 3)
+
+
 def test_clean_plate_reveals_a_person_standing_still(tmp_path_factory, tmp_path):
     """Someone who stays on one spot becomes part of a background learnt from the capture;
     a short video of the empty scene per camera (`background_videos`) fixes that."""

@@ -123,7 +123,9 @@ def associate_scene_keypoints(
         )
         backgrounds = {n: inputs[n]["background"][()] for n in names}
         streams = {
-            n: iter(read_frames(videos[n], frames, n, sxy[n][0])) if config.refine else None
+            n: iter(read_frames(videos[n], frames, n, size=work_sizes[n]))
+            if config.refine
+            else None
             for n in names
         }
         try:

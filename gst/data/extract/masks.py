@@ -117,7 +117,7 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
                 )
             idx = sample_indices(plate.frames, job.background.samples)
             samples = np.stack(
-                [img for _, img in read_frames(job.clean_plate, idx, job.camera, sx)]
+                [img for _, img in read_frames(job.clean_plate, idx, job.camera, size=(w, h))]
             )
         elif (
             len(set(sample_indices(job.n_frames, job.background.samples)) | set(job.frames))
@@ -128,11 +128,15 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         ):
             # Short clip: decode once, keep the small work frames for the second pass.
             idx = sample_indices(job.n_frames, job.background.samples)
-            cache = dict(read_frames(job.video, sorted(set(idx) | set(job.frames)), job.camera, sx))
+            cache = dict(
+                read_frames(job.video, sorted(set(idx) | set(job.frames)), job.camera, size=(w, h))
+            )
             samples = np.stack([cache[i] for i in idx])
         else:
             idx = sample_indices(job.n_frames, job.background.samples)
-            samples = np.stack([img for _, img in read_frames(job.video, idx, job.camera, sx)])
+            samples = np.stack(
+                [img for _, img in read_frames(job.video, idx, job.camera, size=(w, h))]
+            )
         # The model's median and the stored empty scene (numpy's median) from one partial sort.
         lower, middle = temporal_medians(samples) if keep else (None, None)
         model = build_background(samples, job.background, lower)
@@ -145,7 +149,7 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         frames_iter = (
             ((f, cache.pop(f)) for f in job.frames)
             if cache
-            else read_frames(job.video, job.frames, job.camera, sx)
+            else read_frames(job.video, job.frames, job.camera, size=(w, h))
         )
         for f, img in frames_iter:
             lab, blobs = clean_mask(model.foreground(img), job.masks)
@@ -159,7 +163,7 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
                     for k, p in enumerate(people[:MAX_INSTANCES]):
                         lm = p.landmarks.copy()
                         # Work pixels to full-resolution pixels (centres at integers).
-                        lm[:, :2] = (lm[:, :2] + 0.5) / sx - 0.5
+                        lm[:, :2] = (lm[:, :2] + 0.5) / (sx, h / job.full_size[1]) - 0.5
                         landmarks[pos[f], k] = lm
                         presence[pos[f], k] = p.presence
             if job.external_boxes is not None:
