@@ -118,6 +118,8 @@ def associate_scene_keypoints(
         # The cameras of a frame are refined on threads: the phase runs alone in this process.
         workers = min(len(names), available_cores())
         segment = _landmark_segmenter(models_dir, workers) if config.refine else None
+        # One scale per camera, the width's: the work size's rounding makes the height's differ
+        # by less than a work pixel across the image.
         tracker = CrowdTracker(
             cameras, step_seconds, config, segment, {n: sxy[n][0] for n in names}, workers
         )

@@ -84,7 +84,7 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
             )
     t0 = time.perf_counter()
     w, h = job.work_size
-    sx = w / job.full_size[0]
+    sx, sy = w / job.full_size[0], h / job.full_size[1]  # per axis: the sizes are rounded
     labels = np.zeros((len(job.frames), h, w), dtype=np.uint8)
     pos = {f: i for i, f in enumerate(job.frames)}
     keep = (
@@ -163,13 +163,11 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
                     for k, p in enumerate(people[:MAX_INSTANCES]):
                         lm = p.landmarks.copy()
                         # Work pixels to full-resolution pixels (centres at integers).
-                        lm[:, :2] = (lm[:, :2] + 0.5) / (sx, h / job.full_size[1]) - 0.5
+                        lm[:, :2] = (lm[:, :2] + 0.5) / (sx, sy) - 0.5
                         landmarks[pos[f], k] = lm
                         presence[pos[f], k] = p.presence
             if job.external_boxes is not None:
-                lab = boxes_to_labels(
-                    lab, job.external_boxes.get(f, []), (w, h), (sx, h / job.full_size[1])
-                )
+                lab = boxes_to_labels(lab, job.external_boxes.get(f, []), (w, h), (sx, sy))
             labels[pos[f]] = lab
     per_frame_max = labels.reshape(len(labels), -1).max(axis=1)  # clean_mask labels are 1..n
     n_with = int(np.count_nonzero(per_frame_max))
