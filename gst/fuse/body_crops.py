@@ -48,7 +48,7 @@ from gst.data.store import CropBatch, CropStore, CropStoreWriter, index_path_for
 from gst.fuse.body_labels import CameraRays, body_labels
 from gst.fuse.tables import FusedBodies, read_fused_bodies
 from gst.track.writer import settings_digest
-from gst.video import probe_video, read_frames
+from gst.video import probe_video, read_frames, scaled_size
 from synth.render import RayCaster
 from synth.truth import truth_mask_file
 
@@ -138,12 +138,12 @@ class _CameraSource:
         camera = framed(camera)
         self.camera, self.index, self.video = camera, index, video
         s = min(1.0, options.work_max_side / max(camera.width, camera.height))
-        self.size = (max(1, round(camera.width * s)), max(1, round(camera.height * s)))
+        self.size = scaled_size(camera.width, camera.height, s)
         self.rays = CameraRays(framed(fitted), self.size)
         clip = plate if plate is not None else video
         n = info.frames if plate is None else probe_video(plate, camera.name, strict=True).frames
         idx = sample_indices(n, options.background.samples)
-        samples = np.stack([self._work(img) for _, img in read_frames(clip, idx, camera.name)])
+        samples = np.stack([img for _, img in read_frames(clip, idx, camera.name, size=self.size)])
         self.background = build_background(samples, options.background)
         self.rows = source.select(cameras=[camera.name])
         self.frame_of_row = source.index.column("frame").to_numpy()[self.rows]
