@@ -112,8 +112,10 @@ def _labels_casting_every_pixel(rays, caster, fg, max_distance_px) -> np.ndarray
 )
 def test_labels_equal_casting_every_pixel(seed, max_distance, x):
     # only pixels near the foreground are cast (body_labels); a random foreground of blobs and
-    # noise, two bodies side by side: the labels must be those of casting them all (ties between
-    # two bodies at exactly one distance are left out: either answer is right)
+    # noise, two bodies side by side: the labels must be those of casting them all. Where two
+    # bodies' owned pixels lie at exactly the nearest distance either answer is right, and the
+    # two nearest-pixel searches break such ties differently: there the label must be one of the
+    # tied bodies (how many ties a draw holds depends on its geometry, so they are not counted)
     cam = _camera(size=(96, 72))
     cam = Camera.create("c", cam.K / np.array([[3.3], [3.3], [1]]), [], np.eye(3), np.zeros(3),
                         96, 72)  # fmt: skip
@@ -129,12 +131,10 @@ def test_labels_equal_casting_every_pixel(seed, max_distance, x):
     want = _labels_casting_every_pixel(rays, caster, fg, max_distance)
     owner = caster.cast(rays.origin[None], rays.dirs.reshape(-1, 3)).geom.reshape(fg.shape)
     oy, ox = np.nonzero(owner >= 0)
-    tie = np.zeros(fg.shape, bool)
     for y, x_ in zip(*np.nonzero(got != want), strict=True):
         d2 = (oy - y) ** 2 + (ox - x_) ** 2
-        tie[y, x_] = len(set(owner[oy, ox][d2 == d2.min()].tolist())) > 1
-    assert np.array_equal(got[~tie], want[~tie])
-    assert tie.sum() <= 2
+        nearest = set(owner[oy, ox][d2 == d2.min()].tolist())
+        assert len(nearest) > 1 and got[y, x_] in nearest, (y, x_, got[y, x_], want[y, x_])
 
 
 def test_landmarks_move_between_crops_of_one_view():
