@@ -437,3 +437,25 @@ def test_a_group_answers_an_input_it_has_seen_without_the_network():
     fresh.add(None, [det(500.0)])
     fresh.predictions()
     assert calls == [2, 1, 1]
+
+
+def test_blank_crops_are_told_apart_by_their_camera_and_landmarks():
+    """A crop not cut (pose from the landmarks) is keyed by name, not by its pixels: two blank
+    inputs are one input only where their crop camera and landmarks agree too."""
+    from gst.track.frames import PreparedDetection, _blank
+    from gst.track.loop import _input_key
+
+    K = np.array([[500.0, 0, 127.5], [0, 500.0, 127.5], [0, 0, 1]])
+    lms = np.random.default_rng(0).uniform(0, 256, (33, 3)).astype(np.float32)
+
+    def det(crop, K, lms):
+        return _input_key(PreparedDetection(crop, K, np.zeros(8), lms))
+
+    blank = _blank(256)
+    assert det(blank, K, lms) == det(blank, K.copy(), lms.copy())
+    assert det(blank, K * [[1.01], [1.01], [1]], lms) != det(blank, K, lms)
+    moved = lms.copy()
+    moved[5, 0] += 0.5
+    assert det(blank, K, moved) != det(blank, K, lms)
+    cut = np.zeros((256, 256, 3), np.uint8)  # a cut crop's pixels are read, even when black
+    assert det(cut, K, lms) == det(cut.copy(), K, lms) != det(blank, K, lms)

@@ -69,6 +69,13 @@ def _blank(size: int) -> np.ndarray:
     return blank
 
 
+def is_blank(crop_rgb: np.ndarray) -> bool:
+    """Whether `crop_rgb` is the shared blank that stands for a crop not cut (`pixels` False):
+    callers may skip reading its pixels (identity, not content: a cut crop that happens to be
+    black is not blank)."""
+    return crop_rgb.ndim == 3 and crop_rgb is _blank(crop_rgb.shape[0])
+
+
 def prepare_detection(
     view: TrackingView, frame_bgr: np.ndarray, det: Detection, size: int, pixels: bool = True
 ) -> PreparedDetection:
