@@ -199,3 +199,25 @@ def test_extraction_segmenter_zoomed_in_finds_the_bystander_and_confirms_her(fra
         back = [p for p in found if 350 < np.median(p.landmarks[:, 0]) < 450]
         assert len(back) == 1 and np.ptp(back[0].landmarks[:, 1]) < 300  # small, at the back
     assert zoomed.zoom_found == 1 and zoomed.detector_runs == 1
+
+
+def test_a_strided_video_keeps_the_landmark_loop(frames):
+    """At stride 6 the detector sees frames 0, 6, 12, ...: the stage's settings count its gap in
+    processed frames, so the landmark loop follows the people instead of restarting from the
+    detector at every frame (before: max_gap 5 video frames, every call a restart)."""
+    from gst.track.person_detector import PersonModelDetector
+    from gst.track.scene import TrackSettings, person_model_config
+
+    cap = cv2.VideoCapture(str(LAB / "cam02.mp4"))
+    strided = []
+    for i in range(19):
+        ok, f = cap.read()
+        assert ok
+        if i % 6 == 0:
+            strided.append((i, f))
+    cap.release()
+    config = person_model_config(TrackSettings(stride=6, detect_every=10, look_again_zoom=0))
+    det = PersonModelDetector(config)
+    found = [det.detect(f, i) for i, f in strided]
+    assert [len(d) for d in found] == [2] * len(strided)
+    assert det.detector_runs == 1  # frame 0 only: 6, 12 and 18 followed from the landmarks

@@ -215,6 +215,9 @@ def person_model_config(
     return PersonModelConfig(
         threads=threads,
         detect_every=detector_interval(s, fps),
+        # the detector sees video frame indices, `stride` apart: its gap is the default's
+        # count of processed frames (else from stride 6 every frame restarted it)
+        max_gap=PersonModelConfig.max_gap * s.stride,
         **{k: getattr(s, k) for k in PERSON_MODEL_SETTINGS},
     )
 
