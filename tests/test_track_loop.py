@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import pytest
@@ -281,6 +282,16 @@ def test_many_videos_form_a_hive_dataset(scene, tmp_path):
     assert t.num_rows == 2 * 15 * 3
     one = read_tracks(tmp_path, videos=["cam 1"])
     assert set(one.column("video").to_pylist()) == {"cam 1"} and one.num_rows == 45
+
+
+def test_video_names_that_look_like_numbers_stay_text(scene, tmp_path):
+    det = SuppliedBoxes.from_file(scene["csv"])
+    for name in ("0001", "2"):  # an inferred partition type would make them integers 1 and 2
+        track_scene(scene, tmp_path, det, video_name=name, options=TrackOptions(end_s=0.2))
+    t = read_tracks(tmp_path)
+    assert t.schema.field("video").type == pa.string()
+    assert sorted(set(t.column("video").to_pylist())) == ["0001", "2"]
+    assert read_tracks(tmp_path, videos=["0001"]).num_rows == t.num_rows // 2
 
 
 class MaskingDetector:

@@ -28,7 +28,10 @@ def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
         ]  # in a dataset it comes from the folder
         table = table.add_column(0, "video", pa.array([name] * table.num_rows, pa.string()))
     elif path.is_dir():
-        dataset = ds.dataset(path, format="parquet", partitioning="hive")
+        # the video name is text even where it looks like a number ("0001", "2"): the
+        # partition's type is given, not inferred from the folder names
+        partitioning = ds.partitioning(pa.schema([("video", pa.string())]), flavor="hive")
+        dataset = ds.dataset(path, format="parquet", partitioning=partitioning)
         flt = None if videos is None else pc.field("video").isin(videos)
         table = dataset.to_table(filter=flt)
     else:
