@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
 
 from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.fuse.export import Z_UP_TO_Y_UP, read_c3d, read_trc, write_c3d, write_trc
@@ -81,3 +82,57 @@ def test_bodies_parquet_has_the_tracks_schema(tmp_path):
     np.testing.assert_allclose(joints, fit.joints, rtol=1e-6)
     assert t.column("joints2d").null_count == T
     assert np.stack(t.column("joint_gap_filled").to_numpy(zero_copy_only=False)).all(axis=0)[0]
+
+
+def test_marker_files_keep_a_row_for_every_frame_of_a_gap(tmp_path):
+    """A gap the fit does not fill has no bodies.parquet rows; the marker files hold it as rows
+    of missing markers, so that their constant rate stays true (a C3D has no frame column: a
+    dropped row would put every later frame early)."""
+    frames = np.array([0, 1, 2, 3, 10, 11])
+    pts = _points(T=6)
+    write_trc(tmp_path / "p.trc", frames, pts, fps=30.0)
+    header, _, fr, back = read_trc(tmp_path / "p.trc")
+    assert header["NumFrames"] == "12" and fr.tolist() == list(range(1, 13))
+    assert np.isnan(back[4:10]).all()
+    np.testing.assert_allclose(back[[0, 1, 2, 3, 10, 11]], pts @ Z_UP_TO_Y_UP.T, atol=1e-6)
+    write_c3d(tmp_path / "p.c3d", frames, pts, fps=30.0)
+    _, _, fr, back = read_c3d(tmp_path / "p.c3d")
+    assert fr.tolist() == list(range(1, 13))
+    assert (back[4:10, :, 3] == -1).all() and (back[[0, 1, 2, 3, 10, 11], :, 3] == 0).all()
+    np.testing.assert_array_equal(back[10, :, :3], (pts[4] * 1000).astype(np.float32))
+
+
+@pytest.mark.filterwarnings("ignore:No analog data found")
+def test_c3d_of_a_person_who_first_appears_late_in_a_long_video(tmp_path):
+    """The C3D header's first frame is 16 bits: a person first seen at video frame 70000 is
+    numbered from 1 in the file, GST:FIRST_FRAME holds 70000, and every reader gets 3 frames."""
+    import c3d
+
+    pts = _points(T=3)
+    path = tmp_path / "late.c3d"
+    write_c3d(path, np.arange(70000, 70003), pts, fps=60.0)
+    _, _, frames, back = read_c3d(path)
+    assert frames.tolist() == [70001, 70002, 70003]
+    np.testing.assert_array_equal(back[..., :3], (pts * 1000).astype(np.float32))
+    with open(path, "rb") as fh:
+        reader = c3d.Reader(fh)
+        assert len(list(reader.read_frames())) == 3
+        assert reader.get("GST:FIRST_FRAME").int32_value == 70000
+
+
+def test_joints_without_landmarks_are_fitted_where_the_torso_is():
+    from gst.fuse.tables import JointEvidence
+
+    has = np.ones(24, bool)
+    spine = [SMPL_JOINT_NAMES.index(n) for n in ("spine1", "spine2", "spine3", "neck")]
+    has[spine] = False
+    gap = np.zeros((3, 24), bool)
+    gap[1, SMPL_JOINT_NAMES.index("left_shoulder")] = True  # frame 1: a torso joint filled
+    gap[2, SMPL_JOINT_NAMES.index("left_wrist")] = True  # frame 2: only a wrist filled
+    ev = JointEvidence(np.zeros((3, 24), np.uint8), np.zeros((3, 24), np.int64), np.zeros((3, 24)),
+                       gap, has)  # fmt: skip
+    fitted = ev.fitted_only()
+    assert not fitted[0].any()
+    assert fitted[1, spine].all() and fitted[1, SMPL_JOINT_NAMES.index("left_shoulder")]
+    assert not fitted[2, spine].any() and fitted[2, SMPL_JOINT_NAMES.index("left_wrist")]
+    assert (fitted[:, has] == gap[:, has]).all()

@@ -8,11 +8,19 @@ TRC: OpenSim expects Y up, so the rig's Z-up world is rotated by -90 degrees abo
 OpenSim writes it (PathFileType 4, DataRate ... OrigNumFrames, `Frame#  Time  names`, then
 `X1 Y1 Z1 ...`), tab-separated; Frame# is the 1-based video frame, Time = frame / fps.
 
+Both files hold one row per video frame from the person's first fitted frame to their last, at
+the constant rate they declare: a frame inside a gap the fit does not fill (longer than
+`fuse.fill_gaps_s`) is a row of missing markers (blank TRC cells, C3D residual -1), not left
+out; a C3D has no frame column, so a dropped row would put every later frame early.
+
 C3D: written with the `c3d` package (pure Python, 0.6.0) as float points (POINT:SCALE < 0, so
-values are stored exactly as float32), POINT:UNITS "mm", the rig's world axes (Z up), frames
-numbered from the person's first video frame + 1. Every fitted joint is a valid point (readers
-zero the coordinates of points with a negative residual, so -1 would lose the fit's value):
-residual 0 marks a joint observed by >= 2 cameras, residual 1 a joint filled by the fit.
+values are stored exactly as float32), POINT:UNITS "mm", the rig's world axes (Z up). Frames are
+numbered from the person's first video frame + 1 where that fits the header's 16-bit first
+frame (video frames up to 65533; the `c3d` reader miscounts a file whose header had to clamp
+it), else from 1; the parameter GST:FIRST_FRAME always holds the first row's video frame
+(0-based). Every fitted joint is a valid point (readers zero the coordinates of points with a
+negative residual, so -1 would lose the fit's value): residual 0 marks a joint observed by >= 2
+cameras, residual 1 a joint filled by the fit, -1 a missing value.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ import numpy as np
 from gst.atomic import atomic_write
 from gst.body.skeleton import SMPL_JOINT_NAMES
 
-__all__ = ["Z_UP_TO_Y_UP", "write_trc", "read_trc", "write_c3d", "read_c3d"]
+__all__ = ["Z_UP_TO_Y_UP", "every_frame", "write_trc", "read_trc", "write_c3d", "read_c3d"]
 
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
@@ -44,6 +52,8 @@ def write_trc(
         raise ValueError(
             f"write_trc: {T} frames x {M} markers need {M} names and {T} frame numbers"
         )
+    frames, points, _ = every_frame(frames, points)
+    T = len(frames)
     yup = points @ Z_UP_TO_Y_UP.T
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
@@ -78,8 +88,33 @@ def read_trc(path: str | Path) -> tuple[dict[str, str], list[str], np.ndarray, n
     return header, names, frames, pts
 
 
+def every_frame(
+    frames: np.ndarray, points: np.ndarray, valid: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frames, points, valid) with one row per frame from the first to the last: rows for
+    frames that `frames` skips hold NaN points and valid False. `frames` must increase."""
+    frames = np.asarray(frames, np.int64)
+    points = np.asarray(points, np.float64)
+    valid = np.ones(points.shape[:2], bool) if valid is None else np.asarray(valid, bool)
+    if len(frames) and not (np.diff(frames) > 0).all():
+        raise ValueError(f"marker rows need increasing frames, got {frames.tolist()[:10]} ...")
+    if len(frames) == 0 or frames[-1] - frames[0] + 1 == len(frames):
+        return frames, points, valid
+    every = np.arange(frames[0], frames[-1] + 1)
+    at = frames - frames[0]
+    dense = np.full((len(every), *points.shape[1:]), np.nan)
+    dense[at] = points
+    dense_valid = np.zeros((len(every), points.shape[1]), bool)
+    dense_valid[at] = valid
+    return every, dense, dense_valid
+
+
 # the c3d library's notice that a file has no analog channels: ours hold markers only, by design
 _NO_ANALOG = "No analog data found"
+# the header's first frame is 16 bits: the `c3d` reader miscounts a file whose first frame had
+# to be clamped to 65535, so later starts are numbered from 1 (GST:FIRST_FRAME keeps the truth)
+_LAST_HEADER_START = 65534
+_GST_GROUP_ID = 10
 
 
 def write_c3d(
@@ -93,11 +128,16 @@ def write_c3d(
     """`points` (T, M, 3) metres, rig world; stored in mm as float32 (see module doc)."""
     import c3d
 
+    frames, points, valid = every_frame(frames, points, valid)
     T, M = points.shape[:2]
-    valid = np.ones((T, M), bool) if valid is None else np.asarray(valid, bool)
+    if len(names) != M:
+        raise ValueError(f"write_c3d: {M} markers need {M} names, got {len(names)}")
     writer = c3d.Writer(point_rate=float(fps), analog_rate=0.0, point_scale=-1.0)
     writer.set_point_labels([n[:30] for n in names])
-    writer.set_start_frame(int(frames[0]) + 1 if T else 1)
+    first = int(frames[0]) if T else 0
+    writer.set_start_frame(first + 1 if first + 1 <= _LAST_HEADER_START else 1)
+    group = writer.add_group(_GST_GROUP_ID, "GST", "gst-capture")
+    group.set("FIRST_FRAME", "video frame of the first row (0-based)", 4, "<i", first)
     pts = np.zeros((T, M, 5), np.float32)
     pts[..., :3] = np.nan_to_num(points * 1000.0).astype(np.float32)
     pts[..., 3] = np.where(valid, 0.0, 1.0)
@@ -113,7 +153,9 @@ def write_c3d(
 
 
 def read_c3d(path: str | Path) -> tuple[list[str], float, np.ndarray, np.ndarray]:
-    """(marker names, rate, frame numbers (T,), points (T, M, 4): x, y, z in mm, residual)."""
+    """(marker names, rate, frame numbers (T,): the 1-based video frames (GST:FIRST_FRAME + 1
+    onwards where the file has it, else the file's own numbers), points (T, M, 4): x, y, z in
+    mm, residual)."""
     import c3d
 
     with open(path, "rb") as fh, warnings.catch_warnings():
@@ -121,8 +163,12 @@ def read_c3d(path: str | Path) -> tuple[list[str], float, np.ndarray, np.ndarray
         reader = c3d.Reader(fh)
         names = [s.strip() for s in reader.point_labels]
         rate = float(reader.point_rate)
+        first = reader.get("GST:FIRST_FRAME")
         frames, pts = [], []
         for i, p, _ in reader.read_frames():
             frames.append(i)
             pts.append(p[:, :4].copy())
-    return names, rate, np.array(frames), np.array(pts, np.float32).reshape(len(frames), -1, 4)
+    frames = np.array(frames, np.int64)
+    if first is not None:
+        frames = int(first.int32_value) + 1 + np.arange(len(frames))
+    return names, rate, frames, np.array(pts, np.float32).reshape(len(frames), -1, 4)

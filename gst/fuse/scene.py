@@ -498,7 +498,7 @@ def fuse_scene(
         t_path = out_dir / "trc" / f"person_{f.person_id}.trc"
         c_path = out_dir / "c3d" / f"person_{f.person_id}.c3d"
         write_trc(t_path, f.frames, f.joints, fps)
-        write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.gap_filled)
+        write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.fitted_only())
         trc.append(t_path)
         c3d.append(c_path)
     write_report(summary, report_dir, fits, dense_tris, limbs)

@@ -22,6 +22,7 @@ import pyarrow.parquet as pq
 
 from gst.atomic import atomic_write
 from gst.body.markers import BLAZEPOSE_NAMES
+from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.fuse.fit import PersonFit
 from gst.fuse.joint_map import JOINT_LANDMARKS, joint_landmark_indices
 from gst.fuse.triangulate import PersonTriangulation
@@ -68,6 +69,11 @@ EXTRA_COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
 }
 
 
+_TORSO = [
+    SMPL_JOINT_NAMES.index(n) for n in ("left_hip", "right_hip", "left_shoulder", "right_shoulder")
+]
+
+
 @dataclass
 class JointEvidence:
     views: np.ndarray  # (T, 24) uint8
@@ -75,6 +81,14 @@ class JointEvidence:
     reprojection_px: np.ndarray  # (T, 24) float
     gap_filled: np.ndarray  # (T, 24) bool
     has_landmarks: np.ndarray  # (24,) bool
+
+    def fitted_only(self) -> np.ndarray:
+        """(T, 24) bool: joints whose place comes from the fit alone in a frame (the markers'
+        residual 1): gap-filled joints, and the joints without landmarks (spine, neck, collars,
+        which nothing triangulates) wherever one of the torso's hips and shoulders is gap-filled."""
+        out = self.gap_filled.copy()
+        out[:, ~self.has_landmarks] = self.gap_filled[:, _TORSO].any(1)[:, None]
+        return out
 
 
 def joint_evidence(fit: PersonFit, tri: PersonTriangulation | None) -> JointEvidence:
@@ -250,7 +264,7 @@ def write_landmarks(
     fields = {
         "frame": ("", "video frame"),
         "time_s": ("s", "frame / fps"),
-        "person_id": ("", "the extraction's person id"),
+        "person_id": ("", "the fused track (as in bodies.parquet)"),
         "landmarks3d": ("m", "33 x 3 triangulated landmarks, world; NaN where < 2 views"),
         "views": ("", "per landmark, number of views used"),
         "view_mask": ("", "per landmark, bit c set when camera c was used"),
