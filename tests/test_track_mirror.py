@@ -1,6 +1,8 @@
 """Left/right landmark labels kept continuous in time (gst.track.mirror): BlazePose's whole-body
 flips undone on walking and turning stick figures, nothing exchanged where nothing flipped."""
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,6 +11,7 @@ from hypothesis import strategies as st
 from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.track.detection import Detection
 from gst.track.mirror import LabelSmoother, MirrorConfig, node_state, step_costs
+from gst.track.read import column_array, read_tracks
 
 FPS = 30.0
 # BlazePose indices: (left, right) of shoulders, elbows, wrists, hips, knees, ankles
@@ -244,3 +247,63 @@ def test_the_track_loop_writes_continuous_labels_and_counts_the_exchanges(
             truth = truth[BLAZEPOSE_MIRROR]
         np.testing.assert_allclose(lm, truth[:, :2], atol=1e-3, err_msg=f"frame {f}")
     assert exchanged == (len(flipped) if unmirror else 0)
+
+
+def test_a_resumed_run_decides_left_and_right_as_the_uninterrupted_one(tmp_path):
+    """The smoother's state is saved with each committed group: a flip that starts at the frame
+    a resumed run starts from is still seen as a jump (before: a cold smoother kept frames
+    20-27 exchanged, and the bytes differed)."""
+    import cv2
+
+    from gst.track import BoxDepthPredictor, TrackOptions, track_video
+
+    path = tmp_path / "walk.avi"
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (1920, 1080))
+    for _ in range(60):
+        out.write(np.full((1080, 1920, 3), 90, np.uint8))
+    out.release()
+
+    class FailsOnce(BoxDepthPredictor):
+        calls = 0
+
+        def __call__(self, crops, K):
+            FailsOnce.calls += 1
+            if FailsOnce.calls == 3:  # groups of 10 frames: frames 0-19 are committed
+                raise RuntimeError("killed")
+            return super().__call__(crops, K)
+
+    opts = TrackOptions(frames_per_group=10, prefetch=0)
+    model = {"name": "box-depth", "version": "test"}
+    flipped = FigureDetector(range(20, 28))
+    ref = track_video(path, tmp_path / "ref", flipped, BoxDepthPredictor(), model=model,
+                      options=opts, resume=False)  # fmt: skip
+    with pytest.raises(RuntimeError, match="killed"):
+        track_video(path, tmp_path / "res", flipped, FailsOnce(), model=model, options=opts)
+    res = track_video(path, tmp_path / "res", flipped, BoxDepthPredictor(), model=model,
+                      options=opts)  # fmt: skip
+    assert res.resumed_from_frame == 20
+    assert res.path.read_bytes() == ref.path.read_bytes()
+    lm = column_array(read_tracks(res.path), "landmarks2d")
+    truth = np.stack([figure(f / FPS, 30.0)[:, :2] for f in range(60)])
+    np.testing.assert_allclose(lm, truth, atol=1e-3)  # every frame's labels put right
+
+
+@settings(max_examples=10, deadline=None)
+@given(cut=st.integers(0, 58), flip_start=st.integers(0, 50), gone=st.integers(0, 59))
+def test_a_smoother_restarted_from_a_frames_state_decides_the_rest_alike(cut, flip_start, gone):
+    """Two people, one flipped for a while, the other missing for a few frames: a smoother
+    loaded with the state that came with frame `cut` decides frames cut+1.. exactly as the
+    smoother that saw everything."""
+    a, b = walk(60, 30.0), walk(60, -60.0, x0=1.5)
+    frames = []
+    for i in range(60):
+        la = a[i][BLAZEPOSE_MIRROR] if flip_start <= i < flip_start + 9 else a[i]
+        frames.append([la] + ([] if gone <= i < gone + 3 else [b[i]]))
+    whole = LabelSmoother(MirrorConfig(), 1 / FPS, with_state=True)
+    out = [x for i, p in enumerate(frames) for x in whole.push(i, p)] + whole.flush()
+    state = json.loads(json.dumps(out[cut][2]))  # as it is saved
+    again = LabelSmoother(MirrorConfig(), 1 / FPS, with_state=True)
+    again.load_state_dict(state)
+    rest = [x for i in range(cut + 1, 60) for x in again.push(i, frames[i])] + again.flush()
+    assert [(i, f) for i, f, _ in rest] == [(i, f) for i, f, _ in out[cut + 1 :]]
+    assert [s for *_, s in rest] == [s for *_, s in out[cut + 1 :]]

@@ -392,6 +392,9 @@ class TrackedGroup:
     frames: list[PendingFrame]
     rows: RowSet  # the rows made final by this group (some may be of earlier frames)
     poses: PoseBatch  # the group's predictions (RowSet.source indexes them)
+    # the left/right smoother's state after the group's last frame (None: no smoother), saved
+    # with the commit so that a resumed run decides the next frames as this run would
+    unmirror_state: dict | None = None
 
 
 def tracked_groups(
@@ -407,6 +410,7 @@ def tracked_groups(
     start_frame: int,
     end_frame: int | None = None,
     on_frame: Callable[[int], None] | None = None,
+    unmirror_state: dict | None = None,
 ) -> Iterator[TrackedGroup]:
     """Track frames [start_frame, end_frame) of the run's range and yield each group as it closes.
 
@@ -415,7 +419,8 @@ def tracked_groups(
     pools for every group it shares with it; batches never span groups, so the predictions are
     the same bytes. `session` is advanced in place; it holds the state as of the yielded group
     until the next one is requested. On a truncated video the last partial group is yielded,
-    then VideoTruncatedError is raised.
+    then VideoTruncatedError is raised. `unmirror_state`: the left/right smoother's state saved
+    with the group before `start_frame` (`TrackedGroup.unmirror_state`; None: a fresh start).
     """
     group_span = options.frames_per_group * options.stride
     fitter = pose_fitter(predictor, options.pose_fit, num_betas)
@@ -427,7 +432,7 @@ def tracked_groups(
         poses = group.predictions()
         rows = session.track_group(run.view, group.frames, poses)
         table = rows_table(run.view, rows, schema)
-        done = TrackedGroup(table, next_frame, group.frames, rows, poses)
+        done = TrackedGroup(table, next_frame, group.frames, rows, poses, last_state)
         group = _Group(predictor, options.batch_size, num_betas, options.align, fitter, up)
         return done
 
@@ -471,37 +476,38 @@ def tracked_groups(
         detected = background(detected, options.prefetch)
     # each person's left/right labels made continuous (gst.track.mirror): prepared frames wait
     # `lag_s` for their decision; their images do not (the crops are cut first)
-    smoother = (
-        None
-        if options.unmirror is None
-        else LabelSmoother(options.unmirror, options.stride / run.info.fps)
-    )
+    smoother = None
+    if options.unmirror is not None:
+        smoother = LabelSmoother(options.unmirror, options.stride / run.info.fps, with_state=True)
+        if unmirror_state is not None:
+            smoother.load_state_dict(unmirror_state)
+    last_state = unmirror_state
 
-    def decided(released: list) -> list[tuple[PendingFrame, list]]:
+    def decided(released: list) -> list[tuple[PendingFrame, list, dict]]:
         out = []
-        for (pending, cut), flags in released:
+        for (pending, cut), flags, state in released:
             for i in np.flatnonzero(flags):
                 pending.landmarks[i] = pending.landmarks[i][BLAZEPOSE_MIRROR]
                 cut[i].landmarks_crop = cut[i].landmarks_crop[BLAZEPOSE_MIRROR]
             session.stats["landmarks_exchanged"] += int(np.count_nonzero(flags))
-            out.append((pending, cut))
+            out.append((pending, cut, state))
         return out
 
-    def release(pending: PendingFrame, cut: list) -> list[tuple[PendingFrame, list]]:
+    def release(pending: PendingFrame, cut: list) -> list[tuple[PendingFrame, list, dict]]:
         if smoother is None:
-            return [(pending, cut)]
+            return [(pending, cut, None)]
         people = [lm if np.isfinite(lm).any() else None for lm in pending.landmarks]
         return decided(smoother.push((pending, cut), people))
 
-    def flush() -> list[tuple[PendingFrame, list]]:
+    def flush() -> list[tuple[PendingFrame, list, dict]]:
         return [] if smoother is None else decided(smoother.flush())
 
     last_index = None
 
-    def add(pending: PendingFrame, cut: list) -> Iterator[TrackedGroup]:
-        nonlocal last_index
+    def add(pending: PendingFrame, cut: list, state: dict | None) -> Iterator[TrackedGroup]:
+        nonlocal last_index, last_state
         group.add(pending, cut)
-        last_index = pending.index
+        last_index, last_state = pending.index, state
         if on_frame is not None:
             on_frame(pending.index)
         next_frame = pending.index + options.stride
@@ -510,15 +516,15 @@ def tracked_groups(
 
     def finish() -> Iterator[TrackedGroup]:
         """The frames still waiting for the smoother, then the last, partial group."""
-        for pending, cut in flush():
-            yield from add(pending, cut)
+        for pending, cut, state in flush():
+            yield from add(pending, cut, state)
         if group.frames:
             yield close(last_index + options.stride)
 
     try:
         for frame, dets in detected:
-            for pending, cut in release(*prepare(frame, dets)):
-                yield from add(pending, cut)
+            for pending, cut, state in release(*prepare(frame, dets)):
+                yield from add(pending, cut, state)
     except VideoTruncatedError:  # the frames before the damage are decided and kept
         yield from finish()
         raise
@@ -614,9 +620,11 @@ def track_video(
         num_betas,
         start_frame=start_frame,
         on_frame=on_frame,
+        unmirror_state=None if point is None else point.state.get("unmirror"),
     ):
         elapsed = seconds_before + time.perf_counter() - t0
-        writer.commit(g.table, g.next_frame, {**session.state_dict(), "elapsed_s": elapsed})
+        state = {**session.state_dict(), "unmirror": g.unmirror_state, "elapsed_s": elapsed}
+        writer.commit(g.table, g.next_frame, state)
         if on_extra is not None and g.poses.extra:
             _replay_extras(g, on_extra)
     if keep_detections is not None and not keep_detections():

@@ -144,18 +144,36 @@ class LabelSmoother:
     none). It returns the frames whose labels are now decided, oldest first, each as (payload,
     flags): per person, True where their labels are to be exchanged. The caller exchanges them
     (`BLAZEPOSE_MIRROR`). `flush()` decides and returns what is left (end of the video, or before
-    an error is raised). Only landmarks are held back, never images."""
+    an error is raised). Only landmarks are held back, never images.
 
-    def __init__(self, config: MirrorConfig, frame_interval_s: float):
+    `with_state`: each decided frame comes as (payload, flags, state) instead, `state` being what
+    a smoother restarted after that frame needs (JSON-ready; `load_state_dict`) to decide the
+    frames after it exactly as this one does: a resumed tracking run continues from it."""
+
+    def __init__(self, config: MirrorConfig, frame_interval_s: float, with_state: bool = False):
         if not frame_interval_s > 0:
             raise ValueError(f"frame interval must be > 0 s, got {frame_interval_s}")
         self.config = config
         self.lag = max(0, math.ceil(config.lag_s / frame_interval_s - 1e-9))
         self.prior = config.prior_per_s * frame_interval_s
+        self.with_state = with_state
         self._chains: dict[int, _Chain] = {}
         self._next_key = 0
         self._count = -1
-        self._buffer: deque = deque()  # (payload, chain key per person)
+        # (payload, chain key per person, their landmarks, the frame's count, the next key)
+        self._buffer: deque = deque()
+        # per chain, as of the newest decided frame it was in: (state, landmarks, count)
+        self._decided: dict[int, tuple[int, np.ndarray, int]] = {}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue after the frame whose decision gave `state` (an empty smoother only)."""
+        if self._buffer or self._chains:
+            raise RuntimeError("LabelSmoother.load_state_dict: the smoother has been used")
+        self._count, self._next_key = int(state["count"]), int(state["next_key"])
+        for key, decided, lm, count in state["chains"]:
+            lm = np.asarray(lm, np.float64).reshape(-1, 3)
+            self._chains[int(key)] = _Chain(lm, int(count), deque(), int(decided))
+            self._decided[int(key)] = (int(decided), lm, int(count))
 
     def push(self, payload, landmarks) -> list[tuple[object, list[bool]]]:
         c = self.config
@@ -174,19 +192,20 @@ class LabelSmoother:
         for k in [k for k, ch in self._chains.items() if not ch.steps]:
             if self._count - self._chains[k].last_frame > c.max_gap + 1:
                 del self._chains[k]
-        self._buffer.append((payload, links))
+                self._decided.pop(k, None)
+        self._buffer.append((payload, links, lms, self._count, self._next_key))
         out = []
         while len(self._buffer) > self.lag:
             out.append(self._decide())
         return out
 
-    def flush(self) -> list[tuple[object, list[bool]]]:
+    def flush(self) -> list[tuple]:
         return [self._decide() for _ in range(len(self._buffer))]
 
-    def _decide(self) -> tuple[object, list[bool]]:
-        payload, links = self._buffer.popleft()
+    def _decide(self) -> tuple:
+        payload, links, lms, count, next_key = self._buffer.popleft()
         flags = []
-        for k in links:
+        for k, lm in zip(links, lms, strict=True):
             if k is None:
                 flags.append(False)
                 continue
@@ -197,4 +216,13 @@ class LabelSmoother:
             steps = [step or (0.0, 0.0), *(s or (0.0, 0.0) for s in ch.steps)]
             ch.decided = node_state(start, steps, self.prior, self.config.sigma)
             flags.append(bool(ch.decided))
-        return payload, flags
+            self._decided[k] = (ch.decided, lm, count)
+        if not self.with_state:
+            return payload, flags
+        # chains forgotten (gone for good) or started after this frame are left out
+        chains = [
+            [k, d, lm.tolist(), c]
+            for k, (d, lm, c) in sorted(self._decided.items())
+            if k in self._chains and k < next_key
+        ]
+        return payload, flags, {"count": count, "next_key": next_key, "chains": chains}
