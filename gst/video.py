@@ -17,6 +17,7 @@ corrupt, naming the file and the frame.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -26,6 +27,8 @@ import cv2
 import numpy as np
 
 from gst.prefetch import background
+
+log = logging.getLogger("gst.video")
 
 __all__ = [
     "END_SLACK_FRAMES",
@@ -233,16 +236,39 @@ def frame_range(
     return first, end
 
 
+def _landed(cap: cv2.VideoCapture, info: VideoInfo, frame: int) -> bool:
+    """Seek so that the next read is `frame`, and say whether the landing is confirmed: the
+    frame before it is read and must carry its own constant-rate timestamp (frame / fps, within
+    a quarter frame). OpenCV seeks by time at the mean rate: MPEG-TS files (camcorders' .MTS)
+    land on a keyframe or one frame late, variable-rate files on another frame altogether, and
+    the position OpenCV reports back does not show it (docs/formats/tracks_parquet.md)."""
+    before = frame - 1
+    cap.set(cv2.CAP_PROP_POS_FRAMES, before)
+    if int(cap.get(cv2.CAP_PROP_POS_FRAMES)) != before or not cap.grab():
+        return False
+    ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+    return math.isfinite(ms) and abs(ms - before * 1000.0 / info.fps) <= 250.0 / info.fps
+
+
 def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterator[Frame]:
     if end is not None and first >= end:
         return
     cap = _open(info.path, info.camera)
     try:
-        if first > 0:
-            cap.set(cv2.CAP_PROP_POS_FRAMES, first)
-            pos = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
-            if pos != first:
-                raise VideoError(f"{info.path}: cannot seek to frame {first} (decoder is at {pos})")
+        if first > 0 and not _landed(cap, info, first):
+            # not frame-exact here: every frame up to `first` is grabbed from the start instead
+            log.warning(
+                "%s: seeking is not frame-exact in this file (a transport stream or a variable "
+                "frame rate); reading %d frames from the start to reach frame %d",
+                info.path, first, first,
+            )  # fmt: skip
+            cap.release()
+            cap = _open(info.path, info.camera)
+            for k in range(first):
+                if not cap.grab():
+                    raise VideoTruncatedError(
+                        f"{info.path}: decoding failed at frame {k} on the way to frame {first}", k
+                    )
         index = first
         while end is None or index < end:
             ok, image = cap.read()
