@@ -483,30 +483,35 @@ def tracked_groups(
             smoother.load_state_dict(unmirror_state)
     last_state = unmirror_state
 
-    def decided(released: list) -> list[tuple[PendingFrame, list, dict]]:
+    def decided(released: list) -> list[tuple[PendingFrame, list, dict, int]]:
+        """Frames with their labels put right, the smoother's state after each, and how many
+        detections were exchanged (counted when the frame joins a group, so that a committed
+        group's stats cover exactly the committed frames)."""
         out = []
         for (pending, cut), flags, state in released:
             for i in np.flatnonzero(flags):
                 pending.landmarks[i] = pending.landmarks[i][BLAZEPOSE_MIRROR]
                 cut[i].landmarks_crop = cut[i].landmarks_crop[BLAZEPOSE_MIRROR]
-            session.stats["landmarks_exchanged"] += int(np.count_nonzero(flags))
-            out.append((pending, cut, state))
+            out.append((pending, cut, state, int(np.count_nonzero(flags))))
         return out
 
-    def release(pending: PendingFrame, cut: list) -> list[tuple[PendingFrame, list, dict]]:
+    def release(pending: PendingFrame, cut: list) -> list[tuple[PendingFrame, list, dict, int]]:
         if smoother is None:
-            return [(pending, cut, None)]
+            return [(pending, cut, None, 0)]
         people = [lm if np.isfinite(lm).any() else None for lm in pending.landmarks]
         return decided(smoother.push((pending, cut), people))
 
-    def flush() -> list[tuple[PendingFrame, list, dict]]:
+    def flush() -> list[tuple[PendingFrame, list, dict, int]]:
         return [] if smoother is None else decided(smoother.flush())
 
     last_index = None
 
-    def add(pending: PendingFrame, cut: list, state: dict | None) -> Iterator[TrackedGroup]:
+    def add(
+        pending: PendingFrame, cut: list, state: dict | None, exchanged: int
+    ) -> Iterator[TrackedGroup]:
         nonlocal last_index, last_state
         group.add(pending, cut)
+        session.stats["landmarks_exchanged"] += exchanged
         last_index, last_state = pending.index, state
         if on_frame is not None:
             on_frame(pending.index)
@@ -516,15 +521,15 @@ def tracked_groups(
 
     def finish() -> Iterator[TrackedGroup]:
         """The frames still waiting for the smoother, then the last, partial group."""
-        for pending, cut, state in flush():
-            yield from add(pending, cut, state)
+        for released in flush():
+            yield from add(*released)
         if group.frames:
             yield close(last_index + options.stride)
 
     try:
         for frame, dets in detected:
-            for pending, cut, state in release(*prepare(frame, dets)):
-                yield from add(pending, cut, state)
+            for released in release(*prepare(frame, dets)):
+                yield from add(*released)
     except VideoTruncatedError:  # the frames before the damage are decided and kept
         yield from finish()
         raise
