@@ -118,6 +118,7 @@ def test_c3d_of_a_person_who_first_appears_late_in_a_long_video(tmp_path):
         reader = c3d.Reader(fh)
         assert len(list(reader.read_frames())) == 3
         assert reader.get("GST:FIRST_FRAME").int32_value == 70000
+        assert reader.get("POINT:Y_SCREEN").string_value.strip() == "+Z"
 
 
 def test_joints_without_landmarks_are_fitted_where_the_torso_is():

@@ -134,6 +134,7 @@ def write_c3d(
         raise ValueError(f"write_c3d: {M} markers need {M} names, got {len(names)}")
     writer = c3d.Writer(point_rate=float(fps), analog_rate=0.0, point_scale=-1.0)
     writer.set_point_labels([n[:30] for n in names])
+    writer.set_screen_axis("+X", "+Z")  # viewers draw the rig's Z-up world upright
     first = int(frames[0]) if T else 0
     writer.set_start_frame(first + 1 if first + 1 <= _LAST_HEADER_START else 1)
     group = writer.add_group(_GST_GROUP_ID, "GST", "gst-capture")
