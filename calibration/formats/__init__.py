@@ -13,9 +13,13 @@ docs/formats/calibration_formats.md.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
+
+import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.camera import Rig
 from calibration.formats import (
@@ -30,6 +34,8 @@ from calibration.formats import (
 )
 from calibration.formats._common import RigFormatError, validate_rig
 
+log = logging.getLogger("calibration")
+
 
 @dataclass(frozen=True)
 class FormatInfo:
@@ -39,6 +45,9 @@ class FormatInfo:
     can_write: bool
     read_options: tuple[str, ...] = ()
     write_options: tuple[str, ...] = ()
+    # the world's up axis by the format's convention (what its reader gives `Rig.up`); None:
+    # the file stores the rig's own up, or the reader is told it (colmap's `up` option)
+    world_up: tuple[float, float, float] | None = None
 
 
 FORMATS: dict[str, FormatInfo] = {
@@ -53,6 +62,7 @@ FORMATS: dict[str, FormatInfo] = {
             panoptic,
             True,
             ("camera_types",),
+            world_up=(0.0, -1.0, 0.0),
         ),
         FormatInfo(
             "h36m",
@@ -61,6 +71,7 @@ FORMATS: dict[str, FormatInfo] = {
             True,
             ("subject", "image_size"),
             ("subject", "approximate_distortion"),
+            world_up=(0.0, 0.0, 1.0),
         ),
         FormatInfo(
             "h36m-json",
@@ -69,6 +80,7 @@ FORMATS: dict[str, FormatInfo] = {
             True,
             ("subject", "tangential", "image_size"),
             ("subject", "tangential"),
+            world_up=(0.0, 0.0, 1.0),
         ),
         FormatInfo(
             "anipose",
@@ -77,8 +89,15 @@ FORMATS: dict[str, FormatInfo] = {
             True,
             ("units",),
             ("units",),
+            world_up=(0.0, 0.0, 1.0),
         ),
-        FormatInfo("pose2sim", "Pose2Sim TOML (m, 4 distortion terms)", pose2sim, True),
+        FormatInfo(
+            "pose2sim",
+            "Pose2Sim TOML (m, 4 distortion terms)",
+            pose2sim,
+            True,
+            world_up=(0.0, 0.0, 1.0),
+        ),  # fmt: skip
         FormatInfo(
             "qualisys",
             "Qualisys .qca.txt XML (mm; read only)",
@@ -150,7 +169,34 @@ def write_rig(rig: Rig, path: str | Path, fmt: str = "rig", **opts) -> None:
         raise RigFormatError(f"format '{fmt}' is read only")
     _check_options(fmt, opts, info.write_options, "write")
     validate_rig(rig)
+    if info.world_up is not None:
+        rig = in_world_up(rig, info.world_up)
     info.module.write(rig, Path(path), **opts)
 
 
-__all__ = ["FORMATS", "FormatInfo", "RigFormatError", "detect_format", "read_rig", "write_rig"]
+def in_world_up(rig: Rig, up: tuple[float, float, float]) -> Rig:
+    """The rig in a world turned (the smallest rotation about the origin) so that its up axis
+    is `up`: a format whose files carry no up direction is read back with its convention's, so
+    a rig of another up is written in that convention's axes (the same cameras; world points
+    turn with it). Unchanged where the ups already agree."""
+    a = np.asarray(rig.up, np.float64)
+    b = np.asarray(up, np.float64)
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    if np.allclose(a, b, atol=1e-12):
+        return rig
+    axis = np.cross(a, b)
+    if np.linalg.norm(axis) < 1e-9:  # opposite: half a turn about any axis across them
+        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    angle = np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b))
+    rotation = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
+    log.warning(
+        "rig up %s written in axes whose up is %s: the world is turned by %.1f degrees",
+        tuple(float(round(v, 3)) for v in a), tuple(up), np.degrees(angle),
+    )  # fmt: skip
+    return rig.transformed(rotation, np.zeros(3), up=up)
+
+
+__all__ = [
+    "FORMATS", "FormatInfo", "RigFormatError", "detect_format", "in_world_up", "read_rig",
+    "write_rig",
+]  # fmt: skip
