@@ -609,3 +609,14 @@ def test_a_rig_of_another_up_is_written_in_the_formats_axes(tmp_path, fmt):
         Xn = (cam.R.T @ (old.R @ X.T + old.t[:, None] - cam.t[:, None])).T  # same camera frame
         np.testing.assert_allclose(new.project(Xn), old.project(X), atol=1e-5)
         assert float(Xn[0] @ b) == pytest.approx(float(X[0] @ a), abs=1e-6)
+
+
+def test_h36m_keeps_a_camera_name_that_is_not_ascii(tmp_path):
+    rig = ring_cameras(2, dist=(-0.2, 0.05, 0.0, 0.0, 0.01))
+    rig = Rig(
+        tuple(c.replace(name=n) for c, n in zip(rig.cameras, ["caméra 1", "カメラ2"], strict=True)),
+        up=rig.up,
+    )
+    write_rig(rig, tmp_path / "cameras.h5", "h36m", subject=9)
+    back = read_rig(tmp_path / "cameras.h5", "h36m", subject=9)
+    assert [c.name for c in back.cameras] == ["caméra 1", "カメラ2"]

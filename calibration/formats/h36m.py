@@ -138,7 +138,13 @@ def _decode_name(raw) -> str:
         return b"".join(np.atleast_1d(arr).astype(bytes)).decode()
     if arr.dtype.kind == "U":
         return "".join(np.atleast_1d(arr))
-    return "".join(chr(int(c)) for c in arr.ravel())
+    codes = [int(c) for c in arr.ravel()]
+    if all(0 <= c < 256 for c in codes):  # bytes, as we write them: UTF-8 (ASCII in H36M's own)
+        try:
+            return bytes(codes).decode("utf-8")
+        except UnicodeDecodeError:
+            pass
+    return "".join(chr(c) for c in codes)  # character codes
 
 
 def read(path: str | Path, subject=None, image_size: tuple[int, int] | None = None) -> Rig:
