@@ -241,6 +241,17 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
 
+def _file_stems(names: list[str]) -> dict[str, str]:
+    """A file-safe stem per camera name, unique within the rig: names that differ only in
+    unsafe characters ('cam 1', 'cam_1') get their index appended, so no image overwrites
+    another's."""
+    safe = [_safe(n) for n in names]
+    return {
+        n: s if safe.count(s) == 1 else f"{s}-{i}"
+        for i, (n, s) in enumerate(zip(names, safe, strict=True))
+    }
+
+
 def _fmt(v: float, nd: int = 2) -> str:
     return "-" if v is None or not np.isfinite(v) else f"{v:.{nd}f}"
 
@@ -262,6 +273,7 @@ def write_calibration_report(
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    stems = _file_stems([cam.name for cam in rig])
     if volume is not None and not isinstance(volume, CaptureVolume):
         volume = CaptureVolume(*volume)
     if volume is None and np.allclose(rig.up, [0, 0, 1]):
@@ -349,7 +361,7 @@ def write_calibration_report(
             lines += ["", "Notes:", ""] + [f"- {n}" for n in calibration.notes]
         lines += ["", "## Coverage", ""]
         for cam in rig:
-            name = f"coverage_{_safe(cam.name)}.png"
+            name = f"coverage_{stems[cam.name]}.png"
             plot_coverage(
                 cam,
                 calibration.observations.get(cam.name, np.zeros((0, 2))),
@@ -376,7 +388,7 @@ def write_calibration_report(
                     f"{cam.width}x{cam.height}; no overlay drawn"
                 )
                 continue
-            fname = f"overlay_{_safe(name)}.png"
+            fname = f"overlay_{stems[name]}.png"
             overlay = draw_world_overlay(cam, image)
             scale = 960 / max(overlay.shape[:2])
             if scale < 1:

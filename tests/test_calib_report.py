@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from calibration.camera import Rig
 from calibration.checks import CaptureVolume, check_rig, estimate_volume
 from calibration.formats import read_rig
 from calibration.report import coverage_fraction, write_calibration_report
@@ -98,3 +99,22 @@ def test_floor_overlay_on_real_footage(tmp_path):
     small = cv2.resize(frame, (overlay.shape[1], overlay.shape[0]), interpolation=cv2.INTER_AREA)
     before = small[int(v) - 3 : int(v) + 4, int(u) - 3 : int(u) + 4].reshape(-1, 3)
     assert np.abs(patch.astype(int) - before.astype(int)).max() > 80
+
+
+def test_cameras_whose_names_differ_only_in_unsafe_characters_keep_their_own_images(tmp_path):
+    from calibration.report import _file_stems
+
+    assert _file_stems(["cam01", "cam 1", "cam_1", "x|y"]) == {
+        "cam01": "cam01", "cam 1": "cam_1-1", "cam_1": "cam_1-2", "x|y": "x_y",
+    }  # fmt: skip
+    rig = read_rig(QCA)
+    names = ["cam 1", "cam_1", "cam03", "cam04"]
+    rig = Rig(tuple(c.replace(name=n) for c, n in zip(rig.cameras, names, strict=True)), up=rig.up)
+    frames = {
+        n: np.full((c.height, c.width, 3), 40 * k, np.uint8)
+        for k, (n, c) in enumerate(zip(names, rig.cameras, strict=True))
+    }
+    text = write_calibration_report(rig, tmp_path, frames=frames).read_text()
+    assert "overlay_cam_1-0.png" in text and "overlay_cam_1-1.png" in text
+    a, b = (cv2.imread(str(tmp_path / f"overlay_cam_1-{k}.png")) for k in (0, 1))
+    assert a is not None and b is not None and not np.array_equal(a, b)
