@@ -554,6 +554,26 @@ def test_bad_rig_json_is_reported_with_file_and_key(tmp_path, mutate, match):
     assert str(path) in str(info.value)
 
 
+def test_rig_json_reads_rotations_as_written_and_checks_them_to_1e_6(tmp_path):
+    """rig.json stores full precision: a rotation within Camera's 1e-6 is read bit-exact (not
+    re-orthonormalised, which changed R by 2e-7), one beyond it is refused as the doc says
+    (another tool's rounded file is repaired up to 1e-3; our own is not)."""
+    path = tmp_path / "rig.json"
+    write_rig(ring_cameras(1), path)
+    data = json.loads(path.read_text())
+    R = np.array(data["cameras"][0]["R"])
+    R[0, 0] += 4e-7  # |R R^T - I| about 8e-7: a valid camera
+    data["cameras"][0]["R"] = R.tolist()
+    path.write_text(json.dumps(data))
+    cam = read_rig(path, "rig").cameras[0]
+    assert np.array_equal(cam.R, R) and "R_orthonormalised_from_error" not in cam.meta
+    R[0, 0] += 1e-4
+    data["cameras"][0]["R"] = R.tolist()
+    path.write_text(json.dumps(data))
+    with pytest.raises(RigFormatError, match="c0.*not orthonormal.*tolerance 1e-06"):
+        read_rig(path, "rig")
+
+
 def test_undetectable_file(tmp_path):
     path = tmp_path / "notes.txt"
     path.write_text("hello")

@@ -43,14 +43,16 @@ def validate_rig(rig: Rig) -> Rig:
 ROUNDED_R_TOL = 1e-3  # rotations printed with few digits are re-orthonormalised up to this error
 
 
-def make_camera(path: Path, name, **fields) -> Camera:
+def make_camera(path: Path, name, *, repair_rotation: bool = True, **fields) -> Camera:
     """Camera.create with the file named in any error.
 
-    Files often print rotations with 6-8 digits, which breaks orthonormality at the 1e-6 level
-    our Camera demands; such a rotation (error below 1e-3) is replaced by the nearest rotation
-    matrix and the original error is recorded in the camera's meta. Larger errors are refused."""
+    Other tools' files often print rotations with 6-8 digits, which breaks orthonormality at
+    the 1e-6 level our Camera demands; such a rotation (error below 1e-3) is replaced by the
+    nearest rotation matrix and the original error is recorded in the camera's meta. Larger
+    errors are refused. `repair_rotation` False (our own rig.json, which stores full precision
+    and promises bit-exact reads): the rotation is taken as written, checked to 1e-6."""
     R = fields.get("R")
-    if R is not None:
+    if R is not None and repair_rotation:
         R = np.asarray(R, dtype=np.float64)
         if R.shape == (3, 3) and np.all(np.isfinite(R)):
             err = float(np.abs(R @ R.T - np.eye(3)).max())

@@ -89,6 +89,7 @@ def from_dict(data: dict, path: Path) -> Rig:
             make_camera(
                 path,
                 name,
+                repair_rotation=False,
                 K=require_array(cd, "K", (3, 3), path, where),
                 dist=require(cd, "dist", path, where),
                 R=require_array(cd, "R", (3, 3), path, where),
