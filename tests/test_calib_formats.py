@@ -397,6 +397,26 @@ def test_qualisys_real_lab_file_matches_pose2sim_conversion():
     np.testing.assert_allclose(rig["cam01"].K[0, 0], 107599.671875 / 64)
 
 
+def test_qualisys_video_resolution_scales_the_intrinsics(tmp_path):
+    """A camera that records video below 1080 lines says so; its field of view and intrinsics
+    are given at 1080p (Pose2Sim's reader scales them alike). Before, '540p' was ignored and the
+    camera read as 1088x1920."""
+    base = read_rig(QCA)
+    text = QCA.read_text()
+    for res, scale in (("1080p", 1.0), ("540p", 0.5), ("N/A", 1.0)):
+        path = tmp_path / f"c{res.replace('/', '')}.qca.txt"
+        path.write_text(text.replace("<camera ", f'<camera video_resolution="{res}" '))
+        rig = read_rig(path)
+        for a, b in zip(base, rig, strict=True):
+            assert (b.width, b.height) == (round(a.width * scale), round(a.height * scale))
+            np.testing.assert_allclose(b.K[:2], a.K[:2] * scale)
+            np.testing.assert_array_equal(b.R, a.R)
+    path = tmp_path / "bad.qca.txt"
+    path.write_text(text.replace("<camera ", '<camera video_resolution="HD" '))
+    with pytest.raises(RigFormatError, match="video_resolution='HD'"):
+        read_rig(path)
+
+
 def test_colmap_model_written_by_pycolmap(tmp_path):
     rec = pycolmap.Reconstruction()
     params = [1500.0, 1495.0, 960.5, 540.5, -0.11, 0.04, 0.0007, -0.0005]

@@ -49,6 +49,20 @@ def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
     return el
 
 
+def _video_scale(resolution: str | None, path: Path, where: str) -> float:
+    """The video's size against the calibration's 1080 lines: Qualisys cameras that record
+    video at a lower resolution say so (`video_resolution="540p"`) while their intrinsics and
+    field of view stay at 1080p (as Pose2Sim's reader scales them)."""
+    if resolution in (None, "", "N/A"):
+        return 1.0
+    text = resolution.strip().lower()
+    if not (text.endswith("p") and text[:-1].isdigit() and int(text[:-1]) > 0):
+        raise RigFormatError(
+            f"{path}: {where} has video_resolution={resolution!r}; expected e.g. '1080p' or '540p'"
+        )
+    return int(text[:-1]) / 1080.0
+
+
 def read(
     path: str | Path,
     include_inactive: bool = False,
@@ -77,20 +91,21 @@ def read(
                 f"{path}: {where} has viewrotation={cam.get('viewrotation')}; "
                 "rotated views are not supported"
             )
+        scale = _video_scale(cam.get("video_resolution"), path, where)
         fov = _child(cam, "fov_video", path, where)
         left, top = _float(fov, "left", path, where), _float(fov, "top", path, where)
-        width = int(_float(fov, "right", path, where) - left + 1)
-        height = int(_float(fov, "bottom", path, where) - top + 1)
+        width = int(round((_float(fov, "right", path, where) - left + 1) * scale))
+        height = int(round((_float(fov, "bottom", path, where) - top + 1) * scale))
         intr = _child(cam, "intrinsic", path, where)
         if float(intr.get("skew", "0") or 0) != 0:
             raise RigFormatError(
                 f"{path}: {where} has skew={intr.get('skew')}; its units are not "
                 "documented, so it is not supported"
             )
-        fu = _float(intr, "focalLengthU", path, where) / SUBPIXELS_PER_PIXEL
-        fv = _float(intr, "focalLengthV", path, where) / SUBPIXELS_PER_PIXEL
-        cu = _float(intr, "centerPointU", path, where) / SUBPIXELS_PER_PIXEL - left
-        cv = _float(intr, "centerPointV", path, where) / SUBPIXELS_PER_PIXEL - top
+        fu = _float(intr, "focalLengthU", path, where) / SUBPIXELS_PER_PIXEL * scale
+        fv = _float(intr, "focalLengthV", path, where) / SUBPIXELS_PER_PIXEL * scale
+        cu = (_float(intr, "centerPointU", path, where) / SUBPIXELS_PER_PIXEL - left) * scale
+        cv = (_float(intr, "centerPointV", path, where) / SUBPIXELS_PER_PIXEL - top) * scale
         dist = distortion_scale * np.array(
             [
                 _float(intr, "radialDistortion1", path, where),
