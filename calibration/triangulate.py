@@ -10,14 +10,10 @@ the wrong person), with a nonlinear refinement of the inliers.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from calibration.camera import Rig
-
-if TYPE_CHECKING:
-    import pycolmap
 
 
 @dataclass
@@ -106,21 +102,6 @@ def triangulate_dlt(
     return Triangulation(points, reprojection_errors(rig, points, pixels, vis), vis)
 
 
-def _colmap_camera(cam) -> pycolmap.Camera:
-    import pycolmap
-
-    d = np.zeros(8)
-    d[: min(cam.dist.size, 8)] = cam.dist[:8]
-    if cam.dist.size > 8 and np.any(cam.dist[8:]):
-        raise ValueError(f"camera '{cam.name}': thin-prism distortion is not supported by pycolmap")
-    return pycolmap.Camera(
-        model="FULL_OPENCV",
-        width=cam.width,
-        height=cam.height,
-        params=[cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, *d],
-    )
-
-
 def triangulate_robust(
     rig: Rig,
     pixels: np.ndarray,
@@ -132,7 +113,10 @@ def triangulate_robust(
     import pycolmap  # here, not at the top: the DLT path (training, fusion) needs no COLMAP
 
     pixels, vis = _check(rig, pixels, visible)
-    cams = [_colmap_camera(c) for c in rig]
+    # our lens model undone first (any distortion, skew), so COLMAP sees one identity pinhole:
+    # its FULL_OPENCV has neither thin-prism terms nor skew (H36M's cameras have both)
+    xy = normalised_points(rig, pixels, vis)
+    unit = pycolmap.Camera(model="PINHOLE", width=2, height=2, params=[1.0, 1.0, 0.0, 0.0])
     poses = [pycolmap.Rigid3d(pycolmap.Rotation3d(c.R), c.t) for c in rig]
     opts = pycolmap.EstimateTriangulationOptions()
     opts.ransac.max_error = np.radians(max_angle_error_deg)
@@ -145,7 +129,7 @@ def triangulate_robust(
         if len(views) < 2:
             continue
         res = pycolmap.estimate_triangulation(
-            pixels[views, j] + 0.5, [poses[v] for v in views], [cams[v] for v in views], opts
+            xy[views, j], [poses[v] for v in views], [unit] * len(views), opts
         )
         if res is None:
             continue
