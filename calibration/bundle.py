@@ -5,7 +5,8 @@ COLMAP's rig model fits board calibration exactly: the cameras are the sensors o
 `rig_from_world`, where "world" is the board, and the board corners are 3D points whose
 coordinates are known and held constant. One bundle adjustment refines every camera's
 intrinsics and distortion, every camera's pose in the rig and every board pose. Observations
-with large residuals are then dropped and the adjustment repeated until none are left.
+with large residuals are then dropped and the adjustment repeated until none are left, at most
+`max_outlier_rounds` times.
 
 COLMAP puts the centre of the top-left pixel at (0.5, 0.5), OpenCV at (0, 0): pixel
 coordinates and principal points are shifted by 0.5 going in and out.
