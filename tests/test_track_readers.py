@@ -69,6 +69,15 @@ def test_polars_snippet(dataset, monkeypatch):
     assert long.filter(long["joint_index"] == 4)["joint"].unique().to_list() == ["left_knee"]
 
 
+def test_video_names_as_text_snippet(dataset, monkeypatch):
+    pytest.importorskip("polars")
+    code = next(v for k, v in blocks("python").items() if k.startswith("Names as text"))
+    s = run_python(code, dataset, monkeypatch)
+    want = {"match_cam1", "match cam2"}
+    assert set(s["t"].column("video").to_pylist()) == want
+    assert set(s["df"]["video"].astype(str)) == want and set(s["lf"]["video"]) == want
+
+
 def test_duckdb_snippet(dataset, monkeypatch):
     duckdb = pytest.importorskip("duckdb")
     sql = next(v for k, v in blocks("sql").items() if k.startswith("duckdb"))
