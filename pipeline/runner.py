@@ -230,10 +230,24 @@ class Runner:
     def applies(self, name: str) -> bool:
         return self.stages[name].applies(self.scene)
 
+    def _ancestors(self, name: str) -> list[str]:
+        """Every stage `name` needs, directly or through others, in a fixed order."""
+        seen: set[str] = set()
+        stack = list(self.needs[name])
+        while stack:
+            dep = stack.pop()
+            if dep not in seen:
+                seen.add(dep)
+                stack.extend(self.needs[dep])
+        return sorted(seen)
+
     def _inputs(self, name: str, ctx: StageContext) -> dict[str, str | None]:
-        """Digests of upstream outputs and declared external inputs."""
+        """Digests of upstream outputs and declared external inputs. Upstream is every stage
+        `name` needs, directly or not: stages read their ancestors' outputs too (extract reads
+        synth's videos, train the calibration), and an ancestor can change while the stage in
+        between writes the same bytes (a new synth render, the same rig.json)."""
         digests: dict[str, str | None] = {}
-        for dep in self.needs[name]:
+        for dep in self._ancestors(name):
             if not self.applies(dep):
                 continue
             dep_ctx = self.context(dep)
@@ -435,6 +449,11 @@ class Runner:
                     continue
                 if st.fingerprint is None:  # upstream ran since planning: recompute the inputs
                     st = self.status_of(name, done)
+                    if not st.needs_run and not (force_all or (force and name in targets)):
+                        # the upstream rerun wrote the same outputs (e.g. a comment edited)
+                        log.info("%s: %s (%s; its upstream ran)", name, st.state, st.reason)
+                        done[name] = st
+                        continue
                 self._execute(name, st)
                 done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)
         return list(planned.values())

@@ -120,3 +120,21 @@ def _fan_out(ctx: StageContext) -> None:
 FANOUT = _own_folder_stage(
     "fanout", _fan_out, params_model=FanOutParams, help="two items through the executor"
 )
+
+
+def _constant(ctx: StageContext) -> None:
+    ctx.path("source/data.txt").read_text()  # reads it, writes the same bytes whatever it holds
+    ctx.out("constant/ok.txt").write_text("ok\n")
+    _bump_counter(ctx, "constant")
+
+
+CONSTANT = _own_folder_stage("constant", _constant, help="the same output whatever the source")
+
+
+def _peek(ctx: StageContext) -> None:
+    """Reads an ancestor's output (source, through constant), as extract reads synth's videos."""
+    ctx.out("peek/copy.txt").write_text(ctx.path("source/data.txt").read_text())
+    _bump_counter(ctx, "peek")
+
+
+PEEK = _own_folder_stage("peek", _peek, help="copies the source's data, needing only constant")

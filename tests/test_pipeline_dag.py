@@ -283,3 +283,46 @@ def test_bad_scene_params_exit_2_and_name_the_block(tmp_path, capsys, scene_para
     )
     assert run(cfg, "run", "all") == 2
     assert expected in capsys.readouterr().err
+
+
+def _chain_config(tmp_path: Path) -> Path:
+    cfg = tmp_path / "chain.yaml"
+    cfg.write_text(
+        textwrap.dedent("""
+        workspace: ws
+        default_scene: demo
+        executor: {kind: local, workers: 1}
+        scenes:
+          demo: {synthetic: {preset: demo}}
+        stages:
+          source: {module: "tests.fake_stages:SOURCE"}
+          constant: {module: "tests.fake_stages:CONSTANT", needs: [source]}
+          peek: {module: "tests.fake_stages:PEEK", needs: [constant]}
+          double: {module: "tests.fake_stages:DOUBLE", needs: [source]}
+    """)
+    )
+    return cfg
+
+
+def test_a_stage_sees_a_change_two_stages_up(tmp_path, counter):
+    """peek reads source's output but needs only constant, whose output never changes: a new
+    source still makes peek stale (before: 'up to date' with the old copy)."""
+    cfg = _chain_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "source", "--set", "source.value=5") == 0
+    assert run(cfg, "run", "constant", "--set", "source.value=5") == 0  # the same bytes again
+    assert run(cfg, "run", "peek", "--set", "source.value=5") == 0
+    assert counter().count("peek") == 2
+    copy = tmp_path / "ws" / "demo" / "peek" / "copy.txt"
+    assert copy.read_text() == "value=5\n"
+
+
+def test_a_rerun_upstream_that_writes_the_same_outputs_reruns_nothing_below(tmp_path, counter):
+    """source reruns (a setting that does not change its output) and writes the same bytes:
+    the stages below it are up to date and do not run again (before: all of them ran)."""
+    cfg = _chain_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "all", "--set", "source.torch_threads=1") == 0
+    first = counter()[:4]
+    assert sorted(first) == ["constant", "double", "peek", "source"]
+    assert counter()[4:] == ["source"]
