@@ -151,9 +151,25 @@ def code_closure(module: str, path: Path, root: Path) -> dict[str, Path]:
     return seen
 
 
+# Data that modules read from their own folder (gst/body/markers_blazepose.json, the lift's
+# noise tables) are part of what a stage computes: editing one must make its stages stale.
+DATA_SUFFIXES = (".json", ".yaml", ".yml", ".csv", ".npz", ".npy")
+
+
+def _data_beside(sources: list[Path]) -> list[Path]:
+    """The data files in the folders of `sources` (not in subfolders)."""
+    folders = sorted({f.parent for f in sources})
+    return [
+        f
+        for d in folders
+        for f in sorted(d.iterdir())
+        if f.is_file() and f.suffix.lower() in DATA_SUFFIXES
+    ]
+
+
 def code_digests(module: str, path: Path, root: Path) -> dict[str, str]:
-    """sha256 (16 hex digits) of every source file in the closure, keyed by the path relative to
-    `root` (absolute for files outside it)."""
+    """sha256 (16 hex digits) of every source file in the closure and of the data files beside
+    them (`DATA_SUFFIXES`), keyed by the path relative to `root` (absolute outside it)."""
 
     def key(file: Path) -> str:
         try:
@@ -161,7 +177,8 @@ def code_digests(module: str, path: Path, root: Path) -> dict[str, str]:
         except ValueError:
             return file.resolve().as_posix()
 
+    sources = sorted(code_closure(module, path, root).values())
     return {
         key(file): hashlib.sha256(file.read_bytes()).hexdigest()[:16]
-        for file in sorted(code_closure(module, path, root).values())
+        for file in sorted({*sources, *_data_beside(sources)})
     }

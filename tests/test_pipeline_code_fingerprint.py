@@ -117,3 +117,32 @@ def test_imports_inside_functions_and_relative_imports_are_followed(tmp_path):
     finally:
         fp.CODE_PACKAGES = old
     assert sorted(files) == ["fakelib/__init__.py", "fakelib/a.py", "fakelib/b.py", "fakelib/c.py"]
+
+
+def test_data_files_beside_the_modules_count_as_code(tmp_path):
+    """A module's own data file (gst/body/markers_blazepose.json for the fuse stage) is part of
+    what its stages compute: its digest is in the code files, and an edit changes it."""
+    pkg = tmp_path / "fakelib"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text(
+        "import json, pathlib\nT = pathlib.Path(__file__).with_name('t.json')\n"
+    )
+    (pkg / "t.json").write_text('{"offset": 1}')
+    (pkg / "notes.md").write_text("not data")
+    (pkg / "sub" / "u.json").write_text("{}")  # another folder, no module of it imported
+    import pipeline.fingerprint as fp
+
+    old = fp.CODE_PACKAGES
+    fp.CODE_PACKAGES = ("fakelib",)
+    try:
+        before = fp.code_digests("fakelib.a", pkg / "a.py", tmp_path)
+        (pkg / "t.json").write_text('{"offset": 2}')
+        after = fp.code_digests("fakelib.a", pkg / "a.py", tmp_path)
+    finally:
+        fp.CODE_PACKAGES = old
+    assert sorted(before) == ["fakelib/a.py", "fakelib/t.json"]  # not notes.md, not sub/
+    assert before["fakelib/t.json"] != after["fakelib/t.json"]
+    assert {k: v for k, v in before.items() if k != "fakelib/t.json"} == {
+        k: v for k, v in after.items() if k != "fakelib/t.json"
+    }
