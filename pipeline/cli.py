@@ -73,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser(
         "run",
-        help="run a stage (after its stale upstream stages), or 'all'",
+        help="run a stage (after the upstream stages whose outputs are missing; stale ones are "
+        "kept, --upstream reruns them), or 'all'",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=EPILOG,
     )

@@ -269,9 +269,12 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> None:
                 f"nor a top-level key ({sorted(top_level)})"
             )
         path = ["stages", parts[0], "params", *parts[1:]]
-        # --set wins over a scene's own value of that parameter.
-        for scene in (raw.get("scenes") or {}).values():
-            scene_params = ((scene or {}).get("params") or {}).get(parts[0])
+        # --set wins over a scene's own value of that parameter (a malformed scene is left
+        # for the config's validation to name)
+        scenes = raw.get("scenes")
+        for scene in scenes.values() if isinstance(scenes, dict) else ():
+            params = scene.get("params") if isinstance(scene, dict) else None
+            scene_params = params.get(parts[0]) if isinstance(params, dict) else None
             if isinstance(scene_params, dict) and len(parts) > 1:
                 scene_params.pop(parts[1], None)
     node = raw

@@ -363,7 +363,10 @@ class Runner:
                 for k, vals in record["options"].items()
             }
             other = Runner(self.cfg, self.scene_name, self.stages, options=options)
-            out.append(other.status_of(name, upstream))
+            try:
+                out.append(other.status_of(name, upstream))
+            except (FileNotFoundError, ConfigError) as exc:  # e.g. the video was moved since
+                out.append(StageStatus(name, key, MISSING, f"its input is gone: {exc}", None))
         return out
 
     # -- running -----------------------------------------------------------------------------

@@ -416,3 +416,30 @@ def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
     assert (tmp_path / "ws/s/tracks/video=match%20cam2/tracks.parquet").is_file()
     code, err = _cli(capsys, "status", "--config", str(cfg))
     assert "track@match_cam2" in err.replace(" ", "") or "track@match" in err, err
+
+
+def test_status_after_a_tracked_video_was_moved(scene, tmp_path, capsys):
+    """A `--video` run is remembered; once its clip is moved away, `status` still prints the
+    table (the variant shown as missing) instead of stopping with FileNotFoundError."""
+    clip = tmp_path / "clip.mp4"
+    clip.write_bytes((scene.videos / "c1.mp4").read_bytes())
+    cfg = _config(tmp_path, scene)
+    models = tmp_path / "ws/s/models"
+    models.mkdir(parents=True)
+    (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
+    code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip))
+    assert code == 0, err
+    clip.rename(tmp_path / "elsewhere.mp4")
+    code, err = _cli(capsys, "status", "--config", str(cfg))
+    assert code == 0, err
+    assert "track@clip" in err.replace(" ", "") and "missing" in err, err
+
+
+def test_set_with_a_malformed_scene_names_the_scene(tmp_path, capsys):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(
+        "workspace: ws\ndefault_scene: demo\nscenes: {demo: synthetic}\n"
+        "stages: {source: {module: 'tests.fake_stages:SOURCE'}}\n"
+    )
+    code, err = _cli(capsys, "status", "--config", str(cfg), "--set", "source.value=2")
+    assert code == 2 and "scenes.demo" in err and "Traceback" not in err, err
