@@ -89,6 +89,20 @@ def _relative_paths(obj, base: Path | None):
     return obj
 
 
+def _absolute(value, base: Path):
+    """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
+    against `base`; the same object where nothing changes."""
+    if isinstance(value, Path):
+        return value if value.is_absolute() else Path(os.path.normpath(base / value))
+    if isinstance(value, dict):
+        new = {k: _absolute(v, base) for k, v in value.items()}
+        return value if all(new[k] is value[k] for k in value) else new
+    if isinstance(value, (list, tuple)):
+        new = [_absolute(v, base) for v in value]
+        return value if all(a is b for a, b in zip(new, value, strict=True)) else type(value)(new)
+    return value
+
+
 def _safe_key(key: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.@-]+", "_", key)
 
@@ -166,7 +180,7 @@ class Runner:
     def _validate_params(self, name: str):
         model = self.stages[name].params_model
         try:
-            return model.model_validate(
+            params = model.model_validate(
                 {**self.cfg.stages[name].params, **self.scene.params.get(name, {})}
             )
         except ValidationError as exc:
@@ -183,6 +197,13 @@ class Runner:
                 given = self.cfg.overrides.get(f"{name}.{key}")
                 lines.append(line + (f" (set by --set {given})" if given else ""))
             raise ConfigError("\n".join(lines)) from None
+        if self.cfg.base_dir is None:
+            return params
+        # relative paths in parameters (background clips, supplied boxes, a checkpoint to
+        # reuse) are the config folder's, as every other path of the config, not the shell's
+        fields = {k: getattr(params, k) for k in type(params).model_fields}
+        fixed = {k: _absolute(v, self.cfg.base_dir) for k, v in fields.items()}
+        return params.model_copy(update={k: v for k, v in fixed.items() if v is not fields[k]})
 
     def _scene_record(self) -> dict:
         # Scene-level stage params reach each stage through its merged params; leaving them out
@@ -276,7 +297,7 @@ class Runner:
         ctx = self.context(name)
         key = self.key(name, ctx)
         pending = [d for d in self.needs[name] if d in upstream and upstream[d].needs_run]
-        params = ctx.params.model_dump(mode="json")
+        params = _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir)
         record = self._read_record(key)
         if pending:
             state = MISSING if record is None else STALE

@@ -13,6 +13,7 @@ from pipeline.stage import Stage, StageContext, StageParams
 class SourceParams(StageParams):
     value: int = 1
     input_file: str | None = None
+    extra_file: Path | None = None  # a path parameter: relative to the config's folder
     torch_threads: int = 0  # > 0: set torch's (process-wide) thread count, as some stages do
 
 
@@ -29,6 +30,8 @@ def _source(ctx: StageContext) -> None:
     text = f"value={ctx.params.value}\n"
     if ctx.params.input_file:
         text += Path(ctx.params.input_file).read_text()
+    if ctx.params.extra_file:
+        text += ctx.params.extra_file.read_text()
     ctx.out("source/data.txt").write_text(text)
     _bump_counter(ctx, "source")
 

@@ -326,3 +326,23 @@ def test_a_rerun_upstream_that_writes_the_same_outputs_reruns_nothing_below(tmp_
     first = counter()[:4]
     assert sorted(first) == ["constant", "double", "peek", "source"]
     assert counter()[4:] == ["source"]
+
+
+def test_a_relative_path_parameter_is_the_config_folders(tmp_path, monkeypatch, counter):
+    """A path-typed stage parameter given relative (here `extra_file: data/x.txt`) means the
+    config's folder, whatever the shell's folder is, as the config's other paths do (before:
+    run from elsewhere, the file was missing)."""
+    proj = tmp_path / "proj"
+    (proj / "data").mkdir(parents=True)
+    (proj / "data" / "x.txt").write_text("extra\n")
+    cfg = write_config(proj, extra_params="")
+    source = 'module: "tests.fake_stages:SOURCE", params: {'
+    cfg.write_text(cfg.read_text().replace(source + "}", source + "extra_file: data/x.txt}"))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert run(cfg, "run", "source") == 0
+    assert (proj / "ws" / "demo" / "source" / "data.txt").read_text() == "value=1\nextra\n"
+    monkeypatch.chdir(proj)  # the same fingerprint from the config's own folder
+    assert run(cfg, "run", "source") == 0
+    assert counter() == ["source"]
