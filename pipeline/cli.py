@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and say so; missing ones always run)",
     )
     run.add_argument("--executor", choices=["local", "ray"], help="override executor.kind")
-    run.add_argument("--workers", type=int, help="override executor.workers")
+    run.add_argument("--workers", type=_at_least_one, help="override executor.workers (>= 1)")
     run.add_argument("--ray-address", help="address of an existing Ray cluster")
     track = run.add_argument_group("track options")
     track.add_argument(
@@ -234,6 +234,16 @@ def _run_helper_rank(runner: Runner, stages: list[str], rank: int) -> None:
             runner.stages[name].run(ctx)
         finally:
             remove_path(ctx.staging)
+
+
+def _at_least_one(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return n
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -393,9 +393,9 @@ class Runner:
     # -- running -----------------------------------------------------------------------------
     @contextlib.contextmanager
     def _lock(self):
-        """Hold the workspace lock for the run. The file records the owner's pid: the kernel
-        drops the lock when its owner dies, and a run that finds a dead owner's pid there says
-        it took over."""
+        """Hold the scene's lock for the run (runs on other scenes are not held back). The file
+        records the owner's pid: the kernel drops the lock when its owner dies, and a run that
+        finds a dead owner's pid there says it took over."""
         self.meta.mkdir(parents=True, exist_ok=True)
         path = self.meta / "lock"
         with open(path, "a+") as fh:
