@@ -410,3 +410,23 @@ def test_two_people_apart_keep_their_ids(walkers, tmp_path):
             p.id_switches
             for p in evaluate_tracks(tmp_path / f"{cam}_swapped.parquet", walkers, cam).persons
         ] == [1, 1]
+
+
+def test_match_frame_excludes_weak_pairs_before_assigning():
+    """IoU [[0.909, 0.545], [0.583, 0.25]]: the best total IoU pairs 0-0 and 1-1, and 1-1 falls
+    below 0.3, leaving one match; two valid ones exist (0-1 and 1-0), as CLEAR MOT counts them."""
+    import itertools
+
+    from gst.track.evaluate import _assign
+
+    iou = np.array([[0.909, 0.545], [0.583, 0.25]])
+    assert sorted(_assign(iou, 0.3)) == [(0, 1), (1, 0)]
+    assert _assign(iou, 0.95) == []
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # never fewer matches than a brute-force maximum matching
+        m = rng.uniform(0, 1, (3, 3))
+        best = max(
+            sum(m[r, c] >= 0.3 for r, c in zip(range(3), p, strict=True))
+            for p in itertools.permutations(range(3))
+        )
+        assert len(_assign(m, 0.3)) == best

@@ -70,7 +70,11 @@ def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple
     extra = load_checkpoint(models.get("gst", list(models.values())[-1])).extra
     cams = p.heldout_cameras
     if cams is None:
-        cams = extra.get("heldout_cameras") or crops.camera_names[-1:]
+        # a model trained without held-out cameras records [] (none held out: no camera's
+        # scores are novel views); only a model that records nothing falls back to the last
+        cams = extra.get("heldout_cameras")
+        if cams is None:
+            cams = crops.camera_names[-1:]
     cut = extra.get("first_heldout_frame")
     if cut is None:
         cut = heldout_frame_start(crops.frame, p.heldout_frames)

@@ -50,7 +50,8 @@ def match_frame(
     track_boxes: np.ndarray, truth_boxes: np.ndarray, min_iou: float
 ) -> list[tuple[int, int]]:
     """(track index, truth index) pairs of one frame: the Hungarian assignment maximising total box
-    IoU, keeping only pairs with IoU >= `min_iou`."""
+    IoU among the pairs with IoU >= `min_iou` (pairs below it are excluded before assigning, as
+    CLEAR MOT does, so a high-IoU pair never costs two valid ones)."""
     if len(track_boxes) == 0 or len(truth_boxes) == 0:
         return []
     iou = box_iou(np.asarray(track_boxes, np.float64), np.asarray(truth_boxes, np.float64))
@@ -59,8 +60,11 @@ def match_frame(
 
 def _assign(iou: np.ndarray, min_iou: float) -> list[tuple[int, int]]:
     """`match_frame` from the (tracks, truth) IoU matrix."""
-    rows, cols = linear_sum_assignment(iou, maximize=True)
-    return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if iou[r, c] >= min_iou]
+    allowed = iou >= min_iou
+    # the most allowed pairs first (each worth more than any IoU sum), then the largest IoU
+    gain = np.where(allowed, 1.0 + iou.size + iou, 0.0)
+    rows, cols = linear_sum_assignment(gain, maximize=True)
+    return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if allowed[r, c]]
 
 
 def identity_counts(matched_ids: list[int | None]) -> tuple[int, int, int]:
