@@ -12,14 +12,7 @@ import pycolmap
 import pytest
 
 from calibration.camera import Camera, CameraError, Rig, look_at_rotation
-from calibration.formats import (
-    FORMATS,
-    RigFormatError,
-    detect_format,
-    in_world_up,
-    read_rig,
-    write_rig,
-)
+from calibration.formats import FORMATS, RigFormatError, detect_format, read_rig, write_rig
 from calibration.formats._common import atomic_write
 
 QCA = Path("/work/shared/real/pose2sim-multiperson/Calib.qca.txt")
@@ -470,11 +463,7 @@ def test_round_trip_is_lossless(tmp_path, fmt, wopts, ropts):
     path = tmp_path / f"rig_{fmt}{suffix}"
     write_rig(rig, path, fmt, **wopts)
     back = read_rig(path, fmt, **ropts)
-    # a format whose files carry no up gets the rig in its convention's axes (panoptic: y down)
-    up = FORMATS[fmt].world_up
-    assert_same_rig(rig if up is None else in_world_up(rig, up), back)
-    if up is not None:
-        np.testing.assert_allclose(back.up, up)
+    assert_same_rig(rig, back)
     if fmt == "rig":  # canonical file: bit-exact, meta kept
         for a, b in zip(rig, back, strict=True):
             assert (
@@ -625,30 +614,22 @@ def test_colmap_write_keeps_other_files_in_the_folder(tmp_path):
 
 
 @pytest.mark.parametrize("fmt", ["panoptic", "pose2sim", "anipose", "h36m-json"])
-def test_a_rig_of_another_up_is_written_in_the_formats_axes(tmp_path, fmt):
-    """The files carry no up: a rig is written turned into the format's convention, so that it
-    reads back with the right up and every camera sees the turned world as it saw the old one
-    (before: a z-up rig read back from Panoptic as y down, a y-down one from TOML as z up)."""
-    rig = ring_cameras(3)
+def test_writing_a_rig_of_another_up_warns_and_keeps_the_world(tmp_path, fmt, caplog):
+    """The files carry no up: the world is written unchanged (3D data in it stay valid) and a
+    warning says which up readers will assume (found silently wrong before: a z-up rig read
+    back from Panoptic as y down)."""
     up = FORMATS[fmt].world_up
     other = (0.0, -1.0, 0.0) if up[2] == 1.0 else (0.0, 0.0, 1.0)
-    rig = in_world_up(rig, other)  # the same cameras in a world of the other up
-    assert rig.up == pytest.approx(other)
-    path = tmp_path / (
-        "calibration_x.json" if fmt == "panoptic" else f"rig.{'json' if 'json' in fmt else 'toml'}"
-    )
+    rig = Rig(ring_cameras(3).cameras, up=other)
+    name = "calibration_x.json" if fmt == "panoptic" else "rig.json" if "json" in fmt else "r.toml"
     opts = {"subject": "S9"} if fmt == "h36m-json" else {}
-    write_rig(rig, path, fmt, **opts)
-    back = read_rig(path, fmt, **opts)
-    np.testing.assert_allclose(back.up, up)
-    # a point that stood above the floor still does: its height along `up`
-    a, b = np.asarray(rig.up), np.asarray(back.up)
-    X = np.array([[0.3, -0.2, 0.1]]) + 1.5 * a  # 1.5 m up in the old world
-    turned = in_world_up(rig, up)
-    for old, new, cam in zip(rig.cameras, back.cameras, turned.cameras, strict=True):
-        Xn = (cam.R.T @ (old.R @ X.T + old.t[:, None] - cam.t[:, None])).T  # same camera frame
-        np.testing.assert_allclose(new.project(Xn), old.project(X), atol=1e-5)
-        assert float(Xn[0] @ b) == pytest.approx(float(X[0] @ a), abs=1e-6)
+    write_rig(rig, tmp_path / name, fmt, **opts)
+    assert "readers will assume" in caplog.text and str(up) in caplog.text
+    back = read_rig(tmp_path / name, fmt, **opts)
+    assert_same_rig(rig, back)
+    caplog.clear()
+    write_rig(Rig(rig.cameras, up=up), tmp_path / name, fmt, **opts)
+    assert "readers will assume" not in caplog.text
 
 
 def test_h36m_keeps_a_camera_name_that_is_not_ascii(tmp_path):

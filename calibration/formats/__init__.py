@@ -19,7 +19,6 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calibration.camera import Rig
 from calibration.formats import (
@@ -169,34 +168,27 @@ def write_rig(rig: Rig, path: str | Path, fmt: str = "rig", **opts) -> None:
         raise RigFormatError(f"format '{fmt}' is read only")
     _check_options(fmt, opts, info.write_options, "write")
     validate_rig(rig)
-    if info.world_up is not None:
-        rig = in_world_up(rig, info.world_up)
+    warning = up_warning(rig, fmt)
+    if warning is not None:
+        log.warning("%s: %s", path, warning)
     info.module.write(rig, Path(path), **opts)
 
 
-def in_world_up(rig: Rig, up: tuple[float, float, float]) -> Rig:
-    """The rig in a world turned (the smallest rotation about the origin) so that its up axis
-    is `up`: a format whose files carry no up direction is read back with its convention's, so
-    a rig of another up is written in that convention's axes (the same cameras; world points
-    turn with it). Unchanged where the ups already agree."""
-    a = np.asarray(rig.up, np.float64)
-    b = np.asarray(up, np.float64)
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    if np.allclose(a, b, atol=1e-12):
-        return rig
-    axis = np.cross(a, b)
-    if np.linalg.norm(axis) < 1e-9:  # opposite: half a turn about any axis across them
-        axis = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-    angle = np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b))
-    rotation = Rotation.from_rotvec(axis / np.linalg.norm(axis) * angle).as_matrix()
-    log.warning(
-        "rig up %s written in axes whose up is %s: the world is turned by %.1f degrees",
-        tuple(float(round(v, 3)) for v in a), tuple(up), np.degrees(angle),
-    )  # fmt: skip
-    return rig.transformed(rotation, np.zeros(3), up=up)
+def up_warning(rig: Rig, fmt: str) -> str | None:
+    """The warning for writing `rig` as `fmt` where the format's files carry no up axis and the
+    rig's up is not the one its readers assume (None where they agree, or the file stores it).
+    The world is written unchanged, so 3D data in it (truth, fused bodies) stay valid; a reader
+    of the file must be told the up (ours: `Rig.up` after `read_rig`, set it by hand)."""
+    up = _info(fmt).world_up
+    if up is None or np.allclose(np.asarray(rig.up, float), up, atol=1e-9):
+        return None
+    return (
+        f"the rig's up {tuple(float(round(v, 3)) for v in rig.up)} is written in a '{fmt}' "
+        f"file, which holds no up: readers will assume {up}; the world is written unchanged"
+    )
 
 
 __all__ = [
-    "FORMATS", "FormatInfo", "RigFormatError", "detect_format", "in_world_up", "read_rig",
+    "FORMATS", "FormatInfo", "RigFormatError", "detect_format", "read_rig", "up_warning",
     "write_rig",
 ]  # fmt: skip

@@ -187,6 +187,9 @@ class CropStoreWriter:
         f = self._h5
         for name in list(f.keys()):
             del f[name]
+        # the format first: a creation killed half-way is recognised as ours and created again
+        # (n_committed, written last, is what marks a usable store)
+        f.attrs["format"] = FORMAT
         S = self.crop_size
         opts = {}
         if self.compression == "gzip":
@@ -228,6 +231,19 @@ class CropStoreWriter:
         if f.attrs.get("format") != FORMAT:
             raise StoreError(
                 f"{self.path}: not a crop store (format attribute {f.attrs.get('format')!r})"
+            )
+        version = int(f.attrs.get("version", 0))
+        if version != VERSION:
+            raise StoreError(
+                f"{self.path}: crop store version {version}, this writer appends to version "
+                f"{VERSION} only; use a new path or delete it"
+            )
+        if ("landmarks" in f) != self.landmarks:
+            held = "holds" if "landmarks" in f else "has no"
+            ours = "writes them" if self.landmarks else "has none"
+            raise StoreError(
+                f"{self.path}: {held} landmarks and this writer {ours} (the rows would not line "
+                "up); use a new path or delete it"
             )
         if int(f.attrs["crop_size"]) != self.crop_size:
             raise StoreError(
@@ -363,7 +379,7 @@ def _read_index_columns(f: h5py.File) -> dict[str, np.ndarray]:
     crop = f["crop_box"][:n]
     masks_area = np.empty(n, dtype=np.float32)
     for i0 in range(0, n, 512):  # mask coverage, read in slabs to bound memory
-        m = f["masks"][i0 : i0 + 512]
+        m = f["masks"][i0 : min(i0 + 512, n)]  # a half-written batch may lie beyond n
         masks_area[i0 : i0 + len(m)] = m.reshape(len(m), -1).mean(axis=1) / 255.0
     return {
         "row": np.arange(n, dtype=np.int64),
@@ -424,6 +440,12 @@ class CropStore:
         with h5py.File(self.path, "r") as f:
             if f.attrs.get("format") != FORMAT or "n_committed" not in f.attrs:
                 raise StoreError(f"{self.path}: not a crop store")
+            version = int(f.attrs.get("version", 0))
+            if not 1 <= version <= VERSION:
+                raise StoreError(
+                    f"{self.path}: crop store version {version}; this code reads versions 1 to "
+                    f"{VERSION}{' (update the package)' if version > VERSION else ''}"
+                )
             if not bool(f.attrs.get("complete")) and not allow_incomplete:
                 raise StoreError(
                     f"{self.path}: the store is incomplete (its writer did not finish); "
