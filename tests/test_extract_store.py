@@ -79,10 +79,12 @@ def test_half_written_batch_is_invisible_and_cut_on_resume(tmp_path):
         w.commit(_batch([0, 0], [0, 1], [1, 1]), [(0, 0), (0, 1)])
     # Simulate a writer killed mid-batch: rows appended, counters not yet updated.
     with h5py.File(path, "a") as f:
-        for name in ("images", "frame", "camera"):
+        for name in ("images", "masks", "frame", "camera"):  # as `commit` resizes them
             f[name].resize(5, axis=0)
         f["frame"][2:5] = 99
         f["done"].resize(3, axis=0)
+        del f.attrs["complete"]  # the stale index is rebuilt from the committed rows only
+    (tmp_path / "crops.index.parquet").unlink(missing_ok=True)
     with pytest.raises(StoreError, match="incomplete"):
         CropStore(path)
     partial = CropStore(path, allow_incomplete=True)
@@ -134,6 +136,49 @@ def test_incompatible_store_is_refused(tmp_path):
         CropStoreWriter(junk, CAMS, S).open()
     with pytest.raises(StoreError, match="does not exist"):
         CropStore(tmp_path / "missing.h5")
+
+
+def test_versions_and_landmarks_that_do_not_match_are_refused(tmp_path):
+    """A store of another format version is neither read nor appended to, and a writer with
+    landmarks never appends to a store without them or the other way round (the rows of the
+    two kinds of dataset would no longer line up)."""
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0], [0], [1]), [(0, 0)])
+        w.finalize()
+    with pytest.raises(StoreError, match="holds? no landmarks|has no landmarks"):
+        CropStoreWriter(path, CAMS, S, landmarks=True).open()
+    for version in (0, 99):
+        with h5py.File(path, "a") as f:
+            f.attrs["version"] = version
+        with pytest.raises(StoreError, match=f"version {version}"):
+            CropStore(path)
+        with pytest.raises(StoreError, match=f"version {version}"):
+            CropStoreWriter(path, CAMS, S).open()
+
+
+def test_a_creation_killed_half_way_is_created_again(tmp_path, monkeypatch):
+    """A writer killed while creating the store (some datasets made, the counters not): the
+    next writer recognises its own half-made file and starts it again (before: the format
+    attribute came last, and the file was refused as 'not a crop store')."""
+    path = tmp_path / "crops.h5"
+    made = h5py.Group.create_dataset
+    calls = []
+
+    def dies_on_the_third(self, *args, **kwargs):
+        calls.append(args[0] if args else kwargs.get("name"))
+        if len(calls) == 3:
+            raise KeyboardInterrupt("killed")
+        return made(self, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", dies_on_the_third)
+    with pytest.raises(KeyboardInterrupt):
+        CropStoreWriter(path, CAMS, S).open()
+    monkeypatch.setattr(h5py.Group, "create_dataset", made)
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0], [0], [1]), [(0, 0)])
+        w.finalize()
+    assert len(CropStore(path)) == 1
 
 
 def test_stale_index_is_rebuilt(tmp_path):
