@@ -17,6 +17,7 @@ from gst.data.store import (
     merge_part,
     write_subset,
 )
+from tests.real_capture import NEEDS_MODELS
 
 S = 16
 CAMS = ["a", "b", "c"]
@@ -296,3 +297,31 @@ def test_a_subset_store_holds_those_rows_and_the_store_settings(tmp_path):
     with h5py.File(sub.path, "r") as f:
         pairs = {tuple(p) for p in f["done"][: int(f.attrs["n_done"])].tolist()}
     assert pairs == set(done) - {(0, 2), (1, 0), (2, 1)}
+
+
+@NEEDS_MODELS
+def test_scored_rows_get_the_models_own_reading_where_the_landmarks_were_projected(tmp_path):
+    """Landmarks projected from the rig's skeleton hold what every camera saw: rows scored as
+    single images (`reread`) get the landmark model's reading of the crop instead; every other
+    row keeps the stored landmarks (training may use the rig)."""
+    import torch
+
+    from gst.detect.crops import detect_crop_landmarks
+    from gst.train.keypoints import store_landmarks
+
+    path = tmp_path / "crops.h5"
+    b = _batch([0, 0, 1, 1], [0, 1, 0, 1], [7, 7, 7, 7], seed=3)
+    b.landmarks = np.random.default_rng(4).uniform(0, S, (4, 33, 3)).astype(np.float32)
+    b.landmarks_projected = np.array([True, False, True, False])
+    with CropStoreWriter(path, CAMS, S, landmarks=True) as w:
+        w.commit(b, [(0, 0), (0, 1), (1, 0), (1, 1)])
+        w.finalize()
+    images = torch.from_numpy(b.images)
+    plain, source = store_landmarks(path, images)
+    np.testing.assert_array_equal(plain.numpy(), b.landmarks)
+    scored = np.array([False, True, True, True])  # row 0 projected but trained on
+    got, source = store_landmarks(path, images, reread=scored)
+    assert "1 projected read again" in source
+    own = detect_crop_landmarks(b.images[[2]], rgb=True).with_confidence()
+    np.testing.assert_array_equal(got.numpy()[2], own[0])
+    np.testing.assert_array_equal(got.numpy()[[0, 1, 3]], b.landmarks[[0, 1, 3]])

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, NonNegativeInt
 
@@ -97,11 +98,14 @@ def bench_scene(
     t0 = time.perf_counter()
     crops, boxes = load_cropset(crops_h5)
     attach_scene_truth(crops, boxes, synth)
-    if p.landmarks:
-        crops.landmarks, source = store_landmarks(crops_h5, crops.images)
-        log.info("bench: landmarks from %s", source)
     heldout = tuple(p.heldout_cameras if p.heldout_cameras is not None else crops.camera_names[-1:])
     split = frame_split(crops, heldout, p.test_fraction)
+    if p.landmarks:
+        # rows outside the training split are scored as single images (store_landmarks)
+        scored = np.ones(len(crops), bool)
+        scored[split.train_rows.numpy()] = False
+        crops.landmarks, source = store_landmarks(crops_h5, crops.images, reread=scored)
+        log.info("bench: landmarks from %s", source)
     ckpt = load_checkpoint(pretrained)
     body_spec = ckpt.body_model
     body = load_body_model(body_spec)

@@ -149,7 +149,10 @@ def evaluate_scene(
     for name, path in models.items():
         net, ckpt, body = _model(path, bodies)
         if p.landmarks and net.landmark_encoder is not None and crops.landmarks is None:
-            crops.landmarks, source = store_landmarks(crops_h5, crops.images)
+            # every row is scored as a single image: landmarks projected from the rig are
+            # replaced by the model's own reading (store_landmarks)
+            every = np.ones(len(crops), bool)
+            crops.landmarks, source = store_landmarks(crops_h5, crops.images, reread=every)
             log.info("evaluate: landmarks from %s", source)
         if truth is not None and vertices is None and ckpt.body_model == truth.body_model:
             vertices = truth.vertices(body)

@@ -54,20 +54,37 @@ def keypoints_from_landmarks(landmarks: torch.Tensor) -> torch.Tensor:
 
 
 def store_landmarks(
-    store_path, images: torch.Tensor, model: BlazePose | None = None, progress=None
+    store_path,
+    images: torch.Tensor,
+    model: BlazePose | None = None,
+    progress=None,
+    reread: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, str]:
     """(N, 33, 3) landmarks of a crop store's rows, in order (u, v crop px, confidence =
     visibility x presence): the store's `landmarks` dataset when the extraction wrote one, else
-    BlazePose on the crops (`images`, the store's rows as RGB). Returns them and their source."""
+    BlazePose on the crops (`images`, the store's rows as RGB). Returns them and their source.
+
+    `reread` (N,) bool: rows that are scored as single images (held-out frames or cameras).
+    Where the store's landmarks of such a row were projected from the rig's skeleton (the
+    extraction's model found nobody there who fitted), they hold what every camera saw, the
+    held-out ones included: those rows get BlazePose's own reading of the crop instead, as a
+    single image gives it."""
     from gst.data.store import CropStore
 
     store = CropStore(store_path)
     try:
         stored = store.read_landmarks()
+        projected = store.read_landmarks_projected() if reread is not None else None
     finally:
         store.close()
     if stored is not None and len(stored) == len(images):
-        return torch.from_numpy(stored), "store"
+        if projected is None or len(projected) != len(images):
+            return torch.from_numpy(stored), "store"
+        again = np.asarray(projected, bool) & np.asarray(reread, bool)
+        if again.any():
+            found = detect_crop_landmarks(images[torch.from_numpy(again)].numpy(), model, rgb=True)
+            stored[again] = found.with_confidence().astype(np.float32)
+        return torch.from_numpy(stored), f"store ({int(again.sum())} projected read again)"
     found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)
     return torch.from_numpy(found.with_confidence().astype(np.float32)), "BlazePose"
 

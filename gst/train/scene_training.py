@@ -231,7 +231,15 @@ def prepare_crops(
     cut = heldout_frame_start(crops.frame, p.heldout_frames)
     landmarks = None
     if feed_landmarks or (multiview and (p.keypoints or p.distill)):
-        landmarks, source = store_landmarks(crops_h5, crops.images, progress=progress)
+        # rows never trained on (held-out frames and cameras) are scored as single images
+        scored = torch.isin(
+            crops.camera, torch.tensor([crops.camera_names.index(c) for c in heldout])
+        )
+        if cut is not None:
+            scored |= crops.frame >= cut
+        landmarks, source = store_landmarks(
+            crops_h5, crops.images, progress=progress, reread=scored.numpy()
+        )
         log.info(
             "landmarks (%s): %d of %d crops have one with confidence >= 0.5",
             source,
