@@ -404,8 +404,10 @@ def test_status_and_dry_run_show_the_table_when_a_listed_video_is_missing(scene,
     assert code == 0 and "calibrate" in err and "gone.mp4" in err, err
 
 
-def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
-    clip = tmp_path / "match cam2.mp4"
+def _track_a_copy(scene, tmp_path, capsys, name: str) -> tuple[Path, Path]:
+    """`run track --video` on a copy of camera c1's video named `name`, with the scene's model;
+    returns the clip and the config."""
+    clip = tmp_path / name
     clip.write_bytes((scene.videos / "c1.mp4").read_bytes())
     cfg = _config(tmp_path, scene)
     models = tmp_path / "ws/s/models"
@@ -413,6 +415,11 @@ def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
     (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
     code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip))
     assert code == 0, err
+    return clip, cfg
+
+
+def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
+    clip, cfg = _track_a_copy(scene, tmp_path, capsys, "match cam2.mp4")
     assert (tmp_path / "ws/s/tracks/video=match%20cam2/tracks.parquet").is_file()
     code, err = _cli(capsys, "status", "--config", str(cfg))
     assert "track@match_cam2" in err.replace(" ", "") or "track@match" in err, err
@@ -421,14 +428,7 @@ def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
 def test_status_after_a_tracked_video_was_moved(scene, tmp_path, capsys):
     """A `--video` run is remembered; once its clip is moved away, `status` still prints the
     table (the variant shown as missing) instead of stopping with FileNotFoundError."""
-    clip = tmp_path / "clip.mp4"
-    clip.write_bytes((scene.videos / "c1.mp4").read_bytes())
-    cfg = _config(tmp_path, scene)
-    models = tmp_path / "ws/s/models"
-    models.mkdir(parents=True)
-    (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
-    code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip))
-    assert code == 0, err
+    clip, cfg = _track_a_copy(scene, tmp_path, capsys, "clip.mp4")
     clip.rename(tmp_path / "elsewhere.mp4")
     code, err = _cli(capsys, "status", "--config", str(cfg))
     assert code == 0, err

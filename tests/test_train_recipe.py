@@ -104,10 +104,16 @@ def test_fit_gst_modes(tmp_path, mode, heldout):
             for r in csv.DictReader(open(tmp_path / "log.csv"))
             if r.get("val_silhouette_iou")
         ]
-        assert vals and summary.best == max(vals)  # IoU, not PSNR: fading to black must not win
+        assert vals  # the held-out cameras' scores are watched in log.csv
     assert "mpjpe_mm" in summary.after
     reloaded = network_from_checkpoint(load_checkpoint(tmp_path / "best.pt"))
     assert reloaded.num_query_tokens == 5 * 26 + 1
+    # the kept model is the last step's: never chosen on held-out cameras (their novel-view
+    # scores would be a validation result) nor on the scene's truth (its 3D labels)
+    assert summary.best is None
+    last = network_from_checkpoint(load_checkpoint(tmp_path / "last.pt")).state_dict()
+    for k, v in reloaded.state_dict().items():
+        assert torch.equal(v, last[k]), k
 
 
 def test_heldout_camera_must_exist(tmp_path):

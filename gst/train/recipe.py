@@ -327,9 +327,12 @@ def fit_gst(
             },
         }
 
-    # Held-out silhouette IoU, not PSNR, picks the best checkpoint: with the person on black, a
-    # body that fades to transparent scores a good PSNR (black matches black) and an IoU of 0.
-    best_key = "silhouette_iou" if pairs is not None else ("mpjpe_mm" if len(truth_rows) else None)
+    # The kept checkpoint is the last one, unless a validation set of its own was given
+    # (`val_crops`: the pretraining's unseen world, chosen on by MPJPE). Choosing on the held-out
+    # cameras (even in training frames) would make the novel-view scores of those cameras a
+    # validation result, and choosing on a scene's truth would use its 3D labels: both are
+    # only watched (log.csv), never used to choose.
+    best_key = "mpjpe_mm" if val_crops is not None and len(truth_rows) else None
     trainer = Trainer(
         model,
         step,
