@@ -246,10 +246,14 @@ def _file_stems(names: list[str]) -> dict[str, str]:
     unsafe characters ('cam 1', 'cam_1') get their index appended, so no image overwrites
     another's."""
     safe = [_safe(n) for n in names]
-    return {
-        n: s if safe.count(s) == 1 else f"{s}-{i}"
-        for i, (n, s) in enumerate(zip(names, safe, strict=True))
-    }
+    stems = [s if safe.count(s) == 1 else f"{s}-{i}" for i, s in enumerate(safe)]
+    taken = set()
+    for i, s in enumerate(stems):  # a stem that another name already is ('cam_1-1'): index it
+        while s in taken:
+            s = f"{s}-{i}"
+        stems[i] = s
+        taken.add(s)
+    return dict(zip(names, stems, strict=True))
 
 
 def _fmt(v: float, nd: int = 2) -> str:

@@ -118,3 +118,10 @@ def test_cameras_whose_names_differ_only_in_unsafe_characters_keep_their_own_ima
     assert "overlay_cam_1-0.png" in text and "overlay_cam_1-1.png" in text
     a, b = (cv2.imread(str(tmp_path / f"overlay_cam_1-{k}.png")) for k in (0, 1))
     assert a is not None and b is not None and not np.array_equal(a, b)
+
+
+def test_file_stems_stay_unique_when_a_name_looks_like_an_indexed_one():
+    from calibration.report import _file_stems
+
+    stems = _file_stems(["cam_1-1", "cam 1", "cam_1"])
+    assert len(set(stems.values())) == 3 and stems["cam_1-1"] == "cam_1-1"

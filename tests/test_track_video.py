@@ -50,10 +50,11 @@ def test_stride_and_time_range(video):
     assert got == [6, 10, 14, 18, 22]  # t in [0.55, 2.3): frames 6..22, every 4th from the first
 
 
-def test_start_frame_resumes_exactly(video):
+def test_start_frame_resumes_exactly(video, caplog):
     full = {f.index: f.image for f in iter_frames(video, stride=3)}
     resumed = list(iter_frames(video, stride=3, start_frame=12))
     assert [f.index for f in resumed] == [12, 15, 18, 21, 24, 27]
+    assert "not frame-exact" not in caplog.text  # an ordinary file seeks, not reads from 0
     for f in resumed:
         np.testing.assert_array_equal(f.image, full[f.index])
     with pytest.raises(ValueError, match="not on the grid"):

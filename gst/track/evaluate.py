@@ -49,9 +49,9 @@ def _mask_boxes(scene_dir: str | Path, camera_name: str, min_mask_area: int) -> 
 def match_frame(
     track_boxes: np.ndarray, truth_boxes: np.ndarray, min_iou: float
 ) -> list[tuple[int, int]]:
-    """(track index, truth index) pairs of one frame: the Hungarian assignment maximising total box
-    IoU among the pairs with IoU >= `min_iou` (pairs below it are excluded before assigning, as
-    CLEAR MOT does, so a high-IoU pair never costs two valid ones)."""
+    """(track index, truth index) pairs of one frame, each with box IoU >= `min_iou`: the most
+    such matches, then the largest total IoU among them (pairs below the threshold are excluded
+    before assigning, as CLEAR MOT does, so a high-IoU pair never costs two valid ones)."""
     if len(track_boxes) == 0 or len(truth_boxes) == 0:
         return []
     iou = box_iou(np.asarray(track_boxes, np.float64), np.asarray(truth_boxes, np.float64))

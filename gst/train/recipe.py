@@ -255,14 +255,14 @@ def fit_gst(
         if has_truth
         else torch.zeros(0, dtype=torch.long)
     )
-    if val_crops is None and cut is not None:  # validation (a checkpoint choice) never sees them
+    if val_crops is None and cut is not None:  # validation never sees the held-out frames
         truth_rows = truth_rows[pose_crops.frame[truth_rows] < cut]
     if len(truth_rows):
         gen = torch.Generator().manual_seed(1)
         truth_rows = truth_rows[
             torch.randperm(len(truth_rows), generator=gen)[: opts.val_pose_crops]
         ]
-    # the checkpoint is chosen on held-out cameras in training frames only
+    # novel views into the held-out cameras, in training frames only: watched, never chosen on
     pairs = (
         novel_view_pairs(
             crops, heldout, max_pairs=opts.val_pairs, frames=None if cut is None else (0, cut)
@@ -341,7 +341,7 @@ def fit_gst(
         out_dir,
         val_fn=validate,
         best_key=best_key,
-        best_mode="max" if best_key == "silhouette_iou" else "min",
+        best_mode="min",
         progress=progress,
         checkpoint_extra=extra,
         param_groups=None
