@@ -117,10 +117,21 @@ class Camera:
     def skew(self) -> float:
         return float(self.K[0, 1])
 
-    def _K_no_skew(self) -> np.ndarray:
+    def lens_K(self) -> np.ndarray:
+        """K without the skew: what OpenCV's lens functions read (they ignore K[0, 1]); pixels
+        they give go through `with_skew`."""
         K = self.K.copy()
         K[0, 1] = 0.0
         return K
+
+    def with_skew(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (..., 2) computed with `lens_K`, with the camera's skew: u += skew (v - cy) / fy
+        (a copy; `uv` itself where the camera has none)."""
+        if not self.skew:
+            return uv
+        uv = np.array(uv, dtype=np.float64)
+        uv[..., 0] += self.skew * (uv[..., 1] - self.cy) / self.fy
+        return uv
 
     @property
     def center(self) -> np.ndarray:
@@ -190,13 +201,10 @@ class Camera:
             self.to_camera(pts),
             zero,
             zero,
-            self._K_no_skew(),
+            self.lens_K(),
             self.dist if self.dist.size else None,
         )
-        uv = uv.reshape(-1, 2)
-        if self.skew:
-            uv[:, 0] += self.skew * (uv[:, 1] - self.cy) / self.fy
-        return uv
+        return self.with_skew(uv.reshape(-1, 2))
 
     def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
         """Distorted pixels (N, 2) to undistorted normalised coordinates (N, 2) (z = 1 plane)."""
@@ -207,7 +215,7 @@ class Camera:
             px[:, 0, 0] -= self.skew * (px[:, 0, 1] - self.cy) / self.fy
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
         out = cv2.undistortPoints(
-            px, self._K_no_skew(), self.dist if self.dist.size else None, None, None, None, crit
+            px, self.lens_K(), self.dist if self.dist.size else None, None, None, None, crit
         )
         return out.reshape(-1, 2)
 

@@ -91,15 +91,13 @@ def _relative_paths(obj, base: Path | None):
 
 def _absolute(value, base: Path):
     """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
-    against `base`; the same object where nothing changes."""
+    against `base`."""
     if isinstance(value, Path):
         return value if value.is_absolute() else Path(os.path.normpath(base / value))
     if isinstance(value, dict):
-        new = {k: _absolute(v, base) for k, v in value.items()}
-        return value if all(new[k] is value[k] for k in value) else new
+        return {k: _absolute(v, base) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        new = [_absolute(v, base) for v in value]
-        return value if all(a is b for a, b in zip(new, value, strict=True)) else type(value)(new)
+        return type(value)(_absolute(v, base) for v in value)
     return value
 
 
@@ -201,9 +199,12 @@ class Runner:
             return params
         # relative paths in parameters (background clips, supplied boxes, a checkpoint to
         # reuse) are the config folder's, as every other path of the config, not the shell's
-        fields = {k: getattr(params, k) for k in type(params).model_fields}
-        fixed = {k: _absolute(v, self.cfg.base_dir) for k, v in fields.items()}
-        return params.model_copy(update={k: v for k, v in fixed.items() if v is not fields[k]})
+        return params.model_copy(
+            update={
+                k: _absolute(getattr(params, k), self.cfg.base_dir)
+                for k in type(params).model_fields
+            }
+        )
 
     def _scene_record(self) -> dict:
         # Scene-level stage params reach each stage through its merged params; leaving them out
@@ -251,24 +252,13 @@ class Runner:
     def applies(self, name: str) -> bool:
         return self.stages[name].applies(self.scene)
 
-    def _ancestors(self, name: str) -> list[str]:
-        """Every stage `name` needs, directly or through others, in a fixed order."""
-        seen: set[str] = set()
-        stack = list(self.needs[name])
-        while stack:
-            dep = stack.pop()
-            if dep not in seen:
-                seen.add(dep)
-                stack.extend(self.needs[dep])
-        return sorted(seen)
-
     def _inputs(self, name: str, ctx: StageContext) -> dict[str, str | None]:
         """Digests of upstream outputs and declared external inputs. Upstream is every stage
         `name` needs, directly or not: stages read their ancestors' outputs too (extract reads
         synth's videos, train the calibration), and an ancestor can change while the stage in
         between writes the same bytes (a new synth render, the same rig.json)."""
         digests: dict[str, str | None] = {}
-        for dep in self._ancestors(name):
+        for dep in upstream_closure(self.needs, [name])[:-1]:  # the stage itself comes last
             if not self.applies(dep):
                 continue
             dep_ctx = self.context(dep)

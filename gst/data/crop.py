@@ -176,27 +176,11 @@ def distortion_maps(
     y = (gv - cy) / fy
     x = (gu - cx - s * y) / fx
     rays = np.stack([x.ravel(), y.ravel(), np.ones(x.size)], axis=1)
-    uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), _lens_K(camera), camera.dist)
-    uv = _with_skew(camera, uv.reshape(len(grid), len(grid), 2))
+    uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), camera.lens_K(), camera.dist)
+    uv = camera.with_skew(uv.reshape(len(grid), len(grid), 2))
     return _bilinear(uv[..., 0], i, w).astype(np.float32), _bilinear(uv[..., 1], i, w).astype(
         np.float32
     )
-
-
-def _lens_K(camera: Camera) -> np.ndarray:
-    """The camera's K without skew: what OpenCV's lens functions read (they ignore K[0, 1])."""
-    K = camera.K.copy()
-    K[0, 1] = 0.0
-    return K
-
-
-def _with_skew(camera: Camera, uv: np.ndarray) -> np.ndarray:
-    """Raw-frame pixels (..., 2) that OpenCV computed without the camera's skew (its lens
-    functions ignore K[0, 1], as `Camera.project` notes), with it: u += skew (v - cy) / fy."""
-    if camera.skew:
-        uv = uv.copy()
-        uv[..., 0] += camera.skew * (uv[..., 1] - camera.cy) / camera.fy
-    return uv
 
 
 def crop_maps(
@@ -219,10 +203,10 @@ def crop_maps(
     else:
         dist = camera.dist if camera.dist.size else None
         mapx, mapy = cv2.initUndistortRectifyMap(
-            _lens_K(camera), dist, None, Kc, (size, size), cv2.CV_32FC1
+            camera.lens_K(), dist, None, Kc, (size, size), cv2.CV_32FC1
         )
-        if camera.skew:
-            uv = _with_skew(camera, np.stack([mapx, mapy], -1).astype(np.float64))
+        if camera.skew:  # OpenCV's maps are without it (`Camera.lens_K`)
+            uv = camera.with_skew(np.stack([mapx, mapy], -1))
             mapx, mapy = uv[..., 0].astype(np.float32), uv[..., 1].astype(np.float32)
     sx, sy = src_scale
     if (sx, sy) != (1.0, 1.0):

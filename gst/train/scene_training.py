@@ -229,14 +229,11 @@ def prepare_crops(
             f"train.heldout_cameras {unknown} are not cameras of {crops_h5} ({crops.camera_names})"
         )
     cut = heldout_frame_start(crops.frame, p.heldout_frames)
+    held_idx = {crops.camera_names.index(c) for c in heldout}
     landmarks = None
     if feed_landmarks or (multiview and (p.keypoints or p.distill)):
         # rows never trained on (held-out frames and cameras) are scored as single images
-        scored = torch.isin(
-            crops.camera, torch.tensor([crops.camera_names.index(c) for c in heldout])
-        )
-        if cut is not None:
-            scored |= crops.frame >= cut
+        scored = ~training_rows(crops, held_idx, cut)
         landmarks, source = store_landmarks(
             crops_h5, crops.images, progress=progress, reread=scored.numpy()
         )
@@ -252,7 +249,6 @@ def prepare_crops(
                 "train.distill needs a teacher: the fuse stage's bodies (pipeline.yaml: train "
                 "needs fuse), or distill=false"
             )
-        held_idx = {crops.camera_names.index(c) for c in heldout}
         allowed = training_rows(crops, held_idx, cut)
         if p.unmirror_landmarks:
             # a first fit of the training crops alone says which of them are mirrored (the fuse
