@@ -3,6 +3,8 @@ and handles a person seen by a single camera."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -78,6 +80,26 @@ def test_single_view_person_is_fitted_and_marked(body, capture):
     assert np.isfinite(fits[1].joints).all()
     # one camera pins the body in 2D (depth is the prior's guess): reprojection still small
     assert np.nanmedian(fits[1].reprojection[:, 0]) < 3.0
+
+
+def test_single_view_start_stands_along_the_rigs_up_whatever_its_axis(body, capture):
+    """A person one camera sees, in the same scene written in a y-down world (a Panoptic rig's
+    `Rig.up` = (0, -1, 0)): the fit is the z-up world's, rotated. (The start assumed +Z up: the
+    body started lying down and the fit ended metres away.)"""
+    people = observations(capture, noise_px=0.5, seed=4)
+    p = people[1]
+    p.confidence[:, 1:] = 0.0
+    p.uv[:, 1:] = np.nan
+    p.rows[:, 1:] = -1
+    Q = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # z-up world -> y-down world
+    q = replace(p, Rt=np.concatenate([p.Rt[..., :3] @ Q.T, p.Rt[..., 3:]], -1))
+    fits = [
+        fit_people(body, MarkerModel.load(), [o], [triangulate_person(o)], 30.0, up=up)[0]
+        for o, up in ((p, (0.0, 0.0, 1.0)), (q, (0.0, -1.0, 0.0)))
+    ]
+    assert fits[0].single_view and fits[1].single_view
+    back = fits[1].joints @ Q  # y-down world -> z-up world
+    assert np.linalg.norm(back - fits[0].joints, axis=-1).max() < 0.02
 
 
 def test_gap_frames_are_inserted_and_static_frames_start_from_the_previous(body, capture):

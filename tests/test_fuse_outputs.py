@@ -8,9 +8,18 @@ import json
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gst.body.skeleton import SMPL_JOINT_NAMES
-from gst.fuse.export import Z_UP_TO_Y_UP, read_c3d, read_trc, write_c3d, write_trc
+from gst.fuse.export import (
+    Z_UP_TO_Y_UP,
+    read_c3d,
+    read_trc,
+    write_c3d,
+    write_trc,
+    y_up_rotation,
+)
 from gst.track.schema import METADATA_KEYS, column_specs
 
 
@@ -70,7 +79,7 @@ def test_bodies_parquet_has_the_tracks_schema(tmp_path):
     path = tmp_path / "bodies.parquet"
     write_bodies(
         path, [fit], [ev], fps=30.0, camera_names=["a", "b", "c"], model={"name": "x"},
-        settings={}, settings_sha256="0", stats={},
+        settings={}, settings_sha256="0", stats={}, world_up=(0.0, -1.0, 0.0),
     )  # fmt: skip
     t = pq.read_table(path)
     names = [s.name for s in column_specs(10)]
@@ -78,6 +87,7 @@ def test_bodies_parquet_has_the_tracks_schema(tmp_path):
     meta = t.schema.metadata
     assert all(k.encode() in meta for k in METADATA_KEYS)
     assert json.loads(meta[b"gst.axes"])["joints3d"] == "world"
+    assert json.loads(meta[b"gst.axes"])["world_up"] == [0.0, -1.0, 0.0]  # the rig's, not +Z
     joints = np.stack(t.column("joints3d").to_numpy(zero_copy_only=False)).reshape(-1, 24, 3)
     np.testing.assert_allclose(joints, fit.joints, rtol=1e-6)
     assert t.column("joints2d").null_count == T
@@ -137,3 +147,29 @@ def test_joints_without_landmarks_are_fitted_where_the_torso_is():
     assert fitted[1, spine].all() and fitted[1, SMPL_JOINT_NAMES.index("left_shoulder")]
     assert not fitted[2, spine].any() and fitted[2, SMPL_JOINT_NAMES.index("left_wrist")]
     assert (fitted[:, has] == gap[:, has]).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 0.1))
+def test_y_up_rotation_is_proper_and_puts_the_worlds_up_on_y(up):
+    R = y_up_rotation(up)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert np.isclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(R @ (np.asarray(up) / np.linalg.norm(up)), [0, 1, 0], atol=1e-9)
+
+
+def test_marker_files_of_a_y_down_world_stand_upright(tmp_path):
+    """A Panoptic rig's world has up (0, -1, 0): the TRC's y is the height along it (was: the
+    Z-up rotation, which laid the body on its back), the C3D's screen axis is -Y."""
+    import c3d
+
+    np.testing.assert_array_equal(y_up_rotation((0, 0, 1)), Z_UP_TO_Y_UP)
+    pts = _points()
+    write_trc(tmp_path / "p.trc", np.arange(5), pts, fps=30.0, up=(0.0, -1.0, 0.0))
+    back = read_trc(tmp_path / "p.trc")[3]
+    np.testing.assert_allclose(back[..., 1], -pts[..., 1], atol=1e-6)
+    write_c3d(tmp_path / "p.c3d", np.arange(5), pts, fps=30.0, up=(0.0, -1.0, 0.0))
+    with open(tmp_path / "p.c3d", "rb") as fh:
+        point = c3d.Reader(fh).get("POINT")
+        assert point.get("Y_SCREEN").string_value.strip() == "-Y"
+        assert point.get("X_SCREEN").string_value.strip() == "+X"

@@ -3,8 +3,11 @@
 Markers are the fitted body's 24 joints, named as the SMPL joints (`pelvis`, `left_hip`, ...,
 gst.body.skeleton.SMPL_JOINT_NAMES), in metres in the TRC and millimetres in the C3D.
 
-TRC: OpenSim expects Y up, so the rig's Z-up world is rotated by -90 degrees about X:
-(x, y, z)_trc = (x, z, -y)_world (a proper rotation; the floor z = 0 becomes y = 0). Header as
+TRC: OpenSim expects Y up, so the rig's world is rotated to put its up (`Rig.up`) on +Y
+(`y_up_rotation`). For the usual Z-up world that is -90 degrees about X: (x, y, z)_trc =
+(x, z, -y)_world (a proper rotation; the floor z = 0 becomes y = 0); a world with another up
+(a Panoptic rig's Y-down world, say) is first turned, by the smallest rotation, so that its up
+is +Z. Header as
 OpenSim writes it (PathFileType 4, DataRate ... OrigNumFrames, `Frame#  Time  names`, then
 `X1 Y1 Z1 ...`), tab-separated; Frame# is the 1-based video frame, Time = frame / fps.
 
@@ -14,7 +17,8 @@ the constant rate they declare: a frame inside a gap the fit does not fill (long
 out; a C3D has no frame column, so a dropped row would put every later frame early.
 
 C3D: written with the `c3d` package (pure Python, 0.6.0) as float points (POINT:SCALE < 0, so
-values are stored exactly as float32), POINT:UNITS "mm", the rig's world axes (Z up). Frames are
+values are stored exactly as float32), POINT:UNITS "mm", the rig's world axes (POINT:Y_SCREEN
+is the world axis nearest its up, so viewers draw it upright). Frames are
 numbered from the person's first video frame + 1 where that fits the header's 16-bit first
 frame (video frames up to 65533; the `c3d` reader miscounts a file whose header had to clamp
 it), else from 1; the parameter GST:FIRST_FRAME always holds the first row's video frame
@@ -33,9 +37,43 @@ import numpy as np
 from gst.atomic import atomic_write
 from gst.body.skeleton import SMPL_JOINT_NAMES
 
-__all__ = ["Z_UP_TO_Y_UP", "every_frame", "write_trc", "read_trc", "write_c3d", "read_c3d"]
+__all__ = [
+    "Z_UP_TO_Y_UP",
+    "every_frame",
+    "y_up_rotation",
+    "write_trc",
+    "read_trc",
+    "write_c3d",
+    "read_c3d",
+]
 
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+Z_UP = (0.0, 0.0, 1.0)
+
+
+def y_up_rotation(up=Z_UP) -> np.ndarray:
+    """(3, 3) rotation taking world points to the TRC's Y-up axes: the smallest rotation that
+    turns `up` onto +Z, then `Z_UP_TO_Y_UP` (exactly that for a Z-up world)."""
+    u = np.asarray(up, np.float64)
+    if u.shape != (3,) or not np.isfinite(u).all() or np.linalg.norm(u) < 1e-9:
+        raise ValueError(f"the world's up must be a finite non-zero 3-vector, got {up!r}")
+    u = u / np.linalg.norm(u)
+    z = np.array([0.0, 0.0, 1.0])
+    axis, cos = np.cross(u, z), float(u @ z)
+    if np.linalg.norm(axis) < 1e-12:  # up is +Z or -Z
+        align = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        align = np.eye(3) + k + k @ k / (1.0 + cos)
+    return Z_UP_TO_Y_UP @ align
+
+
+def _screen_axes(up) -> tuple[str, str]:
+    """C3D POINT:X_SCREEN / Y_SCREEN: the world axis nearest `up` drawn vertical."""
+    u = np.asarray(up, np.float64)
+    k = int(np.argmax(np.abs(u)))
+    vertical = ("+" if u[k] > 0 else "-") + "XYZ"[k]
+    return ("+Y" if k == 0 else "+X"), vertical
 
 
 def write_trc(
@@ -44,8 +82,9 @@ def write_trc(
     points: np.ndarray,
     fps: float,
     names: tuple[str, ...] = SMPL_JOINT_NAMES,
+    up=Z_UP,
 ) -> None:
-    """`points` (T, M, 3) metres in the rig world (Z up), written Y up (see module doc)."""
+    """`points` (T, M, 3) metres in the rig world whose up is `up`, written Y up (module doc)."""
     path = Path(path)
     T, M = points.shape[:2]
     if len(names) != M or len(frames) != T:
@@ -54,7 +93,7 @@ def write_trc(
         )
     frames, points, _ = every_frame(frames, points)
     T = len(frames)
-    yup = points @ Z_UP_TO_Y_UP.T
+    yup = points @ y_up_rotation(up).T
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame"
@@ -124,8 +163,9 @@ def write_c3d(
     fps: float,
     valid: np.ndarray | None = None,
     names: tuple[str, ...] = SMPL_JOINT_NAMES,
+    up=Z_UP,
 ) -> None:
-    """`points` (T, M, 3) metres, rig world; stored in mm as float32 (see module doc)."""
+    """`points` (T, M, 3) metres, rig world (up `up`); stored in mm as float32 (module doc)."""
     import c3d
 
     frames, points, valid = every_frame(frames, points, valid)
@@ -134,7 +174,7 @@ def write_c3d(
         raise ValueError(f"write_c3d: {M} markers need {M} names, got {len(names)}")
     writer = c3d.Writer(point_rate=float(fps), analog_rate=0.0, point_scale=-1.0)
     writer.set_point_labels([n[:30] for n in names])
-    writer.set_screen_axis("+X", "+Z")  # viewers draw the rig's Z-up world upright
+    writer.set_screen_axis(*_screen_axes(up))  # viewers draw the rig's world upright
     first = int(frames[0]) if T else 0
     writer.set_start_frame(first + 1 if first + 1 <= _LAST_HEADER_START else 1)
     group = writer.add_group(_GST_GROUP_ID, "GST", "gst-capture")

@@ -195,6 +195,7 @@ def fit_people(
     marker_offsets: list[np.ndarray | None] | None = None,
     silhouettes: CropSilhouettes | None = None,
     floor: tuple[np.ndarray, float] | None = None,
+    up: np.ndarray | None = None,
 ) -> list[PersonFit]:
     """Fit every person's body over the clip at once (one batch). Deterministic on CPU.
 
@@ -203,10 +204,14 @@ def fit_people(
     `marker_offsets`: per person, (M, 3) corrections of the marker table (a person's offsets
     from an earlier fit), held fixed unless `w_marker_offsets` > 0 fits them further.
     `silhouettes`: the store's people per crop (gst.fuse.silhouettes), for `w_silhouette`.
-    `floor`: (world up, height along it) of the ground nobody sinks into (`w_floor`)."""
+    `floor`: (world up, height along it) of the ground nobody sinks into (`w_floor`).
+    `up`: the world's up direction (`Rig.up`; default the floor's, else +Z), which the start of
+    people that no two cameras triangulate stands along."""
     o = options or FitOptions()
     if not people:
         return []
+    if up is None and floor is not None:
+        up = np.asarray(floor[0], np.float64)
     sk = MarkerSkeleton(body, markers, o.num_betas, DTYPE)
     nb = o.num_betas
     with torch.no_grad():
@@ -228,7 +233,7 @@ def fit_people(
     for obs, tri in zip(people, tris, strict=True):
         d = dense_frames(obs, int(round(o.max_gap_s * fps)))
         tri_d = dense_triangulation(tri, obs.frames, d.frames) if tri is not None else None
-        R0, c0, static = rigid_start(d, tri_d, rest_markers, pelvis, o.static_tol_m)
+        R0, c0, static = rigid_start(d, tri_d, rest_markers, pelvis, o.static_tol_m, up)
         dense.append(d)
         dtris.append(tri_d)
         starts.append((R0, c0))

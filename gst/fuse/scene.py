@@ -172,7 +172,7 @@ def _fits_from_npz(path: Path) -> list[PersonFit]:
 
 def _fit_batches(
     body, markers, people, tris, fps, o, work: Path, rnd: int | str, progress, log, silhouettes,
-    floor,
+    floor, up,
 ):  # fmt: skip
     """All people fitted in fixed batches, each saved in `work` as it is done (resumable)."""
     fits: list[PersonFit] = []
@@ -189,7 +189,7 @@ def _fit_batches(
             part = fit_people(
                 body, markers, people[a : a + o.people_per_batch],
                 tris[a : a + o.people_per_batch], fps, o.fit, silhouettes=silhouettes,
-                floor=floor,
+                floor=floor, up=up,
             )  # fmt: skip
         atomic_save_npz(path, **_fits_to_arrays(part))
         fits += part
@@ -394,7 +394,7 @@ def fuse_scene(
 
     def fit_all(people: list[PersonObservations], tris: list, rnd: int | str) -> list[PersonFit]:
         return _fit_batches(
-            body, markers, people, tris, fps, o, work, rnd, progress, log, silhouettes, floor
+            body, markers, people, tris, fps, o, work, rnd, progress, log, silhouettes, floor, up
         )
 
     corrections = np.zeros((len(cams), 3))
@@ -488,17 +488,18 @@ def fuse_scene(
         settings=o.settings(), settings_sha256=key,
         stats={"people": len(fits), "rows": int(sum(len(f.frames) for f in fits)),
                "crops": len(store)},
+        world_up=up,
     )  # fmt: skip
     lm_out = out_dir / "landmarks.parquet"
     write_landmarks(
-        lm_out, [p.person_id for p in people], [p.frames for p in people], tris, cams, fps
+        lm_out, [p.person_id for p in people], [p.frames for p in people], tris, cams, fps, up
     )
     trc, c3d = [], []
     for f, ev in zip(fits, evidence, strict=True):
         t_path = out_dir / "trc" / f"person_{f.person_id}.trc"
         c_path = out_dir / "c3d" / f"person_{f.person_id}.c3d"
-        write_trc(t_path, f.frames, f.joints, fps)
-        write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.fitted_only())
+        write_trc(t_path, f.frames, f.joints, fps, up=up)
+        write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.fitted_only(), up=up)
         trc.append(t_path)
         c3d.append(c_path)
     write_report(summary, report_dir, fits, dense_tris, limbs)

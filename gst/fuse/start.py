@@ -84,8 +84,10 @@ def rigid_start(
     rest_markers: np.ndarray,
     pelvis: np.ndarray,
     tol: float,
+    up: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame: root rotation (T, 3, 3), translation (T, 3) and the static flag (T,)."""
+    """Per frame: root rotation (T, 3, 3), translation (T, 3) and the static flag (T,). `up`:
+    the world's up direction (default +Z), for people no two cameras triangulate."""
     T = len(obs.frames)
     R = np.tile(np.eye(3), (T, 1, 1))
     c = np.full((T, 3), np.nan)
@@ -106,7 +108,7 @@ def rigid_start(
                 R[i], c[i] = R[i - 1], c[i - 1]
     missing = ~np.isfinite(c).all(1)
     if missing.all():
-        R, c = _single_view_start(obs, rest_markers, pelvis)
+        R, c = _single_view_start(obs, rest_markers, pelvis, up)
     elif missing.any():  # nearest frame with a start
         good = np.flatnonzero(~missing)
         near = nearest(good, T)
@@ -115,9 +117,15 @@ def rigid_start(
 
 
 def _single_view_start(
-    obs: PersonObservations, rest_markers: np.ndarray, pelvis: np.ndarray
+    obs: PersonObservations,
+    rest_markers: np.ndarray,
+    pelvis: np.ndarray,
+    up: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """No triangulation: upright, facing the camera, at the depth that makes the body 1.7 m."""
+    """No triangulation: upright along the world's `up` (default +Z), facing the camera, at the
+    depth that makes the body 1.7 m."""
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, np.float64)
+    up = up / np.linalg.norm(up)
     T = len(obs.frames)
     R = np.tile(np.eye(3), (T, 1, 1))
     c = np.zeros((T, 3))
@@ -135,11 +143,10 @@ def _single_view_start(
         ray = np.linalg.solve(K, np.r_[hips, 1.0]) * depth  # camera frame
         Rc, tc = Rt[:, :3], Rt[:, 3]
         c[i] = Rc.T @ (ray - tc)
-        # body axes in world: up = world z, forward = towards the camera (horizontal)
+        # body axes in world: up = the world's, forward = towards the camera (horizontal)
         to_cam = -Rc.T @ tc - c[i]
-        fwd = np.r_[to_cam[:2], 0.0]
+        fwd = to_cam - (to_cam @ up) * up
         fwd /= np.linalg.norm(fwd) + 1e-9
-        up = np.array([0.0, 0.0, 1.0])
         left = np.cross(up, fwd)
         R[i] = np.stack([left, up, fwd], 1)  # columns: model x, y, z in world
         last = i

@@ -127,8 +127,9 @@ def write_bodies(
     settings: dict,
     settings_sha256: str,
     stats: dict,
+    world_up=(0.0, 0.0, 1.0),
 ) -> None:
-    """Write `bodies.parquet`: rows sorted by frame, then person."""
+    """Write `bodies.parquet`: rows sorted by frame, then person. `world_up`: `Rig.up`."""
     nb = fits[0].betas.shape[0] if fits else 10
     cols: dict[str, list] = {k: [] for k in ("frame", "person_id")}
     arrays: dict[str, list[np.ndarray]] = {
@@ -204,8 +205,8 @@ def write_bodies(
         calibration={"calibrated": True, "cameras": camera_names, "source": "calibration/rig.json"},
         axes={
             "joints3d": "world",
-            "world_up": [0.0, 0.0, 1.0],
-            "world": "the rig's world (calibration/rig.json), metres, Z up, floor z = 0",
+            "world_up": [float(v) for v in world_up],
+            "world": "the rig's world (calibration/rig.json), metres, up = world_up",
         },
         video={"name": "fused", "cameras": camera_names, "fps": fps},
         tracking=settings,
@@ -238,9 +239,10 @@ def write_bodies(
 
 def write_landmarks(
     path, person_ids: list[int], frames: list[np.ndarray], tris: list[PersonTriangulation],
-    camera_names: list[str], fps: float,
+    camera_names: list[str], fps: float, world_up=(0.0, 0.0, 1.0),
 ) -> None:  # fmt: skip
-    """Write `landmarks.parquet`: one row per frame and person, the 33 triangulated landmarks."""
+    """Write `landmarks.parquet`: one row per frame and person, the 33 triangulated landmarks
+    (`world_up`: `Rig.up`)."""
     C = len(camera_names)
     bits = (1 << np.arange(C)).astype(np.int64)
     rows = {k: [] for k in ("frame", "person_id", "xyz", "views", "mask", "err", "conf")}
@@ -292,7 +294,7 @@ def write_landmarks(
             "gst.landmark_names": json.dumps(list(BLAZEPOSE_NAMES)),
             "gst.cameras": json.dumps(camera_names),
             "gst.fps": json.dumps(fps),
-            "gst.axes": json.dumps({"world_up": [0.0, 0.0, 1.0], "units": "m"}),
+            "gst.axes": json.dumps({"world_up": [float(v) for v in world_up], "units": "m"}),
         },
     )
     table = pa.table(data, schema=schema)
