@@ -136,3 +136,34 @@ def test_px_scale_reports_errors_in_full_image_pixels():
         options=TriangulationOptions(outlier_px=1e9),
     )
     np.testing.assert_allclose(b.errors, 2 * a.errors, rtol=1e-9)
+
+
+def test_a_camera_with_nan_calibration_spoils_no_point():
+    """One camera's K or [R | t] not numbers (seen or not): the others still triangulate, and
+    that view is not counted (was: every point NaN, reported with error 0 and confidence 1)."""
+    rng = np.random.default_rng(5)
+    K, Rt = _rig(4, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (6, 3))
+    Kb, Rtb, uv = (np.array(a) for a in _observe(K, Rt, X))
+    conf = np.ones((6, 4))
+    for bad_K in (True, False):
+        Kc, Rtc = Kb.copy(), Rtb.copy()
+        (Kc if bad_K else Rtc)[:, 3] = np.nan
+        out = triangulate_points(Kc, Rtc, uv, conf)
+        np.testing.assert_allclose(out.points, X, atol=1e-7)
+        assert not out.used[:, 3].any() and out.used[:, :3].all()
+        assert (out.n_views == 3).all()
+
+
+def test_views_through_one_centre_give_no_point_and_no_error():
+    """Two views from the same place (a camera listed twice): no depth, so no point, no used
+    views and no confidence (was: a singular solve that failed the whole batch)."""
+    rng = np.random.default_rng(6)
+    K, Rt = _rig(2, rng)
+    Rt[1] = Rt[0]
+    X = np.array([[0.1, -0.2, 1.2], [0.3, 0.2, 0.8]])
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    uv = uv + rng.normal(0, 0.01, uv.shape)
+    out = triangulate_points(Kb, Rtb, uv, np.ones((2, 2)))
+    assert np.isnan(out.points).all()
+    assert not out.used.any() and (out.confidence == 0).all()

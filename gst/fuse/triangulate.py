@@ -101,6 +101,9 @@ def _dlt(Pn: np.ndarray, xn: np.ndarray, w: np.ndarray) -> np.ndarray:
     return X
 
 
+MIN_DEPTH_M = 0.05  # a triangulated point nearer a camera that placed it is no point
+
+
 def _errors(P: np.ndarray, uv: np.ndarray, X: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return _errors_at(*project(P, X), uv, scale)
 
@@ -184,7 +187,9 @@ def _refine(P, uv, w, X, iterations: int) -> np.ndarray:
         W = np.nan_to_num(w)[..., None, None]
         H = np.einsum("ncki,nckj->nij", J * W, J)
         g = np.einsum("ncki,nck->ni", J * W, np.nan_to_num(r))
-        H = H + 1e-9 * np.eye(3)
+        # damping relative to H's own scale: views through one centre leave H singular there
+        trace = np.trace(H, axis1=-2, axis2=-1)[..., None, None]
+        H = H + (1e-9 * trace / 3 + 1e-12) * np.eye(3)
         step = np.linalg.solve(H[ok], g[ok][..., None])[..., 0]
         X[ok] = X[ok] - step
     return X
@@ -217,7 +222,6 @@ def triangulate_points(
     o = options or TriangulationOptions()
     K = np.asarray(K, np.float64)
     Rt = np.asarray(Rt, np.float64)
-    P = K @ Rt
     uv = np.asarray(uv, np.float64)
     conf = np.nan_to_num(np.asarray(confidence, np.float64))
     N, C = uv.shape[:2]
@@ -227,12 +231,16 @@ def triangulate_points(
             f"{conf.shape} must be (N, C, 3, 3), (N, C, 3, 4), (N, C, 2) and (N, C)"
         )
     scale = np.ones((N, C)) if px_scale is None else np.asarray(px_scale, np.float64)
-    seen = np.isfinite(uv).all(-1) & (conf >= o.min_confidence)
+    # A view whose camera is not numbers is no evidence, and must not turn the others' sums NaN.
+    calibrated = np.isfinite(K).all((-1, -2)) & np.isfinite(Rt).all((-1, -2))
+    seen = np.isfinite(uv).all(-1) & (conf >= o.min_confidence) & calibrated
     uv0 = np.where(seen[..., None], uv, 0.0)
     # DLT rows in normalised coordinates (K^-1 [u, v, 1] against [R | t]): well conditioned.
-    safe_K = np.where(np.isfinite(K).all((-1, -2), keepdims=True), K, np.eye(3))
+    safe_K = np.where(calibrated[..., None, None], K, np.eye(3))
+    Pn = np.where(calibrated[..., None, None], Rt, np.eye(3, 4))
+    P = safe_K @ Pn
     xh = np.linalg.solve(safe_K, np.concatenate([uv0, np.ones((N, C, 1))], -1)[..., None])[..., 0]
-    Pn, xn = np.nan_to_num(Rt), xh[..., :2] / xh[..., 2:3]
+    xn = xh[..., :2] / xh[..., 2:3]
     used = seen.copy()
     if o.consensus_views:
         used = _pair_consensus(P, Pn, xn, uv0, conf, seen, scale, o, silhouettes, expected)
@@ -265,6 +273,12 @@ def triangulate_points(
         X[rows] = Xc[gain, drop]
     X = _refine(P, uv0, np.where(used, conf, 0.0), X, o.refine_iterations)
     X[used.sum(1) < 2] = np.nan
+    # in front of every view that placed it (views through one centre put it on the centre)
+    depth = project(P, np.nan_to_num(X))[1]
+    X[(used & ~(depth > MIN_DEPTH_M)).any(1)] = np.nan
+    # >= 2 views and still no point (degenerate geometry): nothing was triangulated, so no
+    # view counts as used (else its error would read 0 and its confidence full)
+    used[(used.sum(1) >= 2) & ~np.isfinite(X).all(-1)] = False
     errors = np.where(seen, _errors(P, uv0, np.nan_to_num(X), scale), np.nan)
     errors[~np.isfinite(X).all(-1)] = np.nan
     n_used = used.sum(1)
