@@ -82,6 +82,19 @@ def test_single_view_person_is_fitted_and_marked(body, capture):
     assert np.nanmedian(fits[1].reprojection[:, 0]) < 3.0
 
 
+def test_a_second_crop_without_usable_landmarks_is_no_second_view(body, capture):
+    """The person has crops in every camera, but only one camera's landmarks carry confidence
+    (the extraction projected the others): nothing is triangulated, so the fit is single-view
+    and says so (was: two crops counted as two views)."""
+    people = observations(capture, noise_px=0.5, seed=4)
+    p = people[1]
+    p.confidence[:, 1:] = 0.0
+    tri = triangulate_person(p)
+    assert np.isnan(tri.points).all()
+    fit = fit_people(body, MarkerModel.load(), [p], [tri], 30.0)[0]
+    assert fit.single_view
+
+
 def test_single_view_start_stands_along_the_rigs_up_whatever_its_axis(body, capture):
     """A person one camera sees, in the same scene written in a y-down world (a Panoptic rig's
     `Rig.up` = (0, -1, 0)): the fit is the z-up world's, rotated. (The start assumed +Z up: the

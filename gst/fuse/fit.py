@@ -244,7 +244,9 @@ def fit_people(
             med = np.nanmedian(tri.error) if tri is not None and np.isfinite(tri.error).any() else 0
             sigma = o.sigma_factor * float(np.nan_to_num(med))
         sigmas.append(max(o.min_sigma_px, sigma))
-        single.append(bool((np.asarray(obs.rows >= 0).sum(1) < 2).all()))
+        # single view: no landmark placed by two views (a second crop without usable landmarks,
+        # e.g. one the extraction projected, is no second view)
+        single.append(tri is None or not bool((tri.used.sum(-1) >= 2).any()))
 
     lengths = [len(d.frames) for d in dense]
     offsets = np.cumsum([0] + lengths)

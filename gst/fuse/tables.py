@@ -50,7 +50,8 @@ EXTRA_COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "joint_view_mask": (
         pa.list_(pa.int64(), 24),
         "",
-        "per joint, bit c set when camera c (gst.fused.cameras order) observed it",
+        "per joint, bit c set when the triangulation used camera c (gst.fused.cameras order) for "
+        "all of its landmarks (joint_views bits)",
     ),
     "joint_reprojection_px": (
         pa.list_(pa.float32(), 24),
