@@ -128,3 +128,50 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
     grads = {n: p.grad.detach().clone() for n, p in model.named_parameters()}
     torch.save(grads, Path(out_dir) / f"grads-rank{rank}.pt")
     torch.distributed.destroy_process_group()
+
+
+def ddp_batches_rank_main(rank: int, world: int, port: int, out_dir: str, phase: str) -> None:
+    """A rank that records the batches it draws (its own generator) over 4 steps of a toy
+    regression. phase "full": 4 steps; "first": 2 steps (then killed, as it were); "resume":
+    resumes the "first" run to 4 steps; "nan": 4 steps, rank 1's second loss is NaN."""
+    import json
+
+    import torch
+    from torch import nn
+
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        WORLD_SIZE=str(world),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+    )
+    torch.set_num_threads(1)
+    from gst.train.trainer import TrainConfig, Trainer
+
+    drawn, calls = [], [0]
+
+    def sample(gen, bs):
+        x = torch.randint(1000, (bs,), generator=gen)
+        drawn.append(x.tolist())
+        return x.float()[:, None] / 1000
+
+    def step(m, b):
+        calls[0] += 1
+        loss = (m(b) ** 2).mean()
+        if phase == "nan" and rank == 1 and calls[0] == 2:
+            loss = loss * float("nan")
+        return loss, {}
+
+    steps = 2 if phase == "first" else 4
+    cfg = TrainConfig(
+        steps=steps, batch_size=3, warmup_steps=0, ckpt_every=2, val_every=100, log_every=100
+    )
+    torch.manual_seed(0)
+    trainer = Trainer(nn.Linear(1, 1), step, sample, cfg, Path(out_dir) / "run")
+    if phase == "resume":
+        assert trainer.resume()
+    summary = trainer.fit()
+    record = {"batches": drawn, "bad_steps": summary.bad_steps, "steps": summary.steps}
+    (Path(out_dir) / f"{phase}-rank{rank}.json").write_text(json.dumps(record))
+    torch.distributed.destroy_process_group()

@@ -3,6 +3,7 @@ combined batch, and only rank 0 writes checkpoints and logs."""
 
 from __future__ import annotations
 
+import json
 import socket
 
 import torch
@@ -11,6 +12,7 @@ import torch.multiprocessing as tmp
 from gst.train.trainer import Trainer
 from tests.scaleout_items import (
     COMBINED_BATCH,
+    ddp_batches_rank_main,
     ddp_config,
     ddp_problem,
     ddp_rank_main,
@@ -58,8 +60,33 @@ def test_two_gloo_ranks_match_single_process_gradients(tmp_path, monkeypatch):
         "grads-rank0.pt",
         "grads-rank1.pt",
         "last.pt",
+        "last.rank1.pt",  # rank 1's own batch generator (for resume)
         "log.csv",
     ]
     ddp_state = torch.load(out / "last.pt", weights_only=True)["model"]
     for n, p in model.state_dict().items():
         torch.testing.assert_close(ddp_state[n], p, rtol=1e-5, atol=1e-6, msg=n)
+
+
+def _batches_run(out, phase: str) -> list[dict]:
+    tmp.spawn(ddp_batches_rank_main, args=(2, _free_port(), str(out), phase), nprocs=2, join=True)
+    return [json.loads((out / f"{phase}-rank{r}.json").read_text()) for r in (0, 1)]
+
+
+def test_a_non_finite_loss_on_one_rank_skips_the_step_on_every_rank(tmp_path):
+    """Rank 1's second loss is NaN: both ranks skip that step together and finish (a rank
+    skipping backward() alone paired the other's gradient exchange with its next step, and the
+    run broke or hung)."""
+    for rank in _batches_run(tmp_path, "nan"):
+        assert rank["steps"] == 4 and rank["bad_steps"] == 1
+
+
+def test_a_resumed_run_draws_each_ranks_own_batches(tmp_path):
+    """Killed after the step-2 checkpoint and resumed: each rank draws the batches it drew in
+    the uninterrupted run (every rank took rank 0's generator from last.pt before)."""
+    full = _batches_run(tmp_path / "a", "full")
+    _batches_run(tmp_path / "b", "first")
+    resumed = _batches_run(tmp_path / "b", "resume")
+    assert full[0]["batches"][2:] != full[1]["batches"][2:]
+    for rank in (0, 1):
+        assert resumed[rank]["batches"] == full[rank]["batches"][2:]

@@ -182,6 +182,11 @@ class Trainer:
     def best_path(self) -> Path:
         return self.out_dir / "best.pt"
 
+    @property
+    def rank_state_path(self) -> Path:
+        """Where a rank other than 0 keeps its own batch generator beside `last.pt`."""
+        return self.out_dir / f"last.rank{self.rank}.pt"
+
     def state(self) -> dict:
         return {
             "step": self.step,
@@ -195,6 +200,17 @@ class Trainer:
         }
 
     def save(self, path: Path) -> None:
+        if self.rank != 0 and path == self.last_path:
+            # each rank draws its own batches: its generator must resume too (last.pt holds
+            # rank 0's; every rank taking that one trained all ranks on the same batches)
+            atomic_torch_save(
+                {
+                    "step": self.step,
+                    "generator": self.generator.get_state(),
+                    "torch_rng": torch.get_rng_state(),
+                },
+                self.rank_state_path,
+            )
         if self.rank == 0:
             atomic_torch_save(
                 {
@@ -227,10 +243,37 @@ class Trainer:
         self.generator.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
         self.step, self.bad_steps, self.best_value = st["step"], st["bad_steps"], st["best_value"]
+        if self.rank != 0:
+            self._resume_rank_state()
         self.seconds_before = self._elapsed_at(self.step)
         self._forget_logged_after(self.step)
         log.info("resumed from %s at step %d", path, self.step)
         return True
+
+    def _resume_rank_state(self) -> None:
+        """This rank's own generator at the checkpoint's step; without it (killed between the
+        two writes, or a checkpoint of another world size) a fresh stream of its own."""
+        path = self.rank_state_path
+        own = torch.load(path, weights_only=True) if path.is_file() else None
+        if own is not None and own.get("step") == self.step:
+            self.generator.set_state(own["generator"])
+            torch.set_rng_state(own["torch_rng"])
+            return
+        log.warning(
+            "rank %d: no batch generator of its own at step %d (%s): drawing a fresh stream",
+            self.rank, self.step, path,
+        )  # fmt: skip
+        self.generator.manual_seed(self.cfg.seed + 1000 * self.rank + 7919 * (self.step + 1))
+
+    def _on_every_rank(self, ok: bool) -> bool:
+        """Whether `ok` holds on every rank. Ranks must agree to skip a step: backward() is
+        where DDP exchanges gradients, so one rank skipping it alone pairs the others'
+        exchange with its next step."""
+        if self.world == 1:
+            return ok
+        flag = torch.tensor([1.0 if ok else 0.0], device=self.device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+        return bool(flag.item() > 0)
 
     def _elapsed_at(self, step: int) -> float:
         try:
@@ -309,7 +352,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.cfg.amp):
             loss, metrics = self.step_fn(self.train_model, batch)
-        finite = bool(torch.isfinite(loss))
+        finite = self._on_every_rank(bool(torch.isfinite(loss)))
         if finite:
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
