@@ -144,6 +144,16 @@ def test_hmr2_import_maps_keys_and_reports_unmatched():
     bad["smpl_head.decpose.weight"] = torch.zeros(10, 3)
     with pytest.raises(ValueError, match="shapes differ"):
         import_hmr2(net, bad)
+    # a file with nothing of HMR2's (or HMR2's under another prefix) is an error, not a run
+    # that silently starts from random weights
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    for wrong in (
+        {"model.encoder.weight": torch.zeros(3, 3)},
+        {f"model.{k}": v for k, v in state.items()},
+    ):
+        with pytest.raises(ValueError, match="backbone"):
+            import_hmr2(net, wrong)
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
 
 
 @pytest.fixture(scope="module")

@@ -82,5 +82,18 @@ def import_hmr2(
             + "\n  ".join(report.shape_mismatches[:20])
         )
     report.missing_model_keys = [k for k in own if k not in updates]
+    # An import that fills neither the whole ViT nor any of the SMPL head is a wrong file (a
+    # ViTPose checkpoint, keys under another prefix): training would start from random weights.
+    backbone_missing = [k for k in report.missing_model_keys if k.startswith("backbone.")]
+    head_loaded = any(k.startswith("smpl_head.") for k in report.loaded)
+    if backbone_missing or not head_loaded:
+        name = "the given state dict" if isinstance(source, dict) else str(source)
+        raise ValueError(
+            f"HMR2 import from {name}: {len(report.loaded)} tensors matched; "
+            f"{len(backbone_missing)} of the ViT's (backbone.*) are missing"
+            + ("" if head_loaded else " and none of the SMPL head's (smpl_head.*) loaded")
+            + f". Keys in the file look like {report.unmatched_checkpoint_keys[:3]}: HMR2's are "
+            "backbone.* and smpl_head.* (strip another prefix, e.g. 'model.', before importing)"
+        )
     network.load_state_dict(updates, strict=False)
     return report
