@@ -8,6 +8,7 @@ import textwrap
 
 import numpy as np
 import pytest
+import torch
 
 from gst.metrics.lpips_weights import default_weights_path
 from gst.track import read_tracks
@@ -76,3 +77,6 @@ def test_tiny_scene_runs_every_stage(tmp_path, capsys):
         == 0
     )
     assert (ws / "models/gst.pt").is_file()
+    # kept models hold the network, not the training loop's optimiser state (3x the file)
+    for kept in ("models/pretrain.pt", "models/gst.pt"):
+        assert "trainer" not in torch.load(ws / kept, weights_only=True), kept

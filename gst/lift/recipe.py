@@ -34,6 +34,7 @@ from gst.device import resolve_device
 from gst.lift.errors import LANDMARK_SETS
 from gst.lift.pretrain import LiftPretrainConfig, LiftPretrainResult, pretrain_landmark_path
 from gst.metrics.lpips import load_lpips
+from gst.model.checkpoint import keep_model
 from gst.model.network import GSTNetwork
 from gst.model.presets import get_preset
 from gst.model.refine import DEFAULT_ROUNDS
@@ -295,7 +296,7 @@ def _pretrain_lift(
     )  # fmt: skip
     reports.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "log.csv", reports / "log.csv")
-    shutil.copyfile(out / "last.pt", checkpoint)  # the head learns to the end; the pose is watched
+    keep_model(out / "last.pt", checkpoint)  # the head learns to the end; the pose is watched
     summary = LiftPretrainSummary(
         fit=fit,
         lift=lift_summary(lift),

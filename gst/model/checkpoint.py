@@ -79,6 +79,17 @@ class GSTCheckpoint:
 _REQUIRED = ("config", "body_model", "vertex_ids", "group_index", "model")
 
 
+def keep_model(source: str | Path, dest: str | Path) -> None:
+    """Write a training checkpoint as a kept model (`models/*.pt`): everything but the training
+    loop's state (`trainer`: the optimiser's moments, twice the weights' size, which only a
+    resumed run reads)."""
+    ckpt = torch.load(source, map_location="cpu", weights_only=True)
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ValueError(f"{source}: not a GST checkpoint (expected format '{FORMAT}')")
+    ckpt.pop("trainer", None)
+    atomic_torch_save(ckpt, dest)
+
+
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> GSTCheckpoint:
     """Read and check a checkpoint (weights_only=True: no code runs while loading)."""
     path = Path(path)

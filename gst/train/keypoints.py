@@ -60,9 +60,11 @@ def store_landmarks(
     progress=None,
     reread: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, str]:
-    """(N, 33, 3) landmarks of a crop store's rows, in order (u, v crop px, confidence =
-    visibility x presence): the store's `landmarks` dataset when the extraction wrote one, else
-    BlazePose on the crops (`images`, the store's rows as RGB). Returns them and their source.
+    """(N, 33, 3) landmarks of a crop store's rows, in order (u, v crop px, confidence = the
+    landmark's visibility, the scale of the store's and of tracking's landmarks; the whole
+    crop's presence is not folded in, which on a crop read whole lowered some rows' confidences
+    by up to 0.6): the store's `landmarks` dataset when the extraction wrote one, else BlazePose
+    on the crops (`images`, the store's rows as RGB). Returns them and their source.
 
     `reread` (N,) bool: rows that are scored as single images (held-out frames or cameras).
     Where the store's landmarks of such a row were projected from the rig's skeleton (the
@@ -83,10 +85,10 @@ def store_landmarks(
         again = np.asarray(projected, bool) & np.asarray(reread, bool)
         if again.any():
             found = detect_crop_landmarks(images[torch.from_numpy(again)].numpy(), model, rgb=True)
-            stored[again] = found.with_confidence().astype(np.float32)
+            stored[again] = found.landmarks.astype(np.float32)
         return torch.from_numpy(stored), f"store ({int(again.sum())} projected read again)"
     found = detect_crop_landmarks(images.numpy(), model, rgb=True, progress=progress)
-    return torch.from_numpy(found.with_confidence().astype(np.float32)), "BlazePose"
+    return torch.from_numpy(found.landmarks.astype(np.float32)), "BlazePose"
 
 
 def keypoint_term(

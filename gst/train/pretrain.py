@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, NonNegativeInt
 
 from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import load_checkpoint
+from gst.model.checkpoint import keep_model, load_checkpoint
 from gst.model.presets import PRESETS, get_preset
 from gst.model.refine import DEFAULT_ROUNDS
 from gst.records import Record
@@ -352,7 +352,7 @@ def pretrain_images(
             gauss_out / "last.pt"
         )  # the pose barely moves here; the head keeps learning to the end
         shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
-    shutil.copyfile(kept, checkpoint)
+    keep_model(kept, checkpoint)
     summary = ImagePretrainSummary(first, corpus_summary(specs, crops, val), gaussians)
     (reports / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2, default=float))
     log.info(

@@ -28,7 +28,7 @@ from gst.detect.weights import model_paths
 from gst.device import resolve_device
 from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
 from gst.model.presets import get_preset
 from gst.render.ply import write_gaussians_ply
@@ -421,7 +421,7 @@ def train_scene(
         return None  # under torchrun the other ranks only contribute gradients
     best = run_dir / "best.pt"
     out.model.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(best, out.model)
+    keep_model(best, out.model)
     net = network_from_checkpoint(load_checkpoint(best)).eval()
     summary = _write_reports(net, task, crops, heldout, cut, fit, out)
     shutil.rmtree(run_dir)
