@@ -474,3 +474,13 @@ def test_roi_corners_map_to_the_crops_corners(cx, cy, side, angle):
     crop = np.c_[corners, np.ones(4)] @ roi.to_crop(256).T
     np.testing.assert_allclose(crop, [[0, 0], [256, 0], [0, 256], [256, 256]], atol=1e-2)
     np.testing.assert_allclose(corners.mean(axis=0), (cx, cy), atol=1e-6 * (1 + abs(cx) + abs(cy)))
+
+
+@pytest.mark.parametrize("shape", [(2, 64, 64, 1), (2, 64, 64, 4), (2, 64, 48, 3), (64, 64, 3)])
+def test_crop_landmarks_refuse_what_is_not_square_colour_crops(shape):
+    """A grey or RGBA crop had a channel read as colour (landmarks moved up to 53 px, no error);
+    the check comes before the model is loaded."""
+    from gst.detect.crops import detect_crop_landmarks
+
+    with pytest.raises(ValueError, match=r"\(N, S, S, 3\)"):
+        detect_crop_landmarks(np.zeros(shape, np.uint8), model=None, rgb=True)

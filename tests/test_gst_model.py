@@ -206,3 +206,26 @@ def test_smpl_output_does_not_depend_on_gaussian_tokens(tiny):
 def test_wrong_input_shape_is_a_clear_error(tiny):
     with pytest.raises(ValueError, match="ViT input must be"):
         tiny(torch.randn(1, 3, 64, 64))
+
+
+def test_crop_inputs_are_checked_before_the_network_runs(tiny):
+    """One K per crop, finite, positive focal lengths (a single K was broadcast to every crop;
+    fx = 0 surfaced as a NaN in the body model); float crops in [0, 1] (0-255 floats were read
+    as overexposed); BGR -> RGB views with negative strides are taken (torch refused them)."""
+    from gst.model.inference import predict_bodies
+    from gst.model.preprocess import check_intrinsics, to_float_images
+
+    rgb = np.random.default_rng(0).integers(0, 256, (4, 32, 32, 3), dtype=np.uint8)
+    K = np.tile(np.array([[40.0, 0, 15.5], [0, 40.0, 15.5], [0, 0, 1]]), (4, 1, 1))
+    check_intrinsics(K, 4)
+    for bad, what in ((K[:1], "one per crop"), (K * np.nan, "not an intrinsic"), (K * 0, "fx")):
+        with pytest.raises(ValueError, match=what):
+            check_intrinsics(bad, 4)
+    with pytest.raises(ValueError, match="one per crop"):
+        predict_bodies(tiny, None, None, rgb, torch.as_tensor(K[:1]), tiny.cfg.image_size)
+    bgr_view = rgb[..., ::-1]
+    torch.testing.assert_close(
+        to_float_images(bgr_view), to_float_images(np.ascontiguousarray(bgr_view))
+    )
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        to_float_images(rgb.astype(np.float32))

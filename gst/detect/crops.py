@@ -93,7 +93,12 @@ def detect_crop_landmarks(
     second pass on the alignment region (module docstring); `masks` (N, S, S): the person's
     mask per crop, other pixels dimmed first. World landmarks are the (unmirrored) last pass's."""
     images = np.asarray(images)
-    n, size = len(images), (images.shape[1] if len(images) else 0)
+    if images.ndim != 4 or images.shape[-1] != 3 or images.shape[1] != images.shape[2]:
+        raise ValueError(
+            f"crops must be (N, S, S, 3) square colour images, got shape {images.shape} "
+            "(grey or RGBA crops read a channel as colour)"
+        )
+    n, size = len(images), images.shape[1]
     model = model or BlazePose(threads=1)
     roi = BodyRoi(((size - 1) / 2, (size - 1) / 2), float(size), 0.0)
     lms = np.zeros((n, N_BODY_LANDMARKS, 3), np.float32)

@@ -27,7 +27,7 @@ from gst.device import model_device
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.landmarks import LandmarkInput, landmark_input, select_landmarks
-from gst.model.preprocess import check_crops, network_input, to_float_images
+from gst.model.preprocess import check_crops, check_intrinsics, network_input, to_float_images
 
 
 def _network_images(
@@ -82,6 +82,7 @@ def predict_bodies(
     # inputs follow the network (a GPU-trained model validated on CPU crop stores, say)
     device = torch.device(device) if device is not None else model_device(network)
     images = check_crops(images)
+    check_intrinsics(K, len(images))
     size = crop_size or images.shape[-2]
     if landmarks is not None and not isinstance(landmarks, LandmarkInput):
         landmarks = landmark_input(network, landmarks, K, size, up=up)

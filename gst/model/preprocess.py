@@ -23,12 +23,39 @@ def check_crops(crops: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
     return crops
 
 
+def check_intrinsics(K: np.ndarray | torch.Tensor, n: int) -> None:
+    """Raise unless `K` is (n, 3, 3) with finite entries and positive focal lengths: one
+    matrix per crop (a single one would be broadcast silently to every crop)."""
+    K = torch.as_tensor(K)
+    if tuple(K.shape) != (n, 3, 3):
+        raise ValueError(f"K_crop must be ({n}, 3, 3), one per crop; got shape {tuple(K.shape)}")
+    bad = ~torch.isfinite(K).all((-1, -2)) | (K[:, 0, 0] <= 0) | (K[:, 1, 1] <= 0)
+    if bool(bad.any()):
+        rows = torch.nonzero(bad).flatten()[:5].tolist()
+        raise ValueError(
+            f"K_crop of crop(s) {rows} is not an intrinsic matrix (entries not numbers, or "
+            f"fx / fy <= 0): {K[rows[0]].tolist()}"
+        )
+
+
 def to_float_images(crops: np.ndarray | torch.Tensor) -> torch.Tensor:
     """(B, S, S, 3) uint8 or float in [0, 1] -> (B, 3, S, S) float32 in [0, 1]."""
-    x = torch.as_tensor(check_crops(crops))
+    crops = check_crops(crops)
+    if isinstance(crops, np.ndarray) and any(s < 0 for s in crops.strides):
+        crops = np.ascontiguousarray(crops)  # e.g. BGR -> RGB as [..., ::-1]: torch refuses
+    x = torch.as_tensor(crops)
     # Convert in the stored (channels-last) layout, then permute as a view: converting through
     # the permuted strides was ~10x slower on CPU.
-    x = x.to(torch.float32).div_(255.0) if x.dtype == torch.uint8 else x.float()
+    if x.dtype == torch.uint8:
+        x = x.to(torch.float32).div_(255.0)
+    else:
+        x = x.float()
+        top = float(x.max()) if x.numel() else 0.0
+        if top > 1.0 + 1e-3:
+            raise ValueError(
+                f"float crops must hold values in [0, 1], got a maximum of {top:.4g} "
+                "(0-255 images: pass them as uint8)"
+            )
     return x.permute(0, 3, 1, 2)
 
 
