@@ -142,14 +142,23 @@ def sample_distortion(spec, n: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def _folds(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> bool:
-    """True if the radial distortion folds back within 1.25x the image's radius (pixels would
-    see two directions)."""
+    """True if the radial distortion folds back before it reaches 1.25x the image's radius
+    (pixels would see two directions). The image's corners are distorted radii; the slope
+    d r_d / d r is a function of the undistorted radius r, so it is checked over every r whose
+    distorted radius is still inside 1.25x the corners' (for a barrel lens that r is larger
+    than the corners' own radius: checking up to it missed folds inside the image)."""
     k1, k2, _, _, k3 = dist
     corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], dtype=np.float64)
     r_img = np.max(np.linalg.norm((corners - K[:2, 2]) / [K[0, 0], K[1, 1]], axis=1))
-    r = np.linspace(0, 1.25 * r_img, 200)
+    # while the slope stays above 0.05, r_d grows at least 0.05 r: 25x the target is enough
+    r = np.linspace(0, 25 * 1.25 * r_img, 20001)
+    r_d = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
     slope = 1 + 3 * k1 * r**2 + 5 * k2 * r**4 + 7 * k3 * r**6
-    return bool(np.any(slope <= 0.05))
+    bent = np.flatnonzero(slope <= 0.05)
+    reached = np.flatnonzero(r_d >= 1.25 * r_img)
+    if not len(bent):
+        return False
+    return not len(reached) or bent[0] <= reached[0]
 
 
 def make_rig(

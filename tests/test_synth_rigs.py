@@ -101,6 +101,19 @@ def test_distortion_specs():
         make_rig("dome", n_cameras=1, distortion=[-0.9, 0.0, 0.0, 0.0, 0.0])
 
 
+def test_a_barrel_lens_that_cannot_reach_the_image_corners_is_refused():
+    """k1 = -0.3 at a 65 degree field: the lens's largest distorted radius (0.70) is short of
+    the corners' (0.80), so corner pixels would cast rays the lens never sends there. The slope
+    was checked only up to the corners' distorted radius, not up to the undistorted radius that
+    reaches them, and this lens was accepted."""
+    with pytest.raises(ValueError, match="folds over"):
+        make_rig("dome", 1, 480, 360, fov_deg=65.2, distortion=[-0.3, 0, 0, 0])
+    k1, k2 = -0.3, 0.0  # its largest distorted radius, where the slope 1 + 3 k1 r^2 is 0
+    r = np.sqrt(-1 / (3 * k1))
+    assert r * (1 + k1 * r**2 + k2 * r**4) < 0.75
+    make_rig("dome", 1, 480, 360, fov_deg=65.2, distortion=[-0.1, 0, 0, 0])  # a mild one is fine
+
+
 def test_bad_rig_arguments_name_the_problem():
     with pytest.raises(ValueError, match="unknown rig kind 'arena'"):
         make_rig("arena")

@@ -368,7 +368,9 @@ class LiftSampler:
         visible = self._visibility(v2, vc[..., 2], j2, jc[..., 2])
         if mc is not None:
             ref = mc[..., :2] / mc[..., 2:] @ Kc[:, :2, :2].transpose(1, 2) + Kc[:, None, :2, 2]
-            ref_vis = visible[:, self.markers.anchors] & (mc[..., 2] > 0)
+            # a marker's visibility is its anchor joint's, and only where it lands in the crop
+            in_crop = ((ref >= 0) & (ref <= self.crop_size - 1)).all(-1)
+            ref_vis = visible[:, self.markers.anchors] & (mc[..., 2] > 0) & in_crop
         else:
             ref, ref_vis = j2[:, list(self.lset.joints)], visible[:, list(self.lset.joints)]
         det = torch.zeros(B, len(self.lset), 3)
