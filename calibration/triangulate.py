@@ -99,6 +99,10 @@ def triangulate_dlt(
     xy = normalised_points(rig, pixels, vis)
     P = np.stack([np.hstack([c.R, c.t[:, None]]) for c in rig])  # (C, 3, 4)
     points = dlt_points(P, xy, vis.astype(np.float64))
+    # A point behind a camera that sees it is no point (rays that diverge in front of the
+    # cameras meet behind them); OpenCV's projection would fold it back onto its pixels, 0 px.
+    depth = np.einsum("cj,nj->cn", P[:, 2, :3], np.nan_to_num(points)) + P[:, 2, 3][:, None]
+    points[(vis & ~(depth > 0)).any(0)] = np.nan
     return Triangulation(points, reprojection_errors(rig, points, pixels, vis), vis)
 
 

@@ -129,3 +129,71 @@ def test_pose_graph_chains_cameras_without_a_common_frame():
     )
     np.testing.assert_allclose(mean, truth["c1"], atol=1e-9)
     assert inliers.tolist() == [True] * 5 + [False]
+
+
+def _two_view_corner(n_bad: int):
+    """Detections in which board corner 0 is seen in exactly two views, `n_bad` of them 25 px
+    off (a misread ChArUco id)."""
+    from calibration.board import FrameDetection
+
+    scene = make_scene(n_cameras=4, n_frames=50, seed=2)
+    dets = synthetic_detections(scene, noise_px=0.3, seed=2)
+    holders = [(n, i) for n, v in dets.items() for i, d in enumerate(v) if 0 in d.ids][:2]
+    out = {}
+    for n, views in dets.items():
+        out[n] = []
+        for i, d in enumerate(views):
+            ids, uv = d.ids.copy(), d.corners.copy()
+            if 0 in ids and (n, i) not in holders:
+                keep = ids != 0
+                ids, uv = ids[keep], uv[keep]
+            if (n, i) in holders[:n_bad]:
+                uv[ids == 0] += 25.0
+            out[n].append(FrameDetection(d.frame, ids, uv))
+    return scene, out
+
+
+def test_an_outlier_on_a_two_view_corner_takes_its_partner_out_openly():
+    """COLMAP deletes a 3D point with the observation when its track had two elements: the
+    partner leaves the adjustment and must be marked so (it was still counted alive), and two
+    outliers on one such corner must not fail (it raised 'Point3D with ID -1 does not exist')."""
+    from calibration.solve import calibrate_from_detections, initialise_from_detections
+
+    scene, dets = _two_view_corner(n_bad=1)
+    sizes = {c.name: (c.width, c.height) for c in scene.rig}
+    init = initialise_from_detections(dets, sizes, scene.board)
+    ba = BoardBundleAdjuster(
+        init.cameras, init.reference, init.rig_from_board, scene.board.object_points(),
+        init.observations, "opencv", BAOptions(),
+    )  # fmt: skip
+    ba.run()
+    for iid in ba.image_key:
+        points = ba.rec.image(iid).points2D
+        in_ba = np.array([points[k].has_point3D() for k in range(len(ba.alive[iid]))])
+        np.testing.assert_array_equal(ba.alive[iid], in_ba)
+    scene, dets = _two_view_corner(n_bad=2)
+    calibrate_from_detections(dets, sizes, scene.board)  # both outliers: no error
+
+
+def test_a_noisier_camera_keeps_its_corners_and_its_honest_rms():
+    """Three cameras at 0.2 px of corner noise and one at 1 px: each camera's own residuals set
+    its outlier limit (one limit for all cut 56 % of the noisy camera's corners and reported
+    its RMS as 0.59 px for a true 1.41)."""
+    from calibration.board import FrameDetection
+    from calibration.solve import calibrate_from_detections
+
+    scene = make_scene(n_cameras=4, n_frames=50, seed=2)
+    clean = synthetic_detections(scene, noise_px=0.0, seed=2)
+    rng = np.random.default_rng(0)
+    noise = {"cam00": 0.2, "cam01": 0.2, "cam02": 0.2, "cam03": 1.0}
+    dets = {
+        n: [FrameDetection(d.frame, d.ids, d.corners + rng.normal(0, noise[n], d.corners.shape))
+            for d in views]
+        for n, views in clean.items()
+    }  # fmt: skip
+    res = calibrate_from_detections(
+        dets, {c.name: (c.width, c.height) for c in scene.rig}, scene.board
+    )
+    kept, cut = len(res.observations["cam03"]), len(res.outliers["cam03"])
+    assert cut < 0.02 * (kept + cut)
+    assert abs(res.rms_px["cam03"] - np.sqrt(2)) < 0.1

@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from calibration.camera import Camera, Rig
 from calibration.synthetic import ring_rig
 from calibration.triangulate import triangulate_dlt, triangulate_robust
 
@@ -87,3 +88,17 @@ def test_robust_triangulation_with_thin_prism_lenses_and_skew():
     robust = triangulate_robust(rig, px)
     np.testing.assert_allclose(robust.points, X, atol=1e-6)
     assert robust.used.all() and np.nanmax(robust.errors_px) < 1e-4
+
+
+def test_dlt_gives_no_point_behind_the_cameras():
+    """Two side-by-side cameras, pixels whose rays diverge in front of them: the linear solution
+    lies behind both, where OpenCV's projection folds it back onto its pixels with 0 px error.
+    No point, and no error."""
+    K = [[800, 0, 400], [0, 800, 300], [0, 0, 1]]
+    left = Camera.create("L", K, [], np.eye(3), [0.0, 0, 0], 800, 600)
+    right = Camera.create("R", K, [], np.eye(3), [-0.5, 0, 0], 800, 600)
+    rig = Rig((left, right), up=(0.0, -1.0, 0.0))
+    tri = triangulate_dlt(rig, np.array([[[380.0, 300.0]], [[420.0, 300.0]]]))
+    assert np.isnan(tri.points).all() and np.isnan(tri.errors_px).all()
+    ok = triangulate_dlt(rig, np.array([[[420.0, 300.0]], [[380.0, 300.0]]]))  # converging
+    assert ok.points[0, 2] > 0 and np.nanmax(ok.errors_px) < 1e-6
