@@ -83,12 +83,14 @@ def calibrate_intrinsics(
     flags = _calib_flags(lens_model)
     rejected: list[int] = []
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
-    for _ in range(max_rounds):
+    for k in range(max_rounds + 1):
         obj = [obj_all[d.ids].astype(np.float32) for d in views]
         img = [d.corners.astype(np.float32) for d in views]
         rms, K, dist, _, _, _, _, per_view = cv2.calibrateCameraExtended(
             obj, img, tuple(image_size), None, None, flags=flags, criteria=crit
         )
+        if k == max_rounds:  # the solve without the last round's rejected views
+            break
         per_view = per_view.ravel()
         limit = max(outlier_factor * float(np.median(per_view)), min_outlier_px)
         bad = per_view > limit

@@ -49,6 +49,7 @@ class SolveSettings:
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # encoder padding accepted, in pixels
+    floor_frame: int | None = None  # the frame whose board lies on the floor (None: the first)
 
 
 @dataclass
@@ -159,6 +160,7 @@ def calibrate_scene(
             frame_step=settings.frame_step,
             max_frames=settings.max_frames,
             floor_world=settings.floor_world,
+            floor_frame=settings.floor_frame,
             progress=_progress_logger(),
         )
         rig = solved.rig
@@ -171,6 +173,10 @@ def calibrate_scene(
             f"calibration (cameras: {rig.names}); rename the files or the cameras"
         )
     problems = check_rig(rig)
+    if solved is not None:
+        for note in solved.notes:
+            log.warning("calibration: %s", note)
+        problems += [n for n in solved.notes if "distinct orientation" in n]
     if problems and settings.strict_checks:
         raise ValueError(
             f"scene '{scene}': the rig failed its checks and was not written: "
@@ -182,8 +188,11 @@ def calibrate_scene(
         log.warning("rig check: %s", problem)
     write_rig(rig, rig_path, "rig")
     cmp = None
-    if truth_rig is not None and solved is not None:
-        cmp = compare_rigs(rig, read_rig(truth_rig, "rig"))
+    truth = read_rig(truth_rig, "rig") if truth_rig is not None and solved is not None else None
+    if truth is not None and len(set(truth.names) & set(rig.names)) < 3:
+        log.info("against truth: fewer than 3 shared cameras, no rigid alignment to compare by")
+    elif truth is not None:
+        cmp = compare_rigs(rig, truth)
         log.info(
             "against truth: focal %.3f%%, centre %.1f mm, rotation %.3f deg (worst camera)",
             100 * cmp.focal_rel_error.max(),

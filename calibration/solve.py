@@ -29,7 +29,13 @@ from calibration.bundle import BAOptions, BAResult, BoardBundleAdjuster, CameraS
 from calibration.camera import Camera, Rig
 from calibration.errors import CalibrationError
 from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
-from calibration.posegraph import chain_poses, invert, pairwise_edges, robust_mean_pose
+from calibration.posegraph import (
+    chain_poses,
+    invert,
+    pairwise_edges,
+    robust_mean_pose,
+    rotation_angle_deg,
+)
 
 # Board axes expressed in the floor world: x stays, y and z flip (board z points into the floor).
 WORLD_FROM_FLOOR_BOARD_AXES = np.diag([1.0, -1.0, -1.0])
@@ -82,6 +88,9 @@ class BoardCalibration:
     timings: dict[str, float]  # seconds per step; 'bundle_adjustment' is the whole BA
     ba_rounds: list[dict]
     notes: list[str] = field(default_factory=list)
+    # cameras that saw the board in fewer than MIN_ORIENTATIONS distinct orientations: their
+    # intrinsics and pose are poorly determined (camera -> distinct orientations)
+    weak_cameras: dict[str, int] = field(default_factory=dict)
 
     @property
     def rms_px_overall(self) -> float:
@@ -224,6 +233,19 @@ def initialise_from_detections(
     )
 
 
+MIN_ORIENTATIONS = 3  # distinct board orientations a camera needs to be determined...
+ORIENTATION_STEP_DEG = 10.0  # ...at least this far apart
+
+
+def distinct_orientations(rotations: Sequence[np.ndarray], step_deg: float) -> int:
+    """How many of `rotations` differ from every one counted before by more than `step_deg`."""
+    kept: list[np.ndarray] = []
+    for R in rotations:
+        if all(rotation_angle_deg(R, K) > step_deg for K in kept):
+            kept.append(R)
+    return len(kept)
+
+
 def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) -> BAResult:
     """Joint bundle adjustment (pycolmap) of an initial solution."""
     opts = options or SolveOptions()
@@ -295,6 +317,22 @@ def finish_calibration(
                 f"cameras {below} are below the floor: was the board in frame {floor_frame} "
                 "really lying flat on the floor, printed side up?"
             )
+    # A camera that saw the board held one way (still, or only while lying on the floor) fits
+    # its views with any focal length and principal point: a low RMS and a wrong camera.
+    weak = {}
+    for n in names:
+        poses = [ba.rig_from_board[d.frame][:3, :3] for d in init.detections[n]
+                 if d.frame in ba.rig_from_board]  # fmt: skip
+        k = distinct_orientations(poses, ORIENTATION_STEP_DEG)
+        if k < MIN_ORIENTATIONS:
+            weak[n] = k
+            notes.append(
+                f"camera '{n}' saw the board in only {k} distinct orientation(s) "
+                f"({len(poses)} views; {ORIENTATION_STEP_DEG:.0f} deg apart counts as distinct, "
+                f"{MIN_ORIENTATIONS} are needed): its focal length, principal point and pose are "
+                "poorly determined whatever its RMS; record the board tilted several ways in "
+                "front of it"
+            )
     world_from_rig = invert(rig_from_world)
     return BoardCalibration(
         rig=rig,
@@ -315,6 +353,7 @@ def finish_calibration(
         timings=dict(timings or init.timings),
         ba_rounds=ba.rounds,
         notes=notes,
+        weak_cameras=weak,
     )
 
 

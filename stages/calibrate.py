@@ -24,6 +24,7 @@ class Params(StageParams):
     max_frames: int | None = None  # cap on board frames searched per camera
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
+    floor_frame: int | None = None  # the board clip's frame that defines the floor (None: first)
 
 
 def _sources(ctx: StageContext) -> tuple[CalibrationFile | None, BoardFootage | None]:
@@ -59,7 +60,7 @@ def run(ctx: StageContext) -> None:
         ctx.camera_videos(), ctx.out("calibration/rig.json"), ctx.out("reports/calibrate"),
         file=file, footage=footage, truth_rig=truth, scene=ctx.scene_name,
         settings=SolveSettings(p.frame_step, p.max_frames, p.floor_world, p.strict_checks,
-                               ctx.scene.frame_size_tolerance),
+                               ctx.scene.frame_size_tolerance, p.floor_frame),
     )  # fmt: skip
 
 

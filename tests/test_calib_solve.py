@@ -207,3 +207,71 @@ def test_blind_camera_in_footage_is_named_with_frames_searched(tmp_path):
         CalibrationError, match=r"camera 'wall' \(5 frames searched\) never saw the board"
     ):
         calibrate_from_board({**sources, "wall": blind}, scene.board)
+
+
+def test_intrinsics_come_from_the_views_they_report(small_scene, small_detections):
+    """The views rejected in the last round leave the returned K too: K is calibrateCamera's on
+    exactly `frames_used` (the last round's rejects stayed in K and its RMS)."""
+    import cv2
+
+    from calibration.intrinsics import _calib_flags, calibrate_intrinsics
+
+    cam = small_scene.rig[0]
+    rng = np.random.default_rng(0)
+    views = [  # one view with corners 6 px astray
+        FrameDetection(
+            d.frame, d.ids, d.corners + (rng.normal(0, 6, d.corners.shape) if k == 2 else 0)
+        )
+        for k, d in enumerate(small_detections[cam.name])
+    ]
+    size = (cam.width, cam.height)
+    got = calibrate_intrinsics(cam.name, views, small_scene.board, size, max_rounds=1)
+    assert got.frames_rejected == [views[2].frame]
+    used = [d for d in views if d.frame in set(got.frames_used)]
+    obj = [small_scene.board.object_points()[d.ids].astype(np.float32) for d in used]
+    img = [d.corners.astype(np.float32) for d in used]
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+    flags = _calib_flags("opencv")
+    rms, K, *_ = cv2.calibrateCamera(obj, img, size, None, None, flags=flags, criteria=crit)
+    # (OpenCV's threads may move the last digits; the rejected view moves K by far more)
+    np.testing.assert_allclose(got.K, K, rtol=1e-6)
+    assert abs(got.rms_px - rms) < 1e-6
+
+
+def test_a_camera_that_saw_the_board_one_way_is_named(small_scene):
+    """A camera that only saw the board lying still on the floor (8 views, one orientation)
+    fits them with a wrong focal length and a low RMS: the calibration says so (was: no note,
+    720 mm and 18 degrees off)."""
+    from dataclasses import replace
+
+    poses = small_scene.world_from_board.copy()
+    poses[1:8] = poses[0]  # the board held still on the floor for 8 frames
+    scene = replace(small_scene, world_from_board=poses)
+    dets = synthetic_detections(scene, noise_px=0.3, seed=2)
+    cam = [n for n, v in dets.items() if any(d.frame == 0 for d in v)][-1]
+    dets[cam] = [d for d in dets[cam] if d.frame < 8]
+    result = calibrate_from_detections(dets, sizes(scene.rig), scene.board)
+    assert result.weak_cameras == {cam: 1}
+    assert any(f"camera '{cam}'" in n and "distinct orientation" in n for n in result.notes)
+
+
+def test_calibrate_scene_with_two_cameras_and_a_chosen_floor_frame(tmp_path):
+    """A two-camera rig against its truth: no rigid alignment to compare by (it needs 3), so the
+    comparison is left out instead of failing after rig.json was written; `floor_frame` from
+    the settings reaches the solver (the stage's `calibrate.floor_frame`)."""
+    from calibration.formats import write_rig
+    from calibration.scene import BoardFootage, SolveSettings, calibrate_scene
+    from calibration.synthetic import BoardScene, board_poses, ring_rig
+
+    scene = make_scene(n_cameras=4, n_frames=30, seed=3)
+    rig = ring_rig(6, seed=0).subset(["cam00", "cam01"])
+    scene = BoardScene(rig, scene.board, board_poses(scene.board, 40, floor_xy=(0.0, 0.0), seed=1))
+    sources = render_scene(scene, tmp_path / "board", as_video=False, seed=0)
+    write_rig(rig, tmp_path / "truth.json")
+    out = calibrate_scene(
+        {}, tmp_path / "out/rig.json", tmp_path / "out/report",
+        footage=BoardFootage(sources, scene.board), truth_rig=tmp_path / "truth.json",
+        scene="two", settings=SolveSettings(floor_frame=1, strict_checks=False),
+    )  # fmt: skip
+    assert out.against_truth is None and (tmp_path / "out/rig.json").is_file()
+    assert out.solved.floor_frame == 1
