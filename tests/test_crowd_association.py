@@ -315,3 +315,20 @@ def test_swinging_limbs_do_not_read_as_speed():
             (track,) = tracker._tracks  # one person all along
             errors.append(np.linalg.norm(track.velocity - [1.0, 0.0, 0.0]))
         assert (max(errors) < 0.35) == ok, (config, errors)
+
+
+def test_a_remembered_person_left_as_two_single_view_groups_gets_one_id_per_frame():
+    """Seen in 3D for four frames, then the matcher leaves the person as a single-view group in
+    each of two cameras: one of them takes the remembered id, the other does not (both took it:
+    two single-view rows with one id read as a two-view group without a body)."""
+    tracker = PersonIdTracker(RIG5, 1 / 30)
+    for f in range(4):
+        found, _ = instances(RIG5, [person(0.01 * f, 0.0)], noise_px=0.5, seed=f)
+        m = match_frame(found, RIG5)
+        assert len(tracker.update(f, m, found)) == 1
+    found, _ = instances(RIG5, [person(0.04, 0.0)], noise_px=0.5, seed=4)
+    a, b = RIG5.names[:2]
+    two = {a: found[a], b: found[b]}
+    groups = [PersonGroup({a: 0}, None, {}, {}), PersonGroup({b: 0}, None, {}, {})]
+    ids = tracker.update(4, FrameMatch(groups), two)
+    assert len(set(ids)) == 2

@@ -60,7 +60,8 @@ def _frame_instances(f: h5py.File, i: int, sx: float, sy: float, name: str):
     """Phase 1's instances of frame row `i` of one camera: PersonInstances (full-resolution
     landmarks and boxes) and their masks (work resolution)."""
     labels = f["labels"][i]
-    n = int(labels.max())
+    # phase 1 keeps landmarks for MAX_INSTANCES people: labels past them have none (crowds)
+    n = min(int(labels.max()), f["landmarks"].shape[1])
     lms, pres = f["landmarks"][i, :n], f["presence"][i, :n]
     insts, masks = [], []
     for k in range(n):
@@ -162,9 +163,11 @@ def _run(tracker, inputs, streams, backgrounds, frames, sxy, progress) -> list[F
 
 
 def _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames):
-    # Offline: ids seen in too few frames are not trusted: multi-view ids counted in their
-    # multi-view frames; an id no two cameras ever saw together in all its frames (on the lab,
-    # 1-2 frame single-view ids are duplicates of a tracked person's body or legs).
+    # Offline: ids seen in too few frames are not trusted: an id is kept when its multi-view
+    # frames or its single-view frames reach `min_track_frames` (on the lab, 1-2 frame
+    # single-view ids are duplicates of a tracked person's body or legs). Someone one camera
+    # sees for a long time keeps their crops when a second camera sees them briefly (the
+    # multi-view count alone dropped all of them).
     frames_of: dict[int, int] = {}
     single_frames: dict[int, int] = {}
     for res in results:
@@ -172,8 +175,9 @@ def _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames):
             counts = single_frames if p.single_view else frames_of
             counts[p.pid] = counts.get(p.pid, 0) + 1
     short = sorted(
-        {pid for pid, c in frames_of.items() if c < min_track_frames}
-        | {pid for pid, c in single_frames.items() if pid not in frames_of and c < min_track_frames}
+        pid
+        for pid in set(frames_of) | set(single_frames)
+        if frames_of.get(pid, 0) < min_track_frames and single_frames.get(pid, 0) < min_track_frames
     )
     pending = {n: PendingFile(out_dir / f"persons_{n}.h5") for n in names}
     per_frame = []

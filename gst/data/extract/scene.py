@@ -52,6 +52,7 @@ from gst.data.extract.options import (
     ExtractReport,
     SourceScore,
 )
+from gst.data.keypoints.people import CrowdConfig
 from gst.data.store import CropBatch, CropStore, CropStoreWriter, merge_part
 from gst.detect.blazepose import import_litert
 from gst.detect.persons import SegmenterConfig
@@ -331,6 +332,17 @@ def _mask_jobs(plan: ExtractPlan) -> list[MaskJob]:
     ]
 
 
+def keypoint_tracker_timing(crowd: CrowdConfig, frame_stride: int, fps: float):
+    """The crowd settings and step_seconds for the keypoint id tracker on every
+    `frame_stride`-th frame: it times raw frame numbers (1 / fps between consecutive ones) and
+    remembers people for `max_gap` processed frames, that many strides. (stride / fps made
+    every velocity `stride` times too slow and the speed gate that much looser.)"""
+    if frame_stride > 1:
+        gap = crowd.tracker.max_gap * frame_stride
+        crowd = replace(crowd, tracker=replace(crowd.tracker, max_gap=gap))
+    return crowd, 1.0 / fps
+
+
 def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSummary:
     """Phase 2, resumed from the work folder's association.json when it is there."""
     marker = plan.work / "association.json"
@@ -339,6 +351,9 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
     if not active:
         return AssociationSummary.empty(plan.frames)
     if plan.method == "keypoints":
+        crowd, step_seconds = keypoint_tracker_timing(
+            plan.options.crowd, plan.frame_stride, plan.fps
+        )
         summary = associate_scene_keypoints(
             {n: plan.work / f"labels_{n}.h5" for n in active},
             plan.rig.subset(active),  # with the rig's up (where people stand)
@@ -346,11 +361,11 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
             plan.work_sizes,
             plan.frames,
             plan.work,
-            plan.options.crowd,
+            crowd,
             plan.options.persons_models_dir,
             plan.options.association.min_track_frames,
             progress,
-            step_seconds=plan.frame_stride / plan.fps,
+            step_seconds=step_seconds,
         )
         marker.write_text(json.dumps(asdict(summary)))
         return summary

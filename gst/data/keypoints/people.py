@@ -432,7 +432,9 @@ class CrowdTracker:
             elif cfg.merge_duplicates:
                 # the person is seen in the views either found: the kept one takes the others'
                 kept, other = cands[twin], cands[k]
-                for n in other.refined.keys() - kept.refined.keys():
+                # in the views' own order (a set's order follows the process's hash seed, and
+                # the re-triangulation below depends on the order)
+                for n in [m for m in other.refined if m not in kept.refined]:
                     kept.refined[n], kept.fits[n] = other.refined[n], other.fits[n]
                     merged.add(twin)
         for j in merged:
@@ -539,7 +541,8 @@ class CrowdTracker:
         roi = roi_from_skeleton(cam, c.skeleton)
         if roi is None:
             return None
-        work_roi = BodyRoi((roi.centre[0] * s, roi.centre[1] * s), roi.side * s, roi.angle)
+        centre = ((roi.centre[0] + 0.5) * s - 0.5, (roi.centre[1] + 0.5) * s - 0.5)
+        work_roi = BodyRoi(centre, roi.side * s, roi.angle)
         # The model sees only the region: paint and pass the window that holds it (far
         # cheaper than a painted copy of the whole frame per person and camera).
         x0, y0, x1, y1 = _window(work_roi, img.shape, 2)
@@ -565,8 +568,9 @@ class CrowdTracker:
         prob = np.zeros(img.shape[:2], np.float32)
         prob[y0:y1, x0:x1] = prob_window
         lm = np.asarray(lm, np.float64).copy()
-        lm[:, :2] += (x0, y0)
-        lm[:, :2] /= s
+        # window -> work image -> full resolution, pixel centres at integers in both (as phase
+        # 1 maps them; u / s put every refined view 0.5 px up-left at half resolution)
+        lm[:, :2] = (lm[:, :2] + (x0, y0) + 0.5) / s - 0.5
         inst = PersonInstance.create(lm, None, presence, where=f"camera {n}, refined")
         fit = skeleton_fit(cam, inst, c.skeleton, cfg.match)
         # a standing guess is only as good as the body's depth: a looser gate to find them,
