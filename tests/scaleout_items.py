@@ -102,8 +102,8 @@ def ddp_config(batch_size: int):
     )
 
 
-def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
-    """One torchrun-like rank: a Trainer step on this rank's share of the combined batch."""
+def _become_rank(rank: int, world: int, port: int) -> None:
+    """This process as rank `rank` of a torchrun-like world on localhost, one torch thread."""
     import torch
 
     os.environ.update(
@@ -114,6 +114,13 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
         LOCAL_RANK=str(rank),
     )
     torch.set_num_threads(1)
+
+
+def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
+    """One torchrun-like rank: a Trainer step on this rank's share of the combined batch."""
+    import torch
+
+    _become_rank(rank, world, port)
     from gst.train.trainer import Trainer
 
     model, x, y = ddp_problem()
@@ -139,14 +146,7 @@ def ddp_batches_rank_main(rank: int, world: int, port: int, out_dir: str, phase:
     import torch
     from torch import nn
 
-    os.environ.update(
-        MASTER_ADDR="127.0.0.1",
-        MASTER_PORT=str(port),
-        WORLD_SIZE=str(world),
-        RANK=str(rank),
-        LOCAL_RANK=str(rank),
-    )
-    torch.set_num_threads(1)
+    _become_rank(rank, world, port)
     from gst.train.trainer import TrainConfig, Trainer
 
     drawn, calls = [], [0]
