@@ -104,3 +104,23 @@ def test_load_body_model_specs(tmp_path, monkeypatch, data):
     write_official_pkl(data, tmp_path / "SMPL_NEUTRAL.pkl")
     assert load_body_model("smpl").num_vertices == 500
     assert load_body_model(str(tmp_path)).num_vertices == 500  # a folder
+
+
+@pytest.mark.parametrize(
+    "key, change, culprit",
+    [
+        ("shapedirs", lambda a: a.reshape(-1, a.shape[-1]).T.copy(), "shapedirs"),  # (B, V*3)
+        ("weights", lambda a: a.T.copy(), "weights"),
+        ("v_template", lambda a: a.reshape(-1), "v_template"),
+    ],
+)
+def test_arrays_of_the_wrong_shape_name_their_key(tmp_path, data, key, change, culprit):
+    """A transposed flattened shapedirs was reshaped into a scrambled shape space without a word;
+    transposed weights raised a bare IndexError; a flat v_template blamed posedirs."""
+    raw = safe_load_pickle(write_official_pkl(data, tmp_path / "x.pkl"))
+    arrays = {k: v for k, v in raw.items() if isinstance(v, np.ndarray)}
+    arrays["J_regressor"] = np.asarray(raw["J_regressor"].todense())  # sparse in the .pkl
+    arrays[key] = change(np.asarray(arrays[key]))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match=rf"bad\.npz: {culprit} has shape"):
+        load_smpl_file(tmp_path / "bad.npz")

@@ -269,3 +269,13 @@ def test_bbox_metrics_with_lpips():
     torch.testing.assert_close(m.lpips, expected.double(), rtol=0, atol=1e-6)
     same = masked_bbox_metrics(target, target, corners, K, R, t, lpips=model)
     assert same.lpips.abs().max() < 1e-6 and (same.psnr == math.inf).all()
+
+
+def test_ssim_takes_an_integer_data_range():
+    """`data_range=255` as psnr takes it (kornia refused an int max_val: TypeError)."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 16, 16, generator=g) * 255
+    y = (x + torch.randn(2, 3, 16, 16, generator=g) * 5).clamp(0, 255)
+    torch.testing.assert_close(
+        ssim(x, y, data_range=255), ssim(x / 255, y / 255), atol=1e-5, rtol=0
+    )

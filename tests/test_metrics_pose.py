@@ -199,3 +199,26 @@ def test_vertex_error_alignments():
     )
     with pytest.raises(ValueError, match="align must be"):
         vertex_error(p, g, align="icp")
+
+
+def test_points_without_truth_may_be_nan_where_valid_leaves_them_out():
+    """A joint with no truth is often NaN: leaving it out with `valid` equals dropping it (a
+    weight of 0 did not cancel NaN: MPJPE read NaN and PA-MPJPE's SVD failed)."""
+    g = torch.Generator().manual_seed(0)
+    pred, gt = (
+        torch.randn(2, 24, 3, generator=g, dtype=torch.float64),
+        torch.randn(2, 24, 3, generator=g, dtype=torch.float64),
+    )
+    valid = torch.ones(2, 24, dtype=torch.bool)
+    valid[0, 5] = False
+    holed = gt.clone()
+    holed[0, 5] = float("nan")
+    keep = [j for j in range(24) if j != 5]
+    for metric in (
+        mpjpe,
+        pa_mpjpe,
+        lambda p, t, valid=None: vertex_error(p, t, "translation", valid),
+    ):
+        got = metric(pred, holed, valid=valid)
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got[0], metric(pred[:1, keep], gt[:1, keep])[0])

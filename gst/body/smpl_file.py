@@ -275,7 +275,14 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
         else np.asarray(reg, dtype=np.float64)
     )
 
-    V = v_template.shape[0] if v_template.ndim == 2 else -1
+    if v_template.ndim != 2 or v_template.shape[1] != 3:
+        raise ValueError(f"{file}: v_template has shape {v_template.shape}, expected (V, 3)")
+    V = v_template.shape[0]
+    if weights.shape != (V, NUM_JOINTS):
+        raise ValueError(
+            f"{file}: weights has shape {weights.shape}, expected ({V}, {NUM_JOINTS}) "
+            "(one row of skinning weights per vertex)"
+        )
     if kintree.ndim != 2 or kintree.shape[0] != 2 or kintree.shape[1] != NUM_JOINTS:
         raise ValueError(
             f"{file}: kintree_table has shape {kintree.shape}, expected (2, {NUM_JOINTS}); "
@@ -283,7 +290,12 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
         )
     parents = kintree[0].copy()
     parents[0] = -1  # stored as uint32 max in the official files
-    if shapedirs.ndim == 2 and V > 0:  # some exports flatten (V*3, B)
+    if shapedirs.ndim == 2:  # some exports flatten (V*3, B)
+        if shapedirs.shape[0] != 3 * V:
+            raise ValueError(
+                f"{file}: shapedirs has shape {shapedirs.shape}, expected ({V}, 3, B) or its "
+                f"flattened ({3 * V}, B)"
+            )
         shapedirs = shapedirs.reshape(V, 3, -1)
     posedirs = raw.get("posedirs")
     if posedirs is not None:

@@ -101,7 +101,7 @@ def ssim(
             "window"
         )
     smap = kornia.metrics.ssim(
-        pred, target, window_size, max_val=data_range, eps=0.0, padding=padding
+        pred, target, window_size, max_val=float(data_range), eps=0.0, padding=padding
     )
     return smap.mean(dim=(1, 2, 3))
 

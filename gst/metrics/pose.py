@@ -41,6 +41,12 @@ def _check(
     return valid.to(pred.dtype)
 
 
+def _zero_invalid(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """`x` with the points `w` leaves out set to 0: a weight of 0 does not cancel a NaN (NaN x 0
+    is NaN), and points without truth are often NaN."""
+    return torch.where(w[..., None] > 0, x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
 def _mean_error(pred: torch.Tensor, gt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Weighted mean Euclidean distance per sample; NaN where no point is valid."""
     return ((pred - gt).norm(dim=-1) * w).sum(-1) / w.sum(-1)
@@ -68,6 +74,7 @@ def mpjpe(
     translated so its own root sits at the origin before comparing (root-aligned MPJPE).
     """
     w = _check(pred, gt, valid, "mpjpe")
+    pred, gt = _zero_invalid(pred, w), _zero_invalid(gt, w)
     if root is not None:
         pred, gt = pred - _root(pred, root), gt - _root(gt, root)
     return _mean_error(pred, gt, w)
@@ -100,7 +107,7 @@ def similarity_procrustes(
     with a batched SVD. Degenerate inputs (all valid source points coincide) give scale 0.
     """
     w = _check(source, target, valid, "similarity_procrustes").double()
-    x, y = source.double(), target.double()
+    x, y = _zero_invalid(source.double(), w), _zero_invalid(target.double(), w)
     wsum = w.sum(-1, keepdim=True).clamp_min(1e-300)[..., None]  # (B, 1, 1)
     mu_x = (w[..., None] * x).sum(1, keepdim=True) / wsum
     mu_y = (w[..., None] * y).sum(1, keepdim=True) / wsum
@@ -135,7 +142,8 @@ def pa_mpjpe(
     similarity transform of `pred`; same unit as the inputs.
     """
     w = _check(pred, gt, valid, "pa_mpjpe")
-    return _mean_error(procrustes_align(pred, gt, valid), gt, w)
+    aligned = procrustes_align(pred, gt, valid)
+    return _mean_error(_zero_invalid(aligned, w), _zero_invalid(gt, w), w)
 
 
 def vertex_error(
@@ -146,6 +154,7 @@ def vertex_error(
     align: "none" (as given), "translation" (centroids matched) or "procrustes" (PA-PVE).
     """
     w = _check(pred, gt, valid, "vertex_error")
+    pred, gt = _zero_invalid(pred, w), _zero_invalid(gt, w)
     if align == "translation":
         wsum = w.sum(-1)[:, None, None]
         pred = (
