@@ -15,6 +15,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Protocol
 
 from gst.cores import available_cores
+from pipeline.errors import ConfigError
 
 
 class Executor(Protocol):
@@ -91,7 +92,10 @@ def make_executor(
         try:
             from pipeline.ray_executor import RayExecutor  # optional 'dist' extra
         except ImportError as exc:
-            raise RuntimeError(f"the Ray executor is unavailable: {exc}") from exc
+            raise ConfigError(
+                f"the Ray executor is unavailable ({exc}): install the 'dist' extra "
+                '(pip install -e ".[dist]") or use --executor local'
+            ) from None
         return RayExecutor(workers, progress, address=ray_address)
     raise ValueError(f"unknown executor kind '{kind}' (expected 'local' or 'ray')")
 

@@ -336,3 +336,24 @@ def test_scored_rows_get_the_models_own_reading_where_the_landmarks_were_project
     assert found.presence[0] < 0.99  # a noise crop: the two scales differ here
     np.testing.assert_array_equal(got.numpy()[2], found.landmarks[0])
     np.testing.assert_array_equal(got.numpy()[[0, 1, 3]], b.landmarks[[0, 1, 3]])
+
+
+def test_a_store_moved_into_place_keeps_an_index_that_names_it(tmp_path):
+    """The fuse stage's cut is written as crops_1.h5 and moved to bodycrops/crops.h5 when it
+    agrees with the extraction: its index must name the store it sits beside (it said
+    crops_1.h5)."""
+    import pyarrow.parquet as pq
+
+    from gst.data.store import index_path_for
+    from gst.fuse.rounds import _replace
+
+    first = tmp_path / "work" / "crops_1.h5"
+    first.parent.mkdir()
+    with CropStoreWriter(first, CAMS, S) as w:
+        w.commit(_batch([0, 1], [0, 0], [7, 7], seed=1), [(0, 0), (1, 0)])
+        w.finalize()
+    final = tmp_path / "bodycrops" / "crops.h5"
+    _replace(first, final)
+    meta = pq.read_schema(index_path_for(final)).metadata
+    assert meta[b"store"] == b"crops.h5"
+    assert not index_path_for(first).exists() and pq.read_table(index_path_for(final)).num_rows == 2

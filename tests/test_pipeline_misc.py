@@ -75,3 +75,23 @@ def test_repository_config_is_valid():
     cfg = load_config(REPO / "pipeline.yaml")
     assert cfg.default_scene in cfg.scenes
     assert cfg.workspace.is_absolute()
+
+
+def test_ray_without_the_dist_extra_is_a_one_line_config_error(monkeypatch):
+    """`--executor ray` where Ray is not installed: exit 2 with what to install (was a two-part
+    traceback and exit 1, even with --dry-run)."""
+    import builtins
+
+    from pipeline.executors import make_executor
+
+    real_import = builtins.__import__
+
+    def no_ray(name, *args, **kwargs):
+        if name == "ray" or name.startswith("ray.") or name == "pipeline.ray_executor":
+            raise ImportError(f"No module named '{name}'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    with pytest.raises(ConfigError, match=r"dist") as err:
+        make_executor("ray", 2)
+    assert err.value.exit_code == 2

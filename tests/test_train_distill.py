@@ -171,3 +171,14 @@ def test_no_teacher_fit_sees_the_heldout_crops(scene, tmp_path):
     want = training_rows(crops, {3}, heldout_frame_start(crops.frame, 1 / 3)).numpy()
     assert len(calls) == 2
     assert all(np.array_equal(c, want) for c in calls)
+
+
+def test_bodies_of_another_body_model_are_refused(scene):
+    """Fused with the open default, trained with SMPL (the README's switch, fuse.body_model left
+    as it was): the targets' pose and shape are another body's, so it is an error that names
+    both settings."""
+    _, _, _, crops, fused = scene
+    allowed = torch.ones(len(crops), dtype=torch.bool)
+    distill_targets(crops, fused, allowed, body_model=fused.body_model)
+    with pytest.raises(ValueError, match="fuse.body_model.*train.body_model"):
+        distill_targets(crops, fused, allowed, body_model="smpl")

@@ -135,8 +135,12 @@ def _promote(result: FuseResult, where, out_dir: Path, report_dir: Path,
 
 def _replace(store: Path, to: Path) -> None:
     """A crop store (and its Parquet index) moved to `to`, replacing what is there."""
-    from gst.data.store import index_path_for
+    import h5py
+
+    from gst.data.store import index_path_for, write_index
 
     to.parent.mkdir(parents=True, exist_ok=True)
     store.replace(to)
-    index_path_for(store).replace(index_path_for(to))
+    index_path_for(store).unlink(missing_ok=True)
+    with h5py.File(to, "r") as f:  # the index names its store: write it under the new name
+        write_index(f, to)

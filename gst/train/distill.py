@@ -64,9 +64,18 @@ def distill_targets(
     allowed: torch.Tensor,
     full_views: int = 3,
     gap_weight: float = 0.1,
+    body_model: str | None = None,
 ) -> DistillTargets:
     """Per-crop targets (module doc); rows not `allowed` and crops without a fused body of
-    their (frame, person) get weight 0."""
+    their (frame, person) get weight 0. `body_model`: the trained network's body; fused bodies
+    of another body are refused (their pose and shape parameters mean other things)."""
+    if body_model is not None and bodies.body_model != body_model:
+        raise ValueError(
+            f"the fused bodies were fitted with body model '{bodies.body_model}' "
+            f"(fuse.body_model) and the network trains '{body_model}' (train.body_model): "
+            "their pose and shape are no targets for another body; set fuse.body_model to the "
+            "same model, or train.distill=false"
+        )
     n = len(crops)
     index = {
         (int(f), int(p)): i

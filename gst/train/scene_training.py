@@ -257,9 +257,10 @@ def prepare_crops(
             first = teacher(
                 landmarks.numpy(), allowed.numpy(), work / "mirrors" if work is not None else None
             )
-            landmarks = _unmirrored(crops, landmarks, distill_targets(crops, first, allowed))
+            first_targets = distill_targets(crops, first, allowed, body_model=p.body_model)
+            landmarks = _unmirrored(crops, landmarks, first_targets)
         bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
-        crops.distill = distill_targets(crops, bodies, allowed)
+        crops.distill = distill_targets(crops, bodies, allowed, body_model=p.body_model)
         log.info(
             "distill: %d of %d crops have a fused-body target (training cameras and frames)",
             int((crops.distill.weight > 0).sum()),
