@@ -66,7 +66,7 @@ class BAResult:
     rig_from_board: dict[int, np.ndarray]  # frame -> 4x4
     residuals: dict[str, np.ndarray]  # camera -> (N,) px, final inlier observations
     observations: dict[str, np.ndarray]  # camera -> (N, 2) px of those observations
-    outliers: dict[str, np.ndarray]  # camera -> (M, 2) px of removed observations
+    outliers: dict[str, np.ndarray]  # camera -> (M, 2) px of observations removed as outliers
     rounds: list[dict] = field(
         default_factory=list
     )  # per round: observations, rms, removed, seconds
@@ -151,7 +151,8 @@ class BoardBundleAdjuster:
         frame_images: dict[int, list[tuple[int, str]]] = {}
         self.image_key: dict[int, tuple[str, int]] = {}
         self.image_obs: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # corner ids, OpenCV px
-        self.alive: dict[int, np.ndarray] = {}  # observations not removed as outliers
+        self.alive: dict[int, np.ndarray] = {}  # observations in the adjustment
+        self.removed: dict[int, np.ndarray] = {}  # observations removed as outliers
         self.object_points = np.asarray(object_points, dtype=np.float64)
         image_id = 0
         tracks: dict[int, list[tuple[int, int]]] = {}
@@ -169,6 +170,7 @@ class BoardBundleAdjuster:
                     np.asarray(px, dtype=np.float64).reshape(-1, 2),
                 )
                 self.alive[image_id] = np.ones(len(self.image_obs[image_id][0]), dtype=bool)
+                self.removed[image_id] = np.zeros(len(self.image_obs[image_id][0]), dtype=bool)
                 for k, cid in enumerate(np.asarray(ids).ravel()):
                     tracks.setdefault(int(cid), []).append((image_id, k))
         self.frame_ids = {}
@@ -288,6 +290,7 @@ class BoardBundleAdjuster:
         leaves the adjustment too, and is marked so (else it was still counted in the residuals
         and the RMS, and deleting it later failed on the missing point)."""
         self.alive[iid][idx] = False
+        self.removed[iid][idx] = True
         pid = self.point_of.pop((iid, idx), None)
         if pid is None or not self.rec.exists_point3D(pid):
             return 1
@@ -366,7 +369,7 @@ class BoardBundleAdjuster:
             px, alive = self.image_obs[iid][1], self.alive[iid]
             residuals[n].append(err[alive])
             obs[n].append(px[alive])
-            outliers[n].append(px[~alive])
+            outliers[n].append(px[self.removed[iid]])  # not: corners COLMAP could not adjust
 
         def cat(parts, shape):
             return np.concatenate(parts).reshape(shape) if parts else np.zeros(shape)

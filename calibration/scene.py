@@ -174,9 +174,11 @@ def calibrate_scene(
         )
     problems = check_rig(rig)
     if solved is not None:
+        weak = [n for n in solved.notes if any(f"camera '{c}'" in n for c in solved.weak_cameras)]
         for note in solved.notes:
-            log.warning("calibration: %s", note)
-        problems += [n for n in solved.notes if "distinct orientation" in n]
+            if note not in weak:  # the weak cameras' notes are logged with the rig checks
+                log.warning("calibration: %s", note)
+        problems += weak
     if problems and settings.strict_checks:
         raise ValueError(
             f"scene '{scene}': the rig failed its checks and was not written: "

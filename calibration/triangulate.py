@@ -18,7 +18,8 @@ from calibration.camera import Rig
 
 @dataclass
 class Triangulation:
-    points: np.ndarray  # (N, 3) world points; NaN where fewer than 2 views saw the point
+    points: np.ndarray  # (N, 3) world points; NaN where fewer than 2 views saw the point, or
+    # where the solution lies behind a view (then no view counts as used)
     errors_px: np.ndarray  # (C, N) reprojection error per view; NaN where unused
     used: np.ndarray  # (C, N) bool, views that took part (visible and, if robust, inliers)
 
@@ -102,7 +103,9 @@ def triangulate_dlt(
     # A point behind a camera that sees it is no point (rays that diverge in front of the
     # cameras meet behind them); OpenCV's projection would fold it back onto its pixels, 0 px.
     depth = np.einsum("cj,nj->cn", P[:, 2, :3], np.nan_to_num(points)) + P[:, 2, 3][:, None]
-    points[(vis & ~(depth > 0)).any(0)] = np.nan
+    behind = (vis & ~(depth > 0)).any(0)
+    points[behind] = np.nan
+    vis = vis & ~behind[None]  # no view placed a point that is not there
     return Triangulation(points, reprojection_errors(rig, points, pixels, vis), vis)
 
 

@@ -171,6 +171,10 @@ def test_an_outlier_on_a_two_view_corner_takes_its_partner_out_openly():
         points = ba.rec.image(iid).points2D
         in_ba = np.array([points[k].has_point3D() for k in range(len(ba.alive[iid]))])
         np.testing.assert_array_equal(ba.alive[iid], in_ba)
+    # the outlier is reported as one; its partner only left the adjustment
+    corner0 = [(iid, k) for iid, (ids, _) in ba.image_obs.items() for k in np.flatnonzero(ids == 0)]
+    assert sorted(bool(ba.removed[i][k]) for i, k in corner0) == [False, True]
+    assert not any(ba.alive[i][k] for i, k in corner0)
     scene, dets = _two_view_corner(n_bad=2)
     calibrate_from_detections(dets, sizes, scene.board)  # both outliers: no error
 

@@ -99,6 +99,6 @@ def test_dlt_gives_no_point_behind_the_cameras():
     right = Camera.create("R", K, [], np.eye(3), [-0.5, 0, 0], 800, 600)
     rig = Rig((left, right), up=(0.0, -1.0, 0.0))
     tri = triangulate_dlt(rig, np.array([[[380.0, 300.0]], [[420.0, 300.0]]]))
-    assert np.isnan(tri.points).all() and np.isnan(tri.errors_px).all()
+    assert np.isnan(tri.points).all() and np.isnan(tri.errors_px).all() and not tri.used.any()
     ok = triangulate_dlt(rig, np.array([[[420.0, 300.0]], [[380.0, 300.0]]]))  # converging
     assert ok.points[0, 2] > 0 and np.nanmax(ok.errors_px) < 1e-6

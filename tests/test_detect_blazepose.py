@@ -484,3 +484,4 @@ def test_crop_landmarks_refuse_what_is_not_square_colour_crops(shape):
 
     with pytest.raises(ValueError, match=r"\(N, S, S, 3\)"):
         detect_crop_landmarks(np.zeros(shape, np.uint8), model=None, rgb=True)
+    assert len(detect_crop_landmarks(np.zeros((0,)), model=object(), rgb=True)) == 0  # no crops

@@ -173,3 +173,12 @@ def test_marker_files_of_a_y_down_world_stand_upright(tmp_path):
         point = c3d.Reader(fh).get("POINT")
         assert point.get("Y_SCREEN").string_value.strip() == "-Y"
         assert point.get("X_SCREEN").string_value.strip() == "+X"
+
+
+@pytest.mark.parametrize("up", [(1e-8, 0.0, -1.0), (1e-5, 0.0, -1.0), (0.0, 0.0, -1.0)])
+def test_y_up_rotation_near_a_downward_up(up):
+    """A z-down world with float noise in its up (the smallest rotation's formula divided by
+    1 + cos ~ 0: a NaN matrix at 1e-8)."""
+    R = y_up_rotation(up)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R @ (np.asarray(up) / np.linalg.norm(up)), [0, 1, 0], atol=1e-12)

@@ -110,10 +110,17 @@ def test_strided_extraction_times_its_tracker_in_seconds():
     from gst.data.keypoints.people import CrowdConfig
 
     crowd, step = keypoint_tracker_timing(CrowdConfig(), 3, 30.0)
-    assert crowd.tracker.max_gap == 3 * CrowdConfig().tracker.max_gap
+    assert (
+        crowd.tracker.frame_stride == 3 and crowd.tracker.max_gap == CrowdConfig().tracker.max_gap
+    )
     cams = rig("dome", 5, seed=1)
     tracker = PersonIdTracker(cams, step, crowd.tracker)
     for f in range(0, 30, 3):
         found, _ = instances(cams, [person(1.5 * f / 30, 0.0)], seed=f)
         tracker.update(f, match_frame(found, cams), found)
     assert abs(tracker._tracks[0].velocity[0] - 1.5) < 0.1
+    # the next processed frame is predicted a whole stride on (the coast fade starts after it)
+    moved = (
+        tracker._tracks[0].predict(30, step, crowd.tracker.coast, 3) - tracker._tracks[0].skeleton
+    )
+    assert abs(float(np.nanmedian(moved[:, 0])) - 1.5 * 0.1) < 0.01

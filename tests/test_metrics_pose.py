@@ -222,3 +222,12 @@ def test_points_without_truth_may_be_nan_where_valid_leaves_them_out():
         got = metric(pred, holed, valid=valid)
         assert torch.isfinite(got).all()
         torch.testing.assert_close(got[0], metric(pred[:1, keep], gt[:1, keep])[0])
+
+
+def test_root_aligned_mpjpe_with_the_root_left_out_still_aligns():
+    """`valid` says which joints are scored; the root still places each pose (zeroing left-out
+    points before taking the root turned root alignment off)."""
+    gt = torch.randn(1, 24, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    valid = torch.ones(1, 24, dtype=torch.bool)
+    valid[0, 0] = False
+    assert float(mpjpe(gt + torch.tensor([5.0, 0, 0], dtype=torch.float64), gt, 0, valid)) < 1e-9

@@ -278,15 +278,15 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
     if v_template.ndim != 2 or v_template.shape[1] != 3:
         raise ValueError(f"{file}: v_template has shape {v_template.shape}, expected (V, 3)")
     V = v_template.shape[0]
-    if weights.shape != (V, NUM_JOINTS):
-        raise ValueError(
-            f"{file}: weights has shape {weights.shape}, expected ({V}, {NUM_JOINTS}) "
-            "(one row of skinning weights per vertex)"
-        )
     if kintree.ndim != 2 or kintree.shape[0] != 2 or kintree.shape[1] != NUM_JOINTS:
         raise ValueError(
             f"{file}: kintree_table has shape {kintree.shape}, expected (2, {NUM_JOINTS}); "
             "only the 24-joint SMPL body is supported"
+        )
+    if weights.shape != (V, NUM_JOINTS):
+        raise ValueError(
+            f"{file}: weights has shape {weights.shape}, expected ({V}, {NUM_JOINTS}) "
+            "(one row of skinning weights per vertex)"
         )
     parents = kintree[0].copy()
     parents[0] = -1  # stored as uint32 max in the official files

@@ -93,6 +93,8 @@ def detect_crop_landmarks(
     second pass on the alignment region (module docstring); `masks` (N, S, S): the person's
     mask per crop, other pixels dimmed first. World landmarks are the (unmirrored) last pass's."""
     images = np.asarray(images)
+    if images.size == 0:  # no crops: no landmarks
+        images = np.zeros((0, 1, 1, 3), np.uint8)
     if images.ndim != 4 or images.shape[-1] != 3 or images.shape[1] != images.shape[2]:
         raise ValueError(
             f"crops must be (N, S, S, 3) square colour images, got shape {images.shape} "

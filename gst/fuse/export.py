@@ -58,14 +58,13 @@ def y_up_rotation(up=Z_UP) -> np.ndarray:
     if u.shape != (3,) or not np.isfinite(u).all() or np.linalg.norm(u) < 1e-9:
         raise ValueError(f"the world's up must be a finite non-zero 3-vector, got {up!r}")
     u = u / np.linalg.norm(u)
-    z = np.array([0.0, 0.0, 1.0])
-    axis, cos = np.cross(u, z), float(u @ z)
-    if np.linalg.norm(axis) < 1e-12:  # up is +Z or -Z
-        align = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
-    else:
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        align = np.eye(3) + k + k @ k / (1.0 + cos)
-    return Z_UP_TO_Y_UP @ align
+    # near -Z the smallest rotation's formula loses its precision: turn 180 deg about X first
+    flip = np.diag([1.0, -1.0, -1.0]) if u[2] < 0 else np.eye(3)
+    u = flip @ u
+    axis, cos = np.cross(u, [0.0, 0.0, 1.0]), float(u[2])  # cos >= 0 now
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    align = np.eye(3) + k + k @ k / (1.0 + cos)
+    return Z_UP_TO_Y_UP @ align @ flip
 
 
 def _screen_axes(up) -> tuple[str, str]:

@@ -113,7 +113,7 @@ class PersonFit:
     reprojection: np.ndarray  # (T, C, M) full-image px of the fitted markers (NaN: no detection)
     observed: np.ndarray  # (T,) bool: the frame had at least one crop (else gap-filled)
     static: np.ndarray  # (T,) bool: nobody moved since the previous frame
-    single_view: bool  # never seen by two cameras at once
+    single_view: bool  # no landmark ever triangulated from two views
     sigma_px: float
     marker_offsets: np.ndarray | None = None  # (M, 3) the person's own offsets minus the table's
 

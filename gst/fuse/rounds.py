@@ -135,12 +135,16 @@ def _promote(result: FuseResult, where, out_dir: Path, report_dir: Path,
 
 def _replace(store: Path, to: Path) -> None:
     """A crop store (and its Parquet index) moved to `to`, replacing what is there."""
-    import h5py
+    import pyarrow.parquet as pq
 
-    from gst.data.store import index_path_for, write_index
+    from gst.atomic import atomic_path
+    from gst.data.store import index_path_for
 
     to.parent.mkdir(parents=True, exist_ok=True)
+    # the index names its store: the same rows, under the new name
+    table = pq.read_table(index_path_for(store))
+    meta = {**(table.schema.metadata or {}), b"store": to.name.encode()}
+    with atomic_path(index_path_for(to)) as tmp:
+        pq.write_table(table.replace_schema_metadata(meta), tmp)
     store.replace(to)
-    index_path_for(store).unlink(missing_ok=True)
-    with h5py.File(to, "r") as f:  # the index names its store: write it under the new name
-        write_index(f, to)
+    index_path_for(store).unlink()

@@ -66,7 +66,11 @@ EXTRA_COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
         "(its position comes from the fit)",
     ),
     "observed": (pa.bool_(), "", "False for a frame inside a gap, filled by the fit alone"),
-    "single_view": (pa.bool_(), "", "the person was never seen by two cameras at once"),
+    "single_view": (
+        pa.bool_(),
+        "",
+        "no landmark of the person was ever triangulated from two views (single-view terms)",
+    ),
 }
 
 

@@ -74,10 +74,9 @@ def mpjpe(
     translated so its own root sits at the origin before comparing (root-aligned MPJPE).
     """
     w = _check(pred, gt, valid, "mpjpe")
-    pred, gt = _zero_invalid(pred, w), _zero_invalid(gt, w)
-    if root is not None:
+    if root is not None:  # the root from the poses as given (valid says which joints count)
         pred, gt = pred - _root(pred, root), gt - _root(gt, root)
-    return _mean_error(pred, gt, w)
+    return _mean_error(_zero_invalid(pred, w), _zero_invalid(gt, w), w)
 
 
 @dataclass

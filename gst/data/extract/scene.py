@@ -335,11 +335,11 @@ def _mask_jobs(plan: ExtractPlan) -> list[MaskJob]:
 def keypoint_tracker_timing(crowd: CrowdConfig, frame_stride: int, fps: float):
     """The crowd settings and step_seconds for the keypoint id tracker on every
     `frame_stride`-th frame: it times raw frame numbers (1 / fps between consecutive ones) and
-    remembers people for `max_gap` processed frames, that many strides. (stride / fps made
-    every velocity `stride` times too slow and the speed gate that much looser.)"""
+    counts its memory and its full-velocity step in processed frames (`TrackerConfig.
+    frame_stride`). (stride / fps made every velocity `stride` times too slow and the speed gate
+    that much looser.)"""
     if frame_stride > 1:
-        gap = crowd.tracker.max_gap * frame_stride
-        crowd = replace(crowd, tracker=replace(crowd.tracker, max_gap=gap))
+        crowd = replace(crowd, tracker=replace(crowd.tracker, frame_stride=frame_stride))
     return crowd, 1.0 / fps
 
 

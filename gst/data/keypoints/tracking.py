@@ -56,12 +56,19 @@ class TrackerConfig:
     # prior that walks on leaves the person it stands for (docs/extract.md, "Lost in the
     # middle of a crowd")
     coast: float | None = 0.2
+    # video frames between processed frames (extraction's frame_stride): `max_gap` and the one
+    # processed step a prediction takes at full velocity count in processed frames
+    frame_stride: int = 1
     # The velocity: of the torso's centre (shoulders and hips), averaged over about this many
     # seconds (None: of all body landmarks' centre, `smoothing` per frame). Limbs swing: at 30
     # fps a 3 cm wobble of the centre reads as 1 m/s
     velocity_time: float | None = 0.2
 
     def __post_init__(self):
+        if self.frame_stride < 1:
+            raise AssociationError(
+                f"TrackerConfig.frame_stride must be >= 1, got {self.frame_stride}"
+            )
         if self.max_speed <= 0 or self.slack < 0 or self.max_gap < 0:
             raise AssociationError(
                 "TrackerConfig needs max_speed > 0, slack >= 0 and max_gap >= 0, got "
@@ -89,13 +96,16 @@ class _Track:
     last_seen: int  # last frame with any view (3D or single)
     hits: int = 1  # frames seen in 3D
 
-    def predict(self, frame: int, step: float, coast: float | None = None) -> np.ndarray:
-        """The skeleton moved on to `frame`: one frame step at the last velocity, and beyond it
-        (a person not seen since) a move that fades with time constant `coast` seconds, at most
-        `coast` x the velocity (None: the velocity kept for ever)."""
-        dt = (frame - self.frame_3d) * step
-        if coast is not None and dt > step:
-            dt = step + (coast * -np.expm1(-(dt - step) / coast) if coast > 0 else 0.0)
+    def predict(
+        self, frame: int, step: float, coast: float | None = None, stride: int = 1
+    ) -> np.ndarray:
+        """The skeleton moved on to `frame`: one processed step (`stride` frames of `step`
+        seconds) at the last velocity, and beyond it (a person not seen since) a move that fades
+        with time constant `coast` seconds, at most `coast` x the velocity (None: the velocity
+        kept for ever)."""
+        dt, one = (frame - self.frame_3d) * step, stride * step
+        if coast is not None and dt > one:
+            dt = one + (coast * -np.expm1(-(dt - one) / coast) if coast > 0 else 0.0)
         return self.skeleton + self.velocity * dt
 
 
@@ -136,13 +146,13 @@ class PersonIdTracker:
         return [
             (t.pid, self._moved_on(t, frame))
             for t in self._tracks
-            if frame - t.last_seen <= self.config.max_gap
+            if frame - t.last_seen <= self.config.max_gap * self.config.frame_stride
             and frame > t.frame_3d
             and t.hits >= self.config.confirm
         ]
 
     def _moved_on(self, t: _Track, frame: int) -> np.ndarray:
-        return t.predict(frame, self.step_seconds, self.config.coast)
+        return t.predict(frame, self.step_seconds, self.config.coast, self.config.frame_stride)
 
     def _new_id(self) -> int:
         self._next_id += 1
@@ -162,7 +172,8 @@ class PersonIdTracker:
             )
         self._last_frame = frame
         step = self.step_seconds
-        self._tracks = [t for t in self._tracks if frame - t.last_seen <= self.config.max_gap]
+        gap = self.config.max_gap * self.config.frame_stride
+        self._tracks = [t for t in self._tracks if frame - t.last_seen <= gap]
         ids = [0] * len(match.groups)
         multi = [g for g, grp in enumerate(match.groups) if grp.skeleton is not None]
         matched: set[int] = set()
