@@ -182,3 +182,40 @@ def test_bodies_of_another_body_model_are_refused(scene):
     distill_targets(crops, fused, allowed, body_model=fused.body_model)
     with pytest.raises(ValueError, match="fuse.body_model.*train.body_model"):
         distill_targets(crops, fused, allowed, body_model="smpl")
+
+
+def test_landmarks_projected_from_the_rig_reach_no_target(scene, tmp_path):
+    """Rows whose landmarks the extraction projected from the rig's skeleton (triangulated from
+    every camera, the held-out one included): the teacher gets them with no confidence, as the
+    fuse stage fuses them, and the keypoint targets come from the landmark model's own reading
+    (training rows kept the projection, at confidence 0.5, in both)."""
+    import shutil
+
+    import h5py
+
+    from gst.detect.crops import detect_crop_landmarks
+    from gst.train.scene_training import TrainSettings, prepare_crops
+
+    tmp, cap, landmarks, crops, fused = scene
+    store = tmp_path / "crops.h5"
+    shutil.copy(tmp / "crops.h5", store)
+    shutil.copy(tmp / "crops.index.parquet", tmp_path / "crops.index.parquet")
+    projected = np.zeros(len(crops), bool)
+    projected[[0, 5]] = True  # training rows (frames 0-1, cameras 0-2)
+    with h5py.File(store, "r+") as f:
+        if "landmarks_projected" in f:
+            del f["landmarks_projected"]
+        f.create_dataset("landmarks_projected", data=projected)
+    seen = []
+
+    def teacher(lm, allowed, work):
+        seen.append(np.asarray(lm).copy())
+        return fused
+
+    p = TrainSettings(heldout_frames=1 / 3, distill=True, keypoints=True, unmirror_landmarks=False)
+    prepared = prepare_crops(p, store, None, teacher=teacher, work=tmp_path / "w")
+    assert len(seen) == 1 and (seen[0][projected, :, 2] == 0).all()
+    assert (seen[0][~projected, :, 2] > 0).any()
+    own = detect_crop_landmarks(crops.images[[0]].numpy(), rgb=True).landmarks[0]
+    np.testing.assert_allclose(seen[0][0, :, :2], own[:, :2], atol=1e-4)
+    assert prepared.crops.keypoints is not None

@@ -91,6 +91,19 @@ def store_landmarks(
     return torch.from_numpy(found.landmarks.astype(np.float32)), "BlazePose"
 
 
+def projected_rows(store_path, n: int) -> np.ndarray | None:
+    """(n,) bool: the store's rows whose landmarks the extraction projected from the rig's
+    skeleton (None when the store does not say or holds another number of rows)."""
+    from gst.data.store import CropStore
+
+    store = CropStore(store_path)
+    try:
+        projected = store.read_landmarks_projected()
+    finally:
+        store.close()
+    return None if projected is None or len(projected) != n else np.asarray(projected, bool)
+
+
 def keypoint_term(
     joints_world: torch.Tensor,
     viewmats: torch.Tensor,

@@ -41,7 +41,7 @@ from gst.train.evaluation import (
     novel_view_pairs,
     pose_metrics,
 )
-from gst.train.keypoints import keypoints_from_landmarks, store_landmarks
+from gst.train.keypoints import keypoints_from_landmarks, projected_rows, store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.occlusion import occluder_masks
 from gst.train.recipe import (
@@ -204,6 +204,15 @@ def _unmirrored(crops: CropSet, landmarks: torch.Tensor, targets) -> torch.Tenso
     return unmirror(landmarks, flags)
 
 
+def _as_fused(landmarks: torch.Tensor, projected: np.ndarray | None) -> np.ndarray:
+    """The crops' landmarks as the fuse stage fuses them: rows the extraction projected from
+    the rig's skeleton carry no confidence (gst.fuse.observations.crop_landmarks)."""
+    out = landmarks.numpy().copy()
+    if projected is not None:
+        out[projected, :, 2] = 0.0
+    return out
+
+
 def prepare_crops(
     p: TrainSettings,
     crops_h5: Path,
@@ -231,11 +240,15 @@ def prepare_crops(
     cut = heldout_frame_start(crops.frame, p.heldout_frames)
     held_idx = {crops.camera_names.index(c) for c in heldout}
     landmarks = None
+    projected = None
     if feed_landmarks or (multiview and (p.keypoints or p.distill)):
-        # rows never trained on (held-out frames and cameras) are scored as single images
-        scored = ~training_rows(crops, held_idx, cut)
+        # Landmarks the extraction projected from the rig's skeleton hold every camera's
+        # evidence, the held-out ones included: every such row is read again by the landmark
+        # model (training rows too: their keypoint targets and tokens would carry it), and the
+        # teacher gets them with no confidence, as the fuse stage's fusion does.
+        projected = projected_rows(crops_h5, len(crops))
         landmarks, source = store_landmarks(
-            crops_h5, crops.images, progress=progress, reread=scored.numpy()
+            crops_h5, crops.images, progress=progress, reread=np.ones(len(crops), bool)
         )
         log.info(
             "landmarks (%s): %d of %d crops have one with confidence >= 0.5",
@@ -255,11 +268,12 @@ def prepare_crops(
             # stage's own bodies saw the held-out crops); the teacher is then refitted on the
             # corrected landmarks
             first = teacher(
-                landmarks.numpy(), allowed.numpy(), work / "mirrors" if work is not None else None
-            )
+                _as_fused(landmarks, projected), allowed.numpy(),
+                work / "mirrors" if work is not None else None,
+            )  # fmt: skip
             first_targets = distill_targets(crops, first, allowed, body_model=p.body_model)
             landmarks = _unmirrored(crops, landmarks, first_targets)
-        bodies = teacher(landmarks.numpy(), allowed.numpy(), work)
+        bodies = teacher(_as_fused(landmarks, projected), allowed.numpy(), work)
         crops.distill = distill_targets(crops, bodies, allowed, body_model=p.body_model)
         log.info(
             "distill: %d of %d crops have a fused-body target (training cameras and frames)",
