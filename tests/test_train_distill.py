@@ -219,3 +219,14 @@ def test_landmarks_projected_from_the_rig_reach_no_target(scene, tmp_path):
     own = detect_crop_landmarks(crops.images[[0]].numpy(), rgb=True).landmarks[0]
     np.testing.assert_allclose(seen[0][0, :, :2], own[:, :2], atol=1e-4)
     assert prepared.crops.keypoints is not None
+
+
+def test_distillation_without_a_work_folder_says_so(scene):
+    """The teacher writes a subset store into `work`: without one, a clear error (it was a
+    TypeError from Path(None) inside the teacher)."""
+    from gst.train.scene_training import TrainSettings, prepare_crops
+
+    tmp, _, _, _, fused = scene
+    p = TrainSettings(heldout_frames=1 / 3, distill=True)
+    with pytest.raises(ValueError, match="work"):
+        prepare_crops(p, tmp / "crops.h5", None, teacher=lambda lm, allowed, work: fused)

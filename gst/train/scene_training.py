@@ -262,6 +262,10 @@ def prepare_crops(
                 "train.distill needs a teacher: the fuse stage's bodies (pipeline.yaml: train "
                 "needs fuse), or distill=false"
             )
+        if work is None:  # the teacher fuses a subset store there (it failed on Path(None))
+            raise ValueError(
+                "prepare_crops: train.distill needs `work`, a folder the teacher writes"
+            )
         allowed = training_rows(crops, held_idx, cut)
         if p.unmirror_landmarks:
             # a first fit of the training crops alone says which of them are mirrored (the fuse
@@ -269,7 +273,7 @@ def prepare_crops(
             # corrected landmarks
             first = teacher(
                 _as_fused(landmarks, projected), allowed.numpy(),
-                work / "mirrors" if work is not None else None,
+                work / "mirrors",
             )  # fmt: skip
             first_targets = distill_targets(crops, first, allowed, body_model=p.body_model)
             landmarks = _unmirrored(crops, landmarks, first_targets)
