@@ -53,18 +53,15 @@ Z_UP = (0.0, 0.0, 1.0)
 
 def y_up_rotation(up=Z_UP) -> np.ndarray:
     """(3, 3) rotation taking world points to the TRC's Y-up axes: the smallest rotation that
-    turns `up` onto +Z, then `Z_UP_TO_Y_UP` (exactly that for a Z-up world)."""
+    turns `up` onto +Z (scipy's `Rotation.align_vectors`, also for up near -Z), then
+    `Z_UP_TO_Y_UP` (exactly that for a Z-up world)."""
+    from scipy.spatial.transform import Rotation
+
     u = np.asarray(up, np.float64)
     if u.shape != (3,) or not np.isfinite(u).all() or np.linalg.norm(u) < 1e-9:
         raise ValueError(f"the world's up must be a finite non-zero 3-vector, got {up!r}")
-    u = u / np.linalg.norm(u)
-    # near -Z the smallest rotation's formula loses its precision: turn 180 deg about X first
-    flip = np.diag([1.0, -1.0, -1.0]) if u[2] < 0 else np.eye(3)
-    u = flip @ u
-    axis, cos = np.cross(u, [0.0, 0.0, 1.0]), float(u[2])  # cos >= 0 now
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    align = np.eye(3) + k + k @ k / (1.0 + cos)
-    return Z_UP_TO_Y_UP @ align @ flip
+    align = Rotation.align_vectors([[0.0, 0.0, 1.0]], [u / np.linalg.norm(u)])[0].as_matrix()
+    return Z_UP_TO_Y_UP @ align
 
 
 def _screen_axes(up) -> tuple[str, str]:

@@ -26,12 +26,23 @@ __all__ = [
     "crop_landmarks",
     "group_by_person",
     "N_LANDMARKS",
+    "without_projected",
 ]
 
 N_LANDMARKS = 33
 # a view the fit can start from shows at least this many landmarks above this confidence
 READABLE_LANDMARKS = 4
 READABLE_CONFIDENCE = 0.3
+
+
+def without_projected(landmarks: np.ndarray, projected: np.ndarray | None) -> np.ndarray:
+    """`landmarks` (N, 33, 3) with no confidence on the rows `projected` (N,) marks as the
+    rig's skeleton projected into the view rather than read (a copy where it changes any)."""
+    if projected is None or not np.any(projected):
+        return landmarks
+    out = np.array(landmarks, copy=True)
+    out[np.asarray(projected, bool), :, 2] = 0.0
+    return out
 
 
 def crop_landmarks(
@@ -52,11 +63,7 @@ def crop_landmarks(
         # skeleton into the view: no reading of the crop, and projections of one skeleton agree
         # with each other perfectly, so they would outvote every real reading
         # (docs/fuse.md "Five-person crowds"). No confidence here; crowded crops are read again.
-        projected = store.read_landmarks_projected(rows)
-        if projected is not None and projected.any():
-            stored = stored.copy()
-            stored[projected, :, 2] = 0.0
-        return stored
+        return without_projected(stored, store.read_landmarks_projected(rows))
     from gst.detect.blazepose import BlazePose
     from gst.detect.crops import detect_crop_landmarks
 

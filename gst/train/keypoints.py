@@ -76,13 +76,13 @@ def store_landmarks(
     store = CropStore(store_path)
     try:
         stored = store.read_landmarks()
-        projected = store.read_landmarks_projected() if reread is not None else None
     finally:
         store.close()
     if stored is not None and len(stored) == len(images):
-        if projected is None or len(projected) != len(images):
+        projected = projected_rows(store_path, len(images)) if reread is not None else None
+        if projected is None:
             return torch.from_numpy(stored), "store"
-        again = np.asarray(projected, bool) & np.asarray(reread, bool)
+        again = projected & np.asarray(reread, bool)
         if again.any():
             found = detect_crop_landmarks(images[torch.from_numpy(again)].numpy(), model, rgb=True)
             stored[again] = found.landmarks.astype(np.float32)

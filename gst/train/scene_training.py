@@ -26,6 +26,7 @@ from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
 from gst.device import resolve_device
+from gst.fuse.observations import without_projected
 from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
@@ -204,15 +205,6 @@ def _unmirrored(crops: CropSet, landmarks: torch.Tensor, targets) -> torch.Tenso
     return unmirror(landmarks, flags)
 
 
-def _as_fused(landmarks: torch.Tensor, projected: np.ndarray | None) -> np.ndarray:
-    """The crops' landmarks as the fuse stage fuses them: rows the extraction projected from
-    the rig's skeleton carry no confidence (gst.fuse.observations.crop_landmarks)."""
-    out = landmarks.numpy().copy()
-    if projected is not None:
-        out[projected, :, 2] = 0.0
-    return out
-
-
 def prepare_crops(
     p: TrainSettings,
     crops_h5: Path,
@@ -272,12 +264,13 @@ def prepare_crops(
             # stage's own bodies saw the held-out crops); the teacher is then refitted on the
             # corrected landmarks
             first = teacher(
-                _as_fused(landmarks, projected), allowed.numpy(),
+                without_projected(landmarks.numpy(), projected), allowed.numpy(),
                 work / "mirrors",
             )  # fmt: skip
             first_targets = distill_targets(crops, first, allowed, body_model=p.body_model)
             landmarks = _unmirrored(crops, landmarks, first_targets)
-        bodies = teacher(_as_fused(landmarks, projected), allowed.numpy(), work)
+        # the teacher fuses as the fuse stage does: projected rows carry no confidence
+        bodies = teacher(without_projected(landmarks.numpy(), projected), allowed.numpy(), work)
         crops.distill = distill_targets(crops, bodies, allowed, body_model=p.body_model)
         log.info(
             "distill: %d of %d crops have a fused-body target (training cameras and frames)",
