@@ -82,7 +82,9 @@ def dlt_points(P: np.ndarray, xy: np.ndarray, weights: np.ndarray | None = None)
     rows_y = y[..., None] * P[:, None, 2, :] - P[:, None, 1, :]
     # Rows interleaved per view (x, y of view 0, then view 1, ...), weighted.
     A = np.stack([rows_x, rows_y], axis=1) * w[:, None, :, None]  # (V, 2, N, 4)
-    A = A.reshape(-1, *A.shape[2:])  # (2V, N, 4)
+    A = A.reshape(2 * P.shape[0], xy.shape[1], 4)  # (2V, N, 4); N may be 0 (an empty frame)
+    if A.shape[1] == 0:
+        return np.zeros((0, 3))
     _, _, Vt = np.linalg.svd(np.transpose(A, (1, 0, 2)))  # (N, 4, 4)
     Xh = Vt[:, -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):

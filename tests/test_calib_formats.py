@@ -2,6 +2,7 @@
 format's own math and through our Camera; lossless round trips; detection; bad input."""
 
 import json
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -10,6 +11,8 @@ import h5py
 import numpy as np
 import pycolmap
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from calibration.camera import Camera, CameraError, Rig, look_at_rotation
 from calibration.formats import FORMATS, RigFormatError, detect_format, read_rig, write_rig
@@ -391,9 +394,11 @@ def test_qualisys_real_lab_file_matches_pose2sim_conversion():
 
 
 def test_qualisys_video_resolution_scales_the_intrinsics(tmp_path):
-    """A camera that records video below 1080 lines says so; its field of view and intrinsics
-    are given at 1080p (Pose2Sim's reader scales them alike). Before, '540p' was ignored and the
-    camera read as 1088x1920."""
+    """A camera that records video below its native lines says so; its field of view and
+    intrinsics are given at the native resolution. Before, '540p' was ignored and the camera
+    read as 1088x1920. A video scaled by s maps a native pixel u to (u + 0.5) s - 0.5 (pixel
+    centres at whole coordinates; a 2x area downscale takes pixels 600 and 601 to 300): the
+    principal point was scaled as c s before, 0.25 px off at 540p."""
     base = read_rig(QCA)
     text = QCA.read_text()
     for res, scale in (("1080p", 1.0), ("540p", 0.5), ("N/A", 1.0)):
@@ -402,11 +407,47 @@ def test_qualisys_video_resolution_scales_the_intrinsics(tmp_path):
         rig = read_rig(path)
         for a, b in zip(base, rig, strict=True):
             assert (b.width, b.height) == (round(a.width * scale), round(a.height * scale))
-            np.testing.assert_allclose(b.K[:2], a.K[:2] * scale)
+            np.testing.assert_allclose(np.diag(b.K)[:2], np.diag(a.K)[:2] * scale)
+            np.testing.assert_allclose(b.K[:2, 2], (a.K[:2, 2] + 0.5) * scale - 0.5)
+            np.testing.assert_allclose(
+                b.project(POINTS_M), (a.project(POINTS_M) + 0.5) * scale - 0.5, atol=1e-9
+            )
             np.testing.assert_array_equal(b.R, a.R)
-    path = tmp_path / "bad.qca.txt"
-    path.write_text(text.replace("<camera ", '<camera video_resolution="HD" '))
-    with pytest.raises(RigFormatError, match="video_resolution='HD'"):
+    area = cv2.resize(np.pad(np.ones((2, 2), np.float32), ((1000, 918), (600, 486))), (544, 960),
+                      interpolation=cv2.INTER_AREA)  # fmt: skip
+    assert np.unravel_index(area.argmax(), area.shape) == (500, 300)  # (1000.5 + 0.5) / 2 - 0.5
+    for res, match in (("HD", "video_resolution='HD'"), ("2160p", "more lines than")):
+        path = tmp_path / "bad.qca.txt"
+        path.write_text(text.replace("<camera ", f'<camera video_resolution="{res}" '))
+        with pytest.raises(RigFormatError, match=match):
+            read_rig(path)
+
+
+def test_qualisys_video_plus_is_not_scaled_as_1080p(tmp_path):
+    """A Miqus Video Plus calibrates and records at 1440p (window 1920 x 1440). Pose2Sim's
+    reader, and ours before, scaled every camera by N / 1080: a 1440p Video Plus camera came out
+    2560 x 1920 with its focal length 4/3 too long (pose2sim issues 200, 212)."""
+    text = QCA.read_text().replace(
+        'bottom="1919" left="0" right="1087" top="0"', 'bottom="1439" left="0" right="1919" top="0"'
+    )
+    native = tmp_path / "plus.qca.txt"
+    native.write_text(text.replace('model="none"', 'model="Miqus Video Plus"'))
+    for res, scale in (("1440p", 1.0), ("720p", 0.5)):
+        path = tmp_path / f"plus_{res}.qca.txt"
+        path.write_text(
+            text.replace('model="none"', f'model="Miqus Video Plus" video_resolution="{res}"')
+        )
+        for a, b in zip(read_rig(native), read_rig(path), strict=True):
+            assert (a.width, a.height) == (1920, 1440)
+            assert (b.width, b.height) == (1920 * scale, 1440 * scale)
+            np.testing.assert_allclose(b.K[0, 0], a.K[0, 0] * scale)
+
+
+def test_qualisys_transform_with_nan_is_refused_by_name(tmp_path):
+    """NaN passed the orthonormality check (nan > tol is False) and crashed in the SVD."""
+    path = tmp_path / "nan.qca.txt"
+    path.write_text(QCA.read_text().replace('r11="0.5536380477336265"', 'r11="nan"', 1))
+    with pytest.raises(RigFormatError, match="camera 'cam01' <transform> holds NaN"):
         read_rig(path)
 
 
@@ -550,6 +591,13 @@ def test_failed_write_keeps_the_old_file(tmp_path):
         (lambda d: d["cameras"][0].update(R=[[1, 0], [0, 1]]), "c0.*R has shape"),
         (lambda d: d["cameras"][0].update(t=[0, float("nan"), 0]), "c0.*NaN"),
         (lambda d: d["cameras"][0].update(focal=1.0), "unknown keys"),
+        # values of the wrong type escaped as bare ValueError / TypeError naming nothing
+        (lambda d: d["cameras"][0].update(width="abc"), "camera 'c0' width is 'abc'"),
+        (lambda d: d["cameras"][0].update(width=1000.9), "camera 'c0' width is 1000.9"),
+        (lambda d: d["cameras"][0].update(height=True), "camera 'c0' height is True"),
+        (lambda d: d["cameras"][0].update(dist={"k1": 0.1}), "camera 'c0'.*dict"),
+        (lambda d: d.update(up=["z", 0, 1]), "up is not numeric"),
+        (lambda d: d.update(up=[0, 1]), r"up has shape \(2,\)"),
     ],
 )
 def test_bad_rig_json_is_reported_with_file_and_key(tmp_path, mutate, match):
@@ -641,3 +689,95 @@ def test_h36m_keeps_a_camera_name_that_is_not_ascii(tmp_path):
     write_rig(rig, tmp_path / "cameras.h5", "h36m", subject=9)
     back = read_rig(tmp_path / "cameras.h5", "h36m", subject=9)
     assert [c.name for c in back.cameras] == ["caméra 1", "カメラ2"]
+
+
+def test_five_term_formats_refuse_rational_or_prism_terms(tmp_path):
+    """Panoptic's distCoef is k1, k2, p1, p2, k3 (the panoptic toolbox reads Kd[0..4]); an 8-term
+    lens was written whole, which our reader round-tripped but the toolbox projects hundreds of
+    pixels elsewhere. Refused as H36M JSON already did; 5 terms still write."""
+    rig8 = ring_cameras(2, dist=(0.3, 0.05, 0.001, 0.0005, 0.001, 0.4, 0.06, 0.002))
+    for fmt in ("panoptic", "h36m-json"):
+        with pytest.raises(RigFormatError, match="needs more than the 5 OpenCV terms"):
+            write_rig(rig8, tmp_path / f"{fmt}.json", fmt)
+        assert not (tmp_path / f"{fmt}.json").exists()
+        write_rig(ring_cameras(2), tmp_path / f"{fmt}5.json", fmt)
+        assert_same_rig(ring_cameras(2), read_rig(tmp_path / f"{fmt}5.json", fmt))
+
+
+def _drop_key(path: Path, fmt: str, key: str) -> None:
+    """Remove `key` from every camera of a written file (JSON or TOML text)."""
+    if fmt == "panoptic":
+        data = json.loads(path.read_text())
+        for cam in data["cameras"]:
+            cam.pop(key)
+        path.write_text(json.dumps(data))
+    elif fmt == "h36m-json":
+        data = json.loads(path.read_text())
+        for cam in data["intrinsics"].values():
+            cam.pop(key)
+        path.write_text(json.dumps(data))
+    else:
+        path.write_text(
+            "\n".join(x for x in path.read_text().splitlines() if not x.startswith(key))
+        )
+
+
+@pytest.mark.parametrize(
+    "fmt,suffix,key",
+    [
+        ("panoptic", ".json", "distCoef"),
+        ("h36m-json", ".json", "distortion"),
+        ("anipose", ".toml", "distortions"),
+        ("pose2sim", ".toml", "distortions"),
+    ],
+)
+def test_a_file_without_its_distortion_key_is_refused(tmp_path, fmt, suffix, key):
+    """A missing distortion key was read as a lens without distortion (tens of pixels at the
+    corners for an H36M lens); the formats' own readers fail on it. An empty list still reads."""
+    path = tmp_path / f"rig{suffix}"
+    write_rig(ring_cameras(2), path, fmt)
+    _drop_key(path, fmt, key)
+    with pytest.raises(RigFormatError, match=f"missing key '{key}'") as info:
+        read_rig(path, fmt)
+    assert str(path) in str(info.value)
+
+
+def test_panoptic_resolution_must_be_whole_pixels(tmp_path):
+    path = tmp_path / "p.json"
+    write_rig(ring_cameras(1), path, "panoptic")
+    data = json.loads(path.read_text())
+    data["cameras"][0]["resolution"] = [1919.6, 1080]
+    path.write_text(json.dumps(data))
+    with pytest.raises(RigFormatError, match=r"resolution\[0\] is 1919.6"):
+        read_rig(path, "panoptic")
+    data["cameras"][0]["resolution"] = [1920.0, 1080]  # a whole number written as a float
+    path.write_text(json.dumps(data))
+    assert read_rig(path, "panoptic")[0].width == 1920
+
+
+@pytest.mark.parametrize("fmt", ["anipose", "pose2sim"])
+def test_toml_tables_that_are_not_cameras_are_skipped(tmp_path, fmt):
+    """Caliscope-style files carry [charuco] and [capture_volume] tables, which Pose2Sim's
+    readers skip; ours read them as cameras and refused the file ('missing key size')."""
+    path = tmp_path / "cal.toml"
+    write_rig(ring_cameras(2), path, fmt)
+    path.write_text(
+        path.read_text()
+        + "\n[charuco]\ncolumns = 4\nrows = 5\nsquare_size_overide_cm = 5.4\n"
+        + "\n[capture_volume]\nstage = 1\n"
+    )
+    rig = read_rig(path, fmt)
+    assert list(rig.names) == ["c0", "c1"]
+
+
+@given(name=st.text(min_size=1, max_size=12).filter(lambda n: n.strip() == n and n))
+@settings(max_examples=60, deadline=None)
+def test_toml_camera_names_round_trip_whatever_their_characters(name):
+    """Only backslash, quote and newline were escaped: a name with another control character
+    (a carriage return, \\x01) made a file that no TOML reader accepts."""
+    cam = ring_cameras(1)[0]
+    rig = Rig((Camera.create(name, cam.K, cam.dist, cam.R, cam.t, cam.width, cam.height),))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "cal.toml"
+        write_rig(rig, path, "anipose")
+        assert list(read_rig(path, "anipose").names) == [name]

@@ -102,3 +102,10 @@ def test_dlt_gives_no_point_behind_the_cameras():
     assert np.isnan(tri.points).all() and np.isnan(tri.errors_px).all() and not tri.used.any()
     ok = triangulate_dlt(rig, np.array([[[420.0, 300.0]], [[380.0, 300.0]]]))  # converging
     assert ok.points[0, 2] > 0 and np.nanmax(ok.errors_px) < 1e-6
+
+
+def test_no_points_give_empty_results_like_the_robust_path():
+    """An empty frame (no points): the DLT crashed reshaping (0,) into (0, 4)."""
+    for triangulate in (triangulate_dlt, triangulate_robust):
+        tri = triangulate(RIG, np.zeros((len(RIG), 0, 2)))
+        assert tri.points.shape == (0, 3)

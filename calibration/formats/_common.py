@@ -64,6 +64,8 @@ def make_camera(path: Path, name, *, repair_rotation: bool = True, **fields) -> 
         return Camera.create(name, **fields)
     except CameraError as exc:
         raise RigFormatError(f"{path}: {exc}") from exc
+    except (TypeError, ValueError) as exc:  # a field that is not a number (int('abc'), a dict)
+        raise RigFormatError(f"{path}: camera '{name}': {exc}") from exc
 
 
 def make_rig(path: Path, cameras: list[Camera], **kwargs) -> Rig:
@@ -108,6 +110,39 @@ def require_array(
     return as_float_array(require(data, key, path, where), shape, path, f"{where} {key}")
 
 
+def require_distortion(data: dict, key: str, path: Path, where: str) -> np.ndarray:
+    """`data[key]` as a flat float64 array. The key is required: a file that leaves it out is
+    refused rather than read as a lens without distortion (the formats' own readers fail on it
+    too); a lens without distortion is written as an empty list."""
+    value = require(data, key, path, where)
+    try:
+        return np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError) as exc:
+        raise RigFormatError(f"{path}: {where} {key} is not a list of numbers ({exc})") from exc
+
+
+def pixel_count(value, path: Path, what: str) -> int:
+    """An image side in pixels: a whole number (1920 or 1920.0), never a bool or 1000.9."""
+    is_number = isinstance(value, (int, float, np.integer, np.floating))
+    if isinstance(value, (bool, np.bool_)) or not is_number or not float(value).is_integer():
+        shown = value.item() if isinstance(value, np.generic) else value
+        raise RigFormatError(f"{path}: {what} is {shown!r}, expected a whole number of pixels")
+    return int(value)
+
+
+def five_term_dist(camera: Camera, fmt: str) -> np.ndarray:
+    """The camera's distortion as k1, k2, p1, p2, k3, for formats whose lens model stops there
+    (Panoptic, H36M JSON): a camera with non-zero rational or thin-prism terms is refused, since
+    readers of those formats would ignore the terms and project elsewhere."""
+    d = trim_dist(camera.dist)
+    if d.size > 5:
+        raise RigFormatError(
+            f"camera '{camera.name}': distortion {camera.dist.tolist()} needs more than "
+            f"the 5 OpenCV terms (k1, k2, p1, p2, k3) the {fmt} format holds"
+        )
+    return d
+
+
 def trim_dist(dist: np.ndarray, min_len: int = 5) -> np.ndarray:
     """Shortest valid OpenCV distortion vector (length 4, 5, 8, 12 or 14, at least `min_len`)
     holding all non-zero terms of `dist`."""
@@ -134,10 +169,20 @@ def toml_value(v) -> str:
             raise RigFormatError(f"cannot write non-finite number {f} to TOML")
         return repr(f)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
+        return '"' + "".join(_toml_char(ch) for ch in v) + '"'
     if isinstance(v, (list, tuple, np.ndarray)):
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise RigFormatError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml_char(ch: str) -> str:
+    """One character of a TOML basic string: quote and backslash escaped, every control
+    character (which TOML forbids raw) as \\uXXXX."""
+    if ch in ('"', "\\"):
+        return "\\" + ch
+    if ord(ch) < 0x20 or ord(ch) == 0x7F:
+        return f"\\u{ord(ch):04X}"
+    return ch
 
 
 def toml_dumps(tables: dict[str, dict]) -> str:

@@ -2,7 +2,9 @@
 
 Each camera table holds `name`, `size` [w, h], `matrix` 3x3, `distortions` (OpenCV order),
 `rotation` (Rodrigues vector, world to camera) and `translation` (world to camera); a
-`[metadata]` table follows. The formats differ in units and distortion length only.
+`[metadata]` table follows. The formats differ in units and distortion length only. Tables
+that hold none of a camera's keys (`[metadata]`, and the `[capture_volume]`, `[charuco]` or
+`[checkerboard]` of Caliscope-style files, which Pose2Sim's readers skip too) are not cameras.
 """
 
 from __future__ import annotations
@@ -20,11 +22,23 @@ from calibration.formats._common import (
     atomic_write_text,
     make_camera,
     make_rig,
+    pixel_count,
     require_array,
+    require_distortion,
     toml_dumps,
 )
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
+CAMERA_KEYS = ("matrix", "rotation", "translation")
+
+
+def camera_tables(data: dict) -> dict[str, dict]:
+    """The tables of `data` that describe cameras (any of CAMERA_KEYS; module doc)."""
+    return {
+        key: table
+        for key, table in data.items()
+        if isinstance(table, dict) and any(k in table for k in CAMERA_KEYS)
+    }
 
 
 def load_tables(path: Path) -> dict:
@@ -38,9 +52,7 @@ def load_tables(path: Path) -> dict:
 def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
     data = load_tables(path)
     cameras = []
-    for key, table in data.items():
-        if key == "metadata" or not isinstance(table, dict):
-            continue
+    for key, table in camera_tables(data).items():
         where = f"[{key}]"
         if table.get("fisheye", False):
             raise RigFormatError(
@@ -54,11 +66,11 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
                 path,
                 str(table.get("name", key)),
                 K=require_array(table, "matrix", (3, 3), path, where),
-                dist=np.asarray(table.get("distortions", []), dtype=np.float64),
+                dist=require_distortion(table, "distortions", path, where),
                 R=cv2.Rodrigues(rvec)[0],
                 t=t * metres_per_unit,
-                width=int(round(w)),
-                height=int(round(h)),
+                width=pixel_count(w, path, f"{where} size[0]"),
+                height=pixel_count(h, path, f"{where} size[1]"),
                 meta={"source": source, "section": key},
             )
         )
@@ -109,7 +121,7 @@ def write_cameras(
 def looks_like_pose2sim(path: Path) -> bool:
     """Pose2Sim writes `fisheye = ...` and 4 distortion terms; aniposelib neither."""
     data = load_tables(path)
-    cams = [t for k, t in data.items() if k != "metadata" and isinstance(t, dict)]
+    cams = camera_tables(data).values()
     return any("fisheye" in t or len(t.get("distortions", [])) == 4 for t in cams)
 
 

@@ -17,19 +17,18 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
     as_float_array,
     atomic_write_text,
+    five_term_dist,
     load_json,
     make_camera,
     make_rig,
     require,
     require_array,
-    trim_dist,
+    require_distortion,
 )
 from calibration.formats.h36m import (
     MM_PER_M,
@@ -81,7 +80,7 @@ def read(
             path,
             f"{where} K",
         )
-        raw = np.asarray(i.get("distortion", []), dtype=np.float64).ravel()
+        raw = require_distortion(i, "distortion", path, f"{where} intrinsics")
         if tangential == "h36m":
             if raw.size != 5:
                 raise RigFormatError(f"{path}: {where} distortion has {raw.size} terms, expected 5")
@@ -121,13 +120,7 @@ def write(rig: Rig, path: str | Path, subject="S1", tangential: str = "opencv") 
             k, p, _ = opencv_to_h36m(c)
             dist = [k[0], k[1], p[0], p[1], k[2]]
         else:
-            d = trim_dist(c.dist)
-            if d.size > 5:
-                raise RigFormatError(
-                    f"camera '{c.name}': distortion {c.dist.tolist()} needs more than "
-                    "the 5 OpenCV terms this format holds"
-                )
-            dist = d.tolist()
+            dist = five_term_dist(c, "H36M JSON").tolist()
         intr[c.name] = {
             "calibration_matrix": c.K.tolist(),
             "distortion": [float(v) for v in dist],

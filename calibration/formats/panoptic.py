@@ -12,18 +12,18 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
     atomic_write_text,
+    five_term_dist,
     load_json,
     make_camera,
     make_rig,
+    pixel_count,
     require,
     require_array,
-    trim_dist,
+    require_distortion,
 )
 
 CM_PER_M = 100.0  # multiply/divide by 100 (exact for more values than scaling by 0.01)
@@ -42,7 +42,7 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
         if camera_types is not None and ctype not in camera_types:
             continue
         w, h = require_array(cd, "resolution", (2,), path, where)
-        dist = np.asarray(cd.get("distCoef", []), dtype=np.float64).ravel()
+        dist = require_distortion(cd, "distCoef", path, where)
         meta = {"source": "panoptic", "type": ctype}
         for key in ("panel", "node"):
             if key in cd:
@@ -55,8 +55,8 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
                 dist=dist,
                 R=require_array(cd, "R", (3, 3), path, where),
                 t=require_array(cd, "t", (3,), path, where) / CM_PER_M,
-                width=int(w),
-                height=int(h),
+                width=pixel_count(w, path, f"{where} resolution[0]"),
+                height=pixel_count(h, path, f"{where} resolution[1]"),
                 meta=meta,
             )
         )
@@ -84,7 +84,7 @@ def write(rig: Rig, path: str | Path) -> None:
                 "panel": c.meta.get("panel", 0),
                 "node": c.meta.get("node", i),
                 "K": c.K.tolist(),
-                "distCoef": trim_dist(c.dist).tolist(),
+                "distCoef": five_term_dist(c, "Panoptic").tolist(),
                 "R": c.R.tolist(),
                 "t": (c.t * CM_PER_M).reshape(3, 1).tolist(),
             }

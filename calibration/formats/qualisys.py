@@ -28,6 +28,7 @@ from calibration.formats._common import RigFormatError, make_camera, make_rig
 SUBPIXELS_PER_PIXEL = 64.0
 MM_PER_M = 1000.0
 QUALISYS_TO_OPENCV_AXES = np.diag([1.0, -1.0, -1.0])
+VIDEO_PLUS_LINES = 1440.0  # Miqus Video Plus's native video lines (1920 x 1440)
 
 
 def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
@@ -49,10 +50,14 @@ def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
     return el
 
 
-def _video_scale(resolution: str | None, path: Path, where: str) -> float:
-    """The video's size against the calibration's 1080 lines: Qualisys cameras that record
-    video at a lower resolution say so (`video_resolution="540p"`) while their intrinsics and
-    field of view stay at 1080p (as Pose2Sim's reader scales them)."""
+def _video_scale(cam: ET.Element, path: Path, where: str) -> float:
+    """The recorded video's size against the resolution the camera was calibrated at. Qualisys
+    cameras that record below it say so (`video_resolution="540p"`) while their intrinsics and
+    field of view stay at the native resolution: 1440p where the shorter side of
+    `<fov_video_max>` holds 1440 lines (Miqus Video Plus), else 1080p (Miqus Video, whose
+    windows may hold 1088 lines), which Pose2Sim's reader assumes for every camera and so
+    scales Video Plus files by 4/3 (pose2sim issues 200, 212)."""
+    resolution = cam.get("video_resolution")
     if resolution in (None, "", "N/A"):
         return 1.0
     text = resolution.strip().lower()
@@ -60,7 +65,21 @@ def _video_scale(resolution: str | None, path: Path, where: str) -> float:
         raise RigFormatError(
             f"{path}: {where} has video_resolution={resolution!r}; expected e.g. '1080p' or '540p'"
         )
-    return int(text[:-1]) / 1080.0
+    native = 1080.0
+    window = cam.find("fov_video_max")
+    if window is not None:
+        sides = [
+            _float(window, hi, path, where) - _float(window, lo, path, where) + 1
+            for lo, hi in (("left", "right"), ("top", "bottom"))
+        ]
+        native = VIDEO_PLUS_LINES if min(sides) >= VIDEO_PLUS_LINES else 1080.0
+    scale = int(text[:-1]) / native
+    if scale > 1 + 1e-9:
+        raise RigFormatError(
+            f"{path}: {where} has video_resolution={resolution!r}, more lines than its "
+            f"calibrated video window ({native:g}); expected at most {native:g}p"
+        )
+    return scale
 
 
 def read(
@@ -91,7 +110,7 @@ def read(
                 f"{path}: {where} has viewrotation={cam.get('viewrotation')}; "
                 "rotated views are not supported"
             )
-        scale = _video_scale(cam.get("video_resolution"), path, where)
+        scale = _video_scale(cam, path, where)
         fov = _child(cam, "fov_video", path, where)
         left, top = _float(fov, "left", path, where), _float(fov, "top", path, where)
         width = int(round((_float(fov, "right", path, where) - left + 1) * scale))
@@ -104,8 +123,11 @@ def read(
             )
         fu = _float(intr, "focalLengthU", path, where) / SUBPIXELS_PER_PIXEL * scale
         fv = _float(intr, "focalLengthV", path, where) / SUBPIXELS_PER_PIXEL * scale
-        cu = (_float(intr, "centerPointU", path, where) / SUBPIXELS_PER_PIXEL - left) * scale
-        cv = (_float(intr, "centerPointV", path, where) / SUBPIXELS_PER_PIXEL - top) * scale
+        # pixel centres sit at whole coordinates, so a video scaled by `scale` maps native u to
+        # (u + 0.5) * scale - 0.5 (a 2x area downscale takes pixels 600 and 601 to 300)
+        cu = (_float(intr, "centerPointU", path, where) / SUBPIXELS_PER_PIXEL - left + 0.5) * scale
+        cv = (_float(intr, "centerPointV", path, where) / SUBPIXELS_PER_PIXEL - top + 0.5) * scale
+        cu, cv = cu - 0.5, cv - 0.5
         dist = distortion_scale * np.array(
             [
                 _float(intr, "radialDistortion1", path, where),
@@ -118,6 +140,8 @@ def read(
         tr = _child(cam, "transform", path, where)
         position = np.array([_float(tr, a, path, where) for a in "xyz"]) / MM_PER_M
         M = np.array([[_float(tr, f"r{r}{c}", path, where) for c in (1, 2, 3)] for r in (1, 2, 3)])
+        if not (np.isfinite(M).all() and np.isfinite(position).all()):
+            raise RigFormatError(f"{path}: {where} <transform> holds NaN or Inf")
         ortho_err = float(np.abs(M @ M.T - np.eye(3)).max())
         if ortho_err > 1e-5:
             raise RigFormatError(

@@ -13,11 +13,13 @@ from pathlib import Path
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
+    as_float_array,
     atomic_write_text,
     json_safe,
     load_json,
     make_camera,
     make_rig,
+    pixel_count,
     require,
     require_array,
 )
@@ -94,13 +96,13 @@ def from_dict(data: dict, path: Path) -> Rig:
                 dist=require(cd, "dist", path, where),
                 R=require_array(cd, "R", (3, 3), path, where),
                 t=require_array(cd, "t", (3,), path, where),
-                width=require(cd, "width", path, where),
-                height=require(cd, "height", path, where),
+                width=pixel_count(require(cd, "width", path, where), path, f"{where} width"),
+                height=pixel_count(require(cd, "height", path, where), path, f"{where} height"),
                 meta=cd.get("meta") or {},
             )
         )
-    up = data.get("up", [0.0, 0.0, 1.0])
-    return make_rig(path, cameras, up=tuple(float(v) for v in up), meta=data.get("meta") or {})
+    up = as_float_array(data.get("up", [0.0, 0.0, 1.0]), (3,), path, "up")
+    return make_rig(path, cameras, up=tuple(up.tolist()), meta=data.get("meta") or {})
 
 
 def read(path: str | Path) -> Rig:
