@@ -233,6 +233,11 @@ def frame_range(
         end = info.frame_count if end is None else min(end, info.frame_count)
     if start_s is not None and end_s is not None and end_s <= start_s:
         raise ValueError(f"{info.path}: time range end {end_s} s must be after start {start_s} s")
+    if info.frame_count is not None and first >= info.frame_count:
+        raise VideoError(
+            f"{info.path}: start {start_s} s is at or past the end of the video "
+            f"({info.frame_count} frames, {info.frame_count / info.fps:.3f} s)"
+        )
     return first, end
 
 
@@ -248,6 +253,20 @@ def _landed(cap: cv2.VideoCapture, info: VideoInfo, frame: int) -> bool:
         return False
     ms = cap.get(cv2.CAP_PROP_POS_MSEC)
     return math.isfinite(ms) and abs(ms - before * 1000.0 / info.fps) <= 250.0 / info.fps
+
+
+def _check_stream_end(info: VideoInfo, index: int) -> None:
+    """Decoding stopped at frame `index`: the end of the stream where the container announced
+    it (within END_SLACK_FRAMES) or announced nothing; otherwise the file is truncated or
+    corrupt, and VideoTruncatedError names the frame."""
+    short = None if info.frame_count is None else info.frame_count - index
+    if short is None or short <= END_SLACK_FRAMES:
+        return
+    raise VideoTruncatedError(
+        f"{info.path}: decoding failed at frame {index} of {info.frame_count} announced (file "
+        f"truncated or corrupt); frames before {index} decoded fine",
+        index,
+    )
 
 
 def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterator[Frame]:
@@ -266,25 +285,21 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
             cap = _open(info.path, info.camera)
             for k in range(first):
                 if not cap.grab():
-                    raise VideoTruncatedError(
-                        f"{info.path}: decoding failed at frame {k} on the way to frame {first}", k
-                    )
+                    _check_stream_end(info, k)  # the stream ends before `first`: no frames
+                    return
         index = first
         while end is None or index < end:
             ok, image = cap.read()
             if not ok or image is None:
-                short = None if info.frame_count is None else info.frame_count - index
-                if short is None or short <= END_SLACK_FRAMES:
-                    return
-                raise VideoTruncatedError(
-                    f"{info.path}: decoding failed at frame {index} of {info.frame_count} "
-                    f"announced (file truncated or corrupt); frames before {index} decoded fine",
-                    index,
-                )
+                _check_stream_end(info, index)
+                return
             yield Frame(index, index / info.fps, image)
             for _ in range(stride - 1):
                 index += 1
-                if (end is not None and index >= end) or not cap.grab():
+                if end is not None and index >= end:
+                    return
+                if not cap.grab():  # a skipped frame is checked like a read one
+                    _check_stream_end(info, index)
                     return
             index += 1
     finally:

@@ -128,3 +128,30 @@ def test_frame_range_validation(video):
         frame_range(info, 2.0, 1.0)
     with pytest.raises(ValueError, match="stride must be >= 1"):
         iter_frames(video, stride=0)
+
+
+@pytest.mark.parametrize("stride", [2, 3, 4])
+def test_truncated_file_raises_with_a_stride_too(video, tmp_path, stride):
+    """With stride > 1 a damaged frame that falls on a skipped one (grabbed, not read) ended the
+    stream silently, so a truncated video tracked with `stride: 2` gave a file that looked
+    complete. Every cut point now raises, after the good frames."""
+    data = video.read_bytes()
+    for frac in np.linspace(0.4, 0.6, 9):
+        cut = tmp_path / f"cut{frac:.3f}.avi"
+        cut.write_bytes(data[: int(len(data) * frac)])
+        seen = []
+        with pytest.raises(VideoTruncatedError, match="of 30 announced") as err:
+            for f in iter_frames(cut, stride=stride):
+                seen.append(f.index)
+        assert seen == list(range(0, len(seen) * stride, stride))
+        assert seen[-1] < err.value.frame <= seen[-1] + stride
+
+
+def test_a_start_past_the_end_is_an_error(video):
+    """start_s beyond the video gave an empty frame range, and `track` an empty, finished file."""
+    info = probe_video(video)
+    with pytest.raises(VideoError, match=r"start 30.0 s is at or past the end .*30 frames, 3.000"):
+        frame_range(info, 30.0, None)
+    with pytest.raises(VideoError, match="past the end"):
+        list(iter_frames(video, start_s=3.0))
+    assert frame_range(info, 2.9, None) == (29, N)

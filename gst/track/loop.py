@@ -49,6 +49,7 @@ from gst.track.tracker import TrackerConfig
 from gst.track.writer import TrackWriter
 from gst.video import (
     Frame,
+    VideoError,
     VideoInfo,
     VideoTruncatedError,
     frame_range,
@@ -534,9 +535,12 @@ def tracked_groups(
         yield from finish()
         raise
     finally:
-        close_prefetch = getattr(detected, "close", None)
-        if close_prefetch is not None:
-            close_prefetch()
+        # both prefetch stages: on an error the exception's traceback holds the generators in
+        # a cycle, so a decode thread and its capture would otherwise live until the next gc
+        for stage in (detected, frames):
+            close_stage = getattr(stage, "close", None)
+            if close_stage is not None:
+                close_stage()
     yield from finish()
 
 
@@ -635,6 +639,11 @@ def track_video(
     if keep_detections is not None and not keep_detections():
         detections = "run"  # they could not be kept: the run's own result stands
     stats = {**session.stats, "persons": session.tracker.next_id}
+    if stats["frames"] == 0:  # an empty file would read as a finished video in which nobody moved
+        raise VideoError(
+            f"{video_path}: no frame could be decoded (an empty or unreadable video stream); "
+            "nothing was written"
+        )
     meta = run_metadata(run, options, model, world_up, stats, writer.digest, num_betas)
     path = writer.finalize(meta, options.row_group_rows)
     return TrackResult(

@@ -23,7 +23,7 @@ from gst.data.background import BackgroundConfig, build_background, sample_indic
 from gst.data.ground import ground_seed
 from gst.data.masks import MaskConfig, clean_mask
 from gst.track.detection import Detection
-from gst.video import probe_video, read_frames
+from gst.video import END_SLACK_FRAMES, probe_video, read_frames
 
 
 def group_boxes(
@@ -94,7 +94,10 @@ class StaticCameraDetector:
         if camera is not None:
             camera, _ = fit_to_frames(camera, info.width, info.height, source=str(source))
             self.camera = camera
-        picks = sample_indices(info.frames, min(self.config.samples, info.frames))
+        # the last END_SLACK_FRAMES frames a container announces may be missing (the tracking
+        # loop accepts such files), so the plate is sampled before them
+        sure = info.frames - END_SLACK_FRAMES if info.frames > 2 * END_SLACK_FRAMES else info.frames
+        picks = sample_indices(sure, min(self.config.samples, sure))
         samples = np.stack(
             [img for _, img in read_frames(source, picks, source.stem, scale=self.work_scale)]
         )

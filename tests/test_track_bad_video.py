@@ -1,0 +1,79 @@
+"""`track` on videos that are empty, over-announced, or whose detector fails mid-stream: a clear
+error and nothing that looks finished, or a run that copes, and no thread left behind."""
+
+import struct
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from gst.track import BoxDepthPredictor, SuppliedBoxes, TrackOptions, track_video
+from gst.track.detection import Detection
+from gst.track.static_detector import StaticCameraDetector
+from gst.video import VideoError, iter_frames, probe_video
+from tests.track_synthetic import crossing_clip, track_boxes
+
+
+def test_a_video_without_frames_is_refused_and_nothing_is_written(tmp_path):
+    """A container holding no frame probed as 'length unknown', decoded nothing, and `track`
+    finalised an empty tracks.parquet that read as a finished video in which nobody moved."""
+    path = tmp_path / "empty.avi"
+    cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240)).release()
+    assert probe_video(path).frame_count is None
+    with pytest.raises(VideoError, match="empty.avi: no frame could be decoded"):
+        track_boxes(path, tmp_path / "out", SuppliedBoxes({}), options=TrackOptions(prefetch=0))
+    assert not list((tmp_path / "out").rglob("*.parquet"))
+
+
+def _announcing_one_more(src: Path, dst: Path) -> None:
+    """An AVI whose headers announce one frame more than it holds (some cameras write that)."""
+    data = bytearray(src.read_bytes())
+    avih, strh = data.find(b"avih"), data.find(b"strh")
+    n = struct.unpack_from("<I", data, avih + 8 + 16)[0]
+    struct.pack_into("<I", data, avih + 8 + 16, n + 1)  # dwTotalFrames
+    struct.pack_into("<I", data, strh + 8 + 32, n + 1)  # dwLength
+    dst.write_bytes(bytes(data))
+
+
+def test_the_background_detector_takes_a_video_that_announces_one_frame_too_many(tmp_path):
+    """The tracking loop accepts a container that over-announces by up to END_SLACK_FRAMES; the
+    background detector sampled the announced last frame for its plate and refused the file."""
+    *_, video = crossing_clip(tmp_path, frames=40)
+    over = tmp_path / "over.avi"
+    _announcing_one_more(video, over)
+    assert probe_video(over).frame_count == 41 and len(list(iter_frames(over))) == 40
+    detector = StaticCameraDetector(over)
+    frame = next(iter_frames(over)).image
+    assert detector.detect(frame, 0)
+
+
+class _FailingDetector:
+    def detect(self, image, index):
+        if index == 12:
+            raise ZeroDivisionError("detector failed at 12")
+        return [Detection(np.array([10.0, 20.0, 60.0, 200.0]), 0.9)]
+
+
+def test_a_detector_error_leaves_no_decode_thread_behind(tmp_path):
+    """With prefetch, a failing detector left the decode thread (and its video capture) alive
+    until the next garbage collection: the exception's traceback held the generators in a
+    cycle and only the detector's stage was closed."""
+    *_, video = crossing_clip(tmp_path, frames=40)
+    with pytest.raises(ZeroDivisionError, match="at 12"):
+        track_video(
+            video,
+            tmp_path / "out",
+            _FailingDetector(),
+            BoxDepthPredictor(),
+            model={"name": "test", "version": "0"},
+            options=TrackOptions(prefetch=4, frames_per_group=5),
+        )
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and any(
+        t.name == "video-decode" for t in threading.enumerate()
+    ):
+        time.sleep(0.05)
+    assert not [t.name for t in threading.enumerate() if t.name == "video-decode"]
