@@ -81,7 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("stage", help="stage name, or 'all'")
     _common(run)
     run.add_argument(
-        "--force", action="store_true", help="rerun the named stage even if it is up to date"
+        "--force",
+        action="store_true",
+        help="rerun the named stage even if it is up to date (with 'all': every stage of "
+        "`run all`, pretrain included)",
     )
     run.add_argument("--force-all", action="store_true", help="rerun every stage in the plan")
     run.add_argument("--dry-run", action="store_true", help="print the plan and why, run nothing")
@@ -322,13 +325,13 @@ def main(argv: list[str] | None = None) -> int:
         for runner in runners:
             scene = runner.scene_name
             notes = scene_input_problems(scene, cfg.scenes[scene])
+            report = make_console(False, stderr=False)  # the command's output: stdout
             if args.command == "status":
-                console.quiet = False
-                console.print(
+                report.print(
                     _status_table(f"scene '{scene}'  ({runner.workspace})", runner.status())
                 )
                 for note in notes:
-                    console.print(f"[yellow]input problem:[/] {note}", highlight=False)
+                    report.print(f"[yellow]input problem:[/] {note}", highlight=False)
                 continue
             targets = (
                 [n for n in cfg.stages if stages[n].in_all] if args.stage == "all" else [args.stage]
@@ -341,10 +344,9 @@ def main(argv: list[str] | None = None) -> int:
                 upstream=args.upstream,
             )
             if args.dry_run:
-                console.quiet = False
-                console.print(_status_table(f"plan for scene '{scene}' (dry run)", planned))
+                report.print(_status_table(f"plan for scene '{scene}' (dry run)", planned))
                 for note in notes:
-                    console.print(f"[yellow]input problem:[/] {note}", highlight=False)
+                    report.print(f"[yellow]input problem:[/] {note}", highlight=False)
             else:
                 _print_outputs(console, runner, planned)
         if log_path is not None and args.command == "run" and not args.quiet:

@@ -196,8 +196,13 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
     def fix(p):
         if p is None:
             return None
-        if isinstance(p, str):  # a glob
-            return p if Path(p).is_absolute() else os.path.normpath(base / p)
+        if isinstance(p, str):  # a glob: the folders it starts from are no pattern ("take [2]")
+            if Path(p).is_absolute():
+                return p
+            parts = Path(p).parts
+            up = next((i for i, part in enumerate(parts) if part not in ("..", ".")), len(parts))
+            start = os.path.normpath(base.joinpath(*parts[:up]))
+            return os.path.join(glob.escape(start), *parts[up:])
         return p if Path(p).is_absolute() else Path(os.path.normpath(base / p))
 
     cfg.workspace = fix(cfg.workspace)
@@ -259,6 +264,8 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> None:
     keys starting with a top-level section (workspace, executor, scenes, ...) are set directly.
     A stage override also removes that key from every scene's `params` for the stage."""
     top_level = set(PipelineConfig.model_fields)
+    if len(parts) > 3 and parts[0] == "stages" and parts[2] == "params":
+        parts = [parts[1], *parts[3:]]  # the long form: as `--set S.K=V`, over scenes' values
     if parts[0] in top_level:
         path = parts
     else:

@@ -91,9 +91,12 @@ def _relative_paths(obj, base: Path | None):
 
 def _absolute(value, base: Path):
     """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
-    against `base`."""
+    against `base`, and every relative text that names a file there (a `body_model` or
+    `markers` that is a name, like 'anny', or a path to the user's file)."""
     if isinstance(value, Path):
         return value if value.is_absolute() else Path(os.path.normpath(base / value))
+    if isinstance(value, str) and value and not os.path.isabs(value) and (base / value).is_file():
+        return os.path.normpath(base / value)
     if isinstance(value, dict):
         return {k: _absolute(v, base) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -101,8 +104,30 @@ def _absolute(value, base: Path):
     return value
 
 
+def _param_files(params) -> list[Path]:
+    """The files and folders a stage's params name (absolute by then, see `_absolute`): a
+    Path-valued param (also in a list or a dict), or a text param naming an existing file
+    (`body_model: my_smpl.pkl`). Their content is part of the stage's inputs, as a declared
+    input's is."""
+    found = []
+    for key in type(params).model_fields:
+        value = getattr(params, key)
+        values = value.values() if isinstance(value, dict) else value
+        for v in values if isinstance(values, (list, tuple, type({}.values()))) else [value]:
+            if isinstance(v, Path) or (isinstance(v, str) and os.path.isabs(v)):
+                if Path(v).exists():
+                    found.append(Path(v))
+    return found
+
+
 def _safe_key(key: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.@-]+", "_", key)
+    """A variant key as a file name: characters other than letters, digits and `_.@-` become
+    `_`, and a short hash of the key keeps apart keys that map to the same name (`track@a b`,
+    `track@a_b`)."""
+    safe = re.sub(r"[^A-Za-z0-9_.@-]+", "_", key)
+    if safe == key:
+        return key
+    return f"{safe}.{hashlib.sha256(key.encode()).hexdigest()[:8]}"
 
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent  # holds calibration/, gst/, synth/, stages/
@@ -268,6 +293,8 @@ class Runner:
                 digests[f"{dep}:{rel}"] = self.hashes.digest(self.workspace / rel)
         for path in self.stages[name].inputs(ctx):
             digests[self._shown(path)] = self.hashes.digest(Path(path))
+        for path in _param_files(ctx.params):
+            digests.setdefault(self._shown(path), self.hashes.digest(path))  # e.g. track.boxes
         return digests
 
     def _shown(self, path: str | Path) -> str:
@@ -297,14 +324,20 @@ class Runner:
             return StageStatus(name, key, MISSING, f"input file is missing: {', '.join(missing)}")
         inputs = self._inputs(name, ctx)
         code, files = self._code(name)
-        scene = self._scene_record()
+        scene = self._scene_record() if stage.reads_scene else {}
         fp = stage_fingerprint(code, {"params": params, "scene": scene}, inputs)
         if record is None:
             interrupted = (self.meta / "staging" / name).exists()
             why = "a previous run was interrupted" if interrupted else "never run"
+            running = self._running_pid() if interrupted else None
+            if running is not None:
+                why = f"being written by the run now in progress (pid {running})"
             if not interrupted and not stage.in_all:
                 why += f" (on demand: `run {name}`; `run all` skips it)"
             return StageStatus(name, key, MISSING, why, fp)
+        for rel in stage.outputs(ctx):  # declared now (e.g. track --with-gaussians' splats)
+            if rel not in record.get("outputs", {}) and not (self.workspace / rel).exists():
+                return StageStatus(name, key, MISSING, f"output {rel} is absent", fp)
         for rel, digest in record.get("outputs", {}).items():
             now = self.hashes.digest(self.workspace / rel)
             if now is None:
@@ -379,6 +412,22 @@ class Runner:
             except (FileNotFoundError, ConfigError) as exc:  # e.g. the video was moved since
                 out.append(StageStatus(name, key, MISSING, f"its input is gone: {exc}", None))
         return out
+
+    def _running_pid(self) -> str | None:
+        """The pid of another process's run that holds this scene's lock now (see `_lock`), or
+        None when nobody does."""
+        path = self.meta / "lock"
+        if not path.is_file():
+            return None
+        with open(path, "a+") as fh:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                fh.seek(0)
+                owner = fh.read().strip() or "?"
+                return None if owner == str(os.getpid()) else owner
+            fcntl.flock(fh, fcntl.LOCK_UN)
+        return None
 
     # -- running -----------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -455,13 +504,17 @@ class Runner:
             return list(planned.values())
         with self._lock():
             done: dict[str, StageStatus] = {}
+            ran: set[str] = set()
             for name in names:
                 st = planned[name]
                 if not st.needs_run:
                     log.info("%s: %s (%s)", name, st.state, st.reason)
                     done[name] = st
                     continue
-                if st.fingerprint is None:  # upstream ran since planning: recompute the inputs
+                ancestors = upstream_closure(self.needs, [name])[:-1]
+                if st.fingerprint is None or ran.intersection(ancestors):
+                    # an ancestor ran since planning (maybe behind a kept stage, so the plan's
+                    # fingerprint was computed from its old or absent outputs): recompute
                     st = self.status_of(name, done)
                     if not st.needs_run and not (force_all or (force and name in targets)):
                         # the upstream rerun wrote the same outputs (e.g. a comment edited)
@@ -469,6 +522,7 @@ class Runner:
                         done[name] = st
                         continue
                 self._execute(name, st)
+                ran.add(name)
                 done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)
         return list(planned.values())
 
@@ -478,9 +532,7 @@ class Runner:
         record = self._read_record(st.key) or {}
         took = record.get("seconds")
         took_text = f"; its last run took {_duration(took)}" if took is not None else ""
-        reason = st.reason
-        if reason.startswith("upstream "):  # its own upstream is kept too: it is as it was
-            reason = "an upstream stage is stale"
+        reason = st.reason  # e.g. "upstream synth will run first": it runs, this one is kept
         log.warning(
             "%s is stale (%s)%s; using its existing outputs. Run it, or pass --upstream, to "
             "update it",
@@ -543,8 +595,8 @@ class Runner:
             "fingerprint": st.fingerprint,
             "code": self._code(name)[0],
             "code_files": self._code(name)[1],
-            "params": ctx.params.model_dump(mode="json"),
-            "scene_config": self._scene_record(),
+            "params": _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir),
+            "scene_config": self._scene_record() if stage.reads_scene else {},
             "options": self._recorded_options(name),
             "inputs": self._inputs(name, ctx),
             "outputs": digests,

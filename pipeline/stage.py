@@ -28,9 +28,9 @@ READINGS = ".pipeline/cache/readings"
 
 
 class StageParams(BaseModel):
-    """Base for a stage's parameters: unknown keys are errors."""
+    """Base for a stage's parameters: unknown keys are errors, and so are NaN and infinity."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 @dataclass
@@ -111,3 +111,6 @@ class Stage:
     help: str = ""
     cli_options: tuple[str, ...] = ()  # names of CLI options the stage reads from ctx.options
     in_all: bool = True  # False: `run all` skips it; it runs when named (e.g. a benchmark sweep)
+    # False: the stage reads nothing of the scene's own settings (its footage, rate, masks), so
+    # editing them does not make it stale (pretrain trains on worlds of its own)
+    reads_scene: bool = True

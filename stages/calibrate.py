@@ -11,6 +11,8 @@ import json
 from pathlib import Path
 from typing import Literal
 
+from pydantic import NonNegativeInt, PositiveInt
+
 from calibration.board import BoardSpec
 from calibration.scene import BoardFootage, CalibrationFile, SolveSettings, calibrate_scene
 from pipeline.stage import Stage, StageContext, StageParams
@@ -20,11 +22,11 @@ SYNTH_FILES = {"rig": "rig.json", "panoptic": "calibration_synth.json", "h36m": 
 
 class Params(StageParams):
     synthetic_source: Literal["board", "rig", "panoptic", "h36m"] = "board"
-    frame_step: int = 1  # search every Nth frame of the board clips
-    max_frames: int | None = None  # cap on board frames searched per camera
+    frame_step: PositiveInt = 1  # search every Nth frame of the board clips
+    max_frames: PositiveInt | None = None  # cap on board frames searched per camera
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
-    floor_frame: int | None = None  # the board clip's frame that defines the floor (None: first)
+    floor_frame: NonNegativeInt | None = None  # the board frame that sets the floor (None: first)
 
 
 def _sources(ctx: StageContext) -> tuple[CalibrationFile | None, BoardFootage | None]:
@@ -65,9 +67,9 @@ def run(ctx: StageContext) -> None:
 
 
 def _inputs(ctx: StageContext) -> list[Path]:
-    if ctx.scene.calibration is not None:
-        return [ctx.scene.calibration.file]
-    return ctx.scene.board_videos() if ctx.scene.board is not None else []
+    # the camera videos too: the rig is fitted to their frame size and checked against them
+    own = [ctx.scene.calibration.file] if ctx.scene.calibration else ctx.scene.board_videos()
+    return own + ctx.input_videos()
 
 
 STAGE = Stage(

@@ -12,16 +12,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, PositiveFloat, PositiveInt
 
 from gst.data import ExtractOptions, extract_scene, write_extract_report
 from pipeline.stage import Stage, StageContext, StageParams
 
 
 class Params(StageParams):
-    crop_size: int = 256
-    scale: float = 1.2  # HMR2 convention: square side = 1.2 x the person box's longer side
-    frame_stride: int = 1
+    crop_size: PositiveInt = 256
+    scale: PositiveFloat = 1.2  # HMR2 convention: square side = 1.2 x the person box's longer side
+    frame_stride: PositiveInt = 1
     method: Literal["median", "mog2", "knn"] = "median"
     background_videos: dict[str, Path] | None = None  # camera -> clip of the empty scene
     use_board_clip_as_background: bool = True  # synthetic scenes: the board clip is an empty stage
@@ -60,7 +60,9 @@ def run(ctx: StageContext) -> None:
 
 
 STAGE = Stage(
-    inputs=lambda ctx: ctx.input_videos(ctx.params.background_videos),
+    inputs=lambda ctx: ctx.input_videos(ctx.params.background_videos) + (
+        [ctx.scene.masks] if ctx.scene.masks is not None else []
+    ),
     name="extract", run=run, params_model=Params,
     outputs=lambda ctx: ["crops", "reports/extract"],
     help="person crops and masks from every camera (background model, multi-view association)",

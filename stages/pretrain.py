@@ -31,6 +31,7 @@ STAGE = Stage(
     run=run,
     params_model=PretrainConfig,
     resumable=True,
+    reads_scene=False,
     inputs=lambda ctx: [ctx.params.reuse] if ctx.params.reuse is not None else [],
     outputs=lambda ctx: ["models/pretrain.pt", "reports/pretrain"],
     help="supervised pretraining on separate synthetic worlds (stand-in for HMR2 weights)",

@@ -37,3 +37,15 @@ def one_sample(tmp_path_factory):
     crops = crops_from_synth_scene(out, crop_size=128)
     body = load_body_model("anny")
     return crops, crops.groups(min_views=2)[0], body
+
+
+@pytest.fixture
+def counter(tmp_path, monkeypatch):
+    """The names of the fake pipeline stages (tests/fake_stages.py) that ran, in order."""
+    path = tmp_path / "runs.txt"
+    monkeypatch.setenv("FAKE_STAGE_COUNTER", str(path))
+
+    def read() -> list[str]:
+        return path.read_text().split() if path.exists() else []
+
+    return read

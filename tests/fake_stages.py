@@ -141,3 +141,32 @@ def _peek(ctx: StageContext) -> None:
 
 
 PEEK = _own_folder_stage("peek", _peek, help="copies the source's data, needing only constant")
+
+
+def _sceneless(ctx: StageContext) -> None:
+    """Writes what it would write for any scene (as pretrain trains on worlds of its own)."""
+    ctx.out("sceneless/weights.txt").write_text("w\n")
+    _bump_counter(ctx, "sceneless")
+
+
+SCENELESS = _own_folder_stage(
+    "sceneless", _sceneless, reads_scene=False, help="reads nothing of the scene"
+)
+
+
+def _extras(ctx: StageContext) -> None:
+    ctx.out("extras/main.txt").write_text("main\n")
+    if ctx.options.get("with_gaussians"):
+        ctx.out("extras/splats/one.ply").write_text("ply\n")
+    _bump_counter(ctx, "extras")
+
+
+EXTRAS = Stage(
+    name="extras",
+    run=_extras,
+    outputs=lambda ctx: (
+        ["extras/main.txt"] + (["extras/splats"] if ctx.options.get("with_gaussians") else [])
+    ),
+    cli_options=("with_gaussians",),
+    help="an output only with --with-gaussians, as track's splats",
+)

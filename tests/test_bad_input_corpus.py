@@ -106,8 +106,10 @@ def _config(tmp: Path, scene: Scene, *, videos: str | None = None, calibration: 
 
 
 def _cli(capsys, *argv: str) -> tuple[int, str]:
+    """Exit code, and what was printed: status tables on stdout, errors and logs on stderr."""
     code = main([*argv, "--quiet"])
-    return code, capsys.readouterr().err
+    printed = capsys.readouterr()
+    return code, printed.out + printed.err
 
 
 def _assert_failed(code: int, err: str, want_code: int, names: str, workspace: Path) -> None:
@@ -157,7 +159,30 @@ CONFIG_CASES = {
         "extra_scene", "frame_size_tolerance: -1",
         r"scenes.s.frame_size_tolerance",
     ),
+    # values that passed validation and reached the stage (a 'trained' model from 0 steps, a
+    # NaN learning rate failing inside torch after the upstream stages had run)
+    "infinite crop scale": ("set", "extract.scale=inf", r"stages.extract.params.scale"),
+    "zero crop size": ("set", "extract.crop_size=0", r"stages.extract.params.crop_size"),
+    "zero board frame step": ("set", "calibrate.frame_step=0", r"params.frame_step"),
+    "zero track batch": ("set", "track.batch_size=0", r"stages.track.params.batch_size"),
+    "zero pretraining steps": ("set", "pretrain.lift_steps=0", r"params.lift_steps"),
 }  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "value", [{"steps": -5}, {"steps": 0}, {"lr": float("nan")}, {"body_lr": float("inf")},
+              {"batch_size": 0}, {"threads": 0}, {"num_targets": 0}],
+)  # fmt: skip
+def test_train_settings_refuse_values_no_training_can_use(value):
+    """`train.steps=-5` trained nothing and wrote the pretrained model as the trained one;
+    `train.lr=nan` failed inside torch after every upstream stage had run (the demo's config
+    has a train stage, the corpus's does not: the model is checked directly)."""
+    from pydantic import ValidationError
+
+    from gst.train.scene_training import TrainSettings
+
+    with pytest.raises(ValidationError, match=next(iter(value))):
+        TrainSettings(**value)
 
 
 @pytest.mark.parametrize("case", sorted(CONFIG_CASES))
@@ -400,7 +425,7 @@ def test_status_and_dry_run_show_the_table_when_a_listed_video_is_missing(scene,
     code, err = _cli(capsys, "status", "--config", str(cfg))
     assert code == 0 and "gone.mp4" in err and "extract" in err, err
     code = main(["run", "extract", "--config", str(cfg), "--dry-run"])
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out
     assert code == 0 and "calibrate" in err and "gone.mp4" in err, err
 
 

@@ -38,17 +38,6 @@ def write_config(tmp_path: Path, extra_params: str = "", input_file: Path | None
     return cfg
 
 
-@pytest.fixture
-def counter(tmp_path, monkeypatch):
-    path = tmp_path / "runs.txt"
-    monkeypatch.setenv("FAKE_STAGE_COUNTER", str(path))
-
-    def read() -> list[str]:
-        return path.read_text().split() if path.exists() else []
-
-    return read
-
-
 def run(cfg: Path, *args: str) -> int:
     return main([*args[:2], "--config", str(cfg), "--quiet", *args[2:]])
 
@@ -140,7 +129,7 @@ def test_dry_run_runs_nothing(tmp_path, counter, capsys):
     assert main(["run", "all", "--config", str(cfg), "--dry-run"]) == 0
     assert counter() == []
     assert not (tmp_path / "ws/demo/source").exists()
-    assert "never run" in capsys.readouterr().err
+    assert "never run" in capsys.readouterr().out  # the plan is the command's output
 
 
 def test_status_reports_reason(tmp_path, capsys):
@@ -148,7 +137,7 @@ def test_status_reports_reason(tmp_path, capsys):
     assert run(cfg, "run", "all") == 0
     capsys.readouterr()
     assert main(["status", "--config", str(cfg), "--set", "double.factor=5"]) == 0
-    out = capsys.readouterr().err
+    out = capsys.readouterr().out
     assert "factor: 2 -> 5" in out
     assert "upstream double will run first" in out
 
@@ -234,7 +223,7 @@ def test_scene_config_change_reruns(tmp_path, counter, capsys):
     cfg.write_text(cfg.read_text().replace("preset: demo", "preset: demo, seed: 3"))
     capsys.readouterr()
     assert main(["status", "--config", str(cfg)]) == 0
-    assert "scene synthetic.seed: 0 -> 3" in capsys.readouterr().err
+    assert "scene synthetic.seed: 0 -> 3" in capsys.readouterr().out
     assert run(cfg, "run", "all") == 0
     assert counter() == ["source", "double", "report"] * 2
 

@@ -64,6 +64,43 @@ def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_pa
     assert (tmp_path / "ws/demo/fanout/done.txt").read_text() == "0,1"
 
 
+def test_status_during_a_run_says_it_is_running_not_interrupted(tmp_path, capsys):
+    """`status` in a second shell while a stage ran said 'a previous run was interrupted'."""
+    from pipeline.cli import main
+
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    cfg = tmp_path / "pipeline.yaml"
+    cfg.write_text(
+        textwrap.dedent(f"""
+        workspace: ws
+        executor: {{kind: local, workers: 1}}
+        scenes: {{demo: {{synthetic: {{preset: demo}}}}}}
+        stages:
+          fanout: {{module: "tests.fake_stages:FANOUT",
+                   params: {{seconds: 60, marker_dir: "{markers}"}}}}
+        """)
+    )
+    cmd = [sys.executable, "-m", "pipeline", "run", "fanout", "--config", str(cfg), "--quiet"]
+    run = subprocess.Popen(cmd, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        deadline = time.time() + 120
+        while not list(markers.glob("worker-*.pid")):
+            assert time.time() < deadline and run.poll() is None, "the stage never started"
+            time.sleep(0.2)
+        capsys.readouterr()
+        assert main(["status", "--config", str(cfg)]) == 0
+        table = capsys.readouterr().out.replace("\n", " ")
+        assert "being written by the run now in progress" in table
+        assert str(run.pid) in table and "interrupted" not in table
+    finally:
+        os.kill(run.pid, signal.SIGKILL)
+        run.wait()
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    assert "a previous run was interrupted" in capsys.readouterr().out.replace("\n", " ")
+
+
 @pytest.mark.slow  # tracks 2 x 900 frames three times (about 20 s on 2 idle cores)
 def test_kill_9_of_a_two_worker_track_run_then_rerun_gives_identical_tracks(tmp_path):
     """The acceptance case: `run track --workers 2` killed mid-run; no process of it is alive

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import subprocess
 import sys
 from pathlib import Path
@@ -95,3 +96,39 @@ def test_ray_without_the_dist_extra_is_a_one_line_config_error(monkeypatch):
     with pytest.raises(ConfigError, match=r"dist") as err:
         make_executor("ray", 2)
     assert err.value.exit_code == 2
+
+
+def _lab_like(folder: Path) -> Path:
+    """A project in `folder`: two camera files matched by a relative glob, a scene value."""
+    (folder / "cams").mkdir(parents=True)
+    for name in ("cam01.mp4", "cam02.mp4"):
+        (folder / "cams" / name).write_bytes(b"x")
+    cfg = folder / "pipeline.yaml"
+    cfg.write_text(
+        "workspace: ws\ndefault_scene: lab\nscenes:\n"
+        "  lab: {videos: cams/cam*.mp4, params: {fuse: {refine_rig: 2}}}\n"
+        "stages:\n  fuse: {module: 'tests.fake_stages:SOURCE', params: {refine_rig: 1}}\n"
+    )
+    return cfg
+
+
+def test_a_glob_under_a_folder_whose_name_is_a_pattern(tmp_path):
+    """The config's folder was joined into the `videos` glob unescaped: in a project folder
+    named 'take [2024]' the pattern matched nothing and the config was refused."""
+    cfg = _lab_like(tmp_path / "take [2024]")
+    files = load_config(cfg).scenes["lab"].video_files()
+    assert [f.name for f in files] == ["cam01.mp4", "cam02.mp4"]
+
+
+def test_the_long_form_of_set_overrides_a_scenes_value_as_the_short_one_does():
+    """`--set stages.fuse.params.refine_rig=0` left the lab scene's own `refine_rig: 2` in
+    place; only `--set fuse.refine_rig=0` removed it."""
+    raw = {
+        "stages": {"fuse": {"params": {"refine_rig": 1}}},
+        "scenes": {"lab": {"params": {"fuse": {"refine_rig": 2}}}},
+    }
+    for parts in (["fuse", "refine_rig"], ["stages", "fuse", "params", "refine_rig"]):
+        edited = copy.deepcopy(raw)
+        apply_override(edited, parts, 0)
+        assert edited["stages"]["fuse"]["params"]["refine_rig"] == 0
+        assert "refine_rig" not in edited["scenes"]["lab"]["params"]["fuse"]

@@ -4,7 +4,7 @@ reruns it; missing upstream outputs are always produced."""
 
 from __future__ import annotations
 
-from tests.test_pipeline_dag import counter, run, write_config  # noqa: F401  (fixture)
+from tests.test_pipeline_dag import run, write_config
 
 
 def test_a_stale_upstream_stage_is_kept_unless_asked(tmp_path, counter):  # noqa: F811

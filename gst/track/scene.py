@@ -21,7 +21,15 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+)
 
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
@@ -67,15 +75,15 @@ log = logging.getLogger("gst.track")
 class TrackSettings(BaseModel):
     """Settings of tracking (the `track` stage's parameters)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    stride: int = 1
+    stride: PositiveInt = 1
     start_s: float | None = None
     end_s: float | None = None
-    batch_size: int = 32
+    batch_size: PositiveInt = 32
     smoothing: bool = False  # One-Euro filter on joints and parameters
-    min_cutoff: float = 1.0
-    beta: float = 0.5
+    min_cutoff: PositiveFloat = 1.0
+    beta: NonNegativeFloat = 0.5
     boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of a detector
     # 'auto': the learned person model (BlazePose, gst.detect) when it is installed (the `detect`
     # extra and `python -m gst.detect fetch`), else the static-camera background model.
@@ -120,9 +128,9 @@ class TrackSettings(BaseModel):
     # keep each person's left and right landmark labels continuous over time: BlazePose's
     # whole-body flips undone (gst.track.mirror; docs/track_evaluation.md "Left and right")
     unmirror: bool = True
-    threads: int | None = None  # torch threads; None: gst.track.scene.network_threads
-    min_hits: int = 3  # consecutive detections before a new person gets an id
-    max_misses: int = 30  # processed frames a person may go undetected and keep the id
+    threads: PositiveInt | None = None  # torch threads; None: gst.track.scene.network_threads
+    min_hits: PositiveInt = 3  # consecutive detections before a new person gets an id
+    max_misses: NonNegativeInt = 30  # processed frames a person may go undetected and keep the id
     # Split videos longer than this many processed frames into chunks tracked in parallel and
     # stitched (gst/track/chunks.py); off by default because ids can differ where tracking is
     # ambiguous at a border. Not with smoothing or --with-gaussians.

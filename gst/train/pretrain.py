@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, NonNegativeInt
+from pydantic import BaseModel, ConfigDict, NonNegativeInt, PositiveFloat, PositiveInt
 
 from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
@@ -57,15 +57,15 @@ def _track(progress, items, description: str):
 class PretrainConfig(BaseModel):
     """Settings of the supervised pretraining (the `pretrain` stage's parameters)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     preset: Literal[tuple(PRESETS)] = "tiny"  # type: ignore[valid-type]
     body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
     world_seed: int = 1000  # the pretraining worlds differ from every scene by construction
-    worlds: int = 12  # worlds trained on; one more (unseen) validates
+    worlds: PositiveInt = 12  # worlds trained on; one more (unseen) validates
     world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds
-    world_cameras: int = 6
-    world_frames: int = 40  # per world
+    world_cameras: PositiveInt = 6
+    world_frames: PositiveInt = 40  # per world
     world_fps: float = (
         10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
     )
@@ -76,7 +76,7 @@ class PretrainConfig(BaseModel):
     static_every: int = (
         3  # every Nth world holds independent random poses instead of motions (0: none)
     )
-    crop_size: int = 128  # the tiny preset's input is 128x96; larger presets want 256
+    crop_size: PositiveInt = 128  # the tiny preset's input is 128x96; larger presets want 256
     augment: bool = (
         False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     )
@@ -91,28 +91,28 @@ class PretrainConfig(BaseModel):
     landmark_point_tokens: bool = False
     # rounds of reprojection feedback after the SMPL head (gst.model.refine; 0: none)
     landmark_refine: NonNegativeInt = DEFAULT_ROUNDS
-    lift_steps: int = 1000
-    lift_batch_size: int = 64
-    lift_lr: float = 1e-3
-    lift_body_lr: float = 1e-4
+    lift_steps: PositiveInt = 1000
+    lift_batch_size: PositiveInt = 64
+    lift_lr: PositiveFloat = 1e-3
+    lift_body_lr: PositiveFloat = 1e-4
     landmark_dropout: float = 0.1
     # Then this many steps of mode "pretrain" from the kept 3d checkpoint: the Gaussian head learns
     # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
     # head and the demo's held-out renders come out as faint dots (docs/training.md).
-    gaussian_steps: int = 800
-    gaussian_lr: float = 2e-4
+    gaussian_steps: NonNegativeInt = 800
+    gaussian_lr: PositiveFloat = 2e-4
     # lift mode: the rendered phase renders the Gaussians posed on each crop's true body (the
     # worlds' exact truth) instead of on the network's pose (gst.train.teacher_render), so that
     # the pose error does not teach them to shrink and fade (docs/training.md "Appearance on
     # the rig's body")
     appearance_on_truth: bool = True
-    steps: int = 1000
-    batch_size: int = 8
-    lr: float = 5e-4
-    num_targets: int = 3
-    render_size: int = 64
+    steps: PositiveInt = 1000
+    batch_size: PositiveInt = 8
+    lr: PositiveFloat = 5e-4
+    num_targets: PositiveInt = 3
+    render_size: PositiveInt = 64
     losses: LossWeights = LossWeights()
-    threads: int | None = None  # torch CPU threads (default: torch's choice)
+    threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
     # where the rendered phases train (gst.device; auto: the GPU when PyTorch sees one). The
     # render-free lift phase and the world renders stay on the CPU.
     device: str = "auto"

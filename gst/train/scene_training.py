@@ -20,7 +20,7 @@ from typing import Literal
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 
 from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
@@ -64,7 +64,7 @@ log = logging.getLogger("gst.train")
 class TrainSettings(BaseModel):
     """Settings of GST training on a scene's crops (the `train` stage's parameters)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     # multiview: GST (no labels). 2d / 3d: the paper's Table 1 baselines, fine-tuned on the
     # synthetic truth's 2D joints / 3D joints and parameters (synthetic scenes only).
@@ -79,19 +79,21 @@ class TrainSettings(BaseModel):
     )
     body_model: str = "anny"
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    steps: int = 1000
-    batch_size: int = 8
-    lr: float = 1e-3  # Gaussian head (tokens, attribute heads)
+    steps: PositiveInt = 1000
+    batch_size: PositiveInt = 8
+    lr: PositiveFloat = 1e-3  # Gaussian head (tokens, attribute heads)
     # backbone + SMPL head (None: `lr` for everything). With the keypoint term the body can
     # learn (demo: -27% MPJPE at 3e-4); without it, keep it low: from a poor start the
     # photometric gradient alone drags the pose away (+11% at 1e-4, -2% at 1e-5; docs/training.md).
-    body_lr: float | None = 3e-4
-    supervised_lr: float = 1e-4  # supervision 2d/3d (the Table 1 baselines): the whole network
+    body_lr: PositiveFloat | None = 3e-4
+    supervised_lr: PositiveFloat = (
+        1e-4  # supervision 2d/3d (the Table 1 baselines): the whole network
+    )
     freeze_backbone: bool = (
         False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
     )
-    num_targets: int = 4
-    render_size: int = 64
+    num_targets: PositiveInt = 4
+    render_size: PositiveInt = 64
     ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
     anchor: bool = True  # pull the body towards its triangulated mask centre (losses.anchor weight)
     # Reproject the joints into the target views against 2D joints the BlazePose landmark model
@@ -127,7 +129,7 @@ class TrainSettings(BaseModel):
     # (gst.train.teacher_render; docs/training.md "Appearance on the rig's body").
     appearance_on_teacher: bool = True
     losses: LossWeights = LossWeights()
-    threads: int | None = None
+    threads: PositiveInt | None = None
     # where the network trains (gst.device): auto is the GPU when PyTorch sees one, else the CPU
     device: str = "auto"
     amp: bool = False  # bf16 autocast (GPUs; huge preset with gsplat: 1.9x a step, docs/gpu.md)

@@ -1,0 +1,144 @@
+"""Staleness decisions that were wrong: a fingerprint computed before an ancestor reran, a
+scene edit reaching stages that never read the scene, files named by params, outputs declared
+by an option, and variant names that collide."""
+
+from __future__ import annotations
+
+import shutil
+import textwrap
+from pathlib import Path
+
+from pipeline.cli import main
+from pipeline.runner import _safe_key
+from tests.test_pipeline_dag import _chain_config, run
+
+
+def test_a_stage_behind_a_kept_one_records_the_fingerprint_of_what_it_read(
+    tmp_path, counter, capsys
+):
+    """source's outputs deleted, `run peek`: source runs again and writes the same bytes,
+    constant (between them) is kept. peek's fingerprint was computed at planning time, from
+    source's absent outputs: peek ran for nothing, recorded that fingerprint, and right
+    afterwards `status` said 'stale' and the next run redid it. Now it is computed after
+    source ran: peek is up to date."""
+    cfg = _chain_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    shutil.rmtree(tmp_path / "ws" / "demo" / "source")
+    capsys.readouterr()
+    assert main(["run", "peek", "--config", str(cfg)]) == 0  # not --quiet: the log is read
+    assert counter()[4:] == ["source"]
+    assert "constant is stale (upstream source will run first)" in capsys.readouterr().err
+    assert main(["status", "--config", str(cfg)]) == 0
+    table = capsys.readouterr().out
+    assert "stale" not in table and "missing" not in table
+    assert run(cfg, "run", "peek") == 0
+    assert counter()[5:] == []
+
+
+def _config_with(tmp_path: Path, stages: str) -> Path:
+    cfg = tmp_path / "pipeline.yaml"
+    cfg.write_text(
+        textwrap.dedent("""
+        workspace: ws
+        default_scene: demo
+        executor: {kind: local, workers: 1}
+        scenes:
+          demo: {synthetic: {preset: demo}}
+        stages:
+        """)
+        + textwrap.indent(textwrap.dedent(stages), "  ")
+    )
+    return cfg
+
+
+def test_a_scene_edit_leaves_stages_that_do_not_read_the_scene_up_to_date(
+    tmp_path, counter, capsys
+):
+    """Every stage hashed the scene's settings, so a new scene seed (or fps) made pretrain
+    stale too, and `run all` trained it again."""
+    cfg = _config_with(
+        tmp_path,
+        """
+        sceneless: {module: "tests.fake_stages:SCENELESS"}
+        source: {module: "tests.fake_stages:SOURCE"}
+        """,
+    )
+    assert run(cfg, "run", "all") == 0
+    cfg.write_text(cfg.read_text().replace("preset: demo", "preset: demo, seed: 3"))
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    rows = {line.split("│")[1].strip(): line for line in capsys.readouterr().out.splitlines()
+            if line.count("│") > 3}  # fmt: skip
+    assert "up to date" in rows["sceneless"] and "scene synthetic.seed: 0 -> 3" in rows["source"]
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["sceneless", "source", "source"]
+
+
+def test_a_file_named_by_a_param_is_an_input(tmp_path, counter, capsys):
+    """A Path-valued param (track.boxes, train.hmr2_checkpoint) or a text param naming a file
+    (fuse.body_model: my_smpl.pkl) was not hashed: editing the file left the stage 'up to
+    date' with results from the old one. A text param is also resolved against the config's
+    folder, as Path params are (it was the shell's)."""
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "x.txt").write_text("one\n")
+    (tmp_path / "data" / "named.txt").write_text("a\n")
+    cfg = _config_with(
+        tmp_path,
+        """
+        source: {module: "tests.fake_stages:SOURCE",
+                 params: {extra_file: data/x.txt, input_file: data/named.txt}}
+        """,
+    )
+    assert run(cfg, "run", "source") == 0
+    (tmp_path / "data" / "x.txt").write_text("two\n")
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    assert "input changed: data/x.txt" in capsys.readouterr().out
+    assert run(cfg, "run", "source") == 0
+    out = tmp_path / "ws" / "demo" / "source" / "data.txt"
+    assert out.read_text() == "value=1\na\ntwo\n"
+    assert counter() == ["source", "source"]
+
+
+def test_outputs_an_option_declares_are_made_when_absent(tmp_path, counter, capsys):
+    """`run track --with-gaussians` after a plain run said 'up to date' and listed splat
+    folders that did not exist: only the outputs recorded by the last run were checked."""
+    cfg = _config_with(tmp_path, 'extras: {module: "tests.fake_stages:EXTRAS"}\n')
+    assert run(cfg, "run", "extras") == 0
+    assert run(cfg, "run", "extras", "--with-gaussians") == 0
+    assert (tmp_path / "ws" / "demo" / "extras" / "splats" / "one.ply").is_file()
+    assert counter() == ["extras", "extras"]
+    assert run(cfg, "run", "extras", "--with-gaussians") == 0
+    assert counter() == ["extras", "extras"]
+
+
+def test_variant_keys_that_differ_only_in_odd_characters_keep_separate_records():
+    """`track@a b` and `track@a_b` were both stored as track@a_b.json, each overwriting the
+    other's record (so the first ran again though nothing had changed)."""
+    assert _safe_key("track@a b") != _safe_key("track@a_b")
+    assert _safe_key("track@a_b") == "track@a_b"  # plain keys keep their file names
+    assert _safe_key("track@a b") == _safe_key("track@a b")
+
+
+def test_extract_and_calibrate_declare_every_file_they_read(tmp_path):
+    """extract reads the scene's `masks` folder and calibrate probes the camera videos (the rig
+    is fitted to their frame size), but neither was an input: new masks, or a re-exported
+    video, left them 'up to date'."""
+    from pipeline.config import SceneConfig
+    from pipeline.stage import StageContext
+    from stages.calibrate import STAGE as CALIBRATE
+    from stages.extract import STAGE as EXTRACT
+    from stages.extract import Params as ExtractParams
+
+    videos = [tmp_path / "cam01.mp4", tmp_path / "cam02.mp4"]
+    (tmp_path / "masks").mkdir()
+    calib = tmp_path / "Calib.qca.txt"
+    scene = SceneConfig(
+        videos=videos, masks=tmp_path / "masks", calibration={"file": calib, "format": "qualisys"}
+    )
+
+    def ctx(params) -> StageContext:
+        return StageContext("x", "lab", scene, None, tmp_path / "ws", tmp_path / "st", params)
+
+    assert set(EXTRACT.inputs(ctx(ExtractParams()))) >= {*videos, tmp_path / "masks"}
+    assert set(CALIBRATE.inputs(ctx(None))) == {calib, *videos}
