@@ -17,6 +17,7 @@ corrupt, naming the file and the frame.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from collections.abc import Iterator, Sequence
@@ -220,6 +221,24 @@ def read_frames(
             yield f, image
     finally:
         cap.release()
+
+
+CONTENT_SAMPLE_BYTES = 1 << 20
+
+
+def content_digest(path: str | Path) -> str:
+    """sha256 over a file's size and its first and last MiB: cheap at any length, and different
+    for two videos of the same name and byte size (a re-export), which file names, sizes and
+    frame counts cannot tell apart. Not a whole-file hash (gst.registry.sha256_of is)."""
+    path = Path(path)
+    size = path.stat().st_size
+    h = hashlib.sha256(str(size).encode())
+    with open(path, "rb") as f:
+        h.update(f.read(CONTENT_SAMPLE_BYTES))
+        if size > CONTENT_SAMPLE_BYTES:
+            f.seek(max(CONTENT_SAMPLE_BYTES, size - CONTENT_SAMPLE_BYTES))
+            h.update(f.read(CONTENT_SAMPLE_BYTES))
+    return h.hexdigest()
 
 
 def frame_range(

@@ -134,3 +134,18 @@ def test_finished_chunks_are_reused_on_rerun(clip, tmp_path, monkeypatch):
     assert calls == [0, 1, 2, 2]
     reference = track_videos([job(video, csv)], tmp_path / "ref")[0]
     assert _rows(out.result.path).equals(_rows(reference.result.path))
+
+
+def test_a_finished_chunked_video_is_not_tracked_again(clip, tmp_path, monkeypatch):
+    """An unchunked job whose file is finished returns it; a chunked one tracked every chunk
+    again (its chunk files are gone after stitching) and then found the finished file."""
+    import gst.track.batch as batch
+
+    video, csv = clip
+    chunking = ChunkingConfig(chunk_frames=20, overlap=5)
+    first = track_videos([job(video, csv)], tmp_path / "out", chunking=chunking)[0]
+    calls = []
+    monkeypatch.setattr(batch, "track_chunk", lambda *a, **k: calls.append(a[2].index))
+    again = track_videos([job(video, csv)], tmp_path / "out", chunking=chunking)[0]
+    assert calls == [] and again.result.path == first.result.path
+    assert again.result.rows == first.result.rows > 0

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 
 from gst.track import BoxDepthPredictor, SuppliedBoxes, TrackOptions, track_video
@@ -77,3 +78,35 @@ def test_a_detector_error_leaves_no_decode_thread_behind(tmp_path):
     ):
         time.sleep(0.05)
     assert not [t.name for t in threading.enumerate() if t.name == "video-decode"]
+
+
+class _BrightColumn:
+    """A stateless detector: the box of the frame's bright column."""
+
+    def detect(self, image, index):
+        xs = np.flatnonzero(image[60, :, 0] > 100)
+        return [Detection(np.array([xs[0], 20.0, xs[-1] + 1, 100.0]), 0.9)]
+
+
+def _column_video(path: Path, x0: int) -> None:
+    vw = cv2.VideoWriter(str(path), 0, 30.0, (160, 120))  # uncompressed: the size is fixed
+    for _ in range(10):
+        frame = np.zeros((120, 160, 3), np.uint8)
+        frame[20:100, x0 : x0 + 30] = 200
+        vw.write(frame)
+    vw.release()
+
+
+def test_another_video_of_the_same_name_and_size_is_tracked_again(tmp_path):
+    """The settings named a video by file name, byte size, frame size, rate and count only: a
+    re-exported video with all of them equal got the earlier video's finished file back."""
+    video = tmp_path / "cam.avi"
+    boxes = []
+    for x0 in (10, 100):
+        _column_video(video, x0)
+        result = track_video(
+            video, tmp_path / "out", _BrightColumn(), BoxDepthPredictor(),
+            model={"name": "test", "version": "0"}, options=TrackOptions(prefetch=0),
+        )  # fmt: skip
+        boxes.append(pq.read_table(result.path)["bbox"][0].as_py()[0])
+    assert boxes == [10.0, 100.0]

@@ -178,7 +178,9 @@ def track_videos(
         Path(staging_root) if staging_root is not None else default_staging_root(out_root)
     )
     items: list[_Item] = []
-    chunked: dict[int, tuple[list[int], Any]] = {}  # job index -> (item indices, its run)
+    # job index -> (item indices, its run, its chunk plans); no items where the video's file is
+    # already finished with these settings (a rerun reads it back, as an unchunked job does)
+    chunked: dict[int, tuple[list[int], Any, list[ChunkPlan]]] = {}
     whole: dict[int, int] = {}  # job index -> item index
     for j, job in enumerate(jobs):
         plans = []
@@ -195,8 +197,10 @@ def track_videos(
             run = _chunked_run(job, chunking)
             if run.end is not None:
                 plans = plan_chunks(run.first, run.end, job.options, chunking)
-        if len(plans) > 1:
-            chunked[j] = (list(range(len(items), len(items) + len(plans))), run)
+        if len(plans) > 1 and _finished(job, run, out_root, staging_root):
+            chunked[j] = ([], run, plans)
+        elif len(plans) > 1:
+            chunked[j] = (list(range(len(items), len(items) + len(plans))), run, plans)
             items += [_Item(job, out_root, staging_root, p, chunking) for p in plans]
         else:
             whole[j] = len(items)
@@ -207,15 +211,19 @@ def track_videos(
     outcomes: list[VideoOutcome] = []
     for j, job in enumerate(jobs):
         if j in chunked:
-            idx, run = chunked[j]
-            outcomes.append(
-                _finish_chunked(
-                    job, run, [items[i].chunk for i in idx], out_root, staging_root, chunking
-                )
-            )
+            _, run, plans = chunked[j]
+            outcomes.append(_finish_chunked(job, run, plans, out_root, staging_root, chunking))
         else:
             outcomes.append(results[whole[j]])
     return outcomes
+
+
+def _finished(job: VideoJob, run, out_root: Path, staging_root: Path) -> bool:
+    """The video's Parquet file is there, written with these settings."""
+    writer = TrackWriter(
+        out_root, run.name, tracks_schema(job.num_betas), run.settings, staging_root
+    )
+    return writer.finished_digest() == writer.digest
 
 
 def _finish_chunked(

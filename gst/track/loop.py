@@ -52,6 +52,7 @@ from gst.video import (
     VideoError,
     VideoInfo,
     VideoTruncatedError,
+    content_digest,
     frame_range,
     iter_frames,
     probe_video,
@@ -335,6 +336,8 @@ def plan_run(
         "fps": info.fps,
         "frame_count": info.frame_count,
         "size_bytes": Path(info.path).stat().st_size,
+        # the same name and size can be another video (a re-export): its output is not reused
+        "content_sha256": content_digest(info.path),
         "first_frame": first,
         "end_frame": end,
         "stride": options.stride,
