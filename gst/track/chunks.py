@@ -8,11 +8,15 @@ unmatched get new ids in the order the chunk created them, as one tracker over t
 would have done.
 
 Exactness: the chunk size is a multiple of the loop's group size and chunks start on the group
-grid, so every kept frame's crops are batched exactly as in an unchunked run and the rows'
-numbers are the same bytes. The ids equal the unchunked ids whenever the association is
-unambiguous (the fresh tracker of the warm-up re-acquires everyone the old one was following and
-nobody is occluded across a border). Smoothing carries filter state across frames and is not
-exact under chunking, so it is refused. Chunking is therefore opt-in and recorded in the file.
+grid, so every kept frame's crops are batched exactly as in an unchunked run and, with a
+stateless detector (supplied boxes, the background model), the rows' numbers are the same
+bytes. A stateful detector (BlazePose follows each person's region from frame to frame) starts
+afresh in each warm-up, so its boxes and rows near a border differ a little from an unchunked
+run; the overlap's rows are paired by box overlap, not by equal bytes. The ids equal the
+unchunked ids whenever the association is unambiguous (the fresh tracker of the warm-up
+re-acquires everyone the old one was following and nobody is occluded across a border).
+Smoothing carries filter state across frames and is not exact under chunking, so it is
+refused. Chunking is therefore opt-in and recorded in the file.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import pyarrow.parquet as pq
 from scipy.optimize import linear_sum_assignment
 
 from gst.atomic import atomic_path
+from gst.detect.boxes import box_iou
 from gst.track.detection import Detector
 from gst.track.frames import STAT_KEYS, TrackingSession
 from gst.track.loop import TrackOptions, VideoRun, tracked_groups
@@ -183,31 +188,38 @@ def track_chunk(
     return record
 
 
-def _detection_keys(table: pa.Table) -> list[tuple]:
-    frames = table.column("frame").to_numpy()
+SAME_DETECTION_IOU = 0.5  # boxes of one frame in two chunks overlapping this much: one person
+
+
+def _frame_boxes(table: pa.Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frames, (N, 4) boxes, person ids) of a table's rows."""
     boxes = np.asarray(
         table.column("bbox").combine_chunks().flatten().to_numpy(zero_copy_only=False)
     ).reshape(-1, 4)
-    return [(int(f), b.tobytes()) for f, b in zip(frames, boxes, strict=True)]
+    return table.column("frame").to_numpy(), boxes, table.column("person_id").to_numpy()
 
 
 def match_ids(previous: pa.Table, warmup: pa.Table, min_agreement: float = 0.5) -> dict[int, int]:
     """Map the warm-up's ids to the previous chunk's ids (Hungarian on co-occurrence counts).
 
-    Rows are the same detection when frame and box agree exactly (detection does not depend on
-    the tracker). A warm-up id inherits an earlier id only if more than `min_agreement` of its
-    overlap rows sit on that id's detections."""
-    prev_id = dict(
-        zip(_detection_keys(previous), previous.column("person_id").to_pylist(), strict=True)
-    )
+    In each overlap frame the two chunks' rows are paired by box overlap (Hungarian, IoU at
+    least SAME_DETECTION_IOU): a stateless detector gives the same boxes in both, a stateful one
+    (BlazePose's region tracking starts afresh in each chunk's warm-up) boxes a few pixels
+    apart. A warm-up id inherits an earlier id only if more than `min_agreement` of its overlap
+    rows sit on that id's rows."""
+    pf, pb, pid = _frame_boxes(previous)
+    wf, wb, wid = _frame_boxes(warmup)
     pairs: dict[tuple[int, int], int] = {}
     seen: dict[int, int] = {}
-    for key, local in zip(
-        _detection_keys(warmup), warmup.column("person_id").to_pylist(), strict=True
-    ):
+    for local in wid.tolist():
         seen[local] = seen.get(local, 0) + 1
-        if key in prev_id:
-            pairs[(prev_id[key], local)] = pairs.get((prev_id[key], local), 0) + 1
+    for frame in np.intersect1d(pf, wf):
+        a, b = np.flatnonzero(pf == frame), np.flatnonzero(wf == frame)
+        iou = box_iou(pb[a], wb[b])
+        for r, c in zip(*linear_sum_assignment(-iou), strict=True):
+            if iou[r, c] >= SAME_DETECTION_IOU:
+                key = (int(pid[a[r]]), int(wid[b[c]]))
+                pairs[key] = pairs.get(key, 0) + 1
     if not pairs:
         return {}
     olds = sorted({a for a, _ in pairs})
