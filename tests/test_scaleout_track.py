@@ -20,7 +20,9 @@ from gst.track.chunks import (
     stitch_chunks,
 )
 from gst.track.schema import tracks_schema
-from tests.scaleout_scenes import job, write_clip
+from gst.track.tracker import TrackerConfig
+from tests.scaleout_scenes import job, separated_walkers, write_clip
+from tests.track_synthetic import render, walker_boxes, write_boxes_csv, write_video
 
 
 @pytest.fixture(scope="module")
@@ -195,3 +197,26 @@ def test_match_ids_pairs_boxes_a_few_pixels_apart():
     assert match_ids(prev, warm) == {0: 7, 1: 5}
     far = _table([8], [0], [[20, 0, 30, 20]])  # no overlap with anyone: no id carried
     assert match_ids(prev, far) == {}
+
+
+def test_a_person_entering_just_before_a_border_keeps_their_first_rows(tmp_path):
+    """Someone seen from frame 18 with a border at 20 was not yet confirmed in the first chunk
+    (min_hits 3), and the second chunk kept only frames from 20: rows 18 and 19 were lost,
+    while `gst.stats` still counted them."""
+    walkers = separated_walkers()
+    boxes = walker_boxes(walkers, 40)
+    visible = np.ones(boxes.shape[:2], bool)
+    visible[:18, 2] = False
+    video = write_video(tmp_path / "late.avi", render(walkers, boxes, 320, 240), 320, 240)
+    csv = write_boxes_csv(tmp_path / "late.csv", boxes, "late", visible)
+    options = TrackOptions(frames_per_group=5, batch_size=4, tracker=TrackerConfig(min_hits=3))
+    plain = track_videos([job(video, csv, options=options)], tmp_path / "plain")[0]
+    chunked = track_videos(
+        [job(video, csv, options=options)],
+        tmp_path / "chunked",
+        chunking=ChunkingConfig(chunk_frames=20, overlap=5),
+    )[0]
+    assert chunked.chunks == 2
+    assert _rows(chunked.result.path).equals(_rows(plain.result.path))
+    stats = json.loads(pq.read_schema(chunked.result.path).metadata[b"gst.stats"])
+    assert stats["rows"] == pq.read_table(chunked.result.path).num_rows == plain.result.rows

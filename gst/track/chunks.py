@@ -261,17 +261,48 @@ def stitch_chunks(
             match_ids(previous, warm, min_agreement) if previous is not None and len(warm) else {}
         )
         mapping = dict(carried)
-        for local in sorted(set(kept.column("person_id").to_pylist()) - set(mapping)):
+        new_ids = sorted(set(kept.column("person_id").to_pylist()) - set(mapping))
+        for local in new_ids:
             mapping[local] = next_id  # chunk-local ids grow in creation order, as global ids do
             next_id += 1
+        if previous is not None and new_ids:
+            # a person who came into view just before the border was not yet confirmed there
+            # (min_hits): their first rows are this chunk's warm-up rows, and belong before it
+            early = _unclaimed_rows(previous, warm, new_ids)
+            if len(early):
+                early_ids = np.array([mapping[i] for i in early.column("person_id").to_numpy()])
+                out[-1] = _sorted_rows(pa.concat_tables([out[-1], _with_ids(early, early_ids)]))
         local_ids = kept.column("person_id").to_numpy()
-        ids = np.array([mapping[i] for i in local_ids], dtype=np.int64)
-        kept = kept.set_column(kept.schema.get_field_index("person_id"), "person_id", pa.array(ids))
-        kept = kept.take(pa.array(np.lexsort((ids, kept.column("frame").to_numpy()))))
+        kept = _sorted_rows(_with_ids(kept, np.array([mapping[i] for i in local_ids])))
         out.append(kept)
         inherited.append(carried)
         previous = kept
         for k in STAT_KEYS:
             stats[k] += record.stats.get(k, 0)
     stats["persons"] = next_id
+    stats["rows"] = sum(len(t) for t in out)  # the file's rows (held rows moved across borders)
     return Stitched(out, stats, inherited)
+
+
+def _with_ids(table: pa.Table, ids: np.ndarray) -> pa.Table:
+    column = pa.array(np.asarray(ids, dtype=np.int64))
+    return table.set_column(table.schema.get_field_index("person_id"), "person_id", column)
+
+
+def _sorted_rows(table: pa.Table) -> pa.Table:
+    """In (frame, person_id) order, as the loop writes them."""
+    order = np.lexsort((table.column("person_id").to_numpy(), table.column("frame").to_numpy()))
+    return table.take(pa.array(order))
+
+
+def _unclaimed_rows(previous: pa.Table, warm: pa.Table, ids: list[int]) -> pa.Table:
+    """The warm-up rows of the chunk-local `ids` (people new in this chunk) whose box no row of
+    the previous chunk's frame covers (IoU below SAME_DETECTION_IOU): rows the previous chunk's
+    tracker held back while the person was not yet confirmed."""
+    pf, pb, _ = _frame_boxes(previous)
+    wf, wb, wid = _frame_boxes(warm)
+    keep = np.zeros(len(wf), bool)
+    for i in np.flatnonzero(np.isin(wid, ids)):
+        same = pf == wf[i]
+        keep[i] = not same.any() or box_iou(pb[same], wb[i : i + 1]).max() < SAME_DETECTION_IOU
+    return warm.filter(pa.array(keep))
