@@ -110,3 +110,37 @@ def test_another_video_of_the_same_name_and_size_is_tracked_again(tmp_path):
         )  # fmt: skip
         boxes.append(pq.read_table(result.path)["bbox"][0].as_py()[0])
     assert boxes == [10.0, 100.0]
+
+
+def test_a_run_killed_after_its_last_commit_resumes_on_a_video_of_unknown_length(
+    tmp_path, monkeypatch
+):
+    """A raw MJPEG stream announces no frame count. A run killed after committing its last
+    group saved a resume point past the end (last frame + stride); every rerun then failed
+    with 'decoding failed ... on the way to frame 63', as if the file were truncated."""
+    from gst.track import writer
+
+    raw = tmp_path / "raw.mjpeg"
+    with open(raw, "wb") as fh:
+        for i in range(60):
+            frame = np.full((120, 160, 3), (i * 4) % 256, np.uint8)
+            fh.write(cv2.imencode(".jpg", frame)[1].tobytes())
+    assert probe_video(raw).frame_count is None
+    options = TrackOptions(stride=7, frames_per_group=2, prefetch=0)
+
+    def killed(self, *args, **kwargs):
+        raise KeyboardInterrupt("killed before finalize")
+
+    with monkeypatch.context() as m:
+        m.setattr(writer.TrackWriter, "finalize", killed)
+        with pytest.raises(KeyboardInterrupt):
+            track_video(raw, tmp_path / "out", _OneBox(), BoxDepthPredictor(),
+                        model={"name": "test", "version": "0"}, options=options)  # fmt: skip
+    result = track_video(raw, tmp_path / "out", _OneBox(), BoxDepthPredictor(),
+                         model={"name": "test", "version": "0"}, options=options)  # fmt: skip
+    assert result.frames == 9 and result.resumed_from_frame == 63
+
+
+class _OneBox:
+    def detect(self, image, index):
+        return [Detection(np.array([10.0, 20.0, 60.0, 100.0]), 0.9)]
