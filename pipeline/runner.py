@@ -120,6 +120,12 @@ def _param_files(params) -> list[Path]:
     return found
 
 
+def _lock_owner(fh) -> str:
+    """The pid a scene's lock file records (`Runner._lock`), '?' when it records none."""
+    fh.seek(0)
+    return fh.read().strip() or "?"
+
+
 def _safe_key(key: str) -> str:
     """A variant key as a file name: characters other than letters, digits and `_.@-` become
     `_`, and a short hash of the key keeps apart keys that map to the same name (`track@a b`,
@@ -423,8 +429,7 @@ class Runner:
             try:
                 fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
             except BlockingIOError:
-                fh.seek(0)
-                owner = fh.read().strip() or "?"
+                owner = _lock_owner(fh)
                 return None if owner == str(os.getpid()) else owner
             fcntl.flock(fh, fcntl.LOCK_UN)
         return None
@@ -441,8 +446,7 @@ class Runner:
             try:
                 fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                fh.seek(0)
-                owner = fh.read().strip() or "?"
+                owner = _lock_owner(fh)
                 raise PipelineError(
                     f"another pipeline run (pid {owner}) holds the workspace lock {path}; wait "
                     "for it to finish"

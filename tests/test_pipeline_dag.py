@@ -274,8 +274,9 @@ def test_bad_scene_params_exit_2_and_name_the_block(tmp_path, capsys, scene_para
     assert expected in capsys.readouterr().err
 
 
-def _chain_config(tmp_path: Path) -> Path:
-    cfg = tmp_path / "chain.yaml"
+def config_with(tmp_path: Path, stages: str, name: str = "pipeline.yaml") -> Path:
+    """A config in `tmp_path` with one synthetic scene and the given `stages:` block (YAML)."""
+    cfg = tmp_path / name
     cfg.write_text(
         textwrap.dedent("""
         workspace: ws
@@ -284,13 +285,23 @@ def _chain_config(tmp_path: Path) -> Path:
         scenes:
           demo: {synthetic: {preset: demo}}
         stages:
-          source: {module: "tests.fake_stages:SOURCE"}
-          constant: {module: "tests.fake_stages:CONSTANT", needs: [source]}
-          peek: {module: "tests.fake_stages:PEEK", needs: [constant]}
-          double: {module: "tests.fake_stages:DOUBLE", needs: [source]}
-    """)
+        """)
+        + textwrap.indent(textwrap.dedent(stages), "  ")
     )
     return cfg
+
+
+def _chain_config(tmp_path: Path) -> Path:
+    return config_with(
+        tmp_path,
+        """
+        source: {module: "tests.fake_stages:SOURCE"}
+        constant: {module: "tests.fake_stages:CONSTANT", needs: [source]}
+        peek: {module: "tests.fake_stages:PEEK", needs: [constant]}
+        double: {module: "tests.fake_stages:DOUBLE", needs: [source]}
+        """,
+        "chain.yaml",
+    )
 
 
 def test_a_stage_sees_a_change_two_stages_up(tmp_path, counter):

@@ -25,14 +25,16 @@ def _alive(pid: int) -> bool:
     return not (stat.is_file() and stat.read_text().split(") ")[-1].startswith("Z"))
 
 
-def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_path):
+def _fanout_run(tmp_path: Path, workers: int) -> tuple[Path, list[str], subprocess.Popen]:
+    """`run fanout` started in its own process (its items sleep 60 s, each writing its pid in
+    tmp_path/markers first): the config, the command and the process."""
     markers = tmp_path / "markers"
     markers.mkdir()
     cfg = tmp_path / "pipeline.yaml"
     cfg.write_text(
         textwrap.dedent(f"""
         workspace: ws
-        executor: {{kind: local, workers: 2}}
+        executor: {{kind: local, workers: {workers}}}
         scenes: {{demo: {{synthetic: {{preset: demo}}}}}}
         stages:
           fanout: {{module: "tests.fake_stages:FANOUT",
@@ -40,7 +42,12 @@ def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_pa
         """)
     )
     cmd = [sys.executable, "-m", "pipeline", "run", "fanout", "--config", str(cfg), "--quiet"]
-    run = subprocess.Popen(cmd, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    return cfg, cmd, subprocess.Popen(cmd, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_path):
+    cfg, cmd, run = _fanout_run(tmp_path, workers=2)
+    markers = tmp_path / "markers"
     deadline = time.time() + 120
     while len(list(markers.glob("worker-*.pid"))) < 2:
         assert time.time() < deadline, "the workers never started"
@@ -68,21 +75,8 @@ def test_status_during_a_run_says_it_is_running_not_interrupted(tmp_path, capsys
     """`status` in a second shell while a stage ran said 'a previous run was interrupted'."""
     from pipeline.cli import main
 
+    cfg, _, run = _fanout_run(tmp_path, workers=1)
     markers = tmp_path / "markers"
-    markers.mkdir()
-    cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(
-        textwrap.dedent(f"""
-        workspace: ws
-        executor: {{kind: local, workers: 1}}
-        scenes: {{demo: {{synthetic: {{preset: demo}}}}}}
-        stages:
-          fanout: {{module: "tests.fake_stages:FANOUT",
-                   params: {{seconds: 60, marker_dir: "{markers}"}}}}
-        """)
-    )
-    cmd = [sys.executable, "-m", "pipeline", "run", "fanout", "--config", str(cfg), "--quiet"]
-    run = subprocess.Popen(cmd, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
     try:
         deadline = time.time() + 120
         while not list(markers.glob("worker-*.pid")):

@@ -5,12 +5,10 @@ by an option, and variant names that collide."""
 from __future__ import annotations
 
 import shutil
-import textwrap
-from pathlib import Path
 
 from pipeline.cli import main
 from pipeline.runner import _safe_key
-from tests.test_pipeline_dag import _chain_config, run
+from tests.test_pipeline_dag import _chain_config, config_with, run
 
 
 def test_a_stage_behind_a_kept_one_records_the_fingerprint_of_what_it_read(
@@ -35,28 +33,12 @@ def test_a_stage_behind_a_kept_one_records_the_fingerprint_of_what_it_read(
     assert counter()[5:] == []
 
 
-def _config_with(tmp_path: Path, stages: str) -> Path:
-    cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(
-        textwrap.dedent("""
-        workspace: ws
-        default_scene: demo
-        executor: {kind: local, workers: 1}
-        scenes:
-          demo: {synthetic: {preset: demo}}
-        stages:
-        """)
-        + textwrap.indent(textwrap.dedent(stages), "  ")
-    )
-    return cfg
-
-
 def test_a_scene_edit_leaves_stages_that_do_not_read_the_scene_up_to_date(
     tmp_path, counter, capsys
 ):
     """Every stage hashed the scene's settings, so a new scene seed (or fps) made pretrain
     stale too, and `run all` trained it again."""
-    cfg = _config_with(
+    cfg = config_with(
         tmp_path,
         """
         sceneless: {module: "tests.fake_stages:SCENELESS"}
@@ -82,7 +64,7 @@ def test_a_file_named_by_a_param_is_an_input(tmp_path, counter, capsys):
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "x.txt").write_text("one\n")
     (tmp_path / "data" / "named.txt").write_text("a\n")
-    cfg = _config_with(
+    cfg = config_with(
         tmp_path,
         """
         source: {module: "tests.fake_stages:SOURCE",
@@ -103,7 +85,7 @@ def test_a_file_named_by_a_param_is_an_input(tmp_path, counter, capsys):
 def test_outputs_an_option_declares_are_made_when_absent(tmp_path, counter, capsys):
     """`run track --with-gaussians` after a plain run said 'up to date' and listed splat
     folders that did not exist: only the outputs recorded by the last run were checked."""
-    cfg = _config_with(tmp_path, 'extras: {module: "tests.fake_stages:EXTRAS"}\n')
+    cfg = config_with(tmp_path, 'extras: {module: "tests.fake_stages:EXTRAS"}\n')
     assert run(cfg, "run", "extras") == 0
     assert run(cfg, "run", "extras", "--with-gaussians") == 0
     assert (tmp_path / "ws" / "demo" / "extras" / "splats" / "one.ply").is_file()

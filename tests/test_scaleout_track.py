@@ -172,6 +172,13 @@ class _Settling(SuppliedBoxes):
         ]
 
 
+def _plain_and_chunked(the_job, tmp_path):
+    """The job tracked whole and in chunks of 20 frames (overlap 5): both outcomes."""
+    plain = track_videos([the_job], tmp_path / "plain")[0]
+    chunking = ChunkingConfig(chunk_frames=20, overlap=5)
+    return plain, track_videos([the_job], tmp_path / "chunked", chunking=chunking)[0]
+
+
 def test_a_stateful_detector_keeps_its_ids_across_chunk_borders(clip, tmp_path):
     """Rows of the overlap were paired only when frame and box were equal to the byte: with the
     default person model (stateful) every chunk gave everyone new ids (3 people -> 9)."""
@@ -180,12 +187,7 @@ def test_a_stateful_detector_keeps_its_ids_across_chunk_borders(clip, tmp_path):
     def settling():
         return _Settling(SuppliedBoxes.from_file(csv, video.stem).boxes)
 
-    plain = track_videos([job(video, csv, detector=settling)], tmp_path / "plain")[0]
-    chunked = track_videos(
-        [job(video, csv, detector=settling)],
-        tmp_path / "chunked",
-        chunking=ChunkingConfig(chunk_frames=20, overlap=5),
-    )[0]
+    plain, chunked = _plain_and_chunked(job(video, csv, detector=settling), tmp_path)
     assert chunked.chunks == 3
     ids = set(_rows(chunked.result.path).column("person_id").to_pylist())
     assert ids == set(_rows(plain.result.path).column("person_id").to_pylist()) == {0, 1, 2}
@@ -210,12 +212,7 @@ def test_a_person_entering_just_before_a_border_keeps_their_first_rows(tmp_path)
     video = write_video(tmp_path / "late.avi", render(walkers, boxes, 320, 240), 320, 240)
     csv = write_boxes_csv(tmp_path / "late.csv", boxes, "late", visible)
     options = TrackOptions(frames_per_group=5, batch_size=4, tracker=TrackerConfig(min_hits=3))
-    plain = track_videos([job(video, csv, options=options)], tmp_path / "plain")[0]
-    chunked = track_videos(
-        [job(video, csv, options=options)],
-        tmp_path / "chunked",
-        chunking=ChunkingConfig(chunk_frames=20, overlap=5),
-    )[0]
+    plain, chunked = _plain_and_chunked(job(video, csv, options=options), tmp_path)
     assert chunked.chunks == 2
     assert _rows(chunked.result.path).equals(_rows(plain.result.path))
     stats = json.loads(pq.read_schema(chunked.result.path).metadata[b"gst.stats"])
