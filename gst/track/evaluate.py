@@ -67,6 +67,38 @@ def _assign(iou: np.ndarray, min_iou: float) -> list[tuple[int, int]]:
     return [(int(r), int(c)) for r, c in zip(rows, cols, strict=True) if allowed[r, c]]
 
 
+def _continued_matches(
+    iou: np.ndarray,
+    rows: np.ndarray,
+    vrows: np.ndarray,
+    track_ids: np.ndarray,
+    person_ids: np.ndarray,
+    last: dict[int, int],
+    min_iou: float,
+) -> dict[int, int]:
+    """One frame's matches, truth view row -> tracks row, as CLEAR MOT makes them: a person
+    keeps the track they were last matched with while its box still overlaps theirs by
+    `min_iou`, and only the rest are assigned afresh (`_assign`). Matching every frame afresh
+    by the largest total IoU made two overlapping people's tracks trade places for a frame and
+    counted switches that the tracker never made."""
+    matched: dict[int, int] = {}
+    taken_r, taken_c = set(), set()
+    for c, v in enumerate(vrows):
+        tid = last.get(int(person_ids[v]))
+        for r in np.flatnonzero(track_ids[rows] == tid) if tid is not None else ():
+            if r not in taken_r and iou[r, c] >= min_iou:
+                matched[int(v)] = int(rows[r])
+                taken_r.add(r)
+                taken_c.add(c)
+                break
+    free_r = [r for r in range(len(rows)) if r not in taken_r]
+    free_c = [c for c in range(len(vrows)) if c not in taken_c]
+    if free_r and free_c:
+        for r, c in _assign(iou[np.ix_(free_r, free_c)], min_iou):
+            matched[int(vrows[free_c[c]])] = int(rows[free_r[r]])
+    return matched
+
+
 def identity_counts(matched_ids: list[int | None]) -> tuple[int, int, int]:
     """(id switches, fragments, distinct ids) of one truth person from the track id matched in each
     processed frame where the person is visible (None: visible but unmatched), in frame order.
@@ -235,13 +267,14 @@ def evaluate_tracks(
     overlaps: dict[tuple[int, int], int] = {}  # (truth person, track id) -> frames they overlap
     pairs: list[tuple[int, int]] = []  # (tracks row, scene truth row)
     history: dict[int, list[int | None]] = {int(p): [] for p in np.unique(views.person_id[v_in])}
+    last: dict[int, int] = {}  # truth person -> the track id they were last matched with
     for f in frames:
         rows = np.flatnonzero(t_frame == f)
         vrows = np.flatnonzero(views.frame == f)
         matched = {}
         if len(rows) and len(vrows):
             iou = box_iou(t_box[rows].astype(np.float64), views.box[vrows].astype(np.float64))
-            matched = {int(vrows[c]): int(rows[r]) for r, c in _assign(iou, min_iou)}
+            matched = _continued_matches(iou, rows, vrows, t_pid, views.person_id, last, min_iou)
             for r, c in zip(*np.nonzero(iou >= min_iou), strict=True):
                 key = (int(views.person_id[vrows[c]]), int(t_pid[rows[r]]))
                 overlaps[key] = overlaps.get(key, 0) + 1
@@ -249,6 +282,8 @@ def evaluate_tracks(
             person = int(views.person_id[v])
             r = matched.get(int(v))
             history[person].append(None if r is None else int(t_pid[r]))
+            if r is not None:
+                last[person] = int(t_pid[r])
             half_matched += int(r is not None and half[v])
             if r is not None:
                 if (int(f), person) not in truth_row:
