@@ -2,7 +2,10 @@
 
 from types import SimpleNamespace
 
+import pytest
+
 from gst.eval import scene
+from gst.eval.split import check_unseen
 
 
 def _setup(monkeypatch, extra):
@@ -23,3 +26,19 @@ def test_the_recorded_cameras_and_the_fallback(monkeypatch):
         30,
     )
     assert _setup(monkeypatch, {"first_heldout_frame": -1}) == (["c"], None)
+
+
+def test_held_out_cameras_or_frames_the_model_trained_on_are_refused(monkeypatch):
+    """`evaluate.heldout_cameras` set by hand (or a bench `test_fraction` of its own) scored the
+    trained model on a camera or frames it trained on, as if they were unseen."""
+    trained = {"cameras": ["a", "b"], "frames": [0, 29], "scene": "demo"}
+    extra = {"heldout_cameras": ["c"], "first_heldout_frame": 30, "trained_on": trained}
+    monkeypatch.setattr(scene, "load_checkpoint", lambda path: SimpleNamespace(extra=extra))
+    crops = SimpleNamespace(camera_names=["a", "b", "c"], frame=None)
+    settings = scene.EvaluateSettings(heldout_cameras=["a"])
+    with pytest.raises(ValueError, match=r"model.pt: held-out camera\(s\) \['a'\]"):
+        scene._heldout_setup(settings, {"gst": "model.pt"}, crops)
+    assert _setup(monkeypatch, extra) == (["c"], 30)  # the training's own split
+    with pytest.raises(ValueError, match="test frames from 20 include frames it trained on"):
+        check_unseen(extra, ["c"], 20, "gst.pt")
+    check_unseen({"trained_on": {"recorded": False}}, ["a"], 0, "old.pt")  # nothing to check

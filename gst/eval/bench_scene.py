@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, NonNegativeInt
 
 from gst.body import load_body_model
 from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
-from gst.eval.split import FinetuneConfig, frame_split
+from gst.eval.split import FinetuneConfig, check_unseen, frame_split
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
@@ -114,7 +114,10 @@ def bench_scene(
     if p.include_trained and (root / "models" / "gst.pt").is_file():
         kept.append(("trained (models/gst.pt)", "models/gst.pt"))
     for name, rel in kept:
-        cfg = network_from_checkpoint(load_checkpoint(root / rel)).cfg
+        model = load_checkpoint(root / rel)
+        if rel == "models/gst.pt":  # the scene's trained model: scored on a split it never saw
+            check_unseen(model.extra, split.heldout_cameras, split.test_frames[0], root / rel)
+        cfg = network_from_checkpoint(model).cfg
         variants.append(
             Variant(
                 name=name,

@@ -24,6 +24,7 @@ from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
 from gst.eval.evaluator import evaluate_pose
 from gst.eval.report import write_report
+from gst.eval.split import check_unseen
 from gst.eval.summary import pose_summary
 from gst.fuse.tables import read_fused_bodies
 from gst.metrics.lpips import load_lpips
@@ -78,7 +79,10 @@ def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple
     cut = extra.get("first_heldout_frame")
     if cut is None:
         cut = heldout_frame_start(crops.frame, p.heldout_frames)
-    return list(cams), (None if cut is None or cut < 0 else int(cut))
+    cut = None if cut is None or cut < 0 else int(cut)
+    if "gst" in models:
+        check_unseen(extra, cams, cut, models["gst"])
+    return list(cams), cut
 
 
 def fused_reference(crops, bodies_parquet: Path) -> None:

@@ -19,7 +19,7 @@ from gst.train.scene_truth import select_rows
 from gst.train.trainer import TrainConfig
 from gst.train.views import CropSet, heldout_frame_start
 
-__all__ = ["Split", "frame_split", "FinetuneConfig", "finetune"]
+__all__ = ["Split", "frame_split", "check_unseen", "FinetuneConfig", "finetune"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,35 @@ def frame_split(
     return Split(
         torch.nonzero(keep)[:, 0], (first_test, int(frames[-1]) + 1), tuple(heldout_cameras)
     )
+
+
+def check_unseen(
+    extra: dict, heldout_cameras, first_test_frame: int | None, model: str | Path
+) -> None:
+    """Refuse to score a scene's trained model (`extra`: its checkpoint's record,
+    `trained_on` and `first_heldout_frame`) on held-out cameras or test frames it trained on:
+    its novel-view and test-frame scores would be training scores. A split other than the
+    training's (an `evaluate.heldout_cameras` or a bench `test_fraction` of one's own) is
+    where that happens. Checkpoints that record nothing are not checked."""
+    trained = extra.get("trained_on") if isinstance(extra, dict) else None
+    if not isinstance(trained, dict) or not trained.get("cameras"):
+        return
+    problems = []
+    seen = sorted(set(trained["cameras"]) & set(heldout_cameras))
+    if seen:
+        problems.append(f"held-out camera(s) {seen} are among the cameras it trained on")
+    frames = trained.get("frames")
+    if first_test_frame is not None and frames and first_test_frame <= int(frames[1]):
+        problems.append(
+            f"test frames from {first_test_frame} include frames it trained on (up to "
+            f"{int(frames[1])}; its own held-out frames start at "
+            f"{extra.get('first_heldout_frame')})"
+        )
+    if problems:
+        raise ValueError(
+            f"{model}: " + "; ".join(problems) + ". Score it on the split it was trained with "
+            "(the settings' defaults read it from the checkpoint), or train it again"
+        )
 
 
 @dataclass(frozen=True)
