@@ -391,6 +391,35 @@ def test_pinned_model_hashes_are_well_formed():
 
 
 @NEEDS_MODELS
+def test_a_damaged_cached_model_is_refused_and_fetched_again(tmp_path, capsys):
+    """The pins were checked only while fetching: a model damaged in the cache was loaded (a
+    few flipped bits give plausible wrong landmarks, more give NaN presence: people dropped),
+    `fetch` reported success over it, and track's detection cache kept what it found."""
+    import shutil
+
+    from gst.detect.__main__ import main as detect_main
+    from gst.detect.weights import BlazePoseModelsCorrupt
+
+    models = tmp_path / "models"
+    shutil.copytree(Path(model_paths()["landmarks"]).parent, models)
+    landmarks = models / MODELS["landmarks"].name
+    data = bytearray(landmarks.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    landmarks.write_bytes(bytes(data))
+    with pytest.raises(BlazePoseModelsCorrupt, match="fetch --force"):
+        model_paths(models)
+    # fetch sees it and takes the models again (from a folder holding the pinned wheel's
+    # members here: a fake wheel with the real model bytes)
+    archives = tmp_path / "archives"
+    archives.mkdir()
+    real = {m.member: (Path(model_paths()[r])).read_bytes() for r, m in MODELS.items()}
+    _fake_wheel(archives / MEDIAPIPE_WHEEL.filename, real)
+    assert detect_main(["fetch", "--models-dir", str(models), "--from", str(archives)]) == 1
+    assert "SHA-256" in capsys.readouterr().err  # the fake wheel is not the pinned wheel
+    assert hashlib.sha256(landmarks.read_bytes()).hexdigest() != MODELS["landmarks"].sha256
+
+
+@NEEDS_MODELS
 def test_cached_models_match_their_pins():
     for role, p in model_paths().items():
         assert hashlib.sha256(p.read_bytes()).hexdigest() == MODELS[role].sha256

@@ -4,6 +4,16 @@ Optional: needs the `detect` extra (ai-edge-litert) and the model files from
 `python -m gst.detect fetch`. See docs/person_models.md.
 """
 
-from gst.detect.weights import BlazePoseModelsMissing, fetch_blazepose_models, model_paths
+from gst.detect.weights import (
+    BlazePoseModelsCorrupt,
+    BlazePoseModelsMissing,
+    fetch_blazepose_models,
+    model_paths,
+)
 
-__all__ = ["BlazePoseModelsMissing", "fetch_blazepose_models", "model_paths"]
+__all__ = [
+    "BlazePoseModelsCorrupt",
+    "BlazePoseModelsMissing",
+    "fetch_blazepose_models",
+    "model_paths",
+]

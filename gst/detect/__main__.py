@@ -35,7 +35,17 @@ def main(argv: list[str] | None = None) -> int:
     )
     fetch.add_argument("--force", action="store_true", help="fetch again even if the files exist")
     args = parser.parse_args(argv)
-    paths = fetch_blazepose_models(args.models_dir, archive_dir=args.archive_dir, force=args.force)
+    try:
+        paths = fetch_blazepose_models(
+            args.models_dir, archive_dir=args.archive_dir, force=args.force
+        )
+    except (RuntimeError, ValueError, FileNotFoundError) as exc:  # offline, a bad wheel
+        print(
+            f"error: {exc}\nOn a machine without PyPI: download {MEDIAPIPE_WHEEL.filename} "
+            "elsewhere and run `python -m gst.detect fetch --from DIR` with it in DIR.",
+            file=sys.stderr,
+        )
+        return 1
     for role, p in paths.items():
         print(f"{role}: {p}")
     return 0

@@ -10,6 +10,7 @@ Nothing from the wheel is executed.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import tempfile
 from dataclasses import dataclass
@@ -60,11 +61,35 @@ def default_models_dir() -> Path:
     return default_cache_dir() / "blazepose"
 
 
+class BlazePoseModelsCorrupt(ValueError):
+    """A cached BlazePose model file is not the pinned one (damaged, truncated, replaced)."""
+
+
+@functools.lru_cache(maxsize=16)
+def _sha256_version(path: Path, size: int, mtime_ns: int) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()  # a few ms for the two models
+
+
+def _matches_pin(path: Path, sha256: str) -> bool:
+    """The file's content is the pinned one (hashed once per file version and process)."""
+    st = path.stat()
+    return _sha256_version(path, st.st_size, st.st_mtime_ns) == sha256
+
+
 def model_paths(models_dir: str | Path | None = None) -> dict[str, Path]:
-    """Paths of the fetched models; raises BlazePoseModelsMissing (with the fix) when absent."""
+    """Paths of the fetched models, each checked against its pinned SHA-256 (a damaged model
+    gives plausible wrong landmarks, and the caches would keep them); raises
+    BlazePoseModelsMissing or BlazePoseModelsCorrupt with the fix."""
     root = Path(models_dir) if models_dir is not None else default_models_dir()
     paths = {role: root / m.name for role, m in MODELS.items()}
     missing = [str(p) for p in paths.values() if not p.is_file()]
+    bad = [str(paths[r]) for r, m in MODELS.items() if paths[r].is_file()
+           and not _matches_pin(paths[r], m.sha256)]  # fmt: skip
+    if bad and not missing:
+        raise BlazePoseModelsCorrupt(
+            f"BlazePose model file(s) {', '.join(bad)} are not the pinned models (damaged or "
+            f"replaced); fetch them again with `{FETCH_COMMAND} --force`"
+        )
     if missing:
         raise BlazePoseModelsMissing(
             f"BlazePose model files missing: {', '.join(missing)}. "
@@ -86,8 +111,9 @@ def fetch_blazepose_models(
     """Make sure both model files exist under `models_dir` (default `default_models_dir()`)."""
     root = Path(models_dir) if models_dir is not None else default_models_dir()
     paths = {role: root / m.name for role, m in MODELS.items()}
-    if all(p.is_file() for p in paths.values()) and not force:
-        return paths
+    intact = all(p.is_file() and _matches_pin(p, MODELS[r].sha256) for r, p in paths.items())
+    if intact and not force:
+        return paths  # a damaged or truncated file is fetched again
     with tempfile.TemporaryDirectory(prefix="gst-blazepose-") as tmp:
         if archive_dir is not None:
             wheel = Path(archive_dir) / MEDIAPIPE_WHEEL.filename

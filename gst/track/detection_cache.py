@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from gst.atomic import atomic_save_npz
+from gst.detect.weights import MODELS
 from gst.registry import sha256_of
 from gst.track.detection import N_LANDMARKS, Detection, Detector
 from gst.track.writer import settings_digest
@@ -81,6 +82,8 @@ def detections_key(video: str | Path, detector_info: dict, first_frame: int, str
         "format": FORMAT,
         "video": sha256_of(Path(video)),
         "detector": detector_info,
+        # the models' pins: model_paths refuses any other file, so they name the models run
+        "models": {role: m.sha256 for role, m in MODELS.items()},
         "code": _code(),
         "first_frame": int(first_frame),
         "stride": int(stride),
