@@ -221,3 +221,19 @@ def test_a_strided_video_keeps_the_landmark_loop(frames):
     found = [det.detect(f, i) for i, f in strided]
     assert [len(d) for d in found] == [2] * len(strided)
     assert det.detector_runs == 1  # frame 0 only: 6, 12 and 18 followed from the landmarks
+
+
+def test_batched_landmarks_keep_a_few_interpreters_whatever_the_batch_sizes(frames):
+    """One interpreter was kept per batch size seen, each holding its batch's working memory
+    (sizes 1-8: +624 MiB); batches now run as calls of 8, 4, 2 and 1 with the same numbers."""
+    from gst.detect.blazepose import BatchedLandmarks, BlazePose, roi_from_alignment
+
+    small = cv2.resize(frames[0], (544, 960), interpolation=cv2.INTER_AREA)
+    rois = [roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in BlazePose().detect(small)]
+    many = (rois * 7)[:13]  # 13 = 8 + 4 + 1
+    lm = BatchedLandmarks()
+    alone = {id(r): lm(small, [r])[0] for r in rois}
+    for n in (3, 5, 7, 13):
+        for got, roi in zip(lm(small, many[:n]), many[:n], strict=True):
+            np.testing.assert_allclose(got.landmarks, alone[id(roi)].landmarks, atol=1e-4)
+    assert sorted(lm._by_batch) == [1, 2, 4, 8]

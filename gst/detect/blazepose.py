@@ -385,10 +385,14 @@ class BatchedLandmarks:
     same numbers as one call per region. Each person's `confidence` is the project's convention,
     landmark visibility x landmark presence. Not thread-safe: one per worker."""
 
+    # Interpreters are kept for these batch sizes only, and a call of n regions runs as a few
+    # of them (5 = 4 + 1; 19 = 8 + 8 + 2 + 1): re-allocating one for every change of the number
+    # of regions costs more than the memory, but one per size seen grew without bound (an
+    # interpreter for batch n holds n crops' working memory: sizes 1-8 took 624 MiB).
+    BATCH_SIZES = (8, 4, 2, 1)
+
     def __init__(self, models_dir: str | Path | None = None, threads: int = 1):
         self._path, self._threads = model_paths(models_dir)["landmarks"], threads
-        # One interpreter per batch size seen: re-allocating one for every change of the number
-        # of regions (tracked people, then the detector's new ones) costs more than the memory.
         self._by_batch: dict[int, object] = {}
 
     def _for_batch(self, n: int) -> _Model:
@@ -397,6 +401,18 @@ class BatchedLandmarks:
             model = _Model(self._path, self._threads, batch=n, size=LANDMARK_SIZE)
             self._by_batch[n] = model
         return model
+
+    def _run(self, rgb: np.ndarray) -> dict[tuple[int, ...], np.ndarray]:
+        """The model on a batch of any size, as calls of the kept sizes (same numbers: the
+        model's answer for a region does not depend on the others in its batch)."""
+        parts, start = [], 0
+        while start < len(rgb):
+            size = next(b for b in self.BATCH_SIZES if b <= len(rgb) - start)
+            parts.append(self._for_batch(size)(rgb[start : start + size]))
+            start += size
+        if len(parts) == 1:
+            return parts[0]
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
     def __call__(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
         """Landmarks of the person in each region of a BGR image (one call for all regions)."""
@@ -417,7 +433,7 @@ class BatchedLandmarks:
         )
         rgb = crops[..., ::-1].astype(np.float32) * np.float32(1 / 255)
         n = len(rois)
-        out = self._for_batch(n)(rgb)
+        out = self._run(rgb)
         raw = out[(195,)].reshape(n, 39, 5)
         presence = np.clip(out[(1,)][:, 0], 0.0, 1.0)
         logits = out[(LANDMARK_SIZE, LANDMARK_SIZE, 1)][..., 0]
