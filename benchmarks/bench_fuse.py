@@ -10,13 +10,25 @@ person-frame and camera: undistorted full-image pixels, confidence, and the came
 the peers run in their own virtual environment (benchmark tools, never project dependencies):
 
 - ours, triangulation: gst.fuse.triangulate with the fuse stage's defaults (pair consensus over
-  the 8 most confident views with the people's silhouettes voting, weighted DLT, leave-one-out,
-  Gauss-Newton);
+  the 8 most confident views with the people's silhouettes voting, a second pass voting with
+  the neighbouring frames, weighted DLT, leave-one-out, Gauss-Newton); the silhouettes are
+  input the peers do not get, and their computation is counted in this row's time;
+- ours, triangulation, landmarks only: the same without silhouettes, pair consensus or votes
+  (the like-for-like row: the peers' input exactly);
 - ours, body fit: gst.fuse.fit (markers, all cameras, whole clip, Levenberg-Marquardt);
-- Pose2Sim 0.10.49: its weighted DLT (`Pose2Sim.common.weighted_triangulation`) inside its
-  camera-exclusion loop (drop views while the mean reprojection error exceeds 15 px);
+- Pose2Sim 0.10.49: its own `Pose2Sim.triangulation.triangulation_from_best_cameras` with its
+  Config.toml defaults (15 px, at least 2 cameras, every subset of cameras tried as more are
+  left out; NaN where no subset reprojects within 15 px), landmarks below likelihood 0.3 unused;
 - aniposelib 0.8.0: `CameraGroup.triangulate`, and `optim_points` (its optim=True path:
   temporal smoothness and limb-length constraints).
+
+Peers are timed as ours is: one untimed call on a few person-frames first (imports, and
+aniposelib's first call compiles its code with numba/jax: about 50x its later calls), then the
+median of `--repeats` calls. Every method is scored on the (person-frame, joint)s that all of
+them returned (a method that leaves hard joints out is not scored on fewer, easier ones); the
+share each returned is printed beside it. The body fit's 13 joints are the body model's, the
+triangulations' their landmarks': the truth uses the same body model as the fit, so part of the
+gap is one of definition (15-42 mm offsets between a landmark and its joint, fixed per person).
 
 Two groupings of the same landmarks into people are scored: the extraction's person ids as
 they are, and the people regrouped by 3D agreement (gst.fuse.regroup, part of the fuse stage),
@@ -40,6 +52,7 @@ import json
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -57,39 +70,44 @@ JOINTS13 = BODY_FROM_BLAZEPOSE
 
 PEER_SCRIPT = r"""
 import json, sys, time, numpy as np
-d = np.load(sys.argv[1]); out = {}
+d = np.load(sys.argv[1]); out = {}; reps = int(sys.argv[3])
 uv, conf, K, R, t = d["uv"], d["conf"], d["K"], d["R"], d["t"]  # uv (N, C, 33, 2), conf (N, C, 33)
 N, C, M = conf.shape
 ppl, frames = d["person"], d["frame"]
 P = np.stack([K[c] @ np.c_[R[c], t[c]] for c in range(C)])
-seen = np.isfinite(uv).all(-1) & (conf >= 0.3)
+seen = np.isfinite(uv).all(-1) & (conf >= 0.3)  # Pose2Sim's likelihood threshold, for all
+
+def timed(fn):
+    # one untimed call on a few person-frames first (imports, aniposelib's JIT compilation),
+    # then the median of `reps` calls on all of them, as ours is timed
+    fn(np.arange(min(4, N)))
+    runs = []
+    for _ in range(reps):
+        t0 = time.perf_counter(); X = fn(np.arange(N)); runs.append(time.perf_counter() - t0)
+    return X, float(np.median(runs))
+
 try:
-    from Pose2Sim.common import weighted_triangulation
-    t0 = time.perf_counter(); X = np.full((N, M, 3), np.nan)
-    for n in range(N):
-        for m in range(M):
-            cams = list(np.flatnonzero(seen[n, :, m]))
-            while len(cams) >= 2:
-                Q = weighted_triangulation([P[c] for c in cams], list(uv[n, cams, m, 0]),
-                                           list(uv[n, cams, m, 1]), list(conf[n, cams, m]))
-                q = np.r_[np.asarray(Q)[:3], 1.0]
-                pr = np.stack([P[c] @ q for c in cams]); pr = pr[:, :2] / pr[:, 2:]
-                err = np.linalg.norm(pr - uv[n, cams, m], axis=1)
-                if err.mean() <= 15 or len(cams) == 2:
-                    X[n, m] = q[:3]; break
-                # Pose2Sim drops the camera whose removal helps most; one at a time
-                best = None
-                for c in cams:
-                    rest = [k for k in cams if k != c]
-                    Q2 = weighted_triangulation([P[k] for k in rest], list(uv[n, rest, m, 0]),
-                                                list(uv[n, rest, m, 1]), list(conf[n, rest, m]))
-                    q2 = np.r_[np.asarray(Q2)[:3], 1.0]
-                    pr2 = np.stack([P[k] @ q2 for k in rest]); pr2 = pr2[:, :2] / pr2[:, 2:]
-                    e2 = np.linalg.norm(pr2 - uv[n, rest, m], axis=1).mean()
-                    if best is None or e2 < best[0]: best = (e2, c)
-                cams.remove(best[1])
-    out["pose2sim"] = {"points": X.tolist(), "seconds": time.perf_counter() - t0}
+    from Pose2Sim.triangulation import triangulation_from_best_cameras
+    cfg = {"triangulation": {"reproj_error_threshold_triangulation": 15,
+           "min_cameras_for_triangulation": 2, "handle_LR_swap": False,
+           "undistort_points": False}}  # its Config.toml defaults (points are undistorted here)
+    Pl = list(P)
+    def pose2sim(rows):
+        X = np.full((len(rows), M, 3), np.nan)
+        for i, n in enumerate(rows):
+            for m in range(M):
+                x = np.where(seen[n, :, m], uv[n, :, m, 0], np.nan)
+                y = np.where(seen[n, :, m], uv[n, :, m, 1], np.nan)
+                lik = np.where(seen[n, :, m], conf[n, :, m], 0.0)
+                if (lik > 0).sum() < 2:
+                    continue
+                Q, *_ = triangulation_from_best_cameras(cfg, [x, y, lik], [x, y, lik], Pl, None)
+                X[i, m] = np.asarray(Q, float)[:3]
+        return X
+    X, sec = timed(pose2sim)
+    out["pose2sim"] = {"points": X.tolist(), "seconds": sec}
 except Exception as exc:
+    import traceback; traceback.print_exc()
     out["pose2sim"] = {"error": repr(exc)}
 try:
     from aniposelib.cameras import Camera, CameraGroup
@@ -98,23 +116,29 @@ try:
                    rvec=cv2.Rodrigues(R[c])[0].ravel(), tvec=t[c]) for c in range(C)]
     cg = CameraGroup(cams)
     pts = np.where(seen[..., None], uv, np.nan).transpose(1, 0, 2, 3)  # (C, N, M, 2)
-    t0 = time.perf_counter()
-    X = cg.triangulate(pts.reshape(C, N * M, 2), undistort=True, progress=False).reshape(N, M, 3)
-    out["aniposelib"] = {"points": X.tolist(), "seconds": time.perf_counter() - t0}
+    def anipose(rows):
+        n = len(rows)
+        return cg.triangulate(pts[:, rows].reshape(C, n * M, 2), undistort=True,
+                              progress=False).reshape(n, M, 3)
+    X, sec = timed(anipose)
+    out["aniposelib"] = {"points": X.tolist(), "seconds": sec}
     # optim=True path, per person (its temporal terms need one track): smoothness + limbs
     limbs = [[11, 13], [13, 15], [12, 14], [14, 16], [23, 25], [25, 27], [24, 26], [26, 28],
              [11, 12], [23, 24], [11, 23], [12, 24]]
-    t0 = time.perf_counter(); Xo = np.full((N, M, 3), np.nan)
-    for p in np.unique(ppl):
-        sel = np.flatnonzero(ppl == p); sel = sel[np.argsort(frames[sel])]
-        init = X[sel]
-        # aniposelib needs finite starts: fill missing points from the track's median
-        med = np.nanmedian(init, axis=0); init = np.where(np.isfinite(init), init, med)
-        init = np.nan_to_num(init)
-        sc = np.where(seen[sel], conf[sel], 0).transpose(1, 0, 2)
-        Xo[sel] = cg.optim_points(pts[:, sel], init, constraints=limbs, scores=sc,
-                                  reproj_error_threshold=15, verbose=False)
-    out["aniposelib_optim"] = {"points": Xo.tolist(), "seconds": time.perf_counter() - t0}
+    def optim(rows):
+        Xo = np.full((N, M, 3), np.nan)
+        for p in np.unique(ppl[rows]):
+            sel = rows[ppl[rows] == p]; sel = sel[np.argsort(frames[sel])]
+            init = X[sel]
+            # aniposelib needs finite starts: fill missing points from the track's median
+            med = np.nanmedian(init, axis=0); init = np.where(np.isfinite(init), init, med)
+            init = np.nan_to_num(init)
+            sc = np.where(seen[sel], conf[sel], 0).transpose(1, 0, 2)
+            Xo[sel] = cg.optim_points(pts[:, sel], init, constraints=limbs, scores=sc,
+                                      reproj_error_threshold=15, verbose=False)
+        return Xo[rows]
+    Xo, sec = timed(optim)
+    out["aniposelib_optim"] = {"points": Xo.tolist(), "seconds": sec}
 except Exception as exc:
     import traceback; traceback.print_exc()
     out["aniposelib"] = out.get("aniposelib", {"error": repr(exc)})
@@ -186,7 +210,7 @@ def _score(pred, person, frame, truth, joints=None) -> tuple[float, float, int]:
     )
 
 
-def _peers(people, store, rig, python: str, keep: Path | None) -> tuple[dict, dict]:
+def _peers(people, store, rig, python: str, keep: Path | None, repeats: int) -> tuple[dict, dict]:
     with tempfile.TemporaryDirectory() as tmp:
         inp, outp, script = Path(tmp) / "in.npz", Path(tmp) / "out.json", Path(tmp) / "peers.py"
         arr = _export(people, store, rig, inp)
@@ -195,7 +219,7 @@ def _peers(people, store, rig, python: str, keep: Path | None) -> tuple[dict, di
             import shutil
 
             shutil.copy(inp, keep)
-        proc = subprocess.run([python, str(script), str(inp), str(outp)],
+        proc = subprocess.run([python, str(script), str(inp), str(outp), str(repeats)],
                               capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
                               "NUMBA_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})  # fmt: skip
         peers = json.loads(outp.read_text()) if outp.is_file() else {}
@@ -269,7 +293,12 @@ def main() -> None:
         np.save(cache, lm)
     extracted = group_by_person(store, lm)
     tri_options = FuseOptions().triangulation  # what the fuse stage triangulates with
-    silhouettes = crop_silhouettes(store, {c.name: (c.width, c.height) for c in rig.cameras})
+    # the people's silhouettes vote in our pair consensus: their cost is part of ours
+    t_sil, silhouettes = median_time(
+        lambda: crop_silhouettes(store, {c.name: (c.width, c.height) for c in rig.cameras}), 1
+    )
+    # like for like with the peers: landmarks only (no silhouettes, no pair consensus or votes)
+    plain_options = replace(tri_options, consensus_views=0, temporal_weight=0.0)
 
     def triangulate(p):
         return triangulate_person(p, tri_options, silhouettes)
@@ -283,14 +312,21 @@ def main() -> None:
         n_pf = sum(len(p.frames) for p in people)
         person = np.concatenate([np.full(len(p.frames), p.person_id) for p in people])
         frame = np.concatenate([p.frames for p in people])
-
-        def row(name, scored, sec, note="", n_pf=n_pf, grouping=grouping):
-            mp, pa, n = scored
-            results.append((grouping, name, mp, pa, n, 1000 * sec / n_pf, note))
+        methods = {}  # name -> (joints (N, 24, 3) in the export's row order, seconds, note)
 
         sec, tris = median_time(lambda ps=people: [triangulate(p) for p in ps], args.repeats)
-        X = np.concatenate([t.points for t in tris])
-        row("ours: triangulation", _score(_joints13(X), person, frame, truth, JOINTS13), sec)
+        methods["ours: triangulation"] = (
+            _joints13(np.concatenate([t.points for t in tris])), sec + t_sil,
+            "pair consensus, silhouettes (timed in), votes",
+        )  # fmt: skip
+        sec, plain = median_time(
+            lambda ps=people: [triangulate_person(p, plain_options) for p in ps], args.repeats
+        )
+        methods["ours: triangulation, landmarks only"] = (
+            _joints13(np.concatenate([t.points for t in plain])),
+            sec,
+            "as the peers' input",
+        )
         sec, fits = median_time(
             lambda ps=people, ts=tris: fit_people(body, markers, ps, ts, 30.0, FitOptions()),
             args.repeats,
@@ -299,34 +335,54 @@ def main() -> None:
         J = np.concatenate(
             [f.joints[np.isin(f.frames, p.frames)] for f, p in zip(fits, people, strict=True)]
         )
-        row("ours: body fit (13 joints)", _score(J, person, frame, truth, JOINTS13), sec,
-            "after triangulation")  # fmt: skip
-        row("ours: body fit (24 joints)", _score(J, person, frame, truth), sec)
-        if args.skip_peers:
-            continue
-        peers, arr = _peers(people, store, rig, args.peers_python, args.keep_input)
-        for key, name in (("pose2sim", "Pose2Sim 0.10.49: triangulation"),
-                          ("aniposelib", "aniposelib 0.8.0: triangulate"),
-                          ("aniposelib_optim", "aniposelib 0.8.0: optim_points")):  # fmt: skip
-            r = peers.get(key, {"error": "not run"})
-            if "error" in r:
-                results.append((grouping, name, np.nan, np.nan, 0, np.nan, r["error"][:80]))
-                continue
-            Xp = np.array(r["points"], dtype=float)
-            scored = _score(_joints13(Xp), arr["person"], arr["frame"], truth, JOINTS13)
-            row(name, scored, r["seconds"])
+        methods["ours: body fit"] = (J, sec, "after triangulation")
+        if not args.skip_peers:
+            peers, arr = _peers(
+                people, store, rig, args.peers_python, args.keep_input, args.repeats
+            )
+            assert (arr["person"] == person).all() and (arr["frame"] == frame).all()
+            for key, name in (("pose2sim", "Pose2Sim 0.10.49: triangulation_from_best_cameras"),
+                              ("aniposelib", "aniposelib 0.8.0: triangulate"),
+                              ("aniposelib_optim", "aniposelib 0.8.0: optim_points")):  # fmt: skip
+                r = peers.get(key, {"error": "not run"})
+                if "error" in r:
+                    results.append((grouping, name, np.nan, np.nan, 0, np.nan, np.nan,
+                                    r["error"][:80]))  # fmt: skip
+                    continue
+                methods[name] = (_joints13(np.array(r["points"], dtype=float)), r["seconds"], "")
+        # every method scored on the (person-frame, joint)s all of them gave: a method that
+        # leaves hard joints out is not scored on fewer, easier ones
+        js = list(JOINTS13)
+        common = np.logical_and.reduce(
+            [np.isfinite(X[:, js]).all(-1) for X, _, _ in methods.values()]
+        )
+        for name, (X, sec, note) in methods.items():
+            coverage = float(np.isfinite(X[:, js]).all(-1).mean())
+            masked = X.copy()
+            masked[:, js] = np.where(common[..., None], X[:, js], np.nan)
+            mp, pa, n = _score(masked, person, frame, truth, JOINTS13)
+            label = name + (" (13 joints)" if name == "ours: body fit" else "")
+            results.append((grouping, label, mp, pa, n, 1000 * sec / n_pf, coverage, note))
+            if name == "ours: body fit":
+                mp, pa, n = _score(X, person, frame, truth)
+                results.append((grouping, "ours: body fit (24 joints)", mp, pa, n,
+                                1000 * sec / n_pf, 1.0, "all 24, not masked"))  # fmt: skip
 
     n_pf = sum(len(p.frames) for p in extracted)
     print(f"\n{n_pf} person-frames, {len(store.camera_names)} cameras, detected 2D (BlazePose), "
           f"torch threads {args.threads}; regrouping: {report.tracks} people from "
           f"{len(extracted)} extraction ids, "
           f"{1000 * t_regroup / n_pf:.2f} ms / person-frame\n")  # fmt: skip
+    print("MPJPE over the (person-frame, joint)s every method gave; joints given: the share of "
+          "the 13 scored joints a method returned (before that common mask)\n")  # fmt: skip
     print(
-        "| grouping | method | MPJPE mm | PA-MPJPE mm | person-frames | ms / person-frame | note |"
+        "| grouping | method | MPJPE mm | PA-MPJPE mm | person-frames | ms / person-frame | "
+        "joints given | note |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    for grouping, name, mp, pa, n, ms, note in results:
-        print(f"| {grouping} | {name} | {mp:.1f} | {pa:.1f} | {n} | {ms:.2f} | {note} |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for grouping, name, mp, pa, n, ms, cov, note in results:
+        print(f"| {grouping} | {name} | {mp:.1f} | {pa:.1f} | {n} | {ms:.2f} | {cov:.3f} | "
+              f"{note} |")  # fmt: skip
 
     # linearity of the fit: subsets of frames and cameras, and copies of the people
     print("\n| fit subset | person-frames | cameras | seconds | person-frames / s | "
