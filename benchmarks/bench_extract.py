@@ -83,6 +83,7 @@ def synthetic_1080p(root: Path, n_frames: int, n_people: int) -> tuple[dict, Rig
 
 VARIANTS = [
     # name, method, work_scale (None = default: longer side 960 px), compression, person model
+    # the stage's default without the detect extra (hull association); with it, "keypoints"
     ("median, work 1/2 (default)", "median", None, "gzip", False),
     ("median, work 1/4", "median", 0.25, "gzip", False),
     ("median, work 1/1", "median", 1.0, "gzip", False),
@@ -230,8 +231,8 @@ def main() -> None:
                     shutil.rmtree(out.parent)
                 if persons is True:
                     segmenter = SegmenterConfig()
-                elif persons == "keypoints-1":
-                    segmenter = SegmenterConfig(detect_every=1)
+                elif persons == "keypoints-1":  # the keypoint default but for the detector
+                    segmenter = SegmenterConfig(detect_every=1, zoom=ExtractOptions().person_zoom)
                 else:
                     segmenter = None  # hull without person model; keypoints: its default
                 t = time.perf_counter()
