@@ -302,7 +302,8 @@ def _unclaimed_rows(previous: pa.Table, warm: pa.Table, ids: list[int]) -> pa.Ta
     pf, pb, _ = _frame_boxes(previous)
     wf, wb, wid = _frame_boxes(warm)
     keep = np.zeros(len(wf), bool)
-    for i in np.flatnonzero(np.isin(wid, ids)):
+    first = pf.min() if len(pf) else np.inf  # rows of frames the previous chunk keeps, only
+    for i in np.flatnonzero(np.isin(wid, ids) & (wf >= first)):
         same = pf == wf[i]
         keep[i] = not same.any() or box_iou(pb[same], wb[i : i + 1]).max() < SAME_DETECTION_IOU
     return warm.filter(pa.array(keep))
