@@ -227,6 +227,46 @@ def test_external_bad_files_are_named(tmp_path):
         read_external(root, ["cam0"])
 
 
+def _one_box(root, frame, frame_type=None) -> None:
+    pq.write_table(
+        pa.table({"frame": pa.array([frame], frame_type or pa.int64()), "camera": ["cam0"],
+                  "x0": [1.0], "y0": [1.0], "x1": [3.0], "y1": [3.0]}),
+        root / "boxes.parquet",
+    )  # fmt: skip
+
+
+def test_external_inputs_that_would_be_misread_are_refused(tmp_path):
+    """Each of these was read silently, and wrongly: the text "false" as global ids on, a mask
+    file named after no camera skipped (that camera falling back to the background model),
+    repeated or fractional mask frame numbers (one mask lost, frames truncated), and box frames
+    that are 1-based, fractional or missing (every box a frame late, the last one dropped)."""
+    root = tmp_path / "ext"
+    root.mkdir()
+    _one_box(root, 0)
+    (root / "meta.json").write_text(json.dumps({"global_ids": "false"}))
+    with pytest.raises(ExternalError, match="global_ids is 'false', expected true or false"):
+        read_external(root, ["cam0"])
+    (root / "meta.json").unlink()
+    np.savez(root / "Cam0.npz", masks=np.zeros((1, 4, 4), np.uint8))
+    with pytest.raises(ExternalError, match=r"\['Cam0.npz'\] are named after no camera"):
+        read_external(root, ["cam0"])
+    (root / "Cam0.npz").unlink()
+    for frames, match in (([5, 5], r"frames \[5\] more than once"), ([0.5, 1.9], "float64")):
+        np.savez(root / "cam0.npz", masks=np.zeros((2, 4, 4), np.uint8), frames=np.array(frames))
+        with pytest.raises(ExternalError, match=match):
+            IdMaskFile(root / "cam0.npz", "cam0")
+    (root / "cam0.npz").unlink()
+    _one_box(root, 10)
+    with pytest.raises(ExternalError, match=r"frames \[10\] outside the video's 0..9"):
+        read_external(root, ["cam0"]).validate({"cam0": (4, 4)}, n_frames=10)
+    _one_box(root, 1.7, pa.float64())
+    with pytest.raises(ExternalError, match="column 'frame' is double"):
+        read_external(root, ["cam0"])
+    _one_box(root, None)
+    with pytest.raises(ExternalError, match="with 1 nulls"):
+        read_external(root, ["cam0"])
+
+
 def test_truth_scoring_on_a_bounding_box_matches_full_resolution():
     from gst.data.evaluate import match_truth
     from gst.data.extract import score_against_truth

@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 
@@ -77,7 +78,20 @@ class IdMaskFile:
             raise ExternalError(
                 f"camera '{camera}': {self.path} masks are {self.dtype}, expected uint8 ids"
             )
-        frames = np.asarray(frames).astype(np.int64).reshape(-1)
+        frames = np.asarray(frames).reshape(-1)
+        if frames.size and not np.issubdtype(frames.dtype, np.integer):
+            raise ExternalError(
+                f"camera '{camera}': {self.path} frame numbers are {frames.dtype}, expected "
+                "integers (0-based video frames)"
+            )
+        frames = frames.astype(np.int64)
+        values, counts = np.unique(frames, return_counts=True)
+        repeated = values[counts > 1]
+        if repeated.size:
+            raise ExternalError(
+                f"camera '{camera}': {self.path} lists frames {repeated[:5].tolist()} more than "
+                "once; each frame may have one mask"
+            )
         if len(frames) != self.shape[0]:
             raise ExternalError(
                 f"camera '{camera}': {self.path} has {self.shape[0]} masks but "
@@ -162,6 +176,13 @@ class ExternalDetections:
                     f"camera '{cam}': {path} has masks for frames {bad[:5]} outside "
                     f"the video's 0..{n_frames - 1}"
                 )
+        for cam, frames in self.boxes.items():
+            bad = sorted(f for f in frames if not 0 <= f < n_frames)
+            if bad:  # e.g. 1-based frame numbers: every box a frame late, the last one lost
+                raise ExternalError(
+                    f"camera '{cam}': {self.root / 'boxes.parquet'} has boxes for frames "
+                    f"{bad[:5]} outside the video's 0..{n_frames - 1} (frames are 0-based)"
+                )
 
 
 def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
@@ -174,6 +195,16 @@ def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
         p = find_mask_file(root, cam)
         if p is not None:
             ext.mask_files[cam] = p
+    strays = sorted(
+        f.name
+        for f in root.iterdir()
+        if f.suffix in (".h5", ".hdf5", ".npz") and f.stem not in cameras
+    )
+    if strays:  # a misnamed camera's masks would be skipped, that camera falling back quietly
+        raise ExternalError(
+            f"{root}: mask files {strays} are named after no camera; expected <camera>.h5 / "
+            f".npz with the cameras {cameras}"
+        )
     meta = root / "meta.json"
     if meta.is_file():
         try:
@@ -184,7 +215,12 @@ def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
             raise ExternalError(
                 f"{meta}: expected an object with optional key 'global_ids', got {info!r}"
             )
-        ext.global_ids = bool(info.get("global_ids", False))
+        global_ids = info.get("global_ids", False)
+        if not isinstance(global_ids, bool):
+            raise ExternalError(
+                f"{meta}: global_ids is {global_ids!r}, expected true or false (a JSON boolean)"
+            )
+        ext.global_ids = global_ids
     boxes_path = root / "boxes.parquet"
     if boxes_path.is_file():
         table = pq.read_table(boxes_path)
@@ -193,6 +229,11 @@ def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
             raise ExternalError(
                 f"{boxes_path}: missing columns {sorted(need - set(table.column_names))}; "
                 f"has {table.column_names}"
+            )
+        if not pa.types.is_integer(table.schema.field("frame").type) or table["frame"].null_count:
+            raise ExternalError(
+                f"{boxes_path}: column 'frame' is {table.schema.field('frame').type} with "
+                f"{table['frame'].null_count} nulls; expected integers (0-based video frames)"
             )
         cols = {k: table.column(k).to_pylist() for k in table.column_names}
         pid = cols.get("person_id", [-1] * table.num_rows)
