@@ -90,6 +90,23 @@ def test_extreme_values_stay_finite(tmp_path):
     assert back.opacities[1] > 0.99999 and back.opacities[0] < 1e-5
 
 
+def test_a_zero_quaternion_is_written_as_no_rotation_and_float32_overflow_refused(tmp_path):
+    """A zero quaternion went into the file as it was: viewers divide by its norm (NaN) while
+    the rasteriser reads it as no rotation. A finite float64 beyond float32's range was written
+    as infinity, against the module's promise of finite numbers."""
+    cloud = _cloud(n=3)
+    cloud["quats"][1] = 0.0
+    back = read_gaussians_ply(write_gaussians_ply(tmp_path / "q.ply", **cloud))
+    assert back.quats[1].tolist() == [1.0, 0.0, 0.0, 0.0]
+    assert torch.equal(back.quats[[0, 2]], cloud["quats"][[0, 2]].float())
+    huge = _cloud(n=2)
+    huge["means"] = huge["means"].double()
+    huge["means"][0, 0] = 1e39
+    with pytest.raises(ValueError, match=r"\['x'\] exceed float32's range"):
+        write_gaussians_ply(tmp_path / "huge.ply", **huge)
+    assert not (tmp_path / "huge.ply").exists()
+
+
 def test_reads_other_tools_files_with_extra_properties(tmp_path):
     """A file as trainers write it: doubles, f_rest_* and a face element after the vertices."""
     props = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]

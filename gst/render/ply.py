@@ -4,7 +4,11 @@ One vertex per Gaussian with float32 properties, in this order:
     x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
 - f_dc: degree-0 spherical-harmonic colour, rgb = 0.5 + SH_C0 * f_dc (SH_C0 = 0.28209479...).
 - opacity: logit of the [0, 1] opacity; scale: natural log of the linear scale (metres);
-  rot: quaternion w x y z (viewers normalise it); normals are written as zeros.
+  rot: quaternion w x y z (viewers normalise it; a zero one, which the rasteriser reads as no
+  rotation, is written as 1 0 0 0); normals are written as zeros.
+- No f_rest_* (degree 0 only): viewers that read the properties by name (SuperSplat, gsplat,
+  antimatter15/splat) open the files as they are; the INRIA SIBR viewer reads a fixed record
+  per Gaussian and needs `--sh_degree 0` (or its degree-0 build) for them.
 Opacities are clipped to [1e-6, 1 - 1e-6] and scales to >= 1e-12 before the logit / log, so
 the file holds finite numbers for fully transparent, fully opaque or degenerate Gaussians.
 
@@ -22,6 +26,7 @@ import torch
 from torch import Tensor
 
 from gst.atomic import atomic_write
+from gst.render.conventions import QUAT_EPS
 
 SH_C0 = 0.28209479177387814
 OPACITY_CLIP = 1e-6
@@ -87,17 +92,24 @@ def write_gaussians_ply(path, means, quats, scales, opacities, colors) -> Path:
     c = _as_numpy("colors", colors, (3,), n)
 
     o = np.clip(o, OPACITY_CLIP, 1.0 - OPACITY_CLIP)
-    columns = np.concatenate(
-        [
-            m,
-            np.zeros((n, 3)),
-            (c - 0.5) / SH_C0,
-            np.log(o / (1.0 - o))[:, None],
-            np.log(np.maximum(s, SCALE_MIN)),
-            q,
-        ],
-        axis=1,
-    ).astype("<f4")
+    # the rasteriser reads a (near) zero quaternion as no rotation; viewers divide by its norm
+    # (NaN): the file says what the rasteriser rendered
+    q = np.where((np.linalg.norm(q, axis=1) < QUAT_EPS)[:, None], [1.0, 0.0, 0.0, 0.0], q)
+    with np.errstate(over="ignore"):  # beyond float32: refused just below, by name
+        columns = np.concatenate(
+            [
+                m,
+                np.zeros((n, 3)),
+                (c - 0.5) / SH_C0,
+                np.log(o / (1.0 - o))[:, None],
+                np.log(np.maximum(s, SCALE_MIN)),
+                q,
+            ],
+            axis=1,
+        ).astype("<f4")
+    if not np.all(np.isfinite(columns)):  # finite in float64, beyond float32's range
+        bad = sorted({_WRITE_PROPS[j] for j in np.nonzero(~np.isfinite(columns))[1]})
+        raise ValueError(f"write_gaussians_ply: {bad} exceed float32's range (about 3.4e38)")
     header = (
         "ply\nformat binary_little_endian 1.0\n"
         f"element vertex {n}\n"
