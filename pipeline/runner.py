@@ -112,11 +112,12 @@ def _param_files(params) -> list[Path]:
     found = []
     for key in type(params).model_fields:
         value = getattr(params, key)
-        values = value.values() if isinstance(value, dict) else value
-        for v in values if isinstance(values, (list, tuple, type({}.values()))) else [value]:
-            if isinstance(v, Path) or (isinstance(v, str) and os.path.isabs(v)):
-                if Path(v).exists():
-                    found.append(Path(v))
+        if isinstance(value, dict):
+            value = list(value.values())
+        for v in value if isinstance(value, (list, tuple)) else [value]:
+            named = isinstance(v, Path) or (isinstance(v, str) and os.path.isabs(v))
+            if named and Path(v).exists():
+                found.append(Path(v))
     return found
 
 
@@ -237,12 +238,20 @@ class Runner:
             }
         )
 
-    def _scene_record(self) -> dict:
+    def _scene_record(self, stage: Stage) -> dict:
         # Scene-level stage params reach each stage through its merged params; leaving them out
         # here keeps a change for one stage from invalidating the others. Paths are recorded
-        # relative to the config's folder (see `_shown`).
+        # relative to the config's folder (see `_shown`). A stage that reads nothing of the
+        # scene (`Stage.reads_scene`) records nothing of it.
+        if not stage.reads_scene:
+            return {}
         record = self.scene.model_dump(mode="json", exclude={"params"})
         return _relative_paths(record, self.cfg.base_dir)
+
+    def _params_record(self, ctx: StageContext) -> dict:
+        """The stage's validated params as fingerprints and records keep them (paths relative
+        to the config's folder, as `status` compares them)."""
+        return _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir)
 
     def context(self, name: str) -> StageContext:
         return StageContext(
@@ -320,7 +329,7 @@ class Runner:
         ctx = self.context(name)
         key = self.key(name, ctx)
         pending = [d for d in self.needs[name] if d in upstream and upstream[d].needs_run]
-        params = _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir)
+        params = self._params_record(ctx)
         record = self._read_record(key)
         if pending:
             state = MISSING if record is None else STALE
@@ -330,7 +339,7 @@ class Runner:
             return StageStatus(name, key, MISSING, f"input file is missing: {', '.join(missing)}")
         inputs = self._inputs(name, ctx)
         code, files = self._code(name)
-        scene = self._scene_record() if stage.reads_scene else {}
+        scene = self._scene_record(stage)
         fp = stage_fingerprint(code, {"params": params, "scene": scene}, inputs)
         if record is None:
             interrupted = (self.meta / "staging" / name).exists()
@@ -599,8 +608,8 @@ class Runner:
             "fingerprint": st.fingerprint,
             "code": self._code(name)[0],
             "code_files": self._code(name)[1],
-            "params": _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir),
-            "scene_config": self._scene_record() if stage.reads_scene else {},
+            "params": self._params_record(ctx),
+            "scene_config": self._scene_record(stage),
             "options": self._recorded_options(name),
             "inputs": self._inputs(name, ctx),
             "outputs": digests,

@@ -52,13 +52,14 @@ def namespace(refine: bool) -> str:
     """The digest of everything but the pixels that decides a reading."""
     import cv2
 
-    from gst.detect.weights import model_paths
+    from gst.detect.weights import MODELS, model_paths
 
     what: dict[str, object] = {"format": FORMAT, "refine": bool(refine), "opencv": cv2.__version__}
     for name in READER_MODULES:
         what[name] = sha256_of(Path(importlib.import_module(name).__file__))
-    for role, path in model_paths().items():
-        what[f"model.{role}"] = sha256_of(path)
+    model_paths()  # the files there are the pinned ones (checked once per process)
+    for role, model in MODELS.items():
+        what[f"model.{role}"] = model.sha256
     for package in READER_PACKAGES:
         try:
             what[package] = importlib.metadata.version(package)

@@ -17,7 +17,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from gst.atomic import atomic_write
-from gst.registry import PinnedArchive, check_hash, default_cache_dir, pip_download, read_member
+from gst.registry import (
+    PinnedArchive,
+    check_hash,
+    default_cache_dir,
+    pip_download,
+    read_member,
+    sha256_of,
+)
 
 # The platform wheel is pinned by tag, so every host downloads the same file.
 MEDIAPIPE_WHEEL = PinnedArchive(
@@ -67,7 +74,7 @@ class BlazePoseModelsCorrupt(ValueError):
 
 @functools.lru_cache(maxsize=16)
 def _sha256_version(path: Path, size: int, mtime_ns: int) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()  # a few ms for the two models
+    return sha256_of(path)  # a few ms for the two models; once per file version and process
 
 
 def _matches_pin(path: Path, sha256: str) -> bool:
@@ -83,13 +90,6 @@ def model_paths(models_dir: str | Path | None = None) -> dict[str, Path]:
     root = Path(models_dir) if models_dir is not None else default_models_dir()
     paths = {role: root / m.name for role, m in MODELS.items()}
     missing = [str(p) for p in paths.values() if not p.is_file()]
-    bad = [str(paths[r]) for r, m in MODELS.items() if paths[r].is_file()
-           and not _matches_pin(paths[r], m.sha256)]  # fmt: skip
-    if bad and not missing:
-        raise BlazePoseModelsCorrupt(
-            f"BlazePose model file(s) {', '.join(bad)} are not the pinned models (damaged or "
-            f"replaced); fetch them again with `{FETCH_COMMAND} --force`"
-        )
     if missing:
         raise BlazePoseModelsMissing(
             f"BlazePose model files missing: {', '.join(missing)}. "
@@ -98,6 +98,12 @@ def model_paths(models_dir: str | Path | None = None) -> dict[str, Path]:
             "nothing is installed), "
             f"or on an offline machine `{FETCH_COMMAND} --from DIR` "
             f"with {MEDIAPIPE_WHEEL.filename} in DIR."
+        )
+    bad = [str(paths[r]) for r, m in MODELS.items() if not _matches_pin(paths[r], m.sha256)]
+    if bad:
+        raise BlazePoseModelsCorrupt(
+            f"BlazePose model file(s) {', '.join(bad)} are not the pinned models (damaged or "
+            f"replaced); fetch them again with `{FETCH_COMMAND} --force`"
         )
     return paths
 

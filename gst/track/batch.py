@@ -218,11 +218,14 @@ def track_videos(
     return outcomes
 
 
+def _writer(job: VideoJob, run, out_root: Path, staging_root: Path) -> TrackWriter:
+    """The writer of a chunked video's single Parquet file."""
+    return TrackWriter(out_root, run.name, tracks_schema(job.num_betas), run.settings, staging_root)
+
+
 def _finished(job: VideoJob, run, out_root: Path, staging_root: Path) -> bool:
     """The video's Parquet file is there, written with these settings."""
-    writer = TrackWriter(
-        out_root, run.name, tracks_schema(job.num_betas), run.settings, staging_root
-    )
+    writer = _writer(job, run, out_root, staging_root)
     return writer.finished_digest() == writer.digest
 
 
@@ -236,8 +239,7 @@ def _finish_chunked(
 ) -> VideoOutcome:
     """Stitch the chunk files into the video's single Parquet file and clean up."""
     t0 = time.perf_counter()
-    schema = tracks_schema(job.num_betas)
-    writer = TrackWriter(out_root, run.name, schema, run.settings, staging_root)
+    writer = _writer(job, run, out_root, staging_root)
     if writer.finished_digest() == writer.digest:
         stats = json.loads(pq.read_schema(writer.final_path).metadata[b"gst.stats"])
         result = TrackResult(

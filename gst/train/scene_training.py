@@ -86,9 +86,8 @@ class TrainSettings(BaseModel):
     # learn (demo: -27% MPJPE at 3e-4); without it, keep it low: from a poor start the
     # photometric gradient alone drags the pose away (+11% at 1e-4, -2% at 1e-5; docs/training.md).
     body_lr: PositiveFloat | None = 3e-4
-    supervised_lr: PositiveFloat = (
-        1e-4  # supervision 2d/3d (the Table 1 baselines): the whole network
-    )
+    # supervision 2d/3d (the Table 1 baselines): the whole network
+    supervised_lr: PositiveFloat = 1e-4
     freeze_backbone: bool = (
         False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
     )
