@@ -45,3 +45,21 @@ def test_a_turned_camera_is_found_and_put_back():
     _, after, joints_after = fit()
     assert after < before and after < 0.6, (before, after)  # 0.5 px of noise: its floor
     assert joints_after < 0.8 * joints_before, (joints_before, joints_after)
+
+
+def test_the_corrected_rig_keeps_its_up_axis_and_metadata():
+    """`corrected_rig` rebuilt the rig from its cameras only: a Y-down Panoptic world came back
+    with up +Z and no metadata in `FuseResult.rig`."""
+    from calibration.camera import Camera, Rig
+    from gst.fuse.rig import corrected_rig
+
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    cams = [
+        Camera.create(name, K, np.zeros(5), np.eye(3), [x, 0.0, 3.0], 640, 480)
+        for name, x in (("a", 0.0), ("b", 1.0))
+    ]
+    rig = Rig(cams, up=(0.0, -1.0, 0.0), meta={"source": "panoptic"})
+    out = corrected_rig(rig, ["b"], np.array([[0.0, 0.01, 0.0]]))
+    assert out.up == (0.0, -1.0, 0.0) and out.meta == {"source": "panoptic"}
+    np.testing.assert_allclose(out.cameras[0].R, np.eye(3))
+    np.testing.assert_allclose(out.cameras[1].R, rotation_matrix(np.array([0.0, 0.01, 0.0])))

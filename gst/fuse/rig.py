@@ -11,6 +11,8 @@ corrections in degrees: a large one is a calibration worth redoing.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from gst.fuse.fit import PersonFit
@@ -95,15 +97,15 @@ def apply_corrections(people: list[PersonObservations], corrections: np.ndarray)
 
 
 def corrected_rig(rig, names: list[str], corrections: np.ndarray):
-    """The calibration.Rig with cameras `names` turned by `corrections` (C, 3) as in the fit."""
-    from calibration.camera import Rig
-
+    """The calibration.Rig with cameras `names` turned by `corrections` (C, 3) as in the fit;
+    its up axis and metadata are the rig's (a Y-down Panoptic world stays Y-down)."""
     turned = {n: rotation_matrix(w) for n, w in zip(names, corrections, strict=True)}
-    return Rig(
-        [
+    return dataclasses.replace(
+        rig,
+        cameras=tuple(
             cam.replace(R=turned[cam.name] @ cam.R, t=turned[cam.name] @ cam.t)
             if cam.name in turned
             else cam
             for cam in rig
-        ]
+        ),
     )

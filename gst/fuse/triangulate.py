@@ -276,9 +276,10 @@ def triangulate_points(
     # in front of every view that placed it (views through one centre put it on the centre)
     depth = project(P, np.nan_to_num(X))[1]
     X[(used & ~(depth > MIN_DEPTH_M)).any(1)] = np.nan
-    # >= 2 views and still no point (degenerate geometry): nothing was triangulated, so no
-    # view counts as used (else its error would read 0 and its confidence full)
-    used[(used.sum(1) >= 2) & ~np.isfinite(X).all(-1)] = False
+    # No point (one view, or degenerate geometry): nothing was triangulated, so no view counts
+    # as used (else its error would read 0, its confidence full, and a landmark seen by one
+    # camera would count as triangulated from it in the Parquet files and the report)
+    used[~np.isfinite(X).all(-1)] = False
     errors = np.where(seen, _errors(P, uv0, np.nan_to_num(X), scale), np.nan)
     errors[~np.isfinite(X).all(-1)] = np.nan
     n_used = used.sum(1)
