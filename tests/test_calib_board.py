@@ -95,6 +95,25 @@ def test_checkerboard_orientation_is_resolved_when_upside_down():
     assert err.max() < 0.4
 
 
+@pytest.mark.parametrize("half_turn", [False, True])
+@pytest.mark.parametrize("cut", [0, 20, 40, 45])
+def test_checkerboard_ids_hold_when_outer_squares_are_cut_off(cut, half_turn):
+    """The outer squares at one end cut off by the image's edge (OpenCV still finds every inner
+    corner): the ids came back turned by half when the cut passed a square's centre (the colour
+    of an outer square decided the order)."""
+    board, px, margin = BoardSpec("checkerboard", 7, 6, 0.05), 60, 60
+    img = board.render_image(px, margin_px=margin)
+    obj = board.object_points()[:, :2] / board.square_size * px + margin - 0.5
+    if cut:  # `cut` pixels of the last squares, beyond the white margin
+        img = img[: -(margin + cut), : -(margin + cut)]
+    if half_turn:  # the cut end at the top left: the grid starts elsewhere
+        img = np.ascontiguousarray(img[::-1, ::-1])
+        obj = np.array(img.shape[1::-1], float) - 1 - obj
+    det = BoardDetector(board).detect(img)
+    assert det is not None and len(det.ids) == board.n_corners
+    assert np.linalg.norm(det.corners - obj[det.ids], axis=1).max() < 0.5
+
+
 def test_partial_charuco_view_keeps_visible_corners_with_their_ids():
     cam = camera_facing_board(CHARUCO, distance=1.0, offset=(0.45, 0.0), tilt_deg=0.0)
     img = BoardRenderer(cam, CHARUCO).render(np.eye(4), 0.6, 2.0, np.random.default_rng(2))
@@ -128,6 +147,32 @@ def test_blur_lowers_sharpness_and_blurred_detections_are_dropped():
     ]
     assert [d.frame for d in drop_blurred(dets, 0.2)] == [0, 1, 2, 3]
     assert len(drop_blurred(dets, 0.0)) == 5
+
+
+def test_sharpness_does_not_depend_on_the_boards_size_in_the_image():
+    """Equally blurred views of the board at 1 m and at 5 m: the variance of the Laplacian
+    alone read the close one as 7x blurrier, and `drop_blurred` dropped it."""
+    cam = Camera.create(
+        "c", [[700, 0, 399.5], [0, 700, 299.5], [0, 0, 1]], [], np.eye(3), np.zeros(3), 800, 600
+    )
+    r = BoardRenderer(cam, CHARUCO, px_per_square=120, supersample=2)
+    det, rng = BoardDetector(CHARUCO), np.random.default_rng(0)
+    w, h = CHARUCO.size_m
+    found = []
+    for i, z in enumerate([1.0, 4.5, 5.0, 5.5]):
+        found.append(det.detect(r.render(_at(w, h, z), blur_sigma=0.7, noise_std=2.0, rng=rng), i))
+    sharp = np.array([d.sharpness for d in found])
+    assert sharp.max() < 2 * sharp.min(), sharp
+    assert [d.frame for d in drop_blurred(found, 0.2)] == [0, 1, 2, 3]
+    blurred = det.detect(r.render(_at(w, h, 1.0), blur_sigma=2.0, noise_std=2.0, rng=rng), 4)
+    assert blurred.sharpness < 0.5 * sharp[0]
+
+
+def _at(w: float, h: float, z: float) -> np.ndarray:
+    """The board's pose facing the camera, centred, `z` metres away."""
+    pose = np.eye(4)
+    pose[:3, 3] = [-w / 2, -h / 2, z]
+    return pose
 
 
 @pytest.fixture
