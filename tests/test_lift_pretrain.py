@@ -136,3 +136,23 @@ def test_limb_agreement_ignores_a_shift_and_unsure_landmarks():
     assert limb_agreement(joints2d, off, 256) == pytest.approx(0.0, abs=1e-9)
     lm[..., 2] = 0.1
     assert limb_agreement(joints2d, lm, 256) is None
+
+
+def test_evaluate_world_weighs_landmarks_by_the_persons_presence(body, monkeypatch):
+    """The 2D agreement read visibility alone: crops where the model found nobody (presence
+    0.05, visibility 0.9) counted, unlike in the network's input and in track's agreement."""
+    import gst.lift.pretrain as pretrain
+    from tests.test_lift_dataset import _world
+
+    torch.manual_seed(0)
+    net, _, _ = build_network(get_preset("tiny", landmark_tokens=True), body)
+    world = _world(4)
+    world.landmarks[..., 2] = 0.9
+    world.presence[:] = [1.0, 0.05, 1.0, 0.5]
+    world.K_crop[:] = [[200, 0, 127.5], [0, 200, 127.5], [0, 0, 1]]
+    world.t[:] = [0.0, 0.0, 3.0]
+    seen = {}
+    monkeypatch.setattr(pretrain, "limb_agreement", lambda j2d, lm, size: seen.update(lm=lm))
+    pretrain.evaluate_world(net, body, world)
+    np.testing.assert_allclose(seen["lm"][..., 2], [[0.9], [0.045], [0.9], [0.45]], rtol=1e-6)
+    np.testing.assert_array_equal(seen["lm"][..., :2], world.landmarks[..., :2])

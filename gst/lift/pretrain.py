@@ -335,7 +335,11 @@ def evaluate_world(net: GSTNetwork, body: BodyModel, world: LandmarkWorld) -> Po
     pred = predict_world_joints(net, body, lm, K, R, t, world.crop_size)
     result = score(pred.double(), torch.as_tensor(world.joints_world, dtype=torch.float64))
     joints2d = project(pred @ R.transpose(1, 2) + t[:, None], K).numpy()
-    result.limb_landmarks_pct = limb_agreement(joints2d, world.landmarks, world.crop_size)
+    # confidence as the network reads it (`set_landmarks`): visibility x the person's presence,
+    # so that a crop where the model found nobody does not count
+    sure = np.array(world.landmarks, np.float64)
+    sure[..., 2] *= np.asarray(world.presence, np.float64)[:, None]
+    result.limb_landmarks_pct = limb_agreement(joints2d, sure, world.crop_size)
     return result
 
 
