@@ -154,5 +154,6 @@ def test_evaluate_world_weighs_landmarks_by_the_persons_presence(body, monkeypat
     seen = {}
     monkeypatch.setattr(pretrain, "limb_agreement", lambda j2d, lm, size: seen.update(lm=lm))
     pretrain.evaluate_world(net, body, world)
-    np.testing.assert_allclose(seen["lm"][..., 2], [[0.9], [0.045], [0.9], [0.45]], rtol=1e-6)
+    want = np.broadcast_to([[0.9], [0.045], [0.9], [0.45]], (4, 33))
+    np.testing.assert_allclose(seen["lm"][..., 2], want, rtol=1e-6)
     np.testing.assert_array_equal(seen["lm"][..., :2], world.landmarks[..., :2])
