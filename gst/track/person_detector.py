@@ -55,7 +55,13 @@ from gst.detect.blazepose import (
     same_region,
 )
 from gst.detect.boxes import fill_where, mean_colour, paint_out, shared
-from gst.detect.persons import LIMB_JOINTS, same_person, skeleton_support, whole_and_sure
+from gst.detect.persons import (
+    LIMB_JOINTS,
+    look_twice,
+    same_person,
+    skeleton_support,
+    whole_and_sure,
+)
 from gst.track.detection import Detection
 
 
@@ -322,7 +328,13 @@ class PersonModelDetector:
             if (accepted := self._accept([r], image.shape[0]))
             and share_covered(r.landmarks, covered) <= c.lost_max_covered
             else None
-            for r in self._landmarks(painted, rois)
+            for r in look_twice(
+                self._landmarks(painted, rois),
+                lambda again: self._landmarks(painted, again),
+                c.min_presence,
+                image.shape[:2],
+                0.0,
+            )
         ]
 
     def _landmarks(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
@@ -359,10 +371,11 @@ class PersonModelDetector:
     def _look_again(self, image: np.ndarray, known: list[tuple]) -> list[tuple]:
         """(result, box) of the people the detector finds with the `known` ones painted out,
         beside them: where two overlap, the landmark model's loop cannot keep them apart, and
-        waiting for the detector is safer. Those found only in the zoomed windows must stand
-        whole in the frame and be sure of their limbs (`gst.detect.persons.whole_and_sure`):
-        things that look like a person up close (the lab's anatomical skeleton model, a camera
-        mount) are found there too."""
+        waiting for the detector is safer. They must stand whole in the frame, and those found
+        only in the zoomed windows must be sure of their limbs too
+        (`gst.detect.persons.whole_and_sure`): things that look like a person up close or once
+        the people are painted out (the lab's anatomical skeleton model, a camera mount) are
+        found there too."""
         c = self.config
         boxes = [box for _, box in known]
         painted = paint_out(image, boxes)
@@ -373,15 +386,28 @@ class PersonModelDetector:
             for roi in (self._new_regions(painted, known, windows) if windows else [])
             if not any(same_region(roi, u, c.same_region) for u in usual)
         ]
-        found = self._accept(self._landmarks(image, usual + zoomed), image.shape[0])
+        results = self._landmarks(image, usual + zoomed)
+        # a zoomed hit's region whose person the landmark model does not see is looked at once
+        # more where it places them (`look_twice`)
+        results[len(usual) :] = look_twice(
+            results[len(usual) :],
+            lambda again: self._landmarks(image, again),
+            c.min_presence,
+            image.shape[:2],
+            c.zoom_min_confidence,
+        )
+        from_zoom = {r.roi for r in results[len(usual) :]}
+        found = self._accept(results, image.shape[0])
+        # Everyone found here must stand whole in the frame, and those found in a zoomed window
+        # only must be sure of their limbs too: with the people painted out, the lab's skeleton
+        # model at the right edge reads as a person in the usual windows (presence 0.99, limb
+        # landmarks up to 110 px beyond the frame's edge, median confidence 0.16)
+        h_w = image.shape[:2]
         kept = [
             (r, box)
             for r, box in found
             if all(shared(box, b) <= c.look_again_overlap for b in boxes)
-            and (
-                r.roi not in zoomed
-                or whole_and_sure(r.landmarks, image.shape[:2], c.zoom_min_confidence)
-            )
+            and whole_and_sure(r.landmarks, h_w, c.zoom_min_confidence if r.roi in from_zoom else 0)
         ]
         self._probation |= {r.next_roi for r, _ in kept}
         return kept
