@@ -56,11 +56,12 @@ def test_joint_with_fewer_than_two_views_is_flagged_and_filled(body, capture):
     knee = 25  # left_knee landmark
     people[0].confidence[2, 1:, knee] = 0.0  # frame 2: the left knee is seen by camera 0 only
     tris = [triangulate_person(p) for p in people]
-    assert tris[0].n_views[2, knee] == 1 and np.isnan(tris[0].points[2, knee]).all()
+    # one view triangulates nothing: no view counts as used
+    assert tris[0].n_views[2, knee] == 0 and np.isnan(tris[0].points[2, knee]).all()
     fits = fit_people(body, MarkerModel.load(), people, tris, fps=30.0)
     ev = joint_evidence(fits[0], tris[0])
     j_knee = 4  # SMPL left_knee
-    assert ev.gap_filled[2, j_knee] and ev.views[2, j_knee] == 1
+    assert ev.gap_filled[2, j_knee] and ev.views[2, j_knee] == 0
     assert ev.gap_filled.sum() == 1  # nothing else
     assert not ev.has_landmarks[3]  # spine1: model only, never "gap-filled"
     filled = fits[0].joints[2, j_knee]

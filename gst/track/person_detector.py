@@ -318,7 +318,10 @@ class PersonModelDetector:
     def _look_behind(self, image: np.ndarray, kept: list[tuple], rois: list[BodyRoi]) -> list:
         """The landmark model's accepted (result, box) or None in each of `rois`, with everyone
         `kept` painted out by their masks: where one person walked behind another, their region
-        otherwise shows the one in front."""
+        otherwise shows the one in front. A region whose person the model doubts while their
+        limbs lie in the frame is looked at once more where it places them (`look_twice`): the
+        region is the one they had when last seen (cam03's man behind the woman: presence
+        0.15-0.59 in his stale regions, an even chance at `min_presence` 0.5)."""
         c = self.config
         painted, covered = paint_out_people(
             image, [r for r, _ in kept], c.skeleton_width, c.lost_grow, around=rois
