@@ -270,8 +270,9 @@ def _orient_checkerboard(
     swaps the colours of every square (one side has an odd and the other an even number of
     squares). Only the inner squares are read, the ones inside the detected corner grid: an
     outer square may be cut off by the image's edge while OpenCV still finds every inner
-    corner (a board pushed into the image's corner, as calibration asks for), and the order was
-    then left as OpenCV gave it, a half turn wrong half of the time.
+    corner (a board pushed into the image's corner, as calibration asks for); the order was
+    then left as OpenCV gave it, every id turned by half when OpenCV's grid started at the far
+    end.
     """
     cols, rows = board.inner_corners
     grid = corners.reshape(rows, cols, 2)
