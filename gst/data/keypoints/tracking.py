@@ -264,6 +264,10 @@ class PersonIdTracker:
         for cam_name, gs in by_cam.items():
             insts = [instances[cam_name][match.groups[g].views[cam_name]] for g in gs]
             taken = np.zeros(len(gs), bool)
+            # one person, one id per frame: a track whose id an earlier camera gave out (by fit,
+            # or by box continuation below) is not free for this one (two single-view rows
+            # shared an id and read as a two-view group)
+            free = [t for t in free if self._tracks[t].pid not in ids]
             if free:
                 view = camera_view(self._cams[cam_name], insts, self.match_config.min_confidence)
                 pred = np.stack([self._moved_on(self._tracks[c], frame)[_BODY] for c in free])
@@ -276,8 +280,6 @@ class PersonIdTracker:
                         self._tracks[free[r]].last_seen = frame
                         taken[c] = True
                         assigned.add(free[r])
-                # one person, one id per frame: a track taken in this camera is not free for
-                # the next (two single-view rows shared an id and read as a two-view group)
                 free = [t for t in free if t not in assigned]
             prev = self._single.get(cam_name, [])
             if prev:
