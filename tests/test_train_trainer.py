@@ -91,3 +91,29 @@ def test_schedule_warms_up_then_decays():
     assert values[0] == pytest.approx(0.1) and values[9] == pytest.approx(1.0)
     assert all(b <= a + 1e-12 for a, b in zip(values[10:], values[11:], strict=False))
     assert values[-1] == pytest.approx(0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * 89 / 90)))
+
+
+def test_log_rows_give_the_rate_their_step_used(tmp_path):
+    """log.csv's `lr` was the next step's rate (read after the scheduler stepped)."""
+    import csv
+
+    model, used = nn.Linear(2, 1), []
+
+    def step(m, x):
+        used.append(trainer.optimizer.param_groups[0]["lr"])  # what optimizer.step() applies
+        return (m(x) ** 2).mean(), {}
+
+    cfg = TrainConfig(
+        steps=6,
+        batch_size=2,
+        lr=1.0,
+        warmup_steps=3,
+        min_lr_ratio=0.05,
+        ckpt_every=100,
+        val_every=100,
+        log_every=1,
+    )
+    trainer = Trainer(model, step, lambda g, b: torch.randn(b, 2, generator=g), cfg, tmp_path)
+    trainer.fit()
+    logged = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "log.csv"))]
+    assert logged == pytest.approx(used) and len(used) == 6

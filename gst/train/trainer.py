@@ -375,6 +375,8 @@ class Trainer:
         else:
             self.optimizer.step()
             metrics = {**metrics, "grad_norm": float(grad_norm)}
+        # the rate this step used (after `scheduler.step()`, `get_last_lr` is the next step's)
+        metrics = {**metrics, "lr": self.optimizer.param_groups[0]["lr"]}
         self.scheduler.step()
         return {"loss": float(loss.detach()), **{k: float(v) for k, v in metrics.items()}}
 
@@ -400,7 +402,7 @@ class Trainer:
             row = self.train_step()
             self.step += 1
             elapsed = self.seconds_before + time.perf_counter() - t0
-            row.update(step=self.step, lr=self.scheduler.get_last_lr()[0], seconds=elapsed)
+            row.update(step=self.step, seconds=elapsed)
             if self.step % self.cfg.val_every == 0 or self.step == self.cfg.steps:
                 last_val = self.validate()
                 row.update({f"val_{k}": v for k, v in last_val.items()})
