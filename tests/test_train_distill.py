@@ -75,6 +75,10 @@ def test_targets_are_never_drawn_from_heldout_cameras_or_frames(scene, tmp_path)
     # ...and with nothing held out the fuse stage's bodies are taken as they are
     every = teacher(landmarks, np.ones(len(crops), bool), tmp_path / "c")
     assert np.array_equal(every.joints, fused.joints) and not (tmp_path / "c").exists()
+    # ... unless the landmarks were changed (un-mirrored): then they are fitted again (they
+    # were not, and training on everything lost the un-mirroring's better teacher)
+    again = teacher(landmarks, np.ones(len(crops), bool), tmp_path / "d", refit=True)
+    assert (tmp_path / "d" / "fused").exists() and len(again.joints) == len(fused.joints)
 
 
 def test_the_teacher_fuses_only_the_allowed_crops(scene, tmp_path, monkeypatch):
@@ -162,7 +166,7 @@ def test_no_teacher_fit_sees_the_heldout_crops(scene, tmp_path):
     tmp, cap, landmarks, crops, fused = scene
     calls = []
 
-    def teacher(lm, allowed, work):
+    def teacher(lm, allowed, work, refit=False):
         calls.append(np.asarray(allowed, bool).copy())
         return fused
 
@@ -208,7 +212,7 @@ def test_landmarks_projected_from_the_rig_reach_no_target(scene, tmp_path):
         f.create_dataset("landmarks_projected", data=projected)
     seen = []
 
-    def teacher(lm, allowed, work):
+    def teacher(lm, allowed, work, refit=False):
         seen.append(np.asarray(lm).copy())
         return fused
 
@@ -229,4 +233,4 @@ def test_distillation_without_a_work_folder_says_so(scene):
     tmp, _, _, _, fused = scene
     p = TrainSettings(heldout_frames=1 / 3, distill=True)
     with pytest.raises(ValueError, match="work"):
-        prepare_crops(p, tmp / "crops.h5", None, teacher=lambda lm, allowed, work: fused)
+        prepare_crops(p, tmp / "crops.h5", None, teacher=lambda lm, allowed, work, **kw: fused)

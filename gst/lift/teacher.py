@@ -64,9 +64,15 @@ class RigTeacher:
     # the fuse stage read the same crops; None: read again
     reading_cache: Path | None = None
 
-    def __call__(self, landmarks: np.ndarray, allowed: np.ndarray, work: Path) -> FusedBodies:
+    def __call__(
+        self, landmarks: np.ndarray, allowed: np.ndarray, work: Path, *, refit: bool = False
+    ) -> FusedBodies:
+        """The bodies fused from the `allowed` rows' `landmarks` (per row of the crop store).
+        With every row allowed and the landmarks as the fuse stage read them, those are its
+        own bodies; `refit` says the landmarks were changed (un-mirrored), so the bodies are
+        fitted again even then (with nothing held out, the correction was otherwise lost)."""
         bodies = read_fused_bodies(self.fused)
-        if bool(np.all(allowed)):
+        if bool(np.all(allowed)) and not refit:
             return bodies
         work = Path(work)
         work.mkdir(parents=True, exist_ok=True)
@@ -86,8 +92,9 @@ class RigTeacher:
                 reading_cache=self.reading_cache,
             )
         log.info(
-            "distill: teacher refitted on %d of %d crops (held-out cameras and frames removed)",
+            "distill: teacher refitted on %d of %d crops (held-out cameras and frames removed%s)",
             int(np.sum(allowed)),
             len(allowed),
+            ", landmarks un-mirrored" if refit else "",
         )
         return read_fused_bodies(result.bodies)

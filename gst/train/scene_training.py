@@ -269,9 +269,18 @@ def prepare_crops(
                 work / "mirrors",
             )  # fmt: skip
             first_targets = distill_targets(crops, first, allowed, body_model=p.body_model)
+            read = landmarks
             landmarks = _unmirrored(crops, landmarks, first_targets)
+            corrected = not torch.equal(read, landmarks)
+        else:
+            corrected = False
         # the teacher fuses as the fuse stage does: projected rows carry no confidence
-        bodies = teacher(without_projected(landmarks.numpy(), projected), allowed.numpy(), work)
+        bodies = teacher(
+            without_projected(landmarks.numpy(), projected),
+            allowed.numpy(),
+            work,
+            refit=corrected,
+        )
         crops.distill = distill_targets(crops, bodies, allowed, body_model=p.body_model)
         log.info(
             "distill: %d of %d crops have a fused-body target (training cameras and frames)",
