@@ -140,7 +140,9 @@ def ddp_rank_main(rank: int, world: int, port: int, out_dir: str) -> None:
 def ddp_batches_rank_main(rank: int, world: int, port: int, out_dir: str, phase: str) -> None:
     """A rank that records the batches it draws (its own generator) over 4 steps of a toy
     regression. phase "full": 4 steps; "first": 2 steps (then killed, as it were); "resume":
-    resumes the "first" run to 4 steps; "nan": 4 steps, rank 1's second loss is NaN."""
+    resumes the "first" run to 4 steps; "resume_private": the same, every rank but 0 in an
+    empty folder of its own (as the pipeline runs them under torchrun); "nan": 4 steps, rank 1's
+    second loss is NaN."""
     import json
 
     import torch
@@ -168,10 +170,16 @@ def ddp_batches_rank_main(rank: int, world: int, port: int, out_dir: str, phase:
         steps=steps, batch_size=3, warmup_steps=0, ckpt_every=2, val_every=100, log_every=100
     )
     torch.manual_seed(0)
-    trainer = Trainer(nn.Linear(1, 1), step, sample, cfg, Path(out_dir) / "run")
-    if phase == "resume":
+    folder = Path(out_dir) / ("run" if phase != "resume_private" or rank == 0 else f"run.{rank}")
+    trainer = Trainer(nn.Linear(1, 1), step, sample, cfg, folder)
+    if phase in ("resume", "resume_private"):
         assert trainer.resume()
     summary = trainer.fit()
-    record = {"batches": drawn, "bad_steps": summary.bad_steps, "steps": summary.steps}
+    record = {
+        "batches": drawn,
+        "bad_steps": summary.bad_steps,
+        "steps": summary.steps,
+        "weights": [p.item() for p in trainer.model.parameters()],
+    }
     (Path(out_dir) / f"{phase}-rank{rank}.json").write_text(json.dumps(record))
     torch.distributed.destroy_process_group()

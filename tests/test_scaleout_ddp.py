@@ -90,3 +90,18 @@ def test_a_resumed_run_draws_each_ranks_own_batches(tmp_path):
     assert full[0]["batches"][2:] != full[1]["batches"][2:]
     for rank in (0, 1):
         assert resumed[rank]["batches"] == full[rank]["batches"][2:]
+
+
+def test_a_resumed_run_resumes_every_rank_from_rank_0s_checkpoint(tmp_path):
+    """Under the pipeline's torchrun, ranks other than 0 run in empty folders of their own:
+    each rank looking for its own last.pt resumed rank 0 alone, the others started from step 0
+    with other weights, and the run broke when rank 0 finished first. Now every rank resumes
+    from rank 0's checkpoint, and they end with the same weights."""
+    _batches_run(tmp_path, "first")
+    resumed = _batches_run(tmp_path, "resume_private")
+    assert [len(r["batches"]) for r in resumed] == [2, 2]  # steps 3 and 4 on both ranks
+    assert resumed[0]["weights"] == resumed[1]["weights"]
+    # rank 0 draws as the uninterrupted run did; rank 1's generator state stayed in its deleted
+    # folder, so it draws a fresh stream of its own
+    full = _batches_run(tmp_path / "full", "full")
+    assert resumed[0]["batches"] == full[0]["batches"][2:]

@@ -231,11 +231,29 @@ class Trainer:
                 )
 
     def resume(self, path: Path | None = None) -> bool:
-        """Continue from `last.pt` if it exists. Returns whether it resumed."""
+        """Continue from `last.pt` if it exists. Returns whether it resumed.
+
+        Under DDP, rank 0's checkpoint decides for every rank: it is sent to the others, which
+        need not see rank 0's folder (the pipeline runs them in private staging folders that
+        it deletes). Each rank looking on its own resumed rank 0 alone: the others started
+        again from step 0 with other weights, and the run broke or hung when rank 0 finished
+        first."""
         path = path or self.last_path
-        if not path.is_file():
+        if self.world > 1:
+            sent = [
+                torch.load(path, map_location="cpu", weights_only=True)
+                if self.rank == 0 and path.is_file()
+                else None
+            ]
+            # (between this run's own processes: broadcast_object_list pickles in memory)
+            dist.broadcast_object_list(sent, src=0, device=self._object_device())
+            ckpt = sent[0]
+        else:
+            ckpt = (
+                torch.load(path, map_location="cpu", weights_only=True) if path.is_file() else None
+            )
+        if ckpt is None:
             return False
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
         self.model.load_state_dict(ckpt["model"])
         st = ckpt["trainer"]
         self.optimizer.load_state_dict(st["optimizer"])
@@ -249,6 +267,10 @@ class Trainer:
         self._forget_logged_after(self.step)
         log.info("resumed from %s at step %d", path, self.step)
         return True
+
+    def _object_device(self) -> torch.device:
+        """Where `broadcast_object_list` stages its bytes: NCCL needs this rank's GPU."""
+        return self.device if dist.get_backend() == "nccl" else torch.device("cpu")
 
     def _resume_rank_state(self) -> None:
         """This rank's own generator at the checkpoint's step; without it (killed between the
