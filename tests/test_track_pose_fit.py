@@ -87,6 +87,16 @@ def test_the_prior_and_the_gate_hold_the_networks_pose(fitter):
         PoseFitConfig(min_disagreement=-1)
 
 
+def test_with_no_gate_a_body_whose_disagreement_cannot_be_measured_is_fitted(fitter):
+    """`min_disagreement` 0 is "every body", but a body with enough confident landmarks and
+    fewer than 4 of the compared joints (disagreement reads 0 there: `0 > 0`) stayed the
+    network's: a head-and-shoulders crop."""
+    R, betas, t, J_net, K, lm, _ = _bodies(fitter, 1, seed=4)
+    lm[0, 13:, 2] = 0.1  # face and shoulders only: 13 sure landmarks, 2 compared joints
+    assert disagreement(J_net, K, lm)[0] == 0.0 and (lm[0, :, 2] >= 0.5).sum() >= 8
+    assert fitter(R, betas, t, J_net, K, lm, S).fitted.all()
+
+
 def test_track_refuses_a_pose_fit_without_a_body_model():
     class NoBody:
         def __call__(self, crops, K):

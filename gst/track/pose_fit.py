@@ -115,9 +115,12 @@ class PoseFitter:
             raise ValueError(f"landmarks must be ({B}, {len(self.markers)}, 3), got {lm.shape}")
         conf = np.nan_to_num(lm[..., 2], nan=0.0)
         conf = np.where(np.isfinite(lm[..., :2]).all(-1) & (conf >= c.min_confidence), conf, 0.0)
-        use = ((conf > 0).sum(1) >= c.min_landmarks) & (
-            disagreement(joints_cam, K_crop, lm, c.min_confidence) > c.min_disagreement * crop_size
-        )
+        use = (conf > 0).sum(1) >= c.min_landmarks
+        if c.min_disagreement > 0:  # 0: every body (disagreement() reads 0 where unmeasured)
+            use &= (
+                disagreement(joints_cam, K_crop, lm, c.min_confidence)
+                > c.min_disagreement * crop_size
+            )
         out = FittedPoses(
             np.asarray(rotmats, np.float32).copy(),
             np.asarray(transl_cam, np.float32).copy(),
