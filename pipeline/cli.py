@@ -278,6 +278,12 @@ def main(argv: list[str] | None = None) -> int:
                 raise ConfigError(
                     f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')"
                 )
+            if (args.video or args.with_gaussians) and args.stage not in ("track", "all"):
+                # only track reads them: `run calibrate --video x.mp4` ran the scene's calibrate
+                raise ConfigError(
+                    f"--video and --with-gaussians are options of 'track' (and 'all'), not of "
+                    f"'{args.stage}'"
+                )
             options = {
                 "video": [v.resolve() for v in _check_videos_option(args.video or [])],
                 "with_gaussians": args.with_gaussians,

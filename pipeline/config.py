@@ -167,11 +167,28 @@ def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
 
     def files(key: str, spec: list[Path] | str | None) -> None:
         if isinstance(spec, str) and not _expand(spec):
-            problems.append(f"scenes.{name}.{key}: the pattern '{spec}' matches no file")
+            hint = " (brackets are glob syntax: write [[] for '[', or list the files)"
+            problems.append(
+                f"scenes.{name}.{key}: the pattern '{spec}' matches no file"
+                + (hint if "[" in spec else "")
+            )
         elif isinstance(spec, list):
             missing = [str(p) for p in spec if not Path(p).is_file()]
             if missing:
                 problems.append(f"scenes.{name}.{key}: no such file: {', '.join(missing)}")
+            elif not spec:
+                problems.append(f"scenes.{name}.{key}: the list is empty (one file per camera)")
+        # a camera is named by its file's stem: two files of one stem were one camera, the
+        # last one listed (cam01.mp4 beside cam01.MOV)
+        stems: dict[str, list[str]] = {}
+        for path in _expand(spec):
+            stems.setdefault(Path(path).stem, []).append(str(path))
+        for stem, same in sorted(stems.items()):
+            if len(same) > 1:
+                problems.append(
+                    f"scenes.{name}.{key}: {len(same)} files would be camera '{stem}' (a camera "
+                    f"is named by its file's stem): {', '.join(same)}"
+                )
 
     files("videos", scene.videos)
     if scene.board is not None:

@@ -10,11 +10,12 @@ name empty-room clips in `background_videos`.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, PositiveFloat, PositiveInt
+from pydantic import AfterValidator, Field, PositiveFloat, PositiveInt
 
 from gst.data import ExtractOptions, extract_scene, write_extract_report
+from gst.data.extract.options import association_overrides
 from pipeline.stage import Stage, StageContext, StageParams
 
 
@@ -26,7 +27,9 @@ class Params(StageParams):
     background_videos: dict[str, Path] | None = None  # camera -> clip of the empty scene
     use_board_clip_as_background: bool = True  # synthetic scenes: the board clip is an empty stage
     # Overrides of gst.data.AssociationConfig, e.g. {merge_radius: 0.6, peak_separation: 0.8}.
-    association: dict[str, float | int] | None = None
+    association: Annotated[dict[str, float | int] | None, AfterValidator(association_overrides)] = (
+        None
+    )
     # 'blazepose': learned person masks (the `detect` extra; docs/person_models.md).
     person_model: Literal["none", "blazepose"] = "none"
     person_hints: bool = True  # also segment around moving background blobs

@@ -140,6 +140,16 @@ CONFIG_CASES = {
         "videos", "[{videos}/c1.mp4, {videos}/gone.mp4]",
         r"scenes.s.videos: no such file: .*gone.mp4",
     ),
+    "empty video list": ("videos", "[]", r"scenes.s.videos: the list is empty"),
+    # a camera is named by its file's stem: the second file silently replaced the first
+    "two videos of one stem": (
+        "videos", "[{videos}/c1.mp4, {videos}/c1.mp4]",
+        r"scenes.s.videos: 2 files would be camera 'c1'",
+    ),
+    "association key typo": (
+        "set", "extract.association.merge_radus=0.6",
+        r"extract.*association.*merge_radus",
+    ),
     "calibration format typo": (
         "calibration", "{{file: {rig}, format: qualysis}}",
         r"scenes.s.calibration.format: unknown format 'qualysis'",
@@ -150,6 +160,10 @@ CONFIG_CASES = {
     ),
     "unknown scene": ("argv", "--scene nope", r"--scene: unknown scene"),
     "unknown stage": ("argv", "run nostage", r"unknown stage 'nostage'"),
+    # only track reads --video: `run extract --video x` ran the scene's extract, not a word
+    "--video for another stage": (
+        "argv", "run extract --video x.mp4", r"--video and --with-gaussians are options of"
+    ),
     "yaml syntax": ("raw", "scenes: [unclosed\n", r"not valid YAML"),
     "needs an unknown stage": (
         "stages", "a: {needs: [zz], module: 'tests.fake_stages:SOURCE'}\n",

@@ -144,3 +144,14 @@ def test_a_run_killed_after_its_last_commit_resumes_on_a_video_of_unknown_length
 class _OneBox:
     def detect(self, image, index):
         return [Detection(np.array([10.0, 20.0, 60.0, 100.0]), 0.9)]
+
+
+def test_empty_tracks_say_why():
+    """A clip shorter than `min_hits` processed frames gave 0 rows, exit 0 and no word."""
+    from gst.track.scene import TrackSettings, nobody_tracked
+
+    s = TrackSettings()
+    assert nobody_tracked(5, 1, s) is None
+    assert "track.min_hits=3" in nobody_tracked(0, 2, s)
+    assert "track.min_hits" in nobody_tracked(0, 5, TrackSettings(stride=2))  # 3 processed
+    assert "kept no one" in nobody_tracked(0, 40, s)

@@ -568,6 +568,19 @@ def _landmark_agreement(table, camera: Camera | None, name: str) -> dict:
     return out
 
 
+def nobody_tracked(rows: int, frames: int, s: TrackSettings) -> str | None:
+    """Why a video's tracks are empty (None: they are not). An empty Parquet reads as a result
+    like any other: a 2-frame clip at `min_hits` 3 gave 0 rows, exit 0 and no word."""
+    if rows:
+        return None
+    if frames < s.min_hits * s.stride:
+        return (
+            f"nobody was tracked in {frames} frame(s): a person needs track.min_hits="
+            f"{s.min_hits} processed frames in a row to get an id"
+        )
+    return f"nobody was tracked in {frames} frame(s): the person detector kept no one"
+
+
 def write_video_report(
     s: TrackSettings, request: TrackRequest, outcome: VideoOutcome
 ) -> TrackEvaluation | None:
@@ -599,6 +612,8 @@ def write_video_report(
         result.detections,
         summary["landmarks_exchanged"],
     )
+    if (why := nobody_tracked(result.rows, result.frames, s)) is not None:
+        log.warning("%s: %s", name, why)
     summary.update(_landmark_agreement(table, outcome.job.camera, name))
     report = request.reports_dir / name
     report.mkdir(parents=True, exist_ok=True)

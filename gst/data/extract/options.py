@@ -24,6 +24,21 @@ class ExtractError(ValueError):
     """The extraction cannot proceed; the message names the camera, file or setting."""
 
 
+def association_overrides(value: dict | None) -> dict | None:
+    """`value` if each key is a field of `AssociationConfig`, else a ValueError naming the
+    unknown keys and the known ones (for the stage's params: a typo was found only when
+    extraction began, after the stages before it had run)."""
+    import dataclasses
+
+    known = {f.name for f in dataclasses.fields(AssociationConfig)}
+    unknown = sorted(set(value or {}) - known)
+    if unknown:
+        raise ValueError(
+            f"association: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})"
+        )
+    return value
+
+
 @dataclass(frozen=True, eq=False)
 class ExtractOptions:
     """Advanced settings of `extract_scene` (the common ones are its keyword arguments)."""
