@@ -278,11 +278,15 @@ def main(argv: list[str] | None = None) -> int:
                 raise ConfigError(
                     f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')"
                 )
-            if (args.video or args.with_gaussians) and args.stage not in ("track", "all"):
-                # only track reads them: `run calibrate --video x.mp4` ran the scene's calibrate
+            given = [o for o in ("video", "with_gaussians") if getattr(args, o)]
+            reads = () if args.stage == "all" else stages[args.stage].cli_options
+            unread = [o for o in given if args.stage != "all" and o not in reads]
+            if unread:
+                # `run calibrate --video x.mp4` ran the scene's calibrate without a word
+                readers = [n for n in cfg.stages if unread[0] in stages[n].cli_options]
                 raise ConfigError(
-                    f"--video and --with-gaussians are options of 'track' (and 'all'), not of "
-                    f"'{args.stage}'"
+                    f"--{unread[0].replace('_', '-')} is not an option of '{args.stage}' (it is "
+                    f"of: {', '.join(readers) or 'no stage'})"
                 )
             options = {
                 "video": [v.resolve() for v in _check_videos_option(args.video or [])],

@@ -162,7 +162,7 @@ CONFIG_CASES = {
     "unknown stage": ("argv", "run nostage", r"unknown stage 'nostage'"),
     # only track reads --video: `run extract --video x` ran the scene's extract, not a word
     "--video for another stage": (
-        "argv", "run extract --video x.mp4", r"--video and --with-gaussians are options of"
+        "argv", "run extract --video x.mp4", r"--video is not an option of .extract."
     ),
     "yaml syntax": ("raw", "scenes: [unclosed\n", r"not valid YAML"),
     "needs an unknown stage": (
