@@ -166,7 +166,8 @@ def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
     problems = []
 
     def files(key: str, spec: list[Path] | str | None) -> None:
-        if isinstance(spec, str) and not _expand(spec):
+        matched = _expand(spec)  # (a glob is matched once)
+        if isinstance(spec, str) and not matched:
             hint = " (brackets are glob syntax: write [[] for '[', or list the files)"
             problems.append(
                 f"scenes.{name}.{key}: the pattern '{spec}' matches no file"
@@ -181,7 +182,7 @@ def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
         # a camera is named by its file's stem: two files of one stem were one camera, the
         # last one listed (cam01.mp4 beside cam01.MOV)
         stems: dict[str, list[str]] = {}
-        for path in _expand(spec):
+        for path in matched:
             stems.setdefault(Path(path).stem, []).append(str(path))
         for stem, same in sorted(stems.items()):
             if len(same) > 1:

@@ -260,26 +260,24 @@ def refine_from_heatmaps(
     if heatmaps.shape != (n, hh, hw, p):
         raise ValueError(f"heatmaps of shape {heatmaps.shape} for landmarks {raw.shape}")
     off = (kernel - 1) // 2
-    # pad by a whole kernel so that any clipped centre's window can be cut out
-    padded = np.pad(
-        heatmaps.astype(np.float32, copy=False),
-        ((0, 0), (kernel, kernel), (kernel, kernel), (0, 0)),
-        constant_values=-1e4,
-    )
     with np.errstate(invalid="ignore"):
-        col = np.trunc(np.nan_to_num(raw[..., 0] / LANDMARK_SIZE * hw, nan=-1e9))
-        row = np.trunc(np.nan_to_num(raw[..., 1] / LANDMARK_SIZE * hh, nan=-1e9))
-    col = np.clip(col, -off - 1, hw + off).astype(np.int64)
-    row = np.clip(row, -off - 1, hh + off).astype(np.int64)
+        col = np.trunc(np.nan_to_num(raw[..., 0] / LANDMARK_SIZE * hw, nan=-1.0))
+        row = np.trunc(np.nan_to_num(raw[..., 1] / LANDMARK_SIZE * hh, nan=-1.0))
+    inside = (col >= 0) & (col < hw) & (row >= 0) & (row < hh)
     steps = np.arange(-off, off + 1)
-    rows = row[..., None] + steps  # (n, P, k) heatmap rows of each window
-    cols = col[..., None] + steps
+    # (n, P, k) heatmap rows and columns of each window (only an inside centre's is used)
+    rows = np.clip(row, 0, hh - 1).astype(np.int64)[..., None] + steps
+    cols = np.clip(col, 0, hw - 1).astype(np.int64)[..., None] + steps
+    in_heatmap = ((rows >= 0) & (rows < hh))[..., :, None] & ((cols >= 0) & (cols < hw))[
+        ..., None, :
+    ]
     ni = np.arange(n)[:, None, None, None]
     pi = np.arange(p)[None, :, None, None]
-    logits = padded[ni, rows[..., :, None] + kernel, cols[..., None, :] + kernel, pi]
-    weight = _sigmoid(logits)  # (n, P, k, k)
+    logits = heatmaps[
+        ni, np.clip(rows, 0, hh - 1)[..., :, None], np.clip(cols, 0, hw - 1)[..., None, :], pi
+    ]
+    weight = np.where(in_heatmap, _sigmoid(logits), 0.0)  # (n, P, k, k); outside: nothing
     total = weight.sum(axis=(2, 3))
-    inside = (col >= 0) & (col < hw) & (row >= 0) & (row < hh)
     use = inside & (weight.max(axis=(2, 3)) >= min_confidence) & (total > 0)
     safe = np.where(total > 0, total, 1.0)
     mean_col = (weight.sum(axis=2) * cols).sum(axis=2) / safe

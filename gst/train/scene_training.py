@@ -260,6 +260,7 @@ def prepare_crops(
                 "prepare_crops: train.distill needs `work`, a folder the teacher writes"
             )
         allowed = training_rows(crops, held_idx, cut)
+        corrected = False  # whether the rig un-mirrored any landmark (the teacher refits)
         if p.unmirror_landmarks:
             # a first fit of the training crops alone says which of them are mirrored (the fuse
             # stage's own bodies saw the held-out crops); the teacher is then refitted on the
@@ -272,8 +273,6 @@ def prepare_crops(
             read = landmarks
             landmarks = _unmirrored(crops, landmarks, first_targets)
             corrected = not torch.equal(read, landmarks)
-        else:
-            corrected = False
         # the teacher fuses as the fuse stage does: projected rows carry no confidence
         bodies = teacher(
             without_projected(landmarks.numpy(), projected),

@@ -239,19 +239,12 @@ class Trainer:
         again from step 0 with other weights, and the run broke or hung when rank 0 finished
         first."""
         path = path or self.last_path
+        found = self.rank == 0 and path.is_file()  # (a single process is rank 0)
+        ckpt = torch.load(path, map_location="cpu", weights_only=True) if found else None
         if self.world > 1:
-            sent = [
-                torch.load(path, map_location="cpu", weights_only=True)
-                if self.rank == 0 and path.is_file()
-                else None
-            ]
-            # (between this run's own processes: broadcast_object_list pickles in memory)
+            sent = [ckpt]  # (between this run's own processes: pickled in memory)
             dist.broadcast_object_list(sent, src=0, device=self._object_device())
             ckpt = sent[0]
-        else:
-            ckpt = (
-                torch.load(path, map_location="cpu", weights_only=True) if path.is_file() else None
-            )
         if ckpt is None:
             return False
         self.model.load_state_dict(ckpt["model"])

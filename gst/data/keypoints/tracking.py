@@ -273,14 +273,11 @@ class PersonIdTracker:
                 pred = np.stack([self._moved_on(self._tracks[c], frame)[_BODY] for c in free])
                 e, _ = fit_errors(pred, view, self.match_config)
                 cost = np.where(e < self.config.view_error, e, _FAR)
-                assigned = set()
                 for r, c in zip(*linear_sum_assignment(cost), strict=True):
                     if cost[r, c] < _FAR:
                         ids[gs[c]] = self._tracks[free[r]].pid
                         self._tracks[free[r]].last_seen = frame
                         taken[c] = True
-                        assigned.add(free[r])
-                free = [t for t in free if t not in assigned]
             prev = self._single.get(cam_name, [])
             if prev:
                 todo = np.flatnonzero(~taken)
