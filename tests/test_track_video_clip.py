@@ -125,3 +125,31 @@ def test_landmarks_fall_inside_the_person_masks(tracked):
             total += len(uv)
     assert total >= 3 * 2 * 8  # most limb joints of both people are sure
     assert inside >= 0.9 * total
+
+
+def test_a_finished_file_kept_from_an_earlier_run_claims_no_speed(tracked):
+    """A rerun that finds the video's file finished with the same settings keeps it and tracks
+    nothing: its summary said 7934 frames/s (frames over the time it took to notice)."""
+    from calibration.formats import read_rig
+    from gst.track.scene import TrackRequest, TrackSettings, track_scene
+
+    path = tracked[0]
+    d = next(p for p in path.parents if (p / "gst.pt").is_file())  # the fixture's folder
+    summary_path = d / "reports" / "match" / "summary.json"
+    first = json.loads(summary_path.read_text())
+    assert first["kept_from_earlier_run"] is False and 0 < first["fps"] < 1000
+    request = TrackRequest(
+        videos=[d / "match.mp4"],
+        checkpoint=d / "gst.pt",
+        rig=read_rig(LAB / "Calib.qca.txt", "qualisys"),
+        tracks_dir=d / "tracks",
+        reports_dir=d / "reports",
+        staging=d / "staging",
+        scene="lab",
+    )
+    (outcome,) = track_scene(TrackSettings(overlay=False), request)
+    assert outcome.result.path == path
+    again = json.loads(summary_path.read_text())
+    assert again["kept_from_earlier_run"] is True
+    assert again["fps"] is None and again["seconds"] is None
+    assert again["frames"] == first["frames"] and again["rows"] == first["rows"]

@@ -56,7 +56,7 @@ from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
-from gst.track.loop import TrackOptions
+from gst.track.loop import DETECTIONS_NOT_NEEDED, TrackOptions
 from gst.track.mirror import MirrorConfig
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
 from gst.track.pose_fit import PoseFitConfig
@@ -587,13 +587,17 @@ def write_video_report(
     """Summary, overlay video, joint-angle plot and splats of one tracked video; its evaluation
     against the truth when it is a synthetic scene's camera."""
     name, result = outcome.job.name, outcome.result
-    fps = result.frames / max(result.seconds, 1e-9)
+    # A finished file kept from an earlier, interrupted run of the stage took no tracking in
+    # this one: its time is not this run's (it read as 7934 frames/s), so no speed is claimed.
+    kept = result.detections == DETECTIONS_NOT_NEEDED
+    fps = None if kept else result.frames / max(result.seconds, 1e-9)
     summary = {
         "rows": result.rows,
         "frames": result.frames,
         "persons": result.persons,
-        "seconds": round(result.seconds, 2),
-        "fps": round(fps, 2),
+        "seconds": None if kept else round(result.seconds, 2),
+        "fps": None if fps is None else round(fps, 2),
+        "kept_from_earlier_run": kept,
         "calibrated": outcome.job.camera is not None,
         "chunks": outcome.chunks,
         "person_detections": result.detections,
@@ -603,12 +607,12 @@ def write_video_report(
     stats = parse_metadata(table.schema).get("stats") or {}
     summary["landmarks_exchanged"] = int(stats.get("landmarks_exchanged", 0))
     log.info(
-        "%s: %d frames, %d people, %.1f frames/s (person detector: %s); left/right labels "
+        "%s: %d frames, %d people, %s (person detector: %s); left/right labels "
         "exchanged in %d detection(s)",
         name,
         result.frames,
         result.persons,
-        fps,
+        "kept from an earlier run" if fps is None else f"{fps:.1f} frames/s",
         result.detections,
         summary["landmarks_exchanged"],
     )
