@@ -11,6 +11,7 @@ before that move and written after it, so a run killed at any point is seen as "
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import hashlib
 import inspect
@@ -119,6 +120,25 @@ def _param_files(params) -> list[Path]:
             if named and Path(v).exists():
                 found.append(Path(v))
     return found
+
+
+FAILED_MARKER = ".failed"  # in a stage's staging folder: the error its last run stopped on
+
+
+def _record_failure(staging: Path, exc: BaseException) -> None:
+    """Leave the error beside the failed run's staging folder, so that `status` says the stage
+    failed (and why) instead of 'a previous run was interrupted'."""
+    with contextlib.suppress(OSError):  # a full disk must not hide the stage's own error
+        text = " ".join(f"{type(exc).__name__}: {exc}".split())
+        (staging / FAILED_MARKER).write_text(text[:300])
+
+
+def _failure(staging: Path) -> str | None:
+    """The error a stage's last run failed with (`_record_failure`), None if it did not fail."""
+    try:
+        return (staging / FAILED_MARKER).read_text().strip() or "(no message)"
+    except OSError:
+        return None
 
 
 def _lock_owner(fh) -> str:
@@ -254,7 +274,7 @@ class Runner:
         return _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir)
 
     def context(self, name: str) -> StageContext:
-        return StageContext(
+        ctx = StageContext(
             stage=name,
             scene_name=self.scene_name,
             scene=self.scene,
@@ -267,6 +287,12 @@ class Runner:
             log=logging.getLogger(f"pipeline.{name}"),
             progress=self.progress,
         )
+        key = self.key(name, ctx)
+        if key == name:
+            return ctx
+        # one staging folder per variant: `track --video b.mp4` would delete the resumable
+        # progress of an interrupted `track --video a.mp4` (another fingerprint, same folder)
+        return dataclasses.replace(ctx, staging=self.meta / "staging" / _safe_key(key))
 
     def key(self, name: str, ctx: StageContext | None = None) -> str:
         variant = self.stages[name].variant(ctx or self.context(name))
@@ -341,9 +367,12 @@ class Runner:
         code, files = self._code(name)
         scene = self._scene_record(stage)
         fp = stage_fingerprint(code, {"params": params, "scene": scene}, inputs)
+        failed = _failure(ctx.staging)
         if record is None:
-            interrupted = (self.meta / "staging" / name).exists()
+            interrupted = ctx.staging.exists()
             why = "a previous run was interrupted" if interrupted else "never run"
+            if failed is not None:
+                why = f"its last run failed: {failed}"
             running = self._running_pid() if interrupted else None
             if running is not None:
                 why = f"being written by the run now in progress (pid {running})"
@@ -384,6 +413,8 @@ class Runner:
         reasons += [f"input changed: {k}" for k in changed[:5]]
         if len(changed) > 5:
             reasons.append(f"... and {len(changed) - 5} more inputs")
+        if failed is not None:
+            reasons.append(f"its last run failed: {failed}")
         return StageStatus(name, key, STALE, "; ".join(reasons) or "fingerprint changed", fp)
 
     def status(self, targets: list[str] | None = None) -> list[StageStatus]:
@@ -574,6 +605,7 @@ class Runner:
         ctx.resumed = staging.exists()
         staging.mkdir(parents=True, exist_ok=True)
         marker.write_text(st.fingerprint or "")
+        (staging / FAILED_MARKER).unlink(missing_ok=True)  # a resumed failed run tries again
         log.info("%s: running (%s)", name, st.reason)
         t0 = time.perf_counter()
         try:
@@ -585,6 +617,7 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 raise
             log.exception("%s failed", name)
+            _record_failure(staging, exc)
             raise StageFailed(name, self.scene_name, exc) from exc
         outputs = stage.outputs(ctx)
         absent = [rel for rel in outputs if not (staging / rel).exists()]

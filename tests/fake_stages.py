@@ -170,3 +170,17 @@ EXTRAS = Stage(
     cli_options=("with_gaussians",),
     help="an output only with --with-gaussians, as track's splats",
 )
+
+
+def _per_video(ctx: StageContext) -> None:
+    ctx.out("per_video/out.txt").write_text(f"{ctx.options.get('video')}\n")
+
+
+PER_VIDEO = Stage(
+    name="per_video",
+    run=_per_video,
+    outputs=lambda ctx: ["per_video/out.txt"],
+    variant=lambda ctx: ctx.options.get("video"),
+    cli_options=("video",),
+    help="one record per --video, as track's",
+)

@@ -174,6 +174,10 @@ def test_failed_stage_exit_1_keeps_previous_outputs(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "stage 'fail'" in err and "boom" in err
     assert not (tmp_path / "ws/demo/fail").exists()
+    # `status` says it failed and why (it said "a previous run was interrupted")
+    assert main(["status", "--config", str(cfg)]) == 0
+    table = " ".join(capsys.readouterr().out.split())
+    assert "its last run failed" in table and "boom" in table and "interrupted" not in table
 
 
 @pytest.mark.parametrize(

@@ -124,3 +124,23 @@ def test_extract_and_calibrate_declare_every_file_they_read(tmp_path):
 
     assert set(EXTRACT.inputs(ctx(ExtractParams()))) >= {*videos, tmp_path / "masks"}
     assert set(CALIBRATE.inputs(ctx(None))) == {calib, *videos}
+
+
+def test_each_variant_stages_its_outputs_in_a_folder_of_its_own(tmp_path):
+    """All variants of a stage shared `.pipeline/staging/<stage>`: starting `track --video
+    b.mp4` deleted the resumable progress of an interrupted `track --video a.mp4` (another
+    fingerprint in the same folder)."""
+    from pipeline.config import load_config
+    from pipeline.registry import load_stages
+    from pipeline.runner import Runner
+
+    cfg = load_config(config_with(tmp_path, 'per_video: {module: "tests.fake_stages:PER_VIDEO"}'))
+    stages = load_stages(cfg)
+
+    def staging(**options):
+        return Runner(cfg, "demo", stages, options=options).context("per_video").staging
+
+    a, b, plain = staging(video="a b"), staging(video="b"), staging()
+    assert len({a, b, plain}) == 3 and a.parent == b.parent == plain.parent
+    assert plain.name == "per_video" and b.name == "per_video@b"
+    assert a.name == _safe_key("per_video@a b")
