@@ -20,6 +20,8 @@ from rich.progress import (
 )
 from rich.text import Text
 
+from pipeline.errors import TRACEBACK_LOGGER
+
 LOGGER_NAME = "pipeline"
 
 
@@ -35,9 +37,9 @@ def setup_logging(console: Console, log_dir: Path | None, command: str, quiet: b
     for h in list(root.handlers):
         root.removeHandler(h)
     if not quiet:
-        root.addHandler(
-            RichHandler(console=console, show_path=False, markup=False, rich_tracebacks=False)
-        )
+        handler = RichHandler(console=console, show_path=False, markup=False, rich_tracebacks=False)
+        handler.addFilter(lambda record: record.name != TRACEBACK_LOGGER)
+        root.addHandler(handler)
     log_path = None
     if log_dir is not None:
         log_dir.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,22 @@
 """Exceptions that map to the CLI's exit codes (0 ok, 1 a stage failed, 2 bad config or args)."""
 
+# the project's packages: an error class of theirs that is a ValueError says what is wrong with
+# an input (VideoError, RigFormatError, StoreError, ...), and the message names the culprit
+OWN_PACKAGES = ("gst", "calibration", "synth", "pipeline", "stages")
+# records of this logger go to the run's log file only, not the console: the traceback behind an
+# input error, whose one-line message the CLI prints anyway
+TRACEBACK_LOGGER = "pipeline.traceback"
+
+
+def is_input_error(exc: BaseException) -> bool:
+    """The stage stopped on bad or missing input, not on a bug: a file that is not there, or a
+    ValueError class of the project's own. Its message is what the user needs; the traceback
+    only goes to the run's log file."""
+    if isinstance(exc, FileNotFoundError):
+        return True
+    own = type(exc).__module__.split(".")[0] in OWN_PACKAGES
+    return own and isinstance(exc, ValueError)
+
 
 class PipelineError(Exception):
     """Base class for errors the CLI reports without a traceback."""

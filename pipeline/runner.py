@@ -30,7 +30,13 @@ from pydantic import ValidationError
 from gst.atomic import atomic_write_text, remove_path, replace_path
 from pipeline.config import PipelineConfig, format_error_line
 from pipeline.dag import topological_order, upstream_closure
-from pipeline.errors import ConfigError, PipelineError, StageFailed
+from pipeline.errors import (
+    TRACEBACK_LOGGER,
+    ConfigError,
+    PipelineError,
+    StageFailed,
+    is_input_error,
+)
 from pipeline.fingerprint import HashCache, code_digests, stage_fingerprint
 from pipeline.stage import Stage, StageContext
 
@@ -616,7 +622,10 @@ class Runner:
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
                 raise
-            log.exception("%s failed", name)
+            if is_input_error(exc):  # the message says it all; the traceback is for the file
+                logging.getLogger(TRACEBACK_LOGGER).error("%s failed", name, exc_info=exc)
+            else:
+                log.exception("%s failed", name)
             _record_failure(staging, exc)
             raise StageFailed(name, self.scene_name, exc) from exc
         outputs = stage.outputs(ctx)

@@ -89,11 +89,14 @@ REPORT = Stage(
 
 class FailParams(StageParams):
     message: str = "boom"
+    bad_input: bool = False  # fail as a stage fails on a corrupt video, not on a bug
 
 
 def _fail(ctx: StageContext) -> None:
+    from gst.video import VideoError
+
     ctx.out("fail/partial.txt").write_text("half")
-    raise RuntimeError(ctx.params.message)
+    raise (VideoError if ctx.params.bad_input else RuntimeError)(ctx.params.message)
 
 
 FAIL = _own_folder_stage("fail", _fail, params_model=FailParams)

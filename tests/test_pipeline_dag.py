@@ -180,6 +180,24 @@ def test_failed_stage_exit_1_keeps_previous_outputs(tmp_path, capsys):
     assert "its last run failed" in table and "boom" in table and "interrupted" not in table
 
 
+@pytest.mark.parametrize("bad_input", [True, False])
+def test_bad_input_fails_with_its_message_and_a_bug_with_its_traceback(tmp_path, capsys, bad_input):
+    """A corrupt video printed a traceback of the stage's internals above the line that says
+    what is wrong. The traceback of an input error now goes to the run's log file only; an
+    error that is no input's (a bug) keeps it on the console, for the report."""
+    cfg = write_config(tmp_path)
+    with open(cfg, "a") as f:
+        f.write('  fail: {module: "tests.fake_stages:FAIL", needs: [source]}\n')
+    args = ["run", "fail", "--config", str(cfg), "--set", f"fail.bad_input={bad_input}"]
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    kind = "VideoError" if bad_input else "RuntimeError"
+    assert f"failed: {kind}: boom" in err
+    assert ("Traceback" in err) is not bad_input
+    (log_file,) = (tmp_path / "ws" / ".pipeline" / "logs").glob("*-run.log")
+    assert "Traceback" in log_file.read_text() and f"{kind}: boom" in log_file.read_text()
+
+
 @pytest.mark.parametrize(
     "text, expected",
     [
