@@ -47,7 +47,7 @@ class SolveSettings:
     frame_step: int = 1  # search every Nth frame of the board clips
     max_frames: int | None = None  # cap on board frames searched per camera
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
-    strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
+    strict_checks: bool = True  # refuse rigs that fail check_rig (floor, aim, lens model)
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # encoder padding accepted, in pixels
     floor_frame: int | None = None  # the frame whose board lies on the floor (None: the first)
 

@@ -25,7 +25,7 @@ class Params(StageParams):
     frame_step: PositiveInt = 1  # search every Nth frame of the board clips
     max_frames: PositiveInt | None = None  # cap on board frames searched per camera
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
-    strict_checks: bool = True  # refuse rigs whose cameras sit below the floor or look away
+    strict_checks: bool = True  # refuse rigs that fail check_rig (floor, aim, lens model)
     floor_frame: NonNegativeInt | None = None  # the board frame that sets the floor (None: first)
 
 

@@ -5,8 +5,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from calibration.camera import Rig
+from calibration.camera import Camera, Rig
 from calibration.checks import CaptureVolume, check_rig, estimate_volume
 from calibration.formats import read_rig
 from calibration.report import coverage_fraction, write_calibration_report
@@ -49,6 +51,49 @@ def test_checks_flag_cameras_below_floor_or_looking_away():
     assert any("miss the capture volume" in p for p in check_rig(rig, away))
     with pytest.raises(ValueError, match="lo < hi"):
         CaptureVolume((0, 0, 0), (0, 1, 1))
+
+
+def _with_dist(cam, dist):
+    return Camera.create(cam.name, cam.K, np.asarray(dist, float), cam.R, cam.t, cam.width,
+                         cam.height)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "dist, expected",
+    [
+        ([50.0, 0, 0, 0, 0], "the field at the image's corners 0.32 x"),  # a units slip: passed
+        ([-5.0, 0, 0, 0, 0], "folds inside the image"),  # the polynomial turns back in the image
+    ],
+)
+def test_a_distortion_no_lens_has_is_a_problem_naming_the_camera(dist, expected):
+    rig = read_rig(QCA)
+    bad = Rig([_with_dist(c, dist) if c.name == "cam02" else c for c in rig], up=rig.up)
+    (problem,) = check_rig(bad, LAB_VOLUME)
+    assert "camera 'cam02'" in problem and expected in problem
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    k1=st.floats(-0.3, 0.1),
+    k2=st.floats(0.0, 0.15),
+    p=st.floats(-0.002, 0.002),
+    corner=st.floats(0.3, 0.7),
+)
+def test_real_lenses_pass_the_lens_check(k1, k2, p, corner):
+    """Lenses as calibrations give them (the lab's k1 -0.05 k2 0.14; a wide action camera's k1
+    -0.3). For r <= 1, r_d = r (1 + k1 r^2 + k2 r^4) grows (its slope is at least 1 - 3 * 0.3)
+    and stays within 0.7-1.25 x r; r_d(1) >= 0.7 >= the image corner's distorted radius, so the
+    corner's ray lies within r <= 1 (about 45 degrees), and no draw may be called a problem.
+    (k1 -0.25 with nothing else cannot reach a corner at r_d 1.0 at all: the check says so.)"""
+    from calibration.checks import lens_problem
+
+    base = read_rig(QCA).cameras[0]
+    K = base.K.copy()
+    K[0, 0] = K[1, 1] = np.hypot(base.width, base.height) / 2 / corner
+    K[0, 2], K[1, 2] = base.width / 2, base.height / 2
+    cam = Camera.create(base.name, K, [k1, k2, p, -p, 0.0], base.R, base.t, base.width,
+                        base.height)  # fmt: skip
+    assert lens_problem(cam) is None
 
 
 def test_volume_estimate_contains_the_axes_meeting_point():
