@@ -1,7 +1,7 @@
 """Synthetic multi-camera capture with exact ground truth.
 
     from synth import preset, render_scene
-    summary = render_scene(preset("demo"), "workspace/demo")
+    summary = render_scene(preset("demo"), "workspace/demo/synth")  # replaced whole
 
 Modules: `rigs` (camera rigs), `stage` (room), `motions` (procedural sports motions),
 `people` (shapes, outfits, placement), `animate` (posing through a body model), `appearance`

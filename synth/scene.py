@@ -12,6 +12,7 @@ outputs are byte-identical run to run and do not change when unrelated settings 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import time
@@ -161,6 +162,7 @@ def render_scene(
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
+    _check_replaceable(out_dir)
     report = progress or (lambda *_: None)
     model = body_model if body_model is not None else _load_body_model(spec.body_model)
     check_body_model(model)
@@ -169,6 +171,24 @@ def render_scene(
     with atomic_dir(Path(os.path.abspath(out_dir))) as staging:
         summary = _render_into(spec, staging, report, model, writer, map_fn, shares)
     return SceneSummary(out_dir=out_dir, seconds=time.perf_counter() - t0, **summary)
+
+
+def _check_replaceable(out_dir: Path) -> None:
+    """Refuse to replace a folder that holds anything but a synthetic scene: the render swaps
+    `out_dir` out whole, and a workspace named there (`render_scene(spec, "workspace/demo")`,
+    once the package's own example) lost its models, tracks and calibration."""
+    if not out_dir.is_dir() or not any(out_dir.iterdir()):
+        return
+    try:
+        fmt = json.loads((out_dir / "scene.json").read_text()).get("format")
+    except (OSError, ValueError, AttributeError):
+        fmt = None
+    if fmt != "synth-scene":
+        raise ValueError(
+            f"{out_dir}: holds files that are not a synthetic scene (no scene.json of format "
+            "'synth-scene'); the render replaces its output folder whole, so give an empty or "
+            "new folder, or an earlier scene's"
+        )
 
 
 @dataclass

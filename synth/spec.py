@@ -97,6 +97,12 @@ class SceneSpec(_Spec):
             raise ValueError(
                 f"motions has {len(self.motions)} programmes but n_people is {self.n_people}"
             )
+        for i, programme in enumerate(self.motions or ()):
+            if "random_static" in programme and len(programme) > 1:
+                raise ValueError(
+                    f"motions: person {i + 1}'s programme {programme}: 'random_static' must be "
+                    "the only motion of its programme"
+                )
         if self.preview_frame is not None and not 0 <= self.preview_frame < self.n_frames:
             raise ValueError(
                 f"preview_frame {self.preview_frame} is outside 0..{self.n_frames - 1}"
@@ -152,9 +158,10 @@ def _merge(base: dict, overrides: dict) -> dict:
     return out
 
 
-def preset(name: str, **overrides) -> SceneSpec:
+def preset(preset_name: str, /, **overrides) -> SceneSpec:
     """A preset spec ('demo', 'crowd', 'small', 'full') with overrides. Nested fields take a dict
-    (`rig={"width": 320}`) or a double-underscore key (`rig__width=320`)."""
-    if name not in PRESETS:
-        raise KeyError(f"unknown synth preset '{name}', expected one of {sorted(PRESETS)}")
-    return SceneSpec.model_validate(_merge(PRESETS[name], overrides))
+    (`rig={"width": 320}`) or a double-underscore key (`rig__width=320`). The preset's name is
+    positional only: `name=` is an override like any other (the scene's own name)."""
+    if preset_name not in PRESETS:
+        raise KeyError(f"unknown synth preset '{preset_name}', expected one of {sorted(PRESETS)}")
+    return SceneSpec.model_validate(_merge(PRESETS[preset_name], overrides))

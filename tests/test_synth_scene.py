@@ -311,3 +311,42 @@ def test_every_rig_kind_writes_the_same_cameras_in_every_format(kind, tmp_path):
             assert (got.width, got.height) == (64, 48), source
             assert np.abs(got.project(pts) - cam.project(pts)).max() < 1e-6, f"{source}: {cam.name}"
     assert json.loads((out / "scene.json").read_text())["calibration_notes"] == {}
+
+
+def test_a_folder_that_is_no_scene_is_not_replaced(tmp_path):
+    """render_scene replaces its output folder whole; pointed at a workspace (the package's
+    own example said "workspace/demo") it deleted the user's models and calibration."""
+    target = tmp_path / "workspace_demo"
+    (target / "models").mkdir(parents=True)
+    (target / "models" / "gst.pt").write_bytes(b"weights")
+    with pytest.raises(ValueError, match="not a synthetic scene"):
+        render_scene(_tiny(), target, body_model=BODY, rig_writer=WRITE_RIG)
+    assert (target / "models" / "gst.pt").read_bytes() == b"weights"
+
+
+def test_preset_takes_a_scene_name_and_random_static_stands_alone():
+    assert preset("demo", name="my_scene").name == "my_scene"  # was a TypeError
+    with pytest.raises(ValueError, match="'random_static' must be the only motion"):
+        preset("demo", n_people=2, motions=[["random_static", "run"], ["jump"]])
+
+
+def test_a_crowd_that_cannot_keep_its_rules_says_so(caplog):
+    from synth.crowd import place_crowd
+    from synth.motions import generate_motion
+
+    rng = np.random.default_rng(0)
+    clips = [generate_motion(["idle"], 10, 30.0, np.random.default_rng(k)) for k in range(12)]
+    with caplog.at_level("WARNING", logger="synth.crowd"):
+        place_crowd(clips, rng, (0.0, 0.0, 0.0), 0.6)  # 12 people in a 0.6 m circle
+    assert any("could not be placed within the rules" in m for m in caplog.messages)
+
+
+def test_a_seed_among_the_overrides_is_refused_naming_the_key(tmp_path, capsys):
+    """`synthetic: {overrides: {seed: 3}}` gave "TypeError: preset() got multiple values for
+    keyword argument 'seed'", naming no config key."""
+    from pipeline.cli import main
+
+    cfg = tmp_path / "pipeline.yaml"
+    cfg.write_text("workspace: ws\nscenes:\n  s: {synthetic: {preset: demo, overrides: {seed: 3}}}\n")
+    assert main(["run", "synth", "--config", str(cfg), "--quiet"]) == 1
+    assert "scenes.s.synthetic.overrides.seed" in capsys.readouterr().err
