@@ -347,6 +347,9 @@ def test_a_seed_among_the_overrides_is_refused_naming_the_key(tmp_path, capsys):
     from pipeline.cli import main
 
     cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text("workspace: ws\nscenes:\n  s: {synthetic: {preset: demo, overrides: {seed: 3}}}\n")
+    cfg.write_text(
+        "workspace: ws\nscenes:\n  s: {synthetic: {preset: demo, overrides: {seed: 3}}}\n"
+        "stages:\n  synth: {}\n"
+    )
     assert main(["run", "synth", "--config", str(cfg), "--quiet"]) == 1
     assert "scenes.s.synthetic.overrides.seed" in capsys.readouterr().err
