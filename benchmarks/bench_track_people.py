@@ -134,6 +134,8 @@ def main() -> None:
         ("lost people not looked for again (before)", replace(default, lost_retry=0), stage),
         ("lost people looked for 5 frames", replace(default, lost_retry=5), stage),
         ("lost people looked for 30 frames", replace(default, lost_retry=30), stage),
+        ("doubted readings not continued (before)", replace(default, continue_distance=0), stage),
+        ("doubted readings continued within 0.1", replace(default, continue_distance=0.1), stage),
         ("left/right labels as detected (before)", default, replace(stage, unmirror=None)),
         (
             "left/right: prior 7.5/s (half)",

@@ -109,6 +109,16 @@ class PersonModelConfig:
     # one who stands behind another is seen beside them (a grey silhouette is person-shaped;
     # the lab's people found beside another: 8-33 %, silhouettes read as a person: 42-100 %)
     lost_max_covered: float = 0.34
+    # A tracked person whose landmarks in their region continue their previous frame's (median
+    # limb-joint distance at most this share of their size; `same_person`), whole in the frame
+    # and sure of their limbs (`zoom_min_confidence`), stays tracked where the model doubts
+    # them (presence below `min_presence`) and, followed behind someone, where more of their
+    # limbs than `lost_max_covered` lie on the painted people. cam03's man, in plain view in his
+    # fast turn, had presence 0.09-0.45 with his skeleton 0-2 % of his size from the frame
+    # before's and limb visibility 0.92-0.95, and behind the woman 19-36 % of his limbs on her
+    # (2-3 %, 0.72-0.84): lost in 11 of 100 frames (docs/track_evaluation.md, "Doubted but
+    # continuing"). 0: never.
+    continue_distance: float = 0.05
     batch: bool = True  # all regions of a frame in one landmark-model call
     threads: int = 1  # LiteRT threads per interpreter
 
@@ -120,12 +130,13 @@ class PersonModelConfig:
             or self.still_change < 0
             or self.still_refresh < 1
             or self.lost_retry < 0
+            or self.continue_distance < 0
         ):
             raise ValueError(
                 f"person model: detect_every >= 1, max_side >= 64, threads >= 1, still_change >= "
-                f"0, still_refresh >= 1 and lost_retry >= 0 expected, got {self.detect_every}, "
-                f"{self.max_side}, {self.threads}, {self.still_change}, {self.still_refresh}, "
-                f"{self.lost_retry}"
+                f"0, still_refresh >= 1, lost_retry >= 0 and continue_distance >= 0 expected, got "
+                f"{self.detect_every}, {self.max_side}, {self.threads}, {self.still_change}, "
+                f"{self.still_refresh}, {self.lost_retry}, {self.continue_distance}"
             )
         if not 0 <= self.look_again_overlap <= 1:
             raise ValueError(
@@ -280,10 +291,13 @@ class PersonModelDetector:
         self._lost: list[_Lost] = []  # lost people's last regions, looked at again
         self._behind: set[BodyRoi] = set()  # next regions of people found behind others
         self.found_again = 0  # people found again in their last region (for benchmarks)
+        self._previous: list[np.ndarray] = []  # per region: the landmarks that gave it
+        self.continued = 0  # doubted readings kept as continuing their person (for benchmarks)
+        self._doubted: set[int] = set()  # this frame's continued readings (ids of the results)
 
     def reset(self) -> None:
         self._people, self._seen, self._last, self._since_detect = [], [], None, 0
-        self._lost, self._behind = [], set()
+        self._lost, self._behind, self._previous = [], set(), []
         self._zoom.reset()
         self._probation = set()
 
@@ -306,7 +320,9 @@ class PersonModelDetector:
         self.still_kept += sum(o is not None for o in out)
         results = self._landmarks(image, [self._people[i] for i in todo])
         for i, r in zip(todo, results, strict=True):
-            accepted = self._accept([r], image.shape[0])
+            accepted = self._accept([r], image.shape[0]) or self._continuing(
+                r, self._previous[i], image.shape[:2]
+            )
             # someone the second look found is confirmed only where their own region still
             # shows a whole person, sure of their limbs (the lab's skeleton model: 0.08-0.72)
             if accepted and self._people[i] in self._probation:
@@ -315,30 +331,57 @@ class PersonModelDetector:
             out[i] = accepted[0] if accepted else None
         return out
 
-    def _look_behind(self, image: np.ndarray, kept: list[tuple], rois: list[BodyRoi]) -> list:
+    def _continuing(
+        self, r: RegionLandmarks, previous: np.ndarray | None, shape: tuple[int, int]
+    ) -> list[tuple]:
+        """[(r, box)] where the doubted reading `r` continues its person's `previous` landmarks
+        whole and sure (`continue_distance`), else []."""
+        c = self.config
+        if (
+            previous is None
+            or c.continue_distance <= 0
+            or not same_person(r.landmarks, previous, c.continue_distance)
+            or not whole_and_sure(r.landmarks, shape, c.zoom_min_confidence)
+        ):
+            return []
+        accepted = self._accept([r], shape[0], min_presence=0.0)
+        self.continued += len(accepted)
+        self._doubted.update(id(a) for a, _ in accepted)
+        return accepted
+
+    def _look_behind(
+        self,
+        image: np.ndarray,
+        kept: list[tuple],
+        rois: list[BodyRoi],
+        previous: list[np.ndarray | None],
+    ) -> list:
         """The landmark model's accepted (result, box) or None in each of `rois`, with everyone
         `kept` painted out by their masks: where one person walked behind another, their region
         otherwise shows the one in front. A region whose person the model doubts while their
         limbs lie in the frame is looked at once more where it places them (`look_twice`): the
         region is the one they had when last seen (cam03's man behind the woman: presence
-        0.15-0.59 in his stale regions, an even chance at `min_presence` 0.5)."""
+        0.15-0.59 in his stale regions, an even chance at `min_presence` 0.5). `previous`: per
+        region, the landmarks of the frame before for people followed behind others (a
+        reading that continues them stays, `_continuing`), None for the lost."""
         c = self.config
         painted, covered = paint_out_people(
             image, [r for r, _ in kept], c.skeleton_width, c.lost_grow, around=rois
         )
-        return [
-            accepted[0]
-            if (accepted := self._accept([r], image.shape[0]))
-            and share_covered(r.landmarks, covered) <= c.lost_max_covered
-            else None
-            for r in look_twice(
-                self._landmarks(painted, rois),
-                lambda again: self._landmarks(painted, again),
-                c.min_presence,
-                image.shape[:2],
-                0.0,
-            )
-        ]
+        results = look_twice(
+            self._landmarks(painted, rois),
+            lambda again: self._landmarks(painted, again),
+            c.min_presence,
+            image.shape[:2],
+            0.0,
+        )
+        out = []
+        for r, before in zip(results, previous, strict=True):
+            accepted = self._accept([r], image.shape[0])
+            if not accepted or share_covered(r.landmarks, covered) > c.lost_max_covered:
+                accepted = self._continuing(r, before, image.shape[:2])
+            out.append(accepted[0] if accepted else None)
+        return out
 
     def _landmarks(self, image: np.ndarray, rois: list[BodyRoi]) -> list[RegionLandmarks]:
         self.regions += len(rois)
@@ -346,12 +389,16 @@ class PersonModelDetector:
             return self.landmarker(image, rois)
         return [r for roi in rois for r in self.landmarker(image, [roi])]
 
-    def _accept(self, results: list[RegionLandmarks], image_h: int) -> list[tuple]:
-        """(result, box) of the regions holding a person tall enough, in order."""
+    def _accept(
+        self, results: list[RegionLandmarks], image_h: int, min_presence: float | None = None
+    ) -> list[tuple]:
+        """(result, box) of the regions holding a person (presence at least `min_presence`,
+        default the config's) tall enough, in order."""
         c = self.config
+        floor = c.min_presence if min_presence is None else min_presence
         out = []
         for r in results:
-            if r.presence < c.min_presence:
+            if r.presence < floor:
                 continue
             box = mask_box(r, c.skeleton_width)
             if box is None or box[3] - box[1] < c.min_height_frac * image_h:
@@ -428,22 +475,27 @@ class PersonModelDetector:
             else cv2.resize(frame_bgr, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
         )
         sh = small.shape[0]
+        self._doubted.clear()
         followed = self._follow(small)
         behind = [i for i, roi in enumerate(self._people) if roi in self._behind]
         tracked = [f for f in followed if f is not None]
-        lost = len(tracked) + len(behind) < len(self._people)
+        # continued though the model doubted them (`_continuing`): the detector looks for a
+        # surer reading of them, which replaces theirs (their region drifts on doubtful ones)
+        doubted = [f for f in tracked if id(f[0]) in self._doubted]
+        sure = [f for f in tracked if id(f[0]) not in self._doubted]
+        lost = len(tracked) + len(behind) < len(self._people) or bool(doubted)
         if not self._people or lost or self._since_detect + 1 >= c.detect_every:
             self.detector_runs += 1
             self._since_detect = 0
-            found = self._accept(self._landmarks(small, self._new_regions(small, tracked)), sh)
+            found = self._accept(self._landmarks(small, self._new_regions(small, sure)), sh)
             if c.look_again and (tracked or found):
-                found += self._look_again(small, tracked + found)
+                found += self._look_again(small, sure + found + doubted)
         else:
             self._since_detect += 1
             found = []
-        # Tracked people first (they keep their place), then new ones, then those behind others
-        # and the lost ones found again where they were; a skeleton repeating a kept one's is
-        # the same person seen from a second region.
+        # Tracked people first (they keep their place), then new ones, then the doubted, those
+        # behind others and the lost ones found again where they were; a skeleton repeating a
+        # kept one's is the same person seen from a second region.
         kept: list[tuple] = []
         repeats: set[int] = set()  # ids of the results dropped as a repeat
 
@@ -456,11 +508,12 @@ class PersonModelDetector:
                 else:
                     kept.append((r, box))
 
-        keep(tracked + found)
+        keep(sure + found + doubted)
         # a lost person is looked for while fewer people are kept than before the loss
         self._lost = [m for m in self._lost if len(kept) + len(behind) < m.people]
         second = [self._people[i] for i in behind] + [m.roi for m in self._lost]
-        looked = self._look_behind(small, kept, second) if second else []
+        before_then = [self._previous[i] for i in behind] + [None] * len(self._lost)
+        looked = self._look_behind(small, kept, second, before_then) if second else []
         for i, f in zip(behind, looked, strict=False):
             followed[i] = f
         again = [(k, f) for k, f in enumerate(looked[len(behind) :]) if f is not None]
@@ -483,6 +536,7 @@ class PersonModelDetector:
             if k not in hits and m.frames_left > 1
         ] + [_Lost(roi, c.lost_retry, len(self._people)) for roi in gone if c.lost_retry > 0]
         self._people = [r.next_roi for r, _ in kept]
+        self._previous = [r.landmarks for r, _ in kept]
         # followed on the painted frame while their box still overlaps someone's
         self._behind = {
             r.next_roi
