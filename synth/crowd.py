@@ -17,8 +17,8 @@ modelled) and stays inside the volume; otherwise another is drawn (deterministic
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np

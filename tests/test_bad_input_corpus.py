@@ -362,13 +362,20 @@ def _bad_checkpoints(scene: Scene, tmp: Path) -> dict[str, tuple[Path, str]]:
     ckpt["model"] = {k: v[..., :1] for k, v in ckpt["model"].items()}
     torch.save(ckpt, tmp / "shapes.pt")
     out["weights of the wrong shape"] = (tmp / "shapes.pt", r"shapes.pt")
+    ckpt = torch.load(scene.checkpoint, weights_only=True)
+    ckpt["vertex_ids"] = ckpt["vertex_ids"][:1]  # every Gaussian went onto one vertex, silently
+    torch.save(ckpt, tmp / "ids.pt")
+    out["one vertex id for every Gaussian"] = (
+        tmp / "ids.pt",
+        r"ids.pt: vertex_ids and group_index must be 1-D integer tensors of one length",
+    )
     return out
 
 
 @pytest.mark.parametrize(
     "case",
     ["random bytes", "truncated", "another framework's file", "unsupported version",
-     "pickled code", "weights of the wrong shape"],
+     "pickled code", "weights of the wrong shape", "one vertex id for every Gaussian"],
 )  # fmt: skip
 def test_track_model_errors(case, scene, tmp_path, capsys):
     bad, names = _bad_checkpoints(scene, tmp_path / "ckpts")[case]

@@ -102,3 +102,11 @@ def test_pose_only_output_has_no_gaussians_and_the_same_body(body):
     assert full.gaussians_cam is not None and pose_only.gaussians_cam is None
     assert torch.equal(pose_only.joints_cam, full.joints_cam)
     assert torch.equal(pose_only.transl_cam, full.transl_cam)
+
+
+def test_half_an_extrinsic_is_refused(body):
+    """`R_in` without `t_in` gave no world coordinates and no word."""
+    rotmats = torch.eye(3).expand(1, 24, 3, 3).clone()
+    offsets, quats = torch.zeros(1, 10, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(1, 10, 4)
+    with pytest.raises(ValueError, match="need the input camera's R and t together, got only R"):
+        assemble(output(rotmats, offsets, quats), body, K(), 256, R_in=torch.eye(3)[None])

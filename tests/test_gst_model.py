@@ -229,3 +229,35 @@ def test_crop_inputs_are_checked_before_the_network_runs(tiny):
     )
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         to_float_images(rgb.astype(np.float32))
+
+
+def test_an_empty_batch_runs(tiny):
+    """A batch of 0 crops failed in the attention's head split (view(b, n, heads, -1) cannot
+    size a dimension of an empty tensor)."""
+    out = tiny(torch.randn(0, 3, *tiny.cfg.image_size))
+    assert out.rotmats.shape == (0, 24, 3, 3) and out.gaussians.quats.shape == (0, 400, 4)
+
+
+@pytest.mark.parametrize(
+    "content, expected",
+    [
+        (b"", "cannot be read as a torch checkpoint (EOFError"),
+        (b"hello\n", "cannot be read as a torch checkpoint"),
+        ("cut", "is the file whole"),
+    ],
+)
+def test_unreadable_hmr2_files_are_named_without_unsafe_advice(tmp_path, content, expected):
+    """An empty or cut download gave a bare EOFError, or advice to unpickle it with
+    weights_only=False."""
+    from gst.model.hmr2_import import read_checkpoint_state
+
+    path = tmp_path / "hmr2.ckpt"
+    if content == "cut":
+        torch.save({"state_dict": {"w": torch.ones(1000)}}, path)
+        path.write_bytes(path.read_bytes()[:2000])
+    else:
+        path.write_bytes(content)
+    with pytest.raises(ValueError) as err:
+        read_checkpoint_state(path)
+    assert str(path) in str(err.value) and expected in str(err.value)
+    assert "weights_only=False" not in str(err.value)

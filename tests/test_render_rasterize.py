@@ -234,6 +234,11 @@ def test_auto_backend_on_cpu_is_torch():
         (lambda a: a.update(near=0.0), "near must be > 0"),
         (lambda a: a.update(width=0), "width and height"),
         (lambda a: a["Ks"].__setitem__((0, 0, 0, 1), 3.0), "skew"),
+        # a broken camera rendered a blank image with NaN gradients on every Gaussian
+        (lambda a: a["Ks"].__setitem__((0, 0, 0, 2), float("nan")), "Ks holds NaN or Inf"),
+        (lambda a: a["Ks"].__setitem__((0, 0, 1, 1), float("inf")), "Ks holds NaN or Inf"),
+        (lambda a: a["viewmats"].__setitem__((0, 0, 2, 3), float("nan")), "viewmats holds NaN"),
+        (lambda a: a.update(width=True), "width and height"),
     ],
 )
 def test_bad_input_names_the_culprit(change, message):
@@ -243,6 +248,16 @@ def test_bad_input_names_the_culprit(change, message):
     change(args)
     with pytest.raises(ValueError, match=message):
         rasterize(**args)
+
+
+def test_numpy_integer_sizes_are_sizes():
+    """`rasterize(..., np.int64(32), np.int64(32))` was refused: 'must be positive ints, got
+    32, 32'."""
+    import numpy as np
+
+    scene = random_scene(1, 1, 5, 2, 8, 8)
+    a = rasterize(*scene, np.int64(8), np.int64(8))
+    assert torch.equal(a.rgb, rasterize(*scene, 8, 8).rgb)
 
 
 def test_empty_and_fully_culled_scenes_render_the_background():

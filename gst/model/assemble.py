@@ -125,11 +125,19 @@ def assemble(
 ) -> BodyPrediction:
     """Pose the body (and the Gaussians, when the network produced them), in the body's dtype.
 
+    World coordinates need both extrinsics: `R_in` without `t_in`, or the reverse, is refused
+    (it gave no world coordinates, silently).
+
     Runs with autocast disabled: under bf16 autocast (``TrainConfig.amp``) only the network runs
     in reduced precision; skinning and posing in bf16 (about 3 significant digits, i.e.
     centimetres a few metres from the camera) would be too coarse, and would hand the
     rasteriser a mix of dtypes.
     """
+    if (R_in is None) != (t_in is None):
+        raise ValueError(
+            "assemble: world coordinates need the input camera's R and t together, got only "
+            + ("R" if t_in is None else "t")
+        )
     with torch.autocast(body.device.type, enabled=False):
         return _assemble(
             _cast_output(out, body.dtype),

@@ -83,9 +83,8 @@ def keep_model(source: str | Path, dest: str | Path) -> None:
     """Write a training checkpoint as a kept model (`models/*.pt`): everything but the training
     loop's state (`trainer`: the optimiser's moments, twice the weights' size, which only a
     resumed run reads)."""
+    load_checkpoint(source)  # the same checks as any reader's: a kept model must load
     ckpt = torch.load(source, map_location="cpu", weights_only=True)
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise ValueError(f"{source}: not a GST checkpoint (expected format '{FORMAT}')")
     ckpt.pop("trainer", None)
     atomic_torch_save(ckpt, dest)
 
@@ -113,6 +112,18 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     missing = [k for k in _REQUIRED if k not in ckpt]
     if missing:
         raise ValueError(f"{path}: a GST checkpoint without {missing}")
+    ids, groups = ckpt["vertex_ids"], ckpt["group_index"]
+    if not all(
+        isinstance(t, torch.Tensor) and t.ndim == 1 and not t.dtype.is_floating_point
+        for t in (ids, groups)
+    ) or len(ids) != len(groups):
+        # one vertex id for 1723 Gaussians put them all on one vertex, silently
+        shapes = [tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+                  for t in (ids, groups)]  # fmt: skip
+        raise ValueError(
+            f"{path}: vertex_ids and group_index must be 1-D integer tensors of one length (one "
+            f"per Gaussian), got {shapes[0]} and {shapes[1]}"
+        )
     return GSTCheckpoint(
         config=ckpt["config"],
         body_model=ckpt["body_model"],

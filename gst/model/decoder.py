@@ -26,8 +26,8 @@ class DecoderConfig:
 
 
 def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
-    b, n, _ = x.shape
-    return x.view(b, n, heads, -1).transpose(1, 2)
+    b, n, d = x.shape
+    return x.view(b, n, heads, d // heads).transpose(1, 2)  # not -1: a batch of 0 has no size
 
 
 def _merge_heads(x: torch.Tensor) -> torch.Tensor:

@@ -42,11 +42,19 @@ def read_checkpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
         raise FileNotFoundError(f"HMR2 checkpoint not found: {path}")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError) as exc:
+    except Exception as exc:  # refused pickled objects, or not a (whole) torch file at all
+        text = " ".join(str(exc).split())[:300] or type(exc).__name__
+        if isinstance(exc, pickle.UnpicklingError) and "weights_only" in str(exc).lower():
+            raise ValueError(
+                f"{path}: cannot be loaded with weights_only=True ({text}). It pickles Python "
+                "objects besides tensors; in a trusted environment re-save just its tensors: "
+                "torch.save(torch.load(p, weights_only=False)['state_dict'], 'hmr2_state.pt')"
+            ) from None
+        # an empty file (EOFError), a text file (KeyError), a cut download (RuntimeError):
+        # advice to unpickle it without weights_only would be wrong and unsafe
         raise ValueError(
-            f"{path}: cannot be loaded with weights_only=True ({exc}). It pickles Python "
-            "objects besides tensors; in a trusted environment re-save just its tensors: "
-            "torch.save(torch.load(p, weights_only=False)['state_dict'], 'hmr2_state.pt')"
+            f"{path}: cannot be read as a torch checkpoint ({type(exc).__name__}: {text}); is "
+            "the file whole (compare its size with the download's)?"
         ) from None
     state = obj.get("state_dict", obj) if isinstance(obj, dict) else None
     if not isinstance(state, dict):

@@ -32,6 +32,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -129,10 +130,18 @@ def rasterize(
     _check_shape("Ks", Ks, (s, c, 3, 3), batched)
     if backgrounds is not None:
         _check_shape("backgrounds", backgrounds, (s, c, 3), batched)
-    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+    if not (
+        isinstance(width, (int, np.integer))
+        and isinstance(height, (int, np.integer))
+        and not isinstance(width, bool)
+        and not isinstance(height, bool)
+        and width > 0
+        and height > 0
+    ):
         raise ValueError(
-            f"rasterize: width and height must be positive ints, got {width}, {height}"
+            f"rasterize: width and height must be positive ints, got {width!r}, {height!r}"
         )
+    width, height = int(width), int(height)
     if not near > 0:
         raise ValueError(f"rasterize: near must be > 0 (metres), got {near}")
     tensors = {
@@ -149,6 +158,11 @@ def rasterize(
                 f"rasterize: {name} is {t.dtype} on {t.device}, expected {means.dtype} on "
                 f"{means.device} like means"
             )
+    # a NaN or infinite camera renders a blank image and NaN gradients on every Gaussian: one
+    # bad camera silently spoils a training step
+    for name in ("viewmats", "Ks"):
+        if not bool(torch.isfinite(tensors[name].detach()).all()):
+            raise ValueError(f"rasterize: {name} holds NaN or Inf (a broken camera)")
     skew = Ks[..., 0, 1].detach().abs()
     if bool((skew > 1e-9 * Ks[..., 0, 0].detach().abs()).any()):
         raise ValueError("rasterize: Ks has non-zero skew K[0, 1]; skewed cameras are unsupported")
