@@ -70,6 +70,33 @@ def test_pose_summary_groups_and_breakdowns_by_hand():
         joint_group_indices(JOINTS[:-1])
 
 
+def test_summary_counts_say_how_many_records_each_mean_is_over():
+    """ "n" counted every record while the means left out the NaN ones: 4 held-out pairs, 3 of
+    them without a SHERF box, read as a box PSNR over 4; a diverged pose, as no record at all."""
+    from gst.eval.evaluator import ViewRecords
+    from gst.eval.summary import view_summary
+
+    nan, n = float("nan"), 4
+    rec = ViewRecords(
+        inputs=np.arange(n), targets=np.arange(n), camera=np.zeros(n, int),
+        heldout=np.ones(n, bool), psnr=np.array([20.0, 20, 20, 22]), ssim=np.full(n, 0.8),
+        lpips=np.full(n, 0.2), silhouette_iou=np.full(n, 0.5),
+        box_psnr=np.array([10.0, nan, nan, nan]), box_ssim=np.full(n, 0.7),
+        box_lpips=np.full(n, 0.3),
+    )  # fmt: skip
+    held = view_summary(rec, ["c0"], np.full(n, "all", object)).heldout
+    assert held["n"] == 4 and held["box_psnr"] == 10.0 and held["n_box_psnr"] == 1
+    assert "n_psnr" not in held  # every one finite
+    err = np.zeros((2, 24))
+    err[1, 3] = nan
+    pose = PoseRecords(
+        rows=np.array([0, 1]), camera=np.array([0, 0]), frame=np.array([0, 0]),
+        joint_error=err, joint_error_pa=err,
+    )  # fmt: skip
+    s = pose_summary(pose, ["a"], np.array(["run", "run"], dtype=object), JOINTS)
+    assert s.overall["n"] == 2 and s.overall["n_not_finite"] == 1
+
+
 def test_view_pairs_cover_every_other_view_and_never_input_heldout():
     crops = crop_set(n_frames=4, n_cams=3)
     pairs = view_pairs(crops, heldout={2})

@@ -66,6 +66,8 @@ def _median(x: np.ndarray) -> float | None:
 def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
     block = {
         "n": int(sel.sum()),
+        # records whose error is NaN or infinite (a diverged prediction): left out of the means
+        "n_not_finite": int((~np.isfinite(rec.mpjpe[sel]) | ~np.isfinite(rec.pa_mpjpe[sel])).sum()),
         "mpjpe_mm": _mean(1000 * rec.mpjpe[sel]),
         "pa_mpjpe_mm": _mean(1000 * rec.pa_mpjpe[sel]),
         "mpjpe_median_mm": _median(1000 * rec.mpjpe[sel]),
@@ -84,7 +86,8 @@ def _pose_block(rec: PoseRecords, sel: np.ndarray) -> dict:
 @dataclass(frozen=True)
 class PoseSummary:
     """Pose errors (mm): `overall`, then by camera, by motion, by body part and by joint (each
-    table keyed by its name). A block is metric name -> value ("n", "mpjpe_mm", "pa_mpjpe_mm",
+    table keyed by its name). A block is metric name -> value ("n", "n_not_finite" (records
+    whose error is not finite, left out of the means), "mpjpe_mm", "pa_mpjpe_mm",
     "mpjpe_median_mm", and "pve_mm", "pa_pve_mm" when vertices were scored; with landmark input,
     "mirrored_landmarks" (crops whose landmarks are left/right mirrored against the reference,
     gst.metrics.flips) and "mpjpe_mm_not_mirrored"; None where nothing finite was averaged), as
@@ -105,8 +108,8 @@ class PoseSummary:
 class ViewSummary:
     """Novel-view scores: `heldout` (the headline: targets in cameras never trained on),
     `trained_views` (other training cameras than the input's), then by target camera (with its
-    "heldout" flag) and by motion (held-out targets). A block is metric name -> value ("n" and
-    VIEW_KEYS), as written to summary.json."""
+    "heldout" flag) and by motion (held-out targets). A block is metric name -> value ("n", VIEW_KEYS,
+    and "n_<metric>" where fewer records were finite), as written to summary.json."""
 
     heldout: dict
     trained_views: dict
@@ -156,7 +159,16 @@ VIEW_KEYS = ("psnr", "ssim", "lpips", "silhouette_iou", "box_psnr", "box_ssim", 
 
 
 def _view_block(rec: ViewRecords, sel: np.ndarray) -> dict:
-    return {"n": int(sel.sum()), **{k: _mean(getattr(rec, k)[sel]) for k in VIEW_KEYS}}
+    """ "n" the records selected; "n_<metric>" where fewer of them were finite (the SHERF box's
+    metrics are NaN where the box is not visible): the number its mean is over."""
+    block: dict = {"n": int(sel.sum())}
+    for k in VIEW_KEYS:
+        values = np.asarray(getattr(rec, k)[sel], dtype=np.float64)
+        block[k] = _mean(values)
+        finite = int(np.isfinite(values).sum())
+        if finite < block["n"]:
+            block[f"n_{k}"] = finite
+    return block
 
 
 def view_summary(rec: ViewRecords, camera_names: list[str], motions: np.ndarray) -> ViewSummary:

@@ -18,11 +18,12 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from calibration.formats import read_rig
+from gst.data.external import IdMaskFile
 from gst.detect.boxes import box_iou
 from gst.train.views import CropSet
-from synth.truth import SceneTruth, read_scene_truth, read_truth_views
+from synth.truth import SceneTruth, read_scene_truth, read_truth_views, truth_mask_file
 
-__all__ = ["attach_scene_truth", "match_truth_views", "select_rows"]
+__all__ = ["attach_scene_truth", "mask_truth_ids", "match_truth_views", "select_rows"]
 
 
 def attach_scene_truth(
@@ -74,19 +75,28 @@ def attach_scene_truth(
 def match_truth_views(
     crops: CropSet, boxes: np.ndarray, scene_dir: str | Path, min_iou: float = 0.3
 ) -> np.ndarray:
-    """Row of `truth/views.parquet` showing the person of each extracted crop, or -1: matched per
-    (frame, camera) by the overlap of the crop's person box (undistorted image, edges) with the
-    truth box (IoU above `min_iou`). Returns (N,) int64."""
+    """Row of `truth/views.parquet` showing the person of each extracted crop, or -1. The person
+    is the one the crop's own mask shows: the truth id that most of its mask pixels land on in
+    the scene's id masks (`mask_truth_ids`). A crop whose mask lands on nobody is matched per
+    (frame, camera) by the overlap of its person box (undistorted image, edges) with the truth
+    box (IoU above `min_iou`). Boxes alone gave 9.4 % of crowd_7001's crops another person (a
+    person behind someone overlaps the full box of the one in front more than their own).
+    Returns (N,) int64."""
     scene_dir = Path(scene_dir)
     if len(boxes) != len(crops):
         raise ValueError(f"boxes has {len(boxes)} rows, the crop set {len(crops)}")
     rig = read_rig(scene_dir / "calibration" / "rig.json", "rig")
     views = read_truth_views(scene_dir)
     v_box = views.full_box.astype(np.float32)  # stored as float32
+    shown = mask_truth_ids(crops, scene_dir, rig)
     out = np.full(len(crops), -1, np.int64)
     for i in range(len(crops)):
         cam_name = crops.camera_names[int(crops.camera[i])]
         rows = np.flatnonzero((views.frame == int(crops.frame[i])) & (views.camera == cam_name))
+        own = rows[views.person_id[rows] == shown[i]] if shown[i] > 0 else rows[:0]
+        if len(own):
+            out[i] = own[0]
+            continue
         best_iou = min_iou
         cam = rig[cam_name]
         for r in rows:
@@ -100,6 +110,48 @@ def match_truth_views(
             iou = float(box_iou(boxes[i], tb)[0, 0])
             if iou > best_iou:
                 out[i], best_iou = r, iou
+    return out
+
+
+def mask_truth_ids(
+    crops: CropSet, scene_dir: str | Path, rig, step: int = 4, min_share: float = 0.5
+) -> np.ndarray:
+    """(N,) the truth person id each crop's mask shows, 0 where it shows nobody clearly: its
+    mask pixels (every `step`-th row and column, mask > 0.5) are taken through the crop's
+    camera (K, R, t: undistorted) to the distorted frame, and the id that at least `min_share`
+    of those landing on a person carry is theirs."""
+    scene_dir = Path(scene_dir)
+    out = np.zeros(len(crops), np.int64)
+    files: dict[str, IdMaskFile | None] = {}
+    try:
+        for i in range(len(crops)):
+            name = crops.camera_names[int(crops.camera[i])]
+            if name not in files:
+                path = truth_mask_file(scene_dir, name)
+                files[name] = IdMaskFile(path, name) if path.is_file() else None
+            ids = files[name].get(int(crops.frame[i])) if files[name] is not None else None
+            if ids is None:
+                continue
+            mask = crops.masks[i, ::step, ::step].numpy() > 0.5
+            vv, uu = np.nonzero(mask)
+            if len(uu) == 0:
+                continue
+            px = np.c_[uu * step, vv * step, np.ones(len(uu))]
+            rays = px @ np.linalg.inv(crops.K[i].double().numpy()).T  # camera frame, z = 1
+            R, t = crops.R[i].double().numpy(), crops.t[i].double().numpy()
+            uv = np.round(rig[name].project((rays - t) @ R)).astype(int)
+            h, w = ids.shape
+            inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            hit = ids[uv[inside, 1], uv[inside, 0]]
+            hit = hit[hit > 0].astype(np.int64)
+            if len(hit):
+                counts = np.bincount(hit)
+                if counts.max() >= min_share * len(hit):
+                    out[i] = int(counts.argmax())
+    finally:
+        for f in files.values():
+            if f is not None:
+                f.close()
     return out
 
 
