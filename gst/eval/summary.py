@@ -108,8 +108,8 @@ class PoseSummary:
 class ViewSummary:
     """Novel-view scores: `heldout` (the headline: targets in cameras never trained on),
     `trained_views` (other training cameras than the input's), then by target camera (with its
-    "heldout" flag) and by motion (held-out targets). A block is metric name -> value ("n", VIEW_KEYS,
-    and "n_<metric>" where fewer records were finite), as written to summary.json."""
+    "heldout" flag) and by motion (held-out targets). A block is metric name -> value ("n",
+    VIEW_KEYS, and "n_<metric>" where fewer records were finite), as written to summary.json."""
 
     heldout: dict
     trained_views: dict
