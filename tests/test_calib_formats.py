@@ -451,6 +451,27 @@ def test_qualisys_transform_with_nan_is_refused_by_name(tmp_path):
         read_rig(path)
 
 
+def test_qualisys_bad_skew_and_all_cameras_skipped_are_named(tmp_path):
+    path = tmp_path / "skew.qca.txt"
+    path.write_text(QCA.read_text().replace('skew="0.000000"', 'skew="abc"', 1))
+    with pytest.raises(RigFormatError, match="camera 'cam01' <intrinsic> skew='abc' is not a"):
+        read_rig(path)  # a bare "could not convert string to float"
+    path.write_text(QCA.read_text().replace('model="none"', 'model="Miqus M5"'))
+    with pytest.raises(RigFormatError, match=r"skipped cam01 \(model 'Miqus M5'\).*video_only"):
+        read_rig(path)  # "no cameras found"
+
+
+def test_h36m_json_sizes_are_whole_pixels(tmp_path):
+    out = tmp_path / "h.json"
+    write_rig(ring_cameras(1), out, "h36m-json", subject="S1")
+    for bad, shown in ((1000.9, "1000.9"), (True, "True"), ("abc", "'abc'")):
+        data = json.loads(out.read_text())
+        next(iter(data["intrinsics"].values()))["width"] = bad
+        out.write_text(json.dumps(data))
+        with pytest.raises(RigFormatError, match=f"width is {shown}, expected a whole number"):
+            read_rig(out, "h36m-json")  # 1000.9 read 1000, true read 1
+
+
 def test_colmap_model_written_by_pycolmap(tmp_path):
     rec = pycolmap.Reconstruction()
     params = [1500.0, 1495.0, 960.5, 540.5, -0.11, 0.04, 0.0007, -0.0005]
@@ -598,6 +619,13 @@ def test_failed_write_keeps_the_old_file(tmp_path):
         (lambda d: d["cameras"][0].update(dist={"k1": 0.1}), "camera 'c0'.*dict"),
         (lambda d: d.update(up=["z", 0, 1]), "up is not numeric"),
         (lambda d: d.update(up=[0, 1]), r"up has shape \(2,\)"),
+        # taken before: a null or empty name, reshaped matrices, a nested dist, version true
+        (lambda d: d["cameras"][0].update(name=None), r"cameras\[0\] name must be"),
+        (lambda d: d["cameras"][0].update(name=""), r"cameras\[0\] name must be"),
+        (lambda d: d["cameras"][0].update(K=sum(d["cameras"][0]["K"], [])), r"K has shape \(9,\)"),
+        (lambda d: d["cameras"][0].update(dist=[[0.1, 0], [0, 0]]), "dist has shape"),
+        (lambda d: d.update(version=True), "version must be a positive integer"),
+        (lambda d: d["cameras"][0].update(dist="abc"), "camera 'c0' dist is not numeric"),
     ],
 )
 def test_bad_rig_json_is_reported_with_file_and_key(tmp_path, mutate, match):
@@ -649,6 +677,79 @@ def test_rotations_printed_with_few_digits_are_accepted_but_bad_ones_refused(tmp
     path.write_text(json.dumps({"cameras": [cam_bad]}))
     with pytest.raises(RigFormatError, match="00_03.*orthonormal"):
         read_rig(path)
+
+
+def test_a_key_given_twice_is_refused(tmp_path):
+    """'"width": 1920, "width": 640' read 640."""
+    path = tmp_path / "rig.json"
+    write_rig(ring_cameras(1), path)
+    text = path.read_text().replace('"width": ', '"width": 1920, "width": ', 1)
+    path.write_text(text)
+    with pytest.raises(RigFormatError, match=r"keys given twice in one object: \['width'\]"):
+        read_rig(path, "rig")
+
+
+def test_non_finite_meta_is_written_as_strict_json(tmp_path):
+    """A camera without residuals has rms_px NaN: written as a bare NaN, which jq, JavaScript
+    and serde refuse."""
+    rig = ring_cameras(2)
+    cams = [replace_meta(c, {"rms_px": float("nan"), 7: (1, 2)}) for c in rig]
+    path = tmp_path / "rig.json"
+    write_rig(Rig(cams, up=rig.up), path)
+    strict = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"bare {c}"))
+    assert strict["cameras"][0]["meta"] == {"rms_px": None, "7": [1, 2]}
+
+
+def replace_meta(cam: Camera, meta: dict) -> Camera:
+    return Camera.create(cam.name, cam.K, cam.dist, cam.R, cam.t, cam.width, cam.height, meta)
+
+
+def test_colmap_model_in_the_other_encoding_is_replaced_and_units_checked(tmp_path):
+    """An older text model beside the new binary one kept the old poses for any tool reading
+    the text files; a unit of 0 wrote NaN translations, -1 mirrored the world on reading."""
+    old = ring_cameras(2)
+    rec = pycolmap.Reconstruction()
+    write_rig(old, tmp_path, "colmap")
+    rec.read(str(tmp_path))
+    rec.write_text(str(tmp_path))
+    for f in tmp_path.glob("*.bin"):
+        f.unlink()
+    assert (tmp_path / "images.txt").is_file()
+    write_rig(ring_cameras(3), tmp_path, "colmap")
+    assert not list(tmp_path.glob("*.txt")) and len(read_rig(tmp_path, "colmap")) == 3
+    for unit in (0, -1.0, float("nan")):
+        with pytest.raises(RigFormatError, match="metres_per_unit must be a finite number > 0"):
+            write_rig(old, tmp_path / "x", "colmap", metres_per_unit=unit)
+        with pytest.raises(RigFormatError, match="metres_per_unit must be a finite number > 0"):
+            read_rig(tmp_path, "colmap", metres_per_unit=unit)
+
+
+def test_a_guessed_toml_format_and_cameras_a_few_mm_apart_are_said(tmp_path, caplog):
+    """A metres file in the anipose layout was read as millimetres (a camera 4.2 m away, 4.2 mm
+    away) without a word."""
+    path = tmp_path / "calib.toml"
+    write_rig(ring_cameras(3), path, "anipose", units="m")
+    with caplog.at_level("WARNING", logger="calibration"):
+        read_rig(path)
+    text = " ".join(caplog.messages)
+    assert "read as 'anipose'" in text and "translations in mm" in text
+    assert "stand within" in text  # metres read as mm: the ring is a few mm wide
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="calibration"):
+        read_rig(path, "anipose", units="m")
+    assert not caplog.messages
+
+
+def test_skew_is_not_written_where_readers_ignore_it(tmp_path):
+    rig = ring_cameras(2)
+    K = rig.cameras[0].K.copy()
+    K[0, 1] = 2.0
+    c = rig.cameras[0]
+    skewed = Rig([Camera.create(c.name, K, c.dist, c.R, c.t, c.width, c.height),
+                  rig.cameras[1]], up=rig.up)  # fmt: skip
+    for fmt, suffix in (("pose2sim", "toml"), ("anipose", "toml")):
+        with pytest.raises(RigFormatError, match="skew"):
+            write_rig(skewed, tmp_path / f"x.{suffix}", fmt)
 
 
 def test_colmap_write_keeps_other_files_in_the_folder(tmp_path):

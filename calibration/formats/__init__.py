@@ -153,12 +153,41 @@ def _check_options(fmt: str, opts: dict, allowed: tuple[str, ...], verb: str) ->
 def read_rig(path: str | Path, fmt: str | None = None, **opts) -> Rig:
     """Read a rig; `fmt` None detects it. Options per format are listed in FORMATS."""
     path = Path(path)
+    guessed = fmt is None
     fmt = fmt or detect_format(path)
     info = _info(fmt)
     _check_options(fmt, opts, info.read_options, "read")
     if not path.exists():
         raise RigFormatError(f"{path}: no such file or folder")
-    return info.module.read(path, **opts)
+    rig = info.module.read(path, **opts)
+    if guessed and fmt in ("anipose", "pose2sim"):
+        # the two TOML layouts differ by a key or a distortion length, and in units (mm against
+        # m): a metres file taken for anipose put a camera 4.2 m away 4.2 mm away, silently
+        log.warning(
+            "%s: read as '%s' (a TOML file, told apart by its keys%s); give the format "
+            "(and anipose's units) to be sure",
+            path,
+            fmt,
+            f", translations in {opts.get('units', 'mm')}" if fmt == "anipose" else "",
+        )
+    spread = _camera_spread(rig)
+    if spread is not None and spread < 0.05:
+        log.warning(
+            "%s: the %d cameras stand within %.3f m of each other: are the translations in "
+            "another unit than the reader assumed (anipose: units='mm' by default)?",
+            path,
+            len(rig),
+            spread,
+        )
+    return rig
+
+
+def _camera_spread(rig: Rig) -> float | None:
+    """The largest distance between two camera centres (m), None for fewer than two."""
+    if len(rig) < 2:
+        return None
+    centres = np.array([c.center for c in rig])
+    return float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
 
 
 def write_rig(rig: Rig, path: str | Path, fmt: str = "rig", **opts) -> None:

@@ -84,9 +84,19 @@ def require(data: dict, key: str, path: Path, where: str = ""):
 
 
 def load_json(path: Path):
-    """The parsed JSON document at `path`; a syntax error becomes a RigFormatError."""
+    """The parsed JSON document at `path`; a syntax error, or a key given twice in one object
+    (JSON leaves it undefined; Python kept the last: "width": 1920, "width": 640 read 640),
+    becomes a RigFormatError."""
+
+    def unique(pairs: list) -> dict:
+        keys = [k for k, _ in pairs]
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        if twice:
+            raise RigFormatError(f"{path}: keys given twice in one object: {twice}")
+        return dict(pairs)
+
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=unique)
     except json.JSONDecodeError as exc:
         raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
 
@@ -196,13 +206,18 @@ def toml_dumps(tables: dict[str, dict]) -> str:
 
 
 def json_safe(value):
-    """Meta values made JSON-serialisable (numpy scalars and arrays to Python)."""
+    """Meta values made JSON-serialisable (numpy scalars and arrays to Python; dict keys to text,
+    tuples to lists, as JSON has them) and strict JSON: a NaN or infinite number is null (a
+    camera without residuals has `rms_px` NaN, which Python wrote as a bare NaN that jq,
+    JavaScript and serde refuse)."""
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_safe(v) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return json_safe(value.tolist())
     if isinstance(value, np.generic):
-        return value.item()
+        return json_safe(value.item())
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
     return value

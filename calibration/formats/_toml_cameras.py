@@ -94,6 +94,12 @@ def write_cameras(
     when later terms are non-zero (OpenCV reads any valid length)."""
     tables = {}
     for i, c in enumerate(rig):
+        if c.skew:  # as COLMAP's and H36M's writers refuse it
+            raise RigFormatError(
+                f"camera '{c.name}': K[0, 1] = {c.skew} (skew); Pose2Sim and aniposelib "
+                "project with cv2.projectPoints, which ignores it (0.45 px off at the corner "
+                "for 2 px), so the file would place points elsewhere"
+            )
         d = c.dist
         n = dist_len if not np.any(d[dist_len:]) else d.size
         dist = np.zeros(n)

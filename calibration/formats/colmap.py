@@ -67,8 +67,23 @@ def _intrinsics(cam: pycolmap.Camera, path: Path, name: str) -> tuple[list, np.n
     return [[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]], dist
 
 
+def _check_unit(metres_per_unit: float) -> float:
+    """The model's length unit in metres: finite and positive (0 put every camera at the
+    origin, a negative one mirrored the world, and the writer wrote NaN translations)."""
+    try:
+        unit = float(metres_per_unit)
+    except (TypeError, ValueError):
+        unit = float("nan")
+    if not (np.isfinite(unit) and unit > 0):
+        raise RigFormatError(
+            f"COLMAP metres_per_unit must be a finite number > 0, got {metres_per_unit!r}"
+        )
+    return unit
+
+
 def read(path: str | Path, metres_per_unit: float = 1.0, up=(0.0, 0.0, 1.0)) -> Rig:
     path = Path(path)
+    metres_per_unit = _check_unit(metres_per_unit)
     import pycolmap
 
     model_dir = _model_dir(path)
@@ -130,9 +145,11 @@ def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
 
 def write(rig: Rig, path: str | Path, metres_per_unit: float = 1.0) -> None:
     """A binary COLMAP model in the folder `path` (model files replaced one by one, atomically;
-    anything else in the folder is kept)."""
+    the text copies of those files, an older model that a reader would take instead, are
+    removed; anything else in the folder is kept)."""
     import pycolmap
 
+    metres_per_unit = _check_unit(metres_per_unit)
     rec = pycolmap.Reconstruction()
     for i, cam in enumerate(rig):
         rec.add_camera_with_trivial_rig(_colmap_camera(cam, i + 1))
@@ -148,8 +165,15 @@ def write(rig: Rig, path: str | Path, metres_per_unit: float = 1.0) -> None:
         rec.write(tmp)
         # Each model file replaces its old version atomically; other files in the folder
         # (images, a database) are left alone.
-        for f in sorted(Path(tmp).iterdir()):
+        written = sorted(Path(tmp).iterdir())
+        for f in written:
             os.replace(f, path / f.name)
+    # an older model in the other encoding (cameras.txt beside the new cameras.bin) would be
+    # read by other tools, or by a person, as the rig: it held the old poses
+    for f in written:
+        other = path / (f.stem + (".txt" if f.suffix == ".bin" else ".bin"))
+        if f.suffix in (".bin", ".txt") and other.is_file():
+            other.unlink()
 
 
 def sniff(path: Path, text: str | None) -> bool:

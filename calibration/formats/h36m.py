@@ -31,7 +31,13 @@ import h5py
 import numpy as np
 
 from calibration.camera import Camera, Rig
-from calibration.formats._common import RigFormatError, atomic_write, make_camera, make_rig
+from calibration.formats._common import (
+    RigFormatError,
+    atomic_write,
+    make_camera,
+    make_rig,
+    pixel_count,
+)
 
 MM_PER_M = 1000.0
 # Image sizes (width, height) of the four H36M video cameras, from the dataset's metadata.
@@ -121,12 +127,15 @@ def image_size_of(
 ) -> tuple[int, int]:
     """A camera's (width, height): `stored` with it (as we write it), else its known H36M size,
     else the caller's `image_size`."""
-    if stored is not None:
-        return (int(stored[0]), int(stored[1]))
+    if stored is not None:  # 1000.9 was 1000, true was 1, "abc" a bare int() error
+        return (
+            pixel_count(stored[0], path, f"{where} width"),
+            pixel_count(stored[1], path, f"{where} height"),
+        )
     if name in KNOWN_SIZES:
         return KNOWN_SIZES[name]
     if image_size is not None:
-        return tuple(int(v) for v in image_size)
+        return tuple(pixel_count(v, path, f"image_size {tuple(image_size)}") for v in image_size)
     raise RigFormatError(
         f"{path}: {where} has no known image size; pass image_size=(width, height)"
     )

@@ -96,14 +96,16 @@ def read(
         raise RigFormatError(f"{path}: not valid XML ({exc})") from exc
     if root.tag != "calibration":
         raise RigFormatError(f"{path}: root element is <{root.tag}>, expected <calibration>")
-    cameras = []
+    cameras, skipped = [], []
     for i, cam in enumerate(root.findall("cameras/camera")):
         name = cam.get("serial") or f"camera{i + 1}"
         where = f"camera '{name}'"
         if not include_inactive and cam.get("active", "1") != "1":
+            skipped.append(f"{name} (inactive)")
             continue
         model = cam.get("model", "none")
         if video_only and not ("video" in model.lower() or model == "none"):
+            skipped.append(f"{name} (model {model!r})")
             continue
         if cam.get("viewrotation", "0") not in ("0", "0.0"):
             raise RigFormatError(
@@ -116,7 +118,7 @@ def read(
         width = int(round((_float(fov, "right", path, where) - left + 1) * scale))
         height = int(round((_float(fov, "bottom", path, where) - top + 1) * scale))
         intr = _child(cam, "intrinsic", path, where)
-        if float(intr.get("skew", "0") or 0) != 0:
+        if intr.get("skew") not in (None, "") and _float(intr, "skew", path, where) != 0:
             raise RigFormatError(
                 f"{path}: {where} has skew={intr.get('skew')}; its units are not "
                 "documented, so it is not supported"
@@ -163,6 +165,11 @@ def read(
                 height=height,
                 meta=meta,
             )
+        )
+    if not cameras and skipped:  # "no cameras found" did not say which were passed over, or why
+        raise RigFormatError(
+            f"{path}: no camera to read: skipped {', '.join(skipped)}; video_only=True keeps "
+            "models with 'video' in their name (or 'none'), include_inactive=True the inactive"
         )
     return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "qualisys"})
 

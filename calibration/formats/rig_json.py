@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
@@ -21,7 +23,6 @@ from calibration.formats._common import (
     make_rig,
     pixel_count,
     require,
-    require_array,
 )
 
 SCHEMA = "gst-capture/rig"
@@ -61,7 +62,7 @@ def from_dict(data: dict, path: Path) -> Rig:
     if schema != SCHEMA:
         raise RigFormatError(f"{path}: schema is '{schema}', expected '{SCHEMA}'")
     version = require(data, "version", path)
-    if not isinstance(version, int) or version < 1:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
         raise RigFormatError(f"{path}: version must be a positive integer, got {version!r}")
     if version > VERSION:
         raise RigFormatError(
@@ -86,16 +87,18 @@ def from_dict(data: dict, path: Path) -> Rig:
                 f"expected {sorted(CAMERA_KEYS)}"
             )
         name = require(cd, "name", path, where)
+        if not isinstance(name, str) or not name:
+            raise RigFormatError(f"{path}: {where} name must be a non-empty text, got {name!r}")
         where = f"camera '{name}'"
         cameras.append(
             make_camera(
                 path,
                 name,
                 repair_rotation=False,
-                K=require_array(cd, "K", (3, 3), path, where),
-                dist=require(cd, "dist", path, where),
-                R=require_array(cd, "R", (3, 3), path, where),
-                t=require_array(cd, "t", (3,), path, where),
+                K=_exact(cd, "K", (3, 3), path, where),
+                dist=_exact(cd, "dist", None, path, where),
+                R=_exact(cd, "R", (3, 3), path, where),
+                t=_exact(cd, "t", (3,), path, where),
                 width=pixel_count(require(cd, "width", path, where), path, f"{where} width"),
                 height=pixel_count(require(cd, "height", path, where), path, f"{where} height"),
                 meta=cd.get("meta") or {},
@@ -105,6 +108,21 @@ def from_dict(data: dict, path: Path) -> Rig:
     return make_rig(path, cameras, up=tuple(up.tolist()), meta=data.get("meta") or {})
 
 
+def _exact(cd: dict, key: str, shape: tuple[int, ...] | None, path: Path, where: str):
+    """`cd[key]` as written by `to_dict`: nested lists of exactly `shape` (None: one flat list,
+    the distortion). The other formats' readers reshape what has the right size; our own file
+    is held to its layout (a flat K, an R of 1 x 9, a nested dist were taken)."""
+    value = require(cd, key, path, where)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise RigFormatError(f"{path}: {where} {key} is not numeric ({exc})") from exc
+    if (shape is None and arr.ndim != 1) or (shape is not None and arr.shape != shape):
+        expected = "a flat list of numbers" if shape is None else f"shape {shape}"
+        raise RigFormatError(f"{path}: {where} {key} has shape {arr.shape}, expected {expected}")
+    return arr
+
+
 def read(path: str | Path) -> Rig:
     path = Path(path)
     data = load_json(path)
@@ -112,7 +130,7 @@ def read(path: str | Path) -> Rig:
 
 
 def write(rig: Rig, path: str | Path) -> None:
-    atomic_write_text(path, json.dumps(to_dict(rig), indent=2) + "\n")
+    atomic_write_text(path, json.dumps(to_dict(rig), indent=2, allow_nan=False) + "\n")
 
 
 def sniff(path: Path, text: str | None) -> bool:
