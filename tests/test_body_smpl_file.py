@@ -40,6 +40,20 @@ def test_env_dir_and_gender(tmp_path, monkeypatch, data):
         load_smpl_file(gender="other")
 
 
+def test_a_file_given_by_path_is_named_by_its_own_gender(tmp_path, data):
+    """SMPL_MALE.pkl given as a path was called "SMPL (neutral)", and with gender='female'
+    "SMPL (female)"."""
+    male = tmp_path / "SMPL_MALE.pkl"
+    write_official_pkl(data, male)
+    assert load_smpl_file(male).name == "SMPL (male)"
+    assert load_smpl_file(male, gender="male").name == "SMPL (male)"
+    with pytest.raises(ValueError, match="gender='female' was asked, but the file is the male"):
+        load_smpl_file(male, gender="female")
+    old_name = tmp_path / "basicModel_f_lbs_10_207_0_v1.0.0.pkl"
+    write_official_pkl(data, old_name)
+    assert "female" in load_smpl_file(old_name).name
+
+
 class _Boom:
     """Pickles to a call of os.system: a loader that executes it would create the file."""
 
@@ -85,6 +99,20 @@ def test_npz_with_pickled_objects_is_refused(tmp_path):
     path = tmp_path / "obj.npz"
     np.savez(path, v_template=np.array([{"a": 1}], dtype=object))
     with pytest.raises(ValueError, match="pickled objects"):
+        load_smpl_file(path)
+
+
+def test_an_smplx_like_npz_is_told_by_its_arrays_not_its_objects(tmp_path, data):
+    """SMPL-X's npz holds some pickled entries beside its arrays: it was refused for those
+    ("save plain arrays"), and re-saving led to the next error. Its 55-joint tree is what
+    matters."""
+    path = tmp_path / "SMPLX_NEUTRAL.npz"
+    write_official_pkl(data, tmp_path / "SMPL_NEUTRAL.pkl")
+    raw = safe_load_pickle(tmp_path / "SMPL_NEUTRAL.pkl")
+    arrays = {k: np.asarray(v.toarray() if hasattr(v, "toarray") else v) for k, v in raw.items()}
+    arrays["kintree_table"] = np.zeros((2, 55), np.int64)
+    np.savez(path, joint2num=np.array([{"pelvis": 0}], dtype=object), **arrays)
+    with pytest.raises(ValueError, match=r"kintree_table has shape \(2, 55\)"):
         load_smpl_file(path)
 
 

@@ -226,6 +226,35 @@ def _find_file(path: str | Path | None, gender: str | None) -> Path:
     )
 
 
+def _gender_of(file: Path, asked: str | None) -> str | None:
+    """The gender a model file is, from its name as SMPL ships it (SMPL_MALE, basicModel_m_...,
+    basicmodel_neutral_...); `asked` where the name says none. A path given to SMPL_MALE.pkl was
+    called "SMPL (neutral)", and gender='female' with it "SMPL (female)"."""
+    stem = file.stem.lower()
+    found = next(
+        (
+            g
+            for g, marks in (
+                ("neutral", ("_neutral", "neutral_")),
+                ("female", ("_female", "_f_", "female_")),
+                ("male", ("_male", "_m_")),
+            )
+            if any(m in f"_{stem}_" for m in marks)
+        ),
+        None,
+    )
+    if found is not None and asked is not None and asked.lower() != found:
+        raise ValueError(
+            f"{file}: gender={asked!r} was asked, but the file is the {found} model by its name; "
+            "give a folder (the gender picks the file in it) or the file alone"
+        )
+    return found or (asked.lower() if asked else None)
+
+
+# the arrays an SMPL file must hold (`load_smpl_file`; posedirs is optional)
+SMPL_KEYS = ("v_template", "shapedirs", "weights", "f", "kintree_table", "J_regressor")
+
+
 def _read_raw(path: Path) -> dict[str, Any]:
     if path.suffix == ".pkl":
         raw = safe_load_pickle(path)
@@ -233,14 +262,23 @@ def _read_raw(path: Path) -> dict[str, Any]:
             raise ValueError(f"{path}: expected a dict of SMPL arrays, got {type(raw).__name__}")
         return raw
     if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                return {k: z[k] for k in z.files}
-        except ValueError as err:
+        # Entries that hold pickled objects (SMPL-X's npz has some beside its arrays) are left
+        # out: the arrays then say what the file is ("only the 24-joint SMPL body" for SMPL-X,
+        # where refusing the file for its objects sent the user to re-save it for nothing).
+        raw, pickled = {}, []
+        with np.load(path, allow_pickle=False) as z:
+            for k in z.files:
+                try:
+                    raw[k] = z[k]
+                except ValueError:
+                    pickled.append(k)
+        needed = [k for k in SMPL_KEYS if k in pickled]
+        if needed:
             raise ValueError(
-                f"{path}: holds pickled objects, which we do not load from .npz ({err}); "
+                f"{path}: its {needed} hold pickled objects, which we do not load from .npz; "
                 "use the official .pkl or save plain arrays"
-            ) from err
+            )
+        return raw
     raise ValueError(f"{path}: unknown SMPL file type {path.suffix!r}, expected .pkl or .npz")
 
 
@@ -256,7 +294,8 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
     Args:
         path: the model file, or a folder holding ``SMPL_{NEUTRAL,MALE,FEMALE}.pkl|npz`` (or the
             original ``basicModel_*`` names); None searches :func:`default_body_dir`.
-        gender: "neutral" (default), "male" or "female"; used only when ``path`` is a folder.
+        gender: "neutral" (default), "male" or "female": which file of a folder; with a file, its
+            name says its gender (``SMPL_MALE``), and a gender that contradicts it is an error.
     Raises:
         FileNotFoundError saying where to put the file (and that SMPL is licensed);
         ValueError / UnsafePickleError naming the file and key when its content is not SMPL.
@@ -306,7 +345,7 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
                 f"{file}: posedirs has shape {posedirs.shape}, expected ({V}, 3, {n_pose})"
             )
         posedirs = posedirs.reshape(-1, n_pose).T.copy()  # smplx's (P, V*3) layout
-    gender_name = (gender or "neutral").lower()
+    gender_name = _gender_of(file, gender)
     data = BodyModelData(
         v_template=v_template,
         shapedirs=shapedirs,
@@ -318,7 +357,13 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
         part_labels=parts_from_weights(weights, SMPL_JOINT_NAMES),
         part_names=PART_NAMES,
         posedirs=posedirs,
-        name=f"SMPL ({gender_name})" if file.stem.startswith("SMPL_") else f"SMPL ({file.stem})",
+        name=(
+            f"SMPL ({file.stem})"
+            if gender_name is None
+            else f"SMPL ({gender_name})"
+            if file.stem.startswith("SMPL_")
+            else f"SMPL ({gender_name}: {file.stem})"
+        ),
         source=str(file),
         licence=SMPL_LICENCE_NOTE,
     )
