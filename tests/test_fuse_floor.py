@@ -19,6 +19,7 @@ from gst.fuse.floor import (
     FOOT_MARKERS,
     contact_height,
     floor_clearance,
+    stands_on,
     world_floor,
 )
 from gst.fuse.triangulate import triangulate_person
@@ -101,6 +102,30 @@ def test_fit_keeps_the_feet_above_the_floor(capture_and_body):
     far = fit_people(body, markers, people, tris, fps=30.0, floor=(UP, ground - 1.0))
     for a, b in zip(free, far, strict=True):
         np.testing.assert_allclose(a.joints, b.joints, atol=1e-6)
+
+
+def test_someone_on_lower_ground_keeps_their_legs(capture_and_body):
+    """The lab's two people stand on a force plate at height 0, its bystander on the room's
+    floor 0.18 m below it: the floor held her feet up and her fitted shank shrank from 0.35 to
+    0.19 m. A person whose own soles stand far from the floor is fitted without it; the others
+    are held as before."""
+    capture, body = capture_and_body
+    markers = MarkerModel.load()
+    lower = capture.markers.copy()
+    lower[1, ..., 2] -= 0.18  # the second person stands on ground 18 cm lower
+    people = observations(dataclasses.replace(capture, markers=lower), noise_px=0.5, seed=4)
+    tris = [triangulate_person(p) for p in people]
+    rest = _rest_markers(body, markers)
+    clearance = floor_clearance(body, markers, rest, 0.0)
+    ground = float((capture.markers[0, ..., 2] - clearance).min())  # under the first person
+    assert stands_on(tris[0].points, UP, ground) and not stands_on(tris[1].points, UP, ground)
+    free = fit_people(body, markers, people, tris, fps=30.0)
+    held = fit_people(body, markers, people, tris, fps=30.0, floor=(UP, ground))
+    np.testing.assert_allclose(held[1].joints, free[1].joints, atol=1e-6)  # no floor for her
+    # ... and the fit of each is its own: the first person's, fitted alone, is the same
+    alone = fit_people(body, markers, people[:1], tris[:1], fps=30.0, floor=(UP, ground))
+    np.testing.assert_allclose(held[0].joints, alone[0].joints, atol=1e-6)
+    assert stands_on(None, UP, ground)  # no feet triangulated: the floor, as before
 
 
 def _rest_markers(body, markers) -> np.ndarray:

@@ -31,7 +31,7 @@ from gst.body.markers import MarkerModel
 from gst.body.model import BodyModel
 from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gst.body.skeleton import SMPL_JOINT_NAMES
-from gst.fuse.floor import floor_clearance
+from gst.fuse.floor import floor_clearance, stands_on
 from gst.fuse.objective import (
     Coverage,
     Floor,
@@ -228,6 +228,9 @@ def fit_people(
             torch.as_tensor(up, dtype=DTYPE), float(height),
             torch.as_tensor(clearance, dtype=DTYPE), o.w_floor,
         )  # fmt: skip
+        # only for those who stand on it: someone on other ground (the room's floor beside a
+        # raised plate at height 0) keeps their own legs
+        on_floor = [stands_on(None if t is None else t.points, up, height) for t in tris]
 
     dense, dtris, starts, statics, sigmas, single = [], [], [], [], [], []
     for obs, tri in zip(people, tris, strict=True):
@@ -251,6 +254,9 @@ def fit_people(
     lengths = [len(d.frames) for d in dense]
     offsets = np.cumsum([0] + lengths)
     person = torch.as_tensor(np.repeat(np.arange(len(dense)), lengths))
+    if ground is not None and not all(on_floor):
+        rows = np.repeat(np.where(on_floor, ground.height, -np.inf), lengths)
+        ground = replace(ground, height=torch.as_tensor(rows, dtype=DTYPE)[:, None])
     observed = np.concatenate([(d.rows >= 0).any(1) for d in dense])
 
     def cat(name: str) -> torch.Tensor:

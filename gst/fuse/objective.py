@@ -113,16 +113,18 @@ class Points:
 @dataclass
 class Floor:
     """The ground: no marker m may lie lower than `height + clearance[m]` along `up` (world);
-    energy `weight` per m^2 of the depth below that."""
+    energy `weight` per m^2 of the depth below that. `height` is one number, or one per row
+    (B, 1) with -inf for the rows of people who stand on other ground (`gst.fuse.floor`)."""
 
     up: torch.Tensor  # (3,) unit
-    height: float  # metres along `up`
+    height: float | torch.Tensor  # metres along `up`; or (B, 1), -inf: no floor for that row
     clearance: torch.Tensor  # (M,) metres: each marker's lowest height above the floor
     weight: float
 
     def depth(self, X: torch.Tensor) -> torch.Tensor:
         """(B, M) metres below the allowed height (0 where above it)."""
-        return (self.height + self.clearance - X @ self.up.to(X)).clamp_min(0)
+        height = self.height.to(X) if isinstance(self.height, torch.Tensor) else self.height
+        return (height + self.clearance - X @ self.up.to(X)).clamp_min(0)
 
 
 @dataclass
