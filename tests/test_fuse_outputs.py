@@ -39,7 +39,13 @@ def test_trc_header_units_and_y_up(tmp_path):
         "DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units", "OrigDataRate",
         "OrigDataStartFrame", "OrigNumFrames",
     ]  # fmt: skip
-    assert lines[2].split("\t") == ["60.00", "60.00", "5", "24", "m", "60.00", "11", "5"]
+    assert lines[2].split("\t") == ["60", "60", "5", "24", "m", "60", "11", "5"]
+    # an NTSC rate is written as it is (29.97 put rebuilt times 1.8 ms off after 30 minutes)
+    write_trc(path, frames, pts, fps=30000 / 1001)
+    assert float(path.read_text().splitlines()[2].split("\t")[0]) == pytest.approx(
+        30000 / 1001, rel=1e-9
+    )
+    write_trc(path, frames, pts, fps=60.0)
     assert lines[3].split("\t")[:3] == ["Frame#", "Time", "pelvis"]
     assert lines[4].split("\t")[2:5] == ["X1", "Y1", "Z1"]
     header, names, fr, back = read_trc(path)
@@ -88,6 +94,8 @@ def test_bodies_parquet_has_the_tracks_schema(tmp_path):
     assert all(k.encode() in meta for k in METADATA_KEYS)
     assert json.loads(meta[b"gst.axes"])["joints3d"] == "world"
     assert json.loads(meta[b"gst.axes"])["world_up"] == [0.0, -1.0, 0.0]  # the rig's, not +Z
+    # the tracks file's layout: axes["world"]["up"] raised TypeError on a fused file
+    assert json.loads(meta[b"gst.axes"])["world"]["up"] == [0.0, -1.0, 0.0]
     joints = np.stack(t.column("joints3d").to_numpy(zero_copy_only=False)).reshape(-1, 24, 3)
     np.testing.assert_allclose(joints, fit.joints, rtol=1e-6)
     assert t.column("joints2d").null_count == T

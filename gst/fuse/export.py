@@ -94,7 +94,7 @@ def write_trc(
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame"
         "\tOrigNumFrames",
-        f"{fps:.2f}\t{fps:.2f}\t{T}\t{M}\tm\t{fps:.2f}\t{int(frames[0]) + 1 if T else 1}\t{T}",
+        f"{fps:.10g}\t{fps:.10g}\t{T}\t{M}\tm\t{fps:.10g}\t{int(frames[0]) + 1 if T else 1}\t{T}",
         "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in names).rstrip("\t"),
         "\t\t" + "\t".join(f"X{i}\tY{i}\tZ{i}" for i in range(1, M + 1)),
         "",

@@ -208,10 +208,17 @@ def write_bodies(
         fps=fps,
         model=model,
         calibration={"calibrated": True, "cameras": camera_names, "source": "calibration/rig.json"},
-        axes={
+        axes={  # the tracks file's layout (gst.track.loop), and `world_up` as before
             "joints3d": "world",
+            "world": {
+                "description": "the rig's world (calibration/rig.json), metres",
+                "up": [float(v) for v in world_up],
+            },
             "world_up": [float(v) for v in world_up],
-            "world": "the rig's world (calibration/rig.json), metres, up = world_up",
+            "body": (
+                "the body model's (gst.model.body_model) SMPL joint layout: global_orient "
+                "rotates the body frame (x left, y up, z forward) into the world"
+            ),
         },
         video={"name": "fused", "cameras": camera_names, "fps": fps},
         tracking=settings,

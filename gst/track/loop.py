@@ -128,8 +128,8 @@ def _axes_json(calibrated: bool, world_up) -> dict:
         "camera": "OpenCV: x right, y down, z forward (metres)",
         "joints3d": "world" if calibrated else "camera",
         "body": (
-            "SMPL: global_orient rotates the body frame (x left, y up, z forward) into joints3d's "
-            "frame"
+            "the body model's (gst.model.body_model) SMPL joint layout: global_orient rotates the "
+            "body frame (x left, y up, z forward) into joints3d's frame"
         ),
     }
     if calibrated:
