@@ -145,7 +145,18 @@ def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> 
             raise VideoError(
                 f"{who}: reports no frame rate (fps = {fps}); cannot assign times to frames"
             )
+    if path.suffix.lower() in RAW_STREAM_SUFFIXES:
+        log.warning(
+            "%s: a raw %s stream holds no frame rate; the decoder's %g frames/s is its default "
+            "guess, not the camera's. Put it in a container at its rate (ffmpeg -r 60 -i %s -c "
+            "copy out.mp4) or give the scene's fps (scenes.NAME.fps)",
+            who, path.suffix.lstrip(".").upper(), fps, path.name,
+        )  # fmt: skip
     return VideoInfo(path, w, h, fps, n if n > 0 else None, camera)
+
+
+# Elementary streams without a container: FFmpeg times them at 25 frames/s whatever they are.
+RAW_STREAM_SUFFIXES = (".h264", ".264", ".h265", ".265", ".hevc", ".mjpeg", ".mjpg")
 
 
 def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str, VideoInfo]:

@@ -155,3 +155,21 @@ def test_empty_tracks_say_why():
     assert "track.min_hits=3" in nobody_tracked(0, 2, s)
     assert "track.min_hits" in nobody_tracked(0, 5, TrackSettings(stride=2))  # 3 processed
     assert "kept no one" in nobody_tracked(0, 40, s)
+
+
+def test_a_raw_stream_says_its_frame_rate_is_a_guess(tmp_path, caplog):
+    """A raw stream has no container to hold its rate: written at 60 frames/s, it is read at
+    FFmpeg's default 25, and every time_s was 2.4 times too large without a word."""
+    path = tmp_path / "cam.mjpeg"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 60, (64, 48))
+    for i in range(5):
+        writer.write(np.full((48, 64, 3), 40 * i, np.uint8))
+    writer.release()
+    with caplog.at_level("WARNING", logger="gst.video"):
+        info = probe_video(path)
+    assert info.fps == 25.0  # the decoder's guess, not the 60 it was written at
+    assert any("raw MJPEG stream holds no frame rate" in m for m in caplog.messages)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="gst.video"):
+        probe_video(crossing_clip(tmp_path, 3)[2])  # a container: no warning
+    assert not caplog.messages
