@@ -14,7 +14,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from calibration.camera import Camera, Rig
-from calibration.checks import CaptureVolume, check_rig, estimate_volume
+from calibration.checks import CaptureVolume, check_rig, estimate_volume, lens_warnings
 from calibration.solve import BoardCalibration
 from gst.atomic import atomic_write, atomic_write_text
 
@@ -327,6 +327,7 @@ def write_calibration_report(
     problems = check_rig(rig, volume)
     lines.append("## Checks")
     lines.append("")
+    lines += [f"- warning: {w}" for w in lens_warnings(rig)]
     lines += [f"- {p}" for p in problems] or [
         "- all cameras above the floor and aimed into the capture volume"
         if volume is not None

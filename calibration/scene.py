@@ -18,7 +18,7 @@ import numpy as np
 
 from calibration.board import BoardSpec
 from calibration.camera import FRAME_PADDING_TOLERANCE, Rig, fit_to_frames
-from calibration.checks import check_rig
+from calibration.checks import check_rig, lens_warnings
 from calibration.compare import RigComparison, compare_rigs
 from calibration.formats import read_rig, write_rig
 from calibration.report import write_calibration_report
@@ -173,6 +173,8 @@ def calibrate_scene(
             f"calibration (cameras: {rig.names}); rename the files or the cameras"
         )
     problems = check_rig(rig)
+    for warning in lens_warnings(rig):  # a lens model poorly held near the border: said only
+        log.warning("rig check: %s", warning)
     if solved is not None:
         weak = [n for n in solved.notes if any(f"camera '{c}'" in n for c in solved.weak_cameras)]
         for note in solved.notes:
