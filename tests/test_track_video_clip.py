@@ -22,15 +22,30 @@ SCALE = 0.5  # 544 x 960: the person model's work resolution, quicker to decode 
 pytestmark = NEEDS_MODELS_AND_LAB
 
 
+def _request(d, clip):
+    """The request the clip is tracked with: the network and outputs in the fixture's folder."""
+    from calibration.formats import read_rig
+    from gst.track.scene import TrackRequest
+
+    return TrackRequest(
+        videos=[clip],
+        checkpoint=d / "gst.pt",
+        rig=read_rig(LAB / "Calib.qca.txt", "qualisys"),
+        tracks_dir=d / "tracks",
+        reports_dir=d / "reports",
+        staging=d / "staging",
+        scene="lab",
+    )
+
+
 @pytest.fixture(scope="module")
 def tracked(tmp_path_factory):
     import torch
 
-    from calibration.formats import read_rig
     from gst.body import load_body_model
     from gst.model.checkpoint import save_checkpoint
     from gst.model.presets import get_preset
-    from gst.track.scene import TrackRequest, TrackSettings, track_scene
+    from gst.track.scene import TrackSettings, track_scene
     from gst.train.recipe import build_network
 
     d = tmp_path_factory.mktemp("clip")
@@ -51,15 +66,7 @@ def tracked(tmp_path_factory):
     torch.manual_seed(0)
     net, ids, groups = build_network(get_preset("tiny"), load_body_model("anny"))
     save_checkpoint(d / "gst.pt", net, "anny", ids, groups)
-    request = TrackRequest(
-        videos=[clip],
-        checkpoint=d / "gst.pt",
-        rig=read_rig(LAB / "Calib.qca.txt", "qualisys"),
-        tracks_dir=d / "tracks",
-        reports_dir=d / "reports",
-        staging=d / "staging",
-        scene="lab",
-    )
+    request = _request(d, clip)
     logger = logging.getLogger("gst.track")
     records: list[str] = []
     handler = logging.Handler()
@@ -130,24 +137,14 @@ def test_landmarks_fall_inside_the_person_masks(tracked):
 def test_a_finished_file_kept_from_an_earlier_run_claims_no_speed(tracked):
     """A rerun that finds the video's file finished with the same settings keeps it and tracks
     nothing: its summary said 7934 frames/s (frames over the time it took to notice)."""
-    from calibration.formats import read_rig
-    from gst.track.scene import TrackRequest, TrackSettings, track_scene
+    from gst.track.scene import TrackSettings, track_scene
 
     path = tracked[0]
     d = next(p for p in path.parents if (p / "gst.pt").is_file())  # the fixture's folder
     summary_path = d / "reports" / "match" / "summary.json"
     first = json.loads(summary_path.read_text())
     assert first["kept_from_earlier_run"] is False and 0 < first["fps"] < 1000
-    request = TrackRequest(
-        videos=[d / "match.mp4"],
-        checkpoint=d / "gst.pt",
-        rig=read_rig(LAB / "Calib.qca.txt", "qualisys"),
-        tracks_dir=d / "tracks",
-        reports_dir=d / "reports",
-        staging=d / "staging",
-        scene="lab",
-    )
-    (outcome,) = track_scene(TrackSettings(overlay=False), request)
+    (outcome,) = track_scene(TrackSettings(overlay=False), _request(d, d / "match.mp4"))
     assert outcome.result.path == path
     again = json.loads(summary_path.read_text())
     assert again["kept_from_earlier_run"] is True
