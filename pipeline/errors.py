@@ -40,3 +40,14 @@ class StageFailed(PipelineError):
         super().__init__(
             f"stage '{stage}' (scene '{scene}') failed: {type(cause).__name__}: {cause}"
         )
+
+
+class ItemFailed(RuntimeError):
+    """An item of an executor's map could not be computed (its worker died, or, with Ray, it kept
+    failing after its retries); the message names the item and why."""
+
+
+def describe(item, limit: int = 200) -> str:
+    """An item as error messages name it: its repr, cut to `limit` characters."""
+    text = repr(item)
+    return text if len(text) <= limit else text[:limit] + "..."

@@ -12,10 +12,11 @@ import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
 
 from gst.cores import available_cores
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, ItemFailed, describe
 
 
 class Executor(Protocol):
@@ -76,7 +77,20 @@ class LocalExecutor:
             if self._progress is not None:
                 done_iter = self._progress(done_iter, description=description, total=len(items))
             for fut in done_iter:
-                results[futures[fut]] = fut.result()
+                i = futures[fut]
+                try:
+                    results[i] = fut.result()
+                except BrokenProcessPool as exc:  # a worker killed (out of memory, a signal)
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise ItemFailed(
+                        f"{description or 'map'}: a worker process died (killed, or out of "
+                        f"memory?) with item {i} ({describe(items[i])}) among those unfinished"
+                    ) from exc
+                except BaseException:
+                    # the first failure ends the map: the items still queued were all run
+                    # before the error was raised (8 items on 2 workers: 4.3 s, not 0.3)
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    raise
         return results
 
 

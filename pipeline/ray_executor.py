@@ -24,18 +24,10 @@ import ray
 from ray.exceptions import RayError, RayTaskError
 
 from gst.cores import available_cores
+from pipeline.errors import ItemFailed, describe
 
 ProgressFactory = Callable[..., Any]
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-class ItemFailed(RuntimeError):
-    """An item kept failing after its retries; the message names the item and the last error."""
-
-
-def _describe(item: Any, limit: int = 200) -> str:
-    text = repr(item)
-    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def _worker_env(extra_path: Path) -> dict[str, str]:
@@ -140,7 +132,7 @@ class RayExecutor:
                             "%s: item %d (%s) failed (%s); retrying (attempt %d of %d)",
                             description or "ray map",
                             i,
-                            _describe(items[i]),
+                            describe(items[i]),
                             _cause(exc),
                             attempts[i],
                             self.exception_retries + 1,
@@ -149,7 +141,7 @@ class RayExecutor:
                         continue
                     self._cancel(pending)
                     raise ItemFailed(
-                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) failed "
+                        f"{description or 'ray map'}: item {i} ({describe(items[i])}) failed "
                         f"after {attempts[i]} attempt(s): {_cause(exc)}"
                     ) from exc
                 except (
@@ -157,7 +149,7 @@ class RayExecutor:
                 ) as exc:  # worker died more often than max_retries, or the node was lost
                     self._cancel(pending)
                     raise ItemFailed(
-                        f"{description or 'ray map'}: item {i} ({_describe(items[i])}) was lost: "
+                        f"{description or 'ray map'}: item {i} ({describe(items[i])}) was lost: "
                         f"its worker died {self.max_retries + 1} time(s) ({type(exc).__name__}: "
                         f"{exc})"
                     ) from exc

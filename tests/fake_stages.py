@@ -187,3 +187,15 @@ PER_VIDEO = Stage(
     cli_options=("video",),
     help="one record per --video, as track's",
 )
+
+
+def fail_first_item(item: tuple[int, str]) -> int:
+    """An executor item: item 0 fails at once, the others take a second and leave a file in the
+    folder given with them (how many ran after the failure)."""
+    index, folder = item
+    if index == 0:
+        time.sleep(0.2)
+        raise ValueError("item 0 is bad")
+    time.sleep(1.0)
+    Path(folder, f"ran_{index}").write_text("ran")
+    return index

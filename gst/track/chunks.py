@@ -16,7 +16,10 @@ run; the overlap's rows are paired by box overlap, not by equal bytes. The ids e
 unchunked ids whenever the association is unambiguous (the fresh tracker of the warm-up
 re-acquires everyone the old one was following and nobody is occluded across a border).
 Smoothing carries filter state across frames and is not exact under chunking, so it is
-refused. Chunking is therefore opt-in and recorded in the file.
+refused. The left/right smoother (`TrackOptions.unmirror`) looks `lag_s` ahead before it decides
+a frame: each chunk tracks that far past its end and drops those rows, so its last frames are
+decided as in an unchunked run (its first frames have the warm-up behind them). Chunking is
+therefore opt-in and recorded in the file.
 """
 
 from __future__ import annotations
@@ -94,6 +97,16 @@ def plan_chunks(
     return plans
 
 
+def _tail(run: VideoRun, options: TrackOptions) -> int:
+    """Processed frames a chunk tracks past its end: the left/right smoother's look-ahead
+    (`MirrorConfig.lag_s`), which decides a frame's labels only once it has seen that far; a
+    chunk that stopped at its end decided its last frames blind (other labels than an
+    unchunked run's). Their rows are the next chunk's, and dropped here."""
+    if options.unmirror is None:
+        return 0
+    return math.ceil(options.unmirror.lag_s * run.info.fps / options.stride - 1e-9)
+
+
 def chunk_digest(run: VideoRun, plan: ChunkPlan) -> str:
     return settings_digest({"run": run.settings, "chunk": [plan.start, plan.keep_from, plan.end]})
 
@@ -155,6 +168,7 @@ def track_chunk(
         )
     session = TrackingSession(options.tracker, None)
     warm = {k: 0 for k in STAT_KEYS}
+    kept = None  # the stats at the chunk's end (the tail's frames are not its own)
     tables = []
     for g in tracked_groups(
         video_path,
@@ -166,16 +180,20 @@ def track_chunk(
         options,
         num_betas,
         start_frame=plan.start,
-        end_frame=plan.end,
+        end_frame=plan.end + _tail(run, options) * options.stride,
     ):
-        tables.append(g.table)
+        frames = g.table.column("frame").to_numpy()
+        tables.append(g.table.filter(pa.array(frames < plan.end)))
         if g.next_frame == plan.keep_from:
             warm = {k: session.stats[k] for k in STAT_KEYS}
+        if g.next_frame == plan.end:
+            kept = {k: session.stats[k] for k in STAT_KEYS}
+    kept = kept or {k: session.stats[k] for k in STAT_KEYS}
     table = pa.concat_tables(tables) if tables else schema.empty_table()
     record = ChunkRecord(
         chunk_digest(run, plan),
         plan.keep_from,
-        {k: int(session.stats[k] - warm[k]) for k in STAT_KEYS},
+        {k: int(kept[k] - warm[k]) for k in STAT_KEYS},
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
@@ -211,7 +229,11 @@ def match_ids(previous: pa.Table, warmup: pa.Table, min_agreement: float = 0.5) 
     wf, wb, wid = _frame_boxes(warmup)
     pairs: dict[tuple[int, int], int] = {}
     seen: dict[int, int] = {}
-    for local in wid.tolist():
+    # an id's rows where the previous chunk has rows too: a warm-up longer than the chunk
+    # before it (overlap 30, chunk_frames 5) counted rows no vote could come from, and every
+    # chunk's people got new ids
+    shared = np.isin(wf, pf) if len(pf) else np.zeros(len(wf), bool)
+    for local in wid[shared].tolist():
         seen[local] = seen.get(local, 0) + 1
     for frame in np.intersect1d(pf, wf):
         a, b = np.flatnonzero(pf == frame), np.flatnonzero(wf == frame)
