@@ -170,8 +170,18 @@ def calibrate_scene(
     if missing:
         raise ValueError(
             f"scene '{scene}': videos {missing} have no camera of that name in the "
-            f"calibration (cameras: {rig.names}); rename the files or the cameras"
+            f"calibration (cameras: {rig.names}); rename the files or the cameras, or leave "
+            f"the videos out of scenes.{scene}.videos"
         )
+    unseen = [name for name in rig.names if name not in videos]
+    if unseen and videos:
+        # a camera left out of the scene's video list fuses nothing from it: with the lab's
+        # cam04 left out, extraction split the man into two ids, without a word
+        log.warning(
+            "calibration: cameras %s have no video in the scene (videos: %s); they are kept in "
+            "the rig but see nothing: list their videos in scenes.%s.videos if they recorded",
+            unseen, sorted(videos), scene,
+        )  # fmt: skip
     problems = check_rig(rig)
     for warning in lens_warnings(rig):  # a lens model poorly held near the border: said only
         log.warning("rig check: %s", warning)

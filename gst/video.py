@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,15 @@ import numpy as np
 from gst.prefetch import background
 
 log = logging.getLogger("gst.video")
+
+# FFmpeg's and OpenCV's own lines ("[h264 @ 0x...] Invalid NAL unit size", "[ WARN:0@5.6]
+# global cap.cpp:212 ...") reached the console above our errors, which say what is wrong with
+# which file and frame; quiet unless the user's environment asks for them (read by OpenCV when
+# it first opens a video).
+if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ:
+    os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "-8"  # AV_LOG_QUIET
+if "OPENCV_LOG_LEVEL" not in os.environ:
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 __all__ = [
     "END_SLACK_FRAMES",
@@ -221,7 +231,8 @@ def read_frames(
             ok, image = cap.read()
             if not ok or image is None:
                 raise VideoError(
-                    f"{who}: frame {f} could not be decoded (truncated or corrupt video)"
+                    f"{who}: frame {f} could not be decoded (truncated or corrupt video: copy "
+                    "it again from the camera, or re-encode it)"
                 )
             pos += 1
             to = size or (
@@ -294,7 +305,8 @@ def _check_stream_end(info: VideoInfo, index: int) -> None:
         return
     raise VideoTruncatedError(
         f"{info.path}: decoding failed at frame {index} of {info.frame_count} announced (file "
-        f"truncated or corrupt); frames before {index} decoded fine",
+        f"truncated or corrupt: copy it again from the camera, or re-encode it); frames before "
+        f"{index} decoded fine",
         index,
     )
 

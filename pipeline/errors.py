@@ -1,5 +1,7 @@
 """Exceptions that map to the CLI's exit codes (0 ok, 1 a stage failed, 2 bad config or args)."""
 
+from pathlib import Path
+
 # the project's packages: an error class of theirs that is a ValueError says what is wrong with
 # an input (VideoError, RigFormatError, StoreError, ...), and the message names the culprit
 OWN_PACKAGES = ("gst", "calibration", "synth", "pipeline", "stages")
@@ -10,12 +12,32 @@ TRACEBACK_LOGGER = "pipeline.traceback"
 
 def is_input_error(exc: BaseException) -> bool:
     """The stage stopped on bad or missing input, not on a bug: a file that is not there, or a
-    ValueError class of the project's own. Its message is what the user needs; the traceback
-    only goes to the run's log file."""
+    ValueError that the project's own code raised (its own classes, or a plain ValueError whose
+    message the project wrote: "videos ['cam04'] have no camera of that name"). Its message is
+    what the user needs; the traceback only goes to the run's log file. A ValueError from inside
+    a library (numpy's shapes) keeps its traceback: more likely a bug."""
     if isinstance(exc, FileNotFoundError):
         return True
-    own = type(exc).__module__.split(".")[0] in OWN_PACKAGES
-    return own and isinstance(exc, ValueError)
+    if not isinstance(exc, ValueError):
+        return False
+    return type(exc).__module__.split(".")[0] in OWN_PACKAGES or _raised_by_own_code(exc)
+
+
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _raised_by_own_code(exc: BaseException) -> bool:
+    """Whether the innermost frame of `exc`'s traceback is a file of the project's packages."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is None:
+        return False
+    try:
+        rel = Path(tb.tb_frame.f_code.co_filename).resolve().relative_to(_ROOT)
+    except ValueError:  # outside the project (a library in site-packages)
+        return False
+    return rel.parts[0] in OWN_PACKAGES
 
 
 class PipelineError(Exception):

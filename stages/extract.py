@@ -9,6 +9,7 @@ name empty-room clips in `background_videos`.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -58,6 +59,8 @@ def run(ctx: StageContext) -> None:
         truth=ctx.path("synth/truth") if ctx.scene.is_synthetic else None, progress=ctx.progress,
         executor_map=ctx.executor.map if ctx.executor is not None else None, options=options,
     )  # fmt: skip
+    # the report names the store where it will be, not the staging folder the run wrote it in
+    report = dataclasses.replace(report, store=str(ctx.path("crops/crops.h5")))
     write_extract_report(report, ctx.out("crops/crops.h5"), ctx.out("reports/extract"))
     ctx.log.info("extract: %s", report.summary_line())
 
@@ -68,5 +71,6 @@ STAGE = Stage(
     ),
     name="extract", run=run, params_model=Params,
     outputs=lambda ctx: ["crops", "reports/extract"],
-    help="person crops and masks from every camera (background model, multi-view association)",
+    help="person crops and masks from every camera (the learned person model, or the background "
+    "model; multi-view association)",
 )  # fmt: skip

@@ -27,7 +27,8 @@ def run(ctx: StageContext) -> None:
         truth_dir=ctx.path("synth") if ctx.scene.is_synthetic else None,
         progress=ctx.progress, log=ctx.log, reading_cache=ctx.path(READINGS),
     )  # fmt: skip
-    ctx.log.info("%s (%d fusions)", result.fused.summary.headline(), result.fusions)
+    fusions = f"{result.fusions} fusion" + ("s" if result.fusions != 1 else "")
+    ctx.log.info("fuse: %s (%s)", result.fused.summary.headline(), fusions)
     ctx.log.info("bodycrops: %s", result.crops.summary_line())
 
 

@@ -190,3 +190,19 @@ def test_y_up_rotation_near_a_downward_up(up):
     R = y_up_rotation(up)
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(R @ (np.asarray(up) / np.linalg.norm(up)), [0, 1, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "corrections, verdict",
+    [
+        ({"cam01": 0.31, "cam03": 0.46}, "Worth calibrating again: cam03 (more than 0.4 degrees)"),
+        ({"cam01": 0.05, "cam02": 0.1}, "None more than 0.4 degrees: the calibration holds"),
+    ],
+)
+def test_the_report_says_which_cameras_to_calibrate_again(tmp_path, corrections, verdict):
+    """'A correction of more than a few tenths of a degree says the calibration is worth
+    redoing' left a user with cam03 at 0.45 to guess."""
+    from gst.fuse.report import FuseSummary, write_report
+
+    write_report(FuseSummary(camera_corrections_deg=corrections), tmp_path, [], [])
+    assert verdict in (tmp_path / "report.md").read_text()

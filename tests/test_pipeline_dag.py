@@ -368,3 +368,20 @@ def test_a_relative_path_parameter_is_the_config_folders(tmp_path, monkeypatch, 
     monkeypatch.chdir(proj)  # the same fingerprint from the config's own folder
     assert run(cfg, "run", "source") == 0
     assert counter() == ["source"]
+
+
+def test_a_plain_value_error_of_the_projects_own_code_is_an_input_error():
+    """calibrate's "videos ['cam04'] have no camera of that name" is a plain ValueError raised by
+    the project: it printed a traceback above the line, against the docs. One raised inside a
+    library (numpy's shapes) is no input error: more likely a bug, traceback kept."""
+    import numpy as np
+
+    from gst.video import iter_frames
+    from pipeline.errors import is_input_error
+
+    with pytest.raises(ValueError) as own:
+        next(iter_frames("x.mp4", stride=0))
+    assert type(own.value) is ValueError and is_input_error(own.value)
+    with pytest.raises(ValueError) as library:
+        np.zeros(3).reshape(2)
+    assert not is_input_error(library.value)

@@ -63,9 +63,21 @@ def test_video_without_camera_is_named(tmp_path, capsys):
     rig = read_rig(LAB / "Calib.qca.txt", "qualisys")
     write_rig(rig.subset(["cam01", "cam02", "cam03"]), tmp_path / "three.json", "rig")
     cfg = config(tmp_path, tmp_path / "three.json", "rig", str(LAB / "cam*.mp4"))
-    assert main(["run", "calibrate", "--config", str(cfg), "--quiet"]) == 1
-    assert "cam04" in capsys.readouterr().err
+    assert main(["run", "calibrate", "--config", str(cfg)]) == 1  # not quiet: the console
+    err = capsys.readouterr().err
+    assert "cam04" in err and "leave the videos out of scenes.lab.videos" in err
+    assert "Traceback" not in err  # an input error: one line (the traceback is in the log)
     assert not (tmp_path / "ws/lab/calibration").exists()
+
+
+@needs_lab
+def test_a_camera_without_video_is_said(tmp_path):
+    """cam04 left out of the scene's videos: the rig kept it and extraction split the man into
+    two ids, without a word."""
+    cfg = config(tmp_path, LAB / "Calib.qca.txt", "qualisys", str(LAB / "cam0[123].mp4"))
+    assert main(["run", "calibrate", "--config", str(cfg), "--quiet"]) == 0
+    (log,) = (tmp_path / "ws" / ".pipeline" / "logs").glob("*-run.log")
+    assert "cameras ['cam04'] have no video in the scene" in log.read_text()
 
 
 def test_rig_below_floor_is_refused(tmp_path, capsys):

@@ -39,6 +39,12 @@ LANDMARK_SEGMENTS = {
 }
 
 
+# a rotation the fitted bodies had to correct by more than this (degrees) says the camera was
+# moved or the calibration is off: on the lab cam03 0.45-0.8 (17 px against both people), the
+# other three 0.05-0.3
+RECALIBRATE_DEG = 0.4
+
+
 def _stats(x: np.ndarray) -> dict:
     x = x[np.isfinite(x)]
     if not len(x):
@@ -78,7 +84,7 @@ class FuseSummary:
         reprojection = self.median_reprojection_px or float("nan")
         used = self.median_reprojection_used_px or float("nan")
         return (
-            f"fuse: {len(self.people)} people, median reprojection {reprojection:.1f} px "
+            f"{len(self.people)} people, median reprojection {reprojection:.1f} px "
             f"({used:.1f} px in the views used), "
             f"gap-filled {100 * (self.gap_filled_share or 0.0):.1f}%{truth}"
         )
@@ -194,11 +200,18 @@ def write_report(
         " %."
     )
     if summary.camera_corrections_deg:
-        corr = ", ".join(f"{c} {v:.2f}" for c, v in summary.camera_corrections_deg.items())
+        corrections = summary.camera_corrections_deg
+        corr = ", ".join(f"{c} {v:.2f}" for c, v in corrections.items())
+        redo = [c for c, v in corrections.items() if v > RECALIBRATE_DEG]
+        verdict = (
+            f"Worth calibrating again: {', '.join(redo)} (more than {RECALIBRATE_DEG} degrees)."
+            if redo
+            else f"None more than {RECALIBRATE_DEG} degrees: the calibration holds."
+        )
         lines += [
             "",
-            f"Camera rotations corrected from the fitted bodies (degrees): {corr}. A correction "
-            "of more than a few tenths of a degree says the calibration is worth redoing.",
+            f"Camera rotations corrected from the fitted bodies (degrees, all rounds together): "
+            f"{corr}. {verdict}",
         ]
     if summary.exchanged_view_groups:
         lines += [

@@ -393,7 +393,7 @@ def fuse_scene(
     floor = None if height is None else (up, float(height))
     if floor is not None and log is not None:
         elsewhere = [
-            f"{p.person_id} ({contact_height([t.points], up) - height:+.2f} m)"
+            f"person {p.person_id} ({contact_height([t.points], up) - height:+.2f} m)"
             for p, t in zip(people, tris, strict=True)
             if t is not None and not stands_on(t.points, up, float(height))
         ]

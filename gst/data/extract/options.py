@@ -191,6 +191,16 @@ class ExtractReport(Record):
     def summary_line(self) -> str:
         return (
             f"{self.crops} crops of {self.persons} people, {self.multiview_groups} multi-view "
-            f"groups ({self.association_method} association); mask IoU {self.mask_iou}; "
-            f"association {self.association_accuracy}"
+            f"groups ({self.association_method} association); "
+            + (
+                "no truth to score against"
+                if self.mask_iou is None and self.association_accuracy is None
+                else f"mask IoU {_shown(self.mask_iou)}; association "
+                f"{_shown(self.association_accuracy)}"
+            )
         )
+
+
+def _shown(value: float | None) -> str:
+    """A truth score for the log: 3 decimals, or n/a where nothing was scored."""
+    return "n/a" if value is None else f"{value:.3f}"
