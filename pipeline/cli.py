@@ -112,15 +112,16 @@ def build_parser() -> argparse.ArgumentParser:
     stages.add_argument(
         "--params", action="store_true",
         help="also list each stage's parameters: default, and the value the pipeline file (or "
-        "--set) gives the stage; a scene's own params are not shown",
+        "--set) gives the stage; with --scene, the values that scene's own params give it",
     )  # fmt: skip
     _common(stages)
     return parser
 
 
-def _param_lines(model, configured: dict) -> list[str]:
-    """One line per parameter of a stage's params model: name, type, default, and the value
-    the pipeline file (with any --set) gives the stage; scene-level params are not shown."""
+def _param_lines(model, configured: dict, scenes: dict[str, dict] | None = None) -> list[str]:
+    """One line per parameter of a stage's params model: name, type, default, the value the
+    pipeline file (with any --set) gives the stage, and the values `scenes` (scene name -> that
+    scene's own params for the stage) give it, which win where set."""
     lines = []
     for key, field in model.model_fields.items():
         t = field.annotation
@@ -129,6 +130,9 @@ def _param_lines(model, configured: dict) -> list[str]:
         line = f"{key}: {kind} = {default!r}"
         if key in configured:
             line += f"  (pipeline file: {configured[key]!r})"
+        for scene, params in (scenes or {}).items():
+            if key in params:
+                line += f"  (scene {scene}: {params[key]!r})"
         lines.append(line)
     return lines
 
@@ -268,7 +272,11 @@ def main(argv: list[str] | None = None) -> int:
                     highlight=False,
                 )
                 if args.params:
-                    for line in _param_lines(st.params_model, cfg.stages[name].params):
+                    own = {  # a scene's own params, shown when the scenes were named
+                        n: cfg.scenes[n].params.get(name) or {}
+                        for n in (scenes if args.scene else [])
+                    }
+                    for line in _param_lines(st.params_model, cfg.stages[name].params, own):
                         out.print(f"      {line}", highlight=False, markup=False, soft_wrap=True)
             return 0
         progress = ProgressBars(console, enabled=not args.quiet)

@@ -357,3 +357,13 @@ def test_external_boxes_drive_extraction(short_scene, tmp_path):
     assert rep.crops == 6 * 4
     assert rep.mask_iou > 0.85
     assert rep.association_accuracy == 1.0
+
+
+def test_the_contact_sheet_gives_every_id_its_own_colour():
+    """Ids 2 and 8 were drawn in one colour (id % 6): lab's man split into ids 1 and 8 read as
+    one person beside id 2."""
+    from gst.data.report import id_colours
+
+    colours = id_colours([1, 2, 3, 4, 8, 8, 2])
+    assert sorted(colours) == [1, 2, 3, 4, 8] and len(set(colours.values())) == 5
+    assert len(set(id_colours(range(12)).values())) == 12

@@ -59,6 +59,15 @@ def test_stages_params_lists_defaults_and_the_pipeline_files_values():
     assert "fill_gaps_s: float = 0.1" in lines  # a fuse default pipeline.yaml leaves alone
     assert "overlay: bool = True  (pipeline file: True)" in lines  # one it sets
     assert "floor: Union[float, Literal['auto'], NoneType] = 'auto'" in lines
+    # --scene was accepted and ignored: the lab's own params (blazepose, refine_rig 2) unshown
+    out = subprocess.run(
+        [sys.executable, "-m", "pipeline", "stages", "--params", "--scene", "lab"],
+        cwd=REPO, capture_output=True, text=True,
+    )  # fmt: skip
+    lines = [line.strip() for line in out.stdout.splitlines()]
+    assert "refine_rig: int = 0  (scene lab: 2)" in lines
+    assert any(line.startswith("person_model:") and "(scene lab: 'blazepose')" in line
+               for line in lines)  # fmt: skip
 
 
 def test_override_parsing():

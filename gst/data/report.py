@@ -13,13 +13,19 @@ from gst.atomic import atomic_path, atomic_write_text
 from gst.data.extract import ExtractReport
 from gst.data.store import CropStore
 
-_PALETTE = [
+_PALETTE = [  # BGR, told apart at a glance; given to the ids in the order they sort
     (60, 200, 60),
     (60, 60, 230),
     (230, 140, 40),
     (200, 60, 200),
     (40, 200, 220),
     (200, 200, 60),
+    (255, 255, 255),
+    (40, 120, 255),
+    (150, 90, 40),
+    (120, 255, 180),
+    (180, 130, 255),
+    (0, 160, 160),
 ]
 
 
@@ -36,6 +42,11 @@ def overlay_mask(
     )
     cv2.drawContours(out, contours, -1, color, 1, lineType=cv2.LINE_AA)
     return out
+
+
+def id_colours(ids) -> dict[int, tuple[int, int, int]]:
+    """A palette colour per distinct id, in the order the ids sort."""
+    return {pid: _PALETTE[k % len(_PALETTE)] for k, pid in enumerate(sorted(set(ids)))}
 
 
 def contact_sheet(store: CropStore, rows: int = 10, tile: int = 144) -> np.ndarray:
@@ -58,6 +69,9 @@ def contact_sheet(store: CropStore, rows: int = 10, tile: int = 144) -> np.ndarr
     # Spread the sample over time and over people.
     pick = np.unique(np.linspace(0, len(groups) - 1, min(rows, len(groups))).round().astype(int))
     chosen = [groups[i] for i in pick]
+    # a colour per id of the store (ids 2 and 8 shared one by id % 6, and a split person read
+    # as one); more ids than colours reuse them
+    colour = id_colours(g.person_id for g in groups)
     sheet = np.full((head + tile * len(chosen), left + tile * len(names), 3), 32, np.uint8)
     for j, n in enumerate(names):
         cv2.putText(
@@ -71,7 +85,7 @@ def contact_sheet(store: CropStore, rows: int = 10, tile: int = 144) -> np.ndarr
         )
     for i, g in enumerate(chosen):
         y = head + i * tile
-        color = _PALETTE[g.person_id % len(_PALETTE)]
+        color = colour[g.person_id]
         cv2.putText(
             sheet, f"f{g.frame}", (4, y + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1
         )
