@@ -62,14 +62,9 @@ class LandmarkInput:
             raise ValueError(
                 f"K_crop must be ({landmarks.shape[0]}, 3, 3), got {tuple(K_crop.shape)}"
             )
-        # as seen by the square-pixel camera (fx, fx): `camera` and the refiner's projection
-        # carry one focal length, and a calibration's fy 1 % off fx put the markers 1.1 px off
-        f = K_crop[:, 0, 0]
-        cy = K_crop[:, 1, 2, None]
-        v = cy + (landmarks[..., 1] - cy) * (f / K_crop[:, 1, 1])[:, None]
-        uv = torch.stack([landmarks[..., 0], v], -1)
-        xy = (uv + 0.5) / crop_size * 2 - 1
+        xy = (landmarks[..., :2] + 0.5) / crop_size * 2 - 1
         conf = landmarks[..., 2:].clamp(0, 1)
+        f = K_crop[:, 0, 0]
         centre = (crop_size - 1) / 2
         camera = torch.stack(
             [crop_size / (2 * f), (centre - K_crop[:, 0, 2]) / f, (centre - K_crop[:, 1, 2]) / f],
