@@ -291,24 +291,29 @@ def _plot(
     import matplotlib.pyplot as plt
 
     n = max(1, len(fits))
-    fig, axes = plt.subplots(n, 1, figsize=(8, 2.6 * n), squeeze=False)
+    fig, axes = plt.subplots(n, 1, figsize=(9, 2.6 * n), squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    # one colour per limb: the fitted body is symmetric (its left and right lengths are one
+    # line, drawn once), the triangulated left dotted and right dash-dotted
+    kinds = list(dict.fromkeys(name.split("_", 1)[1] for name in LANDMARK_SEGMENTS))
     for k, (ax, fit, tri) in enumerate(zip(axes[:, 0], fits, tris, strict=False)):
-        for i, (name, (a, b)) in enumerate(LANDMARK_SEGMENTS.items()):
-            col = colours[i % len(colours)]
-            if limbs is not None and name in limbs[k]:
-                ax.plot(fit.frames, limbs[k][name], lw=1.2, color=col, label=name)
+        for name, (a, b) in LANDMARK_SEGMENTS.items():
+            side, kind = name.split("_", 1)
+            col = colours[kinds.index(kind) % len(colours)]
+            if limbs is not None and name in limbs[k] and side == "left":
+                ax.plot(fit.frames, limbs[k][name], lw=1.4, color=col, label=kind.replace("_", " "))
             if tri is not None:
                 ia, ib = BLAZEPOSE_NAMES.index(a), BLAZEPOSE_NAMES.index(b)
                 seg = np.linalg.norm(tri.points[:, ia] - tri.points[:, ib], axis=-1)
-                ax.plot(fit.frames, seg, lw=0.6, ls=":", color=col)
+                ax.plot(fit.frames, seg, lw=0.7, ls=":" if side == "left" else "-.", color=col)
         ax.set_ylim(0.1, 0.6)
-        ax.set_title(f"person {fit.person_id}: limb lengths (solid: per-frame fit, dotted: "
-                     "triangulated landmarks)", fontsize=8)  # fmt: skip
+        ax.set_title(f"person {fit.person_id}: limb lengths (solid: per-frame fit, left and "
+                     "right alike; triangulated: left dotted, right dash-dotted; clipped at "
+                     "0.6 m)", fontsize=8)  # fmt: skip
         ax.set_xlabel("frame")
         ax.set_ylabel("m")
-    if fits:  # nobody fused: an empty figure, no legend to draw
-        axes[0, 0].legend(fontsize=6, ncol=4)
+    if fits:  # nobody fused: an empty figure, no legend to draw; beside the plot, not on it
+        axes[0, 0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     atomic_write(path, lambda t: fig.savefig(t, format="png", dpi=90))
     plt.close(fig)
