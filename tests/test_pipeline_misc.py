@@ -151,3 +151,16 @@ def test_the_first_failing_item_ends_a_local_map_without_running_the_queue(tmp_p
     with pytest.raises(ValueError, match="item 0 is bad"):
         LocalExecutor(workers=2).map(fail_first_item, [(i, str(tmp_path)) for i in range(8)])
     assert len(list(tmp_path.glob("ran_*"))) <= 2  # those already running when it failed
+
+
+def test_progress_in_a_log_file_writes_a_line_per_tenth_but_not_for_a_quick_step(caplog):
+    """A 0.3 s step wrote ten progress lines into the log; a long one keeps its ten."""
+    from pipeline.console import ProgressBars
+
+    with caplog.at_level("INFO", logger="pipeline"):
+        assert list(ProgressBars._logged(range(400), "quick", 400)) == list(range(400))
+    assert [r.getMessage().split(" (")[0] for r in caplog.records] == ["quick: 400/400"]
+    caplog.clear()
+    with caplog.at_level("INFO", logger="pipeline"):
+        list(ProgressBars._logged(range(100), "long", 100, min_interval_s=0.0))
+    assert len(caplog.records) == 10
