@@ -5,6 +5,7 @@ from pathlib import Path
 # the project's packages: an error class of theirs that is a ValueError says what is wrong with
 # an input (VideoError, RigFormatError, StoreError, ...), and the message names the culprit
 OWN_PACKAGES = ("gst", "calibration", "synth", "pipeline", "stages")
+PROJECT_ROOT = Path(__file__).resolve().parents[1]  # holds the packages above
 # records of this logger go to the run's log file only, not the console: the traceback behind an
 # input error, whose one-line message the CLI prints anyway
 TRACEBACK_LOGGER = "pipeline.traceback"
@@ -23,9 +24,6 @@ def is_input_error(exc: BaseException) -> bool:
     return type(exc).__module__.split(".")[0] in OWN_PACKAGES or _raised_by_own_code(exc)
 
 
-_ROOT = Path(__file__).resolve().parents[1]
-
-
 def _raised_by_own_code(exc: BaseException) -> bool:
     """Whether the innermost frame of `exc`'s traceback is a file of the project's packages."""
     tb = exc.__traceback__
@@ -34,7 +32,7 @@ def _raised_by_own_code(exc: BaseException) -> bool:
     if tb is None:
         return False
     try:
-        rel = Path(tb.tb_frame.f_code.co_filename).resolve().relative_to(_ROOT)
+        rel = Path(tb.tb_frame.f_code.co_filename).resolve().relative_to(PROJECT_ROOT)
     except ValueError:  # outside the project (a library in site-packages)
         return False
     return rel.parts[0] in OWN_PACKAGES

@@ -24,10 +24,9 @@ import ray
 from ray.exceptions import RayError, RayTaskError
 
 from gst.cores import available_cores
-from pipeline.errors import ItemFailed, describe
+from pipeline.errors import PROJECT_ROOT, ItemFailed, describe
 
 ProgressFactory = Callable[..., Any]
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def _worker_env(extra_path: Path) -> dict[str, str]:
@@ -71,7 +70,7 @@ class RayExecutor:
     def _ensure_connected(self) -> None:
         if ray.is_initialized():
             return
-        runtime_env = {"env_vars": _worker_env(REPO_ROOT)}
+        runtime_env = {"env_vars": _worker_env(PROJECT_ROOT)}
         common = {
             "logging_level": logging.WARNING,
             "log_to_driver": True,

@@ -31,6 +31,7 @@ from gst.atomic import atomic_write_text, remove_path, replace_path
 from pipeline.config import PipelineConfig, format_error_line
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import (
+    PROJECT_ROOT,
     TRACEBACK_LOGGER,
     ConfigError,
     PipelineError,
@@ -161,9 +162,6 @@ def _safe_key(key: str) -> str:
     if safe == key:
         return key
     return f"{safe}.{hashlib.sha256(key.encode()).hexdigest()[:8]}"
-
-
-PROJECT_ROOT = Path(__file__).resolve().parent.parent  # holds calibration/, gst/, synth/, stages/
 
 
 def stage_code(stage: Stage) -> tuple[str, dict[str, str]]:

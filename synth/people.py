@@ -17,6 +17,7 @@ from synth.motions import (
     generate_motion,
     random_static_poses,
 )
+from synth.spec import programme_problem
 
 
 @dataclass(frozen=True)
@@ -95,11 +96,8 @@ def _check_programmes(n: int, programmes: Sequence[Sequence[str]] | None) -> Non
                 f"person {i + 1}: unknown motions {unknown or prog}; available: {sorted(MOTIONS)} "
                 f"or ['random_static']"
             )
-        if "random_static" in prog and len(prog) > 1:  # PersonSpec.motion_clip: alone only
-            raise ValueError(
-                f"person {i + 1}: 'random_static' must be the only motion of its programme, got "
-                f"{list(prog)}"
-            )
+        if (problem := programme_problem(prog)) is not None:
+            raise ValueError(f"person {i + 1}: {problem}")
 
 
 def sample_people(

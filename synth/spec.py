@@ -98,11 +98,8 @@ class SceneSpec(_Spec):
                 f"motions has {len(self.motions)} programmes but n_people is {self.n_people}"
             )
         for i, programme in enumerate(self.motions or ()):
-            if "random_static" in programme and len(programme) > 1:
-                raise ValueError(
-                    f"motions: person {i + 1}'s programme {programme}: 'random_static' must be "
-                    "the only motion of its programme"
-                )
+            if (problem := programme_problem(programme)) is not None:
+                raise ValueError(f"motions: person {i + 1}: {problem}")
         if self.preview_frame is not None and not 0 <= self.preview_frame < self.n_frames:
             raise ValueError(
                 f"preview_frame {self.preview_frame} is outside 0..{self.n_frames - 1}"
@@ -143,6 +140,14 @@ _PRESET_FIELDS: dict[str, dict] = {
 }
 # Each preset's scene is named after it.
 PRESETS: dict[str, dict] = {name: dict(name=name, **f) for name, f in _PRESET_FIELDS.items()}
+
+
+def programme_problem(programme) -> str | None:
+    """What is wrong with a person's motion programme beyond unknown names (None: nothing):
+    'random_static' poses the whole clip (`PersonSpec.motion_clip`), so it stands alone."""
+    if "random_static" in programme and len(programme) > 1:
+        return f"'random_static' must be the only motion of its programme, got {list(programme)}"
+    return None
 
 
 def _merge(base: dict, overrides: dict) -> dict:

@@ -101,23 +101,39 @@ def load_json(path: Path):
         raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
 
 
-def as_float_array(value, shape: tuple[int, ...], path: Path, what: str) -> np.ndarray:
+def as_float_array(
+    value, shape: tuple[int | None, ...], path: Path, what: str, exact: bool = False
+) -> np.ndarray:
+    """`value` as a float64 array of `shape`: reshaped when it has the right size, or, `exact`,
+    only as written (nested lists of that shape; None in `shape`: any length on that axis)."""
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise RigFormatError(f"{path}: {what} is not numeric ({exc})") from exc
+    if exact:
+        if arr.ndim != len(shape) or any(
+            n not in (None, m) for n, m in zip(shape, arr.shape, strict=True)
+        ):
+            raise RigFormatError(f"{path}: {what} has shape {arr.shape}, expected {shape}")
+        return arr
     if arr.size != int(np.prod(shape)):
         raise RigFormatError(f"{path}: {what} has shape {arr.shape}, expected {shape}")
     return arr.reshape(shape)
 
 
 def require_array(
-    data: dict, key: str, shape: tuple[int, ...], path: Path, where: str
+    data: dict,
+    key: str,
+    shape: tuple[int | None, ...],
+    path: Path,
+    where: str,
+    exact: bool = False,
 ) -> np.ndarray:
-    """`data[key]` as a float64 array of `shape`; a missing or malformed value is a
-    RigFormatError naming the file, `where` and the key (the readers' usual pairing of
+    """`data[key]` as a float64 array of `shape` (`as_float_array`); a missing or malformed
+    value is a RigFormatError naming the file, `where` and the key (the readers' usual pairing of
     `require` and `as_float_array`)."""
-    return as_float_array(require(data, key, path, where), shape, path, f"{where} {key}")
+    value = require(data, key, path, where)
+    return as_float_array(value, shape, path, f"{where} {key}", exact)
 
 
 def require_distortion(data: dict, key: str, path: Path, where: str) -> np.ndarray:

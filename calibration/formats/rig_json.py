@@ -10,8 +10,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from calibration.camera import Rig
 from calibration.formats._common import (
     RigFormatError,
@@ -23,6 +21,7 @@ from calibration.formats._common import (
     make_rig,
     pixel_count,
     require,
+    require_array,
 )
 
 SCHEMA = "gst-capture/rig"
@@ -95,10 +94,12 @@ def from_dict(data: dict, path: Path) -> Rig:
                 path,
                 name,
                 repair_rotation=False,
-                K=_exact(cd, "K", (3, 3), path, where),
-                dist=_exact(cd, "dist", None, path, where),
-                R=_exact(cd, "R", (3, 3), path, where),
-                t=_exact(cd, "t", (3,), path, where),
+                # held to the layout `to_dict` writes (the other formats' readers reshape what
+                # has the right size: a flat K, an R of 1 x 9, a nested dist were taken)
+                K=require_array(cd, "K", (3, 3), path, where, exact=True),
+                dist=require_array(cd, "dist", (None,), path, where, exact=True),
+                R=require_array(cd, "R", (3, 3), path, where, exact=True),
+                t=require_array(cd, "t", (3,), path, where, exact=True),
                 width=pixel_count(require(cd, "width", path, where), path, f"{where} width"),
                 height=pixel_count(require(cd, "height", path, where), path, f"{where} height"),
                 meta=cd.get("meta") or {},
@@ -106,21 +107,6 @@ def from_dict(data: dict, path: Path) -> Rig:
         )
     up = as_float_array(data.get("up", [0.0, 0.0, 1.0]), (3,), path, "up")
     return make_rig(path, cameras, up=tuple(up.tolist()), meta=data.get("meta") or {})
-
-
-def _exact(cd: dict, key: str, shape: tuple[int, ...] | None, path: Path, where: str):
-    """`cd[key]` as written by `to_dict`: nested lists of exactly `shape` (None: one flat list,
-    the distortion). The other formats' readers reshape what has the right size; our own file
-    is held to its layout (a flat K, an R of 1 x 9, a nested dist were taken)."""
-    value = require(cd, key, path, where)
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise RigFormatError(f"{path}: {where} {key} is not numeric ({exc})") from exc
-    if (shape is None and arr.ndim != 1) or (shape is not None and arr.shape != shape):
-        expected = "a flat list of numbers" if shape is None else f"shape {shape}"
-        raise RigFormatError(f"{path}: {where} {key} has shape {arr.shape}, expected {expected}")
-    return arr
 
 
 def read(path: str | Path) -> Rig:

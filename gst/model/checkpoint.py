@@ -83,15 +83,28 @@ def keep_model(source: str | Path, dest: str | Path) -> None:
     """Write a training checkpoint as a kept model (`models/*.pt`): everything but the training
     loop's state (`trainer`: the optimiser's moments, twice the weights' size, which only a
     resumed run reads)."""
-    load_checkpoint(source)  # the same checks as any reader's: a kept model must load
-    ckpt = torch.load(source, map_location="cpu", weights_only=True)
+    ckpt = _read_checked(Path(source), "cpu")  # the same checks as any reader's
     ckpt.pop("trainer", None)
     atomic_torch_save(ckpt, dest)
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> GSTCheckpoint:
     """Read and check a checkpoint (weights_only=True: no code runs while loading)."""
-    path = Path(path)
+    ckpt = _read_checked(Path(path), map_location)
+    return GSTCheckpoint(
+        config=ckpt["config"],
+        body_model=ckpt["body_model"],
+        vertex_ids=ckpt["vertex_ids"],
+        group_index=ckpt["group_index"],
+        model=ckpt["model"],
+        extra=ckpt.get("extra") or {},
+        trainer=ckpt.get("trainer"),
+    )
+
+
+def _read_checked(path: Path, map_location: str | torch.device) -> dict:
+    """The checkpoint file's dict, read with weights_only=True and checked (format, version,
+    keys, one vertex id per Gaussian); a ValueError naming the file otherwise."""
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
@@ -124,15 +137,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             f"{path}: vertex_ids and group_index must be 1-D integer tensors of one length (one "
             f"per Gaussian), got {shapes[0]} and {shapes[1]}"
         )
-    return GSTCheckpoint(
-        config=ckpt["config"],
-        body_model=ckpt["body_model"],
-        vertex_ids=ckpt["vertex_ids"],
-        group_index=ckpt["group_index"],
-        model=ckpt["model"],
-        extra=ckpt.get("extra") or {},
-        trainer=ckpt.get("trainer"),
-    )
+    return ckpt
 
 
 def network_from_checkpoint(ckpt: GSTCheckpoint, source: str | Path | None = None) -> GSTNetwork:

@@ -119,6 +119,12 @@ class TrackResult:
     # "replayed" (kept by an earlier run; gst.track.detection_cache) or DETECTIONS_NOT_NEEDED
     detections: str = "run"
 
+    @property
+    def kept_finished(self) -> bool:
+        """The video's file was found finished with these settings and kept: this run tracked
+        nothing (its `seconds` are only the time it took to notice)."""
+        return self.detections == DETECTIONS_NOT_NEEDED
+
 
 DETECTIONS_NOT_NEEDED = "not needed (the finished file was kept)"
 

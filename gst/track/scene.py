@@ -56,7 +56,7 @@ from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
 from gst.track.evaluation_report import write_evaluation_json, write_evaluation_markdown
-from gst.track.loop import DETECTIONS_NOT_NEEDED, TrackOptions
+from gst.track.loop import TrackOptions
 from gst.track.mirror import MirrorConfig
 from gst.track.person_detector import PersonModelConfig, PersonModelDetector
 from gst.track.pose_fit import PoseFitConfig
@@ -589,7 +589,7 @@ def write_video_report(
     name, result = outcome.job.name, outcome.result
     # A finished file kept from an earlier, interrupted run of the stage took no tracking in
     # this one: its time is not this run's (it read as 7934 frames/s), so no speed is claimed.
-    kept = result.detections == DETECTIONS_NOT_NEEDED
+    kept = result.kept_finished
     fps = None if kept else result.frames / max(result.seconds, 1e-9)
     summary = {
         "rows": result.rows,
