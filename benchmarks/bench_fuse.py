@@ -3,11 +3,15 @@
     python benchmarks/bench_fuse.py --workspace workspace/demo \\
         [--peers-python /work/bench-venv/bin/python]
 
-Input: the scene's crop store and BlazePose landmarks per crop, as the fuse stage computes
-them (`gst.fuse.observations.crop_landmarks`, refined second pass), cached beside the store as
-`fuse_landmarks_refined.npy`. Every method sees the same observations, exported to one .npz (per
-person-frame and camera: undistorted full-image pixels, confidence, and the cameras' K, R, t);
-the peers run in their own virtual environment (benchmark tools, never project dependencies):
+Input: the scene's crop store and BlazePose landmarks per crop as the fuse stage reads them
+(`gst.fuse.observations.crop_landmarks`: the landmarks the keypoint extraction stored, or, for
+an older store without them, BlazePose's refined reading of each crop; the stage's second look
+at crowded crops, `relook_crowded`, is not run here), read afresh on every run (a cache beside
+the store served stale landmarks after a re-extraction with as many crops). The fit runs at the
+scene's frame rate (`synth/scene.json`), as the stage does. Every method sees the same
+observations, exported to one .npz (per person-frame and camera: undistorted full-image pixels,
+confidence, and the cameras' K, R, t); the peers run in their own virtual environment (benchmark
+tools, never project dependencies):
 
 - ours, triangulation: gst.fuse.triangulate with the fuse stage's defaults (pair consensus over
   the 8 most confident views with the people's silhouettes voting, a second pass voting with
@@ -285,12 +289,8 @@ def main() -> None:
     store = CropStore(ws / "crops" / "crops.h5")
     rig = read_rig(ws / "calibration" / "rig.json", "rig")
     truth = read_scene_truth(ws / "synth")
-    cache = ws / "crops" / "fuse_landmarks_refined.npy"
-    if cache.is_file():
-        lm = np.load(cache)
-    else:
-        lm = crop_landmarks(store)
-        np.save(cache, lm)
+    fps = float(json.loads((ws / "synth" / "scene.json").read_text())["fps"])
+    lm = crop_landmarks(store)
     extracted = group_by_person(store, lm)
     tri_options = FuseOptions().triangulation  # what the fuse stage triangulates with
     # the people's silhouettes vote in our pair consensus: their cost is part of ours
@@ -328,7 +328,7 @@ def main() -> None:
             "as the peers' input",
         )
         sec, fits = median_time(
-            lambda ps=people, ts=tris: fit_people(body, markers, ps, ts, 30.0, FitOptions()),
+            lambda ps=people, ts=tris: fit_people(body, markers, ps, ts, fps, FitOptions()),
             args.repeats,
         )
         fits_for_speed = people
@@ -399,7 +399,7 @@ def main() -> None:
                for k in range(copies) for p in fits_for_speed]  # fmt: skip
         sub_tris = [triangulate(q) for q in sub]
         sec, _ = median_time(
-            lambda s=sub, st=sub_tris: fit_people(body, markers, s, st, 30.0, FitOptions()),
+            lambda s=sub, st=sub_tris: fit_people(body, markers, s, st, fps, FitOptions()),
             args.repeats,
         )
         pf = sum(len(q.frames) for q in sub)
@@ -407,7 +407,7 @@ def main() -> None:
               f"{pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip
         if pool is not None and copies > 1:
             sec, _ = median_time(
-                lambda s=sub, st=sub_tris: _fit_in_processes(pool, s, st, 30.0, args.processes),
+                lambda s=sub, st=sub_tris: _fit_in_processes(pool, s, st, fps, args.processes),
                 args.repeats,
             )
             print(f"| same, {args.processes} processes x 1 thread | {pf} | {cams_keep} | "

@@ -122,13 +122,14 @@ def main() -> None:
         for bs in (64, 256):
             steps = max(2, args.train_steps * 64 // bs)
             cfg = LiftPretrainConfig(steps=steps, batch_size=bs, warmup_steps=1)
-            rates = [
-                pretrain_landmark_path(
-                    net, body, cfg, sampler=sampler, log=lambda *_: None
-                ).samples_per_s
-                for _ in range(max(1, args.repeats // 2))
-            ]
-            train.append(statistics.median(rates))
+
+            def rate(cfg=cfg, net=net, sampler=sampler) -> float:
+                run = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
+                return run.samples_per_s
+
+            rate()  # untimed: the first run on a new network and batch size is a cold one
+            # an odd count of runs, so the median is one run's rate, not a mean of two
+            train.append(statistics.median(rate() for _ in range(max(3, args.repeats // 2 | 1))))
         print(
             f"| {name} ({len(lset)}){'' if points else ', lift tokens only'}"
             f"{f', {refine} rounds of reprojection feedback' if refine else ''} | {s64:.0f} "
