@@ -200,6 +200,33 @@ def test_external_masks_take_precedence(short_scene, tmp_path):
     assert set(CropStore(tmp_path / "crops.h5").index.column("person_id").to_pylist()) == {1}
 
 
+def test_replaced_external_masks_are_not_served_from_an_interrupted_run(short_scene, tmp_path):
+    """The work folder (phase 1's labels) and the store's settings name the external files by
+    content: masks replaced after an interrupted run are read again, not taken from the old
+    labels (only the folder's name was keyed)."""
+    ext = tmp_path / "external"
+    shutil.copytree(short_scene.truth / "masks", ext)
+
+    def plan():
+        return scene_phase.plan_extraction(
+            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+            scale=1.2, frame_stride=1, method="median", external=ext, truth=None,
+            options=_opts(),
+        )  # fmt: skip
+
+    first = plan()
+    (first.work / "labels_marker.h5").write_bytes(b"phase 1 of the interrupted run")
+    again = plan()  # nothing changed: the interrupted run's work is kept
+    assert again.settings == first.settings
+    assert (again.work / "labels_marker.h5").is_file()
+    cam = sorted(p.stem for p in ext.glob("*.npz"))[0]
+    masks = np.load(ext / f"{cam}.npz")["masks"]
+    np.savez_compressed(ext / f"{cam}.npz", masks=np.zeros_like(masks))  # the user's new masks
+    replaced = plan()
+    assert replaced.settings != first.settings  # the store does not resume across the change
+    assert not (replaced.work / "labels_marker.h5").exists()
+
+
 def test_report_files(short_scene, tmp_path):
     out = tmp_path / "crops.h5"
     rep = _extract_short(short_scene, out, truth=short_scene.truth)

@@ -151,6 +151,25 @@ class ExternalDetections:
         p = self.mask_files.get(camera)
         return IdMaskFile(p, camera) if p else None
 
+    def signature(self) -> list:
+        """What identifies this input for caches and resume: each mask file's name, size and
+        modification time (names, not paths: a moved workspace stays valid), the boxes' content
+        and `global_ids`. A mask file replaced after an interrupted run (same folder name) was
+        served from the old labels."""
+        import hashlib
+
+        files = []
+        for cam, path in sorted(self.mask_files.items()):
+            st = Path(path).stat()
+            files.append([cam, Path(path).name, st.st_size, st.st_mtime_ns])
+        digest = hashlib.sha256()
+        for cam in sorted(self.boxes):
+            for frame in sorted(self.boxes[cam]):
+                for pid, box in self.boxes[cam][frame]:
+                    digest.update(f"{cam}|{frame}|{pid}|".encode())
+                    digest.update(np.asarray(box, np.float64).tobytes())
+        return [Path(self.root).name, files, digest.hexdigest(), bool(self.global_ids)]
+
     def camera_boxes(self, camera: str) -> dict[int, list[tuple[int, np.ndarray]]] | None:
         """frame -> [(person_id or -1, x0 y0 x1 y1)] for a camera, or None if it has no boxes."""
         return self.boxes.get(camera)

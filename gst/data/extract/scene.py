@@ -274,7 +274,7 @@ def plan_extraction(
                 None
                 if volume is None
                 else [volume.basis.tolist(), volume.lo.tolist(), volume.hi.tolist()],
-                Path(str(getattr(ext, "root", ""))).name,  # names: a moved workspace stays valid
+                None if ext is None else ext.signature(),  # its files, by name and content
                 [_camera_signature(rig[n]) for n in names],
                 {n: p.name for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
