@@ -102,6 +102,75 @@ def test_half_written_batch_is_invisible_and_cut_on_resume(tmp_path):
         assert all(f[k].shape[0] == 3 for k in ("images", "masks", "frame", "camera", "person_id"))
 
 
+def test_every_row_reader_refuses_uncommitted_and_negative_rows(tmp_path):
+    """The rows of a half-written batch lie past `n_committed` in the file, and a negative row
+    counts from the file's end: `read` refused both, the per-column readers returned them."""
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0, 0], [0, 1], [1, 1]), [(0, 0), (0, 1)])
+    with h5py.File(path, "a") as f:  # a writer killed mid-batch, as above
+        for name in ("images", "masks", "frame", "camera"):
+            f[name].resize(5, axis=0)
+        f["frame"][2:5] = 99
+    partial = CropStore(path, allow_incomplete=True)
+    for read in (
+        lambda rows: partial.read_column("frame", rows),
+        partial.read_images,
+        partial.read_masks,
+        partial.read,
+    ):
+        for rows in ([3], [-1], [0, 2]):
+            with pytest.raises(IndexError, match=r"\[0, 2\)"):
+                read(rows)
+    assert partial.read_column("frame", [1, 0]).tolist() == [0, 0]
+
+
+def test_a_batch_whose_fields_do_not_match_its_rows_is_refused(tmp_path):
+    """h5py broadcasts a field of one row over the batch, and a camera index past the store's
+    cameras failed only at `finalize`, after all the work."""
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        short = _batch([0, 0, 0], [0, 1, 2], [5, 5, 5])
+        short.person_id = short.person_id[:1]
+        with pytest.raises(StoreError, match="'person_id' has shape \\(1,\\), expected \\(3,\\)"):
+            w.commit(short, [(0, 0), (0, 1), (0, 2)])
+        with pytest.raises(StoreError, match="camera indices 0..3 outside the store's 3"):
+            w.commit(_batch([0, 0], [0, 3], [5, 5]), [(0, 0), (0, 3)])
+        w.commit(_batch([0], [0], [5]), [(0, 0)])
+        assert w.n_committed == 1
+        w.finalize()
+    assert CropStore(path).read_column("person_id").tolist() == [5]
+
+
+def test_an_empty_store_indexes_cameras_as_strings(tmp_path):
+    """A store without rows typed its index's camera column as null, so the indices of two
+    stores could not be joined."""
+    import pyarrow as pa
+
+    empty, full = tmp_path / "empty.h5", tmp_path / "full.h5"
+    with CropStoreWriter(empty, CAMS, S) as w:
+        w.finalize()
+    with CropStoreWriter(full, CAMS, S) as w:
+        w.commit(_batch([0], [1], [1]), [(0, 1)])
+        w.finalize()
+    tables = [pq.read_table(index_path_for(p)) for p in (empty, full)]
+    assert tables[0].schema.field("camera").type == pa.string()
+    joined = pa.concat_tables([t.replace_schema_metadata(None) for t in tables])
+    assert joined.column("camera").to_pylist() == ["b"]
+    assert CropStore(empty).index.schema.field("camera").type == pa.string()
+
+
+def test_a_truncated_store_file_is_named(tmp_path):
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S) as w:
+        w.commit(_batch([0], [0], [1]), [(0, 0)])
+        w.finalize()
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(StoreError, match="crops.h5: cannot open the crop store"):
+        CropStore(path)
+
+
 def test_reopening_marks_incomplete_until_finalized(tmp_path):
     path = tmp_path / "crops.h5"
     with CropStoreWriter(path, CAMS, S) as w:

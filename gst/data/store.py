@@ -305,12 +305,27 @@ class CropStoreWriter:
                 )
             if self.landmarks and batch.landmarks is None:
                 raise StoreError(f"{self.path}: the store holds landmarks, the batch has none")
-            for name in _row_specs(S, self.landmarks):
-                ds = f[name]
-                ds.resize(n0 + n, axis=0)
+            values = {}
+            for name, (shape, _dt) in _row_specs(S, self.landmarks).items():
                 value = getattr(batch, name)
                 if name == "landmarks_projected" and value is None:  # all read
                     value = np.zeros(n, bool)
+                # h5py broadcasts: a field of one row was copied to every row of the batch
+                if np.shape(value) != (n, *shape):
+                    raise StoreError(
+                        f"{self.path}: batch field '{name}' has shape {np.shape(value)}, "
+                        f"expected {(n, *shape)} ({n} rows)"
+                    )
+                values[name] = value
+            cams = np.asarray(values["camera"])
+            if cams.min() < 0 or cams.max() >= len(self.camera_names):
+                raise StoreError(
+                    f"{self.path}: batch camera indices {cams.min()}..{cams.max()} outside the "
+                    f"store's {len(self.camera_names)} cameras {self.camera_names}"
+                )
+            for name, value in values.items():
+                ds = f[name]
+                ds.resize(n0 + n, axis=0)
                 ds[n0 : n0 + n] = value
         self._mark_done(done, n0 + n)
 
@@ -400,11 +415,22 @@ def _read_index_columns(f: h5py.File) -> dict[str, np.ndarray]:
     }
 
 
+def _index_table(f: h5py.File) -> pa.Table:
+    """The index columns of an open store as a table (camera names typed as strings even when
+    there are no rows: an empty store's index had a null-typed column, so indices of several
+    stores could not be joined)."""
+    cols = _read_index_columns(f)
+    return pa.table(
+        {
+            k: pa.array(v.tolist(), type=pa.string()) if k == "camera" else pa.array(v)
+            for k, v in cols.items()
+        }
+    )
+
+
 def write_index(f: h5py.File, store_path: Path) -> Path:
     """Write the Parquet index of the committed rows of an open store (atomically)."""
-    cols = _read_index_columns(f)
-    table = pa.table({k: pa.array(v.tolist() if k == "camera" else v) for k, v in cols.items()})
-    table = table.replace_schema_metadata(
+    table = _index_table(f).replace_schema_metadata(
         {
             "store": Path(store_path).name,
             "n_committed": str(int(f.attrs["n_committed"])),
@@ -437,7 +463,11 @@ class CropStore:
         self.path = Path(path)
         if not self.path.is_file():
             raise StoreError(f"crop store {self.path} does not exist")
-        with h5py.File(self.path, "r") as f:
+        try:
+            f = h5py.File(self.path, "r")
+        except OSError as exc:  # truncated or not HDF5 at all: h5py's message names no file
+            raise StoreError(f"{self.path}: cannot open the crop store ({exc})") from exc
+        with f:
             if f.attrs.get("format") != FORMAT or "n_committed" not in f.attrs:
                 raise StoreError(f"{self.path}: not a crop store")
             version = int(f.attrs.get("version", 0))
@@ -467,8 +497,7 @@ class CropStore:
             if table.num_rows == self.n:
                 return table
         # Missing or stale index (e.g. an incomplete store): rebuild it in memory.
-        cols = _read_index_columns(f)
-        return pa.table({k: pa.array(v.tolist() if k == "camera" else v) for k, v in cols.items()})
+        return _index_table(f)
 
     def __len__(self) -> int:
         return self.n
@@ -547,7 +576,7 @@ class CropStore:
             return None
         if rows is None:
             return np.asarray(f["landmarks"][: self.n], np.float32)
-        return _read_rows(f["landmarks"], rows).astype(np.float32, copy=False)
+        return _read_rows(f["landmarks"], self._rows(rows)).astype(np.float32, copy=False)
 
     def read_landmarks_projected(self, rows=None) -> np.ndarray | None:
         """(n,) bool of `rows` (default all): the crop's landmarks are the rig's skeleton
@@ -572,13 +601,21 @@ class CropStore:
         f = self._file()
         if rows is None:
             return np.asarray(f[name][: self.n])
-        return _read_rows(f[name], rows)
+        return _read_rows(f[name], self._rows(rows))
+
+    def _rows(self, rows) -> np.ndarray:
+        """`rows` as int64, each a committed row: rows past `n_committed` (a half-written
+        batch) and negative rows (counted from the dataset's physical end) were read as data."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        if len(rows) and (rows.min() < 0 or rows.max() >= self.n):
+            raise IndexError(
+                f"{self.path}: rows must be in [0, {self.n}), got {rows.min()}..{rows.max()}"
+            )
+        return rows
 
     def read(self, rows) -> CropBatch:
         """Load the given rows (any order; returned in that order)."""
-        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
-        if len(rows) and (rows.min() < 0 or rows.max() >= self.n):
-            raise IndexError(f"rows must be in [0, {self.n}), got {rows.min()}..{rows.max()}")
+        rows = self._rows(rows)
         f = self._file()
         out = {
             name: _read_rows(f[name], rows)
