@@ -227,6 +227,60 @@ def test_external_bad_files_are_named(tmp_path):
         read_external(root, ["cam0"])
 
 
+def test_external_files_that_break_the_reader_name_the_file(tmp_path):
+    """An object array, a truncated archive, a group where `frames` should be, the value 255,
+    and `person_id` columns pandas writes with gaps (floats with NaN) or that hold names: each
+    raised numpy's, h5py's or int()'s own error naming no file, or was read as a person."""
+    root = tmp_path / "ext"
+    root.mkdir()
+    np.savez(root / "cam0.npz", masks=np.zeros((1, 4, 4), np.uint8), frames=np.array([0], object))
+    with pytest.raises(ExternalError, match=r"camera 'cam0': cannot read .*cam0.npz"):
+        IdMaskFile(root / "cam0.npz", "cam0")
+    np.savez(root / "cam0.npz", masks=np.zeros((1, 4, 4), np.uint8))
+    data = (root / "cam0.npz").read_bytes()
+    (root / "cam0.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ExternalError, match=r"cannot read .*cam0.npz"):
+        IdMaskFile(root / "cam0.npz", "cam0")
+    (root / "cam0.npz").unlink()
+    with h5py.File(root / "cam0.h5", "w") as f:
+        f["masks"] = np.zeros((1, 4, 4), np.uint8)
+        f.create_group("frames")
+    with pytest.raises(ExternalError, match="'frames' is a group"):
+        IdMaskFile(root / "cam0.h5", "cam0")
+    (root / "cam0.h5").write_bytes(b"not hdf5")
+    with pytest.raises(ExternalError, match=r"cannot read .*cam0.h5"):
+        IdMaskFile(root / "cam0.h5", "cam0")
+    (root / "cam0.h5").unlink()
+    binary = np.zeros((1, 4, 4), np.uint8)
+    binary[0, 1:3, 1:3] = 255
+    np.savez(root / "cam0.npz", masks=binary)
+    with pytest.raises(ExternalError, match="frame 0 holds the value 255"):
+        IdMaskFile(root / "cam0.npz", "cam0").get(0)
+    (root / "cam0.npz").unlink()
+
+    def boxes(**columns):
+        table = {"frame": [0, 1], "camera": ["cam0", "cam0"], "x0": [1.0, 1.0],
+                 "y0": [1.0, 1.0], "x1": [3.0, 3.0], "y1": [3.0, 3.0], **columns}  # fmt: skip
+        pq.write_table(pa.table(table), root / "boxes.parquet")
+
+    boxes(person_id=[1.0, float("nan")])
+    assert [pid for _f, rows in sorted(read_external(root, ["cam0"]).boxes["cam0"].items())
+            for pid, _b in rows] == [1, -1]  # fmt: skip
+    for pids, match in (([1.7, 2.0], "row 0 is 1.7"), (["p1", "p2"], "'person_id' is string")):
+        boxes(person_id=pids)
+        with pytest.raises(ExternalError, match=match):
+            read_external(root, ["cam0"])
+    boxes(camera=["cam0", None])
+    with pytest.raises(ExternalError, match="'camera' has 1 empty rows"):
+        read_external(root, ["cam0"])
+    boxes(x0=[0.1, 0.2], y0=[0.1, 0.2], x1=[0.4, 0.5], y1=[0.9, 0.8])
+    with pytest.raises(ExternalError, match="look normalised"):
+        read_external(root, ["cam0"]).validate({"cam0": (40, 30)}, n_frames=2)
+    boxes(x0=[1.0, 45.0], x1=[3.0, 60.0])  # the second beyond the 40 px wide frame
+    with pytest.raises(ExternalError, match=r"1 boxes entirely outside the 40x30 frame"):
+        read_external(root, ["cam0"]).validate({"cam0": (40, 30)}, n_frames=2)
+
+
 def _one_box(root, frame, frame_type=None) -> None:
     pq.write_table(
         pa.table({"frame": pa.array([frame], frame_type or pa.int64()), "camera": ["cam0"],

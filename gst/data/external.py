@@ -17,6 +17,7 @@ so `IdMaskFile` reads both. NPZ files are opened with `allow_pickle=False`.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,19 +55,34 @@ class IdMaskFile:
         self._npz_masks: np.ndarray | None = None
         self._h5: h5py.File | None = None
         if self.path.suffix == ".npz":
-            with np.load(self.path, allow_pickle=False) as z:
-                key = _pick_masks_array({k: z[k].shape for k in z.files}, self.path)
-                masks = z[key]
-                frames = z["frames"] if "frames" in z.files else np.arange(len(masks))
+            try:
+                with np.load(self.path, allow_pickle=False) as z:
+                    key = _pick_masks_array({k: z[k].shape for k in z.files}, self.path)
+                    masks = z[key]
+                    frames = z["frames"] if "frames" in z.files else np.arange(len(masks))
+            except (OSError, ValueError, zipfile.BadZipFile) as exc:  # not ExternalError itself
+                if isinstance(exc, ExternalError):
+                    raise
+                # e.g. an object array (pickled: refused) or a truncated archive
+                raise ExternalError(f"camera '{camera}': cannot read {self.path} ({exc})") from exc
             self._npz_masks = masks
             self.shape = masks.shape
             self.dtype = masks.dtype
         elif self.path.suffix in (".h5", ".hdf5"):
-            with h5py.File(self.path, "r") as f:
+            try:
+                f = h5py.File(self.path, "r")
+            except OSError as exc:
+                raise ExternalError(f"camera '{camera}': cannot read {self.path} ({exc})") from exc
+            with f:
                 shapes = {k: f[k].shape for k in f.keys() if isinstance(f[k], h5py.Dataset)}
                 self._key = _pick_masks_array(shapes, self.path)
                 self.shape = f[self._key].shape
                 self.dtype = f[self._key].dtype
+                if "frames" in f and not isinstance(f["frames"], h5py.Dataset):
+                    raise ExternalError(
+                        f"camera '{camera}': {self.path} 'frames' is a group; expected a dataset "
+                        "of frame numbers"
+                    )
                 frames = f["frames"][()] if "frames" in f else np.arange(self.shape[0])
         else:
             raise ExternalError(f"camera '{camera}': mask file {self.path} must be .h5 or .npz")
@@ -119,10 +135,17 @@ class IdMaskFile:
         if row is None:
             return None
         if self._npz_masks is not None:
-            return self._npz_masks[row]
-        if self._h5 is None:
-            self._h5 = h5py.File(self.path, "r")
-        return self._h5[self._key][row]
+            mask = self._npz_masks[row]
+        else:
+            if self._h5 is None:
+                self._h5 = h5py.File(self.path, "r")
+            mask = self._h5[self._key][row]
+        if mask.size and mask.max() == 255:  # e.g. a binary 0/255 mask, read as person 255
+            raise ExternalError(
+                f"camera '{self.camera}': {self.path} frame {frame} holds the value 255; person "
+                "ids are 1..254 (0 = nobody): write a binary mask as 0/1"
+            )
+        return mask
 
     def close(self) -> None:
         if self._h5 is not None:
@@ -202,6 +225,48 @@ class ExternalDetections:
                     f"camera '{cam}': {self.root / 'boxes.parquet'} has boxes for frames "
                     f"{bad[:5]} outside the video's 0..{n_frames - 1} (frames are 0-based)"
                 )
+            boxes = np.array([b for rows in frames.values() for _pid, b in rows])
+            w, h = sizes[cam]
+            if len(boxes) and boxes[:, 2:].max() <= 1.5:
+                raise ExternalError(
+                    f"camera '{cam}': {self.root / 'boxes.parquet'} boxes all lie within "
+                    f"0..{boxes[:, 2:].max():.2f}: they look normalised; expected pixel edges "
+                    f"of the {w}x{h} frame"
+                )
+            outside = (
+                (boxes[:, 2] <= -0.5) | (boxes[:, 0] >= w - 0.5)
+                | (boxes[:, 3] <= -0.5) | (boxes[:, 1] >= h - 0.5)
+            )  # fmt: skip
+            if outside.any():  # e.g. width and height swapped: the box labelled nothing
+                raise ExternalError(
+                    f"camera '{cam}': {self.root / 'boxes.parquet'} has {int(outside.sum())} "
+                    f"boxes entirely outside the {w}x{h} frame, e.g. "
+                    f"{boxes[outside][0].round(1).tolist()} (x0, y0, x1, y1 pixel edges)"
+                )
+
+
+def _box_person_ids(table: pa.Table, path: Path) -> np.ndarray:
+    """boxes.parquet's optional `person_id` as int64, -1 where empty: an integer column, or a
+    float one with whole numbers (how pandas writes integers with gaps; NaN = empty)."""
+    if "person_id" not in table.column_names:
+        return np.full(table.num_rows, -1, np.int64)
+    col = table["person_id"]
+    kind = col.type
+    if pa.types.is_integer(kind):
+        return np.asarray(col.fill_null(-1).to_numpy(), np.int64)
+    if pa.types.is_floating(kind):
+        v = col.to_numpy(zero_copy_only=False).astype(np.float64)
+        whole = np.isnan(v) | (np.isfinite(v) & (v == np.round(v)))
+        if whole.all():
+            return np.where(np.isnan(v), -1, v).astype(np.int64)
+        bad = int(np.flatnonzero(~whole)[0])
+        raise ExternalError(
+            f"{path}: column 'person_id' row {bad} is {v[bad]}; expected whole numbers "
+            "(empty = unknown)"
+        )
+    raise ExternalError(
+        f"{path}: column 'person_id' is {kind}; expected integers (empty = unknown)"
+    )
 
 
 def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
@@ -254,8 +319,13 @@ def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
                 f"{boxes_path}: column 'frame' is {table.schema.field('frame').type} with "
                 f"{table['frame'].null_count} nulls; expected integers (0-based video frames)"
             )
+        if table["camera"].null_count:
+            raise ExternalError(
+                f"{boxes_path}: column 'camera' has {table['camera'].null_count} empty rows; "
+                "every box names its camera"
+            )
         cols = {k: table.column(k).to_pylist() for k in table.column_names}
-        pid = cols.get("person_id", [-1] * table.num_rows)
+        pid = _box_person_ids(table, boxes_path)
         for i in range(table.num_rows):
             box = np.array([cols[k][i] for k in ("x0", "y0", "x1", "y1")], dtype=np.float64)
             if not (np.all(np.isfinite(box)) and box[2] > box[0] and box[3] > box[1]):
@@ -265,7 +335,7 @@ def read_external(root: Path | str, cameras: list[str]) -> ExternalDetections:
                 )
             ext.boxes.setdefault(str(cols["camera"][i]), {}).setdefault(
                 int(cols["frame"][i]), []
-            ).append((int(pid[i]) if pid[i] is not None else -1, box))
+            ).append((int(pid[i]), box))
     if not ext.mask_files and not ext.boxes:
         raise ExternalError(
             f"{root}: no mask files named after cameras {cameras} (.h5/.npz) and no boxes.parquet"
