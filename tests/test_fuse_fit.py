@@ -68,6 +68,29 @@ def test_joint_with_fewer_than_two_views_is_flagged_and_filled(body, capture):
     assert np.linalg.norm(filled - capture.joints[0, 2, j_knee]) < 0.05
 
 
+def test_a_joint_whose_landmarks_are_each_triangulated_is_not_gap_filled(body, capture):
+    """The head's nose and ears are triangulated each from its own views: cameras that read the
+    nose and only their nearer ear leave no camera with all three, yet every landmark has two
+    views. The head was flagged gap-filled (residual 1 in the C3D, a lower score)."""
+    from gst.body.markers import BLAZEPOSE_NAMES
+
+    people = observations(capture, noise_px=0.5, seed=3)
+    left, right = BLAZEPOSE_NAMES.index("left_ear"), BLAZEPOSE_NAMES.index("right_ear")
+    n_cams = people[0].confidence.shape[1]
+    people[0].confidence[2, : n_cams // 2, right] = 0.0  # half the ring reads the left ear
+    people[0].confidence[2, n_cams // 2 :, left] = 0.0  # the other half the right one
+    tris = [triangulate_person(p) for p in people]
+    assert not tris[0].used[2, [0, left, right]].all(0).any()  # no camera used all three
+    fits = fit_people(body, MarkerModel.load(), people, tris, fps=30.0)
+    ev = joint_evidence(fits[0], tris[0])
+    head = 15  # SMPL head
+    assert not ev.gap_filled[2, head] and not ev.fitted_only()[2, head]
+    ears = tris[0].used[2, [left, right]].sum(1)
+    assert ev.views[2, head] == min(ears.min(), tris[0].used[2, 0].sum()) >= 2
+    assert bin(int(ev.mask[2, head])).count("1") == n_cams  # every camera gave a landmark
+    assert not ev.gap_filled.any()
+
+
 def test_single_view_person_is_fitted_and_marked(body, capture):
     people = observations(capture, noise_px=0.5, seed=4)
     p = people[1]

@@ -45,13 +45,14 @@ EXTRA_COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "joint_views": (
         pa.list_(pa.uint8(), 24),
         "",
-        "per joint, number of cameras whose triangulation used all of its landmarks",
+        "per joint, views of its least-seen landmark: the fewest cameras the triangulation used "
+        "for any one of its landmarks",
     ),
     "joint_view_mask": (
         pa.list_(pa.int64(), 24),
         "",
         "per joint, bit c set when the triangulation used camera c (gst.fused.cameras order) for "
-        "all of its landmarks (joint_views bits)",
+        "at least one of its landmarks",
     ),
     "joint_reprojection_px": (
         pa.list_(pa.float32(), 24),
@@ -62,8 +63,8 @@ EXTRA_COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "joint_gap_filled": (
         pa.list_(pa.bool_(), 24),
         "",
-        "per joint, True when it has landmarks but fewer than 2 views in this frame "
-        "(its position comes from the fit)",
+        "per joint, True when it has landmarks and one of them has fewer than 2 views in this "
+        "frame (its position comes from the fit)",
     ),
     "observed": (pa.bool_(), "", "False for a frame inside a gap, filled by the fit alone"),
     "single_view": (
@@ -106,12 +107,15 @@ def joint_evidence(fit: PersonFit, tri: PersonTriangulation | None) -> JointEvid
     mask = np.zeros((T, 24), np.int64)
     reproj = np.full((T, 24), np.nan)
     bits = (1 << np.arange(C)).astype(np.int64)
+    # Each landmark is triangulated from its own views: a head whose cameras each read the
+    # nose and the near ear has every landmark from 2+ views while no camera used all three
+    # (counting the cameras that used all of them flagged it gap-filled, residual 1 in the C3D)
+    per_landmark = used.sum(2)  # (T, 33)
     for j, lms in enumerate(idx):
         if not lms:
             continue
-        both = used[:, lms].all(1)  # (T, C)
-        views[:, j] = both.sum(1)
-        mask[:, j] = (both * bits).sum(1)
+        views[:, j] = per_landmark[:, lms].min(1)
+        mask[:, j] = (used[:, lms].any(1) * bits).sum(1)
         with warnings.catch_warnings():  # a gap frame has no reading: NaN, not a warning
             warnings.simplefilter("ignore", RuntimeWarning)
             per_lm = np.nanmean(fit.reprojection[:, :, lms], axis=1)  # (T, len(lms))
