@@ -555,20 +555,26 @@ class Runner:
             ran: set[str] = set()
             for name in names:
                 st = planned[name]
-                if not st.needs_run:
-                    log.info("%s: %s (%s)", name, st.state, st.reason)
-                    done[name] = st
-                    continue
                 ancestors = upstream_closure(self.needs, [name])[:-1]
-                if st.fingerprint is None or ran.intersection(ancestors):
+                upstream_ran = bool(ran.intersection(ancestors))
+                if st.state not in (SKIPPED, KEPT) and (
+                    upstream_ran or (st.needs_run and st.fingerprint is None)
+                ):
                     # an ancestor ran since planning (maybe behind a kept stage, so the plan's
-                    # fingerprint was computed from its old or absent outputs): recompute
+                    # fingerprint was computed from its old or absent outputs): recompute, for
+                    # a stage planned up to date too (after a kill between an upstream's record
+                    # and its outputs, the plan saw the old outputs and called it current)
                     st = self.status_of(name, done)
                     if not st.needs_run and not (force_all or (force and name in targets)):
                         # the upstream rerun wrote the same outputs (e.g. a comment edited)
-                        log.info("%s: %s (%s; its upstream ran)", name, st.state, st.reason)
+                        why = "; its upstream ran" if upstream_ran else ""
+                        log.info("%s: %s (%s%s)", name, st.state, st.reason, why)
                         done[name] = st
                         continue
+                elif not st.needs_run:
+                    log.info("%s: %s (%s)", name, st.state, st.reason)
+                    done[name] = st
+                    continue
                 self._execute(name, st)
                 ran.add(name)
                 done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)

@@ -33,6 +33,32 @@ def test_a_stage_behind_a_kept_one_records_the_fingerprint_of_what_it_read(
     assert counter()[5:] == []
 
 
+def test_a_kill_in_an_upstream_commit_does_not_leave_the_target_up_to_date(
+    tmp_path, counter, monkeypatch
+):
+    """`run source --set source.value=5` killed in its commit, after its record went and
+    before its new output came: the next `run peek` reran source (no record), kept constant,
+    and said peek was up to date: its plan had read source's old outputs. peek kept the old
+    value until the run after."""
+    import pipeline.runner as runner
+
+    cfg = _chain_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+
+    def killed(*_args, **_kw):
+        raise KeyboardInterrupt  # as a kill -9 there: nothing after it runs
+
+    with monkeypatch.context() as m:
+        m.setattr(runner, "replace_path", killed)
+        try:
+            main(["run", "source", "-q", "--config", str(cfg), "--set", "source.value=5"])
+        except KeyboardInterrupt:
+            pass
+    assert run(cfg, "run", "peek", "--set", "source.value=5") == 0
+    assert (tmp_path / "ws" / "demo" / "peek" / "copy.txt").read_text() == "value=5\n"
+    assert counter()[-2:] == ["source", "peek"]
+
+
 def test_a_scene_edit_leaves_stages_that_do_not_read_the_scene_up_to_date(
     tmp_path, counter, capsys
 ):
