@@ -5,6 +5,7 @@ by an option, and variant names that collide."""
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 
 from pipeline.cli import main
 from pipeline.runner import _safe_key
@@ -150,6 +151,26 @@ def test_extract_and_calibrate_declare_every_file_they_read(tmp_path):
 
     assert set(EXTRACT.inputs(ctx(ExtractParams()))) >= {*videos, tmp_path / "masks"}
     assert set(CALIBRATE.inputs(ctx(None))) == {calib, *videos}
+
+
+def test_the_bench_reads_the_trained_model_as_an_input(tmp_path):
+    """bench scores models/gst.pt when it is there, but train is not among its needs and the
+    model was no input: after a retraining `run bench` said 'up to date' and kept the table
+    of the old model."""
+    from pipeline.config import SceneConfig
+    from pipeline.stage import StageContext
+    from stages.bench import STAGE as BENCH
+
+    scene = SceneConfig(synthetic={"preset": "demo", "seed": 0})
+    ctx = StageContext("bench", "demo", scene, None, tmp_path / "ws", tmp_path / "st", None)
+    params = BENCH.params_model()
+    assert BENCH.inputs(replace(ctx, params=params)) == []  # nothing trained: no input
+    model = ctx.path("models/gst.pt")
+    model.parent.mkdir(parents=True)
+    model.write_bytes(b"weights")
+    assert BENCH.inputs(replace(ctx, params=params)) == [model]
+    off = params.model_copy(update={"include_trained": False})
+    assert BENCH.inputs(replace(ctx, params=off)) == []
 
 
 def test_each_variant_stages_its_outputs_in_a_folder_of_its_own(tmp_path):
