@@ -199,6 +199,43 @@ def test_train_settings_refuse_values_no_training_can_use(value):
         TrainSettings(**value)
 
 
+@pytest.mark.parametrize(
+    "model, value",
+    [("fuse", {"smoothness": float("nan")}), ("fuse", {"people_per_batch": 0}),
+     ("fuse", {"iterations": -3}), ("fuse", {"refine_rig": -1}),
+     ("evaluate", {"heldout_frames": float("inf")}), ("evaluate", {"render_size": 0}),
+     ("bench", {"steps": 0}), ("bench", {"lr": -1.0}), ("bench", {"test_fraction": 1.0})],
+)  # fmt: skip
+def test_fuse_evaluate_and_bench_settings_refuse_values_they_cannot_use(model, value):
+    """These three took NaN, infinity and counts of 0 or below: a NaN smoothness fitted NaN
+    bodies that went on into training, and a bad evaluate or bench value failed only after
+    the stages before it had run."""
+    from pydantic import ValidationError
+
+    from gst.eval.bench_scene import BenchSettings
+    from gst.eval.scene import EvaluateSettings
+    from gst.fuse.settings import FuseSettings
+
+    settings = {"fuse": FuseSettings, "evaluate": EvaluateSettings, "bench": BenchSettings}
+    with pytest.raises(ValidationError, match=next(iter(value))):
+        settings[model](**value)
+
+
+def test_every_stage_refuses_nan_and_unknown_parameters():
+    import importlib
+    import pkgutil
+
+    import stages
+
+    for info in pkgutil.iter_modules(stages.__path__):
+        stage = getattr(importlib.import_module(f"stages.{info.name}"), "STAGE", None)
+        if stage is None or stage.params_model is None:
+            continue
+        config = stage.params_model.model_config
+        assert config.get("extra") == "forbid", info.name
+        assert config.get("allow_inf_nan") is False, info.name
+
+
 @pytest.mark.parametrize("case", sorted(CONFIG_CASES))
 def test_config_errors(case, scene, tmp_path, capsys):
     kind, value, names = CONFIG_CASES[case]

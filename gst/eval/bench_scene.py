@@ -16,7 +16,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, NonNegativeInt
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt
 
 from gst.body import load_body_model
 from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
@@ -58,25 +58,25 @@ _DEFAULT_VARIANTS = [
 class BenchSettings(BaseModel):
     """Settings of the run-time-against-error sweep (the `bench` stage's parameters)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     variants: list[VariantParams] = _DEFAULT_VARIANTS
     include_pretrained: bool = True  # also time and score models/pretrain.pt as it is
     include_trained: bool = True  # and models/gst.pt (the train stage's model) when it exists
     landmarks: bool = True  # feed crops' landmarks to landmark variants (store's, else BlazePose)
-    steps: int = 40  # equal training budget of every variant
-    batch_size: int = 8
-    lr: float = 5e-4
+    steps: PositiveInt = 40  # equal training budget of every variant
+    batch_size: PositiveInt = 8
+    lr: PositiveFloat = 5e-4
     mode: Literal["pretrain", "3d"] = (
         "pretrain"  # 3D supervision + image terms (Gaussians learn too)
     )
-    test_fraction: float = 0.25
+    test_fraction: float = Field(0.25, gt=0, lt=1)
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    repeats: int = 5
-    timing_batch: int = 8
-    render_size: int = 64
-    max_groups: int | None = 16
-    threads: int | None = None
+    repeats: PositiveInt = 5
+    timing_batch: PositiveInt = 8
+    render_size: PositiveInt = 64
+    max_groups: PositiveInt | None = 16
+    threads: PositiveInt | None = None
 
 
 def bench_scene(

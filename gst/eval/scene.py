@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 
 from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
@@ -41,20 +41,24 @@ log = logging.getLogger("gst.eval")
 class EvaluateSettings(BaseModel):
     """Settings of the evaluation (the `evaluate` stage's parameters)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     heldout_cameras: list[str] | None = None  # default: the trained model's (train's default)
     # Which frames the headline scores: "heldout" = those `train` held out in time (recorded
     # in models/gst.pt; else the last `heldout_frames` share), "all" = every frame
     frames: Literal["heldout", "all"] = "heldout"
-    heldout_frames: float = 0.25  # only for checkpoints that do not record their held-out frames
+    heldout_frames: float = Field(
+        0.25, gt=0, lt=1
+    )  # only for checkpoints that do not record their held-out frames
     # Feed each crop's landmarks to models with landmark tokens (the store's, else BlazePose)
     landmarks: bool = True
-    render_size: int = 128  # novel views are rendered and scored at this size
-    max_groups: int | None = None  # cap on (frame, person) groups for novel views (None: all)
+    render_size: PositiveInt = 128  # novel views are rendered and scored at this size
+    max_groups: PositiveInt | None = (
+        None  # cap on (frame, person) groups for novel views (None: all)
+    )
     compare_pretrained: bool = True  # also evaluate models/pretrain.pt, side by side
     lpips: bool = True
-    threads: int | None = None
+    threads: PositiveInt | None = None
 
 
 def _model(path: Path, body_cache: dict):

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, PositiveInt
 
 from calibration.camera import FRAME_PADDING_TOLERANCE
 from gst.data.background import BackgroundConfig
@@ -20,15 +20,18 @@ __all__ = ["FuseSettings"]
 
 
 class FuseSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # NaN or infinity is refused before any stage runs (a NaN smoothness gave NaN bodies)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     body_model: str = "anny"  # or "smpl", or a path to your SMPL file (docs/body_model.md)
     markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
-    iterations: int = 12  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
-    smoothness: float = 1.0  # weight of the temporal smoothness term
+    iterations: PositiveInt = (
+        12  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
+    )
+    smoothness: float = Field(1.0, ge=0)  # weight of the temporal smoothness term
     fill_gaps_s: float = Field(0.1, ge=0)  # unseen frames filled in gaps up to this long
     regroup: bool = True  # people regrouped by 3D agreement and tracked (docs/fuse.md)
-    refine_rig: int = 0  # rounds of camera rotations corrected from the fitted bodies
+    refine_rig: NonNegativeInt = 0  # rounds of camera rotations corrected from the fitted bodies
     # > 0: RANSAC over view pairs per landmark, among this many views (0: leave-one-out only)
     pair_consensus: int = Field(8, ge=0)
     # where people are in each view (docs/fuse.md): a view covering a pair hypothesis counts
@@ -42,7 +45,7 @@ class FuseSettings(BaseModel):
     # the floor (height along the rig's up axis, m) that feet do not sink into; auto: 0 where the
     # feet stand near it; null: none (docs/fuse.md "Floor")
     floor: float | Literal["auto"] | None = "auto"
-    people_per_batch: int = 8
+    people_per_batch: PositiveInt = 8
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
     # Crops cut again from the fitted bodies (`bodycrops/crops.h5`, docs/fuse.md "Crops from the
     # fitted bodies"), and rounds of fusing again on such crops before the last cut (0: fuse
