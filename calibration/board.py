@@ -24,6 +24,7 @@ import numpy as np
 from calibration.frames import count_frames, iter_frames, source_image_size
 
 BOARD_KINDS = ("charuco", "checkerboard")
+MAX_SQUARE_M = 1.0  # a board of larger squares would be metres across: a size in millimetres
 
 
 class BoardError(ValueError):
@@ -60,6 +61,11 @@ class BoardSpec:
         if not (np.isfinite(self.square_size) and self.square_size > 0):
             raise BoardError(
                 f"board square_size must be a positive length in metres, got {self.square_size}"
+            )
+        if self.square_size > MAX_SQUARE_M:  # 150 for 0.15 m solved a rig kilometres wide
+            raise BoardError(
+                f"board square_size {self.square_size} m: that looks like millimetres; give "
+                f"metres (e.g. {self.square_size / 1000:g}), at most {MAX_SQUARE_M:g} m"
             )
         if self.kind == "charuco":
             if self.marker_size is None or not (0 < self.marker_size < self.square_size):

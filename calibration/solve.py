@@ -34,7 +34,6 @@ from calibration.posegraph import (
     invert,
     pairwise_edges,
     robust_mean_pose,
-    rotation_angle_deg,
 )
 
 # Board axes expressed in the floor world: x stays, y and z flip (board z points into the floor).
@@ -233,16 +232,22 @@ def initialise_from_detections(
     )
 
 
-MIN_ORIENTATIONS = 3  # distinct board orientations a camera needs to be determined...
-ORIENTATION_STEP_DEG = 10.0  # ...at least this far apart
+MIN_ORIENTATIONS = 3  # distinct board planes (tilts) a camera needs to be determined...
+ORIENTATION_STEP_DEG = 10.0  # ...their normals at least this far apart
 
 
 def distinct_orientations(rotations: Sequence[np.ndarray], step_deg: float) -> int:
-    """How many of `rotations` differ from every one counted before by more than `step_deg`."""
+    """How many board planes of the board poses `rotations` (board to rig) tilt more than
+    `step_deg` from every one counted before: the angle between the boards' normals, either
+    side. Views of parallel planes determine no focal length or principal point (Zhang), so a
+    board only slid and turned on the floor counts once (counted by whole rotations, its 15
+    degree turns made eight 'orientations' and a camera 0.9 m off passed unflagged)."""
     kept: list[np.ndarray] = []
     for R in rotations:
-        if all(rotation_angle_deg(R, K) > step_deg for K in kept):
-            kept.append(R)
+        normal = np.asarray(R, np.float64)[:, 2]
+        angles = [np.degrees(np.arccos(min(1.0, abs(float(normal @ k))))) for k in kept]
+        if all(a > step_deg for a in angles):
+            kept.append(normal)
     return len(kept)
 
 
@@ -317,7 +322,7 @@ def finish_calibration(
                 f"cameras {below} are below the floor: was the board in frame {floor_frame} "
                 "really lying flat on the floor, printed side up?"
             )
-    # A camera that saw the board held one way (still, or only while lying on the floor) fits
+    # A camera that saw the board in one plane (held still, or only lying on the floor) fits
     # its views with any focal length and principal point: a low RMS and a wrong camera.
     weak = {}
     for n in names:
@@ -328,7 +333,8 @@ def finish_calibration(
             weak[n] = k
             notes.append(
                 f"camera '{n}' saw the board in only {k} distinct orientation(s) "
-                f"({len(poses)} views; {ORIENTATION_STEP_DEG:.0f} deg apart counts as distinct, "
+                f"({len(poses)} views; board planes tilted {ORIENTATION_STEP_DEG:.0f} deg apart "
+                "count as distinct, turns within one plane do not; "
                 f"{MIN_ORIENTATIONS} are needed): its focal length, principal point and pose are "
                 "poorly determined whatever its RMS; record the board tilted several ways in "
                 "front of it"

@@ -60,6 +60,17 @@ class BoardSource(Strict):
     marker_size: float | None = Field(default=None, gt=0)
     dictionary: str = "DICT_5X5_100"
 
+    @model_validator(mode="after")
+    def _metres(self) -> BoardSource:
+        from calibration.board import MAX_SQUARE_M
+
+        if self.square_size > MAX_SQUARE_M:  # refused here, before any stage runs
+            raise ValueError(
+                f"square_size {self.square_size} m looks like millimetres; give metres "
+                f"(e.g. {self.square_size / 1000:g})"
+            )
+        return self
+
 
 class SceneConfig(Strict):
     """Where a scene's footage comes from: a synthetic spec, or camera videos."""

@@ -255,6 +255,42 @@ def test_a_camera_that_saw_the_board_one_way_is_named(small_scene):
     assert any(f"camera '{cam}'" in n and "distinct orientation" in n for n in result.notes)
 
 
+def test_a_camera_that_saw_the_board_only_slid_and_turned_on_the_floor_is_named(small_scene):
+    """Board poses counted as distinct by their whole rotation: a board slid and turned by 15
+    degree steps on the floor made eight 'orientations', all in one plane, and the camera
+    (cy 133 px against 293, 0.88 m off) passed unflagged. Board planes are what count."""
+    from dataclasses import replace
+
+    from calibration.synthetic import FLOOR_BOARD_AXES, _rot
+
+    poses = small_scene.world_from_board.copy()
+    centre = np.array([*np.asarray(small_scene.board.size_m) / 2, 0.0])
+    rng = np.random.default_rng(5)
+    for k in range(1, 8):
+        R = _rot([0, 0, 1], np.radians(15 * k)) @ FLOOR_BOARD_AXES
+        c = poses[0][:3, :3] @ centre + poses[0][:3, 3] + np.r_[rng.uniform(-0.4, 0.4, 2), 0]
+        poses[k][:3, :3], poses[k][:3, 3] = R, c - R @ centre
+    scene = replace(small_scene, world_from_board=poses)
+    dets = synthetic_detections(scene, noise_px=0.3, seed=2)
+    cam = [n for n, v in dets.items() if sum(d.frame < 8 for d in v) >= 6][-1]
+    dets[cam] = [d for d in dets[cam] if d.frame < 8]
+    result = calibrate_from_detections(dets, sizes(scene.rig), scene.board)
+    assert result.weak_cameras == {cam: 1}
+
+
+def test_a_board_size_in_millimetres_is_refused(tmp_path):
+    """square_size 150 for a 0.15 m board solved a rig kilometres wide, labelled metres, and
+    with the board's floor off no check noticed."""
+    from calibration.board import BoardError, BoardSpec
+    from pipeline.config import BoardSource
+
+    with pytest.raises(BoardError, match="looks like millimetres; give metres \\(e.g. 0.15\\)"):
+        BoardSpec("charuco", 7, 5, 150.0, 110.0, "DICT_4X4_50")
+    BoardSpec("charuco", 7, 5, 0.15, 0.11, "DICT_4X4_50")
+    with pytest.raises(ValueError, match="square_size 150.0 m looks like millimetres"):
+        BoardSource(videos="*.mp4", squares_x=7, squares_y=5, square_size=150.0)
+
+
 def test_calibrate_scene_with_two_cameras_and_a_chosen_floor_frame(tmp_path):
     """A two-camera rig against its truth: no rigid alignment to compare by (it needs 3), so the
     comparison is left out instead of failing after rig.json was written; `floor_frame` from
