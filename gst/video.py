@@ -301,7 +301,13 @@ def _check_stream_end(info: VideoInfo, index: int) -> None:
     it (within END_SLACK_FRAMES) or announced nothing; otherwise the file is truncated or
     corrupt, and VideoTruncatedError names the frame."""
     short = None if info.frame_count is None else info.frame_count - index
-    if short is None or short <= END_SLACK_FRAMES:
+    if short is None or short <= 0:
+        return
+    if short <= END_SLACK_FRAMES:  # an estimated count, or the file's last frames lost
+        log.warning(
+            "%s: decoding ended at frame %d, %d before the %d frames the container announces; "
+            "taken as the end of the video", info.path, index, short, info.frame_count,
+        )  # fmt: skip
         return
     raise VideoTruncatedError(
         f"{info.path}: decoding failed at frame {index} of {info.frame_count} announced (file "
@@ -339,11 +345,22 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
             for _ in range(stride - 1):
                 index += 1
                 if end is not None and index >= end:
-                    return
+                    break
                 if not cap.grab():  # a skipped frame is checked like a read one
                     _check_stream_end(info, index)
                     return
-            index += 1
+            else:
+                index += 1
+                continue
+            break
+        if end is not None and end == info.frame_count and cap.grab():
+            # the container announced fewer frames than it holds (a count estimated from the
+            # duration, or a header written before the recording ended): the rest is not read
+            log.warning(
+                "%s: the container announces %d frames but holds more; frames from %d on are "
+                "not read (re-mux the file to fix its header, e.g. ffmpeg -i IN -c copy OUT)",
+                info.path, info.frame_count, info.frame_count,
+            )  # fmt: skip
     finally:
         cap.release()
 

@@ -29,14 +29,35 @@ def test_a_video_without_frames_is_refused_and_nothing_is_written(tmp_path):
     assert not list((tmp_path / "out").rglob("*.parquet"))
 
 
-def _announcing_one_more(src: Path, dst: Path) -> None:
-    """An AVI whose headers announce one frame more than it holds (some cameras write that)."""
+def _announcing_one_more(src: Path, dst: Path, more: int = 1) -> None:
+    """An AVI whose headers announce `more` frames more than it holds (some cameras write that;
+    negative: fewer than it holds)."""
     data = bytearray(src.read_bytes())
     avih, strh = data.find(b"avih"), data.find(b"strh")
     n = struct.unpack_from("<I", data, avih + 8 + 16)[0]
-    struct.pack_into("<I", data, avih + 8 + 16, n + 1)  # dwTotalFrames
-    struct.pack_into("<I", data, strh + 8 + 32, n + 1)  # dwLength
+    struct.pack_into("<I", data, avih + 8 + 16, n + more)  # dwTotalFrames
+    struct.pack_into("<I", data, strh + 8 + 32, n + more)  # dwLength
     dst.write_bytes(bytes(data))
+
+
+def test_a_count_off_from_what_the_file_holds_is_said(tmp_path, caplog):
+    """A container that announces fewer frames than it holds lost its tail silently (the file
+    looked complete), and one whose last frame is missing ended one short without a word."""
+    *_, video = crossing_clip(tmp_path, frames=30)
+    under, over = tmp_path / "under.avi", tmp_path / "over.avi"
+    _announcing_one_more(video, under, more=-10)
+    _announcing_one_more(video, over, more=1)
+    with caplog.at_level("WARNING", logger="gst.video"):
+        assert len(list(iter_frames(under))) == 20
+        assert len(list(iter_frames(under, stride=3))) == 7
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and all("announces 20 frames but holds more" in m for m in said)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="gst.video"):
+        assert len(list(iter_frames(over))) == 30
+        assert len(list(iter_frames(video))) == 30  # an exact count: nothing to say
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and "ended at frame 30, 1 before the 31 frames" in said[0]
 
 
 def test_the_background_detector_takes_a_video_that_announces_one_frame_too_many(tmp_path):
