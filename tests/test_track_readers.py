@@ -101,3 +101,42 @@ def test_the_installed_pyarrow_reads_null_fixed_size_lists(tmp_path):
     pq.write_table(pa.table({"transl_world": col}), tmp_path / "t.parquet")
     back = pq.read_table(tmp_path / "t.parquet").column("transl_world").to_pylist()
     assert back == [[1.0, 2.0, 3.0], None, [4.0, 5.0, 6.0]]
+
+
+def _relabelled(src: Path, dst: Path, version: int, drop: tuple[str, ...] = ()) -> None:
+    import json
+
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(src, partitioning=None)
+    table = table.drop_columns([c for c in drop if c in table.column_names])
+    meta = dict(table.schema.metadata)
+    meta[b"gst.format_version"] = json.dumps(version).encode()
+    dst.parent.mkdir(parents=True)
+    pq.write_table(table.replace_schema_metadata(meta), dst)
+
+
+def test_a_folder_of_two_format_versions_keeps_every_column_and_a_newer_one_is_refused(
+    dataset, tmp_path
+):
+    """A folder is read as one dataset, whose schema was its first file's: beside a version 1
+    file (no landmarks) the landmark columns of the other videos were dropped without a word,
+    and a file of a newer version was read as if it were this one."""
+    from gst.track.read import read_metadata, read_tracks
+
+    src = next((dataset / "tracks").rglob("tracks.parquet"))
+    assert "landmarks2d" in read_tracks(src).column_names
+    mixed = tmp_path / "mixed"
+    _relabelled(src, mixed / "video=a_old" / "tracks.parquet", 1, ("landmarks2d", "landmarks_conf"))
+    _relabelled(src, mixed / "video=b_new" / "tracks.parquet", 2)
+    table = read_tracks(mixed)
+    assert {"landmarks2d", "landmarks_conf"} <= set(table.column_names)
+    old = table.filter(table.column("video").to_numpy(zero_copy_only=False) == "a_old")
+    assert old.num_rows and old.column("landmarks2d").null_count == old.num_rows
+    newer = tmp_path / "newer"
+    _relabelled(src, newer / "video=a" / "tracks.parquet", 3)
+    for read in (read_tracks, read_metadata):
+        with pytest.raises(ValueError, match=r"tracks.parquet: tracks format version 3; .*update"):
+            read(newer / "video=a" / "tracks.parquet")
+    with pytest.raises(ValueError, match="tracks format version 3"):
+        read_tracks(newer)

@@ -23,15 +23,23 @@ def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
     path = Path(path)
     if path.is_file():
         table = pq.read_table(path, partitioning=None)
-        name = parse_metadata(table.schema)["video"][
-            "name"
-        ]  # in a dataset it comes from the folder
+        name = _metadata(path, table.schema)["video"]["name"]  # in a dataset: the folder's
         table = table.add_column(0, "video", pa.array([name] * table.num_rows, pa.string()))
     elif path.is_dir():
         # the video name is text even where it looks like a number ("0001", "2"): the
         # partition's type is given, not inferred from the folder names
         partitioning = ds.partitioning(pa.schema([("video", pa.string())]), flavor="hive")
         dataset = ds.dataset(path, format="parquet", partitioning=partitioning)
+        # every file is a tracks file of a version read here, and the table has the columns of
+        # all of them (a dataset takes the first file's schema: the landmark columns of newer
+        # files were dropped beside an older one), null where a file has none
+        schemas = [pq.read_schema(f) for f in dataset.files]
+        for f, schema in zip(dataset.files, schemas, strict=True):
+            _metadata(Path(f), schema)
+        if schemas:
+            unified = pa.unify_schemas([s.remove_metadata() for s in schemas])
+            unified = unified.append(pa.field("video", pa.string()))
+            dataset = ds.dataset(path, format="parquet", partitioning=partitioning, schema=unified)
         flt = None if videos is None else pc.field("video").isin(videos)
         table = dataset.to_table(filter=flt)
     else:
@@ -43,10 +51,17 @@ def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
     )
 
 
+def _metadata(path: Path, schema: pa.Schema) -> dict:
+    try:
+        return parse_metadata(schema)
+    except ValueError as exc:  # its message names no file
+        raise ValueError(f"{path}: {exc}") from exc
+
+
 def read_metadata(path: str | Path) -> dict:
     """The self-describing metadata of one tracks file (joint names, units, axes, fps, model,
     calibration, ...), keys without the 'gst.' prefix."""
-    return parse_metadata(pq.read_schema(path))
+    return _metadata(Path(path), pq.read_schema(path))
 
 
 def landmark_array(table: pa.Table) -> np.ndarray | None:

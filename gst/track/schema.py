@@ -230,4 +230,10 @@ def parse_metadata(schema: pa.Schema) -> dict:
             f"not a tracks file: metadata 'gst.format' is {out.get('format')!r}, expected "
             f"{FORMAT_NAME!r}"
         )
+    version = out.get("format_version")
+    if not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise ValueError(
+            f"tracks format version {version!r}; this code reads versions 1 to {FORMAT_VERSION}"
+            f"{' (update the package)' if isinstance(version, int) and version > 1 else ''}"
+        )
     return out
