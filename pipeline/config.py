@@ -44,6 +44,25 @@ class SyntheticSource(Strict):
     seed: int = 0
     overrides: dict[str, Any] = Field(default_factory=dict)
 
+    @model_validator(mode="after")
+    def _a_scene_spec(self) -> SyntheticSource:
+        """The preset and overrides make a scene spec: refused here, naming the key, before
+        any stage runs (a misspelt preset or override key failed in the synth stage, with a
+        traceback)."""
+        from synth.spec import preset
+
+        if "seed" in self.overrides:  # two seeds: preset() would take neither
+            raise ValueError(f"overrides.seed: give the seed as 'seed' (now {self.seed})")
+        try:
+            preset(self.preset, seed=self.seed, **self.overrides)
+        except KeyError as exc:
+            raise ValueError(f"preset: {exc.args[0]}") from None
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(part) for part in first["loc"])
+            raise ValueError(f"overrides.{where}: {first['msg']}") from None
+        return self
+
 
 class CalibrationSource(Strict):
     file: Path

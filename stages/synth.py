@@ -14,12 +14,7 @@ class Params(StageParams):
 
 
 def run(ctx: StageContext) -> None:
-    src = ctx.scene.synthetic
-    if "seed" in src.overrides:  # two seeds: preset() would take neither (a TypeError)
-        raise ValueError(
-            f"scenes.{ctx.scene_name}.synthetic.overrides.seed: give the seed as "
-            f"scenes.{ctx.scene_name}.synthetic.seed (now {src.seed})"
-        )
+    src = ctx.scene.synthetic  # validated with the config (pipeline.config.SyntheticSource)
     spec = preset(src.preset, seed=src.seed, **src.overrides)
     last = {}
 

@@ -341,15 +341,24 @@ def test_a_crowd_that_cannot_keep_its_rules_says_so(caplog):
     assert any("could not be placed within the rules" in m for m in caplog.messages)
 
 
-def test_a_seed_among_the_overrides_is_refused_naming_the_key(tmp_path, capsys):
-    """`synthetic: {overrides: {seed: 3}}` gave "TypeError: preset() got multiple values for
-    keyword argument 'seed'", naming no config key."""
+@pytest.mark.parametrize(
+    "block, said",
+    [("{preset: demo, overrides: {seed: 3}}", "scenes.s.synthetic: overrides.seed: give the"),
+     ("{preset: dmeo}", "scenes.s.synthetic: preset: unknown synth preset 'dmeo'"),
+     ("{preset: demo, overrides: {n_frame: 4}}", "scenes.s.synthetic: overrides.n_frame: Extra"),
+     ("{preset: demo, overrides: {rig: {widht: 9}}}", "overrides.rig.widht: Extra")],
+)  # fmt: skip
+def test_a_synthetic_block_that_makes_no_scene_is_refused_before_anything_runs(
+    tmp_path, capsys, block, said
+):
+    """`overrides: {seed: 3}` gave "TypeError: preset() got multiple values for keyword
+    argument 'seed'", and a misspelt preset or override key failed in the synth stage with a
+    traceback: they are config errors (exit 2), naming the key, before any stage runs."""
     from pipeline.cli import main
 
     cfg = tmp_path / "pipeline.yaml"
-    cfg.write_text(
-        "workspace: ws\nscenes:\n  s: {synthetic: {preset: demo, overrides: {seed: 3}}}\n"
-        "stages:\n  synth: {}\n"
-    )
-    assert main(["run", "synth", "--config", str(cfg), "--quiet"]) == 1
-    assert "scenes.s.synthetic.overrides.seed" in capsys.readouterr().err
+    cfg.write_text(f"workspace: ws\nscenes:\n  s: {{synthetic: {block}}}\nstages:\n  synth: {{}}\n")
+    assert main(["run", "synth", "--config", str(cfg), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "Traceback" not in err
+    assert not (tmp_path / "ws").exists()
