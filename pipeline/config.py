@@ -307,10 +307,11 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return parts, value
 
 
-def apply_override(raw: dict, parts: list[str], value: Any) -> None:
+def apply_override(raw: dict, parts: list[str], value: Any) -> list[str]:
     """Apply a parsed override to the raw YAML dict. `stage.k=v` sets stages.stage.params.k;
     keys starting with a top-level section (workspace, executor, scenes, ...) are set directly.
-    A stage override also removes that key from every scene's `params` for the stage."""
+    A stage override also removes that key from every scene's `params` for the stage. Returns
+    the key as it is recorded (`stages.S.params.K` as `S.K`)."""
     top_level = set(PipelineConfig.model_fields)
     if len(parts) > 3 and parts[0] == "stages" and parts[2] == "params":
         parts = [parts[1], *parts[3:]]  # the long form: as `--set S.K=V`, over scenes' values
@@ -341,6 +342,7 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> None:
             raise ConfigError(f"--set {'.'.join(parts)}: '{p}' is not a mapping")
         node = nxt
     node[path[-1]] = value
+    return parts
 
 
 def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
@@ -357,8 +359,9 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     given: dict[str, str] = {}
     for text in overrides:
         parts, value = parse_override(text)
-        apply_override(raw, parts, value)
-        given[".".join(parts)] = text
+        # the long form `stages.S.params.K` is recorded as `S.K`, the key the stage's
+        # validation looks up (an error in it blamed the file, which said something else)
+        given[".".join(apply_override(raw, parts, value))] = text
     try:
         cfg = PipelineConfig.model_validate(raw)
     except ValidationError as exc:

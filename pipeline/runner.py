@@ -248,7 +248,9 @@ class Runner:
             for err in exc.errors():
                 key = ".".join(str(x) for x in err["loc"])
                 line = format_error_line(err, source).replace(f"{source}: ", f"{source}: {where}.")
-                given = self.cfg.overrides.get(f"{name}.{key}")
+                given = self.cfg.overrides.get(f"{name}.{key}") or self.cfg.overrides.get(
+                    f"scenes.{self.scene_name}.params.{name}.{key}"
+                )
                 lines.append(line + (f" (set by --set {given})" if given else ""))
             raise ConfigError("\n".join(lines)) from None
         if self.cfg.base_dir is None:

@@ -143,6 +143,19 @@ def test_the_long_form_of_set_overrides_a_scenes_value_as_the_short_one_does():
         assert "refine_rig" not in edited["scenes"]["lab"]["params"]["fuse"]
 
 
+@pytest.mark.parametrize(
+    "given", ["stages.train.params.steps=0", "train.steps=0", "scenes.demo.params.train.steps=0"]
+)
+def test_a_bad_value_from_either_form_of_set_is_blamed_on_the_set(given, capsys):
+    """The long forms were recorded under keys the stage's validation never looks up: the error
+    blamed pipeline.yaml, which says `steps: 200`."""
+    from pipeline.cli import main
+
+    config = str(Path(__file__).resolve().parents[1] / "pipeline.yaml")
+    assert main(["run", "train", "--dry-run", "--config", config, "--set", given]) == 2
+    assert f"(set by --set {given})" in capsys.readouterr().err
+
+
 def test_the_first_failing_item_ends_a_local_map_without_running_the_queue(tmp_path):
     """A failing item's error came only after every queued item had run (8 items on 2 workers:
     4.3 s and 7 items run, for an error known at 0.3 s)."""
