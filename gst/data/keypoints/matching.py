@@ -29,7 +29,7 @@ the reprojection error of triangulated keypoints.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -43,6 +43,8 @@ _BODY = np.asarray(BODY_LANDMARKS)
 _BODY_MIRROR = np.array([BODY_LANDMARKS.index(int(MIRROR[k])) for k in BODY_LANDMARKS])
 FRONT_MARGIN = 0.2  # metres: people this far behind the front one are hidden by them
 PRIOR_BONUS = 0.5  # a prior beats a pair that the same number of cameras fit
+# a camera this high (m) above the world's origin along the rig's up, or lower: no floor at 0
+MIN_CAMERA_HEIGHT = 0.1
 # Bones whose length tells a real skeleton from one stitched from two people (metres; adult
 # ranges with room for triangulation noise): shoulders, hips, upper arms, forearms, thighs,
 # shins, shoulder to hip.
@@ -87,10 +89,42 @@ class MatchConfig:
     view_error: float = 0.1  # mean landmark error for a camera's instance to join a person
     loose_error: float = 0.15  # attached without triangulating (half-hidden people)
     outlier_error: float = 0.15  # a view's landmark this far off is left out of triangulation
-    z_range: tuple[float, float] = (-0.5, 3.0)  # height range of a person's landmarks (world z)
+    # height range of a person's landmarks above the floor, along `up` (the rig's: `for_rig`);
+    # None: not checked (a world whose floor is not at height 0)
+    z_range: tuple[float, float] | None = (-0.5, 3.0)
+    up: tuple[float, float, float] = (0.0, 0.0, 1.0)
     mirror: bool = True  # accept a view whose left and right sides are swapped
     max_bad_bones: int = 1  # a person whose skeleton breaks more bone limits is not kept
     min_front: float = 0.8  # share of a pair's landmarks that must meet in front of both cameras
+
+    def for_rig(self, cameras: Sequence[Camera], up) -> tuple[MatchConfig, str | None]:
+        """This config for a rig of `cameras` and up axis `up`: heights measured along `up`
+        (z was taken as height whatever the rig's up: a y-up rig lost most pairs), and the
+        height check left off, with the reason, where the world's floor is evidently not at
+        height 0 (a camera at or below it, as in a world that is a camera's frame, or cameras
+        that look at a point outside the height range, as over a floor at 3.6 m; every pair
+        there fell outside the range)."""
+        from calibration.checks import axes_meeting_point
+
+        up = np.asarray(up, np.float64)
+        up = tuple(float(x) for x in up / np.linalg.norm(up))
+        if self.z_range is None:
+            return replace(self, up=up), None
+        heights = {c.name: float(c.center @ np.asarray(up)) for c in cameras}
+        low = {n: h for n, h in heights.items() if h <= MIN_CAMERA_HEIGHT}
+        why = None
+        if low:
+            name, h = min(low.items(), key=lambda kv: kv[1])
+            why = f"camera {name} stands {h:.2f} m along the rig's up {up} from the world's origin"
+        elif len(cameras) > 1:
+            # where the cameras look: people, whose height a floor at 0 puts in the range
+            aim = float(axes_meeting_point(list(cameras)) @ np.asarray(up))
+            if not self.z_range[0] < aim < self.z_range[1]:
+                why = f"the cameras look at a point {aim:.2f} m along the rig's up {up}"
+        if why is None:
+            return replace(self, up=up), None
+        why += ": the floor is not at height 0 there, so people's heights are not checked"
+        return replace(self, up=up, z_range=None), why
 
     def __post_init__(self):
         for name in ("pair_gap", "gap_truncate", "view_error", "loose_error", "outlier_error"):
@@ -179,7 +213,8 @@ def pair_costs(a: CameraView, b: CameraView, config: MatchConfig) -> tuple[np.nd
     if na == 0 or nb == 0:
         return np.full((na, nb), np.nan), flip
     ca, cb = a.cam.center, b.cam.center
-    zlo, zhi = config.z_range
+    zlo, zhi = config.z_range or (-np.inf, np.inf)
+    up = np.asarray(config.up, np.float64)
     readings = [np.arange(len(_BODY))] + ([_BODY_MIRROR] if config.mirror else [])
     costs = []
     for order in readings:
@@ -187,7 +222,8 @@ def pair_costs(a: CameraView, b: CameraView, config: MatchConfig) -> tuple[np.nd
         gap, mid, s, t = ray_gaps(ca, a.rays[:, None], cb, rb[None])  # (na, nb, B)
         w = np.minimum(a.conf[:, None], wb[None])
         n_seen = (w > 0).sum(axis=-1)
-        ok = (s > 0.05) & (t > 0.05) & (mid[..., 2] > zlo) & (mid[..., 2] < zhi)
+        height = mid @ up
+        ok = (s > 0.05) & (t > 0.05) & (height > zlo) & (height < zhi)
         wsum = np.maximum(w.sum(axis=-1), 1e-12)
         front = (w * ok).sum(axis=-1) / wsum
         mean_gap = (w * np.minimum(gap, config.gap_truncate)).sum(axis=-1) / wsum
@@ -299,6 +335,8 @@ def match_frame(
     are proposals like the pairs, preferred among proposals that as many cameras fit.
     """
     cams = {c.name: c for c in (rig.cameras if isinstance(rig, Rig) else rig)}
+    if isinstance(rig, Rig):  # heights along the rig's own up (CrowdTracker passes cameras)
+        config, _why = config.for_rig(rig.cameras, rig.up)
     unknown = sorted(set(instances) - set(cams))
     if unknown:
         raise AssociationError(

@@ -32,9 +32,10 @@ and looked for in every camera like a remembered person: found in two, they are 
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -58,6 +59,8 @@ from gst.data.keypoints.tracking import PersonIdTracker, TrackerConfig, skeleton
 from gst.detect.blazepose import BodyRoi
 from gst.detect.boxes import containment
 from gst.detect.persons import same_person
+
+log = logging.getLogger("gst.data")
 
 _BODY = np.asarray(BODY_LANDMARKS)
 PROJECTED_CONFIDENCE = 0.5  # confidence of landmarks projected from a skeleton (not detected)
@@ -237,6 +240,11 @@ class CrowdTracker:
         workers: int = 1,
     ):
         self.cams = {c.name: c for c in (rig.cameras if isinstance(rig, Rig) else rig)}
+        up = rig.up if isinstance(rig, Rig) else (0.0, 0.0, 1.0)
+        match, why = config.match.for_rig(list(self.cams.values()), up)
+        if why is not None:
+            log.warning("keypoint association: %s", why)
+        config = replace(config, match=match)
         self.config = config
         self.segment = segment
         self.workers = max(1, int(workers))
@@ -248,7 +256,7 @@ class CrowdTracker:
             list(self.cams.values()), step_seconds, config.tracker, config.match
         )
         self._kernel = np.ones((2 * config.occluder_margin + 1,) * 2, np.uint8)
-        self._ankles = AnkleHeight(rig.up if isinstance(rig, Rig) else (0.0, 0.0, 1.0))
+        self._ankles = AnkleHeight(up)
         # refined views: the landmark model's new answer / the detection reused (`reuse_fit`)
         self.views_refined = self.views_reused = 0
         # single-view people looked for where they would stand / found by a second camera
