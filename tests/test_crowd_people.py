@@ -179,6 +179,25 @@ def test_single_view_person_keeps_a_crop_and_empty_frames_are_fine():
     assert tracker.process(1, {}, {}).people == []
 
 
+def test_a_single_view_neighbours_pixels_are_theirs_not_a_3d_persons():
+    """A person only camera 1 sees, 0.4 m from a person every camera sees: without a refined
+    mask, their pixels went to the nearest 3D person (the ownership knew no one else), whose
+    view was then half made of them."""
+    cam1 = RIG.names[1]
+    scene = [
+        [person(0.02 * f, 0.0, 0.3), person(1.5, 1.2, 2.0), person(0.02 * f + 0.4, 0.12, -1.0)]
+        for f in range(6)
+    ]
+    outs, _ = _run(refine=False, hide=None, scene=scene, single=2)
+    seen = 0
+    for out, _, people in outs:
+        for p in out.people:
+            if not p.single_view and cam1 in p.views:
+                seen += 1
+                assert 2 not in _who(p.views[cam1], RIG[cam1], people)
+    assert seen >= 6
+
+
 @pytest.mark.parametrize("search", [True, False])
 def test_someone_at_the_back_whom_one_detector_finds_is_looked_for_where_they_stand(search):
     """The lab's bystander: they stand apart (1.7 m from the nearest), every camera shows them,

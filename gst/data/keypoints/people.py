@@ -337,8 +337,17 @@ class CrowdTracker:
         ]
         names = [n for n in self.cams if n in foreground]
 
+        # people only one camera sees, by their landmarks there: their pixels are theirs, not
+        # the nearest 3D person's (a bystander 0.4 m from someone went into that one's mask)
+        single_lms: dict[str, list[np.ndarray]] = {n: [] for n in self.cams}
+        for g in singles:
+            n, k = next(iter(g.views.items()))
+            single_lms[n].append(instances[n][k].landmarks)
+
         def views_in(n: str) -> list[tuple[int, PersonView]]:
-            return self._views(n, cands, people, foreground[n], remembered, instances)
+            return self._views(
+                n, cands, people, foreground[n], remembered, instances, single_lms[n]
+            )
 
         for n, views in zip(names, self._map_cameras(views_in, names), strict=True):
             for k, view in views:
@@ -587,14 +596,19 @@ class CrowdTracker:
             return None
         return inst, prob, fit
 
-    def _views(self, n, cands, people, fg, remembered, instances) -> list[tuple[int, PersonView]]:
+    def _views(
+        self, n, cands, people, fg, remembered, instances, singles=()
+    ) -> list[tuple[int, PersonView]]:
         """Each person's view in camera `n`, as (person index, view): refined (their region's
         segmentation, contested pixels to the one in front), detected (ownership of the
         foreground, the detector's landmarks), or projected (ownership, projected landmarks)
-        for trusted people."""
+        for trusted people. `singles`: (33, 3) landmarks of the people only this camera sees,
+        who own their pixels too (behind every 3D person where they overlap)."""
         cfg, cam = self.config, self.cams[n]
         out = []
-        own = own_pixels(cam, fg, [c.skeleton for c in cands], [], cfg.ownership, self.scale[n])
+        skeletons = [c.skeleton for c in cands] + [None] * len(singles)
+        flat = [None] * len(cands) + list(singles)
+        own = own_pixels(cam, fg, skeletons, flat, cfg.ownership, self.scale[n])
         # A refined view's mask is the landmark model's own segmentation of that person.
         claims = [c.refined[n][1] > 0.5 if n in c.refined else None for c in cands]
         drawn = [m for m in claims if m is not None]
