@@ -85,6 +85,21 @@ def test_nan_guard_skips_and_aborts(tmp_path):
         Trainer(model, step, sample, cfg, tmp_path / "x").fit()
 
 
+def test_a_nan_validation_value_is_never_the_best(tmp_path):
+    """Validations nan, 50, 10, 5 (lower is better): the NaN became the best, every later
+    comparison with it was false, and best.pt stayed the step-2 model."""
+    cfg = TrainConfig(steps=8, batch_size=4, lr=1e-2, warmup_steps=1, val_every=2, log_every=1)
+    model, step, sample = make_problem()
+    values = iter([float("nan"), 50.0, 10.0, 5.0])
+    trainer = Trainer(
+        model, step, sample, cfg, tmp_path,
+        val_fn=lambda m: {"mpjpe": next(values)}, best_key="mpjpe", best_mode="min",
+    )  # fmt: skip
+    summary = trainer.fit()
+    assert summary.best == 5.0
+    assert torch.load(tmp_path / "best.pt", weights_only=True)["trainer"]["step"] == 8
+
+
 def test_schedule_warms_up_then_decays():
     cfg = TrainConfig(steps=100, warmup_steps=10, min_lr_ratio=0.1)
     values = [warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio) for s in range(100)]

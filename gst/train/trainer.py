@@ -349,7 +349,15 @@ class Trainer:
         atomic_write(path, write)
 
     def _is_better(self, value: float) -> bool:
-        if self.best_value is None:
+        """Whether a validation `value` beats the best so far. A non-finite one never does, and
+        a non-finite best (a checkpoint of older code) is none: a NaN first value was kept as
+        the best, every comparison with it false, and best.pt froze on that model."""
+        if not math.isfinite(value):
+            log.warning(
+                "validation %s is %s at step %d: not a best", self.best_key, value, self.step
+            )
+            return False
+        if self.best_value is None or not math.isfinite(self.best_value):
             return True
         return value > self.best_value if self.best_mode == "max" else value < self.best_value
 
