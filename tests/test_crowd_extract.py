@@ -43,6 +43,8 @@ def test_keypoint_extraction_finds_both_people_everywhere(run, scene):
     assert away in rep.cameras_skipped  # the camera that sees nobody is skipped, no crash
     store = CropStore(out)
     assert store.attrs["setting.association"] == "keypoints"
+    # the background's method, as docs/formats/crops_h5.md says (it repeated the association)
+    assert store.attrs["setting.method"] == "median"
     assert len(store.multiview_groups(min_views=3)) >= 15  # 10 frames x 2 people
 
 

@@ -160,7 +160,7 @@ class ExtractPlan:
     truth_files: dict[str, Path | None]
     settings: dict
     work: Path
-    method: str = "hull"  # association: 'keypoints' or 'hull'
+    association: str = "hull"  # 'keypoints' or 'hull'
 
     @property
     def frame_set(self) -> set[int]:
@@ -237,9 +237,10 @@ def plan_extraction(
                 f"camera '{n}' background video {p}: frames are {info.width}x{info.height}, "
                 f"the camera's video is {sizes[n][0]}x{sizes[n][1]}"
             )
-    method, why = association_method(opts, ext)
-    log.info("extract: %s association (%s)", method, why)
-    if method == "keypoints":
+    # (not `method`, the background's: the store's setting.method held the association)
+    association, why = association_method(opts, ext)
+    log.info("extract: %s association (%s)", association, why)
+    if association == "keypoints":
         # Person instances with landmarks on every camera (phase 1), matched by keypoints.
         persons = opts.persons or SegmenterConfig(
             detect_every=opts.person_detect_every, zoom=opts.person_zoom
@@ -278,11 +279,11 @@ def plan_extraction(
                 [_camera_signature(rig[n]) for n in names],
                 {n: p.name for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
-                method,
-                repr(opts.crowd) if method == "keypoints" else None,
+                association,
+                repr(opts.crowd) if association == "keypoints" else None,
             ]
         ),
-        "association": method,
+        "association": association,
     }
     out_h5 = Path(out_h5)
     work = out_h5.with_name(out_h5.name + ".work")
@@ -301,7 +302,8 @@ def plan_extraction(
     marker.write_text(json.dumps({"key": work_key, "settings": settings}))
     return ExtractPlan(
         videos, rig, out_h5, names, infos, n_frames, frames, sizes, work_sizes, crop_size,
-        float(scale), frame_stride, bg_cfg, opts, ext, plates, truth_files, settings, work, method,
+        float(scale), frame_stride, bg_cfg, opts, ext, plates, truth_files, settings, work,
+        association,
     )  # fmt: skip
 
 
@@ -326,7 +328,7 @@ def _mask_jobs(plan: ExtractPlan) -> list[MaskJob]:
             persons=opts.persons,
             persons_models_dir=opts.persons_models_dir,
             persons_hints=opts.persons_hints,
-            instances=plan.method == "keypoints",
+            instances=plan.association == "keypoints",
         )
         for n in plan.names
     ]
@@ -350,7 +352,7 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
         return AssociationSummary(**json.loads(marker.read_text()))
     if not active:
         return AssociationSummary.empty(plan.frames)
-    if plan.method == "keypoints":
+    if plan.association == "keypoints":
         crowd, step_seconds = keypoint_tracker_timing(
             plan.options.crowd, plan.frame_stride, plan.fps
         )
@@ -476,7 +478,7 @@ def _run_phases(plan: ExtractPlan, writer: CropStoreWriter, progress, executor_m
     for n in outcome.skipped_cameras:  # cameras that saw no one: their frames are done, empty
         ci = names.index(n)
         pairs = [(f, ci) for f in frames if (f, ci) not in done]
-        writer.commit(CropBatch.empty(plan.crop_size, plan.method == "keypoints"), pairs)
+        writer.commit(CropBatch.empty(plan.crop_size, plan.association == "keypoints"), pairs)
     timings["merge"] = time.perf_counter() - t0
     return outcome
 
@@ -560,7 +562,7 @@ def _report(plan: ExtractPlan, outcome: PhaseOutcome) -> ExtractReport:
             "work_sizes": plan.work_sizes,
             "voxels": summary.voxels if summary else None,
         },
-        association_method=plan.method,
+        association_method=plan.association,
         single_view_crops=int(np.count_nonzero(single)),
         truth_by_source=scores_by_source(truth_rows),
         truth_by_id=ids_against_truth(truth_rows),
@@ -604,7 +606,7 @@ def extract_scene(
         plan.settings,
         plan.options.compression,
         plan.options.compression_level,
-        landmarks=plan.method == "keypoints",
+        landmarks=plan.association == "keypoints",
     ) as writer:
         outcome = _run_phases(plan, writer, progress, executor_map)
         writer.finalize(
