@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -126,6 +127,9 @@ def _param_lines(model, configured: dict, scenes: dict[str, dict] | None = None)
     for key, field in model.model_fields.items():
         t = field.annotation
         kind = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
+        # PositiveInt | None prints as Optional[Annotated[int, Gt(gt=0)]]: int | None
+        kind = re.sub(r"Annotated\[(\w+), [^\]]*\]", r"\1", kind)
+        kind = re.sub(r"^Optional\[(.*)\]$", r"\1 | None", kind)
         default = field.get_default(call_default_factory=True)
         line = f"{key}: {kind} = {default!r}"
         if key in configured:
@@ -264,6 +268,8 @@ def main(argv: list[str] | None = None) -> int:
         stages = load_stages(cfg)
         scenes = _scenes(cfg, args.scene)
         if args.command == "stages":  # the listing is the command's output: stdout
+            for scene in scenes:  # the values `run` would refuse are refused here too
+                Runner(cfg, scene, stages)
             out = make_console(args.quiet, stderr=False)
             for name, st in stages.items():
                 out.print(

@@ -68,6 +68,13 @@ def test_stages_params_lists_defaults_and_the_pipeline_files_values():
     assert "refine_rig: int = 0  (scene lab: 2)" in lines
     assert any(line.startswith("person_model:") and "(scene lab: 'blazepose')" in line
                for line in lines)  # fmt: skip
+    assert "max_groups: int | None = 16" in lines  # not Optional[Annotated[int, Gt(gt=0)]]
+    # a value `run` refuses is refused here too (it was listed as the pipeline file's value)
+    out = subprocess.run(
+        [sys.executable, "-m", "pipeline", "stages", "--params", "--set", "train.lr=-1"],
+        cwd=REPO, capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 2 and "(set by --set train.lr=-1)" in out.stderr
 
 
 def test_override_parsing():
