@@ -52,3 +52,22 @@ def test_exchanged_ids_and_a_wrong_crop_are_regrouped(capture):
     views = {k: (t.rows >= 0).sum(1) for t in people for k in {int(_source(t, clean).max())}}
     assert views[0].tolist() == [6, 5, 6, 6, 6, 6, 6, 6] and (views[1] == 6).all()
     assert 999 not in np.concatenate([t.rows.ravel() for t in people])
+
+
+def test_the_tracks_gates_are_in_time_not_frames(capture):
+    """The same capture filmed at twice the rate (frame numbers doubled, 60 fps) regroups as at
+    30 fps: the gates were 0.3 m per frame and 15 frames whatever the rate (18 m/s and 0.25 s
+    at 60 fps, 7.5 m/s, below a sprinter, at 25 fps)."""
+    from dataclasses import replace
+
+    people = observations(capture, noise_px=1.0, seed=3)
+    for t in (4, 5):  # exchanged ids, as above: the gates decide who continues whom
+        for name in ("uv", "confidence", "rows"):
+            x, y = getattr(people[0], name), getattr(people[1], name)
+            x[t], y[t] = y[t].copy(), x[t].copy()
+    doubled = [replace(p, frames=2 * p.frames) for p in people]
+    at30, rep30 = regroup_people(people, fps=30.0)
+    at60, rep60 = regroup_people(doubled, fps=60.0)
+    assert rep30.tracks == rep60.tracks == 2 and rep30.moved_crops == rep60.moved_crops
+    for a, b in zip(at30, at60, strict=True):
+        assert np.array_equal(a.rows, b.rows) and np.array_equal(2 * a.frames, b.frames)

@@ -8,7 +8,8 @@ hypothesis backed by at least `min_agree` cameras. Here:
 1. per frame, hypotheses closer than `merge_m` (mean distance of the shoulders and hips) are one
    person (two extraction ids on the same body): the one backed by more views stands;
 2. hypotheses are linked into tracks over time by the Hungarian method on that distance to each
-   track's last position, gated at `jump_m` per frame elapsed, with a bonus `same_id_m` for the
+   track's last position, gated at `jump_mps` (m/s) times the time elapsed, and for at most
+   `max_gap_s` seconds, with a bonus `same_id_m` for the
    extraction id the track came from; a hypothesis left over starts a new track;
 3. per frame, every crop of every extraction person goes to the track whose skeleton it matches
    best (median landmark error below `agree` x the person's size in that view; one crop per
@@ -41,9 +42,11 @@ _TORSO = [11, 12, 23, 24]
 class RegroupOptions:
     consensus: ConsensusOptions = field(default_factory=ConsensusOptions)
     merge_m: float = 0.2
-    jump_m: float = 0.3  # per frame elapsed
+    # The gates are in time, not frames (they were 0.3 m per frame and 15 frames: 18 m/s and
+    # 0.25 s at the lab's 60 fps, 7.5 m/s at 25 fps); the same as before at 30 fps.
+    jump_mps: float = 9.0  # how fast a torso may move between its hypotheses
     same_id_m: float = 0.1
-    max_gap: int = 15
+    max_gap_s: float = 0.5  # a track not seen this long takes no hypothesis
 
 
 @dataclass
@@ -84,9 +87,12 @@ def _extent(obs: PersonObservations, t: int, min_conf: float) -> np.ndarray:
 
 
 def regroup_people(
-    people: list[PersonObservations], options: RegroupOptions | None = None
+    people: list[PersonObservations], options: RegroupOptions | None = None, fps: float = 30.0
 ) -> tuple[list[PersonObservations], RegroupReport]:
+    """The module's steps on `people` (one per extraction id) of a capture at `fps` (the frame
+    numbers are video frames)."""
     o = options or RegroupOptions()
+    jump_per_frame, max_gap = o.jump_mps / fps, round(o.max_gap_s * fps)
     if not people:
         return [], RegroupReport(0, 0, 0, {})
     C, M = people[0].uv.shape[1:3]
@@ -118,13 +124,13 @@ def regroup_people(
                 keep.append(h)
             else:
                 merged += 1
-        live = [tid for tid, tr in tracks.items() if f - tr["frame"] <= o.max_gap]
+        live = [tid for tid, tr in tracks.items() if f - tr["frame"] <= max_gap]
         cost = np.full((len(keep), len(live)), np.inf)
         for i, (k, X, _) in enumerate(keep):
             for j, tid in enumerate(live):
                 tr = tracks[tid]
                 d = _torso_distance(X, tr["X"])
-                if d <= o.jump_m * (f - tr["frame"]):
+                if d <= jump_per_frame * (f - tr["frame"]):
                     cost[i, j] = d - (o.same_id_m if tr["source"] == k else 0.0)
         taken = {}
         if keep and live:

@@ -361,7 +361,7 @@ def fuse_scene(
             landmarks, stored = stored, landmarks
     people = group_by_person(store, landmarks)
     if o.regroup is not None:
-        people, regrouped = regroup_people(people, o.regroup)
+        people, regrouped = regroup_people(people, o.regroup, fps)
         if log is not None:
             log.info(
                 "fuse: %d people after regrouping (%d crops moved to another person)",
