@@ -3,7 +3,8 @@
 Synthetic detections with known truth (0.3 px corner noise, a ring of 8 cameras, no board
 pose seen by all). The initial solution (intrinsics, pose graph) is computed once; every BA
 variant then starts from the same state. Each variant runs `--repeats` times; the table shows
-the median wall time, its ratio to the default, and the accuracy of the calibrated rig against
+the median wall time, its ratio to the first variant run (the default unless `--only` leaves
+it out), and the accuracy of the calibrated rig against
 the truth: worst focal error (%), worst centre error (% of rig diameter), worst rotation
 error (degrees) and the final RMS (px).
 
