@@ -198,6 +198,27 @@ def test_a_single_view_neighbours_pixels_are_theirs_not_a_3d_persons():
     assert seen >= 6
 
 
+def test_one_person_found_from_two_sides_is_one_and_two_side_by_side_are_two():
+    """Two candidates, each refined in its own cameras and triangulated from them alone, lay
+    0.155 m apart with hips 0.114 m apart: over both duplicate limits, so one person kept two
+    ids (crowd_7001). Their views together fit one skeleton; two people 0.3 m apart do not."""
+    tracker = CrowdTracker(RIG, 1 / 30)
+    names = RIG.names
+
+    def candidate(body, cams, seed):
+        found, _ = instances(RIG, [body], noise_px=2.0, seed=seed)
+        refined = {n: (found[n][0], np.zeros((2, 2))) for n in cams if found[n]}
+        return _Candidate(body + 0.08, False, None, refined)  # its own, slightly off skeleton
+
+    one = person(0.0, 0.0, 0.4)
+    a, b = candidate(one, names[:2], 1), candidate(one, names[2:], 2)
+    assert tracker._one_body(a, b) and tracker._one_body(b, a)
+    beside = candidate(person(0.3, 0.0, 0.4), names[2:], 2)
+    assert not tracker._one_body(a, beside)
+    off = CrowdTracker(RIG, 1 / 30, CrowdConfig(duplicate_fit=0.0))
+    assert not off._one_body(a, b)
+
+
 @pytest.mark.parametrize("search", [True, False])
 def test_someone_at_the_back_whom_one_detector_finds_is_looked_for_where_they_stand(search):
     """The lab's bystander: they stand apart (1.7 m from the nearest), every camera shows them,

@@ -102,6 +102,13 @@ class CrowdConfig:
     remembered_gap: float = 0.3  # a prior further than this (m) from every group is a candidate
     duplicate_gap: float = 0.15  # two candidates this close (m) after refinement are one person
     duplicate_hips: float = 0.1  # ... and two whose mid-hips lie this close (m; 0: not used)
+    # ... and two whose mid-hips lie within `duplicate_near` (m) and whose refined views,
+    # triangulated together, each fit that one skeleton at most `duplicate_fit` worse (mean
+    # landmark error, share of the person's size; 0: not used) than their own (`_one_body`):
+    # one person found from two sides, each triangulated from its own 3 views (crowd_7001:
+    # 0.155 m apart, hips 0.114 m: a second id)
+    duplicate_near: float = 0.4
+    duplicate_fit: float = 0.03
     # the kept one of two such candidates takes the other's views in cameras it has none in
     merge_duplicates: bool = True
     min_mask_pixels: int = 20  # smaller masks are no view
@@ -129,8 +136,11 @@ class CrowdConfig:
                 "CrowdConfig needs 0 < project_visibility <= 1 and trusted_views >= 2, got "
                 f"{self.project_visibility}, {self.trusted_views}"
             )
-        if self.duplicate_hips < 0:
-            raise ValueError(f"CrowdConfig needs duplicate_hips >= 0, got {self.duplicate_hips}")
+        if self.duplicate_hips < 0 or self.duplicate_near < 0 or self.duplicate_fit < 0:
+            raise ValueError(
+                "CrowdConfig needs duplicate_hips, duplicate_near and duplicate_fit >= 0, got "
+                f"{self.duplicate_hips}, {self.duplicate_near}, {self.duplicate_fit}"
+            )
 
 
 @dataclass(frozen=True)
@@ -434,10 +444,12 @@ class CrowdTracker:
         hips = [_hips(c.skeleton) for c in cands]
 
         def same(k: int, j: int) -> bool:
+            hip_gap = np.linalg.norm(hips[k] - hips[j])
             return bool(
                 skeleton_distance(cands[k].skeleton[_BODY], cands[j].skeleton[_BODY])
                 < cfg.duplicate_gap
-                or np.linalg.norm(hips[k] - hips[j]) < cfg.duplicate_hips
+                or hip_gap < cfg.duplicate_hips
+                or (hip_gap < cfg.duplicate_near and self._one_body(cands[k], cands[j]))
             )
 
         keep: list[int] = []
@@ -498,6 +510,31 @@ class CrowdTracker:
                     c.fits[n] = skeleton_fit(self.cams[n], c.refined[n][0], c.skeleton, cfg.match)
                     if c.fits[n] > cfg.refine_fit:
                         del c.refined[n], c.fits[n]
+
+    def _one_body(self, a: _Candidate, b: _Candidate) -> bool:
+        """Whether the refined views of `a` and `b` are one person's: triangulated together
+        (each camera once, a's where both have one), every reading of either still fits that
+        skeleton as a view joining a person does (`MatchConfig.view_error`) and at most
+        `duplicate_fit` worse than its own candidate's skeleton. Two people side by side
+        cannot: the skeleton between them misses the readings of both (crowd_7001: one
+        person's two candidates fit their views 0.00-0.02 worse together; two people's, 0.07
+        to 0.24 worse)."""
+        cfg = self.config
+        views = {**b.refined, **a.refined}
+        if cfg.duplicate_fit <= 0 or len(views) < 3 or not a.refined or not b.refined:
+            return False
+        min_conf = cfg.match.min_confidence
+        cams = {n: camera_view(self.cams[n], [inst], min_conf) for n, (inst, _) in views.items()}
+        X = _triangulate_all(cams, {n: (0, False) for n in views}, cfg.match)
+        if np.count_nonzero(np.all(np.isfinite(X), axis=1)) < cfg.match.min_shared:
+            return False
+        for c in (a, b):
+            for n, (inst, _) in c.refined.items():
+                together = skeleton_fit(self.cams[n], inst, X, cfg.match)
+                alone = skeleton_fit(self.cams[n], inst, c.skeleton, cfg.match)
+                if not together <= min(cfg.match.view_error, alone + cfg.duplicate_fit):
+                    return False
+        return True
 
     def _triangulate_refined(self, c: _Candidate) -> None:
         """A candidate's skeleton from its refined views, where it has two or more."""
