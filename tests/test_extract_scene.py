@@ -4,6 +4,7 @@ import json
 import multiprocessing as mp
 import shutil
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import cv2
 import h5py
@@ -225,6 +226,39 @@ def test_replaced_external_masks_are_not_served_from_an_interrupted_run(short_sc
     replaced = plan()
     assert replaced.settings != first.settings  # the store does not resume across the change
     assert not (replaced.work / "labels_marker.h5").exists()
+
+
+def test_a_video_or_clean_plate_replaced_under_its_name_starts_the_store_again(
+    short_scene, tmp_path
+):
+    """The store resumed by its settings, which named no video: a video replaced by another
+    take of the same name after an interrupted run resumed into the old store (12 pairs kept
+    from the old video); clean plates were keyed by name alone."""
+    videos = {}
+    for n, p in short_scene.videos.items():
+        videos[n] = tmp_path / "videos" / Path(p).name
+        videos[n].parent.mkdir(exist_ok=True)
+        shutil.copy(p, videos[n])
+    plates = {n: tmp_path / "plates" / f"{n}.mp4" for n in videos}
+    plates[next(iter(plates))].parent.mkdir()
+    for n in plates:
+        shutil.copy(videos[n], plates[n])
+
+    def plan():
+        return scene_phase.plan_extraction(
+            videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64, scale=1.2,
+            frame_stride=1, method="median", external=None, truth=None,
+            options=_opts(background_videos=plates),
+        )  # fmt: skip
+
+    first = plan()
+    assert plan().settings == first.settings  # nothing changed: the same store resumes
+    a, b = sorted(videos)[:2]
+    shutil.copy(videos[b], videos[a])  # another take under camera a's name
+    second = plan()
+    assert second.settings != first.settings
+    shutil.copy(videos[a], plates[a])  # and a new clean plate for it
+    assert plan().settings != second.settings
 
 
 def test_report_files(short_scene, tmp_path):

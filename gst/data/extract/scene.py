@@ -37,6 +37,7 @@ import numpy as np
 
 from calibration import Camera, Rig
 from calibration.camera import fit_to_frames
+from gst.atomic import atomic_write_json
 from gst.data.background import BackgroundConfig
 from gst.data.evaluate import CropTruth, association_accuracy
 from gst.data.external import ExternalDetections, find_mask_file, read_external
@@ -57,7 +58,14 @@ from gst.data.store import CropBatch, CropStore, CropStoreWriter, merge_part
 from gst.detect.blazepose import import_litert
 from gst.detect.persons import SegmenterConfig
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
-from gst.video import VideoError, VideoInfo, check_videos, probe_video, scaled_size
+from gst.video import (
+    VideoError,
+    VideoInfo,
+    check_videos,
+    content_digest,
+    probe_video,
+    scaled_size,
+)
 from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.data")
@@ -188,6 +196,12 @@ class PhaseOutcome:
     timings: dict[str, float] = field(default_factory=dict)
 
 
+def _file_identity(path: Path) -> list:
+    """A file by name, size and sampled content (`gst.video.content_digest`): names, not paths,
+    so that a moved workspace stays valid."""
+    return [Path(path).name, os.path.getsize(path), content_digest(path)]
+
+
 def plan_extraction(
     videos: dict[str, Path],
     rig: Rig,
@@ -277,7 +291,10 @@ def plan_extraction(
                 else [volume.basis.tolist(), volume.lo.tolist(), volume.hi.tolist()],
                 None if ext is None else ext.signature(),  # its files, by name and content
                 [_camera_signature(rig[n]) for n in names],
-                {n: p.name for n, p in sorted(plates.items())},
+                # the videos and the clean plates by name and content (a file replaced under
+                # the same name, after an interrupted run, resumed the store and its labels)
+                {n: _file_identity(p) for n, p in sorted(videos.items())},
+                {n: _file_identity(p) for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
                 association,
                 repr(opts.crowd) if association == "keypoints" else None,
@@ -299,7 +316,7 @@ def plan_extraction(
     ):
         shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
-    marker.write_text(json.dumps({"key": work_key, "settings": settings}))
+    atomic_write_json(marker, {"key": work_key, "settings": settings})
     return ExtractPlan(
         videos, rig, out_h5, names, infos, n_frames, frames, sizes, work_sizes, crop_size,
         float(scale), frame_stride, bg_cfg, opts, ext, plates, truth_files, settings, work,
@@ -369,7 +386,7 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
             progress,
             step_seconds=step_seconds,
         )
-        marker.write_text(json.dumps(asdict(summary)))
+        atomic_write_json(marker, asdict(summary))
         return summary
     ext = plan.external
     global_ids = bool(
@@ -387,7 +404,7 @@ def _associate(plan: ExtractPlan, active: list[str], progress) -> AssociationSum
         progress,
         step_seconds=plan.frame_stride / plan.fps,
     )
-    marker.write_text(json.dumps(asdict(summary)))
+    atomic_write_json(marker, asdict(summary))
     return summary
 
 
