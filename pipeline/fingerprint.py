@@ -41,11 +41,14 @@ class HashCache:
     def file_digest(self, path: Path) -> str:
         st = path.stat()
         key = str(path.resolve())
+        # size and modification time alone missed a same-size file copied in with its mtime
+        # (cp -p, rsync -a, tar x): the inode and the change time (which no tool sets) see it
+        stamp = [st.st_size, st.st_mtime_ns, st.st_ino, st.st_ctime_ns]
         hit = self._entries.get(key)
-        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
-            return hit[2]
+        if hit and hit[:-1] == stamp:
+            return hit[-1]
         digest = _sha256_file(path)
-        self._entries[key] = [st.st_size, st.st_mtime_ns, digest]
+        self._entries[key] = [*stamp, digest]
         self._dirty = True
         return digest
 

@@ -191,3 +191,27 @@ def test_each_variant_stages_its_outputs_in_a_folder_of_its_own(tmp_path):
     assert len({a, b, plain}) == 3 and a.parent == b.parent == plain.parent
     assert plain.name == "per_video" and b.name == "per_video@b"
     assert a.name == _safe_key("per_video@a b")
+
+
+def test_the_hash_cache_sees_a_same_size_file_copied_in_with_its_old_time(tmp_path):
+    """Keyed by size and modification time, the cache served the old digest for a file of the
+    same size copied in with the old file's time (cp -p, rsync -a, tar x do that): the stages
+    reading it stayed 'up to date'."""
+    import os
+
+    from pipeline.fingerprint import HashCache
+
+    f = tmp_path / "rig.json"
+    f.write_text('{"fx": 1000.0}')
+    cache = HashCache(tmp_path / "hashcache.json")
+    old = cache.digest(f)
+    cache.save()
+    st = f.stat()
+    new = tmp_path / "new.json"
+    new.write_text('{"fx": 2000.0}')  # the same size
+    os.utime(new, ns=(st.st_atime_ns, st.st_mtime_ns))
+    os.replace(new, f)
+    assert f.stat().st_size == st.st_size and f.stat().st_mtime_ns == st.st_mtime_ns
+    assert HashCache(tmp_path / "hashcache.json").digest(f) != old
+    again = HashCache(tmp_path / "hashcache.json")
+    assert again.digest(f) == again.digest(f)  # and an unchanged file is a hit
