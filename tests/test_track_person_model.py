@@ -90,6 +90,29 @@ def test_a_still_person_keeps_their_landmarks_until_their_region_changes(frames)
     assert off.regions == 6 and off.still_kept == 0
 
 
+def test_a_doubted_person_who_stands_still_stays_doubted(frames):
+    """A reading continued though the model doubted it (presence below min_presence) was kept
+    as a still person's: the next frame it came back as sure, and the detector stopped looking
+    for a surer reading of them for up to `still_refresh` frames."""
+    from dataclasses import replace
+
+    from gst.track.person_detector import PersonModelConfig, PersonModelDetector
+
+    det = PersonModelDetector(PersonModelConfig(look_again_zoom=0, detect_every=100))
+    for i in range(2):
+        det.detect(frames[0], i)
+    real = det.landmarker
+    det.landmarker = lambda image, rois: [replace(r, presence=0.3) for r in real(image, rois)]
+    det.config = replace(det.config, still_change=0.0)  # frame 2: everyone read, and doubted
+    det.detect(frames[0], 2)
+    assert det.continued >= 1
+    det.config = replace(det.config, still_change=4.0)  # the same picture: still people kept
+    runs, still = det.detector_runs, det.still_kept
+    det.detect(frames[0], 3)
+    assert det.still_kept == still  # the doubted are read again, not kept as still
+    assert det.detector_runs == runs + 1  # and the detector looks for surer readings
+
+
 def test_looking_again_zoomed_in_finds_the_bystander_at_the_back_of_cam02(frames):
     """cam02 shows the bystander small at the back, beside the man: the usual detector windows
     never find her; the zoomed windows of the second look do. The anatomical skeleton model at

@@ -553,7 +553,9 @@ class PersonModelDetector:
             for f, seen in zip(followed, self._seen, strict=True)
             if seen is not None and f is seen.found
         }
-        confirmed = {id(r) for r, _ in tracked}
+        # a doubted reading is no still person's: kept as one, it came back as sure the next
+        # frame and the detector stopped looking for a surer reading of them
+        confirmed = {id(r) for r, _ in tracked if id(r) not in self._doubted}
         self._seen = [
             earlier.get(id(r))
             or (_Seen((r, box), box_thumbnail(small, box)) if id(r) in confirmed else None)
