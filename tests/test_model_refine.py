@@ -189,6 +189,11 @@ def test_the_tracks_metadata_names_the_rounds(body, tmp_path):
     plain, ids, groups = build_network(get_preset("tiny"), body)
     save_checkpoint(tmp_path / "p.pt", plain, "anny", ids, groups)
     assert model_provenance(tmp_path / "p.pt", "gst-tiny", "demo").reprojection_feedback == 0
+    # the weights are named by their digest: the two networks' tracks have different settings
+    # (a retrained models/gst.pt kept the old tracks of a library caller's tracks folder)
+    a, b = (model_provenance(tmp_path / f, "gst-tiny", "demo") for f in ("n.pt", "p.pt"))
+    assert a.checkpoint == b.checkpoint and a.checkpoint_sha256 != b.checkpoint_sha256
+    assert a.to_dict() != {**b.to_dict(), "reprojection_feedback": 2}
 
 
 @pytest.mark.parametrize("gravity", [False, True])

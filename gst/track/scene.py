@@ -43,6 +43,7 @@ from gst.detect.weights import BlazePoseModelsMissing, model_paths
 from gst.device import resolve_device
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
+from gst.registry import sha256_of
 from gst.render.ply import write_gaussians_ply
 from gst.track.agreement import (
     LandmarkAgreement,
@@ -302,6 +303,9 @@ class ModelProvenance:
     pose_input: str = "image and landmarks"
     # rounds of reprojection feedback after the network's SMPL head (gst.model.refine; 0: none)
     reprojection_feedback: int = 0
+    # the weights themselves: part of every tracks file's settings digest, so that tracks of
+    # one checkpoint are never taken for another's (the path and version were constants)
+    checkpoint_sha256: str | None = None
 
     def to_dict(self) -> dict:
         """The metadata's layout (the fields in order)."""
@@ -329,6 +333,7 @@ def model_provenance(
         reprojection_feedback=int(
             ckpt.config.get("landmark_refine", 0) if ckpt.config.get("landmark_tokens") else 0
         ),
+        checkpoint_sha256=sha256_of(Path(checkpoint)),
     )
 
 
