@@ -117,9 +117,17 @@ def _param_files(params) -> list[Path]:
     Path-valued param (also in a list or a dict), or a text param naming an existing file
     (`body_model: my_smpl.pkl`). Their content is part of the stage's inputs, as a declared
     input's is."""
+    from gst.body import body_model_file
+
     found = []
     for key in type(params).model_fields:
         value = getattr(params, key)
+        if key == "body_model" and isinstance(value, str):
+            # 'smpl', 'smpl:female', '~/models/...': the file it reads, wherever it lies (a
+            # swapped SMPL file left fuse and train 'up to date')
+            file = body_model_file(value)
+            found += [file] if file is not None else []
+            continue
         if isinstance(value, dict):
             value = list(value.values())
         for v in value if isinstance(value, (list, tuple)) else [value]:

@@ -215,3 +215,24 @@ def test_the_hash_cache_sees_a_same_size_file_copied_in_with_its_old_time(tmp_pa
     assert HashCache(tmp_path / "hashcache.json").digest(f) != old
     again = HashCache(tmp_path / "hashcache.json")
     assert again.digest(f) == again.digest(f)  # and an unchanged file is a hit
+
+
+def test_a_body_model_named_smpl_is_hashed_by_the_file_it_reads(tmp_path, monkeypatch):
+    """`body_model: smpl` (or `smpl:female`, or `~/...`) named no file the runner could hash:
+    a swapped SMPL file left fuse and train 'up to date' with bodies of the old one."""
+    from gst.fuse.settings import FuseSettings
+    from gst.train.scene_training import TrainSettings
+    from pipeline.runner import _param_files
+
+    body_dir = tmp_path / "body"
+    body_dir.mkdir()
+    neutral, female = body_dir / "SMPL_NEUTRAL.pkl", body_dir / "SMPL_FEMALE.pkl"
+    neutral.write_bytes(b"neutral")
+    female.write_bytes(b"female")
+    monkeypatch.setenv("GST_BODY_DIR", str(body_dir))
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert _param_files(FuseSettings(body_model="smpl")) == [neutral]
+    assert _param_files(TrainSettings(body_model="smpl:female")) == [female]
+    assert _param_files(FuseSettings(body_model="~/body")) == [neutral]  # a folder under ~
+    assert _param_files(FuseSettings(body_model="anny")) == []  # built in: nothing to hash
+    assert _param_files(FuseSettings(body_model="smpl:male")) == []  # none there: load says so

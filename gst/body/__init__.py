@@ -27,6 +27,7 @@ __all__ = [
     "BodyModel",
     "BodyModelData",
     "BodyOutput",
+    "body_model_file",
     "load_body_model",
     "load_body_data",
     "rot6d_to_matrix",
@@ -60,6 +61,23 @@ def load_body_data(spec: str = "anny") -> BodyModelData:
         if ours:
             return BodyModelData.load_npz(path)
     return load_smpl_file(path)
+
+
+def body_model_file(spec: str) -> Path | None:
+    """The file a body-model ``spec`` (see :func:`load_body_data`) reads, or None: the built-in
+    Anny default, or a spec that names no existing file (loading it says why). Its content is
+    what a fit or a network made with the spec depends on (the pipeline hashes it)."""
+    from gst.body.smpl_file import find_smpl_file
+
+    if spec == "anny":
+        return None
+    try:
+        if spec == "smpl" or spec.startswith("smpl:"):
+            return find_smpl_file(None, spec.partition(":")[2] or None)
+        path = Path(spec).expanduser()
+        return path if path.suffix == ".npz" and path.is_file() else find_smpl_file(path, None)
+    except (FileNotFoundError, ValueError):
+        return None
 
 
 def load_body_model(

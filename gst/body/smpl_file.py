@@ -226,6 +226,12 @@ def _find_file(path: str | Path | None, gender: str | None) -> Path:
     )
 
 
+def find_smpl_file(path: str | Path | None, gender: str | None) -> Path:
+    """The SMPL file that `path` (a file, a folder, or None for the default folder) and
+    `gender` name; FileNotFoundError, naming where it looked, when there is none."""
+    return _find_file(path, gender)
+
+
 def _gender_of(file: Path, asked: str | None) -> str | None:
     """The gender a model file is, from its name as SMPL ships it (SMPL_MALE, basicModel_m_...,
     basicmodel_neutral_...); `asked` where the name says none. A path given to SMPL_MALE.pkl was
