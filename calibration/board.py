@@ -31,6 +31,16 @@ class BoardError(ValueError):
     """A board specification or a detection input is invalid."""
 
 
+def check_square_metres(square_size: float) -> None:
+    """BoardError for a square size that must be millimetres (150 for a 0.15 m board solved a
+    rig kilometres wide, labelled metres)."""
+    if square_size > MAX_SQUARE_M:
+        raise BoardError(
+            f"board square_size {square_size} m: that looks like millimetres; give metres "
+            f"(e.g. {square_size / 1000:g}), at most {MAX_SQUARE_M:g} m"
+        )
+
+
 @dataclass(frozen=True)
 class BoardSpec:
     """A printed calibration board. Sizes in metres.
@@ -62,11 +72,7 @@ class BoardSpec:
             raise BoardError(
                 f"board square_size must be a positive length in metres, got {self.square_size}"
             )
-        if self.square_size > MAX_SQUARE_M:  # 150 for 0.15 m solved a rig kilometres wide
-            raise BoardError(
-                f"board square_size {self.square_size} m: that looks like millimetres; give "
-                f"metres (e.g. {self.square_size / 1000:g}), at most {MAX_SQUARE_M:g} m"
-            )
+        check_square_metres(self.square_size)
         if self.kind == "charuco":
             if self.marker_size is None or not (0 < self.marker_size < self.square_size):
                 raise BoardError(

@@ -48,6 +48,8 @@ __all__ = [
     "VideoInfo",
     "VideoTruncatedError",
     "check_videos",
+    "content_digest",
+    "file_identity",
     "frame_range",
     "iter_frames",
     "probe_video",
@@ -261,6 +263,15 @@ def content_digest(path: str | Path) -> str:
             f.seek(max(CONTENT_SAMPLE_BYTES, size - CONTENT_SAMPLE_BYTES))
             h.update(f.read(CONTENT_SAMPLE_BYTES))
     return h.hexdigest()
+
+
+def file_identity(path: str | Path) -> list:
+    """A file by name, size and sampled content (`content_digest`), for cache and resume keys:
+    names, not paths, so a moved workspace stays valid; content, not times, so a file copied in
+    with its old time (cp -p, rsync -a) is seen, and a copy that only changed the times is not
+    taken for another file."""
+    path = Path(path)
+    return [path.name, path.stat().st_size, content_digest(path)]
 
 
 def frame_range(

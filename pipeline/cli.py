@@ -268,8 +268,9 @@ def main(argv: list[str] | None = None) -> int:
         stages = load_stages(cfg)
         scenes = _scenes(cfg, args.scene)
         if args.command == "stages":  # the listing is the command's output: stdout
-            for scene in scenes:  # the values `run` would refuse are refused here too
-                Runner(cfg, scene, stages)
+            if args.params:  # the values `run` would refuse are not listed as set
+                for scene in scenes:
+                    Runner(cfg, scene, stages)
             out = make_console(args.quiet, stderr=False)
             for name, st in stages.items():
                 out.print(

@@ -57,6 +57,8 @@ class SyntheticSource(Strict):
             preset(self.preset, seed=self.seed, **self.overrides)
         except KeyError as exc:
             raise ValueError(f"preset: {exc.args[0]}") from None
+        except TypeError as exc:  # e.g. a `__` key under a value that is no mapping
+            raise ValueError(f"overrides: {exc}") from None
         except ValidationError as exc:
             first = exc.errors()[0]
             where = ".".join(str(part) for part in first["loc"])
@@ -81,13 +83,9 @@ class BoardSource(Strict):
 
     @model_validator(mode="after")
     def _metres(self) -> BoardSource:
-        from calibration.board import MAX_SQUARE_M
+        from calibration.board import check_square_metres
 
-        if self.square_size > MAX_SQUARE_M:  # refused here, before any stage runs
-            raise ValueError(
-                f"square_size {self.square_size} m looks like millimetres; give metres "
-                f"(e.g. {self.square_size / 1000:g})"
-            )
+        check_square_metres(self.square_size)  # refused here, before any stage runs
         return self
 
 

@@ -287,7 +287,7 @@ def test_a_board_size_in_millimetres_is_refused(tmp_path):
     with pytest.raises(BoardError, match="looks like millimetres; give metres \\(e.g. 0.15\\)"):
         BoardSpec("charuco", 7, 5, 150.0, 110.0, "DICT_4X4_50")
     BoardSpec("charuco", 7, 5, 0.15, 0.11, "DICT_4X4_50")
-    with pytest.raises(ValueError, match="square_size 150.0 m looks like millimetres"):
+    with pytest.raises(ValueError, match="square_size 150.0 m: that looks like millimetres"):
         BoardSource(videos="*.mp4", squares_x=7, squares_y=5, square_size=150.0)
 
 

@@ -212,9 +212,19 @@ def test_the_hash_cache_sees_a_same_size_file_copied_in_with_its_old_time(tmp_pa
     os.utime(new, ns=(st.st_atime_ns, st.st_mtime_ns))
     os.replace(new, f)
     assert f.stat().st_size == st.st_size and f.stat().st_mtime_ns == st.st_mtime_ns
-    assert HashCache(tmp_path / "hashcache.json").digest(f) != old
-    again = HashCache(tmp_path / "hashcache.json")
-    assert again.digest(f) == again.digest(f)  # and an unchanged file is a hit
+    cache = HashCache(tmp_path / "hashcache.json")
+    assert cache.digest(f) != old
+    cache.save()
+    import pipeline.fingerprint as fingerprint
+
+    hashed = []
+    real = fingerprint._sha256_file
+    fingerprint._sha256_file = lambda p: hashed.append(p) or real(p)
+    try:
+        HashCache(tmp_path / "hashcache.json").digest(f)  # an unchanged file: a hit
+    finally:
+        fingerprint._sha256_file = real
+    assert hashed == []
 
 
 def test_a_body_model_named_smpl_is_hashed_by_the_file_it_reads(tmp_path, monkeypatch):

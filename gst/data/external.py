@@ -47,9 +47,12 @@ def _pick_masks_array(keys_shapes: dict[str, tuple], path: Path) -> str:
 class IdMaskFile:
     """Per-frame person-id masks of one camera from an .h5 or .npz file (read lazily)."""
 
-    def __init__(self, path: Path | str, camera: str = ""):
+    def __init__(self, path: Path | str, camera: str = "", external: bool = False):
+        """`external`: a user's masks, where 255 is no person id (docs/formats/external_masks.md);
+        synthetic truth numbers people up to 255."""
         self.path = Path(path)
         self.camera = camera
+        self.external = external
         if not self.path.is_file():
             raise ExternalError(f"camera '{camera}': mask file {self.path} not found")
         self._npz_masks: np.ndarray | None = None
@@ -140,7 +143,7 @@ class IdMaskFile:
             if self._h5 is None:
                 self._h5 = h5py.File(self.path, "r")
             mask = self._h5[self._key][row]
-        if mask.size and mask.max() == 255:  # e.g. a binary 0/255 mask, read as person 255
+        if self.external and mask.size and mask.max() == 255:  # a binary 0/255 mask: person 255
             raise ExternalError(
                 f"camera '{self.camera}': {self.path} frame {frame} holds the value 255; person "
                 "ids are 1..254 (0 = nobody): write a binary mask as 0/1"
@@ -172,19 +175,18 @@ class ExternalDetections:
 
     def masks(self, camera: str) -> IdMaskFile | None:
         p = self.mask_files.get(camera)
-        return IdMaskFile(p, camera) if p else None
+        return IdMaskFile(p, camera, external=True) if p else None
 
     def signature(self) -> list:
-        """What identifies this input for caches and resume: each mask file's name, size and
-        modification time (names, not paths: a moved workspace stays valid), the boxes' content
-        and `global_ids`. A mask file replaced after an interrupted run (same folder name) was
-        served from the old labels."""
+        """What identifies this input for caches and resume: each mask file by name, size and
+        sampled content (`gst.video.file_identity`), the boxes' content and `global_ids`. A mask
+        file replaced after an interrupted run (same folder name) was served from the old
+        labels."""
         import hashlib
 
-        files = []
-        for cam, path in sorted(self.mask_files.items()):
-            st = Path(path).stat()
-            files.append([cam, Path(path).name, st.st_size, st.st_mtime_ns])
+        from gst.video import file_identity
+
+        files = [[cam, *file_identity(path)] for cam, path in sorted(self.mask_files.items())]
         digest = hashlib.sha256()
         for cam in sorted(self.boxes):
             for frame in sorted(self.boxes[cam]):
@@ -206,7 +208,7 @@ class ExternalDetections:
                     f"(cameras: {sorted(sizes)})"
                 )
         for cam, path in self.mask_files.items():
-            m = IdMaskFile(path, cam)
+            m = IdMaskFile(path, cam, external=True)
             if m.size != tuple(sizes[cam]):
                 raise ExternalError(
                     f"camera '{cam}': masks in {path} are {m.size[0]}x{m.size[1]}, "

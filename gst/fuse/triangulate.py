@@ -91,7 +91,7 @@ def _dlt(Pn: np.ndarray, xn: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Weighted DLT: Pn (N, C, 3, 4), xn (N, C, 2), w (N, C) >= 0 -> (N, 3) (NaN if < 2 views).
     Each view's rows are scaled by its w, so the algebraic least squares weighs it by w squared
     (the Gauss-Newton refinement by w): it leans harder on confident views for the start and
-    the leave-one-out decisions. Every fused figure in docs/fuse.md was measured with it."""
+    the leave-one-out decisions."""
     rows_x = xn[..., 0:1] * Pn[..., 2, :] - Pn[..., 0, :]
     rows_y = xn[..., 1:2] * Pn[..., 2, :] - Pn[..., 1, :]
     A = np.concatenate([rows_x, rows_y], axis=-2) * np.concatenate([w, w], axis=-1)[..., None]

@@ -98,7 +98,7 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
         presence = np.zeros((len(job.frames), MAX_INSTANCES), np.float32)
         foreground = np.zeros((len(job.frames), h, w), bool)
     if job.external_masks:
-        ext = IdMaskFile(job.external_masks, job.camera)
+        ext = IdMaskFile(job.external_masks, job.camera, external=True)
         for f in job.frames:
             m = ext.get(f)
             if m is not None:

@@ -62,7 +62,7 @@ from gst.video import (
     VideoError,
     VideoInfo,
     check_videos,
-    content_digest,
+    file_identity,
     probe_video,
     scaled_size,
 )
@@ -196,12 +196,6 @@ class PhaseOutcome:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _file_identity(path: Path) -> list:
-    """A file by name, size and sampled content (`gst.video.content_digest`): names, not paths,
-    so that a moved workspace stays valid."""
-    return [Path(path).name, os.path.getsize(path), content_digest(path)]
-
-
 def plan_extraction(
     videos: dict[str, Path],
     rig: Rig,
@@ -293,8 +287,8 @@ def plan_extraction(
                 [_camera_signature(rig[n]) for n in names],
                 # the videos and the clean plates by name and content (a file replaced under
                 # the same name, after an interrupted run, resumed the store and its labels)
-                {n: _file_identity(p) for n, p in sorted(videos.items())},
-                {n: _file_identity(p) for n, p in sorted(plates.items())},
+                {n: file_identity(p) for n, p in sorted(videos.items())},
+                {n: file_identity(p) for n, p in sorted(plates.items())},
                 None if opts.persons is None else [asdict(opts.persons), opts.persons_hints],
                 association,
                 repr(opts.crowd) if association == "keypoints" else None,

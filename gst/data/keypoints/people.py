@@ -516,9 +516,8 @@ class CrowdTracker:
         (each camera once, a's where both have one), every reading of either still fits that
         skeleton as a view joining a person does (`MatchConfig.view_error`) and at most
         `duplicate_fit` worse than its own candidate's skeleton. Two people side by side
-        cannot: the skeleton between them misses the readings of both (crowd_7001: one
-        person's two candidates fit their views 0.00-0.02 worse together; two people's, 0.07
-        to 0.24 worse)."""
+        should not: the skeleton between them misses the readings of both (the figures and
+        their caveat: docs/extract.md, "One person found from two sides")."""
         cfg = self.config
         views = {**b.refined, **a.refined}
         if cfg.duplicate_fit <= 0 or len(views) < 3 or not a.refined or not b.refined:
