@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import glob
 import os
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -265,6 +266,48 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
     return cfg
 
 
+class _CoreSchemaLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2's core schema for plain scalars: `010` is 10 (not
+    octal 8), `12:30` and `yes` / `on` stay text (not 750 and true), and `1e-3` is a number
+    inside lists and mappings too (YAML 1.1 wants a dot in it)."""
+
+
+_OLD_TAGS = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"}
+_CoreSchemaLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in rules if tag not in _OLD_TAGS]
+    for first, rules in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_CoreSchemaLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
+)
+_CoreSchemaLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:int",
+    re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"),
+    list("-+0123456789"),
+)
+_CoreSchemaLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
+    list("-+0123456789."),
+)
+
+
+def _core_int(loader: yaml.SafeLoader, node: yaml.Node) -> int:
+    text = loader.construct_scalar(node)
+    return int(text, 0) if text[:2] in ("0o", "0x") else int(text, 10)
+
+
+_CoreSchemaLoader.add_constructor("tag:yaml.org,2002:int", _core_int)
+
+
+def load_yaml(text: str) -> Any:
+    """YAML text (the config file, a `--set` value) read with YAML 1.2's core schema."""
+    return yaml.load(text, Loader=_CoreSchemaLoader)  # a SafeLoader: builds no Python objects
+
+
 def format_error_line(err: dict, source: str) -> str:
     """One pydantic error as `file: dotted.key: what was expected (got ...)`."""
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
@@ -294,14 +337,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
             f"--set {text!r}: expected STAGE.KEY=VALUE (or a top-level key like executor.workers)"
         )
     try:
-        value = yaml.safe_load(raw)
+        value = load_yaml(raw)
     except yaml.YAMLError as exc:
         raise ConfigError(f"--set {text!r}: value is not valid YAML ({exc})") from exc
-    if isinstance(value, str):  # YAML 1.1 reads '1e-4' as a string; users mean a number
-        try:
-            value = float(value)
-        except ValueError:
-            pass
     return parts, value
 
 
@@ -349,7 +387,7 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     if not path.is_file():
         raise ConfigError(f"config file not found: {path} (pass --config PATH)")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        raw = load_yaml(path.read_text()) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
     if not isinstance(raw, dict):

@@ -88,6 +88,19 @@ def test_override_parsing():
         parse_override("train.lr")
 
 
+@pytest.mark.parametrize(
+    "text, value",
+    [("x.y=010", 10), ("x.y=12:30", "12:30"), ("x.y=yes", "yes"), ("x.y=true", True),
+     ("x.d={a: 1e-3, b: [1e-4, 2]}", {"a": 0.001, "b": [0.0001, 2]}), ("x.y=0x1F", 31),
+     ("x.y=-1e-3", -0.001), ("x.y=nan", "nan"), ("x.y=~", None)],
+)  # fmt: skip
+def test_set_values_read_as_yaml_1_2(text, value):
+    """YAML 1.1 read `010` as octal 8, `12:30` as 750 (base 60) and `yes` as true, and left
+    `1e-3` text inside a mapping (so `calibration.options` got the string '1e-3'); a bare
+    `nan` became NaN."""
+    assert parse_override(text)[1] == value
+
+
 def test_repository_config_is_valid():
     cfg = load_config(REPO / "pipeline.yaml")
     assert cfg.default_scene in cfg.scenes
