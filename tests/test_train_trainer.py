@@ -100,6 +100,24 @@ def test_a_nan_validation_value_is_never_the_best(tmp_path):
     assert torch.load(tmp_path / "best.pt", weights_only=True)["trainer"]["step"] == 8
 
 
+def test_a_resume_with_other_settings_says_which(tmp_path, caplog):
+    """A library caller resuming into the same folder with another learning rate continued
+    last.pt's run without a word (the pipeline starts a changed run in a fresh folder)."""
+    from dataclasses import replace
+
+    cfg = TrainConfig(steps=6, batch_size=4, lr=1e-2, warmup_steps=1, ckpt_every=3, log_every=1)
+    model, step, sample = make_problem()
+    Trainer(model, step, sample, cfg, tmp_path).fit()
+    with caplog.at_level("WARNING", logger="gst.train"):
+        model, step, sample = make_problem()
+        Trainer(model, step, sample, replace(cfg, ckpt_every=2), tmp_path).resume()
+    assert "other settings" not in caplog.text  # bookkeeping only
+    with caplog.at_level("WARNING", logger="gst.train"):
+        model, step, sample = make_problem()
+        Trainer(model, step, sample, replace(cfg, lr=5e-3), tmp_path).resume()
+    assert "written with other settings: lr: 0.01 -> 0.005" in caplog.text
+
+
 def test_schedule_warms_up_then_decays():
     cfg = TrainConfig(steps=100, warmup_steps=10, min_lr_ratio=0.1)
     values = [warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio) for s in range(100)]

@@ -128,6 +128,19 @@ def distributed_env(device: torch.device | None = None) -> tuple[int, int]:
     return 0, 1
 
 
+# settings that do not change what a step computes: a resumed run may take other values
+_BOOKKEEPING = ("val_every", "ckpt_every", "log_every", "device", "max_bad_steps")
+
+
+def _changed_settings(saved: dict | None, now: dict) -> list[str]:
+    """`key: saved -> now` for each training setting a resumed run changes (bookkeeping aside;
+    nothing for a checkpoint that records none)."""
+    if not isinstance(saved, dict):
+        return []
+    keys = sorted((set(saved) | set(now)) - set(_BOOKKEEPING))
+    return [f"{k}: {saved.get(k)!r} -> {now.get(k)!r}" for k in keys if saved.get(k) != now.get(k)]
+
+
 class Trainer:
     def __init__(
         self,
@@ -250,6 +263,12 @@ class Trainer:
             return False
         self.model.load_state_dict(ckpt["model"])
         st = ckpt["trainer"]
+        changed = _changed_settings(st.get("train_config"), asdict(self.cfg))
+        if changed:  # the pipeline starts a changed run afresh; a library caller may not mean to
+            log.warning(
+                "resuming %s, written with other settings: %s (a new folder starts afresh)",
+                path, ", ".join(changed),
+            )  # fmt: skip
         self.optimizer.load_state_dict(st["optimizer"])
         self.scheduler.load_state_dict(st["scheduler"])
         self.generator.set_state(st["generator"])
