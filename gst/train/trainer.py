@@ -17,7 +17,6 @@ Checkpoints hold CPU tensors, so a GPU-trained model loads anywhere.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import logging
@@ -196,6 +195,11 @@ class Trainer:
     def best_path(self) -> Path:
         return self.out_dir / "best.pt"
 
+    @property
+    def rank_state_path(self) -> Path:
+        """Where a rank other than 0 keeps its own batch generator beside `last.pt`."""
+        return self.out_dir / f"last.rank{self.rank}.pt"
+
     def state(self) -> dict:
         return {
             "step": self.step,
@@ -209,27 +213,22 @@ class Trainer:
         }
 
     def save(self, path: Path) -> None:
-        state = None
-        if self.rank == 0:
-            state = self.state()
-        if self.world > 1 and path == self.last_path:
-            # Each rank draws its own batches, so every rank's generator must resume too:
-            # gathered into rank 0's last.pt, which resume() sends to every rank (a file of
-            # each rank's own lived in its private staging folder, which the pipeline deletes:
-            # a resumed rank drew another stream than the run it replaced)
-            own = {"generator": self.generator.get_state(), "torch_rng": torch.get_rng_state()}
-            gathered: list = [None] * self.world
-            # NCCL stages the objects on the current CUDA device: this rank's own
-            on_gpu = self.device.type == "cuda"
-            with torch.cuda.device(self.device) if on_gpu else contextlib.nullcontext():
-                dist.all_gather_object(gathered, own)
-            if state is not None:
-                state["rank_states"] = gathered
+        if self.rank != 0 and path == self.last_path:
+            # each rank draws its own batches: its generator must resume too (last.pt holds
+            # rank 0's; every rank taking that one trained all ranks on the same batches)
+            atomic_torch_save(
+                {
+                    "step": self.step,
+                    "generator": self.generator.get_state(),
+                    "torch_rng": torch.get_rng_state(),
+                },
+                self.rank_state_path,
+            )
         if self.rank == 0:
             atomic_torch_save(
                 {
                     "model": move_to(self.model.state_dict(), "cpu"),
-                    "trainer": state,
+                    "trainer": self.state(),
                     **self.checkpoint_extra(),
                 },
                 path,
@@ -275,7 +274,7 @@ class Trainer:
         torch.set_rng_state(st["torch_rng"])
         self.step, self.bad_steps, self.best_value = st["step"], st["bad_steps"], st["best_value"]
         if self.rank != 0:
-            self._resume_rank_state(st.get("rank_states"))
+            self._resume_rank_state()
         self.seconds_before = self._elapsed_at(self.step)
         self._forget_logged_after(self.step)
         log.info("resumed from %s at step %d", path, self.step)
@@ -285,18 +284,18 @@ class Trainer:
         """Where `broadcast_object_list` stages its bytes: NCCL needs this rank's GPU."""
         return self.device if dist.get_backend() == "nccl" else torch.device("cpu")
 
-    def _resume_rank_state(self, rank_states: list | None) -> None:
-        """This rank's own generator from the checkpoint; without it (a checkpoint of another
-        world size) a fresh stream of its own."""
-        if rank_states is not None and len(rank_states) == self.world:
-            own = rank_states[self.rank]
+    def _resume_rank_state(self) -> None:
+        """This rank's own generator at the checkpoint's step; without it (killed between the
+        two writes, or a checkpoint of another world size) a fresh stream of its own."""
+        path = self.rank_state_path
+        own = torch.load(path, weights_only=True) if path.is_file() else None
+        if own is not None and own.get("step") == self.step:
             self.generator.set_state(own["generator"])
             torch.set_rng_state(own["torch_rng"])
             return
         log.warning(
-            "rank %d: the checkpoint holds no batch generator of this rank (it was written by "
-            "%s ranks): drawing a fresh stream",
-            self.rank, "another number of" if rank_states is not None else "an unknown number of",
+            "rank %d: no batch generator of its own at step %d (%s): drawing a fresh stream",
+            self.rank, self.step, path,
         )  # fmt: skip
         self.generator.manual_seed(self.cfg.seed + 1000 * self.rank + 7919 * (self.step + 1))
 
