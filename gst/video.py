@@ -353,17 +353,14 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
                 _check_stream_end(info, index)
                 return
             yield Frame(index, index / info.fps, image)
+            index += 1
             for _ in range(stride - 1):
-                index += 1
                 if end is not None and index >= end:
                     break
                 if not cap.grab():  # a skipped frame is checked like a read one
                     _check_stream_end(info, index)
                     return
-            else:
                 index += 1
-                continue
-            break
         if end is not None and end == info.frame_count and cap.grab():
             # the container announced fewer frames than it holds (a count estimated from the
             # duration, or a header written before the recording ended): the rest is not read
