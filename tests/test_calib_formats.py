@@ -447,7 +447,7 @@ def test_qualisys_transform_with_nan_is_refused_by_name(tmp_path):
     """NaN passed the orthonormality check (nan > tol is False) and crashed in the SVD."""
     path = tmp_path / "nan.qca.txt"
     path.write_text(QCA.read_text().replace('r11="0.5536380477336265"', 'r11="nan"', 1))
-    with pytest.raises(RigFormatError, match="camera 'cam01' <transform> holds NaN"):
+    with pytest.raises(RigFormatError, match="camera 'cam01' <transform> r11='nan' is not finite"):
         read_rig(path)
 
 
@@ -882,3 +882,103 @@ def test_toml_camera_names_round_trip_whatever_their_characters(name):
         path = Path(tmp) / "cal.toml"
         write_rig(rig, path, "anipose")
         assert list(read_rig(path, "anipose").names) == [name]
+
+
+def test_toml_metadata_dates_survive_the_rig_json_written_after_import(tmp_path):
+    """TOML has native dates: a [metadata] date was kept in Rig.meta and the rig.json written
+    after every import crashed with a bare "datetime is not JSON serializable"."""
+    path = tmp_path / "calib.toml"
+    write_rig(ring_cameras(2), path, "anipose")
+    text = path.read_text()
+    assert "[metadata]\n" in text
+    path.write_text(text.replace("[metadata]\n", "[metadata]\ncalibrated = 2024-05-02T10:31:00\n"))
+    rig = read_rig(path, "anipose")
+    out = tmp_path / "rig.json"
+    write_rig(rig, out, "rig")
+    assert read_rig(out).meta["metadata"]["calibrated"] == "2024-05-02T10:31:00"
+
+
+@pytest.mark.parametrize(
+    ("dataset", "value", "shown"),
+    [
+        ("R", np.eye(2), r"camera1 dataset R has shape \(2, 2\), expected \(3, 3\)"),
+        ("f", np.array([1145.0]), r"camera1 dataset f has shape \(1,\), expected \(2,\)"),
+        ("T", np.zeros(2), r"camera1 dataset T has shape \(2,\), expected \(3,\)"),
+        ("k", np.zeros(2), r"camera1 dataset k has shape \(2,\), expected \(3,\)"),
+    ],
+)
+def test_h36m_h5_malformed_datasets_are_named(tmp_path, dataset, value, shown):
+    """Bare reshape, index and matmul errors (and a too-long f silently cut to two values)."""
+    path = tmp_path / "cameras.h5"
+    write_h36m_sample(path)
+    with h5py.File(path, "r+") as h5:
+        del h5[f"subject1/camera1/{dataset}"]
+        h5[f"subject1/camera1/{dataset}"] = value
+    with pytest.raises(RigFormatError, match=f"{path}: subject1/{shown}"):
+        read_rig(path, "h36m")
+
+
+def test_h36m_h5_camera_groups_must_be_numbered(tmp_path):
+    path = tmp_path / "cameras.h5"
+    write_h36m_sample(path)
+    with h5py.File(path, "r+") as h5:
+        h5.move("subject1/camera2", "subject1/camera_2")
+    with pytest.raises(RigFormatError, match=r"camera groups \['camera_2'\]; expected camera<N>"):
+        read_rig(path, "h36m")  # a bare "invalid literal for int()"
+
+
+def test_h36m_caller_image_size_comes_before_the_known_sizes(tmp_path):
+    """A caller's image_size for H36M's own camera ids was silently replaced by H36M's sizes."""
+    path = tmp_path / "cameras.h5"
+    write_h36m_sample(path)
+    assert (read_rig(path)[0].width, read_rig(path)[0].height) == (1000, 1002)
+    rig = read_rig(path, image_size=(500, 501))
+    assert all((c.width, c.height) == (500, 501) for c in rig)
+    written = tmp_path / "ours.h5"
+    write_rig(rig, written, "h36m")  # stores the sizes: they come first
+    assert read_rig(written, image_size=(10, 10))[0].width == 500
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "1e400"])
+def test_qualisys_non_finite_field_of_view_is_refused_by_name(tmp_path, value):
+    path = tmp_path / "bad.qca.txt"
+    text = QCA.read_text()
+    start = text.index("<fov_video")
+    left = text.index('left="', start)
+    end = text.index('"', left + 6)
+    path.write_text(text[: left + 6] + value + text[end:])
+    with pytest.raises(RigFormatError, match=f"camera 'cam01' <fov_video> left='{value}' is not"):
+        read_rig(path)  # "cannot convert float NaN to integer" / OverflowError
+
+
+def test_json_containers_of_the_wrong_kind_are_named(tmp_path):
+    path = tmp_path / "calibration_x.json"
+    write_rig(ring_cameras(1), path, "panoptic")
+    for cameras, shown in ((None, "null"), ({"name": "a"}, "an object"), (5, "a number")):
+        data = json.loads(path.read_text())
+        data["cameras"] = cameras
+        path.write_text(json.dumps(data))
+        with pytest.raises(RigFormatError, match=f"'cameras' must be a list, got {shown}"):
+            read_rig(path, "panoptic")
+    path = tmp_path / "camera-parameters.json"
+    write_rig(ring_cameras(1), path, "h36m-json", subject="S1")
+    good = json.loads(path.read_text())
+    for broken, shown in (
+        ({**good, "extrinsics": []}, "'extrinsics' must be an object, got a list"),
+        ({**good, "extrinsics": {"S1": []}}, "'S1' in extrinsics must be an object, got a list"),
+    ):
+        path.write_text(json.dumps(broken))
+        with pytest.raises(RigFormatError, match=shown):
+            read_rig(path, "h36m-json")
+
+
+def test_h36m_json_writer_takes_the_option_its_refusal_suggests(tmp_path):
+    general = ring_cameras(1)
+    path = tmp_path / "camera-parameters.json"
+    with pytest.raises(RigFormatError, match="approximate_distortion=True"):
+        write_rig(general, path, "h36m-json", tangential="h36m")
+    with pytest.warns(UserWarning, match="worst error"):
+        write_rig(general, path, "h36m-json", tangential="h36m", approximate_distortion=True)
+    back = read_rig(path, "h36m-json", tangential="h36m")
+    uv = np.stack(np.meshgrid(np.linspace(0, 1919, 9), np.linspace(0, 1079, 7)), -1).reshape(-1, 2)
+    assert np.abs(back[0].project(general[0].unproject(uv, 3.0)) - uv).max() < 0.5

@@ -78,7 +78,7 @@ FORMATS: dict[str, FormatInfo] = {
             h36m_json,
             True,
             ("subject", "tangential", "image_size"),
-            ("subject", "tangential"),
+            ("subject", "tangential", "approximate_distortion"),
             world_up=(0.0, 0.0, 1.0),
         ),
         FormatInfo(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 from pathlib import Path
@@ -81,6 +82,31 @@ def require(data: dict, key: str, path: Path, where: str = ""):
     if not isinstance(data, dict) or key not in data:
         raise RigFormatError(f"{path}: missing key '{key}'{' in ' + where if where else ''}")
     return data[key]
+
+
+_JSON_KIND = {
+    type(None): "null",
+    bool: "true/false",
+    int: "a number",
+    float: "a number",
+    str: "text",
+    list: "a list",
+    dict: "an object",
+}
+
+
+def require_typed(data: dict, key: str, kind: type, path: Path, where: str = ""):
+    """`data[key]`, which must be a `kind` (list or dict: a JSON array or object); else a
+    RigFormatError naming the file, the key and what it holds (`cameras: null` was a bare
+    "'NoneType' object is not iterable")."""
+    value = require(data, key, path, where)
+    if not isinstance(value, kind):
+        expected = {list: "a list", dict: "an object"}.get(kind, kind.__name__)
+        found = _JSON_KIND.get(type(value), type(value).__name__)
+        raise RigFormatError(
+            f"{path}: '{key}'{' in ' + where if where else ''} must be {expected}, got {found}"
+        )
+    return value
 
 
 def load_json(path: Path):
@@ -225,7 +251,8 @@ def json_safe(value):
     """Meta values made JSON-serialisable (numpy scalars and arrays to Python; dict keys to text,
     tuples to lists, as JSON has them) and strict JSON: a NaN or infinite number is null (a
     camera without residuals has `rms_px` NaN, which Python wrote as a bare NaN that jq,
-    JavaScript and serde refuse)."""
+    JavaScript and serde refuse). Dates and times (TOML has them, e.g. a [metadata] table's
+    `calibrated = 2024-05-02T10:31:00`) become their ISO 8601 text."""
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -236,4 +263,6 @@ def json_safe(value):
         return json_safe(value.item())
     if isinstance(value, float) and not np.isfinite(value):
         return None
+    if isinstance(value, (datetime.date, datetime.time)):  # a datetime is a date
+        return value.isoformat()
     return value

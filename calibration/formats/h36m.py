@@ -33,6 +33,7 @@ import numpy as np
 from calibration.camera import Camera, Rig
 from calibration.formats._common import (
     RigFormatError,
+    as_float_array,
     atomic_write,
     make_camera,
     make_rig,
@@ -125,17 +126,18 @@ def _subject_key(subject) -> str:
 def image_size_of(
     path: Path, where: str, name: str, stored, image_size: tuple[int, int] | None
 ) -> tuple[int, int]:
-    """A camera's (width, height): `stored` with it (as we write it), else its known H36M size,
-    else the caller's `image_size`."""
+    """A camera's (width, height): `stored` with it (as we write it), else the caller's
+    `image_size`, else its known H36M size (a caller's size for a known camera was ignored: the
+    videos of a user who resized them are not H36M's)."""
     if stored is not None:  # 1000.9 was 1000, true was 1, "abc" a bare int() error
         return (
             pixel_count(stored[0], path, f"{where} width"),
             pixel_count(stored[1], path, f"{where} height"),
         )
-    if name in KNOWN_SIZES:
-        return KNOWN_SIZES[name]
     if image_size is not None:
         return tuple(pixel_count(v, path, f"image_size {tuple(image_size)}") for v in image_size)
+    if name in KNOWN_SIZES:
+        return KNOWN_SIZES[name]
     raise RigFormatError(
         f"{path}: {where} has no known image size; pass image_size=(width, height)"
     )
@@ -176,19 +178,25 @@ def read(path: str | Path, subject=None, image_size: tuple[int, int] | None = No
             if key not in h5:
                 raise RigFormatError(f"{path}: no group '{key}' (subjects: {subjects})")
         group = h5[key]
-        cam_keys = sorted(
-            (k for k in group.keys() if k.startswith("camera")), key=lambda s: int(s[6:])
-        )
+        cam_keys = [k for k in group.keys() if k.startswith("camera")]
+        bad = [k for k in cam_keys if not k[6:].isdigit()]
+        if bad:
+            raise RigFormatError(
+                f"{path}: {key} has camera groups {bad}; expected camera<N> (camera1, camera2, ...)"
+            )
         cameras = []
-        for ck in cam_keys:
+        for ck in sorted(cam_keys, key=lambda s: int(s[6:])):
             g = group[ck]
             missing = [d for d in ("R", "T", "f", "c", "k", "p") if d not in g]
             if missing:
                 raise RigFormatError(f"{path}: {key}/{ck} lacks datasets {missing}")
-            R = np.asarray(g["R"][()], dtype=np.float64).reshape(3, 3).T  # stored transposed
-            T = np.asarray(g["T"][()], dtype=np.float64).ravel() / MM_PER_M
-            f = np.asarray(g["f"][()], dtype=np.float64).ravel()
-            c = np.asarray(g["c"][()], dtype=np.float64).ravel()
+
+            def dataset(name: str, shape: tuple[int, ...], g=g, ck=ck) -> np.ndarray:
+                return as_float_array(g[name][()], shape, path, f"{key}/{ck} dataset {name}")
+
+            R = dataset("R", (3, 3)).T  # stored transposed
+            T = dataset("T", (3,)) / MM_PER_M
+            f, c = dataset("f", (2,)), dataset("c", (2,))
             name = _decode_name(g["Name"][()]) if "Name" in g else ck
             has_size = "width" in g.attrs and "height" in g.attrs
             stored = (g.attrs["width"], g.attrs["height"]) if has_size else None
@@ -198,7 +206,7 @@ def read(path: str | Path, subject=None, image_size: tuple[int, int] | None = No
                     path,
                     name,
                     K=[[f[0], 0, c[0]], [0, f[1], c[1]], [0, 0, 1]],
-                    dist=h36m_to_opencv(g["k"][()], g["p"][()]),
+                    dist=h36m_to_opencv(dataset("k", (3,)), dataset("p", (2,))),
                     R=R,
                     t=-R @ T,
                     width=size[0],

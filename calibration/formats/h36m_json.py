@@ -15,6 +15,7 @@ pixels at the image corners.
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 from calibration.camera import Rig
@@ -29,6 +30,7 @@ from calibration.formats._common import (
     require,
     require_array,
     require_distortion,
+    require_typed,
 )
 from calibration.formats.h36m import (
     MM_PER_M,
@@ -56,8 +58,8 @@ def read(
     if tangential not in TANGENTIAL:
         raise RigFormatError(f"tangential must be one of {TANGENTIAL}, got {tangential!r}")
     data = load_json(path)
-    intr = require(data, "intrinsics", path)
-    extr = require(data, "extrinsics", path)
+    intr = require_typed(data, "intrinsics", dict, path)
+    extr = require_typed(data, "extrinsics", dict, path)
     if subject is None:
         if len(extr) != 1:
             raise RigFormatError(
@@ -71,9 +73,9 @@ def read(
                 f"{path}: no extrinsics for subject '{subj}' (subjects: {sorted(extr)})"
             )
     cameras = []
-    for name, e in extr[subj].items():
+    for name, e in require_typed(extr, subj, dict, path, "extrinsics").items():
         where = f"camera '{name}'"
-        i = require(intr, name, path, "intrinsics")
+        i = require_typed(intr, name, dict, path, "intrinsics")
         K = as_float_array(
             require(i, "calibration_matrix", path, f"{where} intrinsics"),
             (3, 3),
@@ -107,17 +109,30 @@ def read(
     )
 
 
-def write(rig: Rig, path: str | Path, subject="S1", tangential: str = "opencv") -> None:
+def write(
+    rig: Rig,
+    path: str | Path,
+    subject="S1",
+    tangential: str = "opencv",
+    approximate_distortion: bool = False,
+) -> None:
     """One subject's cameras. Distortion is written as 5 OpenCV terms (`tangential='opencv'`) or
     as H36M's k, p in the same slots (`'h36m'`); cameras that cannot be written exactly that way
-    are refused. Image sizes go into extra `width`/`height` keys of each intrinsics entry."""
+    are refused, or with `tangential='h36m'` and `approximate_distortion=True` fitted as the
+    cameras.h5 writer fits them (the refusal suggests it). Image sizes go into extra
+    `width`/`height` keys of each intrinsics entry."""
     if tangential not in TANGENTIAL:
         raise RigFormatError(f"tangential must be one of {TANGENTIAL}, got {tangential!r}")
     subj = _subject_name(subject)
     intr, extr = {}, {}
     for c in rig:
         if tangential == "h36m":
-            k, p, _ = opencv_to_h36m(c)
+            k, p, err = opencv_to_h36m(c, approximate_distortion)
+            if err > 0:
+                warnings.warn(
+                    f"camera '{c.name}': H36M distortion fitted, worst error {err:.3g} px",
+                    stacklevel=2,
+                )
             dist = [k[0], k[1], p[0], p[1], k[2]]
         else:
             dist = five_term_dist(c, "H36M JSON").tolist()

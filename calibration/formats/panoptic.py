@@ -24,6 +24,7 @@ from calibration.formats._common import (
     require,
     require_array,
     require_distortion,
+    require_typed,
 )
 
 CM_PER_M = 100.0  # multiply/divide by 100 (exact for more values than scaling by 0.01)
@@ -33,9 +34,11 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
     """All cameras, or only those whose `type` is in `camera_types` (e.g. ("hd",))."""
     path = Path(path)
     data = load_json(path)
-    cams_data = require(data, "cameras", path)
+    cams_data = require_typed(data, "cameras", list, path)
     cameras = []
     for i, cd in enumerate(cams_data):
+        if not isinstance(cd, dict):
+            raise RigFormatError(f"{path}: cameras[{i}] must be an object")
         name = str(require(cd, "name", path, f"cameras[{i}]"))
         where = f"camera '{name}'"
         ctype = cd.get("type", "")

@@ -17,6 +17,7 @@ Skew other than 0 and rotated views (`viewrotation` other than 0) are refused.
 
 from __future__ import annotations
 
+import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -36,11 +37,14 @@ def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
     if value is None:
         raise RigFormatError(f"{path}: {where} <{el.tag}> lacks attribute '{attr}'")
     try:
-        return float(value)
+        number = float(value)
     except ValueError as exc:
         raise RigFormatError(
             f"{path}: {where} <{el.tag}> {attr}={value!r} is not a number"
         ) from exc
+    if not math.isfinite(number):  # "nan" and "inf" parse; no calibration value is either
+        raise RigFormatError(f"{path}: {where} <{el.tag}> {attr}={value!r} is not finite")
+    return number
 
 
 def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
@@ -142,8 +146,6 @@ def read(
         tr = _child(cam, "transform", path, where)
         position = np.array([_float(tr, a, path, where) for a in "xyz"]) / MM_PER_M
         M = np.array([[_float(tr, f"r{r}{c}", path, where) for c in (1, 2, 3)] for r in (1, 2, 3)])
-        if not (np.isfinite(M).all() and np.isfinite(position).all()):
-            raise RigFormatError(f"{path}: {where} <transform> holds NaN or Inf")
         ortho_err = float(np.abs(M @ M.T - np.eye(3)).max())
         if ortho_err > 1e-5:
             raise RigFormatError(
