@@ -3,7 +3,10 @@
 Fused people carry the extraction's ids, not the scene's, and an extraction id may switch
 between people; so every frame is matched on its own: fused and truth bodies of that frame are
 paired by the Hungarian method on the mean joint distance, pairs further apart than `max_match_m`
-are not counted (reported as unmatched). Errors are in millimetres over all 24 joints (world
+are not counted (reported as unmatched). Truth people the fusion missed are counted too: of the
+truth person-frames at least `MIN_VISIBLE_JOINTS` visible in some camera, in the frames the
+extraction considered (`expected`), those no fused body was paired with (`truth_missed`; an
+MPJPE over fewer people is no better fusion). Errors are in millimetres over all 24 joints (world
 frame, no alignment for MPJPE; similarity Procrustes for PA-MPJPE, gst.metrics.pose) and over
 all mesh vertices (same body model as the scene's).
 """
@@ -17,11 +20,12 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from gst.body.model import BodyModel
+from gst.data.extract.crops import MIN_VISIBLE_JOINTS
 from gst.fuse.fit import PersonFit
 from gst.metrics.pose import mpjpe, pa_mpjpe, vertex_error
-from synth.truth import SceneTruth
+from synth.truth import SceneTruth, TruthViews
 
-__all__ = ["TruthComparison", "compare_with_truth"]
+__all__ = ["TruthComparison", "compare_with_truth", "visible_person_frames"]
 
 
 @dataclass
@@ -33,9 +37,20 @@ class TruthComparison:
     matched: int  # person-frames compared
     unmatched: int  # fused person-frames with no truth body within max_match_m
     per_person: dict[int, dict[str, float]]  # fused id -> mpjpe_mm, pa_mpjpe_mm, frames
+    # truth person-frames expected (seen by a camera) and those no fused body was paired with
+    # (None: not counted, no `expected` given)
+    truth_expected: int | None = None
+    truth_missed: int | None = None
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+def visible_person_frames(views: TruthViews, frames) -> set[tuple[int, int]]:
+    """(frame, truth person id) of the `frames` in which the person has at least
+    `MIN_VISIBLE_JOINTS` of their joints visible in at least one camera."""
+    keep = (views.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS) & np.isin(views.frame, list(frames))
+    return {(int(f), int(p)) for f, p in zip(views.frame[keep], views.person_id[keep], strict=True)}
 
 
 def compare_with_truth(
@@ -44,8 +59,10 @@ def compare_with_truth(
     body: BodyModel | None = None,
     max_match_m: float = 0.5,
     joints: str = "joints",
+    expected: set[tuple[int, int]] | None = None,
 ) -> TruthComparison:
-    """Per-frame matched errors of `fits` (their `joints`, or another (T, 24, 3) attribute)."""
+    """Per-frame matched errors of `fits` (their `joints`, or another (T, 24, 3) attribute);
+    with `expected` (`visible_person_frames`), how many of those no fused body was paired with."""
     pairs = []  # (fit index, row in fit, truth row)
     unmatched = 0
     frames = sorted({int(f) for fit in fits for f in fit.frames})
@@ -65,9 +82,14 @@ def compare_with_truth(
         good = cost[a, b] <= max_match_m
         unmatched += len(mine) - int(good.sum())
         pairs += [(*mine[i], rows[j]) for i, j in zip(a[good], b[good], strict=True)]
+    missed = None
+    if expected is not None:
+        paired = {(int(truth.frame[r]), int(truth.person_id[r])) for *_, r in pairs}
+        missed = len(expected - paired)
+    n_expected = None if expected is None else len(expected)
     if not pairs:
         nan = float("nan")
-        return TruthComparison(nan, nan, nan, {}, 0, unmatched, {})
+        return TruthComparison(nan, nan, nan, {}, 0, unmatched, {}, n_expected, missed)
     pred = torch.as_tensor(np.stack([getattr(fits[k], joints)[i] for k, i, _ in pairs]))
     gt = torch.as_tensor(truth.joints_world[[r for *_, r in pairs]], dtype=pred.dtype)
     e = mpjpe(pred, gt) * 1000
@@ -93,6 +115,8 @@ def compare_with_truth(
         matched=len(pairs),
         unmatched=unmatched,
         per_person=per_person,
+        truth_expected=n_expected,
+        truth_missed=missed,
     )
 
 

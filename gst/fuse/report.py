@@ -78,6 +78,7 @@ class FuseSummary:
         error against the truth."""
         truth = (
             f"; MPJPE {self.truth['mpjpe_mm']:.1f} mm, PA-MPJPE {self.truth['pa_mpjpe_mm']:.1f} mm"
+            f", truth person-frames missed {_missed(self.truth)}"
             if self.truth
             else ""
         )
@@ -225,10 +226,15 @@ def write_report(
             "",
             "## Against the synthetic truth",
             "",
-            "| MPJPE mm | PA-MPJPE mm | vertex error mm | person-frames | unmatched |",
-            "| --- | --- | --- | --- | --- |",
+            "| MPJPE mm | PA-MPJPE mm | vertex error mm | person-frames | unmatched | truth "
+            "missed |",
+            "| --- | --- | --- | --- | --- | --- |",
             f"| {_fmt(t['mpjpe_mm'])} | {_fmt(t['pa_mpjpe_mm'])} | {_fmt(t['vertex_error_mm'])} "
-            f"| {t['matched']} | {t['unmatched']} |",
+            f"| {t['matched']} | {t['unmatched']} | {_missed(t)} |",
+            "",
+            "Unmatched: fused person-frames with no truth body within 0.5 m. Truth missed: truth "
+            "person-frames at least 30 % visible in some camera that no fused body was paired "
+            "with (the errors above leave them out).",
         ]
     lines += ["", "## People", "", "| id | frames | first-last | observed | static | single view "
               "| reprojection px (all / used) | gap-filled % | max triangulated segment CV % |",
@@ -271,6 +277,14 @@ def write_report(
 
 def _pct(v) -> str:
     return _fmt(None if v is None else 100 * v)
+
+
+def _missed(t: dict) -> str:
+    """`truth_missed` of `truth_expected` with its share, or "-" where not counted."""
+    missed, expected = t.get("truth_missed"), t.get("truth_expected")
+    if missed is None or not expected:
+        return "-"
+    return f"{missed} of {expected} ({100 * missed / expected:.1f} %)"
 
 
 def _fmt(v, digits: int = 1) -> str:

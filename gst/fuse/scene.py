@@ -468,10 +468,13 @@ def fuse_scene(
     )
     truth = None
     if truth_dir is not None and fits:
-        from gst.fuse.evaluate import compare_with_truth
-        from synth.truth import read_scene_truth
+        from gst.fuse.evaluate import compare_with_truth, visible_person_frames
+        from synth.truth import read_scene_truth, read_truth_views
 
-        truth = compare_with_truth(fits, read_scene_truth(truth_dir), body).as_dict()
+        stride = int(store.attrs.get("setting.frame_stride", 1)) or 1
+        expected = visible_person_frames(read_truth_views(truth_dir), range(0, n_frames, stride))
+        truth = compare_with_truth(fits, read_scene_truth(truth_dir), body, expected=expected)
+        truth = truth.as_dict()
     limbs = per_frame_limb_lengths(
         body, markers, people, tris, fps, o.fit,
         marker_offsets=[f.marker_offsets for f in fits],
