@@ -263,3 +263,24 @@ def test_invalid_data_names_the_field(small_data):
     bad = small_data.replace(parents=np.array([-1] + [5] * 23))
     with pytest.raises(ValueError, match="parents"):
         BodyModel(bad)
+
+
+@pytest.mark.parametrize("content", [b"", b"PK\x03\x04 cut short"])
+def test_a_damaged_body_file_is_a_value_error_naming_it(tmp_path, small_data, content):
+    """A cut-short or empty .npz raised BadZipFile / EOFError, which the Anny cache's
+    rebuild-on-damage path did not catch (it catches ValueError)."""
+    path = tmp_path / "body.npz"
+    small_data.save_npz(path)
+    path.write_bytes(content or path.read_bytes()[:300])
+    with pytest.raises(ValueError, match=r"body\.npz: not a readable npz body file"):
+        BodyModelData.load_npz(path)
+
+
+def test_an_unbatched_root_matrix_gets_a_hint(small_data):
+    """A (3, 3) global_orient reads as three axis-angle rows; with another batch the error said
+    only "global_orient has batch 3", with no word of why."""
+    model = BodyModel(small_data, dtype=torch.float64)
+    pose = torch.zeros(1, 23, 3, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"one rotation matrix needs shape \(1, 3, 3\)"):
+        model(None, pose, torch.eye(3, dtype=torch.float64))
+    assert model(None, pose, torch.eye(3, dtype=torch.float64)[None]).vertices.shape[0] == 1

@@ -152,3 +152,39 @@ def test_arrays_of_the_wrong_shape_name_their_key(tmp_path, data, key, change, c
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ValueError, match=rf"bad\.npz: {culprit} has shape"):
         load_smpl_file(tmp_path / "bad.npz")
+
+
+def _official_arrays(data, tmp_path) -> dict:
+    raw = safe_load_pickle(write_official_pkl(data, tmp_path / "x.pkl"))
+    arrays = {k: v for k, v in raw.items() if isinstance(v, np.ndarray)}
+    arrays["J_regressor"] = np.asarray(raw["J_regressor"].todense())  # sparse in the .pkl
+    return arrays
+
+
+@pytest.mark.parametrize(
+    "key, change, shown",
+    [
+        ("f", lambda a: a + 0.4, r"f must hold whole numbers"),  # cut to ints without a word
+        ("kintree_table", lambda a: np.stack([a[0], a[1][::-1]]), r"second row \(the joint ids"),
+        ("v_template", lambda a: np.full(a.shape, "a"), r"v_template is not numeric"),
+        ("shapedirs", lambda a: a[..., :0], r"shapedirs has no shape components"),
+        ("J_regressor", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a),
+         r"J_regressor contains NaN"),
+        ("posedirs", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a),
+         r"posedirs contains NaN"),
+    ],
+)  # fmt: skip
+def test_malformed_arrays_name_the_file_and_key(tmp_path, data, key, change, shown):
+    """Fractional face indices were truncated and a permuted joint-id row loaded a scrambled
+    body without a word; a NaN in J_regressor or posedirs loaded and posed NaN vertices; a text
+    v_template and zero shape components failed later with messages naming neither."""
+    arrays = _official_arrays(data, tmp_path)
+    arrays[key] = change(np.asarray(arrays[key]))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match=rf"bad\.npz: .*{shown}"):
+        load_smpl_file(tmp_path / "bad.npz")
+
+
+def test_an_upper_case_suffix_is_read(tmp_path, data):
+    path = write_official_pkl(data, tmp_path / "SMPL_NEUTRAL.PKL")
+    assert load_smpl_file(path).num_vertices == 500

@@ -24,6 +24,7 @@ rotations, so it is returned on request.
 from __future__ import annotations
 
 import dataclasses
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,8 +121,11 @@ class BodyModelData:
             fail(
                 "weights", "must be finite, non-negative, and sum to 1 over joints for every vertex"
             )
-        for field in ("v_template", "shapedirs"):
-            if not np.all(np.isfinite(getattr(self, field))):
+        for field in ("v_template", "shapedirs", "J_regressor", "posedirs"):
+            value = getattr(self, field)
+            if scipy.sparse.issparse(value):
+                value = value.data  # the stored entries (the rest are zeros)
+            if value is not None and not np.all(np.isfinite(value)):
                 fail(field, "contains NaN or Inf")
         if self.posedirs is not None:
             shape_is("posedirs", self.posedirs, (9 * (J - 1), 3 * V))
@@ -171,9 +175,16 @@ class BodyModelData:
 
     @classmethod
     def load_npz(cls, path: str | Path) -> BodyModelData:
-        """Read a file written by :meth:`save_npz` (never unpickles)."""
+        """Read a file written by :meth:`save_npz` (never unpickles). A damaged file (cut short,
+        empty, not a zip) is a ValueError naming it."""
         path = Path(path)
-        with np.load(path, allow_pickle=False) as z:
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (zipfile.BadZipFile, EOFError) as exc:
+            raise ValueError(f"{path}: not a readable npz body file ({exc})") from exc
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path}: a single .npy array, not an npz body file")
+        with z:
             if "format" not in z.files or str(z["format"]) != _NPZ_FORMAT:
                 raise ValueError(f"{path}: not a {_NPZ_FORMAT} body file (keys {sorted(z.files)})")
             get = lambda k: z[k] if k in z.files else None  # noqa: E731
@@ -431,7 +442,8 @@ class BodyModel(torch.nn.Module):
             body_pose: (B, J-1, 3, 3) rotation matrices, or (B, J-1, 3) / (B, 3(J-1)) axis-angle,
                 local rotations of joints 1.. relative to their parents (SMPL order).
             global_orient: (B, 3, 3) rotation matrix or (B, 3) axis-angle of the root
-                ((B, 1, 3, 3) and (B, 1, 3) are accepted too).
+                ((B, 1, 3, 3) and (B, 1, 3) are accepted too). A 2-D (3, 3) is three
+                axis-angle rows, never an unbatched matrix (which is (1, 3, 3)).
             transl: (B, 3) translation added to every output, or None.
             vertex_ids: 1-D LongTensor; only these vertices are posed and returned (joints
                 always come from the full mesh).
@@ -444,8 +456,14 @@ class BodyModel(torch.nn.Module):
         B = body_rot.shape[0]
         root_rot = self._rotations(global_orient, "global_orient", 1)
         if root_rot.shape[0] != B:
+            hint = ""
+            if tuple(getattr(global_orient, "shape", ())) == (3, 3):
+                hint = (
+                    " (a (3, 3) global_orient reads as 3 axis-angle rows: one rotation matrix "
+                    "needs shape (1, 3, 3))"
+                )
             raise ValueError(
-                f"global_orient has batch {root_rot.shape[0]} but body_pose has batch {B}"
+                f"global_orient has batch {root_rot.shape[0]} but body_pose has batch {B}{hint}"
             )
         if betas is None:
             betas = torch.zeros(B, self.num_betas, dtype=self.dtype, device=self.device)

@@ -262,12 +262,13 @@ SMPL_KEYS = ("v_template", "shapedirs", "weights", "f", "kintree_table", "J_regr
 
 
 def _read_raw(path: Path) -> dict[str, Any]:
-    if path.suffix == ".pkl":
+    suffix = path.suffix.lower()  # SMPL_NEUTRAL.PKL was "unknown file type"
+    if suffix == ".pkl":
         raw = safe_load_pickle(path)
         if not isinstance(raw, dict):
             raise ValueError(f"{path}: expected a dict of SMPL arrays, got {type(raw).__name__}")
         return raw
-    if path.suffix == ".npz":
+    if suffix == ".npz":
         # Entries that hold pickled objects (SMPL-X's npz has some beside its arrays) are left
         # out: the arrays then say what the file is ("only the 24-joint SMPL body" for SMPL-X,
         # where refusing the file for its objects sent the user to re-save it for nothing).
@@ -294,6 +295,21 @@ def _required(raw: dict[str, Any], key: str, path: Path) -> Any:
     return raw[key]
 
 
+def _numbers(value: Any, key: str, path: Path, whole: bool = False) -> np.ndarray:
+    """`value` as a float64 array (`whole`: an int64 one, every value a whole number: face and
+    joint indices), or a ValueError naming the file and key (a bare "could not convert string to
+    float" before; fractional face indices were cut without a word)."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {key} is not numeric ({exc})") from exc
+    if not whole:
+        return arr
+    if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+        raise ValueError(f"{path}: {key} must hold whole numbers (indices)")
+    return arr.astype(np.int64)
+
+
 def load_smpl_file(path: str | Path | None = None, gender: str | None = None) -> BodyModelData:
     """Load an official SMPL model (.pkl with chumpy inside, or .npz) as :class:`BodyModelData`.
 
@@ -308,11 +324,11 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
     """
     file = _find_file(path, gender)
     raw = _read_raw(file)
-    v_template = np.asarray(_required(raw, "v_template", file), dtype=np.float64)
-    shapedirs = np.asarray(_required(raw, "shapedirs", file), dtype=np.float64)
-    weights = np.asarray(_required(raw, "weights", file), dtype=np.float64)
-    faces = np.asarray(_required(raw, "f", file)).astype(np.int64)
-    kintree = np.asarray(_required(raw, "kintree_table", file)).astype(np.int64)
+    v_template = _numbers(_required(raw, "v_template", file), "v_template", file)
+    shapedirs = _numbers(_required(raw, "shapedirs", file), "shapedirs", file)
+    weights = _numbers(_required(raw, "weights", file), "weights", file)
+    faces = _numbers(_required(raw, "f", file), "f", file, whole=True)
+    kintree = _numbers(_required(raw, "kintree_table", file), "kintree_table", file, whole=True)
     reg = _required(raw, "J_regressor", file)
     reg = (
         reg.astype(np.float64).tocsr()
@@ -333,6 +349,11 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
             f"{file}: weights has shape {weights.shape}, expected ({V}, {NUM_JOINTS}) "
             "(one row of skinning weights per vertex)"
         )
+    if not np.array_equal(kintree[1], np.arange(NUM_JOINTS)):
+        raise ValueError(
+            f"{file}: kintree_table's second row (the joint ids) is {kintree[1].tolist()}, "
+            f"expected 0..{NUM_JOINTS - 1} in order (SMPL's joint order)"
+        )
     parents = kintree[0].copy()
     parents[0] = -1  # stored as uint32 max in the official files
     if shapedirs.ndim == 2:  # some exports flatten (V*3, B)
@@ -342,9 +363,11 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
                 f"flattened ({3 * V}, B)"
             )
         shapedirs = shapedirs.reshape(V, 3, -1)
+    if shapedirs.ndim == 3 and shapedirs.shape[2] == 0:
+        raise ValueError(f"{file}: shapedirs has no shape components (shape {shapedirs.shape})")
     posedirs = raw.get("posedirs")
     if posedirs is not None:
-        posedirs = np.asarray(posedirs, dtype=np.float64)
+        posedirs = _numbers(posedirs, "posedirs", file)
         n_pose = 9 * (NUM_JOINTS - 1)
         if posedirs.shape != (V, 3, n_pose):
             raise ValueError(
