@@ -11,8 +11,10 @@ placement is checked on the pelvis paths without posing a body. Person 1 stands 
 of the volume; each next person is anchored near someone already placed at some frame
 (`approach` metres from them, random direction), with a random heading, so walkers cross the
 others' paths and people in place stand in small groups. A candidate is accepted when it never
-comes closer than `min_gap` to anyone (bodies would interpenetrate: collisions are not
+comes closer than `min_gap` to anyone (torsos would interpenetrate: collisions are not
 modelled) and stays inside the volume; otherwise another is drawn (deterministic from the rng).
+The rule spaces pelvises only: kicking, lunging and throwing limbs still reach into neighbours
+(docs/formats/synth_scene.md measures how often).
 """
 
 from __future__ import annotations

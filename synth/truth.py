@@ -329,16 +329,26 @@ def _column(table: pa.Table, name: str, width: int, path: Path) -> np.ndarray:
     return np.asarray(flat).reshape(table.num_rows, width)
 
 
-def _table(scene_dir: str | Path, rel: str) -> tuple[pa.Table, Path]:
+def _table(scene_dir: str | Path, rel: str, columns: tuple[str, ...]) -> tuple[pa.Table, Path]:
+    """The truth table `rel` of a scene, which must hold `columns` (a missing one was a bare
+    KeyError naming no file)."""
     path = Path(scene_dir) / rel
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no truth (only synthetic scenes carry it)")
-    return pq.read_table(path), path
+    table = pq.read_table(path)
+    missing = [c for c in columns if c not in table.column_names]
+    if missing:
+        raise ValueError(f"{path}: columns {missing} are missing (columns: {table.column_names})")
+    return table, path
 
 
 def read_scene_truth(scene_dir: str | Path) -> SceneTruth:
     """Load `truth/people.parquet` of a synthetic scene; raises FileNotFoundError when absent."""
-    table, path = _table(scene_dir, PEOPLE_FILE)
+    table, path = _table(
+        scene_dir,
+        PEOPLE_FILE,
+        ("frame", "person_id", "betas", "global_orient", "body_pose", "transl", "joints3d"),
+    )
     meta = table.schema.metadata or {}
     names = (
         tuple(json.loads(meta[b"joint_names"]))
@@ -372,7 +382,12 @@ def read_scene_truth(scene_dir: str | Path) -> SceneTruth:
 
 def read_truth_views(scene_dir: str | Path, camera: str | None = None) -> TruthViews:
     """Load `truth/views.parquet` (all cameras, or one: KeyError naming the cameras if absent)."""
-    table, path = _table(scene_dir, VIEWS_FILE)
+    table, path = _table(
+        scene_dir,
+        VIEWS_FILE,
+        ("frame", "person_id", "camera", "joints2d", "visible", "x0", "y0", "x1", "y1")
+        + ("full_x0", "full_y0", "full_x1", "full_y1", "mask_area"),
+    )
     cameras = np.asarray(table.column("camera").to_pylist(), dtype=object)
 
     def f64(*names: str) -> np.ndarray:

@@ -362,3 +362,22 @@ def test_a_synthetic_block_that_makes_no_scene_is_refused_before_anything_runs(
     err = capsys.readouterr().err
     assert said in err and "Traceback" not in err
     assert not (tmp_path / "ws").exists()
+
+
+@pytest.mark.parametrize(
+    ("rel", "column"),
+    [("truth/people.parquet", "frame"), ("truth/people.parquet", "betas"),
+     ("truth/views.parquet", "camera"), ("truth/views.parquet", "mask_area")],
+)  # fmt: skip
+def test_truth_tables_missing_a_column_name_the_file(tiny_scene, tmp_path, rel, column):
+    """A truth table without `frame`, `betas`, `camera` or `mask_area` raised a bare KeyError
+    ('Field "frame" does not exist in schema') naming no file."""
+    from synth.truth import read_scene_truth, read_truth_views
+
+    src, _ = tiny_scene
+    table = pq.read_table(src / rel)
+    (tmp_path / "truth").mkdir()
+    pq.write_table(table.drop_columns([column]), tmp_path / rel)
+    read = read_scene_truth if rel.endswith("people.parquet") else read_truth_views
+    with pytest.raises(ValueError, match=rf"{rel}: columns \['{column}'\] are missing"):
+        read(tmp_path)
