@@ -80,3 +80,35 @@ def test_image_only_checkpoints_take_no_landmarks(checkpoints):
     assert not pred.accepts_landmarks
     assert np.array_equal(pred(crops, K)["joints_cam"], pred(crops, K, landmarks=lm)["joints_cam"])
     assert torch.is_tensor(pred.predict(crops, K).joints_cam)
+
+
+def test_a_body_override_must_be_the_checkpoints_body(checkpoints, tmp_path):
+    """GSTPredictor(ckpt, body_model=another body) posed the network's coefficients on that body:
+    plausible joints up to 0.4 m off, without a word."""
+    own = checkpoints["plain"].parent / "body.npz"
+    copy = tmp_path / "same_body_elsewhere.npz"
+    copy.write_bytes(own.read_bytes())
+    crops, K, _ = _inputs(2)
+    same = GSTPredictor(checkpoints["plain"], body_model=str(copy))
+    np.testing.assert_array_equal(
+        same(crops, K)["joints_cam"], GSTPredictor(checkpoints["plain"])(crops, K)["joints_cam"]
+    )
+    other = random_body_data(num_vertices=400, with_posedirs=False, seed=7)
+    other_path = other.save_npz(tmp_path / "other.npz")
+    with pytest.raises(ValueError, match="not the body the network was trained with"):
+        GSTPredictor(checkpoints["plain"], body_model=str(other_path))
+
+
+def test_empty_batches_and_nan_crops_are_named(checkpoints):
+    """predict on no crops failed in the body model ("body_pose has an empty batch") or in a
+    reshape; NaN float crops passed the range check (NaN > 1 is False) and were blamed on
+    body_pose."""
+    pred = GSTPredictor(checkpoints["all33"])
+    crops, K, lm = _inputs(3)
+    with pytest.raises(ValueError, match="an empty batch of crops"):
+        pred.predict(crops[:0], K[:0], landmarks=lm[:0])
+    assert pred(crops[:0], K[:0], landmarks=lm[:0])["joints_cam"].shape == (0, 24, 3)
+    bad = crops.astype(np.float32) / 255
+    bad[1, 5, 5, 0] = np.nan
+    with pytest.raises(ValueError, match=r"float crops hold NaN or Inf \(crops \[1\]\)"):
+        pred.predict(bad, K, landmarks=lm)

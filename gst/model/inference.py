@@ -17,17 +17,20 @@ axis) where the camera is calibrated; leave it out (or give zero rows) where it 
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gst.body import load_body_model
+from gst.body import BodyModel, load_body_model
 from gst.device import model_device
 from gst.model.assemble import BodyPrediction, assemble
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.model.landmarks import LandmarkInput, landmark_input, select_landmarks
 from gst.model.preprocess import check_crops, check_intrinsics, network_input, to_float_images
+
+log = logging.getLogger("gst.model")
 
 
 def _network_images(
@@ -82,6 +85,11 @@ def predict_bodies(
     # inputs follow the network (a GPU-trained model validated on CPU crop stores, say)
     device = torch.device(device) if device is not None else model_device(network)
     images = check_crops(images)
+    if len(images) == 0:  # the body model said "body_pose has an empty batch", or a reshape failed
+        raise ValueError(
+            "predict_bodies: an empty batch of crops (GSTPredictor.__call__ returns empty arrays "
+            "for none)"
+        )
     check_intrinsics(K, len(images))
     size = crop_size or images.shape[-2]
     if landmarks is not None and not isinstance(landmarks, LandmarkInput):
@@ -133,6 +141,53 @@ def image_shapes_pose(network: torch.nn.Module) -> bool:
     return float(gate.detach().abs().max()) > NEGLIGIBLE_IMAGE_GATE
 
 
+def _same_body(a: BodyModel, b: BodyModel) -> bool:
+    """Whether two loaded body models are one body: layout, template, shape space, regressor."""
+    da, db = a.data, b.data
+    if (a.num_vertices, a.num_joints, a.num_betas) != (b.num_vertices, b.num_joints, b.num_betas):
+        return False
+    return all(
+        np.allclose(x, y, rtol=0, atol=1e-6)
+        for x, y in (
+            (da.v_template, db.v_template),
+            (da.shapedirs, db.shapedirs),
+            (da.dense_J_regressor(), db.dense_J_regressor()),
+        )
+    )
+
+
+def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyModel:
+    """The body the checkpoint's network was trained with: its own spec, or `override` (the same
+    body found elsewhere, e.g. a user's SMPL file at another path). An override that is another
+    body is refused: the network's shape coefficients, vertex ids and the refiner's skeleton are
+    that body's, and another body gave plausible but wrong joints (0.4 m off) without a word."""
+    if override is None or override == ckpt.body_model:
+        return load_body_model(ckpt.body_model, device=device)
+    body = load_body_model(override, device=device)
+    if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
+        raise ValueError(
+            f"{checkpoint}: body model {override!r} has {body.num_vertices} vertices; the "
+            f"checkpoint's network (trained with {ckpt.body_model!r}) uses vertex ids up to "
+            f"{int(ckpt.vertex_ids.max())}"
+        )
+    try:
+        own = load_body_model(ckpt.body_model)
+    except (FileNotFoundError, ValueError) as exc:  # its file is not on this machine
+        log.warning(
+            "%s: cannot load the checkpoint's own body model %r to check that %r is the same "
+            "body (%s); using %r as given",
+            checkpoint, ckpt.body_model, override, exc, override,
+        )  # fmt: skip
+        return body
+    if not _same_body(own, body):
+        raise ValueError(
+            f"{checkpoint}: body model {override!r} is not the body the network was trained with "
+            f"({ckpt.body_model!r}: other template, shape space or joint regressor); pass that "
+            "body (the same file, at any path) or none"
+        )
+    return body
+
+
 class GSTPredictor:
     """A checkpoint ready for inference. `image_path`: "auto" lets pose-only crops that have
     landmarks skip the image path when the network's image gate is negligible
@@ -154,7 +209,7 @@ class GSTPredictor:
         # built on the CPU (the checkpoint's arrays feed numpy), then moved
         ckpt = load_checkpoint(checkpoint, map_location="cpu")
         self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
-        self.body = load_body_model(body_model or ckpt.body_model, device=device)
+        self.body = _checkpoint_body(ckpt, body_model, checkpoint, device)
         self.vertex_ids = ckpt.vertex_ids.to(device)
         self.with_gaussians = with_gaussians
         self.device, self.batch_size = device, batch_size

@@ -50,6 +50,10 @@ def to_float_images(crops: np.ndarray | torch.Tensor) -> torch.Tensor:
         x = x.to(torch.float32).div_(255.0)
     else:
         x = x.float()
+        finite = torch.isfinite(x).flatten(1).all(1) if x.numel() else torch.ones(0, dtype=bool)
+        if not bool(finite.all()):  # NaN > 1 is False: they were blamed on body_pose, later
+            bad = torch.nonzero(~finite).flatten()[:8].tolist()
+            raise ValueError(f"float crops hold NaN or Inf (crops {bad})")
         top = float(x.max()) if x.numel() else 0.0
         if top > 1.0 + 1e-3:
             raise ValueError(
