@@ -160,6 +160,37 @@ def _check_videos_option(videos: list[Path]) -> list[Path]:
     return videos
 
 
+def _tracks_of_another_file(
+    cfg: PipelineConfig, scenes: list[str], videos: list[Path]
+) -> list[str]:
+    """The `--video` files whose tracks folder (named after the file name) already holds the
+    tracks of another file: `day1/match.mp4`, then `day2/match.mp4`, replaced the first's tracks
+    without a word. The same file moved (same content) is not another file."""
+    from gst.track.read import read_metadata
+    from gst.track.writer import partition_dir
+    from gst.video import content_digest
+
+    clashes = []
+    for scene in scenes:
+        for v in videos:
+            existing = (
+                cfg.scene_workspace(scene) / partition_dir("tracks", v.stem) / "tracks.parquet"
+            )
+            if not existing.is_file():
+                continue
+            try:
+                before = read_metadata(existing).get("video") or {}
+            except (ValueError, OSError):
+                continue  # unreadable: the stage reports it
+            if before.get("content_sha256") in (None, content_digest(v)):
+                continue  # the same video (moved or not), or a file too old to tell
+            clashes.append(
+                f"{existing.parent} holds the tracks of another video called "
+                f"{before.get('file', v.name)} (other content than {v})"
+            )
+    return clashes
+
+
 def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
     if requested and "all" in requested:
         return list(cfg.scenes)
@@ -307,6 +338,14 @@ def main(argv: list[str] | None = None) -> int:
                 "video": [v.resolve() for v in _check_videos_option(args.video or [])],
                 "with_gaussians": args.with_gaussians,
             }
+            clashes = _tracks_of_another_file(cfg, scenes, options["video"])
+            if clashes and not (args.force or args.force_all or args.dry_run):
+                raise ConfigError(
+                    "--video: tracks are named after the file name, and "
+                    + "; ".join(clashes)
+                    + ". Rename or link the new video under another name, or pass --force to "
+                    "replace those tracks"
+                )
             executor = make_executor(
                 args.executor or cfg.executor.kind,
                 args.workers or cfg.executor.workers,

@@ -246,3 +246,35 @@ def test_a_body_model_named_smpl_is_hashed_by_the_file_it_reads(tmp_path, monkey
     assert _param_files(FuseSettings(body_model="~/body")) == [neutral]  # a folder under ~
     assert _param_files(FuseSettings(body_model="anny")) == []  # built in: nothing to hash
     assert _param_files(FuseSettings(body_model="smpl:male")) == []  # none there: load says so
+
+
+def test_a_second_video_of_the_same_name_does_not_replace_the_firsts_tracks(
+    tmp_path, monkeypatch, capsys
+):
+    """`run track --video day1/match.mp4`, then `--video day2/match.mp4` (another video): the
+    second run replaced the first's tracks (tracks are named after the file name) with an INFO
+    line only. Now refused before anything runs, unless --force; the same video moved is fine."""
+    import gst.track.read as track_read
+    from gst.video import content_digest
+
+    cfg = config_with(tmp_path, 'per_video: {module: "tests.fake_stages:PER_VIDEO"}')
+    day1, day2 = tmp_path / "day1" / "match.mp4", tmp_path / "day2" / "match.mp4"
+    for path, content in ((day1, b"first match"), (day2, b"second match")):
+        path.parent.mkdir()
+        path.write_bytes(content)
+    tracks = tmp_path / "ws" / "demo" / "tracks" / "video=match" / "tracks.parquet"
+    tracks.parent.mkdir(parents=True)
+    tracks.write_bytes(b"")
+    kept = {"video": {"file": "match.mp4", "content_sha256": content_digest(day1)}}
+    monkeypatch.setattr(track_read, "read_metadata", lambda path: kept)
+    args = ["run", "per_video", "--config", str(cfg), "-q"]
+    assert main([*args, "--video", str(day2)]) == 2
+    err = capsys.readouterr().err
+    assert "holds the tracks of another video called match.mp4" in err and "--force" in err
+    assert not (tmp_path / "ws" / "demo" / "per_video").exists()  # nothing ran
+    assert main([*args, "--video", str(day2), "--dry-run"]) == 0
+    moved = tmp_path / "moved" / "match.mp4"
+    moved.parent.mkdir()
+    moved.write_bytes(day1.read_bytes())
+    assert main([*args, "--video", str(moved)]) == 0
+    assert main([*args, "--video", str(day2), "--force"]) == 0
