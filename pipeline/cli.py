@@ -141,12 +141,23 @@ def _param_lines(model, configured: dict, scenes: dict[str, dict] | None = None)
     return lines
 
 
-def _check_videos_option(videos: list[Path]) -> list[Path]:
+def _check_videos_option(videos: list[Path], probe: bool = False) -> list[Path]:
     """`--video` files must exist, and their names (file stems, which name the tracks) must
-    differ: two files called clip.mp4 would overwrite each other's tracks."""
+    differ: two files called clip.mp4 would overwrite each other's tracks. `probe`: each must
+    open as a video too (for `track`)."""
+    folders = [str(v) for v in videos if v.is_dir()]
+    if folders:
+        raise ConfigError(f"--video: a folder, not a video file: {', '.join(folders)}")
     missing = [str(v) for v in videos if not v.is_file()]
     if missing:
         raise ConfigError(f"--video: no such file: {', '.join(missing)}")
+    from gst.video import VideoError, probe_video
+
+    for v in videos if probe else ():  # failed inside track, after the stages before it ran
+        try:
+            probe_video(v)
+        except VideoError as exc:
+            raise ConfigError(f"--video: {exc}") from None
     by_name: dict[str, list[str]] = {}
     for v in videos:
         by_name.setdefault(v.stem, []).append(str(v))
@@ -334,8 +345,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"--{unread[0].replace('_', '-')} is not an option of '{args.stage}' (it is "
                     f"of: {', '.join(readers) or 'no stage'})"
                 )
+            tracks = args.stage == "track" or (args.stage == "all" and "track" in cfg.stages)
             options = {
-                "video": [v.resolve() for v in _check_videos_option(args.video or [])],
+                "video": [v.resolve() for v in _check_videos_option(args.video or [], tracks)],
                 "with_gaussians": args.with_gaussians,
             }
             clashes = _tracks_of_another_file(cfg, scenes, options["video"])
@@ -364,6 +376,13 @@ def main(argv: list[str] | None = None) -> int:
             Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
             for scene in scenes
         ]
+        if options.get("with_gaussians") and "track" in cfg.stages:
+            for runner in runners:  # found inside the run, after the stages before track ran
+                if getattr(runner.context("track").params, "chunk_frames", None):
+                    raise ConfigError(
+                        "--with-gaussians: chunked tracking (track.chunk_frames) cannot keep "
+                        "per-person extras; turn chunking off for --with-gaussians"
+                    )
         log_path = None
         if args.command == "run" and world > 1 and not args.dry_run:
             if args.stage == "all":

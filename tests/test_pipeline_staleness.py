@@ -278,3 +278,35 @@ def test_a_second_video_of_the_same_name_does_not_replace_the_firsts_tracks(
     moved.write_bytes(day1.read_bytes())
     assert main([*args, "--video", str(moved)]) == 0
     assert main([*args, "--video", str(day2), "--force"]) == 0
+
+
+def test_track_inputs_that_cannot_run_are_refused_before_any_stage_runs(tmp_path, capsys):
+    """An unreadable --video, a folder, smoothing with chunking and --with-gaussians with
+    chunking failed inside `track`, after the stages before it (minutes on the demo) had run."""
+    cfg = config_with(tmp_path, "track: {}")
+    text = tmp_path / "notes.mp4"
+    text.write_text("not a video")
+    args = ["run", "track", "--config", str(cfg), "-q"]
+    assert main([*args, "--video", str(text)]) == 2
+    assert "notes.mp4" in capsys.readouterr().err
+    assert main([*args, "--video", str(tmp_path)]) == 2
+    assert "a folder, not a video file" in capsys.readouterr().err
+    video = tmp_path / "clip.mp4"
+    _tiny_video(video)
+    for extra, shown in (
+        (["--set", "track.chunk_frames=50", "--set", "track.smoothing=true"], "smoothing"),
+        (["--set", "track.chunk_frames=50", "--with-gaussians"], "--with-gaussians"),
+    ):
+        assert main([*args, "--video", str(video), *extra]) == 2
+        assert shown in capsys.readouterr().err
+    assert not (tmp_path / "ws" / "demo" / "tracks").exists()
+
+
+def _tiny_video(path) -> None:
+    import cv2
+    import numpy as np
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (32, 32))
+    for _ in range(3):
+        writer.write(np.zeros((32, 32, 3), np.uint8))
+    writer.release()

@@ -29,6 +29,7 @@ from pydantic import (
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
+    model_validator,
 )
 
 from calibration import Camera, Rig
@@ -148,6 +149,17 @@ class TrackSettings(BaseModel):
     # where the network runs (gst.device): auto is the GPU when PyTorch sees one, else the CPU;
     # decoding, the person model and the pose fit stay on the CPU
     device: str = "auto"
+
+    @model_validator(mode="after")
+    def _chunks_do_not_smooth(self):
+        # found only inside the run, after the stages before track had run (the filter's state
+        # would restart at every chunk)
+        if self.chunk_frames and self.smoothing:
+            raise ValueError(
+                "chunk_frames and smoothing do not go together (a chunk cannot carry the "
+                "filter's state); turn one off"
+            )
+        return self
 
 
 @dataclass(frozen=True)
