@@ -557,6 +557,16 @@ class Runner:
             ):
                 st = self._kept(name, st)
             planned[name] = st
+        # A target that does not apply to the scene (bench on a scene without truth) needs
+        # nothing upstream: `run bench --scene lab` ran extract, then skipped bench.
+        skipped = [t for t in targets if t in planned and planned[t].state == SKIPPED]
+        if skipped:
+            needed = set(upstream_closure(self.needs, [t for t in targets if t not in skipped]))
+            for name in names:
+                st = planned[name]
+                if name not in needed and st.needs_run:
+                    why = f"only for {', '.join(skipped)}, which the scene does not need"
+                    planned[name] = StageStatus(name, st.key, SKIPPED, why, st.fingerprint)
         self.hashes.save()
         if dry_run:
             return list(planned.values())

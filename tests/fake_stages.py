@@ -199,3 +199,11 @@ def fail_first_item(item: tuple[int, str]) -> int:
     time.sleep(1.0)
     Path(folder, f"ran_{index}").write_text("ran")
     return index
+
+
+REAL_ONLY = _own_folder_stage(
+    "real_only",
+    lambda ctx: _bump_counter(ctx, "real_only"),
+    applies=lambda scene: not scene.is_synthetic,
+    help="does not apply to synthetic scenes (as bench does not apply to scenes without truth)",
+)

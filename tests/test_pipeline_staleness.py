@@ -310,3 +310,22 @@ def _tiny_video(path) -> None:
     for _ in range(3):
         writer.write(np.zeros((32, 32, 3), np.uint8))
     writer.release()
+
+
+def test_a_target_the_scene_does_not_need_runs_nothing_upstream(tmp_path, counter, capsys):
+    """`run bench --scene lab` ran extract (minutes), then skipped bench, which does not apply
+    to a scene without truth."""
+    cfg = config_with(
+        tmp_path,
+        """
+        source: {module: "tests.fake_stages:SOURCE"}
+        real_only: {module: "tests.fake_stages:REAL_ONLY", needs: [source]}
+        """,
+    )
+    assert main(["run", "real_only", "--config", str(cfg), "--dry-run"]) == 0
+    plan = capsys.readouterr().out
+    assert "only for real_only, which the scene does not need" in plan
+    assert main(["run", "real_only", "--config", str(cfg), "-q"]) == 0
+    assert counter() == []
+    assert main(["run", "source", "--config", str(cfg), "-q"]) == 0
+    assert counter() == ["source"]
