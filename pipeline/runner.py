@@ -471,6 +471,19 @@ class Runner:
                 out.append(other.status_of(name, upstream))
             except (FileNotFoundError, ConfigError) as exc:  # e.g. the video was moved since
                 out.append(StageStatus(name, key, MISSING, f"its input is gone: {exc}", None))
+        # Variants that never finished have no record, only their staging folder (with the
+        # error a failed run stopped on): `track --video x.mp4` failed or killed was not listed.
+        listed = {_safe_key(st.key) for st in out} | {_safe_key(k) for k in shown}
+        staging_dir = self.meta / "staging"
+        for folder in sorted(staging_dir.glob("*@*")) if staging_dir.is_dir() else []:
+            name = folder.name.split("@", 1)[0]
+            if folder.name in listed or name not in self.stages or not folder.is_dir():
+                continue
+            failure = _failure(folder)
+            why = f"its last run failed: {failure}" if failure else "a run was interrupted"
+            out.append(
+                StageStatus(name, folder.name, MISSING, f"{why} (never finished; no record)")
+            )
         return out
 
     def _running_pid(self) -> str | None:

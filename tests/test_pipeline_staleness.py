@@ -329,3 +329,20 @@ def test_a_target_the_scene_does_not_need_runs_nothing_upstream(tmp_path, counte
     assert counter() == []
     assert main(["run", "source", "--config", str(cfg), "-q"]) == 0
     assert counter() == ["source"]
+
+
+def test_status_lists_variants_that_never_finished(tmp_path, capsys, monkeypatch):
+    """A failed or killed `track --video x.mp4` left only its staging folder (and the error it
+    stopped on): `status`, which lists recorded variants, never showed it."""
+    cfg = config_with(tmp_path, 'per_video: {module: "tests.fake_stages:PER_VIDEO"}')
+    staging = tmp_path / "ws" / "demo" / ".pipeline" / "staging"
+    (staging / "per_video@empty").mkdir(parents=True)
+    (staging / "per_video@empty" / ".failed").write_text("VideoError: empty.mp4: no frames")
+    (staging / "per_video@killed").mkdir()
+    (staging / "other@x").mkdir()  # no such stage: not listed
+    monkeypatch.setenv("COLUMNS", "400")  # the table on one line a row
+    assert main(["status", "--config", str(cfg)]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "per_video@empty" in out and "VideoError: empty.mp4: no frames" in out
+    assert "per_video@killed" in out and "a run was interrupted" in out
+    assert "other@x" not in out
