@@ -11,6 +11,7 @@ import dataclasses
 import os
 import re
 import sys
+import textwrap
 from pathlib import Path
 
 from rich.table import Table
@@ -21,6 +22,7 @@ from pipeline.console import ProgressBars, make_console, print_error, setup_logg
 from pipeline.dag import upstream_closure
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.executors import make_executor
+from pipeline.param_help import field_comments
 from pipeline.registry import load_stages
 from pipeline.runner import KEPT, MISSING, SKIPPED, STALE, UP_TO_DATE, Runner
 
@@ -124,6 +126,7 @@ def _param_lines(model, configured: dict, scenes: dict[str, dict] | None = None)
     pipeline file (with any --set) gives the stage, and the values `scenes` (scene name -> that
     scene's own params for the stage) give it, which win where set."""
     lines = []
+    comments = field_comments(model)
     for key, field in model.model_fields.items():
         t = field.annotation
         kind = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
@@ -138,6 +141,10 @@ def _param_lines(model, configured: dict, scenes: dict[str, dict] | None = None)
             if key in params:
                 line += f"  (scene {scene}: {params[key]!r})"
         lines.append(line)
+        if key in comments:
+            lines += textwrap.wrap(
+                comments[key], 92, initial_indent="    ", subsequent_indent="    "
+            )
     return lines
 
 
@@ -316,10 +323,12 @@ def main(argv: list[str] | None = None) -> int:
             out = make_console(args.quiet, stderr=False)
             for name, st in stages.items():
                 out.print(
-                    f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n    "
-                    f"{st.help}",
+                    f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n"
+                    + "\n".join(textwrap.wrap(st.help, 96, initial_indent="    ",
+                                               subsequent_indent="    ")),
                     highlight=False,
-                )
+                    soft_wrap=True,
+                )  # fmt: skip
                 if args.params:
                     own = {  # a scene's own params, shown when the scenes were named
                         n: cfg.scenes[n].params.get(name) or {}

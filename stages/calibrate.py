@@ -21,6 +21,7 @@ SYNTH_FILES = {"rig": "rig.json", "panoptic": "calibration_synth.json", "h36m": 
 
 
 class Params(StageParams):
+    # synthetic scenes: solve the rig from the rendered board clips, or read the scene's file
     synthetic_source: Literal["board", "rig", "panoptic", "h36m"] = "board"
     frame_step: PositiveInt = 1  # search every Nth frame of the board clips
     max_frames: PositiveInt | None = None  # cap on board frames searched per camera
@@ -67,9 +68,8 @@ def run(ctx: StageContext) -> None:
 
 
 def _inputs(ctx: StageContext) -> list[Path]:
-    # the camera videos too: the rig is fitted to their frame size and checked against them
     own = [ctx.scene.calibration.file] if ctx.scene.calibration else ctx.scene.board_videos()
-    return own + ctx.input_videos()
+    return own + ctx.input_videos()  # the rig is fitted to their frame size, checked against them
 
 
 STAGE = Stage(

@@ -21,10 +21,10 @@ from pipeline.stage import Stage, StageContext, StageParams
 
 
 class Params(StageParams):
-    crop_size: PositiveInt = 256
+    crop_size: PositiveInt = 256  # side of the square crops (px)
     scale: PositiveFloat = 1.2  # HMR2 convention: square side = 1.2 x the person box's longer side
-    frame_stride: PositiveInt = 1
-    method: Literal["median", "mog2", "knn"] = "median"
+    frame_stride: PositiveInt = 1  # every Nth frame
+    method: Literal["median", "mog2", "knn"] = "median"  # the background model
     background_videos: dict[str, Path] | None = None  # camera -> clip of the empty scene
     use_board_clip_as_background: bool = True  # synthetic scenes: the board clip is an empty stage
     # Overrides of gst.data.AssociationConfig, e.g. {merge_radius: 0.6, peak_separation: 0.8}.

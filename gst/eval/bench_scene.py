@@ -60,23 +60,23 @@ class BenchSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    variants: list[VariantParams] = _DEFAULT_VARIANTS
+    variants: list[VariantParams] = _DEFAULT_VARIANTS  # the rows (docs/evaluate.md)
     include_pretrained: bool = True  # also time and score models/pretrain.pt as it is
     include_trained: bool = True  # and models/gst.pt (the train stage's model) when it exists
     landmarks: bool = True  # feed crops' landmarks to landmark variants (store's, else BlazePose)
     steps: PositiveInt = 40  # equal training budget of every variant
-    batch_size: PositiveInt = 8
-    lr: PositiveFloat = 5e-4
+    batch_size: PositiveInt = 8  # training crops per step
+    lr: PositiveFloat = 5e-4  # training learning rate
     mode: Literal["pretrain", "3d"] = (
         "pretrain"  # 3D supervision + image terms (Gaussians learn too)
     )
-    test_fraction: float = Field(0.25, gt=0, lt=1)
+    test_fraction: float = Field(0.25, gt=0, lt=1)  # last share of the frames, held out
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    repeats: PositiveInt = 5
-    timing_batch: PositiveInt = 8
-    render_size: PositiveInt = 64
-    max_groups: PositiveInt | None = 16
-    threads: PositiveInt | None = None
+    repeats: PositiveInt = 5  # timed runs per row (the median is reported)
+    timing_batch: PositiveInt = 8  # crops per timed call (ms per crop)
+    render_size: PositiveInt = 64  # side (px) of the training renders
+    max_groups: PositiveInt | None = 16  # cap on test (frame, person) groups (None: all)
+    threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
 
 
 def bench_scene(

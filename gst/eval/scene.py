@@ -57,8 +57,8 @@ class EvaluateSettings(BaseModel):
         None  # cap on (frame, person) groups for novel views (None: all)
     )
     compare_pretrained: bool = True  # also evaluate models/pretrain.pt, side by side
-    lpips: bool = True
-    threads: PositiveInt | None = None
+    lpips: bool = True  # LPIPS of the novel views (needs the fetched weights)
+    threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
 
 
 def _model(path: Path, body_cache: dict):

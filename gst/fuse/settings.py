@@ -45,7 +45,7 @@ class FuseSettings(BaseModel):
     # the floor (height along the rig's up axis, m) that feet do not sink into; auto: 0 where the
     # feet stand near it; null: none (docs/fuse.md "Floor")
     floor: float | Literal["auto"] | None = "auto"
-    people_per_batch: PositiveInt = 8
+    people_per_batch: PositiveInt = 8  # people fitted together in one batch of the body fit
     overlay: bool = True  # one video per camera with the fitted bodies drawn in
     # Crops cut again from the fitted bodies (`bodycrops/crops.h5`, docs/fuse.md "Crops from the
     # fitted bodies"), and rounds of fusing again on such crops before the last cut (0: fuse

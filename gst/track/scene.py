@@ -79,13 +79,13 @@ class TrackSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    stride: PositiveInt = 1
-    start_s: float | None = None
-    end_s: float | None = None
-    batch_size: PositiveInt = 32
+    stride: PositiveInt = 1  # track every Nth frame
+    start_s: float | None = None  # from this time in the video (s; None: its start)
+    end_s: float | None = None  # up to this time (s; None: its end)
+    batch_size: PositiveInt = 32  # crops per network call
     smoothing: bool = False  # One-Euro filter on joints and parameters
-    min_cutoff: PositiveFloat = 1.0
-    beta: NonNegativeFloat = 0.5
+    min_cutoff: PositiveFloat = 1.0  # One-Euro: cutoff (Hz) at rest; lower is smoother
+    beta: NonNegativeFloat = 0.5  # One-Euro: how fast the cutoff rises with speed
     boxes: Path | None = None  # supplied boxes (CSV/Parquet) instead of a detector
     # 'auto': the learned person model (BlazePose, gst.detect) when it is installed (the `detect`
     # extra and `python -m gst.detect fetch`), else the static-camera background model.
@@ -137,7 +137,7 @@ class TrackSettings(BaseModel):
     # stitched (gst/track/chunks.py); off by default because ids can differ where tracking is
     # ambiguous at a border. Not with smoothing or --with-gaussians.
     chunk_frames: int | None = Field(default=None, ge=1)
-    chunk_overlap: int = Field(default=30, ge=1)
+    chunk_overlap: int = Field(default=30, ge=1)  # frames two chunks share, to stitch ids
     # 'auto': pose-only crops with landmarks skip the network's image path when its learnt image
     # gate shows the image's share negligible (gst.model.inference.image_shapes_pose; same
     # accuracy at a quarter of the network's time, docs/track_evaluation.md); 'always': never skip

@@ -59,12 +59,13 @@ class PretrainConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
+    # network size: tiny (CPU) to huge (the paper's, for GPUs; gst.model.presets)
     preset: Literal[tuple(PRESETS)] = "tiny"  # type: ignore[valid-type]
     body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
     world_seed: int = 1000  # the pretraining worlds differ from every scene by construction
     worlds: PositiveInt = 12  # worlds trained on; one more (unseen) validates
     world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds
-    world_cameras: PositiveInt = 6
+    world_cameras: PositiveInt = 6  # cameras of each pretraining world
     world_frames: PositiveInt = 40  # per world
     world_fps: float = (
         10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
@@ -88,30 +89,30 @@ class PretrainConfig(BaseModel):
     # render-free phase's steps, batch and rate, the rendered phase's rate for everything but
     # the Gaussian head (`gaussian_lr`), and the share of its samples trained without landmarks
     landmarks: Literal["all", "limbs"] = "all"
-    landmark_point_tokens: bool = False
+    landmark_point_tokens: bool = False  # lift mode: one token per landmark too
     # rounds of reprojection feedback after the SMPL head (gst.model.refine; 0: none)
     landmark_refine: NonNegativeInt = DEFAULT_ROUNDS
-    lift_steps: PositiveInt = 1000
-    lift_batch_size: PositiveInt = 64
-    lift_lr: PositiveFloat = 1e-3
-    lift_body_lr: PositiveFloat = 1e-4
-    landmark_dropout: float = 0.1
+    lift_steps: PositiveInt = 1000  # steps of the render-free lifting phase
+    lift_batch_size: PositiveInt = 64  # simulated samples per lifting step
+    lift_lr: PositiveFloat = 1e-3  # lifting phase learning rate
+    lift_body_lr: PositiveFloat = 1e-4  # rendered phase rate of all but the Gaussian head
+    landmark_dropout: float = 0.1  # share of rendered-phase samples without landmarks
     # Then this many steps of mode "pretrain" from the kept 3d checkpoint: the Gaussian head learns
     # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
     # head and the demo's held-out renders come out as faint dots (docs/training.md).
     gaussian_steps: NonNegativeInt = 800
-    gaussian_lr: PositiveFloat = 2e-4
+    gaussian_lr: PositiveFloat = 2e-4  # the Gaussian head's rate in that phase
     # lift mode: the rendered phase renders the Gaussians posed on each crop's true body (the
     # worlds' exact truth) instead of on the network's pose (gst.train.teacher_render), so that
     # the pose error does not teach them to shrink and fade (docs/training.md "Appearance on
     # the rig's body")
     appearance_on_truth: bool = True
-    steps: PositiveInt = 1000
-    batch_size: PositiveInt = 8
-    lr: PositiveFloat = 5e-4
-    num_targets: PositiveInt = 3
-    render_size: PositiveInt = 64
-    losses: LossWeights = LossWeights()
+    steps: PositiveInt = 1000  # steps of the rendered modes ("3d", "pretrain")
+    batch_size: PositiveInt = 8  # crops per step of the rendered modes
+    lr: PositiveFloat = 5e-4  # learning rate of the rendered modes
+    num_targets: PositiveInt = 3  # cameras each crop's Gaussians are rendered into per step
+    render_size: PositiveInt = 64  # side (px) of those renders
+    losses: LossWeights = LossWeights()  # loss weights (docs/training.md)
     threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
     # where the rendered phases train (gst.device; auto: the GPU when PyTorch sees one). The
     # render-free lift phase and the world renders stay on the CPU.

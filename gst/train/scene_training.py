@@ -73,14 +73,14 @@ class TrainSettings(BaseModel):
     # stage cut again from the fitted bodies (`bodycrops/crops.h5`; docs/fuse.md: those come
     # from bodies fitted on every camera and frame, held-out ones included)
     crops: Literal["extract", "bodycrops"] = "extract"
-    init: Literal["pretrain", "hmr2"] = "pretrain"
+    init: Literal["pretrain", "hmr2"] = "pretrain"  # start from models/pretrain.pt or HMR2
     hmr2_checkpoint: Path | None = (
         None  # with init=hmr2 (huge preset); loaded with weights_only=True
     )
-    body_model: str = "anny"
+    body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
-    steps: PositiveInt = 1000
-    batch_size: PositiveInt = 8
+    steps: PositiveInt = 1000  # optimiser steps
+    batch_size: PositiveInt = 8  # input crops per step (their groups' other views: targets)
     lr: PositiveFloat = 1e-3  # Gaussian head (tokens, attribute heads)
     # backbone + SMPL head (None: `lr` for everything). With the keypoint term the body can
     # learn (demo: -27% MPJPE at 3e-4); without it, keep it low: from a poor start the
@@ -91,8 +91,8 @@ class TrainSettings(BaseModel):
     freeze_backbone: bool = (
         False  # the paper freezes HMR2's ViT; our small pretrained ViT is tuned too
     )
-    num_targets: PositiveInt = 4
-    render_size: PositiveInt = 64
+    num_targets: PositiveInt = 4  # cameras each crop's Gaussians are rendered into per step
+    render_size: PositiveInt = 64  # side (px) of those renders
     ignore_occluders: bool = True  # other people's pixels in a target crop are not supervised
     anchor: bool = True  # pull the body towards its triangulated mask centre (losses.anchor weight)
     # Reproject the joints into the target views against 2D joints the BlazePose landmark model
@@ -121,14 +121,14 @@ class TrainSettings(BaseModel):
     # "Prior rehearsal": on unseen people the trained demo model stays at the pretrained one's
     # error instead of losing 5-15 mm, on the demo's own held-out frames within noise).
     rehearsal: float = Field(10.0, ge=0)
-    rehearsal_batch: int = Field(32, ge=1)
+    rehearsal_batch: int = Field(32, ge=1)  # simulated detections per rehearsal step
     # With distillation: the multi-view image terms render the network's Gaussians posed on the
     # rig's fused body of each crop's person and frame instead of on the network's own pose, so
     # that its pose error does not teach the Gaussians to shrink and fade
     # (gst.train.teacher_render; docs/training.md "Appearance on the rig's body").
     appearance_on_teacher: bool = True
-    losses: LossWeights = LossWeights()
-    threads: PositiveInt | None = None
+    losses: LossWeights = LossWeights()  # loss weights (docs/training.md)
+    threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
     # where the network trains (gst.device): auto is the GPU when PyTorch sees one, else the CPU
     device: str = "auto"
     amp: bool = False  # bf16 autocast (GPUs; huge preset with gsplat: 1.9x a step, docs/gpu.md)
