@@ -112,13 +112,17 @@ def _who(path: Path, camera: str) -> str:
 
 
 def _open(path: Path, camera: str = "") -> cv2.VideoCapture:
+    if path.is_dir():
+        raise VideoError(f"{_who(path, camera)}: a folder, not a video file")
     if not path.is_file():
         raise VideoError(f"{_who(path, camera)}: file not found")
+    if path.stat().st_size == 0:
+        raise VideoError(f"{_who(path, camera)}: the file is empty (0 bytes)")
     cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not cap.isOpened():
         raise VideoError(
-            f"{_who(path, camera)}: OpenCV cannot open it (not a video, truncated, or an "
-            "unsupported codec)"
+            f"{_who(path, camera)}: OpenCV cannot open it (not a video, truncated, an "
+            "unsupported codec, or a container that holds no frames)"
         )
     return cap
 

@@ -104,6 +104,12 @@ def test_missing_and_garbage_files_name_the_file(tmp_path):
     junk.write_bytes(np.random.default_rng(0).bytes(4000))
     with pytest.raises(VideoError, match="junk.mp4: OpenCV cannot open it"):
         list(iter_frames(junk))
+    empty = tmp_path / "empty.mp4"  # was "cannot open it (not a video, truncated, ...)"
+    empty.write_bytes(b"")
+    with pytest.raises(VideoError, match="empty.mp4: the file is empty"):
+        probe_video(empty)
+    with pytest.raises(VideoError, match="a folder, not a video file"):  # was "file not found"
+        probe_video(tmp_path)
 
 
 def test_truncated_file_raises_after_the_good_frames(video, tmp_path):
