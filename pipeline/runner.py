@@ -187,6 +187,8 @@ def stage_code(stage: Stage) -> tuple[str, dict[str, str]]:
 def _diff_params(old: dict, new: dict, prefix: str = "") -> list[str]:
     changes = []
     for k in sorted(set(old) | set(new)):
+        if (k not in new and old[k] is None) or (k not in old and new[k] is None):
+            continue  # None and absent say the same (an older record kept every key)
         a, b = old.get(k, "<unset>"), new.get(k, "<unset>")
         if isinstance(a, dict) and isinstance(b, dict):
             changes += _diff_params(a, b, f"{prefix}{k}.")

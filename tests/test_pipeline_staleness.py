@@ -346,3 +346,15 @@ def test_status_lists_variants_that_never_finished(tmp_path, capsys, monkeypatch
     assert "per_video@empty" in out and "VideoError: empty.mp4: no frames" in out
     assert "per_video@killed" in out and "a run was interrupted" in out
     assert "other@x" not in out
+
+
+def test_a_stale_reason_does_not_list_keys_that_are_none_on_one_side_and_absent_on_the_other():
+    """A record written when the stage kept every scene key (None where unset) made `status`
+    list "scene board: None -> '<unset>'; scene fps: None -> '<unset>'; ..." for a stage that
+    reads nothing of the scene, hiding the real reason (its code changed)."""
+    from pipeline.runner import _diff_params
+
+    old = {"board": None, "fps": None, "masks": {"dir": None}, "seed": 1}
+    assert _diff_params(old, {"masks": {}, "seed": 1}) == []
+    assert _diff_params(old, {"seed": 2}) == ["masks: {'dir': None} -> '<unset>'", "seed: 1 -> 2"]
+    assert _diff_params({}, {"fps": 30.0}) == ["fps: '<unset>' -> 30.0"]
