@@ -67,7 +67,9 @@ def test_c3d_round_trip_is_identical(tmp_path):
     assert names == list(SMPL_JOINT_NAMES) and rate == 30.0
     assert frames.tolist() == list(range(21, 28))
     np.testing.assert_array_equal(back[..., :3], (pts * 1000).astype(np.float32))
-    assert back[3, 5, 3] == 1 and (np.delete(back[..., 3].ravel(), 3 * 24 + 5) == 0).all()
+    # the C3D format's residuals: 0 a modelled point (the fit filled it), > 0 a measured one
+    # (the two were the other way round)
+    assert back[3, 5, 3] == 0 and (np.delete(back[..., 3].ravel(), 3 * 24 + 5) == 1).all()
 
 
 def test_bodies_parquet_has_the_tracks_schema(tmp_path):
@@ -100,6 +102,13 @@ def test_bodies_parquet_has_the_tracks_schema(tmp_path):
     np.testing.assert_allclose(joints, fit.joints, rtol=1e-6)
     assert t.column("joints2d").null_count == T
     assert np.stack(t.column("joint_gap_filled").to_numpy(zero_copy_only=False)).all(axis=0)[0]
+    # `score` is the fit's share of triangulated joints, not a detection score, and the fused
+    # columns are in the file's own column table (they were in `gst.fused` only)
+    columns = json.loads(meta[b"gst.columns"])
+    assert "triangulated" in columns["score"]["description"]
+    assert "triangulated" in t.schema.field("score").metadata[b"description"].decode()
+    assert columns["joint_reprojection_px"]["shape"] == [24]
+    assert set(EXTRA_COLUMNS) <= set(columns)
 
 
 def test_marker_files_keep_a_row_for_every_frame_of_a_gap(tmp_path):
@@ -113,11 +122,21 @@ def test_marker_files_keep_a_row_for_every_frame_of_a_gap(tmp_path):
     assert header["NumFrames"] == "12" and fr.tolist() == list(range(1, 13))
     assert np.isnan(back[4:10]).all()
     np.testing.assert_allclose(back[[0, 1, 2, 3, 10, 11]], pts @ Z_UP_TO_Y_UP.T, atol=1e-6)
+    # OpenSim's reader drops a line's empty last field and wants 2 + 3 x markers fields: a gap
+    # row (its last marker blank) without the trailing tab OpenSim's writer puts was one short
+    # and the whole file was refused
+    for row in (tmp_path / "p.trc").read_text().splitlines()[6:]:
+        fields = row.split("\t")
+        fields = fields[:-1] if fields[-1] == "" else fields
+        assert len(fields) == 2 + 3 * 24, row[:40]
     write_c3d(tmp_path / "p.c3d", frames, pts, fps=30.0)
     _, _, fr, back = read_c3d(tmp_path / "p.c3d")
     assert fr.tolist() == list(range(1, 13))
-    assert (back[4:10, :, 3] == -1).all() and (back[[0, 1, 2, 3, 10, 11], :, 3] == 0).all()
+    assert (back[4:10, :, 3] == -1).all() and (back[[0, 1, 2, 3, 10, 11], :, 3] == 1).all()
     np.testing.assert_array_equal(back[10, :, :3], (pts[4] * 1000).astype(np.float32))
+    # a missing point's coordinates are 0, as the format wants (the c3d writer left frame 3's
+    # there: a body frozen through the gap)
+    assert (back[4:10, :, :3] == 0).all()
 
 
 @pytest.mark.filterwarnings("ignore:No analog data found")

@@ -9,7 +9,10 @@ TRC: OpenSim expects Y up, so the rig's world is rotated to put its up (`Rig.up`
 (a Panoptic rig's Y-down world, say) is first turned, by the smallest rotation, so that its up
 is +Z. Header as
 OpenSim writes it (PathFileType 4, DataRate ... OrigNumFrames, `Frame#  Time  names`, then
-`X1 Y1 Z1 ...`), tab-separated; Frame# is the 1-based video frame, Time = frame / fps.
+`X1 Y1 Z1 ...`), tab-separated, each data row ending in a tab as OpenSim's own writer ends
+them (OpenSim drops a line's empty last field, so a row whose last marker is missing was one
+field short and the whole file refused); Frame# is the 1-based video frame, Time =
+(Frame# - 1) / fps, the 0-based video frame over the rate.
 
 Both files hold one row per video frame from the person's first fitted frame to their last, at
 the constant rate they declare: a frame inside a gap the fit does not fill (longer than
@@ -22,9 +25,12 @@ is the world axis nearest its up, so viewers draw it upright). Frames are
 numbered from the person's first video frame + 1 where that fits the header's 16-bit first
 frame (video frames up to 65533; the `c3d` reader miscounts a file whose header had to clamp
 it), else from 1; the parameter GST:FIRST_FRAME always holds the first row's video frame
-(0-based). Every fitted joint is a valid point (readers zero the coordinates of points with a
-negative residual, so -1 would lose the fit's value): residual 0 marks a joint observed by >= 2
-cameras, residual 1 a joint filled by the fit, -1 a missing value.
+(0-based). Every fitted joint is a valid point. Residuals as the C3D format defines them: a
+positive residual marks a measured point (here 1 for a joint observed by >= 2 cameras: a
+nominal value; its reprojection error in pixels is in the fused Parquet), 0 a point not
+measured but modelled (a joint the fit filled), -1 a missing value, whose coordinates are 0
+(the `c3d` 0.6 writer left the last valid frame's there, a body frozen through a gap, so they
+are cleared in the written file).
 """
 
 from __future__ import annotations
@@ -101,7 +107,7 @@ def write_trc(
     ]
     for f, row in zip(frames, yup, strict=True):
         vals = "\t".join("" if not np.isfinite(v) else f"{v:.6f}" for v in row.ravel())
-        lines.append(f"{int(f) + 1}\t{f / fps:.6f}\t{vals}")
+        lines.append(f"{int(f) + 1}\t{f / fps:.6f}\t{vals}\t")
 
     def write(tmp: str) -> None:
         Path(tmp).write_text("\n".join(lines) + "\n")
@@ -117,9 +123,9 @@ def read_trc(path: str | Path) -> tuple[dict[str, str], list[str], np.ndarray, n
     names = [n for n in lines[3].split("\t")[2:] if n]
     rows = [ln.split("\t") for ln in lines[6:] if ln.strip()]
     frames = np.array([int(r[0]) for r in rows])
-    pts = np.array([[float(v) if v else np.nan for v in r[2:]] for r in rows]).reshape(
-        len(rows), len(names), 3
-    )
+    width = 3 * len(names)  # rows end in a tab (an empty last field): write_trc
+    pts = np.array([[float(v) if v else np.nan for v in r[2 : 2 + width]] for r in rows])
+    pts = pts.reshape(len(rows), len(names), 3)
     return header, names, frames, pts
 
 
@@ -177,16 +183,40 @@ def write_c3d(
     group.set("FIRST_FRAME", "video frame of the first row (0-based)", 4, "<i", first)
     pts = np.zeros((T, M, 5), np.float32)
     pts[..., :3] = np.nan_to_num(points * 1000.0).astype(np.float32)
-    pts[..., 3] = np.where(valid, 0.0, 1.0)
-    pts[..., 3] = np.where(np.isfinite(points).all(-1), pts[..., 3], -1.0)
+    pts[..., 3] = np.where(valid, 1.0, 0.0)  # measured 1 (nominal), modelled 0: module doc
+    missing = ~np.isfinite(points).all(-1)
+    pts[..., 3] = np.where(missing, -1.0, pts[..., 3])
     writer.add_frames([(pts[i], np.zeros((0, 0), np.float32)) for i in range(T)])
 
     def write(tmp: str) -> None:
         with open(tmp, "wb") as fh, warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=_NO_ANALOG)
             writer.write(fh)
+        _zero_missing_points(tmp, missing)
 
     atomic_write(Path(path), write)
+
+
+def _zero_missing_points(path: str, missing: np.ndarray) -> None:
+    """Clear the x, y, z of the (T, M) `missing` points in a float C3D without analog data just
+    written: the `c3d` writer keeps one buffer for all frames and leaves a missing point's
+    coordinates as the last frame that had it (the format wants them 0). Frames are contiguous
+    from the header's data block, each M points of four float32 (x, y, z, residual word)."""
+    import c3d
+
+    if not missing.any():
+        return
+    with open(path, "rb") as fh, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=_NO_ANALOG)
+        header = c3d.Reader(fh).header
+    start = 512 * (int(header.data_block) - 1)
+    used = int(header.point_count)
+    if used != missing.shape[1] or int(header.analog_count) != 0:
+        raise RuntimeError(f"{path}: unexpected C3D layout ({used} points, analog data)")
+    with open(path, "r+b") as fh:
+        for t, m in zip(*np.nonzero(missing), strict=True):
+            fh.seek(start + (int(t) * used + int(m)) * 16)
+            fh.write(np.zeros(3, "<f4").tobytes())
 
 
 def read_c3d(path: str | Path) -> tuple[list[str], float, np.ndarray, np.ndarray]:

@@ -41,6 +41,10 @@ __all__ = [
 PARQUET_OPTIONS = {"compression": "zstd", "compression_level": 3, "version": "2.6"}
 
 # extra columns of bodies.parquet: name -> (arrow type, unit, description)
+SCORE_DESCRIPTION = (
+    "share of the joints with landmarks that were triangulated in this frame (>= 2 views); the "
+    "rest the fit filled"
+)
 EXTRA_COLUMNS: dict[str, tuple[pa.DataType, str, str]] = {
     "joint_views": (
         pa.list_(pa.uint8(), 24),
@@ -174,7 +178,10 @@ def write_bodies(
         pa.field(k, t, metadata={"unit": u, "description": d})
         for k, (t, u, d) in EXTRA_COLUMNS.items()
     ]
-    schema = pa.schema(list(schema) + extra_fields)
+    # the tracks format's `score` is a detection score; here it is the fit's own measure
+    score = schema.field("score")
+    score = score.with_metadata({**score.metadata, b"description": SCORE_DESCRIPTION.encode()})
+    schema = pa.schema([score if f.name == "score" else f for f in schema] + extra_fields)
 
     def fixed(name: str, width: int, dtype=np.float32) -> pa.Array:
         if n == 0:
@@ -231,6 +238,17 @@ def write_bodies(
         settings_sha256=settings_sha256,
         num_betas=nb,
     )
+    # the file's own column table: score as here, and the fused columns (they were described in
+    # `gst.fused` only)
+    columns = json.loads(meta["gst.columns"])
+    columns["score"]["description"] = SCORE_DESCRIPTION
+    for k, (t, u, d) in EXTRA_COLUMNS.items():
+        shape = [t.list_size] if pa.types.is_fixed_size_list(t) else []
+        columns[k] = {"shape": shape, "unit": u, "frame": None, "description": d}
+    meta["gst.columns"] = json.dumps(columns, sort_keys=True)
+    units = json.loads(meta["gst.units"])
+    units.update({k: u for k, (_, u, _) in EXTRA_COLUMNS.items() if u})
+    meta["gst.units"] = json.dumps(units, sort_keys=True)
     meta["gst.fused"] = json.dumps(
         {
             "cameras": camera_names,
