@@ -68,6 +68,14 @@ class BoardSpec:
             raise BoardError(
                 f"board needs at least 3 x 3 squares, got {self.squares_x} x {self.squares_y}"
             )
+        numbers = (self.square_size, 1.0 if self.marker_size is None else self.marker_size)
+        if not all(isinstance(v, (int, float, np.integer, np.floating)) for v in numbers) or any(
+            isinstance(v, bool) for v in numbers
+        ):  # "0.04" (text) raised numpy's isfinite TypeError
+            raise BoardError(
+                f"board square_size and marker_size must be numbers (metres), got "
+                f"{self.square_size!r} and {self.marker_size!r}"
+            )
         if not (np.isfinite(self.square_size) and self.square_size > 0):
             raise BoardError(
                 f"board square_size must be a positive length in metres, got {self.square_size}"
@@ -79,7 +87,12 @@ class BoardSpec:
                     f"ChArUco marker_size must be in (0, square_size={self.square_size}), "
                     f"got {self.marker_size}"
                 )
-            if not hasattr(cv2.aruco, self.dictionary):
+            known = (
+                isinstance(self.dictionary, str)
+                and self.dictionary.startswith("DICT_")
+                and isinstance(getattr(cv2.aruco, self.dictionary, None), int)
+            )  # hasattr took any cv2.aruco name (CORNER_REFINE_SUBPIX: DICT_4X4_100's number)
+            if not known:
                 raise BoardError(
                     f"ArUco dictionary '{self.dictionary}' is unknown to OpenCV "
                     "(expected a name such as 'DICT_5X5_100')"
@@ -243,7 +256,23 @@ class BoardDetector:
     def detect(self, image: np.ndarray, frame: int = 0) -> FrameDetection | None:
         """Corners in one image, or None when fewer than `min_corners` (or a degenerate set)
         show."""
-        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        image = np.asarray(image)
+        if image.ndim == 3 and image.shape[2] == 1:
+            image = image[..., 0]
+        if (
+            image.dtype != np.uint8
+            or image.ndim not in (2, 3)
+            or (image.ndim == 3 and image.shape[2] not in (3, 4))
+        ):  # raw OpenCV assertions ("_in.type() == CV_8UC1") before
+            raise BoardError(
+                f"board detection needs an 8-bit grey, BGR or BGRA image, got dtype "
+                f"{image.dtype} and shape {image.shape}"
+            )
+        if image.ndim == 2:
+            gray = image
+        else:
+            code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+            gray = cv2.cvtColor(image, code)
         if self.board.kind == "charuco":
             corners, ids, _, _ = self._detector.detectBoard(gray)
             if ids is None or len(ids) < self.min_corners:

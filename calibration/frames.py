@@ -67,7 +67,9 @@ def source_image_size(source: str | Path) -> tuple[int, int]:
     _check_exists(source)
     if source.is_dir():
         first = list_images(source)[0]
-        img = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+        # as `iter_frames` reads it: IMREAD_UNCHANGED ignored a phone photo's EXIF rotation,
+        # so the camera got its width and height swapped
+        img = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise FrameSourceError(f"cannot read image '{first}'")
         return int(img.shape[1]), int(img.shape[0])
@@ -88,6 +90,7 @@ def iter_frames(
     limit = None if max_frames is None else max(int(max_frames), 0)
     flag = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
     yielded = 0
+    size = None
     if source.is_dir():
         for index, path in enumerate(list_images(source)):
             if index % step:
@@ -97,6 +100,14 @@ def iter_frames(
             img = cv2.imread(str(path), flag)
             if img is None:
                 raise FrameSourceError(f"cannot read image '{path}'")
+            if size is None:
+                size = img.shape[:2]
+            elif img.shape[:2] != size:  # one camera's images: a portrait shot among landscape
+                raise FrameSourceError(
+                    f"image '{path}' is {img.shape[1]}x{img.shape[0]}, the folder's first "
+                    f"{size[1]}x{size[0]}: one camera's images must share a size (EXIF "
+                    "rotation applied)"
+                )
             yielded += 1
             yield index, img
         return

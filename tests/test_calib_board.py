@@ -224,3 +224,50 @@ def test_detect_in_source_reports_frames_searched(footage):
         assert [d.frame for d in res.detections] == [1, 2, 4]
         res2 = detect_in_source(src, CHARUCO, frame_step=2)
         assert res2.frames_searched == 3 and [d.frame for d in res2.detections] == [2, 4]
+
+
+def test_phone_photos_with_an_exif_rotation_keep_their_displayed_size(tmp_path):
+    """The image size was read ignoring the EXIF orientation that the frames are read with: a
+    portrait-stored, landscape-shown photo series gave the camera its width and height swapped
+    (coverage and lens checks then wrong). A folder mixing sizes is refused."""
+    Image = pytest.importorskip("PIL.Image")
+    spec = BoardSpec("checkerboard", 8, 5, 0.04)
+    shown = np.full((480, 640), 255, np.uint8)
+    shown[100:380, 120:520] = spec.render_image(40, margin_px=40)
+    stored = np.ascontiguousarray(np.rot90(shown, 1))  # 480 wide, 640 high on disk
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise to display
+    for i in range(2):
+        Image.fromarray(stored).save(tmp_path / f"img{i}.jpg", exif=exif, quality=95)
+    assert source_image_size(tmp_path) == (640, 480)
+    assert next(iter_frames(tmp_path))[1].shape == (480, 640)
+    cv2.imwrite(str(tmp_path / "img2.jpg"), stored)  # no EXIF: a portrait image among them
+    with pytest.raises(FrameSourceError, match="img2.jpg' is 480x640, the folder's first 640x480"):
+        list(iter_frames(tmp_path))
+
+
+@pytest.mark.parametrize("board", [CHARUCO, CHECKER])
+def test_detection_refuses_images_it_cannot_read_by_name(board):
+    """uint16, float and (H, W, 1) images hit raw OpenCV assertions."""
+    image = board.render_image(30, margin_px=30)
+    detector = BoardDetector(board)
+    for bad in (image.astype(np.uint16), image.astype(np.float32) / 255):
+        with pytest.raises(
+            BoardError, match=f"8-bit grey, BGR or BGRA image, got dtype {bad.dtype}"
+        ):
+            detector.detect(bad)
+    assert detector.detect(image[..., None]) is not None  # one channel: read as grey
+    assert detector.detect(cv2.cvtColor(image, cv2.COLOR_GRAY2BGRA)) is not None
+
+
+@pytest.mark.parametrize("name", ["CORNER_REFINE_SUBPIX", "ArucoDetector", None])
+def test_a_dictionary_must_be_an_aruco_dictionary(name):
+    """hasattr(cv2.aruco, name) took any name: CORNER_REFINE_SUBPIX (an int equal to
+    DICT_4X4_100's number) was used as that dictionary; others raised TypeError."""
+    with pytest.raises(BoardError, match="is unknown to OpenCV"):
+        BoardSpec("charuco", 7, 5, 0.04, 0.03, name)
+
+
+def test_sizes_given_as_text_are_named():
+    with pytest.raises(BoardError, match="must be numbers"):
+        BoardSpec("charuco", 7, 5, "0.04", 0.03)
