@@ -138,6 +138,16 @@ def main() -> None:
         ("doubted readings continued within 0.1", replace(default, continue_distance=0.1), stage),
         ("left/right labels as detected (before)", default, replace(stage, unmirror=None)),
         (
+            "left/right: 0.5 s ahead, no end jump (before 12-01)",
+            default,
+            replace(stage, unmirror=MirrorConfig(lag_s=0.5, end_jump=False)),
+        ),
+        (
+            "left/right: 0.5 s ahead, end jump",
+            default,
+            replace(stage, unmirror=MirrorConfig(lag_s=0.5)),
+        ),
+        (
             "left/right: prior 7.5/s (half)",
             default,
             replace(stage, unmirror=MirrorConfig(prior_per_s=7.5)),

@@ -39,7 +39,11 @@ _HIPS, _SHOULDERS = [23, 24], [11, 12]
 
 @dataclass(frozen=True)
 class MirrorConfig:
-    lag_s: float = 0.5  # look-ahead before a frame's labels are decided
+    lag_s: float = 1.0  # look-ahead before a frame's labels are decided (0.5 before 12-01)
+    # a path still exchanged at the look-ahead's end pays the jump back to the labels as
+    # detected (`LabelSmoother._decide`; False: before 12-01, when a real quick turn stayed
+    # exchanged to the end of the video)
+    end_jump: bool = True
     prior_per_s: float = 15.0  # cost of one second with the labels exchanged
     sigma: float = 0.1  # torso lengths of inter-frame distance per unit of cost
     min_confidence: float = 0.5  # landmarks compared (both frames)
@@ -80,12 +84,17 @@ def step_costs(a: np.ndarray, b: np.ndarray, config: MirrorConfig) -> tuple[floa
 
 
 def node_state(
-    start: int | None, steps: list[tuple[float, float]], prior: float, sigma: float
+    start: int | None,
+    steps: list[tuple[float, float]],
+    prior: float,
+    sigma: float,
+    back: float = 0.0,
 ) -> int:
     """Viterbi over two states (0 labels kept, 1 exchanged) for nodes 0..len(steps) - 1 of a
     chain; `steps[k]` = (kept, exchanged) costs from node k - 1 to node k, where node -1 is the
     fixed, already decided `start` state (None: no such node, node 0 is free and steps[0] is not
-    read). Each exchanged node costs `prior`. Returns node 0's state."""
+    read). Each exchanged node costs `prior`; a path still exchanged at the last node pays `back`
+    (the step back to the labels as detected that it must take later). Returns node 0's state."""
     if start is None:
         cost = [0.0, prior]
     else:
@@ -99,7 +108,7 @@ def node_state(
         to1 = (cost[0] + cross + prior, cost[1] + same + prior)
         k0, k1 = int(to0[1] < to0[0]), int(to1[1] < to1[0])
         cost, origin = [to0[k0], to1[k1]], [origin[k0], origin[k1]]
-    return origin[int(cost[1] < cost[0])]
+    return origin[int(cost[1] + back < cost[0])]
 
 
 @dataclass
@@ -200,9 +209,9 @@ class LabelSmoother:
         return out
 
     def flush(self) -> list[tuple]:
-        return [self._decide() for _ in range(len(self._buffer))]
+        return [self._decide(at_end=True) for _ in range(len(self._buffer))]
 
-    def _decide(self) -> tuple:
+    def _decide(self, at_end: bool = False) -> tuple:
         payload, links, lms, count, next_key = self._buffer.popleft()
         flags = []
         for k, lm in zip(links, lms, strict=True):
@@ -214,7 +223,17 @@ class LabelSmoother:
             # this frame's state given the decided one before it (none at a chain's start)
             start = None if step is None else ch.decided
             steps = [step or (0.0, 0.0), *(s or (0.0, 0.0) for s in ch.steps)]
-            ch.decided = node_state(start, steps, self.prior, self.config.sigma)
+            # Inside the video, labels still exchanged at the window's end must jump back later
+            # (the landmark model is right most of the time): a path that does pays that jump,
+            # the newest frame's left/right spread. Without it a real quick turn between two
+            # processed frames (stride > 1, or missed frames) looked like a flip and, with arms
+            # or legs spread, stayed exchanged to the end of the video; a flip longer than the
+            # look-ahead now stays as detected, like a turn (the two cannot be told apart).
+            end_jump = self.config.end_jump and not at_end
+            back = step_costs(ch.last, ch.last, self.config)[1] if end_jump else 0.0
+            ch.decided = node_state(
+                start, steps, self.prior, self.config.sigma, back / self.config.sigma
+            )
             flags.append(bool(ch.decided))
             self._decided[k] = (ch.decided, lm, count)
         if not self.with_state:
