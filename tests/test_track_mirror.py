@@ -160,7 +160,7 @@ def test_frames_wait_for_the_lag_and_flush_lets_them_all_out():
     """At 30 fps a 0.5 s lag holds 15 frames: the first leaves with the 16th; `flush` (the
     video's end, or a damaged video before its error is raised) decides the rest."""
     truth = walk(20, 30.0)
-    smoother = LabelSmoother(MirrorConfig(), 1 / FPS)
+    smoother = LabelSmoother(MirrorConfig(lag_s=0.5), 1 / FPS)
     released = [len(smoother.push(i, [lm])) for i, lm in enumerate(truth)]
     assert released == [0] * 15 + [1] * 5
     assert [i for i, _ in smoother.flush()] == list(range(5, 20))
