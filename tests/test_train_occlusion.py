@@ -73,3 +73,39 @@ def test_ignored_pixels_give_no_gradient_but_own_pixels_do():
     g, ga = rgb.grad.abs().sum(-1)[0, 0], alpha.grad.abs()[0, 0]
     assert (g[:, 4:6] == 0).all() and (ga[:, 4:6] == 0).all()  # hidden by the other person
     assert (g[:, :4] > 0).all() and (g[:, 6:] > 0).all()  # own pixels and the free background
+
+
+def test_training_psnr_counts_the_supervised_pixels_only():
+    """The logged PSNR compared the render with a target into which `ignore_occluded` had pasted
+    the render: ignored pixels counted as perfect (3 dB too high with half of them ignored)."""
+    from gst.train.occlusion import supervised_psnr
+
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.rand(2, 8, 8, 3, generator=gen)
+    target = torch.rand(2, 8, 8, 3, generator=gen)
+    mask = torch.zeros(2, 8, 8)
+    occluders = torch.zeros(2, 8, 8)
+    occluders[..., :4] = 1  # half of every view hidden by someone else
+    filled, _ = ignore_occluded(rgb, torch.zeros(2, 8, 8), target, mask, occluders)
+    own = -10 * torch.log10(((rgb - target)[..., 4:, :] ** 2).mean())  # the supervised half
+    ignored = (occluders * (1 - mask)).clamp(0, 1)
+    assert torch.allclose(supervised_psnr(rgb, filled, ignored), own, atol=1e-5)
+    naive = -10 * torch.log10(((rgb - filled) ** 2).mean())
+    assert naive - own > 2.9  # what the log showed
+    assert torch.allclose(
+        supervised_psnr(rgb, target), -10 * torch.log10(((rgb - target) ** 2).mean())
+    )
+
+
+def test_every_other_view_is_a_target_before_any_repeats():
+    """With fewer other views than targets, all were drawn with replacement: an available camera
+    was left out in about a quarter of the samples while another was rendered three times."""
+    from gst.train.views import sample_multiview
+    from tests.test_train_recipe import crop_set
+
+    crops = crop_set(n_frames=4, n_cams=3)
+    groups = [torch.nonzero(crops.frame == f).flatten() for f in range(4)]
+    batch = sample_multiview(crops, groups, torch.Generator().manual_seed(1), 64, 4, 32)
+    for inp, tgt in zip(batch.input_index.tolist(), batch.target_index.tolist(), strict=True):
+        group = set(torch.nonzero(crops.frame == crops.frame[inp]).flatten().tolist())
+        assert tgt[0] == inp and set(tgt) == group  # the input, then both others, then a repeat

@@ -1,4 +1,5 @@
-"""One training step of GST: predict from the input view, render into the other views, compare.
+"""One training step of GST: predict from the input view, render into the target views (the input
+view and others of the same person and frame, `gst.train.views.sample_multiview`), compare.
 
 `multiview_step` is the paper's self-supervised objective (no 3D labels). `supervised_step`
 adds 3D joints / 2D joints / parameter terms for pretraining and for the paper's 2D and 3D
@@ -23,7 +24,7 @@ from gst.train.anchors import anchor_term
 from gst.train.distill import distill_terms
 from gst.train.keypoints import keypoint_term
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
-from gst.train.occlusion import ignore_occluded
+from gst.train.occlusion import ignore_occluded, supervised_psnr
 from gst.train.teacher_render import teacher_posed_gaussians
 from gst.train.views import MultiViewBatch
 
@@ -159,8 +160,10 @@ def multiview_step(
     _, out, target, parts = multiview_image_terms(model, batch, task)
     terms = combine(parts, task.weights)
     with torch.no_grad():
-        mse = ((out.rgb - target) ** 2).mean()
-        terms.parts["psnr"] = -10 * torch.log10(mse.clamp_min(1e-10))
+        ignored = None
+        if batch.target_occluders is not None:  # as ignore_occluded leaves them out
+            ignored = (batch.target_occluders * (1 - batch.target_masks)).clamp(0, 1)
+        terms.parts["psnr"] = supervised_psnr(out.rgb, target, ignored)
     return terms.total, terms.parts
 
 

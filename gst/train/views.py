@@ -4,7 +4,8 @@ A `CropSet` holds square person crops with their own intrinsics and extrinsics (
 undistorted, so K_crop, R, t describe them exactly) plus optional truth. `groups` lists, per
 (frame, person), the crops of that person seen from different cameras: a training sample
 takes one as the network input (chosen at random each time: the public GST code never
-shuffled its input views) and renders into the others.
+shuffled its input views) and renders into `num_targets` views: the input view itself and
+others of the group (`sample_multiview`).
 """
 
 from __future__ import annotations
@@ -207,7 +208,9 @@ def sample_multiview(
     landmark_dropout: float = 0.0,
 ) -> MultiViewBatch:
     """Random groups; random input view per group; `num_targets` views to render into (the
-    input view first when `include_input_view`, then others, with replacement if too few).
+    input view first when `include_input_view`, then others: every other view once before any
+    repeats when there are too few; drawn with replacement, a view could be left out while
+    another was rendered three times).
     `landmark_dropout`: share of samples whose input landmarks are hidden (NaN), so a landmark
     network keeps an image-only path for crops where the detector finds nothing."""
     pick = torch.randint(len(groups), (batch_size,), generator=gen)
@@ -220,7 +223,8 @@ def sample_multiview(
         if len(others) >= need:
             chosen = others[:need]
         else:
-            chosen = others[torch.randint(len(others), (need,), generator=gen)]
+            extra = others[torch.randint(len(others), (need - len(others),), generator=gen)]
+            chosen = torch.cat([others, extra])
         tgt = torch.cat([inp[None], chosen]) if include_input_view else chosen
         inputs.append(inp)
         targets.append(tgt)
