@@ -73,6 +73,9 @@ class VideoTruncatedError(VideoError):
         super().__init__(message)
         self.frame = frame
 
+    def __reduce__(self):  # rebuilt in the parent when raised in a worker process
+        return type(self), (self.args[0], self.frame)
+
 
 @dataclass(frozen=True)
 class VideoInfo:

@@ -61,6 +61,9 @@ class StageFailed(PipelineError):
             f"stage '{stage}' (scene '{scene}') failed: {type(cause).__name__}: {cause}"
         )
 
+    def __reduce__(self):  # an executor's worker raising it: the parent rebuilds it
+        return type(self), (self.stage, self.scene, self.cause)
+
 
 class ItemFailed(RuntimeError):
     """An item of an executor's map could not be computed (its worker died, or, with Ray, it kept

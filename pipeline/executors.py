@@ -66,13 +66,14 @@ class LocalExecutor:
             return [fn(x) for x in it]
         results: list = [None] * len(items)
         ctx = mp.get_context("spawn")  # fork is unsafe with torch/OpenMP threads
-        with ProcessPoolExecutor(
+        pool = ProcessPoolExecutor(
             max_workers=min(self.workers, len(items)),
             mp_context=ctx,
             initializer=die_with_parent,
             initargs=(os.getpid(),),
-        ) as pool:
-            futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+        )
+        futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+        try:
             done_iter: Iterable = as_completed(futures)
             if self._progress is not None:
                 done_iter = self._progress(done_iter, description=description, total=len(items))
@@ -81,17 +82,36 @@ class LocalExecutor:
                 try:
                     results[i] = fut.result()
                 except BrokenProcessPool as exc:  # a worker killed (out of memory, a signal)
-                    pool.shutdown(wait=False, cancel_futures=True)
                     raise ItemFailed(
                         f"{description or 'map'}: a worker process died (killed, or out of "
                         f"memory?) with item {i} ({describe(items[i])}) among those unfinished"
                     ) from exc
-                except BaseException:
-                    # the first failure ends the map: the items still queued were all run
-                    # before the error was raised (8 items on 2 workers: 4.3 s, not 0.3)
-                    pool.shutdown(wait=False, cancel_futures=True)
+                except Exception as exc:
+                    exc.add_note(f"{description or 'map'}: item {i} ({describe(items[i])})")
                     raise
+        except BaseException:
+            # The first failure, or Ctrl-C, ends the map: the queued items are cancelled and
+            # the running ones stopped. (A `with` pool's exit waited for every item: its
+            # shutdown undid the cancel, and a Ctrl-C while waiting skipped it; 8 items on 2
+            # workers ran to the end after the error, or after the interrupt.)
+            _stop(pool, futures)
+            raise
+        pool.shutdown(wait=True)
         return results
+
+
+def _stop(pool: ProcessPoolExecutor, futures) -> None:
+    """Cancel a pool's queued items and end its worker processes (their writes are atomic, and
+    a failed stage's staging folder is kept for the next run)."""
+    for fut in futures:
+        fut.cancel()
+    workers = list(getattr(pool, "_processes", {}).values())  # the pool keeps no public list
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in workers:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in workers:
+        proc.join(timeout=5)
 
 
 def make_executor(

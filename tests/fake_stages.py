@@ -201,6 +201,15 @@ def fail_first_item(item: tuple[int, str]) -> int:
     return index
 
 
+def mark_and_sleep(item: tuple[int, str]) -> int:
+    """An executor item that leaves a file in the folder given with it as it starts, then takes
+    four seconds (which items a stopped map still started)."""
+    index, folder = item
+    Path(folder, f"started_{index}").write_text("started")
+    time.sleep(4.0)
+    return index
+
+
 REAL_ONLY = _own_folder_stage(
     "real_only",
     lambda ctx: _bump_counter(ctx, "real_only"),
