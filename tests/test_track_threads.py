@@ -12,6 +12,7 @@ from gst.track import batch
 from gst.track.scene import (
     TrackSettings,
     detector_interval,
+    jobs_at_once,
     network_threads,
     person_model_config,
 )
@@ -119,3 +120,12 @@ def test_available_cores_follow_the_process_affinity(monkeypatch):
     assert cores.available_cores() == 64
     monkeypatch.setattr(cores.os, "cpu_count", lambda: None)
     assert cores.available_cores() == 1
+
+
+def test_chunks_share_the_cores_as_videos_do():
+    """With chunking the executor runs chunks, not videos: one chunked video on 2 workers gave
+    each of its 2 chunks at once the threads of a video alone (6 threads on 2 cores)."""
+    assert jobs_at_once(TrackSettings(), workers=2, videos=1) == 1
+    assert jobs_at_once(TrackSettings(chunk_frames=100), workers=2, videos=1) == 2
+    assert jobs_at_once(TrackSettings(chunk_frames=100), workers=1, videos=3) == 1
+    assert jobs_at_once(TrackSettings(), workers=4, videos=3) == 3

@@ -205,6 +205,13 @@ def choose_detector(s: TrackSettings) -> tuple[str, str]:
     return "blazepose", f"{how}: the learned person model (BlazePose) is installed"
 
 
+def jobs_at_once(s: TrackSettings, workers: int, videos: int) -> int:
+    """How many tracking jobs share the cores: videos, or with chunking their chunks (up to
+    `workers` of them: one chunked video on 2 workers gave each chunk the threads of a video
+    alone, 6 threads on 2 cores)."""
+    return max(1, min(workers, workers if s.chunk_frames else videos))
+
+
 def _cores_per_video(parallel_videos: int) -> int:
     return max(1, available_cores() // parallel_videos)
 
@@ -411,7 +418,7 @@ def track_scene(
         unmirror=MirrorConfig() if s.unmirror else None,
         focal_35mm=s.focal_35mm,
     )
-    parallel_videos = max(1, min(workers, len(request.videos)))
+    parallel_videos = jobs_at_once(s, workers, len(request.videos))
     threads = network_threads(s, kind, workers, parallel_videos)
     device = str(resolve_device(s.device))
     log.info("network on %s (track.device: %s)", device, s.device)
