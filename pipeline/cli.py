@@ -163,8 +163,8 @@ def _check_videos_option(videos: list[Path], probe: bool = False) -> list[Path]:
     for v in videos if probe else ():  # failed inside track, after the stages before it ran
         try:
             probe_video(v)
-        except VideoError as exc:
-            raise ConfigError(f"--video: {exc}") from None
+        except VideoError as exc:  # a data error (exit 1), as when track itself finds it
+            raise PipelineError(f"--video: {exc}") from None
     by_name: dict[str, list[str]] = {}
     for v in videos:
         by_name.setdefault(v.stem, []).append(str(v))

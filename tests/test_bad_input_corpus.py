@@ -441,7 +441,7 @@ def test_pretrain_reuse_errors(case, scene, tmp_path, capsys):
 
 VIDEO_OPTION_CASES = {
     "no such file": (["{root}/nosuch.mp4"], r"--video: no such file: .*nosuch.mp4"),
-    "a folder": (["{videos}"], r"--video: no such file: .*videos"),
+    "a folder": (["{videos}"], r"--video: a folder, not a video file: .*videos"),
     "two files with one name": (["{root}/a/clip.mp4", "{root}/b/clip.mp4"], r"share one \('clip'"),
     "one missing among good ones": (["{videos}/c1.mp4", "{root}/gone.mp4"], r"gone.mp4"),
 }  # fmt: skip

@@ -287,7 +287,7 @@ def test_track_inputs_that_cannot_run_are_refused_before_any_stage_runs(tmp_path
     text = tmp_path / "notes.mp4"
     text.write_text("not a video")
     args = ["run", "track", "--config", str(cfg), "-q"]
-    assert main([*args, "--video", str(text)]) == 2
+    assert main([*args, "--video", str(text)]) == 1  # a data error, as inside track
     assert "notes.mp4" in capsys.readouterr().err
     assert main([*args, "--video", str(tmp_path)]) == 2
     assert "a folder, not a video file" in capsys.readouterr().err
