@@ -30,6 +30,7 @@ __all__ = [
     "atomic_write",
     "atomic_write_json",
     "atomic_write_text",
+    "fsync_dir",
     "remove_path",
     "replace_path",
 ]
@@ -40,7 +41,8 @@ def _fsync_file(path: Path) -> None:
         os.fsync(f.fileno())
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
+    """Make a rename in folder `path` durable (where the file system can)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:  # some filesystems do not open folders; the rename is still atomic
@@ -85,7 +87,7 @@ def atomic_path(path: str | Path, unique: bool = True) -> Iterator[Path]:
         if tmp.is_file():
             _fsync_file(tmp)
         os.replace(tmp, path)
-        _fsync_dir(path.parent)
+        fsync_dir(path.parent)
     finally:
         remove_path(tmp)
 
@@ -150,7 +152,7 @@ def replace_path(src: Path, dest: Path, trash_dir: Path) -> None:
         old = Path(tempfile.mkdtemp(prefix=f".{dest.name}.old.", dir=trash_dir)) / dest.name
         os.replace(dest, old)
     os.replace(src, dest)
-    _fsync_dir(dest.parent)
+    fsync_dir(dest.parent)
     if old is not None:
         remove_path(old.parent)
 

@@ -1,6 +1,7 @@
 """`track` on videos that are empty, over-announced, or whose detector fails mid-stream: a clear
 error and nothing that looks finished, or a run that copes, and no thread left behind."""
 
+import os
 import struct
 import threading
 import time
@@ -194,3 +195,48 @@ def test_a_raw_stream_says_its_frame_rate_is_a_guess(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="gst.video"):
         probe_video(crossing_clip(tmp_path, 3)[2])  # a container: no warning
     assert not caplog.messages
+
+
+def test_a_kill_as_the_tracks_file_is_renamed_in_leaves_nothing_in_the_dataset(tmp_path):
+    """finalize wrote its temporary file beside tracks.parquet: killed before the rename, the
+    hidden file stayed in the dataset folder, and polars and duckdb (which read hidden files)
+    counted every row twice once the rerun had written tracks.parquet."""
+    import subprocess
+    import sys
+
+    raw = tmp_path / "clip.avi"
+    vw = cv2.VideoWriter(str(raw), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (160, 120))
+    for i in range(12):
+        vw.write(np.full((120, 160, 3), i * 10, np.uint8))
+    vw.release()
+    out = tmp_path / "out"
+    script = f"""
+import os, signal
+from pathlib import Path
+import numpy as np
+from gst.track import BoxDepthPredictor, TrackOptions, track_video
+from gst.track.detection import Detection
+
+class OneBox:
+    def detect(self, image, index):
+        return [Detection(np.array([10.0, 20.0, 60.0, 100.0]), 0.9)]
+
+real = os.replace
+def replace(src, dst, *a, **k):  # SIGKILL just before tracks.parquet is renamed into place
+    if Path(dst).name == "tracks.parquet" and os.environ.get("KILL"):
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real(src, dst, *a, **k)
+os.replace = replace
+track_video({str(raw)!r}, {str(out)!r}, OneBox(), BoxDepthPredictor(),
+            model={{"name": "test", "version": "0"}},
+            options=TrackOptions(frames_per_group=4, prefetch=0))
+"""
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "KILL": "1"}
+    killed = subprocess.run([sys.executable, "-c", script], cwd=root, env=env)
+    assert killed.returncode == -9
+    assert [p.name for p in (out / "video=clip").iterdir()] == []
+    rerun = subprocess.run([sys.executable, "-c", script], cwd=root, env={**env, "KILL": ""})
+    assert rerun.returncode == 0
+    assert [p.name for p in (out / "video=clip").iterdir()] == ["tracks.parquet"]
+    assert pq.read_table(out / "video=clip" / "tracks.parquet").num_rows == 12

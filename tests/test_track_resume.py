@@ -232,3 +232,17 @@ def test_unreadable_progress_record_is_reported(scene, tmp_path):
     with pytest.raises(ResumeError, match="progress.json: unreadable progress record"):
         track(scene["video"], tmp_path / "out", det)
     os.remove(progress)
+
+
+def test_a_supplied_box_files_content_is_part_of_the_runs_settings(tmp_path):
+    """The detector's description named the box file's path alone: boxes edited between an
+    interrupted run and its resume were mixed into one tracks file (and a finished file of the
+    old boxes kept)."""
+    from gst.track.scene import _detector_info
+
+    boxes = tmp_path / "boxes.csv"
+    boxes.write_text("video,frame,x0,y0,x1,y1\nclip,0,10,20,60,100\n")
+    before = _detector_info("boxes", f"boxes supplied in {boxes}", None, boxes)
+    boxes.write_text("video,frame,x0,y0,x1,y1\nclip,0,20,20,70,100\n")  # the same size
+    after = _detector_info("boxes", f"boxes supplied in {boxes}", None, boxes)
+    assert before != after and before["why"] == after["why"]

@@ -68,7 +68,7 @@ from gst.track.schema import parse_metadata
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
-from gst.video import VideoError, probe_video
+from gst.video import VideoError, file_identity, probe_video
 from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.track")
@@ -296,8 +296,13 @@ def _video_rate(video: Path) -> float | None:
         return None
 
 
-def _detector_info(kind: str, why: str, person_model: PersonModelConfig | None) -> dict:
+def _detector_info(
+    kind: str, why: str, person_model: PersonModelConfig | None, boxes: Path | None = None
+) -> dict:
     info = {"name": kind, "why": why}
+    if boxes is not None:  # the boxes' content: an edited box file mixed into a resumed run and
+        # kept a finished file of the old boxes (the info named the path alone)
+        info["boxes_file"] = file_identity(boxes)
     if person_model is not None:
         info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
         info["config"] = person_model.settings()
@@ -488,7 +493,9 @@ def track_scene(
                 options=replace(options, pose_fit=PoseFitConfig() if fit else None),
                 threads=threads,
                 keep_extras=with_gaussians,
-                detector_info=_detector_info(kind, why, person_model),
+                detector_info=_detector_info(
+                    kind, why, person_model, s.boxes if kind == "boxes" else None
+                ),
                 detections_cache=request.detections_cache
                 if kind == "blazepose" and s.keep_detections
                 else None,

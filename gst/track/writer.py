@@ -22,8 +22,10 @@ uninterrupted one. `finalize` concatenates and sorts the segments into tracks.pa
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +34,7 @@ from urllib.parse import quote
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from gst.atomic import atomic_path, atomic_write_text
+from gst.atomic import atomic_path, atomic_write_text, fsync_dir
 
 PROGRESS_VERSION = 1
 FINAL_NAME = "tracks.parquet"
@@ -119,6 +121,8 @@ class TrackWriter:
     def start(self, resume: bool = True) -> ResumePoint | None:
         """Prepare the staging folder. With `resume`, continue a matching partial run and return
         where it stopped; otherwise (or when there is none) start empty and return None."""
+        for leftover in self.dir.glob(".tracks.*tmp.parquet"):  # older versions' finalize
+            leftover.unlink(missing_ok=True)
         if self.staging.exists() and not resume:
             shutil.rmtree(self.staging)
         if self.progress_path.exists():
@@ -218,13 +222,25 @@ class TrackWriter:
         table = self.committed().sort_by([("frame", "ascending"), ("person_id", "ascending")])
         schema = self.schema.with_metadata(metadata)
         self.dir.mkdir(parents=True, exist_ok=True)
+        # Written in the staging folder, outside the dataset, then renamed in: a temporary file
+        # beside tracks.parquet, left by a kill before its rename, was read by polars and duckdb
+        # (they read hidden files), every row twice after the rerun.
+        staged = self.staging / f".{FINAL_NAME}"
         with (
-            atomic_path(self.final_path) as tmp,
+            atomic_path(staged, unique=False) as tmp,
             pq.ParquetWriter(tmp, schema, **PARQUET_OPTIONS) as w,
         ):
             if len(table):
                 w.write_table(
                     table.replace_schema_metadata(metadata), row_group_size=row_group_rows
                 )
+        try:
+            os.replace(staged, self.final_path)
+            fsync_dir(self.dir)
+        except OSError as exc:  # a staging root on another file system
+            if exc.errno != errno.EXDEV:
+                raise
+            with atomic_path(self.final_path, unique=False) as tmp:
+                shutil.copyfile(staged, tmp)
         self.discard_staging()
         return self.final_path
