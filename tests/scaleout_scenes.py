@@ -39,6 +39,5 @@ def job(video: Path, csv: Path, **kw) -> VideoJob:
     """A tracking job with supplied boxes and the pixel-free predictor (fast, deterministic)."""
     options = kw.pop("options", TrackOptions(frames_per_group=5, batch_size=4))
     detector = kw.pop("detector", functools.partial(SuppliedBoxes.from_file, csv, video.stem))
-    return VideoJob(
-        video, detector, BoxDepthPredictor, MODEL, name=video.stem, options=options, **kw
-    )
+    predictor = kw.pop("predictor", BoxDepthPredictor)
+    return VideoJob(video, detector, predictor, MODEL, name=video.stem, options=options, **kw)

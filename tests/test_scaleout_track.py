@@ -266,3 +266,34 @@ def test_the_left_right_smoother_decides_a_chunks_last_frames_as_an_unchunked_ru
         json.loads(pq.read_schema(r.result.path).metadata[b"gst.stats"]) for r in (plain, chunked)
     ]
     assert stats[0] == stats[1]
+
+
+def test_per_person_extras_are_there_when_a_finished_file_exists(clip, tmp_path):
+    """With --with-gaussians (`keep_extras`) a video whose finished tracks file was kept, or
+    whose run resumed, replayed no frames: its people got no splat, and the stage failed on its
+    missing splat folder (a rerun after a killed run failed every time)."""
+    video, csv = clip
+
+    def with_extras(**kw):
+        return job(video, csv, keep_extras=True, predictor=_ExtraOutputs, **kw)
+
+    first = track_videos([with_extras()], tmp_path / "out")[0]
+    assert len(first.extras) == 3  # every tracked person's first extras
+    again = track_videos([with_extras()], tmp_path / "out")[0]
+    assert set(again.extras) == set(first.extras)
+    plain = track_videos([job(video, csv)], tmp_path / "out")[0]
+    assert plain.result.detections != "run"  # without extras the finished file is kept
+
+
+class _ExtraOutputs:
+    """The pixel-free predictor plus one per-crop output beyond the body (as Gaussians are)."""
+
+    def __init__(self):
+        from gst.track import BoxDepthPredictor
+
+        self.inner = BoxDepthPredictor()
+
+    def __call__(self, crops, K_crop):
+        out = self.inner(crops, K_crop)
+        out["gaussian_means"] = np.zeros((len(crops), 4, 3), np.float32)
+        return out

@@ -138,6 +138,9 @@ def _run_item(item: _Item) -> Any:
             staging_root=item.staging_root,
             on_extra=keep if job.keep_extras else None,
             detections_cache=job.detections_cache,
+            # each person's first extras (their splat) exist only for the frames tracked now: a
+            # kept finished file, or a resumed run, gave some people no splat, or nobody one
+            resume=not job.keep_extras,
             **_run_settings(job),
         )
         return VideoOutcome(job, result, extras)

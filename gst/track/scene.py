@@ -658,6 +658,9 @@ def write_video_report(
     _write_contact_sheet(outcome.job.video, result.path, report / "contact_sheet.jpg")
     plot_joint_angles(result.path, report / "joint_angles.png")
     evaluation = _evaluate(request, outcome, report)
+    if request.splats_dir is not None:  # the stage's declared output, empty when nobody was
+        # tracked (it was made only by a first splat: the stage then failed, "did not write")
+        (request.splats_dir / name).mkdir(parents=True, exist_ok=True)
     for person, g in outcome.extras.items():
         if "gaussian_means" in g and request.splats_dir is not None:
             write_gaussians_ply(
