@@ -138,6 +138,14 @@ def test_reads_other_tools_files_with_extra_properties(tmp_path):
             "lacks properties",
         ),
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n", "no end_header"),
+        # these raised bare ValueErrors naming no file, or (no format line) read on silently
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex x\nend_header\n", "vertex count"),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
+            b"property float x\nproperty float x\nend_header\n",
+            "'x' given twice",
+        ),
+        (b"ply\nelement vertex 1\nproperty float x\nend_header\n", "no format line"),
     ],
 )
 def test_bad_files_are_named(tmp_path, content, message):
@@ -160,3 +168,14 @@ def test_bad_shapes_are_named(tmp_path):
     with pytest.raises(ValueError, match="quats has shape"):
         write_gaussians_ply(tmp_path / "g.ply", **cloud)
     assert not (tmp_path / "g.ply").exists()
+
+
+def test_a_negative_scale_is_written_as_the_rasteriser_renders_it(tmp_path):
+    """R diag(s) renders |s|; the writer clipped a negative scale to 1e-12 (a degenerate
+    Gaussian in every viewer where ours showed 1 cm)."""
+    cloud = _cloud(3)
+    cloud["scales"][0] = torch.tensor([-0.01, 0.02, 0.03])
+    path = tmp_path / "neg.ply"
+    write_gaussians_ply(path, **cloud)
+    back = read_gaussians_ply(path)
+    np.testing.assert_allclose(np.asarray(back.scales)[0], [0.01, 0.02, 0.03], rtol=1e-5)

@@ -102,7 +102,8 @@ def write_gaussians_ply(path, means, quats, scales, opacities, colors) -> Path:
                 np.zeros((n, 3)),
                 (c - 0.5) / SH_C0,
                 np.log(o / (1.0 - o))[:, None],
-                np.log(np.maximum(s, SCALE_MIN)),
+                # the rasteriser renders |s| (R diag(s) loses the sign): write that, not 1e-12
+                np.log(np.maximum(np.abs(s), SCALE_MIN)),
                 q,
             ],
             axis=1,
@@ -134,6 +135,7 @@ def _parse_header(f, path: Path) -> tuple[int, np.dtype, int]:
     count = None
     fields: list[tuple[str, str]] = []
     element = None
+    formatted = False
     while True:
         line = f.readline()
         if not line:
@@ -144,6 +146,7 @@ def _parse_header(f, path: Path) -> tuple[int, np.dtype, int]:
         if words[0] == "end_header":
             break
         if words[0] == "format":
+            formatted = True
             if words[1:2] != ["binary_little_endian"]:
                 raise PlyFormatError(
                     f"{path}: format {' '.join(words[1:])!r}, expected binary_little_endian"
@@ -151,6 +154,8 @@ def _parse_header(f, path: Path) -> tuple[int, np.dtype, int]:
         elif words[0] == "element":
             element = words[1]  # elements after vertex are stored after its data: ignored
             if element == "vertex":
+                if len(words) < 3 or not words[2].isdigit():
+                    raise PlyFormatError(f"{path}: vertex count {' '.join(words[2:])!r}")
                 count = int(words[2])
             elif count is None:
                 raise PlyFormatError(f"{path}: element {element!r} precedes the vertex element")
@@ -159,7 +164,11 @@ def _parse_header(f, path: Path) -> tuple[int, np.dtype, int]:
                 raise PlyFormatError(f"{path}: list property {words[-1]!r} in vertex element")
             if words[1] not in _PLY_TYPES:
                 raise PlyFormatError(f"{path}: unknown property type {words[1]!r}")
+            if words[2] in dict(fields):  # numpy's "field occurs more than once"
+                raise PlyFormatError(f"{path}: vertex property {words[2]!r} given twice")
             fields.append((words[2], _PLY_TYPES[words[1]]))
+    if not formatted:  # read as little endian without a word
+        raise PlyFormatError(f"{path}: header has no format line")
     if count is None:
         raise PlyFormatError(f"{path}: no vertex element")
     missing = [p for p in _REQUIRED if p not in dict(fields)]
