@@ -430,3 +430,20 @@ def test_the_contact_sheet_gives_every_id_its_own_colour():
     colours = id_colours([1, 2, 3, 4, 8, 8, 2])
     assert sorted(colours) == [1, 2, 3, 4, 8] and len(set(colours.values())) == 5
     assert len(set(id_colours(range(12)).values())) == 12
+
+
+def test_another_crop_size_starts_the_work_folder_again(short_scene, tmp_path):
+    """The work folder's key left the crop size out: its part stores of 64 px crops were kept
+    for a run at 96 px, which failed on a hidden work file ("written with crop_size=64")."""
+
+    def plan(crop_size):
+        return scene_phase.plan_extraction(
+            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=crop_size,
+            scale=1.2, frame_stride=1, method="median", external=None, truth=None,
+            options=_opts(),
+        )  # fmt: skip
+
+    first = plan(64)
+    (first.work / "part_00_00.h5").write_bytes(b"64 px crops of the interrupted run")
+    assert (plan(64).work / "part_00_00.h5").is_file()
+    assert not (plan(96).work / "part_00_00.h5").exists()

@@ -151,6 +151,15 @@ class CropStoreWriter:
 
     def open(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if not self.path.exists():
+            # created whole under a temporary name, then renamed: a kill while HDF5 wrote a new
+            # file's first bytes left a file it could not open ("truncated file: eof = 96")
+            with atomic_path(self.path, unique=False) as tmp:
+                self._h5 = h5py.File(tmp, "w")
+                try:
+                    self._create()
+                finally:
+                    self.close()
         try:
             self._h5 = h5py.File(self.path, "a")
         except OSError as exc:
@@ -202,15 +211,19 @@ class CropStoreWriter:
             )
         for name, (shape, dtype) in _row_specs(S, self.landmarks).items():
             big = name in ("images", "masks")
-            chunk_rows = 1 if big else 1024
+            # Images and masks: a chunk per row, compressed; each commit only adds chunks. The
+            # small per-row arrays share 1024-row chunks that every commit rewrites: compressed,
+            # a rewritten chunk moved and HDF5 could give its old space to another chunk of the
+            # same commit, so a kill mid-commit left committed rows unreadable ("filter returned
+            # failure during read": 4 of 25 kills) and the store beyond resuming. Uncompressed,
+            # a chunk is rewritten in place, committed rows with the same bytes (0 of 30).
             f.create_dataset(
                 name,
                 shape=(0, *shape),
                 maxshape=(None, *shape),
                 dtype=dtype,
-                chunks=(chunk_rows, *shape),
-                shuffle=not big and bool(opts),
-                **opts,
+                chunks=(1 if big else 1024, *shape),
+                **(opts if big else {}),
             )
         f.create_dataset("done", shape=(0, 2), maxshape=(None, 2), dtype="int64", chunks=(4096, 2))
         f.create_dataset(

@@ -302,6 +302,9 @@ def plan_extraction(
         [
             settings,
             {n: [str(p), os.path.getsize(p), os.path.getmtime(p)] for n, p in videos.items()},
+            # the part stores hold crops of this size: another size found them and failed on
+            # a hidden work file ("written with crop_size=64, asked to append crop_size=96")
+            int(crop_size),
         ]
     )
     marker = work / "settings.json"
