@@ -72,8 +72,10 @@ class LocalExecutor:
             initializer=die_with_parent,
             initargs=(os.getpid(),),
         )
-        futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+        futures: dict = {}
         try:
+            for i, x in enumerate(items):  # inside: a Ctrl-C while submitting stops it too
+                futures[pool.submit(fn, x)] = i
             done_iter: Iterable = as_completed(futures)
             if self._progress is not None:
                 done_iter = self._progress(done_iter, description=description, total=len(items))
@@ -105,7 +107,10 @@ def _stop(pool: ProcessPoolExecutor, futures) -> None:
     a failed stage's staging folder is kept for the next run)."""
     for fut in futures:
         fut.cancel()
-    workers = list(getattr(pool, "_processes", {}).values())  # the pool keeps no public list
+    # the pool keeps no public list of its processes (CPython 3.10-3.13 keep `_processes`, a
+    # dict until shutdown); without it the queue is still cancelled and the workers finish
+    # their current item
+    workers = list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
     for proc in workers:
         if proc.is_alive():

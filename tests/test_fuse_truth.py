@@ -53,6 +53,7 @@ def test_a_truth_person_no_fused_body_stands_for_is_counted_missed():
     views = SimpleNamespace(  # person 2 is hidden in frames 0-1 (only 20 % of the joints seen)
         frame=truth.frame,
         person_id=truth.person_id,
+        camera=np.array(["a"] * len(truth.frame), dtype=object),
         visible=np.array([[k < (5 if p == 2 and f < 2 else 24) for k in range(24)]
                           for f, p in zip(truth.frame, truth.person_id, strict=True)]),
     )  # fmt: skip
@@ -68,5 +69,6 @@ def test_a_truth_person_no_fused_body_stands_for_is_counted_missed():
     # frames outside those the extraction considered are not expected
     assert visible_person_frames(views, range(0, T, 2)) <= expected
     assert len(visible_person_frames(views, range(0, T, 2))) == T - 1
+    assert visible_person_frames(views, range(T), cameras=["b"]) == set()  # not the store's
     none = compare_with_truth([], truth, expected=expected)
     assert none.truth_missed == 2 * T - 2 and none.matched == 0

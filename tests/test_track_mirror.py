@@ -103,9 +103,10 @@ def test_a_quick_real_turn_between_two_processed_frames_keeps_the_labels(reach):
     turn to the end of the video (every left angle a right one), as staying exchanged cost less
     within its look-ahead than jumping back."""
     truth = [figure(i / FPS, 0.0 if i < 45 else 180.0, speed=0.0, reach=reach) for i in range(120)]
-    got = run([[lm] for lm in truth])
-    exchanged = [i for i, (lm,) in enumerate(got) if not np.array_equal(lm, truth[i])]
-    assert exchanged == []
+    for config in (MirrorConfig(), MirrorConfig(lag_s=0.5)):  # the jump back alone, too
+        got = run([[lm] for lm in truth], config)
+        exchanged = [i for i, (lm,) in enumerate(got) if not np.array_equal(lm, truth[i])]
+        assert exchanged == [], config
 
 
 def test_a_track_that_starts_flipped_keeps_the_detected_labels_when_they_never_change():

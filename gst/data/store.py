@@ -215,8 +215,9 @@ class CropStoreWriter:
             # small per-row arrays share 1024-row chunks that every commit rewrites: compressed,
             # a rewritten chunk moved and HDF5 could give its old space to another chunk of the
             # same commit, so a kill mid-commit left committed rows unreadable ("filter returned
-            # failure during read": 4 of 25 kills) and the store beyond resuming. Uncompressed,
-            # a chunk is rewritten in place, committed rows with the same bytes (0 of 30).
+            # failure during read": 4 of 25 random kills, 8 of 16 kill points in the test) and
+            # the store beyond resuming. Uncompressed, a chunk is rewritten in place, committed
+            # rows with the same bytes (0 of 120 random kills).
             f.create_dataset(
                 name,
                 shape=(0, *shape),

@@ -46,10 +46,15 @@ class TruthComparison:
         return dict(self.__dict__)
 
 
-def visible_person_frames(views: TruthViews, frames) -> set[tuple[int, int]]:
+def visible_person_frames(
+    views: TruthViews, frames, cameras: list[str] | None = None
+) -> set[tuple[int, int]]:
     """(frame, truth person id) of the `frames` in which the person has at least
-    `MIN_VISIBLE_JOINTS` of their joints visible in at least one camera."""
+    `MIN_VISIBLE_JOINTS` of their joints visible in at least one camera (of `cameras`, the
+    store's, when given: a camera the extraction did not read sees no one for the fusion)."""
     keep = (views.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS) & np.isin(views.frame, list(frames))
+    if cameras is not None:
+        keep &= np.isin(views.camera.astype(str), list(cameras))
     return {(int(f), int(p)) for f, p in zip(views.frame[keep], views.person_id[keep], strict=True)}
 
 

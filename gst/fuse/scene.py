@@ -472,7 +472,9 @@ def fuse_scene(
         from synth.truth import read_scene_truth, read_truth_views
 
         stride = int(store.attrs.get("setting.frame_stride", 1)) or 1
-        expected = visible_person_frames(read_truth_views(truth_dir), range(0, n_frames, stride))
+        expected = visible_person_frames(
+            read_truth_views(truth_dir), range(0, n_frames, stride), cameras=cams
+        )
         truth = compare_with_truth(fits, read_scene_truth(truth_dir), body, expected=expected)
         truth = truth.as_dict()
     limbs = per_frame_limb_lengths(

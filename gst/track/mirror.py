@@ -14,6 +14,8 @@ labels as given, or exchanged. The chosen sequence minimises
   wrists, hips, knees, ankles; sure on both sides) between the two frames' labels as the states
   have them, after removing the body's own move, in torso lengths, divided by `sigma`.
 
+Inside the video, a path still exchanged at the look-ahead's end also pays the jump back to the
+labels as detected (`end_jump`): a jump with no return within the look-ahead is a real turn.
 A fixed-lag smoother (Viterbi over the next `lag_s` seconds, the earlier frames' states fixed)
 decides each frame before it leaves, so tracking stays a stream with `lag_s` of look-ahead
 (`LabelSmoother`; the tracking loop holds back each frame's small per-person records for that
