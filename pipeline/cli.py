@@ -185,15 +185,13 @@ def _tracks_of_another_file(
     tracks of another file: `day1/match.mp4`, then `day2/match.mp4`, replaced the first's tracks
     without a word. The same file moved (same content) is not another file."""
     from gst.track.read import read_metadata
-    from gst.track.writer import partition_dir
+    from gst.track.writer import FINAL_NAME, partition_dir
     from gst.video import content_digest
 
     clashes = []
     for scene in scenes:
         for v in videos:
-            existing = (
-                cfg.scene_workspace(scene) / partition_dir("tracks", v.stem) / "tracks.parquet"
-            )
+            existing = cfg.scene_workspace(scene) / partition_dir("tracks", v.stem) / FINAL_NAME
             if not existing.is_file():
                 continue
             try:

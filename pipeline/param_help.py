@@ -33,13 +33,14 @@ def _class_field_comments(cls: type) -> dict[str, str]:
     except (OSError, TypeError):  # built dynamically, or no source on disk
         return {}
     comments = _comments_by_line(source)
+    lines = source.splitlines()
     node = ast.parse(source).body[0]
     out: dict[str, str] = {}
     for stmt in getattr(node, "body", []):
         if not isinstance(stmt, ast.AnnAssign) or not isinstance(stmt.target, ast.Name):
             continue
         above, line = [], stmt.lineno - 1
-        while line in comments and source.splitlines()[line - 1].lstrip().startswith("#"):
+        while line in comments and lines[line - 1].lstrip().startswith("#"):
             above.insert(0, comments[line])
             line -= 1
         # a field's own trailing comments (on its lines, a multi-line default included)

@@ -4,7 +4,7 @@ Fused people carry the extraction's ids, not the scene's, and an extraction id m
 between people; so every frame is matched on its own: fused and truth bodies of that frame are
 paired by the Hungarian method on the mean joint distance, pairs further apart than `max_match_m`
 are not counted (reported as unmatched). Truth people the fusion missed are counted too: of the
-truth person-frames at least `MIN_VISIBLE_JOINTS` visible in some camera, in the frames the
+truth person-frames seen in some camera (`seen_truth_views`), in the frames the
 extraction considered (`expected`), those no fused body was paired with (`truth_missed`; an
 MPJPE over fewer people is no better fusion). Errors are in millimetres over all 24 joints (world
 frame, no alignment for MPJPE; similarity Procrustes for PA-MPJPE, gst.metrics.pose) and over
@@ -20,7 +20,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from gst.body.model import BodyModel
-from gst.data.extract.crops import MIN_VISIBLE_JOINTS
+from gst.data.extract.crops import seen_truth_views
 from gst.fuse.fit import PersonFit
 from gst.metrics.pose import mpjpe, pa_mpjpe, vertex_error
 from synth.truth import SceneTruth, TruthViews
@@ -49,10 +49,10 @@ class TruthComparison:
 def visible_person_frames(
     views: TruthViews, frames, cameras: list[str] | None = None
 ) -> set[tuple[int, int]]:
-    """(frame, truth person id) of the `frames` in which the person has at least
-    `MIN_VISIBLE_JOINTS` of their joints visible in at least one camera (of `cameras`, the
-    store's, when given: a camera the extraction did not read sees no one for the fusion)."""
-    keep = (views.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS) & np.isin(views.frame, list(frames))
+    """(frame, truth person id) of the `frames` in which the person is seen (`seen_truth_views`,
+    as the extraction counts missed views) in at least one camera: of `cameras`, the store's,
+    when given (a camera the extraction did not read sees no one for the fusion)."""
+    keep = seen_truth_views(views) & np.isin(views.frame, list(frames))
     if cameras is not None:
         keep &= np.isin(views.camera.astype(str), list(cameras))
     return {(int(f), int(p)) for f, p in zip(views.frame[keep], views.person_id[keep], strict=True)}

@@ -122,21 +122,22 @@ def state_sha256(state: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def load_checked_state(path: Path, net: str) -> dict[str, torch.Tensor]:
+def load_checked_state(path: Path, net: str, with_fix: bool = True) -> dict[str, torch.Tensor]:
     """The state dict in `path`, which must be the pinned LPIPS `net` weights; a file that cannot
-    be read (cut short) or whose content differs is a ValueError naming it and the fix."""
-    fix = f"Re-create it with: {fetch_command(net)} --force"
+    be read (cut short) or whose content differs is a ValueError naming it (and, `with_fix`,
+    the command that makes it again)."""
+    fix = f" Re-create it with: {fetch_command(net)} --force" if with_fix else ""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises RuntimeError, EOFError, pickle errors ...
-        raise ValueError(f"{path}: not a readable LPIPS weight file ({exc}). {fix}") from exc
+        raise ValueError(f"{path}: not a readable LPIPS weight file ({exc}).{fix}") from exc
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError(f"{path}: expected a state dict of tensors. {fix}")
+        raise ValueError(f"{path}: expected a state dict of tensors.{fix}")
     got = state_sha256(state)
     if got != STATE_SHA256[net]:
         raise ValueError(
             f"{path}: its weights are not the pinned LPIPS {net!r} weights (content SHA-256 "
-            f"{got[:16]}..., expected {STATE_SHA256[net][:16]}...): damaged or replaced. {fix}"
+            f"{got[:16]}..., expected {STATE_SHA256[net][:16]}...): damaged or replaced.{fix}"
         )
     return state
 
@@ -296,10 +297,10 @@ def fetch_lpips_weights(
     )
     if out.is_file() and not force:
         try:
-            load_checked_state(out, net)
+            load_checked_state(out, net, with_fix=False)
             return out
         except ValueError as exc:  # damaged or replaced: made again below
-            log.warning("%s; converting it again", str(exc).split(". Re-create")[0])
+            log.warning("%s Converting it again.", exc)
     with tempfile.TemporaryDirectory(prefix="gst-lpips-") as tmp:
         if archives_dir is not None:
             wheel, sdist = (

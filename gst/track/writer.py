@@ -121,7 +121,8 @@ class TrackWriter:
     def start(self, resume: bool = True) -> ResumePoint | None:
         """Prepare the staging folder. With `resume`, continue a matching partial run and return
         where it stopped; otherwise (or when there is none) start empty and return None."""
-        for leftover in self.dir.glob(".tracks.*tmp.parquet"):  # older versions' finalize
+        stem, suffix = Path(FINAL_NAME).stem, Path(FINAL_NAME).suffix
+        for leftover in self.dir.glob(f".{stem}.*tmp{suffix}"):  # older versions' finalize
             leftover.unlink(missing_ok=True)
         if self.staging.exists() and not resume:
             shutil.rmtree(self.staging)

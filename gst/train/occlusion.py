@@ -43,6 +43,12 @@ def occluder_masks(crops: CropSet) -> torch.Tensor:
     return out
 
 
+def ignored_share(mask: torch.Tensor, occluders: torch.Tensor) -> torch.Tensor:
+    """(..., H, W) share of each pixel `ignore_occluded` leaves unsupervised: another person's,
+    not this person's own."""
+    return (occluders * (1 - mask)).clamp(0, 1)
+
+
 def ignore_occluded(
     rgb: torch.Tensor,
     alpha: torch.Tensor,
@@ -53,7 +59,7 @@ def ignore_occluded(
     """Targets that agree with the render wherever another person hides this one, so those pixels
     give the image terms no gradient (exactly zero for MSE and alpha). rgb/target (..., H, W, 3),
     alpha/mask/occluders (..., H, W). The person's own pixels always stay supervised."""
-    ignore = (occluders * (1 - mask)).clamp(0, 1)
+    ignore = ignored_share(mask, occluders)
     target = target * (1 - ignore[..., None]) + rgb.detach() * ignore[..., None]
     mask = mask * (1 - ignore) + alpha.detach() * ignore
     return target, mask

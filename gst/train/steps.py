@@ -24,7 +24,7 @@ from gst.train.anchors import anchor_term
 from gst.train.distill import distill_terms
 from gst.train.keypoints import keypoint_term
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
-from gst.train.occlusion import ignore_occluded, supervised_psnr
+from gst.train.occlusion import ignore_occluded, ignored_share, supervised_psnr
 from gst.train.teacher_render import teacher_posed_gaussians
 from gst.train.views import MultiViewBatch
 
@@ -162,7 +162,7 @@ def multiview_step(
     with torch.no_grad():
         ignored = None
         if batch.target_occluders is not None:  # as ignore_occluded leaves them out
-            ignored = (batch.target_occluders * (1 - batch.target_masks)).clamp(0, 1)
+            ignored = ignored_share(batch.target_masks, batch.target_occluders)
         terms.parts["psnr"] = supervised_psnr(out.rgb, target, ignored)
     return terms.total, terms.parts
 

@@ -73,6 +73,12 @@ class CropJobResult:
     visible_views_missed: int = 0
 
 
+def seen_truth_views(views) -> np.ndarray:
+    """(M,) bool over a synthetic scene's truth views (`synth.truth.TruthViews`): at least
+    `MIN_VISIBLE_JOINTS` of the person's joints visible, a view a person mask is expected in."""
+    return views.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
+
+
 def visible_truth_views(scene_dir, cameras) -> dict[str, list[tuple[int, int]]]:
     """Per camera of `cameras`, the (frame, person) views of a synthetic scene's truth
     (`truth/views.parquet`) in which at least `MIN_VISIBLE_JOINTS` of the person's joints are
@@ -82,7 +88,7 @@ def visible_truth_views(scene_dir, cameras) -> dict[str, list[tuple[int, int]]]:
     from synth.truth import read_truth_views
 
     v = read_truth_views(scene_dir)
-    keep = v.visible.mean(axis=1) >= MIN_VISIBLE_JOINTS
+    keep = seen_truth_views(v)
     out: dict[str, list[tuple[int, int]]] = {str(n): [] for n in cameras}
     for f, p, c in zip(v.frame[keep], v.person_id[keep], v.camera[keep], strict=True):
         if c in out:
