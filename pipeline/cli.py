@@ -214,7 +214,7 @@ def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
         unknown = [s for s in requested if s not in cfg.scenes]
         if unknown:
             raise ConfigError(f"--scene: unknown scene(s) {unknown} (scenes: {sorted(cfg.scenes)})")
-        return requested
+        return list(dict.fromkeys(requested))  # `--scene demo --scene demo`: once
     if cfg.default_scene:
         return [cfg.default_scene]
     if len(cfg.scenes) == 1:
@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.params:  # the values `run` would refuse are not listed as set
                 for scene in scenes:
                     Runner(cfg, scene, stages)
-            out = make_console(args.quiet, stderr=False)
+            out = make_console(False, stderr=False)  # the listing is the output, even with -q
             for name, st in stages.items():
                 out.print(
                     f"[bold]{name}[/]  needs: {', '.join(cfg.stages[name].needs) or '-'}\n"
@@ -365,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
                     + ". Rename or link the new video under another name, or pass --force to "
                     "replace those tracks"
                 )
+            if args.ray_address and (args.executor or cfg.executor.kind) != "ray":
+                raise ConfigError("--ray-address goes with the Ray executor: add --executor ray")
             executor = make_executor(
                 args.executor or cfg.executor.kind,
                 args.workers or cfg.executor.workers,

@@ -27,11 +27,13 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
+from pipeline.dag import topological_order
 from pipeline.errors import ConfigError
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # unknown keys are errors, and so are NaN and infinity (`fps: .inf` was taken)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class ExecutorConfig(Strict):
@@ -149,6 +151,8 @@ class PipelineConfig(Strict):
                     raise ValueError(
                         f"{where}: unknown stage '{name}' (declared stages: {sorted(self.stages)})"
                     )
+        # a cycle among the needs is a config error, found before anything runs or is logged
+        topological_order({n: list(stage.needs) for n, stage in self.stages.items()})
         if self.default_scene is not None and self.default_scene not in self.scenes:
             raise ValueError(
                 f"default_scene: '{self.default_scene}' is not a scene (scenes: "
@@ -271,8 +275,34 @@ class _CoreSchemaLoader(yaml.SafeLoader):
     octal 8), `12:30` and `yes` / `on` stay text (not 750 and true), and `1e-3` is a number
     inside lists and mappings too (YAML 1.1 wants a dot in it)."""
 
+    def construct_mapping(self, node, deep=False):
+        # a key given twice: PyYAML keeps the last one without a word (two `pretrain:` blocks,
+        # the first one's settings silently gone)
+        seen: dict = {}
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag.endswith(":merge"):
+                continue  # `<<: *base` merges may repeat keys on purpose
+            key, line = key_node.value, key_node.start_mark.line + 1
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"key '{key}' is given twice (lines {seen[key]} and {line}); keep one",
+                    key_node.start_mark,
+                )
+            seen[key] = line
+        return super().construct_mapping(node, deep=deep)
 
-_OLD_TAGS = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"}
+
+# YAML 1.1's booleans, octal/sexagesimal numbers, dates (`2024-06-01` a datetime.date) and the
+# `=` value tag are not YAML 1.2's core schema: left as text
+_OLD_TAGS = {
+    "tag:yaml.org,2002:bool",
+    "tag:yaml.org,2002:int",
+    "tag:yaml.org,2002:float",
+    "tag:yaml.org,2002:timestamp",
+    "tag:yaml.org,2002:value",
+}
 _CoreSchemaLoader.yaml_implicit_resolvers = {
     first: [(tag, rx) for tag, rx in rules if tag not in _OLD_TAGS]
     for first, rules in yaml.SafeLoader.yaml_implicit_resolvers.items()
@@ -412,10 +442,15 @@ def _name_overrides(message: str, given: dict[str, str]) -> str:
     """Say which error lines concern a value that came from `--set`."""
     lines = []
     for line in message.splitlines():
+        parts = line.split(": ")  # "file: dotted.key: what was expected"
+        loc = parts[1] if len(parts) > 2 else ""
+        # the key itself or a value inside it; a text search named `--set workspace=out` for an
+        # error at `myworkspace/...`'s executor.workers
         hit = [
             t
             for k, t in given.items()
-            if k in line or f"stages.{k.split('.')[0]}.params.{'.'.join(k.split('.')[1:])}" in line
+            for key in (k, f"stages.{k.split('.')[0]}.params.{'.'.join(k.split('.')[1:])}")
+            if loc == key or loc.startswith(key + ".")
         ]
         lines.append(line + (f" (set by --set {hit[0]})" if hit else ""))
     return "\n".join(lines)

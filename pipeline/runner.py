@@ -28,6 +28,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from gst.atomic import atomic_write_text, remove_path, replace_path
+from gst.param_types import NAMES_FILE
 from pipeline.config import PipelineConfig, format_error_line
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import (
@@ -97,18 +98,32 @@ def _relative_paths(obj, base: Path | None):
     return obj
 
 
-def _absolute(value, base: Path):
+def _names_file(field) -> bool:
+    """A text param marked `gst.param_types.NAMES_FILE`: a built-in name or a file of the
+    user's. Any other text param (a method, a preset, a device) is never a path, even when a file
+    of that name lies in the config's folder."""
+    extra = field.json_schema_extra
+    return isinstance(extra, dict) and bool(extra.get(next(iter(NAMES_FILE))))
+
+
+def _absolute(value, base: Path, texts: bool = False):
     """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
-    against `base`, and every relative text that names a file there (a `body_model` or
-    `markers` that is a name, like 'anny', or a path to the user's file)."""
+    against `base`; with `texts` (a `_names_file` param), also a relative text that names a
+    file there (a `body_model` that is a path to the user's SMPL file)."""
     if isinstance(value, Path):
         return value if value.is_absolute() else Path(os.path.normpath(base / value))
-    if isinstance(value, str) and value and not os.path.isabs(value) and (base / value).is_file():
+    if (
+        texts
+        and isinstance(value, str)
+        and value
+        and not os.path.isabs(value)
+        and (base / value).is_file()
+    ):
         return os.path.normpath(base / value)
     if isinstance(value, dict):
-        return {k: _absolute(v, base) for k, v in value.items()}
+        return {k: _absolute(v, base, texts) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return type(value)(_absolute(v, base) for v in value)
+        return type(value)(_absolute(v, base, texts) for v in value)
     return value
 
 
@@ -269,8 +284,8 @@ class Runner:
         # reuse) are the config folder's, as every other path of the config, not the shell's
         return params.model_copy(
             update={
-                k: _absolute(getattr(params, k), self.cfg.base_dir)
-                for k in type(params).model_fields
+                k: _absolute(getattr(params, k), self.cfg.base_dir, _names_file(f))
+                for k, f in type(params).model_fields.items()
             }
         )
 

@@ -7,12 +7,16 @@ import signal
 import time
 from pathlib import Path
 
+from pydantic import Field
+
+from gst.param_types import NAMES_FILE
 from pipeline.stage import Stage, StageContext, StageParams
 
 
 class SourceParams(StageParams):
     value: int = 1
-    input_file: str | None = None
+    input_file: str | None = Field(None, json_schema_extra=NAMES_FILE)  # a name or a file
+    label: str = "median"  # a plain text: never a path
     extra_file: Path | None = None  # a path parameter: relative to the config's folder
     torch_threads: int = 0  # > 0: set torch's (process-wide) thread count, as some stages do
 

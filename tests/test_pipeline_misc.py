@@ -93,12 +93,14 @@ def test_override_parsing():
     "text, value",
     [("x.y=010", 10), ("x.y=12:30", "12:30"), ("x.y=yes", "yes"), ("x.y=true", True),
      ("x.d={a: 1e-3, b: [1e-4, 2]}", {"a": 0.001, "b": [0.0001, 2]}), ("x.y=0x1F", 31),
-     ("x.y=-1e-3", -0.001), ("x.y=nan", "nan"), ("x.y=~", None)],
+     ("x.y=-1e-3", -0.001), ("x.y=nan", "nan"), ("x.y=~", None),
+     ("x.y=2024-06-01", "2024-06-01"), ("x.y==", "=")],
 )  # fmt: skip
 def test_set_values_read_as_yaml_1_2(text, value):
     """YAML 1.1 read `010` as octal 8, `12:30` as 750 (base 60) and `yes` as true, and left
     `1e-3` text inside a mapping (so `calibration.options` got the string '1e-3'); a bare
-    `nan` became NaN."""
+    `nan` became NaN; a date became a datetime.date (refused as `fuse.markers`) and `=` a
+    constructor error."""
     assert parse_override(text)[1] == value
 
 
@@ -175,6 +177,58 @@ def test_a_bad_value_from_either_form_of_set_is_blamed_on_the_set(given, capsys)
     config = str(Path(__file__).resolve().parents[1] / "pipeline.yaml")
     assert main(["run", "train", "--dry-run", "--config", config, "--set", given]) == 2
     assert f"(set by --set {given})" in capsys.readouterr().err
+
+
+def test_config_mistakes_found_before_anything_runs(tmp_path, capsys):
+    """A key given twice (the first block's settings silently dropped), a cycle among the needs
+    (found at run time, after the run's log file was written), an infinite scene value, a
+    `--ray-address` the local executor ignores: each is exit 2 with what is wrong, and no
+    workspace file."""
+    from pipeline.cli import main
+
+    text = (REPO / "pipeline.yaml").read_text()
+    (tmp_path / "pipeline.yaml").write_text(text)
+    twice = tmp_path / "twice.yaml"
+    twice.write_text(
+        text.replace("stages:\n", "stages:\n  pretrain: {params: {lift_steps: 3}}\n", 1)
+    )
+    runs = [
+        (["status", "--config", str(twice)], "key 'pretrain' is given twice"),
+        (["run", "synth", "--set", "stages.synth.needs=[bench]"], "stages form a cycle"),
+        (["status", "--set", "scenes.demo.fps=.inf"], "scenes.demo.fps: Input should be a finite"),
+        (["run", "synth", "--dry-run", "--ray-address", "x"], "--ray-address goes with"),
+    ]
+    for args, message in runs:
+        config = [] if "--config" in args else ["--config", str(tmp_path / "pipeline.yaml")]
+        assert main(args + config) == 2, args
+        assert message in capsys.readouterr().err, args
+    assert not (tmp_path / "workspace").exists()
+
+
+def test_an_error_is_blamed_on_the_set_that_gave_the_value_only(tmp_path, capsys):
+    """The blame was a text search: `--set workspace=out` was named for an error at
+    executor.workers, because 'workspace' occurs in the config's path (myworkspace/...)."""
+    from pipeline.cli import main
+
+    folder = tmp_path / "myworkspace"
+    folder.mkdir()
+    text = (REPO / "pipeline.yaml").read_text()
+    (folder / "pipeline.yaml").write_text(text.replace("workers: 2", "workers: 0", 1))
+    assert main(["status", "--config", str(folder / "pipeline.yaml"), "--set", "workspace=o"]) == 2
+    err = capsys.readouterr().err
+    assert "executor.workers" in err and "set by" not in err
+
+
+def test_stages_quiet_still_lists_and_a_repeated_scene_is_one(capsys):
+    """`stages -q` printed nothing (the listing is the command's output); `--scene demo
+    --scene demo` showed the scene twice."""
+    from pipeline.cli import main
+
+    config = ["--config", str(REPO / "pipeline.yaml")]
+    assert main(["stages", "-q", *config]) == 0
+    assert "synth" in capsys.readouterr().out
+    assert main(["status", "--scene", "demo", "--scene", "demo", *config]) == 0
+    assert capsys.readouterr().out.count("scene 'demo'") == 1
 
 
 def test_the_first_failing_item_ends_a_local_map_without_running_the_queue(tmp_path):

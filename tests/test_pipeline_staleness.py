@@ -109,6 +109,34 @@ def test_a_file_named_by_a_param_is_an_input(tmp_path, counter, capsys):
     assert counter() == ["source", "source"]
 
 
+def test_a_plain_text_param_is_not_taken_for_a_file_of_that_name(tmp_path):
+    """Every text param became an absolute path when a file of that name lay beside the
+    config: `extract.method: median` with a file `median` there reached the stage as
+    '/.../median' (refused after synth and calibrate had run), `pretrain.preset: tiny` likewise.
+    Only params marked NAMES_FILE (body_model, markers) name files."""
+    from pipeline.config import load_config
+    from pipeline.registry import load_stages
+    from pipeline.runner import Runner
+
+    for name in ("median", "tiny", "data.txt"):
+        (tmp_path / name).write_text("x\n")
+    cfg = config_with(
+        tmp_path,
+        """
+        source: {module: "tests.fake_stages:SOURCE", params: {input_file: data.txt}}
+        extract: {module: "stages.extract:STAGE"}
+        pretrain: {module: "stages.pretrain:STAGE"}
+        """,
+    )
+    config = load_config(cfg)
+    runner = Runner(config, "demo", load_stages(config))
+    source = runner._validate_params("source")
+    assert source.label == "median"
+    assert source.input_file == str(tmp_path / "data.txt")  # marked: resolved against the folder
+    assert runner._validate_params("extract").method == "median"
+    assert runner._validate_params("pretrain").preset == "tiny"
+
+
 def test_outputs_an_option_declares_are_made_when_absent(tmp_path, counter, capsys):
     """`run track --with-gaussians` after a plain run said 'up to date' and listed splat
     folders that did not exist: only the outputs recorded by the last run were checked."""

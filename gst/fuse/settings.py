@@ -15,6 +15,7 @@ from gst.fuse.fit import FitOptions
 from gst.fuse.regroup import RegroupOptions
 from gst.fuse.scene import FuseOptions
 from gst.fuse.triangulate import TriangulationOptions
+from gst.param_types import NAMES_FILE
 
 __all__ = ["FuseSettings"]
 
@@ -23,8 +24,10 @@ class FuseSettings(BaseModel):
     # NaN or infinity is refused before any stage runs (a NaN smoothness gave NaN bodies)
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    body_model: str = "anny"  # or "smpl", or a path to your SMPL file (docs/body_model.md)
-    markers: str | None = None  # a markers JSON (gst.fuse.fit_markers); None: the package's
+    # "anny", "smpl", or a path to your SMPL file (docs/body_model.md)
+    body_model: str = Field("anny", json_schema_extra=NAMES_FILE)
+    # a markers JSON (gst.fuse.fit_markers); None: the package's
+    markers: str | None = Field(None, json_schema_extra=NAMES_FILE)
     iterations: PositiveInt = (
         12  # Levenberg-Marquardt iterations of the body fit, per round (docs/fuse.md)
     )

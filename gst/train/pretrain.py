@@ -30,13 +30,14 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, NonNegativeInt, PositiveFloat, PositiveInt
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt
 
 from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint
 from gst.model.presets import PRESETS, get_preset
 from gst.model.refine import DEFAULT_ROUNDS
+from gst.param_types import NAMES_FILE
 from gst.records import Record
 from gst.train.augment import CropJitter
 from gst.train.losses import LossWeights
@@ -61,7 +62,8 @@ class PretrainConfig(BaseModel):
 
     # network size: tiny (CPU) to huge (the paper's, for GPUs; gst.model.presets)
     preset: Literal[tuple(PRESETS)] = "tiny"  # type: ignore[valid-type]
-    body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
+    # "anny", or a path to your SMPL file (docs/body_model.md)
+    body_model: str = Field("anny", json_schema_extra=NAMES_FILE)
     world_seed: int = 1000  # the pretraining worlds differ from every scene by construction
     worlds: PositiveInt = 12  # worlds trained on; one more (unseen) validates
     world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds

@@ -32,6 +32,7 @@ from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
 from gst.model.presets import get_preset
+from gst.param_types import NAMES_FILE
 from gst.render.ply import write_gaussians_ply
 from gst.train.anchors import mask_centre_anchors
 from gst.train.distill import Teacher, distill_targets, training_rows
@@ -77,7 +78,8 @@ class TrainSettings(BaseModel):
     hmr2_checkpoint: Path | None = (
         None  # with init=hmr2 (huge preset); loaded with weights_only=True
     )
-    body_model: str = "anny"  # or a path to your SMPL file (docs/body_model.md)
+    # "anny", or a path to your SMPL file (docs/body_model.md)
+    body_model: str = Field("anny", json_schema_extra=NAMES_FILE)
     heldout_cameras: list[str] | None = None  # default: the rig's last camera
     steps: PositiveInt = 1000  # optimiser steps
     batch_size: PositiveInt = 8  # input crops per step (their groups' other views: targets)
