@@ -177,3 +177,46 @@ def test_view_scores_recomputed_from_kept_images(tiny_model):
         assert rec.box_psnr[k] == pytest.approx(10 * math.log10(1 / box_mse), abs=0.3)
         checked += 1
     assert checked >= len(keep) // 2
+
+
+def test_a_prediction_that_is_not_finite_is_counted_not_fatal(tiny_model, monkeypatch):
+    """One NaN skeleton made the Procrustes SVD fail the whole evaluation, and a NaN network
+    output failed in the body model: `n_not_finite` could never be non-zero, and one diverged
+    bench variant ended the sweep. Now such a crop's errors and view scores are NaN, counted,
+    and the other crops score exactly as before."""
+    import gst.eval.evaluator as ev
+
+    net, task, _ = tiny_model
+    crops = crop_set(n_frames=4, n_cams=3)
+    cfg = EvalConfig(heldout_cameras=("c2",), render_size=32)
+    before = evaluate_model(net, task, crops, cfg, joint_names=JOINTS)
+    real = ev.predict
+    victim = int(before.views.inputs[0])  # a crop that is also a view pair's input
+    poisoned = crops.images[victim].clone()
+
+    def predict(model, task, images, *args, **kwargs):
+        hit = (images == poisoned).flatten(1).all(1)
+        # as a diverged network's pose for that crop: the body model refuses it
+        if bool(hit.any()):
+            pose = torch.zeros(len(images), 23, 3)
+            pose[hit] = float("nan")
+            task.body(None, pose, torch.zeros(len(images), 3))
+        return real(model, task, images, *args, **kwargs)
+
+    monkeypatch.setattr(ev, "predict", predict)
+    after = evaluate_model(net, task, crops, cfg, joint_names=JOINTS)
+    assert after.summary.pose.overall["n_not_finite"] == 1
+    finite = np.isfinite(after.pose.mpjpe)
+    assert finite.sum() == len(crops) - 1 and not finite[list(after.pose.rows).index(victim)]
+    assert np.allclose(after.pose.mpjpe[finite], before.pose.mpjpe[finite], atol=1e-6)
+    views = after.views
+    bad = views.inputs == victim
+    assert bad.any() and np.isnan(views.psnr[bad]).all() and np.isfinite(views.psnr[~bad]).all()
+    assert np.allclose(views.psnr[~bad], before.views.psnr[~bad], atol=1e-4)
+
+    # the SVD with a NaN skeleton, directly
+    gt = torch.randn(3, 24, 3)
+    pred = gt + 0.01 * torch.randn(3, 24, 3)
+    pred[1] = float("nan")
+    e, pa = per_joint_errors(pred, gt)
+    assert torch.isnan(pa[1]).all() and torch.isfinite(pa[[0, 2]]).all()

@@ -36,7 +36,7 @@ from gst.atomic import atomic_save_npz
 from gst.body.rotations import axis_angle_to_matrix
 from gst.body.skeleton import kinematic_levels
 
-__all__ = ["BodyModelData", "BodyOutput", "BodyModel"]
+__all__ = ["BodyModelData", "BodyOutput", "BodyModel", "NonFiniteBatch"]
 
 _NPZ_FORMAT = "gst-body-v1"
 
@@ -228,6 +228,18 @@ def _fmt(shape) -> str:
     return "(" + ", ".join(str(s) for s in shape) + ")"
 
 
+class NonFiniteBatch(ValueError):
+    """Parameters with NaN or Inf in some batch items (`rows`: all of them), e.g. a diverged
+    network's output: a caller that scores many items can leave those out and count them."""
+
+    def __init__(self, name: str, rows: list[int]):
+        self.rows = rows
+        super().__init__(f"{name} contains NaN or Inf (batch items {rows[:8]})")
+
+    def __reduce__(self):  # rebuilt from its arguments across processes
+        return (type(self), (str(self).split(" contains")[0], self.rows))
+
+
 class BodyModel(torch.nn.Module):
     """Differentiable, batched LBS for a :class:`BodyModelData` (float32 or float64, any device).
 
@@ -337,8 +349,7 @@ class BodyModel(torch.nn.Module):
     def _finite(x: torch.Tensor, name: str) -> None:
         bad = ~torch.isfinite(x.reshape(x.shape[0], -1)).all(dim=1)
         if bool(bad.any()):
-            rows = torch.nonzero(bad).flatten()[:8].tolist()
-            raise ValueError(f"{name} contains NaN or Inf (batch items {rows})")
+            raise NonFiniteBatch(name, torch.nonzero(bad).flatten().tolist())
 
     def _rotations(self, x, name: str, count: int) -> torch.Tensor:
         """(B, count, 3, 3) rotation matrices from rotmats or axis-angle in SMPL's shapes."""

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from gst.body.model import NonFiniteBatch
 from gst.metrics.flips import mirrored_landmarks, reference_in_crops
 from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, silhouette_iou, ssim
 from gst.metrics.pose import procrustes_align, vertex_error
@@ -43,10 +44,33 @@ def per_joint_errors(
     pred: torch.Tensor, gt: torch.Tensor, root: int = 0
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, J) root-aligned and Procrustes-aligned per-joint distances of (B, J, 3) joints; their
-    means over joints are MPJPE and PA-MPJPE."""
+    means over joints are MPJPE and PA-MPJPE. An item whose prediction is not finite gets NaN
+    (counted, not averaged, by the summary; the SVD of one such item failed the whole call)."""
     rel = (pred - pred[:, root : root + 1]) - (gt - gt[:, root : root + 1])
-    pa = procrustes_align(pred, gt) - gt
+    ok = torch.isfinite(pred).flatten(1).all(1)
+    pa = torch.full_like(pred, float("nan"))
+    if bool(ok.any()):
+        pa[ok] = procrustes_align(pred[ok], gt[ok]) - gt[ok]
     return rel.norm(dim=-1), pa.norm(dim=-1)
+
+
+def _predict_finite(model, task: GSTTask, crops: CropSet, rows: torch.Tensor, **kwargs):
+    """`predict` on crops `rows`, leaving out the items whose network output is not finite (the
+    body model refuses them: a diverged model, or one bad crop, ended the whole evaluation).
+    Returns (prediction of rows[ok] or None, ok (B,) bool)."""
+    ok = torch.ones(len(rows), dtype=torch.bool)
+    while bool(ok.any()):
+        r = rows[ok]
+        try:
+            pred = predict(
+                model, task, crops.images[r], crops.K[r], crops.R[r], crops.t[r],
+                landmarks=None if crops.landmarks is None else crops.landmarks[r], **kwargs,
+            )  # fmt: skip
+        except NonFiniteBatch as exc:
+            ok[torch.nonzero(ok).flatten()[exc.rows]] = False
+            continue
+        return pred, ok
+    return None, ok
 
 
 @dataclass
@@ -105,27 +129,29 @@ def evaluate_pose(
     je, jpa, pve, papve = [], [], [], []
     for s in range(0, len(rows), batch_size):
         r = rows[s : s + batch_size]
-        pred = predict(
-            model,
-            task,
-            crops.images[r],
-            crops.K[r],
-            crops.R[r],
-            crops.t[r],
-            with_gaussians=False,
-            with_vertices=with_vertices,
-            landmarks=None if crops.landmarks is None else crops.landmarks[r],
+        pred, ok = _predict_finite(
+            model, task, crops, r, with_gaussians=False, with_vertices=with_vertices
         )
-        gt = crops.truth["joints_world"][r].to(pred.joints_world)
-        e, pa = per_joint_errors(pred.joints_world, gt)
+        gt = crops.truth["joints_world"][r].float()
+        joints = torch.full_like(gt, float("nan"))  # not finite: NaN errors, counted
+        if pred is not None:
+            joints[ok] = pred.joints_world.to(joints)
+        e, pa = per_joint_errors(joints, gt)
         je.append(e)
         jpa.append(pa)
         if with_vertices:
-            v_pred = to_world(pred.vertices_cam, crops.R[r], crops.t[r])
-            v_gt = scene_vertices[crops.truth["truth_row"][r]].to(v_pred)
-            # pelvis-aligned, as MPJPE: each mesh moves by its own root joint
-            pve.append(vertex_error(v_pred - pred.joints_world[:, :1], v_gt - gt[:, :1]))
-            papve.append(vertex_error(v_pred, v_gt, align="procrustes"))
+            v_pve, v_pa = torch.full((len(r),), float("nan")), torch.full((len(r),), float("nan"))
+            if pred is not None:
+                ro, g = r[ok], gt[ok]
+                v_pred = to_world(pred.vertices_cam, crops.R[ro], crops.t[ro])
+                v_gt = scene_vertices[crops.truth["truth_row"][ro]].to(v_pred)
+                # pelvis-aligned, as MPJPE: each mesh moves by its own root joint
+                v_pve[ok] = vertex_error(
+                    v_pred - pred.joints_world[:, :1], v_gt - g[:, :1].to(v_pred)
+                ).to(v_pve)
+                v_pa[ok] = vertex_error(v_pred, v_gt, align="procrustes").to(v_pa)
+            pve.append(v_pve)
+            papve.append(v_pa)
     cat = lambda xs: torch.cat(xs).double().numpy() if xs else np.zeros((0,))  # noqa: E731
     mirrored = None
     if crops.landmarks is not None:
@@ -199,6 +225,65 @@ class ViewRecords:
     )  # pair -> (render, target)
 
 
+def _score_views(
+    pred, crops: CropSet, inp, tgt, size: int, lpips, scene_vertices, box_margin: float
+) -> dict[str, list]:
+    """Scores of each (input, target) pair of one batch: per metric a list, and "images" the
+    (render, target) uint8 pair of each."""
+    from gst.render import rasterize
+
+    nan = float("nan")
+    cols: dict[str, list] = {}
+    g = pred.gaussians_world
+    view, K, image, mask = target_views(crops, tgt, size)
+    target = image * mask[..., None]
+    out = rasterize(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.colors,
+        view[:, None],
+        K[:, None],
+        size,
+        size,
+        backgrounds=torch.zeros(len(inp), 1, 3),
+    )
+    rgb = out.rgb[:, 0].clamp(0, 1).permute(0, 3, 1, 2)
+    tgt_img = target.permute(0, 3, 1, 2)
+    cols["psnr"] = psnr(rgb, tgt_img).tolist()
+    cols["ssim"] = ssim(rgb, tgt_img).tolist()
+    cols["lpips"] = lpips(rgb, tgt_img).tolist() if lpips is not None else [nan] * len(inp)
+    cols["iou"] = silhouette_iou(out.alpha[:, 0], mask).tolist()
+    row = crops.truth["truth_row"][tgt] if "truth_row" in crops.truth else None
+    if scene_vertices is not None and row is not None:
+        corners = np.stack(
+            [points_box_corners(scene_vertices[int(k)].numpy(), box_margin) for k in row]
+        )
+    else:
+        corners = np.stack(
+            [
+                points_box_corners(crops.truth["joints_world"][int(i)].numpy(), box_margin + 0.1)
+                for i in tgt
+            ]
+        )
+    box = masked_bbox_metrics(
+        rgb,
+        tgt_img,
+        corners,
+        K.numpy(),
+        crops.R[tgt].numpy(),
+        crops.t[tgt].numpy(),
+        lpips=lpips,
+    )
+    cols["box_psnr"] = box.psnr.tolist()
+    cols["box_ssim"] = box.ssim.tolist()
+    cols["box_lpips"] = box.lpips.tolist() if box.lpips is not None else [nan] * len(inp)
+    to8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
+    cols["images"] = [(to8(rgb[j]), to8(tgt_img[j])) for j in range(len(inp))]
+    return cols
+
+
 @torch.no_grad()
 def evaluate_views(
     model,
@@ -218,7 +303,6 @@ def evaluate_views(
     SHERF-style box metrics need the truth mesh (`scene_vertices` indexed by truth_row); without
     it the box is that of the truth joints, padded by `box_margin` + 0.1 m for the body's volume.
     `keep_images`: pair indices whose (render, target) images to keep, uint8 (size, size, 3)."""
-    from gst.render import rasterize
 
     nan = float("nan")
     cols: dict[str, list] = {
@@ -228,67 +312,24 @@ def evaluate_views(
     keep_images = keep_images or set()
     for s in range(0, len(pairs.inputs), batch_size):
         inp, tgt = pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size]
-        pred = predict(
-            model,
-            task,
-            crops.images[inp],
-            crops.K[inp],
-            crops.R[inp],
-            crops.t[inp],
-            with_gaussians=True,
-            landmarks=None if crops.landmarks is None else crops.landmarks[inp],
+        pred, ok = _predict_finite(model, task, crops, inp, with_gaussians=True)
+        # an item whose prediction is not finite gets NaN scores (counted as such)
+        scored = (
+            _score_views(pred, crops, inp[ok], tgt[ok], size, lpips, scene_vertices, box_margin)
+            if pred is not None
+            else None
         )
-        g = pred.gaussians_world
-        view, K, image, mask = target_views(crops, tgt, size)
-        target = image * mask[..., None]
-        out = rasterize(
-            g.means,
-            g.quats,
-            g.scales,
-            g.opacities,
-            g.colors,
-            view[:, None],
-            K[:, None],
-            size,
-            size,
-            backgrounds=torch.zeros(len(inp), 1, 3),
-        )
-        rgb = out.rgb[:, 0].clamp(0, 1).permute(0, 3, 1, 2)
-        tgt_img = target.permute(0, 3, 1, 2)
-        cols["psnr"] += psnr(rgb, tgt_img).tolist()
-        cols["ssim"] += ssim(rgb, tgt_img).tolist()
-        cols["lpips"] += lpips(rgb, tgt_img).tolist() if lpips is not None else [nan] * len(inp)
-        cols["iou"] += silhouette_iou(out.alpha[:, 0], mask).tolist()
-        row = crops.truth["truth_row"][tgt] if "truth_row" in crops.truth else None
-        if scene_vertices is not None and row is not None:
-            corners = np.stack(
-                [points_box_corners(scene_vertices[int(k)].numpy(), box_margin) for k in row]
-            )
-        else:
-            corners = np.stack(
-                [
-                    points_box_corners(
-                        crops.truth["joints_world"][int(i)].numpy(), box_margin + 0.1
-                    )
-                    for i in tgt
-                ]
-            )
-        box = masked_bbox_metrics(
-            rgb,
-            tgt_img,
-            corners,
-            K.numpy(),
-            crops.R[tgt].numpy(),
-            crops.t[tgt].numpy(),
-            lpips=lpips,
-        )
-        cols["box_psnr"] += box.psnr.tolist()
-        cols["box_ssim"] += box.ssim.tolist()
-        cols["box_lpips"] += box.lpips.tolist() if box.lpips is not None else [nan] * len(inp)
+        at = 0
         for j in range(len(inp)):
+            if not ok[j]:
+                for k in cols:
+                    cols[k].append(nan)
+                continue
+            for k in cols:
+                cols[k].append(scored[k][at])
             if s + j in keep_images:
-                to8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
-                images[s + j] = (to8(rgb[j]), to8(tgt_img[j]))
+                images[s + j] = scored["images"][at]
+            at += 1
     cam = crops.camera[pairs.targets].numpy()
     arr = lambda k: np.asarray(cols[k], dtype=np.float64)  # noqa: E731
     return ViewRecords(

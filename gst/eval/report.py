@@ -265,11 +265,15 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
     names = list(summaries)
     first = summaries[names[0]]
     models = ", ".join(f"`{n}` ({meta.get('models', {}).get(n, '?')})" for n in names)
+    reference = meta.get("reference", "synthetic truth")
+    fused = reference != "synthetic truth"  # a real scene: agreement with the rig, not error
+    heldout = first["counts"]["heldout_cameras"]
+    title = "the rig's fused bodies" if fused else "the synthetic truth"
     lines = [
-        "# Evaluation against the synthetic truth",
+        f"# Evaluation against {title}",
         "",
         f"Scene `{meta.get('scene', '?')}`; models: {models}. "
-        f"{first['counts']['pose_crops']} crops with truth; "
+        f"{first['counts']['pose_crops']} crops with {'a fused body' if fused else 'truth'}; "
         f"{first['counts']['view_pairs']} novel-view pairs "
         f"rendered at {first['counts']['render_size']} px; held-out cameras: "
         f"{', '.join(first['counts']['heldout_cameras']) or 'none'}.",
@@ -277,6 +281,12 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
     ]
     if meta.get("note"):
         lines += [meta["note"], ""]
+    if heldout and not first.get("novel_view", {}).get("heldout", {}).get("n"):
+        lines += [
+            f"No novel-view pair has its target in a held-out camera ({', '.join(heldout)}): "
+            "no scored person was seen there, so the held-out rows are left out.",
+            "",
+        ]
     lines += ["| metric | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for label, a, b, c, d in _HEADLINE:
         vals = [_get(summaries[n], a, b, c) for n in names]

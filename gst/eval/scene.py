@@ -162,7 +162,9 @@ def evaluate_scene(
             every = np.ones(len(crops), bool)
             crops.landmarks, source = store_landmarks(crops_h5, crops.images, reread=every)
             log.info("evaluate: landmarks from %s", source)
-        if truth is not None and vertices is None and ckpt.body_model == truth.body_model:
+        # vertex errors only for a model whose body is the scene's (the meshes are posed once)
+        same_body = truth is not None and ckpt.body_model == truth.body_model
+        if same_body and vertices is None:
             vertices = truth.vertices(body)
         task = make_task(
             body,
@@ -182,11 +184,13 @@ def evaluate_scene(
             cfg,
             joint_names=truth.joint_names if truth is not None else body.joint_names,
             lpips=lpips,
-            scene_vertices=vertices,
+            scene_vertices=vertices if same_body else None,
             motions=truth.motion if truth is not None else None,
         )
         if frames is not None:  # every frame too (pose only): how much the held-out ones differ
-            every = evaluate_pose(net, task, crops, truth_rows(crops), vertices)
+            every = evaluate_pose(
+                net, task, crops, truth_rows(crops), vertices if same_body else None
+            )
             results[name].summary = replace(results[name].summary, pose_all_frames=pose_summary(
                 every, crops.camera_names, np.full(len(every.rows), "all", dtype=object),
                 truth.joint_names if truth is not None else body.joint_names,
@@ -198,15 +202,16 @@ def evaluate_scene(
         )
         meta_models[name] = f"{shown}, preset {net.cfg.name}, {uses}"
         s = results[name].summary
+        held = s.novel_view.heldout if s.novel_view else {}
         log.info(
-            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), held-out PSNR %s dB, "
-            "IoU %s (%.0f s)",
+            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), %s (%.0f s)",
             name,
             s.pose.overall["mpjpe_mm"],
             s.pose.overall["pa_mpjpe_mm"],
             "held-out frames" if frames else "all frames",
-            s.novel_view.heldout.get("psnr") if s.novel_view else None,
-            s.novel_view.heldout.get("silhouette_iou") if s.novel_view else None,
+            f"held-out PSNR {held.get('psnr')} dB, IoU {held.get('silhouette_iou')}"
+            if held.get("n")
+            else f"no held-out view scored (no scored person seen in {list(heldout) or 'none'})",
             results[name].seconds,
         )
     meta = {
