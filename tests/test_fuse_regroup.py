@@ -71,3 +71,27 @@ def test_the_tracks_gates_are_in_time_not_frames(capture):
     assert rep30.tracks == rep60.tracks == 2 and rep30.moved_crops == rep60.moved_crops
     for a, b in zip(at30, at60, strict=True):
         assert np.array_equal(a.rows, b.rows) and np.array_equal(2 * a.frames, b.frames)
+
+
+def test_a_dropped_view_keeps_its_landmarks_as_read(monkeypatch):
+    """A view the consensus both exchanged (legs read mirrored) and dropped (torso on someone
+    else) got its confidences back but kept the exchanged pixels: left/right landmarks and
+    their confidences no longer belonged together when it moved to another person."""
+    import gst.fuse.regroup as rg
+    from gst.fuse.consensus import LIMB_GROUPS, SWAP, ConsensusOptions, view_consensus
+
+    cap = make_capture(load_body_model("anny"), n_people=1, n_frames=1, n_cams=6, seed=3)
+    p = observations(cap)[0]
+    legs = np.array(LIMB_GROUPS["legs"])
+    left_legs = legs[legs % 2 == 1]  # BlazePose: odd = left
+    uv, conf = p.uv.copy(), p.confidence.copy()
+    uv[0, 0, legs] = p.uv[0, 0, SWAP[legs]]  # view 0 read the legs mirrored...
+    uv[0, 0, np.setdiff1d(np.arange(33), legs)] += 80.0  # ...and the rest on someone else
+    conf[0, 0, left_legs], conf[0, 0, SWAP[left_legs]] = 0.95, 0.35
+    p.uv, p.confidence = uv, conf
+    options = ConsensusOptions(temporal_weight=0)
+    q, rep = view_consensus(p, options)
+    assert rep.dropped[0, 0] and rep.swapped[0, 0].any()  # the case: exchanged and dropped
+    monkeypatch.setattr(rg, "view_consensus", lambda obs, o: (q, rep))
+    regroup_people([p], rg.RegroupOptions(consensus=options))
+    assert np.allclose(q.uv[0, 0], uv[0, 0]) and np.allclose(q.confidence[0, 0], conf[0, 0])

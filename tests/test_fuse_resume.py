@@ -202,3 +202,58 @@ def test_nobody_readable_writes_empty_outputs(scene, tmp_path):
     )  # fmt: skip
     assert res.fits == [] and pq.read_table(tmp_path / "fused" / "bodies.parquet").num_rows == 0
     assert (tmp_path / "report" / "report.md").is_file()
+
+
+def test_a_rerun_with_other_landmarks_or_another_rig_starts_over(scene, tmp_path, monkeypatch):
+    """The resume key held the options, the store's stat and the frame rate only: a call
+    interrupted, then made again into the same folder with other landmarks (or another rig),
+    fitted the first call's landmarks cached in the work folder."""
+    import gst.fuse.scene as fscene
+
+    tmp, cap, landmarks = scene
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def group_by_person(store, lm):  # stands in for the rest of the run: record, then stop
+        seen.append(np.array(lm))
+        raise Stop
+
+    monkeypatch.setattr(fscene, "group_by_person", group_by_person)
+    other = landmarks.copy()
+    other[..., :2] += 40.0
+    moved = cap.rig.cameras[0]
+    rig2 = type(cap.rig)([replace_camera(moved)] + list(cap.rig.cameras[1:]))
+    calls = [(landmarks, cap.rig), (other, cap.rig), (landmarks, cap.rig), (landmarks, rig2)]
+    keys = []
+    for lm, rig in calls:
+        with pytest.raises(Stop):
+            fuse_scene(tmp / "crops.h5", rig, tmp_path / "fused", tmp_path / "report", fps=30.0,
+                       options=OPTS, landmarks=lm)  # fmt: skip
+        keys.append((tmp_path / "fused" / ".work" / "settings.json").read_text())
+    assert np.allclose(seen[1], other) and np.allclose(seen[2], landmarks)
+    assert keys[0] != keys[1] and keys[0] == keys[2] and keys[3] != keys[2]
+
+
+def replace_camera(cam):
+    from dataclasses import replace
+
+    return replace(cam, t=cam.t + np.array([0.01, 0.0, 0.0]))
+
+
+def test_a_store_extracted_at_a_stride_is_refused(scene, tmp_path):
+    """fuse took frames 1 apart for neighbours: at extract.frame_stride 2 half the fused rows
+    were 'gap-filled' and the temporal votes were off; at 5 the smoothness term was off too,
+    all without a word."""
+    import shutil
+
+    import h5py
+
+    tmp, cap, landmarks = scene
+    shutil.copy(tmp / "crops.h5", tmp_path / "crops.h5")
+    with h5py.File(tmp_path / "crops.h5", "r+") as f:
+        f.attrs["setting.frame_stride"] = 2
+    with pytest.raises(ValueError, match="extract with frame_stride 1"):
+        fuse_scene(tmp_path / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report",
+                   fps=30.0, options=OPTS, landmarks=landmarks)  # fmt: skip

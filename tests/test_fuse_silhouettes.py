@@ -4,6 +4,7 @@ the point that lies on the person in every view."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -112,8 +113,9 @@ def test_the_packed_lookup_reads_the_cell_each_pixel_falls_in(seed, size):
     masks = rng.random((T, C, size, size)) < 0.4
     has = rng.random((T, C)) < 0.8
     views = ViewSilhouettes.from_masks(masks, has, np.arange(T), crop)
-    uv = rng.uniform(0, crop, (T, 5, C, 2))  # 5 hypotheses a point, inside the crop
-    cell = np.floor(uv * size / crop).astype(int)
+    # 5 hypotheses a point, inside the crop (pixel centres at integers: edges at -0.5)
+    uv = rng.uniform(-0.5, crop - 0.5, (T, 5, C, 2))
+    cell = np.floor((uv + 0.5) * size / crop).astype(int)
     t, c = np.arange(T)[:, None, None], np.arange(C)[None, None, :]
     want = masks[t, c, cell[..., 1], cell[..., 0]] & has[t, c]
     np.testing.assert_array_equal(views.covered(np.arange(T), uv), want)
@@ -151,3 +153,26 @@ def test_an_even_split_follows_the_frames_around_it():
     assert np.linalg.norm(voted.points[2, 0] - X[2]) < 0.02
     assert voted.used[2, 0].tolist() == [True, False, True, False, True, False]
     np.testing.assert_allclose(voted.points[[0, 1, 3, 4], 0], plain.points[[0, 1, 3, 4], 0])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_a_pixel_is_covered_where_its_pooled_cell_is(seed):
+    """Against OpenCV's pooling of a pixel mask into cells (INTER_AREA, as the store's masks
+    are pooled): a point inside a masked pixel is covered exactly where that pixel's cell is.
+    `covered` read the cell half a crop pixel to the left and above (cell k from pixel
+    centres k f - 0.5 ...): a point in pixel 4 (cell 1 of 4-pixel cells) read cell 0."""
+    rng = np.random.default_rng(seed)
+    crop, size = 64, 16
+    pixels = np.zeros((crop, crop), bool)
+    x0, y0 = rng.integers(0, crop - 8, 2)
+    pixels[y0 : y0 + 8, x0 : x0 + 8] = True
+    cells = cv2.resize(pixels.astype(np.float32), (size, size), interpolation=cv2.INTER_AREA) > 0.5
+    views = ViewSilhouettes.from_masks(
+        cells[None, None], np.ones((1, 1), bool), np.zeros(1, int), crop
+    )
+    px = rng.integers(0, crop, (200, 2))  # pixels, and a point anywhere inside each
+    uv = px + rng.uniform(-0.5, 0.5, px.shape)
+    got = views.covered(np.zeros(len(uv), int), uv[:, None, :])[:, 0]
+    want = cells[px[:, 1] * size // crop, px[:, 0] * size // crop]
+    np.testing.assert_array_equal(got, want)

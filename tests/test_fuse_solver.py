@@ -181,6 +181,26 @@ def test_gradient_of_the_silhouette_term_equals_autograd(body, skeleton):
         assert torch.linalg.eigvalsh(H).min() > -1e-6 * H.abs().max()
 
 
+def test_the_silhouette_fields_are_sampled_at_pixel_centres(body, skeleton):
+    """The fields pool the crop's pixels (integer centres, edges at -0.5): cell j's centre lies
+    at crop pixel (j + 0.5) f - 0.5. A plane stored at those centres is read back exactly at
+    every projection (the sampling was half a crop pixel off: the plane's 0.5 px x (0.3 + 0.2)
+    gradient showed as 0.25 px of distance)."""
+    ev, w, nb, person, (betas, root, theta, transl) = _problem(body, skeleton, B=6)
+    ev.K = ev.K + torch.tensor([[0, 0, 256.0], [0, 0, 256.0], [0, 0, 0]], dtype=D)
+    B, C, s, crop = 6, 3, 32, 768
+    centres = (torch.arange(s, dtype=D) + 0.5) * crop / s - 0.5
+    plane = 0.3 * centres[None, :] + 0.2 * centres[:, None] + 5.0
+    fields = torch.stack([plane, torch.full_like(plane, 0.3), torch.full_like(plane, 0.2)])
+    weight = torch.ones(B, C, dtype=D)
+    cov = Coverage(ev, fields.expand(B * C, 3, s, s), weight, torch.full((B,), 4.0, dtype=D), crop)
+    X, *_ = skeleton.forward(betas, root, theta, transl)
+    dist, grad, uv, _ = cov.sample(X)
+    assert uv.min() > crop / s and uv.max() < crop * (1 - 1 / s)
+    want = (0.3 * uv[..., 0] + 0.2 * uv[..., 1] + 5.0) * ev.scale[..., None]
+    np.testing.assert_allclose(dist, want, atol=1e-9)
+
+
 def test_schur_step_equals_the_dense_solve(body, skeleton):
     """The step that eliminates the frames (Schur complement) solves the full system of all
     frames and people's betas at once (undamped); damped, its frame rows still hold."""

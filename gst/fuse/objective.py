@@ -90,7 +90,10 @@ class Coverage:
         (B, C, M, 2) per crop pixel of projection, the projections (crop px) and depths."""
         uv, z = self.views.project(X)
         B, C, M = uv.shape[:3]
-        grid = (uv / self.crop_size * 2 - 1).reshape(B * C, 1, M, 2).to(self.fields.dtype)
+        # the fields span the crop's pixels, whose centres are integers: its edges lie at -0.5
+        # and crop_size - 0.5 (grid_sample's -1 and 1 with align_corners=False)
+        grid = ((uv + 0.5) / self.crop_size * 2 - 1).reshape(B * C, 1, M, 2)
+        grid = grid.to(self.fields.dtype)
         at = (
             torch.nn.functional.grid_sample(
                 self.fields, grid, mode="bilinear", padding_mode="border", align_corners=False

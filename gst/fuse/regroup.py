@@ -99,7 +99,10 @@ def regroup_people(
     fixed, hyp = [], {}  # hyp[frame] -> list of (extraction index, points, agreeing)
     for k, p in enumerate(people):
         q, rep = view_consensus(p, o.consensus)
-        # dropped views may show another person: keep their landmarks for step 3
+        # dropped views may show another person: keep their landmarks for step 3, as read (a
+        # limb exchange decided against this person's skeleton is undone with them: it left
+        # the pixels exchanged and the confidences not)
+        q.uv[rep.dropped] = p.uv[rep.dropped]
         q.confidence[rep.dropped] = p.confidence[rep.dropped]
         fixed.append(q)
         for t, f in enumerate(p.frames):

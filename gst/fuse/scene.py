@@ -124,6 +124,18 @@ def _digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def _landmarks_key(landmarks) -> str | None:
+    """What identifies given landmarks in the resume key: an array's content digest; a reader
+    function by its qualified name (its readings are cached in the work folder)."""
+    if landmarks is None:
+        return None
+    if callable(landmarks):
+        name = getattr(landmarks, "__qualname__", type(landmarks).__name__)
+        return f"callable {getattr(landmarks, '__module__', '')}.{name}"
+    a = np.ascontiguousarray(landmarks)
+    return f"{a.dtype}{a.shape}" + hashlib.sha256(a.tobytes()).hexdigest()
+
+
 def _video_fps(videos: dict[str, Path]) -> float:
     import cv2
 
@@ -308,13 +320,37 @@ def fuse_scene(
     missing = [c for c in cams if c not in rig.names]
     if missing:
         raise ValueError(f"{store_path}: cameras {missing} are not in the rig ({rig.names})")
+    stride = int(store.attrs.get("setting.frame_stride", 1)) or 1
+    if stride != 1:
+        # the fit's smoothness, the temporal votes, the spike test and the gap filling take
+        # frames 1 apart for neighbours: skipped frames read as gaps (half the rows 'gap-filled'
+        # at stride 2) or switched those terms off (stride 5 and more)
+        raise ValueError(
+            f"{store_path}: extracted every {stride}th frame (extract.frame_stride {stride}); "
+            "fusing needs every frame: extract with frame_stride 1"
+        )
     # the store's file stat too: an extraction run again (same row count or not) must not meet
-    # the landmarks cached from the previous one
+    # the landmarks cached from the previous one; given landmarks and the rig likewise
     stat = store.path.stat()
     settings = {
         "options": o.settings(),
         "store": [len(store), stat.st_size, stat.st_mtime_ns],
         "fps": fps,
+        "landmarks": _landmarks_key(landmarks),
+        "rig": _digest(
+            [
+                [
+                    c.name,
+                    c.K.tolist(),
+                    c.dist.tolist(),
+                    c.R.tolist(),
+                    c.t.tolist(),
+                    c.width,
+                    c.height,
+                ]
+                for c in rig.cameras
+            ]
+        ),  # fmt: skip
     }
     key = _digest(settings)
     stamp = work / "settings.json"

@@ -191,7 +191,9 @@ class ViewSilhouettes:
         t = self.frame_of[np.asarray(points)]
         t = t.reshape(t.shape + (1,) * (uv.ndim - 2))
         c = np.arange(uv.shape[-2])
-        cell = np.floor(np.nan_to_num(uv, nan=-1e9) * (size / self.crop_size))
+        # crop pixel centres are integers (gst.data.crop): cell k spans crop pixels
+        # [k f - 0.5, (k + 1) f - 0.5) for f crop pixels per cell, as INTER_AREA pooled them
+        cell = np.floor((np.nan_to_num(uv, nan=-1e9) + 0.5) * (size / self.crop_size))
         cell = np.clip(cell, -1, size).astype(np.int64)
         inside = ((cell >= 0) & (cell < size)).all(-1)
         u, v = np.clip(cell[..., 0], 0, size - 1), np.clip(cell[..., 1], 0, size - 1)
