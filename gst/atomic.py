@@ -100,6 +100,7 @@ def atomic_dir(path: str | Path, trash: str | Path | None = None) -> Iterator[Pa
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
     try:
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp creates 0700; give the usual permissions
         yield tmp
         replace_path(tmp, path, Path(trash) if trash is not None else path.parent)
     finally:

@@ -44,7 +44,7 @@ class ExecutorConfig(Strict):
 
 class SyntheticSource(Strict):
     preset: str = "demo"
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     overrides: dict[str, Any] = Field(default_factory=dict)
 
     @model_validator(mode="after")
@@ -66,6 +66,18 @@ class SyntheticSource(Strict):
             first = exc.errors()[0]
             where = ".".join(str(part) for part in first["loc"])
             raise ValueError(f"overrides.{where}: {first['msg']}") from None
+        # what the spec's own checks cannot see (motion names, the board's dictionary and
+        # marker count, distortion terms, a lens that folds): the synth stage's setup, which
+        # costs milliseconds and needs no body model
+        from synth.people import check_programmes
+        from synth.shares import SceneSetup
+
+        spec = preset(self.preset, seed=self.seed, **self.overrides)
+        try:
+            check_programmes(spec.n_people, spec.motions)
+            SceneSetup.build(spec)
+        except ValueError as exc:
+            raise ValueError(f"overrides: {exc}") from None
         return self
 
 

@@ -34,6 +34,13 @@ class VideoOut:
     """An mp4 (MPEG-4 part 2, 'mp4v') written frame by frame, renamed into place on close."""
 
     def __init__(self, path: Path, fps: float, width: int, height: int):
+        if width % 2 or height % 2 or max(width, height) > 8190:
+            # mp4v drops an odd last column or row (the video a pixel smaller than the
+            # calibration and truth written beside it) and opens no writer at 8192
+            raise ValueError(
+                f"{path}: frame size {width}x{height}: width and height must be even and at most "
+                "8190 for mp4v video"
+            )
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = PendingFile(self.path)

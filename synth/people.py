@@ -84,7 +84,8 @@ def _programme(rng: np.random.Generator, n_frames: int, fps: float) -> tuple[str
     return tuple(str(m) for m in rng.choice(moves, size=n_moves, replace=False))
 
 
-def _check_programmes(n: int, programmes: Sequence[Sequence[str]] | None) -> None:
+def check_programmes(n: int, programmes: Sequence[Sequence[str]] | None) -> None:
+    """Refuse a people count outside 1..255 and programmes of unknown or badly mixed motions."""
     if not 1 <= n <= 255:
         raise ValueError(f"number of people must be in 1..255 (mask ids are uint8), got {n}")
     if programmes is not None and len(programmes) != n:
@@ -113,12 +114,12 @@ def sample_people(
 ) -> list[PersonSpec]:
     """Sample `n` people. `programmes` optionally fixes each person's motion names (one list per
     person; 'random_static' gives independent random poses)."""
-    _check_programmes(n, programmes)
+    check_programmes(n, programmes)
     kits = team_kits(max(1, n_teams), rng)
     progs = []
     for i in range(n):
         prog = tuple(programmes[i]) if programmes is not None else _programme(rng, n_frames, fps)
-        _check_programmes(1, [prog])
+        check_programmes(1, [prog])
         progs.append(prog)
     cx, cy = float(volume_center[0]), float(volume_center[1])
     movers = [i for i, p in enumerate(progs) if any(m in LOCOMOTION for m in p)]
@@ -181,7 +182,7 @@ def sample_crowd(
     straight through the others; the rest play in-place moves a few decimetres from someone.
     `seed` is the scene seed, which fixes each person's motion (`PersonSpec.motion_clip`): the
     layout is chosen on those very motions."""
-    _check_programmes(n, programmes)
+    check_programmes(n, programmes)
     kits = team_kits(max(1, n_teams), rng)
     walking = walkers(n, rng)
     people = []

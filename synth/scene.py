@@ -177,6 +177,11 @@ def _check_replaceable(out_dir: Path) -> None:
     """Refuse to replace a folder that holds anything but a synthetic scene: the render swaps
     `out_dir` out whole, and a workspace named there (`render_scene(spec, "workspace/demo")`,
     once the package's own example) lost its models, tracks and calibration."""
+    if out_dir.is_symlink() or (out_dir.exists() and not out_dir.is_dir()):
+        raise ValueError(
+            f"{out_dir}: is a file or a link, not a folder; the render replaces its output "
+            "folder whole, so give an empty or new folder"
+        )
     if not out_dir.is_dir() or not any(out_dir.iterdir()):
         return
     try:

@@ -21,8 +21,10 @@ class RigSpec(_Spec):
 
     kind: Literal["dome", "h36m", "hall"] = "dome"
     n_cameras: int | None = Field(None, ge=1, le=256)
-    width: int | None = Field(None, ge=16, le=8192)
-    height: int | None = Field(None, ge=16, le=8192)
+    # even (the mp4v encoder drops an odd last column or row, leaving the video a pixel smaller
+    # than the calibration and the truth) and below 8192 (its writer does not open at 8192)
+    width: int | None = Field(None, ge=16, le=8190, multiple_of=2)
+    height: int | None = Field(None, ge=16, le=8190, multiple_of=2)
     fov_deg: float | None = Field(None, gt=5, lt=150)
     focal_mm: float | None = Field(None, gt=0)
     distortion: Literal["none", "mild", "strong"] | list[float] | None = None

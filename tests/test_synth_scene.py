@@ -324,6 +324,28 @@ def test_a_folder_that_is_no_scene_is_not_replaced(tmp_path):
     assert (target / "models" / "gst.pt").read_bytes() == b"weights"
 
 
+def test_a_file_where_the_scene_goes_is_not_replaced(tmp_path):
+    """A plain file at the output path was replaced by the scene folder without a word."""
+    target = tmp_path / "notes.txt"
+    target.write_text("precious\n")
+    with pytest.raises(ValueError, match="is a file or a link"):
+        render_scene(_tiny(), target, body_model=BODY, rig_writer=WRITE_RIG)
+    assert target.read_text() == "precious\n"
+
+
+def test_odd_image_sizes_are_refused(tmp_path):
+    """The mp4v encoder drops an odd last column or row: a 97x73 rig gave 96x72 videos beside a
+    calibration, masks and scene.json of 97x73 (the truth described pixels the video lacks)."""
+    from synth.io import VideoOut
+
+    with pytest.raises(ValidationError, match="multiple of 2"):
+        preset("demo", rig={"width": 97})
+    for size in ((97, 72), (64, 73), (8192, 64)):
+        with pytest.raises(ValueError, match="must be even and at most 8190"):
+            VideoOut(tmp_path / "v.mp4", 30.0, *size)
+    assert not list(tmp_path.iterdir())
+
+
 def test_preset_takes_a_scene_name_and_random_static_stands_alone():
     assert preset("demo", name="my_scene").name == "my_scene"  # was a TypeError
     with pytest.raises(ValueError, match="'random_static' must be the only motion"):
@@ -346,7 +368,14 @@ def test_a_crowd_that_cannot_keep_its_rules_says_so(caplog):
     [("{preset: demo, overrides: {seed: 3}}", "scenes.s.synthetic: overrides.seed: give the"),
      ("{preset: dmeo}", "scenes.s.synthetic: preset: unknown synth preset 'dmeo'"),
      ("{preset: demo, overrides: {n_frame: 4}}", "scenes.s.synthetic: overrides.n_frame: Extra"),
-     ("{preset: demo, overrides: {rig: {widht: 9}}}", "overrides.rig.widht: Extra")],
+     ("{preset: demo, overrides: {rig: {widht: 9}}}", "overrides.rig.widht: Extra"),
+     ("{preset: demo, seed: -1}", "scenes.s.synthetic.seed: Input should be greater than"),
+     ("{preset: demo, overrides: {rig: {width: 97}}}", "overrides.rig.width: Input should be a "
+      "multiple of 2"),
+     ("{preset: demo, overrides: {motions: [[runn], [jump]]}}", "unknown motions ['runn']"),
+     ("{preset: demo, overrides: {board: {dictionary: DICT_4X4_5O}}}", "unknown ArUco"),
+     ("{preset: demo, overrides: {board: {squares_x: 12, squares_y: 10}}}", "needs 60 markers"),
+     ("{preset: demo, overrides: {rig: {distortion: [0.1, 0.2, 0.0]}}}", "4 or 5 finite")],
 )  # fmt: skip
 def test_a_synthetic_block_that_makes_no_scene_is_refused_before_anything_runs(
     tmp_path, capsys, block, said
