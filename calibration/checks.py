@@ -83,6 +83,18 @@ def estimate_volume(rig: Rig, height: float = 2.0) -> CaptureVolume:
 FOLD_REFUSED = 0.5
 
 
+def rational_pole(dist: np.ndarray) -> float | None:
+    """The smallest normalised radius r > 0 where the rational model's denominator
+    1 + k4 r^2 + k5 r^4 + k6 r^6 vanishes (OpenCV's 8+ terms: k4..k6 at 5..7), None if none."""
+    dist = np.asarray(dist, np.float64).ravel()
+    if dist.size < 8 or not np.any(dist[5:8]):
+        return None
+    k4, k5, k6 = dist[5:8]
+    roots = np.roots([k6, k5, k4, 1.0])  # in s = r^2; np.roots drops leading zeros
+    s = roots.real[(np.abs(roots.imag) < 1e-9 * np.maximum(1.0, np.abs(roots))) & (roots.real > 0)]
+    return float(np.sqrt(s.min())) if s.size else None
+
+
 def lens_findings(cam: Camera, samples: int = 256) -> tuple[str | None, str | None]:
     """(problem, warning) about the camera's distortion, None where there is none. Along the 8
     directions from the principal point to the image's corners and edge midpoints, the radial
@@ -105,6 +117,18 @@ def lens_findings(cam: Camera, samples: int = 256) -> tuple[str | None, str | No
     direction = (border - centre) / f
     direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
     r_border = reach / f.mean()  # the border's normalised radius, near enough per direction
+    pole = rational_pole(cam.dist)
+    if pole is not None and pole < 3.0 * r_border.max():
+        # 1 + k4 r^2 + k5 r^4 + k6 r^6 = 0: the model sends rays near that radius anywhere, in a
+        # band thin enough to slip between the samples below (a rational fit whose numerator
+        # and denominator nearly cancel: a low RMS, points in a ring thousands of px off)
+        share = pole / r_border.max()
+        return (
+            f"camera '{cam.name}': its distortion {np.round(cam.dist, 4).tolist()} has a pole "
+            f"(1 + k4 r^2 + k5 r^4 + k6 r^6 = 0) at {share:.0%} of the way to the image's "
+            "border: no lens does; fit the rational terms only with views out to the corners, "
+            "or use the 'opencv' lens model"
+        ), None
     t = np.linspace(0.0, 1.0, samples + 1)[1:]
     r = t[None, :] * 3.0 * r_border[:, None]  # out to three times the pinhole border
     xy = direction[:, None, :] * r[..., None]  # (8, S, 2) undistorted, z = 1

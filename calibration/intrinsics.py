@@ -44,7 +44,33 @@ def _calib_flags(lens_model: str) -> int:
         return cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
     if lens_model == "opencv":
         return cv2.CALIB_FIX_K3
-    return cv2.CALIB_RATIONAL_MODEL
+    # full_opencv: k1-k3 first, the rational terms after (`_free_rational`)
+    return cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6
+
+
+# the rational terms are kept only where they fit this much better than k1-k3 alone
+RATIONAL_MIN_GAIN = 0.05
+
+
+def _free_rational(obj, img, image_size, K, dist, rms, crit):
+    """The rational model's k4-k6 freed from the k1-k3 fit (K, dist, rms): kept only when the
+    RMS drops by `RATIONAL_MIN_GAIN` and the denominator 1 + k4 r^2 + k5 r^4 + k6 r^6 has no
+    zero out to three times the image's corner radius. Freed from the start, calibrateCamera
+    made numerator and denominator nearly cancel: a pole inside the image at 0.4 px RMS."""
+    from calibration.checks import rational_pole
+
+    w, h = image_size
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    r_corner = float(np.max(np.linalg.norm((corners - K[:2, 2]) / np.diag(K)[:2], axis=1)))
+    flags = cv2.CALIB_RATIONAL_MODEL | cv2.CALIB_USE_INTRINSIC_GUESS
+    rms2, K2, dist2, *_ = cv2.calibrateCameraExtended(
+        obj, img, tuple(image_size), K.copy(), dist.copy(), flags=flags, criteria=crit
+    )
+    pole = rational_pole(dist2.ravel())
+    ok = np.all(np.isfinite(dist2)) and (pole is None or pole > 3.0 * r_corner)
+    if ok and rms2 < (1.0 - RATIONAL_MIN_GAIN) * rms:
+        return K2, dist2, rms2
+    return K, dist, rms
 
 
 def spread_subset(items: list, n: int) -> list:
@@ -98,6 +124,8 @@ def calibrate_intrinsics(
             break
         rejected += [d.frame for d, b in zip(views, bad, strict=True) if b]
         views = [d for d, b in zip(views, bad, strict=True) if not b]
+    if lens_model == "full_opencv":
+        K, dist, rms = _free_rational(obj, img, image_size, K, dist, rms, crit)
     dist = dist.ravel().astype(np.float64)
     dist = dist[:8] if lens_model == "full_opencv" else np.concatenate([dist[:4], [0.0]])
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):

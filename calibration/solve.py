@@ -27,6 +27,7 @@ from calibration.board import (
 )
 from calibration.bundle import BAOptions, BAResult, BoardBundleAdjuster, CameraState
 from calibration.camera import Camera, Rig
+from calibration.checks import lens_findings
 from calibration.errors import CalibrationError
 from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
 from calibration.posegraph import (
@@ -322,6 +323,10 @@ def finish_calibration(
                 f"cameras {below} are below the floor: was the board in frame {floor_frame} "
                 "really lying flat on the floor, printed side up?"
             )
+    # a lens model no lens has (the bundle adjustment refines every distortion term: the
+    # rational ones can fold or reach a pole inside the image at a low RMS)
+    for cam in rig:
+        notes += [m for m in lens_findings(cam) if m is not None]
     # A camera that saw the board in one plane (held still, or only lying on the floor) fits
     # its views with any focal length and principal point: a low RMS and a wrong camera.
     weak = {}

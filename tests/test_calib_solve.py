@@ -311,3 +311,33 @@ def test_calibrate_scene_with_two_cameras_and_a_chosen_floor_frame(tmp_path):
     )  # fmt: skip
     assert out.against_truth is None and (tmp_path / "out/rig.json").is_file()
     assert out.solved.floor_frame == 1
+
+
+def test_a_rational_lens_model_with_a_pole_in_the_image_is_named():
+    """full_opencv: calibrateCamera freed k4-k6 from the start and made numerator and
+    denominator nearly cancel (k1 ~ k4, k2 ~ k5, k3 ~ k6): a pole inside the image at 0.4 px
+    RMS, points in a thin ring thousands of px off, and no note (the lens check sampled 256
+    radii and stepped over the band). The rational terms are now fitted after k1-k3 and kept
+    only without a pole; a pole the bundle adjustment makes is named exactly."""
+    from calibration.checks import lens_findings, rational_pole
+    from calibration.intrinsics import calibrate_intrinsics
+
+    scene = make_scene(n_cameras=4, n_frames=40, seed=0)  # truth: k1, k2, p1, p2 only
+    dets = synthetic_detections(scene, noise_px=0.3)
+    for cam in scene.rig:
+        intr = calibrate_intrinsics(
+            cam.name, dets[cam.name], scene.board, (cam.width, cam.height),
+            lens_model="full_opencv",
+        )  # fmt: skip
+        corner = np.hypot(cam.width, cam.height) / 2 / intr.K[0, 0]
+        pole = rational_pole(intr.dist)
+        assert pole is None or pole > 3 * corner, (cam.name, intr.dist)
+    # a bundle-adjusted camera of the review (cam01): pole at r = 0.595, corner at 0.73
+    bad = scene.rig.cameras[1]
+    dist = [-0.6006, -3.237, 0.0007, 0.0008, -8.6052, -0.4891, -3.2836, -9.3633]
+    from dataclasses import replace
+
+    cam = replace(bad, dist=np.array(dist))
+    assert rational_pole(cam.dist) == pytest.approx(0.595, abs=1e-3)
+    problem, _ = lens_findings(cam)
+    assert problem is not None and "has a pole" in problem
