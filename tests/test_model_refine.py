@@ -210,3 +210,30 @@ def test_the_up_direction_is_read_only_by_a_gravity_aware_refiner(body, gravity)
         a = refiner(*pose, LandmarkInput.from_pixels(lm, K, CROP, up=up))[0]
         b = refiner(*pose, LandmarkInput.from_pixels(lm, K, CROP))[0]
     assert torch.equal(a, b) != gravity
+
+
+def test_a_masked_landmark_given_as_nan_changes_nothing(body):
+    """A landmark masked out but given as NaN (`from_pixels(..., mask=...)` or a LandmarkInput
+    built directly): the encoder zeroed it, the refiner multiplied it by 0, and the whole
+    sample's pose and camera came out NaN. Now the same as the landmark given as 0."""
+    net, _, _ = _trained_refiner_net(body)
+    images = torch.randn(2, 3, 128, 96, generator=torch.Generator().manual_seed(3))
+    lm, K = _landmarks(2)
+    mask = torch.ones(2, 33, dtype=torch.bool)
+    mask[0, 5] = False
+    nan, zero = lm.clone(), lm.clone()
+    nan[0, 5], zero[0, 5] = float("nan"), 0.0
+    with torch.no_grad():
+        a = net(
+            images,
+            with_gaussians=False,
+            landmarks=LandmarkInput.from_pixels(nan, K, CROP, mask=mask),
+        )
+        b = net(
+            images,
+            with_gaussians=False,
+            landmarks=LandmarkInput.from_pixels(zero, K, CROP, mask=mask),
+        )
+    for name in ("body_pose_6d", "betas", "cam"):
+        assert torch.isfinite(getattr(a, name)).all(), name
+        assert torch.equal(getattr(a, name), getattr(b, name)), name

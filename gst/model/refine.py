@@ -144,14 +144,17 @@ class ReprojectionRefiner(nn.Module):
         landmarks: LandmarkInput,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         B = pose6d.shape[0]
-        target = landmarks.points[..., :2]
-        weight = landmarks.points[..., 2] * landmarks.usable.float()
+        # unusable points zeroed first, as the encoder does: a masked NaN times 0 is NaN (the
+        # whole sample's pose and camera came out NaN), and torch.where keeps gradients finite
+        points = torch.where(landmarks.usable[..., None], landmarks.points, 0.0)
+        target = points[..., :2]
+        weight = points[..., 2] * landmarks.usable.float()
         up = landmarks.up if self.gravity and landmarks.up is not None else None
         up = up if up is not None else pose6d.new_zeros(B, 3)
         known = (up.norm(dim=-1, keepdim=True) > 0).to(pose6d.dtype)
         fixed = torch.cat(
             [
-                (landmarks.points * landmarks.usable[..., None]).flatten(1),
+                points.flatten(1),
                 landmarks.camera,
                 up,
                 known,
