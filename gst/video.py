@@ -297,6 +297,11 @@ def frame_range(
             f"{info.path}: start {start_s} s is at or past the end of the video "
             f"({info.frame_count} frames, {info.frame_count / info.fps:.3f} s)"
         )
+    if end is not None and first >= end:  # blamed on the video ('no frame could be decoded')
+        raise ValueError(
+            f"{info.path}: the time range [{start_s or 0} s, {end_s} s) holds no frame at "
+            f"{info.fps:g} frames/s (frames {first} to {end - 1})"
+        )
     return first, end
 
 

@@ -175,7 +175,10 @@ def test_empty_tracks_say_why():
     s = TrackSettings()
     assert nobody_tracked(5, 1, s) is None
     assert "track.min_hits=3" in nobody_tracked(0, 2, s)
-    assert "track.min_hits" in nobody_tracked(0, 5, TrackSettings(stride=2))  # 3 processed
+    # `frames` counts processed frames: at stride 2, 5 of them are enough for min_hits 3 (the
+    # warning blamed min_hits for anything under 6)
+    assert "track.min_hits" in nobody_tracked(0, 2, TrackSettings(stride=2))
+    assert "kept no one" in nobody_tracked(0, 5, TrackSettings(stride=2))
     assert "kept no one" in nobody_tracked(0, 40, s)
 
 
@@ -240,3 +243,56 @@ track_video({str(raw)!r}, {str(out)!r}, OneBox(), BoxDepthPredictor(),
     assert rerun.returncode == 0
     assert [p.name for p in (out / "video=clip").iterdir()] == ["tracks.parquet"]
     assert pq.read_table(out / "video=clip" / "tracks.parquet").num_rows == 12
+
+
+def test_a_time_range_without_a_frame_is_named_not_blamed_on_the_video(tmp_path):
+    """start_s 0.51 / end_s 0.52 at 30 frames/s (frames 16 to 16), end_s 0 or a negative time
+    decoded nothing and failed with "no frame could be decoded (an empty or unreadable video
+    stream)" though the file was fine; end before start was found only inside the worker."""
+    from pydantic import ValidationError
+
+    from gst.track.scene import TrackSettings
+
+    video = tmp_path / "cam.avi"
+    _column_video(video, 10)
+    for start, end in ((0.21, 0.22), (0.05, 0.06)):
+        with pytest.raises(ValueError, match="holds no frame"):
+            track_video(
+                video, tmp_path / "out", _BrightColumn(), BoxDepthPredictor(),
+                model={"name": "test", "version": "0"},
+                options=TrackOptions(prefetch=0, start_s=start, end_s=end),
+            )  # fmt: skip
+    for bad in ({"end_s": 0.0}, {"end_s": -5.0}, {"start_s": -1.0}, {"start_s": 2, "end_s": 1}):
+        with pytest.raises(ValidationError):
+            TrackSettings(**bad)
+
+
+def test_reading_a_folder_without_tracks_says_so(tmp_path):
+    """A tracks folder where every video failed gave "ArrowInvalid: Invalid sort key column"."""
+    from gst.track import read_tracks
+
+    with pytest.raises(FileNotFoundError, match="no tracks here"):
+        read_tracks(tmp_path)
+
+
+def test_detections_still_waiting_for_an_id_at_the_end_are_counted(tmp_path):
+    """A person seen only on the last frames (fewer than min_hits) got no row and was counted
+    nowhere: gst.stats' detections no longer added up to rows and the dropped counts."""
+    from gst.track import read_metadata
+    from gst.track.tracker import TrackerConfig
+
+    video = tmp_path / "cam.avi"
+    _column_video(video, 10)
+
+    class _LastTwo:
+        def detect(self, image, index):
+            return [Detection(np.array([10.0, 20.0, 40.0, 100.0]), 0.9)] if index >= 8 else []
+
+    result = track_video(
+        video, tmp_path / "out", _LastTwo(), BoxDepthPredictor(),
+        model={"name": "test", "version": "0"},
+        options=TrackOptions(prefetch=0, unmirror=None, tracker=TrackerConfig(min_hits=3)),
+    )  # fmt: skip
+    stats = read_metadata(result.path)["stats"]
+    dropped = stats["dropped_low_score"] + stats["dropped_parts"] + stats["dropped_nonfinite"]
+    assert stats["detections"] == 2 and stats["rows"] == 0 and dropped == 2

@@ -648,6 +648,9 @@ def track_video(
     if keep_detections is not None and not keep_detections():
         detections = "run"  # they could not be kept: the run's own result stands
     stats = {**session.stats, "persons": session.tracker.next_id}
+    # detections of a person still waiting for `min_hits` when the video ends never get a row:
+    # counted with the other short flickers, so that detections = rows + the dropped counts
+    stats["dropped_low_score"] += len(session.pending)
     if stats["frames"] == 0:  # an empty file would read as a finished video in which nobody moved
         raise VideoError(
             f"{video_path}: no frame could be decoded (an empty or unreadable video stream); "

@@ -33,6 +33,10 @@ def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
         # every file is a tracks file of a version read here, and the table has the columns of
         # all of them (a dataset takes the first file's schema: the landmark columns of newer
         # files were dropped beside an older one), null where a file has none
+        if not dataset.files:  # every video failed, or another folder: say so, not Arrow
+            raise FileNotFoundError(
+                f"{path}: no tracks here (expected video=<name>/tracks.parquet files)"
+            )
         schemas = [pq.read_schema(f) for f in dataset.files]
         for f, schema in zip(dataset.files, schemas, strict=True):
             _metadata(Path(f), schema)

@@ -34,7 +34,7 @@ from pydantic import (
 
 from calibration import Camera, Rig
 from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
-from gst.atomic import atomic_write
+from gst.atomic import atomic_write, atomic_write_text
 from gst.body import BodyModel, load_body_model
 from gst.body.markers import MarkerModel
 from gst.cores import available_cores
@@ -80,8 +80,8 @@ class TrackSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     stride: PositiveInt = 1  # track every Nth frame
-    start_s: float | None = None  # from this time in the video (s; None: its start)
-    end_s: float | None = None  # up to this time (s; None: its end)
+    start_s: float | None = Field(None, ge=0)  # from this time in the video (s; None: its start)
+    end_s: float | None = Field(None, gt=0)  # up to this time (s; None: its end)
     batch_size: PositiveInt = 32  # crops per network call
     smoothing: bool = False  # One-Euro filter on joints and parameters
     min_cutoff: PositiveFloat = 1.0  # One-Euro: cutoff (Hz) at rest; lower is smoother
@@ -152,6 +152,8 @@ class TrackSettings(BaseModel):
 
     @model_validator(mode="after")
     def _chunks_do_not_smooth(self):
+        if self.start_s is not None and self.end_s is not None and self.end_s <= self.start_s:
+            raise ValueError(f"end_s {self.end_s} must be after start_s {self.start_s}")
         # found only inside the run, after the stages before track had run (the filter's state
         # would restart at every chunk)
         if self.chunk_frames and self.smoothing:
@@ -604,7 +606,7 @@ def nobody_tracked(rows: int, frames: int, s: TrackSettings) -> str | None:
     like any other: a 2-frame clip at `min_hits` 3 gave 0 rows, exit 0 and no word."""
     if rows:
         return None
-    if frames < s.min_hits * s.stride:
+    if frames < s.min_hits:  # `frames` counts processed frames
         return (
             f"nobody was tracked in {frames} frame(s): a person needs track.min_hits="
             f"{s.min_hits} processed frames in a row to get an id"
@@ -652,7 +654,7 @@ def write_video_report(
     summary.update(_landmark_agreement(table, outcome.job.camera, name))
     report = request.reports_dir / name
     report.mkdir(parents=True, exist_ok=True)
-    (report / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_text(report / "summary.json", json.dumps(summary, indent=2))
     if s.overlay:
         write_overlay(outcome.job.video, result.path, report / "overlay.mp4")
     _write_contact_sheet(outcome.job.video, result.path, report / "contact_sheet.jpg")
