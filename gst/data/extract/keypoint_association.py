@@ -67,8 +67,15 @@ def _frame_instances(f: h5py.File, i: int, sx: float, sy: float, name: str):
     for k in range(n):
         m = labels == k + 1
         ys, xs = np.nonzero(m)
+        # the mask's outer pixel edges in full-resolution pixel-centre coordinates, as
+        # PersonInstance boxes from landmarks are
         box = (
-            (xs.min() / sx, ys.min() / sy, (xs.max() + 1) / sx, (ys.max() + 1) / sy)
+            (
+                xs.min() / sx - 0.5,
+                ys.min() / sy - 0.5,
+                (xs.max() + 1) / sx - 0.5,
+                (ys.max() + 1) / sy - 0.5,
+            )
             if len(xs)
             else None
         )

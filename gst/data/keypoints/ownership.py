@@ -221,7 +221,8 @@ def own_pixels(
             uv, front = project(cam, flat)
             z = cam.to_camera(flat)[:, 2]
             good = front.reshape(-1, 2).all(axis=1)
-            uv, z = uv.reshape(-1, 2, 2)[good] * scale, z.reshape(-1, 2)[good]
+            # full-resolution pixel centres to the work image's ((u + 0.5) s - 0.5)
+            uv, z = (uv.reshape(-1, 2, 2)[good] + 0.5) * scale - 0.5, z.reshape(-1, 2)[good]
             r_px = radii[good, None] * cam.fx * scale / z
             segs.append(
                 (
@@ -237,7 +238,7 @@ def own_pixels(
             lm = np.asarray(landmarks2d[k], np.float64)
             pts = np.where(lm[:, 2:3] > 0, lm[:, :2], np.nan)
             ends, radii, ok = capsules(pts)
-            ends = ends[ok] * scale
+            ends = (ends[ok] + 0.5) * scale - 0.5
             seen = lm[lm[:, 2] > 0, :2]
             size = float(np.ptp(seen, axis=0).max()) if len(seen) >= 2 else 0.0
             r = np.full(len(ends), config.pixel_radius * size * scale)
