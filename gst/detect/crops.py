@@ -35,7 +35,8 @@ class CropLandmarks:
         return len(self.presence)
 
     def with_confidence(self) -> np.ndarray:
-        """(N, 33, 3) u, v and confidence = visibility x presence (the store's layout)."""
+        """(N, 33, 3) u, v and confidence = visibility x the crop's presence (the crop store keeps
+        visibility alone)."""
         out = self.landmarks.copy()
         out[..., 2] *= self.presence[:, None]
         return out

@@ -15,7 +15,7 @@ and the teacher run: the same pixels give the same numbers (tests/test_fuse_relo
 
 File (`readings-<digest>.npz`, written atomically): `keys` (N,) the images' SHA-256 as 64
 hexadecimal characters, `readings` (N, 33, 3) float32 u, v in crop pixels and confidence
-(visibility x presence, the crop store's layout).
+(visibility x the crop's presence; the crop store keeps visibility alone).
 """
 
 from __future__ import annotations
