@@ -157,3 +157,30 @@ def test_evaluate_world_weighs_landmarks_by_the_persons_presence(body, monkeypat
     want = np.broadcast_to([[0.9], [0.045], [0.9], [0.45]], (4, 33))
     np.testing.assert_allclose(seen["lm"][..., 2], want, rtol=1e-6)
     np.testing.assert_array_equal(seen["lm"][..., :2], world.landmarks[..., :2])
+
+
+def test_crop_jitter_is_refused_where_it_would_do_nothing():
+    """`pretrain.augment` jitters mode 3d's supervised crops; with mode pretrain (multi-view
+    batches) or lift it was accepted and silently did nothing."""
+    from pydantic import ValidationError
+
+    from gst.train.pretrain import PretrainConfig
+
+    assert PretrainConfig(mode="3d", augment=True).augment
+    for mode in ("pretrain", "lift"):
+        with pytest.raises(ValidationError, match="augment jitters the supervised crops"):
+            PretrainConfig(mode=mode, augment=True)
+
+
+def test_the_train_summary_says_which_frames_its_mpjpe_is_on(tmp_path):
+    """summary.md's MPJPE rows were measured on training frames, labelled only 'against the
+    synthetic truth'; the held-out frames' figure reached summary.json only."""
+    from types import SimpleNamespace
+
+    from gst.train.recipe import FitSummary
+    from gst.train.scene_training import _write_markdown
+
+    fit = FitSummary(10, 0, None, 1.0, {"mpjpe_mm": 92.4}, {"mpjpe_mm": 74.3}, 5, ["c2"])
+    _write_markdown(tmp_path / "s.md", fit, 36, SimpleNamespace(mpjpe_mm=105.1))
+    md = (tmp_path / "s.md").read_text()
+    assert "| mpjpe_mm, held-out frames (36-) | | 105.1 |" in md and "on training frames" in md

@@ -30,7 +30,15 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    model_validator,
+)
 
 from gst.body import load_body_model
 from gst.metrics.lpips import load_lpips
@@ -80,9 +88,8 @@ class PretrainConfig(BaseModel):
         3  # every Nth world holds independent random poses instead of motions (0: none)
     )
     crop_size: PositiveInt = 128  # the tiny preset's input is 128x96; larger presets want 256
-    augment: bool = (
-        False  # box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
-    )
+    # mode 3d: box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
+    augment: bool = False
     # lift: landmark tokens, render-free lifting then a short rendered phase (module doc);
     # 3d / pretrain: the image-only network on rendered worlds ("pretrain" also renders)
     mode: Literal["lift", "3d", "pretrain"] = "lift"
@@ -124,6 +131,17 @@ class PretrainConfig(BaseModel):
     # models/pretrain.pt: one pretraining serves every scene). Its content is part of the
     # fingerprint.
     reuse: Path | None = None
+
+    @model_validator(mode="after")
+    def _augment_where_it_acts(self):
+        # the jitter acts on the 3d mode's supervised crops only: with mode pretrain or lift it
+        # was accepted and did nothing
+        if self.augment and self.mode != "3d":
+            raise ValueError(
+                f"augment jitters the supervised crops of mode '3d'; mode '{self.mode}' samples "
+                "none (set augment: false, or mode: 3d)"
+            )
+        return self
 
 
 def world_specs(p: PretrainConfig) -> list[dict]:

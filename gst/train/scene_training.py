@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 
+from gst.atomic import atomic_write_text
 from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
@@ -271,7 +272,9 @@ def prepare_crops(
                 without_projected(landmarks.numpy(), projected), allowed.numpy(),
                 work / "mirrors",
             )  # fmt: skip
-            first_targets = distill_targets(crops, first, allowed, body_model=p.body_model)
+            first_targets = distill_targets(
+                crops, first, allowed, body_model=p.body_model, landmarks=landmarks
+            )
             read = landmarks
             landmarks = _unmirrored(crops, landmarks, first_targets)
             corrected = not torch.equal(read, landmarks)
@@ -282,7 +285,9 @@ def prepare_crops(
             work,
             refit=corrected,
         )
-        crops.distill = distill_targets(crops, bodies, allowed, body_model=p.body_model)
+        crops.distill = distill_targets(
+            crops, bodies, allowed, body_model=p.body_model, landmarks=landmarks
+        )
         log.info(
             "distill: %d of %d crops have a fused-body target (training cameras and frames)",
             int((crops.distill.weight > 0).sum()),
@@ -450,7 +455,7 @@ def train_scene(
     shutil.rmtree(run_dir)
     b, a = fit.before, fit.after
     log.info(
-        "train: MPJPE %s -> %s mm; held-out PSNR %s -> %s dB",
+        "train: MPJPE on training frames %s -> %s mm; held-out PSNR %s -> %s dB",
         _f(b.get("mpjpe_mm"), "mpjpe_mm"),
         _f(a.get("mpjpe_mm"), "mpjpe_mm"),
         _f(b.get("psnr"), "psnr"),
@@ -487,8 +492,10 @@ def _write_reports(
     )
     shutil.copyfile(out.run_dir / "log.csv", reports / "log.csv")
     summary = SceneTrainingSummary(fit, nv, first_frame, heldout_pose)
-    (reports / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2, default=float))
-    _write_markdown(reports / "summary.md", fit)
+    atomic_write_text(
+        reports / "summary.json", json.dumps(summary.to_dict(), indent=2, default=float)
+    )
+    _write_markdown(reports / "summary.md", fit, first_frame, heldout_pose)
     return summary
 
 
@@ -500,7 +507,7 @@ def _f(v, key: str = "") -> str:
     return f"{v:.{digits}f}"
 
 
-def _write_markdown(path: Path, s: FitSummary) -> None:
+def _write_markdown(path: Path, s: FitSummary, first_heldout: int | None, heldout_pose) -> None:
     keys = sorted(set(s.before) | set(s.after))
     lines = [
         "# GST training",
@@ -513,11 +520,17 @@ def _write_markdown(path: Path, s: FitSummary) -> None:
         "|---|---|---|",
     ]
     lines += [f"| {k} | {_f(s.before.get(k), k)} | {_f(s.after.get(k), k)} |" for k in keys]
+    if heldout_pose is not None:
+        lines.append(
+            f"| mpjpe_mm, held-out frames ({first_heldout}-) | | "
+            f"{_f(heldout_pose.mpjpe_mm, 'mpjpe_mm')} |"
+        )
     lines += [
         "",
-        "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth; PSNR (dB), "
-        "SSIM and silhouette IoU on held-out cameras, person composited on black, rendered at "
-        "the training size.",
+        "MPJPE (pelvis-aligned) and PA-MPJPE in mm against the synthetic truth, on training "
+        "frames (the held-out frames' row, where there is one, on frames training never saw); "
+        "PSNR (dB), SSIM and silhouette IoU on held-out cameras, person composited on black, "
+        "rendered at the training size.",
         "",
         "![novel views](novel_views.png)",
         "",
