@@ -22,7 +22,7 @@ import logging
 import math
 import os
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -43,6 +43,7 @@ if "OPENCV_LOG_LEVEL" not in os.environ:
 
 __all__ = [
     "END_SLACK_FRAMES",
+    "held_frames",
     "Frame",
     "VideoError",
     "VideoInfo",
@@ -194,6 +195,9 @@ def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str,
             f"but are missing from the rig (rig cameras: {list(rig_names)})"
         )
     infos = {name: probe_video(path, name, strict=True) for name, path in videos.items()}
+    # the frames each really holds: a container may announce one or two more than it has (the
+    # extraction then failed on the missing last frame and called the file corrupt)
+    infos = {n: replace(info, frame_count=held_frames(info)) for n, info in infos.items()}
     counts = {name: info.frames for name, info in infos.items()}
     if len(set(counts.values())) > 1:
         detail = ", ".join(f"{n}: {c} ({infos[n].path.name})" for n, c in counts.items())
@@ -383,6 +387,18 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
             )  # fmt: skip
     finally:
         cap.release()
+
+
+def held_frames(info: VideoInfo) -> int:
+    """The frames the video really holds: the count its container announces, less the frames
+    missing at its end where there are at most END_SLACK_FRAMES of them (the tracking reader
+    takes such a file's last decodable frame as its end; a reader that trusted the count
+    failed on the missing frame, calling the file corrupt). Decodes the last few frames only."""
+    n = info.frame_count
+    if n is None or n <= END_SLACK_FRAMES + 1:
+        return info.frames
+    start = n - END_SLACK_FRAMES - 1  # decoding from there logs a missing end as it finds one
+    return start + sum(1 for _ in iter_frames(info.path, start_frame=start))
 
 
 def iter_frames(

@@ -296,3 +296,19 @@ def test_detections_still_waiting_for_an_id_at_the_end_are_counted(tmp_path):
     stats = read_metadata(result.path)["stats"]
     dropped = stats["dropped_low_score"] + stats["dropped_parts"] + stats["dropped_nonfinite"]
     assert stats["detections"] == 2 and stats["rows"] == 0 and dropped == 2
+
+
+def test_extraction_takes_a_video_that_announces_a_frame_too_many(tmp_path):
+    """A container announcing one frame more than it holds: tracking took its last decodable
+    frame as the end, extraction planned the announced count and failed on the missing frame,
+    calling the file corrupt. check_videos now gives each camera the frames it really holds."""
+    from gst.video import VideoTruncatedError, check_videos
+
+    src = tmp_path / "a.avi"
+    _column_video(src, 10)  # 10 frames
+    _announcing_one_more(src, tmp_path / "b.avi")
+    _announcing_one_more(src, tmp_path / "c.avi", more=5)
+    infos = check_videos({"a": src, "b": tmp_path / "b.avi"}, ["a", "b"])
+    assert infos["a"].frames == infos["b"].frames == 10
+    with pytest.raises(VideoTruncatedError):  # 5 missing: truncated, not a count off by one
+        check_videos({"a": src, "c": tmp_path / "c.avi"}, ["a", "c"])
