@@ -393,12 +393,28 @@ def held_frames(info: VideoInfo) -> int:
     """The frames the video really holds: the count its container announces, less the frames
     missing at its end where there are at most END_SLACK_FRAMES of them (the tracking reader
     takes such a file's last decodable frame as its end; a reader that trusted the count
-    failed on the missing frame, calling the file corrupt). Decodes the last few frames only."""
+    failed on the missing frame, calling the file corrupt). Seeks to the last few frames and
+    grabs them; where seeking is not frame-exact (a transport stream, a variable or unknown
+    rate) the announced count is kept rather than decoding the whole file to check it."""
     n = info.frame_count
-    if n is None or n <= END_SLACK_FRAMES + 1:
+    if n is None or n <= END_SLACK_FRAMES + 1 or not info.fps > 0:
         return info.frames
-    start = n - END_SLACK_FRAMES - 1  # decoding from there logs a missing end as it finds one
-    return start + sum(1 for _ in iter_frames(info.path, start_frame=start))
+    start = n - END_SLACK_FRAMES - 1
+    cap = _open(info.path, info.camera)
+    try:
+        if not _landed(cap, info, start):
+            return n
+        held = start
+        while held < n and cap.grab():
+            held += 1
+    finally:
+        cap.release()
+    if held < n:
+        log.warning(
+            "%s: decoding ends at frame %d, %d before the %d frames the container announces; "
+            "taken as the end of the video", info.path, held, n - held, n,
+        )  # fmt: skip
+    return held
 
 
 def iter_frames(

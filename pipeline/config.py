@@ -456,13 +456,15 @@ def _name_overrides(message: str, given: dict[str, str]) -> str:
     for line in message.splitlines():
         parts = line.split(": ")  # "file: dotted.key: what was expected"
         loc = parts[1] if len(parts) > 2 else ""
-        # the key itself or a value inside it; a text search named `--set workspace=out` for an
-        # error at `myworkspace/...`'s executor.workers
+        if loc == "(top level)" and len(parts) > 3:  # a cross-field check names its key next
+            loc = parts[2]
+        # the key itself, a value inside it, or the block whose check it failed; a text search
+        # named `--set workspace=out` for an error at `myworkspace/...`'s executor.workers
         hit = [
             t
             for k, t in given.items()
             for key in (k, f"stages.{k.split('.')[0]}.params.{'.'.join(k.split('.')[1:])}")
-            if loc == key or loc.startswith(key + ".")
+            if loc and (loc == key or loc.startswith(key + ".") or key.startswith(loc + "."))
         ]
         lines.append(line + (f" (set by --set {hit[0]})" if hit else ""))
     return "\n".join(lines)

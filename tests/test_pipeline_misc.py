@@ -217,6 +217,10 @@ def test_an_error_is_blamed_on_the_set_that_gave_the_value_only(tmp_path, capsys
     assert main(["status", "--config", str(folder / "pipeline.yaml"), "--set", "workspace=o"]) == 2
     err = capsys.readouterr().err
     assert "executor.workers" in err and "set by" not in err
+    # a cross-field check's error (top level) is still blamed on the --set that caused it
+    config = ["--config", str(REPO / "pipeline.yaml")]
+    assert main(["status", *config, "--set", "default_scene=nope"]) == 2
+    assert "(set by --set default_scene=nope)" in capsys.readouterr().err
 
 
 def test_stages_quiet_still_lists_and_a_repeated_scene_is_one(capsys):

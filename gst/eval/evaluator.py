@@ -226,10 +226,18 @@ class ViewRecords:
 
 
 def _score_views(
-    pred, crops: CropSet, inp, tgt, size: int, lpips, scene_vertices, box_margin: float
+    pred,
+    crops: CropSet,
+    inp,
+    tgt,
+    size: int,
+    lpips,
+    scene_vertices,
+    box_margin: float,
+    wanted: list[bool],
 ) -> dict[str, list]:
     """Scores of each (input, target) pair of one batch: per metric a list, and "images" the
-    (render, target) uint8 pair of each."""
+    (render, target) uint8 pair of each `wanted` one (None for the others)."""
     from gst.render import rasterize
 
     nan = float("nan")
@@ -280,7 +288,7 @@ def _score_views(
     cols["box_ssim"] = box.ssim.tolist()
     cols["box_lpips"] = box.lpips.tolist() if box.lpips is not None else [nan] * len(inp)
     to8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
-    cols["images"] = [(to8(rgb[j]), to8(tgt_img[j])) for j in range(len(inp))]
+    cols["images"] = [(to8(rgb[j]), to8(tgt_img[j])) if w else None for j, w in enumerate(wanted)]
     return cols
 
 
@@ -314,8 +322,11 @@ def evaluate_views(
         inp, tgt = pairs.inputs[s : s + batch_size], pairs.targets[s : s + batch_size]
         pred, ok = _predict_finite(model, task, crops, inp, with_gaussians=True)
         # an item whose prediction is not finite gets NaN scores (counted as such)
+        wanted = [s + j in keep_images for j in range(len(inp)) if ok[j]]
         scored = (
-            _score_views(pred, crops, inp[ok], tgt[ok], size, lpips, scene_vertices, box_margin)
+            _score_views(
+                pred, crops, inp[ok], tgt[ok], size, lpips, scene_vertices, box_margin, wanted
+            )
             if pred is not None
             else None
         )

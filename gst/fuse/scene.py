@@ -507,10 +507,7 @@ def fuse_scene(
         from gst.fuse.evaluate import compare_with_truth, visible_person_frames
         from synth.truth import read_scene_truth, read_truth_views
 
-        stride = int(store.attrs.get("setting.frame_stride", 1)) or 1
-        expected = visible_person_frames(
-            read_truth_views(truth_dir), range(0, n_frames, stride), cameras=cams
-        )
+        expected = visible_person_frames(read_truth_views(truth_dir), range(n_frames), cameras=cams)
         truth = compare_with_truth(fits, read_scene_truth(truth_dir), body, expected=expected)
         truth = truth.as_dict()
     limbs = per_frame_limb_lengths(

@@ -169,7 +169,7 @@ def track_chunk(
     session = TrackingSession(options.tracker, None)
     warm = {k: 0 for k in STAT_KEYS}
     kept = None  # the stats at the chunk's end (the tail's frames are not its own)
-    tables = []
+    tables, last = [], None
     for g in tracked_groups(
         video_path,
         run,
@@ -188,7 +188,10 @@ def track_chunk(
             warm = {k: session.stats[k] for k in STAT_KEYS}
         if g.next_frame == plan.end:
             kept = {k: session.stats[k] for k in STAT_KEYS}
+        last = g.next_frame
     kept = kept or {k: session.stats[k] for k in STAT_KEYS}
+    if tables and last == plan.end:  # the video's end: detections still waiting for min_hits
+        kept["dropped_low_score"] += len(session.pending)  # are counted, as track_video does
     table = pa.concat_tables(tables) if tables else schema.empty_table()
     record = ChunkRecord(
         chunk_digest(run, plan),

@@ -669,17 +669,17 @@ class CrowdTracker:
                 uv, _ = project(cam, c.skeleton)
                 conf = np.where(np.all(np.isfinite(uv), axis=1), PROJECTED_CONFIDENCE, 0.0)
                 lm, source = np.c_[np.nan_to_num(uv), conf], "projected"
-            out.append((k, PersonView(lm, mask, source, float(own.visibility[k]))))
-        # A refined mask that reaches into a detected or projected view's pixels keeps them only
-        # where the ownership puts this person in front: the crop writer settles overlaps by list
-        # order, and gave a nearer person's pixels to the refined one behind them.
+            if np.count_nonzero(mask) >= cfg.min_mask_pixels:
+                out.append((k, PersonView(lm, mask, source, float(own.visibility[k]))))
+        # A refined mask leaves a detected or projected view's pixels to it: those are where the
+        # ownership puts that person in front (the crop writer settled such overlaps by list
+        # order, and gave a nearer person's pixels to the refined one behind them).
         others = [v.mask for _, v in out if v.source != "refined"]
         if others and any(v.source == "refined" for _, v in out):
             taken = np.any(others, axis=0)
             out = [
-                (k, replace(v, mask=v.mask & (~taken | (own.labels == k + 1))))
-                if v.source == "refined"
-                else (k, v)
+                (k, replace(v, mask=v.mask & ~taken)) if v.source == "refined" else (k, v)
                 for k, v in out
             ]
-        return [(k, v) for k, v in out if np.count_nonzero(v.mask) >= cfg.min_mask_pixels]
+            out = [(k, v) for k, v in out if np.count_nonzero(v.mask) >= cfg.min_mask_pixels]
+        return out
