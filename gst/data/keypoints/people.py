@@ -671,15 +671,4 @@ class CrowdTracker:
                 lm, source = np.c_[np.nan_to_num(uv), conf], "projected"
             if np.count_nonzero(mask) >= cfg.min_mask_pixels:
                 out.append((k, PersonView(lm, mask, source, float(own.visibility[k]))))
-        # A refined mask leaves a detected or projected view's pixels to it: those are where the
-        # ownership puts that person in front (the crop writer settled such overlaps by list
-        # order, and gave a nearer person's pixels to the refined one behind them).
-        others = [v.mask for _, v in out if v.source != "refined"]
-        if others and any(v.source == "refined" for _, v in out):
-            taken = np.any(others, axis=0)
-            out = [
-                (k, replace(v, mask=v.mask & ~taken)) if v.source == "refined" else (k, v)
-                for k, v in out
-            ]
-            out = [(k, v) for k, v in out if np.count_nonzero(v.mask) >= cfg.min_mask_pixels]
         return out
