@@ -223,6 +223,9 @@ def _peers(people, store, rig, python: str, keep: Path | None, repeats: int) -> 
             import shutil
 
             shutil.copy(inp, keep)
+        if not Path(python).is_file():  # was an uncaught FileNotFoundError after our own work
+            print(f"peers not run: no Python at {python} (--peers-python; or --skip-peers)")
+            return {}, arr
         proc = subprocess.run([python, str(script), str(inp), str(outp), str(repeats)],
                               capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
                               "NUMBA_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})  # fmt: skip

@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# before torch is imported (gst.track imports it): set later, the inline 1-worker variant and the
+# reference ran on torch's default threads while the spawned workers had 1 each
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pyarrow.parquet as pq  # noqa: E402
 
@@ -70,7 +73,6 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--no-ray", action="store_true")
     args = ap.parse_args()
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     tmp = Path(tempfile.mkdtemp(prefix="bench_scaleout_"))
     options = TrackOptions(frames_per_group=25, batch_size=16)
     try:
