@@ -286,7 +286,11 @@ class LiftSampler:
 
     def local_rotations(self, angles: torch.Tensor) -> torch.Tensor:
         """Authored angles -> the body model's local rotations (B, 24, 3, 3), root authored."""
-        A = _euler_xyz(angles)
+        return self._from_t_pose(_euler_xyz(angles))
+
+    def _from_t_pose(self, A: torch.Tensor) -> torch.Tensor:
+        """(B, 24, 3, 3) rotations about the T-pose's axes -> the body model's local rotations,
+        through its rest corrections (the root as given)."""
         Cp = self.C[self.parents.clamp_min(0)]
         local = Cp.transpose(-1, -2) @ A @ self.C
         local[:, 0] = A[:, 0]
@@ -309,7 +313,12 @@ class LiftSampler:
         local = self.local_rotations(angles)
         uni = self._rand(B) < self.uniform_p
         if uni.any():
-            local[uni, 1:] = sample_body_pose(int(uni.sum()), self.gen, scale=0.8)
+            # the joint limits' axes are the T-pose's, as the authored angles' are: through the
+            # rest corrections too (applied as they were to a body whose rest pose has the arms
+            # lowered, an elbow's flexion turned the forearm across the body)
+            A = _euler_xyz(angles[uni])
+            A[:, 1:] = sample_body_pose(int(uni.sum()), self.gen, scale=0.8)
+            local[uni] = self._from_t_pose(A)
         random_pose = random_pose | uni
         betas = self._betas(B)
         heading = self._rand(B) * (2 * np.pi) - np.pi
