@@ -409,11 +409,7 @@ def held_frames(info: VideoInfo) -> int:
             held += 1
     finally:
         cap.release()
-    if held < n:
-        log.warning(
-            "%s: decoding ends at frame %d, %d before the %d frames the container announces; "
-            "taken as the end of the video", info.path, held, n - held, n,
-        )  # fmt: skip
+    _check_stream_end(info, held)  # a missing end said, more than the slack refused
     return held
 
 

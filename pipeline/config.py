@@ -57,7 +57,7 @@ class SyntheticSource(Strict):
         if "seed" in self.overrides:  # two seeds: preset() would take neither
             raise ValueError(f"overrides.seed: give the seed as 'seed' (now {self.seed})")
         try:
-            preset(self.preset, seed=self.seed, **self.overrides)
+            spec = preset(self.preset, seed=self.seed, **self.overrides)
         except KeyError as exc:
             raise ValueError(f"preset: {exc.args[0]}") from None
         except TypeError as exc:  # e.g. a `__` key under a value that is no mapping
@@ -72,7 +72,6 @@ class SyntheticSource(Strict):
         from synth.people import check_programmes
         from synth.shares import SceneSetup
 
-        spec = preset(self.preset, seed=self.seed, **self.overrides)
         try:
             check_programmes(spec.n_people, spec.motions)
             SceneSetup.build(spec)

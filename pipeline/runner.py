@@ -28,7 +28,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from gst.atomic import atomic_write_text, remove_path, replace_path
-from gst.param_types import NAMES_FILE
+from gst.param_types import names_file
 from pipeline.config import PipelineConfig, format_error_line
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import (
@@ -98,18 +98,12 @@ def _relative_paths(obj, base: Path | None):
     return obj
 
 
-def _names_file(field) -> bool:
-    """A text param marked `gst.param_types.NAMES_FILE`: a built-in name or a file of the
-    user's. Any other text param (a method, a preset, a device) is never a path, even when a file
-    of that name lies in the config's folder."""
-    extra = field.json_schema_extra
-    return isinstance(extra, dict) and bool(extra.get(next(iter(NAMES_FILE))))
-
-
 def _absolute(value, base: Path, texts: bool = False):
     """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
-    against `base`; with `texts` (a `_names_file` param), also a relative text that names a
-    file there (a `body_model` that is a path to the user's SMPL file)."""
+    against `base`; with `texts` (a param marked `gst.param_types.NAMES_FILE`: a built-in name
+    or a file of the user's), also a relative text that names a file there (a `body_model` that
+    is a path to the user's SMPL file). Any other text param (a method, a preset, a device) is
+    never a path, even when a file of that name lies in the config's folder."""
     if isinstance(value, Path):
         return value if value.is_absolute() else Path(os.path.normpath(base / value))
     if (
@@ -284,7 +278,7 @@ class Runner:
         # reuse) are the config folder's, as every other path of the config, not the shell's
         return params.model_copy(
             update={
-                k: _absolute(getattr(params, k), self.cfg.base_dir, _names_file(f))
+                k: _absolute(getattr(params, k), self.cfg.base_dir, names_file(f))
                 for k, f in type(params).model_fields.items()
             }
         )

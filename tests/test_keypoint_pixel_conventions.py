@@ -6,32 +6,16 @@ from __future__ import annotations
 import h5py
 import numpy as np
 
-from calibration.camera import Camera
 from gst.data.extract.keypoint_association import _frame_instances
 from gst.data.keypoints import PersonInstance
 from gst.data.keypoints.ownership import OwnershipConfig, own_pixels
-
-
-def _look_at(name, pos, target=(0, 0, 1.0), f=1000.0, w=1920, h=1080):
-    pos = np.asarray(pos, float)
-    z = np.asarray(target, float) - pos
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    K = np.array([[f, 0, w / 2 - 0.3], [0, f * 1.01, h / 2 + 0.7], [0, 0, 1]])
-    return Camera.create(name, K, np.zeros(5), R, -R @ pos, w, h)
-
-
-def _rig():
-    return [_look_at("c0", [6, 0, 2.5]), _look_at("c1", [0, 6, 2.6]),
-            _look_at("c2", [-6, 0.5, 2.4]), _look_at("c3", [0.3, -6, 2.5])]  # fmt: skip
+from tests.crowd_people import rig
 
 
 def test_ownership_discs_sit_where_their_pixel_centres_are():
     """A landmark disc at full-resolution pixel (100, 60) was owned around (50, 30) at scale
     0.5 (u s): its pixel centre there is (49.75, 29.75) ((u + 0.5) s - 0.5)."""
-    cam = _rig()[0]
+    cam = rig().cameras[0]  # a 2D-only person: any camera
     lm = np.zeros((33, 3))
     lm[7], lm[8] = (0, 60, 1), (200, 60, 1)  # the head: a disc at their mean, (100, 60)
     cfg = OwnershipConfig(step=1, reach=1.0, pixel_radius=0.04)

@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 
 from calibration.camera import Rig
+from calibration.formats import rig_json
 from gst.atomic import atomic_save_npz, atomic_write
 from gst.body import load_body_model
 from gst.body.markers import MarkerModel
@@ -337,20 +338,7 @@ def fuse_scene(
         "store": [len(store), stat.st_size, stat.st_mtime_ns],
         "fps": fps,
         "landmarks": _landmarks_key(landmarks),
-        "rig": _digest(
-            [
-                [
-                    c.name,
-                    c.K.tolist(),
-                    c.dist.tolist(),
-                    c.R.tolist(),
-                    c.t.tolist(),
-                    c.width,
-                    c.height,
-                ]
-                for c in rig.cameras
-            ]
-        ),  # fmt: skip
+        "rig": _digest(rig_json.to_dict(rig)),
     }
     key = _digest(settings)
     stamp = work / "settings.json"

@@ -154,7 +154,7 @@ def _shows_someone_else(
     ref = reference_in_crops(joints_world[idx], crops.R[idx], crops.t[idx], crops.K[idx])
     ref = ref[:, list(_TORSO_JOINTS)]
     with np.errstate(invalid="ignore", divide="ignore"):
-        mid_lm = np.nansum(np.where(seen[..., None], lm[..., :2], 0.0), 1) / seen.sum(1)[:, None]
+        mid_lm = np.where(seen[..., None], lm[..., :2], 0.0).sum(1) / seen.sum(1)[:, None]
         mid_ref = np.where(seen[..., None], ref, 0.0).sum(1) / seen.sum(1)[:, None]
     offset = np.linalg.norm(mid_lm - mid_ref, axis=1) / crops.crop_size
     return enough & np.isfinite(offset) & (offset > MAX_TORSO_OFFSET)
