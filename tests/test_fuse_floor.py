@@ -122,9 +122,11 @@ def test_someone_on_lower_ground_keeps_their_legs(capture_and_body):
     free = fit_people(body, markers, people, tris, fps=30.0)
     held = fit_people(body, markers, people, tris, fps=30.0, floor=(UP, ground))
     np.testing.assert_allclose(held[1].joints, free[1].joints, atol=1e-6)  # no floor for her
-    # ... and the fit of each is its own: the first person's, fitted alone, is the same
+    # ... and the fit of each is its own: the first person's, fitted alone, is the same (to
+    # 20 um: batched float32 kernels round differently with one person than with two, 6 um
+    # measured with torch 2.13; a floor wrongly dropped or kept moves the feet by cm)
     alone = fit_people(body, markers, people[:1], tris[:1], fps=30.0, floor=(UP, ground))
-    np.testing.assert_allclose(held[0].joints, alone[0].joints, atol=1e-6)
+    np.testing.assert_allclose(held[0].joints, alone[0].joints, atol=2e-5)
     assert stands_on(None, UP, ground)  # no feet triangulated: the floor, as before
 
 

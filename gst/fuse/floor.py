@@ -12,7 +12,9 @@ floor is used only where the people's triangulated feet stand near height 0 (`wo
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -24,6 +26,7 @@ __all__ = [
     "FLOOR_SEARCH_M",
     "contact_height",
     "floor_clearance",
+    "scene_floor",
     "stands_on",
     "world_floor",
 ]
@@ -76,3 +79,41 @@ def stands_on(points: np.ndarray | None, up: np.ndarray, height: float) -> bool:
     fitted shank shrank to 0.19 m (0.35 m between her triangulated knee and ankle)."""
     h = contact_height([points], up)
     return not np.isfinite(h) or abs(h - height) <= FLOOR_SEARCH_M
+
+
+def scene_floor(
+    points: Sequence[np.ndarray | None],
+    up: np.ndarray,
+    height: float | Literal["auto"] | None,
+    person_ids: Sequence[int] | None = None,
+    log: logging.Logger | None = None,
+) -> tuple[np.ndarray, float] | None:
+    """The fit's floor, (up, height along it), or None for no floor term, as the fuse stage's
+    `floor` option asks: a height, None, or "auto" (`world_floor` on the triangulated people,
+    `points` per person (T, 33, 3) world or None). Logs where the feet stand and who stands on
+    other ground (the fit leaves those without the floor term, `stands_on`)."""
+    up = np.asarray(up, np.float64)
+    if height == "auto":
+        height, contact = world_floor(points, up)
+        if log is not None and not np.isfinite(contact):
+            log.info("fuse: no triangulated feet to find the floor by: no floor term")
+        elif log is not None:
+            log.info(
+                "fuse: feet stand a median %.3f m above the world's height 0: %s", contact,
+                "the floor term holds them above it" if height is not None else "no floor term",
+            )  # fmt: skip
+    if height is None:
+        return None
+    if log is not None:
+        ids = range(len(points)) if person_ids is None else person_ids
+        elsewhere = [
+            f"person {i} ({contact_height([x], up) - height:+.2f} m)"
+            for i, x in zip(ids, points, strict=True)
+            if x is not None and not stands_on(x, up, float(height))
+        ]
+        if elsewhere:
+            log.info(
+                "fuse: people standing on other ground than the floor (their soles' median "
+                "height against it), fitted without the floor term: %s", ", ".join(elsewhere),
+            )  # fmt: skip
+    return up, float(height)

@@ -46,7 +46,7 @@ from gst.fuse.consensus import (
 from gst.fuse.consistency import per_frame_limb_lengths
 from gst.fuse.export import write_c3d, write_trc
 from gst.fuse.fit import FitOptions, PersonFit, fit_people
-from gst.fuse.floor import contact_height, stands_on, world_floor
+from gst.fuse.floor import scene_floor
 from gst.fuse.observations import (
     READABLE_CONFIDENCE,
     READABLE_LANDMARKS,
@@ -404,28 +404,10 @@ def fuse_scene(
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
     up = np.asarray(rig.up, np.float64)
-    height = o.floor
-    if height == "auto":
-        height, contact = world_floor([t.points if t is not None else None for t in tris], up)
-        if log is not None and not np.isfinite(contact):
-            log.info("fuse: no triangulated feet to find the floor by: no floor term")
-        elif log is not None:
-            log.info(
-                "fuse: feet stand a median %.3f m above the world's height 0: %s", contact,
-                "the floor term holds them above it" if height is not None else "no floor term",
-            )  # fmt: skip
-    floor = None if height is None else (up, float(height))
-    if floor is not None and log is not None:
-        elsewhere = [
-            f"person {p.person_id} ({contact_height([t.points], up) - height:+.2f} m)"
-            for p, t in zip(people, tris, strict=True)
-            if t is not None and not stands_on(t.points, up, float(height))
-        ]
-        if elsewhere:
-            log.info(
-                "fuse: people standing on other ground than the floor (their soles' median "
-                "height against it), fitted without the floor term: %s", ", ".join(elsewhere),
-            )  # fmt: skip
+    floor = scene_floor(
+        [t.points if t is not None else None for t in tris], up, o.floor,
+        [p.person_id for p in people], log,
+    )  # fmt: skip
 
     def fit_all(people: list[PersonObservations], tris: list, rnd: int | str) -> list[PersonFit]:
         return _fit_batches(
