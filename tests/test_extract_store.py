@@ -2,6 +2,8 @@
 stores."""
 
 import pickle
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -481,3 +483,94 @@ def test_a_kill_inside_a_commit_leaves_the_committed_rows_readable(tmp_path):
             continue
         assert len(CropStore(path)) == 80
     assert failures == []
+
+
+def _store(path, frames, cams, persons, seed=0, settings=None):
+    with CropStoreWriter(path, CAMS, S, settings or {}) as w:
+        w.commit(_batch(frames, cams, persons, seed), [])
+        w.finalize()
+    return path
+
+
+def test_an_index_of_other_rows_is_not_trusted(tmp_path):
+    """A crops.h5 copied over another's, its index left beside it: the index had as many rows
+    and was used, so select() named the old frames and people while read() returned the new
+    file's pixels. The index is checked against the file's frames, cameras and people."""
+    a = _store(tmp_path / "a" / "crops.h5", [0, 0, 1], [0, 1, 0], [1, 2, 1])
+    b = _store(tmp_path / "b" / "crops.h5", [5, 6, 6], [0, 0, 1], [4, 4, 4], seed=1)
+    a.write_bytes(b.read_bytes())  # a's index stays
+    store = CropStore(a)
+    assert store.index.column("frame").to_pylist() == [5, 6, 6]
+    assert np.array_equal(store.select(frames=[6]), [1, 2])
+    assert store.read(store.select(frames=[6])).frame.tolist() == [6, 6]
+    # an index that is not Parquet at all is rebuilt too (was a raw ArrowInvalid)
+    index_path_for(a).write_bytes(b"garbage")
+    assert CropStore(a).index.column("person_id").to_pylist() == [4, 4, 4]
+    # an index without a column of today's layout (version 1 had no single_view)
+    table = pq.read_table(index_path_for(b)).drop_columns(["single_view"])
+    pq.write_table(table, index_path_for(b))
+    assert "single_view" in CropStore(b).index.column_names
+
+
+def test_a_boolean_row_mask_selects_its_true_rows(tmp_path):
+    """A mask built from the index's columns was read as rows 0 and 1 (True/False as ints)."""
+    path = _store(tmp_path / "crops.h5", [0, 0, 1, 1], [0, 1, 0, 1], [1, 1, 2, 2])
+    store = CropStore(path)
+    mask = store.index.column("frame").to_numpy() == 1
+    assert store.read(mask).frame.tolist() == [1, 1]
+    assert store.read_column("person_id", mask).tolist() == [2, 2]
+    with pytest.raises(IndexError, match="one value per row"):
+        store.read(np.array([True, False]))
+    out = write_subset(store, mask, tmp_path / "sub.h5")
+    assert out.read(np.arange(len(out))).frame.tolist() == [1, 1]
+    with pytest.raises(IndexError, match=r"rows must be in \[0, 4\)"):
+        write_subset(store, [-1], tmp_path / "bad.h5")
+    assert not (tmp_path / "bad.h5").exists()  # refused before anything was written
+
+
+def test_store_writer_refuses_what_it_cannot_keep(tmp_path):
+    """Settings on one side only (accepted unchecked, never recorded), float values for integer
+    fields (1.7 stored as 1), and a store that another process holds open (told to delete a
+    healthy store)."""
+    path = _store(tmp_path / "crops.h5", [0], [0], [1], settings={"scale": 1.2})
+    with pytest.raises(StoreError, match=r"settings \['scale'\].*\['scale', 'step'\]"):
+        CropStoreWriter(path, CAMS, S, {"scale": 1.2, "step": 2}).open()
+    with pytest.raises(StoreError, match=r"settings \['scale'\], asked to append with \[\]"):
+        CropStoreWriter(path, CAMS, S).open()
+    b = _batch([1], [0], [1])
+    b.person_id = np.array([1.7])
+    with (
+        CropStoreWriter(tmp_path / "f.h5", CAMS, S) as w,
+        pytest.raises(StoreError, match="person_id"),
+    ):
+        w.commit(b, [])
+    held = h5py.File(path, "r")  # another reader, here in this process
+    try:
+        with pytest.raises(StoreError, match="open elsewhere") as err:
+            CropStoreWriter(path, CAMS, S, {"scale": 1.2}).open()
+        assert "delete it" not in str(err.value)
+    finally:
+        held.close()
+    # ... and in another process (HDF5's file lock)
+    code = (
+        f"import h5py, time; f = h5py.File({str(path)!r}, 'r'); print('ok', flush=True); "
+        "time.sleep(30)"
+    )
+    other = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "ok"
+        with pytest.raises(StoreError, match="open elsewhere"):
+            CropStoreWriter(path, CAMS, S, {"scale": 1.2}).open()
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_a_store_without_a_required_dataset_is_named(tmp_path):
+    """The first version-1 stores had no mask_support: read() failed deep in h5py with a
+    KeyError naming neither file nor cause; so did a store without camera_names."""
+    path = _store(tmp_path / "crops.h5", [0], [0], [1])
+    with h5py.File(path, "a") as f:
+        del f["mask_support"]
+    with pytest.raises(StoreError, match=r"crops\.h5: crop store without its mask_support"):
+        CropStore(path)

@@ -10,6 +10,7 @@ Parquet index are written; `CropStore` refuses an incomplete store unless asked.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from gst.atomic import atomic_path
+
+log = logging.getLogger(__name__)
 
 FORMAT = "gst-crops"
 # 2: single_view per crop, optional landmarks; 3: with landmarks, whether they were projected
@@ -48,6 +51,15 @@ def _row_specs(size: int, landmarks: bool = False) -> dict[str, tuple[tuple[int,
         specs["landmarks"] = ((N_LANDMARKS, 3), "float32")
         specs["landmarks_projected"] = ((), "bool")
     return specs
+
+
+# datasets every readable store has (the oldest version-1 stores lack mask_support)
+_REQUIRED = (*(k for k in _row_specs(1) if k not in OPTIONAL_ROWS), "camera_names", "done")
+# the Parquet index's columns (docs/formats/crops_h5.md), in order
+INDEX_COLUMNS = (
+    "row", "frame", "camera", "camera_index", "person_id", "x0", "y0", "x1", "y1", "crop_x0",
+    "crop_y0", "crop_side", "mask_coverage", "mask_support", "single_view",
+)  # fmt: skip
 
 
 class StoreError(ValueError):
@@ -163,6 +175,13 @@ class CropStoreWriter:
         try:
             self._h5 = h5py.File(self.path, "a")
         except OSError as exc:
+            text = str(exc)
+            if getattr(exc, "errno", None) == 11 or "lock file" in text or "already open" in text:
+                # a healthy store that a reader holds open: deleting it is wrong advice
+                raise StoreError(
+                    f"{self.path}: the store is open elsewhere ({exc}); close it (a notebook, a "
+                    "report, a data loader) and run again"
+                ) from exc
             raise StoreError(
                 f"{self.path}: cannot open as HDF5 for appending ({exc}); "
                 "delete it or choose another path"
@@ -276,6 +295,13 @@ class CropStoreWriter:
                 f"{self.path}: written for cameras {names}, asked to append for "
                 f"{self.camera_names}; use a new path or delete it"
             )
+        stored = {k[len("setting.") :] for k in f.attrs if k.startswith("setting.")}
+        if stored != set(self.settings):
+            # a setting on one side only was accepted unchecked (and never recorded)
+            raise StoreError(
+                f"{self.path}: written with settings {sorted(stored)}, asked to append with "
+                f"{sorted(self.settings)}; use a new path or delete it"
+            )
         for key, value in self.settings.items():
             old = f.attrs.get(f"setting.{key}")
             if old is not None and not np.array_equal(np.asarray(old), np.asarray(value)):
@@ -329,6 +355,12 @@ class CropStoreWriter:
                     raise StoreError(
                         f"{self.path}: batch field '{name}' has shape {np.shape(value)}, "
                         f"expected {(n, *shape)} ({n} rows)"
+                    )
+                # h5py casts silently: a person id of 1.7 was stored as 1
+                if np.dtype(_dt).kind in "iub" and np.asarray(value).dtype.kind not in "iub":
+                    raise StoreError(
+                        f"{self.path}: batch field '{name}' holds {np.asarray(value).dtype} "
+                        f"values, expected {_dt}"
                     )
                 values[name] = value
             cams = np.asarray(values["camera"])
@@ -495,6 +527,12 @@ class CropStore:
                     f"{self.path}: the store is incomplete (its writer did not finish); "
                     "rerun the extraction to resume it, or pass allow_incomplete=True"
                 )
+            missing = [k for k in _REQUIRED if k not in f]
+            if missing:
+                raise StoreError(
+                    f"{self.path}: crop store without its {', '.join(missing)} dataset(s) "
+                    "(damaged, or written before they existed); extract again"
+                )
             self.n = int(f.attrs["n_committed"])
             self.crop_size = int(f.attrs["crop_size"])
             self.camera_names = [
@@ -505,13 +543,34 @@ class CropStore:
         self._h5: h5py.File | None = None
 
     def _load_index(self, f: h5py.File) -> pa.Table:
+        """The Parquet index if it describes this file's rows, else one rebuilt in memory (a
+        missing index, an incomplete store's, a damaged file, an older version's columns, or
+        another store's: a crops.h5 copied without its index, or over another's, had its
+        pixels read under the other's frames and people when the row counts agreed)."""
         ip = index_path_for(self.path)
-        if ip.is_file():
+        if not ip.is_file():
+            return _index_table(f)
+        try:
             table = pq.read_table(ip)
-            if table.num_rows == self.n:
-                return table
-        # Missing or stale index (e.g. an incomplete store): rebuild it in memory.
-        return _index_table(f)
+        except (pa.ArrowException, OSError) as exc:
+            log.warning("%s: index unreadable (%s); rebuilt from the store", ip, exc)
+            return _index_table(f)
+        n = self.n
+        fresh = (
+            table.num_rows == n
+            and set(INDEX_COLUMNS) <= set(table.column_names)
+            and all(
+                np.array_equal(table.column(col).to_numpy(), f[ds][:n])
+                for col, ds in (
+                    ("frame", "frame"),
+                    ("camera_index", "camera"),
+                    ("person_id", "person_id"),
+                )  # fmt: skip
+            )
+        )
+        if not fresh and table.num_rows == n:
+            log.warning("%s: index does not describe %s's rows; rebuilt", ip, self.path.name)
+        return table if fresh else _index_table(f)
 
     def __len__(self) -> int:
         return self.n
@@ -620,7 +679,15 @@ class CropStore:
     def _rows(self, rows) -> np.ndarray:
         """`rows` as int64, each a committed row: rows past `n_committed` (a half-written
         batch) and negative rows (counted from the dataset's physical end) were read as data."""
-        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        rows = np.asarray(rows)
+        if rows.dtype == bool:  # True/False were read as rows 1 and 0
+            if rows.shape != (self.n,):
+                raise IndexError(
+                    f"{self.path}: a boolean row mask must have one value per row ({self.n}), "
+                    f"got shape {rows.shape}"
+                )
+            rows = np.flatnonzero(rows)
+        rows = rows.astype(np.int64).reshape(-1)
         if len(rows) and (rows.min() < 0 or rows.max() >= self.n):
             raise IndexError(
                 f"{self.path}: rows must be in [0, {self.n}), got {rows.min()}..{rows.max()}"
@@ -702,7 +769,7 @@ def write_subset(store: CropStore, rows, out: Path | str, chunk: int = 256) -> C
     crop size, cameras, settings and attributes; the (frame, camera) pairs of `store` that none
     of the other rows falls in are marked processed. For a fusion that must not see the rest
     (the rig teacher without held-out cameras and frames: gst.lift.teacher)."""
-    rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+    rows = store._rows(rows)  # checked before anything is written
     out = Path(out)
     settings, extra = {}, {}
     for k, v in store.attrs.items():
