@@ -220,6 +220,32 @@ def test_a_person_entering_just_before_a_border_keeps_their_first_rows(tmp_path)
     assert stats["rows"] == pq.read_table(chunked.result.path).num_rows == plain.result.rows
 
 
+def test_detections_pending_at_the_end_of_an_off_grid_range_are_counted_in_chunks(tmp_path):
+    """61 frames at stride 3 end off the grid (the last group ends at 63): the last chunk never
+    saw its group end at the range's end, so someone seen only in the last two processed
+    frames (min_hits 3) was left out of dropped_low_score, which an unchunked run counts."""
+    walkers = separated_walkers()
+    boxes = walker_boxes(walkers, 61)
+    visible = np.ones(boxes.shape[:2], bool)
+    visible[:55, 2] = False  # processed frames 57 and 60 only
+    video = write_video(tmp_path / "end.avi", render(walkers, boxes, 320, 240), 320, 240)
+    csv = write_boxes_csv(tmp_path / "end.csv", boxes, "end", visible)
+    options = TrackOptions(
+        frames_per_group=4, batch_size=4, stride=3, tracker=TrackerConfig(min_hits=3)
+    )
+    the_job = job(video, csv, options=options)
+    plain = track_videos([the_job], tmp_path / "plain")[0]
+    chunked = track_videos(
+        [the_job], tmp_path / "chunked", chunking=ChunkingConfig(chunk_frames=4, overlap=3)
+    )[0]
+    assert chunked.chunks > 1
+    for r in (plain, chunked):
+        s = json.loads(pq.read_schema(r.result.path).metadata[b"gst.stats"])
+        dropped = s["dropped_low_score"] + s["dropped_parts"] + s["dropped_nonfinite"]
+        assert s["detections"] == s["rows"] + dropped, s
+        assert s["dropped_low_score"] == 2
+
+
 class _FlippingLandmarks(SuppliedBoxes):
     """Supplied boxes with stick-figure landmarks whose left/right labels flip for good from
     frame `flip` on: a stateless detector that gives the left/right smoother work."""

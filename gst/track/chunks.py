@@ -167,6 +167,9 @@ def track_chunk(
             "turn smoothing off or do not chunk"
         )
     session = TrackingSession(options.tracker, None)
+    # groups close on the stride grid: a range whose end is off it ends its last group there
+    stride = options.stride
+    grid_end = plan.keep_from + -(-(plan.end - plan.keep_from) // stride) * stride
     warm = {k: 0 for k in STAT_KEYS}
     kept = None  # the stats at the chunk's end (the tail's frames are not its own)
     tables, last = [], None
@@ -186,11 +189,11 @@ def track_chunk(
         tables.append(g.table.filter(pa.array(frames < plan.end)))
         if g.next_frame == plan.keep_from:
             warm = {k: session.stats[k] for k in STAT_KEYS}
-        if g.next_frame == plan.end:
+        if g.next_frame == grid_end:
             kept = {k: session.stats[k] for k in STAT_KEYS}
         last = g.next_frame
     kept = kept or {k: session.stats[k] for k in STAT_KEYS}
-    if tables and last == plan.end:  # the video's end: detections still waiting for min_hits
+    if tables and last == grid_end:  # the video's end: detections still waiting for min_hits
         kept["dropped_low_score"] += len(session.pending)  # are counted, as track_video does
     table = pa.concat_tables(tables) if tables else schema.empty_table()
     record = ChunkRecord(

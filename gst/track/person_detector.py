@@ -269,6 +269,21 @@ class _Seen:
     kept_for: int = 0
 
 
+def to_frame(
+    landmarks: np.ndarray, box: np.ndarray, small_hw: tuple[int, int], frame_hw: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks (N, >=2) and a box (x0, y0, x1, y1) read on the resized frame (`small_hw`),
+    in the full frame's pixels (pixel centres at integers in both; the box's corners clipped
+    to the frame). Each axis by the resize's own ratio: rounding the resized size made it
+    differ from the requested scale, up to a pixel's shift over 2704x1520 or 4096x2160."""
+    (hs, ws), (h, w) = small_hw, frame_hw
+    ratio = np.array([ws / w, hs / h])
+    lm = np.asarray(landmarks).copy()
+    lm[:, :2] = (lm[:, :2] + 0.5) / ratio - 0.5
+    full = np.clip(np.asarray(box, np.float64) / np.tile(ratio, 2), 0, [w, h, w, h])
+    return lm, full
+
+
 class PersonModelDetector:
     """People in a stream of frames from one camera (keeps tracking state across frames)."""
 
@@ -563,9 +578,7 @@ class PersonModelDetector:
         ]
         out = []
         for r, box in kept:
-            lm = r.landmarks.copy()
-            lm[:, :2] = (lm[:, :2] + 0.5) / s - 0.5  # pixel centres at integers, both sizes
-            full = np.clip(box / s, 0, [w, h, w, h])
+            lm, full = to_frame(r.landmarks, box, small.shape[:2], (h, w))
             if full[2] <= full[0] or full[3] <= full[1]:
                 continue
             out.append(Detection(box=full, score=r.presence, landmarks=lm))
