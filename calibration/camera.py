@@ -23,6 +23,8 @@ _VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 # a point anywhere (a wrong skeleton's limb beside a camera landed millions of pixels away, and
 # its view's crop with it: docs/extract.md "Points beside a camera").
 FIELD_MARGIN = 0.5
+# an undistorted point must project back this close (px) to its pixel (`exact_only`)
+ROUND_TRIP_PX = 0.5
 
 
 class CameraError(ValueError):
@@ -194,23 +196,34 @@ class Camera:
         if len(pts) == 0:
             return np.zeros((0, 2))
         # Points go to the camera frame here, not through an rvec: cv2.Rodrigues treats
-        # rotations below ~1e-5 rad as the identity. cv2.projectPoints also ignores K[0, 1]
-        # (skew); project without it and add it after.
+        # rotations below ~1e-5 rad as the identity.
+        return self._lens_project(self.to_camera(pts))
+
+    def _lens_project(self, points_cam: np.ndarray) -> np.ndarray:
+        """(N, 3) camera-frame points to (N, 2) distorted pixels. cv2.projectPoints ignores
+        K[0, 1] (skew): project without it and add it after."""
         zero = np.zeros(3)
         uv, _ = cv2.projectPoints(
-            self.to_camera(pts),
-            zero,
-            zero,
-            self.lens_K(),
-            self.dist if self.dist.size else None,
+            points_cam, zero, zero, self.lens_K(), self.dist if self.dist.size else None
         )
         return self.with_skew(uv.reshape(-1, 2))
 
-    def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
-        """Distorted pixels (N, 2) to undistorted normalised coordinates (N, 2) (z = 1 plane)."""
+    def undistort_points(self, pixels: np.ndarray, exact_only: bool = False) -> np.ndarray:
+        """Distorted pixels (N, 2) to undistorted normalised coordinates (N, 2) (z = 1 plane).
+
+        `exact_only`: NaN for pixels whose undistorted point does not project back onto them
+        (within ROUND_TRIP_PX): beyond the radius where a barrel lens model stops being
+        invertible (a landmark the person model placed outside the frame, for a limb cut off
+        by its edge) the iteration returns a point hundreds of pixels from the true ray."""
         px = np.array(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if len(px) == 0:
             return np.zeros((0, 2))
+        if exact_only and self.dist.size and np.any(self.dist):
+            xy = self.undistort_points(px.reshape(-1, 2))
+            back = self.project_normalised(xy)
+            far = ~(np.linalg.norm(back - px.reshape(-1, 2), axis=1) <= ROUND_TRIP_PX)
+            xy[far] = np.nan
+            return xy
         if self.skew:  # cv2.undistortPoints ignores skew too: remove it first
             px[:, 0, 0] -= self.skew * (px[:, 0, 1] - self.cy) / self.fy
         # wide strong lenses need hundreds of iterations (50 left 0.6 px at 90-120 degrees);
@@ -220,6 +233,13 @@ class Camera:
             px, self.lens_K(), self.dist if self.dist.size else None, None, None, None, crit
         )
         return out.reshape(-1, 2)
+
+    def project_normalised(self, xy: np.ndarray) -> np.ndarray:
+        """Undistorted normalised coordinates (N, 2) (z = 1 plane) to distorted pixels (N, 2)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if len(xy) == 0:
+            return np.zeros((0, 2))
+        return self._lens_project(np.c_[xy, np.ones(len(xy))])
 
     def unproject(self, pixels: np.ndarray, depth: np.ndarray | float | None = None) -> np.ndarray:
         """Pixels to world. With `depth` (camera z, metres) returns (N, 3) points; without it,

@@ -187,6 +187,49 @@ def test_tiny_rotation_is_not_rounded_to_identity():
     )
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    k1=st.floats(-0.35, 0.1),
+    k2=st.floats(-0.05, 0.1),
+    u=st.floats(-600, 2500),
+    v=st.floats(-600, 1700),
+)
+def test_exact_only_undistortion_keeps_what_projects_back_and_drops_the_rest(k1, k2, u, v):
+    """`exact_only`: a pixel whose undistorted point projects back onto it (OpenCV's own
+    projection, the reference) keeps that point; one whose point does not (outside the frame,
+    beyond where a barrel lens inverts: 245 px off at k1 = -0.1) is NaN, not a wrong ray."""
+    cam = Camera.create(
+        "c", [[1000, 0, 959.5], [0, 1000, 539.5], [0, 0, 1]], [k1, k2, 0, 0, 0], np.eye(3),
+        np.zeros(3), 1920, 1080,
+    )  # fmt: skip
+    px = np.array([[u, v]])
+    plain = cam.undistort_points(px)
+    exact = cam.undistort_points(px, exact_only=True)
+    back = cv2.projectPoints(np.c_[plain, np.ones(1)], np.zeros(3), np.zeros(3), cam.K, cam.dist)[
+        0
+    ].reshape(-1, 2)
+    miss = float(np.linalg.norm(back - px))
+    if miss <= 0.4:
+        np.testing.assert_array_equal(exact, plain)
+    elif miss > 0.6:
+        assert np.isnan(exact).all()
+
+
+def test_exact_only_undistortion_examples():
+    cam = Camera.create(
+        "c", [[1000, 0, 959.5], [0, 1000, 539.5], [0, 0, 1]], [-0.1, 0, 0, 0, 0], np.eye(3),
+        np.zeros(3), 1920, 1080,
+    )  # fmt: skip
+    px = np.array([[959.5, 1079.0], [1900, 1250], [2100, 1300], [np.nan, 3.0]])
+    exact = cam.undistort_points(px, exact_only=True)
+    assert np.isfinite(exact[:2]).all() and np.isnan(exact[2:]).all()
+    np.testing.assert_array_equal(exact[:2], cam.undistort_points(px[:2]))
+    pinhole = Camera.create(
+        "p", cam.K, [], np.eye(3), np.zeros(3), 1920, 1080
+    )  # no lens: every finite pixel inverts
+    assert np.isfinite(pinhole.undistort_points(px[:3], exact_only=True)).all()
+
+
 def test_undistortion_converges_for_wide_strong_lenses():
     """Every pixel of a 90 degree camera with a strong sampled lens, undistorted and projected
     again, lands on itself (OpenCV's iteration stopped at 50 steps, 0.6 px short: the synthetic

@@ -147,6 +147,29 @@ def test_landmarks_to_crop_is_the_crop_camera():
     assert out[3, 2] == 0 and out[4, 2] == 0 and np.isfinite(out).all()
 
 
+def test_a_landmark_beyond_where_the_lens_inverts_is_not_moved_into_the_crop():
+    """A landmark the person model placed outside the frame of a barrel lens, past the radius
+    where the lens model inverts, came into the crop hundreds of pixels from its ray; it now
+    has no position (confidence 0), and the triangulation leaves that view out."""
+    from calibration import Camera
+    from gst.data.crop import crop_intrinsics, hmr_crop_box
+    from gst.data.extract.crops import landmarks_to_crop
+    from gst.data.keypoints.geometry import triangulate_weighted
+
+    K = [[1000, 0, 959.5], [0, 1000, 539.5], [0, 0, 1]]
+    cam = Camera.create("c", K, [-0.1, 0, 0, 0, 0], np.eye(3), np.zeros(3), 1920, 1080)
+    lm = np.array([[1800.0, 1000.0, 0.9], [2100.0, 1300.0, 0.9]])
+    box = hmr_crop_box((1500, 700, 2100, 1300), 1.2)
+    out = landmarks_to_crop(cam, lm, crop_intrinsics(cam.K, box, 96))
+    assert out[0, 2] == np.float32(0.9) and out[1, 2] == 0
+    # two views of a point; the second's pixel moved beyond the lens's inverse: one view left
+    other = Camera.create("o", K, [], np.eye(3), [-0.5, 0, 0], 1920, 1080)
+    X = np.array([[0.3, 0.2, 3.0]])
+    px = np.stack([other.project(X), np.array([[2100.0, 1300.0]])])
+    got = triangulate_weighted([other, cam], px, np.ones((2, 1)))
+    assert np.isnan(got).all()  # fewer than two views: NaN (was a point on a wrong ray)
+
+
 def test_without_blazepose_the_hull_runs_and_says_so(scene, tmp_path, caplog):
     missing = tmp_path / "no-models"
     missing.mkdir()

@@ -201,3 +201,22 @@ def test_tracking_window_and_extraction_box_are_one_crop():
     exact = extract_crop(img, cam, win.box, win.size).astype(int)
     diff = np.abs(fast - exact)[8:-8, 8:-8]
     assert np.median(diff) <= 2 and np.percentile(diff, 99) <= 10
+
+
+def test_a_landmark_beyond_where_the_lens_inverts_has_no_crop_position():
+    """Tracking moves the person model's landmarks into the crop through the lens model: one
+    outside the frame past where a barrel lens inverts came back hundreds of pixels off."""
+    from gst.data.camera_view import TrackingView
+    from gst.track.detection import Detection
+    from gst.track.frames import prepare_detection
+
+    K = [[1000, 0, 959.5], [0, 1000, 539.5], [0, 0, 1]]
+    cam = Camera.create("c", K, [-0.1, 0, 0, 0, 0], np.eye(3), np.zeros(3), 1920, 1080)
+    view = TrackingView.for_video(1920, 1080, camera=cam)
+    lm = np.zeros((33, 3), np.float32)
+    lm[:] = (1700.0, 900.0, 0.9)
+    lm[5] = (2100.0, 1300.0, 0.9)
+    frame = np.zeros((1080, 1920, 3), np.uint8)
+    det = Detection(box=np.array([1500.0, 700.0, 1900.0, 1070.0]), landmarks=lm)
+    got = prepare_detection(view, frame, det, 64, pixels=False).landmarks_crop
+    assert np.isfinite(got[0, :2]).all() and np.isnan(got[5, :2]).all()

@@ -57,7 +57,9 @@ def _landmarks_in_crop(view: TrackingView, window, landmarks: np.ndarray | None)
         return np.full((N_LANDMARKS, 3), np.nan, np.float32)
     uv = landmarks[:, :2].astype(np.float64)
     if view.has_distortion:  # crops are cut from the undistorted image
-        xy = view.camera.undistort_points(uv)
+        # exact_only: a landmark placed outside the frame beyond where the lens model inverts
+        # came back hundreds of pixels off; unknown (NaN) instead
+        xy = view.camera.undistort_points(uv, exact_only=True)
         uv = xy @ view.camera.K[:2, :2].T + view.camera.K[:2, 2]
     return np.c_[window.to_crop(uv), landmarks[:, 2]].astype(np.float32)
 

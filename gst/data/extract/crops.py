@@ -150,12 +150,16 @@ def crop_person(
 def landmarks_to_crop(camera: Camera, landmarks: np.ndarray, K_crop: np.ndarray) -> np.ndarray:
     """(33, 3) distorted full-image pixels + confidence -> crop pixels + confidence: through
     the lens model to the undistorted image, then `K_crop` (the crop's exact pinhole camera).
-    Landmarks without a position (confidence 0 or not finite) get confidence 0."""
+    Landmarks without a position (confidence 0 or not finite, or placed outside the image
+    beyond where the lens model inverts: `Camera.undistort_points`'s `exact_only`) get
+    confidence 0."""
     out = np.zeros((len(landmarks), 3), np.float32)
     ok = (landmarks[:, 2] > 0) & np.all(np.isfinite(landmarks[:, :2]), axis=1)
     if ok.any():
-        xy = camera.undistort_points(landmarks[ok, :2])
-        uvw = np.c_[xy, np.ones(len(xy))] @ K_crop.T
+        xy = np.full((len(landmarks), 2), np.nan)
+        xy[ok] = camera.undistort_points(landmarks[ok, :2], exact_only=True)
+        ok &= np.isfinite(xy).all(axis=1)
+        uvw = np.c_[xy[ok], np.ones(int(ok.sum()))] @ K_crop.T
         out[ok, :2] = uvw[:, :2] / uvw[:, 2:3]
         out[ok, 2] = landmarks[ok, 2]
     return out

@@ -61,10 +61,14 @@ def triangulate_weighted(
     """
     V, L = weights.shape
     xy = np.zeros((V, L, 2))
+    weights = np.array(weights, dtype=np.float64)
     for v, cam in enumerate(cams):
         seen = weights[v] > 0
         if seen.any():
-            xy[v, seen] = cam.undistort_points(pixels[v, seen])
+            # a pixel beyond where the lens model inverts has no ray: not seen
+            xy[v, seen] = cam.undistort_points(pixels[v, seen], exact_only=True)
+    lost = ~np.isfinite(xy).all(-1)
+    xy[lost], weights[lost] = 0.0, 0.0
     P = np.stack([np.hstack([c.R, c.t[:, None]]) for c in cams])  # (V, 3, 4)
     w = weights[..., None]
     rows_x = (xy[..., 0:1] * P[:, None, 2, :] - P[:, None, 0, :]) * w  # (V, L, 4)
