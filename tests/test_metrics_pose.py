@@ -231,3 +231,14 @@ def test_root_aligned_mpjpe_with_the_root_left_out_still_aligns():
     valid = torch.ones(1, 24, dtype=torch.bool)
     valid[0, 0] = False
     assert float(mpjpe(gt + torch.tensor([5.0, 0, 0], dtype=torch.float64), gt, 0, valid)) < 1e-9
+
+
+def test_pa_mpjpe_is_undefined_below_three_joints():
+    """A similarity fits one or two points exactly: a pose 5 m off with one or two joints
+    scored reported PA-MPJPE 0 (a perfect score) instead of no score."""
+    gt = torch.randn(3, 24, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    pred = gt + torch.randn(3, 24, 3, generator=torch.Generator().manual_seed(3)).double() + 5
+    valid = torch.zeros(3, 24, dtype=torch.bool)
+    valid[0, :1], valid[1, :2], valid[2, :3] = True, True, True
+    got = pa_mpjpe(pred, gt, valid)
+    assert torch.isnan(got[:2]).all() and float(got[2]) > 0.01

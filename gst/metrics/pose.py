@@ -71,7 +71,9 @@ def mpjpe(
     """Mean per-joint position error per sample, (B,), in the inputs' unit (metres here).
 
     `root`: a joint index, or several whose mean is the root (e.g. both hips): each pose is
-    translated so its own root sits at the origin before comparing (root-aligned MPJPE).
+    translated so its own root sits at the origin before comparing (root-aligned MPJPE). The
+    root places the pose whether or not `valid` scores it, so it must have truth: a NaN root
+    gives NaN, and a placeholder (zeros where a dataset has no joint) a wrong number.
     """
     w = _check(pred, gt, valid, "mpjpe")
     if root is not None:  # the root from the poses as given (valid says which joints count)
@@ -138,11 +140,13 @@ def pa_mpjpe(
     """Procrustes-aligned MPJPE per sample, (B,).
 
     MPJPE after the best scale, rotation and translation of `pred` onto `gt`. Invariant to any
-    similarity transform of `pred`; same unit as the inputs.
+    similarity transform of `pred`; same unit as the inputs. NaN for a sample with fewer than
+    3 valid joints (a similarity fits one or two points exactly: it scored 0).
     """
     w = _check(pred, gt, valid, "pa_mpjpe")
     aligned = procrustes_align(pred, gt, valid)
-    return _mean_error(_zero_invalid(aligned, w), _zero_invalid(gt, w), w)
+    out = _mean_error(_zero_invalid(aligned, w), _zero_invalid(gt, w), w)
+    return torch.where((w > 0).sum(-1) >= 3, out, torch.full_like(out, float("nan")))
 
 
 def vertex_error(
