@@ -19,18 +19,26 @@ tools, never project dependencies):
   input the peers do not get, and their computation is counted in this row's time;
 - ours, triangulation, landmarks only: the same without silhouettes, pair consensus or votes
   (the like-for-like row: the peers' input exactly);
-- ours, body fit: gst.fuse.fit (markers, all cameras, whole clip, Levenberg-Marquardt);
-- Pose2Sim 0.10.49: its own `Pose2Sim.triangulation.triangulation_from_best_cameras` with its
-  Config.toml defaults (15 px, at least 2 cameras, every subset of cameras tried as more are
-  left out; NaN where no subset reprojects within 15 px), landmarks below likelihood 0.3 unused;
-- aniposelib 0.8.0: `CameraGroup.triangulate`, and `optim_points` (its optim=True path:
-  temporal smoothness and limb-length constraints).
+- ours, body fit: gst.fuse.fit (markers, all cameras, whole clip, Levenberg-Marquardt), with
+  the stage's floor term and up direction (gst.fuse.floor.scene_floor); the stage's later
+  rounds (camera corrections, crops cut again from the bodies) are not run here;
+- Pose2Sim (the version in the peers' environment, printed with its rows): its own
+  `Pose2Sim.triangulation.triangulation_from_best_cameras` with its Config.toml defaults
+  (15 px, at least 2 cameras, every subset of cameras tried as more are left out; NaN where no
+  subset reprojects within 15 px), landmarks below likelihood 0.3 unused;
+- aniposelib: `CameraGroup.triangulate`, and `optim_points` (its optim=True path: temporal
+  smoothness and limb-length constraints; in 0.8.0 both are unit-free, the smoothness scaled by
+  the track's own mean frame-to-frame motion and the limbs in percent, so the rig in metres
+  weighs them as one in millimetres would).
 
-Peers are timed as ours is: one untimed call on a few person-frames first (imports, and
-aniposelib's first call compiles its code with numba/jax: about 50x its later calls), then the
-median of `--repeats` calls. Every method is scored on the (person-frame, joint)s that all of
-them returned (a method that leaves hard joints out is not scored on fewer, easier ones); the
-share each returned is printed beside it. The body fit's 13 joints are the body model's, the
+Every method gets one untimed call first (ours on all person-frames; the peers on a few:
+imports, and aniposelib's first call compiles its code with numba/jax, about 50x its later
+calls), then the median of `--repeats` calls, with `--threads` threads for torch and the
+peers' OpenMP/BLAS/numba alike. Every method is scored on the same person-frames, matched to
+the truth once (per frame, Hungarian, on all methods' per-joint median; pairs more than 0.5 m
+apart dropped), and on the (person-frame, joint)s that all of them returned (a method that
+leaves hard joints out or misses a person is not scored on fewer, easier ones); the share of
+joints each returned is printed beside it. The body fit's 13 joints are the body model's, the
 triangulations' their landmarks': the truth uses the same body model as the fit, so part of the
 gap is one of definition (15-42 mm offsets between a landmark and its joint, fixed per person).
 
@@ -38,15 +46,16 @@ Two groupings of the same landmarks into people are scored: the extraction's per
 they are, and the people regrouped by 3D agreement (gst.fuse.regroup, part of the fuse stage),
 so that what the regrouping gives and what the fit gives can be told apart, for every method.
 
-MPJPE (mm, world frame, per-frame Hungarian matching to the truth) is over the 13 joints every
-method gives (hips, knees, ankles, shoulders, elbows, wrists, pelvis = mid-hips; a landmark
-stands for its joint), and for the body fit also over all 24 joints, with PA-MPJPE.
+MPJPE (mm, world frame) is over the 13 joints every method gives (hips, knees, ankles,
+shoulders, elbows, wrists, pelvis = mid-hips; a landmark stands for its joint), and for the
+body fit also over all 24 joints, with PA-MPJPE.
 Speed: ms per person-frame after the 2D detection (`--threads` torch threads, 1 by default),
 medians over `--repeats`; the body fit is then timed on subsets and copies of the scene
 (frames x people x cameras) to show how its cost grows with them, and on the copies also in
 `--processes` worker processes of one thread each (people split between them: the fit of one
-person does not depend on another's), the way to use several cores. Machines shared with other
-work give noisy times; the ratios within one run are what to compare.
+person does not depend on another's; the body model loaded before the workers fork), the way
+to use several cores. Machines shared with other work give noisy times; the ratios within one
+run are what to compare.
 """
 
 from __future__ import annotations
@@ -56,6 +65,7 @@ import json
 import subprocess
 import sys
 import tempfile
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -74,6 +84,7 @@ JOINTS13 = BODY_FROM_BLAZEPOSE
 
 PEER_SCRIPT = r"""
 import json, sys, time, numpy as np
+from importlib.metadata import version
 d = np.load(sys.argv[1]); out = {}; reps = int(sys.argv[3])
 uv, conf, K, R, t = d["uv"], d["conf"], d["K"], d["R"], d["t"]  # uv (N, C, 33, 2), conf (N, C, 33)
 N, C, M = conf.shape
@@ -109,7 +120,7 @@ try:
                 X[i, m] = np.asarray(Q, float)[:3]
         return X
     X, sec = timed(pose2sim)
-    out["pose2sim"] = {"points": X.tolist(), "seconds": sec}
+    out["pose2sim"] = {"points": X.tolist(), "seconds": sec, "version": version("pose2sim")}
 except Exception as exc:
     import traceback; traceback.print_exc()
     out["pose2sim"] = {"error": repr(exc)}
@@ -125,7 +136,7 @@ try:
         return cg.triangulate(pts[:, rows].reshape(C, n * M, 2), undistort=True,
                               progress=False).reshape(n, M, 3)
     X, sec = timed(anipose)
-    out["aniposelib"] = {"points": X.tolist(), "seconds": sec}
+    out["aniposelib"] = {"points": X.tolist(), "seconds": sec, "version": version("aniposelib")}
     # optim=True path, per person (its temporal terms need one track): smoothness + limbs
     limbs = [[11, 13], [13, 15], [12, 14], [14, 16], [23, 25], [25, 27], [24, 26], [26, 28],
              [11, 12], [23, 24], [11, 23], [12, 24]]
@@ -142,7 +153,8 @@ try:
                                       reproj_error_threshold=15, verbose=False)
         return Xo[rows]
     Xo, sec = timed(optim)
-    out["aniposelib_optim"] = {"points": Xo.tolist(), "seconds": sec}
+    out["aniposelib_optim"] = {"points": Xo.tolist(), "seconds": sec,
+                               "version": version("aniposelib")}
 except Exception as exc:
     import traceback; traceback.print_exc()
     out["aniposelib"] = out.get("aniposelib", {"error": repr(exc)})
@@ -181,29 +193,37 @@ def _joints13(X: np.ndarray) -> np.ndarray:
     return out
 
 
-def _score(pred, person, frame, truth, joints=None) -> tuple[float, float, int]:
-    """Per-frame Hungarian matching; MPJPE and PA-MPJPE (mm) over `joints` (default all)."""
+def _match(reference, frame, truth, joints) -> np.ndarray:
+    """(K, 2) pairs (row, truth row): per-frame Hungarian matching of `reference`'s person-frames
+    to the truth over `joints`, pairs more than 0.5 m apart dropped. One matching for every
+    method (`reference` is their per-joint median), so all are scored on the same pairs."""
     from scipy.optimize import linear_sum_assignment
 
-    from gst.metrics.pose import mpjpe, pa_mpjpe
-
-    js = list(range(24)) if joints is None else list(joints)
-    P, G = [], []
+    js = list(joints)
+    pairs = []
     for f in np.unique(frame):
         mine = np.flatnonzero(frame == f)
         rows = np.flatnonzero(truth.frame == f)
-        a = pred[mine][:, js]
-        b = truth.joints_world[rows][:, js]
-        cost = np.nanmean(np.linalg.norm(a[:, None] - b[None], axis=-1), -1)
+        a, b = reference[mine][:, js], truth.joints_world[rows][:, js]
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # rows with no joint at all
+            cost = np.nanmean(np.linalg.norm(a[:, None] - b[None], axis=-1), -1)
         cost = np.where(np.isfinite(cost), cost, 1e6)
         r, c = linear_sum_assignment(cost)
-        for i, k in zip(r, c, strict=True):
-            if cost[i, k] < 0.5:
-                P.append(a[i])
-                G.append(b[k])
-    if not P:
+        pairs += [(mine[i], rows[k]) for i, k in zip(r, c, strict=True) if cost[i, k] < 0.5]
+    return np.array(pairs, dtype=int).reshape(-1, 2)
+
+
+def _score(pred, pairs, truth, joints=None) -> tuple[float, float, int]:
+    """MPJPE and PA-MPJPE (mm) of `pred`'s rows against their truth rows, over `joints`
+    (default all 24); a joint the method left out (NaN) is not scored."""
+    from gst.metrics.pose import mpjpe, pa_mpjpe
+
+    if not len(pairs):
         return float("nan"), float("nan"), 0
-    P, G = np.array(P), np.array(G)
+    js = list(range(24)) if joints is None else list(joints)
+    P = pred[pairs[:, 0]][:, js]
+    G = truth.joints_world[pairs[:, 1]][:, js]
     ok = np.isfinite(P).all(-1)
     Pt, Gt = torch.as_tensor(np.nan_to_num(P)), torch.as_tensor(G, dtype=torch.float64)
     v = torch.as_tensor(ok)
@@ -214,7 +234,9 @@ def _score(pred, person, frame, truth, joints=None) -> tuple[float, float, int]:
     )
 
 
-def _peers(people, store, rig, python: str, keep: Path | None, repeats: int) -> tuple[dict, dict]:
+def _peers(
+    people, store, rig, python: str, keep: Path | None, repeats: int, threads: int
+) -> tuple[dict, dict]:
     with tempfile.TemporaryDirectory() as tmp:
         inp, outp, script = Path(tmp) / "in.npz", Path(tmp) / "out.json", Path(tmp) / "peers.py"
         arr = _export(people, store, rig, inp)
@@ -226,24 +248,32 @@ def _peers(people, store, rig, python: str, keep: Path | None, repeats: int) -> 
         if not Path(python).is_file():  # was an uncaught FileNotFoundError after our own work
             print(f"peers not run: no Python at {python} (--peers-python; or --skip-peers)")
             return {}, arr
+        # the peers' numerical libraries get the threads our torch gets
+        n = str(threads)
+        env = {k: n for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                              "NUMBA_NUM_THREADS")}  # fmt: skip
+        env["PATH"] = "/usr/bin:/bin"
         proc = subprocess.run([python, str(script), str(inp), str(outp), str(repeats)],
-                              capture_output=True, text=True, env={"OMP_NUM_THREADS": "1",
-                              "NUMBA_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})  # fmt: skip
+                              capture_output=True, text=True, env=env)  # fmt: skip
         peers = json.loads(outp.read_text()) if outp.is_file() else {}
         if proc.returncode:
             print(proc.stderr[-3000:])
     return peers, arr
 
 
+_WORKER: dict = {}  # body, markers, floor, up: set before the pool forks, so no call loads them
+
+
 def _fit_part(args):
     """Worker: fit some people on one core (torch threads 1)."""
     people, tris, fps = args
     torch.set_num_threads(1)
-    from gst.body import load_body_model
-    from gst.body.markers import MarkerModel
     from gst.fuse.fit import FitOptions, fit_people
 
-    return fit_people(load_body_model("anny"), MarkerModel.load(), people, tris, fps, FitOptions())
+    w = _WORKER
+    return fit_people(
+        w["body"], w["markers"], people, tris, fps, FitOptions(), floor=w["floor"], up=w["up"]
+    )
 
 
 def _fit_in_processes(pool, people, tris, fps: float, n: int):
@@ -281,6 +311,7 @@ def main() -> None:
     from gst.body.markers import MarkerModel
     from gst.data.store import CropStore
     from gst.fuse.fit import FitOptions, fit_people
+    from gst.fuse.floor import scene_floor
     from gst.fuse.observations import crop_landmarks, group_by_person
     from gst.fuse.regroup import regroup_people
     from gst.fuse.scene import FuseOptions
@@ -309,6 +340,18 @@ def main() -> None:
     t_regroup, (regrouped, report) = median_time(lambda: regroup_people(extracted), 1)
     body = load_body_model("anny")
     markers = MarkerModel.load()
+    up = np.asarray(rig.up, np.float64)
+
+    def floor_of(tris):  # the fuse stage's floor: its default option, on these triangulations
+        return scene_floor(
+            [t.points if t is not None else None for t in tris], up, FuseOptions().floor
+        )
+
+    def fit(people, tris):
+        return fit_people(
+            body, markers, people, tris, fps, FitOptions(), floor=floor_of(tris), up=up
+        )
+
     results = []
     fits_for_speed = None
     for grouping, people in (("extraction ids", extracted), ("regrouped", regrouped)):
@@ -317,23 +360,24 @@ def main() -> None:
         frame = np.concatenate([p.frames for p in people])
         methods = {}  # name -> (joints (N, 24, 3) in the export's row order, seconds, note)
 
-        sec, tris = median_time(lambda ps=people: [triangulate(p) for p in ps], args.repeats)
+        sec, tris = median_time(
+            lambda ps=people: [triangulate(p) for p in ps], args.repeats, warmup=1
+        )
         methods["ours: triangulation"] = (
             _joints13(np.concatenate([t.points for t in tris])), sec + t_sil,
             "pair consensus, silhouettes (timed in), votes",
         )  # fmt: skip
         sec, plain = median_time(
-            lambda ps=people: [triangulate_person(p, plain_options) for p in ps], args.repeats
+            lambda ps=people: [triangulate_person(p, plain_options) for p in ps],
+            args.repeats,
+            warmup=1,
         )
         methods["ours: triangulation, landmarks only"] = (
             _joints13(np.concatenate([t.points for t in plain])),
             sec,
             "as the peers' input",
         )
-        sec, fits = median_time(
-            lambda ps=people, ts=tris: fit_people(body, markers, ps, ts, fps, FitOptions()),
-            args.repeats,
-        )
+        sec, fits = median_time(lambda ps=people, ts=tris: fit(ps, ts), args.repeats, warmup=1)
         fits_for_speed = people
         J = np.concatenate(
             [f.joints[np.isin(f.frames, p.frames)] for f, p in zip(fits, people, strict=True)]
@@ -341,13 +385,20 @@ def main() -> None:
         methods["ours: body fit"] = (J, sec, "after triangulation")
         if not args.skip_peers:
             peers, arr = _peers(
-                people, store, rig, args.peers_python, args.keep_input, args.repeats
+                people,
+                store,
+                rig,
+                args.peers_python,
+                args.keep_input,
+                args.repeats,
+                args.threads,
             )
             assert (arr["person"] == person).all() and (arr["frame"] == frame).all()
-            for key, name in (("pose2sim", "Pose2Sim 0.10.49: triangulation_from_best_cameras"),
-                              ("aniposelib", "aniposelib 0.8.0: triangulate"),
-                              ("aniposelib_optim", "aniposelib 0.8.0: optim_points")):  # fmt: skip
+            for key, name in (("pose2sim", "Pose2Sim {}: triangulation_from_best_cameras"),
+                              ("aniposelib", "aniposelib {}: triangulate"),
+                              ("aniposelib_optim", "aniposelib {}: optim_points")):  # fmt: skip
                 r = peers.get(key, {"error": "not run"})
+                name = name.format(r.get("version", "(version unknown)"))
                 if "error" in r:
                     results.append((grouping, name, np.nan, np.nan, 0, np.nan, np.nan,
                                     r["error"][:80]))  # fmt: skip
@@ -359,15 +410,21 @@ def main() -> None:
         common = np.logical_and.reduce(
             [np.isfinite(X[:, js]).all(-1) for X, _, _ in methods.values()]
         )
+        # ... and on the same person-frames: one matching to the truth, by all methods' median
+        # (each matched on its own, a method's worst person-frames fell out of its own score)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # joints no method gave
+            reference = np.nanmedian(np.stack([X for X, _, _ in methods.values()]), axis=0)
+        pairs = _match(reference, frame, truth, js)
         for name, (X, sec, note) in methods.items():
             coverage = float(np.isfinite(X[:, js]).all(-1).mean())
             masked = X.copy()
             masked[:, js] = np.where(common[..., None], X[:, js], np.nan)
-            mp, pa, n = _score(masked, person, frame, truth, JOINTS13)
+            mp, pa, n = _score(masked, pairs, truth, JOINTS13)
             label = name + (" (13 joints)" if name == "ours: body fit" else "")
             results.append((grouping, label, mp, pa, n, 1000 * sec / n_pf, coverage, note))
             if name == "ours: body fit":
-                mp, pa, n = _score(X, person, frame, truth)
+                mp, pa, n = _score(X, pairs, truth)
                 results.append((grouping, "ours: body fit (24 joints)", mp, pa, n,
                                 1000 * sec / n_pf, 1.0, "all 24, not masked"))  # fmt: skip
 
@@ -393,6 +450,8 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- |")
     import multiprocessing as mp
 
+    floor = floor_of([triangulate(p) for p in fits_for_speed])
+    _WORKER.update(body=body, markers=markers, floor=floor, up=up)
     pool = mp.get_context("fork").Pool(args.processes) if args.processes > 1 else None
     C = len(store.camera_names)
     T = max(len(p.frames) for p in fits_for_speed)
@@ -401,10 +460,7 @@ def main() -> None:
         sub = [_copy(p, 1000 * k + p.person_id, frames_keep, cams_keep)
                for k in range(copies) for p in fits_for_speed]  # fmt: skip
         sub_tris = [triangulate(q) for q in sub]
-        sec, _ = median_time(
-            lambda s=sub, st=sub_tris: fit_people(body, markers, s, st, fps, FitOptions()),
-            args.repeats,
-        )
+        sec, _ = median_time(lambda s=sub, st=sub_tris: fit(s, st), args.repeats)
         pf = sum(len(q.frames) for q in sub)
         print(f"| {frames_keep} frames x {len(sub)} people | {pf} | {cams_keep} | {sec:.2f} | "
               f"{pf / sec:.1f} | {1e6 * sec / (pf * cams_keep):.0f} |")  # fmt: skip

@@ -10,8 +10,11 @@ from typing import TypeVar
 T = TypeVar("T")
 
 
-def median_time(fn: Callable[[], T], repeats: int) -> tuple[float, T]:
-    """Median wall time in seconds of `repeats` calls of `fn`, and the last call's result."""
+def median_time(fn: Callable[[], T], repeats: int, warmup: int = 0) -> tuple[float, T]:
+    """Median wall time in seconds of `repeats` calls of `fn`, and the last call's result;
+    `warmup` untimed calls first (first-call costs: lazy imports, allocator, caches)."""
+    for _ in range(warmup):
+        fn()
     times, out = [], None
     for _ in range(repeats):
         t0 = time.perf_counter()
