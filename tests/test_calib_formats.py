@@ -747,9 +747,81 @@ def test_skew_is_not_written_where_readers_ignore_it(tmp_path):
     c = rig.cameras[0]
     skewed = Rig([Camera.create(c.name, K, c.dist, c.R, c.t, c.width, c.height),
                   rig.cameras[1]], up=rig.up)  # fmt: skip
-    for fmt, suffix in (("pose2sim", "toml"), ("anipose", "toml")):
+    for fmt, suffix in (("pose2sim", "toml"), ("anipose", "toml"), ("h36m-json", "json")):
         with pytest.raises(RigFormatError, match="skew"):
             write_rig(skewed, tmp_path / f"x.{suffix}", fmt)
+
+
+def test_fields_of_the_wrong_kind_are_refused_by_name(tmp_path):
+    """Found by a review, each read without complaint before: a list as a rig's meta (the
+    writers failed later with a bare AttributeError), true as a focal length (read 1.0), a
+    null distortion (one NaN term), a null or table camera name (became 'None'), the text
+    "false" as fisheye (refused as a fisheye)."""
+    rig = ring_cameras(2)
+    path = tmp_path / "rig.json"
+    write_rig(rig, path, "rig")
+    data = json.loads(path.read_text())
+    for edit, message in (
+        (lambda d: d.update(meta=[1]), "'meta' must be an object, got a list"),
+        (lambda d: d["cameras"][0].update(meta=[1]), r"'meta' in camera .* object"),
+    ):
+        bad = json.loads(json.dumps(data))
+        edit(bad)
+        path.write_text(json.dumps(bad))
+        with pytest.raises(RigFormatError, match=message):
+            read_rig(path, "rig")
+    toml = tmp_path / "calib.toml"
+    write_rig(rig, toml, "pose2sim")
+    text = toml.read_text()
+    for old, new, message in (
+        ("matrix = [[1510.5,", "matrix = [[true,", "true/false where numbers"),
+        ("fisheye = false", 'fisheye = "false"', "fisheye is 'false'"),
+    ):
+        assert old in text
+        toml.write_text(text.replace(old, new, 1))
+        with pytest.raises(RigFormatError, match=message):
+            read_rig(toml, "pose2sim")
+    pan = tmp_path / "calibration.json"
+    write_rig(rig, pan, "panoptic")
+    data = json.loads(pan.read_text())
+    for key, value, message in (
+        ("name", None, "'name' in cameras.0. must be non-empty text, got null"),
+        ("distCoef", None, "distCoef is null"),
+    ):
+        bad = json.loads(json.dumps(data))
+        bad["cameras"][0][key] = value
+        pan.write_text(json.dumps(bad))
+        with pytest.raises(RigFormatError, match=message):
+            read_rig(pan, "panoptic")
+
+
+def test_meta_that_json_cannot_hold_is_written_or_named(tmp_path):
+    """A Path in a rig's meta and numpy integers in Panoptic's panel and node failed in
+    json.dumps with a TypeError naming nothing; paths are written as text, numpy values as
+    numbers, and anything else is refused by name."""
+    rig = ring_cameras(2)
+    cams = [Camera.create(c.name, c.K, c.dist, c.R, c.t, c.width, c.height,
+                          meta={"panel": np.int64(3), "node": np.int64(i)})
+            for i, c in enumerate(rig.cameras)]  # fmt: skip
+    with_meta = Rig(cams, up=rig.up, meta={"source": Path("/data/calib.qca.txt")})
+    write_rig(with_meta, tmp_path / "rig.json", "rig")
+    assert read_rig(tmp_path / "rig.json", "rig").meta["source"] == "/data/calib.qca.txt"
+    write_rig(with_meta, tmp_path / "calibration.json", "panoptic")
+    assert json.loads((tmp_path / "calibration.json").read_text())["cameras"][1]["node"] == 1
+    odd = Rig(rig.cameras, up=rig.up, meta={"when": object()})
+    with pytest.raises(RigFormatError, match="meta value .* cannot be written as JSON"):
+        write_rig(odd, tmp_path / "odd.json", "rig")
+
+
+def test_a_toml_fallback_key_does_not_take_another_cameras_name(tmp_path):
+    """["a b", "cam_01"]: the first camera's fallback table [cam_01] was the second's name,
+    and the writer refused a valid rig."""
+    rig = ring_cameras(2)
+    cams = [Camera.create(n, c.K, c.dist, c.R, c.t, c.width, c.height)
+            for n, c in zip(("a b", "cam_01"), rig.cameras, strict=True)]  # fmt: skip
+    path = tmp_path / "calib.toml"
+    write_rig(Rig(cams, up=rig.up), path, "pose2sim")
+    assert [c.name for c in read_rig(path, "pose2sim").cameras] == ["a b", "cam_01"]
 
 
 def test_colmap_write_keeps_other_files_in_the_folder(tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -132,6 +133,8 @@ def as_float_array(
 ) -> np.ndarray:
     """`value` as a float64 array of `shape`: reshaped when it has the right size, or, `exact`,
     only as written (nested lists of that shape; None in `shape`: any length on that axis)."""
+    if _holds_bool(value):  # true read as 1.0 (a focal length of one pixel)
+        raise RigFormatError(f"{path}: {what} holds true/false where numbers are expected")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -167,10 +170,48 @@ def require_distortion(data: dict, key: str, path: Path, where: str) -> np.ndarr
     refused rather than read as a lens without distortion (the formats' own readers fail on it
     too); a lens without distortion is written as an empty list."""
     value = require(data, key, path, where)
+    if value is None or _holds_bool(value):  # null read as one NaN term
+        found = "null" if value is None else "true/false"
+        raise RigFormatError(f"{path}: {where} {key} is {found}, expected a list of numbers")
     try:
         return np.asarray(value, dtype=np.float64).ravel()
     except (TypeError, ValueError) as exc:
         raise RigFormatError(f"{path}: {where} {key} is not a list of numbers ({exc})") from exc
+
+
+def _holds_bool(value) -> bool:
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    if isinstance(value, (list, tuple)):
+        return any(_holds_bool(v) for v in value)
+    return isinstance(value, np.ndarray) and value.dtype == bool
+
+
+def optional_object(data: dict, key: str, path: Path, where: str = "") -> dict:
+    """`data[key]` when it is an object (JSON) or table (TOML), {} when absent or null; else a
+    RigFormatError naming the key (a list was taken as meta, and writers failed on it later
+    with a bare AttributeError)."""
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        found = _JSON_KIND.get(type(value), type(value).__name__)
+        raise RigFormatError(
+            f"{path}: '{key}'{' in ' + where if where else ''} must be an object, got {found}"
+        )
+    return value
+
+
+def require_text(data: dict, key: str, path: Path, where: str = "") -> str:
+    """`data[key]` as non-empty text (a null or a table as a camera name became 'None')."""
+    value = require(data, key, path, where)
+    if not isinstance(value, str) or not value:
+        found = _JSON_KIND.get(type(value), type(value).__name__)
+        raise RigFormatError(
+            f"{path}: '{key}'{' in ' + where if where else ''} must be non-empty text, "
+            f"got {found if value != '' else 'empty text'}"
+        )
+    return value
 
 
 def pixel_count(value, path: Path, what: str) -> int:
@@ -265,4 +306,11 @@ def json_safe(value):
         return None
     if isinstance(value, (datetime.date, datetime.time)):  # a datetime is a date
         return value.isoformat()
-    return value
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    # json.dumps failed on it later with a TypeError naming neither file nor key
+    raise RigFormatError(
+        f"meta value {value!r} of type {type(value).__name__} cannot be written as JSON"
+    )

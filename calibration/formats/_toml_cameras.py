@@ -25,11 +25,17 @@ from calibration.formats._common import (
     pixel_count,
     require_array,
     require_distortion,
+    require_text,
     toml_dumps,
 )
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
 CAMERA_KEYS = ("matrix", "rotation", "translation")
+
+
+def _bare(name: str) -> bool:
+    """Whether a camera name can be its own TOML table key."""
+    return bool(_BARE_KEY.match(name)) and name != "metadata"
 
 
 def camera_tables(data: dict) -> dict[str, dict]:
@@ -54,7 +60,10 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
     cameras = []
     for key, table in camera_tables(data).items():
         where = f"[{key}]"
-        if table.get("fisheye", False):
+        fisheye = table.get("fisheye", False)
+        if not isinstance(fisheye, bool):  # the text "false" read as a fisheye
+            raise RigFormatError(f"{path}: {where} fisheye is {fisheye!r}, expected true or false")
+        if fisheye:
             raise RigFormatError(
                 f"{path}: {where} is a fisheye camera, which this project does not model"
             )
@@ -64,7 +73,7 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
         cameras.append(
             make_camera(
                 path,
-                str(table.get("name", key)),
+                require_text(table, "name", path, where) if "name" in table else key,
                 K=require_array(table, "matrix", (3, 3), path, where),
                 dist=require_distortion(table, "distortions", path, where),
                 R=cv2.Rodrigues(rvec)[0],
@@ -104,10 +113,14 @@ def write_cameras(
         n = dist_len if not np.any(d[dist_len:]) else d.size
         dist = np.zeros(n)
         dist[: min(n, d.size)] = d[:n]
-        if keys == "name" and _BARE_KEY.match(c.name) and c.name != "metadata":
+        if keys == "name" and _bare(c.name):
             key = c.name
-        else:
-            key = f"cam_{i}" if keys == "index" else f"cam_{i + 1:02d}"
+        elif keys == "index":
+            key = f"cam_{i}"
+        else:  # a free cam_NN: ["a b", "cam_01"] gave both [cam_01] and was refused
+            taken = {x.name for x in rig if _bare(x.name)} | set(tables)
+            key = next(f"cam_{k:02d}" for k in range(i + 1, i + 2 + len(rig) + len(taken))
+                       if f"cam_{k:02d}" not in taken)  # fmt: skip
         if key in tables:
             raise RigFormatError(f"two cameras map to the TOML table [{key}]")
         table = {

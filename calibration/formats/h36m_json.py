@@ -126,6 +126,11 @@ def write(
     subj = _subject_name(subject)
     intr, extr = {}, {}
     for c in rig:
+        if c.skew:  # as the TOML, cameras.h5 and COLMAP writers refuse it
+            raise RigFormatError(
+                f"camera '{c.name}': K[0, 1] = {c.skew} (skew); this file's users project with "
+                "cv2.projectPoints, which ignores it, so the file would place points elsewhere"
+            )
         if tangential == "h36m":
             k, p, err = opencv_to_h36m(c, approximate_distortion)
             if err > 0:

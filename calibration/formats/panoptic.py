@@ -17,13 +17,14 @@ from calibration.formats._common import (
     RigFormatError,
     atomic_write_text,
     five_term_dist,
+    json_safe,
     load_json,
     make_camera,
     make_rig,
     pixel_count,
-    require,
     require_array,
     require_distortion,
+    require_text,
     require_typed,
 )
 
@@ -39,7 +40,7 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
     for i, cd in enumerate(cams_data):
         if not isinstance(cd, dict):
             raise RigFormatError(f"{path}: cameras[{i}] must be an object")
-        name = str(require(cd, "name", path, f"cameras[{i}]"))
+        name = require_text(cd, "name", path, f"cameras[{i}]")
         where = f"camera '{name}'"
         ctype = cd.get("type", "")
         if camera_types is not None and ctype not in camera_types:
@@ -82,10 +83,10 @@ def write(rig: Rig, path: str | Path) -> None:
         cams.append(
             {
                 "name": c.name,
-                "type": c.meta.get("type", "hd"),
+                "type": json_safe(c.meta.get("type", "hd")),
                 "resolution": [c.width, c.height],
-                "panel": c.meta.get("panel", 0),
-                "node": c.meta.get("node", i),
+                "panel": json_safe(c.meta.get("panel", 0)),
+                "node": json_safe(c.meta.get("node", i)),
                 "K": c.K.tolist(),
                 "distCoef": five_term_dist(c, "Panoptic").tolist(),
                 "R": c.R.tolist(),

@@ -19,6 +19,7 @@ from calibration.formats._common import (
     load_json,
     make_camera,
     make_rig,
+    optional_object,
     pixel_count,
     require,
     require_array,
@@ -102,11 +103,11 @@ def from_dict(data: dict, path: Path) -> Rig:
                 t=require_array(cd, "t", (3,), path, where, exact=True),
                 width=pixel_count(require(cd, "width", path, where), path, f"{where} width"),
                 height=pixel_count(require(cd, "height", path, where), path, f"{where} height"),
-                meta=cd.get("meta") or {},
+                meta=optional_object(cd, "meta", path, where),
             )
         )
     up = as_float_array(data.get("up", [0.0, 0.0, 1.0]), (3,), path, "up")
-    return make_rig(path, cameras, up=tuple(up.tolist()), meta=data.get("meta") or {})
+    return make_rig(path, cameras, up=tuple(up.tolist()), meta=optional_object(data, "meta", path))
 
 
 def read(path: str | Path) -> Rig:
