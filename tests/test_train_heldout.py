@@ -57,7 +57,7 @@ def test_heldout_frames_and_cameras_never_reach_a_batch(tmp_path, monkeypatch):
     extra = load_checkpoint(tmp_path / "best.pt").extra
     assert extra["first_heldout_frame"] == 6 and extra["heldout_cameras"] == ["c2"]
     assert extra["trained_on"] == {"scene": "s", "cameras": ["c0", "c1"], "frames": [0, 5],
-                                   "crops": 12}  # fmt: skip
+                                   "crops": 12, "crop_store": "extract"}  # fmt: skip
     # the checkpoint is chosen on held-out-camera views of training frames only
     pairs = novel_view_pairs(crops, {2}, frames=(0, 6))
     assert len(pairs.inputs) and (crops.frame[pairs.targets] < 6).all()

@@ -69,9 +69,12 @@ def _model(path: Path, body_cache: dict):
     return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
 
 
-def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple[list, int | None]:
+def _heldout_setup(
+    p: EvaluateSettings, models: dict[str, Path], crops
+) -> tuple[list, int | None, str | None]:
     """Held-out cameras and first held-out frame: the settings', else what the trained model
-    (`gst`, else the last one) recorded, else train's defaults."""
+    (`gst`, else the last one) recorded, else train's defaults; and the crop store it trained
+    on, as it recorded it."""
     extra = load_checkpoint(models.get("gst", list(models.values())[-1])).extra
     cams = p.heldout_cameras
     if cams is None:
@@ -86,7 +89,9 @@ def _heldout_setup(p: EvaluateSettings, models: dict[str, Path], crops) -> tuple
     cut = None if cut is None or cut < 0 else int(cut)
     if "gst" in models:
         check_unseen(extra, cams, cut, models["gst"])
-    return list(cams), cut
+    trained = extra.get("trained_on") if isinstance(extra, dict) else None
+    store = trained.get("crop_store") if isinstance(trained, dict) else None
+    return list(cams), cut, store
 
 
 def fused_reference(crops, bodies_parquet: Path) -> None:
@@ -139,7 +144,7 @@ def evaluate_scene(
         raise ValueError("evaluate needs the scene's truth or the fuse stage's bodies")
     matched = int(crops.truth["has_truth"].sum())
     log.info("evaluate: a reference (%s) for %d of %d crops", reference, matched, len(crops))
-    heldout, cut = _heldout_setup(p, models, crops)
+    heldout, cut, crop_store = _heldout_setup(p, models, crops)
     frames = None
     if p.frames == "heldout" and cut is not None:
         frames = (cut, int(crops.frame.max()) + 1)
@@ -223,9 +228,17 @@ def evaluate_scene(
         "frames": list(frames) if frames else "all",
         "heldout_cameras": heldout,
         "note": (
-            f"Headline: frames {frames[0]}-{frames[1] - 1}, held out in time (train never saw "
-            "them: no sample, no target, no checkpoint choice) and, for novel views, the held-out "
-            "cameras; `pose_all_frames` in summary.json scores every frame."
+            f"Headline: frames {frames[0]}-{frames[1] - 1}, held out in time (this run's "
+            "training never saw them: no sample, no target, no checkpoint choice; some project "
+            "defaults were chosen on the demo's and the lab's held-out numbers, docs/training.md "
+            "'Held-out data and the defaults') and, for novel views, the held-out cameras; "
+            "`pose_all_frames` in summary.json scores every frame."
+            + (
+                " Not clean: the model trained on `bodycrops`, crops cut from bodies fitted on "
+                "every camera and frame, the held-out ones included."
+                if crop_store == "bodycrops"
+                else ""
+            )
             if frames
             else "Every frame is scored, including those `train` trained on (self-supervised, no "
             "labels; held-out cameras never used)."

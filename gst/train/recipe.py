@@ -101,6 +101,9 @@ class FitOptions:
     # image-only path for crops where the detector finds nobody)
     landmark_dropout: float = 0.0
     scene: str | None = None  # recorded in the checkpoint (extra.trained_on.scene)
+    # which crop store trained it (extra.trained_on.crop_store): "bodycrops" are cut from
+    # bodies fitted on every camera and frame, held-out ones included (evaluate says so)
+    crop_store: str = "extract"
 
 
 class Rehearsal(Protocol):
@@ -245,6 +248,7 @@ def fit_gst(
         "cameras": [names[c] for c in sorted(set(crops.camera[used].tolist()))],
         "frames": [int(crops.frame[used].min()), int(crops.frame[used].max())],
         "crops": int(len(used)),
+        "crop_store": opts.crop_store,
     }
     pose_crops = crops if val_crops is None else val_crops
     has_truth = "joints_world" in pose_crops.truth

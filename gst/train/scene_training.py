@@ -437,6 +437,7 @@ def train_scene(
             body_lr=body_lr,
             first_heldout_frame=cut,
             scene=scene,
+            crop_store=p.crops,
             landmark_dropout=p.landmark_dropout if crops.landmarks is not None else 0.0,
         ),
         body_spec=p.body_model,
