@@ -72,6 +72,56 @@ def test_c3d_round_trip_is_identical(tmp_path):
     assert back[3, 5, 3] == 0 and (np.delete(back[..., 3].ravel(), 3 * 24 + 5) == 1).all()
 
 
+def test_c3d_holds_what_other_readers_need(tmp_path):
+    """Found with ezc3d: GST:FIRST_FRAME was an int32 under the format's float label (read as
+    1.4e-43 for frame 100), measured points had an empty camera byte (ezc3d reads that byte as
+    the residual: every point modelled), and POINT:SCALE was -1 whatever the coordinates."""
+    import c3d
+
+    pts = _points(T=5)
+    valid = np.ones((5, 24), bool)
+    valid[2, 7] = False
+    cams = np.full((5, 24), 0b1011, np.int64)
+    cams[1, 3] = 1 << 9  # only an eighth-or-later camera: the byte has 7 bits
+    path = tmp_path / "p.c3d"
+    write_c3d(path, np.arange(100, 105), pts, fps=50.0, valid=valid, cameras=cams)
+    with open(path, "rb") as fh:
+        reader = c3d.Reader(fh)
+        assert reader.get("GST:FIRST_FRAME").float_value == 100
+        scale = reader.point_scale
+        biggest = float(np.abs(pts).max() * 1000)
+        assert -1 < scale < 0 and abs(scale) >= biggest / 32000 and (1 / abs(scale)).is_integer()
+        rows = [p.copy() for _, p, _ in reader.read_frames()]
+    camera_byte = np.array([r[:, 4] for r in rows])
+    assert camera_byte[2, 7] == 0 and camera_byte[1, 3] == 0  # modelled; camera out of reach
+    assert (np.delete(camera_byte.ravel(), [2 * 24 + 7, 24 + 3]) == 0b1011).all()
+    names, rate, frames, back = read_c3d(path)
+    assert frames.tolist() == list(range(101, 106))
+    assert back[2, 7, 3] == 0 and (np.delete(back[..., 3].ravel(), 2 * 24 + 7) == 1).all()
+
+
+def test_c3d_written_before_the_float_first_frame_still_reads(tmp_path):
+    """Files of before 2026-12-01 hold GST:FIRST_FRAME as an int32 under the float label."""
+    import warnings
+
+    import c3d
+
+    pts = _points(T=3)
+    writer = c3d.Writer(point_rate=30.0, analog_rate=0.0, point_scale=-1.0)
+    writer.set_point_labels(list(SMPL_JOINT_NAMES))
+    writer.set_start_frame(101)
+    group = writer.add_group(10, "GST", "gst-capture")
+    group.set("FIRST_FRAME", "video frame of the first row (0-based)", 4, "<i", 100)
+    data = np.zeros((3, 24, 5), np.float32)
+    data[..., :3] = pts * 1000
+    data[..., 3] = 1.0
+    writer.add_frames([(data[i], np.zeros((0, 0), np.float32)) for i in range(3)])
+    with open(tmp_path / "old.c3d", "wb") as fh, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        writer.write(fh)
+    assert read_c3d(tmp_path / "old.c3d")[2].tolist() == [101, 102, 103]
+
+
 def test_bodies_parquet_has_the_tracks_schema(tmp_path):
     from gst.fuse.fit import PersonFit
     from gst.fuse.tables import EXTRA_COLUMNS, joint_evidence, write_bodies
@@ -154,7 +204,9 @@ def test_c3d_of_a_person_who_first_appears_late_in_a_long_video(tmp_path):
     with open(path, "rb") as fh:
         reader = c3d.Reader(fh)
         assert len(list(reader.read_frames())) == 3
-        assert reader.get("GST:FIRST_FRAME").int32_value == 70000
+        # a float, as its element size says (it was an int32 under the float label: every
+        # other reader saw 9.8e-41)
+        assert reader.get("GST:FIRST_FRAME").float_value == 70000
         assert reader.get("POINT:Y_SCREEN").string_value.strip() == "+Z"
 
 

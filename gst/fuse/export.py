@@ -20,17 +20,19 @@ the constant rate they declare: a frame inside a gap the fit does not fill (long
 out; a C3D has no frame column, so a dropped row would put every later frame early.
 
 C3D: written with the `c3d` package (pure Python, 0.6.0) as float points (POINT:SCALE < 0, so
-values are stored exactly as float32), POINT:UNITS "mm", the rig's world axes (POINT:Y_SCREEN
-is the world axis nearest its up, so viewers draw it upright). Frames are
+values are stored exactly as float32; its size 1 / k, the largest coordinate / 32000 mm rounded
+up so that the nominal residual is a whole byte), POINT:UNITS "mm", the rig's world axes
+(POINT:Y_SCREEN is the world axis nearest its up, so viewers draw it upright). Frames are
 numbered from the person's first video frame + 1 where that fits the header's 16-bit first
 frame (video frames up to 65533; the `c3d` reader miscounts a file whose header had to clamp
-it), else from 1; the parameter GST:FIRST_FRAME always holds the first row's video frame
-(0-based). Every fitted joint is a valid point. Residuals as the C3D format defines them: a
-positive residual marks a measured point (here 1 for a joint observed by >= 2 cameras: a
+it), else from 1; the parameter GST:FIRST_FRAME (a float) always holds the first row's video
+frame (0-based). Every fitted joint is a valid point. Residuals as the C3D format defines them:
+a positive residual marks a measured point (here 1 for a joint observed by >= 2 cameras: a
 nominal value; its reprojection error in pixels is in the fused Parquet), 0 a point not
 measured but modelled (a joint the fit filled), -1 a missing value, whose coordinates are 0
 (the `c3d` 0.6 writer left the last valid frame's there, a body frozen through a gap, so they
-are cleared in the written file).
+are cleared in the written file). The residual word's camera byte holds the measuring cameras
+1-7 (bit i: camera i + 1).
 """
 
 from __future__ import annotations
@@ -166,26 +168,46 @@ def write_c3d(
     valid: np.ndarray | None = None,
     names: tuple[str, ...] = SMPL_JOINT_NAMES,
     up=Z_UP,
+    cameras: np.ndarray | None = None,
 ) -> None:
-    """`points` (T, M, 3) metres, rig world (up `up`); stored in mm as float32 (module doc)."""
+    """`points` (T, M, 3) metres, rig world (up `up`); stored in mm as float32 (module doc).
+    `cameras`: (T, M) bit masks of the cameras that measured each point, for the residual
+    word's camera byte (cameras 1-7 only: the byte has 7 bits)."""
     import c3d
 
+    T0 = len(frames)
+    mask = np.zeros((T0, points.shape[1]), np.int64) if cameras is None else np.asarray(cameras)
+    if mask.shape != points.shape[:2]:
+        raise ValueError(f"write_c3d: cameras has shape {mask.shape}, expected {points.shape[:2]}")
+    _, mask_rows, _ = every_frame(frames, mask[..., None].astype(np.float64), valid)
     frames, points, valid = every_frame(frames, points, valid)
     T, M = points.shape[:2]
     if len(names) != M:
         raise ValueError(f"write_c3d: {M} markers need {M} names, got {len(names)}")
-    writer = c3d.Writer(point_rate=float(fps), analog_rate=0.0, point_scale=-1.0)
+    mm = np.abs(points[np.isfinite(points)]) * 1000.0
+    # float storage (negative scale) whose size is what the format asks for, the largest
+    # coordinate / 32000 mm (a tool converting the file to integers keeps 0.1 mm where -1 kept
+    # 1 mm), rounded up to 1 / k so that the nominal residual 1 is a whole k in its byte
+    k = int(np.clip(32000.0 / mm.max(), 1, 100)) if mm.size and mm.max() > 0 else 1
+    scale = -1.0 / k
+    writer = c3d.Writer(point_rate=float(fps), analog_rate=0.0, point_scale=scale)
     writer.set_point_labels([n[:30] for n in names])
     writer.set_screen_axis(*_screen_axes(up))  # viewers draw the rig's world upright
     first = int(frames[0]) if T else 0
     writer.set_start_frame(first + 1 if first + 1 <= _LAST_HEADER_START else 1)
     group = writer.add_group(_GST_GROUP_ID, "GST", "gst-capture")
-    group.set("FIRST_FRAME", "video frame of the first row (0-based)", 4, "<i", first)
+    # a float (element size 4 is the format's float; an int32 under that label read as
+    # 1.4e-43 in every reader but ours), exact to 2^24 frames (77 hours at 60 fps)
+    group.set("FIRST_FRAME", "video frame of the first row (0-based)", 4, "<f", np.float32(first))
     pts = np.zeros((T, M, 5), np.float32)
     pts[..., :3] = np.nan_to_num(points * 1000.0).astype(np.float32)
     pts[..., 3] = np.where(valid, 1.0, 0.0)  # measured 1 (nominal), modelled 0: module doc
     missing = ~np.isfinite(points).all(-1)
     pts[..., 3] = np.where(missing, -1.0, pts[..., 3])
+    # the camera byte of measured points (the format's high byte; ezc3d reads it as the
+    # residual, so without it every measured point read as modelled there)
+    bits = np.nan_to_num(mask_rows[..., 0]).astype(np.int64) & 0x7F
+    pts[..., 4] = np.where(valid & ~missing, bits, 0)
     writer.add_frames([(pts[i], np.zeros((0, 0), np.float32)) for i in range(T)])
 
     def write(tmp: str) -> None:
@@ -237,5 +259,14 @@ def read_c3d(path: str | Path) -> tuple[list[str], float, np.ndarray, np.ndarray
             pts.append(p[:, :4].copy())
     frames = np.array(frames, np.int64)
     if first is not None:
-        frames = int(first.int32_value) + 1 + np.arange(len(frames))
+        frames = _first_frame(first) + 1 + np.arange(len(frames))
     return names, rate, frames, np.array(pts, np.float32).reshape(len(frames), -1, 4)
+
+
+def _first_frame(param) -> int:
+    """GST:FIRST_FRAME: a float; files written before 2026-12-01 held an int32 under the float
+    label (read as a float, a denormal near 0 for any frame but 0)."""
+    value = float(param.float_value)
+    if np.isfinite(value) and value >= 0 and value == round(value) and (value == 0 or value >= 1):
+        return int(value)
+    return int(param.int32_value)

@@ -518,7 +518,8 @@ def fuse_scene(
         t_path = out_dir / "trc" / f"person_{f.person_id}.trc"
         c_path = out_dir / "c3d" / f"person_{f.person_id}.c3d"
         write_trc(t_path, f.frames, f.joints, fps, up=up)
-        write_c3d(c_path, f.frames, f.joints, fps, valid=~ev.fitted_only(), up=up)
+        valid = ~ev.fitted_only()
+        write_c3d(c_path, f.frames, f.joints, fps, valid=valid, up=up, cameras=ev.camera_mask())
         trc.append(t_path)
         c3d.append(c_path)
     write_report(summary, report_dir, fits, dense_tris, limbs)

@@ -94,10 +94,18 @@ class JointEvidence:
 
     def fitted_only(self) -> np.ndarray:
         """(T, 24) bool: joints whose place comes from the fit alone in a frame (the markers'
-        residual 1): gap-filled joints, and the joints without landmarks (spine, neck, collars,
+        residual 0): gap-filled joints, and the joints without landmarks (spine, neck, collars,
         which nothing triangulates) wherever one of the torso's hips and shoulders is gap-filled."""
         out = self.gap_filled.copy()
         out[:, ~self.has_landmarks] = self.gap_filled[:, _TORSO].any(1)[:, None]
+        return out
+
+    def camera_mask(self) -> np.ndarray:
+        """(T, 24) int64: the cameras that measured each joint, for the C3D camera byte; the
+        joints without landmarks take the torso's hips' and shoulders' cameras."""
+        out = self.mask.copy()
+        torso = np.bitwise_or.reduce(self.mask[:, _TORSO], axis=1)
+        out[:, ~self.has_landmarks] = torso[:, None]
         return out
 
 
