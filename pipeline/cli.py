@@ -156,8 +156,13 @@ def _check_videos_option(videos: list[Path], probe: bool = False) -> list[Path]:
     if folders:
         raise ConfigError(f"--video: a folder, not a video file: {', '.join(folders)}")
     missing = [str(v) for v in videos if not v.is_file()]
-    if missing:
-        raise ConfigError(f"--video: no such file: {', '.join(missing)}")
+    if missing:  # the folder it was looked for in, for a path typed relative to another one
+        raise ConfigError(
+            f"--video: no such file: {', '.join(missing)} (looked for from {Path.cwd()})"
+        )
+    twice = sorted({str(v) for v in videos if videos.count(v) > 1})
+    if twice:
+        raise ConfigError(f"--video: listed twice: {', '.join(twice)}; remove the duplicate")
     from gst.video import VideoError, probe_video
 
     for v in videos if probe else ():  # failed inside track, after the stages before it ran
@@ -310,6 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     if rank != 0:
         args.quiet = True  # one rank talks
     console = make_console(args.quiet)
+    log_path = previous_sigterm = None
     try:
         cfg = load_config(args.config, args.overrides)
         stages = load_stages(cfg)
@@ -409,6 +415,7 @@ def main(argv: list[str] | None = None) -> int:
                     runner.run([args.stage])  # logs that it is up to date
             return 0
         if args.command == "run" and not args.dry_run:
+            previous_sigterm = _stop_on_sigterm()
             log_path = setup_logging(
                 console, cfg.workspace / ".pipeline" / "logs", args.command, args.quiet
             )
@@ -446,10 +453,54 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except PipelineError as exc:
         print_error(console, str(exc))
+        _name_log(console, log_path)
         return exc.exit_code
-    except KeyboardInterrupt:
-        print_error(console, "interrupted")
-        return 130
+    except KeyboardInterrupt as exc:
+        terminated = isinstance(exc, Terminated)
+        print_error(console, "terminated (SIGTERM)" if terminated else "interrupted")
+        _name_log(console, log_path)
+        return 143 if terminated else 130
+    finally:
+        if previous_sigterm is not None:  # main() called in a longer-lived process (tests)
+            import signal
+
+            signal.signal(signal.SIGTERM, previous_sigterm)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (`kill`, a scheduler's time limit), stopped as Ctrl-C stops a run: the stage is
+    recorded as interrupted and resumes on the next run."""
+
+
+def _stop_on_sigterm():
+    """Turn SIGTERM in this process into `Terminated`. pycolmap's logging library installs a
+    handler that prints a 40-line native stack dump, as a crash would; it does so when pycolmap
+    is first imported, so it is imported now (a later import keeps the module and our handler).
+    Worker processes forked from here die of SIGTERM as before (a pool's terminate sends it)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None  # only the main thread may set handlers
+    import pycolmap  # noqa: F401
+
+    main_pid = os.getpid()
+
+    def handler(signum, frame):
+        if os.getpid() != main_pid:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        raise Terminated()
+
+    return signal.signal(signal.SIGTERM, handler)
+
+
+def _name_log(console, log_path) -> None:
+    """The run's log, which holds a failed stage's traceback (the error line alone was printed,
+    and the file was found only by listing the logs folder)."""
+    if log_path is not None:
+        console.print(f"log (with the traceback): {log_path}", highlight=False, soft_wrap=True)
 
 
 if __name__ == "__main__":

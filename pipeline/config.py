@@ -18,9 +18,11 @@ Stage parameters are validated by each stage's own pydantic model (see `pipeline
 
 from __future__ import annotations
 
+import difflib
 import glob
 import os
 import re
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -154,6 +156,12 @@ class PipelineConfig(Strict):
 
     @model_validator(mode="after")
     def _check_graph(self):
+        if not self.stages:  # ran nothing and said so with an empty table, exit 0
+            raise ValueError(
+                "stages: the file declares no stages; a config of your own needs the DAG too: "
+                "copy the `stages:` block of the project's pipeline.yaml into it, or add your "
+                "scene to pipeline.yaml (docs/pipeline.md)"
+            )
         references = [(f"stages.{n}.needs", stage.needs) for n, stage in self.stages.items()]
         references += [(f"scenes.{n}.params", scene.params) for n, scene in self.scenes.items()]
         for where, names in references:
@@ -202,6 +210,13 @@ def _expand(spec: list[Path] | str | None) -> list[Path]:
     return list(spec)
 
 
+# files a video pattern should not take (data, text, images, calibration and marker files)
+NOT_VIDEO_SUFFIXES = (
+    ".txt", ".md", ".json", ".toml", ".yaml", ".yml", ".csv", ".xml", ".qca", ".npz", ".npy",
+    ".h5", ".parquet", ".c3d", ".trc", ".png", ".jpg", ".jpeg", ".pdf", ".zip", ".py",
+)  # fmt: skip
+
+
 def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
     """What is wrong with a scene's declared inputs, one line each naming the key: globs that
     match nothing, listed files that do not exist, an unknown calibration format."""
@@ -218,24 +233,48 @@ def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
                 + (hint if "[" in spec else "")
             )
         elif isinstance(spec, list):
-            missing = [str(p) for p in spec if not Path(p).is_file()]
+            missing = [str(p) for p in spec if not Path(p).is_file() and not Path(p).is_dir()]
             if missing:
                 problems.append(f"scenes.{name}.{key}: no such file: {', '.join(missing)}")
             elif not spec:
                 problems.append(f"scenes.{name}.{key}: the list is empty (one file per camera)")
+        if key == "videos":  # (board footage may be folders of images)
+            folders = [str(p) for p in matched if Path(p).is_dir()]
+            if folders:  # was read as one camera named after the folder
+                problems.append(
+                    f"scenes.{name}.{key}: {', '.join(folders)} is a folder, not a video; name "
+                    "the videos in it, e.g. '<folder>/cam*.mp4'"
+                )
+            other = [str(p) for p in matched if Path(p).suffix.lower() in NOT_VIDEO_SUFFIXES]
+            if other:  # `*` took the calibration file and the notes as cameras
+                problems.append(
+                    f"scenes.{name}.{key}: {', '.join(other)} are no videos; narrow the pattern "
+                    "(e.g. 'cam*.mp4') or list the files"
+                )
         # a camera is named by its file's stem: two files of one stem were one camera, the
         # last one listed (cam01.mp4 beside cam01.MOV)
         stems: dict[str, list[str]] = {}
         for path in matched:
             stems.setdefault(Path(path).stem, []).append(str(path))
         for stem, same in sorted(stems.items()):
-            if len(same) > 1:
+            if len({os.path.realpath(p) for p in same}) < len(same):  # one file, two spellings too
+                problems.append(
+                    f"scenes.{name}.{key}: listed twice: {', '.join(sorted(set(same)))}; remove "
+                    "the duplicate"
+                )
+            elif len(same) > 1:
                 problems.append(
                     f"scenes.{name}.{key}: {len(same)} files would be camera '{stem}' (a camera "
                     f"is named by its file's stem): {', '.join(same)}"
                 )
 
     files("videos", scene.videos)
+    if not scene.is_synthetic and (scene.calibration is None) == (scene.board is None):
+        # found by the calibrate stage as a failure (exit 1, a .failed record), after the run
+        problems.append(
+            f"scenes.{name}: needs exactly one of a calibration file or board footage: add "
+            "'calibration: {file: ..., format: ...}' or 'board: {...}' to the scene"
+        )
     if scene.board is not None:
         files("board.videos", scene.board.videos)
     c = scene.calibration
@@ -344,16 +383,54 @@ def _core_int(loader: yaml.SafeLoader, node: yaml.Node) -> int:
 _CoreSchemaLoader.add_constructor("tag:yaml.org,2002:int", _core_int)
 
 
+def _fields_at(model: type[BaseModel] | None, loc: tuple) -> list[str] | None:
+    """The field names of the model that holds the key at `loc` (its parent path), following
+    `model`'s fields and the values of its dicts; None where the path leaves the models."""
+    for part in loc[:-1]:
+        if model is None:
+            return None
+        field = model.model_fields.get(str(part))
+        if field is None:  # a dict's key (a scene's or stage's name): the dict's value type
+            continue
+        model = _model_in(field.annotation)
+    return None if model is None else list(model.model_fields)
+
+
+def _model_in(annotation) -> type[BaseModel] | None:
+    """The pydantic model an annotation holds: itself, an Optional's, a dict's value's."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in reversed(typing.get_args(annotation)):
+        found = _model_in(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _suggest(model: type[BaseModel] | None, loc: tuple) -> str:
+    """' (did you mean 'videos'?)' or ' (keys here: ...)' for an unknown key at `loc`."""
+    if not loc:
+        return ""
+    names = _fields_at(model, tuple(loc))
+    if not names:
+        return ""
+    close = difflib.get_close_matches(str(loc[-1]), names, n=1)
+    if close:
+        return f" (did you mean '{close[0]}'?)"
+    return f" (keys here: {', '.join(names)})"
+
+
 def load_yaml(text: str) -> Any:
     """YAML text (the config file, a `--set` value) read with YAML 1.2's core schema."""
     return yaml.load(text, Loader=_CoreSchemaLoader)  # a SafeLoader: builds no Python objects
 
 
-def format_error_line(err: dict, source: str) -> str:
-    """One pydantic error as `file: dotted.key: what was expected (got ...)`."""
+def format_error_line(err: dict, source: str, model: type[BaseModel] | None = None) -> str:
+    """One pydantic error as `file: dotted.key: what was expected (got ...)`. `model`: the
+    validated model, whose fields an unknown key is matched against ("did you mean")."""
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
     if err["type"] == "extra_forbidden":
-        return f"{source}: {loc}: unknown key"
+        return f"{source}: {loc}: unknown key" + _suggest(model, err["loc"])
     if err["type"] == "missing":
         return f"{source}: {loc}: required key is missing"
     msg = err["msg"].removeprefix("Value error, ")
@@ -364,7 +441,7 @@ def format_error_line(err: dict, source: str) -> str:
 
 def format_validation_error(exc: ValidationError, source: str) -> str:
     """One line per problem: file, dotted key, and what was expected."""
-    return "\n".join(format_error_line(err, source) for err in exc.errors())
+    return "\n".join(format_error_line(err, source, PipelineConfig) for err in exc.errors())
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:

@@ -260,17 +260,40 @@ class Runner:
             # Locations as YAML paths of the params block(s), in the file actually loaded, and
             # which of the bad values came from --set.
             source = self.cfg.source.name if self.cfg.source is not None else "pipeline.yaml"
-            where = f"stages.{name}.params" + (
-                f" / scenes.{self.scene_name}.params.{name}" if name in self.scene.params else ""
-            )
+            own = self.scene.params.get(name, {})
+            scene_block = f"scenes.{self.scene_name}.params.{name}"
             lines = []
             for err in exc.errors():
                 key = ".".join(str(x) for x in err["loc"])
-                line = format_error_line(err, source).replace(f"{source}: ", f"{source}: {where}.")
-                given = self.cfg.overrides.get(f"{name}.{key}") or self.cfg.overrides.get(
-                    f"scenes.{self.scene_name}.params.{name}.{key}"
-                )
-                lines.append(line + (f" (set by --set {given})" if given else ""))
+                top = str(err["loc"][0]) if err["loc"] else None
+                if top is None:  # a check across keys: the keys it names, where each is set
+                    named = [k for k in {**self.cfg.stages[name].params, **own}
+                             if re.search(rf"\b{re.escape(k)}\b", err["msg"])]  # fmt: skip
+                    where = (
+                        " / ".join(
+                            f"{scene_block if k in own else f'stages.{name}.params'}.{k}"
+                            for k in named
+                        )
+                        or f"stages.{name}.params"
+                    )
+                    body = format_error_line(err, source).split(": ", 2)[2]
+                    line = f"{source}: {where}: {body}"
+                else:  # the block that holds the key (the scene's wins)
+                    where = scene_block if top in own else f"stages.{name}.params"
+                    line = format_error_line(err, source, model).replace(
+                        f"{source}: ", f"{source}: {where}.", 1
+                    )
+                    named = [key]
+                given = [
+                    t
+                    for k in named
+                    for t in (
+                        self.cfg.overrides.get(f"{name}.{k}"),
+                        self.cfg.overrides.get(f"{scene_block}.{k}"),
+                    )
+                    if t
+                ]
+                lines.append(line + (f" (set by --set {', '.join(given)})" if given else ""))
             raise ConfigError("\n".join(lines)) from None
         if self.cfg.base_dir is None:
             return params
@@ -594,6 +617,13 @@ class Runner:
         self.hashes.save()
         if dry_run:
             return list(planned.values())
+        first = [f"{n} ({planned[n].reason})" for n in names
+                 if n not in targets and planned[n].needs_run]  # fmt: skip
+        if first:  # said before a pretraining nobody named starts (`track` in a new workspace)
+            log.info(
+                "%s: running first what %s needs: %s (`--dry-run` shows the plan)",
+                self.scene_name, ", ".join(targets), ", ".join(first),
+            )  # fmt: skip
         with self._lock():
             done: dict[str, StageStatus] = {}
             ran: set[str] = set()

@@ -12,6 +12,7 @@ outputs are byte-identical run to run and do not change when unrelated settings 
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -103,7 +104,9 @@ def _default_rig_writer():
             "synth writes calibration files with calibration.formats.write_rig "
             "(or pass rig_writer= to render_scene)"
         ) from exc
-    return write_rig
+    # the scene's z-up world in its Panoptic file is documented (docs/formats/synth_scene.md);
+    # the warning came once per pretraining world, about the project's own scratch files
+    return functools.partial(write_rig, warn_up=False)
 
 
 def _write_calibration(rig, out: Path, rig_writer: Callable) -> dict:

@@ -143,8 +143,12 @@ CONFIG_CASES = {
     "empty video list": ("videos", "[]", r"scenes.s.videos: the list is empty"),
     # a camera is named by its file's stem: the second file silently replaced the first
     "two videos of one stem": (
-        "videos", "[{videos}/c1.mp4, {videos}/c1.mp4]",
+        "videos", "[{videos}/c1.mp4, {videos}/other/c1.mp4]",
         r"scenes.s.videos: 2 files would be camera 'c1'",
+    ),
+    "one video listed twice": (
+        "videos", "[{videos}/c1.mp4, {videos}/c1.mp4]",
+        r"scenes.s.videos: listed twice: .*c1.mp4; remove the duplicate",
     ),
     "association key typo": (
         "set", "extract.association.merge_radus=0.6",
@@ -443,7 +447,10 @@ VIDEO_OPTION_CASES = {
     "no such file": (["{root}/nosuch.mp4"], r"--video: no such file: .*nosuch.mp4"),
     "a folder": (["{videos}"], r"--video: a folder, not a video file: .*videos"),
     "two files with one name": (["{root}/a/clip.mp4", "{root}/b/clip.mp4"], r"share one \('clip'"),
-    "one missing among good ones": (["{videos}/c1.mp4", "{root}/gone.mp4"], r"gone.mp4"),
+    "one missing among good ones": (["{videos}/c1.mp4", "{root}/gone.mp4"],
+                                    r"gone.mp4 \(looked for from /"),
+    "one file twice": (["{videos}/c1.mp4", "{videos}/c1.mp4"],
+                       r"listed twice: .*c1.mp4; remove the duplicate"),
 }  # fmt: skip
 
 

@@ -196,6 +196,8 @@ def test_bad_input_fails_with_its_message_and_a_bug_with_its_traceback(tmp_path,
     assert ("Traceback" in err) is not bad_input
     (log_file,) = (tmp_path / "ws" / ".pipeline" / "logs").glob("*-run.log")
     assert "Traceback" in log_file.read_text() and f"{kind}: boom" in log_file.read_text()
+    # ... and the console names that file (only a run that succeeded did)
+    assert f"log (with the traceback): {log_file}" in " ".join(err.split())
 
 
 @pytest.mark.parametrize(

@@ -25,7 +25,9 @@ def _alive(pid: int) -> bool:
     return not (stat.is_file() and stat.read_text().split(") ")[-1].startswith("Z"))
 
 
-def _fanout_run(tmp_path: Path, workers: int) -> tuple[Path, list[str], subprocess.Popen]:
+def _fanout_run(
+    tmp_path: Path, workers: int, stderr=None
+) -> tuple[Path, list[str], subprocess.Popen]:
     """`run fanout` started in its own process (its items sleep 60 s, each writing its pid in
     tmp_path/markers first): the config, the command and the process."""
     markers = tmp_path / "markers"
@@ -42,7 +44,8 @@ def _fanout_run(tmp_path: Path, workers: int) -> tuple[Path, list[str], subproce
         """)
     )
     cmd = [sys.executable, "-m", "pipeline", "run", "fanout", "--config", str(cfg), "--quiet"]
-    return cfg, cmd, subprocess.Popen(cmd, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return cfg, cmd, subprocess.Popen(cmd, cwd=REPO, env=env, stderr=stderr, text=True)
 
 
 def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_path):
@@ -69,6 +72,30 @@ def test_kill_9_of_a_fanned_out_run_leaves_no_worker_and_a_rerun_succeeds(tmp_pa
     )
     assert rerun.returncode == 0, rerun.stderr
     assert (tmp_path / "ws/demo/fanout/done.txt").read_text() == "0,1"
+
+
+def test_sigterm_stops_a_run_as_ctrl_c_does(tmp_path, capsys):
+    """`kill` (or a scheduler's time limit) printed a 40-line native stack dump from pycolmap's
+    logging library, as a crash would. It now ends the run as Ctrl-C does: one line, exit 143,
+    the workers gone, the stage recorded as interrupted."""
+    from pipeline.cli import main
+
+    cfg, _, run = _fanout_run(tmp_path, workers=2, stderr=subprocess.PIPE)
+    markers = tmp_path / "markers"
+    deadline = time.time() + 120
+    while len(list(markers.glob("worker-*.pid"))) < 2:
+        assert time.time() < deadline and run.poll() is None, "the workers never started"
+        time.sleep(0.2)
+    workers = [int(p.read_text()) for p in markers.glob("worker-*.pid")]
+    run.terminate()
+    err = run.communicate(timeout=60)[1]
+    assert run.returncode == 143, err
+    assert "terminated (SIGTERM)" in err and "stack trace" not in err and "Aborted" not in err
+    time.sleep(2)
+    assert [pid for pid in workers if _alive(pid)] == []
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    assert "a previous run was interrupted" in capsys.readouterr().out.replace("\n", " ")
 
 
 def test_status_during_a_run_says_it_is_running_not_interrupted(tmp_path, capsys):

@@ -192,7 +192,41 @@ def test_config_mistakes_found_before_anything_runs(tmp_path, capsys):
     twice.write_text(
         text.replace("stages:\n", "stages:\n  pretrain: {params: {lift_steps: 3}}\n", 1)
     )
+    # a config of one's own with a scene and no stages: an empty status table and a `run all`
+    # that did nothing, both exit 0
+    scene_only = tmp_path / "mine.yaml"
+    scene_only.write_text("scenes:\n  mine:\n    videos: cams/*.mp4\n")
+    # a video scene pointing at its footage folder, or taking every file in it, and without
+    # any calibration: read as cameras named after the folder or the notes, then a stage failure
+    footage = tmp_path / "footage"
+    footage.mkdir()
+    for f in ("cam01.mp4", "cam02.mp4", "Calib.qca.txt", "SOURCE.md"):
+        (footage / f).write_bytes(b"x")
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(
+        text.replace("scenes:\n", f"scenes:\n  mine:\n    videos: {footage}\n", 1).replace(
+            "scenes:\n", f"scenes:\n  every:\n    videos: '{footage}/*'\n", 1
+        )
+    )
     runs = [
+        (["run", "calibrate", "--scene", "mine", "--config", str(lab)], "is a folder, not a video"),
+        (["run", "calibrate", "--scene", "mine", "--config", str(lab)], "exactly one of a calib"),
+        (["run", "calibrate", "--scene", "every", "--config", str(lab)], "SOURCE.md are no videos"),
+        (
+            [
+                "run",
+                "calibrate",
+                "--scene",
+                "mine",
+                "--config",
+                str(lab),
+                "--set",
+                f"scenes.mine.videos=[{footage}/cam01.mp4, {footage}/cam01.mp4]",
+            ],
+            "listed twice",
+        ),  # fmt: skip
+        (["status", "--config", str(scene_only)], "copy the `stages:` block"),
+        (["run", "all", "--config", str(scene_only)], "the file declares no stages"),
         (["status", "--config", str(twice)], "key 'pretrain' is given twice"),
         (["run", "synth", "--set", "stages.synth.needs=[bench]"], "stages form a cycle"),
         (["status", "--set", "scenes.demo.fps=.inf"], "scenes.demo.fps: Input should be a finite"),
@@ -325,3 +359,33 @@ def test_progress_in_a_log_file_writes_a_line_per_tenth_but_not_for_a_quick_step
     with caplog.at_level("INFO", logger="pipeline"):
         list(ProgressBars._logged(range(100), "long", 100, min_interval_s=0.0))
     assert len(caplog.records) == 10
+
+
+def test_a_key_error_names_its_block_and_a_close_key(tmp_path, capsys):
+    """A review as a new user: an unknown key said only "unknown key" ('video' for 'videos'), a
+    bad stage value named both the stage's block and the scene's whatever held it, and a check
+    across keys was located at "(top level)" without the --set that gave one of them."""
+    from pipeline.cli import main
+
+    text = (REPO / "pipeline.yaml").read_text()
+    typo = tmp_path / "typo.yaml"
+    typo.write_text(text.replace("scenes:\n", "scenes:\n  mine:\n    video: x.mp4\n", 1))
+    assert main(["status", "--config", str(typo)]) == 2
+    assert "scenes.mine.video: unknown key (did you mean 'videos'?)" in capsys.readouterr().err
+    own = tmp_path / "own.yaml"
+    own.write_text(
+        text.replace("  demo:  ", "  demo:\n    params: {track: {start_s: 5.0}}\n  #", 1)
+    )
+    config = ["--config", str(own), "--scene", "demo"]
+    assert main(["status", *config, "--set", "track.batch_size=3x"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "stages.track.params.batch_size: Input should be a valid integer" in err
+    assert "scenes.demo.params.track.batch_size" not in err  # not the block that holds it
+    assert main(["status", *config, "--set", "track.end_s=1"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert (
+        "stages.track.params.end_s / scenes.demo.params.track.start_s: end_s 1.0 must be after "
+        "start_s 5.0 (set by --set track.end_s=1)"
+    ) in err
+    assert main(["status", *config, "--set", "track.batchsize=3"]) == 2
+    assert "unknown key (did you mean 'batch_size'?)" in capsys.readouterr().err

@@ -25,9 +25,13 @@ def test_a_stale_upstream_stage_is_kept_unless_asked(tmp_path, counter):  # noqa
 
 
 def test_missing_upstream_outputs_are_always_produced(tmp_path, counter):  # noqa: F811
+    """... and the log says so before they start (`run track` in a new workspace started a
+    pretraining with no word of what was coming)."""
     cfg = write_config(tmp_path)
     assert run(cfg, "run", "double") == 0
     assert counter() == ["source", "double"]
+    (log_file,) = (tmp_path / "ws/.pipeline/logs").glob("*.log")
+    assert "running first what double needs: source (never run)" in log_file.read_text()
 
 
 def test_run_all_runs_every_stale_stage(tmp_path, counter):  # noqa: F811

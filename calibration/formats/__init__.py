@@ -190,14 +190,18 @@ def _camera_spread(rig: Rig) -> float | None:
     return float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
 
 
-def write_rig(rig: Rig, path: str | Path, fmt: str = "rig", **opts) -> None:
-    """Validate and write a rig atomically. Options per format are listed in FORMATS."""
+def write_rig(
+    rig: Rig, path: str | Path, fmt: str = "rig", *, warn_up: bool = True, **opts
+) -> None:
+    """Validate and write a rig atomically. Options per format are listed in FORMATS.
+    `warn_up`: log `up_warning` where the format cannot hold the rig's up (off for writers
+    whose files document their world, as the synthetic scenes')."""
     info = _info(fmt)
     if not info.can_write:
         raise RigFormatError(f"format '{fmt}' is read only")
     _check_options(fmt, opts, info.write_options, "write")
     validate_rig(rig)
-    warning = up_warning(rig, fmt)
+    warning = up_warning(rig, fmt) if warn_up else None
     if warning is not None:
         log.warning("%s: %s", path, warning)
     info.module.write(rig, Path(path), **opts)
