@@ -225,6 +225,10 @@ def _score(pred, pairs, truth, joints=None) -> tuple[float, float, int]:
     P = pred[pairs[:, 0]][:, js]
     G = truth.joints_world[pairs[:, 1]][:, js]
     ok = np.isfinite(P).all(-1)
+    scored = ok.any(-1)  # a person-frame none of whose joints every method gave: not scored
+    P, G, ok = P[scored], G[scored], ok[scored]
+    if not len(P):
+        return float("nan"), float("nan"), 0
     Pt, Gt = torch.as_tensor(np.nan_to_num(P)), torch.as_tensor(G, dtype=torch.float64)
     v = torch.as_tensor(ok)
     return (
