@@ -241,10 +241,13 @@ class Camera:
             return np.zeros((0, 2))
         return self._lens_project(np.c_[xy, np.ones(len(xy))])
 
-    def unproject(self, pixels: np.ndarray, depth: np.ndarray | float | None = None) -> np.ndarray:
+    def unproject(
+        self, pixels: np.ndarray, depth: np.ndarray | float | None = None, exact_only: bool = False
+    ) -> np.ndarray:
         """Pixels to world. With `depth` (camera z, metres) returns (N, 3) points; without it,
-        returns (N, 3) unit ray directions in world coordinates."""
-        xy = self.undistort_points(pixels)
+        returns (N, 3) unit ray directions in world coordinates. `exact_only`: NaN for pixels
+        beyond where the lens model inverts (`undistort_points`)."""
+        xy = self.undistort_points(pixels, exact_only=exact_only)
         rays_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
         if depth is None:
             d = rays_cam @ self.R  # R^T applied to row vectors

@@ -381,8 +381,16 @@ def main(argv: list[str] | None = None) -> int:
             )
         # Declared inputs that cannot exist stop a run before anything is written (status and
         # --dry-run show them instead: they are tools for a user whose inputs are broken).
+        # (a scene's rig is an input only where the run reaches `calibrate`: `track` needs none)
+        needs = {n: list(st.needs) for n, st in cfg.stages.items()}
+        if args.command == "run" and args.stage != "all":
+            rig = "calibrate" in upstream_closure(needs, [args.stage])
+        else:
+            rig = "calibrate" in needs
         problems = [
-            line for scene in scenes for line in scene_input_problems(scene, cfg.scenes[scene])
+            line
+            for scene in scenes
+            for line in scene_input_problems(scene, cfg.scenes[scene], needs_rig=rig)
         ]
         if problems and args.command == "run" and not args.dry_run:
             raise ConfigError("\n".join(problems))
@@ -423,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
             setup_logging(console, None, args.command, args.quiet)
         for runner in runners:
             scene = runner.scene_name
-            notes = scene_input_problems(scene, cfg.scenes[scene])
+            notes = scene_input_problems(scene, cfg.scenes[scene], needs_rig=rig)
             report = make_console(False, stderr=False)  # the command's output: stdout
             if args.command == "status":
                 report.print(

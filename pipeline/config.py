@@ -22,6 +22,7 @@ import difflib
 import glob
 import os
 import re
+import types
 import typing
 from pathlib import Path
 from typing import Any, Literal
@@ -217,9 +218,11 @@ NOT_VIDEO_SUFFIXES = (
 )  # fmt: skip
 
 
-def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
+def scene_input_problems(name: str, scene: SceneConfig, needs_rig: bool = True) -> list[str]:
     """What is wrong with a scene's declared inputs, one line each naming the key: globs that
-    match nothing, listed files that do not exist, an unknown calibration format."""
+    match nothing, listed files that do not exist, an unknown calibration format, a folder or a
+    non-video file among the videos, a file listed twice; with `needs_rig` (the run reaches
+    `calibrate`), a video scene without exactly one of a calibration file and board footage."""
     from calibration.formats import FORMATS  # the library knows its formats
 
     problems = []
@@ -269,7 +272,11 @@ def scene_input_problems(name: str, scene: SceneConfig) -> list[str]:
                 )
 
     files("videos", scene.videos)
-    if not scene.is_synthetic and (scene.calibration is None) == (scene.board is None):
+    if (
+        needs_rig
+        and not scene.is_synthetic
+        and (scene.calibration is None) == (scene.board is None)
+    ):
         # found by the calibrate stage as a failure (exit 1, a .failed record), after the run
         problems.append(
             f"scenes.{name}: needs exactly one of a calibration file or board footage: add "
@@ -386,14 +393,27 @@ _CoreSchemaLoader.add_constructor("tag:yaml.org,2002:int", _core_int)
 def _fields_at(model: type[BaseModel] | None, loc: tuple) -> list[str] | None:
     """The field names of the model that holds the key at `loc` (its parent path), following
     `model`'s fields and the values of its dicts; None where the path leaves the models."""
+    key_next = False  # the part after a dict field is one of its keys (a scene named 'videos')
     for part in loc[:-1]:
         if model is None:
             return None
-        field = model.model_fields.get(str(part))
-        if field is None:  # a dict's key (a scene's or stage's name): the dict's value type
+        if key_next:
+            key_next = False
             continue
+        field = model.model_fields.get(str(part))
+        if field is None:
+            return None
+        key_next = typing.get_origin(_unoptional(field.annotation)) is dict
         model = _model_in(field.annotation)
-    return None if model is None else list(model.model_fields)
+    return None if model is None or key_next else list(model.model_fields)
+
+
+def _unoptional(annotation):
+    """`X` of `X | None`."""
+    args = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType) and len(args) == 1:
+        return args[0]
+    return annotation
 
 
 def _model_in(annotation) -> type[BaseModel] | None:

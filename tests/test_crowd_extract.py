@@ -168,6 +168,16 @@ def test_a_landmark_beyond_where_the_lens_inverts_is_not_moved_into_the_crop():
     px = np.stack([other.project(X), np.array([[2100.0, 1300.0]])])
     got = triangulate_weighted([other, cam], px, np.ones((2, 1)))
     assert np.isnan(got).all()  # fewer than two views: NaN (was a point on a wrong ray)
+    # ... and the cross-view matching gives it no ray (its wrong ray was matched against others)
+    from gst.data.keypoints.instances import PersonInstance
+    from gst.data.keypoints.matching import _BODY, camera_view
+
+    marks = np.zeros((33, 3))
+    marks[:] = (1700.0, 900.0, 0.9)
+    marks[_BODY[0]] = (2100.0, 1300.0, 0.9)
+    view = camera_view(cam, [PersonInstance.create(marks, box=(1500, 700, 1900, 1070))], 0.3)
+    assert view.conf[0, 0] == 0 and (view.conf[0, 1:] == 0.9).all()
+    assert np.isfinite(view.rays).all()
 
 
 def test_without_blazepose_the_hull_runs_and_says_so(scene, tmp_path, caplog):

@@ -237,6 +237,15 @@ def test_config_mistakes_found_before_anything_runs(tmp_path, capsys):
         assert main(args + config) == 2, args
         assert message in capsys.readouterr().err, args
     assert not (tmp_path / "workspace").exists()
+    # the rig is an input only where the run reaches `calibrate` (`track` runs without one)
+    own_dag = tmp_path / "own_dag.yaml"
+    own_dag.write_text(f"scenes:\n  mine:\n    videos: {footage}/cam0*.mp4\n"
+                       "stages:\n  track: {needs: []}\n  calibrate: {}\n")  # fmt: skip
+    assert main(["run", "track", "--config", str(own_dag)]) == 1  # (no model to track with)
+    err = capsys.readouterr().err
+    assert "failed" in err and "exactly one of a calib" not in err
+    assert main(["run", "calibrate", "--config", str(own_dag)]) == 2
+    assert "exactly one of a calib" in capsys.readouterr().err
 
 
 def test_an_error_is_blamed_on_the_set_that_gave_the_value_only(tmp_path, capsys):
@@ -372,6 +381,10 @@ def test_a_key_error_names_its_block_and_a_close_key(tmp_path, capsys):
     typo.write_text(text.replace("scenes:\n", "scenes:\n  mine:\n    video: x.mp4\n", 1))
     assert main(["status", "--config", str(typo)]) == 2
     assert "scenes.mine.video: unknown key (did you mean 'videos'?)" in capsys.readouterr().err
+    # a scene whose name is a key of scenes (synthetic) is a scene, not that key's model
+    typo.write_text(text.replace("scenes:\n", "scenes:\n  synthetic:\n    calibraton: x\n", 1))
+    assert main(["status", "--config", str(typo)]) == 2
+    assert "did you mean 'calibration'?" in capsys.readouterr().err
     own = tmp_path / "own.yaml"
     own.write_text(
         text.replace("  demo:  ", "  demo:\n    params: {track: {start_s: 5.0}}\n  #", 1)

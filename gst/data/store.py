@@ -567,6 +567,13 @@ class CropStore:
                     ("person_id", "person_id"),
                 )  # fmt: skip
             )
+            # the same rows cut at another scale: their boxes differ
+            and np.array_equal(
+                np.stack(
+                    [table.column(c).to_numpy() for c in ("crop_x0", "crop_y0", "crop_side")], 1
+                ),
+                f["crop_box"][:n],
+            )
         )
         if not fresh and table.num_rows == n:
             log.warning("%s: index does not describe %s's rows; rebuilt", ip, self.path.name)

@@ -16,15 +16,16 @@ import numpy as np
 from calibration.camera import FIELD_MARGIN, Camera
 
 
-def viewing_rays(cam: Camera, pixels: np.ndarray) -> np.ndarray:
+def viewing_rays(cam: Camera, pixels: np.ndarray, exact_only: bool = False) -> np.ndarray:
     """(..., 2) distorted pixels -> (..., 3) unit world directions from the camera centre
-    (undistorted with cv2.undistortPoints through `Camera.unproject`)."""
+    (undistorted with cv2.undistortPoints through `Camera.unproject`; `exact_only`: NaN for a
+    pixel beyond where the lens model inverts)."""
     px = np.asarray(pixels, dtype=np.float64)
     shape = px.shape[:-1]
     flat = px.reshape(-1, 2)
     if len(flat) == 0:
         return np.zeros((*shape, 3))
-    return cam.unproject(flat).reshape(*shape, 3)
+    return cam.unproject(flat, exact_only=exact_only).reshape(*shape, 3)
 
 
 def ray_gaps(

@@ -202,7 +202,13 @@ def camera_view(cam: Camera, instances: Sequence[PersonInstance], min_conf: floa
         np.stack([i.landmarks for i in instances]) if n else np.zeros((0, N_LANDMARKS, 3))
     ).copy()
     full[..., 2] = np.where(full[..., 2] >= max(min_conf, 1e-9), full[..., 2], 0.0)
-    return CameraView(cam, lm[..., :2], conf, viewing_rays(cam, lm[..., :2]), scale, full)
+    # a landmark beyond where the lens model inverts has no ray (one hundreds of px off was
+    # matched against other cameras): unseen, with a finite stand-in (0 x NaN is NaN)
+    rays = viewing_rays(cam, lm[..., :2], exact_only=True)
+    lost = ~np.isfinite(rays).all(-1) & (conf > 0)
+    conf = np.where(lost, 0.0, conf)
+    rays = np.where(np.isfinite(rays), rays, cam.R[2])
+    return CameraView(cam, lm[..., :2], conf, rays, scale, full)
 
 
 def pair_costs(a: CameraView, b: CameraView, config: MatchConfig) -> tuple[np.ndarray, np.ndarray]:
