@@ -24,7 +24,7 @@ from calibration.formats import read_rig, write_rig
 from calibration.report import write_calibration_report
 from calibration.solve import BoardCalibration, calibrate_from_board
 from gst.atomic import atomic_write_json
-from gst.video import VideoError, probe_video, read_frames
+from gst.video import VideoError, probe_videos, read_frames
 
 log = logging.getLogger("calibration")
 
@@ -83,9 +83,10 @@ def fit_rig_to_videos(
     """Every camera fitted to its video's decoded frame size (`fit_to_frames`: encoder padding
     within `tolerance` px is accepted and noted, anything else stops with the fix)."""
     cams, notes = [], []
+    infos = probe_videos({c.name: videos[c.name] for c in rig if c.name in videos})
     for cam in rig:
         if cam.name in videos:
-            info = probe_video(videos[cam.name], cam.name)
+            info = infos[cam.name]
             cam, note = fit_to_frames(cam, info.width, info.height, tolerance, str(info.path))
             if note:
                 log.warning("%s", note)

@@ -54,6 +54,7 @@ __all__ = [
     "frame_range",
     "iter_frames",
     "probe_video",
+    "probe_videos",
     "read_frames",
     "scaled_size",
 ]
@@ -179,6 +180,22 @@ def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> 
 RAW_STREAM_SUFFIXES = (".h264", ".264", ".h265", ".265", ".hevc", ".mjpeg", ".mjpg")
 
 
+def probe_videos(videos: dict[str, Path], *, strict: bool = False) -> dict[str, VideoInfo]:
+    """`probe_video` of every camera's video; one VideoError naming every video that fails
+    (only the first was named, so a user fixed and reran once per broken file)."""
+    infos, errors = {}, []
+    for name, path in videos.items():
+        try:
+            infos[name] = probe_video(path, name, strict=strict)
+        except VideoError as exc:
+            errors.append(str(exc))
+    if len(errors) == 1:
+        raise VideoError(errors[0])
+    if errors:
+        raise VideoError(f"{len(errors)} videos cannot be read:\n" + "\n".join(errors))
+    return infos
+
+
 def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str, VideoInfo]:
     """Probe every camera's video and check them against the rig and against each other.
 
@@ -194,7 +211,7 @@ def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str,
             f"camera(s) {missing} have videos ({', '.join(str(videos[m]) for m in missing)}) "
             f"but are missing from the rig (rig cameras: {list(rig_names)})"
         )
-    infos = {name: probe_video(path, name, strict=True) for name, path in videos.items()}
+    infos = probe_videos(videos, strict=True)
     # the frames each really holds: a container may announce one or two more than it has (the
     # extraction then failed on the missing last frame and called the file corrupt)
     infos = {n: replace(info, frame_count=held_frames(info)) for n, info in infos.items()}

@@ -352,6 +352,22 @@ def test_video_errors(case, scene, tmp_path, capsys):
     _assert_failed(code, err, 1, names, tmp_path / "ws")
 
 
+def test_every_broken_video_is_named_at_once(scene, tmp_path, capsys):
+    """An empty c1 and a corrupt c2: only c1 was named, and the user fixed and reran once per
+    broken file."""
+    folder = _videos_with(scene, tmp_path, "c1", lambda p: p.write_bytes(b""))
+    (folder / "c2.mp4").write_bytes(np.random.default_rng(0).bytes(5000))
+    cfg = _config(tmp_path, scene, videos=f"{folder}/c*.mp4")
+    code, err = _cli(capsys, "run", "extract", "--config", str(cfg))
+    _assert_failed(
+        code,
+        err,
+        1,
+        r"(?s)2 videos cannot be read:.*c1\.mp4: the file is empty.*c2\.mp4: OpenCV cannot",
+        tmp_path / "ws",
+    )
+
+
 def test_video_8_rows_short_is_encoder_padding(scene, tmp_path, capsys):
     """Frames 8 rows shorter than the calibration (1080 in a 1088 calibration) pass with a
     warning: the same check that refuses 100 rows accepts padding."""
