@@ -1061,3 +1061,12 @@ def test_h36m_json_writer_takes_the_option_its_refusal_suggests(tmp_path):
     back = read_rig(path, "h36m-json", tangential="h36m")
     uv = np.stack(np.meshgrid(np.linspace(0, 1919, 9), np.linspace(0, 1079, 7)), -1).reshape(-1, 2)
     assert np.abs(back[0].project(general[0].unproject(uv, 3.0)) - uv).max() < 0.5
+
+
+def test_a_declared_format_the_file_is_not_says_what_it_looks_like(tmp_path):
+    """`format: pose2sim` on a Panoptic file said only "not valid TOML" (a user review)."""
+    path = tmp_path / "calibration.json"
+    write_rig(ring_cameras(2), path, "panoptic")
+    with pytest.raises(RigFormatError, match="the file looks like 'panoptic': give that format"):
+        read_rig(path, "pose2sim")
+    assert len(read_rig(path)) == 2  # detected

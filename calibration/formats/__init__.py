@@ -159,7 +159,22 @@ def read_rig(path: str | Path, fmt: str | None = None, **opts) -> Rig:
     _check_options(fmt, opts, info.read_options, "read")
     if not path.exists():
         raise RigFormatError(f"{path}: no such file or folder")
-    rig = info.module.read(path, **opts)
+    try:
+        rig = info.module.read(path, **opts)
+    except RigFormatError as exc:
+        if guessed:
+            raise
+        # a declared format that the file is not ("not valid TOML" for a Qualisys file)
+        try:
+            other = detect_format(path)
+        except RigFormatError:
+            other = None
+        if other is None or other == fmt:
+            raise
+        raise RigFormatError(
+            f"{exc} (read as '{fmt}', as asked; the file looks like '{other}': give that "
+            "format, or omit it to detect it)"
+        ) from exc
     if guessed and fmt in ("anipose", "pose2sim"):
         # the two TOML layouts differ by a key or a distortion length, and in units (mm against
         # m): a metres file taken for anipose put a camera 4.2 m away 4.2 mm away, silently
