@@ -235,8 +235,9 @@ _STYLE = {UP_TO_DATE: "green", STALE: "yellow", MISSING: "red", SKIPPED: "dim", 
 
 def _status_table(title: str, statuses) -> Table:
     table = Table(title=title, title_justify="left")
-    for col in ("stage", "state", "reason"):
-        table.add_column(col)
+    table.add_column("stage")
+    table.add_column("state")
+    table.add_column("reason", overflow="fold")  # wrapped, not cut: the path's end is its name
     for st in statuses:
         table.add_row(st.key, f"[{_STYLE.get(st.state, '')}]{st.state}[/]", st.reason)
     return table

@@ -458,7 +458,12 @@ class Runner:
         changed = [
             k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)
         ]
-        reasons += [f"input changed: {k}" for k in changed[:5]]
+        # an input outside the config's folder by its own path ("../../../work/..." said little)
+        base = self.cfg.base_dir
+        reasons += [
+            f"input changed: {os.path.normpath(base / k) if base and k.startswith('..') else k}"
+            for k in changed[:5]
+        ]
         if len(changed) > 5:
             reasons.append(f"... and {len(changed) - 5} more inputs")
         if failed is not None:

@@ -107,6 +107,17 @@ def test_a_file_named_by_a_param_is_an_input(tmp_path, counter, capsys):
     out = tmp_path / "ws" / "demo" / "source" / "data.txt"
     assert out.read_text() == "value=1\na\ntwo\n"
     assert counter() == ["source", "source"]
+    # an input outside the config's folder is shown by its own path, and not cut short
+    outside = tmp_path.parent / f"{tmp_path.name}_elsewhere_with_a_rather_long_folder_name.txt"
+    outside.write_text("a\n")
+    cfg.write_text(cfg.read_text().replace("data/named.txt", str(outside)))
+    assert run(cfg, "run", "source") == 0
+    outside.write_text("b\n")
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    # (wrapped in the table's column: the cell's lines joined without the borders)
+    table = "".join(c for c in capsys.readouterr().out if not c.isspace() and c not in "│┃")
+    assert f"inputchanged:{outside}" in table
 
 
 def test_a_plain_text_param_is_not_taken_for_a_file_of_that_name(tmp_path):
