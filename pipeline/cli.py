@@ -81,7 +81,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=EPILOG,
     )
-    run.add_argument("stage", help="stage name, or 'all'")
+    run.add_argument(
+        "stage",
+        help="stage name, or 'all'; the project's pipeline.yaml declares synth, calibrate, "
+        "extract, fuse, pretrain, train, track, evaluate, bench (`python -m pipeline stages` "
+        "lists a config's own with what each does)",
+    )
     _common(run)
     run.add_argument(
         "--force",

@@ -402,3 +402,19 @@ def test_a_key_error_names_its_block_and_a_close_key(tmp_path, capsys):
     ) in err
     assert main(["status", *config, "--set", "track.batchsize=3"]) == 2
     assert "unknown key (did you mean 'batch_size'?)" in capsys.readouterr().err
+
+
+def test_run_help_names_the_project_pipelines_stages():
+    """`run --help` said only "stage name, or 'all'"; the names it lists are pipeline.yaml's."""
+    import re
+
+    from pipeline.cli import build_parser
+    from pipeline.config import load_config
+
+    parser = build_parser()
+    run = next(
+        a for a in parser._subparsers._group_actions[0].choices.values() if a.prog.endswith(" run")
+    )
+    text = " ".join(run.format_help().split())
+    listed = re.search(r"declares ([a-z, ]+) \(", text).group(1).split(", ")
+    assert listed == list(load_config(REPO / "pipeline.yaml").stages)
