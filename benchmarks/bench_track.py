@@ -490,7 +490,15 @@ def real_footage(args) -> None:
         torch_default = torch.get_num_threads()
         stage_torch = network_threads(TrackSettings(), "blazepose", 1, 1) or torch_default
         variants = [  # (name, detector factory, options, torch threads, network image path)
-            ("old: detector + masks every frame", every_frame, opts(), torch_default, "auto"),
+            # the old rows keep torch's default threads, as the old stage ran; the new rows the
+            # stage's (the "new, N torch threads" row shows what the threads alone change)
+            (
+                f"old: detector + masks every frame ({torch_default} torch threads)",
+                every_frame,
+                opts(),
+                torch_default,
+                "auto",
+            ),
             (
                 f"new: stage default ({default.threads} LiteRT, {stage_torch} torch threads)",
                 new(),
@@ -554,7 +562,13 @@ def real_footage(args) -> None:
             ("new, one landmark call per person", new(batch=False), opts(), stage_torch, "auto"),
             # one change against the stage default: prefetch off (torch keeps the stage's threads)
             ("new, no prefetch (one Python thread)", new(), opts(prefetch=0), stage_torch, "auto"),
-            ("old, stride 2", every_frame, opts(stride=2), torch_default, "auto"),
+            (
+                f"old, stride 2 ({torch_default} torch threads)",
+                every_frame,
+                opts(stride=2),
+                torch_default,
+                "auto",
+            ),  # fmt: skip
             ("new, stride 2 (stage default)", new_stride2(), opts(stride=2), stage_torch, "auto"),
             (
                 "new, stride 2, not looking again",
