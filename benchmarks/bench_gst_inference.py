@@ -12,15 +12,20 @@ the body model is the open default.
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import torch
 
-from gst.body import load_body_model
-from gst.device import module_on, resolve_device
-from gst.eval.bench import time_inference
-from gst.model.assemble import assemble
-from gst.model.presets import get_preset
-from gst.train.recipe import build_network
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.body import load_body_model  # noqa: E402
+from gst.device import module_on, resolve_device  # noqa: E402
+from gst.eval.bench import time_inference  # noqa: E402
+from gst.model.assemble import assemble  # noqa: E402
+from gst.model.presets import get_preset  # noqa: E402
+from gst.train.recipe import build_network  # noqa: E402
 
 
 def main() -> None:

@@ -20,18 +20,22 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gst.body import load_body_model
-from gst.lift.errors import LANDMARK_SETS
-from gst.lift.pretrain import LiftPretrainConfig, pretrain_landmark_path
-from gst.lift.sampler import LiftSampler
-from gst.model.presets import get_preset
-from gst.train.recipe import build_network
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.body import load_body_model  # noqa: E402
+from gst.lift.errors import LANDMARK_SETS  # noqa: E402
+from gst.lift.pretrain import LiftPretrainConfig, pretrain_landmark_path  # noqa: E402
+from gst.lift.sampler import LiftSampler  # noqa: E402
+from gst.model.presets import get_preset  # noqa: E402
+from gst.train.recipe import build_network  # noqa: E402
 
 
 def _median_rate(fn, samples: int, repeats: int) -> float:

@@ -13,14 +13,19 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from gst.metrics.lpips import load_lpips
-from gst.metrics.pose import pa_mpjpe
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.metrics.lpips import load_lpips  # noqa: E402
+from gst.metrics.pose import pa_mpjpe  # noqa: E402
 
 
 def _median_s(fn: Callable[[], object], repeats: int, device: torch.device) -> float:

@@ -14,19 +14,24 @@ default), one shared rate for everything, and a larger render size. Goal: >= 30 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
+from pathlib import Path
 
 import torch
 
-from gst.body import load_body_model
-from gst.metrics.lpips import load_lpips
-from gst.model.presets import get_preset
-from gst.train.losses import LossWeights
-from gst.train.overfit import overfit_sample
-from gst.train.recipe import build_network, make_task
-from gst.train.synthetic_crops import crops_from_synth_scene
-from synth.scene import preset, render_scene
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.body import load_body_model  # noqa: E402
+from gst.metrics.lpips import load_lpips  # noqa: E402
+from gst.model.presets import get_preset  # noqa: E402
+from gst.train.losses import LossWeights  # noqa: E402
+from gst.train.overfit import overfit_sample  # noqa: E402
+from gst.train.recipe import build_network, make_task  # noqa: E402
+from gst.train.synthetic_crops import crops_from_synth_scene  # noqa: E402
+from synth.scene import preset, render_scene  # noqa: E402
 
 VARIANTS = {  # name: (Gaussian-head lr, body lr, render size)
     "split": (2e-3, 1e-5, 64),

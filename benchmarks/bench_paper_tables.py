@@ -26,23 +26,27 @@ from __future__ import annotations
 
 import argparse
 import copy
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-from calibration.formats import read_rig
-from gst.body import load_body_model
-from gst.eval.evaluate import EvalConfig, evaluate_model
-from gst.eval.split import FinetuneConfig, finetune, frame_split
-from gst.lift.rehearsal import PriorRehearsal
-from gst.lift.teacher import RigTeacher
-from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
-from gst.train.losses import LossWeights
-from gst.train.recipe import make_task
-from gst.train.scene_training import TrainSettings, prepare_crops
-from synth.truth import read_scene_truth
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from calibration.formats import read_rig  # noqa: E402
+from gst.body import load_body_model  # noqa: E402
+from gst.eval.evaluate import EvalConfig, evaluate_model  # noqa: E402
+from gst.eval.split import FinetuneConfig, finetune, frame_split  # noqa: E402
+from gst.lift.rehearsal import PriorRehearsal  # noqa: E402
+from gst.lift.teacher import RigTeacher  # noqa: E402
+from gst.metrics.lpips import load_lpips  # noqa: E402
+from gst.model.checkpoint import load_checkpoint, network_from_checkpoint  # noqa: E402
+from gst.train.losses import LossWeights  # noqa: E402
+from gst.train.recipe import make_task  # noqa: E402
+from gst.train.scene_training import TrainSettings, prepare_crops  # noqa: E402
+from synth.truth import read_scene_truth  # noqa: E402
 
 DEFAULT = LossWeights()  # the train stage's weights: paper terms + anchors, joints, distillation
 OFF = {"anchor": 0.0, "keypoints": 0.0, "distill_joints": 0.0, "distill_root": 0.0,

@@ -4,16 +4,20 @@ right (`gst.metrics.flips.landmark_sides`: +1 right, -1 mirrored, 0 unsure or no
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gst.eval.scene import fused_reference
-from gst.metrics.flips import landmark_sides, reference_in_crops
-from gst.train.keypoints import store_landmarks
-from gst.train.scene_truth import attach_scene_truth
-from gst.train.views import CropSet, load_cropset
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.eval.scene import fused_reference  # noqa: E402
+from gst.metrics.flips import landmark_sides, reference_in_crops  # noqa: E402
+from gst.train.keypoints import store_landmarks  # noqa: E402
+from gst.train.scene_truth import attach_scene_truth  # noqa: E402
+from gst.train.views import CropSet, load_cropset  # noqa: E402
 
 
 def labelled_scene_crops(ws: Path, reference: str) -> tuple[CropSet, torch.Tensor, np.ndarray]:

@@ -11,15 +11,19 @@ Procrustes), with the mean-pose baseline beside it.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gst.lift.dataset import load_worlds
-from gst.lift.errors import LIMB_LANDMARKS, LIMB_NAMES, LR_PAIRS, detection_stats
-from gst.lift.noise import POSE_KINDS, pose_kind
-from gst.metrics.pose import pa_mpjpe, similarity_procrustes
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.lift.dataset import load_worlds  # noqa: E402
+from gst.lift.errors import LIMB_LANDMARKS, LIMB_NAMES, LR_PAIRS, detection_stats  # noqa: E402
+from gst.lift.noise import POSE_KINDS, pose_kind  # noqa: E402
+from gst.metrics.pose import pa_mpjpe, similarity_procrustes  # noqa: E402
 
 
 def _cat(worlds, key):

@@ -23,17 +23,22 @@ shared).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from gst.body import load_body_model
-from gst.lift.dataset import named_worlds
-from gst.lift.pretrain import LiftPretrainConfig, evaluate_world, pretrain_landmark_path
-from gst.lift.sampler import LiftSampler
-from gst.model.presets import get_preset
-from gst.model.refine import DEFAULT_ROUNDS
-from gst.train.recipe import build_network
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
+
+from gst.body import load_body_model  # noqa: E402
+from gst.lift.dataset import named_worlds  # noqa: E402
+from gst.lift.pretrain import LiftPretrainConfig, evaluate_world, pretrain_landmark_path  # noqa: E402
+from gst.lift.sampler import LiftSampler  # noqa: E402
+from gst.model.presets import get_preset  # noqa: E402
+from gst.model.refine import DEFAULT_ROUNDS  # noqa: E402
+from gst.train.recipe import build_network  # noqa: E402
 
 SAMPLER_KEYS = {
     "random_share": float,
