@@ -402,7 +402,8 @@ class CutEveryCrop:
 
 
 def components(video: Path, camera, n: int, gst, fps: float) -> None:
-    """CPU ms per frame of the parts of the new loop, each alone (single-threaded)."""
+    """CPU ms per frame of the parts of the new loop, each run alone, one after another (each
+    on the threads it uses by default: FFmpeg's, LiteRT's, torch's; CPU time over all of them)."""
     from gst.data.camera_view import TrackingView
     from gst.track.frames import prepare_detection
     from gst.track.person_detector import PersonModelDetector
