@@ -261,3 +261,43 @@ def test_unreadable_hmr2_files_are_named_without_unsafe_advice(tmp_path, content
         read_checkpoint_state(path)
     assert str(path) in str(err.value) and expected in str(err.value)
     assert "weights_only=False" not in str(err.value)
+
+
+class _Payload:
+    """Pickles as a call of os.getcwd: what a malicious checkpoint would run."""
+
+    def __reduce__(self):
+        import os
+
+        return (os.getcwd, ())
+
+
+def test_a_refused_pickle_names_what_was_refused_and_gives_no_unsafe_advice(tmp_path):
+    """torch's first line, cut at 200 characters, ended advising weights_only=False and lost
+    the refused object; HMR2's reader advised a weights_only=False re-save for a .npy too."""
+    from gst.model.checkpoint import load_checkpoint
+    from gst.model.hmr2_import import read_checkpoint_state
+
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": "x", "payload": _Payload()}, evil)
+    with pytest.raises(ValueError) as err:
+        load_checkpoint(evil)
+    assert "GLOBAL posix.getcwd" in str(err.value) and "weights_only" not in str(err.value)
+    npy = tmp_path / "weights.npy"
+    np.save(npy, np.ones(3))
+    with pytest.raises(ValueError) as err:
+        read_checkpoint_state(npy)
+    assert "weights_only=False" not in str(err.value)
+
+
+def test_float_crops_outside_0_1_and_non_image_types_are_refused():
+    """Crops scaled to [-1, 1] were normalised again (joints 26 cm off on the demo); a bool
+    mask passed as crops was taken for an image."""
+    from gst.model.preprocess import to_float_images
+
+    x = np.random.default_rng(0).uniform(-1, 1, (2, 8, 8, 3)).astype(np.float32)
+    with pytest.raises(ValueError, match="minimum of .*\\(x \\+ 1\\) / 2"):
+        to_float_images(x)
+    with pytest.raises(ValueError, match="uint8 .* or float in \\[0, 1\\], got bool"):
+        to_float_images(np.zeros((2, 8, 8, 3), bool))
+    assert to_float_images((x + 1) / 2).shape == (2, 3, 8, 8)

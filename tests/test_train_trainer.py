@@ -118,6 +118,20 @@ def test_a_resume_with_other_settings_says_which(tmp_path, caplog):
     assert "written with other settings: lr: 0.01 -> 0.005" in caplog.text
 
 
+def test_a_foreign_last_checkpoint_is_named(tmp_path):
+    """A copied, cut or foreign last.pt failed with a bare RuntimeError or KeyError 101."""
+    cfg = TrainConfig(steps=2, batch_size=4, lr=1e-2, warmup_steps=1, ckpt_every=1, log_every=1)
+    model, step, sample = make_problem()
+    trainer = Trainer(model, step, sample, cfg, tmp_path)
+    for content, message in ((b"not a checkpoint\n", "cannot resume from it"), (None, "no model")):
+        if content is None:
+            torch.save({"weights": torch.ones(2)}, trainer.last_path)
+        else:
+            trainer.last_path.write_bytes(content)
+        with pytest.raises(ValueError, match=f"last.pt: .*{message}.*delete it to start afresh"):
+            trainer.resume()
+
+
 def test_schedule_warms_up_then_decays():
     cfg = TrainConfig(steps=100, warmup_steps=10, min_lr_ratio=0.1)
     values = [warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio) for s in range(100)]

@@ -102,6 +102,19 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     )
 
 
+def load_refusal(exc: Exception) -> str:
+    """What torch.load refused, in one line: for a pickle that weights_only=True will not run,
+    the object it refused ("Unsupported global: GLOBAL posix.system"), not torch's first line,
+    which ends advising weights_only=False, unsafe for a file one does not trust."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    why = next((line for line in lines if "unsupported" in line.lower()), None)
+    if why is None:
+        why = lines[0] if lines else ""
+        if "weights_only" in why:  # the unsafe advice, with no reason given
+            why = "the file holds pickled objects that a safe load does not run"
+    return f"{type(exc).__name__}: {why[:200]}"
+
+
 def _read_checked(path: Path, map_location: str | torch.device) -> dict:
     """The checkpoint file's dict, read with weights_only=True and checked (format, version,
     keys, one vertex id per Gaussian); a ValueError naming the file otherwise."""
@@ -110,9 +123,8 @@ def _read_checked(path: Path, map_location: str | torch.device) -> dict:
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # truncated, not a torch file, or pickled code weights_only refuses
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(
-            f"{path}: cannot be read as a GST checkpoint ({type(exc).__name__}: {first[:200]}); "
+            f"{path}: cannot be read as a GST checkpoint ({load_refusal(exc)}); "
             "expected a file written by the pretrain or train stage"
         ) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
@@ -136,6 +148,15 @@ def _read_checked(path: Path, map_location: str | torch.device) -> dict:
         raise ValueError(
             f"{path}: vertex_ids and group_index must be 1-D integer tensors of one length (one "
             f"per Gaussian), got {shapes[0]} and {shapes[1]}"
+        )
+    if len(ids) and int(ids.min()) < 0:
+        raise ValueError(
+            f"{path}: vertex_ids must be body-model vertex indices, got {int(ids.min())}"
+        )
+    if not isinstance(ckpt["body_model"], str):
+        raise ValueError(
+            f"{path}: body_model must name a body model (text), got "
+            f"{type(ckpt['body_model']).__name__}"
         )
     return ckpt
 

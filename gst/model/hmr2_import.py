@@ -15,6 +15,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from gst.model.checkpoint import load_refusal
+
 _PREFIXES = ("backbone.", "smpl_head.")
 
 
@@ -43,13 +45,16 @@ def read_checkpoint_state(path: str | Path) -> dict[str, torch.Tensor]:
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # refused pickled objects, or not a (whole) torch file at all
-        text = " ".join(str(exc).split())[:300] or type(exc).__name__
-        if isinstance(exc, pickle.UnpicklingError) and "weights_only" in str(exc).lower():
+        why = load_refusal(exc)
+        if isinstance(exc, pickle.UnpicklingError) and "unsupported global" in str(exc).lower():
+            # a pickled Python object (yacs' CfgNode in HMR2's own files): the advice to re-save
+            # its tensors is for that alone, not for a file that is no pickle at all
             raise ValueError(
-                f"{path}: cannot be loaded with weights_only=True ({text}). It pickles Python "
+                f"{path}: cannot be loaded with weights_only=True ({why}). It pickles Python "
                 "objects besides tensors; in a trusted environment re-save just its tensors: "
                 "torch.save(torch.load(p, weights_only=False)['state_dict'], 'hmr2_state.pt')"
             ) from None
+        text = why
         # an empty file (EOFError), a text file (KeyError), a cut download (RuntimeError):
         # advice to unpickle it without weights_only would be wrong and unsafe
         raise ValueError(

@@ -48,6 +48,10 @@ def to_float_images(crops: np.ndarray | torch.Tensor) -> torch.Tensor:
     # the permuted strides was ~10x slower on CPU.
     if x.dtype == torch.uint8:
         x = x.to(torch.float32).div_(255.0)
+    elif not x.dtype.is_floating_point:  # a bool mask or int16 image passed by mistake
+        raise ValueError(
+            f"crops must be uint8 (0-255) or float in [0, 1], got {str(x.dtype).split('.')[-1]}"
+        )
     else:
         x = x.float()
         finite = torch.isfinite(x).flatten(1).all(1) if x.numel() else torch.ones(0, dtype=bool)
@@ -59,6 +63,12 @@ def to_float_images(crops: np.ndarray | torch.Tensor) -> torch.Tensor:
             raise ValueError(
                 f"float crops must hold values in [0, 1], got a maximum of {top:.4g} "
                 "(0-255 images: pass them as uint8)"
+            )
+        low = float(x.min()) if x.numel() else 0.0
+        if low < -1e-3:  # [-1, 1] images were normalised a second time: joints 26 cm off
+            raise ValueError(
+                f"float crops must hold values in [0, 1], got a minimum of {low:.4g} "
+                "(images scaled to [-1, 1]: map them back with (x + 1) / 2)"
             )
     return x.permute(0, 3, 1, 2)
 

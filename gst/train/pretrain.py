@@ -232,6 +232,13 @@ def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> Reus
             f"pretrain.reuse={p.reuse} was trained with body model '{ckpt.body_model}', "
             f"pretrain.body_model is '{p.body_model}'"
         )
+    preset = ckpt.config.get("name") if isinstance(ckpt.config, dict) else None
+    if preset is not None and preset != p.preset:
+        # training builds the network the file holds, whatever pretrain.preset says
+        log.warning(
+            "pretrain.reuse=%s holds a '%s' network; pretrain.preset '%s' is not used",
+            p.reuse, preset, p.preset,
+        )  # fmt: skip
     shutil.copyfile(p.reuse, checkpoint)
     reports.mkdir(parents=True, exist_ok=True)
     summary = ReusedCheckpoint(reused=str(p.reuse))

@@ -253,7 +253,7 @@ class Trainer:
         first."""
         path = path or self.last_path
         found = self.rank == 0 and path.is_file()  # (a single process is rank 0)
-        ckpt = torch.load(path, map_location="cpu", weights_only=True) if found else None
+        ckpt = _read_resume(path) if found else None
         if self.world > 1:
             sent = [ckpt]  # (between this run's own processes: pickled in memory)
             dist.broadcast_object_list(sent, src=0, device=self._object_device())
@@ -465,3 +465,22 @@ class Trainer:
             best=self.best_value,
             seconds=self.seconds_before + time.perf_counter() - t0,
         )
+
+
+def _read_resume(path: Path) -> dict:
+    """A training run's own `last.pt`, or a ValueError naming it (a copied or foreign file
+    failed with a bare RuntimeError or KeyError 101)."""
+    from gst.model.checkpoint import load_refusal
+
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # truncated, not a torch file, pickled objects
+        raise ValueError(
+            f"{path}: cannot resume from it ({load_refusal(exc)}); delete it to start afresh"
+        ) from None
+    if not isinstance(ckpt, dict) or not {"model", "trainer"} <= set(ckpt):
+        raise ValueError(
+            f"{path}: not a training run's checkpoint (no model and trainer state); delete it to "
+            "start afresh"
+        )
+    return ckpt
