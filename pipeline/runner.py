@@ -458,12 +458,16 @@ class Runner:
         changed = [
             k for k in sorted(set(old_inputs) | set(inputs)) if old_inputs.get(k) != inputs.get(k)
         ]
-        # an input outside the config's folder by its own path ("../../../work/..." said little)
+        # an input outside the config's folder by its own path ("../../../work/..." said little);
+        # a key only the old record has is relative to the folder the config was in then
         base = self.cfg.base_dir
-        reasons += [
-            f"input changed: {os.path.normpath(base / k) if base and k.startswith('..') else k}"
-            for k in changed[:5]
-        ]
+
+        def shown(k: str) -> str:
+            if base is not None and k.startswith("..") and k in inputs:
+                return os.path.normpath(base / k)
+            return k
+
+        reasons += [f"input changed: {shown(k)}" for k in changed[:5]]
         if len(changed) > 5:
             reasons.append(f"... and {len(changed) - 5} more inputs")
         if failed is not None:

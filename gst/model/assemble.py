@@ -41,6 +41,9 @@ class BodyPrediction:
     joints_cam: torch.Tensor  # (B, 24, 3) metres, input camera frame
     vertices_cam: torch.Tensor | None  # (B, V', 3)
     joints_world: torch.Tensor | None = None  # (B, 24, 3) when the input camera's pose is known
+    # (B, 24, 3, 3) each joint's frame in the input camera (the skinning rotations), when the
+    # body was posed with its transforms (with Gaussians): for virtual markers on the body
+    joint_rotations_cam: torch.Tensor | None = None
     gaussians_cam: PosedGaussians | None = None
     gaussians_world: PosedGaussians | None = None
     # the network's Gaussians before posing (rest-frame offsets and rotations), so that they can
@@ -179,6 +182,8 @@ def _assemble(
         joints_cam=body_out.joints,
         vertices_cam=body_out.vertices if (with_vertices or want_gaussians) else None,
     )
+    if body_out.joint_transforms is not None:
+        pred.joint_rotations_cam = body_out.joint_transforms[..., :3, :3]
     if want_gaussians:
         pred.gaussian_params = out.gaussians
         pred.gaussians_cam = pose_gaussians(

@@ -7,11 +7,12 @@ ankles, shoulders, elbows and wrists, and the pelvis as the mid-point of the hip
 joint gets its crop-pixel position and a confidence (presence x visibility); the others get
 confidence 0.
 
-`keypoint_term` projects the predicted world joints into every target view of a multi-view
-batch and compares them with those views' detections: the 2D evidence of several calibrated
-cameras constrains the 3D joints, which the photometric terms alone do not pull in from a poor
-start. Ours, not the paper's (weight `losses.keypoints`, 0 gives its objective); no 3D labels
-are used, and held-out cameras never enter training batches.
+`keypoint_term` projects the predicted world points (the landmarks' virtual markers on the
+body, `marker_keypoints`; the joints where no marker table is given) into every target view of
+a multi-view batch and compares them with those views' detections: the 2D evidence of several
+calibrated cameras constrains the 3D joints, which the photometric terms alone do not pull in
+from a poor start. Ours, not the paper's (weight `losses.keypoints`, 0 gives its objective);
+no 3D labels are used, and held-out cameras never enter training batches.
 """
 
 from __future__ import annotations
@@ -102,6 +103,28 @@ def projected_rows(store_path, n: int) -> np.ndarray | None:
     finally:
         store.close()
     return None if projected is None or len(projected) != n else np.asarray(projected, bool)
+
+
+def marker_keypoints(
+    joints_world: torch.Tensor,
+    rotations_cam: torch.Tensor,
+    R_in: torch.Tensor,
+    markers,
+) -> torch.Tensor:
+    """(B, 24, 3) world points to compare with the detected joints of `keypoints_from_landmarks`:
+    for each mapped joint the mean of its landmarks' virtual markers on the predicted body
+    (gst.body.markers: BlazePose's hip is not the body model's hip joint; the landmarks put
+    the pelvis 25 mm low, the hips 39 mm narrow and the shoulders 20-30 mm high against the
+    joints), the other joints as they are. `rotations_cam` (B, 24, 3, 3) the joints' frames in
+    the input camera (BodyPrediction.joint_rotations_cam), `R_in` (B, 3, 3) its
+    world-to-camera rotation, `markers` a gst.body.markers.MarkerModel."""
+    off = markers.offsets.to(rotations_cam)  # (M, 3) in each marker's frame
+    turned = (rotations_cam[:, markers.frames] @ off[None, :, :, None])[..., 0]  # camera axes
+    at = joints_world[:, markers.anchors] + turned @ R_in.to(turned)  # (B, M, 3) world
+    out = joints_world.clone()
+    for j, src in BODY_FROM_BLAZEPOSE.items():
+        out[:, j] = at[:, list(src)].mean(1)
+    return out
 
 
 def keypoint_term(

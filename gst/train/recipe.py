@@ -379,7 +379,15 @@ def make_task(
     supervision: str = "multiview",
     world_up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     appearance_on_teacher: bool = False,
+    keypoint_markers: bool = True,
 ) -> GSTTask:
+    """The training task. `keypoint_markers`: the keypoint term compares the landmarks with
+    the virtual markers of gst.body.markers on the predicted body (False: with its joints)."""
+    markers = None
+    if keypoint_markers and weights.keypoints > 0:
+        from gst.body.markers import MarkerModel
+
+        markers = MarkerModel.load()
     return GSTTask(
         body=body,
         vertex_ids=torch.as_tensor(vertex_ids, dtype=torch.long),
@@ -390,4 +398,5 @@ def make_task(
         supervision=supervision,
         world_up=tuple(float(v) for v in world_up),
         appearance_on_teacher=appearance_on_teacher,
+        markers=markers,
     )

@@ -22,7 +22,7 @@ from gst.model.landmarks import camera_up, hide_up
 from gst.render import rasterize
 from gst.train.anchors import anchor_term
 from gst.train.distill import distill_terms
-from gst.train.keypoints import keypoint_term
+from gst.train.keypoints import keypoint_term, marker_keypoints
 from gst.train.losses import LossWeights, combine, image_terms, supervised_terms
 from gst.train.occlusion import ignore_occluded, ignored_share, supervised_psnr
 from gst.train.teacher_render import teacher_posed_gaussians
@@ -46,6 +46,9 @@ class GSTTask:
     # multi-view image terms on the network's Gaussians posed on the batch's fused bodies where
     # it has them (gst.train.teacher_render), not on the network's own pose
     appearance_on_teacher: bool = False
+    # the keypoint term compares the landmarks with virtual markers on the predicted body
+    # (gst.body.markers.MarkerModel; None: with the joints themselves)
+    markers: nn.Module | None = None
 
     def to(self, device: torch.device | str) -> GSTTask:
         """This task on `device` (its body model and LPIPS network copied there when they
@@ -55,6 +58,7 @@ class GSTTask:
             body=module_on(self.body, device),
             vertex_ids=self.vertex_ids.to(device),
             lpips=None if self.lpips is None else module_on(self.lpips, device),
+            markers=None if self.markers is None else module_on(self.markers, device),
         )
 
 
@@ -141,8 +145,11 @@ def multiview_image_terms(model: nn.Module, batch: MultiViewBatch, task: GSTTask
     if batch.anchors is not None and task.weights.anchor > 0:
         parts["anchor"] = anchor_term(pred.gaussians_world.means.mean(1), batch.anchors)
     if batch.target_keypoints is not None and task.weights.keypoints > 0:
+        points = pred.joints_world
+        if task.markers is not None and pred.joint_rotations_cam is not None:
+            points = marker_keypoints(points, pred.joint_rotations_cam, batch.R_in, task.markers)
         parts["keypoints"] = keypoint_term(
-            pred.joints_world,
+            points,
             batch.viewmats,
             batch.K_target,
             batch.target_keypoints,
