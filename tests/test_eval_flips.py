@@ -118,10 +118,47 @@ def test_training_crops_are_unmirrored_against_their_fused_body_only():
     K = torch.tensor([[[100.0, 0, 0], [0, 100, 0], [0, 0, 1]]]).repeat(3, 1, 1)
     world = torch.zeros(3, 24, 3)  # camera = world, depth 1: pixels = 100 * (x, y)
     world[..., :2], world[..., 2] = torch.as_tensor(ref / 100.0), 1.0
-    crops = SimpleNamespace(R=torch.eye(3).repeat(3, 1, 1), t=torch.zeros(3, 3), K=K)
+    crops = SimpleNamespace(R=torch.eye(3).repeat(3, 1, 1), t=torch.zeros(3, 3), K=K, crop_size=256)
     targets = SimpleNamespace(weight=torch.tensor([1.0, 1.0, 0.0]), joints_world=world)
     lms = torch.as_tensor(np.stack([lm, _mirror(lm), _mirror(lm)]))  # the third: no target
     out = _unmirrored(crops, lms, targets)
     same = lambda a, b: np.array_equal(a.numpy(), b.numpy(), equal_nan=True)  # noqa: E731
     assert same(out[0], lms[0]) and same(out[2], lms[2])
     assert same(out[1], lms[0])
+
+
+def _limbs(ref, lm):
+    """`lm` with the knees, ankles, elbows and wrists on their reference joints too."""
+    out = lm.copy()
+    for (ll, lr), (jl, jr) in zip(((25, 26), (27, 28), (13, 14), (15, 16)),
+                                  ((4, 5), (7, 8), (18, 19), (20, 21)), strict=True):  # fmt: skip
+        out[ll] = (*ref[jl], 1.0)
+        out[lr] = (*ref[jr], 1.0)
+    return out
+
+
+def _mirror_all(lm):
+    out = lm.copy()
+    for a, b in (HIPS, SHOULDERS, (25, 26), (27, 28), (13, 14), (15, 16)):
+        out[[a, b]] = lm[[b, a]]
+    return out
+
+
+def test_training_swaps_a_crop_only_where_the_mirroring_is_sure():
+    """A review: the torso's test swapped correct arms in a side-on view (hips 6 px apart,
+    shoulders 16 px; arms 3-11 px from the truth before, 78-99 after). Training swaps labels only
+    where the reference's hips and shoulders stand apart and the swap fits all the limbs
+    better; the evaluation's count is unchanged."""
+    from gst.metrics.flips import surely_mirrored
+
+    rng = np.random.default_rng(3)
+    ref, lm = _pair(rng, 40.0)
+    lm = _limbs(ref, lm)
+    whole = _mirror_all(lm)  # the whole body read mirrored
+    torso_only = _mirror(lm)  # torso mirrored, limbs read right
+    narrow_ref, narrow = _pair(rng, 4.0)  # side-on: hips 4 px apart
+    narrow = _mirror_all(_limbs(narrow_ref, narrow))
+    lms = np.stack([lm, whole, torso_only, narrow])
+    refs = np.stack([ref, ref, ref, narrow_ref])
+    assert mirrored_landmarks(lms, refs).tolist() == [False, True, True, True]
+    assert surely_mirrored(lms, refs, min_separation=12.8).tolist() == [False, True, False, False]

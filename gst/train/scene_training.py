@@ -28,7 +28,7 @@ from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
 from gst.device import resolve_device
 from gst.fuse.observations import without_projected
-from gst.metrics.flips import mirrored_landmarks, reference_in_crops, unmirror
+from gst.metrics.flips import reference_in_crops, surely_mirrored, unmirror
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
@@ -200,7 +200,10 @@ def _unmirrored(crops: CropSet, landmarks: torch.Tensor, targets) -> torch.Tenso
         targets.joints_world[rows], crops.R[rows], crops.t[rows], crops.K[rows]
     )
     flags = np.zeros(len(landmarks), dtype=bool)
-    flags[rows.numpy()] = mirrored_landmarks(landmarks[rows].numpy(), reference)
+    # only where sure: side-on, with hips and shoulders a few px apart, the test read noise
+    flags[rows.numpy()] = surely_mirrored(
+        landmarks[rows].numpy(), reference, min_separation=0.05 * crops.crop_size
+    )
     log.info(
         "distill: %d of %d training crops have left/right mirrored landmarks; trained un-mirrored",
         int(flags.sum()),
