@@ -130,6 +130,35 @@ def test_joint_weights_follow_the_views(scene):
     assert 0 < w[3] < 1  # spine1 has no landmark: its frame's mean
 
 
+def test_the_root_and_parameters_of_a_guessed_frame_weigh_as_guessed_joints(scene):
+    """A frame whose pelvis, or whole torso, the fit had to fill (fewer than 2 views) kept full
+    weight in the root and parameters terms: only the joints term followed the evidence."""
+    _, _, _, crops, fused = scene
+    fused = dataclasses.replace(fused, gap_filled=fused.gap_filled.copy())
+    fused.gap_filled[:2] = False
+    fused.gap_filled[0, 0] = True  # the pelvis guessed
+    fused.gap_filled[1, [1, 2, 16, 17]] = True  # every torso joint guessed
+
+    def row(k):
+        hit = (crops.frame.numpy() == fused.frame[k]) & (crops.person.numpy() == fused.person_id[k])
+        return int(np.flatnonzero(hit)[0])
+
+    t = distill_targets(crops, fused, torch.ones(len(crops), dtype=torch.bool))
+    assert float(t.root_weight[row(0)]) == pytest.approx(0.1)
+    assert float(t.params_weight[row(0)]) == 1.0
+    assert float(t.params_weight[row(1)]) == pytest.approx(0.1)
+    assert float(t.root_weight[row(1)]) == 1.0
+    # ... and the terms use them: a root error only in the guessed row weighs a tenth
+    rows = torch.tensor([row(0), row(2)])
+    sub = t.take(rows)
+    pred, joints = _prediction(sub, crops.R[rows])
+    pred.joints_world = (
+        joints + torch.tensor([[0.1, 0, 0]]) * torch.tensor([[1.0], [0.0]])[:, :, None]
+    )
+    root = float(distill_terms(pred, crops.R[rows], sub)["distill_root"].detach())
+    assert root == pytest.approx(0.1 * 0.1 / 1.1, rel=1e-4)
+
+
 def _prediction(t, R):
     """A prediction that equals the targets, seen through cameras R."""
     joints = t.joints_world.clone().requires_grad_(True)

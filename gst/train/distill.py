@@ -32,6 +32,7 @@ from gst.train.distill_targets import DistillTargets
 from gst.train.views import CropSet
 
 log = logging.getLogger("gst.train")
+TORSO_JOINTS = (1, 2, 16, 17)  # hips and shoulders, SMPL layout
 
 __all__ = [
     "training_rows",
@@ -127,6 +128,12 @@ def distill_targets(
     ).reshape(-1, 23, 3, 3)
     out.betas[idx] = torch.as_tensor(bodies.betas[r], dtype=f32)
     out.weight[idx] = torch.as_tensor(row_w, dtype=f32)
+    # the root and the parameters of a frame the fit guessed (the pelvis, or every torso joint,
+    # gap-filled) weigh as its guessed joints do: they had full weight, as "observed" means only
+    # that some crop exists
+    out.root_weight[idx] = torch.as_tensor(np.where(gap[:, 0], gap_weight, 1.0), dtype=f32)
+    torso_guessed = gap[:, list(TORSO_JOINTS)].all(1)
+    out.params_weight[idx] = torch.as_tensor(np.where(torso_guessed, gap_weight, 1.0), dtype=f32)
     if landmarks is not None:
         other = _shows_someone_else(crops, out.joints_world, landmarks, idx)
         out.weight[idx[other]] = 0.0
@@ -168,7 +175,8 @@ def distill_terms(
     pelvis in the world, metres) and `distill_params` (rotation matrices, the global one in the
     input camera, plus 0.1 x betas, squared errors)."""
     w = targets.weight.to(pred.joints_world)
-    wsum = w.sum().clamp_min(1e-6)
+    rw = w * targets.root_weight.to(w)
+    pw = w * targets.params_weight.to(w)
     jw = targets.joint_weight.to(w) * w[:, None]
     pj, tj = pred.joints_world, targets.joints_world.to(w)
     rel = (pj - pj[:, :1]) - (tj - tj[:, :1])
@@ -180,6 +188,6 @@ def distill_terms(
     ).mean(1)
     return {
         "distill_joints": (jw * rel.norm(dim=-1)).sum() / jw.sum().clamp_min(1e-6),
-        "distill_root": (w * (pj[:, 0] - tj[:, 0]).norm(dim=-1)).sum() / wsum,
-        "distill_params": (w * params).sum() / wsum,
+        "distill_root": (rw * (pj[:, 0] - tj[:, 0]).norm(dim=-1)).sum() / rw.sum().clamp_min(1e-6),
+        "distill_params": (pw * params).sum() / pw.sum().clamp_min(1e-6),
     }

@@ -21,9 +21,17 @@ class DistillTargets:
     body_pose: torch.Tensor  # (N, 23, 3, 3) local rotations
     betas: torch.Tensor  # (N, nb)
     weight: torch.Tensor  # (N,) in [0, 1]; 0: this crop has no target
+    # (N,) factors of the root and the parameters terms: below 1 where the fit guessed the
+    # pelvis, or the whole torso (gap-filled: fewer than 2 views); None: 1
+    root_weight: torch.Tensor | None = None
+    params_weight: torch.Tensor | None = None
 
     def __post_init__(self):
         n = self.weight.shape[0]
+        if self.root_weight is None:
+            self.root_weight = torch.ones(n)
+        if self.params_weight is None:
+            self.params_weight = torch.ones(n)
         for f in fields(self):
             if getattr(self, f.name).shape[0] != n:
                 raise ValueError(
