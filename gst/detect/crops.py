@@ -25,7 +25,10 @@ from gst.detect.blazepose import N_BODY_LANDMARKS, BlazePose, BodyRoi
 @dataclass(frozen=True)
 class CropLandmarks:
     """BlazePose on N crops: crop-pixel landmarks with visibility, world landmarks (metres,
-    mid-hip origin, the crop camera's axes; `PersonSegment.world_landmarks`) and presence."""
+    mid-hip origin, the crop camera's axes; `PersonSegment.world_landmarks`) and presence.
+    With `refine=True` the world landmarks are the second pass's, in the axes of its region,
+    which is turned by that region's angle in the image plane (about 10 degrees on a lab crop):
+    turn them back by it before comparing them with the crop camera's axes."""
 
     landmarks: np.ndarray  # (N, 33, 3) u, v in crop pixels, visibility in [0, 1]
     world: np.ndarray  # (N, 33, 3)
@@ -94,6 +97,8 @@ def detect_crop_landmarks(
     second pass on the alignment region (module docstring); `masks` (N, S, S): the person's
     mask per crop, other pixels dimmed first. World landmarks are the (unmirrored) last pass's."""
     images = np.asarray(images)
+    if images.size and images.dtype != np.uint8:  # read as 0-255 values: wrong, not refused
+        raise ValueError(f"crops must be uint8 (0-255) images, got {images.dtype}")
     if images.size == 0:  # no crops: no landmarks
         images = np.zeros((0, 1, 1, 3), np.uint8)
     if images.ndim != 4 or images.shape[-1] != 3 or images.shape[1] != images.shape[2]:

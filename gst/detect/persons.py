@@ -22,6 +22,7 @@ from gst.detect.blazepose import (
     BodyRoi,
     PersonSegment,
     ZoomedScan,
+    as_bgr_frame,
     roi_from_alignment,
     roi_from_box,
     same_region,
@@ -389,6 +390,7 @@ class PersonSegmenter:
         at after the detector and tracking, and only where those found nobody; a hint's region
         is at least as big as the people already found (a blob may be a fragment of a body).
         """
+        frame = as_bgr_frame(frame)  # (a grey frame failed in the zoomed look's paint-out)
         h, w = frame.shape[:2]
         c = self.config
         tracked = self._tracked if c.track else []
