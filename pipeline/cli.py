@@ -393,11 +393,9 @@ def main(argv: list[str] | None = None) -> int:
             rig = "calibrate" in upstream_closure(needs, [args.stage])
         else:
             rig = "calibrate" in needs
-        problems = [
-            line
-            for scene in scenes
-            for line in scene_input_problems(scene, cfg.scenes[scene], needs_rig=rig)
-        ]
+        # (globbed once: the status table and the dry run show the same lines)
+        notes_of = {s: scene_input_problems(s, cfg.scenes[s], needs_rig=rig) for s in scenes}
+        problems = [line for scene in scenes for line in notes_of[scene]]
         if problems and args.command == "run" and not args.dry_run:
             raise ConfigError("\n".join(problems))
         # Build every runner first: it validates all stage params before anything is written.
@@ -437,7 +435,7 @@ def main(argv: list[str] | None = None) -> int:
             setup_logging(console, None, args.command, args.quiet)
         for runner in runners:
             scene = runner.scene_name
-            notes = scene_input_problems(scene, cfg.scenes[scene], needs_rig=rig)
+            notes = notes_of[scene]
             report = make_console(False, stderr=False)  # the command's output: stdout
             if args.command == "status":
                 report.print(

@@ -158,9 +158,14 @@ class MarkerModel(torch.nn.Module):
                 "MarkerModel.positions needs the body's joint transforms "
                 "(call the body model with return_transforms=True)"
             )
-        rot = out.joint_transforms[:, self.frames, :3, :3]  # (B, M, 3, 3)
+        return self.at(out.joints, out.joint_transforms[..., :3, :3])
+
+    def at(self, joints: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
+        """(B, M, 3) marker positions from the joints (B, 24, 3) and the joints' frames
+        (B, 24, 3, 3), both in one frame of reference (world, or a camera's)."""
+        rot = rotations[:, self.frames]  # (B, M, 3, 3)
         off = self.offsets.to(rot.dtype)
-        return out.joints[:, self.anchors] + (rot @ off[None, :, :, None])[..., 0]
+        return joints[:, self.anchors] + (rot @ off[None, :, :, None])[..., 0]
 
     # -- persistence ------------------------------------------------------------------------
     def to_json(self) -> dict:

@@ -466,6 +466,8 @@ def _index_table(f: h5py.File) -> pa.Table:
     there are no rows: an empty store's index had a null-typed column, so indices of several
     stores could not be joined)."""
     cols = _read_index_columns(f)
+    if tuple(cols) != INDEX_COLUMNS:  # the list the reader checks an index against
+        raise AssertionError(f"index columns {tuple(cols)} differ from INDEX_COLUMNS")
     return pa.table(
         {
             k: pa.array(v.tolist(), type=pa.string()) if k == "camera" else pa.array(v)

@@ -39,22 +39,26 @@ def landmark_sides(
         )
     crossed_all = np.ones(len(lm), dtype=bool)
     own_all = np.ones(len(lm), dtype=bool)
-    for (ll, lr), (jl, jr) in zip(_LANDMARK_PAIRS, _JOINT_PAIRS, strict=True):
+    for usable, same, crossed in _pair_distances(
+        lm, ref, _LANDMARK_PAIRS, _JOINT_PAIRS, min_confidence
+    ):
+        crossed_all &= usable & (crossed < same)
+        own_all &= usable & (same < crossed)
+    return own_all.astype(np.int8) - crossed_all.astype(np.int8)
+
+
+def _pair_distances(lm, ref, landmark_pairs, joint_pairs, min_confidence):
+    """Per (left, right) pair: (N,) usable (both landmarks there and confident), the summed
+    distance of each landmark to its own side's reference joint, and to the other side's."""
+    for (ll, lr), (jl, jr) in zip(landmark_pairs, joint_pairs, strict=True):
         a, b = lm[:, ll], lm[:, lr]
         usable = (
             np.isfinite(a).all(1)
             & np.isfinite(b).all(1)
             & (np.minimum(a[:, 2], b[:, 2]) >= min_confidence)
         )
-        same = np.linalg.norm(a[:, :2] - ref[:, jl], axis=1) + np.linalg.norm(
-            b[:, :2] - ref[:, jr], axis=1
-        )
-        crossed = np.linalg.norm(a[:, :2] - ref[:, jr], axis=1) + np.linalg.norm(
-            b[:, :2] - ref[:, jl], axis=1
-        )
-        crossed_all &= usable & (crossed < same)
-        own_all &= usable & (same < crossed)
-    return own_all.astype(np.int8) - crossed_all.astype(np.int8)
+        d = lambda p, j: np.linalg.norm(p[:, :2] - ref[:, j], axis=1)  # noqa: E731
+        yield usable, d(a, jl) + d(b, jr), d(a, jr) + d(b, jl)
 
 
 # (left, right) landmark and joint pairs of the limbs, for the whole-body check of a swap:
@@ -83,18 +87,10 @@ def surely_mirrored(
         sure &= np.linalg.norm(ref[:, jl] - ref[:, jr], axis=1) >= min_separation
     own = np.zeros(len(lm))
     swapped = np.zeros(len(lm))
-    for (ll, lr), (jl, jr) in zip(_LIMB_LANDMARK_PAIRS, _LIMB_JOINT_PAIRS, strict=True):
-        a, b = lm[:, ll], lm[:, lr]
-        use = np.isfinite(a).all(1) & np.isfinite(b).all(1)
-        use &= np.minimum(a[:, 2], b[:, 2]) >= min_confidence
-        d_own = np.linalg.norm(a[:, :2] - ref[:, jl], axis=1) + np.linalg.norm(
-            b[:, :2] - ref[:, jr], axis=1
-        )
-        d_swapped = np.linalg.norm(a[:, :2] - ref[:, jr], axis=1) + np.linalg.norm(
-            b[:, :2] - ref[:, jl], axis=1
-        )
-        own += np.where(use, d_own, 0.0)
-        swapped += np.where(use, d_swapped, 0.0)
+    limbs = _pair_distances(lm, ref, _LIMB_LANDMARK_PAIRS, _LIMB_JOINT_PAIRS, min_confidence)
+    for usable, same, crossed in limbs:
+        own += np.where(usable, same, 0.0)
+        swapped += np.where(usable, crossed, 0.0)
     return sure & (swapped < (1.0 - margin) * own)
 
 

@@ -118,9 +118,9 @@ def marker_keypoints(
     joints), the other joints as they are. `rotations_cam` (B, 24, 3, 3) the joints' frames in
     the input camera (BodyPrediction.joint_rotations_cam), `R_in` (B, 3, 3) its
     world-to-camera rotation, `markers` a gst.body.markers.MarkerModel."""
-    off = markers.offsets.to(rotations_cam)  # (M, 3) in each marker's frame
-    turned = (rotations_cam[:, markers.frames] @ off[None, :, :, None])[..., 0]  # camera axes
-    at = joints_world[:, markers.anchors] + turned @ R_in.to(turned)  # (B, M, 3) world
+    # the joints' frames in the world: R_in maps world to camera axes
+    rotations_world = R_in.to(rotations_cam).transpose(1, 2)[:, None] @ rotations_cam
+    at = markers.at(joints_world, rotations_world)  # (B, M, 3) world
     out = joints_world.clone()
     for j, src in BODY_FROM_BLAZEPOSE.items():
         out[:, j] = at[:, list(src)].mean(1)
