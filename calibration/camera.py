@@ -11,11 +11,16 @@ Conventions (used everywhere in this project):
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
+from typing import Protocol
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+log = logging.getLogger("calibration")
 
 _VALID_DIST_LENGTHS = (0, 4, 5, 8, 12, 14)
 # How far outside the image (a share of its width and height) a point may lie for the lens model
@@ -451,3 +456,29 @@ def project_points_torch(points, K, R, t, dist=None):
     u = Kb[..., 0, 0] * x + Kb[..., 0, 1] * y + Kb[..., 0, 2]
     v = Kb[..., 1, 1] * y + Kb[..., 1, 2]
     return torch.stack([u, v], dim=-1)
+
+
+class FrameSize(Protocol):
+    """What `fit_rig_to_frames` reads of a video (gst.video.VideoInfo has it)."""
+
+    width: int
+    height: int
+    path: object
+
+
+def fit_rig_to_frames(
+    rig: Rig, frames: Mapping[str, FrameSize], tolerance: int = FRAME_PADDING_TOLERANCE
+) -> tuple[Rig, list[str]]:
+    """The rig with every camera named in `frames` fitted to its video's decoded frame size
+    (`fit_to_frames`: padding within `tolerance` px accepted, noted and logged; anything else
+    raises CameraError with the fix), and the notes. Other cameras stay as they are."""
+    cams, notes = [], []
+    for cam in rig:
+        if cam.name in frames:
+            f = frames[cam.name]
+            cam, note = fit_to_frames(cam, f.width, f.height, tolerance, str(f.path))
+            if note:
+                log.warning("%s", note)
+                notes.append(note)
+        cams.append(cam)
+    return Rig(tuple(cams), rig.up, rig.units, rig.meta), notes

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from calibration.board import BoardSpec
-from calibration.camera import FRAME_PADDING_TOLERANCE, Rig, fit_to_frames
+from calibration.camera import FRAME_PADDING_TOLERANCE, Rig, fit_rig_to_frames
 from calibration.checks import check_rig, lens_warnings
 from calibration.compare import RigComparison, compare_rigs
 from calibration.formats import read_rig, write_rig
@@ -80,19 +80,10 @@ def first_frames(videos: dict[str, Path]) -> dict[str, np.ndarray]:
 def fit_rig_to_videos(
     rig: Rig, videos: dict[str, Path], tolerance: int = FRAME_PADDING_TOLERANCE
 ) -> tuple[Rig, list[str]]:
-    """Every camera fitted to its video's decoded frame size (`fit_to_frames`: encoder padding
-    within `tolerance` px is accepted and noted, anything else stops with the fix)."""
-    cams, notes = [], []
-    infos = probe_videos({c.name: videos[c.name] for c in rig if c.name in videos})
-    for cam in rig:
-        if cam.name in videos:
-            info = infos[cam.name]
-            cam, note = fit_to_frames(cam, info.width, info.height, tolerance, str(info.path))
-            if note:
-                log.warning("%s", note)
-                notes.append(note)
-        cams.append(cam)
-    return Rig(tuple(cams), rig.up, rig.units, rig.meta), notes
+    """Every camera fitted to its video's decoded frame size (`fit_rig_to_frames`)."""
+    return fit_rig_to_frames(
+        rig, probe_videos({c.name: videos[c.name] for c in rig if c.name in videos}), tolerance
+    )
 
 
 def _size_section(notes: list[str]) -> list[str]:

@@ -8,7 +8,14 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from calibration.camera import Camera, CameraError, Rig, look_at_rotation, project_points_torch
+from calibration.camera import (
+    Camera,
+    CameraError,
+    Rig,
+    fit_rig_to_frames,
+    look_at_rotation,
+    project_points_torch,
+)
 
 finite = dict(allow_nan=False, allow_infinity=False)
 
@@ -247,3 +254,23 @@ def test_undistortion_converges_for_wide_strong_lenses():
                 np.c_[xy, np.ones(len(xy))], np.zeros(3), np.zeros(3), cam.K, cam.dist
             )[0].reshape(-1, 2)
             assert np.abs(back - pix).max() < 1e-6, (seed, cam.name)
+
+
+def test_rig_fitted_to_its_videos_frame_sizes():
+    """Encoder padding (8 rows) is fitted and noted, a camera without a video is left as it
+    is, and a frame size that is not padding names the camera."""
+    from types import SimpleNamespace
+
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    rig = Rig(
+        tuple(Camera(n, K, np.zeros(5), np.eye(3), np.zeros(3), 640, 480) for n in ("a", "b"))
+    )
+    fitted, notes = fit_rig_to_frames(
+        rig, {"a": SimpleNamespace(width=640, height=472, path="a.mp4")}
+    )
+    assert (fitted["a"].width, fitted["a"].height) == (640, 472)
+    assert (fitted["b"].width, fitted["b"].height) == (640, 480)
+    assert len(notes) == 1 and "camera 'a'" in notes[0] and "8 rows" in notes[0]
+    np.testing.assert_array_equal(fitted["a"].K, K)
+    with pytest.raises(CameraError, match=r"camera 'b' \(b.mp4\).*600x480"):
+        fit_rig_to_frames(rig, {"b": SimpleNamespace(width=600, height=480, path="b.mp4")})

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration import Camera, Rig
-from calibration.camera import fit_to_frames
+from calibration.camera import fit_rig_to_frames
 from gst.atomic import atomic_write_json
 from gst.data.background import BackgroundConfig
 from gst.data.evaluate import CropTruth, association_accuracy
@@ -98,19 +98,6 @@ def _resolve_truth(truth: Path | str | None) -> Path | None:
             f"truth masks folder {p} does not exist (expected <scene>/truth or <scene>/truth/masks)"
         )
     return p
-
-
-def _fit_rig(rig: Rig, infos: dict[str, VideoInfo], tolerance: int) -> Rig:
-    """The rig with each filmed camera fitted to its video's frame size (padding tolerated)."""
-    cams = []
-    for cam in rig:
-        if cam.name in infos:
-            info = infos[cam.name]
-            cam, note = fit_to_frames(cam, info.width, info.height, tolerance, str(info.path))
-            if note:
-                log.warning("%s", note)
-        cams.append(cam)
-    return Rig(tuple(cams), rig.up, rig.units, rig.meta)
 
 
 def association_method(
@@ -222,7 +209,7 @@ def plan_extraction(
     videos = {str(k): Path(v) for k, v in videos.items()}
     infos = check_videos(videos, rig.names)
     names = [n for n in rig.names if n in videos]  # rig order
-    rig = _fit_rig(rig, infos, opts.frame_size_tolerance)
+    rig, _ = fit_rig_to_frames(rig, infos, opts.frame_size_tolerance)
     n_frames = next(iter(infos.values())).frames
     frames = list(range(0, n_frames, frame_stride))
     sizes = {n: (infos[n].width, infos[n].height) for n in names}
