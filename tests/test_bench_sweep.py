@@ -130,3 +130,34 @@ def test_bench_row_fields_are_the_csv_header():
         "gaussians",
         "output",
     ]
+
+
+def test_a_diverged_variant_is_a_row_of_na(tmp_path, monkeypatch):
+    """A variant whose training diverged (every prediction NaN) is scored n/a and timed, and the
+    sweep goes on: the log line formatted its MPJPE (None) with :.1f, and the timing's body
+    model refused the NaN output, each losing the whole run."""
+    import gst.eval.bench as bench
+
+    def diverged(net, *args, **kwargs):
+        with torch.no_grad():
+            for p in net.parameters():
+                p.fill_(float("nan"))
+        return 0.0
+
+    monkeypatch.setattr(bench, "finetune", diverged)
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    body.joint_names = JOINTS
+    crops = crop_set(n_frames=4, n_cams=3)
+    crops.truth["has_truth"] = torch.ones(len(crops), dtype=torch.bool)
+    split = frame_split(crops, ("c2",), test_fraction=0.25)
+    train = FinetuneConfig(mode="pretrain", steps=1, batch_size=2, num_targets=2, render_size=16)
+    lines = []
+    rows = run_bench(
+        [Variant("a", "tiny", (64, 48), "full")], crops, split, body, "random", train,
+        repeats=1, batch=2, render_size=16, log=lines.append,
+    )  # fmt: skip
+    assert [r.mpjpe_mm for r in rows] == [None, None]
+    assert all(r.ms_per_batch > 0 for r in rows)  # timed on a fresh network of its config
+    assert any("MPJPE n/a mm" in line for line in lines)
+    write_bench_table(tmp_path, rows, "# test")
+    assert "| n/a | n/a |" in (tmp_path / "table.md").read_text()

@@ -23,6 +23,7 @@ import torch
 
 from gst.atomic import atomic_write
 from gst.eval.evaluate import EvalConfig, evaluate_model
+from gst.eval.report import figure_text as _f
 from gst.eval.split import FinetuneConfig, Split, finetune
 from gst.model.presets import get_preset
 from gst.train.recipe import build_network, make_task
@@ -175,13 +176,20 @@ def run_bench(
         nv_summary = res.summary.novel_view
         pose, nv = res.summary.pose.overall, nv_summary.heldout if nv_summary else {}
         log(
-            f"bench {v.name}: MPJPE {pose['mpjpe_mm']:.1f} mm, "
+            f"bench {v.name}: MPJPE {_f(pose['mpjpe_mm'])} mm, "
             f"held-out PSNR {nv.get('psnr')} ({how})"
         )
         params_m = round(sum(p.numel() for p in net.parameters()) / 1e6, 2)
+        timed = net
+        if not all(bool(torch.isfinite(p).all()) for p in net.parameters()):
+            # a diverged network is scored n/a above; the body model refuses its NaN output, so
+            # its speed (which no weight changes) is timed on a fresh network of the same config
+            log(f"bench {v.name}: its weights are not finite; timed on a fresh {v.preset}")
+            timed, _, _ = build_network(net.cfg, body)
+            timed.eval()
         for output, with_g in (("pose-only", False), ("full", True)):
 
-            def call(net=net, task=task, with_g=with_g):
+            def call(net=timed, task=task, with_g=with_g):
                 with torch.no_grad():
                     predict(net, task, images, K, with_gaussians=with_g, landmarks=landmarks)
 
@@ -214,10 +222,6 @@ def run_bench(
     return pending
 
 
-def _fmt(v, d=1) -> str:
-    return "n/a" if v is None else f"{v:.{d}f}"
-
-
 def write_bench_table(out: Path, rows: list[BenchRow], header: str) -> None:
     """table.csv (one row per variant and output) and table.md (the same, plus `header`)."""
     fields = list(asdict(rows[0])) if rows else [f for f in BenchRow.__dataclass_fields__]
@@ -243,8 +247,8 @@ def write_bench_table(out: Path, rows: list[BenchRow], header: str) -> None:
         lines.append(
             f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.landmarks or '-'} | "
             f"{r.output} | {r.params_m:.2f} | {r.ms_per_crop:.2f} | {r.fps:.1f} | "
-            f"{r.ms_per_batch / ref:.2f}x | {_fmt(r.mpjpe_mm)} | {_fmt(r.pa_mpjpe_mm)} | "
-            f"{_fmt(r.psnr, 2)} | {r.training} |"
+            f"{r.ms_per_batch / ref:.2f}x | {_f(r.mpjpe_mm)} | {_f(r.pa_mpjpe_mm)} | "
+            f"{_f(r.psnr, 2)} | {r.training} |"
         )
     text = "\n".join(lines) + "\n\n![Pareto](pareto.png)\n"
     atomic_write(out / "table.md", lambda tmp: Path(tmp).write_text(text))

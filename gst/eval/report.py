@@ -39,10 +39,14 @@ def _save_figure(fig, path: Path) -> None:
     atomic_write(path, lambda tmp: Path(tmp).write_bytes(buf.getvalue()))
 
 
-def _f(v, digits: int = 1) -> str:
+def figure_text(v, digits: int = 1) -> str:
+    """A figure for a report or a log line: 'n/a' where there is none (None, NaN or inf)."""
     return (
         "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}f}"
     )
+
+
+_f = figure_text
 
 
 def _grouped_bars(ax, groups: list[str], series: dict[str, list], ylabel: str, title: str) -> None:

@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveInt
 from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
 from gst.eval.evaluator import evaluate_pose
-from gst.eval.report import write_report
+from gst.eval.report import figure_text, write_report
 from gst.eval.split import check_unseen
 from gst.eval.summary import pose_summary
 from gst.fuse.tables import read_fused_bodies
@@ -209,10 +209,10 @@ def evaluate_scene(
         s = results[name].summary
         held = s.novel_view.heldout if s.novel_view else {}
         log.info(
-            "evaluate %s: MPJPE %.1f mm, PA-MPJPE %.1f mm (%s), %s (%.0f s)",
+            "evaluate %s: MPJPE %s mm, PA-MPJPE %s mm (%s), %s (%.0f s)",
             name,
-            s.pose.overall["mpjpe_mm"],
-            s.pose.overall["pa_mpjpe_mm"],
+            figure_text(s.pose.overall["mpjpe_mm"]),
+            figure_text(s.pose.overall["pa_mpjpe_mm"]),
             "held-out frames" if frames else "all frames",
             f"held-out PSNR {held.get('psnr')} dB, IoU {held.get('silhouette_iou')}"
             if held.get("n")
