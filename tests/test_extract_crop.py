@@ -144,6 +144,22 @@ def test_undistorted_box_contains_undistorted_points():
         undistorted_box(cam, np.zeros((0, 2)))
 
 
+def test_undistorted_box_leaves_out_pixels_the_lens_cannot_invert():
+    """A barrel lens (k1 -0.1 at f 1000 on 1920 x 1080) is invertible out to about 258 px left
+    of the frame; a landmark box reaching -800 px widened the person's box from 80 to 880 px
+    (the iteration's answer there lies on no ray). It is left out; nothing else can be boxed."""
+    cam = Camera.create(
+        "c", [[1000.0, 0, 959.5], [0, 1000.0, 539.5], [0, 0, 1]], [-0.1, 0, 0, 0, 0],
+        np.eye(3), np.zeros(3), 1920, 1080,
+    )  # fmt: skip
+    person = np.array([[40.0, 200.0], [200.0, 200.0], [40.0, 600.0], [200.0, 600.0]])
+    alone = undistorted_box(cam, person)
+    assert np.isnan(cam.undistort_points(np.array([[-800.5, 400.0]]), exact_only=True)).all()
+    np.testing.assert_allclose(undistorted_box(cam, np.r_[person, [[-800.5, 400.0]]]), alone)
+    with pytest.raises(ValueError, match="camera 'c'.*inverted"):
+        undistorted_box(cam, np.array([[-800.5, 400.0], [-900.0, 500.0]]))
+
+
 @settings(max_examples=30, deadline=None)
 @given(
     dist=st.one_of(dist_st, st.tuples(*[st.floats(-0.05, 0.05)] * 8).map(list)),

@@ -33,7 +33,7 @@ def _results(multi_view_frames: set[int], n_frames: int = 43) -> list[FramePeopl
 def _short(results, tmp_path, n_frames: int = 43) -> list[int]:
     sizes, scale = {"a": (W, H), "b": (W, H)}, {"a": (1.0, 1.0), "b": (1.0, 1.0)}
     return _write(
-        results, ["a", "b"], sizes, list(range(n_frames)), tmp_path, scale, 5
+        results, ["a", "b"], sizes, list(range(n_frames)), tmp_path, scale, 5, sizes, 0.3
     ).short_tracks
 
 

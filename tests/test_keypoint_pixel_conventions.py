@@ -41,3 +41,22 @@ def test_a_mask_box_and_a_landmark_box_of_the_same_pixels_agree(tmp_path):
         half, _ = _frame_instances(f, 0, 0.5, 0.5, "cam")
     assert np.allclose(full[0].box, PersonInstance.create(lm).box)
     assert np.allclose(half[0].box, (19.5, 59.5, 41.5, 101.5))
+
+
+def test_the_landmark_box_leaves_out_unseen_limbs_beyond_the_frame():
+    """A person cut off by the frame's bottom edge: the model puts the ankles below it with a
+    visibility near 0, and those grew the crop's landmark box 2.6 times (the person shrank in
+    their crop by as much). A landmark outside the frame counts only when confident; inside
+    it, any detected one does (a leg hidden behind someone still belongs in the crop)."""
+    from gst.data.extract.keypoint_association import _extra_box
+
+    lm = np.zeros((33, 3))
+    lm[:, 0] = np.linspace(800, 1100, 33)
+    lm[:, 1] = np.linspace(700, 1070, 33)
+    lm[:, 2] = 0.9
+    lm[27:29] = (950, 1560, 1e-4)  # the ankles, unseen, 480 px below a 1920 x 1080 frame
+    lm[5] = (900, 650, 0.05)  # an eye hidden behind someone, inside the frame
+    box = _extra_box(lm, 0.5, 0.5, (1920, 1080), 0.3)
+    assert box[3] == (1070 + 0.5) * 0.5 and box[1] == (650 + 0.5) * 0.5
+    lm[27:29, 2] = 0.8  # confidently placed beyond the edge: kept
+    assert _extra_box(lm, 0.5, 0.5, (1920, 1080), 0.3)[3] == (1560 + 0.5) * 0.5

@@ -84,10 +84,17 @@ def _frame_instances(f: h5py.File, i: int, sx: float, sy: float, name: str):
     return insts, masks
 
 
-def _extra_box(lm: np.ndarray, sx: float, sy: float) -> tuple[float, float, float, float]:
+def _extra_box(
+    lm: np.ndarray, sx: float, sy: float, size: tuple[int, int], min_confidence: float
+) -> tuple[float, float, float, float]:
     """Work-resolution box (pixel edges) of a view's landmarks: the crop covers the whole person
-    even where their mask is cut by someone in front."""
-    seen = lm[:, 2] > 0
+    even where their mask is cut by someone in front. `size`: the full-resolution frame (w, h).
+    A landmark outside the frame counts only at `min_confidence` or more: the model places the
+    limbs the frame's edge cuts off beyond it with a visibility near 0, and those grew the box
+    by up to 2.6 times (the person shrank in their crop by as much)."""
+    w, h = size
+    inside = (lm[:, 0] >= -0.5) & (lm[:, 0] <= w - 0.5) & (lm[:, 1] >= -0.5) & (lm[:, 1] <= h - 0.5)
+    seen = (lm[:, 2] > 0) & (inside | (lm[:, 2] >= min_confidence))
     if seen.sum() < 2:
         return (np.nan,) * 4
     lo, hi = lm[seen, :2].min(axis=0), lm[seen, :2].max(axis=0)
@@ -147,7 +154,11 @@ def associate_scene_keypoints(
     finally:
         for f in inputs.values():
             f.close()
-    return _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames)
+    full_size = {c.name: (c.width, c.height) for c in cameras}
+    return _write(
+        results, names, work_sizes, frames, out_dir, sxy, min_track_frames,
+        full_size, config.match.min_confidence,
+    )  # fmt: skip
 
 
 def _run(tracker, inputs, streams, backgrounds, frames, sxy, progress) -> list[FramePeople]:
@@ -169,7 +180,9 @@ def _run(tracker, inputs, streams, backgrounds, frames, sxy, progress) -> list[F
     return out
 
 
-def _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames):
+def _write(
+    results, names, work_sizes, frames, out_dir, sxy, min_track_frames, full_size, min_confidence
+):
     # Offline: ids seen in too few frames are not trusted: an id is kept when its multi-view
     # frames or its single-view frames reach `min_track_frames` (on the lab, 1-2 frame
     # single-view ids are duplicates of a tracked person's body or legs). Someone one camera
@@ -207,7 +220,8 @@ def _write(results, names, work_sizes, frames, out_dir, sxy, min_track_frames):
                         slot += 1
                         lab[view.mask & (lab == 0)] = slot
                         slots.append((res.frame, slot, p.pid))
-                        views.append((*_extra_box(view.landmarks, *sxy[n]), view.visibility))
+                        box = _extra_box(view.landmarks, *sxy[n], full_size[n], min_confidence)
+                        views.append((*box, view.visibility))
                         lms.append(view.landmarks.astype(np.float32))
                         single.append(p.single_view)
                         source.append(SOURCES[view.source])
