@@ -35,7 +35,7 @@ def test_a_turned_camera_is_found_and_put_back():
         return fits, reproj, joints
 
     fits, before, joints_before = fit()
-    w = camera_corrections(fits, people)
+    w = camera_corrections(fits, people, 5)
     # camera 2 is turned back, the others hardly move (the mean turn is the world's)
     err = rotation_matrix(w[2]) @ rotation_matrix(w0)
     left = np.degrees(np.arccos(np.clip((np.trace(err) - 1) / 2, -1, 1)))
@@ -63,3 +63,9 @@ def test_the_corrected_rig_keeps_its_up_axis_and_metadata():
     assert out.up == (0.0, -1.0, 0.0) and out.meta == {"source": "panoptic"}
     np.testing.assert_allclose(out.cameras[0].R, np.eye(3))
     np.testing.assert_allclose(out.cameras[1].R, rotation_matrix(np.array([0.0, 0.01, 0.0])))
+
+
+def test_nobody_fitted_corrects_no_camera():
+    """The stage's readable people can be none (every view projected): the camera rounds then
+    turn no camera, as without them (they indexed the first person and crashed)."""
+    np.testing.assert_array_equal(camera_corrections([], [], 4), np.zeros((4, 3)))

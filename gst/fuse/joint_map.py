@@ -1,9 +1,11 @@
 """Which BlazePose landmarks observe which body-model joint (SMPL order).
 
 The fit itself uses every landmark through the virtual markers (gst.body.markers); this table
-only says, per output joint, which landmarks carry its 2D evidence: a joint's views are the
-cameras whose triangulation used all of its landmarks, its reprojection error is the mean over
-those landmarks, and a joint with fewer than 2 such views in a frame is flagged gap-filled.
+only says, per output joint, which landmarks carry its 2D evidence: a joint's view count is
+that of its least-seen landmark (each landmark is triangulated from its own views), its camera
+mask the cameras that used any of them, its reprojection error the mean over those landmarks,
+and a joint whose least-seen landmark has fewer than 2 views in a frame is flagged gap-filled
+(gst.fuse.tables.joint_evidence; docs/formats/fused_bodies.md).
 Joints without a landmark (spine1-3, neck, collars) come from the body model alone.
 
 | joint | landmarks |

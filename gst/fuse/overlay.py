@@ -2,7 +2,8 @@
 
 Per camera, each frame of its source video gets, per fused person, a sparse cloud of the fitted
 mesh's vertices (every `vertex_step`-th, projected with the full lens model), the 24-joint
-skeleton, and the 33 virtual markers as rings; gap-filled frames draw the skeleton dashed grey.
+skeleton, and the 33 virtual markers as rings; frames the fit filled (nobody saw the person)
+draw the skeleton grey.
 """
 
 from __future__ import annotations

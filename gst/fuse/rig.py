@@ -38,13 +38,15 @@ def rotation_matrix(w: np.ndarray) -> np.ndarray:
 def camera_corrections(
     fits: list[PersonFit],
     people: list[PersonObservations],
+    cameras: int,
     sigma_px: float = 10.0,
     min_confidence: float = 0.5,
     iterations: int = 5,
 ) -> np.ndarray:
     """(C, 3) rotation corrections (axis-angle, camera frame) that best align every camera's
-    landmarks with the fitted markers; zero for a camera with fewer than 50 landmarks."""
-    C = people[0].rows.shape[1]
+    landmarks with the fitted markers; zero for a camera with fewer than 50 landmarks (all of
+    them where nobody was fitted: the stage's readable people can be none)."""
+    C = cameras
     cam_pts, uvs, Ks, scales = ([[] for _ in range(C)], [[] for _ in range(C)],
                                 [[] for _ in range(C)], [[] for _ in range(C)])  # fmt: skip
     for f, p in zip(fits, people, strict=True):
@@ -59,9 +61,9 @@ def camera_corrections(
             scales[c].append(p.px_scale[t, c])
     out = np.zeros((C, 3))
     for c in range(C):
-        Xc = np.concatenate(cam_pts[c])
-        if len(Xc) < 50:
+        if sum(len(a) for a in cam_pts[c]) < 50:
             continue
+        Xc = np.concatenate(cam_pts[c])
         uv, K, s = np.concatenate(uvs[c]), np.concatenate(Ks[c]), np.concatenate(scales[c])
         w = np.zeros(3)
         for _ in range(iterations):

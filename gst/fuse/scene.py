@@ -423,7 +423,7 @@ def fuse_scene(
         if path.is_file():
             w = np.load(path)
         else:
-            w = camera_corrections(fits, people)
+            w = camera_corrections(fits, people, len(cams))
             _save_npy(path, w)
         apply_corrections(people, w)
         corrections = np.stack(

@@ -354,7 +354,7 @@ class FusedBodies:
     body_pose: np.ndarray  # (R, 23, 3) axis-angle
     betas: np.ndarray  # (R, nb)
     transl: np.ndarray  # (R, 3) world, metres: the body model's translation
-    joint_views: np.ndarray  # (R, 24) cameras whose triangulation used the joint's landmarks
+    joint_views: np.ndarray  # (R, 24) views of the joint's least-seen landmark
     gap_filled: np.ndarray  # (R, 24) bool
     observed: np.ndarray  # (R,) bool
     single_view: np.ndarray  # (R,) bool
