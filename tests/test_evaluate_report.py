@@ -74,6 +74,21 @@ def test_attached_truth_matches_synth_truth_crops(tiny_scene):
         transl=torch.from_numpy(truth.transl),
     )
     assert np.abs(out.joints.numpy()[:, :24] - truth.joints_world).max() < 1e-4
+    # a crop that shows nobody of the truth carries zeros and the rest pose, as documented
+    # (its betas and rotations were truth row 0's)
+    import gst.train.scene_truth as scene_truth
+
+    matched = scene_truth.match_truth_views(crops, boxes, tiny_scene)
+    matched[0] = -1
+    crops.truth = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(scene_truth, "match_truth_views", lambda *args: matched)
+        attach_scene_truth(crops, boxes, tiny_scene)
+    t = crops.truth
+    assert not bool(t["has_truth"][0]) and bool(t["has_truth"][1:].all())
+    assert not t["betas"][0].any() and not t["joints_world"][0].any()
+    assert torch.equal(t["rotmats_cam"][0], torch.eye(3).expand(24, 3, 3))
+    assert torch.allclose(t["betas"][1:].float(), reference["betas"][1:].float(), atol=1e-4)
 
 
 def test_a_crop_is_matched_to_the_person_its_mask_shows_not_its_box(tiny_scene):

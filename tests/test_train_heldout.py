@@ -61,3 +61,15 @@ def test_heldout_frames_and_cameras_never_reach_a_batch(tmp_path, monkeypatch):
     # the checkpoint is chosen on held-out-camera views of training frames only
     pairs = novel_view_pairs(crops, {2}, frames=(0, 6))
     assert len(pairs.inputs) and (crops.frame[pairs.targets] < 6).all()
+
+
+def test_every_heldout_camera_is_a_novel_view_target():
+    """With cameras 2 and 3 held out, training's novel-view pairs scored camera 2 only (the
+    first held-out view of every group); with one held-out camera the pairs are as before."""
+    crops = crop_set(n_frames=10, n_cams=4)
+    pairs = novel_view_pairs(crops, {2, 3}, max_pairs=64)
+    counts = torch.bincount(crops.camera[pairs.targets], minlength=4).tolist()
+    assert counts[0] == counts[1] == 0 and counts[2] > 0 and counts[3] > 0, counts
+    one = novel_view_pairs(crops, {2}, max_pairs=64)
+    assert set(crops.camera[one.targets].tolist()) == {2}
+    assert set(crops.camera[one.inputs].tolist()) <= {0, 1, 3}

@@ -140,7 +140,8 @@ UNCALIBRATED_EVERY = 5
 
 
 def hide_up(up: torch.Tensor, every: int = UNCALIBRATED_EVERY) -> torch.Tensor:
-    """A copy of (B, 3) up directions with every `every`-th row zeroed (not known)."""
+    """A copy of (B, 3) up directions with every `every`-th row zeroed (not known): rows
+    every - 1, 2 every - 1, ..., so floor(B / every) of a batch of B (none below `every`)."""
     up = up.clone()
     up[every - 1 :: every] = 0.0
     return up

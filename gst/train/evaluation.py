@@ -90,7 +90,8 @@ def novel_view_pairs(
     frames: tuple[int, int] | None = None,
 ) -> ViewPairs:
     """(training-camera input, held-out-camera target) pairs of one (frame, person), within
-    `frames` [lo, hi) when given."""
+    `frames` [lo, hi) when given. With several held-out views of a group the target is drawn
+    among them (every held-out camera is scored); with one it is that one."""
     gen = torch.Generator().manual_seed(seed)
     inputs, targets = [], []
     for g in crops.groups(min_views=2):
@@ -100,7 +101,10 @@ def novel_view_pairs(
         train = [int(i) for i in g if int(crops.camera[i]) not in heldout]
         if held and train:
             inputs.append(train[int(torch.randint(len(train), (1,), generator=gen))])
-            targets.append(held[0])
+            # one held-out view: no draw, so the generator's sequence (and the pairs) are those
+            # of the single held-out camera the defaults have
+            pick = 0 if len(held) == 1 else int(torch.randint(len(held), (1,), generator=gen))
+            targets.append(held[pick])
     order = torch.randperm(len(inputs), generator=gen)[:max_pairs]
     return ViewPairs(
         torch.tensor(inputs, dtype=torch.long)[order],

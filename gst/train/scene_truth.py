@@ -33,7 +33,8 @@ def attach_scene_truth(
     has_truth (N,) bool, truth_row (N,) index into the returned SceneTruth (-1: unmatched),
     joints_world / joints_cam (N,24,3), joints2d (N,24,2) crop px, visible (N,24),
     rotmats_cam (N,24,3,3) (index 0: global orientation in the crop's camera), betas (N,nb).
-    Unmatched crops carry zeros; always filter with has_truth."""
+    Unmatched crops carry zeros (identity rotations, the rest pose); always filter with
+    has_truth."""
     scene_dir = Path(scene_dir)
     truth = read_scene_truth(scene_dir)
     views = read_truth_views(scene_dir)
@@ -66,8 +67,10 @@ def attach_scene_truth(
         joints_cam=jc,
         joints2d=uv[..., :2],
         visible=torch.from_numpy(visible),
-        rotmats_cam=rot,
-        betas=torch.from_numpy(truth.betas[safe]),
+        rotmats_cam=torch.where(
+            torch.from_numpy(has)[:, None, None, None], rot, torch.eye(3).expand_as(rot)
+        ),
+        betas=torch.from_numpy(truth.betas[safe]) * torch.from_numpy(has)[:, None],
     )
     return truth
 
