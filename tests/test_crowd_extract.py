@@ -233,7 +233,7 @@ def test_brief_ids_are_not_trusted_single_view_or_not(tmp_path):
     out.mkdir()
     summary = _write(
         results, ["a", "b"], {"a": (8, 8), "b": (8, 8)}, list(range(8)), out,
-        {"a": (1.0, 1.0), "b": (1.0, 1.0)}, 5,
+        {"a": (1.0, 1.0), "b": (1.0, 1.0)}, 5, {"a": (8, 8), "b": (8, 8)}, 0.5,
     )  # fmt: skip
     assert summary.short_tracks == [2, 4]
 
