@@ -276,6 +276,30 @@ def test_a_damaged_body_file_is_a_value_error_naming_it(tmp_path, small_data, co
         BodyModelData.load_npz(path)
 
 
+def test_a_body_file_with_a_damaged_member_is_a_value_error_naming_it(tmp_path, small_data):
+    """A flipped byte inside a member (bad CRC) raised BadZipFile on reading the array, past
+    the guarded open, so the Anny cache did not rebuild its damaged file."""
+    path = tmp_path / "body.npz"
+    small_data.save_npz(path)
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 3] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match=r"body\.npz: not a readable npz body file"):
+        BodyModelData.load_npz(path)
+
+
+@pytest.mark.parametrize("num_vertices", [400, 500, 800, 900, 6890])
+def test_a_small_random_body_skins_every_joint(num_vertices):
+    """Under about 900 vertices the tubes listed last (arms, hands, head) were cut off: at 400,
+    15 of the 24 joints carried no skin weight, so their rotations moved nothing."""
+    data = random_body_data(num_vertices=num_vertices, with_posedirs=False)
+    assert data.v_template.shape == (num_vertices, 3)
+    assert (data.weights.sum(axis=0) > 0.5).all()
+    assert data.faces.max() < num_vertices
+    hand = data.joint_names.index("right_hand")
+    assert (data.weights[:, hand] > 0).sum() >= 7  # at least one ring of its own tube
+
+
 def test_an_unbatched_root_matrix_gets_a_hint(small_data):
     """A (3, 3) global_orient reads as three axis-angle rows; with another batch the error said
     only "global_orient has batch 3", with no word of why."""

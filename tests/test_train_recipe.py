@@ -198,7 +198,7 @@ def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
         net.train(),
         task,
         crops,
-        TrainConfig(steps=12, batch_size=4, lr=2e-3, warmup_steps=1, val_every=12, log_every=1),
+        TrainConfig(steps=20, batch_size=4, lr=2e-3, warmup_steps=1, val_every=20, log_every=1),
         tmp_path,
         FitOptions(mode="multiview", num_targets=2, render_size=16),
         body_spec="random",

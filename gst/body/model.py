@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -184,30 +185,35 @@ class BodyModelData:
             raise ValueError(f"{path}: not a readable npz body file ({exc})") from exc
         if not isinstance(z, np.lib.npyio.NpzFile):
             raise ValueError(f"{path}: a single .npy array, not an npz body file")
-        with z:
-            if "format" not in z.files or str(z["format"]) != _NPZ_FORMAT:
-                raise ValueError(f"{path}: not a {_NPZ_FORMAT} body file (keys {sorted(z.files)})")
-            get = lambda k: z[k] if k in z.files else None  # noqa: E731
-            data = cls(
-                v_template=z["v_template"],
-                shapedirs=z["shapedirs"],
-                J_regressor=z["J_regressor"],
-                weights=z["weights"],
-                parents=z["parents"],
-                faces=z["faces"],
-                joint_names=tuple(str(s) for s in z["joint_names"]),
-                part_labels=z["part_labels"],
-                part_names=tuple(str(s) for s in z["part_names"])
-                if "part_names" in z.files
-                else None,
-                posedirs=get("posedirs"),
-                name=str(z["name"]),
-                source=str(z["source"]),
-                licence=str(z["licence"]),
-                shape_variance=get("shape_variance"),
-                shape_variance_ratio=get("shape_variance_ratio"),
-                source_vertex_ids=get("source_vertex_ids"),
-            )
+        try:
+            with z:
+                return cls._from_npz(z, path)
+        except (zipfile.BadZipFile, EOFError, zlib.error) as exc:  # a damaged member (bad CRC)
+            raise ValueError(f"{path}: not a readable npz body file ({exc})") from exc
+
+    @classmethod
+    def _from_npz(cls, z: np.lib.npyio.NpzFile, path: Path) -> BodyModelData:
+        if "format" not in z.files or str(z["format"]) != _NPZ_FORMAT:
+            raise ValueError(f"{path}: not a {_NPZ_FORMAT} body file (keys {sorted(z.files)})")
+        get = lambda k: z[k] if k in z.files else None  # noqa: E731
+        data = cls(
+            v_template=z["v_template"],
+            shapedirs=z["shapedirs"],
+            J_regressor=z["J_regressor"],
+            weights=z["weights"],
+            parents=z["parents"],
+            faces=z["faces"],
+            joint_names=tuple(str(s) for s in z["joint_names"]),
+            part_labels=z["part_labels"],
+            part_names=tuple(str(s) for s in z["part_names"]) if "part_names" in z.files else None,
+            posedirs=get("posedirs"),
+            name=str(z["name"]),
+            source=str(z["source"]),
+            licence=str(z["licence"]),
+            shape_variance=get("shape_variance"),
+            shape_variance_ratio=get("shape_variance_ratio"),
+            source_vertex_ids=get("source_vertex_ids"),
+        )
         return data.validate()
 
     def replace(self, **changes) -> BodyModelData:

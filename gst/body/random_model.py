@@ -52,8 +52,10 @@ def _radius(name: str) -> float:
     return 0.045
 
 
-def _tube(a: np.ndarray, b: np.ndarray, radius: float, n_len: int) -> tuple[np.ndarray, np.ndarray]:
-    """Points on a tube from a to b (n_len rings of _RING points) and their position t in [0, 1]."""
+def _tube(
+    a: np.ndarray, b: np.ndarray, radius: float, n_len: int, ring: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a tube from a to b (n_len rings of `ring` points) and their place t in [0, 1]."""
     axis = b - a
     length = np.linalg.norm(axis)
     u = axis / length
@@ -62,7 +64,7 @@ def _tube(a: np.ndarray, b: np.ndarray, radius: float, n_len: int) -> tuple[np.n
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(u, e1)
     t = (np.arange(n_len) + 0.5) / n_len
-    phi = 2 * np.pi * np.arange(_RING) / _RING
+    phi = 2 * np.pi * np.arange(ring) / ring
     # Slightly tapered ends so neighbouring tubes do not coincide.
     r = radius * (0.85 + 0.15 * np.sin(np.pi * t))
     pts = (
@@ -70,23 +72,38 @@ def _tube(a: np.ndarray, b: np.ndarray, radius: float, n_len: int) -> tuple[np.n
         + t[:, None, None] * axis
         + r[:, None, None] * (np.cos(phi)[None, :, None] * e1 + np.sin(phi)[None, :, None] * e2)
     )
-    return pts.reshape(-1, 3), np.repeat(t, _RING)
+    return pts.reshape(-1, 3), np.repeat(t, ring)
 
 
-def _tube_faces(first: int, n_len: int) -> np.ndarray:
+def _tube_faces(first: int, n_len: int, ring: int) -> np.ndarray:
     faces = []
     for i in range(n_len - 1):
-        for k in range(_RING):
-            a, b = first + i * _RING + k, first + i * _RING + (k + 1) % _RING
-            c, d = a + _RING, b + _RING
+        for k in range(ring):
+            a, b = first + i * ring + k, first + i * ring + (k + 1) % ring
+            c, d = a + ring, b + ring
             faces += [(a, c, b), (b, c, d)]
     return np.array(faces, dtype=np.int64).reshape(-1, 3)
+
+
+def _rings_per_tube(lengths: np.ndarray, total: int) -> np.ndarray:
+    """Rings per tube, about proportional to length, at least 2 each, summing to `total` (the
+    last tube loses at most a partial ring to the exact vertex count)."""
+    n = np.maximum(2, np.floor(lengths * total / lengths.sum()).astype(int))
+    while n.sum() > total:  # the minimum of 2 took rings from the budget: the longest give back
+        n[np.argmax(np.where(n > 2, lengths / n, -1.0))] -= 1
+    while n.sum() < total:  # the coarsest tubes get the rings left over
+        n[np.argmax(lengths / n)] += 1
+    return n
 
 
 def random_body_data(
     num_vertices: int = 6890, num_betas: int = 10, with_posedirs: bool = True, seed: int = 0
 ) -> BodyModelData:
-    """A synthetic SMPL-layout body with exactly ``num_vertices`` vertices (>= 400)."""
+    """A synthetic SMPL-layout body with exactly ``num_vertices`` vertices (>= 400).
+
+    Every tube gets at least two rings, whatever the count: small bodies get thinner rings
+    (down to 7 points at 400) rather than losing the tubes listed last (arms, hands, head),
+    whose joints would then carry no skin weight at all."""
     if num_vertices < 400:
         raise ValueError(f"num_vertices must be at least 400, got {num_vertices}")
     rng = np.random.default_rng(seed)
@@ -99,14 +116,14 @@ def random_body_data(
         direction = joints[j] - joints[SMPL_PARENTS[j]]
         ends.append((joints[j], joints[j] + ext * direction / np.linalg.norm(direction), j, j))
     lengths = np.array([np.linalg.norm(b - a) for a, b, _, _ in ends])
-    per_length = num_vertices / (_RING * lengths.sum())
-    n_len = np.maximum(2, np.ceil(lengths * per_length * 1.05).astype(int))
+    ring = min(_RING, num_vertices // (2 * len(ends)))
+    n_len = _rings_per_tube(lengths, -(-num_vertices // ring))
 
     points, owner, child, pos, faces = [], [], [], [], []
     count = 0
     for (a, b, p, c), n in zip(ends, n_len, strict=True):
-        pts, t = _tube(a, b, _radius(SMPL_JOINT_NAMES[c]), int(n))
-        faces.append(_tube_faces(count, int(n)))
+        pts, t = _tube(a, b, _radius(SMPL_JOINT_NAMES[c]), int(n), ring)
+        faces.append(_tube_faces(count, int(n), ring))
         points.append(pts)
         owner += [p] * len(pts)
         child += [c] * len(pts)
