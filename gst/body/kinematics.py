@@ -51,15 +51,22 @@ def skew(v: torch.Tensor) -> torch.Tensor:
 def _sinc_terms(v: torch.Tensor):
     t2 = (v * v).sum(-1)[..., None, None]
     t = torch.sqrt(t2 + 1e-30)
-    small = t2 < 1e-8  # Taylor branches: exact to rounding below 1e-4 rad
+    # Taylor branches below a threshold where the closed forms cancel: in float32, 1 - cos t
+    # is 0 below 3e-4 rad and t - sin t keeps few digits below 0.1 rad.
+    small = t2 < (1e-8 if v.dtype == torch.float64 else 1e-2)
     return t2, t, small
+
+
+def _one_minus_cos_over_t2(t2: torch.Tensor, t: torch.Tensor, small: torch.Tensor):
+    half = torch.sin(t / 2) / (t + 1e-30)  # (1 - cos t) / t^2 = 2 sin^2(t/2) / t^2: no cancelling
+    return torch.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, 2 * half * half)
 
 
 def rodrigues(v: torch.Tensor) -> torch.Tensor:
     """Axis-angle (..., 3) -> rotation matrices (..., 3, 3)."""
     t2, t, small = _sinc_terms(v)
-    a = torch.where(small, 1 - t2 / 6, torch.sin(t) / t)
-    b = torch.where(small, 0.5 - t2 / 24, (1 - torch.cos(t)) / (t2 + 1e-30))
+    a = torch.where(small, 1 - t2 / 6 + t2 * t2 / 120, torch.sin(t) / t)
+    b = _one_minus_cos_over_t2(t2, t, small)
     K = skew(v)
     return torch.eye(3, dtype=v.dtype, device=v.device) + a * K + b * (K @ K)
 
@@ -67,8 +74,10 @@ def rodrigues(v: torch.Tensor) -> torch.Tensor:
 def left_jacobian(v: torch.Tensor) -> torch.Tensor:
     """SO(3) left Jacobian (..., 3, 3): exp(v + dv) = exp(J_l(v) dv) exp(v) to first order."""
     t2, t, small = _sinc_terms(v)
-    a = torch.where(small, 0.5 - t2 / 24, (1 - torch.cos(t)) / (t2 + 1e-30))
-    b = torch.where(small, 1.0 / 6 - t2 / 120, (t - torch.sin(t)) / (t2 * t + 1e-30))
+    a = _one_minus_cos_over_t2(t2, t, small)
+    b = torch.where(
+        small, 1.0 / 6 - t2 / 120 + t2 * t2 / 5040, (t - torch.sin(t)) / (t2 * t + 1e-30)
+    )
     K = skew(v)
     return torch.eye(3, dtype=v.dtype, device=v.device) + a * K + b * (K @ K)
 
