@@ -240,6 +240,12 @@ class BoardDetector:
     def __init__(self, board: BoardSpec, min_corners: int = 6):
         self.board = board
         self.min_corners = max(int(min_corners), 4)
+        if board.n_corners < self.min_corners:  # a 3 x 3 board's 4 corners were never enough
+            raise BoardError(
+                f"board {board.squares_x} x {board.squares_y} has {board.n_corners} inner corners,"
+                f" fewer than the {self.min_corners} a detection needs: use a board with more "
+                "squares (or lower min_corners)"
+            )
         if board.kind == "charuco":
             params = cv2.aruco.DetectorParameters()
             # Finer stopping accuracy for the corner refinement than OpenCV's 0.1 px default.

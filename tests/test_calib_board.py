@@ -62,6 +62,15 @@ def test_board_spec_dict_round_trip_and_validation():
     )
 
 
+def test_a_board_with_fewer_corners_than_a_detection_needs_is_refused():
+    """A 3 x 3 ChArUco board passed the spec's checks, then every view of it was dropped (4
+    corners, min_corners 6) and calibration failed later with 'no detections'."""
+    board = BoardSpec("charuco", 3, 3, 0.1, 0.07)
+    with pytest.raises(BoardError, match=r"has \d+ inner corners, fewer than the 6"):
+        BoardDetector(board)
+    BoardDetector(board, min_corners=4)  # asked for explicitly, it is allowed
+
+
 def test_render_image_marks_square_zero_black():
     img = CHARUCO.render_image(40)
     assert img.shape == (200, 280) and img[20, 20] == 0 and img[2, 42] == 255
@@ -129,9 +138,10 @@ def test_partial_charuco_view_keeps_visible_corners_with_their_ids():
 
 def test_no_board_and_too_few_corners_give_none():
     assert BoardDetector(CHARUCO).detect(np.full((480, 640), 128, np.uint8)) is None
-    cam = camera_facing_board(CHARUCO, distance=1.0, offset=(0.75, 0.0), tilt_deg=0.0)
-    img = BoardRenderer(cam, CHARUCO).render(np.eye(4))
-    assert BoardDetector(CHARUCO, min_corners=30).detect(img) is None
+    cam = camera_facing_board(CHARUCO, distance=1.0, offset=(0.5, 0.0), tilt_deg=0.0)
+    img = BoardRenderer(cam, CHARUCO).render(np.eye(4))  # 8 of the 24 corners show
+    assert len(BoardDetector(CHARUCO, min_corners=8).detect(img).ids) == 8
+    assert BoardDetector(CHARUCO, min_corners=9).detect(img) is None
 
 
 def test_blur_lowers_sharpness_and_blurred_detections_are_dropped():
