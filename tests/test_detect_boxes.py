@@ -24,3 +24,19 @@ def test_shared_is_the_overlap_over_the_smaller_box():
     assert shared(big, inside) == shared(inside, big) == 1.0
     assert shared(big, np.array([20.0, 0, 30, 10])) == 0.0  # apart
     assert shared(big, np.array([5.0, 0, 15, 10])) == pytest.approx(0.5)  # half of each
+
+
+def test_paint_out_of_a_grey_image_paints_its_mean():
+    """mean_colour took the last axis of a grey image (its width) as its channels: 4 values, and
+    a 4-pixel wide box painted with them (0s) instead of the mean."""
+    img = np.full((4, 6), 100, np.uint8)
+    out = paint_out(img, [np.array([1.0, 1.0, 3.0, 3.0])], grow=0.0)
+    assert (out == 100).all()
+
+
+def test_an_empty_frame_is_refused_by_name():
+    from gst.detect.blazepose import as_bgr_frame
+
+    for shape in [(0, 0, 3), (0, 10, 3), (10, 0), (0, 0)]:
+        with pytest.raises(ValueError, match=r"empty frame of shape"):
+            as_bgr_frame(np.zeros(shape, np.uint8))

@@ -263,3 +263,14 @@ def test_batched_landmarks_keep_a_few_interpreters_whatever_the_batch_sizes(fram
         for got, roi in zip(lm(small, many[:n]), many[:n], strict=True):
             np.testing.assert_allclose(got.landmarks, alone[id(roi)].landmarks, atol=1e-4)
     assert sorted(lm._by_batch) == [1, 2, 4, 8]
+
+
+def test_grey_frames_find_the_people_colour_frames_do(frames):
+    """A grey frame reached the painting out as a 2-D work image and crashed (a broadcast
+    error naming no frame); the detector now converts it as the other readers do."""
+    from gst.track.person_detector import PersonModelDetector
+
+    colour, grey = PersonModelDetector(), PersonModelDetector()
+    for i, f in enumerate(frames[:3]):
+        g = cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)
+        assert len(grey.detect(g, i)) == len(colour.detect(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), i))

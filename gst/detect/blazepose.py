@@ -350,6 +350,8 @@ def as_bgr_frame(image: np.ndarray) -> np.ndarray:
             f"frames must be uint8 (0-255) images, got {image.dtype}; convert them first "
             "(16-bit: image >> 8)"
         )
+    if image.size == 0 and image.ndim in (2, 3):  # OpenCV's assertion said nothing of the frame
+        raise ValueError(f"empty frame of shape {image.shape}: expected H, W >= 1")
     if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 1):
         return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     if image.ndim == 3 and image.shape[2] == 4:

@@ -51,8 +51,9 @@ def paint_out(image: np.ndarray, boxes, grow: float = 0.1) -> np.ndarray:
 
 def mean_colour(image: np.ndarray) -> np.ndarray:
     """The (C,) mean colour of an (H, W, C) image, C <= 4 (OpenCV's: 50x quicker than numpy's
-    strided mean on a 544 x 960 frame; equal to it within 1e-12)."""
-    return np.asarray(cv2.mean(image)[: image.shape[-1]])
+    strided mean on a 544 x 960 frame; equal to it within 1e-12); an (H, W) grey image's is
+    (1,) (its last axis is its width: it took 4 values)."""
+    return np.asarray(cv2.mean(image)[: 1 if image.ndim == 2 else image.shape[-1]])
 
 
 def fill_where(image: np.ndarray, mask: np.ndarray, colour: np.ndarray) -> np.ndarray:

@@ -51,6 +51,7 @@ from gst.detect.blazepose import (
     BodyRoi,
     RegionLandmarks,
     ZoomedScan,
+    as_bgr_frame,
     roi_from_alignment,
     same_region,
 )
@@ -479,6 +480,7 @@ class PersonModelDetector:
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
         c = self.config
+        frame_bgr = as_bgr_frame(frame_bgr)  # grey frames crashed in painting out (2-D work image)
         if self._last is not None and not 0 < frame_index - self._last <= c.max_gap:
             self.reset()
         self._last = frame_index
