@@ -195,6 +195,7 @@ def main() -> None:
         results.append((table, name, p, v, train_s, time.perf_counter() - t0))
         print(
             f"{table} {name}: MPJPE {_f(p['mpjpe_mm'])} PA-MPJPE {_f(p['pa_mpjpe_mm'])} "
+            f"({p['n_not_finite']} of {p['n']} crops not finite, left out) "
             f"PSNR {_f(v['psnr'], 2)} IoU {_f(v['silhouette_iou'], 3)} SSIM {_f(v['ssim'], 3)} "
             f"LPIPS {_f(v['lpips'], 3)} ({train_s:.0f} s training, "
             f"{time.perf_counter() - t0:.0f} s total)",
@@ -207,14 +208,15 @@ def main() -> None:
         f"{split.test_frames[1] - 1}, never trained on); novel views: {v['n']} held-out-camera "
         "pairs.",
         "",
-        "| table | row | MPJPE (mm) | PA-MPJPE (mm) | PSNR (dB) | IoU | SSIM | LPIPS "
-        "| box PSNR (dB) | train s | total s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| table | row | MPJPE (mm) | PA-MPJPE (mm) | crops not finite (left out) | PSNR (dB) | "
+        "IoU | SSIM | LPIPS | box PSNR (dB) | train s | total s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for table, name, p, v, train_s, total in results:
         lines.append(
             f"| {table} | {name} | {_f(p['mpjpe_mm'])} | {_f(p['pa_mpjpe_mm'])} | "
-            f"{_f(v['psnr'], 2)} | {_f(v['silhouette_iou'], 3)} | {_f(v['ssim'], 3)} | "
+            f"{p['n_not_finite']} | {_f(v['psnr'], 2)} | {_f(v['silhouette_iou'], 3)} | "
+            f"{_f(v['ssim'], 3)} | "
             f"{_f(v['lpips'], 3)} | {_f(v['box_psnr'], 2)} | {train_s:.0f} | {total:.0f} |"
         )
     text = "\n".join(lines) + "\n"

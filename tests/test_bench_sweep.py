@@ -157,7 +157,8 @@ def test_a_diverged_variant_is_a_row_of_na(tmp_path, monkeypatch):
         repeats=1, batch=2, render_size=16, log=lines.append,
     )  # fmt: skip
     assert [r.mpjpe_mm for r in rows] == [None, None]
+    assert all(r.not_finite > 0 for r in rows)  # said in the table, beside the n/a
     assert all(r.ms_per_batch > 0 for r in rows)  # timed on a fresh network of its config
     assert any("MPJPE n/a mm" in line for line in lines)
     write_bench_table(tmp_path, rows, "# test")
-    assert "| n/a | n/a |" in (tmp_path / "table.md").read_text()
+    assert f"| n/a | n/a | {rows[0].not_finite} |" in (tmp_path / "table.md").read_text()

@@ -188,3 +188,22 @@ def test_the_report_names_its_reference_and_an_empty_held_out_camera(tmp_path):
     assert md.startswith("# Evaluation against the rig's fused bodies")
     assert "synthetic truth" not in md and "crops with a fused body" in md
     assert "No novel-view pair has its target in a held-out camera (c2)" in md
+
+
+def test_crops_left_out_of_the_errors_are_counted_in_the_headline():
+    """A model whose prediction was NaN on 4 of 10 crops was averaged over the other 6 and
+    could win the headline; report.md never said so."""
+    from gst.eval.report import _markdown
+
+    def summary(mpjpe, bad):
+        overall = {"n": 10, "n_not_finite": bad, "mpjpe_mm": mpjpe, "pa_mpjpe_mm": mpjpe / 2}
+        return {
+            "counts": {"pose_crops": 10, "view_pairs": 0, "render_size": 32, "heldout_cameras": []},
+            "pose": {"overall": overall, "per_camera": {}, "per_part": {}, "per_motion": {}},
+        }
+
+    md = _markdown({"pretrained": summary(100.0, 0), "gst": summary(80.0, 4)}, {}, [], False)
+    row = next(line for line in md.splitlines() if "not finite" in line)
+    assert row.endswith("| 0 of 10 | 4 of 10 |")
+    clean = _markdown({"gst": summary(80.0, 0)}, {}, [], False)
+    assert "not finite" not in clean

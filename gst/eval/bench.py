@@ -91,6 +91,7 @@ class BenchRow:
     mpjpe_mm: float | None
     pa_mpjpe_mm: float | None
     psnr: float | None  # held-out cameras, test frames (full rows only)
+    not_finite: int = 0  # crops whose prediction was not finite: left out of the errors
 
 
 def time_inference(fn: Callable[[], object], repeats: int) -> float:
@@ -210,6 +211,7 @@ def run_bench(
                     pose["mpjpe_mm"],
                     pose["pa_mpjpe_mm"],
                     nv.get("psnr") if with_g else None,
+                    pose["n_not_finite"],
                 )
             )
     for row, sec in zip(pending, _interleaved_medians(calls, repeats), strict=True):
@@ -240,15 +242,16 @@ def write_bench_table(out: Path, rows: list[BenchRow], header: str) -> None:
         header,
         "",
         "| variant | preset | input | Gaussians | landmarks | output | params (M) | ms/crop | "
-        "crops/s | time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | PSNR held-out (dB) | weights |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "crops/s | time vs fastest | MPJPE (mm) | PA-MPJPE (mm) | crops not finite (left out) | "
+        "PSNR held-out (dB) | weights |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r.variant} | {r.preset} | {r.input_size} | {r.gaussians} | {r.landmarks or '-'} | "
             f"{r.output} | {r.params_m:.2f} | {r.ms_per_crop:.2f} | {r.fps:.1f} | "
             f"{r.ms_per_batch / ref:.2f}x | {_f(r.mpjpe_mm)} | {_f(r.pa_mpjpe_mm)} | "
-            f"{_f(r.psnr, 2)} | {r.training} |"
+            f"{r.not_finite} | {_f(r.psnr, 2)} | {r.training} |"
         )
     text = "\n".join(lines) + "\n\n![Pareto](pareto.png)\n"
     atomic_write(out / "table.md", lambda tmp: Path(tmp).write_text(text))

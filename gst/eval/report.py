@@ -297,6 +297,16 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
         if all(v is None for v in vals):
             continue
         lines.append(f"| {label} | " + " | ".join(_f(v, d) for v in vals) + " |")
+    bad = [_get(summaries[n], "pose", "overall", "n_not_finite") or 0 for n in names]
+    if any(bad):  # the means above cover only the finite crops: say how many are not in them
+        lines.append(
+            "| crops whose prediction is not finite (left out of the errors above) | "
+            + " | ".join(
+                f"{v} of {_get(summaries[n], 'pose', 'overall', 'n')}"
+                for n, v in zip(names, bad, strict=True)
+            )
+            + " |"
+        )
     last = names[-1]
     s = summaries[last]
     lines += [
