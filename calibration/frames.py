@@ -7,6 +7,7 @@ cameras must hold the same instants in the same order.
 
 from __future__ import annotations
 
+import logging
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +17,8 @@ import numpy as np
 
 from gst.video import VideoError, probe_video
 from gst.video import iter_frames as video_frames
+
+log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -36,6 +39,25 @@ def list_images(folder: Path) -> list[Path]:
             f"image folder '{folder}' holds no images ({', '.join(IMAGE_SUFFIXES)})"
         )
     return sorted(files, key=_natural_key)
+
+
+def numbering_gap(files: list[Path]) -> str | None:
+    """Where the numbers at the end of the files' names (frame_000123.png) stop going up in one
+    step, said in words; None when they do, or when the names carry no such number. A frame
+    is the i-th image, so one missing file puts the camera out of step from there on."""
+    numbers = []
+    for p in files:
+        m = re.search(r"(\d+)\D*$", p.stem)
+        if m is None:
+            return None
+        numbers.append(int(m.group(1)))
+    steps = np.diff(numbers)
+    if len(steps) == 0 or ((steps == steps[0]).all() and steps[0] > 0):
+        return None
+    usual = np.median(steps)
+    odd = np.flatnonzero((steps != usual) | (steps <= 0))
+    i = int(odd[0]) if len(odd) else 0
+    return f"'{files[i].name}' is followed by '{files[i + 1].name}'"
 
 
 def _probe(path: Path):
@@ -92,7 +114,15 @@ def iter_frames(
     yielded = 0
     size = None
     if source.is_dir():
-        for index, path in enumerate(list_images(source)):
+        files = list_images(source)
+        if (gap := numbering_gap(files)) is not None:
+            log.warning(
+                "image folder '%s': the numbers in the file names skip (%s); frame i is the "
+                "i-th image, so this camera is out of step with the others from there on "
+                "unless theirs skip alike",
+                source, gap,
+            )  # fmt: skip
+        for index, path in enumerate(files):
             if index % step:
                 continue
             if limit is not None and yielded >= limit:

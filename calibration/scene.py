@@ -178,7 +178,8 @@ def calibrate_scene(
     for warning in lens_warnings(rig):  # a lens model poorly held near the border: said only
         log.warning("rig check: %s", warning)
     if solved is not None:
-        weak = [n for n in solved.notes if any(f"camera '{c}'" in n for c in solved.weak_cameras)]
+        flagged = {**solved.weak_cameras, **solved.suspect_cameras}
+        weak = [n for n in solved.notes if any(f"camera '{c}'" in n for c in flagged)]
         for note in solved.notes:
             if note not in weak:  # the weak cameras' notes are logged with the rig checks
                 log.warning("calibration: %s", note)

@@ -91,6 +91,9 @@ class BoardCalibration:
     # cameras that saw the board in fewer than MIN_ORIENTATIONS distinct orientations: their
     # intrinsics and pose are poorly determined (camera -> distinct orientations)
     weak_cameras: dict[str, int] = field(default_factory=dict)
+    # cameras that lost more than MAX_OUTLIER_SHARE of their corners as outliers, most often
+    # frames out of step with the others (camera -> share removed)
+    suspect_cameras: dict[str, float] = field(default_factory=dict)
 
     @property
     def rms_px_overall(self) -> float:
@@ -234,6 +237,11 @@ def initialise_from_detections(
 
 
 MIN_ORIENTATIONS = 3  # distinct board planes (tilts) a camera needs to be determined...
+# A camera whose frames are out of step with the others (a dropped image in its folder, an
+# offset in its numbering) agrees with them on no board pose: the bundle adjustment removes its
+# shared corners as outliers and places it by the frames no other camera saw, metres off, at a
+# low RMS. Healthy board footage loses a few per cent (2 % gross outliers in the tests).
+MAX_OUTLIER_SHARE = 0.1
 ORIENTATION_STEP_DEG = 10.0  # ...their normals at least this far apart
 
 
@@ -344,6 +352,19 @@ def finish_calibration(
                 "poorly determined whatever its RMS; record the board tilted several ways in "
                 "front of it"
             )
+    suspect = {}
+    for n in names:
+        kept, removed = len(ba.residuals[n]), len(ba.outliers[n])
+        share = removed / max(kept + removed, 1)
+        if share > MAX_OUTLIER_SHARE:
+            suspect[n] = share
+            notes.append(
+                f"camera '{n}' lost {share:.0%} of its board corners as outliers ({removed} of "
+                f"{kept + removed}; more than {MAX_OUTLIER_SHARE:.0%}): are its frames in step "
+                "with the other cameras' (a dropped or extra image in its folder, an offset in "
+                "its frame numbering)? A camera out of step is placed by the frames no other "
+                "camera saw, wrongly, at a low RMS"
+            )
     world_from_rig = invert(rig_from_world)
     return BoardCalibration(
         rig=rig,
@@ -365,6 +386,7 @@ def finish_calibration(
         ba_rounds=ba.rounds,
         notes=notes,
         weak_cameras=weak,
+        suspect_cameras=suspect,
     )
 
 
