@@ -237,12 +237,13 @@ def initialise_from_detections(
 
 
 MIN_ORIENTATIONS = 3  # distinct board planes (tilts) a camera needs to be determined...
+ORIENTATION_STEP_DEG = 10.0  # ...their normals at least this far apart
 # A camera whose frames are out of step with the others (a dropped image in its folder, an
 # offset in its numbering) agrees with them on no board pose: the bundle adjustment removes its
 # shared corners as outliers and places it by the frames no other camera saw, metres off, at a
-# low RMS. Healthy board footage loses a few per cent (2 % gross outliers in the tests).
-MAX_OUTLIER_SHARE = 0.1
-ORIENTATION_STEP_DEG = 10.0  # ...their normals at least this far apart
+# low RMS (40-42 % of its corners lost in the tests' cases, the cameras it pulled along 23-28 %).
+# Healthy board footage loses a few per cent; the demo's rendered 480x360 boards up to 9 %.
+MAX_OUTLIER_SHARE = 0.2
 
 
 def distinct_orientations(rotations: Sequence[np.ndarray], step_deg: float) -> int:
