@@ -113,17 +113,12 @@ def sample_people(
     n_teams: int = 2,
 ) -> list[PersonSpec]:
     """Sample `n` people. `programmes` optionally fixes each person's motion names (one list per
-    person; 'random_static' gives independent random poses); the looks, shapes and layout are
-    those the same seed gives without them. The programmes are drawn from the clip's length, so
-    another `n_frames` draws other people (docs/formats/synth_scene.md, "Determinism")."""
+    person; 'random_static' gives independent random poses)."""
     check_programmes(n, programmes)
     kits = team_kits(max(1, n_teams), rng)
     progs = []
     for i in range(n):
-        # drawn even when given: the stream then reaches the looks and the layout as it does
-        # without them, so pinning a scene's drawn programmes keeps its people
-        drawn = _programme(rng, n_frames, fps)
-        prog = tuple(programmes[i]) if programmes is not None else drawn
+        prog = tuple(programmes[i]) if programmes is not None else _programme(rng, n_frames, fps)
         check_programmes(1, [prog])
         progs.append(prog)
     cx, cy = float(volume_center[0]), float(volume_center[1])
@@ -195,8 +190,11 @@ def sample_crowd(
         team = i % max(1, n_teams)
         outfit = sample_outfit(rng, kits[team], team)
         betas = sample_betas(num_betas, rng)
-        drawn = crowd_programme(rng, n_frames, fps, bool(walking[i]))  # drawn even when given
-        prog = tuple(programmes[i]) if programmes is not None else drawn
+        prog = (
+            tuple(programmes[i])
+            if programmes is not None
+            else crowd_programme(rng, n_frames, fps, bool(walking[i]))
+        )
         people.append(PersonSpec(i + 1, betas, outfit, prog, (0.0, 0.0), 0.0, 0.0))
     clips = [p.motion_clip(n_frames, fps, seed) for p in people]
     places = place_crowd(clips, rng, volume_center, volume_radius, config or CrowdConfig())
