@@ -11,6 +11,7 @@ first camera's frame (and `Rig.up` is that camera's -y, a guess).
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -29,13 +30,20 @@ from calibration.bundle import BAOptions, BAResult, BoardBundleAdjuster, CameraS
 from calibration.camera import Camera, Rig
 from calibration.checks import lens_findings
 from calibration.errors import CalibrationError
-from calibration.intrinsics import LENS_MODELS, board_pose, calibrate_intrinsics
+from calibration.intrinsics import (
+    LENS_MODELS,
+    IntrinsicsError,
+    board_pose,
+    calibrate_intrinsics,
+)
 from calibration.posegraph import (
     chain_poses,
     invert,
     pairwise_edges,
     robust_mean_pose,
 )
+
+log = logging.getLogger(__name__)
 
 # Board axes expressed in the floor world: x stays, y and z flip (board z points into the floor).
 WORLD_FROM_FLOOR_BOARD_AXES = np.diag([1.0, -1.0, -1.0])
@@ -188,12 +196,17 @@ def initialise_from_detections(
         )
         initial_rms[n] = intr[n].rms_px
         limit = max(opts.view_outlier_px, 3.0 * intr[n].rms_px)
-        poses = [
-            board_pose(
-                d, board, intr[n].K, intr[n].dist, outlier_px=limit, min_corners=opts.min_corners
-            )
-            for d in dets[n]
-        ]
+        poses = []
+        for d in dets[n]:
+            try:
+                poses.append(
+                    board_pose(
+                        d, board, intr[n].K, intr[n].dist, outlier_px=limit,
+                        min_corners=opts.min_corners,
+                    )
+                )  # fmt: skip
+            except IntrinsicsError as exc:  # left out as a view above the limit is (it named
+                log.warning("camera '%s': %s; the view is left out", n, exc)  # no camera)
         views[n] = {p.frame: p.matrix for p in poses if p.rms_px <= limit}
         weights[n] = {p.frame: float(p.n_corners) for p in poses if p.rms_px <= limit}
     timings["intrinsics"] = time.perf_counter() - t0

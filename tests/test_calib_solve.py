@@ -376,3 +376,30 @@ def test_a_rational_lens_model_with_a_pole_in_the_image_is_named():
     assert rational_pole(cam.dist) == pytest.approx(0.595, abs=1e-3)
     problem, _ = lens_findings(cam)
     assert problem is not None and "has a pole" in problem
+
+
+def test_a_view_without_a_board_pose_is_left_out_naming_its_camera(
+    small_scene, small_detections, monkeypatch, caplog
+):
+    """solvePnP finding no pose for one view raised "frame N: solvePnP found no board pose",
+    naming no camera, and aborted the whole calibration; the view is now left out, as a view
+    above the error limit is, with a warning naming the camera."""
+    import calibration.solve as solve
+    from calibration.intrinsics import IntrinsicsError
+
+    real = solve.board_pose
+    cam = "cam01"
+    bad = small_detections[cam][3]
+
+    def no_pose_for_one_view(detection, *args, **kwargs):
+        if detection.frame == bad.frame and np.allclose(detection.corners[0], bad.corners[0]):
+            raise IntrinsicsError(f"frame {detection.frame}: solvePnP found no board pose")
+        return real(detection, *args, **kwargs)
+
+    monkeypatch.setattr(solve, "board_pose", no_pose_for_one_view)
+    with caplog.at_level("WARNING", logger="calibration.solve"):
+        result = calibrate_from_detections(
+            small_detections, sizes(small_scene.rig), small_scene.board
+        )
+    assert f"camera '{cam}': frame {bad.frame}: solvePnP found no board pose" in caplog.text
+    assert result.rms_px[cam] < 0.6
