@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import difflib
 import glob
+import json
 import os
 import re
 import types
@@ -32,6 +33,13 @@ from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError,
 
 from pipeline.dag import topological_order
 from pipeline.errors import ConfigError
+
+
+def validate_strictly(model: type[BaseModel], data: dict) -> BaseModel:
+    """`model` from config data without pydantic's lax conversions: `lr: true` became 1.0 and
+    `steps: "10"` 10 without a word. Through JSON, whose strict mode still takes integers for
+    floats, lists for tuples and text for paths."""
+    return model.model_validate_json(json.dumps(data, default=str), strict=True)
 
 
 class Strict(BaseModel):
@@ -537,7 +545,7 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
         # validation looks up (an error in it blamed the file, which said something else)
         given[".".join(apply_override(raw, parts, value))] = text
     try:
-        cfg = PipelineConfig.model_validate(raw)
+        cfg = validate_strictly(PipelineConfig, raw)
     except ValidationError as exc:
         raise ConfigError(_name_overrides(format_validation_error(exc, str(path)), given)) from None
     cfg = _resolve_paths(cfg, path.resolve().parent)

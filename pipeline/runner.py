@@ -29,7 +29,7 @@ from pydantic import ValidationError
 
 from gst.atomic import atomic_write_text, remove_path, replace_path
 from gst.param_types import names_file
-from pipeline.config import PipelineConfig, format_error_line
+from pipeline.config import PipelineConfig, format_error_line, validate_strictly
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import (
     PROJECT_ROOT,
@@ -253,8 +253,8 @@ class Runner:
     def _validate_params(self, name: str):
         model = self.stages[name].params_model
         try:
-            params = model.model_validate(
-                {**self.cfg.stages[name].params, **self.scene.params.get(name, {})}
+            params = validate_strictly(
+                model, {**self.cfg.stages[name].params, **self.scene.params.get(name, {})}
             )
         except ValidationError as exc:
             # Locations as YAML paths of the params block(s), in the file actually loaded, and

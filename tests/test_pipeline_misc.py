@@ -418,3 +418,23 @@ def test_run_help_names_the_project_pipelines_stages():
     text = " ".join(run.format_help().split())
     listed = re.search(r"declares ([a-z, ]+) \(", text).group(1).split(", ")
     assert listed == list(load_config(REPO / "pipeline.yaml").stages)
+
+
+@pytest.mark.parametrize(
+    "given, message",
+    [
+        ("train.lr=true", "stages.train.params.lr: Input should be a valid number"),
+        ('train.steps="10"', "stages.train.params.steps: Input should be a valid integer"),
+        ("calibrate.frame_step=true", "stages.calibrate.params.frame_step"),
+        ('executor.workers="3"', "executor.workers"),
+    ],
+)
+def test_values_of_the_wrong_type_are_refused_not_converted(given, message, capsys):
+    """pydantic's lax mode took `train.lr=true` as a learning rate of 1.0 and `"10"` (text) as
+    10, without a word; a config value must have its field's type (an integer still counts as
+    a float, a list as a tuple, text as a path)."""
+    from pipeline.cli import main
+
+    assert main(["run", "calibrate", "--dry-run", "--set", given]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert message in err and f"--set {given}" in err
