@@ -704,7 +704,8 @@ class Runner:
         try:
             with _same_torch_threads():
                 stage.run(ctx)
-        except PipelineError:
+        except PipelineError as exc:
+            _record_failure(staging, exc)  # `status` said "interrupted" after these
             raise
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
@@ -718,11 +719,9 @@ class Runner:
         outputs = stage.outputs(ctx)
         absent = [rel for rel in outputs if not (staging / rel).exists()]
         if absent:
-            raise StageFailed(
-                name,
-                self.scene_name,
-                RuntimeError(f"the stage did not write its declared outputs {absent}"),
-            )
+            err = RuntimeError(f"the stage did not write its declared outputs {absent}")
+            _record_failure(staging, err)
+            raise StageFailed(name, self.scene_name, err)
         # Commit: forget the old record, move outputs into place, then record the new one.
         self._record_path(st.key).unlink(missing_ok=True)
         trash = self.meta / "trash"

@@ -106,6 +106,13 @@ def _fail(ctx: StageContext) -> None:
 FAIL = _own_folder_stage("fail", _fail, params_model=FailParams)
 
 
+def _no_output(ctx: StageContext) -> None:
+    ctx.out("elsewhere.txt").write_text("not the declared output")
+
+
+NO_OUTPUT = _own_folder_stage("nothing", _no_output)
+
+
 class FanOutParams(StageParams):
     seconds: float = 0.0  # each item sleeps this long
     marker_dir: str | None = None  # each item writes its pid here first

@@ -180,6 +180,19 @@ def test_failed_stage_exit_1_keeps_previous_outputs(tmp_path, capsys):
     assert "its last run failed" in table and "boom" in table and "interrupted" not in table
 
 
+def test_a_stage_that_writes_no_declared_output_is_said_to_have_failed(tmp_path, capsys):
+    """A stage that returned without its declared outputs failed the run, and `status` then
+    said "a previous run was interrupted" instead of the error it stopped on."""
+    cfg = write_config(tmp_path)
+    with open(cfg, "a") as f:
+        f.write('  nothing: {module: "tests.fake_stages:NO_OUTPUT", needs: [source]}\n')
+    assert run(cfg, "run", "nothing") == 1
+    assert "did not write its declared outputs" in capsys.readouterr().err
+    assert main(["status", "--config", str(cfg)]) == 0
+    table = " ".join(capsys.readouterr().out.split())
+    assert "its last run failed" in table and "interrupted" not in table
+
+
 @pytest.mark.parametrize("bad_input", [True, False])
 def test_bad_input_fails_with_its_message_and_a_bug_with_its_traceback(tmp_path, capsys, bad_input):
     """A corrupt video printed a traceback of the stage's internals above the line that says
