@@ -171,8 +171,7 @@ def test_segmenter_follows_people_between_detector_runs(frames):
         assert set(np.unique(labels)) == {0, 1, 2}
         # The same people. Not to the last digit: where the every-frame run's detector places a
         # person's region beyond `same_region` of the tracked one (cam02 frame 2, with the
-        # landmarks refined from the heatmaps), it keeps that region's answer, 1.3 px away
-        # (2.3 px with the landmarks read at their pixel centres, which moves the next region).
+        # landmarks refined from the heatmaps), it keeps that region's answer, 1.3 px away.
         for p in people:
             d = min(
                 np.median(
@@ -182,7 +181,7 @@ def test_segmenter_follows_people_between_detector_runs(frames):
                 )
                 for r in reference
             )
-            assert d < 3.0  # px; the other person is hundreds of pixels away
+            assert d < 2.0  # px; the other person is hundreds of pixels away
     assert every.detector_runs == len(small)
     assert sparse.detector_runs == 2
 

@@ -288,23 +288,6 @@ def refine_from_heatmaps(
     return out
 
 
-# The landmark model answers in crop coordinates whose pixel j spans [j, j + 1) (its centre at
-# j + 0.5), while the crop is sampled with pixel j's centre at j (`BodyRoi.to_crop`, OpenCV's
-# warp): read back as they are, landmarks sat half a crop pixel right of where they are. A
-# person and their mirror image, read alike, disagreed by 0.93 crop px in x (median of 17 lab
-# people; 0.5 from each side) and by -0.19 with the half pixel taken off. y is not testable that
-# way (upside down, the model fails); the convention is the same on both axes.
-LANDMARK_PIXEL_OFFSET = 0.5
-
-
-def landmarks_to_image(xy_crop: np.ndarray, to_crop: np.ndarray) -> np.ndarray:
-    """(n, 2) landmark model x, y in crop coordinates -> (n, 2) image pixels, through the
-    inverse of the region's `to_crop` affine."""
-    to_image = cv2.invertAffineTransform(to_crop)
-    xy = np.asarray(xy_crop, np.float64)[:, :2] - LANDMARK_PIXEL_OFFSET
-    return np.c_[xy, np.ones(len(xy))] @ to_image.T
-
-
 # --- the models ------------------------------------------------------------------------------
 
 
@@ -456,7 +439,7 @@ class BlazePose:
         prob = cv2.warpAffine(
             prob_crop, to_image, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
         )
-        xy = landmarks_to_image(raw[:, :2], to_crop)
+        xy = np.c_[raw[:, :2], np.ones(39)] @ to_image.T
         visibility = 1.0 / (1.0 + np.exp(-np.clip(raw[:N_BODY_LANDMARKS, 3], -30, 30)))
         landmarks = np.c_[xy[:N_BODY_LANDMARKS], visibility].astype(np.float32)
         world = out[(117,)][0].reshape(39, 3)[:N_BODY_LANDMARKS].astype(np.float32)
@@ -557,7 +540,8 @@ class BatchedLandmarks:
         world = out[(117,)].reshape(n, 39, 3)[:, :N_BODY_LANDMARKS]
         results = []
         for k, (roi, m) in enumerate(zip(rois, mats, strict=True)):
-            xy = landmarks_to_image(raw[k, :, :2], m)
+            to_image = cv2.invertAffineTransform(m)
+            xy = np.c_[raw[k, :, :2], np.ones(39)] @ to_image.T
             vis = _sigmoid(raw[k, :N_BODY_LANDMARKS, 3])
             pres = _sigmoid(raw[k, :N_BODY_LANDMARKS, 4])
             results.append(
