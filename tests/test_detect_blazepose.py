@@ -479,6 +479,57 @@ def test_lab_extraction_with_person_masks_keeps_two_ids(tmp_path):
 
 @NEEDS_MODELS
 @NEEDS_LAB
+@pytest.mark.xfail(
+    strict=True,
+    reason="known, not corrected: landmarks are read half a crop pixel right of the person "
+    "(median 0.9 crop px between a person and their mirror image). Correcting it "
+    "(docs/person_models.md, last section) moved the demo, an unseen scene and the lab by "
+    "about a millimetre both ways and changed the lab's tracking through occlusions, so it is "
+    "not in",
+)
+def test_a_person_and_their_mirror_image_are_read_at_the_same_place():
+    """The landmark model answers with pixel j spanning [j, j + 1) of its crop; read back with
+    pixel centres at j, every landmark sits half a crop pixel right of the person: a region and
+    its mirror image (the mirror's landmarks mapped back, left and right exchanged) disagree by
+    0.93 crop px in x (median over lab people; an unbiased reading gives 0)."""
+    from gst.body.markers import BLAZEPOSE_MIRROR
+    from gst.detect.blazepose import LANDMARK_SIZE, BatchedLandmarks, BlazePose
+
+    class Corners:  # a region given by its corners (the mirror's: right and left exchanged)
+        def __init__(self, corners):
+            self.c = np.asarray(corners, np.float32)
+
+        def to_crop(self, size):
+            return cv2.getAffineTransform(self.c[:3], np.float32([[0, 0], [size, 0], [0, size]]))
+
+    detector, landmarks = BlazePose(), BatchedLandmarks()
+    shifts = []
+    for cam in ("cam01", "cam02", "cam03", "cam04"):
+        cap = cv2.VideoCapture(str(LAB / f"{cam}.mp4"))
+        for _ in range(20):
+            ok, frame = cap.read()
+        cap.release()
+        assert ok
+        img = cv2.resize(frame, (544, 960), interpolation=cv2.INTER_AREA)
+        w = img.shape[1]
+        mirror = np.ascontiguousarray(img[:, ::-1])
+        for d in detector.detect(img):
+            first = landmarks(img, [roi_from_alignment(d.keypoints[0], d.keypoints[1])])[0]
+            if first.presence < 0.5:
+                continue
+            roi = first.next_roi
+            seen = landmarks(img, [roi])[0].landmarks
+            flipped = np.c_[w - 1 - roi.corners()[:, 0], roi.corners()[:, 1]][[1, 0, 3, 2]]
+            back = landmarks(mirror, [Corners(flipped)])[0].landmarks[BLAZEPOSE_MIRROR]
+            sure = (seen[:, 2] > 0.8) & (back[:, 2] > 0.8)
+            dx = seen[sure, 0] - (w - 1 - back[sure, 0])
+            shifts.append(np.median(dx) / (roi.side / LANDMARK_SIZE))
+    assert len(shifts) >= 6
+    assert abs(np.median(shifts)) < 0.4, shifts
+
+
+@NEEDS_MODELS
+@NEEDS_LAB
 def test_person_detector_boxes_on_lab_video():
     from gst.track.person_detector import PersonModelDetector
 
