@@ -539,8 +539,11 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(raw).__name__}")
     given: dict[str, str] = {}
-    for text in overrides:
-        parts, value = parse_override(text)
+    parsed = [(text, *parse_override(text)) for text in overrides]
+    # a scene's own values first, so that `--set STAGE.KEY` wins over them in any order (given
+    # after it, `--set scenes.S.params.STAGE.KEY` won)
+    parsed.sort(key=lambda item: item[1][0] != "scenes")
+    for text, parts, value in parsed:
         # the long form `stages.S.params.K` is recorded as `S.K`, the key the stage's
         # validation looks up (an error in it blamed the file, which said something else)
         given[".".join(apply_override(raw, parts, value))] = text

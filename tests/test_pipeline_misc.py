@@ -166,6 +166,16 @@ def test_the_long_form_of_set_overrides_a_scenes_value_as_the_short_one_does():
         assert "refine_rig" not in edited["scenes"]["lab"]["params"]["fuse"]
 
 
+@pytest.mark.parametrize("stage_first", [True, False])
+def test_set_stage_key_wins_over_a_scenes_set_in_either_order(stage_first):
+    """Whichever came last won: `--set train.steps=10 --set scenes.demo.params.train.steps=5`
+    trained 5 steps, though `--set STAGE.KEY` is documented to win over a scene's value."""
+    sets = ["train.steps=10", "scenes.demo.params.train.steps=5"]
+    cfg = load_config(REPO / "pipeline.yaml", sets if stage_first else sets[::-1])
+    assert cfg.stages["train"].params["steps"] == 10
+    assert "steps" not in cfg.scenes["demo"].params.get("train", {})
+
+
 @pytest.mark.parametrize(
     "given", ["stages.train.params.steps=0", "train.steps=0", "scenes.demo.params.train.steps=0"]
 )
