@@ -90,16 +90,31 @@ def stage_fingerprint(code: str, params: dict[str, Any], inputs: dict[str, str |
 CODE_PACKAGES = ("calibration", "gst", "synth", "stages")
 
 
-def _module_file(root: Path, name: str) -> Path | None:
-    """The source file of a project module `name` (a module or a package's __init__)."""
+def _module_file(roots: dict[str, Path], name: str) -> Path | None:
+    """The source file of a project module `name` (a module or a package's __init__), if its
+    top-level package is one of `roots` (package name -> the folder that holds it)."""
     parts = name.split(".")
-    if parts[0] not in CODE_PACKAGES:
+    root = roots.get(parts[0])
+    if root is None:
         return None
     base = root.joinpath(*parts)
     for candidate in (base.with_suffix(".py"), base / "__init__.py"):
         if candidate.is_file():
             return candidate
     return None
+
+
+def code_roots(module: str, path: Path, root: Path) -> dict[str, Path]:
+    """Where the packages whose source counts as code live: `CODE_PACKAGES` under `root`, and
+    the top-level package of the stage module itself wherever it lives (a user's stage,
+    `module: mylab.stages.gait`, runs its own helpers in `mylab/`: editing them must make the
+    stage stale too). A top-level single-file module adds nothing beyond itself."""
+    roots = {pkg: root for pkg in CODE_PACKAGES}
+    parts = module.split(".")
+    if len(parts) > 1 and parts[0] not in roots:
+        depth = len(parts) - 1 + (path.name == "__init__.py")  # folders from the file up
+        roots[parts[0]] = path.resolve().parents[depth]
+    return roots
 
 
 def imported_names(path: Path, name: str) -> set[str]:
@@ -139,14 +154,15 @@ def _imports_of_version(path: Path, name: str, mtime_ns: int, size: int) -> froz
 
 def code_closure(module: str, path: Path, root: Path) -> dict[str, Path]:
     """The project modules that module `module` (source file `path`) imports, transitively,
-    itself included, by name. `root` holds the project packages."""
+    itself included, by name. `root` holds the project packages (`code_roots`)."""
+    roots = code_roots(module, path, root)
     seen: dict[str, Path] = {module: path}
     todo = sorted(_imports_of(path, module))
     while todo:
         name = todo.pop()
         if name in seen:
             continue
-        file = _module_file(root, name)
+        file = _module_file(roots, name)
         if file is None:
             continue
         seen[name] = file

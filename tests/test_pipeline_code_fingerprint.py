@@ -146,3 +146,44 @@ def test_data_files_beside_the_modules_count_as_code(tmp_path):
     assert {k: v for k, v in before.items() if k != "fakelib/t.json"} == {
         k: v for k, v in after.items() if k != "fakelib/t.json"
     }
+
+
+def test_a_user_stage_package_counts_as_its_code_wherever_it_lives(tmp_path, monkeypatch):
+    """`module: mylab.stages.gait`: the stage's own package is not one of CODE_PACKAGES and lies
+    outside the project, yet editing the helper it imports makes it stale; a module of that
+    package which it does not import does not."""
+    lab = tmp_path / "elsewhere"
+    files = {
+        "mylab/__init__.py": "",
+        "mylab/helpers.py": "def value():\n    return 1\n",
+        "mylab/unused.py": "X = 1\n",
+        "mylab/stages/__init__.py": "",
+        "mylab/stages/gait.py": STAGE_SRC.format(
+            name="gait", imports="from mylab.helpers import value"
+        ),
+    }
+    for rel, text in files.items():
+        (lab / rel).parent.mkdir(parents=True, exist_ok=True)
+        (lab / rel).write_text(text)
+    cfg = tmp_path / "project" / "pipeline.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text(
+        "workspace: ws\nscenes: {demo: {synthetic: {preset: demo}}}\n"
+        'stages:\n  gait: {module: "mylab.stages.gait"}\n'
+    )
+    monkeypatch.syspath_prepend(str(lab))
+    try:
+        _, code = stage_code(load_stage("gait", "mylab.stages.gait"))
+        assert {"mylab/helpers.py", "mylab/stages/gait.py", "mylab/__init__.py"} <= {
+            Path(k).relative_to(lab.resolve()).as_posix() for k in code
+        }
+        assert main(["run", "all", "--config", str(cfg), "--quiet"]) == 0
+        assert _states(cfg)["gait"][0] == UP_TO_DATE
+        (lab / "mylab/unused.py").write_text("X = 2\n")
+        assert _states(cfg)["gait"][0] == UP_TO_DATE
+        (lab / "mylab/helpers.py").write_text("def value():\n    return 2\n")
+        state, reason = _states(cfg)["gait"]
+        assert state == "stale" and "helpers.py" in reason
+    finally:
+        for mod in [m for m in sys.modules if m.split(".")[0] == "mylab"]:
+            del sys.modules[mod]
