@@ -83,6 +83,12 @@ def _extract_with_hull(scene, out):
     )
 
 
+def _prepared(plan):
+    """A plan with its work folder readied, as `extract_scene` does once the store accepts it."""
+    scene_phase.prepare_work(plan)
+    return plan
+
+
 @pytest.fixture(scope="module")
 def one_person_run(one_person, tmp_path_factory):
     out = tmp_path_factory.mktemp("one_run") / "crops.h5"
@@ -209,11 +215,11 @@ def test_replaced_external_masks_are_not_served_from_an_interrupted_run(short_sc
     shutil.copytree(short_scene.truth / "masks", ext)
 
     def plan():
-        return scene_phase.plan_extraction(
+        return _prepared(scene_phase.plan_extraction(
             short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
             scale=1.2, frame_stride=1, method="median", external=ext, truth=None,
             options=_opts(),
-        )  # fmt: skip
+        ))  # fmt: skip
 
     first = plan()
     (first.work / "labels_marker.h5").write_bytes(b"phase 1 of the interrupted run")
@@ -247,11 +253,11 @@ def test_a_video_or_clean_plate_replaced_under_its_name_is_not_resumed(short_sce
         shutil.copy(videos[n], plates[n])
 
     def plan():
-        return scene_phase.plan_extraction(
+        return _prepared(scene_phase.plan_extraction(
             videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64, scale=1.2,
             frame_stride=1, method="median", external=None, truth=None,
             options=_opts(background_videos=plates),
-        )  # fmt: skip
+        ))  # fmt: skip
 
     first = plan()
     assert plan().settings == first.settings  # nothing changed: the same store resumes
@@ -357,6 +363,10 @@ def test_bad_parameters(short_scene, tmp_path):
                 short_scene.videos, short_scene.rig, tmp_path / "crops.h5", options=_opts(), **kw
             )
     assert _nothing_written(tmp_path)
+    # 0 crashed in the merge after every camera's crops; -1 merged nothing into a "complete" store
+    for bad in (0, -1):
+        with pytest.raises(ValueError, match="commit_frames must be at least 1"):
+            _opts(commit_frames=bad)
 
 
 def test_work_scale_that_rounds_differently_per_axis(short_scene, tmp_path):
@@ -437,13 +447,44 @@ def test_another_crop_size_starts_the_work_folder_again(short_scene, tmp_path):
     for a run at 96 px, which failed on a hidden work file ("written with crop_size=64")."""
 
     def plan(crop_size):
-        return scene_phase.plan_extraction(
+        return _prepared(scene_phase.plan_extraction(
             short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=crop_size,
             scale=1.2, frame_stride=1, method="median", external=None, truth=None,
             options=_opts(),
-        )  # fmt: skip
+        ))  # fmt: skip
 
     first = plan(64)
     (first.work / "part_00_00.h5").write_bytes(b"64 px crops of the interrupted run")
     assert (plan(64).work / "part_00_00.h5").is_file()
     assert not (plan(96).work / "part_00_00.h5").exists()
+
+
+def test_a_store_that_refuses_new_settings_keeps_the_interrupted_runs_work(
+    short_scene, tmp_path, monkeypatch
+):
+    """Rerunning an interrupted extraction at another crop size wiped its work folder (every
+    camera's masks and the association) before the store refused the new size; going back to
+    the old size then computed everything again. Now the store refuses first and the work
+    stays, so the old settings resume it."""
+    out = tmp_path / "crops.h5"
+    real_merge = scene_phase.merge_part
+    calls = {"n": 0}
+
+    def merge_then_crash(writer, part, ci, commit_frames):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("simulated crash during merge")
+        return real_merge(writer, part, ci, commit_frames)
+
+    monkeypatch.setattr(scene_phase, "merge_part", merge_then_crash)
+    with pytest.raises(RuntimeError, match="simulated"):
+        _extract_short(short_scene, out)
+    monkeypatch.setattr(scene_phase, "merge_part", real_merge)
+    work = tmp_path / "crops.h5.work"
+    kept = sorted(p.name for p in work.iterdir())
+    assert any(name.startswith("labels_") for name in kept)
+    with pytest.raises(StoreError, match="crop_size=64"):
+        extract_scene(short_scene.videos, short_scene.rig, out, crop_size=96, options=_opts())
+    assert sorted(p.name for p in work.iterdir()) == kept
+    rep = _extract_short(short_scene, out)
+    assert rep.pairs_resumed == 12 and rep.crops == 24

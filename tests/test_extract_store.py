@@ -229,6 +229,13 @@ def test_versions_and_landmarks_that_do_not_match_are_refused(tmp_path):
         w.finalize()
     with pytest.raises(StoreError, match="holds landmarks"):  # accepted before: rows misaligned
         CropStoreWriter(with_lm, CAMS, S).open()
+    # the association changed (hull -> keypoints, the person model installed since): that is the
+    # cause to name, not the landmarks that come with it
+    hull = tmp_path / "hull.h5"
+    with CropStoreWriter(hull, CAMS, S, {"association": "hull"}) as w:
+        w.finalize()
+    with pytest.raises(StoreError, match="association='hull'.*association='keypoints'"):
+        CropStoreWriter(hull, CAMS, S, {"association": "keypoints"}, landmarks=True).open()
     for version in (0, 99):
         with h5py.File(path, "a") as f:
             f.attrs["version"] = version

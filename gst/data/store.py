@@ -271,23 +271,10 @@ class CropStoreWriter:
                 f"{self.path}: crop store version {version}, this writer appends to version "
                 f"{VERSION} only; use a new path or delete it"
             )
-        if ("landmarks" in f) != self.landmarks:
-            held = "holds" if "landmarks" in f else "has no"
-            ours = "writes them" if self.landmarks else "has none"
-            raise StoreError(
-                f"{self.path}: {held} landmarks and this writer {ours} (the rows would not line "
-                "up); use a new path or delete it"
-            )
         if int(f.attrs["crop_size"]) != self.crop_size:
             raise StoreError(
                 f"{self.path}: written with crop_size={int(f.attrs['crop_size'])}, "
                 f"asked to append crop_size={self.crop_size}; use a new path or delete it"
-            )
-        missing = [k for k in _row_specs(self.crop_size, self.landmarks) if k not in f]
-        if missing:
-            raise StoreError(
-                f"{self.path}: has no {missing} datasets (written by an older version or "
-                "without landmarks); use a new path or delete it"
             )
         names = [n.decode() if isinstance(n, bytes) else str(n) for n in f["camera_names"][()]]
         if names != self.camera_names:
@@ -309,6 +296,21 @@ class CropStoreWriter:
                     f"{self.path}: written with {key}={old!r}, asked to append with "
                     f"{key}={value!r}; use a new path or delete it"
                 )
+        # after the settings: a changed setting (the association, hull -> keypoints, once the
+        # person model is installed) is the cause to name, not the landmarks it brings
+        if ("landmarks" in f) != self.landmarks:
+            held = "holds" if "landmarks" in f else "has no"
+            ours = "writes them" if self.landmarks else "has none"
+            raise StoreError(
+                f"{self.path}: {held} landmarks and this writer {ours} (the rows would not line "
+                "up); use a new path or delete it"
+            )
+        missing = [k for k in _row_specs(self.crop_size, self.landmarks) if k not in f]
+        if missing:
+            raise StoreError(
+                f"{self.path}: has no {missing} datasets (written by an older version or "
+                "without landmarks); use a new path or delete it"
+            )
 
     def _truncate_to_committed(self) -> None:
         f = self._h5
@@ -747,6 +749,8 @@ def merge_part(
 ) -> int:
     """Append a camera's part store to the scene store, frame chunk by frame chunk; returns the
     number of (frame, camera) pairs added."""
+    if commit_frames < 1:
+        raise StoreError(f"merge_part: commit_frames must be at least 1, got {commit_frames}")
     done_main = writer.done_pairs()
     added = 0
     with h5py.File(part_path, "r") as f:

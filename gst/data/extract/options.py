@@ -84,6 +84,10 @@ class ExtractOptions:
                 f"association_method must be one of {ASSOCIATION_METHODS}, "
                 f"got {self.association_method!r}"
             )
+        if int(self.commit_frames) < 1:
+            # 0 crashed in the merge after every camera's crops; a negative value merged no
+            # crop and marked the store complete
+            raise ExtractError(f"commit_frames must be at least 1, got {self.commit_frames!r}")
 
     @classmethod
     def from_settings(

@@ -156,6 +156,7 @@ class ExtractPlan:
     settings: dict
     work: Path
     association: str = "hull"  # 'keypoints' or 'hull'
+    work_key: str = ""  # fingerprint of the inputs and settings the work folder holds
 
     @property
     def frame_set(self) -> set[int]:
@@ -196,8 +197,8 @@ def plan_extraction(
     truth: Path | str | None,
     options: ExtractOptions,
 ) -> ExtractPlan:
-    """Validate the inputs and settings and prepare the work folder (reset when the inputs or
-    settings changed since a previous, interrupted run)."""
+    """Validate the inputs and settings, and name the work folder (`prepare_work` readies it,
+    once the store has accepted these settings)."""
     opts = options
     if crop_size < 16:
         raise ExtractError(f"crop_size must be >= 16 pixels, got {crop_size}")
@@ -294,18 +295,25 @@ def plan_extraction(
             int(crop_size),
         ]
     )
-    marker = work / "settings.json"
-    if work.exists() and (
-        not marker.is_file() or json.loads(marker.read_text()).get("key") != work_key
-    ):
-        shutil.rmtree(work)
-    work.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(marker, {"key": work_key, "settings": settings})
     return ExtractPlan(
         videos, rig, out_h5, names, infos, n_frames, frames, sizes, work_sizes, crop_size,
         float(scale), frame_stride, bg_cfg, opts, ext, plates, truth_files, settings, work,
-        association,
+        association, work_key,
     )  # fmt: skip
+
+
+def prepare_work(plan: ExtractPlan) -> None:
+    """The work folder, reset when the inputs or settings changed since a previous, interrupted
+    run. Called once the store has accepted the run's settings: a store that refuses them
+    (another crop size, stride or association) must not cost the interrupted run's masks and
+    association, which the same settings as before would resume."""
+    marker = plan.work / "settings.json"
+    if plan.work.exists() and (
+        not marker.is_file() or json.loads(marker.read_text()).get("key") != plan.work_key
+    ):
+        shutil.rmtree(plan.work)
+    plan.work.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(marker, {"key": plan.work_key, "settings": plan.settings})
 
 
 def _mask_jobs(plan: ExtractPlan) -> list[MaskJob]:
@@ -609,6 +617,7 @@ def extract_scene(
         plan.options.compression_level,
         landmarks=plan.association == "keypoints",
     ) as writer:
+        prepare_work(plan)
         outcome = _run_phases(plan, writer, progress, executor_map)
         writer.finalize(
             {
