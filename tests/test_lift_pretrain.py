@@ -172,6 +172,18 @@ def test_crop_jitter_is_refused_where_it_would_do_nothing():
             PretrainConfig(mode=mode, augment=True)
 
 
+def test_lift_mode_without_its_rendered_phase_is_refused_up_front():
+    """gaussian_steps: 0 in mode lift was accepted and crashed on a missing last.pt after the
+    lifting, the world renders and the landmark model on every crop."""
+    from pydantic import ValidationError
+
+    from gst.train.pretrain import PretrainConfig
+
+    with pytest.raises(ValidationError, match="gaussian_steps: 0 leaves mode 'lift'"):
+        PretrainConfig(mode="lift", gaussian_steps=0)
+    assert PretrainConfig(mode="3d", gaussian_steps=0).gaussian_steps == 0
+
+
 def test_the_train_summary_says_which_frames_its_mpjpe_is_on(tmp_path):
     """summary.md's MPJPE rows were measured on training frames, labelled only 'against the
     synthetic truth'; the held-out frames' figure reached summary.json only."""

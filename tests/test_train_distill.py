@@ -42,6 +42,11 @@ def test_heldout_frames_are_the_last_share_of_the_frames():
     assert heldout_frame_start(frames, 0.5) == 5  # 5, 6, 7, 9
     assert heldout_frame_start(frames, 0.0) is None
     assert heldout_frame_start(frames, 0.01) == 9  # at least one frame
+    # a share that rounds to every frame is refused, naming the setting (training then failed
+    # on "no training samples", blaming the cameras)
+    with pytest.raises(ValueError, match="heldout_frames=0.92 holds out all 6 frames"):
+        heldout_frame_start(torch.arange(6), 0.92)
+    assert heldout_frame_start(torch.arange(6), 0.9) == 1
     with pytest.raises(ValueError, match=r"\[0, 1\)"):
         heldout_frame_start(frames, 1.0)
 

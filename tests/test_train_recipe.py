@@ -210,3 +210,37 @@ def test_multiview_fit_uses_anchors_when_the_crops_have_them(tmp_path):
     dist_before = (before - crops.anchors).norm(dim=1)
     dist_after = (centres() - crops.anchors).norm(dim=1)
     assert float(dist_after.max()) < 0.8 * float(dist_before.min()), (dist_before, dist_after)
+
+
+def test_after_scores_the_model_the_caller_keeps(tmp_path):
+    """The image pretraining keeps best.pt (chosen on the unseen world), but its summary's
+    `after` scored the last step's model; `after_from="best"` scores, and returns, best.pt's."""
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    cfg = get_preset("tiny", vertex_preset="full")
+    crops, val = crop_set(), crop_set(n_frames=2)
+    torch.manual_seed(0)
+    net, ids, groups = build_network(cfg, body)
+    task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0))
+    summary = fit_gst(
+        net,
+        task,
+        crops,
+        # a rate high enough that the validation error moves from one validation to the next
+        TrainConfig(steps=6, batch_size=2, lr=3e-3, warmup_steps=1, val_every=1),
+        tmp_path,
+        FitOptions(mode="3d"),
+        body_spec="random",
+        vertex_ids=ids,
+        group_index=groups,
+        val_crops=val,
+        after_from="best",
+    )
+    assert summary.after["mpjpe_mm"] == pytest.approx(summary.best, rel=1e-5)
+    best = load_checkpoint(tmp_path / "best.pt").model
+    for k, v in net.state_dict().items():
+        assert torch.equal(v, best[k]), k
+    with pytest.raises(ValueError, match="after_from"):
+        fit_gst(
+            net, task, crops, TrainConfig(steps=1), tmp_path / "x", FitOptions(),
+            body_spec="random", vertex_ids=ids, group_index=groups, after_from="first",
+        )  # fmt: skip

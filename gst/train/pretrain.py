@@ -141,6 +141,14 @@ class PretrainConfig(BaseModel):
                 f"augment jitters the supervised crops of mode '3d'; mode '{self.mode}' samples "
                 "none (set augment: false, or mode: 3d)"
             )
+        if self.mode == "lift" and self.gaussian_steps == 0 and self.reuse is None:
+            # accepted, it crashed on a missing last.pt after the lifting, the world renders and
+            # the landmark model on every crop
+            raise ValueError(
+                "gaussian_steps: 0 leaves mode 'lift' without its rendered phase, which trains "
+                "the Gaussian head and gives the kept model; use at least 1 (0 skips the Gaussian "
+                "phase in mode '3d')"
+            )
         return self
 
 
@@ -313,8 +321,11 @@ def pretrain_images(
     task = make_task(body, ids, cfg, crops.crop_size, p.losses, lpips)
     train_cfg = TrainConfig.for_stage(p.steps, p.batch_size, p.lr, p.device, p.amp, validations=10)
 
-    def fit(task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions) -> FitSummary:
-        """One fit_gst run on the corpus (pose validation on the unseen world)."""
+    def fit(
+        task, train_cfg: TrainConfig, run_dir: Path, options: FitOptions, after_from: str
+    ) -> FitSummary:
+        """One fit_gst run on the corpus (pose validation on the unseen world); its `after`
+        scores the model the recipe keeps from it (`after_from`)."""
         run_dir.mkdir(parents=True, exist_ok=True)
         return fit_gst(
             net,
@@ -328,6 +339,7 @@ def pretrain_images(
             group_index=groups,
             progress=progress,
             val_crops=val,
+            after_from=after_from,
         )
 
     out = work / "models" / "pretrain_run"
@@ -342,9 +354,11 @@ def pretrain_images(
             augment=CropJitter() if p.augment else None,
             val_pose_crops=256,
         ),
+        after_from="best",
     )
-    # best.pt: the lowest MPJPE on the unseen world (early stopping against memorising the corpus).
-    kept = out / ("best.pt" if (out / "best.pt").is_file() else "last.pt")
+    # best.pt: the lowest MPJPE on the unseen world (early stopping against memorising the
+    # corpus); the trainer always writes it (the last model when nothing was validated)
+    kept = out / "best.pt"
     reports.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(out / "log.csv", reports / "log.csv")
     gaussians = None
@@ -375,6 +389,7 @@ def pretrain_images(
                 render_size=p.render_size,
                 val_pose_crops=256,
             ),
+            after_from="last",
         )
         kept = (
             gauss_out / "last.pt"

@@ -22,9 +22,7 @@ from torch.nn.parallel import DistributedDataParallel
 from gst.body import BodyModel
 from gst.body.subsets import partition_vertices, vertex_subset
 from gst.device import move_to, resolve_device
-from gst.model.checkpoint import (
-    config_to_dict,
-)
+from gst.model.checkpoint import config_to_dict, load_checkpoint
 from gst.model.landmarks import camera_up
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
@@ -216,12 +214,19 @@ def fit_gst(
     resume: bool = True,
     val_crops: CropSet | None = None,
     rehearsal: Rehearsal | None = None,
+    after_from: str = "last",
 ) -> FitSummary:
     """Train in place; writes last.pt/best.pt (GST checkpoints) and log.csv into `out_dir`.
+
+    `after_from`: the model that the summary's `after` scores and `model` holds on return,
+    "last" (the last step's) or "best" (best.pt: the caller keeps that one; the summary scored
+    the last step's model while the pretraining kept the best).
 
     `val_crops`: crops with truth that training never sees (e.g. another world); pose validation
     (and so the best checkpoint) uses them instead of the training crops. `rehearsal`: the
     landmark prior rehearsed beside every multi-view step (gst.lift.rehearsal)."""
+    if after_from not in ("last", "best"):
+        raise ValueError(f"after_from must be 'last' or 'best', got {after_from!r}")
     device = resolve_device(cfg.device)  # the Trainer keeps the model there
     model.to(device)
     task = task.to(device)
@@ -358,6 +363,8 @@ def fit_gst(
     if resume:
         trainer.resume()
     run = trainer.fit()
+    if after_from == "best":
+        model.load_state_dict(load_checkpoint(trainer.best_path).model)
     model.eval()
     after = validate(model)
     return FitSummary(

@@ -83,6 +83,13 @@ def heldout_frame_start(frames: torch.Tensor, fraction: float) -> int | None:
     if len(distinct) < 2:
         raise ValueError(f"holding out frames needs crops from >= 2 frames, got {len(distinct)}")
     n_test = max(1, round(fraction * len(distinct)))
+    if n_test >= len(distinct):
+        # 0.96 of 10 frames rounds to all ten: training then failed on "no training samples",
+        # blaming the cameras
+        raise ValueError(
+            f"heldout_frames={fraction} holds out all {len(distinct)} frames that have crops; "
+            f"a share below {(len(distinct) - 0.5) / len(distinct):.4g} leaves frames to train on"
+        )
     return int(distinct[len(distinct) - n_test])
 
 
