@@ -19,6 +19,7 @@ from gst.track.chunks import (
     plan_chunks,
     stitch_chunks,
 )
+from gst.track.mirror import MirrorConfig
 from gst.track.schema import tracks_schema
 from gst.track.tracker import TrackerConfig
 from tests.scaleout_scenes import job, separated_walkers, write_clip
@@ -202,19 +203,30 @@ def test_match_ids_pairs_boxes_a_few_pixels_apart():
     assert match_ids(prev, far) == {}
 
 
-def test_a_person_entering_just_before_a_border_keeps_their_first_rows(tmp_path):
+@pytest.mark.parametrize(
+    "hidden, unmirror", [([2], MirrorConfig()), ([2], None), ([0, 1, 2], None)]
+)
+def test_a_person_entering_just_before_a_border_keeps_their_first_rows(tmp_path, hidden, unmirror):
     """Someone seen from frame 18 with a border at 20 was not yet confirmed in the first chunk
     (min_hits 3), and the second chunk kept only frames from 20: rows 18 and 19 were lost,
-    while `gst.stats` still counted them."""
+    while `gst.stats` still counted them. [0, 1, 2]: nobody before frame 18, so the first chunk
+    has no rows at all (the rows were lost there still)."""
     walkers = separated_walkers()
     boxes = walker_boxes(walkers, 40)
     visible = np.ones(boxes.shape[:2], bool)
-    visible[:18, 2] = False
+    visible[:18, hidden] = False
     video = write_video(tmp_path / "late.avi", render(walkers, boxes, 320, 240), 320, 240)
     csv = write_boxes_csv(tmp_path / "late.csv", boxes, "late", visible)
-    options = TrackOptions(frames_per_group=5, batch_size=4, tracker=TrackerConfig(min_hits=3))
+    # without the left/right smoother, whose look-ahead tracks the first chunk past its border
+    # (long enough to confirm the newcomer there)
+    options = TrackOptions(
+        frames_per_group=5, batch_size=4, tracker=TrackerConfig(min_hits=3), unmirror=unmirror
+    )
     plain, chunked = _plain_and_chunked(job(video, csv, options=options), tmp_path)
     assert chunked.chunks == 2
+    assert min(_rows(plain.result.path).column("frame").to_pylist()) == (
+        18 if len(hidden) == 3 else 0
+    )
     assert _rows(chunked.result.path).equals(_rows(plain.result.path))
     stats = json.loads(pq.read_schema(chunked.result.path).metadata[b"gst.stats"])
     assert stats["rows"] == pq.read_table(chunked.result.path).num_rows == plain.result.rows
@@ -323,3 +335,17 @@ class _ExtraOutputs:
         out = self.inner(crops, K_crop)
         out["gaussian_means"] = np.zeros((len(crops), 4, 3), np.float32)
         return out
+
+
+def test_two_videos_under_one_name_are_refused(clip, tmp_path):
+    """cam1/clip.avi and cam2/clip.avi both went to video=clip/: the second one's tracks
+    replaced the first one's, and both outcomes named that file."""
+    import shutil
+
+    video, csv = clip
+    other = tmp_path / "card2" / video.name
+    other.parent.mkdir()
+    shutil.copy(video, other)
+    with pytest.raises(ValueError, match=r"share an output name.*'clip'.*card2"):
+        track_videos([job(video, csv), job(other, csv)], tmp_path / "tracks")
+    assert not (tmp_path / "tracks").exists()

@@ -246,3 +246,51 @@ def test_a_supplied_box_files_content_is_part_of_the_runs_settings(tmp_path):
     boxes.write_text("video,frame,x0,y0,x1,y1\nclip,0,20,20,70,100\n")  # the same size
     after = _detector_info("boxes", f"boxes supplied in {boxes}", None, boxes)
     assert before != after and before["why"] == after["why"]
+
+
+def test_a_copy_across_file_systems_never_leaves_a_file_inside_the_dataset(tmp_path, monkeypatch):
+    """With the staging root on another file system, finalize copied into a hidden file inside
+    video=<name>/; a kill during the copy left it there, and readers that read hidden files
+    (polars, duckdb) took its rows as tracks. The copy now lands beside the dataset."""
+    import errno
+    import os
+    import shutil
+
+    import pyarrow as pa
+
+    import gst.track.writer as writer_module
+    from gst.track.writer import TrackWriter
+
+    schema = pa.schema([("frame", pa.int64()), ("person_id", pa.int64())])
+    root = tmp_path / "tracks"
+    real_replace, real_copy = os.replace, shutil.copyfile
+
+    def replace_across(src, dst):
+        if ".inprogress" in str(src) and ".inprogress" not in str(dst):  # staged -> final
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        return real_replace(src, dst)
+
+    at_kill: list[str] = []
+
+    def killed_copy(src, dst):
+        real_copy(src, dst)
+        # what a kill at this moment leaves in the dataset (Python's clean-up would not run)
+        at_kill.extend(p.name for p in (root / "video=cam").glob("*"))
+        raise KeyboardInterrupt
+
+    def new_writer():
+        w = TrackWriter(root, "cam", schema, {"a": 1}, staging_root=tmp_path / ".inprogress")
+        w.start(resume=False)
+        w.commit(pa.table({"frame": [0, 1], "person_id": [0, 0]}, schema=schema), 2, {})
+        return w
+
+    monkeypatch.setattr(writer_module.os, "replace", replace_across)
+    monkeypatch.setattr(writer_module.shutil, "copyfile", killed_copy)
+    with pytest.raises(KeyboardInterrupt):
+        new_writer().finalize({})
+    assert at_kill == []  # nothing a dataset reader would take for rows
+    monkeypatch.setattr(writer_module.shutil, "copyfile", real_copy)
+    path = new_writer().finalize({})
+    assert [p.name for p in path.parent.iterdir()] == ["tracks.parquet"]
+    assert pq.read_table(path).num_rows == 2
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir() if p.is_file())

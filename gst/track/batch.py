@@ -162,6 +162,21 @@ def _run_item(item: _Item) -> Any:
     )
 
 
+def check_unique_names(named: list[tuple[str, Path]]) -> None:
+    """Refuse two videos under one output name (`video=<name>/`): the second one's tracks
+    replaced the first one's without a word (GX010001.MP4 from two cameras' cards)."""
+    by_name: dict[str, list[str]] = {}
+    for name, video in named:
+        by_name.setdefault(name, []).append(str(video))
+    clashes = {n: v for n, v in by_name.items() if len(v) > 1}
+    if clashes:
+        listed = "; ".join(f"'{n}': {', '.join(v)}" for n, v in sorted(clashes.items()))
+        raise ValueError(
+            f"videos share an output name (their file name without its extension), so one "
+            f"would overwrite the other's tracks: {listed}; rename the files"
+        )
+
+
 def track_videos(
     jobs: list[VideoJob],
     out_root: str | Path,
@@ -176,6 +191,7 @@ def track_videos(
     With `chunking`, a video longer than one chunk is split (see gst.track.chunks) and its chunks
     are separate items; this needs smoothing off and no extra outputs. Results are in job order.
     """
+    check_unique_names([(job.name or Path(job.video).stem, Path(job.video)) for job in jobs])
     out_root = Path(out_root)
     staging_root = (
         Path(staging_root) if staging_root is not None else default_staging_root(out_root)

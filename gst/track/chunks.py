@@ -15,6 +15,12 @@ afresh in each warm-up, so its boxes and rows near a border differ a little from
 run; the overlap's rows are paired by box overlap, not by equal bytes. The ids equal the
 unchunked ids whenever the association is unambiguous (the fresh tracker of the warm-up
 re-acquires everyone the old one was following and nobody is occluded across a border).
+Not exact either: a person whom the detector finds only now and then near a border (partly
+hidden: every other frame). The unchunked tracker had confirmed them earlier and keeps them
+through the misses; the warm-up's fresh tracker holds them tentative, and a tentative track
+ends at its first miss, so with `min_hits` > 1 their rows after the border are lost until
+they are found `min_hits` frames in a row (a review's check with a fifth of the detections
+missing at random: 1-5 rows of a 60-frame clip lost in 10 of 16 settings).
 Smoothing carries filter state across frames and is not exact under chunking, so it is
 refused. The left/right smoother (`TrackOptions.unmirror`) looks `lag_s` ahead before it decides
 a frame: each chunk tracks that far past its end and drops those rows, so its last frames are
@@ -279,6 +285,7 @@ def stitch_chunks(
     order."""
     next_id = 0
     previous: pa.Table | None = None
+    previous_keep_from = 0
     out, inherited = [], []
     stats = {k: 0 for k in STAT_KEYS}
     for table, record in chunks:
@@ -296,7 +303,7 @@ def stitch_chunks(
         if previous is not None and new_ids:
             # a person who came into view just before the border was not yet confirmed there
             # (min_hits): their first rows are this chunk's warm-up rows, and belong before it
-            early = _unclaimed_rows(previous, warm, new_ids)
+            early = _unclaimed_rows(previous, previous_keep_from, warm, new_ids)
             if len(early):
                 early_ids = np.array([mapping[i] for i in early.column("person_id").to_numpy()])
                 out[-1] = _sorted_rows(pa.concat_tables([out[-1], _with_ids(early, early_ids)]))
@@ -304,7 +311,7 @@ def stitch_chunks(
         kept = _sorted_rows(_with_ids(kept, np.array([mapping[i] for i in local_ids])))
         out.append(kept)
         inherited.append(carried)
-        previous = kept
+        previous, previous_keep_from = kept, record.keep_from
         for k in STAT_KEYS:
             stats[k] += record.stats.get(k, 0)
     stats["persons"] = next_id
@@ -323,15 +330,17 @@ def _sorted_rows(table: pa.Table) -> pa.Table:
     return table.take(pa.array(order))
 
 
-def _unclaimed_rows(previous: pa.Table, warm: pa.Table, ids: list[int]) -> pa.Table:
-    """The warm-up rows of the chunk-local `ids` (people new in this chunk) whose box no row of
-    the previous chunk's frame covers (IoU below SAME_DETECTION_IOU): rows the previous chunk's
-    tracker held back while the person was not yet confirmed."""
+def _unclaimed_rows(previous: pa.Table, keep_from: int, warm: pa.Table, ids: list[int]) -> pa.Table:
+    """The warm-up rows of the chunk-local `ids` (people new in this chunk) in the frames the
+    previous chunk keeps (from its `keep_from` on) whose box no row of the previous chunk's
+    frame covers (IoU below SAME_DETECTION_IOU): rows the previous chunk's tracker held back
+    while the person was not yet confirmed. (The previous chunk's first row was taken for its
+    first frame: a chunk with no rows at all, an empty scene until someone walked in, gave
+    nothing back.)"""
     pf, pb, _ = _frame_boxes(previous)
     wf, wb, wid = _frame_boxes(warm)
     keep = np.zeros(len(wf), bool)
-    first = pf.min() if len(pf) else np.inf  # rows of frames the previous chunk keeps, only
-    for i in np.flatnonzero(np.isin(wid, ids) & (wf >= first)):
+    for i in np.flatnonzero(np.isin(wid, ids) & (wf >= keep_from)):
         same = pf == wf[i]
         keep[i] = not same.any() or box_iou(pb[same], wb[i : i + 1]).max() < SAME_DETECTION_IOU
     return warm.filter(pa.array(keep))

@@ -53,7 +53,7 @@ from gst.track.agreement import (
     markers_vs_landmarks,
 )
 from gst.track.align import AlignmentConfig
-from gst.track.batch import VideoJob, VideoOutcome, track_videos
+from gst.track.batch import VideoJob, VideoOutcome, check_unique_names, track_videos
 from gst.track.chunks import ChunkingConfig
 from gst.track.detection import SuppliedBoxes
 from gst.track.evaluate import TrackEvaluation, evaluate_tracks
@@ -390,6 +390,7 @@ def track_scene(
     workers: int = 1,
 ) -> list[VideoOutcome]:
     """Track every video of the request and write its reports (see the module doc)."""
+    check_unique_names([(v.stem, v) for v in request.videos])  # before the model loads
     if s.threads:
         torch.set_num_threads(s.threads)
     with_gaussians = request.splats_dir is not None

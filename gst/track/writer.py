@@ -118,12 +118,18 @@ class TrackWriter:
         raw = meta.get(b"gst.settings_sha256")
         return json.loads(raw) if raw else ""
 
+    def _beside_dataset(self) -> Path:
+        """Where finalize copies the file when the staging root is on another file system: in
+        the folder that holds the dataset (the output root), on its file system."""
+        return self.dir.parent.parent / f".{self.dir.name}.{FINAL_NAME}"
+
     def start(self, resume: bool = True) -> ResumePoint | None:
         """Prepare the staging folder. With `resume`, continue a matching partial run and return
         where it stopped; otherwise (or when there is none) start empty and return None."""
         stem, suffix = Path(FINAL_NAME).stem, Path(FINAL_NAME).suffix
         for leftover in self.dir.glob(f".{stem}.*tmp{suffix}"):  # older versions' finalize
             leftover.unlink(missing_ok=True)
+        self._beside_dataset().unlink(missing_ok=True)  # a copy a kill interrupted
         if self.staging.exists() and not resume:
             shutil.rmtree(self.staging)
         if self.progress_path.exists():
@@ -241,7 +247,12 @@ class TrackWriter:
         except OSError as exc:  # a staging root on another file system
             if exc.errno != errno.EXDEV:
                 raise
-            with atomic_path(self.final_path, unique=False) as tmp:
+            # copied to the final file system beside the dataset, never inside it (a kill
+            # during the copy left a hidden file in video=<name>/ that readers took as rows)
+            outside = self._beside_dataset()
+            with atomic_path(outside, unique=False) as tmp:
                 shutil.copyfile(staged, tmp)
+            os.replace(outside, self.final_path)
+            fsync_dir(self.dir)
         self.discard_staging()
         return self.final_path
