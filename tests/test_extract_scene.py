@@ -150,8 +150,9 @@ def test_skips_empty_frames_idle_cameras_and_honours_stride(short_scene, tmp_pat
     assert rep.crops == 3 * 4
 
 
-def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
-    out = tmp_path / "crops.h5"
+def _interrupted_in_the_second_merge(scene, out, monkeypatch):
+    """`_extract_short` killed while merging the second camera's part store (the first one's
+    pairs are in the store, which stays incomplete)."""
     calls = {"n": 0}
     real_merge = scene_phase.merge_part
 
@@ -163,10 +164,15 @@ def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
 
     monkeypatch.setattr(scene_phase, "merge_part", merge_then_crash)
     with pytest.raises(RuntimeError, match="simulated"):
-        _extract_short(short_scene, out)
+        _extract_short(scene, out)
+    monkeypatch.setattr(scene_phase, "merge_part", real_merge)
+
+
+def test_resume_after_interruption(short_scene, tmp_path, monkeypatch):
+    out = tmp_path / "crops.h5"
+    _interrupted_in_the_second_merge(short_scene, out, monkeypatch)
     with pytest.raises(StoreError, match="incomplete"):
         CropStore(out)
-    monkeypatch.setattr(scene_phase, "merge_part", real_merge)
     rep = _extract_short(short_scene, out)
     assert rep.pairs_resumed == 12  # the first camera's 12 (frame, camera) pairs were kept
     store = CropStore(out)
@@ -467,19 +473,7 @@ def test_a_store_that_refuses_new_settings_keeps_the_interrupted_runs_work(
     the old size then computed everything again. Now the store refuses first and the work
     stays, so the old settings resume it."""
     out = tmp_path / "crops.h5"
-    real_merge = scene_phase.merge_part
-    calls = {"n": 0}
-
-    def merge_then_crash(writer, part, ci, commit_frames):
-        calls["n"] += 1
-        if calls["n"] == 2:
-            raise RuntimeError("simulated crash during merge")
-        return real_merge(writer, part, ci, commit_frames)
-
-    monkeypatch.setattr(scene_phase, "merge_part", merge_then_crash)
-    with pytest.raises(RuntimeError, match="simulated"):
-        _extract_short(short_scene, out)
-    monkeypatch.setattr(scene_phase, "merge_part", real_merge)
+    _interrupted_in_the_second_merge(short_scene, out, monkeypatch)
     work = tmp_path / "crops.h5.work"
     kept = sorted(p.name for p in work.iterdir())
     assert any(name.startswith("labels_") for name in kept)
