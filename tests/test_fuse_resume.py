@@ -237,9 +237,52 @@ def test_a_rerun_with_other_landmarks_or_another_rig_starts_over(scene, tmp_path
 
 
 def replace_camera(cam):
+    """Another calibration of the camera's lens (the crops carry its pose, checked apart)."""
     from dataclasses import replace
 
-    return replace(cam, t=cam.t + np.array([0.01, 0.0, 0.0]))
+    K = cam.K.copy()
+    K[0, 0] += 1.0
+    return replace(cam, K=K)
+
+
+def test_a_rig_other_than_the_extractions_is_refused_naming_the_camera(scene, tmp_path):
+    """The bodies are fitted in the crops' own cameras, the overlays and the re-cut in the rig
+    given: a rig recalibrated after the extraction gave bodies in the old calibration and
+    overlays in the new one, without a word. The refusal leaves no work folder."""
+    from dataclasses import replace
+
+    tmp, cap, landmarks = scene
+    cams = list(cap.rig.cameras)
+    cams[1] = replace(cams[1], t=cams[1].t + np.array([0.01, 0.0, 0.0]))
+    moved = type(cap.rig)(cams)
+    with pytest.raises(ValueError, match=f"camera {cams[1].name}'s crops were cut with another"):
+        fuse_scene(tmp / "crops.h5", moved, tmp_path / "fused", tmp_path / "report", fps=30.0,
+                   options=OPTS, landmarks=landmarks)  # fmt: skip
+    assert not (tmp_path / "fused").exists()
+
+
+def test_more_cameras_than_the_views_masks_hold_are_refused(scene, tmp_path, monkeypatch):
+    """The views masks are int64 bit masks: a 64th camera's bit was the sign, a 65th's none."""
+    import gst.fuse.scene as fscene
+
+    tmp, cap, landmarks = scene
+    monkeypatch.setattr(fscene, "MAX_CAMERAS", 2)  # the store has 3
+    with pytest.raises(ValueError, match="3 cameras; fusion takes at most 2"):
+        fuse_scene(tmp / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report", fps=30.0,
+                   options=OPTS, landmarks=landmarks)  # fmt: skip
+
+
+def test_marker_files_of_people_from_an_earlier_fusion_are_removed(scene, tmp_path):
+    """A library caller fusing again into one folder kept the earlier fusion's person files
+    beside the new ones (the stage writes into a fresh folder)."""
+    tmp, cap, landmarks = scene
+    for sub in ("trc", "c3d"):
+        (tmp_path / "fused" / sub).mkdir(parents=True)
+        (tmp_path / "fused" / sub / f"person_99.{sub}").write_text("an earlier fusion's")
+    res = fuse_scene(tmp / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report",
+                     fps=30.0, options=OPTS, landmarks=landmarks)  # fmt: skip
+    for sub, written in (("trc", res.trc), ("c3d", res.c3d)):
+        assert sorted((tmp_path / "fused" / sub).iterdir()) == sorted(written)
 
 
 def test_a_store_extracted_at_a_stride_is_refused(scene, tmp_path):

@@ -12,6 +12,7 @@ the measurement of how steady the rig's 3D is). Coefficients of variation are gi
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -118,7 +119,10 @@ def summarise(
         if fits
         else np.zeros((0, len(camera_names), 33))
     )
-    with np.errstate(all="ignore"):
+    # a camera and landmark without a reading: NaN in the report (numpy warns "All-NaN slice",
+    # which errstate does not silence, in the log of most runs)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         for c, cam in enumerate(camera_names):
             med = np.nanmedian(allr[:, c], axis=0) if len(allr) else np.full(33, np.nan)
             s.reprojection_px[cam] = {

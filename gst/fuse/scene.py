@@ -283,6 +283,33 @@ def _on_frames(values: np.ndarray, frames: np.ndarray, dense: np.ndarray) -> np.
     return out
 
 
+MAX_CAMERAS = 63  # one bit each in the int64 views masks
+
+
+def check_store_calibration(store: CropStore, rig, tolerance: float = 1e-4) -> None:
+    """The crops' own cameras are what the bodies are fitted in (every crop carries its R, t);
+    the rig names the cameras and draws the overlays. A rig other than the one the crops were
+    cut with (recalibrated since the extraction) gave bodies in the old calibration and
+    overlays in the new one, without a word: refused, naming the camera. `tolerance`: the
+    largest difference of a rotation entry, or of a translation in metres (a rig saved again in
+    another format keeps well within it)."""
+    R, t = store.read_column("R"), store.read_column("t")
+    cam = store.index.column("camera_index").to_numpy()
+    for ci, name in enumerate(store.camera_names):
+        rows = np.flatnonzero(cam == ci)
+        if not len(rows):
+            continue
+        dR = float(np.abs(R[rows] - rig[name].R).max())
+        dt = float(np.abs(t[rows] - rig[name].t).max())
+        if dR > tolerance or dt > tolerance:
+            raise ValueError(
+                f"{store.path}: camera {name}'s crops were cut with another calibration than "
+                f"the rig given (rotation entries up to {dR:.2g} apart, translation up to "
+                f"{dt:.2g} m): extract again with this rig, or fuse with the rig of the "
+                "extraction"
+            )
+
+
 def fuse_scene(
     store_path: str | Path,
     rig,
@@ -310,17 +337,24 @@ def fuse_scene(
     o = options or FuseOptions()
     out_dir, report_dir = Path(out_dir), Path(report_dir)
     work = out_dir / ".work"
-    work.mkdir(parents=True, exist_ok=True)
     store = CropStore(store_path)
     cams = store.camera_names
+    missing = [c for c in cams if c not in rig.names]
+    if missing:
+        raise ValueError(f"{store_path}: cameras {missing} are not in the rig ({rig.names})")
+    if len(cams) > MAX_CAMERAS:
+        # the views masks (landmarks.parquet, bodies.parquet) are int64 bit masks: a 64th
+        # camera's bit was the sign, a 65th's none
+        raise ValueError(
+            f"{store_path}: {len(cams)} cameras; fusion takes at most {MAX_CAMERAS} (the views "
+            "masks of its Parquet files hold one bit per camera in an int64): extract a subset"
+        )
+    check_store_calibration(store, rig)
     if videos is None:
         sources = json.loads(store.attrs.get("source_videos", "{}"))
         videos = {k: Path(v) for k, v in sources.items() if Path(v).is_file()}
     if fps is None:
         fps = _video_fps(videos)
-    missing = [c for c in cams if c not in rig.names]
-    if missing:
-        raise ValueError(f"{store_path}: cameras {missing} are not in the rig ({rig.names})")
     stride = int(store.attrs.get("setting.frame_stride", 1)) or 1
     if stride != 1:
         # the fit's smoothness, the temporal votes, the spike test and the gap filling take
@@ -344,7 +378,7 @@ def fuse_scene(
     stamp = work / "settings.json"
     if stamp.is_file() and json.loads(stamp.read_text()).get("key") != key:
         shutil.rmtree(work)  # another configuration: start over
-        work.mkdir(parents=True)
+    work.mkdir(parents=True, exist_ok=True)  # after the checks: a refused input leaves none
     atomic_write(stamp, lambda t: Path(t).write_text(json.dumps({"key": key})))
 
     lm_path = work / "landmarks.npy"
@@ -514,6 +548,11 @@ def fuse_scene(
         lm_out, [p.person_id for p in people], [p.frames for p in people], tris, cams, fps, up
     )
     trc, c3d = [], []
+    for folder, suffix in (("trc", ".trc"), ("c3d", ".c3d")):
+        # an earlier fusion into this folder with other people must not leave theirs beside
+        # this one's (the stage writes into a fresh folder; a library caller may not)
+        for old in (out_dir / folder).glob(f"person_*{suffix}"):
+            old.unlink()
     for f, ev in zip(fits, evidence, strict=True):
         t_path = out_dir / "trc" / f"person_{f.person_id}.trc"
         c_path = out_dir / "c3d" / f"person_{f.person_id}.c3d"
