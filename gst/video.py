@@ -132,6 +132,19 @@ def _open(path: Path, camera: str = "") -> cv2.VideoCapture:
     return cap
 
 
+def still_image_error(path: Path | str) -> str | None:
+    """What to tell a user who gave a still image (PNG, JPEG, ... by its content, whatever its
+    name) where a video is tracked: FFmpeg opens it as a one-frame video at a made-up 25
+    frames/s, and the run ended in "nobody was tracked in 1 frame(s)". None for anything else
+    (a raw MJPEG stream starts like a JPEG and is a video)."""
+    path = Path(path)
+    if path.suffix.lower() in RAW_STREAM_SUFFIXES or not path.is_file():
+        return None
+    if not cv2.haveImageReader(str(path)):
+        return None
+    return f"{path}: a still image, not a video (expected a video file such as .mp4 or .mov)"
+
+
 def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> VideoInfo:
     """Size, rate and frame count of a video.
 
@@ -361,6 +374,38 @@ def _check_stream_end(info: VideoInfo, index: int) -> None:
     )
 
 
+class _RateCheck:
+    """Frame times are frame / fps, the container's mean rate: right for a constant-rate file,
+    wrong for a variable-rate one (phones record so), where speeds from them come out wrong by
+    the ratio of the rates, and the run said nothing. Each decoded frame's own timestamp is
+    compared with its constant-rate time (from the first frame's, so a stream that starts at an
+    offset is not taken for one); past half a frame the file is named, once."""
+
+    def __init__(self, info: VideoInfo):
+        self.info, self.origin, self.warned = info, None, False
+
+    def check(self, cap: cv2.VideoCapture, index: int) -> None:
+        if self.warned or not self.info.fps > 0:
+            return
+        ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+        if not math.isfinite(ms):
+            return
+        steady = index * 1000.0 / self.info.fps
+        if self.origin is None:
+            self.origin = ms - steady
+            return
+        if abs(ms - self.origin - steady) > 500.0 / self.info.fps:
+            self.warned = True
+            log.warning(
+                "%s: variable frame rate: frame %d is stamped %.3f s into the video, but times "
+                "here are frame / %g frames/s (the mean rate) = %.3f s; time_s, speeds and "
+                "start_s/end_s are off by as much. Re-encode it at a constant rate first (e.g. "
+                "ffmpeg -i IN -vsync cfr -r 60 OUT.mp4)",
+                self.info.path, index, (ms - self.origin) / 1000.0, self.info.fps,
+                steady / 1000.0,
+            )  # fmt: skip
+
+
 def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterator[Frame]:
     if end is not None and first >= end:
         return
@@ -380,11 +425,13 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
                     _check_stream_end(info, k)  # the stream ends before `first`: no frames
                     return
         index = first
+        clock = _RateCheck(info)
         while end is None or index < end:
             ok, image = cap.read()
             if not ok or image is None:
                 _check_stream_end(info, index)
                 return
+            clock.check(cap, index)
             yield Frame(index, index / info.fps, image)
             index += 1
             for _ in range(stride - 1):

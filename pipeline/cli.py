@@ -165,16 +165,29 @@ def _check_videos_option(videos: list[Path], probe: bool = False) -> list[Path]:
         raise ConfigError(
             f"--video: no such file: {', '.join(missing)} (looked for from {Path.cwd()})"
         )
-    twice = sorted({str(v) for v in videos if videos.count(v) > 1})
+    # one file under two paths (a linked folder, a relative and an absolute path) too
+    resolved = [v.resolve() for v in videos]
+    twice = list(
+        dict.fromkeys(
+            str(v) for v, r in zip(videos, resolved, strict=True) if resolved.count(r) > 1
+        )
+    )  # in the order given
     if twice:
-        raise ConfigError(f"--video: listed twice: {', '.join(twice)}; remove the duplicate")
-    from gst.video import VideoError, probe_video
+        raise ConfigError(
+            f"--video: one file listed twice: {', '.join(twice)}; remove the duplicate"
+        )
+    from gst.video import VideoError, probe_video, still_image_error
 
+    errors = []
     for v in videos if probe else ():  # failed inside track, after the stages before it ran
         try:
+            if (image := still_image_error(v)) is not None:
+                raise VideoError(image)
             probe_video(v)
-        except VideoError as exc:  # a data error (exit 1), as when track itself finds it
-            raise PipelineError(f"--video: {exc}") from None
+        except VideoError as exc:  # every broken file named at once, not one per rerun
+            errors.append(str(exc))
+    if errors:  # a data error (exit 1), as when track itself finds it
+        raise PipelineError("--video: " + "\n--video: ".join(errors))
     by_name: dict[str, list[str]] = {}
     for v in videos:
         by_name.setdefault(v.stem, []).append(str(v))

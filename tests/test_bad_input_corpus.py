@@ -467,6 +467,9 @@ VIDEO_OPTION_CASES = {
                                     r"gone.mp4 \(looked for from /"),
     "one file twice": (["{videos}/c1.mp4", "{videos}/c1.mp4"],
                        r"listed twice: .*c1.mp4; remove the duplicate"),
+    # through a linked folder: taken for two files sharing a name ("rename or link one")
+    "one file by two paths": (["{videos}/c1.mp4", "{root}/linked/c1.mp4"],
+                              r"one file listed twice: .*c1.mp4.*linked/c1.mp4"),
 }  # fmt: skip
 
 
@@ -478,6 +481,8 @@ def test_video_option_errors(case, scene, tmp_path, capsys):
         clip = scene.root / sub / "clip.mp4"
         if not clip.exists():
             clip.write_bytes((scene.videos / "c1.mp4").read_bytes())
+    if not (scene.root / "linked").exists():
+        (scene.root / "linked").symlink_to(scene.videos)
     fmt = {"root": scene.root, "videos": scene.videos}
     argv = ["run", "track", "--config", str(_config(tmp_path, scene))]
     for p in paths:
@@ -495,6 +500,24 @@ def test_a_corrupt_video_given_with_video_is_a_data_error(scene, tmp_path, capsy
     (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
     code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(bad))
     _assert_failed(code, err, 1, r"match.mp4", tmp_path / "ws")
+
+
+def test_a_still_image_and_a_corrupt_video_are_named_at_once(scene, tmp_path, capsys):
+    """A photo given as --video was tracked as a one-frame video at a made-up 25 frames/s
+    ("nobody was tracked in 1 frame(s)"), by its content whatever its name; and only the first
+    unreadable file was named, one per rerun."""
+    import cv2
+
+    photo = tmp_path / "photo.mp4"  # a PNG under a video's name
+    cv2.imwrite(str(tmp_path / "photo.png"), np.zeros((48, 64, 3), np.uint8))
+    photo.write_bytes((tmp_path / "photo.png").read_bytes())
+    bad = tmp_path / "match.mp4"
+    bad.write_bytes(np.random.default_rng(2).bytes(4000))
+    cfg = _config(tmp_path, scene)
+    code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(photo),
+                     "--video", str(bad))  # fmt: skip
+    _assert_failed(code, err, 1, r"photo.mp4: a still image, not a video", tmp_path / "ws")
+    assert "match.mp4: OpenCV cannot open it" in err
 
 
 # -- the defects these cases came from ----------------------------------------------------------
@@ -522,6 +545,23 @@ def _track_a_copy(scene, tmp_path, capsys, name: str) -> tuple[Path, Path]:
     code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip))
     assert code == 0, err
     return clip, cfg
+
+
+def test_a_video_named_like_a_calibrated_camera_says_why_it_was_taken_for_it(
+    scene, tmp_path, capsys
+):
+    """A user's portrait clip that happens to be called c2.mp4 is taken for the scene's camera
+    c2; the size mismatch said "fix the camera's image size in the calibration file", wrong
+    advice for a file that is not that camera."""
+    clip = _video(tmp_path / "c2.mp4", size=(H, W))
+    cfg = _config(tmp_path, scene)
+    models = tmp_path / "ws/s/models"
+    models.mkdir(parents=True)
+    (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
+    assert _cli(capsys, "run", "calibrate", "--config", str(cfg))[0] == 0  # the rig imported
+    code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip))
+    assert code == 1 and "taken for the scene's calibrated camera 'c2'" in err, err
+    assert "rename it if it is another camera's" in err
 
 
 def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):

@@ -82,6 +82,7 @@ def test_a_transport_stream_starts_on_the_frame_asked_for(tmp_path, caplog):
         assert got.index == start
         np.testing.assert_array_equal(got.image, full[start])
     assert "not frame-exact" in caplog.text
+    assert "variable frame rate:" not in caplog.text  # its stamps start late, at a steady rate
 
 
 def test_prefetch_gives_the_same_frames(video):
@@ -161,3 +162,63 @@ def test_a_start_past_the_end_is_an_error(video):
     with pytest.raises(VideoError, match="past the end"):
         list(iter_frames(video, start_s=3.0))
     assert frame_range(info, 2.9, None) == (29, N)
+
+
+def _mp4_boxes(buf: bytes, start: int, end: int):
+    """(offset, size, type) of the ISO-BMFF boxes in buf[start:end]."""
+    import struct
+
+    i = start
+    while i + 8 <= end:
+        size, kind = struct.unpack_from(">I4s", buf, i)
+        if size < 8:
+            return
+        yield i, size, kind.decode("latin-1")
+        i += size
+
+
+def write_variable_rate_mp4(path, n=48, fps=30.0, fast_from=24, size=(160, 120)):
+    """An MPEG-4 file whose frames from `fast_from` on come twice as fast (as a phone that
+    records at a variable rate writes them): OpenCV's writer makes a constant-rate file, and
+    its sample-time table (moov/trak/mdia/minf/stbl/stts, one entry) gets a second entry. The
+    moov box follows the media data, so no chunk offset moves."""
+    import struct
+
+    w, h = size
+    vw = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    for k in range(n):
+        img = np.zeros((h, w, 3), np.uint8)
+        img[:, (3 * k) % w] = 255
+        vw.write(img)
+    vw.release()
+    buf = bytearray(path.read_bytes())
+    parents, start, end = [], 0, len(buf)
+    for name in ("moov", "trak", "mdia", "minf", "stbl", "stts"):
+        at, size_ = next((i, s) for i, s, kind in _mp4_boxes(buf, start, end) if kind == name)
+        parents.append(at)
+        start, end = at + 8, at + size_
+    stts = parents.pop()
+    count, delta = struct.unpack_from(">II", buf, stts + 16)
+    assert struct.unpack_from(">I", buf, stts + 12)[0] == 1 and count == n
+    body = struct.pack(">IIIIII", 0, 2, fast_from, delta, n - fast_from, delta // 2)
+    new = struct.pack(">I4s", 8 + len(body), b"stts") + body
+    old_size = struct.unpack_from(">I", buf, stts)[0]
+    buf[stts : stts + old_size] = new
+    for at in parents:  # every box around it grows as much
+        struct.pack_into(">I", buf, at, struct.unpack_from(">I", buf, at)[0] + len(new) - old_size)
+    path.write_bytes(bytes(buf))
+    return path
+
+
+def test_a_variable_frame_rate_is_named_once(tmp_path, video, caplog):
+    """Times are frame / fps at the container's mean rate; a variable-rate file (phones) got
+    times off by up to the ratio of its rates, and speeds with them, without a word."""
+    vfr = write_variable_rate_mp4(tmp_path / "phone.mp4")
+    assert probe_video(vfr).fps == pytest.approx(40.0)  # 48 frames in 1.2 s: the mean
+    assert len(list(iter_frames(vfr))) == 48
+    warnings = [r.getMessage() for r in caplog.records if "variable frame rate:" in r.getMessage()]
+    assert len(warnings) == 1 and "phone.mp4" in warnings[0], warnings
+    caplog.clear()
+    steady = write_variable_rate_mp4(tmp_path / "steady.mp4", fast_from=48)  # one rate
+    assert len(list(iter_frames(steady))) + len(list(iter_frames(video, stride=3))) == 58
+    assert "variable frame rate:" not in caplog.text

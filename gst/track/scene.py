@@ -33,7 +33,7 @@ from pydantic import (
 )
 
 from calibration import Camera, Rig
-from calibration.camera import FRAME_PADDING_TOLERANCE, fit_to_frames
+from calibration.camera import FRAME_PADDING_TOLERANCE, CameraError, fit_to_frames
 from gst.atomic import atomic_write, atomic_write_text
 from gst.body import BodyModel, load_body_model
 from gst.body.markers import MarkerModel
@@ -68,7 +68,7 @@ from gst.track.schema import parse_metadata
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
-from gst.video import VideoError, file_identity, probe_video
+from gst.video import VideoError, file_identity, probe_video, still_image_error
 from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.track")
@@ -391,6 +391,9 @@ def track_scene(
 ) -> list[VideoOutcome]:
     """Track every video of the request and write its reports (see the module doc)."""
     check_unique_names([(v.stem, v) for v in request.videos])  # before the model loads
+    images = [e for v in request.videos if (e := still_image_error(v)) is not None]
+    if images:
+        raise VideoError("; ".join(images))
     if s.threads:
         torch.set_num_threads(s.threads)
     with_gaussians = request.splats_dir is not None
@@ -445,9 +448,16 @@ def track_scene(
         info = None
         if camera is not None:  # fitted to the frames now: a size mismatch fails here, named
             info = probe_video(video, camera.name)
-            camera, note = fit_to_frames(
-                camera, info.width, info.height, request.frame_size_tolerance, str(video)
-            )
+            try:
+                camera, note = fit_to_frames(
+                    camera, info.width, info.height, request.frame_size_tolerance, str(video)
+                )
+            except CameraError as exc:  # its advice fits a calibration, not a file's name
+                raise CameraError(
+                    f"{exc} (this video is taken for the scene's calibrated camera "
+                    f"'{camera.name}' because of its file name; rename it if it is another "
+                    "camera's)"
+                ) from exc
             if note:
                 log.warning("%s", note)
         seen = _camera_seen(model_info, camera)
