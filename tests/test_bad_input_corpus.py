@@ -564,6 +564,18 @@ def test_a_video_named_like_a_calibrated_camera_says_why_it_was_taken_for_it(
     assert "rename it if it is another camera's" in err
 
 
+def test_a_missing_boxes_file_names_the_setting(scene, tmp_path, capsys):
+    """`--set track.boxes=/nope.csv` ended in a bare FileNotFoundError after the model loaded."""
+    cfg = _config(tmp_path, scene)
+    models = tmp_path / "ws/s/models"
+    models.mkdir(parents=True)
+    (models / "gst.pt").write_bytes(scene.checkpoint.read_bytes())
+    clip, boxes = scene.videos / "c1.mp4", tmp_path / "nope.csv"
+    code, err = _cli(capsys, "run", "track", "--config", str(cfg), "--video", str(clip),
+                     "--set", f"track.boxes={boxes}")  # fmt: skip
+    assert code == 1 and "track.boxes: no such file: " in err and "nope.csv" in err, err
+
+
 def test_a_video_name_with_spaces_is_tracked(scene, tmp_path, capsys):
     clip, cfg = _track_a_copy(scene, tmp_path, capsys, "match cam2.mp4")
     assert (tmp_path / "ws/s/tracks/video=match%20cam2/tracks.parquet").is_file()

@@ -394,6 +394,8 @@ def track_scene(
     images = [e for v in request.videos if (e := still_image_error(v)) is not None]
     if images:
         raise VideoError("; ".join(images))
+    if s.boxes is not None and not Path(s.boxes).is_file():  # was a bare FileNotFoundError
+        raise ValueError(f"track.boxes: no such file: {s.boxes} (looked for from {Path.cwd()})")
     if s.threads:
         torch.set_num_threads(s.threads)
     with_gaussians = request.splats_dir is not None
