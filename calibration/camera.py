@@ -234,9 +234,11 @@ class Camera:
         # wide strong lenses need hundreds of iterations (50 left 0.6 px at 90-120 degrees);
         # the usual ones stop at the 1e-12 step after a few
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 2000, 1e-12)
-        out = cv2.undistortPoints(
-            px, self.lens_K(), self.dist if self.dist.size else None, None, None, None, crit
-        )
+        dist = self.dist if self.dist.size else None
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4 (5 folded it into undistortPoints)
+            out = cv2.undistortPointsIter(px, self.lens_K(), dist, None, None, crit)
+        else:
+            out = cv2.undistortPoints(px, self.lens_K(), dist, None, None, None, crit)
         return out.reshape(-1, 2)
 
     def project_normalised(self, xy: np.ndarray) -> np.ndarray:

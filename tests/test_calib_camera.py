@@ -256,6 +256,29 @@ def test_undistortion_converges_for_wide_strong_lenses():
             assert np.abs(back - pix).max() < 1e-6, (seed, cam.name)
 
 
+def test_undistortion_runs_on_opencv_4_too(monkeypatch):
+    """pyproject allows OpenCV >= 4.10, but the iteration's criteria were passed the OpenCV 5
+    way (a 7th argument of undistortPoints): with OpenCV 4 every undistortion (extraction,
+    fusion, tracking on a calibrated camera) failed with "takes at most 6 arguments". OpenCV 4's
+    API is stood in for here: undistortPoints without criteria, and undistortPointsIter."""
+    from synth.rigs import make_rig
+
+    cam = make_rig("dome", 1, 160, 120, fov_deg=90, distortion="strong", seed=0).cameras[0]
+    pix = np.array([[5.0, 7.0], [80.0, 60.0], [150.0, 110.0]])
+    want = cam.undistort_points(pix)
+    real = cv2.undistortPoints
+
+    def undistort_points_v4(src, K, dist, dst=None, R=None, P=None):  # 6 arguments at most
+        return real(src, K, dist, dst, R, P)
+
+    def undistort_points_iter_v4(src, K, dist, R, P, criteria):
+        return real(src, K, dist, None, R, P, criteria)
+
+    monkeypatch.setattr(cv2, "undistortPoints", undistort_points_v4)
+    monkeypatch.setattr(cv2, "undistortPointsIter", undistort_points_iter_v4, raising=False)
+    np.testing.assert_allclose(cam.undistort_points(pix), want, atol=1e-12)
+
+
 def test_rig_fitted_to_its_videos_frame_sizes():
     """Encoder padding (8 rows) is fitted and noted, a camera without a video is left as it
     is, and a frame size that is not padding names the camera."""
