@@ -97,6 +97,10 @@ def test_panoptic_projects_like_its_own_math(tmp_path):
     np.testing.assert_allclose(cam.project(X_cm / 100), ref, atol=1e-8)
     assert len(read_rig(path)) == 2  # all types by default
     assert cam.meta["panel"] == 0 and cam.meta["node"] == 3
+    # `camera_types: hd` in YAML arrives as text: it was matched as a substring ("h" kept)
+    h = dict(PANOPTIC_CAM, name="00_04", type="h")
+    path.write_text(json.dumps({"cameras": [PANOPTIC_CAM, vga, h]}))
+    assert read_rig(path, camera_types="hd").names == ["00_03"]
 
 
 def h36m_project(P_mm, R, T, f, c, k, p):
@@ -279,6 +283,25 @@ def test_anipose_toml_units_and_projection(tmp_path):
     np.testing.assert_allclose(rig_cm["A"].t, rig["A"].t * 10)
     with pytest.raises(RigFormatError, match="units"):
         read_rig(path, "anipose", units="furlong")
+    # a NaN rotation vector was reported as the rotation matrix 'R' made from it
+    path.write_text(ANIPOSE_TOML.replace("rotation = [ 0.12,", "rotation = [ nan,", 1))
+    with pytest.raises(RigFormatError, match=r"\[cam_0\] rotation is not finite"):
+        read_rig(path)
+
+
+def test_anipose_tables_sort_as_text_in_rig_order(tmp_path):
+    """aniposelib orders a file's cameras by their table names as text: [cam_10] came before
+    [cam_2], and 2D points given in rig order went to the wrong cameras (12 cameras)."""
+    import tomllib
+
+    rig = ring_cameras(12)
+    write_rig(rig, tmp_path / "calibration.toml", "anipose")
+    tables = tomllib.loads((tmp_path / "calibration.toml").read_text())
+    keys = [k for k in tables if k != "metadata"]
+    assert [tables[k]["name"] for k in sorted(keys)] == rig.names
+    assert read_rig(tmp_path / "calibration.toml").names == rig.names
+    write_rig(ring_cameras(3), tmp_path / "three.toml", "anipose")  # 10 or fewer: as before
+    assert "[cam_2]" in (tmp_path / "three.toml").read_text()
 
 
 POSE2SIM_TOML = """\

@@ -70,6 +70,9 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
         w, h = require_array(table, "size", (2,), path, where)
         rvec = require_array(table, "rotation", (3,), path, where)
         t = require_array(table, "translation", (3,), path, where)
+        for name, value in (("rotation", rvec), ("translation", t)):
+            if not np.all(np.isfinite(value)):  # was reported as the R or t made from it
+                raise RigFormatError(f"{path}: {where} {name} is not finite: {value.tolist()}")
         cameras.append(
             make_camera(
                 path,
@@ -116,7 +119,10 @@ def write_cameras(
         if keys == "name" and _bare(c.name):
             key = c.name
         elif keys == "index":
-            key = f"cam_{i}"
+            # zero-padded from 11 cameras on: aniposelib orders its cameras by the table names
+            # as text, so cam_10 came before cam_2 and 2D points given in rig order went to
+            # the wrong cameras
+            key = f"cam_{i:0{len(str(len(rig) - 1))}d}"
         else:  # a free cam_NN: ["a b", "cam_01"] gave both [cam_01] and was refused
             taken = {x.name for x in rig if _bare(x.name)} | set(tables)
             key = next(f"cam_{k:02d}" for k in range(i + 1, i + 2 + len(rig) + len(taken))

@@ -32,7 +32,9 @@ CM_PER_M = 100.0  # multiply/divide by 100 (exact for more values than scaling b
 
 
 def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
-    """All cameras, or only those whose `type` is in `camera_types` (e.g. ("hd",))."""
+    """All cameras, or only those whose `type` is in `camera_types` (e.g. ("hd",), or "hd")."""
+    if isinstance(camera_types, str):  # `camera_types: hd` in YAML: matched as a substring
+        camera_types = (camera_types,)
     path = Path(path)
     data = load_json(path)
     cams_data = require_typed(data, "cameras", list, path)
