@@ -99,6 +99,37 @@ def test_a_body_override_must_be_the_checkpoints_body(checkpoints, tmp_path):
         GSTPredictor(checkpoints["plain"], body_model=str(other_path))
 
 
+def test_a_body_file_replaced_under_the_checkpoints_path_is_refused(tmp_path):
+    """The checkpoint names its body by spec or path, resolved on the machine that loads it:
+    another body of as many vertices under that path gave joints about 0.1 m off without a
+    word. A refiner network holds its training skeleton, which the loaded body must match."""
+    data = random_body_data(num_vertices=400, with_posedirs=False)
+    body_path = data.save_npz(tmp_path / "body.npz")
+    cfg = get_preset("tiny", vertex_preset="full", landmark_tokens=True, landmark_refine=2)
+    net, ids, groups = build_network(cfg, BodyModel(data))
+    save_checkpoint(tmp_path / "lm.pt", net, str(body_path), ids, groups)
+    assert GSTPredictor(tmp_path / "lm.pt").network.refiner is not None  # loads as it is
+    random_body_data(num_vertices=400, with_posedirs=False, seed=7).save_npz(body_path)
+    with pytest.raises(ValueError, match="skeleton lies up to .* mm from the one the network"):
+        GSTPredictor(tmp_path / "lm.pt")
+
+
+def test_far_off_landmarks_are_no_reading_and_unbatched_poses_are_named(checkpoints):
+    """A landmark at 1e30 crop px (a damaged cache) became inf inside the lifting and failed the
+    whole batch (NonFiniteBatch); one (3, 3) R for a batch failed deep in the assembly."""
+    pred = GSTPredictor(checkpoints["all33"])
+    crops, K, lm = _inputs(3)
+    far = lm.copy()
+    far[0, 11, 0] = 1e30
+    masked = lm.copy()
+    masked[0, 11] = np.nan  # no reading: the same as far off
+    got, want = pred(crops, K, landmarks=far), pred(crops, K, landmarks=masked)
+    assert np.isfinite(got["joints_cam"]).all()
+    np.testing.assert_array_equal(got["joints_cam"], want["joints_cam"])
+    with pytest.raises(ValueError, match=r"R must be \(3, 3, 3\): one per crop, got \(3, 3\)"):
+        pred.predict(crops, K, R=np.eye(3), t=np.zeros((3, 3)))
+
+
 def test_empty_batches_and_nan_crops_are_named(checkpoints):
     """predict on no crops failed in the body model ("body_pose has an empty batch") or in a
     reshape; NaN float crops passed the range check (NaN > 1 is False) and were blamed on

@@ -91,6 +91,13 @@ def predict_bodies(
             "for none)"
         )
     check_intrinsics(K, len(images))
+    for name, value, shape in (("R", R, (3, 3)), ("t", t, (3,))):
+        # one (3, 3) R for the batch failed deep in the assembly ("size of tensor a (24) ...")
+        if value is not None and tuple(value.shape) != (len(images), *shape):
+            raise ValueError(
+                f"{name} must be ({len(images)}, {', '.join(map(str, shape))}): one per crop, "
+                f"got {tuple(value.shape)}"
+            )
     size = crop_size or images.shape[-2]
     if landmarks is not None and not isinstance(landmarks, LandmarkInput):
         landmarks = landmark_input(network, landmarks, K, size, up=up)
@@ -188,6 +195,41 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
     return body
 
 
+# How far (m) the body's rest skeleton, or a unit of each shape coefficient's move of it, may
+# lie from the skeleton a network's refiner was trained on (float32 round-off is ~1e-7 m).
+SKELETON_TOLERANCE_M = 1e-3
+
+
+def check_body_fits_network(network: torch.nn.Module, body: BodyModel, checkpoint) -> None:
+    """A network with a refiner (landmark networks: gst.model.refine) holds the skeleton of
+    the body it was trained with. A body spec resolves on the machine that loads it ("smpl"
+    through $GST_BODY_DIR or the cache; a path may hold another file since): another body with
+    as many vertices gave joints some 0.1 m off without a word. Refused, with the distance.
+    Networks without a refiner hold no skeleton: nothing to check."""
+    refiner = getattr(network, "refiner", None)
+    rest = getattr(refiner, "rest_joints", None)
+    if rest is None or not bool(torch.isfinite(rest).all()):
+        return
+    shape = refiner.shape_joints
+    nb = shape.shape[-1]
+    if body.num_betas < nb:
+        raise ValueError(
+            f"{checkpoint}: the body has {body.num_betas} shape coefficients, the network was "
+            f"trained with {nb}"
+        )
+    own_rest = body.J_template.detach().to("cpu", torch.float32)
+    own_shape = body.J_shapedirs[..., :nb].detach().to("cpu", torch.float32)
+    off = max(
+        float((own_rest - rest.cpu()).abs().max()), float((own_shape - shape.cpu()).abs().max())
+    )
+    if off > SKELETON_TOLERANCE_M:
+        raise ValueError(
+            f"{checkpoint}: the body model it names resolves here to a body whose skeleton lies "
+            f"up to {1000 * off:.1f} mm from the one the network was trained with (another "
+            "file under the same name or path); pass the training body (`body_model`)"
+        )
+
+
 class GSTPredictor:
     """A checkpoint ready for inference. `image_path`: "auto" lets pose-only crops that have
     landmarks skip the image path when the network's image gate is negligible
@@ -210,6 +252,7 @@ class GSTPredictor:
         ckpt = load_checkpoint(checkpoint, map_location="cpu")
         self.network = network_from_checkpoint(ckpt, checkpoint).to(device).eval()
         self.body = _checkpoint_body(ckpt, body_model, checkpoint, device)
+        check_body_fits_network(self.network, self.body, checkpoint)
         self.vertex_ids = ckpt.vertex_ids.to(device)
         self.with_gaussians = with_gaussians
         self.device, self.batch_size = device, batch_size

@@ -31,6 +31,11 @@ LIMB_LANDMARK_IDS: tuple[int, ...] = (11, 12, 13, 14, 15, 16, 23, 24, 25, 26, 27
 N_BLAZEPOSE = 33  # BlazePose's landmarks, MediaPipe order (the crops' `landmarks`)
 
 
+# Landmarks farther than this many crop widths from the crop are masked (no reading): real
+# detections of limbs cut off by the crop stay within one or two.
+MAX_CROP_WIDTHS = 10.0
+
+
 @dataclass
 class LandmarkInput:
     """Network-side landmarks: points (B, L, 3) = x, y in [-1, 1] over the crop and confidence;
@@ -99,6 +104,9 @@ class LandmarkInput:
         K = torch.as_tensor(K_crop, dtype=torch.float32, device=lm.device)
         lm = select_landmarks(lm, num_landmarks)
         finite = torch.isfinite(lm).all(-1)
+        # a point this many crop widths out is no reading either (a damaged cache's 1e30 became
+        # inf in the lifting's LayerNorm and failed the whole batch, not its row)
+        finite &= (lm[..., :2].abs() <= MAX_CROP_WIDTHS * crop_size).all(-1)
         lm = torch.where(finite[..., None], lm, torch.zeros_like(lm))
         return cls.from_pixels(lm, K, crop_size, mask=finite, up=up)
 

@@ -32,6 +32,7 @@ from gst.metrics.flips import reference_in_crops, surely_mirrored, unmirror
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
+from gst.model.inference import check_body_fits_network
 from gst.model.presets import get_preset
 from gst.param_types import NAMES_FILE
 from gst.render.ply import write_gaussians_ply
@@ -154,11 +155,9 @@ def _initial_network(p: TrainSettings, pretrained: Path, body):
             f"models/pretrain.pt was trained with body model '{ckpt.body_model}', "
             f"train.body_model is '{p.body_model}'"
         )
-    return (
-        network_from_checkpoint(ckpt, pretrained),
-        ckpt.vertex_ids.numpy(),
-        ckpt.group_index.numpy(),
-    )
+    net = network_from_checkpoint(ckpt, pretrained)
+    check_body_fits_network(net, body, pretrained)  # the spec may resolve to another body here
+    return net, ckpt.vertex_ids.numpy(), ckpt.group_index.numpy()
 
 
 def _contact_sheet(images, path: Path, max_rows: int = 8) -> None:
