@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from synth.projection import field_radius, project_in_view
@@ -23,6 +23,7 @@ def _volume_points(rig, n_ring=16):
 
 
 @settings(max_examples=25, deadline=None)
+@example(kind="hall", n=11, seed=64, width=64, aspect=0.5625, fov=30.0, distortion="mild")
 @given(
     kind=st.sampled_from(sorted(RIG_KINDS)),
     n=st.integers(1, 32),
@@ -48,7 +49,13 @@ def test_every_camera_looks_at_the_volume(kind, n, seed, width, aspect, fov, dis
         assert np.dot(to_c, cam.optical_axis) > 0 and miss < 0.3 * rig.meta["volume_radius"]
         uv, inside = project_in_view(cam, c[None], field_radius(cam))
         assert inside[0], f"{cam.name} does not see the volume centre"
-        assert abs(uv[0, 0] - width / 2) < 0.2 * width and abs(uv[0, 1] - height / 2) < 0.2 * height
+        # within a fifth of the image of its centre, or as far as the aim's allowed miss (0.3
+        # radii) reaches at this depth: a narrow lens (30 degrees, 64 px) turned an allowed 0.63
+        # m miss into 12.9 px, past 0.2 x 64 (a draw the derandomized CI never made)
+        depth = float(np.dot(to_c, cam.optical_axis))
+        reach = 1.1 * 0.3 * rig.meta["volume_radius"] / depth
+        assert abs(uv[0, 0] - width / 2) < max(0.2 * width, reach * cam.K[0, 0])
+        assert abs(uv[0, 1] - height / 2) < max(0.2 * height, reach * cam.K[1, 1])
 
 
 @pytest.mark.parametrize("kind", sorted(RIG_KINDS))
