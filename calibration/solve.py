@@ -289,6 +289,28 @@ def bundle_adjust(init: InitialSolution, options: SolveOptions | None = None) ->
     return ba.result(ba.run())
 
 
+# A camera's image "up" points this far up the world's z axis at least (cos of its tilt: 0.3 is
+# a camera looking 73 deg down) in a rig filmed standing upright around the scene.
+MIN_UPRIGHT = 0.3
+
+
+def _sideways_world(rig: Rig, floor_frame: int) -> list[str]:
+    """A note when most cameras' image up is not the world's up: the floor board was held up
+    facing the cameras (carried in first), not lying flat, so the world lies on its side. With
+    every camera on the board's printed side, no camera is below the floor to give it away."""
+    ups = {c.name: float(-c.R[1, 2]) for c in rig}  # image up (-y) in world z
+    if np.median(list(ups.values())) >= MIN_UPRIGHT:
+        return []
+    shown = ", ".join(f"{n} {u:+.2f}" for n, u in ups.items())
+    return [
+        f"most cameras' image up does not point up the world's z axis (its z component: "
+        f"{shown}; at least {MIN_UPRIGHT} for a camera looking less than 73 deg down): was the "
+        f"board in frame {floor_frame}, which defines the floor, really lying flat? A board "
+        "held up facing the cameras gives a world on its side; set calibrate.floor_frame to a "
+        "frame where it lies on the floor (ignore this for cameras looking straight down)"
+    ]
+
+
 def finish_calibration(
     init: InitialSolution,
     ba: BAResult,
@@ -345,6 +367,7 @@ def finish_calibration(
                 f"cameras {below} are below the floor: was the board in frame {floor_frame} "
                 "really lying flat on the floor, printed side up?"
             )
+        notes += _sideways_world(rig, floor_frame)
     # a lens model no lens has (the bundle adjustment refines every distortion term: the
     # rational ones can fold or reach a pole inside the image at a low RMS)
     for cam in rig:

@@ -176,6 +176,34 @@ def test_wrong_floor_frame_is_flagged(small_scene, small_detections):
     assert result.notes and "below the floor" in result.notes[0]
 
 
+def test_a_floor_board_held_up_to_cameras_on_one_side_is_flagged():
+    # Three neighbouring cameras of a ring (an arc): all on the board's printed side, so a world
+    # defined by an upright board puts no camera below the floor; their image up gives it away.
+    from calibration.board import BoardSpec
+    from calibration.camera import Rig
+    from calibration.synthetic import BoardScene, board_poses, ring_rig
+
+    full = ring_rig(8, seed=0)
+    rig = Rig(tuple(full[n] for n in ["cam07", "cam00", "cam01"]))
+    board = BoardSpec("charuco", 7, 5, 0.15, 0.11, "DICT_4X4_50")
+    scene = BoardScene(rig, board, board_poses(board, 80, floor_xy=(0.0, 0.0), seed=3))
+    dets = synthetic_detections(scene, noise_px=0.3)
+    seen = {}
+    for ds in dets.values():
+        for d in ds:
+            seen[d.frame] = seen.get(d.frame, 0) + 1
+    upright = next(
+        f for f in sorted(seen) if f and seen[f] == 3 and abs(scene.world_from_board[f][2, 2]) < 0.3
+    )
+    held_up = calibrate_from_detections(dets, sizes(rig), board, floor_frame=upright)
+    assert all(c.center[2] > 0 for c in held_up.rig)  # the old check has nothing to say
+    assert any(f"board in frame {upright}" in n and "image up" in n for n in held_up.notes)
+    flat = calibrate_from_detections(dets, sizes(rig), board, floor_frame=0)
+    assert not any("image up" in n for n in flat.notes)
+    heights = [c.center[2] for c in flat.rig]
+    np.testing.assert_allclose(heights, [c.center[2] for c in rig], atol=0.05)
+
+
 def test_camera_that_never_sees_the_board_is_named(scene, noisy_detections):
     dets = dict(noisy_detections)
     dets["cam03"] = []
