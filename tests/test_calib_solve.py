@@ -204,6 +204,21 @@ def test_a_floor_board_held_up_to_cameras_on_one_side_is_flagged():
     np.testing.assert_allclose(heights, [c.center[2] for c in rig], atol=0.05)
 
 
+def test_a_strong_lens_whose_edges_the_board_never_reached_is_named(scene, noisy_detections):
+    # A wide lens (the model moves the corners 90-160 px) seen by a board that stayed within
+    # 54-59 % of the way to the corners: 40-1199 px off at the edges at an RMS of 0.4 px.
+    wide = make_scene(4, 50, seed=2, dist=(-0.3, 0.09, 0.001, -0.001, -0.01), focal_px=450)
+    result = calibrate_from_detections(
+        synthetic_detections(wide, noise_px=0.3), sizes(wide.rig), wide.board
+    )
+    named = [c.name for c in wide.rig if any(f"camera '{c.name}': the board's corners" in n
+                                             for n in result.notes)]  # fmt: skip
+    assert named == [c.name for c in wide.rig]
+    # the usual scene's milder lenses (16-26 px at the corners) are not
+    usual = calibrate_from_detections(noisy_detections, sizes(scene.rig), scene.board)
+    assert not any("extrapolated" in n for n in usual.notes)
+
+
 def test_camera_that_never_sees_the_board_is_named(scene, noisy_detections):
     dets = dict(noisy_detections)
     dets["cam03"] = []
