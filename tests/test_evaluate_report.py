@@ -169,6 +169,38 @@ def test_report_files_are_well_formed(tmp_path):
         assert img is not None and img.shape[0] > 10
 
 
+def test_a_side_by_side_input_whose_prediction_is_not_finite_leaves_the_report(
+    tmp_path, monkeypatch
+):
+    """The first inputs' pairs are kept for the side-by-side figure before they are predicted;
+    one whose prediction was not finite has no render, and the figure failed with KeyError
+    after the whole evaluation, leaving no report at all."""
+    import gst.eval.evaluator as evaluator
+    from gst.body.model import NonFiniteBatch
+
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    cfg = get_preset("tiny", vertex_preset="full")
+    torch.manual_seed(0)
+    net, ids, _ = build_network(cfg, body)
+    task = make_task(body, ids, cfg, 64, LossWeights(lpips=0.0))
+    crops = crop_set(n_frames=2, n_cams=3)
+    bad, predict = crops.images[0].clone(), evaluator.predict
+
+    def predict_but_crop_0(model, task, images, *args, **kwargs):
+        hit = [i for i in range(len(images)) if torch.equal(images[i], bad)]
+        if hit:
+            raise NonFiniteBatch("betas", hit)
+        return predict(model, task, images, *args, **kwargs)
+
+    monkeypatch.setattr(evaluator, "predict", predict_but_crop_0)
+    config = EvalConfig(heldout_cameras=("c2",), render_size=32)
+    res = evaluate_model(net, task, crops, config, joint_names=JOINTS)
+    assert res.summary.pose.overall["n_not_finite"] == 1
+    assert any(k not in res.views.images for k in res.side_by_side)  # the case at hand
+    write_report(tmp_path, {"gst": res}, crops, {"scene": "test"})
+    assert (tmp_path / "summary.json").is_file() and (tmp_path / "side_by_side.png").is_file()
+
+
 def test_the_report_names_its_reference_and_an_empty_held_out_camera(tmp_path):
     """On a real scene report.md said "Evaluation against the synthetic truth" above the note
     that the reference is the rig's fused bodies; a held-out camera where no scored person was

@@ -166,7 +166,10 @@ def side_by_side_image(result: EvalResult, crops: CropSet) -> np.ndarray | None:
     rows = []
     by_input: dict[int, list[int]] = {}
     for k in result.side_by_side:
-        by_input.setdefault(int(v.inputs[k]), []).append(k)
+        if k in v.images:  # a pair whose prediction was not finite has no render (counted)
+            by_input.setdefault(int(v.inputs[k]), []).append(k)
+    if not by_input:
+        return None
     width = max(len(ks) for ks in by_input.values()) + 1
     for inp, ks in by_input.items():
         size = v.images[ks[0]][0].shape[0]
