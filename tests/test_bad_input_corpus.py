@@ -208,6 +208,8 @@ def test_train_settings_refuse_values_no_training_can_use(value):
     [("fuse", {"smoothness": float("nan")}), ("fuse", {"people_per_batch": 0}),
      ("fuse", {"iterations": -3}), ("fuse", {"refine_rig": -1}),
      ("evaluate", {"heldout_frames": float("inf")}), ("evaluate", {"render_size": 0}),
+     ("evaluate", {"render_size": 24}), ("evaluate", {"render_size": 8, "lpips": False}),
+     ("bench", {"render_size": 8}),
      ("bench", {"steps": 0}), ("bench", {"lr": -1.0}), ("bench", {"test_fraction": 1.0})],
 )  # fmt: skip
 def test_fuse_evaluate_and_bench_settings_refuse_values_they_cannot_use(model, value):

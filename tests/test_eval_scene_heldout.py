@@ -47,3 +47,8 @@ def test_held_out_cameras_or_frames_the_model_trained_on_are_refused(monkeypatch
     with pytest.raises(ValueError, match="test frames from 20 include frames it trained on"):
         check_unseen(extra, ["c"], 20, "gst.pt")
     check_unseen({"trained_on": {"recorded": False}}, ["a"], 0, "old.pt")  # nothing to check
+
+
+def test_a_render_size_without_lpips_need_only_hold_ssims_window():
+    assert scene.EvaluateSettings(render_size=24, lpips=False).render_size == 24
+    assert scene.EvaluateSettings(render_size=31).render_size == 31

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat
 from gst.body import load_body_model
 from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
 from gst.eval.split import FinetuneConfig, check_unseen, frame_split
+from gst.metrics.image import SSIM_WINDOW
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
@@ -75,7 +76,7 @@ class BenchSettings(BaseModel):
     heldout_cameras: list[str] | None = None
     repeats: PositiveInt = 5  # timed runs per row (the median is reported)
     timing_batch: PositiveInt = 8  # crops per timed call (ms per crop)
-    render_size: PositiveInt = 64  # side (px) of the training renders
+    render_size: int = Field(64, ge=SSIM_WINDOW)  # side (px) of the renders (SSIM's window)
     max_groups: PositiveInt | None = 16  # cap on test (frame, person) groups (None: all)
     threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
 

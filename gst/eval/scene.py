@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, PositiveInt
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt, model_validator
 
 from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
@@ -27,7 +27,9 @@ from gst.eval.report import figure_text, write_report
 from gst.eval.split import check_unseen
 from gst.eval.summary import pose_summary
 from gst.fuse.tables import read_fused_bodies
+from gst.metrics.image import SSIM_WINDOW
 from gst.metrics.lpips import load_lpips
+from gst.metrics.lpips_weights import BACKBONES
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
 from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
@@ -59,6 +61,20 @@ class EvaluateSettings(BaseModel):
     compare_pretrained: bool = True  # also evaluate models/pretrain.pt, side by side
     lpips: bool = True  # LPIPS of the novel views (needs the fetched weights)
     threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
+
+    @model_validator(mode="after")
+    def _scorable_size(self) -> EvaluateSettings:
+        # SSIM's window and, with `lpips`, AlexNet's receptive field: a smaller render failed
+        # after the whole pose scoring had run
+        lpips_min = BACKBONES["alex"].min_size if self.lpips else 0
+        need = max(SSIM_WINDOW, lpips_min)
+        if self.render_size < need:
+            why = f"LPIPS (AlexNet) needs {lpips_min}; " if self.lpips else ""
+            raise ValueError(
+                f"render_size {self.render_size} is too small to score: at least {need} px "
+                f"({why}SSIM's window is {SSIM_WINDOW}; lpips: false allows {SSIM_WINDOW})"
+            )
+        return self
 
 
 def _model(path: Path, body_cache: dict):

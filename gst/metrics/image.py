@@ -80,10 +80,13 @@ def psnr(
     )
 
 
+SSIM_WINDOW = 11  # px: the Gaussian window of SSIM (Wang et al. 2004)
+
+
 def ssim(
     pred: torch.Tensor,
     target: torch.Tensor,
-    window_size: int = 11,
+    window_size: int = SSIM_WINDOW,
     data_range: float = 1.0,
     padding: Literal["same", "valid"] = "same",
 ) -> torch.Tensor:
@@ -256,7 +259,7 @@ def masked_bbox_metrics(
     t: np.ndarray | torch.Tensor,
     lpips: torch.nn.Module | None = None,
     region: Literal["faces", "rect"] = "faces",
-    window_size: int = 11,
+    window_size: int = SSIM_WINDOW,
     data_range: float = 1.0,
 ) -> BoxMetrics:
     """SHERF-style PSNR / SSIM / LPIPS inside the projected 3D body box.
