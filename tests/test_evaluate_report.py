@@ -164,6 +164,9 @@ def test_report_files_are_well_formed(tmp_path):
     assert loaded["models"]["gst"]["pose"]["overall"]["mpjpe_mm"] == pytest.approx(mean, abs=1e-2)
     md = (tmp_path / "report.md").read_text()
     assert "| MPJPE (mm) |" in md and "![side by side](side_by_side.png)" in md
+    # no truth mesh: the box is the joints' (it was always called the truth body's, 5 cm)
+    assert loaded["models"]["gst"]["counts"]["sherf_box"] == "joints"
+    assert "reference joints (15 cm margin" in md and "(5 cm margin)" not in md
     for png in ("per_camera.png", "side_by_side.png"):
         img = cv2.imread(str(tmp_path / png))
         assert img is not None and img.shape[0] > 10

@@ -15,6 +15,7 @@ from gst.eval.evaluator import (
     ViewRecords,
     evaluate_pose,
     evaluate_views,
+    sherf_box_kind,
     view_pairs,
 )
 from gst.eval.summary import PoseSummary, ViewSummary, pose_summary, view_summary
@@ -54,6 +55,9 @@ class EvalCounts(Record):
     frames: list[int] | None
     heldout_cameras: list[str]
     seconds: float
+    # the SHERF-style box of the novel views: "mesh" (the truth body's, 5 cm margin), "joints"
+    # (the reference joints', 15 cm: no truth mesh, e.g. the rig's fused bodies), None (none)
+    sherf_box: str | None = None
 
 
 @dataclass(frozen=True)
@@ -169,6 +173,7 @@ def evaluate_model(
         frames=list(cfg.frames) if cfg.frames else None,
         heldout_cameras=list(cfg.heldout_cameras),
         seconds=seconds,
+        sherf_box=None if views is None else sherf_box_kind(crops, scene_vertices),
     )
     summary = EvalSummary(pose=pose_table, counts=counts, novel_view=view_table)
     return EvalResult(summary, pose, views, pairs, kept, seconds)

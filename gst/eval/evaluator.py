@@ -264,7 +264,7 @@ def _score_views(
     cols["lpips"] = lpips(rgb, tgt_img).tolist() if lpips is not None else [nan] * len(inp)
     cols["iou"] = silhouette_iou(out.alpha[:, 0], mask).tolist()
     row = crops.truth["truth_row"][tgt] if "truth_row" in crops.truth else None
-    if scene_vertices is not None and row is not None:
+    if sherf_box_kind(crops, scene_vertices) == "mesh":
         corners = np.stack(
             [points_box_corners(scene_vertices[int(k)].numpy(), box_margin) for k in row]
         )
@@ -290,6 +290,12 @@ def _score_views(
     to8 = lambda x: (x.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)  # noqa: E731
     cols["images"] = [(to8(rgb[j]), to8(tgt_img[j])) if w else None for j, w in enumerate(wanted)]
     return cols
+
+
+def sherf_box_kind(crops: CropSet, scene_vertices: torch.Tensor | None) -> str:
+    """The box the SHERF-style scores use: "mesh", the truth body's (padded `box_margin`), or
+    "joints", the reference joints' (padded 0.1 m more for the body's volume)."""
+    return "mesh" if scene_vertices is not None and "truth_row" in crops.truth else "joints"
 
 
 @torch.no_grad()

@@ -268,6 +268,14 @@ def _get(s: dict, a: str, b: str, c: str):
     return s.get(a, {}).get(b, {}).get(c)
 
 
+# what the SHERF-style box is (EvalCounts.sherf_box)
+SHERF_BOXES = {
+    "mesh": "the truth body's projected 3D box (5 cm margin)",
+    "joints": "the projected 3D box of the reference joints (15 cm margin: no truth mesh; not "
+    "comparable with SHERF's figures)",
+}
+
+
 def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs: bool) -> str:
     names = list(summaries)
     first = summaries[names[0]]
@@ -370,13 +378,14 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
             "into every other camera of the same frame ([H] = held-out camera); bottom row what "
             "those cameras saw, background removed.",
         ]
+    box = SHERF_BOXES[summaries[last]["counts"].get("sherf_box") or "mesh"]
     lines += [
         "",
         "MPJPE is pelvis-aligned, PA-MPJPE after a similarity Procrustes fit, PVE/PA-PVE the "
         "same on all mesh vertices; all in the world frame through the input camera. Novel views: "
         "prediction rendered on black vs image x mask; full crop = the whole rendered crop, SHERF "
-        "box = inside the truth body's projected 3D box (5 cm margin) for PSNR and its 2D "
-        "bounding rectangle for SSIM/LPIPS (LPIPS v0.1 AlexNet). Formats: docs/evaluate.md.",
+        f"box = inside {box} for PSNR and its 2D bounding rectangle for SSIM/LPIPS (LPIPS v0.1 "
+        "AlexNet). Formats: docs/evaluate.md.",
     ]
     return "\n".join(lines) + "\n"
 
