@@ -10,8 +10,9 @@ reading is kept under the SHA-256 of those pixels, in a file whose name is a dig
 gst.body.markers among them), the SHA-256 of the model files as they are on disk, the versions
 of the libraries that run them (LiteRT, NumPy, OpenCV's own), whether the second pass runs
 (`refine`), and the file format. A file that cannot be read is not used (it is
-written again). The readings are those of a one-thread interpreter, which is what the fuse stage
-and the teacher run: the same pixels give the same numbers (tests/test_fuse_relook.py).
+written again). Processes that share the folder merge what they save (a `.lock` file beside
+it). The readings are those of a one-thread interpreter, which is what the fuse stage and the
+teacher run: the same pixels give the same numbers (tests/test_fuse_relook.py).
 
 File (`readings-<digest>.npz`, written atomically): `keys` (N,) the images' SHA-256 as 64
 hexadecimal characters, `readings` (N, 33, 3) float32 u, v in crop pixels and confidence
@@ -20,13 +21,12 @@ hexadecimal characters, `readings` (N, 33, 3) float32 u, v in crop pixels and co
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import importlib
 import importlib.metadata
 import logging
 import threading
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -78,16 +78,24 @@ class ReadingCache:
         self._known: dict[str, np.ndarray] = {}
         self._new: dict[str, np.ndarray] = {}
         self.hits = 0
-        if self.path.is_file():
-            try:
-                with np.load(self.path) as z:
-                    keys, readings = z["keys"], z["readings"]
-                if readings.shape != (len(keys), 33, 3):
-                    raise ValueError(f"readings have shape {readings.shape}")
-                self._known = {str(k): r for k, r in zip(keys, readings, strict=True)}
-            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-                log.warning("%s: not read (%s); removed, the readings are made again", self.path, e)
-                self.path.unlink(missing_ok=True)
+        self._known = self._read()
+
+    def _read(self) -> dict[str, np.ndarray]:
+        """The file's readings; a file that cannot be read for any reason (it is only a cache:
+        a damaged zip can raise NotImplementedError, say) is removed and its readings made
+        again."""
+        if not self.path.is_file():
+            return {}
+        try:
+            with np.load(self.path) as z:
+                keys, readings = z["keys"], z["readings"]
+            if readings.shape != (len(keys), 33, 3):
+                raise ValueError(f"readings have shape {readings.shape}")
+            return {str(k): r for k, r in zip(keys, readings, strict=True)}
+        except Exception as e:  # noqa: BLE001 - any damage means: not used, made again
+            log.warning("%s: not read (%s); removed, the readings are made again", self.path, e)
+            self.path.unlink(missing_ok=True)
+            return {}
 
     @staticmethod
     def key(image: np.ndarray) -> str:
@@ -111,13 +119,22 @@ class ReadingCache:
             self._new[key] = np.asarray(reading, np.float32).reshape(33, 3).copy()
 
     def save(self) -> None:
-        """Write the file with the new readings added (nothing to add: nothing written)."""
+        """Write the file with the new readings added (nothing to add: nothing written). Under
+        a lock on the folder, the file is read again first: readings another process saved
+        since this one loaded it are kept (the last writer's alone were)."""
         with self._lock:
             if not self._new:
                 return
-            self._known.update(self._new)
-            self._new = {}
-            keys = np.array(list(self._known), dtype="U64")
-            readings = np.stack(list(self._known.values())).astype(np.float32)
+            new, self._new = self._new, {}
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_save_npz(self.path, keys=keys, readings=readings)
+        with open(self.path.with_suffix(".lock"), "a") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                merged = {**self._read(), **self._known, **new}
+                keys = np.array(list(merged), dtype="U64")
+                readings = np.stack(list(merged.values())).astype(np.float32)
+                atomic_save_npz(self.path, keys=keys, readings=readings)
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+        with self._lock:
+            self._known = merged
