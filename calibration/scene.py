@@ -141,6 +141,12 @@ def calibrate_scene(
             f"scene '{scene}' needs exactly one of a calibration file or board footage: add "
             "'calibration: {file: ..., format: ...}' or 'board: {...}' to the scene"
         )
+    if footage is not None and not footage.sources:
+        raise ValueError(
+            f"scene '{scene}': no board footage to solve the rig from; a synthetic scene "
+            "rendered without a board clip (synth board.n_frames: 0) can import its own "
+            "calibration instead: calibrate.synthetic_source rig, panoptic or h36m"
+        )
     solved = None
     if file is not None:
         rig = read_rig(file.path, file.format, **(file.options or {}))

@@ -380,17 +380,20 @@ def _render_into(
         "calibration_notes": calibration_notes,
         "files": {
             "videos": "videos/<camera>.mp4",
-            "board_videos": "board/<camera>.mp4",
             "board": "board.json",
             "calibration": {fmt: rel for fmt, rel in CALIBRATION_FILES},
             "people": PEOPLE_FILE,
             "views": VIEWS_FILE,
             "masks": "truth/masks/<camera>.h5",
-            "board_poses": BOARD_POSES_FILE,
-            "board_views": BOARD_VIEWS_FILE,
             "contact_sheet": "preview/contact_sheet.png",
         },
     }
+    if poses:  # a scene without a board clip (board.n_frames 0) has none of these
+        scene["files"].update(
+            board_videos="board/<camera>.mp4",
+            board_poses=BOARD_POSES_FILE,
+            board_views=BOARD_VIEWS_FILE,
+        )
     write_json(out / "scene.json", scene)
     report("write", 1, 1)
     on_person, on_own = check.fractions()

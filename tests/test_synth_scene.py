@@ -410,3 +410,30 @@ def test_truth_tables_missing_a_column_name_the_file(tiny_scene, tmp_path, rel, 
     read = read_scene_truth if rel.endswith("people.parquet") else read_truth_views
     with pytest.raises(ValueError, match=rf"{rel}: columns \['{column}'\] are missing"):
         read(tmp_path)
+
+
+def test_a_scene_without_a_board_clip_lists_only_the_files_it_wrote(tmp_path):
+    """scene.json listed board videos and board truth tables that a scene rendered with
+    board.n_frames 0 never wrote; calibrating from that board failed with "no camera sources
+    given", a message that named neither the scene nor the way out."""
+    from calibration.board import BoardSpec
+    from calibration.scene import BoardFootage, calibrate_scene
+
+    out = tmp_path / "noboard"
+    render_scene(
+        small_scene_spec(n_frames=1, n_people=1, motions=None, board__n_frames=0),
+        out,
+        body_model=BODY,
+        rig_writer=WRITE_RIG,
+    )
+    scene = json.loads((out / "scene.json").read_text())
+    listed = [v for v in scene["files"].values() if isinstance(v, str)]
+    for rel in listed:
+        for cam in scene["cameras"]:
+            assert (out / rel.replace("<camera>", cam)).exists(), rel
+    assert "board_videos" not in scene["files"] and "videos" in scene["files"]
+    board = BoardSpec.from_dict(json.loads((out / "board.json").read_text()))
+    with pytest.raises(ValueError, match="no board footage.*synthetic_source"):
+        calibrate_scene(
+            {}, tmp_path / "rig.json", tmp_path / "reports", footage=BoardFootage({}, board)
+        )
