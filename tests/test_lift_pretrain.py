@@ -184,6 +184,19 @@ def test_lift_mode_without_its_rendered_phase_is_refused_up_front():
     assert PretrainConfig(mode="3d", gaussian_steps=0).gaussian_steps == 0
 
 
+def test_a_crop_size_that_lift_mode_would_ignore_is_refused():
+    """pretrain.crop_size was accepted in mode lift, which cuts its crops at 256 px whatever it
+    says."""
+    from pydantic import ValidationError
+
+    from gst.train.pretrain import PretrainConfig
+
+    with pytest.raises(ValidationError, match="crop_size .64. sets the crops of modes"):
+        PretrainConfig(mode="lift", crop_size=64)
+    assert PretrainConfig(mode="3d", crop_size=64).crop_size == 64
+    assert PretrainConfig().mode == "lift"  # the default is not refused
+
+
 def test_the_train_summary_says_which_frames_its_mpjpe_is_on(tmp_path):
     """summary.md's MPJPE rows were measured on training frames, labelled only 'against the
     synthetic truth'; the held-out frames' figure reached summary.json only."""

@@ -141,6 +141,13 @@ class PretrainConfig(BaseModel):
                 f"augment jitters the supervised crops of mode '3d'; mode '{self.mode}' samples "
                 "none (set augment: false, or mode: 3d)"
             )
+        if self.mode == "lift" and "crop_size" in self.model_fields_set:
+            # accepted and ignored: the lift mode cuts its crops at the pipeline's crop size
+            raise ValueError(
+                f"crop_size ({self.crop_size}) sets the crops of modes '3d' and 'pretrain'; mode "
+                "'lift' cuts 256 px crops, the pipeline's, so that BlazePose reads them as in "
+                "extraction (leave crop_size out, or set mode: 3d)"
+            )
         if self.mode == "lift" and self.gaussian_steps == 0 and self.reuse is None:
             # accepted, it crashed on a missing last.pt after the lifting, the world renders and
             # the landmark model on every crop
