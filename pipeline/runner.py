@@ -608,7 +608,7 @@ class Runner:
             elif (
                 st.state == STALE
                 and name not in targets
-                and not (upstream or force_all)
+                and not (upstream or force_all or name in self._set_on_command_line())
                 and self._read_record(st.key) is not None
             ):
                 st = self._kept(name, st)
@@ -662,6 +662,19 @@ class Runner:
                 ran.add(name)
                 done[name] = StageStatus(name, st.key, UP_TO_DATE, "just ran", st.fingerprint)
         return list(planned.values())
+
+    def _set_on_command_line(self) -> set[str]:
+        """Stages a `--set` of this command gives a parameter: one stale upstream of the target
+        reruns, as with --upstream (kept, the value typed on this very command line was dropped,
+        with a warning that --quiet hid)."""
+        named = set()
+        for key in self.cfg.overrides:
+            parts = key.split(".")
+            if parts[:3] == ["scenes", self.scene_name, "params"] and len(parts) > 3:
+                named.add(parts[3])
+            elif parts[0] in self.stages:
+                named.add(parts[0])
+        return named
 
     def _kept(self, name: str, st: StageStatus) -> StageStatus:
         """An upstream stage that is stale but not rerun (see `run`), with the log line that

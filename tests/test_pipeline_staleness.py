@@ -397,3 +397,20 @@ def test_a_stale_reason_does_not_list_keys_that_are_none_on_one_side_and_absent_
     assert _diff_params(old, {"masks": {}, "seed": 1}) == []
     assert _diff_params(old, {"seed": 2}) == ["masks: {'dir': None} -> '<unset>'", "seed: 1 -> 2"]
     assert _diff_params({}, {"fps": 30.0}) == ["fps: '<unset>' -> 30.0"]
+
+
+def test_a_set_on_an_upstream_stage_reruns_it_and_quiet_still_warns(tmp_path, counter, capsys):
+    """`run peek --set source.value=7`: source, stale by that very value, was kept (its old
+    outputs used, value=1 copied) with a warning that --quiet hid: exit 0, nothing said, the
+    value typed dropped. Now a stage a --set names reruns; a stage kept for another reason is
+    still kept, and --quiet still shows the warning that says so."""
+    cfg = _chain_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    capsys.readouterr()
+    assert run(cfg, "run", "peek", "--set", "source.value=7") == 0
+    assert (tmp_path / "ws" / "demo" / "peek" / "copy.txt").read_text() == "value=7\n"
+    assert counter()[-2:] == ["source", "peek"]
+    text = cfg.read_text().replace("source: {module", "source: {params: {value: 9}, module")
+    cfg.write_text(text)  # the file's edit (not --set): source is kept
+    assert run(cfg, "run", "peek") == 0
+    assert "source is stale" in capsys.readouterr().err
