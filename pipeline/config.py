@@ -312,6 +312,8 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
     def fix(p):
         if p is None:
             return None
+        # `~/...` is the user's home, as in a shell (it was a folder named `~` in the config's)
+        p = os.path.expanduser(p) if isinstance(p, str) else p.expanduser()
         if isinstance(p, str):  # a glob: the folders it starts from are no pattern ("take [2]")
             if Path(p).is_absolute():
                 return p

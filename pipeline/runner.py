@@ -105,12 +105,13 @@ def _absolute(value, base: Path, texts: bool = False):
     is a path to the user's SMPL file). Any other text param (a method, a preset, a device) is
     never a path, even when a file of that name lies in the config's folder."""
     if isinstance(value, Path):
+        value = value.expanduser()  # `~/...`: the user's home, as in a shell
         return value if value.is_absolute() else Path(os.path.normpath(base / value))
     if (
         texts
         and isinstance(value, str)
         and value
-        and not os.path.isabs(value)
+        and not os.path.isabs(os.path.expanduser(value))
         and (base / value).is_file()
     ):
         return os.path.normpath(base / value)

@@ -152,6 +152,28 @@ def test_a_glob_under_a_folder_whose_name_is_a_pattern(tmp_path):
     assert [f.name for f in files] == ["cam01.mp4", "cam02.mp4"]
 
 
+def test_a_path_from_the_home_folder_is_the_users_home(tmp_path, monkeypatch):
+    """`workspace: ~/ws` and `videos: ~/cams/cam*.mp4` meant folders named `~` inside the
+    config's folder (a `run` would have made one there, and `rm -rf ~` is how one cleans it)."""
+    home = tmp_path / "home"
+    (home / "cams").mkdir(parents=True)
+    for name in ("cam01.mp4", "cam02.mp4"):
+        (home / "cams" / name).write_bytes(b"")
+    monkeypatch.setenv("HOME", str(home))
+    cfg = tmp_path / "proj" / "pipeline.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text(
+        "workspace: ~/ws\ndefault_scene: lab\nscenes:\n  lab: {videos: ~/cams/cam*.mp4}\n"
+        "stages:\n  fuse: {module: 'tests.fake_stages:SOURCE'}\n"
+    )
+    loaded = load_config(cfg)
+    assert loaded.workspace == home / "ws"
+    assert [f.parent for f in loaded.scenes["lab"].video_files()] == [home / "cams"] * 2
+    from pipeline.runner import _absolute  # a Path-typed stage parameter (pretrain.reuse)
+
+    assert _absolute({"reuse": Path("~/gst.pt")}, cfg.parent) == {"reuse": home / "gst.pt"}
+
+
 def test_the_long_form_of_set_overrides_a_scenes_value_as_the_short_one_does():
     """`--set stages.fuse.params.refine_rig=0` left the lab scene's own `refine_rig: 2` in
     place; only `--set fuse.refine_rig=0` removed it."""
