@@ -108,12 +108,20 @@ def code_roots(module: str, path: Path, root: Path) -> dict[str, Path]:
     """Where the packages whose source counts as code live: `CODE_PACKAGES` under `root`, and
     the top-level package of the stage module itself wherever it lives (a user's stage,
     `module: mylab.stages.gait`, runs its own helpers in `mylab/`: editing them must make the
-    stage stale too). A top-level single-file module adds nothing beyond itself."""
+    stage stale too). A top-level single-file module (`module: gait`, gait.py) runs the
+    modules and packages beside it that it imports (`import gaithelpers`): its folder's, unless
+    that is an installed packages folder (site-packages: libraries there are no project code)."""
     roots = {pkg: root for pkg in CODE_PACKAGES}
     parts = module.split(".")
     if len(parts) > 1 and parts[0] not in roots:
         depth = len(parts) - 1 + (path.name == "__init__.py")  # folders from the file up
         roots[parts[0]] = path.resolve().parents[depth]
+    elif len(parts) == 1 and parts[0] not in roots:
+        folder = path.resolve().parent
+        if not {"site-packages", "dist-packages"} & set(folder.parts):
+            beside = [f.stem for f in folder.glob("*.py")]
+            beside += [d.name for d in folder.iterdir() if (d / "__init__.py").is_file()]
+            roots.update({name: folder for name in beside if name not in roots})
     return roots
 
 
@@ -188,13 +196,19 @@ def _data_beside(sources: list[Path]) -> list[Path]:
 
 def code_digests(module: str, path: Path, root: Path) -> dict[str, str]:
     """sha256 (16 hex digits) of every source file in the closure and of the data files beside
-    them (`DATA_SUFFIXES`), keyed by the path relative to `root` (absolute outside it)."""
+    them (`DATA_SUFFIXES`), keyed by the path relative to `root`, or outside it relative to the
+    folder that holds its package (`mylab/stages.py`: a project copied elsewhere is still up to
+    date; absolute paths made every file of a user's package 'changed')."""
+    roots = code_roots(module, path, root).values()
+    folders = [root.resolve(), *sorted({f.resolve() for f in roots})]
 
     def key(file: Path) -> str:
-        try:
-            return file.resolve().relative_to(root.resolve()).as_posix()
-        except ValueError:
-            return file.resolve().as_posix()
+        for folder in folders:
+            try:
+                return file.resolve().relative_to(folder).as_posix()
+            except ValueError:
+                continue
+        return file.resolve().as_posix()
 
     sources = sorted(code_closure(module, path, root).values())
     return {
