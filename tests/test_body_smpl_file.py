@@ -123,6 +123,17 @@ def test_chumpy_values_become_numpy(tmp_path, data):
     assert raw["J_regressor"].format == "csc" and raw["J_regressor"].shape == (24, 500)
 
 
+def test_a_coo_regressor_pickled_by_this_scipy_is_read(tmp_path):
+    """scipy now keeps a COO matrix's indices as `coords`; only `row` / `col` were read, so a
+    regressor re-saved as COO was refused as unreadable."""
+    import scipy.sparse
+
+    dense = np.arange(12.0).reshape(3, 4) * (np.arange(12).reshape(3, 4) % 3 == 0)
+    path = tmp_path / "coo.pkl"
+    path.write_bytes(pickle.dumps({"J_regressor": scipy.sparse.coo_matrix(dense)}, protocol=2))
+    np.testing.assert_array_equal(safe_load_pickle(path)["J_regressor"].toarray(), dense)
+
+
 def test_load_body_model_specs(tmp_path, monkeypatch, data):
     from gst.body import load_body_model
 

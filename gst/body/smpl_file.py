@@ -177,8 +177,10 @@ def _sparse_from_state(obj: _Placeholder, where: str):
                 shape=tuple(shape),
             )
         if fmt == "coo":
+            # newer scipy keeps the indices as `coords`, older versions as `row` and `col`
+            row, col = state["coords"] if "coords" in state else (state["row"], state["col"])
             return scipy.sparse.coo_matrix(
-                (np.asarray(state["data"]), (np.asarray(state["row"]), np.asarray(state["col"]))),
+                (np.asarray(state["data"]), (np.asarray(row), np.asarray(col))),
                 shape=tuple(shape),
             ).tocsr()
     except (KeyError, TypeError) as err:
