@@ -93,9 +93,10 @@ P = np.stack([K[c] @ np.c_[R[c], t[c]] for c in range(C)])
 seen = np.isfinite(uv).all(-1) & (conf >= 0.3)  # Pose2Sim's likelihood threshold, for all
 
 def timed(fn):
-    # one untimed call on a few person-frames first (imports, aniposelib's JIT compilation),
-    # then the median of `reps` calls on all of them, as ours is timed
-    fn(np.arange(min(4, N)))
+    # one untimed call on all person-frames first (imports; aniposelib compiles its
+    # triangulation for each input size: a warm-up on 4 rows left the first timed call 25 x
+    # slower), then the median of `reps` calls on all of them, as ours is timed
+    fn(np.arange(N))
     runs = []
     for _ in range(reps):
         t0 = time.perf_counter(); X = fn(np.arange(N)); runs.append(time.perf_counter() - t0)
@@ -151,6 +152,7 @@ try:
             sc = np.where(seen[sel], conf[sel], 0).transpose(1, 0, 2)
             Xo[sel] = cg.optim_points(pts[:, sel], init, constraints=limbs, scores=sc,
                                       reproj_error_threshold=15, verbose=False)
+        Xo[~np.isfinite(X).all(-1)] = np.nan  # no evidence there (only a filled-in start)
         return Xo[rows]
     Xo, sec = timed(optim)
     out["aniposelib_optim"] = {"points": Xo.tolist(), "seconds": sec,
@@ -306,7 +308,12 @@ def main() -> None:
     ap.add_argument(
         "--processes", type=int, default=2, help="worker processes for the multi-core fit rows"
     )
-    ap.add_argument("--keep-input", type=Path, help="also save the exported peer input here")
+    ap.add_argument(
+        "--keep-input",
+        type=Path,
+        help="also save the exported peer input here (one file per grouping: NAME_extraction_ids, "
+        "NAME_regrouped)",
+    )
     ap.add_argument("--skip-peers", action="store_true")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -330,7 +337,8 @@ def main() -> None:
     truth = read_scene_truth(ws / "synth")
     fps = float(json.loads((ws / "synth" / "scene.json").read_text())["fps"])
     lm = crop_landmarks(store)
-    extracted = group_by_person(store, lm)
+    # as the fuse stage groups them: people with nothing readable left out (scene._readable_only)
+    extracted = [p for p in group_by_person(store, lm) if p.readable]
     tri_options = FuseOptions().triangulation  # what the fuse stage triangulates with
     # the people's silhouettes vote in our pair consensus: their cost is part of ours
     t_sil, silhouettes = median_time(
@@ -342,7 +350,10 @@ def main() -> None:
     def triangulate(p):
         return triangulate_person(p, tri_options, silhouettes)
 
-    t_regroup, (regrouped, report) = median_time(lambda: regroup_people(extracted), 1)
+    t_regroup, (regrouped, report) = median_time(
+        lambda: regroup_people(extracted, FuseOptions().regroup, fps), 1
+    )  # the stage's options at the capture's frame rate (its jump and gap limits are per frame)
+    regrouped = [p for p in regrouped if p.readable]
     body = load_body_model("anny")
     markers = MarkerModel.load()
     up = np.asarray(rig.up, np.float64)
@@ -394,7 +405,12 @@ def main() -> None:
                 store,
                 rig,
                 args.peers_python,
-                args.keep_input,
+                # one file per grouping (the second overwrote the first)
+                None
+                if args.keep_input is None
+                else args.keep_input.with_stem(
+                    f"{args.keep_input.stem}_{grouping.replace(' ', '_')}"
+                ),
                 args.repeats,
                 args.threads,
             )
