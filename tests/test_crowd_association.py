@@ -383,3 +383,23 @@ def test_an_id_continued_by_its_box_is_not_given_again_by_a_fit_in_another_camer
     view_a = [PersonInstance.create(off, found[a][0].box)]
     ids = tracker.update(5, FrameMatch(groups), {a: view_a, b: later[b]})
     assert kept in ids and len(set(ids)) == 2
+
+
+def test_a_person_one_camera_sees_keeps_their_id_through_a_missed_frame():
+    """Only the last frame's single-view boxes were remembered: a person one camera sees, whom
+    the detector missed for one frame in four, came back with a new id each time (5 ids of 3
+    frames each, all below extraction's min_track_frames, so every crop of them was dropped)."""
+    tracker = PersonIdTracker(RIG5, 1 / 30)
+    only = RIG5.names[2]
+    ids_of_single = []
+    for f in range(20):
+        people = [person(0, 0, 0.0), person(0.9, 0.6, 2.0)]
+        found, truth = instances(
+            RIG5, people, noise_px=1.0, seed=f, cameras={1: [only] if f % 4 != 3 else []}
+        )
+        m = match_frame(found, RIG5)
+        for g, pid in zip(m.groups, tracker.update(f, m, found), strict=True):
+            cam, k = next(iter(g.views.items()))
+            if truth[cam][k] == 1:
+                ids_of_single.append(pid)
+    assert len(ids_of_single) == 15 and len(set(ids_of_single)) == 1

@@ -130,7 +130,10 @@ class PersonIdTracker:
     config: TrackerConfig = field(default_factory=TrackerConfig)
     match_config: MatchConfig = field(default_factory=MatchConfig)
     _tracks: list[_Track] = field(default_factory=list)
-    _single: dict[str, list[tuple[int, np.ndarray]]] = field(default_factory=dict)
+    # per camera: (id, box, frame last seen) of the single-view people of the last `max_gap`
+    # processed frames (only the last frame's were kept: a single-view person the detector
+    # missed for one frame came back with a new id, every time)
+    _single: dict[str, list[tuple[int, np.ndarray, int]]] = field(default_factory=dict)
     _next_id: int = 1
     _last_frame: int | None = None
 
@@ -221,7 +224,7 @@ class PersonIdTracker:
         overlaps most (box IoU at least `box_iou`), if nobody has that id this frame."""
         best, best_iou = None, self.config.box_iou
         for cam_name, k in group.views.items():
-            prev = [(pid, box) for pid, box in self._single.get(cam_name, []) if pid not in ids]
+            prev = [(pid, box) for pid, box, _ in self._single.get(cam_name, []) if pid not in ids]
             if not prev:
                 continue
             iou = box_iou(instances[cam_name][k].box[None], np.stack([b for _, b in prev]))[0]
@@ -260,7 +263,7 @@ class PersonIdTracker:
             for c, t in enumerate(self._tracks)
             if c not in matched and t.hits >= self.config.confirm
         ]
-        single: dict[str, list[tuple[int, np.ndarray]]] = {}
+        single: dict[str, list[tuple[int, np.ndarray, int]]] = {}
         for cam_name, gs in by_cam.items():
             insts = [instances[cam_name][match.groups[g].views[cam_name]] for g in gs]
             taken = np.zeros(len(gs), bool)
@@ -283,7 +286,7 @@ class PersonIdTracker:
                 todo = np.flatnonzero(~taken)
                 if len(todo):
                     iou = box_iou(
-                        np.stack([insts[k].box for k in todo]), np.stack([b for _, b in prev])
+                        np.stack([insts[k].box for k in todo]), np.stack([b for _, b, _ in prev])
                     )
                     cost = np.where(iou >= self.config.box_iou, -iou, _FAR)
                     for r, c in zip(*linear_sum_assignment(cost), strict=True):
@@ -292,5 +295,11 @@ class PersonIdTracker:
                             taken[todo[r]] = True
             for k in np.flatnonzero(~taken):
                 ids[gs[k]] = self._new_id()
-            single[cam_name] = [(ids[g], insts[k].box) for k, g in enumerate(gs)]
+            single[cam_name] = [(ids[g], insts[k].box, frame) for k, g in enumerate(gs)]
+        # the ones not seen this frame are remembered as long as a track is (`max_gap`)
+        gap = self.config.max_gap * self.config.frame_stride
+        for cam_name, entries in self._single.items():
+            single.setdefault(cam_name, []).extend(
+                e for e in entries if e[0] not in ids and frame - e[2] <= gap
+            )
         self._single = single
