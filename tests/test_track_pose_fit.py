@@ -62,6 +62,19 @@ def test_the_fit_brings_a_perturbed_body_onto_its_landmarks(fitter):
     assert np.allclose(J.numpy(), out.joints_cam, atol=1e-4)
 
 
+def test_the_fit_keeps_the_networks_depth(fitter):
+    """Depth was fitted too, from the 2D size of the landmarks alone: the same depth came out
+    whatever the network said (0.6 m too far: the fit still gave 2.92-3.07 m for 3 m), and a
+    wrong limb pose moved it by up to 7 cm where the network's was right."""
+    R, betas, t, J_net, K, lm, _ = _bodies(fitter, 6, seed=4)
+    far = t.copy()
+    far[:, 2] += 0.6
+    for given, J in ((t, J_net), (far, J_net + (far - t)[:, None])):
+        out = fitter(R, betas, given, J, K, lm, S)
+        assert out.fitted.all()
+        np.testing.assert_allclose(out.transl_cam[:, 2], given[:, 2], atol=1e-5)
+
+
 def test_bodies_without_enough_evidence_stay_the_networks(fitter):
     R, betas, t, J_net, K, lm, _ = _bodies(fitter, 3, seed=2)
     lm[0, :, 2] = 0.2  # nothing confident

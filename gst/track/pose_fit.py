@@ -10,8 +10,9 @@ landmarks: robust (Geman-McClure) reprojection in crop pixels, weighted by confi
 prior that keeps every local joint rotation near the network's (`pose_prior` per rad^2), over
 the global orientation, the local rotations and the translation (the shape stays the
 network's). Levenberg-Marquardt with the skeleton's analytic Jacobian (gst.body.kinematics),
-batched over the crops: about 2-7 ms per crop on one core. Depth comes from the network and the
-prior, as in SPIN-style refinement; the prior decides how far 2D evidence may bend a limb.
+batched over the crops: about 2-7 ms per crop on one core. Depth stays the network's (the fit
+moves the translation across the image only; fitted to 2D scale it followed the pose being
+fitted), as in SPIN-style refinement; the prior decides how far 2D evidence may bend a limb.
 
 Measured (docs/track_evaluation.md, "Pose fit"): on the lab capture the demo's model agrees with
 the rig's fused bodies 166.5 / 101.2 -> 132.5 / 87.4 mm (MPJPE / PA-MPJPE, root-aligned, 800
@@ -34,6 +35,8 @@ from gst.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from gst.track.agreement import COMPARED_INDEX, landmark_targets
 
 __all__ = ["PoseFitConfig", "PoseFitter", "FittedPoses", "disagreement"]
+
+DEPTH = 5  # the fit's parameter index of the translation's z (camera depth)
 
 
 @dataclass(frozen=True)
@@ -191,6 +194,10 @@ class PoseFitter:
             g[:, 6:] += c.pose_prior * (theta - theta0).reshape(n, -1)
             H = H + torch.diag_embed(prior.expand(n, P))
             H = H + mu[:, None, None] * torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2) + 1e-6)
+            # depth stays the network's: 2D evidence alone sets it by the body's apparent size,
+            # which the pose being fitted changes (a wrong limb moved it by up to 7 cm)
+            H[:, DEPTH, :], H[:, :, DEPTH], g[:, DEPTH] = 0.0, 0.0, 0.0
+            H[:, DEPTH, DEPTH] = 1.0
             step = -torch.linalg.solve(H, g)
             root_n = axis_angle_to_matrix(step[:, :3]) @ root
             t_n = t + step[:, 3:6]
