@@ -308,7 +308,8 @@ def _sideways_world(rig: Rig, floor_frame: int) -> list[str]:
         f"{shown}; at least {MIN_UPRIGHT} for a camera looking less than 73 deg down): was the "
         f"board in frame {floor_frame}, which defines the floor, really lying flat? A board "
         "held up facing the cameras gives a world on its side; set calibrate.floor_frame to a "
-        "frame where it lies on the floor (ignore this for cameras looking straight down)"
+        "frame where it lies on the floor (ignore this for cameras looking straight down or "
+        "rolled on their side, people lying sideways in their images)"
     ]
 
 

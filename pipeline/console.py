@@ -38,10 +38,12 @@ def setup_logging(console: Console, log_dir: Path | None, command: str, quiet: b
         root.removeHandler(h)
     if not quiet:
         handler = RichHandler(console=console, show_path=False, markup=False, rich_tracebacks=False)
-    else:  # warnings still reach the user (a stale stage kept, a --set it did not act on)
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    else:  # warnings still reach the user (a stale stage kept); errors print_error says
+        handler = RichHandler(
+            console=Console(stderr=True), show_path=False, markup=False, rich_tracebacks=False
+        )
         handler.setLevel(logging.WARNING)
+        handler.addFilter(lambda record: record.levelno < logging.ERROR)
     handler.addFilter(lambda record: record.name != TRACEBACK_LOGGER)
     root.addHandler(handler)
     log_path = None

@@ -119,10 +119,21 @@ def code_roots(module: str, path: Path, root: Path) -> dict[str, Path]:
     elif len(parts) == 1 and parts[0] not in roots:
         folder = path.resolve().parent
         if not {"site-packages", "dist-packages"} & set(folder.parts):
-            beside = [f.stem for f in folder.glob("*.py")]
-            beside += [d.name for d in folder.iterdir() if (d / "__init__.py").is_file()]
-            roots.update({name: folder for name in beside if name not in roots})
+            roots.update({name: folder for name in _modules_in(folder) if name not in roots})
     return roots
+
+
+def _modules_in(folder: Path) -> list[str]:
+    """The modules and packages in `folder`, but `pipeline` (orchestration: a stage file beside
+    pipeline.yaml imports pipeline.stage, and editing the runner reruns no stage)."""
+    names = [f.stem for f in folder.glob("*.py")]
+    for d in folder.iterdir():
+        try:
+            if (d / "__init__.py").is_file():
+                names.append(d.name)
+        except OSError:  # an unreadable folder holds no module of the stage's
+            continue
+    return [n for n in names if n != "pipeline"]
 
 
 def imported_names(path: Path, name: str) -> set[str]:

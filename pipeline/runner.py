@@ -29,7 +29,12 @@ from pydantic import ValidationError
 
 from gst.atomic import atomic_write_text, remove_path, replace_path
 from gst.param_types import names_file
-from pipeline.config import PipelineConfig, format_error_line, validate_strictly
+from pipeline.config import (
+    PipelineConfig,
+    format_error_line,
+    parse_override,
+    validate_strictly,
+)
 from pipeline.dag import topological_order, upstream_closure
 from pipeline.errors import (
     PROJECT_ROOT,
@@ -111,10 +116,10 @@ def _absolute(value, base: Path, texts: bool = False):
         texts
         and isinstance(value, str)
         and value
-        and not os.path.isabs(os.path.expanduser(value))
-        and (base / value).is_file()
+        and (os.path.isabs(os.path.expanduser(value)) or (base / value).is_file())
     ):
-        return os.path.normpath(base / value)
+        # `~/models/x.json`: the user's home, as in a shell; else the config's folder
+        return os.path.normpath(base / os.path.expanduser(value))
     if isinstance(value, dict):
         return {k: _absolute(v, base, texts) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -609,7 +614,7 @@ class Runner:
             elif (
                 st.state == STALE
                 and name not in targets
-                and not (upstream or force_all or name in self._set_on_command_line())
+                and not (upstream or force_all or self._after_a_set(name))
                 and self._read_record(st.key) is not None
             ):
                 st = self._kept(name, st)
@@ -665,17 +670,29 @@ class Runner:
         return list(planned.values())
 
     def _set_on_command_line(self) -> set[str]:
-        """Stages a `--set` of this command gives a parameter: one stale upstream of the target
-        reruns, as with --upstream (kept, the value typed on this very command line was dropped,
-        with a warning that --quiet hid)."""
+        """Stages a `--set` of this command gives a parameter (`S.K`, `stages.S...`,
+        `scenes.<this scene>.params.S.K` or `scenes.<this scene>.params={S: ...}`)."""
         named = set()
-        for key in self.cfg.overrides:
+        for key, text in self.cfg.overrides.items():
             parts = key.split(".")
-            if parts[:3] == ["scenes", self.scene_name, "params"] and len(parts) > 3:
-                named.add(parts[3])
+            if parts[:3] == ["scenes", self.scene_name, "params"]:
+                if len(parts) > 3:
+                    named.add(parts[3])
+                else:
+                    value = parse_override(text)[1]
+                    named |= set(value) if isinstance(value, dict) else set()
+            elif parts[0] == "stages" and len(parts) > 1:
+                named.add(parts[1])
             elif parts[0] in self.stages:
                 named.add(parts[0])
-        return named
+        return named & set(self.stages)
+
+    def _after_a_set(self, name: str) -> bool:
+        """Whether a stale upstream stage reruns rather than being kept: a `--set` of this
+        command names it or a stage it depends on (kept, the value typed on this very command
+        line was dropped, or reached the target through a stage that still held the old one)."""
+        named = self._set_on_command_line()
+        return bool(named) and bool(named & set(upstream_closure(self.needs, [name])))
 
     def _kept(self, name: str, st: StageStatus) -> StageStatus:
         """An upstream stage that is stale but not rerun (see `run`), with the log line that

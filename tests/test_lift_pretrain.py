@@ -195,6 +195,7 @@ def test_a_crop_size_that_lift_mode_would_ignore_is_refused():
         PretrainConfig(mode="lift", crop_size=64)
     assert PretrainConfig(mode="3d", crop_size=64).crop_size == 64
     assert PretrainConfig().mode == "lift"  # the default is not refused
+    assert PretrainConfig(mode="lift", crop_size=256).crop_size == 256  # nor what lift uses
 
 
 def test_the_train_summary_says_which_frames_its_mpjpe_is_on(tmp_path):

@@ -207,3 +207,19 @@ def test_a_single_file_user_stage_counts_the_modules_beside_it_that_it_imports(
     finally:
         for mod in ("solo", "solohelper"):
             sys.modules.pop(mod, None)
+
+
+def test_a_stage_file_beside_pipeline_yaml_does_not_count_the_runner(tmp_path):
+    """A single-file stage in the project's root imports pipeline.stage: the runner's source
+    (and, through it, calibration/) became its code, so editing pipeline/ made it stale."""
+    from pipeline.fingerprint import code_roots
+
+    (tmp_path / "pipeline").mkdir()
+    (tmp_path / "pipeline" / "__init__.py").write_text("")
+    (tmp_path / "helper.py").write_text("K = 1\n")
+    (tmp_path / "locked").mkdir(mode=0o000)  # an unreadable folder holds no module
+    try:
+        roots = code_roots("gait", tmp_path / "gait.py", tmp_path)
+    finally:
+        (tmp_path / "locked").chmod(0o755)
+    assert "pipeline" not in roots and roots["helper"] == tmp_path.resolve()

@@ -172,6 +172,9 @@ def test_a_path_from_the_home_folder_is_the_users_home(tmp_path, monkeypatch):
     from pipeline.runner import _absolute  # a Path-typed stage parameter (pretrain.reuse)
 
     assert _absolute({"reuse": Path("~/gst.pt")}, cfg.parent) == {"reuse": home / "gst.pt"}
+    # a text that may name a file (fuse.markers, body_model) likewise
+    assert _absolute("~/mk.json", cfg.parent, texts=True) == str(home / "mk.json")
+    assert _absolute("smpl:female", cfg.parent, texts=True) == "smpl:female"
 
 
 def test_the_long_form_of_set_overrides_a_scenes_value_as_the_short_one_does():

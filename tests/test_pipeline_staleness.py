@@ -57,7 +57,8 @@ def test_a_kill_in_an_upstream_commit_does_not_leave_the_target_up_to_date(
             pass
     assert run(cfg, "run", "peek", "--set", "source.value=5") == 0
     assert (tmp_path / "ws" / "demo" / "peek" / "copy.txt").read_text() == "value=5\n"
-    assert counter()[-2:] == ["source", "peek"]
+    # constant reruns too: it lies between the stage the --set names and the target
+    assert counter()[-3:] == ["source", "constant", "peek"]
 
 
 def test_a_scene_edit_leaves_stages_that_do_not_read_the_scene_up_to_date(
@@ -409,8 +410,41 @@ def test_a_set_on_an_upstream_stage_reruns_it_and_quiet_still_warns(tmp_path, co
     capsys.readouterr()
     assert run(cfg, "run", "peek", "--set", "source.value=7") == 0
     assert (tmp_path / "ws" / "demo" / "peek" / "copy.txt").read_text() == "value=7\n"
-    assert counter()[-2:] == ["source", "peek"]
+    assert counter()[-3:] == ["source", "constant", "peek"]
     text = cfg.read_text().replace("source: {module", "source: {params: {value: 9}, module")
     cfg.write_text(text)  # the file's edit (not --set): source is kept
     assert run(cfg, "run", "peek") == 0
     assert "source is stale" in capsys.readouterr().err
+
+
+def test_a_set_reaches_the_target_through_the_stages_between(tmp_path, counter, capsys):
+    """`run report --set source.value=2`: source reran but double, between it and report, was
+    kept with value=1, and report was made from that: the typed value still did not arrive."""
+    from tests.test_pipeline_dag import write_config
+
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "report") == 0
+    assert run(cfg, "run", "report", "--set", "source.value=2") == 0
+    assert counter()[3:] == ["source", "double", "report"]
+    assert (tmp_path / "ws/demo/double/result.txt").read_text() == "value=2\n" * 2
+    # the long form names its stage too
+    assert run(cfg, "run", "report", "--set", "stages.source.params.value=3") == 0
+    assert counter()[6:] == ["source", "double", "report"]
+
+
+def test_quiet_prints_a_failure_once_and_warnings_to_the_current_stderr(tmp_path, capsys):
+    """The quiet handler printed an unexpected failure twice (its log line with the traceback,
+    then the error line) and kept the stderr of the run that made it (a later test's logging
+    met a closed file)."""
+    import logging
+
+    from tests.test_pipeline_dag import write_config
+
+    cfg = write_config(tmp_path)
+    with open(cfg, "a") as f:
+        f.write('  fail: {module: "tests.fake_stages:FAIL", needs: [source]}\n')
+    assert run(cfg, "run", "fail") == 1
+    err = capsys.readouterr().err
+    assert err.count("boom") == 1 and "Traceback" not in err
+    logging.getLogger("pipeline").warning("after the run")  # stderr is another object now
+    assert "after the run" in capsys.readouterr().err

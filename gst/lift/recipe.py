@@ -40,6 +40,7 @@ from gst.model.presets import get_preset
 from gst.model.refine import DEFAULT_ROUNDS
 from gst.records import Record
 from gst.train.pretrain import (
+    LIFT_CROP_SIZE,
     CorpusSummary,
     ImagePretrainSummary,
     PretrainConfig,
@@ -244,10 +245,6 @@ class LiftPretrainSummary:
 def lift_summary(res: LiftPretrainResult) -> dict:
     d = asdict(replace(res, validation=[]))
     return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
-
-
-# the lift mode's crops: the pipeline's crop size, so BlazePose sees what it sees in extraction
-LIFT_CROP_SIZE = 256
 
 
 def _pretrain_lift(
