@@ -87,7 +87,9 @@ class PretrainConfig(BaseModel):
     static_every: int = (
         3  # every Nth world holds independent random poses instead of motions (0: none)
     )
-    crop_size: PositiveInt = 128  # the tiny preset's input is 128x96; larger presets want 256
+    # modes 3d and pretrain (the tiny preset's input is 128x96; larger presets want 256); mode
+    # lift cuts 256 px crops, the pipeline's, and refuses another value
+    crop_size: PositiveInt = 128
     # mode 3d: box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     augment: bool = False
     # lift: landmark tokens, render-free lifting then a short rendered phase (module doc);
