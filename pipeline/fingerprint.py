@@ -88,6 +88,7 @@ def stage_fingerprint(code: str, params: dict[str, Any], inputs: dict[str, str |
 # Packages whose source counts as a stage's code. `pipeline/` is the orchestration around every
 # stage, not what a stage computes, so editing it reruns nothing.
 CODE_PACKAGES = ("calibration", "gst", "synth", "stages")
+ORCHESTRATION = "pipeline"
 
 
 def _module_file(roots: dict[str, Path], name: str) -> Path | None:
@@ -124,7 +125,7 @@ def code_roots(module: str, path: Path, root: Path) -> dict[str, Path]:
 
 
 def _modules_in(folder: Path) -> list[str]:
-    """The modules and packages in `folder`, but `pipeline` (orchestration: a stage file beside
+    """The modules and packages in `folder`, but `ORCHESTRATION` (a stage file beside
     pipeline.yaml imports pipeline.stage, and editing the runner reruns no stage)."""
     names = [f.stem for f in folder.glob("*.py")]
     for d in folder.iterdir():
@@ -133,7 +134,7 @@ def _modules_in(folder: Path) -> list[str]:
                 names.append(d.name)
         except OSError:  # an unreadable folder holds no module of the stage's
             continue
-    return [n for n in names if n != "pipeline"]
+    return [n for n in names if n != ORCHESTRATION]
 
 
 def imported_names(path: Path, name: str) -> set[str]:
@@ -171,10 +172,12 @@ def _imports_of_version(path: Path, name: str, mtime_ns: int, size: int) -> froz
     return frozenset(".".join(m.split(".")[:k]) for m in found for k in range(1, m.count(".") + 2))
 
 
-def code_closure(module: str, path: Path, root: Path) -> dict[str, Path]:
+def code_closure(
+    module: str, path: Path, root: Path, roots: dict[str, Path] | None = None
+) -> dict[str, Path]:
     """The project modules that module `module` (source file `path`) imports, transitively,
     itself included, by name. `root` holds the project packages (`code_roots`)."""
-    roots = code_roots(module, path, root)
+    roots = code_roots(module, path, root) if roots is None else roots
     seen: dict[str, Path] = {module: path}
     todo = sorted(_imports_of(path, module))
     while todo:
@@ -210,8 +213,8 @@ def code_digests(module: str, path: Path, root: Path) -> dict[str, str]:
     them (`DATA_SUFFIXES`), keyed by the path relative to `root`, or outside it relative to the
     folder that holds its package (`mylab/stages.py`: a project copied elsewhere is still up to
     date; absolute paths made every file of a user's package 'changed')."""
-    roots = code_roots(module, path, root).values()
-    folders = [root.resolve(), *sorted({f.resolve() for f in roots})]
+    roots = code_roots(module, path, root)  # listed once: it reads the stage's folder
+    folders = [root.resolve(), *sorted({f.resolve() for f in roots.values()})]
 
     def key(file: Path) -> str:
         for folder in folders:
@@ -221,7 +224,7 @@ def code_digests(module: str, path: Path, root: Path) -> dict[str, str]:
                 continue
         return file.resolve().as_posix()
 
-    sources = sorted(code_closure(module, path, root).values())
+    sources = sorted(code_closure(module, path, root, roots).values())
     return {
         key(file): hashlib.sha256(file.read_bytes()).hexdigest()[:16]
         for file in sorted({*sources, *_data_beside(sources)})

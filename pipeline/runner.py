@@ -602,6 +602,7 @@ class Runner:
         last time, so an expensive rerun (a pretraining) never starts unasked. `upstream=True`
         reruns such stages too; missing upstream outputs are always produced."""
         names = upstream_closure(self.needs, targets)
+        named_by_set = self._set_on_command_line()
         planned: dict[str, StageStatus] = {}
         for name in names:
             st = self.status_of(name, planned)
@@ -614,7 +615,7 @@ class Runner:
             elif (
                 st.state == STALE
                 and name not in targets
-                and not (upstream or force_all or self._after_a_set(name))
+                and not (upstream or force_all or self._after_a_set(name, named_by_set))
                 and self._read_record(st.key) is not None
             ):
                 st = self._kept(name, st)
@@ -687,11 +688,11 @@ class Runner:
                 named.add(parts[0])
         return named & set(self.stages)
 
-    def _after_a_set(self, name: str) -> bool:
+    def _after_a_set(self, name: str, named: set[str]) -> bool:
         """Whether a stale upstream stage reruns rather than being kept: a `--set` of this
-        command names it or a stage it depends on (kept, the value typed on this very command
-        line was dropped, or reached the target through a stage that still held the old one)."""
-        named = self._set_on_command_line()
+        command names it or a stage it depends on (`named`, `_set_on_command_line`; kept, the
+        value typed on this very command line was dropped, or reached the target through a
+        stage that still held the old one)."""
         return bool(named) and bool(named & set(upstream_closure(self.needs, [name])))
 
     def _kept(self, name: str, st: StageStatus) -> StageStatus:

@@ -63,6 +63,10 @@ def _track(progress, items, description: str):
     return items if progress is None else progress(items, description=description, total=len(items))
 
 
+# the lift mode's crops: the pipeline's crop size, so BlazePose sees what it sees in extraction
+LIFT_CROP_SIZE = 256
+
+
 class PretrainConfig(BaseModel):
     """Settings of the supervised pretraining (the `pretrain` stage's parameters)."""
 
@@ -143,11 +147,8 @@ class PretrainConfig(BaseModel):
                 f"augment jitters the supervised crops of mode '3d'; mode '{self.mode}' samples "
                 "none (set augment: false, or mode: 3d)"
             )
-        if (
-            self.mode == "lift"
-            and "crop_size" in self.model_fields_set
-            and (self.crop_size != LIFT_CROP_SIZE)
-        ):
+        given = "crop_size" in self.model_fields_set  # the default (128) is the image modes'
+        if self.mode == "lift" and given and self.crop_size != LIFT_CROP_SIZE:
             # accepted and ignored: the lift mode cuts its crops at the pipeline's crop size
             raise ValueError(
                 f"crop_size ({self.crop_size}) sets the crops of modes '3d' and 'pretrain'; mode "
@@ -163,10 +164,6 @@ class PretrainConfig(BaseModel):
                 "phase in mode '3d')"
             )
         return self
-
-
-# the lift mode's crops: the pipeline's crop size, so BlazePose sees what it sees in extraction
-LIFT_CROP_SIZE = 256
 
 
 def world_specs(p: PretrainConfig) -> list[dict]:
