@@ -28,6 +28,7 @@ from gst.data import (
 )
 from gst.data.crop import CropBox
 from tests.extract_scenes import make_scene, make_short_scene
+from tests.test_track_bad_video import _announcing_one_more
 
 SMALL_VOLUME = CaptureVolume.around((0.0, 0.0, 1.0), (2.6, 2.6, 1.2))
 
@@ -400,6 +401,22 @@ def test_clean_plate_reveals_a_person_standing_still(tmp_path_factory, tmp_path)
     assert with_plate.mask_iou >= 0.9, with_plate.mask_iou
     assert with_plate.crops == 4 * 12
     assert without.crops < with_plate.crops and (without.mask_iou or 0) < 0.5
+    # plates whose containers announce a frame more than they hold (as the camera videos may:
+    # `gst.video.held_frames`) failed as "truncated or corrupt" on the missing last frame
+    over = {}
+    for n, p in empty.videos.items():
+        avi = tmp_path / f"{n}.avi"
+        cap, frames = cv2.VideoCapture(str(p)), []
+        while (got := cap.read())[0]:
+            frames.append(got[1])
+        out = cv2.VideoWriter(str(avi), cv2.VideoWriter_fourcc(*"MJPG"), 10, frames[0].shape[1::-1])
+        for img in frames:
+            out.write(img)
+        out.release()
+        over[n] = tmp_path / f"{n}_over.avi"
+        _announcing_one_more(avi, over[n])
+    again = _extract_short(still, tmp_path / "d.h5", _opts(background_videos=over))
+    assert again.crops == 4 * 12
     with pytest.raises(VideoError, match="background video .* camera 'nope'"):
         extract_scene(
             still.videos,

@@ -34,7 +34,7 @@ from gst.data.external import (
 from gst.data.masks import MaskConfig, clean_mask
 from gst.detect.blazepose import BlazePose
 from gst.detect.persons import PersonSegmenter, SegmenterConfig
-from gst.video import VideoError, probe_video, read_frames
+from gst.video import VideoError, held_frames, probe_video, read_frames
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,7 +115,9 @@ def compute_camera_masks(job: MaskJob) -> MaskJobResult:
                     f"{plate.width}x{plate.height}, the camera's video is "
                     f"{job.full_size[0]}x{job.full_size[1]}"
                 )
-            idx = sample_indices(plate.frames, job.background.samples)
+            # the frames it holds: a container that announces one or two more (as some cameras
+            # write) failed on the missing last frame as "truncated or corrupt"
+            idx = sample_indices(held_frames(plate), job.background.samples)
             samples = np.stack(
                 [img for _, img in read_frames(job.clean_plate, idx, job.camera, size=(w, h))]
             )
