@@ -243,6 +243,44 @@ def test_replaced_external_masks_are_not_served_from_an_interrupted_run(short_sc
     assert not (replaced.work / "labels_marker.h5").exists()
 
 
+def test_external_masks_edited_in_place_are_not_served_from_an_interrupted_run(
+    short_scene, tmp_path, monkeypatch
+):
+    """An HDF5 mask file whose middle frames were fixed in place keeps its size and its first
+    and last bytes: a sampled digest (here sampling 4 KiB at each end, as 1 MiB does of a
+    large file) kept the key, and the interrupted run's labels were resumed."""
+    import gst.video
+
+    monkeypatch.setattr(gst.video, "CONTENT_SAMPLE_BYTES", 4096)
+    ext = tmp_path / "external"
+    ext.mkdir()
+    cam = next(
+        p.stem
+        for p in sorted((short_scene.truth / "masks").glob("*.npz"))
+        if np.load(p)["masks"].any()
+    )
+    masks = np.load(short_scene.truth / "masks" / f"{cam}.npz")["masks"]
+    with h5py.File(ext / f"{cam}.h5", "w") as f:
+        f.create_dataset("masks", data=masks)  # contiguous, uncompressed (h5py's default)
+
+    def plan():
+        return _prepared(scene_phase.plan_extraction(
+            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+            scale=1.2, frame_stride=1, method="median", external=ext, truth=None,
+            options=_opts(),
+        ))  # fmt: skip
+
+    first = plan()
+    (first.work / "labels_marker.h5").write_bytes(b"phase 1 of the interrupted run")
+    size = (ext / f"{cam}.h5").stat().st_size
+    with h5py.File(ext / f"{cam}.h5", "r+") as f:
+        f["masks"][4:8] = 0  # the user's fix of a few frames in the middle
+    assert (ext / f"{cam}.h5").stat().st_size == size
+    edited = plan()
+    assert edited.settings != first.settings
+    assert not (edited.work / "labels_marker.h5").exists()
+
+
 def test_a_video_or_clean_plate_replaced_under_its_name_is_not_resumed(short_scene, tmp_path):
     """The store resumed by its settings, which named no video: a video replaced by another
     take of the same name after an interrupted run resumed into the old store (12 pairs kept

@@ -179,14 +179,18 @@ class ExternalDetections:
 
     def signature(self) -> list:
         """What identifies this input for caches and resume: each mask file by name, size and
-        sampled content (`gst.video.file_identity`), the boxes' content and `global_ids`. A mask
-        file replaced after an interrupted run (same folder name) was served from the old
-        labels."""
+        its whole content (SHA-256), the boxes' content and `global_ids`. A mask file replaced
+        after an interrupted run (same folder name) was served from the old labels; so was one
+        edited in place where a sampled digest (first and last MiB) did not look (an HDF5's
+        frames in the middle: same size, same ends)."""
         import hashlib
 
-        from gst.video import file_identity
+        from gst.registry import sha256_of
 
-        files = [[cam, *file_identity(path)] for cam, path in sorted(self.mask_files.items())]
+        files = [
+            [cam, Path(path).name, Path(path).stat().st_size, sha256_of(Path(path))]
+            for cam, path in sorted(self.mask_files.items())
+        ]
         digest = hashlib.sha256()
         for cam in sorted(self.boxes):
             for frame in sorted(self.boxes[cam]):
