@@ -18,6 +18,7 @@ from gst.data import (
     AssociationConfig,
     CaptureVolume,
     CropStore,
+    ExtractError,
     ExtractOptions,
     StoreError,
     VideoError,
@@ -312,6 +313,18 @@ def test_a_video_or_clean_plate_replaced_under_its_name_is_not_resumed(short_sce
     assert second.settings != first.settings
     shutil.copy(videos[a], plates[a])  # and a new clean plate for it
     assert plan().settings != second.settings
+
+
+def test_one_camera_with_the_visual_hull_is_refused_before_anything_is_written(
+    short_scene, tmp_path
+):
+    """Phase 2 refused it after phase 1 had decoded and masked the whole video, left an
+    incomplete store, and said "only camera(s) ['cam0'] see anyone"."""
+    cam = next(n for n in sorted(short_scene.videos) if n != "away")  # one that sees someone
+    out = tmp_path / "crops.h5"
+    with pytest.raises(ExtractError, match=rf"at least two cameras; got \['{cam}'\]"):
+        extract_scene({cam: short_scene.videos[cam]}, short_scene.rig, out, options=_opts())
+    assert not out.exists() and not list(tmp_path.iterdir())
 
 
 def test_report_files(short_scene, tmp_path):

@@ -235,6 +235,14 @@ def plan_extraction(
             )
     # (not `method`, the background's: the store's setting.method held the association)
     association, why = association_method(opts, ext)
+    if association == "hull" and len(names) < 2 and not (ext is not None and ext.global_ids):
+        # checked before anything is written (phase 2 refused it after phase 1's masks, leaving
+        # an incomplete store, and its words blamed cameras that saw nobody)
+        raise ExtractError(
+            f"the visual hull ({why}) associates people across the videos of at least two "
+            f"cameras; got {names} (give more cameras' videos, or external masks with "
+            "global_ids)"
+        )
     log.info("extract: %s association (%s)", association, why)
     if association == "keypoints":
         # Person instances with landmarks on every camera (phase 1), matched by keypoints.
