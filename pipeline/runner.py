@@ -434,8 +434,15 @@ class Runner:
                 why += f" (on demand: `run {name}`; `run all` skips it)"
             return StageStatus(name, key, MISSING, why, fp)
         for rel in stage.outputs(ctx):  # declared now (e.g. track --with-gaussians' splats)
-            if rel not in record.get("outputs", {}) and not (self.workspace / rel).exists():
-                return StageStatus(name, key, MISSING, f"output {rel} is absent", fp)
+            if rel not in record.get("outputs", {}):
+                # on disk or not, the recorded run did not make it (an earlier run's splats
+                # from an older model were taken for this one's)
+                why = (
+                    "was not made by its last run"
+                    if (self.workspace / rel).exists()
+                    else ("is absent")
+                )
+                return StageStatus(name, key, MISSING, f"output {rel} {why}", fp)
         for rel, digest in record.get("outputs", {}).items():
             now = self.hashes.digest(self.workspace / rel)
             if now is None:
