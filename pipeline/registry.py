@@ -17,11 +17,17 @@ def load_stage(name: str, module: str | None = None) -> Stage:
     try:
         mod = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
-        if exc.name and module_name.startswith(exc.name):
+        # the module itself (or a package above it) is missing; a module it imports is another
+        # matter ('gait_stage' importing a helper that is not installed is not 'gait_stage'
+        # missing: the names were compared as text, so 'gait' passed for 'gait_stage')
+        if exc.name and (exc.name == module_name or module_name.startswith(exc.name + ".")):
             raise ConfigError(
                 f"stages.{name}: no implementation found (module '{module_name}' does not exist)"
             ) from None
-        raise
+        raise ConfigError(
+            f"stages.{name}: module '{module_name}' could not be imported: {exc} (is the "
+            "package it needs installed?)"
+        ) from exc
     stage = getattr(mod, attr, None)
     if not isinstance(stage, Stage):
         raise ConfigError(f"stages.{name}: module '{module_name}' defines no {attr} = Stage(...)")

@@ -473,3 +473,18 @@ def test_values_of_the_wrong_type_are_refused_not_converted(given, message, caps
     assert main(["run", "calibrate", "--dry-run", "--set", given]) == 2
     err = " ".join(capsys.readouterr().err.split())
     assert message in err and f"--set {given}" in err
+
+
+def test_a_stage_module_whose_own_import_fails_is_not_said_to_be_missing(tmp_path, monkeypatch):
+    """`gait_stage` importing a helper that is not installed was reported as "module
+    'gait_stage' does not exist" (the missing name 'gait' is a prefix of the module's)."""
+    from pipeline.registry import load_stage
+
+    (tmp_path / "gait_stage.py").write_text("import gait\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError, match="could not be imported: No module named 'gait'"):
+        load_stage("gait", "gait_stage")
+    with pytest.raises(ConfigError, match="module 'nowhere_stage' does not exist"):
+        load_stage("gait", "nowhere_stage")
+    with pytest.raises(ConfigError, match="module 'nowhere_pkg.stage' does not exist"):
+        load_stage("gait", "nowhere_pkg.stage")
