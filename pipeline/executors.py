@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import pickle
+import traceback
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -48,6 +50,27 @@ def die_with_parent(parent_pid: int) -> None:
         os._exit(1)
 
 
+class _Portable:
+    """`fn` run in a worker so that its error reaches the parent: an exception that pickles but
+    cannot be rebuilt there (a custom `__init__(self, a, b)` without `__reduce__`) broke the
+    pool, and the map blamed a killed worker, losing the message. Such an error comes back as
+    ItemFailed with its type, message and traceback in words."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+
+    def __call__(self, item):
+        try:
+            return self.fn(item)
+        except Exception as exc:
+            try:
+                pickle.loads(pickle.dumps(exc))
+            except Exception:
+                trace = "".join(traceback.format_exception(exc)).rstrip()
+                raise ItemFailed(f"{type(exc).__name__}: {exc}\n{trace}") from None
+            raise
+
+
 class LocalExecutor:
     """Runs items in a process pool (or inline for one worker or one item)."""
 
@@ -75,7 +98,7 @@ class LocalExecutor:
         futures: dict = {}
         try:
             for i, x in enumerate(items):  # inside: a Ctrl-C while submitting stops it too
-                futures[pool.submit(fn, x)] = i
+                futures[pool.submit(_Portable(fn), x)] = i
             done_iter: Iterable = as_completed(futures)
             if self._progress is not None:
                 done_iter = self._progress(done_iter, description=description, total=len(items))

@@ -212,6 +212,20 @@ def fail_first_item(item: tuple[int, str]) -> int:
     return index
 
 
+class TwoArgumentError(Exception):
+    """Pickles in a worker but cannot be rebuilt from its args (no `__reduce__`)."""
+
+    def __init__(self, path: str, why: str):
+        super().__init__(f"{path}: {why}")
+
+
+def fail_with_two_arguments(item: int) -> int:
+    """An executor item: item 1 raises an error that cannot cross back to the parent as is."""
+    if item == 1:
+        raise TwoArgumentError("cam01.mp4", "the lens model is unknown")
+    return item
+
+
 def mark_and_sleep(item: tuple[int, str]) -> int:
     """An executor item that leaves a file in the folder given with it as it starts, then takes
     four seconds (which items a stopped map still started)."""

@@ -327,6 +327,20 @@ def test_the_first_failing_item_ends_a_local_map_without_running_the_queue(tmp_p
     assert len(list(tmp_path.glob("ran_*"))) <= 2
 
 
+def test_an_error_that_cannot_be_rebuilt_in_the_parent_keeps_its_words():
+    """An exception that pickles in the worker but not back (a custom two-argument
+    `__init__`) broke the pool: "a worker process died (killed, or out of memory?)", and its
+    message was lost."""
+    from pipeline.errors import ItemFailed
+    from tests.fake_stages import fail_with_two_arguments
+
+    with pytest.raises(ItemFailed) as err:
+        LocalExecutor(workers=2).map(fail_with_two_arguments, [0, 1, 2])
+    text = str(err.value)
+    assert "TwoArgumentError: cam01.mp4: the lens model is unknown" in text
+    assert "died" not in text
+
+
 def test_ctrl_c_during_a_local_map_stops_it_without_running_the_queue(tmp_path):
     """A Ctrl-C while the map waited for results skipped the cancel: every queued item ran
     before the interrupt reached the caller (8 items of 4 s on 2 workers: 12 s)."""
