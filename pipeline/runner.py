@@ -679,7 +679,9 @@ class Runner:
 
     def _set_on_command_line(self) -> set[str]:
         """Stages a `--set` of this command gives a parameter (`S.K`, `stages.S...`,
-        `scenes.<this scene>.params.S.K` or `scenes.<this scene>.params={S: ...}`)."""
+        `scenes.<this scene>.params.S.K` or `scenes.<this scene>.params={S: ...}`), or a scene
+        setting they read (`scenes.<this scene>.fps`, `.synthetic.seed`, ...: every stage that
+        reads the scene; those were kept stale while the target took the new value)."""
         named = set()
         for key, text in self.cfg.overrides.items():
             parts = key.split(".")
@@ -689,6 +691,8 @@ class Runner:
                 else:
                     value = parse_override(text)[1]
                     named |= set(value) if isinstance(value, dict) else set()
+            elif parts[:2] == ["scenes", self.scene_name] and len(parts) > 2:
+                named |= {n for n, st in self.stages.items() if st.reads_scene}
             elif parts[0] == "stages" and len(parts) > 1:
                 named.add(parts[1])
             elif parts[0] in self.stages:

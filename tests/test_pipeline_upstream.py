@@ -41,3 +41,15 @@ def test_run_all_runs_every_stale_stage(tmp_path, counter):  # noqa: F811
     assert run(cfg, "run", "all") == 0
     assert run(cfg, "run", "all", "--set", "source.value=3") == 0
     assert counter() == ["source", "double", "report"] * 2
+
+
+def test_a_scene_setting_set_on_the_command_line_reruns_the_stages_that_read_it(
+    tmp_path,
+    counter,  # noqa: F811
+):
+    """`--set scenes.demo.fps=25` made every stage stale, yet only the target reran: the
+    upstream stages were kept with the old value ("the value typed was dropped")."""
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "report") == 0
+    assert run(cfg, "run", "report", "--set", "scenes.demo.fps=25") == 0
+    assert counter() == ["source", "double", "report"] * 2
