@@ -51,7 +51,7 @@ def run(ctx: StageContext) -> None:
     options = ExtractOptions.from_settings(
         plates, p.association, p.person_model, p.person_hints, ctx.scene.frame_size_tolerance,
         p.association_method, p.person_detect_every, p.reuse_detections, p.person_zoom,
-        p.single_view_search,
+        p.single_view_search, ctx.scene.fps,
     )  # fmt: skip
     report = extract_scene(
         videos, ctx.rig(), ctx.out("crops/crops.h5"), crop_size=p.crop_size, scale=p.scale,

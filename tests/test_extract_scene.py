@@ -550,3 +550,22 @@ def test_a_store_that_refuses_new_settings_keeps_the_interrupted_runs_work(
     assert sorted(p.name for p in work.iterdir()) == kept
     rep = _extract_short(short_scene, out)
     assert rep.pairs_resumed == 12 and rep.crops == 24
+
+
+def test_the_scene_rate_times_the_keypoint_tracker_and_keys_the_store(short_scene, tmp_path):
+    """`ExtractOptions.fps` (the scene's, where headers are not trusted) is the plan's rate
+    (the keypoint tracker's time step) and part of the store's settings; without it the
+    settings are those of earlier runs."""
+
+    def plan(**kw):
+        return scene_phase.plan_extraction(
+            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+            scale=1.2, frame_stride=1, method="median", external=None, truth=None,
+            options=_opts(**kw),
+        )  # fmt: skip
+
+    plain, given = plan(), plan(fps=60.0)
+    assert given.fps == 60.0 and plain.fps != 60.0
+    assert given.settings != plain.settings
+    with pytest.raises(ExtractError, match="fps must be > 0"):
+        _opts(fps=-1.0)

@@ -320,3 +320,22 @@ def test_extraction_takes_a_video_that_announces_a_frame_too_many(tmp_path):
 
     info = probe_video(tmp_path / "b.avi", "b", strict=True)
     assert held_frames(info) == 10 and held_frames(replace(info, fps=0.0)) == 11
+
+
+def test_a_video_is_timed_at_the_rate_given_where_its_header_is_not_trusted(tmp_path):
+    """A raw stream read at FFmpeg's 25 frames/s: the scene's `fps` (TrackOptions.fps) was
+    ignored by `track`, so time_s, the time range and the file's rate all followed the guess."""
+    _, boxes, video = crossing_clip(tmp_path, 24)  # written at 30 frames/s
+    detector = SuppliedBoxes(
+        {f: [Detection(b.astype(float), 0.9) for b in boxes[f]] for f in range(len(boxes))}
+    )
+    options = TrackOptions(prefetch=0, fps=60.0, start_s=0.1)
+    res = track_boxes(video, tmp_path / "out", detector, options=options)
+    table = pq.read_table(res.path)
+    frames = np.array(table.column("frame").to_pylist())
+    times = np.array(table.column("time_s").to_pylist())
+    assert frames.min() >= 6  # 0.1 s at 60 frames/s (at the header's 30: frame 3)
+    np.testing.assert_allclose(times, frames / 60.0)
+    assert float(table.schema.metadata[b"gst.fps"]) == 60.0
+    with pytest.raises(ValueError, match="fps must be > 0"):
+        TrackOptions(fps=0.0)

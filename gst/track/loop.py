@@ -12,9 +12,10 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +88,10 @@ class TrackOptions:
     # each person's landmark labels kept continuous in time, BlazePose's whole-body left/right
     # flips undone (gst.track.mirror; output delayed by its lag); None: the labels as detected
     unmirror: MirrorConfig | None = field(default_factory=MirrorConfig)
+    # the video's frame rate where its header is not to be trusted (a raw .h264/.mjpeg stream
+    # is read at FFmpeg's 25; the scene's `fps`): frame times, the time range and every rate
+    # follow it; None: the container's rate
+    fps: float | None = None
 
     def __post_init__(self):
         for name in ("stride", "crop_size", "batch_size", "frames_per_group", "row_group_rows"):
@@ -94,6 +99,8 @@ class TrackOptions:
                 raise ValueError(f"TrackOptions.{name} must be >= 1, got {getattr(self, name)}")
         if self.focal_35mm is not None and not self.focal_35mm > 0:
             raise ValueError(f"TrackOptions.focal_35mm must be > 0 mm, got {self.focal_35mm}")
+        if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"TrackOptions.fps must be > 0 frames/s, got {self.fps}")
 
     def settings(self) -> dict:
         """What determines the output (prefetch does not)."""
@@ -324,6 +331,8 @@ def plan_run(
         if key not in model:
             raise ValueError(f"model info must include '{key}', got keys {sorted(model)}")
     info: VideoInfo = probe_video(video_path)
+    if options.fps is not None:
+        info = replace(info, fps=float(options.fps))
     name = video_name or info.name
     focal = (
         None
@@ -472,15 +481,18 @@ def tracked_groups(
 
     # Three threads when prefetching: decoding; the person detector; crops, the network and the
     # tracker (the detector is the heaviest per frame, so the crops are cut beside the network).
+    own_rate = options.fps is not None  # the range is the run's (at that rate), not the file's
     frames = iter_frames(
         video_path,
         stride=options.stride,
-        start_s=options.start_s,
-        end_s=options.end_s,
+        start_s=None if own_rate else options.start_s,
+        end_s=None if own_rate else options.end_s,
         start_frame=start_frame,
-        end_frame=end_frame,
+        end_frame=run.end if own_rate and end_frame is None else end_frame,
         prefetch=options.prefetch,
     )
+    if own_rate:
+        frames = (Frame(f.index, f.index / run.info.fps, f.image) for f in frames)
     detected = (detect(f) for f in frames)
     if options.prefetch > 0:
         detected = background(detected, options.prefetch)

@@ -183,6 +183,9 @@ class TrackRequest:
     scene: str | None = None  # the scene whose model (models/gst.pt) tracks the videos
     # where the person model's detections are kept between runs (gst.track.detection_cache)
     detections_cache: Path | None = None
+    # the videos' frame rate where their headers are not to be trusted (the scene's `fps`, for
+    # its own camera videos); None: each container's rate
+    fps: float | None = None
 
 
 def choose_detector(s: TrackSettings) -> tuple[str, str]:
@@ -430,6 +433,7 @@ def track_scene(
         align=AlignmentConfig() if s.align_to_landmarks else None,
         unmirror=MirrorConfig() if s.unmirror else None,
         focal_35mm=s.focal_35mm,
+        fps=request.fps,
     )
     parallel_videos = jobs_at_once(s, workers, len(request.videos))
     threads = network_threads(s, kind, workers, parallel_videos)
@@ -480,7 +484,7 @@ def track_scene(
         fit = camera is None if s.fit_pose == "auto" else bool(s.fit_pose)
         person_model = None
         if kind == "blazepose":
-            rate = info.fps if info is not None else _video_rate(video)
+            rate = request.fps or (info.fps if info is not None else _video_rate(video))
             person_model = person_model_config(s, parallel_videos, rate)
             source = (
                 "track.detect_every"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -77,6 +78,9 @@ class ExtractOptions:
     # models are installed, else the hull; external masks always use the hull).
     association_method: str = "auto"
     crowd: CrowdConfig = field(default_factory=CrowdConfig)  # the keypoint association
+    # the videos' frame rate where their headers are not to be trusted (the scene's `fps`; a raw
+    # stream reads at FFmpeg's 25): the keypoint tracker's time step; None: the first video's
+    fps: float | None = None
 
     def __post_init__(self):
         if self.association_method not in ASSOCIATION_METHODS:
@@ -84,6 +88,8 @@ class ExtractOptions:
                 f"association_method must be one of {ASSOCIATION_METHODS}, "
                 f"got {self.association_method!r}"
             )
+        if self.fps is not None and not (math.isfinite(self.fps) and self.fps > 0):
+            raise ExtractError(f"fps must be > 0 frames/s, got {self.fps!r}")
         if int(self.commit_frames) < 1:
             # 0 crashed in the merge after every camera's crops; a negative value merged no
             # crop and marked the store complete
@@ -102,6 +108,7 @@ class ExtractOptions:
         reuse_detections: bool = False,
         person_zoom: float = 2 / 3,
         single_view_search: bool = True,
+        fps: float | None = None,
     ) -> ExtractOptions:
         """Options from a stage's flat settings: clean plates, association overrides, the person
         model ('none' or 'blazepose'), whether to segment around moving blobs too, the
@@ -110,7 +117,8 @@ class ExtractOptions:
         detections of people no one overlaps instead of looking at them again
         (`CrowdConfig.reuse_detections`), how much the detector zooms in when it looks
         again (`SegmenterConfig.zoom`), and whether a single-view person is looked for where
-        they would stand in the other cameras (`CrowdConfig.single_view_search`)."""
+        they would stand in the other cameras (`CrowdConfig.single_view_search`), and the
+        videos' frame rate where their headers are not trusted."""
         if person_model not in ("none", "blazepose"):
             raise ExtractError(f"person_model must be 'none' or 'blazepose', got {person_model!r}")
         return cls(
@@ -129,6 +137,7 @@ class ExtractOptions:
             crowd=CrowdConfig(
                 reuse_detections=reuse_detections, single_view_search=single_view_search
             ),
+            fps=fps,
         )
 
 

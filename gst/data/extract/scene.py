@@ -164,6 +164,8 @@ class ExtractPlan:
 
     @property
     def fps(self) -> float:
+        if self.options.fps is not None:  # the scene's, where the headers are not trusted
+            return float(self.options.fps)
         fps = self.infos[self.names[0]].fps
         return fps if fps > 0 else 30.0  # unknown rate: assume 30
 
@@ -289,6 +291,9 @@ def plan_extraction(
                 association,
                 repr(opts.crowd) if association == "keypoints" else None,
             ]
+            # the keypoint tracker's time step (given only: the stores of runs without keep
+            # their keys)
+            + ([float(opts.fps)] if opts.fps is not None else [])
         ),
         "association": association,
     }
