@@ -406,7 +406,9 @@ class _RateCheck:
             )  # fmt: skip
 
 
-def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterator[Frame]:
+def _decode(
+    info: VideoInfo, first: int, end: int | None, stride: int, rate: float | None = None
+) -> Iterator[Frame]:
     if end is not None and first >= end:
         return
     cap = _open(info.path, info.camera)
@@ -432,7 +434,7 @@ def _decode(info: VideoInfo, first: int, end: int | None, stride: int) -> Iterat
                 _check_stream_end(info, index)
                 return
             clock.check(cap, index)
-            yield Frame(index, index / info.fps, image)
+            yield Frame(index, index / (rate or info.fps), image)
             index += 1
             for _ in range(stride - 1):
                 if end is not None and index >= end:
@@ -486,17 +488,21 @@ def iter_frames(
     start_frame: int | None = None,
     end_frame: int | None = None,
     prefetch: int = 0,
+    fps: float | None = None,
 ) -> Iterator[Frame]:
     """Yield frames first, first + stride, ... within [start_s, end_s).
 
     `start_frame` (used to resume, or to start a chunk) overrides the first frame; it must lie on
     the stride grid. `end_frame` (exclusive) stops earlier than `end_s` (a chunk's end).
-    `prefetch` > 0 decodes that many frames ahead in a thread.
+    `prefetch` > 0 decodes that many frames ahead in a thread. `fps`: the rate to time the
+    frames at where the header's is not to be trusted (frame times and the [start_s, end_s)
+    range follow it; seeking still uses the container's own timestamps).
     """
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     info = probe_video(path)
-    first, end = frame_range(info, start_s, end_s)
+    timing = info if fps is None else replace(info, fps=float(fps))
+    first, end = frame_range(timing, start_s, end_s)
     if start_frame is not None:
         if start_frame < first or (start_frame - first) % stride:
             raise ValueError(
@@ -505,5 +511,5 @@ def iter_frames(
         first = start_frame
     if end_frame is not None:
         end = end_frame if end is None else min(end, end_frame)
-    frames = _decode(info, first, end, stride)
+    frames = _decode(info, first, end, stride, rate=timing.fps)
     return background(frames, prefetch, name="video-decode") if prefetch > 0 else frames

@@ -349,3 +349,43 @@ def test_two_videos_under_one_name_are_refused(clip, tmp_path):
     with pytest.raises(ValueError, match=r"share an output name.*'clip'.*card2"):
         track_videos([job(video, csv), job(other, csv)], tmp_path / "tracks")
     assert not (tmp_path / "tracks").exists()
+
+
+def test_chunked_rows_equal_unchunked_at_a_given_rate_within_a_time_range(clip, tmp_path):
+    """With the scene's rate (TrackOptions.fps) the last chunk's look-ahead read past `end_s`
+    (its cap came from the time range at the file's rate, then dropped), and `start_s` with
+    stride 2 failed on the grid ("start_frame 13 is not on the grid 0 + k * 2")."""
+    video, csv = clip
+    asked: list[int] = []
+
+    class Recording:
+        def __init__(self):
+            self.inner = SuppliedBoxes.from_file(csv, video.stem)
+
+        def detect(self, image, index):
+            asked.append(index)
+            return self.inner.detect(image, index)
+
+    options = TrackOptions(frames_per_group=5, batch_size=4, fps=25.0, start_s=0.5, end_s=1.9)
+    for stride in (1, 2):
+        opts = replace(options, stride=stride)
+        plain = track_videos(
+            [job(video, csv, options=opts, detector=Recording)], tmp_path / f"plain{stride}"
+        )[0]
+        chunked = track_videos(
+            [job(video, csv, options=opts, detector=Recording)],
+            tmp_path / f"chunked{stride}",
+            chunking=ChunkingConfig(chunk_frames=12, overlap=4),
+        )[0]
+        assert chunked.chunks > 1
+        rows = _rows(plain.result.path)
+        assert _rows(chunked.result.path).equals(rows)
+        frames = np.array(rows.column("frame").to_pylist())
+        # [0.5 s, 1.9 s) at 25 frames/s: frames 13 .. 47 (at the file's 30: 15 .. 56)
+        assert frames.min() == 13 and frames.max() <= 47
+        assert min(asked) == 13 and max(asked) <= 47  # nothing read outside the range
+        np.testing.assert_allclose(rows.column("time_s").to_pylist(), frames / 25.0)
+        a = json.loads(pq.read_schema(plain.result.path).metadata[b"gst.stats"])
+        b = json.loads(pq.read_schema(chunked.result.path).metadata[b"gst.stats"])
+        assert a == b
+        asked.clear()

@@ -481,18 +481,16 @@ def tracked_groups(
 
     # Three threads when prefetching: decoding; the person detector; crops, the network and the
     # tracker (the detector is the heaviest per frame, so the crops are cut beside the network).
-    own_rate = options.fps is not None  # the range is the run's (at that rate), not the file's
     frames = iter_frames(
         video_path,
         stride=options.stride,
-        start_s=None if own_rate else options.start_s,
-        end_s=None if own_rate else options.end_s,
+        start_s=options.start_s,
+        end_s=options.end_s,
         start_frame=start_frame,
-        end_frame=run.end if own_rate and end_frame is None else end_frame,
+        end_frame=end_frame,
         prefetch=options.prefetch,
+        fps=options.fps,
     )
-    if own_rate:
-        frames = (Frame(f.index, f.index / run.info.fps, f.image) for f in frames)
     detected = (detect(f) for f in frames)
     if options.prefetch > 0:
         detected = background(detected, options.prefetch)
