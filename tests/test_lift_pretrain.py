@@ -210,3 +210,27 @@ def test_the_train_summary_says_which_frames_its_mpjpe_is_on(tmp_path):
     _write_markdown(tmp_path / "s.md", fit, 36, SimpleNamespace(mpjpe_mm=105.1))
     md = (tmp_path / "s.md").read_text()
     assert "| mpjpe_mm, held-out frames (36-) | | 105.1 |" in md and "on training frames" in md
+
+
+def test_the_pretrain_threads_setting_holds_in_the_lifting_loop(tmp_path, monkeypatch):
+    """`pretrain.threads` was set before the lift phase, which then ran on the cores less one
+    whatever was set (on 16 cores with threads: 1, the loop took 15)."""
+    import gst.lift.pretrain as lift_pretrain
+    import gst.lift.recipe as recipe
+    from gst.train.pretrain import PretrainConfig
+
+    monkeypatch.setattr(lift_pretrain, "available_cores", lambda: 16)
+    monkeypatch.setattr(recipe, "render_corpus", lambda *a, **k: [])
+    seen = []
+
+    def stop(net, body, cfg, sampler, validation, log):
+        seen.append(torch.get_num_threads())
+        raise KeyboardInterrupt  # enough: the loop's threads are known
+
+    monkeypatch.setattr(lift_pretrain, "_pretrain", stop)
+    before = torch.get_num_threads()
+    p = PretrainConfig(mode="lift", threads=1, lift_steps=2)
+    with pytest.raises(KeyboardInterrupt):
+        recipe.pretrain(p, tmp_path, tmp_path / "p.pt", tmp_path / "r")
+    torch.set_num_threads(before)
+    assert seen == [1]

@@ -95,15 +95,23 @@ def lift_network(
 
 
 def lift_phase(
-    net: GSTNetwork, body: BodyModel, steps: int, batch_size: int, lr: float, seed: int = 0
+    net: GSTNetwork,
+    body: BodyModel,
+    steps: int,
+    batch_size: int,
+    lr: float,
+    seed: int = 0,
+    threads: int | None = None,
 ) -> LiftPretrainResult:
-    """The render-free lifting phase (training throughput in the result: samples per second)."""
+    """The render-free lifting phase (training throughput in the result: samples per second) on
+    `threads` torch threads (None: the cores the background sampler leaves)."""
     cfg = LiftPretrainConfig(
         steps=steps,
         batch_size=batch_size,
         lr=lr,
         seed=seed,
         warmup_steps=min(100, max(1, steps // 10)),
+        threads=threads,
     )
     res = pretrain_landmark_path(net, body, cfg, log=log.info)
     log.info(
@@ -260,7 +268,8 @@ def _pretrain_lift(
     )
     with ThreadPoolExecutor(1, thread_name_prefix="pretrain-render") as pool:
         rendering = pool.submit(render_corpus, p, work, map_fn, None)
-        lift = lift_phase(net, body, p.lift_steps, p.lift_batch_size, p.lift_lr)
+        # pretrain.threads holds here too (the loop took the cores less one whatever was set)
+        lift = lift_phase(net, body, p.lift_steps, p.lift_batch_size, p.lift_lr, threads=p.threads)
         t_lift = time.perf_counter() - t0
         dirs = rendering.result()
     t_render = time.perf_counter() - t0

@@ -116,7 +116,9 @@ class PretrainConfig(BaseModel):
     # to render bodies whose pose is right. Without it the multi-view stage starts from an untrained
     # head and the demo's held-out renders come out as faint dots (docs/training.md).
     gaussian_steps: NonNegativeInt = 800
-    gaussian_lr: PositiveFloat = 2e-4  # the Gaussian head's rate in that phase
+    # that phase's rate, of the whole network (mode "pretrain" trains every weight; its 3D
+    # terms hold the pose while the Gaussian head, starting untrained, learns the most)
+    gaussian_lr: PositiveFloat = 2e-4
     # lift mode: the rendered phase renders the Gaussians posed on each crop's true body (the
     # worlds' exact truth) instead of on the network's pose (gst.train.teacher_render), so that
     # the pose error does not teach them to shrink and fade (docs/training.md "Appearance on
@@ -405,9 +407,8 @@ def pretrain_images(
             ),
             after_from="last",
         )
-        kept = (
-            gauss_out / "last.pt"
-        )  # the pose barely moves here; the head keeps learning to the end
+        # the 3D terms keep the pose; the head keeps learning to the end
+        kept = gauss_out / "last.pt"
         shutil.copyfile(gauss_out / "log.csv", reports / "log_gaussians.csv")
     keep_model(kept, checkpoint)
     summary = ImagePretrainSummary(first, corpus_summary(specs, crops, val), gaussians)
