@@ -61,11 +61,55 @@ def test_chunked_rows_equal_unchunked(clip, tmp_path, chunk_frames, overlap):
 
 
 def test_plan_chunks_cover_the_range_on_the_group_grid():
-    opts = TrackOptions(stride=2, frames_per_group=4)
+    opts = TrackOptions(stride=2, frames_per_group=4, tracker=TrackerConfig(max_misses=2))
     plans = plan_chunks(3, 70, opts, ChunkingConfig(chunk_frames=6, overlap=3))
     assert [p.keep_from for p in plans] == [3, 19, 35, 51, 67]  # 8 processed frames x stride 2
     assert plans[0].start == 3 and all(p.start == p.keep_from - 6 for p in plans[1:])
     assert [p.end for p in plans] == [19, 35, 51, 67, 70]
+    # the warm-up is at least the tracker's max_misses + 1 processed frames
+    longer = plan_chunks(
+        3, 70, replace(opts, tracker=TrackerConfig(max_misses=5)), ChunkingConfig(6, 3)
+    )
+    assert all(p.start == p.keep_from - 12 for p in longer[1:])
+
+
+def test_a_person_hidden_up_to_a_border_for_max_misses_frames_keeps_their_id(tmp_path):
+    """Hidden for exactly `max_misses` frames up to the border, a person keeps their track in
+    an unchunked run; a warm-up of `overlap == max_misses` frames (the stage's defaults, 30
+    and 30) held no sighting of them, and they came back under a new id."""
+    import functools
+
+    from gst.track import BoxDepthPredictor, Detection
+    from gst.track.batch import VideoJob
+    from tests.track_synthetic import MODEL, crossing_clip
+
+    _, boxes, video = crossing_clip(tmp_path, 30)
+    misses = 3
+    last_seen = 10 - misses - 1  # the border at frame 10
+    dets = {
+        i: [Detection(boxes[i][2], 0.9)]
+        + ([Detection(boxes[i][0], 0.9)] if (i <= last_seen or i >= 10) else [])
+        for i in range(30)
+    }
+    opts = TrackOptions(
+        prefetch=0,
+        frames_per_group=2,
+        tracker=TrackerConfig(min_hits=1, max_misses=misses),
+        unmirror=None,
+    )
+    ids = {}
+    for name, chunking in (("whole", None), ("chunked", ChunkingConfig(10, misses))):
+        job_ = VideoJob(
+            video, functools.partial(SuppliedBoxes, dets), BoxDepthPredictor, MODEL, options=opts
+        )
+        table = _rows(track_videos([job_], tmp_path / name, chunking=chunking)[0].result.path)
+        frames = table.column("frame").to_pylist()
+        x0 = [b[0] for b in table.column("bbox").to_pylist()]
+        people = table.column("person_id").to_pylist()
+        ids[name] = sorted(
+            {p for f, x, p in zip(frames, x0, people, strict=True) if abs(x - boxes[f][0][0]) < 1}
+        )
+    assert ids["whole"] == ids["chunked"] and len(ids["whole"]) == 1
 
 
 def _table(frames, ids, boxes):
@@ -389,3 +433,38 @@ def test_chunked_rows_equal_unchunked_at_a_given_rate_within_a_time_range(clip, 
         b = json.loads(pq.read_schema(chunked.result.path).metadata[b"gst.stats"])
         assert a == b
         asked.clear()
+
+
+def test_a_person_confirmed_after_a_border_is_not_also_counted_as_dropped(tmp_path):
+    """Someone who appears one frame before a chunk border waits for min_hits there: the chunk
+    counted them as dropped, and the next chunk gave their early rows back to it, so the file's
+    stats had `rows + dropped` one above `detections` (an unchunked run's stats differ)."""
+    import functools
+
+    from gst.track import BoxDepthPredictor, Detection
+    from gst.track.batch import VideoJob
+    from tests.track_synthetic import MODEL, crossing_clip
+
+    _, boxes, video = crossing_clip(tmp_path, 20)
+    dets = {
+        i: [Detection(boxes[i][0], 0.9)] + ([Detection(boxes[i][2], 0.9)] if i >= 9 else [])
+        for i in range(20)
+    }
+    opts = TrackOptions(
+        prefetch=0, frames_per_group=5, tracker=TrackerConfig(min_hits=3), unmirror=None
+    )
+    found = {}
+    for name, chunking in (("whole", None), ("chunked", ChunkingConfig(10, 4))):
+        job_ = VideoJob(
+            video, functools.partial(SuppliedBoxes, dets), BoxDepthPredictor, MODEL, options=opts
+        )
+        out = track_videos([job_], tmp_path / name, chunking=chunking)[0]
+        found[name] = (
+            _rows(out.result.path),
+            json.loads(pq.read_schema(out.result.path).metadata[b"gst.stats"]),
+        )
+    (rows, stats), (chunk_rows, chunk_stats) = found["whole"], found["chunked"]
+    assert chunk_rows.equals(rows)
+    assert chunk_stats == stats
+    dropped = sum(stats[k] for k in ("dropped_low_score", "dropped_parts", "dropped_nonfinite"))
+    assert stats["detections"] == len(rows) + dropped

@@ -54,7 +54,7 @@ CHUNK_META_KEY = b"gst.chunk"
 @dataclass(frozen=True)
 class ChunkingConfig:
     """Split videos longer than `chunk_frames` processed frames; `overlap` frames are tracked
-    twice."""
+    twice (at least the tracker's `max_misses` + 1: `warm_up`)."""
 
     chunk_frames: int = 3000
     overlap: int = 30
@@ -75,8 +75,16 @@ class ChunkingConfig:
         return {
             "chunk_frames": self.effective_size(options),
             "overlap": self.overlap,
+            "warm_up": self.warm_up(options),
             "min_agreement": self.min_agreement,
         }
+
+    def warm_up(self, options: TrackOptions) -> int:
+        """Processed frames a chunk tracks before its own: `overlap`, and at least the tracker's
+        `max_misses` + 1. A person hidden for exactly `max_misses` frames up to the border keeps
+        their track in an unchunked run; a warm-up of `max_misses` frames (the stage's defaults:
+        30 and 30) held no sighting of them, and they came back under a new id."""
+        return max(self.overlap, options.tracker.max_misses + 1)
 
     def effective_size(self, options: TrackOptions) -> int:
         """Chunk size in processed frames, rounded up to whole groups (keeps batches exact)."""
@@ -98,7 +106,7 @@ def plan_chunks(
     span = chunking.effective_size(options) * options.stride
     plans = []
     for i, keep_from in enumerate(range(first, end, span)):
-        start = max(first, keep_from - chunking.overlap * options.stride)
+        start = max(first, keep_from - chunking.warm_up(options) * options.stride)
         plans.append(ChunkPlan(i, start, keep_from, min(end, keep_from + span)))
     return plans
 
@@ -199,13 +207,15 @@ def track_chunk(
             kept = {k: session.stats[k] for k in STAT_KEYS}
         last = g.next_frame
     kept = kept or {k: session.stats[k] for k in STAT_KEYS}
+    pending = 0
     if tables and last == grid_end:  # the video's end: detections still waiting for min_hits
-        kept["dropped_low_score"] += len(session.pending)  # are counted, as track_video does
+        pending = len(session.pending)  # are counted, as track_video does (the next chunk, if
+        kept["dropped_low_score"] += pending  # any, may confirm them: `stitch_chunks`)
     table = pa.concat_tables(tables) if tables else schema.empty_table()
     record = ChunkRecord(
         chunk_digest(run, plan),
         plan.keep_from,
-        {k: int(kept[k] - warm[k]) for k in STAT_KEYS},
+        {**{k: int(kept[k] - warm[k]) for k in STAT_KEYS}, PENDING_AT_END: pending},
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_path) as tmp:
@@ -217,6 +227,10 @@ def track_chunk(
         )
     return record
 
+
+# a chunk record's count of the detections still waiting for min_hits at its end (in its
+# dropped_low_score; not a stat of the file)
+PENDING_AT_END = "pending_at_end"
 
 SAME_DETECTION_IOU = 0.5  # boxes of one frame in two chunks overlapping this much: one person
 
@@ -285,7 +299,7 @@ def stitch_chunks(
     order."""
     next_id = 0
     previous: pa.Table | None = None
-    previous_keep_from = 0
+    previous_keep_from = previous_pending = 0
     out, inherited = [], []
     stats = {k: 0 for k in STAT_KEYS}
     for table, record in chunks:
@@ -304,6 +318,8 @@ def stitch_chunks(
             # a person who came into view just before the border was not yet confirmed there
             # (min_hits): their first rows are this chunk's warm-up rows, and belong before it
             early = _unclaimed_rows(previous, previous_keep_from, warm, new_ids)
+            # counted as dropped by the chunk before (waiting for min_hits at its end), rows now
+            stats["dropped_low_score"] -= min(len(early), previous_pending)
             if len(early):
                 early_ids = np.array([mapping[i] for i in early.column("person_id").to_numpy()])
                 out[-1] = _sorted_rows(pa.concat_tables([out[-1], _with_ids(early, early_ids)]))
@@ -312,6 +328,7 @@ def stitch_chunks(
         out.append(kept)
         inherited.append(carried)
         previous, previous_keep_from = kept, record.keep_from
+        previous_pending = record.stats.get(PENDING_AT_END, 0)
         for k in STAT_KEYS:
             stats[k] += record.stats.get(k, 0)
     stats["persons"] = next_id
