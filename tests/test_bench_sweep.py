@@ -162,3 +162,16 @@ def test_a_diverged_variant_is_a_row_of_na(tmp_path, monkeypatch):
     assert any("MPJPE n/a mm" in line for line in lines)
     write_bench_table(tmp_path, rows, "# test")
     assert f"| n/a | n/a | {rows[0].not_finite} |" in (tmp_path / "table.md").read_text()
+
+
+def test_landmark_options_without_landmarks_are_refused():
+    """`landmark_refine: 2` or `landmark_point_tokens: true` without `landmarks` built the base
+    network again: a row trained, timed and plotted as if it differed."""
+    from pydantic import ValidationError
+
+    from gst.eval.bench_scene import BenchSettings
+
+    for extra in ({"landmark_refine": 2}, {"landmark_point_tokens": True}):
+        with pytest.raises(ValidationError, match="need landmarks"):
+            BenchSettings(variants=[{"name": "x", **extra}])
+    BenchSettings(variants=[{"name": "x", "landmarks": 33, "landmark_refine": 2}])

@@ -16,7 +16,15 @@ from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, NonNegativeInt, PositiveFloat, PositiveInt
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    model_validator,
+)
 
 from gst.body import load_body_model
 from gst.eval.bench import Variant, run_bench, write_bench_table, write_pareto_plot
@@ -42,6 +50,17 @@ class VariantParams(BaseModel):
     landmark_point_tokens: bool = False  # a token per landmark besides the lift tokens
     # rounds of reprojection feedback after the SMPL head (gst.model.refine; needs landmarks)
     landmark_refine: NonNegativeInt = 0
+
+    @model_validator(mode="after")
+    def _landmark_options_need_landmarks(self):
+        # without landmarks the network has neither: the row was the base network again,
+        # trained, timed and plotted as if it differed
+        if not self.landmarks and (self.landmark_refine or self.landmark_point_tokens):
+            raise ValueError(
+                f"variant {self.name!r}: landmark_refine and landmark_point_tokens need "
+                "landmarks (12 or 33)"
+            )
+        return self
 
 
 _DEFAULT_VARIANTS = [
