@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
 from calibration.formats import read_rig  # noqa: E402
+from gst.atomic import atomic_write_text  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.eval.evaluate import EvalConfig, evaluate_model  # noqa: E402
 from gst.eval.split import FinetuneConfig, finetune, frame_split  # noqa: E402
@@ -84,6 +85,13 @@ ROWS = [
 ]
 
 
+def _teaches_appearance(settings: TrainSettings, weights: LossWeights) -> bool:
+    """Whether the train stage, with these loss weights, poses the Gaussians on the rig
+    teacher's body (`appearance_on_teacher` with distillation on)."""
+    distils = any(getattr(weights, k) > 0 for k in OFF if k.startswith("distill"))
+    return settings.distill and settings.appearance_on_teacher and distils
+
+
 def _f(v, d=1) -> str:
     return "n/a" if v is None else f"{v:.{d}f}"
 
@@ -109,6 +117,9 @@ def main() -> None:
         help="markdown output (default: <workspace>/reports/paper_tables.md)",
     )
     args = ap.parse_args()
+    unknown = sorted(set(args.rows or ()) - {row[1] for row in ROWS})
+    if unknown:  # (a mistyped name ran nothing, after the costly preparation, then crashed)
+        ap.error(f"--rows: no such row(s) {unknown}; rows: {[row[1] for row in ROWS]}")
     if args.threads:
         torch.set_num_threads(args.threads)
     ws = args.workspace
@@ -167,6 +178,8 @@ def main() -> None:
                 body_lr=args.body_lr if multiview else None,
                 weights=weights,
                 landmark_dropout=settings.landmark_dropout if multiview else 0.0,
+                # as the train stage: the Gaussians on the rig's body where it distils
+                appearance_on_teacher=multiview and _teaches_appearance(settings, weights),
             )
             rehearsal = (
                 PriorRehearsal(
@@ -224,7 +237,7 @@ def main() -> None:
     print(text)
     out = args.out or ws / "reports" / "paper_tables.md"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("# GST paper tables on the synthetic demo scene\n\n" + text)
+    atomic_write_text(out, "# GST paper tables on the synthetic demo scene\n\n" + text)
 
 
 if __name__ == "__main__":

@@ -175,3 +175,38 @@ def test_landmark_options_without_landmarks_are_refused():
         with pytest.raises(ValidationError, match="need landmarks"):
             BenchSettings(variants=[{"name": "x", **extra}])
     BenchSettings(variants=[{"name": "x", "landmarks": 33, "landmark_refine": 2}])
+
+
+def test_paper_table_rows_that_distil_pose_the_gaussians_as_the_train_stage_does(monkeypatch):
+    """The "(default)" rows of the paper tables trained with the Gaussians on the network's pose
+    while the train stage's default poses them on the rig teacher's body (held-out IoU about
+    0.38 against 0.49 in docs/training.md): `FinetuneConfig.appearance_on_teacher` reaches the
+    task, and the benchmark sets it where the train stage would."""
+    import importlib
+    import sys
+    from pathlib import Path
+
+    import gst.eval.split as split_module
+    from gst.model.presets import get_preset
+    from gst.train.scene_training import TrainSettings
+
+    seen = []
+    monkeypatch.setattr(split_module, "fit_gst", lambda net, task, *a, **k: seen.append(task))
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    crops = crop_set(n_frames=4, n_cams=3)
+    split = frame_split(crops, ("c2",), test_fraction=0.25)
+    net = type("Net", (), {"cfg": get_preset("tiny"), "eval": lambda self: self})()
+    for flag in (True, False):
+        cfg = FinetuneConfig(mode="multiview", steps=1, appearance_on_teacher=flag)
+        split_module.finetune(net, body, [0, 1], [0], crops, split, cfg, body_spec="random")
+        assert seen[-1].appearance_on_teacher is flag
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    tables = importlib.import_module("bench_paper_tables")
+    rows = {name: weights for _, name, _, weights, _ in tables.ROWS}
+    default = TrainSettings()
+    assert tables._teaches_appearance(default, rows["the same + prior rehearsal (default)"])
+    assert not tables._teaches_appearance(default, rows["GST multi-view (paper objective)"])
+    assert not tables._teaches_appearance(default, rows["GST + anchors + detected joints"])
+    monkeypatch.setattr(sys, "argv", ["bench_paper_tables.py", "--rows", "pretrained-only"])
+    with pytest.raises(SystemExit):  # refused before anything is loaded
+        tables.main()

@@ -97,6 +97,9 @@ class FinetuneConfig:
     weights: LossWeights = field(default_factory=LossWeights)
     body_lr: float | None = None  # backbone + SMPL head rate (None: `lr` for everything)
     landmark_dropout: float = 0.0  # multi-view samples trained without their landmarks
+    # the Gaussians posed on the rig teacher's body, not the network's (the train stage's
+    # default with distillation: TrainSettings.appearance_on_teacher)
+    appearance_on_teacher: bool = False
 
 
 def finetune(
@@ -124,6 +127,7 @@ def finetune(
         crops.crop_size,
         cfg.weights,
         lpips if cfg.weights.lpips > 0 else None,
+        appearance_on_teacher=cfg.appearance_on_teacher,
     )
     tc = TrainConfig(
         steps=cfg.steps,
