@@ -105,7 +105,9 @@ class PersonModelConfig:
     # behind another with their head hidden is found only where they were (docs/
     # track_evaluation.md, "Lost behind someone")
     lost_retry: int = 10
-    lost_grow: int = 9  # ... with everyone kept painted out, their masks grown by these pixels
+    # ... with everyone kept painted out, their masks dilated by a square of these pixels (grown
+    # by half of it on each side: 9 grows them by 4 px)
+    lost_grow: int = 9
     # ... and kept where at most this share of their limb landmarks lies on the painted people:
     # one who stands behind another is seen beside them (a grey silhouette is person-shaped;
     # the lab's people found beside another: 8-33 %, silhouettes read as a person: 42-100 %)
