@@ -215,6 +215,14 @@ def test_external_masks_take_precedence(short_scene, tmp_path):
     assert set(CropStore(tmp_path / "crops.h5").index.column("person_id").to_pylist()) == {1}
 
 
+def _planned_with_external(scene, tmp_path, ext):
+    """The short scene's extraction planned (work folder ready) with external masks `ext`."""
+    return _prepared(scene_phase.plan_extraction(
+        scene.videos, scene.rig, tmp_path / "crops.h5", crop_size=64, scale=1.2,
+        frame_stride=1, method="median", external=ext, truth=None, options=_opts(),
+    ))  # fmt: skip
+
+
 def test_replaced_external_masks_are_not_served_from_an_interrupted_run(short_scene, tmp_path):
     """The work folder (phase 1's labels) and the store's settings name the external files by
     content: masks replaced after an interrupted run are read again, not taken from the old
@@ -223,11 +231,7 @@ def test_replaced_external_masks_are_not_served_from_an_interrupted_run(short_sc
     shutil.copytree(short_scene.truth / "masks", ext)
 
     def plan():
-        return _prepared(scene_phase.plan_extraction(
-            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
-            scale=1.2, frame_stride=1, method="median", external=ext, truth=None,
-            options=_opts(),
-        ))  # fmt: skip
+        return _planned_with_external(short_scene, tmp_path, ext)
 
     first = plan()
     (first.work / "labels_marker.h5").write_bytes(b"phase 1 of the interrupted run")
@@ -265,11 +269,7 @@ def test_external_masks_edited_in_place_are_not_served_from_an_interrupted_run(
         f.create_dataset("masks", data=masks)  # contiguous, uncompressed (h5py's default)
 
     def plan():
-        return _prepared(scene_phase.plan_extraction(
-            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
-            scale=1.2, frame_stride=1, method="median", external=ext, truth=None,
-            options=_opts(),
-        ))  # fmt: skip
+        return _planned_with_external(short_scene, tmp_path, ext)
 
     first = plan()
     (first.work / "labels_marker.h5").write_bytes(b"phase 1 of the interrupted run")
