@@ -164,3 +164,14 @@ def test_log_rows_give_the_rate_their_step_used(tmp_path):
     trainer.fit()
     logged = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "log.csv"))]
     assert logged == pytest.approx(used) and len(used) == 6
+
+
+def test_resuming_another_networks_last_checkpoint_names_the_file(tmp_path):
+    """A library caller resuming a folder whose last.pt is another network's got torch's bare
+    "size mismatch" RuntimeError; now a ValueError that names the file and the way out."""
+    cfg = TrainConfig(steps=2, batch_size=4, lr=1e-2, warmup_steps=1, ckpt_every=1, log_every=1)
+    model, step, sample = make_problem()
+    Trainer(model, step, sample, cfg, tmp_path).fit()
+    wider = nn.Sequential(nn.Linear(4, 16), nn.Tanh(), nn.Linear(16, 1))
+    with pytest.raises(ValueError, match=r"last\.pt: a checkpoint of another network.*delete it"):
+        Trainer(wider, step, sample, cfg, tmp_path).resume()

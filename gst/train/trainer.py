@@ -260,7 +260,13 @@ class Trainer:
             ckpt = sent[0]
         if ckpt is None:
             return False
-        self.model.load_state_dict(ckpt["model"])
+        try:  # another network's last.pt: the file named, not torch's bare size mismatch
+            self.model.load_state_dict(ckpt["model"])
+        except RuntimeError as exc:
+            raise ValueError(
+                f"{path}: a checkpoint of another network, which this run cannot resume (delete "
+                f"it to start afresh, or train into another folder): {exc}"
+            ) from exc
         st = ckpt["trainer"]
         changed = _changed_settings(st.get("train_config"), asdict(self.cfg))
         if changed:  # the pipeline starts a changed run afresh; a library caller may not mean to
