@@ -337,5 +337,13 @@ def test_a_video_is_timed_at_the_rate_given_where_its_header_is_not_trusted(tmp_
     assert frames.min() >= 6  # 0.1 s at 60 frames/s (at the header's 30: frame 3)
     np.testing.assert_allclose(times, frames / 60.0)
     assert float(table.schema.metadata[b"gst.fps"]) == 60.0
+    # the overlay shows the tracked frames (it read the range back at the file's rate: other
+    # frames, and no row drawn on any)
+    from gst.track.report import write_overlay
+
+    out = write_overlay(video, res.path, tmp_path / "overlay.avi", fourcc="MJPG")
+    assert probe_video(out).frame_count == 24 - 6  # frames 6 .. 23 (at 30: 3 .. 23)
     with pytest.raises(ValueError, match="fps must be > 0"):
         TrackOptions(fps=0.0)
+    # not given, it is not in the run's settings: files tracked before it existed still resume
+    assert "fps" not in TrackOptions().settings() and options.settings()["fps"] == 60.0

@@ -106,6 +106,8 @@ class TrackOptions:
         """What determines the output (prefetch does not)."""
         d = asdict(self)
         d.pop("prefetch")
+        if d["fps"] is None:  # not given: the keys of the files tracked before it existed hold
+            d.pop("fps")
         return d
 
 

@@ -162,6 +162,7 @@ def write_overlay(
                 stride=stride,
                 start_s=v["first_frame"] / v["fps"],
                 end_s=None if end is None else end / v["fps"],
+                fps=float(v["fps"]),  # the rate the frames were tracked at (the scene's, if given)
             ):
                 rows = table.filter(pa.array(frames_col == f.index))
                 writer.write(draw_key(draw_people(f.image, rows), has_landmarks))
