@@ -283,6 +283,26 @@ def test_every_visible_person_gets_their_own_crop_with_their_silhouette(scene):
     _check_crops(store, cap, truth)
 
 
+def test_clean_plates_that_announce_a_frame_more_than_they_hold_cut_the_same_crops(scene):
+    """The extraction reads such files to the frames they hold; the recut sampled the announced
+    count and failed on the missing last frame as "truncated or corrupt"."""
+    from tests.test_track_bad_video import _announcing_one_more
+
+    tmp, cap, truth, videos, plates = scene
+    over = {}
+    for name, path in plates.items():
+        over[name] = tmp / "over" / f"{name}.avi"
+        over[name].parent.mkdir(exist_ok=True)
+        _announcing_one_more(path, over[name])
+    plain, out = tmp / "plain_plates" / "crops.h5", tmp / "over_plates" / "crops.h5"
+    recut_crops(tmp / "crops.h5", cap.rig, videos, tmp / "bodies.parquet", plain, plates=plates)
+    recut_crops(tmp / "crops.h5", cap.rig, videos, tmp / "bodies.parquet", out, plates=over)
+    a, b = CropStore(plain), CropStore(out)
+    assert len(a) == len(b) > 0
+    rows = np.arange(len(a))
+    assert np.array_equal(a.read_masks(rows), b.read_masks(rows))
+
+
 def test_a_calibration_with_encoder_padding_cuts_the_same_crops(scene):
     """The calibration says 16 rows more than the videos decode to (as 1088 for 1080): the
     cameras are fitted to the frames as the extraction fits them, so the crops are the ones the

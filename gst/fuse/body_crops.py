@@ -48,7 +48,7 @@ from gst.data.store import CropBatch, CropStore, CropStoreWriter, index_path_for
 from gst.fuse.body_labels import CameraRays, body_labels
 from gst.fuse.tables import FusedBodies, read_fused_bodies
 from gst.track.writer import settings_digest
-from gst.video import probe_video, read_frames, scaled_size
+from gst.video import held_frames, probe_video, read_frames, scaled_size
 from synth.render import RayCaster
 from synth.truth import truth_mask_file
 
@@ -141,7 +141,9 @@ class _CameraSource:
         self.size = scaled_size(camera.width, camera.height, s)
         self.rays = CameraRays(framed(fitted), self.size)
         clip = plate if plate is not None else video
-        n = info.frames if plate is None else probe_video(plate, camera.name, strict=True).frames
+        # the frames the clip holds (a container that announces one or two more failed here as
+        # "truncated or corrupt", after the extraction had read it: gst.video.held_frames)
+        n = held_frames(info if plate is None else probe_video(plate, camera.name, strict=True))
         idx = sample_indices(n, options.background.samples)
         samples = np.stack([img for _, img in read_frames(clip, idx, camera.name, size=self.size)])
         self.background = build_background(samples, options.background)
