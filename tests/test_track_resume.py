@@ -246,6 +246,18 @@ def test_a_supplied_box_files_content_is_part_of_the_runs_settings(tmp_path):
     boxes.write_text("video,frame,x0,y0,x1,y1\nclip,0,20,20,70,100\n")  # the same size
     after = _detector_info("boxes", f"boxes supplied in {boxes}", None, boxes)
     assert before != after and before["why"] == after["why"]
+    # a long file fixed in its middle keeps its size and ends (a sampled digest's view of it)
+    import gst.video
+
+    head = "video,frame,x0,y0,x1,y1\n"
+    rows = [f"clip,{i},10,20,60,100\n" for i in range(3000)]
+    boxes.write_text(head + "".join(rows))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(gst.video, "CONTENT_SAMPLE_BYTES", 4096)
+        before = _detector_info("boxes", "supplied", None, boxes)
+        rows[1500] = "clip,1500,30,20,80,100\n"  # moved 20 px, the same length
+        boxes.write_text(head + "".join(rows))
+        assert _detector_info("boxes", "supplied", None, boxes) != before
 
 
 def test_a_copy_across_file_systems_never_leaves_a_file_inside_the_dataset(tmp_path, monkeypatch):
