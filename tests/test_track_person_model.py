@@ -274,28 +274,3 @@ def test_grey_frames_find_the_people_colour_frames_do(frames):
     for i, f in enumerate(frames[:3]):
         g = cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)
         assert len(grey.detect(g, i)) == len(colour.detect(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), i))
-
-
-def test_a_person_lost_by_their_tracked_region_is_found_again_by_the_detector(frames):
-    """A tracked region that lost its person (turned a quarter the wrong way: presence 0.36 on
-    the lab) sent the detector, whose region of that person was dropped as "the same region"
-    as the failed one: the person was missing from the frame though the detector found them."""
-    import math
-    from dataclasses import replace
-
-    from gst.detect.blazepose import BlazePose
-    from gst.detect.persons import PersonSegmenter, SegmenterConfig
-
-    small = cv2.resize(frames[0], (544, 960), interpolation=cv2.INTER_AREA)
-    model = BlazePose()
-    seg = PersonSegmenter(model, SegmenterConfig())
-    _, people = seg.segment(small)
-    assert len(people) == 2
-    good = list(seg._tracked)
-    turned = replace(good[0], angle=good[0].angle + math.pi / 2)
-    assert model.segment(small, turned).presence < SegmenterConfig().min_presence
-    seg._tracked = [turned, *good[1:]]
-    runs = seg.detector_runs
-    _, people = seg.segment(small)
-    assert seg.detector_runs == runs + 1  # the loss sent the detector
-    assert len(people) == 2

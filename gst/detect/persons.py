@@ -413,20 +413,14 @@ class PersonSegmenter:
             detected = [
                 roi_from_alignment(d.keypoints[0], d.keypoints[1]) for d in self.model.detect(frame)
             ]
-            # a detection of a tracked person is that person's region again: not segmented
-            # twice. Only of one still found there: a region that lost its person (turned the
-            # wrong way after a bend) threw away the detector's good region of them, and the
-            # person was missing from the frame though the detector had found them
-            present = [
-                t for t, s in zip(tracked, segments, strict=True) if s.presence >= c.min_presence
-            ]
+            # a detection of a tracked person is that person's region again: not segmented twice
             new = [
-                r for r in detected if not any(same_region(r, t, c.same_region) for t in present)
+                r for r in detected if not any(same_region(r, t, c.same_region) for t in tracked)
             ]
             segments += self._segment_rois(frame, new)
             rois += new
             if c.zoom > 0:
-                more = self._zoomed_look(frame, segments, present + new)
+                more = self._zoomed_look(frame, segments, rois)
                 self.zoom_found += len(more)
                 segments += more
                 rois += [m.next_roi for m in more]
