@@ -304,7 +304,7 @@ def write_pareto_plot(path: Path, rows: list[BenchRow]) -> None:
         if fr:
             ax.plot(*zip(*fr, strict=True), "k--", lw=1, label="Pareto front")
         ax.set_xscale("log")
-        ax.set_xlabel("network run time per crop (ms, median over batches, log scale)")
+        ax.set_xlabel("network run time per crop (ms, median over repeats of one batch, log scale)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")
