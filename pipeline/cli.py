@@ -409,13 +409,21 @@ def main(argv: list[str] | None = None) -> int:
         # (globbed once: the status table and the dry run show the same lines)
         notes_of = {s: scene_input_problems(s, cfg.scenes[s], needs_rig=rig) for s in scenes}
         problems = [line for scene in scenes for line in notes_of[scene]]
-        if problems and args.command == "run" and not args.dry_run:
-            raise ConfigError("\n".join(problems))
+        refused = problems if args.command == "run" and not args.dry_run else []
         # Build every runner first: it validates all stage params before anything is written.
-        runners = [
-            Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
-            for scene in scenes
-        ]
+        # (Said together with the inputs' problems: a wrong parameter was shown only once the
+        # missing videos had been fixed, one round trip per kind of mistake.)
+        try:
+            runners = [
+                Runner(cfg, scene, stages, options=options, executor=executor, progress=progress)
+                for scene in scenes
+            ]
+        except ConfigError as exc:
+            if refused:
+                raise ConfigError("\n".join([*refused, str(exc)])) from exc
+            raise
+        if refused:
+            raise ConfigError("\n".join(refused))
         if options.get("with_gaussians") and "track" in cfg.stages:
             for runner in runners:  # found inside the run, after the stages before track ran
                 if getattr(runner.context("track").params, "chunk_frames", None):

@@ -603,3 +603,12 @@ def test_set_with_a_malformed_scene_names_the_scene(tmp_path, capsys):
     )
     code, err = _cli(capsys, "status", "--config", str(cfg), "--set", "source.value=2")
     assert code == 2 and "scenes.demo" in err and "Traceback" not in err, err
+
+
+def test_missing_inputs_and_a_wrong_parameter_are_said_together(scene, tmp_path, capsys):
+    """A wrong stage parameter was said only once the missing videos had been fixed (one round
+    trip per kind of mistake)."""
+    cfg = _config(tmp_path, scene, videos=f"{scene.videos}/nothing*.mp4")
+    code, err = _cli(capsys, "run", "extract", "--set", "extract.frame_stp=2", "--config", str(cfg))
+    assert code == 2
+    assert re.search(r"scenes\.s\.videos", err) and "frame_stp" in err, err
