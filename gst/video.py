@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from gst.prefetch import background
+from gst.registry import sha256_of
 
 log = logging.getLogger("gst.video")
 
@@ -306,13 +307,15 @@ def content_digest(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def file_identity(path: str | Path) -> list:
+def file_identity(path: str | Path, whole: bool = False) -> list:
     """A file by name, size and sampled content (`content_digest`), for cache and resume keys:
     names, not paths, so a moved workspace stays valid; content, not times, so a file copied in
     with its old time (cp -p, rsync -a) is seen, and a copy that only changed the times is not
-    taken for another file."""
+    taken for another file. `whole`: the whole file's SHA-256 instead, for inputs a user edits
+    in place (masks, boxes: a fix in the middle keeps the size and the sampled ends)."""
     path = Path(path)
-    return [path.name, path.stat().st_size, content_digest(path)]
+    digest = sha256_of(path) if whole else content_digest(path)
+    return [path.name, path.stat().st_size, digest]
 
 
 def frame_range(
@@ -407,8 +410,10 @@ class _RateCheck:
 
 
 def _decode(
-    info: VideoInfo, first: int, end: int | None, stride: int, rate: float | None = None
+    info: VideoInfo, first: int, end: int | None, stride: int, rate: float
 ) -> Iterator[Frame]:
+    """Frames first, first + stride, ... before `end`, timed at `rate` (seeking and the rate
+    check on the container's own timestamps, `info`)."""
     if end is not None and first >= end:
         return
     cap = _open(info.path, info.camera)
@@ -434,7 +439,7 @@ def _decode(
                 _check_stream_end(info, index)
                 return
             clock.check(cap, index)
-            yield Frame(index, index / (rate or info.fps), image)
+            yield Frame(index, index / rate, image)
             index += 1
             for _ in range(stride - 1):
                 if end is not None and index >= end:

@@ -437,11 +437,8 @@ class Runner:
             if rel not in record.get("outputs", {}):
                 # on disk or not, the recorded run did not make it (an earlier run's splats
                 # from an older model were taken for this one's)
-                why = (
-                    "was not made by its last run"
-                    if (self.workspace / rel).exists()
-                    else ("is absent")
-                )
+                made = (self.workspace / rel).exists()
+                why = "was not made by its last run" if made else "is absent"
                 return StageStatus(name, key, MISSING, f"output {rel} {why}", fp)
         for rel, digest in record.get("outputs", {}).items():
             now = self.hashes.digest(self.workspace / rel)

@@ -185,11 +185,10 @@ class ExternalDetections:
         frames in the middle: same size, same ends)."""
         import hashlib
 
-        from gst.registry import sha256_of
+        from gst.video import file_identity
 
         files = [
-            [cam, Path(path).name, Path(path).stat().st_size, sha256_of(Path(path))]
-            for cam, path in sorted(self.mask_files.items())
+            [cam, *file_identity(path, whole=True)] for cam, path in sorted(self.mask_files.items())
         ]
         digest = hashlib.sha256()
         for cam in sorted(self.boxes):

@@ -49,6 +49,9 @@ from gst.track.predictor import Predictor
 from gst.track.writer import PARQUET_OPTIONS, settings_digest
 
 CHUNK_META_KEY = b"gst.chunk"
+# a chunk record's count of the detections still waiting for min_hits at its end (in its
+# dropped_low_score; not a stat of the file)
+PENDING_AT_END = "pending_at_end"
 
 
 @dataclass(frozen=True)
@@ -227,10 +230,6 @@ def track_chunk(
         )
     return record
 
-
-# a chunk record's count of the detections still waiting for min_hits at its end (in its
-# dropped_low_score; not a stat of the file)
-PENDING_AT_END = "pending_at_end"
 
 SAME_DETECTION_IOU = 0.5  # boxes of one frame in two chunks overlapping this much: one person
 

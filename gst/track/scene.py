@@ -68,7 +68,7 @@ from gst.track.schema import parse_metadata
 from gst.track.smoothing import OneEuroConfig
 from gst.track.static_detector import StaticCameraDetector
 from gst.track.tracker import TrackerConfig
-from gst.video import VideoError, probe_video, still_image_error
+from gst.video import VideoError, file_identity, probe_video, still_image_error
 from synth.truth import has_scene_truth
 
 log = logging.getLogger("gst.track")
@@ -308,7 +308,7 @@ def _detector_info(
     if boxes is not None:  # the boxes' content: an edited box file mixed into a resumed run and
         # kept a finished file of the old boxes (the info named the path alone)
         # (the whole file: an edit in its middle keeps the size and a sampled digest's ends)
-        info["boxes_file"] = [boxes.name, boxes.stat().st_size, sha256_of(boxes)]
+        info["boxes_file"] = file_identity(boxes, whole=True)
     if person_model is not None:
         info["model"] = "MediaPipe BlazePose (pose_detection + pose_landmark_full), LiteRT"
         info["config"] = person_model.settings()
