@@ -303,6 +303,17 @@ def fit_to_frames(
         )  # fmt: skip
         return resized, note
     where = f" ({source})" if source else ""
+    if (width, height) == (camera.height, camera.width):
+        # swapping the size in the file would not turn K and R: the "fixed" rig passed every
+        # check with its principal point far off the image's centre
+        raise CameraError(
+            f"camera '{camera.name}'{where}: frames are {width}x{height}, the calibration's "
+            f"{camera.width}x{camera.height} turned by 90 degrees: the video is rotated against "
+            "the calibration (a phone's or an exporter's rotation). Turn the video back to the "
+            "orientation it was calibrated in (e.g. ffmpeg -vf transpose=1 or 2), or "
+            "calibrate the turned video; editing the size in the calibration is not enough "
+            "(K and R would stay the unturned camera's)"
+        )
     raise CameraError(
         f"camera '{camera.name}'{where}: frames are {width}x{height}, but the calibration says "
         f"{camera.width}x{camera.height}; frames up to {tolerance} px smaller (encoder padding) "

@@ -169,9 +169,23 @@ def lens_findings(cam: Camera, samples: int = 256) -> tuple[str | None, str | No
     return None, None
 
 
+PRINCIPAL_POINT_OFF_CENTRE = 0.25  # share of the image's width / height
+
+
 def lens_warnings(rig: Rig) -> list[str]:
-    """What `lens_findings` says, but does not refuse, about the rig's cameras."""
-    return [w for w in (lens_findings(c)[1] for c in rig) if w is not None]
+    """What `lens_findings` says, but does not refuse, about the rig's cameras, and principal
+    points further than PRINCIPAL_POINT_OFF_CENTRE of the image from its centre (a cropped
+    video window can do that; so can a size edited for a rotated video, K left unturned)."""
+    out = [w for w in (lens_findings(c)[1] for c in rig) if w is not None]
+    for c in rig:
+        off = (c.K[0, 2] / c.width - 0.5, c.K[1, 2] / c.height - 0.5)
+        if max(abs(off[0]), abs(off[1])) > PRINCIPAL_POINT_OFF_CENTRE:
+            out.append(
+                f"camera '{c.name}': principal point ({c.K[0, 2]:.0f}, {c.K[1, 2]:.0f}) px lies "
+                f"at {off[0] + 0.5:.0%} / {off[1] + 0.5:.0%} of its {c.width}x{c.height} image, "
+                "far from the centre: check the image size and the video's orientation"
+            )
+    return out
 
 
 def check_rig(rig: Rig, volume: CaptureVolume | None = None) -> list[str]:

@@ -166,6 +166,15 @@ def calibrate_scene(
         log.info("board calibration: RMS %s px", rms)
     missing = [name for name in videos if name not in rig.names]
     if missing:
+        skipped = rig.meta.get("skipped") or []
+        passed_over = [s for s in skipped if s.split(" ")[0] in missing]
+        if passed_over:  # in the file, but the reader's options passed them over
+            raise ValueError(
+                f"scene '{scene}': videos {missing} have no camera in the calibration as read: "
+                f"{file.path} holds {', '.join(passed_over)}, passed over by the reader's "
+                f"options; keep them with scenes.{scene}.calibration.options (e.g. "
+                "include_inactive: true, video_only: false)"
+            )
         raise ValueError(
             f"scene '{scene}': videos {missing} have no camera of that name in the "
             f"calibration (cameras: {rig.names}); rename the files or the cameras, or leave "

@@ -297,3 +297,22 @@ def test_rig_fitted_to_its_videos_frame_sizes():
     np.testing.assert_array_equal(fitted["a"].K, K)
     with pytest.raises(CameraError, match=r"camera 'b' \(b.mp4\).*600x480"):
         fit_rig_to_frames(rig, {"b": SimpleNamespace(width=600, height=480, path="b.mp4")})
+
+
+def test_a_video_turned_against_its_calibration_is_said_to_be_turned():
+    """Frames 1920x1088 against a 1088x1920 calibration were told to fix the size in the file;
+    a rig "fixed" that way (K and R unturned) then passed every check. Now the error says the
+    video is turned, and the rig checks warn of a principal point far from the centre."""
+    from types import SimpleNamespace
+
+    from calibration.checks import lens_warnings
+
+    K = np.array([[1400.0, 0, 533.0], [0, 1400, 948.0], [0, 0, 1]])
+    rig = Rig((Camera("cam01", K, np.zeros(5), np.eye(3), np.zeros(3), 1088, 1920),))
+    frames = {"cam01": SimpleNamespace(width=1920, height=1088, path="cam01.mp4")}
+    with pytest.raises(CameraError, match=r"'cam01' \(cam01.mp4\).*turned by 90 degrees"):
+        fit_rig_to_frames(rig, frames)
+    assert lens_warnings(rig) == []
+    edited = Rig((Camera("cam01", K, np.zeros(5), np.eye(3), np.zeros(3), 1920, 1088),))
+    (warning,) = lens_warnings(edited)
+    assert "camera 'cam01': principal point (533, 948)" in warning and "87%" in warning

@@ -1093,3 +1093,100 @@ def test_a_declared_format_the_file_is_not_says_what_it_looks_like(tmp_path):
     with pytest.raises(RigFormatError, match="the file looks like 'panoptic': give that format"):
         read_rig(path, "pose2sim")
     assert len(read_rig(path)) == 2  # detected
+
+
+def _qca_with(tmp_path, *edits) -> Path:
+    text = QCA.read_text()
+    for old, new in edits:
+        assert old in text
+        text = text.replace(old, new, 1)
+    path = tmp_path / "edited.qca.txt"
+    path.write_text(text)
+    return path
+
+
+def test_qualisys_cameras_passed_over_are_said_and_the_scene_names_them(tmp_path, caplog):
+    """A camera the reader's options pass over was said only when none was left; the scene
+    then told the user to rename their files, though the cameras were in the file."""
+    from calibration.scene import CalibrationFile, calibrate_scene
+
+    path = _qca_with(
+        tmp_path,
+        ('model="none" point-count="999999999" serial="cam04"',
+         'model="Miqus Hybrid" point-count="999999999" serial="cam04"'),
+        ('active="1" avg-residual="0.444749"', 'active="0" avg-residual="0.444749"'),
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="calibration"):
+        rig = read_rig(path)
+    assert rig.names == ["cam01", "cam03"]
+    assert rig.meta["skipped"] == ["cam02 (inactive)", "cam04 (model 'Miqus Hybrid')"]
+    assert "cam02 (inactive) passed over" in caplog.text and "include_inactive" in caplog.text
+    videos = {n: QCA.parent / f"{n}.mp4" for n in ("cam01", "cam02", "cam03", "cam04")}
+    with pytest.raises(ValueError, match=r"cam02 \(inactive\), cam04 .*passed over.*options"):
+        calibrate_scene(videos, tmp_path / "rig.json", tmp_path / "rep", file=CalibrationFile(path))
+    kept = read_rig(path, include_inactive=True, video_only=False)
+    assert kept.names == ["cam01", "cam02", "cam03", "cam04"] and "skipped" not in kept.meta
+
+
+def test_qualisys_read_options_are_checked_and_a_fraction_is_read():
+    """YAML keeps `distortion_scale: 1/64` as text (it failed in a numpy ufunc, naming
+    nothing); the text 'false' for a flag was read as true; a negative scale was taken."""
+    as_given = read_rig(QCA)
+    scaled = read_rig(QCA, "qualisys", distortion_scale="1/64")
+    np.testing.assert_allclose(scaled[0].dist, as_given[0].dist / 64)
+    for bad in ("abc", -1.0, 0, float("nan"), "1/0", True):
+        with pytest.raises(RigFormatError, match="distortion_scale must be a number > 0"):
+            read_rig(QCA, "qualisys", distortion_scale=bad)
+    for flag in ("video_only", "include_inactive"):
+        with pytest.raises(RigFormatError, match=f"{flag} must be true or false, got 'false'"):
+            read_rig(QCA, "qualisys", **{flag: "false"})
+
+
+def test_a_toml_camera_without_its_geometry_is_refused(tmp_path):
+    """A camera table whose geometry keys were misspelled, or a file cut after a camera's name,
+    loaded with one camera fewer and no word."""
+    path = tmp_path / "calib.toml"
+    write_rig(ring_cameras(3), path, "pose2sim")
+    text = path.read_text()
+    typo = tmp_path / "typo.toml"
+    typo.write_text(text.replace("rotation =", "rvec =", 3).replace("rvec =", "rotation =", 2))
+    with pytest.raises(RigFormatError, match=r"lacks \['rotation'\].*typo'd key"):
+        read_rig(typo, "pose2sim")
+    cut = tmp_path / "cut.toml"
+    cut.write_text(text[: text.index("[metadata]")] + '[c3]\nname = "c3"\n')
+    with pytest.raises(RigFormatError, match="looks like a camera"):
+        read_rig(cut, "pose2sim")
+    assert len(read_rig(path, "pose2sim")) == 3  # the whole file still reads
+
+
+@pytest.mark.parametrize("fmt", [None, "anipose", "pose2sim"])
+def test_toml_distortions_that_are_no_list_are_refused_by_name(tmp_path, fmt):
+    """`distortions = 0` raised a bare TypeError from the format sniffer (it took the length
+    of an int), hiding the reader's own message."""
+    path = tmp_path / "calib.toml"
+    write_rig(ring_cameras(2), path, "pose2sim")
+    text = path.read_text()
+    start = text.index("distortions =")
+    end = text.index("\n", start)
+    # without `fisheye` (aniposelib's layout) the sniffer reads the distortions' length
+    path.write_text(
+        (text[:start] + "distortions = 0" + text[end:]).replace("fisheye = false\n", "")
+    )
+    with pytest.raises(RigFormatError, match="distortion"):
+        read_rig(path, fmt)
+
+
+def test_panoptic_types_that_match_nothing_are_listed_whatever_their_kind(tmp_path):
+    """Cameras without a `type` beside typed ones broke the message's sort (None against str)."""
+    data = {
+        "cameras": [
+            {"name": "a", "type": "hd"},
+            {"name": "b"},
+        ]
+    }
+    path = tmp_path / "calibration_x.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(
+        RigFormatError, match=r"no cameras of types .*types present: \['None', 'hd'\]"
+    ):
+        read_rig(path, "panoptic", camera_types=("vga",))

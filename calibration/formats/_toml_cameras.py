@@ -31,6 +31,11 @@ from calibration.formats._common import (
 
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
 CAMERA_KEYS = ("matrix", "rotation", "translation")
+# every key a camera table may hold: a table with any of them is a camera and must hold the
+# geometry (a typo'd or truncated camera was dropped without a word)
+CAMERA_TABLE_KEYS = ("name", "size", "matrix", "distortions", "rotation", "translation")
+# tables of other tools that are not cameras (module doc)
+OTHER_TABLES = ("metadata", "capture_volume", "charuco", "checkerboard")
 
 
 def _bare(name: str) -> bool:
@@ -39,11 +44,14 @@ def _bare(name: str) -> bool:
 
 
 def camera_tables(data: dict) -> dict[str, dict]:
-    """The tables of `data` that describe cameras (any of CAMERA_KEYS; module doc)."""
+    """The tables of `data` that describe cameras (any of CAMERA_TABLE_KEYS, outside
+    OTHER_TABLES; module doc)."""
     return {
         key: table
         for key, table in data.items()
-        if isinstance(table, dict) and any(k in table for k in CAMERA_KEYS)
+        if isinstance(table, dict)
+        and key not in OTHER_TABLES
+        and any(k in table for k in CAMERA_TABLE_KEYS)
     }
 
 
@@ -60,6 +68,13 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
     cameras = []
     for key, table in camera_tables(data).items():
         where = f"[{key}]"
+        lacking = [k for k in CAMERA_KEYS if k not in table]
+        if lacking:  # a camera's table without its geometry: typo'd keys or a truncated file
+            raise RigFormatError(
+                f"{path}: {where} looks like a camera (it has "
+                f"{sorted(set(table) & set(CAMERA_TABLE_KEYS))}) but lacks {lacking}; expected "
+                f"every one of {list(CAMERA_TABLE_KEYS)} (a typo'd key, or a truncated file?)"
+            )
         fisheye = table.get("fisheye", False)
         if not isinstance(fisheye, bool):  # the text "false" read as a fisheye
             raise RigFormatError(f"{path}: {where} fisheye is {fisheye!r}, expected true or false")
@@ -147,7 +162,10 @@ def looks_like_pose2sim(path: Path) -> bool:
     """Pose2Sim writes `fisheye = ...` and 4 distortion terms; aniposelib neither."""
     data = load_tables(path)
     cams = camera_tables(data).values()
-    return any("fisheye" in t or len(t.get("distortions", [])) == 4 for t in cams)
+    return any(
+        "fisheye" in t or (isinstance(t.get("distortions"), list) and len(t["distortions"]) == 4)
+        for t in cams
+    )
 
 
 def rms_or_zero(rig: Rig) -> float:

@@ -69,7 +69,7 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
     if not cameras:
         raise RigFormatError(
             f"{path}: no cameras of types {camera_types} "
-            f"(types present: {sorted({c.get('type') for c in cams_data})})"
+            f"(types present: {sorted({str(c.get('type')) for c in cams_data})})"
         )
     rig_meta = {"source": "panoptic"}
     if "calibDataSource" in data:

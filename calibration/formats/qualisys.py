@@ -17,8 +17,10 @@ Skew other than 0 and rotated views (`viewrotation` other than 0) are refused.
 
 from __future__ import annotations
 
+import logging
 import math
 import xml.etree.ElementTree as ET
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +32,8 @@ SUBPIXELS_PER_PIXEL = 64.0
 MM_PER_M = 1000.0
 QUALISYS_TO_OPENCV_AXES = np.diag([1.0, -1.0, -1.0])
 VIDEO_PLUS_LINES = 1440.0  # Miqus Video Plus's native video lines (1920 x 1440)
+
+log = logging.getLogger("calibration")
 
 
 def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
@@ -92,8 +96,12 @@ def read(
     video_only: bool = True,
     distortion_scale: float = 1.0,
 ) -> Rig:
-    """Active video cameras (model containing 'Video', or 'none' as in exported files)."""
+    """Active video cameras (model containing 'Video', or 'none' as in exported files); the
+    cameras passed over are logged and listed in the rig's `meta["skipped"]`."""
     path = Path(path)
+    include_inactive = _flag(include_inactive, "include_inactive", path)
+    video_only = _flag(video_only, "video_only", path)
+    distortion_scale = _scale_option(distortion_scale, path)
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as exc:
@@ -170,10 +178,43 @@ def read(
         )
     if not cameras and skipped:  # "no cameras found" did not say which were passed over, or why
         raise RigFormatError(
-            f"{path}: no camera to read: skipped {', '.join(skipped)}; video_only=True keeps "
-            "models with 'video' in their name (or 'none'), include_inactive=True the inactive"
+            f"{path}: no camera to read: skipped {', '.join(skipped)}; {KEEP_HINT}"
         )
-    return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta={"source": "qualisys"})
+    for why in skipped:  # a camera passed over must not look like a camera missing from the file
+        log.warning("%s: camera %s passed over (%s)", path, why, KEEP_HINT)
+    meta = {"source": "qualisys", **({"skipped": skipped} if skipped else {})}
+    return make_rig(path, cameras, up=(0.0, 0.0, 1.0), meta=meta)
+
+
+KEEP_HINT = (
+    "video_only=True keeps models with 'video' in their name (or 'none'; video_only=False keeps "
+    "every model), include_inactive=True the inactive ones"
+)
+
+
+def _flag(value, name: str, path: Path) -> bool:
+    """A true/false read option, as it is (YAML's `false` is a bool; the text 'false' is not)."""
+    if not isinstance(value, bool | np.bool_):
+        raise RigFormatError(
+            f"{path}: the Qualisys read option {name} must be true or false, got {value!r}"
+        )
+    return bool(value)
+
+
+def _scale_option(value, path: Path) -> float:
+    """`distortion_scale`: a number > 0, or its text as a fraction ('1/64', as YAML keeps it)."""
+    try:
+        if isinstance(value, bool):
+            raise ValueError
+        scale = float(Fraction(value.strip())) if isinstance(value, str) else float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        scale = math.nan
+    if not (math.isfinite(scale) and scale > 0):
+        raise RigFormatError(
+            f"{path}: the Qualisys read option distortion_scale must be a number > 0 (e.g. 1 or "
+            f"1/64), got {value!r}"
+        )
+    return scale
 
 
 def sniff(path: Path, text: str | None) -> bool:
