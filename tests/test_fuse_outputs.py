@@ -100,6 +100,33 @@ def test_c3d_holds_what_other_readers_need(tmp_path):
     assert back[2, 7, 3] == 0 and (np.delete(back[..., 3].ravel(), 2 * 24 + 7) == 1).all()
 
 
+def test_c3d_camera_byte_of_a_rig_beyond_53_cameras(tmp_path):
+    """The camera masks went through float64, which cannot hold a mask with camera 61's bit
+    exactly: cameras 1-7's bits were lost from that point's byte."""
+    import c3d
+
+    pts = _points(T=2)
+    cams = np.full((2, 24), 0b101, np.int64)
+    cams[:, 0] |= np.int64(1) << 60
+    path = tmp_path / "p.c3d"
+    write_c3d(path, np.arange(2), pts, fps=30.0, cameras=cams)
+    with open(path, "rb") as fh:
+        rows = [p.copy() for _, p, _ in c3d.Reader(fh).read_frames()]
+    assert (np.array([r[:, 4] for r in rows]) == 0b101).all()
+
+
+def test_c3d_refuses_what_it_cannot_hold(tmp_path):
+    """Names were cut to 30 characters (two could become one label, the TRC keeping both
+    whole), and no frame failed inside the `c3d` writer with a shape message."""
+    pts = _points(T=2)
+    names = tuple(f"m{i}" for i in range(23)) + ("a_marker_name_longer_than_thirty_chars",)
+    with pytest.raises(ValueError, match="longer than a C3D label's 30 characters"):
+        write_c3d(tmp_path / "p.c3d", np.arange(2), pts, fps=30.0, names=names)
+    with pytest.raises(ValueError, match="no frame to write"):
+        write_c3d(tmp_path / "p.c3d", np.arange(0), pts[:0], fps=30.0)
+    assert not list(tmp_path.iterdir())
+
+
 def test_c3d_written_before_the_float_first_frame_still_reads(tmp_path):
     """Files of before 2026-12-01 hold GST:FIRST_FRAME as an int32 under the float label."""
     import warnings

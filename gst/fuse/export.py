@@ -158,6 +158,7 @@ _NO_ANALOG = "No analog data found"
 # to be clamped to 65535, so later starts are numbered from 1 (GST:FIRST_FRAME keeps the truth)
 _LAST_HEADER_START = 65534
 _GST_GROUP_ID = 10
+C3D_LABEL_CHARS = 30  # POINT:LABELS entries: the length C3D tools assume (Vicon, Mokka)
 
 
 def write_c3d(
@@ -176,10 +177,15 @@ def write_c3d(
     import c3d
 
     T0 = len(frames)
+    if T0 == 0:  # the `c3d` writer's own error said "Expected frame input ... shape (1, 0)"
+        raise ValueError(f"write_c3d: {path}: no frame to write (a C3D holds at least one)")
     mask = np.zeros((T0, points.shape[1]), np.int64) if cameras is None else np.asarray(cameras)
     if mask.shape != points.shape[:2]:
         raise ValueError(f"write_c3d: cameras has shape {mask.shape}, expected {points.shape[:2]}")
-    _, mask_rows, _ = every_frame(frames, mask[..., None].astype(np.float64), valid)
+    # only cameras 1-7 fit the byte; taken before the float padding, which cannot hold a mask
+    # with a bit past 2^53 exactly (camera 54 on lost cameras 1-7's bits)
+    low = (mask.astype(np.int64) & 0x7F).astype(np.float64)
+    _, mask_rows, _ = every_frame(frames, low[..., None], valid)
     frames, points, valid = every_frame(frames, points, valid)
     T, M = points.shape[:2]
     if len(names) != M:
@@ -191,7 +197,13 @@ def write_c3d(
     k = int(np.clip(32000.0 / mm.max(), 1, 100)) if mm.size and mm.max() > 0 else 1
     scale = -1.0 / k
     writer = c3d.Writer(point_rate=float(fps), analog_rate=0.0, point_scale=scale)
-    writer.set_point_labels([n[:30] for n in names])
+    long = [n for n in names if len(n) > C3D_LABEL_CHARS]
+    if long:  # cut, two labels could become one, and the TRC keeps them whole
+        raise ValueError(
+            f"write_c3d: marker names {long} are longer than a C3D label's "
+            f"{C3D_LABEL_CHARS} characters"
+        )
+    writer.set_point_labels(list(names))
     writer.set_screen_axis(*_screen_axes(up))  # viewers draw the rig's world upright
     first = int(frames[0]) if T else 0
     writer.set_start_frame(first + 1 if first + 1 <= _LAST_HEADER_START else 1)

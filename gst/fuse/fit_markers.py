@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gst.atomic import atomic_write_text
 from gst.body import load_body_model
 from gst.body.markers import BLAZEPOSE_NAMES, DEFAULT_PARENTS, MarkerModel, default_markers_path
 from gst.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
     if (data.world < 5000).any():
         raise SystemExit("marker fitting uses tuning worlds (seeds 5000+) only")
     model = fit_marker_model(data, args.body)
-    args.out.write_text(json.dumps(model.to_json(), indent=1) + "\n")
+    atomic_write_text(args.out, json.dumps(model.to_json(), indent=1) + "\n")
     res = model.info["median_reprojection_px"]
     print(f"{args.out}: {model.info['crops']} crops; median reprojection per marker (px): {res}")
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gst.atomic import atomic_save_npz
 from gst.fuse.observations import N_LANDMARKS
 
 __all__ = ["MarkerData", "load_marker_data", "people_from_marker_data"]
@@ -36,7 +37,7 @@ class MarkerData:
     transl: np.ndarray  # (N, 3)
 
     def save(self, path: Path) -> None:
-        np.savez_compressed(path, **self.__dict__)
+        atomic_save_npz(path, compressed=True, **self.__dict__)
 
 
 def load_marker_data(paths: list[Path]) -> MarkerData:
