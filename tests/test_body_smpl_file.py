@@ -199,3 +199,62 @@ def test_malformed_arrays_name_the_file_and_key(tmp_path, data, key, change, sho
 def test_an_upper_case_suffix_is_read(tmp_path, data):
     path = write_official_pkl(data, tmp_path / "SMPL_NEUTRAL.PKL")
     assert load_smpl_file(path).num_vertices == 500
+
+
+def test_a_tree_that_is_not_smpls_is_refused(tmp_path, data):
+    """A 24-joint file whose parents differ from SMPL's loaded under SMPL's joint names (the
+    overlays and reports draw SMPL's tree whatever the body's)."""
+    arrays = _official_arrays(data, tmp_path)
+    kt = np.asarray(arrays["kintree_table"]).copy()
+    kt[0, 12], kt[0, 16] = 3, 9  # neck under spine1, left_shoulder under spine3
+    np.savez(tmp_path / "tree.npz", **{**arrays, "kintree_table": kt})
+    with pytest.raises(ValueError, match=r"tree\.npz: .*not SMPL's tree: neck under 3 \(SMPL: 9\)"):
+        load_smpl_file(tmp_path / "tree.npz")
+
+
+@pytest.mark.parametrize("damage", ["empty", "cut", "crc", "npy"])
+def test_a_damaged_npz_is_named(tmp_path, data, damage):
+    """An empty, cut or corrupted .npz, or an .npy under an .npz name, raised zipfile's or
+    NumPy's bare errors, naming no file."""
+    from gst.body import load_body_model
+
+    path = tmp_path / "SMPL_NEUTRAL.npz"
+    np.savez(path, **_official_arrays(data, tmp_path))
+    blob = path.read_bytes()
+    if damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "cut":
+        path.write_bytes(blob[: len(blob) // 2])
+    elif damage == "crc":  # a byte inside the first member's stored data
+        middle = blob.index(b"NUMPY") + 200
+        path.write_bytes(blob[:middle] + bytes([blob[middle] ^ 0xFF]) + blob[middle + 1 :])
+    else:
+        with open(path, "wb") as fh:
+            np.save(fh, np.zeros(3))
+    for load in (load_smpl_file, lambda p: load_body_model(str(p))):
+        with pytest.raises(ValueError, match=r"SMPL_NEUTRAL\.npz: (not a readable|a single \.npy)"):
+            load(path)
+
+
+def test_weights_drifting_within_the_check_are_renormalised(tmp_path, data):
+    """Rows summing to 1 + 5e-5 pass the check, and the translation goes through the skinning
+    blend: a body 50 m out moved by 2 mm against smplx's (translation added after)."""
+    import torch
+
+    from gst.body import BodyModel
+
+    arrays = _official_arrays(data, tmp_path)
+    arrays["weights"] = np.asarray(arrays["weights"]) * (1 + 5e-5)
+    np.savez(tmp_path / "drift.npz", **arrays)
+    body = BodyModel(load_smpl_file(tmp_path / "drift.npz"), dtype=torch.float64)
+    np.testing.assert_allclose(body.weights.sum(1).numpy(), 1.0, atol=1e-12)
+    g = torch.Generator().manual_seed(0)
+    pose = torch.randn(1, 23, 3, generator=g, dtype=torch.float64) * 0.3
+    betas = torch.zeros(1, body.num_betas, dtype=torch.float64)
+    far = torch.tensor([[40.0, 0.0, 30.0]], dtype=torch.float64)
+    from gst.body import axis_angle_to_matrix as aa
+
+    R = aa(pose)
+    at_origin = body(betas, R, aa(torch.zeros(1, 3, dtype=torch.float64)), None).vertices
+    moved = body(betas, R, aa(torch.zeros(1, 3, dtype=torch.float64)), far).vertices
+    assert (moved - at_origin - far[:, None]).abs().max() < 1e-9

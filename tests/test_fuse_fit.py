@@ -189,3 +189,15 @@ def test_per_frame_limb_lengths_measure_the_data(body, capture):
         ratio = moved[0][name] / limbs[0][name]
         assert 1.04 < ratio[3] < 1.12, (name, ratio)
         assert np.abs(np.delete(ratio, 3) - 1).max() < 1e-6  # frames are fitted independently
+
+
+def test_the_marker_table_says_which_body_it_was_fitted_on():
+    """The shipped table was fitted on the Anny default's rest pose; with `body_model: smpl`
+    (a T-pose) its hand markers lie 6-8 cm off, and nothing said so."""
+    table = MarkerModel.load()
+    assert table.info["body_model"] == "anny"
+    assert table.fitted_for("anny") is None
+    warning = table.fitted_for("smpl")
+    assert "fitted on the body 'anny', not 'smpl'" in warning
+    assert "fit_markers --body smpl" in warning
+    assert MarkerModel.fallback().fitted_for("smpl") is None  # says nothing of its body

@@ -12,10 +12,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from gst.body.model import BodyModel, BodyModelData, BodyOutput
+from gst.body.model import BodyModel, BodyModelData, BodyOutput, open_npz
 from gst.body.rotations import (
     axis_angle_to_matrix,
     matrix_to_axis_angle,
@@ -56,7 +55,7 @@ def load_body_data(spec: str = "anny") -> BodyModelData:
         return load_smpl_file(None, gender=spec.partition(":")[2] or None)
     path = Path(spec).expanduser()
     if path.suffix == ".npz" and path.is_file():
-        with np.load(path, allow_pickle=False) as z:
+        with open_npz(path, ".npz body or SMPL file") as z:
             ours = "format" in z.files
         if ours:
             return BodyModelData.load_npz(path)

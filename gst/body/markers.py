@@ -12,8 +12,11 @@ With f = a this is `A_a @ (J_a^rest + offset_m)` (A the skinning transforms of
 :class:`gst.body.BodyOutput`): the point is rigidly attached to the anchor's bone. Anchoring at
 the joint but turning with the parent's frame (e.g. BlazePose's ankle follows the shin, not the
 foot) keeps bone lengths out of the offsets, so the table holds for any body shape. It is
-differentiable in pose, shape and translation, cheap (no mesh), and works for any body model in
-SMPL layout.
+differentiable in pose, shape and translation and cheap (no mesh). The form fits any body model
+in SMPL layout, but a table's offsets are in the rest axes of the body it was fitted on: the
+shipped one is the Anny default's (`info.body_model`; its rest arms hang about 45 degrees down),
+and on an SMPL T-pose body its hand markers lie 6-8 cm off. `fitted_for` says so; fit a table
+for another body with `python -m gst.fuse.fit_markers --body ...`.
 
     from gst.body.markers import MarkerModel
     markers = MarkerModel.load()                                   # the fitted default
@@ -216,6 +219,19 @@ class MarkerModel(torch.nn.Module):
         anchors = [_J[DEFAULT_PARENTS[n][0]] for n in BLAZEPOSE_NAMES]
         offsets = np.array([DEFAULT_PARENTS[n][1] for n in BLAZEPOSE_NAMES])
         return cls(BLAZEPOSE_NAMES, anchors, offsets, {"fitted": False})
+
+    def fitted_for(self, body_model: str) -> str | None:
+        """None when this table was fitted on `body_model` (a body-model spec) or says nothing
+        of its body; else a warning that its offsets belong to another body's rest pose."""
+        fitted = self.info.get("body_model")
+        if fitted is None or fitted == body_model:
+            return None
+        return (
+            f"the marker table was fitted on the body '{fitted}', not '{body_model}': its "
+            "offsets are in that body's rest axes (Anny's arms hang about 45 degrees down, "
+            "SMPL's stand in a T), so hand and foot markers can lie several cm off; fit one "
+            f"for this body with `python -m gst.fuse.fit_markers --body {body_model} ...`"
+        )
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> MarkerModel:

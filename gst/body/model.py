@@ -42,6 +42,24 @@ __all__ = ["BodyModelData", "BodyOutput", "BodyModel", "NonFiniteBatch"]
 _NPZ_FORMAT = "gst-body-v1"
 
 
+WEIGHT_SUM_TOLERANCE = 1e-4  # skinning weights' rows sum to 1 within this
+
+# what reading a damaged .npz member raises (a bad CRC, a cut stream)
+NPZ_MEMBER_ERRORS = (zipfile.BadZipFile, EOFError, zlib.error, OSError)
+
+
+def open_npz(path: Path, what: str) -> np.lib.npyio.NpzFile:
+    """`path` opened as an .npz of plain arrays (no pickles), or a ValueError naming it and
+    `what` it should be: empty, cut, not a zip, or a single .npy under an .npz name."""
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (*NPZ_MEMBER_ERRORS, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable {what} ({exc})") from exc
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path}: a single .npy array, not a {what}")
+    return z
+
+
 @dataclass
 class BodyModelData:
     """The arrays of a body model in SMPL layout (numpy, float64 preferred). See module doc."""
@@ -118,7 +136,8 @@ class BodyModelData:
         if faces.size and (faces.min() < 0 or faces.max() >= V):
             fail("faces", f"index vertices outside [0, {V})")
         w = np.asarray(self.weights)
-        if not np.all(np.isfinite(w)) or w.min() < -1e-6 or np.abs(w.sum(1) - 1).max() > 1e-4:
+        drift = np.abs(w.sum(1) - 1).max()
+        if not np.all(np.isfinite(w)) or w.min() < -1e-6 or drift > WEIGHT_SUM_TOLERANCE:
             fail(
                 "weights", "must be finite, non-negative, and sum to 1 over joints for every vertex"
             )
@@ -179,16 +198,11 @@ class BodyModelData:
         """Read a file written by :meth:`save_npz` (never unpickles). A damaged file (cut short,
         empty, not a zip) is a ValueError naming it."""
         path = Path(path)
-        try:
-            z = np.load(path, allow_pickle=False)
-        except (zipfile.BadZipFile, EOFError) as exc:
-            raise ValueError(f"{path}: not a readable npz body file ({exc})") from exc
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise ValueError(f"{path}: a single .npy array, not an npz body file")
+        z = open_npz(path, "npz body file")
         try:
             with z:
                 return cls._from_npz(z, path)
-        except (zipfile.BadZipFile, EOFError, zlib.error) as exc:  # a damaged member (bad CRC)
+        except NPZ_MEMBER_ERRORS as exc:  # a damaged member (bad CRC)
             raise ValueError(f"{path}: not a readable npz body file ({exc})") from exc
 
     @classmethod

@@ -23,8 +23,14 @@ from typing import Any
 import numpy as np
 import scipy.sparse
 
-from gst.body.model import BodyModelData
-from gst.body.skeleton import NUM_JOINTS, PART_NAMES, SMPL_JOINT_NAMES, parts_from_weights
+from gst.body.model import NPZ_MEMBER_ERRORS, WEIGHT_SUM_TOLERANCE, BodyModelData, open_npz
+from gst.body.skeleton import (
+    NUM_JOINTS,
+    PART_NAMES,
+    SMPL_JOINT_NAMES,
+    SMPL_PARENTS,
+    parts_from_weights,
+)
 
 __all__ = ["load_smpl_file", "default_body_dir", "SMPL_LICENCE_NOTE", "UnsafePickleError"]
 
@@ -275,12 +281,15 @@ def _read_raw(path: Path) -> dict[str, Any]:
         # out: the arrays then say what the file is ("only the 24-joint SMPL body" for SMPL-X,
         # where refusing the file for its objects sent the user to re-save it for nothing).
         raw, pickled = {}, []
-        with np.load(path, allow_pickle=False) as z:
-            for k in z.files:
-                try:
-                    raw[k] = z[k]
-                except ValueError:
-                    pickled.append(k)
+        try:
+            with open_npz(path, ".npz SMPL file") as z:
+                for k in z.files:
+                    try:
+                        raw[k] = z[k]
+                    except ValueError:
+                        pickled.append(k)
+        except NPZ_MEMBER_ERRORS as exc:  # a damaged member (bad CRC, cut stream)
+            raise ValueError(f"{path}: not a readable .npz SMPL file ({exc})") from exc
         needed = [k for k in SMPL_KEYS if k in pickled]
         if needed:
             raise ValueError(
@@ -358,6 +367,16 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
         )
     parents = kintree[0].copy()
     parents[0] = -1  # stored as uint32 max in the official files
+    if parents.tolist() != list(SMPL_PARENTS):  # other trees were loaded under SMPL's names
+        differ = [
+            f"{SMPL_JOINT_NAMES[j]} under {int(p)} (SMPL: {SMPL_PARENTS[j]})"
+            for j, p in enumerate(parents)
+            if int(p) != SMPL_PARENTS[j]
+        ]
+        raise ValueError(
+            f"{file}: kintree_table's first row (the parents) is not SMPL's tree: "
+            f"{', '.join(differ)}; only the 24-joint SMPL body is supported"
+        )
     if shapedirs.ndim == 2:  # some exports flatten (V*3, B)
         if shapedirs.shape[0] != 3 * V:
             raise ValueError(
@@ -376,6 +395,11 @@ def load_smpl_file(path: str | Path | None = None, gender: str | None = None) ->
                 f"{file}: posedirs has shape {posedirs.shape}, expected ({V}, 3, {n_pose})"
             )
         posedirs = posedirs.reshape(-1, n_pose).T.copy()  # smplx's (P, V*3) layout
+    sums = weights.sum(axis=1, keepdims=True)
+    if np.all(np.abs(sums - 1.0) <= WEIGHT_SUM_TOLERANCE):
+        # the drift the check tolerates, taken out: a translation goes through the blend, so
+        # rows off by 5e-5 moved a body 40 m from the origin by 2 mm (smplx adds it after)
+        weights = weights / sums
     gender_name = _gender_of(file, gender)
     data = BodyModelData(
         v_template=v_template,

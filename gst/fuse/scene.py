@@ -23,6 +23,7 @@ import dataclasses
 import hashlib
 import json
 import shutil
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -437,6 +438,11 @@ def fuse_scene(
     tris = triangulate(people)
     body = load_body_model(o.body_model)
     markers = MarkerModel.load(o.markers)
+    if (other_body := markers.fitted_for(o.body_model)) is not None:
+        if log is not None:
+            log.warning("fuse: %s", other_body)
+        else:
+            warnings.warn(other_body, stacklevel=2)
     up = np.asarray(rig.up, np.float64)
     floor = scene_floor(
         [t.points if t is not None else None for t in tris], up, o.floor,
