@@ -140,3 +140,52 @@ def test_a_folder_of_two_format_versions_keeps_every_column_and_a_newer_one_is_r
             read(newer / "video=a" / "tracks.parquet")
     with pytest.raises(ValueError, match="tracks format version 3"):
         read_tracks(newer)
+
+
+def test_one_videos_folder_reads_with_its_name(dataset):
+    """Given `tracks/video=match cam2/` (an easy thing to pass), every row's video was null and
+    `videos=["match cam2"]` found no row."""
+    from gst.track import read_tracks
+    from gst.track.writer import partition_dir
+
+    folder = partition_dir(dataset / "tracks", "match cam2")
+    table = read_tracks(folder)
+    assert table.num_rows > 0 and set(table.column("video").to_pylist()) == {"match cam2"}
+    assert read_tracks(folder, videos=["match cam2"]).num_rows == table.num_rows
+    assert read_tracks(folder, videos=["match_cam1"]).num_rows == 0
+    whole = read_tracks(dataset / "tracks", videos=["match cam2"])
+    assert whole.equals(table)
+
+
+def test_a_landmark_the_detector_could_not_place_leaves_the_others(tmp_path):
+    """One NaN landmark of a detection nulled all 33 of that row."""
+    from gst.track import column_array, read_tracks
+    from gst.track.detection import Detection
+
+    _, boxes, video = crossing_clip(tmp_path, 6)
+    rng = np.random.default_rng(0)
+
+    def landmarks(box, hole):
+        x0, y0, x1, y1 = box
+        lm = rng.uniform([x0, y0, 0.9], [x1, y1, 1.0], (33, 3)).astype(np.float32)
+        if hole:
+            lm[5] = np.nan
+        return lm
+
+    dets = {
+        i: [
+            Detection(boxes[i, k].astype(float), 0.9, landmarks=landmarks(boxes[i, k], i == 3))
+            for k in range(boxes.shape[1])
+        ]
+        for i in range(6)
+    }
+    result = track_boxes(
+        video, tmp_path / "tracks", SuppliedBoxes(dets), video_name="v",
+        options=TrackOptions(prefetch=0),
+    )  # fmt: skip
+    table = read_tracks(result.path)
+    assert table.column("landmarks2d").null_count == 0
+    xy, conf = column_array(table, "landmarks2d"), column_array(table, "landmarks_conf")
+    hit = table.column("frame").to_numpy() == 3
+    assert (conf[hit][:, 5] == 0).all() and (xy[hit][:, 5] == 0).all()
+    assert (conf[hit][:, 6] > 0.5).all() and (conf[~hit] > 0.5).all()

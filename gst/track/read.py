@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import pyarrow as pa
@@ -15,12 +16,19 @@ import pyarrow.parquet as pq
 
 from gst.track.schema import SMPL_JOINT_NAMES, parse_metadata
 
+PARTITION_PREFIX = "video="  # gst.track.writer.partition_dir
+
 
 def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:
     """A tracks file, or a folder of `video=<name>/tracks.parquet` partitions (optionally only
     `videos`), as one table sorted by video, frame and person_id, with a `video` column either
     way."""
     path = Path(path)
+    if path.is_dir() and path.name.startswith(PARTITION_PREFIX):
+        # one video's folder: its name is the folder's (read below it, every row was null)
+        name = unquote(path.name[len(PARTITION_PREFIX) :])
+        table = read_tracks(path.parent, [name])
+        return table if videos is None or name in videos else table.slice(0, 0)
     if path.is_file():
         table = pq.read_table(path, partitioning=None)
         name = _metadata(path, table.schema)["video"]["name"]  # in a dataset: the folder's

@@ -81,7 +81,11 @@ def rows_table(view: TrackingView, rows: RowSet, schema: pa.Schema) -> pa.Table:
         joints3d, go, transl_world = joints_cam, go_cam, None
     joints2d = view.project(joints_cam)
     landmarks = rows.landmarks[order]
-    has_lm = np.isfinite(landmarks).all(axis=(1, 2))
+    # a landmark the detector could not place is (0, 0) at confidence 0, as in the crop store;
+    # the row's landmarks are null only where it placed none (one NaN blanked all 33)
+    placed = np.isfinite(landmarks).all(axis=2)
+    has_lm = placed.any(axis=1)
+    landmarks = np.where(placed[..., None], landmarks, 0.0)
 
     def fixed(a: np.ndarray, name: str, valid: np.ndarray | None = None) -> pa.Array:
         width = schema.field(name).type.list_size
