@@ -9,9 +9,10 @@ is a truth person with any visible pixel and no tracked box). Variants of the pe
 settings run in one process on the same videos; beside the scores, CPU milliseconds per frame of
 the whole loop and detector runs per 100 frames.
 
-Scenes are named as in `--config`'s workspace (`synth` must have run for them): the demo, and
-e.g. the crowd scenes of benchmarks/crowd_scenes.yaml (3-5 people who often stand close). Tune
-on some scenes (`--tune`) and report the others: the means are printed for both groups.
+Scenes are named as in `--workspace` (default workspace/; `synth` must have run for them): the
+demo, and e.g. the crowd scenes of benchmarks/crowd_scenes.yaml (3-5 people who often stand
+close). Tune on some scenes (`--tune`) and report the others: the means are printed for both
+groups.
 
     python benchmarks/bench_track_people.py --workspace workspace \\
         --tune demo,crowd_dome_7000,crowd_h36m_7000 \\

@@ -16,10 +16,26 @@ from typing import TypeVar
 
 import torch
 
-__all__ = ["resolve_device", "model_device", "module_on", "move_to"]
+__all__ = ["check_device_name", "resolve_device", "model_device", "module_on", "move_to"]
 
 T = TypeVar("T")
 M = TypeVar("M", bound=torch.nn.Module)
+
+
+def check_device_name(spec: str) -> str:
+    """`spec` as it is when it names a device (auto, cpu, cuda, cuda:N, ...), else a ValueError
+    saying what is expected: for settings, checked before any stage runs (`tpu` failed in the
+    stage, after the ones before it). Whether a CUDA device is there is `resolve_device`'s
+    question, asked where the stage runs."""
+    if isinstance(spec, str) and spec.strip().lower() == "auto":
+        return spec
+    try:
+        torch.device(spec.strip().lower())
+    except (RuntimeError, ValueError, AttributeError) as err:
+        raise ValueError(
+            f"device '{spec}' is not a device (expected auto, cpu, cuda or cuda:N)"
+        ) from err
+    return spec
 
 
 def resolve_device(spec: str | torch.device | None = "auto") -> torch.device:

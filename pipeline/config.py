@@ -63,20 +63,23 @@ class SyntheticSource(Strict):
         """The preset and overrides make a scene spec: refused here, naming the key, before
         any stage runs (a misspelt preset or override key failed in the synth stage, with a
         traceback)."""
-        from synth.spec import preset
+        from synth.spec import SceneSpec, preset_fields
 
         if "seed" in self.overrides:  # two seeds: preset() would take neither
             raise ValueError(f"overrides.seed: give the seed as 'seed' (now {self.seed})")
         try:
-            spec = preset(self.preset, seed=self.seed, **self.overrides)
+            fields = preset_fields(self.preset, seed=self.seed, **self.overrides)
         except KeyError as exc:
             raise ValueError(f"preset: {exc.args[0]}") from None
-        except TypeError as exc:  # e.g. a `__` key under a value that is no mapping
-            raise ValueError(f"overrides: {exc}") from None
+        except (TypeError, AttributeError) as exc:  # a `__` key under a value that is no mapping
+            bad = [k for k in self.overrides if "__" in k or "." in k]
+            raise ValueError(f"overrides: {bad or 'a nested key'}: {exc}") from None
+        try:  # strictly, as the rest of the file: `n_frames: "10"` is an error, not 10
+            spec = validate_strictly(SceneSpec, fields)
         except ValidationError as exc:
-            first = exc.errors()[0]
-            where = ".".join(str(part) for part in first["loc"])
-            raise ValueError(f"overrides.{where}: {first['msg']}") from None
+            raise ValueError(
+                "; ".join(_override_error(err) for err in exc.errors(include_url=False))
+            ) from None
         # what the spec's own checks cannot see (motion names, the board's dictionary and
         # marker count, distortion terms, a lens that folds): the synth stage's setup, which
         # costs milliseconds and needs no body model
@@ -89,6 +92,26 @@ class SyntheticSource(Strict):
         except ValueError as exc:
             raise ValueError(f"overrides: {exc}") from None
         return self
+
+
+_UNION_BRANCHES = {"str", "int", "float", "bool", "none"}
+
+
+def _keys(loc: tuple) -> list[str]:
+    """The keys of a pydantic error location, without its union branches (`list[...]`,
+    `literal[...]`, `str`): `videos.list[lax-or-strict[...]]` named no key the user wrote."""
+    return [str(p) for p in loc if "[" not in str(p) and str(p) not in _UNION_BRANCHES]
+
+
+def _override_error(err: dict) -> str:
+    """One error of a synthetic scene's overrides: its key, what was expected, the value given."""
+    loc = ".".join(_keys(err["loc"]))
+    where = f"overrides.{loc}" if loc else "overrides"
+    if err["type"] == "extra_forbidden":
+        return f"{where}: unknown key"
+    got = err.get("input")
+    shown = "" if isinstance(got, dict) or not loc else f" (got {got!r})"
+    return f"{where}: {err['msg'].removeprefix('Value error, ')}{shown}"
 
 
 class CalibrationSource(Strict):
@@ -108,9 +131,15 @@ class BoardSource(Strict):
 
     @model_validator(mode="after")
     def _metres(self) -> BoardSource:
-        from calibration.board import check_square_metres
+        from calibration.board import BoardSpec, check_square_metres
 
         check_square_metres(self.square_size)  # refused here, before any stage runs
+        # the board's own checks (at least 3 x 3 squares, a ChArUco marker inside its square,
+        # a dictionary that exists and holds enough markers): they failed in calibrate
+        BoardSpec(
+            self.kind, self.squares_x, self.squares_y, self.square_size, self.marker_size,
+            self.dictionary,
+        )  # fmt: skip
         return self
 
 
@@ -156,6 +185,12 @@ class StageConfig(Strict):
     params: dict[str, Any] = Field(default_factory=dict)
 
 
+# '..', '/tmp/x', 'a/b' or '.pipeline' put a scene's outputs outside its own folder (a scene
+# named '..' replaced the folders beside the workspace: the project's own packages)
+SCENE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+ALL_SCENES = "all"
+
+
 class PipelineConfig(Strict):
     workspace: Path = Path("workspace")
     default_scene: str | None = None
@@ -179,6 +214,13 @@ class PipelineConfig(Strict):
                     raise ValueError(
                         f"{where}: unknown stage '{name}' (declared stages: {sorted(self.stages)})"
                     )
+        for name in self.scenes:  # a scene's name is its folder under the workspace
+            if not SCENE_NAME.fullmatch(name) or name == ALL_SCENES:
+                raise ValueError(
+                    f"scenes: the scene name {name!r} cannot be a folder of the workspace: use "
+                    "letters, digits, '_', '-' and '.', starting with a letter or digit, and "
+                    f"not '{ALL_SCENES}' (which --scene reads as every scene)"
+                )
         # a cycle among the needs is a config error, found before anything runs or is logged
         topological_order({n: list(stage.needs) for n, stage in self.stages.items()})
         if self.default_scene is not None and self.default_scene not in self.scenes:
@@ -208,7 +250,10 @@ class PipelineConfig(Strict):
         return dict(self._overrides)
 
     def scene_workspace(self, scene: str) -> Path:
-        return self.workspace / scene
+        path = self.workspace / scene
+        if path.resolve().parent != self.workspace.resolve():  # names are checked above
+            raise ConfigError(f"scene {scene!r}: its folder {path} is not in the workspace")
+        return path
 
 
 def _expand(spec: list[Path] | str | None) -> list[Path]:
@@ -458,7 +503,7 @@ def load_yaml(text: str) -> Any:
 def format_error_line(err: dict, source: str, model: type[BaseModel] | None = None) -> str:
     """One pydantic error as `file: dotted.key: what was expected (got ...)`. `model`: the
     validated model, whose fields an unknown key is matched against ("did you mean")."""
-    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    loc = ".".join(_keys(err["loc"])) or "(top level)"
     if err["type"] == "extra_forbidden":
         return f"{source}: {loc}: unknown key" + _suggest(model, err["loc"])
     if err["type"] == "missing":
@@ -535,9 +580,11 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     if not path.is_file():
         raise ConfigError(f"config file not found: {path} (pass --config PATH)")
     try:
-        raw = load_yaml(path.read_text()) or {}
+        raw = load_yaml(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+    except (UnicodeDecodeError, OSError) as exc:  # a video or a UTF-16 file given as --config
+        raise ConfigError(f"{path}: not a readable UTF-8 YAML file ({exc})") from exc
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level, got {type(raw).__name__}")
     given: dict[str, str] = {}
@@ -554,6 +601,11 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     except ValidationError as exc:
         raise ConfigError(_name_overrides(format_validation_error(exc, str(path)), given)) from None
     cfg = _resolve_paths(cfg, path.resolve().parent)
+    blocked = next((p for p in (cfg.workspace, *cfg.workspace.parents) if p.exists()), None)
+    if blocked is not None and not blocked.is_dir():
+        raise ConfigError(
+            f"{path}: workspace: {cfg.workspace} cannot be a folder: {blocked} is a file"
+        )
     cfg._source = path.resolve()
     cfg._overrides = given
     return cfg

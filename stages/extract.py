@@ -13,7 +13,7 @@ import dataclasses
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AfterValidator, Field, PositiveFloat, PositiveInt
+from pydantic import AfterValidator, Field, PositiveInt
 
 from gst.data import ExtractOptions, extract_scene, write_extract_report
 from gst.data.extract.options import association_overrides
@@ -21,8 +21,8 @@ from pipeline.stage import Stage, StageContext, StageParams
 
 
 class Params(StageParams):
-    crop_size: PositiveInt = 256  # side of the square crops (px)
-    scale: PositiveFloat = 1.2  # HMR2 convention: square side = 1.2 x the person box's longer side
+    crop_size: int = Field(256, ge=16)  # side of the square crops (px)
+    scale: float = Field(1.2, ge=1.0)  # HMR2: square side = 1.2 x the person box's longer side
     frame_stride: PositiveInt = 1  # every Nth frame
     method: Literal["median", "mog2", "knn"] = "median"  # the background model
     background_videos: dict[str, Path] | None = None  # camera -> clip of the empty scene

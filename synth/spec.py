@@ -165,10 +165,15 @@ def _merge(base: dict, overrides: dict) -> dict:
     return out
 
 
+def preset_fields(preset_name: str, /, **overrides) -> dict:
+    """The fields of a preset with overrides, not yet validated (see `preset`)."""
+    if preset_name not in PRESETS:
+        raise KeyError(f"unknown synth preset '{preset_name}', expected one of {sorted(PRESETS)}")
+    return _merge(PRESETS[preset_name], overrides)
+
+
 def preset(preset_name: str, /, **overrides) -> SceneSpec:
     """A preset spec ('demo', 'crowd', 'small', 'full') with overrides. Nested fields take a dict
     (`rig={"width": 320}`) or a double-underscore key (`rig__width=320`). The preset's name is
     positional only: `name=` is an override like any other (the scene's own name)."""
-    if preset_name not in PRESETS:
-        raise KeyError(f"unknown synth preset '{preset_name}', expected one of {sorted(PRESETS)}")
-    return SceneSpec.model_validate(_merge(PRESETS[preset_name], overrides))
+    return SceneSpec.model_validate(preset_fields(preset_name, **overrides))

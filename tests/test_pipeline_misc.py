@@ -502,3 +502,84 @@ def test_a_stage_module_whose_own_import_fails_is_not_said_to_be_missing(tmp_pat
         load_stage("gait", "nowhere_stage")
     with pytest.raises(ConfigError, match="module 'nowhere_pkg.stage' does not exist"):
         load_stage("gait", "nowhere_pkg.stage")
+
+
+def _config_file(tmp_path: Path, scenes: str, top: str = "workspace: ws") -> Path:
+    cfg = tmp_path / "pipeline.yaml"
+    cfg.write_text(
+        f"{top}\nscenes:\n{scenes}\nstages:\n  synth: {{}}\n  calibrate: {{needs: [synth]}}\n"
+        "  extract: {needs: [calibrate]}\n  train: {needs: [extract]}\n  track: {}\n"
+        "  pretrain: {}\n"
+    )
+    return cfg
+
+
+@pytest.mark.parametrize("name", ["'..'", "'.'", "'/tmp/elsewhere'", "'a/b'", "'.pipeline'", "all"])
+def test_a_scene_name_that_is_no_folder_of_the_workspace_is_refused(tmp_path, capsys, name):
+    """A scene named '..' put its outputs beside the workspace (run synth replaced a folder
+    there: with the project's pipeline.yaml, its own packages); '/tmp/x' and 'a/b' wrote
+    elsewhere, '.pipeline' into the runner's state, 'all' could never be picked alone."""
+    from pipeline.cli import main
+
+    cfg = _config_file(tmp_path, f"  {name}: {{synthetic: {{preset: demo}}}}")
+    assert main(["run", "synth", "--config", str(cfg), "--dry-run"]) == 2
+    assert "cannot be a folder of the workspace" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="is not in the workspace"):
+        load_config(_config_file(tmp_path, "  ok: {synthetic: {preset: demo}}")).scene_workspace(
+            ".."
+        )
+
+
+def test_a_config_that_is_no_text_or_a_workspace_that_is_a_file_is_a_config_error(tmp_path):
+    """A file that is not UTF-8 (a video given as --config) raised UnicodeDecodeError, and a
+    workspace naming a file NotADirectoryError, each as a traceback."""
+    latin = tmp_path / "latin.yaml"
+    latin.write_bytes(b"\xff\xfe bad")
+    with pytest.raises(ConfigError, match="latin.yaml: not a readable UTF-8 YAML file"):
+        load_config(latin)
+    (tmp_path / "notes.txt").write_text("x")
+    cfg = _config_file(tmp_path, "  s: {synthetic: {preset: demo}}", "workspace: notes.txt/ws")
+    with pytest.raises(ConfigError, match="notes.txt is a file"):
+        load_config(cfg)
+
+
+@pytest.mark.parametrize(
+    "setting, said",
+    [("extract.crop_size=8", "crop_size: Input should be greater than or equal to 16"),
+     ("extract.scale=0.5", "scale: Input should be greater than or equal to 1"),
+     ("extract.association={min_views: 1}", "min_views must be >= 2"),
+     ("train.device=tpu", "device 'tpu' is not a device"),
+     ("track.device=cuda:x", "device 'cuda:x' is not a device")],
+)  # fmt: skip
+def test_settings_the_stage_would_refuse_are_refused_before_anything_runs(
+    tmp_path, capsys, setting, said
+):
+    """These passed the config check and failed inside their stage, after the stages before
+    it had run."""
+    from pipeline.cli import main
+
+    cfg = _config_file(tmp_path, "  s: {synthetic: {preset: demo}}")
+    assert main(["run", "synth", "--config", str(cfg), "--dry-run", "--set", setting]) == 2
+    assert said in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "board, said",
+    [("squares_x: 2, squares_y: 5, square_size: 0.1", "at least 3 x 3 squares"),
+     ("squares_x: 5, squares_y: 7, square_size: 0.1", "marker_size must be in (0, square_size"),
+     ("squares_x: 5, squares_y: 7, square_size: 0.1, marker_size: 0.07, dictionary: DICT_NOPE",
+      "'DICT_NOPE' is unknown"),
+     ("squares_x: 20, squares_y: 20, square_size: 0.1, marker_size: 0.07, "
+      "dictionary: DICT_4X4_50", "needs 200 markers")],
+)  # fmt: skip
+def test_a_board_that_cannot_be_made_is_a_config_error(tmp_path, capsys, board, said):
+    """These boards passed the config check and failed in calibrate, every time."""
+    from pipeline.cli import main
+
+    video = tmp_path / "cam1.mp4"
+    video.write_bytes(b"")
+    cfg = _config_file(
+        tmp_path, f"  s: {{videos: [{video}], board: {{videos: [{video}], {board}}}}}"
+    )
+    assert main(["run", "calibrate", "--config", str(cfg), "--dry-run"]) == 2
+    assert said in capsys.readouterr().err

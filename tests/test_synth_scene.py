@@ -367,8 +367,17 @@ def test_a_crowd_that_cannot_keep_its_rules_says_so(caplog):
     "block, said",
     [("{preset: demo, overrides: {seed: 3}}", "scenes.s.synthetic: overrides.seed: give the"),
      ("{preset: dmeo}", "scenes.s.synthetic: preset: unknown synth preset 'dmeo'"),
-     ("{preset: demo, overrides: {n_frame: 4}}", "scenes.s.synthetic: overrides.n_frame: Extra"),
-     ("{preset: demo, overrides: {rig: {widht: 9}}}", "overrides.rig.widht: Extra"),
+     ("{preset: demo, overrides: {n_frame: 4}}", "scenes.s.synthetic: overrides.n_frame: unknown"),
+     ("{preset: demo, overrides: {rig: {widht: 9}}}", "overrides.rig.widht: unknown key"),
+     # text for numbers and flags was converted without a word (the rest of the file is strict)
+     ("{preset: demo, overrides: {n_frames: '10'}}", "overrides.n_frames: Input should be a valid "
+      "integer (got '10')"),
+     ("{preset: demo, overrides: {rig: {fps: '30'}}}", "overrides.rig.fps: Input should be a "),
+     # every problem, each with its value (only the first was said, without the value)
+     ("{preset: demo, overrides: {n_people: 0, rig: {width: 3}}}", "overrides.n_people: Input "
+      "should be greater than or equal to 1 (got 0); overrides.rig.width: Input should be a "
+      "multiple of 2 (got 3)"),
+     ("{preset: demo, overrides: {n_frames__x: 5}}", "overrides: ['n_frames__x']: "),
      ("{preset: demo, seed: -1}", "scenes.s.synthetic.seed: Input should be greater than"),
      ("{preset: demo, overrides: {rig: {width: 97}}}", "overrides.rig.width: Input should be a "
       "multiple of 2"),

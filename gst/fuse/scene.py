@@ -103,7 +103,7 @@ class FuseOptions:
     people_per_batch: int = 8  # people fitted together (fixed batches make resumes identical)
     overlay: bool = True
     # torch threads of the fit, for this call only (None: the process's; on 2 cores the fit runs
-    # 1.5x faster on 2 than on 1, docs/fuse.md "Speed")
+    # 1.5x faster on 2 than on 1, docs/fuse.md "What it measured")
     threads: int | None = None
 
     def settings(self) -> dict:

@@ -16,12 +16,13 @@ import logging
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
 import torch
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -41,7 +42,7 @@ from gst.cores import available_cores
 from gst.data.camera_view import TrackingView
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import BlazePoseModelsMissing, model_paths
-from gst.device import resolve_device
+from gst.device import check_device_name, resolve_device
 from gst.model.checkpoint import load_checkpoint
 from gst.model.inference import GSTPredictor
 from gst.registry import sha256_of
@@ -148,7 +149,7 @@ class TrackSettings(BaseModel):
     keep_detections: bool = True
     # where the network runs (gst.device): auto is the GPU when PyTorch sees one, else the CPU;
     # decoding, the person model and the pose fit stay on the CPU
-    device: str = "auto"
+    device: Annotated[str, AfterValidator(check_device_name)] = "auto"
 
     @model_validator(mode="after")
     def _chunks_do_not_smooth(self):

@@ -26,11 +26,12 @@ import logging
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -41,6 +42,7 @@ from pydantic import (
 )
 
 from gst.body import load_body_model
+from gst.device import check_device_name
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint
 from gst.model.presets import PRESETS, get_preset
@@ -133,7 +135,7 @@ class PretrainConfig(BaseModel):
     threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
     # where the rendered phases train (gst.device; auto: the GPU when PyTorch sees one). The
     # render-free lift phase and the world renders stay on the CPU.
-    device: str = "auto"
+    device: Annotated[str, AfterValidator(check_device_name)] = "auto"
     amp: bool = False  # bf16 autocast in the rendered phases (GPUs; docs/gpu.md)
     # An existing GST checkpoint to use as is instead of pretraining (e.g. another scene's
     # models/pretrain.pt: one pretraining serves every scene). Its content is part of the

@@ -15,18 +15,18 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 
 from gst.atomic import atomic_write_text
 from gst.body import load_body_model
 from gst.detect.blazepose import import_litert
 from gst.detect.weights import model_paths
-from gst.device import resolve_device
+from gst.device import check_device_name, resolve_device
 from gst.fuse.observations import without_projected
 from gst.metrics.flips import reference_in_crops, surely_mirrored, unmirror
 from gst.metrics.lpips import load_lpips
@@ -134,7 +134,7 @@ class TrainSettings(BaseModel):
     losses: LossWeights = LossWeights()  # loss weights (docs/training.md)
     threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
     # where the network trains (gst.device): auto is the GPU when PyTorch sees one, else the CPU
-    device: str = "auto"
+    device: Annotated[str, AfterValidator(check_device_name)] = "auto"
     amp: bool = False  # bf16 autocast (GPUs; huge preset with gsplat: 1.9x a step, docs/gpu.md)
 
 

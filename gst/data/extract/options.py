@@ -37,6 +37,7 @@ def association_overrides(value: dict | None) -> dict | None:
         raise ValueError(
             f"association: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})"
         )
+    AssociationConfig(**(value or {}))  # its own range checks, before any stage runs
     return value
 
 
