@@ -369,7 +369,19 @@ def _resolve_paths(cfg: PipelineConfig, base: Path) -> PipelineConfig:
         return p if Path(p).is_absolute() else Path(os.path.normpath(base / p))
 
     cfg.workspace = fix(cfg.workspace)
-    for scene in cfg.scenes.values():
+    for name, scene in cfg.scenes.items():
+        body = scene.synthetic.overrides.get("body_model") if scene.synthetic else None
+        if isinstance(body, str) and body != "anny" and body.split(":")[0] != "smpl":
+            # a file: beside the config, as every other path here (it was looked up from the
+            # shell's folder, by the synth stage, after the config had passed)
+            path = fix(Path(body))
+            if not path.exists():
+                raise ConfigError(
+                    f"scenes.{name}.synthetic.overrides.body_model: {path} does not exist "
+                    "(expected 'anny', 'smpl[:gender]' or an SMPL file; a relative path is read "
+                    "from the config's folder)"
+                )
+            scene.synthetic.overrides["body_model"] = str(path)
         scene.videos = (
             [fix(p) for p in scene.videos] if isinstance(scene.videos, list) else fix(scene.videos)
         )

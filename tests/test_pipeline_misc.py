@@ -583,3 +583,22 @@ def test_a_board_that_cannot_be_made_is_a_config_error(tmp_path, capsys, board, 
     )
     assert main(["run", "calibrate", "--config", str(cfg), "--dry-run"]) == 2
     assert said in capsys.readouterr().err
+
+
+def test_a_synthetic_body_model_file_is_read_beside_the_config(tmp_path, monkeypatch):
+    """`overrides: {body_model: my_smpl.pkl}` beside the config passed the check and was looked
+    for in the shell's folder by the synth stage; a missing one failed there."""
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "my_smpl.pkl").write_bytes(b"")
+    scenes = "  s: {synthetic: {preset: demo, overrides: {body_model: my_smpl.pkl}}}"
+    cfg = _config_file(tmp_path / "cfg", scenes)
+    monkeypatch.chdir(tmp_path)
+    loaded = load_config(cfg).scenes["s"].synthetic.overrides["body_model"]
+    assert loaded == str(tmp_path / "cfg" / "my_smpl.pkl")
+    (tmp_path / "cfg" / "my_smpl.pkl").unlink()
+    with pytest.raises(ConfigError, match=r"scenes.s.synthetic.overrides.body_model: .*my_smpl"):
+        load_config(cfg)
+    anny = _config_file(
+        tmp_path / "cfg", "  s: {synthetic: {preset: demo, overrides: {body_model: anny}}}"
+    )
+    assert load_config(anny).scenes["s"].synthetic.overrides["body_model"] == "anny"
