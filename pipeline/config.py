@@ -554,6 +554,13 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> list[str]:
     A stage override also removes that key from every scene's `params` for the stage. Returns
     the key as it is recorded (`stages.S.params.K` as `S.K`)."""
     top_level = set(PipelineConfig.model_fields)
+    scenes = raw.get("scenes") if isinstance(raw.get("scenes"), dict) else {}
+    if parts[0] == "scenes" and len(parts) > 2 and parts[1] not in scenes:
+        if parts[2] not in ("synthetic", "videos"):  # a typo'd scene, not a new one
+            raise ConfigError(
+                f"--set {'.'.join(parts)}: no scene '{parts[1]}' (scenes: {sorted(scenes)}); a "
+                "new scene needs its footage first (scenes.NAME.synthetic or .videos)"
+            )
     if len(parts) > 3 and parts[0] == "stages" and parts[2] == "params":
         parts = [parts[1], *parts[3:]]  # the long form: as `--set S.K=V`, over scenes' values
     if parts[0] in top_level:

@@ -602,3 +602,13 @@ def test_a_synthetic_body_model_file_is_read_beside_the_config(tmp_path, monkeyp
         tmp_path / "cfg", "  s: {synthetic: {preset: demo, overrides: {body_model: anny}}}"
     )
     assert load_config(anny).scenes["s"].synthetic.overrides["body_model"] == "anny"
+
+
+def test_a_set_of_a_scene_that_does_not_exist_names_the_scenes(tmp_path):
+    """`--set scenes.nope.fps=3` (a typo'd scene) made a scene and was refused as one without
+    footage; a new scene given its footage is still made."""
+    cfg = _config_file(tmp_path, "  s: {synthetic: {preset: demo}}")
+    with pytest.raises(ConfigError, match=r"no scene 'nope' \(scenes: \['s'\]\)"):
+        load_config(cfg, ["scenes.nope.fps=3"])
+    made = load_config(cfg, ["scenes.t.synthetic={preset: demo}"])
+    assert sorted(made.scenes) == ["s", "t"]
