@@ -274,15 +274,19 @@ def test_more_cameras_than_the_views_masks_hold_are_refused(scene, tmp_path, mon
 
 def test_marker_files_of_people_from_an_earlier_fusion_are_removed(scene, tmp_path):
     """A library caller fusing again into one folder kept the earlier fusion's person files
-    beside the new ones (the stage writes into a fresh folder)."""
+    beside the new ones (the stage writes into a fresh folder), and a write killed before its
+    rename left its hidden temporary file, which the stage then moved along with the outputs."""
     tmp, cap, landmarks = scene
     for sub in ("trc", "c3d"):
         (tmp_path / "fused" / sub).mkdir(parents=True)
         (tmp_path / "fused" / sub / f"person_99.{sub}").write_text("an earlier fusion's")
+        (tmp_path / "fused" / sub / f".person_1.k2x9.tmp.{sub}").write_text("killed mid-write")
+    (tmp_path / "fused" / ".bodies.a1b2.tmp.parquet").write_text("killed mid-write")
     res = fuse_scene(tmp / "crops.h5", cap.rig, tmp_path / "fused", tmp_path / "report",
                      fps=30.0, options=OPTS, landmarks=landmarks)  # fmt: skip
     for sub, written in (("trc", res.trc), ("c3d", res.c3d)):
         assert sorted((tmp_path / "fused" / sub).iterdir()) == sorted(written)
+    assert not list((tmp_path / "fused").glob(".*"))
 
 
 def test_a_store_extracted_at_a_stride_is_refused(scene, tmp_path):
