@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 
 import cv2
 import numpy as np
@@ -15,6 +16,8 @@ from synth_fixtures import CapsuleBody, rig_io, small_scene_spec
 from test_evaluate_metrics import JOINTS
 from test_train_recipe import crop_set
 
+import gst.train.scene_truth as scene_truth
+from calibration.formats import read_rig
 from gst.body import BodyModel
 from gst.body.random_model import random_body_data
 from gst.eval.evaluate import EvalConfig, evaluate_model
@@ -25,7 +28,7 @@ from gst.train.recipe import build_network, make_task
 from gst.train.scene_truth import attach_scene_truth
 from gst.train.synthetic_crops import crops_from_synth_scene
 from synth.scene import render_scene
-from synth.truth import has_scene_truth, read_scene_truth
+from synth.truth import has_scene_truth, read_scene_truth, truth_mask_file
 
 BODY = CapsuleBody()
 
@@ -123,6 +126,51 @@ def test_a_crop_is_matched_to_the_person_its_mask_shows_not_its_box(tiny_scene):
     truth = attach_scene_truth(crops, np.array(boxes), tiny_scene)
     assert bool(crops.truth["has_truth"].all())
     np.testing.assert_array_equal(truth.person_id[crops.truth["truth_row"].numpy()], people)
+
+
+def test_a_crop_spilling_onto_the_person_in_front_keeps_its_own_person(tiny_scene, tmp_path):
+    """Per (frame, camera) crops and truth people are paired one-to-one: a crop whose mask lands
+    mostly on the person in front of it (its own person hidden behind them) is not scored
+    against that person when they have a crop of their own. By majority alone the demo's crop
+    370 was scored against the person in front (371 mm; 252 against its own)."""
+    import h5py
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    crops = crops_from_synth_scene(scene, crop_size=64, min_mask_area=20, min_visible_joints=1)
+    people = crops.truth["person_truth_id"].numpy()
+    pairs = [
+        (i, j)
+        for i in range(len(crops))
+        for j in range(len(crops))
+        if i != j and crops.frame[i] == crops.frame[j] and crops.camera[i] == crops.camera[j]
+    ]
+    # the crop with the largest mask in its pair is the one whose person is painted over
+    a, b = max(pairs, key=lambda ij: float(crops.masks[ij[0]].sum() - crops.masks[ij[1]].sum()))
+    frame, camera = int(crops.frame[a]), crops.camera_names[int(crops.camera[a])]
+    with h5py.File(truth_mask_file(scene, camera), "r+") as f:
+        ids = f["mask"][frame]
+        vv, uu = np.nonzero(ids == people[a])
+        top = vv < np.quantile(vv, 0.65)  # the upper 65 % of a's pixels now show b in front
+        ids[vv[top], uu[top]] = people[b]
+        f["mask"][frame] = ids
+    rig = read_rig(scene / "calibration" / "rig.json", "rig")
+    hits = scene_truth.mask_hits(crops, scene, rig)
+    assert hits[a][people[b]] > 0.5 * hits[a].sum() > 0  # a's majority is now b
+    shown = scene_truth.mask_truth_ids(crops, scene, rig)
+    assert shown[a] == people[a] and shown[b] == people[b]
+
+
+def test_a_duplicate_crop_is_scored_against_the_person_it_shows():
+    """More crops than people in a (frame, camera): the one left without a partner keeps the
+    person most of its mask shows; crops of other frames or cameras are paired apart."""
+    hits = [np.array([0, 40, 2]), np.array([0, 90, 0]), np.array([0, 3, 50]), np.array([0, 9])]
+    keys = [(0, 0), (0, 0), (0, 0), (1, 0)]
+    np.testing.assert_array_equal(scene_truth.shown_ids(keys, hits), [1, 1, 2, 1])
+    # a crop whose partner holds under `min_partner_share` of its hits and has no majority
+    spill = [np.array([0, 10, 12, 11]), np.array([0, 0, 50, 0]), np.array([0, 60, 0, 0])]
+    np.testing.assert_array_equal(scene_truth.shown_ids([(0, 0)] * 3, spill, 0.5, 0.4), [0, 2, 1])
+    assert scene_truth.shown_ids([(0, 0)], [np.zeros(0, np.int64)]).tolist() == [0]
 
 
 def test_no_truth_is_reported(tmp_path):
