@@ -290,3 +290,30 @@ def test_crops_left_out_of_the_errors_are_counted_in_the_headline():
     assert row.endswith("| 0 of 10 | 4 of 10 |")
     clean = _markdown({"gst": summary(80.0, 0)}, {}, [], False)
     assert "not finite" not in clean
+
+
+def test_the_per_motion_table_counts_crops_and_held_out_pairs_apart():
+    """The image columns average held-out view pairs, not the motion's crops: the table's
+    single `n` was the crop count (the demo's 144 crops beside 24 pairs)."""
+    from gst.eval.report import _markdown
+
+    overall = {"n": 3, "n_not_finite": 0, "mpjpe_mm": 90.0, "pa_mpjpe_mm": 60.0}
+    summary = {
+        "counts": {"pose_crops": 3, "view_pairs": 2, "render_size": 32, "heldout_cameras": ["c2"]},
+        "pose": {
+            "overall": overall,
+            "per_camera": {},
+            "per_part": {},
+            "per_motion": {"run": overall, "squat": {**overall, "n": 5}},
+        },
+        "novel_view": {
+            "heldout": {"n": 2, "psnr": 20.0},
+            "trained_views": {},
+            "per_target_camera": {},
+            "per_motion": {"run": {"n": 2, "psnr": 20.0, "lpips": 0.2}},
+        },
+    }
+    md = _markdown({"gst": summary}, {}, [], False)
+    assert "| motion | crops | MPJPE | PA-MPJPE | held-out pairs |" in md
+    assert "| run | 3 | 90.0 | 60.0 | 2 | 20.00 | 0.200 |" in md
+    assert "| squat | 5 | 90.0 | 60.0 | 0 | n/a | n/a |" in md

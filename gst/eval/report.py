@@ -338,14 +338,15 @@ def _markdown(summaries: dict[str, dict], meta: dict, plots: list[str], has_sbs:
         "",
         "### Per motion",
         "",
-        "| motion | n | MPJPE | PA-MPJPE | held-out PSNR | held-out LPIPS |",
-        "|---|---|---|---|---|---|",
+        "| motion | crops | MPJPE | PA-MPJPE | held-out pairs | held-out PSNR | held-out LPIPS |",
+        "|---|---|---|---|---|---|---|",
     ]
     for m, v in s["pose"]["per_motion"].items():
+        # the image columns average view pairs, not crops: each has its own count
         nv = s.get("novel_view", {}).get("per_motion", {}).get(m, {})
         lines.append(
             f"| {m} | {v['n']} | {_f(v['mpjpe_mm'])} | {_f(v['pa_mpjpe_mm'])} | "
-            f"{_f(nv.get('psnr'), 2)} | {_f(nv.get('lpips'), 3)} |"
+            f"{nv.get('n', 0)} | {_f(nv.get('psnr'), 2)} | {_f(nv.get('lpips'), 3)} |"
         )
     lines += ["", "### Per body part", "", "| part | MPJPE | PA-MPJPE |", "|---|---|---|"]
     for part, v in s["pose"]["per_part"].items():
