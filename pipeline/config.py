@@ -78,7 +78,10 @@ class SyntheticSource(Strict):
             spec = validate_strictly(SceneSpec, fields)
         except ValidationError as exc:
             raise ValueError(
-                "; ".join(_override_error(err) for err in exc.errors(include_url=False))
+                "; ".join(
+                    format_error_line(err, "", SceneSpec, key_prefix="overrides")
+                    for err in exc.errors(include_url=False)
+                )
             ) from None
         # what the spec's own checks cannot see (motion names, the board's dictionary and
         # marker count, distortion terms, a lens that folds): the synth stage's setup, which
@@ -101,17 +104,6 @@ def _keys(loc: tuple) -> list[str]:
     """The keys of a pydantic error location, without its union branches (`list[...]`,
     `literal[...]`, `str`): `videos.list[lax-or-strict[...]]` named no key the user wrote."""
     return [str(p) for p in loc if "[" not in str(p) and str(p) not in _UNION_BRANCHES]
-
-
-def _override_error(err: dict) -> str:
-    """One error of a synthetic scene's overrides: its key, what was expected, the value given."""
-    loc = ".".join(_keys(err["loc"]))
-    where = f"overrides.{loc}" if loc else "overrides"
-    if err["type"] == "extra_forbidden":
-        return f"{where}: unknown key"
-    got = err.get("input")
-    shown = "" if isinstance(got, dict) or not loc else f" (got {got!r})"
-    return f"{where}: {err['msg'].removeprefix('Value error, ')}{shown}"
 
 
 class CalibrationSource(Strict):
@@ -512,18 +504,26 @@ def load_yaml(text: str) -> Any:
     return yaml.load(text, Loader=_CoreSchemaLoader)  # a SafeLoader: builds no Python objects
 
 
-def format_error_line(err: dict, source: str, model: type[BaseModel] | None = None) -> str:
+def format_error_line(
+    err: dict, source: str, model: type[BaseModel] | None = None, key_prefix: str = ""
+) -> str:
     """One pydantic error as `file: dotted.key: what was expected (got ...)`. `model`: the
-    validated model, whose fields an unknown key is matched against ("did you mean")."""
-    loc = ".".join(_keys(err["loc"])) or "(top level)"
+    validated model, whose fields an unknown key is matched against ("did you mean").
+    `key_prefix`: where the model sits in the file (a synthetic scene's `overrides`), put
+    before its keys; `source` "" leaves the file out."""
+    keys = _keys(err["loc"])
+    loc = ".".join([key_prefix, *keys] if key_prefix else keys) or "(top level)"
+    head = f"{source}: {loc}" if source else loc
     if err["type"] == "extra_forbidden":
-        return f"{source}: {loc}: unknown key" + _suggest(model, err["loc"])
+        return f"{head}: unknown key" + _suggest(model, err["loc"])
     if err["type"] == "missing":
-        return f"{source}: {loc}: required key is missing"
+        return f"{head}: required key is missing"
     msg = err["msg"].removeprefix("Value error, ")
     got = err.get("input")
-    shown = "" if isinstance(got, dict) else f" (got {got!r})"
-    return f"{source}: {loc}: {msg}{shown}"
+    # a check of the whole prefixed model has the model's fields as its input, not a value
+    whole = key_prefix and not keys
+    shown = "" if isinstance(got, dict) or whole else f" (got {got!r})"
+    return f"{head}: {msg}{shown}"
 
 
 def format_validation_error(exc: ValidationError, source: str) -> str:
