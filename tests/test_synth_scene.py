@@ -369,6 +369,9 @@ def test_a_crowd_that_cannot_keep_its_rules_says_so(caplog):
      ("{preset: dmeo}", "scenes.s.synthetic: preset: unknown synth preset 'dmeo'"),
      ("{preset: demo, overrides: {n_frame: 4}}", "scenes.s.synthetic: overrides.n_frame: unknown"),
      ("{preset: demo, overrides: {rig: {widht: 9}}}", "overrides.rig.widht: unknown key"),
+     # the nearest key, as everywhere else in the file
+     ("{preset: demo, overrides: {n_fraems: 4}}", "overrides.n_fraems: unknown key (did you mean "
+      "'n_frames'?)"),
      # text for numbers and flags was converted without a word (the rest of the file is strict)
      ("{preset: demo, overrides: {n_frames: '10'}}", "overrides.n_frames: Input should be a valid "
       "integer (got '10')"),
