@@ -177,14 +177,18 @@ def _lock_owner(fh) -> str:
     return fh.read().strip() or "?"
 
 
+_MAX_KEY_CHARS = 120  # file names may hold 255 bytes: room for the hash and `.json`
+
+
 def _safe_key(key: str) -> str:
     """A variant key as a file name: characters other than letters, digits and `_.@-` become
     `_`, and a short hash of the key keeps apart keys that map to the same name (`track@a b`,
-    `track@a_b`)."""
+    `track@a_b`). A long key (`--video` of 30 clips: their names joined) is cut to
+    `_MAX_KEY_CHARS`, the hash keeping it apart from the others that share its start."""
     safe = re.sub(r"[^A-Za-z0-9_.@-]+", "_", key)
-    if safe == key:
+    if safe == key and len(key) <= _MAX_KEY_CHARS:
         return key
-    return f"{safe}.{hashlib.sha256(key.encode()).hexdigest()[:8]}"
+    return f"{safe[:_MAX_KEY_CHARS]}.{hashlib.sha256(key.encode()).hexdigest()[:8]}"
 
 
 def stage_code(stage: Stage) -> tuple[str, dict[str, str]]:

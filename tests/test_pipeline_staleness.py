@@ -239,6 +239,26 @@ def test_each_variant_stages_its_outputs_in_a_folder_of_its_own(tmp_path):
     assert a.name == _safe_key("per_video@a b")
 
 
+def test_a_variant_of_many_videos_runs_and_keeps_its_record(tmp_path):
+    """`track --video` of 30 clips (GX010001.mp4 ...): the variant joins their names, and its
+    state file name passed the file system's 255 bytes, an OSError traceback even with
+    --dry-run. Long keys are cut, a hash keeping them apart."""
+    from pipeline.config import load_config
+
+    cfg = config_with(tmp_path, 'per_video: {module: "tests.fake_stages:PER_VIDEO"}')
+    clips = []
+    for k in range(1, 32):
+        clips += ["--video", str(tmp_path / f"GX01{k:04d}.mp4")]
+        (tmp_path / f"GX01{k:04d}.mp4").write_bytes(b"")
+    assert run(cfg, "run", "per_video", *clips[:-2]) == 0
+    assert run(cfg, "run", "per_video", *clips) == 0
+    state = load_config(cfg).scene_workspace("demo") / ".pipeline" / "state"
+    records = [p.name for p in state.iterdir() if p.name.startswith("per_video@")]
+    assert len(records) == 2 and all(len(r.encode()) < 200 for r in records)
+    assert run(cfg, "run", "per_video", *clips) == 0  # up to date: its record was found
+    assert run(cfg, "status") == 0
+
+
 def test_the_hash_cache_sees_a_same_size_file_copied_in_with_its_old_time(tmp_path):
     """Keyed by size and modification time, the cache served the old digest for a file of the
     same size copied in with the old file's time (cp -p, rsync -a, tar x do that): the stages
