@@ -188,8 +188,14 @@ def _check_videos_option(videos: list[Path], probe: bool = False) -> list[Path]:
             errors.append(str(exc))
     if errors:  # a data error (exit 1), as when track itself finds it
         raise PipelineError("--video: " + "\n--video: ".join(errors))
+    from gst.track.writer import partition_name
+
     by_name: dict[str, list[str]] = {}
     for v in videos:
+        try:
+            partition_name(v.stem)
+        except ValueError as exc:
+            raise ConfigError(f"--video: {v}: {exc}") from None
         by_name.setdefault(v.stem, []).append(str(v))
     clashes = {n: paths for n, paths in by_name.items() if len(paths) > 1}
     if clashes:

@@ -472,6 +472,10 @@ VIDEO_OPTION_CASES = {
     # through a linked folder: taken for two files sharing a name ("rename or link one")
     "one file by two paths": (["{videos}/c1.mp4", "{root}/linked/c1.mp4"],
                               r"one file listed twice: .*c1.mp4.*linked/c1.mp4"),
+    # 35 CJK characters (93 bytes) take 273 once percent-encoded: an OSError traceback
+    "a name too long for its tracks folder": (
+        ["{root}/a/" + "決勝戦ハイライト映像" * 3 + "_前半カメラ1.mp4"],
+        r"too long for its tracks folder: percent-encoded it takes \d+ bytes"),
 }  # fmt: skip
 
 
@@ -483,6 +487,9 @@ def test_video_option_errors(case, scene, tmp_path, capsys):
         clip = scene.root / sub / "clip.mp4"
         if not clip.exists():
             clip.write_bytes((scene.videos / "c1.mp4").read_bytes())
+    long_name = scene.root / "a" / ("決勝戦ハイライト映像" * 3 + "_前半カメラ1.mp4")
+    if not long_name.exists():
+        long_name.write_bytes((scene.videos / "c1.mp4").read_bytes())
     if not (scene.root / "linked").exists():
         (scene.root / "linked").symlink_to(scene.videos)
     fmt = {"root": scene.root, "videos": scene.videos}

@@ -15,8 +15,7 @@ import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
 from gst.track.schema import SMPL_JOINT_NAMES, parse_metadata
-
-PARTITION_PREFIX = "video="  # gst.track.writer.partition_dir
+from gst.track.writer import PARTITION_PREFIX
 
 
 def read_tracks(path: str | Path, videos: list[str] | None = None) -> pa.Table:

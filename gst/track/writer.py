@@ -59,11 +59,29 @@ def default_staging_root(root: str | Path) -> Path:
     return root.parent / f".{root.name}.inprogress"
 
 
-def partition_dir(root: str | Path, video: str) -> Path:
-    """<root>/video=<name>, the name percent-encoded as pyarrow's Hive partitioning expects."""
+PARTITION_PREFIX = "video="
+MAX_NAME_BYTES = 255  # a folder name, on the common file systems
+
+
+def partition_name(video: str) -> str:
+    """`video=<name>`, the name percent-encoded as pyarrow's Hive partitioning expects; a name
+    whose folder name would pass `MAX_NAME_BYTES` (about 27 CJK characters: 9 bytes each once
+    encoded) is refused here, before any tracking, naming the video."""
     if not video:
         raise ValueError("video name must not be empty")
-    return Path(root) / f"video={quote(video, safe='')}"
+    name = PARTITION_PREFIX + quote(video, safe="")
+    if len(name.encode()) > MAX_NAME_BYTES:
+        raise ValueError(
+            f"video name '{video}' is too long for its tracks folder: percent-encoded it takes "
+            f"{len(name.encode())} bytes, a folder name at most {MAX_NAME_BYTES}; rename or link "
+            "the file under a shorter name"
+        )
+    return name
+
+
+def partition_dir(root: str | Path, video: str) -> Path:
+    """<root>/video=<name> (`partition_name`)."""
+    return Path(root) / partition_name(video)
 
 
 def _write_json(path: Path, obj: dict) -> None:
