@@ -16,6 +16,7 @@ from gst.track.report import (
     draw_key,
     draw_people,
     joint_angles,
+    overlay_size,
     plot_joint_angles,
     write_overlay,
 )
@@ -60,6 +61,19 @@ def test_joint_angles_of_known_geometry():
 def test_parents_form_a_tree_rooted_at_the_pelvis():
     assert SMPL_PARENTS[0] == -1 and all(p < c for c, p in enumerate(SMPL_PARENTS) if c)
     assert SMPL_JOINT_NAMES[SMPL_PARENTS[SMPL_JOINT_NAMES.index("left_wrist")]] == "left_elbow"
+
+
+def test_an_overlay_of_a_panorama_fits_the_codec(tmp_path):
+    """An 8400 px wide video (a stitched panorama) failed the overlay's MPEG-4 writer (at most
+    8191 px a side) after the whole tracking, and the finished tracks were never published: the
+    overlay is scaled down to 4096 px on its longer side, sides even."""
+    _, boxes, video = crossing_clip(tmp_path, 3, width=8400, height=200)
+    det = SuppliedBoxes.from_file(write_boxes_csv(tmp_path / "boxes.csv", boxes, "clip"))
+    res = track_boxes(video, tmp_path / "tracks", det)
+    info = probe_video(write_overlay(video, res.path, tmp_path / "overlay.mp4"))
+    assert (info.width, info.height, info.frame_count) == (4096, 98, 3)
+    assert overlay_size(320, 240) == (320, 240)  # what fits is kept as it is
+    assert overlay_size(1, 1) == (16, 16) and overlay_size(41, 33) == (40, 32)
 
 
 def test_overlay_draws_skeletons_at_their_joints(tracked):

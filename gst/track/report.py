@@ -134,11 +134,26 @@ def draw_key(img: np.ndarray, with_landmarks: bool = True) -> np.ndarray:
     return img
 
 
+OVERLAY_MAX_SIDE = 4096  # MPEG-4 part 2 takes at most 8191 px a side; 4K is plenty to look at
+OVERLAY_MIN_SIDE = 16
+
+
+def overlay_size(width: int, height: int) -> tuple[int, int]:
+    """(width, height) of the overlay video of a `width` x `height` one: scaled down to
+    `OVERLAY_MAX_SIDE` on its longer side (an 8400 px panorama failed the codec after the whole
+    tracking, and the tracks were never published), sides even and at least `OVERLAY_MIN_SIDE`
+    (a 1x1 video failed the same way)."""
+    scale = min(1.0, OVERLAY_MAX_SIDE / max(width, height))
+    return tuple(  # type: ignore[return-value]
+        max(OVERLAY_MIN_SIDE, 2 * round(side * scale / 2)) for side in (width, height)
+    )
+
+
 def write_overlay(
     video_path: str | Path, tracks_path: str | Path, out_path: str | Path, fourcc: str = "mp4v"
 ) -> Path:
     """The processed frames of `video_path` with the tracks drawn on, as a video at the processed
-    rate (fps / stride). Written to a temporary name and renamed."""
+    rate (fps / stride), at `overlay_size`. Written to a temporary name and renamed."""
     meta = read_metadata(tracks_path)
     table = read_tracks(tracks_path)
     v = meta["video"]
@@ -146,12 +161,10 @@ def write_overlay(
     frames_col = table.column("frame").to_numpy()
     has_landmarks = "landmarks2d" in table.column_names
     out_path = Path(out_path)
+    size = overlay_size(int(v["width"]), int(v["height"]))
     with atomic_path(out_path) as tmp:
         writer = cv2.VideoWriter(
-            str(tmp),
-            cv2.VideoWriter_fourcc(*fourcc),
-            float(v["fps"]) / stride,
-            (int(v["width"]), int(v["height"])),
+            str(tmp), cv2.VideoWriter_fourcc(*fourcc), float(v["fps"]) / stride, size
         )
         if not writer.isOpened():
             raise RuntimeError(f"{out_path}: cannot write video with codec '{fourcc}'")
@@ -165,7 +178,10 @@ def write_overlay(
                 fps=float(v["fps"]),  # the rate the frames were tracked at (the scene's, if given)
             ):
                 rows = table.filter(pa.array(frames_col == f.index))
-                writer.write(draw_key(draw_people(f.image, rows), has_landmarks))
+                drawn = draw_key(draw_people(f.image, rows), has_landmarks)
+                if drawn.shape[1::-1] != size:
+                    drawn = cv2.resize(drawn, size, interpolation=cv2.INTER_AREA)
+                writer.write(drawn)
         finally:
             writer.release()
     return out_path
