@@ -143,6 +143,11 @@ def still_image_error(path: Path | str) -> str | None:
         return None
     if not cv2.haveImageReader(str(path)):
         return None
+    try:  # an animated GIF / WebP / APNG is a video to FFmpeg, and was refused as an image
+        if cv2.imcount(str(path)) > 1:
+            return None
+    except cv2.error:
+        pass  # no page count: one image
     return f"{path}: a still image, not a video (expected a video file such as .mp4 or .mov)"
 
 

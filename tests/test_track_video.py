@@ -222,3 +222,21 @@ def test_a_variable_frame_rate_is_named_once(tmp_path, video, caplog):
     steady = write_variable_rate_mp4(tmp_path / "steady.mp4", fast_from=48)  # one rate
     assert len(list(iter_frames(steady))) + len(list(iter_frames(video, stride=3))) == 58
     assert "variable frame rate:" not in caplog.text
+
+
+def test_an_animated_gif_is_a_video_and_a_still_one_an_image(tmp_path):
+    """An animated GIF (FFmpeg reads its frames) was refused as "a still image" because OpenCV
+    has an image reader for GIF; a one-frame GIF or PNG still is one."""
+    from PIL import Image
+
+    from gst.video import still_image_error
+
+    rng = np.random.default_rng(0)
+    frames = [Image.fromarray(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)) for _ in range(6)]
+    frames[0].save(tmp_path / "anim.gif", save_all=True, append_images=frames[1:], duration=40)
+    frames[0].save(tmp_path / "still.gif")
+    frames[0].save(tmp_path / "still.png")
+    assert still_image_error(tmp_path / "anim.gif") is None
+    assert probe_video(tmp_path / "anim.gif").frame_count == 6
+    for still in ("still.gif", "still.png"):
+        assert "a still image, not a video" in still_image_error(tmp_path / still)
