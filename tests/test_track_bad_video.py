@@ -163,6 +163,22 @@ def test_a_run_killed_after_its_last_commit_resumes_on_a_video_of_unknown_length
     assert result.frames == 9 and result.resumed_from_frame == 63
 
 
+def test_a_start_past_the_end_of_a_stream_of_unknown_length_says_so(tmp_path):
+    """A raw stream gives no frame count, so a start past its end could not be checked before
+    decoding, and the run said 'no frame could be decoded (an empty or unreadable video
+    stream)', blaming a good file."""
+    raw = tmp_path / "raw.mjpeg"
+    with open(raw, "wb") as fh:
+        for i in range(20):
+            fh.write(cv2.imencode(".jpg", np.full((48, 64, 3), i * 10, np.uint8))[1].tobytes())
+    assert probe_video(raw).frame_count is None
+    with pytest.raises(VideoError, match=r"frame 125 \(5.0 s\): the start lies past the end"):
+        track_video(raw, tmp_path / "out", _OneBox(), BoxDepthPredictor(),
+                    model={"name": "test", "version": "0"},
+                    options=TrackOptions(start_s=5.0, prefetch=0))  # fmt: skip
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.parquet"))
+
+
 class _OneBox:
     def detect(self, image, index):
         return [Detection(np.array([10.0, 20.0, 60.0, 100.0]), 0.9)]

@@ -663,6 +663,14 @@ def track_video(
     # detections of a person still waiting for `min_hits` when the video ends never get a row:
     # counted with the other short flickers, so that detections = rows + the dropped counts
     stats["dropped_low_score"] += len(session.pending)
+    if stats["frames"] == 0 and run.first > 0 and resumed_from is None:
+        # a stream that holds no frame count (raw streams, browser WebM): the range could not
+        # be checked against its length before decoding, and the file itself was blamed
+        raise VideoError(
+            f"{video_path}: no frame at or after the start, frame {run.first} "
+            f"({options.start_s} s): the start lies past the end of the video (its container "
+            "gives no frame count to check it against before decoding); nothing was written"
+        )
     if stats["frames"] == 0:  # an empty file would read as a finished video in which nobody moved
         raise VideoError(
             f"{video_path}: no frame could be decoded (an empty or unreadable video stream); "
