@@ -189,7 +189,8 @@ def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> 
         log.warning(
             "%s: a raw %s stream holds no frame rate; the decoder's %g frames/s is its default "
             "guess, not the camera's. Put it in a container at its rate (ffmpeg -r 60 -i %s -c "
-            "copy out.mp4) or give the scene's fps (scenes.NAME.fps)",
+            "copy out.mp4) or give its rate: scenes.NAME.fps for a scene's cameras, --set "
+            "track.fps=60 with --video",
             who, path.suffix.lstrip(".").upper(), fps, path.name,
         )  # fmt: skip
     return VideoInfo(path, w, h, fps, n if n > 0 else None, camera)

@@ -52,7 +52,7 @@ def run(ctx: StageContext) -> None:
         frame_size_tolerance=ctx.scene.frame_size_tolerance,
         scene=ctx.scene_name,
         detections_cache=ctx.path(".pipeline/cache/detections"),
-        fps=None if ctx.options.get("video") else ctx.scene.fps,  # the scene's own videos' rate
+        fps=ctx.params.fps if ctx.options.get("video") else ctx.scene.fps,  # None: container's
     )
     executor = ctx.executor
     track_scene(ctx.params, request, map_fn=executor.map if executor is not None else None,

@@ -53,6 +53,19 @@ def test_track_times_the_scene_videos_at_the_scene_rate(tmp_path, monkeypatch, f
     assert seen["req"].fps is None
 
 
+def test_a_raw_stream_given_with_video_takes_track_fps(tmp_path, monkeypatch):
+    """A raw stream given with --video was timed at FFmpeg's 25 frames/s whatever its rate,
+    and the warning's advice (the scene's fps) did not reach --video runs: `track.fps` does."""
+    import stages.track
+
+    seen = {}
+    monkeypatch.setattr(stages.track, "track_scene", lambda s, req, **kw: seen.update(req=req))
+    ctx = _context(tmp_path, "track", 30.0, {"video": [str(tmp_path / "cams/cam01.mjpeg")]})
+    ctx.params = ctx.params.model_copy(update={"fps": 60.0})
+    stages.track.run(ctx)
+    assert seen["req"].fps == 60.0
+
+
 def test_extract_times_its_keypoint_tracker_at_the_scene_rate(tmp_path, monkeypatch):
     import stages.extract
 

@@ -83,6 +83,10 @@ class TrackSettings(BaseModel):
     stride: PositiveInt = 1  # track every Nth frame
     start_s: float | None = Field(None, ge=0)  # from this time in the video (s; None: its start)
     end_s: float | None = Field(None, gt=0)  # up to this time (s; None: its end)
+    # frame rate of `--video` files (frames/s; None: their container's): a raw stream (.h264,
+    # .mjpeg) holds none and is read at FFmpeg's guess of 25. A scene's own cameras take the
+    # scene's `fps`
+    fps: PositiveFloat | None = None
     batch_size: PositiveInt = 32  # crops per network call
     smoothing: bool = False  # One-Euro filter on joints and parameters
     min_cutoff: PositiveFloat = 1.0  # One-Euro: cutoff (Hz) at rest; lower is smoother
