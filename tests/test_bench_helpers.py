@@ -1,0 +1,58 @@
+"""The benchmark scripts' shared means and timing (benchmarks/summary.py, benchmarks/timing.py):
+what a mean leaves out is counted, and round-robin timing calls every variant in turn."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from benchmarks.summary import finite_mean, known_mean, left_out, weighted_mean
+from benchmarks.timing import round_robin_medians
+
+
+def test_finite_mean_leaves_out_non_finite_values():
+    assert finite_mean([0.1, float("nan"), 0.3, float("inf")]) == (pytest.approx(0.2), 2)
+    assert finite_mean([[0.1], [0.3]]) == (pytest.approx(0.2), 0)
+    mean, dropped = finite_mean([float("nan")])
+    assert math.isnan(mean) and dropped == 1
+    mean, dropped = finite_mean([])
+    assert math.isnan(mean) and dropped == 0
+
+
+def test_known_mean_leaves_out_none_not_as_zero():
+    assert known_mean([0.8, None, 0.6]) == (pytest.approx(0.7), 1)
+    assert known_mean([0.0, 1.0]) == (pytest.approx(0.5), 0)  # a real 0 counts
+    mean, dropped = known_mean([None, None])
+    assert math.isnan(mean) and dropped == 2
+
+
+def test_weighted_mean_counts_a_weight_only_with_its_value():
+    # 10 matches at 50 mm, 30 matches without a pose error: the mean is 50, not 12.5
+    assert weighted_mean([(50.0, 10), (None, 30)]) == pytest.approx(50.0)
+    assert weighted_mean([(50.0, 10), (90.0, 30)]) == pytest.approx(80.0)
+    assert math.isnan(weighted_mean([(None, 5)]))
+    assert math.isnan(weighted_mean([(40.0, 0)]))
+
+
+def test_left_out_says_nothing_when_nothing_was():
+    assert left_out(0, 4, "scenes") == ""
+    assert left_out(1, 4, "scenes") == " (1 of 4 scenes left out)"
+
+
+def test_round_robin_medians_warms_up_then_alternates():
+    calls: list[str] = []
+
+    def make(name):
+        def fn():
+            calls.append(name)
+            return len(calls)
+
+        return fn
+
+    out = round_robin_medians([make("a"), make("b")], repeats=2, warmup=1)
+    assert calls == ["a", "a", "b", "a", "b"]
+    assert [r for _, r in out] == [4, 5]  # each call's last result
+    assert all(s >= 0 for s, _ in out)
+    with pytest.raises(ValueError):
+        round_robin_medians([make("a")], repeats=0)
