@@ -5,16 +5,23 @@ Each variant trains a fresh tiny network's landmark path (33 landmarks, lift tok
 the same seed on simulated detections, then scores it on rendered worlds with BlazePose's real
 detections (`gst.lift.dataset` worlds, `NAME=world.npz`), printing wall time and samples per
 second beside MPJPE / PA-MPJPE and the 2D agreement of the projected limb joints with the
-detected limb landmarks (% of the crop, `gst.lift.pretrain.limb_agreement`). Variants are named
-`key=value,...` over the sampler's `random_share`, `uniform_p`, `whole_body_flips`, `arm_mix_p`,
-`leg_mix_p` (limb mixing) and the run's `steps`, `lr`, `refine` (rounds of reprojection
-feedback, gst.model.refine):
+detected limb landmarks (% of the crop, `gst.lift.pretrain.limb_agreement`). Each variant's
+sampler is the pipeline's pretraining recipe (`LiftPretrainConfig().sampler(body, "all")`) with
+the variant's keys changed; every key it does not set keeps the recipe's value (not
+`LiftSampler`'s own defaults, which differ: no lean, full detection noise, no limb mixing), and
+the resolved settings are printed per variant. Variants are named `key=value,...` over the
+recipe's sampler keys `random_share`, `uniform_p`, `whole_body_flips`, `lean_deg` (deg),
+`noise_scale`, `arm_mix_p`, `leg_mix_p` (limb mixing) and the run's `steps`, `lr`, `refine`
+(rounds of reprojection feedback, gst.model.refine):
 
     python benchmarks/lift_variants.py --steps 1500 \\
         --val demo=/work/data/lift/demo_crops.npz \\
         --val heldout=/work/data/lift/heldout/world_7000.npz \\
         --variant "random_share=0.3333,uniform_p=0.1,whole_body_flips=1" \\
         --variant "random_share=0.15,uniform_p=0.03,whole_body_flips=0"
+
+The training loop runs on `--threads` torch threads (default: the pipeline's rule, the cores the
+background sampler thread leaves).
 
 One variant runs after another in this process (compare rows of one run only; the machine is
 shared).
@@ -23,6 +30,7 @@ shared).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -35,15 +43,17 @@ sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 from gst.body import load_body_model  # noqa: E402
 from gst.lift.dataset import named_worlds  # noqa: E402
 from gst.lift.pretrain import LiftPretrainConfig, evaluate_world, pretrain_landmark_path  # noqa: E402
-from gst.lift.sampler import LiftSampler  # noqa: E402
 from gst.model.presets import get_preset  # noqa: E402
 from gst.model.refine import DEFAULT_ROUNDS  # noqa: E402
 from gst.train.recipe import build_network  # noqa: E402
 
+# the recipe's sampler keys (LiftPretrainConfig fields that LiftPretrainConfig.sampler passes on)
 SAMPLER_KEYS = {
     "random_share": float,
     "uniform_p": float,
     "whole_body_flips": lambda v: v != "0",
+    "lean_deg": float,
+    "noise_scale": float,
     "arm_mix_p": float,
     "leg_mix_p": float,
 }
@@ -67,18 +77,36 @@ def parse_variant(text: str) -> tuple[dict, dict]:
     return sampler, run
 
 
+def sampler_config(sampler_args: dict, seed: int) -> LiftPretrainConfig:
+    """The recipe (`LiftPretrainConfig()`) with a variant's sampler keys and the run's seed."""
+    return dataclasses.replace(LiftPretrainConfig(), seed=seed, **sampler_args)
+
+
+def sampler_settings(cfg: LiftPretrainConfig) -> str:
+    """'key=value ...' of every sampler key as `cfg` resolves it."""
+    return " ".join(f"{k}={getattr(cfg, k):g}" for k in SAMPLER_KEYS)
+
+
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--variant", action="append", required=True, help="key=value,... (repeat)")
     ap.add_argument("--val", action="append", required=True, help="NAME=world.npz (repeat)")
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch threads of the training loop (default: the cores the sampler thread leaves)",
+    )
     args = ap.parse_args(argv)
+    variants = [(text, *parse_variant(text)) for text in args.variant]  # key errors before work
     worlds = named_worlds(args.val)
     body = load_body_model("anny")
-    for text in args.variant:
-        sampler_args, run_args = parse_variant(text)
+    for text, sampler_args, run_args in variants:
         torch.manual_seed(args.seed)
         cfg_net = get_preset(
             "tiny",
@@ -88,13 +116,16 @@ def main(argv: list[str] | None = None) -> None:
             landmark_refine=run_args.get("refine", DEFAULT_ROUNDS),
         )
         net, _, _ = build_network(cfg_net, body, args.seed)
-        sampler = LiftSampler(body, landmark_set="all", seed=args.seed, **sampler_args)
-        cfg = LiftPretrainConfig(
+        recipe = sampler_config(sampler_args, args.seed)
+        sampler = recipe.sampler(body, "all")
+        cfg = dataclasses.replace(
+            recipe,
             steps=run_args.get("steps", args.steps),
             batch_size=args.batch_size,
-            lr=run_args.get("lr", LiftPretrainConfig.lr),
-            seed=args.seed,
+            lr=run_args.get("lr", recipe.lr),
+            threads=args.threads,
         )
+        print(f"{text}: sampler {sampler_settings(cfg)}", flush=True)
         t0 = time.perf_counter()
         res = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
         wall = time.perf_counter() - t0

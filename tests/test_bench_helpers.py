@@ -56,3 +56,21 @@ def test_round_robin_medians_warms_up_then_alternates():
     assert all(s >= 0 for s, _ in out)
     with pytest.raises(ValueError):
         round_robin_medians([make("a")], repeats=0)
+
+
+def test_lift_variants_sampler_is_the_recipe_with_the_variants_keys(monkeypatch):
+    import gst.lift.pretrain as pretrain
+    from benchmarks.lift_variants import SAMPLER_KEYS, parse_variant, sampler_config
+
+    sampler_args, run_args = parse_variant("uniform_p=0.1,whole_body_flips=0,steps=30")
+    assert sampler_args == {"uniform_p": 0.1, "whole_body_flips": False}
+    assert run_args == {"steps": 30}
+    cfg = sampler_config(sampler_args, seed=3)
+    recipe = pretrain.LiftPretrainConfig()
+    assert cfg.uniform_p == 0.1 and cfg.seed == 3
+    for key in ("lean_deg", "noise_scale", "arm_mix_p", "leg_mix_p", "random_share"):
+        assert getattr(cfg, key) == getattr(recipe, key)  # the recipe's, not LiftSampler's
+    # every key the recipe passes to its sampler is a variant key, and no other
+    monkeypatch.setattr(pretrain, "LiftSampler", lambda body, **kw: kw)
+    passed = set(recipe.sampler(None, "all")) - {"crop_size", "seed", "landmark_set"}
+    assert passed == set(SAMPLER_KEYS)
