@@ -2,15 +2,20 @@
 
 Speed (default): the sampler alone (batches of 64 and 256) and full training steps (sample,
 landmark-only forward, joints, loss, backward, AdamW) of the tiny preset's landmark path,
-medians of repeated runs, 1 torch thread unless --threads. Prints one table; compare numbers
-taken in one run only (the machine is shared).
+medians of repeated runs. The sampler is the pretraining recipe's (`LiftPretrainConfig.sampler`:
+its lean, noise scale and limb mixing). Everything runs on `--threads` torch threads (default 1),
+the training loop included; as in the pipeline, the training columns sample their batches
+`--prefetch` steps ahead in a background thread (default the recipe's 2), which runs beside the
+loop's threads; `--prefetch 0` samples in the loop, so `--threads 1 --prefetch 0` is one thread
+in all. Prints one table; compare numbers taken in one run only (the machine is shared).
 
     python benchmarks/bench_lift.py --repeats 5
 
 Score: each checkpoint's single-image pose (world joints, MPJPE root-aligned and PA-MPJPE,
 24 joints) on the crops of a rendered world (`gst.lift.dataset` world: the scene folder and its
 `world_<seed>.npz` with BlazePose's landmarks on exactly those crops), from image and landmarks
-(the pipeline's path), and from the landmarks alone; with the network's time per crop.
+(the pipeline's path), and from the landmarks alone; with the network's time per crop. A crop
+whose error is not finite is left out of the means, and the row says how many were.
 
     python benchmarks/bench_lift.py --score models/pretrain.pt other.pt \
         --world /work/data/lift/heldout/scenes/world_7000 /work/data/lift/heldout/world_7000.npz
@@ -30,10 +35,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.summary import finite_mean, left_out  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.lift.errors import LANDMARK_SETS  # noqa: E402
 from gst.lift.pretrain import LiftPretrainConfig, pretrain_landmark_path  # noqa: E402
-from gst.lift.sampler import LiftSampler  # noqa: E402
 from gst.model.presets import get_preset  # noqa: E402
 from gst.train.recipe import build_network  # noqa: E402
 
@@ -87,9 +92,13 @@ def score(checkpoints: list[Path], scene: Path, npz: Path) -> None:
         if net.landmark_encoder is not None:
             s = evaluate_world(net, body, world)
             only = f"{s.mpjpe_mm:.1f} / {s.pa_mpjpe_mm:.1f}"
+        # one crop with a non-finite error would make the mean NaN: left out, and counted
+        ok = np.isfinite(rec.mpjpe) & np.isfinite(rec.pa_mpjpe)
+        mp, dropped = finite_mean(np.where(ok, rec.mpjpe, np.nan))
+        pa, _ = finite_mean(np.where(ok, rec.pa_mpjpe, np.nan))
         print(
-            f"| {path} | {1000 * rec.mpjpe.mean():.1f} / {1000 * rec.pa_mpjpe.mean():.1f} | "
-            f"{only} | {ms:.1f} |",
+            f"| {path} | {1000 * mp:.1f} / {1000 * pa:.1f}"
+            f"{left_out(dropped, len(ok), 'crops not finite')} | {only} | {ms:.1f} |",
             flush=True,
         )
 
@@ -97,7 +106,13 @@ def score(checkpoints: list[Path], scene: Path, npz: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads, the training loop's too")
+    ap.add_argument(
+        "--prefetch",
+        type=int,
+        default=LiftPretrainConfig.prefetch,
+        help="training batches sampled ahead in a background thread (0: in the loop)",
+    )
     ap.add_argument("--train-steps", type=int, default=20)
     ap.add_argument("--score", nargs="+", type=Path, help="checkpoints to score (module doc)")
     ap.add_argument("--world", nargs=2, type=Path, metavar=("SCENE", "NPZ"))
@@ -114,7 +129,7 @@ def main() -> None:
     variants = (("limbs", True, 0), ("all", True, 0), ("all", False, 0), ("all", False, 2))
     for name, points, refine in variants:
         lset = LANDMARK_SETS[name]
-        sampler = LiftSampler(body, landmark_set=name, seed=1)
+        sampler = LiftPretrainConfig(seed=1).sampler(body, name)
         s64 = _median_rate(lambda s=sampler: s.sample(64), 64, args.repeats)
         s256 = _median_rate(lambda s=sampler: s.sample(256), 256, args.repeats)
         net, _, _ = build_network(
@@ -130,7 +145,13 @@ def main() -> None:
         train = []
         for bs in (64, 256):
             steps = max(2, args.train_steps * 64 // bs)
-            cfg = LiftPretrainConfig(steps=steps, batch_size=bs, warmup_steps=1)
+            cfg = LiftPretrainConfig(
+                steps=steps,
+                batch_size=bs,
+                warmup_steps=1,
+                threads=args.threads,
+                prefetch=args.prefetch,
+            )
 
             def rate(cfg=cfg, net=net, sampler=sampler) -> float:
                 run = pretrain_landmark_path(net, body, cfg, sampler=sampler, log=lambda *_: None)
