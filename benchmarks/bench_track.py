@@ -66,6 +66,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.cli import add_scene_size, bench_parser  # noqa: E402
+from benchmarks.summary import left_out, weighted_mean  # noqa: E402
 from benchmarks.timing import median_time  # noqa: E402
 from calibration import Camera  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
@@ -736,8 +737,8 @@ def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
     videos = sorted(p for p in (scene / "synth" / "videos").glob("*.mp4") if p.stem in rig.names)
     print(
         f"\ndemo: {len(videos)} calibrated cameras, {gst.name} ({scene / 'models' / 'gst.pt'}); "
-        "MPJPE / PA-MPJPE mm over matched rows (pelvis-aligned), all cameras; s: track_video "
-        "alone (detector built and tracks scored outside the clock)"
+        "MPJPE / PA-MPJPE mm over matched rows that have one (pelvis-aligned), all cameras; "
+        "s: track_video alone (detector built and tracks scored outside the clock)"
     )
     print(f"{'variant':40s} {'s':>6s} {'MPJPE':>6s} {'PA':>6s} {'recall':>6s} {'id sw.':>6s}")
     # one untimed video first: the first variant paid the network's and LiteRT's first calls
@@ -768,15 +769,18 @@ def demo_accuracy(workspace: Path, variants: list, tmp: Path) -> None:
             secs += time.perf_counter() - t0  # tracking only: the scoring below is not timed
             evals.append(evaluate_tracks(res.path, scene / "synth", v.stem))
         n = sum(e.matches for e in evals)
-        scored = [e for e in evals if e.matches and e.mpjpe_mm is not None]
 
-        def mean(attr: str, scored=scored, n=n) -> float:
-            return sum(getattr(e, attr) * e.matches for e in scored) / max(n, 1)
+        # weighted by matches over the videos that have this error: a video whose matches carry
+        # no pose error (None) adds neither to the sum nor to the denominator
+        def mean(attr: str, evals=evals) -> float:
+            return weighted_mean((getattr(e, attr), e.matches) for e in evals)
 
+        unscored = sum(1 for e in evals if e.matches and e.mpjpe_mm is None)
         recall = n / max(sum(e.truth_instances for e in evals), 1)
         print(
             f"{name:40s} {secs:6.1f} {mean('mpjpe_mm'):6.1f} {mean('pa_mpjpe_mm'):6.1f} "
-            f"{recall:6.3f} {sum(e.id_switches for e in evals):6d}",
+            f"{recall:6.3f} {sum(e.id_switches for e in evals):6d}"
+            + left_out(unscored, len(evals), "videos with matches but no pose error"),
             flush=True,
         )
 
