@@ -38,6 +38,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.cli import add_scene_size, bench_parser  # noqa: E402
+from benchmarks.summary import known_mean, left_out  # noqa: E402
 from calibration import Camera, Rig  # noqa: E402
 from gst.data import ExtractOptions, extract_scene  # noqa: E402
 from gst.detect.persons import SegmenterConfig  # noqa: E402
@@ -118,6 +119,11 @@ SCENE_VARIANTS = [
 ]
 
 
+def _score(value: float | None) -> str:
+    """A 6-wide score column; n/a where the report has none (a scene without crops)."""
+    return f"{'n/a':>6s}" if value is None else f"{value:6.3f}"
+
+
 def compare_on_scenes(scenes: list[Path], chosen: list[int]) -> None:
     """Old and new association on the same synthetic scenes (see the module doc)."""
     from calibration.formats import read_rig
@@ -153,19 +159,24 @@ def compare_on_scenes(scenes: list[Path], chosen: list[int]) -> None:
             totals.setdefault(name, []).append((cf / secs, rep, vis))
             print(
                 f"{scene.parent.name if scene.name == 'synth' else scene.name:24s} {name:26s} "
-                f"{cf / secs:8.2f} {rep.crops:6d} {rep.mask_iou or float('nan'):6.3f} "
-                f"{rep.association_accuracy or float('nan'):6.3f} "
+                f"{cf / secs:8.2f} {rep.crops:6d} {_score(rep.mask_iou)} "
+                f"{_score(rep.association_accuracy)} "
                 f"{rep.truth_views_missed:6d}/{rep.truth_views:<7d} "
                 f"{rep.visible_views_missed:6d}/{rep.visible_views:<5d} ({vis:.3f}) "
                 f"{rep.persons:4d} {rep.single_view_crops:6d}",
                 flush=True,
             )
-    print("\nmeans over scenes (cam-frames/s: median):")
+    print(
+        "\nmeans over scenes (cam-frames/s: median; IoU and association over the scenes that have "
+        "them: a scene without crops has neither, and is left out, not counted as 0):"
+    )
     for name, rows in totals.items():
+        iou, no_iou = known_mean(r[1].mask_iou for r in rows)
+        assoc, no_assoc = known_mean(r[1].association_accuracy for r in rows)
         print(
-            f"  {name:26s} {np.median([r[0] for r in rows]):6.2f} cam-frames/s  IoU "
-            f"{np.mean([r[1].mask_iou or 0 for r in rows]):.3f}  association "
-            f"{np.mean([r[1].association_accuracy or 0 for r in rows]):.3f}  missed (>=30% vis) "
+            f"  {name:26s} {np.median([r[0] for r in rows]):6.2f} cam-frames/s  IoU {iou:.3f}"
+            f"{left_out(no_iou, len(rows), 'scenes')}  association {assoc:.3f}"
+            f"{left_out(no_assoc, len(rows), 'scenes')}  missed (>=30% vis) "
             f"{np.mean([r[2] for r in rows]):.3f}"
         )
 
