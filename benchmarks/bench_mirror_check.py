@@ -36,14 +36,26 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from benchmarks.cli import bench_parser
 from benchmarks.flip_data import labelled_scene_crops
 from gst.body.markers import BLAZEPOSE_MIRROR
 from gst.train.views import heldout_frame_start
 
+ap = bench_parser(__doc__)
+ap.add_argument("workspace", type=Path, help="the scene's workspace folder (WS/<scene>)")
+ap.add_argument(
+    "reference",
+    nargs="?",
+    default="synth",
+    choices=["synth", "fused"],
+    help="what labels the crops: the synthetic truth, or the fuse stage's bodies (default synth)",
+)
+ap.add_argument("epochs", nargs="?", type=int, default=15, help="training epochs (default 15)")
+args = ap.parse_args()
 torch.manual_seed(0)
 np.random.seed(0)
-ws = Path(sys.argv[1])
-ref = sys.argv[2] if len(sys.argv) > 2 else "synth"
+ws = args.workspace
+ref = args.reference
 crops, landmarks, sides = labelled_scene_crops(ws, "truth" if ref == "synth" else "fused")
 ok = crops.truth["has_truth"].numpy()
 lm = landmarks.numpy()
@@ -147,7 +159,7 @@ Yte = mir[te]
 net = Net()
 opt = torch.optim.AdamW(net.parameters(), 2e-3, weight_decay=1e-3)
 t0 = time.time()
-epochs = int(sys.argv[3]) if len(sys.argv) > 3 else 15
+epochs = args.epochs
 for ep in range(epochs):
     net.train()
     perm = torch.randperm(len(X))
