@@ -146,7 +146,14 @@ def labelled_worlds(n: int, seed: int, work: Path):
     return torch.cat(imgs), torch.cat(lms), np.concatenate(sides), np.concatenate(world)
 
 
+VALIDATE_EVERY = 50
+
+
 def train(feat, imgs, lms, sides, world, steps: int, seed: int = 0):
+    """(the head at its best validation loss, temperature, prior log-odds); the loss on the last
+    world is taken every `VALIDATE_EVERY` steps and at the last step."""
+    if steps < 1:
+        raise ValueError(f"steps must be at least 1, got {steps}")
     torch.manual_seed(seed)
     rows = np.flatnonzero(sides != 0)
     val = world[rows] == world.max()  # the last world validates
@@ -167,12 +174,17 @@ def train(feat, imgs, lms, sides, world, steps: int, seed: int = 0):
         opt.zero_grad()
         loss.backward()
         opt.step()
-        if step % 50 == 0:
+        if step % VALIDATE_EVERY == 0 or step == steps:
             head.eval()
             with torch.no_grad():
                 v = float(F.softplus(head.score(x_val)).mean())
-            if v < best[0]:
+            if v < best[0]:  # False for NaN: a non-finite loss is never the best
                 best = (v, step, {k: t.clone() for k, t in head.state_dict().items()})
+    if best[2] is None:
+        raise SystemExit(
+            f"the validation world's loss was never finite ({len(x_val)} crops with a side; "
+            "no head to keep): check the last world's crops and the training (learning rate)"
+        )
     head.load_state_dict(best[2])
     head.eval()
     with torch.no_grad():
@@ -221,10 +233,19 @@ def main() -> None:
     ap = bench_parser(__doc__)
     ap.add_argument("--demo", type=Path, help="the demo's workspace folder (WS/demo)")
     ap.add_argument("--lab", type=Path, help="the lab's workspace folder (WS/lab), fused")
-    ap.add_argument("--worlds", type=int, default=10)
+    ap.add_argument("--worlds", type=int, default=10, help="rendered worlds (the last validates)")
     ap.add_argument("--seed", type=int, default=5000)
-    ap.add_argument("--steps", type=int, default=600)
+    ap.add_argument(
+        "--steps",
+        type=int,
+        default=600,
+        help=f"training steps (validated every {VALIDATE_EVERY} and at the last)",
+    )
     args = ap.parse_args()
+    if args.worlds < 2:  # the last world validates, the others train
+        ap.error("--worlds must be at least 2 (the last one validates)")
+    if args.steps < 1:
+        ap.error("--steps must be at least 1")
     feat = Features()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="flip_worlds_") as tmp:

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
+import torch
 
 from benchmarks.summary import finite_mean, known_mean, left_out, weighted_mean
 from benchmarks.timing import round_robin_medians
@@ -74,3 +76,32 @@ def test_lift_variants_sampler_is_the_recipe_with_the_variants_keys(monkeypatch)
     monkeypatch.setattr(pretrain, "LiftSampler", lambda body, **kw: kw)
     passed = set(recipe.sampler(None, "all")) - {"crop_size", "seed", "landmark_set"}
     assert passed == set(SAMPLER_KEYS)
+
+
+def _flip_set(n: int = 12, size: int = 32):
+    g = torch.Generator().manual_seed(0)
+    imgs = torch.zeros(n, size, size, 3, dtype=torch.uint8)
+    lms = torch.cat([torch.rand(n, 33, 2, generator=g) * size, torch.ones(n, 33, 1)], -1)
+    sides = np.where(np.arange(n) % 3 == 0, -1, 1)
+    world = np.repeat([0, 1], n // 2)
+    return imgs, lms, sides, world
+
+
+def test_flip_check_trains_fewer_steps_than_a_validation_interval():
+    from benchmarks.bench_flip_check_worlds import VALIDATE_EVERY, train
+
+    def feat(images):
+        return torch.ones(len(images), 4, 15, 15)
+
+    head, temp, prior_lo = train(feat, *_flip_set(), steps=VALIDATE_EVERY // 10)
+    assert math.isfinite(temp) and math.isfinite(prior_lo)
+
+
+def test_flip_check_says_so_when_validation_is_never_finite():
+    from benchmarks.bench_flip_check_worlds import train
+
+    def feat(images):
+        return torch.full((len(images), 4, 15, 15), float("nan"))
+
+    with pytest.raises(SystemExit, match="never finite"):
+        train(feat, *_flip_set(), steps=3)
