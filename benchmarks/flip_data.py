@@ -28,7 +28,10 @@ def labelled_scene_crops(ws: Path, reference: str) -> tuple[CropSet, torch.Tenso
     if reference == "truth":
         attach_scene_truth(crops, boxes, ws / "synth")
     else:
-        fused_reference(crops, next((ws / "fused").glob("*.parquet")))
+        bodies = ws / "fused" / "bodies.parquet"  # not landmarks.parquet, which sits beside it
+        if not bodies.is_file():
+            raise SystemExit(f"{bodies} not found: run the fuse stage first")
+        fused_reference(crops, bodies)
     ok = crops.truth["has_truth"].numpy()
     ref = reference_in_crops(crops.truth["joints_world"], crops.R, crops.t, crops.K)
     return crops, lm.float(), np.where(ok, landmark_sides(lm.numpy(), ref), 0)
