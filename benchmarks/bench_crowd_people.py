@@ -249,7 +249,7 @@ def main() -> None:
                 + " ".join(f"{k} {v:.1f}s" for k, v in s.get("phase_s", {}).items()),
                 flush=True,
             )
-    print("\nmean over scenes:")
+    print("\nmeans over scenes (cam-frames/s: median):")
     for name, ss in totals.items():
         print(
             f"  {name:26s} IoU {np.mean([s['iou'] for s in ss]):.3f}  association "
