@@ -51,6 +51,25 @@ def test_fit_recovers_known_bodies_from_noisy_2d(body, capture):
         assert not f.single_view and f.observed.all()
 
 
+@pytest.mark.parametrize("bad", ["confidence", "K"])
+def test_one_non_finite_view_does_not_stop_the_fit_of_everyone_in_its_batch(body, capture, bad):
+    """A NaN confidence or camera of one view (person 0, frame 3, camera 2) made the batched
+    Hessian NaN: every step was refused, and both people kept their start (13 -> 18-19 mm).
+    Such a view is no view, as in the triangulation."""
+    people = observations(capture, noise_px=3.0, seed=1)
+    clean = fit_people(body, MarkerModel.load(), people, [triangulate_person(p) for p in people],
+                       fps=30.0)  # fmt: skip
+    if bad == "confidence":
+        people[0].confidence[3, 2, 15] = np.nan
+    else:
+        people[0].K[3, 2] = np.nan
+    fits = fit_people(body, MarkerModel.load(), people, [triangulate_person(p) for p in people],
+                      fps=30.0)  # fmt: skip
+    for f, c, truth in zip(fits, clean, capture.joints, strict=True):
+        err, err_clean = (np.linalg.norm(x.joints - truth, axis=-1).mean() for x in (f, c))
+        assert err < err_clean + 0.002, (err, err_clean)
+
+
 def test_joint_with_fewer_than_two_views_is_flagged_and_filled(body, capture):
     people = observations(capture, noise_px=0.5, seed=3)
     knee = 25  # left_knee landmark

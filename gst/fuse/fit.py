@@ -262,11 +262,28 @@ def fit_people(
     def cat(name: str) -> torch.Tensor:
         return torch.as_tensor(np.concatenate([getattr(d, name) for d in dense]), dtype=DTYPE)
 
-    conf, uv = cat("confidence"), cat("uv")
-    usable = (conf >= o.min_confidence) & torch.isfinite(uv).all(-1)
+    conf, uv, K, Rt, px_scale = (cat(n) for n in ("confidence", "uv", "K", "Rt", "px_scale"))
+    # a camera that is not finite is no view (as the triangulation takes it), and its numbers
+    # are replaced by finite ones: 0 x NaN is NaN, and one NaN made the batched solve fail for
+    # everyone in the batch, leaving all of them at their start (+40 % MPJPE)
+    camera_ok = (
+        torch.isfinite(K).flatten(-2).all(-1)
+        & torch.isfinite(Rt).flatten(-2).all(-1)
+        & torch.isfinite(px_scale)
+    )
+    usable = (
+        (conf >= o.min_confidence)
+        & torch.isfinite(conf)
+        & torch.isfinite(uv).all(-1)
+        & camera_ok[..., None]
+    )
+    ok = camera_ok[..., None, None]
     views = Views(
-        cat("K"), cat("Rt"), torch.nan_to_num(uv), torch.where(usable, conf, 0 * conf),
-        cat("px_scale"), torch.as_tensor(np.repeat(sigmas, lengths), dtype=DTYPE),
+        torch.where(ok, K, torch.eye(3, dtype=DTYPE)),
+        torch.where(ok, Rt, torch.eye(3, 4, dtype=DTYPE)),
+        torch.nan_to_num(uv), torch.where(usable, conf, torch.zeros_like(conf)),
+        torch.where(camera_ok, px_scale, torch.ones_like(px_scale)),
+        torch.as_tensor(np.repeat(sigmas, lengths), dtype=DTYPE),
     )  # fmt: skip
     coverage = None
     if silhouettes is not None and o.w_silhouette > 0:
