@@ -23,6 +23,7 @@ from gst.atomic import atomic_torch_save
 from gst.model.decoder import DecoderConfig
 from gst.model.network import GSTNetwork
 from gst.model.presets import GSTConfig
+from gst.model.refine import ReprojectionRefiner
 from gst.model.vit import ViTConfig
 
 FORMAT, VERSION = "gst-capture/checkpoint", 1
@@ -153,6 +154,10 @@ def _read_checked(path: Path, map_location: str | torch.device) -> dict:
         raise ValueError(
             f"{path}: vertex_ids must be body-model vertex indices, got {int(ids.min())}"
         )
+    for key in ("config", "model", "extra"):  # their readers call .get and .items on them
+        value = ckpt.get(key)
+        if not isinstance(value, dict) and not (key == "extra" and value is None):
+            raise ValueError(f"{path}: '{key}' must be a dict, got {type(value).__name__}")
     if not isinstance(ckpt["body_model"], str):
         raise ValueError(
             f"{path}: body_model must name a body model (text), got "
@@ -162,13 +167,41 @@ def _read_checked(path: Path, map_location: str | torch.device) -> dict:
 
 
 def network_from_checkpoint(ckpt: GSTCheckpoint, source: str | Path | None = None) -> GSTNetwork:
-    """The network a checkpoint holds; `source` names the file in errors."""
+    """The network a checkpoint holds; `source` names the file in errors (weights that do not
+    fit the network, or that are not finite)."""
+    where = f"{source}: " if source is not None else ""
     try:
         net = GSTNetwork(config_from_dict(ckpt.config), ckpt.group_index.numpy())
         net.load_state_dict(ckpt.model)
     except (KeyError, RuntimeError, TypeError, ValueError) as exc:
-        where = f"{source}: " if source is not None else ""
         raise ValueError(
             f"{where}the checkpoint's weights do not fit its network ({exc})"
         ) from None
+    bad = _first_non_finite(net)
+    if bad is not None:
+        # a diverged run or a damaged file: it failed later, at the first batch, naming no file
+        key, t = bad
+        raise ValueError(
+            f"{where}the checkpoint's weight '{key}' is not finite ({int(t.isnan().sum())} NaN, "
+            f"{int(t.isinf().sum())} infinite of {t.numel()} values): the file is damaged or "
+            "its training diverged; use another checkpoint or train again"
+        )
     return net
+
+
+def _first_non_finite(net: GSTNetwork) -> tuple[str, torch.Tensor] | None:
+    """The first floating-point weight or buffer of `net` holding NaN or infinity, with its
+    key; None when all are finite. The refiner's body buffers are NaN by design until
+    `set_body` runs (`ReprojectionRefiner.BODY_BUFFERS`): left out."""
+    unset = {
+        f"{name}.{buf}"
+        for name, module in net.named_modules()
+        if isinstance(module, ReprojectionRefiner)
+        for buf in module.BODY_BUFFERS
+    }
+    for key, t in net.state_dict().items():
+        if key in unset or not t.dtype.is_floating_point:
+            continue
+        if not bool(torch.isfinite(t).all()):
+            return key, t
+    return None

@@ -168,15 +168,19 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
     body found elsewhere, e.g. a user's SMPL file at another path). An override that is another
     body is refused: the network's shape coefficients, vertex ids and the refiner's skeleton are
     that body's, and another body gave plausible but wrong joints (0.4 m off) without a word."""
-    if override is None or override == ckpt.body_model:
-        return load_body_model(ckpt.body_model, device=device)
-    body = load_body_model(override, device=device)
+    own = override is None or override == ckpt.body_model
+    spec = ckpt.body_model if own else override
+    body = load_body_model(spec, device=device)
     if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
+        # checked on both paths: the checkpoint's own spec may resolve to another body here (a
+        # path holding another file since); it failed at the first batch, naming no file
         raise ValueError(
-            f"{checkpoint}: body model {override!r} has {body.num_vertices} vertices; the "
+            f"{checkpoint}: body model {spec!r} has {body.num_vertices} vertices; the "
             f"checkpoint's network (trained with {ckpt.body_model!r}) uses vertex ids up to "
             f"{int(ckpt.vertex_ids.max())}"
         )
+    if own:
+        return body
     try:
         own = load_body_model(ckpt.body_model)
     except (FileNotFoundError, ValueError) as exc:  # its file is not on this machine

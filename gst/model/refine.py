@@ -43,6 +43,9 @@ _MIN_DEPTH = 0.1  # metres: a body behind or at the camera would divide by ~0
 class ReprojectionRefiner(nn.Module):
     """`forward(pose6d (B, 24, 6), betas (B, nb), cam (B, 3), landmarks) -> the same, refined`."""
 
+    # buffers that hold NaN until `set_body` gives them the body's skeleton and markers
+    BODY_BUFFERS = ("rest_joints", "shape_joints", "marker_offset")
+
     def __init__(
         self,
         num_landmarks: int,

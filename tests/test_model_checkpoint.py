@@ -1,0 +1,113 @@
+"""GST checkpoints (gst.model.checkpoint) as readers meet them: weights that are not finite,
+fields of the wrong type and vertex ids beyond the body are refused when the file is read,
+naming the file, not at the first batch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gst.body import BodyModel
+from gst.body.random_model import random_body_data
+from gst.model.checkpoint import load_checkpoint, network_from_checkpoint, save_checkpoint
+from gst.model.network import GSTNetwork
+from gst.model.presets import get_preset
+from gst.train.recipe import build_network
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """A tiny network's checkpoint on a small random body saved as a file (its spec: the path),
+    and the checkpoint's dict as written."""
+    root = tmp_path_factory.mktemp("ckpt")
+    data = random_body_data(num_vertices=400, with_posedirs=False)
+    spec = str(data.save_npz(root / "body.npz"))
+    net, ids, groups = build_network(get_preset("tiny"), BodyModel(data))
+    path = root / "good.pt"
+    save_checkpoint(path, net, spec, ids, groups)
+    return path, torch.load(path, weights_only=True)
+
+
+def _variant(saved, tmp_path, name: str, change) -> str:
+    _, base = saved
+    ckpt = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
+    change(ckpt)
+    path = tmp_path / f"{name}.pt"
+    torch.save(ckpt, path)
+    return str(path)
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_weights_that_are_not_finite_are_refused_naming_the_file_and_the_key(
+    saved, tmp_path, value
+):
+    """A NaN checkpoint loaded and failed at the first batch (`body_pose contains NaN`),
+    naming no file."""
+    from gst.model.inference import GSTPredictor
+
+    key = "smpl_head.decpose.weight"
+
+    def poison(ckpt):
+        ckpt["model"][key] = ckpt["model"][key].clone()
+        ckpt["model"][key][3, 5] = value
+
+    bad = _variant(saved, tmp_path, "bad", poison)
+    with pytest.raises(ValueError, match=rf"bad\.pt: the checkpoint's weight '{key}' is not"):
+        network_from_checkpoint(load_checkpoint(bad), bad)
+    with pytest.raises(ValueError, match=rf"bad\.pt: .*'{key}' is not finite"):
+        GSTPredictor(bad)
+    network_from_checkpoint(load_checkpoint(saved[0]), saved[0])  # the good one loads
+
+
+def test_the_refiners_body_buffers_may_be_nan_until_set_body(tmp_path):
+    """A refiner's skeleton and markers are NaN by design until `set_body` runs: a network saved
+    before it is not refused for them (it refuses to run without a body, gst.model.refine)."""
+    data = random_body_data(num_vertices=400, with_posedirs=False)
+    cfg = get_preset("tiny", landmark_tokens=True, num_landmarks=33, landmark_refine=2)
+    _, ids, groups = build_network(cfg, BodyModel(data))
+    bare = GSTNetwork(cfg, groups)  # no set_body
+    assert not bool(torch.isfinite(bare.refiner.rest_joints).all())
+    save_checkpoint(tmp_path / "bare.pt", bare, "anny", ids, groups)
+    back = network_from_checkpoint(load_checkpoint(tmp_path / "bare.pt"), tmp_path / "bare.pt")
+    assert back.refiner is not None
+
+
+@pytest.mark.parametrize(
+    "key, value, kind",
+    [("config", "tiny", "str"), ("extra", "x", "str"), ("model", [1, 2], "list")],
+)
+def test_fields_that_must_be_dicts_are_checked_naming_the_file(saved, tmp_path, key, value, kind):
+    """`config` or `extra` of another type passed the reader, then an AttributeError came from
+    whatever called .get on it (the tracks' model provenance)."""
+
+    def change(ckpt):
+        ckpt[key] = value
+
+    bad = _variant(saved, tmp_path, "typed", change)
+    with pytest.raises(ValueError, match=rf"typed\.pt: '{key}' must be a dict, got {kind}"):
+        load_checkpoint(bad)
+
+
+def test_a_checkpoint_without_extra_still_reads(saved, tmp_path):
+    bad = _variant(saved, tmp_path, "noextra", lambda c: c.pop("extra"))
+    assert load_checkpoint(bad).extra == {}
+
+
+def test_vertex_ids_beyond_the_checkpoints_own_body_are_refused_naming_both(saved, tmp_path):
+    """Checked only when another body was passed: with the checkpoint's own spec it failed at the
+    first batch (`vertex_ids must lie in [0, 400)`), naming no file."""
+    from gst.model.inference import GSTPredictor
+
+    def shift(ckpt):
+        ckpt["vertex_ids"] = ckpt["vertex_ids"] + 1000
+
+    bad = _variant(saved, tmp_path, "ids", shift)
+    spec = load_checkpoint(bad).body_model
+    with pytest.raises(ValueError, match=r"ids\.pt: body model '.*body\.npz' has 400 vertices"):
+        GSTPredictor(bad)
+    with pytest.raises(ValueError, match=r"ids\.pt: body model '.*body\.npz' has 400 vertices"):
+        GSTPredictor(bad, body_model=spec)
+    crops = np.zeros((1, 128, 128, 3), np.uint8)
+    K = np.array([[[150.0, 0, 64], [0, 150, 64], [0, 0, 1]]], np.float32)
+    assert GSTPredictor(saved[0])(crops, K)["rotmats"].shape == (1, 24, 3, 3)
