@@ -111,3 +111,20 @@ def test_vertex_ids_beyond_the_checkpoints_own_body_are_refused_naming_both(save
     crops = np.zeros((1, 128, 128, 3), np.uint8)
     K = np.array([[[150.0, 0, 64], [0, 150, 64], [0, 0, 1]]], np.float32)
     assert GSTPredictor(saved[0])(crops, K)["rotmats"].shape == (1, 24, 3, 3)
+
+
+def test_the_module_doc_describes_every_field_a_checkpoint_holds(saved):
+    """The layout said `extra` held the training step and optimiser state; those sit under
+    `trainer` (gst.train.trainer), which it did not name."""
+    import dataclasses
+    import re
+
+    import gst.model.checkpoint as module
+    from gst.model.checkpoint import GSTCheckpoint
+
+    layout = module.__doc__.split("Layout", 1)[1].split("Writes go", 1)[0]
+    documented = set(re.findall(r"(\w+): ", layout))  # "key: what it holds"
+    fields = {f.name for f in dataclasses.fields(GSTCheckpoint)}
+    assert fields | set(saved[1]) <= documented, sorted(fields | set(saved[1]) - documented)
+    extra = re.search(r"^    extra:(.*?)^    \w+:", layout, flags=re.M | re.S).group(1)
+    assert "optimiser" not in extra and "trained_on" in extra

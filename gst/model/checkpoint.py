@@ -6,7 +6,11 @@ Layout (`torch.save` of a dict):
     body_model: body spec string ("anny" or a path to the user's SMPL file)
     vertex_ids: LongTensor (V,)   group_index: LongTensor (V,)
     model: network state_dict
-    extra: dict of primitives/tensors (training step, optimiser state, metrics...)
+    extra: dict of primitives about the training (`gst.train.recipe`: mode, heldout_cameras,
+        first_heldout_frame, trained_on)
+    trainer: the training loop's state (step, optimiser, scheduler, random streams;
+        `gst.train.trainer`), only in checkpoints written during training: `keep_model` drops
+        it from the kept models (`models/*.pt`)
 Writes go to a temporary file that is renamed, so a killed save never leaves a truncated file.
 `load_checkpoint` checks a file and returns its fields as a `GSTCheckpoint`.
 """
