@@ -68,3 +68,37 @@ def test_reuse_copies_a_checked_checkpoint_and_fingerprints_it(tmp_path):
     torch.save({"state_dict": {}}, not_gst)
     with pytest.raises(ValueError, match="not a GST checkpoint"):
         run(_ctx(tmp_path / "c", Params(reuse=not_gst)))
+
+
+def _saved_tiny(path, spec="random"):
+    from gst.body import BodyModel
+    from gst.body.random_model import random_body_data
+    from gst.model.checkpoint import save_checkpoint
+    from gst.model.presets import get_preset
+    from gst.train.recipe import build_network
+
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    net, ids, groups = build_network(get_preset("tiny", vertex_preset="full"), body)
+    save_checkpoint(path, net, spec, ids, groups)
+    return path
+
+
+def test_reuse_refuses_weights_that_do_not_fit_or_are_not_finite_naming_the_file(tmp_path):
+    """reuse only read the file and copied it: weights that do not fit the network it names, or
+    NaN weights, failed in the train stage naming models/pretrain.pt, or at the first batch."""
+    import pytest
+    import torch
+
+    from stages.pretrain import run
+
+    good = torch.load(_saved_tiny(tmp_path / "good.pt"), weights_only=True)
+    no_vit = {**good, "config": {k: v for k, v in good["config"].items() if k != "vit"}}
+    torch.save(no_vit, tmp_path / "novit.pt")
+    key = "smpl_head.decpose.weight"
+    nan = {**good, "model": {**good["model"], key: torch.full_like(good["model"][key], torch.nan)}}
+    torch.save(nan, tmp_path / "nan.pt")
+    for name, why in [("novit", "weights do not fit its network"), ("nan", f"'{key}' is not")]:
+        ctx = _ctx(tmp_path / name, Params(body_model="random", reuse=tmp_path / f"{name}.pt"))
+        with pytest.raises(ValueError, match=rf"{name}\.pt: .*{why}"):
+            run(ctx)
+        assert not (ctx.staging / "models/pretrain.pt").exists()

@@ -44,7 +44,7 @@ from pydantic import (
 from gst.body import load_body_model
 from gst.device import check_device_name
 from gst.metrics.lpips import load_lpips
-from gst.model.checkpoint import keep_model, load_checkpoint
+from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
 from gst.model.presets import PRESETS, get_preset
 from gst.model.refine import DEFAULT_ROUNDS
 from gst.param_types import NAMES_FILE
@@ -265,6 +265,9 @@ def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> Reus
             "pretrain.reuse=%s holds a '%s' network; pretrain.preset '%s' is not used",
             p.reuse, preset, p.preset,
         )  # fmt: skip
+    # the network it holds, built before the copy: weights that do not fit it, or that are not
+    # finite, are refused naming the user's file, not models/pretrain.pt in the train stage
+    network_from_checkpoint(ckpt, p.reuse)
     shutil.copyfile(p.reuse, checkpoint)
     reports.mkdir(parents=True, exist_ok=True)
     summary = ReusedCheckpoint(reused=str(p.reuse))
