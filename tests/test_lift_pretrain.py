@@ -193,9 +193,46 @@ def test_a_crop_size_that_lift_mode_would_ignore_is_refused():
 
     with pytest.raises(ValidationError, match="crop_size .64. sets the crops of modes"):
         PretrainConfig(mode="lift", crop_size=64)
-    assert PretrainConfig(mode="3d", crop_size=64).crop_size == 64
+    assert PretrainConfig(mode="3d", crop_size=160).crop_size == 160
     assert PretrainConfig().mode == "lift"  # the default is not refused
     assert PretrainConfig(mode="lift", crop_size=256).crop_size == 256  # nor what lift uses
+
+
+@pytest.mark.parametrize(
+    "preset, mode, crop_size, given",
+    [
+        ("huge", "3d", 128, "128"),
+        ("tiny", "pretrain", 64, "64"),
+        ("small", "3d", None, "128, the default"),
+    ],
+)
+def test_image_modes_refuse_crops_smaller_than_the_networks_input(preset, mode, crop_size, given):
+    """Modes 3d and pretrain upsampled crops smaller than the network's input without a word
+    (the huge preset's 256x192 input from 128 px crops: blown up 2x)."""
+    from pydantic import ValidationError
+
+    from gst.train.pretrain import PretrainConfig
+
+    side = get_preset(preset).image_size[0]
+    kw = {} if crop_size is None else {"crop_size": crop_size}
+    with pytest.raises(
+        ValidationError, match=rf"crop_size \({given}\) is smaller than .* \({side} px high\)"
+    ):
+        PretrainConfig(preset=preset, mode=mode, **kw)
+    assert PretrainConfig(preset=preset, mode=mode, crop_size=side).crop_size == side
+    assert PretrainConfig(mode="3d").crop_size == 128  # the tiny preset's default fits
+
+
+def test_the_default_and_the_demo_pretrain_settings_validate():
+    from pathlib import Path
+
+    import yaml
+
+    from gst.train.pretrain import PretrainConfig
+
+    demo = yaml.safe_load((Path(__file__).parents[1] / "pipeline.yaml").read_text())
+    assert PretrainConfig(**demo["stages"]["pretrain"]["params"]).mode == "lift"
+    assert PretrainConfig().crop_size == 128
 
 
 def test_the_train_summary_says_which_frames_its_mpjpe_is_on(tmp_path):

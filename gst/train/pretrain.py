@@ -93,8 +93,9 @@ class PretrainConfig(BaseModel):
     static_every: int = (
         3  # every Nth world holds independent random poses instead of motions (0: none)
     )
-    # modes 3d and pretrain (the tiny preset's input is 128x96; larger presets want 256); mode
-    # lift cuts 256 px crops, the pipeline's, and refuses another value
+    # modes 3d and pretrain, at least the network's input height (the tiny preset's input is
+    # 128x96; larger presets need 256); mode lift cuts 256 px crops, the pipeline's, and refuses
+    # another value
     crop_size: PositiveInt = 128
     # mode 3d: box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     augment: bool = False
@@ -158,6 +159,16 @@ class PretrainConfig(BaseModel):
                 f"crop_size ({self.crop_size}) sets the crops of modes '3d' and 'pretrain'; mode "
                 "'lift' cuts 256 px crops, the pipeline's, so that BlazePose reads them as in "
                 "extraction (leave crop_size out, or set mode: 3d)"
+            )
+        side = get_preset(self.preset).image_size[0]  # the network's input is side x (3/4 side)
+        if self.mode in ("3d", "pretrain") and self.crop_size < side:
+            # accepted, the crops were upsampled to the network's input (huge: 128 px crops
+            # blown up 2x), training a network on blurred images it never meets in the pipeline
+            default = "" if given else ", the default"
+            raise ValueError(
+                f"crop_size ({self.crop_size}{default}) is smaller than the '{self.preset}' "
+                f"network's input ({side} px high): its crops would be upsampled; set crop_size "
+                f"to at least {side}"
             )
         if self.mode == "lift" and self.gaussian_steps == 0 and self.reuse is None:
             # accepted, it crashed on a missing last.pt after the lifting, the world renders and
