@@ -175,3 +175,27 @@ def test_resuming_another_networks_last_checkpoint_names_the_file(tmp_path):
     wider = nn.Sequential(nn.Linear(4, 16), nn.Tanh(), nn.Linear(16, 1))
     with pytest.raises(ValueError, match=r"last\.pt: a checkpoint of another network.*delete it"):
         Trainer(wider, step, sample, cfg, tmp_path).resume()
+
+
+def test_resuming_with_other_optimiser_groups_names_the_file_and_changes_nothing(tmp_path):
+    """The model loaded, then the optimiser refused the file with torch's bare "loaded state
+    dict has a different number of parameter groups", naming no file (e.g. body_lr set on a
+    run that had none)."""
+    cfg = TrainConfig(steps=2, batch_size=4, lr=1e-2, warmup_steps=1, ckpt_every=1, log_every=1)
+    model, step, sample = make_problem()
+    Trainer(model, step, sample, cfg, tmp_path).fit()
+    fresh, step, sample = make_problem()
+    before = {k: v.clone() for k, v in fresh.state_dict().items()}
+    groups = [
+        {"params": fresh[0].parameters(), "lr": 1e-2},
+        {"params": fresh[2].parameters(), "lr": 1e-3},
+    ]
+    trainer = Trainer(fresh, step, sample, cfg, tmp_path, param_groups=groups)
+    with pytest.raises(
+        ValueError,
+        match=r"last\.pt: its optimiser state does not fit .*\[4\] in the file, "
+        r"\[2, 2\] in this run.*delete it to start afresh",
+    ):
+        trainer.resume()
+    assert trainer.step == 0
+    assert all(torch.equal(v, before[k]) for k, v in fresh.state_dict().items())

@@ -260,6 +260,15 @@ class Trainer:
             ckpt = sent[0]
         if ckpt is None:
             return False
+        st = ckpt["trainer"]
+        # checked before anything changes: torch's own check comes after the weights are loaded
+        mismatch = _optimizer_mismatch(st.get("optimizer"), self.optimizer)
+        if mismatch:
+            raise ValueError(
+                f"{path}: its optimiser state does not fit this run's optimiser ({mismatch}; the "
+                "parameter groups changed, e.g. body_lr set or left out), so this run cannot "
+                "resume it (delete it to start afresh, or train into another folder)"
+            )
         try:  # another network's last.pt: the file named, not torch's bare size mismatch
             self.model.load_state_dict(ckpt["model"])
         except RuntimeError as exc:
@@ -267,14 +276,19 @@ class Trainer:
                 f"{path}: a checkpoint of another network, which this run cannot resume (delete "
                 f"it to start afresh, or train into another folder): {exc}"
             ) from exc
-        st = ckpt["trainer"]
         changed = _changed_settings(st.get("train_config"), asdict(self.cfg))
         if changed:  # the pipeline starts a changed run afresh; a library caller may not mean to
             log.warning(
                 "resuming %s, written with other settings: %s (a new folder starts afresh)",
                 path, ", ".join(changed),
             )  # fmt: skip
-        self.optimizer.load_state_dict(st["optimizer"])
+        try:  # what the check above does not see (torch's own checks), the file named
+            self.optimizer.load_state_dict(st["optimizer"])
+        except (KeyError, RuntimeError, TypeError, ValueError) as exc:
+            raise ValueError(
+                f"{path}: its optimiser state does not fit this run's optimiser ({exc}); delete "
+                "it to start afresh, or train into another folder"
+            ) from exc
         self.scheduler.load_state_dict(st["scheduler"])
         self.generator.set_state(st["generator"])
         torch.set_rng_state(st["torch_rng"])
@@ -471,6 +485,22 @@ class Trainer:
             best=self.best_value,
             seconds=self.seconds_before + time.perf_counter() - t0,
         )
+
+
+def _optimizer_mismatch(saved, optimizer: torch.optim.Optimizer) -> str | None:
+    """How a saved optimiser state's parameter groups differ from `optimizer`'s (their number,
+    or the parameters in each), or None when they match: what `Optimizer.load_state_dict`
+    refuses, but only after the model's weights were loaded."""
+    groups = saved.get("param_groups") if isinstance(saved, dict) else None
+    if not isinstance(groups, list) or not all(
+        isinstance(g, dict) and isinstance(g.get("params"), list) for g in groups
+    ):
+        return "no parameter groups in the file"
+    had = [len(g["params"]) for g in groups]
+    has = [len(g["params"]) for g in optimizer.param_groups]
+    if had != has:
+        return f"parameters per group: {had} in the file, {has} in this run"
+    return None
 
 
 def _read_resume(path: Path) -> dict:
