@@ -128,3 +128,67 @@ def test_the_module_doc_describes_every_field_a_checkpoint_holds(saved):
     assert fields | set(saved[1]) <= documented, sorted(fields | set(saved[1]) - documented)
     extra = re.search(r"^    extra:(.*?)^    \w+:", layout, flags=re.M | re.S).group(1)
     assert "optimiser" not in extra and "trained_on" in extra
+
+
+def _body_at(path, seed=0):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = random_body_data(num_vertices=400, with_posedirs=False, seed=seed)
+    return str(data.save_npz(path)), data
+
+
+def _checkpoint_with_body(tmp_path, spec, data):
+    net, ids, groups = build_network(get_preset("tiny"), BodyModel(data))
+    path = tmp_path / "pretrain.pt"
+    save_checkpoint(path, net, spec, ids, groups)
+    return path
+
+
+def test_a_body_file_gone_from_its_recorded_path_names_the_checkpoint(tmp_path):
+    """A checkpoint records its body model as an absolute path: once the project folder moved,
+    loading it failed with a FileNotFoundError naming the body's path alone."""
+    from gst.model.inference import GSTPredictor
+
+    spec, data = _body_at(tmp_path / "old/body.npz")
+    ckpt = _checkpoint_with_body(tmp_path, spec, data)
+    (tmp_path / "old/body.npz").rename(tmp_path / "new.npz")
+    with pytest.raises(ValueError, match=r"pretrain\.pt: cannot load the body model .*put it back"):
+        GSTPredictor(ckpt)
+    assert GSTPredictor(ckpt, body_model=str(tmp_path / "new.npz")).body.num_vertices == 400
+
+
+def test_reuse_and_train_take_the_same_body_file_at_another_path(tmp_path, caplog):
+    """pretrain.reuse and train compared body models as text: the same file at another path (a
+    moved project folder) was refused as another body."""
+    import shutil
+
+    from gst.body import load_body_model
+    from gst.train.pretrain import PretrainConfig, reuse_checkpoint
+    from gst.train.scene_training import TrainSettings, _initial_network
+
+    spec, data = _body_at(tmp_path / "old/body.npz")
+    ckpt = _checkpoint_with_body(tmp_path, spec, data)
+    moved = tmp_path / "new/body.npz"
+    moved.parent.mkdir()
+    shutil.copyfile(spec, moved)
+
+    def reuse(body_spec: str, name: str):
+        p = PretrainConfig(reuse=ckpt, body_model=body_spec)
+        (tmp_path / name).mkdir()
+        return reuse_checkpoint(p, tmp_path / name / "pretrain.pt", tmp_path / name / "reports")
+
+    def train(body_spec: str):
+        settings = TrainSettings(body_model=body_spec)
+        return _initial_network(settings, ckpt, load_body_model(body_spec))
+
+    reuse(str(moved), "a")  # both files there: compared by content
+    assert train(str(moved))[0] is not None
+    other, _ = _body_at(tmp_path / "other/body.npz", seed=1)
+    for refused in (lambda: reuse(other, "b"), lambda: train(other)):
+        with pytest.raises(ValueError, match=r"trained with body model .*another body"):
+            refused()
+    (tmp_path / "old/body.npz").unlink()  # the old folder gone: a file of the same name is taken
+    reuse(str(moved), "c")
+    assert "not found here" in caplog.text
+    assert train(str(moved))[0] is not None
+    with pytest.raises(ValueError, match=r"cannot be loaded here to compare"):
+        reuse(str(tmp_path / "new.npz"), "d")  # another name: not taken on trust

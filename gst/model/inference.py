@@ -170,7 +170,7 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
     that body's, and another body gave plausible but wrong joints (0.4 m off) without a word."""
     own = override is None or override == ckpt.body_model
     spec = ckpt.body_model if own else override
-    body = load_body_model(spec, device=device)
+    body = _own_body(ckpt, checkpoint, device) if own else load_body_model(spec, device=device)
     if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
         # checked on both paths: the checkpoint's own spec may resolve to another body here (a
         # path holding another file since); it failed at the first batch, naming no file
@@ -197,6 +197,69 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
             "body (the same file, at any path) or none"
         )
     return body
+
+
+def _own_body(ckpt, checkpoint, device=None) -> BodyModel:
+    """The body model the checkpoint names, or a ValueError naming the checkpoint and what to do
+    (a bare FileNotFoundError named the body's path alone: the checkpoint records it as given
+    when training, an absolute path that moves with the project folder)."""
+    try:
+        return load_body_model(ckpt.body_model, device=device)
+    except (FileNotFoundError, ValueError) as exc:
+        raise ValueError(
+            f"{checkpoint}: cannot load the body model its network was trained with, "
+            f"{ckpt.body_model!r} ({exc}); the checkpoint records the body model as given to "
+            "training: if that file moved (e.g. with the project folder), put it back or link "
+            "it there, or give the same body at its new path where a body model is asked for "
+            "(pretrain.body_model, train.body_model, GSTPredictor(body_model=...))"
+        ) from None
+
+
+def _is_file_spec(spec: str) -> bool:
+    return spec != "anny" and spec != "smpl" and not spec.startswith("smpl:")
+
+
+def check_same_body(ckpt, spec: str, load_body, who: str, setting: str) -> None:
+    """That `spec` (a setting's body model; `load_body()` loads it) is the body the
+    checkpoint's network was trained with: the same spec, or the same body by content (the same
+    file at another path: a moved project folder). When the checkpoint's own body cannot be
+    loaded here, a file of the same name is taken, with a warning, if the network's vertex ids
+    fit it. `who` names the checkpoint in errors, `setting` the setting."""
+    if spec == ckpt.body_model:
+        return
+    try:
+        own = load_body_model(ckpt.body_model)
+    except (FileNotFoundError, ValueError) as exc:
+        moved = (
+            _is_file_spec(spec)
+            and _is_file_spec(ckpt.body_model)
+            and Path(spec).name == Path(ckpt.body_model).name
+        )
+        if not moved:
+            raise ValueError(
+                f"{who} was trained with body model '{ckpt.body_model}', {setting} is '{spec}' "
+                f"(the checkpoint's body cannot be loaded here to compare: {exc}); give "
+                "the body it was trained with"
+            ) from None
+        body = load_body()
+        if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
+            raise ValueError(
+                f"{who} was trained with body model '{ckpt.body_model}' (not found here); "
+                f"{setting} '{spec}' has {body.num_vertices} vertices, the network uses vertex "
+                f"ids up to {int(ckpt.vertex_ids.max())}: another body"
+            ) from None
+        log.warning(
+            "%s was trained with body model '%s', not found here (%s); taking %s '%s', a file "
+            "of the same name, as that body (it cannot be compared)",
+            who, ckpt.body_model, exc, setting, spec,
+        )  # fmt: skip
+        return
+    if not _same_body(own, load_body()):
+        raise ValueError(
+            f"{who} was trained with body model '{ckpt.body_model}', {setting} is '{spec}' "
+            "(another body: other size, template, shape space or joint regressor)"
+        )
+    log.info("%s: body model '%s' is its own, '%s'", who, spec, ckpt.body_model)
 
 
 # How far (m) the body's rest skeleton, or a unit of each shape coefficient's move of it, may

@@ -45,6 +45,7 @@ from gst.body import load_body_model
 from gst.device import check_device_name
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
+from gst.model.inference import check_same_body
 from gst.model.presets import PRESETS, get_preset
 from gst.model.refine import DEFAULT_ROUNDS
 from gst.param_types import NAMES_FILE
@@ -264,11 +265,14 @@ class ImagePretrainSummary:
 
 def reuse_checkpoint(p: PretrainConfig, checkpoint: Path, reports: Path) -> ReusedCheckpoint:
     ckpt = load_checkpoint(p.reuse)  # weights_only: a GST checkpoint or a clear error
-    if ckpt.body_model != p.body_model:
-        raise ValueError(
-            f"pretrain.reuse={p.reuse} was trained with body model '{ckpt.body_model}', "
-            f"pretrain.body_model is '{p.body_model}'"
-        )
+    # compared by content where the specs differ: the same file at another path is that body
+    check_same_body(
+        ckpt,
+        p.body_model,
+        lambda: load_body_model(p.body_model),
+        f"pretrain.reuse={p.reuse}",
+        "pretrain.body_model",
+    )
     preset = ckpt.config.get("name") if isinstance(ckpt.config, dict) else None
     if preset is not None and preset != p.preset:
         # training builds the network the file holds, whatever pretrain.preset says

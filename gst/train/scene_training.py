@@ -32,7 +32,7 @@ from gst.metrics.flips import reference_in_crops, surely_mirrored, unmirror
 from gst.metrics.lpips import load_lpips
 from gst.model.checkpoint import keep_model, load_checkpoint, network_from_checkpoint
 from gst.model.hmr2_import import import_hmr2
-from gst.model.inference import check_body_fits_network
+from gst.model.inference import check_body_fits_network, check_same_body
 from gst.model.presets import get_preset
 from gst.param_types import NAMES_FILE
 from gst.render.ply import write_gaussians_ply
@@ -150,11 +150,8 @@ def _initial_network(p: TrainSettings, pretrained: Path, body):
         log.info("HMR2 import: %s", report.summary())
         return net, ids, groups
     ckpt = load_checkpoint(pretrained)
-    if ckpt.body_model != p.body_model:
-        raise ValueError(
-            f"models/pretrain.pt was trained with body model '{ckpt.body_model}', "
-            f"train.body_model is '{p.body_model}'"
-        )
+    # compared by content where the specs differ: the same file at another path is that body
+    check_same_body(ckpt, p.body_model, lambda: body, "models/pretrain.pt", "train.body_model")
     net = network_from_checkpoint(ckpt, pretrained)
     check_body_fits_network(net, body, pretrained)  # the spec may resolve to another body here
     return net, ckpt.vertex_ids.numpy(), ckpt.group_index.numpy()
