@@ -203,7 +203,7 @@ def test_a_crop_size_that_lift_mode_would_ignore_is_refused():
     [
         ("huge", "3d", 128, "128"),
         ("tiny", "pretrain", 64, "64"),
-        ("small", "3d", None, "128, the default"),
+        ("small", "3d", 128, "128"),
     ],
 )
 def test_image_modes_refuse_crops_smaller_than_the_networks_input(preset, mode, crop_size, given):
@@ -214,13 +214,15 @@ def test_image_modes_refuse_crops_smaller_than_the_networks_input(preset, mode, 
     from gst.train.pretrain import PretrainConfig
 
     side = get_preset(preset).image_size[0]
-    kw = {} if crop_size is None else {"crop_size": crop_size}
+    kw = {"crop_size": crop_size}
     with pytest.raises(
         ValidationError, match=rf"crop_size \({given}\) is smaller than .* \({side} px high\)"
     ):
         PretrainConfig(preset=preset, mode=mode, **kw)
     assert PretrainConfig(preset=preset, mode=mode, crop_size=side).crop_size == side
     assert PretrainConfig(mode="3d").crop_size == 128  # the tiny preset's default fits
+    # left out, the crop size follows a larger preset's input
+    assert PretrainConfig(preset="small", mode="3d").crop_size == 256
 
 
 def test_the_default_and_the_demo_pretrain_settings_validate():

@@ -95,8 +95,8 @@ class PretrainConfig(BaseModel):
         3  # every Nth world holds independent random poses instead of motions (0: none)
     )
     # modes 3d and pretrain, at least the network's input height (the tiny preset's input is
-    # 128x96; larger presets need 256); mode lift cuts 256 px crops, the pipeline's, and refuses
-    # another value
+    # 128x96; larger presets need 256, which they take when crop_size is left out); mode lift
+    # cuts 256 px crops, the pipeline's, and refuses another value
     crop_size: PositiveInt = 128
     # mode 3d: box (zoom/shift) and colour jitter of the supervised crops (docs/training.md)
     augment: bool = False
@@ -162,12 +162,13 @@ class PretrainConfig(BaseModel):
                 "extraction (leave crop_size out, or set mode: 3d)"
             )
         side = get_preset(self.preset).image_size[0]  # the network's input is side x (3/4 side)
+        if self.mode in ("3d", "pretrain") and self.crop_size < side and not given:
+            self.crop_size = side  # the default follows the preset (128: tiny's input)
         if self.mode in ("3d", "pretrain") and self.crop_size < side:
             # accepted, the crops were upsampled to the network's input (huge: 128 px crops
             # blown up 2x), training a network on blurred images it never meets in the pipeline
-            default = "" if given else ", the default"
             raise ValueError(
-                f"crop_size ({self.crop_size}{default}) is smaller than the '{self.preset}' "
+                f"crop_size ({self.crop_size}) is smaller than the '{self.preset}' "
                 f"network's input ({side} px high): its crops would be upsampled; set crop_size "
                 f"to at least {side}"
             )
