@@ -3,6 +3,8 @@ frame for the person detector's second look, and the overlap of two boxes."""
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gst.detect.boxes import paint_out, shared
 
@@ -40,3 +42,37 @@ def test_an_empty_frame_is_refused_by_name():
     for shape in [(0, 0, 3), (0, 10, 3), (10, 0), (0, 0)]:
         with pytest.raises(ValueError, match=r"empty frame of shape"):
             as_bgr_frame(np.zeros(shape, np.uint8))
+
+
+@given(
+    x0=st.floats(-300, 300), y0=st.floats(-300, 300),
+    bw=st.floats(0, 200), bh=st.floats(0, 200), grow=st.floats(0, 0.5),
+)  # fmt: skip
+@settings(max_examples=200, deadline=None)
+def test_paint_out_paints_exactly_the_grown_box_clipped_to_the_image(x0, y0, bw, bh, grow):
+    """A box wholly above or left of the image has a negative far edge; sliced as it was, it
+    counted back from the other side and painted nearly the whole frame (18,236 of 20,000 px)."""
+    img = np.zeros((100, 200, 3), np.uint8)
+    img[::2] = 200  # a mean colour of its own: painted pixels differ from both rows
+    x1, y1 = x0 + bw, y0 + bh
+    out = paint_out(img, [np.array([x0, y0, x1, y1])], grow=grow)
+    gx, gy = grow * bw, grow * bh
+    vv, uu = np.mgrid[0:100, 0:200]
+    inside = (
+        (uu >= np.floor(x0 - gx)) & (uu < np.ceil(x1 + gx))
+        & (vv >= np.floor(y0 - gy)) & (vv < np.ceil(y1 + gy))
+    )  # fmt: skip
+    np.testing.assert_array_equal((out != img).any(-1), inside)
+
+
+def test_a_hint_box_starting_left_of_the_frame_is_looked_at():
+    """`_uncovered` sliced a hint with x < 0 from the frame's far edge: an empty slice, and the
+    person at the left edge was never segmented."""
+    from gst.detect.persons import PersonSegmenter, SegmenterConfig
+
+    seg = PersonSegmenter.__new__(PersonSegmenter)  # no models: only the hint bookkeeping
+    seg.config = SegmenterConfig(hint_covered=0.5)
+    assert seg._uncovered(None, [(-10, 5, 30, 30)], (100, 200)) == [(-10, 5, 30, 30)]
+    labels = np.zeros((100, 200), np.uint8)
+    labels[:40, :25] = 1  # someone found there already covers it
+    assert seg._uncovered(labels, [(-10, 5, 30, 30)], (100, 200)) == []

@@ -43,9 +43,12 @@ def paint_out(image: np.ndarray, boxes, grow: float = 0.1) -> np.ndarray:
     h, w = image.shape[:2]
     for x0, y0, x1, y1 in boxes:
         gx, gy = grow * (x1 - x0), grow * (y1 - y0)
-        a, b = max(int(np.floor(x0 - gx)), 0), min(int(np.ceil(x1 + gx)), w)
-        c, d = max(int(np.floor(y0 - gy)), 0), min(int(np.ceil(y1 + gy)), h)
-        out[c:d, a:b] = fill
+        # both ends clipped to the image: a box wholly above or left of it has a negative far
+        # edge, which as a slice counted back from the other side and painted nearly everything
+        a, b = (int(np.clip(v, 0, w)) for v in (np.floor(x0 - gx), np.ceil(x1 + gx)))
+        c, d = (int(np.clip(v, 0, h)) for v in (np.floor(y0 - gy), np.ceil(y1 + gy)))
+        if b > a and d > c:
+            out[c:d, a:b] = fill
     return out
 
 

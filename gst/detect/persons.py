@@ -375,8 +375,12 @@ class PersonSegmenter:
         `hint_covered` of."""
         found = labels > 0 if labels is not None else np.zeros(shape, bool)
         out = []
+        h, w = found.shape
         for x, y, bw, bh in hints:
-            box = found[int(y) : int(y + bh), int(x) : int(x + bw)]
+            # clipped to the frame: a hint starting left of or above it sliced from the far edge
+            x0, x1 = (int(np.clip(v, 0, w)) for v in (x, x + bw))
+            y0, y1 = (int(np.clip(v, 0, h)) for v in (y, y + bh))
+            box = found[y0:y1, x0:x1]
             if box.size and box.mean() < self.config.hint_covered:
                 out.append((x, y, bw, bh))
         return out
