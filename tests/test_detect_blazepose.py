@@ -688,3 +688,44 @@ def test_the_person_model_refuses_a_16_bit_frame():
     with pytest.raises(ValueError, match="uint16"):
         model.segment(frame, BodyRoi((24.0, 32.0), 40.0, 0.0))
     assert model.detect(np.zeros((64, 48), np.uint8)) == []  # grey: read as BGR
+
+
+class _SquareFinder:
+    """Warps as BlazePose.segment does and answers where a bright square lies in its input,
+    edge-based as the landmark model's output is (0 = the input's left edge)."""
+
+    def __init__(self):
+        self.seen = []
+
+    def segment(self, img, roi):
+        from types import SimpleNamespace
+
+        m = roi.to_crop(256)
+        crop = cv2.warpAffine(img, m, (256, 256), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
+        self.seen.append(crop)
+        g = crop[..., 1].astype(np.float64)
+        vv, uu = np.mgrid[0:256, 0:256]
+        centre = np.array([(g * uu).sum(), (g * vv).sum()]) / g.sum()
+        xy = np.r_[centre + 0.5, 1.0] @ cv2.invertAffineTransform(m).T
+        lms = np.zeros((33, 3), np.float32)
+        lms[:, :2], lms[:, 2] = xy, 1.0
+        return SimpleNamespace(landmarks=lms, world_landmarks=np.zeros((33, 3), np.float32),
+                               presence=1.0)  # fmt: skip
+
+
+@pytest.mark.parametrize("size", [256, 128, 200])
+def test_a_crop_reaches_the_landmark_model_as_it_is_and_its_answer_comes_back_unshifted(size):
+    """The whole-crop region sampled every pixel half a pixel up and left of itself: a blur with
+    a half-dark first row and column. The answer is read back as on frames: half a model pixel
+    right of and below the feature (0.5 x size / 256; docs/person_models.md)."""
+    from gst.detect.crops import detect_crop_landmarks
+
+    img = np.zeros((1, size, size, 3), np.uint8)
+    img[0, 40:51, 70:77] = 255  # centre (73, 45)
+    model = _SquareFinder()
+    found = detect_crop_landmarks(img, model, rgb=False)
+    half = 0.5 * size / 256
+    np.testing.assert_allclose(found.landmarks[0, 0, :2], [73.0 + half, 45.0 + half], atol=0.06)
+    if size == 256:
+        np.testing.assert_array_equal(model.seen[0], img[0])

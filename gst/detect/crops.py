@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gst.detect.blazepose import N_BODY_LANDMARKS, BlazePose, BodyRoi
+from gst.detect.blazepose import LANDMARK_SIZE, N_BODY_LANDMARKS, BlazePose, BodyRoi
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,7 @@ def detect_crop_landmarks(
         )
     n, size = len(images), images.shape[1]
     model = model or BlazePose(threads=1)
-    roi = BodyRoi(((size - 1) / 2, (size - 1) / 2), float(size), 0.0)
+    roi = whole_crop_roi(size)
     lms = np.zeros((n, N_BODY_LANDMARKS, 3), np.float32)
     world = np.zeros((n, N_BODY_LANDMARKS, 3), np.float32)
     presence = np.zeros(n, np.float32)
@@ -128,3 +128,17 @@ def detect_crop_landmarks(
         else:
             lms[i], world[i], presence[i] = seg.landmarks, seg.world_landmarks, seg.presence
     return CropLandmarks(lms, world, presence)
+
+
+def whole_crop_roi(size: int) -> BodyRoi:
+    """The region that hands the landmark model a `size` px crop as it is. `BodyRoi.to_crop`
+    maps the region's corners to the model input's edges (0 and 256) while `cv2.warpAffine`
+    samples at pixel centres: the region centred at ((size - 1) / 2, ...) sampled every pixel
+    half a pixel up and left of itself, a blur with a half-dark first row and column that moved
+    its landmarks by a median 1.1 px (5-23 px on four of 20 lab crops). This centre samples
+    pixel centres onto pixel centres (exactly the crop at 256 px). The answer is read back as
+    on frames, half a model pixel (0.5 x size / 256) right of and below the feature, as before
+    (docs/person_models.md, "Landmarks half a crop pixel off": measured, not corrected), so
+    crop and frame readings stay alike."""
+    centre = size / 2 + 0.5 * size / LANDMARK_SIZE - 0.5
+    return BodyRoi((centre, centre), float(size), 0.0)
