@@ -81,6 +81,58 @@ def test_one_corrupted_view_is_rejected():
     assert robust.error.max() < 2.0  # px, over the kept views
 
 
+def test_the_outlier_test_counts_crop_pixels_on_large_crops():
+    """The landmark model's noise is about constant in crop pixels: on crops 4x their stored size
+    (a close or 4K camera), 2 crop px of noise is 8 full-image px, and a fixed 12 px dropped
+    a good view of 45 % of the points. A 40 crop-px error is still dropped, and the reported
+    errors stay in full-image pixels."""
+    rng = np.random.default_rng(7)
+    K, Rt = _rig(4, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (400, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    scale = 4.0  # crop side / stored size: uv and K in crop pixels, errors reported x 4
+    noisy = (uv + rng.normal(0, 2.0 * scale, uv.shape)) / scale
+    Kc = Kb * np.array([1 / scale, 1 / scale, 1.0])[:, None]
+    conf, px = np.full((len(X), 4), 0.9), np.full((len(X), 4), scale)
+    tri = triangulate_points(Kc, Rtb, noisy, conf, px)
+    assert (tri.used.sum(1) < 4).mean() < 0.02, (tri.used.sum(1) < 4).mean()
+    fixed = triangulate_points(
+        Kc, Rtb, noisy, conf, px, TriangulationOptions(outlier_scales_with_crop=False)
+    )
+    assert (fixed.used.sum(1) < 4).mean() > 0.2  # the old rule
+    assert 5 < np.nanmedian(tri.error) < 12  # full-image px: about 2 crop px x 4
+    bad = noisy.copy()
+    bad[:, 0] += 40.0  # crop px
+    assert not triangulate_points(Kc, Rtb, bad, conf, px).used[:, 0].any()
+
+
+def test_a_point_seen_along_nearly_one_line_by_two_facing_cameras_loses_its_confidence():
+    """Two cameras facing each other see a point near the line through them along one ray: it
+    slides along it without moving in either image, and was reported at full two-view
+    confidence half a metre off. Confidence now scales with the rays' angle below 5 degrees."""
+    rng = np.random.default_rng(5)
+    K, Rt = [], []
+    for x in (-5.0, 5.0):
+        pos = np.array([x, 0.0, 1.5])
+        R = look_at_rotation(pos, np.array([0.0, 0.0, 1.5]), up=np.array([0.0, 0.0, 1.0]))
+        K.append(np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]]))
+        Rt.append(np.hstack([R, (-R @ pos)[:, None]]))
+    K, Rt = np.array(K), np.array(Rt)
+    near = np.c_[rng.uniform(-1, 1, 50), rng.uniform(-0.03, 0.03, (50, 2)) + [0, 1.5]]
+    away = np.c_[rng.uniform(-1, 1, 50), rng.uniform(0.8, 1.2, 50), rng.uniform(0.5, 2.5, 50)]
+    for X, low in ((near, True), (away, False)):
+        Kb, Rtb, uv = _observe(K, Rt, X)
+        tri = triangulate_points(Kb, Rtb, uv + rng.normal(0, 1.0, uv.shape), np.ones((50, 2)))
+        if low:
+            assert np.median(tri.confidence) < 0.1, np.median(tri.confidence)
+        else:
+            assert np.median(tri.confidence) > 0.4
+    off = TriangulationOptions(min_ray_angle_deg=0)
+    Kb, Rtb, uv = _observe(K, Rt, near)
+    plain = triangulate_points(Kb, Rtb, uv, np.ones((50, 2)), options=off)
+    assert np.median(plain.confidence) > 0.4
+
+
 def test_two_wrong_views_of_six_are_rejected_by_pair_consensus():
     """Two views agreeing on nothing drag the all-view point so that leaving one out cannot
     recover it; the pair hypotheses find the four that agree."""
