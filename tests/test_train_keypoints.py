@@ -123,3 +123,23 @@ def test_the_training_task_carries_the_markers_when_the_keypoint_term_is_on():
     assert make_task(body, [0], cfg, 128, LossWeights(keypoints=0.0)).markers is None
     off = make_task(body, [0], cfg, 128, LossWeights(keypoints=10.0), keypoint_markers=False)
     assert off.markers is None
+
+
+def test_the_projections_stay_float32_under_bf16_autocast():
+    """Under bf16 autocast (train.amp) the keypoint term's and the 2D terms' projections ran in
+    bf16: exact detections of a body 5 m from the world origin cost 0.18 px at 64 px."""
+    from gst.train.steps import project
+
+    g = torch.Generator().manual_seed(0)
+    joints = torch.randn(4, 24, 3, generator=g) * 0.3 + torch.tensor([4.0, 3.0, 1.0])
+    viewmats, K = _views(4, 3)
+    viewmats[..., :3, 3] = torch.tensor([-4.0, -3.0, 4.0])  # the person ~4 m in front
+    uv = _project(joints, viewmats, K)
+    kp = torch.cat([uv, torch.ones(4, 3, 24, 1)], -1)
+    cam = joints @ viewmats[:, 0, :3, :3].transpose(1, 2) + viewmats[:, 0, None, :3, 3]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        term = keypoint_term(joints, viewmats, K, kp, 64)
+        px = project(cam, K[:, 0])
+    assert term.dtype == torch.float32 and term.item() * 64 < 1e-3
+    assert px.dtype == torch.float32
+    torch.testing.assert_close(px, uv[:, 0], atol=1e-3, rtol=0)

@@ -136,11 +136,18 @@ def keypoint_term(
 ) -> torch.Tensor:
     """Confidence-weighted mean distance, in image widths, between the predicted joints
     (B, J, 3) projected into the target views (viewmats (B, M, 4, 4), K (B, M, 3, 3)) and
-    the views' detected joints (B, M, J, 3: u, v, confidence, in the same pixels as K)."""
-    R, t = viewmats[..., :3, :3], viewmats[..., :3, 3]
-    cam = torch.einsum("bmij,bnj->bmni", R, joints_world) + t[:, :, None, :]
-    z = cam[..., 2:].clamp_min(1e-3)
-    uv = torch.einsum("bmij,bmnj->bmni", K, cam / z)[..., :2]
-    conf = keypoints[..., 2] * (cam[..., 2] > 1e-3)
-    err = (uv - keypoints[..., :2]).norm(dim=-1) / image_size
-    return (conf * err.clamp(max=0.5)).sum() / conf.sum().clamp_min(1e-6)
+    the views' detected joints (B, M, J, 3: u, v, confidence, in the same pixels as K).
+
+    Computed in float32 with autocast off: under bf16 autocast (TrainConfig.amp) the einsums ran
+    in bf16, which puts world points a few metres out about a centimetre off and the projections
+    a fifth of a pixel (at 64 px) off, a noise floor of the term's own size."""
+    with torch.autocast(joints_world.device.type, enabled=False):
+        joints_world, viewmats, K = joints_world.float(), viewmats.float(), K.float()
+        keypoints = keypoints.float()
+        R, t = viewmats[..., :3, :3], viewmats[..., :3, 3]
+        cam = torch.einsum("bmij,bnj->bmni", R, joints_world) + t[:, :, None, :]
+        z = cam[..., 2:].clamp_min(1e-3)
+        uv = torch.einsum("bmij,bmnj->bmni", K, cam / z)[..., :2]
+        conf = keypoints[..., 2] * (cam[..., 2] > 1e-3)
+        err = (uv - keypoints[..., :2]).norm(dim=-1) / image_size
+        return (conf * err.clamp(max=0.5)).sum() / conf.sum().clamp_min(1e-6)

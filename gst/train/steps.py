@@ -87,10 +87,14 @@ def predict(
 
 
 def project(points_cam: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Pinhole projection (crops are undistorted): (B, N, 3) camera points -> (B, N, 2) px."""
-    z = points_cam[..., 2:].clamp_min(1e-6)
-    uv1 = (points_cam / z) @ K.transpose(-1, -2)
-    return uv1[..., :2]
+    """Pinhole projection (crops are undistorted): (B, N, 3) camera points -> (B, N, 2) px, in
+    float32 with autocast off (under bf16 autocast the matmul ran in bf16: about half a pixel
+    off at 256 px, the size of the 2D terms' own errors)."""
+    with torch.autocast(points_cam.device.type, enabled=False):
+        points_cam, K = points_cam.float(), K.float()
+        z = points_cam[..., 2:].clamp_min(1e-6)
+        uv1 = (points_cam / z) @ K.transpose(-1, -2)
+        return uv1[..., :2]
 
 
 def render_predictions(
