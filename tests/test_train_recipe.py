@@ -244,3 +244,34 @@ def test_after_scores_the_model_the_caller_keeps(tmp_path):
             net, task, crops, TrainConfig(steps=1), tmp_path / "x", FitOptions(),
             body_spec="random", vertex_ids=ids, group_index=groups, after_from="first",
         )  # fmt: skip
+
+
+def test_supervised_batches_carry_the_scenes_up(tmp_path, monkeypatch):
+    """The 2d/3d baselines gave a gravity-aware network the up of a z-up world whatever the
+    scene's rig said (validation and tracking read the rig's): a y-up rig trained on a wrong up."""
+    import gst.train.recipe as recipe
+    from gst.model.landmarks import camera_up
+
+    body = BodyModel(random_body_data(num_vertices=400, with_posedirs=False))
+    cfg = get_preset("tiny", vertex_preset="full")
+    net, ids, groups = build_network(cfg, body)
+    crops = crop_set(n_frames=2, n_cams=2)
+    task = make_task(body, ids, cfg, crops.crop_size, LossWeights(lpips=0.0), world_up=(0, 1, 0))
+    seen = []
+    real = recipe.supervised_step
+
+    def spy(m, b, t):
+        seen.append(b)
+        return real(m, b, t)
+
+    monkeypatch.setattr(recipe, "supervised_step", spy)
+    fit_gst(
+        net, task, crops, TrainConfig(steps=1, batch_size=2, warmup_steps=1, val_every=1),
+        tmp_path, FitOptions(mode="3d"), body_spec="random", vertex_ids=ids, group_index=groups,
+    )  # fmt: skip
+    assert seen
+    for b in seen:
+        rows = [
+            int(torch.nonzero((crops.images == img).all(-1).all(-1).all(-1))[0]) for img in b.images
+        ]
+        torch.testing.assert_close(b.up, camera_up(crops.R[rows], (0.0, 1.0, 0.0)))

@@ -137,8 +137,12 @@ def _rehearsing(step, rehearsal: Rehearsal):
     return rehearsed
 
 
-def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
-    """A supervised batch of crop rows `idx` from their truth (joints, 2D joints, parameters)."""
+def supervised_batch(
+    crops: CropSet, idx: torch.Tensor, world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> SupervisedBatch:
+    """A supervised batch of crop rows `idx` from their truth (joints, 2D joints, parameters);
+    `world_up`: the crops' world's up axis (pretraining worlds are z-up; a scene's is its rig's,
+    `GSTTask.world_up`, as validation and tracking read it)."""
     t = crops.truth
     return SupervisedBatch(
         images=crops.images[idx],
@@ -149,7 +153,7 @@ def supervised_batch(crops: CropSet, idx: torch.Tensor) -> SupervisedBatch:
         rotmats=t["rotmats_cam"][idx],
         betas=t["betas"][idx][:, :10],
         landmarks=None if crops.landmarks is None else crops.landmarks[idx],
-        up=camera_up(crops.R[idx]),  # pretraining worlds are z-up
+        up=camera_up(crops.R[idx], world_up),
     )
 
 
@@ -303,7 +307,7 @@ def fit_gst(
 
         def sample(gen, bs):
             batch = supervised_batch(
-                crops, single[torch.randint(len(single), (bs,), generator=gen)]
+                crops, single[torch.randint(len(single), (bs,), generator=gen)], task.world_up
             )
             return batch if opts.augment is None else jitter_batch(batch, opts.augment, gen)
 
