@@ -68,8 +68,11 @@ class HashCache:
             return "dir:" + h.hexdigest()
         return None
 
-    def save(self) -> None:
+    def save(self, create: bool = True) -> None:
+        """Write the cache if it changed; `create=False`: only into a folder that exists."""
         if self.path is not None and self._dirty:
+            if not create and not self.path.parent.is_dir():
+                return
             self.path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(self.path, json.dumps(self._entries))
             self._dirty = False

@@ -496,7 +496,10 @@ class Runner:
         out = list(result.values())
         if not targets:
             out += self._variant_statuses({st.key for st in out}, result)
-        self.hashes.save()
+        # a cache for the next look, in a workspace that is there: `status` of a workspace that
+        # never ran made its folder (and failed where the workspace cannot be written)
+        with contextlib.suppress(OSError):
+            self.hashes.save(create=False)
         return out
 
     def _recorded_options(self, name: str) -> dict:
@@ -638,9 +641,9 @@ class Runner:
                 if name not in needed and st.needs_run:
                     why = f"only for {', '.join(skipped)}, which the scene does not need"
                     planned[name] = StageStatus(name, st.key, SKIPPED, why, st.fingerprint)
-        self.hashes.save()
-        if dry_run:
+        if dry_run:  # writes nothing, the hash cache included (it made a never-run workspace)
             return list(planned.values())
+        self.hashes.save()
         first = [f"{n} ({planned[n].reason})" for n in names
                  if n not in targets and planned[n].needs_run]  # fmt: skip
         if first:  # said before a pretraining nobody named starts (`track` in a new workspace)

@@ -132,6 +132,26 @@ def test_dry_run_runs_nothing(tmp_path, counter, capsys):
     assert "never run" in capsys.readouterr().out  # the plan is the command's output
 
 
+def test_dry_run_and_status_write_nothing(tmp_path, counter, capsys):
+    """A dry run saved the hash cache: on a workspace that never ran it made the workspace
+    folder, and after a touch of an input it rewrote the cache. `status` of a never-run
+    workspace made the folder too (it may keep its cache in a workspace that is there)."""
+    data = tmp_path / "input.txt"
+    data.write_text("hello\n")
+    cfg = write_config(tmp_path, input_file=data)
+    assert main(["run", "all", "--config", str(cfg), "--dry-run", "-q"]) == 0
+    assert main(["status", "--config", str(cfg), "-q"]) == 0
+    assert not (tmp_path / "ws").exists()
+    assert run(cfg, "run", "all") == 0
+    cache = tmp_path / "ws/.pipeline/hashcache.json"
+    before = cache.read_bytes()
+    time.sleep(0.01)
+    os.utime(data)  # re-hashed: a run or `status` would save the new entry
+    assert main(["run", "all", "--config", str(cfg), "--dry-run", "-q"]) == 0
+    assert cache.read_bytes() == before
+    assert counter() == ["source", "double", "report"]
+
+
 def test_status_reports_reason(tmp_path, capsys):
     cfg = write_config(tmp_path)
     assert run(cfg, "run", "all") == 0
