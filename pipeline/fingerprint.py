@@ -34,9 +34,15 @@ class HashCache:
         self._dirty = False
         if path is not None and path.is_file():
             try:
-                self._entries = json.loads(path.read_text())
-            except (json.JSONDecodeError, OSError):
-                self._entries = {}  # a corrupt cache only costs re-hashing
+                entries = json.loads(path.read_text())
+            except (ValueError, OSError):  # not JSON, or not text (UnicodeDecodeError)
+                entries = {}  # a corrupt cache only costs re-hashing
+            # entries of another shape (a list, an entry that is no list) are dropped: they
+            # crashed every `status` and `run` with a TypeError
+            if isinstance(entries, dict):
+                self._entries = {
+                    k: v for k, v in entries.items() if isinstance(v, list) and len(v) == 5
+                }
 
     def file_digest(self, path: Path) -> str:
         st = path.stat()

@@ -167,8 +167,25 @@ def _failure(staging: Path) -> str | None:
     """The error a stage's last run failed with (`_record_failure`), None if it did not fail."""
     try:
         return (staging / FAILED_MARKER).read_text().strip() or "(no message)"
+    except UnicodeDecodeError:  # cut short inside a character (killed while writing it)
+        return (staging / FAILED_MARKER).read_bytes().decode(errors="replace").strip()
     except OSError:
         return None
+
+
+def _load_record(path: Path) -> tuple[dict | None, str | None]:
+    """(a state record, None) or (None, why it cannot be read); (None, None) when there is none.
+    A record cut short (a full disk), not text or not an object crashed `status` and `run` with a
+    traceback (UnicodeDecodeError, AttributeError), or was said to be 'never run'."""
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None, None
+    except (OSError, ValueError) as exc:  # ValueError: not JSON, or not UTF-8 text
+        return None, f"{type(exc).__name__}: {exc}"
+    if not isinstance(record, dict):
+        return None, f"it holds {json.dumps(record)[:40]}, not a JSON object"
+    return record, None
 
 
 def _lock_owner(fh) -> str:
@@ -367,11 +384,13 @@ class Runner:
         return self.meta / "state" / f"{_safe_key(key)}.json"
 
     def _read_record(self, key: str) -> dict | None:
-        p = self._record_path(key)
-        try:
-            return json.loads(p.read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
-            return None
+        """The stage variant's record, None when it has none or none that can be read (see
+        `_record_problem`): its outputs are then not trusted, and the stage reruns."""
+        return _load_record(self._record_path(key))[0]
+
+    def _record_problem(self, key: str) -> str | None:
+        """Why the record of `key` cannot be read, None when it can or there is none."""
+        return _load_record(self._record_path(key))[1]
 
     def applies(self, name: str) -> bool:
         return self.stages[name].applies(self.scene)
@@ -436,6 +455,12 @@ class Runner:
                 why = f"being written by the run now in progress (pid {running})"
             if not interrupted and not stage.in_all:
                 why += f" (on demand: `run {name}`; `run all` skips it)"
+            problem = self._record_problem(key)
+            if problem is not None and running is None:
+                why = (
+                    f"its record {self._record_path(key)} cannot be read ({problem}); its "
+                    "outputs are not trusted and it reruns"
+                )
             return StageStatus(name, key, MISSING, why, fp)
         for rel in stage.outputs(ctx):  # declared now (e.g. track --with-gaussians' splats)
             if rel not in record.get("outputs", {}):
@@ -514,9 +539,12 @@ class Runner:
         out = []
         state_dir = self.meta / "state"
         for path in sorted(state_dir.glob("*@*.json")) if state_dir.is_dir() else []:
-            try:
-                record = json.loads(path.read_text())
-            except (OSError, ValueError):
+            record, problem = _load_record(path)
+            if record is None:  # unreadable: its variant's options are unknown
+                name = path.stem.split("@", 1)[0]
+                if name in self.stages and path.stem not in {_safe_key(k) for k in shown}:
+                    why = f"its record {path} cannot be read ({problem}); run that variant again"
+                    out.append(StageStatus(name, path.stem, MISSING, why))
                 continue
             name, key = record.get("stage"), record.get("key")
             if name not in self.stages or key in shown or "options" not in record:

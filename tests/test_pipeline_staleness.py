@@ -4,12 +4,15 @@ by an option, and variant names that collide."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import replace
 
+import pytest
+
 from pipeline.cli import main
 from pipeline.runner import _safe_key
-from tests.test_pipeline_dag import _chain_config, config_with, run
+from tests.test_pipeline_dag import _chain_config, config_with, run, write_config
 
 
 def test_a_stage_behind_a_kept_one_records_the_fingerprint_of_what_it_read(
@@ -474,3 +477,47 @@ def test_quiet_prints_a_failure_once_and_warnings_to_the_current_stderr(tmp_path
     assert err.count("boom") == 1 and "Traceback" not in err
     logging.getLogger("pipeline").warning("after the run")  # stderr is another object now
     assert "after the run" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "content, said",
+    [
+        (b'{"stage": "dou', "JSONDecodeError"),  # cut short (a full disk, a kill)
+        (b"\xff\xfe\x00 garbage", "UnicodeDecodeError"),  # not text
+        (b"[]", "not a JSON object"),
+    ],
+)
+def test_an_unreadable_state_record_is_said_and_the_stage_reruns(
+    tmp_path, counter, capsys, monkeypatch, content, said
+):
+    """A record that is not text, or not a JSON object, crashed `status` and `run` with a
+    traceback (UnicodeDecodeError, AttributeError); one cut short was said to be 'never run'.
+    Now `status` names the record and why, and `run` redoes the stage."""
+    monkeypatch.setenv("COLUMNS", "400")  # the reason on one line of the table
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    (tmp_path / "ws/demo/.pipeline/state/double.json").write_bytes(content)
+    capsys.readouterr()
+    assert main(["status", "--config", str(cfg)]) == 0
+    table = " ".join(capsys.readouterr().out.split())
+    assert "cannot be read" in table
+    assert said.replace(" ", "") in table.replace(" ", "") and "never run" not in table
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["source", "double", "report", "double"]  # report: the same input
+    assert main(["status", "--config", str(cfg)]) == 0
+    assert "cannot be read" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("content", [b"\xff\xfe", b"[1, 2]", None])
+def test_a_corrupt_hash_cache_costs_rehashing_not_a_crash(tmp_path, counter, content):
+    """The cache said a corrupt file 'only costs re-hashing', but a file that was not text or
+    not of its shape crashed every `status` and `run` (UnicodeDecodeError, TypeError)."""
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+    if content is None:  # an entry of another shape, for a file the runner hashes
+        data = (tmp_path / "ws/demo/source/data.txt").resolve()
+        content = json.dumps({str(data): 5}).encode()
+    (tmp_path / "ws/.pipeline/hashcache.json").write_bytes(content)
+    assert run(cfg, "status") == 0
+    assert run(cfg, "run", "all") == 0
+    assert counter() == ["source", "double", "report"]
