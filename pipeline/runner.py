@@ -618,6 +618,9 @@ class Runner:
             fh.truncate()
             fh.write(str(os.getpid()))
             fh.flush()
+            # old outputs a commit parked in the trash, left there by a run stopped in the
+            # middle of one (a model of a pretraining, kept for ever): no run commits here now
+            remove_path(self.meta / "trash")
             try:
                 yield
             finally:

@@ -521,3 +521,25 @@ def test_a_corrupt_hash_cache_costs_rehashing_not_a_crash(tmp_path, counter, con
     assert run(cfg, "status") == 0
     assert run(cfg, "run", "all") == 0
     assert counter() == ["source", "double", "report"]
+
+
+def test_old_outputs_parked_by_a_stopped_commit_are_deleted_by_the_next_run(tmp_path, monkeypatch):
+    """A commit parks a stage's old outputs in `.pipeline/trash` and deletes them once the new
+    ones are in place; a run stopped in between left them there for good (every later run kept
+    them: a pretraining's old model, say)."""
+    import gst.atomic
+
+    cfg = write_config(tmp_path)
+    assert run(cfg, "run", "all") == 0
+
+    def stopped(_folder):
+        raise KeyboardInterrupt  # after the new output went in, before the old one was deleted
+
+    with monkeypatch.context() as m:
+        m.setattr(gst.atomic, "fsync_dir", stopped)
+        assert run(cfg, "run", "double", "--force") == 130
+    trash = tmp_path / "ws/demo/.pipeline/trash"
+    assert any(trash.rglob("result.txt"))
+    assert run(cfg, "run", "all") == 0
+    assert not any(trash.rglob("*"))
+    assert (tmp_path / "ws/demo/double/result.txt").read_text() == "value=1\n" * 2
