@@ -154,6 +154,11 @@ def test_a_body_file_gone_from_its_recorded_path_names_the_checkpoint(tmp_path):
     with pytest.raises(ValueError, match=r"pretrain\.pt: cannot load the body model .*put it back"):
         GSTPredictor(ckpt)
     assert GSTPredictor(ckpt, body_model=str(tmp_path / "new.npz")).body.num_vertices == 400
+    # evaluate loads the models the same way (a bare FileNotFoundError there too)
+    from gst.eval.scene import _model
+
+    with pytest.raises(ValueError, match=r"pretrain\.pt: cannot load the body model"):
+        _model(ckpt, {})
 
 
 def test_reuse_and_train_take_the_same_body_file_at_another_path(tmp_path, caplog):

@@ -159,7 +159,7 @@ def bench_scene(
             )
     for name, rel in kept:
         model = load_checkpoint(root / rel)
-        cfg = network_from_checkpoint(model).cfg
+        cfg = network_from_checkpoint(model, root / rel).cfg
         variants.append(
             Variant(
                 name=name,
@@ -180,7 +180,7 @@ def bench_scene(
 
     def load(rel: str):
         c = load_checkpoint(root / rel)
-        return network_from_checkpoint(c), c.vertex_ids.numpy(), c.group_index.numpy()
+        return network_from_checkpoint(c, root / rel), c.vertex_ids.numpy(), c.group_index.numpy()
 
     # LPIPS is left out of the short runs (equal for every variant) to keep the sweep on budget.
     train = FinetuneConfig(

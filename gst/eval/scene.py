@@ -20,7 +20,6 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, PositiveInt, model_validator
 
-from gst.body import load_body_model
 from gst.eval.evaluate import EvalConfig, EvalResult, evaluate_model, truth_rows
 from gst.eval.evaluator import evaluate_pose
 from gst.eval.report import figure_text, write_report
@@ -31,6 +30,7 @@ from gst.metrics.image import SSIM_WINDOW
 from gst.metrics.lpips import load_lpips
 from gst.metrics.lpips_weights import BACKBONES
 from gst.model.checkpoint import load_checkpoint, network_from_checkpoint
+from gst.model.inference import own_body
 from gst.train.keypoints import store_landmarks
 from gst.train.losses import LossWeights
 from gst.train.recipe import make_task
@@ -80,8 +80,8 @@ class EvaluateSettings(BaseModel):
 def _model(path: Path, body_cache: dict):
     ckpt = load_checkpoint(path)
     spec = ckpt.body_model
-    if spec not in body_cache:
-        body_cache[spec] = load_body_model(spec)
+    if spec not in body_cache:  # a body that moved away: an error naming the checkpoint
+        body_cache[spec] = own_body(ckpt, path)
     return network_from_checkpoint(ckpt, path).eval(), ckpt, body_cache[spec]
 
 

@@ -170,7 +170,7 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
     that body's, and another body gave plausible but wrong joints (0.4 m off) without a word."""
     own = override is None or override == ckpt.body_model
     spec = ckpt.body_model if own else override
-    body = _own_body(ckpt, checkpoint, device) if own else load_body_model(spec, device=device)
+    body = own_body(ckpt, checkpoint, device) if own else load_body_model(spec, device=device)
     if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
         # checked on both paths: the checkpoint's own spec may resolve to another body here (a
         # path holding another file since); it failed at the first batch, naming no file
@@ -199,7 +199,7 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
     return body
 
 
-def _own_body(ckpt, checkpoint, device=None) -> BodyModel:
+def own_body(ckpt, checkpoint, device=None) -> BodyModel:
     """The body model the checkpoint names, or a ValueError naming the checkpoint and what to do
     (a bare FileNotFoundError named the body's path alone: the checkpoint records it as given
     when training, an absolute path that moves with the project folder)."""

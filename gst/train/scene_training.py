@@ -450,7 +450,7 @@ def train_scene(
     best = run_dir / "best.pt"
     out.model.parent.mkdir(parents=True, exist_ok=True)
     keep_model(best, out.model)
-    net = network_from_checkpoint(load_checkpoint(best)).eval()
+    net = network_from_checkpoint(load_checkpoint(best), best).eval()
     summary = _write_reports(net, task, crops, heldout, cut, fit, out)
     shutil.rmtree(run_dir)
     b, a = fit.before, fit.after
