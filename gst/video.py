@@ -185,7 +185,7 @@ def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> 
             raise VideoError(
                 f"{who}: reports no frame rate (fps = {fps}); cannot assign times to frames"
             )
-    if path.suffix.lower() in RAW_STREAM_SUFFIXES:
+    if path.suffix.lower() in RAW_STREAM_SUFFIXES and _first_word_on(path):
         log.warning(
             "%s: a raw %s stream holds no frame rate; the decoder's %g frames/s is its default "
             "guess, not the camera's. Put it in a container at its rate (ffmpeg -r 60 -i %s -c "
@@ -194,6 +194,20 @@ def probe_video(path: Path | str, camera: str = "", *, strict: bool = False) -> 
             who, path.suffix.lstrip(".").upper(), fps, path.name,
         )  # fmt: skip
     return VideoInfo(path, w, h, fps, n if n > 0 else None, camera)
+
+
+_RAW_STREAMS_WARNED: set[Path] = set()
+
+
+def _first_word_on(path: Path) -> bool:
+    """True the first time a raw stream is probed in this process: a run probes each video
+    several times (the command line's checks, the stage, the tracker), and the same warning
+    was printed three times."""
+    key = path.resolve()
+    if key in _RAW_STREAMS_WARNED:
+        return False
+    _RAW_STREAMS_WARNED.add(key)
+    return True
 
 
 # Elementary streams without a container: FFmpeg times them at 25 frames/s whatever they are.
