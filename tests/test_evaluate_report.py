@@ -27,6 +27,7 @@ from gst.train.losses import LossWeights
 from gst.train.recipe import build_network, make_task
 from gst.train.scene_truth import attach_scene_truth
 from gst.train.synthetic_crops import crops_from_synth_scene
+from gst.video import iter_frames
 from synth.scene import render_scene
 from synth.truth import has_scene_truth, read_scene_truth, truth_mask_file
 
@@ -171,6 +172,27 @@ def test_a_duplicate_crop_is_scored_against_the_person_it_shows():
     spill = [np.array([0, 10, 12, 11]), np.array([0, 0, 50, 0]), np.array([0, 60, 0, 0])]
     np.testing.assert_array_equal(scene_truth.shown_ids([(0, 0)] * 3, spill, 0.5, 0.4), [0, 2, 1])
     assert scene_truth.shown_ids([(0, 0)], [np.zeros(0, np.int64)]).tolist() == [0]
+
+
+def test_truth_views_past_a_cut_video_are_left_out_with_a_word(tiny_scene, tmp_path, caplog):
+    """A scene whose video was cut short (a copy interrupted) lost its last frames' crops
+    without a word."""
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    video = sorted((scene / "videos").glob("*.mp4"))[0]
+    frames = [f.image for f in iter_frames(video)]
+    h, w = frames[0].shape[:2]
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (w, h))
+    for f in frames[:2]:
+        writer.write(f)
+    writer.release()
+    with caplog.at_level("WARNING", logger="gst.train"):
+        crops = crops_from_synth_scene(scene, crop_size=64, min_mask_area=20,
+                                       min_visible_joints=1)  # fmt: skip
+    said = [m for m in caplog.messages if "past the video's end are left out" in m]
+    assert len(said) == 1 and f"camera {video.stem}'s video holds 2 frames" in said[0]
+    cam = crops.camera_names.index(video.stem)
+    assert int(crops.frame[crops.camera == cam].max()) == 1
 
 
 def test_no_truth_is_reported(tmp_path):

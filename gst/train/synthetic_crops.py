@@ -8,6 +8,7 @@ at pretraining, training and tracking time.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
@@ -21,6 +22,8 @@ from gst.data.camera_view import TrackingView
 from gst.train.views import CropSet
 from gst.video import VideoError, iter_frames
 from synth.truth import read_scene_truth, read_truth_views, truth_mask_file
+
+log = logging.getLogger("gst.train")
 
 
 def _read_video(path: Path) -> list[np.ndarray]:
@@ -91,6 +94,13 @@ def crops_from_synth_scene(
             & (visible.sum(1) >= min_visible_joints)
             & (v_frame % frame_stride == 0)
         )
+        past = rows[v_frame[rows] >= len(frames)]
+        if len(past):  # a video cut short (a copy interrupted): its truth views were dropped
+            log.warning(
+                "%s: camera %s's video holds %d frames, its truth views run to frame %d: %d "
+                "views past the video's end are left out",
+                scene_dir, name, len(frames), int(v_frame[past].max()), len(past),
+            )  # fmt: skip
         for r in rows:
             fr, pid = int(v_frame[r]), int(v_pid[r])
             if fr >= len(frames):
