@@ -207,8 +207,12 @@ def run_scene(scene: Path, n_frames: int | None, old: bool) -> list[tuple[str, d
                     "old (background + hull)",
                     dict(
                         views=rep.crops,
-                        iou=rep.mask_iou,
-                        association=rep.association_accuracy,
+                        iou=float("nan") if rep.mask_iou is None else rep.mask_iou,
+                        association=(
+                            float("nan")
+                            if rep.association_accuracy is None
+                            else rep.association_accuracy
+                        ),
                         # the keypoint rows' criterion (>= 30 % of the joints visible)
                         missed=rep.visible_views_missed,
                         truth_views=rep.visible_views,
