@@ -222,3 +222,16 @@ def test_views_through_one_centre_give_no_point_and_no_error():
     out = triangulate_points(Kb, Rtb, uv, np.ones((2, 2)))
     assert np.isnan(out.points).all()
     assert not out.used.any() and (out.confidence == 0).all()
+
+
+def test_the_outlier_distance_is_a_fuse_setting():
+    """It was fixed in code: a user of close or 4K cameras could not widen it."""
+    import pytest
+    from pydantic import ValidationError
+
+    from gst.fuse.settings import FuseSettings
+
+    assert FuseSettings(outlier_px=30).fuse_options().triangulation.outlier_px == 30
+    assert FuseSettings().fuse_options().triangulation.outlier_px == 12
+    with pytest.raises(ValidationError):
+        FuseSettings(outlier_px=0)

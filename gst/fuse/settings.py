@@ -42,6 +42,9 @@ class FuseSettings(BaseModel):
     silhouette_votes: float = Field(1.0, ge=0)
     silhouette_fit: float = Field(0.0, ge=0)  # > 0: the fit pulls markers onto the people
     temporal_votes: float = Field(2.0, ge=0)  # a hypothesis near its neighbours in time
+    # a view's landmark this far from the point (full-image px; crop px on crops larger than
+    # their stored size) disagrees with it / is an outlier (docs/fuse.md)
+    outlier_px: float = Field(12.0, gt=0)
     # rounds of view limb groups exchanged where the fitted body says they were read mirrored
     exchange_rounds: int = Field(1, ge=0)
     relook: bool = True  # crowded crops read again with the other people painted over
@@ -76,7 +79,7 @@ class FuseSettings(BaseModel):
             ),
             triangulation=TriangulationOptions(
                 consensus_views=self.pair_consensus, silhouette_weight=self.silhouette_votes,
-                temporal_weight=self.temporal_votes,
+                temporal_weight=self.temporal_votes, outlier_px=self.outlier_px,
             ),
             silhouettes=self.silhouette_votes > 0 or self.silhouette_fit > 0,
             regroup=RegroupOptions() if self.regroup else None,
