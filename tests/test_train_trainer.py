@@ -199,3 +199,22 @@ def test_resuming_with_other_optimiser_groups_names_the_file_and_changes_nothing
         trainer.resume()
     assert trainer.step == 0
     assert all(torch.equal(v, before[k]) for k, v in fresh.state_dict().items())
+
+
+def test_a_damaged_rank_state_draws_a_fresh_stream_with_a_word(tmp_path, caplog):
+    """A rank's own generator state cut short (a disk filled) raised an unpickling traceback on
+    resume; a missing one drew a fresh stream with a warning: so does a damaged one now."""
+    from types import SimpleNamespace
+
+    from gst.train.trainer import Trainer
+
+    path = tmp_path / "last.rank1.pt"
+    path.write_bytes(b"PK\x03\x04 cut short")
+    rank = SimpleNamespace(
+        rank_state_path=path, step=5, rank=1, generator=torch.Generator(),
+        cfg=SimpleNamespace(seed=0),
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="gst.train"):
+        Trainer._resume_rank_state(rank)
+    assert any("cannot read" in m for m in caplog.messages)
+    assert any("drawing a fresh stream" in m for m in caplog.messages)

@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import os
+import pickle
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -308,7 +309,14 @@ class Trainer:
         """This rank's own generator at the checkpoint's step; without it (killed between the
         two writes, or a checkpoint of another world size) a fresh stream of its own."""
         path = self.rank_state_path
-        own = torch.load(path, weights_only=True) if path.is_file() else None
+        try:
+            own = torch.load(path, weights_only=True) if path.is_file() else None
+        except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
+            # a file cut short or damaged (a disk filled): as if missing, said, not a traceback
+            log.warning("rank %d: cannot read %s (%s)", self.rank, path, exc)
+            own = None
+        if not isinstance(own, dict):
+            own = None
         if own is not None and own.get("step") == self.step:
             self.generator.set_state(own["generator"])
             torch.set_rng_state(own["torch_rng"])
