@@ -384,13 +384,9 @@ class Runner:
         return self.meta / "state" / f"{_safe_key(key)}.json"
 
     def _read_record(self, key: str) -> dict | None:
-        """The stage variant's record, None when it has none or none that can be read (see
-        `_record_problem`): its outputs are then not trusted, and the stage reruns."""
+        """The stage variant's record, None when it has none or none that can be read
+        (`_load_record`): its outputs are then not trusted, and the stage reruns."""
         return _load_record(self._record_path(key))[0]
-
-    def _record_problem(self, key: str) -> str | None:
-        """Why the record of `key` cannot be read, None when it can or there is none."""
-        return _load_record(self._record_path(key))[1]
 
     def applies(self, name: str) -> bool:
         return self.stages[name].applies(self.scene)
@@ -433,7 +429,7 @@ class Runner:
         key = self.key(name, ctx)
         pending = [d for d in self.needs[name] if d in upstream and upstream[d].needs_run]
         params = self._params_record(ctx)
-        record = self._read_record(key)
+        record, problem = _load_record(self._record_path(key))
         if pending:
             state = MISSING if record is None else STALE
             return StageStatus(name, key, state, f"upstream {', '.join(pending)} will run first")
@@ -455,7 +451,6 @@ class Runner:
                 why = f"being written by the run now in progress (pid {running})"
             if not interrupted and not stage.in_all:
                 why += f" (on demand: `run {name}`; `run all` skips it)"
-            problem = self._record_problem(key)
             if problem is not None and running is None:
                 why = (
                     f"its record {self._record_path(key)} cannot be read ({problem}); its "

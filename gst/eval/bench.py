@@ -15,7 +15,7 @@ import csv
 import io
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -105,18 +105,32 @@ def time_inference(fn: Callable[[], object], repeats: int) -> float:
     return statistics.median(times)
 
 
+def round_robin_medians(
+    calls: Sequence[Callable[[], object]], repeats: int, warmup: int = 1, warm_each: bool = True
+) -> list[tuple[float, object]]:
+    """(median wall seconds, last result) of each call over `repeats` rounds that call every one
+    in turn, so load from other processes falls on all of them alike; first `warmup` untimed
+    rounds of every call (`warm_each`), or of the first call only (calls that share their
+    first-call costs: lazy imports, allocator, caches, the page cache)."""
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats}")
+    for _ in range(warmup):
+        for fn in calls if warm_each else calls[:1]:
+            fn()
+    times: list[list[float]] = [[] for _ in calls]
+    out: list = [None] * len(calls)
+    for _ in range(repeats):
+        for k, fn in enumerate(calls):
+            t0 = time.perf_counter()
+            out[k] = fn()
+            times[k].append(time.perf_counter() - t0)
+    return [(statistics.median(t), o) for t, o in zip(times, out, strict=True)]
+
+
 def _interleaved_medians(calls: list[Callable[[], object]], repeats: int) -> list[float]:
     """Median seconds of every call, timed round-robin (one warm-up each, then `repeats` rounds
     over all calls), so load from other processes falls on every variant alike."""
-    for fn in calls:
-        fn()
-    times: list[list[float]] = [[] for _ in calls]
-    for _ in range(repeats):
-        for i, fn in enumerate(calls):
-            t0 = time.perf_counter()
-            fn()
-            times[i].append(time.perf_counter() - t0)
-    return [statistics.median(t) for t in times]
+    return [sec for sec, _ in round_robin_medians(calls, repeats)]
 
 
 def run_bench(

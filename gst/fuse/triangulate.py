@@ -302,9 +302,10 @@ def triangulate_points(
         error = np.where(n_used >= 2, np.nansum(np.where(used, errors, 0), 1) / n_used, np.nan)
         mean_conf = np.where(n_used > 0, (conf * used).sum(1) / np.maximum(n_used, 1), 0.0)
     # Confidence: the detections' own, discounted for few views and for a poor fit (the fit in
-    # the outlier tests' units).
-    tested = np.where(used, _errors(P, uv0, np.nan_to_num(X), test_scale), 0.0)
+    # the outlier tests' units: the reported errors, full-image px, scaled as `test_scale` is)
     with np.errstate(invalid="ignore"):
+        ratio = np.divide(test_scale, scale, out=np.ones_like(scale), where=scale != 0)
+        tested = np.where(used, errors * ratio, 0.0)
         fit = np.where(n_used >= 2, tested.sum(1) / np.maximum(n_used, 1), np.nan)
     confidence_out = mean_conf * np.clip((n_used - 1) / 2, 0, 1)
     if o.min_ray_angle_deg > 0:

@@ -192,10 +192,9 @@ def shown_ids(
     (frame, camera) and the ids they hit are paired one-to-one (Hungarian) by the share of each
     crop's hits (shares, not counts: a large crop spilling onto someone must not outweigh that
     person's own small crop); a crop takes its partner when at least `min_partner_share` of its
-    hits land on them. A crop
-    left without one (more crops than people there: a duplicate) takes the id at least
-    `min_share` of its hits land on, so a duplicate is still scored against the person it
-    shows."""
+    hits land on them. A crop left without one (more crops than people there: a duplicate)
+    takes the id at least `min_share` of its hits land on, so a duplicate is still scored
+    against the person it shows."""
     out = np.zeros(len(hits), np.int64)
     groups: dict[tuple[int, int], list[int]] = {}
     for i, key in enumerate(keys):

@@ -101,10 +101,9 @@ def crops_from_synth_scene(
                 "views past the video's end are left out",
                 scene_dir, name, len(frames), int(v_frame[past].max()), len(past),
             )  # fmt: skip
+            rows = rows[v_frame[rows] < len(frames)]
         for r in rows:
             fr, pid = int(v_frame[r]), int(v_pid[r])
-            if fr >= len(frames):
-                continue
             window = view.window(boxes[r] + 0.5, crop_size)  # truth boxes: pixel-centre edges
             img, K_crop = view.crop(frames[fr], window)
             person_mask = np.repeat((masks[fr] == pid).astype(np.uint8)[..., None] * 255, 3, axis=2)
