@@ -171,31 +171,12 @@ def _checkpoint_body(ckpt, override: str | None, checkpoint, device) -> BodyMode
     own = override is None or override == ckpt.body_model
     spec = ckpt.body_model if own else override
     body = own_body(ckpt, checkpoint, device) if own else load_body_model(spec, device=device)
-    if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
-        # checked on both paths: the checkpoint's own spec may resolve to another body here (a
-        # path holding another file since); it failed at the first batch, naming no file
-        raise ValueError(
-            f"{checkpoint}: body model {spec!r} has {body.num_vertices} vertices; the "
-            f"checkpoint's network (trained with {ckpt.body_model!r}) uses vertex ids up to "
-            f"{int(ckpt.vertex_ids.max())}"
-        )
-    if own:
-        return body
-    try:
-        own = load_body_model(ckpt.body_model)
-    except (FileNotFoundError, ValueError) as exc:  # its file is not on this machine
-        log.warning(
-            "%s: cannot load the checkpoint's own body model %r to check that %r is the same "
-            "body (%s); using %r as given",
-            checkpoint, ckpt.body_model, override, exc, override,
-        )  # fmt: skip
-        return body
-    if not _same_body(own, body):
-        raise ValueError(
-            f"{checkpoint}: body model {override!r} is not the body the network was trained with "
-            f"({ckpt.body_model!r}: other template, shape space or joint regressor); pass that "
-            "body (the same file, at any path) or none"
-        )
+    # checked on both paths: the checkpoint's own spec may resolve to another body here (a path
+    # holding another file since); it failed at the first batch, naming no file
+    _check_vertex_ids(ckpt, body, f"{checkpoint}", f"body model {spec!r}")
+    if not own:
+        # an override is given on purpose: taken on trust when the checkpoint's body is gone
+        check_same_body(ckpt, spec, lambda: body, f"{checkpoint}", "body_model", trust=True)
     return body
 
 
@@ -219,12 +200,26 @@ def _is_file_spec(spec: str) -> bool:
     return spec != "anny" and spec != "smpl" and not spec.startswith("smpl:")
 
 
-def check_same_body(ckpt, spec: str, load_body, who: str, setting: str) -> None:
+def _check_vertex_ids(ckpt, body: BodyModel, who: str, what: str) -> None:
+    """The network's vertex ids must lie on `body` (`what` names it in the error)."""
+    if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
+        raise ValueError(
+            f"{who}: {what} has {body.num_vertices} vertices; the checkpoint's network (trained "
+            f"with body model {ckpt.body_model!r}) uses vertex ids up to "
+            f"{int(ckpt.vertex_ids.max())}: another body"
+        )
+
+
+def check_same_body(
+    ckpt, spec: str, load_body, who: str, setting: str, *, trust: bool = False
+) -> None:
     """That `spec` (a setting's body model; `load_body()` loads it) is the body the
     checkpoint's network was trained with: the same spec, or the same body by content (the same
     file at another path: a moved project folder). When the checkpoint's own body cannot be
-    loaded here, a file of the same name is taken, with a warning, if the network's vertex ids
-    fit it. `who` names the checkpoint in errors, `setting` the setting."""
+    loaded here, `spec` is taken, with a warning, if the network's vertex ids fit it and either
+    `trust` (a body given on purpose: GSTPredictor's override) or it is a file of the same name
+    (a setting with a default, where another body may be an oversight: train, pretrain.reuse).
+    `who` names the checkpoint in errors, `setting` the setting."""
     if spec == ckpt.body_model:
         return
     try:
@@ -235,29 +230,24 @@ def check_same_body(ckpt, spec: str, load_body, who: str, setting: str) -> None:
             and _is_file_spec(ckpt.body_model)
             and Path(spec).name == Path(ckpt.body_model).name
         )
-        if not moved:
+        if not (trust or moved):
             raise ValueError(
                 f"{who} was trained with body model '{ckpt.body_model}', {setting} is '{spec}' "
                 f"(the checkpoint's body cannot be loaded here to compare: {exc}); give "
                 "the body it was trained with"
             ) from None
-        body = load_body()
-        if len(ckpt.vertex_ids) and int(ckpt.vertex_ids.max()) >= body.num_vertices:
-            raise ValueError(
-                f"{who} was trained with body model '{ckpt.body_model}' (not found here); "
-                f"{setting} '{spec}' has {body.num_vertices} vertices, the network uses vertex "
-                f"ids up to {int(ckpt.vertex_ids.max())}: another body"
-            ) from None
+        _check_vertex_ids(ckpt, load_body(), who, f"{setting} '{spec}'")
         log.warning(
-            "%s was trained with body model '%s', not found here (%s); taking %s '%s', a file "
-            "of the same name, as that body (it cannot be compared)",
+            "%s was trained with body model '%s', not found here (%s); taking %s '%s' as that "
+            "body (it cannot be compared)",
             who, ckpt.body_model, exc, setting, spec,
         )  # fmt: skip
         return
     if not _same_body(own, load_body()):
         raise ValueError(
-            f"{who} was trained with body model '{ckpt.body_model}', {setting} is '{spec}' "
-            "(another body: other size, template, shape space or joint regressor)"
+            f"{who} was trained with body model '{ckpt.body_model}', {setting} is '{spec}': "
+            "not the body the network was trained with (another body: other size, template, "
+            "shape space or joint regressor)"
         )
     log.info("%s: body model '%s' is its own, '%s'", who, spec, ckpt.body_model)
 
