@@ -76,3 +76,28 @@ def test_a_hint_box_starting_left_of_the_frame_is_looked_at():
     labels = np.zeros((100, 200), np.uint8)
     labels[:40, :25] = 1  # someone found there already covers it
     assert seg._uncovered(labels, [(-10, 5, 30, 30)], (100, 200)) == []
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(-40, 60, allow_nan=False),
+    st.floats(-40, 60, allow_nan=False),
+    st.floats(0, 50, allow_nan=False),
+    st.floats(0, 50, allow_nan=False),
+)
+def test_pixel_window_covers_the_pixels_a_box_touches_inside_the_image(x0, y0, bw, bh):
+    """The one box-to-slices rule of paint_out and the segmenter's hint test, against a
+    per-pixel reference: pixel column i is touched when floor(x0) <= i < ceil(x1)."""
+    from gst.detect.boxes import pixel_window
+
+    h, w = 30, 40
+    cols, rows = np.arange(w), np.arange(h)
+    want = ((rows >= np.floor(y0)) & (rows < np.ceil(y0 + bh)))[:, None] & (
+        (cols >= np.floor(x0)) & (cols < np.ceil(x0 + bw))
+    )[None, :]
+    window = pixel_window((x0, y0, x0 + bw, y0 + bh), (h, w))
+    got = np.zeros((h, w), bool)
+    if window is not None:
+        got[window] = True
+        assert got.any()
+    np.testing.assert_array_equal(got, want)

@@ -40,16 +40,24 @@ def paint_out(image: np.ndarray, boxes, grow: float = 0.1) -> np.ndarray:
     finds few people per call (BlazePose's), so that it looks at the others."""
     out = image.copy()
     fill = mean_colour(image)
-    h, w = image.shape[:2]
     for x0, y0, x1, y1 in boxes:
         gx, gy = grow * (x1 - x0), grow * (y1 - y0)
-        # both ends clipped to the image: a box wholly above or left of it has a negative far
-        # edge, which as a slice counted back from the other side and painted nearly everything
-        a, b = (int(np.clip(v, 0, w)) for v in (np.floor(x0 - gx), np.ceil(x1 + gx)))
-        c, d = (int(np.clip(v, 0, h)) for v in (np.floor(y0 - gy), np.ceil(y1 + gy)))
-        if b > a and d > c:
-            out[c:d, a:b] = fill
+        window = pixel_window((x0 - gx, y0 - gy, x1 + gx, y1 + gy), image.shape[:2])
+        if window is not None:
+            out[window] = fill
     return out
+
+
+def pixel_window(box, shape: tuple[int, int]) -> tuple[slice, slice] | None:
+    """The (rows, columns) slices of the pixels that a corner-convention box touches (edges
+    rounded outwards), clipped to an image of `shape` (h, w); None when none lie inside. Both
+    ends are clipped: a box wholly above or left of the image has a negative far edge, which as
+    a slice counts back from the other side (it painted nearly the whole frame)."""
+    h, w = shape
+    x0, y0, x1, y1 = box
+    a, b = (int(np.clip(v, 0, w)) for v in (np.floor(x0), np.ceil(x1)))
+    c, d = (int(np.clip(v, 0, h)) for v in (np.floor(y0), np.ceil(y1)))
+    return (slice(c, d), slice(a, b)) if b > a and d > c else None
 
 
 def mean_colour(image: np.ndarray) -> np.ndarray:

@@ -27,7 +27,7 @@ from gst.detect.blazepose import (
     roi_from_box,
     same_region,
 )
-from gst.detect.boxes import box_iou, paint_out, shared
+from gst.detect.boxes import box_iou, paint_out, pixel_window, shared
 
 # BlazePose's 33 landmarks: the bones drawn to bound a person's mask (limbs, hands, feet).
 BONES = (
@@ -375,13 +375,9 @@ class PersonSegmenter:
         `hint_covered` of."""
         found = labels > 0 if labels is not None else np.zeros(shape, bool)
         out = []
-        h, w = found.shape
         for x, y, bw, bh in hints:
-            # clipped to the frame: a hint starting left of or above it sliced from the far edge
-            x0, x1 = (int(np.clip(v, 0, w)) for v in (x, x + bw))
-            y0, y1 = (int(np.clip(v, 0, h)) for v in (y, y + bh))
-            box = found[y0:y1, x0:x1]
-            if box.size and box.mean() < self.config.hint_covered:
+            window = pixel_window((x, y, x + bw, y + bh), found.shape)
+            if window is not None and found[window].mean() < self.config.hint_covered:
                 out.append((x, y, bw, bh))
         return out
 
