@@ -94,15 +94,9 @@ class BenchRow:
     not_finite: int = 0  # crops whose prediction was not finite: left out of the errors
 
 
-def time_inference(fn: Callable[[], object], repeats: int) -> float:
-    """Median seconds of `fn()` over `repeats` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+def time_inference(fn: Callable[[], object], repeats: int, warmup: int = 1) -> float:
+    """Median seconds of `fn()` over `repeats` calls after `warmup` untimed calls."""
+    return round_robin_medians([fn], repeats, warmup=warmup)[0][0]
 
 
 def round_robin_medians(
