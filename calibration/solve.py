@@ -121,6 +121,29 @@ def _clean(det: FrameDetection, board: BoardSpec, min_corners: int) -> FrameDete
     return FrameDetection(det.frame, ids, uv, det.sharpness)
 
 
+# how far (px) a detected corner may lie beyond its image's outer edge (subpixel refinement)
+CORNER_SLACK_PX = 1.0
+
+
+def _check_image_size(
+    name: str, size: tuple[int, int], detections: Sequence[FrameDetection]
+) -> None:
+    """CalibrationError where a detected corner lies outside the image of `size` (width,
+    height): the size is wrong, most often given as (height, width), numpy's shape order. The
+    rig was solved and written with its width and height swapped, without a word."""
+    if not detections:
+        return
+    w, h = (int(v) for v in size)
+    uv = np.concatenate([d.corners for d in detections])
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    if np.any(lo < -0.5 - CORNER_SLACK_PX) or np.any(hi > np.array([w, h]) - 0.5 + CORNER_SLACK_PX):
+        raise CalibrationError(
+            f"camera '{name}': board corners were found out to ({hi[0]:.0f}, {hi[1]:.0f}) px "
+            f"(from ({lo[0]:.0f}, {lo[1]:.0f})), outside its given image size {w}x{h}; image "
+            "sizes are (width, height), not an image's shape (height, width)"
+        )
+
+
 @dataclass
 class InitialSolution:
     """Everything bundle adjustment starts from: cleaned detections, per-camera intrinsics,
@@ -170,6 +193,7 @@ def initialise_from_detections(
         if n not in image_sizes:
             raise CalibrationError(f"camera '{n}': no image size given (expected (width, height))")
         dets[n] = [d for d in (_clean(d, board, opts.min_corners) for d in raw) if d is not None]
+        _check_image_size(n, image_sizes[n], dets[n])
     blind = [n for n in names if not dets[n]]
     if blind:
         parts = [

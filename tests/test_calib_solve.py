@@ -446,3 +446,11 @@ def test_a_view_without_a_board_pose_is_left_out_naming_its_camera(
         )
     assert f"camera '{cam}': frame {bad.frame}: solvePnP found no board pose" in caplog.text
     assert result.rms_px[cam] < 0.6
+
+
+def test_an_image_size_given_as_height_width_is_refused(small_scene, small_detections):
+    # numpy's shape order: the rig was solved with every camera's width and height swapped
+    swapped = {c.name: (c.height, c.width) for c in small_scene.rig}
+    with pytest.raises(CalibrationError, match=r"camera 'cam00'.*outside its given image size "
+                       r"600x800.*\(width, height\)"):  # fmt: skip
+        calibrate_from_detections(small_detections, swapped, small_scene.board)
