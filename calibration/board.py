@@ -25,6 +25,9 @@ from calibration.frames import count_frames, iter_frames, source_image_size
 
 BOARD_KINDS = ("charuco", "checkerboard")
 MAX_SQUARE_M = 1.0  # a board of larger squares would be metres across: a size in millimetres
+# below this, a size that is not metres may as well be centimetres (a 15 cm square) as
+# millimetres; at or above it a square in centimetres would make a board metres wide
+CENTIMETRES_BELOW = 40.0
 
 
 class BoardError(ValueError):
@@ -33,8 +36,15 @@ class BoardError(ValueError):
 
 def check_square_metres(square_size: float) -> None:
     """BoardError for a square size that must be millimetres (150 for a 0.15 m board solved a
-    rig kilometres wide, labelled metres)."""
+    rig kilometres wide, labelled metres), or centimetres: 15 for a 15 cm square was told to
+    be 0.015 m, and a user who followed that solved a rig ten times too small."""
     if square_size > MAX_SQUARE_M:
+        if square_size < CENTIMETRES_BELOW:
+            raise BoardError(
+                f"board square_size {square_size} m: that looks like centimetres or "
+                f"millimetres; give metres ({square_size / 100:g} if it is centimetres, "
+                f"{square_size / 1000:g} if millimetres), at most {MAX_SQUARE_M:g} m"
+            )
         raise BoardError(
             f"board square_size {square_size} m: that looks like millimetres; give metres "
             f"(e.g. {square_size / 1000:g}), at most {MAX_SQUARE_M:g} m"

@@ -369,6 +369,15 @@ def test_a_board_size_in_millimetres_is_refused(tmp_path):
         BoardSource(videos="*.mp4", squares_x=7, squares_y=5, square_size=150.0)
 
 
+def test_a_board_size_that_may_be_centimetres_is_not_told_to_be_millimetres():
+    """15 for a 15 cm square was refused as millimetres with 'e.g. 0.015': the size it told the
+    user to give solved a rig ten times too small."""
+    from calibration.board import BoardError, BoardSpec
+
+    with pytest.raises(BoardError, match=r"0\.15 if it is centimetres, 0\.015 if millimetres"):
+        BoardSpec("charuco", 7, 5, 15.0, 11.0, "DICT_4X4_50")
+
+
 def test_calibrate_scene_with_two_cameras_and_a_chosen_floor_frame(tmp_path):
     """A two-camera rig against its truth: no rigid alignment to compare by (it needs 3), so the
     comparison is left out instead of failing after rig.json was written; `floor_frame` from
