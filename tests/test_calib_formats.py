@@ -1041,6 +1041,16 @@ def test_h36m_caller_image_size_comes_before_the_known_sizes(tmp_path):
     assert read_rig(written, image_size=(10, 10))[0].width == 500
 
 
+@pytest.mark.parametrize("size", [1000, (1000,), (1002, 1000, 3)])
+def test_h36m_image_size_that_is_not_width_and_height_is_refused(tmp_path, size):
+    """image_size: 1000 was a bare TypeError, (1000,) an IndexError, and an image's shape
+    (height, width, 3) was read as width 1002, height 1000."""
+    path = tmp_path / "cameras.h5"
+    write_h36m_sample(path)
+    with pytest.raises(RigFormatError, match=r"image_size is .*expected two numbers \(width"):
+        read_rig(path, image_size=size)
+
+
 @pytest.mark.parametrize("value", ["nan", "inf", "1e400"])
 def test_qualisys_non_finite_field_of_view_is_refused_by_name(tmp_path, value):
     path = tmp_path / "bad.qca.txt"

@@ -135,7 +135,13 @@ def image_size_of(
             pixel_count(stored[1], path, f"{where} height"),
         )
     if image_size is not None:
-        return tuple(pixel_count(v, path, f"image_size {tuple(image_size)}") for v in image_size)
+        try:  # 1000 was a bare TypeError, (1000,) an IndexError, an image's (h, w, 3) taken
+            w, h = image_size
+        except (TypeError, ValueError):
+            raise RigFormatError(
+                f"{path}: image_size is {image_size!r}, expected two numbers (width, height)"
+            ) from None
+        return tuple(pixel_count(v, path, f"image_size {(w, h)}") for v in (w, h))
     if name in KNOWN_SIZES:
         return KNOWN_SIZES[name]
     raise RigFormatError(
