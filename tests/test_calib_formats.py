@@ -1200,3 +1200,20 @@ def test_panoptic_types_that_match_nothing_are_listed_whatever_their_kind(tmp_pa
         RigFormatError, match=r"no cameras of types .*types present: \['None', 'hd'\]"
     ):
         read_rig(path, "panoptic", camera_types=("vga",))
+
+
+@pytest.mark.parametrize(
+    "fmt, options, match",
+    [
+        ("panoptic", {"camera_types": 5}, "camera_types is 5, expected a camera type"),
+        ("colmap", {"up": "z"}, "option up is 'z', expected the world's up axis"),
+        ("colmap", {"up": 1.0}, "option up is 1.0, expected the world's up axis"),
+    ],
+)
+def test_read_options_of_the_wrong_kind_are_refused_by_name(tmp_path, fmt, options, match):
+    """Options from pipeline.yaml of the wrong kind were bare TypeErrors and ValueErrors."""
+    rig = ring_cameras(3)
+    path = tmp_path / ("model" if fmt == "colmap" else "calibration.json")
+    write_rig(rig, path, fmt, warn_up=False)
+    with pytest.raises(RigFormatError, match=match):
+        read_rig(path, fmt, **options)

@@ -114,7 +114,21 @@ def read(path: str | Path, metres_per_unit: float = 1.0, up=(0.0, 0.0, 1.0)) -> 
                 },
             )
         )
-    return make_rig(path, cameras, up=tuple(float(v) for v in up), meta={"source": "colmap"})
+    return make_rig(path, cameras, up=_up_option(up, path), meta={"source": "colmap"})
+
+
+def _up_option(up, path: Path) -> tuple[float, ...]:
+    """The `up` read option as numbers (`up: z` was a bare "could not convert string to
+    float"); make_rig checks that it is a unit 3-vector."""
+    try:
+        if isinstance(up, str):
+            raise ValueError
+        return tuple(float(v) for v in up)
+    except (TypeError, ValueError):
+        raise RigFormatError(
+            f"{path}: the COLMAP read option up is {up!r}, expected the world's up axis as "
+            "three numbers (e.g. [0, 0, 1])"
+        ) from None
 
 
 def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:

@@ -36,6 +36,14 @@ def read(path: str | Path, camera_types: tuple[str, ...] | None = None) -> Rig:
     if isinstance(camera_types, str):  # `camera_types: hd` in YAML: matched as a substring
         camera_types = (camera_types,)
     path = Path(path)
+    if camera_types is not None and (
+        not isinstance(camera_types, (list, tuple, set, frozenset))
+        or not all(isinstance(t, str) for t in camera_types)
+    ):  # `camera_types: 5` was a bare "argument of type 'int' is not iterable"
+        raise RigFormatError(
+            f"{path}: the Panoptic read option camera_types is {camera_types!r}, expected a "
+            "camera type or a list of them (e.g. hd, or [hd, vga])"
+        )
     data = load_json(path)
     cams_data = require_typed(data, "cameras", list, path)
     cameras = []
