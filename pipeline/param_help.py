@@ -9,6 +9,7 @@ that could drift (21 of 158 parameters were documented nowhere else).
 from __future__ import annotations
 
 import ast
+import functools
 import inspect
 import io
 import textwrap
@@ -26,6 +27,7 @@ def _comments_by_line(source: str) -> dict[int, str]:
     return out
 
 
+@functools.cache  # a class's source is read and parsed once (a class per stage, many fields)
 def _class_field_comments(cls: type) -> dict[str, str]:
     """{field: its comments} from the source of one class (not its bases)."""
     try:

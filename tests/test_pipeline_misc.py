@@ -50,32 +50,32 @@ def test_module_help_and_status_run():
     assert out.returncode == 0, out.stderr
 
 
-def test_stages_params_lists_defaults_and_the_pipeline_files_values():
-    out = subprocess.run(
-        [sys.executable, "-m", "pipeline", "stages", "--params"],
-        cwd=REPO, capture_output=True, text=True,
-    )  # fmt: skip
-    assert out.returncode == 0, out.stderr
-    lines = [line.strip() for line in out.stdout.splitlines()]
+def test_stages_params_lists_defaults_and_the_pipeline_files_values(capsys, monkeypatch):
+    # in this process (`main` as `python -m pipeline` calls it): three interpreters importing
+    # every stage took 18 s of the suite; test_module_help_and_status_run runs the module
+    from pipeline.cli import main
+
+    monkeypatch.chdir(REPO)  # the pipeline file found as the command finds it
+
+    def stages_params(*extra: str) -> tuple[int, list[str], str]:
+        code = main(["stages", "--params", *extra])
+        out = capsys.readouterr()
+        return code, [line.strip() for line in out.out.splitlines()], out.err
+
+    code, lines, err = stages_params()
+    assert code == 0, err
     assert "fill_gaps_s: float = 0.1" in lines  # a fuse default pipeline.yaml leaves alone
     assert "overlay: bool = True  (pipeline file: True)" in lines  # one it sets
     assert "floor: Union[float, Literal['auto'], NoneType] = 'auto'" in lines
     # --scene was accepted and ignored: the lab's own params (blazepose, refine_rig 2) unshown
-    out = subprocess.run(
-        [sys.executable, "-m", "pipeline", "stages", "--params", "--scene", "lab"],
-        cwd=REPO, capture_output=True, text=True,
-    )  # fmt: skip
-    lines = [line.strip() for line in out.stdout.splitlines()]
+    _, lines, _ = stages_params("--scene", "lab")
     assert "refine_rig: int = 0  (scene lab: 2)" in lines
     assert any(line.startswith("person_model:") and "(scene lab: 'blazepose')" in line
                for line in lines)  # fmt: skip
     assert "max_groups: int | None = 16" in lines  # not Optional[Annotated[int, Gt(gt=0)]]
     # a value `run` refuses is refused here too (it was listed as the pipeline file's value)
-    out = subprocess.run(
-        [sys.executable, "-m", "pipeline", "stages", "--params", "--set", "train.lr=-1"],
-        cwd=REPO, capture_output=True, text=True,
-    )  # fmt: skip
-    assert out.returncode == 2 and "(set by --set train.lr=-1)" in out.stderr
+    code, _, err = stages_params("--set", "train.lr=-1")
+    assert code == 2 and "(set by --set train.lr=-1)" in err
 
 
 def test_override_parsing():

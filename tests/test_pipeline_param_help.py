@@ -42,8 +42,9 @@ def test_every_stage_parameter_of_the_shipped_pipeline_has_help(capsys, monkeypa
     missing = [
         f"{name}.{field}"
         for name, stage in load_stages(cfg).items()
+        for comments in [field_comments(stage.params_model)]
         for field in stage.params_model.model_fields
-        if field not in field_comments(stage.params_model)
+        if field not in comments
     ]
     assert missing == []
     monkeypatch.setenv("COLUMNS", "200")
