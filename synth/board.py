@@ -274,10 +274,12 @@ def _rotate(v: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def visible_corners(
-    spec: ChArUcoSpec, pose: BoardPose, camera, radius: float | None = None
+    spec: ChArUcoSpec, pose: BoardPose, camera, radius: float | None = None, room=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ids and distorted pixel positions of the chessboard corners a camera sees: printed side
-    facing it, in front of it and inside the image (nothing else can hide the board).
+    facing it, in front of it, inside the image and, with `room` (the `synth.stage.Stage` the
+    board is rendered in), inside the room: a large board reaches through the ceiling or a wall,
+    which hide that part of it in the render. Nothing else can hide the board.
     `radius` is the camera's undistorted field radius (`synth.projection.field_radius`)."""
     from synth.projection import project_in_view
 
@@ -286,4 +288,6 @@ def visible_corners(
     if np.dot(camera.center - pose.t, pose.front_normal) <= 0:
         return ids[:0], np.zeros((0, 2))
     uv, inside = project_in_view(camera, world, radius)
+    if room is not None:  # the camera is inside the (convex) room: only the room's box hides
+        inside &= room.contains(world)
     return ids[inside], uv[inside]

@@ -342,7 +342,7 @@ def _render_into(
     write_truth_tables(out, tracks, views, meta)
     if poses:
         bp, bv = board_tables(
-            board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)}
+            board_spec, poses, list(rig.cameras), radii, {"board": board_json(board_spec)}, stage
         )
         write_board_truth(out, bp, bv)
         write_png(

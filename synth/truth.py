@@ -183,8 +183,10 @@ def board_tables(
     cameras: list[Camera],
     radii: dict[str, float],
     metadata: dict,
+    room=None,
 ) -> tuple[pa.Table, pa.Table]:
-    """Board poses per frame and the corners each camera sees (ids and distorted pixels)."""
+    """Board poses per frame and the corners each camera sees (ids and distorted pixels; with
+    `room`, the stage, not those the room hides: see `visible_corners`)."""
     poses_t = pa.table(
         {
             "frame": pa.array(np.arange(len(poses), dtype=np.int32)),
@@ -195,7 +197,7 @@ def board_tables(
     frames, cams, ids, uvs = [], [], [], []
     for f, pose in enumerate(poses):
         for cam in cameras:
-            i, uv = visible_corners(spec, pose, cam, radii[cam.name])
+            i, uv = visible_corners(spec, pose, cam, radii[cam.name], room)
             frames.append(f)
             cams.append(cam.name)
             ids.append(i.astype(np.int32))

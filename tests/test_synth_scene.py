@@ -449,3 +449,41 @@ def test_a_scene_without_a_board_clip_lists_only_the_files_it_wrote(tmp_path):
         calibrate_scene(
             {}, tmp_path / "rig.json", tmp_path / "reports", footage=BoardFootage({}, board)
         )
+
+
+def test_board_truth_lists_no_corner_the_room_hides(tmp_path):
+    """A large board in the H36M room reaches through the ceiling, which hides that part of it
+    in the board videos; board_views.parquet still listed those corners as seen (37 of 2298 on
+    this rig), so a calibration scored against the truth counted corners no image shows."""
+    import pyarrow.parquet as pq
+
+    from synth.shares import SceneSetup
+
+    spec = small_scene_spec(
+        n_frames=1,
+        n_people=1,
+        motions=None,
+        rig__kind="h36m",
+        rig__n_cameras=4,
+        rig__fov_deg=100.0,
+        board__n_frames=30,
+        board__squares_x=8,
+        board__squares_y=6,
+        board__square_size=0.45,
+        board__marker_size=0.3,
+    )
+    out = tmp_path / "bigboard"
+    render_scene(spec, out, body_model=BODY, rig_writer=WRITE_RIG)
+    setup = SceneSetup.build(spec)  # the same rig, room and board path as the render's
+    cams = {c.name: c for c in setup.rig.cameras}
+    listed = 0
+    for row in pq.read_table(out / "truth" / "board_views.parquet").to_pylist():
+        cam, pose = cams[row["camera"]], setup.board_poses[row["frame"]]
+        corners = pose.to_world(setup.board.corners[row["corner_ids"]])
+        ray = corners - cam.center
+        dist = np.linalg.norm(ray, axis=1)
+        room_t, _, _ = setup.stage.intersect(cam.center, ray / np.maximum(dist, 1e-12)[:, None])
+        # the renderer shows the board where its ray meets it before the room's surface
+        assert np.all(dist < room_t), (row["frame"], row["camera"])
+        listed += len(corners)
+    assert listed > 1000
