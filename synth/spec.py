@@ -152,14 +152,22 @@ def programme_problem(programme) -> str | None:
     return None
 
 
-def _merge(base: dict, overrides: dict) -> dict:
+def _merge(base: dict, overrides: dict, within: str = "") -> dict:
     out = dict(base)
     for key, value in overrides.items():
         if "__" in key or "." in key:
             head, rest = key.replace(".", "__").split("__", 1)
-            out[head] = _merge(dict(out.get(head) or {}), {rest: value})
+            group = out.get(head) or {}
+            if not isinstance(group, dict | BaseModel):
+                # dict() of it failed with "'int' object is not iterable" or "dictionary update
+                # sequence element #0 has length 1", naming neither the key nor the field
+                raise TypeError(
+                    f"override '{within}{key}': {within.replace('__', '.')}{head} is "
+                    f"{group!r}, not a group of fields to set '{rest}' in"
+                )
+            out[head] = _merge(dict(group), {rest: value}, f"{within}{head}__")
         elif isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
+            out[key] = _merge(out[key], value, f"{within}{key}__")
         else:
             out[key] = value
     return out

@@ -222,6 +222,20 @@ def test_presets_and_validation():
         preset("demo", board={"marker_size": 0.5})
 
 
+@pytest.mark.parametrize(
+    ("key", "said"),
+    [("rig__width__x", "rig.width is 480"), ("name__x", "name is 'demo'"),
+     ("rig.distortion.k1", "rig.distortion is 'mild'"), ("motions__0", "motions is")],
+)  # fmt: skip
+def test_an_override_into_a_field_that_holds_no_fields_names_the_key(key, said):
+    """`rig__width__x` failed with "'int' object is not iterable" and `name__x` with
+    "dictionary update sequence element #0 has length 1; 2 is required": neither named the
+    key nor the field."""
+    with pytest.raises(TypeError, match="not a group of fields") as err:
+        preset("demo", **{key: 1})
+    assert key.replace(".", "__") in str(err.value) and said in str(err.value)
+
+
 def test_missing_body_model_api_is_reported(tmp_path):
     class NotABody:
         faces = np.zeros((1, 3), int)
