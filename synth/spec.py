@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -174,10 +175,13 @@ def _merge(base: dict, overrides: dict, within: str = "") -> dict:
 
 
 def preset_fields(preset_name: str, /, **overrides) -> dict:
-    """The fields of a preset with overrides, not yet validated (see `preset`)."""
+    """The fields of a preset with overrides, not yet validated (see `preset`): a copy, which
+    the caller may change."""
     if preset_name not in PRESETS:
         raise KeyError(f"unknown synth preset '{preset_name}', expected one of {sorted(PRESETS)}")
-    return _merge(PRESETS[preset_name], overrides)
+    # deep: _merge copies only what it overrides, so the preset's own nested dicts and lists
+    # (rig, board, motions) came back shared, and changing them changed the preset for good
+    return _merge(copy.deepcopy(PRESETS[preset_name]), overrides)
 
 
 def preset(preset_name: str, /, **overrides) -> SceneSpec:

@@ -236,6 +236,20 @@ def test_an_override_into_a_field_that_holds_no_fields_names_the_key(key, said):
     assert key.replace(".", "__") in str(err.value) and said in str(err.value)
 
 
+def test_changing_a_presets_fields_leaves_the_preset_alone():
+    """preset_fields returned the preset's own nested dicts and lists (those no override
+    touched): setting fields["rig"]["n_cameras"] made every later preset("demo") a 2-camera
+    scene, and appending to a programme changed the demo's motions."""
+    from synth.spec import preset_fields
+
+    before = preset("demo")
+    fields = preset_fields("demo", board__n_frames=3)
+    fields["rig"]["n_cameras"] = 2
+    fields["motions"][0].append("walk")
+    fields["board"]["squares_x"] = 9
+    assert preset("demo") == before
+
+
 def test_missing_body_model_api_is_reported(tmp_path):
     class NotABody:
         faces = np.zeros((1, 3), int)
