@@ -5,7 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-_BLOCK = 1024  # cv2.remap needs map dimensions below 32767
+_BLOCK = 1024  # cv2.remap needs map dimensions below 32767 (SHRT_MAX)
+_ROWS = 32000  # so at most this many rows of blocks go to one call
 
 
 def sample_image(
@@ -24,5 +25,19 @@ def sample_image(
     pad = (-n) % _BLOCK
     mx = np.pad(x, (0, pad)).reshape(-1, _BLOCK)
     my = np.pad(y, (0, pad)).reshape(-1, _BLOCK)
-    out = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=border, borderValue=value)
+    # in slabs of rows: one call over more than 32766 rows (33.5 M points, the floor pixels of
+    # a camera beyond 8K) failed OpenCV's assertion
+    out = np.concatenate(
+        [
+            cv2.remap(
+                image,
+                mx[s : s + _ROWS],
+                my[s : s + _ROWS],
+                cv2.INTER_LINEAR,
+                borderMode=border,
+                borderValue=value,
+            )
+            for s in range(0, len(mx), _ROWS)
+        ]
+    )
     return out.ravel()[:n]

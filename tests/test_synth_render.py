@@ -221,3 +221,20 @@ def test_render_options_are_validated():
             ),
             STAGE,
         )
+
+
+def test_sample_image_takes_more_points_than_one_remap_call_holds(monkeypatch):
+    """sample_image reshaped the points into rows of 1024 for one cv2.remap call, which refuses
+    32767 rows or more: beyond 33.5 M points (the floor pixels of a camera beyond 8K, which the
+    spec allows up to 8190 x 8190) the floor shadows failed an OpenCV assertion. Shown here
+    with rows of 2 points."""
+    from synth import sampling
+
+    monkeypatch.setattr(sampling, "_BLOCK", 2)
+    image = (np.arange(12, dtype=np.float32).reshape(3, 4) * 1.5).copy()
+    rng = np.random.default_rng(0)
+    n = 2 * 33_000 + 1
+    x, y = rng.uniform(0, 3, n), rng.uniform(0, 2, n)
+    got = sampling.sample_image(image, x, y)
+    # the image is linear in x and y (1.5 x + 6 y), so bilinear sampling is exact
+    np.testing.assert_allclose(got, 1.5 * x + 6.0 * y, atol=1e-2)
