@@ -198,6 +198,14 @@ def make_rig(
         if focal_mm <= 0 or sensor_width_mm <= 0:
             raise ValueError(f"rig '{kind}': focal_mm and sensor_width_mm must be positive")
         f = focal_mm / sensor_width_mm * width
+        # the field fov_deg is held to: 1 mm on the default sensor was a 174 degree pinhole,
+        # 1e-6 mm a focal length of 2e-6 px, infinity (or NaN) a camera matrix of inf
+        fov = float(np.degrees(2 * np.arctan(sensor_width_mm / 2 / focal_mm)))
+        if not 5.0 <= fov <= 150.0:
+            raise ValueError(
+                f"rig '{kind}': focal_mm {focal_mm} on a {sensor_width_mm} mm sensor is a "
+                f"{fov:.1f} degree field of view; it must be within [5, 150] as fov_deg's"
+            )
     else:
         fov = d.fov_deg if fov_deg is None else float(fov_deg)
         if not 5.0 <= fov <= 150.0:

@@ -27,7 +27,7 @@ class RigSpec(_Spec):
     width: int | None = Field(None, ge=16, le=8190, multiple_of=2)
     height: int | None = Field(None, ge=16, le=8190, multiple_of=2)
     fov_deg: float | None = Field(None, gt=5, lt=150)
-    focal_mm: float | None = Field(None, gt=0)
+    focal_mm: float | None = Field(None, gt=0, allow_inf_nan=False)  # fov 5-150: make_rig
     distortion: Literal["none", "mild", "strong"] | list[float] | None = None
     fps: float | None = Field(None, gt=0, le=1000)
 

@@ -132,6 +132,23 @@ def test_bad_rig_arguments_name_the_problem():
         make_rig("dome", fps=-1)
 
 
+@pytest.mark.parametrize("focal_mm", [1.0, 1e-6, 500.0, float("inf"), float("nan")])
+def test_a_focal_length_is_held_to_the_field_of_view_fov_deg_allows(focal_mm):
+    """fov_deg is refused outside [5, 150] degrees, but focal_mm took any positive number:
+    1 mm on the 36 mm sensor made a 174 degree pinhole, 1e-6 mm a focal length of 2e-6 px and
+    an infinite one a camera matrix of inf (refused only by the Camera, naming no focal_mm)."""
+    with pytest.raises(ValueError, match="focal_mm .* degree field of view"):
+        make_rig("dome", n_cameras=1, width=64, height=48, focal_mm=focal_mm)
+    make_rig("dome", n_cameras=1, width=64, height=48, focal_mm=35.0)  # 54 degrees
+    if not np.isfinite(focal_mm):
+        from pydantic import ValidationError
+
+        from synth.spec import preset
+
+        with pytest.raises(ValidationError, match="rig.focal_mm"):
+            preset("demo", rig__focal_mm=focal_mm)
+
+
 @settings(max_examples=30, deadline=None)
 @given(heading=st.floats(-10, 10))
 def test_heading_convention(heading):
