@@ -69,7 +69,7 @@ class BAResult:
     outliers: dict[str, np.ndarray]  # camera -> (M, 2) px of observations removed as outliers
     rounds: list[dict] = field(
         default_factory=list
-    )  # per round: observations, rms, removed, seconds
+    )  # per round: observations, rms, removed, seconds, termination (Ceres')
 
     def rms_px(self) -> dict[str, float]:
         return {
@@ -312,7 +312,7 @@ class BoardBundleAdjuster:
         rounds = []
         for k in range(o.max_outlier_rounds + 1):
             t0 = time.perf_counter()
-            self.solve_once()
+            summary = self.solve_once()
             res = self.residuals()
             err = np.concatenate([e[self.alive[i]] for i, e in res.items()])
             finite = err[np.isfinite(err)]
@@ -342,6 +342,8 @@ class BoardBundleAdjuster:
                     "limit_px_by_camera": limits,
                     "removed": removed,
                     "seconds": time.perf_counter() - t0,
+                    # NO_CONVERGENCE (the iteration limit) is "usable" to Ceres: said in the notes
+                    "termination": summary.termination_type.name,
                 }
             )
             if not removed:

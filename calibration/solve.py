@@ -379,6 +379,19 @@ def _lens_reach_notes(ba: BAResult) -> list[str]:
     return notes
 
 
+def _unconverged_notes(ba: BAResult) -> list[str]:
+    """The last adjustment stopped by its iteration limit, not converged: Ceres calls that a
+    usable solution, and the rig was written without a word (its cameras may still be moving)."""
+    last = ba.rounds[-1] if ba.rounds else {}
+    if last.get("termination", "CONVERGENCE") in ("CONVERGENCE", "USER_SUCCESS"):
+        return []
+    return [
+        f"the bundle adjustment stopped without converging (Ceres: {last['termination']}, round "
+        f"{last['round']}): the rig may be short of its optimum; check the RMS per camera, or "
+        "raise SolveOptions.ba.max_iterations"
+    ]
+
+
 def finish_calibration(
     init: InitialSolution,
     ba: BAResult,
@@ -458,6 +471,7 @@ def finish_calibration(
                 "front of it"
             )
     notes += _lens_reach_notes(ba)
+    notes += _unconverged_notes(ba)
     suspect = {}
     for n in names:
         kept, removed = len(ba.residuals[n]), len(ba.outliers[n])

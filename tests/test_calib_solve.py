@@ -463,3 +463,19 @@ def test_an_image_size_given_as_height_width_is_refused(small_scene, small_detec
     with pytest.raises(CalibrationError, match=r"camera 'cam00'.*outside its given image size "
                        r"600x800.*\(width, height\)"):  # fmt: skip
         calibrate_from_detections(small_detections, swapped, small_scene.board)
+
+
+def test_a_bundle_adjustment_stopped_by_its_iteration_limit_is_said(small_scene, small_detections):
+    """Ceres calls a solve stopped by its iteration limit (NO_CONVERGENCE) usable: the rig was
+    written with no note that its cameras were still moving."""
+    from calibration.bundle import BAOptions
+
+    healthy = calibrate_from_detections(small_detections, sizes(small_scene.rig), small_scene.board)
+    assert healthy.ba_rounds[-1]["termination"] == "CONVERGENCE"
+    assert not any("without converging" in n for n in healthy.notes)
+    cut = SolveOptions(ba=BAOptions(max_iterations=1))
+    result = calibrate_from_detections(
+        small_detections, sizes(small_scene.rig), small_scene.board, options=cut
+    )
+    assert result.ba_rounds[-1]["termination"] == "NO_CONVERGENCE"
+    assert any("stopped without converging (Ceres: NO_CONVERGENCE" in n for n in result.notes)
