@@ -98,6 +98,15 @@ class Camera:
             raise CameraError(
                 f"camera '{name}': K must be upper triangular with K[2,2] = 1, got {K.tolist()}"
             )
+        for side, value in (("width", width), ("height", height)):
+            # int() took 1920.7 as 1920 and True as 1: a camera of another size, silently
+            whole = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+                value, (bool, np.bool_)
+            )
+            if not whole or not float(value).is_integer():
+                raise CameraError(
+                    f"camera '{name}': {side} is {value!r}, expected a whole number of pixels"
+                )
         width, height = int(width), int(height)
         if width <= 0 or height <= 0:
             raise CameraError(f"camera '{name}': resolution must be positive, got {width}x{height}")

@@ -316,3 +316,13 @@ def test_a_video_turned_against_its_calibration_is_said_to_be_turned():
     edited = Rig((Camera("cam01", K, np.zeros(5), np.eye(3), np.zeros(3), 1920, 1088),))
     (warning,) = lens_warnings(edited)
     assert "camera 'cam01': principal point (533, 948)" in warning and "87%" in warning
+
+
+@pytest.mark.parametrize("width", [1920.7, True, float("nan"), "1920"])
+def test_a_side_that_is_not_a_whole_number_of_pixels_is_refused(width):
+    """Camera.create took int() of each side: 1920.7 became 1920 and True a 1-pixel-wide
+    camera, silently (the file readers check this, library callers were not)."""
+    args = ("c", np.eye(3) * [100, 100, 1] + [[0, 0, 50], [0, 0, 40], [0, 0, 0]], [], np.eye(3))
+    with pytest.raises(CameraError, match=r"camera 'c': width is .*whole number of pixels"):
+        Camera.create(*args, np.zeros(3), width, 80)
+    assert Camera.create(*args, np.zeros(3), np.float64(100.0), np.int64(80)).width == 100
