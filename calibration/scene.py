@@ -17,12 +17,13 @@ from typing import Any
 import numpy as np
 
 from calibration.board import BoardSpec
+from calibration.bundle import BAOptions
 from calibration.camera import FRAME_PADDING_TOLERANCE, Rig, fit_rig_to_frames
 from calibration.checks import check_rig, lens_warnings
 from calibration.compare import RigComparison, compare_rigs
 from calibration.formats import read_rig, write_rig
 from calibration.report import write_calibration_report
-from calibration.solve import BoardCalibration, calibrate_from_board
+from calibration.solve import BoardCalibration, SolveOptions, calibrate_from_board
 from gst.atomic import atomic_write_json
 from gst.video import VideoError, probe_videos, read_frames
 
@@ -50,6 +51,8 @@ class SolveSettings:
     strict_checks: bool = True  # refuse rigs that fail check_rig (floor, aim, lens model)
     frame_size_tolerance: int = FRAME_PADDING_TOLERANCE  # encoder padding accepted, in pixels
     floor_frame: int | None = None  # the frame whose board lies on the floor (None: the first)
+    lens_model: str = "opencv"  # SolveOptions.lens_model: pinhole, opencv or full_opencv
+    ba_max_iterations: int = 100  # BAOptions.max_iterations, per bundle adjustment round
 
 
 @dataclass
@@ -159,6 +162,10 @@ def calibrate_scene(
             max_frames=settings.max_frames,
             floor_world=settings.floor_world,
             floor_frame=settings.floor_frame,
+            options=SolveOptions(
+                lens_model=settings.lens_model,
+                ba=BAOptions(max_iterations=settings.ba_max_iterations),
+            ),
             progress=_progress_logger(),
         )
         rig = solved.rig

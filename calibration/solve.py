@@ -388,7 +388,8 @@ def _unconverged_notes(ba: BAResult) -> list[str]:
     return [
         f"the bundle adjustment stopped without converging (Ceres: {last['termination']}, round "
         f"{last['round']}): the rig may be short of its optimum; check the RMS per camera, or "
-        "raise SolveOptions.ba.max_iterations"
+        "raise its iteration limit (SolveOptions.ba.max_iterations; the calibrate stage's "
+        "ba_max_iterations)"
     ]
 
 

@@ -28,6 +28,8 @@ class Params(StageParams):
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs that fail check_rig (floor, aim, lens model)
     floor_frame: NonNegativeInt | None = None  # the board frame that sets the floor (None: first)
+    lens_model: Literal["pinhole", "opencv", "full_opencv"] = "opencv"  # docs/calibration.md
+    ba_max_iterations: PositiveInt = 100  # per bundle adjustment round (a note says if it stops)
 
 
 def _sources(ctx: StageContext) -> tuple[CalibrationFile | None, BoardFootage | None]:
@@ -56,14 +58,13 @@ def _sources(ctx: StageContext) -> tuple[CalibrationFile | None, BoardFootage | 
 
 
 def run(ctx: StageContext) -> None:
-    p = ctx.params
     file, footage = _sources(ctx)
     truth = ctx.path("synth/calibration/rig.json") if ctx.scene.is_synthetic else None
     calibrate_scene(
         ctx.camera_videos(), ctx.out("calibration/rig.json"), ctx.out("reports/calibrate"),
         file=file, footage=footage, truth_rig=truth, scene=ctx.scene_name,
-        settings=SolveSettings(p.frame_step, p.max_frames, p.floor_world, p.strict_checks,
-                               ctx.scene.frame_size_tolerance, p.floor_frame),
+        settings=SolveSettings(**ctx.params.model_dump(exclude={"synthetic_source"}),
+                               frame_size_tolerance=ctx.scene.frame_size_tolerance),
     )  # fmt: skip
 
 

@@ -381,7 +381,9 @@ def test_a_board_size_that_may_be_centimetres_is_not_told_to_be_millimetres():
 def test_calibrate_scene_with_two_cameras_and_a_chosen_floor_frame(tmp_path):
     """A two-camera rig against its truth: no rigid alignment to compare by (it needs 3), so the
     comparison is left out instead of failing after rig.json was written; `floor_frame` from
-    the settings reaches the solver (the stage's `calibrate.floor_frame`)."""
+    the settings reaches the solver (the stage's `calibrate.floor_frame`), and so do the lens
+    model and the iteration limit (`calibrate.lens_model`, `calibrate.ba_max_iterations`; the
+    stage solved every rig with the default lens, whatever the footage)."""
     from calibration.formats import write_rig
     from calibration.scene import BoardFootage, SolveSettings, calibrate_scene
     from calibration.synthetic import BoardScene, board_poses, ring_rig
@@ -394,10 +396,13 @@ def test_calibrate_scene_with_two_cameras_and_a_chosen_floor_frame(tmp_path):
     out = calibrate_scene(
         {}, tmp_path / "out/rig.json", tmp_path / "out/report",
         footage=BoardFootage(sources, scene.board), truth_rig=tmp_path / "truth.json",
-        scene="two", settings=SolveSettings(floor_frame=1, strict_checks=False),
+        scene="two", settings=SolveSettings(floor_frame=1, strict_checks=False,
+                                            lens_model="pinhole", ba_max_iterations=1),
     )  # fmt: skip
     assert out.against_truth is None and (tmp_path / "out/rig.json").is_file()
     assert out.solved.floor_frame == 1
+    assert all(not np.any(c.dist) for c in out.rig)
+    assert out.solved.ba_rounds[-1]["termination"] == "NO_CONVERGENCE"
 
 
 def test_a_rational_lens_model_with_a_pole_in_the_image_is_named():
