@@ -378,6 +378,26 @@ def test_frame_count_mismatch_is_named(short_scene, tmp_path):
     assert _nothing_written(tmp_path)
 
 
+def test_frame_rate_mismatch_is_named(short_scene, tmp_path):
+    # the same 12 frames at 15 frames/s: the first camera's 25 timed them all, silently
+    slow = tmp_path / "cam3_slow.mp4"
+    cap = cv2.VideoCapture(str(short_scene.videos["cam3"]))
+    writer = cv2.VideoWriter(str(slow), cv2.VideoWriter_fourcc(*"mp4v"), 15, (320, 240))
+    while (got := cap.read())[0]:
+        writer.write(got[1])
+    writer.release()
+    videos = dict(short_scene.videos, cam3=slow)
+    with pytest.raises(VideoError, match=r"different frame rates.*cam0: 25 .*cam3: 15 \(cam3_slow"):
+        extract_scene(videos, short_scene.rig, tmp_path / "crops.h5", options=_opts())
+    assert _nothing_written(tmp_path)
+    # the scene's own rate overrides the headers: accepted
+    plan = scene_phase.plan_extraction(
+        videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64, scale=1.2, frame_stride=1,
+        method="median", external=None, truth=None, options=_opts(fps=25.0),
+    )  # fmt: skip
+    assert plan.fps == 25.0
+
+
 def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, monkeypatch):
     real = crops_phase.read_frames
 

@@ -186,6 +186,23 @@ class PhaseOutcome:
     timings: dict[str, float] = field(default_factory=dict)
 
 
+FPS_TOLERANCE = 0.01  # relative: 59.94 and 60 frames/s are one rate
+
+
+def _check_frame_rates(infos: dict[str, VideoInfo]) -> None:
+    """Refuse videos whose containers give different frame rates: with equal frame counts they
+    cover different spans of time, so frame i is not one instant in every camera (the first
+    camera's rate timed them all, silently)."""
+    rates = {n: i.fps for n, i in infos.items() if i.fps > 0}  # 0: the container does not say
+    if rates and max(rates.values()) > min(rates.values()) * (1 + FPS_TOLERANCE):
+        detail = ", ".join(f"{n}: {r:g} ({infos[n].path.name})" for n, r in rates.items())
+        raise VideoError(
+            f"videos have different frame rates across cameras ({detail} frames/s); expected "
+            "synchronised videos of one rate (where the headers are wrong, give the rate: "
+            "scenes.NAME.fps or ExtractOptions(fps=...))"
+        )
+
+
 def plan_extraction(
     videos: dict[str, Path],
     rig: Rig,
@@ -211,6 +228,8 @@ def plan_extraction(
     bg_cfg = BackgroundConfig(**{**asdict(opts.background), "method": method})
     videos = {str(k): Path(v) for k, v in videos.items()}
     infos = check_videos(videos, rig.names)
+    if opts.fps is None:  # the scene's rate, when given, overrides headers not trusted
+        _check_frame_rates(infos)
     names = [n for n in rig.names if n in videos]  # rig order
     rig, _ = fit_rig_to_frames(rig, infos, opts.frame_size_tolerance)
     n_frames = next(iter(infos.values())).frames
