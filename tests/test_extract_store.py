@@ -593,3 +593,20 @@ def test_a_store_without_a_required_dataset_is_named(tmp_path):
         del f["mask_support"]
     with pytest.raises(StoreError, match=r"crops\.h5: crop store without its mask_support"):
         CropStore(path)
+
+
+@pytest.mark.parametrize("dataset", ["masks", "images", "person_id", "landmarks"])
+def test_a_store_whose_datasets_hold_fewer_rows_than_committed_is_named(tmp_path, dataset):
+    """A complete store whose `masks` held fewer rows than `n_committed` was opened: its index
+    had unset mask coverages, and `read` failed in h5py ("Fancy indexing out of range")
+    naming no file; a short `person_id` failed building the index, also naming no file."""
+    path = tmp_path / "crops.h5"
+    with CropStoreWriter(path, CAMS, S, landmarks=True) as w:
+        b = _batch([0, 1, 2, 3], [0, 1, 0, 1], [1, 1, 2, 2])
+        b.landmarks = np.zeros((4, 33, 3), np.float32)
+        w.commit(b, [(0, 0), (1, 1), (2, 0), (3, 1)])
+        w.finalize()
+    with h5py.File(path, "a") as f:
+        f[dataset].resize(2, axis=0)
+    with pytest.raises(StoreError, match=rf"crops\.h5: damaged crop store: 4 committed.*{dataset}"):
+        CropStore(path)

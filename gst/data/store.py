@@ -538,6 +538,21 @@ class CropStore:
                     "(damaged, or written before they existed); extract again"
                 )
             self.n = int(f.attrs["n_committed"])
+            # a row dataset shorter than the committed rows (a damaged file) was read as
+            # complete: the index failed on it naming no file, `read` with "Fancy indexing
+            # out of range", and a short `masks` left unset mask coverages in the index
+            short = [
+                f"{k} ({f[k].shape[0]})"
+                for k in _row_specs(1, True)
+                if k in f and f[k].shape[0] < self.n
+            ]
+            if int(f.attrs.get("n_done", 0)) > f["done"].shape[0]:
+                short.append(f"done ({f['done'].shape[0]} of n_done {int(f.attrs['n_done'])})")
+            if short:
+                raise StoreError(
+                    f"{self.path}: damaged crop store: {self.n} committed rows, but dataset(s) "
+                    f"{', '.join(short)} hold fewer; extract again"
+                )
             self.crop_size = int(f.attrs["crop_size"])
             self.camera_names = [
                 x.decode() if isinstance(x, bytes) else str(x) for x in f["camera_names"][()]
