@@ -4,6 +4,7 @@ import json
 import multiprocessing as mp
 import shutil
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -396,6 +397,21 @@ def test_frame_rate_mismatch_is_named(short_scene, tmp_path):
         method="median", external=None, truth=None, options=_opts(fps=25.0),
     )  # fmt: skip
     assert plan.fps == 25.0
+
+
+def test_a_camera_whose_container_gives_no_rate_takes_the_others(short_scene, tmp_path):
+    """The plan's rate was the first camera's alone: unstated there (0), 30 frames/s was
+    assumed for videos the other cameras say are at 25."""
+    plan = scene_phase.plan_extraction(
+        short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64, scale=1.2,
+        frame_stride=1, method="median", external=None, truth=None, options=_opts(),
+    )  # fmt: skip
+    first = plan.names[0]
+    plan.infos[first] = replace(plan.infos[first], fps=0.0)
+    assert plan.fps == 25.0
+    for n in plan.names:
+        plan.infos[n] = replace(plan.infos[n], fps=0.0)
+    assert plan.fps == 30.0  # no camera says: assumed
 
 
 def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, monkeypatch):

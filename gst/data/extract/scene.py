@@ -166,8 +166,10 @@ class ExtractPlan:
     def fps(self) -> float:
         if self.options.fps is not None:  # the scene's, where the headers are not trusted
             return float(self.options.fps)
-        fps = self.infos[self.names[0]].fps
-        return fps if fps > 0 else 30.0  # unknown rate: assume 30
+        # the first camera whose container gives a rate (`_check_frame_rates` held them to one):
+        # the first camera's alone, unstated, timed 60 frames/s videos at 30
+        rates = [self.infos[n].fps for n in self.names if self.infos[n].fps > 0]
+        return rates[0] if rates else 30.0  # unknown rate: assume 30
 
 
 @dataclass
