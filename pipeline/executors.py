@@ -86,7 +86,14 @@ class LocalExecutor:
                 if self._progress is None
                 else self._progress(items, description=description, total=len(items))
             )
-            return [fn(x) for x in it]
+            inline: list = []
+            for i, x in enumerate(it):
+                try:
+                    inline.append(fn(x))
+                except Exception as exc:  # named as the pool names it (`--workers 1` did not)
+                    exc.add_note(f"{description or 'map'}: item {i} ({describe(items[i])})")
+                    raise
+            return inline
         results: list = [None] * len(items)
         ctx = mp.get_context("spawn")  # fork is unsafe with torch/OpenMP threads
         pool = ProcessPoolExecutor(

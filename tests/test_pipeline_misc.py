@@ -612,3 +612,16 @@ def test_a_set_of_a_scene_that_does_not_exist_names_the_scenes(tmp_path):
         load_config(cfg, ["scenes.nope.fps=3"])
     made = load_config(cfg, ["scenes.t.synthetic={preset: demo}"])
     assert sorted(made.scenes) == ["s", "t"]
+
+
+@pytest.mark.parametrize("workers, n_items", [(1, 3), (2, 1)])
+def test_a_failing_item_run_inline_is_named_as_the_pool_names_it(workers, n_items):
+    """One worker (or one item) runs the map in this process: its error had no note naming the
+    item, so `--workers 1` lost which camera or video failed."""
+    from tests.fake_stages import fail_with_two_arguments
+
+    items = [1] if n_items == 1 else [0, 1, 2]
+    with pytest.raises(Exception, match="the lens model is unknown") as err:
+        LocalExecutor(workers=workers).map(fail_with_two_arguments, items, "lens check")
+    index = items.index(1)
+    assert f"lens check: item {index} (1)" in getattr(err.value, "__notes__", [])
