@@ -115,7 +115,7 @@ class RayExecutor:
         fn_ref = ray.put(fn)  # shipped once, not once per item
         results: list[Any] = [None] * len(items)
         attempts = [1] * len(items)
-        pending = {task.remote(fn_ref, x): i for i, x in enumerate(items)}
+        pending: dict = {}
 
         def finished() -> Iterator[int]:
             while pending:
@@ -154,11 +154,20 @@ class RayExecutor:
                     ) from exc
                 yield i
 
-        done = finished()
-        if self._progress is not None:
-            done = self._progress(done, description=description, total=len(items))
-        for _ in done:
-            pass
+        try:
+            for i, x in enumerate(items):  # inside: a Ctrl-C while submitting cancels them too
+                pending[task.remote(fn_ref, x)] = i
+            done = finished()
+            if self._progress is not None:
+                done = self._progress(done, description=description, total=len(items))
+            for _ in done:
+                pass
+        except BaseException:
+            # Ctrl-C (or SIGTERM) ends the map as a failed item does: the pending tasks are
+            # cancelled. Left alone they ran on in a cluster given with --ray-address (only a
+            # private cluster is shut down at exit), writing into the next run's staging folder.
+            self._cancel(pending)
+            raise
         return results
 
     @staticmethod
