@@ -398,6 +398,13 @@ def main(argv: list[str] | None = None) -> int:
                 )
             if args.ray_address and (args.executor or cfg.executor.kind) != "ray":
                 raise ConfigError("--ray-address goes with the Ray executor: add --executor ray")
+            if cfg.executor.ray_address and (args.executor or cfg.executor.kind) != "ray":
+                # the local pool ran without a word where the file names a cluster
+                raise ConfigError(
+                    f"executor.ray_address ({cfg.executor.ray_address!r}) goes with the Ray "
+                    f"executor, but the executor is '{args.executor or cfg.executor.kind}': set "
+                    "executor.kind: ray (or add --executor ray), or remove executor.ray_address"
+                )
             executor = make_executor(
                 args.executor or cfg.executor.kind,
                 args.workers or cfg.executor.workers,

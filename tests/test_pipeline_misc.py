@@ -217,8 +217,8 @@ def test_a_bad_value_from_either_form_of_set_is_blamed_on_the_set(given, capsys)
 def test_config_mistakes_found_before_anything_runs(tmp_path, capsys):
     """A key given twice (the first block's settings silently dropped), a cycle among the needs
     (found at run time, after the run's log file was written), an infinite scene value, a
-    `--ray-address` the local executor ignores: each is exit 2 with what is wrong, and no
-    workspace file."""
+    `--ray-address` or `executor.ray_address` the local executor ignores: each is exit 2 with
+    what is wrong, and no workspace file."""
     from pipeline.cli import main
 
     text = (REPO / "pipeline.yaml").read_text()
@@ -266,6 +266,10 @@ def test_config_mistakes_found_before_anything_runs(tmp_path, capsys):
         (["run", "synth", "--set", "stages.synth.needs=[bench]"], "stages form a cycle"),
         (["status", "--set", "scenes.demo.fps=.inf"], "scenes.demo.fps: Input should be a finite"),
         (["run", "synth", "--dry-run", "--ray-address", "x"], "--ray-address goes with"),
+        (
+            ["run", "synth", "--dry-run", "--set", "executor.ray_address=x"],
+            "executor.ray_address ('x') goes with the Ray executor, but the executor is 'local'",
+        ),
     ]
     for args, message in runs:
         config = [] if "--config" in args else ["--config", str(tmp_path / "pipeline.yaml")]
