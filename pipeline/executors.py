@@ -171,4 +171,6 @@ def make_executor(
 
 def chunks(seq: Sequence, size: int) -> list[Sequence]:
     """Split a sequence into consecutive chunks of at most `size` items."""
-    return [seq[i : i + size] for i in range(0, len(seq), max(1, size))]
+    if size < 1:  # `max(1, size)` in the step alone gave empty chunks: every item was lost
+        raise ValueError(f"chunks: size must be >= 1, got {size}")
+    return [seq[i : i + size] for i in range(0, len(seq), size)]

@@ -39,6 +39,12 @@ def test_chunks_cover_sequence():
     assert chunks(list(range(5)), 2) == [[0, 1], [2, 3], [4]]
 
 
+def test_chunks_of_no_items_each_are_refused_not_emptied():
+    """A size of 0 gave [[], [], []] for three items: every item silently dropped."""
+    with pytest.raises(ValueError, match="size must be >= 1, got 0"):
+        chunks([1, 2, 3], 0)
+
+
 def test_module_help_and_status_run():
     out = subprocess.run(
         [sys.executable, "-m", "pipeline", "--help"], cwd=REPO, capture_output=True, text=True
