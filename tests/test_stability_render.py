@@ -191,3 +191,11 @@ def test_opaque_stack_saturates_without_overflow(dtype):
     )
     centre = out.alpha.detach()[0, 9, 11].item()
     assert min(abs(centre - ALPHA_MAX), abs(centre - (1 - (1 - ALPHA_MAX) ** 2))) < 1e-6
+
+
+def test_float16_empty_pixels_have_depth_zero():
+    """Half-precision inputs: depth is 0 (not 0 / 0 = NaN) where nothing is drawn, and the
+    gradients stay finite (the 1e-10 floor on alpha underflowed to 0 in float16)."""
+    out, _, _ = _render(*_scene(6, torch.float16))  # asserts finite outputs and gradients
+    empty = out.alpha.detach() == 0
+    assert empty.any() and out.depth.detach()[empty].abs().max() == 0

@@ -190,7 +190,9 @@ def rasterize(
             color_sum, alpha, depth = rasterize_gsplat(scenes)
         else:
             color_sum, alpha, depth_sum = rasterize_cpu(scenes)
-            depth = depth_sum / alpha.clamp_min(1e-10)
+            # 1e-10 is 0 in float16: 0 / 0 made every empty pixel's depth NaN (and its gradient)
+            floor = max(1e-10, torch.finfo(alpha.dtype).tiny)
+            depth = depth_sum / alpha.clamp_min(floor)
 
         rgb = color_sum
         if backgrounds is not None:
