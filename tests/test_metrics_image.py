@@ -279,3 +279,23 @@ def test_ssim_takes_an_integer_data_range():
     torch.testing.assert_close(
         ssim(x, y, data_range=255), ssim(x / 255, y / 255), atol=1e-5, rtol=0
     )
+
+
+def test_8bit_images_need_their_data_range():
+    """uint8 images with the default data_range=1 scored silently wrong (PSNR about -22 dB for
+    a 26 dB pair, SSIM above 1 on flat images); with data_range=255 they score as floats do."""
+    x, y = _images(h=32, w=32)
+    x8, y8 = (x * 255).round().byte(), (y * 255).round().byte()
+    for fn in (psnr, ssim):
+        with pytest.raises(ValueError, match=r"pred is torch.uint8.*data_range=255"):
+            fn(x8, y8)
+        with pytest.raises(ValueError, match="target is torch.uint8"):
+            fn(x8.double() / 255, y8)
+        torch.testing.assert_close(
+            fn(x8, y8, data_range=255).double(),
+            fn(x8 / 255.0, y8 / 255.0).double(),
+            atol=1e-4,
+            rtol=0,
+        )
+    with pytest.raises(ValueError, match="pred is torch.uint8"):
+        masked_bbox_metrics(x8, y8, np.zeros((8, 3)), np.eye(3), np.eye(3), np.zeros(3))

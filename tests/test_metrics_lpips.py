@@ -216,6 +216,13 @@ def test_bad_shapes_are_named(alex):
         alex(torch.zeros(1, 3, 20, 64), torch.zeros(1, 3, 20, 64))
 
 
+def test_8bit_images_are_refused(alex):
+    """uint8 images went in as 0..255 and the distance came back as a uint8 0."""
+    x = (torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(0)) * 255).byte()
+    with pytest.raises(ValueError, match=r"x is torch.uint8.*\[0, 1\]"):
+        alex(x, 255 - x)
+
+
 @pytest.mark.parametrize("net", ["alex", "vgg"])
 def test_matches_reference_values(net):
     model = _model(net)

@@ -117,6 +117,8 @@ class LPIPS(nn.Module):
         for name, t in (("x", x), ("y", y)):
             if t.ndim != 4 or t.shape[1] != 3:
                 raise ValueError(f"LPIPS: {name} has shape {tuple(t.shape)}, expected (B, 3, H, W)")
+            if not t.is_floating_point():  # 8-bit images went in as 0..255 (and the sum as uint8)
+                raise ValueError(f"LPIPS: {name} is {t.dtype}; expected float images in [0, 1]")
         if x.shape != y.shape:
             raise ValueError(
                 f"LPIPS: x {tuple(x.shape)} and y {tuple(y.shape)} must have the same shape"
