@@ -242,3 +242,19 @@ def test_pa_mpjpe_is_undefined_below_three_joints():
     valid[0, :1], valid[1, :2], valid[2, :3] = True, True, True
     got = pa_mpjpe(pred, gt, valid)
     assert torch.isnan(got[:2]).all() and float(got[2]) > 0.01
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_one_non_finite_sample_is_nan_not_the_whole_batch(bad):
+    """A scored joint that is NaN or Inf in one sample gives that sample NaN, as mpjpe does;
+    the batched SVD failed for the whole batch (LinAlgError)."""
+    g = torch.Generator().manual_seed(4)
+    gt = torch.randn(3, 17, 3, generator=g, dtype=torch.float64)
+    pred = gt + 0.05 * torch.randn(3, 17, 3, generator=g, dtype=torch.float64)
+    broken = pred.clone()
+    broken[1, 3] = bad
+    for metric in (pa_mpjpe, lambda p, t: vertex_error(p, t, "procrustes")):
+        got = metric(broken, gt)
+        assert torch.isnan(got[1])
+        torch.testing.assert_close(got[[0, 2]], metric(pred[[0, 2]], gt[[0, 2]]))
+    assert torch.isnan(similarity_procrustes(gt, broken).scale[1])

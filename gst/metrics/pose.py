@@ -105,10 +105,16 @@ def similarity_procrustes(
     """Least-squares similarity (Umeyama 1991) mapping `source` onto `target`, both (B, N, 3).
 
     Rotations are proper (det +1): a mirrored prediction is not excused. Computed in float64
-    with a batched SVD. Degenerate inputs (all valid source points coincide) give scale 0.
+    with a batched SVD. Degenerate inputs (all valid source points coincide) give scale 0; a
+    sample with a NaN or Inf valid point gives a NaN similarity.
     """
     w = _check(source, target, valid, "similarity_procrustes").double()
     x, y = _zero_invalid(source.double(), w), _zero_invalid(target.double(), w)
+    # one non-finite sample failed the batched SVD of the whole batch (LinAlgError): solve it on
+    # zeros and give it NaN, as mpjpe gives that sample NaN
+    bad = ~(torch.isfinite(x).all(-1) & torch.isfinite(y).all(-1)).all(-1)  # (B,)
+    x = torch.where(bad[:, None, None], torch.zeros_like(x), x)
+    y = torch.where(bad[:, None, None], torch.zeros_like(y), y)
     wsum = w.sum(-1, keepdim=True).clamp_min(1e-300)[..., None]  # (B, 1, 1)
     mu_x = (w[..., None] * x).sum(1, keepdim=True) / wsum
     mu_y = (w[..., None] * y).sum(1, keepdim=True) / wsum
@@ -124,7 +130,12 @@ def similarity_procrustes(
     scale = (s * d).sum(-1) / var_x.clamp_min(1e-300)
     scale = torch.where(var_x > 0, scale, torch.zeros_like(scale))
     translation = mu_y[:, 0] - scale[:, None] * (rotation @ mu_x[:, 0, :, None])[..., 0]
-    return Similarity(scale=scale, rotation=rotation, translation=translation)
+    nan = torch.full((), float("nan"), dtype=scale.dtype, device=scale.device)
+    return Similarity(
+        scale=torch.where(bad, nan, scale),
+        rotation=torch.where(bad[:, None, None], nan, rotation),
+        translation=torch.where(bad[:, None], nan, translation),
+    )
 
 
 def procrustes_align(
