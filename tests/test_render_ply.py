@@ -179,3 +179,27 @@ def test_a_negative_scale_is_written_as_the_rasteriser_renders_it(tmp_path):
     write_gaussians_ply(path, **cloud)
     back = read_gaussians_ply(path)
     np.testing.assert_allclose(np.asarray(back.scales)[0], [0.01, 0.02, 0.03], rtol=1e-5)
+
+
+@pytest.mark.parametrize("prop, value", [("x", np.nan), ("rot_2", np.inf), ("scale_1", np.nan)])
+def test_non_finite_values_in_a_file_are_named(tmp_path, prop, value):
+    """NaN (or an infinite position, colour or rotation) was read into the cloud silently."""
+    path = write_gaussians_ply(tmp_path / "g.ply", **_cloud(n=4))
+    raw = path.read_bytes()
+    header, body = raw.split(b"end_header\n", 1)
+    rec = np.frombuffer(body, dtype="<f4").reshape(4, len(EXPECTED_PROPS)).copy()
+    rec[2, EXPECTED_PROPS.index(prop)] = value
+    path.write_bytes(header + b"end_header\n" + rec.tobytes())
+    with pytest.raises(PlyFormatError, match=rf"g.ply: vertex properties \['{prop}'\] hold NaN"):
+        read_gaussians_ply(path)
+
+
+def test_infinite_log_scale_and_opacity_logit_still_read(tmp_path):
+    path = write_gaussians_ply(tmp_path / "g.ply", **_cloud(n=2))
+    header, body = path.read_bytes().split(b"end_header\n", 1)
+    rec = np.frombuffer(body, dtype="<f4").reshape(2, len(EXPECTED_PROPS)).copy()
+    rec[0, EXPECTED_PROPS.index("scale_0")] = -np.inf
+    rec[1, EXPECTED_PROPS.index("opacity")] = np.inf
+    path.write_bytes(header + b"end_header\n" + rec.tobytes())
+    back = read_gaussians_ply(path)
+    assert back.scales[0, 0] == 0 and back.opacities[1] == 1

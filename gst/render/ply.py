@@ -189,6 +189,16 @@ def read_gaussians_ply(path) -> GaussianCloud:
             f"{count * dtype.itemsize} for {count} vertices"
         )
     rec = np.frombuffer(data, dtype=dtype, count=count)
+    # NaN (anywhere) or an infinite position, colour or rotation was read into the cloud without
+    # a word; an infinite log-scale or opacity logit still means a scale or opacity of 0 or 1
+    bad = [
+        p
+        for p in _REQUIRED
+        if np.isnan(rec[p]).any()
+        or (not p.startswith(("scale", "opacity")) and np.isinf(rec[p]).any())
+    ]
+    if bad:
+        raise PlyFormatError(f"{path}: vertex properties {bad} hold NaN or Inf")
 
     def cols(names):
         return np.stack([rec[name].astype(np.float64) for name in names], axis=1)
