@@ -209,3 +209,14 @@ def test_quaternion_to_matrix_extremes(scale):
     torch.testing.assert_close(R, expected, atol=1e-5, rtol=0)
     (R * torch.arange(9.0).view(1, 3, 3)).sum().backward()
     assert torch.isfinite(q.grad).all()
+
+
+@pytest.mark.parametrize("norm", [1e-14, 5e-13, 9e-13])
+def test_a_quaternion_shorter_than_quat_eps_is_the_identity(norm):
+    """As conventions.QUAT_EPS says (and the gsplat backend and the PLY writer do): it was a
+    non-rotation (|q| = 5e-13 scaled two axes by 0.5) with gradients of 1e12."""
+    q = torch.tensor([[0.0, norm, 0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    R = quats_to_rotmats(q)
+    torch.testing.assert_close(R[0], torch.eye(3, dtype=torch.float64), atol=1e-12, rtol=0)
+    R.sum().backward()
+    assert q.grad.abs().max() == 0

@@ -39,8 +39,10 @@ def quats_to_rotmats(quats: Tensor) -> Tensor:
     big = quats.detach().abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
     quats = quats / big
     norm = torch.linalg.vector_norm(quats, dim=-1, keepdim=True)
-    q = quats / norm.clamp_min(QUAT_EPS)
-    # A zero quaternion maps to (0, 0, 0, 0), which the formula below turns into the identity.
+    # Below QUAT_EPS, (0, 0, 0, 0), which the formula below turns into the identity (as the gsplat
+    # backend and the PLY writer read it): dividing by the clamped norm left such a quaternion
+    # short of unit length, not a rotation (|q| = 5e-13 scaled two axes by 0.5).
+    q = torch.where(norm > QUAT_EPS, quats / norm.clamp_min(QUAT_EPS), torch.zeros_like(quats))
     w, x, y, z = q.unbind(-1)
     rot = torch.stack(
         [
