@@ -140,6 +140,10 @@ class MarkerModel(torch.nn.Module):
                 f"MarkerModel: {M} names need anchors ({M},), frames ({M},) and offsets "
                 f"({M}, 3), got {anchors.shape}, {frames.shape} and {offsets.shape}"
             )
+        # JSON reads NaN and Infinity: such a table loaded and put its markers at NaN
+        if not np.all(np.isfinite(offsets)):
+            bad = [self.names[i] for i in np.nonzero(~np.isfinite(offsets).all(1))[0]]
+            raise ValueError(f"MarkerModel: offsets of {bad} are NaN or Inf")
         for what, idx in (("anchors", anchors), ("frames", frames)):
             if idx.min() < 0 or idx.max() >= len(SMPL_JOINT_NAMES):
                 raise ValueError(f"MarkerModel: {what} must index the 24 SMPL joints, got {idx}")
@@ -211,7 +215,10 @@ class MarkerModel(torch.nn.Module):
             anchors.append(_J[m["anchor"]])
             frames.append(_J[m["frame"]])
             offsets.append(m["offset"])
-        return cls(names, anchors, np.array(offsets), doc.get("info"), frames)
+        try:
+            return cls(names, anchors, np.array(offsets), doc.get("info"), frames)
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
 
     @classmethod
     def fallback(cls) -> MarkerModel:
