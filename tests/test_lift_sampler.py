@@ -203,3 +203,30 @@ def test_uniform_joint_limit_poses_bend_the_limbs_they_name(body):
         & (wrist[:, 1] < chest[:, 1])
     )
     assert inside.float().mean() < 0.01
+
+
+@pytest.mark.parametrize(
+    "setting, value",
+    [
+        ("landmark_set", "hands"),
+        ("crop_size", 0),
+        ("zbuffer", 0),
+        ("box_jitter", -0.1),
+        ("lean_deg", -5.0),
+        ("blend_p", 1.5),
+        ("uniform_p", -0.1),
+        ("occluder_p", 2.0),
+    ],
+)
+def test_bad_settings_are_refused_by_name(body, setting, value):
+    """A crop size of 0 gave NaN landmarks, a z-buffer of 0 an index error at the first batch,
+    an unknown landmark set a bare KeyError, and probabilities outside [0, 1] were taken."""
+    with pytest.raises(ValueError, match=setting):
+        LiftSampler(body, **{setting: value})
+
+
+def test_noise_models_must_cover_both_pose_kinds(body):
+    from gst.lift.noise import load_models
+
+    with pytest.raises(ValueError, match="pose kind"):
+        LiftSampler(body, noise={"motion": load_models()["motion"]})

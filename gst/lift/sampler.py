@@ -47,7 +47,7 @@ from gst.body.skeleton import SMPL_JOINT_NAMES
 from gst.body.subsets import vertex_subset
 from gst.data.crop import CROP_ENLARGE
 from gst.lift.errors import LANDMARK_SETS
-from gst.lift.noise import LandmarkNoise, load_models
+from gst.lift.noise import POSE_KINDS, LandmarkNoise, load_models
 from synth.motions import MOTIONS, generate_motion, random_static_poses
 from synth.rigs import RIG_KINDS, make_rig
 from synth.skeleton import PARENTS, clip_to_limits, mirror_angles, rest_corrections
@@ -207,6 +207,25 @@ class LiftSampler:
         arm_mix_p: float = 0.0,
         leg_mix_p: float = 0.0,
     ):
+        if landmark_set not in LANDMARK_SETS:
+            raise ValueError(
+                f"landmark_set must be one of {sorted(LANDMARK_SETS)}, got {landmark_set!r}"
+            )
+        # refused up front: a crop size or z-buffer below 1 gave NaN landmarks or an index
+        # error at the first batch, and probabilities outside [0, 1] were taken silently
+        for name, v in (("crop_size", crop_size), ("zbuffer", zbuffer)):
+            if not v >= 1:
+                raise ValueError(f"{name} must be >= 1, got {v}")
+        for name, v in (("box_jitter", box_jitter), ("lean_deg", lean_deg)):
+            if not v >= 0:
+                raise ValueError(f"{name} must be >= 0, got {v}")
+        for name, p in (("blend_p", blend_p), ("uniform_p", uniform_p), ("occluder_p", occluder_p)):
+            if not 0 <= p <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {p}")
+        if isinstance(noise, dict) and not set(POSE_KINDS) <= set(noise):
+            raise ValueError(
+                f"noise must hold a model per pose kind {POSE_KINDS}, got {sorted(noise)}"
+            )
         rng = np.random.default_rng(np.random.SeedSequence([seed, 0x11F7]))
         self.body = body
         # BlazePose is much worse on unusual poses (docs/landmark_prior.md): one noise model for
