@@ -273,3 +273,11 @@ def test_the_pretrain_threads_setting_holds_in_the_lifting_loop(tmp_path, monkey
         recipe.pretrain(p, tmp_path, tmp_path / "p.pt", tmp_path / "r")
     torch.set_num_threads(before)
     assert seen == [1]
+
+
+@pytest.mark.parametrize("setting", ["steps", "batch_size", "val_every", "crop_size"])
+def test_a_pretraining_setting_below_one_is_refused_by_name(setting):
+    """steps 0 ended in an UnboundLocalError after the loop (`--steps 0`), val_every 0 in a
+    ZeroDivisionError at the first step, batch_size 0 deep in the body model."""
+    with pytest.raises(ValueError, match=f"LiftPretrainConfig.{setting} must be >= 1"):
+        LiftPretrainConfig(**{setting: 0})

@@ -86,6 +86,18 @@ class LiftPretrainConfig:
         default_factory=lambda: LossWeights(joints3d=1.0, joints2d=1.0, root=0.2, params=0.5)
     )
 
+    def __post_init__(self):
+        # steps 0 ended in an UnboundLocalError after the loop, val_every 0 in a modulo by zero
+        # at the first step, batch_size 0 in "body_pose has an empty batch" from the body model
+        for name in ("steps", "batch_size", "val_every", "crop_size"):
+            v = getattr(self, name)
+            if not v >= 1:
+                raise ValueError(f"LiftPretrainConfig.{name} must be >= 1, got {v}")
+        if not self.warmup_steps >= 0:
+            raise ValueError(
+                f"LiftPretrainConfig.warmup_steps must be >= 0, got {self.warmup_steps}"
+            )
+
     def sampler(self, body: BodyModel, landmark_set: str, crop_size: int | None = None):
         """The recipe's sampler: the bodies, leans and detection noise the pretraining draws and
         the rehearsal of scene training (gst.lift.rehearsal) draws again; `crop_size` defaults
