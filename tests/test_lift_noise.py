@@ -249,3 +249,29 @@ def test_the_sampler_simulates_smaller_errors_with_a_smaller_noise_scale():
         d = (b.landmarks[..., :2] - b.reference2d).norm(dim=-1)
         err[scale] = float(d.median())
     assert err[0.3] < 0.6 * err[1.0], err
+
+
+def _clean_detections(n: int, seed: int = 0):
+    """n crops whose limb landmarks sit within a few pixels of their joints (no gross error)."""
+    rng = np.random.default_rng(seed)
+    j2 = rng.uniform(20, 230, (n, 24, 2)).astype(np.float32)
+    det = np.zeros((n, 33, 3), np.float32)
+    lset = LANDMARK_SETS["limbs"]
+    det[:, list(lset.ids), :2] = j2[:, list(lset.joints)] + rng.normal(0, 1, (n, len(lset), 2))
+    det[..., 2] = 0.9
+    return det, np.full(n, 0.99, np.float32), j2, np.ones((n, 24), bool)
+
+
+def test_fitting_without_a_gross_error_or_without_crops():
+    """Clean detections (no gross error anywhere) crashed the fit in np.quantile of nothing;
+    no crops at all (a pose kind missing from the worlds) in np.concatenate of nothing."""
+    det, pres, j2, vis = _clean_detections(40)
+    model = LandmarkNoise.fit(det, pres, j2, vis, j2, 256)
+    assert (model.gross == 0).all() and np.isfinite(model.gross_quantiles).all()
+    sim, _ = model.simulate(
+        torch.as_tensor(j2), torch.as_tensor(vis), torch.as_tensor(j2), 256,
+        torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    assert torch.isfinite(sim).all()
+    with pytest.raises(ValueError, match="no crops"):
+        LandmarkNoise.fit(det[:0], pres[:0], j2[:0], vis[:0], j2[:0], 256)

@@ -124,6 +124,8 @@ class LandmarkNoise:
         """From detections (N, 33, 3) and presence (N,) against reference points (N, L, 2) crop
         px with visibility (N, L) (for LIMBS the joints (N, 24, 2), (N, 24) do), and the true
         joints (N, 24, 2) for the bone frames."""
+        if len(landmarks) == 0:
+            raise ValueError(f"LandmarkNoise.fit: no crops to fit the '{lset.name}' model on")
         ref, vis = _reference(lset, reference2d, visible)
         L = len(lset)
         det, conf = set_arrays(landmarks, presence, lset, crop_size)
@@ -194,7 +196,10 @@ class LandmarkNoise:
             offset=offset,
             sigma=sigma,
             gross=gross,
-            gross_quantiles=np.quantile(np.concatenate(gross_d), q),
+            # no gross error measured: every rate is 0, so the distances are never drawn
+            gross_quantiles=np.quantile(np.concatenate(gross_d), q)
+            if sum(map(len, gross_d))
+            else np.full(len(q), OUTLIER),
             pair_swap=pair,
             flip=float(flipped.mean()),
             flip_follow=follow,
@@ -454,6 +459,11 @@ def main(argv: list[str] | None = None) -> None:
         models[set_name], stats[set_name] = {}, {}
         for k in POSE_KINDS:
             sel = kind == k
+            if not sel.any():  # the sampler needs both kinds' models
+                raise SystemExit(
+                    f"no crops of pose kind '{k}' in worlds {stats['worlds']} (random poses: "
+                    "every fourth world, python -m gst.lift.dataset --worlds 4 or more)"
+                )
             args_ = (cat("landmarks")[sel], cat("presence")[sel], ref[sel], vis[sel])
             models[set_name][k] = LandmarkNoise.fit(*args_, cat("joints2d")[sel], size, lset)
             stats[set_name][k] = detection_stats(*args_, size, lset).to_json()
