@@ -230,3 +230,21 @@ def test_noise_models_must_cover_both_pose_kinds(body):
 
     with pytest.raises(ValueError, match="pose kind"):
         LiftSampler(body, noise={"motion": load_models()["motion"]})
+
+
+def test_a_body_moved_in_front_of_its_camera_keeps_r_t_consistent(body):
+    """A camera inside the body (placed at the volume's centre, radius 0): the body is pushed
+    in front of it; the batch's t moves with it, so R, t still map the world body (standing on
+    the floor at the centre) to joints_cam. It kept the camera's own t."""
+    from gst.lift.sampler import _CameraPool
+
+    s = LiftSampler(body, seed=1)
+    R = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # looks along +x
+    K = torch.tensor([[300.0, 0.0, 240.0], [0.0, 300.0, 180.0], [0.0, 0.0, 1.0]])
+    s.cams = _CameraPool(
+        R[None], torch.tensor([[0.0, 1.0, 0.0]]), K[None], torch.zeros(1, 3), torch.zeros(1)
+    )  # camera centre (0, 0, 1)
+    b = s.sample(8)
+    world = (b.joints_cam - b.t[:, None]) @ b.R
+    assert torch.allclose(world[:, 0, :2], torch.zeros(8, 2), atol=1e-4)  # pelvis at the spot
+    assert (world[..., 2].amin(1) > -1e-4).all()

@@ -379,6 +379,8 @@ class LiftSampler:
             jc[bad, :, 2] += push[:, None]
             if mc is not None:
                 mc[bad, :, 2] += push[:, None]
+            t = t.clone()  # the camera steps back: the batch's R, t still map the world body
+            t[bad, 2] += push
         uv = vc[..., :2] / vc[..., 2:] @ K[:, :2, :2].transpose(1, 2) + K[:, None, :2, 2]
         lo, hi = uv.amin(1), uv.amax(1)
         centre = (lo + hi) / 2 + (hi - lo) * self.box_jitter * torch.randn(B, 2, generator=self.gen)
