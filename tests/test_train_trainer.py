@@ -218,3 +218,16 @@ def test_a_damaged_rank_state_draws_a_fresh_stream_with_a_word(tmp_path, caplog)
         Trainer._resume_rank_state(rank)
     assert any("cannot read" in m for m in caplog.messages)
     assert any("drawing a fresh stream" in m for m in caplog.messages)
+
+
+def test_no_runs_rank_draws_another_runs_stream():
+    """Each rank's batch generator was seeded seed + 1000 * rank: seed 1000's rank 0 drew the
+    batches of seed 0's rank 1. A single process (rank 0) keeps its seed."""
+    from gst.train.trainer import rank_seed
+
+    assert rank_seed(7, 0) == 7
+    seeds = {(s, r): rank_seed(s, r) for s in (0, 1, 999, 1000, 2000) for r in range(4)}
+    assert len(set(seeds.values())) == len(seeds)
+    fresh = {rank_seed(0, r, step) for r in range(3) for step in range(50)}
+    assert len(fresh) == 150 and not fresh & set(seeds.values())
+    assert 0 <= rank_seed(-3, 2) < 2**63  # torch takes it

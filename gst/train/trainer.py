@@ -7,8 +7,8 @@ model, optimiser and scheduler, so a run killed at any point and resumed from `l
 continues with the same step, the same optimiser state and the same next batch.
 
 Under `torchrun` (WORLD_SIZE > 1) the model is wrapped in DistributedDataParallel (gloo on CPU,
-nccl on CUDA); each rank draws its own batches from a rank-offset generator, rank 0 alone
-writes checkpoints and logs.
+nccl on CUDA); each rank draws its own batches from a generator of its own (`rank_seed`),
+rank 0 alone writes checkpoints and logs.
 
 `TrainConfig.device` places the model (`gst.device`: auto, cpu, cuda); batches are drawn on the
 CPU, from the same generator on every device, and moved to the model's device before each step.
@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -116,6 +117,18 @@ def adamw(params, lr: float, weight_decay: float) -> torch.optim.AdamW:
     return torch.optim.AdamW(groups, lr=lr, weight_decay=weight_decay, fused=fused or None)
 
 
+def rank_seed(seed: int, rank: int, step: int | None = None) -> int:
+    """The seed of `rank`'s batch generator (at `step`: a fresh stream drawn mid-run, when the
+    rank's own was lost). Rank 0 from the start keeps `seed`, so a single process draws as it
+    always has; every other (seed, rank, step) is mixed by numpy's SeedSequence, so no run's
+    rank repeats another run's stream (seed + 1000 * rank gave seed 1000's rank 0 the batches
+    of seed 0's rank 1)."""
+    if rank == 0 and step is None:
+        return seed
+    key = [seed % 2**64, rank] + ([] if step is None else [step + 1])
+    return int(np.random.SeedSequence(key).generate_state(1, np.uint64)[0] >> 1)
+
+
 def distributed_env(device: torch.device | None = None) -> tuple[int, int]:
     """(rank, world size), initialising the process group when launched by torchrun: nccl when
     the model trains on CUDA, gloo on the CPU (also on a machine that has a GPU)."""
@@ -176,7 +189,7 @@ class Trainer:
             self.optimizer,
             lambda s: warmup_cosine(s, cfg.steps, cfg.warmup_steps, cfg.min_lr_ratio),
         )
-        self.generator = torch.Generator().manual_seed(cfg.seed + 1000 * self.rank)
+        self.generator = torch.Generator().manual_seed(rank_seed(cfg.seed, self.rank))
         self.best_key, self.best_mode = best_key, best_mode
         self.best_value: float | None = None
         self.step = 0
@@ -325,7 +338,7 @@ class Trainer:
             "rank %d: no batch generator of its own at step %d (%s): drawing a fresh stream",
             self.rank, self.step, path,
         )  # fmt: skip
-        self.generator.manual_seed(self.cfg.seed + 1000 * self.rank + 7919 * (self.step + 1))
+        self.generator.manual_seed(rank_seed(self.cfg.seed, self.rank, self.step))
 
     def _on_every_rank(self, ok: bool) -> bool:
         """Whether `ok` holds on every rank. Ranks must agree to skip a step: backward() is
