@@ -1,9 +1,7 @@
-"""calibrate: import the scene's calibration file, or solve the rig from board footage.
-
-Writes `calibration/rig.json` (docs/formats/rig_json.md) and `reports/calibrate/`. Library:
-`calibration.scene.calibrate_scene`. A synthetic scene is solved from its rendered ChArUco clip
-by default (the real code path) and the report compares the solved rig with the scene's truth.
-"""
+"""calibrate: import the scene's calibration file, or solve the rig from board footage (a
+synthetic scene: its rendered ChArUco clip, the real code path, compared with its truth).
+Writes `calibration/rig.json` (docs/formats/rig_json.md) and `reports/calibrate/`; library:
+`calibration.scene.calibrate_scene`."""
 
 from __future__ import annotations
 
@@ -28,7 +26,8 @@ class Params(StageParams):
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs that fail check_rig (floor, aim, lens model)
     floor_frame: NonNegativeInt | None = None  # the board frame that sets the floor (None: first)
-    lens_model: Literal["pinhole", "opencv", "full_opencv"] = "opencv"  # docs/calibration.md
+    # every camera's lens: pinhole, opencv (k1-k3 p1 p2) or full_opencv (+ k4-k6, wide angle)
+    lens_model: Literal["pinhole", "opencv", "full_opencv"] = "opencv"
     ba_max_iterations: PositiveInt = 100  # per bundle adjustment round (a note says if it stops)
 
 
