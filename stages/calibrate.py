@@ -26,7 +26,7 @@ class Params(StageParams):
     floor_world: bool = True  # world from the board's floor pose: z up, floor z = 0, metres
     strict_checks: bool = True  # refuse rigs that fail check_rig (floor, aim, lens model)
     floor_frame: NonNegativeInt | None = None  # the board frame that sets the floor (None: first)
-    # every camera's lens: pinhole, opencv (k1-k3 p1 p2) or full_opencv (+ k4-k6, wide angle)
+    # every camera's lens: pinhole, opencv (k1 k2 p1 p2) or full_opencv (+ k3-k6, wide angle)
     lens_model: Literal["pinhole", "opencv", "full_opencv"] = "opencv"
     ba_max_iterations: PositiveInt = 100  # per bundle adjustment round (a note says if it stops)
 
