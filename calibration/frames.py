@@ -32,8 +32,14 @@ def _natural_key(path: Path):
 
 
 def list_images(folder: Path) -> list[Path]:
-    """Image files in a folder, in natural filename order."""
-    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
+    """Image files in a folder, in natural filename order; hidden files are left out (macOS
+    writes a `._img1.png` beside every image on a FAT/exFAT card: not an image, and read as
+    one it stopped the folder with "cannot read image" and shifted every frame index)."""
+    files = [
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()
+    ]
     if not files:
         raise FrameSourceError(
             f"image folder '{folder}' holds no images ({', '.join(IMAGE_SUFFIXES)})"

@@ -256,6 +256,19 @@ def test_phone_photos_with_an_exif_rotation_keep_their_displayed_size(tmp_path):
         list(iter_frames(tmp_path))
 
 
+def test_hidden_files_in_an_image_folder_are_no_frames(footage):
+    """A folder copied from a Mac onto an exFAT card holds `._img0.png` beside `img0.png`
+    (AppleDouble metadata, not an image): it was taken for frame 0, and the folder was refused
+    with "cannot read image" (and counted one frame too many)."""
+    folder, _, frames = footage
+    (folder / "._img0.png").write_bytes(b"\x00\x05\x16\x07" + bytes(100))
+    (folder / ".hidden.png").write_bytes(b"")
+    assert count_frames(folder) == 6 and source_image_size(folder) == (640, 480)
+    got = list(iter_frames(folder))
+    assert [i for i, _ in got] == list(range(6))
+    assert all(np.array_equal(img, frames[i]) for i, img in got)
+
+
 @pytest.mark.parametrize("board", [CHARUCO, CHECKER])
 def test_detection_refuses_images_it_cannot_read_by_name(board):
     """uint16, float and (H, W, 1) images hit raw OpenCV assertions."""
