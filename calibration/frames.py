@@ -105,6 +105,19 @@ def source_image_size(source: str | Path) -> tuple[int, int]:
     return info.width, info.height
 
 
+def _to_8bit(img: np.ndarray, path: Path) -> np.ndarray:
+    """A 16-bit image shifted down by the bits its values use (at least 8): full-range 16-bit
+    images as OpenCV converts them, 12-bit data in a 16-bit file shifted by 4, not 8."""
+    if img.dtype == np.uint8:
+        return img
+    if img.dtype != np.uint16:
+        raise FrameSourceError(
+            f"image '{path}' holds {img.dtype} pixels; expected 8- or 16-bit integer images"
+        )
+    bits = max(8, int(img.max()).bit_length())
+    return (img >> (bits - 8)).astype(np.uint8)
+
+
 def iter_frames(
     source: str | Path, frame_step: int = 1, max_frames: int | None = None, grayscale: bool = True
 ) -> Iterator[tuple[int, np.ndarray]]:
@@ -116,7 +129,9 @@ def iter_frames(
     _check_exists(source)
     step = max(int(frame_step), 1)
     limit = None if max_frames is None else max(int(max_frames), 0)
-    flag = cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR
+    # ANYDEPTH: OpenCV's own 16-to-8-bit conversion keeps the top 8 bits, and a machine-vision
+    # camera's 10- or 12-bit frames saved as 16-bit images (0..4095) came out black (0..15)
+    flag = (cv2.IMREAD_GRAYSCALE if grayscale else cv2.IMREAD_COLOR) | cv2.IMREAD_ANYDEPTH
     yielded = 0
     size = None
     if source.is_dir():
@@ -136,6 +151,7 @@ def iter_frames(
             img = cv2.imread(str(path), flag)
             if img is None:
                 raise FrameSourceError(f"cannot read image '{path}'")
+            img = _to_8bit(img, path)
             if size is None:
                 size = img.shape[:2]
             elif img.shape[:2] != size:  # one camera's images: a portrait shot among landscape

@@ -269,6 +269,24 @@ def test_hidden_files_in_an_image_folder_are_no_frames(footage):
     assert all(np.array_equal(img, frames[i]) for i, img in got)
 
 
+@pytest.mark.parametrize("bits", [16, 12, 10])
+def test_16_bit_images_of_a_12_bit_camera_are_not_read_black(footage, tmp_path, bits):
+    """A machine-vision camera's 12-bit frames saved as 16-bit PNGs (values 0..4095) were read
+    by OpenCV's top-8-bits conversion as 0..15: no board found in any frame, and no word why."""
+    folder, _, frames = footage
+    deep = tmp_path / f"deep{bits}"
+    deep.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(deep / f"img{i}.png"), (f.astype(np.uint16) << (bits - 8)))
+    got = dict(iter_frames(deep))
+    assert all(img.dtype == np.uint8 for img in got.values())
+    assert all(np.array_equal(got[i], frames[i]) for i in (1, 2, 4))  # the board's white: full
+    assert [d.frame for d in detect_in_source(deep, CHARUCO).detections] == [1, 2, 4]
+    cv2.imwrite(str(deep / "img0.tif"), np.zeros((480, 640), np.float32))
+    with pytest.raises(FrameSourceError, match="img0.tif' holds float32 pixels"):
+        list(iter_frames(deep))
+
+
 @pytest.mark.parametrize("board", [CHARUCO, CHECKER])
 def test_detection_refuses_images_it_cannot_read_by_name(board):
     """uint16, float and (H, W, 1) images hit raw OpenCV assertions."""
