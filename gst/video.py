@@ -284,6 +284,8 @@ def read_frames(
         return
     path = Path(path)
     who = _who(path, camera)
+    if wanted[0] < 0:  # frame 0 was read and handed out under the negative index
+        raise ValueError(f"{who}: frame indices must be >= 0, got {wanted[0]}")
     cap = _open(path, camera)
     try:
         pos = 0
@@ -525,6 +527,8 @@ def iter_frames(
     """
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):  # 0 failed at the first frame
+        raise ValueError(f"{path}: fps must be > 0 frames/s, got {fps}")
     info = probe_video(path)
     timing = info if fps is None else replace(info, fps=float(fps))
     first, end = frame_range(timing, start_s, end_s)

@@ -15,7 +15,7 @@ import pytest
 from gst.track import BoxDepthPredictor, SuppliedBoxes, TrackOptions, track_video
 from gst.track.detection import Detection
 from gst.track.static_detector import StaticCameraDetector
-from gst.video import VideoError, iter_frames, probe_video
+from gst.video import VideoError, iter_frames, probe_video, read_frames
 from tests.track_synthetic import crossing_clip, track_boxes
 
 
@@ -367,3 +367,16 @@ def test_a_video_is_timed_at_the_rate_given_where_its_header_is_not_trusted(tmp_
         TrackOptions(fps=0.0)
     # not given, it is not in the run's settings: files tracked before it existed still resume
     assert "fps" not in TrackOptions().settings() and options.settings()["fps"] == 60.0
+
+
+def test_negative_frame_indices_and_rates_are_refused_by_name(tmp_path):
+    """read_frames(path, [-1, 2]) handed out frame 0 as frame -1; iter_frames(fps=0) died in
+    a ZeroDivisionError at the first frame, fps NaN or negative timed every frame NaN or
+    before the start."""
+    *_, video = crossing_clip(tmp_path, frames=5)
+    with pytest.raises(ValueError, match=f"{video.name}: frame indices must be >= 0, got -1"):
+        list(read_frames(video, [-1, 2]))
+    assert [f for f, _ in read_frames(video, [3, 0])] == [0, 3]
+    for fps in (0.0, float("nan"), -25.0):
+        with pytest.raises(ValueError, match=f"{video.name}: fps must be > 0 frames/s"):
+            list(iter_frames(video, fps=fps))
