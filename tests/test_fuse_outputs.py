@@ -304,3 +304,21 @@ def test_the_report_says_which_cameras_to_calibrate_again(tmp_path, corrections,
 
     write_report(FuseSummary(camera_corrections_deg=corrections), tmp_path, [], [])
     assert verdict in (tmp_path / "report.md").read_text()
+
+
+def test_summary_json_is_strict_json_when_nothing_matched_the_truth(tmp_path):
+    """A synthetic scene where no fused body was paired with the truth has no MPJPE: the
+    summary said `NaN`, which is not JSON (jq and JavaScript refused the file); it is null."""
+    from gst.fuse.evaluate import compare_with_truth
+    from gst.fuse.report import summarise, write_report
+
+    truth = compare_with_truth([], None).as_dict()
+    summary = summarise([], [], [], ["cam01"], 10, truth=truth)
+    write_report(summary, tmp_path, [], [])
+
+    def refuse(constant):
+        raise ValueError(f"not JSON: {constant}")
+
+    doc = json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse)
+    assert doc["truth"]["mpjpe_mm"] is None and doc["truth"]["vertex_error_mm"] is None
+    assert "| - | - | - |" in (tmp_path / "report.md").read_text()

@@ -1,12 +1,14 @@
 """The fusion report: reprojection per camera and landmark, bone lengths, gap share, truth.
 
-`reports/fuse/summary.json` holds every number; `reports/fuse/report.md` the tables people
-read; `reports/fuse/bone_lengths.png` the limb lengths over time. Limb lengths are given three
-times: from the body fit (one shape per person, so constant by construction: a check of the
-pipeline, not of the data), from the triangulated landmarks (the distance between two noisy
-points), and from a fit of every frame on its own with the shape free (gst.fuse.consistency:
-the measurement of how steady the rig's 3D is). Coefficients of variation are given plain
-(std / mean) and robust (1.4826 MAD / median, which one wrong frame cannot dominate).
+`reports/fuse/summary.json` holds every number (strict JSON: a value that is not defined, e.g.
+MPJPE with no fused body paired with the truth, is null, not NaN); `reports/fuse/report.md`
+the tables people read; `reports/fuse/bone_lengths.png` the limb lengths over time. Limb
+lengths are given three times: from the body fit (one shape per person, so constant by
+construction: a check of the pipeline, not of the data), from the triangulated landmarks (the
+distance between two noisy points), and from a fit of every frame on its own with the shape
+free (gst.fuse.consistency: the measurement of how steady the rig's 3D is). Coefficients of
+variation are given plain (std / mean) and robust (1.4826 MAD / median, which one wrong frame
+cannot dominate).
 """
 
 from __future__ import annotations
@@ -184,6 +186,18 @@ def summarise(
     return s
 
 
+def _finite(value):
+    """NaN and infinity become null: JSON has no spelling for them (json.dumps wrote `NaN`,
+    which jq, JavaScript and most JSON parsers refuse)."""
+    if isinstance(value, float | np.floating) and not np.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
 def write_report(
     summary: FuseSummary,
     out_dir: Path,
@@ -192,7 +206,12 @@ def write_report(
     limb_lengths: list[dict[str, np.ndarray]] | None = None,
 ) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
-    doc = json.dumps(summary.as_dict(), indent=1, sort_keys=True, default=float) + "\n"
+    doc = (
+        json.dumps(
+            _finite(summary.as_dict()), indent=1, sort_keys=True, default=float, allow_nan=False
+        )
+        + "\n"
+    )
     atomic_write(out_dir / "summary.json", lambda t: Path(t).write_text(doc))
     lines = ["# Fusion report", ""]
     lines.append(
