@@ -322,3 +322,13 @@ def test_summary_json_is_strict_json_when_nothing_matched_the_truth(tmp_path):
     doc = json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse)
     assert doc["truth"]["mpjpe_mm"] is None and doc["truth"]["vertex_error_mm"] is None
     assert "| - | - | - |" in (tmp_path / "report.md").read_text()
+
+
+def test_trc_refuses_a_person_of_no_frames(tmp_path):
+    """A TRC without a data row was written (NumFrames 0); OpenSim's reader skips the blank
+    lines before the first row and, at the end of the file, never stops. Refused, as the C3D
+    writer refuses it, and nothing is left behind."""
+    path = tmp_path / "person_1.trc"
+    with pytest.raises(ValueError, match="no frame"):
+        write_trc(path, np.zeros(0, np.int64), np.zeros((0, 24, 3)), fps=30.0)
+    assert not path.exists()

@@ -95,6 +95,9 @@ def write_trc(
         raise ValueError(
             f"write_trc: {T} frames x {M} markers need {M} names and {T} frame numbers"
         )
+    if T == 0:  # OpenSim's reader skips blank lines before the first row: at the end of a
+        # file with none it never stops (and write_c3d refuses such a person too)
+        raise ValueError(f"write_trc: {path}: no frame to write (a TRC holds at least one)")
     frames, points, _ = every_frame(frames, points)
     T = len(frames)
     yup = points @ y_up_rotation(up).T
@@ -102,7 +105,7 @@ def write_trc(
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame"
         "\tOrigNumFrames",
-        f"{fps:.10g}\t{fps:.10g}\t{T}\t{M}\tm\t{fps:.10g}\t{int(frames[0]) + 1 if T else 1}\t{T}",
+        f"{fps:.10g}\t{fps:.10g}\t{T}\t{M}\tm\t{fps:.10g}\t{int(frames[0]) + 1}\t{T}",
         "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in names).rstrip("\t"),
         "\t\t" + "\t".join(f"X{i}\tY{i}\tZ{i}" for i in range(1, M + 1)),
         "",
