@@ -332,3 +332,42 @@ def test_trc_refuses_a_person_of_no_frames(tmp_path):
     with pytest.raises(ValueError, match="no frame"):
         write_trc(path, np.zeros(0, np.int64), np.zeros((0, 24, 3)), fps=30.0)
     assert not path.exists()
+
+
+def test_an_overlay_that_fails_leaves_no_partial_video(tmp_path, monkeypatch):
+    """OpenCV encodes to `<temporary>.mp4` beside the output; a video that failed (or was
+    interrupted) part-way left that partial file in the overlay folder, one more per try."""
+    import cv2
+
+    from gst.fuse import overlay
+    from gst.fuse.fit import PersonFit
+
+    src = tmp_path / "cam01.mp4"
+    vw = cv2.VideoWriter(str(src), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (64, 48))
+    for _ in range(3):
+        vw.write(np.zeros((48, 64, 3), np.uint8))
+    vw.release()
+    T = 3
+    fit = PersonFit(
+        1, np.arange(T), np.zeros(10), np.zeros((T, 3)), np.zeros((T, 23, 3)), np.zeros((T, 3)),
+        np.zeros((T, 24, 3)), np.zeros((T, 33, 3)), np.zeros((T, 1, 33)), np.ones(T, bool),
+        np.zeros(T, bool), False, 3.0,
+    )  # fmt: skip
+
+    class Rig:
+        names = ["cam01"]
+
+        def __getitem__(self, name):
+            return None
+
+    def fail(img, cam, fit, i, verts, colour):
+        if i == 1:
+            raise RuntimeError("drawing failed")
+
+    monkeypatch.setattr(overlay, "_vertices", lambda body, f, ids: np.zeros((T, len(ids), 3)))
+    monkeypatch.setattr(overlay, "_draw", fail)
+    body = type("Body", (), {"num_vertices": 24})()
+    out = tmp_path / "overlay"
+    with pytest.raises(RuntimeError, match="drawing failed"):
+        overlay.write_overlays([fit], body, Rig(), {"cam01": src}, out)
+    assert sorted(p.name for p in out.iterdir()) == []

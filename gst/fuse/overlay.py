@@ -73,31 +73,39 @@ def write_overlays(
             # OpenCV picks the container from the extension: encode to a .mp4 name, then move.
             tmp_mp4 = f"{tmp}.mp4"
             writer = None
-            frame_no = 0
-            while True:
-                ok, img = cap.read()
-                if not ok:
-                    break
+            try:
+                frame_no = 0
+                while True:
+                    ok, img = cap.read()
+                    if not ok:
+                        break
+                    if writer is None:
+                        h, w = img.shape[:2]
+                        fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+                        writer = cv2.VideoWriter(tmp_mp4, fourcc, fps, (w, h))
+                        if not writer.isOpened():
+                            raise OSError(f"overlay: cannot write {tmp}")
+                    for k, fit in enumerate(fits):
+                        i = index[k].get(frame_no)
+                        if i is None:
+                            continue
+                        _draw(img, cam, fit, i, verts[k][i], _COLOURS[k % len(_COLOURS)])
+                    cv2.putText(img, f"{frame_no}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
+                                (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
+                    writer.write(img)
+                    frame_no += 1
+                cap.release()
                 if writer is None:
-                    h, w = img.shape[:2]
-                    fourcc = cv2.VideoWriter_fourcc(*"mp4v")
-                    writer = cv2.VideoWriter(tmp_mp4, fourcc, fps, (w, h))
-                    if not writer.isOpened():
-                        raise OSError(f"overlay: cannot write {tmp}")
-                for k, fit in enumerate(fits):
-                    i = index[k].get(frame_no)
-                    if i is None:
-                        continue
-                    _draw(img, cam, fit, i, verts[k][i], _COLOURS[k % len(_COLOURS)])
-                cv2.putText(img, f"{frame_no}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
-                            (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
-                writer.write(img)
-                frame_no += 1
-            cap.release()
-            if writer is None:
-                raise OSError(f"overlay: video {videos[name]} has no readable frame")
-            writer.release()
-            os.replace(tmp_mp4, tmp)
+                    raise OSError(f"overlay: video {videos[name]} has no readable frame")
+                writer.release()
+                os.replace(tmp_mp4, tmp)
+            except BaseException:
+                # atomic_write removes `tmp` only: the partial encoding beside it stayed in
+                # the overlay folder (a failed or interrupted video, one more each time)
+                if writer is not None:
+                    writer.release()
+                Path(tmp_mp4).unlink(missing_ok=True)
+                raise
 
         path = out_dir / f"{name}.mp4"
         atomic_write(path, write)

@@ -559,7 +559,7 @@ def fuse_scene(
         # this one's (the stage writes into a fresh folder; a library caller may not)
         for old in (out_dir / folder).glob(f"person_*{suffix}"):
             old.unlink()
-    for folder in (out_dir, out_dir / "trc", out_dir / "c3d", report_dir):
+    for folder in (out_dir, out_dir / "trc", out_dir / "c3d", report_dir, report_dir / "overlay"):
         # a write killed between its temporary file and the rename leaves a hidden
         # `.<name>.<random>.tmp<suffix>` (gst.atomic): not an output, and not to be moved along
         for leftover in folder.glob(".*.tmp*"):
