@@ -371,3 +371,19 @@ def test_an_overlay_that_fails_leaves_no_partial_video(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="drawing failed"):
         overlay.write_overlays([fit], body, Rig(), {"cam01": src}, out)
     assert sorted(p.name for p in out.iterdir()) == []
+
+
+@pytest.mark.filterwarnings("ignore:No analog data found")
+def test_c3d_header_counts_every_frame_of_a_person_who_ends_past_the_16_bit_frame(tmp_path):
+    """First seen at video frame 60000 (fits the header's 16-bit first frame) for 8000 frames
+    (the last, 68000, does not): the header said frames 60001-65535, 5535 frames over 8000
+    rows. Such a person is numbered from 1, as a late start is; GST:FIRST_FRAME keeps 60000."""
+    import c3d
+
+    path = tmp_path / "long.c3d"
+    write_c3d(path, np.arange(60000, 68000), _points(T=8000, M=2), fps=60.0, names=("a", "b"))
+    with open(path, "rb") as fh:
+        reader = c3d.Reader(fh)
+        assert reader.header.last_frame - reader.header.first_frame + 1 == 8000
+    _, _, frames, _ = read_c3d(path)
+    assert frames[0] == 60001 and frames[-1] == 68000

@@ -25,14 +25,14 @@ up so that the nominal residual is a whole byte), POINT:UNITS "mm", the rig's wo
 (POINT:Y_SCREEN is the world axis nearest its up, so viewers draw it upright). Frames are
 numbered from the person's first video frame + 1 where that fits the header's 16-bit first
 frame (video frames up to 65533; the `c3d` reader miscounts a file whose header had to clamp
-it), else from 1; the parameter GST:FIRST_FRAME (a float) always holds the first row's video
-frame (0-based). Every fitted joint is a valid point. Residuals as the C3D format defines them:
-a positive residual marks a measured point (here 1 for a joint observed by >= 2 cameras: a
-nominal value; its reprojection error in pixels is in the fused Parquet), 0 a point not
-measured but modelled (a joint the fit filled), -1 a missing value, whose coordinates are 0
-(the `c3d` 0.6 writer left the last valid frame's there, a body frozen through a gap, so they
-are cleared in the written file). The residual word's camera byte holds the measuring cameras
-1-7 (bit i: camera i + 1).
+it) and their last fits its 16-bit last frame (up to 65535), else from 1; the parameter
+GST:FIRST_FRAME (a float) always holds the first row's video frame (0-based). Every fitted
+joint is a valid point. Residuals as the C3D format defines them: a positive residual marks a
+measured point (here 1 for a joint observed by >= 2 cameras: a nominal value; its reprojection
+error in pixels is in the fused Parquet), 0 a point not measured but modelled (a joint the fit
+filled), -1 a missing value, whose coordinates are 0 (the `c3d` 0.6 writer left the last valid
+frame's there, a body frozen through a gap, so they are cleared in the written file). The
+residual word's camera byte holds the measuring cameras 1-7 (bit i: camera i + 1).
 """
 
 from __future__ import annotations
@@ -160,6 +160,7 @@ _NO_ANALOG = "No analog data found"
 # the header's first frame is 16 bits: the `c3d` reader miscounts a file whose first frame had
 # to be clamped to 65535, so later starts are numbered from 1 (GST:FIRST_FRAME keeps the truth)
 _LAST_HEADER_START = 65534
+_HEADER_FRAME_MAX = 65535  # the header's last frame (16 bits)
 _GST_GROUP_ID = 10
 C3D_LABEL_CHARS = 30  # POINT:LABELS entries: the length C3D tools assume (Vicon, Mokka)
 
@@ -209,7 +210,10 @@ def write_c3d(
     writer.set_point_labels(list(names))
     writer.set_screen_axis(*_screen_axes(up))  # viewers draw the rig's world upright
     first = int(frames[0]) if T else 0
-    writer.set_start_frame(first + 1 if first + 1 <= _LAST_HEADER_START else 1)
+    # the header's last frame is 16 bits too: a start that fits with an end that does not
+    # (first seen at 60000, 8000 frames) had a header of 5535 frames over 8000 rows
+    fits = first + 1 <= _LAST_HEADER_START and first + T <= _HEADER_FRAME_MAX
+    writer.set_start_frame(first + 1 if fits else 1)
     group = writer.add_group(_GST_GROUP_ID, "GST", "gst-capture")
     # a float (element size 4 is the format's float; an int32 under that label read as
     # 1.4e-43 in every reader but ours), exact to 2^24 frames (77 hours at 60 fps)
