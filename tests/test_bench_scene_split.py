@@ -84,3 +84,19 @@ def test_a_trained_model_that_saw_the_test_frames_is_left_out_with_a_warning(
     with caplog.at_level(logging.WARNING):
         _run(bs.BenchSettings(), models)
     assert "trained model is left out" in caplog.text and "include_trained=false" in caplog.text
+
+
+def test_a_split_without_training_samples_is_refused_before_the_sweep(monkeypatch, tmp_path):
+    """A two-camera scene with its last camera held out has one training camera, and the
+    `pretrain` mode needs two: the sweep read every crop's landmarks and built the first
+    variant, then fit_gst failed with "no training samples ... (held out: []; frames from
+    None)", naming none of the bench's held-out cameras or frames."""
+    crops, seen, models = _stubbed(monkeypatch, tmp_path, None)
+    two = crop_set(n_frames=8, n_cams=2)
+    monkeypatch.setattr(bs, "load_cropset", lambda path: (two, None))
+    with pytest.raises(ValueError, match=r"held out \['c1'\].*or use mode 3d"):
+        bs.bench_scene(
+            bs.BenchSettings(), Path("c.h5"), Path("synth"), models / "pretrain.pt", Path("o")
+        )
+    assert "reread" not in seen  # refused before the landmarks were read
+    _run(bs.BenchSettings(mode="3d"), models)  # single views: c0 trains

@@ -100,6 +100,24 @@ class BenchSettings(BaseModel):
     threads: PositiveInt | None = None  # torch CPU threads (default: torch's choice)
 
 
+def _check_training_samples(crops, split, mode: str) -> None:
+    """Refuse a split that leaves no training sample, before the landmarks are read and the
+    first variant is built (fit_gst then failed naming no held-out camera: the split's rows
+    were already taken out); `pretrain` samples need a (frame, person) seen by >= 2 training
+    cameras."""
+    need = 2 if mode == "pretrain" else 1
+    train = torch.zeros(len(crops), dtype=torch.bool)
+    train[split.train_rows] = True
+    if not any(int(train[g].sum()) >= need for g in crops.groups(min_views=need)):
+        raise ValueError(
+            f"bench: no training sample: no (frame, person) with truth seen by >= {need} "
+            f"training camera(s) in frames < {split.test_frames[0]} (cameras "
+            f"{crops.camera_names}, held out {list(split.heldout_cameras)}); hold out fewer "
+            "cameras (bench.heldout_cameras)"
+            + (" or use mode 3d (single views)" if need > 1 else "")
+        )
+
+
 def bench_scene(
     p: BenchSettings,
     crops_h5: Path,
@@ -131,6 +149,7 @@ def bench_scene(
         else (trained_extra or {}).get("heldout_cameras") or crops.camera_names[-1:]
     )
     split = frame_split(crops, heldout, p.test_fraction)
+    _check_training_samples(crops, split, p.mode)
     if p.landmarks:
         # Landmarks the extraction projected from the rig's skeleton hold every camera's
         # evidence, the held-out one included: every such row is read again by the landmark
