@@ -100,3 +100,25 @@ def test_a_split_without_training_samples_is_refused_before_the_sweep(monkeypatc
         )
     assert "reread" not in seen  # refused before the landmarks were read
     _run(bs.BenchSettings(mode="3d"), models)  # single views: c0 trains
+
+
+def test_the_header_names_the_rows_taken_as_they_are(monkeypatch, tmp_path):
+    """table.md said "Every variant except `pretrained` was trained from scratch" above a
+    `trained (models/gst.pt)` row taken as it is, and described `trained` when it was not in
+    the table."""
+    extra = {"heldout_cameras": ["c2"], "first_heldout_frame": 6,
+             "trained_on": {"cameras": ["c0", "c1"], "frames": [0, 5]}}  # fmt: skip
+    crops, seen, models = _stubbed(monkeypatch, tmp_path, extra)
+    cfg = SimpleNamespace(name="tiny", image_size=(64, 48), landmark_tokens=False)
+    monkeypatch.setattr(bs, "network_from_checkpoint", lambda c, p: SimpleNamespace(cfg=cfg))
+    monkeypatch.setattr(bs, "run_bench", lambda variants, *a, **k: [])
+    monkeypatch.setattr(bs, "write_pareto_plot", lambda *a: None)
+    headers = []
+    monkeypatch.setattr(bs, "write_bench_table", lambda out, rows, header: headers.append(header))
+    out = tmp_path / "out"
+    bs.bench_scene(bs.BenchSettings(), Path("c.h5"), Path("s"), models / "pretrain.pt", out)
+    assert "except `pretrained` and `trained (models/gst.pt)` (taken as they are)" in headers[0]
+    bs.bench_scene(
+        bs.BenchSettings(include_trained=False), Path("c.h5"), Path("s"), models / "p.pt", out
+    )
+    assert "except `pretrained` (taken" in headers[1] and "gst.pt" not in headers[1]

@@ -234,20 +234,28 @@ def bench_scene(
     )
     out.mkdir(parents=True, exist_ok=True)
     seconds = time.perf_counter() - t0
+    # the rows taken as they are, and only those, are named as such
+    as_is = {
+        "pretrained": "`pretrained` is models/pretrain.pt as it is (longer training, other "
+        "synthetic worlds).",
+        "trained (models/gst.pt)": "`trained (models/gst.pt)` is the train stage's model as it "
+        "is (it trained on this scene's first frames without labels).",
+    }
+    names = " and ".join(f"`{n}`" for n, _ in kept)
+    as_is_rows = f" except {names} (taken as they are)" if kept else ""
     header = (
         f"# Run time against error (scene `{scene}`)\n\n"
         f"CPU, {torch.get_num_threads()} threads; time = median of {p.repeats} runs of one "
         f"batch of {p.timing_batch} real crops after a warm-up, all variants timed round-robin "
         "(pose-only: Gaussian tokens skipped; full: network plus posed Gaussians, no rendering). "
-        "Every variant except `pretrained` was trained from scratch with the same budget: "
+        f"Every variant{as_is_rows} was trained from scratch with the same budget: "
         f"{p.steps} steps of batch {p.batch_size}, mode `{p.mode}` (3D truth + image terms, no "
         f"LPIPS) on {len(split.train_rows)} crops of frames < {split.test_frames[0]} in cameras "
         f"other than {', '.join(heldout)}. MPJPE/PA-MPJPE on crops of frames "
         f"{split.test_frames[0]}-{split.test_frames[1] - 1} (all cameras); PSNR of those frames "
         f"rendered at {p.render_size} px into the held-out camera(s). "
-        f"`pretrained` is models/pretrain.pt as it is (longer training, other synthetic worlds), "
-        f"`trained` models/gst.pt (the train stage's model: it trained on this scene's first "
-        f"frames without labels). Landmark variants take each crop's BlazePose landmarks "
+        + "".join(f"{as_is[name]} " for name, _ in kept)
+        + "Landmark variants take each crop's BlazePose landmarks "
         f"({'the store' if p.landmarks else 'none'}); their time is the network's alone (BlazePose "
         f"runs anyway in tracking). Whole sweep: {seconds:.0f} s."
     )
