@@ -5,6 +5,9 @@ Only synthetic scenes need it. Output layout: docs/formats/synth_scene.md, under
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from gst.body import body_model_file
 from pipeline.stage import Stage, StageContext, StageParams
 from synth.scene import preset, render_scene
 
@@ -46,10 +49,19 @@ def run(ctx: StageContext) -> None:
     )
 
 
+def _body_file(ctx: StageContext) -> list[Path]:
+    """The file the scene's `body_model` reads (`smpl`, or a file of the user's): an input, so
+    a swapped SMPL file renders the scene again (it was left 'up to date')."""
+    src = ctx.scene.synthetic
+    file = body_model_file(preset(src.preset, seed=src.seed, **src.overrides).body_model)
+    return [file] if file is not None else []
+
+
 STAGE = Stage(
     name="synth",
     run=run,
     params_model=Params,
+    inputs=_body_file,
     outputs=lambda ctx: ["synth"],
     applies=lambda scene: scene.is_synthetic,
     help="render the synthetic capture with exact truth (synthetic scenes only)",

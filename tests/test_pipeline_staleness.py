@@ -543,3 +543,27 @@ def test_old_outputs_parked_by_a_stopped_commit_are_deleted_by_the_next_run(tmp_
     assert run(cfg, "run", "all") == 0
     assert not any(trash.rglob("*"))
     assert (tmp_path / "ws/demo/double/result.txt").read_text() == "value=1\n" * 2
+
+
+def test_a_synthetic_scenes_body_model_file_is_an_input_of_synth(tmp_path):
+    """`synthetic.overrides.body_model` naming a file (or `smpl`: the file in $GST_BODY_DIR)
+    was no input of synth: a swapped SMPL file left the render 'up to date', posed with the
+    old body."""
+    from pipeline.config import load_config
+    from pipeline.registry import load_stages
+    from pipeline.runner import Runner
+
+    body = tmp_path / "body.npz"
+    body.write_bytes(b"first body")
+    cfg = config_with(tmp_path, "synth: {}")
+    cfg.write_text(cfg.read_text().replace("preset: demo", "preset: demo, overrides: "
+                                           "{body_model: body.npz}"))  # fmt: skip
+    config = load_config(cfg)
+    stages = load_stages(config)
+
+    def fingerprint() -> str:
+        return Runner(config, "demo", stages).status_of("synth", {}).fingerprint
+
+    before = fingerprint()
+    body.write_bytes(b"other body")
+    assert fingerprint() != before
