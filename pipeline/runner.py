@@ -103,6 +103,20 @@ def _relative_paths(obj, base: Path | None):
     return obj
 
 
+def _same_numbers(obj):
+    """`obj` with every float of an integer value as that integer (`1.0` as `1`), in lists and
+    mappings too. For the values of untyped mappings (a synthetic scene's `overrides`, a
+    calibration's `options`, extract's `association`), which keep the type the YAML gave: `fps:
+    30` and `fps: 30.0` say the same and must not make every stage stale."""
+    if isinstance(obj, dict):
+        return {k: _same_numbers(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_same_numbers(v) for v in obj]
+    if isinstance(obj, float) and obj.is_integer():
+        return int(obj)
+    return obj
+
+
 def _absolute(value, base: Path, texts: bool = False):
     """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
     against `base`; with `texts` (a param marked `gst.param_types.NAMES_FILE`: a built-in name
@@ -341,12 +355,19 @@ class Runner:
         if not stage.reads_scene:
             return {}
         record = self.scene.model_dump(mode="json", exclude={"params"})
+        for block, key in (("synthetic", "overrides"), ("calibration", "options")):
+            if record.get(block):  # untyped: as YAML typed them
+                record[block][key] = _same_numbers(record[block][key])
         return _relative_paths(record, self.cfg.base_dir)
 
     def _params_record(self, ctx: StageContext) -> dict:
         """The stage's validated params as fingerprints and records keep them (paths relative
         to the config's folder, as `status` compares them)."""
-        return _relative_paths(ctx.params.model_dump(mode="json"), self.cfg.base_dir)
+        record = ctx.params.model_dump(mode="json")
+        # a mapping's values may keep the type the YAML gave (extract's `association: {...:
+        # 1}` against `1.0`); typed fields are already one type
+        record = {k: _same_numbers(v) if isinstance(v, dict) else v for k, v in record.items()}
+        return _relative_paths(record, self.cfg.base_dir)
 
     def context(self, name: str) -> StageContext:
         ctx = StageContext(

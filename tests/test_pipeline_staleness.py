@@ -567,3 +567,33 @@ def test_a_synthetic_scenes_body_model_file_is_an_input_of_synth(tmp_path):
     before = fingerprint()
     body.write_bytes(b"other body")
     assert fingerprint() != before
+
+
+@pytest.mark.parametrize(
+    ("stage", "scene"),
+    [
+        ("source", "{synthetic: {preset: demo, overrides: {rig: {fps: %s}}}}"),
+        ("extract", "{synthetic: {preset: demo}, "
+                    "params: {extract: {association: {merge_radius: %s}}}}"),
+    ],
+)  # fmt: skip
+def test_an_integer_and_the_same_float_in_an_untyped_mapping_are_one_fingerprint(
+    tmp_path, stage, scene
+):
+    """Untyped mappings (a synthetic scene's `overrides`, a calibration's `options`, extract's
+    `association`) keep the type YAML gave: `fps: 30` edited to `fps: 30.0` made every stage
+    that reads the scene stale, training included, with no reason given."""
+    from pipeline.config import load_config
+    from pipeline.registry import load_stages
+    from pipeline.runner import Runner
+
+    own = {"source": '{module: "tests.fake_stages:SOURCE"}'}
+    cfg = config_with(tmp_path, f"{stage}: {own.get(stage, '{}')}")
+    text = cfg.read_text()
+
+    def fingerprint(number: str) -> str:
+        cfg.write_text(text.replace("{synthetic: {preset: demo}}", scene % number))
+        config = load_config(cfg)
+        return Runner(config, "demo", load_stages(config)).status_of(stage, {}).fingerprint
+
+    assert fingerprint("30") == fingerprint("30.0") != fingerprint("31")
