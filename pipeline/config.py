@@ -555,6 +555,13 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> list[str]:
     the key as it is recorded (`stages.S.params.K` as `S.K`)."""
     top_level = set(PipelineConfig.model_fields)
     scenes = raw.get("scenes") if isinstance(raw.get("scenes"), dict) else {}
+    if parts[0] == "scenes" and len(parts) > 2:
+        # a scene's name may hold dots (`take.1`): the longest scene name the key starts with
+        # (`--set scenes.take.1.fps=25` said "no scene 'take'")
+        for end in range(len(parts) - 1, 2, -1):
+            if ".".join(parts[1:end]) in scenes:
+                parts = [parts[0], ".".join(parts[1:end]), *parts[end:]]
+                break
     if parts[0] == "scenes" and len(parts) > 2 and parts[1] not in scenes:
         if parts[2] not in ("synthetic", "videos"):  # a typo'd scene, not a new one
             raise ConfigError(

@@ -736,6 +736,11 @@ class Runner:
         named = set()
         for key, text in self.cfg.overrides.items():
             parts = key.split(".")
+            # a scene's name may hold dots (`take.1`): the longest one the key starts with
+            scene = max((s for s in self.cfg.scenes if key.startswith(f"scenes.{s}.")), key=len,
+                        default=None)  # fmt: skip
+            if scene is not None:
+                parts = ["scenes", scene, *key.removeprefix(f"scenes.{scene}.").split(".")]
             if parts[:3] == ["scenes", self.scene_name, "params"]:
                 if len(parts) > 3:
                     named.add(parts[3])

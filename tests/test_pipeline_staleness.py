@@ -597,3 +597,20 @@ def test_an_integer_and_the_same_float_in_an_untyped_mapping_are_one_fingerprint
         return Runner(config, "demo", load_stages(config)).status_of(stage, {}).fingerprint
 
     assert fingerprint("30") == fingerprint("30.0") != fingerprint("31")
+
+
+def test_a_set_reaches_a_scene_whose_name_holds_a_dot(tmp_path, counter):
+    """A scene may be named `take.1`, but `--set scenes.take.1.fps=25` (or `.params...`) said
+    "no scene 'take'": the key was split at every dot. And a stale upstream stage the --set
+    names is rerun for that scene, not kept."""
+    from pipeline.config import load_config
+
+    cfg = _chain_config(tmp_path)
+    cfg.write_text(cfg.read_text().replace("default_scene: demo", "default_scene: take.1")
+                   .replace("  demo: {synthetic", "  take.1: {synthetic"))  # fmt: skip
+    config = load_config(cfg, ["scenes.take.1.fps=25", "scenes.take.1.params.source.value=5"])
+    assert config.scenes["take.1"].fps == 25 and config.scenes["take.1"].params["source"]
+    assert run(cfg, "run", "all") == 0
+    assert run(cfg, "run", "peek", "--set", "scenes.take.1.params.source.value=7") == 0
+    assert (tmp_path / "ws" / "take.1" / "peek" / "copy.txt").read_text() == "value=7\n"
+    assert counter()[-3:] == ["source", "constant", "peek"]
