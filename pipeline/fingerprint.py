@@ -65,7 +65,16 @@ class HashCache:
             return self.file_digest(path)
         if path.is_dir():
             h = hashlib.sha256()
-            for root, dirs, files in os.walk(path):
+            # into linked folders too (a `masks` folder of links to each camera's: their files
+            # are read through the links, and an edit there left the stage 'up to date'); each
+            # real folder once, so a link to a folder above ends the walk
+            seen: set[str] = set()
+            for root, dirs, files in os.walk(path, followlinks=True):
+                real = os.path.realpath(root)
+                if real in seen:
+                    dirs.clear()
+                    continue
+                seen.add(real)
                 dirs.sort()
                 for name in sorted(files):
                     f = Path(root) / name

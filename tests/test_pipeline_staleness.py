@@ -614,3 +614,21 @@ def test_a_set_reaches_a_scene_whose_name_holds_a_dot(tmp_path, counter):
     assert run(cfg, "run", "peek", "--set", "scenes.take.1.params.source.value=7") == 0
     assert (tmp_path / "ws" / "take.1" / "peek" / "copy.txt").read_text() == "value=7\n"
     assert counter()[-3:] == ["source", "constant", "peek"]
+
+
+def test_a_folder_digest_sees_the_files_of_a_linked_folder_in_it(tmp_path):
+    """The walk did not enter linked folders: a scene's `masks` folder of links to each
+    camera's masks kept its digest when a mask changed, and extract stayed 'up to date'. A link
+    to a folder above it does not loop."""
+    from pipeline.fingerprint import HashCache
+
+    (tmp_path / "cam01").mkdir()
+    mask = tmp_path / "cam01" / "000000.png"
+    mask.write_bytes(b"mask one")
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    (masks / "cam01").symlink_to(tmp_path / "cam01")
+    (masks / "loop").symlink_to(masks)
+    before = HashCache(None).digest(masks)
+    mask.write_bytes(b"mask two")
+    assert HashCache(None).digest(masks) != before
