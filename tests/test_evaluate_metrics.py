@@ -82,7 +82,8 @@ def test_summary_counts_say_how_many_records_each_mean_is_over():
         heldout=np.ones(n, bool), psnr=np.array([20.0, 20, 20, 22]), ssim=np.full(n, 0.8),
         lpips=np.full(n, 0.2), silhouette_iou=np.full(n, 0.5),
         box_psnr=np.array([10.0, nan, nan, nan]), box_ssim=np.full(n, 0.7),
-        box_lpips=np.full(n, 0.3),
+        box_lpips=np.full(n, 0.3), psnr_unoccluded=np.full(n, 21.0),
+        silhouette_iou_unoccluded=np.full(n, 0.6),
     )  # fmt: skip
     held = view_summary(rec, ["c0"], np.full(n, "all", object)).heldout
     assert held["n"] == 4 and held["box_psnr"] == 10.0 and held["n_box_psnr"] == 1
@@ -220,3 +221,31 @@ def test_a_prediction_that_is_not_finite_is_counted_not_fatal(tiny_model, monkey
     pred[1] = float("nan")
     e, pa = per_joint_errors(pred, gt)
     assert torch.isnan(pa[1]).all() and torch.isfinite(pa[[0, 2]]).all()
+
+
+def test_other_peoples_pixels_are_left_out_of_the_unoccluded_view_scores(tiny_model):
+    """A target's mask stops where someone in front starts, so a render of the whole body was
+    scored wrong there (PSNR and IoU); the `_unoccluded` scores leave those pixels out, as
+    training does, and equal the plain ones where nobody covers anyone."""
+    from gst.train.views import resize_images, target_views
+
+    net, task, _ = tiny_model
+    crops = crop_set(n_frames=3, n_cams=3)
+    size, pairs = 48, view_pairs(crops, heldout={2})
+    keep = set(range(len(pairs.inputs)))
+    crops.occluders = torch.zeros(len(crops), crops.crop_size, crops.crop_size)
+    plain = evaluate_views(net, task, crops, pairs, {2}, size=size, keep_images=keep)
+    np.testing.assert_allclose(plain.psnr_unoccluded, plain.psnr, rtol=1e-6)
+    np.testing.assert_allclose(plain.silhouette_iou_unoccluded, plain.silhouette_iou, rtol=1e-6)
+    crops.occluders[:, :, crops.crop_size // 2 :] = 1.0  # someone covers every right half
+    rec = evaluate_views(net, task, crops, pairs, {2}, size=size, keep_images=keep)
+    np.testing.assert_allclose(rec.psnr, plain.psnr, rtol=1e-6)  # the plain scores as they were
+    for k in keep:
+        t = pairs.targets[k : k + 1]
+        _, _, _, mask = target_views(crops, t, size)
+        occ = resize_images(crops.occluders[t][..., None], size)[..., 0]
+        weight = (1 - occ * (1 - mask))[0].numpy().astype(np.float64)  # own pixels always count
+        render, target = (x.astype(np.float64) / 255 for x in rec.images[k])
+        mse = (((render - target) ** 2).mean(-1) * weight).sum() / weight.sum()
+        assert rec.psnr_unoccluded[k] == pytest.approx(10 * math.log10(1 / mse), abs=0.05)
+    assert not np.allclose(rec.psnr_unoccluded, rec.psnr)

@@ -299,3 +299,16 @@ def test_8bit_images_need_their_data_range():
         )
     with pytest.raises(ValueError, match="pred is torch.uint8"):
         masked_bbox_metrics(x8, y8, np.zeros((8, 3)), np.eye(3), np.eye(3), np.zeros(3))
+
+
+def test_silhouette_iou_leaves_the_ignored_pixels_out():
+    from gst.metrics.image import silhouette_iou
+
+    alpha = torch.zeros(1, 4, 4)
+    alpha[0, :, :3] = 1  # 12 pixels drawn
+    mask = torch.zeros(1, 4, 4)
+    mask[0, :, :2] = 1  # 8 seen: column 2 is behind someone else
+    ignore = torch.zeros(1, 4, 4)
+    ignore[0, :, 2:] = 1
+    assert float(silhouette_iou(alpha, mask)) == pytest.approx(8 / 12)
+    assert float(silhouette_iou(alpha, mask, ignore=ignore)) == pytest.approx(1.0)

@@ -26,8 +26,9 @@ from gst.metrics.image import masked_bbox_metrics, points_box_corners, psnr, sil
 from gst.metrics.pose import procrustes_align, vertex_error
 from gst.model.assemble import to_world
 from gst.train.evaluation import ViewPairs
+from gst.train.occlusion import ignored_share, occluder_masks
 from gst.train.steps import GSTTask, predict
-from gst.train.views import CropSet, target_views
+from gst.train.views import CropSet, resize_images, target_views
 
 __all__ = [
     "PoseRecords",
@@ -220,6 +221,10 @@ class ViewRecords:
     box_psnr: np.ndarray
     box_ssim: np.ndarray
     box_lpips: np.ndarray
+    # the same with the target's pixels that another person covers left out (`occluder_masks`:
+    # what is behind them is not known, and training leaves them out too)
+    psnr_unoccluded: np.ndarray
+    silhouette_iou_unoccluded: np.ndarray
     images: dict[int, tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict
     )  # pair -> (render, target)
@@ -235,6 +240,7 @@ def _score_views(
     scene_vertices,
     box_margin: float,
     wanted: list[bool],
+    occluders: torch.Tensor,
 ) -> dict[str, list]:
     """Scores of each (input, target) pair of one batch: per metric a list, and "images" the
     (render, target) uint8 pair of each `wanted` one (None for the others)."""
@@ -263,6 +269,9 @@ def _score_views(
     cols["ssim"] = ssim(rgb, tgt_img).tolist()
     cols["lpips"] = lpips(rgb, tgt_img).tolist() if lpips is not None else [nan] * len(inp)
     cols["iou"] = silhouette_iou(out.alpha[:, 0], mask).tolist()
+    ignored = ignored_share(mask, resize_images(occluders[tgt][..., None], size)[..., 0])
+    cols["psnr_unoccluded"] = psnr(rgb, tgt_img, mask=1 - ignored).tolist()
+    cols["iou_unoccluded"] = silhouette_iou(out.alpha[:, 0], mask, ignore=ignored).tolist()
     row = crops.truth["truth_row"][tgt] if "truth_row" in crops.truth else None
     if sherf_box_kind(crops, scene_vertices) == "mesh":
         corners = np.stack(
@@ -319,9 +328,9 @@ def evaluate_views(
     `keep_images`: pair indices whose (render, target) images to keep, uint8 (size, size, 3)."""
 
     nan = float("nan")
-    cols: dict[str, list] = {
-        k: [] for k in ("psnr", "ssim", "lpips", "iou", "box_psnr", "box_ssim", "box_lpips")
-    }
+    keys = ("psnr", "ssim", "lpips", "iou", "box_psnr", "box_ssim", "box_lpips")
+    cols: dict[str, list] = {k: [] for k in (*keys, "psnr_unoccluded", "iou_unoccluded")}
+    occluders = crops.occluders if crops.occluders is not None else occluder_masks(crops)
     images: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     keep_images = keep_images or set()
     for s in range(0, len(pairs.inputs), batch_size):
@@ -331,7 +340,16 @@ def evaluate_views(
         wanted = [s + j in keep_images for j in range(len(inp)) if ok[j]]
         scored = (
             _score_views(
-                pred, crops, inp[ok], tgt[ok], size, lpips, scene_vertices, box_margin, wanted
+                pred,
+                crops,
+                inp[ok],
+                tgt[ok],
+                size,
+                lpips,
+                scene_vertices,
+                box_margin,
+                wanted,
+                occluders,
             )
             if pred is not None
             else None
@@ -361,5 +379,7 @@ def evaluate_views(
         box_psnr=arr("box_psnr"),
         box_ssim=arr("box_ssim"),
         box_lpips=arr("box_lpips"),
+        psnr_unoccluded=arr("psnr_unoccluded"),
+        silhouette_iou_unoccluded=arr("iou_unoccluded"),
         images=images,
     )

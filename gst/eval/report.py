@@ -14,6 +14,7 @@ import numpy as np
 
 from gst.atomic import atomic_write
 from gst.eval.evaluate import EvalResult
+from gst.eval.summary import VIEW_KEYS
 from gst.train.views import CropSet
 
 __all__ = ["write_report", "side_by_side_image", "write_text", "write_png"]
@@ -227,7 +228,7 @@ def _write_csvs(out: Path, result: EvalResult, crops: CropSet, motions) -> None:
     if result.views is None:
         return
     v = result.views
-    keys = ("psnr", "ssim", "lpips", "silhouette_iou", "box_psnr", "box_ssim", "box_lpips")
+    keys = VIEW_KEYS
     _write_csv(
         out / "per_view.csv",
         ["input_row", "target_row", "input_camera", "target_camera", "heldout", "frame", *keys],
@@ -260,6 +261,14 @@ _HEADLINE = [
     ("SSIM, held-out, SHERF box", "novel_view", "heldout", "box_ssim", 3),
     ("LPIPS, held-out, SHERF box", "novel_view", "heldout", "box_lpips", 3),
     ("silhouette IoU, held-out", "novel_view", "heldout", "silhouette_iou", 3),
+    ("PSNR (dB), held-out, others' pixels left out", "novel_view", "heldout", "psnr_unoccluded", 2),
+    (
+        "silhouette IoU, held-out, others' pixels left out",
+        "novel_view",
+        "heldout",
+        "silhouette_iou_unoccluded",
+        3,
+    ),
     ("PSNR (dB), other training views", "novel_view", "trained_views", "psnr", 2),
 ]
 

@@ -155,7 +155,17 @@ def pose_summary(
     )
 
 
-VIEW_KEYS = ("psnr", "ssim", "lpips", "silhouette_iou", "box_psnr", "box_ssim", "box_lpips")
+VIEW_KEYS = (
+    "psnr",
+    "ssim",
+    "lpips",
+    "silhouette_iou",
+    "box_psnr",
+    "box_ssim",
+    "box_lpips",
+    "psnr_unoccluded",
+    "silhouette_iou_unoccluded",
+)
 
 
 def _view_block(rec: ViewRecords, sel: np.ndarray) -> dict:

@@ -124,10 +124,20 @@ _CORNER_BITS = np.array([[(i >> 0) & 1, (i >> 1) & 1, (i >> 2) & 1] for i in ran
 _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
 
 
-def silhouette_iou(alpha: torch.Tensor, mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+def silhouette_iou(
+    alpha: torch.Tensor,
+    mask: torch.Tensor,
+    threshold: float = 0.5,
+    ignore: torch.Tensor | None = None,
+) -> torch.Tensor:
     """(B, H, W) rendered alpha and target mask -> (B,) IoU of the two silhouettes, each
-    thresholded at `threshold` (0 where both are empty)."""
+    thresholded at `threshold` (0 where both are empty). `ignore` (B, H, W): pixels above
+    `threshold` there count for neither (e.g. another person in front: what is behind is not
+    known)."""
     a, m = alpha > threshold, mask > threshold
+    if ignore is not None:
+        keep = ignore <= threshold
+        a, m = a & keep, m & keep
     inter = (a & m).flatten(1).sum(1).float()
     return inter / (a | m).flatten(1).sum(1).float().clamp_min(1)
 
