@@ -13,6 +13,8 @@ these.
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import os
 import shutil
 import tempfile
@@ -28,6 +30,7 @@ __all__ = [
     "atomic_save_npz",
     "atomic_torch_save",
     "atomic_write",
+    "finite_json",
     "atomic_write_json",
     "atomic_write_text",
     "fsync_dir",
@@ -116,6 +119,23 @@ def atomic_write(path: str | Path, write: Callable[[Path], Any]) -> None:
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def finite_json(value: Any) -> Any:
+    """`value` (dicts, lists, tuples, numbers, numpy's too) with every NaN or infinite number as
+    None, for strict JSON (`allow_nan=False`): json.dumps wrote `NaN`, which jq, JavaScript and
+    most JSON parsers refuse."""
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_json(v) for v in value]
+    if (
+        isinstance(value, numbers.Real)
+        and not isinstance(value, numbers.Integral)
+        and not math.isfinite(value)
+    ):
+        return None
+    return value
 
 
 def atomic_write_json(path: str | Path, data: Any, indent: int | None = 2) -> None:

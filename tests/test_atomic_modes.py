@@ -22,3 +22,16 @@ def test_atomic_files_and_folders_take_the_umask(tmp_path):
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "scene").stat().st_mode) == 0o755
     assert stat.S_IMODE((tmp_path / "file.txt").stat().st_mode) == 0o644
+
+
+def test_finite_json_makes_every_undefined_number_null():
+    import json
+
+    import numpy as np
+
+    from gst.atomic import finite_json
+
+    value = {"a": float("nan"), "b": [1, np.float32("inf"), (2.5, -np.inf)], "c": np.int64(3)}
+    got = finite_json(value)
+    assert got == {"a": None, "b": [1, None, [2.5, None]], "c": 3}
+    json.dumps(got, allow_nan=False, default=int)  # strict JSON now

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gst.atomic import atomic_write
+from gst.atomic import atomic_write, finite_json
 from gst.body.markers import BLAZEPOSE_NAMES
 from gst.body.skeleton import SMPL_JOINT_NAMES, SMPL_PARENTS
 from gst.fuse.fit import PersonFit
@@ -186,18 +186,6 @@ def summarise(
     return s
 
 
-def _finite(value):
-    """NaN and infinity become null: JSON has no spelling for them (json.dumps wrote `NaN`,
-    which jq, JavaScript and most JSON parsers refuse)."""
-    if isinstance(value, float | np.floating) and not np.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    return value
-
-
 def write_report(
     summary: FuseSummary,
     out_dir: Path,
@@ -208,7 +196,7 @@ def write_report(
     out_dir.mkdir(parents=True, exist_ok=True)
     doc = (
         json.dumps(
-            _finite(summary.as_dict()), indent=1, sort_keys=True, default=float, allow_nan=False
+            finite_json(summary.as_dict()), indent=1, sort_keys=True, default=float, allow_nan=False
         )
         + "\n"
     )

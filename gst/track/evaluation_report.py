@@ -7,27 +7,16 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
-from gst.atomic import atomic_write
+from gst.atomic import atomic_write, finite_json
 from gst.track.evaluate import TrackEvaluation
 
 __all__ = ["evaluation_markdown", "write_evaluation_json", "write_evaluation_markdown"]
 
 
-def _finite(value):
-    """NaN and infinity become null: JSON has no spelling for them."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    return value
-
-
 def write_evaluation_json(evaluation: TrackEvaluation, path: str | Path) -> Path:
     """`evaluation` as JSON at `path` (atomic); undefined rates (no truth, no rows) are null."""
     path = Path(path)
-    text = json.dumps(_finite(evaluation.to_dict()), indent=2, allow_nan=False)
+    text = json.dumps(finite_json(evaluation.to_dict()), indent=2, allow_nan=False)
     atomic_write(path, lambda tmp: Path(tmp).write_text(text + "\n"))
     return path
 
