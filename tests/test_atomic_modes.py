@@ -1,5 +1,6 @@
-"""Files and folders written through gst.atomic get the permissions a plain write would give
-(the user's umask), not the 0600 / 0700 of the temporary files they are made as."""
+"""gst.atomic: files and folders written through it get the permissions a plain write would
+give (the user's umask), not the 0600 / 0700 of the temporary files they are made as; its
+strict-JSON helper."""
 
 from __future__ import annotations
 
