@@ -74,3 +74,22 @@ def test_too_little_evidence_keeps_the_network_place():
     np.testing.assert_array_equal(t[:3], 0.0)
     np.testing.assert_allclose(t[3], [0.2, 0.0, 0.0], atol=1e-6)
     assert AlignmentConfig().min_joints == 4
+
+
+def test_a_body_is_aligned_alike_alone_and_in_a_batch():
+    # a body that converges in a few steps beside one that does not: the batch stopped only when
+    # every body had converged, so the first took more (tiny) steps than alone, and a body's
+    # place depended on the batch it was predicted in (batch_size, a group's other crops)
+    rng = np.random.default_rng(1)
+    quick = _body(4.0, rng)
+    lm_quick = _landmarks(quick, np.array([0.1, 0.0, 0.0]))
+    lm_quick[:, :2] += rng.normal(0, 0.5, (33, 2))
+    slow = _body(4.0, rng)
+    lm_slow = _landmarks(slow, np.zeros(3))
+    lm_slow[:, :2] = np.where(np.isnan(lm_slow[:, :2]), np.nan, rng.uniform(50, 200, (33, 2)))
+    both = align_translation(
+        np.stack([quick, slow]), np.stack([K, K]), np.stack([lm_quick, lm_slow])
+    )
+    for i, (joints, lm) in enumerate([(quick, lm_quick), (slow, lm_slow)]):
+        alone = align_translation(joints[None], K[None], lm[None])[0]
+        np.testing.assert_array_equal(both[i], alone)

@@ -57,6 +57,9 @@ def align_translation(
     delta = np.maximum(config.huber_fraction * extent, 2.0)[:, None]  # (b, 1) px
     fx, fy, cx, cy = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 2, None], K[:, 1, 2, None]
     tb = np.zeros((len(X0), 3))
+    # each body stops on its own: a batch that stopped only once all had converged gave a body
+    # other numbers beside a slower one than alone (results depended on the batch's make-up)
+    moving = np.ones(len(X0), bool)
     for _ in range(config.iterations):
         X = X0 + tb[:, None]
         Z = X[..., 2]  # unchanged: the shift is parallel to the image plane
@@ -66,9 +69,10 @@ def align_translation(
         jx, jy = fx / Z, fy / Z  # d(u)/d(tx), d(v)/d(ty); the two axes decouple
         step_x = -(ww * jx * r[..., 0]).sum(1) / np.maximum((ww * jx * jx).sum(1), 1e-12)
         step_y = -(ww * jy * r[..., 1]).sum(1) / np.maximum((ww * jy * jy).sum(1), 1e-12)
-        tb[:, 0] += step_x
-        tb[:, 1] += step_y
-        if max(np.abs(step_x).max(), np.abs(step_y).max()) < 1e-6:
+        tb[:, 0] += np.where(moving, step_x, 0.0)
+        tb[:, 1] += np.where(moving, step_y, 0.0)
+        moving &= np.maximum(np.abs(step_x), np.abs(step_y)) >= 1e-6
+        if not moving.any():
             break
     sane = np.isfinite(tb).all(1)
     t[np.flatnonzero(usable)[sane]] = tb[sane]
