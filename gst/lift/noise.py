@@ -165,6 +165,8 @@ class LandmarkNoise:
         band_gross = np.ones_like(band_sigma)
         for s, state in enumerate((vis, ~vis)):
             pool = state & ~swapped_lm
+            if not (pool & (err <= OUTLIER)).any():  # none in this state (all visible): bands 1
+                continue
             all_med = np.median(err[pool & (err <= OUTLIER)])
             all_gross = (err[pool] > OUTLIER).mean()
             for b in range(len(CONF_BANDS) + 1):
