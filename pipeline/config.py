@@ -603,8 +603,15 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> list[str]:
 def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     """Read, override and validate `pipeline.yaml`. Raises ConfigError with a readable message."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file not found: {path} (pass --config PATH)")
+    if path.is_dir():  # `--config configs/`: the file in it was meant
+        raise ConfigError(
+            f"config file {path} is a folder; pass the pipeline file in it (--config "
+            f"{path / 'pipeline.yaml'})"
+        )
+    if not path.is_file():  # the folder it was looked for in: the user ran from another one
+        raise ConfigError(
+            f"config file not found: {path} (looked for from {Path.cwd()}; pass --config PATH)"
+        )
     try:
         raw = load_yaml(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:

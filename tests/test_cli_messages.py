@@ -1,0 +1,22 @@
+"""What a new user's mistakes on the command line print: the culprit, and what was expected."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_a_missing_config_names_the_folder_it_was_looked_for_in(tmp_path, capsys, monkeypatch):
+    """Run from another folder, "config file not found: pipeline.yaml" did not say where it was
+    looked for; a folder given as --config was "not found" too."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["status"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"config file not found: pipeline.yaml (looked for from {tmp_path};" in err
+    assert main(["status", "--config", str(tmp_path)]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"config file {tmp_path} is a folder" in err
+    assert f"--config {tmp_path / 'pipeline.yaml'}" in err
