@@ -615,7 +615,11 @@ def load_config(path: str | Path, overrides: list[str] = ()) -> PipelineConfig:
     try:
         raw = load_yaml(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from exc
+        # PyYAML names the text it read "<unicode string>": the file is meant
+        text = str(exc).replace('"<unicode string>"', f'"{path}"')
+        if "'\\t'" in text:  # "found character '\t' that cannot start any token"
+            text += "\n(YAML indents with spaces, not tabs: replace the tab)"
+        raise ConfigError(f"{path}: not valid YAML: {text}") from exc
     except (UnicodeDecodeError, OSError) as exc:  # a video or a UTF-16 file given as --config
         raise ConfigError(f"{path}: not a readable UTF-8 YAML file ({exc})") from exc
     if not isinstance(raw, dict):

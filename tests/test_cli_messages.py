@@ -20,3 +20,16 @@ def test_a_missing_config_names_the_folder_it_was_looked_for_in(tmp_path, capsys
     err = " ".join(capsys.readouterr().err.split())
     assert f"config file {tmp_path} is a folder" in err
     assert f"--config {tmp_path / 'pipeline.yaml'}" in err
+
+
+def test_a_yaml_error_names_the_file_and_a_tab_says_to_indent_with_spaces(tmp_path, capsys):
+    """A syntax error was located `in "<unicode string>", line 7`, and a tab got only PyYAML's
+    "found character '\\t' that cannot start any token"."""
+    cfg = tmp_path / "pipeline.yaml"
+    text = (REPO / "pipeline.yaml").read_text()
+    cfg.write_text(text.replace("\n  kind: local", "\n\tkind: local", 1))
+    assert main(["status", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "<unicode string>" not in err
+    assert f'in "{cfg}", line 7, column 1' in " ".join(err.split())
+    assert "YAML indents with spaces, not tabs" in err
