@@ -117,6 +117,14 @@ def _same_numbers(obj):
     return obj
 
 
+def _shown(path: Path) -> str:
+    """`path` as error messages name it: relative to the current folder where it is inside it."""
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)
+
+
 def _absolute(value, base: Path, texts: bool = False):
     """`value` with every relative Path in it (also inside dicts, lists, tuples) made absolute
     against `base`; with `texts` (a param marked `gst.param_types.NAMES_FILE`: a built-in name
@@ -300,7 +308,9 @@ class Runner:
         except ValidationError as exc:
             # Locations as YAML paths of the params block(s), in the file actually loaded, and
             # which of the bad values came from --set.
-            source = self.cfg.source.name if self.cfg.source is not None else "pipeline.yaml"
+            # (its path, not its name alone: `--config other/pipeline.yaml` was blamed on
+            # "pipeline.yaml", the one in the folder run from)
+            source = _shown(self.cfg.source) if self.cfg.source is not None else "pipeline.yaml"
             own = self.scene.params.get(name, {})
             scene_block = f"scenes.{self.scene_name}.params.{name}"
             lines = []

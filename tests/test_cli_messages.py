@@ -33,3 +33,20 @@ def test_a_yaml_error_names_the_file_and_a_tab_says_to_indent_with_spaces(tmp_pa
     assert "<unicode string>" not in err
     assert f'in "{cfg}", line 7, column 1' in " ".join(err.split())
     assert "YAML indents with spaces, not tabs" in err
+
+
+def test_a_bad_stage_value_names_the_config_file_given(tmp_path, capsys, monkeypatch):
+    """Run from the project folder with `--config other/pipeline.yaml`, a stage parameter's error
+    said "pipeline.yaml: scenes.lab.params...", the name of the file in the folder run from."""
+    other = tmp_path / "other"
+    other.mkdir()
+    cfg = other / "pipeline.yaml"
+    text = (REPO / "pipeline.yaml").read_text()
+    cfg.write_text(text.replace("track: {detector: blazepose}", "track: {detector: blazepos}"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["status", "--config", str(cfg), "--scene", "lab"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "error: other/pipeline.yaml: scenes.lab.params.track.detector: Input should be" in err
+    monkeypatch.chdir(REPO)  # outside the folder run from: the whole path
+    assert main(["status", "--config", str(cfg), "--scene", "lab"]) == 2
+    assert f"error: {cfg}: scenes.lab.params.track" in " ".join(capsys.readouterr().err.split())
