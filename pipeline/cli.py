@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import os
 import re
 import sys
@@ -236,13 +237,22 @@ def _tracks_of_another_file(
     return clashes
 
 
+def _did_you_mean(name: str, names) -> str:
+    """' (did you mean 'train'?)' for a typo of one of `names` (`run trian`), else ''."""
+    close = difflib.get_close_matches(name, list(names), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
 def _scenes(cfg: PipelineConfig, requested: list[str] | None) -> list[str]:
     if requested and "all" in requested:
         return list(cfg.scenes)
     if requested:
         unknown = [s for s in requested if s not in cfg.scenes]
         if unknown:
-            raise ConfigError(f"--scene: unknown scene(s) {unknown} (scenes: {sorted(cfg.scenes)})")
+            raise ConfigError(
+                f"--scene: unknown scene(s) {unknown}{_did_you_mean(unknown[0], cfg.scenes)} "
+                f"(scenes: {sorted(cfg.scenes)})"
+            )
         return list(dict.fromkeys(requested))  # `--scene demo --scene demo`: once
     if cfg.default_scene:
         return [cfg.default_scene]
@@ -371,7 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "run":
             if args.stage != "all" and args.stage not in cfg.stages:
                 raise ConfigError(
-                    f"unknown stage '{args.stage}' (stages: {', '.join(cfg.stages)}, or 'all')"
+                    f"unknown stage '{args.stage}'{_did_you_mean(args.stage, cfg.stages)} "
+                    f"(stages: {', '.join(cfg.stages)}, or 'all')"
                 )
             given = [o for o in ("video", "with_gaussians") if getattr(args, o)]
             reads = () if args.stage == "all" else stages[args.stage].cli_options

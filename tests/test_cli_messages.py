@@ -50,3 +50,15 @@ def test_a_bad_stage_value_names_the_config_file_given(tmp_path, capsys, monkeyp
     monkeypatch.chdir(REPO)  # outside the folder run from: the whole path
     assert main(["status", "--config", str(cfg), "--scene", "lab"]) == 2
     assert f"error: {cfg}: scenes.lab.params.track" in " ".join(capsys.readouterr().err.split())
+
+
+def test_a_typo_of_a_stage_or_a_scene_names_the_close_one(capsys, monkeypatch):
+    """`run trian` and `--scene labb` listed every name, the typo'd one among them unmarked."""
+    monkeypatch.chdir(REPO)
+    assert main(["run", "trian", "--dry-run"]) == 2
+    assert "unknown stage 'trian' (did you mean 'train'?) (stages:" in capsys.readouterr().err
+    assert main(["status", "--scene", "labb"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown scene(s) ['labb'] (did you mean 'lab'?) (scenes:" in err
+    assert main(["run", "zzz", "--dry-run"]) == 2  # nothing close: the list alone
+    assert "unknown stage 'zzz' (stages:" in capsys.readouterr().err
