@@ -544,7 +544,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         value = load_yaml(raw)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"--set {text!r}: value is not valid YAML ({exc})") from exc
+        # (PyYAML names the value "<unicode string>")
+        where = str(exc).replace('in "<unicode string>", ', "at ")
+        raise ConfigError(f"--set {text!r}: value is not valid YAML ({where})") from exc
     return parts, value
 
 

@@ -62,3 +62,11 @@ def test_a_typo_of_a_stage_or_a_scene_names_the_close_one(capsys, monkeypatch):
     assert "unknown scene(s) ['labb'] (did you mean 'lab'?) (scenes:" in err
     assert main(["run", "zzz", "--dry-run"]) == 2  # nothing close: the list alone
     assert "unknown stage 'zzz' (stages:" in capsys.readouterr().err
+
+
+def test_a_set_value_that_is_not_yaml_does_not_say_unicode_string(capsys, monkeypatch):
+    monkeypatch.chdir(REPO)
+    assert main(["run", "train", "--set", "train.steps=[1,", "--dry-run"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "--set 'train.steps=[1,': value is not valid YAML" in err
+    assert "<unicode string>" not in err and "at line 1, column 4" in err
