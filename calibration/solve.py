@@ -458,8 +458,10 @@ def finish_calibration(
     # its views with any focal length and principal point: a low RMS and a wrong camera.
     weak = {}
     for n in names:
-        poses = [ba.rig_from_board[d.frame][:3, :3] for d in init.detections[n]
-                 if d.frame in ba.rig_from_board]  # fmt: skip
+        # the views the adjustment used (`observations`): a view the PnP step dropped, of a
+        # frame another camera placed, counted as one of this camera's orientations
+        poses = [ba.rig_from_board[f][:3, :3] for f in init.observations[n]
+                 if f in ba.rig_from_board]  # fmt: skip
         k = distinct_orientations(poses, ORIENTATION_STEP_DEG)
         if k < MIN_ORIENTATIONS:
             weak[n] = k

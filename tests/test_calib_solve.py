@@ -333,6 +333,29 @@ def test_a_camera_that_saw_the_board_one_way_is_named(small_scene):
     assert any(f"camera '{cam}'" in n and "distinct orientation" in n for n in result.notes)
 
 
+def test_views_the_pnp_step_dropped_do_not_count_as_orientations(small_scene):
+    """The orientation count took every detection of the camera whose frame had a board pose,
+    so views the PnP step dropped (corners that are not the board's) counted when other cameras
+    placed those frames: a camera that saw the board one way only passed unflagged."""
+    from dataclasses import replace
+
+    poses = small_scene.world_from_board.copy()
+    poses[1:8] = poses[0]  # the board held still on the floor for 8 frames
+    scene = replace(small_scene, world_from_board=poses)
+    dets = synthetic_detections(scene, noise_px=0.3, seed=2)
+    cam = [n for n, v in dets.items() if any(d.frame == 0 for d in v)][-1]
+    dets[cam] = [d for d in dets[cam] if d.frame < 8]
+    rng = np.random.default_rng(0)
+    w, h = scene.rig[cam].width, scene.rig[cam].height
+    junk: dict[int, FrameDetection] = {}  # tilted frames the others saw, corners anywhere
+    for d in (d for n, v in dets.items() if n != cam for d in v if d.frame >= 8):
+        if d.frame not in junk and len(junk) < 4:
+            junk[d.frame] = FrameDetection(d.frame, d.ids, rng.uniform(0, [w, h], d.corners.shape))
+    dets[cam] += list(junk.values())
+    result = calibrate_from_detections(dets, sizes(scene.rig), scene.board)
+    assert result.weak_cameras == {cam: 1}
+
+
 def test_a_camera_that_saw_the_board_only_slid_and_turned_on_the_floor_is_named(small_scene):
     """Board poses counted as distinct by their whole rotation: a board slid and turned by 15
     degree steps on the floor made eight 'orientations', all in one plane, and the camera
