@@ -106,7 +106,12 @@ class BoardCalibration:
 
     @property
     def rms_px_overall(self) -> float:
-        r = np.concatenate([v for v in self.residuals_px.values() if len(v)])
+        """RMS (px) over every camera's kept residuals; NaN when none is left (np.concatenate
+        of nothing raised)."""
+        parts = [v for v in self.residuals_px.values() if len(v)]
+        if not parts:
+            return float("nan")
+        r = np.concatenate(parts)
         return float(np.sqrt(np.mean(r**2)))
 
 

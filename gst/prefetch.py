@@ -23,9 +23,14 @@ class _Failure:
 
 
 def background(items: Iterator[T], depth: int, name: str = "track-prefetch") -> Iterator[T]:
-    """Yield what `items` yields, produced up to `depth` items ahead in a thread."""
+    """Yield what `items` yields, produced up to `depth` items ahead in a thread. A depth below
+    1 is refused at the call (inside the generator it waited for the first `next`)."""
     if depth < 1:
         raise ValueError(f"depth must be >= 1, got {depth}")
+    return _background(items, depth, name)
+
+
+def _background(items: Iterator[T], depth: int, name: str) -> Iterator[T]:
     q: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
 

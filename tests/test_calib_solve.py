@@ -507,3 +507,15 @@ def test_a_bundle_adjustment_stopped_by_its_iteration_limit_is_said(small_scene,
     )
     assert result.ba_rounds[-1]["termination"] == "NO_CONVERGENCE"
     assert any("stopped without converging (Ceres: NO_CONVERGENCE" in n for n in result.notes)
+
+
+def test_the_overall_rms_of_no_residual_is_nan_not_an_error():
+    """np.concatenate of nothing raised when no camera kept a residual."""
+    from types import SimpleNamespace
+
+    from calibration.solve import BoardCalibration
+
+    empty = SimpleNamespace(residuals_px={"a": np.zeros(0), "b": np.zeros(0)})
+    assert np.isnan(BoardCalibration.rms_px_overall.fget(empty))
+    some = SimpleNamespace(residuals_px={"a": np.array([3.0, 4.0]), "b": np.zeros(0)})
+    assert BoardCalibration.rms_px_overall.fget(some) == pytest.approx(np.sqrt(12.5))

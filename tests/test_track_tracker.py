@@ -235,3 +235,16 @@ def test_skeleton_state_round_trips():
     back.load_state_dict(json.loads(json.dumps(tr.state_dict())))
     assert np.array_equal(back.tracks[0].landmarks, tr.tracks[0].landmarks)
     assert back.state_dict() == tr.state_dict()
+
+
+def test_gates_and_costs_that_are_not_positive_are_refused_by_name():
+    """position_noise_m=0 gave a gate of 0 for two updates at one time stamp: a division by zero
+    (a RuntimeWarning and NaN costs), not an error naming the setting."""
+    import pytest
+
+    for name, value in (("position_noise_m", 0.0), ("hard_gate", 0.0), ("max_cost", -1.0)):
+        with pytest.raises(ValueError, match=rf"{name} must be > 0"):
+            TrackerConfig(**{name: value})
+    with pytest.raises(ValueError, match=r"max_speed_mps must be >= 0"):
+        TrackerConfig(max_speed_mps=-1.0)
+    TrackerConfig(max_speed_mps=0.0)  # a standing camera's people may be held still

@@ -87,6 +87,12 @@ class TrackerConfig:
         for name in ("velocity_weight", "appearance_weight"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        # a gate of 0 at zero elapsed time divided by zero (two updates at one time stamp)
+        for name in ("position_noise_m", "hard_gate", "max_cost"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.max_speed_mps < 0:
+            raise ValueError(f"max_speed_mps must be >= 0, got {self.max_speed_mps}")
 
 
 @dataclass
