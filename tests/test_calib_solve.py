@@ -316,18 +316,25 @@ def test_intrinsics_come_from_the_views_they_report(small_scene, small_detection
     assert abs(got.rms_px - rms) < 1e-6
 
 
-def test_a_camera_that_saw_the_board_one_way_is_named(small_scene):
-    """A camera that only saw the board lying still on the floor (8 views, one orientation)
-    fits them with a wrong focal length and a low RMS: the calibration says so (was: no note,
-    720 mm and 18 degrees off)."""
+def _one_way_camera(small_scene):
+    """(scene, detections, camera): the board held still on the floor for 8 frames, and one
+    camera that saw only those."""
     from dataclasses import replace
 
     poses = small_scene.world_from_board.copy()
-    poses[1:8] = poses[0]  # the board held still on the floor for 8 frames
+    poses[1:8] = poses[0]
     scene = replace(small_scene, world_from_board=poses)
     dets = synthetic_detections(scene, noise_px=0.3, seed=2)
     cam = [n for n, v in dets.items() if any(d.frame == 0 for d in v)][-1]
     dets[cam] = [d for d in dets[cam] if d.frame < 8]
+    return scene, dets, cam
+
+
+def test_a_camera_that_saw_the_board_one_way_is_named(small_scene):
+    """A camera that only saw the board lying still on the floor (8 views, one orientation)
+    fits them with a wrong focal length and a low RMS: the calibration says so (was: no note,
+    720 mm and 18 degrees off)."""
+    scene, dets, cam = _one_way_camera(small_scene)
     result = calibrate_from_detections(dets, sizes(scene.rig), scene.board)
     assert result.weak_cameras == {cam: 1}
     assert any(f"camera '{cam}'" in n and "distinct orientation" in n for n in result.notes)
@@ -337,14 +344,7 @@ def test_views_the_pnp_step_dropped_do_not_count_as_orientations(small_scene):
     """The orientation count took every detection of the camera whose frame had a board pose,
     so views the PnP step dropped (corners that are not the board's) counted when other cameras
     placed those frames: a camera that saw the board one way only passed unflagged."""
-    from dataclasses import replace
-
-    poses = small_scene.world_from_board.copy()
-    poses[1:8] = poses[0]  # the board held still on the floor for 8 frames
-    scene = replace(small_scene, world_from_board=poses)
-    dets = synthetic_detections(scene, noise_px=0.3, seed=2)
-    cam = [n for n, v in dets.items() if any(d.frame == 0 for d in v)][-1]
-    dets[cam] = [d for d in dets[cam] if d.frame < 8]
+    scene, dets, cam = _one_way_camera(small_scene)
     rng = np.random.default_rng(0)
     w, h = scene.rig[cam].width, scene.rig[cam].height
     junk: dict[int, FrameDetection] = {}  # tilted frames the others saw, corners anywhere
