@@ -32,6 +32,13 @@ FIELD_MARGIN = 0.5
 ROUND_TRIP_PX = 0.5
 
 
+def is_pixel_count(value) -> bool:
+    """Whether `value` is an image side in pixels: a whole number (1920 or 1920.0), never a
+    bool, text or 1000.9."""
+    number = isinstance(value, (int, float, np.integer, np.floating))
+    return number and not isinstance(value, (bool, np.bool_)) and float(value).is_integer()
+
+
 class CameraError(ValueError):
     """A camera or rig is malformed; the message names the camera and the field."""
 
@@ -100,10 +107,7 @@ class Camera:
             )
         for side, value in (("width", width), ("height", height)):
             # int() took 1920.7 as 1920 and True as 1: a camera of another size, silently
-            whole = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-                value, (bool, np.bool_)
-            )
-            if not whole or not float(value).is_integer():
+            if not is_pixel_count(value):
                 raise CameraError(
                     f"camera '{name}': {side} is {value!r}, expected a whole number of pixels"
                 )

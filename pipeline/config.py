@@ -550,6 +550,17 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return parts, value
 
 
+def scene_key_parts(parts: list[str], scenes) -> list[str]:
+    """An override key's parts with a scene's name as one part: a name may hold dots (`take.1`),
+    so `scenes.take.1.fps` is the longest scene name the key starts with, then the rest (split
+    at every dot it said "no scene 'take'")."""
+    if parts[0] == "scenes" and len(parts) > 2:
+        for end in range(len(parts) - 1, 2, -1):
+            if ".".join(parts[1:end]) in scenes:
+                return [parts[0], ".".join(parts[1:end]), *parts[end:]]
+    return parts
+
+
 def apply_override(raw: dict, parts: list[str], value: Any) -> list[str]:
     """Apply a parsed override to the raw YAML dict. `stage.k=v` sets stages.stage.params.k;
     keys starting with a top-level section (workspace, executor, scenes, ...) are set directly.
@@ -557,13 +568,7 @@ def apply_override(raw: dict, parts: list[str], value: Any) -> list[str]:
     the key as it is recorded (`stages.S.params.K` as `S.K`)."""
     top_level = set(PipelineConfig.model_fields)
     scenes = raw.get("scenes") if isinstance(raw.get("scenes"), dict) else {}
-    if parts[0] == "scenes" and len(parts) > 2:
-        # a scene's name may hold dots (`take.1`): the longest scene name the key starts with
-        # (`--set scenes.take.1.fps=25` said "no scene 'take'")
-        for end in range(len(parts) - 1, 2, -1):
-            if ".".join(parts[1:end]) in scenes:
-                parts = [parts[0], ".".join(parts[1:end]), *parts[end:]]
-                break
+    parts = scene_key_parts(parts, scenes)
     if parts[0] == "scenes" and len(parts) > 2 and parts[1] not in scenes:
         if parts[2] not in ("synthetic", "videos"):  # a typo'd scene, not a new one
             raise ConfigError(

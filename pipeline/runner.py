@@ -33,6 +33,7 @@ from pipeline.config import (
     PipelineConfig,
     format_error_line,
     parse_override,
+    scene_key_parts,
     validate_strictly,
 )
 from pipeline.dag import topological_order, upstream_closure
@@ -745,12 +746,7 @@ class Runner:
         reads the scene; those were kept stale while the target took the new value)."""
         named = set()
         for key, text in self.cfg.overrides.items():
-            parts = key.split(".")
-            # a scene's name may hold dots (`take.1`): the longest one the key starts with
-            scene = max((s for s in self.cfg.scenes if key.startswith(f"scenes.{s}.")), key=len,
-                        default=None)  # fmt: skip
-            if scene is not None:
-                parts = ["scenes", scene, *key.removeprefix(f"scenes.{scene}.").split(".")]
+            parts = scene_key_parts(key.split("."), self.cfg.scenes)  # `take.1`: one part
             if parts[:3] == ["scenes", self.scene_name, "params"]:
                 if len(parts) > 3:
                     named.add(parts[3])

@@ -161,6 +161,9 @@ def _folds(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> bool:
     return not len(reached) or bent[0] <= reached[0]
 
 
+FOV_MIN_DEG, FOV_MAX_DEG = 5.0, 150.0  # a camera's horizontal field, either way given
+
+
 def make_rig(
     kind: str,
     n_cameras: int | None = None,
@@ -201,15 +204,19 @@ def make_rig(
         # the field fov_deg is held to: 1 mm on the default sensor was a 174 degree pinhole,
         # 1e-6 mm a focal length of 2e-6 px, infinity (or NaN) a camera matrix of inf
         fov = float(np.degrees(2 * np.arctan(sensor_width_mm / 2 / focal_mm)))
-        if not 5.0 <= fov <= 150.0:
+        if not FOV_MIN_DEG <= fov <= FOV_MAX_DEG:
             raise ValueError(
                 f"rig '{kind}': focal_mm {focal_mm} on a {sensor_width_mm} mm sensor is a "
-                f"{fov:.1f} degree field of view; it must be within [5, 150] as fov_deg's"
+                f"{fov:.1f} degree field of view; it must be within [{FOV_MIN_DEG:g}, "
+                f"{FOV_MAX_DEG:g}] as fov_deg's"
             )
     else:
         fov = d.fov_deg if fov_deg is None else float(fov_deg)
-        if not 5.0 <= fov <= 150.0:
-            raise ValueError(f"rig '{kind}': fov_deg must be within [5, 150], got {fov}")
+        if not FOV_MIN_DEG <= fov <= FOV_MAX_DEG:
+            raise ValueError(
+                f"rig '{kind}': fov_deg must be within [{FOV_MIN_DEG:g}, {FOV_MAX_DEG:g}], "
+                f"got {fov}"
+            )
         f = width / 2 / np.tan(np.deg2rad(fov) / 2)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x416]))
     names, centres = _positions(kind, n, rng)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.camera import Camera, CameraError, Rig
+from calibration.camera import Camera, CameraError, Rig, is_pixel_count
 from gst.atomic import atomic_write, atomic_write_text  # noqa: F401  (the formats' writers)
 
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
@@ -216,8 +216,7 @@ def require_text(data: dict, key: str, path: Path, where: str = "") -> str:
 
 def pixel_count(value, path: Path, what: str) -> int:
     """An image side in pixels: a whole number (1920 or 1920.0), never a bool or 1000.9."""
-    is_number = isinstance(value, (int, float, np.integer, np.floating))
-    if isinstance(value, (bool, np.bool_)) or not is_number or not float(value).is_integer():
+    if not is_pixel_count(value):
         shown = value.item() if isinstance(value, np.generic) else value
         raise RigFormatError(f"{path}: {what} is {shown!r}, expected a whole number of pixels")
     return int(value)
