@@ -235,3 +235,19 @@ def test_the_outlier_distance_is_a_fuse_setting():
     assert FuseSettings().fuse_options().triangulation.outlier_px == 12
     with pytest.raises(ValidationError):
         FuseSettings(outlier_px=0)
+
+
+def test_a_camera_with_a_singular_intrinsic_matrix_spoils_no_point():
+    """One view's K finite but not invertible (a zero focal length from a broken crop): that
+    view is no evidence, as a NaN camera is (was: numpy's bare 'Singular matrix' for the batch,
+    naming neither the camera nor the point)."""
+    rng = np.random.default_rng(8)
+    K, Rt = _rig(4, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (5, 3))
+    Kb, Rtb, uv = (np.array(a) for a in _observe(K, Rt, X))
+    Kb[:, 3] = 0.0
+    out = triangulate_points(Kb, Rtb, uv, np.ones((5, 4)))
+    np.testing.assert_allclose(out.points, X, atol=1e-7)
+    assert not out.used[:, 3].any() and (out.n_views == 3).all()
+    assert np.isnan(out.errors[:, 3]).all()
+

@@ -246,6 +246,10 @@ def triangulate_points(
     scale = np.ones((N, C)) if px_scale is None else np.asarray(px_scale, np.float64)
     # A view whose camera is not numbers is no evidence, and must not turn the others' sums NaN.
     calibrated = np.isfinite(K).all((-1, -2)) & np.isfinite(Rt).all((-1, -2))
+    # nor is one whose K has no inverse (a zero focal length): no ray, and K^-1 below would fail
+    # the whole batch with a bare 'Singular matrix'
+    det_K = np.linalg.det(np.where(calibrated[..., None, None], K, np.eye(3)))
+    calibrated &= np.abs(det_K) > 1e-12
     seen = np.isfinite(uv).all(-1) & (conf >= o.min_confidence) & calibrated
     uv0 = np.where(seen[..., None], uv, 0.0)
     # DLT rows in normalised coordinates (K^-1 [u, v, 1] against [R | t]): well conditioned.
