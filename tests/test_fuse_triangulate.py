@@ -251,3 +251,18 @@ def test_a_camera_with_a_singular_intrinsic_matrix_spoils_no_point():
     assert not out.used[:, 3].any() and (out.n_views == 3).all()
     assert np.isnan(out.errors[:, 3]).all()
 
+
+def test_zero_confidence_views_are_not_used_even_with_min_confidence_zero():
+    """min_confidence 0: a view with no confidence (projected, not read) weighs nothing in the
+    DLT and the refinement, so it is not a view used (was: counted in used / n_views and
+    halving the point's confidence)."""
+    rng = np.random.default_rng(9)
+    K, Rt = _rig(4, rng)
+    X = rng.uniform([-1, -1, 0], [1, 1, 2], (3, 3))
+    Kb, Rtb, uv = _observe(K, Rt, X)
+    conf = np.array([[0.9, 0.9, 0.9, 0.0]] * 3)
+    out = triangulate_points(Kb, Rtb, uv, conf, options=TriangulationOptions(min_confidence=0))
+    ref = triangulate_points(Kb, Rtb, uv, conf)
+    np.testing.assert_allclose(out.points, X, atol=1e-7)
+    assert (out.n_views == 3).all() and not out.used[:, 3].any()
+    np.testing.assert_allclose(out.confidence, ref.confidence)

@@ -250,7 +250,9 @@ def triangulate_points(
     # the whole batch with a bare 'Singular matrix'
     det_K = np.linalg.det(np.where(calibrated[..., None, None], K, np.eye(3)))
     calibrated &= np.abs(det_K) > 1e-12
-    seen = np.isfinite(uv).all(-1) & (conf >= o.min_confidence) & calibrated
+    # a zero-confidence view weighs nothing in the DLT and the refinement: not seen, whatever
+    # min_confidence (at 0 it counted as used and diluted the point's confidence)
+    seen = np.isfinite(uv).all(-1) & (conf >= o.min_confidence) & (conf > 0) & calibrated
     uv0 = np.where(seen[..., None], uv, 0.0)
     # DLT rows in normalised coordinates (K^-1 [u, v, 1] against [R | t]): well conditioned.
     safe_K = np.where(calibrated[..., None, None], K, np.eye(3))
