@@ -105,7 +105,9 @@ class PersonObservations:
         """Some view in some frame shows READABLE_LANDMARKS landmarks above READABLE_CONFIDENCE:
         something to fit. People whose every landmark was projected from a skeleton, or read
         with no confidence, are not."""
-        confident = ((self.confidence > READABLE_CONFIDENCE).sum(-1) * self.seen).max(initial=0)
+        # a landmark with NaN pixels is no reading, whatever its confidence
+        read = (self.confidence > READABLE_CONFIDENCE) & np.isfinite(self.uv).all(-1)
+        confident = (read.sum(-1) * self.seen).max(initial=0)
         return bool(confident >= READABLE_LANDMARKS)
 
     def select(self, keep: np.ndarray) -> PersonObservations:

@@ -129,17 +129,21 @@ def _single_view_start(
     T = len(obs.frames)
     R = np.tile(np.eye(3), (T, 1, 1))
     c = np.zeros((T, 3))
-    last = None
     for i in range(T):
-        confident = (obs.confidence[i] > READABLE_CONFIDENCE).sum(-1) * (obs.rows[i] >= 0)  # (C,)
+        # a landmark with NaN pixels is no reading, whatever its confidence
+        read = (obs.confidence[i] > READABLE_CONFIDENCE) & np.isfinite(obs.uv[i]).all(-1)
+        confident = read.sum(-1) * (obs.rows[i] >= 0)  # (C,)
         k = int(confident.argmax())  # the view that sees most of the body
         if confident[k] < READABLE_LANDMARKS:
             continue
         K, Rt = obs.K[i, k], obs.Rt[i, k]
-        uv, w = obs.uv[i, k], obs.confidence[i, k] > READABLE_CONFIDENCE
+        uv, w = obs.uv[i, k], read[k]
         height_px = np.ptp(uv[w, 1]) + 1e-6
         depth = K[1, 1] * 1.7 / height_px
-        hips = uv[[23, 24]].mean(0)
+        hips = uv[[23, 24]][np.isfinite(uv[[23, 24]]).all(-1)]
+        # hips without pixels: the readable landmarks' centre (a NaN start in every frame left
+        # nothing for `nearest` below, which failed with a bare argmin error)
+        hips = hips.mean(0) if len(hips) else uv[w].mean(0)
         ray = np.linalg.solve(K, np.r_[hips, 1.0]) * depth  # camera frame
         Rc, tc = Rt[:, :3], Rt[:, 3]
         c[i] = Rc.T @ (ray - tc)
@@ -149,14 +153,14 @@ def _single_view_start(
         fwd /= np.linalg.norm(fwd) + 1e-9
         left = np.cross(up, fwd)
         R[i] = np.stack([left, up, fwd], 1)  # columns: model x, y, z in world
-        last = i
-    if last is None:
-        raise ValueError(
-            f"person {obs.person_id}: no view with at least {READABLE_LANDMARKS} landmarks above "
-            f"confidence {READABLE_CONFIDENCE} (PersonObservations.readable is False)"
-        )
     seen = np.any(obs.rows >= 0, 1) & np.isfinite(c).all(1) & (np.abs(c).sum(1) > 0)
     good = np.flatnonzero(seen)
+    if not len(good):
+        raise ValueError(
+            f"person {obs.person_id}: no view with at least {READABLE_LANDMARKS} landmarks above "
+            f"confidence {READABLE_CONFIDENCE} that places a start (PersonObservations.readable "
+            "is False, or the view's camera is not usable)"
+        )
     near = nearest(good, T)
     return R[near], c[near]
 
