@@ -340,6 +340,26 @@ def fit_gst(
             },
         }
 
+    def resume_check(ckpt: dict) -> str | None:
+        """Why last.pt is not this run's (None when it is): weights that trained on cameras or
+        frames this run holds out (a resume continued them silently, and the checkpoint then
+        recorded this run's held-out data), another mode, or another Gaussian layout."""
+        had, now = ckpt.get("extra"), extra()["extra"]
+        had = had if isinstance(had, dict) else {}
+        for key, what in (
+            ("heldout_cameras", "held-out cameras"),
+            ("first_heldout_frame", "first held-out frame"),
+            ("mode", "mode"),
+        ):
+            if had.get(key) != now[key]:
+                return f"it was trained with {what} {had.get(key)!r}, this run has {now[key]!r}"
+        for key, layout in (("vertex_ids", vertex_ids), ("group_index", group_index)):
+            saved = ckpt.get(key)
+            mine = torch.as_tensor(np.asarray(layout), dtype=torch.long)
+            if not isinstance(saved, torch.Tensor) or not torch.equal(saved.long(), mine):
+                return f"its Gaussians sit on other body vertices ({key} differ)"
+        return None
+
     # The kept checkpoint is the last one, unless a validation set of its own was given
     # (`val_crops`: the pretraining's unseen world, chosen on by MPJPE). Choosing on the held-out
     # cameras (even in training frames) would make the novel-view scores of those cameras a
@@ -360,6 +380,7 @@ def fit_gst(
         param_groups=None
         if opts.body_lr is None
         else gaussian_parameter_groups(model, cfg.lr, opts.body_lr),
+        resume_check=resume_check,
     )
     model.eval()
     before = validate(model)

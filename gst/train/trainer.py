@@ -169,6 +169,7 @@ class Trainer:
         progress: Callable | None = None,
         checkpoint_extra: Callable[[], dict] | None = None,
         param_groups: list[dict] | None = None,
+        resume_check: Callable[[dict], str | None] | None = None,
     ):
         self.cfg, self.out_dir = cfg, Path(out_dir)
         self.device = resolve_device(cfg.device)
@@ -197,6 +198,9 @@ class Trainer:
         self.seconds_before = 0.0  # training time of the runs this one resumes
         self.progress = progress
         self.checkpoint_extra = checkpoint_extra or (lambda: {})
+        # what a caller checks in last.pt before resuming it (returns why it cannot, or None):
+        # the caller's own fields (held-out data, layout) that the weights' shapes do not show
+        self.resume_check = resume_check
         self.history: list[dict] = []
         self._t0: float | None = None
 
@@ -274,6 +278,12 @@ class Trainer:
             ckpt = sent[0]
         if ckpt is None:
             return False
+        why = self.resume_check(ckpt) if self.resume_check is not None else None
+        if why:
+            raise ValueError(
+                f"{path}: {why}, so this run cannot resume it (delete it to start afresh, or "
+                "train into another folder)"
+            )
         st = ckpt["trainer"]
         # checked before anything changes: torch's own check comes after the weights are loaded
         mismatch = _optimizer_mismatch(st.get("optimizer"), self.optimizer)
