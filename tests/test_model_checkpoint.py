@@ -197,3 +197,20 @@ def test_reuse_and_train_take_the_same_body_file_at_another_path(tmp_path, caplo
     assert train(str(moved))[0] is not None
     with pytest.raises(ValueError, match=r"cannot be loaded here to compare"):
         reuse(str(tmp_path / "new.npz"), "d")  # another name: not taken on trust
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda c: c["config"].pop("decoder"), r"config lacks 'decoder'"),
+        (lambda c: c["config"].update(colour="red"), r"config .*unexpected keyword .*'colour'"),
+        (lambda c: c["config"].update(vit=[1, 2]), r"config .*'vit'"),
+    ],
+)
+def test_a_config_that_is_no_network_config_is_named(saved, tmp_path, change, message):
+    """A config without 'decoder' was reported as "the checkpoint's weights do not fit its
+    network ('decoder')": the weights blamed, the config's missing key a bare word."""
+    path = _variant(saved, tmp_path, "config", change)
+    with pytest.raises(ValueError, match=message) as info:
+        network_from_checkpoint(load_checkpoint(path), path)
+    assert str(path) in str(info.value) and "weights" not in str(info.value)

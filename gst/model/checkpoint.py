@@ -38,6 +38,10 @@ def config_to_dict(cfg: GSTConfig) -> dict:
 
 
 def config_from_dict(d: dict) -> GSTConfig:
+    for key in ("vit", "decoder"):  # named here: a bare KeyError said only 'decoder'
+        if not isinstance(d.get(key), dict):
+            got = "nothing" if key not in d else type(d[key]).__name__
+            raise ValueError(f"config lacks '{key}' (a dict of its settings; got {got})")
     vit = dict(d["vit"])
     vit["image_size"] = tuple(vit["image_size"])
     return GSTConfig(**{**d, "vit": ViTConfig(**vit), "decoder": DecoderConfig(**d["decoder"])})
@@ -174,8 +178,14 @@ def network_from_checkpoint(ckpt: GSTCheckpoint, source: str | Path | None = Non
     """The network a checkpoint holds; `source` names the file in errors (weights that do not
     fit the network, or that are not finite)."""
     where = f"{source}: " if source is not None else ""
+    try:  # the config apart from the weights: its faults were blamed on the weights
+        cfg = config_from_dict(ckpt.config)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{where}the checkpoint's config does not describe a GST network ({exc})"
+        ) from None
     try:
-        net = GSTNetwork(config_from_dict(ckpt.config), ckpt.group_index.numpy())
+        net = GSTNetwork(cfg, ckpt.group_index.numpy())
         net.load_state_dict(ckpt.model)
     except (KeyError, RuntimeError, TypeError, ValueError) as exc:
         raise ValueError(
