@@ -73,3 +73,27 @@ def test_every_heldout_camera_is_a_novel_view_target():
     one = novel_view_pairs(crops, {2}, max_pairs=64)
     assert set(crops.camera[one.targets].tolist()) == {2}
     assert set(crops.camera[one.inputs].tolist()) <= {0, 1, 3}
+
+
+def test_groups_never_mix_frames_whatever_the_person_ids():
+    """Person id -1 (a person the association left unnamed) in frame 1 had the key of the
+    highest id in frame 0: one 'multi-view' group rendered one frame's person into another
+    frame's views (and a held-out frame's crop could join a training frame's group)."""
+    from gst.train.views import CropSet
+
+    n = 4
+    crops = CropSet(
+        images=torch.zeros(n, 8, 8, 3, dtype=torch.uint8),
+        masks=torch.zeros(n, 8, 8),
+        K=torch.eye(3).repeat(n, 1, 1),
+        R=torch.eye(3).repeat(n, 1, 1),
+        t=torch.zeros(n, 3),
+        camera=torch.tensor([0, 1, 0, 1]),
+        frame=torch.tensor([0, 0, 1, 1]),
+        person=torch.tensor([0, 0, -1, 0]),
+        camera_names=["c0", "c1"],
+    )
+    for g in crops.groups(min_views=1):
+        assert len(set(crops.frame[g].tolist())) == 1, g
+        assert len(set(crops.person[g].tolist())) == 1, g
+    assert sorted(len(g) for g in crops.groups(min_views=1)) == [1, 1, 2]

@@ -65,7 +65,11 @@ class CropSet:
         if cameras is not None:
             keep = torch.isin(self.camera, torch.tensor(sorted(cameras)))
         idx = torch.nonzero(keep)[:, 0]
-        key = self.frame[idx] * (int(self.person.max()) + 1 if len(self) else 1) + self.person[idx]
+        # ids counted from the lowest: with frame * (max + 1) + id, id -1 in frame f had the key
+        # of id max in frame f - 1 (two frames in one group); the order is the same as before
+        low = int(self.person.min()) if len(self) else 0
+        span = int(self.person.max()) - low + 1 if len(self) else 1
+        key = self.frame[idx] * span + (self.person[idx] - low)
         order = torch.argsort(key, stable=True)
         idx, key = idx[order], key[order]
         _, counts = torch.unique_consecutive(key, return_counts=True)
