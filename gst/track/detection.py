@@ -84,6 +84,11 @@ def _read_columns(path: Path) -> dict[str, list]:
                 )
             cols: dict[str, list] = {name.strip(): [] for name in reader.fieldnames}
             for row in reader:
+                if None in row:  # DictReader keeps extra fields under the key None
+                    raise SuppliedBoxesError(
+                        f"{path}: row {reader.line_num}: more fields than the header "
+                        f"{reader.fieldnames} (a trailing comma?)"
+                    )
                 for name, value in row.items():
                     cols[name.strip()].append(value)
             return cols
@@ -122,7 +127,8 @@ class SuppliedBoxes:
                 continue
             where = f"{path}: row {i + 2 if path.suffix.lower() == '.csv' else i}"
             try:
-                frame = int(cols["frame"][i])
+                raw_frame = cols["frame"][i]
+                frame = int(raw_frame)
                 box = [float(cols[k][i]) for k in ("x0", "y0", "x1", "y1")]
                 score = (
                     float(cols["score"][i])
@@ -133,8 +139,14 @@ class SuppliedBoxes:
                 ident = int(ident) if ident not in ("", None) else None
             except (TypeError, ValueError) as exc:
                 raise SuppliedBoxesError(f"{where}: non-numeric value ({exc})") from exc
+            # int() truncates a float (a Parquet float column): 2.7 became frame 2
+            if isinstance(raw_frame, float) and raw_frame != frame:
+                raise SuppliedBoxesError(f"{where}: frame must be a whole number, got {raw_frame}")
             if frame < 0:
                 raise SuppliedBoxesError(f"{where}: frame must be >= 0, got {frame}")
+            # a NaN score failed `score >= min_score` in the loop: the box vanished uncounted
+            if not np.isfinite(score):
+                raise SuppliedBoxesError(f"{where}: score must be finite, got {score}")
             try:
                 boxes[frame].append(Detection(np.array(box), score, id_hint=ident))
             except ValueError as exc:
