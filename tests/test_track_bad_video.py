@@ -380,3 +380,19 @@ def test_negative_frame_indices_and_rates_are_refused_by_name(tmp_path):
     for fps in (0.0, float("nan"), -25.0):
         with pytest.raises(ValueError, match=f"{video.name}: fps must be > 0 frames/s"):
             list(iter_frames(video, fps=fps))
+
+
+def test_the_background_detector_takes_grey_and_bgra_frames_and_refuses_16_bit(tmp_path):
+    """Grey and BGRA frames failed deep in OpenCV ("scn == m.cols"); a uint16 frame gave one
+    box over the whole frame: the frame is converted or refused as the person model's is."""
+    _, _, video = crossing_clip(tmp_path, 20)
+    detector = StaticCameraDetector(video)
+    frame = next(f for f in iter_frames(video) if f.index == 10).image
+    want = [d.box.tolist() for d in detector.detect(frame, 10)]
+    assert want
+    bgra = cv2.cvtColor(frame, cv2.COLOR_BGR2BGRA)
+    assert [d.box.tolist() for d in detector.detect(bgra, 10)] == want
+    grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    assert detector.detect(grey, 10) and detector.detect(grey[..., None], 10)
+    with pytest.raises(ValueError, match="uint8"):
+        detector.detect(frame.astype(np.uint16) * 256, 10)

@@ -22,6 +22,7 @@ from calibration.camera import fit_to_frames
 from gst.data.background import BackgroundConfig, build_background, sample_indices
 from gst.data.ground import ground_seed
 from gst.data.masks import MaskConfig, clean_mask
+from gst.detect.blazepose import as_bgr_frame
 from gst.track.detection import Detection
 from gst.video import END_SLACK_FRAMES, probe_video, read_frames
 
@@ -115,6 +116,9 @@ class StaticCameraDetector:
         return seed is not None and self.height_range[0] <= seed.height <= self.height_range[1]
 
     def detect(self, frame_bgr: np.ndarray, frame_index: int) -> list[Detection]:
+        # the background is BGR uint8: grey/BGRA frames failed in OpenCV, uint16 ones read as
+        # all foreground (one box over the whole frame)
+        frame_bgr = as_bgr_frame(frame_bgr)
         h, w = frame_bgr.shape[:2]
         small = cv2.resize(frame_bgr, self.work_size, interpolation=cv2.INTER_AREA)
         labels, blobs = clean_mask(self.model.foreground(small), self.mask_config)
