@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from gst.track.person_detector import to_frame
+from tests.real_capture import NEEDS_MODELS
 
 
 def _blob(h: int, w: int, x: float, y: float, sigma: float = 6.0) -> np.ndarray:
@@ -39,3 +40,13 @@ def test_a_point_read_on_the_resized_frame_comes_back_where_it_is(w, h):
     assert lm.dtype == np.float32 and lm[0, 2] == 1.0  # the rest of the landmark kept
     assert (box[:2] < [x, y]).all() and (box[2:] > [x, y]).all()
     assert (box >= 0).all() and box[2] <= w and box[3] <= h
+
+
+@NEEDS_MODELS
+@pytest.mark.parametrize("shape", [(1, 2000, 3), (2000, 1, 3)])
+def test_a_strip_frame_is_resized_to_at_least_a_pixel(shape):
+    """A frame one pixel thin and longer than `max_side` was resized to 0 pixels across, and
+    OpenCV's resize failed ("inv_scale_x > 0")."""
+    from gst.track.person_detector import PersonModelDetector
+
+    assert PersonModelDetector().detect(np.full(shape, 100, np.uint8), 0) == []

@@ -491,7 +491,12 @@ class PersonModelDetector:
         small = (
             frame_bgr
             if s == 1.0
-            else cv2.resize(frame_bgr, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+            # at least a pixel: a 1-pixel strip rounded to 0 across and failed in OpenCV
+            else cv2.resize(
+                frame_bgr,
+                (max(1, round(w * s)), max(1, round(h * s))),
+                interpolation=cv2.INTER_AREA,
+            )
         )
         sh = small.shape[0]
         self._doubted.clear()
