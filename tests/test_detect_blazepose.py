@@ -573,6 +573,18 @@ def test_crop_landmarks_refuse_what_is_not_square_colour_crops(shape):
     assert len(detect_crop_landmarks(np.zeros((0,)), model=object(), rgb=True)) == 0  # no crops
 
 
+@pytest.mark.parametrize("masks_shape", [(1, 8, 8), (2, 4, 4), (2, 8, 8, 3)])
+def test_crop_landmarks_refuse_masks_that_do_not_fit_the_crops(masks_shape):
+    """Masks fewer than the crops, or of another size, failed mid-run with numpy's IndexError or
+    broadcast error, naming neither; the check comes before the model is loaded."""
+    from gst.detect.crops import detect_crop_landmarks
+
+    with pytest.raises(ValueError, match=r"masks must be \(2, 8, 8\)"):
+        detect_crop_landmarks(
+            np.zeros((2, 8, 8, 3), np.uint8), None, rgb=True, masks=np.ones(masks_shape, bool)
+        )
+
+
 def _refine_reference(raw, heatmap, kernel=7, min_confidence=0.5):
     """MediaPipe's RefineLandmarksFromHeatmapCalculator, one landmark at a time (landmarks whose
     cell lies outside the heatmap left alone, as `refine_from_heatmaps` documents)."""

@@ -107,6 +107,11 @@ def detect_crop_landmarks(
             "(grey or RGBA crops read a channel as colour)"
         )
     n, size = len(images), images.shape[1]
+    # one (S, S) mask per crop: fewer, or another size, failed mid-run with numpy's message
+    if masks is not None and np.shape(masks) != (n, size, size):
+        raise ValueError(
+            f"masks must be ({n}, {size}, {size}), one per crop, got shape {np.shape(masks)}"
+        )
     model = model or BlazePose(threads=1)
     roi = whole_crop_roi(size)
     lms = np.zeros((n, N_BODY_LANDMARKS, 3), np.float32)
