@@ -292,3 +292,14 @@ def test_a_crop_that_shows_the_other_person_gets_no_target(scene):
     assert (after.weight[hit] == 0).all()
     keep = ~sel & (before.weight > 0)
     assert torch.equal(after.weight[keep], before.weight[keep])
+
+
+def test_bodies_that_name_no_joint_with_landmarks_are_refused_not_nan(scene):
+    """Joints without a landmark take the mean weight of the joints with one: bodies whose file
+    names no joint a landmark observes (no 'joint_landmarks' in its 'gst.fused' metadata, or
+    joint names it does not map) gave every joint the mean of an empty slice, NaN, and so a NaN
+    distillation loss."""
+    _, _, _, crops, fused = scene
+    blind = dataclasses.replace(fused, has_landmarks=np.zeros(24, bool))
+    with pytest.raises(ValueError, match="no joint.*landmark.*joint_landmarks"):
+        distill_targets(crops, blind, torch.ones(len(crops), dtype=torch.bool))

@@ -112,6 +112,12 @@ def distill_targets(
     views = bodies.joint_views[r].astype(np.float64)
     gap = bodies.gap_filled[r]
     has_lm = bodies.has_landmarks
+    if not has_lm.any():  # the joints without one take the others' mean: of nothing, NaN
+        raise ValueError(
+            "the fused bodies name no joint that a landmark observes (their 'gst.fused' "
+            "metadata has no 'joint_landmarks' for their 'gst.joint_names'), so their joints "
+            "have no weights; run the fuse stage again, or train.distill=false"
+        )
     w = np.where(gap, gap_weight, np.clip(views / full_views, 0, 1))
     lm_mean = w[:, has_lm].mean(1)
     w = np.where(has_lm[None], w, lm_mean[:, None])  # joints no landmark observes
