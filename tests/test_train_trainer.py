@@ -231,3 +231,23 @@ def test_no_runs_rank_draws_another_runs_stream():
     fresh = {rank_seed(0, r, step) for r in range(3) for step in range(50)}
     assert len(fresh) == 150 and not fresh & set(seeds.values())
     assert 0 <= rank_seed(-3, 2) < 2**63  # torch takes it
+
+
+@pytest.mark.parametrize("key", ["scheduler", "generator", "torch_rng"])
+def test_a_last_checkpoint_missing_trainer_state_is_refused_before_loading(tmp_path, key):
+    """A last.pt whose trainer state lacked the scheduler, generator or RNG state failed with a
+    bare KeyError after the model's weights and the optimiser were loaded (half resumed)."""
+    cfg = TrainConfig(steps=2, batch_size=4, lr=1e-2, warmup_steps=1, ckpt_every=1, log_every=1)
+    model, step, sample = make_problem()
+    trainer = Trainer(model, step, sample, cfg, tmp_path)
+    trainer.fit()
+    ckpt = torch.load(trainer.last_path, weights_only=True)
+    del ckpt["trainer"][key]
+    torch.save(ckpt, trainer.last_path)
+    fresh, step, sample = make_problem()
+    before = {k: v.clone() for k, v in fresh.state_dict().items()}
+    again = Trainer(fresh, step, sample, cfg, tmp_path)
+    with pytest.raises(ValueError, match=rf"last\.pt: .*'{key}'.*delete it to start afresh"):
+        again.resume()
+    assert again.step == 0 and not again.optimizer.state_dict()["state"]
+    assert all(torch.equal(v, before[k]) for k, v in fresh.state_dict().items())

@@ -285,6 +285,19 @@ class Trainer:
                 "train into another folder)"
             )
         st = ckpt["trainer"]
+        # checked before anything changes: a missing entry failed with a bare KeyError after
+        # the weights and the optimiser were loaded
+        lacking = [
+            k
+            for k in ("scheduler", "generator", "torch_rng", "step", "bad_steps", "best_value")
+            if not isinstance(st, dict) or k not in st
+        ]
+        if lacking:
+            raise ValueError(
+                f"{path}: its trainer state lacks {', '.join(repr(k) for k in lacking)}, so "
+                "this run cannot resume it (delete it to start afresh, or train into another "
+                "folder)"
+            )
         # checked before anything changes: torch's own check comes after the weights are loaded
         mismatch = _optimizer_mismatch(st.get("optimizer"), self.optimizer)
         if mismatch:
