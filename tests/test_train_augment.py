@@ -163,3 +163,32 @@ def test_concat_carries_occluders_and_anchors_or_refuses_to_drop_them():
     b.anchors = None
     with pytest.raises(ValueError, match="anchors"):
         concat_crop_sets([a, b], ["w0", "w1"])
+
+
+@pytest.mark.parametrize(
+    "name, row_shape",
+    [("landmarks", (33, 3)), ("keypoints", (24, 3)), ("anchors", (3,)), ("occluders", (8, 8))],
+)
+def test_optional_fields_with_another_row_count_are_refused(name, row_shape):
+    """Only the required fields' rows were counted: landmarks, keypoints, anchors, occluders or
+    distillation targets of another crop count were taken, at construction or assigned later,
+    and training indexed them by crop row (rows of other crops, or an IndexError mid-run)."""
+    import dataclasses
+
+    from gst.train.distill_targets import DistillTargets
+
+    a = _set(1, ["c0", "c1"])
+    n = len(a)
+    setattr(a, name, torch.zeros(n, *row_shape))  # the right count, and None, are taken
+    setattr(a, name, None)
+    a.distill = DistillTargets.empty(n)
+    for wrong in (torch.zeros(n + 1, *row_shape), torch.zeros(n - 1, *row_shape)):
+        with pytest.raises(ValueError, match=rf"CropSet\.{name} has {len(wrong)} rows.* {n}"):
+            setattr(a, name, wrong)
+        with pytest.raises(ValueError, match=rf"CropSet\.{name} has {len(wrong)} rows"):
+            dataclasses.replace(a, **{name: wrong})
+    assert getattr(a, name) is None
+    with pytest.raises(ValueError, match=rf"CropSet\.distill has {n + 1} rows"):
+        a.distill = DistillTargets.empty(n + 1)
+    with pytest.raises(ValueError, match=rf"CropSet\.distill has {n - 1} rows"):
+        dataclasses.replace(a, distill=DistillTargets.empty(n - 1))

@@ -18,6 +18,9 @@ import torch.nn.functional as F
 
 from gst.train.distill_targets import DistillTargets
 
+# optional fields with one row per crop (None: absent)
+_PER_CROP_OPTIONAL = ("occluders", "anchors", "keypoints", "landmarks", "distill")
+
 
 @dataclass
 class CropSet:
@@ -51,6 +54,19 @@ class CropSet:
                 raise ValueError(
                     f"CropSet.{name} has {getattr(self, name).shape[0]} rows, images have {n}"
                 )
+        for name in _PER_CROP_OPTIONAL:
+            self._check_rows(name, getattr(self, name))
+
+    def __setattr__(self, name: str, value) -> None:
+        # the optional per-crop fields are mostly attached after construction (prepare_crops):
+        # one of another crop count was indexed by crop row in training, silently
+        if name in _PER_CROP_OPTIONAL and "images" in self.__dict__:
+            self._check_rows(name, value)
+        super().__setattr__(name, value)
+
+    def _check_rows(self, name: str, value) -> None:
+        if value is not None and len(value) != len(self):
+            raise ValueError(f"CropSet.{name} has {len(value)} rows, images have {len(self)}")
 
     @property
     def crop_size(self) -> int:
