@@ -192,3 +192,13 @@ def test_optional_fields_with_another_row_count_are_refused(name, row_shape):
         a.distill = DistillTargets.empty(n + 1)
     with pytest.raises(ValueError, match=rf"CropSet\.distill has {n - 1} rows"):
         dataclasses.replace(a, distill=DistillTargets.empty(n - 1))
+
+
+def test_concatenating_no_distillation_targets_is_a_clear_error():
+    """DistillTargets.concat([]) failed with a bare IndexError (parts[0])."""
+    from gst.train.distill_targets import DistillTargets
+
+    with pytest.raises(ValueError, match="at least one"):
+        DistillTargets.concat([])
+    both = DistillTargets.concat([DistillTargets.empty(2), DistillTargets.empty(3)])
+    assert len(both) == 5

@@ -47,6 +47,8 @@ class DistillTargets:
 
     @staticmethod
     def concat(parts: list[DistillTargets | None]) -> DistillTargets:
+        if not parts:  # (parts[0] below: a bare IndexError)
+            raise ValueError("DistillTargets.concat needs at least one part, got none")
         if any(p is None for p in parts):
             raise ValueError("concat_crop_sets: some crop sets have distill targets, others not")
         return DistillTargets(
