@@ -156,6 +156,36 @@ def test_hmr2_import_maps_keys_and_reports_unmatched():
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_hmr2_weights_that_are_not_finite_are_refused_before_loading(value):
+    """GST checkpoints with NaN or infinite weights are refused naming the weight; imported
+    HMR2 weights were loaded as they were, and training failed at its first batch."""
+    cfg = replace(get_preset("tiny"), num_groups=26)
+    net = GSTNetwork(cfg, groups())
+    shapes = hmr2_key_shapes(
+        vit_dim=cfg.vit.dim,
+        depth=cfg.vit.depth,
+        grid=cfg.vit.grid,
+        head_dim=cfg.decoder.dim,
+        head_depth=cfg.decoder.depth,
+        heads=cfg.decoder.heads,
+        dim_head=cfg.decoder.dim_head,
+        mlp=cfg.decoder.mlp_dim,
+    )
+    gen = torch.Generator().manual_seed(0)
+    state = {k: torch.randn(s, generator=gen) for k, s in shapes.items()}
+    state["smpl_head.decpose.weight"][0, 0] = value
+    state["discriminator.pose.0.weight"] = torch.full((2, 2), float("nan"))  # not imported
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    with pytest.raises(
+        ValueError, match=r"HMR2 import.*'smpl_head\.decpose\.weight' is not finite"
+    ):
+        import_hmr2(net, state)
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+    state["smpl_head.decpose.weight"][0, 0] = 0.0
+    assert len(import_hmr2(net, state).loaded) == len(shapes)
+
+
 @pytest.fixture(scope="module")
 def tiny():
     torch.manual_seed(0)

@@ -213,8 +213,16 @@ def _first_non_finite(net: GSTNetwork) -> tuple[str, torch.Tensor] | None:
         if isinstance(module, ReprojectionRefiner)
         for buf in module.BODY_BUFFERS
     }
-    for key, t in net.state_dict().items():
-        if key in unset or not t.dtype.is_floating_point:
+    return first_non_finite(net.state_dict(), skip=unset)
+
+
+def first_non_finite(
+    state: dict[str, torch.Tensor], skip: set[str] | frozenset[str] = frozenset()
+) -> tuple[str, torch.Tensor] | None:
+    """The first floating-point tensor of `state` (keys in `skip` left out) holding NaN or
+    infinity, with its key; None when all are finite."""
+    for key, t in state.items():
+        if key in skip or not t.dtype.is_floating_point:
             continue
         if not bool(torch.isfinite(t).all()):
             return key, t

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from gst.model.checkpoint import load_refusal
+from gst.model.checkpoint import first_non_finite, load_refusal
 
 _PREFIXES = ("backbone.", "smpl_head.")
 
@@ -107,6 +107,15 @@ def import_hmr2(
             + ("" if head_loaded else " and none of the SMPL head's (smpl_head.*) loaded")
             + f". Keys in the file look like {report.unmatched_checkpoint_keys[:3]}: HMR2's are "
             "backbone.* and smpl_head.* (strip another prefix, e.g. 'model.', before importing)"
+        )
+    bad = first_non_finite(updates)  # as GST checkpoints are checked (network_from_checkpoint)
+    if bad is not None:
+        key, t = bad
+        name = "the given state dict" if isinstance(source, dict) else str(source)
+        raise ValueError(
+            f"HMR2 import from {name}: the weight '{key}' is not finite "
+            f"({int(t.isnan().sum())} NaN, {int(t.isinf().sum())} infinite of {t.numel()} "
+            "values): the file is damaged; download it again"
         )
     network.load_state_dict(updates, strict=False)
     return report
