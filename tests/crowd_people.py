@@ -93,3 +93,17 @@ def instances(
         out[cam.name] = [found[i][1] for i in order]
         truth[cam.name] = [found[i][0] for i in order]
     return out, truth
+
+
+def walker_observations(n_frames: int = 5, n_cams: int = 5):
+    """`PersonObservations` of one person walking, seen by `n_cams` synthetic cameras in
+    full-image pixels (identity crops), confidence 0.9 everywhere."""
+    from gst.fuse.observations import PersonObservations
+
+    cams = list(rig("dome", n_cams, seed=1))
+    T, C = n_frames, len(cams)
+    uv = np.stack([[c.project(person(0.02 * t, 0.0)) for c in cams] for t in range(T)])
+    K = np.broadcast_to(np.stack([c.K for c in cams]), (T, C, 3, 3)).copy()
+    Rt = np.broadcast_to(np.stack([np.c_[c.R, c.t] for c in cams]), (T, C, 3, 4)).copy()
+    conf, scale = np.full((T, C, N_LANDMARKS), 0.9), np.ones((T, C))
+    return PersonObservations(1, np.arange(T), uv, conf, K, Rt, scale, np.zeros((T, C), np.int64))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from crowd_people import walker_observations
 
 from gst.body import load_body_model
 from gst.fuse.regroup import regroup_people
@@ -95,3 +96,18 @@ def test_a_dropped_view_keeps_its_landmarks_as_read(monkeypatch):
     monkeypatch.setattr(rg, "view_consensus", lambda obs, o: (q, rep))
     regroup_people([p], rg.RegroupOptions(consensus=options))
     assert np.allclose(q.uv[0, 0], uv[0, 0]) and np.allclose(q.confidence[0, 0], conf[0, 0])
+
+
+def test_a_landmark_without_pixels_does_not_drop_its_view():
+    """A landmark with NaN pixels but a confidence made the view's size NaN (`_extent`), so the
+    view matched no skeleton and was dropped from its own person."""
+    p = walker_observations()
+    p.uv[2, 1, 30] = np.nan
+    out, rep = regroup_people([p])
+    assert rep.tracks == 1 and (out[0].rows >= 0).all()
+
+
+@pytest.mark.parametrize("fps", [0.0, -30.0, float("nan")])
+def test_a_frame_rate_that_is_no_rate_is_refused(fps):
+    with pytest.raises(ValueError, match="fps"):
+        regroup_people([walker_observations()], fps=fps)

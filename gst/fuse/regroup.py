@@ -79,7 +79,9 @@ def _median_errors(obs: PersonObservations, t: int, X: np.ndarray, min_conf: flo
 
 
 def _extent(obs: PersonObservations, t: int, min_conf: float) -> np.ndarray:
-    ok = obs.confidence[t] >= min_conf
+    # a landmark without pixels is no reading, whatever its confidence (its NaN made the
+    # view's size NaN: the view then matched no skeleton and was dropped)
+    ok = (obs.confidence[t] >= min_conf) & np.isfinite(obs.uv[t]).all(-1)
     lo = np.where(ok[..., None], obs.uv[t], np.inf).min(-2)
     hi = np.where(ok[..., None], obs.uv[t], -np.inf).max(-2)
     size = (hi - lo).max(-1) * obs.px_scale[t]
@@ -92,6 +94,8 @@ def regroup_people(
     """The module's steps on `people` (one per extraction id) of a capture at `fps` (the frame
     numbers are video frames)."""
     o = options or RegroupOptions()
+    if not (np.isfinite(fps) and fps > 0):  # the gates are per second: 0 divided, NaN broke round
+        raise ValueError(f"regroup_people needs a frame rate fps > 0, got {fps}")
     jump_per_frame, max_gap = o.jump_mps / fps, round(o.max_gap_s * fps)
     if not people:
         return [], RegroupReport(0, 0, 0, {})
