@@ -3,9 +3,12 @@ its legs' left and right exchanged is put right, and clean views are left alone.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
+from crowd_people import walker_observations
 
 from gst.body import load_body_model
 from gst.fuse.consensus import (
@@ -132,3 +135,20 @@ def test_an_even_split_between_two_people_follows_the_frames_around_it(capture):
     assert not rep.dropped[[0, 1, 3, 4]].any()
     # without the vote the even split is decided by the errors alone: here for the other person
     assert without.dropped[2].tolist() == [False, True, False, True, False, True]
+
+
+@pytest.mark.parametrize("collapse", ["pixels", "scale"])
+def test_a_view_of_no_size_is_dropped_without_numpy_warnings(collapse):
+    """A view whose landmarks all lie on one pixel (or whose crop scale is 0) has a size and so
+    an agreement limit of 0: its error over that limit was computed for every hypothesis
+    (divide by zero / invalid value) although only agreeing views' are used."""
+    p = walker_observations()
+    if collapse == "pixels":
+        p.uv[1, 2] = 100.0
+    else:
+        p.px_scale[1, 2] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, rep = view_consensus(p, ConsensusOptions())
+    assert rep.dropped[1].tolist() == [False, False, True, False, False]
+    assert not rep.dropped[[0, 2, 3, 4]].any()

@@ -146,7 +146,9 @@ def view_consensus(
     err, _ = _view_errors(obs, Xh, uv, conf, o.min_confidence)  # (T, H, C)
     limit = o.agree * _extent_px(obs, conf)  # (T, C)
     agree = (err < limit[:, None]) & seen[:, None]
-    score = agree.sum(-1) - np.nansum(np.where(agree, err / limit[:, None], 0), -1) / (C + 1)
+    with np.errstate(divide="ignore", invalid="ignore"):  # limit 0 (a view of no size): no
+        # view agrees there, and only agreeing views' err / limit is used
+        score = agree.sum(-1) - np.nansum(np.where(agree, err / limit[:, None], 0), -1) / (C + 1)
     score = np.where(ok_pair, score, -np.inf)
     best = score.argmax(1)
     if o.temporal_weight > 0 and T >= 3:
