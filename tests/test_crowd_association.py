@@ -403,3 +403,18 @@ def test_a_person_one_camera_sees_keeps_their_id_through_a_missed_frame():
             if truth[cam][k] == 1:
                 ids_of_single.append(pid)
     assert len(ids_of_single) == 15 and len(set(ids_of_single)) == 1
+
+
+@pytest.mark.parametrize("box", [(0.0, 0.0, np.inf, np.inf), (0.0, 0.0, 10.0, np.nan)])
+def test_a_box_with_nan_or_inf_is_no_box(box):
+    """A box with an inf side gave a person an infinite size, so every skeleton fit them with
+    error 0 (the two people's views in that camera were exchanged); one with a NaN side took
+    the other side's length as their size (10 px: they fit nobody and fell apart)."""
+    people = [person(0, 0, 0.4), person(0.3, 0, 2.5)]
+    found, truth = instances(RIG, people, noise_px=1.5, seed=2)
+    cam = RIG.names[0]
+    found[cam] = [PersonInstance.create(i.landmarks, box) for i in found[cam]]
+    assert all(np.isnan(i.box).all() and np.isnan(i.scale) for i in found[cam])
+    m = match_frame(found, RIG)
+    assert consistent(m, found) and pure(m, truth)
+    assert len(m.groups) == 2 and all(cam in g.views for g in m.groups)

@@ -85,6 +85,10 @@ class PersonInstance:
         b = np.asarray(box, dtype=np.float64).reshape(-1)
         if b.shape != (4,):
             raise InstanceError(f"{where}: box has {b.size} values, expected 4 (x0, y0, x1, y1)")
+        if not np.all(np.isfinite(b)):
+            # a box with a NaN or inf is no box (all NaN: the size comes from the landmarks); an
+            # inf side made every skeleton fit the instance, a NaN one a size of the other side
+            b = np.full(4, np.nan)
         if mask is not None and np.ndim(mask) != 2:
             raise InstanceError(f"{where}: mask must be a 2D image, got shape {np.shape(mask)}")
         s = float(score)
