@@ -411,3 +411,37 @@ def test_a_person_whose_skeleton_slid_off_them_is_not_painted_out(paint):
         assert painted < 0.02
     else:
         assert painted > 0.1  # 0.19 measured
+
+
+def test_masks_that_do_not_pair_with_the_instances_are_refused_naming_the_camera():
+    """masks[camera][i] is instance i's mask: a list shorter than the camera's instances was an
+    IndexError from deep in `process` (the single-view person's mask), naming nothing."""
+    people = _scene(1)[0]
+    found, _ = instances(RIG, people, noise_px=1.0, seed=0, cameras={2: [RIG.names[1]]})
+    fg = {c.name: _foreground(c, people) for c in RIG}
+    masks = {
+        c: [skeleton_support(i.landmarks, fg[c].shape, 6) for i in lst] for c, lst in found.items()
+    }
+    masks[RIG.names[1]] = masks[RIG.names[1]][:1]
+    with pytest.raises(ValueError, match=f"frame 4, camera {RIG.names[1]}: 1 masks for 3"):
+        CrowdTracker(RIG, 1 / 30, CrowdConfig(refine=False)).process(4, found, fg, masks=masks)
+
+
+def test_a_model_answer_whose_presence_is_nan_is_no_view(monkeypatch):
+    """The landmark model's presence gate (`min_presence`) let a NaN presence through."""
+    real = _fake_model
+
+    def nan_presence(frames, calls):
+        segment = real(frames, calls)
+
+        def answer(*args):
+            lm, _, prob = segment(*args)
+            return lm, float("nan"), prob
+
+        return answer
+
+    monkeypatch.setitem(globals(), "_fake_model", nan_presence)
+    outs, calls = _run(refine=True, hide=(RIG.names[3], 0))
+    assert calls["n"] > 0
+    sources = {v.source for out, _, _ in outs for p in out.people for v in p.views.values()}
+    assert "refined" not in sources and "detected" in sources

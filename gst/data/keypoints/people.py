@@ -285,6 +285,13 @@ class CrowdTracker:
         (BGR, work resolution) and `backgrounds` (the empty scene, same size) are needed to
         refine; `masks[camera][i]` is instance i's own mask (used for single-view people)."""
         cfg = self.config
+        for n, ms in (masks or {}).items():
+            # masks pair with instances by index: a short list was an IndexError deep below
+            if ms is not None and n in instances and len(ms) != len(instances[n]):
+                raise ValueError(
+                    f"frame {frame}, camera {n}: {len(ms)} masks for {len(instances[n])} "
+                    "instances (masks[camera][i] is instance i's mask, None for none)"
+                )
         priors = self.ids.predict(frame)
         match = match_frame(instances, list(self.cams.values()), cfg.match, [s for _, s in priors])
         cands = [_Candidate(g.skeleton, False, g) for g in match.groups if g.skeleton is not None]
@@ -616,7 +623,7 @@ class CrowdTracker:
         if got is None:
             return None
         lm, presence, prob_window = got
-        if presence < cfg.min_presence:
+        if not presence >= cfg.min_presence:  # a NaN presence is no answer either
             return None
         prob = np.zeros(img.shape[:2], np.float32)
         prob[y0:y1, x0:x1] = prob_window
