@@ -418,3 +418,15 @@ def test_a_box_with_nan_or_inf_is_no_box(box):
     m = match_frame(found, RIG)
     assert consistent(m, found) and pure(m, truth)
     assert len(m.groups) == 2 and all(cam in g.views for g in m.groups)
+
+
+@pytest.mark.parametrize(
+    "field", ["max_speed", "slack", "max_gap", "coast", "velocity_time", "min_front"]
+)
+def test_a_setting_that_is_nan_is_refused(field):
+    """TrackerConfig's checks (`max_speed <= 0`, `coast < 0`...) are False for NaN, which went
+    through: a NaN speed gate or velocity time matched nobody, a new id every frame; a NaN
+    min_front never found a pair behind a camera impossible."""
+    cls = MatchConfig if field == "min_front" else TrackerConfig
+    with pytest.raises(AssociationError, match=field):
+        cls(**{field: float("nan")})

@@ -134,6 +134,8 @@ class MatchConfig:
             raise AssociationError(
                 f"MatchConfig.min_confidence must be in [0, 1), got {self.min_confidence}"
             )
+        if not 0 <= self.min_front <= 1:  # NaN too: it never found a pair impossible
+            raise AssociationError(f"MatchConfig.min_front must be in [0, 1], got {self.min_front}")
         if self.min_shared < 2:
             raise AssociationError(f"MatchConfig.min_shared must be >= 2, got {self.min_shared}")
 

@@ -69,13 +69,14 @@ class TrackerConfig:
             raise AssociationError(
                 f"TrackerConfig.frame_stride must be >= 1, got {self.frame_stride}"
             )
-        if self.max_speed <= 0 or self.slack < 0 or self.max_gap < 0:
+        # written as `not ok` so that NaN, for which every comparison is False, is refused too
+        if not (self.max_speed > 0 and self.slack >= 0 and self.max_gap >= 0):
             raise AssociationError(
                 "TrackerConfig needs max_speed > 0, slack >= 0 and max_gap >= 0, got "
                 f"{self.max_speed}, {self.slack}, {self.max_gap}"
             )
-        if (self.coast is not None and self.coast < 0) or (
-            self.velocity_time is not None and self.velocity_time <= 0
+        if (self.coast is not None and not self.coast >= 0) or (
+            self.velocity_time is not None and not self.velocity_time > 0
         ):
             raise AssociationError(
                 "TrackerConfig needs coast >= 0 and velocity_time > 0 (or None), got "
