@@ -67,3 +67,17 @@ def test_ankle_height_waits_for_four_ankles_and_takes_the_median():
     nan = np.full((33, 3), np.nan)
     h.add(nan)  # nothing seen: nothing added
     assert h.value == pytest.approx(0.08)
+
+
+def test_no_guess_straight_below_a_camera():
+    """A camera looking straight down at someone's ankles: no upright plane through them faces
+    it, and the guess was a skeleton of NaN only (not None), which `CrowdTracker` then looked
+    for in every camera as a person standing apart."""
+    from calibration.camera import Camera
+
+    R = np.diag([1.0, -1.0, -1.0])  # looking down the world's -z
+    K = [[400, 0, 240], [0, 400, 180], [0, 0, 1]]
+    top = Camera.create("top", K, [], R, -R @ [0, 0, 5.0], 480, 360)
+    lm = np.c_[top.project(person(0.0, 0.0)), np.ones(33)]
+    lm[list(ANKLES), :2] = [[240.0, 175.0], [240.0, 185.0]]  # their mean: the principal point
+    assert standing_skeleton(top, PersonInstance.create(lm), UP, 0.08, 0.3) is None

@@ -44,7 +44,8 @@ def standing_skeleton(
 ) -> np.ndarray | None:
     """(33, 3) world landmarks of a person seen in `cam` alone, read as standing with their
     ankles at `ankle_height` (NaN where a landmark is under `min_confidence`); None when their
-    ankles are not seen or their ray does not come down to that height in front of the camera."""
+    ankles are not seen, their ray does not come down to that height in front of the camera, or
+    they stand straight below it."""
     up = np.asarray(up, np.float64)
     lm = instance.landmarks
     seen = lm[:, 2] >= min_confidence
@@ -62,7 +63,10 @@ def standing_skeleton(
     stand = c + s * feet
     # the upright plane through the ankles, facing the camera
     normal = (stand - c) - ((stand - c) @ up) * up
-    normal /= max(float(np.linalg.norm(normal)), 1e-9)
+    across = float(np.linalg.norm(normal))
+    if across < 1e-9:
+        return None  # straight below the camera: no upright plane faces it (all NaN before)
+    normal /= across
     rays = viewing_rays(cam, lm[:, :2])
     along = rays @ normal
     t = np.where(along > 1e-6, ((stand - c) @ normal) / np.where(along > 1e-6, along, 1), np.nan)
