@@ -430,3 +430,9 @@ def test_a_setting_that_is_nan_is_refused(field):
     cls = MatchConfig if field == "min_front" else TrackerConfig
     with pytest.raises(AssociationError, match=field):
         cls(**{field: float("nan")})
+
+
+def test_a_prior_of_another_shape_is_refused_naming_it():
+    found, _ = instances(RIG5, [person(0, 0)], noise_px=1.0, seed=1)
+    with pytest.raises(AssociationError, match=r"prior 1 has shape \(17, 3\)"):
+        match_frame(found, RIG5, priors=[person(0, 0), np.zeros((17, 3))])

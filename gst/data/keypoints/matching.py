@@ -366,8 +366,13 @@ def match_frame(
     # cheap pair triangulated from its two views. A proposal fixes some instances (the pair's).
     fixed: list[dict[str, tuple[int, bool]]] = []
     skel, rank = [], []
-    for prior in priors:
-        body = np.asarray(prior, np.float64).reshape(N_LANDMARKS, 3)[_BODY]
+    for i, prior in enumerate(priors):
+        prior = np.asarray(prior, np.float64)
+        if prior.size != N_LANDMARKS * 3:  # reshape's own error named neither prior nor shape
+            raise AssociationError(
+                f"prior {i} has shape {prior.shape}, expected ({N_LANDMARKS}, 3) world landmarks"
+            )
+        body = prior.reshape(N_LANDMARKS, 3)[_BODY]
         if np.count_nonzero(np.all(np.isfinite(body), axis=1)) >= config.min_shared:
             fixed.append({})
             skel.append(body)
