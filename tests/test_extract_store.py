@@ -543,6 +543,9 @@ def test_a_boolean_row_mask_selects_its_true_rows(tmp_path):
     with pytest.raises(IndexError, match=r"rows must be in \[0, 4\)"):
         write_subset(store, [-1], tmp_path / "bad.h5")
     assert not (tmp_path / "bad.h5").exists()  # refused before anything was written
+    with pytest.raises(StoreError, match="over the store it is taken from"):
+        write_subset(store, mask, path)  # deleted the store before reading it
+    assert CropStore(path).read(np.arange(4)).frame.tolist() == [0, 0, 1, 1]
 
 
 def test_store_writer_refuses_what_it_cannot_keep(tmp_path):

@@ -799,6 +799,9 @@ def write_subset(store: CropStore, rows, out: Path | str, chunk: int = 256) -> C
     (the rig teacher without held-out cameras and frames: gst.lift.teacher)."""
     rows = store._rows(rows)  # checked before anything is written
     out = Path(out)
+    # the old store and its index are deleted before the copy is read from it
+    if out.resolve() == Path(store.path).resolve():
+        raise StoreError(f"{out}: a subset cannot be written over the store it is taken from")
     settings, extra = {}, {}
     for k, v in store.attrs.items():
         if k.startswith("setting."):
