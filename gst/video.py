@@ -344,6 +344,13 @@ def frame_range(
     info: VideoInfo, start_s: float | None = None, end_s: float | None = None
 ) -> tuple[int, int | None]:
     """[first, end) frame indices covering times [start_s, end_s); end is None for 'to the end'."""
+    for name, value in (("start", start_s), ("end", end_s)):
+        # math.ceil raised a bare "cannot convert float NaN/infinity to integer"
+        if value is not None and not math.isfinite(value):
+            raise ValueError(
+                f"{info.path}: time range {name} must be a finite number of seconds or None "
+                f"(to the {'start' if name == 'start' else 'end'} of the video), got {value}"
+            )
     eps = 1e-9
     first = 0 if start_s is None else max(0, math.ceil(start_s * info.fps - eps))
     end = None if end_s is None else max(0, math.ceil(end_s * info.fps - eps))

@@ -133,6 +133,11 @@ def test_frame_range_validation(video):
     assert frame_range(info, 1.0, 100.0) == (10, N)
     with pytest.raises(ValueError, match="must be after start"):
         frame_range(info, 2.0, 1.0)
+    # math.ceil's bare "cannot convert float NaN to integer" named neither the video nor the bound
+    with pytest.raises(ValueError, match="start must be a finite number of seconds.*got nan"):
+        frame_range(info, float("nan"), None)
+    with pytest.raises(ValueError, match="end must be a finite number of seconds.*got inf"):
+        frame_range(info, None, float("inf"))
     with pytest.raises(ValueError, match="stride must be >= 1"):
         iter_frames(video, stride=0)
 
