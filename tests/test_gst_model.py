@@ -112,7 +112,8 @@ def test_huge_preset_matches_hmr2_layout_exactly():
     assert net.num_query_tokens == 5 * 26 + 1
 
 
-def test_hmr2_import_maps_keys_and_reports_unmatched():
+def _tiny_net_and_hmr2_state():
+    """The tiny network, HMR2's key shapes at its size, and random HMR2-style weights."""
     cfg = replace(get_preset("tiny"), num_groups=26)
     net = GSTNetwork(cfg, groups())
     shapes = hmr2_key_shapes(
@@ -126,7 +127,11 @@ def test_hmr2_import_maps_keys_and_reports_unmatched():
         mlp=cfg.decoder.mlp_dim,
     )
     gen = torch.Generator().manual_seed(0)
-    state = {k: torch.randn(s, generator=gen) for k, s in shapes.items()}
+    return net, shapes, {k: torch.randn(s, generator=gen) for k, s in shapes.items()}
+
+
+def test_hmr2_import_maps_keys_and_reports_unmatched():
+    net, shapes, state = _tiny_net_and_hmr2_state()
     state["smpl.body_pose"] = torch.zeros(1, 69)
     state["discriminator.pose.0.weight"] = torch.zeros(2, 2)
     report = import_hmr2(net, state)
@@ -160,20 +165,7 @@ def test_hmr2_import_maps_keys_and_reports_unmatched():
 def test_hmr2_weights_that_are_not_finite_are_refused_before_loading(value):
     """GST checkpoints with NaN or infinite weights are refused naming the weight; imported
     HMR2 weights were loaded as they were, and training failed at its first batch."""
-    cfg = replace(get_preset("tiny"), num_groups=26)
-    net = GSTNetwork(cfg, groups())
-    shapes = hmr2_key_shapes(
-        vit_dim=cfg.vit.dim,
-        depth=cfg.vit.depth,
-        grid=cfg.vit.grid,
-        head_dim=cfg.decoder.dim,
-        head_depth=cfg.decoder.depth,
-        heads=cfg.decoder.heads,
-        dim_head=cfg.decoder.dim_head,
-        mlp=cfg.decoder.mlp_dim,
-    )
-    gen = torch.Generator().manual_seed(0)
-    state = {k: torch.randn(s, generator=gen) for k, s in shapes.items()}
+    net, shapes, state = _tiny_net_and_hmr2_state()
     state["smpl_head.decpose.weight"][0, 0] = value
     state["discriminator.pose.0.weight"] = torch.full((2, 2), float("nan"))  # not imported
     before = {k: v.clone() for k, v in net.state_dict().items()}
