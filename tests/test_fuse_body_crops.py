@@ -409,3 +409,28 @@ def test_rounds_stop_where_the_cut_agrees_with_the_extraction(
     assert not (tmp_path / ".fused.rounds").exists()
     assert result.crops.agreement() > 0.9  # every crop paired with the extraction's
     _check_crops(CropStore(crops), cap, truth)
+
+
+def test_a_body_whose_fit_failed_in_a_frame_gets_no_crop_there(scene, tmp_path):
+    """A fit that diverged leaves NaN parameters in a row of the bodies file: the body model
+    refused the whole frame's batch ("transl contains NaN or Inf (batch items [0])", naming no
+    person, frame or file) and the cut stopped. The row is a person not fitted in that frame:
+    no crop there, the other person's crops and the person's other frames as before."""
+    tmp, cap, truth, videos, plates = scene
+    fits = [_truth_fit(cap, k) for k in range(2)]
+    fits[0].transl[0] = np.nan  # person 1, frame 0
+    write_bodies(
+        tmp_path / "bodies.parquet", fits, [joint_evidence(f, None) for f in fits], fps=30.0,
+        camera_names=cap.rig.names, model={"body_model": "anny"}, settings={},
+        settings_sha256="0" * 64, stats={},
+    )  # fmt: skip
+    out = tmp_path / "crops.h5"
+    report = recut_crops(tmp / "crops.h5", cap.rig, videos, tmp_path / "bodies.parquet", out,
+                         plates=plates)  # fmt: skip
+    store = CropStore(out)
+    frame, person = store.read_column("frame"), store.read_column("person_id")
+    got = {(int(f), int(p)) for f, p in zip(frame, person, strict=True)}
+    assert (0, 1) not in got and {(1, 1), (0, 2), (1, 2)} <= got
+    assert report.unposed == 1 and "1 fitted body with non-finite parameters" in (
+        report.summary_line()
+    )

@@ -21,6 +21,7 @@ pixels; a crop that no extraction crop matches has none (confidence 0, `landmark
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -94,6 +95,7 @@ class BodyCropReport:
     extraction_crops: int = 0
     paired: int = 0
     paired_mean_iou: float | None = None
+    unposed: int = 0  # rows of the bodies file with non-finite parameters (a failed fit): no crop
 
     def agreement(self) -> float:
         """Pairs over the crops of either side (1: every crop of both has its partner)."""
@@ -108,6 +110,8 @@ class BodyCropReport:
             + (f", mask IoU {self.paired_mean_iou:.3f})" if self.paired_mean_iou is not None
                else ")")
         )  # fmt: skip
+        if self.unposed:
+            line += f"; {self.unposed} fitted body with non-finite parameters left out"
         if self.mask_iou is not None:
             missed = self.visible_views_missed / max(self.visible_views, 1)
             line += (
@@ -205,6 +209,22 @@ def lenders(
     }
 
 
+def _finite_bodies(bodies: FusedBodies) -> tuple[FusedBodies, int]:
+    """The rows whose body parameters are finite, and how many were not. A fit that failed
+    leaves NaN parameters: the body model refuses the frame's whole batch (naming no person or
+    frame), so such a row is a person not fitted in that frame (its views get no crop)."""
+    params = (bodies.betas, bodies.body_pose, bodies.global_orient, bodies.transl)
+    if not len(bodies):
+        return bodies, 0
+    ok = np.all([np.isfinite(a).reshape(len(bodies), -1).all(1) for a in params], axis=0)
+    if ok.all():
+        return bodies, 0
+    per_row = ("person_id", "frame", "joints", "global_orient", "body_pose", "betas", "transl",
+               "joint_views", "gap_filled", "observed", "single_view")  # fmt: skip
+    kept = {k: getattr(bodies, k)[ok] for k in per_row}
+    return dataclasses.replace(bodies, **kept), int(np.count_nonzero(~ok))
+
+
 @torch.no_grad()
 def _frame_vertices(body, bodies: FusedBodies, rows: np.ndarray) -> list[np.ndarray]:
     """World vertices (V, 3) of the fitted bodies in `rows`."""
@@ -237,7 +257,7 @@ def recut_crops(
     frame are cut on `threads` threads (default: the cores)."""
     t0 = time.perf_counter()
     source = CropStore(crops_h5)
-    bodies = read_fused_bodies(bodies_parquet)
+    bodies, unposed = _finite_bodies(read_fused_bodies(bodies_parquet))
     names = source.camera_names
     missing = [n for n in names if n not in videos or n not in rig.names]
     if missing:
@@ -264,7 +284,7 @@ def recut_crops(
         "config": settings_digest({"options": _as_json(options), "source": str(crops_h5.name)}),
     }
     report = BodyCropReport(0, len(np.unique(bodies.person_id)), len(frames),
-                            {n: 0 for n in names}, 0, 0.0)  # fmt: skip
+                            {n: 0 for n in names}, 0, 0.0, unposed=unposed)  # fmt: skip
     run = _Run(source, bodies, S, scale, options, lm_source)
     scored: list[CropTruth] = []
     out_h5.parent.mkdir(parents=True, exist_ok=True)
