@@ -434,3 +434,21 @@ def test_a_body_whose_fit_failed_in_a_frame_gets_no_crop_there(scene, tmp_path):
     assert report.unposed == 1 and "1 fitted body with non-finite parameters" in (
         report.summary_line()
     )
+
+
+def test_a_view_whose_cut_fails_is_named_by_camera_and_frame(scene, tmp_path, monkeypatch):
+    """The views are cut on a pool of threads: an error inside one (here the labels) came back
+    naming neither the camera nor the frame."""
+    import gst.fuse.body_crops as body_crops
+
+    tmp, cap, truth, videos, plates = scene
+
+    def broken(rays, *args, **kwargs):
+        raise ValueError("labels failed")
+
+    monkeypatch.setattr(body_crops, "body_labels", broken)
+    with pytest.raises(ValueError, match="labels failed") as err:
+        recut_crops(tmp / "crops.h5", cap.rig, videos, tmp / "bodies.parquet",
+                    tmp_path / "crops.h5", plates=plates)  # fmt: skip
+    notes = "\n".join(getattr(err.value, "__notes__", []))
+    assert f"camera {cap.rig.names[0]}, frame 0" in notes

@@ -229,3 +229,19 @@ def test_two_caches_saving_into_one_folder_keep_each_others_readings(tmp_path):
     both = ReadingCache(folder, False)
     assert both.get(ka)[0, 0] == 1.0 and both.get(kb)[0, 0] == 2.0
     assert b.get(ka) is not None  # the merge is b's too
+
+
+def test_a_view_that_fails_is_named_by_camera_and_frame(tmp_path):
+    """The crowded crops are read on a pool of threads: an error there (the landmark model, the
+    inpainting, a damaged crop) came back with nothing saying which camera and frame."""
+
+    class Broken(_Recorder):
+        def segment(self, image, roi):
+            raise RuntimeError("the landmark model failed")
+
+    store = _scene(tmp_path)
+    with pytest.raises(RuntimeError, match="landmark model failed") as err:
+        relook_crowded(store, np.zeros((3, 33, 3), np.float32),
+                       RelookOptions(min_share=0.12, refine=False), model=Broken())  # fmt: skip
+    notes = "\n".join(getattr(err.value, "__notes__", []))
+    assert f"camera {store.camera_names[0]}, frame 0" in notes

@@ -339,7 +339,11 @@ def _cut_frames(cams, pool, body, frames, out_h5, settings, report, visible, sco
         fi, image = next(readers[k])
         if fi != f:
             raise RuntimeError(f"{cam.video}: expected frame {f}, decoded {fi}")
-        return _cut_view(run, cam, image, f, rows, verts, caster)
+        try:
+            return _cut_view(run, cam, image, f, rows, verts, caster)
+        except Exception as exc:  # raised on a pool thread: say which view
+            exc.add_note(f"cutting camera {cam.camera.name}, frame {f} from the fitted bodies")
+            raise
 
     steps = progress(frames, description="crops from the fitted bodies", total=len(frames)) \
         if progress else frames  # fmt: skip

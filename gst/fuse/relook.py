@@ -113,6 +113,15 @@ def relook_crowded(
     def read(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """One camera and frame: its crops' shares of other people, and the crowded crops'
         landmarks read again (None: none crowded)."""
+        try:
+            return read_view(rows)
+        except Exception as exc:  # raised on a pool thread: say which view
+            cam = store.camera_names[int(store.index.column("camera_index")[int(rows[0])].as_py())]
+            frame = int(store.index.column("frame")[int(rows[0])].as_py())
+            exc.add_note(f"reading the crowded crops of camera {cam}, frame {frame} again")
+            raise
+
+    def read_view(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         others, shares = others_masks(store, rows, windows[rows])
         crowded = shares >= o.min_share
         if not crowded.any():
