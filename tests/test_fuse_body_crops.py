@@ -21,7 +21,7 @@ from calibration.camera import Camera, Rig
 from gst.body import load_body_model
 from gst.data.extract.crops import crop_person, landmarks_to_crop
 from gst.data.store import CropBatch, CropStore, CropStoreWriter
-from gst.fuse.body_crops import lenders, move_landmarks, recut_crops
+from gst.fuse.body_crops import BodyCropReport, lenders, move_landmarks, recut_crops
 from gst.fuse.body_labels import CameraRays, body_labels
 from gst.fuse.fit import PersonFit
 from gst.fuse.rounds import fuse_rounds
@@ -452,3 +452,12 @@ def test_a_view_whose_cut_fails_is_named_by_camera_and_frame(scene, tmp_path, mo
                     tmp_path / "crops.h5", plates=plates)  # fmt: skip
     notes = "\n".join(getattr(err.value, "__notes__", []))
     assert f"camera {cap.rig.names[0]}, frame 0" in notes
+
+
+def test_two_empty_sides_agree():
+    """A scene without people (no crop cut, none extracted) scored agreement 0, so the fuse
+    stage ran a second fusion on an empty store and reported "agreement 0.000"."""
+    empty = BodyCropReport(0, 0, 10, {}, 0, 0.0)
+    assert empty.agreement() == 1.0
+    assert dataclasses.replace(empty, extraction_crops=4).agreement() == 0.0
+    assert dataclasses.replace(empty, crops=4, extraction_crops=5, paired=4).agreement() == 0.8

@@ -98,8 +98,11 @@ class BodyCropReport:
     unposed: int = 0  # rows of the bodies file with non-finite parameters (a failed fit): no crop
 
     def agreement(self) -> float:
-        """Pairs over the crops of either side (1: every crop of both has its partner)."""
-        return self.paired / max(self.crops, self.extraction_crops, 1)
+        """Pairs over the crops of either side (1: every crop of both has its partner; two
+        empty sides agree, so a scene without people ends its rounds at once)."""
+        if self.crops == 0 and self.extraction_crops == 0:
+            return 1.0
+        return self.paired / max(self.crops, self.extraction_crops)
 
     def summary_line(self) -> str:
         line = (
