@@ -1217,3 +1217,19 @@ def test_read_options_of_the_wrong_kind_are_refused_by_name(tmp_path, fmt, optio
     write_rig(rig, path, fmt, warn_up=False)
     with pytest.raises(RigFormatError, match=match):
         read_rig(path, fmt, **options)
+
+
+@pytest.mark.parametrize(
+    "fmt,suffix",
+    [("rig", ".json"), ("panoptic", ".json"), ("h36m-json", ".json"), ("pose2sim", ".toml"),
+     ("anipose", ".toml")],
+)  # fmt: skip
+@pytest.mark.parametrize("given", [True, False])
+def test_a_file_not_in_utf8_is_refused_with_its_name(tmp_path, fmt, suffix, given):
+    """A camera name saved as Latin-1 by an editor ("caméra" as byte 0xE9) was a bare
+    UnicodeDecodeError naming neither file nor camera."""
+    path = tmp_path / f"rig{suffix}"
+    write_rig(ring_cameras(2), path, fmt, warn_up=False)
+    path.write_bytes(path.read_bytes().replace(b'"c1"', '"caméra1"'.encode("latin-1")))
+    with pytest.raises(RigFormatError, match=r"rig\.(json|toml).*UTF-8"):
+        read_rig(path, fmt if given else None)

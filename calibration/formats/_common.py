@@ -110,6 +110,21 @@ def require_typed(data: dict, key: str, kind: type, path: Path, where: str = "")
     return value
 
 
+def read_text(path: Path) -> str:
+    """The text of a rig file, which JSON and TOML define as UTF-8; a file in another encoding
+    (a name saved as Latin-1 by an editor) is a RigFormatError naming the file and the byte (it
+    was a bare UnicodeDecodeError naming neither file nor camera)."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise RigFormatError(
+            f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02X} on line {line}); save the "
+            "file as UTF-8"
+        ) from exc
+
+
 def load_json(path: Path):
     """The parsed JSON document at `path`; a syntax error, or a key given twice in one object
     (JSON leaves it undefined; Python kept the last: "width": 1920, "width": 640 read 640),
@@ -123,7 +138,7 @@ def load_json(path: Path):
         return dict(pairs)
 
     try:
-        return json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=unique)
+        return json.loads(read_text(path), object_pairs_hook=unique)
     except json.JSONDecodeError as exc:
         raise RigFormatError(f"{path}: not valid JSON ({exc})") from exc
 

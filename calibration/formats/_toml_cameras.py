@@ -23,6 +23,7 @@ from calibration.formats._common import (
     make_camera,
     make_rig,
     pixel_count,
+    read_text,
     require_array,
     require_distortion,
     require_text,
@@ -57,8 +58,7 @@ def camera_tables(data: dict) -> dict[str, dict]:
 
 def load_tables(path: Path) -> dict:
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
+        return tomllib.loads(read_text(path))
     except tomllib.TOMLDecodeError as exc:
         raise RigFormatError(f"{path}: not valid TOML ({exc})") from exc
 
