@@ -1233,3 +1233,20 @@ def test_a_file_not_in_utf8_is_refused_with_its_name(tmp_path, fmt, suffix, give
     path.write_bytes(path.read_bytes().replace(b'"c1"', '"caméra1"'.encode("latin-1")))
     with pytest.raises(RigFormatError, match=r"rig\.(json|toml).*UTF-8"):
         read_rig(path, fmt if given else None)
+
+
+@pytest.mark.parametrize(
+    "fmt,suffix",
+    [("rig", ".json"), ("panoptic", ".json"), ("h36m-json", ".json"), ("pose2sim", ".toml"),
+     ("anipose", ".toml")],
+)  # fmt: skip
+def test_a_file_saved_with_a_utf8_bom_is_read(tmp_path, fmt, suffix):
+    """Windows editors (Notepad before 2019, PowerShell 5's Out-File) save UTF-8 with a byte
+    order mark: such a file was refused as "not valid JSON" or, for TOML, "not valid TOML
+    (Invalid statement (at line 1, column 1))", though nothing else was wrong with it."""
+    path = tmp_path / f"rig{suffix}"
+    rig = ring_cameras(2)
+    write_rig(rig, path, fmt, warn_up=False)
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    assert_same_rig(rig, read_rig(path, fmt, **({"subject": 1} if fmt == "h36m-json" else {})))
+    assert detect_format(path) == fmt

@@ -116,11 +116,14 @@ def read_text(path: Path) -> str:
     was a bare UnicodeDecodeError naming neither file nor camera)."""
     data = path.read_bytes()
     try:
-        return data.decode("utf-8")
+        # utf-8-sig: Windows editors save UTF-8 with a byte order mark, which json and tomllib
+        # refuse ("Unexpected UTF-8 BOM", "Invalid statement")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
+        bad = exc.object  # the bytes after a byte order mark, which exc.start counts in
+        line = bad[: exc.start].count(b"\n") + 1
         raise RigFormatError(
-            f"{path}: not UTF-8 text (byte 0x{data[exc.start]:02X} on line {line}); save the "
+            f"{path}: not UTF-8 text (byte 0x{bad[exc.start]:02X} on line {line}); save the "
             "file as UTF-8"
         ) from exc
 
