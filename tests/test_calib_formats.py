@@ -1250,3 +1250,24 @@ def test_a_file_saved_with_a_utf8_bom_is_read(tmp_path, fmt, suffix):
     path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
     assert_same_rig(rig, read_rig(path, fmt, **({"subject": 1} if fmt == "h36m-json" else {})))
     assert detect_format(path) == fmt
+
+
+def test_qualisys_names_edited_in_another_case_are_read_as_meant(tmp_path):
+    """XML names are case-sensitive and the reader matched Qualisys's spelling only: a
+    hand-edited `Active="0"` kept the inactive camera, `Serial="cam02"` renamed it 'camera2',
+    and a `<Camera>` element was dropped without a word."""
+    reference = read_rig(QCA)
+    path = _qca_with(
+        tmp_path,
+        ('active="1" avg-residual="0.402000"', 'Active="0" avg-residual="0.402000"'),
+        ('serial="cam02"', 'Serial="cam02"'),
+        ('<camera active="1" avg-residual="0.450323"',
+         '<Camera active="1" avg-residual="0.450323"'),
+        ('</camera>\n    <camera active="1" avg-residual="0.504772"',
+         '</Camera>\n    <camera active="1" avg-residual="0.504772"'),
+        ('focalLengthU="107118.695313"', 'FOCALLENGTHU="107118.695313"'),
+    )  # fmt: skip
+    rig = read_rig(path)
+    assert rig.names == ["cam02", "cam03", "cam04"]
+    assert rig.meta["skipped"] == ["cam01 (inactive)"]
+    assert_same_rig(reference.subset(rig.names), rig)

@@ -36,8 +36,22 @@ VIDEO_PLUS_LINES = 1440.0  # Miqus Video Plus's native video lines (1920 x 1440)
 log = logging.getLogger("calibration")
 
 
+# XML names are case-sensitive, but a hand-edited file may spell them otherwise: matched only as
+# Qualisys spells them, `Active="0"` kept an inactive camera, `Serial=` renamed the camera and a
+# `<Camera>` element was dropped without a word. Names are matched regardless of case (the exact
+# spelling first).
+def _attr(el: ET.Element, name: str, default: str | None = None) -> str | None:
+    if name in el.attrib:
+        return el.attrib[name]
+    return next((v for k, v in el.attrib.items() if k.lower() == name.lower()), default)
+
+
+def _find(el: ET.Element, tag: str) -> ET.Element | None:
+    return next((c for c in el if c.tag.lower() == tag.lower()), None)
+
+
 def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
-    value = el.get(attr)
+    value = _attr(el, attr)
     if value is None:
         raise RigFormatError(f"{path}: {where} <{el.tag}> lacks attribute '{attr}'")
     try:
@@ -52,7 +66,7 @@ def _float(el: ET.Element, attr: str, path: Path, where: str) -> float:
 
 
 def _child(cam: ET.Element, tag: str, path: Path, where: str) -> ET.Element:
-    el = cam.find(tag)
+    el = _find(cam, tag)
     if el is None:
         raise RigFormatError(f"{path}: {where} has no <{tag}> element")
     return el
@@ -65,7 +79,7 @@ def _video_scale(cam: ET.Element, path: Path, where: str) -> float:
     `<fov_video_max>` holds 1440 lines (Miqus Video Plus), else 1080p (Miqus Video, whose
     windows may hold 1088 lines), which Pose2Sim's reader assumes for every camera and so
     scales Video Plus files by 4/3 (pose2sim issues 200, 212)."""
-    resolution = cam.get("video_resolution")
+    resolution = _attr(cam, "video_resolution")
     if resolution in (None, "", "N/A"):
         return 1.0
     text = resolution.strip().lower()
@@ -74,7 +88,7 @@ def _video_scale(cam: ET.Element, path: Path, where: str) -> float:
             f"{path}: {where} has video_resolution={resolution!r}; expected e.g. '1080p' or '540p'"
         )
     native = 1080.0
-    window = cam.find("fov_video_max")
+    window = _find(cam, "fov_video_max")
     if window is not None:
         sides = [
             _float(window, hi, path, where) - _float(window, lo, path, where) + 1
@@ -109,19 +123,20 @@ def read(
     if root.tag != "calibration":
         raise RigFormatError(f"{path}: root element is <{root.tag}>, expected <calibration>")
     cameras, skipped = [], []
-    for i, cam in enumerate(root.findall("cameras/camera")):
-        name = cam.get("serial") or f"camera{i + 1}"
+    listed = [c for group in root if group.tag.lower() == "cameras" for c in group]
+    for i, cam in enumerate(c for c in listed if c.tag.lower() == "camera"):
+        name = _attr(cam, "serial") or f"camera{i + 1}"
         where = f"camera '{name}'"
-        if not include_inactive and cam.get("active", "1") != "1":
+        if not include_inactive and _attr(cam, "active", "1") != "1":
             skipped.append(f"{name} (inactive)")
             continue
-        model = cam.get("model", "none")
+        model = _attr(cam, "model", "none")
         if video_only and not ("video" in model.lower() or model == "none"):
             skipped.append(f"{name} (model {model!r})")
             continue
-        if cam.get("viewrotation", "0") not in ("0", "0.0"):
+        if _attr(cam, "viewrotation", "0") not in ("0", "0.0"):
             raise RigFormatError(
-                f"{path}: {where} has viewrotation={cam.get('viewrotation')}; "
+                f"{path}: {where} has viewrotation={_attr(cam, 'viewrotation')}; "
                 "rotated views are not supported"
             )
         scale = _video_scale(cam, path, where)
@@ -130,9 +145,9 @@ def read(
         width = int(round((_float(fov, "right", path, where) - left + 1) * scale))
         height = int(round((_float(fov, "bottom", path, where) - top + 1) * scale))
         intr = _child(cam, "intrinsic", path, where)
-        if intr.get("skew") not in (None, "") and _float(intr, "skew", path, where) != 0:
+        if _attr(intr, "skew") not in (None, "") and _float(intr, "skew", path, where) != 0:
             raise RigFormatError(
-                f"{path}: {where} has skew={intr.get('skew')}; its units are not "
+                f"{path}: {where} has skew={_attr(intr, 'skew')}; its units are not "
                 "documented, so it is not supported"
             )
         fu = _float(intr, "focalLengthU", path, where) / SUBPIXELS_PER_PIXEL * scale
@@ -162,7 +177,7 @@ def read(
             )
         U, _, Vt = np.linalg.svd(M)  # remove the last digits' rounding
         R = QUALISYS_TO_OPENCV_AXES @ (U @ Vt)
-        meta = {"source": "qualisys", "model": model, "avg_residual": cam.get("avg-residual")}
+        meta = {"source": "qualisys", "model": model, "avg_residual": _attr(cam, "avg-residual")}
         cameras.append(
             make_camera(
                 path,
