@@ -1271,3 +1271,20 @@ def test_qualisys_names_edited_in_another_case_are_read_as_meant(tmp_path):
     assert rig.names == ["cam02", "cam03", "cam04"]
     assert rig.meta["skipped"] == ["cam01 (inactive)"]
     assert_same_rig(reference.subset(rig.names), rig)
+
+
+@pytest.mark.parametrize("fmt", ["anipose", "pose2sim"])
+def test_a_toml_camera_table_without_any_key_is_refused(tmp_path, fmt):
+    """A camera listed with no data (a file cut right after `[cam_3]`, or a table left empty
+    by hand) loaded with one camera fewer and no word; Pose2Sim's and aniposelib's readers
+    fail on it."""
+    path = tmp_path / "calib.toml"
+    write_rig(ring_cameras(2), path, fmt)
+    text = path.read_text()
+    cut = tmp_path / "cut.toml"
+    cut.write_text(text[: text.index("[metadata]")] + "[cam_3]\n")
+    with pytest.raises(RigFormatError, match=r"cut\.toml: \[cam_3\] .*no keys"):
+        read_rig(cut, fmt)
+    ok = tmp_path / "ok.toml"  # an empty table that is not a camera's is still skipped
+    ok.write_text(text + "[charuco]\n")
+    assert len(read_rig(ok, fmt)) == 2

@@ -46,13 +46,14 @@ def _bare(name: str) -> bool:
 
 def camera_tables(data: dict) -> dict[str, dict]:
     """The tables of `data` that describe cameras (any of CAMERA_TABLE_KEYS, outside
-    OTHER_TABLES; module doc)."""
+    OTHER_TABLES; module doc), and empty ones: a camera listed with no data (a file cut right
+    after `[cam_3]`) was dropped without a word, where Pose2Sim and aniposelib fail on it."""
     return {
         key: table
         for key, table in data.items()
         if isinstance(table, dict)
         and key not in OTHER_TABLES
-        and any(k in table for k in CAMERA_TABLE_KEYS)
+        and (not table or any(k in table for k in CAMERA_TABLE_KEYS))
     }
 
 
@@ -68,6 +69,11 @@ def read_cameras(path: Path, metres_per_unit: float, source: str) -> Rig:
     cameras = []
     for key, table in camera_tables(data).items():
         where = f"[{key}]"
+        if not table:
+            raise RigFormatError(
+                f"{path}: {where} has no keys; a camera needs {list(CAMERA_TABLE_KEYS)} (a "
+                "truncated file, or a table left empty?)"
+            )
         lacking = [k for k in CAMERA_KEYS if k not in table]
         if lacking:  # a camera's table without its geometry: typo'd keys or a truncated file
             raise RigFormatError(
