@@ -1288,3 +1288,14 @@ def test_a_toml_camera_table_without_any_key_is_refused(tmp_path, fmt):
     ok = tmp_path / "ok.toml"  # an empty table that is not a camera's is still skipped
     ok.write_text(text + "[charuco]\n")
     assert len(read_rig(ok, fmt)) == 2
+
+
+def test_colmap_refuses_a_camera_name_it_cannot_hold(tmp_path):
+    """COLMAP's binary model ends an image name at its first NUL character: a camera named
+    "a\\x00b" was written without a word and read back as "a", or the model could not be read
+    at all (std::bad_alloc)."""
+    rig = ring_cameras(2)
+    rig = Rig((rig[0].replace(name="c\x000"), rig[1]))
+    with pytest.raises(RigFormatError, match=r"camera 'c\\x000'.*NUL"):
+        write_rig(rig, tmp_path / "model", "colmap")
+    assert not (tmp_path / "model" / "images.bin").exists()

@@ -134,6 +134,11 @@ def _up_option(up, path: Path) -> tuple[float, ...]:
 def _colmap_camera(cam, camera_id: int) -> pycolmap.Camera:
     import pycolmap
 
+    if "\x00" in cam.name:  # the binary model ends a name there: read back cut, or unreadable
+        raise RigFormatError(
+            f"camera {cam.name!r}: a NUL character in its name, which a COLMAP image name "
+            "cannot hold"
+        )
     if cam.skew:
         raise RigFormatError(
             f"camera '{cam.name}': COLMAP models have no skew (K[0, 1] = {cam.skew})"
