@@ -493,6 +493,11 @@ def test_h36m_json_sizes_are_whole_pixels(tmp_path):
         out.write_text(json.dumps(data))
         with pytest.raises(RigFormatError, match=f"width is {shown}, expected a whole number"):
             read_rig(out, "h36m-json")  # 1000.9 read 1000, true read 1
+    data = json.loads(out.read_text())
+    del next(iter(data["intrinsics"].values()))["height"]
+    out.write_text(json.dumps(data))
+    with pytest.raises(RigFormatError, match="give width without the other"):
+        read_rig(out, "h36m-json")  # the edited width was dropped for the standard size
 
 
 def test_colmap_model_written_by_pycolmap(tmp_path):

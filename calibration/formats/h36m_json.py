@@ -89,7 +89,12 @@ def read(
             dist = h36m_to_opencv(raw[[0, 1, 4]], raw[[2, 3]])
         else:
             dist = raw
-        stored = (i["width"], i["height"]) if "width" in i and "height" in i else None
+        if ("width" in i) != ("height" in i):  # one alone was ignored for the standard size
+            raise RigFormatError(
+                f"{path}: {where} intrinsics give {'width' if 'width' in i else 'height'} "
+                "without the other; give both or neither"
+            )
+        stored = (i["width"], i["height"]) if "width" in i else None
         size = image_size_of(path, where, name, stored, image_size)
         cameras.append(
             make_camera(
