@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
 from gst.metrics.lpips import load_lpips  # noqa: E402
+from gst.metrics.lpips_weights import LPIPSWeightsMissing, fetch_command  # noqa: E402
 from gst.metrics.pose import pa_mpjpe  # noqa: E402
 
 
@@ -53,7 +54,11 @@ def bench_lpips(device: torch.device, batch: int, size: int, repeats: int) -> No
     )
     base = None
     for net in ("alex", "vgg"):
-        model = load_lpips(net, device=device)
+        try:
+            model = load_lpips(net, device=device)
+        except LPIPSWeightsMissing:  # vgg is optional: `fetch` gets alex unless told
+            print(f"{net:5} not run: weights not cached ({fetch_command(net)})")
+            continue
         with torch.no_grad():
             ref = model(x, y)
         for precision in ("fp32", "bf16"):
