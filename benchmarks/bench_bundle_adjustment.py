@@ -13,7 +13,6 @@ error (degrees) and the final RMS (px).
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import sys
@@ -25,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from calibration.board import FrameDetection  # noqa: E402
 from calibration.bundle import BAOptions  # noqa: E402
 from calibration.posegraph import invert, rotation_angle_deg  # noqa: E402
@@ -85,7 +85,7 @@ def accuracy(result, scene):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--cameras", type=int, default=8)
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--noise", type=float, default=0.3)

@@ -60,7 +60,6 @@ run are what to compare.
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -75,6 +74,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from benchmarks.timing import median_time  # noqa: E402
 from gst.train.keypoints import BODY_FROM_BLAZEPOSE  # noqa: E402
 
@@ -300,7 +300,7 @@ def _copy(p, person_id: int, frames_keep: int, cams_keep: int):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--workspace", type=Path, default=ROOT / "workspace" / "demo")
     ap.add_argument("--peers-python", default="/work/bench-venv/bin/python")
     ap.add_argument("--repeats", type=int, default=3)

@@ -11,7 +11,6 @@ the body model is the open default.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.device import module_on, resolve_device  # noqa: E402
 from gst.eval.bench import time_inference  # noqa: E402
@@ -29,7 +29,7 @@ from gst.train.recipe import build_network  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--presets", nargs="+", default=["tiny", "small", "base"])
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=5)

@@ -17,13 +17,12 @@ Score: each checkpoint's single-image pose (world joints, MPJPE root-aligned and
 (the pipeline's path), and from the landmarks alone; with the network's time per crop. A crop
 whose error is not finite is left out of the means, and the row says how many were.
 
-    python benchmarks/bench_lift.py --score models/pretrain.pt other.pt \
+    python benchmarks/bench_lift.py --score models/pretrain.pt other.pt \\
         --world /work/data/lift/heldout/scenes/world_7000 /work/data/lift/heldout/world_7000.npz
 """
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -35,6 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from benchmarks.summary import finite_mean, left_out  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.lift.errors import LANDMARK_SETS  # noqa: E402
@@ -104,7 +104,7 @@ def score(checkpoints: list[Path], scene: Path, npz: Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1, help="torch threads, the training loop's too")
     ap.add_argument(

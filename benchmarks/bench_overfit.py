@@ -13,7 +13,6 @@ default), one shared rate for everything, and a larger render size. Goal: >= 30 
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -24,6 +23,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
 from gst.metrics.lpips import load_lpips  # noqa: E402
 from gst.model.presets import get_preset  # noqa: E402
@@ -55,7 +55,7 @@ def one_person_scene(out_dir: str, seed: int = 7, cameras: int = 4):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--warm-steps", type=int, default=100)
     ap.add_argument("--threads", type=int, default=None)

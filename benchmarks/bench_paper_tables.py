@@ -24,7 +24,6 @@ row's run time (training + evaluation). Prints the markdown table and writes it 
 
 from __future__ import annotations
 
-import argparse
 import copy
 import sys
 import time
@@ -35,6 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from calibration.formats import read_rig  # noqa: E402
 from gst.atomic import atomic_write_text  # noqa: E402
 from gst.body import load_body_model  # noqa: E402
@@ -97,7 +97,7 @@ def _f(v, d=1) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__)
     ap.add_argument(
         "--workspace", type=Path, default=Path("workspace/demo"), help="scene workspace (synthetic)"
     )

@@ -15,7 +15,6 @@ a machine loaded by other users shows better than the wall time).
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import os
 import resource
@@ -27,6 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from pipeline.executors import LocalExecutor  # noqa: E402
 from synth.scene import preset, render_scene  # noqa: E402
 
@@ -49,7 +49,7 @@ def cpu_seconds() -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--preset", default="demo")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument(

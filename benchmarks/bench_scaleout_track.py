@@ -15,7 +15,6 @@ equal a serial, unchunked, in-process run ("rows identical"), and the person cou
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import statistics
@@ -31,6 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pyarrow.parquet as pq  # noqa: E402
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from gst.track import TrackOptions  # noqa: E402
 from gst.track.batch import track_videos  # noqa: E402
 from gst.track.chunks import ChunkingConfig  # noqa: E402
@@ -62,7 +62,7 @@ def rows(path: Path):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--videos", type=int, default=2)
     ap.add_argument(
         "--frames",

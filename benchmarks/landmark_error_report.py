@@ -10,7 +10,6 @@ Procrustes), with the mean-pose baseline beside it.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's packages, not an installed copy
 
+from benchmarks.cli import bench_parser  # noqa: E402
 from gst.lift.dataset import load_worlds  # noqa: E402
 from gst.lift.errors import LIMB_LANDMARKS, LIMB_NAMES, LR_PAIRS, detection_stats  # noqa: E402
 from gst.lift.noise import POSE_KINDS, pose_kind  # noqa: E402
@@ -110,7 +110,7 @@ def _table(s, title: str) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__)
     ap.add_argument("--worlds", type=Path, required=True)
     args = ap.parse_args()
     worlds = load_worlds(args.worlds)
