@@ -20,6 +20,7 @@ peak GPU memory and, per preset, each variant's speed-up against the first row o
 
 from __future__ import annotations
 
+import math
 import os
 import statistics
 import sys
@@ -123,14 +124,18 @@ def main() -> None:
         f"{'loss':>7} {'peak GiB':>8} {'speed-up':>8}"
     )
     amps = {"off": [False], "on": [True], "both": [False, True]}[args.amp]
+    not_run = set()  # requested variants this machine cannot run, said once at the end
     for preset in args.presets:
         first = None
         for device in devices:
             for backend in args.backends:
                 if backend == "gsplat" and (device.type != "cuda" or not _gsplat_available()):
+                    why = "CUDA only" if device.type != "cuda" else "not installed"
+                    not_run.add(f"{device.type} gsplat ({why})")
                     continue
                 for amp in amps:
                     if amp and device.type != "cuda":
+                        not_run.add(f"{device.type} bf16 autocast (CUDA only)")
                         continue
                     try:
                         r = time_steps(preset, device, backend, amp, crops, body, lpips, args)
@@ -139,12 +144,15 @@ def main() -> None:
                         torch.cuda.empty_cache()
                         continue
                     first = first or r["s"]
+                    peak = "-" if math.isnan(r["peak_gib"]) else f"{r['peak_gib']:.2f}"  # CPU: none
                     print(
                         f"{preset:<6} {device.type:<6} {backend:<7} {'bf16' if amp else '-':<4} "
                         f"{r['s']:>8.3f} {args.batch / r['s']:>9.1f} {r['loss']:>7.3f} "
-                        f"{r['peak_gib']:>8.2f} {first / r['s']:>7.2f}x",
+                        f"{peak:>8} {first / r['s']:>7.2f}x",
                         flush=True,
                     )
+    if not_run:
+        print("not run: " + ", ".join(sorted(not_run)))
     os.environ.pop("GST_RENDER_BACKEND", None)
 
 
