@@ -605,3 +605,16 @@ def test_the_scene_rate_times_the_keypoint_tracker_and_keys_the_store(short_scen
     assert given.settings != plain.settings
     with pytest.raises(ExtractError, match="fps must be > 0"):
         _opts(fps=-1.0)
+
+
+def test_a_clip_shorter_than_the_track_minimum_keeps_who_is_in_all_its_frames(one_person, tmp_path):
+    """5 processed frames (stride 6 of 30) against min_track_frames 6: the visual-hull path
+    dropped the one person seen in all of them, and wrote no crop at all."""
+    options = ExtractOptions(
+        association_method="hull", association=AssociationConfig(min_track_frames=6)
+    )
+    rep = extract_scene(
+        one_person.videos, one_person.rig, tmp_path / "c.h5", crop_size=64, frame_stride=6,
+        options=options,
+    )  # fmt: skip
+    assert rep.persons == 1 and rep.crops == 4 * 5

@@ -46,6 +46,15 @@ def test_a_long_single_view_track_survives_a_brief_second_camera(tmp_path):
     assert _short(_results({1, 2}, n_frames=4), tmp_path / "c", n_frames=4) == [7]
 
 
+def test_a_clip_shorter_than_the_track_minimum_keeps_who_is_in_all_its_frames(tmp_path):
+    """A 4-frame clip (5 frames make a trusted id) lost every id, so extraction wrote no crop
+    at all; seen by two cameras in all 4 frames he is kept, in 3 of them he is not."""
+    assert _short(_results({0, 1, 2, 3}, n_frames=4), tmp_path / "a", n_frames=4) == []
+    three = _results({0, 1, 2}, n_frames=4)
+    three[3].people.clear()
+    assert _short(three, tmp_path / "b", n_frames=4) == [7]
+
+
 def test_a_crowd_larger_than_the_landmark_array_is_read_back(tmp_path):
     """Phase 1 keeps landmarks for MAX_INSTANCES people per frame but labels every one: the
     extra people are read as having no instance (was: an IndexError that ended extraction)."""

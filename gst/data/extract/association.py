@@ -163,7 +163,9 @@ def associate_scene(
     for ids in per_frame:
         for i in ids:
             counts[i] = counts.get(i, 0) + 1
-    short = sorted(i for i, c in counts.items() if c < config.min_track_frames and not global_ids)
+    # a clip shorter than min_track_frames keeps whoever is seen in all its frames
+    need = min(config.min_track_frames, len(per_frame))
+    short = sorted(i for i, c in counts.items() if c < need and not global_ids)
     return AssociationSummary(
         frames=list(frames),
         ids=per_frame,

@@ -188,6 +188,8 @@ def _write(
     # single-view ids are duplicates of a tracked person's body or legs). Someone one camera
     # sees for a long time keeps their crops when a second camera sees them briefly (the
     # multi-view count alone dropped all of them).
+    # a clip shorter than that keeps whoever is seen in all its frames (every id was dropped)
+    min_track_frames = min(min_track_frames, len(results))
     frames_of: dict[int, int] = {}
     single_frames: dict[int, int] = {}
     for res in results:
