@@ -84,7 +84,7 @@ def _saved_tiny(path, spec="random"):
 
 
 def test_reuse_refuses_weights_that_do_not_fit_or_are_not_finite_naming_the_file(tmp_path):
-    """reuse only read the file and copied it: weights that do not fit the network it names, or
+    """reuse only read the file and copied it: a config that names no network, or
     NaN weights, failed in the train stage naming models/pretrain.pt, or at the first batch."""
     import pytest
     import torch
@@ -97,7 +97,7 @@ def test_reuse_refuses_weights_that_do_not_fit_or_are_not_finite_naming_the_file
     key = "smpl_head.decpose.weight"
     nan = {**good, "model": {**good["model"], key: torch.full_like(good["model"][key], torch.nan)}}
     torch.save(nan, tmp_path / "nan.pt")
-    for name, why in [("novit", "weights do not fit its network"), ("nan", f"'{key}' is not")]:
+    for name, why in [("novit", "config lacks 'vit'"), ("nan", f"'{key}' is not")]:
         ctx = _ctx(tmp_path / name, Params(body_model="random", reuse=tmp_path / f"{name}.pt"))
         with pytest.raises(ValueError, match=rf"{name}\.pt: .*{why}"):
             run(ctx)
