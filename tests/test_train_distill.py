@@ -303,3 +303,35 @@ def test_bodies_that_name_no_joint_with_landmarks_are_refused_not_nan(scene):
     blind = dataclasses.replace(fused, has_landmarks=np.zeros(24, bool))
     with pytest.raises(ValueError, match="no joint.*landmark.*joint_landmarks"):
         distill_targets(crops, blind, torch.ones(len(crops), dtype=torch.bool))
+
+
+def test_landmarks_none_read_are_no_unmirroring(scene, tmp_path):
+    """Whether the rig un-mirrored a landmark was `not torch.equal(read, unmirrored)`, and a
+    crop where the landmark model found nobody holds NaN, which equals nothing: with nothing
+    held out every such scene refitted the teacher (the demo: minutes) and logged landmarks
+    'un-mirrored' that were not. NaN where it was NaN is no change."""
+    from gst.data.store import CropStore, CropStoreWriter
+    from gst.train.scene_training import TrainSettings, prepare_crops
+
+    tmp, cap, landmarks, crops, fused = scene
+    source = CropStore(tmp / "crops.h5")
+    rows = source.read(np.arange(len(source)))
+    read = landmarks.copy()
+    read[7] = np.nan  # a crop where the landmark model found nobody
+    done = sorted(set(zip(rows.frame.tolist(), rows.camera.tolist(), strict=True)))
+    with CropStoreWriter(tmp_path / "crops.h5", source.camera_names, source.crop_size,
+                         landmarks=True) as w:  # fmt: skip
+        w.commit(dataclasses.replace(rows, landmarks=read), done)
+        w.finalize({"n_frames": int(rows.frame.max()) + 1})
+    calls = []
+
+    def teacher(lm, allowed, work, refit=False):
+        calls.append((bool(np.all(allowed)), refit))
+        return fused
+
+    p = TrainSettings(heldout_cameras=[], heldout_frames=0, distill=True, keypoints=False,
+                      unmirror_landmarks=True, anchor=False, ignore_occluders=False)  # fmt: skip
+    prepared = prepare_crops(p, tmp_path / "crops.h5", None, teacher=teacher,
+                             work=tmp_path / "w", feed_landmarks=True)  # fmt: skip
+    assert torch.isnan(prepared.crops.landmarks[7]).all()
+    assert calls == [(True, False), (True, False)]  # nothing held out, nothing un-mirrored

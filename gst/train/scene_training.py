@@ -276,7 +276,9 @@ def prepare_crops(
             )
             read = landmarks
             landmarks = _unmirrored(crops, landmarks, first_targets)
-            corrected = not torch.equal(read, landmarks)
+            # NaN (a crop where the landmark model found nobody) equals nothing in torch.equal:
+            # every such scene counted as corrected and refitted the teacher for nothing
+            corrected = not torch.allclose(read, landmarks, rtol=0, atol=0, equal_nan=True)
         # the teacher fuses as the fuse stage does: projected rows carry no confidence
         bodies = teacher(
             without_projected(landmarks.numpy(), projected),
