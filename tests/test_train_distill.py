@@ -335,3 +335,28 @@ def test_landmarks_none_read_are_no_unmirroring(scene, tmp_path):
                              work=tmp_path / "w", feed_landmarks=True)  # fmt: skip
     assert torch.isnan(prepared.crops.landmarks[7]).all()
     assert calls == [(True, False), (True, False)]  # nothing held out, nothing un-mirrored
+
+
+def test_one_training_camera_left_is_refused_before_the_teacher(scene, tmp_path):
+    """Every camera but one held out: multi-view training has no second view to render into.
+    The teacher fused the one camera's crops (minutes on a real scene) and the landmarks were
+    read before the trainer said 'no training samples'; now prepare_crops says so first,
+    naming the held-out cameras and the one left."""
+    from gst.train.scene_training import TrainSettings, prepare_crops
+
+    tmp, _, _, _, fused = scene
+    calls = []
+
+    def teacher(lm, allowed, work, refit=False):
+        calls.append(allowed)
+        return fused
+
+    held = ["cam1", "cam2", "cam3"]
+    p = TrainSettings(heldout_cameras=held, heldout_frames=1 / 3, distill=True)
+    with pytest.raises(ValueError, match=r"heldout_cameras \['cam1', 'cam2', 'cam3'\].*'cam0'"):
+        prepare_crops(p, tmp / "crops.h5", None, teacher=teacher, work=tmp_path)
+    assert calls == []
+    # the 2d/3d baselines train on single crops: one camera is enough there
+    p = TrainSettings(heldout_cameras=held, supervision="3d", distill=False)
+    with pytest.raises(ValueError, match="truth joints"):  # a real scene: no truth, as before
+        prepare_crops(p, tmp / "crops.h5", None)

@@ -232,6 +232,14 @@ def prepare_crops(
         raise ValueError(
             f"train.heldout_cameras {unknown} are not cameras of {crops_h5} ({crops.camera_names})"
         )
+    training_cameras = [c for c in crops.camera_names if c not in heldout]
+    if multiview and len(training_cameras) < 2:
+        # said before the landmarks are read and the teacher fuses (minutes): the trainer's
+        # "no training samples" came only after both
+        raise ValueError(
+            f"train.heldout_cameras {list(heldout)} leave {training_cameras} of {crops_h5}'s "
+            f"cameras {crops.camera_names} to train on: multi-view training needs >= 2"
+        )
     cut = heldout_frame_start(crops.frame, p.heldout_frames)
     held_idx = {crops.camera_names.index(c) for c in heldout}
     landmarks = None
