@@ -54,9 +54,12 @@ def training_rows(
 
 class Teacher(Protocol):
     """Fused bodies from the crops' landmarks (N, 33, 3) of the store rows `allowed` (N,) only;
-    `work` is a folder it may write into."""
+    `work` is a folder it may write into. `refit`: fuse again even where a fusion of every row
+    could be reused (the landmarks were corrected; gst.lift.teacher.RigTeacher)."""
 
-    def __call__(self, landmarks: np.ndarray, allowed: np.ndarray, work: Path) -> FusedBodies: ...
+    def __call__(
+        self, landmarks: np.ndarray, allowed: np.ndarray, work: Path, *, refit: bool = False
+    ) -> FusedBodies: ...
 
 
 # BlazePose's shoulders and hips, and the body's (SMPL layout): their midpoint is the same
