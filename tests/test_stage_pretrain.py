@@ -102,3 +102,31 @@ def test_reuse_refuses_weights_that_do_not_fit_or_are_not_finite_naming_the_file
         with pytest.raises(ValueError, match=rf"{name}\.pt: .*{why}"):
             run(ctx)
         assert not (ctx.staging / "models/pretrain.pt").exists()
+
+
+def test_world_settings_that_cannot_make_a_world_are_refused_by_name():
+    """world_rigs: [] ended in a ZeroDivisionError, world_seed: -1 in numpy's bare 'expected
+    non-negative integer', world_people: 0 / world_fps: 0 / a field of view outside 5-150 deg in
+    a SceneSpec error naming n_people / rig.fps / rig.fov_deg; static_every: -3 was taken as 0;
+    world_cameras: 1 failed after the lifting, the renders and BlazePose with 'no training
+    samples' (the multi-view phases need a person seen by two cameras)."""
+    import pytest
+    from pydantic import ValidationError
+
+    for field, value in [
+        ("world_rigs", []),
+        ("world_seed", -1),
+        ("world_people", 0),
+        ("world_fps", 0.0),
+        ("world_fov_deg", (2.0, 60.0)),
+        ("world_fov_deg", (40.0, 150.0)),
+        ("static_every", -3),
+        ("world_cameras", 1),
+    ]:
+        with pytest.raises(ValidationError, match=field):
+            Params(**{field: value})
+    with pytest.raises(ValidationError, match="world_cameras"):
+        Params(mode="3d", world_cameras=1)  # its Gaussian phase is multi-view too
+    # single views suffice where nothing multi-view runs
+    assert Params(mode="3d", gaussian_steps=0, world_cameras=1).world_cameras == 1
+    assert Params(world_seed=0, static_every=0).static_every == 0

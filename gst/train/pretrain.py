@@ -79,19 +79,33 @@ class PretrainConfig(BaseModel):
     preset: Literal[tuple(PRESETS)] = "tiny"  # type: ignore[valid-type]
     # "anny", or a path to your SMPL file (docs/body_model.md)
     body_model: str = Field("anny", json_schema_extra=NAMES_FILE)
-    world_seed: int = 1000  # the pretraining worlds differ from every scene by construction
+    # The world settings are bounded here as the scene spec bounds them, so that a bad value is
+    # named as the pretrain setting (it was a ZeroDivisionError for world_rigs: [], numpy's
+    # "expected non-negative integer" for a negative seed, SceneSpec's n_people / rig.fps /
+    # rig.fov_deg for the others; static_every < 0 was taken as 0).
+    # world k has seed world_seed + k (the validation world: world_seed + worlds)
+    world_seed: NonNegativeInt = (
+        1000  # the pretraining worlds differ from every scene by construction
+    )
     worlds: PositiveInt = 12  # worlds trained on; one more (unseen) validates
-    world_rigs: list[Literal["dome", "h36m", "hall"]] = ["dome", "h36m"]  # cycled over the worlds
-    world_cameras: PositiveInt = 6  # cameras of each pretraining world
+    world_rigs: Annotated[list[Literal["dome", "h36m", "hall"]], Field(min_length=1)] = [
+        "dome",
+        "h36m",
+    ]  # cycled over the worlds
+    # cameras of each pretraining world (at least 2 where a multi-view phase runs: validator)
+    world_cameras: Annotated[int, Field(ge=1, le=256)] = 6
     world_frames: PositiveInt = 40  # per world
-    world_fps: float = (
+    world_fps: Annotated[float, Field(gt=0, le=1000)] = (
         10.0  # motions sampled at this rate: fewer near-duplicate poses per frame rendered
     )
-    world_people: int = (
+    world_people: Annotated[int, Field(ge=1, le=255)] = (
         1  # one person per crop: with 3, crowded crops stalled learning (docs/training.md)
     )
-    world_fov_deg: tuple[float, float] = (40.0, 75.0)  # horizontal field of view, drawn per world
-    static_every: int = (
+    # horizontal field of view (deg), drawn per world (the scene spec's rig takes 5-150)
+    world_fov_deg: tuple[
+        Annotated[float, Field(gt=5, lt=150)], Annotated[float, Field(gt=5, lt=150)]
+    ] = (40.0, 75.0)
+    static_every: NonNegativeInt = (
         3  # every Nth world holds independent random poses instead of motions (0: none)
     )
     # modes 3d and pretrain, at least the network's input height (the tiny preset's input is
@@ -171,6 +185,16 @@ class PretrainConfig(BaseModel):
                 f"crop_size ({self.crop_size}) is smaller than the '{self.preset}' "
                 f"network's input ({side} px high): its crops would be upsampled; set crop_size "
                 f"to at least {side}"
+            )
+        multiview = self.mode in ("lift", "pretrain") or self.gaussian_steps > 0
+        if multiview and self.world_cameras < 2 and self.reuse is None:
+            # accepted, it failed with "no training samples" after the renders (and in mode
+            # lift the lifting and BlazePose on every crop): those phases sample a person seen
+            # by two cameras
+            raise ValueError(
+                f"world_cameras ({self.world_cameras}) must be at least 2 in mode '{self.mode}'"
+                + (" with gaussian_steps" if self.mode == "3d" else "")
+                + ": its multi-view phase trains on people seen by two cameras"
             )
         if self.mode == "lift" and self.gaussian_steps == 0 and self.reuse is None:
             # accepted, it crashed on a missing last.pt after the lifting, the world renders and
