@@ -281,3 +281,59 @@ def test_a_pretraining_setting_below_one_is_refused_by_name(setting):
     ZeroDivisionError at the first step, batch_size 0 deep in the body model."""
     with pytest.raises(ValueError, match=f"LiftPretrainConfig.{setting} must be >= 1"):
         LiftPretrainConfig(**{setting: 0})
+
+
+def test_a_resumed_lift_mode_keeps_its_finished_lifting(tmp_path, monkeypatch):
+    """A run killed (or failed) after the lifting, in the renders, BlazePose or the rendered
+    phase, lifted again from scratch when resumed (3000 steps in pipeline.yaml): the lifting
+    kept nothing in the stage's work folder. Now its result is kept there, and a rerun with the
+    same settings starts the rendered phase from exactly the lifted weights."""
+    from types import SimpleNamespace
+
+    import gst.lift.recipe as recipe
+    from gst.lift.pretrain import LiftPretrainResult
+    from gst.train.pretrain import PretrainConfig
+
+    lifted = []
+
+    def fake_lift(net, body, steps, batch_size, lr, seed=0, threads=None):
+        with torch.no_grad():
+            for q in net.landmark_encoder.parameters():
+                q.add_(torch.randn_like(q))  # what a lifting would leave: other weights
+        lifted.append({k: v.clone() for k, v in net.state_dict().items()})
+        return LiftPretrainResult(steps, 1.0, 2.0, 3.0, 0.5, 120.0)
+
+    seen = []
+
+    class Killed(Exception):
+        pass
+
+    def rendered(net, *a, **k):
+        seen.append({k: v.clone() for k, v in net.state_dict().items()})
+        raise Killed
+
+    crops = SimpleNamespace(crop_size=256)
+    monkeypatch.setattr(recipe, "lift_phase", fake_lift)
+    monkeypatch.setattr(recipe, "render_corpus", lambda *a, **k: ["w0", "val"])
+    monkeypatch.setattr(recipe, "corpus_crops", lambda *a, **k: (crops, crops))
+    monkeypatch.setattr(recipe, "attach_landmarks", lambda *a, **k: None)
+    monkeypatch.setattr(recipe, "make_task", lambda *a, **k: None)
+    monkeypatch.setattr(recipe, "rendered_phase", rendered)
+    p = PretrainConfig(
+        worlds=1, lift_steps=2, appearance_on_truth=False,
+        losses={"lpips": 0.0},
+    )  # fmt: skip
+    for _ in range(2):
+        with pytest.raises(Killed):
+            recipe.pretrain(p, tmp_path, tmp_path / "p.pt", tmp_path / "r")
+    assert len(lifted) == 1  # the second run did not lift again
+    gate = "smpl_head.transformer.smpl_image_gate"
+    for state in seen:
+        assert all(
+            torch.equal(state[k], v) for k, v in lifted[0].items() if k != gate
+        )  # the lifted weights, the image gate closed as before
+    # other lifting settings lift again
+    with pytest.raises(Killed):
+        recipe.pretrain(p.model_copy(update={"lift_steps": 3}), tmp_path, tmp_path / "p.pt",
+                        tmp_path / "r")  # fmt: skip
+    assert len(lifted) == 2

@@ -255,6 +255,40 @@ def lift_summary(res: LiftPretrainResult) -> dict:
     return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
 
 
+def _lift_settings(p: PretrainConfig) -> dict:
+    """What the lifting's result depends on (its kept result is reused only when they match)."""
+    return {
+        k: getattr(p, k)
+        for k in (
+            "preset", "body_model", "landmarks", "landmark_point_tokens", "landmark_refine",
+            "lift_steps", "lift_batch_size", "lift_lr",
+        )
+    }  # fmt: skip
+
+
+def _load_lifted(net: GSTNetwork, path: Path, settings: dict) -> LiftPretrainResult | None:
+    """The kept lifting of an interrupted run into `net` (None: none, or of other settings)."""
+    if not path.is_file():
+        return None
+    try:
+        kept = torch.load(path, map_location="cpu", weights_only=True)
+        if kept["settings"] != settings:
+            log.info("pretrain (lift): %s is of other settings; lifting again", path)
+            return None
+        net.load_state_dict(kept["model"])
+        return LiftPretrainResult(**kept["lift"])
+    except Exception as exc:  # unreadable (e.g. cut short): lift again
+        log.warning("pretrain (lift): cannot reuse %s (%s); lifting again", path, exc)
+        return None
+
+
+def _save_lifted(net: GSTNetwork, lift: LiftPretrainResult, path: Path, settings: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save({"settings": settings, "model": net.state_dict(), "lift": asdict(lift)}, tmp)
+    tmp.replace(path)  # whole or absent: a kill while saving leaves no half file
+
+
 def _pretrain_lift(
     p: PretrainConfig, work: Path, checkpoint: Path, reports: Path, map_fn, progress
 ) -> LiftPretrainSummary:
@@ -268,8 +302,19 @@ def _pretrain_lift(
     )
     with ThreadPoolExecutor(1, thread_name_prefix="pretrain-render") as pool:
         rendering = pool.submit(render_corpus, p, work, map_fn, None)
-        # pretrain.threads holds here too (the loop took the cores less one whatever was set)
-        lift = lift_phase(net, body, p.lift_steps, p.lift_batch_size, p.lift_lr, threads=p.threads)
+        # A finished lifting is kept in `work` (the stage's staging, kept by an interrupted
+        # run): a run killed in the renders, BlazePose or the rendered phase lifted again from
+        # scratch when resumed, though the rendered phase resumes from its own last.pt.
+        lifted = work / "models" / "pretrain_lift.pt"
+        lift = _load_lifted(net, lifted, _lift_settings(p))
+        if lift is None:
+            # pretrain.threads holds here too (the loop took the cores less one whatever was set)
+            lift = lift_phase(
+                net, body, p.lift_steps, p.lift_batch_size, p.lift_lr, threads=p.threads
+            )
+            _save_lifted(net, lift, lifted, _lift_settings(p))
+        else:
+            log.info("pretrain (lift): resuming with the finished lifting in %s", lifted)
         t_lift = time.perf_counter() - t0
         dirs = rendering.result()
     t_render = time.perf_counter() - t0
@@ -324,6 +369,7 @@ def _pretrain_lift(
     )
     shutil.rmtree(out)
     shutil.rmtree(work / "worlds")
+    lifted.unlink()
     return summary
 
 
