@@ -337,3 +337,18 @@ def test_a_resumed_lift_mode_keeps_its_finished_lifting(tmp_path, monkeypatch):
         recipe.pretrain(p.model_copy(update={"lift_steps": 3}), tmp_path, tmp_path / "p.pt",
                         tmp_path / "r")  # fmt: skip
     assert len(lifted) == 2
+
+
+def test_the_image_modes_step_count_and_rate_are_refused_in_lift_mode():
+    """`steps` and `lr` set the image modes' run; mode lift's rendered phase runs
+    `gaussian_steps` at `gaussian_lr` / `lift_body_lr`, so `steps: 2000` in mode lift was accepted
+    and did nothing (the tiny end-to-end config set `steps: 2` believing it shortened it)."""
+    from pydantic import ValidationError
+
+    from gst.train.pretrain import PretrainConfig
+
+    for field, value, instead in [("steps", 2000, "gaussian_steps"), ("lr", 1e-3, "gaussian_lr")]:
+        with pytest.raises(ValidationError, match=rf"{field} \(.*\) sets .* {instead}"):
+            PretrainConfig(mode="lift", **{field: value})
+        assert getattr(PretrainConfig(mode="3d", **{field: value}), field) == value
+    assert PretrainConfig().steps == 1000  # the defaults are not refused

@@ -15,7 +15,7 @@ TINY_CONFIG = """
       synth: {}
       calibrate: {needs: [synth], params: {synthetic_source: rig}}
       extract: {needs: [calibrate], params: {crop_size: 128, association_method: hull}}  # fast
-      pretrain: {params: {steps: 2, gaussian_steps: 2, batch_size: 2, worlds: 2, world_cameras: 3,
+      pretrain: {params: {gaussian_steps: 2, batch_size: 2, worlds: 2, world_cameras: 3,
                           world_frames: 3, world_people: 1, lift_steps: 20}}
       fuse: {needs: [extract]}
       train: {needs: [extract, pretrain, fuse], params: {steps: 2, batch_size: 2, num_targets: 2}}

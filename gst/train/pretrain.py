@@ -175,6 +175,15 @@ class PretrainConfig(BaseModel):
                 "'lift' cuts 256 px crops, the pipeline's, so that BlazePose reads them as in "
                 "extraction (leave crop_size out, or set mode: 3d)"
             )
+        for name, instead in (("steps", "gaussian_steps"), ("lr", "gaussian_lr")):
+            if self.mode == "lift" and name in self.model_fields_set:
+                # accepted and ignored: mode lift's rendered phase runs gaussian_steps at
+                # gaussian_lr (the Gaussian head) and lift_body_lr (the image path)
+                raise ValueError(
+                    f"{name} ({getattr(self, name)}) sets the run of modes '3d' and 'pretrain'; "
+                    f"mode 'lift' does not use it: its rendered phase takes {instead} (leave "
+                    f"{name} out, or set mode: 3d)"
+                )
         side = get_preset(self.preset).image_size[0]  # the network's input is side x (3/4 side)
         if self.mode in ("3d", "pretrain") and self.crop_size < side and not given:
             self.crop_size = side  # the default follows the preset (128: tiny's input)
