@@ -130,3 +130,31 @@ def test_world_settings_that_cannot_make_a_world_are_refused_by_name():
     # single views suffice where nothing multi-view runs
     assert Params(mode="3d", gaussian_steps=0, world_cameras=1).world_cameras == 1
     assert Params(world_seed=0, static_every=0).static_every == 0
+
+
+def test_a_kept_world_is_reused_only_when_it_is_that_world(tmp_path, monkeypatch):
+    """render_world kept any finished folder of the world's name: a work folder reused with
+    other settings (benchmarks/bench_flip_check_worlds.py renders into one with its own
+    `worlds`) trained on stale worlds, and with more worlds than before the old 'pretrain_val'
+    (seed world_seed + old worlds) was the new training world of that seed: the validation
+    world was a training world."""
+    import json
+    from pathlib import Path
+
+    import gst.train.pretrain as pretrain
+
+    rendered = []
+
+    def fake_render(spec, out):
+        rendered.append(spec.seed)
+        Path(out).mkdir(parents=True, exist_ok=True)
+        scene = {"format": "synth-scene", "spec": spec.model_dump(mode="json")}
+        (Path(out) / "scene.json").write_text(json.dumps(scene))
+
+    monkeypatch.setattr(pretrain, "render_scene", fake_render)
+    for worlds in (2, 2, 3):
+        pretrain.render_corpus(Params(worlds=worlds), tmp_path)
+    # 2 worlds + val; the same again: nothing; 3 worlds: the new world 2 and the new val
+    assert rendered == [1000, 1001, 1002, 1002, 1003]
+    val = json.loads((tmp_path / "worlds/pretrain_val/scene.json").read_text())
+    assert val["spec"]["seed"] == 1003

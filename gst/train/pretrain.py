@@ -250,9 +250,18 @@ def world_specs(p: PretrainConfig) -> list[dict]:
 
 
 def render_world(item: tuple[dict, str]) -> str:
-    """Render one corpus world (skipped when a finished one is there: the stage resumes)."""
+    """Render one corpus world (skipped when that world, finished, is there: the stage
+    resumes)."""
     spec, out = item
-    if not (Path(out) / "scene.json").is_file():
+    done = Path(out) / "scene.json"
+    # Kept only if it is this spec: a folder of the same name from other settings (a work
+    # folder reused with another `worlds`) was kept, and its old 'pretrain_val' could be a
+    # training world of the new corpus.
+    try:
+        same = done.is_file() and json.loads(done.read_text()).get("spec") == spec
+    except (OSError, ValueError, AttributeError):
+        same = False
+    if not same:
         render_scene(SceneSpec.model_validate(spec), Path(out))
     return out
 
