@@ -3,7 +3,7 @@ brute-force reference: CLEAR MOT matching (a person keeps their last track while
 the rest by the most pairs, then the largest IoU), id switches, fragments, MOTA, and IDF1 with
 its one-to-one id pairing found by trying every permutation. Plus the edge cases: no rows, no
 visible truth, one frame, a person never seen, strided frames, half visibility at 12 of 24
-joints."""
+joints, and a row whose joints are not finite."""
 
 import itertools
 import json
@@ -287,3 +287,23 @@ def test_half_visible_means_at_least_12_of_24_joints(tmp_path):
     ev = evaluate_tracks(path, scene, CAM)
     assert (ev.half_visible, ev.half_visible_matched) == (2, 1)
     assert ev.recall_half_visible == 0.5 and ev.recall == 0.25
+
+
+def test_a_row_with_non_finite_joints_is_counted_not_averaged_in(tmp_path):
+    """Four matched rows, one with a NaN elbow and all 10 cm off: that row's MPJPE and
+    PA-MPJPE are NaN. The pose means are over the other rows (0 mm) and the row is counted,
+    where one NaN row made the video's and the person's MPJPE NaN (null in the JSON, "n/a" in
+    the report, as if the video were uncalibrated). Its pelvis is finite: the root error keeps
+    it (100 mm over 4 rows = 25 mm mean)."""
+    scene = build_scene(tmp_path / "scene", {(f, 1): BOX_A for f in range(4)}, 4)
+    bad = JOINTS + [0.1, 0.0, 0.0]
+    bad[SMPL_JOINT_NAMES.index("left_elbow")] = np.nan
+    rows = [(f, 0, BOX_A, bad if f == 2 else JOINTS) for f in range(4)]
+    ev = evaluate_tracks(write_tracks(tmp_path / "t.parquet", rows, frames=4), scene, CAM)
+    assert ev.matches == 4 and ev.pose_not_finite == 1
+    assert ev.mpjpe_mm == pytest.approx(0.0, abs=1e-6)
+    assert ev.pa_mpjpe_mm == pytest.approx(0.0, abs=1e-3)
+    assert ev.mpjpe_mm_not_mirrored == pytest.approx(0.0, abs=1e-6)
+    assert ev.root_error_mm == pytest.approx(25.0) and ev.root_error_median_mm == pytest.approx(0)
+    assert ev.persons[0].mpjpe_mm == pytest.approx(0.0, abs=1e-6)
+    assert ev.persons[0].root_error_mm == pytest.approx(25.0)

@@ -177,6 +177,9 @@ class TrackEvaluation:
     # calibration), and the pelvis-aligned MPJPE over the other matched rows
     mirrored_rows: int = 0
     mpjpe_mm_not_mirrored: float | None = None
+    # matched rows with a non-finite pose error (NaN joints in the tracks file), left out of the
+    # pose means (each error keeps the rows where it is finite)
+    pose_not_finite: int = 0
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -209,8 +212,11 @@ def _processed_frames(meta: dict, truth_frames: np.ndarray) -> np.ndarray:
     return frames[np.isin(frames, truth_frames)]
 
 
-def _mean_mm(x: np.ndarray) -> float | None:
-    return float(np.mean(x) * 1000.0) if len(x) else None
+def _mean_mm(x: np.ndarray, reduce=np.mean) -> float | None:
+    # over the finite errors only: one row with NaN joints made the whole mean NaN (written as
+    # null, like an uncalibrated video); such rows are counted in `pose_not_finite` instead
+    x = x[np.isfinite(x)]
+    return float(reduce(x) * 1000.0) if len(x) else None
 
 
 def evaluate_tracks(
@@ -359,10 +365,11 @@ def evaluate_tracks(
         mpjpe_mm=_mean_mm(err["mpjpe"]),
         pa_mpjpe_mm=_mean_mm(err["pa"]),
         root_error_mm=_mean_mm(err["root"]),
-        root_error_median_mm=float(np.median(err["root"]) * 1000.0) if len(err["root"]) else None,
+        root_error_median_mm=_mean_mm(err["root"], np.median),
         persons=tuple(persons),
         mirrored_rows=int(mirrored.sum()),
         mpjpe_mm_not_mirrored=_mean_mm(err["mpjpe"][~mirrored]) if len(err["mpjpe"]) else None,
+        pose_not_finite=int((~np.isfinite(np.stack(list(err.values())))).any(0).sum()),
     )
 
 
