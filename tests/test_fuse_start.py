@@ -47,3 +47,27 @@ def test_landmarks_without_pixels_are_not_readable():
     assert p.readable
     p.uv[:] = np.nan
     assert not p.readable
+
+
+def test_single_view_start_straight_below_an_overhead_camera_is_a_rotation():
+    """A camera 6 m up looking straight down, the person's hips on its optical axis: the
+    horizontal direction towards the camera is zero, and the start's 'rotation' had a zero
+    column (det 0)."""
+    T, K = 2, np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
+    R = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # looks down -Z, image x along +X
+    pos = np.array([0.0, 0.0, 6.0])
+    uv = np.c_[np.full(33, 320.0), np.linspace(150, 330, 33)]
+    uv[23], uv[24] = (310.0, 240.0), (330.0, 240.0)  # hips about the principal point
+    p = PersonObservations(
+        3, np.arange(T), np.broadcast_to(uv, (T, 1, 33, 2)).copy(), np.ones((T, 1, 33)),
+        np.broadcast_to(K, (T, 1, 3, 3)).copy(),
+        np.broadcast_to(np.c_[R, -R @ pos], (T, 1, 3, 4)).copy(), np.ones((T, 1)),
+        np.zeros((T, 1), np.int64),
+    )  # fmt: skip
+    rest = np.random.default_rng(1).normal(0, 0.3, (33, 3))
+    Rs, c, _ = rigid_start(p, None, rest, np.zeros(3), 0.005)
+    assert np.isfinite(Rs).all() and np.isfinite(c).all()
+    np.testing.assert_allclose(np.linalg.det(Rs), 1.0, atol=1e-9)
+    np.testing.assert_allclose(
+        Rs @ Rs.transpose(0, 2, 1), np.broadcast_to(np.eye(3), Rs.shape), atol=1e-9
+    )

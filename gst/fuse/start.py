@@ -150,6 +150,11 @@ def _single_view_start(
         # body axes in world: up = the world's, forward = towards the camera (horizontal)
         to_cam = -Rc.T @ tc - c[i]
         fwd = to_cam - (to_cam @ up) * up
+        if np.linalg.norm(fwd) < 1e-6 * np.linalg.norm(to_cam):
+            # straight below the camera: "towards it" has no horizontal part, and the zero
+            # vector made no rotation; face the image's down direction instead
+            down = Rc.T @ np.array([0.0, 1.0, 0.0])
+            fwd = down - (down @ up) * up
         fwd /= np.linalg.norm(fwd) + 1e-9
         left = np.cross(up, fwd)
         R[i] = np.stack([left, up, fwd], 1)  # columns: model x, y, z in world
