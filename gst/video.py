@@ -51,6 +51,7 @@ __all__ = [
     "VideoTruncatedError",
     "check_videos",
     "content_digest",
+    "differing_rates",
     "file_identity",
     "frame_range",
     "iter_frames",
@@ -230,6 +231,19 @@ def probe_videos(videos: dict[str, Path], *, strict: bool = False) -> dict[str, 
     return infos
 
 
+FPS_TOLERANCE = 0.01  # relative: 59.94 and 60 frames/s are one rate
+
+
+def differing_rates(infos: dict[str, VideoInfo]) -> str | None:
+    """'c1: 60 (c1.mp4), c2: 50 (c2.mp4)' where the containers' frame rates differ by more than
+    FPS_TOLERANCE (a rate of 0, the container not saying, is left out); None where they agree.
+    Cameras are paired frame by frame: at different rates frame i is not one instant."""
+    rates = {n: i.fps for n, i in infos.items() if i.fps > 0}
+    if rates and max(rates.values()) > min(rates.values()) * (1 + FPS_TOLERANCE):
+        return ", ".join(f"{n}: {r:g} ({infos[n].path.name})" for n, r in rates.items())
+    return None
+
+
 def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str, VideoInfo]:
     """Probe every camera's video and check them against the rig and against each other.
 
@@ -252,9 +266,18 @@ def check_videos(videos: dict[str, Path], rig_names: Sequence[str]) -> dict[str,
     counts = {name: info.frames for name, info in infos.items()}
     if len(set(counts.values())) > 1:
         detail = ", ".join(f"{n}: {c} ({infos[n].path.name})" for n, c in counts.items())
+        # a 50 frames/s camera among 60 frames/s ones holds fewer frames over the same span: the
+        # rates are the cause, and a user who trimmed the videos to one length met them next
+        rates = differing_rates(infos)
+        also = (
+            f"; they also have different frame rates ({rates} frames/s), so frame i is not one "
+            "instant in every camera: record or re-encode them at one rate"
+            if rates
+            else ""
+        )
         raise VideoError(
             f"videos have different frame counts across cameras ({detail}); "
-            "expected synchronised videos of equal length"
+            f"expected synchronised videos of equal length{also}"
         )
     return infos
 

@@ -62,6 +62,7 @@ from gst.video import (
     VideoError,
     VideoInfo,
     check_videos,
+    differing_rates,
     file_identity,
     probe_video,
     scaled_size,
@@ -188,16 +189,12 @@ class PhaseOutcome:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-FPS_TOLERANCE = 0.01  # relative: 59.94 and 60 frames/s are one rate
-
-
 def _check_frame_rates(infos: dict[str, VideoInfo]) -> None:
     """Refuse videos whose containers give different frame rates: with equal frame counts they
     cover different spans of time, so frame i is not one instant in every camera (the first
     camera's rate timed them all, silently)."""
-    rates = {n: i.fps for n, i in infos.items() if i.fps > 0}  # 0: the container does not say
-    if rates and max(rates.values()) > min(rates.values()) * (1 + FPS_TOLERANCE):
-        detail = ", ".join(f"{n}: {r:g} ({infos[n].path.name})" for n, r in rates.items())
+    detail = differing_rates(infos)
+    if detail:
         raise VideoError(
             f"videos have different frame rates across cameras ({detail} frames/s); expected "
             "synchronised videos of one rate (where the headers are wrong, give the rate: "
