@@ -5,6 +5,7 @@ test_bad_input_corpus.py.)"""
 
 from __future__ import annotations
 
+import logging
 import re
 import textwrap
 from pathlib import Path
@@ -61,3 +62,16 @@ def test_cameras_at_different_rates_are_named_as_such(tmp_path, capsys):
     assert code == 1, err
     assert "different frame counts" in err
     assert re.search(r"different frame rates \(c1: 10 .*c2: 8\.33", err), err
+
+
+def test_a_scene_rate_over_headers_that_disagree_is_logged(tmp_path, capsys, caplog):
+    """`scenes.NAME.fps` times every camera at one rate; where the headers disagree (one camera
+    at 12 frames/s, the others at 10) frame i of every camera was taken for one instant without
+    a word."""
+    with caplog.at_level(logging.WARNING, logger="gst"):
+        code, err = _run(
+            tmp_path, capsys, {"c1": {}, "c2": {"fps": 12.0}, "c3": {}}, extra_scene="fps: 10"
+        )
+    assert code == 0, err
+    said = err + caplog.text
+    assert re.search(r"c2: 12.*scenes\.s\.fps|scene's 10 frames/s", said), said

@@ -229,6 +229,12 @@ def plan_extraction(
     infos = check_videos(videos, rig.names)
     if opts.fps is None:  # the scene's rate, when given, overrides headers not trusted
         _check_frame_rates(infos)
+    elif rates := differing_rates(infos):  # taken as wrong headers, but said: it may be a camera
+        log.warning(
+            "extract: the videos' headers give different frame rates (%s frames/s); every camera "
+            "is timed at the scene's %g frames/s (scenes.NAME.fps) and frame i is taken for one "
+            "instant in all of them", rates, float(opts.fps),
+        )  # fmt: skip
     names = [n for n in rig.names if n in videos]  # rig order
     rig, _ = fit_rig_to_frames(rig, infos, opts.frame_size_tolerance)
     n_frames = next(iter(infos.values())).frames
