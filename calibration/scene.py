@@ -25,7 +25,7 @@ from calibration.formats import read_rig, write_rig
 from calibration.report import write_calibration_report
 from calibration.solve import BoardCalibration, SolveOptions, calibrate_from_board
 from gst.atomic import atomic_write_json
-from gst.video import VideoError, probe_videos, read_frames
+from gst.video import VideoError, differing_rates, probe_video, probe_videos, read_frames
 
 log = logging.getLogger("calibration")
 
@@ -78,6 +78,27 @@ def first_frames(videos: dict[str, Path]) -> dict[str, np.ndarray]:
         except VideoError as exc:
             log.warning("calibration report: no overlay for camera '%s': %s", name, exc)
     return frames
+
+
+def _check_board_rates(sources: dict[str, Path], scene: str) -> None:
+    """Refuse board videos of different frame rates before detection: the solve pairs the
+    cameras' board views by frame index, so at another rate it paired views of different
+    instants (a wrong rig, or a failure deep in the solve naming a camera's focal length).
+    Image folders and files the probe cannot read are left to the detection."""
+    infos = {}
+    for name, path in sources.items():
+        if Path(path).is_file():
+            try:
+                infos[name] = probe_video(path, name, strict=True)
+            except VideoError:
+                continue
+    rates = differing_rates(infos)
+    if rates:
+        raise ValueError(
+            f"scene '{scene}': the board videos have different frame rates ({rates} frames/s); "
+            "the calibration pairs the cameras' board views by frame index, so it expects "
+            "synchronised board videos of one rate: record or re-encode them at one rate"
+        )
 
 
 def fit_rig_to_videos(
@@ -155,6 +176,7 @@ def calibrate_scene(
         rig = read_rig(file.path, file.format, **(file.options or {}))
         log.info("imported %d cameras from %s", len(rig), file.path)
     else:
+        _check_board_rates(footage.sources, scene)
         solved = calibrate_from_board(
             footage.sources,
             footage.board,

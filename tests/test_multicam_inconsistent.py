@@ -12,10 +12,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from calibration.formats import write_rig
 from pipeline.cli import main
-from tests.test_bad_input_corpus import H, W, _rig
+from tests.test_bad_input_corpus import CAMERAS, H, W, _rig
 
 
 def _video(path: Path, frames: int = 12, fps: float = 10.0) -> Path:
@@ -75,3 +76,18 @@ def test_a_scene_rate_over_headers_that_disagree_is_logged(tmp_path, capsys, cap
     assert code == 0, err
     said = err + caplog.text
     assert re.search(r"c2: 12.*scenes\.s\.fps|scene's 10 frames/s", said), said
+
+
+def test_board_footage_at_different_rates_is_refused_before_detection(tmp_path):
+    """Board clips are paired across cameras by frame index: a camera at another rate paired
+    views of different instants; the solve ended in "focal lengths must be positive" for that
+    camera (or a wrong rig), after detection and bundle adjustment."""
+    from calibration.board import BoardSpec
+    from calibration.scene import BoardFootage, calibrate_scene
+
+    clips = {n: _video(tmp_path / f"{n}.mp4", fps=12.0 if n == "c2" else 10.0) for n in CAMERAS}
+    board = BoardSpec("charuco", 5, 4, 0.1, 0.07, "DICT_5X5_100")
+    with pytest.raises(ValueError, match=r"board videos have different frame rates \(.*c2: 12 "):
+        calibrate_scene(
+            {}, tmp_path / "rig.json", tmp_path / "rep", footage=BoardFootage(clips, board)
+        )
