@@ -35,6 +35,56 @@ def _fixed(a: np.ndarray) -> pa.FixedSizeListArray:
     return pa.FixedSizeListArray.from_arrays(pa.array(a.reshape(-1)), a.shape[1])
 
 
+def write_truth_tables(d, people, views):
+    """The synthetic scene's truth tables (docs/formats/synth_scene.md) with what the track
+    evaluation reads: `people` [(frame, person, joints (24, 3))] into people.parquet, `views`
+    [(frame, person, box (4,) in pixel-centre edges, NaN: not seen; joints visible)] of CAM
+    into views.parquet (a seen view's mask area 4000 px, the rest of the format zeros)."""
+    (d / "truth").mkdir(parents=True)
+    n = len(people)
+    pq.write_table(
+        pa.table(
+            {
+                "frame": pa.array([r[0] for r in people], pa.int32()),
+                "person_id": pa.array([r[1] for r in people], pa.int16()),
+                "motion": ["walk"] * n,
+                "betas": _fixed(np.zeros((n, 10))),
+                "global_orient": _fixed(np.zeros((n, 3))),
+                "body_pose": _fixed(np.zeros((n, 69))),
+                "transl": _fixed(np.stack([r[2][0] for r in people])),
+                "joints3d": _fixed(np.stack([r[2] for r in people])),
+            },
+        ).replace_schema_metadata({"joint_names": json.dumps(list(SMPL_JOINT_NAMES))}),
+        d / "truth/people.parquet",
+    )
+    m = len(views)
+    b = np.array([v[2] for v in views], np.float32).reshape(m, 4)
+    seen = np.isfinite(b).all(1)
+    pq.write_table(
+        pa.table(
+            {
+                "frame": pa.array([v[0] for v in views], pa.int32()),
+                "person_id": pa.array([v[1] for v in views], pa.int16()),
+                "camera": [CAM] * m,
+                "x0": b[:, 0],
+                "y0": b[:, 1],
+                "x1": b[:, 2],
+                "y1": b[:, 3],
+                "mask_area": pa.array(np.where(seen, 4000, 0), pa.int32()),
+                "joints2d": _fixed(np.zeros((m, 48))),
+                "visible": pa.FixedSizeListArray.from_arrays(
+                    pa.array(np.concatenate([np.arange(24) < v[3] for v in views])), 24
+                ),
+                "full_x0": b[:, 0],
+                "full_y0": b[:, 1],
+                "full_x1": b[:, 2],
+                "full_y1": b[:, 3],
+            }
+        ),
+        d / "truth/views.parquet",
+    )
+
+
 def truth_scene(tmp_path, frames=N_FRAMES, hidden=frozenset()):
     """Two people 2 m apart walking along x; person k's box in CAM is 40 x 100 px, far apart.
     In the (frame, person) views of `hidden` only 6 of the 24 joints are visible."""
@@ -50,53 +100,8 @@ def truth_scene(tmp_path, frames=N_FRAMES, hidden=frozenset()):
             views.append(
                 (f, pid, (x0 - 0.5, 50 - 0.5, x0 + 40 - 0.5, 150 - 0.5))
             )  # pixel-centre edges
-    (tmp_path / "truth").mkdir(parents=True)
-    n = len(rows)
-    pq.write_table(
-        pa.table(
-            {
-                "frame": pa.array([r[0] for r in rows], pa.int32()),
-                "person_id": pa.array([r[1] for r in rows], pa.int16()),
-                "motion": ["walk"] * n,
-                "betas": _fixed(np.zeros((n, 10))),
-                "global_orient": _fixed(np.zeros((n, 3))),
-                "body_pose": _fixed(np.zeros((n, 69))),
-                "transl": _fixed(np.stack([r[2][0] for r in rows])),
-                "joints3d": _fixed(np.stack([r[2] for r in rows])),
-            },
-        ).replace_schema_metadata({"joint_names": json.dumps(list(SMPL_JOINT_NAMES))}),
-        tmp_path / "truth/people.parquet",
-    )
-    b = np.array([v[2] for v in views], np.float32)
-    pq.write_table(
-        pa.table(
-            {
-                "frame": pa.array([v[0] for v in views], pa.int32()),
-                "person_id": pa.array([v[1] for v in views], pa.int16()),
-                "camera": [CAM] * n,
-                "x0": b[:, 0],
-                "y0": b[:, 1],
-                "x1": b[:, 2],
-                "y1": b[:, 3],
-                "mask_area": pa.array([4000] * n, pa.int32()),
-                # the rest of the format (docs/formats/synth_scene.md), unused here
-                "joints2d": _fixed(np.zeros((n, 48))),
-                "visible": pa.FixedSizeListArray.from_arrays(
-                    pa.array(
-                        np.concatenate(
-                            [np.arange(24) < (6 if (v[0], v[1]) in hidden else 24) for v in views]
-                        )
-                    ),
-                    24,
-                ),
-                "full_x0": b[:, 0],
-                "full_y0": b[:, 1],
-                "full_x1": b[:, 2],
-                "full_y1": b[:, 3],
-            }
-        ),
-        tmp_path / "truth/views.parquet",
-    )
+    n_visible = [6 if (v[0], v[1]) in hidden else 24 for v in views]
+    write_truth_tables(tmp_path, rows, [(*v, k) for v, k in zip(views, n_visible, strict=True)])
     joints = {(r[0], r[1]): r[2] for r in rows}
     boxes = {(v[0], v[1]): np.array(v[2]) + 0.5 for v in views}  # corner convention
     return tmp_path, joints, boxes

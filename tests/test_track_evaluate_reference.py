@@ -9,10 +9,9 @@ import itertools
 import json
 
 import numpy as np
-import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from test_track_evaluate import CAM, _fixed, write_tracks
+from test_track_evaluate import CAM, write_tracks, write_truth_tables
 
 from gst.track.evaluate import evaluate_tracks
 from gst.track.evaluation_report import evaluation_markdown, write_evaluation_json
@@ -29,48 +28,12 @@ def build_scene(d, truth, n_frames, n_visible=None):
     n_visible = n_visible or {}
     pids = sorted({p for _, p in truth})
     rows = [(f, p) for f in range(n_frames) for p in pids]
-    n = len(rows)
-    (d / "truth").mkdir(parents=True)
-    pq.write_table(
-        pa.table(
-            {
-                "frame": pa.array([r[0] for r in rows], pa.int32()),
-                "person_id": pa.array([r[1] for r in rows], pa.int16()),
-                "motion": ["walk"] * n,
-                "betas": _fixed(np.zeros((n, 10))),
-                "global_orient": _fixed(np.zeros((n, 3))),
-                "body_pose": _fixed(np.zeros((n, 69))),
-                "transl": _fixed(np.zeros((n, 3))),
-                "joints3d": _fixed(np.repeat(JOINTS[None], n, 0)),
-            }
-        ).replace_schema_metadata({"joint_names": json.dumps(list(SMPL_JOINT_NAMES))}),
-        d / "truth/people.parquet",
-    )
     keys = sorted(truth)
-    m = len(keys)
-    b = np.array([truth[k] for k in keys], np.float32).reshape(m, 4) - 0.5  # pixel centres
-    seen = np.isfinite(b).all(1)
-    vis = np.concatenate([np.arange(24) < n_visible.get(k, 24) for k in keys])
-    pq.write_table(
-        pa.table(
-            {
-                "frame": pa.array([k[0] for k in keys], pa.int32()),
-                "person_id": pa.array([k[1] for k in keys], pa.int16()),
-                "camera": [CAM] * m,
-                "x0": b[:, 0],
-                "y0": b[:, 1],
-                "x1": b[:, 2],
-                "y1": b[:, 3],
-                "mask_area": pa.array(np.where(seen, 4000, 0), pa.int32()),
-                "joints2d": _fixed(np.zeros((m, 48))),
-                "visible": pa.FixedSizeListArray.from_arrays(pa.array(vis), 24),
-                "full_x0": b[:, 0],
-                "full_y0": b[:, 1],
-                "full_x1": b[:, 2],
-                "full_y1": b[:, 3],
-            }
-        ),
-        d / "truth/views.parquet",
+    write_truth_tables(
+        d,
+        [(f, p, JOINTS) for f, p in rows],
+        # truth boxes in corner convention; the tables' in pixel-centre edges
+        [(*k, np.asarray(truth[k], np.float32) - 0.5, n_visible.get(k, 24)) for k in keys],
     )
     return d
 
