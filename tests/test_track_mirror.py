@@ -149,6 +149,18 @@ def test_landmarks_without_a_position_are_not_compared():
         np.testing.assert_array_equal(lm, truth[i], err_msg=f"frame {i}")
 
 
+@pytest.mark.parametrize("n_flip", [15, 20])
+def test_a_frame_without_shoulders_neither_cuts_the_chain_nor_hides_the_next_flip(n_flip):
+    """Shoulders without a position (NaN) in one frame: its torso length was NaN, so nothing
+    linked to it (the person's chain restarted) and its step to the next frame carried no
+    evidence; a flip starting right after it (half a second or more) stayed exchanged."""
+    truth = walk(60, 30.0)
+    truth[22][[SHOULDER[0], SHOULDER[1]], :2] = np.nan
+    got = run([[lm] for lm in flipped(truth, set(range(23, 23 + n_flip)))])
+    for i, (lm,) in enumerate(got):
+        np.testing.assert_array_equal(lm, truth[i], err_msg=f"frame {i}")
+
+
 def test_people_without_landmarks_and_short_streams_pass_unchanged():
     smoother = LabelSmoother(MirrorConfig(), 1 / FPS)
     lm = walk(1, 0.0)[0]

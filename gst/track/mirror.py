@@ -65,15 +65,24 @@ def _torso(lm: np.ndarray) -> float:
     return float(np.linalg.norm(lm[_SHOULDERS, :2].mean(0) - lm[_HIPS, :2].mean(0)))
 
 
+def _scale(a: np.ndarray, b: np.ndarray) -> float:
+    """Torso length comparing frame a with frame b: a's, else b's where a has none (shoulders
+    without a position give NaN: one such frame cut the person's chain and hid the jump of a
+    flip starting right after it), NaN where neither has one."""
+    size = _torso(a)
+    return size if size > 1e-6 else _torso(b)
+
+
 def step_costs(a: np.ndarray, b: np.ndarray, config: MirrorConfig) -> tuple[float, float]:
     """(kept, exchanged): mean distance of the sure limb pairs from frame a's (33, 3) landmarks
     to frame b's, b's labels as given or exchanged, b moved by the sure pairs' mean shift (which
-    the labels do not change), in a's torso lengths. (0, 0) where fewer than `min_pairs` pairs are
-    sure on both sides or the torso is degenerate: no evidence either way."""
+    the labels do not change), in a's torso lengths (b's where a has none). (0, 0) where fewer
+    than `min_pairs` pairs are sure on both sides or neither torso has a length: no evidence
+    either way."""
     conf = np.minimum.reduce([a[_LEFT, 2], a[_RIGHT, 2], b[_LEFT, 2], b[_RIGHT, 2]])
     placed = np.isfinite(np.concatenate([a[_LEFT], a[_RIGHT], b[_LEFT], b[_RIGHT]], 1)).all(1)
     sure = placed & np.isfinite(conf) & (conf >= config.min_confidence)
-    size = _torso(a)
+    size = _scale(a, b)
     if int(sure.sum()) < config.min_pairs or not size > 1e-6:
         return 0.0, 0.0
     al, ar = a[_LEFT, :2][sure], a[_RIGHT, :2][sure]
@@ -134,8 +143,8 @@ def _link(chains: dict[int, _Chain], lms: list[np.ndarray | None], now: int, c: 
         cost = np.full((len(live), len(cand)), np.inf)
         for r, k in enumerate(live):
             prev = chains[k].last
-            size = max(_torso(prev), 1e-6)
             for col, i in enumerate(cand):
+                size = max(_scale(prev, lms[i]), 1e-6)  # NaN (neither has a torso): no link
                 d = np.linalg.norm(lms[i][_HIPS, :2].mean(0) - prev[_HIPS, :2].mean(0)) / size
                 if d <= c.link_torso:
                     cost[r, col] = d
