@@ -112,3 +112,17 @@ def test_rotations_stay_rotations_and_6d_round_trips():
         np.testing.assert_allclose(np.linalg.det(out["rotmats"]), 1.0, atol=1e-12)
     sm.retain(set())
     assert sm.filters == {}
+
+
+def test_a_sample_that_is_not_finite_passes_through_and_leaves_the_state_alone():
+    """One NaN sample made the state NaN, and every later output NaN, for good."""
+    cfg = OneEuroConfig(min_cutoff=1.0, beta=0.5, d_cutoff=1.0)
+    xs = [np.array([0.0, 1.0]), np.array([0.1, 1.2]), np.array([np.nan, 1.1]), np.array([0.3, 1.0])]
+    f, skip = OneEuroFilter(cfg), OneEuroFilter(cfg)
+    got = [f(x, t) for t, x in enumerate(xs)]
+    want = [skip(x, t) for t, x in enumerate(xs) if np.isfinite(x).all()]
+    assert np.isnan(got[2][0]) and got[2][1] == 1.1
+    np.testing.assert_array_equal(got[3], want[2])
+    g = OneEuroFilter(cfg)
+    g(np.array([np.nan, 0.0]), 0.0)
+    np.testing.assert_array_equal(g(np.array([2.0, 3.0]), 1.0), [2.0, 3.0])  # the first value

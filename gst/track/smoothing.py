@@ -6,7 +6,8 @@ For each scalar x sampled at time t (te = t - t_prev):
     dx_hat    = alpha(d_cutoff) dx + (1 - alpha(d_cutoff)) dx_hat_prev
     fc        = min_cutoff + beta |dx_hat|
     x_hat     = alpha(fc) x + (1 - alpha(fc)) x_hat_prev
-The first sample passes through. Slow motion gets the low `min_cutoff` (less jitter), fast motion
+The first sample, and any sample with a value that is not finite (the state untouched), passes
+through. Slow motion gets the low `min_cutoff` (less jitter), fast motion
 raises the cutoff (less lag). Rotations are filtered as their 6D form (the first two columns of
 the matrix) and mapped back by Gram-Schmidt, so the result is always a rotation.
 """
@@ -45,6 +46,10 @@ class OneEuroFilter:
 
     def __call__(self, x: np.ndarray, t: float) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64)
+        if not np.isfinite(x).all():
+            # no measurement: passed through, the state untouched (absorbed, one NaN made every
+            # later estimate NaN for as long as the filter lived)
+            return x.copy()
         if self.x_hat is None:
             self.x_hat, self.dx_hat, self.t_prev = x.copy(), np.zeros_like(x), float(t)
             return x.copy()
