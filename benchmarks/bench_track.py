@@ -120,8 +120,13 @@ def distorted_camera() -> Camera:
     return Camera.create("bench", K, [-0.15, 0.04, 0.0, 0.0, 0.0], np.eye(3), [0.0, 0.0, 0.0], W, H)
 
 
-def errors(path: Path, boxes: np.ndarray) -> tuple[int, float]:
+def errors(path: Path, boxes: np.ndarray) -> tuple[int, float] | str:
+    """(id switches, median pelvis offset px), or "no rows" when the variant tracked nobody
+    (the BlazePose detector on the synthetic walkers: the median of nothing printed nan and
+    0 switches, as if it had tracked them)."""
     t = read_tracks(path)
+    if t.num_rows == 0:
+        return "no rows"
     frames = t.column("frame").to_numpy()
     bb = column_array(t, "bbox")
     who = np.array(
@@ -204,7 +209,10 @@ def main() -> None:
 
         def row(name, seconds, err=None):
             fps = n / seconds
-            e = f"{err[0]:6d} {err[1]:9.3f}" if err else f"{'-':>6s} {'-':>9s}"
+            if isinstance(err, str):
+                e = f"{'-':>6s} {err:>9s}"
+            else:
+                e = f"{err[0]:6d} {err[1]:9.3f}" if err else f"{'-':>6s} {'-':>9s}"
             print(
                 f"{name:44s} {seconds:7.2f} {fps:9.1f} {fps / FPS:10.2f} {1000 * seconds / n:9.2f} "
                 f"{e}",
