@@ -136,8 +136,9 @@ def _param_lines(model, configured: dict, scenes: dict[str, dict] | None = None)
     for key, field in model.model_fields.items():
         t = field.annotation
         kind = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
-        # PositiveInt | None prints as Optional[Annotated[int, Gt(gt=0)]]: int | None
-        kind = re.sub(r"Annotated\[(\w+), [^\]]*\]", r"\1", kind)
+        # PositiveInt | None prints as Optional[Annotated[int, Gt(gt=0)]]: int | None (a
+        # Field(...) prints its metadata in brackets too: tuple[Annotated[float, Field(gt=5)], ...])
+        kind = re.sub(r"Annotated\[(\w+), (?:[^\[\]]|\[[^\[\]]*\])*\]", r"\1", kind)
         kind = re.sub(r"^Optional\[(.*)\]$", r"\1 | None", kind)
         default = field.get_default(call_default_factory=True)
         line = f"{key}: {kind} = {default!r}"
