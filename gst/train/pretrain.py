@@ -83,7 +83,8 @@ class PretrainConfig(BaseModel):
     # named as the pretrain setting (it was a ZeroDivisionError for world_rigs: [], numpy's
     # "expected non-negative integer" for a negative seed, SceneSpec's n_people / rig.fps /
     # rig.fov_deg for the others; static_every < 0 was taken as 0).
-    # world k has seed world_seed + k (the validation world: world_seed + worlds)
+
+    # world k has seed world_seed + k (the validation world: world_seed + worlds);
     world_seed: NonNegativeInt = (
         1000  # the pretraining worlds differ from every scene by construction
     )
@@ -92,7 +93,8 @@ class PretrainConfig(BaseModel):
         "dome",
         "h36m",
     ]  # cycled over the worlds
-    # cameras of each pretraining world (at least 2 where a multi-view phase runs: validator)
+    # cameras of each pretraining world (at least 2 where a multi-view phase runs: modes lift
+    # and pretrain, and 3d with gaussian_steps)
     world_cameras: Annotated[int, Field(ge=1, le=256)] = 6
     world_frames: PositiveInt = 40  # per world
     world_fps: Annotated[float, Field(gt=0, le=1000)] = (
@@ -142,9 +144,13 @@ class PretrainConfig(BaseModel):
     # the pose error does not teach them to shrink and fade (docs/training.md "Appearance on
     # the rig's body")
     appearance_on_truth: bool = True
-    steps: PositiveInt = 1000  # steps of the rendered modes ("3d", "pretrain")
+    # steps of the rendered modes ("3d", "pretrain"); refused in mode lift, whose rendered phase
+    # runs gaussian_steps
+    steps: PositiveInt = 1000
     batch_size: PositiveInt = 8  # crops per step of the rendered modes
-    lr: PositiveFloat = 5e-4  # learning rate of the rendered modes
+    # learning rate of the rendered modes ("3d", "pretrain"); refused in mode lift, whose
+    # rendered phase takes gaussian_lr and lift_body_lr
+    lr: PositiveFloat = 5e-4
     num_targets: PositiveInt = 3  # cameras each crop's Gaussians are rendered into per step
     render_size: PositiveInt = 64  # side (px) of those renders
     losses: LossWeights = LossWeights()  # loss weights (docs/training.md)
