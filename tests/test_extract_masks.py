@@ -58,6 +58,22 @@ def test_background_models_find_a_moving_object(method):
     assert np.mean(ious) > 0.85, (method, np.mean(ious))
 
 
+@pytest.mark.parametrize("method", ["median", "mog2", "knn"])
+@pytest.mark.parametrize("n", [3, 10])
+def test_background_models_learn_from_few_samples(method, n):
+    # A short clean plate (or clip) gives fewer samples than KNN keeps per pixel (20): trained
+    # on them once, KNN called the whole frame foreground, the empty scene included.
+    bg = _textured()
+    rng = np.random.default_rng(1)
+    plate = np.stack([np.clip(bg + rng.integers(-3, 4, bg.shape), 0, 255) for _ in range(n)])
+    model = build_background(plate.astype(np.uint8), BackgroundConfig(method=method))
+    empty = model.foreground(bg)
+    assert empty.mean() < 0.01, (method, n, empty.mean())
+    person = bg.copy()
+    person[10:50, 100:120] = (20, 200, 20)
+    assert model.foreground(person)[14:46, 104:116].mean() > 0.9
+
+
 def test_median_background_ignores_shadows_and_recovers_the_empty_scene():
     bg, frames, _ = _scene_frames()
     model = build_background(frames, BackgroundConfig())

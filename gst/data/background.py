@@ -149,6 +149,9 @@ def _channel_sum(img: np.ndarray) -> np.ndarray:
     return cv2.transform(img, np.ones((1, 3), np.float32))
 
 
+KNN_SAMPLES = 20  # samples per pixel the KNN subtractor keeps
+
+
 class OpenCVBackground:
     """cv2 MOG2 or KNN subtractor with shadow detection, trained on the samples then frozen."""
 
@@ -157,6 +160,11 @@ class OpenCVBackground:
     ):
         self.config = config
         n = len(samples)
+        if config.method == "knn":
+            # KNN keeps KNN_SAMPLES per pixel and fills them over the frames it is fed: fewer
+            # frames (a short clean plate or clip) left them unfilled and every pixel foreground.
+            # Feed the samples cyclically up to that count (unchanged from KNN_SAMPLES on).
+            n = max(n, KNN_SAMPLES)
         if config.method == "mog2":
             self.sub = cv2.createBackgroundSubtractorMOG2(
                 history=n, varThreshold=config.mog2_var_threshold, detectShadows=True
@@ -169,7 +177,7 @@ class OpenCVBackground:
                 history=n, dist2Threshold=config.knn_dist2_threshold, detectShadows=True
             )
             # Same idea for KNN: keep more samples per pixel and ask more of them to agree.
-            self.sub.setNSamples(20)
+            self.sub.setNSamples(KNN_SAMPLES)
             self.sub.setkNNSamples(6)
         self.sub.setShadowThreshold(float(config.shadow_ratio[0]))
         cv2.setRNGSeed(0)  # KNN samples at random: make runs repeatable
@@ -177,8 +185,8 @@ class OpenCVBackground:
         # (the best single guess of the empty scene) rather than from whoever is in frame 0.
         median = temporal_median(samples) if median is None else median
         self.sub.apply(np.ascontiguousarray(median), learningRate=1.0)
-        for frame in samples:
-            self.sub.apply(frame, learningRate=-1)
+        for i in range(n):
+            self.sub.apply(samples[i % len(samples)], learningRate=-1)
 
     def foreground(self, frame: np.ndarray) -> np.ndarray:
         # 255 = foreground, 127 = shadow, 0 = background; the model stays frozen.
