@@ -189,3 +189,32 @@ def test_the_grid_maps_agree_with_the_exact_ones_for_a_skewed_lens():
     grid = crop_maps(cam, box, 128, grid_step=8)
     for a, b in zip(exact, grid, strict=True):
         assert np.abs(a - b).max() < 0.05
+
+
+def test_crop_of_a_strongly_distorted_camera_is_zero_beyond_the_lens_fold():
+    # k1 = -0.4 alone: the distorted radius r (1 - 0.4 r^2) peaks at r = 0.91 and falls after,
+    # so rays beyond it project back into the image. A person at the right edge gets a crop
+    # box reaching past that radius; its pixels there showed a mirrored copy of the frame
+    # (and of the mask) instead of nothing.
+    from gst.data.extract.crops import crop_person
+
+    w, h = 640, 480
+    cam = Camera.create(
+        "c", [[500, 0, 320], [0, 500, 240], [0, 0, 1]], [-0.4, 0, 0, 0], np.eye(3), [0, 0, 0], w, h
+    )
+    frame = np.full((h, w, 3), 200, np.uint8)
+    mask = np.zeros((h, w), bool)
+    mask[150:330, 560:620] = True
+    S = 128
+    image, crop_mask, Kc, _, _ = crop_person(frame, mask, cam, S, 1.2)
+    # each crop pixel's ray, and whether the lens model gives that ray back from its pixel
+    v, u = np.mgrid[0:S, 0:S].astype(np.float64)
+    rays = np.stack([(u - Kc[0, 2]) / Kc[0, 0], (v - Kc[1, 2]) / Kc[1, 1]], -1).reshape(-1, 2)
+    back = cam.undistort_points(cam.project_normalised(rays))
+    beyond = (np.linalg.norm(back - rays, axis=1) > 1e-3).reshape(S, S)
+    assert beyond.sum() > 1000  # the case is exercised
+    assert not image[beyond].any()
+    assert not crop_mask[beyond].any()
+    # the rays within the lens field are untouched (all of the frame is 200 there)
+    inner = ~beyond & (np.hypot(*rays.T) < 0.85).reshape(S, S)
+    assert inner.sum() > 1000 and (image[inner] == 200).all()

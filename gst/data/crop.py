@@ -215,6 +215,18 @@ def crop_maps(
     return mapx, mapy
 
 
+def folded_pixels(mapx: np.ndarray, mapy: np.ndarray) -> np.ndarray:
+    """(S, S) bool: crop pixels whose rays lie beyond the radius where the lens model folds
+    (a strong barrel polynomial's distorted radius peaks, then shrinks). It maps them back into
+    the image onto pixels that nearer rays own, so they would show a mirrored copy of the frame
+    instead of nothing; there the map reverses orientation (Jacobian determinant <= 0)."""
+    if min(mapx.shape) < 2:
+        return np.zeros(mapx.shape, bool)
+    dxdv, dxdu = np.gradient(mapx.astype(np.float64))
+    dydv, dydu = np.gradient(mapy.astype(np.float64))
+    return ~(dxdu * dydv - dxdv * dydu > 0)  # NaN maps count as folded
+
+
 ANTIALIAS = ("gaussian", "pyramid")
 
 

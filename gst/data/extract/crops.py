@@ -16,6 +16,7 @@ from calibration.camera import FIELD_MARGIN
 from gst.data.crop import (
     crop_intrinsics,
     crop_maps,
+    folded_pixels,
     hmr_crop_box,
     mask_outline_full_res,
     resample,
@@ -144,6 +145,11 @@ def crop_person(
     mmy = (mapy + 0.5) * np.float32(sy) - 0.5
     mask = resample(person_mask.astype(np.float32), mmx, mmy, shrink * min(sx, sy))
     mask = np.clip(mask * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    # Rays beyond the lens model's fold see nothing (the polynomial maps them back inside).
+    folded = folded_pixels(mapx, mapy)
+    if folded.any():
+        image[folded] = 0
+        mask[folded] = 0
     return image, mask, crop_intrinsics(camera.K, cbox, crop_size), box, cbox.as_array()
 
 
