@@ -372,7 +372,7 @@ def frame_range(
         if value is not None and not math.isfinite(value):
             raise ValueError(
                 f"{info.path}: time range {name} must be a finite number of seconds or None "
-                f"(to the {'start' if name == 'start' else 'end'} of the video), got {value}"
+                f"(to the {name} of the video), got {value}"
             )
     eps = 1e-9
     first = 0 if start_s is None else max(0, math.ceil(start_s * info.fps - eps))

@@ -21,7 +21,6 @@ pixels; a crop that no extraction crop matches has none (confidence 0, `landmark
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -222,10 +221,7 @@ def _finite_bodies(bodies: FusedBodies) -> tuple[FusedBodies, int]:
     ok = np.all([np.isfinite(a).reshape(len(bodies), -1).all(1) for a in params], axis=0)
     if ok.all():
         return bodies, 0
-    per_row = ("person_id", "frame", "joints", "global_orient", "body_pose", "betas", "transl",
-               "joint_views", "gap_filled", "observed", "single_view")  # fmt: skip
-    kept = {k: getattr(bodies, k)[ok] for k in per_row}
-    return dataclasses.replace(bodies, **kept), int(np.count_nonzero(~ok))
+    return bodies.select(ok), int(np.count_nonzero(~ok))
 
 
 @torch.no_grad()

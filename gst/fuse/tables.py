@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -366,6 +366,12 @@ class FusedBodies:
 
     def __len__(self) -> int:
         return len(self.frame)
+
+    def select(self, keep: np.ndarray) -> FusedBodies:
+        """The rows where `keep` (a bool mask or row indices), the file-wide fields as they are."""
+        per_row = ("person_id", "frame", "joints", "global_orient", "body_pose", "betas", "transl",
+                   "joint_views", "gap_filled", "observed", "single_view")  # fmt: skip
+        return replace(self, **{k: getattr(self, k)[keep] for k in per_row})
 
 
 def read_fused_bodies(path: str | Path) -> FusedBodies:

@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from gst.atomic import atomic_torch_save
 from gst.body import BodyModel, load_body_model
 from gst.detect.crops import detect_crop_landmarks
 from gst.device import resolve_device
@@ -284,9 +285,7 @@ def _load_lifted(net: GSTNetwork, path: Path, settings: dict) -> LiftPretrainRes
 
 def _save_lifted(net: GSTNetwork, lift: LiftPretrainResult, path: Path, settings: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save({"settings": settings, "model": net.state_dict(), "lift": asdict(lift)}, tmp)
-    tmp.replace(path)  # whole or absent: a kill while saving leaves no half file
+    atomic_torch_save({"settings": settings, "model": net.state_dict(), "lift": asdict(lift)}, path)
 
 
 def _pretrain_lift(

@@ -212,7 +212,7 @@ def _processed_frames(meta: dict, truth_frames: np.ndarray) -> np.ndarray:
     return frames[np.isin(frames, truth_frames)]
 
 
-def _mean_mm(x: np.ndarray, reduce=np.mean) -> float | None:
+def _finite_mm(x: np.ndarray, reduce=np.mean) -> float | None:
     # over the finite errors only: one row with NaN joints made the whole mean NaN (written as
     # null, like an uncalibrated video); such rows are counted in `pose_not_finite` instead
     x = x[np.isfinite(x)]
@@ -324,9 +324,9 @@ def evaluate_tracks(
                 track_ids=seen,
                 id_switches=switches,
                 fragments=fragments,
-                mpjpe_mm=_mean_mm(err["mpjpe"][mine]) if len(err["mpjpe"]) else None,
-                pa_mpjpe_mm=_mean_mm(err["pa"][mine]) if len(err["pa"]) else None,
-                root_error_mm=_mean_mm(err["root"][mine]) if len(err["root"]) else None,
+                mpjpe_mm=_finite_mm(err["mpjpe"][mine]) if len(err["mpjpe"]) else None,
+                pa_mpjpe_mm=_finite_mm(err["pa"][mine]) if len(err["pa"]) else None,
+                root_error_mm=_finite_mm(err["root"][mine]) if len(err["root"]) else None,
             )
         )
 
@@ -362,13 +362,13 @@ def evaluate_tracks(
         ),
         track_ids=len(np.unique(t_pid)),
         joints_frame=joints_frame,
-        mpjpe_mm=_mean_mm(err["mpjpe"]),
-        pa_mpjpe_mm=_mean_mm(err["pa"]),
-        root_error_mm=_mean_mm(err["root"]),
-        root_error_median_mm=_mean_mm(err["root"], np.median),
+        mpjpe_mm=_finite_mm(err["mpjpe"]),
+        pa_mpjpe_mm=_finite_mm(err["pa"]),
+        root_error_mm=_finite_mm(err["root"]),
+        root_error_median_mm=_finite_mm(err["root"], np.median),
         persons=tuple(persons),
         mirrored_rows=int(mirrored.sum()),
-        mpjpe_mm_not_mirrored=_mean_mm(err["mpjpe"][~mirrored]) if len(err["mpjpe"]) else None,
+        mpjpe_mm_not_mirrored=_finite_mm(err["mpjpe"][~mirrored]) if len(err["mpjpe"]) else None,
         pose_not_finite=int((~np.isfinite(np.stack(list(err.values())))).any(0).sum()),
     )
 
