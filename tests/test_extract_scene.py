@@ -414,6 +414,32 @@ def test_a_camera_whose_container_gives_no_rate_takes_the_others(short_scene, tm
     assert plan.fps == 30.0  # no camera says: assumed
 
 
+@pytest.mark.parametrize("scene_fps", [None, 25.0])
+def test_no_rate_anywhere_is_said_at_extraction(
+    short_scene, tmp_path, monkeypatch, caplog, scene_fps
+):
+    """Extraction times its tracker at 30 frames/s when no header gives a rate, but fuse refuses
+    such a scene: the warning names the cameras and the setting, unless the scene gives it."""
+    real = scene_phase.check_videos
+
+    def rateless(videos, names):
+        return {n: replace(i, fps=0.0) for n, i in real(videos, names).items()}
+
+    monkeypatch.setattr(scene_phase, "check_videos", rateless)
+    with caplog.at_level("WARNING", logger=scene_phase.log.name):
+        plan = scene_phase.plan_extraction(
+            short_scene.videos, short_scene.rig, tmp_path / "crops.h5", crop_size=64,
+            scale=1.2, frame_stride=1, method="median", external=None, truth=None,
+            options=_opts(fps=scene_fps),
+        )  # fmt: skip
+    said = [r.getMessage() for r in caplog.records if "no video header" in r.getMessage()]
+    if scene_fps is None:
+        assert plan.fps == 30.0 and len(said) == 1
+        assert "scenes.NAME.fps" in said[0] and all(n in said[0] for n in plan.names)
+    else:
+        assert plan.fps == 25.0 and not said
+
+
 def test_decode_failure_mid_run_leaves_store_incomplete(short_scene, tmp_path, monkeypatch):
     real = crops_phase.read_frames
 

@@ -235,6 +235,14 @@ def plan_extraction(
             "is timed at the scene's %g frames/s (scenes.NAME.fps) and frame i is taken for one "
             "instant in all of them", rates, float(opts.fps),
         )  # fmt: skip
+    if opts.fps is None and not any(i.fps > 0 for i in infos.values()):
+        # Said here, at the first stage: fuse (TRC/C3D rates, its temporal prior) refuses a
+        # capture with no known rate, so a user learns of it before a long extraction, not after.
+        log.warning(
+            "extract: no video header gives a frame rate (%s); the person tracker is timed at "
+            "30 frames/s, and the fuse stage will refuse the scene: give its rate "
+            "(scenes.NAME.fps)", ", ".join(sorted(infos)),
+        )  # fmt: skip
     names = [n for n in rig.names if n in videos]  # rig order
     rig, _ = fit_rig_to_frames(rig, infos, opts.frame_size_tolerance)
     n_frames = next(iter(infos.values())).frames
